@@ -1,0 +1,5 @@
+import sys
+
+from icefab.cli import main
+
+sys.exit(main())

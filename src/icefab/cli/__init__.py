@@ -1,0 +1,64 @@
+"""The ``icefab`` command.
+
+Each subcommand lives in its own module ``icefab.cli.<name>`` and exposes
+``add_parser(subparsers)`` that registers it and sets ``func(args) -> int``. This module
+is the only place that prints errors and chooses exit codes: an ``IcefabError`` becomes one
+line on stderr and exit status 2; Ctrl-C exits with 130.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+from icefab.errors import IcefabError
+
+# Subcommand modules, in the order shown by --help. A module that does not exist yet is
+# skipped so the command keeps working while stages are added.
+SUBCOMMANDS = ("demo", "slice", "paths", "plan", "valves", "simulate", "tune", "build",
+               "export", "report")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="icefab",
+        description="Turn a CAD mesh into a robotic rapid-freeze-prototyping build.")
+    parser.add_argument("-v", "--verbose", action="store_true", help="log debug details")
+    parser.add_argument("--version", action="version", version=f"icefab {_version()}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for name in SUBCOMMANDS:
+        try:
+            module = importlib.import_module(f"icefab.cli.{name}_cmd")
+        except ModuleNotFoundError as exc:
+            if exc.name == f"icefab.cli.{name}_cmd":
+                continue
+            raise
+        module.add_parser(sub)
+    return parser
+
+
+def _version() -> str:
+    from icefab import __version__
+    return __version__
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
+                        format="%(levelname)s: %(message)s")
+    try:
+        return int(args.func(args) or 0)
+    except IcefabError as exc:
+        print(f"icefab {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"icefab {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

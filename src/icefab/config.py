@@ -1,0 +1,720 @@
+"""The job: every setting of a build, with the Cobra 600 RFP cell defaults.
+
+This module is the single source of defaults (thesis Ch. 2-6, DESIGN.md). A ``Job`` is a
+frozen dataclass of sections; each section is a frozen dataclass whose fields carry their
+unit in the name where it could be read two ways, and a range in their metadata. A job is
+validated when it is built, whether from Python, from TOML (:func:`load_job`) or from the
+thesis' legacy control-parameter text file (:func:`load_legacy_control`).
+
+TOML layout: one table per section, named like the ``Job`` attributes::
+
+    [slicing]
+    layer_thickness_mm = 0.25
+
+    [materials.part]
+    initial_offset_mm = 0.6
+
+Unknown tables or keys, wrong types and out-of-range values raise :class:`ConfigError`
+naming the file, line, setting, value and what was expected.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+import tomllib
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path as FsPath
+from typing import Any
+
+from icefab.errors import ConfigError
+
+Vec2 = tuple[float, float]
+Vec3 = tuple[float, float, float]
+
+
+def setting(default: Any, help: str, *, lo: float | None = None, hi: float | None = None,
+            lo_open: bool = False, choices: tuple[str, ...] | None = None) -> Any:
+    """A dataclass field with a description and an allowed range.
+
+    lo/hi bound the value (every element for tuples); ``lo_open`` makes ``lo`` exclusive.
+    """
+    meta = {"help": help, "lo": lo, "hi": hi, "lo_open": lo_open, "choices": choices}
+    if isinstance(default, (list, dict)):
+        raise TypeError("use tuples for defaults")
+    return field(default=default, metadata=meta)
+
+
+# --------------------------------------------------------------------------- sections
+
+
+@dataclass(frozen=True)
+class PartSetup:
+    """Mesh files and their placement (thesis 3.1.2, Table 3-1)."""
+
+    files: tuple[str, ...] = setting((), "mesh files (STL, PLY, OBJ) merged into one build")
+    inexact: bool = setting(False, "weld vertices within weld_tolerance_mm instead of exactly "
+                                   "(thesis 'inexact' option)")
+    weld_tolerance_mm: float = setting(1e-4, "tolerance for inexact welding and point "
+                                             "comparison", lo=0.0, lo_open=True)
+    scale: Vec3 = setting((1.0, 1.0, 1.0), "scaling factors along x, y, z", lo=0.0, lo_open=True)
+    rotation_deg: Vec3 = setting((0.0, 0.0, 0.0), "rotations about the space-fixed x, y, z axes")
+    rotation_order: tuple[int, int, int] = setting((1, 2, 3), "order of the rotations (axes 1-3)",
+                                                   lo=1, hi=3)
+    translation: tuple[float | str, float | str, float | str] = setting(
+        ("cent", "cent", 0.0),
+        "per axis: a number is the part's minimum coordinate (mm), 'cent' centres it on 0, "
+        "'orig' keeps the original position")
+    copies: tuple[int, int, int] = setting((1, 1, 1), "p1 x p2 grid of copies, p3 copies in all",
+                                           lo=1)
+    copy_gap_mm: float = setting(10.0, "gap between part copies in the grid", lo=0.0)
+    part_fraction: Vec2 = setting((0.0, 1.0), "[min, max] fraction of the part height to slice",
+                                  lo=0.0, hi=1.0)
+
+
+@dataclass(frozen=True)
+class SlicingSettings:
+    """Layer planes, contour linking and the path filter (thesis 3.2, Ossino 2)."""
+
+    layer_thickness_mm: float = setting(0.25, "layer (slice) thickness", lo=0.0, lo_open=True)
+    cut_fraction: float = setting(0.5, "where inside each layer the cutting plane lies: 0 "
+                                       "bottom, 0.5 middle, 1 top", lo=0.0, hi=1.0)
+    mode: str = setting("3d", "'3d' slices every layer; '2d' slices once and copies the "
+                              "contour to all layers (thesis slicing option 3)",
+                        choices=("3d", "2d"))
+    min_point_spacing_mm: float = setting(0.4, "path filter: minimum distance between "
+                                               "consecutive contour points", lo=0.0)
+    max_filter_deviation_mm: float = setting(0.05, "path filter: largest distance a removed "
+                                                   "point may lie from the filtered contour",
+                                             lo=0.0)
+    open_contours: str = setting("close", "open chains that cannot be linked: 'close' joins "
+                                          "their ends (reported), 'drop' removes them "
+                                          "(reported)", choices=("close", "drop"))
+    max_gap_mm: float = setting(2.0, "longest gap an open chain may be closed across before "
+                                     "it is dropped", lo=0.0)
+
+
+@dataclass(frozen=True)
+class ScaffoldSettings:
+    """Scaffold (support) regions (thesis 3.3, 3.7; Ossino 4)."""
+
+    enabled: bool = setting(True, "generate scaffolding")
+    buffer_mm: float = setting(3.3, "how far the scaffold surrounds the merged part region "
+                                    "(0: classic support only under what is above)", lo=0.0)
+    mode: str = setting("surround", "'surround': full scaffold around everything above; "
+                                    "'overhang': only under overhangs steeper than "
+                                    "overhang_angle_deg", choices=("surround", "overhang"))
+    overhang_angle_deg: float = setting(45.0, "limiting overhang angle from vertical "
+                                              "(overhang mode)", lo=0.0, hi=90.0)
+    subset: Vec2 = setting((0.0, 1.0), "[min, max] fraction of the height that gets scaffold",
+                           lo=0.0, hi=1.0)
+    min_width_mm: float = setting(1.5, "scaffold pieces narrower than this are removed or "
+                                       "merged", lo=0.0)
+    hook_wall: bool = setting(False, "ice hook wall: outer scaffold paths of the first layers "
+                                     "become part paths (thesis 3.7, Fig. 3-8)")
+
+
+@dataclass(frozen=True)
+class MaterialSettings:
+    """Deposition settings of one material (thesis Table 3-1, 3.4-3.5)."""
+
+    path_width_mm: float = setting(1.5, "boundary path width", lo=0.0, lo_open=True)
+    fill_width_mm: float = setting(3.0, "fill path width (spacing of fill paths)", lo=0.0,
+                                   lo_open=True)
+    initial_offset_mm: float = setting(0.6, "inward offset of the first boundary path from "
+                                            "the region edge", lo=0.0)
+    boundary_count: int = setting(1, "number of boundary paths", lo=0)
+    fill_pattern: str = setting("concentric", "fill: 'concentric', 'zigzag', 'raster' "
+                                              "(unlinked), 'hybrid' (rings then zigzag), "
+                                              "'none'",
+                                choices=("concentric", "zigzag", "raster", "hybrid", "none"))
+    fill_angle_deg: float = setting(0.0, "raster angle for zigzag/raster fill; hybrid "
+                                         "chooses its own")
+    hybrid_rings: int = setting(2, "contour rings before zigzag in hybrid fill", lo=0)
+    hybrid_angle_step_deg: float = setting(15.0, "step of the raster angles compared in "
+                                                 "hybrid fill", lo=0.0, lo_open=True, hi=90.0)
+    nozzle_offset_mm: Vec2 = setting((-0.1, -0.3), "origin of this material's building frame "
+                                                   "in the end-effector frame")
+    calibration_file: str = setting("", "CSV of valve frequency (Hz) vs flow (mm^3/s); empty: "
+                                        "built-in table")
+
+
+def _part_material() -> MaterialSettings:
+    return MaterialSettings()
+
+
+def _scaffold_material() -> MaterialSettings:
+    return MaterialSettings(initial_offset_mm=1.2, nozzle_offset_mm=(0.2, 8.2))
+
+
+@dataclass(frozen=True)
+class Materials:
+    """Per-material settings: 'part' (water) and 'scaffold'."""
+
+    part: MaterialSettings = field(default_factory=_part_material)
+    scaffold: MaterialSettings = field(default_factory=_scaffold_material)
+    order: tuple[str, ...] = setting(("part:boundary", "part:fill", "scaffold:boundary",
+                                      "scaffold:fill"),
+                                     "deposition order within a layer")
+
+    def __getitem__(self, material: str) -> MaterialSettings:
+        if material not in ("part", "scaffold"):
+            raise ConfigError(f"unknown material {material!r}: expected 'part' or 'scaffold'")
+        return getattr(self, material)
+
+
+@dataclass(frozen=True)
+class CellSettings:
+    """The robot cell: kinematics, joint ranges and reference frames (thesis Ch. 2, 4.2)."""
+
+    robot: str = setting("scara", "kinematics: 'scara' or 'gantry'", choices=("scara", "gantry"))
+    l1_mm: float = setting(325.0, "SCARA inner link length", lo=0.0, lo_open=True)
+    l2_mm: float = setting(275.0, "SCARA outer link length", lo=0.0, lo_open=True)
+    reach_mm: Vec2 = setting((163.0, 600.0), "[min, max] radial reach of the SCARA", lo=0.0)
+    joint_range_deg: Vec2 = setting((105.0, 150.0), "SCARA joint 1 and 2 ranges (+/-)",
+                                    lo=0.0, lo_open=True)
+    elbow: str = setting("right", "SCARA elbow configuration", choices=("right", "left"))
+    gantry_travel_mm: Vec2 = setting((300.0, 300.0), "gantry x and y travel (from 0)",
+                                     lo=0.0, lo_open=True)
+    ee_origin_mm: Vec2 = setting((260.0, -100.0), "end-effector frame origin in the robot base "
+                                                  "frame when building (part origin)")
+    laser_offset_mm: Vec2 = setting((-30.0, 19.0), "laser measurement frame origin in the "
+                                                   "end-effector frame")
+    encoder_resolution_deg: float = setting(0.001, "joint encoder resolution", lo=0.0)
+    cpus: int = setting(0, "worker processes for parallel stages (0: all cores)", lo=0)
+
+
+@dataclass(frozen=True)
+class MotionSettings:
+    """Minimum-time trajectory shaping limits (thesis Ch. 4, eq. 4.10)."""
+
+    dt_s: float = setting(0.016, "output time step", lo=0.0, lo_open=True)
+    speed_mm_s: float = setting(125.0, "Cartesian speed bound", lo=0.0, lo_open=True)
+    accel_mm_s2: float = setting(500.0, "total Cartesian acceleration bound", lo=0.0,
+                                 lo_open=True)
+    jerk_mm_s3: float = setting(4000.0, "Cartesian jerk bound", lo=0.0, lo_open=True)
+    jerk_limited: bool = setting(True, "apply jerk bounds (off: compare with TOPP-RA)")
+    joint_speed_deg_s: Vec2 = setting((33.0, 39.0), "joint 1, 2 speed bounds", lo=0.0,
+                                      lo_open=True)
+    joint_accel_deg_s2: Vec2 = setting((165.0, 195.0), "joint 1, 2 acceleration bounds",
+                                       lo=0.0, lo_open=True)
+    joint_jerk_deg_s3: Vec2 = setting((1320.0, 1560.0), "joint 1, 2 jerk bounds", lo=0.0,
+                                      lo_open=True)
+    gantry_speed_mm_s: Vec2 = setting((250.0, 250.0), "gantry x, y axis speed bounds", lo=0.0,
+                                      lo_open=True)
+    gantry_accel_mm_s2: Vec2 = setting((2000.0, 2000.0), "gantry x, y axis acceleration bounds",
+                                       lo=0.0, lo_open=True)
+    gantry_jerk_mm_s3: Vec2 = setting((20000.0, 20000.0), "gantry x, y axis jerk bounds",
+                                      lo=0.0, lo_open=True)
+    smooth_angle_deg: float = setting(30.0, "direction change above which a path is split "
+                                            "and the robot stops (PATHSPLIT)", lo=0.0,
+                                      lo_open=True, hi=180.0)
+    point_spacing_mm: float = setting(0.4, "resampling spacing of split pieces", lo=0.0,
+                                      lo_open=True)
+    smoothing_tolerance_mm: float = setting(0.0, "optional path smoothing within this "
+                                                 "tolerance (0: off)", lo=0.0)
+    measure_speed_mm_s: float = setting(50.0, "speed along measurement paths", lo=0.0,
+                                        lo_open=True)
+    travel_speed_mm_s: float = setting(125.0, "speed of travel moves", lo=0.0, lo_open=True)
+    boundary_speed_mm_s: float = setting(25.0, "constant speed of boundary paths in the "
+                                               "constant-speed estimate", lo=0.0, lo_open=True)
+    fill_speed_mm_s: float = setting(125.0, "constant speed of fill paths in the "
+                                            "constant-speed estimate", lo=0.0, lo_open=True)
+    savgol_window: int = setting(7, "Savitzky-Golay window for joint vectors (odd, 0: off)",
+                                 lo=0)
+
+
+@dataclass(frozen=True)
+class FlowSettings:
+    """Variable-flow valve control (thesis Ch. 6, 2.3.1)."""
+
+    mode: str = setting("fm", "'fm' frequency modulation or 'pwm'", choices=("fm", "pwm"))
+    tick_s: float = setting(0.002, "microcontroller tick", lo=0.0, lo_open=True)
+    max_piece_s: float = setting(131.072, "longest program piece (uint16 ticks)", lo=0.0,
+                                 lo_open=True)
+    max_pulses: int = setting(16384, "most pulses in one program piece", lo=1)
+    max_frequency_hz: float = setting(1000.0, "highest valve frequency", lo=0.0, lo_open=True)
+    min_pulse_ms: float = setting(0.5, "shortest valve opening", lo=0.0, lo_open=True)
+    min_drops_per_mm: float = setting(1.0, "at least this many drops per mm of path", lo=0.0)
+    layer_scale: float = setting(1.0, "nominal flow factor c in q = w * dh * c", lo=0.0,
+                                 lo_open=True)
+
+
+@dataclass(frozen=True)
+class FeedbackSettings:
+    """Surface mapping feedback (thesis Ch. 5)."""
+
+    enabled: bool = setting(True, "close the loop with the laser measurements")
+    interval_layers: int = setting(4, "n_d: measure every this many layers", lo=1)
+    kp: float = setting(1.0, "proportional gain Kp", lo=0.0)
+    ki: float = setting(0.33, "normalised integral gain Ki* = Ki * dh_m", lo=0.0)
+    kd: float = setting(0.03, "normalised derivative gain Kd* = Kd / dh_m", lo=0.0)
+    saturation: float = setting(0.3, "saturation of the control action U (fraction)", lo=0.0,
+                                lo_open=True)
+    integral_saturation: float = setting(0.3, "saturation of the integral term (fraction)",
+                                         lo=0.0, lo_open=True)
+    controller: str = setting("flow", "'flow' (nu-controller, valve flow) or 'speed' "
+                                      "(c-controller)", choices=("flow", "speed"))
+    grid_mm: float = setting(1.0, "error surface grid pitch", lo=0.0, lo_open=True)
+    measure_spacing_mm: float = setting(3.0, "spacing of concentric measurement paths", lo=0.0,
+                                        lo_open=True)
+    smoothing: bool = setting(True, "robust smoothing of the measured surface")
+
+
+@dataclass(frozen=True)
+class SimulationSettings:
+    """The virtual cell's disturbances (thesis 5.6-5.7)."""
+
+    seed: int = setting(0, "random seed", lo=0)
+    grid_mm: float = setting(0.5, "height map pitch", lo=0.0, lo_open=True)
+    flow_error: float = setting(0.10, "flow gain error (fraction, +0.1 = 10 % too much)",
+                                lo=-0.9)
+    flow_drift_per_m3: float = setting(0.0, "flow gain drift per cm^3 deposited (fraction)")
+    noise_mm: float = setting(0.02, "random height noise per layer (std)", lo=0.0)
+    laser_noise_mm: float = setting(0.01, "laser measurement noise (std)", lo=0.0)
+    debris_rate: float = setting(0.0, "debris pulses per layer", lo=0.0)
+    edge_loss: float = setting(0.1, "weaker deposition at region edges (fraction)", lo=0.0,
+                               hi=1.0)
+
+
+@dataclass(frozen=True)
+class Job:
+    """Every setting of a build. ``Job()`` is the default Cobra 600 RFP cell."""
+
+    parts: PartSetup = field(default_factory=PartSetup)
+    slicing: SlicingSettings = field(default_factory=SlicingSettings)
+    scaffold: ScaffoldSettings = field(default_factory=ScaffoldSettings)
+    materials: Materials = field(default_factory=Materials)
+    cell: CellSettings = field(default_factory=CellSettings)
+    motion: MotionSettings = field(default_factory=MotionSettings)
+    flow: FlowSettings = field(default_factory=FlowSettings)
+    feedback: FeedbackSettings = field(default_factory=FeedbackSettings)
+    simulation: SimulationSettings = field(default_factory=SimulationSettings)
+
+    def __post_init__(self) -> None:
+        _validate(self, "")
+        _check_cross(self)
+
+    def replace(self, **changes: Any) -> "Job":
+        """A copy with dotted settings changed: ``job.replace(**{"slicing.layer_thickness_mm": 0.5})``."""
+        data = to_dict(self)
+        for dotted, value in changes.items():
+            node = data
+            *head, last = dotted.split(".")
+            for key in head:
+                if key not in node or not isinstance(node[key], dict):
+                    raise ConfigError(f"unknown setting {dotted!r}")
+                node = node[key]
+            if last not in node:
+                raise ConfigError(f"unknown setting {dotted!r}")
+            node[last] = value
+        return job_from_dict(data)
+
+
+# --------------------------------------------------------------------------- validation
+
+
+def _hints(cls: type) -> dict[str, Any]:
+    return typing.get_type_hints(cls)
+
+
+def _check_value(path: str, value: Any, meta: dict[str, Any]) -> None:
+    items = value if isinstance(value, tuple) else (value,)
+    lo, hi = meta.get("lo"), meta.get("hi")
+    for v in items:
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            continue
+        if v != v or v in (float("inf"), float("-inf")):
+            raise ConfigError(f"{path} = {value!r}: must be a finite number")
+        if lo is not None and (v <= lo if meta.get("lo_open") else v < lo):
+            rel = ">" if meta.get("lo_open") else ">="
+            raise ConfigError(f"{path} = {value!r}: must be {rel} {lo}")
+        if hi is not None and v > hi:
+            raise ConfigError(f"{path} = {value!r}: must be <= {hi}")
+    choices = meta.get("choices")
+    if choices and value not in choices:
+        raise ConfigError(f"{path} = {value!r}: must be one of {', '.join(choices)}")
+
+
+def _validate(obj: Any, prefix: str) -> None:
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        path = f"{prefix}{f.name}"
+        if dataclasses.is_dataclass(value):
+            _validate(value, path + ".")
+        elif f.metadata:
+            _check_value(path, value, dict(f.metadata))
+
+
+def _check_cross(job: Job) -> None:
+    """Checks that involve more than one setting."""
+    lo, hi = job.parts.part_fraction
+    if lo >= hi:
+        raise ConfigError(f"parts.part_fraction = {job.parts.part_fraction!r}: min must be "
+                          "below max")
+    lo, hi = job.scaffold.subset
+    if lo > hi:
+        raise ConfigError(f"scaffold.subset = {job.scaffold.subset!r}: min must not exceed max")
+    rmin, rmax = job.cell.reach_mm
+    if rmin >= rmax:
+        raise ConfigError(f"cell.reach_mm = {job.cell.reach_mm!r}: min must be below max")
+    w = job.motion.savgol_window
+    if w and (w % 2 == 0 or w < 5):
+        raise ConfigError(f"motion.savgol_window = {w}: must be 0 (off) or an odd number >= 5")
+    for axis, t in zip("xyz", job.parts.translation):
+        if isinstance(t, str) and t not in ("cent", "orig"):
+            raise ConfigError(f"parts.translation = {job.parts.translation!r}: the {axis} entry "
+                              "must be a number, 'cent' or 'orig'")
+    order = job.materials.order
+    allowed = {f"{m}:{r}" for m in ("part", "scaffold") for r in ("boundary", "fill")}
+    bad = [o for o in order if o not in allowed]
+    if bad or len(set(order)) != len(order):
+        raise ConfigError(f"materials.order = {order!r}: entries must be distinct and among "
+                          f"{', '.join(sorted(allowed))}")
+
+
+def _coerce(path: str, value: Any, hint: Any) -> Any:
+    """Convert a TOML value to the field's type, or raise ConfigError."""
+    origin = typing.get_origin(hint)
+    if dataclasses.is_dataclass(hint):
+        if not isinstance(value, dict):
+            raise ConfigError(f"{path}: expected a table, got {value!r}")
+        return _build(hint, value, path + ".")
+    if origin is tuple:
+        args = typing.get_args(hint)
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{path} = {value!r}: expected a list")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_coerce(f"{path}[{i}]", v, args[0]) for i, v in enumerate(value))
+        if len(value) != len(args):
+            raise ConfigError(f"{path} = {value!r}: expected {len(args)} values, got "
+                              f"{len(value)}")
+        return tuple(_coerce(f"{path}[{i}]", v, a) for i, (v, a) in enumerate(zip(value, args)))
+    if origin in (typing.Union, getattr(__import__("types"), "UnionType", None)):
+        for a in typing.get_args(hint):
+            try:
+                return _coerce(path, value, a)
+            except ConfigError:
+                continue
+        names = " or ".join(getattr(a, "__name__", str(a)) for a in typing.get_args(hint))
+        raise ConfigError(f"{path} = {value!r}: expected {names}")
+    if hint is bool:
+        if isinstance(value, bool):
+            return value
+        raise ConfigError(f"{path} = {value!r}: expected true or false")
+    if hint is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        raise ConfigError(f"{path} = {value!r}: expected an integer")
+    if hint is float:
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+        raise ConfigError(f"{path} = {value!r}: expected a number")
+    if hint is str:
+        if isinstance(value, str):
+            return value
+        raise ConfigError(f"{path} = {value!r}: expected a string")
+    raise ConfigError(f"{path}: unsupported setting type {hint!r}")  # pragma: no cover
+
+
+def _build(cls: type, data: dict[str, Any], prefix: str) -> Any:
+    hints = _hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    kwargs = {}
+    for key, value in data.items():
+        if key not in names:
+            raise ConfigError(f"unknown setting {prefix}{key!r}".replace("'", "") +
+                              f": expected one of {', '.join(sorted(names))}")
+        kwargs[key] = _coerce(prefix + key, value, hints[key])
+    if cls is Job:
+        return Job(**kwargs)
+    obj = cls(**kwargs)
+    return obj
+
+
+def job_from_dict(data: dict[str, Any]) -> Job:
+    """Build and validate a Job from nested plain data (as read from TOML)."""
+    return _build(Job, data, "")
+
+
+def to_dict(obj: Any) -> dict[str, Any]:
+    """Nested plain data of a Job (or section); tuples become lists (TOML-ready)."""
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(obj):
+        v = getattr(obj, f.name)
+        if dataclasses.is_dataclass(v):
+            out[f.name] = to_dict(v)
+        elif isinstance(v, tuple):
+            out[f.name] = list(v)
+        else:
+            out[f.name] = v
+    return out
+
+
+def to_toml(job: Job) -> str:
+    """The job as TOML text that :func:`load_job` reads back to an equal job."""
+    lines: list[str] = []
+
+    def fmt(v: Any) -> str:
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, str):
+            return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+        if isinstance(v, list):
+            return "[" + ", ".join(fmt(x) for x in v) + "]"
+        return repr(v)
+
+    def emit(name: str, d: dict[str, Any]) -> None:
+        scalars = {k: v for k, v in d.items() if not isinstance(v, dict)}
+        if scalars:
+            lines.append(f"[{name}]")
+            lines.extend(f"{k} = {fmt(v)}" for k, v in scalars.items())
+            lines.append("")
+        for k, v in d.items():
+            if isinstance(v, dict):
+                emit(f"{name}.{k}", v)
+
+    for section, d in to_dict(job).items():
+        emit(section, d)
+    return "\n".join(lines)
+
+
+def _line_of(text: str, dotted: str) -> int | None:
+    """1-based line where a dotted setting is written in TOML text (best effort)."""
+    parts = re.sub(r"\[\d+\]", "", dotted).split(".")
+    key = parts[-1]
+    table = ".".join(parts[:-1])
+    current = ""
+    fallback = None
+    for n, raw in enumerate(text.splitlines(), start=1):
+        line = raw.strip()
+        m = re.match(r"^\[\s*([A-Za-z0-9_.\s]+?)\s*\]", line)
+        if m:
+            current = re.sub(r"\s", "", m.group(1))
+            if current == dotted:
+                fallback = n
+            continue
+        m = re.match(r"^([A-Za-z0-9_.\"']+)\s*=", line)
+        if m:
+            k = m.group(1).strip("\"'")
+            full = f"{current}.{k}" if current else k
+            if full == f"{table}.{key}" if table else full == key:
+                return n
+    return fallback
+
+
+def load_job(path: str | FsPath) -> Job:
+    """Read a job from a TOML file (``.toml``) or a legacy control text file (other).
+
+    Raises ConfigError naming the file and line on any problem.
+    """
+    path = FsPath(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: job file not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path}: cannot read job file ({exc})") from None
+    if path.suffix.lower() != ".toml":
+        return load_legacy_control(path, text)
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    try:
+        job = job_from_dict(data)
+    except ConfigError as exc:
+        msg = str(exc)
+        setting_name = re.split(r"[ :=]", msg.removeprefix("unknown setting "), maxsplit=1)[0]
+        line = _line_of(text, setting_name)
+        where = f"{path}:{line}" if line else str(path)
+        raise ConfigError(f"{where}: {msg}") from None
+    # Relative mesh paths are relative to the job file.
+    files = tuple(str((path.parent / f).resolve()) if not FsPath(f).is_absolute() else f
+                  for f in job.parts.files)
+    return dataclasses.replace(job, parts=dataclasses.replace(job.parts, files=files))
+
+
+# --------------------------------------------------------------------------- legacy file
+
+# Keys recognised in the description text of a legacy control file (thesis Table 3-1, paper
+# Table 1). Matching is by description rather than by position so both published layouts
+# (and files with entries left out) are read.
+_LEGACY_KEYS: list[tuple[str, str]] = [
+    ("number of stl", "n_files"),
+    ("file names", "files"),
+    ("inexact", "inexact"),
+    ("slicing option", "slicing_option"),
+    ("scaffolding option", "scaffold_on"),
+    ("tolerance", "tolerance"),
+    ("path width", "path_width"),
+    ("slice thickness", "thickness"),
+    ("smooth", "smooth"),
+    ("scaling vector", "scale"),
+    ("rotation axis order", "rot_order"),
+    ("rotation vector", "rotation"),
+    ("translation vector", "translation"),
+    ("part fraction", "part_fraction"),
+    ("scaffolding subset", "scaffold_subset"),
+    ("part copy vector", "copies"),
+    ("scaffolding buffer", "buffer"),
+    ("number of cpus", "cpus"),
+    ("end effector", "ee"),
+    ("water building frame", "water_frame"),
+    ("scaffolding building frame", "scaffold_frame"),
+    ("laser measurement frame", "laser_frame"),
+]
+
+
+def _legacy_split(line: str) -> tuple[list[str], str]:
+    """Values (tokens before the first '[' or '(' token) and the description text."""
+    tokens = line.split()
+    values: list[str] = []
+    i = 0
+    while i < len(tokens) and not tokens[i].startswith(("[", "(", "$")):
+        values.append(tokens[i])
+        i += 1
+    rest = " ".join(tokens[i:])
+    # Drop leading bracketed groups: units, data format, restrictions.
+    desc = re.sub(r"^(\s*(\[[^\]]*\]|\([^)]*\)))+", "", rest).strip()
+    return values, desc
+
+
+def load_legacy_control(path: str | FsPath, text: str | None = None) -> Job:
+    """Read the thesis' control-parameter text file (Table 3-1 / paper Table 1 layout).
+
+    Each line is ``values [units] [format] (restrictions) description``; lines whose
+    description is not recognised, and section headings in capitals, are errors and
+    skipped respectively. Switch entries ``1/0 a b c`` turn a vector on or off.
+    """
+    path = FsPath(path)
+    if text is None:
+        try:
+            text = path.read_text(encoding="utf-8")
+        except FileNotFoundError:
+            raise ConfigError(f"{path}: control file not found") from None
+    data: dict[str, dict[str, Any]] = {k: {} for k in
+                                       ("parts", "slicing", "scaffold", "cell")}
+    materials: dict[str, dict[str, Any]] = {"part": {}, "scaffold": {}}
+    expect_files = 0
+    n = 0
+
+    def fail(msg: str) -> ConfigError:
+        return ConfigError(f"{path}:{n}: {msg}")
+
+    def nums(vals: list[str], count: int, what: str) -> list[float]:
+        if len(vals) < count:
+            raise fail(f"{what}: expected {count} numbers, got {' '.join(vals) or 'none'}")
+        try:
+            return [float(v) for v in vals[:count]]
+        except ValueError:
+            raise fail(f"{what}: expected {count} numbers, got {' '.join(vals)}") from None
+
+    for n, raw in enumerate(text.splitlines(), start=1):
+        line = raw.strip()
+        if not line or line.startswith(("#", "%")):
+            continue
+        if re.fullmatch(r"[A-Z][A-Z\s]+", line):
+            continue  # section heading like "SLICING CONTROL"
+        values, desc = _legacy_split(line)
+        low = desc.lower()
+        key = next((k for pat, k in _LEGACY_KEYS if pat in low), None)
+        if key is None and expect_files and values:
+            key = "files"
+        if key is None:
+            raise fail(f"unrecognised control entry {line!r}")
+        try:
+            if key == "n_files":
+                expect_files = int(nums(values, 1, "number of files")[0])
+                if expect_files < 1:
+                    raise fail(f"number of files = {expect_files}: must be >= 1")
+            elif key == "files":
+                files = [str((path.parent / v).resolve()) for v in values]
+                data["parts"]["files"] = data["parts"].get("files", []) + files
+                expect_files -= len(values)
+            elif key == "inexact":
+                data["parts"]["inexact"] = bool(nums(values, 1, "inexact option")[0])
+            elif key == "slicing_option":
+                opt = int(nums(values, 1, "slicing option")[0])
+                if opt not in (1, 2, 3):
+                    raise fail(f"slicing option = {opt}: must be 1, 2 or 3")
+                if opt == 3:
+                    data["slicing"]["mode"] = "2d"
+                if opt == 1:
+                    materials["part"]["fill_pattern"] = "none"
+                    materials["scaffold"]["fill_pattern"] = "none"
+            elif key == "scaffold_on":
+                data["scaffold"]["enabled"] = bool(nums(values, 1, "scaffolding option")[0])
+            elif key == "tolerance":
+                data["parts"]["weld_tolerance_mm"] = nums(values, 1, "tolerance")[0]
+            elif key == "path_width":
+                w = nums(values, 2, "path width")
+                materials["part"]["path_width_mm"] = w[0]
+                materials["scaffold"]["path_width_mm"] = w[1]
+            elif key == "thickness":
+                data["slicing"]["layer_thickness_mm"] = nums(values, 1, "slice thickness")[0]
+            elif key == "smooth":
+                data.setdefault("motion", {})["smooth_angle_deg"] = nums(values, 1,
+                                                                         "smooth angle")[0]
+            elif key == "scale":
+                v = nums(values, 4, "scaling vector")
+                if v[0]:
+                    data["parts"]["scale"] = v[1:]
+            elif key == "rotation":
+                v = nums(values, 4, "rotation vector")
+                if v[0]:
+                    data["parts"]["rotation_deg"] = v[1:]
+            elif key == "rot_order":
+                v = nums(values, 3, "rotation axis order")
+                if sorted(v) != [1.0, 2.0, 3.0]:
+                    raise fail(f"rotation axis order = {values[:3]}: must be a permutation of "
+                               "1 2 3")
+                data["parts"]["rotation_order"] = [int(x) for x in v]
+            elif key == "translation":
+                if len(values) < 4:
+                    raise fail(f"translation vector: expected 4 entries, got {values}")
+                if nums(values, 1, "translation on/off")[0]:
+                    t: list[Any] = []
+                    for v in values[1:4]:
+                        if v in ("cent", "orig"):
+                            t.append(v)
+                        else:
+                            t.append(nums([v], 1, "translation")[0])
+                    data["parts"]["translation"] = t
+                else:
+                    data["parts"]["translation"] = ["orig", "orig", "orig"]
+            elif key == "part_fraction":
+                data["parts"]["part_fraction"] = nums(values, 2, "part fraction")
+            elif key == "scaffold_subset":
+                data["scaffold"]["subset"] = nums(values, 2, "scaffolding subset")
+            elif key == "copies":
+                v = nums(values, 3, "part copy vector")
+                if any(x != int(x) for x in v):
+                    raise fail(f"part copy vector = {values[:3]}: must be whole numbers")
+                data["parts"]["copies"] = [int(x) for x in v]
+            elif key == "buffer":
+                data["scaffold"]["buffer_mm"] = nums(values, 1, "scaffolding buffer")[0]
+            elif key == "cpus":
+                data["cell"]["cpus"] = int(nums(values, 1, "number of CPUs")[0])
+            elif key == "ee":
+                data["cell"]["ee_origin_mm"] = nums(values, 2, "end-effector origin")
+            elif key == "water_frame":
+                materials["part"]["nozzle_offset_mm"] = nums(values, 2, "water frame")
+            elif key == "scaffold_frame":
+                materials["scaffold"]["nozzle_offset_mm"] = nums(values, 2, "scaffold frame")
+            elif key == "laser_frame":
+                data["cell"]["laser_offset_mm"] = nums(values, 2, "laser frame")
+        except ConfigError as exc:
+            if str(exc).startswith(f"{path}:"):
+                raise
+            raise fail(str(exc)) from None
+    if expect_files > 0:
+        raise ConfigError(f"{path}: {expect_files} mesh file name(s) missing after the number "
+                          "of files")
+    data["materials"] = {k: v for k, v in materials.items() if v}
+    data = {k: v for k, v in data.items() if v}
+    try:
+        return job_from_dict(data)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None

@@ -1,0 +1,36 @@
+"""The icefab error family.
+
+Every error a user can cause is an :class:`IcefabError` (a ``ValueError``) whose message
+names the file or setting, the offending value, and what was expected. The CLI turns these
+into one line on stderr and a non-zero exit; anything else escaping is a bug.
+"""
+
+from __future__ import annotations
+
+
+class IcefabError(ValueError):
+    """Base class of every error caused by input (files, settings, geometry)."""
+
+
+class ConfigError(IcefabError):
+    """A job setting is unknown, of the wrong type, or out of range."""
+
+
+class MeshError(IcefabError):
+    """A mesh file cannot be read, or its data cannot be used (empty, NaN, bad index)."""
+
+
+class GeometryError(IcefabError):
+    """Geometry that a stage cannot work with (e.g. a layer with no closable contour)."""
+
+
+class WorkspaceError(IcefabError):
+    """A path point is outside the robot workspace or needs a joint beyond its range."""
+
+
+class FlowError(IcefabError):
+    """A valve program cannot be made: calibration table, valve limits, flow out of range."""
+
+
+class StackFileError(IcefabError):
+    """A saved stack, toolpath, trajectory or journal file is missing, truncated or corrupt."""

@@ -1,0 +1,46 @@
+"""Job configuration: defaults, TOML and validation."""
+import pytest
+
+from icefab import Job
+from icefab.config import job_from_dict, load_job, to_toml
+from icefab.errors import ConfigError
+
+
+def test_defaults_are_the_cobra_600_cell():
+    job = Job()
+    assert job.slicing.layer_thickness_mm == 0.25
+    assert job.materials.part.initial_offset_mm == 0.6
+    assert job.materials.scaffold.initial_offset_mm == 1.2
+    assert job.scaffold.buffer_mm == 3.3
+    assert job.cell.l1_mm == 325.0 and job.cell.l2_mm == 275.0
+    assert job.motion.joint_speed_deg_s == (33.0, 39.0)
+
+
+def test_toml_round_trip(tmp_path):
+    job = Job().replace(**{"slicing.layer_thickness_mm": 0.5, "materials.part.fill_pattern": "zigzag"})
+    f = tmp_path / "job.toml"
+    f.write_text(to_toml(job))
+    back = load_job(f)
+    assert back == job
+
+
+@pytest.mark.parametrize("text, fragment", [
+    ("[slicing]\nlayer_thickness_mm = -1\n", "job.toml:2: slicing.layer_thickness_mm = -1.0: must be > 0"),
+    ("[slicing]\nlayer_thicknes_mm = 1\n", "job.toml:2: unknown setting slicing.layer_thicknes_mm"),
+    ("[parts]\n\ncopies = [0, 1, 1]\n", "job.toml:3: parts.copies = (0, 1, 1): must be >= 1"),
+    ("[parts]\npart_fraction = [0, 1.5]\n", "job.toml:2: parts.part_fraction"),
+    ("[slicing]\nmode = 3\n", "job.toml:2: slicing.mode = 3: expected a string"),
+    ("[materials.part]\npath_width_mm = 0\n", "job.toml:2: materials.part.path_width_mm"),
+    ("[nonsense]\nx = 1\n", "unknown setting nonsense"),
+])
+def test_bad_settings_name_setting_and_line(tmp_path, text, fragment):
+    f = tmp_path / "job.toml"
+    f.write_text(text)
+    with pytest.raises(ConfigError) as err:
+        load_job(f)
+    assert fragment in str(err.value)
+
+
+def test_python_construction_is_validated_too():
+    with pytest.raises(ConfigError, match="scaffold.buffer_mm"):
+        job_from_dict({"scaffold": {"buffer_mm": -2}})
