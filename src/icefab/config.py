@@ -567,12 +567,23 @@ _LEGACY_KEYS: list[tuple[str, str]] = [
 ]
 
 
+def _is_legacy_value(token: str) -> bool:
+    """A number, a translation keyword or a mesh file name; anything else starts the text."""
+    if token in ("cent", "orig") or re.fullmatch(r"\S+\.(stl|ply|obj)", token, re.I):
+        return True
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True
+
+
 def _legacy_split(line: str) -> tuple[list[str], str]:
     """Values (tokens before the first '[' or '(' token) and the description text."""
     tokens = line.split()
     values: list[str] = []
     i = 0
-    while i < len(tokens) and not tokens[i].startswith(("[", "(", "$")):
+    while i < len(tokens) and _is_legacy_value(tokens[i]):
         values.append(tokens[i])
         i += 1
     rest = " ".join(tokens[i:])
@@ -605,11 +616,13 @@ def load_legacy_control(path: str | FsPath, text: str | None = None) -> Job:
 
     def nums(vals: list[str], count: int, what: str) -> list[float]:
         if len(vals) < count:
-            raise fail(f"{what}: expected {count} numbers, got {' '.join(vals) or 'none'}")
+            raise fail(f"{what}: expected {count} number{'s' * (count > 1)}, got "
+                       f"{' '.join(vals) or 'none'}")
         try:
             return [float(v) for v in vals[:count]]
         except ValueError:
-            raise fail(f"{what}: expected {count} numbers, got {' '.join(vals)}") from None
+            raise fail(f"{what}: expected {count} number{'s' * (count > 1)}, got "
+                       f"{' '.join(vals)}") from None
 
     for n, raw in enumerate(text.splitlines(), start=1):
         line = raw.strip()
