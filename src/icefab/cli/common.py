@@ -1,0 +1,80 @@
+"""Helpers shared by the subcommands: the job option, progress lines, atomic output."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import sys
+import tempfile
+import time
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Iterator
+
+from icefab.config import Job, load_job
+
+
+def add_job_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("-c", "--job", metavar="JOB",
+                        help="job settings: TOML file or the thesis' legacy control .txt file "
+                             "(default: the Cobra 600 cell)")
+
+
+def job_from_args(args: argparse.Namespace) -> Job:
+    return load_job(args.job) if getattr(args, "job", None) else Job()
+
+
+class Progress:
+    """Progress of a long stage on stderr: ``label: done/total``.
+
+    On a terminal the line is rewritten in place; otherwise (CI, logs) a line is printed
+    at most every ``interval_s`` seconds and at the end. Call it as ``progress(done, total)``.
+    """
+
+    def __init__(self, label: str, *, interval_s: float = 2.0, stream=None) -> None:
+        self.label = label
+        self.stream = stream or sys.stderr
+        self.tty = self.stream.isatty()
+        self.interval_s = interval_s
+        self._last = 0.0
+        self._start = time.perf_counter()
+
+    def __call__(self, done: int, total: int) -> None:
+        now = time.perf_counter()
+        final = done >= total
+        if not final and now - self._last < (0.1 if self.tty else self.interval_s):
+            return
+        self._last = now
+        pct = 100.0 * done / total if total else 100.0
+        text = f"{self.label}: {done}/{total} ({pct:.0f} %, {now - self._start:.1f} s)"
+        if self.tty:
+            self.stream.write("\r" + text + ("\n" if final else ""))
+        else:
+            self.stream.write(text + "\n")
+        self.stream.flush()
+
+
+@contextmanager
+def output_dir(path: str | os.PathLike) -> Iterator[Path]:
+    """A folder whose contents appear at ``path`` only if the block succeeds.
+
+    Files are written into a temporary sibling folder which replaces ``path`` at the end,
+    so a failure leaves nothing half-written (an existing ``path`` is kept untouched).
+    """
+    final = Path(path)
+    final.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", dir=final.parent))
+    try:
+        yield tmp
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    if final.exists():
+        backup = final.with_name(f".{final.name}.old")
+        shutil.rmtree(backup, ignore_errors=True)
+        final.rename(backup)
+        tmp.rename(final)
+        shutil.rmtree(backup, ignore_errors=True)
+    else:
+        tmp.rename(final)
