@@ -1,0 +1,353 @@
+"""Surface mapping feedback (SMF): measured surface -> spatial PID -> control action.
+
+Thesis Ch. 5. Two halves:
+
+* **The spatial controller** (thesis 5.1-5.2). Laser samples ``(x, y, z)`` taken along
+  the measurement paths of a measurement layer become a surface on a regular grid over the
+  layer's footprint (:func:`surface_from_samples`, Delaunay-linear like Matlab's
+  TriScatteredInterp), then an error matrix normalised by the measurement interval
+  (:func:`error_surface`). :func:`smf_update` runs one step of the 3D spatial PID of
+  eq. 5.1 with normalised gains (eq. 5.2) on grids whose extent changes between
+  measurement layers, with saturation of the output U and of the integral (anti-windup,
+  thesis 5.2.2). The control action is applied along the paths of the next n_d layers
+  either to the valve flow (nu-controller: flow x (1 + u), see :func:`icefab.flow.plan_valves`)
+  or to the speed (c-controller, eq. 5.7-5.10: :func:`retime_trajectory`).
+
+* **The 1D analysis** (thesis 5.4-5.7). The one-pixel model of eqs. 5.11-5.19, its
+  transfer function and poles (eq. 5.22), the gain-stable volume (eq. 5.25), simulation
+  of the error response to pulse/step/random disturbances (eqs. 5.29-5.32) and the
+  optimisation of the gains minimising the RMS error sigma_p* (eq. 5.27) with the analytic
+  gradient (eqs. 5.34-5.35, 5.40).
+
+Sign convention (thesis 5.4): the error is ``e = nominal - measured`` normalised by the
+measurement interval dh_m, so a positive error means the part is too LOW and a positive
+control action ``u`` asks for MORE material (flow x (1 + u), or speed / (1 + u)).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Callable, Sequence
+
+import numpy as np
+from scipy.signal import lfilter
+
+from icefab.errors import ConfigError, GeometryError
+from icefab.types import HeightMap, Region, Trajectory
+
+if TYPE_CHECKING:  # pragma: no cover
+    from icefab.config import Job
+
+log = logging.getLogger(__name__)
+
+Gains = tuple[float, float, float]
+
+
+# =========================================================================== 1D analysis
+
+
+def characteristic_polynomial(kp: float, ki: float, kd: float) -> np.ndarray:
+    """(4,) float64 denominator of H(z) (eq. 5.22), highest power of z first.
+
+    z^3 + (Kp + Ki* + Kd* - 2) z^2 + (1 - Kp - 2 Kd*) z + Kd*; gains are the normalised
+    gains Kp, Ki* = Ki dh_m, Kd* = Kd / dh_m (eq. 5.2).
+    """
+    return np.array([1.0, kp + ki + kd - 2.0, 1.0 - kp - 2.0 * kd, kd], dtype=np.float64)
+
+
+def transfer_function(kp: float, ki: float, kd: float) -> tuple[np.ndarray, np.ndarray]:
+    """Numerator and denominator of H(z) = E(z)/D(z) (eq. 5.22), powers of z descending.
+
+    H(z) = (z - z^2) / (z^3 + (Kp + Ki* + Kd* - 2) z^2 + (1 - Kp - 2 Kd*) z + Kd*).
+    Returns ``(num (3,), den (4,))`` usable with ``scipy.signal.dlti(num, den, dt=1)``.
+    """
+    return np.array([-1.0, 1.0, 0.0]), characteristic_polynomial(kp, ki, kd)
+
+
+def poles(kp: float, ki: float, kd: float) -> np.ndarray:
+    """(3,) complex128 poles of H(z) (eq. 5.22): the roots of its denominator."""
+    return np.roots(characteristic_polynomial(kp, ki, kd)).astype(np.complex128)
+
+
+def stability(kp: float, ki: float, kd: float) -> tuple[bool, float]:
+    """Jury criterion (eq. 5.23): ``(stable, max_pole_modulus)``.
+
+    stable is True when every pole lies strictly inside the unit circle; the largest pole
+    modulus tells how far from instability the gains are (thesis Fig. 5-12).
+    """
+    m = float(np.max(np.abs(poles(kp, ki, kd))))
+    return bool(m < 1.0), m
+
+
+def in_stable_volume(kp: float, ki: float, kd: float) -> bool:
+    """The gain-stable volume of eq. 5.25 (closed on the coordinate planes).
+
+    Kp >= 0, Ki* >= 0, Kd* >= 0 and Kp/2 + Ki*/4 + Kd* < 1. The thesis writes the first
+    three strictly; Kd* = 0 (its optimum) and Ki* = 0 are accepted here since the poles
+    stay inside the unit circle there as long as Kp > 0 (Ki* = 0 gives a pole at 1).
+    """
+    return bool(kp >= 0 and ki >= 0 and kd >= 0 and kp / 2 + ki / 4 + kd < 1.0)
+
+
+# Rows of g(k) <= 0 (eq. 5.38): the four planes of the gain-stable volume.
+STABLE_VOLUME_A = np.array([[0.5, 0.25, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0],
+                            [0.0, 0.0, -1.0]])
+STABLE_VOLUME_B = np.array([-1.0, 0.0, 0.0, 0.0])
+
+
+@dataclass(frozen=True)
+class Disturbance:
+    """A disturbance profile d_k for the 1D model (eqs. 5.29-5.32), normalised by dh_m.
+
+    n_layers: number of measurement layers k = 1..n_layers.
+    pulses: ``(amplitude, layer)`` pairs: d_k += amplitude at k = layer (eq. 5.30).
+    steps: ``(amplitude, layer)`` pairs: d_k += amplitude for k >= layer (eq. 5.31).
+    noise: amplitude d_r of the random part d_r (RN - 0.5), RN uniform in [0, 1) (eq. 5.32).
+    noise_from: first layer with noise (the thesis' k_r, Table 5-4).
+    seed: random seed of the noise (the profile is deterministic for a given seed).
+
+    The default is the thesis' design disturbance (thesis 5.6): a pulse of 0.5 at layer 60
+    and a step of 0.2 at layer 30 over 100 layers, for which the thesis finds
+    k_opt = (1, 0.33, 0) and sigma_p* = 0.061 (Table 5-2).
+    """
+
+    n_layers: int = 100
+    pulses: tuple[tuple[float, int], ...] = ((0.5, 60),)
+    steps: tuple[tuple[float, int], ...] = ((0.2, 30),)
+    noise: float = 0.0
+    noise_from: int = 1
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.n_layers, (int, np.integer)) or self.n_layers < 1:
+            raise ConfigError(f"disturbance n_layers = {self.n_layers!r}: must be an "
+                              "integer >= 1")
+        for name in ("pulses", "steps"):
+            for amp, layer in getattr(self, name):
+                if not np.isfinite(amp):
+                    raise ConfigError(f"disturbance {name[:-1]} amplitude = {amp!r}: must be "
+                                      "finite")
+                if not 1 <= int(layer) <= self.n_layers:
+                    raise ConfigError(f"disturbance {name[:-1]} layer = {layer!r}: must be in "
+                                      f"1..{self.n_layers} (n_layers)")
+        if not np.isfinite(self.noise) or self.noise < 0:
+            raise ConfigError(f"disturbance noise = {self.noise!r}: must be a finite "
+                              "number >= 0")
+
+    def sequence(self) -> np.ndarray:
+        """(n_layers,) float64: d_1 .. d_n (eq. 5.29)."""
+        k = np.arange(1, self.n_layers + 1)
+        d = np.zeros(self.n_layers)
+        for amp, layer in self.pulses:
+            d[k == int(layer)] += amp
+        for amp, layer in self.steps:
+            d[k >= int(layer)] += amp
+        if self.noise:
+            rng = np.random.default_rng(self.seed)
+            rn = rng.random(self.n_layers)
+            d += np.where(k >= self.noise_from, self.noise * (rn - 0.5), 0.0)
+        return d
+
+
+def _as_d(disturbance: Disturbance | np.ndarray | Sequence[float]) -> np.ndarray:
+    if isinstance(disturbance, Disturbance):
+        return disturbance.sequence()
+    d = np.asarray(disturbance, dtype=np.float64)
+    if d.ndim != 1 or len(d) < 1 or not np.all(np.isfinite(d)):
+        raise ConfigError("disturbance: expected a finite (n_layers,) sequence")
+    return d
+
+
+def error_response(gains: Gains, disturbance: Disturbance | np.ndarray) -> np.ndarray:
+    """(n,) float64 normalised errors e_1..e_n of the 1D model for disturbances d_1..d_n.
+
+    Solves the difference equation 5.19 (equivalently eqs. 5.11 with e_1 = 0 and the
+    derivative term left out at k = 1) with ``scipy.signal.lfilter``:
+    e_{k+1} + a1 e_k + a2 e_{k-1} + a3 e_{k-2} = d_{k-1} - d_k.
+    """
+    d = _as_d(disturbance)
+    a = characteristic_polynomial(*gains)
+    x = np.concatenate([[0.0], d])
+    return lfilter([0.0, -1.0, 1.0], a, x)[1:len(d) + 1]
+
+
+@dataclass(frozen=True, eq=False)
+class Sim1D:
+    """A 1D SMF simulation (thesis 5.7, Fig. 5-14); arrays are (n_layers,) float64.
+
+    d: disturbance d_k; e: error e_k; u: controller output u_k (eq. 5.11a); nu: valve
+    frequency nu_k = C_f (u_k + 1), Hz (eq. 5.11b, 5.14); height_mm: measured height
+    h_k - e_k dh_m at measurement layer k; dh_m: measurement interval, mm.
+    """
+
+    d: np.ndarray
+    e: np.ndarray
+    u: np.ndarray
+    nu: np.ndarray
+    height_mm: np.ndarray
+    dh_m: float
+    rms: float
+
+
+def simulate_1d(gains: Gains, disturbance: Disturbance | np.ndarray,
+                n_layers: int | None = None, n_d: int = 4, *, dh_d: float = 0.25,
+                c_ff: float = 4.0, speed: float = 25.0, width: float = 1.5) -> Sim1D:
+    """Simulate the 1D nu-controller (eqs. 5.11) for the given disturbance.
+
+    gains: normalised (Kp, Ki*, Kd*).
+    disturbance: a Disturbance or (n,) d_k array (normalised by dh_m).
+    n_layers: if given, the disturbance sequence is cut or zero-padded to this length.
+    n_d: deposition layers per measurement layer, so dh_m = n_d * dh_d (mm).
+    c_ff, speed, width, dh_d: C_f = c_ff * c * w * dh_d (eq. 5.14), defaults of thesis 5.7
+        (4 Hz/(mm^3/s), 25 mm/s, 1.5 mm, 0.25 mm).
+    """
+    d = _as_d(disturbance)
+    if n_layers is not None:
+        if n_layers < 1:
+            raise ConfigError(f"n_layers = {n_layers}: must be >= 1")
+        d = np.concatenate([d, np.zeros(max(0, n_layers - len(d)))])[:n_layers]
+    kp, ki, kd = gains
+    e = error_response(gains, d)
+    e_prev = np.concatenate([[0.0], e[:-1]])
+    u = kp * e + ki * np.cumsum(e) + kd * (e - e_prev)
+    c_f = c_ff * speed * width * dh_d
+    dh_m = n_d * dh_d
+    k = np.arange(1, len(d) + 1)
+    return Sim1D(d=d, e=e, u=u, nu=c_f * (u + 1.0), height_mm=(k - e) * dh_m, dh_m=dh_m,
+                 rms=float(np.sqrt(np.mean(e ** 2))))
+
+
+# d a / d (Kp, Ki*, Kd*): derivative of the denominator coefficients (eq. 5.35, 5.40).
+_DA = np.array([[0.0, 1.0, -1.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 1.0, -2.0, 1.0]])
+
+
+def rms_and_gradient(gains: Gains, disturbance: Disturbance | np.ndarray
+                     ) -> tuple[float, np.ndarray]:
+    """sigma_p* (eq. 5.27) and its analytic gradient w.r.t. (Kp, Ki*, Kd*) (eq. 5.34).
+
+    The sensitivities grad e_k follow from differentiating eq. 5.19 (eq. 5.35):
+    A(q) grad e = -(dA) e, solved with the same recursive filter as e.
+    Returns ``(rms, grad (3,) float64)``.
+    """
+    d = _as_d(disturbance)
+    a = characteristic_polynomial(*gains)
+    x = np.concatenate([[0.0], d])
+    e_full = lfilter([0.0, -1.0, 1.0], a, x)  # index 0 is e_0 = 0
+    e = e_full[1:len(d) + 1]
+    n = len(d)
+    rms = float(np.sqrt(np.mean(e ** 2)))
+    if rms == 0.0:
+        return 0.0, np.zeros(3)
+    grad = np.empty(3)
+    for j in range(3):
+        rhs = -lfilter(_DA[j], [1.0], e_full)
+        de = lfilter([1.0], a, rhs)[1:n + 1]
+        grad[j] = float(np.dot(e, de)) / (rms * n)
+    return rms, grad
+
+
+@dataclass(frozen=True, eq=False)
+class TuneResult:
+    """Optimal gains for a disturbance (thesis 5.6, Tables 5-2/5-3).
+
+    kp, ki, kd: normalised gains Kp, Ki*, Kd*. rms: sigma_p* at the optimum (eq. 5.27).
+    max_pole: largest pole modulus (eq. 5.22); stable: max_pole < 1.
+    iterations: optimiser iterations; converged: the optimiser's success flag;
+    message: the optimiser's message; e: (n,) error response at the optimum.
+    """
+
+    kp: float
+    ki: float
+    kd: float
+    rms: float
+    max_pole: float
+    stable: bool
+    iterations: int = 0
+    converged: bool = True
+    message: str = ""
+    e: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    def as_dict(self) -> dict[str, float | bool]:
+        return {"kp": self.kp, "ki": self.ki, "kd": self.kd, "rms": self.rms,
+                "max_pole": self.max_pole, "stable": self.stable}
+
+
+def evaluate_gains(gains: Gains, disturbance: Disturbance | np.ndarray) -> TuneResult:
+    """RMS error, stability and the error response of given gains (no optimisation)."""
+    kp, ki, kd = (float(g) for g in gains)
+    for name, g in (("kp", kp), ("ki", ki), ("kd", kd)):
+        if not np.isfinite(g):
+            raise ConfigError(f"gain {name} = {g!r}: must be finite")
+    e = error_response((kp, ki, kd), disturbance)
+    stable, m = stability(kp, ki, kd)
+    return TuneResult(kp, ki, kd, float(np.sqrt(np.mean(e ** 2))), m, stable, e=e)
+
+
+_NAMES = ("kp", "ki", "kd")
+
+
+def tune_gains(disturbance: Disturbance | np.ndarray = Disturbance(), *,
+               x0: Gains = (1.0, 1.0, 0.0), fix: dict[str, float] | None = None,
+               constrained: bool = True, tol: float = 1e-12) -> TuneResult:
+    """Gains minimising sigma_p* (eq. 5.27) for a disturbance (thesis 5.6).
+
+    disturbance: Disturbance or (n,) d_k (normalised); the default is the thesis'
+        design disturbance, whose optimum is (1, 0.33, 0) with sigma_p* = 0.061.
+    x0: initial (Kp, Ki*, Kd*) (the thesis' k_0 = (1, 1, 0), Table 5-2).
+    fix: gains held constant, e.g. ``{"kp": 1.0, "ki": 0.33}`` optimises Kd* only
+        (eq. 5.39-5.40); the others start from x0.
+    constrained: search inside the gain-stable volume (eq. 5.25, 5.38) with SLSQP;
+        otherwise unconstrained BFGS (the thesis' FMINCON / FMINUNC). Both use the analytic
+        gradient (eq. 5.34-5.35).
+    """
+    from scipy.optimize import minimize
+
+    d = _as_d(disturbance)
+    fix = dict(fix or {})
+    for k in fix:
+        if k not in _NAMES:
+            raise ConfigError(f"fix: unknown gain {k!r}: expected one of kp, ki, kd")
+    base = np.array([fix.get(n, x0[i]) for i, n in enumerate(_NAMES)], dtype=np.float64)
+    if not np.all(np.isfinite(base)):
+        raise ConfigError(f"initial gains {tuple(base)}: must be finite")
+    free = [i for i, n in enumerate(_NAMES) if n not in fix]
+    if not free:
+        return evaluate_gains(tuple(base), d)  # type: ignore[arg-type]
+
+    def full(x: np.ndarray) -> np.ndarray:
+        g = base.copy()
+        g[free] = x
+        return g
+
+    def fun(x: np.ndarray) -> tuple[float, np.ndarray]:
+        r, g = rms_and_gradient(tuple(full(x)), d)  # type: ignore[arg-type]
+        return r, g[free]
+
+    xs = base[free].copy()
+    if constrained:
+        # Eq. 5.38: the coordinate planes become bounds (Kd* = 0, the thesis' optimum, is
+        # allowed), the plane Kp/2 + Ki*/4 + Kd* < 1 (pole at z = -1) a linear inequality
+        # kept a small margin inside.
+        a = STABLE_VOLUME_A[0]
+        fixed = sum(a[i] * base[i] for i in range(3) if i not in free)
+        a_free = a[free]
+        cons = [{"type": "ineq", "fun": lambda x: 1.0 - 1e-9 - fixed - a_free @ x,
+                 "jac": lambda x: -a_free}]
+        if fixed >= 1.0:
+            raise ConfigError(f"fixed gains {fix}: outside the gain-stable volume (eq. 5.25: "
+                              "Kp/2 + Ki*/4 + Kd* < 1)")
+        xs = np.clip(xs, 0.0, None)
+        if fixed + a_free @ xs >= 1.0:
+            xs = xs * (1.0 - fixed) / (2 * max(a_free @ xs, 1e-12))
+        res = minimize(fun, xs, jac=True, method="SLSQP", constraints=cons,
+                       bounds=[(0.0, None)] * len(free),
+                       options={"ftol": tol, "maxiter": 500})
+    else:
+        res = minimize(fun, xs, jac=True, method="BFGS", options={"gtol": 1e-10,
+                                                                  "maxiter": 500})
+    g = full(res.x)
+    out = evaluate_gains(tuple(g), d)  # type: ignore[arg-type]
+    return dataclasses.replace(out, iterations=int(res.nit), converged=bool(res.success),
+                               message=str(res.message))
