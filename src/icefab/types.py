@@ -201,6 +201,8 @@ class Path:
     width: deposition width, mm (0 for travel and measure).
     layer: index of the layer it belongs to (-1 when not part of a stack).
     frame: "part" (building frame) or "base" (robot base frame).
+    tool: whose frame the points are given for: "part" (water nozzle), "scaffold"
+        (scaffold nozzle) or "laser"; "" means derived (see ``tool_name``).
     """
 
     points: np.ndarray
@@ -211,6 +213,15 @@ class Path:
     width: float = 0.0
     layer: int = -1
     frame: str = "part"
+    tool: str = ""
+
+    @property
+    def tool_name(self) -> str:
+        """The tool that follows the path: ``tool`` if set, else "laser" for measure
+        paths and the material's nozzle otherwise."""
+        if self.tool:
+            return self.tool
+        return "laser" if self.role == "measure" else self.material
 
     @property
     def depositing(self) -> bool:
@@ -239,6 +250,8 @@ class LayerPaths:
     index: int
     z: float
     paths: tuple[Path, ...]
+    #: (part, scaffold) area of the regions left uncovered by the deposition paths, mm^2.
+    unfilled_mm2: tuple[float, float] = (0.0, 0.0)
 
 
 @dataclass(frozen=True, eq=False)
