@@ -308,12 +308,15 @@ class ValveProgram:
     tick_s: tick length, s (0.002 on the Cobra 600 microcontroller).
     duration: s, length of the trajectory piece the pulses belong to.
     pieces: further pieces when the program was split (131.072 s / 16384 pulses).
+    widths_us: (p,) uint16 pulse widths in microseconds (PWM mode; None in FM mode, where
+        every pulse has the valve's fixed pulse width).
     """
 
     ticks: np.ndarray
     tick_s: float = 0.002
     duration: float = 0.0
     pieces: tuple["ValveProgram", ...] = ()
+    widths_us: np.ndarray | None = None
 
 
 # --------------------------------------------------------------------------- surfaces
