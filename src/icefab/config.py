@@ -239,6 +239,17 @@ class FlowSettings:
     min_drops_per_mm: float = setting(1.0, "at least this many drops per mm of path", lo=0.0)
     layer_scale: float = setting(1.0, "nominal flow factor c in q = w * dh * c", lo=0.0,
                                  lo_open=True)
+    out_of_range: str = setting("clamp", "a flow beyond the calibration table or a frequency "
+                                         "beyond max_frequency_hz: 'clamp' to the limit "
+                                         "(logged and counted) or 'error'",
+                                choices=("clamp", "error"))
+    pwm_frequency_hz: float = setting(125.0, "PWM mode: constant valve frequency (thesis 6.1: "
+                                             ">= 125 Hz for one drop per mm at 125 mm/s)",
+                                      lo=0.0, lo_open=True)
+    calibration_pulse_ms: float = setting(0.5, "pulse width at which the calibration table "
+                                               "was measured (FM pulse width; PWM scales "
+                                               "flow per pulse with the width)", lo=0.0,
+                                          lo_open=True)
 
 
 @dataclass(frozen=True)
