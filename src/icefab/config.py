@@ -287,6 +287,16 @@ class SimulationSettings:
     debris_rate: float = setting(0.0, "debris pulses per layer", lo=0.0)
     edge_loss: float = setting(0.1, "weaker deposition at region edges (fraction)", lo=0.0,
                                hi=1.0)
+    layers: int = setting(0, "simulate only the first N layers (0: all)", lo=0)
+    noise_corr_mm: float = setting(3.0, "correlation length of the height noise", lo=0.0)
+    debris_height_mm: float = setting(0.5, "height of one debris pulse (thesis d_p = 0.5 "
+                                           "measurement intervals)", lo=0.0)
+    debris_radius_mm: float = setting(2.0, "radius (Gaussian sigma) of one debris pulse",
+                                      lo=0.0, lo_open=True)
+    laser_latency_s: float = setting(0.002, "uncompensated laser latency: samples lag behind "
+                                            "the position they are tagged with", lo=0.0)
+    laser_rate_hz: float = setting(100.0, "laser sampling rate along measurement paths",
+                                   lo=0.0, lo_open=True)
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,617 @@
+"""The virtual cell: a build simulator for surface mapping feedback (thesis 5.3, 5.6-5.7).
+
+What it models
+--------------
+* **Deposition.** The part and the scaffold share one height map ``z (ny, nx)`` on a fine
+  grid (``job.simulation.grid_mm``). Every deposition path is cut into segments; a segment
+  spreads its volume uniformly over the rectangle of the path width that it sweeps
+  (anti-aliased on the grid and normalised per segment, so the volume is conserved to
+  rounding). A straight path deposited with flow ``q`` at speed ``v`` therefore leaves a
+  strip of width ``w`` and height ``q / (w v)``.
+* **Commanded volume.** With variable-flow valve control the valve follows the speed so
+  that the volume per millimetre is ``w * dh * c`` (thesis eq. 6.2, ``c`` =
+  ``job.flow.layer_scale``), whatever the speed profile. The simulator therefore samples each
+  path at constant speed per role (boundary ``job.motion.boundary_speed_mm_s``, fill
+  ``job.motion.fill_speed_mm_s``) every ``job.motion.dt_s`` and gives each segment the volume
+  ``w * dh * c * length``; the trajectory planner's speed profile would only move the sample
+  points, not the volume. :func:`volume_from_pulses` turns a valve program into volumes per
+  sample when drop-level detail is wanted.
+* **Disturbances** (thesis 5.6, eq. 5.29): the actual flow is the commanded flow times
+  ``(1 + flow_error) * (1 + flow_drift_per_m3 * V)``, ``V`` the volume in cm^3 that valve
+  has already deposited (the thesis saw up to +20 %, Ch. 6.4; the setting's name is kept for
+  compatibility, its unit is per cm^3); correlated random height noise per layer; debris
+  pulses (Gaussian bumps, Poisson number per layer); weaker deposition within one path width
+  of every material region's edge (``edge_loss``).
+* **Laser** (thesis 5.2.1): samples at ``laser_rate_hz`` along the measurement paths at the
+  measurement speed, with Gaussian noise and an uncompensated latency: a sample tagged with
+  the position at time ``t`` reads the surface where the laser was at ``t - latency``.
+* **Control** (thesis 5.1.3, 5.2.2): the nu-controller scales the flow of every segment by
+  ``1 + u`` evaluated at the segment's midpoint. The c-controller changes the speed by
+  ``1 / (1 + u)``, which deposits the same volume per millimetre, so both give the same
+  surface here (only the build time differs).
+
+The core (:func:`deposit`, :func:`laser_measure`, :func:`run_cell`) works on plain arrays
+and a controller callable; :func:`simulate_build` prepares a ``Toolpaths`` and, for closed
+loop, plugs in the surface mapping feedback of :mod:`icefab.feedback`.
+
+Heights are measured from the build platform (z = 0 before the first simulated layer); the
+nominal top of the j-th simulated layer (j = 0, 1, ...) is ``(j + 1) * dh``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Callable, Sequence
+
+import numpy as np
+from numba import njit
+from scipy import ndimage
+
+from icefab.errors import IcefabError
+from icefab.types import HeightMap, Path, Toolpaths
+
+if TYPE_CHECKING:  # pragma: no cover
+    from icefab.config import Job
+
+log = logging.getLogger(__name__)
+
+MATERIAL_ID = {"part": 0, "scaffold": 1}
+
+# u(xy) for (n, 2) points -> (n,) control action (fraction, 0 = nominal)
+ActionFn = Callable[[np.ndarray], np.ndarray]
+
+
+class SimulationError(IcefabError):
+    """The simulator cannot run on the given input (no layers, no deposition, bad arrays)."""
+
+
+# --------------------------------------------------------------------------- deposition
+
+
+@njit(cache=True)
+def _cell_cdf(x, a, b):  # pragma: no cover - numba
+    """Fraction of a grid cell lying below ``x`` along a direction (thesis-free geometry).
+
+    Projected on a unit direction, a square cell of side g is the sum of two uniform
+    variables of widths ``a = g max(|cos|, |sin|)`` and ``b = g min(|cos|, |sin|)`` (a >= b):
+    its CDF is piecewise quadratic (a trapezoidal density).
+    """
+    h1 = 0.5 * (a + b)
+    h2 = 0.5 * (a - b)
+    if x <= -h1:
+        return 0.0
+    if x >= h1:
+        return 1.0
+    if b < 1e-9 * a:
+        return x / a + 0.5
+    if x <= -h2:
+        return (x + h1) ** 2 / (2.0 * a * b)
+    if x <= h2:
+        return (x + 0.5 * a) / a
+    return 1.0 - (h1 - x) ** 2 / (2.0 * a * b)
+
+
+@njit(cache=True)
+def _splat_segments(z, ox, oy, g, ax, ay, bx, by, vol, half_w):  # pragma: no cover - numba
+    """Add each segment's volume to ``z`` over the rectangle it sweeps (see :func:`deposit`).
+
+    A cell's weight is the fraction of it inside the strip across the segment times the
+    fraction inside the segment's extent along it (each exact for a rotated square cell,
+    :func:`_cell_cdf`); a zero-length segment covers a w x w square. Weights are summed
+    over the unclipped bounding box and normalised, so cells outside the map only take
+    their share away (volume outside the map is lost, nothing else moves).
+    """
+    ny, nx = z.shape
+    lost = 0.0
+    for s in range(vol.shape[0]):
+        v = vol[s]
+        if v == 0.0:
+            continue
+        hw = half_w[s]
+        dx = bx[s] - ax[s]
+        dy = by[s] - ay[s]
+        length = math.sqrt(dx * dx + dy * dy)
+        if length < 1e-12:
+            ux, uy = 1.0, 0.0
+            s0, s1 = -hw, hw
+        else:
+            ux, uy = dx / length, dy / length
+            s0, s1 = 0.0, length
+        ca = g * max(abs(ux), abs(uy))
+        cb = g * min(abs(ux), abs(uy))
+        reach = hw + g + (hw if length < 1e-12 else 0.0)
+        xmin = min(ax[s], bx[s]) - reach
+        xmax = max(ax[s], bx[s]) + reach
+        ymin = min(ay[s], by[s]) - reach
+        ymax = max(ay[s], by[s]) + reach
+        j0 = int(math.floor((xmin - ox) / g))
+        j1 = int(math.ceil((xmax - ox) / g))
+        i0 = int(math.floor((ymin - oy) / g))
+        i1 = int(math.ceil((ymax - oy) / g))
+        total = 0.0
+        inside = 0.0
+        scale = 0.0
+        for pas in range(2):
+            for i in range(i0, i1 + 1):
+                cy = oy + i * g - ay[s]
+                for j in range(j0, j1 + 1):
+                    cx = ox + j * g - ax[s]
+                    along = cx * ux + cy * uy
+                    across = cy * ux - cx * uy
+                    wa = _cell_cdf(s1 - along, ca, cb) - _cell_cdf(s0 - along, ca, cb)
+                    if wa <= 0.0:
+                        continue
+                    wc = _cell_cdf(hw - across, ca, cb) - _cell_cdf(-hw - across, ca, cb)
+                    if wc <= 0.0:
+                        continue
+                    w = wa * wc
+                    if pas == 0:
+                        total += w
+                    elif 0 <= i < ny and 0 <= j < nx:
+                        z[i, j] += w * scale
+                        inside += w
+            if pas == 0:
+                if total <= 0.0:
+                    break
+                scale = v / (total * g * g)
+        if total > 0.0:
+            lost += v * (1.0 - inside / total)
+    return lost
+
+
+def _segments(xy: np.ndarray, volume: np.ndarray, width: np.ndarray,
+              starts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Samples -> segments: sample i deposits ``volume[i]`` along xy[i] -> xy[i + 1].
+
+    The last sample of each path (``starts`` are the first sample of each path) has no
+    successor: its volume is deposited on a w x w square around it.
+    Returns a (n, 2), b (n, 2), volume (n,), half width (n,).
+    """
+    n = len(xy)
+    last = np.zeros(n, dtype=bool)
+    last[starts[1:] - 1] = True
+    last[-1] = True
+    nxt = np.minimum(np.arange(1, n + 1), n - 1)
+    b = np.where(last[:, None], xy, xy[nxt])
+    return xy, b, volume, 0.5 * width
+
+
+def deposit(surface: HeightMap, xy: np.ndarray, volume: np.ndarray,
+            width: float | np.ndarray, *, path_starts: Sequence[int] | None = None
+            ) -> HeightMap:
+    """Deposit material along sampled paths onto a height map.
+
+    surface: the current surface; its ``z`` must be finite (ny, nx) float64, mm.
+    xy: (n, 2) float64, mm, sample points of one or more paths, in deposition order.
+    volume: (n,) float64, mm^3; ``volume[i]`` is deposited uniformly over the strip of
+        width ``width`` swept from ``xy[i]`` to ``xy[i + 1]`` (a w x w square around the
+        last sample of a path).
+    width: path width, mm, scalar or (n,) per sample.
+    path_starts: index of the first sample of each path (default: one path).
+
+    Returns a new HeightMap with the deposited heights added. The added volume (sum of
+    height increments x cell area) equals ``volume.sum()`` to rounding unless the strip
+    reaches past the edge of the map, where the part outside is lost.
+    """
+    xy = np.ascontiguousarray(xy, dtype=np.float64)
+    volume = np.ascontiguousarray(volume, dtype=np.float64)
+    n = len(xy)
+    if xy.ndim != 2 or xy.shape[1] != 2 or volume.shape != (n,):
+        raise SimulationError(f"deposit: xy must be (n, 2) and volume (n,), got {xy.shape} "
+                              f"and {volume.shape}")
+    width_arr = np.broadcast_to(np.asarray(width, dtype=np.float64), (n,)).copy()
+    if not (np.isfinite(xy).all() and np.isfinite(volume).all()
+            and np.all(width_arr > 0)):
+        raise SimulationError("deposit: xy and volume must be finite and width > 0")
+    z = np.array(surface.z, dtype=np.float64, copy=True)
+    if n:
+        starts = np.asarray([0] if path_starts is None else path_starts, dtype=np.int64)
+        a, b, v, hw = _segments(xy, volume, width_arr, starts)
+        _splat(z, surface.origin, surface.spacing, a, b, v, hw)
+    return HeightMap(origin=np.asarray(surface.origin, dtype=np.float64),
+                     spacing=float(surface.spacing), z=z)
+
+
+def _splat(z: np.ndarray, origin: np.ndarray, spacing: float, a: np.ndarray, b: np.ndarray,
+           vol: np.ndarray, half_w: np.ndarray) -> float:
+    """In-place core of :func:`deposit` on segments; returns the volume lost off the map."""
+    return float(_splat_segments(z, float(origin[0]), float(origin[1]), float(spacing),
+                                 np.ascontiguousarray(a[:, 0]), np.ascontiguousarray(a[:, 1]),
+                                 np.ascontiguousarray(b[:, 0]), np.ascontiguousarray(b[:, 1]),
+                                 np.ascontiguousarray(vol, dtype=np.float64),
+                                 np.ascontiguousarray(half_w, dtype=np.float64)))
+
+
+def empty_surface(lo: np.ndarray, hi: np.ndarray, spacing: float, margin: float = 0.0
+                  ) -> HeightMap:
+    """A flat (z = 0) height map covering the box ``lo``-``hi`` (mm) plus ``margin``."""
+    lo = np.asarray(lo, dtype=np.float64) - margin
+    hi = np.asarray(hi, dtype=np.float64) + margin
+    if not (spacing > 0 and np.all(hi >= lo)):
+        raise SimulationError(f"empty_surface: need spacing > 0 and hi >= lo, got spacing "
+                              f"{spacing}, lo {lo}, hi {hi}")
+    nx = int(math.floor((hi[0] - lo[0]) / spacing)) + 2
+    ny = int(math.floor((hi[1] - lo[1]) / spacing)) + 2
+    return HeightMap(origin=lo, spacing=float(spacing), z=np.zeros((ny, nx)))
+
+
+def volume_from_pulses(pulse_times_s: np.ndarray, dt: float, n: int,
+                       drop_volume_mm3: float | np.ndarray) -> np.ndarray:
+    """Volume deposited in each time step of a trajectory by a valve program.
+
+    pulse_times_s: (p,) float64, s, pulse instants from the start of the trajectory
+        (``ValveProgram.ticks * tick_s``).
+    dt: trajectory time step, s; n: number of samples.
+    drop_volume_mm3: volume of one drop, mm^3, scalar or (n,) per sample — from the
+        calibration table, q / nu at the commanded frequency (thesis 6.1).
+    Returns (n,) float64 mm^3: pulses falling in [i dt, (i + 1) dt) times the drop volume.
+    """
+    idx = np.clip(np.floor(np.asarray(pulse_times_s, dtype=np.float64) / dt).astype(np.int64),
+                  0, max(n - 1, 0))
+    count = np.bincount(idx, minlength=n)[:n].astype(np.float64)
+    return count * np.broadcast_to(np.asarray(drop_volume_mm3, dtype=np.float64), (n,))
+
+
+# --------------------------------------------------------------------------- laser
+
+
+def sample_surface(surface: HeightMap, xy: np.ndarray) -> np.ndarray:
+    """Bilinear height of ``surface`` at (n, 2) points (mm); edge values beyond the map."""
+    g = surface.spacing
+    coords = np.stack([(xy[:, 1] - surface.origin[1]) / g, (xy[:, 0] - surface.origin[0]) / g])
+    return ndimage.map_coordinates(surface.z, coords, order=1, mode="nearest")
+
+
+def _resample(points: np.ndarray, closed: bool, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """Points every ``spacing`` mm along a polyline: (k, 2) points and (k,) arc length."""
+    poly = np.vstack([points, points[:1]]) if closed and len(points) > 1 else points
+    if len(poly) < 2:
+        return poly.copy(), np.zeros(len(poly))
+    seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    total = s[-1]
+    if total <= 0:
+        return poly[:1].copy(), np.zeros(1)
+    k = max(1, int(math.ceil(total / spacing - 1e-9)))
+    t = np.linspace(0.0, total, k + 1)
+    return _at(poly, s, t), t
+
+
+def _at(poly: np.ndarray, s: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Points at arc lengths ``t`` along the polyline ``poly`` with cumulative length ``s``."""
+    keep = np.concatenate([[True], np.diff(s) > 0])  # drop repeated points
+    return np.stack([np.interp(t, s[keep], poly[keep, 0]),
+                     np.interp(t, s[keep], poly[keep, 1])], axis=1)
+
+
+def laser_positions(points: np.ndarray, closed: bool, *, speed_mm_s: float, rate_hz: float,
+                    latency_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Where the laser samples along one measurement path (thesis 5.2.1).
+
+    points: (k, 2) float64, mm, the measurement path in part coordinates (laser frame
+        offset already applied).
+    Returns (tagged, true): (m, 2) positions the samples are reported at (every
+    ``speed / rate`` mm) and where the surface was actually read: ``speed * latency`` mm
+    earlier along the path (clamped at the path start).
+    """
+    spacing = speed_mm_s / rate_hz
+    poly = np.vstack([points, points[:1]]) if closed and len(points) > 1 else points
+    tagged, t = _resample(points, closed, spacing)
+    if len(poly) < 2 or latency_s == 0:
+        return tagged, tagged.copy()
+    seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    true = _at(poly, s, np.maximum(t - speed_mm_s * latency_s, 0.0))
+    return tagged, true
+
+
+def laser_measure(surface: HeightMap, tagged: np.ndarray, true: np.ndarray, *,
+                  noise_mm: float, rng: np.random.Generator) -> np.ndarray:
+    """Simulated laser samples: (m, 3) float64 x, y (tagged position), z (mm).
+
+    ``z`` is the surface height at the ``true`` positions plus Gaussian noise of std
+    ``noise_mm``. Use :func:`laser_positions` for the positions along a path.
+    """
+    z = sample_surface(surface, true)
+    if noise_mm > 0:
+        z = z + rng.normal(0.0, noise_mm, size=len(z))
+    return np.column_stack([tagged, z])
+
+
+# --------------------------------------------------------------------------- plans
+
+
+@dataclass(frozen=True, eq=False)
+class LayerPlan:
+    """One layer prepared for the simulator: every deposition segment and laser sample.
+
+    index: toolpaths layer index.
+    a, b: (m, 2) float64, mm, segment ends (part coordinates), in deposition order.
+    volume: (m,) float64, mm^3, commanded volume of each segment (no control action).
+    half_width: (m,) float64, mm.
+    material: (m,) int8, 0 part, 1 scaffold.
+    laser_tagged, laser_true: (k, 2) float64, mm, laser sample positions (empty when the
+        layer has no measurement paths).
+    """
+
+    index: int
+    a: np.ndarray
+    b: np.ndarray
+    volume: np.ndarray
+    half_width: np.ndarray
+    material: np.ndarray
+    laser_tagged: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    laser_true: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+
+    @property
+    def midpoints(self) -> np.ndarray:
+        return 0.5 * (self.a + self.b)
+
+
+def plan_layer(index: int, paths: Sequence[Path], job: "Job") -> LayerPlan:
+    """Cut the deposition paths of one layer into constant-speed segments (see module doc).
+
+    Each boundary/fill path is sampled every ``speed * dt`` mm (speed by role from
+    ``job.motion``); a segment carries ``width * dh * layer_scale * length`` mm^3 (eq. 6.2).
+    Measurement paths give the laser sample positions (:func:`laser_positions`).
+    """
+    m = job.motion
+    sim = job.simulation
+    dh = job.slicing.layer_thickness_mm * job.flow.layer_scale
+    a_parts, b_parts, v_parts, w_parts, mat_parts = [], [], [], [], []
+    tag_parts, true_parts = [], []
+    for p in paths:
+        pts = np.asarray(p.points, dtype=np.float64)
+        if len(pts) == 0:
+            continue
+        if p.role == "measure":
+            tg, tr = laser_positions(pts, p.closed, speed_mm_s=m.measure_speed_mm_s,
+                                     rate_hz=sim.laser_rate_hz, latency_s=sim.laser_latency_s)
+            tag_parts.append(tg)
+            true_parts.append(tr)
+            continue
+        if not p.depositing:
+            continue
+        if not p.width > 0:
+            raise SimulationError(f"layer {index}: {p.material} {p.role} path has width "
+                                  f"{p.width}; expected > 0 mm")
+        if p.material not in MATERIAL_ID:
+            raise SimulationError(f"layer {index}: unknown material {p.material!r}")
+        speed = m.boundary_speed_mm_s if p.role == "boundary" else m.fill_speed_mm_s
+        pts_s, _ = _resample(pts, p.closed, speed * m.dt_s)
+        if len(pts_s) < 2:
+            continue
+        a = pts_s[:-1]
+        b = pts_s[1:]
+        length = np.linalg.norm(b - a, axis=1)
+        a_parts.append(a)
+        b_parts.append(b)
+        v_parts.append(p.width * dh * length)
+        w_parts.append(np.full(len(a), 0.5 * p.width))
+        mat_parts.append(np.full(len(a), MATERIAL_ID[p.material], dtype=np.int8))
+
+    def cat(parts: list[np.ndarray], shape: tuple[int, ...], dtype=np.float64) -> np.ndarray:
+        return np.concatenate(parts) if parts else np.zeros(shape, dtype=dtype)
+
+    return LayerPlan(index=index, a=cat(a_parts, (0, 2)), b=cat(b_parts, (0, 2)),
+                     volume=cat(v_parts, (0,)), half_width=cat(w_parts, (0,)),
+                     material=cat(mat_parts, (0,), np.int8),
+                     laser_tagged=cat(tag_parts, (0, 2)), laser_true=cat(true_parts, (0, 2)))
+
+
+# --------------------------------------------------------------------------- the build
+
+
+@dataclass(frozen=True, eq=False)
+class Measurement:
+    """What the cell hands to the controller at a measurement layer (thesis 5.1.1).
+
+    layer: toolpaths layer index just deposited; k: measurement count, 1 for the first.
+    nominal_z: nominal height of the surface, mm (from the platform).
+    interval_mm: measurement interval dh_m = n_d * dh, mm.
+    samples: (m, 3) float64, mm, laser samples (x, y, z).
+    footprint: (ny, nx) bool on the simulator grid ``grid``: the merged (part + scaffold)
+        footprint of the layer.
+    grid: the simulator grid (its ``z`` is the nominal-height plane, NaN outside).
+    """
+
+    layer: int
+    k: int
+    nominal_z: float
+    interval_mm: float
+    samples: np.ndarray
+    footprint: np.ndarray
+    grid: HeightMap
+
+
+Controller = Callable[[Measurement], ActionFn | None]
+
+
+@dataclass(frozen=True, eq=False)
+class SimResult:
+    """Outcome of a simulated build, one entry per measurement layer.
+
+    layers: (m,) int64 toolpaths layer index of each measurement layer.
+    nominal_z: (m,) float64, mm, nominal surface height there.
+    rms: (m,) float64, mm, RMS deviation of the true surface from nominal over the part
+        footprint of that layer (the thesis' sigma_l*, Fig. 5-9).
+    max_abs: (m,) float64, mm, largest absolute deviation over the part footprint.
+    rms_measured: (m,) float64, mm, RMS of the laser samples' deviation from nominal.
+    height: final surface; NaN where nothing was ever deposited.
+    surfaces: error surfaces (true height - nominal, NaN outside the merged footprint)
+        at the layers asked for, by toolpaths layer index.
+    closed_loop: whether the controller ran.
+    volume_commanded, volume_deposited: mm^3 over the build (deposited includes the flow
+        error, drift, edge loss and control action).
+    flow_gain: final flow gain of each valve (part, scaffold), drift included.
+    n_layers: layers simulated.
+    """
+
+    layers: np.ndarray
+    nominal_z: np.ndarray
+    rms: np.ndarray
+    max_abs: np.ndarray
+    rms_measured: np.ndarray
+    height: HeightMap
+    surfaces: dict[int, HeightMap]
+    closed_loop: bool
+    volume_commanded: float
+    volume_deposited: float
+    flow_gain: tuple[float, float]
+    n_layers: int
+
+    def as_dict(self) -> dict:
+        """JSON-ready figures (no surfaces)."""
+        return {"closed_loop": self.closed_loop, "n_layers": self.n_layers,
+                "layers": self.layers.tolist(), "nominal_z_mm": self.nominal_z.tolist(),
+                "rms_mm": self.rms.tolist(), "max_abs_mm": self.max_abs.tolist(),
+                "rms_measured_mm": self.rms_measured.tolist(),
+                "volume_commanded_mm3": self.volume_commanded,
+                "volume_deposited_mm3": self.volume_deposited,
+                "flow_gain": list(self.flow_gain)}
+
+
+def _grid_for(plans: Sequence[LayerPlan], job: "Job") -> HeightMap:
+    pts = [p.a for p in plans if len(p.a)] + [p.b for p in plans if len(p.b)]
+    if not pts:
+        raise SimulationError("nothing to deposit: the layers have no boundary or fill paths")
+    allp = np.concatenate(pts)
+    wmax = max(float(p.half_width.max()) for p in plans if len(p.half_width))
+    margin = 2 * wmax + 2 * job.simulation.grid_mm
+    return empty_surface(allp.min(axis=0), allp.max(axis=0), job.simulation.grid_mm, margin)
+
+
+def _noise_field(rng: np.random.Generator, shape: tuple[int, int], sigma_cells: float
+                 ) -> np.ndarray:
+    """Unit-std Gaussian random field with correlation length ``sigma_cells``."""
+    f = rng.standard_normal(shape)
+    if sigma_cells > 0.5:
+        f = ndimage.gaussian_filter(f, sigma_cells, mode="wrap")
+        sd = f.std()
+        if sd > 0:
+            f /= sd
+    return f
+
+
+def _edge_factor(layer_z: np.ndarray, thresh: float, width: float, spacing: float,
+                 loss: float) -> np.ndarray:
+    """1 - loss within one path width of the edge of the deposited area, ramping to 1."""
+    mask = layer_z > thresh
+    d = ndimage.distance_transform_edt(mask) * spacing  # distance to the nearest outside cell
+    ramp = np.clip(1.0 - (d - 0.5 * spacing) / width, 0.0, 1.0)
+    return 1.0 - loss * ramp
+
+
+def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence[int],
+             controller: Controller | None = None, keep_surfaces: Sequence[int] = (),
+             progress: Callable[[int, int], None] | None = None) -> SimResult:
+    """Deposit ``plans`` layer by layer on the virtual cell, measuring and controlling.
+
+    plans: the layers to deposit, bottom first (:func:`plan_layer`).
+    measure_layers: positions in ``plans`` (0-based) after which the surface is measured.
+    controller: called with a :class:`Measurement` after each measurement layer; returns
+        the control action u(xy) applied to every segment until the next measurement
+        (None: keep nominal flow). Without a controller the build runs open loop.
+    keep_surfaces: toolpaths layer indices whose error surfaces are kept.
+    """
+    sim = job.simulation
+    dh = job.slicing.layer_thickness_mm
+    n_d = job.feedback.interval_layers
+    surface = _grid_for(plans, job)
+    z = surface.z
+    g = surface.spacing
+    ever = np.zeros(z.shape, dtype=bool)
+    rng_noise = np.random.default_rng([sim.seed, 1])
+    rng_debris = np.random.default_rng([sim.seed, 2])
+    rng_laser = np.random.default_rng([sim.seed, 3])
+    used_cm3 = np.zeros(2)
+    widths = (job.materials.part.path_width_mm, job.materials.scaffold.path_width_mm)
+    measure_set = set(int(i) for i in measure_layers)
+    keep = set(int(i) for i in keep_surfaces)
+    action: ActionFn | None = None
+    rows: list[tuple[int, float, float, float, float]] = []
+    surfaces: dict[int, HeightMap] = {}
+    vol_cmd_total = 0.0
+    vol_dep_total = 0.0
+    k = 0
+    for j, plan in enumerate(plans):
+        nominal = (j + 1) * dh
+        layer_img = np.zeros((2,) + z.shape)
+        u = np.zeros(len(plan.volume))
+        if action is not None and len(plan.volume):
+            u = np.asarray(action(plan.midpoints), dtype=np.float64)
+            u = np.where(np.isfinite(u), u, 0.0)
+        for mat in (0, 1):
+            sel = plan.material == mat
+            if not sel.any():
+                continue
+            v_cmd = plan.volume[sel] * (1.0 + u[sel])
+            # flow gain with drift by valve use (thesis 6.4): volume already through the valve
+            before = used_cm3[mat] + (np.cumsum(v_cmd) - v_cmd) / 1000.0
+            gain = (1.0 + sim.flow_error) * (1.0 + sim.flow_drift_per_m3 * before)
+            used_cm3[mat] += v_cmd.sum() / 1000.0
+            vol = v_cmd * gain
+            _splat(layer_img[mat], surface.origin, g, plan.a[sel], plan.b[sel], vol,
+                   plan.half_width[sel])
+            if sim.edge_loss > 0:
+                layer_img[mat] *= _edge_factor(layer_img[mat], 0.25 * dh, widths[mat], g,
+                                               sim.edge_loss)
+            vol_cmd_total += float(plan.volume[sel].sum())
+        added = layer_img[0] + layer_img[1]
+        vol_dep_total += float(added.sum() * g * g)
+        part_mask = layer_img[0] > 0.25 * dh
+        mask = added > 0.25 * dh
+        if sim.noise_mm > 0 and mask.any():
+            added += sim.noise_mm * mask * _noise_field(rng_noise, z.shape,
+                                                          sim.noise_corr_mm / g)
+        if sim.debris_rate > 0 and len(plan.volume):
+            n_debris = rng_debris.poisson(sim.debris_rate)
+            if n_debris:
+                where = plan.midpoints[rng_debris.integers(0, len(plan.volume), n_debris)]
+                xs, ys = surface.grid()
+                for cx, cy in where:  # a few bumps per layer at most
+                    r2 = ((xs[None, :] - cx) ** 2 + (ys[:, None] - cy) ** 2)
+                    added += mask * sim.debris_height_mm * np.exp(
+                        -0.5 * r2 / sim.debris_radius_mm ** 2)
+        z += added
+        ever |= mask
+        if j in measure_set:
+            k += 1
+            err = z - nominal
+            if part_mask.any():
+                e = err[part_mask]
+                rms = float(np.sqrt(np.mean(e ** 2)))
+                mx = float(np.abs(e).max())
+            else:
+                rms = mx = float("nan")
+            tagged, true = plan.laser_tagged, plan.laser_true
+            if len(tagged) == 0:
+                # no measurement paths in this layer: read along the deposition segments
+                tagged = true = plan.midpoints
+            samples = laser_measure(surface, tagged, true, noise_mm=sim.laser_noise_mm,
+                                    rng=rng_laser)
+            rms_meas = float(np.sqrt(np.mean((samples[:, 2] - nominal) ** 2))) \
+                if len(samples) else float("nan")
+            rows.append((plan.index, nominal, rms, mx, rms_meas))
+            if plan.index in keep:
+                surfaces[plan.index] = HeightMap(origin=surface.origin.copy(), spacing=g,
+                                                 z=np.where(mask, err, np.nan))
+            if controller is not None:
+                plane = np.where(mask, nominal, np.nan)
+                action = controller(Measurement(
+                    layer=plan.index, k=k, nominal_z=nominal, interval_mm=n_d * dh,
+                    samples=samples, footprint=mask,
+                    grid=HeightMap(origin=surface.origin.copy(), spacing=g, z=plane)))
+        if progress is not None:
+            progress(j + 1, len(plans))
+    arr = np.array(rows, dtype=np.float64).reshape(-1, 5)
+    final = HeightMap(origin=surface.origin.copy(), spacing=g, z=np.where(ever, z, np.nan))
+    gains = tuple(float((1 + sim.flow_error) * (1 + sim.flow_drift_per_m3 * c))
+                  for c in used_cm3)
+    return SimResult(layers=arr[:, 0].astype(np.int64), nominal_z=arr[:, 1], rms=arr[:, 2],
+                     max_abs=arr[:, 3], rms_measured=arr[:, 4], height=final,
+                     surfaces=surfaces, closed_loop=controller is not None,
+                     volume_commanded=vol_cmd_total, volume_deposited=vol_dep_total,
+                     flow_gain=gains, n_layers=len(plans))  # type: ignore[arg-type]

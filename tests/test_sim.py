@@ -1,0 +1,155 @@
+"""Virtual cell: deposition and the simulated laser (icefab.sim)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, strategies as st
+
+from icefab.sim import (SimulationError, deposit, empty_surface, laser_measure,
+                        laser_positions, sample_surface, volume_from_pulses)
+from icefab.types import HeightMap
+
+G = 0.5
+
+
+def _map(lo=(-20.0, -20.0), hi=(80.0, 80.0), g=G):
+    return empty_surface(np.array(lo), np.array(hi), g)
+
+
+def _line(p0, p1, speed, flow, dt=0.016):
+    """Samples at constant speed from p0 to p1 with ``flow * dt`` mm^3 per step."""
+    p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
+    length = np.linalg.norm(p1 - p0)
+    n = int(round(length / (speed * dt)))
+    t = np.linspace(0, 1, n + 1)[:, None]
+    xy = p0 + t * (p1 - p0)
+    vol = np.full(len(xy), flow * length / speed / n)
+    vol[-1] = 0.0
+    return xy, vol
+
+
+@given(st.lists(st.tuples(st.floats(0, 60), st.floats(0, 60)), min_size=1, max_size=30),
+       st.floats(0.3, 4.0), st.floats(0.0, 5.0))
+def test_volume_is_conserved_away_from_the_edge(points, width, vol):
+    xy = np.array(points, dtype=float)
+    rng = np.random.default_rng(len(points))
+    volume = rng.uniform(0, vol, len(xy))
+    out = deposit(_map(), xy, volume, width)
+    assert out.z.sum() * G * G == pytest.approx(volume.sum(), rel=1e-9, abs=1e-12)
+    assert np.all(out.z >= 0)
+
+
+def test_volume_is_conserved_with_several_paths_and_widths():
+    xy = np.array([[0, 0], [10, 3], [20, 20], [5, 40], [30, 30], [30, 31.0]])
+    volume = np.array([1.0, 2.0, 0.5, 3.0, 1.0, 0.2])
+    width = np.array([1.5, 1.5, 3.0, 3.0, 0.4, 0.4])
+    out = deposit(_map(), xy, volume, width, path_starts=[0, 3])
+    assert out.z.sum() * G * G == pytest.approx(volume.sum(), rel=1e-9)
+
+
+@pytest.mark.parametrize("speed,flow,width", [(25.0, 9.375, 1.5), (125.0, 93.75, 3.0),
+                                               (50.0, 10.0, 2.0)])
+def test_straight_path_leaves_a_strip_of_height_q_over_wv(speed, flow, width):
+    # strip along x at y = 10.25 (not grid aligned)
+    xy, vol = _line((0.0, 10.25), (60.0, 10.25), speed, flow)
+    out = deposit(_map(), xy, vol, width)
+    xs, ys = out.grid()
+    h = flow / (width * speed)
+    col = out.z[:, np.searchsorted(xs, 30.0)]
+    # cross-section: area = h * w exactly, fully covered cells sit at h
+    assert col.sum() * G == pytest.approx(h * width, rel=1e-9)
+    inside = np.abs(ys - 10.25) <= width / 2 - G / 2
+    assert np.allclose(col[inside], h, rtol=1e-9)
+    outside = np.abs(ys - 10.25) >= width / 2 + G / 2
+    assert np.all(col[outside] == 0)
+
+
+def test_diagonal_path_strip_height_and_width():
+    speed, flow, width = 40.0, 12.0, 3.0
+    xy, vol = _line((0.0, 0.0), (50.0, 50.0), speed, flow)
+    out = deposit(_map(), xy, vol, width)
+    xs, ys = out.grid()
+    X, Y = np.meshgrid(xs, ys)
+    d = np.abs(X - Y) / np.sqrt(2)  # distance from the path's line
+    mid = (X + Y > 20) & (X + Y < 80)
+    h = flow / (width * speed)
+    core = mid & (d < width / 2 - G)
+    assert np.allclose(out.z[core], h, rtol=0.02)
+    assert np.all(out.z[mid & (d > width / 2 + G)] == 0)
+
+
+def test_stationary_sample_covers_a_w_by_w_square():
+    out = deposit(_map(), np.array([[10.0, 10.0]]), np.array([9.0]), 3.0)
+    assert out.z.sum() * G * G == pytest.approx(9.0)
+    assert out.z.max() == pytest.approx(1.0)  # 9 mm^3 over 3 x 3 mm
+    assert np.count_nonzero(out.z) == 7 * 7  # [8.5, 11.5]^2: 5 x 5 full, half-covered rim
+
+
+def test_volume_off_the_map_is_lost_not_moved():
+    out = deposit(_map(), np.array([[-20.0, 30.0], [-20.0, 40.0]]), np.array([10.0, 0.0]), 2.0)
+    assert 0 < out.z.sum() * G * G < 10.0
+
+
+def test_deposit_rejects_bad_input():
+    with pytest.raises(SimulationError, match="width"):
+        deposit(_map(), np.zeros((2, 2)), np.ones(2), 0.0)
+    with pytest.raises(SimulationError, match=r"\(n, 2\)"):
+        deposit(_map(), np.zeros((2, 3)), np.ones(2), 1.0)
+    with pytest.raises(SimulationError, match="finite"):
+        deposit(_map(), np.array([[0, np.nan], [1, 1]]), np.ones(2), 1.0)
+
+
+def test_volume_from_pulses_counts_pulses_per_step():
+    t = np.array([0.001, 0.002, 0.017, 0.0175, 0.0179, 0.05])
+    v = volume_from_pulses(t, 0.016, 4, 0.5)
+    assert v.tolist() == [1.0, 1.5, 0.0, 0.5]
+    v = volume_from_pulses(t, 0.016, 4, np.array([1.0, 2.0, 3.0, 4.0]))
+    assert v.tolist() == [2.0, 6.0, 0.0, 4.0]
+
+
+# --------------------------------------------------------------------------- laser
+
+
+def _plane(z0=0.0, slope=0.0):
+    s = _map()
+    xs, ys = s.grid()
+    return HeightMap(origin=s.origin, spacing=s.spacing,
+                     z=z0 + slope * np.broadcast_to(xs, s.z.shape).copy())
+
+
+def test_laser_samples_every_speed_over_rate_with_the_configured_noise():
+    path = np.array([[0.0, 0.0], [60.0, 0.0], [60.0, 60.0], [0.0, 60.0]])
+    tagged, true = laser_positions(path, True, speed_mm_s=50.0, rate_hz=100.0, latency_s=0.0)
+    step = np.linalg.norm(np.diff(tagged, axis=0), axis=1)
+    assert np.allclose(step, 0.5)
+    assert len(tagged) == 480 + 1
+    rng = np.random.default_rng(5)
+    xyz = laser_measure(_plane(2.0), tagged, true, noise_mm=0.05, rng=rng)
+    assert xyz.shape == (481, 3)
+    assert np.array_equal(xyz[:, :2], tagged)
+    # 481 samples: the std estimate is within ~10 % (3.3 sigma of its sampling error)
+    assert np.std(xyz[:, 2]) == pytest.approx(0.05, rel=0.11)
+    assert np.mean(xyz[:, 2]) == pytest.approx(2.0, abs=4 * 0.05 / np.sqrt(481))
+
+
+def test_laser_without_noise_reads_the_surface():
+    surf = _plane(1.0, 0.02)
+    tagged, true = laser_positions(np.array([[0.0, 5.0], [40.0, 5.0]]), False,
+                                   speed_mm_s=50.0, rate_hz=100.0, latency_s=0.0)
+    xyz = laser_measure(surf, tagged, true, noise_mm=0.0, rng=np.random.default_rng(0))
+    assert np.allclose(xyz[:, 2], 1.0 + 0.02 * tagged[:, 0])
+    assert np.allclose(sample_surface(surf, tagged), xyz[:, 2])
+
+
+@pytest.mark.parametrize("direction", [1, -1])
+def test_laser_latency_lags_the_reading_along_the_path(direction):
+    speed, latency, slope = 50.0, 0.004, 0.01  # lag 0.2 mm along the path
+    surf = _plane(1.0, slope)
+    ends = np.array([[5.0, 5.0], [45.0, 5.0]])[::direction]
+    tagged, true = laser_positions(ends, False, speed_mm_s=speed, rate_hz=100.0,
+                                   latency_s=latency)
+    xyz = laser_measure(surf, tagged, true, noise_mm=0.0, rng=np.random.default_rng(0))
+    later = slice(1, None)  # the first sample is clamped at the path start
+    expected = 1.0 + slope * (tagged[:, 0] - direction * speed * latency)
+    assert np.allclose(xyz[later, 2], expected[later])
+    assert np.allclose(np.linalg.norm(tagged[later] - true[later], axis=1), speed * latency)
