@@ -282,6 +282,9 @@ class Trajectory:
     speed: (n,) float64, mm/s, speed along the path at each sample.
     duration: s, ``(n - 1) * dt`` for a single piece.
     path: the Path it follows (None for a plain point array).
+    pieces: (p,) int64 sample index where each piece (PATHSPLIT sub-path, thesis 4.1.1)
+        starts; the robot is at rest at every one of them and at the last sample. Empty
+        means a single piece starting at sample 0.
     """
 
     dt: float
@@ -290,6 +293,7 @@ class Trajectory:
     speed: np.ndarray
     duration: float
     path: Path | None = None
+    pieces: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
     @property
     def t(self) -> np.ndarray:
