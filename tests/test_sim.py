@@ -153,3 +153,36 @@ def test_laser_latency_lags_the_reading_along_the_path(direction):
     expected = 1.0 + slope * (tagged[:, 0] - direction * speed * latency)
     assert np.allclose(xyz[later, 2], expected[later])
     assert np.allclose(np.linalg.norm(tagged[later] - true[later], axis=1), speed * latency)
+
+
+def _closed(points, speed, dt=0.016):
+    """Resample a closed polygon at constant speed; the sample count sets the volume."""
+    from icefab.sim import _resample
+    xy, _ = _resample(np.asarray(points, float), True, speed * dt)
+    return xy
+
+
+@pytest.mark.parametrize("shape", ["square", "circle"])
+def test_closed_path_leaves_an_even_strip_at_its_corners(shape):
+    # mitre joins: no double deposit on the inside of a turn, no gap on the outside
+    width, dh = 2.0, 0.25
+    if shape == "square":
+        ring = np.array([[10.0, 10.0], [40.0, 10.0], [40.0, 40.0], [10.0, 40.0]])
+    else:
+        t = np.linspace(0, 2 * np.pi, 400, endpoint=False)
+        ring = 25.0 + 12.0 * np.column_stack([np.cos(t), np.sin(t)])
+    xy = _closed(ring, 125.0)[:-1]  # closed: the first point is not repeated
+    vol = width * dh * np.linalg.norm(np.roll(xy, -1, axis=0) - xy, axis=1)
+    out = deposit(_map(), xy, vol, width, closed=True)
+    assert out.z.sum() * G * G == pytest.approx(vol.sum(), rel=1e-9)
+    xs, ys = out.grid()
+    X, Y = np.meshgrid(xs, ys)
+    pts = np.column_stack([X.ravel(), Y.ravel()])
+    if shape == "square":
+        d = np.abs(np.maximum(np.abs(X - 25.0), np.abs(Y - 25.0)) - 15.0)
+    else:
+        d = np.abs(np.hypot(X - 25.0, Y - 25.0) - 12.0)
+    core = d < width / 2 - G
+    assert np.allclose(out.z[core], dh, rtol=0.03), (out.z[core].min(), out.z[core].max())
+    assert np.all(out.z[d > width / 2 + G] == 0)
+    assert len(pts) == out.z.size

@@ -94,11 +94,16 @@ def _cell_cdf(x, a, b):  # pragma: no cover - numba
 
 
 @njit(cache=True)
-def _splat_segments(z, ox, oy, g, ax, ay, bx, by, vol, half_w):  # pragma: no cover - numba
-    """Add each segment's volume to ``z`` over the rectangle it sweeps (see :func:`deposit`).
+def _splat_segments(z, ox, oy, g, ax, ay, bx, by, vol, half_w, n0, n1,
+                    ext):  # pragma: no cover - numba
+    """Add each segment's volume to ``z`` over the strip it sweeps (see :func:`deposit`).
 
-    A cell's weight is the fraction of it inside the strip across the segment times the
-    fraction inside the segment's extent along it (each exact for a rotated square cell,
+    The strip of segment s is the band ``|across| <= half_w`` cut at its ends by the lines
+    through ``a`` with normal ``n0`` and through ``b`` with normal ``n1`` (the bisectors at
+    the joints with the previous/next segment: mitre joins, so consecutive strips tile
+    without gap or overlap; the segment direction at free ends: butt ends). ``ext`` is how
+    far (mm) a mitre may reach beyond the segment ends. A cell's weight is the product of
+    the fractions of it inside each of the three cuts (each exact for a square cell,
     :func:`_cell_cdf`); a zero-length segment covers a w x w square. Weights are summed
     over the unclipped bounding box and normalised, so cells outside the map only take
     their share away (volume outside the map is lost, nothing else moves).
@@ -113,15 +118,18 @@ def _splat_segments(z, ox, oy, g, ax, ay, bx, by, vol, half_w):  # pragma: no co
         dx = bx[s] - ax[s]
         dy = by[s] - ay[s]
         length = math.sqrt(dx * dx + dy * dy)
-        if length < 1e-12:
+        point = length < 1e-12
+        if point:
             ux, uy = 1.0, 0.0
-            s0, s1 = -hw, hw
         else:
             ux, uy = dx / length, dy / length
-            s0, s1 = 0.0, length
         ca = g * max(abs(ux), abs(uy))
         cb = g * min(abs(ux), abs(uy))
-        reach = hw + g + (hw if length < 1e-12 else 0.0)
+        a0 = g * max(abs(n0[s, 0]), abs(n0[s, 1]))
+        b0 = g * min(abs(n0[s, 0]), abs(n0[s, 1]))
+        a1 = g * max(abs(n1[s, 0]), abs(n1[s, 1]))
+        b1 = g * min(abs(n1[s, 0]), abs(n1[s, 1]))
+        reach = hw + g + (hw if point else ext[s])
         xmin = min(ax[s], bx[s]) - reach
         xmax = max(ax[s], bx[s]) + reach
         ymin = min(ay[s], by[s]) - reach
@@ -138,13 +146,18 @@ def _splat_segments(z, ox, oy, g, ax, ay, bx, by, vol, half_w):  # pragma: no co
                 cy = oy + i * g - ay[s]
                 for j in range(j0, j1 + 1):
                     cx = ox + j * g - ax[s]
-                    along = cx * ux + cy * uy
                     across = cy * ux - cx * uy
-                    wa = _cell_cdf(s1 - along, ca, cb) - _cell_cdf(s0 - along, ca, cb)
-                    if wa <= 0.0:
-                        continue
                     wc = _cell_cdf(hw - across, ca, cb) - _cell_cdf(-hw - across, ca, cb)
                     if wc <= 0.0:
+                        continue
+                    if point:
+                        along = cx
+                        wa = _cell_cdf(hw - along, ca, cb) - _cell_cdf(-hw - along, ca, cb)
+                    else:
+                        d0 = cx * n0[s, 0] + cy * n0[s, 1]
+                        d1 = (dx - cx) * n1[s, 0] + (dy - cy) * n1[s, 1]
+                        wa = _cell_cdf(d0, a0, b0) * _cell_cdf(d1, a1, b1)
+                    if wa <= 0.0:
                         continue
                     w = wa * wc
                     if pas == 0:
@@ -161,35 +174,82 @@ def _splat_segments(z, ox, oy, g, ax, ay, bx, by, vol, half_w):  # pragma: no co
     return lost
 
 
-def _segments(xy: np.ndarray, volume: np.ndarray, width: np.ndarray,
-              starts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+# Joints turning by more than this (cosine of the turn below -0.5, i.e. > 120 deg) get butt
+# ends instead of a mitre, so a mitre never reaches more than tan(60 deg) half widths.
+_MITRE_MIN_COS = -0.5
+
+
+def _joints(a: np.ndarray, b: np.ndarray, half_w: np.ndarray, starts: np.ndarray,
+            closed: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Cut lines at the ends of consecutive segments (mitre joins, butt free ends).
+
+    a, b: (m, 2) segment ends; segments of one path are consecutive, path p starts at
+    segment ``starts[p]``; ``closed[p]`` joins its last segment to its first.
+    Returns n0, n1 (m, 2) unit normals of the start and end cut lines and ext (m,) how far a
+    mitre reaches beyond the segment ends, mm.
+    """
+    m = len(a)
+    d = b - a
+    length = np.linalg.norm(d, axis=1)
+    u = np.divide(d, length[:, None], out=np.zeros_like(d), where=length[:, None] > 0)
+    ends = np.append(starts[1:], m)
+    prev = np.arange(m) - 1
+    nxt = np.arange(m) + 1
+    prev[starts] = np.where(closed, ends - 1, -1)
+    nxt[ends - 1] = np.where(closed, starts, -1)
+    n0, e0 = _bisector(u, prev)
+    n1, e1 = _bisector(u, nxt)
+    return n0, n1, half_w * np.maximum(e0, e1)
+
+
+def _bisector(u: np.ndarray, other: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Normal of the cut between each segment and ``other`` (-1: none), and tan(turn / 2)."""
+    uo = np.where(other[:, None] >= 0, u[np.maximum(other, 0)], 0.0)
+    cos = np.einsum("ij,ij->i", u, uo)
+    mitre = (other >= 0) & (cos > _MITRE_MIN_COS) & np.any(uo != 0, axis=1)
+    nsum = u + uo
+    norm = np.linalg.norm(nsum, axis=1)
+    n = np.where(mitre[:, None], nsum / np.where(norm > 0, norm, 1.0)[:, None], u)
+    ratio = np.divide(1 - cos, 1 + cos, out=np.zeros_like(cos), where=mitre)
+    tan_half = np.sqrt(np.clip(ratio, 0.0, None))
+    return np.ascontiguousarray(n), tan_half
+
+
+def _segments(xy: np.ndarray, volume: np.ndarray, width: np.ndarray, starts: np.ndarray,
+              closed: np.ndarray) -> tuple[np.ndarray, ...]:
     """Samples -> segments: sample i deposits ``volume[i]`` along xy[i] -> xy[i + 1].
 
-    The last sample of each path (``starts`` are the first sample of each path) has no
-    successor: its volume is deposited on a w x w square around it.
-    Returns a (n, 2), b (n, 2), volume (n,), half width (n,).
+    ``starts`` are the first sample of each path. The last sample of a closed path deposits
+    along the closing segment back to the path's first sample; that of an open path has
+    no successor and deposits on a w x w square around it.
+    Returns a (n, 2), b (n, 2), volume (n,), half width (n,), n0, n1, ext (:func:`_joints`).
     """
     n = len(xy)
-    last = np.zeros(n, dtype=bool)
-    last[starts[1:] - 1] = True
-    last[-1] = True
-    nxt = np.minimum(np.arange(1, n + 1), n - 1)
-    b = np.where(last[:, None], xy, xy[nxt])
-    return xy, b, volume, 0.5 * width
+    ends = np.append(starts[1:], n)
+    nxt = np.arange(1, n + 1)
+    nxt[ends - 1] = np.where(closed, starts, ends - 1)
+    b = xy[nxt]
+    hw = 0.5 * width
+    n0, n1, ext = _joints(xy, b, hw, starts, closed)
+    return xy, b, volume, hw, n0, n1, ext
 
 
 def deposit(surface: HeightMap, xy: np.ndarray, volume: np.ndarray,
-            width: float | np.ndarray, *, path_starts: Sequence[int] | None = None
-            ) -> HeightMap:
+            width: float | np.ndarray, *, path_starts: Sequence[int] | None = None,
+            closed: bool | Sequence[bool] = False) -> HeightMap:
     """Deposit material along sampled paths onto a height map.
 
     surface: the current surface; its ``z`` must be finite (ny, nx) float64, mm.
     xy: (n, 2) float64, mm, sample points of one or more paths, in deposition order.
     volume: (n,) float64, mm^3; ``volume[i]`` is deposited uniformly over the strip of
-        width ``width`` swept from ``xy[i]`` to ``xy[i + 1]`` (a w x w square around the
-        last sample of a path).
+        width ``width`` swept from ``xy[i]`` to ``xy[i + 1]`` (for the last sample of a
+        path: back to its first sample when closed, else a w x w square). Consecutive strips meet on the bisector of their joint
+        (mitre; butt ends at turns sharper than 120 deg), so a polyline leaves a strip
+        without gaps or overlaps at its corners.
     width: path width, mm, scalar or (n,) per sample.
     path_starts: index of the first sample of each path (default: one path).
+    closed: per path (or one for all), whether it returns to its first sample (which is
+        not repeated, as in :class:`~icefab.types.Path`).
 
     Returns a new HeightMap with the deposited heights added. The added volume (sum of
     height increments x cell area) equals ``volume.sum()`` to rounding unless the strip
@@ -208,20 +268,26 @@ def deposit(surface: HeightMap, xy: np.ndarray, volume: np.ndarray,
     z = np.array(surface.z, dtype=np.float64, copy=True)
     if n:
         starts = np.asarray([0] if path_starts is None else path_starts, dtype=np.int64)
-        a, b, v, hw = _segments(xy, volume, width_arr, starts)
-        _splat(z, surface.origin, surface.spacing, a, b, v, hw)
+        if starts.ndim != 1 or len(starts) == 0 or starts[0] != 0 or \
+                np.any(np.diff(starts) <= 0) or starts[-1] >= n:
+            raise SimulationError(f"deposit: path_starts must increase from 0 below {n}, "
+                                  f"got {starts.tolist()}")
+        closed_arr = np.broadcast_to(np.asarray(closed, dtype=bool), starts.shape)
+        _splat(z, surface.origin, surface.spacing,
+               *_segments(xy, volume, width_arr, starts, closed_arr))
     return HeightMap(origin=np.asarray(surface.origin, dtype=np.float64),
                      spacing=float(surface.spacing), z=z)
 
 
 def _splat(z: np.ndarray, origin: np.ndarray, spacing: float, a: np.ndarray, b: np.ndarray,
-           vol: np.ndarray, half_w: np.ndarray) -> float:
+           vol: np.ndarray, half_w: np.ndarray, n0: np.ndarray, n1: np.ndarray,
+           ext: np.ndarray) -> float:
     """In-place core of :func:`deposit` on segments; returns the volume lost off the map."""
+    c = np.ascontiguousarray
     return float(_splat_segments(z, float(origin[0]), float(origin[1]), float(spacing),
-                                 np.ascontiguousarray(a[:, 0]), np.ascontiguousarray(a[:, 1]),
-                                 np.ascontiguousarray(b[:, 0]), np.ascontiguousarray(b[:, 1]),
-                                 np.ascontiguousarray(vol, dtype=np.float64),
-                                 np.ascontiguousarray(half_w, dtype=np.float64)))
+                                 c(a[:, 0]), c(a[:, 1]), c(b[:, 0]), c(b[:, 1]),
+                                 c(vol, dtype=np.float64), c(half_w, dtype=np.float64),
+                                 c(n0), c(n1), c(ext, dtype=np.float64)))
 
 
 def empty_surface(lo: np.ndarray, hi: np.ndarray, spacing: float, margin: float = 0.0
@@ -332,6 +398,8 @@ class LayerPlan:
     volume: (m,) float64, mm^3, commanded volume of each segment (no control action).
     half_width: (m,) float64, mm.
     material: (m,) int8, 0 part, 1 scaffold.
+    n0, n1: (m, 2) float64 unit normals of the cut lines at the segment ends and ext (m,)
+        float64 mm, the mitre reach (see :func:`_joints`).
     laser_tagged, laser_true: (k, 2) float64, mm, laser sample positions (empty when the
         layer has no measurement paths).
     """
@@ -342,6 +410,9 @@ class LayerPlan:
     volume: np.ndarray
     half_width: np.ndarray
     material: np.ndarray
+    n0: np.ndarray
+    n1: np.ndarray
+    ext: np.ndarray
     laser_tagged: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     laser_true: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
 
@@ -361,6 +432,7 @@ def plan_layer(index: int, paths: Sequence[Path], job: "Job") -> LayerPlan:
     sim = job.simulation
     dh = job.slicing.layer_thickness_mm * job.flow.layer_scale
     a_parts, b_parts, v_parts, w_parts, mat_parts = [], [], [], [], []
+    starts, closed, count = [], [], 0
     tag_parts, true_parts = [], []
     for p in paths:
         pts = np.asarray(p.points, dtype=np.float64)
@@ -385,6 +457,9 @@ def plan_layer(index: int, paths: Sequence[Path], job: "Job") -> LayerPlan:
             continue
         a = pts_s[:-1]
         b = pts_s[1:]
+        starts.append(count)
+        closed.append(bool(p.closed))
+        count += len(a)
         length = np.linalg.norm(b - a, axis=1)
         a_parts.append(a)
         b_parts.append(b)
@@ -395,9 +470,11 @@ def plan_layer(index: int, paths: Sequence[Path], job: "Job") -> LayerPlan:
     def cat(parts: list[np.ndarray], shape: tuple[int, ...], dtype=np.float64) -> np.ndarray:
         return np.concatenate(parts) if parts else np.zeros(shape, dtype=dtype)
 
-    return LayerPlan(index=index, a=cat(a_parts, (0, 2)), b=cat(b_parts, (0, 2)),
-                     volume=cat(v_parts, (0,)), half_width=cat(w_parts, (0,)),
-                     material=cat(mat_parts, (0,), np.int8),
+    a, b, hw = cat(a_parts, (0, 2)), cat(b_parts, (0, 2)), cat(w_parts, (0,))
+    n0, n1, ext = _joints(a, b, hw, np.asarray(starts, dtype=np.int64),
+                          np.asarray(closed, dtype=bool))
+    return LayerPlan(index=index, a=a, b=b, volume=cat(v_parts, (0,)), half_width=hw,
+                     material=cat(mat_parts, (0,), np.int8), n0=n0, n1=n1, ext=ext,
                      laser_tagged=cat(tag_parts, (0, 2)), laser_true=cat(true_parts, (0, 2)))
 
 
@@ -554,7 +631,7 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
             used_cm3[mat] += v_cmd.sum() / 1000.0
             vol = v_cmd * gain
             _splat(layer_img[mat], surface.origin, g, plan.a[sel], plan.b[sel], vol,
-                   plan.half_width[sel])
+                   plan.half_width[sel], plan.n0[sel], plan.n1[sel], plan.ext[sel])
             if sim.edge_loss > 0:
                 layer_img[mat] *= _edge_factor(layer_img[mat], 0.25 * dh, widths[mat], g,
                                                sim.edge_loss)
