@@ -136,6 +136,8 @@ class MaterialSettings:
                                                  "hybrid fill", lo=0.0, lo_open=True, hi=90.0)
     nozzle_offset_mm: Vec2 = setting((-0.1, -0.3), "origin of this material's building frame "
                                                    "in the end-effector frame")
+    gap_fill: bool = setting(True, "fill the gaps the fill paths leave (e.g. between "
+                                   "concentric rings) with extra rings of the boundary width")
     calibration_file: str = setting("", "CSV of valve frequency (Hz) vs flow (mm^3/s); empty: "
                                         "built-in table")
 

@@ -1,0 +1,690 @@
+"""Deposition, measurement and travel paths of every layer (thesis 3.4-3.5, 3.7, 5.2.1).
+
+From a ``Stack`` with part and scaffold regions to ordered ``Path``s per layer:
+
+* Boundary paths (thesis 3.4, 3.7): boundary ``i`` (0-based) of a material is its region
+  shrunk by ``initial_offset + i * path_width`` (defaults 0.6 mm water, 1.2 mm scaffold,
+  path width 1.5 mm). The initial offset is the material-specific calibration of the
+  thesis, so a boundary of width ``w`` may reach ``w/2 - initial_offset`` beyond the region
+  edge (0.15 mm for water with the defaults): that is intended, the material spreads less.
+* Fill (thesis 3.5, Jin et al. 3-4) inside the *fill edge* ``e = initial_offset + (n -
+  1/2) * path_width`` (the inner edge of the last of ``n`` boundaries; with no boundary,
+  ``max(initial_offset - path_width/2, 0)``):
+
+  - ``concentric``: rings at ``e + F/2``, then every ``F`` (fill width) inward until
+    nothing is left (iterative Clipper offsets, points filtered after each);
+  - ``zigzag``: parallel lines at ``fill_angle_deg`` spaced ``F``, clipped to the region
+    shrunk by ``e + F/2``, consecutive lines linked where the link stays inside;
+  - ``raster``: the same lines unlinked, each its own path (the thesis' ZZFILL);
+  - ``hybrid``: ``hybrid_rings`` concentric rings, then zigzag inside at the angle (in
+    steps of ``hybrid_angle_step_deg`` over [0, 180)) with the least time by Jin's model
+    (eqs. 8-18, :func:`jin_segment_time`);
+  - ``none``.
+
+  The area of each region not swept by any of its deposition paths is reported in
+  ``LayerPaths.unfilled_mm2`` (thesis: gaps the path width cannot fill).
+* Measurement paths (thesis 5.2.1): on layers with ``(index + 1) % interval_layers == 0``,
+  concentric rings over each material's region (shrunk by half the measurement spacing,
+  then every spacing), role "measure", one material per path, given for the laser tool.
+* Order within a layer: ``job.materials.order`` (default part boundaries, part fill,
+  scaffold boundaries, scaffold fill), measurement paths last; inside each set nearest
+  neighbour from the current position (the layer starts at the part-frame origin), with the
+  start point of every closed path chosen as its point nearest to the current position and
+  either end of an open path; explicit travel paths (role "travel", width 0) between
+  consecutive paths.
+* Reference frames (thesis Table 3-1): points are in the part (building) frame of the tool
+  that follows them (``Path.tool_name``). See :func:`to_base_frame`. A travel path is given
+  for the tool of the path that follows it; when the tool changes, its first point is the
+  previous end point shifted by the difference of the two tool offsets, so the end effector
+  moves continuously in the base frame.
+* Deposition state per point (Ossino 6): ON1 (part), ON2 (scaffold) or OFF, from
+  ``Path.depositing`` and ``Path.material``: :func:`deposition_state`.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import tempfile
+import zipfile
+from pathlib import Path as FsPath
+from typing import Sequence
+
+import numpy as np
+
+from icefab import geometry as geo
+from icefab.config import Job, MaterialSettings, job_from_dict, to_toml
+from icefab.errors import ConfigError, StackFileError
+from icefab.regions import parallel_map
+from icefab.types import Layer, LayerPaths, Path, Region, Stack, Toolpaths, signed_area
+
+log = logging.getLogger(__name__)
+
+#: Ossino's deposition states.
+OFF, ON1, ON2 = 0, 1, 2
+TOOLS = ("part", "scaffold", "laser")
+
+# --------------------------------------------------------------------------- frames
+
+
+def tool_offset(tool: str, job: Job) -> np.ndarray:
+    """(2,) float64, mm: origin of a tool's frame in the end-effector frame (Table 3-1).
+
+    tool: "part" (water nozzle), "scaffold" (scaffold nozzle) or "laser".
+    """
+    if tool == "laser":
+        return np.asarray(job.cell.laser_offset_mm, dtype=np.float64)
+    if tool in ("part", "scaffold"):
+        return np.asarray(job.materials[tool].nozzle_offset_mm, dtype=np.float64)
+    raise ConfigError(f"unknown tool {tool!r}: expected one of {', '.join(TOOLS)}")
+
+
+def to_base_frame(points: np.ndarray, tool: str, job: Job) -> np.ndarray:
+    """End-effector positions in the robot base frame that put ``tool`` on part points.
+
+    points: (n, 2) float64, mm, part-frame points where the tool must be.
+    Returns (n, 2) float64, mm: ``points + ee_origin - tool_offset``.
+
+    Sign convention (thesis Table 3-1, 2.x): ``cell.ee_origin_mm`` is where the end
+    effector (EE) frame origin sits in the base frame when the part origin is under it,
+    and a tool's offset (``nozzle_offset_mm``, ``laser_offset_mm``) is the origin of the
+    tool's frame *in the EE frame* (the EE keeps a constant orientation, joint 4). A tool
+    at EE position ``E`` is therefore at ``E + offset``; to put it at the part point ``p``
+    (base point ``p + ee_origin``) the EE moves to ``p + ee_origin - offset``.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    return pts + (np.asarray(job.cell.ee_origin_mm, dtype=np.float64) - tool_offset(tool, job))
+
+
+def deposition_state(path: Path) -> int:
+    """Ossino's state of every point of a path: ON1 (1, part), ON2 (2, scaffold), OFF (0)."""
+    if not path.depositing:
+        return OFF
+    return ON1 if path.material == "part" else ON2
+
+
+# --------------------------------------------------------------------------- fill pieces
+
+
+def _fill_edge(mat: MaterialSettings) -> float:
+    n = mat.boundary_count
+    if n == 0:
+        return max(mat.initial_offset_mm - mat.path_width_mm / 2.0, 0.0)
+    return mat.initial_offset_mm + (n - 0.5) * mat.path_width_mm
+
+
+def boundary_rings(region: Region, mat: MaterialSettings, filt: float) -> list[list[np.ndarray]]:
+    """Boundary path rings of a region, outermost first (thesis 3.4, 3.7).
+
+    Returns one list of (k, 2) float64 rings (mm) per boundary.
+    """
+    out: list[list[np.ndarray]] = []
+    rings = list(region.rings)
+    for i in range(mat.boundary_count):
+        d = mat.initial_offset_mm if i == 0 else mat.path_width_mm
+        rings = geo.offset_rings(rings, -d, filt)
+        if not rings:
+            break
+        out.append(rings)
+    return out
+
+
+def concentric_rings(region: Region, start_mm: float, step_mm: float, filt: float,
+                     max_rings: int = 100_000) -> list[list[np.ndarray]]:
+    """Rings of ``region`` shrunk by ``start_mm``, then every ``step_mm`` until empty.
+
+    Returns one list of (k, 2) float64 rings (mm) per offset level, outermost first.
+    """
+    out: list[list[np.ndarray]] = []
+    rings = geo.offset_rings(list(region.rings), -start_mm, filt)
+    while rings and len(out) < max_rings:
+        out.append(rings)
+        rings = geo.offset_rings(rings, -step_mm, filt)
+    return out
+
+
+def _rotate(pts: np.ndarray, angle: float) -> np.ndarray:
+    c, s = math.cos(angle), math.sin(angle)
+    return pts @ np.array([[c, s], [-s, c]])
+
+
+def raster_lines(area: Region, spacing: float, angle_deg: float) -> list[np.ndarray]:
+    """Parallel lines at ``angle_deg`` spaced ``spacing`` clipped to ``area``.
+
+    Returns open 2-point segments (mm) sorted by line then along the line direction; the
+    lines are centred in the extent of ``area`` across them.
+    """
+    if area.is_empty:
+        return []
+    a = math.radians(angle_deg)
+    pts = np.concatenate(area.rings)
+    rot = _rotate(pts, -a)  # frame where the lines are horizontal
+    (x0, y0), (x1, y1) = rot.min(axis=0), rot.max(axis=0)
+    n = int(math.floor((y1 - y0) / spacing)) + 1
+    ys = y0 + (y1 - y0 - (n - 1) * spacing) / 2.0 + spacing * np.arange(n)
+    ys = ys[(ys > y0) & (ys < y1)] if n > 1 else np.array([(y0 + y1) / 2.0])
+    if len(ys) == 0:
+        return []
+    lines = np.empty((len(ys), 2, 2))
+    lines[:, 0, 0], lines[:, 1, 0] = x0 - 1.0, x1 + 1.0
+    lines[:, :, 1] = ys[:, None]
+    world = [_rotate(ln, a) for ln in lines]
+    pieces = geo.clip_lines(world, area)
+    if not pieces:
+        return []
+    segs = np.array([[p[0], p[-1]] for p in pieces])  # straight lines: keep the ends
+    r = _rotate(segs.reshape(-1, 2), -a).reshape(-1, 2, 2)
+    flip = r[:, 0, 0] > r[:, 1, 0]
+    segs[flip] = segs[flip, ::-1]
+    r[flip] = r[flip, ::-1]
+    level = np.rint((r[:, 0, 1] - ys[0]) / spacing).astype(np.int64)
+    order = np.lexsort((r[:, 0, 0], level))
+    return [segs[i] for i in order]
+
+
+def link_zigzag(segs: list[np.ndarray], spacing: float, inside: Region, angle_deg: float
+                ) -> list[np.ndarray]:
+    """Link raster segments into zigzag polylines (Jin's Type I lines joined by Type II).
+
+    segs: from :func:`raster_lines` (sorted by line, left to right in the line frame).
+    inside: region every link must stay in (links leaving it are not made).
+    Returns open polylines, (k, 2) float64, mm.
+    """
+    if not segs:
+        return []
+    a = math.radians(angle_deg)
+    S = np.array(segs)  # (m, 2, 2)
+    r = _rotate(S.reshape(-1, 2), -a).reshape(-1, 2, 2)
+    level = np.rint((r[:, 0, 1] - r[:, 0, 1].min()) / spacing).astype(np.int64)
+    m = len(S)
+    # Candidate link from each end of segment i to the same end of the nearest segment on
+    # the next line: right end -> right end, left end -> left end (alternating direction).
+    cand = np.full((m, 2), -1, dtype=np.int64)
+    for side in (0, 1):
+        ends = r[:, side, :]
+        for lv in np.unique(level):
+            cur = np.flatnonzero(level == lv)
+            nxt = np.flatnonzero(level == lv + 1)
+            if len(nxt) == 0:
+                continue
+            d = np.linalg.norm(ends[cur][:, None, :] - ends[nxt][None, :, :], axis=2)
+            j = np.argmin(d, axis=1)
+            ok = d[np.arange(len(cur)), j] <= 2.5 * spacing
+            cand[cur[ok], side] = nxt[j[ok]]
+    # Validate all candidate links in one clipping call.
+    ii, ss = np.nonzero(cand >= 0)
+    valid = np.zeros((m, 2), dtype=bool)
+    if len(ii):
+        links = [np.array([S[i, s], S[cand[i, s], s]]) for i, s in zip(ii, ss)]
+        lengths = np.array([np.linalg.norm(ln[1] - ln[0]) for ln in links])
+        inside_len = np.zeros(len(links))
+        for k, ln in enumerate(links):
+            pieces = geo.clip_lines([ln], inside)
+            inside_len[k] = sum(np.linalg.norm(p[-1] - p[0]) for p in pieces)
+        valid[ii, ss] = inside_len >= lengths - 1e-3
+    used = np.zeros(m, dtype=bool)
+    out: list[np.ndarray] = []
+    for start in range(m):
+        if used[start]:
+            continue
+        chain = [S[start, 0], S[start, 1]]
+        used[start] = True
+        cur, side = start, 1  # we are at the right end of segment `start`
+        while True:
+            j = cand[cur, side]
+            if j < 0 or used[j] or not valid[cur, side]:
+                break
+            used[j] = True
+            chain.extend([S[j, side], S[j, 1 - side]])
+            cur, side = j, 1 - side
+        out.append(np.array(chain))
+    return out
+
+
+def jin_segment_time(length: np.ndarray, v_min: float, accel: float) -> np.ndarray:
+    """Time to traverse straight segments starting and ending at ``v_min`` (Jin eq. 18).
+
+    The tool accelerates at ``accel`` from ``v_min`` up to ``v_max = 2 v_min`` (eq. 13)
+    and decelerates symmetrically; it reaches ``v_max`` only on segments longer than
+    ``3 v_min^2 / accel`` (eq. 17 times two).
+    length: (m,) float64, mm. Returns (m,) float64, s.
+    """
+    L = np.asarray(length, dtype=np.float64)
+    crit = 3.0 * v_min ** 2 / accel
+    short = (-2.0 * v_min + np.sqrt(4.0 * v_min ** 2 + 4.0 * accel * L)) / accel
+    long_ = 2.0 * v_min / accel + (L - crit) / (2.0 * v_min)
+    return np.where(L <= crit, short, long_)
+
+
+def zigzag_time(polylines: Sequence[np.ndarray], job: Job) -> float:
+    """Build time of zigzag paths by Jin's model (eqs. 8-12, 18), s.
+
+    Every straight segment (Type I line or Type II link) starts and ends at
+    ``v_min = fill_speed / 2`` (eq. 13 with ``v_max`` = the fill speed) and accelerates at
+    ``job.motion.accel_mm_s2``.
+    """
+    if not polylines:
+        return 0.0
+    lengths = np.concatenate([np.linalg.norm(np.diff(p, axis=0), axis=1) for p in polylines])
+    v_min = job.motion.fill_speed_mm_s / 2.0
+    return float(jin_segment_time(lengths, v_min, job.motion.accel_mm_s2).sum())
+
+
+def _zigzag_at(inner: Region, spacing: float, angle: float, filt: float,
+               linked: bool) -> list[np.ndarray]:
+    segs = raster_lines(inner, spacing, angle)
+    if not linked:
+        return segs
+    return link_zigzag(segs, spacing, geo.expand(inner, 1e-3, 0.0), angle)
+
+
+def fill_paths(region: Region, mat: MaterialSettings, job: Job
+               ) -> tuple[list[tuple[np.ndarray, bool]], float]:
+    """Fill paths of one material's region: ``[(points, closed), ...]`` and the raster
+    angle used (deg; NaN for concentric or none)."""
+    filt = job.slicing.max_filter_deviation_mm
+    pattern = mat.fill_pattern
+    F = mat.fill_width_mm
+    e = _fill_edge(mat)
+    if pattern == "none" or region.is_empty:
+        return [], math.nan
+    if pattern == "concentric":
+        levels = concentric_rings(region, e + F / 2.0, F, filt)
+        return [(r, True) for lv in levels for r in lv], math.nan
+    out: list[tuple[np.ndarray, bool]] = []
+    start = e + F / 2.0
+    if pattern == "hybrid" and mat.hybrid_rings > 0:
+        levels = concentric_rings(region, start, F, filt, max_rings=mat.hybrid_rings)
+        out.extend((r, True) for lv in levels for r in lv)
+        start += mat.hybrid_rings * F
+    inner = geo.shrink(region, start, filt)
+    if inner.is_empty:
+        return out, math.nan
+    if pattern == "hybrid":
+        step = mat.hybrid_angle_step_deg
+        angles = np.arange(0.0, 180.0 - 1e-9, step)
+        best = None
+        for ang in angles:
+            lines = _zigzag_at(inner, F, float(ang), filt, True)
+            t = zigzag_time(lines, job)
+            if best is None or t < best[0] - 1e-9:
+                best = (t, float(ang), lines)
+        assert best is not None
+        _t, angle, lines = best
+    else:
+        angle = mat.fill_angle_deg
+        lines = _zigzag_at(inner, F, angle, filt, pattern == "zigzag")
+    out.extend((ln, False) for ln in lines)
+    return out, angle
+
+
+def measure_rings(region: Region, spacing: float, filt: float) -> list[np.ndarray]:
+    """Concentric measurement rings over a region (thesis 5.2.1): shrunk by spacing/2,
+    then every spacing."""
+    levels = concentric_rings(region, spacing / 2.0, spacing, filt)
+    return [r for lv in levels for r in lv]
+
+
+# --------------------------------------------------------------------------- ordering
+
+
+def order_nearest(items: Sequence[tuple], start: np.ndarray) -> tuple[list[tuple], np.ndarray]:
+    """Order paths by nearest neighbour from ``start``, choosing start points.
+
+    items: tuples ``(points (k, 2) float64 mm, closed, ...)``; further fields are kept.
+    A closed path may start at any of its points (it is rotated to start there); an open
+    path at either end (it is reversed when entered from its last point).
+    Returns the re-ordered items and the final position (2,) mm.
+    """
+    if not items:
+        return [], np.asarray(start, dtype=np.float64)
+    cand_pts = []
+    cand_owner = []
+    cand_idx = []
+    for i, item in enumerate(items):
+        pts, closed = item[0], item[1]
+        if closed:
+            cand_pts.append(pts)
+            cand_idx.append(np.arange(len(pts)))
+        else:
+            cand_pts.append(pts[[0, -1]])
+            cand_idx.append(np.array([0, len(pts) - 1]))
+        cand_owner.append(np.full(len(cand_pts[-1]), i))
+    P = np.concatenate(cand_pts)
+    owner = np.concatenate(cand_owner)
+    index = np.concatenate(cand_idx)
+    bounds = np.concatenate([[0], np.cumsum([len(c) for c in cand_pts])])
+    alive = np.ones(len(P), dtype=bool)
+    cur = np.asarray(start, dtype=np.float64)
+    out: list[tuple] = []
+    for _ in range(len(items)):
+        d2 = np.einsum("ij,ij->i", P - cur, P - cur)
+        d2[~alive] = np.inf
+        k = int(np.argmin(d2))
+        i = int(owner[k])
+        j = int(index[k])
+        pts, closed = items[i][0], items[i][1]
+        if closed:
+            if j:
+                pts = np.roll(pts, -j, axis=0)
+            end = pts[0]
+        else:
+            if j:
+                pts = pts[::-1]
+            end = pts[-1]
+        out.append((pts, closed, *items[i][2:]))
+        alive[bounds[i]:bounds[i + 1]] = False
+        cur = end
+    return out, cur
+
+
+# --------------------------------------------------------------------------- one layer
+
+
+def _hook_wall_count(index: int) -> int:
+    """Outer scaffold rings turned into ice for the hook wall (thesis 3.7)."""
+    if index < 10:
+        return 1
+    if index < 20:
+        return 2
+    return 0
+
+
+def _outer_rings(levels: list[list[np.ndarray]], count: int
+                 ) -> tuple[list[np.ndarray], list[list[np.ndarray]]]:
+    """Split the counter-clockwise (outermost-side) rings of the first ``count`` levels
+    from the rest."""
+    taken: list[np.ndarray] = []
+    rest: list[list[np.ndarray]] = []
+    for i, lv in enumerate(levels):
+        if i < count:
+            taken.extend(r for r in lv if signed_area(r) > 0)
+            rest.append([r for r in lv if signed_area(r) <= 0])
+        else:
+            rest.append(lv)
+    return taken, rest
+
+
+def nominal_area(region: Region, mat: MaterialSettings, filt: float) -> Region:
+    """The area a material's paths are meant to cover: the region shrunk by
+    ``max(initial_offset - path_width/2, 0)`` (the calibrated edge strip of a material
+    whose initial offset exceeds half the path width is left empty on purpose)."""
+    d = max(mat.initial_offset_mm - mat.path_width_mm / 2.0, 0.0)
+    return geo.shrink(region, d, filt) if d > 0 else region
+
+
+def material_paths(region: Region, mat: MaterialSettings, job: Job, hook_levels: int = 0
+                   ) -> tuple[dict[str, list[tuple[np.ndarray, bool, float]]],
+                              list[np.ndarray], float]:
+    """Boundary and fill paths of one material's region.
+
+    Returns ``({"boundary": [...], "fill": [...]}, hook_rings, unfilled_mm2)`` where each
+    path is ``(points (k, 2) float64 mm, closed, width mm)``; ``hook_rings`` are the
+    outermost rings of the first ``hook_levels`` offset levels taken out for the ice hook
+    wall (thesis 3.7); ``unfilled_mm2`` the nominal area (:func:`nominal_area`) that no path
+    sweeps. With ``mat.gap_fill`` the gaps wider than the boundary path width get extra
+    closed rings of that width (role fill) before the remainder is measured.
+    """
+    filt = job.slicing.max_filter_deviation_mm
+    w = mat.path_width_mm
+    out: dict[str, list[tuple[np.ndarray, bool, float]]] = {"boundary": [], "fill": []}
+    if region.is_empty:
+        return out, [], 0.0
+    bounds = boundary_rings(region, mat, filt)
+    fills, _angle = fill_paths(region, mat, job)
+    hook: list[np.ndarray] = []
+    if hook_levels:
+        levels = bounds + [[p for p, c in fills if c]]
+        hook, rest = _outer_rings(levels, hook_levels)
+        bounds = rest[:len(bounds)]
+        if len(rest) > len(bounds):
+            kept = {id(r) for r in rest[len(bounds)]}
+            fills = [(p, c) for p, c in fills if not c or id(p) in kept]
+    out["boundary"] = [(r, True, w) for lv in bounds for r in lv]
+    out["fill"] = [(p, c, mat.fill_width_mm) for p, c in fills]
+    swept = out["boundary"] + out["fill"] + [(r, True, w) for r in hook]
+    nominal = nominal_area(region, mat, filt)
+    gaps = geo.difference(nominal, geo.sweep(swept)) if swept else nominal
+    if mat.gap_fill and not gaps.is_empty:
+        extra = geo.offset_rings(list(gaps.rings), -w / 2.0, filt)
+        if extra:
+            out["fill"] += [(r, True, w) for r in extra]
+            gaps = geo.difference(gaps, geo.sweep([(r, True, w) for r in extra]))
+    return out, hook, max(geo.area(gaps), 0.0)
+
+
+def plan_layer(layer: Layer, job: Job) -> LayerPaths:
+    """Ordered paths of one layer (see the module docstring)."""
+    filt = job.slicing.max_filter_deviation_mm
+    z = layer.z
+    groups: dict[str, list[tuple[np.ndarray, bool, float]]] = {}
+    unfilled = []
+    hook: list[np.ndarray] = []
+    for material in ("part", "scaffold"):
+        mat = job.materials[material]
+        region = layer.part if material == "part" else layer.scaffold
+        n_hook = (_hook_wall_count(layer.index)
+                  if material == "scaffold" and job.scaffold.hook_wall else 0)
+        sets, taken, gap = material_paths(region, mat, job, n_hook)
+        if taken:
+            hook = taken
+        groups[f"{material}:boundary"] = sets["boundary"]
+        groups[f"{material}:fill"] = sets["fill"]
+        unfilled.append(gap)
+    if hook:
+        # Hook wall: the outermost scaffold rings are deposited in ice (thesis 3.7).
+        w = job.materials.part.path_width_mm
+        groups["part:boundary"] = groups["part:boundary"] + [(r, True, w) for r in hook]
+
+    measured = job.feedback.enabled and (layer.index + 1) % job.feedback.interval_layers == 0
+    order = list(job.materials.order)
+    if measured:
+        for material in ("part", "scaffold"):
+            region = layer.part if material == "part" else layer.scaffold
+            groups[f"{material}:measure"] = [
+                (r, True, 0.0)
+                for r in measure_rings(region, job.feedback.measure_spacing_mm, filt)]
+            order.append(f"{material}:measure")
+
+    paths: list[Path] = []
+    cur = np.zeros(2)
+    cur_tool: str | None = None
+    for key in order:
+        material, role = key.split(":")
+        tool = "laser" if role == "measure" else material
+        ordered, _end = order_nearest(groups.get(key, []), cur)
+        for pts, closed, width in ordered:
+            if cur_tool is not None:
+                a = cur if cur_tool == tool else (
+                    cur - tool_offset(cur_tool, job) + tool_offset(tool, job))
+                if float(np.hypot(*(pts[0] - a))) > 1e-9:
+                    paths.append(Path(np.array([a, pts[0]]), z, material, "travel", False,
+                                      0.0, layer.index, "part", tool))
+            paths.append(Path(np.ascontiguousarray(pts), z, material, role, closed,
+                              width, layer.index, "part", tool))
+            cur = pts[0] if closed else pts[-1]
+            cur_tool = tool
+    return LayerPaths(layer.index, z, tuple(paths), (float(unfilled[0]), float(unfilled[1])))
+
+
+def plan_paths(stack: Stack, job: Job | None = None) -> Toolpaths:
+    """Ordered deposition, measurement and travel paths of every layer.
+
+    stack: layers with part and (after ``add_scaffold``) scaffold regions.
+    job: settings (``job.materials``, ``job.feedback``, ``job.scaffold.hook_wall``,
+        ``job.cell.cpus``); default ``stack.job``.
+    Layers are planned independently on a process pool. Returns ``Toolpaths`` whose
+    warnings carry the stack's warnings plus a summary of unfilled area.
+    """
+    job = job or stack.job
+    layers = parallel_map(_plan_task, [(layer, job) for layer in stack.layers], job)
+    warnings = list(stack.warnings)
+    total = np.array([lp.unfilled_mm2 for lp in layers]).reshape(-1, 2).sum(axis=0)
+    if total.sum() > 0:
+        warnings.append(f"unfilled area (gaps the paths cannot fill): part {total[0]:.1f} "
+                        f"mm^2, scaffold {total[1]:.1f} mm^2 over {len(layers)} layers")
+    return Toolpaths(tuple(layers), job, tuple(warnings))
+
+
+def _plan_task(args: tuple[Layer, Job]) -> LayerPaths:
+    layer, job = args
+    return plan_layer(layer, job)
+
+
+# --------------------------------------------------------------------------- estimate
+
+
+def path_speed(path: Path, job: Job) -> float:
+    """Constant speed used for a path in the estimate, mm/s: boundary 25, fill 125,
+    travel ``travel_speed_mm_s``, part measurement ``measure_speed_mm_s`` (50: the
+    reflective ice, thesis 4.2), scaffold measurement ``speed_mm_s`` (125)."""
+    m = job.motion
+    if path.role == "boundary":
+        return m.boundary_speed_mm_s
+    if path.role == "fill":
+        return m.fill_speed_mm_s
+    if path.role == "travel":
+        return m.travel_speed_mm_s
+    return m.measure_speed_mm_s if path.material == "part" else m.speed_mm_s
+
+
+def estimate_build_time(toolpaths: Toolpaths, job: Job | None = None
+                        ) -> tuple[np.ndarray, float]:
+    """Build time at constant speeds (thesis 4.2), to compare with trajectory planning.
+
+    Returns (per-layer times (n,) float64 s, total s). Accelerations are ignored.
+    """
+    job = job or toolpaths.job
+    per = np.array([sum(p.length / path_speed(p, job) for p in lp.paths)
+                    for lp in toolpaths.layers], dtype=np.float64)
+    return per, float(per.sum())
+
+
+# --------------------------------------------------------------------------- files
+
+#: Format of ``save_toolpaths`` files.
+FORMAT = "icefab-toolpaths"
+VERSION = 1
+_MATS = ("part", "scaffold")
+_ROLES = ("boundary", "fill", "measure", "travel")
+_FRAMES = ("part", "base")
+_TOOLS = ("", "part", "scaffold", "laser")
+
+
+def save_toolpaths(tp: Toolpaths, path: str | os.PathLike) -> None:
+    """Write toolpaths to a ``.npz`` file (written to a temporary file, then renamed).
+
+    Format (version 1), arrays:
+
+    * ``format`` str, ``version`` int, ``job`` str (the job as TOML), ``warnings`` (w,) str;
+    * ``points`` (N, 2) float64 mm: the points of all paths, concatenated in order;
+    * ``path_start`` (P + 1,) int64: path i has ``points[path_start[i]:path_start[i+1]]``;
+    * per path (P,): ``z`` float64 mm, ``material`` int8 (0 part, 1 scaffold), ``role``
+      int8 (0 boundary, 1 fill, 2 measure, 3 travel), ``closed`` bool, ``width`` float64
+      mm, ``layer`` int64, ``frame`` int8 (0 part, 1 base), ``tool`` int8 (0 derived,
+      1 part nozzle, 2 scaffold nozzle, 3 laser);
+    * per layer (L,): ``layer_index`` int64, ``layer_z`` float64 mm, ``layer_start``
+      (L + 1,) int64 (paths of layer j are ``layer_start[j]:layer_start[j+1]``),
+      ``unfilled_mm2`` (L, 2) float64.
+    """
+    paths = [p for lp in tp.layers for p in lp.paths]
+    counts = [len(p.points) for p in paths]
+    data = {
+        "format": np.array(FORMAT),
+        "version": np.array(VERSION),
+        "job": np.array(to_toml(tp.job)),
+        "warnings": np.array(list(tp.warnings), dtype=str),
+        "points": (np.concatenate([p.points for p in paths]).astype(np.float64)
+                   if paths else np.zeros((0, 2))),
+        "path_start": np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
+        "z": np.array([p.z for p in paths], dtype=np.float64),
+        "material": np.array([_MATS.index(p.material) for p in paths], dtype=np.int8),
+        "role": np.array([_ROLES.index(p.role) for p in paths], dtype=np.int8),
+        "closed": np.array([p.closed for p in paths], dtype=bool),
+        "width": np.array([p.width for p in paths], dtype=np.float64),
+        "layer": np.array([p.layer for p in paths], dtype=np.int64),
+        "frame": np.array([_FRAMES.index(p.frame) for p in paths], dtype=np.int8),
+        "tool": np.array([_TOOLS.index(p.tool) for p in paths], dtype=np.int8),
+        "layer_index": np.array([lp.index for lp in tp.layers], dtype=np.int64),
+        "layer_z": np.array([lp.z for lp in tp.layers], dtype=np.float64),
+        "layer_start": np.concatenate(
+            [[0], np.cumsum([len(lp.paths) for lp in tp.layers])]).astype(np.int64),
+        "unfilled_mm2": np.array([lp.unfilled_mm2 for lp in tp.layers],
+                                 dtype=np.float64).reshape(-1, 2),
+    }
+    target = FsPath(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".npz", dir=target.parent)
+    os.close(fd)
+    try:
+        with open(tmp, "wb") as fh:
+            np.savez_compressed(fh, **data)
+        os.replace(tmp, target)
+    except BaseException:
+        FsPath(tmp).unlink(missing_ok=True)
+        raise
+
+
+def load_toolpaths(path: str | os.PathLike) -> Toolpaths:
+    """Read a file written by :func:`save_toolpaths`; StackFileError if it is missing,
+    truncated, corrupt or not a toolpath file."""
+    path = FsPath(path)
+    import tomllib
+
+    def bad(msg: str) -> StackFileError:
+        return StackFileError(f"{path}: {msg}")
+
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            d = {k: f[k] for k in f.files}
+    except FileNotFoundError:
+        raise bad("toolpath file not found") from None
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as exc:
+        raise bad(f"not a readable toolpath .npz file ({exc})") from None
+    if str(d.get("format", "")) != FORMAT:
+        raise bad(f"not an icefab toolpath file (format {str(d.get('format', 'missing'))!r}, "
+                  f"expected {FORMAT!r})")
+    if int(d.get("version", -1)) != VERSION:
+        raise bad(f"toolpath file version {int(d.get('version', -1))}: expected {VERSION}")
+    need = ("job", "warnings", "points", "path_start", "z", "material", "role", "closed",
+            "width", "layer", "frame", "tool", "layer_index", "layer_z", "layer_start",
+            "unfilled_mm2")
+    missing = [k for k in need if k not in d]
+    if missing:
+        raise bad(f"missing arrays {', '.join(missing)}")
+    try:
+        job = job_from_dict(tomllib.loads(str(d["job"])))
+    except (tomllib.TOMLDecodeError, ConfigError) as exc:
+        raise bad(f"stored job is invalid ({exc})") from None
+    pts, start = d["points"], d["path_start"]
+    P = len(d["z"])
+    L = len(d["layer_index"])
+    ok = (pts.ndim == 2 and pts.shape[1] == 2 and start.shape == (P + 1,)
+          and all(len(d[k]) == P for k in ("material", "role", "closed", "width", "layer",
+                                            "frame", "tool"))
+          and d["layer_start"].shape == (L + 1,) and len(d["layer_z"]) == L
+          and d["unfilled_mm2"].shape == (L, 2)
+          and (P == 0 or (start[0] == 0 and start[-1] == len(pts)
+                          and bool(np.all(np.diff(start) >= 0))))
+          and (L == 0 or (d["layer_start"][0] == 0 and d["layer_start"][-1] == P
+                          and bool(np.all(np.diff(d["layer_start"]) >= 0)))))
+    if not ok:
+        raise bad("inconsistent array sizes (truncated or corrupt)")
+    for key, names in (("material", _MATS), ("role", _ROLES), ("frame", _FRAMES),
+                       ("tool", _TOOLS)):
+        v = d[key]
+        if len(v) and (v.min() < 0 or v.max() >= len(names)):
+            raise bad(f"{key} codes out of range")
+    if not np.all(np.isfinite(pts)):
+        raise bad("non-finite point coordinates")
+    paths = [Path(pts[start[i]:start[i + 1]].copy(), float(d["z"][i]),
+                  _MATS[d["material"][i]], _ROLES[d["role"][i]], bool(d["closed"][i]),
+                  float(d["width"][i]), int(d["layer"][i]), _FRAMES[d["frame"][i]],
+                  _TOOLS[d["tool"][i]]) for i in range(P)]
+    ls = d["layer_start"]
+    layers = tuple(LayerPaths(int(d["layer_index"][j]), float(d["layer_z"][j]),
+                              tuple(paths[ls[j]:ls[j + 1]]),
+                              (float(d["unfilled_mm2"][j, 0]), float(d["unfilled_mm2"][j, 1])))
+                   for j in range(L))
+    return Toolpaths(layers, job, tuple(str(w) for w in d["warnings"]))

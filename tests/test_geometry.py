@@ -1,0 +1,173 @@
+"""icefab.geometry against shapely (an independent polygon implementation) and analytic shapes."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import shapely
+from hypothesis import given, strategies as st
+from shapely.geometry import MultiPolygon, Polygon
+
+from icefab import geometry as geo
+from icefab.types import Region, signed_area
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def rect(x0, y0, x1, y1):
+    return np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], float)
+
+
+def circle(r, n=256, c=(0.0, 0.0), hole=False):
+    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    ring = np.c_[c[0] + r * np.cos(t), c[1] + r * np.sin(t)]
+    return ring[::-1].copy() if hole else ring
+
+
+def to_shapely(region: Region):
+    """Region -> shapely (Multi)Polygon, built from the nesting tree."""
+    polys = [Polygon(p[0], p[1:]) for p in region.polygons()]
+    if not polys:
+        return Polygon()
+    return shapely.union_all(polys)
+
+
+def check_region_structure(region: Region):
+    """Orientation and parents follow the icefab convention; the polygons are valid."""
+    depth = region.depth()
+    for ring, d in zip(region.rings, depth):
+        a = signed_area(ring)
+        assert (a > 0) == (d % 2 == 0), "outer rings CCW, holes CW"
+        assert len(ring) >= 3
+    for p in region.polygons():
+        poly = Polygon(p[0], p[1:])
+        assert poly.is_valid, shapely.validation.explain_validity(poly)
+
+
+# ----------------------------------------------------------------------------- analytic
+
+
+def test_region_from_rings_builds_tree_and_orientation():
+    outer = rect(0, 0, 10, 10)[::-1]  # given clockwise on purpose, evenodd ignores it
+    hole = rect(3, 3, 7, 7)
+    island = rect(4, 4, 6, 6)
+    r = geo.region_from_rings([outer, hole, island], fill="evenodd")
+    assert r.area == pytest.approx(100 - 16 + 4)
+    assert sorted(r.depth().tolist()) == [0, 1, 2]
+    check_region_structure(r)
+    # island's parent is the hole, whose parent is the outer ring
+    d = r.depth()
+    i_island = int(np.flatnonzero(d == 2)[0])
+    i_hole = int(r.parent[i_island])
+    assert d[i_hole] == 1 and d[int(r.parent[i_hole])] == 0
+
+
+def test_offsets_of_square_with_hole_are_exact():
+    r = geo.region_from_rings([rect(0, 0, 10, 10), rect(3, 3, 7, 7)[::-1]])
+    assert r.area == pytest.approx(84)
+    # miter joins keep square corners exact
+    assert geo.shrink(r, 1).area == pytest.approx(8 * 8 - 6 * 6)
+    assert geo.expand(r, 1).area == pytest.approx(12 * 12 - 2 * 2)
+    assert geo.shrink(r, 1.6).is_empty  # walls 3 mm thick vanish
+    assert geo.expand(r, 0) is r
+
+
+def test_circle_offsets_match_shapely_within_filter():
+    c = geo.region_from_rings([circle(20, 720)])
+    for d in (0.5, 3.3, 7.0):
+        # chords of the point filter cut at most filter_mm inside along the perimeter
+        ours = geo.shrink(c, d)
+        ref = to_shapely(c).buffer(-d, quad_segs=64)
+        assert ours.area == pytest.approx(ref.area, abs=geo.FILTER_MM * ref.length)
+        assert ours.area <= ref.area + 1e-6
+        ours = geo.expand(c, d)
+        ref = to_shapely(c).buffer(d, quad_segs=64)
+        assert ours.area == pytest.approx(ref.area, abs=geo.FILTER_MM * ref.length)
+
+
+def test_filter_reduces_points_of_fine_circle():
+    c = geo.region_from_rings([circle(50, 5000)])
+    out = geo.shrink(c, 1.0, filter_mm=0.05)
+    # sagitta rule: spacing ~ sqrt(8 r eps) = 4.4 mm -> about 70 points, not 5000
+    assert out.n_points < 200
+    assert out.area == pytest.approx(math.pi * 49 ** 2, rel=2e-3)
+
+
+def test_booleans_against_shapely():
+    a = geo.region_from_rings([rect(0, 0, 10, 10)])
+    b = geo.region_from_rings([circle(4, 200, c=(10, 5))])
+    sa, sb = to_shapely(a), to_shapely(b)
+    assert geo.union(a, b).area == pytest.approx(sa.union(sb).area, rel=1e-9)
+    assert geo.difference(a, b).area == pytest.approx(sa.difference(sb).area, rel=1e-9)
+    assert geo.intersection(a, b).area == pytest.approx(sa.intersection(sb).area, rel=1e-9)
+    assert geo.intersection(a, Region()).is_empty
+    assert geo.difference(Region(), a).is_empty
+
+
+def test_opening_removes_thin_features_only():
+    # a 20x20 block with a 1 mm wide, 10 mm long fin
+    r = geo.union(geo.region_from_rings([rect(0, 0, 20, 20)]),
+                  geo.region_from_rings([rect(20, 9.5, 30, 10.5)]))
+    o = geo.opening(r, 0.75)
+    assert o.area == pytest.approx(400, abs=0.5)
+
+
+def test_clip_lines_and_sweep():
+    r = geo.region_from_rings([rect(0, 0, 10, 10), rect(3, 3, 7, 7)[::-1]])
+    pieces = geo.clip_lines([np.array([[-5.0, 5.0], [15.0, 5.0]])], r)
+    lengths = sorted(np.linalg.norm(p[-1] - p[0]) for p in pieces)
+    assert lengths == pytest.approx([3.0, 3.0])
+    ring = rect(1, 1, 9, 9)
+    s = geo.sweep([(ring, True, 2.0)])
+    assert s.area == pytest.approx(10 * 10 - 6 * 6)  # band from 0 to 2 mm inside the 10 mm square
+    check_region_structure(s)
+
+
+# ----------------------------------------------------------------------------- property
+
+
+@st.composite
+def polygon_with_holes(draw):
+    """A random star-shaped outer ring with up to 3 non-overlapping circular holes."""
+    n = draw(st.integers(5, 40))
+    radii = draw(st.lists(st.floats(8.0, 30.0), min_size=n, max_size=n))
+    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    outer = np.c_[np.array(radii) * np.cos(t), np.array(radii) * np.sin(t)]
+    holes = []
+    for k in range(draw(st.integers(0, 3))):
+        ang = draw(st.floats(0, 2 * np.pi))
+        rr = draw(st.floats(1.0, 3.0))
+        c = (4.0 * math.cos(ang + k * 2.1), 4.0 * math.sin(ang + k * 2.1))
+        if all(math.dist(c, h[0]) > h[1] + rr + 0.5 for h in holes) and math.hypot(*c) + rr < 7.5:
+            holes.append((c, rr))
+    rings = [outer] + [circle(rr, 24, c, hole=True) for c, rr in holes]
+    return rings
+
+
+@given(polygon_with_holes(), st.floats(0.1, 5.0))
+def test_property_offsets_and_booleans_match_shapely(rings, d):
+    r = geo.region_from_rings(rings)
+    ref = Polygon(rings[0], rings[1:])
+    assert ref.is_valid
+    grid = 1.0 / geo.SCALE  # coordinates are rounded to Clipper's integer grid
+    assert r.area == pytest.approx(ref.area, abs=grid * ref.length)
+    check_region_structure(r)
+    f = geo.FILTER_MM + 2 * grid
+    # mitred offsets lie between the round (Euclidean) offset and the unlimited mitre
+    grown = geo.expand(r, d)
+    check_region_structure(grown)
+    g = to_shapely(grown)
+    assert ref.buffer(d - f, quad_segs=16).difference(g).area < 1e-6
+    assert g.difference(ref.buffer(d + f, join_style="mitre", mitre_limit=100)).area < 1e-6
+    shrunk = geo.shrink(r, d)
+    check_region_structure(shrunk)
+    sh = to_shapely(shrunk)
+    assert sh.difference(ref.buffer(-(d - f), quad_segs=16)).area < 1e-6
+    inner = ref.buffer(-(d + f), join_style="mitre", mitre_limit=100)
+    assert inner.difference(sh).area < 1e-6
+    other = geo.region_from_rings([circle(10, 64, c=(5, 5))])
+    so = to_shapely(other)
+    tol = grid * (ref.length + so.length)
+    assert geo.difference(r, other).area == pytest.approx(ref.difference(so).area, abs=tol)
+    assert geo.union(r, other).area == pytest.approx(ref.union(so).area, abs=tol)
