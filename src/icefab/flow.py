@@ -1,0 +1,666 @@
+"""Variable-flow valve control (VFVC): trajectories -> valve pulse programs.
+
+Thesis Ch. 6 and 2.3.1. For every deposition trajectory the valve must deliver the volume
+per millimetre ``w * dh_d`` whatever the (variable, MTTS-shaped) speed ``c``, corrected by
+the surface-mapping control action ``u``:
+
+* nominal flow ``q_nom = w * dh_d * c * layer_scale`` (eq. 6.2; ``layer_scale`` is
+  ``job.flow.layer_scale``, 1 by default), corrected ``q = (u + 1) q_nom`` (eq. 6.3);
+* frequency ``nu = h(q)`` by linear interpolation in the valve's calibration table
+  (eq. 6.4, :func:`load_calibration`);
+* cumulative pulses ``N(t) = integral of nu dt`` (eq. 6.5, trapezoidal rule on the
+  trajectory's constant time step) and pulse instants where ``N`` crosses ``0.5, 1.5, ...``
+  (eq. 6.6: each pulse sits in the middle of its unit of volume, so the pulse count differs
+  from the integral of the frequency by at most half a pulse);
+* instants as ``uint16`` ticks of ``job.flow.tick_s`` (2 ms) from the start of the piece
+  (thesis 2.3.1); a program whose piece would last longer than ``max_piece_s`` (131.072 s)
+  or hold more than ``max_pulses`` (16 384) pulses is split automatically into pieces that
+  start on trajectory samples (the trajectory is split there too).
+
+Limits (thesis 6.1): a flow beyond the calibration table, or a frequency beyond
+``max_frequency_hz`` (and ``1 / calibration_pulse_ms``), is clamped and counted (policy
+``job.flow.out_of_range = "clamp"``, the default) or raises :class:`FlowError` ("error").
+Fewer drops than ``min_drops_per_mm`` where the nozzle moves, and more pulses than one per
+tick (frequencies above ``1 / tick_s``: two pulses share a tick), are reported (logged and
+listed in :attr:`FrequencyPlan.warnings`), not changed. PWM mode keeps the frequency at
+``pwm_frequency_hz`` and varies the pulse width (flow per pulse proportional to the width,
+calibrated by the table at ``calibration_pulse_ms``); widths below ``min_pulse_ms`` are
+dropped (no pulse) or raised to it, widths above the period are cut to it, all reported.
+
+Files (:func:`write_valve_program` / :func:`read_valve_program`), binary form,
+little-endian throughout::
+
+    offset size  field
+    0      4     magic b"ICEV"
+    4      2     uint16 format version (1)
+    6      1     uint8 mode: 0 = FM, 1 = PWM
+    7      1     uint8 reserved (0)
+    8      4     uint32 tick length, microseconds (2000)
+    12     4     uint32 number of pieces P
+    then for each of the P pieces:
+           4     uint32 number of pulses n
+           4     uint32 piece duration, microseconds
+           2n    uint16 ticks (pulse instants from the piece start)
+           2n    uint16 pulse widths, microseconds (PWM only)
+
+Text form (one item per line, ``#`` comments)::
+
+    icefab-valve-program 1
+    mode fm
+    tick_s 0.002
+    pieces 1
+    piece 0 duration_s 12.345 pulses 3
+    17
+    18 500        <- PWM: tick and width in microseconds
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import logging
+import os
+import struct
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path as FsPath
+from typing import TYPE_CHECKING, Any, Callable
+
+import numpy as np
+from scipy.integrate import cumulative_trapezoid
+
+from icefab.errors import FlowError, StackFileError
+from icefab.types import HeightMap, Trajectory, ValveProgram
+
+if TYPE_CHECKING:  # pragma: no cover
+    from icefab.config import Job
+
+log = logging.getLogger(__name__)
+
+DATA_DIR = FsPath(__file__).resolve().parent / "data"
+MAGIC = b"ICEV"
+VERSION = 1
+TEXT_MAGIC = "icefab-valve-program"
+
+
+# =========================================================================== calibration
+
+
+@dataclass(frozen=True, eq=False)
+class Calibration:
+    """A valve frequency-flow table nu = h(Q) (thesis 6.1, Fig. 6-1).
+
+    frequency_hz: (m,) float64, strictly increasing, Hz.
+    flow_mm3_s: (m,) float64, strictly increasing, mm^3/s.
+    source: file it was read from (used in messages).
+    """
+
+    frequency_hz: np.ndarray
+    flow_mm3_s: np.ndarray
+    source: str = ""
+
+    @property
+    def max_flow(self) -> float:
+        return float(self.flow_mm3_s[-1])
+
+    @property
+    def min_flow(self) -> float:
+        return float(self.flow_mm3_s[0])
+
+    def frequency(self, flow_mm3_s: np.ndarray) -> np.ndarray:
+        """nu = h(Q): (n,) Hz by linear interpolation; values outside the table are clamped
+        to its ends (callers check the range first)."""
+        return np.interp(flow_mm3_s, self.flow_mm3_s, self.frequency_hz)
+
+    def flow(self, frequency_hz: np.ndarray) -> np.ndarray:
+        """Q = h^-1(nu): (n,) mm^3/s by linear interpolation (clamped at the table ends)."""
+        return np.interp(frequency_hz, self.frequency_hz, self.flow_mm3_s)
+
+
+def load_calibration(path: str | os.PathLike) -> Calibration:
+    """Read a calibration CSV: ``frequency_hz,flow_mm3_s`` per line.
+
+    An optional header line (any text in the first column) and ``#`` comments are allowed.
+    Both columns must be finite and strictly increasing, with at least two rows. Raises
+    FlowError naming the file and line.
+    """
+    path = FsPath(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise FlowError(f"{path}: calibration table not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise FlowError(f"{path}: cannot read calibration table ({exc})") from None
+    freq: list[float] = []
+    flow: list[float] = []
+    lines: list[int] = []
+    header_seen = False
+    for n, raw in enumerate(text.splitlines(), start=1):
+        line = raw.split("#", 1)[0].strip()
+        if not line:
+            continue
+        cells = [c.strip() for c in line.replace(";", ",").split(",")]
+        if len(cells) != 2:
+            raise FlowError(f"{path}:{n}: expected 2 columns (frequency_hz, flow_mm3_s), got "
+                            f"{len(cells)}: {raw.strip()!r}")
+        try:
+            f, q = float(cells[0]), float(cells[1])
+        except ValueError:
+            if not freq and not header_seen:
+                header_seen = True
+                continue
+            raise FlowError(f"{path}:{n}: expected two numbers, got {raw.strip()!r}") from None
+        if not (np.isfinite(f) and np.isfinite(q)):
+            raise FlowError(f"{path}:{n}: values must be finite, got {raw.strip()!r}")
+        if f < 0 or q < 0:
+            raise FlowError(f"{path}:{n}: frequency and flow must be >= 0, got "
+                            f"{raw.strip()!r}")
+        if freq and (f <= freq[-1] or q <= flow[-1]):
+            col = "frequency" if f <= freq[-1] else "flow"
+            raise FlowError(f"{path}:{n}: {col} must increase strictly from line {lines[-1]} "
+                            f"({freq[-1]:g} Hz, {flow[-1]:g} mm^3/s) to "
+                            f"({f:g} Hz, {q:g} mm^3/s)")
+        freq.append(f)
+        flow.append(q)
+        lines.append(n)
+    if len(freq) < 2:
+        raise FlowError(f"{path}: calibration table needs at least 2 rows, found {len(freq)}")
+    return Calibration(np.array(freq), np.array(flow), str(path))
+
+
+@functools.lru_cache(maxsize=16)
+def _cached_calibration(path: str, mtime: float) -> Calibration:
+    return load_calibration(path)
+
+
+def calibration_for(material: str, job: "Job") -> Calibration:
+    """The calibration of a material: ``job.materials[material].calibration_file`` or the
+    built-in table ``icefab/data/calibration_<material>.csv``."""
+    settings = job.materials[material]
+    path = FsPath(settings.calibration_file) if settings.calibration_file else \
+        DATA_DIR / f"calibration_{material}.csv"
+    try:
+        mtime = path.stat().st_mtime
+    except FileNotFoundError:
+        where = (f"materials.{material}.calibration_file = {str(path)!r}"
+                 if settings.calibration_file else str(path))
+        raise FlowError(f"{where}: calibration table not found") from None
+    return _cached_calibration(str(path), mtime)
+
+
+# =========================================================================== frequency
+
+
+@dataclass(frozen=True, eq=False)
+class FrequencyPlan:
+    """The commanded valve signal along a trajectory, before pulses are placed.
+
+    t: (n,) float64 sample times, s. q: (n,) corrected flow, mm^3/s (eq. 6.3).
+    u: (n,) control action applied. nu: (n,) frequency, Hz (eq. 6.4), limits applied.
+    clamped: number of samples whose flow or frequency was clamped.
+    warnings: human-readable findings (limits reached), each naming the quantity.
+    """
+
+    t: np.ndarray
+    q: np.ndarray
+    u: np.ndarray
+    nu: np.ndarray
+    clamped: int = 0
+    warnings: tuple[str, ...] = ()
+
+
+def trajectory_part_xy(trajectory: Trajectory, material: str, job: "Job") -> np.ndarray:
+    """(n, 2) float64, mm: the trajectory samples in the part (building) frame.
+
+    Trajectory samples are in the robot base frame; the part frame of a material has its
+    origin at ``cell.ee_origin_mm + materials[material].nozzle_offset_mm`` in the base
+    frame (thesis 2.5, frames of Table 3-1), without rotation. Control-action surfaces are
+    measured in the part frame, so they are sampled at these points.
+    """
+    off = np.asarray(job.cell.ee_origin_mm) + np.asarray(job.materials[material].nozzle_offset_mm)
+    return np.asarray(trajectory.xy, dtype=np.float64) - off
+
+
+ActionLike = Any  # None | (n,) array | HeightMap | feedback.ControlAction | callable(xy)->(n,)
+
+
+def _action_values(action: ActionLike, trajectory: Trajectory, material: str,
+                   job: "Job") -> np.ndarray:
+    n = len(trajectory.xy)
+    if action is None:
+        return np.zeros(n)
+    if isinstance(action, np.ndarray) or isinstance(action, (list, tuple)):
+        u = np.asarray(action, dtype=np.float64)
+        if u.shape != (n,):
+            raise FlowError(f"control action: expected shape ({n},) (one value per trajectory "
+                            f"sample), got {u.shape}")
+    else:
+        from icefab import feedback
+        xy = trajectory_part_xy(trajectory, material, job)
+        if isinstance(action, (HeightMap, feedback.ControlAction)):
+            u = feedback.action_along(action, xy)
+        elif callable(action):
+            u = np.asarray(action(xy), dtype=np.float64).reshape(-1)
+            if u.shape != (n,):
+                raise FlowError(f"control action callable returned shape {u.shape}, "
+                                f"expected ({n},)")
+        else:
+            raise FlowError(f"control action of type {type(action).__name__}: expected an "
+                            "array, a HeightMap, a ControlAction or a callable")
+    if not np.all(np.isfinite(u)):
+        raise FlowError("control action: contains NaN or infinite values")
+    return u
+
+
+def _width(trajectory: Trajectory, material: str, job: "Job") -> float:
+    path = trajectory.path
+    if path is not None and path.width > 0:
+        return float(path.width)
+    settings = job.materials[material]
+    if path is not None and path.role == "fill":
+        return float(settings.fill_width_mm)
+    return float(settings.path_width_mm)
+
+
+def valve_frequency(trajectory: Trajectory, material: str, job: "Job", *,
+                    action: ActionLike = None, layer_thickness: float | None = None,
+                    calibration: Calibration | None = None) -> FrequencyPlan:
+    """Corrected flow and valve frequency at every trajectory sample (eqs. 6.2-6.4).
+
+    trajectory: sampled at constant dt; ``speed (n,)`` mm/s is the path speed c.
+    material: "part" or "scaffold" (selects width, calibration and nozzle frame).
+    action: control action u: None (0), (n,) array, HeightMap / ControlAction (sampled
+        in the part frame, 0 outside), or a callable ``u(xy_part (n, 2)) -> (n,)``.
+    layer_thickness: dh_d in mm (default ``job.slicing.layer_thickness_mm``).
+    calibration: table to use (default :func:`calibration_for`).
+    """
+    fl = job.flow
+    n = len(trajectory.xy)
+    speed = np.asarray(trajectory.speed, dtype=np.float64)
+    if speed.shape != (n,):
+        raise FlowError(f"trajectory speed: expected shape ({n},), got {speed.shape}")
+    if not np.all(np.isfinite(speed)) or np.any(speed < 0):
+        raise FlowError("trajectory speed: must be finite and >= 0")
+    dh = float(job.slicing.layer_thickness_mm if layer_thickness is None else layer_thickness)
+    if not (np.isfinite(dh) and dh > 0):
+        raise FlowError(f"layer thickness = {dh!r} mm: must be > 0")
+    cal = calibration or calibration_for(material, job)
+    u = _action_values(action, trajectory, material, job)
+    w = _width(trajectory, material, job)
+    q = np.clip((1.0 + u), 0.0, None) * (w * dh * fl.layer_scale) * speed  # eq. 6.2-6.3
+    warnings: list[str] = []
+    clamped = np.zeros(n, dtype=bool)
+    where = _where(trajectory)
+    hi = q > cal.max_flow
+    lo = q < cal.min_flow
+    if np.any(hi | lo):
+        worst = float(q[hi].max()) if np.any(hi) else float(q[lo].min())
+        msg = (f"{where}: flow {worst:.3g} mm^3/s outside the calibration table "
+               f"[{cal.min_flow:g}, {cal.max_flow:g}] mm^3/s ({cal.source}) at "
+               f"{int(np.count_nonzero(hi | lo))} of {n} samples")
+        if fl.out_of_range == "error":
+            raise FlowError(msg + "; lower the speed or set flow.out_of_range = 'clamp'")
+        warnings.append(msg + " (clamped)")
+        clamped |= hi | lo
+    nu = cal.frequency(q)  # eq. 6.4
+    if fl.mode == "fm":
+        nu_max = min(fl.max_frequency_hz, 1000.0 / fl.calibration_pulse_ms)
+        over = nu > nu_max
+        if np.any(over):
+            msg = (f"{where}: valve frequency {float(nu.max()):.4g} Hz above the limit "
+                   f"{nu_max:g} Hz (flow.max_frequency_hz, 1 / calibration_pulse_ms) at "
+                   f"{int(np.count_nonzero(over))} samples")
+            if fl.out_of_range == "error":
+                raise FlowError(msg)
+            warnings.append(msg + " (clamped)")
+            nu = np.minimum(nu, nu_max)
+            clamped |= over
+        moving = speed > 1e-9
+        drops = np.divide(nu, speed, out=np.full(n, np.inf), where=moving)
+        few = moving & (drops < fl.min_drops_per_mm) & (q > 0)
+        if np.any(few):
+            warnings.append(f"{where}: fewer than flow.min_drops_per_mm = "
+                            f"{fl.min_drops_per_mm:g} drops per mm ({float(drops[few].min()):.3g}"
+                            f") at {int(np.count_nonzero(few))} samples")
+        if np.any(nu > 1.0 / fl.tick_s):
+            warnings.append(f"{where}: frequency above 1 / flow.tick_s = {1 / fl.tick_s:g} Hz: "
+                            "consecutive pulses may share a tick")
+    for m in warnings:
+        log.warning(m)
+    t = np.arange(n) * float(trajectory.dt)
+    return FrequencyPlan(t=t, q=q, u=u, nu=nu, clamped=int(np.count_nonzero(clamped)),
+                         warnings=tuple(warnings))
+
+
+def _where(trajectory: Trajectory) -> str:
+    p = trajectory.path
+    if p is None:
+        return "trajectory"
+    return f"layer {p.layer} {p.material} {p.role} path"
+
+
+# =========================================================================== pulses
+
+
+def pulse_instants(t: np.ndarray, nu: np.ndarray) -> np.ndarray:
+    """(p,) float64 pulse instants, s, for the frequency ``nu (n,)`` Hz at times ``t (n,)``.
+
+    Cumulative pulses N(t) by the trapezoidal rule (eq. 6.5); pulse j (j = 0, 1, ...) where
+    N = j + 0.5 (eq. 6.6), found by linear interpolation of t in N. The count is
+    ``floor(N_end + 0.5)``, within half a pulse of the integral N_end.
+    """
+    if len(t) < 2:
+        return np.zeros(0)
+    cum = cumulative_trapezoid(nu, t, initial=0.0)
+    total = float(cum[-1])
+    p = int(np.floor(total + 0.5))
+    if p <= 0:
+        return np.zeros(0)
+    targets = np.arange(p) + 0.5
+    targets = targets[targets <= total]
+    idx = np.searchsorted(cum, targets, side="left")  # cum[idx-1] < target <= cum[idx]
+    idx = np.clip(idx, 1, len(cum) - 1)
+    c0 = cum[idx - 1]
+    c1 = cum[idx]
+    frac = (targets - c0) / np.where(c1 > c0, c1 - c0, 1.0)
+    return t[idx - 1] + frac * (t[idx] - t[idx - 1])
+
+
+def _split(times: np.ndarray, widths: np.ndarray | None, duration: float, dt: float,
+           job: "Job") -> ValveProgram:
+    """Pieces of at most max_piece_s and max_pulses, boundaries on trajectory samples."""
+    fl = job.flow
+    tick = fl.tick_s
+    # ticks must fit uint16: an instant less than 65535.5 ticks from the piece start
+    max_len = min(fl.max_piece_s, 65535.5 * tick)
+    pieces: list[ValveProgram] = []
+    t0 = 0.0
+    i0 = 0
+    p = len(times)
+    while True:
+        limit = t0 + max_len
+        if p - i0 > fl.max_pulses:
+            # pulse i0 + max_pulses must open the next piece
+            limit = min(limit, float(times[i0 + fl.max_pulses]))
+        last = limit >= duration and p - i0 <= fl.max_pulses
+        if last:
+            t_end, i1 = duration, p
+        else:
+            t_end = float(np.floor(limit / dt + 1e-9) * dt) if dt > 0 else limit
+            if t_end > limit:  # rounding of the snap: stay below the limit
+                t_end -= dt
+            if t_end <= t0 + 1e-12:  # a time step longer than the piece: cut between samples
+                t_end = limit
+            i1 = min(int(np.searchsorted(times, t_end, side="left")), i0 + fl.max_pulses)
+        rel = (times[i0:i1] - t0) / tick
+        ticks = np.clip(np.rint(rel), 0, 65535).astype(np.uint16)
+        w = None if widths is None else widths[i0:i1]
+        pieces.append(ValveProgram(ticks=ticks, tick_s=tick, duration=float(t_end - t0),
+                                   widths_us=w))
+        if last:
+            break
+        t0, i0 = t_end, i1
+    first = pieces[0]
+    return dataclasses.replace(first, pieces=tuple(pieces[1:]))
+
+
+def plan_valves(trajectory: Trajectory, material: str, job: "Job", *,
+                action: ActionLike = None, layer_thickness: float | None = None,
+                calibration: Calibration | None = None) -> ValveProgram:
+    """The valve program of one trajectory (thesis 6.2, 2.3.1).
+
+    trajectory: constant-dt samples with speed (n,) mm/s; a trajectory whose path does not
+        deposit (travel, measure) gets an empty program of the same duration.
+    material: "part" or "scaffold".
+    action: control action u (see :func:`valve_frequency`): flow x (1 + u), the
+        nu-controller of thesis 5.4.
+    layer_thickness: dh_d, mm (default ``job.slicing.layer_thickness_mm``).
+
+    Returns the first piece; further pieces (split at 131.072 s / 16 384 pulses, on
+    trajectory samples) are in ``.pieces``; :func:`program_pieces` lists all of them and
+    :func:`pulse_times` gives the instants from the trajectory start.
+    """
+    fl = job.flow
+    duration = float(trajectory.duration) if trajectory.duration else \
+        (len(trajectory.xy) - 1) * float(trajectory.dt)
+    path = trajectory.path
+    if path is not None and not path.depositing:
+        return ValveProgram(ticks=np.zeros(0, np.uint16), tick_s=fl.tick_s, duration=duration,
+                            widths_us=None if fl.mode == "fm" else np.zeros(0, np.uint16))
+    plan = valve_frequency(trajectory, material, job, action=action,
+                           layer_thickness=layer_thickness, calibration=calibration)
+    if fl.mode == "fm":
+        times = pulse_instants(plan.t, plan.nu)
+        return _split(times, None, duration, float(trajectory.dt), job)
+    return _split(*_pwm(plan, material, job, calibration, duration), duration,
+                  float(trajectory.dt), job)
+
+
+def _pwm(plan: FrequencyPlan, material: str, job: "Job", calibration: Calibration | None,
+         duration: float) -> tuple[np.ndarray, np.ndarray]:
+    """PWM (thesis 6.1): pulses every 1/pwm_frequency_hz; width ~ flow per pulse."""
+    fl = job.flow
+    cal = calibration or calibration_for(material, job)
+    f = fl.pwm_frequency_hz
+    period = 1.0 / f
+    times = (np.arange(int(np.floor(duration * f + 1e-9))) + 0.5) * period
+    times = times[times <= duration]
+    q = np.interp(times, plan.t, plan.q)
+    # flow per pulse at the calibration pulse width, at the PWM frequency
+    vol_ref = float(cal.flow(np.array([f]))[0]) / f
+    if vol_ref <= 0:
+        raise FlowError(f"flow.pwm_frequency_hz = {f:g}: the calibration table gives no flow "
+                        "there")
+    width_ms = fl.calibration_pulse_ms * (q / f) / vol_ref
+    keep = width_ms >= 0.5 * fl.min_pulse_ms
+    short = keep & (width_ms < fl.min_pulse_ms)
+    long = width_ms > period * 1000.0
+    if np.any(short) or np.any(long) or np.any(~keep & (q > 0)):
+        log.warning("PWM: %d pulses raised to flow.min_pulse_ms = %g ms, %d dropped, %d cut "
+                    "to the period %.3g ms", int(np.count_nonzero(short)), fl.min_pulse_ms,
+                    int(np.count_nonzero(~keep & (q > 0))), int(np.count_nonzero(long)),
+                    period * 1000)
+    width_ms = np.clip(width_ms, fl.min_pulse_ms, period * 1000.0)
+    widths = np.clip(np.rint(width_ms * 1000.0), 0, 65535).astype(np.uint16)
+    return times[keep], widths[keep]
+
+
+# =========================================================================== helpers
+
+
+def program_pieces(prog: ValveProgram) -> tuple[ValveProgram, ...]:
+    """All pieces of a program in order (the first piece, then ``prog.pieces``)."""
+    first = dataclasses.replace(prog, pieces=())
+    return (first, *prog.pieces)
+
+
+def pulse_times(prog: ValveProgram) -> np.ndarray:
+    """(p,) float64 pulse instants, s, from the start of the trajectory (all pieces)."""
+    out = []
+    t0 = 0.0
+    for piece in program_pieces(prog):
+        out.append(t0 + piece.ticks.astype(np.float64) * piece.tick_s)
+        t0 += piece.duration
+    return np.concatenate(out) if out else np.zeros(0)
+
+
+def n_pulses(prog: ValveProgram) -> int:
+    """Total number of pulses over all pieces."""
+    return int(sum(len(p.ticks) for p in program_pieces(prog)))
+
+
+def total_duration(prog: ValveProgram) -> float:
+    """Total duration over all pieces, s."""
+    return float(sum(p.duration for p in program_pieces(prog)))
+
+
+# =========================================================================== files
+
+
+def _atomic_write(path: FsPath, data: bytes) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+
+
+def encode_valve_program(prog: ValveProgram) -> bytes:
+    """The binary form (see the module docstring) as bytes."""
+    pieces = program_pieces(prog)
+    pwm = any(p.widths_us is not None for p in pieces)
+    tick_us = int(round(prog.tick_s * 1e6))
+    out = [MAGIC, struct.pack("<HBBII", VERSION, 1 if pwm else 0, 0, tick_us, len(pieces))]
+    for p in pieces:
+        ticks = np.asarray(p.ticks, dtype="<u2")
+        out.append(struct.pack("<II", len(ticks), int(round(p.duration * 1e6))))
+        out.append(ticks.tobytes())
+        if pwm:
+            w = np.zeros(len(ticks), "<u2") if p.widths_us is None else \
+                np.asarray(p.widths_us, dtype="<u2")
+            out.append(w.tobytes())
+    return b"".join(out)
+
+
+def decode_valve_program(data: bytes, source: str = "valve program") -> ValveProgram:
+    """Parse the binary form; StackFileError when truncated or corrupt."""
+    if len(data) < 16 or data[:4] != MAGIC:
+        raise StackFileError(f"{source}: not an icefab valve program (bad magic or too short)")
+    version, mode, _, tick_us, n_pieces = struct.unpack_from("<HBBII", data, 4)
+    if version != VERSION:
+        raise StackFileError(f"{source}: valve program version {version}, expected {VERSION}")
+    if mode not in (0, 1) or tick_us == 0:
+        raise StackFileError(f"{source}: corrupt header (mode {mode}, tick {tick_us} us)")
+    pos = 16
+    pieces = []
+    for i in range(n_pieces):
+        if pos + 8 > len(data):
+            raise StackFileError(f"{source}: truncated in the header of piece {i}")
+        n, dur_us = struct.unpack_from("<II", data, pos)
+        pos += 8
+        need = 2 * n * (2 if mode == 1 else 1)
+        if pos + need > len(data):
+            raise StackFileError(f"{source}: truncated in piece {i} ({n} pulses announced)")
+        ticks = np.frombuffer(data, "<u2", n, pos).astype(np.uint16)
+        pos += 2 * n
+        widths = None
+        if mode == 1:
+            widths = np.frombuffer(data, "<u2", n, pos).astype(np.uint16)
+            pos += 2 * n
+        pieces.append(ValveProgram(ticks=ticks, tick_s=tick_us * 1e-6, duration=dur_us * 1e-6,
+                                   widths_us=widths))
+    if pos != len(data):
+        raise StackFileError(f"{source}: {len(data) - pos} bytes after the last piece")
+    if not pieces:
+        raise StackFileError(f"{source}: no pieces")
+    return dataclasses.replace(pieces[0], pieces=tuple(pieces[1:]))
+
+
+def format_valve_program(prog: ValveProgram) -> str:
+    """The text form (see the module docstring)."""
+    pieces = program_pieces(prog)
+    pwm = any(p.widths_us is not None for p in pieces)
+    lines = [f"{TEXT_MAGIC} {VERSION}", f"mode {'pwm' if pwm else 'fm'}",
+             f"tick_s {prog.tick_s:.9g}", f"pieces {len(pieces)}"]
+    for i, p in enumerate(pieces):
+        lines.append(f"piece {i} duration_s {p.duration:.6f} pulses {len(p.ticks)}")
+        if pwm:
+            w = p.widths_us if p.widths_us is not None else np.zeros(len(p.ticks), np.uint16)
+            lines.extend(f"{int(a)} {int(b)}" for a, b in zip(p.ticks, w))
+        else:
+            lines.extend(str(int(a)) for a in p.ticks)
+    return "\n".join(lines) + "\n"
+
+
+def parse_valve_program(text: str, source: str = "valve program") -> ValveProgram:
+    """Parse the text form; StackFileError naming the line on any problem."""
+    rows = [(n, raw.split("#", 1)[0].split()) for n, raw in enumerate(text.splitlines(), 1)]
+    rows = [(n, r) for n, r in rows if r]
+    it = iter(rows)
+
+    def expect(key: str, count: int) -> tuple[int, list[str]]:
+        try:
+            n, r = next(it)
+        except StopIteration:
+            raise StackFileError(f"{source}: truncated, expected {key!r}") from None
+        if r[0] != key or len(r) != count:
+            raise StackFileError(f"{source}:{n}: expected {key!r} line, got {' '.join(r)!r}")
+        return n, r
+
+    try:
+        n, r = expect(TEXT_MAGIC, 2)
+        if r[1] != str(VERSION):
+            raise StackFileError(f"{source}:{n}: version {r[1]}, expected {VERSION}")
+        n, r = expect("mode", 2)
+        if r[1] not in ("fm", "pwm"):
+            raise StackFileError(f"{source}:{n}: mode {r[1]!r}, expected fm or pwm")
+        pwm = r[1] == "pwm"
+        _, r = expect("tick_s", 2)
+        tick = float(r[1])
+        _, r = expect("pieces", 2)
+        n_pieces = int(r[1])
+        pieces = []
+        for i in range(n_pieces):
+            n, r = expect("piece", 6)
+            dur = float(r[3])
+            count = int(r[5])
+            vals = np.zeros((count, 2 if pwm else 1), dtype=np.int64)
+            for j in range(count):
+                try:
+                    n, r = next(it)
+                except StopIteration:
+                    raise StackFileError(f"{source}: truncated in piece {i}: {j} of {count} "
+                                         "pulses") from None
+                if len(r) != vals.shape[1]:
+                    raise StackFileError(f"{source}:{n}: expected {vals.shape[1]} numbers")
+                vals[j] = [int(x) for x in r]
+            if np.any(vals < 0) or np.any(vals > 65535):
+                raise StackFileError(f"{source}: piece {i}: values must fit uint16")
+            pieces.append(ValveProgram(ticks=vals[:, 0].astype(np.uint16), tick_s=tick,
+                                       duration=dur,
+                                       widths_us=vals[:, 1].astype(np.uint16) if pwm else None))
+    except ValueError as exc:
+        if isinstance(exc, StackFileError):
+            raise
+        raise StackFileError(f"{source}: bad number ({exc})") from None
+    extra = next(it, None)
+    if extra is not None:
+        raise StackFileError(f"{source}:{extra[0]}: unexpected data after the last piece")
+    if not pieces:
+        raise StackFileError(f"{source}: no pieces")
+    return dataclasses.replace(pieces[0], pieces=tuple(pieces[1:]))
+
+
+def write_valve_program(prog: ValveProgram, path: str | os.PathLike, fmt: str = "bin") -> None:
+    """Write a program in the binary (``fmt="bin"``) or text (``"txt"``) form, atomically."""
+    path = FsPath(path)
+    if fmt == "bin":
+        data = encode_valve_program(prog)
+    elif fmt == "txt":
+        data = format_valve_program(prog).encode("utf-8")
+    else:
+        raise FlowError(f"valve program format {fmt!r}: expected 'bin' or 'txt'")
+    _atomic_write(path, data)
+
+
+def read_valve_program(path: str | os.PathLike) -> ValveProgram:
+    """Read a program written by :func:`write_valve_program` (either form, detected)."""
+    path = FsPath(path)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise StackFileError(f"{path}: valve program not found") from None
+    if data[:4] == MAGIC:
+        return decode_valve_program(data, str(path))
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError:
+        raise StackFileError(f"{path}: neither a binary nor a text valve program") from None
+    return parse_valve_program(text, str(path))
