@@ -351,3 +351,359 @@ def tune_gains(disturbance: Disturbance | np.ndarray = Disturbance(), *,
     out = evaluate_gains(tuple(g), d)  # type: ignore[arg-type]
     return dataclasses.replace(out, iterations=int(res.nit), converged=bool(res.success),
                                message=str(res.message))
+
+
+# =========================================================================== surfaces
+
+
+def grid_over(bounds: np.ndarray, spacing: float) -> tuple[np.ndarray, int, int]:
+    """Grid covering ``bounds (2, 2)`` mm with nodes on multiples of ``spacing``.
+
+    Returns ``(origin (2,), nx, ny)``. Snapping to the lattice of ``spacing`` keeps the
+    grids of successive measurement layers aligned, so re-gridding between them is exact
+    where they overlap.
+    """
+    if not (np.isfinite(spacing) and spacing > 0):
+        raise ConfigError(f"grid spacing = {spacing!r} mm: must be > 0")
+    lo = np.floor(np.asarray(bounds[0], dtype=np.float64) / spacing + 1e-9) * spacing
+    hi = np.ceil(np.asarray(bounds[1], dtype=np.float64) / spacing - 1e-9) * spacing
+    n = np.rint((hi - lo) / spacing).astype(int) + 1
+    return lo, int(n[0]), int(n[1])
+
+
+def region_mask(region: Region, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """(len(y), len(x)) bool: grid nodes inside ``region`` (holes excluded).
+
+    Point-in-ring tests by ``matplotlib.path.Path.contains_points``; a node is inside
+    when an odd number of rings contain it (rings are nested, thesis 3.2 hierarchy), so
+    islands inside holes count. Nodes exactly on an edge may fall either way.
+    """
+    from matplotlib.path import Path as MplPath
+
+    xx, yy = np.meshgrid(x, y)
+    pts = np.column_stack([xx.ravel(), yy.ravel()])
+    count = np.zeros(len(pts), dtype=np.int64)
+    for ring in region.rings:
+        if len(ring) < 3:
+            continue
+        lo, hi = ring.min(axis=0), ring.max(axis=0)
+        box = np.all((pts >= lo) & (pts <= hi), axis=1)
+        if not np.any(box):
+            continue
+        inside = MplPath(ring).contains_points(pts[box])
+        count[np.flatnonzero(box)[inside]] += 1
+    return (count % 2 == 1).reshape(xx.shape)
+
+
+def _nearest_fill(z: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """z with every invalid node set to the value of its nearest valid node."""
+    from scipy import ndimage
+
+    if np.all(valid) or not np.any(valid):
+        return np.where(valid, z, 0.0)
+    idx = ndimage.distance_transform_edt(~valid, return_distances=False, return_indices=True)
+    return z[tuple(idx)]
+
+
+def surface_from_samples(xyz: np.ndarray, footprint: Region | None = None,
+                         spacing: float = 1.0, *, smoothing: bool = False,
+                         smooth_size: int = 3) -> HeightMap:
+    """Interpolate laser samples on a regular grid over a footprint (thesis 5.2.1).
+
+    xyz: (n, 3) float64, mm: measured points (part frame), n >= 3, not all collinear.
+    footprint: the merged part + scaffold region of the measurement layer (thesis
+        Fig. 5-3); nodes outside it are NaN. None: the convex hull of the samples.
+    spacing: grid pitch, mm (``job.feedback.grid_mm``); nodes on multiples of it.
+    smoothing: robust smoothing by a ``smooth_size`` x ``smooth_size`` median filter
+        (``scipy.ndimage.median_filter``), which removes isolated spikes (laser drop-outs,
+        specular reflections) without flattening steps the way a mean would. The thesis
+        smoothed with Garcia's robust N-D smoother; a median is the robust core of it.
+
+    Interpolation is Delaunay-linear (``scipy.interpolate.LinearNDInterpolator``, as
+    Matlab's TriScatteredInterp); footprint nodes outside the samples' convex hull take
+    the value of the nearest sample.
+    """
+    from scipy.interpolate import LinearNDInterpolator
+    from scipy.spatial import QhullError, cKDTree
+
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise GeometryError(f"laser samples: expected an (n, 3) array, got shape {xyz.shape}")
+    ok = np.all(np.isfinite(xyz), axis=1)
+    if np.count_nonzero(ok) < 3:
+        raise GeometryError(f"laser samples: {np.count_nonzero(ok)} finite samples, need >= 3")
+    if not np.all(ok):
+        log.warning("laser samples: %d non-finite samples dropped", int(np.count_nonzero(~ok)))
+        xyz = xyz[ok]
+    xy = xyz[:, :2]
+    if footprint is not None and not footprint.is_empty:
+        origin, nx, ny = grid_over(footprint.bounds(), spacing)
+    else:
+        origin, nx, ny = grid_over(np.stack([xy.min(axis=0), xy.max(axis=0)]), spacing)
+    x = origin[0] + spacing * np.arange(nx)
+    y = origin[1] + spacing * np.arange(ny)
+    try:
+        interp = LinearNDInterpolator(xy, xyz[:, 2])
+    except QhullError as exc:
+        raise GeometryError(f"laser samples: cannot triangulate ({len(xy)} samples, all "
+                            f"collinear?): {str(exc).splitlines()[0]}") from None
+    if footprint is not None and not footprint.is_empty:
+        mask = region_mask(footprint, x, y)
+    else:
+        mask = np.ones((ny, nx), dtype=bool)
+    z = np.full((ny, nx), np.nan)
+    iy, ix = np.nonzero(mask)
+    z[iy, ix] = interp(np.column_stack([x[ix], y[iy]]))
+    if footprint is None or footprint.is_empty:
+        mask = np.isfinite(z)
+    else:
+        hole = mask & ~np.isfinite(z)
+        if np.any(hole):
+            hy, hx = np.nonzero(hole)
+            _, nearest = cKDTree(xy).query(np.column_stack([x[hx], y[hy]]))
+            z[hy, hx] = xyz[nearest, 2]
+    if smoothing and np.any(mask):
+        from scipy import ndimage
+
+        filled = _nearest_fill(z, mask)
+        z = np.where(mask, ndimage.median_filter(filled, size=smooth_size, mode="nearest"),
+                     np.nan)
+    return HeightMap(origin=origin, spacing=float(spacing), z=z)
+
+
+def error_surface(measured: HeightMap, nominal_z: float, interval_mm: float) -> HeightMap:
+    """Normalised error E = (nominal - measured) / dh_m on the measured grid (thesis 5.2.1).
+
+    Positive where the part is too low. NaN stays NaN (outside the footprint).
+    """
+    if not (np.isfinite(interval_mm) and interval_mm > 0):
+        raise ConfigError(f"measurement interval = {interval_mm!r} mm: must be > 0")
+    return HeightMap(origin=np.asarray(measured.origin, dtype=np.float64),
+                     spacing=measured.spacing,
+                     z=(float(nominal_z) - measured.z) / float(interval_mm))
+
+
+def regrid(surface: HeightMap, target: HeightMap) -> tuple[np.ndarray, np.ndarray]:
+    """Evaluate ``surface`` on the grid of ``target`` (thesis 5.1.2: F.V = F(X')).
+
+    Returns ``(values (ny, nx) float64, known (ny, nx) bool)``: bilinear interpolation
+    (``scipy.interpolate.RegularGridInterpolator``) of the finite nodes, renormalised by
+    the weight of the finite corners; nodes with no finite neighbour in ``surface``
+    (new grid points) are unknown and get 0, as the thesis proposes for new gridpoints.
+    """
+    from scipy.interpolate import RegularGridInterpolator
+
+    ty, tx = target.z.shape
+    sy, sx = surface.z.shape
+    valid = np.isfinite(surface.z)
+    # Fast path: same pitch and lattice (the usual case, see grid_over) -> index shift.
+    if np.isclose(surface.spacing, target.spacing):
+        off = (np.asarray(target.origin) - np.asarray(surface.origin)) / target.spacing
+        if np.allclose(off, np.rint(off), atol=1e-6):
+            ox, oy = (int(v) for v in np.rint(off))
+            vals = np.zeros((ty, tx))
+            known = np.zeros((ty, tx), dtype=bool)
+            x0, x1 = max(0, -ox), min(tx, sx - ox)
+            y0, y1 = max(0, -oy), min(ty, sy - oy)
+            if x0 < x1 and y0 < y1:
+                src = surface.z[y0 + oy:y1 + oy, x0 + ox:x1 + ox]
+                ok = np.isfinite(src)
+                vals[y0:y1, x0:x1] = np.where(ok, src, 0.0)
+                known[y0:y1, x0:x1] = ok
+            return vals, known
+    xs, ys = surface.grid()
+    xt, yt = target.grid()
+    pts = np.stack(np.meshgrid(yt, xt, indexing="ij"), axis=-1).reshape(-1, 2)
+    if len(xs) < 2 or len(ys) < 2:
+        return np.zeros((ty, tx)), np.zeros((ty, tx), dtype=bool)
+    v = RegularGridInterpolator((ys, xs), np.where(valid, surface.z, 0.0), bounds_error=False,
+                                fill_value=0.0)(pts).reshape(ty, tx)
+    w = RegularGridInterpolator((ys, xs), valid.astype(np.float64), bounds_error=False,
+                                fill_value=0.0)(pts).reshape(ty, tx)
+    known = w > 1e-9
+    return np.where(known, v / np.where(known, w, 1.0), 0.0), known
+
+
+# =========================================================================== spatial PID
+
+
+@dataclass(frozen=True, eq=False)
+class SmfState:
+    """State of the spatial PID between measurement layers (thesis 5.1.2, eq. 5.1).
+
+    integral: the integral term Ki* sum E_i, saturated (anti-windup), on the grid of the
+        last measurement layer (NaN outside its footprint); None before the first update.
+    previous_error: E_{k-1} on its own grid; None before the first update.
+    k: number of measurement layers processed.
+    """
+
+    integral: HeightMap | None = None
+    previous_error: HeightMap | None = None
+    k: int = 0
+
+
+@dataclass(frozen=True, eq=False)
+class ControlAction:
+    """The controller output of one measurement layer (thesis Fig. 5-4).
+
+    u: saturated output U' (eq. 5.4), NaN outside the footprint; the nu-controller
+        multiplies the flow by (1 + u), the c-controller divides the speed by it.
+    unsaturated: U before saturation (eq. 5.1).
+    p, i, d: (ny, nx) float64 the three terms (i already saturated).
+    saturated: fraction of footprint nodes where U was cut by the saturation planes.
+    controller: "flow" or "speed".
+    """
+
+    u: HeightMap
+    unsaturated: HeightMap
+    p: np.ndarray
+    i: np.ndarray
+    d: np.ndarray
+    saturated: float
+    controller: str = "flow"
+    _filled: np.ndarray | None = field(default=None, repr=False)
+
+    def sample(self, xy: np.ndarray) -> np.ndarray:
+        """(n,) u at points ``xy (n, 2)`` mm (see :func:`action_along`)."""
+        return action_along(self, xy)
+
+
+def saturation_limits(job: "Job") -> tuple[float, float]:
+    """Lower and upper saturation planes of U (thesis Fig. 5-4(b), 5.2.2).
+
+    nu-controller: +-saturation. c-controller: c = c_nom / (1 + u) must stay within
+    +-saturation of c_nom, so u in [1/(1+s) - 1, 1/(1-s) - 1].
+    """
+    s = float(job.feedback.saturation)
+    if job.feedback.controller == "speed":
+        return 1.0 / (1.0 + s) - 1.0, (1.0 / (1.0 - s) - 1.0) if s < 1 else np.inf
+    return -s, s
+
+
+def smf_update(state: SmfState, error: HeightMap, job: "Job | None" = None, *,
+               gains: Gains | None = None, limits: tuple[float, float] | None = None,
+               integral_limit: float | None = None) -> tuple[ControlAction, SmfState]:
+    """One step of the 3D spatial PID of eq. 5.1 at a measurement layer.
+
+    state: the state after the previous measurement layer (``SmfState()`` at the start).
+    error: normalised error surface E_k (:func:`error_surface`), NaN outside the
+        footprint; its grid may differ from the previous layer's.
+    job: settings (``job.feedback``: kp, ki, kd normalised gains, saturation,
+        integral_saturation, controller); ``Job()`` when None.
+    gains, limits, integral_limit: override (Kp, Ki*, Kd*), the (lower, upper) planes of U
+        and the +- bound of the integral term.
+
+    U_k = Kp E_k + I_k + Kd* (E_k - E_{k-1}), I_k = clip(I_{k-1} + Ki* E_k, +-integral_limit)
+    (eq. 5.1 with eq. 5.2; clamping the integral term is the anti-windup of thesis 5.2.2),
+    U'_k = clip(U_k, limits). I_{k-1} and E_{k-1} are re-evaluated on the new grid
+    (:func:`regrid`); nodes new to the footprint start with zero integral and zero
+    derivative contribution, and the derivative is left out at k = 1.
+    """
+    if job is None:
+        from icefab.config import Job
+
+        job = Job()
+    fb = job.feedback
+    kp, ki, kd = gains if gains is not None else (fb.kp, fb.ki, fb.kd)
+    lo, hi = limits if limits is not None else saturation_limits(job)
+    isat = float(fb.integral_saturation if integral_limit is None else integral_limit)
+    E = np.asarray(error.z, dtype=np.float64)
+    valid = np.isfinite(E)
+    Ez = np.where(valid, E, 0.0)
+    if state.integral is not None:
+        i_prev, _ = regrid(state.integral, error)
+    else:
+        i_prev = np.zeros_like(Ez)
+    I = np.clip(i_prev + ki * Ez, -isat, isat)
+    P = kp * Ez
+    D = np.zeros_like(Ez)
+    if state.previous_error is not None and state.k >= 1 and kd != 0.0:
+        e_prev, known = regrid(state.previous_error, error)
+        D = np.where(known, kd * (Ez - e_prev), 0.0)
+    U = P + I + D
+    Us = np.clip(U, lo, hi)
+    n_valid = int(np.count_nonzero(valid))
+    sat = float(np.count_nonzero(valid & (Us != U)) / n_valid) if n_valid else 0.0
+    nan = np.nan
+    origin = np.asarray(error.origin, dtype=np.float64)
+    u_map = HeightMap(origin, error.spacing, np.where(valid, Us, nan))
+    action = ControlAction(
+        u=u_map,
+        unsaturated=HeightMap(origin, error.spacing, np.where(valid, U, nan)),
+        p=np.where(valid, P, nan), i=np.where(valid, I, nan), d=np.where(valid, D, nan),
+        saturated=sat, controller=fb.controller,
+        _filled=_nearest_fill(Us, valid) if n_valid else np.zeros_like(Us))
+    new_state = SmfState(integral=HeightMap(origin, error.spacing, np.where(valid, I, nan)),
+                         previous_error=error, k=state.k + 1)
+    if sat > 0:
+        log.info("SMF layer %d: output saturated on %.1f %% of the footprint", state.k + 1,
+                 100 * sat)
+    return action, new_state
+
+
+def action_along(action: HeightMap | ControlAction, xy: np.ndarray) -> np.ndarray:
+    """(n,) float64 control action u at points ``xy (n, 2)`` mm (thesis eq. 5.5).
+
+    Bilinear interpolation (``scipy.interpolate.RegularGridInterpolator``) in the action
+    grid; nodes outside the footprint take their nearest footprint value first, so a path
+    along the region edge sees the edge's action; points outside the grid get 0 (no
+    correction).
+    """
+    from scipy.interpolate import RegularGridInterpolator
+
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    if isinstance(action, ControlAction):
+        hm = action.u
+        filled = action._filled if action._filled is not None else \
+            _nearest_fill(hm.z, np.isfinite(hm.z))
+    else:
+        hm = action
+        filled = _nearest_fill(hm.z, np.isfinite(hm.z))
+    x, y = hm.grid()
+    if len(x) < 2 or len(y) < 2:
+        return np.zeros(len(xy))
+    rgi = RegularGridInterpolator((y, x), filled, bounds_error=False, fill_value=0.0)
+    return rgi(xy[:, ::-1])
+
+
+def retime_trajectory(traj: Trajectory, u: np.ndarray, *, max_change: float = 0.3
+                      ) -> Trajectory:
+    """The c-controller (thesis 5.2.2, eqs. 5.7, 5.10, Fig. 5-6): speed c_nom / (1 + u).
+
+    traj: constant-dt trajectory; u: (n,) control action at its samples.
+    max_change: the speed stays within +-max_change of nominal (thesis: 30 %).
+
+    The speed factor f = clip(1 / (1 + u), 1 - max_change, 1 + max_change) changes the time
+    to cover each segment to dt / f (f averaged over the segment's ends); the path is then
+    re-sampled at the SAME dt by linear interpolation in time, so the speed lives in the
+    point spacing (Fig. 5-6) instead of in variable point-to-point durations. The time axis
+    is stretched by at most dt / duration so the last sample lands exactly on (n'-1) dt.
+    Joints are re-sampled the same way.
+    """
+    xy = np.asarray(traj.xy, dtype=np.float64)
+    n = len(xy)
+    u = np.asarray(u, dtype=np.float64)
+    if u.shape != (n,):
+        raise ConfigError(f"retime_trajectory: u has shape {u.shape}, expected ({n},)")
+    if not (0 <= max_change < 1):
+        raise ConfigError(f"max_change = {max_change!r}: must be in [0, 1)")
+    if n < 2:
+        return traj
+    f = np.clip(1.0 / np.maximum(1.0 + u, 1e-9), 1.0 - max_change, 1.0 + max_change)
+    dt = float(traj.dt)
+    seg = dt / (0.5 * (f[1:] + f[:-1]))
+    T = np.concatenate([[0.0], np.cumsum(seg)])
+    n_new = max(2, int(np.rint(T[-1] / dt)) + 1)
+    T *= (n_new - 1) * dt / T[-1]
+    t_new = np.arange(n_new) * dt
+    xy_new = np.column_stack([np.interp(t_new, T, xy[:, j]) for j in range(2)])
+    speed = np.asarray(traj.speed, dtype=np.float64) * f
+    speed_new = np.interp(t_new, T, speed)
+    joints = np.asarray(traj.joints, dtype=np.float64)
+    if joints.ndim == 2 and len(joints) == n and joints.shape[1] > 0:
+        joints_new = np.column_stack([np.interp(t_new, T, joints[:, j])
+                                      for j in range(joints.shape[1])])
+    else:
+        joints_new = np.zeros((n_new, 0))
+    return Trajectory(dt=dt, xy=xy_new, joints=joints_new, speed=speed_new,
+                      duration=(n_new - 1) * dt, path=traj.path)

@@ -1,0 +1,256 @@
+"""Surface mapping feedback: surfaces, the 3D spatial PID, applying the action (thesis 5.1-5.2)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import shapely
+from hypothesis import given
+from hypothesis import strategies as st
+
+from icefab import Job
+from icefab.errors import GeometryError
+from icefab.feedback import (ControlAction, SmfState, action_along, error_surface, grid_over,
+                             region_mask, regrid, retime_trajectory, saturation_limits,
+                             smf_update, surface_from_samples)
+from icefab.types import HeightMap, Path, Region, Trajectory
+
+
+def square(x0, y0, x1, y1, ccw=True):
+    r = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], dtype=float)
+    return r if ccw else r[::-1]
+
+
+def frame_region():
+    """A 100 x 60 mm rectangle with a 20 x 20 hole."""
+    return Region(rings=(square(0, 0, 100, 60), square(40, 20, 60, 40, ccw=False)),
+                  parent=np.array([-1, 0]))
+
+
+def samples_on(fn, n=4000, seed=0, box=(-2, -2, 102, 62)):
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(box[0], box[2], n)
+    y = rng.uniform(box[1], box[3], n)
+    return np.column_stack([x, y, fn(x, y)])
+
+
+def test_region_mask_matches_shapely():
+    reg = frame_region()
+    x = np.arange(-5, 106, 1.3)
+    y = np.arange(-5, 66, 1.7)
+    m = region_mask(reg, x, y)
+    poly = shapely.Polygon(reg.rings[0], [reg.rings[1]])
+    xx, yy = np.meshgrid(x, y)
+    ref = shapely.contains_xy(poly, xx, yy)
+    assert np.array_equal(m, ref)
+
+
+def test_plane_is_reproduced_and_nan_outside_footprint():
+    plane = lambda x, y: 10 + 0.01 * x - 0.02 * y  # noqa: E731
+    reg = frame_region()
+    hm = surface_from_samples(samples_on(plane), reg, spacing=1.0)
+    x, y = hm.grid()
+    xx, yy = np.meshgrid(x, y)
+    inside = region_mask(reg, x, y)
+    assert np.array_equal(np.isfinite(hm.z), inside)
+    np.testing.assert_allclose(hm.z[inside], plane(xx, yy)[inside], atol=1e-9)
+    assert hm.origin[0] % 1.0 == 0 and hm.origin[1] % 1.0 == 0  # lattice-aligned grid
+
+
+def test_footprint_outside_hull_uses_nearest_sample():
+    xyz = samples_on(lambda x, y: 5 + 0 * x, box=(10, 10, 90, 50))
+    hm = surface_from_samples(xyz, frame_region(), spacing=2.0)
+    inside = np.isfinite(hm.z)
+    np.testing.assert_allclose(hm.z[inside], 5.0)
+
+
+def test_smoothing_removes_spikes():
+    xyz = samples_on(lambda x, y: 3 + 0 * x, n=6000)
+    xyz[::97, 2] += 2.0  # laser drop-outs / reflections
+    raw = surface_from_samples(xyz, frame_region(), 1.0)
+    smooth = surface_from_samples(xyz, frame_region(), 1.0, smoothing=True)
+    err = lambda h: np.nanmax(np.abs(h.z - 3))  # noqa: E731
+    assert err(raw) > 0.5
+    assert np.nanpercentile(np.abs(smooth.z - 3), 99) < 0.05 * err(raw)
+
+
+def test_bad_samples():
+    with pytest.raises(GeometryError, match="need >= 3"):
+        surface_from_samples(np.zeros((2, 3)), None, 1.0)
+    with pytest.raises(GeometryError, match="shape"):
+        surface_from_samples(np.zeros((5, 2)), None, 1.0)
+    with pytest.raises(GeometryError, match="triangulate"):
+        surface_from_samples(np.column_stack([np.arange(5.0), np.arange(5.0), np.ones(5)]),
+                             None, 1.0)
+
+
+def test_error_surface_normalised():
+    hm = HeightMap(np.zeros(2), 1.0, np.array([[1.0, 0.8], [np.nan, 1.2]]))
+    e = error_surface(hm, 1.0, 0.5)
+    np.testing.assert_allclose(e.z, [[0.0, 0.4], [np.nan, -0.4]])
+
+
+def _plant_run(reg, n_layers, job, disturbance, gains=None, integral_limit=None,
+               spacing=2.0, dh_m=1.0):
+    """A pixel-wise plant: each interval adds dh_m (1 + u)(1 + delta(x, y, k))."""
+    origin, nx, ny = grid_over(reg.bounds(), spacing)
+    x = origin[0] + spacing * np.arange(nx)
+    y = origin[1] + spacing * np.arange(ny)
+    mask = region_mask(reg, x, y)
+    xx, yy = np.meshgrid(x, y)
+    h = np.zeros((ny, nx))
+    state = SmfState()
+    rms = []
+    u = np.zeros_like(h)
+    us = []
+    for k in range(1, n_layers + 1):
+        h = h + dh_m * (1 + u) * (1 + disturbance(xx, yy, k))
+        meas = HeightMap(origin, spacing, np.where(mask, h, np.nan))
+        err = error_surface(meas, k * dh_m, dh_m)
+        rms.append(float(np.sqrt(np.nanmean(err.z ** 2))))
+        act, state = smf_update(state, err, job, gains=gains, integral_limit=integral_limit)
+        u = np.nan_to_num(act.u.z)
+        us.append(act)
+    return np.array(rms), us, state
+
+
+def test_pid_converges_on_tilted_surface():
+    # a tilted flow error: +5 % at x = 0 rising to +25 % at x = 100 (and a tilted start)
+    reg = Region(rings=(square(0, 0, 100, 60),), parent=np.array([-1]))
+    tilt = lambda x, y, k: 0.05 + 0.2 * x / 100 + (0.5 * y / 60 if k == 1 else 0)  # noqa
+    rms_cl, acts, _ = _plant_run(reg, 40, Job(), tilt)
+    rms_ol, _, _ = _plant_run(reg, 40, Job(), tilt, gains=(0.0, 0.0, 0.0))
+    assert rms_ol[-1] > 5.0  # open loop: error grows with height
+    assert rms_cl[-1] < 1e-3  # closed loop converges to the nominal height
+    assert rms_cl[-1] < rms_cl[0] / 100
+    # the action settles on the inverse of the tilt: (1 + u)(1 + delta) = 1
+    a = acts[-1]
+    x, y = a.u.grid()
+    xx, _ = np.meshgrid(x, y)
+    ok = np.isfinite(a.u.z)
+    assert ok.mean() > 0.9
+    np.testing.assert_allclose(a.u.z[ok], (1 / (1 + 0.05 + 0.2 * xx / 100) - 1)[ok], atol=1e-3)
+
+
+def test_saturation_of_output_and_integral():
+    job = Job()
+    err = HeightMap(np.zeros(2), 1.0, np.full((3, 4), 2.0))  # 2 intervals too low
+    act, st1 = smf_update(SmfState(), err, job)
+    assert np.allclose(act.u.z, 0.3) and act.saturated == 1.0
+    np.testing.assert_allclose(act.unsaturated.z, 2.0 + 0.3)  # P = 2, I = min(0.66, 0.3)
+    assert np.allclose(st1.integral.z, 0.3)  # integral term clamped (anti-windup)
+    st = st1
+    for _ in range(10):
+        act, st = smf_update(st, err, job)
+    assert np.allclose(st.integral.z, 0.3)
+    # error gone: the controller output is only the (bounded) integral, not a wound-up sum
+    zero = HeightMap(np.zeros(2), 1.0, np.zeros((3, 4)))
+    act, st = smf_update(st, zero, job)
+    np.testing.assert_allclose(act.u.z, 0.3 - 0.03 * 2.0, atol=1e-12)  # I + Kd*(0 - 2)
+    lo, hi = saturation_limits(Job().replace(**{"feedback.controller": "speed"}))
+    assert 1 / (1 + hi) == pytest.approx(0.7) and 1 / (1 + lo) == pytest.approx(1.3)
+
+
+def test_anti_windup_reduces_overshoot():
+    # thesis 5.2.2: a fluid line blocked for 6 intervals (no deposition), then normal
+    reg = Region(rings=(square(0, 0, 20, 20),), parent=np.array([-1]))
+    blocked = lambda x, y, k: (-1.0 if 3 <= k <= 8 else 0.0) + 0 * x  # noqa: E731
+    job = Job()
+    rms_aw, acts_aw, _ = _plant_run(reg, 60, job, blocked)
+    rms_wu, acts_wu, _ = _plant_run(reg, 60, job, blocked, integral_limit=np.inf)
+    # With the wound-up integral the controller keeps the output saturated long after the
+    # height is recovered and overshoots; anti-windup recovers sooner and overshoots less.
+    over = lambda acts: max(-np.nanmin(a.p) for a in acts)  # noqa: E731  (p = Kp * E)
+    assert over(acts_aw) < 0.5 * over(acts_wu)
+    assert rms_aw[-1] < 1e-3
+    assert np.sum(rms_aw) < np.sum(rms_wu)
+
+
+def test_regrid_between_footprints():
+    # layer k: 0..40 x 0..20; layer k+1: 10..60 x 0..20 (new area on the right)
+    job = Job()
+    e1 = HeightMap(np.array([0.0, 0.0]), 1.0, np.full((21, 41), 0.5))
+    act1, st = smf_update(SmfState(), e1, job)
+    e2 = HeightMap(np.array([10.0, 0.0]), 1.0, np.full((21, 51), 0.1))
+    act2, st2 = smf_update(st, e2, job)
+    x, _ = e2.grid()
+    old = x <= 40
+    # integral carried over where the grids overlap, 0 + Ki* E at new nodes
+    np.testing.assert_allclose(st2.integral.z[:, old], min(0.33 * 0.5, 0.3) + 0.33 * 0.1)
+    np.testing.assert_allclose(st2.integral.z[:, ~old], 0.33 * 0.1)
+    # derivative only where the previous error is known
+    np.testing.assert_allclose(act2.d[:, old], 0.03 * (0.1 - 0.5))
+    np.testing.assert_allclose(act2.d[:, ~old], 0.0)
+    # a differently pitched, shifted grid goes through interpolation: linear fields exact
+    xs = np.arange(0, 41.0)
+    ys = np.arange(0, 21.0)
+    lin = HeightMap(np.zeros(2), 1.0, 0.01 * xs[None, :] + 0.02 * ys[:, None])
+    tgt = HeightMap(np.array([0.25, 0.35]), 0.7, np.zeros((20, 40)))
+    vals, known = regrid(lin, tgt)
+    tx, ty = tgt.grid()
+    ref = 0.01 * tx[None, :] + 0.02 * ty[:, None]
+    inside = (tx[None, :] <= 40) & (ty[:, None] <= 20)
+    assert np.array_equal(known, np.broadcast_to(inside, known.shape))
+    np.testing.assert_allclose(vals[known], ref[known], atol=1e-12)
+    assert np.all(vals[~known] == 0)
+
+
+def test_hole_nodes_do_not_leak_into_new_grid():
+    z = np.full((11, 11), 0.2)
+    z[4:7, 4:7] = np.nan  # a hole in the previous footprint
+    prev = HeightMap(np.zeros(2), 1.0, z)
+    vals, known = regrid(prev, HeightMap(np.zeros(2), 1.0, np.zeros((11, 11))))
+    assert not known[5, 5] and vals[5, 5] == 0
+    assert np.all(vals[known] == 0.2)
+
+
+def test_action_along():
+    z = np.array([[0.0, 0.1, 0.2], [0.0, 0.1, np.nan]])
+    hm = HeightMap(np.array([10.0, 20.0]), 2.0, z)
+    u = action_along(hm, np.array([[11.0, 20.0], [12.0, 21.0], [100.0, 0.0], [14.0, 22.0]]))
+    np.testing.assert_allclose(u, [0.05, 0.1, 0.0, 0.1])  # NaN node: nearest footprint value
+    act, _ = smf_update(SmfState(), HeightMap(np.zeros(2), 1.0, np.full((3, 3), 0.1)), Job())
+    assert isinstance(act, ControlAction)
+    np.testing.assert_allclose(act.sample(np.array([[1.0, 1.0]])), act.u.z[1, 1])
+
+
+def _line_traj(n=200, dt=0.016, v=50.0):
+    t = np.arange(n) * dt
+    xy = np.column_stack([v * t, 0 * t])
+    return Trajectory(dt=dt, xy=xy, joints=np.column_stack([t, -t]), speed=np.full(n, v),
+                      duration=(n - 1) * dt, path=Path(points=xy[[0, -1]], width=1.5))
+
+
+def test_retime_constant_action():
+    tr = _line_traj()
+    out = retime_trajectory(tr, np.full(len(tr.xy), 0.25))  # speed / 1.25 = 0.8 c_nom
+    assert out.dt == tr.dt
+    assert out.duration == pytest.approx(tr.duration / 0.8, abs=tr.dt)
+    np.testing.assert_allclose(out.xy[[0, -1]], tr.xy[[0, -1]], atol=1e-9)
+    spacing = np.linalg.norm(np.diff(out.xy, axis=0), axis=1)
+    np.testing.assert_allclose(spacing, 0.8 * 50 * tr.dt, rtol=0.01)  # Fig. 5-6 spacing
+    np.testing.assert_allclose(out.speed, 40.0, rtol=1e-9)
+    assert np.allclose(out.xy[:, 1], 0)
+    assert out.joints.shape == (len(out.xy), 2)
+
+
+@given(st.floats(-0.9, 3.0))
+def test_retime_speed_within_30_percent(uval):
+    tr = _line_traj(n=50)
+    u = np.full(50, uval)
+    u[::7] = -uval / 2
+    out = retime_trajectory(tr, u)
+    assert np.all(out.speed >= 0.7 * 50 - 1e-9) and np.all(out.speed <= 1.3 * 50 + 1e-9)
+    assert abs(out.duration - (len(out.xy) - 1) * out.dt) < 1e-12
+    np.testing.assert_allclose(out.xy[-1], tr.xy[-1], atol=1e-9)
+
+
+def test_speed_controller_end_to_end_volume_per_mm():
+    # c-controller: volume per mm scales with (1 + u) when the flow is held constant
+    tr = _line_traj()
+    u = np.where(tr.xy[:, 0] < 80, 0.2, -0.1)
+    out = retime_trajectory(tr, u)
+    x = out.xy[:, 0]
+    ds = np.gradient(x)
+    # constant flow per sample => volume per mm ~ 1/spacing
+    ratio = np.median(ds[x > 100]) / np.median(ds[(x > 10) & (x < 60)])
+    assert ratio == pytest.approx(1.2 / 0.9, rel=0.02)
