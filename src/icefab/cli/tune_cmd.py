@@ -1,0 +1,173 @@
+"""``icefab tune``: stability and optimal gains of the SMF PID controller (thesis 5.5-5.7).
+
+Examples::
+
+    icefab tune                                   # the thesis' design disturbance
+    icefab tune --layers 100 --pulse 0.5@60 --step 0.2@30 --json
+    icefab tune --fix-kp --fix-ki                 # optimise Kd* only (eq. 5.39)
+    icefab tune --gains 1,0.33,0.45               # evaluate: unstable, max pole 1.05
+    icefab tune --noise 0.05 -o tune_out          # also writes tune_out/error_response.png
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+
+from icefab.cli.common import add_job_argument, job_from_args, output_dir
+from icefab.errors import ConfigError
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "tune", help="stability and optimal gains of the SMF PID controller",
+        description="Simulate the 1D surface-mapping-feedback model (thesis 5.4) for a "
+                    "disturbance profile, find the gains (Kp, Ki*, Kd*) minimising the RMS "
+                    "error (eq. 5.27), or evaluate given gains; report stability and the "
+                    "largest pole modulus (eq. 5.22). Amplitudes are in measurement "
+                    "intervals, layers are measurement layers. Without --pulse/--step/--noise "
+                    "the thesis' disturbance is used (pulse 0.5@60, step 0.2@30).")
+    add_job_argument(p)
+    p.add_argument("--layers", type=str, default="100", metavar="N",
+                   help="number of measurement layers simulated (default 100)")
+    p.add_argument("--pulse", action="append", default=[], metavar="AMPLITUDE@LAYER",
+                   help="a one-layer disturbance (eq. 5.30); repeatable")
+    p.add_argument("--step", action="append", default=[], metavar="AMPLITUDE@LAYER",
+                   help="a lasting disturbance from LAYER on (eq. 5.31); repeatable")
+    p.add_argument("--noise", type=str, default="0", metavar="AMPLITUDE",
+                   help="random disturbance d_r (RN - 0.5) at every layer (eq. 5.32)")
+    p.add_argument("--seed", type=str, default="0", help="seed of the random disturbance")
+    p.add_argument("--fix-kp", nargs="?", const="job", default=None, metavar="KP",
+                   help="hold Kp (at KP, else the job's feedback.kp) and optimise the others")
+    p.add_argument("--fix-ki", nargs="?", const="job", default=None, metavar="KI",
+                   help="hold Ki* (at KI, else the job's feedback.ki)")
+    p.add_argument("--fix-kd", nargs="?", const="job", default=None, metavar="KD",
+                   help="hold Kd* (at KD, else the job's feedback.kd)")
+    p.add_argument("--gains", metavar="KP,KI,KD",
+                   help="only evaluate these normalised gains (no optimisation)")
+    p.add_argument("--start", metavar="KP,KI,KD", default="1,1,0",
+                   help="initial gains of the optimisation (default 1,1,0 as thesis Table 5-2)")
+    p.add_argument("--unconstrained", action="store_true",
+                   help="search outside the gain-stable volume too (BFGS instead of SLSQP)")
+    p.add_argument("--json", action="store_true",
+                   help="print one JSON object with kp, ki, kd, rms, max_pole, stable")
+    p.add_argument("-o", "--out", metavar="DIR",
+                   help="write DIR/error_response.png and DIR/tune.json")
+    p.set_defaults(func=run)
+
+
+def _number(text: str, what: str, *, integer: bool = False, lo: float | None = None) -> float:
+    try:
+        v = int(text) if integer else float(text)
+    except ValueError:
+        kind = "an integer" if integer else "a number"
+        raise ConfigError(f"{what} = {text!r}: expected {kind}") from None
+    if not math.isfinite(v):
+        raise ConfigError(f"{what} = {text!r}: must be finite")
+    if lo is not None and v < lo:
+        raise ConfigError(f"{what} = {text!r}: must be >= {lo:g}")
+    return v
+
+
+def _at(text: str, option: str, n_layers: int) -> tuple[float, int]:
+    amp, sep, layer = text.partition("@")
+    if not sep:
+        raise ConfigError(f"{option} {text!r}: expected AMPLITUDE@LAYER, e.g. 0.5@60")
+    a = _number(amp, f"{option} amplitude")
+    k = int(_number(layer, f"{option} layer", integer=True))
+    if not 1 <= k <= n_layers:
+        raise ConfigError(f"{option} {text!r}: layer must be in 1..{n_layers} (--layers)")
+    return a, k
+
+
+def _triple(text: str, option: str) -> tuple[float, float, float]:
+    parts = text.split(",")
+    if len(parts) != 3:
+        raise ConfigError(f"{option} {text!r}: expected three numbers KP,KI,KD")
+    kp, ki, kd = (_number(x, f"{option} {n}") for x, n in zip(parts, ("KP", "KI", "KD")))
+    return kp, ki, kd
+
+
+def run(args: argparse.Namespace) -> int:
+    from icefab.feedback import Disturbance, evaluate_gains, tune_gains
+
+    job = job_from_args(args)
+    n_layers = int(_number(args.layers, "--layers", integer=True, lo=1))
+    pulses = tuple(_at(t, "--pulse", n_layers) for t in args.pulse)
+    steps = tuple(_at(t, "--step", n_layers) for t in args.step)
+    noise = _number(args.noise, "--noise", lo=0.0)
+    seed = int(_number(args.seed, "--seed", integer=True, lo=0))
+    if not pulses and not steps and noise == 0:
+        dist = Disturbance(n_layers=n_layers,
+                           pulses=((0.5, 60),) if n_layers >= 60 else (),
+                           steps=((0.2, 30),) if n_layers >= 30 else ())
+    else:
+        dist = Disturbance(n_layers=n_layers, pulses=pulses, steps=steps, noise=noise,
+                           seed=seed)
+    fb = job.feedback
+    fix: dict[str, float] = {}
+    for name, val in (("kp", args.fix_kp), ("ki", args.fix_ki), ("kd", args.fix_kd)):
+        if val is not None:
+            fix[name] = float(getattr(fb, name)) if val == "job" else \
+                _number(val, f"--fix-{name}", lo=0.0)
+    if args.gains is not None:
+        if fix:
+            raise ConfigError("--gains evaluates given gains; it cannot be combined with "
+                              "--fix-kp/--fix-ki/--fix-kd")
+        result = evaluate_gains(_triple(args.gains, "--gains"), dist)
+        mode = "evaluated"
+    else:
+        start = _triple(args.start, "--start")
+        result = tune_gains(dist, x0=start, fix=fix, constrained=not args.unconstrained)
+        mode = "optimised" + (f" (fixed: {', '.join(fix)})" if fix else "")
+    data = result.as_dict()
+    if args.out:
+        with output_dir(args.out) as tmp:
+            _plot(result, dist, job, tmp / "error_response.png", mode)
+            (tmp / "tune.json").write_text(json.dumps(
+                {**data, "mode": mode, "n_layers": n_layers, "pulses": pulses,
+                 "steps": steps, "noise": noise, "seed": seed}, indent=2) + "\n")
+    if args.json:
+        print(json.dumps(data))
+        return 0
+    print(f"gains ({mode}): Kp = {result.kp:.4f}, Ki* = {result.ki:.4f}, "
+          f"Kd* = {result.kd:.4f}")
+    print(f"RMS error sigma_p* = {result.rms:.4f} measurement intervals over {n_layers} "
+          "layers")
+    verdict = "stable" if result.stable else "UNSTABLE"
+    print(f"{verdict}: largest pole modulus {result.max_pole:.4f}")
+    if args.out:
+        print(f"wrote {args.out}/error_response.png, {args.out}/tune.json", file=sys.stderr)
+    return 0
+
+
+def _plot(result, dist, job, path, mode: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from icefab.feedback import simulate_1d
+
+    n_d = job.feedback.interval_layers
+    dh = job.slicing.layer_thickness_mm
+    sim = simulate_1d((result.kp, result.ki, result.kd), dist, n_d=n_d, dh_d=dh)
+    k = np.arange(1, len(sim.e) + 1)
+    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(7, 5.5), sharex=True)
+    ax1.plot(k, sim.e, label="error $e_k$")
+    ax1.step(k, sim.d, where="post", color="0.6", lw=1, label="disturbance $d_k$")
+    ax1.axhline(0, color="k", lw=0.5)
+    ax1.set_ylabel("normalised by $\\Delta h_m$")
+    ax1.legend(loc="upper right")
+    ax1.set_title(f"SMF 1D response, {mode}: $K_p$={result.kp:.3f}, $K_i^*$={result.ki:.3f}, "
+                  f"$K_d^*$={result.kd:.3f}\n$\\sigma_p^*$={result.rms:.4f}, "
+                  f"max |pole| = {result.max_pole:.3f}", fontsize=9)
+    ax2.plot(k, sim.nu, color="C1")
+    ax2.set_ylabel("valve frequency $\\nu$ (Hz)")
+    ax2.set_xlabel("measurement layer k")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -1,0 +1,68 @@
+"""``icefab tune`` end to end."""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from icefab.cli import main
+
+
+def run(capsys, *argv):
+    rc = main(["tune", *argv])
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def test_tune_json_thesis_disturbance(capsys):
+    rc, out, _ = run(capsys, "--layers", "100", "--pulse", "0.5@60", "--step", "0.2@30",
+                     "--json")
+    assert rc == 0
+    data = json.loads(out)
+    assert set(data) == {"kp", "ki", "kd", "rms", "max_pole", "stable"}
+    assert data["kp"] == pytest.approx(1.0, abs=2e-3) and abs(data["kd"]) < 2e-3
+    assert data["ki"] == pytest.approx(0.33, abs=5e-3)
+    assert data["rms"] == pytest.approx(0.061, abs=5e-4) and data["stable"] is True
+
+
+def test_tune_evaluate_unstable(capsys):
+    rc, out, _ = run(capsys, "--gains", "1,0.33,0.45", "--json")
+    data = json.loads(out)
+    assert rc == 0 and data["stable"] is False and data["max_pole"] == pytest.approx(1.05, abs=0.005)
+    rc, out, _ = run(capsys, "--gains", "1,0.33,0.45")
+    assert "UNSTABLE" in out and "1.048" in out
+
+
+def test_tune_fix_kp_ki_optimises_kd(capsys):
+    rc, out, _ = run(capsys, "--fix-kp", "1", "--fix-ki", "0.33", "--pulse", "0@60",
+                     "--step", "0.2@30", "--json")
+    data = json.loads(out)
+    assert (data["kp"], data["ki"]) == (1.0, 0.33)
+    assert data["kd"] == pytest.approx(0.126, abs=2e-3)  # thesis Table 5-3
+
+
+def test_tune_writes_plot(tmp_path, capsys):
+    out_dir = tmp_path / "t"
+    rc, out, _ = run(capsys, "--noise", "0.05", "-o", str(out_dir))
+    assert rc == 0 and "stable" in out
+    png = (out_dir / "error_response.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n"
+    assert json.loads((out_dir / "tune.json").read_text())["noise"] == 0.05
+
+
+@pytest.mark.parametrize("argv,msg", [
+    (["--pulse", "0.5"], "AMPLITUDE@LAYER"),
+    (["--pulse", "0.5@600"], "1..100"),
+    (["--step", "a@3"], "amplitude"),
+    (["--layers", "0"], ">= 1"),
+    (["--gains", "1,2"], "three numbers"),
+    (["--gains", "1,nan,0"], "finite"),
+    (["--noise", "-1"], ">= 0"),
+    (["--gains", "1,0.3,0", "--fix-kp"], "cannot be combined"),
+    (["--fix-kp", "3"], "gain-stable volume"),
+])
+def test_tune_bad_arguments_exit_2(tmp_path, capsys, argv, msg):
+    rc, out, err = run(capsys, *argv, "-o", str(tmp_path / "x"))
+    assert rc == 2 and out == ""
+    assert msg in err and err.count("\n") == 1
+    assert not (tmp_path / "x").exists()
