@@ -225,6 +225,10 @@ class MotionSettings:
                                             "constant-speed estimate", lo=0.0, lo_open=True)
     savgol_window: int = setting(7, "Savitzky-Golay window for joint vectors (odd, 0: off)",
                                  lo=0)
+    rest_accel_mm_s2: float = setting(80.0, "initial and final acceleration of the from/to "
+                                            "rest curves with jerk on, so the first samples "
+                                            "move the joints beyond the encoder resolution "
+                                            "(thesis 4.2.6)", lo=0.0)
 
 
 @dataclass(frozen=True)

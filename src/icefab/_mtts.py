@@ -1,0 +1,386 @@
+"""Compiled kernels of minimum-time trajectory shaping (thesis 4.1-4.2).
+
+Private to :mod:`icefab.motion`. Everything works on flat arrays holding many *pieces*
+(sub-paths between split corners, each starting and ending at rest), so a whole layer is
+one call: ``gstart (P+1,) int64`` gives piece p the grid points ``gstart[p]:gstart[p+1]``
+of a uniform grid along s with spacing ``h[p]`` mm.
+
+State along s is the speed ``v`` (mm/s); between two grid points the tangential
+acceleration is constant (``v^2`` linear in s), which is also how the samples at constant
+dt are taken, so the sampled trajectory is exactly the planned one.
+
+Constraints at grid point i (x = v^2, u = tangential acceleration, p(s) the path,
+q(s) the joints; thesis eqs. 4.3-4.5, 4.8, 4.10):
+
+* Cartesian speed:  x <= vcap^2
+* total acceleration: u^2 + (|p''| x)^2 <= A^2            (eq. 4.8: tangential + radial)
+* joint speed:       |q'_j| sqrt(x) <= qv_j
+* joint acceleration: |q'_j u + q''_j x| <= qa_j          (like TOPP-RA's per-point rows)
+* jerk (VCON envelope): |p'''| v^3 <= J, |q'''_j| v^3 <= qj_j  (eqs. 4.4-4.5)
+
+Degenerate cases: a piece always has >= 3 grid points (>= 2 segments) so its interior
+moves; a joint with |q'_j| ~ 0 gives no bound on u (only on x through q''_j).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+_EPS = 1e-12
+
+
+@njit(cache=True)
+def _derivs(y, i0, i1, h, d1, d2, d3):
+    """First, second and third derivatives along s of y[i0:i1] (k, c) by finite
+    differences on the uniform grid of spacing h; ends copy their neighbours."""
+    n = i1 - i0
+    c = y.shape[1]
+    for k in range(c):
+        for i in range(i0, i1):
+            if i == i0:
+                d1[i, k] = (y[i + 1, k] - y[i, k]) / h
+            elif i == i1 - 1:
+                d1[i, k] = (y[i, k] - y[i - 1, k]) / h
+            else:
+                d1[i, k] = (y[i + 1, k] - y[i - 1, k]) / (2.0 * h)
+        for i in range(i0 + 1, i1 - 1):
+            d2[i, k] = (y[i + 1, k] - 2.0 * y[i, k] + y[i - 1, k]) / (h * h)
+        d2[i0, k] = d2[i0 + 1, k] if n > 2 else 0.0
+        d2[i1 - 1, k] = d2[i1 - 2, k] if n > 2 else 0.0
+        if n > 4:
+            for i in range(i0 + 2, i1 - 2):
+                d3[i, k] = (d2[i + 1, k] - d2[i - 1, k]) / (2.0 * h)
+            d3[i0, k] = d3[i0 + 2, k]
+            d3[i0 + 1, k] = d3[i0 + 2, k]
+            d3[i1 - 1, k] = d3[i1 - 3, k]
+            d3[i1 - 2, k] = d3[i1 - 3, k]
+        else:
+            for i in range(i0, i1):
+                d3[i, k] = 0.0
+
+
+@njit(cache=True)
+def _accel_interval(i, x, sign, kap, qd1, qd2, A, qa):
+    """[lo, hi] of the tangential acceleration at grid point i and x = v^2.
+
+    sign = +1 going forward along s, -1 going backward (joint rates change sign).
+    """
+    r = A * A - (kap[i] * x) ** 2
+    am = math.sqrt(r) if r > 0.0 else 0.0
+    lo = -am
+    hi = am
+    for j in range(qd1.shape[1]):
+        if not math.isfinite(qa[j]):
+            continue
+        d1 = sign * qd1[i, j]
+        if abs(d1) < 1e-9:
+            continue
+        d2x = qd2[i, j] * x
+        a = (-qa[j] - d2x) / d1
+        b = (qa[j] - d2x) / d1
+        if a > b:
+            a, b = b, a
+        if a > lo:
+            lo = a
+        if b < hi:
+            hi = b
+    return lo, hi
+
+
+@njit(cache=True)
+def _cubic_root(j0, a0, v0, ds):
+    """The positive root of j0 t^3/6 + a0 t^2/2 + v0 t - ds = 0 (thesis eq. 4.7).
+
+    With j0 > 0, a0 >= 0, v0 >= 0, ds > 0 the cubic increases on t > 0, so exactly one
+    root is positive; it is taken explicitly (Cardano / trigonometric form) and polished
+    by two Newton steps.
+    """
+    b = 3.0 * a0 / j0
+    c = 6.0 * v0 / j0
+    d = -6.0 * ds / j0
+    p = c - b * b / 3.0
+    q = 2.0 * b * b * b / 27.0 - b * c / 3.0 + d
+    disc = 0.25 * q * q + p * p * p / 27.0
+    if disc >= 0.0:
+        sq = math.sqrt(disc)
+        u = -0.5 * q + sq
+        w = -0.5 * q - sq
+        y = math.copysign(abs(u) ** (1.0 / 3.0), u) + math.copysign(abs(w) ** (1.0 / 3.0), w)
+    else:
+        m = 2.0 * math.sqrt(-p / 3.0)
+        arg = 3.0 * q / (p * m)
+        arg = min(1.0, max(-1.0, arg))
+        y = m * math.cos(math.acos(arg) / 3.0)
+    t = y - b / 3.0
+    # upper bounds: each positive term alone reaches ds
+    ub = (6.0 * ds / j0) ** (1.0 / 3.0)
+    if v0 > 0.0:
+        ub = min(ub, ds / v0)
+    if a0 > 0.0:
+        ub = min(ub, math.sqrt(2.0 * ds / a0))
+    if not (t > 0.0) or t > ub:
+        t = ub
+    for _ in range(3):
+        f = ((j0 * t / 6.0 + 0.5 * a0) * t + v0) * t - ds
+        fp = (0.5 * j0 * t + a0) * t + v0
+        if fp <= 0.0:
+            break
+        t = t - f / fp
+    return t
+
+
+@njit(cache=True)
+def _pass(v, env, i0, i1, step, h, kap, qd1, qd2, A, qa, jeff, jerk_on, a_start):
+    """ACON (thesis 4.1.3, Fig. 4-5): an acceleration-limited (and, with jerk on,
+    jerk-limited) curve from rest at the first point, and from every point where the
+    profile leaves the envelope ``env``. step = +1 forward, -1 backward (deceleration
+    curves are acceleration curves run backward). Writes into v."""
+    if step > 0:
+        a, b = i0, i1 - 1
+    else:
+        a, b = i1 - 1, i0
+    sign = 1.0 if step > 0 else -1.0
+    v[a] = 0.0
+    acur = a_start
+    i = a
+    while i != b:
+        nxt = i + step
+        vi = v[i]
+        lo, hi = _accel_interval(i, vi * vi, sign, kap, qd1, qd2, A, qa)
+        if hi < 0.0:
+            hi = 0.0
+        if jerk_on and math.isfinite(jeff[i]):
+            a0 = acur if acur > 0.0 else 0.0
+            if a0 > hi:
+                a0 = hi
+            ts = _cubic_root(jeff[i], a0, vi, h)
+            if hi > _EPS:
+                ta = (-vi + math.sqrt(vi * vi + 2.0 * hi * h)) / hi
+            else:
+                ta = np.inf
+            if ts >= ta:
+                vn = vi + a0 * ts + 0.5 * jeff[i] * ts * ts
+                an = a0 + jeff[i] * ts
+            else:
+                vn = math.sqrt(vi * vi + 2.0 * hi * h)
+                an = hi
+        else:
+            vn = math.sqrt(vi * vi + 2.0 * hi * h)
+            an = hi
+        if vn >= env[nxt]:
+            vn = env[nxt]
+            an = (vn * vn - vi * vi) / (2.0 * h)
+        v[nxt] = vn
+        acur = an
+        i = nxt
+
+
+@njit(cache=True)
+def _jcon(v, i0, i1, h, jeff, tol):
+    """JCON (thesis 4.1.4, Fig. 4-6, eq. 4.12): where the speed-decrease jerk exceeds
+    ``jeff*(1+tol)``, grow an interval (each side stops at a change of acceleration sign
+    or at the piece ends) until the acceleration change across it respects the bound, and
+    replace the speeds inside by the cubic velocity polynomial of eq. 4.12 (only ever
+    lowering them, so durations only grow). Returns the number of intervals smoothed."""
+    n = i1 - i0
+    if n < 5:
+        return 0
+    t = np.empty(n)
+    acc = np.empty(n)
+    t[0] = 0.0
+    for k in range(1, n):
+        vs = v[i0 + k - 1] + v[i0 + k]
+        t[k] = t[k - 1] + (2.0 * h / vs if vs > 1e-9 else 1e9)
+    for k in range(n):
+        km = k - 1 if k > 0 else 0
+        kp = k + 1 if k < n - 1 else n - 1
+        acc[k] = (v[i0 + kp] ** 2 - v[i0 + km] ** 2) / (2.0 * h * (kp - km))
+    count = 0
+    k = 1
+    while k < n - 1:
+        jk = jeff[i0 + k]
+        dtk = t[k + 1] - t[k - 1]
+        if dtk <= 0.0 or not math.isfinite(jk) or (acc[k + 1] - acc[k - 1]) / dtk > -jk * (1.0 + tol):
+            k += 1
+            continue
+        lft = k - 1
+        rgt = k + 1
+        fl = True
+        fr = True
+        while True:
+            jt = (acc[lft] - acc[rgt]) / (t[rgt] - t[lft])
+            if jt < jk or not (fl or fr):
+                break
+            if fl:
+                if lft <= 1 or (acc[lft - 1] * acc[lft] < 0.0):
+                    fl = False
+                else:
+                    lft -= 1
+            if fr:
+                if rgt >= n - 2 or (acc[rgt + 1] * acc[rgt] < 0.0):
+                    fr = False
+                else:
+                    rgt += 1
+        # eq. 4.12: v(tau) = D tau^3 + C tau^2 + B tau + A over the interval
+        dT = t[rgt] - t[lft]
+        va = v[i0 + lft]
+        vb = v[i0 + rgt]
+        cA = va
+        cB = acc[lft] * dT
+        cC = 3.0 * vb - acc[rgt] * dT - 3.0 * cA - 2.0 * cB
+        cD = vb - cA - cB - cC
+        for m in range(lft + 1, rgt):
+            tau = (t[m] - t[lft]) / dT
+            vp = ((cD * tau + cC) * tau + cB) * tau + cA
+            if 0.0 < vp < v[i0 + m]:
+                v[i0 + m] = vp
+        count += 1
+        k = rgt
+    return count
+
+
+@njit(cache=True)
+def speed_profiles(gstart, h, xy, q, vcap, A, J, jerk_on, qv, qa, qj, a_rest, jcon_tol):
+    """VCON + ACON forward/backward + JCON for every piece (thesis 4.1.2-4.1.5).
+
+    gstart (P+1,) int64; h (P,) mm; xy (N, 2) mm grid points; q (N, m) joints on the grid;
+    vcap (P,) mm/s speed bound per piece; A mm/s^2; J mm/s^3; qv, qa, qj (m,) joint bounds
+    (inf = none); a_rest mm/s^2 initial/final acceleration of the from/to-rest curves
+    (thesis 4.2.6). Returns v (N,) mm/s on the grid, envelope (N,) mm/s, and the piece
+    durations T (P,) s.
+    """
+    N = xy.shape[0]
+    m = q.shape[1]
+    P = gstart.shape[0] - 1
+    v = np.zeros(N)
+    env = np.zeros(N)
+    T = np.zeros(P)
+    p1 = np.zeros((N, 2))
+    p2 = np.zeros((N, 2))
+    p3 = np.zeros((N, 2))
+    qd1 = np.zeros((N, m))
+    qd2 = np.zeros((N, m))
+    qd3 = np.zeros((N, m))
+    kap = np.zeros(N)
+    jeff = np.full(N, np.inf)
+    fwd = np.zeros(N)
+    for p in range(P):
+        i0 = gstart[p]
+        i1 = gstart[p + 1]
+        hp = h[p]
+        _derivs(xy, i0, i1, hp, p1, p2, p3)
+        _derivs(q, i0, i1, hp, qd1, qd2, qd3)
+        vc2 = vcap[p] * vcap[p]
+        for i in range(i0, i1):
+            kap[i] = math.sqrt(p2[i, 0] ** 2 + p2[i, 1] ** 2)
+            # ---- VCON: the maximum-speed envelope (thesis 4.1.2, eqs. 4.4, 4.5)
+            x = vc2
+            if kap[i] > _EPS:
+                x = min(x, A / kap[i])
+            for j in range(m):
+                a1 = abs(qd1[i, j])
+                if a1 > _EPS and math.isfinite(qv[j]):
+                    x = min(x, (qv[j] / a1) ** 2)
+                a2 = abs(qd2[i, j])
+                if a2 > _EPS and math.isfinite(qa[j]):
+                    x = min(x, qa[j] / a2)
+            if jerk_on:
+                j3 = math.sqrt(p3[i, 0] ** 2 + p3[i, 1] ** 2)
+                if j3 > _EPS:
+                    x = min(x, (J / j3) ** (2.0 / 3.0))
+                je = J
+                for j in range(m):
+                    a3 = abs(qd3[i, j])
+                    if a3 > _EPS and math.isfinite(qj[j]):
+                        x = min(x, (qj[j] / a3) ** (2.0 / 3.0))
+                    a1 = abs(qd1[i, j])
+                    if a1 > _EPS and math.isfinite(qj[j]):
+                        je = min(je, qj[j] / a1)
+                jeff[i] = je
+            # the acceleration interval must be non-empty at the envelope: bisect if not
+            lo, hi = _accel_interval(i, x, 1.0, kap, qd1, qd2, A, qa)
+            if lo > hi:
+                xl = 0.0
+                xh = x
+                for _ in range(50):
+                    xm = 0.5 * (xl + xh)
+                    lo, hi = _accel_interval(i, xm, 1.0, kap, qd1, qd2, A, qa)
+                    if lo <= hi:
+                        xl = xm
+                    else:
+                        xh = xm
+                x = xl
+            env[i] = math.sqrt(x)
+        env[i0] = 0.0
+        env[i1 - 1] = 0.0
+        # ---- ACON forward and backward, with AREST start/end conditions (4.1.3, 4.1.5)
+        _pass(v, env, i0, i1, 1, hp, kap, qd1, qd2, A, qa, jeff, jerk_on, a_rest)
+        for i in range(i0, i1):
+            fwd[i] = v[i]
+        _pass(v, fwd, i0, i1, -1, hp, kap, qd1, qd2, A, qa, jeff, jerk_on, a_rest)
+        # ---- JCON (4.1.4)
+        if jerk_on:
+            for _ in range(3):
+                if _jcon(v, i0, i1, hp, jeff, jcon_tol) == 0:
+                    break
+        # ---- duration
+        tt = 0.0
+        for i in range(i0, i1 - 1):
+            vs = v[i] + v[i + 1]
+            tt += 2.0 * hp / vs if vs > 1e-12 else 0.0
+        T[p] = tt
+    return v, env, T
+
+
+@njit(cache=True)
+def sample_pieces(gstart, h, v, T, nsamp, sstart, dt):
+    """Sample every piece at constant dt (thesis 4.2.6 output resolution).
+
+    Piece p lasts T[p] s and gets nsamp[p] + 1 samples (k = 0..nsamp[p]); every speed
+    is scaled by c = T[p] / (nsamp[p] dt) <= 1 so the last sample lands on the end point
+    at rest (a uniform slow-down keeps every bound: speed scales by c, acceleration by
+    c^2, jerk by c^3). Samples of piece p are written at
+    ``sstart[p] .. sstart[p] + nsamp[p]``. Returns s (M,) mm from the piece start and
+    speed (M,) mm/s.
+    """
+    P = gstart.shape[0] - 1
+    M = sstart[P - 1] + nsamp[P - 1] + 1 if P > 0 else 0
+    s_out = np.zeros(M)
+    v_out = np.zeros(M)
+    for p in range(P):
+        i0 = gstart[p]
+        i1 = gstart[p + 1]
+        hp = h[p]
+        ns = nsamp[p]
+        c = T[p] / (ns * dt) if ns > 0 else 1.0
+        o = sstart[p]
+        i = i0
+        t_i = 0.0
+        vs = v[i] + v[i + 1]
+        dti = 2.0 * hp / vs if vs > 1e-12 else 0.0
+        for k in range(ns + 1):
+            tau = k * dt * c
+            if k == ns:
+                s_out[o + k] = (i1 - 1 - i0) * hp
+                v_out[o + k] = v[i1 - 1] * c
+                continue
+            while i < i1 - 2 and t_i + dti <= tau:
+                t_i += dti
+                i += 1
+                vs = v[i] + v[i + 1]
+                dti = 2.0 * hp / vs if vs > 1e-12 else 0.0
+            acc = (v[i + 1] ** 2 - v[i] ** 2) / (2.0 * hp)
+            r = tau - t_i
+            if r > dti:
+                r = dti
+            ds = v[i] * r + 0.5 * acc * r * r
+            if ds > hp:
+                ds = hp
+            if ds < 0.0:
+                ds = 0.0
+            s_out[o + k] = (i - i0) * hp + ds
+            v_out[o + k] = (v[i] + acc * r) * c
+    return s_out, v_out

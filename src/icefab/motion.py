@@ -1,0 +1,738 @@
+"""Minimum-time trajectory shaping (MTTS, thesis Ch. 4).
+
+Turns deposition, measurement and travel paths into the fastest trajectories a robot can
+follow exactly under Cartesian and joint speed, acceleration and jerk bounds, sampled at a
+constant time step (default 16 ms; the speed lives in the point spacing, thesis Fig. 4-11).
+
+Steps (thesis 4.1, compiled kernels in :mod:`icefab._mtts`):
+
+1. PATHSPLIT (4.1.1): split each path where its direction turns by more than
+   ``motion.smooth_angle_deg``; the robot stops there. Each piece is resampled along its
+   length at ``motion.point_spacing_mm`` (at least 2 segments). Optional smoothing of the
+   resampled points within ``motion.smoothing_tolerance_mm`` (Zhang & Liou III: a
+   smoothing cubic spline, scipy), then the output follows the smoothed curve.
+2. VCON (4.1.2): the maximum-speed envelope from the Cartesian speed, total acceleration
+   (tangential + radial, eq. 4.8) and jerk bounds and from every joint's speed,
+   acceleration and jerk bounds (eqs. 4.2-4.5, 4.10). The joints come from the robot's
+   inverse kinematics on the resampled points, differentiated along s.
+3. ACON (4.1.3, Fig. 4-5): forward and backward acceleration curves; with jerk on, each
+   curve ramps its acceleration with the jerk bound (explicit positive root of eq. 4.7).
+4. JCON (4.1.4, Fig. 4-6, eq. 4.12): speed-decrease jerk spikes are spread by cubic
+   velocity polynomials (speeds only lowered).
+5. AREST (4.1.5, 4.2.6): every piece starts and ends at rest; with jerk on the from/to
+   rest curves start with ``motion.rest_accel_mm_s2`` (80 mm/s^2) so the first samples
+   move the joints by more than the encoder resolution.
+6. Sampling at constant dt: each piece is slowed uniformly by at most one time step so
+   that it ends exactly on a sample; pieces are concatenated (the corner sample is shared:
+   the robot is at rest there, ``Trajectory.pieces`` gives the indices). Joint angles are
+   the inverse kinematics of the samples, smoothed with the 7-point cubic Savitzky-Golay
+   filter of thesis 4.2.6 (``motion.savgol_window``) wherever that moves the tool by less
+   than ``SAVGOL_MAX_DEVIATION_MM``.
+
+The planner only knows the :class:`icefab.robots.Robot` protocol (the Klipper rule: a
+robot can only tighten limits).
+
+Trajectory file format (``save_trajectories``/``load_trajectories``, ``.npz``):
+
+* ``format`` = "icefab-trajectories", ``version`` = 1, ``dt`` float s, ``robot`` str,
+  ``joint_names`` (j,) str, ``job`` str (TOML);
+* ``xy`` (M, 2) float64 mm (robot base frame), ``joints`` (M, j) float64 rad or mm,
+  ``speed`` (M,) float64 mm/s: the samples of all trajectories, concatenated in order;
+* ``traj_start`` (T + 1,) int64: trajectory i is rows ``traj_start[i]:traj_start[i+1]``;
+* ``piece_start`` (Q,) int64 sample indices (within its trajectory) where pieces start
+  and ``piece_owner`` (Q,) int64 the trajectory each belongs to;
+* per trajectory (T,): ``duration`` float64 s, ``layer`` int64, ``path_index`` int64
+  (index within its layer), ``material`` int8 (0 part, 1 scaffold), ``role`` int8
+  (0 boundary, 1 fill, 2 measure, 3 travel);
+* per layer (L,): ``layer_index`` int64, ``layer_z`` float64 mm, ``layer_start`` (L+1,)
+  int64 (trajectories of layer k are ``layer_start[k]:layer_start[k+1]``).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import tempfile
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path as FsPath
+from typing import Callable, Sequence
+
+import numpy as np
+from scipy.ndimage import convolve1d
+from scipy.signal import savgol_coeffs
+
+from icefab import _mtts
+from icefab.config import Job
+from icefab.errors import IcefabError, StackFileError, WorkspaceError
+from icefab.robots import Robot, get_robot
+from icefab.types import LayerPaths, Path, Toolpaths, Trajectory
+
+log = logging.getLogger(__name__)
+
+__all__ = ["plan_motion", "plan_paths_motion", "plan_toolpaths", "LayerMotion", "BuildMotion",
+           "save_trajectories", "load_trajectories", "constant_spacing", "gcode_moves",
+           "path_limits"]
+
+#: Joint smoothing (Savitzky-Golay) is kept only where it moves the tool less than this.
+SAVGOL_MAX_DEVIATION_MM = 0.01
+#: Jerk spikes above the bound by more than this fraction are smoothed by JCON (thesis
+#: 4.2.4 detects jerk violations at +20 %).
+JCON_TOLERANCE = 0.2
+#: Points closer than this are merged before planning (zero-length segments), mm.
+MERGE_MM = 1e-9
+#: Gap inserted between pieces in the concatenated arc length (keeps it increasing), mm.
+_GAP = 1.0
+
+_MATS = ("part", "scaffold")
+_ROLES = ("boundary", "fill", "measure", "travel")
+
+
+# --------------------------------------------------------------------------- inputs
+
+
+def path_limits(path: Path, job: Job) -> float:
+    """Speed bound along one path, mm/s: ``motion.speed_mm_s``, lowered to
+    ``motion.measure_speed_mm_s`` for part (ice) measurement paths (thesis 4.2.1) and to
+    ``motion.travel_speed_mm_s`` for travel moves."""
+    m = job.motion
+    v = m.speed_mm_s
+    if path.role == "measure" and path.material == "part":
+        v = min(v, m.measure_speed_mm_s)
+    if path.role == "travel":
+        v = min(v, m.travel_speed_mm_s)
+    return float(v)
+
+
+def _base_points(path: Path, job: Job) -> np.ndarray:
+    """(k, 2) float64 mm: a Path's points in the robot base frame (closing point repeated)."""
+    pts = path.polyline()
+    if path.frame == "base":
+        return np.asarray(pts, dtype=np.float64)
+    from icefab.paths import to_base_frame  # the frames belong to the paths stage
+    return to_base_frame(pts, path.tool_name, job)
+
+
+def _as_points(points: np.ndarray, what: str) -> np.ndarray:
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 2:
+        raise IcefabError(f"{what}: points must be an (n, 2) array in mm, got shape "
+                          f"{pts.shape}")
+    if len(pts) == 0:
+        raise IcefabError(f"{what}: a path needs at least one point, got none")
+    if not np.isfinite(pts).all():
+        i = int(np.flatnonzero(~np.isfinite(pts).all(axis=1))[0])
+        raise IcefabError(f"{what}: point {i} is not finite: {pts[i].tolist()}")
+    return pts
+
+
+# --------------------------------------------------------------------------- core
+
+
+def _label(labels: Sequence[tuple[int, int]] | None, k: int) -> str:
+    if labels is None:
+        return "path" if k == 0 else f"path {k}"
+    layer, idx = labels[k]
+    parts = []
+    if layer >= 0:
+        parts.append(f"layer {layer}")
+    parts.append(f"path {idx}")
+    return ", ".join(parts)
+
+
+def _smooth_pieces(gxy: np.ndarray, gstart: np.ndarray, tol: float) -> np.ndarray:
+    """Optional smoothing of resampled pieces (thesis 4.1.1; Zhang & Liou III): a cubic
+    smoothing spline per coordinate whose displacement is clipped to ``tol`` mm; piece ends
+    stay fixed. (k, 2) float64 mm."""
+    from scipy.interpolate import make_smoothing_spline
+    out = gxy.copy()
+    for a, b in zip(gstart[:-1], gstart[1:]):
+        n = b - a
+        if n < 6:
+            continue
+        u = np.arange(n, dtype=np.float64)
+        seg = gxy[a:b]
+        sm = np.stack([make_smoothing_spline(u, seg[:, c], lam=(tol * 4.0) ** 2)(u)
+                       for c in range(2)], axis=1)
+        d = sm - seg
+        norm = np.hypot(d[:, 0], d[:, 1])
+        scale = np.minimum(1.0, tol / np.maximum(norm, 1e-300))
+        sm = seg + d * scale[:, None]
+        sm[0], sm[-1] = seg[0], seg[-1]
+        out[a:b] = sm
+    return out
+
+
+@dataclass
+class _Split:
+    """PATHSPLIT result for a batch of polylines (flat arrays, see _pathsplit)."""
+
+    V: np.ndarray          # (K, 2) merged vertices
+    pid: np.ndarray        # (K,) polyline of each vertex
+    counts: np.ndarray     # (P,) vertices per polyline after merging
+    pstart: np.ndarray     # (P+1,)
+    orig_index: np.ndarray  # (K,) index of each merged vertex in its input polyline
+    a: np.ndarray          # (Q,) first vertex of each piece
+    piece_path: np.ndarray  # (Q,)
+    PV: np.ndarray         # piece vertex lists, concatenated
+    pvs: np.ndarray        # (Q+1,) piece p has PV[pvs[p]:pvs[p+1]]
+    S: np.ndarray          # arc length of PV with a gap between pieces
+    s0: np.ndarray         # (Q,) S at each piece start
+    L: np.ndarray          # (Q,) piece lengths, mm
+    nseg: np.ndarray       # (Q,) segments of the resampled grid
+    hk: np.ndarray         # (Q,) grid spacing, mm
+    gstart: np.ndarray     # (Q+1,) grid offsets
+    gxy: np.ndarray        # (G, 2) resampled (and optionally smoothed) points
+    gs: np.ndarray         # (G,) arc length (S units) of the grid points
+
+
+def _pathsplit(V: np.ndarray, counts: np.ndarray, job: Job) -> _Split:
+    """PATHSPLIT (thesis 4.1.1) for polylines concatenated in ``V (K, 2)`` with ``counts``
+    points each: merge repeated points, split at turns above ``motion.smooth_angle_deg``,
+    resample every piece uniformly at <= ``motion.point_spacing_mm`` (>= 2 segments),
+    optionally smooth."""
+    m = job.motion
+    P = len(counts)
+    pid = np.repeat(np.arange(P), counts)
+    pstart = np.concatenate([[0], np.cumsum(counts)])
+    # ---- merge repeated points (zero-length segments are dropped)
+    seg = np.diff(V, axis=0)
+    seglen = np.hypot(seg[:, 0], seg[:, 1])
+    same = pid[1:] == pid[:-1]
+    keep = np.ones(len(V), dtype=bool)
+    keep[1:] = ~(same & (seglen <= MERGE_MM))
+    orig_index = np.flatnonzero(keep) - np.repeat(pstart[:-1], counts)[keep]
+    V = V[keep]
+    pid = pid[keep]
+    counts = np.bincount(pid, minlength=P)
+    pstart = np.concatenate([[0], np.cumsum(counts)])
+    K = len(V)
+
+    # ---- PATHSPLIT (thesis 4.1.1): break where the direction turns more than the angle
+    e = np.diff(V, axis=0)
+    within = pid[1:] == pid[:-1]
+    brk = np.zeros(K, dtype=bool)
+    brk[pstart[:-1]] = True
+    brk[pstart[1:] - 1] = True
+    if K > 2:
+        e0, e1 = e[:-1], e[1:]
+        n0 = np.hypot(e0[:, 0], e0[:, 1])
+        n1 = np.hypot(e1[:, 0], e1[:, 1])
+        cosang = (e0[:, 0] * e1[:, 0] + e0[:, 1] * e1[:, 1]) / np.maximum(n0 * n1, 1e-300)
+        interior = within[:-1] & within[1:]
+        split = interior & (cosang < math.cos(math.radians(m.smooth_angle_deg)))
+        brk[1:-1] |= split
+    bidx = np.flatnonzero(brk)
+    a = bidx[:-1]
+    b = bidx[1:]
+    ok = pid[a] == pid[b]
+    a, b = a[ok], b[ok]
+    piece_path = pid[a]
+    Q = len(a)
+
+    # ---- piece vertex lists and their concatenated arc length (gap between pieces)
+    plen = b - a + 1
+    pvs = np.concatenate([[0], np.cumsum(plen)])
+    idx = np.arange(pvs[-1]) - np.repeat(pvs[:-1] - a, plen)
+    PV = V[idx]
+    d = np.diff(PV, axis=0)
+    sl = np.concatenate([[0.0], np.hypot(d[:, 0], d[:, 1])])
+    sl[pvs[1:-1]] = _GAP
+    S = np.cumsum(sl)
+    s0 = S[pvs[:-1]]
+    L = S[pvs[1:] - 1] - s0
+
+    # ---- resample each piece uniformly (PATHSPLIT, 0.4 mm)
+    nseg = np.maximum(2, np.ceil(L / m.point_spacing_mm - 1e-9).astype(np.int64))
+    hk = L / nseg
+    gstart = np.concatenate([[0], np.cumsum(nseg + 1)]).astype(np.int64)
+    G = int(gstart[-1])
+    loc = np.arange(G) - np.repeat(gstart[:-1], nseg + 1)
+    gs = np.repeat(s0, nseg + 1) + loc * np.repeat(hk, nseg + 1)
+    last = gstart[1:] - 1
+    gs[last] = s0 + L
+    gxy = np.stack([np.interp(gs, S, PV[:, 0]), np.interp(gs, S, PV[:, 1])], axis=1)
+    smoothed = m.smoothing_tolerance_mm > 0.0
+    if smoothed:
+        gxy = _smooth_pieces(gxy, gstart, m.smoothing_tolerance_mm)
+
+    return _Split(V=V, pid=pid, counts=counts, pstart=pstart, orig_index=orig_index, a=a,
+                  piece_path=piece_path, PV=PV, pvs=pvs, S=S, s0=s0, L=L, nseg=nseg, hk=hk,
+                  gstart=gstart, gxy=gxy, gs=gs)
+
+
+def pathsplit(points: np.ndarray, job: Job | None = None) -> list[np.ndarray]:
+    """PATHSPLIT of one polyline ``(k, 2)`` mm: the resampled pieces, each ``(n_i, 2)``
+    float64 mm, uniformly spaced at <= ``motion.point_spacing_mm`` (thesis 4.1.1)."""
+    job = job or Job()
+    pts = _as_points(points, "path")
+    sp = _pathsplit(pts, np.array([len(pts)]), job)
+    return [sp.gxy[a:b] for a, b in zip(sp.gstart[:-1], sp.gstart[1:])]
+
+
+def _plan_polylines(polys: Sequence[np.ndarray], vcaps: np.ndarray, job: Job, robot: Robot,
+                    labels: Sequence[tuple[int, int]] | None = None,
+                    paths: Sequence[Path | None] | None = None) -> list[Trajectory]:
+    """Plan many polylines at once (one compiled call for all of them).
+
+    polys: P arrays (k_i, 2) float64 mm in the robot base frame (closed paths with their
+    first point repeated at the end). vcaps: (P,) mm/s speed bound per path.
+    labels: (layer, path index) per polyline, for error messages.
+    """
+    m = job.motion
+    P = len(polys)
+    if P == 0:
+        return []
+    counts = np.array([len(p) for p in polys], dtype=np.int64)
+    V = np.concatenate(polys).astype(np.float64, copy=False)
+    pid = np.repeat(np.arange(P), counts)
+    pstart = np.concatenate([[0], np.cumsum(counts)])
+
+    # ---- workspace check of every point, before any planning (issue: name the point)
+    bad, reasons = robot.workspace_violations(V)
+    if len(bad):
+        i = int(bad[0])
+        k = int(pid[i])
+        raise WorkspaceError(f"{_label(labels, k)}: point {i - pstart[k]} at ({V[i, 0]:.3f}, "
+                             f"{V[i, 1]:.3f}) mm (robot base frame) is out of the "
+                             f"{robot.name} workspace: {reasons[0]}")
+
+    sp = _pathsplit(V, counts, job)
+    trajs_empty = sp.counts == 1
+    if len(sp.a) == 0:
+        return [_single_point(sp.V[sp.pstart[k]], job, robot, paths[k] if paths else None)
+                for k in range(P)]
+    V, pid, counts, pstart, orig_index = sp.V, sp.pid, sp.counts, sp.pstart, sp.orig_index
+    a, piece_path, PV, pvs, S, s0, L = sp.a, sp.piece_path, sp.PV, sp.pvs, sp.S, sp.s0, sp.L
+    nseg, hk, gstart, gxy, gs = sp.nseg, sp.hk, sp.gstart, sp.gxy, sp.gs
+    K = len(V)
+    Q = len(a)
+    smoothed = m.smoothing_tolerance_mm > 0.0
+
+    # grid points between two reachable vertices can still leave the workspace (a chord
+    # across the inner reach circle): name the segment
+    gbad, greasons = robot.workspace_violations(gxy)
+    if len(gbad):
+        g = int(gbad[0])
+        q = int(np.searchsorted(gstart, g, side="right") - 1)
+        k = int(piece_path[q])
+        j = int(np.searchsorted(S, gs[g], side="right") - 1)
+        j = min(max(j, pvs[q]), pvs[q + 1] - 2)
+        vert = a[q] + (j - pvs[q])
+        i0 = int(orig_index[vert])
+        i1 = int(orig_index[min(vert + 1, K - 1)])
+        raise WorkspaceError(f"{_label(labels, k)}: the segment from point {i0} to point {i1} "
+                             f"passes ({gxy[g, 0]:.3f}, {gxy[g, 1]:.3f}) mm (robot base "
+                             f"frame), out of the {robot.name} workspace: {greasons[0]}")
+
+    qgrid = robot.ik(gxy)
+
+    # ---- VCON, ACON, JCON, AREST (compiled)
+    jerk_on = bool(m.jerk_limited)
+    vcap_piece = np.asarray(vcaps, dtype=np.float64)[piece_path]
+    v, env, T = _mtts.speed_profiles(
+        gstart, hk, gxy, qgrid, vcap_piece, float(m.accel_mm_s2), float(m.jerk_mm_s3),
+        jerk_on, np.asarray(robot.joint_speed_max, dtype=np.float64),
+        np.asarray(robot.joint_accel_max, dtype=np.float64),
+        np.asarray(robot.joint_jerk_max, dtype=np.float64),
+        float(m.rest_accel_mm_s2), JCON_TOLERANCE)
+
+    # ---- constant-dt sampling
+    dt = float(m.dt_s)
+    nsamp = np.maximum(1, np.ceil(T / dt - 1e-9).astype(np.int64))
+    sstart = np.concatenate([[0], np.cumsum(nsamp + 1)]).astype(np.int64)
+    s_loc, spd = _mtts.sample_pieces(gstart, hk, v, T, nsamp, sstart[:-1].copy(), dt)
+    if smoothed:
+        # follow the smoothed grid (piecewise linear between grid points)
+        gl = np.repeat(np.arange(Q), nsamp + 1)
+        pos = s_loc / hk[gl]
+        base = gstart[gl]
+        i = np.minimum(np.floor(pos).astype(np.int64), nseg[gl] - 1)
+        f = (pos - i)[:, None]
+        xy = gxy[base + i] * (1.0 - f) + gxy[base + i + 1] * f
+    else:
+        sg = np.minimum(s_loc, np.repeat(L, nsamp + 1)) + np.repeat(s0, nsamp + 1)
+        xy = np.stack([np.interp(sg, S, PV[:, 0]), np.interp(sg, S, PV[:, 1])], axis=1)
+        # rest points exactly on the corners
+        xy[sstart[:-1]] = PV[pvs[:-1]]
+        xy[sstart[1:] - 1] = PV[pvs[1:] - 1]
+
+    # ---- concatenate the pieces of each path: the shared corner sample appears once
+    first_of_path = np.ones(Q, dtype=bool)
+    first_of_path[1:] = piece_path[1:] != piece_path[:-1]
+    keep_s = np.ones(len(xy), dtype=bool)
+    keep_s[sstart[:-1][~first_of_path]] = False
+    xy = xy[keep_s]
+    spd = spd[keep_s]
+    piece_n = nsamp + first_of_path  # samples each piece contributes
+    path_n = np.bincount(piece_path, weights=piece_n, minlength=P).astype(np.int64)
+    tstart = np.concatenate([[0], np.cumsum(path_n)])
+    # piece start indices within their trajectory
+    cum = np.concatenate([[0], np.cumsum(piece_n)])[:-1]
+    piece_first_sample = cum - tstart[piece_path]
+    piece_first_sample[~first_of_path] -= 1  # the shared corner sample
+
+    joints = _joint_samples(xy, tstart, job, robot)
+
+    out: list[Trajectory] = []
+    qpos = 0
+    for k in range(P):
+        pth = paths[k] if paths else None
+        if trajs_empty[k]:
+            out.append(_single_point(V[pstart[k]], job, robot, pth))
+            continue
+        r0, r1 = tstart[k], tstart[k + 1]
+        q1 = qpos
+        while q1 < Q and piece_path[q1] == k:
+            q1 += 1
+        pcs = piece_first_sample[qpos:q1].astype(np.int64)
+        qpos = q1
+        n = r1 - r0
+        out.append(Trajectory(dt=dt, xy=xy[r0:r1], joints=joints[r0:r1], speed=spd[r0:r1],
+                              duration=(n - 1) * dt, path=pth, pieces=pcs))
+    return out
+
+
+def _single_point(p: np.ndarray, job: Job, robot: Robot, path: Path | None) -> Trajectory:
+    xy = np.asarray(p, dtype=np.float64).reshape(1, 2)
+    return Trajectory(dt=float(job.motion.dt_s), xy=xy, joints=robot.ik(xy),
+                      speed=np.zeros(1), duration=0.0, path=path,
+                      pieces=np.zeros(1, dtype=np.int64))
+
+
+def _joint_samples(xy: np.ndarray, tstart: np.ndarray, job: Job, robot: Robot) -> np.ndarray:
+    """(M, j) joints of the samples: inverse kinematics, then the 7-point cubic
+    Savitzky-Golay filter (thesis 4.2.6) away from trajectory ends, kept where the tool
+    moves by less than SAVGOL_MAX_DEVIATION_MM."""
+    q = robot.ik(xy)
+    w = int(job.motion.savgol_window)
+    if w == 0 or len(q) < w:
+        return q
+    coeffs = savgol_coeffs(w, 3)
+    sm = convolve1d(q, coeffs, axis=0, mode="nearest")
+    h = w // 2
+    near_end = np.zeros(len(q), dtype=bool)
+    ends = np.concatenate([tstart[:-1], tstart[1:] - 1])
+    off = np.arange(-h, h + 1)
+    near = (ends[:, None] + off[None, :]).ravel()
+    near_end[near[(near >= 0) & (near < len(q))]] = True
+    dev = np.hypot(*(robot.fk(sm) - xy).T)
+    raw = near_end | (dev > SAVGOL_MAX_DEVIATION_MM) | ~np.isfinite(dev)
+    sm[raw] = q[raw]
+    return sm
+
+
+# --------------------------------------------------------------------------- public
+
+
+def plan_motion(path_or_points: Path | np.ndarray, job: Job | None = None, *,
+                robot: Robot | None = None) -> Trajectory:
+    """Minimum-time trajectory along one path (thesis Ch. 4).
+
+    path_or_points: a :class:`~icefab.types.Path` (converted to the robot base frame with
+        its tool's frame, ``icefab.paths.to_base_frame``; speed bound lowered for
+        measurement and travel paths, :func:`path_limits`), or plain ``(k, 2) float64``
+        points in mm in the robot base frame (an open path).
+    job: settings (``job.motion``, ``job.cell``); default ``Job()``.
+    robot: overrides the robot named by the job.
+
+    Returns one Trajectory at constant ``dt``: ``xy (n, 2)`` mm in the base frame,
+    ``joints (n, j)``, ``speed (n,)`` mm/s, ``duration`` s, ``pieces`` (rest points at
+    split corners). Raises WorkspaceError (naming the point) before planning if any point
+    is unreachable.
+    """
+    job = job or Job()
+    robot = robot or get_robot(job)
+    if isinstance(path_or_points, Path):
+        pts = _as_points(_base_points(path_or_points, job), "path")
+        return _plan_polylines([pts], np.array([path_limits(path_or_points, job)]), job,
+                               robot, labels=[(path_or_points.layer, 0)] if
+                               path_or_points.layer >= 0 else None,
+                               paths=[path_or_points])[0]
+    pts = _as_points(path_or_points, "path")
+    return _plan_polylines([pts], np.array([job.motion.speed_mm_s]), job, robot)[0]
+
+
+def plan_paths_motion(paths: Sequence[Path], job: Job | None = None, *,
+                      robot: Robot | None = None, layer: int = -1) -> list[Trajectory]:
+    """Trajectories of many paths (e.g. one layer) in one compiled call; one per path."""
+    job = job or Job()
+    robot = robot or get_robot(job)
+    polys = [_as_points(_base_points(p, job), f"layer {p.layer}, path {i}")
+             for i, p in enumerate(paths)]
+    caps = np.array([path_limits(p, job) for p in paths], dtype=np.float64)
+    labels = [(p.layer if p.layer >= 0 else layer, i) for i, p in enumerate(paths)]
+    return _plan_polylines(polys, caps, job, robot, labels=labels, paths=list(paths))
+
+
+@dataclass(frozen=True, eq=False)
+class LayerMotion:
+    """The trajectories of one layer, in deposition order (travel moves included)."""
+
+    index: int
+    z: float
+    trajectories: tuple[Trajectory, ...]
+
+    @property
+    def durations(self) -> np.ndarray:
+        """(t,) float64 s, per trajectory."""
+        return np.array([t.duration for t in self.trajectories], dtype=np.float64)
+
+    @property
+    def duration(self) -> float:
+        return float(self.durations.sum())
+
+    @property
+    def n_points(self) -> int:
+        return int(sum(len(t.xy) for t in self.trajectories))
+
+
+@dataclass(frozen=True, eq=False)
+class BuildMotion:
+    """Trajectories of every layer of a build."""
+
+    layers: tuple[LayerMotion, ...]
+    job: Job
+    robot: str = "scara"
+    joint_names: tuple[str, ...] = ()
+
+    @property
+    def layer_durations(self) -> np.ndarray:
+        """(L,) float64 s."""
+        return np.array([lm.duration for lm in self.layers], dtype=np.float64)
+
+    @property
+    def duration(self) -> float:
+        """Whole-build motion time, s."""
+        return float(self.layer_durations.sum())
+
+    @property
+    def n_points(self) -> int:
+        return int(sum(lm.n_points for lm in self.layers))
+
+    def __len__(self) -> int:
+        return len(self.layers)
+
+
+def _plan_layer(lp: LayerPaths, job: Job) -> LayerMotion:
+    trajs = plan_paths_motion(lp.paths, job, layer=lp.index) if lp.paths else []
+    return LayerMotion(index=lp.index, z=lp.z, trajectories=tuple(trajs))
+
+
+def _plan_layer_task(args: tuple[LayerPaths, Job]) -> LayerMotion:
+    return _plan_layer(*args)
+
+
+def _n_workers(job: Job) -> int:
+    n = job.cell.cpus or os.cpu_count() or 1
+    return max(1, int(n))
+
+
+def plan_toolpaths(toolpaths: Toolpaths, job: Job | None = None,
+                   progress: Callable[[int, int], None] | None = None) -> BuildMotion:
+    """Trajectories of all paths of a build, layer-parallel across ``cell.cpus`` processes.
+
+    Every point of every layer is checked against the workspace before that layer is
+    planned (WorkspaceError names layer, path and point). ``progress(done, total)`` is
+    called after each layer.
+    """
+    job = job or toolpaths.job
+    robot = get_robot(job)
+    layers = list(toolpaths.layers)
+    total = len(layers)
+    out: list[LayerMotion] = []
+    workers = min(_n_workers(job), max(1, total))
+    if workers <= 1 or total <= 1:
+        for i, lp in enumerate(layers):
+            out.append(_plan_layer(lp, job))
+            if progress:
+                progress(i + 1, total)
+    else:
+        with ProcessPoolExecutor(max_workers=workers) as ex:
+            chunk = max(1, total // (workers * 8))
+            for i, lm in enumerate(ex.map(_plan_layer_task, [(lp, job) for lp in layers],
+                                          chunksize=chunk)):
+                out.append(lm)
+                if progress:
+                    progress(i + 1, total)
+    return BuildMotion(layers=tuple(out), job=job, robot=robot.name,
+                       joint_names=tuple(robot.joint_names))
+
+
+# --------------------------------------------------------------------------- outputs
+
+
+def constant_spacing(traj: Trajectory, spacing_mm: float | None = None,
+                     job: Job | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The optional output with constant point spacing and variable duration.
+
+    Returns (points (k, 2) float64 mm every ``spacing_mm`` along the trajectory (default
+    ``motion.point_spacing_mm``), durations (k - 1,) float64 s from each point to the next).
+    """
+    spacing = spacing_mm or (job or Job()).motion.point_spacing_mm
+    xy = traj.xy
+    if len(xy) < 2:
+        return xy.copy(), np.zeros(0)
+    d = np.hypot(*np.diff(xy, axis=0).T)
+    s = np.concatenate([[0.0], np.cumsum(d)])
+    n = max(1, int(math.ceil(s[-1] / spacing - 1e-9)))
+    sq = np.linspace(0.0, s[-1], n + 1)
+    t = traj.t
+    # time at each arc length: s(t) is non-decreasing; rest samples repeat s
+    uniq = np.concatenate([[True], np.diff(s) > 0])
+    tq = np.interp(sq, s[uniq], t[uniq])
+    pts = np.stack([np.interp(sq, s, xy[:, 0]), np.interp(sq, s, xy[:, 1])], axis=1)
+    return pts, np.diff(tq)
+
+
+def gcode_moves(traj: Trajectory, *, decimals: int = 3) -> list[str]:
+    """G-code-style moves for gantry machines: ``G1 X.. Y.. F..`` per sample, the feedrate
+    (mm/min) being the average speed over the step to that sample."""
+    xy = traj.xy
+    if len(xy) == 0:
+        return []
+    lines = [f"G0 X{xy[0, 0]:.{decimals}f} Y{xy[0, 1]:.{decimals}f}"]
+    d = np.hypot(*np.diff(xy, axis=0).T)
+    feed = d / traj.dt * 60.0
+    for (x, y), f in zip(xy[1:], feed):
+        if f <= 0.0:
+            continue
+        lines.append(f"G1 X{x:.{decimals}f} Y{y:.{decimals}f} F{f:.1f}")
+    return lines
+
+
+FORMAT = "icefab-trajectories"
+VERSION = 1
+
+
+def save_trajectories(motion: BuildMotion, path: str | os.PathLike) -> None:
+    """Write a BuildMotion to ``.npz`` (format in the module docstring); written to a
+    temporary file and renamed, so a failure leaves nothing half-written."""
+    from icefab.config import to_toml
+    trajs = [t for lm in motion.layers for t in lm.trajectories]
+    owners = [(lm.index, i) for lm in motion.layers for i in range(len(lm.trajectories))]
+    jn = len(motion.joint_names) or (trajs[0].joints.shape[1] if trajs else 0)
+    counts = [len(t.xy) for t in trajs]
+    pcs = [t.pieces if len(t.pieces) else np.zeros(1, np.int64) for t in trajs]
+    data = {
+        "format": np.array(FORMAT), "version": np.array(VERSION),
+        "dt": np.array(trajs[0].dt if trajs else motion.job.motion.dt_s),
+        "robot": np.array(motion.robot),
+        "joint_names": np.array(list(motion.joint_names), dtype=str),
+        "job": np.array(to_toml(motion.job)),
+        "xy": np.concatenate([t.xy for t in trajs]) if trajs else np.zeros((0, 2)),
+        "joints": np.concatenate([t.joints for t in trajs]) if trajs else np.zeros((0, jn)),
+        "speed": np.concatenate([t.speed for t in trajs]) if trajs else np.zeros(0),
+        "traj_start": np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
+        "piece_start": (np.concatenate(pcs) if pcs else np.zeros(0)).astype(np.int64),
+        "piece_owner": np.repeat(np.arange(len(trajs)), [len(p) for p in pcs]).astype(np.int64),
+        "duration": np.array([t.duration for t in trajs], dtype=np.float64),
+        "layer": np.array([o[0] for o in owners], dtype=np.int64),
+        "path_index": np.array([o[1] for o in owners], dtype=np.int64),
+        "material": np.array([_MATS.index(t.path.material) if t.path else 0 for t in trajs],
+                             dtype=np.int8),
+        "role": np.array([_ROLES.index(t.path.role) if t.path else 0 for t in trajs],
+                         dtype=np.int8),
+        "layer_index": np.array([lm.index for lm in motion.layers], dtype=np.int64),
+        "layer_z": np.array([lm.z for lm in motion.layers], dtype=np.float64),
+        "layer_start": np.concatenate(
+            [[0], np.cumsum([len(lm.trajectories) for lm in motion.layers])]).astype(np.int64),
+    }
+    target = FsPath(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".npz", dir=target.parent)
+    os.close(fd)
+    try:
+        with open(tmp, "wb") as fh:
+            np.savez_compressed(fh, **data)
+        os.replace(tmp, target)
+    except BaseException:
+        FsPath(tmp).unlink(missing_ok=True)
+        raise
+
+
+def load_trajectories(path: str | os.PathLike) -> BuildMotion:
+    """Read a file written by :func:`save_trajectories`. The trajectories' ``path`` is a
+    stand-in Path (points = the samples, frame "base") carrying layer, material and role.
+    StackFileError if the file is missing, truncated, corrupt or of another kind."""
+    import zipfile
+
+    from icefab.config import job_from_dict
+    path = FsPath(path)
+
+    def bad(msg: str) -> StackFileError:
+        return StackFileError(f"{path}: {msg}")
+
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except FileNotFoundError:
+        raise bad("trajectory file not found") from None
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+        raise bad(f"not a readable trajectory file ({exc})") from None
+    if str(data.get("format", "")) != FORMAT:
+        raise bad(f"not an icefab trajectory file (format {str(data.get('format', ''))!r})")
+    if int(data.get("version", -1)) != VERSION:
+        raise bad(f"trajectory file version {int(data.get('version', -1))}, expected {VERSION}")
+    need = ("dt", "xy", "joints", "speed", "traj_start", "piece_start", "piece_owner",
+            "duration", "layer", "path_index", "material", "role", "layer_index", "layer_z",
+            "layer_start", "job", "robot", "joint_names")
+    missing = [k for k in need if k not in data]
+    if missing:
+        raise bad(f"missing arrays {', '.join(missing)}")
+    import tomllib
+    job = job_from_dict(tomllib.loads(str(data["job"])))
+    ts = data["traj_start"]
+    nt = len(ts) - 1
+    if nt < 0 or ts[-1] != len(data["xy"]) or len(data["duration"]) != nt \
+            or np.any(np.diff(ts) < 0):
+        raise bad("inconsistent trajectory index arrays (truncated or corrupt)")
+    dt = float(data["dt"])
+    owner = data["piece_owner"]
+    pstart = data["piece_start"]
+    trajs = []
+    for i in range(nt):
+        r0, r1 = int(ts[i]), int(ts[i + 1])
+        stand_in = Path(points=data["xy"][r0:r1], material=_MATS[int(data["material"][i])],
+                        role=_ROLES[int(data["role"][i])], layer=int(data["layer"][i]),
+                        frame="base")
+        trajs.append(Trajectory(dt=dt, xy=data["xy"][r0:r1], joints=data["joints"][r0:r1],
+                                speed=data["speed"][r0:r1], duration=float(data["duration"][i]),
+                                path=stand_in, pieces=pstart[owner == i]))
+    ls = data["layer_start"]
+    layers = tuple(LayerMotion(index=int(data["layer_index"][k]), z=float(data["layer_z"][k]),
+                               trajectories=tuple(trajs[int(ls[k]):int(ls[k + 1])]))
+                   for k in range(len(ls) - 1))
+    return BuildMotion(layers=layers, job=job, robot=str(data["robot"]),
+                       joint_names=tuple(str(x) for x in data["joint_names"]))
+
+
+# --------------------------------------------------------------------------- reference shapes
+
+
+def _arc(center: tuple[float, float], r: float, a0_deg: float, a1_deg: float,
+         step_mm: float) -> np.ndarray:
+    n = max(2, int(math.ceil(abs(math.radians(a1_deg - a0_deg)) * r / step_mm)) + 1)
+    t = np.radians(np.linspace(a0_deg, a1_deg, n))
+    return np.stack([center[0] + r * np.cos(t), center[1] + r * np.sin(t)], axis=1)
+
+
+def thesis_test_path(offset_mm: tuple[float, float] = (0.0, 0.0), *,
+                     step_mm: float = 0.05) -> np.ndarray:
+    """A test path in the spirit of thesis Fig. 4-2: straight sides, rounds of radii 20,
+    10 and 5 mm and one sharp 90-degree corner (where PATHSPLIT splits it in two).
+
+    The outline is a 100 x 60 mm rectangle run counter-clockwise from the middle of its
+    bottom side: round r = 20 (bottom right), r = 10 (top right), the sharp corner (top
+    left), r = 5 (bottom left), ending 5 mm before the start. Returns (k, 2) float64 mm,
+    arcs sampled every ``step_mm``, translated by ``offset_mm``.
+    """
+    parts = [np.array([[50.0, 0.0]]),
+             _arc((80.0, 20.0), 20.0, -90.0, 0.0, step_mm),
+             _arc((90.0, 50.0), 10.0, 0.0, 90.0, step_mm),
+             np.array([[0.0, 60.0]]),
+             _arc((5.0, 5.0), 5.0, 180.0, 270.0, step_mm),
+             np.array([[45.0, 0.0]])]
+    pts = np.concatenate(parts)
+    return pts + np.asarray(offset_mm, dtype=np.float64)
