@@ -51,9 +51,12 @@ Rings = list[np.ndarray]
 
 
 def rings_of(region: Region | Sequence[np.ndarray]) -> Rings:
-    """The rings of a region (or a ring list) as a list of (k, 2) float64 arrays, mm."""
+    """The rings of a region, a ring list or a single (k, 2) ring as a list of (k, 2)
+    float64 arrays, mm."""
     if isinstance(region, Region):
         return list(region.rings)
+    if isinstance(region, np.ndarray) and region.ndim == 2:
+        return [region]
     return list(region)
 
 

@@ -10,9 +10,10 @@ Algorithm (thesis 3.3, RPSCAF):
    layer, so it runs on a process pool over chunks of layers (``job.cell.cpus``).
    ``buffer = 0`` gives classic support: only what is above.
 3. ``overhang`` mode (Ossino 4: compare adjacent layers, limiting angle 0-45 deg): the
-   scaffold of layer ``k`` is ``(P_{k+1} u S_{k+1}) - expand(P_k, t * tan(angle))``: only
-   the area of the layer above that the part of this layer does not carry within the
-   limiting angle. Also a sequential scan from the top.
+   area of the layer above ``U_{k+1} = P_{k+1} u S_{k+1}`` not carried by the part within
+   the limiting angle, ``N_k = U_{k+1} - expand(P_k, t * tan(angle))``, needs support;
+   the scaffold is that area grown back to the part, ``S_k = (expand(N_k, t * tan(angle))
+   n U_{k+1}) - P_k``, so no empty band separates them. A sequential scan from the top.
 4. Subset: layers whose height fraction lies outside ``job.scaffold.subset`` get no
    scaffold (control-file entry "scaffolding subset").
 5. Thin scaffold pieces: the part of the scaffold removed by an opening of radius
@@ -121,7 +122,9 @@ def _drop_thin(scaffold: Region, part_above: Region, min_width: float, filt: flo
     if min_width <= 0 or scaffold.is_empty:
         return scaffold
     kept = geo.opening(scaffold, min_width / 2.0, filt)
-    thin = geo.difference(scaffold, kept)
+    # Grow what is kept by twice the point filter so the filter's chords along curved edges
+    # do not count as thin pieces.
+    thin = geo.difference(scaffold, geo.expand(kept, 2.0 * filt + 1e-3, 0.0))
     if thin.is_empty or thin.area < 1e-9:
         return scaffold
     needed = geo.intersection(thin, part_above) if not part_above.is_empty else Region()
@@ -139,7 +142,7 @@ def _thin_part_task(args: tuple[Region, float, float]) -> list[tuple[np.ndarray,
         return []
     # Use a slightly smaller radius so features exactly one path wide are not reported.
     kept = geo.opening(part, 0.5 * width * 0.98, filt)
-    thin = geo.difference(part, kept)
+    thin = geo.difference(part, geo.expand(kept, 2.0 * filt + 1e-3, 0.0))
     out = []
     for poly in thin.polygons():
         a = sum(signed_area(r) for r in poly)
@@ -199,16 +202,27 @@ def _overhang_scan(parts: list[Region], part_above: list[Region], thickness: flo
     filt = job.slicing.max_filter_deviation_mm
     angle = math.radians(min(s.overhang_angle_deg, 89.0))
     reach = thickness * math.tan(angle)
-    carried = parallel_map(_expand_task, [(p, reach, filt) for p in parts], job)
+    # A finer point filter here: its chords must not eat into the (small) reach.
+    carried = parallel_map(_expand_task, [(p, reach, min(filt, reach / 4.0)) for p in parts],
+                           job)
     n = len(parts)
     out: list[Region] = [Region()] * n
     above = Region()  # P_{k+1} u S_{k+1}
     for k in range(n - 1, -1, -1):
         if above.is_empty:
             sc = Region()
+        elif parts[k].is_empty:
+            sc = above
         else:
-            sc = geo.difference(above, carried[k]) if not carried[k].is_empty else above
-            sc = _drop_thin(sc, part_above[k], s.min_width_mm, filt)
+            # Support is needed where the layer above is not carried within the limiting
+            # angle; it then reaches back to the part (no empty band between the two).
+            needed = geo.difference(above, carried[k])
+            if needed.area < 1e-6:
+                sc = Region()
+            else:
+                grown = geo.expand(needed, reach + 2.0 * filt + 1e-3, filt)
+                sc = geo.difference(geo.intersection(grown, above), parts[k])
+                sc = _drop_thin(sc, part_above[k], s.min_width_mm, filt)
         out[k] = sc
         if parts[k].is_empty:
             above = sc
@@ -220,5 +234,9 @@ def _overhang_scan(parts: list[Region], part_above: list[Region], thickness: flo
 
 
 def _expand_task(args: tuple[Region, float, float]) -> Region:
+    """The region grown by ``d``, always containing the exact region (the point filter's
+    chords may cut inside it when ``d`` is smaller than the filter)."""
     region, d, filt = args
-    return geo.expand(region, d, filt) if d > 0 else region
+    if d <= 0 or region.is_empty:
+        return region
+    return geo.union(region, geo.expand(region, d, filt))

@@ -1,0 +1,221 @@
+"""Scaffold regions (thesis 3.3): invariants checked with shapely, thesis-style parts."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import shapely
+from hypothesis import given, settings, strategies as st
+
+from icefab import geometry as geo
+from icefab.config import Job
+from icefab.regions import add_scaffold, merged_regions
+from icefab.types import Layer, Region, Stack
+from test_geometry import circle, check_region_structure, rect, to_shapely
+
+T = 0.25
+
+
+def make_stack(regions: list[Region], job: Job | None = None) -> Stack:
+    job = job or Job()
+    layers = tuple(Layer(k, (k + 0.5) * T, r, top_z=(k + 1) * T) for k, r in enumerate(regions))
+    return Stack(layers, job, T)
+
+
+def table(leg_layers=20, slab_layers=6):
+    """A 40 x 40 mm slab on one 10 x 10 mm leg (off centre)."""
+    leg = geo.region_from_rings([rect(-15, -15, -5, -5)])
+    slab = geo.region_from_rings([rect(-20, -20, 20, 20)])
+    return [leg] * leg_layers + [slab] * slab_layers
+
+
+def prism(n=12):
+    """A tube: no overhang anywhere."""
+    r = geo.region_from_rings([circle(15, 180), circle(8, 120, hole=True)])
+    return [r] * n
+
+
+def cone_down(n=24):
+    """An inverted cone: radius grows by 0.1 mm per 0.25 mm layer (overhang 21.8 deg from
+    vertical)."""
+    return [geo.region_from_rings([circle(5 + 0.1 * k, 180)]) for k in range(n)]
+
+
+def check_invariants(stack: Stack, surround: float | None):
+    """The must-show invariants, measured with shapely."""
+    layers = stack.layers
+    above = shapely.Polygon()
+    tol_area = 1e-3
+    for k in range(len(layers) - 1, -1, -1):
+        part = to_shapely(layers[k].part)
+        scaf = to_shapely(layers[k].scaffold)
+        check_region_structure(layers[k].scaffold)
+        # scaffold and part never overlap
+        assert part.intersection(scaf).area < tol_area, f"layer {k}"
+        both = part.union(scaf)
+        # every part of the layers above, projected down, is carried
+        assert above.difference(both).area < tol_area, f"layer {k}"
+        if surround is not None and not part.is_empty:
+            # the part offset by the buffer (round, the strictest) lies inside part u scaffold
+            grown = part.buffer(surround - geo.FILTER_MM - 1e-3, quad_segs=16)
+            assert grown.difference(both).area < tol_area, f"layer {k}"
+        above = above.union(part)
+
+
+def check_overhang_invariants(stack: Stack, angle_deg: float):
+    """Overhang mode: each layer (part and scaffold) overhangs the one below by at most
+    t * tan(angle); scaffold and part never overlap."""
+    reach = T * math.tan(math.radians(angle_deg)) + geo.FILTER_MM + 1e-3
+    below = None
+    for layer in stack.layers:
+        part = to_shapely(layer.part)
+        scaf = to_shapely(layer.scaffold)
+        assert part.intersection(scaf).area < 1e-3
+        both = part.union(scaf)
+        if below is not None:
+            assert both.difference(below.buffer(reach, quad_segs=16)).area < 1e-3, layer.index
+        below = both
+
+
+def test_merged_regions_is_union_of_everything_above():
+    parts = table(4, 2)
+    m = merged_regions(parts)
+    assert [round(x.area, 6) for x in m] == [1600.0] * 6
+    assert merged_regions([Region(), parts[0]])[0].area == pytest.approx(100)
+
+
+def test_table_gets_scaffold_under_the_whole_slab():
+    st_ = add_scaffold(make_stack(table()))
+    check_invariants(st_, 3.3)
+    slab = to_shapely(st_.layers[-1].part)
+    for layer in st_.layers[:20]:
+        both = to_shapely(layer.part).union(to_shapely(layer.scaffold))
+        assert slab.difference(both).area < 1e-6
+        # the merged slab buffered by 3.3 mm (mitred: a 46.6 mm square) minus the leg
+        assert layer.scaffold.area == pytest.approx(46.6 ** 2 - 100, abs=1e-6)
+
+
+def test_classic_support_buffer_zero():
+    job = Job().replace(**{"scaffold.buffer_mm": 0.0})
+    st_ = add_scaffold(make_stack(table(), job))
+    check_invariants(st_, None)
+    for layer in st_.layers[:20]:
+        assert layer.scaffold.area == pytest.approx(1600 - 100, abs=1e-6)
+    assert all(layer.scaffold.is_empty for layer in st_.layers[20:])
+
+
+def test_no_overhang_gets_only_the_surround():
+    st_ = add_scaffold(make_stack(prism()))
+    check_invariants(st_, 3.3)
+    ring = to_shapely(st_.layers[0].part)
+    expected = ring.buffer(3.3, quad_segs=64).difference(ring)
+    for layer in st_.layers:
+        s = to_shapely(layer.scaffold)
+        # only the surround (outside and inside the hole), nothing more than the mitred
+        # buffer (mitred polygon buffer = round within the filter on a fine circle)
+        assert s.symmetric_difference(expected).area < 0.06 * expected.length
+    job = Job().replace(**{"scaffold.buffer_mm": 0.0})
+    assert all(layer.scaffold.is_empty for layer in add_scaffold(make_stack(prism(), job)))
+
+
+def test_overhang_mode_supports_only_steep_overhangs():
+    # cone grows 0.1 mm per layer: tan(angle) * 0.25 = 0.1 at 21.8 deg
+    steep = Job().replace(**{"scaffold.mode": "overhang", "scaffold.overhang_angle_deg": 10.0,
+                             "scaffold.min_width_mm": 0.0})
+    st_ = add_scaffold(make_stack(cone_down(), steep))
+    check_overhang_invariants(st_, 10.0)
+    assert st_.layers[0].scaffold.area > 0
+    # the bottom layer carries everything above: the top disc
+    top = to_shapely(st_.layers[-1].part)
+    base = to_shapely(st_.layers[0].part).union(to_shapely(st_.layers[0].scaffold))
+    assert top.difference(base).area < 1e-3
+    gentle = steep.replace(**{"scaffold.overhang_angle_deg": 30.0})
+    st2 = add_scaffold(make_stack(cone_down(), gentle))
+    assert all(layer.scaffold.is_empty for layer in st2.layers)
+    # the table needs support under the slab whatever the angle
+    st3 = add_scaffold(make_stack(table(), gentle))
+    check_overhang_invariants(st3, 30.0)
+    slab = to_shapely(st3.layers[-1].part)
+    for layer in st3.layers[:20]:
+        both = to_shapely(layer.part).union(to_shapely(layer.scaffold))
+        assert slab.difference(both).area < 1.0  # all but the self-supporting rim
+
+
+def test_subset_limits_scaffold_height():
+    job = Job().replace(**{"scaffold.subset": (0.5, 1.0)})
+    st_ = add_scaffold(make_stack(prism(12), job))
+    assert all(layer.scaffold.is_empty for layer in st_.layers[:6])
+    assert all(not layer.scaffold.is_empty for layer in st_.layers[6:])
+
+
+def test_disabled_gives_empty_scaffold():
+    job = Job().replace(**{"scaffold.enabled": False})
+    st_ = add_scaffold(make_stack(table(), job))
+    assert all(layer.scaffold.is_empty for layer in st_.layers)
+
+
+def test_thin_scaffold_pieces_removed_unless_they_carry_part():
+    # two blocks 1 mm apart: the scaffold in the 1 mm slot is thinner than 1.5 mm
+    blocks = geo.region_from_rings([rect(0, 0, 10, 10), rect(11, 0, 21, 10)])
+    job = Job().replace(**{"scaffold.buffer_mm": 3.3})
+    st_ = add_scaffold(make_stack([blocks] * 4, job))
+    slot = shapely.box(10, 0, 11, 10)
+    for layer in st_.layers:
+        # only a margin of twice the point filter next to the kept scaffold stays
+        margin = 2 * geo.FILTER_MM + 1e-3
+        assert to_shapely(layer.scaffold).intersection(slot).area < 2 * margin * 1.0 + 1e-6
+    check_invariants(st_, None)
+    # a bridge above the slot: the thin slot scaffold under it is kept
+    bridge = geo.region_from_rings([rect(0, 0, 21, 10)])
+    st2 = add_scaffold(make_stack([blocks] * 4 + [bridge], job))
+    check_invariants(st2, None)
+    for layer in st2.layers[:4]:
+        assert to_shapely(layer.scaffold).intersection(slot).area == pytest.approx(10, abs=1e-3)
+
+
+def test_thin_part_features_are_reported():
+    fin = geo.union(geo.region_from_rings([rect(0, 0, 20, 20)]),
+                    geo.region_from_rings([rect(20, 9.5, 30, 10.5)]))
+    st_ = add_scaffold(make_stack([fin] * 2))
+    msgs = [w for w in st_.warnings if "narrower than the path width" in w]
+    assert len(msgs) == 2
+    assert "layer 0" in msgs[0] and "x = 25" in msgs[0]
+    assert not add_scaffold(make_stack(prism(2))).warnings
+
+
+def test_parallel_equals_serial():
+    parts = cone_down(50)
+    a = add_scaffold(make_stack(parts, Job().replace(**{"cell.cpus": 1})))
+    b = add_scaffold(make_stack(parts, Job().replace(**{"cell.cpus": 2})))
+    for la, lb in zip(a.layers, b.layers):
+        assert la.scaffold.area == pytest.approx(lb.scaffold.area, abs=1e-9)
+
+
+@st.composite
+def random_stack(draw):
+    n = draw(st.integers(2, 6))
+    regions = []
+    for _ in range(n):
+        k = draw(st.integers(1, 3))
+        rings = []
+        for _ in range(k):
+            cx, cy = draw(st.floats(-20, 20)), draw(st.floats(-20, 20))
+            w, h = draw(st.floats(2, 15)), draw(st.floats(2, 15))
+            rings.append(rect(cx, cy, cx + w, cy + h))
+        region = geo.union(*rings)
+        if draw(st.booleans()):
+            cx, cy = draw(st.floats(-20, 20)), draw(st.floats(-20, 20))
+            region = geo.difference(region, [circle(draw(st.floats(1, 4)), 32, (cx, cy))])
+        regions.append(region)
+    return regions
+
+
+@settings(max_examples=25)
+@given(random_stack(), st.sampled_from([0.0, 1.0, 3.3]), st.sampled_from([0.0, 1.5]))
+def test_property_invariants_random_parts(regions, buffer, min_width):
+    job = Job().replace(**{"scaffold.buffer_mm": buffer, "cell.cpus": 1,
+                           "scaffold.min_width_mm": min_width})
+    st_ = add_scaffold(make_stack(regions, job))
+    # thin-piece removal may take away surround narrower than min_width (never support)
+    check_invariants(st_, buffer if buffer > 0 and min_width == 0 else None)
