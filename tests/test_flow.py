@@ -34,7 +34,7 @@ def line_trajectory(length=100.0, vmax=50.0, accel=500.0, dt=0.016, role="bounda
     v = np.where(t < t_acc, accel * t, np.where(t < t_acc + t_cruise, vmax,
                                                  accel * np.maximum(T - t, 0)))
     job = Job()
-    off = np.asarray(job.cell.ee_origin_mm) + np.asarray(job.materials[material].nozzle_offset_mm)
+    off = np.asarray(job.cell.ee_origin_mm) - np.asarray(job.materials[material].nozzle_offset_mm)
     xy = np.column_stack([s, np.full(n, y)]) + off
     path = Path(points=np.array([[0.0, y], [length, y]]), material=material, role=role,
                 width=width, layer=3)
@@ -286,6 +286,42 @@ def test_pulse_instants_property(nu, dt):
     assert len(times) == 0 or (times[0] >= 0 and times[-1] <= t[-1] + 1e-12)
 
 
+def test_action_sampled_under_the_nozzle_in_part_frame():
+    from icefab.flow import trajectory_part_xy
+    from icefab.paths import to_base_frame
+    job = Job()
+    pts = np.array([[1.0, 2.0], [30.0, -4.0]])
+    for m in ("part", "scaffold"):
+        base = to_base_frame(pts, m, job)
+        tr = Trajectory(dt=0.016, xy=base, joints=np.zeros((2, 0)), speed=np.ones(2),
+                        duration=0.016)
+        np.testing.assert_allclose(trajectory_part_xy(tr, m, job), pts)
+
+
 def test_data_files_exist():
     assert (DATA_DIR / "calibration_part.csv").is_file()
     assert (DATA_DIR / "calibration_scaffold.csv").is_file()
+
+
+@pytest.mark.parametrize("controller", ["flow", "speed"])
+def test_replan_valves_volume_per_mm_follows_action(controller):
+    from icefab.flow import replan_valves
+    job = Job().replace(**{"feedback.controller": controller})
+    trajs = [line_trajectory(vmax=50.0, y=0.0), line_trajectory(vmax=50.0, y=10.0),
+             line_trajectory(role="travel", width=0.0, y=20.0)]
+    # u = +0.2 for y < 5, -0.1 above (part frame)
+    hm = HeightMap(origin=np.array([-10.0, -5.0]), spacing=1.0,
+                   z=np.where(np.arange(31)[:, None] < 10, 0.2, -0.1) * np.ones((31, 121)))
+    out_t, out_p = replan_valves(trajs, job, action=hm)
+    nominal = 1.5 * 0.25  # mm^3 per mm
+    for tr, u in zip(out_t[:2], (0.2, -0.1)):
+        plan = valve_frequency(tr, "part", Job())  # flow that follows the new speed
+        prog_plan = valve_frequency(tr, "part", job, action=hm)
+        vol = np.trapezoid(prog_plan.q, prog_plan.t)
+        assert vol / 100.0 == pytest.approx((1 + u) * nominal, rel=0.01)
+        if controller == "speed":
+            assert tr.duration == pytest.approx(trajs[0].duration * (1 + u), rel=0.05)
+            np.testing.assert_allclose(prog_plan.q, (1 + u) * plan.q, rtol=1e-9)
+        else:
+            assert tr is trajs[0] or tr is trajs[1]
+    assert len(out_p[2].ticks) == 0 and out_t[2] is trajs[2]

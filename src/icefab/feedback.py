@@ -647,11 +647,16 @@ def action_along(action: HeightMap | ControlAction, xy: np.ndarray) -> np.ndarra
     Bilinear interpolation (``scipy.interpolate.RegularGridInterpolator``) in the action
     grid; nodes outside the footprint take their nearest footprint value first, so a path
     along the region edge sees the edge's action; points outside the grid get 0 (no
-    correction).
+    correction). For many paths, build the sampler once with :func:`action_sampler`.
     """
+    return action_sampler(action)(xy)
+
+
+def action_sampler(action: HeightMap | ControlAction) -> Callable[[np.ndarray], np.ndarray]:
+    """A function ``u(xy (n, 2)) -> (n,)`` equal to :func:`action_along` for ``action``,
+    with the grid prepared once (for applying one action to many paths)."""
     from scipy.interpolate import RegularGridInterpolator
 
-    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     if isinstance(action, ControlAction):
         hm = action.u
         filled = action._filled if action._filled is not None else \
@@ -661,9 +666,9 @@ def action_along(action: HeightMap | ControlAction, xy: np.ndarray) -> np.ndarra
         filled = _nearest_fill(hm.z, np.isfinite(hm.z))
     x, y = hm.grid()
     if len(x) < 2 or len(y) < 2:
-        return np.zeros(len(xy))
+        return lambda xy: np.zeros(len(np.asarray(xy).reshape(-1, 2)))
     rgi = RegularGridInterpolator((y, x), filled, bounds_error=False, fill_value=0.0)
-    return rgi(xy[:, ::-1])
+    return lambda xy: rgi(np.asarray(xy, dtype=np.float64).reshape(-1, 2)[:, ::-1])
 
 
 def retime_trajectory(traj: Trajectory, u: np.ndarray, *, max_change: float = 0.3

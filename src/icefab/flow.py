@@ -64,7 +64,7 @@ import struct
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path as FsPath
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 from scipy.integrate import cumulative_trapezoid
@@ -210,14 +210,16 @@ class FrequencyPlan:
 
 
 def trajectory_part_xy(trajectory: Trajectory, material: str, job: "Job") -> np.ndarray:
-    """(n, 2) float64, mm: the trajectory samples in the part (building) frame.
+    """(n, 2) float64, mm: where the material's nozzle is, in the part (building) frame.
 
-    Trajectory samples are in the robot base frame; the part frame of a material has its
-    origin at ``cell.ee_origin_mm + materials[material].nozzle_offset_mm`` in the base
-    frame (thesis 2.5, frames of Table 3-1), without rotation. Control-action surfaces are
-    measured in the part frame, so they are sampled at these points.
+    Trajectory samples are end-effector positions in the robot base frame; the inverse of
+    :func:`icefab.paths.to_base_frame` (``base = p + ee_origin - tool_offset``) gives the
+    part point ``p = base - ee_origin + tool_offset`` under the material's nozzle.
+    Control-action surfaces are measured in the part frame, so they are sampled here.
     """
-    off = np.asarray(job.cell.ee_origin_mm) + np.asarray(job.materials[material].nozzle_offset_mm)
+    from icefab.paths import tool_offset
+
+    off = np.asarray(job.cell.ee_origin_mm, dtype=np.float64) - tool_offset(material, job)
     return np.asarray(trajectory.xy, dtype=np.float64) - off
 
 
@@ -664,3 +666,47 @@ def read_valve_program(path: str | os.PathLike) -> ValveProgram:
     except UnicodeDecodeError:
         raise StackFileError(f"{path}: neither a binary nor a text valve program") from None
     return parse_valve_program(text, str(path))
+
+
+# =========================================================================== re-planning
+
+
+def replan_valves(trajectories: "Sequence[Trajectory]", job: "Job", *,
+                  action: ActionLike = None, layer_thickness: float | None = None
+                  ) -> tuple[list[Trajectory], list[ValveProgram]]:
+    """Apply a control action to the trajectories of the next n_d layers (thesis 5.1.3).
+
+    trajectories: the deposition (and travel) trajectories of the layers to adjust; the
+        material of each is ``traj.path.material`` ("part" when there is no path).
+    action: the SMF control action (HeightMap / ControlAction / callable, see
+        :func:`valve_frequency`); None: nominal flow.
+
+    ``job.feedback.controller == "flow"`` (nu-controller, default): trajectories are kept,
+    flow x (1 + u). ``"speed"`` (c-controller, eq. 5.7-5.10): depositing trajectories are
+    re-timed to c_nom / (1 + u) within +-``feedback.saturation``
+    (:func:`icefab.feedback.retime_trajectory`) and the valve keeps the nominal flow along
+    them, so the volume per mm becomes (1 + u) times nominal. Returns the (possibly
+    re-timed) trajectories and their valve programs, in order.
+    """
+    from icefab import feedback
+
+    out_t: list[Trajectory] = []
+    out_p: list[ValveProgram] = []
+    speed_ctl = job.feedback.controller == "speed" and action is not None
+    if isinstance(action, (HeightMap, feedback.ControlAction)):
+        action = feedback.action_sampler(action)  # prepare the grid once for all paths
+    for traj in trajectories:
+        material = traj.path.material if traj.path is not None else "part"
+        depositing = traj.path is None or traj.path.depositing
+        if speed_ctl and depositing:
+            u = _action_values(action, traj, material, job)
+            traj = feedback.retime_trajectory(traj, u, max_change=job.feedback.saturation)
+            u_new = _action_values(action, traj, material, job)
+            prog = plan_valves(traj, material, job, action=u_new,
+                               layer_thickness=layer_thickness)
+        else:
+            prog = plan_valves(traj, material, job, action=action if depositing else None,
+                               layer_thickness=layer_thickness)
+        out_t.append(traj)
+        out_p.append(prog)
+    return out_t, out_p
