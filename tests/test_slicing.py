@@ -320,3 +320,23 @@ def test_random_rotated_boxes_match_convex_sections(ex, angles, t):
         assert len(reg.rings) == 1
         assert reg.area > 0
         assert reg.area == pytest.approx(expected, rel=1e-6, abs=1e-9)
+
+
+def test_compiled_cut_equals_numpy_cut():
+    """The parallel compiled kernel and the numpy expansion give identical segments."""
+    from icefab import slicing as S
+
+    tm = trimesh.creation.icosphere(subdivisions=3, radius=7.0)
+    tm = trimesh.util.concatenate([tm, box((3, 4, 20), z0=-8)])
+    mesh = as_mesh(tm)
+    v, f = mesh.vertices, mesh.faces
+    _, _, _, q = S.layer_planes(v[:, 2].min(), v[:, 2].max(), EXACT)
+    fz = v[:, 2][f]
+    lo = np.searchsorted(q, fz.min(axis=1), side="right")
+    hi = np.searchsorted(q, fz.max(axis=1), side="right")
+    nbr = S._facet_adjacency(f, len(v))
+    for k0, k1 in [(0, len(q)), (5, 30)]:
+        a = S._intersect(v, f, fz, q, lo, hi, k0, k1, nbr)
+        b = S._intersect_numpy(v, f, fz, q, lo, hi, k0, k1, nbr)
+        for name in ("layer", "facet", "edge", "points", "partner"):
+            assert np.array_equal(getattr(a, name), getattr(b, name)), name
