@@ -4,17 +4,22 @@ What it models
 --------------
 * **Deposition.** The part and the scaffold share one height map ``z (ny, nx)`` on a fine
   grid (``job.simulation.grid_mm``). Every deposition path is cut into segments; a segment
-  spreads its volume uniformly over the rectangle of the path width that it sweeps
-  (anti-aliased on the grid and normalised per segment, so the volume is conserved to
-  rounding). A straight path deposited with flow ``q`` at speed ``v`` therefore leaves a
-  strip of width ``w`` and height ``q / (w v)``.
+  spreads its volume uniformly over the piece of strip of the path width that it sweeps,
+  cut at its ends on the bisectors of its joints (mitre joins), so a path leaves an even
+  strip without overlaps or gaps at its corners. Each cell gets the exact area of its
+  overlap (polygon clipping, numba) and the weights are normalised per segment, so the
+  volume is conserved to rounding. A straight path deposited with flow ``q`` at speed
+  ``v`` leaves a strip of width ``w`` and height ``q / (w v)``.
 * **Commanded volume.** With variable-flow valve control the valve follows the speed so
   that the volume per millimetre is ``w * dh * c`` (thesis eq. 6.2, ``c`` =
-  ``job.flow.layer_scale``), whatever the speed profile. The simulator therefore samples each
-  path at constant speed per role (boundary ``job.motion.boundary_speed_mm_s``, fill
-  ``job.motion.fill_speed_mm_s``) every ``job.motion.dt_s`` and gives each segment the volume
-  ``w * dh * c * length``; the trajectory planner's speed profile would only move the sample
-  points, not the volume. :func:`volume_from_pulses` turns a valve program into volumes per
+  ``job.flow.layer_scale``), whatever the speed profile. The simulator therefore does not
+  need the trajectories: it follows each path's own polyline (what the robot follows),
+  with every edge longer than one time step at the constant speed of its role (boundary
+  ``job.motion.boundary_speed_mm_s``, fill ``job.motion.fill_speed_mm_s``, times
+  ``job.motion.dt_s``) split, so that the control action is applied at least once per
+  time step, and gives each segment the volume ``w * dh * c * length``. (Sampling the
+  paths themselves at dt instead would deposit along 2 mm chords whose seams between
+  neighbouring rings leave systematic gaps that grow layer after layer.) :func:`volume_from_pulses` turns a valve program into volumes per
   sample when drop-level detail is wanted.
 * **Disturbances** (thesis 5.6, eq. 5.29): the actual flow is the commanded flow times
   ``(1 + flow_error) * (1 + flow_drift_per_m3 * V)``, ``V`` the volume in cm^3 that valve
@@ -71,26 +76,38 @@ class SimulationError(IcefabError):
 
 
 @njit(cache=True)
-def _cell_cdf(x, a, b):  # pragma: no cover - numba
-    """Fraction of a grid cell lying below ``x`` along a direction (thesis-free geometry).
+def _clip_area(px, py, qx, qy, n, la, lb, lc):  # pragma: no cover - numba
+    """Area of the convex polygon (px, py)[:n] cut by the half-planes la x + lb y <= lc.
 
-    Projected on a unit direction, a square cell of side g is the sum of two uniform
-    variables of widths ``a = g max(|cos|, |sin|)`` and ``b = g min(|cos|, |sin|)`` (a >= b):
-    its CDF is piecewise quadratic (a trapezoidal density).
+    Sutherland-Hodgman clipping, one half-plane after another, ping-ponging between the
+    buffers p and q (each long enough for n + number of planes vertices).
     """
-    h1 = 0.5 * (a + b)
-    h2 = 0.5 * (a - b)
-    if x <= -h1:
-        return 0.0
-    if x >= h1:
-        return 1.0
-    if b < 1e-9 * a:
-        return x / a + 0.5
-    if x <= -h2:
-        return (x + h1) ** 2 / (2.0 * a * b)
-    if x <= h2:
-        return (x + 0.5 * a) / a
-    return 1.0 - (h1 - x) ** 2 / (2.0 * a * b)
+    for k in range(la.shape[0]):
+        m = 0
+        for i in range(n):
+            j = (i + 1) % n
+            vi = la[k] * px[i] + lb[k] * py[i] - lc[k]
+            vj = la[k] * px[j] + lb[k] * py[j] - lc[k]
+            if vi <= 0.0:
+                qx[m] = px[i]
+                qy[m] = py[i]
+                m += 1
+            if (vi < 0.0 < vj) or (vj < 0.0 < vi):
+                t = vi / (vi - vj)
+                qx[m] = px[i] + t * (px[j] - px[i])
+                qy[m] = py[i] + t * (py[j] - py[i])
+                m += 1
+        n = m
+        if n < 3:
+            return 0.0
+        for i in range(n):
+            px[i] = qx[i]
+            py[i] = qy[i]
+    area = 0.0
+    for i in range(n):
+        j = (i + 1) % n
+        area += px[i] * py[j] - px[j] * py[i]
+    return 0.5 * abs(area)
 
 
 @njit(cache=True)
@@ -102,14 +119,23 @@ def _splat_segments(z, ox, oy, g, ax, ay, bx, by, vol, half_w, n0, n1,
     through ``a`` with normal ``n0`` and through ``b`` with normal ``n1`` (the bisectors at
     the joints with the previous/next segment: mitre joins, so consecutive strips tile
     without gap or overlap; the segment direction at free ends: butt ends). ``ext`` is how
-    far (mm) a mitre may reach beyond the segment ends. A cell's weight is the product of
-    the fractions of it inside each of the three cuts (each exact for a square cell,
-    :func:`_cell_cdf`); a zero-length segment covers a w x w square. Weights are summed
-    over the unclipped bounding box and normalised, so cells outside the map only take
-    their share away (volume outside the map is lost, nothing else moves).
+    far (mm) a mitre may reach beyond the segment ends; a zero-length segment covers a
+    w x w square. A cell's weight is the exact area of its intersection with that shape
+    (polygon clipping), and the weights are normalised by their sum over the unclipped
+    bounding box, so cells outside the map only take their share away (volume outside the
+    map is lost, nothing else moves). Returns the lost volume.
     """
     ny, nx = z.shape
     lost = 0.0
+    hg = 0.5 * g
+    la = np.empty(4)
+    lb = np.empty(4)
+    lc = np.empty(4)
+    px = np.empty(16)
+    py = np.empty(16)
+    qx = np.empty(16)
+    qy = np.empty(16)
+    full = g * g
     for s in range(vol.shape[0]):
         v = vol[s]
         if v == 0.0:
@@ -123,21 +149,20 @@ def _splat_segments(z, ox, oy, g, ax, ay, bx, by, vol, half_w, n0, n1,
             ux, uy = 1.0, 0.0
         else:
             ux, uy = dx / length, dy / length
-        ca = g * max(abs(ux), abs(uy))
-        cb = g * min(abs(ux), abs(uy))
-        a0 = g * max(abs(n0[s, 0]), abs(n0[s, 1]))
-        b0 = g * min(abs(n0[s, 0]), abs(n0[s, 1]))
-        a1 = g * max(abs(n1[s, 0]), abs(n1[s, 1]))
-        b1 = g * min(abs(n1[s, 0]), abs(n1[s, 1]))
+        # half-planes la x + lb y <= lc, coordinates relative to a
+        la[0], lb[0], lc[0] = -uy, ux, hw          # across <= hw
+        la[1], lb[1], lc[1] = uy, -ux, hw          # -across <= hw
+        if point:
+            la[2], lb[2], lc[2] = -1.0, 0.0, hw
+            la[3], lb[3], lc[3] = 1.0, 0.0, hw
+        else:
+            la[2], lb[2], lc[2] = -n0[s, 0], -n0[s, 1], 0.0
+            la[3], lb[3], lc[3] = n1[s, 0], n1[s, 1], n1[s, 0] * dx + n1[s, 1] * dy
         reach = hw + g + (hw if point else ext[s])
-        xmin = min(ax[s], bx[s]) - reach
-        xmax = max(ax[s], bx[s]) + reach
-        ymin = min(ay[s], by[s]) - reach
-        ymax = max(ay[s], by[s]) + reach
-        j0 = int(math.floor((xmin - ox) / g))
-        j1 = int(math.ceil((xmax - ox) / g))
-        i0 = int(math.floor((ymin - oy) / g))
-        i1 = int(math.ceil((ymax - oy) / g))
+        j0 = int(math.floor((min(ax[s], bx[s]) - reach - ox) / g))
+        j1 = int(math.ceil((max(ax[s], bx[s]) + reach - ox) / g))
+        i0 = int(math.floor((min(ay[s], by[s]) - reach - oy) / g))
+        i1 = int(math.ceil((max(ay[s], by[s]) + reach - oy) / g))
         total = 0.0
         inside = 0.0
         scale = 0.0
@@ -146,20 +171,28 @@ def _splat_segments(z, ox, oy, g, ax, ay, bx, by, vol, half_w, n0, n1,
                 cy = oy + i * g - ay[s]
                 for j in range(j0, j1 + 1):
                     cx = ox + j * g - ax[s]
-                    across = cy * ux - cx * uy
-                    wc = _cell_cdf(hw - across, ca, cb) - _cell_cdf(-hw - across, ca, cb)
-                    if wc <= 0.0:
+                    cut = False
+                    empty = False
+                    for k in range(4):
+                        vc = la[k] * cx + lb[k] * cy - lc[k]
+                        spread = hg * (abs(la[k]) + abs(lb[k]))
+                        if vc - spread >= 0.0:
+                            empty = True
+                            break
+                        if vc + spread > 0.0:
+                            cut = True
+                    if empty:
                         continue
-                    if point:
-                        along = cx
-                        wa = _cell_cdf(hw - along, ca, cb) - _cell_cdf(-hw - along, ca, cb)
+                    if cut:
+                        px[0], py[0] = cx - hg, cy - hg
+                        px[1], py[1] = cx + hg, cy - hg
+                        px[2], py[2] = cx + hg, cy + hg
+                        px[3], py[3] = cx - hg, cy + hg
+                        w = _clip_area(px, py, qx, qy, 4, la, lb, lc)
+                        if w <= 0.0:
+                            continue
                     else:
-                        d0 = cx * n0[s, 0] + cy * n0[s, 1]
-                        d1 = (dx - cx) * n1[s, 0] + (dy - cy) * n1[s, 1]
-                        wa = _cell_cdf(d0, a0, b0) * _cell_cdf(d1, a1, b1)
-                    if wa <= 0.0:
-                        continue
-                    w = wa * wc
+                        w = full
                     if pas == 0:
                         total += w
                     elif 0 <= i < ny and 0 <= j < nx:
@@ -168,7 +201,7 @@ def _splat_segments(z, ox, oy, g, ax, ay, bx, by, vol, half_w, n0, n1,
             if pas == 0:
                 if total <= 0.0:
                     break
-                scale = v / (total * g * g)
+                scale = v / (total * full)
         if total > 0.0:
             lost += v * (1.0 - inside / total)
     return lost
@@ -192,7 +225,7 @@ def _joints(a: np.ndarray, b: np.ndarray, half_w: np.ndarray, starts: np.ndarray
     d = b - a
     length = np.linalg.norm(d, axis=1)
     u = np.divide(d, length[:, None], out=np.zeros_like(d), where=length[:, None] > 0)
-    ends = np.append(starts[1:], m)
+    ends = np.append(starts[1:], m) if len(starts) else starts
     prev = np.arange(m) - 1
     nxt = np.arange(m) + 1
     prev[starts] = np.where(closed, ends - 1, -1)
@@ -345,6 +378,25 @@ def _resample(points: np.ndarray, closed: bool, spacing: float) -> tuple[np.ndar
     return _at(poly, s, t), t
 
 
+def _refine(points: np.ndarray, closed: bool, max_step: float) -> np.ndarray:
+    """The polyline of a path (closed: first point repeated at the end) with every edge
+    longer than ``max_step`` split into equal parts, repeated points dropped."""
+    poly = np.vstack([points, points[:1]]) if closed and len(points) > 1 else points
+    if len(poly) < 2:
+        return poly
+    seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
+    keep = np.concatenate([[True], seg > 1e-9])
+    poly = poly[keep]
+    seg = seg[keep[1:]]
+    if len(poly) < 2:
+        return poly
+    parts = np.maximum(1, np.ceil(seg / max_step - 1e-9).astype(np.int64))
+    start = np.repeat(poly[:-1], parts, axis=0)
+    step = np.repeat(np.diff(poly, axis=0) / parts[:, None], parts, axis=0)
+    k = np.arange(parts.sum()) - np.repeat(np.cumsum(parts) - parts, parts)
+    return np.vstack([start + k[:, None] * step, poly[-1:]])
+
+
 def _at(poly: np.ndarray, s: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Points at arc lengths ``t`` along the polyline ``poly`` with cumulative length ``s``."""
     keep = np.concatenate([[True], np.diff(s) > 0])  # drop repeated points
@@ -424,8 +476,9 @@ class LayerPlan:
 def plan_layer(index: int, paths: Sequence[Path], job: "Job") -> LayerPlan:
     """Cut the deposition paths of one layer into constant-speed segments (see module doc).
 
-    Each boundary/fill path is sampled every ``speed * dt`` mm (speed by role from
-    ``job.motion``); a segment carries ``width * dh * layer_scale * length`` mm^3 (eq. 6.2).
+    Each boundary/fill path's polyline has its edges split to at most ``speed * dt`` mm
+    (speed by role from ``job.motion``); a segment carries ``width * dh * layer_scale *
+    length`` mm^3 (eq. 6.2).
     Measurement paths give the laser sample positions (:func:`laser_positions`).
     """
     m = job.motion
@@ -452,7 +505,7 @@ def plan_layer(index: int, paths: Sequence[Path], job: "Job") -> LayerPlan:
         if p.material not in MATERIAL_ID:
             raise SimulationError(f"layer {index}: unknown material {p.material!r}")
         speed = m.boundary_speed_mm_s if p.role == "boundary" else m.fill_speed_mm_s
-        pts_s, _ = _resample(pts, p.closed, speed * m.dt_s)
+        pts_s = _refine(pts, p.closed, speed * m.dt_s)
         if len(pts_s) < 2:
             continue
         a = pts_s[:-1]
@@ -638,8 +691,9 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
             vol_cmd_total += float(plan.volume[sel].sum())
         added = layer_img[0] + layer_img[1]
         vol_dep_total += float(added.sum() * g * g)
-        part_mask = layer_img[0] > 0.25 * dh
         mask = added > 0.25 * dh
+        # part cells wholly inside this layer's part deposit (not the partly covered rim)
+        part_mask = ndimage.binary_erosion(layer_img[0] > 0.25 * dh)
         if sim.noise_mm > 0 and mask.any():
             added += sim.noise_mm * mask * _noise_field(rng_noise, z.shape,
                                                           sim.noise_corr_mm / g)
@@ -692,3 +746,53 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
                      surfaces=surfaces, closed_loop=controller is not None,
                      volume_commanded=vol_cmd_total, volume_deposited=vol_dep_total,
                      flow_gain=gains, n_layers=len(plans))  # type: ignore[arg-type]
+
+
+def measurement_layers(plans: Sequence[LayerPlan], interval_layers: int) -> list[int]:
+    """Positions in ``plans`` after which the surface is measured.
+
+    The layers that carry measurement paths when any does (``icefab.paths`` adds them every
+    ``job.feedback.interval_layers`` layers); otherwise every ``interval_layers``-th layer
+    (the laser then reads along that layer's deposition paths).
+    """
+    with_paths = [j for j, p in enumerate(plans) if len(p.laser_tagged)]
+    if with_paths:
+        return with_paths
+    return [j for j in range(len(plans)) if (j + 1) % interval_layers == 0]
+
+
+def simulate_build(toolpaths: Toolpaths, job: "Job | None" = None, *,
+                   layers: int | None = None, closed_loop: bool = True,
+                   controller: Controller | None = None, keep_surfaces: Sequence[int] = (),
+                   progress: Callable[[int, int], None] | None = None) -> SimResult:
+    """Build ``toolpaths`` on the virtual cell, open loop or with surface mapping feedback.
+
+    toolpaths: the build (``icefab.paths.plan_paths``); job: settings (default: the job
+        the toolpaths were made with).
+    layers: simulate only the first N layers (default ``job.simulation.layers``, 0 = all).
+    closed_loop: run the SMF controller (``controller``, default :func:`smf_controller`)
+        after every measurement layer; False runs open loop (no control action).
+    keep_surfaces: toolpaths layer indices of measurement layers whose error surfaces
+        are kept in the result (for plots like thesis Fig. 5-8).
+    progress: called as ``progress(done, total)`` after every layer.
+    """
+    job = job if job is not None else toolpaths.job
+    n = layers if layers is not None else job.simulation.layers
+    if n is not None and n < 0:
+        raise SimulationError(f"layers = {n}: expected >= 0 (0: all)")
+    chosen = toolpaths.layers[:n] if n else toolpaths.layers
+    if not chosen:
+        raise SimulationError("the toolpaths have no layers to simulate")
+    plans = [plan_layer(lp.index, lp.paths, job) for lp in chosen]
+    measure = measurement_layers(plans, job.feedback.interval_layers)
+    if closed_loop and controller is None:
+        controller = smf_controller(job)
+    return run_cell(plans, job, measure_layers=measure,
+                    controller=controller if closed_loop else None,
+                    keep_surfaces=keep_surfaces, progress=progress)
+
+
+def smf_controller(job: "Job") -> Controller:
+    """The surface mapping feedback of :mod:`icefab.feedback` as a simulator controller."""
+    raise SimulationError("closed-loop simulation needs icefab.feedback's spatial "
+                          "controller (surface_from_samples, smf_update), not available")

@@ -1,0 +1,166 @@
+"""Virtual cell: whole builds on synthetic annulus layers, open loop and closed loop.
+
+The closed-loop tests here use a small stand-in PI controller written in this file (the
+real controller is tested with the demo part in test_sim_demo.py), so they check the
+simulator's loop, not the feedback module.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.interpolate import RegularGridInterpolator, griddata
+
+from icefab import Job
+from icefab.sim import Measurement, SimulationError, simulate_build
+from icefab.types import LayerPaths, Path, Toolpaths
+
+DH = 0.25
+
+
+def _circle(r, n=240):
+    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    return r * np.column_stack([np.cos(t), np.sin(t)])
+
+
+def annulus_toolpaths(job: Job, n_layers: int, *, measure: bool = True) -> Toolpaths:
+    """Part r in [10, 25] mm, scaffold r in [25, 31] mm, tiled exactly by its paths.
+
+    Boundaries 1.5 mm wide on each edge, fill rings 3 mm wide; measurement circles every
+    3 mm on every interval_layers-th layer.
+    """
+    rings = [("part", "boundary", 24.25, 1.5), ("part", "boundary", 10.75, 1.5)]
+    rings += [("part", "fill", r, 3.0) for r in (13.0, 16.0, 19.0, 22.0)]
+    rings += [("scaffold", "boundary", 30.25, 1.5), ("scaffold", "boundary", 25.75, 1.5),
+              ("scaffold", "fill", 28.0, 3.0)]
+    n_d = job.feedback.interval_layers
+    layers = []
+    for i in range(n_layers):
+        z = (i + 1) * DH
+        paths = [Path(points=_circle(r), z=z, material=m, role=role, closed=True, width=w,
+                      layer=i) for m, role, r, w in rings]
+        if measure and (i + 1) % n_d == 0:
+            paths += [Path(points=_circle(r), z=z, material="part" if r < 25 else "scaffold",
+                           role="measure", closed=True, layer=i)
+                      for r in np.arange(11.5, 30.0, 3.0)]
+        layers.append(LayerPaths(index=i, z=z, paths=tuple(paths)))
+    return Toolpaths(layers=tuple(layers), job=job)
+
+
+def quiet_job(**changes) -> Job:
+    base = {"simulation.flow_error": 0.0, "simulation.noise_mm": 0.0,
+            "simulation.laser_noise_mm": 0.0, "simulation.edge_loss": 0.0,
+            "simulation.debris_rate": 0.0, "simulation.laser_latency_s": 0.0}
+    base.update(changes)
+    return Job().replace(**base)
+
+
+def stand_in_controller(kp=1.0, ki=0.33, sat=0.3):
+    """A minimal spatial PI (thesis eq. 5.1 without D) on the simulator grid."""
+    state: dict = {"integral": None}
+
+    def control(m: Measurement):
+        xs, ys = m.grid.grid()
+        X, Y = np.meshgrid(xs, ys)
+        lin = griddata(m.samples[:, :2], m.samples[:, 2], (X, Y), method="linear")
+        near = griddata(m.samples[:, :2], m.samples[:, 2], (X, Y), method="nearest")
+        meas = np.where(np.isfinite(lin), lin, near)
+        e = np.where(m.footprint, (m.nominal_z - meas) / m.interval_mm, 0.0)
+        integral = e if state["integral"] is None else state["integral"] + e
+        integral = np.clip(integral, -sat / ki, sat / ki)
+        state["integral"] = integral
+        u = np.clip(kp * e + ki * integral, -sat, sat)
+        f = RegularGridInterpolator((ys, xs), u, bounds_error=False, fill_value=0.0)
+        return lambda xy: f(xy[:, ::-1])
+
+    return control
+
+
+def test_without_disturbances_the_surface_sits_at_the_nominal_height():
+    job = quiet_job()
+    res = simulate_build(annulus_toolpaths(job, 12), job, closed_loop=False)
+    assert res.layers.tolist() == [3, 7, 11]
+    assert np.allclose(res.nominal_z, [1.0, 2.0, 3.0])
+    # only cells partly covered at the part's edges deviate (0.1 % of the height)
+    assert np.all(res.rms < 0.005 * res.nominal_z)
+    assert np.all(res.rms_measured < 0.002)
+    assert res.volume_deposited == pytest.approx(res.volume_commanded, rel=1e-9)
+    # commanded volume is the annulus area times the layer thickness (paths tile it)
+    area = np.pi * (31.0 ** 2 - 10.0 ** 2)
+    assert res.volume_commanded == pytest.approx(12 * DH * area, rel=0.005)
+
+
+def test_open_loop_error_grows_with_height_under_a_flow_error():
+    job = quiet_job(**{"simulation.flow_error": 0.10})
+    res = simulate_build(annulus_toolpaths(job, 24), job, closed_loop=False)
+    assert np.all(np.diff(res.rms) > 0)
+    # the whole surface is 10 % too high: rms = 0.1 * nominal height
+    assert np.allclose(res.rms, 0.1 * res.nominal_z, rtol=0.02)
+    xs, ys = res.height.grid()
+    r = np.hypot(*np.meshgrid(xs, ys))
+    assert np.allclose(res.height.z[(r > 11) & (r < 30)], 1.1 * 24 * DH, rtol=1e-3)
+
+
+def test_flow_gain_drifts_with_the_volume_through_each_valve():
+    job = quiet_job(**{"simulation.flow_drift_per_m3": 0.02})
+    res = simulate_build(annulus_toolpaths(job, 8), job, closed_loop=False)
+    part_cm3 = 8 * DH * np.pi * (25.0 ** 2 - 10.0 ** 2) / 1000
+    assert res.flow_gain[0] == pytest.approx(1 + 0.02 * part_cm3, rel=0.01)
+    assert res.volume_deposited > res.volume_commanded
+
+
+def test_edge_loss_lowers_the_region_edges_only():
+    job = quiet_job(**{"simulation.edge_loss": 0.2})
+    res = simulate_build(annulus_toolpaths(job, 8), job, closed_loop=False)
+    xs, ys = res.height.grid()
+    X, Y = np.meshgrid(xs, ys)
+    r = np.hypot(X, Y)
+    z = res.height.z
+    assert np.allclose(z[(r > 16) & (r < 20)], 8 * DH, rtol=5e-3)  # interior untouched
+    edge = (r > 10.0) & (r < 10.3)  # within a fifth of a path width of the hole's edge
+    assert np.all(z[edge] < 8 * DH * (1 - 0.2 * 0.6))
+    assert res.volume_deposited < res.volume_commanded
+
+
+def test_noise_and_debris_disturb_the_surface_reproducibly():
+    job = quiet_job(**{"simulation.noise_mm": 0.02, "simulation.debris_rate": 1.0})
+    tp = annulus_toolpaths(job, 8)
+    a = simulate_build(tp, job, closed_loop=False)
+    b = simulate_build(tp, job, closed_loop=False)
+    assert np.array_equal(a.height.z, b.height.z, equal_nan=True)
+    assert a.max_abs[-1] > 0.1  # a debris bump of 0.5 mm somewhere
+    c = simulate_build(tp, job.replace(**{"simulation.seed": 7}), closed_loop=False)
+    assert not np.array_equal(a.height.z, c.height.z, equal_nan=True)
+
+
+def test_stand_in_controller_removes_a_flow_error():
+    job = quiet_job(**{"simulation.flow_error": 0.10, "simulation.noise_mm": 0.02,
+                       "simulation.laser_noise_mm": 0.01, "simulation.edge_loss": 0.1,
+                       "simulation.laser_latency_s": 0.002})
+    tp = annulus_toolpaths(job, 48)
+    open_ = simulate_build(tp, job, closed_loop=False)
+    closed = simulate_build(tp, job, controller=stand_in_controller(), keep_surfaces=[47])
+    assert closed.closed_loop and not open_.closed_loop
+    assert closed.rms[-1] < open_.rms[-1] / 5
+    assert 47 in closed.surfaces
+    surf = closed.surfaces[47]
+    assert surf.z.shape == closed.height.z.shape
+
+
+def test_without_measurement_paths_the_laser_reads_along_the_deposition_paths():
+    job = quiet_job(**{"simulation.flow_error": 0.1})
+    res = simulate_build(annulus_toolpaths(job, 8, measure=False), job, closed_loop=False)
+    assert res.layers.tolist() == [3, 7]
+    assert res.rms_measured[-1] == pytest.approx(0.1 * 2.0, rel=0.05)
+
+
+def test_layers_limit_and_errors():
+    job = quiet_job()
+    tp = annulus_toolpaths(job, 12)
+    assert simulate_build(tp, job, layers=8, closed_loop=False).n_layers == 8
+    with pytest.raises(SimulationError, match="layers"):
+        simulate_build(tp, job, layers=-1, closed_loop=False)
+    with pytest.raises(SimulationError, match="no layers"):
+        simulate_build(Toolpaths(layers=(), job=job), job, closed_loop=False)
+    empty = Toolpaths(layers=(LayerPaths(index=0, z=0.25, paths=()),), job=job)
+    with pytest.raises(SimulationError, match="nothing to deposit"):
+        simulate_build(empty, job, closed_loop=False)
