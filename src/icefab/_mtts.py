@@ -33,11 +33,17 @@ _EPS = 1e-12
 
 
 @njit(cache=True)
-def _derivs(y, i0, i1, h, d1, d2, d3):
+def _derivs(y, i0, i1, h, w, d1, d2, d3):
     """First, second and third derivatives along s of y[i0:i1] (k, c) by finite
-    differences on the uniform grid of spacing h; ends copy their neighbours."""
+    differences on the uniform grid of spacing h; ends copy their neighbours.
+
+    The third derivative is the slope of the second derivative averaged over 2w+1 grid
+    points (``JERK_WINDOW_MM``): polylines from a slicer turn at every vertex, and a
+    third difference at the grid spacing would see each vertex as a jerk spike.
+    """
     n = i1 - i0
     c = y.shape[1]
+    sm = np.empty(n)
     for k in range(c):
         for i in range(i0, i1):
             if i == i0:
@@ -50,13 +56,25 @@ def _derivs(y, i0, i1, h, d1, d2, d3):
             d2[i, k] = (y[i + 1, k] - 2.0 * y[i, k] + y[i - 1, k]) / (h * h)
         d2[i0, k] = d2[i0 + 1, k] if n > 2 else 0.0
         d2[i1 - 1, k] = d2[i1 - 2, k] if n > 2 else 0.0
-        if n > 4:
-            for i in range(i0 + 2, i1 - 2):
-                d3[i, k] = (d2[i + 1, k] - d2[i - 1, k]) / (2.0 * h)
-            d3[i0, k] = d3[i0 + 2, k]
-            d3[i0 + 1, k] = d3[i0 + 2, k]
-            d3[i1 - 1, k] = d3[i1 - 3, k]
-            d3[i1 - 2, k] = d3[i1 - 3, k]
+        # moving average of d2 over [i-w, i+w] (clipped to the piece)
+        acc = 0.0
+        lo = 0
+        hi = -1
+        for i in range(n):
+            a = max(0, i - w)
+            b = min(n - 1, i + w)
+            while hi < b:
+                hi += 1
+                acc += d2[i0 + hi, k]
+            while lo < a:
+                acc -= d2[i0 + lo, k]
+                lo += 1
+            sm[i] = acc / (b - a + 1)
+        if n > 2:
+            for i in range(1, n - 1):
+                d3[i0 + i, k] = (sm[i + 1] - sm[i - 1]) / (2.0 * h)
+            d3[i0, k] = d3[i0 + 1, k]
+            d3[i1 - 1, k] = d3[i1 - 2, k]
         else:
             for i in range(i0, i1):
                 d3[i, k] = 0.0
@@ -243,13 +261,15 @@ def _jcon(v, i0, i1, h, jeff, tol):
 
 
 @njit(cache=True)
-def speed_profiles(gstart, h, xy, q, vcap, A, J, jerk_on, qv, qa, qj, a_rest, jcon_tol):
+def speed_profiles(gstart, h, xy, q, vcap, A, J, jerk_on, qv, qa, qj, a_rest, jcon_tol,
+                   jerk_window):
     """VCON + ACON forward/backward + JCON for every piece (thesis 4.1.2-4.1.5).
 
     gstart (P+1,) int64; h (P,) mm; xy (N, 2) mm grid points; q (N, m) joints on the grid;
     vcap (P,) mm/s speed bound per piece; A mm/s^2; J mm/s^3; qv, qa, qj (m,) joint bounds
     (inf = none); a_rest mm/s^2 initial/final acceleration of the from/to-rest curves
-    (thesis 4.2.6). Returns v (N,) mm/s on the grid, envelope (N,) mm/s, and the piece
+    (thesis 4.2.6); jerk_window mm, the length over which curvature is averaged before
+    taking its slope for the jerk bounds. Returns v (N,) mm/s on the grid, envelope (N,) mm/s, and the piece
     durations T (P,) s.
     """
     N = xy.shape[0]
@@ -271,8 +291,9 @@ def speed_profiles(gstart, h, xy, q, vcap, A, J, jerk_on, qv, qa, qj, a_rest, jc
         i0 = gstart[p]
         i1 = gstart[p + 1]
         hp = h[p]
-        _derivs(xy, i0, i1, hp, p1, p2, p3)
-        _derivs(q, i0, i1, hp, qd1, qd2, qd3)
+        w = int(0.5 * jerk_window / hp + 0.5)
+        _derivs(xy, i0, i1, hp, w, p1, p2, p3)
+        _derivs(q, i0, i1, hp, w, qd1, qd2, qd3)
         vc2 = vcap[p] * vcap[p]
         for i in range(i0, i1):
             kap[i] = math.sqrt(p2[i, 0] ** 2 + p2[i, 1] ** 2)

@@ -80,6 +80,9 @@ SAVGOL_MAX_DEVIATION_MM = 0.01
 #: Jerk spikes above the bound by more than this fraction are smoothed by JCON (thesis
 #: 4.2.4 detects jerk violations at +20 %).
 JCON_TOLERANCE = 0.2
+#: Curvature (and joint second derivatives) are averaged over this length before their
+#: slope is taken for the jerk bounds (about one output step at full speed), mm.
+JERK_WINDOW_MM = 2.0
 #: Points closer than this are merged before planning (zero-length segments), mm.
 MERGE_MM = 1e-9
 #: Gap inserted between pieces in the concatenated arc length (keeps it increasing), mm.
@@ -230,6 +233,13 @@ def _pathsplit(V: np.ndarray, counts: np.ndarray, job: Job) -> _Split:
     a, b = a[ok], b[ok]
     piece_path = pid[a]
     Q = len(a)
+    if Q == 0:  # every path is a single point
+        e = np.zeros(0, dtype=np.int64)
+        z = np.zeros(0)
+        return _Split(V=V, pid=pid, counts=counts, pstart=pstart, orig_index=orig_index, a=a,
+                      piece_path=piece_path, PV=np.zeros((0, 2)), pvs=np.zeros(1, np.int64),
+                      S=z, s0=z, L=z, nseg=e, hk=z, gstart=np.zeros(1, np.int64),
+                      gxy=np.zeros((0, 2)), gs=z)
 
     # ---- piece vertex lists and their concatenated arc length (gap between pieces)
     plen = b - a + 1
@@ -336,7 +346,7 @@ def _plan_polylines(polys: Sequence[np.ndarray], vcaps: np.ndarray, job: Job, ro
         jerk_on, np.asarray(robot.joint_speed_max, dtype=np.float64),
         np.asarray(robot.joint_accel_max, dtype=np.float64),
         np.asarray(robot.joint_jerk_max, dtype=np.float64),
-        float(m.rest_accel_mm_s2), JCON_TOLERANCE)
+        float(m.rest_accel_mm_s2), JCON_TOLERANCE, JERK_WINDOW_MM)
 
     # ---- constant-dt sampling
     dt = float(m.dt_s)

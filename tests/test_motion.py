@@ -1,0 +1,277 @@
+"""MTTS trajectories (thesis Ch. 4): bounds, exact path following, rests at corners,
+joint limits near the reach boundary (Fig. 4-9), analytic durations."""
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+import shapely
+
+from icefab import Job, Path
+from icefab.errors import IcefabError, WorkspaceError
+from icefab.motion import (constant_spacing, gcode_moves, pathsplit, plan_motion,
+                           plan_paths_motion, thesis_test_path)
+from icefab.robots import Scara, get_robot
+
+log = logging.getLogger(__name__)
+
+JOB = Job()
+JOB_NOJERK = JOB.replace(**{"motion.jerk_limited": False})
+WELL = (250.0, -80.0)  # thesis Fig. 4-3, well placed
+
+
+def poorly_placed_offset() -> tuple[float, float]:
+    """Offset putting the test path's farthest point 1 mm inside the maximum reach."""
+    p = thesis_test_path()
+    lo, hi = 300.0, 560.0
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        r = np.hypot(p[:, 0] + mid, p[:, 1] - 30.0).max()
+        lo, hi = (mid, hi) if r < 599.0 else (lo, mid)
+    return (lo, -30.0)
+
+
+POOR = poorly_placed_offset()
+
+
+def check_trajectory(tr, pts, job, robot=None, *, vcap=None):
+    """The bounds of the issue; returns jerk statistics (mm/s^3)."""
+    robot = robot or get_robot(job)
+    m = job.motion
+    dt = tr.dt
+    assert dt == m.dt_s
+    n = len(tr.xy)
+    assert tr.joints.shape[0] == n and len(tr.speed) == n
+    assert abs(tr.duration - (n - 1) * dt) < 1e-9
+    # follows the path within 0.02 mm (the samples and the joints' forward kinematics)
+    line = shapely.LineString(pts)
+    d_xy = shapely.distance(shapely.points(tr.xy), line)
+    d_q = shapely.distance(shapely.points(robot.fk(tr.joints)), line)
+    assert d_xy.max() < 0.02, d_xy.max()
+    assert d_q.max() < 0.02, d_q.max()
+    # starts and ends on the path's ends, at rest
+    np.testing.assert_allclose(tr.xy[0], pts[0], atol=1e-9)
+    np.testing.assert_allclose(tr.xy[-1], pts[-1], atol=1e-9)
+    assert tr.speed[0] == 0.0 and tr.speed[-1] == 0.0
+    # finite-difference speed, total acceleration, joint speeds
+    v = np.hypot(*np.diff(tr.xy, axis=0).T) / dt
+    assert v.max() <= (vcap or m.speed_mm_s) * 1.01
+    acc = np.hypot(*np.diff(tr.xy, 2, axis=0).T) / dt ** 2
+    assert acc.max() <= m.accel_mm_s2 * 1.10, acc.max()
+    qd = np.abs(np.diff(tr.joints, axis=0)) / dt
+    lim = robot.joint_speed_max
+    fin = np.isfinite(lim)
+    assert (qd[:, fin] <= lim[fin] * 1.02).all(), (qd.max(axis=0), lim)
+    jerk = np.hypot(*np.diff(tr.xy, 3, axis=0).T) / dt ** 3 if n > 3 else np.zeros(1)
+    stats = {"max": float(jerk.max()), "p99": float(np.percentile(jerk, 99)),
+             "over": float(np.mean(jerk > m.jerk_mm_s3 * 1.2))}
+    log.info("jerk mm/s^3: max %.0f p99 %.0f, %.1f %% of steps above bound + 20 %%",
+             stats["max"], stats["p99"], 100 * stats["over"])
+    return stats
+
+
+# --------------------------------------------------------------------------- shapes
+
+
+def test_straight_line_trapezoid_duration():
+    # far from singularities the joint bounds do not bind: T = L/V + V/A (jerk off)
+    pts = np.array([[250.0, -150.0], [250.0, 50.0]])
+    tr = plan_motion(pts, JOB_NOJERK)
+    check_trajectory(tr, pts, JOB_NOJERK)
+    expect = 200.0 / 125.0 + 125.0 / 500.0
+    assert expect - 0.01 <= tr.duration <= expect + 0.016 + 0.01
+    assert tr.speed.max() == pytest.approx(125.0, rel=0.01)  # minus the dt rounding
+    # with jerk on it takes longer, and both start and end at rest
+    trj = plan_motion(pts, JOB)
+    check_trajectory(trj, pts, JOB)
+    assert trj.duration > tr.duration
+    assert len(trj.pieces) == 1
+
+
+@pytest.mark.parametrize("radius", [1.0, 2.0, 5.0, 10.0, 20.0, 50.0])
+@pytest.mark.parametrize("job", [JOB_NOJERK, JOB], ids=["jerk-off", "jerk-on"])
+def test_circles_speed_set_by_radial_acceleration(radius, job):
+    th = np.linspace(0.0, 2 * np.pi, int(2 * np.pi * radius / 0.05) + 1)
+    pts = np.c_[300.0 + radius * np.cos(th), -60.0 + radius * np.sin(th)]
+    tr = plan_motion(pts, job)
+    check_trajectory(tr, pts, job)
+    # eq. 4.9: c_max = sqrt(a_max r_c), capped by the speed bound
+    cmax = min(np.sqrt(job.motion.accel_mm_s2 * radius), job.motion.speed_mm_s)
+    assert tr.speed.max() <= cmax * 1.005
+    if job is JOB_NOJERK:
+        assert tr.speed.max() >= cmax * 0.97
+
+
+def test_thesis_path_splits_and_stops_at_the_corner():
+    pts = thesis_test_path(WELL)
+    tr = plan_motion(pts, JOB)
+    stats = check_trajectory(tr, pts, JOB)
+    assert len(tr.pieces) == 2 and tr.pieces[0] == 0
+    k = int(tr.pieces[1])
+    np.testing.assert_allclose(tr.xy[k], np.array([0.0, 60.0]) + WELL, atol=1e-9)
+    assert tr.speed[k] == 0.0
+    # at rest: the samples on either side of the corner are close to it
+    assert np.hypot(*(tr.xy[k + 1] - tr.xy[k])) < 0.05
+    assert stats["max"] < 20 * JOB.motion.jerk_mm_s3
+    pieces = pathsplit(pts, JOB)
+    assert len(pieces) == 2
+    for p in pieces:
+        d = np.hypot(*np.diff(p, axis=0).T)
+        assert d.max() <= 0.4 + 1e-9 and d.max() - d.min() < 0.05
+
+
+def test_jerk_limits_reduce_jerk():
+    pts = thesis_test_path(WELL)
+    on = plan_motion(pts, JOB)
+    off = plan_motion(pts, JOB_NOJERK)
+    s_on = check_trajectory(on, pts, JOB)
+    s_off = check_trajectory(off, pts, JOB_NOJERK)
+    assert on.duration > off.duration
+    assert s_on["p99"] < s_off["p99"]
+    log.info("jerk on: %.3f s, off: %.3f s (+%.1f %%)", on.duration, off.duration,
+             100 * (on.duration / off.duration - 1))
+
+
+def test_joint_limits_bind_near_reach_fig_4_9():
+    well = plan_motion(thesis_test_path(WELL), JOB)
+    pts = thesis_test_path(POOR)
+    assert 598.9 < np.hypot(*pts.T).max() < 599.01
+    poor = plan_motion(pts, JOB)
+    check_trajectory(poor, pts, JOB)
+    assert poor.duration > 1.15 * well.duration
+    # theta2 rate reaches its bound (thesis: "the theta2 max constraint has been imposed")
+    robot = get_robot(JOB)
+    qd = np.abs(np.diff(poor.joints, axis=0)) / poor.dt
+    assert qd[:, 1].max() >= 0.97 * robot.joint_speed_max[1]
+    # x-motion (radial here) is slowed, y-motion much less
+    # on the side nearest the reach boundary (local x = 100, running along y) the y-motion
+    # is far less restricted than the x-motion on the sides running along x
+    def side_speeds(tr, off):
+        v = np.diff(tr.xy, axis=0) / tr.dt
+        loc = tr.xy[1:] - off
+        right = loc[:, 0] > 99.0
+        top_far = (loc[:, 1] > 59.0) & (loc[:, 0] > 60.0)
+        return np.abs(v[right, 1]).max(), np.abs(v[top_far, 0]).max()
+
+    vy_p, vx_p = side_speeds(poor, POOR)
+    vy_w, vx_w = side_speeds(well, WELL)
+    log.info("near reach: |vy| %.1f |vx| %.1f mm/s; well placed: %.1f, %.1f",
+             vy_p, vx_p, vy_w, vx_w)
+    assert vx_p < 0.6 * vx_w
+    assert vy_p > 0.8 * vy_w
+
+
+def test_rest_start_moves_joints_beyond_encoder_resolution():
+    pts = np.array([[250.0, -150.0], [250.0, 50.0]])
+    tr = plan_motion(pts, JOB)
+    step = np.degrees(np.abs(tr.joints[1, :2] - tr.joints[0, :2])).max()
+    assert step > JOB.cell.encoder_resolution_deg / 2
+
+
+def test_gantry_per_axis_limits():
+    job = JOB_NOJERK.replace(**{"cell.robot": "gantry", "motion.speed_mm_s": 400.0,
+                                "motion.accel_mm_s2": 5000.0,
+                                "motion.gantry_speed_mm_s": [100.0, 200.0]})
+    pts = np.array([[10.0, 10.0], [210.0, 10.0], [210.0, 210.0]])
+    tr = plan_motion(pts, job)
+    robot = get_robot(job)
+    check_trajectory(tr, pts, job, robot, vcap=400.0)
+    v = np.abs(np.diff(tr.xy, axis=0)) / tr.dt
+    assert v[:, 0].max() == pytest.approx(100.0, rel=0.01)
+    assert v[:, 1].max() == pytest.approx(200.0, rel=0.01)
+    assert len(tr.pieces) == 2
+    lines = gcode_moves(tr)
+    assert lines[0].startswith("G0 X10.000 Y10.000") and "F" in lines[-1]
+
+
+# --------------------------------------------------------------------------- inputs
+
+
+def test_path_objects_frames_and_measure_speed():
+    th = np.linspace(0, 2 * np.pi, 400, endpoint=False)
+    ring = np.c_[40 * np.cos(th), 40 * np.sin(th)]
+    water = Path(points=ring, material="part", role="measure", closed=True, layer=2)
+    tr = plan_motion(water, JOB)
+    assert tr.path is water
+    from icefab.paths import to_base_frame
+    base = to_base_frame(water.polyline(), "laser", JOB)
+    check_trajectory(tr, base, JOB, vcap=50.0)
+    assert tr.speed.max() <= 50.0 * 1.001
+    dep = Path(points=ring, material="part", role="boundary", closed=True, layer=2)
+    assert plan_motion(dep, JOB).speed.max() > 60.0
+
+
+def test_workspace_error_before_planning_names_layer_path_point():
+    ok = Path(points=np.array([[0.0, 0.0], [10.0, 0.0]]), layer=4)
+    far = Path(points=np.array([[0.0, 0.0], [10.0, 0.0], [600.0, 0.0]]), layer=4)
+    with pytest.raises(WorkspaceError, match=r"layer 4, path 1: point 2 at .*radius"):
+        plan_paths_motion([ok, far], JOB)
+    with pytest.raises(WorkspaceError, match="point 1"):
+        plan_motion(np.array([[300.0, 0.0], [700.0, 0.0]]), JOB)
+    # a chord through the hole inside the minimum reach
+    with pytest.raises(WorkspaceError, match="segment from point 0 to point 1"):
+        plan_motion(np.array([[150.0, -100.0], [150.0, 100.0]]), JOB)
+
+
+def test_bad_points_rejected():
+    with pytest.raises(IcefabError, match="shape"):
+        plan_motion(np.zeros((4, 3)), JOB)
+    with pytest.raises(IcefabError, match="not finite"):
+        plan_motion(np.array([[300.0, 0.0], [np.nan, 1.0]]), JOB)
+
+
+def test_degenerate_paths():
+    one = plan_motion(np.array([[300.0, 0.0]]), JOB)
+    assert len(one.xy) == 1 and one.duration == 0.0
+    dup = plan_motion(np.array([[300.0, 0.0], [300.0, 0.0], [300.0, 0.0]]), JOB)
+    assert dup.duration == 0.0
+    tiny = np.array([[300.0, 0.0], [300.01, 0.0]])
+    tr = plan_motion(tiny, JOB)
+    check_trajectory(tr, tiny, JOB)
+    assert tr.duration > 0
+    # zero-length segments in the middle are merged, not split on
+    pts = np.array([[300.0, 0.0], [310.0, 0.0], [310.0, 0.0], [320.0, 0.0]])
+    tr = plan_motion(pts, JOB)
+    assert len(tr.pieces) == 1
+
+
+def test_constant_spacing_output():
+    pts = thesis_test_path(WELL)
+    tr = plan_motion(pts, JOB)
+    p, durations = constant_spacing(tr, 0.5)
+    line = shapely.LineString(pts)
+    along = np.diff(shapely.line_locate_point(line, shapely.points(p)))
+    assert np.allclose(along, 0.5, rtol=0.01)
+    assert durations.sum() == pytest.approx(tr.duration, rel=1e-6)
+
+
+def test_savgol_smoothing_keeps_path():
+    pts = thesis_test_path(WELL)
+    raw = plan_motion(pts, JOB.replace(**{"motion.savgol_window": 0}))
+    sm = plan_motion(pts, JOB)
+    np.testing.assert_allclose(raw.xy, sm.xy)
+    robot = get_robot(JOB)
+    dev = np.hypot(*(robot.fk(sm.joints) - sm.xy).T)
+    assert dev.max() <= 0.01 + 1e-12
+    assert not np.array_equal(raw.joints, sm.joints)
+
+
+def test_optional_path_smoothing_within_tolerance():
+    # a polygonal circle: smoothing lets the robot go faster, within the tolerance
+    th = np.linspace(0, 2 * np.pi, 73)
+    pts = np.c_[300 + 30 * np.cos(th), 30 * np.sin(th)]
+    job = JOB.replace(**{"motion.smoothing_tolerance_mm": 0.05, "motion.smooth_angle_deg": 10.0})
+    tr = plan_motion(pts, job)
+    d = shapely.distance(shapely.points(tr.xy), shapely.LineString(pts))
+    assert d.max() <= 0.05 + 1e-6
+    plain = plan_motion(pts, job.replace(**{"motion.smoothing_tolerance_mm": 0.0}))
+    assert tr.duration < plain.duration
+
+
+def test_elbow_left_also_plans():
+    job = JOB.replace(**{"cell.elbow": "left"})
+    pts = thesis_test_path(WELL)
+    tr = plan_motion(pts, job, robot=Scara(elbow="left"))
+    assert (tr.joints[:, 1] <= 1e-12).all()
+    check_trajectory(tr, pts, job)
