@@ -53,8 +53,10 @@ Pipeline (RPSLICE's FACETSLICE = INTERSECTFACET + SEGMERGE + PATHFILTER, thesis 
 5. **Path filter** (PATHFILTER): points closer than ``min_point_spacing_mm`` to the last
    kept point and (near-)collinear points are removed, per contour in a compiled kernel,
    never moving the contour by more than ``max_filter_deviation_mm`` (every removed point
-   lies within that distance of the filtered contour). Rings that collapse (fewer than 3
-   points or ``|area| < MIN_RING_AREA_MM2``) are dropped and counted.
+   lies within that distance of the filtered contour). Rings that collapse are dropped
+   and counted: fewer than 3 points, ``|area| < MIN_RING_AREA_MM2``, or thinner than the
+   filter bound (``2 |area| / perimeter < max_filter_deviation_mm``: a circle of that
+   radius, a sliver of twice that width).
 
 6. **Orientation and nesting** (Ossino 3.1-3.2: hierarchy array q, contour groups A):
    the parent of every ring is the smallest ring (by ``|area|``) containing one of its
@@ -657,6 +659,21 @@ def _ring_areas(pts: np.ndarray, off: np.ndarray) -> np.ndarray:
     return out
 
 
+def _ring_perimeters(pts: np.ndarray, off: np.ndarray) -> np.ndarray:
+    """(R,) perimeters (mm) of concatenated closed rings."""
+    n = len(off) - 1
+    out = np.zeros(n)
+    if n == 0 or len(pts) == 0:
+        return out
+    nxt = np.arange(1, len(pts) + 1)
+    nonempty = off[1:] > off[:-1]
+    nxt[(off[1:] - 1)[nonempty]] = off[:-1][nonempty]
+    seg = np.hypot(*(pts[nxt] - pts).T)
+    ne = np.flatnonzero(nonempty)
+    out[ne] = np.add.reduceat(seg, off[:-1][ne])
+    return out
+
+
 def _offsets(counts: np.ndarray) -> np.ndarray:
     return np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
 
@@ -876,7 +893,12 @@ def _finish_rings(rings: _Rings, job: Job, report: SliceReport) -> tuple[_Rings,
                          minlength=len(rings.layer))
     rings = rings.select(np.ones(len(rings.layer), dtype=bool), keep)
     area = _ring_areas(rings.points, rings.offsets)
-    ok = (counts >= 3) & (np.abs(area) >= MIN_RING_AREA_MM2)
+    # collapsed: < 3 points, (almost) no area, or thinner than the filter's own bound
+    # (2|A|/perimeter -- the radius of a circle, half the width of a sliver -- below
+    # max_filter_deviation_mm: the filter may move every point of such a ring onto a line)
+    perim = _ring_perimeters(rings.points, rings.offsets)
+    ok = ((counts >= 3) & (np.abs(area) >= MIN_RING_AREA_MM2)
+          & (2.0 * np.abs(area) >= job.slicing.max_filter_deviation_mm * perim))
     report.rings_collapsed += int((~ok).sum())
     rings = rings.select(ok)
     area = area[ok]
