@@ -254,3 +254,16 @@ def test_speed_controller_end_to_end_volume_per_mm():
     # constant flow per sample => volume per mm ~ 1/spacing
     ratio = np.median(ds[x > 100]) / np.median(ds[(x > 10) & (x < 60)])
     assert ratio == pytest.approx(1.2 / 0.9, rel=0.02)
+
+
+def test_footprint_as_union_of_part_and_scaffold():
+    part = Region(rings=(square(20, 20, 80, 40),), parent=np.array([-1]))
+    scaffold = Region(rings=(square(0, 0, 100, 60), square(20, 20, 80, 40, ccw=False)),
+                      parent=np.array([-1, 0]))
+    xyz = samples_on(lambda x, y: 1 + 0 * x)
+    both = surface_from_samples(xyz, (part, scaffold), 1.0)
+    x, y = both.grid()
+    assert both.origin.tolist() == [0.0, 0.0] and (len(x), len(y)) == (101, 61)
+    assert np.isfinite(both.z[30, 50]) and np.isfinite(both.z[10, 10])
+    only = surface_from_samples(xyz, part, 1.0)
+    assert only.origin.tolist() == [20.0, 20.0]

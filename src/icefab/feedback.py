@@ -405,14 +405,15 @@ def _nearest_fill(z: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return z[tuple(idx)]
 
 
-def surface_from_samples(xyz: np.ndarray, footprint: Region | None = None,
+def surface_from_samples(xyz: np.ndarray, footprint: Region | Sequence[Region] | None = None,
                          spacing: float = 1.0, *, smoothing: bool = False,
                          smooth_size: int = 3) -> HeightMap:
     """Interpolate laser samples on a regular grid over a footprint (thesis 5.2.1).
 
     xyz: (n, 3) float64, mm: measured points (part frame), n >= 3, not all collinear.
     footprint: the merged part + scaffold region of the measurement layer (thesis
-        Fig. 5-3); nodes outside it are NaN. None: the convex hull of the samples.
+        Fig. 5-3), or several regions whose union it is (e.g. ``(layer.part,
+        layer.scaffold)``); nodes outside it are NaN. None: the samples' convex hull.
     spacing: grid pitch, mm (``job.feedback.grid_mm``); nodes on multiples of it.
     smoothing: robust smoothing by a ``smooth_size`` x ``smooth_size`` median filter
         (``scipy.ndimage.median_filter``), which removes isolated spikes (laser drop-outs,
@@ -436,8 +437,13 @@ def surface_from_samples(xyz: np.ndarray, footprint: Region | None = None,
         log.warning("laser samples: %d non-finite samples dropped", int(np.count_nonzero(~ok)))
         xyz = xyz[ok]
     xy = xyz[:, :2]
-    if footprint is not None and not footprint.is_empty:
-        origin, nx, ny = grid_over(footprint.bounds(), spacing)
+    regions = [] if footprint is None else \
+        [r for r in ((footprint,) if isinstance(footprint, Region) else footprint)
+         if not r.is_empty]
+    if regions:
+        b = np.stack([r.bounds() for r in regions])
+        origin, nx, ny = grid_over(np.stack([b[:, 0].min(axis=0), b[:, 1].max(axis=0)]),
+                                   spacing)
     else:
         origin, nx, ny = grid_over(np.stack([xy.min(axis=0), xy.max(axis=0)]), spacing)
     x = origin[0] + spacing * np.arange(nx)
@@ -447,14 +453,16 @@ def surface_from_samples(xyz: np.ndarray, footprint: Region | None = None,
     except QhullError as exc:
         raise GeometryError(f"laser samples: cannot triangulate ({len(xy)} samples, all "
                             f"collinear?): {str(exc).splitlines()[0]}") from None
-    if footprint is not None and not footprint.is_empty:
-        mask = region_mask(footprint, x, y)
+    if regions:
+        mask = np.zeros((ny, nx), dtype=bool)
+        for r in regions:
+            mask |= region_mask(r, x, y)
     else:
         mask = np.ones((ny, nx), dtype=bool)
     z = np.full((ny, nx), np.nan)
     iy, ix = np.nonzero(mask)
     z[iy, ix] = interp(np.column_stack([x[ix], y[iy]]))
-    if footprint is None or footprint.is_empty:
+    if not regions:
         mask = np.isfinite(z)
     else:
         hole = mask & ~np.isfinite(z)
