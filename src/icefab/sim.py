@@ -26,7 +26,8 @@ What it models
   has already deposited (the thesis saw up to +20 %, Ch. 6.4; the setting's name is kept for
   compatibility, its unit is per cm^3); correlated random height noise per layer; debris
   pulses (Gaussian bumps, Poisson number per layer); weaker deposition within one path width
-  of every material region's edge (``edge_loss``).
+  of the free edges of each layer's deposit (``edge_loss``: the outer rim and the holes of
+  the merged part + scaffold footprint; not the part/scaffold interface).
 * **Laser** (thesis 5.2.1): samples at ``laser_rate_hz`` along the measurement paths at the
   measurement speed, with Gaussian noise and an uncompensated latency: a sample tagged with
   the position at time ``t`` reads the surface where the laser was at ``t - latency``.
@@ -657,7 +658,7 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
     rng_debris = np.random.default_rng([sim.seed, 2])
     rng_laser = np.random.default_rng([sim.seed, 3])
     used_cm3 = np.zeros(2)
-    widths = (job.materials.part.path_width_mm, job.materials.scaffold.path_width_mm)
+    edge_width = max(job.materials.part.path_width_mm, job.materials.scaffold.path_width_mm)
     measure_set = set(int(i) for i in measure_layers)
     keep = set(int(i) for i in keep_surfaces)
     action: ActionFn | None = None
@@ -685,10 +686,12 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
             vol = v_cmd * gain
             _splat(layer_img[mat], surface.origin, g, plan.a[sel], plan.b[sel], vol,
                    plan.half_width[sel], plan.n0[sel], plan.n1[sel], plan.ext[sel])
-            if sim.edge_loss > 0:
-                layer_img[mat] *= _edge_factor(layer_img[mat], 0.25 * dh, widths[mat], g,
-                                               sim.edge_loss)
             vol_cmd_total += float(plan.volume[sel].sum())
+        if sim.edge_loss > 0:
+            # liquid runs off free edges: the edge of the merged footprint (outer rim and
+            # holes), not the part/scaffold interface where the materials support each other
+            layer_img *= _edge_factor(layer_img[0] + layer_img[1], 0.25 * dh, edge_width, g,
+                                      sim.edge_loss)
         added = layer_img[0] + layer_img[1]
         vol_dep_total += float(added.sum() * g * g)
         mask = added > 0.25 * dh
@@ -793,6 +796,48 @@ def simulate_build(toolpaths: Toolpaths, job: "Job | None" = None, *,
 
 
 def smf_controller(job: "Job") -> Controller:
-    """The surface mapping feedback of :mod:`icefab.feedback` as a simulator controller."""
-    raise SimulationError("closed-loop simulation needs icefab.feedback's spatial "
-                          "controller (surface_from_samples, smf_update), not available")
+    """The surface mapping feedback of :mod:`icefab.feedback` as a simulator controller.
+
+    At each measurement: the laser samples become a surface on the controller grid
+    (``job.feedback.grid_mm``, Delaunay-linear, optional robust smoothing), restricted to
+    the layer's merged footprint (footprint nodes outside the samples' hull take the
+    nearest sample); the normalised error drives one step of the spatial PID (eq. 5.1,
+    saturation and anti-windup); the returned u(xy) samples the saturated action
+    (thesis 5.1-5.2).
+    """
+    from scipy.spatial import cKDTree
+
+    from icefab import feedback
+
+    fb = job.feedback
+    state = feedback.SmfState()
+
+    def control(m: Measurement) -> ActionFn:
+        nonlocal state
+        surf = feedback.surface_from_samples(m.samples, None, fb.grid_mm,
+                                             smoothing=fb.smoothing)
+        x, y = surf.grid()
+        g = m.grid.spacing
+        ix = np.rint((x - m.grid.origin[0]) / g).astype(np.int64)
+        iy = np.rint((y - m.grid.origin[1]) / g).astype(np.int64)
+        ny, nx = m.footprint.shape
+        okx = (ix >= 0) & (ix < nx)
+        oky = (iy >= 0) & (iy < ny)
+        inside = m.footprint[np.clip(iy, 0, ny - 1)][:, np.clip(ix, 0, nx - 1)]
+        inside &= oky[:, None] & okx[None, :]
+        z = np.where(inside, surf.z, np.nan)
+        hole = inside & ~np.isfinite(surf.z)
+        if hole.any():
+            hy, hx = np.nonzero(hole)
+            _, nearest = cKDTree(m.samples[:, :2]).query(np.column_stack([x[hx], y[hy]]))
+            z[hy, hx] = m.samples[nearest, 2]
+        if not np.isfinite(z).any():
+            log.warning("layer %d: the laser samples miss the footprint; no control action",
+                        m.layer)
+            return lambda xy: np.zeros(len(xy))
+        error = feedback.error_surface(HeightMap(origin=surf.origin, spacing=surf.spacing,
+                                                 z=z), m.nominal_z, m.interval_mm)
+        action, state = feedback.smf_update(state, error, job)
+        return feedback.action_sampler(action)
+
+    return control
