@@ -275,3 +275,41 @@ def test_elbow_left_also_plans():
     tr = plan_motion(pts, job, robot=Scara(elbow="left"))
     assert (tr.joints[:, 1] <= 1e-12).all()
     check_trajectory(tr, pts, job)
+
+
+# --------------------------------------------------------------------------- real layers
+
+
+@pytest.fixture(scope="module")
+def mug_toolpaths():
+    from icefab.demo import demo_mug
+    from icefab.paths import plan_paths
+    from icefab.regions import add_scaffold
+    from icefab.slicing import slice_mesh
+    job = Job().replace(**{"parts.part_fraction": [0.5, 0.503]})
+    stack = add_scaffold(slice_mesh(demo_mug(), job), job)
+    return plan_paths(stack, job), job
+
+
+def test_real_layers_follow_paths_within_bounds(mug_toolpaths):
+    from icefab.motion import path_limits, plan_toolpaths
+    from icefab.paths import estimate_build_time, to_base_frame
+    tp, job = mug_toolpaths
+    motion = plan_toolpaths(tp, job.replace(**{"cell.cpus": 1}))
+    assert len(motion) == len(tp)
+    n = 0
+    worst = 0.0
+    for lm, lp in zip(motion.layers, tp.layers):
+        assert len(lm.trajectories) == len(lp.paths)
+        for tr, p in zip(lm.trajectories, lp.paths):
+            assert tr.path is p
+            base = to_base_frame(p.polyline(), p.tool_name, job)
+            if len(tr.xy) > 1:
+                stats = check_trajectory(tr, base, job, vcap=path_limits(p, job))
+                worst = max(worst, stats["p99"])
+                n += 1
+    assert n > 10
+    _, const = estimate_build_time(tp, job)
+    log.info("mug layers: MTTS %.1f s vs constant speed %.1f s; worst p99 jerk %.0f",
+             motion.duration, const, worst)
+    assert motion.duration < const

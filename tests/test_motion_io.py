@@ -1,0 +1,84 @@
+"""Build-wide planning (layer-parallel), trajectory files, and the ``icefab plan`` command."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from icefab import Job, LayerPaths, Path, Toolpaths
+from icefab.errors import StackFileError, WorkspaceError
+from icefab.motion import load_trajectories, plan_toolpaths, save_trajectories
+
+
+def _toolpaths(job, n_layers=4):
+    layers = []
+    th = np.linspace(0, 2 * np.pi, 200, endpoint=False)
+    for k in range(n_layers):
+        r = 20.0 + 5 * k
+        ring = Path(points=np.c_[r * np.cos(th), r * np.sin(th)], z=0.25 * (k + 1),
+                    material="part", role="boundary", closed=True, width=1.5, layer=k)
+        sq = np.array([[-10.0, -10.0], [10.0, -10.0], [10.0, 10.0], [-10.0, 10.0]])
+        fill = Path(points=sq, z=0.25 * (k + 1), material="scaffold", role="fill",
+                    closed=True, width=3.0, layer=k)
+        travel = Path(points=np.array([[r, 0.0], [-10.0, -10.0]]), z=0.25 * (k + 1),
+                      role="travel", layer=k)
+        layers.append(LayerPaths(index=k, z=0.25 * (k + 1), paths=(ring, travel, fill)))
+    return Toolpaths(layers=tuple(layers), job=job)
+
+
+def test_parallel_equals_serial_and_progress():
+    job = Job()
+    tp = _toolpaths(job)
+    calls = []
+    serial = plan_toolpaths(tp, job.replace(**{"cell.cpus": 1}),
+                            progress=lambda d, t: calls.append((d, t)))
+    par = plan_toolpaths(tp, job.replace(**{"cell.cpus": 2}))
+    assert calls[-1] == (4, 4) and len(calls) == 4
+    for a, b in zip(serial.layers, par.layers):
+        assert a.index == b.index
+        for ta, tb in zip(a.trajectories, b.trajectories):
+            np.testing.assert_array_equal(ta.xy, tb.xy)
+            np.testing.assert_array_equal(ta.joints, tb.joints)
+    assert serial.duration == pytest.approx(sum(lm.duration for lm in serial.layers))
+    assert serial.layers[0].durations.shape == (3,)
+    # the square fill stops at its four corners (and at the start)
+    sq = serial.layers[0].trajectories[2]
+    assert len(sq.pieces) == 4
+    assert (sq.speed[sq.pieces] == 0).all()
+
+
+def test_save_load_round_trip(tmp_path):
+    job = Job()
+    motion = plan_toolpaths(_toolpaths(job, 2), job.replace(**{"cell.cpus": 1}))
+    f = tmp_path / "traj.npz"
+    save_trajectories(motion, f)
+    back = load_trajectories(f)
+    assert back.robot == "scara" and back.joint_names == ("theta1", "theta2", "theta4")
+    assert back.duration == pytest.approx(motion.duration)
+    for a, b in zip(motion.layers, back.layers):
+        assert a.index == b.index and a.z == b.z
+        for ta, tb in zip(a.trajectories, b.trajectories):
+            np.testing.assert_array_equal(ta.xy, tb.xy)
+            np.testing.assert_array_equal(ta.joints, tb.joints)
+            np.testing.assert_array_equal(ta.speed, tb.speed)
+            np.testing.assert_array_equal(ta.pieces, tb.pieces)
+            assert tb.path.role == ta.path.role and tb.path.material == ta.path.material
+            assert tb.dt == ta.dt
+
+
+def test_load_rejects_bad_files(tmp_path):
+    with pytest.raises(StackFileError, match="not found"):
+        load_trajectories(tmp_path / "missing.npz")
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"PK\x03\x04garbage")
+    with pytest.raises(StackFileError):
+        load_trajectories(bad)
+    other = tmp_path / "other.npz"
+    np.savez(other, format=np.array("something-else"))
+    with pytest.raises(StackFileError, match="not an icefab trajectory file"):
+        load_trajectories(other)
+
+
+def test_workspace_error_names_layer_in_build():
+    job = Job().replace(**{"cell.ee_origin_mm": [590.0, 0.0]})
+    with pytest.raises(WorkspaceError, match=r"layer 0, path 0: point \d+ at"):
+        plan_toolpaths(_toolpaths(job, 2), job.replace(**{"cell.cpus": 1}))
