@@ -61,7 +61,6 @@ from typing import Callable, Sequence
 
 import numpy as np
 from scipy.ndimage import convolve1d
-from scipy.signal import savgol_coeffs
 
 from icefab import _mtts
 from icefab.config import Job
@@ -419,6 +418,7 @@ def _joint_samples(xy: np.ndarray, tstart: np.ndarray, job: Job, robot: Robot) -
     w = int(job.motion.savgol_window)
     if w == 0 or len(q) < w:
         return q
+    from scipy.signal import savgol_coeffs  # scipy.signal is slow to import; only here
     coeffs = savgol_coeffs(w, 3)
     sm = convolve1d(q, coeffs, axis=0, mode="nearest")
     h = w // 2

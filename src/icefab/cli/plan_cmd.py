@@ -1,0 +1,176 @@
+"""``icefab plan MODEL|TOOLPATHS [-c job.toml] -o OUT [--layers K,K] [--no-jerk]``.
+
+Minimum-time trajectories for every path of a build (thesis Ch. 4). The input is a mesh
+(sliced, scaffolded and given paths with the job's settings) or a toolpath file written by
+``icefab paths`` (``.npz``). Writes into OUT (which appears only when everything worked):
+
+* ``trajectories.npz`` — every trajectory at constant dt (format: ``icefab.motion``
+  docstring);
+* ``speed_layer_K.png`` — per chosen layer, the trajectory samples coloured by speed
+  (thesis Fig. 4-11: the speed lives in the point spacing);
+* ``summary.txt`` — build time with MTTS next to the constant-speed estimate (thesis 4.4),
+  points, paths and computing time; also printed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import tempfile
+import time
+from pathlib import Path as FsPath
+
+import numpy as np
+
+from icefab.cli.common import Progress, add_job_argument, job_from_args, output_dir
+from icefab.errors import ConfigError
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "plan", help="minimum-time trajectories for all paths of a build",
+        description="Plan minimum-time trajectories (thesis Ch. 4: PATHSPLIT, VCON, ACON, "
+                    "JCON, AREST) for every path of a model or toolpath file. Writes "
+                    "OUT/trajectories.npz, OUT/speed_layer_K.png and OUT/summary.txt.")
+    p.add_argument("input", metavar="MODEL|TOOLPATHS",
+                   help="mesh file (STL, PLY, OBJ) or toolpath file (.npz from 'icefab paths')")
+    add_job_argument(p)
+    p.add_argument("-o", "--out", required=True, metavar="OUT", help="output folder")
+    p.add_argument("--layers", metavar="K,K,...",
+                   help="layers to draw speed pictures of (default: three evenly spread)")
+    p.add_argument("--no-jerk", action="store_true",
+                   help="switch the jerk bounds off (motion.jerk_limited = false)")
+    p.set_defaults(func=run)
+
+
+def _parse_layers(text: str | None, n: int) -> list[int]:
+    if n == 0:
+        return []
+    if not text:
+        return sorted(set(np.linspace(0, n - 1, min(3, n)).round().astype(int).tolist()))
+    try:
+        ks = [int(t) for t in text.replace(" ", "").split(",") if t]
+    except ValueError:
+        raise ConfigError(f"--layers {text!r}: expected comma-separated layer numbers, "
+                          "e.g. 10,50") from None
+    bad = [k for k in ks if not 0 <= k < n]
+    if bad or not ks:
+        raise ConfigError(f"--layers {text!r}: layer numbers must be between 0 and {n - 1}")
+    return ks
+
+
+def load_input(path: str, job):
+    """Toolpaths from a toolpath file, or from a mesh through slicing, scaffold and paths."""
+    from icefab.paths import load_toolpaths, plan_paths
+    src = FsPath(path)
+    if not src.exists():
+        raise ConfigError(f"{src}: input file not found")
+    if src.suffix.lower() == ".npz":
+        tp = load_toolpaths(src)
+        return tp, tp.job if job is None else job
+    from icefab import mesh as meshmod
+    from icefab.regions import add_scaffold
+    from icefab.slicing import slice_mesh
+    job = job or __import__("icefab").Job()
+    job = dataclasses.replace(job, parts=dataclasses.replace(
+        job.parts, files=(str(src.resolve()),)))
+    if hasattr(meshmod, "prepare_parts"):  # placement per the job (thesis 3.1.2)
+        mesh = meshmod.prepare_parts(job)
+    else:  # pragma: no cover - until the mesh stage provides placement
+        mesh = meshmod.load_mesh(src, inexact=job.parts.inexact)
+    stack = slice_mesh(mesh, job, progress=Progress("slicing"))
+    stack = add_scaffold(stack, job)
+    return plan_paths(stack, job), job
+
+
+def plot_speed(layer, path: FsPath, vmax: float) -> None:
+    """Samples of one layer's trajectories coloured by speed (thesis Fig. 4-11), PNG."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import LineCollection
+
+    fig, ax = plt.subplots(figsize=(7.5, 6.5))
+    segs, speeds, pts = [], [], []
+    for tr in layer.trajectories:
+        if len(tr.xy) < 2:
+            continue
+        if tr.path is not None and tr.path.role == "travel":
+            ax.plot(tr.xy[:, 0], tr.xy[:, 1], color="0.75", lw=0.5, ls="--", zorder=1)
+            continue
+        segs.append(np.stack([tr.xy[:-1], tr.xy[1:]], axis=1))
+        speeds.append(0.5 * (tr.speed[:-1] + tr.speed[1:]))
+        pts.append(tr.xy)
+    if segs:
+        lc = LineCollection(np.concatenate(segs), cmap="viridis", linewidths=1.2, zorder=2)
+        lc.set_array(np.concatenate(speeds))
+        lc.set_clim(0.0, vmax)
+        ax.add_collection(lc)
+        allp = np.concatenate(pts)
+        ax.scatter(allp[:, 0], allp[:, 1], s=0.6, c="k", zorder=3, linewidths=0)
+        fig.colorbar(lc, ax=ax, label="speed (mm/s)")
+        ax.autoscale()
+    ax.set_aspect("equal")
+    ax.set_title(f"layer {layer.index}: z = {layer.z:.2f} mm, {layer.n_points} samples, "
+                 f"{layer.duration:.1f} s", fontsize=10)
+    ax.set_xlabel("x, robot base frame (mm)")
+    ax.set_ylabel("y (mm)")
+    fig.tight_layout()
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        fig.savefig(tmp, dpi=120, format="png")
+        os.replace(tmp, path)
+    finally:
+        plt.close(fig)
+        FsPath(tmp).unlink(missing_ok=True)
+
+
+def _hms(s: float) -> str:
+    h, rem = divmod(int(round(s)), 3600)
+    m, sec = divmod(rem, 60)
+    return f"{h}:{m:02d}:{sec:02d}"
+
+
+def run(args: argparse.Namespace) -> int:
+    from icefab.motion import plan_toolpaths, save_trajectories
+    from icefab.paths import estimate_build_time
+
+    job = job_from_args(args) if getattr(args, "job", None) else None
+    t0 = time.perf_counter()
+    tp, job = load_input(args.input, job)
+    if args.no_jerk:
+        job = job.replace(**{"motion.jerk_limited": False})
+    t1 = time.perf_counter()
+    motion = plan_toolpaths(tp, job, progress=Progress("planning"))
+    t_plan = time.perf_counter() - t1
+    ks = _parse_layers(args.layers, len(motion))
+    _, const = estimate_build_time(tp, job)
+    n_traj = sum(len(lm.trajectories) for lm in motion.layers)
+    dep = sum(t.duration for lm in motion.layers for t in lm.trajectories
+              if t.path is not None and t.path.depositing)
+    lines = [
+        f"layers: {len(motion)}, trajectories: {n_traj}, samples: {motion.n_points} "
+        f"at dt = {job.motion.dt_s * 1000:g} ms ({motion.robot}, jerk "
+        f"{'on' if job.motion.jerk_limited else 'off'})",
+        f"build motion time (MTTS): {motion.duration:.1f} s ({_hms(motion.duration)}), "
+        f"depositing {dep:.1f} s",
+        f"constant-speed estimate:  {const:.1f} s ({_hms(const)}; boundary "
+        f"{job.motion.boundary_speed_mm_s:g}, fill {job.motion.fill_speed_mm_s:g} mm/s)",
+        f"reduction: {100 * (1 - motion.duration / const):.1f} %" if const > 0 else
+        "reduction: n/a",
+        f"planning time: {t_plan:.2f} s ({motion.n_points / max(t_plan, 1e-9) / 1e6:.2f} M "
+        f"samples/s), total {time.perf_counter() - t0:.2f} s",
+    ]
+    with output_dir(args.out) as tmp:
+        save_trajectories(motion, tmp / "trajectories.npz")
+        vmax = job.motion.speed_mm_s
+        for k in ks:
+            plot_speed(motion.layers[k], tmp / f"speed_layer_{motion.layers[k].index}.png", vmax)
+        (tmp / "summary.txt").write_text("\n".join(lines) + "\n", encoding="utf-8")
+    for line in lines:
+        print(line)
+    print(f"wrote {args.out}/trajectories.npz, summary.txt and speed pictures of layers "
+          f"{', '.join(str(motion.layers[k].index) for k in ks)}")
+    return 0
