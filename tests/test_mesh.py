@@ -1,27 +1,617 @@
-"""Mesh import: formats, welding, diagnostics, errors (icefab.mesh)."""
+"""Mesh import: every format gives the same geometry, welding, diagnostics, errors.
+
+Reference meshes are built here with trimesh.creation (box, tube, sphere) and written by
+trimesh (STL) or by the small independent writers below (PLY in every variant, OBJ with
+quads), so the expected geometry never comes from icefab itself.
+"""
 from __future__ import annotations
+
+import io
+import logging
+import struct
 
 import numpy as np
 import pytest
 import trimesh
 
 from icefab.errors import MeshError
-from icefab.mesh import check_mesh, load_mesh, read_mesh, write_stl
+from icefab.mesh import (check_mesh, load_mesh, load_meshes, merge_meshes, read_mesh,
+                         weld_vertices, write_stl)
 from icefab.types import Mesh
 
-
-def _box() -> Mesh:
-    tm = trimesh.creation.box(extents=(10.0, 20.0, 30.0))
-    return Mesh(np.asarray(tm.vertices, float), np.asarray(tm.faces, np.int64), "box")
+# --------------------------------------------------------------------------- references
 
 
-def test_binary_stl_roundtrip(tmp_path):
-    box = _box()
-    p = tmp_path / "box.stl"
-    write_stl(box, p)
-    mesh, report = read_mesh(p)
-    assert mesh.n_faces == 12 and len(mesh.vertices) == 8
+def _tm(kind: str) -> trimesh.Trimesh:
+    if kind == "box":
+        return trimesh.creation.box(extents=(10.0, 20.0, 30.0))
+    if kind == "tube":
+        return trimesh.creation.annulus(r_min=5.0, r_max=8.0, height=12.0, sections=24)
+    if kind == "sphere":
+        return trimesh.creation.icosphere(subdivisions=2, radius=7.5)
+    raise KeyError(kind)
+
+
+KINDS = ("box", "tube", "sphere")
+
+
+def _canonical(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(m, 9) triangles, each rotated to start at its smallest corner, rows sorted.
+
+    Equal for two meshes iff they have the same oriented triangles (any numbering).
+    """
+    tri = np.asarray(vertices, np.float64)[np.asarray(faces)]
+    key = np.lexsort(tri.transpose(2, 0, 1)[::-1].reshape(3, -1)).reshape(-1)
+    # rank of every corner inside its triangle by lexicographic order
+    flat = tri.reshape(-1, 3)
+    order = np.lexsort(flat.T[::-1])
+    rank = np.empty(len(flat), np.int64)
+    rank[order] = np.arange(len(flat))
+    rank = rank.reshape(-1, 3)
+    start = np.argmin(rank, axis=1)
+    idx = (start[:, None] + np.arange(3)) % 3
+    rot = np.take_along_axis(tri, idx[:, :, None], axis=1).reshape(-1, 9)
+    del key
+    return rot[np.lexsort(rot.T[::-1])]
+
+
+def _same_geometry(mesh: Mesh, ref: trimesh.Trimesh, dtype=np.float64) -> None:
+    ref_v = np.asarray(ref.vertices, dtype).astype(np.float64)
+    assert len(mesh.vertices) == len(np.unique(ref_v, axis=0))
+    np.testing.assert_array_equal(np.unique(mesh.vertices, axis=0), np.unique(ref_v, axis=0))
+    np.testing.assert_array_equal(_canonical(mesh.vertices, mesh.faces),
+                                  _canonical(ref_v, ref.faces))
+    report = check_mesh(mesh)
     assert report.watertight
-    assert report.volume == pytest.approx(6000.0, rel=1e-9)
-    np.testing.assert_allclose(np.sort(mesh.triangles().reshape(-1, 3), axis=0),
-                               np.sort(box.triangles().reshape(-1, 3), axis=0))
+    assert report.volume == pytest.approx(
+        trimesh.Trimesh(ref_v, ref.faces, process=False).volume, rel=1e-9)
+
+
+# --------------------------------------------------------------------------- writers
+
+
+def _ply_bytes(vertices, faces, *, fmt="binary_little_endian", count_type="uchar",
+               index_type="int", extra=False, polygons=None) -> bytes:
+    """A PLY file written independently of icefab (struct/numpy, any layout)."""
+    endian = {"binary_little_endian": "<", "binary_big_endian": ">", "ascii": "<"}[fmt]
+    codes = {"uchar": "u1", "char": "i1", "ushort": "u2", "short": "i2", "int": "i4",
+             "uint": "u4"}
+    polys = [list(f) for f in faces] if polygons is None else polygons
+    head = ["ply", f"format {fmt} 1.0", "comment written by the icefab tests",
+            f"element vertex {len(vertices)}"]
+    vfields = [("x", "f4"), ("y", "f4"), ("z", "f4")]
+    if extra:
+        vfields = [("confidence", "f8"), ("x", "f4"), ("nx", "f4"), ("y", "f4"),
+                   ("z", "f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    names = {"f4": "float", "f8": "double", "u1": "uchar"}
+    head += [f"property {names[t]} {n}" for n, t in vfields]
+    head += [f"element face {len(polys)}",
+             f"property list {count_type} {index_type} vertex_indices"]
+    if extra:
+        head += ["property uchar flags"]
+        head += ["element edge 1", "property int vertex1", "property int vertex2"]
+    head += ["end_header"]
+    out = io.BytesIO()
+    out.write(("\n".join(head) + "\n").encode())
+    vrec = np.zeros(len(vertices), [(n, endian + t) for n, t in vfields])
+    for n, _ in vfields:
+        if n in "xyz":
+            vrec[n] = np.asarray(vertices)[:, "xyz".index(n)]
+        elif n == "confidence":
+            vrec[n] = 0.5
+    if fmt == "ascii":
+        for r in vrec:
+            out.write((" ".join(repr(float(x)) if isinstance(x, np.floating) else str(x)
+                                for x in r.tolist()) + "\n").encode())
+        for f in polys:
+            out.write((" ".join(str(i) for i in [len(f), *f])
+                       + (" 7" if extra else "") + "\n").encode())
+        if extra:
+            out.write(b"0 1\n")
+        return out.getvalue()
+    out.write(vrec.tobytes())
+    ct, it = np.dtype(endian + codes[count_type]), np.dtype(endian + codes[index_type])
+    for f in polys:
+        out.write(np.array([len(f)], ct).tobytes() + np.array(f, it).tobytes())
+        if extra:
+            out.write(b"\x07")
+    if extra:
+        out.write(np.array([0, 1], endian + "i4").tobytes())
+    return out.getvalue()
+
+
+def _obj_bytes(vertices, polygons, *, style="plain") -> bytes:
+    lines = ["# written by the icefab tests", "o part", "mtllib none.mtl"]
+    lines += [f"v {x!r} {y!r} {z!r}" for x, y, z in np.asarray(vertices, float).tolist()]
+    lines += ["vt 0 0", "vn 0 0 1", "usemtl x", "s off"]
+    n = len(vertices)
+    for poly in polygons:
+        if style == "plain":
+            toks = [str(i + 1) for i in poly]
+        elif style == "slashes":
+            toks = [f"{i + 1}/1/1" if k % 2 else f"{i + 1}//1" for k, i in enumerate(poly)]
+        else:  # negative (relative) indices
+            toks = [str(i - n) for i in poly]
+        lines.append("f " + " ".join(toks))
+    return ("\n".join(lines) + "\n").encode()
+
+
+def _box_quads():
+    """A 10 x 20 x 30 box as 8 vertices and 6 outward quads."""
+    v = np.array([[x, y, z] for z in (0, 30) for y in (0, 20) for x in (0, 10)], float)
+    quads = [[0, 2, 3, 1], [4, 5, 7, 6], [0, 1, 5, 4], [2, 6, 7, 3], [0, 4, 6, 2],
+             [1, 3, 7, 5]]
+    return v, quads
+
+
+# --------------------------------------------------------------------------- formats
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_binary_stl(tmp_path, kind):
+    ref = _tm(kind)
+    p = tmp_path / f"{kind}.stl"
+    p.write_bytes(trimesh.exchange.stl.export_stl(ref))
+    _same_geometry(load_mesh(p), ref, np.float32)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_ascii_stl(tmp_path, kind):
+    ref = _tm(kind)
+    p = tmp_path / f"{kind}.stl"
+    p.write_text(trimesh.exchange.stl.export_stl_ascii(ref))
+    _same_geometry(load_mesh(p), ref)
+
+
+def test_ascii_stl_uppercase_multisolid_and_crlf(tmp_path):
+    ref = _tm("box")
+    text = trimesh.exchange.stl.export_stl_ascii(ref)
+    lines = text.splitlines()
+    half = 1 + 7 * 6  # header + six facets
+    two = lines[:half] + ["endsolid a", "solid b"] + lines[half:]
+    p = tmp_path / "box.txt"
+    p.write_bytes("\r\n".join(ln.upper() for ln in two).encode())
+    _same_geometry(load_mesh(p), ref)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("fmt", ["binary_little_endian", "binary_big_endian", "ascii"])
+def test_ply(tmp_path, kind, fmt):
+    ref = _tm(kind)
+    v32 = np.asarray(ref.vertices, np.float32)
+    p = tmp_path / f"{kind}.ply"
+    p.write_bytes(_ply_bytes(v32, ref.faces, fmt=fmt))
+    ref32 = trimesh.Trimesh(v32.astype(float), ref.faces, process=False)
+    _same_geometry(load_mesh(p), ref32)
+
+
+@pytest.mark.parametrize("fmt", ["binary_little_endian", "binary_big_endian", "ascii"])
+@pytest.mark.parametrize("count_type,index_type", [("uchar", "int"), ("int", "int"),
+                                                   ("ushort", "uint"), ("char", "short")])
+def test_ply_extra_properties_and_count_types(tmp_path, fmt, count_type, index_type):
+    ref = _tm("tube")
+    v32 = np.asarray(ref.vertices, np.float32)
+    p = tmp_path / "tube.dat"  # no telling extension: detected by content
+    p.write_bytes(_ply_bytes(v32, ref.faces, fmt=fmt, count_type=count_type,
+                             index_type=index_type, extra=True))
+    _same_geometry(load_mesh(p), trimesh.Trimesh(v32.astype(float), ref.faces,
+                                                 process=False))
+
+
+@pytest.mark.parametrize("fmt", ["binary_little_endian", "binary_big_endian", "ascii"])
+def test_ply_mixed_polygons_fan_triangulated(tmp_path, fmt):
+    v, quads = _box_quads()
+    # split two quads into triangles so the file mixes 3- and 4-corner faces
+    polys = quads[:4] + [quads[4][:3], [quads[4][0], quads[4][2], quads[4][3]]] + quads[5:]
+    p = tmp_path / "box.ply"
+    p.write_bytes(_ply_bytes(v, None, fmt=fmt, polygons=polys, extra=True))
+    mesh = load_mesh(p)
+    assert mesh.n_faces == 12
+    report = check_mesh(mesh)
+    assert report.watertight and report.volume == pytest.approx(6000.0, rel=1e-12)
+
+
+@pytest.mark.parametrize("style", ["plain", "slashes", "negative"])
+def test_obj_quads(tmp_path, style):
+    v, quads = _box_quads()
+    p = tmp_path / "box.obj"
+    p.write_bytes(_obj_bytes(v, quads, style=style))
+    mesh = load_mesh(p)
+    assert mesh.n_faces == 12 and len(mesh.vertices) == 8
+    ref = trimesh.creation.box(extents=(10, 20, 30))
+    ref.apply_translation((5, 10, 15))
+    assert check_mesh(mesh).watertight
+    assert check_mesh(mesh).volume == pytest.approx(ref.volume, rel=1e-12)
+    # the triangles cover exactly the box surface
+    assert trimesh.Trimesh(mesh.vertices, mesh.faces).area == pytest.approx(ref.area)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_obj_matches_trimesh(tmp_path, kind):
+    ref = _tm(kind)
+    p = tmp_path / f"{kind}.obj"
+    p.write_bytes(_obj_bytes(ref.vertices, ref.faces, style="slashes"))
+    _same_geometry(load_mesh(p), ref)
+
+
+def test_same_result_from_every_format(tmp_path):
+    ref = _tm("sphere")
+    v32 = np.asarray(ref.vertices, np.float32).astype(float)
+    ref32 = trimesh.Trimesh(v32, ref.faces, process=False)
+    files = {
+        "a.stl": trimesh.exchange.stl.export_stl(ref32),
+        "b.stl": trimesh.exchange.stl.export_stl_ascii(ref32).encode(),
+        "c.ply": _ply_bytes(v32, ref.faces),
+        "d.ply": _ply_bytes(v32, ref.faces, fmt="ascii"),
+        "e.obj": _obj_bytes(v32, ref.faces),
+    }
+    canon = []
+    for name, data in files.items():
+        (tmp_path / name).write_bytes(data)
+        m = load_mesh(tmp_path / name)
+        canon.append(_canonical(m.vertices, m.faces))
+    for c in canon[1:]:
+        np.testing.assert_array_equal(c, canon[0])
+
+
+def test_binary_stl_with_solid_header(tmp_path):
+    ref = _tm("tube")
+    data = bytearray(trimesh.exchange.stl.export_stl(ref))
+    data[:80] = b"solid exported by a CAD tool that writes binary with a solid header".ljust(80)
+    p = tmp_path / "tube.stl"
+    p.write_bytes(bytes(data))
+    _same_geometry(load_mesh(p), ref, np.float32)
+
+
+def test_binary_stl_with_solid_header_truncated(tmp_path):
+    data = bytearray(trimesh.exchange.stl.export_stl(_tm("tube")))
+    data[:80] = b"solid x".ljust(80)
+    p = tmp_path / "tube.stl"
+    p.write_bytes(bytes(data[:-70]))
+    with pytest.raises(MeshError, match=r"tube\.stl.*truncated"):
+        load_mesh(p)
+
+
+def test_extension_is_only_a_hint(tmp_path):
+    ref = _tm("box")
+    p = tmp_path / "box.obj"  # actually a binary STL
+    p.write_bytes(trimesh.exchange.stl.export_stl(ref))
+    _same_geometry(load_mesh(p), ref, np.float32)
+    q = tmp_path / "box.stl"  # actually a PLY
+    q.write_bytes(_ply_bytes(np.asarray(ref.vertices, np.float32), ref.faces))
+    assert load_mesh(q).n_faces == 12
+
+
+# --------------------------------------------------------------------------- tristrips
+
+
+def _tristrip_reference(strip: np.ndarray) -> np.ndarray:
+    """Plain-Python strip decoder (independent of icefab): restarts, alternate winding."""
+    tris, cur = [], []
+    for idx in strip.tolist():
+        if idx < 0:
+            cur = []
+            continue
+        cur.append(idx)
+        if len(cur) >= 3:
+            a, b, c = cur[-3:]
+            if (len(cur) - 3) % 2 == 1:
+                a, b = b, a
+            if len({a, b, c}) == 3:
+                tris.append((a, b, c))
+    return np.array(tris, np.int64)
+
+
+def test_igea_tristrips(mesh_dir):
+    path = mesh_dir / "igea.ply"
+    data = path.read_bytes()
+    body = data.index(b"end_header\n") + len(b"end_header\n")
+    nv = 134345
+    vertices = np.frombuffer(data, "<f4", count=3 * nv, offset=body).reshape(-1, 3)
+    at = body + 12 * nv
+    n = struct.unpack_from("<i", data, at)[0]
+    strip = np.frombuffer(data, "<i4", count=n, offset=at + 4)
+    expected = _tristrip_reference(strip)
+    mesh, report = read_mesh(path)
+    assert mesh.n_faces == len(expected)
+    ref = trimesh.Trimesh(vertices.astype(float), expected, process=False)
+    got = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
+    assert got.area == pytest.approx(ref.area, rel=1e-12)
+    assert report.volume == pytest.approx(ref.volume, rel=1e-9)
+    assert report.volume > 0
+    assert report.watertight, report.warnings()
+
+
+def test_tristrips_small(tmp_path):
+    # two strips in one record and one in another: a square strip and a fan-like strip
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [0, 2, 0], [1, 2, 0]], float)
+    head = ("ply\nformat binary_little_endian 1.0\nelement vertex 6\nproperty float x\n"
+            "property float y\nproperty float z\nelement tristrips 2\n"
+            "property list int int vertex_indices\nend_header\n").encode()
+    s1 = np.array([0, 1, 2, 3, -1, 2, 3, 4], "<i4")
+    s2 = np.array([3, 5, 4, 4], "<i4")
+    body = (v.astype("<f4").tobytes() + np.int32(len(s1)).tobytes() + s1.tobytes()
+            + np.int32(len(s2)).tobytes() + s2.tobytes())
+    p = tmp_path / "strips.ply"
+    p.write_bytes(head + body)
+    mesh = read_mesh(p)[0]
+    want = np.concatenate([_tristrip_reference(s1), _tristrip_reference(s2)])
+    got_tri = mesh.vertices[mesh.faces]
+    want_tri = v[want]
+    np.testing.assert_array_equal(got_tri, want_tri)
+    # every triangle faces +z (the alternating winding keeps the orientation)
+    n = np.cross(got_tri[:, 1] - got_tri[:, 0], got_tri[:, 2] - got_tri[:, 0])
+    assert np.all(n[:, 2] > 0)
+
+
+# --------------------------------------------------------------------------- real meshes
+
+
+@pytest.mark.parametrize("name", ["fandisk.obj", "rocker-arm.obj", "spot.obj",
+                                  "stanford-bunny.obj", "teapot.obj", "igea.ply"])
+def test_real_meshes_load(mesh_dir, name):
+    mesh, report = read_mesh(mesh_dir / name)
+    assert mesh.n_faces > 1000
+    assert mesh.faces.min() >= 0 and mesh.faces.max() < len(mesh.vertices)
+    tm = trimesh.load(mesh_dir / name, process=False) if name.endswith(".obj") else None
+    if tm is not None:
+        assert mesh.n_faces + report.removed_degenerate + report.removed_duplicate == \
+            len(tm.faces)
+    if name in ("teapot.obj", "stanford-bunny.obj"):
+        assert report.open_edges > 0 and not report.watertight
+        assert any("open edges" in w for w in report.warnings())
+    else:
+        assert report.watertight, report.warnings()
+        assert report.volume > 0
+
+
+def test_teapot_open_edges_match_trimesh(mesh_dir):
+    mesh, report = read_mesh(mesh_dir / "teapot.obj")
+    tm = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
+    counts = np.bincount(trimesh.grouping.group_rows(tm.edges_sorted, require_count=None)
+                         .__len__() * [0]) if False else None
+    del counts
+    edges = np.sort(tm.edges, axis=1)
+    _, c = np.unique(edges, axis=0, return_counts=True)
+    assert report.open_edges == int(np.count_nonzero(c == 1)) > 0
+    assert report.non_manifold_edges == int(np.count_nonzero(c > 2))
+
+
+# --------------------------------------------------------------------------- welding
+
+
+def test_exact_weld_merges_negative_zero():
+    pts = np.array([[0.0, 1.0, 2.0], [-0.0, 1.0, 2.0], [0.0, 1.0, 2.0 + 1e-12]])
+    v, idx = weld_vertices(pts)
+    assert len(v) == 2 and idx.tolist() == [0, 0, 1]
+
+
+def test_inexact_weld_within_tolerance():
+    rng = np.random.default_rng(1)
+    base = rng.random((200, 3)) * 100.0
+    noisy = np.concatenate([base, base + rng.uniform(-2e-5, 2e-5, base.shape)])
+    v, idx = weld_vertices(noisy, inexact=True, tolerance=1e-4)
+    assert len(v) == 200
+    assert np.array_equal(idx[:200], idx[200:])
+    np.testing.assert_allclose(v[idx], noisy, atol=1e-4)
+    v2, _ = weld_vertices(noisy)  # exact: nothing merges
+    assert len(v2) == 400
+
+
+def test_inexact_option_closes_a_jittered_stl(tmp_path):
+    ref = _tm("sphere")
+    tri = np.asarray(ref.vertices)[ref.faces].reshape(-1, 3)
+    tri = tri + np.random.default_rng(2).uniform(-1e-5, 1e-5, tri.shape)
+    jit = trimesh.Trimesh(tri, np.arange(len(tri)).reshape(-1, 3), process=False)
+    p = tmp_path / "jitter.stl"
+    p.write_bytes(trimesh.exchange.stl.export_stl(jit))
+    exact = read_mesh(p)[1]
+    assert exact.open_edges > 0
+    mesh, rep = read_mesh(p, inexact=True, tolerance=1e-4)
+    assert rep.watertight and len(mesh.vertices) == len(ref.vertices)
+
+
+# --------------------------------------------------------------------------- diagnostics
+
+
+def test_defects_are_fixed_and_reported(tmp_path, caplog):
+    ref = _tm("box")
+    faces = np.asarray(ref.faces)
+    bad = np.concatenate([faces, faces[:2], [[0, 0, 1], [2, 3, 3]]])  # 2 dup, 2 degenerate
+    tri = np.asarray(ref.vertices)[bad]
+    tm = trimesh.Trimesh(tri.reshape(-1, 3), np.arange(3 * len(bad)).reshape(-1, 3),
+                         process=False)
+    p = tmp_path / "bad.stl"
+    p.write_bytes(trimesh.exchange.stl.export_stl(tm))
+    with caplog.at_level(logging.WARNING, logger="icefab.mesh"):
+        mesh, report = read_mesh(p)
+    assert mesh.n_faces == 12
+    assert report.removed_duplicate == 2 and report.removed_degenerate == 2
+    assert report.watertight
+    assert "removed 2 duplicate faces" in caplog.text
+    assert "removed 2 degenerate faces" in caplog.text
+    assert "bad.stl" in caplog.text
+
+
+def test_inverted_mesh_is_flipped_and_reported(tmp_path):
+    ref = _tm("box")
+    inv = trimesh.Trimesh(ref.vertices, np.asarray(ref.faces)[:, ::-1], process=False)
+    p = tmp_path / "inside_out.stl"
+    p.write_bytes(trimesh.exchange.stl.export_stl(inv))
+    raw = check_mesh(Mesh(np.asarray(inv.vertices, float), np.asarray(inv.faces), "x"))
+    assert raw.inverted and raw.volume == pytest.approx(-6000.0)
+    assert any("inverted" in w for w in raw.warnings())
+    mesh, report = read_mesh(p)
+    assert report.flipped and report.volume == pytest.approx(6000.0)
+    assert any("flipped" in w for w in report.warnings())
+
+
+def test_check_mesh_counts():
+    ref = _tm("box")
+    v, f = np.asarray(ref.vertices, float), np.asarray(ref.faces)
+    open_box = check_mesh(Mesh(v, f[:-1], "open"))
+    assert open_box.open_edges == 3 and not open_box.watertight
+    # a fin: a third face on an existing edge -> non-manifold
+    v2 = np.vstack([v, [[100.0, 100.0, 100.0]]])
+    a, b = f[0, 0], f[0, 1]
+    fin = check_mesh(Mesh(v2, np.vstack([f, [[a, b, 8]]]), "fin"))
+    assert fin.non_manifold_edges == 1 and fin.open_edges == 2
+    # one face flipped -> its three edges are misoriented
+    f3 = f.copy()
+    f3[0] = f3[0, ::-1]
+    flip = check_mesh(Mesh(v, f3, "flip"))
+    assert flip.misoriented_edges == 3 and not flip.watertight
+    dup = check_mesh(Mesh(v, np.vstack([f, f[:1, ::-1]]), "dup"))
+    assert dup.duplicate_faces == 1
+    degen = check_mesh(Mesh(v, np.vstack([f, [[1, 1, 2]]]), "degen"))
+    assert degen.degenerate_faces == 1 and not degen.watertight
+    nan = check_mesh(Mesh(np.vstack([v, [[np.nan, 0, 0]]]), f, "nan"))
+    assert nan.nonfinite_vertices == 1 and not nan.watertight
+
+
+def test_load_meshes_merges(tmp_path):
+    a, b = _tm("box"), _tm("sphere")
+    b.apply_translation((50, 0, 0))
+    pa, pb = tmp_path / "a.stl", tmp_path / "b.obj"
+    pa.write_bytes(trimesh.exchange.stl.export_stl(a))
+    pb.write_bytes(_obj_bytes(b.vertices, b.faces))
+    merged = load_meshes([pa, pb])
+    assert merged.n_faces == len(a.faces) + len(b.faces)
+    rep = check_mesh(merged)
+    assert rep.watertight
+    assert rep.volume == pytest.approx(a.volume + b.volume, rel=1e-6)
+    assert merge_meshes([load_mesh(pa)]).n_faces == 12
+
+
+# --------------------------------------------------------------------------- errors
+
+
+def _write(tmp_path, name, data: bytes):
+    p = tmp_path / name
+    p.write_bytes(data)
+    return p
+
+
+def test_error_missing_file(tmp_path):
+    with pytest.raises(MeshError, match=r"nope\.stl.*not found"):
+        load_mesh(tmp_path / "nope.stl")
+
+
+@pytest.mark.parametrize("data", [b"", b"   \n\n "])
+def test_error_empty_file(tmp_path, data):
+    with pytest.raises(MeshError, match=r"empty\.stl.*empty"):
+        load_mesh(_write(tmp_path, "empty.stl", data))
+
+
+def test_error_truncated_binary_stl(tmp_path):
+    data = trimesh.exchange.stl.export_stl(_tm("sphere"))
+    p = _write(tmp_path, "cut.stl", data[:-120])
+    with pytest.raises(MeshError, match=r"cut\.stl: truncated binary STL.*declares 320 facets"):
+        load_mesh(p)
+
+
+def test_error_nan_binary_stl(tmp_path):
+    ref = _tm("box")
+    v = np.asarray(ref.vertices, float).copy()
+    v[3, 1] = np.nan
+    data = trimesh.exchange.stl.export_stl(trimesh.Trimesh(v, ref.faces, process=False))
+    with pytest.raises(MeshError, match=r"nan\.stl.*NaN/Inf"):
+        load_mesh(_write(tmp_path, "nan.stl", data))
+
+
+@pytest.mark.parametrize("token", ["nan", "inf", "-Infinity"])
+def test_error_nan_ascii_stl(tmp_path, token):
+    text = trimesh.exchange.stl.export_stl_ascii(_tm("box")).splitlines()
+    k = next(i for i, ln in enumerate(text) if ln.strip().startswith("vertex"))
+    k += 7 * 3  # a vertex of the fourth facet
+    text[k] = f"vertex 1.0 {token} 2.0"
+    p = _write(tmp_path, "nan.stl", "\n".join(text).encode())
+    with pytest.raises(MeshError, match=rf"nan\.stl.*NaN/Inf.*line {k + 1}"):
+        load_mesh(p)
+
+
+@pytest.mark.parametrize("bad,what", [("vertex 1.0 2.x 3.0", "expected three numbers"),
+                                      ("vertex 1.0 2.0", "expected three numbers"),
+                                      ("vertx 1 2 3", "unexpected token"),
+                                      ("", "3 vertices")])
+def test_error_unparseable_ascii_stl_names_line(tmp_path, bad, what):
+    text = trimesh.exchange.stl.export_stl_ascii(_tm("box")).splitlines()
+    k = 1 + 7 * 4 + 2  # first vertex of the fifth facet (0-based line index)
+    assert text[k].strip().startswith("vertex")
+    text[k] = bad
+    p = _write(tmp_path, "bad.stl", "\n".join(text).encode())
+    with pytest.raises(MeshError, match=rf"bad\.stl: ASCII STL line (\d+): .*{what}") as ei:
+        load_mesh(p)
+    line = int(__import__("re").search(r"line (\d+)", str(ei.value)).group(1))
+    assert k + 1 <= line <= k + 5  # the bad line, or where the damage shows (endfacet)
+
+
+def test_error_ascii_stl_truncated(tmp_path):
+    text = trimesh.exchange.stl.export_stl_ascii(_tm("box"))
+    p = _write(tmp_path, "cut.stl", text[: len(text) // 2].encode())
+    with pytest.raises(MeshError, match=r"cut\.stl: ASCII STL line \d+"):
+        load_mesh(p)
+
+
+def test_error_obj_bad_number_names_line(tmp_path):
+    v, quads = _box_quads()
+    lines = _obj_bytes(v, quads).decode().splitlines()
+    k = next(i for i, ln in enumerate(lines) if ln.startswith("v ")) + 2
+    lines[k] = "v 1.0 abc 2.0"
+    with pytest.raises(MeshError, match=rf"box\.obj: OBJ line {k + 1}: cannot read"):
+        load_mesh(_write(tmp_path, "box.obj", "\n".join(lines).encode()))
+
+
+@pytest.mark.parametrize("index", ["9", "0", "-9"])
+def test_error_obj_index_out_of_range(tmp_path, index):
+    v, quads = _box_quads()
+    data = _obj_bytes(v, quads) + f"f 1 2 {index}\n".encode()
+    with pytest.raises(MeshError, match=r"box\.obj: OBJ line \d+: .*(out of range|index 0|"
+                                        r"before the first)"):
+        load_mesh(_write(tmp_path, "box.obj", data))
+
+
+@pytest.mark.parametrize("fmt", ["binary_little_endian", "ascii"])
+def test_error_ply_index_out_of_range(tmp_path, fmt):
+    v, quads = _box_quads()
+    polys = quads[:-1] + [[1, 3, 7, 99]]
+    data = _ply_bytes(v, None, fmt=fmt, polygons=polys)
+    with pytest.raises(MeshError, match=r"box\.ply: face \d+ has vertex index .*out of "
+                                        r"range: the file has 8 vertices"):
+        load_mesh(_write(tmp_path, "box.ply", data))
+
+
+def test_error_ply_truncated(tmp_path):
+    ref = _tm("sphere")
+    data = _ply_bytes(np.asarray(ref.vertices, np.float32), ref.faces)
+    with pytest.raises(MeshError, match=r"cut\.ply: truncated"):
+        load_mesh(_write(tmp_path, "cut.ply", data[:-50]))
+    with pytest.raises(MeshError, match=r"cut2\.ply: truncated"):
+        load_mesh(_write(tmp_path, "cut2.ply", data[:300]))
+
+
+def test_error_ply_ascii_garbage_names_line(tmp_path):
+    v, quads = _box_quads()
+    lines = _ply_bytes(v, None, fmt="ascii", polygons=quads).decode().splitlines()
+    k = lines.index("end_header") + 3
+    lines[k] = "1.0 oops 2.0"
+    with pytest.raises(MeshError, match=rf"g\.ply: ASCII PLY line {k + 1}: cannot read"):
+        load_mesh(_write(tmp_path, "g.ply", "\n".join(lines).encode()))
+
+
+def test_error_ply_point_cloud(tmp_path):
+    data = (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n"
+            b"property float z\nend_header\n1 2 3\n")
+    with pytest.raises(MeshError, match=r"pc\.ply: PLY without a 'face'"):
+        load_mesh(_write(tmp_path, "pc.ply", data))
+
+
+def test_error_unknown_format(tmp_path):
+    with pytest.raises(MeshError, match=r"thing\.step: unknown mesh format"):
+        load_mesh(_write(tmp_path, "thing.step", b"ISO-10303-21;\nHEADER;\n"))
+
+
+def test_error_only_degenerate_faces(tmp_path):
+    data = b"v 0 0 0\nv 1 0 0\nf 1 2 2\n"
+    with pytest.raises(MeshError, match=r"flat\.obj.*degenerate"):
+        load_mesh(_write(tmp_path, "flat.obj", data))

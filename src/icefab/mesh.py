@@ -39,6 +39,7 @@ import logging
 import math
 import os
 import re
+import warnings
 from dataclasses import dataclass
 from pathlib import Path as FsPath
 from typing import TYPE_CHECKING, Iterable, Sequence
@@ -56,7 +57,8 @@ log = logging.getLogger(__name__)
 
 __all__ = ["MeshReport", "load_mesh", "read_mesh", "load_meshes", "check_mesh",
            "weld_vertices", "clean_mesh", "transform", "prepare_parts",
-           "part_fraction_range", "merge_meshes", "mesh_volume", "write_stl"]
+           "part_fraction_range", "merge_meshes", "mesh_volume", "write_stl",
+           "rotation_matrix"]
 
 # --------------------------------------------------------------------------- hashing
 
@@ -67,22 +69,22 @@ def _unique_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: 
 
     Returns ``first`` (u,) int64, the index of the first occurrence of every distinct row
     in order of appearance, and ``inverse`` (n,) int64 with ``rows[first][inverse] == rows``.
-    Expected O(n); used for vertex welding (float bit patterns), edges and duplicate faces.
+    Expected O(n) (load factor <= 1/2); used for vertex welding on float bit patterns.
     """
     n, k = rows.shape
     cap = 16
     while cap < 2 * n + 1:
         cap *= 2
     mask = np.uint64(cap - 1)
-    table = np.full(cap, -1, np.int64)
+    table = np.full(cap, -1, np.int32)
     first = np.empty(n, np.int64)
     inverse = np.empty(n, np.int64)
     nu = 0
     for i in range(n):
-        h = np.uint64(0xCBF29CE484222325)
+        h = np.uint64(0)
         for c in range(k):
-            h = (h ^ np.uint64(rows[i, c])) * np.uint64(0x100000001B3)
-            h ^= h >> np.uint64(31)
+            h = (h ^ np.uint64(rows[i, c])) * np.uint64(0x9E3779B97F4A7C15)
+            h ^= h >> np.uint64(32)
         s = h & mask
         while True:
             slot = table[s]
@@ -103,6 +105,143 @@ def _unique_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: 
                 break
             s = (s + np.uint64(1)) & mask
     return first[:nu].copy(), inverse
+
+
+@njit(cache=True)
+def _edge_topology(faces: np.ndarray, nv: int) -> tuple[int, int, int]:  # pragma: no cover
+    """(open, non-manifold, misoriented) undirected edge counts, O(m) with vertex buckets.
+
+    Directed edges are bucketed by their lower vertex (counting sort); each small bucket is
+    sorted by the upper vertex and runs of equal edges are counted: 1 use = open edge,
+    > 2 = non-manifold, 2 uses in the same direction = misoriented.
+    """
+    m = faces.shape[0]
+    start = np.zeros(nv + 1, np.int64)
+    for f in range(m):
+        for k in range(3):
+            a = faces[f, k]
+            b = faces[f, (k + 1) % 3]
+            start[min(a, b) + 1] += 1
+    for i in range(nv):
+        start[i + 1] += start[i]
+    fill = start[:-1].copy()
+    hi = np.empty(3 * m, np.int64)
+    dr = np.empty(3 * m, np.int8)
+    for f in range(m):
+        for k in range(3):
+            a = faces[f, k]
+            b = faces[f, (k + 1) % 3]
+            lo = min(a, b)
+            pos = fill[lo]
+            hi[pos] = max(a, b)
+            dr[pos] = 1 if a < b else -1
+            fill[lo] += 1
+    n_open = 0
+    n_nonman = 0
+    n_misor = 0
+    for v in range(nv):
+        s = start[v]
+        e = start[v + 1]
+        for i in range(s + 1, e):  # insertion sort of the bucket by upper vertex
+            x = hi[i]
+            d = dr[i]
+            j = i - 1
+            while j >= s and hi[j] > x:
+                hi[j + 1] = hi[j]
+                dr[j + 1] = dr[j]
+                j -= 1
+            hi[j + 1] = x
+            dr[j + 1] = d
+        i = s
+        while i < e:
+            j = i
+            dsum = 0
+            while j < e and hi[j] == hi[i]:
+                dsum += dr[j]
+                j += 1
+            c = j - i
+            if c == 1:
+                n_open += 1
+            elif c > 2:
+                n_nonman += 1
+            elif dsum != 0:
+                n_misor += 1
+            i = j
+    return n_open, n_nonman, n_misor
+
+
+@njit(cache=True)
+def _duplicate_faces(faces: np.ndarray, nv: int) -> np.ndarray:  # pragma: no cover
+    """(m,) bool: the face has the same vertex set as an earlier face (O(m), buckets)."""
+    m = faces.shape[0]
+    srt = np.empty((m, 3), np.int64)
+    start = np.zeros(nv + 1, np.int64)
+    for f in range(m):
+        a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+        if a > b:
+            a, b = b, a
+        if b > c:
+            b, c = c, b
+        if a > b:
+            a, b = b, a
+        srt[f, 0], srt[f, 1], srt[f, 2] = a, b, c
+        start[a + 1] += 1
+    for i in range(nv):
+        start[i + 1] += start[i]
+    fill = start[:-1].copy()
+    order = np.empty(m, np.int64)
+    for f in range(m):
+        a = srt[f, 0]
+        order[fill[a]] = f
+        fill[a] += 1
+    dup = np.zeros(m, np.bool_)
+    for v in range(nv):
+        for i in range(start[v] + 1, start[v + 1]):
+            fi = order[i]
+            for j in range(start[v], i):
+                fj = order[j]
+                if srt[fj, 1] == srt[fi, 1] and srt[fj, 2] == srt[fi, 2] and not dup[fj]:
+                    dup[fi] = True
+                    break
+    return dup
+
+
+@njit(cache=True)
+def _face_measures(vertices: np.ndarray, faces: np.ndarray,
+                   eps2: float) -> tuple[int, float]:  # pragma: no cover
+    """(zero-area face count, signed volume mm^3) in one pass over the faces.
+
+    The volume is taken about the bounding-box centre (divergence theorem):
+    V = sum(a . ((b - a) x (c - a))) / 6.
+    """
+    m = faces.shape[0]
+    cx = 0.0
+    cy = 0.0
+    cz = 0.0
+    if vertices.shape[0] > 0:
+        mn = vertices[0].copy()
+        mx = vertices[0].copy()
+        for i in range(vertices.shape[0]):
+            for k in range(3):
+                mn[k] = min(mn[k], vertices[i, k])
+                mx[k] = max(mx[k], vertices[i, k])
+        cx, cy, cz = 0.5 * (mn[0] + mx[0]), 0.5 * (mn[1] + mx[1]), 0.5 * (mn[2] + mx[2])
+    n_zero = 0
+    vol = 0.0
+    for f in range(m):
+        a = faces[f, 0]
+        b = faces[f, 1]
+        c = faces[f, 2]
+        ax, ay, az = vertices[a, 0] - cx, vertices[a, 1] - cy, vertices[a, 2] - cz
+        ux, uy, uz = vertices[b, 0] - cx - ax, vertices[b, 1] - cy - ay, vertices[b, 2] - cz - az
+        wx, wy, wz = vertices[c, 0] - cx - ax, vertices[c, 1] - cy - ay, vertices[c, 2] - cz - az
+        nx = uy * wz - uz * wy
+        ny = uz * wx - ux * wz
+        nz = ux * wy - uy * wx
+        if nx * nx + ny * ny + nz * nz <= eps2:
+            n_zero += 1
+        vol += ax * nx + ay * ny + az * nz
+    return n_zero, vol / 6.0
 
 
 def _float_bits(points: np.ndarray) -> np.ndarray:
@@ -242,17 +381,7 @@ def _edge_stats(faces: np.ndarray, n_vertices: int) -> tuple[int, int, int]:
     """(open, non-manifold, misoriented) undirected edge counts of non-degenerate faces."""
     if len(faces) == 0:
         return 0, 0, 0
-    e = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
-    lo = np.minimum(e[:, 0], e[:, 1])
-    hi = np.maximum(e[:, 0], e[:, 1])
-    direction = np.where(e[:, 0] < e[:, 1], 1, -1)
-    _, inv = _unique_rows(np.stack([lo, hi], axis=1))
-    counts = np.bincount(inv)
-    dsum = np.bincount(inv, weights=direction)
-    open_ = int(np.count_nonzero(counts == 1))
-    nonman = int(np.count_nonzero(counts > 2))
-    misor = int(np.count_nonzero((counts == 2) & (dsum != 0)))
-    return open_, nonman, misor
+    return tuple(int(x) for x in _edge_topology(faces, int(n_vertices)))  # type: ignore
 
 
 def _degenerate_mask(faces: np.ndarray) -> np.ndarray:
@@ -260,33 +389,44 @@ def _degenerate_mask(faces: np.ndarray) -> np.ndarray:
             | (faces[:, 0] == faces[:, 2]))
 
 
-def _duplicate_mask(faces: np.ndarray) -> np.ndarray:
-    """(m,) bool: face has the same vertex set as an earlier face."""
+def _duplicate_mask(faces: np.ndarray, n_vertices: int) -> np.ndarray:
+    """(m,) bool: face has the same vertex set as an earlier face (either orientation)."""
     if len(faces) == 0:
         return np.zeros(0, bool)
-    first, _ = _unique_rows(np.sort(faces, axis=1))
-    keep = np.zeros(len(faces), bool)
-    keep[first] = True
-    return ~keep
+    return _duplicate_faces(faces, int(n_vertices))
 
 
 def check_mesh(mesh: Mesh) -> MeshReport:
     """Diagnose a mesh: edge topology, degenerate/duplicate faces, orientation.
 
-    Vectorised: edges are keyed by their sorted vertex pair and counted with a hash table.
+    Compiled O(m) passes: edges are bucketed by their lower vertex and counted, duplicate
+    faces found the same way; volume and zero-area faces in one pass over the faces.
     """
-    v, f = mesh.vertices, np.asarray(mesh.faces, dtype=np.int64)
-    nonfinite = int(np.count_nonzero(~np.isfinite(v).all(axis=1))) if len(v) else 0
-    degen = _degenerate_mask(f)
-    good = f[~degen]
-    dup = _duplicate_mask(good)
+    return _diagnose(mesh, known_clean=False)
+
+
+def _diagnose(mesh: Mesh, known_clean: bool) -> MeshReport:
+    """check_mesh; ``known_clean`` skips the degenerate/duplicate search (just removed)."""
+    v, f = mesh.vertices, np.ascontiguousarray(mesh.faces, dtype=np.int64)
+    if f.ndim != 2 or (len(f) and f.shape[1] != 3) or (v.ndim != 2 or v.shape[1] != 3):
+        raise MeshError(f"{mesh.name or 'mesh'}: expected vertices (n, 3) and faces (m, 3), "
+                        f"got {v.shape} and {f.shape}")
+    if len(f) and (f.min() < 0 or f.max() >= len(v)):
+        raise MeshError(f"{mesh.name or 'mesh'}: face index out of range [0, {len(v)})")
+    v = np.ascontiguousarray(v, dtype=np.float64)
+    nonfinite = 0 if np.isfinite(v).all() else int(np.count_nonzero(
+        ~np.isfinite(v).all(axis=1)))
+    if known_clean:
+        good, degen, dup = f, np.zeros(0, bool), np.zeros(0, bool)
+    else:
+        degen = _degenerate_mask(f)
+        good = f[~degen] if degen.any() else f
+        dup = _duplicate_mask(good, len(v))
     open_, nonman, misor = _edge_stats(good, len(v))
     if nonfinite == 0 and len(good):
-        tri = v[good]
-        area2 = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
         scale = float(np.abs(v).max()) or 1.0
-        zero_area = int(np.count_nonzero(area2 <= (1e-12 * scale) ** 2))
-        volume = mesh_volume(v, good)
+        zero_area, volume = _face_measures(v, good, (1e-12 * scale) ** 2)
+        zero_area, volume = int(zero_area), float(volume)
     else:
         zero_area, volume = 0, float("nan")
     closed = open_ == 0 and nonman == 0 and len(good) > 0
@@ -305,14 +445,24 @@ def clean_mesh(mesh: Mesh) -> tuple[Mesh, MeshReport]:
     """
     f = np.asarray(mesh.faces, dtype=np.int64)
     degen = _degenerate_mask(f)
-    f = f[~degen]
-    dup = _duplicate_mask(f)
-    f = f[~dup]
-    cleaned = Mesh(mesh.vertices, f, mesh.name)
-    report = check_mesh(cleaned)
+    if degen.any():
+        f = f[~degen]
+    dup = _duplicate_mask(f, len(mesh.vertices))
+    if dup.any():
+        f = f[~dup]
+    vertices = mesh.vertices
+    if len(f):
+        used = np.zeros(len(vertices), bool)
+        used[f] = True
+        if not used.all():  # drop vertices no face refers to (renumbered, order kept)
+            remap = np.cumsum(used) - 1
+            f = remap[f]
+            vertices = vertices[used]
+    cleaned = Mesh(vertices, f, mesh.name)
+    report = _diagnose(cleaned, known_clean=True)
     flipped = False
     if report.inverted:
-        cleaned = Mesh(mesh.vertices, np.ascontiguousarray(f[:, ::-1]), mesh.name)
+        cleaned = Mesh(vertices, np.ascontiguousarray(f[:, ::-1]), mesh.name)
         report = dataclasses.replace(report, volume=-report.volume, inverted=False)
         flipped = True
     report = dataclasses.replace(report, removed_degenerate=int(degen.sum()),
@@ -384,15 +534,9 @@ def _read_stl_binary(data: bytes, path: FsPath) -> np.ndarray:
     return np.ascontiguousarray(rec["corners"]).reshape(-1, 3)
 
 
-def _corners_to_mesh(corners: np.ndarray, path: FsPath, inexact: bool,
-                     tolerance: float) -> tuple[Mesh, int]:
-    """Weld (3 m, 3) corners into an indexed mesh; returns the mesh and merged count."""
-    _check_finite(corners, path)
-    vertices, index = weld_vertices(corners, inexact=inexact, tolerance=tolerance)
-    return Mesh(vertices, index.reshape(-1, 3), path.name), 0
-
-
 def _check_finite(points: np.ndarray, path: FsPath) -> None:
+    if np.isfinite(points).all():
+        return
     bad = ~np.isfinite(points).all(axis=1)
     if bad.any():
         k = int(np.flatnonzero(bad)[0])
@@ -473,16 +617,801 @@ def load_mesh(path: str | os.PathLike[str], *, inexact: bool = False,
     return read_mesh(path, inexact=inexact, tolerance=tolerance)[0]
 
 
+# --------------------------------------------------------------------------- text scanning
+#
+# ASCII formats are scanned in one compiled pass over the bytes (numba): the pass checks
+# the grammar (with line numbers for errors), copies the coordinate tokens into one
+# compact buffer and parses integer indices itself; the coordinates are then converted
+# in one call (``np.fromstring``, C ``strtod``, correctly rounded).
+
+_WS = np.zeros(256, np.bool_)
+_WS[[9, 10, 11, 12, 13, 32]] = True
+_KW_SOLID = np.frombuffer(b"solid", np.uint8)
+_KW_ENDSOLID = np.frombuffer(b"endsolid", np.uint8)
+_KW_FACET = np.frombuffer(b"facet", np.uint8)
+_KW_NORMAL = np.frombuffer(b"normal", np.uint8)
+_KW_OUTER = np.frombuffer(b"outer", np.uint8)
+_KW_LOOP = np.frombuffer(b"loop", np.uint8)
+_KW_VERTEX = np.frombuffer(b"vertex", np.uint8)
+_KW_ENDLOOP = np.frombuffer(b"endloop", np.uint8)
+_KW_ENDFACET = np.frombuffer(b"endfacet", np.uint8)
+
+# error codes of the scanners
+_E_TOKEN, _E_NUMBER, _E_VCOUNT, _E_EOF, _E_INDEX, _E_FEW = 1, 2, 3, 4, 5, 6
+
+
+@njit(cache=True)
+def _is_ws(c):  # pragma: no cover
+    return c == 32 or (9 <= c <= 13)
+
+
+@njit(cache=True)
+def _tok_eq(b, s, e, kw):  # pragma: no cover
+    """Token b[s:e] equals keyword kw (ASCII, case-insensitive)."""
+    if e - s != kw.size:
+        return False
+    for i in range(kw.size):
+        c = b[s + i]
+        if 65 <= c <= 90:
+            c += 32
+        if c != kw[i]:
+            return False
+    return True
+
+
+@njit(cache=True)
+def _is_number(b, s, e):  # pragma: no cover
+    """Token b[s:e] is a decimal floating-point number, nan or inf[inity]."""
+    i = s
+    if i < e and (b[i] == 43 or b[i] == 45):
+        i += 1
+    if i >= e:
+        return False
+    c = b[i] | 32
+    if c == 110 or c == 105:  # nan / inf / infinity
+        n = e - i
+        if n == 3:
+            w0, w1, w2 = b[i] | 32, b[i + 1] | 32, b[i + 2] | 32
+            return (w0 == 110 and w1 == 97 and w2 == 110) or (
+                w0 == 105 and w1 == 110 and w2 == 102)
+        if n == 8:
+            ok = True
+            word = "infinity"
+            for k in range(8):
+                if (b[i + k] | 32) != ord(word[k]):
+                    ok = False
+            return ok
+        return False
+    digits = 0
+    while i < e and 48 <= b[i] <= 57:
+        i += 1
+        digits += 1
+    if i < e and b[i] == 46:
+        i += 1
+        while i < e and 48 <= b[i] <= 57:
+            i += 1
+            digits += 1
+    if digits == 0:
+        return False
+    if i < e and (b[i] == 101 or b[i] == 69):
+        i += 1
+        if i < e and (b[i] == 43 or b[i] == 45):
+            i += 1
+        ed = 0
+        while i < e and 48 <= b[i] <= 57:
+            i += 1
+            ed += 1
+        if ed == 0:
+            return False
+    return i == e
+
+
+@njit(cache=True)
+def _next_token(b, i, line):  # pragma: no cover
+    """Skip whitespace from i; returns (start, end, line) of the next token (start == n at EOF)."""
+    n = b.size
+    while i < n and _is_ws(b[i]):
+        if b[i] == 10:
+            line += 1
+        i += 1
+    s = i
+    while i < n and not _is_ws(b[i]):
+        i += 1
+    return s, i, line
+
+
+@njit(cache=True)
+def _skip_line(b, i):  # pragma: no cover
+    n = b.size
+    while i < n and b[i] != 10:
+        i += 1
+    return i
+
+
+@njit(cache=True)
+def _scan_stl_ascii(b):  # pragma: no cover
+    """Check the ASCII STL grammar and collect the vertex coordinate tokens.
+
+    Returns (numbers, vlines, err, err_line): ``numbers`` uint8 bytes holding 3 tokens per
+    vertex separated by spaces, ``vlines`` (v,) int64 line of each vertex, and an error
+    code with its 1-based line (0 if none).
+    """
+    n = b.size
+    out = np.empty(n + 1, np.uint8)
+    vlines = np.empty(n // 13 + 1, np.int64)
+    o = 0
+    nv = 0
+    line = 1
+    i = 0
+    in_facet = False
+    in_loop = False
+    fv = 0
+    nfacets = 0
+    while True:
+        s, e, line = _next_token(b, i, line)
+        i = e
+        if s >= n:
+            break
+        if _tok_eq(b, s, e, _KW_SOLID) or _tok_eq(b, s, e, _KW_ENDSOLID):
+            if in_facet:
+                return out[:o], vlines[:nv], _E_TOKEN, line
+            i = _skip_line(b, e)
+        elif _tok_eq(b, s, e, _KW_FACET):
+            if in_facet:
+                return out[:o], vlines[:nv], _E_TOKEN, line
+            s, e, line = _next_token(b, e, line)
+            if not _tok_eq(b, s, e, _KW_NORMAL):
+                return out[:o], vlines[:nv], _E_TOKEN, line
+            for _ in range(3):
+                s, e, line = _next_token(b, e, line)
+                if not _is_number(b, s, e):
+                    return out[:o], vlines[:nv], _E_NUMBER, line
+            i = e
+            in_facet = True
+            fv = 0
+        elif _tok_eq(b, s, e, _KW_OUTER):
+            s, e, line = _next_token(b, e, line)
+            if not in_facet or in_loop or not _tok_eq(b, s, e, _KW_LOOP):
+                return out[:o], vlines[:nv], _E_TOKEN, line
+            in_loop = True
+            i = e
+        elif _tok_eq(b, s, e, _KW_VERTEX):
+            if not in_loop:
+                return out[:o], vlines[:nv], _E_TOKEN, line
+            vline = line
+            for _ in range(3):
+                s, e, line = _next_token(b, e, line)
+                if not _is_number(b, s, e) or line != vline:
+                    return out[:o], vlines[:nv], _E_NUMBER, line
+                for k in range(s, e):
+                    out[o] = b[k]
+                    o += 1
+                out[o] = 32
+                o += 1
+            vlines[nv] = vline
+            nv += 1
+            fv += 1
+            i = e
+        elif _tok_eq(b, s, e, _KW_ENDLOOP):
+            if not in_loop:
+                return out[:o], vlines[:nv], _E_TOKEN, line
+            in_loop = False
+        elif _tok_eq(b, s, e, _KW_ENDFACET):
+            if not in_facet or in_loop:
+                return out[:o], vlines[:nv], _E_TOKEN, line
+            if fv != 3:
+                return out[:o], vlines[:nv], _E_VCOUNT, line
+            in_facet = False
+            nfacets += 1
+        else:
+            return out[:o], vlines[:nv], _E_TOKEN, line
+    if in_facet:
+        return out[:o], vlines[:nv], _E_EOF, line
+    return out[:o], vlines[:nv], 0, 0
+
+
+def _line_text(data: bytes, line: int) -> str:
+    """The text of 1-based line ``line`` (shortened), for error messages."""
+    lines = data.split(b"\n", line)
+    text = lines[line - 1] if 0 < line <= len(lines) else b""
+    return text[:60].decode("ascii", "replace").strip()
+
+
+def _parse_numbers(buf: np.ndarray, count: int, lines: np.ndarray, per: int, data: bytes,
+                   path: FsPath, fmt: str) -> np.ndarray:
+    """Convert the compact number tokens to float64; errors name the line."""
+    text = buf.tobytes()
+    values = None
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DeprecationWarning)
+        try:
+            values = np.fromstring(text, dtype=np.float64, sep=" ")
+        except (ValueError, DeprecationWarning):
+            values = None
+    if values is None or len(values) != count:
+        for k, tok in enumerate(text.split()):
+            try:
+                float(tok)
+            except ValueError:
+                line = int(lines[k // per]) if len(lines) else 0
+                raise MeshError(f"{path}: {fmt} line {line}: cannot read number "
+                                f"{tok[:30].decode('ascii', 'replace')!r}") from None
+        raise MeshError(f"{path}: {fmt}: expected {count} numbers, read "
+                        f"{0 if values is None else len(values)}")
+    return values
+
+
+def _check_finite_lines(points: np.ndarray, lines: np.ndarray, path: FsPath,
+                        fmt: str) -> None:
+    bad = ~np.isfinite(points).all(axis=1)
+    if bad.any():
+        k = int(np.flatnonzero(bad)[0])
+        raise MeshError(f"{path}: {int(bad.sum())} vertices with NaN/Inf coordinates "
+                        f"(first on {fmt} line {int(lines[k])}: {points[k].tolist()}); "
+                        "expected finite numbers")
+
+
 def _read_stl_ascii(data: bytes, path: FsPath) -> np.ndarray:
-    raise MeshError(f"{path}: ASCII STL not supported yet")
+    """Corner coordinates (3 m, 3) float64 of an ASCII STL (one scan, one conversion)."""
+    b = np.frombuffer(data, np.uint8)
+    buf, vlines, err, line = _scan_stl_ascii(b)
+    if err:
+        what = {_E_TOKEN: "unexpected token", _E_NUMBER: "expected three numbers",
+                _E_VCOUNT: "a facet must have exactly 3 vertices",
+                _E_EOF: "file ends inside a facet (truncated?)"}[err]
+        raise MeshError(f"{path}: ASCII STL line {line}: {what} "
+                        f"(line reads {_line_text(data, line)!r})")
+    if len(vlines) == 0:
+        raise MeshError(f"{path}: ASCII STL without facets")
+    values = _parse_numbers(buf, 3 * len(vlines), vlines, 3, data, path, "ASCII STL")
+    corners = values.reshape(-1, 3)
+    _check_finite_lines(corners, vlines, path, "ASCII STL")
+    return corners
 
 
-def _read_ply(data: bytes, path: FsPath) -> tuple[np.ndarray, np.ndarray]:
-    raise MeshError(f"{path}: PLY not supported yet")
+# --------------------------------------------------------------------------- OBJ
+
+
+@njit(cache=True)
+def _scan_obj(b):  # pragma: no cover
+    """Scan an OBJ: vertex coordinate tokens and face indices.
+
+    Returns (numbers, vlines, fidx, fcount, flines, n_short, err, err_line): ``numbers``
+    holds the first three tokens of every ``v`` line; ``fidx`` (k,) int64 0-based vertex
+    indices of all faces (negative indices resolved against the vertices read so far),
+    ``fcount`` (f,) corners per face, ``flines`` (f,) line of each face; ``n_short``
+    faces with fewer than 3 corners were skipped.
+    """
+    n = b.size
+    out = np.empty(n + 1, np.uint8)
+    vlines = np.empty(n // 6 + 1, np.int64)
+    fidx = np.empty(n // 2 + 1, np.int64)
+    fcount = np.empty(n // 6 + 1, np.int64)
+    flines = np.empty(n // 6 + 1, np.int64)
+    o = 0
+    nv = 0
+    nk = 0
+    nf = 0
+    n_short = 0
+    i = 0
+    line = 1
+    while i < n:
+        # start of a line: skip blanks (not newlines)
+        while i < n and (b[i] == 32 or b[i] == 9 or b[i] == 13):
+            i += 1
+        if i >= n:
+            break
+        if b[i] == 10:
+            line += 1
+            i += 1
+            continue
+        s = i
+        while i < n and not _is_ws(b[i]):
+            i += 1
+        e = i
+        if e - s == 1 and b[s] == 118:  # 'v'
+            k = 0
+            while True:
+                while i < n and (b[i] == 32 or b[i] == 9 or b[i] == 13):
+                    i += 1
+                if i >= n or b[i] == 10 or b[i] == 35:
+                    break
+                s = i
+                while i < n and not _is_ws(b[i]):
+                    i += 1
+                if k < 3:
+                    if not _is_number(b, s, i):
+                        return (out[:o], vlines[:nv], fidx[:nk], fcount[:nf], flines[:nf],
+                                n_short, _E_NUMBER, line)
+                    for q in range(s, i):
+                        out[o] = b[q]
+                        o += 1
+                    out[o] = 32
+                    o += 1
+                k += 1
+            if k < 3:
+                return (out[:o], vlines[:nv], fidx[:nk], fcount[:nf], flines[:nf], n_short,
+                        _E_FEW, line)
+            vlines[nv] = line
+            nv += 1
+        elif e - s == 1 and b[s] == 102:  # 'f'
+            k = 0
+            while True:
+                while i < n and (b[i] == 32 or b[i] == 9 or b[i] == 13):
+                    i += 1
+                if i >= n or b[i] == 10 or b[i] == 35:
+                    break
+                neg = False
+                if b[i] == 45:
+                    neg = True
+                    i += 1
+                elif b[i] == 43:
+                    i += 1
+                val = 0
+                nd = 0
+                while i < n and 48 <= b[i] <= 57 and nd < 18:
+                    val = val * 10 + (b[i] - 48)
+                    i += 1
+                    nd += 1
+                if nd == 0 or (i < n and not _is_ws(b[i]) and b[i] != 47):
+                    return (out[:o], vlines[:nv], fidx[:nk], fcount[:nf], flines[:nf],
+                            n_short, _E_NUMBER, line)
+                while i < n and not _is_ws(b[i]):  # '/vt/vn' part
+                    i += 1
+                if val == 0:
+                    return (out[:o], vlines[:nv], fidx[:nk], fcount[:nf], flines[:nf],
+                            n_short, _E_INDEX, line)
+                idx = nv - val if neg else val - 1
+                if idx < 0:
+                    return (out[:o], vlines[:nv], fidx[:nk], fcount[:nf], flines[:nf],
+                            n_short, _E_INDEX, line)
+                fidx[nk] = idx
+                nk += 1
+                k += 1
+            if k < 3:
+                nk -= k
+                n_short += 1
+            else:
+                fcount[nf] = k
+                flines[nf] = line
+                nf += 1
+        else:
+            pass  # vt, vn, o, g, s, usemtl, comments...: not needed
+        while i < n and b[i] != 10:  # rest of the line
+            i += 1
+    return out[:o], vlines[:nv], fidx[:nk], fcount[:nf], flines[:nf], n_short, 0, 0
+
+
+def _fan(flat: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """Fan-triangulate polygons given as concatenated corner indices, vectorised.
+
+    flat: (sum(counts),) int64; counts: (p,) int64, each >= 3.
+    Returns (sum(counts - 2), 3) int64, polygon order kept: (c0, c_j+1, c_j+2).
+    """
+    if len(counts) == 0:
+        return np.zeros((0, 3), np.int64)
+    if np.all(counts == 3):
+        return flat.reshape(-1, 3)
+    starts = np.cumsum(counts) - counts
+    ntri = counts - 2
+    poly = np.repeat(np.arange(len(counts)), ntri)
+    j = np.arange(int(ntri.sum())) - np.repeat(np.cumsum(ntri) - ntri, ntri)
+    base = starts[poly]
+    return np.stack([flat[base], flat[base + j + 1], flat[base + j + 2]], axis=1)
 
 
 def _read_obj(data: bytes, path: FsPath) -> tuple[np.ndarray, np.ndarray]:
-    raise MeshError(f"{path}: OBJ not supported yet")
+    """Vertices (n, 3) float64 and triangles (m, 3) int64 of an OBJ file."""
+    b = np.frombuffer(data, np.uint8)
+    buf, vlines, fidx, fcount, flines, n_short, err, line = _scan_obj(b)
+    if err:
+        what = {_E_NUMBER: "cannot read a number", _E_FEW: "a vertex needs 3 coordinates",
+                _E_INDEX: "face index 0 or before the first vertex"}[err]
+        raise MeshError(f"{path}: OBJ line {line}: {what} "
+                        f"(line reads {_line_text(data, line)!r})")
+    if len(vlines) == 0:
+        raise MeshError(f"{path}: OBJ without vertices ('v' lines)")
+    values = _parse_numbers(buf, 3 * len(vlines), vlines, 3, data, path, "OBJ")
+    vertices = values.reshape(-1, 3)
+    _check_finite_lines(vertices, vlines, path, "OBJ")
+    if len(fidx) and fidx.max() >= len(vertices):
+        k = int(np.searchsorted(np.cumsum(fcount), int(np.argmax(fidx >= len(vertices))),
+                                side="right"))
+        raise MeshError(f"{path}: OBJ line {int(flines[k])}: face index out of range: the "
+                        f"file has {len(vertices)} vertices")
+    if n_short:
+        log.warning("%s: skipped %d OBJ faces with fewer than 3 corners", path, n_short)
+    return vertices, _fan(fidx, fcount)
+
+
+# --------------------------------------------------------------------------- PLY
+
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2",
+              "int16": "i2", "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4",
+              "uint": "u4", "uint32": "u4", "float": "f4", "float32": "f4",
+              "double": "f8", "float64": "f8"}
+
+
+@dataclass
+class _PlyProp:
+    name: str
+    dtype: str                 # value type code, e.g. 'f4'
+    count: str | None = None   # list count type code, None for a scalar
+
+
+@dataclass
+class _PlyElement:
+    name: str
+    n: int
+    props: list[_PlyProp]
+    line: int
+
+
+def _ply_header(data: bytes, path: FsPath) -> tuple[str, list[_PlyElement], int, int]:
+    """Parse the header: (format, elements, byte offset of the body, header line count)."""
+    end = data.find(b"end_header")
+    if end < 0:
+        raise MeshError(f"{path}: PLY header without 'end_header'")
+    body = data.find(b"\n", end)
+    body = len(data) if body < 0 else body + 1
+    try:
+        text = data[:end].decode("ascii")
+    except UnicodeDecodeError:
+        raise MeshError(f"{path}: PLY header is not ASCII text") from None
+    fmt = ""
+    elements: list[_PlyElement] = []
+    lines = text.replace("\r", "").split("\n")
+    for ln, raw in enumerate(lines, start=1):
+        words = raw.split()
+        if not words or words[0] in ("ply", "comment", "obj_info"):
+            continue
+        where = f"{path}: PLY header line {ln}"
+        if words[0] == "format":
+            if len(words) < 2 or words[1] not in ("ascii", "binary_little_endian",
+                                                  "binary_big_endian"):
+                raise MeshError(f"{where}: unknown format {raw.strip()!r}; expected ascii, "
+                                "binary_little_endian or binary_big_endian")
+            fmt = words[1]
+        elif words[0] == "element":
+            if len(words) != 3 or not words[2].isdigit():
+                raise MeshError(f"{where}: expected 'element <name> <count>', got "
+                                f"{raw.strip()!r}")
+            elements.append(_PlyElement(words[1], int(words[2]), [], ln))
+        elif words[0] == "property":
+            if not elements:
+                raise MeshError(f"{where}: property before any element")
+            if len(words) == 5 and words[1] == "list":
+                ct, vt = _PLY_TYPES.get(words[2]), _PLY_TYPES.get(words[3])
+                if ct is None or vt is None or ct[0] == "f":
+                    raise MeshError(f"{where}: bad list types in {raw.strip()!r}")
+                elements[-1].props.append(_PlyProp(words[4], vt, ct))
+            elif len(words) == 3 and words[1] in _PLY_TYPES:
+                elements[-1].props.append(_PlyProp(words[2], _PLY_TYPES[words[1]]))
+            else:
+                raise MeshError(f"{where}: cannot read property {raw.strip()!r}")
+        else:
+            raise MeshError(f"{where}: unknown header keyword {words[0]!r}")
+    if not fmt:
+        raise MeshError(f"{path}: PLY header without a 'format' line")
+    return fmt, elements, body, len(lines)
+
+
+@njit(cache=True)
+def _scan_ply_binary(b, start, n, is_list, vsize, csize, csigned, big):  # pragma: no cover
+    """Byte offset of every property of every record of a PLY element with list properties.
+
+    Returns (offsets (n, p) int64, end, ok); ``ok`` is False when the data run out or a
+    count is negative.
+    """
+    p = is_list.size
+    offsets = np.empty((n, p), np.int64)
+    pos = start
+    size = b.size
+    for r in range(n):
+        for q in range(p):
+            offsets[r, q] = pos
+            if not is_list[q]:
+                pos += vsize[q]
+                continue
+            cs = csize[q]
+            if pos + cs > size:
+                return offsets, pos, False
+            c = 0
+            for k in range(cs):
+                byte = b[pos + (cs - 1 - k if not big else k)]
+                c = c * 256 + byte
+            if csigned[q] and c >= (1 << (8 * cs - 1)):
+                return offsets, pos, False  # negative count
+            pos += cs + c * vsize[q]
+        if pos > size:
+            return offsets, pos, False
+    return offsets, pos, True
+
+
+@njit(cache=True)
+def _scan_ply_ascii(t, start, n, is_list):  # pragma: no cover
+    """Token index of every property of every record (ASCII PLY); see _scan_ply_binary."""
+    p = is_list.size
+    offsets = np.empty((n, p), np.int64)
+    pos = start
+    size = t.size
+    for r in range(n):
+        for q in range(p):
+            offsets[r, q] = pos
+            if not is_list[q]:
+                pos += 1
+                continue
+            if pos >= size:
+                return offsets, pos, False
+            c = t[pos]
+            if not (c >= 0 and c == np.floor(c) and c < 2**31):
+                return offsets, pos, False
+            pos += 1 + int(c)
+        if pos > size:
+            return offsets, pos, False
+    return offsets, pos, True
+
+
+class _PlyData:
+    """Property values of one element: ``scalar(name) -> (n,)``, ``lists(name)``."""
+
+    def __init__(self, scalars: dict[str, np.ndarray],
+                 lists: dict[str, tuple[np.ndarray, np.ndarray]]):
+        self.scalars = scalars
+        self.lists = lists  # name -> (flat values, counts)
+
+
+def _ply_element_binary(b: np.ndarray, pos: int, el: _PlyElement, endian: str,
+                        path: FsPath) -> tuple[_PlyData, int]:
+    """Read one element of a binary PLY starting at byte ``pos``; returns data and end."""
+    remaining = len(b) - pos
+    # guess a fixed layout from the first record's list counts (exact by induction when
+    # every record's counts agree with it); fall back to a compiled scan otherwise.
+    fields = []
+    at = pos
+    guess: dict[str, int] = {}
+    for q in el.props:
+        if q.count is None:
+            fields.append((q.name, endian + q.dtype))
+            at += np.dtype(q.dtype).itemsize
+        else:
+            csz = np.dtype(q.count).itemsize
+            if el.n == 0 or at + csz > len(b):
+                c = 0
+            else:
+                c = int(b[at:at + csz].view(endian + q.count)[0])
+            if c < 0:
+                raise MeshError(f"{path}: PLY element {el.name!r}: negative list count {c}")
+            guess[q.name] = c
+            fields.append(("__n_" + q.name, endian + q.count))
+            fields.append((q.name, endian + q.dtype, (c,)))
+            at += csz + c * np.dtype(q.dtype).itemsize
+    dt = np.dtype(fields)
+    if el.n == 0:
+        return _PlyData({q.name: np.zeros(0) for q in el.props if q.count is None},
+                        {q.name: (np.zeros(0, np.int64), np.zeros(0, np.int64))
+                         for q in el.props if q.count is not None}), pos
+    if not guess:
+        if el.n * dt.itemsize > remaining:
+            raise MeshError(f"{path}: truncated PLY: element {el.name!r} declares {el.n} "
+                            f"records ({el.n * dt.itemsize} bytes) but {remaining} bytes "
+                            "remain")
+        rec = np.frombuffer(b, dt, count=el.n, offset=pos)
+        return _PlyData({q.name: rec[q.name] for q in el.props}, {}), \
+            pos + el.n * dt.itemsize
+    if dt.itemsize > 0 and el.n * dt.itemsize <= remaining:
+        rec = np.frombuffer(b, dt, count=el.n, offset=pos)
+        if all(np.all(rec["__n_" + k] == c) for k, c in guess.items()):
+            scal = {q.name: rec[q.name] for q in el.props if q.count is None}
+            lists = {k: (rec[k].reshape(-1).astype(np.int64),
+                         np.full(el.n, c, np.int64)) for k, c in guess.items()}
+            return _PlyData(scal, lists), pos + el.n * dt.itemsize
+    # variable layout: every record is at least its count fields and scalars long
+    min_size = sum(np.dtype(q.count or q.dtype).itemsize for q in el.props)
+    if el.n * max(min_size, 1) > remaining:
+        raise MeshError(f"{path}: truncated PLY: element {el.name!r} declares {el.n} "
+                        f"records but only {remaining} bytes remain")
+    is_list = np.array([q.count is not None for q in el.props])
+    vsize = np.array([np.dtype(q.dtype).itemsize for q in el.props], np.int64)
+    csize = np.array([np.dtype(q.count).itemsize if q.count else 0 for q in el.props],
+                     np.int64)
+    csigned = np.array([bool(q.count and q.count[0] == "i") for q in el.props])
+    offsets, end, ok = _scan_ply_binary(b, pos, el.n, is_list, vsize, csize, csigned,
+                                        endian == ">")
+    if not ok:
+        raise MeshError(f"{path}: truncated or corrupt PLY element {el.name!r} (record data "
+                        f"runs past the end of the file or has a negative list count)")
+    scal: dict[str, np.ndarray] = {}
+    lists: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    for qi, q in enumerate(el.props):
+        if q.count is None:
+            scal[q.name] = _gather(b, offsets[:, qi], endian + q.dtype)
+        else:
+            cdt = endian + q.count
+            counts = _gather(b, offsets[:, qi], cdt).astype(np.int64)
+            vdt = np.dtype(endian + q.dtype)
+            total = int(counts.sum())
+            rec_of = np.repeat(np.arange(el.n), counts)
+            j = np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)
+            starts = offsets[rec_of, qi] + np.dtype(cdt).itemsize + j * vdt.itemsize
+            lists[q.name] = (_gather(b, starts, vdt).astype(np.int64), counts)
+    return _PlyData(scal, lists), int(end)
+
+
+def _gather(b: np.ndarray, starts: np.ndarray, dtype: str | np.dtype) -> np.ndarray:
+    """Values of ``dtype`` stored at byte offsets ``starts`` of ``b`` (vectorised)."""
+    dt = np.dtype(dtype)
+    idx = starts[:, None] + np.arange(dt.itemsize)
+    return np.ascontiguousarray(b[idx]).view(dt).reshape(-1)
+
+
+def _ply_element_ascii(t: np.ndarray, pos: int, el: _PlyElement,
+                       path: FsPath) -> tuple[_PlyData, int]:
+    """Read one element from the token array ``t`` (ASCII PLY) starting at token ``pos``."""
+    remaining = len(t) - pos
+    kinds = [q.count is not None for q in el.props]
+    if el.n == 0:
+        return _PlyData({}, {}), pos
+    if el.n * max(len(kinds), 1) > remaining:
+        raise MeshError(f"{path}: truncated ASCII PLY: element {el.name!r} declares {el.n} "
+                        f"records but only {remaining} numbers remain")
+    # fixed layout guess from the first record
+    width = 0
+    guess = []
+    for q in el.props:
+        if q.count is None:
+            width += 1
+        else:
+            c = t[pos + width] if pos + width < len(t) else -1
+            if not (c >= 0 and c == np.floor(c)):
+                raise MeshError(f"{path}: ASCII PLY element {el.name!r}: bad list count "
+                                f"{c!r}")
+            guess.append((width, int(c)))
+            width += 1 + int(c)
+    if el.n * width <= remaining:
+        table = t[pos:pos + el.n * width].reshape(el.n, width)
+        if all(np.all(table[:, w] == c) for w, c in guess):
+            scal, lists, col = {}, {}, 0
+            for q in el.props:
+                if q.count is None:
+                    scal[q.name] = table[:, col]
+                    col += 1
+                else:
+                    c = int(table[0, col])
+                    lists[q.name] = (table[:, col + 1:col + 1 + c].reshape(-1),
+                                     np.full(el.n, c, np.int64))
+                    col += 1 + c
+            return _PlyData(scal, lists), pos + el.n * width
+    offsets, end, ok = _scan_ply_ascii(t, pos, el.n, np.array(kinds))
+    if not ok:
+        raise MeshError(f"{path}: truncated or corrupt ASCII PLY element {el.name!r} (data "
+                        "run out or a list count is not a non-negative integer)")
+    scal, lists = {}, {}
+    for qi, q in enumerate(el.props):
+        if q.count is None:
+            scal[q.name] = t[offsets[:, qi]]
+        else:
+            counts = t[offsets[:, qi]].astype(np.int64)
+            total = int(counts.sum())
+            rec_of = np.repeat(np.arange(el.n), counts)
+            j = np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)
+            lists[q.name] = (t[offsets[rec_of, qi] + 1 + j], counts)
+    return _PlyData(scal, lists), int(end)
+
+
+def _tristrips(strip: np.ndarray) -> np.ndarray:
+    """Triangles (m, 3) of a triangle strip with -1 restarts, vectorised.
+
+    Triangle i of a strip is (s_i, s_i+1, s_i+2) with the first two swapped for odd i
+    (alternating winding, counted from the start of each strip); triangles spanning a -1
+    and degenerate ones (repeated index, used by strippers to turn corners) are dropped.
+    """
+    s = np.asarray(strip, np.int64)
+    if len(s) < 3:
+        return np.zeros((0, 3), np.int64)
+    a, b_, c = s[:-2], s[1:-1], s[2:]
+    i = np.arange(len(s) - 2)
+    restart = np.flatnonzero(s < 0)
+    last = np.full(len(s), -1, np.int64)
+    last[restart] = restart
+    last = np.maximum.accumulate(last)
+    k = i - last[:-2] - 1  # position inside the current strip
+    odd = (k % 2) == 1
+    tri = np.stack([np.where(odd, b_, a), np.where(odd, a, b_), c], axis=1)
+    valid = (a >= 0) & (b_ >= 0) & (c >= 0) & (a != b_) & (b_ != c) & (a != c)
+    return tri[valid]
+
+
+def _read_ply(data: bytes, path: FsPath) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (n, 3) float64 and triangles (m, 3) int64 of a binary or ASCII PLY."""
+    fmt, elements, body, _ = _ply_header(data, path)
+    names = [e.name for e in elements]
+    if "vertex" not in names:
+        raise MeshError(f"{path}: PLY without a 'vertex' element")
+    vel = elements[names.index("vertex")]
+    missing = [a for a in "xyz" if a not in [q.name for q in vel.props if q.count is None]]
+    if missing:
+        raise MeshError(f"{path}: PLY vertex element lacks scalar properties "
+                        f"{', '.join(missing)}")
+    wanted = {"vertex", "face", "tristrips"}
+    last = max(i for i, e in enumerate(elements) if e.name in wanted)
+    got: dict[str, _PlyData] = {}
+    if fmt == "ascii":
+        tb = np.frombuffer(data, np.uint8, offset=body)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", DeprecationWarning)
+            try:
+                t = np.fromstring(tb.tobytes(), dtype=np.float64, sep=" ")
+            except (ValueError, DeprecationWarning):
+                t = None
+        if t is None:
+            toks = tb.tobytes().split()
+            for k, tok in enumerate(toks):
+                try:
+                    float(tok)
+                except ValueError:
+                    line = _line_of_token(data, body, k)
+                    raise MeshError(f"{path}: ASCII PLY line {line}: cannot read number "
+                                    f"{tok[:30].decode('ascii', 'replace')!r}") from None
+            raise MeshError(f"{path}: ASCII PLY body cannot be read as numbers")
+        pos = 0
+        for el in elements[:last + 1]:
+            d, pos = _ply_element_ascii(t, pos, el, path)
+            got[el.name] = d
+    else:
+        b = np.frombuffer(data, np.uint8)
+        endian = "<" if fmt == "binary_little_endian" else ">"
+        pos = body
+        for el in elements[:last + 1]:
+            d, pos = _ply_element_binary(b, pos, el, endian, path)
+            got[el.name] = d
+    v = got["vertex"].scalars
+    vertices = np.stack([np.asarray(v[a], np.float64) for a in "xyz"], axis=1) \
+        if vel.n else np.zeros((0, 3))
+    tris = []
+    for name in ("face", "tristrips"):
+        if name not in got:
+            continue
+        lists = got[name].lists
+        key = next((k for k in ("vertex_indices", "vertex_index") if k in lists),
+                   next(iter(lists), None))
+        if key is None:
+            raise MeshError(f"{path}: PLY element {name!r} has no vertex index list")
+        flat, counts = lists[key]
+        flat = np.asarray(flat)
+        if not np.all(flat == np.floor(flat)):
+            raise MeshError(f"{path}: PLY {name} indices are not integers")
+        flat = flat.astype(np.int64)
+        if name == "face":
+            short = counts < 3
+            if short.any():
+                log.warning("%s: skipped %d PLY faces with fewer than 3 corners", path,
+                            int(short.sum()))
+                keep = np.repeat(~short, counts)
+                flat, counts = flat[keep], counts[~short]
+            tris.append(_fan(flat, counts))
+        else:
+            # every record is a strip set of its own: join them with -1 restarts
+            joined = np.full(len(flat) + len(counts), -1, np.int64)
+            rec_of = np.repeat(np.arange(len(counts)), counts)
+            joined[np.arange(len(flat)) + rec_of] = flat
+            tris.append(_tristrips(joined))
+    if not tris:
+        raise MeshError(f"{path}: PLY without a 'face' or 'tristrips' element (a point "
+                        "cloud?)")
+    faces = np.concatenate(tris) if len(tris) > 1 else tris[0]
+    return vertices, faces
+
+
+def _line_of_token(data: bytes, body: int, k: int) -> int:
+    """1-based line of the k-th whitespace token after byte ``body`` (error path only)."""
+    count = -1
+    line = data[:body].count(b"\n") + 1
+    for ln, text in enumerate(data[body:].split(b"\n")):
+        count += len(text.split())
+        if count >= k:
+            return line + ln
+    return line
 
 
 # --------------------------------------------------------------------------- writing
@@ -504,3 +1433,149 @@ def write_stl(mesh: Mesh, path: str | os.PathLike[str]) -> None:
         fh.write(np.uint32(len(tri)).tobytes())
         fh.write(rec.tobytes())
     os.replace(tmp, p)
+
+
+# --------------------------------------------------------------------------- part set-up
+
+
+def merge_meshes(meshes: Sequence[Mesh], name: str = "") -> Mesh:
+    """One mesh holding all faces of ``meshes`` (vertex indices offset; no welding)."""
+    if not meshes:
+        raise MeshError("no meshes to merge")
+    if len(meshes) == 1:
+        return meshes[0] if not name else Mesh(meshes[0].vertices, meshes[0].faces, name)
+    offsets = np.cumsum([0] + [len(m.vertices) for m in meshes[:-1]])
+    vertices = np.concatenate([m.vertices for m in meshes])
+    faces = np.concatenate([m.faces + o for m, o in zip(meshes, offsets)])
+    return Mesh(vertices, faces, name or "+".join(m.name for m in meshes))
+
+
+def load_meshes(paths: Iterable[str | os.PathLike[str]], *, inexact: bool = False,
+                tolerance: float = 1e-4) -> Mesh:
+    """Load several mesh files and merge them into one build (thesis Table 3-1, CAD PARTS).
+
+    The parts keep their coordinates relative to each other; see :func:`load_mesh`.
+    """
+    meshes = [load_mesh(p, inexact=inexact, tolerance=tolerance) for p in paths]
+    if not meshes:
+        raise MeshError("no mesh files given")
+    return merge_meshes(meshes)
+
+
+def _rotation_matrix(axis: int, angle_deg: float) -> np.ndarray:
+    """(3, 3) right-handed rotation about space-fixed axis 1 (x), 2 (y) or 3 (z)."""
+    a = math.radians(angle_deg)
+    c, s = math.cos(a), math.sin(a)
+    i, j = [(1, 2), (2, 0), (0, 1)][axis - 1]
+    r = np.eye(3)
+    r[i, i], r[i, j], r[j, i], r[j, j] = c, -s, s, c
+    return r
+
+
+def rotation_matrix(rotation_deg: Sequence[float], order: Sequence[int]) -> np.ndarray:
+    """(3, 3) rotation: about the space-fixed axes in ``order`` (1 = x, 2 = y, 3 = z).
+
+    rotation_deg: angles about x, y, z, degrees. The first axis in ``order`` is applied
+    first; space-fixed (extrinsic) rotations compose by left multiplication:
+    ``R = R[order[2]] @ R[order[1]] @ R[order[0]]`` (thesis 3.1.2).
+    """
+    from icefab.errors import ConfigError
+
+    if sorted(int(o) for o in order) != [1, 2, 3]:
+        raise ConfigError(f"parts.rotation_order = {tuple(order)!r}: must be a permutation "
+                          "of 1, 2, 3")
+    r = np.eye(3)
+    for axis in order:
+        r = _rotation_matrix(int(axis), float(rotation_deg[int(axis) - 1])) @ r
+    return r
+
+
+def transform(mesh: Mesh, parts: "PartSetup") -> Mesh:
+    """Place a build as the part set-up asks (thesis 3.1.2, Table 3-1, paper Table 1).
+
+    Steps, in this order:
+
+    1. If any rotation or scaling is asked, the mesh is first moved so that its minimum
+       coordinate on every axis is zero (thesis 3.1.2).
+    2. Rotations about the space-fixed x, y, z axes by ``rotation_deg``, one axis at a
+       time in ``rotation_order`` (see :func:`rotation_matrix`).
+    3. Scaling by ``scale`` along the space-fixed axes (after rotation, as the paper's
+       "rotated, scaled, and translated").
+    4. Copies: ``copies = (p1, p2, p3)`` lays ``p3`` copies out row by row in a grid of
+       ``p1`` columns (x) by ``p2`` rows (y), spaced by the part's extent plus
+       ``copy_gap_mm``; ``p3`` must not exceed ``p1 * p2``.
+    5. Translation of the whole build per axis: a number is the build's minimum
+       coordinate on that axis (mm); ``'cent'`` centres its bounding box on 0; ``'orig'``
+       keeps the bounding-box centre where the original model's was.
+
+    Returns a new Mesh (faces of copies appended after the original's).
+    """
+    from icefab.errors import ConfigError
+
+    v = np.array(mesh.vertices, dtype=np.float64)
+    if len(v) == 0:
+        raise MeshError(f"{mesh.name or 'mesh'}: nothing to transform (no vertices)")
+    lo0, hi0 = v.min(axis=0), v.max(axis=0)
+    centre0 = 0.5 * (lo0 + hi0)
+    scale = np.asarray(parts.scale, dtype=np.float64)
+    rot = np.asarray(parts.rotation_deg, dtype=np.float64)
+    if np.any(scale != 1.0) or np.any(rot % 360.0 != 0.0):
+        v -= lo0  # thesis 3.1.2: minimum at zero before rotating or scaling
+        v = v @ rotation_matrix(rot, parts.rotation_order).T
+        v *= scale
+    p1, p2, p3 = (int(c) for c in parts.copies)
+    faces = np.asarray(mesh.faces, dtype=np.int64)
+    if p3 > p1 * p2:
+        raise ConfigError(f"parts.copies = {tuple(parts.copies)!r}: {p3} copies do not fit "
+                          f"a {p1} x {p2} grid")
+    if p3 > 1:
+        lo, hi = v.min(axis=0), v.max(axis=0)
+        pitch = (hi - lo)[:2] + float(parts.copy_gap_mm)
+        k = np.arange(p3)
+        shift = np.zeros((p3, 3))
+        shift[:, 0] = (k % p1) * pitch[0]
+        shift[:, 1] = (k // p1) * pitch[1]
+        v = (v[None, :, :] + shift[:, None, :]).reshape(-1, 3)
+        faces = (faces[None, :, :] + (np.arange(p3) * len(mesh.vertices))[:, None, None]
+                 ).reshape(-1, 3)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    for axis, t in enumerate(parts.translation):
+        if isinstance(t, str):
+            if t == "cent":
+                v[:, axis] -= 0.5 * (lo[axis] + hi[axis])
+            elif t == "orig":
+                v[:, axis] += centre0[axis] - 0.5 * (lo[axis] + hi[axis])
+            else:
+                raise ConfigError(f"parts.translation = {tuple(parts.translation)!r}: the "
+                                  f"{'xyz'[axis]} entry must be a number, 'cent' or 'orig'")
+        else:
+            v[:, axis] += float(t) - lo[axis]
+    return Mesh(v, faces, mesh.name)
+
+
+def part_fraction_range(mesh: Mesh, parts: "PartSetup") -> tuple[float, float]:
+    """(zmin, zmax) mm of the slice of the build height to make (``parts.part_fraction``).
+
+    ``[0, 1]`` is the whole part; fractions are of the height between the lowest and
+    highest vertex.
+    """
+    lo, hi = mesh.bounds[:, 2]
+    f0, f1 = parts.part_fraction
+    h = float(hi - lo)
+    return float(lo + f0 * h), float(lo + f1 * h)
+
+
+def prepare_parts(job: "Job", base_dir: str | os.PathLike[str] | None = None) -> Mesh:
+    """Load ``job.parts.files`` (relative to ``base_dir``), merge and place them.
+
+    Welding follows ``job.parts.inexact`` / ``weld_tolerance_mm``; placement follows
+    :func:`transform`. Raises :class:`MeshError` when the job names no file.
+    """
+    parts = job.parts
+    if not parts.files:
+        raise MeshError("parts.files is empty: the job names no mesh file to build")
+    base = FsPath(base_dir) if base_dir is not None else None
+    paths = [FsPath(f) if base is None or FsPath(f).is_absolute() else base / f
+             for f in parts.files]
+    mesh = load_meshes(paths, inexact=parts.inexact, tolerance=parts.weld_tolerance_mm)
+    return transform(mesh, parts)
