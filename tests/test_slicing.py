@@ -340,3 +340,19 @@ def test_compiled_cut_equals_numpy_cut():
         b = S._intersect_numpy(v, f, fz, q, lo, hi, k0, k1, nbr)
         for name in ("layer", "facet", "edge", "points", "partner"):
             assert np.array_equal(getattr(a, name), getattr(b, name)), name
+
+
+def test_adjacency_hash_equals_sort():
+    """Hash-table adjacency equals the sorting version, with boundary and non-manifold edges."""
+    from icefab import slicing as S
+
+    tm = trimesh.creation.icosphere(subdivisions=2)
+    faces = np.asarray(tm.faces, dtype=np.int64)
+    # open it (drop two faces) and add a fin sharing an edge (non-manifold)
+    fin = np.array([[faces[5, 0], faces[5, 1], len(tm.vertices)]])
+    faces = np.vstack([faces[2:], fin])
+    n = len(tm.vertices) + 1
+    a = S._facet_adjacency(faces, n)
+    b = S._facet_adjacency_numpy(faces, n)
+    assert np.array_equal(a, b)
+    assert (a == -1).any() and (a == -2).sum() == 3

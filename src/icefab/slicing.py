@@ -107,6 +107,9 @@ MAX_WARNINGS = 500
 #: Segments per chunk of layers (bounds the memory of the vectorised intersection).
 _CHUNK_SEGMENTS = 2_000_000
 
+#: Use the numpy expansion instead of the compiled cut kernel (tests compare the two).
+_USE_NUMPY_CUT = False
+
 STACK_FORMAT = "icefab-stack"
 STACK_VERSION = 1
 
@@ -162,8 +165,8 @@ def layer_planes(z_min: float, z_max: float, job: Job) -> tuple[np.ndarray, np.n
 # --------------------------------------------------------------------------- adjacency
 
 
-def _facet_adjacency(faces: np.ndarray, n_vertices: int) -> np.ndarray:
-    """Neighbour across every facet edge.
+def _facet_adjacency_numpy(faces: np.ndarray, n_vertices: int) -> np.ndarray:
+    """Neighbour across every facet edge (sorting version; see :func:`_facet_adjacency`).
 
     faces: (m, 3) int64. Local edge j of a facet joins its corners j and (j+1) % 3.
     Returns (m, 3) int64: ``3*g + j'`` (facet g, its local edge j') of the facet across
@@ -191,6 +194,75 @@ def _facet_adjacency(faces: np.ndarray, n_vertices: int) -> np.ndarray:
         idx = np.repeat(start[many], count[many]) + _ramp(count[many])
         nbr[order[idx]] = -2
     return nbr.reshape(m, 3)
+
+
+@numba.njit(cache=True)
+def _adjacency_kernel(faces: np.ndarray, n_vertices: int) -> np.ndarray:  # pragma: no cover
+    """Bucket twin of :func:`_facet_adjacency_numpy`: O(facets), no sort.
+
+    Half-edges are bucketed by their lower vertex (a counting sort); the buckets are
+    small (the vertex valence), and are matched by their upper vertex inside.
+    """
+    m = faces.shape[0]
+    n_half = 3 * m
+    start = np.zeros(n_vertices + 1, dtype=np.int64)
+    for f in range(m):
+        for j in range(3):
+            a = faces[f, j]
+            b = faces[f, (j + 1) % 3]
+            start[min(a, b) + 1] += 1
+    for v in range(n_vertices):
+        start[v + 1] += start[v]
+    fill = start[:-1].copy()
+    bucket_h = np.empty(n_half, dtype=np.int64)
+    bucket_hi = np.empty(n_half, dtype=np.int64)
+    for f in range(m):
+        for j in range(3):
+            a = faces[f, j]
+            b = faces[f, (j + 1) % 3]
+            lo = min(a, b)
+            i = fill[lo]
+            fill[lo] += 1
+            bucket_h[i] = 3 * f + j
+            bucket_hi[i] = max(a, b)
+    nbr = np.full(n_half, -1, dtype=np.int64)
+    for v in range(n_vertices):
+        s = start[v]
+        e = start[v + 1]
+        for i in range(s, e):
+            hi = bucket_hi[i]
+            if hi < 0:
+                continue
+            n_same = 1
+            other = -1
+            for k in range(i + 1, e):
+                if bucket_hi[k] == hi:
+                    n_same += 1
+                    other = k if other < 0 else other
+            if n_same == 2:
+                nbr[bucket_h[i]] = bucket_h[other]
+                nbr[bucket_h[other]] = bucket_h[i]
+                bucket_hi[other] = -1
+            elif n_same > 2:
+                for k in range(i, e):
+                    if bucket_hi[k] == hi:
+                        nbr[bucket_h[k]] = -2
+                        if k > i:
+                            bucket_hi[k] = -1
+    return nbr.reshape(m, 3)
+
+
+def _facet_adjacency(faces: np.ndarray, n_vertices: int) -> np.ndarray:
+    """Neighbour across every facet edge.
+
+    faces: (m, 3) int64. Local edge j of a facet joins its corners j and (j+1) % 3.
+    Returns (m, 3) int64: ``3*g + j'`` (facet g, its local edge j') of the facet across
+    that edge, -1 for a boundary edge (one facet), -2 for a non-manifold edge (> 2 facets).
+    """
+    faces = np.ascontiguousarray(faces, dtype=np.int64)
+    if len(faces) == 0:
+        return np.zeros((0, 3), dtype=np.int64)
+    return _adjacency_kernel(faces, int(n_vertices))
 
 
 def _ramp(counts: np.ndarray) -> np.ndarray:
@@ -641,6 +713,50 @@ def _nesting(pts: np.ndarray, off: np.ndarray, group: np.ndarray,
 # --------------------------------------------------------------------------- helpers
 
 
+@numba.njit(cache=True)
+def _ring_measures(pts: np.ndarray, off: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
+    """(R,) signed areas (mm^2, shoelace) and (R,) perimeters (mm) of concatenated rings."""
+    n = off.shape[0] - 1
+    area = np.zeros(n)
+    perim = np.zeros(n)
+    for r in range(n):
+        s = off[r]
+        e = off[r + 1]
+        if e - s < 2:
+            continue
+        acc = 0.0
+        per = 0.0
+        x0 = pts[s, 0]
+        y0 = pts[s, 1]
+        for i in range(s, e):
+            j = i + 1 if i + 1 < e else s
+            # relative to the first point: less cancellation for far-off rings
+            xi = pts[i, 0] - x0
+            yi = pts[i, 1] - y0
+            xj = pts[j, 0] - x0
+            yj = pts[j, 1] - y0
+            acc += xi * yj - xj * yi
+            per += np.sqrt((xj - xi) ** 2 + (yj - yi) ** 2)
+        area[r] = 0.5 * acc
+        perim[r] = per
+    return area, perim
+
+
+@numba.njit(cache=True)
+def _facet_z_range(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
+    """(m,) lowest and (m,) highest corner height of every facet, mm."""
+    m = faces.shape[0]
+    zlo = np.empty(m)
+    zhi = np.empty(m)
+    for f in range(m):
+        a = vertices[faces[f, 0], 2]
+        b = vertices[faces[f, 1], 2]
+        c = vertices[faces[f, 2], 2]
+        zlo[f] = min(a, min(b, c))
+        zhi[f] = max(a, max(b, c))
+    return zlo, zhi
+
+
 def _ring_areas(pts: np.ndarray, off: np.ndarray) -> np.ndarray:
     """(R,) signed areas (mm^2) of concatenated rings (shoelace, vectorised)."""
     n = len(off) - 1
@@ -709,11 +825,14 @@ class _Rings:
     def select(self, keep_rings: np.ndarray, keep_points: np.ndarray | None = None) -> "_Rings":
         """Keep a subset of rings (bool (R,)) and of points (bool (P,))."""
         counts = np.diff(self.offsets)
-        ring_of = np.repeat(np.arange(len(counts)), counts)
-        pmask = keep_rings[ring_of]
+        pmask = np.repeat(keep_rings, counts)
         if keep_points is not None:
             pmask &= keep_points
-        new_counts = np.bincount(ring_of[pmask], minlength=len(counts))[keep_rings]
+        kept = np.zeros(len(counts), dtype=np.int64)
+        ne = np.flatnonzero(counts > 0)
+        if len(ne):
+            kept[ne] = np.add.reduceat(pmask.astype(np.int64), self.offsets[:-1][ne])
+        new_counts = kept[keep_rings]
         return _Rings(self.points[pmask], _offsets(new_counts), self.layer[keep_rings],
                       self.oriented[keep_rings])
 
@@ -819,9 +938,10 @@ def _slice_rings(mesh: Mesh, q: np.ndarray, z_report: np.ndarray, job: Job,
     n_planes = len(q)
     if len(faces) == 0:
         return _Rings.empty()
-    fz = vertices[:, 2][faces]
-    lo = np.searchsorted(q, fz.min(axis=1), side="right")
-    hi = np.searchsorted(q, fz.max(axis=1), side="right")
+    fz = vertices[:, 2][faces] if _USE_NUMPY_CUT else None
+    zlo, zhi = _facet_z_range(vertices, faces)
+    lo = np.searchsorted(q, zlo, side="right")
+    hi = np.searchsorted(q, zhi, side="right")
     nbr = _facet_adjacency(faces, len(vertices))
     n_bad_edges = int((nbr == -2).sum())
     if n_bad_edges:
@@ -843,7 +963,8 @@ def _slice_rings(mesh: Mesh, q: np.ndarray, z_report: np.ndarray, job: Job,
     open_by_layer: dict[int, list[np.ndarray]] = {}
     for c in range(len(bounds) - 1):
         k0, k1 = bounds[c], bounds[c + 1]
-        seg = _intersect(vertices, faces, fz, q, lo, hi, k0, k1, nbr)
+        cut = _intersect_numpy if _USE_NUMPY_CUT else _intersect
+        seg = cut(vertices, faces, fz, q, lo, hi, k0, k1, nbr)
         report.segments += len(seg.layer)
         if len(seg.layer):
             n_tol = _tolerance_match(seg, tol)
@@ -889,14 +1010,12 @@ def _finish_rings(rings: _Rings, job: Job, report: SliceReport) -> tuple[_Rings,
     keep = _clean_and_filter(rings.points, rings.offsets,
                              float(job.slicing.min_point_spacing_mm),
                              float(job.slicing.max_filter_deviation_mm))
-    counts = np.bincount(np.repeat(np.arange(len(rings.layer)), np.diff(rings.offsets))[keep],
-                         minlength=len(rings.layer))
     rings = rings.select(np.ones(len(rings.layer), dtype=bool), keep)
-    area = _ring_areas(rings.points, rings.offsets)
+    counts = np.diff(rings.offsets)
+    area, perim = _ring_measures(rings.points, rings.offsets)
     # collapsed: < 3 points, (almost) no area, or thinner than the filter's own bound
     # (2|A|/perimeter -- the radius of a circle, half the width of a sliver -- below
     # max_filter_deviation_mm: the filter may move every point of such a ring onto a line)
-    perim = _ring_perimeters(rings.points, rings.offsets)
     ok = ((counts >= 3) & (np.abs(area) >= MIN_RING_AREA_MM2)
           & (2.0 * np.abs(area) >= job.slicing.max_filter_deviation_mm * perim))
     report.rings_collapsed += int((~ok).sum())

@@ -1,0 +1,159 @@
+"""``icefab slice MODEL [-c job.toml] -o OUT [--layers 10,50,100]``.
+
+Loads and places the model(s) (``icefab.mesh``), slices them (``icefab.slicing``) and
+writes ``OUT/stack.npz`` (format: ``icefab.slicing`` docstring) and ``OUT/layers.png``
+(the chosen layers' contours: outer rings solid, holes dashed), then prints a summary.
+Models given on the command line replace ``parts.files`` of the job.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from icefab.cli.common import Progress, add_job_argument, job_from_args
+from icefab.errors import ConfigError
+from icefab.types import Stack
+
+#: warnings printed in full by the summary
+SHOW_WARNINGS = 5
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "slice", help="slice a model into layers of closed contours",
+        description="Slice a mesh (STL, PLY, OBJ) into layers of nested, oriented contours "
+                    "(thesis 3.2). Writes OUT/stack.npz and OUT/layers.png.")
+    p.add_argument("model", nargs="*", metavar="MODEL",
+                   help="mesh file(s); replaces parts.files of the job")
+    add_job_argument(p)
+    p.add_argument("-o", "--out", required=True, metavar="OUT", help="output folder")
+    p.add_argument("--layers", metavar="K,K,...",
+                   help="layer indices to draw in layers.png (default: six evenly spread)")
+    p.set_defaults(func=run)
+
+
+def parse_layers(text: str | None, n: int) -> list[int]:
+    """Layer indices to draw: the ``--layers`` list, or up to six evenly spread."""
+    if n == 0:
+        return []
+    if not text:
+        return sorted(set(np.linspace(0, n - 1, min(6, n)).round().astype(int).tolist()))
+    try:
+        ks = [int(t) for t in text.replace(" ", "").split(",") if t]
+    except ValueError:
+        raise ConfigError(f"--layers {text!r}: expected comma-separated layer numbers, e.g. "
+                          "10,50,100") from None
+    bad = [k for k in ks if not 0 <= k < n]
+    if bad or not ks:
+        raise ConfigError(f"--layers {text!r}: layer numbers must be between 0 and {n - 1}")
+    return ks
+
+
+def plot_layers(stack: Stack, ks: list[int], path: Path) -> None:
+    """Draw layers ``ks`` of a stack into a PNG at ``path`` (written atomically)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = max(1, len(ks))
+    cols = min(3, n)
+    rows = (n + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 4.0 * rows), squeeze=False)
+    lim = None
+    pts = [r for k in ks for r in stack[k].part.rings]
+    if pts:
+        allp = np.concatenate(pts)
+        lo, hi = allp.min(axis=0), allp.max(axis=0)
+        pad = 0.05 * float(max(hi - lo)) + 1.0
+        lim = (lo - pad, hi + pad)
+    for ax, k in zip(axes.ravel(), ks):
+        layer = stack[k]
+        reg = layer.part
+        depth = reg.depth() if len(reg) else np.zeros(0, dtype=int)
+        for ring, d in zip(reg.rings, depth):
+            closed = np.vstack([ring, ring[:1]])
+            hole = d % 2 == 1
+            ax.plot(closed[:, 0], closed[:, 1], "--" if hole else "-",
+                    color="tab:red" if hole else "tab:blue", lw=0.9)
+            ax.fill(ring[:, 0], ring[:, 1], color="white" if hole else "tab:blue",
+                    alpha=1.0 if hole else 0.15, zorder=d)
+        ax.set_title(f"layer {k}: z = {layer.z:.2f} mm, {len(reg)} contours, "
+                     f"{reg.area:.0f} mm²", fontsize=9)
+        ax.set_aspect("equal")
+        if lim is not None:
+            ax.set_xlim(lim[0][0], lim[1][0])
+            ax.set_ylim(lim[0][1], lim[1][1])
+        ax.set_xlabel("x (mm)", fontsize=8)
+        ax.set_ylabel("y (mm)", fontsize=8)
+        ax.tick_params(labelsize=7)
+    for ax in axes.ravel()[len(ks):]:
+        ax.axis("off")
+    fig.tight_layout()
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        fig.savefig(tmp, dpi=110, format="png")
+        os.replace(tmp, path)
+    finally:
+        plt.close(fig)
+        Path(tmp).unlink(missing_ok=True)
+
+
+def summary_lines(stack: Stack, elapsed_s: float | None = None) -> list[str]:
+    """A short human summary of a stack: layers, contours, area range, warnings."""
+    areas = np.array([L.part.area for L in stack])
+    n_rings = sum(len(L.part) for L in stack)
+    n_pts = sum(L.part.n_points for L in stack)
+    nonempty = areas[areas > 0]
+    lines = [f"layers: {len(stack)} of {stack.layer_thickness:g} mm, z = "
+             f"{stack[0].z:.3f} .. {stack[len(stack) - 1].z:.3f} mm"
+             if len(stack) else "layers: 0",
+             f"contours: {n_rings} ({n_pts} points)"]
+    if len(nonempty):
+        lines.append(f"area: {nonempty.min():.2f} .. {nonempty.max():.2f} mm² "
+                     f"(empty layers: {int((areas <= 0).sum())})")
+    else:
+        lines.append("area: every layer is empty")
+    lines.append(f"warnings: {len(stack.warnings)}")
+    lines += [f"  {w}" for w in stack.warnings[:SHOW_WARNINGS]]
+    if len(stack.warnings) > SHOW_WARNINGS:
+        lines.append(f"  ... {len(stack.warnings) - SHOW_WARNINGS} more in the stack file")
+    if elapsed_s is not None:
+        lines.append(f"time: {elapsed_s:.2f} s")
+    return lines
+
+
+def run(args: argparse.Namespace) -> int:
+    from icefab import mesh as meshmod
+    from icefab.slicing import save_stack, slice_mesh
+
+    job = job_from_args(args)
+    if args.model:
+        files = tuple(str(Path(m).resolve()) for m in args.model)
+        job = dataclasses.replace(job, parts=dataclasses.replace(job.parts, files=files))
+    if not job.parts.files:
+        raise ConfigError("no model to slice: give MODEL or parts.files in the job file")
+    out = Path(args.out)
+    t0 = time.perf_counter()
+    mesh = meshmod.prepare_parts(job)
+    t_load = time.perf_counter() - t0
+    stack = slice_mesh(mesh, job, progress=Progress("slicing"))
+    elapsed = time.perf_counter() - t0
+    ks = parse_layers(args.layers, len(stack))
+    out.mkdir(parents=True, exist_ok=True)
+    stack_path = save_stack(stack, out / "stack.npz")
+    png = out / "layers.png"
+    plot_layers(stack, ks, png)
+    print(f"{mesh.name or 'model'}: {len(mesh.faces)} facets, loaded and placed in "
+          f"{t_load:.2f} s")
+    for line in summary_lines(stack, elapsed):
+        print(line)
+    print(f"wrote {stack_path} and {png} (layers {', '.join(map(str, ks))})")
+    return 0
