@@ -293,11 +293,11 @@ def opening(region: Region, r: float, filter_mm: float = FILTER_MM) -> Region:
 
 
 def sweep(paths: Sequence[tuple[np.ndarray, bool, float]]) -> Region:
-    """The area covered by paths swept by their width.
+    """The area covered by paths swept by their width: mitred corners, round ends of open
+    paths (the bead where the tool stops).
 
     paths: (points (k, 2) float64 mm, closed, width mm) triples.
     """
-    o = _offsetter()
     by_width: dict[tuple[float, bool], list[np.ndarray]] = {}
     for pts, closed, width in paths:
         if width > 0 and len(pts) >= 2:
@@ -306,7 +306,7 @@ def sweep(paths: Sequence[tuple[np.ndarray, bool, float]]) -> Region:
     for (width, closed), pts in by_width.items():
         o = _offsetter()
         o.addPaths(pts, pyclipr.JoinType.Miter,
-                   pyclipr.EndType.Joined if closed else pyclipr.EndType.Butt)
+                   pyclipr.EndType.Joined if closed else pyclipr.EndType.Round)
         out.extend(o.execute(width / 2.0))
     return union(out)
 

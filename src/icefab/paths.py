@@ -210,7 +210,9 @@ def link_zigzag(segs: list[np.ndarray], spacing: float, inside: Region, angle_de
                 continue
             d = np.linalg.norm(ends[cur][:, None, :] - ends[nxt][None, :, :], axis=2)
             j = np.argmin(d, axis=1)
-            ok = d[np.arange(len(cur)), j] <= 2.5 * spacing
+            # links along a boundary at a shallow angle to the lines are long; the
+            # inside check below is the real guard, this only stops absurd ones
+            ok = d[np.arange(len(cur)), j] <= 12.0 * spacing
             cand[cur[ok], side] = nxt[j[ok]]
     # Validate all candidate links in one clipping call.
     ii, ss = np.nonzero(cand >= 0)
@@ -266,7 +268,13 @@ def zigzag_time(polylines: Sequence[np.ndarray], job: Job) -> float:
     """
     if not polylines:
         return 0.0
-    lengths = np.concatenate([np.linalg.norm(np.diff(p, axis=0), axis=1) for p in polylines])
+    # Unlinked pieces cost a travel move each (timed the same way) from the end of one to
+    # the start of the next, in the order they come.
+    moves = [np.linalg.norm(np.diff(p, axis=0), axis=1) for p in polylines]
+    moves += [np.array([np.linalg.norm(b[0] - a[-1])]) for a, b in zip(polylines[:-1],
+                                                                       polylines[1:])]
+    lengths = np.concatenate(moves)
+    lengths = lengths[lengths > 0]
     v_min = job.motion.fill_speed_mm_s / 2.0
     return float(jin_segment_time(lengths, v_min, job.motion.accel_mm_s2).sum())
 
@@ -383,7 +391,8 @@ def order_nearest(items: Sequence[tuple], start: np.ndarray) -> tuple[list[tuple
 
 
 def _hook_wall_count(index: int) -> int:
-    """Outer scaffold rings turned into ice for the hook wall (thesis 3.7)."""
+    """Outer scaffold paths turned into ice for the hook wall (thesis 3.7): the outermost
+    one on layers 0-9, the two outermost on layers 10-19."""
     if index < 10:
         return 1
     if index < 20:
@@ -391,19 +400,44 @@ def _hook_wall_count(index: int) -> int:
     return 0
 
 
-def _outer_rings(levels: list[list[np.ndarray]], count: int
-                 ) -> tuple[list[np.ndarray], list[list[np.ndarray]]]:
-    """Split the counter-clockwise (outermost-side) rings of the first ``count`` levels
-    from the rest."""
-    taken: list[np.ndarray] = []
-    rest: list[list[np.ndarray]] = []
-    for i, lv in enumerate(levels):
-        if i < count:
-            taken.extend(r for r in lv if signed_area(r) > 0)
-            rest.append([r for r in lv if signed_area(r) <= 0])
-        else:
-            rest.append(lv)
-    return taken, rest
+def hook_band_mm(count: int, mat: MaterialSettings) -> float:
+    """Width of the outer scaffold band the hook wall's ``count`` ice rings take, mm."""
+    if count <= 0:
+        return 0.0
+    return mat.initial_offset_mm + (count - 0.5) * mat.path_width_mm
+
+
+def hook_wall(scaffold: Region, part: Region, count: int, mat: MaterialSettings, filt: float
+              ) -> tuple[list[np.ndarray], Region]:
+    """Split the ice hook wall off a layer's scaffold (thesis 3.7, Fig. 3-8).
+
+    The outline of the build is the scaffold's counter-clockwise rings that do not lie in
+    the part's footprint (the part's outer rings filled; scaffold in a hole of the part is
+    not outside). The hook wall is ``count`` rings at the scaffold's boundary offsets from
+    that outline (``initial_offset + i * path_width``); the band they take,
+    :func:`hook_band_mm` wide, is removed from the scaffold, whose own paths are then planned
+    on what is left. Returns (ice rings, remaining scaffold region).
+    """
+    if count <= 0 or scaffold.is_empty:
+        return [], scaffold
+    depth = part.depth()
+    footprint = geo.region_from_rings([r for r, d in zip(part.rings, depth) if d == 0])
+    outline = []
+    for r, d in zip(scaffold.rings, scaffold.depth()):
+        if d % 2:
+            continue
+        a = signed_area(r)
+        if footprint.is_empty or geo.area(geo.intersection([r], footprint)) < 0.99 * a:
+            outline.append(r)
+    if not outline:
+        return [], scaffold
+    outer = geo.region_from_rings(outline)
+    rings: list[np.ndarray] = []
+    for i in range(count):
+        rings.extend(geo.offset_rings(list(outer.rings),
+                                      -(mat.initial_offset_mm + i * mat.path_width_mm), filt))
+    band = geo.difference(outer, geo.shrink(outer, hook_band_mm(count, mat), filt))
+    return rings, geo.difference(scaffold, band)
 
 
 def nominal_area(region: Region, mat: MaterialSettings, filt: float) -> Region:
@@ -414,15 +448,15 @@ def nominal_area(region: Region, mat: MaterialSettings, filt: float) -> Region:
     return geo.shrink(region, d, filt) if d > 0 else region
 
 
-def material_paths(region: Region, mat: MaterialSettings, job: Job, hook_levels: int = 0
-                   ) -> tuple[dict[str, list[tuple[np.ndarray, bool, float]]],
+def material_paths(region: Region, mat: MaterialSettings, job: Job, hook_levels: int = 0,
+                   part: Region | None = None) -> tuple[dict[str, list[tuple[np.ndarray, bool, float]]],
                               list[np.ndarray], float]:
     """Boundary and fill paths of one material's region.
 
     Returns ``({"boundary": [...], "fill": [...]}, hook_rings, unfilled_mm2)`` where each
     path is ``(points (k, 2) float64 mm, closed, width mm)``; ``hook_rings`` are the
-    outermost rings of the first ``hook_levels`` offset levels taken out for the ice hook
-    wall (thesis 3.7); ``unfilled_mm2`` the nominal area (:func:`nominal_area`) that no path
+    rings of the ice hook wall (:func:`hook_wall`, ``hook_levels`` rings, given the layer's
+    ``part``) taken out of the scaffold (thesis 3.7); ``unfilled_mm2`` the nominal area (:func:`nominal_area`) that no path
     sweeps. With ``mat.gap_fill`` the gaps wider than the boundary path width get extra
     closed rings of that width (role fill) before the remainder is measured.
     """
@@ -431,20 +465,16 @@ def material_paths(region: Region, mat: MaterialSettings, job: Job, hook_levels:
     out: dict[str, list[tuple[np.ndarray, bool, float]]] = {"boundary": [], "fill": []}
     if region.is_empty:
         return out, [], 0.0
+    whole = region
+    hook: list[np.ndarray] = []
+    if hook_levels and part is not None:
+        hook, region = hook_wall(region, part, hook_levels, mat, filt)
     bounds = boundary_rings(region, mat, filt)
     fills, _angle = fill_paths(region, mat, job)
-    hook: list[np.ndarray] = []
-    if hook_levels:
-        levels = bounds + [[p for p, c in fills if c]]
-        hook, rest = _outer_rings(levels, hook_levels)
-        bounds = rest[:len(bounds)]
-        if len(rest) > len(bounds):
-            kept = {id(r) for r in rest[len(bounds)]}
-            fills = [(p, c) for p, c in fills if not c or id(p) in kept]
     out["boundary"] = [(r, True, w) for lv in bounds for r in lv]
     out["fill"] = [(p, c, mat.fill_width_mm) for p, c in fills]
     swept = out["boundary"] + out["fill"] + [(r, True, w) for r in hook]
-    nominal = nominal_area(region, mat, filt)
+    nominal = nominal_area(whole, mat, filt)
     gaps = geo.difference(nominal, geo.sweep(swept)) if swept else nominal
     if mat.gap_fill and not gaps.is_empty:
         extra = geo.offset_rings(list(gaps.rings), -w / 2.0, filt)
@@ -466,7 +496,7 @@ def plan_layer(layer: Layer, job: Job) -> LayerPaths:
         region = layer.part if material == "part" else layer.scaffold
         n_hook = (_hook_wall_count(layer.index)
                   if material == "scaffold" and job.scaffold.hook_wall else 0)
-        sets, taken, gap = material_paths(region, mat, job, n_hook)
+        sets, taken, gap = material_paths(region, mat, job, n_hook, layer.part)
         if taken:
             hook = taken
         groups[f"{material}:boundary"] = sets["boundary"]

@@ -21,7 +21,10 @@ Algorithm (thesis 3.3, RPSCAF):
    (there it is kept: merged with the scaffold around it, never leaving a part unsupported).
 6. Thin part features (narrower than the part path width) are reported in
    ``Stack.warnings`` with their layer and location, not silently lost.
-7. Ice hook wall (thesis 3.7, Fig. 3-8) is applied by ``icefab.paths`` on the paths.
+7. Ice hook wall (thesis 3.7, Fig. 3-8): on the first 20 layers the scaffold is grown
+   outward by the band the hook wall's ice rings take (``icefab.paths.hook_band_mm``), so
+   the wall does not eat into the surround and cannot merge with the part; the rings
+   themselves are made by ``icefab.paths``.
 """
 
 from __future__ import annotations
@@ -180,6 +183,8 @@ def add_scaffold(stack: Stack, job: Job | None = None) -> Stack:
             scaffolds = _overhang_scan(parts, part_above, stack.layer_thickness, job)
         inside = _in_subset(stack, job)
         scaffolds = [sc if inside[k] else Region() for k, sc in enumerate(scaffolds)]
+        if s.hook_wall:
+            scaffolds = _hook_wall_room(parts, scaffolds, job)
 
     width = job.materials.part.path_width_mm
     thin = parallel_map(_thin_part_task, [(p, width, filt) for p in parts], job)
@@ -240,3 +245,19 @@ def _expand_task(args: tuple[Region, float, float]) -> Region:
     if d <= 0 or region.is_empty:
         return region
     return geo.union(region, geo.expand(region, d, filt))
+
+
+def _hook_wall_room(parts: list[Region], scaffolds: list[Region], job: Job) -> list[Region]:
+    """Extra scaffold outside the first 20 layers for the ice hook wall (thesis 3.7)."""
+    from icefab.paths import _hook_wall_count, hook_band_mm
+
+    filt = job.slicing.max_filter_deviation_mm
+    out = list(scaffolds)
+    for k in range(min(20, len(parts))):
+        if parts[k].is_empty and scaffolds[k].is_empty:
+            continue
+        band = hook_band_mm(_hook_wall_count(k), job.materials.scaffold)
+        both = geo.union(parts[k], scaffolds[k])
+        grown = geo.expand(both, band, filt)
+        out[k] = geo.difference(grown, parts[k]) if not parts[k].is_empty else grown
+    return out
