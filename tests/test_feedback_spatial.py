@@ -267,3 +267,35 @@ def test_footprint_as_union_of_part_and_scaffold():
     assert np.isfinite(both.z[30, 50]) and np.isfinite(both.z[10, 10])
     only = surface_from_samples(xyz, part, 1.0)
     assert only.origin.tolist() == [20.0, 20.0]
+
+
+def test_grid_values_equal_linearndinterpolator():
+    from scipy.interpolate import LinearNDInterpolator
+    rng = np.random.default_rng(5)
+    xyz = samples_on(lambda x, y: np.sin(x / 7) + np.cos(y / 5), n=3000, seed=4)
+    xyz[:, :2] += rng.normal(0, 0.01, (len(xyz), 2))
+    hm = surface_from_samples(xyz, None, 0.7, bin_mm=0)
+    x, y = hm.grid()
+    xx, yy = np.meshgrid(x, y)
+    ref = LinearNDInterpolator(xyz[:, :2], xyz[:, 2])(xx, yy)
+    both = np.isfinite(ref) & np.isfinite(hm.z)
+    assert both.sum() > 0.95 * np.isfinite(ref).sum()
+    np.testing.assert_allclose(hm.z[both], ref[both], atol=1e-9)
+
+
+def test_ring_samples_binned_keep_the_surface():
+    # measurement rings 3 mm apart sampled every 0.25 mm (laser 200 Hz at 50 mm/s)
+    t = np.arange(0, 2 * np.pi, 0.25 / 40)
+    pts = [np.column_stack([50 + r * np.cos(t[: int(len(t) * r / 40)] * 40 / r),
+                            30 + r * np.sin(t[: int(len(t) * r / 40)] * 40 / r)])
+           for r in np.arange(1.5, 29, 3.0)]
+    xy = np.vstack(pts)
+    z = 2 + 0.01 * xy[:, 0] + np.random.default_rng(0).normal(0, 0.01, len(xy))
+    reg = Region(rings=(np.column_stack([50 + 28 * np.cos(t[::40]), 30 + 28 * np.sin(t[::40])]),),
+                 parent=np.array([-1]))
+    hm = surface_from_samples(np.column_stack([xy, z]), reg, 1.0)
+    gx, gy = hm.grid()
+    ref = 2 + 0.01 * gx[None, :] + 0 * gy[:, None]
+    ok = np.isfinite(hm.z)
+    assert ok.sum() > 2000
+    assert np.abs(hm.z[ok] - ref[ok]).max() < 0.03
