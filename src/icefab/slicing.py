@@ -8,8 +8,9 @@ Pipeline (RPSLICE's FACETSLICE = INTERSECTFACET + SEGMERGE + PATHFILTER, thesis 
    layers (at least one), so a part exactly ``n`` layers tall gives ``n`` layers. The
    cutting plane of layer ``k`` lies at ``z_lo + (k + c)*t`` where ``c =
    job.slicing.cut_fraction`` (0 bottom, 0.5 middle -- the default --, 1 top of the
-   layer), clamped into ``[z_lo, z_hi]`` so that no plane misses the part. ``Layer.z``
-   is that height, ``Layer.top_z`` the layer's top surface.
+   layer); for a top layer reaching past the part (rounding) the fraction is taken of the
+   part's share ``[bottom, z_hi]`` of the layer, so that no plane misses the part.
+   ``Layer.z`` is that height, ``Layer.top_z`` the layer's top surface.
 
 2. **Facet-plane intersection** (INTERSECTFACET, Ossino eq. 1), vectorised over all facets
    and all layers at once: for every facet the range of planes it spans comes from
@@ -154,7 +155,8 @@ def layer_planes(z_min: float, z_max: float, job: Job) -> tuple[np.ndarray, np.n
     bottom = z_lo + k * t
     top = z_lo + (k + 1.0) * t
     c = job.slicing.cut_fraction
-    z = np.clip(z_lo + (k + c) * t, z_lo, z_hi)
+    # inside the part's share of the layer (the top layer may reach past the part)
+    z = np.clip(bottom + c * (np.minimum(top, z_hi) - bottom), z_lo, z_hi)
     above = np.full(n, c < 1.0)          # take the section just above the plane
     above[z <= z_lo] = True
     above[z >= z_hi] = False
