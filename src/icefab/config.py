@@ -91,8 +91,10 @@ class SlicingSettings:
     open_contours: str = setting("close", "open chains that cannot be linked: 'close' joins "
                                           "their ends (reported), 'drop' removes them "
                                           "(reported)", choices=("close", "drop"))
-    max_gap_mm: float = setting(2.0, "longest gap an open chain may be closed across before "
-                                     "it is dropped", lo=0.0)
+    max_gap_mm: float = setting(2.0, "gaps in open chains up to this are closed quietly "
+                                     "(counted); longer gaps are closed and reported one by "
+                                     "one ('close') or their chain is dropped ('drop')",
+                                lo=0.0)
 
 
 @dataclass(frozen=True)
