@@ -356,3 +356,18 @@ def test_adjacency_hash_equals_sort():
     b = S._facet_adjacency_numpy(faces, n)
     assert np.array_equal(a, b)
     assert (a == -1).any() and (a == -2).sum() == 3
+
+
+@given(z=st.lists(st.floats(-5, 15, allow_nan=False), min_size=1, max_size=50),
+       n=st.integers(1, 40), cut=st.sampled_from([0.0, 0.3, 0.5, 1.0]))
+def test_plane_range_equals_searchsorted(z, n, cut):
+    from icefab import slicing as S
+
+    job = EXACT.replace(**{"slicing.cut_fraction": cut})
+    _, _, _, q = S.layer_planes(0.0, n * 0.25, job)
+    zz = np.array(z + [float(v) for v in q[:5]] + [float(np.nextafter(q[0], -1))])
+    v = np.column_stack([np.zeros((len(zz), 2)), zz])
+    f = np.column_stack([np.arange(len(zz))] * 3)
+    lo, hi = S._facet_plane_range(v, f, q)
+    assert np.array_equal(lo, np.searchsorted(q, zz, side="right"))
+    assert np.array_equal(hi, lo)

@@ -745,18 +745,39 @@ def _ring_measures(pts: np.ndarray, off: np.ndarray) -> tuple[np.ndarray, np.nda
 
 
 @numba.njit(cache=True)
-def _facet_z_range(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
-    """(m,) lowest and (m,) highest corner height of every facet, mm."""
+def _count_le(q: np.ndarray, z: float, step: float) -> int:  # pragma: no cover
+    """Number of planes with q <= z (``searchsorted(q, z, 'right')``), q sorted and nearly
+    uniform with spacing ``step``: a guess, then an exact correction."""
+    n = q.shape[0]
+    k = int((z - q[0]) / step) + 1 if step > 0.0 else 0
+    if k < 0:
+        k = 0
+    elif k > n:
+        k = n
+    while k > 0 and q[k - 1] > z:
+        k -= 1
+    while k < n and q[k] <= z:
+        k += 1
+    return k
+
+
+@numba.njit(cache=True)
+def _facet_plane_range(vertices: np.ndarray, faces: np.ndarray,
+                       q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
+    """Planes cutting each facet (Ossino eq. 1 with the rule ``z >= q`` is above): facet f
+    is cut by planes lo[f]..hi[f]-1, i.e. those with zmin < q <= zmax. (m,) int64 each."""
     m = faces.shape[0]
-    zlo = np.empty(m)
-    zhi = np.empty(m)
+    lo = np.empty(m, dtype=np.int64)
+    hi = np.empty(m, dtype=np.int64)
+    n = q.shape[0]
+    step = (q[n - 1] - q[0]) / (n - 1) if n > 1 else 0.0
     for f in range(m):
         a = vertices[faces[f, 0], 2]
         b = vertices[faces[f, 1], 2]
         c = vertices[faces[f, 2], 2]
-        zlo[f] = min(a, min(b, c))
-        zhi[f] = max(a, max(b, c))
-    return zlo, zhi
+        lo[f] = _count_le(q, min(a, min(b, c)), step)
+        hi[f] = _count_le(q, max(a, max(b, c)), step)
+    return lo, hi
 
 
 def _ring_areas(pts: np.ndarray, off: np.ndarray) -> np.ndarray:
@@ -941,9 +962,7 @@ def _slice_rings(mesh: Mesh, q: np.ndarray, z_report: np.ndarray, job: Job,
     if len(faces) == 0:
         return _Rings.empty()
     fz = vertices[:, 2][faces] if _USE_NUMPY_CUT else None
-    zlo, zhi = _facet_z_range(vertices, faces)
-    lo = np.searchsorted(q, zlo, side="right")
-    hi = np.searchsorted(q, zhi, side="right")
+    lo, hi = _facet_plane_range(vertices, faces, q)
     nbr = _facet_adjacency(faces, len(vertices))
     n_bad_edges = int((nbr == -2).sum())
     if n_bad_edges:
@@ -976,9 +995,14 @@ def _slice_rings(mesh: Mesh, q: np.ndarray, z_report: np.ndarray, job: Job,
             ring_layer = seg.layer[ends[offs[:-1]] >> 1]
             pts = seg.points[ends]
             cl = closed.astype(bool)
-            ring_mask = np.repeat(cl, counts)
-            parts.append(_Rings(pts[ring_mask], _offsets(counts[cl]), ring_layer[cl],
-                                np.ones(int(cl.sum()), dtype=bool)))
+            n_open = int(np.argmin(cl)) if not cl.all() else 0
+            if cl[n_open:].all():        # the walker lists open chains first
+                parts.append(_Rings(pts[offs[n_open]:], offs[n_open:] - offs[n_open],
+                                    ring_layer[n_open:], np.ones(len(cl) - n_open, dtype=bool)))
+            else:
+                ring_mask = np.repeat(cl, counts)
+                parts.append(_Rings(pts[ring_mask], _offsets(counts[cl]), ring_layer[cl],
+                                    np.ones(int(cl.sum()), dtype=bool)))
             for r in np.flatnonzero(~cl):
                 open_by_layer.setdefault(int(ring_layer[r]), []).append(
                     pts[offs[r]:offs[r + 1]])
