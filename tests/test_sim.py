@@ -186,3 +186,48 @@ def test_closed_path_leaves_an_even_strip_at_its_corners(shape):
     assert np.allclose(out.z[core], dh, rtol=1e-9), (out.z[core].min(), out.z[core].max())
     assert np.all(out.z[d > width / 2 + G] == 0)
     assert len(pts) == out.z.size
+
+
+# --------------------------------------------------------------------------- liquid flow
+
+
+def _two_strips(gap):
+    """Two parallel 1.5 mm strips 0.25 mm high along x, ``gap`` mm apart, on a flat base."""
+    s = _map((-5.0, -5.0), (45.0, 15.0))
+    out = s
+    for y in (5.0, 5.0 + 1.5 + gap):
+        xy, vol = _line((5.0, y), (35.0, y), 25.0, 25.0 * 1.5 * 0.25)
+        out = deposit(out, xy, vol, 1.5)
+    return s, out
+
+
+def test_liquid_fills_a_narrow_gap_between_paths_and_keeps_its_volume():
+    from icefab.sim import level_liquid
+    base, wet = _two_strips(1.0)
+    xs, ys = wet.grid()
+    col = np.searchsorted(xs, 20.0)
+    gap_rows = (ys > 5.75 + G) & (ys < 6.75 - G)
+    assert np.all(wet.z[gap_rows, col] == 0)
+    out = level_liquid(base.z, wet.z, G, 1.0)
+    assert out.sum() == pytest.approx(wet.z.sum(), rel=1e-12)
+    assert np.all(out >= 0)
+    assert np.all(out[gap_rows, col] > 0.1)  # the gap got liquid from both sides
+    # a gap wider than twice the spread stays dry
+    base, wide = _two_strips(3.0)
+    out = level_liquid(base.z, wide.z, G, 1.0)
+    gap_rows = (ys > 5.75 + 1.0 + G) & (ys < 8.75 - 1.0 - G)
+    assert np.all(out[gap_rows, col] == 0)
+
+
+def test_liquid_on_a_level_layer_stays_put_and_fills_a_dent_below():
+    from icefab.sim import level_liquid
+    s = _map((0.0, 0.0), (20.0, 20.0))
+    liquid = np.zeros_like(s.z)
+    liquid[5:35, 5:35] = 0.25
+    flat = level_liquid(s.z, liquid, G, 1.0)
+    assert np.allclose(flat, liquid)
+    below = np.zeros_like(s.z)
+    below[18:22, 18:22] = -0.2  # a dent in the frozen surface
+    out = level_liquid(below, liquid, G, 1.0)
+    assert out.sum() == pytest.approx(liquid.sum(), rel=1e-12)
+    assert out[18:22, 18:22].mean() > 0.25 + 0.05  # liquid ran into the dent

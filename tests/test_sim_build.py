@@ -49,7 +49,8 @@ def annulus_toolpaths(job: Job, n_layers: int, *, measure: bool = True) -> Toolp
 def quiet_job(**changes) -> Job:
     base = {"simulation.flow_error": 0.0, "simulation.noise_mm": 0.0,
             "simulation.laser_noise_mm": 0.0, "simulation.edge_loss": 0.0,
-            "simulation.debris_rate": 0.0, "simulation.laser_latency_s": 0.0}
+            "simulation.debris_rate": 0.0, "simulation.laser_latency_s": 0.0,
+            "simulation.spread_mm": 0.0}
     base.update(changes)
     return Job().replace(**base)
 

@@ -305,6 +305,9 @@ class SimulationSettings:
                                             "the position they are tagged with", lo=0.0)
     laser_rate_hz: float = setting(100.0, "laser sampling rate along measurement paths",
                                    lo=0.0, lo_open=True)
+    spread_mm: float = setting(1.0, "how far the liquid of a layer flows (diffusion length) "
+                                    "before it freezes: fills gaps between paths up to twice "
+                                    "this wide (0: off)", lo=0.0)
 
 
 @dataclass(frozen=True)

@@ -493,7 +493,9 @@ def plan_layer(index: int, paths: Sequence[Path], job: "Job") -> LayerPlan:
         if len(pts) == 0:
             continue
         if p.role == "measure":
-            tg, tr = laser_positions(pts, p.closed, speed_mm_s=m.measure_speed_mm_s,
+            # part (ice) is measured slowly, scaffold at full speed (icefab.paths.path_speed)
+            speed = m.measure_speed_mm_s if p.material == "part" else m.speed_mm_s
+            tg, tr = laser_positions(pts, p.closed, speed_mm_s=speed,
                                      rate_hz=sim.laser_rate_hz, latency_s=sim.laser_latency_s)
             tag_parts.append(tg)
             true_parts.append(tr)
@@ -614,6 +616,68 @@ def _grid_for(plans: Sequence[LayerPlan], job: "Job") -> HeightMap:
     return empty_surface(allp.min(axis=0), allp.max(axis=0), job.simulation.grid_mm, margin)
 
 
+@njit(cache=True)
+def _level_kernel(z, liquid, domain, alpha, iters):  # pragma: no cover - numba
+    """Let the liquid layer flow downhill over the frozen surface ``z`` (in place).
+
+    Explicit 4-neighbour scheme on the free-surface height ``z + liquid``: across every
+    pair of neighbouring cells inside ``domain`` a flux ``alpha * difference`` moves from
+    the higher to the lower cell, at most a quarter of the giving cell's liquid per step, so
+    liquid stays >= 0 and its total is conserved exactly.
+    """
+    ny, nx = liquid.shape
+    flow = np.zeros_like(liquid)
+    for _ in range(iters):
+        flow[:, :] = 0.0
+        for i in range(ny):
+            for j in range(nx):
+                if not domain[i, j]:
+                    continue
+                s = z[i, j] + liquid[i, j]
+                for di, dj in ((0, 1), (1, 0)):
+                    k = i + di
+                    m = j + dj
+                    if k >= ny or m >= nx or not domain[k, m]:
+                        continue
+                    d = s - (z[k, m] + liquid[k, m])
+                    if d > 0.0:
+                        q = min(alpha * d, 0.25 * liquid[i, j])
+                    else:
+                        q = -min(-alpha * d, 0.25 * liquid[k, m])
+                    flow[i, j] -= q
+                    flow[k, m] += q
+        for i in range(ny):
+            for j in range(nx):
+                liquid[i, j] += flow[i, j]
+
+
+def level_liquid(z: np.ndarray, liquid: np.ndarray, spacing: float, spread_mm: float
+                 ) -> np.ndarray:
+    """The liquid of one layer after it flowed before freezing (volume conserved).
+
+    z: (ny, nx) frozen surface below, mm; liquid: (ny, nx) the layer just deposited, mm.
+    The liquid flows downhill (towards a level top) for as many steps as make a diffusion
+    length of ``spread_mm``, inside the wet area: cells with liquid and gaps between them
+    up to ``2 * spread_mm`` wide (a morphological closing), less the outermost cells of
+    that area (partly covered by the strips' edges); so it fills narrow gaps between paths
+    and evens out seams, but never runs off the layer's footprint (that is ``edge_loss``).
+    Returns a new array.
+    """
+    if spread_mm <= 0:
+        return liquid.copy()
+    alpha = 0.25
+    cells = spread_mm / spacing
+    iters = max(1, int(math.ceil(cells * cells / (2 * alpha))))
+    wet = liquid > 0
+    radius = max(1, int(math.ceil(cells)))
+    # wet cells and the gaps between them, less the partly covered rim of the footprint
+    domain = ndimage.binary_erosion(
+        ndimage.binary_closing(wet, iterations=radius, border_value=0) | wet)
+    out = np.ascontiguousarray(liquid, dtype=np.float64).copy()
+    _level_kernel(np.ascontiguousarray(z, dtype=np.float64), out, domain, alpha, iters)
+    return out
+
+
 def _noise_field(rng: np.random.Generator, shape: tuple[int, int], sigma_cells: float
                  ) -> np.ndarray:
     """Unit-std Gaussian random field with correlation length ``sigma_cells``."""
@@ -697,6 +761,9 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
         mask = added > 0.25 * dh
         # part cells wholly inside this layer's part deposit (not the partly covered rim)
         part_mask = ndimage.binary_erosion(layer_img[0] > 0.25 * dh)
+        if sim.spread_mm > 0:
+            added = level_liquid(z, added, g, sim.spread_mm)
+            mask |= added > 0.25 * dh
         if sim.noise_mm > 0 and mask.any():
             added += sim.noise_mm * mask * _noise_field(rng_noise, z.shape,
                                                           sim.noise_corr_mm / g)
