@@ -494,9 +494,10 @@ def surface_from_samples(xyz: np.ndarray, footprint: Region | Sequence[Region] |
         (``scipy.ndimage.median_filter``), which removes isolated spikes (laser drop-outs,
         specular reflections) without flattening steps the way a mean would. The thesis
         smoothed with Garcia's robust N-D smoother; a median is the robust core of it.
-    bin_mm: samples closer than this are first averaged per square cell of this size
-        (default spacing / 2), which keeps the detail the grid can show and lowers the
-        laser noise and the triangulation cost; 0 keeps every sample.
+    bin_mm: the samples are first averaged per square cell of this size (default: the
+        grid pitch, the finest detail the grid can show), which lowers the laser noise and
+        the triangulation cost (the laser gives several samples per mm); 0 keeps every
+        sample.
 
     Interpolation is Delaunay-linear (``scipy.spatial.Delaunay`` and barycentric
     weights: the values of ``LinearNDInterpolator``, as Matlab's TriScatteredInterp);
@@ -515,7 +516,7 @@ def surface_from_samples(xyz: np.ndarray, footprint: Region | Sequence[Region] |
         xyz = xyz[ok]
     if not (np.isfinite(spacing) and spacing > 0):
         raise ConfigError(f"grid spacing = {spacing!r} mm: must be > 0")
-    b = 0.5 * spacing if bin_mm is None else float(bin_mm)
+    b = spacing if bin_mm is None else float(bin_mm)
     if b > 0:
         xyz = _bin_samples(xyz, b)
     xy = xyz[:, :2]
