@@ -371,3 +371,20 @@ def test_plane_range_equals_searchsorted(z, n, cut):
     lo, hi = S._facet_plane_range(v, f, q)
     assert np.array_equal(lo, np.searchsorted(q, zz, side="right"))
     assert np.array_equal(hi, lo)
+
+
+def test_non_manifold_edge_falls_back_and_keeps_area():
+    """Two cubes welded along one vertical edge (4 facets on it): ends on that edge are
+    matched by tolerance; the area is still exact."""
+    a = box((1, 1, 1), center=(0.5, 0.5))
+    b = box((1, 1, 1), center=(1.5, 1.5))
+    tm = trimesh.util.concatenate([a, b])
+    tm.merge_vertices()
+    mesh = as_mesh(tm)
+    from icefab import slicing as S
+    assert (S._facet_adjacency(mesh.faces, len(mesh.vertices)) == -2).any()
+    stack = slice_mesh(mesh, job_with(layer_thickness_mm=0.25))
+    rep = slice_report(stack)
+    assert rep.tolerance_matched_ends > 0
+    for layer in stack:
+        assert layer.part.area == pytest.approx(2.0, rel=1e-9)

@@ -154,3 +154,19 @@ def test_real_mesh_areas_match_trimesh_multiplane(mesh_dir, name):
     for layer, sec in zip(st, secs):
         expected = 0.0 if sec is None else _even_odd_area(sec.discrete)
         assert layer.part.area == pytest.approx(expected, rel=1e-6, abs=1e-9), layer.index
+
+
+def test_demo_mug_volume_from_layers():
+    """Sum of layer areas x thickness equals the mesh volume (midpoint rule), the handle
+    gives extra contours, nesting has holes."""
+    from icefab.demo import demo_mug
+    from icefab.mesh import mesh_volume
+
+    mesh = demo_mug()
+    st = slice_mesh(mesh, EXACT.replace(**{"slicing.layer_thickness_mm": 0.25}))
+    rep = slice_report(st)
+    assert rep.open_chains == 0 and rep.empty_layers == []
+    vol = sum(L.part.area for L in st) * 0.25
+    assert vol == pytest.approx(mesh_volume(mesh.vertices, mesh.faces), rel=2e-3)
+    assert max(len(L.part) for L in st) >= 3
+    assert any((L.part.depth() % 2 == 1).any() for L in st)

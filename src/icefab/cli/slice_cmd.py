@@ -141,6 +141,8 @@ def run(args: argparse.Namespace) -> int:
     if not job.parts.files:
         raise ConfigError("no model to slice: give MODEL or parts.files in the job file")
     out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"-o {out}: exists and is not a folder")
     t0 = time.perf_counter()
     mesh = meshmod.prepare_parts(job)
     t_load = time.perf_counter() - t0
