@@ -573,8 +573,9 @@ class SimResult:
     max_abs: (m,) float64, mm, largest absolute deviation over the part footprint.
     rms_measured: (m,) float64, mm, RMS of the laser samples' deviation from nominal.
     height: final surface; NaN where nothing was ever deposited.
-    surfaces: error surfaces (true height - nominal, NaN outside the merged footprint)
-        at the layers asked for, by toolpaths layer index.
+    surfaces: error surfaces (true height - nominal, NaN outside the merged footprint and
+        on its partly covered outermost cells) at the layers asked for, by toolpaths
+        layer index.
     closed_loop: whether the controller ran.
     volume_commanded, volume_deposited: mm^3 over the build (deposited includes the flow
         error, drift, edge loss and control action).
@@ -797,8 +798,10 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
                 if len(samples) else float("nan")
             rows.append((plan.index, nominal, rms, mx, rms_meas))
             if plan.index in keep:
+                # without the partly covered outermost cells of the footprint
                 surfaces[plan.index] = HeightMap(origin=surface.origin.copy(), spacing=g,
-                                                 z=np.where(mask, err, np.nan))
+                                                 z=np.where(ndimage.binary_erosion(mask),
+                                                            err, np.nan))
             if controller is not None:
                 plane = np.where(mask, nominal, np.nan)
                 action = controller(Measurement(
@@ -833,7 +836,8 @@ def measurement_layers(plans: Sequence[LayerPlan], interval_layers: int) -> list
 
 def simulate_build(toolpaths: Toolpaths, job: "Job | None" = None, *,
                    layers: int | None = None, closed_loop: bool = True,
-                   controller: Controller | None = None, keep_surfaces: Sequence[int] = (),
+                   controller: Controller | None = None,
+                   keep_surfaces: Sequence[int] | None = None,
                    progress: Callable[[int, int], None] | None = None) -> SimResult:
     """Build ``toolpaths`` on the virtual cell, open loop or with surface mapping feedback.
 
@@ -843,7 +847,8 @@ def simulate_build(toolpaths: Toolpaths, job: "Job | None" = None, *,
     closed_loop: run the SMF controller (``controller``, default :func:`smf_controller`)
         after every measurement layer; False runs open loop (no control action).
     keep_surfaces: toolpaths layer indices of measurement layers whose error surfaces
-        are kept in the result (for plots like thesis Fig. 5-8).
+        are kept in the result (for plots like thesis Fig. 5-8); default: the last
+        measurement layer.
     progress: called as ``progress(done, total)`` after every layer.
     """
     job = job if job is not None else toolpaths.job
@@ -855,6 +860,8 @@ def simulate_build(toolpaths: Toolpaths, job: "Job | None" = None, *,
         raise SimulationError("the toolpaths have no layers to simulate")
     plans = [plan_layer(lp.index, lp.paths, job) for lp in chosen]
     measure = measurement_layers(plans, job.feedback.interval_layers)
+    if keep_surfaces is None:
+        keep_surfaces = [plans[measure[-1]].index] if measure else []
     if closed_loop and controller is None:
         controller = smf_controller(job)
     return run_cell(plans, job, measure_layers=measure,

@@ -1,0 +1,288 @@
+"""``icefab simulate MODEL|TOOLPATHS.npz|demo [-c job.toml] [--layers N] -o OUT``.
+
+Runs a build (or its first N layers) on the virtual cell (``icefab.sim``) twice with the
+same disturbances: open loop, and with surface mapping feedback. Prints the RMS height
+deviation at every measurement layer for both side by side (thesis Fig. 5-9) and writes
+to OUT:
+
+* ``rms_vs_height.png``: RMS height deviation vs nominal height, open loop and SMF
+  (Fig. 5-9);
+* ``surfaces.png``: the height error surfaces of one measurement layer, open loop and SMF,
+  on one colour scale (Fig. 5-8);
+* ``simulation.json``: the settings used and both results per measurement layer;
+* ``rms.csv``: the table that was printed.
+
+MODEL is one or more mesh files (they replace ``parts.files`` of the job; placed, sliced,
+scaffolded and planned here), ``demo`` for the built-in mug, or a toolpaths file written
+by ``icefab paths``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import io
+import json
+import os
+import tempfile
+import time
+from pathlib import Path as FsPath
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from icefab.cli.common import Progress, add_job_argument, job_from_args, output_dir
+from icefab.errors import ConfigError
+
+if TYPE_CHECKING:  # pragma: no cover
+    from icefab.config import Job
+    from icefab.sim import SimResult
+    from icefab.types import Toolpaths
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "simulate", help="build on the virtual cell, open loop and with SMF",
+        description="Deposit a build (or its first N layers) on the simulated cell with "
+                    "the job's disturbances (flow error and drift, noise, debris, edge "
+                    "loss; section [simulation]), once open loop and once with surface "
+                    "mapping feedback, and compare the RMS height deviation per measurement "
+                    "layer (thesis Fig. 5-8, 5-9). Input: mesh file(s), 'demo', or a "
+                    "toolpaths.npz from 'icefab paths'.")
+    p.add_argument("model", nargs="+", metavar="MODEL|TOOLPATHS",
+                   help="mesh file(s), 'demo' (the built-in mug) or one toolpaths .npz")
+    add_job_argument(p)
+    p.add_argument("-o", "--out", required=True, metavar="OUT", help="output folder")
+    p.add_argument("--layers", type=int, metavar="N",
+                   help="simulate only the first N layers (default: simulation.layers, "
+                        "0 = all)")
+    p.add_argument("--flow-error", type=float, metavar="F",
+                   help="flow gain error, e.g. 0.1 for 10 %% too much (simulation.flow_error)")
+    p.add_argument("--seed", type=int, metavar="S", help="random seed (simulation.seed)")
+    p.add_argument("--surface-layer", type=int, metavar="K",
+                   help="measurement layer (toolpaths index) whose error surfaces are "
+                        "drawn (default: the last one)")
+    p.set_defaults(func=run)
+
+
+# --------------------------------------------------------------------------- input
+
+
+def _job_with_options(job: "Job", args: argparse.Namespace) -> "Job":
+    changes = {}
+    if args.flow_error is not None:
+        changes["simulation.flow_error"] = args.flow_error
+    if args.seed is not None:
+        changes["simulation.seed"] = args.seed
+    if args.layers is not None:
+        if args.layers < 0:
+            raise ConfigError(f"--layers {args.layers}: expected a number >= 0 (0: all)")
+        changes["simulation.layers"] = args.layers
+    return job.replace(**changes) if changes else job
+
+
+def load_build(model: list[str], job: "Job", n_layers: int) -> "tuple[Toolpaths, Job]":
+    """Toolpaths of the first ``n_layers`` layers (0: all) from a toolpaths file, the demo
+    mug or mesh files (placed, sliced, scaffolded over the whole part, paths planned)."""
+    from icefab.types import Stack
+
+    first = FsPath(model[0])
+    if len(model) == 1 and first.suffix.lower() == ".npz":
+        from icefab.paths import load_toolpaths
+
+        tp = load_toolpaths(first)
+        return tp, job
+    from icefab.paths import plan_paths
+    from icefab.regions import add_scaffold
+    from icefab.slicing import slice_mesh
+
+    if model == ["demo"]:
+        from icefab.demo import demo_mug
+        from icefab.mesh import transform
+
+        mesh = transform(demo_mug(), job.parts)
+    else:
+        from icefab.mesh import prepare_parts
+
+        files = tuple(str(FsPath(m).resolve()) for m in model)
+        job = dataclasses.replace(job, parts=dataclasses.replace(job.parts, files=files))
+        mesh = prepare_parts(job)
+    stack = slice_mesh(mesh, job, progress=Progress("slicing"))
+    # the scaffold depends on every layer above, so it is made for the whole part first
+    stack = add_scaffold(stack, job, progress=Progress("scaffold"))
+    if n_layers:
+        stack = Stack(layers=stack.layers[:n_layers], job=stack.job,
+                      layer_thickness=stack.layer_thickness, warnings=stack.warnings)
+    return plan_paths(stack, job, progress=Progress("paths")), job
+
+
+# --------------------------------------------------------------------------- outputs
+
+
+def table_rows(open_loop: "SimResult", closed: "SimResult") -> list[list[float]]:
+    """Per measurement layer: layer, nominal height, RMS and max |error| open and SMF."""
+    return [[int(k), float(z), float(ro), float(rc), float(mo), float(mc)]
+            for k, z, ro, rc, mo, mc in zip(open_loop.layers, open_loop.nominal_z,
+                                             open_loop.rms, closed.rms, open_loop.max_abs,
+                                             closed.max_abs)]
+
+
+HEADER = ["layer", "height_mm", "rms_open_mm", "rms_smf_mm", "max_open_mm", "max_smf_mm"]
+
+
+def format_table(rows: list[list[float]]) -> list[str]:
+    lines = ["layer  height mm   RMS open   RMS SMF   max open   max SMF  (mm)"]
+    for k, z, ro, rc, mo, mc in rows:
+        lines.append(f"{k:5d}  {z:9.2f}  {ro:9.3f}  {rc:8.3f}  {mo:9.3f}  {mc:8.3f}")
+    return lines
+
+
+def _write_atomic(path: FsPath, data: bytes) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    finally:
+        FsPath(tmp).unlink(missing_ok=True)
+
+
+def _save_figure(fig, path: FsPath) -> None:
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    try:
+        fig.savefig(buf, dpi=110, format="png")
+    finally:
+        plt.close(fig)
+    _write_atomic(path, buf.getvalue())
+
+
+def plot_rms(open_loop: "SimResult", closed: "SimResult", path: FsPath) -> None:
+    """RMS height deviation vs nominal height, open loop and SMF (thesis Fig. 5-9)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    ax.plot(open_loop.nominal_z, open_loop.rms, "o-", color="tab:red", ms=3,
+            label="open loop")
+    ax.plot(closed.nominal_z, closed.rms, "s-", color="tab:blue", ms=3, label="SMF")
+    ax.set_xlabel("nominal part height (mm)")
+    ax.set_ylabel(r"RMS height deviation $\sigma_l^*$ (mm)")
+    ax.set_title("part accuracy with and without surface mapping feedback", fontsize=10)
+    ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    _save_figure(fig, path)
+
+
+def plot_surfaces(open_loop: "SimResult", closed: "SimResult", layer: int,
+                  path: FsPath) -> None:
+    """Height error surfaces of one measurement layer, open loop and SMF (Fig. 5-8)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    pair = [(name, res.surfaces[layer], res) for name, res in
+            (("open loop", open_loop), ("SMF", closed))]
+    finite = np.concatenate([s.z[np.isfinite(s.z)] for _, s, _ in pair])
+    lim = float(np.percentile(np.abs(finite), 99.0)) if finite.size else 1.0
+    lim = max(lim, 1e-3)
+    fig, axes = plt.subplots(1, 2, figsize=(11.0, 4.8), constrained_layout=True)
+    im = None
+    for ax, (name, surf, res) in zip(axes, pair):
+        xs, ys = surf.grid()
+        g = surf.spacing
+        extent = (xs[0] - g / 2, xs[-1] + g / 2, ys[0] - g / 2, ys[-1] + g / 2)
+        im = ax.imshow(np.ma.masked_invalid(surf.z), origin="lower", extent=extent,
+                       cmap="RdBu_r", vmin=-lim, vmax=lim, interpolation="nearest")
+        i = int(np.flatnonzero(res.layers == layer)[0])
+        ax.set_title(f"{name}: layer {layer}, nominal {res.nominal_z[i]:.2f} mm, "
+                     rf"$\sigma_l^*$ = {res.rms[i]:.3f} mm", fontsize=9)
+        ax.set_xlabel("x (mm)")
+        ax.set_ylabel("y (mm)")
+        ax.set_aspect("equal")
+    fig.colorbar(im, ax=axes, shrink=0.9, label="height - nominal (mm)")
+    _save_figure(fig, path)
+
+
+def write_simulation_outputs(open_loop: "SimResult", closed: "SimResult", out: FsPath, *,
+                             surface_layer: int | None = None,
+                             job: "Job | None" = None) -> list[FsPath]:
+    """Write rms_vs_height.png, surfaces.png, simulation.json and rms.csv into ``out``
+    (created if missing). ``surface_layer``: the measurement layer drawn (default: the last
+    one whose surfaces both results kept). Returns the files written."""
+    out = FsPath(out)
+    out.mkdir(parents=True, exist_ok=True)
+    rows = table_rows(open_loop, closed)
+    written = []
+    common = sorted(set(open_loop.surfaces) & set(closed.surfaces))
+    if surface_layer is None and common:
+        surface_layer = common[-1]
+    if surface_layer is not None and surface_layer not in common:
+        raise ConfigError(f"--surface-layer {surface_layer}: not a measurement layer of the "
+                          f"simulation (measured: {', '.join(map(str, open_loop.layers))})")
+    data = {"open_loop": open_loop.as_dict(), "smf": closed.as_dict(),
+            "surface_layer": surface_layer}
+    if job is not None:
+        from icefab.config import to_dict
+
+        settings = to_dict(job)
+        data["settings"] = {"simulation": settings["simulation"],
+                            "feedback": settings["feedback"]}
+    _write_atomic(out / "simulation.json", (json.dumps(data, indent=2) + "\n").encode())
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(HEADER)
+    w.writerows([[r[0]] + [f"{v:.6f}" for v in r[1:]] for r in rows])
+    _write_atomic(out / "rms.csv", buf.getvalue().encode())
+    written += [out / "simulation.json", out / "rms.csv"]
+    if rows:
+        plot_rms(open_loop, closed, out / "rms_vs_height.png")
+        written.append(out / "rms_vs_height.png")
+    if surface_layer is not None:
+        plot_surfaces(open_loop, closed, surface_layer, out / "surfaces.png")
+        written.append(out / "surfaces.png")
+    return written
+
+
+# --------------------------------------------------------------------------- command
+
+
+def run(args: argparse.Namespace) -> int:
+    from icefab.sim import simulate_build
+
+    job = _job_with_options(job_from_args(args), args)
+    t0 = time.perf_counter()
+    toolpaths, job = load_build(args.model, job, job.simulation.layers)
+    n = job.simulation.layers or len(toolpaths)
+    n = min(n, len(toolpaths))
+    t_prep = time.perf_counter() - t0
+    keep = None if args.surface_layer is None else [args.surface_layer]
+    open_loop = simulate_build(toolpaths, job, layers=n, closed_loop=False,
+                               keep_surfaces=keep, progress=Progress("open loop"))
+    closed = simulate_build(toolpaths, job, layers=n, closed_loop=True, keep_surfaces=keep,
+                            progress=Progress("with SMF"))
+    t_sim = time.perf_counter() - t0 - t_prep
+    if len(open_loop.layers) == 0:
+        raise ConfigError(f"{n} layers hold no measurement layer (feedback.interval_layers "
+                          f"= {job.feedback.interval_layers}): simulate more layers")
+    with output_dir(args.out) as tmp:
+        write_simulation_outputs(open_loop, closed, tmp, surface_layer=args.surface_layer,
+                                 job=job)
+    sim = job.simulation
+    print(f"{n} layers, flow error {sim.flow_error:+.0%}, drift {sim.flow_drift_per_m3:g}/cm³, "
+          f"noise {sim.noise_mm:g} mm, debris {sim.debris_rate:g}/layer, edge loss "
+          f"{sim.edge_loss:.0%}, seed {sim.seed}; gains Kp {job.feedback.kp:g}, "
+          f"Ki* {job.feedback.ki:g}, Kd* {job.feedback.kd:g}, every "
+          f"{job.feedback.interval_layers} layers")
+    for line in format_table(table_rows(open_loop, closed)):
+        print(line)
+    print(f"final RMS height deviation: {open_loop.rms[-1]:.3f} mm open loop, "
+          f"{closed.rms[-1]:.3f} mm with SMF")
+    print(f"time: build preparation {t_prep:.1f} s, simulation {t_sim:.1f} s")
+    print(f"wrote {args.out}/ (rms_vs_height.png, surfaces.png, simulation.json, rms.csv)")
+    return 0
