@@ -1,0 +1,49 @@
+"""``icefab valves`` end to end on a small trajectory file."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from icefab import Job
+from icefab.cli import main
+from icefab.flow import n_pulses, plan_valves, read_valve_program
+from icefab.motion import BuildMotion, LayerMotion, save_trajectories
+
+from test_flow import line_trajectory
+
+
+@pytest.fixture()
+def traj_file(tmp_path):
+    layers = []
+    for k in range(2):
+        trs = (line_trajectory(y=0.0 + k), line_trajectory(role="travel", width=0.0),
+               line_trajectory(vmax=100.0, role="fill", material="scaffold", y=5.0))
+        layers.append(LayerMotion(index=k, z=0.25 * (k + 1), trajectories=trs))
+    f = tmp_path / "trajectories.npz"
+    save_trajectories(BuildMotion(layers=tuple(layers), job=Job()), f)
+    return f
+
+
+def test_valves_writes_programs(tmp_path, traj_file, capsys):
+    out = tmp_path / "out"
+    rc = main(["valves", str(traj_file), "-o", str(out), "--format", "both"])
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert text.splitlines()[0].startswith("layer")
+    files = sorted(p.relative_to(out).as_posix() for p in out.rglob("*"))
+    assert "layer_0000/path_0000.bin" in files and "layer_0001/path_0002.txt" in files
+    assert "layer_0000/path_0001.bin" not in files  # travel: no valve program
+    a = read_valve_program(out / "layer_0000" / "path_0000.bin")
+    b = read_valve_program(out / "layer_0000" / "path_0000.txt")
+    np.testing.assert_array_equal(a.ticks, b.ticks)
+    ref = plan_valves(line_trajectory(), "part", Job())
+    assert n_pulses(a) == n_pulses(ref)
+    assert (out / "summary.txt").read_text().startswith("layer")
+
+
+def test_valves_bad_input(tmp_path, traj_file, capsys):
+    assert main(["valves", str(tmp_path / "none.npz"), "-o", str(tmp_path / "o")]) == 2
+    assert main(["valves", str(traj_file), "-o", str(tmp_path / "o"), "--layers", "7"]) == 2
+    err = capsys.readouterr().err
+    assert "not found" in err and "--layers" in err
+    assert not (tmp_path / "o").exists()
