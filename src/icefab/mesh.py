@@ -558,7 +558,7 @@ def read_mesh(path: str | os.PathLike[str], *, inexact: bool = False,
         raise MeshError(f"{p}: is a directory, expected a mesh file") from None
     except OSError as exc:
         raise MeshError(f"{p}: cannot read mesh file ({exc.strerror or exc})") from None
-    if len(data.strip()) == 0:
+    if not data[:4096].strip() and not data.strip():
         raise MeshError(f"{p}: empty file, expected a mesh (STL, PLY or OBJ)")
     fmt = _sniff(data, p)
     try:
@@ -706,6 +706,75 @@ def _is_number(b, s, e):  # pragma: no cover
     return i == e
 
 
+_POW10 = np.array([10.0 ** k for k in range(23)])
+
+
+@njit(cache=True)
+def _fast_float(b, s, e):  # pragma: no cover
+    """Value of a validated decimal token when exactly computable, else (False, 0.0).
+
+    Clinger's fast path: with at most 19 digits, a mantissa w <= 2^53 and a decimal
+    exponent |q| <= 22, ``w * 10^q`` (or ``w / 10^-q``) is one correctly rounded IEEE
+    operation, the same result as ``strtod``. Anything else (long mantissas, nan, inf)
+    is left to ``np.fromstring``.
+    """
+    i = s
+    neg = False
+    if b[i] == 45:
+        neg = True
+        i += 1
+    elif b[i] == 43:
+        i += 1
+    if (b[i] | 32) == 110 or (b[i] | 32) == 105:
+        return False, 0.0
+    w = np.uint64(0)
+    nd = 0
+    q = 0
+    while i < e and 48 <= b[i] <= 57:
+        if nd > 0 or b[i] != 48:
+            nd += 1
+        if nd > 19:
+            return False, 0.0
+        w = w * np.uint64(10) + np.uint64(b[i] - 48)
+        i += 1
+    if i < e and b[i] == 46:
+        i += 1
+        while i < e and 48 <= b[i] <= 57:
+            if nd > 0 or b[i] != 48:
+                nd += 1
+            if nd > 19:
+                return False, 0.0
+            w = w * np.uint64(10) + np.uint64(b[i] - 48)
+            q -= 1
+            i += 1
+    if i < e:  # exponent
+        i += 1
+        eneg = False
+        if b[i] == 45:
+            eneg = True
+            i += 1
+        elif b[i] == 43:
+            i += 1
+        x = 0
+        while i < e:
+            if x < 100000:
+                x = x * 10 + (b[i] - 48)
+            i += 1
+        q += -x if eneg else x
+    if w > np.uint64(9007199254740992):
+        return False, 0.0
+    v = float(w)
+    if w == np.uint64(0):
+        v = 0.0
+    elif 0 <= q <= 22:
+        v = v * _POW10[q]
+    elif -22 <= q < 0:
+        v = v / _POW10[-q]
+    else:
+        return False, 0.0
+    return True, -v if neg else v
+
+
 @njit(cache=True)
 def _next_token(b, i, line):  # pragma: no cover
     """Skip whitespace from i; returns (start, end, line) of the next token (start == n at EOF)."""
@@ -732,13 +801,17 @@ def _skip_line(b, i):  # pragma: no cover
 def _scan_stl_ascii(b):  # pragma: no cover
     """Check the ASCII STL grammar and collect the vertex coordinate tokens.
 
-    Returns (numbers, vlines, err, err_line): ``numbers`` uint8 bytes holding 3 tokens per
-    vertex separated by spaces, ``vlines`` (v,) int64 line of each vertex, and an error
-    code with its 1-based line (0 if none).
+    Returns (slow_text, values, slow, vlines, err, err_line): ``values`` (3 v,) float64
+    coordinates, exact where :func:`_fast_float` could compute them; the other tokens are
+    copied to ``slow_text`` (uint8, space separated) and their slots listed in ``slow``;
+    ``vlines`` (v,) int64 line of each vertex; an error code with its 1-based line.
     """
     n = b.size
     out = np.empty(n + 1, np.uint8)
     vlines = np.empty(n // 13 + 1, np.int64)
+    values = np.empty(3 * (n // 13 + 1), np.float64)
+    slow = np.empty(3 * (n // 13 + 1), np.int64)
+    ns = 0
     o = 0
     nv = 0
     line = 1
@@ -754,60 +827,100 @@ def _scan_stl_ascii(b):  # pragma: no cover
             break
         if _tok_eq(b, s, e, _KW_SOLID) or _tok_eq(b, s, e, _KW_ENDSOLID):
             if in_facet:
-                return out[:o], vlines[:nv], _E_TOKEN, line
+                return out[:o], values[:3 * nv], slow[:ns], vlines[:nv], _E_TOKEN, line
             i = _skip_line(b, e)
         elif _tok_eq(b, s, e, _KW_FACET):
             if in_facet:
-                return out[:o], vlines[:nv], _E_TOKEN, line
+                return out[:o], values[:3 * nv], slow[:ns], vlines[:nv], _E_TOKEN, line
             s, e, line = _next_token(b, e, line)
             if not _tok_eq(b, s, e, _KW_NORMAL):
-                return out[:o], vlines[:nv], _E_TOKEN, line
+                return out[:o], values[:3 * nv], slow[:ns], vlines[:nv], _E_TOKEN, line
             for _ in range(3):
                 s, e, line = _next_token(b, e, line)
                 if not _is_number(b, s, e):
-                    return out[:o], vlines[:nv], _E_NUMBER, line
+                    return out[:o], values[:3 * nv], slow[:ns], vlines[:nv], _E_NUMBER, line
             i = e
             in_facet = True
             fv = 0
         elif _tok_eq(b, s, e, _KW_OUTER):
             s, e, line = _next_token(b, e, line)
             if not in_facet or in_loop or not _tok_eq(b, s, e, _KW_LOOP):
-                return out[:o], vlines[:nv], _E_TOKEN, line
+                return out[:o], values[:3 * nv], slow[:ns], vlines[:nv], _E_TOKEN, line
             in_loop = True
             i = e
         elif _tok_eq(b, s, e, _KW_VERTEX):
             if not in_loop:
-                return out[:o], vlines[:nv], _E_TOKEN, line
+                return out[:o], values[:3 * nv], slow[:ns], vlines[:nv], _E_TOKEN, line
             vline = line
-            for _ in range(3):
+            for q3 in range(3):
                 s, e, line = _next_token(b, e, line)
                 if not _is_number(b, s, e) or line != vline:
-                    return out[:o], vlines[:nv], _E_NUMBER, line
-                for k in range(s, e):
-                    out[o] = b[k]
+                    return out[:o], values[:3 * nv], slow[:ns], vlines[:nv], _E_NUMBER, line
+                ok, val = _fast_float(b, s, e)
+                values[3 * nv + q3] = val
+                if not ok:  # left for strtod: copy the token, remember its slot
+                    slow[ns] = 3 * nv + q3
+                    ns += 1
+                    for k in range(s, e):
+                        out[o] = b[k]
+                        o += 1
+                    out[o] = 32
                     o += 1
-                out[o] = 32
-                o += 1
             vlines[nv] = vline
             nv += 1
             fv += 1
             i = e
         elif _tok_eq(b, s, e, _KW_ENDLOOP):
             if not in_loop:
-                return out[:o], vlines[:nv], _E_TOKEN, line
+                return out[:o], values[:3 * nv], slow[:ns], vlines[:nv], _E_TOKEN, line
             in_loop = False
         elif _tok_eq(b, s, e, _KW_ENDFACET):
             if not in_facet or in_loop:
-                return out[:o], vlines[:nv], _E_TOKEN, line
+                return out[:o], values[:3 * nv], slow[:ns], vlines[:nv], _E_TOKEN, line
             if fv != 3:
-                return out[:o], vlines[:nv], _E_VCOUNT, line
+                return out[:o], values[:3 * nv], slow[:ns], vlines[:nv], _E_VCOUNT, line
             in_facet = False
             nfacets += 1
         else:
-            return out[:o], vlines[:nv], _E_TOKEN, line
+            return out[:o], values[:3 * nv], slow[:ns], vlines[:nv], _E_TOKEN, line
     if in_facet:
-        return out[:o], vlines[:nv], _E_EOF, line
-    return out[:o], vlines[:nv], 0, 0
+        return out[:o], values[:3 * nv], slow[:ns], vlines[:nv], _E_EOF, line
+    return out[:o], values[:3 * nv], slow[:ns], vlines[:nv], 0, 0
+
+
+@njit(cache=True)
+def _scan_numbers(b, start, line):  # pragma: no cover
+    """All whitespace-separated numbers of b[start:] (the body of an ASCII PLY).
+
+    Returns (slow_text, values, slow, err, err_line) as :func:`_scan_stl_ascii`.
+    """
+    n = b.size
+    out = np.empty(n - start + 1, np.uint8)
+    values = np.empty((n - start) // 2 + 1, np.float64)
+    slow = np.empty((n - start) // 2 + 1, np.int64)
+    nvals = 0
+    ns = 0
+    o = 0
+    i = start
+    while True:
+        s, e, line = _next_token(b, i, line)
+        i = e
+        if s >= n:
+            break
+        if not _is_number(b, s, e):
+            return out[:o], values[:nvals], slow[:ns], _E_NUMBER, line
+        ok, val = _fast_float(b, s, e)
+        values[nvals] = val
+        if not ok:
+            slow[ns] = nvals
+            ns += 1
+            for k in range(s, e):
+                out[o] = b[k]
+                o += 1
+            out[o] = 32
+            o += 1
+        nvals += 1
+    return out[:o], values[:nvals], slow[:ns], 0, 0
 
 
 def _line_text(data: bytes, line: int) -> str:
@@ -817,27 +930,34 @@ def _line_text(data: bytes, line: int) -> str:
     return text[:60].decode("ascii", "replace").strip()
 
 
-def _parse_numbers(buf: np.ndarray, count: int, lines: np.ndarray, per: int, data: bytes,
-                   path: FsPath, fmt: str) -> np.ndarray:
-    """Convert the compact number tokens to float64; errors name the line."""
-    text = buf.tobytes()
-    values = None
+def _finish_numbers(text_buf: np.ndarray, values: np.ndarray, slow: np.ndarray,
+                    lines: np.ndarray, per: int, path: FsPath, fmt: str) -> np.ndarray:
+    """Fill the slots the compiled scan left (long mantissas, nan, inf) with ``strtod``.
+
+    text_buf: uint8 tokens separated by spaces, one per entry of ``slow`` (slot indices
+    into ``values``). Errors name the line (``lines[slot // per]``).
+    """
+    if len(slow) == 0:
+        return values
+    text = text_buf.tobytes()
+    parsed = None
     with warnings.catch_warnings():
         warnings.simplefilter("error", DeprecationWarning)
         try:
-            values = np.fromstring(text, dtype=np.float64, sep=" ")
+            parsed = np.fromstring(text, dtype=np.float64, sep=" ")
         except (ValueError, DeprecationWarning):
-            values = None
-    if values is None or len(values) != count:
+            parsed = None
+    if parsed is None or len(parsed) != len(slow):
         for k, tok in enumerate(text.split()):
             try:
                 float(tok)
             except ValueError:
-                line = int(lines[k // per]) if len(lines) else 0
+                line = int(lines[int(slow[k]) // per]) if len(lines) else -1
                 raise MeshError(f"{path}: {fmt} line {line}: cannot read number "
                                 f"{tok[:30].decode('ascii', 'replace')!r}") from None
-        raise MeshError(f"{path}: {fmt}: expected {count} numbers, read "
-                        f"{0 if values is None else len(values)}")
+        raise MeshError(f"{path}: {fmt}: expected {len(slow)} numbers, read "
+                        f"{0 if parsed is None else len(parsed)}")
+    values[slow] = parsed
     return values
 
 
@@ -854,7 +974,7 @@ def _check_finite_lines(points: np.ndarray, lines: np.ndarray, path: FsPath,
 def _read_stl_ascii(data: bytes, path: FsPath) -> np.ndarray:
     """Corner coordinates (3 m, 3) float64 of an ASCII STL (one scan, one conversion)."""
     b = np.frombuffer(data, np.uint8)
-    buf, vlines, err, line = _scan_stl_ascii(b)
+    buf, values, slow, vlines, err, line = _scan_stl_ascii(b)
     if err:
         what = {_E_TOKEN: "unexpected token", _E_NUMBER: "expected three numbers",
                 _E_VCOUNT: "a facet must have exactly 3 vertices",
@@ -863,7 +983,7 @@ def _read_stl_ascii(data: bytes, path: FsPath) -> np.ndarray:
                         f"(line reads {_line_text(data, line)!r})")
     if len(vlines) == 0:
         raise MeshError(f"{path}: ASCII STL without facets")
-    values = _parse_numbers(buf, 3 * len(vlines), vlines, 3, data, path, "ASCII STL")
+    values = _finish_numbers(buf, values, slow, vlines, 3, path, "ASCII STL")
     corners = values.reshape(-1, 3)
     _check_finite_lines(corners, vlines, path, "ASCII STL")
     return corners
@@ -876,15 +996,19 @@ def _read_stl_ascii(data: bytes, path: FsPath) -> np.ndarray:
 def _scan_obj(b):  # pragma: no cover
     """Scan an OBJ: vertex coordinate tokens and face indices.
 
-    Returns (numbers, vlines, fidx, fcount, flines, n_short, err, err_line): ``numbers``
-    holds the first three tokens of every ``v`` line; ``fidx`` (k,) int64 0-based vertex
-    indices of all faces (negative indices resolved against the vertices read so far),
-    ``fcount`` (f,) corners per face, ``flines`` (f,) line of each face; ``n_short``
+    Returns (slow_text, values, slow, vlines, fidx, fcount, flines, n_short, err,
+    err_line): ``values`` the first three numbers of every ``v`` line (slots in ``slow``
+    still to be converted from ``slow_text``, see :func:`_finish_numbers`); ``fidx``
+    (k,) int64 0-based vertex indices of all faces (negative indices resolved against
+    the vertices read so far), ``fcount`` (f,) corners per face, ``flines`` (f,) line of each face; ``n_short``
     faces with fewer than 3 corners were skipped.
     """
     n = b.size
     out = np.empty(n + 1, np.uint8)
     vlines = np.empty(n // 6 + 1, np.int64)
+    values = np.empty(3 * (n // 6 + 1), np.float64)
+    slow = np.empty(3 * (n // 6 + 1), np.int64)
+    ns = 0
     fidx = np.empty(n // 2 + 1, np.int64)
     fcount = np.empty(n // 6 + 1, np.int64)
     flines = np.empty(n // 6 + 1, np.int64)
@@ -893,6 +1017,7 @@ def _scan_obj(b):  # pragma: no cover
     nk = 0
     nf = 0
     n_short = 0
+    err = 0
     i = 0
     line = 1
     while i < n:
@@ -921,17 +1046,23 @@ def _scan_obj(b):  # pragma: no cover
                     i += 1
                 if k < 3:
                     if not _is_number(b, s, i):
-                        return (out[:o], vlines[:nv], fidx[:nk], fcount[:nf], flines[:nf],
-                                n_short, _E_NUMBER, line)
-                    for q in range(s, i):
-                        out[o] = b[q]
+                        err = _E_NUMBER
+                        break
+                    ok, val = _fast_float(b, s, i)
+                    values[3 * nv + k] = val
+                    if not ok:
+                        slow[ns] = 3 * nv + k
+                        ns += 1
+                        for q in range(s, i):
+                            out[o] = b[q]
+                            o += 1
+                        out[o] = 32
                         o += 1
-                    out[o] = 32
-                    o += 1
                 k += 1
-            if k < 3:
-                return (out[:o], vlines[:nv], fidx[:nk], fcount[:nf], flines[:nf], n_short,
-                        _E_FEW, line)
+            if err == 0 and k < 3:
+                err = _E_FEW
+            if err:
+                break
             vlines[nv] = line
             nv += 1
         elif e - s == 1 and b[s] == 102:  # 'f'
@@ -954,20 +1085,19 @@ def _scan_obj(b):  # pragma: no cover
                     i += 1
                     nd += 1
                 if nd == 0 or (i < n and not _is_ws(b[i]) and b[i] != 47):
-                    return (out[:o], vlines[:nv], fidx[:nk], fcount[:nf], flines[:nf],
-                            n_short, _E_NUMBER, line)
+                    err = _E_NUMBER
+                    break
                 while i < n and not _is_ws(b[i]):  # '/vt/vn' part
                     i += 1
-                if val == 0:
-                    return (out[:o], vlines[:nv], fidx[:nk], fcount[:nf], flines[:nf],
-                            n_short, _E_INDEX, line)
                 idx = nv - val if neg else val - 1
-                if idx < 0:
-                    return (out[:o], vlines[:nv], fidx[:nk], fcount[:nf], flines[:nf],
-                            n_short, _E_INDEX, line)
+                if val == 0 or idx < 0:
+                    err = _E_INDEX
+                    break
                 fidx[nk] = idx
                 nk += 1
                 k += 1
+            if err:
+                break
             if k < 3:
                 nk -= k
                 n_short += 1
@@ -979,7 +1109,8 @@ def _scan_obj(b):  # pragma: no cover
             pass  # vt, vn, o, g, s, usemtl, comments...: not needed
         while i < n and b[i] != 10:  # rest of the line
             i += 1
-    return out[:o], vlines[:nv], fidx[:nk], fcount[:nf], flines[:nf], n_short, 0, 0
+    return (out[:o], values[:3 * nv], slow[:ns], vlines[:nv], fidx[:nk], fcount[:nf],
+            flines[:nf], n_short, err, line if err else 0)
 
 
 def _fan(flat: np.ndarray, counts: np.ndarray) -> np.ndarray:
@@ -1003,7 +1134,7 @@ def _fan(flat: np.ndarray, counts: np.ndarray) -> np.ndarray:
 def _read_obj(data: bytes, path: FsPath) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (n, 3) float64 and triangles (m, 3) int64 of an OBJ file."""
     b = np.frombuffer(data, np.uint8)
-    buf, vlines, fidx, fcount, flines, n_short, err, line = _scan_obj(b)
+    buf, values, slow, vlines, fidx, fcount, flines, n_short, err, line = _scan_obj(b)
     if err:
         what = {_E_NUMBER: "cannot read a number", _E_FEW: "a vertex needs 3 coordinates",
                 _E_INDEX: "face index 0 or before the first vertex"}[err]
@@ -1011,7 +1142,7 @@ def _read_obj(data: bytes, path: FsPath) -> tuple[np.ndarray, np.ndarray]:
                         f"(line reads {_line_text(data, line)!r})")
     if len(vlines) == 0:
         raise MeshError(f"{path}: OBJ without vertices ('v' lines)")
-    values = _parse_numbers(buf, 3 * len(vlines), vlines, 3, data, path, "OBJ")
+    values = _finish_numbers(buf, values, slow, vlines, 3, path, "OBJ")
     vertices = values.reshape(-1, 3)
     _check_finite_lines(vertices, vlines, path, "OBJ")
     if len(fidx) and fidx.max() >= len(vertices):
@@ -1337,23 +1468,13 @@ def _read_ply(data: bytes, path: FsPath) -> tuple[np.ndarray, np.ndarray]:
     last = max(i for i, e in enumerate(elements) if e.name in wanted)
     got: dict[str, _PlyData] = {}
     if fmt == "ascii":
-        tb = np.frombuffer(data, np.uint8, offset=body)
-        with warnings.catch_warnings():
-            warnings.simplefilter("error", DeprecationWarning)
-            try:
-                t = np.fromstring(tb.tobytes(), dtype=np.float64, sep=" ")
-            except (ValueError, DeprecationWarning):
-                t = None
-        if t is None:
-            toks = tb.tobytes().split()
-            for k, tok in enumerate(toks):
-                try:
-                    float(tok)
-                except ValueError:
-                    line = _line_of_token(data, body, k)
-                    raise MeshError(f"{path}: ASCII PLY line {line}: cannot read number "
-                                    f"{tok[:30].decode('ascii', 'replace')!r}") from None
-            raise MeshError(f"{path}: ASCII PLY body cannot be read as numbers")
+        header_lines = data[:body].count(b"\n") + 1
+        buf, t, slow, err, line = _scan_numbers(np.frombuffer(data, np.uint8), body,
+                                                header_lines)
+        if err:
+            raise MeshError(f"{path}: ASCII PLY line {line}: cannot read number "
+                            f"(line reads {_line_text(data, line)!r})")
+        t = _finish_numbers(buf, t, slow, np.zeros(0, np.int64), 1, path, "ASCII PLY")
         pos = 0
         for el in elements[:last + 1]:
             d, pos = _ply_element_ascii(t, pos, el, path)
@@ -1402,16 +1523,6 @@ def _read_ply(data: bytes, path: FsPath) -> tuple[np.ndarray, np.ndarray]:
     faces = np.concatenate(tris) if len(tris) > 1 else tris[0]
     return vertices, faces
 
-
-def _line_of_token(data: bytes, body: int, k: int) -> int:
-    """1-based line of the k-th whitespace token after byte ``body`` (error path only)."""
-    count = -1
-    line = data[:body].count(b"\n") + 1
-    for ln, text in enumerate(data[body:].split(b"\n")):
-        count += len(text.split())
-        if count >= k:
-            return line + ln
-    return line
 
 
 # --------------------------------------------------------------------------- writing
