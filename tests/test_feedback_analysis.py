@@ -170,3 +170,34 @@ def test_simulate_1d_table_5_4():
     assert abs(big.e[-1]) < 1e-3  # Fig. 5-14(c): recovers from a -2 pulse
     ev = evaluate_gains((1.0, 0.33, 0.45), Disturbance())
     assert not ev.stable and ev.max_pole > 1.0
+
+
+@pytest.mark.parametrize("pulses,steps", [
+    (((0.5, 60),), ((0.2, 30),)),   # Table 5-4 (a)
+    (((-2.0, 60),), ()),            # Table 5-4 (c)
+    ((), ((-2.0, 30),)),            # Table 5-4 (d)
+])
+def test_table_5_4_optimal_gains_recover(pulses, steps):
+    s = simulate_1d((1.0, 0.33, 0.03), Disturbance(n_layers=100, pulses=pulses, steps=steps))
+    assert np.abs(s.e[-10:]).max() < 1e-3
+    worst = sum(abs(a) for a, _ in pulses) + sum(abs(a) for a, _ in steps)
+    assert np.abs(s.e).max() <= worst + 1e-9  # no overshoot beyond the disturbance
+
+
+@pytest.mark.parametrize("noise", [0.0, 0.05])
+def test_table_5_5_unstable_gains_oscillate(noise):
+    d = Disturbance(n_layers=100, pulses=((0.5, 60),) if noise == 0 else (),
+                    steps=((0.2, 30),) if noise == 0 else (), noise=noise, noise_from=50)
+    s = simulate_1d((1.0, 0.33, 0.45), d)
+    e = s.e
+    first = np.flatnonzero(np.abs(e) > 1e-12)[0]
+    late = np.abs(e[-10:]).max()
+    early = np.abs(e[first:first + 10]).max()
+    assert late > 1.5 * early  # growing oscillation (|pole| = 1.05)
+    assert np.count_nonzero(np.diff(np.sign(e[-20:]))) >= 15  # sign flips: pole near -1
+
+
+def test_stable_volume_edges():
+    assert in_stable_volume(1.0, 0.33, 0.0)
+    assert not in_stable_volume(1.0, 0.0, 0.1) and not in_stable_volume(0.0, 0.3, 0.0)
+    assert stability(1.0, 0.0, 0.1)[1] == pytest.approx(1.0)  # pole on z = 1

@@ -302,3 +302,22 @@ def test_ring_samples_binned_keep_the_surface():
     assert ok.sum() > 2000
     assert np.abs(hm.z[ok] - ref[ok]).max() < 0.04
     assert np.sqrt(np.mean((hm.z[ok] - ref[ok]) ** 2)) < 0.01  # below the laser noise
+
+
+@given(st.integers(0, 2 ** 31 - 1), st.floats(0.05, 1.0), st.floats(0.05, 1.0))
+def test_smf_update_respects_saturation_planes(seed, sat, isat):
+    rng = np.random.default_rng(seed)
+    job = Job().replace(**{"feedback.saturation": sat, "feedback.integral_saturation": isat})
+    state = SmfState()
+    for k in range(4):
+        ny, nx = rng.integers(3, 12, 2)
+        z = rng.normal(0, 2.0, (ny, nx))
+        z[rng.random((ny, nx)) < 0.2] = np.nan
+        origin = rng.integers(-3, 3, 2).astype(float)
+        act, state = smf_update(state, HeightMap(origin, 1.0, z), job)
+        ok = np.isfinite(z)
+        assert np.array_equal(np.isfinite(act.u.z), ok)
+        assert np.all(np.abs(act.u.z[ok]) <= sat + 1e-12)
+        assert np.all(np.abs(state.integral.z[ok]) <= isat + 1e-12)
+        np.testing.assert_allclose(act.u.z[ok], np.clip(act.unsaturated.z[ok], -sat, sat))
+        assert state.k == k + 1

@@ -82,13 +82,14 @@ def stability(kp: float, ki: float, kd: float) -> tuple[bool, float]:
 
 
 def in_stable_volume(kp: float, ki: float, kd: float) -> bool:
-    """The gain-stable volume of eq. 5.25 (closed on the coordinate planes).
+    """The gain-stable volume of eq. 5.25: Kp > 0, Ki* > 0, Kd* >= 0, Kp/2 + Ki*/4 + Kd* < 1.
 
-    Kp >= 0, Ki* >= 0, Kd* >= 0 and Kp/2 + Ki*/4 + Kd* < 1. The thesis writes the first
-    three strictly; Kd* = 0 (its optimum) and Ki* = 0 are accepted here since the poles
-    stay inside the unit circle there as long as Kp > 0 (Ki* = 0 gives a pole at 1).
+    The thesis writes Kd* > 0; Kd* = 0 (its own optimum, Table 5-2) is accepted here since
+    the poles stay inside the unit circle there. Ki* = 0 puts a pole on z = 1 and Kp = 0
+    (with Kd* = 0) two poles on the circle, so those planes stay excluded. Use
+    :func:`stability` for the exact answer (the planes approximate the Jury region).
     """
-    return bool(kp >= 0 and ki >= 0 and kd >= 0 and kp / 2 + ki / 4 + kd < 1.0)
+    return bool(kp > 0 and ki > 0 and kd >= 0 and kp / 2 + ki / 4 + kd < 1.0)
 
 
 # Rows of g(k) <= 0 (eq. 5.38): the four planes of the gain-stable volume.
