@@ -311,3 +311,22 @@ def test_property_random_polygons_with_holes(rings):
         lp = plan_layer(layer, job)
         # the star shapes have spikes narrower than the paths: coverage is checked elsewhere
         check_layer_paths(layer, lp, job, min_cover=None)
+
+
+def test_cli_paths_from_stack_file(tmp_path, capsys):
+    from icefab.cli import main
+    from icefab.slicing import save_stack
+
+    job = Job().replace(**{"feedback.interval_layers": 2})
+    stack_file = tmp_path / "stack.npz"
+    save_stack(make_stack(table(4, 2), job), stack_file)
+    out = tmp_path / "out"
+    assert main(["paths", str(stack_file), "-o", str(out), "--layers", "0,5"]) == 0
+    text = capsys.readouterr().out
+    assert "constant-speed build time" in text and "scaffold boundary" in text
+    tp = load_toolpaths(out / "toolpaths.npz")
+    assert len(tp) == 6
+    assert (out / "paths.png").stat().st_size > 10_000
+    # bad layer list: one-line error, exit 2, nothing new written
+    assert main(["paths", str(stack_file), "-o", str(tmp_path / "o2"), "--layers", "99"]) == 2
+    assert "layer numbers must be between 0 and 5" in capsys.readouterr().err

@@ -30,7 +30,16 @@ import numpy as np
 import pyclipr
 from numba import njit
 
-from icefab.types import Region, signed_area
+from icefab.types import Region
+
+
+def signed_area(ring: np.ndarray) -> float:
+    """Signed area (mm^2) of a ring ``(k, 2)``: positive when counter-clockwise (the
+    shoelace formula of ``icefab.types.signed_area`` without temporary arrays)."""
+    x = ring[:, 0]
+    y = ring[:, 1]
+    return 0.5 * float(np.dot(x[:-1], y[1:]) - np.dot(x[1:], y[:-1])
+                       + x[-1] * y[0] - x[0] * y[-1])
 
 #: Clipper integer units per millimetre (the one scale constant: resolution 1e-4 mm).
 SCALE = 10_000.0
@@ -63,25 +72,69 @@ def rings_of(region: Region | Sequence[np.ndarray]) -> Rings:
 def region_from_tree(tree) -> Region:
     """A ``Region`` from a Clipper PolyTree (outer rings CCW, holes CW, parents set).
 
-    Depth-first order: every ring comes after its parent.
+    Depth-first order: every ring comes after its parent. The ring orientation Clipper
+    returns (positive fill: outer rings positive) is trusted; where the tree's nesting
+    disagrees with it (Clipper2 can misplace an island inside a hole when rings touch),
+    the ring is re-parented by point-in-polygon tests (:func:`_fix_nesting`).
     """
     rings: list[np.ndarray] = []
     parent: list[int] = []
+    bad = False
     stack = [(child, -1, 0) for child in reversed(tree.children)]
     while stack:
         node, par, depth = stack.pop()
         ring = np.ascontiguousarray(node.polygon, dtype=np.float64)
         if len(ring) < 3:
             continue
-        a = signed_area(ring)
         hole = depth % 2 == 1
-        if (a < 0) != hole:
-            ring = ring[::-1].copy()
+        if (signed_area(ring) < 0) != hole:
+            bad = True
         idx = len(rings)
         rings.append(ring)
         parent.append(par)
         stack.extend((child, idx, depth + 1) for child in reversed(node.children))
+    if bad:
+        return _fix_nesting(rings, parent)
     return Region(tuple(rings), np.asarray(parent, dtype=np.int64))
+
+
+def _fix_nesting(rings: list[np.ndarray], parent: list[int]) -> Region:
+    """Nesting from ring orientation and containment: the parent of a ring is the smallest
+    ring of the opposite orientation containing most of its vertices (none: top level for
+    an outer ring). Rings are re-ordered so parents come first."""
+    from matplotlib.path import Path as MplPath
+
+    areas = np.array([signed_area(r) for r in rings])
+    n = len(rings)
+    par = np.full(n, -1, dtype=np.int64)
+    mpl = [MplPath(r) for r in rings]
+    order = np.argsort(np.abs(areas))
+    for i in range(n):
+        want_positive = areas[i] < 0  # a hole's parent is an outer ring and vice versa
+        best = -1
+        for j in order:
+            if j == i or (areas[j] > 0) != want_positive or abs(areas[j]) <= abs(areas[i]):
+                continue
+            inside = mpl[j].contains_points(rings[i]).mean()
+            if inside > 0.5:
+                best = int(j)
+                break
+        par[i] = best
+    # depth-first order so parents precede children
+    kids: dict[int, list[int]] = {}
+    for i in range(n):
+        kids.setdefault(int(par[i]), []).append(i)
+    new_index: dict[int, int] = {}
+    out_rings: list[np.ndarray] = []
+    out_parent: list[int] = []
+    todo = [(i, -1) for i in reversed(kids.get(-1, []))]
+    while todo:
+        i, p = todo.pop()
+        new_index[i] = len(out_rings)
+        out_rings.append(rings[i])
+        out_parent.append(p)
+        todo.extend((c, new_index[i]) for c in reversed(kids.get(i, [])))
+    return Region(tuple(out_rings), np.asarray(out_parent, dtype=np.int64))
 
 
 def region_from_rings(rings: Iterable[np.ndarray], fill: str = "nonzero") -> Region:
@@ -259,8 +312,13 @@ def _offset_region(region: Region, d: float, filter_mm: float) -> Region:
         return Region()
     if d == 0:
         return region
+    rings = list(region.rings)
+    if d > filter_mm > 0:
+        # Growing: filter the input too. Unions (the merged region of the scaffold scan)
+        # carry micro-steps that mitred joins would turn into square spikes d long.
+        rings = simplify(rings, filter_mm)
     o = _offsetter()
-    o.addPaths(list(region.rings), pyclipr.JoinType.Miter, pyclipr.EndType.Polygon)
+    o.addPaths(rings, pyclipr.JoinType.Miter, pyclipr.EndType.Polygon)
     out = simplify(list(o.execute(float(d))), filter_mm)
     if not out:
         return Region()

@@ -49,7 +49,7 @@ import os
 import tempfile
 import zipfile
 from pathlib import Path as FsPath
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -57,7 +57,8 @@ from icefab import geometry as geo
 from icefab.config import Job, MaterialSettings, job_from_dict, to_toml
 from icefab.errors import ConfigError, StackFileError
 from icefab.regions import parallel_map
-from icefab.types import Layer, LayerPaths, Path, Region, Stack, Toolpaths, signed_area
+from icefab.geometry import signed_area
+from icefab.types import Layer, LayerPaths, Path, Region, Stack, Toolpaths
 
 log = logging.getLogger(__name__)
 
@@ -458,7 +459,8 @@ def material_paths(region: Region, mat: MaterialSettings, job: Job, hook_levels:
     rings of the ice hook wall (:func:`hook_wall`, ``hook_levels`` rings, given the layer's
     ``part``) taken out of the scaffold (thesis 3.7); ``unfilled_mm2`` the nominal area (:func:`nominal_area`) that no path
     sweeps. With ``mat.gap_fill`` the gaps wider than the boundary path width get extra
-    closed rings of that width (role fill) before the remainder is measured.
+    closed rings of that width (role fill), narrower ones a ring of their own width
+    (:func:`_thin_gap_rings`), before the remainder is measured.
     """
     filt = job.slicing.max_filter_deviation_mm
     w = mat.path_width_mm
@@ -477,11 +479,41 @@ def material_paths(region: Region, mat: MaterialSettings, job: Job, hook_levels:
     nominal = nominal_area(whole, mat, filt)
     gaps = geo.difference(nominal, geo.sweep(swept)) if swept else nominal
     if mat.gap_fill and not gaps.is_empty:
-        extra = geo.offset_rings(list(gaps.rings), -w / 2.0, filt)
+        extra = [(r, True, w) for r in geo.offset_rings(list(gaps.rings), -w / 2.0, filt)]
         if extra:
-            out["fill"] += [(r, True, w) for r in extra]
-            gaps = geo.difference(gaps, geo.sweep([(r, True, w) for r in extra]))
+            gaps = geo.difference(gaps, geo.sweep(extra))
+        thin = _thin_gap_rings(gaps, w, filt)
+        if thin:
+            gaps = geo.difference(gaps, geo.sweep(thin))
+        out["fill"] += extra + thin
     return out, hook, max(geo.area(gaps), 0.0)
+
+
+#: Gaps narrower than this fraction of the path width are left (and reported).
+THIN_GAP_MIN = 0.3
+
+
+def _thin_gap_rings(gaps: Region, w: float, filt: float) -> list[tuple[np.ndarray, bool, float]]:
+    """One ring along the middle of every gap narrower than the path width ``w``, with the
+    gap's width as path width (less flow; e.g. the middle of a wall too thin for a fill
+    ring). The width of a gap piece is estimated as ``2 area / perimeter`` (a strip); the
+    ring is its counter-clockwise offset at 0.45 of that width, so an annular gap gets one
+    ring, not two. Pieces smaller than ``w^2/2`` or narrower than ``THIN_GAP_MIN * w``
+    are left."""
+    out: list[tuple[np.ndarray, bool, float]] = []
+    for poly in gaps.polygons():
+        a = sum(signed_area(r) for r in poly)
+        if a < 0.5 * w * w:
+            continue
+        perim = sum(float(np.linalg.norm(np.diff(np.vstack([r, r[:1]]), axis=0), axis=1).sum())
+                    for r in poly)
+        width = 2.0 * a / perim
+        if width < THIN_GAP_MIN * w:
+            continue
+        width = min(width, w)
+        rings = geo.offset_rings(poly, -0.45 * width, filt)
+        out.extend((r, True, width) for r in rings if signed_area(r) > 0)
+    return out
 
 
 def plan_layer(layer: Layer, job: Job) -> LayerPaths:
@@ -538,17 +570,20 @@ def plan_layer(layer: Layer, job: Job) -> LayerPaths:
     return LayerPaths(layer.index, z, tuple(paths), (float(unfilled[0]), float(unfilled[1])))
 
 
-def plan_paths(stack: Stack, job: Job | None = None) -> Toolpaths:
+def plan_paths(stack: Stack, job: Job | None = None, *,
+               progress: Callable[[int, int], None] | None = None) -> Toolpaths:
     """Ordered deposition, measurement and travel paths of every layer.
 
     stack: layers with part and (after ``add_scaffold``) scaffold regions.
     job: settings (``job.materials``, ``job.feedback``, ``job.scaffold.hook_wall``,
         ``job.cell.cpus``); default ``stack.job``.
+    progress: optional ``progress(done, total)`` callback (layers planned).
     Layers are planned independently on a process pool. Returns ``Toolpaths`` whose
     warnings carry the stack's warnings plus a summary of unfilled area.
     """
     job = job or stack.job
-    layers = parallel_map(_plan_task, [(layer, job) for layer in stack.layers], job)
+    layers = parallel_map(_plan_task, [(layer, job) for layer in stack.layers], job,
+                          min_items=8, progress=progress)
     warnings = list(stack.warnings)
     total = np.array([lp.unfilled_mm2 for lp in layers]).reshape(-1, 2).sum(axis=0)
     if total.sum() > 0:

@@ -40,7 +40,8 @@ import numpy as np
 
 from icefab import geometry as geo
 from icefab.config import Job
-from icefab.types import Region, Stack, signed_area
+from icefab.geometry import signed_area
+from icefab.types import Region, Stack
 
 log = logging.getLogger(__name__)
 
@@ -58,21 +59,33 @@ def n_workers(job: Job) -> int:
 
 
 def parallel_map(fn: Callable[[T], R], items: Sequence[T], job: Job,
-                 min_items: int = 40) -> list[R]:
+                 min_items: int = 40,
+                 progress: Callable[[int, int], None] | None = None) -> list[R]:
     """``[fn(x) for x in items]`` on a process pool over contiguous chunks of items.
 
     Runs serially when only one worker is configured or there are fewer than
     ``min_items`` items (process start-up would cost more than it saves).
+    progress: called as ``progress(done, total)`` as items complete.
     """
     workers = n_workers(job)
-    if workers <= 1 or len(items) < min_items:
-        return [fn(x) for x in items]
-    n_chunks = workers * 4
-    size = max(1, math.ceil(len(items) / n_chunks))
-    chunks = [list(items[i:i + size]) for i in range(0, len(items), size)]
+    total = len(items)
+    if workers <= 1 or total < min_items:
+        out = []
+        for i, x in enumerate(items):
+            out.append(fn(x))
+            if progress is not None and (i % 16 == 15 or i == total - 1):
+                progress(i + 1, total)
+        return out
+    n_chunks = workers * 8
+    size = max(1, math.ceil(total / n_chunks))
+    chunks = [list(items[i:i + size]) for i in range(0, total, size)]
+    out = []
     with ProcessPoolExecutor(max_workers=workers) as pool:
-        results = pool.map(_apply_chunk, [fn] * len(chunks), chunks)
-        return [r for chunk in results for r in chunk]
+        for chunk in pool.map(_apply_chunk, [fn] * len(chunks), chunks):
+            out.extend(chunk)
+            if progress is not None:
+                progress(len(out), total)
+    return out
 
 
 def _apply_chunk(fn: Callable[[T], R], chunk: list[T]) -> list[R]:
@@ -154,12 +167,14 @@ def _thin_part_task(args: tuple[Region, float, float]) -> list[tuple[np.ndarray,
     return out
 
 
-def add_scaffold(stack: Stack, job: Job | None = None) -> Stack:
+def add_scaffold(stack: Stack, job: Job | None = None, *,
+                 progress: Callable[[int, int], None] | None = None) -> Stack:
     """The stack with every layer's ``scaffold`` region filled in (thesis 3.3).
 
     stack: layers bottom first, with their ``part`` regions.
     job: settings (``job.scaffold``, ``job.materials.part.path_width_mm`` for the thin
         part report, ``job.cell.cpus``); default ``stack.job``.
+    progress: optional ``progress(done, total)`` callback for the per-layer work.
     Returns a new Stack; ``warnings`` gains one line per thin part feature (layer, x, y,
     area) narrower than the part path width.
     """
@@ -178,7 +193,7 @@ def add_scaffold(stack: Stack, job: Job | None = None) -> Stack:
         if s.mode == "surround":
             tasks = [(merged[k], parts[k], part_above[k], s.buffer_mm, s.min_width_mm, filt)
                      for k in range(n)]
-            scaffolds = parallel_map(_surround_task, tasks, job)
+            scaffolds = parallel_map(_surround_task, tasks, job, progress=progress)
         else:
             scaffolds = _overhang_scan(parts, part_above, stack.layer_thickness, job)
         inside = _in_subset(stack, job)

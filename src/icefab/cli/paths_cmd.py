@@ -1,0 +1,194 @@
+"""``icefab paths MODEL|STACK.npz [-c job.toml] -o OUT [--layers 10,50,100]``.
+
+From a mesh (loaded, placed and sliced) or a saved stack (``icefab slice``), adds the
+scaffold regions if the stack has none (``icefab.regions``), plans the paths of every
+layer (``icefab.paths``) and writes ``OUT/toolpaths.npz`` (format:
+``icefab.paths.save_toolpaths``) and ``OUT/paths.png`` (the chosen layers: part and
+scaffold regions filled in distinct colours, boundaries solid, fill thin, travel dashed,
+measurement paths dotted). Prints a summary with the constant-speed time estimate.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import tempfile
+import time
+from pathlib import Path as FsPath
+
+import numpy as np
+
+from icefab.cli.common import Progress, add_job_argument, job_from_args
+from icefab.errors import ConfigError
+from icefab.types import Stack, Toolpaths
+
+SHOW_WARNINGS = 5
+
+# colours: part (water) blue, scaffold orange
+_COLOUR = {"part": "tab:blue", "scaffold": "tab:orange"}
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "paths", help="scaffold regions and deposition paths of every layer",
+        description="Scaffold regions (thesis 3.3) and ordered boundary, fill, measurement "
+                    "and travel paths of both materials (thesis 3.4-3.7). Input: a mesh "
+                    "(STL, PLY, OBJ) or a stack.npz from 'icefab slice'. Writes "
+                    "OUT/toolpaths.npz and OUT/paths.png.")
+    p.add_argument("model", nargs="+", metavar="MODEL|STACK",
+                   help="mesh file(s) (replace parts.files of the job) or one stack .npz")
+    add_job_argument(p)
+    p.add_argument("-o", "--out", required=True, metavar="OUT", help="output folder")
+    p.add_argument("--layers", metavar="K,K,...",
+                   help="layer indices to draw in paths.png (default: four evenly spread)")
+    p.set_defaults(func=run)
+
+
+def parse_layers(text: str | None, n: int) -> list[int]:
+    """Layer indices to draw: the ``--layers`` list, or up to four evenly spread."""
+    if n == 0:
+        return []
+    if not text:
+        return sorted(set(np.linspace(0, n - 1, min(4, n)).round().astype(int).tolist()))
+    try:
+        ks = [int(t) for t in text.replace(" ", "").split(",") if t]
+    except ValueError:
+        raise ConfigError(f"--layers {text!r}: expected comma-separated layer numbers, e.g. "
+                          "10,50,100") from None
+    bad = [k for k in ks if not 0 <= k < n]
+    if bad or not ks:
+        raise ConfigError(f"--layers {text!r}: layer numbers must be between 0 and {n - 1}")
+    return ks
+
+
+def plot_toolpaths(stack: Stack, toolpaths: Toolpaths, ks: list[int], path: FsPath) -> None:
+    """Draw layers ``ks``: regions filled (part blue, scaffold orange), boundaries solid,
+    fill thin, travel dashed grey, measurement dotted green. PNG written atomically."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import PathPatch
+    from matplotlib.path import Path as MplPath
+
+    n = max(1, len(ks))
+    cols = min(2, n)
+    rows = (n + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(6.0 * cols, 5.6 * rows), squeeze=False)
+    for ax, k in zip(axes.ravel(), ks):
+        layer = stack[k]
+        for material, region in (("part", layer.part), ("scaffold", layer.scaffold)):
+            if region.is_empty:
+                continue
+            verts, codes = [], []
+            for ring in region.rings:
+                verts.append(np.vstack([ring, ring[:1]]))
+                c = np.full(len(ring) + 1, MplPath.LINETO)
+                c[0], c[-1] = MplPath.MOVETO, MplPath.CLOSEPOLY
+                codes.append(c)
+            patch = PathPatch(MplPath(np.concatenate(verts), np.concatenate(codes)),
+                              facecolor=_COLOUR[material], alpha=0.18, lw=0,
+                              label=f"{material} region")
+            ax.add_patch(patch)
+        lp = toolpaths.layers[k]
+        seen = set()
+        for p in lp.paths:
+            pts = p.polyline()
+            if p.role == "travel":
+                style = dict(color="0.45", lw=0.6, ls="--")
+            elif p.role == "measure":
+                style = dict(color="tab:green", lw=0.6, ls=":")
+            elif p.role == "boundary":
+                style = dict(color=_COLOUR[p.material], lw=1.3, ls="-")
+            else:
+                style = dict(color=_COLOUR[p.material], lw=0.5, ls="-", alpha=0.8)
+            label = f"{p.material} {p.role}" if p.role in ("boundary", "fill") else p.role
+            ax.plot(pts[:, 0], pts[:, 1], label=None if label in seen else label, **style)
+            seen.add(label)
+        ax.set_title(f"layer {k}: z = {layer.z:.2f} mm, {len(lp.paths)} paths, unfilled "
+                     f"{lp.unfilled_mm2[0]:.0f}/{lp.unfilled_mm2[1]:.0f} mm²", fontsize=9)
+        ax.set_aspect("equal")
+        ax.autoscale_view()
+        ax.set_xlabel("x (mm)", fontsize=8)
+        ax.set_ylabel("y (mm)", fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.legend(fontsize=6, loc="upper right")
+    for ax in axes.ravel()[len(ks):]:
+        ax.axis("off")
+    fig.tight_layout()
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        fig.savefig(tmp, dpi=110, format="png")
+        os.replace(tmp, path)
+    finally:
+        plt.close(fig)
+        FsPath(tmp).unlink(missing_ok=True)
+
+
+def summary_lines(toolpaths: Toolpaths, per_layer_s: np.ndarray, total_s: float) -> list[str]:
+    """Counts by role and material, length, unfilled area and the time estimate."""
+    counts: dict[str, int] = {}
+    length: dict[str, float] = {}
+    for lp in toolpaths:
+        for p in lp.paths:
+            key = f"{p.material} {p.role}" if p.role != "travel" else "travel"
+            counts[key] = counts.get(key, 0) + 1
+            length[key] = length.get(key, 0.0) + p.length
+    lines = [f"layers: {len(toolpaths)}"]
+    for key in sorted(counts):
+        lines.append(f"  {key}: {counts[key]} paths, {length[key] / 1000:.2f} m")
+    unf = np.array([lp.unfilled_mm2 for lp in toolpaths]).reshape(-1, 2).sum(axis=0)
+    lines.append(f"unfilled area: part {unf[0]:.0f} mm², scaffold {unf[1]:.0f} mm²")
+    if len(per_layer_s):
+        lines.append(f"constant-speed build time: {total_s / 3600:.2f} h (layers "
+                     f"{per_layer_s.min():.1f} .. {per_layer_s.max():.1f} s)")
+    ws = toolpaths.warnings
+    lines.append(f"warnings: {len(ws)}")
+    lines += [f"  {w}" for w in ws[:SHOW_WARNINGS]]
+    if len(ws) > SHOW_WARNINGS:
+        lines.append(f"  ... {len(ws) - SHOW_WARNINGS} more in the toolpath file")
+    return lines
+
+
+def _load_stack(args: argparse.Namespace, job):
+    from icefab import mesh as meshmod
+    from icefab.slicing import load_stack, slice_mesh
+
+    first = FsPath(args.model[0])
+    if len(args.model) == 1 and first.suffix.lower() == ".npz":
+        stack = load_stack(first)
+        if args.job:
+            stack = dataclasses.replace(stack, job=job)
+        return stack, stack.job
+    files = tuple(str(FsPath(m).resolve()) for m in args.model)
+    job = dataclasses.replace(job, parts=dataclasses.replace(job.parts, files=files))
+    mesh = meshmod.prepare_parts(job)
+    return slice_mesh(mesh, job, progress=Progress("slicing")), job
+
+
+def run(args: argparse.Namespace) -> int:
+    from icefab.paths import estimate_build_time, plan_paths, save_toolpaths
+    from icefab.regions import add_scaffold
+
+    job = job_from_args(args)
+    t0 = time.perf_counter()
+    stack, job = _load_stack(args, job)
+    if not any(not layer.scaffold.is_empty for layer in stack):
+        stack = add_scaffold(stack, job, progress=Progress("scaffold"))
+    t_scaf = time.perf_counter() - t0
+    toolpaths = plan_paths(stack, job, progress=Progress("paths"))
+    t_paths = time.perf_counter() - t0 - t_scaf
+    ks = parse_layers(args.layers, len(stack))
+    per_layer, total = estimate_build_time(toolpaths, job)
+    # Files are written atomically into OUT (which may hold the stack.npz of 'icefab slice').
+    out = FsPath(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    save_toolpaths(toolpaths, out / "toolpaths.npz")
+    plot_toolpaths(stack, toolpaths, ks, out / "paths.png")
+    for line in summary_lines(toolpaths, per_layer, total):
+        print(line)
+    print(f"time: stack and scaffold {t_scaf:.2f} s, paths {t_paths:.2f} s")
+    print(f"wrote {out / 'toolpaths.npz'} and {out / 'paths.png'} "
+          f"(layers {', '.join(map(str, ks))})")
+    return 0
