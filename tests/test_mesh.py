@@ -615,3 +615,13 @@ def test_error_only_degenerate_faces(tmp_path):
     data = b"v 0 0 0\nv 1 0 0\nf 1 2 2\n"
     with pytest.raises(MeshError, match=r"flat\.obj.*degenerate"):
         load_mesh(_write(tmp_path, "flat.obj", data))
+
+
+def test_text_files_with_bom_and_utf8_names(tmp_path):
+    ref = _tm("box")
+    text = trimesh.exchange.stl.export_stl_ascii(ref).replace("solid", "solid Würfel", 1)
+    p = _write(tmp_path, "w.stl", b"\xef\xbb\xbf" + text.encode("utf-8"))
+    _same_geometry(load_mesh(p), ref)
+    v, quads = _box_quads()
+    q = _write(tmp_path, "w.obj", b"\xef\xbb\xbfo W\xc3\xbcrfel\n" + _obj_bytes(v, quads))
+    assert load_mesh(q).n_faces == 12

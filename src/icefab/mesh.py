@@ -477,11 +477,11 @@ _STL_DTYPE = np.dtype([("normal", "<f4", (3,)), ("corners", "<f4", (3, 3)),
                        ("attr", "<u2")])
 _TEXT_BYTES = np.zeros(256, bool)
 _TEXT_BYTES[[9, 10, 11, 12, 13]] = True
-_TEXT_BYTES[32:127] = True
+_TEXT_BYTES[32:256] = True  # bytes >= 128: UTF-8 in names and comments
 
 
 def _is_text(data: bytes | memoryview) -> bool:
-    """True when every byte is printable ASCII or whitespace."""
+    """True when no byte is a control character other than whitespace."""
     return bool(_TEXT_BYTES[np.frombuffer(data, np.uint8)].all())
 
 
@@ -560,6 +560,8 @@ def read_mesh(path: str | os.PathLike[str], *, inexact: bool = False,
         raise MeshError(f"{p}: cannot read mesh file ({exc.strerror or exc})") from None
     if not data[:4096].strip() and not data.strip():
         raise MeshError(f"{p}: empty file, expected a mesh (STL, PLY or OBJ)")
+    if data[:3] == b"\xef\xbb\xbf" and _is_text(data[3:4099]):
+        data = data[3:]  # UTF-8 byte order mark of a text file
     fmt = _sniff(data, p)
     try:
         if fmt == "stl":
