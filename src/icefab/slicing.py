@@ -48,8 +48,8 @@ Pipeline (RPSLICE's FACETSLICE = INTERSECTFACET + SEGMERGE + PATHFILTER, thesis 
    on itself. Gaps up to ``job.slicing.max_gap_mm`` are closed quietly (counted in one
    summary warning). Longer gaps: with ``open_contours = "close"`` (default) they are
    closed too and *each* is reported in ``Stack.warnings`` with its layer, location and
-   length -- no layer of an open scan is lost; with ``"drop"`` such chains are dropped
-   and reported. Areas are never silently wrong: every non-trivial closure is reported.
+   length -- no layer of an open scan is lost; with ``"drop"`` no join or closure may
+   cross more than ``max_gap_mm``, and a chain that cannot close is dropped and reported. Areas are never silently wrong: every non-trivial closure is reported.
 
 5. **Path filter** (PATHFILTER): points closer than ``min_point_spacing_mm`` to the last
    kept point and (near-)collinear points are removed, per contour in a compiled kernel,
@@ -893,51 +893,60 @@ def _close_open_chains(chains: list[np.ndarray], layer: int, z: float, job: Job,
     """
     max_gap = job.slicing.max_gap_mm
     drop_mode = job.slicing.open_contours == "drop"
-    free = [c for c in chains if len(c) >= 1]
+    # in "drop" mode no join may cross more than max_gap_mm
+    reach = max_gap if drop_mode else np.inf
+    chains = [c for c in chains if len(c) >= 1]
+    n = len(chains)
+    starts = np.array([c[0] for c in chains]).reshape(n, 2)
+    ends = np.array([c[-1] for c in chains]).reshape(n, 2)
+    alive = np.ones(n, dtype=bool)
     rings: list[np.ndarray] = []
-    while free:
-        cur = [free.pop(0)]
+    where = f"layer {layer} (z = {z:.3f} mm)"
+    for first in range(n):
+        if not alive[first]:
+            continue
+        alive[first] = False
+        cur = [chains[first]]
+        head = starts[first]
         gaps: list[tuple[float, np.ndarray]] = []
+        closed = False
         while True:
-            head = cur[0][0]
             tail = cur[-1][-1]
             d_self = float(np.hypot(*(tail - head)))
-            if free:
-                starts = np.array([c[0] for c in free])
-                ends = np.array([c[-1] for c in free])
-                ds = np.hypot(*(starts - tail).T)
-                de = np.hypot(*(ends - tail).T)
-                i_s = int(np.argmin(ds))
-                i_e = int(np.argmin(de))
-                best, rev, i = (ds[i_s], False, i_s) if ds[i_s] <= de[i_e] else (de[i_e], True, i_e)
-            else:
-                best, rev, i = np.inf, False, -1
-            if d_self <= best or i < 0:
+            best, rev, i = np.inf, False, -1
+            if alive.any():
+                idx = np.flatnonzero(alive)
+                ds = np.hypot(*(starts[idx] - tail).T)
+                de = np.hypot(*(ends[idx] - tail).T)
+                i_s, i_e = int(np.argmin(ds)), int(np.argmin(de))
+                if ds[i_s] <= de[i_e]:
+                    best, rev, i = float(ds[i_s]), False, int(idx[i_s])
+                else:
+                    best, rev, i = float(de[i_e]), True, int(idx[i_e])
+            if d_self <= best or best > reach:
+                closed = d_self <= reach
                 gaps.append((d_self, 0.5 * (tail + head)))
                 break
-            nxt = free.pop(i)
-            if rev:
-                nxt = nxt[::-1]
-            gaps.append((float(best), 0.5 * (tail + nxt[0])))
+            alive[i] = False
+            nxt = chains[i][::-1] if rev else chains[i]
+            gaps.append((best, 0.5 * (tail + nxt[0])))
             cur.append(nxt)
-        ring = np.concatenate(cur)
-        big = [(g, p) for g, p in gaps if g > max_gap]
-        small = [g for g, _ in gaps if _NOISE_GAP_MM < g <= max_gap]
-        report.gaps_closed += len(small)
-        where = f"layer {layer} (z = {z:.3f} mm)"
-        if big and drop_mode:
+        if not closed:                  # "drop" mode: cannot close within max_gap_mm
             report.chains_dropped += 1
-            g, p = max(big, key=lambda x: x[0])
+            g, p = gaps[-1]
             warn.add(f"{where}: open contour dropped: it cannot close within max_gap_mm = "
                      f"{max_gap} (gap {g:.2f} mm at {_fmt_pt(p)})")
             continue
-        for g, p in big:
-            report.large_gaps_closed += 1
-            warn.add(f"{where}: open contour closed across a {g:.2f} mm gap at {_fmt_pt(p)} "
-                     f"(longer than max_gap_mm = {max_gap}; hole in the mesh)")
-        # drop a repeated closing point
+        report.gaps_closed += sum(1 for g, _ in gaps if _NOISE_GAP_MM < g <= max_gap)
+        for g, p in gaps:
+            if g > max_gap:
+                report.large_gaps_closed += 1
+                warn.add(f"{where}: open contour closed across a {g:.2f} mm gap at "
+                         f"{_fmt_pt(p)} (longer than max_gap_mm = {max_gap}; hole in the "
+                         "mesh)")
+        ring = np.concatenate(cur)
         if len(ring) > 1 and np.array_equal(ring[0], ring[-1]):
-            ring = ring[:-1]
+            ring = ring[:-1]            # drop a repeated closing point
         rings.append(ring)
     return rings
 
