@@ -321,3 +321,11 @@ def test_smf_update_respects_saturation_planes(seed, sat, isat):
         assert np.all(np.abs(state.integral.z[ok]) <= isat + 1e-12)
         np.testing.assert_allclose(act.u.z[ok], np.clip(act.unsaturated.z[ok], -sat, sat))
         assert state.k == k + 1
+
+
+def test_retime_moves_piece_starts():
+    tr = _line_traj(n=101)
+    tr = Trajectory(dt=tr.dt, xy=tr.xy, joints=tr.joints, speed=tr.speed, duration=tr.duration,
+                    path=tr.path, pieces=np.array([0, 50]))
+    out = retime_trajectory(tr, np.full(101, 0.25))
+    assert out.pieces.tolist() == [0, 62] or out.pieces.tolist() == [0, 63]

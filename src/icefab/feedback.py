@@ -773,7 +773,8 @@ def retime_trajectory(traj: Trajectory, u: np.ndarray, *, max_change: float = 0.
     re-sampled at the SAME dt by linear interpolation in time, so the speed lives in the
     point spacing (Fig. 5-6) instead of in variable point-to-point durations. The time axis
     is stretched by at most dt / duration so the last sample lands exactly on (n'-1) dt.
-    Joints are re-sampled the same way.
+    Joints are re-sampled the same way; piece starts (``traj.pieces``) move to the sample
+    nearest their new time.
     """
     xy = np.asarray(traj.xy, dtype=np.float64)
     n = len(xy)
@@ -800,5 +801,9 @@ def retime_trajectory(traj: Trajectory, u: np.ndarray, *, max_change: float = 0.
                                       for j in range(joints.shape[1])])
     else:
         joints_new = np.zeros((n_new, 0))
+    pieces = np.asarray(getattr(traj, "pieces", np.zeros(0)), dtype=np.int64)
+    if len(pieces):  # piece starts (rest points) move with the time axis
+        pieces = np.unique(np.clip(np.rint(T[np.clip(pieces, 0, n - 1)] / dt), 0, n_new - 1)
+                           ).astype(np.int64)
     return Trajectory(dt=dt, xy=xy_new, joints=joints_new, speed=speed_new,
-                      duration=(n_new - 1) * dt, path=traj.path)
+                      duration=(n_new - 1) * dt, path=traj.path, pieces=pieces)
