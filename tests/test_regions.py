@@ -46,11 +46,12 @@ def check_invariants(stack: Stack, surround: float | None):
     """The must-show invariants, measured with shapely."""
     layers = stack.layers
     above = shapely.Polygon()
-    tol_area = 1e-3
     for k in range(len(layers) - 1, -1, -1):
         part = to_shapely(layers[k].part)
         scaf = to_shapely(layers[k].scaffold)
         check_region_structure(layers[k].scaffold)
+        # Clipper works on a 1e-4 mm grid: slicer coordinates are rounded by up to half that
+        tol_area = 1e-3 + 1.0 / geo.SCALE * (part.length + scaf.length)
         # scaffold and part never overlap
         assert part.intersection(scaf).area < tol_area, f"layer {k}"
         both = part.union(scaf)
