@@ -325,3 +325,24 @@ def test_replan_valves_volume_per_mm_follows_action(controller):
         else:
             assert tr is trajs[0] or tr is trajs[1]
     assert len(out_p[2].ticks) == 0 and out_t[2] is trajs[2]
+
+
+_TRAJ = None
+
+
+@given(st.integers(1, 400), st.floats(0.05, 3.0))
+def test_split_property(max_pulses, max_piece_s):
+    global _TRAJ
+    if _TRAJ is None:
+        _TRAJ = line_trajectory(length=150.0, vmax=80.0)
+    traj = _TRAJ
+    job = Job().replace(**{"flow.max_pulses": max_pulses, "flow.max_piece_s": max_piece_s})
+    whole = plan_valves(traj, "part", Job())
+    prog = plan_valves(traj, "part", job)
+    pieces = program_pieces(prog)
+    assert all(len(p.ticks) <= max_pulses for p in pieces)
+    assert all(p.duration <= max_piece_s + 1e-9 for p in pieces)
+    assert all(p.duration > 0 for p in pieces[:-1])
+    assert n_pulses(prog) == n_pulses(whole)
+    assert total_duration(prog) == pytest.approx(traj.duration)
+    np.testing.assert_allclose(pulse_times(prog), pulse_times(whole), atol=0.001 + 1e-9)
