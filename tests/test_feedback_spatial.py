@@ -333,3 +333,20 @@ def test_retime_moves_piece_starts():
                     path=tr.path, pieces=np.array([0, 50]))
     out = retime_trajectory(tr, np.full(101, 0.25))
     assert out.pieces.tolist() == [0, 62] or out.pieces.tolist() == [0, 63]
+
+
+def test_smf_step_end_to_end():
+    from icefab.feedback import smf_step
+    job = Job()
+    dh_m = 4 * 0.25
+    reg = frame_region()
+    # the part is 0.2 mm too low on the left half, 0.1 mm too high on the right
+    xyz = samples_on(lambda x, y: 10 - np.where(x < 50, 0.2, -0.1), n=8000)
+    act, st = smf_step(xyz, reg, 10.0, SmfState(), job)
+    x, y = act.u.grid()
+    left = np.isfinite(act.u.z) & (x[None, :] < 45)
+    right = np.isfinite(act.u.z) & (x[None, :] > 55)
+    # U = Kp E + Ki* E (k = 1, no derivative), E = 0.2 / dh_m and -0.1 / dh_m
+    np.testing.assert_allclose(act.u.z[left], (1 + 0.33) * 0.2 / dh_m, atol=1e-9)
+    np.testing.assert_allclose(act.u.z[right], -(1 + 0.33) * 0.1 / dh_m, atol=1e-9)
+    assert st.k == 1

@@ -19,6 +19,15 @@ Thesis Ch. 5. Two halves:
   optimisation of the gains minimising the RMS error sigma_p* (eq. 5.27) with the analytic
   gradient (eqs. 5.34-5.35, 5.40).
 
+Public functions: :func:`surface_from_samples`, :func:`error_surface`, :func:`smf_update`
+(state :class:`SmfState`, result :class:`ControlAction`), :func:`smf_step` (the three in
+one), :func:`action_along` / :func:`action_sampler`, :func:`retime_trajectory`,
+:func:`regrid`, :func:`region_mask`; analysis: :func:`poles`, :func:`stability`,
+:func:`in_stable_volume`, :func:`transfer_function`, :func:`error_response`,
+:func:`simulate_1d`, :func:`rms_and_gradient`, :func:`tune_gains`, :func:`evaluate_gains`
+with :class:`Disturbance` and :class:`TuneResult`. Applying an action to the next layers'
+valve programs: :func:`icefab.flow.replan_valves`.
+
 Sign convention (thesis 5.4): the error is ``e = nominal - measured`` normalised by the
 measurement interval dh_m, so a positive error means the part is too LOW and a positive
 control action ``u`` asks for MORE material (flow x (1 + u), or speed / (1 + u)).
@@ -729,6 +738,26 @@ def smf_update(state: SmfState, error: HeightMap, job: "Job | None" = None, *,
         log.info("SMF layer %d: output saturated on %.1f %% of the footprint", state.k + 1,
                  100 * sat)
     return action, new_state
+
+
+def smf_step(samples: np.ndarray, footprint: Region | Sequence[Region] | None,
+             nominal_z: float, state: SmfState, job: "Job | None" = None
+             ) -> tuple[ControlAction, SmfState]:
+    """One measurement layer of SMF end to end (thesis Fig. 5-2).
+
+    samples: (n, 3) laser samples, mm, part frame; footprint: the layer's part and
+    scaffold regions; nominal_z: nominal height of the measured surface, mm.
+    Surface on ``job.feedback.grid_mm`` (smoothing per ``job.feedback.smoothing``), error
+    normalised by dh_m = ``interval_layers * layer_thickness_mm``, then :func:`smf_update`.
+    """
+    if job is None:
+        from icefab.config import Job
+
+        job = Job()
+    fb = job.feedback
+    surface = surface_from_samples(samples, footprint, fb.grid_mm, smoothing=fb.smoothing)
+    dh_m = fb.interval_layers * job.slicing.layer_thickness_mm
+    return smf_update(state, error_surface(surface, nominal_z, dh_m), job)
 
 
 def action_along(action: HeightMap | ControlAction, xy: np.ndarray) -> np.ndarray:
