@@ -375,3 +375,13 @@ def test_mtts_trajectory_volume_per_mm_is_nominal():
     edges = np.arange(10.0, s[-1] - 10.0, 10.0)
     vols, _ = np.histogram(s_pulse, bins=edges, weights=per_pulse)
     np.testing.assert_allclose(vols, 1.5 * 0.25 * 10.0, rtol=0.1)
+
+
+def test_pwm_drops_per_mm_and_pulse_width_settings():
+    traj = line_trajectory(length=300, vmax=200.0, accel=2000.0)
+    job = Job().replace(**{"flow.mode": "pwm"})
+    plan = valve_frequency(traj, "part", job)
+    assert any("pwm_frequency_hz" in w for w in plan.warnings)  # 125 Hz < 200 mm/s
+    bad = Job().replace(**{"flow.calibration_pulse_ms": 0.2})
+    with pytest.raises(FlowError, match="calibration_pulse_ms"):
+        plan_valves(traj, "part", bad)

@@ -277,6 +277,9 @@ def valve_frequency(trajectory: Trajectory, material: str, job: "Job", *,
     calibration: table to use (default :func:`calibration_for`).
     """
     fl = job.flow
+    if fl.calibration_pulse_ms < fl.min_pulse_ms:
+        raise FlowError(f"flow.calibration_pulse_ms = {fl.calibration_pulse_ms:g}: below the "
+                        f"valve's shortest opening flow.min_pulse_ms = {fl.min_pulse_ms:g}")
     n = len(trajectory.xy)
     speed = np.asarray(trajectory.speed, dtype=np.float64)
     if speed.shape != (n,):
@@ -324,6 +327,15 @@ def valve_frequency(trajectory: Trajectory, material: str, job: "Job", *,
             warnings.append(f"{where}: fewer than flow.min_drops_per_mm = "
                             f"{fl.min_drops_per_mm:g} drops per mm ({float(drops[few].min()):.3g}"
                             f") at {int(np.count_nonzero(few))} samples")
+    else:  # PWM: one drop per period (thesis 6.1: >= 1 drop per mm)
+        moving = speed > 1e-9
+        few = moving & (fl.pwm_frequency_hz < fl.min_drops_per_mm * speed)
+        if np.any(few):
+            warnings.append(f"{where}: flow.pwm_frequency_hz = {fl.pwm_frequency_hz:g} gives "
+                            f"fewer than {fl.min_drops_per_mm:g} drops per mm at speeds up to "
+                            f"{float(speed.max()):.4g} mm/s ({int(np.count_nonzero(few))} "
+                            "samples)")
+    if fl.mode == "fm":
         if np.any(nu > 1.0 / fl.tick_s):
             warnings.append(f"{where}: frequency above 1 / flow.tick_s = {1 / fl.tick_s:g} Hz: "
                             "consecutive pulses may share a tick")
