@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.interpolate import RegularGridInterpolator, griddata
+from scipy.interpolate import RegularGridInterpolator
+from scipy.spatial import cKDTree
 
 from icefab import Job
 from icefab.sim import Measurement, SimulationError, simulate_build
@@ -56,16 +57,16 @@ def quiet_job(**changes) -> Job:
 
 
 def stand_in_controller(kp=1.0, ki=0.33, sat=0.3):
-    """A minimal spatial PI (thesis eq. 5.1 without D) on the simulator grid."""
+    """A minimal spatial PI (thesis eq. 5.1 without D) on the simulator grid; the measured
+    height of a footprint cell is that of its nearest laser sample."""
     state: dict = {"integral": None}
 
     def control(m: Measurement):
         xs, ys = m.grid.grid()
-        X, Y = np.meshgrid(xs, ys)
-        lin = griddata(m.samples[:, :2], m.samples[:, 2], (X, Y), method="linear")
-        near = griddata(m.samples[:, :2], m.samples[:, 2], (X, Y), method="nearest")
-        meas = np.where(np.isfinite(lin), lin, near)
-        e = np.where(m.footprint, (m.nominal_z - meas) / m.interval_mm, 0.0)
+        iy, ix = np.nonzero(m.footprint)
+        _, nearest = cKDTree(m.samples[:, :2]).query(np.column_stack([xs[ix], ys[iy]]))
+        e = np.zeros(m.footprint.shape)
+        e[iy, ix] = (m.nominal_z - m.samples[nearest, 2]) / m.interval_mm
         integral = e if state["integral"] is None else state["integral"] + e
         integral = np.clip(integral, -sat / ki, sat / ki)
         state["integral"] = integral
@@ -137,13 +138,13 @@ def test_stand_in_controller_removes_a_flow_error():
     job = quiet_job(**{"simulation.flow_error": 0.10, "simulation.noise_mm": 0.02,
                        "simulation.laser_noise_mm": 0.01, "simulation.edge_loss": 0.1,
                        "simulation.laser_latency_s": 0.002})
-    tp = annulus_toolpaths(job, 48)
+    tp = annulus_toolpaths(job, 32)
     open_ = simulate_build(tp, job, closed_loop=False)
-    closed = simulate_build(tp, job, controller=stand_in_controller(), keep_surfaces=[47])
+    closed = simulate_build(tp, job, controller=stand_in_controller(), keep_surfaces=[31])
     assert closed.closed_loop and not open_.closed_loop
     assert closed.rms[-1] < open_.rms[-1] / 5
-    assert 47 in closed.surfaces
-    surf = closed.surfaces[47]
+    assert 31 in closed.surfaces
+    surf = closed.surfaces[31]
     assert surf.z.shape == closed.height.z.shape
 
 
@@ -165,3 +166,14 @@ def test_layers_limit_and_errors():
     empty = Toolpaths(layers=(LayerPaths(index=0, z=0.25, paths=()),), job=job)
     with pytest.raises(SimulationError, match="nothing to deposit"):
         simulate_build(empty, job, closed_loop=False)
+
+
+def test_the_real_smf_controller_closes_the_loop_on_the_annulus():
+    # icefab.feedback behind simulate_build's default controller (thesis 5.1-5.2)
+    job = quiet_job(**{"simulation.flow_error": 0.10, "simulation.noise_mm": 0.02,
+                       "simulation.laser_noise_mm": 0.01, "simulation.spread_mm": 1.0})
+    tp = annulus_toolpaths(job, 24)
+    open_ = simulate_build(tp, job, closed_loop=False)
+    smf = simulate_build(tp, job)
+    assert smf.rms[-1] < open_.rms[-1] / 4
+    assert smf.rms_measured[-1] < 0.1

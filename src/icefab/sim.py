@@ -137,6 +137,7 @@ def _splat_segments(z, ox, oy, g, ax, ay, bx, by, vol, half_w, n0, n1,
     qx = np.empty(16)
     qy = np.empty(16)
     full = g * g
+    buf = np.empty(1024)
     for s in range(vol.shape[0]):
         v = vol[s]
         if v == 0.0:
@@ -164,45 +165,48 @@ def _splat_segments(z, ox, oy, g, ax, ay, bx, by, vol, half_w, n0, n1,
         j1 = int(math.ceil((max(ax[s], bx[s]) + reach - ox) / g))
         i0 = int(math.floor((min(ay[s], by[s]) - reach - oy) / g))
         i1 = int(math.ceil((max(ay[s], by[s]) + reach - oy) / g))
+        nj = j1 - j0 + 1
+        if (i1 - i0 + 1) * nj > buf.shape[0]:
+            buf = np.empty(2 * (i1 - i0 + 1) * nj)
         total = 0.0
-        inside = 0.0
-        scale = 0.0
-        for pas in range(2):
-            for i in range(i0, i1 + 1):
-                cy = oy + i * g - ay[s]
-                for j in range(j0, j1 + 1):
-                    cx = ox + j * g - ax[s]
-                    cut = False
-                    empty = False
-                    for k in range(4):
-                        vc = la[k] * cx + lb[k] * cy - lc[k]
-                        spread = hg * (abs(la[k]) + abs(lb[k]))
-                        if vc - spread >= 0.0:
-                            empty = True
-                            break
-                        if vc + spread > 0.0:
-                            cut = True
-                    if empty:
-                        continue
+        for i in range(i0, i1 + 1):
+            cy = oy + i * g - ay[s]
+            row = (i - i0) * nj
+            for j in range(j0, j1 + 1):
+                cx = ox + j * g - ax[s]
+                cut = False
+                empty = False
+                for k in range(4):
+                    vc = la[k] * cx + lb[k] * cy - lc[k]
+                    spread = hg * (abs(la[k]) + abs(lb[k]))
+                    if vc - spread >= 0.0:
+                        empty = True
+                        break
+                    if vc + spread > 0.0:
+                        cut = True
+                w = 0.0
+                if not empty:
                     if cut:
                         px[0], py[0] = cx - hg, cy - hg
                         px[1], py[1] = cx + hg, cy - hg
                         px[2], py[2] = cx + hg, cy + hg
                         px[3], py[3] = cx - hg, cy + hg
                         w = _clip_area(px, py, qx, qy, 4, la, lb, lc)
-                        if w <= 0.0:
-                            continue
                     else:
                         w = full
-                    if pas == 0:
-                        total += w
-                    elif 0 <= i < ny and 0 <= j < nx:
-                        z[i, j] += w * scale
-                        inside += w
-            if pas == 0:
-                if total <= 0.0:
-                    break
-                scale = v / (total * full)
+                buf[row + j - j0] = w
+                total += w
+        if total <= 0.0:
+            continue
+        scale = v / (total * full)
+        inside = 0.0
+        for i in range(max(i0, 0), min(i1, ny - 1) + 1):
+            row = (i - i0) * nj
+            for j in range(max(j0, 0), min(j1, nx - 1) + 1):
+                w = buf[row + j - j0]
+                if w > 0.0:
+                    z[i, j] += w * scale
+                    inside += w
         if total > 0.0:
             lost += v * (1.0 - inside / total)
     return lost
