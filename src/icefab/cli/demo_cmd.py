@@ -40,7 +40,7 @@ def _say(text: str) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from icefab.cli.plan_cmd import plot_speed
-    from icefab.cli.slice_cmd import plot_layers
+    from icefab.cli.paths_cmd import plot_toolpaths
     from icefab.demo import demo_mug
     from icefab.flow import n_pulses, plan_valves, program_pieces, write_valve_program
     from icefab.mesh import check_mesh, write_stl
@@ -75,7 +75,6 @@ def run(args: argparse.Namespace) -> int:
         save_stack(stack, out / "stack.npz")
         n = len(stack)
         ks = sorted({0, n // 8, n // 2, (3 * n) // 4, n - 1})
-        plot_layers(stack, ks, out / "layers.png")
         summary["slice"] = {"layers": n, "warnings": len(stack.warnings),
                             "seconds": round(time.perf_counter() - t0, 3)}
         _say(f"sliced and scaffolded: {n} layers of {stack.layer_thickness:g} mm, "
@@ -84,6 +83,7 @@ def run(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         toolpaths: Toolpaths = plan_paths(stack, job)
         save_toolpaths(toolpaths, out / "toolpaths.npz")
+        plot_toolpaths(stack, toolpaths, ks, out / "layers.png")
         per_layer, const_s = estimate_build_time(toolpaths, job)
         n_paths = sum(len(lp.paths) for lp in toolpaths)
         summary["paths"] = {"paths": n_paths, "constant_speed_s": round(const_s, 1),

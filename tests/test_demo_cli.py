@@ -1,0 +1,25 @@
+"""`icefab demo` end to end (on the first layers of the mug, to keep CI short)."""
+import json
+
+from icefab.cli import main
+
+
+def test_demo_writes_every_stage(tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert main(["demo", "-o", str(out), "--layers", "24", "--sim-layers", "24"]) == 0
+    for name in ("demo-mug.stl", "stack.npz", "toolpaths.npz", "trajectories.npz",
+                 "layers.png", "summary.json", "simulation/rms_vs_height.png"):
+        assert (out / name).stat().st_size > 0, name
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["slice"]["layers"] == 24
+    assert summary["valves"]["pulses"] > 0
+    assert 0 < summary["motion"]["reduction_vs_constant_speed"] < 1
+    sim = summary["simulation"]
+    assert sim["final_rms_smf_mm"] < sim["final_rms_open_loop_mm"]
+    assert "wrote" in capsys.readouterr().out
+
+
+def test_demo_rejects_negative_layers(tmp_path, capsys):
+    assert main(["demo", "-o", str(tmp_path / "x"), "--layers", "-1"]) == 2
+    assert "--layers -1" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
