@@ -209,6 +209,8 @@ def test_workspace_error_before_planning_names_layer_path_point():
         plan_paths_motion([ok, far], JOB)
     with pytest.raises(WorkspaceError, match="point 1"):
         plan_motion(np.array([[300.0, 0.0], [700.0, 0.0]]), JOB)
+    with pytest.raises(WorkspaceError, match="point 0 at"):
+        plan_motion(np.array([[0.0, 0.0]]), JOB)
     # a chord through the hole inside the minimum reach
     with pytest.raises(WorkspaceError, match="segment from point 0 to point 1"):
         plan_motion(np.array([[150.0, -100.0], [150.0, 100.0]]), JOB)

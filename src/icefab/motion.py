@@ -298,17 +298,17 @@ def _plan_polylines(polys: Sequence[np.ndarray], vcaps: np.ndarray, job: Job, ro
     pid = np.repeat(np.arange(P), counts)
     pstart = np.concatenate([[0], np.cumsum(counts)])
 
-    # ---- workspace check of every point, before any planning (issue: name the point)
-    bad, reasons = robot.workspace_violations(V)
-    if len(bad):
-        i = int(bad[0])
-        k = int(pid[i])
-        raise WorkspaceError(f"{_label(labels, k)}: point {i - pstart[k]} at ({V[i, 0]:.3f}, "
-                             f"{V[i, 1]:.3f}) mm (robot base frame) is out of the "
-                             f"{robot.name} workspace: {reasons[0]}")
-
     sp = _pathsplit(V, counts, job)
     trajs_empty = sp.counts == 1
+    single = np.flatnonzero(sp.counts == 1)
+    if len(single):  # single-point paths have no grid: check their point here
+        sbad, sreasons = robot.workspace_violations(sp.V[sp.pstart[single]])
+        if len(sbad):
+            k = int(single[sbad[0]])
+            x, y = sp.V[sp.pstart[k]]
+            raise WorkspaceError(f"{_label(labels, k)}: point 0 at ({x:.3f}, {y:.3f}) mm "
+                                 f"(robot base frame) is out of the {robot.name} workspace: "
+                                 f"{sreasons[0]}")
     if len(sp.a) == 0:
         return [_single_point(sp.V[sp.pstart[k]], job, robot, paths[k] if paths else None)
                 for k in range(P)]
@@ -319,9 +319,18 @@ def _plan_polylines(polys: Sequence[np.ndarray], vcaps: np.ndarray, job: Job, ro
     Q = len(a)
     smoothed = m.smoothing_tolerance_mm > 0.0
 
-    # grid points between two reachable vertices can still leave the workspace (a chord
-    # across the inner reach circle): name the segment
-    gbad, greasons = robot.workspace_violations(gxy)
+    # ---- workspace check before any planning: the resampled grid holds every vertex's
+    # neighbourhood and every chord; on failure, name the first bad input point, or the
+    # segment whose chord leaves the workspace (e.g. across the inner reach circle)
+    qgrid = robot.ik(gxy)
+    gbad, greasons = robot.workspace_violations(gxy, qgrid)
+    vbad, vreasons = robot.workspace_violations(V) if len(gbad) else ((), [])
+    if len(vbad):
+        i = int(vbad[0])
+        k = int(pid[i])
+        raise WorkspaceError(f"{_label(labels, k)}: point {orig_index[i]} at ({V[i, 0]:.3f}, "
+                             f"{V[i, 1]:.3f}) mm (robot base frame) is out of the "
+                             f"{robot.name} workspace: {vreasons[0]}")
     if len(gbad):
         g = int(gbad[0])
         q = int(np.searchsorted(gstart, g, side="right") - 1)
@@ -334,18 +343,19 @@ def _plan_polylines(polys: Sequence[np.ndarray], vcaps: np.ndarray, job: Job, ro
         raise WorkspaceError(f"{_label(labels, k)}: the segment from point {i0} to point {i1} "
                              f"passes ({gxy[g, 0]:.3f}, {gxy[g, 1]:.3f}) mm (robot base "
                              f"frame), out of the {robot.name} workspace: {greasons[0]}")
-
-    qgrid = robot.ik(gxy)
+    # only joints with a finite bound take part in the planning
+    qv = np.asarray(robot.joint_speed_max, dtype=np.float64)
+    qa = np.asarray(robot.joint_accel_max, dtype=np.float64)
+    qj = np.asarray(robot.joint_jerk_max, dtype=np.float64)
+    used = np.isfinite(qv) | np.isfinite(qa) | np.isfinite(qj)
+    qgrid = np.ascontiguousarray(qgrid[:, used])
 
     # ---- VCON, ACON, JCON, AREST (compiled)
     jerk_on = bool(m.jerk_limited)
     vcap_piece = np.asarray(vcaps, dtype=np.float64)[piece_path]
     v, env, T = _mtts.speed_profiles(
         gstart, hk, gxy, qgrid, vcap_piece, float(m.accel_mm_s2), float(m.jerk_mm_s3),
-        jerk_on, np.asarray(robot.joint_speed_max, dtype=np.float64),
-        np.asarray(robot.joint_accel_max, dtype=np.float64),
-        np.asarray(robot.joint_jerk_max, dtype=np.float64),
-        float(m.rest_accel_mm_s2), JCON_TOLERANCE, JERK_WINDOW_MM)
+        jerk_on, qv[used], qa[used], qj[used], float(m.rest_accel_mm_s2), JCON_TOLERANCE, JERK_WINDOW_MM)
 
     # ---- constant-dt sampling
     dt = float(m.dt_s)

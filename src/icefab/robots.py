@@ -67,9 +67,11 @@ class Robot(Protocol):
         """Tool points ``(n, 2)`` float64 mm for joint positions ``(n, j)``."""
         ...
 
-    def workspace_violations(self, xy: np.ndarray) -> tuple[np.ndarray, list[str]]:
+    def workspace_violations(self, xy: np.ndarray, joints: np.ndarray | None = None
+                             ) -> tuple[np.ndarray, list[str]]:
         """Indices of the points of ``xy (n, 2)`` that cannot be reached, and one reason
-        (naming the quantity, its value and the allowed range) per such point."""
+        (naming the quantity, its value and the allowed range) per such point (at most the
+        first 10). ``joints``: ``ik(xy)`` when the caller has it already."""
         ...
 
 
@@ -138,19 +140,21 @@ class Scara:
         return np.stack([self.l1 * np.cos(t1) + self.l2 * np.cos(t12),
                          self.l1 * np.sin(t1) + self.l2 * np.sin(t12)], axis=1)
 
-    def workspace_violations(self, xy: np.ndarray) -> tuple[np.ndarray, list[str]]:
+    def workspace_violations(self, xy: np.ndarray, joints: np.ndarray | None = None
+                             ) -> tuple[np.ndarray, list[str]]:
         xy = np.asarray(xy, dtype=np.float64)
-        r = np.hypot(xy[:, 0], xy[:, 1])
+        r2 = xy[:, 0] * xy[:, 0] + xy[:, 1] * xy[:, 1]
         rmin, rmax = self.reach
         eps = 1e-9
-        q = self.ik(xy)
+        q = self.ik(xy) if joints is None else joints
         j1, j2 = self.joint_range
-        bad_r = (r < rmin - eps) | (r > rmax + eps) | ~np.isfinite(r)
+        bad_r = (r2 < (rmin - eps) ** 2) | (r2 > (rmax + eps) ** 2) | ~np.isfinite(r2)
         bad_1 = np.abs(q[:, 0]) > j1 + 1e-12
         bad_2 = np.abs(q[:, 1]) > j2 + 1e-12
         bad = np.flatnonzero(bad_r | bad_1 | bad_2)
+        r = np.sqrt(r2)
         reasons = []
-        for i in bad:
+        for i in bad[:10]:
             if bad_r[i]:
                 reasons.append(f"radius {r[i]:.3f} mm outside the reach "
                                f"[{rmin:g}, {rmax:g}] mm")
@@ -196,13 +200,14 @@ class Gantry:
         """(n, 2) float64 mm."""
         return np.array(joints[:, :2], dtype=np.float64, copy=True)
 
-    def workspace_violations(self, xy: np.ndarray) -> tuple[np.ndarray, list[str]]:
+    def workspace_violations(self, xy: np.ndarray, joints: np.ndarray | None = None
+                             ) -> tuple[np.ndarray, list[str]]:
         xy = np.asarray(xy, dtype=np.float64)
         tr = np.asarray(self.travel)
         out = (xy < -1e-9) | (xy > tr + 1e-9) | ~np.isfinite(xy)
         bad = np.flatnonzero(out.any(axis=1))
         reasons = []
-        for i in bad:
+        for i in bad[:10]:
             ax = int(np.flatnonzero(out[i])[0])
             reasons.append(f"{'xy'[ax]} = {xy[i, ax]:.3f} mm outside the travel "
                            f"[0, {tr[ax]:g}] mm")
