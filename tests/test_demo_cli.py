@@ -13,7 +13,7 @@ def test_demo_writes_every_stage(tmp_path, capsys):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["slice"]["layers"] == 24
     assert summary["valves"]["pulses"] > 0
-    assert 0 < summary["motion"]["reduction_vs_constant_speed"] < 1
+    assert summary["motion"]["build_s"] > 0 and summary["motion"]["samples"] > 0
     sim = summary["simulation"]
     assert sim["final_rms_smf_mm"] < sim["final_rms_open_loop_mm"]
     assert "wrote" in capsys.readouterr().out
