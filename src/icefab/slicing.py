@@ -780,39 +780,6 @@ def _facet_plane_range(vertices: np.ndarray, faces: np.ndarray,
     return lo, hi
 
 
-def _ring_areas(pts: np.ndarray, off: np.ndarray) -> np.ndarray:
-    """(R,) signed areas (mm^2) of concatenated rings (shoelace, vectorised)."""
-    n = len(off) - 1
-    if n == 0:
-        return np.zeros(0)
-    idx = np.arange(len(pts))
-    nxt = idx + 1
-    ends = off[1:] - 1
-    nonempty = off[1:] > off[:-1]
-    nxt[ends[nonempty]] = off[:-1][nonempty]
-    cross = pts[:, 0] * pts[nxt, 1] - pts[nxt, 0] * pts[:, 1]
-    out = np.zeros(n)
-    ne = np.flatnonzero(nonempty)
-    if len(ne):
-        out[ne] = 0.5 * np.add.reduceat(cross, off[:-1][ne])
-    return out
-
-
-def _ring_perimeters(pts: np.ndarray, off: np.ndarray) -> np.ndarray:
-    """(R,) perimeters (mm) of concatenated closed rings."""
-    n = len(off) - 1
-    out = np.zeros(n)
-    if n == 0 or len(pts) == 0:
-        return out
-    nxt = np.arange(1, len(pts) + 1)
-    nonempty = off[1:] > off[:-1]
-    nxt[(off[1:] - 1)[nonempty]] = off[:-1][nonempty]
-    seg = np.hypot(*(pts[nxt] - pts).T)
-    ne = np.flatnonzero(nonempty)
-    out[ne] = np.add.reduceat(seg, off[:-1][ne])
-    return out
-
-
 def _offsets(counts: np.ndarray) -> np.ndarray:
     return np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
 
