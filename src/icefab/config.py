@@ -305,6 +305,10 @@ class SimulationSettings:
                                             "the position they are tagged with", lo=0.0)
     laser_rate_hz: float = setting(100.0, "laser sampling rate along measurement paths",
                                    lo=0.0, lo_open=True)
+    deposition: str = setting("flow", "volume deposited along the paths: 'flow' = the "
+                                      "commanded flow (ideal valve), 'valves' = the pulses of "
+                                      "the valve programs x the calibrated drop volume",
+                              choices=("flow", "valves"))
     spread_mm: float = setting(1.0, "how far the liquid of a layer flows (diffusion length) "
                                     "before it freezes: fills gaps between paths up to twice "
                                     "this wide (0: off)", lo=0.0)

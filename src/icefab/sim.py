@@ -457,6 +457,8 @@ class LayerPlan:
     material: (m,) int8, 0 part, 1 scaffold.
     n0, n1: (m, 2) float64 unit normals of the cut lines at the segment ends and ext (m,)
         float64 mm, the mitre reach (see :func:`_joints`).
+    paths: the deposition paths; path i owns segments ``path_start[i]:path_start[i + 1]``
+        and is followed at ``path_speed[i]`` mm/s.
     laser_tagged, laser_true: (k, 2) float64, mm, laser sample positions (empty when the
         layer has no measurement paths).
     """
@@ -470,6 +472,9 @@ class LayerPlan:
     n0: np.ndarray
     n1: np.ndarray
     ext: np.ndarray
+    paths: tuple[Path, ...] = ()
+    path_start: np.ndarray = field(default_factory=lambda: np.zeros(1, dtype=np.int64))
+    path_speed: np.ndarray = field(default_factory=lambda: np.zeros(0))
     laser_tagged: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     laser_true: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
 
@@ -491,6 +496,7 @@ def plan_layer(index: int, paths: Sequence[Path], job: "Job") -> LayerPlan:
     dh = job.slicing.layer_thickness_mm * job.flow.layer_scale
     a_parts, b_parts, v_parts, w_parts, mat_parts = [], [], [], [], []
     starts, closed, count = [], [], 0
+    dep_paths, speeds = [], []
     tag_parts, true_parts = [], []
     for p in paths:
         pts = np.asarray(p.points, dtype=np.float64)
@@ -520,6 +526,8 @@ def plan_layer(index: int, paths: Sequence[Path], job: "Job") -> LayerPlan:
         starts.append(count)
         closed.append(bool(p.closed))
         count += len(a)
+        dep_paths.append(p)
+        speeds.append(speed)
         length = np.linalg.norm(b - a, axis=1)
         a_parts.append(a)
         b_parts.append(b)
@@ -535,6 +543,9 @@ def plan_layer(index: int, paths: Sequence[Path], job: "Job") -> LayerPlan:
                           np.asarray(closed, dtype=bool))
     return LayerPlan(index=index, a=a, b=b, volume=cat(v_parts, (0,)), half_width=hw,
                      material=cat(mat_parts, (0,), np.int8), n0=n0, n1=n1, ext=ext,
+                     paths=tuple(dep_paths),
+                     path_start=np.asarray(starts + [count], dtype=np.int64),
+                     path_speed=np.asarray(speeds, dtype=np.float64),
                      laser_tagged=cat(tag_parts, (0, 2)), laser_true=cat(true_parts, (0, 2)))
 
 
@@ -719,6 +730,7 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
     sim = job.simulation
     dh = job.slicing.layer_thickness_mm
     n_d = job.feedback.interval_layers
+    valves = sim.deposition == "valves"
     surface = _grid_for(plans, job)
     z = surface.z
     g = surface.spacing
@@ -739,15 +751,20 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
     for j, plan in enumerate(plans):
         nominal = (j + 1) * dh
         layer_img = np.zeros((2,) + z.shape)
-        u = np.zeros(len(plan.volume))
-        if action is not None and len(plan.volume):
-            u = np.asarray(action(plan.midpoints), dtype=np.float64)
-            u = np.where(np.isfinite(u), u, 0.0)
+        if valves:
+            # the valve programs re-planned with the current action: pulses x drop volume
+            v_all = valve_volumes(plan, job, action)
+        else:
+            u = np.zeros(len(plan.volume))
+            if action is not None and len(plan.volume):
+                u = np.asarray(action(plan.midpoints), dtype=np.float64)
+                u = np.where(np.isfinite(u), u, 0.0)
+            v_all = plan.volume * np.clip(1.0 + u, 0.0, None)
         for mat in (0, 1):
             sel = plan.material == mat
             if not sel.any():
                 continue
-            v_cmd = plan.volume[sel] * (1.0 + u[sel])
+            v_cmd = v_all[sel]
             # flow gain with drift by valve use (thesis 6.4): volume already through the valve
             before = used_cm3[mat] + (np.cumsum(v_cmd) - v_cmd) / 1000.0
             gain = (1.0 + sim.flow_error) * (1.0 + sim.flow_drift_per_m3 * before)
@@ -823,6 +840,55 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
                      surfaces=surfaces, closed_loop=controller is not None,
                      volume_commanded=vol_cmd_total, volume_deposited=vol_dep_total,
                      flow_gain=gains, n_layers=len(plans))  # type: ignore[arg-type]
+
+
+def valve_volumes(plan: LayerPlan, job: "Job", action: ActionFn | None = None) -> np.ndarray:
+    """Volume each segment of a layer gets from the valve programs (thesis Ch. 6).
+
+    Every deposition path is followed at its constant speed (lowered by less than one time
+    step's worth so that it ends on a sample), sampled every
+    ``job.motion.dt_s`` (a :class:`~icefab.types.Trajectory` in the robot base frame, as
+    the cell runs it); :func:`icefab.flow.plan_valves` gives its pulse instants (2 ms ticks,
+    the control action ``action`` applied as flow x (1 + u)); each pulse is one drop of
+    the calibrated volume Q / nu at the commanded frequency nu (the table nu = h(Q)),
+    deposited at the point the nozzle has reached. Returns (m,) float64 mm^3 per segment.
+    """
+    from icefab import flow
+    from icefab.paths import tool_offset
+    from icefab.types import Trajectory
+
+    dt = job.motion.dt_s
+    out = np.zeros(len(plan.volume))
+    seg_len = np.linalg.norm(plan.b - plan.a, axis=1)
+    for i, path in enumerate(plan.paths):
+        s0, s1 = plan.path_start[i], plan.path_start[i + 1]
+        if s1 <= s0:
+            continue
+        S = np.concatenate([[0.0], np.cumsum(seg_len[s0:s1])])
+        # constant speed, lowered a little so the path takes a whole number of steps
+        steps = max(1, int(math.ceil(S[-1] / (float(plan.path_speed[i]) * dt) - 1e-9)))
+        speed = S[-1] / (steps * dt)
+        n = steps + 1
+        s_at = np.minimum(np.arange(n) * speed * dt, S[-1])
+        poly = np.vstack([plan.a[s0:s1], plan.b[s1 - 1:s1]])
+        xy_part = _at(poly, S, s_at)
+        base = xy_part + np.asarray(job.cell.ee_origin_mm) - tool_offset(path.material, job)
+        traj = Trajectory(dt=dt, xy=base, joints=np.zeros((n, 0)), speed=np.full(n, speed),
+                          duration=(n - 1) * dt, path=path)
+        u = None if action is None else \
+            np.where(np.isfinite(a := np.asarray(action(xy_part), dtype=np.float64)), a, 0.0)
+        freq = flow.valve_frequency(traj, path.material, job, action=u)
+        prog = flow.plan_valves(traj, path.material, job, action=u)
+        t = flow.pulse_times(prog)
+        if len(t) == 0:
+            continue
+        nu = np.interp(t, freq.t, freq.nu)
+        q = flow.calibration_for(path.material, job).flow(nu)
+        drop = np.divide(q, nu, out=np.zeros_like(nu), where=nu > 0)
+        k = np.clip(np.searchsorted(S, np.minimum(t * speed, S[-1]), side="right") - 1,
+                    0, s1 - s0 - 1)
+        out[s0:s1] += np.bincount(k, weights=drop, minlength=s1 - s0)
+    return out
 
 
 def measurement_layers(plans: Sequence[LayerPlan], interval_layers: int) -> list[int]:

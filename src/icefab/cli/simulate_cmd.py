@@ -60,6 +60,10 @@ def add_parser(subparsers) -> None:
     p.add_argument("--flow-error", type=float, metavar="F",
                    help="flow gain error, e.g. 0.1 for 10 %% too much (simulation.flow_error)")
     p.add_argument("--seed", type=int, metavar="S", help="random seed (simulation.seed)")
+    p.add_argument("--deposition", choices=("flow", "valves"),
+                   help="'flow': commanded flow (ideal valve); 'valves': pulses of the valve "
+                        "programs, re-planned with the control action (slower) "
+                        "(simulation.deposition)")
     p.add_argument("--surface-layer", type=int, metavar="K",
                    help="measurement layer (toolpaths index) whose error surfaces are "
                         "drawn (default: the last one)")
@@ -75,6 +79,8 @@ def _job_with_options(job: "Job", args: argparse.Namespace) -> "Job":
         changes["simulation.flow_error"] = args.flow_error
     if args.seed is not None:
         changes["simulation.seed"] = args.seed
+    if args.deposition is not None:
+        changes["simulation.deposition"] = args.deposition
     if args.layers is not None:
         if args.layers < 0:
             raise ConfigError(f"--layers {args.layers}: expected a number >= 0 (0: all)")
