@@ -19,11 +19,20 @@ What it models
   ``job.motion.dt_s``) split, so that the control action is applied at least once per
   time step, and gives each segment the volume ``w * dh * c * length``. (Sampling the
   paths themselves at dt instead would deposit along 2 mm chords whose seams between
-  neighbouring rings leave systematic gaps that grow layer after layer.) :func:`volume_from_pulses` turns a valve program into volumes per
-  sample when drop-level detail is wanted.
-* **Disturbances** (thesis 5.6, eq. 5.29): the actual flow is the commanded flow times
-  ``(1 + flow_error) * (1 + flow_drift_per_m3 * V)``, ``V`` the volume in cm^3 that valve
-  has already deposited (the thesis saw up to +20 %, Ch. 6.4; the setting's name is kept for
+  neighbouring rings leave systematic gaps that grow layer after layer.)
+  With ``job.simulation.deposition = "valves"`` the volume comes instead from the valve
+  programs (:func:`valve_volumes`): each path is run at its constant speed every dt
+  through :func:`icefab.flow.plan_valves` (re-planned with the control action, as the
+  cell does for the next n_d layers) and each pulse drops the calibrated volume Q / nu;
+  :func:`volume_from_pulses` does the same for any program and trajectory.
+* **Liquid flow.** Before it freezes, the liquid of a layer flows downhill over the frozen
+  surface for a diffusion length ``spread_mm`` (:func:`level_liquid`): it fills gaps
+  between paths narrower than about twice that and evens out single drops, but does not
+  run off the footprint.
+* **Disturbances** (thesis 5.6, eq. 5.29), drawn from ``job.simulation.seed`` so an
+  open-loop and a closed-loop run see the same ones: the actual flow is the commanded flow
+  times ``(1 + flow_error) * (1 + flow_drift_per_m3 * V)``, ``V`` the volume in cm^3 that
+  valve has already deposited (the thesis saw up to +20 %, Ch. 6.4; the setting's name is kept for
   compatibility, its unit is per cm^3); correlated random height noise per layer; debris
   pulses (Gaussian bumps, Poisson number per layer); weaker deposition within one path width
   of the free edges of each layer's deposit (``edge_loss``: the outer rim and the holes of
