@@ -64,46 +64,66 @@ __all__ = ["MeshReport", "load_mesh", "read_mesh", "load_meshes", "check_mesh",
 
 
 @njit(cache=True)
+def _hash3(a, b, c):  # pragma: no cover
+    h = ((np.uint64(a) * np.uint64(0x9E3779B97F4A7C15))
+         ^ (np.uint64(b) * np.uint64(0xC2B2AE3D27D4EB4F))
+         ^ (np.uint64(c) * np.uint64(0x165667B19E3779F9)))
+    return h ^ (h >> np.uint64(32))
+
+
+@njit(cache=True)
 def _unique_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
-    """Exact unique rows of an (n, k) integer array with an open-addressing hash table.
+    """Exact unique rows of an (n, 3) unsigned-int array (open-addressing hash table).
 
     Returns ``first`` (u,) int64, the index of the first occurrence of every distinct row
     in order of appearance, and ``inverse`` (n,) int64 with ``rows[first][inverse] == rows``.
-    Expected O(n) (load factor <= 1/2); used for vertex welding on float bit patterns.
+    Keys are stored in the table itself (one memory access per probe); the table starts
+    at n/2 slots (STL corners repeat ~6 times) and doubles when half full. Expected O(n).
     """
-    n, k = rows.shape
-    cap = 16
-    while cap < 2 * n + 1:
+    n = rows.shape[0]
+    cap = 1024
+    while cap < n // 2:
         cap *= 2
-    mask = np.uint64(cap - 1)
-    table = np.full(cap, -1, np.int32)
+    keys = np.empty((cap, 3), rows.dtype)
+    ids = np.full(cap, -1, np.int32)
     first = np.empty(n, np.int64)
     inverse = np.empty(n, np.int64)
     nu = 0
     for i in range(n):
-        h = np.uint64(0)
-        for c in range(k):
-            h = (h ^ np.uint64(rows[i, c])) * np.uint64(0x9E3779B97F4A7C15)
-            h ^= h >> np.uint64(32)
-        s = h & mask
+        a = rows[i, 0]
+        b = rows[i, 1]
+        c = rows[i, 2]
+        mask = np.uint64(cap - 1)
+        s = _hash3(a, b, c) & mask
         while True:
-            slot = table[s]
+            slot = ids[s]
             if slot < 0:
-                table[s] = nu
+                ids[s] = nu
+                keys[s, 0] = a
+                keys[s, 1] = b
+                keys[s, 2] = c
                 first[nu] = i
                 inverse[i] = nu
                 nu += 1
                 break
-            j = first[slot]
-            same = True
-            for c in range(k):
-                if rows[j, c] != rows[i, c]:
-                    same = False
-                    break
-            if same:
+            if keys[s, 0] == a and keys[s, 1] == b and keys[s, 2] == c:
                 inverse[i] = slot
                 break
             s = (s + np.uint64(1)) & mask
+        if 2 * nu > cap:  # grow and re-insert every distinct row
+            cap *= 2
+            keys = np.empty((cap, 3), rows.dtype)
+            ids = np.full(cap, -1, np.int32)
+            mask = np.uint64(cap - 1)
+            for u in range(nu):
+                j = first[u]
+                s = _hash3(rows[j, 0], rows[j, 1], rows[j, 2]) & mask
+                while ids[s] >= 0:
+                    s = (s + np.uint64(1)) & mask
+                ids[s] = u
+                keys[s, 0] = rows[j, 0]
+                keys[s, 1] = rows[j, 1]
+                keys[s, 2] = rows[j, 2]
     return first[:nu].copy(), inverse
 
 
@@ -405,8 +425,10 @@ def check_mesh(mesh: Mesh) -> MeshReport:
     return _diagnose(mesh, known_clean=False)
 
 
-def _diagnose(mesh: Mesh, known_clean: bool) -> MeshReport:
-    """check_mesh; ``known_clean`` skips the degenerate/duplicate search (just removed)."""
+def _diagnose(mesh: Mesh, known_clean: bool,
+              edges: tuple[int, int, int] | None = None) -> MeshReport:
+    """check_mesh; ``known_clean`` skips the degenerate/duplicate search (just removed),
+    ``edges`` are the (open, non-manifold, misoriented) counts when already known."""
     v, f = mesh.vertices, np.ascontiguousarray(mesh.faces, dtype=np.int64)
     if f.ndim != 2 or (len(f) and f.shape[1] != 3) or (v.ndim != 2 or v.shape[1] != 3):
         raise MeshError(f"{mesh.name or 'mesh'}: expected vertices (n, 3) and faces (m, 3), "
@@ -422,7 +444,7 @@ def _diagnose(mesh: Mesh, known_clean: bool) -> MeshReport:
         degen = _degenerate_mask(f)
         good = f[~degen] if degen.any() else f
         dup = _duplicate_mask(good, len(v))
-    open_, nonman, misor = _edge_stats(good, len(v))
+    open_, nonman, misor = edges if edges is not None else _edge_stats(good, len(v))
     if nonfinite == 0 and len(good):
         scale = float(np.abs(v).max()) or 1.0
         zero_area, volume = _face_measures(v, good, (1e-12 * scale) ** 2)
@@ -443,13 +465,21 @@ def clean_mesh(mesh: Mesh) -> tuple[Mesh, MeshReport]:
     Returns the cleaned mesh and the report of the cleaned mesh with the ``removed_*`` and
     ``flipped`` fields telling what was changed.
     """
-    f = np.asarray(mesh.faces, dtype=np.int64)
+    f = np.ascontiguousarray(mesh.faces, dtype=np.int64)
+    nv = len(mesh.vertices)
     degen = _degenerate_mask(f)
     if degen.any():
         f = f[~degen]
-    dup = _duplicate_mask(f, len(mesh.vertices))
-    if dup.any():
-        f = f[~dup]
+    edges = _edge_stats(f, nv)
+    n_dup = 0
+    # A duplicate face always leaves a non-manifold or misoriented edge (except a lone
+    # two-sided pair, which encloses nothing), so clean meshes skip the search.
+    if edges[1] or edges[2]:
+        dup = _duplicate_mask(f, nv)
+        n_dup = int(dup.sum())
+        if n_dup:
+            f = f[~dup]
+            edges = _edge_stats(f, nv)
     vertices = mesh.vertices
     if len(f):
         used = np.zeros(len(vertices), bool)
@@ -459,14 +489,14 @@ def clean_mesh(mesh: Mesh) -> tuple[Mesh, MeshReport]:
             f = remap[f]
             vertices = vertices[used]
     cleaned = Mesh(vertices, f, mesh.name)
-    report = _diagnose(cleaned, known_clean=True)
+    report = _diagnose(cleaned, known_clean=True, edges=edges)
     flipped = False
     if report.inverted:
         cleaned = Mesh(vertices, np.ascontiguousarray(f[:, ::-1]), mesh.name)
         report = dataclasses.replace(report, volume=-report.volume, inverted=False)
         flipped = True
     report = dataclasses.replace(report, removed_degenerate=int(degen.sum()),
-                                 removed_duplicate=int(dup.sum()), flipped=flipped)
+                                 removed_duplicate=n_dup, flipped=flipped)
     return cleaned, report
 
 
