@@ -584,13 +584,13 @@ def _within(pts: np.ndarray, anchor: int, j: int, nxt: int, lim_mid: float,
 
 
 @numba.njit(cache=True)
-def _clean_and_filter(pts: np.ndarray, off: np.ndarray, min_spacing: float,
-                      max_dev: float) -> np.ndarray:  # pragma: no cover
-    """Keep-mask of the path filter for concatenated closed rings (thesis 3.2 PATHFILTER).
+def _filter_ring(pts: np.ndarray, s: int, e: int, keep: np.ndarray, min_spacing: float,
+                 max_dev: float) -> None:  # pragma: no cover
+    """Path filter of one closed ring pts[s:e]; sets ``keep[s:e]`` (thesis 3.2 PATHFILTER).
 
-    pts (P, 2) float64 mm; off (R+1,) int64 ring offsets. Greedy forward pass per ring
-    (its first point is kept). A point j is removed when, with the chord from the last
-    kept point to the point after j replacing it,
+    Greedy forward pass (the first point is kept, and dropped at the end if it turns
+    out collinear). A point j is removed when, with the chord from the last kept point to
+    the point after j replacing it,
       - it is within COLLINEAR_TOL_MM of that chord (repeated or collinear point), or
       - it is closer than ``min_spacing`` to the last kept point and within ``max_dev``
         of the chord,
@@ -598,61 +598,85 @@ def _clean_and_filter(pts: np.ndarray, off: np.ndarray, min_spacing: float,
     COLLINEAR_TOL_MM) of it. So no removed point ends up farther than ``max_dev`` from
     the filtered contour. O(points * longest removed run).
     """
-    keep = np.zeros(pts.shape[0], dtype=np.bool_)
     coll = COLLINEAR_TOL_MM
     mid = max(max_dev, coll)
-    for r in range(off.shape[0] - 1):
-        s = off[r]
-        e = off[r + 1]
-        if e <= s:
+    if e <= s:
+        return
+    keep[s] = True
+    anchor = s
+    for j in range(s + 1, e):
+        nxt = j + 1 if j + 1 < e else s
+        dx = pts[j, 0] - pts[anchor, 0]
+        dy = pts[j, 1] - pts[anchor, 1]
+        d2 = dx * dx + dy * dy
+        lim = mid if d2 < min_spacing * min_spacing else coll
+        if _within(pts, anchor, j, nxt, mid, lim):
+            keep[j] = False
             continue
-        keep[s] = True
-        anchor = s
-        for j in range(s + 1, e):
-            nxt = j + 1 if j + 1 < e else s
-            dx = pts[j, 0] - pts[anchor, 0]
-            dy = pts[j, 1] - pts[anchor, 1]
-            d2 = dx * dx + dy * dy
-            lim = mid if d2 < min_spacing * min_spacing else coll
-            if _within(pts, anchor, j, nxt, mid, lim):
-                continue
-            keep[j] = True
-            anchor = j
-        # the first point was kept unconditionally: drop it too when it is collinear
-        # with its kept neighbours and every point removed around it stays in bound
-        last = anchor
-        first = s + 1
-        while first < e and not keep[first]:
-            first += 1
-        if last == s or first >= e or last == first:
-            continue
-        ax = pts[last, 0]
-        ay = pts[last, 1]
-        bx = pts[first, 0] - ax
-        by = pts[first, 1] - ay
-        b2 = bx * bx + by * by
-        if b2 == 0.0:
-            continue
-        ok = True
-        i = last + 1
-        while True:
-            if i == e:
-                i = s
-            if i == first:
-                break
-            px = pts[i, 0] - ax
-            py = pts[i, 1] - ay
-            tt = min(1.0, max(0.0, (px * bx + py * by) / b2))
-            dx = px - tt * bx
-            dy = py - tt * by
-            lim = coll if i == s else mid
-            if dx * dx + dy * dy > lim * lim:
-                ok = False
-                break
-            i += 1
-        if ok:
-            keep[s] = False
-    return keep
+        keep[j] = True
+        anchor = j
+    # the first point was kept unconditionally: drop it too when it is collinear
+    # with its kept neighbours and every point removed around it stays in bound
+    last = anchor
+    first = s + 1
+    while first < e and not keep[first]:
+        first += 1
+    if last == s or first >= e or last == first:
+        return
+    ax = pts[last, 0]
+    ay = pts[last, 1]
+    bx = pts[first, 0] - ax
+    by = pts[first, 1] - ay
+    b2 = bx * bx + by * by
+    if b2 == 0.0:
+        return
+    i = last + 1
+    while True:
+        if i == e:
+            i = s
+        if i == first:
+            break
+        px = pts[i, 0] - ax
+        py = pts[i, 1] - ay
+        tt = min(1.0, max(0.0, (px * bx + py * by) / b2))
+        dx = px - tt * bx
+        dy = py - tt * by
+        lim = coll if i == s else mid
+        if dx * dx + dy * dy > lim * lim:
+            return
+        i += 1
+    keep[s] = False
+
+
+@numba.njit(cache=True, parallel=True)
+def _filter_compact(pts: np.ndarray, off: np.ndarray, order: np.ndarray, min_spacing: float,
+                    max_dev: float) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
+    """Filter every ring (:func:`_filter_ring`, parallel over rings) and gather the kept
+    points of the rings in ``order``: returns points (P', 2) and offsets (R+1,)."""
+    n = order.shape[0]
+    keep = np.empty(pts.shape[0], dtype=np.bool_)
+    counts = np.zeros(n, dtype=np.int64)
+    for ii in numba.prange(n):
+        r = order[ii]
+        _filter_ring(pts, off[r], off[r + 1], keep, min_spacing, max_dev)
+        c = 0
+        for i in range(off[r], off[r + 1]):
+            if keep[i]:
+                c += 1
+        counts[ii] = c
+    out_off = np.zeros(n + 1, dtype=np.int64)
+    for ii in range(n):
+        out_off[ii + 1] = out_off[ii] + counts[ii]
+    out = np.empty((out_off[n], 2))
+    for ii in numba.prange(n):
+        r = order[ii]
+        k = out_off[ii]
+        for i in range(off[r], off[r + 1]):
+            if keep[i]:
+                out[k, 0] = pts[i, 0]
+                out[k, 1] = pts[i, 1]
+                k += 1
+    return out, out_off
 
 
 @numba.njit(cache=True)
@@ -811,23 +835,6 @@ class _Rings:
         return _Rings(np.concatenate([p.points for p in parts]), _offsets(counts),
                       np.concatenate([p.layer for p in parts]),
                       np.concatenate([p.oriented for p in parts]))
-
-    def select(self, keep_rings: np.ndarray, keep_points: np.ndarray | None = None) -> "_Rings":
-        """Keep a subset of rings (bool (R,)) and of points (bool (P,))."""
-        counts = np.diff(self.offsets)
-        pmask = np.repeat(keep_rings, counts)
-        if keep_points is not None:
-            pmask &= keep_points
-        kept = np.zeros(len(counts), dtype=np.int64)
-        ne = np.flatnonzero(counts > 0)
-        if len(ne):
-            kept[ne] = np.add.reduceat(pmask.astype(np.int64), self.offsets[:-1][ne])
-        new_counts = kept[keep_rings]
-        return _Rings(self.points[pmask], _offsets(new_counts), self.layer[keep_rings],
-                      self.oriented[keep_rings])
-
-
-# --------------------------------------------------------------------------- open chains
 
 
 class _Warnings:
@@ -1009,10 +1016,12 @@ def _finish_rings(rings: _Rings, job: Job, report: SliceReport) -> tuple[_Rings,
     report.points_before_filter = len(rings.points)
     if len(rings.layer) == 0:
         return rings, np.zeros(0, dtype=np.int64)
-    keep = _clean_and_filter(rings.points, rings.offsets,
-                             float(job.slicing.min_point_spacing_mm),
-                             float(job.slicing.max_filter_deviation_mm))
-    rings = rings.select(np.ones(len(rings.layer), dtype=bool), keep)
+    # filter, and sort the rings by layer (stable) in the same gather
+    order = np.argsort(rings.layer, kind="stable")
+    pts, off = _filter_compact(rings.points, rings.offsets, order,
+                               float(job.slicing.min_point_spacing_mm),
+                               float(job.slicing.max_filter_deviation_mm))
+    rings = _Rings(pts, off, rings.layer[order], rings.oriented[order])
     counts = np.diff(rings.offsets)
     area, perim = _ring_measures(rings.points, rings.offsets)
     # collapsed: < 3 points, (almost) no area, or thinner than the filter's own bound
@@ -1021,17 +1030,11 @@ def _finish_rings(rings: _Rings, job: Job, report: SliceReport) -> tuple[_Rings,
     ok = ((counts >= 3) & (np.abs(area) >= MIN_RING_AREA_MM2)
           & (2.0 * np.abs(area) >= job.slicing.max_filter_deviation_mm * perim))
     report.rings_collapsed += int((~ok).sum())
-    rings = rings.select(ok)
-    area = area[ok]
+    if not ok.all():
+        rings = _Rings(rings.points[np.repeat(ok, counts)], _offsets(counts[ok]),
+                       rings.layer[ok], rings.oriented[ok])
+        area = area[ok]
     report.points_after_filter = len(rings.points)
-    # sort rings by layer (stable) and nest
-    order = np.argsort(rings.layer, kind="stable")
-    if not np.array_equal(order, np.arange(len(order))):
-        counts = np.diff(rings.offsets)[order]
-        idx = np.repeat(rings.offsets[:-1][order], counts) + _ramp(counts)
-        rings = _Rings(rings.points[idx], _offsets(counts), rings.layer[order],
-                       rings.oriented[order])
-        area = area[order]
     group = np.searchsorted(rings.layer, np.arange(int(rings.layer.max()) + 2)) \
         if len(rings.layer) else np.zeros(1, dtype=np.int64)
     parent = _nesting(rings.points, rings.offsets, group.astype(np.int64), np.abs(area))
