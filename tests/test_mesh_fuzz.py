@@ -147,3 +147,54 @@ def test_huge_counts_do_not_allocate(header):
         p = _TMP / "fuzz.ply"
         p.write_bytes(header)
         load_mesh(p)
+
+
+# --------------------------------------------------------------------------- kernels
+
+
+def _strip_reference(strip):
+    tris, cur = [], []
+    for idx in strip:
+        if idx < 0:
+            cur = []
+            continue
+        cur.append(idx)
+        if len(cur) >= 3:
+            a, b, c = cur[-3:]
+            if (len(cur) - 3) % 2:
+                a, b = b, a
+            if len({a, b, c}) == 3:
+                tris.append((a, b, c))
+    return tris
+
+
+@given(st.lists(st.integers(-1, 6), max_size=60))
+def test_tristrip_decoder_matches_reference(strip):
+    from icefab.mesh import _tristrips
+    got = _tristrips(np.array(strip, np.int64)).tolist()
+    assert [tuple(t) for t in got] == _strip_reference(strip)
+
+
+@given(st.lists(st.lists(st.integers(0, 50), min_size=3, max_size=9), min_size=1,
+                max_size=20))
+def test_fan_triangulation_matches_reference(polys):
+    from icefab.mesh import _fan
+    flat = np.array([i for p in polys for i in p], np.int64)
+    counts = np.array([len(p) for p in polys], np.int64)
+    want = [(p[0], p[j + 1], p[j + 2]) for p in polys for j in range(len(p) - 2)]
+    assert [tuple(t) for t in _fan(flat, counts).tolist()] == want
+
+
+@given(st.lists(st.tuples(st.sampled_from([0.0, -0.0, 1.5, -2.25, 1e-300, 3e38]),
+                          st.sampled_from([0.0, 7.0, -7.0]),
+                          st.sampled_from([1.0, 2.0, np.float32(0.1).item()])),
+                min_size=1, max_size=40))
+def test_exact_weld_property(points):
+    from icefab.mesh import weld_vertices
+    pts = np.array(points, np.float64)
+    v, idx = weld_vertices(pts)
+    np.testing.assert_array_equal(v[idx], pts + 0.0)  # -0.0 welds with 0.0
+    assert len(v) == len({tuple(p) for p in (pts + 0.0).tolist()})
+    # first occurrence order
+    firsts = [int(np.flatnonzero(idx == k)[0]) for k in range(len(v))]
+    assert firsts == sorted(firsts)

@@ -576,7 +576,13 @@ def _check_finite(points: np.ndarray, path: FsPath) -> None:
 
 def read_mesh(path: str | os.PathLike[str], *, inexact: bool = False,
               tolerance: float = 1e-4) -> tuple[Mesh, MeshReport]:
-    """Load a mesh file and return it with its diagnostics (see :func:`load_mesh`)."""
+    """Load a mesh file and return it with its diagnostics.
+
+    Same as :func:`load_mesh`, and also returns the :class:`MeshReport` of the cleaned
+    mesh: what was fixed (``removed_degenerate``, ``removed_duplicate``, ``flipped``,
+    ``merged_vertices``) and what remains (open / non-manifold / misoriented edges,
+    zero-area faces, volume). Every finding is also logged as a warning.
+    """
     p = FsPath(path)
     if tolerance <= 0 or not math.isfinite(tolerance):
         raise MeshError(f"{p}: weld tolerance {tolerance!r} must be a positive number (mm)")
