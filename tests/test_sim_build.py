@@ -207,3 +207,18 @@ def test_valve_deposition_closes_the_loop_too():
     smf = simulate_build(tp, job)
     assert open_.volume_deposited == pytest.approx(1.1 * open_.volume_commanded, rel=0.01)
     assert smf.rms[-1] < open_.rms[-1] / 3
+
+
+def test_a_debris_pulse_is_a_bump_of_the_configured_height_and_radius():
+    job = quiet_job(**{"simulation.debris_rate": 0.3, "simulation.debris_height_mm": 0.5,
+                       "simulation.debris_radius_mm": 2.0})
+    tp = annulus_toolpaths(job, 12)
+    res = simulate_build(tp, job, closed_loop=False)
+    flat = simulate_build(tp, quiet_job(), closed_loop=False)
+    bump = res.height.z - flat.height.z
+    assert np.nanmin(bump) >= -1e-12
+    peak = np.nanmax(bump)
+    assert 0.45 < peak < 0.5 * (1 + 12 * 0.3 + 3)  # at least one whole bump, few overlap
+    # each bump holds 2 pi r^2 h of volume (less where it hangs over the footprint's edge)
+    n_cells_half = np.count_nonzero(bump > 0.25)
+    assert n_cells_half * 0.25 > 0.5 * np.pi * (2.0 * np.sqrt(2 * np.log(2))) ** 2

@@ -802,11 +802,17 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
             n_debris = rng_debris.poisson(sim.debris_rate)
             if n_debris:
                 where = plan.midpoints[rng_debris.integers(0, len(plan.volume), n_debris)]
-                xs, ys = surface.grid()
-                for cx, cy in where:  # a few bumps per layer at most
-                    r2 = ((xs[None, :] - cx) ** 2 + (ys[:, None] - cy) ** 2)
-                    added += mask * sim.debris_height_mm * np.exp(
-                        -0.5 * r2 / sim.debris_radius_mm ** 2)
+                # Gaussian bumps on the layer's footprint (thesis 5.6: d_pulse), each
+                # summed over a +-4 sigma window: impulses at the debris cells, filtered
+                impulse = np.zeros(z.shape)
+                ix = np.clip(np.rint((where[:, 0] - surface.origin[0]) / g).astype(np.int64),
+                             0, z.shape[1] - 1)
+                iy = np.clip(np.rint((where[:, 1] - surface.origin[1]) / g).astype(np.int64),
+                             0, z.shape[0] - 1)
+                np.add.at(impulse, (iy, ix), 1.0)
+                sigma = sim.debris_radius_mm / g
+                bumps = ndimage.gaussian_filter(impulse, sigma, mode="constant", truncate=4.0)
+                added += mask * sim.debris_height_mm * 2 * np.pi * sigma ** 2 * bumps
         z += added
         ever |= mask
         if j in measure_set:
