@@ -106,7 +106,7 @@ _NOISE_GAP_MM = 1e-6
 #: At most this many individual warnings; the rest are summarised.
 MAX_WARNINGS = 500
 #: Segments per chunk of layers (bounds the memory of the vectorised intersection).
-_CHUNK_SEGMENTS = 2_000_000
+_CHUNK_SEGMENTS = 3_000_000
 
 #: Use the numpy expansion instead of the compiled cut kernel (tests compare the two).
 _USE_NUMPY_CUT = False
