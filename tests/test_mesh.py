@@ -625,3 +625,13 @@ def test_text_files_with_bom_and_utf8_names(tmp_path):
     v, quads = _box_quads()
     q = _write(tmp_path, "w.obj", b"\xef\xbb\xbfo W\xc3\xbcrfel\n" + _obj_bytes(v, quads))
     assert load_mesh(q).n_faces == 12
+
+
+def test_binary_stl_without_facet_count(tmp_path, caplog):
+    ref = _tm("box")
+    data = bytearray(trimesh.exchange.stl.export_stl(ref))
+    data[80:84] = b"\0\0\0\0"  # a streaming exporter that never wrote the count
+    with caplog.at_level(logging.WARNING, logger="icefab.mesh"):
+        mesh = load_mesh(_write(tmp_path, "nocount.stl", bytes(data)))
+    _same_geometry(mesh, ref, np.float32)
+    assert "declares 0 facets" in caplog.text

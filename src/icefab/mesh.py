@@ -522,7 +522,7 @@ def _sniff(data: bytes, path: FsPath) -> str:
     if data[:3] == b"ply" and data[3:4] in (b"\n", b"\r", b" "):
         return "ply"
     if len(data) >= 84:
-        n = int.from_bytes(data[80:84], "little")
+        n = int.from_bytes(data[80:84], "little") or (len(data) - 84) // 50
         if 84 + 50 * n == len(data) and n > 0:
             # a valid binary STL size; an ASCII STL exactly matching by chance would
             # need its header bytes to encode its own length and is not text after byte 84
@@ -551,6 +551,11 @@ def _read_stl_binary(data: bytes, path: FsPath) -> np.ndarray:
         raise MeshError(f"{path}: binary STL shorter than its 84-byte header "
                         f"({len(data)} bytes)")
     n = int.from_bytes(data[80:84], "little")
+    if n == 0 and len(data) > 84 and (len(data) - 84) % 50 == 0:
+        # some streaming exporters never fill in the count: the size tells it
+        n = (len(data) - 84) // 50
+        log.warning("%s: binary STL header declares 0 facets; the file size gives %d, "
+                    "read those", path, n)
     need = 84 + 50 * n
     if need > len(data):
         raise MeshError(f"{path}: truncated binary STL: the header declares {n} facets "
