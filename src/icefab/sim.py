@@ -290,9 +290,10 @@ def deposit(surface: HeightMap, xy: np.ndarray, volume: np.ndarray,
     xy: (n, 2) float64, mm, sample points of one or more paths, in deposition order.
     volume: (n,) float64, mm^3; ``volume[i]`` is deposited uniformly over the strip of
         width ``width`` swept from ``xy[i]`` to ``xy[i + 1]`` (for the last sample of a
-        path: back to its first sample when closed, else a w x w square). Consecutive strips meet on the bisector of their joint
-        (mitre; butt ends at turns sharper than 120 deg), so a polyline leaves a strip
-        without gaps or overlaps at its corners.
+        path: back to its first sample when closed, else a w x w square). Consecutive
+        strips meet on the bisector of their joint (mitre; butt ends at turns sharper
+        than 120 deg), so a polyline leaves a strip without gaps or overlaps at its
+        corners.
     width: path width, mm, scalar or (n,) per sample.
     path_starts: index of the first sample of each path (default: one path).
     closed: per path (or one for all), whether it returns to its first sample (which is
