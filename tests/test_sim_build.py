@@ -13,7 +13,7 @@ from scipy.spatial import cKDTree
 
 from icefab import Job
 from icefab.sim import Measurement, SimulationError, simulate_build
-from icefab.types import LayerPaths, Path, Toolpaths
+from icefab.types import HeightMap, LayerPaths, Path, Toolpaths
 
 DH = 0.25
 
@@ -222,3 +222,17 @@ def test_a_debris_pulse_is_a_bump_of_the_configured_height_and_radius():
     # each bump holds 2 pi r^2 h of volume (less where it hangs over the footprint's edge)
     n_cells_half = np.count_nonzero(bump > 0.25)
     assert n_cells_half * 0.25 > 0.5 * np.pi * (2.0 * np.sqrt(2 * np.log(2))) ** 2
+
+
+def test_smf_controller_skips_a_measurement_it_cannot_map(caplog):
+    from icefab.sim import smf_controller
+
+    job = quiet_job()
+    control = smf_controller(job)
+    grid = HeightMap(origin=np.zeros(2), spacing=0.5, z=np.ones((4, 4)))
+    m = Measurement(layer=3, k=1, nominal_z=1.0, interval_mm=1.0,
+                    samples=np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0]]),
+                    footprint=np.ones((4, 4), dtype=bool), grid=grid)
+    u = control(m)
+    assert np.array_equal(u(np.zeros((5, 2))), np.zeros(5))
+    assert "layer 3" in caplog.text

@@ -64,7 +64,7 @@ import numpy as np
 from numba import njit
 from scipy import ndimage
 
-from icefab.errors import IcefabError
+from icefab.errors import GeometryError, IcefabError
 from icefab.types import HeightMap, Path, Toolpaths
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -834,6 +834,8 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
             rms_meas = float(np.sqrt(np.mean((samples[:, 2] - nominal) ** 2))) \
                 if len(samples) else float("nan")
             rows.append((plan.index, nominal, rms, mx, rms_meas))
+            log.debug("layer %d (%.2f mm): RMS %.4f mm, max %.4f mm, measured RMS %.4f mm",
+                      plan.index, nominal, rms, mx, rms_meas)
             if plan.index in keep:
                 # without the partly covered outermost cells of the footprint
                 surfaces[plan.index] = HeightMap(origin=surface.origin.copy(), spacing=g,
@@ -974,8 +976,15 @@ def smf_controller(job: "Job") -> Controller:
 
     def control(m: Measurement) -> ActionFn:
         nonlocal state
-        surf = feedback.surface_from_samples(m.samples, None, fb.grid_mm,
-                                             smoothing=fb.smoothing)
+        try:
+            surf = feedback.surface_from_samples(m.samples, None, fb.grid_mm,
+                                                 smoothing=fb.smoothing)
+        except GeometryError as exc:
+            # e.g. a tiny top layer with too few or collinear samples: the cell carries on
+            # at nominal flow until the next measurement
+            log.warning("layer %d: no surface from %d laser samples (%s); no control action",
+                        m.layer, len(m.samples), exc)
+            return lambda xy: np.zeros(len(xy))
         x, y = surf.grid()
         g = m.grid.spacing
         ix = np.rint((x - m.grid.origin[0]) / g).astype(np.int64)
