@@ -635,3 +635,30 @@ def test_binary_stl_without_facet_count(tmp_path, caplog):
         mesh = load_mesh(_write(tmp_path, "nocount.stl", bytes(data)))
     _same_geometry(mesh, ref, np.float32)
     assert "declares 0 facets" in caplog.text
+
+
+def test_open_and_non_manifold_edges_are_located():
+    ref = _tm("box")
+    v, f = np.asarray(ref.vertices, float), np.asarray(ref.faces)
+    rep = check_mesh(Mesh(v, f[1:], "open"))
+    a, b, c = v[f[0]]
+    mids = [tuple((p + q) / 2) for p, q in ((a, b), (b, c), (c, a))]
+    assert rep.open_edge_at in [pytest.approx(m) for m in mids]
+    assert "e.g. at (" in " ".join(rep.warnings())
+    v2 = np.vstack([v, [[100.0, 100.0, 100.0]]])
+    fin = check_mesh(Mesh(v2, np.vstack([f, [[f[0, 0], f[0, 1], 8]]]), "fin"))
+    assert fin.non_manifold_edge_at == pytest.approx(tuple((v[f[0, 0]] + v[f[0, 1]]) / 2))
+
+
+def test_located_open_edge_after_unused_vertices_dropped(tmp_path):
+    # unreferenced vertices first: the location must survive the renumbering
+    ref = _tm("box")
+    v = np.vstack([[[50.0, 50.0, 50.0]] * 3, np.asarray(ref.vertices)])
+    f = np.asarray(ref.faces)[1:] + 3
+    lines = [f"v {x!r} {y!r} {z!r}" for x, y, z in v.tolist()]
+    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in f.tolist()]
+    mesh, rep = read_mesh(_write(tmp_path, "o.obj", "\n".join(lines).encode()))
+    a, b, c = np.asarray(ref.vertices)[ref.faces[0]]
+    mids = [tuple((p + q) / 2) for p, q in ((a, b), (b, c), (c, a))]
+    assert rep.open_edges == 3
+    assert rep.open_edge_at in [pytest.approx(m) for m in mids]

@@ -128,8 +128,9 @@ def _unique_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: 
 
 
 @njit(cache=True)
-def _edge_topology(faces: np.ndarray, nv: int) -> tuple[int, int, int]:  # pragma: no cover
-    """(open, non-manifold, misoriented) undirected edge counts, O(m) with vertex buckets.
+def _edge_topology(faces: np.ndarray, nv: int):  # pragma: no cover
+    """(open, non-manifold, misoriented) undirected edge counts, O(m) with vertex buckets,
+    and the two vertices of one open and one non-manifold edge (-1 when there is none).
 
     Directed edges are bucketed by their lower vertex (counting sort); each small bucket is
     sorted by the upper vertex and runs of equal edges are counted: 1 use = open edge,
@@ -159,6 +160,8 @@ def _edge_topology(faces: np.ndarray, nv: int) -> tuple[int, int, int]:  # pragm
     n_open = 0
     n_nonman = 0
     n_misor = 0
+    ex_open = np.full(2, -1, np.int64)
+    ex_nonman = np.full(2, -1, np.int64)
     for v in range(nv):
         s = start[v]
         e = start[v + 1]
@@ -181,13 +184,17 @@ def _edge_topology(faces: np.ndarray, nv: int) -> tuple[int, int, int]:  # pragm
                 j += 1
             c = j - i
             if c == 1:
+                if n_open == 0:
+                    ex_open[0], ex_open[1] = v, hi[i]
                 n_open += 1
             elif c > 2:
+                if n_nonman == 0:
+                    ex_nonman[0], ex_nonman[1] = v, hi[i]
                 n_nonman += 1
             elif dsum != 0:
                 n_misor += 1
             i = j
-    return n_open, n_nonman, n_misor
+    return n_open, n_nonman, n_misor, ex_open, ex_nonman
 
 
 @njit(cache=True)
@@ -324,6 +331,7 @@ class MeshReport:
     volume: signed enclosed volume, mm^3 (meaningful for closed meshes).
     inverted: closed mesh with negative volume (faces point inwards).
     removed_degenerate, removed_duplicate, merged_vertices, flipped: what loading fixed.
+    open_edge_at, non_manifold_edge_at: midpoint (mm) of one such edge, to find it.
     """
 
     name: str
@@ -342,6 +350,8 @@ class MeshReport:
     removed_duplicate: int = 0
     merged_vertices: int = 0
     flipped: bool = False
+    open_edge_at: tuple[float, float, float] | None = None
+    non_manifold_edge_at: tuple[float, float, float] | None = None
 
     @property
     def closed(self) -> bool:
@@ -374,16 +384,23 @@ class MeshReport:
         if self.zero_area_faces:
             w.append(f"{n}: {self.zero_area_faces} zero-area faces")
         if self.open_edges:
-            w.append(f"{n}: {self.open_edges} open edges (the surface has holes)")
+            w.append(f"{n}: {self.open_edges} open edges (the surface has holes)"
+                     + _at(self.open_edge_at))
         if self.non_manifold_edges:
             w.append(f"{n}: {self.non_manifold_edges} non-manifold edges (shared by more "
-                     "than two faces)")
+                     "than two faces)" + _at(self.non_manifold_edge_at))
         if self.misoriented_edges:
             w.append(f"{n}: {self.misoriented_edges} edges between faces of inconsistent "
                      "orientation")
         if self.inverted and not self.flipped:
             w.append(f"{n}: inverted orientation (negative volume {self.volume:.6g} mm^3)")
         return w
+
+
+def _at(point: tuple[float, float, float] | None) -> str:
+    if point is None:
+        return ""
+    return ", e.g. at ({:.4g}, {:.4g}, {:.4g}) mm".format(*point)
 
 
 def mesh_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
@@ -397,11 +414,15 @@ def mesh_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
     return float(np.einsum("ij,ij->", a, np.cross(b, d)) / 6.0)
 
 
-def _edge_stats(faces: np.ndarray, n_vertices: int) -> tuple[int, int, int]:
-    """(open, non-manifold, misoriented) undirected edge counts of non-degenerate faces."""
+def _edge_stats(faces: np.ndarray, n_vertices: int) -> tuple[int, int, int, np.ndarray,
+                                                             np.ndarray]:
+    """(open, non-manifold, misoriented) undirected edge counts of non-degenerate faces,
+    and the vertex pair of one open and one non-manifold edge ((-1, -1) when none)."""
     if len(faces) == 0:
-        return 0, 0, 0
-    return tuple(int(x) for x in _edge_topology(faces, int(n_vertices)))  # type: ignore
+        none = np.full(2, -1, np.int64)
+        return 0, 0, 0, none, none
+    o, n, m, ex_o, ex_n = _edge_topology(faces, int(n_vertices))
+    return int(o), int(n), int(m), ex_o, ex_n
 
 
 def _degenerate_mask(faces: np.ndarray) -> np.ndarray:
@@ -426,7 +447,7 @@ def check_mesh(mesh: Mesh) -> MeshReport:
 
 
 def _diagnose(mesh: Mesh, known_clean: bool,
-              edges: tuple[int, int, int] | None = None) -> MeshReport:
+              edges: tuple | None = None) -> MeshReport:
     """check_mesh; ``known_clean`` skips the degenerate/duplicate search (just removed),
     ``edges`` are the (open, non-manifold, misoriented) counts when already known."""
     v, f = mesh.vertices, np.ascontiguousarray(mesh.faces, dtype=np.int64)
@@ -444,7 +465,8 @@ def _diagnose(mesh: Mesh, known_clean: bool,
         degen = _degenerate_mask(f)
         good = f[~degen] if degen.any() else f
         dup = _duplicate_mask(good, len(v))
-    open_, nonman, misor = edges if edges is not None else _edge_stats(good, len(v))
+    open_, nonman, misor, ex_open, ex_nonman = (edges if edges is not None
+                                                else _edge_stats(good, len(v)))
     if nonfinite == 0 and len(good):
         scale = float(np.abs(v).max()) or 1.0
         zero_area, volume = _face_measures(v, good, (1e-12 * scale) ** 2)
@@ -456,7 +478,15 @@ def _diagnose(mesh: Mesh, known_clean: bool,
                       open_edges=open_, non_manifold_edges=nonman, misoriented_edges=misor,
                       degenerate_faces=int(degen.sum()), zero_area_faces=zero_area,
                       duplicate_faces=int(dup.sum()), nonfinite_vertices=nonfinite,
-                      volume=volume, inverted=bool(closed and misor == 0 and volume < 0))
+                      volume=volume, inverted=bool(closed and misor == 0 and volume < 0),
+                      open_edge_at=_midpoint(v, ex_open),
+                      non_manifold_edge_at=_midpoint(v, ex_nonman))
+
+
+def _midpoint(v: np.ndarray, edge: np.ndarray) -> tuple[float, float, float] | None:
+    if edge[0] < 0:
+        return None
+    return tuple(float(x) for x in 0.5 * (v[edge[0]] + v[edge[1]]))  # type: ignore
 
 
 def clean_mesh(mesh: Mesh) -> tuple[Mesh, MeshReport]:
@@ -488,6 +518,9 @@ def clean_mesh(mesh: Mesh) -> tuple[Mesh, MeshReport]:
             remap = np.cumsum(used) - 1
             f = remap[f]
             vertices = vertices[used]
+            ex_open, ex_nonman = (np.where(e >= 0, remap[np.maximum(e, 0)], -1)
+                                  for e in edges[3:])
+            edges = (*edges[:3], ex_open, ex_nonman)
     cleaned = Mesh(vertices, f, mesh.name)
     report = _diagnose(cleaned, known_clean=True, edges=edges)
     flipped = False
