@@ -388,3 +388,41 @@ def test_non_manifold_edge_falls_back_and_keeps_area():
     assert rep.tolerance_matched_ends > 0
     for layer in stack:
         assert layer.part.area == pytest.approx(2.0, rel=1e-9)
+
+
+def test_overlapping_shells_give_their_union():
+    """Two closed boxes overlapping (separate shells, as in merged parts or a handle pushed
+    into a body): the layer is their union, not an even-odd mix."""
+    a = box((10, 10, 2))
+    b = box((10, 4, 2), center=(6, 0))          # sticks out of a by 6 x 4
+    stack = slice_mesh(as_mesh(trimesh.util.concatenate([a, b])), EXACT)
+    rep = slice_report(stack)
+    assert rep.union_layers == list(range(len(stack)))
+    for layer in stack:
+        assert layer.part.area == pytest.approx(100 + 24, rel=1e-6)
+        assert len(layer.part) == 1
+    check_orientation_and_nesting(stack)
+
+
+def test_open_stub_into_a_body_is_united():
+    """An open tube (no caps) whose end lies inside a closed body: its chains are closed
+    across the gaps and united with the body (teapot spout/handle case)."""
+    body = box((20, 20, 10))
+    tube = trimesh.creation.cylinder(radius=3, height=15, sections=16)
+    tube.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [0, 1, 0]))
+    tube.apply_translation((12.5, 0, 5))           # x from 5 (inside the body) to 20
+    walls = np.flatnonzero(np.abs(tube.face_normals[:, 0]) < 0.5)
+    open_tube = trimesh.Trimesh(tube.vertices, tube.faces[walls], process=False)
+    stack = slice_mesh(as_mesh(trimesh.util.concatenate([body, open_tube])),
+                       job_with(layer_thickness_mm=0.5))
+    rep = slice_report(stack)
+    assert rep.open_chains > 0 and rep.empty_layers == []
+    for layer in stack:
+        sq = shapely.box(-10, -10, 10, 10)
+        sec = tube.section(plane_origin=[0, 0, layer.z], plane_normal=[0, 0, 1])
+        expected = sq
+        if sec is not None:
+            for ring in sec.discrete:
+                expected = expected.union(shapely.Polygon(ring[:, :2]).buffer(0))
+        assert layer.part.area == pytest.approx(expected.area, rel=1e-5), layer.index
+    check_orientation_and_nesting(stack)

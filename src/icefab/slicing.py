@@ -91,7 +91,7 @@ import numpy as np
 
 from icefab.config import Job
 from icefab.errors import GeometryError, StackFileError
-from icefab.types import Layer, Mesh, Region, Stack
+from icefab.types import Layer, Mesh, Region, Stack, signed_area
 
 log = logging.getLogger(__name__)
 
@@ -128,6 +128,7 @@ class SliceReport:
     chains_dropped: int = 0
     rings_collapsed: int = 0
     rings_reoriented: int = 0
+    union_layers: list[int] = field(default_factory=list)
     points_before_filter: int = 0
     points_after_filter: int = 0
     empty_layers: list[int] = field(default_factory=list)
@@ -814,17 +815,21 @@ def _fmt_pt(p: np.ndarray) -> str:
 
 @dataclass
 class _Rings:
-    """Concatenated rings: points (P,2), offsets (R+1,), layer (R,), walk-oriented (R,)."""
+    """Concatenated rings: points (P,2), offsets (R+1,), layer (R,); ``oriented`` (R,)
+    the ring runs along its facets' orientation (material on the left); ``gap`` (R,) it
+    was closed from open chains."""
 
     points: np.ndarray
     offsets: np.ndarray
     layer: np.ndarray
     oriented: np.ndarray
+    gap: np.ndarray
 
     @staticmethod
     def empty() -> "_Rings":
         return _Rings(np.zeros((0, 2)), np.zeros(1, dtype=np.int64),
-                      np.zeros(0, dtype=np.int64), np.zeros(0, dtype=bool))
+                      np.zeros(0, dtype=np.int64), np.zeros(0, dtype=bool),
+                      np.zeros(0, dtype=bool))
 
     @staticmethod
     def concat(parts: list["_Rings"]) -> "_Rings":
@@ -834,7 +839,8 @@ class _Rings:
         counts = np.concatenate([np.diff(p.offsets) for p in parts])
         return _Rings(np.concatenate([p.points for p in parts]), _offsets(counts),
                       np.concatenate([p.layer for p in parts]),
-                      np.concatenate([p.oriented for p in parts]))
+                      np.concatenate([p.oriented for p in parts]),
+                      np.concatenate([p.gap for p in parts]))
 
 
 class _Warnings:
@@ -855,11 +861,13 @@ class _Warnings:
         return tuple(out)
 
 
-def _close_open_chains(chains: list[np.ndarray], layer: int, z: float, job: Job,
-                       report: SliceReport, warn: _Warnings) -> list[np.ndarray]:
+def _close_open_chains(chains_in: list[tuple[np.ndarray, bool]], layer: int, z: float,
+                       job: Job, report: SliceReport, warn: _Warnings) -> list[np.ndarray]:
     """Join the open chains of one layer end-to-start greedily, then close them.
 
-    chains: list of (k_i, 2) float64 point arrays (open polylines). Returns closed rings.
+    chains_in: (points (k_i, 2) float64, forward) of every open polyline; ``forward``: it
+    runs along its facets' orientation. Returns closed rings turned to run along the
+    facet orientation of most of their points (material on the left).
     Rule (module docstring, step 4): the chain being grown takes the nearest free endpoint
     of another chain (reversing that chain when its end is nearer) unless its own start
     is at least as near, in which case it closes. Gaps above ``max_gap_mm`` are reported
@@ -869,7 +877,8 @@ def _close_open_chains(chains: list[np.ndarray], layer: int, z: float, job: Job,
     drop_mode = job.slicing.open_contours == "drop"
     # in "drop" mode no join may cross more than max_gap_mm
     reach = max_gap if drop_mode else np.inf
-    chains = [c for c in chains if len(c) >= 1]
+    chains = [c for c, _ in chains_in if len(c) >= 1]
+    forward = [f for c, f in chains_in if len(c) >= 1]
     n = len(chains)
     starts = np.array([c[0] for c in chains]).reshape(n, 2)
     ends = np.array([c[-1] for c in chains]).reshape(n, 2)
@@ -881,6 +890,7 @@ def _close_open_chains(chains: list[np.ndarray], layer: int, z: float, job: Job,
             continue
         alive[first] = False
         cur = [chains[first]]
+        vote = len(chains[first]) * (1 if forward[first] else -1)
         head = starts[first]
         gaps: list[tuple[float, np.ndarray]] = []
         closed = False
@@ -903,6 +913,7 @@ def _close_open_chains(chains: list[np.ndarray], layer: int, z: float, job: Job,
                 break
             alive[i] = False
             nxt = chains[i][::-1] if rev else chains[i]
+            vote += len(nxt) * (1 if forward[i] != rev else -1)
             gaps.append((best, 0.5 * (tail + nxt[0])))
             cur.append(nxt)
         if not closed:                  # "drop" mode: cannot close within max_gap_mm
@@ -921,7 +932,7 @@ def _close_open_chains(chains: list[np.ndarray], layer: int, z: float, job: Job,
         ring = np.concatenate(cur)
         if len(ring) > 1 and np.array_equal(ring[0], ring[-1]):
             ring = ring[:-1]            # drop a repeated closing point
-        rings.append(ring)
+        rings.append(ring if vote >= 0 else ring[::-1].copy())
     return rings
 
 
@@ -964,7 +975,7 @@ def _slice_rings(mesh: Mesh, q: np.ndarray, z_report: np.ndarray, job: Job,
         bounds.append(min(n_planes, max(k1, k0 + 1)))
     tol = job.parts.weld_tolerance_mm
     parts: list[_Rings] = []
-    open_by_layer: dict[int, list[np.ndarray]] = {}
+    open_by_layer: dict[int, list[tuple[np.ndarray, bool]]] = {}
     for c in range(len(bounds) - 1):
         k0, k1 = bounds[c], bounds[c + 1]
         cut = _intersect_numpy if _USE_NUMPY_CUT else _intersect
@@ -980,15 +991,20 @@ def _slice_rings(mesh: Mesh, q: np.ndarray, z_report: np.ndarray, job: Job,
             cl = closed.astype(bool)
             n_open = int(np.argmin(cl)) if not cl.all() else 0
             if cl[n_open:].all():        # the walker lists open chains first
+                n_cl = len(cl) - n_open
                 parts.append(_Rings(pts[offs[n_open]:], offs[n_open:] - offs[n_open],
-                                    ring_layer[n_open:], np.ones(len(cl) - n_open, dtype=bool)))
+                                    ring_layer[n_open:], np.ones(n_cl, dtype=bool),
+                                    np.zeros(n_cl, dtype=bool)))
             else:
                 ring_mask = np.repeat(cl, counts)
                 parts.append(_Rings(pts[ring_mask], _offsets(counts[cl]), ring_layer[cl],
-                                    np.ones(int(cl.sum()), dtype=bool)))
+                                    np.ones(int(cl.sum()), dtype=bool),
+                                    np.zeros(int(cl.sum()), dtype=bool)))
             for r in np.flatnonzero(~cl):
+                # walked from a segment's start end: along the facet orientation
+                fwd = bool(ends[offs[r]] & 1 == 0)
                 open_by_layer.setdefault(int(ring_layer[r]), []).append(
-                    pts[offs[r]:offs[r + 1]])
+                    (pts[offs[r]:offs[r + 1]], fwd))
         if progress is not None:
             progress(k1, n_planes)
     if report.tolerance_matched_ends:
@@ -1007,21 +1023,25 @@ def _slice_rings(mesh: Mesh, q: np.ndarray, z_report: np.ndarray, job: Job,
     if extra:
         parts.append(_Rings(np.concatenate(extra), _offsets([len(r) for r in extra]),
                             np.array(extra_layer, dtype=np.int64),
-                            np.zeros(len(extra), dtype=bool)))
+                            np.ones(len(extra), dtype=bool), np.ones(len(extra), dtype=bool)))
     return _Rings.concat(parts)
 
 
-def _finish_rings(rings: _Rings, job: Job, report: SliceReport) -> tuple[_Rings, np.ndarray]:
-    """Filter, drop collapsed rings, orient and nest. Returns rings sorted by layer + parents."""
+def _finish_rings(rings: _Rings, job: Job, report: SliceReport
+                  ) -> tuple[_Rings, np.ndarray, dict[int, Region]]:
+    """Filter, drop collapsed rings, orient and nest.
+
+    Returns the rings sorted by layer, their parents (index within the layer), and the
+    regions of the layers that needed a union (layer -> Region, see below)."""
     report.points_before_filter = len(rings.points)
     if len(rings.layer) == 0:
-        return rings, np.zeros(0, dtype=np.int64)
+        return rings, np.zeros(0, dtype=np.int64), {}
     # filter, and sort the rings by layer (stable) in the same gather
     order = np.argsort(rings.layer, kind="stable")
     pts, off = _filter_compact(rings.points, rings.offsets, order,
                                float(job.slicing.min_point_spacing_mm),
                                float(job.slicing.max_filter_deviation_mm))
-    rings = _Rings(pts, off, rings.layer[order], rings.oriented[order])
+    rings = _Rings(pts, off, rings.layer[order], rings.oriented[order], rings.gap[order])
     counts = np.diff(rings.offsets)
     area, perim = _ring_measures(rings.points, rings.offsets)
     # collapsed: < 3 points, (almost) no area, or thinner than the filter's own bound
@@ -1032,7 +1052,7 @@ def _finish_rings(rings: _Rings, job: Job, report: SliceReport) -> tuple[_Rings,
     report.rings_collapsed += int((~ok).sum())
     if not ok.all():
         rings = _Rings(rings.points[np.repeat(ok, counts)], _offsets(counts[ok]),
-                       rings.layer[ok], rings.oriented[ok])
+                       rings.layer[ok], rings.oriented[ok], rings.gap[ok])
         area = area[ok]
     report.points_after_filter = len(rings.points)
     group = np.searchsorted(rings.layer, np.arange(int(rings.layer.max()) + 2)) \
@@ -1047,21 +1067,44 @@ def _finish_rings(rings: _Rings, job: Job, report: SliceReport) -> tuple[_Rings,
         cur[m] = parent[cur[m]]
     want_ccw = depth % 2 == 0
     flip = want_ccw != (area > 0)
-    n_wrong = int((flip & rings.oriented).sum())
+    wrong = flip & rings.oriented & ~rings.gap
+    n_wrong = int(wrong.sum())
     if n_wrong:
         report.rings_reoriented += n_wrong
-        log.info("%d contours ran against the facet orientation and were reversed (inverted "
-                 "facets or overlapping shells)", n_wrong)
+        log.info("%d contours ran against the facet orientation (inverted facets or "
+                 "overlapping shells)", n_wrong)
+    # Layers where nesting cannot be trusted -- a ring (walked, or closed across a gap)
+    # whose facet orientation contradicts its nesting: overlapping shells, e.g. a handle
+    # pushed into a body -- get their region as the non-zero union of the facet-oriented
+    # rings (material on the left), with icefab.geometry (Clipper, 1e-4 mm grid).
+    unions: dict[int, Region] = {}
+    for k in np.unique(rings.layer[flip & rings.oriented]):
+        unions[int(k)] = _union_layer(rings, int(group[k]), int(group[k + 1]))
     if flip.any():
         pts = rings.points.copy()
         for r in np.flatnonzero(flip):
             s, e = rings.offsets[r], rings.offsets[r + 1]
             pts[s:e] = pts[s:e][::-1]
-        rings = _Rings(pts, rings.offsets, rings.layer, rings.oriented)
+        rings = _Rings(pts, rings.offsets, rings.layer, rings.oriented, rings.gap)
     # parent as an index within the layer
     first = group[rings.layer]
     local_parent = np.where(parent >= 0, parent - first, -1)
-    return rings, local_parent
+    return rings, local_parent, unions
+
+
+def _union_layer(rings: _Rings, a: int, b: int) -> Region:
+    """Non-zero union of the facet-oriented rings a..b-1 of one layer (see _finish_rings).
+
+    When the rings' total signed area is negative the facets face inwards (an inside-out
+    open surface): the union is then taken of the reversed rings.
+    """
+    from icefab.geometry import region_from_rings
+
+    ring_list = [rings.points[rings.offsets[r]:rings.offsets[r + 1]] for r in range(a, b)]
+    total = sum(signed_area(r) for r in ring_list)
+    if total < 0:
+        ring_list = [r[::-1] for r in ring_list]
+    return region_from_rings(ring_list, fill="nonzero")
 
 
 def slice_mesh(mesh: Mesh, job: Job | None = None, *, progress: Progress | None = None) -> Stack:
@@ -1094,21 +1137,23 @@ def slice_mesh(mesh: Mesh, job: Job | None = None, *, progress: Progress | None 
         mid = n // 2
         rings = _slice_rings(mesh, q[mid:mid + 1], z[mid:mid + 1], job, report, warn, None)
         rings.layer[:] = 0
-        rings, parent = _finish_rings(rings, job, report)
-        region = _region_of(rings, parent, 0, len(rings.layer))
+        rings, parent, unions = _finish_rings(rings, job, report)
+        region = unions.get(0) or _region_of(rings, parent, 0, len(rings.layer))
         layers = tuple(Layer(index=k, z=float(z[k]), part=region, top_z=float(top[k]))
                        for k in range(n))
         if progress is not None:
             progress(n, n)
     else:
         rings = _slice_rings(mesh, q, z, job, report, warn, progress)
-        rings, parent = _finish_rings(rings, job, report)
+        rings, parent, unions = _finish_rings(rings, job, report)
         starts = np.searchsorted(rings.layer, np.arange(n + 1))
         layers = tuple(Layer(index=k, z=float(z[k]), top_z=float(top[k]),
-                             part=_region_of(rings, parent, int(starts[k]),
-                                             int(starts[k + 1])))
+                             part=unions[k] if k in unions else
+                             _region_of(rings, parent, int(starts[k]), int(starts[k + 1])))
                        for k in range(n))
-    report.rings = len(rings.layer)
+    report.rings = sum(len(L.part) for L in layers) if job.slicing.mode == "3d" \
+        else len(layers[0].part) if layers else 0
+    report.union_layers = sorted(unions)
     empty = [L.index for L in layers if L.part.is_empty]
     report.empty_layers = empty
     for k in empty:
