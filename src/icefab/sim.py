@@ -594,7 +594,8 @@ class SimResult:
     layers: (m,) int64 toolpaths layer index of each measurement layer.
     nominal_z: (m,) float64, mm, nominal surface height there.
     rms: (m,) float64, mm, RMS deviation of the true surface from nominal over the part
-        footprint of that layer (the thesis' sigma_l*, Fig. 5-9).
+        footprint of that layer (the thesis' sigma_l*, Fig. 5-9); NaN when the layer
+        holds no part.
     max_abs: (m,) float64, mm, largest absolute deviation over the part footprint.
     rms_measured: (m,) float64, mm, RMS of the laser samples' deviation from nominal.
     height: final surface; NaN where nothing was ever deposited.
@@ -793,6 +794,8 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
         mask = added > 0.25 * dh
         # part cells wholly inside this layer's part deposit (not the partly covered rim)
         part_mask = ndimage.binary_erosion(layer_img[0] > 0.25 * dh)
+        if not part_mask.any():  # a part narrower than two cells: keep its rim
+            part_mask = layer_img[0] > 0.25 * dh
         if sim.spread_mm > 0:
             added = level_liquid(z, added, g, sim.spread_mm)
             mask |= added > 0.25 * dh
