@@ -236,3 +236,13 @@ def test_smf_controller_skips_a_measurement_it_cannot_map(caplog):
     u = control(m)
     assert np.array_equal(u(np.zeros((5, 2))), np.zeros(5))
     assert "layer 3" in caplog.text
+
+
+def test_the_c_controller_corrects_as_well():
+    # speed c_nom / (1 + u) lays (1 + u) times the volume per mm, like the nu-controller;
+    # its saturation planes keep the speed within +-30 % (thesis 5.2.2)
+    job = quiet_job(**{"simulation.flow_error": 0.10, "feedback.controller": "speed"})
+    tp = annulus_toolpaths(job, 16)
+    open_ = simulate_build(tp, job, closed_loop=False)
+    smf = simulate_build(tp, job)
+    assert smf.rms[-1] < open_.rms[-1] / 3
