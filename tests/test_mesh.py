@@ -16,7 +16,7 @@ import trimesh
 
 from icefab.errors import MeshError
 from icefab.mesh import (check_mesh, load_mesh, load_meshes, merge_meshes, read_mesh,
-                         weld_vertices, write_stl)
+                         weld_vertices)
 from icefab.types import Mesh
 
 # --------------------------------------------------------------------------- references
@@ -41,7 +41,6 @@ def _canonical(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     Equal for two meshes iff they have the same oriented triangles (any numbering).
     """
     tri = np.asarray(vertices, np.float64)[np.asarray(faces)]
-    key = np.lexsort(tri.transpose(2, 0, 1)[::-1].reshape(3, -1)).reshape(-1)
     # rank of every corner inside its triangle by lexicographic order
     flat = tri.reshape(-1, 3)
     order = np.lexsort(flat.T[::-1])
@@ -51,7 +50,6 @@ def _canonical(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     start = np.argmin(rank, axis=1)
     idx = (start[:, None] + np.arange(3)) % 3
     rot = np.take_along_axis(tri, idx[:, :, None], axis=1).reshape(-1, 9)
-    del key
     return rot[np.lexsort(rot.T[::-1])]
 
 
@@ -368,9 +366,6 @@ def test_real_meshes_load(mesh_dir, name):
 def test_teapot_open_edges_match_trimesh(mesh_dir):
     mesh, report = read_mesh(mesh_dir / "teapot.obj")
     tm = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
-    counts = np.bincount(trimesh.grouping.group_rows(tm.edges_sorted, require_count=None)
-                         .__len__() * [0]) if False else None
-    del counts
     edges = np.sort(tm.edges, axis=1)
     _, c = np.unique(edges, axis=0, return_counts=True)
     assert report.open_edges == int(np.count_nonzero(c == 1)) > 0

@@ -1,6 +1,8 @@
 """Parsers on random and corrupted bytes: a Mesh or a MeshError, never anything else."""
 from __future__ import annotations
 
+import atexit
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -15,6 +17,7 @@ from icefab.mesh import load_mesh
 from icefab.types import Mesh
 
 _TMP = Path(tempfile.mkdtemp(prefix="icefab-fuzz-"))
+atexit.register(shutil.rmtree, _TMP, True)
 
 
 def _valid_files() -> dict[str, bytes]:
