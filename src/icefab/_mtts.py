@@ -241,15 +241,79 @@ def _jcon(v, i0, i1, h, jeff, tol):
 
 
 @njit(cache=True, fastmath=_FM)
+def _accel_bound_x(k0, k1, d2, qd2, n, i, A, qa):
+    """Largest v^2 allowed by the total and joint accelerations at zero tangential
+    acceleration, with second derivatives averaged over points [i-k, i+k] (prefix sums
+    d2 (n+1, 2), qd2 (n+1, m))."""
+    a = max(i - k0, 0)
+    b = min(i + k1, n - 1) + 1
+    cnt = b - a
+    cx = (d2[b, 0] - d2[a, 0]) / cnt
+    cy = (d2[b, 1] - d2[a, 1]) / cnt
+    kap = math.sqrt(cx * cx + cy * cy)
+    x = A / kap if kap > _EPS else np.inf
+    for j in range(qd2.shape[1]):
+        if math.isfinite(qa[j]):
+            c = abs(qd2[b, j] - qd2[a, j]) / cnt
+            if c > _EPS:
+                x = min(x, qa[j] / c)
+    return x
+
+
+@njit(cache=True, fastmath=_FM)
+def _step_curvature(n, h, vcap, dt, A, qa, p2, qd2, c2, cq):
+    """Second derivatives as the robot sees them: averaged over one output step.
+
+    The robot receives one point every dt; between two samples it moves v dt along the
+    path, so the acceleration it is commanded (the second difference of the samples over
+    dt^2) is the turning over a step's length, not the turning at one 0.4 mm grid point.
+    A polyline vertex turning by alpha is therefore no 0.4 mm-radius curve: at speed v it
+    costs v alpha / dt. Here p2 and qd2 (rows 0..n-1) are replaced in place by their
+    averages over the widest centred window W = (2k+1) h that the speed allowed with that
+    window still covers in one step (v dt >= W); on a smooth curve every window gives the
+    same value, at a vertex the turning is spread over the step. In: p2 (., 2) and
+    qd2 (., m) raw second differences; c2, cq work arrays (n+1, .).
+    """
+    kmax = int((vcap * dt / h - 1.0) * 0.5)
+    if kmax <= 0:
+        return
+    for c in range(2):
+        c2[0, c] = 0.0
+        for i in range(n):
+            c2[i + 1, c] = c2[i, c] + p2[i, c]
+    for c in range(qd2.shape[1]):
+        cq[0, c] = 0.0
+        for i in range(n):
+            cq[i + 1, c] = cq[i, c] + qd2[i, c]
+    for i in range(n):
+        best = 0
+        for k in range(1, kmax + 1):
+            x = _accel_bound_x(k, k, c2, cq, n, i, A, qa)
+            if math.sqrt(x) * dt >= (2 * k + 1) * h:
+                best = k
+            else:
+                break
+        if best > 0:
+            a = max(i - best, 0)
+            b = min(i + best, n - 1) + 1
+            cnt = b - a
+            p2[i, 0] = (c2[b, 0] - c2[a, 0]) / cnt
+            p2[i, 1] = (c2[b, 1] - c2[a, 1]) / cnt
+            for c in range(qd2.shape[1]):
+                qd2[i, c] = (cq[b, c] - cq[a, c]) / cnt
+
+
+@njit(cache=True, fastmath=_FM)
 def speed_profiles(gstart, h, xy, q, vcap, A, J, jerk_on, qv, qa, qj, a_rest, jcon_tol,
-                   jerk_window):
+                   jerk_window, dt):
     """VCON + ACON forward/backward + JCON for every piece (thesis 4.1.2-4.1.5).
 
     gstart (P+1,) int64; h (P,) mm; xy (N, 2) mm grid points; q (N, m) joints on the grid;
     vcap (P,) mm/s speed bound per piece; A mm/s^2; J mm/s^3; qv, qa, qj (m,) joint bounds
     (inf = none); a_rest mm/s^2 initial/final acceleration of the from/to-rest curves
     (thesis 4.2.6); jerk_window mm, the length over which curvature is averaged before
-    taking its slope for the jerk bounds. Returns v (N,) mm/s on the grid, envelope (N,) mm/s, and the piece
+    taking its slope for the jerk bounds; dt s, the output step (see _step_curvature).
+    Returns v (N,) mm/s on the grid, envelope (N,) mm/s, and the piece
     durations T (P,) s.
     """
     N = xy.shape[0]
@@ -271,6 +335,8 @@ def speed_profiles(gstart, h, xy, q, vcap, A, J, jerk_on, qv, qa, qj, a_rest, jc
     kap = np.zeros(nmax)
     jeff = np.full(nmax, np.inf)
     fwd = np.zeros(nmax)
+    c2 = np.zeros((nmax + 1, 2))
+    cq = np.zeros((nmax + 1, m))
     for p in range(P):
         g0 = gstart[p]
         n = gstart[p + 1] - g0
@@ -281,6 +347,7 @@ def speed_profiles(gstart, h, xy, q, vcap, A, J, jerk_on, qv, qa, qj, a_rest, jc
         vp = v[g0:g0 + n]
         ep = env[g0:g0 + n]
         vc2 = vcap[p] * vcap[p]
+        _step_curvature(n, hp, vcap[p], dt, A, qa, p2, qd2, c2, cq)
         for i in range(n):
             kap[i] = math.sqrt(p2[i, 0] ** 2 + p2[i, 1] ** 2)
             # ---- VCON: the maximum-speed envelope (thesis 4.1.2, eqs. 4.4, 4.5)
@@ -395,3 +462,57 @@ def sample_pieces(gstart, h, v, T, nsamp, sstart, dt):
             s_out[o + k] = (i - i0) * hp + ds
             v_out[o + k] = (v[i] + acc * r) * c
     return s_out, v_out
+
+
+@njit(cache=True, fastmath=_FM)
+def smooth_pieces(gstart, gxy, sigma_pts, tol):
+    """Optional smoothing of resampled pieces (thesis 4.1.1: "local polynomial regression
+    or cubic smoothing splines"): a Gaussian-weighted local quadratic regression along
+    the piece (standard deviation sigma_pts grid points, window truncated at 3 sigma and
+    kept symmetric near the ends). A quadratic fit keeps circles and straight lines in
+    place and rounds polyline vertices. Piece ends stay put (the window shrinks to
+    nothing there) and every displacement is clipped to ``tol`` mm, so the smoothed
+    points stay within ``tol`` of the resampled ones. Returns a new (G, 2) array.
+    """
+    out = gxy.copy()
+    P = gstart.shape[0] - 1
+    r = int(3.0 * sigma_pts + 0.5)
+    wts = np.empty(r + 1)
+    for k in range(r + 1):
+        wts[k] = math.exp(-0.5 * (k / sigma_pts) ** 2)
+    for p in range(P):
+        i0 = gstart[p]
+        n = gstart[p + 1] - i0
+        for i in range(2, n - 2):
+            ri = min(r, i, n - 1 - i)
+            m0 = wts[0]
+            m2 = 0.0
+            m4 = 0.0
+            s0x = wts[0] * gxy[i0 + i, 0]
+            s0y = wts[0] * gxy[i0 + i, 1]
+            s2x = 0.0
+            s2y = 0.0
+            for k in range(1, ri + 1):
+                wk = wts[k]
+                k2 = float(k * k)
+                xs = gxy[i0 + i + k, 0] + gxy[i0 + i - k, 0]
+                ys = gxy[i0 + i + k, 1] + gxy[i0 + i - k, 1]
+                m0 += 2.0 * wk
+                m2 += 2.0 * wk * k2
+                m4 += 2.0 * wk * k2 * k2
+                s0x += wk * xs
+                s0y += wk * ys
+                s2x += wk * k2 * xs
+                s2y += wk * k2 * ys
+            det = m0 * m4 - m2 * m2
+            if det <= 0.0:
+                continue
+            dx = (m4 * s0x - m2 * s2x) / det - gxy[i0 + i, 0]
+            dy = (m4 * s0y - m2 * s2y) / det - gxy[i0 + i, 1]
+            d = math.sqrt(dx * dx + dy * dy)
+            if d > tol:
+                dx *= tol / d
+                dy *= tol / d
+            out[i0 + i, 0] = gxy[i0 + i, 0] + dx
+            out[i0 + i, 1] = gxy[i0 + i, 1] + dy
+    return out

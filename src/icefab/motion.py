@@ -9,8 +9,10 @@ Steps (thesis 4.1, compiled kernels in :mod:`icefab._mtts`):
 1. PATHSPLIT (4.1.1): split each path where its direction turns by more than
    ``motion.smooth_angle_deg``; the robot stops there. Each piece is resampled along its
    length at ``motion.point_spacing_mm`` (at least 2 segments). Optional smoothing of the
-   resampled points within ``motion.smoothing_tolerance_mm`` (Zhang & Liou III: a
-   smoothing cubic spline, scipy), then the output follows the smoothed curve.
+   resampled points within ``motion.smoothing_tolerance_mm`` (a Gaussian kernel regression
+   along the piece, ``SMOOTH_SIGMA_MM``, displacement clipped to the tolerance; piece ends
+   fixed); the output then follows the smoothed curve. Worth it on coarse polygons: a
+   vertex turning by alpha costs v alpha / dt of acceleration at speed v.
 2. VCON (4.1.2): the maximum-speed envelope from the Cartesian speed, total acceleration
    (tangential + radial, eq. 4.8) and jerk bounds and from every joint's speed,
    acceleration and jerk bounds (eqs. 4.2-4.5, 4.10). The joints come from the robot's
@@ -82,6 +84,8 @@ JCON_TOLERANCE = 0.2
 #: Curvature (and joint second derivatives) are averaged over this length before their
 #: slope is taken for the jerk bounds (about one output step at full speed), mm.
 JERK_WINDOW_MM = 2.0
+#: Width (standard deviation) of the optional Gaussian path smoothing, mm.
+SMOOTH_SIGMA_MM = 2.0
 #: Points closer than this are merged before planning (zero-length segments), mm.
 MERGE_MM = 1e-9
 #: Gap inserted between pieces in the concatenated arc length (keeps it increasing), mm.
@@ -141,29 +145,6 @@ def _label(labels: Sequence[tuple[int, int]] | None, k: int) -> str:
         parts.append(f"layer {layer}")
     parts.append(f"path {idx}")
     return ", ".join(parts)
-
-
-def _smooth_pieces(gxy: np.ndarray, gstart: np.ndarray, tol: float) -> np.ndarray:
-    """Optional smoothing of resampled pieces (thesis 4.1.1; Zhang & Liou III): a cubic
-    smoothing spline per coordinate whose displacement is clipped to ``tol`` mm; piece ends
-    stay fixed. (k, 2) float64 mm."""
-    from scipy.interpolate import make_smoothing_spline
-    out = gxy.copy()
-    for a, b in zip(gstart[:-1], gstart[1:]):
-        n = b - a
-        if n < 6:
-            continue
-        u = np.arange(n, dtype=np.float64)
-        seg = gxy[a:b]
-        sm = np.stack([make_smoothing_spline(u, seg[:, c], lam=(tol * 4.0) ** 2)(u)
-                       for c in range(2)], axis=1)
-        d = sm - seg
-        norm = np.hypot(d[:, 0], d[:, 1])
-        scale = np.minimum(1.0, tol / np.maximum(norm, 1e-300))
-        sm = seg + d * scale[:, None]
-        sm[0], sm[-1] = seg[0], seg[-1]
-        out[a:b] = sm
-    return out
 
 
 @dataclass
@@ -264,7 +245,8 @@ def _pathsplit(V: np.ndarray, counts: np.ndarray, job: Job) -> _Split:
     gxy = np.stack([np.interp(gs, S, PV[:, 0]), np.interp(gs, S, PV[:, 1])], axis=1)
     smoothed = m.smoothing_tolerance_mm > 0.0
     if smoothed:
-        gxy = _smooth_pieces(gxy, gstart, m.smoothing_tolerance_mm)
+        gxy = _mtts.smooth_pieces(gstart, gxy, SMOOTH_SIGMA_MM / m.point_spacing_mm,
+                                  float(m.smoothing_tolerance_mm))
 
     return _Split(V=V, pid=pid, counts=counts, pstart=pstart, orig_index=orig_index, a=a,
                   piece_path=piece_path, PV=PV, pvs=pvs, S=S, s0=s0, L=L, nseg=nseg, hk=hk,
@@ -355,7 +337,8 @@ def _plan_polylines(polys: Sequence[np.ndarray], vcaps: np.ndarray, job: Job, ro
     vcap_piece = np.asarray(vcaps, dtype=np.float64)[piece_path]
     v, env, T = _mtts.speed_profiles(
         gstart, hk, gxy, qgrid, vcap_piece, float(m.accel_mm_s2), float(m.jerk_mm_s3),
-        jerk_on, qv[used], qa[used], qj[used], float(m.rest_accel_mm_s2), JCON_TOLERANCE, JERK_WINDOW_MM)
+        jerk_on, qv[used], qa[used], qj[used], float(m.rest_accel_mm_s2),
+        JCON_TOLERANCE, JERK_WINDOW_MM, float(m.dt_s))
 
     # ---- constant-dt sampling
     dt = float(m.dt_s)
