@@ -9,12 +9,14 @@ Formats (detected by content; the file extension is only a hint):
   statement"). A binary STL whose 80-byte header begins with ``solid`` is recognised by its
   size (``84 + 50 n`` bytes) or, when the size does not fit, by non-text bytes after the
   header.
-* ASCII STL — parsed in bulk (keywords blanked, all numbers converted in one call).
+* ASCII STL — one compiled pass (numba) over the bytes checks the grammar (errors give
+  the line) and converts the coordinates (an exact fast path; ``strtod`` via
+  ``np.fromstring`` in one call for the long mantissas it leaves), no per-line Python.
 * PLY, binary (little/big endian) and ASCII — every element is read with one structured
   dtype; extra properties are skipped; faces with any list count type; polygons are
   fan-triangulated; a ``tristrips`` element (``-1`` restarts) is decoded vectorised.
 * OBJ — ``v`` and ``f`` lines (``f 1/2/3 4//5 -1``), negative indices, polygons
-  fan-triangulated, parsed in bulk.
+  fan-triangulated, scanned in one compiled pass like ASCII STL; other lines ignored.
 
 Welding: STL stores every facet corner separately; corners are merged into shared
 vertices. Exact welding (default) merges corners whose coordinates are bit-identical
@@ -27,9 +29,17 @@ position of the lowest-indexed member.
 
 Clean-up after welding (each reported as a warning with its count): faces with a repeated
 vertex index (degenerate) are removed; faces with the same three vertices as an earlier
-face (duplicates, in either orientation) are removed; a closed mesh with negative signed
-volume (inside out) has all faces flipped. Open and non-manifold edges are reported,
-never "repaired" here (the slicer closes gaps per layer and reports them).
+face (duplicates, in either orientation) are removed (searched for only when a
+non-manifold or misoriented edge shows one may exist); vertices no face uses are dropped;
+a closed mesh with negative signed volume (inside out) has all faces flipped. Open and
+non-manifold edges are reported with their count and the location of one of them, never
+"repaired" here (the slicer closes gaps per layer and reports them). Faces with distinct
+but collinear corners (zero area) are counted, not removed: removing them would open the
+surface.
+
+Errors (:class:`~icefab.errors.MeshError`, the message names the file): missing or empty
+file, unknown format, truncated binary STL or PLY, NaN/Inf coordinates, text that cannot
+be read (with its line number), face index out of range, nothing but degenerate faces.
 """
 
 from __future__ import annotations
@@ -1360,7 +1370,8 @@ def _scan_ply_ascii(t, start, n, is_list):  # pragma: no cover
 
 
 class _PlyData:
-    """Property values of one element: ``scalar(name) -> (n,)``, ``lists(name)``."""
+    """Property values of one element: ``scalars[name]`` (n,) and
+    ``lists[name] = (flat values, counts (n,))``."""
 
     def __init__(self, scalars: dict[str, np.ndarray],
                  lists: dict[str, tuple[np.ndarray, np.ndarray]]):
