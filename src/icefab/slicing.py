@@ -64,7 +64,12 @@ Pipeline (RPSLICE's FACETSLICE = INTERSECTFACET + SEGMERGE + PATHFILTER, thesis 
    points (even-odd test, compiled); depth parity tells outer rings (even, turned
    counter-clockwise) from holes (odd, clockwise), the icefab convention (the thesis uses
    the opposite one). So the sum of a region's signed ring areas is the cross-section
-   area.
+   area. Every ring also knows its facet orientation (a closed chain is walked along it;
+   a chain closed across gaps takes the orientation of most of its points). Where the
+   two disagree -- overlapping shells, such as a spout or handle pushed into a body, or
+   merged parts that overlap -- the layer's region is instead the non-zero union of the
+   facet-oriented rings (``icefab.geometry``, Clipper on a 1e-4 mm grid); those layers
+   are listed in ``SliceReport.union_layers`` and counted in a warning.
 
 Stack file format (:func:`save_stack` / :func:`load_stack`): one ``.npz`` (numpy zip)
 holding ``format`` ("icefab-stack"), ``version`` (1), ``points`` (P, 2) float64 mm (all
@@ -1167,7 +1172,9 @@ def slice_mesh(mesh: Mesh, job: Job | None = None, *, progress: Progress | None 
                        f"({job.parts.weld_tolerance_mm} mm): mesh not welded or not manifold")
     if report.rings_reoriented:
         summary.append(f"{report.rings_reoriented} contours ran against the facet "
-                       "orientation (inverted facets or overlapping shells)")
+                       "orientation (inverted facets or overlapping shells); "
+                       f"{len(report.union_layers)} layers made as the union of their "
+                       "contours")
     log.info("sliced %s: %d layers, %d segments, %d contours, %d open chains, %d points "
              "(%d before filter), %d collapsed", mesh.name, n, report.segments, report.rings,
              report.open_chains, report.points_after_filter, report.points_before_filter,
