@@ -1172,9 +1172,12 @@ def slice_mesh(mesh: Mesh, job: Job | None = None, *, progress: Progress | None 
                        f"({job.parts.weld_tolerance_mm} mm): mesh not welded or not manifold")
     if report.rings_reoriented:
         summary.append(f"{report.rings_reoriented} contours ran against the facet "
-                       "orientation (inverted facets or overlapping shells); "
-                       f"{len(report.union_layers)} layers made as the union of their "
-                       "contours")
+                       "orientation (inverted facets or overlapping shells)")
+    if report.union_layers:
+        shown = ", ".join(map(str, report.union_layers[:10]))
+        more = " ..." if len(report.union_layers) > 10 else ""
+        summary.append(f"{len(report.union_layers)} layers made as the union of their "
+                       f"contours (overlapping shells or gap closures): {shown}{more}")
     log.info("sliced %s: %d layers, %d segments, %d contours, %d open chains, %d points "
              "(%d before filter), %d collapsed", mesh.name, n, report.segments, report.rings,
              report.open_chains, report.points_after_filter, report.points_before_filter,
