@@ -43,7 +43,7 @@ def run(args: argparse.Namespace) -> int:
     from icefab.cli.paths_cmd import plot_toolpaths
     from icefab.demo import demo_mug
     from icefab.flow import n_pulses, plan_valves, program_pieces, write_valve_program
-    from icefab.mesh import check_mesh, write_stl
+    from icefab.mesh import check_mesh, transform, write_stl
     from icefab.motion import plan_toolpaths, save_trajectories
     from icefab.paths import estimate_build_time, plan_paths, save_toolpaths
     from icefab.regions import add_scaffold
@@ -60,7 +60,8 @@ def run(args: argparse.Namespace) -> int:
     t_all = time.perf_counter()
     with output_dir(args.out) as out:
         t0 = time.perf_counter()
-        mesh = demo_mug()
+        # Placed like any part (thesis 3.1.2): by default centred on the building origin.
+        mesh = transform(demo_mug(), job.parts)
         report = check_mesh(mesh)
         write_stl(mesh, out / "demo-mug.stl")
         _say(f"part: demo mug, {mesh.n_faces} facets, size "
