@@ -246,3 +246,15 @@ def test_the_c_controller_corrects_as_well():
     open_ = simulate_build(tp, job, closed_loop=False)
     smf = simulate_build(tp, job)
     assert smf.rms[-1] < open_.rms[-1] / 3
+
+
+def test_paths_the_simulator_cannot_use_are_named():
+    job = quiet_job()
+    bad = [Path(points=_circle(20.0), z=0.25, role="fill", closed=True, width=3.0,
+                frame="base"),
+           Path(points=np.array([[0.0, 0.0], [np.nan, 1.0]]), z=0.25, role="fill", width=3.0),
+           Path(points=_circle(20.0), z=0.25, role="fill", closed=True, width=0.0)]
+    for path, msg in zip(bad, ["'base' frame", "NaN", "width 0.0"]):
+        tp = Toolpaths(layers=(LayerPaths(index=5, z=0.25, paths=(path,)),), job=job)
+        with pytest.raises(SimulationError, match=f"layer 5: .*{msg}"):
+            simulate_build(tp, job, closed_loop=False)

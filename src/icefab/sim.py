@@ -510,8 +510,15 @@ def plan_layer(index: int, paths: Sequence[Path], job: "Job") -> LayerPlan:
     tag_parts, true_parts = [], []
     for p in paths:
         pts = np.asarray(p.points, dtype=np.float64)
-        if len(pts) == 0:
+        if len(pts) == 0 or p.role == "travel":
             continue
+        if p.frame != "part":
+            raise SimulationError(f"layer {index}: {p.material} {p.role} path given in the "
+                                  f"{p.frame!r} frame; the simulator needs part-frame paths "
+                                  "(as icefab.paths.plan_paths makes them)")
+        if not np.isfinite(pts).all():
+            raise SimulationError(f"layer {index}: {p.material} {p.role} path has NaN or "
+                                  "infinite points")
         if p.role == "measure":
             # part (ice) is measured slowly, scaffold at full speed (icefab.paths.path_speed)
             speed = m.measure_speed_mm_s if p.material == "part" else m.speed_mm_s
