@@ -46,7 +46,9 @@ def _peer_deposit(z, origin, g, a, b, vol, half_w):
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--layers", type=int, default=100)
-    args = ap.parse_args()
+    ap.add_argument("--no-write", action="store_true", help="accepted for run_all.py; this "
+                    "benchmark only prints (its figures are copied into BENCHMARKS.md by hand)")
+    args, _ = ap.parse_known_args()
     from icefab import Job
     from icefab.demo import demo_mug
     from icefab.mesh import transform
