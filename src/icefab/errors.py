@@ -34,3 +34,7 @@ class FlowError(IcefabError):
 
 class StackFileError(IcefabError):
     """A saved stack, toolpath, trajectory or journal file is missing, truncated or corrupt."""
+
+
+class SimulationError(IcefabError):
+    """The build simulator cannot run these inputs (no deposition, bad sample arrays)."""

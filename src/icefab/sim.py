@@ -64,7 +64,7 @@ import numpy as np
 from numba import njit
 from scipy import ndimage
 
-from icefab.errors import GeometryError, IcefabError
+from icefab.errors import GeometryError, SimulationError
 from icefab.types import HeightMap, Path, Toolpaths
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -78,8 +78,6 @@ MATERIAL_ID = {"part": 0, "scaffold": 1}
 ActionFn = Callable[[np.ndarray], np.ndarray]
 
 
-class SimulationError(IcefabError):
-    """The simulator cannot run on the given input (no layers, no deposition, bad arrays)."""
 
 
 # --------------------------------------------------------------------------- deposition
