@@ -16,7 +16,10 @@ Pipeline (RPSLICE's FACETSLICE = INTERSECTFACET + SEGMERGE + PATHFILTER, thesis 
    and all layers at once: for every facet the range of planes it spans comes from
    ``searchsorted`` on its lowest and highest vertex, the (facet, plane) pairs are
    expanded with ``np.repeat``, and both crossing points are interpolated on the two
-   crossed facet edges.
+   crossed facet edges (:func:`_intersect_numpy`). The production path runs the same
+   rules and arithmetic in compiled kernels parallel over facets (:func:`_intersect`,
+   bit-identical output, checked by the tests) to use both cores and skip the large
+   temporaries.
 
    *Degenerate cases* (decided here, by symbolic perturbation): a vertex is "above" a
    plane at height ``q`` when ``z >= q``, so a vertex lying exactly on a plane counts as
@@ -35,12 +38,13 @@ Pipeline (RPSLICE's FACETSLICE = INTERSECTFACET + SEGMERGE + PATHFILTER, thesis 
 
 3. **Topological linking** (SEGMERGE2): each segment end lies on a mesh edge; the segment
    continuing a contour is the one in the facet across that edge, in the same layer. The
-   facet adjacency is computed once (one sort of the half-edges), after which the partner
-   of every segment end is found in O(1) without any per-layer sort; a numba walker then
-   follows the chains. Exact and O(segments). Segment ends whose edge is a boundary edge
-   (open or unwelded mesh) or shared by more than two facets (non-manifold) fall back to
-   tolerance matching of their coordinates (``job.parts.weld_tolerance_mm``, cKDTree) --
-   logged and counted in ``SliceReport``.
+   facet adjacency is computed once (half-edges bucketed by their lower vertex, O(facets)),
+   after which the partner of every segment end is found in O(1) without any per-layer
+   sort; a compiled walker then follows the chains. Exact and O(segments). Segment ends
+   whose edge is a boundary edge (open or unwelded mesh) or shared by more than two
+   facets (non-manifold) fall back to tolerance matching of their coordinates
+   (``job.parts.weld_tolerance_mm``, cKDTree) -- logged, counted in ``SliceReport`` and
+   in a warning.
 
 4. **Open chains** that still cannot close (holes in a scan): within the layer, chains are
    joined end-to-start greedily by the nearest free endpoint (a chain may be reversed),
@@ -49,7 +53,8 @@ Pipeline (RPSLICE's FACETSLICE = INTERSECTFACET + SEGMERGE + PATHFILTER, thesis 
    summary warning). Longer gaps: with ``open_contours = "close"`` (default) they are
    closed too and *each* is reported in ``Stack.warnings`` with its layer, location and
    length -- no layer of an open scan is lost; with ``"drop"`` no join or closure may
-   cross more than ``max_gap_mm``, and a chain that cannot close is dropped and reported. Areas are never silently wrong: every non-trivial closure is reported.
+   cross more than ``max_gap_mm``, and a chain that cannot close is dropped and
+   reported. Areas are never silently wrong: every non-trivial closure is reported.
 
 5. **Path filter** (PATHFILTER): points closer than ``min_point_spacing_mm`` to the last
    kept point and (near-)collinear points are removed, per contour in a compiled kernel,
@@ -746,7 +751,8 @@ def _nesting(pts: np.ndarray, off: np.ndarray, group: np.ndarray,
 
 
 @numba.njit(cache=True)
-def _ring_measures(pts: np.ndarray, off: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
+def _ring_measures(pts: np.ndarray,
+                   off: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
     """(R,) signed areas (mm^2, shoelace) and (R,) perimeters (mm) of concatenated rings."""
     n = off.shape[0] - 1
     area = np.zeros(n)
@@ -1135,55 +1141,62 @@ def slice_mesh(mesh: Mesh, job: Job | None = None, *, progress: Progress | None 
     if not np.isfinite([z_min, z_max]).all() or z_max <= z_min:
         raise GeometryError(f"{mesh.name or 'mesh'}: height {z_max - z_min!r} mm: a part "
                             "needs a positive, finite height to be sliced")
-    bottom, top, z, q = layer_planes(z_min, z_max, job)
-    n = len(z)
-    if job.slicing.mode == "2d":
-        # thesis slicing option 3: cut once (at the middle layer's plane), copy everywhere
-        mid = n // 2
-        rings = _slice_rings(mesh, q[mid:mid + 1], z[mid:mid + 1], job, report, warn, None)
-        rings.layer[:] = 0
-        rings, parent, unions = _finish_rings(rings, job, report)
-        region = unions.get(0) or _region_of(rings, parent, 0, len(rings.layer))
-        layers = tuple(Layer(index=k, z=float(z[k]), part=region, top_z=float(top[k]))
-                       for k in range(n))
-        if progress is not None:
-            progress(n, n)
-    else:
-        rings = _slice_rings(mesh, q, z, job, report, warn, progress)
-        rings, parent, unions = _finish_rings(rings, job, report)
-        starts = np.searchsorted(rings.layer, np.arange(n + 1))
-        layers = tuple(Layer(index=k, z=float(z[k]), top_z=float(top[k]),
-                             part=unions[k] if k in unions else
-                             _region_of(rings, parent, int(starts[k]), int(starts[k + 1])))
-                       for k in range(n))
-    report.rings = sum(len(L.part) for L in layers) if job.slicing.mode == "3d" \
-        else len(layers[0].part) if layers else 0
-    report.union_layers = sorted(unions)
-    empty = [L.index for L in layers if L.part.is_empty]
-    report.empty_layers = empty
-    for k in empty:
-        warn.add(f"layer {k} (z = {z[k]:.3f} mm): empty cross-section")
-    summary: list[str] = []
-    if report.gaps_closed:
-        summary.append(f"{report.gaps_closed} small gaps (<= max_gap_mm = "
-                       f"{job.slicing.max_gap_mm} mm) in open contours closed")
-    if report.tolerance_matched_ends:
-        summary.append(f"{report.tolerance_matched_ends} segment ends linked by tolerance "
-                       f"({job.parts.weld_tolerance_mm} mm): mesh not welded or not manifold")
-    if report.rings_reoriented:
-        summary.append(f"{report.rings_reoriented} contours ran against the facet "
-                       "orientation (inverted facets or overlapping shells)")
-    if report.union_layers:
-        shown = ", ".join(map(str, report.union_layers[:10]))
-        more = " ..." if len(report.union_layers) > 10 else ""
-        summary.append(f"{len(report.union_layers)} layers made as the union of their "
-                       f"contours (overlapping shells or gap closures): {shown}{more}")
-    log.info("sliced %s: %d layers, %d segments, %d contours, %d open chains, %d points "
-             "(%d before filter), %d collapsed", mesh.name, n, report.segments, report.rings,
-             report.open_chains, report.points_after_filter, report.points_before_filter,
-             report.rings_collapsed)
-    stack = Stack(layers=layers, job=job, layer_thickness=job.slicing.layer_thickness_mm,
-                  warnings=tuple(summary) + warn.result())
+    # thesis Table 3-1 "number of CPUs": job.cell.cpus threads for the compiled kernels
+    prev_threads = numba.get_num_threads()
+    numba.set_num_threads(max(1, min(job.cell.cpus or prev_threads,
+                                     numba.config.NUMBA_NUM_THREADS)))
+    try:
+        bottom, top, z, q = layer_planes(z_min, z_max, job)
+        n = len(z)
+        if job.slicing.mode == "2d":
+            # thesis slicing option 3: cut once (at the middle layer's plane), copy everywhere
+            mid = n // 2
+            rings = _slice_rings(mesh, q[mid:mid + 1], z[mid:mid + 1], job, report, warn, None)
+            rings.layer[:] = 0
+            rings, parent, unions = _finish_rings(rings, job, report)
+            region = unions.get(0) or _region_of(rings, parent, 0, len(rings.layer))
+            layers = tuple(Layer(index=k, z=float(z[k]), part=region, top_z=float(top[k]))
+                           for k in range(n))
+            if progress is not None:
+                progress(n, n)
+        else:
+            rings = _slice_rings(mesh, q, z, job, report, warn, progress)
+            rings, parent, unions = _finish_rings(rings, job, report)
+            starts = np.searchsorted(rings.layer, np.arange(n + 1))
+            layers = tuple(Layer(index=k, z=float(z[k]), top_z=float(top[k]),
+                                 part=unions[k] if k in unions else
+                                 _region_of(rings, parent, int(starts[k]), int(starts[k + 1])))
+                           for k in range(n))
+        report.rings = sum(len(L.part) for L in layers) if job.slicing.mode == "3d" \
+            else len(layers[0].part) if layers else 0
+        report.union_layers = sorted(unions)
+        empty = [L.index for L in layers if L.part.is_empty]
+        report.empty_layers = empty
+        for k in empty:
+            warn.add(f"layer {k} (z = {z[k]:.3f} mm): empty cross-section")
+        summary: list[str] = []
+        if report.gaps_closed:
+            summary.append(f"{report.gaps_closed} small gaps (<= max_gap_mm = "
+                           f"{job.slicing.max_gap_mm} mm) in open contours closed")
+        if report.tolerance_matched_ends:
+            summary.append(f"{report.tolerance_matched_ends} segment ends linked by tolerance "
+                           f"({job.parts.weld_tolerance_mm} mm): mesh not welded or not manifold")
+        if report.rings_reoriented:
+            summary.append(f"{report.rings_reoriented} contours ran against the facet "
+                           "orientation (inverted facets or overlapping shells)")
+        if report.union_layers:
+            shown = ", ".join(map(str, report.union_layers[:10]))
+            more = " ..." if len(report.union_layers) > 10 else ""
+            summary.append(f"{len(report.union_layers)} layers made as the union of their "
+                           f"contours (overlapping shells or gap closures): {shown}{more}")
+        log.info("sliced %s: %d layers, %d segments, %d contours, %d open chains, %d points "
+                 "(%d before filter), %d collapsed", mesh.name, n, report.segments, report.rings,
+                 report.open_chains, report.points_after_filter, report.points_before_filter,
+                 report.rings_collapsed)
+        stack = Stack(layers=layers, job=job, layer_thickness=job.slicing.layer_thickness_mm,
+                      warnings=tuple(summary) + warn.result())
+    finally:
+        numba.set_num_threads(prev_threads)
     object.__setattr__(stack, "_report", report)  # for the CLI and the benchmark
     return stack
 
