@@ -130,3 +130,29 @@ def test_filter_drops_collapsed_rings():
     st = slice_mesh(as_mesh(tm), Job())
     assert slice_report(st).rings_collapsed > 0
     assert all(len(L.part.rings) == 1 for L in st)
+
+
+def test_random_corruption_gives_stack_file_error(tmp_path, tube_stack):
+    """Flipped bytes anywhere in a stack file: it loads or raises StackFileError, nothing else."""
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    good = save_stack(tube_stack, tmp_path / "good.npz").read_bytes()
+
+    @settings(max_examples=60, deadline=None)
+    @given(st.lists(st.tuples(st.integers(0, len(good) - 1), st.integers(0, 255)),
+                    min_size=1, max_size=8),
+           st.integers(0, len(good)))
+    def check(flips, cut):
+        data = bytearray(good[:max(cut, 1)])
+        for i, b in flips:
+            if i < len(data):
+                data[i] = b
+        p = tmp_path / "bad.npz"
+        p.write_bytes(bytes(data))
+        try:
+            load_stack(p)
+        except StackFileError as exc:
+            assert "bad.npz" in str(exc)
+
+    check()

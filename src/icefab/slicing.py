@@ -92,6 +92,7 @@ import logging
 import os
 import tempfile
 import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path as FsPath
 from typing import Callable
@@ -1311,7 +1312,7 @@ def load_stack(path: str | os.PathLike) -> Stack:
     try:
         with np.load(path, allow_pickle=False) as npz:
             data = {k: npz[k] for k in npz.files}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as exc:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError, zlib.error) as exc:
         raise StackFileError(f"{path}: not a readable stack file ({exc})") from None
     need = ("format", "version", "points", "ring_offsets", "ring_parent", "ring_layer",
             "layer_index", "layer_z", "layer_top_z", "layer_thickness", "warnings", "job")
