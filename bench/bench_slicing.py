@@ -167,18 +167,20 @@ def _max_rel_diff(a: list[float], b: list[float], skip: list[int] = ()) -> float
     return max(abs(x - y) / y for x, y in pairs)
 
 
-def _differing(a: list[float], b: list[float], skip: list[int]) -> tuple[int, int]:
-    """(layers whose areas differ by > 1e-6 relative, how many of them are not among the
-    layers icefab reported a closed gap in)."""
-    diff = [k for k, (x, y) in enumerate(zip(a, b)) if abs(x - y) > 1e-6 * max(x, y, 1e-9)]
-    return len(diff), len([k for k in diff if k not in set(skip)])
-
-
 def _compare(ice: dict, peer: dict) -> str:
-    n, n_unexplained = _differing(ice["areas"], peer["areas"], ice["gap_layers"])
-    return (f"{n} layers differ by > 1e-6 ({n - n_unexplained} of them where icefab closed "
-            f"a reported gap); elsewhere the largest difference is "
-            f"{_max_rel_diff(ice['areas'], peer['areas'], ice['gap_layers']):.1e}")
+    """Layer areas of icefab (unfiltered) against a peer's, in words."""
+    a, b, gaps = ice["areas"], peer["areas"], set(ice["gap_layers"])
+    diff = [k for k, (x, y) in enumerate(zip(a, b)) if abs(x - y) > 1e-6 * max(x, y, 1e-9)]
+    at_gap = [k for k in diff if k in gaps]
+    peer_empty = [k for k in diff if k not in gaps and b[k] <= 0 < a[k]]
+    other = [k for k in diff if k not in gaps and k not in peer_empty]
+    parts = [f"{len(diff)} of {len(a)} layers differ by > 1e-6"]
+    if diff:
+        parts.append(f"{len(at_gap)} where icefab closed a reported gap, "
+                     f"{len(peer_empty)} the peer leaves empty, {len(other)} other")
+    parts.append(f"largest difference elsewhere "
+                 f"{_max_rel_diff(a, b, sorted(gaps | set(peer_empty))):.1e}")
+    return "; ".join(parts)
 
 
 def main() -> int:
