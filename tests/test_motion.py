@@ -331,3 +331,50 @@ def test_real_layers_follow_paths_within_bounds(mug_toolpaths):
     log.info("mug layers: MTTS %.1f s vs constant speed %.1f s; worst p99 jerk %.0f",
              motion.duration, const, worst)
     assert motion.duration < const
+
+
+# --------------------------------------------------------------------------- sweeps
+
+
+def test_cubic_root_of_eq_4_7_matches_numpy():
+    from icefab._mtts import _cubic_root
+    rng = np.random.default_rng(1)
+    for _ in range(300):
+        j0 = rng.uniform(100, 1e5)
+        a0 = rng.choice([0.0, rng.uniform(0, 2000)])
+        v0 = rng.choice([0.0, rng.uniform(0, 200)])
+        ds = rng.uniform(0.01, 1.0)
+        roots = np.roots([j0 / 6, a0 / 2, v0, -ds])
+        real = roots[np.abs(roots.imag) < 1e-9].real
+        expect = real[real > 0]
+        assert len(expect) == 1
+        assert _cubic_root(j0, a0, v0, ds) == pytest.approx(expect[0], rel=1e-9)
+
+
+def _random_polyline(rng, n_vertices, max_turn_deg, spacing):
+    ang = np.cumsum(np.radians(rng.uniform(-max_turn_deg, max_turn_deg, n_vertices)))
+    steps = spacing * rng.uniform(0.5, 1.5, n_vertices)[:, None] * np.c_[np.cos(ang),
+                                                                           np.sin(ang)]
+    pts = np.concatenate([[[0.0, 0.0]], np.cumsum(steps, axis=0)])
+    return pts - pts.mean(axis=0) + np.array([300.0, -60.0])
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_random_polylines_respect_bounds(seed):
+    rng = np.random.default_rng(seed)
+    spacing = rng.choice([0.3, 1.0, 3.0])
+    n = min(int(rng.integers(20, 120)), int(120 / spacing))  # stays well inside the reach
+    pts = _random_polyline(rng, n, rng.choice([4.0, 12.0, 40.0]), spacing)
+    job = JOB if seed % 2 else JOB_NOJERK
+    if seed % 3 == 0:
+        job = job.replace(**{"motion.smoothing_tolerance_mm": 0.1})
+        tr = plan_motion(pts, job)
+        line = shapely.LineString(pts)
+        # smoothed grid points within 0.1 mm; the resampled chords cut vertices turning up
+        # to the split angle by at most (h / 2) sin(15 deg)
+        sag = 0.2 * np.sin(np.radians(15.0))
+        assert shapely.distance(shapely.points(tr.xy), line).max() <= 0.1 + sag + 1e-6
+        return
+    tr = plan_motion(pts, job)
+    check_trajectory(tr, pts, job)
+    assert (tr.speed[tr.pieces] == 0).all()

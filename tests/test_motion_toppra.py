@@ -21,7 +21,10 @@ from icefab.robots import get_robot
 log = logging.getLogger(__name__)
 logging.getLogger("toppra").setLevel(logging.ERROR)
 
-JOB = Job().replace(**{"motion.jerk_limited": False, "motion.dt_s": 0.001})
+# dt 4 ms: the rounding of each piece to whole steps stays below 0.5 %, and a step still
+# spans several vertices of the finely sampled test paths (MTTS sees the polyline the
+# samples follow; TOPP-RA a spline through it)
+JOB = Job().replace(**{"motion.jerk_limited": False, "motion.dt_s": 0.004})
 
 
 def toppra_duration(pts: np.ndarray, job: Job, robot, *, sides: int = 64,
@@ -74,13 +77,13 @@ def toppra_bracket(pts: np.ndarray, job: Job, robot) -> tuple[float, float]:
 
 
 def _circle(r, c=(300.0, -60.0)):
-    th = np.linspace(0.0, 2 * np.pi, int(2 * np.pi * r / 0.05) + 1)
+    th = np.linspace(0.0, 2 * np.pi, int(2 * np.pi * r / 0.01) + 1)
     return np.c_[c[0] + r * np.cos(th), c[1] + r * np.sin(th)]
 
 
 def _wavy(seed=3):
     rng = np.random.default_rng(seed)
-    t = np.linspace(0, 1, 3000)
+    t = np.linspace(0, 1, 15000)
     x = 220 + 150 * t
     y = -60 + sum(rng.uniform(2, 12) * np.sin(2 * np.pi * (k + 1) * t + rng.uniform(0, 6))
                   for k in range(4))
@@ -89,11 +92,11 @@ def _wavy(seed=3):
 
 def _poor():
     from tests.test_motion import POOR
-    return thesis_test_path(POOR)
+    return thesis_test_path(POOR, step_mm=0.01)
 
 
 CASES = {
-    "thesis-path-well": lambda: thesis_test_path((250.0, -80.0)),
+    "thesis-path-well": lambda: thesis_test_path((250.0, -80.0), step_mm=0.01),
     "thesis-path-near-reach": _poor,
     "circle-2": lambda: _circle(2.0),
     "circle-10": lambda: _circle(10.0),

@@ -70,12 +70,15 @@ def _derivs(y, i0, i1, h, w, d1, d2, d3):
 
 
 @njit(cache=True, fastmath=_FM)
-def _accel_interval(i, x, sign, kap, qd1, qd2, A, qa):
+def _accel_interval(i, x, sign, kap, kv, qd1, qd2, A, qa):
     """[lo, hi] of the tangential acceleration at grid point i and x = v^2.
 
     sign = +1 going forward along s, -1 going backward (joint rates change sign).
     """
-    r = A * A - (kap[i] * x) ** 2
+    cen = kap[i] * x
+    if kv[i] > 0.0:  # a polyline vertex: its acceleration grows like v (_vertex_bounds)
+        cen = max(cen, kv[i] * math.sqrt(x))
+    r = A * A - cen * cen
     am = math.sqrt(r) if r > 0.0 else 0.0
     lo = -am
     hi = am
@@ -124,7 +127,7 @@ def _cubic_root(j0, a0, v0, ds):
 
 
 @njit(cache=True, fastmath=_FM)
-def _pass(v, env, i0, i1, step, h, kap, qd1, qd2, A, qa, jeff, jerk_on, a_start):
+def _pass(v, env, i0, i1, step, h, kap, kv, qd1, qd2, A, qa, jeff, jerk_on, a_start):
     """ACON (thesis 4.1.3, Fig. 4-5): an acceleration-limited (and, with jerk on,
     jerk-limited) curve from rest at the first point, and from every point where the
     profile leaves the envelope ``env``. step = +1 forward, -1 backward (deceleration
@@ -140,7 +143,7 @@ def _pass(v, env, i0, i1, step, h, kap, qd1, qd2, A, qa, jeff, jerk_on, a_start)
     while i != b:
         nxt = i + step
         vi = v[i]
-        lo, hi = _accel_interval(i, vi * vi, sign, kap, qd1, qd2, A, qa)
+        lo, hi = _accel_interval(i, vi * vi, sign, kap, kv, qd1, qd2, A, qa)
         if hi < 0.0:
             hi = 0.0
         if jerk_on and math.isfinite(jeff[i]):
@@ -304,15 +307,94 @@ def _step_curvature(n, h, vcap, dt, A, qa, p2, qd2, c2, cq):
 
 
 @njit(cache=True, fastmath=_FM)
+def _vertex_bounds(sv, tau, n, h, vcap, dt, A, xk, kv):
+    """Speed bounds from the vertices of the polyline actually followed (v^2 into xk[0:n]).
+
+    The robot gets one sample every dt, a step of L = v dt along the path. The second
+    difference of three samples centred on a point turns by the chord directions' change,
+    which is the sum of the vertices' unit-tangent changes tau_w weighted by the triangle
+    (1 - |d_w| / L) over d_w in (-L, L) (d_w: arc-length distance). Its acceleration is
+    |a v - c / dt| / dt with a = sum tau_w and c = sum tau_w |d_w| over the vertices
+    within L, so the largest v with acceleration <= A is the larger root of a quadratic;
+    vertices are added nearest first until the root's L no longer reaches the next one.
+    The bound (worst case: a sample on the vertex) is applied at the two grid points around
+    each vertex. On a finely sampled curve of curvature kappa this gives v^2 kappa <= A; at
+    a polyline vertex turning by alpha it gives v alpha / dt <= A, which the grid
+    curvature misses when the samples are denser than the 0.4 mm grid.
+    """
+    for i in range(n):
+        xk[i] = np.inf
+        kv[i] = 0.0
+    K = sv.shape[0]
+    for v in range(K):
+        ax = tau[v, 0]
+        ay = tau[v, 1]
+        if ax == 0.0 and ay == 0.0:
+            continue
+        cx = 0.0
+        cy = 0.0
+        lft = v - 1
+        rgt = v + 1
+        while True:
+            al = ax * ax + ay * ay
+            be = (ax * cx + ay * cy) / dt
+            ga = (cx * cx + cy * cy) / (dt * dt) - A * A * dt * dt
+            disc = be * be - al * ga
+            if al > 1e-30 and disc >= 0.0:
+                u = (be + math.sqrt(disc)) / al
+            elif al <= 1e-30:
+                u = np.inf
+            else:
+                u = 0.0
+            dl = sv[v] - sv[lft] if lft >= 0 else np.inf
+            dr = sv[rgt] - sv[v] if rgt < K else np.inf
+            dn = min(dl, dr)
+            if u * dt <= dn or dn >= vcap * dt:
+                break
+            if dl <= dr:
+                ax += tau[lft, 0]
+                ay += tau[lft, 1]
+                cx += tau[lft, 0] * dl
+                cy += tau[lft, 1] * dl
+                lft -= 1
+            else:
+                ax += tau[rgt, 0]
+                ay += tau[rgt, 1]
+                cx += tau[rgt, 0] * dr
+                cy += tau[rgt, 1] * dr
+                rgt += 1
+        u = min(u, vcap)
+        g = int(sv[v] / h)
+        x = u * u
+        for gi in (g, g + 1):
+            if 0 <= gi < n and x < xk[gi]:
+                xk[gi] = x
+        # samples within one step of the vertex see its own turning with weight 1 - d / L:
+        # that share of the acceleration budget, v |tau| / dt (linear in v, unlike the
+        # distributed curvature's v^2 kappa), is reserved in _accel_interval via kv
+        if u > 0.0:
+            L = u * dt
+            kvu = math.sqrt(tau[v, 0] ** 2 + tau[v, 1] ** 2) / dt
+            g0 = max(0, int((sv[v] - L) / h))
+            g1 = min(n - 1, int((sv[v] + L) / h) + 1)
+            for gi in range(g0, g1 + 1):
+                w = 1.0 - abs(gi * h - sv[v]) / L
+                if w > 0.0 and kvu * w > kv[gi]:
+                    kv[gi] = kvu * w
+
+
+@njit(cache=True, fastmath=_FM)
 def speed_profiles(gstart, h, xy, q, vcap, A, J, jerk_on, qv, qa, qj, a_rest, jcon_tol,
-                   jerk_window, dt):
+                   jerk_window, dt, vstart, vs_loc, vtau):
     """VCON + ACON forward/backward + JCON for every piece (thesis 4.1.2-4.1.5).
 
     gstart (P+1,) int64; h (P,) mm; xy (N, 2) mm grid points; q (N, m) joints on the grid;
     vcap (P,) mm/s speed bound per piece; A mm/s^2; J mm/s^3; qv, qa, qj (m,) joint bounds
     (inf = none); a_rest mm/s^2 initial/final acceleration of the from/to-rest curves
     (thesis 4.2.6); jerk_window mm, the length over which curvature is averaged before
-    taking its slope for the jerk bounds; dt s, the output step (see _step_curvature).
+    taking its slope for the jerk bounds; dt s, the output step (see _step_curvature);
+    vstart (P+1,), vs_loc (K,) mm, vtau (K, 2): the vertices of the polyline each piece
+    follows, their arc length from the piece start and turning vectors (see _vertex_bounds).
     Returns v (N,) mm/s on the grid, envelope (N,) mm/s, and the piece
     durations T (P,) s.
     """
@@ -336,6 +418,8 @@ def speed_profiles(gstart, h, xy, q, vcap, A, J, jerk_on, qv, qa, qj, a_rest, jc
     jeff = np.full(nmax, np.inf)
     fwd = np.zeros(nmax)
     c2 = np.zeros((nmax + 1, 2))
+    xk = np.zeros(nmax)
+    kv = np.zeros(nmax)
     cq = np.zeros((nmax + 1, m))
     for p in range(P):
         g0 = gstart[p]
@@ -348,10 +432,12 @@ def speed_profiles(gstart, h, xy, q, vcap, A, J, jerk_on, qv, qa, qj, a_rest, jc
         ep = env[g0:g0 + n]
         vc2 = vcap[p] * vcap[p]
         _step_curvature(n, hp, vcap[p], dt, A, qa, p2, qd2, c2, cq)
+        _vertex_bounds(vs_loc[vstart[p]:vstart[p + 1]], vtau[vstart[p]:vstart[p + 1]], n, hp,
+                       vcap[p], dt, A, xk, kv)
         for i in range(n):
             kap[i] = math.sqrt(p2[i, 0] ** 2 + p2[i, 1] ** 2)
             # ---- VCON: the maximum-speed envelope (thesis 4.1.2, eqs. 4.4, 4.5)
-            x = vc2
+            x = min(vc2, xk[i])
             if kap[i] > _EPS:
                 x = min(x, A / kap[i])
             for j in range(m):
@@ -379,13 +465,13 @@ def speed_profiles(gstart, h, xy, q, vcap, A, J, jerk_on, qv, qa, qj, a_rest, jc
                     x = min(x, c * c)
             jeff[i] = je
             # the acceleration interval must be non-empty at the envelope: bisect if not
-            lo, hi = _accel_interval(i, x, 1.0, kap, qd1, qd2, A, qa)
+            lo, hi = _accel_interval(i, x, 1.0, kap, kv, qd1, qd2, A, qa)
             if lo > hi:
                 xl = 0.0
                 xh = x
                 for _ in range(50):
                     xm = 0.5 * (xl + xh)
-                    lo, hi = _accel_interval(i, xm, 1.0, kap, qd1, qd2, A, qa)
+                    lo, hi = _accel_interval(i, xm, 1.0, kap, kv, qd1, qd2, A, qa)
                     if lo <= hi:
                         xl = xm
                     else:
@@ -395,10 +481,10 @@ def speed_profiles(gstart, h, xy, q, vcap, A, J, jerk_on, qv, qa, qj, a_rest, jc
         ep[0] = 0.0
         ep[n - 1] = 0.0
         # ---- ACON forward and backward, with AREST start/end conditions (4.1.3, 4.1.5)
-        _pass(vp, ep, 0, n, 1, hp, kap, qd1, qd2, A, qa, jeff, jerk_on, a_rest)
+        _pass(vp, ep, 0, n, 1, hp, kap, kv, qd1, qd2, A, qa, jeff, jerk_on, a_rest)
         for i in range(n):
             fwd[i] = vp[i]
-        _pass(vp, fwd, 0, n, -1, hp, kap, qd1, qd2, A, qa, jeff, jerk_on, a_rest)
+        _pass(vp, fwd, 0, n, -1, hp, kap, kv, qd1, qd2, A, qa, jeff, jerk_on, a_rest)
         # ---- JCON (4.1.4)
         if jerk_on:
             for _ in range(3):

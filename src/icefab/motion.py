@@ -335,10 +335,15 @@ def _plan_polylines(polys: Sequence[np.ndarray], vcaps: np.ndarray, job: Job, ro
     # ---- VCON, ACON, JCON, AREST (compiled)
     jerk_on = bool(m.jerk_limited)
     vcap_piece = np.asarray(vcaps, dtype=np.float64)[piece_path]
+    # the polyline each piece follows (its vertices, turning vectors, arc length)
+    if smoothed:
+        vstart, vs_loc, vtau = _vertices(gxy, gstart)
+    else:
+        vstart, vs_loc, vtau = _vertices(PV, pvs)
     v, env, T = _mtts.speed_profiles(
         gstart, hk, gxy, qgrid, vcap_piece, float(m.accel_mm_s2), float(m.jerk_mm_s3),
         jerk_on, qv[used], qa[used], qj[used], float(m.rest_accel_mm_s2),
-        JCON_TOLERANCE, JERK_WINDOW_MM, float(m.dt_s))
+        JCON_TOLERANCE, JERK_WINDOW_MM, float(m.dt_s), vstart, vs_loc, vtau)
 
     # ---- constant-dt sampling
     dt = float(m.dt_s)
@@ -394,6 +399,27 @@ def _plan_polylines(polys: Sequence[np.ndarray], vcaps: np.ndarray, job: Job, ro
         out.append(Trajectory(dt=dt, xy=xy[r0:r1], joints=joints[r0:r1], speed=spd[r0:r1],
                               duration=(n - 1) * dt, path=pth, pieces=pcs))
     return out
+
+
+def _vertices(pts: np.ndarray, start: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Vertices of concatenated polylines (piece k is ``pts[start[k]:start[k+1]]``):
+    (start, arc length from the piece start (K,) mm, turning vectors (K, 2) = change of
+    the unit tangent, zero at the piece ends)."""
+    d = np.diff(pts, axis=0)
+    ln = np.hypot(d[:, 0], d[:, 1])
+    u = d / np.maximum(ln, 1e-300)[:, None]
+    tau = np.zeros_like(pts)
+    tau[1:-1] = u[1:] - u[:-1]
+    first = start[:-1]
+    last = start[1:] - 1
+    tau[first] = 0.0
+    tau[last] = 0.0
+    seg = np.concatenate([[0.0], ln])
+    seg[first] = 0.0
+    cs = np.cumsum(seg)
+    s_loc = cs - np.repeat(cs[first], np.diff(start))
+    return start.astype(np.int64), s_loc, tau
 
 
 def _single_point(p: np.ndarray, job: Job, robot: Robot, path: Path | None) -> Trajectory:
