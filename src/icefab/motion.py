@@ -16,7 +16,13 @@ Steps (thesis 4.1, compiled kernels in :mod:`icefab._mtts`):
 2. VCON (4.1.2): the maximum-speed envelope from the Cartesian speed, total acceleration
    (tangential + radial, eq. 4.8) and jerk bounds and from every joint's speed,
    acceleration and jerk bounds (eqs. 4.2-4.5, 4.10). The joints come from the robot's
-   inverse kinematics on the resampled points, differentiated along s.
+   inverse kinematics on the resampled points, differentiated along s. Curvature is taken
+   as the robot sees it: it receives one point per dt, so second derivatives are averaged
+   over the step v dt, and every vertex of the polyline followed limits the speed by the
+   acceleration of three samples centred on it, v |turning| / dt (``_mtts._vertex_bounds``;
+   on a finely sampled curve this is v^2 kappa, at a coarse polygon's vertex it is what a
+   0.4 mm grid curvature would underestimate). Jerk bounds use curvature averaged over
+   ``JERK_WINDOW_MM``.
 3. ACON (4.1.3, Fig. 4-5): forward and backward acceleration curves; with jerk on, each
    curve ramps its acceleration with the jerk bound (explicit positive root of eq. 4.7).
 4. JCON (4.1.4, Fig. 4-6, eq. 4.12): speed-decrease jerk spikes are spread by cubic
