@@ -555,8 +555,30 @@ def _plan_layer(lp: LayerPaths, job: Job) -> LayerMotion:
     return LayerMotion(index=lp.index, z=lp.z, trajectories=tuple(trajs))
 
 
-def _plan_layer_task(args: tuple[LayerPaths, Job]) -> LayerMotion:
-    return _plan_layer(*args)
+def _plan_layer_task(args: tuple[LayerPaths, Job]) -> tuple:
+    """Worker: plan one layer and return its trajectories packed in a few flat arrays
+    (sending one object per trajectory, with its Path, back through the pipe costs more
+    than planning it)."""
+    lp, job = args
+    trajs = plan_paths_motion(lp.paths, job, layer=lp.index) if lp.paths else []
+    if not trajs:
+        return (np.zeros(1, np.int64), np.zeros((0, 2)), None, np.zeros(0),
+                np.zeros(1, np.int64), np.zeros(0, np.int64), np.zeros(0), 0.0)
+    counts = [len(t.xy) for t in trajs]
+    pcs = [t.pieces for t in trajs]
+    return (np.concatenate([[0], np.cumsum(counts)]), np.concatenate([t.xy for t in trajs]),
+            np.concatenate([t.joints for t in trajs]), np.concatenate([t.speed for t in trajs]),
+            np.concatenate([[0], np.cumsum([len(p) for p in pcs])]), np.concatenate(pcs),
+            np.array([t.duration for t in trajs]), trajs[0].dt)
+
+
+def _unpack_layer(lp: LayerPaths, packed: tuple) -> LayerMotion:
+    start, xy, joints, speed, pstart, pieces, durations, dt = packed
+    trajs = tuple(Trajectory(dt=dt, xy=xy[a:b], joints=joints[a:b], speed=speed[a:b],
+                             duration=float(durations[i]), path=lp.paths[i],
+                             pieces=pieces[pstart[i]:pstart[i + 1]])
+                  for i, (a, b) in enumerate(zip(start[:-1], start[1:])))
+    return LayerMotion(index=lp.index, z=lp.z, trajectories=trajs)
 
 
 def _n_workers(job: Job) -> int:
@@ -586,9 +608,9 @@ def plan_toolpaths(toolpaths: Toolpaths, job: Job | None = None,
     else:
         with ProcessPoolExecutor(max_workers=workers) as ex:
             chunk = max(1, total // (workers * 8))
-            for i, lm in enumerate(ex.map(_plan_layer_task, [(lp, job) for lp in layers],
-                                          chunksize=chunk)):
-                out.append(lm)
+            for i, packed in enumerate(ex.map(_plan_layer_task, [(lp, job) for lp in layers],
+                                              chunksize=chunk)):
+                out.append(_unpack_layer(layers[i], packed))
                 if progress:
                     progress(i + 1, total)
     return BuildMotion(layers=tuple(out), job=job, robot=robot.name,
