@@ -79,48 +79,52 @@ def region_from_tree(tree) -> Region:
     """
     rings: list[np.ndarray] = []
     parent: list[int] = []
-    bad = False
+    depths: list[int] = []
     stack = [(child, -1, 0) for child in reversed(tree.children)]
     while stack:
         node, par, depth = stack.pop()
         ring = np.ascontiguousarray(node.polygon, dtype=np.float64)
         if len(ring) < 3:
             continue
-        hole = depth % 2 == 1
-        if (signed_area(ring) < 0) != hole:
-            bad = True
         idx = len(rings)
         rings.append(ring)
         parent.append(par)
+        depths.append(depth)
         stack.extend((child, idx, depth + 1) for child in reversed(node.children))
-    if bad:
+    if not rings:
+        return Region()
+    holes = np.asarray(depths) % 2 == 1
+    if np.any((ring_areas(rings) < 0) != holes):
         return _fix_nesting(rings, parent)
     return Region(tuple(rings), np.asarray(parent, dtype=np.int64))
 
 
 def _fix_nesting(rings: list[np.ndarray], parent: list[int]) -> Region:
-    """Nesting from ring orientation and containment: the parent of a ring is the smallest
-    ring of the opposite orientation containing most of its vertices (none: top level for
-    an outer ring). Rings are re-ordered so parents come first."""
+    """Repair the nesting of rings whose orientation disagrees with their tree depth: the
+    new parent is the smallest ring of the opposite orientation whose bounding box holds
+    it and that contains most of its (up to 16 sampled) vertices (none: top level). Rings
+    are re-ordered so parents come first."""
     from matplotlib.path import Path as MplPath
 
-    areas = np.array([signed_area(r) for r in rings])
     n = len(rings)
-    par = np.full(n, -1, dtype=np.int64)
-    mpl = [MplPath(r) for r in rings]
-    order = np.argsort(np.abs(areas))
-    for i in range(n):
-        want_positive = areas[i] < 0  # a hole's parent is an outer ring and vice versa
-        best = -1
-        for j in order:
-            if j == i or (areas[j] > 0) != want_positive or abs(areas[j]) <= abs(areas[i]):
-                continue
-            inside = mpl[j].contains_points(rings[i]).mean()
-            if inside > 0.5:
-                best = int(j)
+    areas = ring_areas(rings)
+    par = np.asarray(parent, dtype=np.int64).copy()
+    depth = np.zeros(n, dtype=np.int64)
+    for i in range(n):  # parents precede children in tree order
+        depth[i] = depth[par[i]] + 1 if par[i] >= 0 else 0
+    bad = np.flatnonzero((areas < 0) != (depth % 2 == 1))
+    lo = np.array([r.min(axis=0) for r in rings])
+    hi = np.array([r.max(axis=0) for r in rings])
+    for i in bad:
+        cand = np.flatnonzero(((areas > 0) == (areas[i] < 0)) & (np.abs(areas) > abs(areas[i]))
+                              & np.all(lo <= lo[i], axis=1) & np.all(hi >= hi[i], axis=1))
+        cand = cand[np.argsort(np.abs(areas[cand]))]
+        sample = rings[i][np.linspace(0, len(rings[i]) - 1, min(16, len(rings[i]))).astype(int)]
+        par[i] = -1
+        for j in cand:
+            if MplPath(rings[j]).contains_points(sample).mean() > 0.5:
+                par[i] = int(j)
                 break
-        par[i] = best
-    # depth-first order so parents precede children
     kids: dict[int, list[int]] = {}
     for i in range(n):
         kids.setdefault(int(par[i]), []).append(i)
@@ -288,7 +292,11 @@ def simplify(rings: Rings, filter_mm: float = FILTER_MM) -> Rings:
         starts = np.concatenate([[0], np.cumsum([len(r) for r in rings])]).astype(np.int64)
         keep = _filter_mask(pts, starts, float(filter_mm), 64)
         rings = [pts[a:b][keep[a:b]] for a, b in zip(starts[:-1], starts[1:])]
-    return [r for r in rings if len(r) >= 3 and abs(signed_area(r)) > MIN_RING_AREA]
+    rings = [r for r in rings if len(r) >= 3]
+    if not rings:
+        return []
+    keep = np.abs(ring_areas(rings)) > MIN_RING_AREA
+    return [r for r, k in zip(rings, keep) if k]
 
 
 def offset_rings(rings: Rings, d: float, filter_mm: float = FILTER_MM) -> Rings:
@@ -340,19 +348,23 @@ def shrink(region: Region, d: float, filter_mm: float = FILTER_MM) -> Region:
     return _offset_region(region, -d, filter_mm)
 
 
-def opening(region: Region, r: float, filter_mm: float = FILTER_MM) -> Region:
-    """Shrink then expand by ``r``: removes every feature narrower than ``2 r``."""
+def opening(region: Region, r: float, filter_mm: float = FILTER_MM,
+            margin: float = 0.0) -> Region:
+    """Shrink by ``r`` then expand by ``r + margin``: removes every feature narrower than
+    ``2 r`` (and grows what is left by ``margin``, e.g. to absorb the point filter)."""
     if r <= 0 or region.is_empty:
         return region
     inner = offset_rings(list(region.rings), -r, filter_mm)
     if not inner:
         return Region()
-    return region_from_rings(offset_rings(inner, r, filter_mm))
+    return region_from_rings(offset_rings(inner, r + margin, filter_mm))
 
 
-def sweep(paths: Sequence[tuple[np.ndarray, bool, float]]) -> Region:
-    """The area covered by paths swept by their width: mitred corners, round ends of open
-    paths (the bead where the tool stops).
+def sweep_rings(paths: Sequence[tuple[np.ndarray, bool, float]], grow: float = 0.0) -> Rings:
+    """The bands paths sweep with their width (+ ``2 grow``), as flat oriented rings: the
+    bands of equal width and kind are united, different ones may overlap (use them as the
+    clip side of a NonZero Boolean). Mitred corners, round ends of open paths (the bead
+    where the tool stops).
 
     paths: (points (k, 2) float64 mm, closed, width mm) triples.
     """
@@ -365,10 +377,64 @@ def sweep(paths: Sequence[tuple[np.ndarray, bool, float]]) -> Region:
         o = _offsetter()
         o.addPaths(pts, pyclipr.JoinType.Miter,
                    pyclipr.EndType.Joined if closed else pyclipr.EndType.Round)
-        out.extend(o.execute(width / 2.0))
-    return union(out)
+        out.extend(o.execute(width / 2.0 + grow))
+    return out
+
+
+def level_bands(levels: Sequence[tuple[Sequence[np.ndarray], float]]) -> Rings:
+    """Bands swept by the rings of offset levels: for each level (oriented rings bounding
+    an area D, half-width h) the rings of ``expand(D, h)`` plus the reversed rings of
+    ``shrink(D, h)``, whose NonZero winding is 1 exactly in the band. Use them as the clip
+    side of a NonZero Boolean (bands of different levels may touch or overlap)."""
+    out: Rings = []
+    for rings, h in levels:
+        if not len(rings):
+            continue
+        o = _offsetter()
+        o.addPaths(list(rings), pyclipr.JoinType.Miter, pyclipr.EndType.Polygon)
+        out.extend(o.execute(h))
+        o = _offsetter()
+        o.addPaths(list(rings), pyclipr.JoinType.Miter, pyclipr.EndType.Polygon)
+        out.extend(np.ascontiguousarray(r[::-1]) for r in o.execute(-h))
+    return out
+
+
+def sweep(paths: Sequence[tuple[np.ndarray, bool, float]]) -> Region:
+    """The area covered by paths swept by their width (see :func:`sweep_rings`)."""
+    return union(sweep_rings(paths))
+
+
+def difference_rings(a: Region | Sequence[np.ndarray], b: Region | Sequence[np.ndarray]
+                     ) -> Rings:
+    """``a`` minus ``b`` as flat oriented rings (outer CCW, holes CW; no nesting tree)."""
+    ra = rings_of(a)
+    if not ra:
+        return []
+    rb = rings_of(b)
+    if not rb:
+        return ra
+    c = _clipper()
+    c.addPaths(ra, pyclipr.Subject)
+    c.addPaths(rb, pyclipr.Clip)
+    return [np.asarray(r, dtype=np.float64) for r in c.execute(pyclipr.Difference, _NONZERO)
+            if len(r) >= 3]
+
+
+def ring_areas(rings: Sequence[np.ndarray]) -> np.ndarray:
+    """(r,) float64 signed areas of rings, mm^2, in one vectorised pass."""
+    if not len(rings):
+        return np.zeros(0)
+    pts = np.concatenate(rings)
+    counts = np.array([len(r) for r in rings])
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    nxt = np.arange(1, len(pts) + 1)
+    ends = starts + counts
+    nxt[ends - 1] = starts  # wrap each ring to its first point
+    cross = pts[:, 0] * pts[nxt, 1] - pts[nxt, 0] * pts[:, 1]
+    return 0.5 * np.add.reduceat(cross, starts)
 
 
 def area(region: Region | Sequence[np.ndarray]) -> float:
     """Area, mm^2 (sum of the signed ring areas)."""
-    return float(sum(signed_area(r) for r in rings_of(region)))
+    rings = rings_of(region)
+    return float(ring_areas(rings).sum()) if rings else 0.0

@@ -292,24 +292,31 @@ def fill_paths(region: Region, mat: MaterialSettings, job: Job
                ) -> tuple[list[tuple[np.ndarray, bool]], float]:
     """Fill paths of one material's region: ``[(points, closed), ...]`` and the raster
     angle used (deg; NaN for concentric or none)."""
+    levels, lines, angle = fill_levels(region, mat, job)
+    return [(r, True) for lv in levels for r in lv] + [(ln, False) for ln in lines], angle
+
+
+def fill_levels(region: Region, mat: MaterialSettings, job: Job
+                ) -> tuple[list[list[np.ndarray]], list[np.ndarray], float]:
+    """Fill of one material's region as concentric ring levels (each a list of oriented
+    rings at one offset), open raster/zigzag lines, and the raster angle (deg; NaN for
+    concentric or none)."""
     filt = job.slicing.max_filter_deviation_mm
     pattern = mat.fill_pattern
     F = mat.fill_width_mm
     e = _fill_edge(mat)
     if pattern == "none" or region.is_empty:
-        return [], math.nan
+        return [], [], math.nan
     if pattern == "concentric":
-        levels = concentric_rings(region, e + F / 2.0, F, filt)
-        return [(r, True) for lv in levels for r in lv], math.nan
-    out: list[tuple[np.ndarray, bool]] = []
+        return concentric_rings(region, e + F / 2.0, F, filt), [], math.nan
+    levels: list[list[np.ndarray]] = []
     start = e + F / 2.0
     if pattern == "hybrid" and mat.hybrid_rings > 0:
         levels = concentric_rings(region, start, F, filt, max_rings=mat.hybrid_rings)
-        out.extend((r, True) for lv in levels for r in lv)
         start += mat.hybrid_rings * F
     inner = geo.shrink(region, start, filt)
     if inner.is_empty:
-        return out, math.nan
+        return levels, [], math.nan
     if pattern == "hybrid":
         step = mat.hybrid_angle_step_deg
         angles = np.arange(0.0, 180.0 - 1e-9, step)
@@ -324,8 +331,7 @@ def fill_paths(region: Region, mat: MaterialSettings, job: Job
     else:
         angle = mat.fill_angle_deg
         lines = _zigzag_at(inner, F, angle, filt, pattern == "zigzag")
-    out.extend((ln, False) for ln in lines)
-    return out, angle
+    return levels, lines, angle
 
 
 def measure_rings(region: Region, spacing: float, filt: float) -> list[np.ndarray]:
@@ -472,36 +478,56 @@ def material_paths(region: Region, mat: MaterialSettings, job: Job, hook_levels:
     if hook_levels and part is not None:
         hook, region = hook_wall(region, part, hook_levels, mat, filt)
     bounds = boundary_rings(region, mat, filt)
-    fills, _angle = fill_paths(region, mat, job)
+    levels, lines, _angle = fill_levels(region, mat, job)
+    F = mat.fill_width_mm
     out["boundary"] = [(r, True, w) for lv in bounds for r in lv]
-    out["fill"] = [(p, c, mat.fill_width_mm) for p, c in fills]
-    swept = out["boundary"] + out["fill"] + [(r, True, w) for r in hook]
+    out["fill"] = [(r, True, F) for lv in levels for r in lv] + [(ln, False, F) for ln in lines]
     nominal = nominal_area(whole, mat, filt)
-    gaps = geo.difference(nominal, geo.sweep(swept)) if swept else nominal
-    if mat.gap_fill and not gaps.is_empty:
-        extra = [(r, True, w) for r in geo.offset_rings(list(gaps.rings), -w / 2.0, filt)]
+    # Flat Booleans (no nesting tree): the bands only clip. Ring levels sweep as
+    # expand(level) - shrink(level) (two polygon offsets, much cheaper than sweeping each
+    # ring as a line); bands are grown by the point filter (whose chords move one level
+    # against the next) plus SWEEP_TOL, so touching bands leave no slivers.
+    tol = filt + SWEEP_TOL
+    bands = geo.level_bands([(lv, w / 2.0 + tol) for lv in bounds]
+                            + [(lv, F / 2.0 + tol) for lv in levels])
+    bands += geo.sweep_rings([(ln, False, F) for ln in lines] + [(r, True, w) for r in hook],
+                             tol)
+    gaps = geo.difference_rings(nominal, bands)
+    if mat.gap_fill and gaps:
+        extra = [(r, True, w) for r in geo.offset_rings(gaps, -w / 2.0, filt)]
         if extra:
-            gaps = geo.difference(gaps, geo.sweep(extra))
+            gaps = geo.difference_rings(gaps, geo.sweep_rings(extra, tol))
         thin = _thin_gap_rings(gaps, w, filt)
         if thin:
-            gaps = geo.difference(gaps, geo.sweep(thin))
+            gaps = geo.difference_rings(gaps, geo.sweep_rings(thin, tol))
         out["fill"] += extra + thin
     return out, hook, max(geo.area(gaps), 0.0)
 
 
+#: Growth of swept bands when measuring gaps, mm, on top of the point filter (closes
+#: slivers between touching bands; gaps narrower than twice the total are not counted).
+SWEEP_TOL = 0.005
 #: Gaps narrower than this fraction of the path width are left (and reported).
 THIN_GAP_MIN = 0.3
 
 
-def _thin_gap_rings(gaps: Region, w: float, filt: float) -> list[tuple[np.ndarray, bool, float]]:
+def _thin_gap_rings(gaps: list[np.ndarray], w: float, filt: float
+                    ) -> list[tuple[np.ndarray, bool, float]]:
     """One ring along the middle of every gap narrower than the path width ``w``, with the
     gap's width as path width (less flow; e.g. the middle of a wall too thin for a fill
     ring). The width of a gap piece is estimated as ``2 area / perimeter`` (a strip); the
     ring is its counter-clockwise offset at 0.45 of that width, so an annular gap gets one
     ring, not two. Pieces smaller than ``w^2/2`` or narrower than ``THIN_GAP_MIN * w``
-    are left."""
+    are left (rings under ``0.1 w^2`` are ignored when grouping the gap rings into pieces).
+    gaps: flat oriented rings (mm)."""
     out: list[tuple[np.ndarray, bool, float]] = []
-    for poly in gaps.polygons():
+    if not gaps:
+        return out
+    areas = geo.ring_areas(gaps)
+    big = [r for r, a in zip(gaps, areas) if abs(a) >= 0.1 * w * w]
+    if not big:
+        return out
+    for poly in geo.region_from_rings(big).polygons():
         a = sum(signed_area(r) for r in poly)
         if a < 0.5 * w * w:
             continue

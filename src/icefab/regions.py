@@ -137,10 +137,10 @@ def _drop_thin(scaffold: Region, part_above: Region, min_width: float, filt: flo
     """Remove scaffold pieces narrower than ``min_width`` unless they carry part above."""
     if min_width <= 0 or scaffold.is_empty:
         return scaffold
-    kept = geo.opening(scaffold, min_width / 2.0, filt)
-    # Grow what is kept by twice the point filter so the filter's chords along curved edges
-    # do not count as thin pieces.
-    thin = geo.difference(scaffold, geo.expand(kept, 2.0 * filt + 1e-3, 0.0))
+    # What is kept is grown by twice the point filter so the filter's chords along curved
+    # edges do not count as thin pieces.
+    kept = geo.opening(scaffold, min_width / 2.0, filt, margin=2.0 * filt + 1e-3)
+    thin = geo.difference(scaffold, kept)
     if thin.is_empty or thin.area < 1e-9:
         return scaffold
     needed = geo.intersection(thin, part_above) if not part_above.is_empty else Region()
@@ -157,8 +157,8 @@ def _thin_part_task(args: tuple[Region, float, float]) -> list[tuple[np.ndarray,
     if part.is_empty or width <= 0:
         return []
     # Use a slightly smaller radius so features exactly one path wide are not reported.
-    kept = geo.opening(part, 0.5 * width * 0.98, filt)
-    thin = geo.difference(part, geo.expand(kept, 2.0 * filt + 1e-3, 0.0))
+    kept = geo.opening(part, 0.5 * width * 0.98, filt, margin=2.0 * filt + 1e-3)
+    thin = geo.difference(part, kept)
     out = []
     for poly in thin.polygons():
         a = sum(signed_area(r) for r in poly)
