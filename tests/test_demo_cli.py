@@ -8,7 +8,7 @@ def test_demo_writes_every_stage(tmp_path, capsys):
     out = tmp_path / "demo"
     assert main(["demo", "-o", str(out), "--layers", "24", "--sim-layers", "24"]) == 0
     for name in ("demo-mug.stl", "stack.npz", "toolpaths.npz", "trajectories.npz",
-                 "layers.png", "summary.json", "simulation/rms_vs_height.png"):
+                 "layers.png", "summary.json", "report.html", "simulation/rms_vs_height.png"):
         assert (out / name).stat().st_size > 0, name
     summary = json.loads((out / "summary.json").read_text())
     assert summary["slice"]["layers"] == 24
@@ -17,6 +17,8 @@ def test_demo_writes_every_stage(tmp_path, capsys):
     sim = summary["simulation"]
     assert sim["final_rms_smf_mm"] < sim["final_rms_open_loop_mm"]
     assert "wrote" in capsys.readouterr().out
+    page = (out / "report.html").read_text()
+    assert page.count("data:image/png;base64,") >= 3  # self-contained: pictures embedded
 
 
 def test_demo_rejects_negative_layers(tmp_path, capsys):

@@ -15,6 +15,7 @@ import time
 import numpy as np
 
 from icefab.cli.common import Progress, add_job_argument, job_from_args, output_dir
+from icefab.report import html_report
 
 
 def add_parser(subparsers) -> None:
@@ -134,7 +135,19 @@ def run(args: argparse.Namespace) -> int:
 
         summary["seconds"] = round(time.perf_counter() - t_all, 2)
         (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    _say(f"wrote {args.out}/ in {summary['seconds']:.1f} s")
+        pictures = [("Layers: part and scaffold regions, boundaries, fill and travel",
+                     out / "layers.png")]
+        pictures += [(f"Speed along the paths of layer {p.stem.rsplit('_', 1)[1]} "
+                      "(thesis Fig. 4-11)", p) for p in sorted(out.glob("speed_layer_*.png"))]
+        pictures += [(caption, out / "simulation" / name) for caption, name in (
+            ("RMS height error per measurement layer, open loop vs SMF (thesis Fig. 5-9)",
+             "rms_vs_height.png"),
+            ("Height error surfaces, open loop vs SMF (thesis Fig. 5-8)", "surfaces.png"))
+            if (out / "simulation" / name).exists()]
+        (out / "report.html").write_text(
+            html_report("icefab demo: beer mug on the Cobra 600 cell", summary, pictures,
+                        notes=list(stack.warnings)), encoding="utf-8")
+    _say(f"wrote {args.out}/ in {summary['seconds']:.1f} s; open {args.out}/report.html")
     return 0
 
 
