@@ -426,3 +426,26 @@ def test_open_stub_into_a_body_is_united():
                 expected = expected.union(shapely.Polygon(ring[:, :2]).buffer(0))
         assert layer.part.area == pytest.approx(expected.area, rel=1e-5), layer.index
     check_orientation_and_nesting(stack)
+
+
+@given(ex=st.tuples(*[st.floats(2.0, 20.0)] * 3),
+       angles=st.tuples(*[st.floats(0.0, 2 * math.pi)] * 3),
+       drop=st.integers(0, 11))
+def test_random_boxes_with_a_missing_facet_keep_their_area(ex, angles, drop):
+    """A planar facet missing from a (rotated) box: each gap it leaves lies in that facet's
+    plane, so closing it with a straight line restores the exact section; every layer
+    keeps its area, and the gaps are counted or reported."""
+    tm = trimesh.creation.box(extents=ex)
+    tm.apply_transform(trimesh.transformations.euler_matrix(*angles))
+    tm.apply_translation((0, 0, -tm.bounds[0, 2]))
+    full = slice_mesh(as_mesh(tm), job_with(layer_thickness_mm=0.5))
+    keep = np.setdiff1d(np.arange(12), [drop])
+    holed = trimesh.Trimesh(tm.vertices, tm.faces[keep], process=False)
+    stack = slice_mesh(as_mesh(holed), job_with(layer_thickness_mm=0.5))
+    rep = slice_report(stack)
+    assert len(stack) == len(full)
+    for a, b in zip(stack, full):
+        assert a.part.area == pytest.approx(b.part.area, rel=1e-6, abs=1e-6)
+    assert rep.empty_layers == slice_report(full).empty_layers
+    reported = sum("gap" in w for w in stack.warnings)
+    assert (rep.gaps_closed + rep.large_gaps_closed > 0) == (reported > 0)
