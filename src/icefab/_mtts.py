@@ -204,7 +204,8 @@ def _jcon(v, i0, i1, h, jeff, tol):
     while k < n - 1:
         jk = jeff[i0 + k]
         dtk = t[k + 1] - t[k - 1]
-        if dtk <= 0.0 or not math.isfinite(jk) or (acc[k + 1] - acc[k - 1]) / dtk > -jk * (1.0 + tol):
+        if (dtk <= 0.0 or not math.isfinite(jk)
+                or (acc[k + 1] - acc[k - 1]) / dtk > -jk * (1.0 + tol)):
             k += 1
             continue
         lft = k - 1

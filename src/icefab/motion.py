@@ -9,9 +9,10 @@ Steps (thesis 4.1, compiled kernels in :mod:`icefab._mtts`):
 1. PATHSPLIT (4.1.1): split each path where its direction turns by more than
    ``motion.smooth_angle_deg``; the robot stops there. Each piece is resampled along its
    length at ``motion.point_spacing_mm`` (at least 2 segments). Optional smoothing of the
-   resampled points within ``motion.smoothing_tolerance_mm`` (a Gaussian kernel regression
-   along the piece, ``SMOOTH_SIGMA_MM``, displacement clipped to the tolerance; piece ends
-   fixed); the output then follows the smoothed curve. Worth it on coarse polygons: a
+   resampled points within ``motion.smoothing_tolerance_mm`` (a Gaussian-weighted local
+   quadratic regression along the piece, ``SMOOTH_SIGMA_MM``, which keeps lines and
+   circles and rounds vertices; displacement clipped to the tolerance; piece ends fixed);
+   the output then follows the smoothed curve. Worth it on coarse polygons: a
    vertex turning by alpha costs v alpha / dt of acceleration at speed v.
 2. VCON (4.1.2): the maximum-speed envelope from the Cartesian speed, total acceleration
    (tangential + radial, eq. 4.8) and jerk bounds and from every joint's speed,
@@ -63,7 +64,7 @@ import math
 import os
 import tempfile
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path as FsPath
 from typing import Callable, Sequence
 
@@ -90,7 +91,7 @@ JCON_TOLERANCE = 0.2
 #: Curvature (and joint second derivatives) are averaged over this length before their
 #: slope is taken for the jerk bounds (about one output step at full speed), mm.
 JERK_WINDOW_MM = 2.0
-#: Width (standard deviation) of the optional Gaussian path smoothing, mm.
+#: Width (standard deviation of the Gaussian weights) of the optional path smoothing, mm.
 SMOOTH_SIGMA_MM = 2.0
 #: Points closer than this are merged before planning (zero-length segments), mm.
 MERGE_MM = 1e-9
