@@ -21,8 +21,14 @@ From a ``Stack`` with part and scaffold regions to ordered ``Path``s per layer:
     (eqs. 8-18, :func:`jin_segment_time`);
   - ``none``.
 
-  The area of each region not swept by any of its deposition paths is reported in
-  ``LayerPaths.unfilled_mm2`` (thesis: gaps the path width cannot fill).
+  Gap fill (``gap_fill``, on by default; not in the thesis): what the paths leave of the
+  region is filled with rings of the boundary width where it is wider than that, and with
+  one ring of the gap's own width (less flow) along gaps between 0.3 and 1 path width
+  (e.g. the middle of a 4 mm wall). The rest of the *nominal* area (the region shrunk by
+  ``max(initial_offset - path_width/2, 0)``: the calibrated edge strip of the scaffold is
+  empty on purpose) that no path sweeps is reported in ``LayerPaths.unfilled_mm2``
+  (paths swept with mitred corners and round ends; gaps narrower than twice the point
+  filter + ``SWEEP_TOL`` are not counted).
 * Measurement paths (thesis 5.2.1): on layers with ``(index + 1) % interval_layers == 0``,
   concentric rings over each material's region (shrunk by half the measurement spacing,
   then every spacing), role "measure", one material per path, given for the laser tool.
