@@ -449,3 +449,17 @@ def test_random_boxes_with_a_missing_facet_keep_their_area(ex, angles, drop):
     assert rep.empty_layers == slice_report(full).empty_layers
     reported = sum("gap" in w for w in stack.warnings)
     assert (rep.gaps_closed + rep.large_gaps_closed > 0) == (reported > 0)
+
+
+def test_inside_out_mesh_still_gives_the_section():
+    """All facets flipped (normals inwards): contours are re-oriented, areas unchanged."""
+    tm = trimesh.creation.annulus(r_min=2, r_max=5, height=3, sections=24)
+    tm.apply_translation((0, 0, 1.5))
+    ref = slice_mesh(as_mesh(tm), EXACT)
+    inv = Mesh(np.asarray(tm.vertices, float), np.asarray(tm.faces, np.int64)[:, ::-1].copy())
+    stack = slice_mesh(inv, EXACT)
+    assert slice_report(stack).rings_reoriented > 0
+    assert slice_report(stack).union_layers == []
+    for a, b in zip(stack, ref):
+        assert a.part.area == pytest.approx(b.part.area, rel=1e-9)
+    check_orientation_and_nesting(stack)

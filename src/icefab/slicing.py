@@ -71,8 +71,9 @@ Pipeline (RPSLICE's FACETSLICE = INTERSECTFACET + SEGMERGE + PATHFILTER, thesis 
    the opposite one). So the sum of a region's signed ring areas is the cross-section
    area. Every ring also knows its facet orientation (a closed chain is walked along it;
    a chain closed across gaps takes the orientation of most of its points). Where the
-   two disagree -- overlapping shells, such as a spout or handle pushed into a body, or
-   merged parts that overlap -- the layer's region is instead the non-zero union of the
+   two disagree for some rings of a layer but not all (all: the surface is inside out,
+   and the nesting stands) -- overlapping shells, such as a spout or handle pushed into a
+   body, or merged parts that overlap -- the layer's region is the non-zero union of the
    facet-oriented rings (``icefab.geometry``, Clipper on a 1e-4 mm grid); those layers
    are listed in ``SliceReport.union_layers`` and counted in a warning.
 
@@ -1085,12 +1086,16 @@ def _finish_rings(rings: _Rings, job: Job, report: SliceReport
         report.rings_reoriented += n_wrong
         log.info("%d contours ran against the facet orientation (inverted facets or "
                  "overlapping shells)", n_wrong)
-    # Layers where nesting cannot be trusted -- a ring (walked, or closed across a gap)
-    # whose facet orientation contradicts its nesting: overlapping shells, e.g. a handle
-    # pushed into a body -- get their region as the non-zero union of the facet-oriented
+    # Layers where nesting cannot be trusted -- some rings (walked, or closed across a
+    # gap) whose facet orientation contradicts their nesting while others agree:
+    # overlapping shells, e.g. a handle pushed into a body -- get their region as the non-zero union of the facet-oriented
     # rings (material on the left), with icefab.geometry (Clipper, 1e-4 mm grid).
     unions: dict[int, Region] = {}
-    for k in np.unique(rings.layer[flip & rings.oriented]):
+    # (a layer whose rings all disagree is simply inside out: flipping is enough)
+    n_layers = len(group) - 1
+    against = np.bincount(rings.layer[flip & rings.oriented], minlength=n_layers)
+    along = np.bincount(rings.layer[~flip & rings.oriented], minlength=n_layers)
+    for k in np.flatnonzero((against > 0) & (along > 0)):
         unions[int(k)] = _union_layer(rings, int(group[k]), int(group[k + 1]))
     if flip.any():
         pts = rings.points.copy()
