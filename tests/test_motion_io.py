@@ -82,3 +82,16 @@ def test_workspace_error_names_layer_in_build():
     job = Job().replace(**{"cell.ee_origin_mm": [590.0, 0.0]})
     with pytest.raises(WorkspaceError, match=r"layer 0, path 0: point \d+ at"):
         plan_toolpaths(_toolpaths(job, 2), job.replace(**{"cell.cpus": 1}))
+    # a bad point in the last layer is found before the first layer is planned
+    job = Job()
+    tp = _toolpaths(job, 3)
+    last = tp.layers[-1]
+    far = Path(points=np.array([[0.0, 0.0], [400.0, 0.0]]), role="travel", layer=2)
+    tp = Toolpaths(layers=tp.layers[:-1] + (LayerPaths(index=2, z=last.z,
+                                                        paths=last.paths + (far,)),),
+                   job=job)
+    calls = []
+    with pytest.raises(WorkspaceError, match=r"layer 2, path 3: point 1 at \(660.100, -99.700\)"):
+        plan_toolpaths(tp, job.replace(**{"cell.cpus": 1}),
+                       progress=lambda d, t: calls.append(d))
+    assert calls == []

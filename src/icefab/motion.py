@@ -79,7 +79,7 @@ from icefab.types import LayerPaths, Path, Toolpaths, Trajectory
 
 log = logging.getLogger(__name__)
 
-__all__ = ["plan_motion", "plan_paths_motion", "plan_toolpaths", "LayerMotion", "BuildMotion",
+__all__ = ["plan_motion", "plan_paths_motion", "plan_toolpaths", "check_build_workspace", "LayerMotion", "BuildMotion",
            "save_trajectories", "load_trajectories", "constant_spacing", "gcode_moves",
            "path_limits"]
 
@@ -587,17 +587,41 @@ def _n_workers(job: Job) -> int:
     return max(1, int(n))
 
 
+def check_build_workspace(toolpaths: Toolpaths, job: Job | None = None,
+                          robot: Robot | None = None) -> None:
+    """Raise WorkspaceError (layer, path, point, coordinates, why) for the first point of
+    any path of the build, in the robot base frame, that the robot cannot reach."""
+    job = job or toolpaths.job
+    robot = robot or get_robot(job)
+    for lp in toolpaths.layers:
+        if not lp.paths:
+            continue
+        polys = [_base_points(p, job) for p in lp.paths]
+        pts = np.concatenate(polys)
+        bad, reasons = robot.workspace_violations(pts)
+        if len(bad):
+            i = int(bad[0])
+            ends = np.cumsum([len(p) for p in polys])
+            k = int(np.searchsorted(ends, i, side="right"))
+            j = i - (int(ends[k - 1]) if k else 0)
+            raise WorkspaceError(f"layer {lp.index}, path {k}: point {j} at ({pts[i, 0]:.3f}, "
+                                 f"{pts[i, 1]:.3f}) mm (robot base frame) is out of the "
+                                 f"{robot.name} workspace: {reasons[0]}")
+
+
 def plan_toolpaths(toolpaths: Toolpaths, job: Job | None = None,
                    progress: Callable[[int, int], None] | None = None) -> BuildMotion:
     """Trajectories of all paths of a build, layer-parallel across ``cell.cpus`` processes.
 
-    Every point of every layer is checked against the workspace before that layer is
-    planned (WorkspaceError names layer, path and point). ``progress(done, total)`` is
-    called after each layer.
+    Every point of every path is checked against the workspace before any layer is
+    planned (WorkspaceError names layer, path and point); chords leaving the workspace
+    between two reachable points are found when their layer is planned.
+    ``progress(done, total)`` is called after each layer.
     """
     job = job or toolpaths.job
     robot = get_robot(job)
     layers = list(toolpaths.layers)
+    check_build_workspace(toolpaths, job, robot)
     total = len(layers)
     out: list[LayerMotion] = []
     workers = min(_n_workers(job), max(1, total))
