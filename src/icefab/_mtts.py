@@ -385,6 +385,36 @@ def _vertex_bounds(sv, tau, n, h, vcap, dt, A, xk, kv):
 
 
 @njit(cache=True, fastmath=_FM)
+def _rest_segment(v1, h, a_r):
+    """AREST (thesis 4.1.5, 4.2.6) for a grid segment that starts (or ends) at rest:
+    instead of a constant acceleration, s(t) = a_r t^2 / 2 + j t^3 / 6 from rest, with
+    the initial acceleration a_r and the jerk j >= 0 chosen so the segment ends at speed
+    v1 after h mm. Returns (duration, j); j < 0 means "use constant acceleration" (a_r <
+    0: rest curves off, or v1 too low for a_r)."""
+    if a_r < 0.0 or v1 <= 0.0:
+        return (2.0 * h / v1 if v1 > 0.0 else 0.0), -1.0
+    if a_r > 0.0:
+        T = (-v1 / 3.0 + math.sqrt(v1 * v1 / 9.0 + 2.0 * a_r * h / 3.0)) / (a_r / 3.0)
+    else:
+        T = 3.0 * h / v1
+    j = 2.0 * (v1 - a_r * T) / (T * T)
+    if j < 0.0:
+        return 2.0 * h / v1, -1.0
+    return T, j
+
+
+@njit(cache=True, fastmath=_FM)
+def _seg_dt(vp, i, n, h, a_r):
+    """Duration of grid segment i -> i+1 of a piece of n points (rest segments: AREST)."""
+    if i == 0 and vp[0] == 0.0:
+        return _rest_segment(vp[1], h, a_r)[0]
+    if i == n - 2 and vp[n - 1] == 0.0:
+        return _rest_segment(vp[n - 2], h, a_r)[0]
+    vs = vp[i] + vp[i + 1]
+    return 2.0 * h / vs if vs > 1e-12 else 0.0
+
+
+@njit(cache=True, fastmath=_FM)
 def speed_profiles(gstart, h, xy, q, vcap, A, J, jerk_on, qv, qa, qj, a_rest, jcon_tol,
                    jerk_window, dt, vstart, vs_loc, vtau):
     """VCON + ACON forward/backward + JCON for every piece (thesis 4.1.2-4.1.5).
@@ -491,25 +521,27 @@ def speed_profiles(gstart, h, xy, q, vcap, A, J, jerk_on, qv, qa, qj, a_rest, jc
             for _ in range(3):
                 if _jcon(vp, 0, n, hp, jeff, jcon_tol) == 0:
                     break
-        # ---- duration
+        # ---- duration (AREST: the first and last segments from and to rest)
+        a_r = a_rest if jerk_on else -1.0
         tt = 0.0
         for i in range(n - 1):
-            vs = vp[i] + vp[i + 1]
-            tt += 2.0 * hp / vs if vs > 1e-12 else 0.0
+            tt += _seg_dt(vp, i, n, hp, a_r)
         T[p] = tt
     return v, env, T
 
 
 @njit(cache=True, fastmath=_FM)
-def sample_pieces(gstart, h, v, T, nsamp, sstart, dt):
+def sample_pieces(gstart, h, v, T, nsamp, sstart, dt, a_r):
     """Sample every piece at constant dt (thesis 4.2.6 output resolution).
 
     Piece p lasts T[p] s and gets nsamp[p] + 1 samples (k = 0..nsamp[p]); every speed
     is scaled by c = T[p] / (nsamp[p] dt) <= 1 so the last sample lands on the end point
     at rest (a uniform slow-down keeps every bound: speed scales by c, acceleration by
     c^2, jerk by c^3). Samples of piece p are written at
-    ``sstart[p] .. sstart[p] + nsamp[p]``. Returns s (M,) mm from the piece start and
-    speed (M,) mm/s.
+    ``sstart[p] .. sstart[p] + nsamp[p]``. Inside a grid segment the acceleration is
+    constant, except in the first and last segments with a_r >= 0, which follow the
+    AREST curve of _rest_segment. Returns s (M,) mm from the piece start and speed (M,)
+    mm/s.
     """
     P = gstart.shape[0] - 1
     M = sstart[P - 1] + nsamp[P - 1] + 1 if P > 0 else 0
@@ -518,36 +550,50 @@ def sample_pieces(gstart, h, v, T, nsamp, sstart, dt):
     for p in range(P):
         i0 = gstart[p]
         i1 = gstart[p + 1]
+        n = i1 - i0
+        vp = v[i0:i1]
         hp = h[p]
         ns = nsamp[p]
         c = T[p] / (ns * dt) if ns > 0 else 1.0
         o = sstart[p]
-        i = i0
+        i = 0
         t_i = 0.0
-        vs = v[i] + v[i + 1]
-        dti = 2.0 * hp / vs if vs > 1e-12 else 0.0
+        dti = _seg_dt(vp, 0, n, hp, a_r)
         for k in range(ns + 1):
             tau = k * dt * c
             if k == ns:
-                s_out[o + k] = (i1 - 1 - i0) * hp
-                v_out[o + k] = v[i1 - 1] * c
+                s_out[o + k] = (n - 1) * hp
+                v_out[o + k] = vp[n - 1] * c
                 continue
-            while i < i1 - 2 and t_i + dti <= tau:
+            while i < n - 2 and t_i + dti <= tau:
                 t_i += dti
                 i += 1
-                vs = v[i] + v[i + 1]
-                dti = 2.0 * hp / vs if vs > 1e-12 else 0.0
-            acc = (v[i + 1] ** 2 - v[i] ** 2) / (2.0 * hp)
+                dti = _seg_dt(vp, i, n, hp, a_r)
             r = tau - t_i
             if r > dti:
                 r = dti
-            ds = v[i] * r + 0.5 * acc * r * r
+            ds = -1.0
+            if i == 0 and vp[0] == 0.0:
+                Tr, j = _rest_segment(vp[1], hp, a_r)
+                if j >= 0.0:
+                    ds = 0.5 * a_r * r * r + j * r * r * r / 6.0
+                    sp = a_r * r + 0.5 * j * r * r
+            elif i == n - 2 and vp[n - 1] == 0.0:
+                Tr, j = _rest_segment(vp[n - 2], hp, a_r)
+                if j >= 0.0:
+                    q = dti - r  # time left to the rest point
+                    ds = hp - (0.5 * a_r * q * q + j * q * q * q / 6.0)
+                    sp = a_r * q + 0.5 * j * q * q
+            if ds < 0.0:
+                acc = (vp[i + 1] ** 2 - vp[i] ** 2) / (2.0 * hp)
+                ds = vp[i] * r + 0.5 * acc * r * r
+                sp = vp[i] + acc * r
             if ds > hp:
                 ds = hp
             if ds < 0.0:
                 ds = 0.0
-            s_out[o + k] = (i - i0) * hp + ds
-            v_out[o + k] = (v[i] + acc * r) * c
+            s_out[o + k] = i * hp + ds
+            v_out[o + k] = sp * c
     return s_out, v_out
 
 

@@ -356,7 +356,8 @@ def _plan_polylines(polys: Sequence[np.ndarray], vcaps: np.ndarray, job: Job, ro
     dt = float(m.dt_s)
     nsamp = np.maximum(1, np.ceil(T / dt - 1e-9).astype(np.int64))
     sstart = np.concatenate([[0], np.cumsum(nsamp + 1)]).astype(np.int64)
-    s_loc, spd = _mtts.sample_pieces(gstart, hk, v, T, nsamp, sstart[:-1].copy(), dt)
+    s_loc, spd = _mtts.sample_pieces(gstart, hk, v, T, nsamp, sstart[:-1].copy(), dt,
+                                     float(m.rest_accel_mm_s2) if jerk_on else -1.0)
     if smoothed:
         # follow the smoothed grid (piecewise linear between grid points)
         gl = np.repeat(np.arange(Q), nsamp + 1)
