@@ -308,12 +308,12 @@ def _plan_polylines(polys: Sequence[np.ndarray], vcaps: np.ndarray, job: Job, ro
     Q = len(a)
     smoothed = m.smoothing_tolerance_mm > 0.0
 
-    # ---- workspace check before any planning: the resampled grid holds every vertex's
-    # neighbourhood and every chord; on failure, name the first bad input point, or the
-    # segment whose chord leaves the workspace (e.g. across the inner reach circle)
+    # ---- workspace check before any planning: every input point, then every grid point
+    # (a chord can leave the workspace between two reachable points, e.g. across the inner
+    # reach circle: the message names the segment)
     qgrid = robot.ik(gxy)
     gbad, greasons = robot.workspace_violations(gxy, qgrid)
-    vbad, vreasons = robot.workspace_violations(V) if len(gbad) else ((), [])
+    vbad, vreasons = robot.workspace_violations(V)
     if len(vbad):
         i = int(vbad[0])
         k = int(pid[i])
