@@ -185,3 +185,14 @@ def test_property_offsets_and_booleans_match_shapely(rings, d):
     tol = grid * (ref.length + so.length)
     assert geo.difference(r, other).area == pytest.approx(ref.difference(so).area, abs=tol)
     assert geo.union(r, other).area == pytest.approx(ref.union(so).area, abs=tol)
+
+
+@given(polygon_with_holes(), st.integers(0, 2**31 - 1))
+def test_property_points_inside_matches_shapely(rings, seed):
+    r = geo.region_from_rings(rings)
+    pts = np.random.default_rng(seed).uniform(-32, 32, size=(300, 2))
+    ours = geo.points_inside(pts, r)
+    poly = to_shapely(r)
+    ref = shapely.contains_xy(poly, pts[:, 0], pts[:, 1])
+    near = shapely.distance(poly.boundary, shapely.points(pts)) < 1e-6
+    assert np.array_equal(ours[~near], ref[~near])

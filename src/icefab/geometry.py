@@ -420,6 +420,44 @@ def difference_rings(a: Region | Sequence[np.ndarray], b: Region | Sequence[np.n
             if len(r) >= 3]
 
 
+@njit(cache=True)
+def _even_odd(px: np.ndarray, py: np.ndarray, pts: np.ndarray, starts: np.ndarray
+              ) -> np.ndarray:  # pragma: no cover - compiled
+    """Even-odd crossing test of points against all ring edges."""
+    out = np.zeros(len(px), dtype=np.bool_)
+    for k in range(len(px)):
+        x = px[k]
+        y = py[k]
+        inside = False
+        for r in range(len(starts) - 1):
+            s0 = starts[r]
+            n = starts[r + 1] - s0
+            j = s0 + n - 1
+            for i in range(s0, s0 + n):
+                yi = pts[i, 1]
+                yj = pts[j, 1]
+                if (yi > y) != (yj > y):
+                    xc = pts[i, 0] + (y - yi) * (pts[j, 0] - pts[i, 0]) / (yj - yi)
+                    if x < xc:
+                        inside = not inside
+                j = i
+        out[k] = inside
+    return out
+
+
+def points_inside(points: np.ndarray, region: Region | Sequence[np.ndarray]) -> np.ndarray:
+    """(n,) bool: which points (n, 2) mm lie inside the region (even-odd rule over its
+    properly nested rings; points on an edge may go either way)."""
+    rings = rings_of(region)
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    if not rings or not len(pts):
+        return np.zeros(len(pts), dtype=bool)
+    allp = np.ascontiguousarray(np.concatenate(rings))
+    starts = np.concatenate([[0], np.cumsum([len(r) for r in rings])]).astype(np.int64)
+    return _even_odd(np.ascontiguousarray(pts[:, 0]), np.ascontiguousarray(pts[:, 1]),
+                     allp, starts)
+
+
 def ring_areas(rings: Sequence[np.ndarray]) -> np.ndarray:
     """(r,) float64 signed areas of rings, mm^2, in one vectorised pass."""
     if not len(rings):
