@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 import shapely
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
 from shapely.geometry import LinearRing, LineString
 
 from icefab import geometry as geo
@@ -18,7 +18,7 @@ from icefab.paths import (OFF, ON1, ON2, SWEEP_TOL, deposition_state, estimate_b
                           plan_paths, save_toolpaths, to_base_frame)
 from icefab.regions import add_scaffold
 from icefab.types import Layer, LayerPaths, Path, Region, Toolpaths
-from test_geometry import (check_region_structure, circle, polygon_with_holes, rect,
+from test_geometry import (check_region_structure, polygon_with_holes, rect,
                            to_shapely)
 from test_regions import make_stack, prism, table
 

@@ -207,7 +207,7 @@ def add_scaffold(stack: Stack, job: Job | None = None, *,
         for (x, y), a in found:
             warnings.append(f"layer {layer.index} (z = {layer.z:.3f} mm): part feature "
                             f"narrower than the path width {width} mm near x = {x:.1f}, "
-                            f"y = {y:.1f} mm ({a:.1f} mm^2 not covered by paths)")
+                            f"y = {y:.1f} mm ({a:.1f} mm^2 thinner than a path)")
     new_layers = tuple(dataclasses.replace(layer, scaffold=sc)
                        for layer, sc in zip(layers, scaffolds))
     log.info("scaffold: %d layers, %.0f mm^2 total scaffold area", n,
