@@ -123,14 +123,17 @@ def _in_subset(stack: Stack, job: Job) -> np.ndarray:
     return (frac >= lo) & (frac <= hi)
 
 
-def _surround_task(args: tuple[Region, Region, Region, float, float, float]
-                   ) -> Region:
-    merged, part, part_above, buffer, min_width, filt = args
+def _surround_task(args: tuple[Region, Region, Region, float, float, float, float]
+                   ) -> tuple[Region, list[tuple[np.ndarray, float]]]:
+    """Scaffold of one layer (surround mode) and its thin part features (one task, so
+    the layer crosses to a worker process once)."""
+    merged, part, part_above, buffer, min_width, filt, width = args
+    thin = _thin_part_task((part, width, filt))
     if merged.is_empty:
-        return Region()
+        return Region(), thin
     outer = geo.expand(merged, buffer, filt) if buffer > 0 else merged
     scaffold = geo.difference(outer, part) if not part.is_empty else outer
-    return _drop_thin(scaffold, part_above, min_width, filt)
+    return _drop_thin(scaffold, part_above, min_width, filt), thin
 
 
 def _drop_thin(scaffold: Region, part_above: Region, min_width: float, filt: float) -> Region:
@@ -186,14 +189,18 @@ def add_scaffold(stack: Stack, job: Job | None = None, *,
     filt = job.slicing.max_filter_deviation_mm
     warnings = list(stack.warnings)
 
+    width = job.materials.part.path_width_mm
     scaffolds: list[Region] = [Region()] * n
+    thin: list[list[tuple[np.ndarray, float]]] | None = None
     if s.enabled and n:
         merged = merged_regions(parts)
         part_above = merged[1:] + [Region()]
         if s.mode == "surround":
-            tasks = [(merged[k], parts[k], part_above[k], s.buffer_mm, s.min_width_mm, filt)
-                     for k in range(n)]
-            scaffolds = parallel_map(_surround_task, tasks, job, progress=progress)
+            tasks = [(merged[k], parts[k], part_above[k], s.buffer_mm, s.min_width_mm, filt,
+                      width) for k in range(n)]
+            done = parallel_map(_surround_task, tasks, job, progress=progress)
+            scaffolds = [d[0] for d in done]
+            thin = [d[1] for d in done]
         else:
             scaffolds = _overhang_scan(parts, part_above, stack.layer_thickness, job)
         inside = _in_subset(stack, job)
@@ -201,8 +208,8 @@ def add_scaffold(stack: Stack, job: Job | None = None, *,
         if s.hook_wall:
             scaffolds = _hook_wall_room(parts, scaffolds, job)
 
-    width = job.materials.part.path_width_mm
-    thin = parallel_map(_thin_part_task, [(p, width, filt) for p in parts], job)
+    if thin is None:
+        thin = parallel_map(_thin_part_task, [(p, width, filt) for p in parts], job)
     for layer, found in zip(layers, thin):
         for (x, y), a in found:
             warnings.append(f"layer {layer.index} (z = {layer.z:.3f} mm): part feature "
