@@ -463,3 +463,18 @@ def test_inside_out_mesh_still_gives_the_section():
     for a, b in zip(stack, ref):
         assert a.part.area == pytest.approx(b.part.area, rel=1e-9)
     check_orientation_and_nesting(stack)
+
+
+@pytest.mark.parametrize("shift", [(8.0, 8.0), (-8.0, 3.0), (0.0, 9.5)])
+def test_crossing_rings_of_separate_shells_are_united(shift):
+    """Two closed boxes overlapping at a corner or an edge, whichever ring's points fall
+    inside the other: the section is their union (no double counting)."""
+    a = box((10, 10, 1))
+    b = box((10, 10, 1), center=shift)
+    expected = shapely.box(-5, -5, 5, 5).union(
+        shapely.box(shift[0] - 5, shift[1] - 5, shift[0] + 5, shift[1] + 5)).area
+    for parts in ([a, b], [b, a]):
+        stack = slice_mesh(as_mesh(trimesh.util.concatenate(parts)), EXACT)
+        for layer in stack:
+            assert layer.part.area == pytest.approx(expected, rel=1e-6)
+        check_orientation_and_nesting(stack)

@@ -72,8 +72,9 @@ Pipeline (RPSLICE's FACETSLICE = INTERSECTFACET + SEGMERGE + PATHFILTER, thesis 
    area. Every ring also knows its facet orientation (a closed chain is walked along it;
    a chain closed across gaps takes the orientation of most of its points). Where the
    two disagree for some rings of a layer but not all (all: the surface is inside out,
-   and the nesting stands) -- overlapping shells, such as a spout or handle pushed into a
-   body, or merged parts that overlap -- the layer's region is the non-zero union of the
+   and the nesting stands), or where rings cross each other (found by the nesting tests)
+   -- overlapping shells, such as a spout or handle pushed into a body, or merged parts
+   that overlap -- the layer's region is the non-zero union of the
    facet-oriented rings (``icefab.geometry``, Clipper on a 1e-4 mm grid); those layers
    are listed in ``SliceReport.union_layers`` and counted in a warning.
 
@@ -712,15 +713,20 @@ def _point_in_ring(x: float, y: float, pts: np.ndarray, s: int, e: int) -> bool:
 
 @numba.njit(cache=True)
 def _nesting(pts: np.ndarray, off: np.ndarray, group: np.ndarray,
-             abs_area: np.ndarray) -> np.ndarray:  # pragma: no cover
+             abs_area: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
     """Parent ring of every ring (Ossino 3.1 hierarchy array q), -1 for top level.
 
     pts (P, 2); off (R+1,); group (G+1,) offsets of the rings of each layer (rings sorted
     by layer); abs_area (R,) |signed area|. The parent is the smallest larger ring of the
-    same layer containing the ring's first point.
+    same layer containing at least two of three points of the ring (at 0, 1/3 and 2/3 of
+    its points): one point touching another ring cannot misplace it.
+    Also returns (R,) bool ``overlap``: the ring crosses a larger ring of its layer (only
+    one or two of its three points inside it, or -- for a ring outside it whose bounding
+    box meets it -- any of its points inside): the layer is not a plain nesting.
     """
     n_ring = off.shape[0] - 1
     parent = np.full(n_ring, -1, dtype=np.int64)
+    overlap = np.zeros(n_ring, dtype=np.bool_)
     bb = np.empty((n_ring, 4))
     for r in range(n_ring):
         s = off[r]
@@ -737,16 +743,29 @@ def _nesting(pts: np.ndarray, off: np.ndarray, group: np.ndarray,
         order = a + np.argsort(abs_area[a:b])
         for ii in range(b - a):
             r = order[ii]
-            x = pts[off[r], 0]
-            y = pts[off[r], 1]
+            s = off[r]
+            n = off[r + 1] - s
             for jj in range(ii + 1, b - a):
                 c = order[jj]
-                if x < bb[c, 0] or x > bb[c, 2] or y < bb[c, 1] or y > bb[c, 3]:
-                    continue
-                if _point_in_ring(x, y, pts, off[c], off[c + 1]):
+                if (bb[r, 2] < bb[c, 0] or bb[r, 0] > bb[c, 2] or bb[r, 3] < bb[c, 1]
+                        or bb[r, 1] > bb[c, 3]):
+                    continue        # bounding boxes apart
+                votes = 0
+                for t in range(3):
+                    i = s + (t * n) // 3
+                    if _point_in_ring(pts[i, 0], pts[i, 1], pts, off[c], off[c + 1]):
+                        votes += 1
+                if votes == 1 or votes == 2:
+                    overlap[r] = True
+                if votes >= 2:
                     parent[r] = c
                     break
-    return parent
+                if votes == 0:
+                    for i in range(s, s + n):
+                        if _point_in_ring(pts[i, 0], pts[i, 1], pts, off[c], off[c + 1]):
+                            overlap[r] = True
+                            break
+    return parent, overlap
 
 
 # --------------------------------------------------------------------------- helpers
@@ -1070,7 +1089,8 @@ def _finish_rings(rings: _Rings, job: Job, report: SliceReport
     report.points_after_filter = len(rings.points)
     group = np.searchsorted(rings.layer, np.arange(int(rings.layer.max()) + 2)) \
         if len(rings.layer) else np.zeros(1, dtype=np.int64)
-    parent = _nesting(rings.points, rings.offsets, group.astype(np.int64), np.abs(area))
+    parent, overlap = _nesting(rings.points, rings.offsets, group.astype(np.int64),
+                               np.abs(area))
     # depth parity -> orientation (icefab: outer CCW, holes CW)
     depth = np.zeros(len(parent), dtype=np.int64)
     cur = parent.copy()
@@ -1086,16 +1106,18 @@ def _finish_rings(rings: _Rings, job: Job, report: SliceReport
         report.rings_reoriented += n_wrong
         log.info("%d contours ran against the facet orientation (inverted facets or "
                  "overlapping shells)", n_wrong)
-    # Layers where nesting cannot be trusted -- some rings (walked, or closed across a
-    # gap) whose facet orientation contradicts their nesting while others agree:
-    # overlapping shells, e.g. a handle pushed into a body -- get their region as the non-zero union of the facet-oriented
+    # Layers where nesting cannot be trusted -- rings crossing each other, or some rings
+    # (walked, or closed across a gap) whose facet orientation contradicts their nesting
+    # while others agree: overlapping shells, e.g. a handle pushed into a body -- get
+    # their region as the non-zero union of the facet-oriented
     # rings (material on the left), with icefab.geometry (Clipper, 1e-4 mm grid).
     unions: dict[int, Region] = {}
     # (a layer whose rings all disagree is simply inside out: flipping is enough)
     n_layers = len(group) - 1
     against = np.bincount(rings.layer[flip & rings.oriented], minlength=n_layers)
     along = np.bincount(rings.layer[~flip & rings.oriented], minlength=n_layers)
-    for k in np.flatnonzero((against > 0) & (along > 0)):
+    crossing = np.bincount(rings.layer[overlap], minlength=n_layers)
+    for k in np.flatnonzero(((against > 0) & (along > 0)) | (crossing > 0)):
         unions[int(k)] = _union_layer(rings, int(group[k]), int(group[k + 1]))
     if flip.any():
         pts = rings.points.copy()
