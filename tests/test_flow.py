@@ -385,3 +385,22 @@ def test_pwm_drops_per_mm_and_pulse_width_settings():
     bad = Job().replace(**{"flow.calibration_pulse_ms": 0.2})
     with pytest.raises(FlowError, match="calibration_pulse_ms"):
         plan_valves(traj, "part", bad)
+
+
+def test_valve_limit_findings_travel_with_the_program():
+    """A program that cannot keep one drop per mm says so on the program itself."""
+    import numpy as np
+    from icefab import Job
+    from icefab.flow import plan_valves
+    from icefab.types import Path, Trajectory
+
+    job = Job().replace(**{"flow.min_drops_per_mm": 50.0})
+    n = 200
+    xy = np.column_stack([np.linspace(0, 100, n), np.zeros(n)])
+    speed = np.full(n, 100.0)
+    path = Path(points=xy[[0, -1]], material="part", role="fill", width=3.0)
+    traj = Trajectory(dt=0.005, xy=xy, joints=np.zeros((n, 2)), speed=speed,
+                      duration=(n - 1) * 0.005, path=path)
+    prog = plan_valves(traj, "part", job)
+    assert any("flow.min_drops_per_mm" in w for w in prog.warnings)
+    assert plan_valves(traj, "part", Job()).warnings == ()

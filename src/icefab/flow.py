@@ -339,8 +339,8 @@ def valve_frequency(trajectory: Trajectory, material: str, job: "Job", *,
         if np.any(nu > 1.0 / fl.tick_s):
             warnings.append(f"{where}: frequency above 1 / flow.tick_s = {1 / fl.tick_s:g} Hz: "
                             "consecutive pulses may share a tick")
-    for m in warnings:
-        log.warning(m)
+    for m in warnings:  # per path: callers summarise ValveProgram.warnings for people
+        log.debug(m)
     t = np.arange(n) * float(trajectory.dt)
     return FrequencyPlan(t=t, q=q, u=u, nu=nu, clamped=int(np.count_nonzero(clamped)),
                          warnings=tuple(warnings))
@@ -445,9 +445,11 @@ def plan_valves(trajectory: Trajectory, material: str, job: "Job", *,
                            layer_thickness=layer_thickness, calibration=calibration)
     if fl.mode == "fm":
         times = pulse_instants(plan.t, plan.nu)
-        return _split(times, None, duration, float(trajectory.dt), job)
-    return _split(*_pwm(plan, material, job, calibration, duration), duration,
-                  float(trajectory.dt), job)
+        prog = _split(times, None, duration, float(trajectory.dt), job)
+    else:
+        prog = _split(*_pwm(plan, material, job, calibration, duration), duration,
+                      float(trajectory.dt), job)
+    return dataclasses.replace(prog, warnings=plan.warnings) if plan.warnings else prog
 
 
 def _pwm(plan: FrequencyPlan, material: str, job: "Job", calibration: Calibration | None,

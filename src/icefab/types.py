@@ -314,6 +314,8 @@ class ValveProgram:
     pieces: further pieces when the program was split (131.072 s / 16384 pulses).
     widths_us: (p,) uint16 pulse widths in microseconds (PWM mode; None in FM mode, where
         every pulse has the valve's fixed pulse width).
+    warnings: valve limits reached while planning (clamped flow, too few drops per mm),
+        each naming the setting; kept on the first piece.
     """
 
     ticks: np.ndarray
@@ -321,6 +323,7 @@ class ValveProgram:
     duration: float = 0.0
     pieces: tuple["ValveProgram", ...] = ()
     widths_us: np.ndarray | None = None
+    warnings: tuple[str, ...] = ()
 
 
 # --------------------------------------------------------------------------- surfaces

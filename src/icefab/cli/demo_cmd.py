@@ -114,6 +114,7 @@ def run(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         progress = Progress("valve programs")
         pulses = pieces = 0
+        flagged: list[tuple[int, str]] = []  # (layer, first finding) per flagged path
         valves_dir = out / "valves"
         valves_dir.mkdir()
         for i, lm in enumerate(motion.layers):
@@ -121,6 +122,8 @@ def run(args: argparse.Namespace) -> int:
                 if traj.path is None or not traj.path.depositing:
                     continue
                 prog = plan_valves(traj, traj.path.material, job)
+                if prog.warnings:
+                    flagged.append((lm.index, prog.warnings[0]))
                 pulses += n_pulses(prog)
                 pieces += len(program_pieces(prog))
                 if i == 0:  # one readable example layer; the rest are counted
@@ -128,7 +131,12 @@ def run(args: argparse.Namespace) -> int:
             progress(i + 1, len(motion.layers))
         summary["valves"] = {"pulses": pulses, "pieces": pieces,
                              "seconds": round(time.perf_counter() - t0, 3)}
+        summary["valves"]["paths_at_valve_limits"] = len(flagged)
         _say(f"valve programs: {pulses} pulses in {pieces} pieces")
+        if flagged:
+            layers = sorted({k for k, _ in flagged})
+            _say(f"  {len(flagged)} paths in {len(layers)} layers (layers {layers[0]}-"
+                 f"{layers[-1]}) reach a valve limit; first: {flagged[0][1]}")
 
         if args.sim_layers:
             _run_simulator(toolpaths, job, min(args.sim_layers, n), out, summary)

@@ -38,8 +38,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from icefab.config import load_job
-    from icefab.flow import (n_pulses, plan_valves, program_pieces, valve_frequency,
-                             write_valve_program)
+    from icefab.flow import n_pulses, plan_valves, program_pieces, write_valve_program
     from icefab.motion import load_trajectories
 
     src = FsPath(args.input)
@@ -73,14 +72,13 @@ def run(args: argparse.Namespace) -> int:
                 if p is not None and not p.depositing:
                     continue
                 material = p.material if p is not None else "part"
-                plan = valve_frequency(traj, material, job)
                 prog = plan_valves(traj, material, job)
                 for f in fmts:
                     write_valve_program(prog, folder / f"path_{i:04d}.{f}", fmt=f)
                 paths += 1
                 pulses += n_pulses(prog)
                 pieces += len(program_pieces(prog))
-                findings += len(plan.warnings)
+                findings += len(prog.warnings)
             lines.append(f"{lm.index:5d}  {paths:5d}  {pulses:6d}  {pieces:6d}  {findings:8d}")
             for k, v in enumerate((paths, pulses, pieces, findings)):
                 totals[k] += v
