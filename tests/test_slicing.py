@@ -478,3 +478,11 @@ def test_crossing_rings_of_separate_shells_are_united(shift):
         for layer in stack:
             assert layer.part.area == pytest.approx(expected, rel=1e-6)
         check_orientation_and_nesting(stack)
+
+
+@pytest.mark.parametrize("cut", [0.0, 0.5, 1.0])
+def test_part_thinner_than_a_layer_gives_one_full_layer(cut):
+    stack = slice_mesh(as_mesh(box((4, 5, 0.1))), job_with(cut_fraction=cut))
+    assert len(stack) == 1
+    assert 0.0 <= stack[0].z <= 0.1
+    assert stack[0].part.area == pytest.approx(20.0, rel=1e-9)
