@@ -10,7 +10,7 @@ from icefab.motion import load_trajectories
 
 def test_plan_toolpath_file(tmp_path, capsys):
     from icefab.paths import save_toolpaths
-    from tests.test_motion_io import _toolpaths
+    from test_motion_io import _toolpaths
     job = Job()
     tp = _toolpaths(job, 3)
     src = tmp_path / "tp.npz"
@@ -46,7 +46,7 @@ def test_plan_errors_leave_nothing(tmp_path, capsys):
     assert "not found" in capsys.readouterr().err
     assert not out.exists()
     from icefab.paths import save_toolpaths
-    from tests.test_motion_io import _toolpaths
+    from test_motion_io import _toolpaths
     src = tmp_path / "tp.npz"
     save_toolpaths(_toolpaths(Job(), 2), src)
     assert main(["plan", str(src), "-o", str(out), "--layers", "7"]) == 2

@@ -91,7 +91,7 @@ def _wavy(seed=3):
 
 
 def _poor():
-    from tests.test_motion import POOR
+    from test_motion import POOR
     return thesis_test_path(POOR, step_mm=0.01)
 
 
