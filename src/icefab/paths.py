@@ -615,8 +615,9 @@ def plan_paths(stack: Stack, job: Job | None = None, *,
     warnings carry the stack's warnings plus a summary of unfilled area.
     """
     job = job or stack.job
-    layers = parallel_map(_plan_task, [(layer, job) for layer in stack.layers], job,
+    packed = parallel_map(_plan_task, [(layer, job) for layer in stack.layers], job,
                           min_items=8, progress=progress)
+    layers = [_unpack_layer(p) for p in packed]
     warnings = list(stack.warnings)
     total = np.array([lp.unfilled_mm2 for lp in layers]).reshape(-1, 2).sum(axis=0)
     if total.sum() > 0:
@@ -625,9 +626,31 @@ def plan_paths(stack: Stack, job: Job | None = None, *,
     return Toolpaths(tuple(layers), job, tuple(warnings))
 
 
-def _plan_task(args: tuple[Layer, Job]) -> LayerPaths:
+def _plan_task(args: tuple[Layer, Job]) -> tuple:
+    """Plan one layer in a worker; the result travels back packed in a few arrays (one
+    pickled object per path would cost more than the planning of small layers)."""
     layer, job = args
-    return plan_layer(layer, job)
+    return _pack_layer(plan_layer(layer, job))
+
+
+def _pack_layer(lp: LayerPaths) -> tuple:
+    paths = lp.paths
+    pts = (np.concatenate([p.points for p in paths]) if paths else np.zeros((0, 2)))
+    start = np.concatenate([[0], np.cumsum([len(p.points) for p in paths])]).astype(np.int64)
+    codes = np.array([(_MATS.index(p.material), _ROLES.index(p.role), int(p.closed),
+                       _FRAMES.index(p.frame), _TOOLS.index(p.tool)) for p in paths],
+                     dtype=np.int8).reshape(-1, 5)
+    nums = np.array([(p.z, p.width, p.layer) for p in paths], dtype=np.float64).reshape(-1, 3)
+    return lp.index, lp.z, lp.unfilled_mm2, pts, start, codes, nums
+
+
+def _unpack_layer(packed: tuple) -> LayerPaths:
+    index, z, unfilled, pts, start, codes, nums = packed
+    paths = tuple(Path(pts[start[i]:start[i + 1]], float(nums[i, 0]), _MATS[codes[i, 0]],
+                       _ROLES[codes[i, 1]], bool(codes[i, 2]), float(nums[i, 1]),
+                       int(nums[i, 2]), _FRAMES[codes[i, 3]], _TOOLS[codes[i, 4]])
+                  for i in range(len(codes)))
+    return LayerPaths(index, z, paths, unfilled)
 
 
 # --------------------------------------------------------------------------- estimate
