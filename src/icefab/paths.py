@@ -351,12 +351,17 @@ def measure_rings(region: Region, spacing: float, filt: float) -> list[np.ndarra
 # --------------------------------------------------------------------------- ordering
 
 
+#: Vertices of a closed path considered as its start point by the nearest-neighbour order.
+MAX_START_CANDIDATES = 64
+
+
 def order_nearest(items: Sequence[tuple], start: np.ndarray) -> tuple[list[tuple], np.ndarray]:
     """Order paths by nearest neighbour from ``start``, choosing start points.
 
     items: tuples ``(points (k, 2) float64 mm, closed, ...)``; further fields are kept.
-    A closed path may start at any of its points (it is rotated to start there); an open
-    path at either end (it is reversed when entered from its last point).
+    A closed path may start at any of up to ``MAX_START_CANDIDATES`` evenly spread vertices
+    (it is rotated to start there); an open path at either end (it is reversed when
+    entered from its last point).
     Returns the re-ordered items and the final position (2,) mm.
     """
     if not items:
@@ -367,8 +372,11 @@ def order_nearest(items: Sequence[tuple], start: np.ndarray) -> tuple[list[tuple
     for i, item in enumerate(items):
         pts, closed = item[0], item[1]
         if closed:
-            cand_pts.append(pts)
-            cand_idx.append(np.arange(len(pts)))
+            # at most MAX_START_CANDIDATES evenly spread vertices may become the start
+            idx = (np.arange(len(pts)) if len(pts) <= MAX_START_CANDIDATES else
+                   np.linspace(0, len(pts) - 1, MAX_START_CANDIDATES).astype(np.int64))
+            cand_pts.append(pts[idx])
+            cand_idx.append(idx)
         else:
             cand_pts.append(pts[[0, -1]])
             cand_idx.append(np.array([0, len(pts) - 1]))
