@@ -19,6 +19,7 @@ def test_plan_toolpath_file(tmp_path, capsys):
     assert main(["plan", str(src), "-o", str(out), "--layers", "0,2"]) == 0
     text = capsys.readouterr().out
     assert "constant-speed estimate" in text and "build motion time (MTTS)" in text
+    assert "constant speed, planned" in text
     assert (out / "speed_layer_0.png").stat().st_size > 1000
     assert (out / "speed_layer_2.png").exists()
     motion = load_trajectories(out / "trajectories.npz")

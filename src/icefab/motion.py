@@ -66,7 +66,7 @@ import tempfile
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path as FsPath
-from typing import Callable, Sequence
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 from scipy.ndimage import convolve1d
@@ -79,7 +79,8 @@ from icefab.types import LayerPaths, Path, Toolpaths, Trajectory
 
 log = logging.getLogger(__name__)
 
-__all__ = ["plan_motion", "plan_paths_motion", "plan_toolpaths", "check_build_workspace", "LayerMotion", "BuildMotion",
+__all__ = ["plan_motion", "plan_paths_motion", "plan_toolpaths", "constant_speed_motion",
+           "check_build_workspace", "LayerMotion", "BuildMotion",
            "save_trajectories", "load_trajectories", "constant_spacing", "gcode_moves",
            "path_limits"]
 
@@ -116,6 +117,24 @@ def path_limits(path: Path, job: Job) -> float:
     if path.role == "travel":
         v = min(v, m.travel_speed_mm_s)
     return float(v)
+
+
+def _role_cap(path: Path, job: Job, role_speeds: Mapping[str, float] | None) -> float:
+    """Speed bound of one path: :func:`path_limits`, or ``role_speeds[path.role]`` (capped
+    by ``motion.speed_mm_s``) when given for its role."""
+    if role_speeds and path.role in role_speeds:
+        return float(min(role_speeds[path.role], job.motion.speed_mm_s))
+    return path_limits(path, job)
+
+
+def _check_role_speeds(role_speeds: Mapping[str, float] | None) -> None:
+    for role, v in (role_speeds or {}).items():
+        if role not in _ROLES:
+            raise IcefabError(f"role speeds: unknown path role {role!r}, expected one of "
+                              f"{', '.join(_ROLES)}")
+        if not (math.isfinite(v) and v > 0.0):
+            raise IcefabError(f"role speeds: the speed of {role} paths must be a positive "
+                              f"number of mm/s, got {v!r}")
 
 
 def _base_points(path: Path, job: Job) -> np.ndarray:
@@ -492,13 +511,20 @@ def plan_motion(path_or_points: Path | np.ndarray, job: Job | None = None, *,
 
 
 def plan_paths_motion(paths: Sequence[Path], job: Job | None = None, *,
-                      robot: Robot | None = None, layer: int = -1) -> list[Trajectory]:
-    """Trajectories of many paths (e.g. one layer) in one compiled call; one per path."""
+                      robot: Robot | None = None, layer: int = -1,
+                      role_speeds: Mapping[str, float] | None = None) -> list[Trajectory]:
+    """Trajectories of many paths (e.g. one layer) in one compiled call; one per path.
+
+    role_speeds: optional speed bound (mm/s) per path role ("boundary", "fill", ...),
+    replacing :func:`path_limits` for paths of that role (never above
+    ``motion.speed_mm_s``); used by :func:`constant_speed_motion`.
+    """
     job = job or Job()
+    _check_role_speeds(role_speeds)
     robot = robot or get_robot(job)
     polys = [_as_points(_base_points(p, job), f"layer {p.layer}, path {i}")
              for i, p in enumerate(paths)]
-    caps = np.array([path_limits(p, job) for p in paths], dtype=np.float64)
+    caps = np.array([_role_cap(p, job, role_speeds) for p in paths], dtype=np.float64)
     labels = [(p.layer if p.layer >= 0 else layer, i) for i, p in enumerate(paths)]
     return _plan_polylines(polys, caps, job, robot, labels=labels, paths=list(paths))
 
@@ -552,17 +578,20 @@ class BuildMotion:
         return len(self.layers)
 
 
-def _plan_layer(lp: LayerPaths, job: Job) -> LayerMotion:
-    trajs = plan_paths_motion(lp.paths, job, layer=lp.index) if lp.paths else []
+def _plan_layer(lp: LayerPaths, job: Job,
+                role_speeds: Mapping[str, float] | None = None) -> LayerMotion:
+    trajs = (plan_paths_motion(lp.paths, job, layer=lp.index, role_speeds=role_speeds)
+             if lp.paths else [])
     return LayerMotion(index=lp.index, z=lp.z, trajectories=tuple(trajs))
 
 
-def _plan_layer_task(args: tuple[LayerPaths, Job]) -> tuple:
+def _plan_layer_task(args: tuple) -> tuple:
     """Worker: plan one layer and return its trajectories packed in a few flat arrays
     (sending one object per trajectory, with its Path, back through the pipe costs more
-    than planning it)."""
-    lp, job = args
-    trajs = plan_paths_motion(lp.paths, job, layer=lp.index) if lp.paths else []
+    than planning it). args: (LayerPaths, Job, role_speeds or None)."""
+    lp, job, role_speeds = args
+    trajs = (plan_paths_motion(lp.paths, job, layer=lp.index, role_speeds=role_speeds)
+             if lp.paths else [])
     if not trajs:
         return (np.zeros(1, np.int64), np.zeros((0, 2)), None, np.zeros(0),
                 np.zeros(1, np.int64), np.zeros(0, np.int64), np.zeros(0), 0.0)
@@ -611,15 +640,18 @@ def check_build_workspace(toolpaths: Toolpaths, job: Job | None = None,
 
 
 def plan_toolpaths(toolpaths: Toolpaths, job: Job | None = None,
-                   progress: Callable[[int, int], None] | None = None) -> BuildMotion:
+                   progress: Callable[[int, int], None] | None = None, *,
+                   role_speeds: Mapping[str, float] | None = None) -> BuildMotion:
     """Trajectories of all paths of a build, layer-parallel across ``cell.cpus`` processes.
 
     Every point of every path is checked against the workspace before any layer is
     planned (WorkspaceError names layer, path and point); chords leaving the workspace
     between two reachable points are found when their layer is planned.
-    ``progress(done, total)`` is called after each layer.
+    ``progress(done, total)`` is called after each layer. ``role_speeds``: see
+    :func:`plan_paths_motion`.
     """
     job = job or toolpaths.job
+    _check_role_speeds(role_speeds)
     robot = get_robot(job)
     layers = list(toolpaths.layers)
     check_build_workspace(toolpaths, job, robot)
@@ -628,19 +660,43 @@ def plan_toolpaths(toolpaths: Toolpaths, job: Job | None = None,
     workers = min(_n_workers(job), max(1, total))
     if workers <= 1 or total <= 1:
         for i, lp in enumerate(layers):
-            out.append(_plan_layer(lp, job))
+            out.append(_plan_layer(lp, job, role_speeds))
             if progress:
                 progress(i + 1, total)
     else:
         with ProcessPoolExecutor(max_workers=workers) as ex:
             chunk = max(1, total // (workers * 8))
-            for i, packed in enumerate(ex.map(_plan_layer_task, [(lp, job) for lp in layers],
+            for i, packed in enumerate(ex.map(_plan_layer_task,
+                                              [(lp, job, role_speeds) for lp in layers],
                                               chunksize=chunk)):
                 out.append(_unpack_layer(layers[i], packed))
                 if progress:
                     progress(i + 1, total)
     return BuildMotion(layers=tuple(out), job=job, robot=robot.name,
                        joint_names=tuple(robot.joint_names))
+
+
+def constant_speed_motion(toolpaths: Toolpaths, job: Job | None = None, *,
+                          boundary_mm_s: float | None = None, fill_mm_s: float | None = None,
+                          progress: Callable[[int, int], None] | None = None) -> BuildMotion:
+    """The thesis' "constant-speed" case (4.4) planned with the robot's real limits.
+
+    Boundary paths at ``boundary_mm_s`` (default ``motion.boundary_speed_mm_s``, 25 mm/s:
+    the speed whose radial acceleration stays below the bound on a 1 mm radius, thesis
+    4.2, eq. 4.9), fill paths at ``fill_mm_s`` (default ``motion.fill_speed_mm_s``,
+    125 mm/s), measurement and travel paths at their usual bounds (:func:`path_limits`).
+    Every path is planned by the MTTS machinery with its Cartesian speed bound set to
+    that constant speed, so acceleration and jerk ramps, stops at split corners (e.g. at
+    every end of a zigzag fill line) and curvature and joint limits are honoured; unlike
+    ``icefab.paths.estimate_build_time`` (length / speed), this is a time a robot could
+    achieve. Layer-parallel like :func:`plan_toolpaths`.
+    """
+    job = job or toolpaths.job
+    m = job.motion
+    speeds = {"boundary": float(m.boundary_speed_mm_s if boundary_mm_s is None
+                                else boundary_mm_s),
+              "fill": float(m.fill_speed_mm_s if fill_mm_s is None else fill_mm_s)}
+    return plan_toolpaths(toolpaths, job, progress, role_speeds=speeds)
 
 
 # --------------------------------------------------------------------------- outputs

@@ -1,0 +1,101 @@
+"""The thesis' "constant-speed" case (4.4) planned with real accelerations:
+``icefab.motion.constant_speed_motion`` against analytic ramp times and against MTTS."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from icefab import Job, LayerPaths, Path, Toolpaths
+from icefab.errors import IcefabError
+from icefab.motion import (constant_speed_motion, plan_paths_motion, plan_toolpaths,
+                           thesis_test_path)
+
+LINE = np.array([[250.0, -150.0], [250.0, 50.0]])  # 200 mm, far from singularities
+
+
+def _line_time(length, v, a, j=None):
+    """Rest-to-rest time along a straight line at cruise speed v: trapezoid (jerk off,
+    T = L/v + v/a) or the symmetric jerk-limited S-curve (T = L/v + 2 sqrt(v/j) when
+    v < a^2/j, else L/v + v/a + a/j)."""
+    if j is None:
+        return length / v + v / a
+    if v < a * a / j:
+        return length / v + 2.0 * math.sqrt(v / j)
+    return length / v + v / a + a / j
+
+
+@pytest.mark.parametrize("jerk", [False, True], ids=["jerk-off", "jerk-on"])
+@pytest.mark.parametrize("role,speed", [("boundary", 25.0), ("fill", 125.0),
+                                        ("fill", 60.0)])
+def test_straight_line_constant_speed_plus_ramps(jerk, role, speed):
+    # from/to-rest curves starting at zero acceleration: the textbook S-curve
+    job = Job().replace(**{"motion.jerk_limited": jerk, "motion.rest_accel_mm_s2": 0.0})
+    m = job.motion
+    p = Path(points=LINE, role=role, frame="base", width=1.5)
+    tr = plan_paths_motion([p], job, role_speeds={role: speed})[0]
+    expect = _line_time(200.0, speed, m.accel_mm_s2, m.jerk_mm_s3 if jerk else None)
+    assert expect - 1e-6 <= tr.duration + 1e-9
+    assert tr.duration <= expect + 2 * m.dt_s
+    v = np.hypot(*np.diff(tr.xy, axis=0).T) / m.dt_s
+    assert v.max() <= speed * 1.01
+    assert v.max() >= speed * 0.98
+
+
+def _box_toolpaths(job):
+    """Two layers: the thesis test path (Fig. 4-2) as a boundary and a zigzag-like fill."""
+    off = np.array([250.0, -80.0])
+    bnd = thesis_test_path(tuple(off))
+    ys = np.arange(5.0, 56.0, 5.0)
+    zz = []
+    for k, y in enumerate(ys):
+        xs = (8.0, 92.0) if k % 2 == 0 else (92.0, 8.0)
+        zz += [[xs[0], y], [xs[1], y]]
+    fill = np.asarray(zz) + off
+    layers = []
+    for k in range(2):
+        paths = (Path(points=bnd, role="boundary", frame="base", layer=k, width=1.5),
+                 Path(points=fill, role="fill", frame="base", layer=k, width=3.0))
+        layers.append(LayerPaths(index=k, z=0.25 * (k + 1), paths=paths))
+    return Toolpaths(layers=tuple(layers), job=job)
+
+
+def test_mtts_never_slower_than_constant_speed():
+    job = Job().replace(**{"cell.cpus": 1})
+    tp = _box_toolpaths(job)
+    mtts = plan_toolpaths(tp, job)
+    const = constant_speed_motion(tp, job)
+    for lm, lc in zip(mtts.layers, const.layers):
+        for a, b in zip(lm.trajectories, lc.trajectories):
+            assert a.duration <= b.duration + 1e-9
+            # same rests: the same split corners
+            assert len(a.pieces) == len(b.pieces)
+    assert mtts.duration < const.duration
+    # boundaries at 25 mm/s: constant-speed time at least length / 25
+    for lc in const.layers:
+        tb = lc.trajectories[0]
+        L = np.hypot(*np.diff(tb.path.points, axis=0).T).sum()
+        assert tb.duration >= L / 25.0
+        assert tb.speed.max() <= 25.0 * 1.01
+    # the zigzag fill stops at each of its 20 corners: 11 lines and 10 links
+    assert len(const.layers[0].trajectories[1].pieces) == 21
+    # all at 25 mm/s (the thesis' concentric constant-speed case) is slower still
+    slow = constant_speed_motion(tp, job, fill_mm_s=25.0)
+    assert slow.duration > const.duration
+
+
+def test_constant_speed_parallel_matches_serial():
+    job = Job()
+    tp = _box_toolpaths(job)
+    a = constant_speed_motion(tp, job.replace(**{"cell.cpus": 1}))
+    b = constant_speed_motion(tp, job.replace(**{"cell.cpus": 2}))
+    np.testing.assert_allclose(a.layer_durations, b.layer_durations)
+
+
+def test_bad_role_speeds():
+    tp = _box_toolpaths(Job())
+    with pytest.raises(IcefabError, match="fill"):
+        constant_speed_motion(tp, Job(), fill_mm_s=-1.0)
+    with pytest.raises(IcefabError, match="unknown path role"):
+        plan_paths_motion(tp.layers[0].paths, Job(), role_speeds={"wall": 10.0})
