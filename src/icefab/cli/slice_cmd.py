@@ -132,7 +132,7 @@ def summary_lines(stack: Stack, elapsed_s: float | None = None) -> list[str]:
 
 def run(args: argparse.Namespace) -> int:
     from icefab import mesh as meshmod
-    from icefab.slicing import save_stack, slice_mesh
+    from icefab.slicing import save_stack, slice_mesh, slice_report
 
     job = job_from_args(args)
     if args.model:
@@ -157,5 +157,13 @@ def run(args: argparse.Namespace) -> int:
           f"{t_load:.2f} s")
     for line in summary_lines(stack, elapsed):
         print(line)
+    rep = slice_report(stack)
+    if rep is not None:
+        print(f"linking: {rep.segments} segments, {rep.open_chains} open chains "
+              f"({rep.gaps_closed} small and {rep.large_gaps_closed} large gaps closed, "
+              f"{rep.chains_dropped} dropped), {rep.tolerance_matched_ends} ends matched by "
+              f"tolerance, {len(rep.union_layers)} layers united; filter "
+              f"{rep.points_before_filter} -> {rep.points_after_filter} points, "
+              f"{rep.rings_collapsed} collapsed contours dropped")
     print(f"wrote {stack_path} and {png} (layers {', '.join(map(str, ks))})")
     return 0
