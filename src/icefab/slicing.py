@@ -571,6 +571,16 @@ def _walk(partner: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # 
     return ends[:pos], offsets[:nc + 1], closed[:nc]
 
 
+@numba.njit(cache=True, parallel=True)
+def _gather_rows(src: np.ndarray, idx: np.ndarray) -> np.ndarray:  # pragma: no cover
+    """``src[idx]`` for (n, 2) float64 rows, parallel."""
+    out = np.empty((idx.shape[0], 2))
+    for i in numba.prange(idx.shape[0]):
+        out[i, 0] = src[idx[i], 0]
+        out[i, 1] = src[idx[i], 1]
+    return out
+
+
 @numba.njit(cache=True)
 def _within(pts: np.ndarray, anchor: int, j: int, nxt: int, lim_mid: float,
             lim_j: float) -> bool:  # pragma: no cover
@@ -1019,7 +1029,7 @@ def _slice_rings(mesh: Mesh, q: np.ndarray, z_report: np.ndarray, job: Job,
             ends, offs, closed = _walk(seg.partner)
             counts = np.diff(offs)
             ring_layer = seg.layer[ends[offs[:-1]] >> 1]
-            pts = seg.points[ends]
+            pts = _gather_rows(seg.points, ends)
             cl = closed.astype(bool)
             n_open = int(np.argmin(cl)) if not cl.all() else 0
             if cl[n_open:].all():        # the walker lists open chains first
