@@ -19,12 +19,19 @@ Algorithm (thesis 3.3, RPSCAF):
 5. Thin scaffold pieces: the part of the scaffold removed by an opening of radius
    ``min_width / 2`` is dropped, except where it lies under part of the layers above
    (there it is kept: merged with the scaffold around it, never leaving a part unsupported).
+   Surround narrower than ``min_width`` (a slot between two walls, or a buffer below
+   ``min_width``) is removed too; ``min_width_mm = 0`` keeps everything.
 6. Thin part features (narrower than the part path width) are reported in
    ``Stack.warnings`` with their layer and location, not silently lost.
 7. Ice hook wall (thesis 3.7, Fig. 3-8): on the first 20 layers the scaffold is grown
    outward by the band the hook wall's ice rings take (``icefab.paths.hook_band_mm``), so
    the wall does not eat into the surround and cannot merge with the part; the rings
    themselves are made by ``icefab.paths``.
+
+Degenerate cases: empty layers (no part) take the merged region of the layers above
+unchanged (scaffold columns pass through them); an empty stack returns unchanged. Slicer
+coordinates are rounded to Clipper's 1e-4 mm grid, so part and scaffold may overlap by
+up to that grid along their shared edges.
 """
 
 from __future__ import annotations
