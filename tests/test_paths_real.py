@@ -51,3 +51,29 @@ def test_real_mesh_invariants(mesh_dir, name):
     job = job.replace(**{"parts.scale": (scale, scale, scale)})
     mesh = transform(mesh, job.parts)
     _check_stack(_sliced(mesh, job), job, (0.1, 0.4, 0.7))
+
+
+def test_demo_mug_overhang_mode_and_hook_wall():
+    from icefab.demo import demo_mug
+    from icefab.types import Stack
+    from test_regions import check_overhang_invariants
+
+    job = Job().replace(**{"slicing.layer_thickness_mm": 0.25, "cell.cpus": 1,
+                           "scaffold.mode": "overhang", "scaffold.overhang_angle_deg": 45.0,
+                           "scaffold.min_width_mm": 0.0})
+    stack = _sliced(demo_mug(), job)
+    # the handle: 40 layers around the lower arc
+    arc = Stack(stack.layers[102:142], job, stack.layer_thickness)
+    scaffolded = add_scaffold(arc, job)
+    check_overhang_invariants(scaffolded, 45.0)
+    assert 0 < scaffolded.layers[0].scaffold.area
+    surround = add_scaffold(arc, job.replace(**{"scaffold.mode": "surround"}))
+    assert scaffolded.layers[0].scaffold.area < 0.5 * surround.layers[0].scaffold.area
+    # hook wall on the first 40 layers: the outline never steps outward going up
+    hook = job.replace(**{"scaffold.hook_wall": True})
+    base = add_scaffold(Stack(stack.layers[:40], hook, stack.layer_thickness), hook)
+    check_overhang_invariants(base, 0.0)
+    for k in (0, 12):
+        layer = base.layers[k]
+        lp = plan_layer(layer, hook)
+        check_layer_paths(layer, lp, hook, min_cover=0.8, hook=True)

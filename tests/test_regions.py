@@ -71,10 +71,12 @@ def check_overhang_invariants(stack: Stack, angle_deg: float):
     for layer in stack.layers:
         part = to_shapely(layer.part)
         scaf = to_shapely(layer.scaffold)
-        assert part.intersection(scaf).area < 1e-3
+        tol_area = 1e-3 + 1.0 / geo.SCALE * (part.length + scaf.length)  # Clipper's grid
+        assert part.intersection(scaf).area < tol_area
         both = part.union(scaf)
         if below is not None:
-            assert both.difference(below.buffer(reach, quad_segs=16)).area < 1e-3, layer.index
+            assert both.difference(below.buffer(reach, quad_segs=16)).area < tol_area, \
+                layer.index
         below = both
 
 

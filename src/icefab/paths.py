@@ -458,6 +458,7 @@ def hook_wall(scaffold: Region, part: Region, count: int, mat: MaterialSettings,
     for i in range(count):
         rings.extend(geo.offset_rings(list(outer.rings),
                                       -(mat.initial_offset_mm + i * mat.path_width_mm), filt))
+    # the band of the rings taken; with one ring (layers 0-9) the scaffold keeps the rest
     band = geo.difference(outer, geo.shrink(outer, hook_band_mm(count, mat), filt))
     return rings, geo.difference(scaffold, band)
 

@@ -23,10 +23,10 @@ Algorithm (thesis 3.3, RPSCAF):
    ``min_width``) is removed too; ``min_width_mm = 0`` keeps everything.
 6. Thin part features (narrower than the part path width) are reported in
    ``Stack.warnings`` with their layer and location, not silently lost.
-7. Ice hook wall (thesis 3.7, Fig. 3-8): on the first 20 layers the scaffold is grown
-   outward by the band the hook wall's ice rings take (``icefab.paths.hook_band_mm``), so
-   the wall does not eat into the surround and cannot merge with the part; the rings
-   themselves are made by ``icefab.paths``.
+7. Ice hook wall (thesis 3.7, Fig. 3-8): on layers 0-19 the scaffold is grown outward by
+   the band the two-ring wall takes (``icefab.paths.hook_band_mm(2)``), so the wall does
+   not eat into the surround, cannot merge with the part, and the outline does not step
+   out at layer 10; the rings themselves are made by ``icefab.paths``.
 
 Degenerate cases: empty layers (no part) take the merged region of the layers above
 unchanged (scaffold columns pass through them); an empty stack returns unchanged. Slicer
@@ -213,7 +213,7 @@ def add_scaffold(stack: Stack, job: Job | None = None, *,
         inside = _in_subset(stack, job)
         scaffolds = [sc if inside[k] else Region() for k, sc in enumerate(scaffolds)]
         if s.hook_wall:
-            scaffolds = _hook_wall_room(parts, scaffolds, job)
+            scaffolds = _hook_wall_room(parts, scaffolds, [L.index for L in layers], job)
 
     if thin is None:
         thin = parallel_map(_thin_part_task, [(p, width, filt) for p in parts], job)
@@ -276,16 +276,22 @@ def _expand_task(args: tuple[Region, float, float]) -> Region:
     return geo.union(region, geo.expand(region, d, filt))
 
 
-def _hook_wall_room(parts: list[Region], scaffolds: list[Region], job: Job) -> list[Region]:
-    """Extra scaffold outside the first 20 layers for the ice hook wall (thesis 3.7)."""
-    from icefab.paths import _hook_wall_count, hook_band_mm
+def _hook_wall_room(parts: list[Region], scaffolds: list[Region], indices: list[int],
+                    job: Job) -> list[Region]:
+    """Extra scaffold outside layers 0-19 for the ice hook wall (thesis 3.7).
+
+    Every one of those layers grows by the band of the two-ring wall, so the outline does
+    not step outward at layer 10 (no overhang): layers 0-9 get one ice ring at the
+    outside, layers 10-19 a second one just inside it, on top of scaffold: the hook.
+    """
+    from icefab.paths import hook_band_mm
 
     filt = job.slicing.max_filter_deviation_mm
     out = list(scaffolds)
-    for k in range(min(20, len(parts))):
-        if parts[k].is_empty and scaffolds[k].is_empty:
+    band = hook_band_mm(2, job.materials.scaffold)
+    for k, index in enumerate(indices):
+        if index >= 20 or (parts[k].is_empty and scaffolds[k].is_empty):
             continue
-        band = hook_band_mm(_hook_wall_count(k), job.materials.scaffold)
         both = geo.union(parts[k], scaffolds[k])
         grown = geo.expand(both, band, filt)
         out[k] = geo.difference(grown, parts[k]) if not parts[k].is_empty else grown
