@@ -10,9 +10,10 @@ from __future__ import annotations
 import base64
 import html
 import os
-import tempfile
 from pathlib import Path
 from typing import Any, Mapping, Sequence
+
+from icefab.atomic import atomic_path
 
 
 def pyplot():
@@ -27,16 +28,12 @@ def pyplot():
 
 def save_figure(fig: Any, path: str | os.PathLike, *, dpi: int = 110) -> Path:
     """Write a matplotlib figure as PNG to ``path`` atomically and close it."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    os.close(fd)
     try:
-        fig.savefig(tmp, dpi=dpi, format="png")
-        os.replace(tmp, path)
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=dpi, format="png")
     finally:
         pyplot().close(fig)
-        Path(tmp).unlink(missing_ok=True)
-    return path
+    return Path(path)
 
 
 def _rows(data: Mapping[str, Any], prefix: str = "") -> list[tuple[str, str]]:

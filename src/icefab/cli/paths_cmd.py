@@ -12,8 +12,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import os
-import tempfile
 import time
 from pathlib import Path as FsPath
 
@@ -21,6 +19,7 @@ import numpy as np
 
 from icefab.cli.common import Progress, add_job_argument, job_from_args
 from icefab.errors import ConfigError
+from icefab.report import pyplot, save_figure
 from icefab.types import Stack, Toolpaths
 
 SHOW_WARNINGS = 5
@@ -65,9 +64,7 @@ def parse_layers(text: str | None, n: int) -> list[int]:
 def plot_toolpaths(stack: Stack, toolpaths: Toolpaths, ks: list[int], path: FsPath) -> None:
     """Draw layers ``ks``: regions filled (part blue, scaffold orange), boundaries solid,
     fill thin, travel dashed grey, measurement dotted green. PNG written atomically."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     from matplotlib.patches import PathPatch
     from matplotlib.path import Path as MplPath
 
@@ -116,14 +113,7 @@ def plot_toolpaths(stack: Stack, toolpaths: Toolpaths, ks: list[int], path: FsPa
     for ax in axes.ravel()[len(ks):]:
         ax.axis("off")
     fig.tight_layout()
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        fig.savefig(tmp, dpi=110, format="png")
-        os.replace(tmp, path)
-    finally:
-        plt.close(fig)
-        FsPath(tmp).unlink(missing_ok=True)
+    save_figure(fig, path)
 
 
 def summary_lines(toolpaths: Toolpaths, per_layer_s: np.ndarray, total_s: float) -> list[str]:

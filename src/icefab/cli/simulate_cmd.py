@@ -24,8 +24,6 @@ import csv
 import dataclasses
 import io
 import json
-import os
-import tempfile
 import time
 from pathlib import Path as FsPath
 from typing import TYPE_CHECKING
@@ -33,7 +31,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from icefab.cli.common import Progress, add_job_argument, job_from_args, output_dir
+from icefab.atomic import write_atomic
 from icefab.errors import ConfigError
+from icefab.report import pyplot, save_figure
 
 if TYPE_CHECKING:  # pragma: no cover
     from icefab.config import Job
@@ -144,32 +144,11 @@ def format_table(rows: list[list[float]]) -> list[str]:
     return lines
 
 
-def _write_atomic(path: FsPath, data: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    finally:
-        FsPath(tmp).unlink(missing_ok=True)
-
-
-def _save_figure(fig, path: FsPath) -> None:
-    import matplotlib.pyplot as plt
-
-    buf = io.BytesIO()
-    try:
-        fig.savefig(buf, dpi=110, format="png")
-    finally:
-        plt.close(fig)
-    _write_atomic(path, buf.getvalue())
 
 
 def plot_rms(open_loop: "SimResult", closed: "SimResult", path: FsPath) -> None:
     """RMS height deviation vs nominal height, open loop and SMF (thesis Fig. 5-9)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
     ax.plot(open_loop.nominal_z, open_loop.rms, "o-", color="tab:red", ms=3,
@@ -182,15 +161,13 @@ def plot_rms(open_loop: "SimResult", closed: "SimResult", path: FsPath) -> None:
     ax.grid(alpha=0.3)
     ax.legend()
     fig.tight_layout()
-    _save_figure(fig, path)
+    save_figure(fig, path)
 
 
 def plot_surfaces(open_loop: "SimResult", closed: "SimResult", layer: int,
                   path: FsPath) -> None:
     """Height error surfaces of one measurement layer, open loop and SMF (Fig. 5-8)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     pair = [(name, res.surfaces[layer], res) for name, res in
             (("open loop", open_loop), ("SMF", closed))]
@@ -212,7 +189,7 @@ def plot_surfaces(open_loop: "SimResult", closed: "SimResult", layer: int,
         ax.set_ylabel("y (mm)")
         ax.set_aspect("equal")
     fig.colorbar(im, ax=axes, shrink=0.9, label="height - nominal (mm)")
-    _save_figure(fig, path)
+    save_figure(fig, path)
 
 
 def write_simulation_outputs(open_loop: "SimResult", closed: "SimResult", out: FsPath, *,
@@ -239,12 +216,12 @@ def write_simulation_outputs(open_loop: "SimResult", closed: "SimResult", out: F
         settings = to_dict(job)
         data["settings"] = {"simulation": settings["simulation"],
                             "feedback": settings["feedback"]}
-    _write_atomic(out / "simulation.json", (json.dumps(data, indent=2) + "\n").encode())
+    write_atomic(out / "simulation.json", (json.dumps(data, indent=2) + "\n").encode())
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(HEADER)
     w.writerows([[r[0]] + [f"{v:.6f}" for v in r[1:]] for r in rows])
-    _write_atomic(out / "rms.csv", buf.getvalue().encode())
+    write_atomic(out / "rms.csv", buf.getvalue().encode())
     written += [out / "simulation.json", out / "rms.csv"]
     if rows:
         plot_rms(open_loop, closed, out / "rms_vs_height.png")

@@ -144,11 +144,11 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _plot(result, dist, job, path, mode: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     import numpy as np
+
+    from icefab.report import pyplot, save_figure
+
+    plt = pyplot()
 
     from icefab.feedback import simulate_1d
 
@@ -169,5 +169,4 @@ def _plot(result, dist, job, path, mode: str) -> None:
     ax2.set_ylabel("valve frequency $\\nu$ (Hz)")
     ax2.set_xlabel("measurement layer k")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
