@@ -45,3 +45,17 @@ def test_help_lists_the_subcommands(capsys):
         main(["--help"])
     assert ex.value.code == 0
     assert "COMMAND" in capsys.readouterr().out
+
+
+def test_parse_layers():
+    import pytest as _pytest
+
+    from icefab.cli.common import parse_layers
+    from icefab.errors import ConfigError
+
+    assert parse_layers(None, 101) == [0, 33, 67, 100]
+    assert parse_layers("5, 7", 10) == [5, 7]
+    assert parse_layers(None, 0) == []
+    for bad in ("a,b", "10", "-1", ","):
+        with _pytest.raises(ConfigError, match="--layers"):
+            parse_layers(bad, 10)

@@ -12,7 +12,10 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
+import numpy as np
+
 from icefab.config import Job, load_job
+from icefab.errors import ConfigError
 
 
 def add_job_argument(parser: argparse.ArgumentParser) -> None:
@@ -23,6 +26,28 @@ def add_job_argument(parser: argparse.ArgumentParser) -> None:
 
 def job_from_args(args: argparse.Namespace) -> Job:
     return load_job(args.job) if getattr(args, "job", None) else Job()
+
+
+def parse_layers(text: str | None, n: int, default_count: int = 4) -> list[int]:
+    """Layer indices from a ``--layers K,K,...`` option for a build of ``n`` layers.
+
+    No option: ``default_count`` layers evenly spread from the first to the last. Raises
+    ConfigError naming the option when an entry is not a number or not a layer.
+    """
+    if n == 0:
+        return []
+    if not text:
+        count = min(default_count, n)
+        return sorted(set(np.linspace(0, n - 1, count).round().astype(int).tolist()))
+    try:
+        ks = [int(t) for t in text.replace(" ", "").split(",") if t]
+    except ValueError:
+        raise ConfigError(f"--layers {text!r}: expected comma-separated layer numbers, e.g. "
+                          "10,50,100") from None
+    bad = [k for k in ks if not 0 <= k < n]
+    if bad or not ks:
+        raise ConfigError(f"--layers {text!r}: layer numbers must be between 0 and {n - 1}")
+    return ks
 
 
 class Progress:

@@ -17,8 +17,7 @@ from pathlib import Path as FsPath
 
 import numpy as np
 
-from icefab.cli.common import Progress, add_job_argument, job_from_args
-from icefab.errors import ConfigError
+from icefab.cli.common import Progress, add_job_argument, job_from_args, parse_layers
 from icefab.report import pyplot, save_figure
 from icefab.types import Stack, Toolpaths
 
@@ -44,21 +43,6 @@ def add_parser(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-def parse_layers(text: str | None, n: int) -> list[int]:
-    """Layer indices to draw: the ``--layers`` list, or up to four evenly spread."""
-    if n == 0:
-        return []
-    if not text:
-        return sorted(set(np.linspace(0, n - 1, min(4, n)).round().astype(int).tolist()))
-    try:
-        ks = [int(t) for t in text.replace(" ", "").split(",") if t]
-    except ValueError:
-        raise ConfigError(f"--layers {text!r}: expected comma-separated layer numbers, e.g. "
-                          "10,50,100") from None
-    bad = [k for k in ks if not 0 <= k < n]
-    if bad or not ks:
-        raise ConfigError(f"--layers {text!r}: layer numbers must be between 0 and {n - 1}")
-    return ks
 
 
 def plot_toolpaths(stack: Stack, toolpaths: Toolpaths, ks: list[int], path: FsPath) -> None:
