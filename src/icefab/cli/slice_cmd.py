@@ -10,15 +10,14 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import os
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-from icefab.cli.common import Progress, add_job_argument, job_from_args
+from icefab.cli.common import Progress, add_job_argument, job_from_args, parse_layers
 from icefab.errors import ConfigError
+from icefab.report import pyplot, save_figure
 from icefab.types import Stack
 
 #: warnings printed in full by the summary
@@ -39,28 +38,11 @@ def add_parser(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-def parse_layers(text: str | None, n: int) -> list[int]:
-    """Layer indices to draw: the ``--layers`` list, or up to six evenly spread."""
-    if n == 0:
-        return []
-    if not text:
-        return sorted(set(np.linspace(0, n - 1, min(6, n)).round().astype(int).tolist()))
-    try:
-        ks = [int(t) for t in text.replace(" ", "").split(",") if t]
-    except ValueError:
-        raise ConfigError(f"--layers {text!r}: expected comma-separated layer numbers, e.g. "
-                          "10,50,100") from None
-    bad = [k for k in ks if not 0 <= k < n]
-    if bad or not ks:
-        raise ConfigError(f"--layers {text!r}: layer numbers must be between 0 and {n - 1}")
-    return ks
 
 
 def plot_layers(stack: Stack, ks: list[int], path: Path) -> None:
     """Draw layers ``ks`` of a stack into a PNG at ``path`` (written atomically)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     n = max(1, len(ks))
     cols = min(3, n)
@@ -96,14 +78,7 @@ def plot_layers(stack: Stack, ks: list[int], path: Path) -> None:
     for ax in axes.ravel()[len(ks):]:
         ax.axis("off")
     fig.tight_layout()
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        fig.savefig(tmp, dpi=110, format="png")
-        os.replace(tmp, path)
-    finally:
-        plt.close(fig)
-        Path(tmp).unlink(missing_ok=True)
+    save_figure(fig, path)
 
 
 def summary_lines(stack: Stack, elapsed_s: float | None = None) -> list[str]:
@@ -148,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
     t_load = time.perf_counter() - t0
     stack = slice_mesh(mesh, job, progress=Progress("slicing"))
     elapsed = time.perf_counter() - t0
-    ks = parse_layers(args.layers, len(stack))
+    ks = parse_layers(args.layers, len(stack), default_count=6)
     out.mkdir(parents=True, exist_ok=True)
     stack_path = save_stack(stack, out / "stack.npz")
     png = out / "layers.png"
