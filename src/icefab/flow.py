@@ -61,7 +61,6 @@ import functools
 import logging
 import os
 import struct
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path as FsPath
 from typing import TYPE_CHECKING, Any, Sequence
@@ -69,6 +68,7 @@ from typing import TYPE_CHECKING, Any, Sequence
 import numpy as np
 from scipy.integrate import cumulative_trapezoid
 
+from icefab.atomic import write_atomic
 from icefab.errors import FlowError, StackFileError
 from icefab.types import HeightMap, Trajectory, ValveProgram
 
@@ -515,17 +515,7 @@ def total_duration(prog: ValveProgram) -> float:
 
 def _atomic_write(path: FsPath, data: bytes) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+    write_atomic(path, data)
 
 
 def encode_valve_program(prog: ValveProgram) -> bytes:

@@ -57,6 +57,7 @@ from typing import TYPE_CHECKING, Iterable, Sequence
 import numpy as np
 from numba import njit
 
+from icefab.atomic import write_atomic
 from icefab.errors import MeshError
 from icefab.types import Mesh
 
@@ -1625,12 +1626,8 @@ def write_stl(mesh: Mesh, path: str | os.PathLike[str]) -> None:
     rec["normal"] = np.divide(n, ln, out=np.zeros_like(n), where=ln > 0)
     rec["corners"] = tri
     header = (b"binary STL written by icefab " + mesh.name.encode("ascii", "replace"))
-    tmp = p.with_name(p.name + ".tmp")
-    with open(tmp, "wb") as fh:
-        fh.write(header[:80].ljust(80, b" "))
-        fh.write(np.uint32(len(tri)).tobytes())
-        fh.write(rec.tobytes())
-    os.replace(tmp, p)
+    write_atomic(p, header[:80].ljust(80, b" ") + np.uint32(len(tri)).tobytes()
+                 + rec.tobytes())
 
 
 # --------------------------------------------------------------------------- part set-up

@@ -52,7 +52,6 @@ from __future__ import annotations
 import logging
 import math
 import os
-import tempfile
 import zipfile
 from pathlib import Path as FsPath
 from typing import Callable, Sequence
@@ -61,6 +60,7 @@ import numpy as np
 
 from icefab import geometry as geo
 from icefab.config import Job, MaterialSettings, job_from_dict, to_toml
+from icefab.atomic import atomic_path
 from icefab.errors import ConfigError, StackFileError
 from icefab.regions import parallel_map
 from icefab.geometry import signed_area
@@ -745,15 +745,8 @@ def save_toolpaths(tp: Toolpaths, path: str | os.PathLike) -> None:
     }
     target = FsPath(path)
     target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".npz", dir=target.parent)
-    os.close(fd)
-    try:
-        with open(tmp, "wb") as fh:
-            np.savez_compressed(fh, **data)
-        os.replace(tmp, target)
-    except BaseException:
-        FsPath(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_path(target) as tmp, open(tmp, "wb") as fh:
+        np.savez_compressed(fh, **data)
 
 
 def load_toolpaths(path: str | os.PathLike) -> Toolpaths:

@@ -92,7 +92,6 @@ from __future__ import annotations
 
 import logging
 import os
-import tempfile
 import zipfile
 import zlib
 from dataclasses import dataclass, field
@@ -103,6 +102,7 @@ import numba
 import numpy as np
 
 from icefab.config import Job
+from icefab.atomic import atomic_path
 from icefab.errors import GeometryError, StackFileError
 from icefab.types import Layer, Mesh, Region, Stack, signed_area
 
@@ -1321,14 +1321,8 @@ def save_stack(stack: Stack, path: str | os.PathLike) -> FsPath:
         arrays.update({"scaffold_" + k: v for k, v in
                        _pack_regions([L.scaffold for L in stack.layers]).items()})
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez_compressed(fh, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        FsPath(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        np.savez_compressed(fh, **arrays)
     return path
 
 
