@@ -27,7 +27,6 @@ import argparse
 import datetime as dt
 import os
 import platform
-import re
 import sys
 import time
 from pathlib import Path
@@ -38,6 +37,7 @@ HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 sys.path.insert(0, str(HERE))
 
+from _report import write_section  # noqa: E402
 from meshes import big_mesh  # noqa: E402
 
 SECTION = "## Scaffold regions, boundaries and fill (issue 3)"
@@ -282,7 +282,7 @@ def main() -> int:
     text = _markdown(res, machine, dt.date.today().isoformat(), args.mesh)
     print(text)
     if not args.no_write and not args.layers:
-        _write_section(text)
+        write_section(SECTION, text)
         print(f"updated {ROOT / 'BENCHMARKS.md'}")
     return 0
 
@@ -330,20 +330,6 @@ def _markdown(r: dict, machine: str, date: str, mesh: str) -> str:
                   "multiply vertex counts and time many-fold, so they are never used.", ""]
     return "\n".join(lines)
 
-
-def _write_section(text: str) -> None:
-    path = ROOT / "BENCHMARKS.md"
-    doc = path.read_text(encoding="utf-8")
-    start = doc.find(SECTION)
-    if start < 0:
-        doc = doc.rstrip("\n") + "\n\n" + text
-    else:
-        m = re.search(r"^## ", doc[start + len(SECTION):], flags=re.M)
-        end = start + len(SECTION) + m.start() if m else len(doc)
-        doc = doc[:start] + text + "\n" + doc[end:]
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(doc, encoding="utf-8")
-    os.replace(tmp, path)
 
 
 if __name__ == "__main__":

@@ -24,7 +24,6 @@ import datetime as dt
 import json
 import os
 import platform
-import re
 import resource
 import subprocess
 import sys
@@ -35,6 +34,7 @@ HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 sys.path.insert(0, str(HERE))
 
+from _report import write_section  # noqa: E402
 from meshes import big_mesh  # noqa: E402
 
 NAMES = ("bunny", "rocker-arm")
@@ -240,7 +240,7 @@ def main() -> int:
     print()
     print(text)
     if not args.no_write:
-        _write_section(text)
+        write_section(SECTION, text)
         print(f"updated {ROOT / 'BENCHMARKS.md'}")
     return 0
 
@@ -286,20 +286,6 @@ def _markdown(rows: list[dict], machine: str, date: str) -> str:
               ""]
     return "\n".join(lines)
 
-
-def _write_section(text: str) -> None:
-    path = ROOT / "BENCHMARKS.md"
-    doc = path.read_text(encoding="utf-8")
-    start = doc.find(SECTION)
-    if start < 0:
-        doc = doc.rstrip("\n") + "\n\n" + text
-    else:
-        m = re.search(r"^## ", doc[start + len(SECTION):], flags=re.M)
-        end = start + len(SECTION) + m.start() if m else len(doc)
-        doc = doc[:start] + text + "\n" + doc[end:]
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(doc, encoding="utf-8")
-    os.replace(tmp, path)
 
 
 if __name__ == "__main__":
