@@ -598,54 +598,142 @@ def sample_pieces(gstart, h, v, T, nsamp, sstart, dt, a_r):
 
 
 @njit(cache=True, fastmath=_FM)
-def smooth_pieces(gstart, gxy, sigma_pts, tol):
+def smooth_pieces(gstart, graw, h, fstart, fu, fraw, sigma_pts, tol, max_turn):
     """Optional smoothing of resampled pieces (thesis 4.1.1: "local polynomial regression
-    or cubic smoothing splines"): a Gaussian-weighted local quadratic regression along
-    the piece (standard deviation sigma_pts grid points, window truncated at 3 sigma and
-    kept symmetric near the ends). A quadratic fit keeps circles and straight lines in
-    place and rounds polyline vertices. Piece ends stay put (the window shrinks to
-    nothing there) and every displacement is clipped to ``tol`` mm, so the smoothed
-    points stay within ``tol`` of the resampled ones. Returns a new (G, 2) array.
+    or cubic smoothing splines").
+
+    The curve is a local quadratic regression along s through the uniformly resampled
+    points of each piece, with biweight weights (1 - (t / w)^2)^2 over a half-width w of
+    3 sigma_pts grid points, kept symmetric near the ends (piece ends stay put) and
+    narrowed where the grid turns by more than ``max_turn`` rad within it (so small
+    circles are not shrunk); w is interpolated between grid points and the weights vanish
+    at the window's edge, so the curve is continuous in s. A quadratic fit keeps circles
+    and lines in place and rounds polyline vertices. It is evaluated at every point of
+    the followed polyline: the grid points and the input's own vertices (a fine input
+    stays fine and a coarse polygon's vertices land on the curve). Each displacement is
+    scaled by a factor <= min(1, tol / |d|) at every point, smooth along s (running
+    minimum and moving average over +-sigma on the grid, interpolated between grid
+    points): every point moves by at most ``tol`` mm, and so does every chord (both ends
+    of a chord lie on one input segment).
+
+    gstart (P+1,) int64, graw (G, 2) mm: the resampled grid; h (P,) mm grid spacing;
+    fstart (P+1,) int64, fu (F,) mm piece-local arc length, fraw (F, 2) mm: the followed
+    points on the input path. Returns the smoothed followed points (F, 2).
     """
-    out = gxy.copy()
+    out = fraw.copy()
     P = gstart.shape[0] - 1
-    r = int(3.0 * sigma_pts + 0.5)
-    wts = np.empty(r + 1)
-    for k in range(r + 1):
-        wts[k] = math.exp(-0.5 * (k / sigma_pts) ** 2)
+    r = 3.0 * sigma_pts
+    rr = max(1, int(sigma_pts + 0.5))
+    nmax = 0
+    gmax = 0
+    for p in range(P):
+        nmax = max(nmax, fstart[p + 1] - fstart[p])
+        gmax = max(gmax, gstart[p + 1] - gstart[p])
+    d = np.zeros((nmax, 2))
+    fv = np.ones(nmax)
+    cturn = np.zeros(gmax + 1)
+    rwk = np.zeros(gmax)
+    fg = np.ones(gmax)
+    g1 = np.ones(gmax)
+    g2 = np.ones(gmax)
     for p in range(P):
         i0 = gstart[p]
         n = gstart[p + 1] - i0
-        for i in range(2, n - 2):
-            ri = min(r, i, n - 1 - i)
-            m0 = wts[0]
-            m2 = 0.0
-            m4 = 0.0
-            s0x = wts[0] * gxy[i0 + i, 0]
-            s0y = wts[0] * gxy[i0 + i, 1]
-            s2x = 0.0
-            s2y = 0.0
-            for k in range(1, ri + 1):
-                wk = wts[k]
-                k2 = float(k * k)
-                xs = gxy[i0 + i + k, 0] + gxy[i0 + i - k, 0]
-                ys = gxy[i0 + i + k, 1] + gxy[i0 + i - k, 1]
-                m0 += 2.0 * wk
-                m2 += 2.0 * wk * k2
-                m4 += 2.0 * wk * k2 * k2
-                s0x += wk * xs
-                s0y += wk * ys
-                s2x += wk * k2 * xs
-                s2y += wk * k2 * ys
-            det = m0 * m4 - m2 * m2
-            if det <= 0.0:
-                continue
-            dx = (m4 * s0x - m2 * s2x) / det - gxy[i0 + i, 0]
-            dy = (m4 * s0y - m2 * s2y) / det - gxy[i0 + i, 1]
-            d = math.sqrt(dx * dx + dy * dy)
-            if d > tol:
-                dx *= tol / d
-                dy *= tol / d
-            out[i0 + i, 0] = gxy[i0 + i, 0] + dx
-            out[i0 + i, 1] = gxy[i0 + i, 1] + dy
+        j0 = fstart[p]
+        nf = fstart[p + 1] - j0
+        hp = h[p]
+        # cumulated turning of the grid polyline: cturn[k] = sum of |turn| at 1..k-1
+        cturn[0] = 0.0
+        cturn[1] = 0.0
+        for k in range(1, n - 1):
+            ax = graw[i0 + k, 0] - graw[i0 + k - 1, 0]
+            ay = graw[i0 + k, 1] - graw[i0 + k - 1, 1]
+            bx = graw[i0 + k + 1, 0] - graw[i0 + k, 0]
+            by = graw[i0 + k + 1, 1] - graw[i0 + k, 1]
+            cturn[k + 1] = cturn[k] + abs(math.atan2(ax * by - ay * bx, ax * bx + ay * by))
+        # window half-width per grid point (grid points)
+        for k in range(n):
+            w = min(r, float(k), float(n - 1 - k))
+            while w > 0.0:
+                ka = max(int(math.ceil(k - w - 1e-9)), 0)
+                kb = min(int(math.floor(k + w + 1e-9)), n - 1)
+                if cturn[kb] - cturn[min(ka + 1, kb)] <= max_turn:
+                    break
+                w -= 1.0
+            rwk[k] = max(w, 0.0)
+        for k in range(n):
+            fg[k] = 1.0
+        for jj in range(nf):
+            d[jj, 0] = 0.0
+            d[jj, 1] = 0.0
+            fv[jj] = 1.0
+            pos = fu[j0 + jj] / hp
+            k0 = min(max(int(pos), 0), n - 2)
+            t0 = pos - k0
+            rw = (1.0 - t0) * rwk[k0] + t0 * rwk[k0 + 1]
+            rw = min(rw, pos, (n - 1) - pos)
+            if rw >= 2.0:
+                a = max(int(math.floor(pos - rw)) + 1, 0)
+                b = min(int(math.ceil(pos + rw)) - 1, n - 1)
+                # weighted normal equations of y = c0 + c1 t + c2 t^2, t = k - pos
+                m0 = m1 = m2 = m3 = m4 = 0.0
+                sx0 = sx1 = sx2 = sy0 = sy1 = sy2 = 0.0
+                for k in range(a, b + 1):
+                    t = k - pos
+                    q = 1.0 - (t / rw) ** 2
+                    if q <= 0.0:
+                        continue
+                    w = q * q
+                    t2 = t * t
+                    m0 += w
+                    m1 += w * t
+                    m2 += w * t2
+                    m3 += w * t2 * t
+                    m4 += w * t2 * t2
+                    x = graw[i0 + k, 0]
+                    y = graw[i0 + k, 1]
+                    sx0 += w * x
+                    sx1 += w * t * x
+                    sx2 += w * t2 * x
+                    sy0 += w * y
+                    sy1 += w * t * y
+                    sy2 += w * t2 * y
+                c11 = m2 * m4 - m3 * m3
+                c12 = m2 * m3 - m1 * m4
+                c13 = m1 * m3 - m2 * m2
+                det = m0 * c11 + m1 * c12 + m2 * c13
+                if abs(det) > 1e-12 * max(m0 * m2 * m4, 1e-300):
+                    dx = (c11 * sx0 + c12 * sx1 + c13 * sx2) / det - fraw[j0 + jj, 0]
+                    dy = (c11 * sy0 + c12 * sy1 + c13 * sy2) / det - fraw[j0 + jj, 1]
+                    d[jj, 0] = dx
+                    d[jj, 1] = dy
+                    dd = math.sqrt(dx * dx + dy * dy)
+                    if dd > tol:
+                        fv[jj] = tol / dd
+            # fold the factor bound into both grid ends of the segment holding the point
+            if fv[jj] < fg[k0]:
+                fg[k0] = fv[jj]
+            if fv[jj] < fg[k0 + 1]:
+                fg[k0 + 1] = fv[jj]
+        # running minimum, then moving average, both over +-rr grid points: every averaged
+        # value is a minimum over a window containing the point, so g2 <= fg
+        for k in range(n):
+            mn = 1.0
+            for kk in range(max(0, k - rr), min(n, k + rr + 1)):
+                mn = min(mn, fg[kk])
+            g1[k] = mn
+        for k in range(n):
+            a = max(0, k - rr)
+            b = min(n, k + rr + 1)
+            sm = 0.0
+            for kk in range(a, b):
+                sm += g1[kk]
+            g2[k] = sm / (b - a)
+        for jj in range(nf):
+            pos = fu[j0 + jj] / hp
+            k0 = min(max(int(pos), 0), n - 2)
+            t0 = pos - k0
+            sc = (1.0 - t0) * g2[k0] + t0 * g2[k0 + 1]
+            out[j0 + jj, 0] = fraw[j0 + jj, 0] + sc * d[jj, 0]
+            out[j0 + jj, 1] = fraw[j0 + jj, 1] + sc * d[jj, 1]
     return out

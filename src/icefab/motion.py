@@ -8,12 +8,17 @@ Steps (thesis 4.1, compiled kernels in :mod:`icefab._mtts`):
 
 1. PATHSPLIT (4.1.1): split each path where its direction turns by more than
    ``motion.smooth_angle_deg``; the robot stops there. Each piece is resampled along its
-   length at ``motion.point_spacing_mm`` (at least 2 segments). Optional smoothing of the
-   resampled points within ``motion.smoothing_tolerance_mm`` (a Gaussian-weighted local
-   quadratic regression along the piece, ``SMOOTH_SIGMA_MM``, which keeps lines and
-   circles and rounds vertices; displacement clipped to the tolerance; piece ends fixed);
-   the output then follows the smoothed curve. Worth it on coarse polygons: a
-   vertex turning by alpha costs v alpha / dt of acceleration at speed v.
+   length at ``motion.point_spacing_mm`` (at least 2 segments). Path smoothing within
+   ``motion.smoothing_tolerance_mm`` (default 0.05 mm, the slicer's own filter deviation
+   bound; 0 turns it off): a local quadratic regression along each piece (biweight
+   window of 3 ``SMOOTH_SIGMA_MM``, narrowed where the path turns by more than
+   ``SMOOTH_MAX_TURN_DEG`` within it, piece ends fixed), evaluated at the grid points and
+   at the input's own vertices, displacements scaled smoothly to stay within the
+   tolerance (``_mtts.smooth_pieces``). The output follows that polyline, so every
+   sample is within the tolerance of the input. It matters on real layers: the slicer's
+   0.4 mm / 0.05 mm point filter and the Clipper offsets leave fill rings as polygons
+   turning ~6 deg every ~2.6 mm, and a vertex turning by alpha costs v alpha / dt of
+   acceleration at speed v (about 76 mm/s where the ring's 25 mm radius allows 112).
 2. VCON (4.1.2): the maximum-speed envelope from the Cartesian speed, total acceleration
    (tangential + radial, eq. 4.8) and jerk bounds and from every joint's speed,
    acceleration and jerk bounds (eqs. 4.2-4.5, 4.10). The joints come from the robot's
@@ -92,8 +97,10 @@ JCON_TOLERANCE = 0.2
 #: Curvature (and joint second derivatives) are averaged over this length before their
 #: slope is taken for the jerk bounds (about one output step at full speed), mm.
 JERK_WINDOW_MM = 2.0
-#: Width (standard deviation of the Gaussian weights) of the optional path smoothing, mm.
+#: Width of the path smoothing (the biweight window's half-width is 3 x this), mm.
 SMOOTH_SIGMA_MM = 2.0
+#: The smoothing window narrows until the path turns by at most this much within it, deg.
+SMOOTH_MAX_TURN_DEG = 60.0
 #: Points closer than this are merged before planning (zero-length segments), mm.
 MERGE_MM = 1e-9
 #: Gap inserted between pieces in the concatenated arc length (keeps it increasing), mm.
@@ -194,6 +201,9 @@ class _Split:
     gstart: np.ndarray     # (Q+1,) grid offsets
     gxy: np.ndarray        # (G, 2) resampled (and optionally smoothed) points
     gs: np.ndarray         # (G,) arc length (S units) of the grid points
+    fxy: np.ndarray        # (F, 2) the polyline the samples follow (PV, or the smoothed
+    fu: np.ndarray         # grid with kept sharp vertices), its parameter (S units)
+    fstart: np.ndarray     # (Q+1,) piece p follows fxy[fstart[p]:fstart[p+1]]
 
 
 def _pathsplit(V: np.ndarray, counts: np.ndarray, job: Job) -> _Split:
@@ -245,7 +255,8 @@ def _pathsplit(V: np.ndarray, counts: np.ndarray, job: Job) -> _Split:
         return _Split(V=V, pid=pid, counts=counts, pstart=pstart, orig_index=orig_index, a=a,
                       piece_path=piece_path, PV=np.zeros((0, 2)), pvs=np.zeros(1, np.int64),
                       S=z, s0=z, L=z, nseg=e, hk=z, gstart=np.zeros(1, np.int64),
-                      gxy=np.zeros((0, 2)), gs=z)
+                      gxy=np.zeros((0, 2)), gs=z, fxy=np.zeros((0, 2)), fu=z,
+                      fstart=np.zeros(1, np.int64))
 
     # ---- piece vertex lists and their concatenated arc length (gap between pieces)
     plen = b - a + 1
@@ -269,14 +280,50 @@ def _pathsplit(V: np.ndarray, counts: np.ndarray, job: Job) -> _Split:
     last = gstart[1:] - 1
     gs[last] = s0 + L
     gxy = np.stack([np.interp(gs, S, PV[:, 0]), np.interp(gs, S, PV[:, 1])], axis=1)
-    smoothed = m.smoothing_tolerance_mm > 0.0
-    if smoothed:
-        gxy = _mtts.smooth_pieces(gstart, gxy, SMOOTH_SIGMA_MM / m.point_spacing_mm,
-                                  float(m.smoothing_tolerance_mm))
+    fxy, fu, fstart = PV, S, pvs.astype(np.int64)
+    if m.smoothing_tolerance_mm > 0.0:
+        gxy, fxy, fu, fstart = _smooth(gxy, gs, gstart, PV, S, pvs, s0, hk, nseg,
+                                       float(m.smoothing_tolerance_mm),
+                                       SMOOTH_SIGMA_MM / m.point_spacing_mm)
 
     return _Split(V=V, pid=pid, counts=counts, pstart=pstart, orig_index=orig_index, a=a,
                   piece_path=piece_path, PV=PV, pvs=pvs, S=S, s0=s0, L=L, nseg=nseg, hk=hk,
-                  gstart=gstart, gxy=gxy, gs=gs)
+                  gstart=gstart, gxy=gxy, gs=gs, fxy=fxy, fu=fu, fstart=fstart)
+
+
+def _smooth(gxy: np.ndarray, gs: np.ndarray, gstart: np.ndarray, PV: np.ndarray,
+            S: np.ndarray, pvs: np.ndarray, s0: np.ndarray, hk: np.ndarray,
+            nseg: np.ndarray, tol: float, sigma_pts: float
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Optional smoothing of the resampled pieces (thesis 4.1.1) within ``tol`` mm.
+
+    The followed polyline is the grid plus the input's interior vertices (merged by arc
+    length), all moved onto the smoothing curve (``_mtts.smooth_pieces``) by at most
+    ``tol``; two consecutive points lie on one input segment, so every chord is within
+    ``tol`` of the input too. Returns (smoothed grid (G, 2), followed polyline (F, 2), its
+    parameter (F,) in S units, piece starts (Q+1,)).
+    """
+    Q = len(hk)
+    plen = np.diff(pvs)
+    interior = np.ones(len(PV), dtype=bool)
+    interior[pvs[:-1]] = False
+    interior[pvs[1:] - 1] = False
+    jv = np.flatnonzero(interior)
+    qv = np.repeat(np.arange(Q), plen)[jv]
+    off = np.mod(S[jv] - s0[qv], hk[qv])
+    jv = jv[(off > 1e-9) & (off < hk[qv] - 1e-9)]  # not on a grid point
+    qv = np.repeat(np.arange(Q), plen)[jv]
+    u = np.concatenate([gs, S[jv]])
+    order = np.argsort(u, kind="stable")
+    fu = u[order]
+    fraw = np.concatenate([gxy, PV[jv]])[order]
+    is_grid = order < len(gs)
+    extra = np.bincount(qv, minlength=Q)
+    fstart = np.concatenate([[0], np.cumsum(nseg + 1 + extra)]).astype(np.int64)
+    loc = fu - np.repeat(s0, np.diff(fstart))
+    fxy = _mtts.smooth_pieces(gstart, gxy, hk, fstart, loc, fraw, sigma_pts, tol,
+                              math.radians(SMOOTH_MAX_TURN_DEG))
+    return fxy[is_grid], fxy, fu, fstart
 
 
 def pathsplit(points: np.ndarray, job: Job | None = None) -> list[np.ndarray]:
@@ -286,6 +333,17 @@ def pathsplit(points: np.ndarray, job: Job | None = None) -> list[np.ndarray]:
     pts = _as_points(points, "path")
     sp = _pathsplit(pts, np.array([len(pts)]), job)
     return [sp.gxy[a:b] for a, b in zip(sp.gstart[:-1], sp.gstart[1:])]
+
+
+def followed_path(points: np.ndarray, job: Job | None = None) -> list[np.ndarray]:
+    """The polylines the trajectory of one path ``(k, 2)`` mm follows, one ``(n_i, 2)``
+    float64 mm per piece: the input's own pieces, or with ``motion.smoothing_tolerance_mm``
+    > 0 the smoothed grid and input vertices (``_smooth``), within the tolerance of the
+    input."""
+    job = job or Job()
+    pts = _as_points(points, "path")
+    sp = _pathsplit(pts, np.array([len(pts)]), job)
+    return [sp.fxy[a:b] for a, b in zip(sp.fstart[:-1], sp.fstart[1:])]
 
 
 def _plan_polylines(polys: Sequence[np.ndarray], vcaps: np.ndarray, job: Job, robot: Robot,
@@ -325,7 +383,6 @@ def _plan_polylines(polys: Sequence[np.ndarray], vcaps: np.ndarray, job: Job, ro
     nseg, hk, gstart, gxy, gs = sp.nseg, sp.hk, sp.gstart, sp.gxy, sp.gs
     K = len(V)
     Q = len(a)
-    smoothed = m.smoothing_tolerance_mm > 0.0
 
     # ---- workspace check before any planning: every input point, then every grid point
     # (a chord can leave the workspace between two reachable points, e.g. across the inner
@@ -362,10 +419,7 @@ def _plan_polylines(polys: Sequence[np.ndarray], vcaps: np.ndarray, job: Job, ro
     jerk_on = bool(m.jerk_limited)
     vcap_piece = np.asarray(vcaps, dtype=np.float64)[piece_path]
     # the polyline each piece follows (its vertices, turning vectors, arc length)
-    if smoothed:
-        vstart, vs_loc, vtau = _vertices(gxy, gstart)
-    else:
-        vstart, vs_loc, vtau = _vertices(PV, pvs)
+    vstart, vs_loc, vtau = _vertices(sp.fxy, sp.fstart)
     v, env, T = _mtts.speed_profiles(
         gstart, hk, gxy, qgrid, vcap_piece, float(m.accel_mm_s2), float(m.jerk_mm_s3),
         jerk_on, qv[used], qa[used], qj[used], float(m.rest_accel_mm_s2),
@@ -377,20 +431,14 @@ def _plan_polylines(polys: Sequence[np.ndarray], vcaps: np.ndarray, job: Job, ro
     sstart = np.concatenate([[0], np.cumsum(nsamp + 1)]).astype(np.int64)
     s_loc, spd = _mtts.sample_pieces(gstart, hk, v, T, nsamp, sstart[:-1].copy(), dt,
                                      float(m.rest_accel_mm_s2) if jerk_on else -1.0)
-    if smoothed:
-        # follow the smoothed grid (piecewise linear between grid points)
-        gl = np.repeat(np.arange(Q), nsamp + 1)
-        pos = s_loc / hk[gl]
-        base = gstart[gl]
-        i = np.minimum(np.floor(pos).astype(np.int64), nseg[gl] - 1)
-        f = (pos - i)[:, None]
-        xy = gxy[base + i] * (1.0 - f) + gxy[base + i + 1] * f
-    else:
-        sg = np.minimum(s_loc, np.repeat(L, nsamp + 1)) + np.repeat(s0, nsamp + 1)
-        xy = np.stack([np.interp(sg, S, PV[:, 0]), np.interp(sg, S, PV[:, 1])], axis=1)
-        # rest points exactly on the corners
-        xy[sstart[:-1]] = PV[pvs[:-1]]
-        xy[sstart[1:] - 1] = PV[pvs[1:] - 1]
+    # follow the input polyline, or the smoothed one (piecewise linear, parameter in S
+    # units: the grid's s is the resampled path's arc length)
+    fxy, fu, fstart = sp.fxy, sp.fu, sp.fstart
+    sg = np.minimum(s_loc, np.repeat(L, nsamp + 1)) + np.repeat(s0, nsamp + 1)
+    xy = np.stack([np.interp(sg, fu, fxy[:, 0]), np.interp(sg, fu, fxy[:, 1])], axis=1)
+    # rest points exactly on the corners
+    xy[sstart[:-1]] = fxy[fstart[:-1]]
+    xy[sstart[1:] - 1] = fxy[fstart[1:] - 1]
 
     # ---- concatenate the pieces of each path: the shared corner sample appears once
     first_of_path = np.ones(Q, dtype=bool)
