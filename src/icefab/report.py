@@ -1,5 +1,9 @@
 """Pictures and the HTML build report.
 
+The pictures of every stage live here (the commands only call them): layers
+(:func:`plot_layers`), regions and paths (:func:`plot_toolpaths`), the simulator's RMS
+error vs height and error surfaces (:func:`plot_rms`, :func:`plot_surfaces`, thesis
+Figs. 5-9 and 5-8) and the 1D SMF response (:func:`plot_error_response`).
 Figures are written atomically (temporary file, then rename) so an interrupted command
 never leaves a half-written picture. The HTML report is one self-contained file: every
 picture is embedded, so it can be mailed or archived as it is.
@@ -11,9 +15,18 @@ import base64
 import html
 import os
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Mapping, Sequence
+
+import numpy as np
 
 from icefab.atomic import atomic_path
+from icefab.types import Stack, Toolpaths
+
+if TYPE_CHECKING:  # pragma: no cover
+    from icefab.sim import SimResult
+
+# Material colours shared by every picture: part (water) blue, scaffold orange.
+_COLOUR = {"part": "tab:blue", "scaffold": "tab:orange"}
 
 
 def pyplot():
@@ -82,3 +95,175 @@ def html_report(title: str, summary: Mapping[str, Any],
                      f"<figcaption>{html.escape(caption)}</figcaption></figure>")
     parts.append("</body></html>")
     return "\n".join(parts)
+
+
+# --------------------------------------------------------------------------- plots
+
+
+def plot_layers(stack: Stack, ks: list[int], path: Path) -> None:
+    """Draw layers ``ks`` of a stack into a PNG at ``path`` (written atomically)."""
+    plt = pyplot()
+
+    n = max(1, len(ks))
+    cols = min(3, n)
+    rows = (n + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 4.0 * rows), squeeze=False)
+    lim = None
+    pts = [r for k in ks for r in stack[k].part.rings]
+    if pts:
+        allp = np.concatenate(pts)
+        lo, hi = allp.min(axis=0), allp.max(axis=0)
+        pad = 0.05 * float(max(hi - lo)) + 1.0
+        lim = (lo - pad, hi + pad)
+    for ax, k in zip(axes.ravel(), ks):
+        layer = stack[k]
+        reg = layer.part
+        depth = reg.depth() if len(reg) else np.zeros(0, dtype=int)
+        for ring, d in zip(reg.rings, depth):
+            closed = np.vstack([ring, ring[:1]])
+            hole = d % 2 == 1
+            ax.plot(closed[:, 0], closed[:, 1], "--" if hole else "-",
+                    color="tab:red" if hole else "tab:blue", lw=0.9)
+            ax.fill(ring[:, 0], ring[:, 1], color="white" if hole else "tab:blue",
+                    alpha=1.0 if hole else 0.15, zorder=d)
+        ax.set_title(f"layer {k}: z = {layer.z:.2f} mm, {len(reg)} contours, "
+                     f"{reg.area:.0f} mm²", fontsize=9)
+        ax.set_aspect("equal")
+        if lim is not None:
+            ax.set_xlim(lim[0][0], lim[1][0])
+            ax.set_ylim(lim[0][1], lim[1][1])
+        ax.set_xlabel("x (mm)", fontsize=8)
+        ax.set_ylabel("y (mm)", fontsize=8)
+        ax.tick_params(labelsize=7)
+    for ax in axes.ravel()[len(ks):]:
+        ax.axis("off")
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def plot_toolpaths(stack: Stack, toolpaths: Toolpaths, ks: list[int], path: Path) -> None:
+    """Draw layers ``ks``: regions filled (part blue, scaffold orange), boundaries solid,
+    fill thin, travel dashed grey, measurement dotted green. PNG written atomically."""
+    plt = pyplot()
+    from matplotlib.patches import PathPatch
+    from matplotlib.path import Path as MplPath
+
+    n = max(1, len(ks))
+    cols = min(2, n)
+    rows = (n + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(6.0 * cols, 5.6 * rows), squeeze=False)
+    for ax, k in zip(axes.ravel(), ks):
+        layer = stack[k]
+        for material, region in (("part", layer.part), ("scaffold", layer.scaffold)):
+            if region.is_empty:
+                continue
+            verts, codes = [], []
+            for ring in region.rings:
+                verts.append(np.vstack([ring, ring[:1]]))
+                c = np.full(len(ring) + 1, MplPath.LINETO)
+                c[0], c[-1] = MplPath.MOVETO, MplPath.CLOSEPOLY
+                codes.append(c)
+            patch = PathPatch(MplPath(np.concatenate(verts), np.concatenate(codes)),
+                              facecolor=_COLOUR[material], alpha=0.18, lw=0,
+                              label=f"{material} region")
+            ax.add_patch(patch)
+        lp = toolpaths.layers[k]
+        seen = set()
+        for p in lp.paths:
+            pts = p.polyline()
+            if p.role == "travel":
+                style = dict(color="0.45", lw=0.6, ls="--")
+            elif p.role == "measure":
+                style = dict(color="tab:green", lw=0.6, ls=":")
+            elif p.role == "boundary":
+                style = dict(color=_COLOUR[p.material], lw=1.3, ls="-")
+            else:
+                style = dict(color=_COLOUR[p.material], lw=0.5, ls="-", alpha=0.8)
+            label = f"{p.material} {p.role}" if p.role in ("boundary", "fill") else p.role
+            ax.plot(pts[:, 0], pts[:, 1], label=None if label in seen else label, **style)
+            seen.add(label)
+        ax.set_title(f"layer {k}: z = {layer.z:.2f} mm, {len(lp.paths)} paths, unfilled "
+                     f"{lp.unfilled_mm2[0]:.0f}/{lp.unfilled_mm2[1]:.0f} mm²", fontsize=9)
+        ax.set_aspect("equal")
+        ax.autoscale_view()
+        ax.set_xlabel("x (mm)", fontsize=8)
+        ax.set_ylabel("y (mm)", fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.legend(fontsize=6, loc="upper right")
+    for ax in axes.ravel()[len(ks):]:
+        ax.axis("off")
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def plot_rms(open_loop: "SimResult", closed: "SimResult", path: Path) -> None:
+    """RMS height deviation vs nominal height, open loop and SMF (thesis Fig. 5-9)."""
+    plt = pyplot()
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    ax.plot(open_loop.nominal_z, open_loop.rms, "o-", color="tab:red", ms=3,
+            label="open loop")
+    ax.plot(closed.nominal_z, closed.rms, "s-", color="tab:blue", ms=3, label="SMF")
+    ax.set_xlabel("nominal part height (mm)")
+    ax.set_ylabel(r"RMS height deviation $\sigma_l^*$ (mm)")
+    ax.set_title("part accuracy with and without surface mapping feedback", fontsize=10)
+    ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def plot_surfaces(open_loop: "SimResult", closed: "SimResult", layer: int,
+                  path: Path) -> None:
+    """Height error surfaces of one measurement layer, open loop and SMF (Fig. 5-8)."""
+    plt = pyplot()
+
+    pair = [(name, res.surfaces[layer], res) for name, res in
+            (("open loop", open_loop), ("SMF", closed))]
+    finite = np.concatenate([s.z[np.isfinite(s.z)] for _, s, _ in pair])
+    lim = float(np.percentile(np.abs(finite), 99.0)) if finite.size else 1.0
+    lim = max(lim, 1e-3)
+    fig, axes = plt.subplots(1, 2, figsize=(11.0, 4.8), constrained_layout=True)
+    im = None
+    for ax, (name, surf, res) in zip(axes, pair):
+        xs, ys = surf.grid()
+        g = surf.spacing
+        extent = (xs[0] - g / 2, xs[-1] + g / 2, ys[0] - g / 2, ys[-1] + g / 2)
+        im = ax.imshow(np.ma.masked_invalid(surf.z), origin="lower", extent=extent,
+                       cmap="RdBu_r", vmin=-lim, vmax=lim, interpolation="nearest")
+        i = int(np.flatnonzero(res.layers == layer)[0])
+        ax.set_title(f"{name}: layer {layer}, nominal {res.nominal_z[i]:.2f} mm, "
+                     rf"$\sigma_l^*$ = {res.rms[i]:.3f} mm", fontsize=9)
+        ax.set_xlabel("x (mm)")
+        ax.set_ylabel("y (mm)")
+        ax.set_aspect("equal")
+    fig.colorbar(im, ax=axes, shrink=0.9, label="height - nominal (mm)")
+    save_figure(fig, path)
+
+
+def plot_error_response(result, dist, job, path, mode: str) -> None:
+    import numpy as np
+
+    plt = pyplot()
+
+    from icefab.feedback import simulate_1d
+
+    n_d = job.feedback.interval_layers
+    dh = job.slicing.layer_thickness_mm
+    sim = simulate_1d((result.kp, result.ki, result.kd), dist, n_d=n_d, dh_d=dh)
+    k = np.arange(1, len(sim.e) + 1)
+    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(7, 5.5), sharex=True)
+    ax1.plot(k, sim.e, label="error $e_k$")
+    ax1.step(k, sim.d, where="post", color="0.6", lw=1, label="disturbance $d_k$")
+    ax1.axhline(0, color="k", lw=0.5)
+    ax1.set_ylabel("normalised by $\\Delta h_m$")
+    ax1.legend(loc="upper right")
+    ax1.set_title(f"SMF 1D response, {mode}: $K_p$={result.kp:.3f}, $K_i^*$={result.ki:.3f}, "
+                  f"$K_d^*$={result.kd:.3f}\n$\\sigma_p^*$={result.rms:.4f}, "
+                  f"max |pole| = {result.max_pole:.3f}", fontsize=9)
+    ax2.plot(k, sim.nu, color="C1")
+    ax2.set_ylabel("valve frequency $\\nu$ (Hz)")
+    ax2.set_xlabel("measurement layer k")
+    fig.tight_layout()
+    save_figure(fig, path)

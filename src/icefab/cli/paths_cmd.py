@@ -18,15 +18,12 @@ from pathlib import Path as FsPath
 import numpy as np
 
 from icefab.cli.common import Progress, add_job_argument, job_from_args, parse_layers
-from icefab.report import pyplot, save_figure
-from icefab.types import Stack, Toolpaths
+from icefab.report import plot_toolpaths
+from icefab.types import Toolpaths
 
 SHOW_WARNINGS = 5
 
 # colours: part (water) blue, scaffold orange
-_COLOUR = {"part": "tab:blue", "scaffold": "tab:orange"}
-
-
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
         "paths", help="scaffold regions and deposition paths of every layer",
@@ -45,59 +42,6 @@ def add_parser(subparsers) -> None:
 
 
 
-def plot_toolpaths(stack: Stack, toolpaths: Toolpaths, ks: list[int], path: FsPath) -> None:
-    """Draw layers ``ks``: regions filled (part blue, scaffold orange), boundaries solid,
-    fill thin, travel dashed grey, measurement dotted green. PNG written atomically."""
-    plt = pyplot()
-    from matplotlib.patches import PathPatch
-    from matplotlib.path import Path as MplPath
-
-    n = max(1, len(ks))
-    cols = min(2, n)
-    rows = (n + cols - 1) // cols
-    fig, axes = plt.subplots(rows, cols, figsize=(6.0 * cols, 5.6 * rows), squeeze=False)
-    for ax, k in zip(axes.ravel(), ks):
-        layer = stack[k]
-        for material, region in (("part", layer.part), ("scaffold", layer.scaffold)):
-            if region.is_empty:
-                continue
-            verts, codes = [], []
-            for ring in region.rings:
-                verts.append(np.vstack([ring, ring[:1]]))
-                c = np.full(len(ring) + 1, MplPath.LINETO)
-                c[0], c[-1] = MplPath.MOVETO, MplPath.CLOSEPOLY
-                codes.append(c)
-            patch = PathPatch(MplPath(np.concatenate(verts), np.concatenate(codes)),
-                              facecolor=_COLOUR[material], alpha=0.18, lw=0,
-                              label=f"{material} region")
-            ax.add_patch(patch)
-        lp = toolpaths.layers[k]
-        seen = set()
-        for p in lp.paths:
-            pts = p.polyline()
-            if p.role == "travel":
-                style = dict(color="0.45", lw=0.6, ls="--")
-            elif p.role == "measure":
-                style = dict(color="tab:green", lw=0.6, ls=":")
-            elif p.role == "boundary":
-                style = dict(color=_COLOUR[p.material], lw=1.3, ls="-")
-            else:
-                style = dict(color=_COLOUR[p.material], lw=0.5, ls="-", alpha=0.8)
-            label = f"{p.material} {p.role}" if p.role in ("boundary", "fill") else p.role
-            ax.plot(pts[:, 0], pts[:, 1], label=None if label in seen else label, **style)
-            seen.add(label)
-        ax.set_title(f"layer {k}: z = {layer.z:.2f} mm, {len(lp.paths)} paths, unfilled "
-                     f"{lp.unfilled_mm2[0]:.0f}/{lp.unfilled_mm2[1]:.0f} mm²", fontsize=9)
-        ax.set_aspect("equal")
-        ax.autoscale_view()
-        ax.set_xlabel("x (mm)", fontsize=8)
-        ax.set_ylabel("y (mm)", fontsize=8)
-        ax.tick_params(labelsize=7)
-        ax.legend(fontsize=6, loc="upper right")
-    for ax in axes.ravel()[len(ks):]:
-        ax.axis("off")
-    fig.tight_layout()
-    save_figure(fig, path)
 
 
 def summary_lines(toolpaths: Toolpaths, per_layer_s: np.ndarray, total_s: float) -> list[str]:

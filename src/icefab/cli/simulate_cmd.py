@@ -28,12 +28,11 @@ import time
 from pathlib import Path as FsPath
 from typing import TYPE_CHECKING
 
-import numpy as np
 
 from icefab.cli.common import Progress, add_job_argument, job_from_args, output_dir
 from icefab.atomic import write_atomic
 from icefab.errors import ConfigError
-from icefab.report import pyplot, save_figure
+from icefab.report import plot_rms, plot_surfaces
 
 if TYPE_CHECKING:  # pragma: no cover
     from icefab.config import Job
@@ -146,50 +145,8 @@ def format_table(rows: list[list[float]]) -> list[str]:
 
 
 
-def plot_rms(open_loop: "SimResult", closed: "SimResult", path: FsPath) -> None:
-    """RMS height deviation vs nominal height, open loop and SMF (thesis Fig. 5-9)."""
-    plt = pyplot()
-
-    fig, ax = plt.subplots(figsize=(6.4, 4.2))
-    ax.plot(open_loop.nominal_z, open_loop.rms, "o-", color="tab:red", ms=3,
-            label="open loop")
-    ax.plot(closed.nominal_z, closed.rms, "s-", color="tab:blue", ms=3, label="SMF")
-    ax.set_xlabel("nominal part height (mm)")
-    ax.set_ylabel(r"RMS height deviation $\sigma_l^*$ (mm)")
-    ax.set_title("part accuracy with and without surface mapping feedback", fontsize=10)
-    ax.set_ylim(bottom=0)
-    ax.grid(alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    save_figure(fig, path)
 
 
-def plot_surfaces(open_loop: "SimResult", closed: "SimResult", layer: int,
-                  path: FsPath) -> None:
-    """Height error surfaces of one measurement layer, open loop and SMF (Fig. 5-8)."""
-    plt = pyplot()
-
-    pair = [(name, res.surfaces[layer], res) for name, res in
-            (("open loop", open_loop), ("SMF", closed))]
-    finite = np.concatenate([s.z[np.isfinite(s.z)] for _, s, _ in pair])
-    lim = float(np.percentile(np.abs(finite), 99.0)) if finite.size else 1.0
-    lim = max(lim, 1e-3)
-    fig, axes = plt.subplots(1, 2, figsize=(11.0, 4.8), constrained_layout=True)
-    im = None
-    for ax, (name, surf, res) in zip(axes, pair):
-        xs, ys = surf.grid()
-        g = surf.spacing
-        extent = (xs[0] - g / 2, xs[-1] + g / 2, ys[0] - g / 2, ys[-1] + g / 2)
-        im = ax.imshow(np.ma.masked_invalid(surf.z), origin="lower", extent=extent,
-                       cmap="RdBu_r", vmin=-lim, vmax=lim, interpolation="nearest")
-        i = int(np.flatnonzero(res.layers == layer)[0])
-        ax.set_title(f"{name}: layer {layer}, nominal {res.nominal_z[i]:.2f} mm, "
-                     rf"$\sigma_l^*$ = {res.rms[i]:.3f} mm", fontsize=9)
-        ax.set_xlabel("x (mm)")
-        ax.set_ylabel("y (mm)")
-        ax.set_aspect("equal")
-    fig.colorbar(im, ax=axes, shrink=0.9, label="height - nominal (mm)")
-    save_figure(fig, path)
 
 
 def write_simulation_outputs(open_loop: "SimResult", closed: "SimResult", out: FsPath, *,

@@ -17,7 +17,7 @@ import numpy as np
 
 from icefab.cli.common import Progress, add_job_argument, job_from_args, parse_layers
 from icefab.errors import ConfigError
-from icefab.report import pyplot, save_figure
+from icefab.report import plot_layers
 from icefab.types import Stack
 
 #: warnings printed in full by the summary
@@ -40,45 +40,6 @@ def add_parser(subparsers) -> None:
 
 
 
-def plot_layers(stack: Stack, ks: list[int], path: Path) -> None:
-    """Draw layers ``ks`` of a stack into a PNG at ``path`` (written atomically)."""
-    plt = pyplot()
-
-    n = max(1, len(ks))
-    cols = min(3, n)
-    rows = (n + cols - 1) // cols
-    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 4.0 * rows), squeeze=False)
-    lim = None
-    pts = [r for k in ks for r in stack[k].part.rings]
-    if pts:
-        allp = np.concatenate(pts)
-        lo, hi = allp.min(axis=0), allp.max(axis=0)
-        pad = 0.05 * float(max(hi - lo)) + 1.0
-        lim = (lo - pad, hi + pad)
-    for ax, k in zip(axes.ravel(), ks):
-        layer = stack[k]
-        reg = layer.part
-        depth = reg.depth() if len(reg) else np.zeros(0, dtype=int)
-        for ring, d in zip(reg.rings, depth):
-            closed = np.vstack([ring, ring[:1]])
-            hole = d % 2 == 1
-            ax.plot(closed[:, 0], closed[:, 1], "--" if hole else "-",
-                    color="tab:red" if hole else "tab:blue", lw=0.9)
-            ax.fill(ring[:, 0], ring[:, 1], color="white" if hole else "tab:blue",
-                    alpha=1.0 if hole else 0.15, zorder=d)
-        ax.set_title(f"layer {k}: z = {layer.z:.2f} mm, {len(reg)} contours, "
-                     f"{reg.area:.0f} mm²", fontsize=9)
-        ax.set_aspect("equal")
-        if lim is not None:
-            ax.set_xlim(lim[0][0], lim[1][0])
-            ax.set_ylim(lim[0][1], lim[1][1])
-        ax.set_xlabel("x (mm)", fontsize=8)
-        ax.set_ylabel("y (mm)", fontsize=8)
-        ax.tick_params(labelsize=7)
-    for ax in axes.ravel()[len(ks):]:
-        ax.axis("off")
-    fig.tight_layout()
-    save_figure(fig, path)
 
 
 def summary_lines(stack: Stack, elapsed_s: float | None = None) -> list[str]:

@@ -16,6 +16,7 @@ import json
 import math
 import sys
 
+from icefab.report import plot_error_response
 from icefab.cli.common import add_job_argument, job_from_args, output_dir
 from icefab.errors import ConfigError
 
@@ -125,7 +126,7 @@ def run(args: argparse.Namespace) -> int:
     data = result.as_dict()
     if args.out:
         with output_dir(args.out) as tmp:
-            _plot(result, dist, job, tmp / "error_response.png", mode)
+            plot_error_response(result, dist, job, tmp / "error_response.png", mode)
             (tmp / "tune.json").write_text(json.dumps(
                 {**data, "mode": mode, "n_layers": n_layers, "pulses": pulses,
                  "steps": steps, "noise": noise, "seed": seed}, indent=2) + "\n")
@@ -143,30 +144,3 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _plot(result, dist, job, path, mode: str) -> None:
-    import numpy as np
-
-    from icefab.report import pyplot, save_figure
-
-    plt = pyplot()
-
-    from icefab.feedback import simulate_1d
-
-    n_d = job.feedback.interval_layers
-    dh = job.slicing.layer_thickness_mm
-    sim = simulate_1d((result.kp, result.ki, result.kd), dist, n_d=n_d, dh_d=dh)
-    k = np.arange(1, len(sim.e) + 1)
-    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(7, 5.5), sharex=True)
-    ax1.plot(k, sim.e, label="error $e_k$")
-    ax1.step(k, sim.d, where="post", color="0.6", lw=1, label="disturbance $d_k$")
-    ax1.axhline(0, color="k", lw=0.5)
-    ax1.set_ylabel("normalised by $\\Delta h_m$")
-    ax1.legend(loc="upper right")
-    ax1.set_title(f"SMF 1D response, {mode}: $K_p$={result.kp:.3f}, $K_i^*$={result.ki:.3f}, "
-                  f"$K_d^*$={result.kd:.3f}\n$\\sigma_p^*$={result.rms:.4f}, "
-                  f"max |pole| = {result.max_pole:.3f}", fontsize=9)
-    ax2.plot(k, sim.nu, color="C1")
-    ax2.set_ylabel("valve frequency $\\nu$ (Hz)")
-    ax2.set_xlabel("measurement layer k")
-    fig.tight_layout()
-    save_figure(fig, path)
