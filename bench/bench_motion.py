@@ -70,6 +70,34 @@ def bunny_toolpaths():
     return tp, time.perf_counter() - t0
 
 
+def bunny_zigzag_toolpaths(job):
+    """The bunny's toolpaths with straight-line (zigzag) fill, for the thesis'
+    constant-speed case; built from the slicing benchmark's cached stack when there is
+    one, cached in ``bench/.cache/bunny-toolpaths-motion-zigzag.npz``."""
+    path = CACHE / "bunny-toolpaths-motion-zigzag.npz"
+    zjob = job.replace(**{"materials.part.fill_pattern": "zigzag",
+                          "materials.scaffold.fill_pattern": "zigzag"})
+    if path.exists():
+        tp = load_toolpaths(path)
+        if tuple(tp.job.cell.ee_origin_mm) == BUNNY_EE:
+            return tp, 0.0
+    t0 = time.perf_counter()
+    print("building bunny zigzag toolpaths (cached afterwards) ...", flush=True)
+    stack_cache = CACHE / "bunny-stack-0.25.npz"
+    if stack_cache.exists():
+        from icefab.slicing import load_stack
+        stack = load_stack(stack_cache)
+    else:
+        from meshes import big_mesh
+
+        from icefab.mesh import load_mesh
+        from icefab.slicing import slice_mesh
+        stack = slice_mesh(load_mesh(big_mesh("bunny")), zjob)
+    tp = plan_paths(add_scaffold(stack, zjob), zjob)
+    save_toolpaths(tp, path)
+    return tp, time.perf_counter() - t0
+
+
 def rounded_rect(w, h, r, step=0.5):
     pts = []
     for cx, cy, a0 in ((w / 2 - r, -h / 2 + r, -90), (w / 2 - r, h / 2 - r, 0),
@@ -179,6 +207,16 @@ def main() -> int:
     raw = plan_toolpaths(sub, pjob.replace(**{"motion.smoothing_tolerance_mm": 0.0})).duration
     cacc = constant_speed_motion(sub, pjob).duration
     cacc25 = constant_speed_motion(sub, pjob, fill_mm_s=vb).duration
+    tpz, t_z = bunny_zigzag_toolpaths(job)
+    zjob = tpz.job.replace(**{"motion.smoothing_tolerance_mm": tol, "cell.cpus": workers})
+    subz = type(tpz)(layers=tpz.layers[::args.layers_every], job=zjob)
+    czz = constant_speed_motion(subz, zjob).duration
+    _, ezz = estimate_build_time(subz, zjob)
+    print(f"bunny, zigzag fill (thesis' constant-speed technique: boundary {vb:g}, fill "
+          f"{zjob.motion.fill_speed_mm_s:g} mm/s): planned with accelerations "
+          f"{czz / 3600:.2f} h (MTTS on concentric paths {czz / mtts_time:.2f}x faster), "
+          f"length / speed {ezz / 3600:.2f} h" + (f"  [toolpaths built in {t_z:.0f} s]"
+                                                 if t_z else ""))
     print(f"bunny build time: MTTS {mtts_time / 3600:.2f} h (smoothing off: "
           f"{raw / 3600:.2f} h); constant speed (boundary "
           f"{vb:g}, fill {job.motion.fill_speed_mm_s:g} mm/s) planned with the robot's "
@@ -196,7 +234,9 @@ def main() -> int:
     import toppra as ta
 
     from icefab.robots import get_robot
-    job_nj = job.replace(**{"motion.jerk_limited": False, "motion.dt_s": 0.004})
+    # smoothing off: both solvers get the same spline (MTTS would smooth it again)
+    job_nj = job.replace(**{"motion.jerk_limited": False, "motion.dt_s": 0.004,
+                            "motion.smoothing_tolerance_mm": 0.0})
     robot = get_robot(job_nj)
     rng = np.random.default_rng(7)
     cands = [p for lp in tp.layers for p in lp.paths

@@ -43,6 +43,12 @@ Steps (thesis 4.1, compiled kernels in :mod:`icefab._mtts`):
    filter of thesis 4.2.6 (``motion.savgol_window``) wherever that moves the tool by less
    than ``SAVGOL_MAX_DEVIATION_MM``.
 
+Comparison with constant speed (thesis 4.4): :func:`constant_speed_motion` plans the
+thesis' "constant-speed" technique (boundaries 25 mm/s, fill 125 mm/s) with the same
+machinery and the path's speed bound set to that constant, so ramps, stops at split
+corners and curvature limits count; ``icefab.paths.estimate_build_time`` is the
+idealised length / speed figure.
+
 The planner only knows the :class:`icefab.robots.Robot` protocol (the Klipper rule: a
 robot can only tighten limits).
 
