@@ -1,7 +1,8 @@
 """Pictures and the HTML build report.
 
 The pictures of every stage live here (the commands only call them): layers
-(:func:`plot_layers`), regions and paths (:func:`plot_toolpaths`), the simulator's RMS
+(:func:`plot_layers`), regions and paths (:func:`plot_toolpaths`), speed along the
+trajectories (:func:`plot_speed`, thesis Fig. 4-11), the simulator's RMS
 error vs height and error surfaces (:func:`plot_rms`, :func:`plot_surfaces`, thesis
 Figs. 5-9 and 5-8) and the 1D SMF response (:func:`plot_error_response`).
 Figures are written atomically (temporary file, then rename) so an interrupted command
@@ -267,3 +268,38 @@ def plot_error_response(result, dist, job, path, mode: str) -> None:
     ax2.set_xlabel("measurement layer k")
     fig.tight_layout()
     save_figure(fig, path)
+
+
+def plot_speed(layer, path: Path, vmax: float) -> None:
+    """Samples of one layer's trajectories (``icefab.motion.LayerMotion``) coloured by
+    speed, mm/s from 0 to ``vmax`` (thesis Fig. 4-11), PNG."""
+    plt = pyplot()
+    from matplotlib.collections import LineCollection
+
+    fig, ax = plt.subplots(figsize=(7.5, 6.5))
+    segs, speeds, pts = [], [], []
+    for tr in layer.trajectories:
+        if len(tr.xy) < 2:
+            continue
+        if tr.path is not None and tr.path.role == "travel":
+            ax.plot(tr.xy[:, 0], tr.xy[:, 1], color="0.75", lw=0.5, ls="--", zorder=1)
+            continue
+        segs.append(np.stack([tr.xy[:-1], tr.xy[1:]], axis=1))
+        speeds.append(0.5 * (tr.speed[:-1] + tr.speed[1:]))
+        pts.append(tr.xy)
+    if segs:
+        lc = LineCollection(np.concatenate(segs), cmap="viridis", linewidths=1.2, zorder=2)
+        lc.set_array(np.concatenate(speeds))
+        lc.set_clim(0.0, vmax)
+        ax.add_collection(lc)
+        allp = np.concatenate(pts)
+        ax.scatter(allp[:, 0], allp[:, 1], s=0.6, c="k", zorder=3, linewidths=0)
+        fig.colorbar(lc, ax=ax, label="speed (mm/s)")
+        ax.autoscale()
+    ax.set_aspect("equal")
+    ax.set_title(f"layer {layer.index}: z = {layer.z:.2f} mm, {layer.n_points} samples, "
+                 f"{layer.duration:.1f} s", fontsize=10)
+    ax.set_xlabel("x, robot base frame (mm)")
+    ax.set_ylabel("y (mm)")
+    fig.tight_layout()
+    save_figure(fig, path, dpi=120)

@@ -15,7 +15,7 @@ import time
 import numpy as np
 
 from icefab.cli.common import Progress, add_job_argument, job_from_args, output_dir
-from icefab.report import html_report, plot_toolpaths
+from icefab.report import html_report, plot_speed, plot_toolpaths
 
 
 def add_parser(subparsers) -> None:
@@ -40,7 +40,6 @@ def _say(text: str) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from icefab.cli.plan_cmd import plot_speed
     from icefab.demo import demo_mug
     from icefab.flow import n_pulses, plan_valves, program_pieces, write_valve_program
     from icefab.mesh import check_mesh, transform, write_stl

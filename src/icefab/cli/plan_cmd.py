@@ -18,15 +18,13 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import os
-import tempfile
 import time
 from pathlib import Path as FsPath
 
-import numpy as np
-
-from icefab.cli.common import Progress, add_job_argument, job_from_args, output_dir
+from icefab.cli.common import (Progress, add_job_argument, job_from_args, output_dir,
+                               parse_layers)
 from icefab.errors import ConfigError
+from icefab.report import plot_speed
 
 
 def add_parser(subparsers) -> None:
@@ -46,20 +44,6 @@ def add_parser(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-def _parse_layers(text: str | None, n: int) -> list[int]:
-    if n == 0:
-        return []
-    if not text:
-        return sorted(set(np.linspace(0, n - 1, min(3, n)).round().astype(int).tolist()))
-    try:
-        ks = [int(t) for t in text.replace(" ", "").split(",") if t]
-    except ValueError:
-        raise ConfigError(f"--layers {text!r}: expected comma-separated layer numbers, "
-                          "e.g. 10,50") from None
-    bad = [k for k in ks if not 0 <= k < n]
-    if bad or not ks:
-        raise ConfigError(f"--layers {text!r}: layer numbers must be between 0 and {n - 1}")
-    return ks
 
 
 def load_input(path: str, job):
@@ -86,47 +70,6 @@ def load_input(path: str, job):
     return plan_paths(stack, job), job
 
 
-def plot_speed(layer, path: FsPath, vmax: float) -> None:
-    """Samples of one layer's trajectories coloured by speed (thesis Fig. 4-11), PNG."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.collections import LineCollection
-
-    fig, ax = plt.subplots(figsize=(7.5, 6.5))
-    segs, speeds, pts = [], [], []
-    for tr in layer.trajectories:
-        if len(tr.xy) < 2:
-            continue
-        if tr.path is not None and tr.path.role == "travel":
-            ax.plot(tr.xy[:, 0], tr.xy[:, 1], color="0.75", lw=0.5, ls="--", zorder=1)
-            continue
-        segs.append(np.stack([tr.xy[:-1], tr.xy[1:]], axis=1))
-        speeds.append(0.5 * (tr.speed[:-1] + tr.speed[1:]))
-        pts.append(tr.xy)
-    if segs:
-        lc = LineCollection(np.concatenate(segs), cmap="viridis", linewidths=1.2, zorder=2)
-        lc.set_array(np.concatenate(speeds))
-        lc.set_clim(0.0, vmax)
-        ax.add_collection(lc)
-        allp = np.concatenate(pts)
-        ax.scatter(allp[:, 0], allp[:, 1], s=0.6, c="k", zorder=3, linewidths=0)
-        fig.colorbar(lc, ax=ax, label="speed (mm/s)")
-        ax.autoscale()
-    ax.set_aspect("equal")
-    ax.set_title(f"layer {layer.index}: z = {layer.z:.2f} mm, {layer.n_points} samples, "
-                 f"{layer.duration:.1f} s", fontsize=10)
-    ax.set_xlabel("x, robot base frame (mm)")
-    ax.set_ylabel("y (mm)")
-    fig.tight_layout()
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        fig.savefig(tmp, dpi=120, format="png")
-        os.replace(tmp, path)
-    finally:
-        plt.close(fig)
-        FsPath(tmp).unlink(missing_ok=True)
 
 
 def _hms(s: float) -> str:
@@ -147,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
     t1 = time.perf_counter()
     motion = plan_toolpaths(tp, job, progress=Progress("planning"))
     t_plan = time.perf_counter() - t1
-    ks = _parse_layers(args.layers, len(motion))
+    ks = parse_layers(args.layers, len(motion), default_count=3)
     _, const = estimate_build_time(tp, job)
     const_acc = constant_speed_motion(tp, job, progress=Progress("constant speed")).duration
     n_traj = sum(len(lm.trajectories) for lm in motion.layers)
