@@ -308,7 +308,7 @@ def _step_curvature(n, h, vcap, dt, A, qa, p2, qd2, c2, cq):
 
 
 @njit(cache=True, fastmath=_FM)
-def _vertex_bounds(sv, tau, n, h, vcap, dt, A, xk, kv):
+def _vertex_bounds(sv, tau, n, h, vcap, dt, A, xk, kv, ctau):
     """Speed bounds from the vertices of the polyline actually followed (v^2 into xk[0:n]).
 
     The robot gets one sample every dt, a step of L = v dt along the path. The second
@@ -327,10 +327,46 @@ def _vertex_bounds(sv, tau, n, h, vcap, dt, A, xk, kv):
         xk[i] = np.inf
         kv[i] = 0.0
     K = sv.shape[0]
+    # prefix sums of |tau| and |tau| s (ctau (K+1, 2) work array): the acceleration at
+    # speed v is at most sum |tau_w| (v - |d_w| / dt) / dt over the vertices within v dt,
+    # which grows with v: where it stays under A at vcap the bound is vcap (smooth
+    # polylines), found without growing the window
+    ctau[0, 0] = 0.0
+    ctau[0, 1] = 0.0
+    for w in range(K):
+        ta = math.sqrt(tau[w, 0] ** 2 + tau[w, 1] ** 2)
+        ctau[w + 1, 0] = ctau[w, 0] + ta
+        ctau[w + 1, 1] = ctau[w, 1] + ta * sv[w]
+    L0 = vcap * dt
+    wl = 0
+    wr = 0
     for v in range(K):
         ax = tau[v, 0]
         ay = tau[v, 1]
         if ax == 0.0 and ay == 0.0:
+            continue
+        while sv[v] - sv[wl] >= L0:
+            wl += 1
+        if wr < v:
+            wr = v
+        while wr + 1 < K and sv[wr + 1] - sv[v] < L0:
+            wr += 1
+        # sum over the window of |tau_w| (vcap - |d_w| / dt) / dt, the acceleration bound
+        sl = ctau[v, 0] - ctau[wl, 0]
+        sr = ctau[wr + 1, 0] - ctau[v, 0]
+        dsum = (sv[v] * sl - (ctau[v, 1] - ctau[wl, 1])
+                + (ctau[wr + 1, 1] - ctau[v, 1]) - sv[v] * sr)
+        if vcap * (sl + sr) - dsum / dt <= A * dt * (1.0 - 1e-9):
+            u = vcap
+            if u > 0.0:
+                L = u * dt
+                kvu = math.sqrt(ax * ax + ay * ay) / dt
+                g0 = max(0, int((sv[v] - L) / h))
+                g1 = min(n - 1, int((sv[v] + L) / h) + 1)
+                for gi in range(g0, g1 + 1):
+                    w = 1.0 - abs(gi * h - sv[v]) / L
+                    if w > 0.0 and kvu * w > kv[gi]:
+                        kv[gi] = kvu * w
             continue
         cx = 0.0
         cy = 0.0
@@ -452,6 +488,10 @@ def speed_profiles(gstart, h, xy, q, vcap, A, J, jerk_on, qv, qa, qj, a_rest, jc
     xk = np.zeros(nmax)
     kv = np.zeros(nmax)
     cq = np.zeros((nmax + 1, m))
+    kmax = 0
+    for p in range(P):
+        kmax = max(kmax, vstart[p + 1] - vstart[p])
+    ctau = np.zeros((kmax + 1, 2))
     for p in range(P):
         g0 = gstart[p]
         n = gstart[p + 1] - g0
@@ -464,7 +504,7 @@ def speed_profiles(gstart, h, xy, q, vcap, A, J, jerk_on, qv, qa, qj, a_rest, jc
         vc2 = vcap[p] * vcap[p]
         _step_curvature(n, hp, vcap[p], dt, A, qa, p2, qd2, c2, cq)
         _vertex_bounds(vs_loc[vstart[p]:vstart[p + 1]], vtau[vstart[p]:vstart[p + 1]], n, hp,
-                       vcap[p], dt, A, xk, kv)
+                       vcap[p], dt, A, xk, kv, ctau)
         for i in range(n):
             kap[i] = math.sqrt(p2[i, 0] ** 2 + p2[i, 1] ** 2)
             # ---- VCON: the maximum-speed envelope (thesis 4.1.2, eqs. 4.4, 4.5)
@@ -636,6 +676,22 @@ def smooth_pieces(gstart, graw, h, fstart, fu, fraw, sigma_pts, tol, max_turn):
     fg = np.ones(gmax)
     g1 = np.ones(gmax)
     g2 = np.ones(gmax)
+    # at a grid point with an integer half-width R the fit is a fixed symmetric filter:
+    # fitted value = sum_t ker[R, t + R] y[k + t] (m1 = m3 = 0: c12 = 0), precomputed
+    rmax = int(r) + 1
+    ker = np.zeros((rmax + 1, 2 * rmax + 1))
+    for R in range(2, rmax + 1):
+        m0 = m2 = m4 = 0.0
+        for t in range(-R + 1, R):
+            q = 1.0 - (t / R) ** 2
+            w = q * q
+            m0 += w
+            m2 += w * t * t
+            m4 += w * t ** 4
+        det = m0 * m4 - m2 * m2
+        for t in range(-R + 1, R):
+            q = 1.0 - (t / R) ** 2
+            ker[R, t + R] = q * q * (m4 - m2 * t * t) / det
     for p in range(P):
         i0 = gstart[p]
         n = gstart[p + 1] - i0
@@ -672,7 +728,24 @@ def smooth_pieces(gstart, graw, h, fstart, fu, fraw, sigma_pts, tol, max_turn):
             t0 = pos - k0
             rw = (1.0 - t0) * rwk[k0] + t0 * rwk[k0 + 1]
             rw = min(rw, pos, (n - 1) - pos)
-            if rw >= 2.0:
+            kg = int(pos + 0.5)
+            R = int(rw + 0.5)
+            if (rw >= 2.0 and abs(pos - kg) < 1e-9 and abs(rw - R) < 1e-9
+                    and kg - R + 1 >= 0 and kg + R - 1 <= n - 1):
+                fx = 0.0
+                fy = 0.0
+                for t in range(-R + 1, R):
+                    c = ker[R, t + R]
+                    fx += c * graw[i0 + kg + t, 0]
+                    fy += c * graw[i0 + kg + t, 1]
+                dx = fx - fraw[j0 + jj, 0]
+                dy = fy - fraw[j0 + jj, 1]
+                d[jj, 0] = dx
+                d[jj, 1] = dy
+                dd = math.sqrt(dx * dx + dy * dy)
+                if dd > tol:
+                    fv[jj] = tol / dd
+            elif rw >= 2.0:
                 a = max(int(math.floor(pos - rw)) + 1, 0)
                 b = min(int(math.ceil(pos + rw)) - 1, n - 1)
                 # weighted normal equations of y = c0 + c1 t + c2 t^2, t = k - pos
@@ -717,6 +790,16 @@ def smooth_pieces(gstart, graw, h, fstart, fu, fraw, sigma_pts, tol, max_turn):
                 fg[k0 + 1] = fv[jj]
         # running minimum, then moving average, both over +-rr grid points: every averaged
         # value is a minimum over a window containing the point, so g2 <= fg
+        full = True
+        for k in range(n):
+            if fg[k] < 1.0:
+                full = False
+                break
+        if full:  # no displacement is scaled on this piece
+            for jj in range(nf):
+                out[j0 + jj, 0] = fraw[j0 + jj, 0] + d[jj, 0]
+                out[j0 + jj, 1] = fraw[j0 + jj, 1] + d[jj, 1]
+            continue
         for k in range(n):
             mn = 1.0
             for kk in range(max(0, k - rr), min(n, k + rr + 1)):
