@@ -143,6 +143,13 @@ def _pass(v, env, i0, i1, step, h, kap, kv, qd1, qd2, A, qa, jeff, jerk_on, a_st
     while i != b:
         nxt = i + step
         vi = v[i]
+        if env[nxt] <= vi:
+            # the curve never slows down (hi >= 0 below), so it is capped by the envelope
+            # whatever the interval: skip it (on the envelope's flat and falling parts)
+            v[nxt] = env[nxt]
+            acur = (env[nxt] * env[nxt] - vi * vi) / (2.0 * h)
+            i = nxt
+            continue
         lo, hi = _accel_interval(i, vi * vi, sign, kap, kv, qd1, qd2, A, qa)
         if hi < 0.0:
             hi = 0.0
@@ -293,7 +300,8 @@ def _step_curvature(n, h, vcap, dt, A, qa, p2, qd2, c2, cq):
         best = 0
         for k in range(1, kmax + 1):
             x = _accel_bound_x(k, k, c2, cq, n, i, A, qa)
-            if math.sqrt(x) * dt >= (2 * k + 1) * h:
+            wk = (2 * k + 1) * h
+            if x * dt * dt >= wk * wk:
                 best = k
             else:
                 break
@@ -531,9 +539,9 @@ def speed_profiles(gstart, h, xy, q, vcap, A, J, jerk_on, qv, qa, qj, a_rest, jc
                     a1 = abs(qd1[i, j])
                     if a1 > _EPS and qj[j] < je * a1:
                         je = qj[j] / a1
-                if rj < np.inf:
+                if rj < np.inf and x * x * x > rj * rj:  # x > rj^(2/3)
                     c = np.cbrt(rj)
-                    x = min(x, c * c)
+                    x = c * c
             jeff[i] = je
             # the acceleration interval must be non-empty at the envelope: bisect if not
             lo, hi = _accel_interval(i, x, 1.0, kap, kv, qd1, qd2, A, qa)
