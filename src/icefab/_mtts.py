@@ -34,7 +34,7 @@ _EPS = 1e-12
 _FM = {"nsz", "arcp", "contract", "reassoc"}
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _derivs(y, i0, i1, h, w, d1, d2, d3):
     """First, second and third derivatives along s of y[i0:i1] (k, c) by finite
     differences on the uniform grid of spacing h; ends copy their neighbours.
@@ -69,7 +69,7 @@ def _derivs(y, i0, i1, h, w, d1, d2, d3):
             d3[i, k] = (d2[a1, k] + d2[a2, k] - d2[b1, k] - d2[b2, k]) / den
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _accel_interval(i, x, sign, kap, kv, qd1, qd2, A, qa):
     """[lo, hi] of the tangential acceleration at grid point i and x = v^2.
 
@@ -100,7 +100,7 @@ def _accel_interval(i, x, sign, kap, kv, qd1, qd2, A, qa):
     return lo, hi
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _cubic_root(j0, a0, v0, ds):
     """The positive root of j0 t^3/6 + a0 t^2/2 + v0 t - ds = 0 (thesis eq. 4.7).
 
@@ -126,7 +126,7 @@ def _cubic_root(j0, a0, v0, ds):
     return t
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _pass(v, env, i0, i1, step, h, kap, kv, qd1, qd2, A, qa, jeff, jerk_on, a_start):
     """ACON (thesis 4.1.3, Fig. 4-5): an acceleration-limited (and, with jerk on,
     jerk-limited) curve from rest at the first point, and from every point where the
@@ -186,7 +186,7 @@ def _pass(v, env, i0, i1, step, h, kap, kv, qd1, qd2, A, qa, jeff, jerk_on, a_st
         i = nxt
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _jcon(v, i0, i1, h, jeff, tol):
     """JCON (thesis 4.1.4, Fig. 4-6, eq. 4.12): where the speed-decrease jerk exceeds
     ``jeff*(1+tol)``, grow an interval (each side stops at a change of acceleration sign
@@ -251,7 +251,7 @@ def _jcon(v, i0, i1, h, jeff, tol):
     return count
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _accel_bound_x(k0, k1, d2, qd2, n, i, A, qa):
     """Largest v^2 allowed by the total and joint accelerations at zero tangential
     acceleration, with second derivatives averaged over points [i-k, i+k] (prefix sums
@@ -271,7 +271,7 @@ def _accel_bound_x(k0, k1, d2, qd2, n, i, A, qa):
     return x
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _step_curvature(n, h, vcap, dt, A, qa, p2, qd2, c2, cq):
     """Second derivatives as the robot sees them: averaged over one output step.
 
@@ -315,7 +315,7 @@ def _step_curvature(n, h, vcap, dt, A, qa, p2, qd2, c2, cq):
                 qd2[i, c] = (cq[b, c] - cq[a, c]) / cnt
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _vertex_bounds(sv, tau, n, h, vcap, dt, A, xk, kv, ctau):
     """Speed bounds from the vertices of the polyline actually followed (v^2 into xk[0:n]).
 
@@ -428,7 +428,7 @@ def _vertex_bounds(sv, tau, n, h, vcap, dt, A, xk, kv, ctau):
                     kv[gi] = kvu * w
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _rest_segment(v1, h, a_r):
     """AREST (thesis 4.1.5, 4.2.6) for a grid segment that starts (or ends) at rest:
     instead of a constant acceleration, s(t) = a_r t^2 / 2 + j t^3 / 6 from rest, with
@@ -447,7 +447,7 @@ def _rest_segment(v1, h, a_r):
     return T, j
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _seg_dt(vp, i, n, h, a_r):
     """Duration of grid segment i -> i+1 of a piece of n points (rest segments: AREST)."""
     if i == 0 and vp[0] == 0.0:
@@ -458,7 +458,7 @@ def _seg_dt(vp, i, n, h, a_r):
     return 2.0 * h / vs if vs > 1e-12 else 0.0
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def speed_profiles(gstart, h, xy, q, vcap, A, J, jerk_on, qv, qa, qj, a_rest, jcon_tol,
                    jerk_window, dt, vstart, vs_loc, vtau):
     """VCON + ACON forward/backward + JCON for every piece (thesis 4.1.2-4.1.5).
@@ -578,7 +578,7 @@ def speed_profiles(gstart, h, xy, q, vcap, A, J, jerk_on, qv, qa, qj, a_rest, jc
     return v, env, T
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def sample_pieces(gstart, h, v, T, nsamp, sstart, dt, a_r):
     """Sample every piece at constant dt (thesis 4.2.6 output resolution).
 
@@ -645,7 +645,7 @@ def sample_pieces(gstart, h, v, T, nsamp, sstart, dt, a_r):
     return s_out, v_out
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def smooth_pieces(gstart, graw, h, fstart, fu, fraw, sigma_pts, tol, max_turn):
     """Optional smoothing of resampled pieces (thesis 4.1.1: "local polynomial regression
     or cubic smoothing splines").
