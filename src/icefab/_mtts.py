@@ -828,3 +828,61 @@ def smooth_pieces(gstart, graw, h, fstart, fu, fraw, sigma_pts, tol, max_turn):
             out[j0 + jj, 0] = fraw[j0 + jj, 0] + sc * d[jj, 0]
             out[j0 + jj, 1] = fraw[j0 + jj, 1] + sc * d[jj, 1]
     return out
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def polyline_vertices(pts, start):
+    """Vertices of concatenated polylines (piece k is ``pts[start[k]:start[k+1]]``): arc
+    length from the piece start (K,) mm and turning vectors (K, 2) = change of the unit
+    tangent, zero at the piece ends."""
+    K = pts.shape[0]
+    s_loc = np.zeros(K)
+    tau = np.zeros((K, 2))
+    for p in range(start.shape[0] - 1):
+        a = start[p]
+        b = start[p + 1]
+        ux = 0.0
+        uy = 0.0
+        for i in range(a + 1, b):
+            dx = pts[i, 0] - pts[i - 1, 0]
+            dy = pts[i, 1] - pts[i - 1, 1]
+            ln = math.sqrt(dx * dx + dy * dy)
+            s_loc[i] = s_loc[i - 1] + ln
+            inv = 1.0 / max(ln, 1e-300)
+            nx = dx * inv
+            ny = dy * inv
+            if i > a + 1:
+                tau[i - 1, 0] = nx - ux
+                tau[i - 1, 1] = ny - uy
+            ux = nx
+            uy = ny
+    return s_loc, tau
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def follow_samples(s_loc, sstart, L, fstart, fu, fxy, s0):
+    """Points of the followed polylines at the sampled arc lengths: piece p's samples
+    ``sstart[p]:sstart[p+1]`` at ``s_loc`` mm from its start (clipped to its length
+    L[p]) on ``fxy[fstart[p]:fstart[p+1]]`` (parameter fu in S units, piece start s0[p]),
+    linear between its points; the first and last sample exactly on the piece's ends.
+    Returns (M, 2) mm."""
+    M = s_loc.shape[0]
+    xy = np.empty((M, 2))
+    for p in range(sstart.shape[0] - 1):
+        f0 = fstart[p]
+        f1 = fstart[p + 1] - 1
+        j = f0
+        for k in range(sstart[p], sstart[p + 1]):
+            s = min(s_loc[k], L[p]) + s0[p]
+            while j < f1 - 1 and fu[j + 1] <= s:
+                j += 1
+            du = fu[j + 1] - fu[j]
+            t = (s - fu[j]) / du if du > 0.0 else 0.0
+            t = min(max(t, 0.0), 1.0)
+            xy[k, 0] = fxy[j, 0] + t * (fxy[j + 1, 0] - fxy[j, 0])
+            xy[k, 1] = fxy[j, 1] + t * (fxy[j + 1, 1] - fxy[j, 1])
+        xy[sstart[p], 0] = fxy[f0, 0]
+        xy[sstart[p], 1] = fxy[f0, 1]
+        xy[sstart[p + 1] - 1, 0] = fxy[f1, 0]
+        xy[sstart[p + 1] - 1, 1] = fxy[f1, 1]
+    return xy

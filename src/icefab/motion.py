@@ -438,13 +438,9 @@ def _plan_polylines(polys: Sequence[np.ndarray], vcaps: np.ndarray, job: Job, ro
     s_loc, spd = _mtts.sample_pieces(gstart, hk, v, T, nsamp, sstart[:-1].copy(), dt,
                                      float(m.rest_accel_mm_s2) if jerk_on else -1.0)
     # follow the input polyline, or the smoothed one (piecewise linear, parameter in S
-    # units: the grid's s is the resampled path's arc length)
-    fxy, fu, fstart = sp.fxy, sp.fu, sp.fstart
-    sg = np.minimum(s_loc, np.repeat(L, nsamp + 1)) + np.repeat(s0, nsamp + 1)
-    xy = np.stack([np.interp(sg, fu, fxy[:, 0]), np.interp(sg, fu, fxy[:, 1])], axis=1)
-    # rest points exactly on the corners
-    xy[sstart[:-1]] = fxy[fstart[:-1]]
-    xy[sstart[1:] - 1] = fxy[fstart[1:] - 1]
+    # units: the grid's s is the resampled path's arc length); rest points exactly on the
+    # corners
+    xy = _mtts.follow_samples(s_loc, sstart, L, sp.fstart, sp.fu, sp.fxy, s0)
 
     # ---- concatenate the pieces of each path: the shared corner sample appears once
     first_of_path = np.ones(Q, dtype=bool)
@@ -487,20 +483,9 @@ def _vertices(pts: np.ndarray, start: np.ndarray
     """Vertices of concatenated polylines (piece k is ``pts[start[k]:start[k+1]]``):
     (start, arc length from the piece start (K,) mm, turning vectors (K, 2) = change of
     the unit tangent, zero at the piece ends)."""
-    d = np.diff(pts, axis=0)
-    ln = np.hypot(d[:, 0], d[:, 1])
-    u = d / np.maximum(ln, 1e-300)[:, None]
-    tau = np.zeros_like(pts)
-    tau[1:-1] = u[1:] - u[:-1]
-    first = start[:-1]
-    last = start[1:] - 1
-    tau[first] = 0.0
-    tau[last] = 0.0
-    seg = np.concatenate([[0.0], ln])
-    seg[first] = 0.0
-    cs = np.cumsum(seg)
-    s_loc = cs - np.repeat(cs[first], np.diff(start))
-    return start.astype(np.int64), s_loc, tau
+    start = start.astype(np.int64)
+    s_loc, tau = _mtts.polyline_vertices(np.ascontiguousarray(pts, dtype=np.float64), start)
+    return start, s_loc, tau
 
 
 def _single_point(p: np.ndarray, job: Job, robot: Robot, path: Path | None) -> Trajectory:
