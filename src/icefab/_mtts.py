@@ -886,3 +886,60 @@ def follow_samples(s_loc, sstart, L, fstart, fu, fxy, s0):
         xy[sstart[p + 1] - 1, 0] = fxy[f1, 0]
         xy[sstart[p + 1] - 1, 1] = fxy[f1, 1]
     return xy
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def smooth_followed(gstart, gxy, gs, h, s0, PV, S, pvs, sigma_pts, tol, max_turn):
+    """Path smoothing of resampled pieces (see smooth_pieces) in one call: the followed
+    polyline is the grid plus the input's interior vertices that are not on a grid point,
+    merged by arc length, all moved onto the smoothing curve.
+
+    gstart (P+1,) int64, gxy (G, 2) mm and gs (G,) (S units) the raw grid, h (P,) mm,
+    s0 (P,) piece starts (S units); PV (K, 2) mm, S (K,) the piece vertex lists and their
+    arc length, pvs (P+1,). Returns the smoothed grid (G, 2), the followed polyline
+    fxy (F, 2) mm, its parameter fu (F,) in S units and fstart (P+1,) int64.
+    """
+    P = gstart.shape[0] - 1
+    G = gs.shape[0]
+    nv = 0
+    for p in range(P):
+        for j in range(pvs[p] + 1, pvs[p + 1] - 1):
+            off = S[j] - s0[p]
+            off -= math.floor(off / h[p]) * h[p]
+            if off > 1e-9 and off < h[p] - 1e-9:
+                nv += 1
+    F = G + nv
+    fstart = np.zeros(P + 1, np.int64)
+    fu = np.empty(F)
+    loc = np.empty(F)
+    fraw = np.empty((F, 2))
+    fg = np.empty(G, np.int64)  # position of each grid point in the followed polyline
+    o = 0
+    for p in range(P):
+        fstart[p] = o
+        j = pvs[p] + 1
+        jend = pvs[p + 1] - 1
+        for g in range(gstart[p], gstart[p + 1]):
+            while j < jend and S[j] < gs[g]:  # vertices before this grid point
+                off = S[j] - s0[p]
+                off -= math.floor(off / h[p]) * h[p]
+                if off > 1e-9 and off < h[p] - 1e-9:
+                    fu[o] = S[j]
+                    loc[o] = S[j] - s0[p]
+                    fraw[o, 0] = PV[j, 0]
+                    fraw[o, 1] = PV[j, 1]
+                    o += 1
+                j += 1
+            fu[o] = gs[g]
+            loc[o] = gs[g] - s0[p]
+            fraw[o, 0] = gxy[g, 0]
+            fraw[o, 1] = gxy[g, 1]
+            fg[g] = o
+            o += 1
+    fstart[P] = o
+    fxy = smooth_pieces(gstart, gxy, h, fstart, loc, fraw, sigma_pts, tol, max_turn)
+    gsm = np.empty((G, 2))
+    for g in range(G):
+        gsm[g, 0] = fxy[fg[g], 0]
+        gsm[g, 1] = fxy[fg[g], 1]
+    return gsm, fxy, fu, fstart

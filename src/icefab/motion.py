@@ -304,32 +304,13 @@ def _smooth(gxy: np.ndarray, gs: np.ndarray, gstart: np.ndarray, PV: np.ndarray,
     """Optional smoothing of the resampled pieces (thesis 4.1.1) within ``tol`` mm.
 
     The followed polyline is the grid plus the input's interior vertices (merged by arc
-    length), all moved onto the smoothing curve (``_mtts.smooth_pieces``) by at most
+    length), all moved onto the smoothing curve (``_mtts.smooth_followed``) by at most
     ``tol``; two consecutive points lie on one input segment, so every chord is within
     ``tol`` of the input too. Returns (smoothed grid (G, 2), followed polyline (F, 2), its
     parameter (F,) in S units, piece starts (Q+1,)).
     """
-    Q = len(hk)
-    plen = np.diff(pvs)
-    interior = np.ones(len(PV), dtype=bool)
-    interior[pvs[:-1]] = False
-    interior[pvs[1:] - 1] = False
-    jv = np.flatnonzero(interior)
-    qv = np.repeat(np.arange(Q), plen)[jv]
-    off = np.mod(S[jv] - s0[qv], hk[qv])
-    jv = jv[(off > 1e-9) & (off < hk[qv] - 1e-9)]  # not on a grid point
-    qv = np.repeat(np.arange(Q), plen)[jv]
-    u = np.concatenate([gs, S[jv]])
-    order = np.argsort(u, kind="stable")
-    fu = u[order]
-    fraw = np.concatenate([gxy, PV[jv]])[order]
-    is_grid = order < len(gs)
-    extra = np.bincount(qv, minlength=Q)
-    fstart = np.concatenate([[0], np.cumsum(nseg + 1 + extra)]).astype(np.int64)
-    loc = fu - np.repeat(s0, np.diff(fstart))
-    fxy = _mtts.smooth_pieces(gstart, gxy, hk, fstart, loc, fraw, sigma_pts, tol,
-                              math.radians(SMOOTH_MAX_TURN_DEG))
-    return fxy[is_grid], fxy, fu, fstart
+    return _mtts.smooth_followed(gstart, gxy, gs, hk, s0, PV, S, pvs.astype(np.int64),
+                                 sigma_pts, tol, math.radians(SMOOTH_MAX_TURN_DEG))
 
 
 def pathsplit(points: np.ndarray, job: Job | None = None) -> list[np.ndarray]:
