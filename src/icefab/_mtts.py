@@ -365,16 +365,15 @@ def _vertex_bounds(sv, tau, n, h, vcap, dt, A, xk, kv, ctau):
         dsum = (sv[v] * sl - (ctau[v, 1] - ctau[wl, 1])
                 + (ctau[wr + 1, 1] - ctau[v, 1]) - sv[v] * sr)
         if vcap * (sl + sr) - dsum / dt <= A * dt * (1.0 - 1e-9):
-            u = vcap
-            if u > 0.0:
-                L = u * dt
-                kvu = math.sqrt(ax * ax + ay * ay) / dt
-                g0 = max(0, int((sv[v] - L) / h))
-                g1 = min(n - 1, int((sv[v] + L) / h) + 1)
+            if L0 > 0.0:  # u = vcap: only the share reserved in kv (below)
+                kvu = (ctau[v + 1, 0] - ctau[v, 0]) / dt
+                c = kvu / L0
+                g0 = max(0, int((sv[v] - L0) / h))
+                g1 = min(n - 1, int((sv[v] + L0) / h) + 1)
                 for gi in range(g0, g1 + 1):
-                    w = 1.0 - abs(gi * h - sv[v]) / L
-                    if w > 0.0 and kvu * w > kv[gi]:
-                        kv[gi] = kvu * w
+                    val = kvu - c * abs(gi * h - sv[v])
+                    if val > kv[gi]:
+                        kv[gi] = val
             continue
         cx = 0.0
         cy = 0.0

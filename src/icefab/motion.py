@@ -76,6 +76,7 @@ import os
 import tempfile
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
+from functools import lru_cache
 from pathlib import Path as FsPath
 from typing import Callable, Mapping, Sequence
 
@@ -476,6 +477,15 @@ def _single_point(p: np.ndarray, job: Job, robot: Robot, path: Path | None) -> T
                       pieces=np.zeros(1, dtype=np.int64))
 
 
+@lru_cache(maxsize=8)
+def _savgol_coeffs(window: int) -> np.ndarray:
+    """(window,) float64: the cubic Savitzky-Golay smoothing filter (thesis 4.2.6)."""
+    from scipy.signal import savgol_coeffs  # scipy.signal is slow to import; only here
+    coeffs = savgol_coeffs(window, 3)
+    coeffs.setflags(write=False)
+    return coeffs
+
+
 def _joint_samples(xy: np.ndarray, tstart: np.ndarray, job: Job, robot: Robot) -> np.ndarray:
     """(M, j) joints of the samples: inverse kinematics, then the 7-point cubic
     Savitzky-Golay filter (thesis 4.2.6) away from trajectory ends, kept where the tool
@@ -484,9 +494,7 @@ def _joint_samples(xy: np.ndarray, tstart: np.ndarray, job: Job, robot: Robot) -
     w = int(job.motion.savgol_window)
     if w == 0 or len(q) < w:
         return q
-    from scipy.signal import savgol_coeffs  # scipy.signal is slow to import; only here
-    coeffs = savgol_coeffs(w, 3)
-    sm = convolve1d(q, coeffs, axis=0, mode="nearest")
+    sm = convolve1d(q, _savgol_coeffs(w), axis=0, mode="nearest")
     h = w // 2
     near_end = np.zeros(len(q), dtype=bool)
     ends = np.concatenate([tstart[:-1], tstart[1:] - 1])
