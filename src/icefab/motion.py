@@ -334,21 +334,26 @@ def followed_path(points: np.ndarray, job: Job | None = None) -> list[np.ndarray
     return [sp.fxy[a:b] for a, b in zip(sp.fstart[:-1], sp.fstart[1:])]
 
 
-def _plan_polylines(polys: Sequence[np.ndarray], vcaps: np.ndarray, job: Job, robot: Robot,
+def _plan_polylines(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
+                    vcaps: np.ndarray, job: Job, robot: Robot,
                     labels: Sequence[tuple[int, int]] | None = None,
                     paths: Sequence[Path | None] | None = None) -> list[Trajectory]:
     """Plan many polylines at once (one compiled call for all of them).
 
     polys: P arrays (k_i, 2) float64 mm in the robot base frame (closed paths with their
-    first point repeated at the end). vcaps: (P,) mm/s speed bound per path.
+    first point repeated at the end), or already concatenated: a tuple (V (K, 2) float64
+    mm, counts (P,) int64). vcaps: (P,) mm/s speed bound per path.
     labels: (layer, path index) per polyline, for error messages.
     """
     m = job.motion
-    P = len(polys)
+    if isinstance(polys, tuple):
+        V, counts = polys
+    else:
+        counts = np.array([len(p) for p in polys], dtype=np.int64)
+        V = np.concatenate(polys).astype(np.float64, copy=False) if len(polys) else None
+    P = len(counts)
     if P == 0:
         return []
-    counts = np.array([len(p) for p in polys], dtype=np.int64)
-    V = np.concatenate(polys).astype(np.float64, copy=False)
     pid = np.repeat(np.arange(P), counts)
     pstart = np.concatenate([[0], np.cumsum(counts)])
 
@@ -550,11 +555,39 @@ def plan_paths_motion(paths: Sequence[Path], job: Job | None = None, *,
     job = job or Job()
     _check_role_speeds(role_speeds)
     robot = robot or get_robot(job)
-    polys = [_as_points(_base_points(p, job), f"layer {p.layer}, path {i}")
-             for i, p in enumerate(paths)]
+    if not paths:
+        return []
+    # the base frame: every path's points shifted by its tool's offset (one shift per
+    # tool, added to all points at once)
+    polys = []
+    shift = np.empty((len(paths), 2))
+    offsets: dict[str, np.ndarray] = {}
+    for i, p in enumerate(paths):
+        pts = p.polyline()
+        if not (isinstance(pts, np.ndarray) and pts.dtype == np.float64 and pts.ndim == 2
+                and pts.shape[1] == 2 and len(pts)):
+            pts = _as_points(pts, f"layer {p.layer}, path {i}")
+        key = "" if p.frame == "base" else p.tool_name
+        off = offsets.get(key)
+        if off is None:
+            if key:
+                from icefab.paths import to_base_frame  # the frames belong to the paths stage
+                off = to_base_frame(np.zeros((1, 2)), key, job)[0]
+            else:
+                off = np.zeros(2)
+            offsets[key] = off
+        shift[i] = off
+        polys.append(pts)
+    counts = np.array([len(q) for q in polys], dtype=np.int64)
+    V = np.concatenate(polys) + np.repeat(shift, counts, axis=0)
+    if not np.isfinite(V).all():
+        bad = np.flatnonzero(~np.isfinite(V).all(axis=1))[0]
+        ends = np.cumsum(counts)
+        i = int(np.searchsorted(ends, bad, side="right"))
+        _as_points(V[ends[i] - counts[i]:ends[i]], f"layer {paths[i].layer}, path {i}")
     caps = np.array([_role_cap(p, job, role_speeds) for p in paths], dtype=np.float64)
     labels = [(p.layer if p.layer >= 0 else layer, i) for i, p in enumerate(paths)]
-    return _plan_polylines(polys, caps, job, robot, labels=labels, paths=list(paths))
+    return _plan_polylines((V, counts), caps, job, robot, labels=labels, paths=list(paths))
 
 
 @dataclass(frozen=True, eq=False)
