@@ -447,21 +447,20 @@ def _plan_polylines(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
     joints = _joint_samples(xy, tstart, job, robot)
 
     out: list[Trajectory] = []
-    qpos = 0
+    # pieces of path k: piece_path is sorted, so they are qb[k]:qb[k+1]
+    qb = np.searchsorted(piece_path, np.arange(P + 1)).tolist()
+    piece_first_sample = piece_first_sample.astype(np.int64)
+    ts = tstart.tolist()
+    empty = trajs_empty.tolist()
     for k in range(P):
         pth = paths[k] if paths else None
-        if trajs_empty[k]:
+        if empty[k]:
             out.append(_single_point(V[pstart[k]], job, robot, pth))
             continue
-        r0, r1 = tstart[k], tstart[k + 1]
-        q1 = qpos
-        while q1 < Q and piece_path[q1] == k:
-            q1 += 1
-        pcs = piece_first_sample[qpos:q1].astype(np.int64)
-        qpos = q1
-        n = r1 - r0
+        r0, r1 = ts[k], ts[k + 1]
         out.append(Trajectory(dt=dt, xy=xy[r0:r1], joints=joints[r0:r1], speed=spd[r0:r1],
-                              duration=(n - 1) * dt, path=pth, pieces=pcs))
+                              duration=(r1 - r0 - 1) * dt, path=pth,
+                              pieces=piece_first_sample[qb[k]:qb[k + 1]]))
     return out
 
 
