@@ -387,3 +387,32 @@ def test_random_polylines_respect_bounds(seed):
     tr = plan_motion(pts, job)
     check_trajectory(tr, pts, job)
     assert (tr.speed[tr.pieces] == 0).all()
+
+
+def test_kernels_match_numpy_reference():
+    # the compiled helpers against plain numpy: positions on the followed polyline
+    # (np.interp), turning vectors and arc length, and the merged followed points
+    from icefab import _mtts
+    rng = np.random.default_rng(5)
+    start = np.array([0, 7, 20, 23], dtype=np.int64)
+    pts = np.cumsum(rng.uniform(0.1, 1.0, (23, 2)), axis=0)
+    s_loc, tau = _mtts.polyline_vertices(pts, start)
+    for a, b in zip(start[:-1], start[1:]):
+        seg = np.hypot(*np.diff(pts[a:b], axis=0).T)
+        np.testing.assert_allclose(s_loc[a:b], np.r_[0.0, np.cumsum(seg)], atol=1e-12)
+        u = np.diff(pts[a:b], axis=0) / seg[:, None]
+        np.testing.assert_allclose(tau[a + 1:b - 1], np.diff(u, axis=0), atol=1e-12)
+        assert not tau[a].any() and not tau[b - 1].any()
+    # samples along each piece (parameter fu in S units, piece start s0)
+    s0 = np.array([0.0, 100.0, 200.0])
+    fu = np.concatenate([s0[k] + s_loc[a:b] for k, (a, b) in
+                         enumerate(zip(start[:-1], start[1:]))])
+    L = np.array([s_loc[b - 1] for b in start[1:]])
+    ns = np.array([9, 30, 4])
+    sstart = np.r_[0, np.cumsum(ns)].astype(np.int64)
+    sl = np.concatenate([np.r_[0.0, np.sort(rng.uniform(0, Lk * 1.01, n - 2)), Lk]
+                         for Lk, n in zip(L, ns)])
+    xy = _mtts.follow_samples(sl, sstart, L, start, fu, pts, s0)
+    sg = np.minimum(sl, np.repeat(L, ns)) + np.repeat(s0, ns)
+    ref = np.c_[np.interp(sg, fu, pts[:, 0]), np.interp(sg, fu, pts[:, 1])]
+    np.testing.assert_allclose(xy, ref, atol=1e-9)
