@@ -283,10 +283,12 @@ def _pathsplit(V: np.ndarray, counts: np.ndarray, job: Job) -> _Split:
     gstart = np.concatenate([[0], np.cumsum(nseg + 1)]).astype(np.int64)
     G = int(gstart[-1])
     loc = np.arange(G) - np.repeat(gstart[:-1], nseg + 1)
-    gs = np.repeat(s0, nseg + 1) + loc * np.repeat(hk, nseg + 1)
+    gl = loc * np.repeat(hk, nseg + 1)  # from the piece start, mm
     last = gstart[1:] - 1
+    gl[last] = L
+    gs = np.repeat(s0, nseg + 1) + gl
     gs[last] = s0 + L
-    gxy = np.stack([np.interp(gs, S, PV[:, 0]), np.interp(gs, S, PV[:, 1])], axis=1)
+    gxy = _mtts.follow_samples(gl, gstart, L, pvs.astype(np.int64), S, PV, s0)
     fxy, fu, fstart = PV, S, pvs.astype(np.int64)
     if m.smoothing_tolerance_mm > 0.0:
         gxy, fxy, fu, fstart = _smooth(gxy, gs, gstart, PV, S, pvs, s0, hk, nseg,
