@@ -374,8 +374,8 @@ def _plan_polylines(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
         return [_single_point(sp.V[sp.pstart[k]], job, robot, paths[k] if paths else None)
                 for k in range(P)]
     V, pid, counts, pstart, orig_index = sp.V, sp.pid, sp.counts, sp.pstart, sp.orig_index
-    a, piece_path, PV, pvs, S, s0, L = sp.a, sp.piece_path, sp.PV, sp.pvs, sp.S, sp.s0, sp.L
-    nseg, hk, gstart, gxy, gs = sp.nseg, sp.hk, sp.gstart, sp.gxy, sp.gs
+    a, piece_path, pvs, S, s0, L = sp.a, sp.piece_path, sp.pvs, sp.S, sp.s0, sp.L
+    hk, gstart, gxy, gs = sp.hk, sp.gstart, sp.gxy, sp.gs
     K = len(V)
     Q = len(a)
 
