@@ -885,6 +885,27 @@ def _skip_line(b, i):  # pragma: no cover
 
 
 @njit(cache=True)
+def _store_number(b, s, e, values, slot, slow, ns, out, o):  # pragma: no cover
+    """Put the number token b[s:e] into ``values[slot]``.
+
+    Exact values come from :func:`_fast_float`; a token it cannot convert exactly is
+    copied to ``out`` (space separated) and its slot listed in ``slow`` for strtod.
+    Returns the new (ns, o) fill counts of ``slow`` and ``out``.
+    """
+    ok, val = _fast_float(b, s, e)
+    values[slot] = val
+    if not ok:
+        slow[ns] = slot
+        ns += 1
+        for k in range(s, e):
+            out[o] = b[k]
+            o += 1
+        out[o] = 32
+        o += 1
+    return ns, o
+
+
+@njit(cache=True)
 def _scan_stl_ascii(b):  # pragma: no cover
     """Check the ASCII STL grammar and collect the vertex coordinate tokens.
 
@@ -906,7 +927,7 @@ def _scan_stl_ascii(b):  # pragma: no cover
     in_facet = False
     in_loop = False
     fv = 0
-    nfacets = 0
+    err = 0
     while True:
         s, e, line = _next_token(b, i, line)
         i = e
@@ -914,65 +935,70 @@ def _scan_stl_ascii(b):  # pragma: no cover
             break
         if _tok_eq(b, s, e, _KW_SOLID) or _tok_eq(b, s, e, _KW_ENDSOLID):
             if in_facet:
-                return out[:o], values[:3 * nv], slow[:ns], vlines[:nv], _E_TOKEN, line
+                err = _E_TOKEN
+                break
             i = _skip_line(b, e)
         elif _tok_eq(b, s, e, _KW_FACET):
             if in_facet:
-                return out[:o], values[:3 * nv], slow[:ns], vlines[:nv], _E_TOKEN, line
+                err = _E_TOKEN
+                break
             s, e, line = _next_token(b, e, line)
             if not _tok_eq(b, s, e, _KW_NORMAL):
-                return out[:o], values[:3 * nv], slow[:ns], vlines[:nv], _E_TOKEN, line
+                err = _E_TOKEN
+                break
             for _ in range(3):
                 s, e, line = _next_token(b, e, line)
                 if not _is_number(b, s, e):
-                    return out[:o], values[:3 * nv], slow[:ns], vlines[:nv], _E_NUMBER, line
+                    err = _E_NUMBER
+                    break
+            if err:
+                break
             i = e
             in_facet = True
             fv = 0
         elif _tok_eq(b, s, e, _KW_OUTER):
             s, e, line = _next_token(b, e, line)
             if not in_facet or in_loop or not _tok_eq(b, s, e, _KW_LOOP):
-                return out[:o], values[:3 * nv], slow[:ns], vlines[:nv], _E_TOKEN, line
+                err = _E_TOKEN
+                break
             in_loop = True
             i = e
         elif _tok_eq(b, s, e, _KW_VERTEX):
             if not in_loop:
-                return out[:o], values[:3 * nv], slow[:ns], vlines[:nv], _E_TOKEN, line
+                err = _E_TOKEN
+                break
             vline = line
             for q3 in range(3):
                 s, e, line = _next_token(b, e, line)
                 if not _is_number(b, s, e) or line != vline:
-                    return out[:o], values[:3 * nv], slow[:ns], vlines[:nv], _E_NUMBER, line
-                ok, val = _fast_float(b, s, e)
-                values[3 * nv + q3] = val
-                if not ok:  # left for strtod: copy the token, remember its slot
-                    slow[ns] = 3 * nv + q3
-                    ns += 1
-                    for k in range(s, e):
-                        out[o] = b[k]
-                        o += 1
-                    out[o] = 32
-                    o += 1
+                    err = _E_NUMBER
+                    break
+                ns, o = _store_number(b, s, e, values, 3 * nv + q3, slow, ns, out, o)
+            if err:
+                break
             vlines[nv] = vline
             nv += 1
             fv += 1
             i = e
         elif _tok_eq(b, s, e, _KW_ENDLOOP):
             if not in_loop:
-                return out[:o], values[:3 * nv], slow[:ns], vlines[:nv], _E_TOKEN, line
+                err = _E_TOKEN
+                break
             in_loop = False
         elif _tok_eq(b, s, e, _KW_ENDFACET):
             if not in_facet or in_loop:
-                return out[:o], values[:3 * nv], slow[:ns], vlines[:nv], _E_TOKEN, line
+                err = _E_TOKEN
+                break
             if fv != 3:
-                return out[:o], values[:3 * nv], slow[:ns], vlines[:nv], _E_VCOUNT, line
+                err = _E_VCOUNT
+                break
             in_facet = False
-            nfacets += 1
         else:
-            return out[:o], values[:3 * nv], slow[:ns], vlines[:nv], _E_TOKEN, line
-    if in_facet:
-        return out[:o], values[:3 * nv], slow[:ns], vlines[:nv], _E_EOF, line
-    return out[:o], values[:3 * nv], slow[:ns], vlines[:nv], 0, 0
+            err = _E_TOKEN
+            break
+    if err == 0 and in_facet:
+        err = _E_EOF
+    return out[:o], values[:3 * nv], slow[:ns], vlines[:nv], err, line if err else 0
 
 
 @njit(cache=True)
@@ -996,16 +1022,7 @@ def _scan_numbers(b, start, line):  # pragma: no cover
             break
         if not _is_number(b, s, e):
             return out[:o], values[:nvals], slow[:ns], _E_NUMBER, line
-        ok, val = _fast_float(b, s, e)
-        values[nvals] = val
-        if not ok:
-            slow[ns] = nvals
-            ns += 1
-            for k in range(s, e):
-                out[o] = b[k]
-                o += 1
-            out[o] = 32
-            o += 1
+        ns, o = _store_number(b, s, e, values, nvals, slow, ns, out, o)
         nvals += 1
     return out[:o], values[:nvals], slow[:ns], 0, 0
 
@@ -1135,16 +1152,7 @@ def _scan_obj(b):  # pragma: no cover
                     if not _is_number(b, s, i):
                         err = _E_NUMBER
                         break
-                    ok, val = _fast_float(b, s, i)
-                    values[3 * nv + k] = val
-                    if not ok:
-                        slow[ns] = 3 * nv + k
-                        ns += 1
-                        for q in range(s, i):
-                            out[o] = b[q]
-                            o += 1
-                        out[o] = 32
-                        o += 1
+                    ns, o = _store_number(b, s, i, values, 3 * nv + k, slow, ns, out, o)
                 k += 1
             if err == 0 and k < 3:
                 err = _E_FEW
