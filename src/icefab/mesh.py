@@ -139,35 +139,52 @@ def _unique_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: 
 
 
 @njit(cache=True)
-def _edge_topology(faces: np.ndarray, nv: int):  # pragma: no cover
-    """(open, non-manifold, misoriented) undirected edge counts, O(m) with vertex buckets,
-    and the two vertices of one open and one non-manifold edge (-1 when there is none).
+def edge_buckets(faces: np.ndarray, nv: int):  # pragma: no cover
+    """Half-edges of a triangle mesh bucketed by their lower vertex: a counting sort, O(m).
 
-    Directed edges are bucketed by their lower vertex (counting sort); each small bucket is
-    sorted by the upper vertex and runs of equal edges are counted: 1 use = open edge,
-    > 2 = non-manifold, 2 uses in the same direction = misoriented.
+    Local edge k of facet f joins its corners k and (k + 1) % 3 and has the id 3 f + k.
+    Returns (start, half, upper): the half-edges of lower vertex v are
+    ``half[start[v]:start[v + 1]]`` (in facet order), ``upper`` their other vertex. The
+    buckets are as small as the vertex valence, so matching inside them is cheap; mesh
+    diagnostics and the slicer's facet adjacency both start here.
     """
     m = faces.shape[0]
     start = np.zeros(nv + 1, np.int64)
     for f in range(m):
         for k in range(3):
-            a = faces[f, k]
-            b = faces[f, (k + 1) % 3]
-            start[min(a, b) + 1] += 1
+            start[min(faces[f, k], faces[f, (k + 1) % 3]) + 1] += 1
     for i in range(nv):
         start[i + 1] += start[i]
     fill = start[:-1].copy()
-    hi = np.empty(3 * m, np.int64)
-    dr = np.empty(3 * m, np.int8)
+    half = np.empty(3 * m, np.int64)
+    upper = np.empty(3 * m, np.int64)
     for f in range(m):
         for k in range(3):
             a = faces[f, k]
             b = faces[f, (k + 1) % 3]
             lo = min(a, b)
             pos = fill[lo]
-            hi[pos] = max(a, b)
-            dr[pos] = 1 if a < b else -1
+            half[pos] = 3 * f + k
+            upper[pos] = max(a, b)
             fill[lo] += 1
+    return start, half, upper
+
+
+@njit(cache=True)
+def _edge_topology(faces: np.ndarray, nv: int):  # pragma: no cover
+    """(open, non-manifold, misoriented) undirected edge counts, O(m) with vertex buckets,
+    and the two vertices of one open and one non-manifold edge (-1 when there is none).
+
+    Each bucket of :func:`edge_buckets` is sorted by the upper vertex and runs of equal
+    edges are counted: 1 use = open edge, > 2 = non-manifold, 2 uses in the same
+    direction = misoriented.
+    """
+    start, half, hi = edge_buckets(faces, nv)
+    dr = np.empty(half.size, np.int8)
+    for pos in range(half.size):
+        f = half[pos] // 3
+        k = half[pos] % 3
+        dr[pos] = 1 if faces[f, k] < faces[f, (k + 1) % 3] else -1
     n_open = 0
     n_nonman = 0
     n_misor = 0

@@ -104,6 +104,7 @@ import numpy as np
 from icefab.config import Job
 from icefab.atomic import atomic_path
 from icefab.errors import GeometryError, StackFileError
+from icefab.mesh import edge_buckets
 from icefab.types import Layer, Mesh, Region, Stack, signed_area
 
 log = logging.getLogger(__name__)
@@ -216,31 +217,12 @@ def _facet_adjacency_numpy(faces: np.ndarray, n_vertices: int) -> np.ndarray:
 def _adjacency_kernel(faces: np.ndarray, n_vertices: int) -> np.ndarray:  # pragma: no cover
     """Bucket twin of :func:`_facet_adjacency_numpy`: O(facets), no sort.
 
-    Half-edges are bucketed by their lower vertex (a counting sort); the buckets are
-    small (the vertex valence), and are matched by their upper vertex inside.
+    Half-edges bucketed by their lower vertex (:func:`icefab.mesh.edge_buckets`) are
+    matched by their upper vertex inside each small bucket.
     """
     m = faces.shape[0]
     n_half = 3 * m
-    start = np.zeros(n_vertices + 1, dtype=np.int64)
-    for f in range(m):
-        for j in range(3):
-            a = faces[f, j]
-            b = faces[f, (j + 1) % 3]
-            start[min(a, b) + 1] += 1
-    for v in range(n_vertices):
-        start[v + 1] += start[v]
-    fill = start[:-1].copy()
-    bucket_h = np.empty(n_half, dtype=np.int64)
-    bucket_hi = np.empty(n_half, dtype=np.int64)
-    for f in range(m):
-        for j in range(3):
-            a = faces[f, j]
-            b = faces[f, (j + 1) % 3]
-            lo = min(a, b)
-            i = fill[lo]
-            fill[lo] += 1
-            bucket_h[i] = 3 * f + j
-            bucket_hi[i] = max(a, b)
+    start, bucket_h, bucket_hi = edge_buckets(faces, n_vertices)
     nbr = np.full(n_half, -1, dtype=np.int64)
     for v in range(n_vertices):
         s = start[v]
