@@ -236,7 +236,6 @@ def main() -> int:
     if args.layers:
         stack = Stack(stack.layers[:args.layers], stack.job, stack.layer_thickness)
     n = len(stack)
-    facets = None
     job = Job().replace(**{"cell.cpus": 2})
     # warm up numba caches and the pool machinery on a few layers
     small = Stack(stack.layers[-30:], stack.job, stack.layer_thickness)

@@ -1637,7 +1637,6 @@ def _read_ply(data: bytes, path: FsPath) -> tuple[np.ndarray, np.ndarray]:
     return vertices, faces
 
 
-
 # --------------------------------------------------------------------------- writing
 
 

@@ -78,8 +78,6 @@ MATERIAL_ID = {"part": 0, "scaffold": 1}
 ActionFn = Callable[[np.ndarray], np.ndarray]
 
 
-
-
 # --------------------------------------------------------------------------- deposition
 
 

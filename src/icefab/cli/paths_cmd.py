@@ -23,7 +23,7 @@ from icefab.types import Toolpaths
 
 SHOW_WARNINGS = 5
 
-# colours: part (water) blue, scaffold orange
+
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
         "paths", help="scaffold regions and deposition paths of every layer",
@@ -38,10 +38,6 @@ def add_parser(subparsers) -> None:
     p.add_argument("--layers", metavar="K,K,...",
                    help="layer indices to draw in paths.png (default: four evenly spread)")
     p.set_defaults(func=run)
-
-
-
-
 
 
 def summary_lines(toolpaths: Toolpaths, per_layer_s: np.ndarray, total_s: float) -> list[str]:

@@ -44,8 +44,6 @@ def add_parser(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-
-
 def load_input(path: str, job):
     """Toolpaths from a toolpath file, or from a mesh through slicing, scaffold and paths."""
     from icefab.paths import load_toolpaths, plan_paths
@@ -68,8 +66,6 @@ def load_input(path: str, job):
     stack = slice_mesh(mesh, job, progress=Progress("slicing"))
     stack = add_scaffold(stack, job)
     return plan_paths(stack, job), job
-
-
 
 
 def _hms(s: float) -> str:

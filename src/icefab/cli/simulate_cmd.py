@@ -143,12 +143,6 @@ def format_table(rows: list[list[float]]) -> list[str]:
     return lines
 
 
-
-
-
-
-
-
 def write_simulation_outputs(open_loop: "SimResult", closed: "SimResult", out: FsPath, *,
                              surface_layer: int | None = None,
                              job: "Job | None" = None) -> list[FsPath]:

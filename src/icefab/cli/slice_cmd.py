@@ -38,10 +38,6 @@ def add_parser(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-
-
-
-
 def summary_lines(stack: Stack, elapsed_s: float | None = None) -> list[str]:
     """A short human summary of a stack: layers, contours, area range, warnings."""
     areas = np.array([L.part.area for L in stack])
