@@ -32,6 +32,13 @@ def test_toml_round_trip(tmp_path):
     ("[slicing]\nmode = 3\n", "job.toml:2: slicing.mode = 3: expected a string"),
     ("[materials.part]\npath_width_mm = 0\n", "job.toml:2: materials.part.path_width_mm"),
     ("[nonsense]\nx = 1\n", "unknown setting nonsense"),
+    ("[parts]\nrotation_order = [1, 1, 2]\n", "job.toml:2: parts.rotation_order = (1, 1, 2): "
+     "must be a permutation"),
+    ("[parts]\ncopies = [2, 1, 3]\n", "job.toml:2: parts.copies = (2, 1, 3): 3 copies do not "
+     "fit a 2 x 1 grid"),
+    ("slicing = { layer_thickness_mm = -1 }\n", "job.toml:1: slicing.layer_thickness_mm"),
+    ("[materials]\npart = { fill_width_mm = 3.0, path_width_mm = 0 }\n",
+     "job.toml:2: materials.part.path_width_mm"),
 ])
 def test_bad_settings_name_setting_and_line(tmp_path, text, fragment):
     f = tmp_path / "job.toml"

@@ -86,7 +86,10 @@ def test_thesis_table_3_1(tmp_path):
 
 @pytest.mark.parametrize("old, new, fragment", [
     ("0.25 [mm]	[float] (> 0) slice thickness", "-0.25 [mm]	[float] (> 0) slice thickness",
-     "slicing.layer_thickness_mm = -0.25: must be > 0"),
+     "control.txt:8: slicing.layer_thickness_mm = -0.25: must be > 0"),
+    ("1.5 1.2 [mm]	[float float] (> 0) [part scaffolding] deposition path width",
+     "1.5 0 [mm]	[float float] (> 0) [part scaffolding] deposition path width",
+     "control.txt:7: materials.scaffold.path_width_mm = 0.0: must be > 0"),
     ("0.25 [mm]	[float] (> 0) slice thickness", "abc [mm]	[float] (> 0) slice thickness",
      "control.txt:8: slice thickness: expected 1 number, got none"),
     ("3 1 2	[int int int]", "3 3 2	[int int int]", "control.txt:14: rotation axis order"),
@@ -108,5 +111,12 @@ def test_missing_file_names(tmp_path):
 
 def test_copy_vector_must_be_positive(tmp_path):
     text = PAPER_TABLE_1.replace("1 1 1	[int int int]", "2 0 1	[int int int]")
-    with pytest.raises(ConfigError, match="parts.copies"):
+    with pytest.raises(ConfigError, match=r"control.txt:15: parts.copies"):
+        load_job(write(tmp_path, text))
+
+
+def test_part_fraction_error_names_its_line(tmp_path):
+    text = PAPER_TABLE_1.replace("0 1	[float float] [min max] Part fraction",
+                                 "0.5 1.5	[float float] [min max] Part fraction")
+    with pytest.raises(ConfigError, match=r"control.txt:13: parts.part_fraction"):
         load_job(write(tmp_path, text))

@@ -26,7 +26,7 @@ import tomllib
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path as FsPath
-from typing import Any
+from typing import Any, Callable
 
 from icefab.errors import ConfigError
 
@@ -410,6 +410,13 @@ def _check_cross(job: Job) -> None:
         if isinstance(t, str) and t not in ("cent", "orig"):
             raise ConfigError(f"parts.translation = {job.parts.translation!r}: the {axis} entry "
                               "must be a number, 'cent' or 'orig'")
+    if sorted(job.parts.rotation_order) != [1, 2, 3]:
+        raise ConfigError(f"parts.rotation_order = {tuple(job.parts.rotation_order)!r}: must "
+                          "be a permutation of 1, 2, 3")
+    p1, p2, p3 = job.parts.copies
+    if p3 > p1 * p2:
+        raise ConfigError(f"parts.copies = {tuple(job.parts.copies)!r}: {p3} copies do not "
+                          f"fit a {p1} x {p2} grid")
     order = job.materials.order
     allowed = {f"{m}:{r}" for m in ("part", "scaffold") for r in ("boundary", "fill")}
     bad = [o for o in order if o not in allowed]
@@ -545,7 +552,25 @@ def _line_of(text: str, dotted: str) -> int | None:
             full = f"{current}.{k}" if current else k
             if full == f"{table}.{key}" if table else full == key:
                 return n
+            # an inline table: slicing = { layer_thickness_mm = -1 }
+            if (table and full == table and "{" in line
+                    and re.search(rf"[{{,]\s*{re.escape(key)}\s*=", line)):
+                return n
     return fallback
+
+
+def _setting_of(msg: str) -> str:
+    """The dotted setting name a validation message starts with."""
+    return re.split(r"[ :=]", msg.removeprefix("unknown setting "), maxsplit=1)[0]
+
+
+def _located(exc: ConfigError, path: FsPath, line_of: Callable[[str], int | None]
+             ) -> ConfigError:
+    """``exc`` prefixed with ``path:line`` of the setting it names (``path`` alone when the
+    line is unknown)."""
+    msg = str(exc)
+    line = line_of(_setting_of(msg))
+    return ConfigError(f"{path}:{line}: {msg}" if line else f"{path}: {msg}")
 
 
 def load_job(path: str | FsPath) -> Job:
@@ -569,11 +594,7 @@ def load_job(path: str | FsPath) -> Job:
     try:
         job = job_from_dict(data)
     except ConfigError as exc:
-        msg = str(exc)
-        setting_name = re.split(r"[ :=]", msg.removeprefix("unknown setting "), maxsplit=1)[0]
-        line = _line_of(text, setting_name)
-        where = f"{path}:{line}" if line else str(path)
-        raise ConfigError(f"{where}: {msg}") from None
+        raise _located(exc, path, lambda name: _line_of(text, name)) from None
     # Relative mesh paths are relative to the job file.
     files = tuple(str((path.parent / f).resolve()) if not FsPath(f).is_absolute() else f
                   for f in job.parts.files)
@@ -668,10 +689,17 @@ def load_legacy_control(path: str | FsPath, text: str | None = None) -> Job:
             raise fail(f"{what}: expected {count} number{'s' * (count > 1)}, got "
                        f"{' '.join(vals)}") from None
 
+    set_on: dict[str, int] = {}  # dotted setting -> line that set it, for range errors
+
+    def settings_now() -> dict[str, Any]:
+        flat = _flatten({**data, "materials": materials})
+        return {k: repr(v) for k, v in flat.items()}
+
     for n, raw in enumerate(text.splitlines(), start=1):
         line = raw.strip()
         if not line or line.startswith(("#", "%")):
             continue
+        before = settings_now()
         if re.fullmatch(r"[A-Z][A-Z\s]+", line):
             continue  # section heading like "SLICING CONTROL"
         values, desc = _legacy_split(line)
@@ -766,6 +794,8 @@ def load_legacy_control(path: str | FsPath, text: str | None = None) -> Job:
             if str(exc).startswith(f"{path}:"):
                 raise
             raise fail(str(exc)) from None
+        after = settings_now()
+        set_on.update({k: n for k, v in after.items() if before.get(k) != v})
     if expect_files > 0:
         raise ConfigError(f"{path}: {expect_files} mesh file name(s) missing after the number "
                           "of files")
@@ -774,4 +804,16 @@ def load_legacy_control(path: str | FsPath, text: str | None = None) -> Job:
     try:
         return job_from_dict(data)
     except ConfigError as exc:
-        raise ConfigError(f"{path}: {exc}") from None
+        raise _located(exc, path, lambda name: set_on.get(re.sub(r"\[\d+\]", "", name))
+                       ) from None
+
+
+def _flatten(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Nested dicts as {dotted key: leaf value}."""
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flatten(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
