@@ -156,3 +156,27 @@ def test_random_corruption_gives_stack_file_error(tmp_path, tube_stack):
             assert "bad.npz" in str(exc)
 
     check()
+
+
+@pytest.mark.parametrize("spacing", [0.2, 0.4, 1.0])
+def test_filter_enforces_min_point_spacing(spacing):
+    """A finely sampled curved ring (0.1 mm steps, no collinear points) loses the points
+    closer than the minimum spacing to the last kept one: the gaps between kept points are
+    at least ``spacing`` except where the deviation bound forbids a removal, and the
+    removed points stay within the bound (thesis 3.2 PATHFILTER)."""
+    from icefab.slicing import _filter_compact
+
+    t = np.linspace(0.0, 2 * np.pi, 1257, endpoint=False)  # 0.1 mm steps on r = 20 mm
+    ring = np.c_[20 * np.cos(t), 20 * np.sin(t)]
+    dev = 0.05
+    pts, off = _filter_compact(ring, np.array([0, len(ring)]), np.array([0]), spacing, dev)
+    kept = pts[off[0]:off[1]]
+    gaps = np.linalg.norm(np.diff(np.vstack([kept, kept[:1]]), axis=0), axis=1)
+    # a chord of length c on r = 20 sags c^2 / (8 r): spacings up to ~2.8 mm fit the bound
+    assert np.all(gaps >= spacing - 1e-9)
+    assert len(kept) <= len(ring) * 0.1 / spacing + 1
+    d = shapely.distance(shapely.points(ring), shapely.LinearRing(kept))
+    assert d.max() <= dev + 1e-9
+    # without a spacing only collinear points may go: none here
+    pts0, off0 = _filter_compact(ring, np.array([0, len(ring)]), np.array([0]), 0.0, dev)
+    assert off0[1] == len(ring)

@@ -598,8 +598,8 @@ def _filter_ring(pts: np.ndarray, s: int, e: int, keep: np.ndarray, min_spacing:
     out collinear). A point j is removed when, with the chord from the last kept point to
     the point after j replacing it,
       - it is within COLLINEAR_TOL_MM of that chord (repeated or collinear point), or
-      - it is closer than ``min_spacing`` to the last kept point and within ``max_dev``
-        of the chord,
+      - it is closer than ``min_spacing`` to the last kept point (or to the ring's first
+        point, where the ring closes) and within ``max_dev`` of the chord,
     and every point removed since the last kept point stays within ``max_dev`` (or
     COLLINEAR_TOL_MM) of it. So no removed point ends up farther than ``max_dev`` from
     the filtered contour. O(points * longest removed run).
@@ -615,6 +615,10 @@ def _filter_ring(pts: np.ndarray, s: int, e: int, keep: np.ndarray, min_spacing:
         dx = pts[j, 0] - pts[anchor, 0]
         dy = pts[j, 1] - pts[anchor, 1]
         d2 = dx * dx + dy * dy
+        # the ring closes on its first point: a point too close to it may go as well
+        ex = pts[j, 0] - pts[s, 0]
+        ey = pts[j, 1] - pts[s, 1]
+        d2 = min(d2, ex * ex + ey * ey) if j > s + 1 else d2
         lim = mid if d2 < min_spacing * min_spacing else coll
         if _within(pts, anchor, j, nxt, mid, lim):
             keep[j] = False
