@@ -59,3 +59,79 @@ def test_parse_layers():
     for bad in ("a,b", "10", "-1", ","):
         with _pytest.raises(ConfigError, match="--layers"):
             parse_layers(bad, 10)
+
+
+def test_output_dir_leaves_other_files_and_uses_normal_modes(tmp_path):
+    """A command writing into the folder it read from (paths into the slice folder) keeps
+    the other files; results get the umask's modes, not mkstemp's 0600."""
+    import os
+
+    from icefab.atomic import FILE_MODE
+
+    target = tmp_path / "out"
+    target.mkdir()
+    (target / "stack.npz").write_text("input")
+    (target / "paths.png").write_text("old picture")
+    with output_dir(target) as d:
+        (d / "paths.png").write_text("new picture")
+        (d / "toolpaths.npz").write_text("new")
+    assert (target / "stack.npz").read_text() == "input"
+    assert (target / "paths.png").read_text() == "new picture"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+    for name in ("paths.png", "toolpaths.npz"):
+        assert os.stat(target / name).st_mode & 0o777 == FILE_MODE
+
+
+def test_output_to_a_file_is_one_line_error(tmp_path, capsys):
+    from icefab.errors import OutputError
+
+    afile = tmp_path / "afile"
+    afile.write_text("keep me")
+    with pytest.raises(OutputError, match="exists and is not a folder"):
+        with output_dir(afile):
+            pass
+    with pytest.raises(OutputError, match="cannot create the output folder"):
+        with output_dir(afile / "sub"):
+            pass
+    assert afile.read_text() == "keep me"
+    for out in (afile, afile / "sub"):
+        assert main(["tune", "--gains", "1,0.33,0", "--layers", "20", "-o", str(out)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "icefab tune: error: -o" in err[0]
+    assert afile.read_text() == "keep me"
+
+
+def test_os_errors_become_one_line(monkeypatch, capsys):
+    import icefab.cli.tune_cmd as tune_cmd
+
+    def boom(args):
+        raise PermissionError(13, "Permission denied", "/root/out/x.png")
+
+    monkeypatch.setattr(tune_cmd, "run", boom)
+    assert main(["tune", "--gains", "1,0.33,0"]) == 2
+    assert capsys.readouterr().err.strip() == \
+        "icefab tune: error: /root/out/x.png: Permission denied"
+
+
+def test_slice_then_paths_into_the_same_folder(tmp_path, capsys):
+    """`icefab slice m.stl -o out; icefab paths out/stack.npz -o out`: both results end up
+    in out; a failing rerun (bad --layers) changes nothing there."""
+    import trimesh
+
+    stl = tmp_path / "tube.stl"
+    tm = trimesh.creation.annulus(r_min=4, r_max=12, height=3, sections=48)
+    tm.apply_translation((0, 0, 1.5))
+    stl.write_bytes(tm.export(file_type="stl"))
+    out = tmp_path / "out"
+    job = tmp_path / "job.toml"
+    job.write_text("[slicing]\nlayer_thickness_mm = 1.0\n")
+    assert main(["slice", str(stl), "-c", str(job), "-o", str(out)]) == 0
+    assert main(["paths", str(out / "stack.npz"), "-c", str(job), "-o", str(out)]) == 0
+    names = sorted(p.name for p in out.iterdir())
+    assert names == ["layers.png", "paths.png", "stack.npz", "toolpaths.npz"]
+    before = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
+    capsys.readouterr()
+    assert main(["paths", str(out / "stack.npz"), "-o", str(out), "--layers", "7"]) == 2
+    assert "--layers" in capsys.readouterr().err
+    assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["job.toml", "out", "tube.stl"]

@@ -14,6 +14,18 @@ from pathlib import Path
 from typing import Iterator
 
 
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+#: Mode bits of new files and folders: what open() and mkdir() would give (mkstemp and
+#: mkdtemp create 0600 / 0700 files and folders, which results must not keep).
+FILE_MODE = 0o666 & ~_umask()
+DIR_MODE = 0o777 & ~_umask()
+
+
 @contextmanager
 def atomic_path(path: str | os.PathLike, suffix: str = ".tmp") -> Iterator[Path]:
     """A temporary path to write to; it replaces ``path`` when the block succeeds.
@@ -26,6 +38,8 @@ def atomic_path(path: str | os.PathLike, suffix: str = ".tmp") -> Iterator[Path]
     os.close(fd)
     try:
         yield Path(tmp)
+        if os.path.isfile(tmp):
+            os.chmod(tmp, FILE_MODE)
         os.replace(tmp, target)
     finally:
         Path(tmp).unlink(missing_ok=True)

@@ -38,3 +38,7 @@ class StackFileError(IcefabError):
 
 class SimulationError(IcefabError):
     """The build simulator cannot run these inputs (no deposition, bad sample arrays)."""
+
+
+class OutputError(IcefabError):
+    """Results cannot be written where asked (the output folder is a file, not writable)."""

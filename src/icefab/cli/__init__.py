@@ -3,7 +3,8 @@
 Each subcommand lives in its own module ``icefab.cli.<name>`` and exposes
 ``add_parser(subparsers)`` that registers it and sets ``func(args) -> int``. This module
 is the only place that prints errors and chooses exit codes: an ``IcefabError`` becomes one
-line on stderr and exit status 2; Ctrl-C exits with 130.
+line on stderr and exit status 2, and so does an operating-system error (disk full, no
+permission); Ctrl-C exits with 130.
 """
 
 from __future__ import annotations
@@ -54,6 +55,10 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except IcefabError as exc:
         print(f"icefab {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # disk full, permissions, a folder where a file should be
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"icefab {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"icefab {args.command}: interrupted", file=sys.stderr)

@@ -15,7 +15,8 @@ from typing import Iterator
 import numpy as np
 
 from icefab.config import Job, load_job
-from icefab.errors import ConfigError
+from icefab.atomic import DIR_MODE, FILE_MODE
+from icefab.errors import ConfigError, OutputError
 
 
 def add_job_argument(parser: argparse.ArgumentParser) -> None:
@@ -82,24 +83,41 @@ class Progress:
 
 @contextmanager
 def output_dir(path: str | os.PathLike) -> Iterator[Path]:
-    """A folder whose contents appear at ``path`` only if the block succeeds.
+    """A folder whose new results appear at ``path`` only if the block succeeds.
 
-    Files are written into a temporary sibling folder which replaces ``path`` at the end,
-    so a failure leaves nothing half-written (an existing ``path`` is kept untouched).
+    Files are written into a temporary sibling folder. On success it becomes ``path``
+    (which did not exist) or its files replace their namesakes in ``path`` one rename each,
+    leaving other files there alone (the stack or toolpaths a command read from the same
+    folder). On failure nothing in ``path`` changes and the temporary folder goes.
+    Raises OutputError when ``path`` or a parent is a file or cannot be written.
     """
     final = Path(path)
-    final.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", dir=final.parent))
+    if final.exists() and not final.is_dir():
+        raise OutputError(f"-o {final}: exists and is not a folder")
+    try:
+        final.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", dir=final.parent))
+    except OSError as exc:
+        raise OutputError(f"-o {final}: cannot create the output folder "
+                          f"({exc.strerror or exc})") from None
     try:
         yield tmp
-    except BaseException:
+        _publish(tmp, final)
+    finally:
         shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    if final.exists():
-        backup = final.with_name(f".{final.name}.old")
-        shutil.rmtree(backup, ignore_errors=True)
-        final.rename(backup)
+
+
+def _publish(tmp: Path, final: Path) -> None:
+    """Give the results in ``tmp`` normal modes and move them to ``final``."""
+    for root, dirs, files in os.walk(tmp):
+        os.chmod(root, DIR_MODE)
+        for name in files:
+            os.chmod(os.path.join(root, name), FILE_MODE)
+    if not final.exists():
         tmp.rename(final)
-        shutil.rmtree(backup, ignore_errors=True)
-    else:
-        tmp.rename(final)
+        return
+    for item in sorted(tmp.iterdir()):
+        target = final / item.name
+        if item.is_dir() and target.is_dir():
+            shutil.rmtree(target)
+        os.replace(item, target)

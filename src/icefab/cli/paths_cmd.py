@@ -17,7 +17,9 @@ from pathlib import Path as FsPath
 
 import numpy as np
 
-from icefab.cli.common import Progress, add_job_argument, job_from_args, parse_layers
+from icefab.cli.common import (Progress, add_job_argument, job_from_args, output_dir,
+                               parse_layers)
+from icefab.errors import OutputError
 from icefab.report import plot_toolpaths
 from icefab.types import Toolpaths
 
@@ -87,19 +89,21 @@ def run(args: argparse.Namespace) -> int:
 
     job = job_from_args(args)
     t0 = time.perf_counter()
+    if FsPath(args.out).exists() and not FsPath(args.out).is_dir():
+        raise OutputError(f"-o {args.out}: exists and is not a folder")
     stack, job = _load_stack(args, job)
+    ks = parse_layers(args.layers, len(stack))
     if not any(not layer.scaffold.is_empty for layer in stack):
         stack = add_scaffold(stack, job, progress=Progress("scaffold"))
     t_scaf = time.perf_counter() - t0
     toolpaths = plan_paths(stack, job, progress=Progress("paths"))
     t_paths = time.perf_counter() - t0 - t_scaf
-    ks = parse_layers(args.layers, len(stack))
     per_layer, total = estimate_build_time(toolpaths, job)
-    # Files are written atomically into OUT (which may hold the stack.npz of 'icefab slice').
+    # OUT may hold the stack.npz this command read: output_dir leaves it there
     out = FsPath(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    save_toolpaths(toolpaths, out / "toolpaths.npz")
-    plot_toolpaths(stack, toolpaths, ks, out / "paths.png")
+    with output_dir(out) as tmp:
+        save_toolpaths(toolpaths, tmp / "toolpaths.npz")
+        plot_toolpaths(stack, toolpaths, ks, tmp / "paths.png")
     for line in summary_lines(toolpaths, per_layer, total):
         print(line)
     print(f"time: stack and scaffold {t_scaf:.2f} s, paths {t_paths:.2f} s")

@@ -15,8 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from icefab.cli.common import Progress, add_job_argument, job_from_args, parse_layers
-from icefab.errors import ConfigError
+from icefab.cli.common import (Progress, add_job_argument, job_from_args, output_dir,
+                               parse_layers)
+from icefab.errors import ConfigError, OutputError
 from icefab.report import plot_layers
 from icefab.types import Stack
 
@@ -74,17 +75,17 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("no model to slice: give MODEL or parts.files in the job file")
     out = Path(args.out)
     if out.exists() and not out.is_dir():
-        raise ConfigError(f"-o {out}: exists and is not a folder")
+        raise OutputError(f"-o {out}: exists and is not a folder")
     t0 = time.perf_counter()
     mesh = meshmod.prepare_parts(job)
     t_load = time.perf_counter() - t0
     stack = slice_mesh(mesh, job, progress=Progress("slicing"))
     elapsed = time.perf_counter() - t0
     ks = parse_layers(args.layers, len(stack), default_count=6)
-    out.mkdir(parents=True, exist_ok=True)
-    stack_path = save_stack(stack, out / "stack.npz")
-    png = out / "layers.png"
-    plot_layers(stack, ks, png)
+    with output_dir(out) as tmp:
+        save_stack(stack, tmp / "stack.npz")
+        plot_layers(stack, ks, tmp / "layers.png")
+    stack_path, png = out / "stack.npz", out / "layers.png"
     print(f"{mesh.name or 'model'}: {len(mesh.faces)} facets, loaded and placed in "
           f"{t_load:.2f} s")
     for line in summary_lines(stack, elapsed):
