@@ -216,15 +216,18 @@ class MotionSettings:
                                       lo_open=True, hi=180.0)
     point_spacing_mm: float = setting(0.4, "resampling spacing of split pieces", lo=0.0,
                                       lo_open=True)
-    smoothing_tolerance_mm: float = setting(0.05, "smoothing of the resampled paths within "
-                                                  "this tolerance (0: off; every sample stays "
-                                                  "within it of the input path). Default = "
-                                                  "the slicer's own filter deviation bound: "
-                                                  "the 0.4 mm / 0.05 mm filtered polygons "
-                                                  "turn a few degrees at every vertex, which "
-                                                  "costs v*turn/dt of acceleration; 0.05 mm "
-                                                  "makes MTTS ~15 % faster on the bunny and "
-                                                  "a rounded box (BENCHMARKS.md)",
+    smoothing_tolerance_mm: float = setting(0.01, "smoothing of the resampled paths within "
+                                                  "this tolerance (0: off; a hard bound: "
+                                                  "every sample stays within it of the input "
+                                                  "path). Default 0.01 mm: with the joints' "
+                                                  "Savitzky-Golay filter (<= 0.02 mm minus "
+                                                  "this, at most 0.01 mm) the tool stays "
+                                                  "within 0.02 mm of the input (issue 4); the "
+                                                  "slicer's filtered polygons turn a few "
+                                                  "degrees at every vertex, which costs "
+                                                  "v*turn/dt of acceleration: 0.01 mm makes "
+                                                  "MTTS 3-5 % faster on the bunny and a "
+                                                  "rounded box (BENCHMARKS.md)",
                                             lo=0.0)
     measure_speed_mm_s: float = setting(50.0, "speed along measurement paths", lo=0.0,
                                         lo_open=True)
