@@ -510,8 +510,20 @@ def test_error_nan_binary_stl(tmp_path):
     v = np.asarray(ref.vertices, float).copy()
     v[3, 1] = np.nan
     data = trimesh.exchange.stl.export_stl(trimesh.Trimesh(v, ref.faces, process=False))
-    with pytest.raises(MeshError, match=r"nan\.stl.*NaN/Inf"):
+    facet = int(np.flatnonzero((ref.faces == 3).any(axis=1))[0])
+    with pytest.raises(MeshError, match=rf"nan\.stl.*NaN/Inf.*first: facet {facet}, corner"):
         load_mesh(_write(tmp_path, "nan.stl", data))
+
+
+def test_error_fourth_vertex_names_its_own_line(tmp_path):
+    text = trimesh.exchange.stl.export_stl_ascii(_tm("box")).splitlines()
+    k = 1 + 7 * 4 + 4  # third vertex of the fifth facet (0-based line index)
+    assert text[k].strip().startswith("vertex")
+    text.insert(k + 1, text[k])
+    p = _write(tmp_path, "four.stl", "\n".join(text).encode())
+    with pytest.raises(MeshError, match=rf"four\.stl: ASCII STL line {k + 2}: a facet must "
+                                        "have exactly 3 vertices"):
+        load_mesh(p)
 
 
 @pytest.mark.parametrize("token", ["nan", "inf", "-Infinity"])

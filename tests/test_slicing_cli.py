@@ -166,3 +166,21 @@ def test_demo_mug_volume_from_layers():
     assert vol == pytest.approx(mesh_volume(mesh.vertices, mesh.faces), rel=2e-3)
     assert max(len(L.part) for L in st) >= 3
     assert any((L.part.depth() % 2 == 1).any() for L in st)
+
+
+def test_mesh_warnings_reach_the_stack_and_the_summary(tmp_path, capsys):
+    """What loading fixed (a duplicate facet, inverted facets) is part of the stack's
+    warnings: printed in the slice summary and saved in stack.npz."""
+    tm = _tube()
+    faces = np.vstack([tm.faces[:, ::-1], tm.faces[:1, ::-1]])  # inside out + a duplicate
+    bad = trimesh.Trimesh(tm.vertices, faces, process=False)
+    stl = tmp_path / "defects.stl"
+    stl.write_bytes(bad.export(file_type="stl"))
+    out = tmp_path / "out"
+    assert main(["slice", str(stl), "-o", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "defects.stl: removed 1 duplicate faces" in text
+    assert "all faces flipped" in text
+    saved = load_stack(out / "stack.npz").warnings
+    assert any("duplicate faces" in w for w in saved)
+    assert any("flipped" in w for w in saved)

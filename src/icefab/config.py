@@ -91,9 +91,9 @@ class SlicingSettings:
     open_contours: str = setting("close", "open chains that cannot be linked: 'close' joins "
                                           "their ends (reported), 'drop' removes them "
                                           "(reported)", choices=("close", "drop"))
-    max_gap_mm: float = setting(2.0, "gaps in open chains up to this are closed quietly "
-                                     "(counted); longer gaps are closed and reported one by "
-                                     "one ('close') or their chain is dropped ('drop')",
+    max_gap_mm: float = setting(2.0, "gaps in open chains up to this are closed, each "
+                                     "reported; longer ones are holes in the mesh: closed "
+                                     "and reported ('close') or their chain dropped ('drop')",
                                 lo=0.0)
 
 

@@ -630,14 +630,16 @@ def _read_stl_binary(data: bytes, path: FsPath) -> np.ndarray:
     return np.ascontiguousarray(rec["corners"]).reshape(-1, 3)
 
 
-def _check_finite(points: np.ndarray, path: FsPath) -> None:
+def _check_finite(points: np.ndarray, path: FsPath, corners: bool = False) -> None:
+    """MeshError naming the first non-finite vertex; ``corners``: the points are the
+    facet corners of an STL (3 per facet), so name the facet (0-based) instead."""
     if np.isfinite(points).all():
         return
     bad = ~np.isfinite(points).all(axis=1)
-    if bad.any():
-        k = int(np.flatnonzero(bad)[0])
-        raise MeshError(f"{path}: {int(bad.sum())} vertices with NaN/Inf coordinates "
-                        f"(first: vertex {k} = {points[k].tolist()}); expected finite numbers")
+    k = int(np.flatnonzero(bad)[0])
+    first = f"facet {k // 3}, corner {k % 3 + 1}" if corners else f"vertex {k}"
+    raise MeshError(f"{path}: {int(bad.sum())} vertices with NaN/Inf coordinates "
+                    f"(first: {first} = {points[k].tolist()}); expected finite numbers")
 
 
 def read_mesh(path: str | os.PathLike[str], *, inexact: bool = False,
@@ -668,7 +670,7 @@ def read_mesh(path: str | os.PathLike[str], *, inexact: bool = False,
     try:
         if fmt == "stl":
             corners = _read_stl_binary(data, p)
-            _check_finite(corners, p)
+            _check_finite(corners, p, corners=True)
             vertices, index = weld_vertices(corners, inexact=inexact, tolerance=tolerance)
             faces = index.reshape(-1, 3)
             n_in = len(corners)
@@ -704,7 +706,7 @@ def read_mesh(path: str | os.PathLike[str], *, inexact: bool = False,
         raise MeshError(f"{p}: every face is degenerate; nothing left to slice")
     for w in report.warnings():
         log.warning("%s", w)
-    return mesh, report
+    return dataclasses.replace(mesh, warnings=tuple(report.warnings())), report
 
 
 def load_mesh(path: str | os.PathLike[str], *, inexact: bool = False,
@@ -983,6 +985,9 @@ def _scan_stl_ascii(b):  # pragma: no cover
         elif _tok_eq(b, s, e, _KW_VERTEX):
             if not in_loop:
                 err = _E_TOKEN
+                break
+            if fv == 3:  # a fourth vertex: report its own line
+                err = _E_VCOUNT
                 break
             vline = line
             for q3 in range(3):
@@ -1662,11 +1667,12 @@ def merge_meshes(meshes: Sequence[Mesh], name: str = "") -> Mesh:
     if not meshes:
         raise MeshError("no meshes to merge")
     if len(meshes) == 1:
-        return meshes[0] if not name else Mesh(meshes[0].vertices, meshes[0].faces, name)
+        return meshes[0] if not name else dataclasses.replace(meshes[0], name=name)
     offsets = np.cumsum([0] + [len(m.vertices) for m in meshes[:-1]])
     vertices = np.concatenate([m.vertices for m in meshes])
     faces = np.concatenate([m.faces + o for m, o in zip(meshes, offsets)])
-    return Mesh(vertices, faces, name or "+".join(m.name for m in meshes))
+    return Mesh(vertices, faces, name or "+".join(m.name for m in meshes),
+                tuple(w for m in meshes for w in m.warnings))
 
 
 def load_meshes(paths: Iterable[str | os.PathLike[str]], *, inexact: bool = False,
@@ -1769,7 +1775,7 @@ def transform(mesh: Mesh, parts: "PartSetup") -> Mesh:
                                   f"{'xyz'[axis]} entry must be a number, 'cent' or 'orig'")
         else:
             v[:, axis] += float(t) - lo[axis]
-    return Mesh(v, faces, mesh.name)
+    return Mesh(v, faces, mesh.name, mesh.warnings)
 
 
 def part_fraction_range(mesh: Mesh, parts: "PartSetup") -> tuple[float, float]:

@@ -49,12 +49,12 @@ Pipeline (RPSLICE's FACETSLICE = INTERSECTFACET + SEGMERGE + PATHFILTER, thesis 
 4. **Open chains** that still cannot close (holes in a scan): within the layer, chains are
    joined end-to-start greedily by the nearest free endpoint (a chain may be reversed),
    preferring to close on itself when its own start is nearest; then each chain is closed
-   on itself. Gaps up to ``job.slicing.max_gap_mm`` are closed quietly (counted in one
-   summary warning). Longer gaps: with ``open_contours = "close"`` (default) they are
-   closed too and *each* is reported in ``Stack.warnings`` with its layer, location and
-   length -- no layer of an open scan is lost; with ``"drop"`` no join or closure may
-   cross more than ``max_gap_mm``, and a chain that cannot close is dropped and
-   reported. Areas are never silently wrong: every non-trivial closure is reported.
+   on itself. Gaps up to ``job.slicing.max_gap_mm`` are closed, each reported in
+   ``Stack.warnings`` with its layer, location and length (and counted in one summary
+   line). Longer gaps: with ``open_contours = "close"`` (default) they are closed too and
+   reported as holes in the mesh -- no layer of an open scan is lost; with ``"drop"`` no
+   join or closure may cross more than ``max_gap_mm``, and a chain that cannot close is
+   dropped and reported. Areas are never silently wrong: every non-trivial closure is reported.
 
 5. **Path filter** (PATHFILTER): points closer than ``min_point_spacing_mm`` to the last
    kept point and (near-)collinear points are removed, per contour in a compiled kernel,
@@ -950,9 +950,12 @@ def _close_open_chains(chains_in: list[tuple[np.ndarray, bool]], layer: int, z: 
             warn.add(f"{where}: open contour dropped: it cannot close within max_gap_mm = "
                      f"{max_gap} (gap {g:.2f} mm at {_fmt_pt(p)})")
             continue
-        report.gaps_closed += sum(1 for g, _ in gaps if _NOISE_GAP_MM < g <= max_gap)
         for g, p in gaps:
-            if g > max_gap:
+            if _NOISE_GAP_MM < g <= max_gap:
+                report.gaps_closed += 1
+                warn.add(f"{where}: open contour closed across a {g:.2f} mm gap at "
+                         f"{_fmt_pt(p)}")
+            elif g > max_gap:
                 report.large_gaps_closed += 1
                 warn.add(f"{where}: open contour closed across a {g:.2f} mm gap at "
                          f"{_fmt_pt(p)} (longer than max_gap_mm = {max_gap}; hole in the "
@@ -1218,7 +1221,7 @@ def slice_mesh(mesh: Mesh, job: Job | None = None, *, progress: Progress | None 
                  report.open_chains, report.points_after_filter, report.points_before_filter,
                  report.rings_collapsed)
         stack = Stack(layers=layers, job=job, layer_thickness=job.slicing.layer_thickness_mm,
-                      warnings=tuple(summary) + warn.result())
+                      warnings=tuple(mesh.warnings) + tuple(summary) + warn.result())
     finally:
         numba.set_num_threads(prev_threads)
     object.__setattr__(stack, "_report", report)  # for the CLI and the benchmark

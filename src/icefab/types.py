@@ -45,11 +45,14 @@ class Mesh:
     vertices: (n, 3) float64, mm.
     faces: (m, 3) int64, indices into ``vertices``; counter-clockwise seen from outside.
     name: where it came from (file name or generator), used in messages.
+    warnings: what loading found and fixed (counts per defect, see ``MeshReport``); the
+        slicer passes them on to ``Stack.warnings``.
     """
 
     vertices: np.ndarray
     faces: np.ndarray
     name: str = ""
+    warnings: tuple[str, ...] = ()
 
     @property
     def bounds(self) -> np.ndarray:
