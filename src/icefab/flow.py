@@ -60,16 +60,17 @@ import dataclasses
 import functools
 import logging
 import os
+import re
 import struct
 from dataclasses import dataclass
 from pathlib import Path as FsPath
 from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
-from scipy.integrate import cumulative_trapezoid
+from scipy.integrate import cumulative_trapezoid, trapezoid
 
 from icefab.atomic import write_atomic
-from icefab.errors import FlowError, StackFileError
+from icefab.errors import ConfigError, FlowError, StackFileError
 from icefab.types import HeightMap, Trajectory, ValveProgram
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -264,22 +265,91 @@ def _width(trajectory: Trajectory, material: str, job: "Job") -> float:
     return float(settings.path_width_mm)
 
 
-def valve_frequency(trajectory: Trajectory, material: str, job: "Job", *,
-                    action: ActionLike = None, layer_thickness: float | None = None,
-                    calibration: Calibration | None = None) -> FrequencyPlan:
-    """Corrected flow and valve frequency at every trajectory sample (eqs. 6.2-6.4).
+def _pwm_limit_hz(job: "Job") -> float:
+    """Highest usable PWM frequency: ``min(max_frequency_hz, 1 / tick_s, 1 / min_pulse_ms)``
+    (the valve's limit, one pulse per microcontroller tick, a shortest pulse per period)."""
+    fl = job.flow
+    return min(fl.max_frequency_hz, 1.0 / fl.tick_s, 1000.0 / fl.min_pulse_ms)
 
-    trajectory: sampled at constant dt; ``speed (n,)`` mm/s is the path speed c.
-    material: "part" or "scaffold" (selects width, calibration and nozzle frame).
-    action: control action u: None (0), (n,) array, HeightMap / ControlAction (sampled
-        in the part frame, 0 outside), or a callable ``u(xy_part (n, 2)) -> (n,)``.
-    layer_thickness: dh_d in mm (default ``job.slicing.layer_thickness_mm``).
-    calibration: table to use (default :func:`calibration_for`).
+
+def check_flow_settings(job: "Job", calibration: Calibration | None = None) -> None:
+    """Cross-checks of ``job.flow`` made where the settings are used (thesis 6.1, 2.3.1).
+
+    * ``calibration_pulse_ms`` >= ``min_pulse_ms`` (the table was measured with pulses the
+      valve can make);
+    * PWM: ``pwm_frequency_hz`` <= ``min(max_frequency_hz, 1 / tick_s, 1 / min_pulse_ms)``
+      (above ``1 / tick_s`` consecutive pulses would share a 2 ms tick) and, when a
+      ``calibration`` is given, inside the table's frequencies with a positive flow (the
+      flow per pulse at the PWM frequency is read from it).
+
+    Raises ConfigError (FlowError for calibration_pulse_ms) naming the setting, its value and the limit.
     """
     fl = job.flow
     if fl.calibration_pulse_ms < fl.min_pulse_ms:
         raise FlowError(f"flow.calibration_pulse_ms = {fl.calibration_pulse_ms:g}: below the "
                         f"valve's shortest opening flow.min_pulse_ms = {fl.min_pulse_ms:g}")
+    if fl.mode != "pwm":
+        return
+    f = fl.pwm_frequency_hz
+    limit = _pwm_limit_hz(job)
+    if f > limit * (1 + 1e-12):
+        raise ConfigError(
+            f"flow.pwm_frequency_hz = {f:g}: above the highest usable PWM frequency {limit:g} Hz "
+            f"= min(flow.max_frequency_hz = {fl.max_frequency_hz:g}, 1 / flow.tick_s = "
+            f"{1.0 / fl.tick_s:g} (one pulse per tick), 1 / flow.min_pulse_ms = "
+            f"{1000.0 / fl.min_pulse_ms:g})")
+    if calibration is not None:
+        lo, hi = float(calibration.frequency_hz[0]), float(calibration.frequency_hz[-1])
+        if not lo <= f <= hi or float(calibration.flow(np.array([f]))[0]) <= 0:
+            raise ConfigError(f"flow.pwm_frequency_hz = {f:g}: outside the calibration table "
+                              f"{calibration.source} (frequencies {lo:g}..{hi:g} Hz with a "
+                              "positive flow), which gives the flow per pulse in PWM mode")
+
+
+def check_trajectory(trajectory: Trajectory) -> None:
+    """The sampling contract a valve program relies on: ``xy (n, 2)``, ``n >= 1``, ``dt > 0``
+    finite, and ``duration == (n - 1) * dt`` (within 1 us): pulse instants are computed on
+    the samples' time axis and the program lasts ``duration``. Raises FlowError naming the
+    path."""
+    xy = np.asarray(trajectory.xy)
+    where = _where(trajectory)
+    if xy.ndim != 2 or xy.shape[1] != 2 or len(xy) < 1:
+        raise FlowError(f"{where}: trajectory xy has shape {xy.shape}, expected (n, 2) with "
+                        "n >= 1")
+    dt = float(trajectory.dt)
+    if not (np.isfinite(dt) and dt > 0):
+        raise FlowError(f"{where}: trajectory dt = {trajectory.dt!r} s: must be finite and > 0")
+    duration = float(trajectory.duration)
+    expected = (len(xy) - 1) * dt
+    if not np.isfinite(duration) or abs(duration - expected) > 1e-6 + 1e-9 * expected:
+        raise FlowError(f"{where}: trajectory duration = {duration!r} s disagrees with its "
+                        f"{len(xy)} samples at dt = {dt:g} s ((n - 1) dt = {expected:.6g} s); "
+                        "a constant-dt trajectory lasts (n - 1) dt")
+
+
+def valve_frequency(trajectory: Trajectory, material: str, job: "Job", *,
+                    action: ActionLike = None, layer_thickness: float | None = None,
+                    calibration: Calibration | None = None) -> FrequencyPlan:
+    """Corrected flow and valve frequency at every trajectory sample (eqs. 6.2-6.4).
+
+    trajectory: sampled at constant dt; ``speed (n,)`` mm/s is the path speed c;
+        ``duration`` must be ``(n - 1) * dt`` (:func:`check_trajectory`).
+    material: "part" or "scaffold" (selects width, calibration and nozzle frame).
+    action: control action u: None (0), (n,) array, HeightMap / ControlAction (sampled
+        in the part frame, 0 outside), or a callable ``u(xy_part (n, 2)) -> (n,)``.
+    layer_thickness: dh_d in mm (default ``job.slicing.layer_thickness_mm``).
+    calibration: table to use (default :func:`calibration_for`).
+
+    FM: a flow outside the calibration table (zero flow excepted: 0 Hz) or a frequency
+    above ``min(max_frequency_hz, 1 / calibration_pulse_ms)`` raises FlowError under
+    ``flow.out_of_range = "error"``; under ``"clamp"`` it is clamped and the finding says
+    how much volume that costs (delivered vs commanded). PWM: ``nu`` is the FM-equivalent
+    frequency h(q), for information; the PWM limits are applied per pulse by
+    :func:`plan_valves`.
+    """
+    fl = job.flow
+    check_trajectory(trajectory)
+    check_flow_settings(job)
     n = len(trajectory.xy)
     speed = np.asarray(trajectory.speed, dtype=np.float64)
     if speed.shape != (n,):
@@ -293,33 +363,43 @@ def valve_frequency(trajectory: Trajectory, material: str, job: "Job", *,
     u = _action_values(action, trajectory, material, job)
     w = _width(trajectory, material, job)
     q = np.clip((1.0 + u), 0.0, None) * (w * dh * fl.layer_scale) * speed  # eq. 6.2-6.3
+    t = np.arange(n) * float(trajectory.dt)
     warnings: list[str] = []
     clamped = np.zeros(n, dtype=bool)
     where = _where(trajectory)
-    hi = q > cal.max_flow
-    lo = q < cal.min_flow
-    if np.any(hi | lo):
-        worst = float(q[hi].max()) if np.any(hi) else float(q[lo].min())
-        msg = (f"{where}: flow {worst:.3g} mm^3/s outside the calibration table "
-               f"[{cal.min_flow:g}, {cal.max_flow:g}] mm^3/s ({cal.source}) at "
-               f"{int(np.count_nonzero(hi | lo))} of {n} samples")
-        if fl.out_of_range == "error":
-            raise FlowError(msg + "; lower the speed or set flow.out_of_range = 'clamp'")
-        warnings.append(msg + " (clamped)")
-        clamped |= hi | lo
-    nu = cal.frequency(q)  # eq. 6.4
+    flowing = q > 0  # zero flow is 0 Hz whatever the table's first row
+    limits: list[str] = []
+    hint = "; lower the speed or set flow.out_of_range = 'clamp' to clamp and report instead"
+    if fl.mode == "fm":
+        hi = q > cal.max_flow
+        lo = flowing & (q < cal.min_flow)
+        if np.any(hi | lo):
+            worst = float(q[hi].max()) if np.any(hi) else float(q[lo].min())
+            msg = (f"flow {worst:.4g} mm^3/s outside the calibration table "
+                   f"[{cal.min_flow:g}, {cal.max_flow:g}] mm^3/s ({cal.source}) at "
+                   f"{int(np.count_nonzero(hi | lo))} of {n} samples")
+            if fl.out_of_range == "error":
+                raise FlowError(f"{where}: {msg}{hint}")
+            limits.append(msg)
+            clamped |= hi | lo
+    nu = np.where(flowing, cal.frequency(q), 0.0)  # eq. 6.4 (clamped to the table's ends)
     if fl.mode == "fm":
         nu_max = min(fl.max_frequency_hz, 1000.0 / fl.calibration_pulse_ms)
         over = nu > nu_max
         if np.any(over):
-            msg = (f"{where}: valve frequency {float(nu.max()):.4g} Hz above the limit "
-                   f"{nu_max:g} Hz (flow.max_frequency_hz, 1 / calibration_pulse_ms) at "
-                   f"{int(np.count_nonzero(over))} samples")
+            msg = (f"valve frequency {float(nu.max()):.4g} Hz above the limit {nu_max:g} Hz "
+                   f"(flow.max_frequency_hz, 1 / flow.calibration_pulse_ms) at "
+                   f"{int(np.count_nonzero(over))} of {n} samples")
             if fl.out_of_range == "error":
-                raise FlowError(msg)
-            warnings.append(msg + " (clamped)")
+                raise FlowError(f"{where}: {msg}{hint}")
+            limits.append(msg)
             nu = np.minimum(nu, nu_max)
             clamped |= over
+        if limits:
+            commanded = _integral(q, t)
+            delivered = _integral(np.where(nu > 0, cal.flow(nu), 0.0), t)
+            warnings.append(f"{where}: {'; '.join(limits)}: clamped (flow.out_of_range = "
+                            f"'clamp'), {_volume_error(delivered, commanded)}")
         moving = speed > 1e-9
         drops = np.divide(nu, speed, out=np.full(n, np.inf), where=moving)
         few = moving & (drops < fl.min_drops_per_mm) & (q > 0)
@@ -335,15 +415,21 @@ def valve_frequency(trajectory: Trajectory, material: str, job: "Job", *,
                             f"fewer than {fl.min_drops_per_mm:g} drops per mm at speeds up to "
                             f"{float(speed.max()):.4g} mm/s ({int(np.count_nonzero(few))} "
                             "samples)")
-    if fl.mode == "fm":
-        if np.any(nu > 1.0 / fl.tick_s):
-            warnings.append(f"{where}: frequency above 1 / flow.tick_s = {1 / fl.tick_s:g} Hz: "
-                            "consecutive pulses may share a tick")
-    for m in warnings:  # per path: callers summarise ValveProgram.warnings for people
+    for m in warnings:  # per path: callers summarise them (:func:`summarise_findings`)
         log.debug(m)
-    t = np.arange(n) * float(trajectory.dt)
     return FrequencyPlan(t=t, q=q, u=u, nu=nu, clamped=int(np.count_nonzero(clamped)),
                          warnings=tuple(warnings))
+
+
+def _integral(y: np.ndarray, t: np.ndarray) -> float:
+    """Trapezoidal integral of samples ``y (n,)`` over times ``t (n,)``."""
+    return float(trapezoid(y, t)) if len(t) > 1 else 0.0
+
+
+def _volume_error(delivered: float, commanded: float) -> str:
+    """'delivers D of C mm^3 commanded (+x %)': the volume a limit costs (or adds)."""
+    pct = f"{100.0 * (delivered / commanded - 1.0):+.1f} %" if commanded > 0 else "n/a"
+    return f"delivers {delivered:.4g} of {commanded:.4g} mm^3 commanded ({pct})"
 
 
 def _where(trajectory: Trajectory) -> str:
@@ -407,7 +493,10 @@ def _split(times: np.ndarray, widths: np.ndarray | None, duration: float, dt: fl
                 t_end = limit
             i1 = min(int(np.searchsorted(times, t_end, side="left")), i0 + fl.max_pulses)
         rel = (times[i0:i1] - t0) / tick
-        ticks = np.clip(np.rint(rel), 0, 65535).astype(np.uint16)
+        # round half up (with a hair of tolerance): instants exactly one tick apart at a
+        # half-tick phase (PWM at 1 / tick_s) keep distinct ticks; rint's half-to-even
+        # would put two of them on one tick
+        ticks = np.clip(np.floor(rel + (0.5 + 1e-9)), 0, 65535).astype(np.uint16)
         w = None if widths is None else widths[i0:i1]
         pieces.append(ValveProgram(ticks=ticks, tick_s=tick, duration=float(t_end - t0),
                                    widths_us=w))
@@ -423,8 +512,9 @@ def plan_valves(trajectory: Trajectory, material: str, job: "Job", *,
                 calibration: Calibration | None = None) -> ValveProgram:
     """The valve program of one trajectory (thesis 6.2, 2.3.1).
 
-    trajectory: constant-dt samples with speed (n,) mm/s; a trajectory whose path does not
-        deposit (travel, measure) gets an empty program of the same duration.
+    trajectory: constant-dt samples with speed (n,) mm/s and ``duration = (n - 1) dt``
+        (FlowError otherwise); a trajectory whose path does not deposit (travel,
+        measure) gets an empty program of the same duration.
     material: "part" or "scaffold".
     action: control action u (see :func:`valve_frequency`): flow x (1 + u), the
         nu-controller of thesis 5.4.
@@ -432,53 +522,101 @@ def plan_valves(trajectory: Trajectory, material: str, job: "Job", *,
 
     Returns the first piece; further pieces (split at 131.072 s / 16 384 pulses, on
     trajectory samples) are in ``.pieces``; :func:`program_pieces` lists all of them and
-    :func:`pulse_times` gives the instants from the trajectory start.
+    :func:`pulse_times` gives the instants from the trajectory start. ``.warnings`` lists
+    every valve limit reached on this path (clamped flow and the volume it costs, PWM pulses
+    dropped / raised / cut and the volume error, too few drops per mm, pulses sharing a
+    tick); :func:`summarise_findings` condenses them over many paths.
     """
     fl = job.flow
-    duration = float(trajectory.duration) if trajectory.duration else \
-        (len(trajectory.xy) - 1) * float(trajectory.dt)
+    check_trajectory(trajectory)
+    check_flow_settings(job)
+    duration = float(trajectory.duration)
     path = trajectory.path
     if path is not None and not path.depositing:
         return ValveProgram(ticks=np.zeros(0, np.uint16), tick_s=fl.tick_s, duration=duration,
                             widths_us=None if fl.mode == "fm" else np.zeros(0, np.uint16))
+    cal = calibration or calibration_for(material, job)
     plan = valve_frequency(trajectory, material, job, action=action,
-                           layer_thickness=layer_thickness, calibration=calibration)
+                           layer_thickness=layer_thickness, calibration=cal)
+    warnings = list(plan.warnings)
     if fl.mode == "fm":
         times = pulse_instants(plan.t, plan.nu)
         prog = _split(times, None, duration, float(trajectory.dt), job)
     else:
-        prog = _split(*_pwm(plan, material, job, calibration, duration), duration,
-                      float(trajectory.dt), job)
-    return dataclasses.replace(prog, warnings=plan.warnings) if plan.warnings else prog
+        times, widths, found = _pwm(plan, cal, job, duration, _where(trajectory))
+        warnings.extend(found)
+        prog = _split(times, widths, duration, float(trajectory.dt), job)
+    shared = sum(int(np.count_nonzero(np.diff(p.ticks.astype(np.int64)) == 0))
+                 for p in program_pieces(prog))
+    if shared:  # thesis 2.3.1: one instant per uint16 entry, resolution one tick
+        warnings.append(f"{_where(trajectory)}: {shared} pulses share a {fl.tick_s * 1e3:g} ms "
+                        f"tick with the pulse before (valve frequency up to "
+                        f"{float(plan.nu.max()):.4g} Hz, above 1 / flow.tick_s = "
+                        f"{1.0 / fl.tick_s:g} Hz)")
+    return dataclasses.replace(prog, warnings=tuple(warnings)) if warnings else prog
 
 
-def _pwm(plan: FrequencyPlan, material: str, job: "Job", calibration: Calibration | None,
-         duration: float) -> tuple[np.ndarray, np.ndarray]:
-    """PWM (thesis 6.1): pulses every 1/pwm_frequency_hz; width ~ flow per pulse."""
+def _pwm(plan: FrequencyPlan, cal: Calibration, job: "Job", duration: float, where: str
+         ) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """PWM (thesis 6.1): constant frequency f = ``flow.pwm_frequency_hz``, the pulse width
+    carries the flow.
+
+    Pulse k starts at (k + 1/2) / f (every instant within ``duration``) and delivers the
+    volume commanded over its period [k / f, (k + 1) / f] (the last period runs to the end
+    of the trajectory). The table was measured with pulses of ``calibration_pulse_ms``, so
+    one such pulse at f passes ``V_ref = h^-1(f) / f``; the volume of a pulse is taken
+    proportional to its width, giving ``width = calibration_pulse_ms * V / V_ref``.
+
+    Limits (thesis 6.1: widths in [min_pulse_ms, period]): a width below
+    ``min_pulse_ms / 2`` is dropped (no pulse, the nearer of 0 and min_pulse_ms), one below
+    ``min_pulse_ms`` raised to it, one above the period (or 65.535 ms, uint16 us) cut to
+    it -- or FlowError under ``flow.out_of_range = "error"``, since the flow is then beyond
+    what the valve passes fully open. Every limit hit is reported with its counts and the
+    resulting volume error. Returns ``(times (p,) s, widths (p,) uint16 us, findings)``.
+    """
     fl = job.flow
-    cal = calibration or calibration_for(material, job)
+    check_flow_settings(job, cal)
     f = fl.pwm_frequency_hz
     period = 1.0 / f
-    times = (np.arange(int(np.floor(duration * f + 1e-9))) + 0.5) * period
-    times = times[times <= duration]
-    q = np.interp(times, plan.t, plan.q)
-    # flow per pulse at the calibration pulse width, at the PWM frequency
-    vol_ref = float(cal.flow(np.array([f]))[0]) / f
-    if vol_ref <= 0:
-        raise FlowError(f"flow.pwm_frequency_hz = {f:g}: the calibration table gives no flow "
-                        "there")
-    width_ms = fl.calibration_pulse_ms * (q / f) / vol_ref
+    count = int(np.floor(duration * f + 0.5 + 1e-9))  # pulses at (k + 1/2) / f <= duration
+    if count == 0 and duration > 0:
+        count = 1  # a trajectory shorter than half a period still gets its one pulse
+    times = (np.arange(count) + 0.5) * period
+    if count == 1:
+        times = np.minimum(times, 0.5 * duration)
+    edges = np.append(np.arange(count) * period, duration)
+    cum = cumulative_trapezoid(plan.q, plan.t, initial=0.0) if len(plan.t) > 1 else \
+        np.zeros(len(plan.t))
+    vol = np.diff(np.interp(edges, plan.t, cum)) if len(plan.t) > 1 else np.zeros(count)
+    vol = np.maximum(vol, 0.0)
+    vol_ref = float(cal.flow(np.array([f]))[0]) / f  # one calibration pulse at f, mm^3
+    width_ms = fl.calibration_pulse_ms * vol / vol_ref
+    w_max_ms = min(period * 1000.0, 65.535)
     keep = width_ms >= 0.5 * fl.min_pulse_ms
-    short = keep & (width_ms < fl.min_pulse_ms)
-    long = width_ms > period * 1000.0
-    if np.any(short) or np.any(long) or np.any(~keep & (q > 0)):
-        log.warning("PWM: %d pulses raised to flow.min_pulse_ms = %g ms, %d dropped, %d cut "
-                    "to the period %.3g ms", int(np.count_nonzero(short)), fl.min_pulse_ms,
-                    int(np.count_nonzero(~keep & (q > 0))), int(np.count_nonzero(long)),
-                    period * 1000)
-    width_ms = np.clip(width_ms, fl.min_pulse_ms, period * 1000.0)
-    widths = np.clip(np.rint(width_ms * 1000.0), 0, 65535).astype(np.uint16)
-    return times[keep], widths[keep]
+    dropped = int(np.count_nonzero(~keep & (vol > 0)))
+    raised = int(np.count_nonzero(keep & (width_ms < fl.min_pulse_ms)))
+    cut = width_ms > w_max_ms * (1 + 1e-9)
+    findings: list[str] = []
+    if np.any(cut) and fl.out_of_range == "error":
+        q_max = vol_ref * (w_max_ms / fl.calibration_pulse_ms) * f
+        raise FlowError(f"{where}: PWM at flow.pwm_frequency_hz = {f:g} Hz needs pulses up to "
+                        f"{float(width_ms.max()):.4g} ms, longer than the {w_max_ms:g} ms "
+                        f"period (flow above {q_max:.4g} mm^3/s, the valve fully open) at "
+                        f"{int(np.count_nonzero(cut))} of {count} pulses; lower the speed or "
+                        "set flow.out_of_range = 'clamp' to cut them and report")
+    lo_us = float(np.ceil(fl.min_pulse_ms * 1000.0 - 1e-6))
+    hi_us = float(np.floor(w_max_ms * 1000.0 + 1e-6))
+    widths_us = np.clip(np.floor(width_ms * 1000.0 + 0.5), lo_us, hi_us)
+    widths_us = np.where(keep, widths_us, 0.0)
+    if dropped or raised or np.any(cut):
+        delivered = float(np.sum(vol_ref * widths_us / 1000.0 / fl.calibration_pulse_ms))
+        findings.append(
+            f"{where}: PWM at flow.pwm_frequency_hz = {f:g} Hz: {dropped} of {count} pulses "
+            f"dropped (width below flow.min_pulse_ms / 2 = {0.5 * fl.min_pulse_ms:g} ms), "
+            f"{raised} raised to flow.min_pulse_ms = {fl.min_pulse_ms:g} ms, "
+            f"{int(np.count_nonzero(cut))} cut to the {w_max_ms:g} ms period; "
+            f"{_volume_error(delivered, float(np.sum(vol)))}")
+    return times[keep], widths_us[keep].astype(np.uint16), findings
 
 
 # =========================================================================== helpers
@@ -508,6 +646,36 @@ def n_pulses(prog: ValveProgram) -> int:
 def total_duration(prog: ValveProgram) -> float:
     """Total duration over all pieces, s."""
     return float(sum(p.duration for p in program_pieces(prog)))
+
+
+_NUMBER = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
+
+
+def finding_kind(text: str) -> str:
+    """The kind of a valve-limit finding: its text with every number replaced by ``#``
+    (layer numbers, counts and values differ from path to path; the limit does not)."""
+    return _NUMBER.sub("#", text)
+
+
+def summarise_findings(findings: "Sequence[tuple[int, str]]") -> list[str]:
+    """Condense per-path valve-limit findings for people: one line per kind.
+
+    findings: ``(layer index, finding text)`` pairs, e.g. from the ``warnings`` of the
+        :class:`ValveProgram` of every path of a build.
+    Returns lines ``"N paths in L layers (a-b): <first finding of that kind>"``, the most
+    frequent kind first (ties in order of first appearance).
+    """
+    groups: dict[str, list[tuple[int, str]]] = {}
+    for layer, text in findings:
+        groups.setdefault(finding_kind(text), []).append((int(layer), text))
+    out = []
+    for items in sorted(groups.values(), key=lambda g: -len(g)):  # stable: first seen first
+        layers = sorted({k for k, _ in items})
+        span = f"layer {layers[0]}" if len(layers) == 1 else \
+            f"{len(layers)} layers ({layers[0]}-{layers[-1]})"
+        n = len(items)
+        out.append(f"{n} path{'s' if n != 1 else ''} in {span}: {items[0][1]}")
+    return out
 
 
 # =========================================================================== files

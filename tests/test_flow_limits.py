@@ -1,0 +1,255 @@
+"""Valve limits are enforced or recorded on the program, never only logged (thesis 6.1, 2.3.1).
+
+Expected numbers come from the built-in part table (``calibration_part.csv``: 125 Hz passes
+30.95 mm^3/s, so one 0.5 ms calibration pulse at 125 Hz is V_ref = 30.95 / 125 mm^3) and the
+thesis' PWM rule: at a fixed frequency the pulse width carries the flow, widths in
+[min_pulse_ms, period].
+"""
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from icefab import Job
+from icefab.errors import ConfigError, FlowError
+from icefab.flow import (finding_kind, n_pulses, plan_valves, program_pieces, pulse_times,
+                         summarise_findings, valve_frequency)
+from icefab.types import Path, Trajectory
+
+V_REF = 30.95 / 125.0  # mm^3 per 0.5 ms pulse at 125 Hz (table row 125 Hz, 30.95 mm^3/s)
+PWM = {"flow.mode": "pwm"}
+
+
+def constant_trajectory(speed, duration=0.8, dt=0.016, width=1.5, role="boundary",
+                        material="part"):
+    """A straight path at constant speed lasting exactly ``duration`` (a whole number of
+    8 ms PWM periods and of time steps), so every PWM period commands the same volume."""
+    n = int(round(duration / dt)) + 1
+    s = np.arange(n) * dt * speed
+    xy = np.column_stack([s, np.zeros(n)]) + np.array([200.0, -100.0])
+    path = Path(points=xy[[0, -1]] if n > 1 else xy[[0, 0]], material=material, role=role,
+                width=width, layer=7)
+    return Trajectory(dt=dt, xy=xy, joints=np.zeros((n, 0)), speed=np.full(n, float(speed)),
+                      duration=(n - 1) * dt, path=path)
+
+
+def volumes(text):
+    m = re.search(r"delivers (\S+) of (\S+) mm\^3 commanded", text)
+    assert m, text
+    return float(m.group(1)), float(m.group(2))
+
+
+# ----------------------------------------------------------------------------- PWM limits
+# width 1.5 mm, layer 0.25 mm: q = 0.375 c mm^3/s, V = q / 125 per pulse, and the needed
+# width 0.5 ms * V / V_ref reaches 0.25 ms (half the shortest pulse) at c = 41.27 mm/s and
+# 0.5 ms at c = 82.53 mm/s.
+C_DROP = 0.25 / 0.5 * V_REF * 125.0 / 0.375
+C_RAISE = 0.5 / 0.5 * V_REF * 125.0 / 0.375
+
+
+def test_boundary_speeds_follow_the_table():
+    assert C_DROP == pytest.approx(41.27, abs=0.01) and C_RAISE == pytest.approx(82.53, abs=0.01)
+
+
+def test_pwm_below_half_the_shortest_pulse_drops_every_pulse_and_says_so():
+    traj = constant_trajectory(C_DROP - 0.3)
+    prog = plan_valves(traj, "part", Job().replace(**PWM))
+    assert n_pulses(prog) == 0
+    (w,) = prog.warnings
+    assert "100 of 100 pulses dropped" in w and "flow.min_pulse_ms" in w and "layer 7" in w
+    delivered, commanded = volumes(w)
+    assert delivered == 0 and commanded == pytest.approx(0.375 * (C_DROP - 0.3) * 0.8,
+                                                         rel=1e-3)
+    assert "-100.0 %" in w
+
+
+def test_pwm_between_half_and_the_shortest_pulse_raises_them_and_reports_the_excess():
+    c = C_DROP + 0.3
+    prog = plan_valves(constant_trajectory(c), "part", Job().replace(**PWM))
+    assert n_pulses(prog) == 100 and set(prog.widths_us.tolist()) == {500}
+    (w,) = prog.warnings
+    assert "0 of 100 pulses dropped" in w and "100 raised" in w
+    delivered, commanded = volumes(w)
+    assert delivered == pytest.approx(100 * V_REF, rel=1e-3)
+    assert commanded == pytest.approx(0.375 * c * 0.8, rel=1e-3)
+    assert delivered / commanded == pytest.approx(C_RAISE / c, rel=2e-3)  # ~ +97 %
+
+
+def test_pwm_just_below_and_above_the_shortest_pulse():
+    below = plan_valves(constant_trajectory(C_RAISE - 0.3), "part", Job().replace(**PWM))
+    assert any("100 raised" in w for w in below.warnings)
+    above = plan_valves(constant_trajectory(C_RAISE + 0.3), "part", Job().replace(**PWM))
+    assert above.warnings == ()
+    width_ms = above.widths_us.astype(float) / 1000.0
+    np.testing.assert_allclose(width_ms, 0.5 * 0.375 * (C_RAISE + 0.3) / 125 / V_REF, atol=6e-4)
+
+
+def test_pwm_above_the_period_is_cut_and_reported_or_an_error():
+    # layer 2 mm: q = 3 c, width 0.5 * 3c / 125 / V_ref reaches the 8 ms period at 165 mm/s
+    c_cut = 8.0 / 0.5 * V_REF * 125.0 / 3.0
+    job = Job().replace(**PWM, **{"flow.min_drops_per_mm": 0.5})  # 125 Hz at 167 mm/s
+    ok = plan_valves(constant_trajectory(c_cut - 2), "part", job, layer_thickness=2.0)
+    assert ok.warnings == () and ok.widths_us.max() <= 8000
+    cut = plan_valves(constant_trajectory(c_cut + 2), "part", job, layer_thickness=2.0)
+    (w,) = cut.warnings
+    assert "100 cut to the 8 ms period" in w and set(cut.widths_us.tolist()) == {8000}
+    delivered, commanded = volumes(w)
+    assert delivered / commanded == pytest.approx(c_cut / (c_cut + 2), rel=2e-3)
+    with pytest.raises(FlowError, match=r"layer 7 .*longer than the 8 ms period.*"
+                                        r"flow.out_of_range = 'clamp'"):
+        plan_valves(constant_trajectory(c_cut + 2), "part",
+                    job.replace(**{"flow.out_of_range": "error"}), layer_thickness=2.0)
+
+
+def test_pwm_volume_is_the_commanded_volume_inside_the_limits():
+    """Per-pulse volume = integral of the commanded flow over its period (not a sample)."""
+    from test_flow import line_trajectory  # trapezoidal speed: widths vary along the path
+    traj = line_trajectory(length=300.0, vmax=125.0, width=3.0)
+    prog = plan_valves(traj, "part", Job().replace(**PWM))
+    commanded = 3.0 * 0.25 * 300.0
+    delivered = prog.widths_us.astype(float).sum() / 1000.0 / 0.5 * V_REF
+    # the ramps' first and last pulses are below the shortest pulse: reported, small
+    (w,) = prog.warnings
+    assert volumes(w)[0] == pytest.approx(delivered, rel=1e-3)
+    assert delivered == pytest.approx(commanded, rel=0.01)
+
+
+@pytest.mark.parametrize("setting,value,match", [
+    ("flow.pwm_frequency_hz", 2000.0, r"flow.pwm_frequency_hz = 2000: .*flow.max_frequency_hz"),
+    ("flow.pwm_frequency_hz", 600.0, r"flow.pwm_frequency_hz = 600: .*1 / flow.tick_s = 500"),
+])
+def test_pwm_frequency_above_the_valve_or_the_tick_is_rejected(setting, value, match):
+    job = Job().replace(**{**PWM, setting: value})
+    with pytest.raises(ConfigError, match=match):
+        plan_valves(constant_trajectory(100.0), "part", job)
+    with pytest.raises(ConfigError, match=match):  # also for a path that deposits nothing
+        plan_valves(constant_trajectory(100.0, role="travel", width=0.0), "part", job)
+
+
+def test_pwm_frequency_outside_the_table_is_rejected(tmp_path):
+    cal = tmp_path / "c.csv"
+    cal.write_text("200,40\n1000,195\n")
+    job = Job().replace(**{**PWM, "materials.part.calibration_file": str(cal)})
+    with pytest.raises(ConfigError, match=r"flow.pwm_frequency_hz = 125: outside the "
+                                          r"calibration table"):
+        plan_valves(constant_trajectory(100.0), "part", job)
+
+
+@settings(max_examples=60, deadline=None)
+@given(f=st.floats(20.0, 500.0), dt=st.sampled_from([0.016, 0.005, 0.003, 0.0123]),
+       duration=st.floats(0.05, 3.0))
+def test_pwm_pulses_never_share_a_tick(f, dt, duration):
+    n = max(2, int(duration / dt))
+    traj = constant_trajectory(125.0, duration=(n - 1) * dt, dt=dt, width=3.0)
+    job = Job().replace(**{**PWM, "flow.pwm_frequency_hz": f, "flow.max_pulses": 97})
+    prog = plan_valves(traj, "part", job)
+    for piece in program_pieces(prog):
+        assert np.all(np.diff(piece.ticks.astype(np.int64)) >= 1)
+    assert not any("share" in w for w in prog.warnings)
+    assert n_pulses(prog) == int(np.floor(traj.duration * f + 0.5 + 1e-9)) or \
+        any("dropped" in w for w in prog.warnings)
+
+
+# ----------------------------------------------------------------------------- FM limits
+
+
+def test_fm_pulses_sharing_a_tick_are_counted():
+    # 3 mm x 0.25 mm at 160 mm/s = 120 mm^3/s: above 115.28 mm^3/s = 500 Hz in the table
+    prog = plan_valves(constant_trajectory(160.0, width=3.0), "part", Job())
+    shared = sum(int(np.count_nonzero(np.diff(p.ticks.astype(int)) == 0))
+                 for p in program_pieces(prog))
+    assert shared > 0
+    assert any(f"{shared} pulses share a 2 ms tick" in w for w in prog.warnings)
+    slow = plan_valves(constant_trajectory(140.0, width=3.0), "part", Job())
+    assert not any("share" in w for w in slow.warnings)
+
+
+def test_clamped_flow_reports_the_volume_lost():
+    # 3 mm x 1 mm at 100 mm/s = 300 mm^3/s; the table ends at 195 mm^3/s: 35 % short
+    traj = constant_trajectory(100.0, width=3.0)
+    job = Job().replace(**{"flow.out_of_range": "clamp"})
+    prog = plan_valves(traj, "part", job, layer_thickness=1.0)
+    (w,) = [w for w in prog.warnings if "calibration table" in w]
+    assert "flow 300 mm^3/s outside the calibration table [0, 195]" in w
+    assert "flow.out_of_range = 'clamp'" in w
+    delivered, commanded = volumes(w)
+    assert commanded == pytest.approx(300 * 0.8, rel=1e-3)
+    assert delivered == pytest.approx(195 * 0.8, rel=1e-3)
+    assert "-35.0 %" in w
+
+
+def test_flow_outside_the_table_is_an_error_naming_path_flow_range_and_setting():
+    traj = constant_trajectory(100.0, width=3.0)
+    job = Job().replace(**{"flow.out_of_range": "error"})
+    with pytest.raises(FlowError) as exc:
+        plan_valves(traj, "part", job, layer_thickness=1.0)
+    msg = str(exc.value)
+    for part in ("layer 7 part boundary path", "flow 300 mm^3/s", "[0, 195] mm^3/s",
+                 "calibration_part.csv", "flow.out_of_range = 'clamp'"):
+        assert part in msg
+
+
+@pytest.mark.skipif(Job().flow.out_of_range != "error",
+                    reason="config.py still defaults flow.out_of_range to 'clamp' "
+                           "(recommended default: 'error', issue 5)")
+def test_flow_outside_the_table_is_an_error_by_default():  # pragma: no cover
+    with pytest.raises(FlowError, match="outside the calibration table"):
+        plan_valves(constant_trajectory(100.0, width=3.0), "part", Job(), layer_thickness=1.0)
+
+
+def test_zero_flow_is_zero_hertz_for_a_table_not_starting_at_zero(tmp_path):
+    cal = tmp_path / "c.csv"
+    cal.write_text("10,2.5\n1000,195\n")
+    job = Job().replace(**{"materials.part.calibration_file": str(cal),
+                           "flow.out_of_range": "error"})
+    traj = constant_trajectory(20.0)
+    speed = traj.speed.copy()
+    speed[[0, -1]] = 0.0  # at rest at both ends: no flow, no pulses, not out of range
+    traj = Trajectory(dt=traj.dt, xy=traj.xy, joints=traj.joints, speed=speed,
+                      duration=traj.duration, path=traj.path)
+    plan = valve_frequency(traj, "part", job)
+    assert plan.nu[0] == 0 and plan.nu[-1] == 0 and plan.warnings == ()
+
+
+# ----------------------------------------------------------------------------- input checks
+
+
+@pytest.mark.parametrize("duration,dt,match", [
+    (5.0, 0.016, r"layer 7 .*duration = 5.0 s disagrees with its 51 samples"),
+    (0.0, 0.016, r"duration = 0.0 s disagrees"),
+    (0.8, 0.0, r"dt = 0.0 s: must be finite and > 0"),
+    (0.8, float("nan"), r"dt = nan s"),
+])
+def test_inconsistent_trajectory_timing_is_rejected(duration, dt, match):
+    good = constant_trajectory(50.0)
+    bad = Trajectory(dt=dt, xy=good.xy, joints=good.joints, speed=good.speed,
+                     duration=duration, path=good.path)
+    with pytest.raises(FlowError, match=match):
+        plan_valves(bad, "part", Job())
+    with pytest.raises(FlowError, match=match):
+        valve_frequency(bad, "part", Job())
+
+
+def test_consistent_timing_within_a_microsecond_is_accepted():
+    good = constant_trajectory(50.0)
+    ok = Trajectory(dt=good.dt, xy=good.xy, joints=good.joints, speed=good.speed,
+                    duration=good.duration + 5e-7, path=good.path)
+    assert n_pulses(plan_valves(ok, "part", Job())) == n_pulses(plan_valves(good, "part", Job()))
+    assert pulse_times(plan_valves(ok, "part", Job()))[-1] <= ok.duration
+
+
+# ----------------------------------------------------------------------------- summaries
+
+
+def test_findings_are_grouped_by_kind_with_counts():
+    a = "layer 3 part fill path: flow 300 mm^3/s outside the calibration table [0, 195]"
+    b = "layer 9 part fill path: flow 250.5 mm^3/s outside the calibration table [0, 195]"
+    c = "layer 9 scaffold fill path: fewer than flow.min_drops_per_mm = 1 drops per mm (0.4)"
+    assert finding_kind(a) == finding_kind(b) != finding_kind(c)
+    lines = summarise_findings([(3, a), (9, b), (9, c)])
+    assert lines == [f"2 paths in 2 layers (3-9): {a}", f"1 path in layer 9: {c}"]
+    assert summarise_findings([]) == []
