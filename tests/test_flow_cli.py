@@ -1,6 +1,8 @@
 """``icefab valves`` end to end on a small trajectory file."""
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -47,3 +49,39 @@ def test_valves_bad_input(tmp_path, traj_file, capsys):
     err = capsys.readouterr().err
     assert "not found" in err and "--layers" in err
     assert not (tmp_path / "o").exists()
+
+
+@pytest.fixture()
+def fast_file(tmp_path):
+    """Two layers with one fill path commanding 3 x 0.25 x 400 = 300 mm^3/s (table: 195)."""
+    layers = tuple(LayerMotion(index=k, z=0.25 * (k + 1), trajectories=(
+        line_trajectory(length=600, vmax=400.0, accel=4000.0, width=3.0, role="fill", y=k),
+        line_trajectory(y=5.0 + k))) for k in range(2))
+    f = tmp_path / "fast.npz"
+    save_trajectories(BuildMotion(layers=layers, job=Job()), f)
+    return f
+
+
+def test_valves_prints_each_kind_of_finding_once_with_its_count(tmp_path, fast_file, capsys):
+    out = tmp_path / "out"
+    rc = main(["valves", str(fast_file), "-o", str(out), "--out-of-range", "clamp"])
+    text = capsys.readouterr().out
+    assert rc == 0
+    summary = (out / "summary.txt").read_text()
+    assert text.strip() == summary.strip()
+    kind = [ln for ln in text.splitlines() if "outside the calibration table" in ln]
+    assert len(kind) == 1  # two paths, one line
+    assert re.match(r"2 paths in 2 layers \(0-1\): layer \d+ part fill path: flow 300 mm\^3/s "
+                    r"outside the calibration table \[0, 195\] mm\^3/s", kind[0].lstrip())
+    assert "clamped (flow.out_of_range = 'clamp')" in kind[0] and "commanded (-" in kind[0]
+    assert any(ln.startswith("mode fm") and ln.endswith("flow.out_of_range = 'clamp'")
+               for ln in text.splitlines())
+
+
+def test_valves_out_of_range_error_names_path_flow_and_setting(tmp_path, fast_file, capsys):
+    rc = main(["valves", str(fast_file), "-o", str(tmp_path / "o"), "--out-of-range", "error"])
+    out, err = capsys.readouterr()
+    assert rc == 2 and not (tmp_path / "o").exists()
+    assert re.search(r"layer \d+ part fill path: flow 300 mm\^3/s outside the calibration "
+                     r"table \[0, 195\] mm\^3/s", err)
+    assert "flow.out_of_range = 'clamp'" in err and err.count("\n") == 1
