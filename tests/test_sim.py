@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 from hypothesis import given, strategies as st
 
-from icefab.sim import (SimulationError, deposit, empty_surface, laser_measure,
-                        laser_positions, sample_surface, volume_from_pulses)
+from icefab.sim import (SimulationError, deposit, deposit_pulses, empty_surface,
+                        laser_measure, laser_positions, sample_surface)
 from icefab.types import HeightMap
 
 G = 0.5
@@ -99,12 +99,47 @@ def test_deposit_rejects_bad_input():
         deposit(_map(), np.array([[0, np.nan], [1, 1]]), np.ones(2), 1.0)
 
 
-def test_volume_from_pulses_counts_pulses_per_step():
-    t = np.array([0.001, 0.002, 0.017, 0.0175, 0.0179, 0.05])
-    v = volume_from_pulses(t, 0.016, 4, 0.5)
-    assert v.tolist() == [1.0, 1.5, 0.0, 0.5]
-    v = volume_from_pulses(t, 0.016, 4, np.array([1.0, 2.0, 3.0, 4.0]))
-    assert v.tolist() == [2.0, 6.0, 0.0, 4.0]
+def test_evenly_spaced_drops_leave_a_strip_of_drop_over_width_times_spacing():
+    # 40 mm at 50 mm/s sampled every 16 ms; a drop every 10 ms = every 0.5 mm
+    n = 51
+    xy = np.column_stack([np.linspace(0.0, 40.0, n), np.full(n, 10.0)])
+    t = (np.arange(80) + 0.5) * 0.01
+    out = deposit_pulses(_map(), xy, 0.8 / 50, t, 0.375, 1.5)
+    assert out.z.sum() * G * G == pytest.approx(80 * 0.375, rel=1e-12)
+    xs, ys = out.grid()
+    inner = (xs > 2) & (xs < 38)
+    # 0.375 mm^3 over 1.5 mm x 0.5 mm: 0.5 mm high, whatever the cells the drops straddle
+    assert np.allclose(out.z[np.abs(ys - 10.0) < 0.5][:, inner], 0.5, rtol=1e-9)
+
+
+def test_drops_crowded_where_the_nozzle_is_slow_pile_up():
+    # the same 80 drops at a constant rate on a path whose second half is run twice as
+    # slowly: the second half gets two thirds of the drops on the same length
+    t_knots = np.array([0.0, 0.4, 1.2])
+    s_knots = np.array([0.0, 20.0, 40.0])
+    ts = np.arange(0.0, 1.2 + 1e-9, 0.016)
+    xy = np.column_stack([np.interp(ts, t_knots, s_knots), np.full(len(ts), 10.0)])
+    t = (np.arange(80) + 0.5) * (ts[-1] / 80)
+    out = deposit_pulses(_map(), xy, 0.016, t, 0.375, 1.5)
+    xs, ys = out.grid()
+    row = out.z[np.argmin(np.abs(ys - 10.0))]
+    fast, slow = row[(xs > 3) & (xs < 17)], row[(xs > 23) & (xs < 37)]
+    assert slow.mean() == pytest.approx(2 * fast.mean(), rel=0.05)
+
+
+def test_drops_at_a_stop_and_bad_input():
+    xy = np.zeros((5, 2))  # the nozzle does not move: every drop on a w x w square
+    out = deposit_pulses(_map(), xy, 0.016, np.array([0.01, 0.02, 0.03]), 0.5, 1.0)
+    assert out.z.sum() * G * G == pytest.approx(1.5)
+    # a 1 mm square centred on a node: 1.5 mm high, its rim on the 8 neighbours' halves
+    assert out.z.max() == pytest.approx(1.5) and np.count_nonzero(out.z) == 9
+    for args in [(np.zeros((3, 3)), 0.016, [0.0], 1.0, 1.0),
+                 (xy, 0.0, [0.0], 1.0, 1.0),
+                 (xy, 0.016, [0.02, 0.01], 1.0, 1.0),
+                 (xy, 0.016, [0.0], np.nan, 1.0),
+                 (xy, 0.016, [0.0], 1.0, 0.0)]:
+        with pytest.raises(SimulationError, match="deposit_pulses"):
+            deposit_pulses(_map(), *args)
 
 
 # --------------------------------------------------------------------------- laser

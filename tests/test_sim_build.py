@@ -179,36 +179,6 @@ def test_the_real_smf_controller_closes_the_loop_on_the_annulus():
     assert smf.rms_measured[-1] < 0.1
 
 
-def test_valve_programs_deposit_the_commanded_volume_drop_by_drop():
-    from icefab.flow import calibration_for
-    from icefab.sim import plan_layer, valve_volumes
-
-    job = quiet_job(**{"simulation.deposition": "valves"})
-    tp = annulus_toolpaths(job, 1)
-    plan = plan_layer(0, tp.layers[0].paths, job)
-    v = valve_volumes(plan, job)
-    cal = calibration_for("part", job)
-    pos = cal.frequency_hz > 0
-    biggest_drop = float(np.max(cal.flow_mm3_s[pos] / cal.frequency_hz[pos]))
-    # every path gets its w * dh * length to within a drop or two (pulses are whole)
-    for i in range(len(plan.paths)):
-        s0, s1 = plan.path_start[i], plan.path_start[i + 1]
-        assert abs(v[s0:s1].sum() - plan.volume[s0:s1].sum()) < 2 * biggest_drop
-    # the control action scales the flow: u = +0.2 gives 20 % more drops' volume
-    v_up = valve_volumes(plan, job, lambda xy: np.full(len(xy), 0.2))
-    assert v_up.sum() == pytest.approx(1.2 * v.sum(), rel=0.01)
-
-
-def test_valve_deposition_closes_the_loop_too():
-    job = quiet_job(**{"simulation.deposition": "valves", "simulation.flow_error": 0.1,
-                       "simulation.spread_mm": 1.0})
-    tp = annulus_toolpaths(job, 16)
-    open_ = simulate_build(tp, job, closed_loop=False)
-    smf = simulate_build(tp, job)
-    assert open_.volume_deposited == pytest.approx(1.1 * open_.volume_commanded, rel=0.01)
-    assert smf.rms[-1] < open_.rms[-1] / 3
-
-
 def test_a_debris_pulse_is_a_bump_of_the_configured_height_and_radius():
     job = quiet_job(**{"simulation.debris_rate": 0.3, "simulation.debris_height_mm": 0.5,
                        "simulation.debris_radius_mm": 2.0})

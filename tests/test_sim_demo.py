@@ -51,3 +51,26 @@ def test_smf_holds_the_demo_part_within_a_fifth_of_the_open_loop_error(demo_tool
     # the controller put the flow back: the deposited volume is close to the commanded one
     assert abs(smf.volume_deposited / smf.volume_commanded - 1) < \
         0.5 * abs(open_loop.volume_deposited / open_loop.volume_commanded - 1)
+
+
+N_VALVE_LAYERS = 16  # 4 measurements: enough for the must-show, quick to plan (MTTS)
+
+
+@pytest.mark.slow
+def test_smf_through_the_valve_programs_holds_the_demo_part_too(demo_toolpaths):
+    # the same must-show with the cell's real signals: minimum-time trajectories and
+    # their valve programs deposited pulse by pulse, SMF re-planning the programs
+    from icefab.motion import plan_toolpaths
+    from icefab.types import Toolpaths
+
+    tp, job = demo_toolpaths
+    job = job.replace(**{"simulation.deposition": "valves"})
+    motion = plan_toolpaths(Toolpaths(layers=tp.layers[:N_VALVE_LAYERS], job=tp.job), job)
+    open_loop = simulate_build(motion, job, closed_loop=False)
+    smf = simulate_build(motion, job, closed_loop=True)
+    assert open_loop.layers.tolist() == smf.layers.tolist() == [3, 7, 11, 15]
+    assert open_loop.pulses > 0 and smf.pulses < open_loop.pulses  # the valves gave less
+    assert np.all(np.diff(open_loop.rms) > 0)
+    assert open_loop.rms[-1] > 0.7 * job.simulation.flow_error * open_loop.nominal_z[-1]
+    assert smf.rms[-1] < open_loop.rms[-1] / 5
+    assert smf.rms[-1] < 0.15

@@ -10,21 +10,29 @@ What it models
   overlap (polygon clipping, numba) and the weights are normalised per segment, so the
   volume is conserved to rounding. A straight path deposited with flow ``q`` at speed
   ``v`` leaves a strip of width ``w`` and height ``q / (w v)``.
-* **Commanded volume.** With variable-flow valve control the valve follows the speed so
-  that the volume per millimetre is ``w * dh * c`` (thesis eq. 6.2, ``c`` =
-  ``job.flow.layer_scale``), whatever the speed profile. The simulator therefore does not
-  need the trajectories: it follows each path's own polyline (what the robot follows),
+* **Commanded volume** (``job.simulation.deposition = "flow"``, the default: an ideal
+  valve). With variable-flow valve control the valve follows the speed so that the volume
+  per millimetre is ``w * dh * c`` (thesis eq. 6.2, ``c`` = ``job.flow.layer_scale``),
+  whatever the speed profile. This mode therefore does not need the trajectories: it
+  follows each path's own polyline (what the robot follows),
   with every edge longer than one time step at the constant speed of its role (boundary
   ``job.motion.boundary_speed_mm_s``, fill ``job.motion.fill_speed_mm_s``, times
   ``job.motion.dt_s``) split, so that the control action is applied at least once per
   time step, and gives each segment the volume ``w * dh * c * length``. (Sampling the
   paths themselves at dt instead would deposit along 2 mm chords whose seams between
   neighbouring rings leave systematic gaps that grow layer after layer.)
-  With ``job.simulation.deposition = "valves"`` the volume comes instead from the valve
-  programs (:func:`valve_volumes`): each path is run at its constant speed every dt
-  through :func:`icefab.flow.plan_valves` (re-planned with the control action, as the
-  cell does for the next n_d layers) and each pulse drops the calibrated volume Q / nu;
-  :func:`volume_from_pulses` does the same for any program and trajectory.
+* **Valve pulses** (``job.simulation.deposition = "valves"``, thesis Ch. 6): the build
+  runs as the cell runs it, on its minimum-time trajectories (``icefab.motion``, variable
+  speed, at rest at split corners; planned here from toolpaths, or read from a
+  ``trajectories.npz``) and their valve programs (:func:`icefab.flow.replan_valves`: the
+  frequency follows the speed, eq. 6.2-6.6, pulse instants in 2 ms ticks, the control
+  action applied). Each pulse drops the calibrated volume per pulse at its frequency
+  (``Q / nu`` from the table nu = h(Q); PWM: in proportion to the pulse width) at the
+  nozzle's position at the pulse instant (the trajectory interpolated in time), and the
+  drop is spread over the path width along the strip between the midpoints to its
+  neighbouring drops (:func:`deposit_pulses`): drops evenly spaced along the path leave
+  an even strip, crowded drops a higher one. So pulse quantisation (whole pulses, 2 ms
+  ticks) at variable speed shows in the surface.
 * **Liquid flow.** Before it freezes, the liquid of a layer flows downhill over the frozen
   surface for a diffusion length ``spread_mm`` (:func:`level_liquid`): it fills gaps
   between paths narrower than about twice that and evens out single drops, but does not
@@ -32,22 +40,29 @@ What it models
 * **Disturbances** (thesis 5.6, eq. 5.29), drawn from ``job.simulation.seed`` so an
   open-loop and a closed-loop run see the same ones: the actual flow is the commanded flow
   times ``(1 + flow_error) * (1 + flow_drift_per_m3 * V)``, ``V`` the volume in cm^3 that
-  valve has already deposited (the thesis saw up to +20 %, Ch. 6.4; the setting's name is kept for
-  compatibility, its unit is per cm^3); correlated random height noise per layer; debris
-  pulses (Gaussian bumps, Poisson number per layer); weaker deposition within one path width
-  of the free edges of each layer's deposit (``edge_loss``: the outer rim and the holes of
-  the merged part + scaffold footprint; not the part/scaffold interface).
+  valve has already deposited (the thesis saw up to +20 %, Ch. 6.4; the setting's name is
+  kept for compatibility, its unit is per cm^3; with valve pulses it multiplies every
+  drop); correlated random height noise per layer; debris pulses (Gaussian bumps, Poisson
+  number per layer); weaker deposition within one path width of the free edges of each
+  layer's deposit (``edge_loss``: the outer rim and the holes of the merged part +
+  scaffold footprint; not the part/scaffold interface).
 * **Laser** (thesis 5.2.1): samples at ``laser_rate_hz`` along the measurement paths at the
-  measurement speed, with Gaussian noise and an uncompensated latency: a sample tagged with
+  measurement speed (along the measurement trajectories, in time, when the build runs on
+  trajectories), with Gaussian noise and an uncompensated latency: a sample tagged with
   the position at time ``t`` reads the surface where the laser was at ``t - latency``.
-* **Control** (thesis 5.1.3, 5.2.2): the nu-controller scales the flow of every segment by
-  ``1 + u`` evaluated at the segment's midpoint. The c-controller changes the speed by
-  ``1 / (1 + u)``, which deposits the same volume per millimetre, so both give the same
-  surface here (only the build time differs).
+* **Control** (thesis 5.1.3, 5.2.2): with ``deposition = "flow"`` the nu-controller
+  scales the flow of every segment by ``1 + u`` evaluated at the segment's midpoint, and
+  the c-controller (speed ``1 / (1 + u)``, the same volume per millimetre) gives the same
+  surface. With ``"valves"`` the action goes where the cell puts it: after each
+  measurement the valve programs of the next n_d layers are re-planned with it
+  (:func:`icefab.flow.replan_valves`: flow x (1 + u), or re-timed trajectories for the
+  c-controller), and the surface gets what their pulses deliver.
 
-The core (:func:`deposit`, :func:`laser_measure`, :func:`run_cell`) works on plain arrays
-and a controller callable; :func:`simulate_build` prepares a ``Toolpaths`` and, for closed
-loop, plugs in the surface mapping feedback of :mod:`icefab.feedback`.
+The core (:func:`deposit`, :func:`deposit_pulses`, :func:`laser_measure`,
+:func:`run_cell`) works on plain arrays and a controller callable; :func:`simulate_build`
+prepares a ``Toolpaths`` or a ``BuildMotion`` (:func:`plan_layer`,
+:func:`plan_layer_motion`) and, for closed loop, plugs in the surface mapping feedback of
+:mod:`icefab.feedback`.
 
 Heights are measured from the build platform (z = 0 before the first simulated layer); the
 nominal top of the j-th simulated layer (j = 0, 1, ...) is ``(j + 1) * dh``.
@@ -65,10 +80,13 @@ from numba import njit
 from scipy import ndimage
 
 from icefab.errors import GeometryError, SimulationError
-from icefab.types import HeightMap, Path, Toolpaths
+from icefab.types import HeightMap, LayerPaths, Path, Toolpaths, Trajectory
 
 if TYPE_CHECKING:  # pragma: no cover
     from icefab.config import Job
+    from icefab.flow import FrequencyPlan
+    from icefab.motion import BuildMotion, LayerMotion
+    from icefab.types import ValveProgram
 
 log = logging.getLogger(__name__)
 
@@ -347,21 +365,161 @@ def empty_surface(lo: np.ndarray, hi: np.ndarray, spacing: float, margin: float 
     return HeightMap(origin=lo, spacing=float(spacing), z=np.zeros((ny, nx)))
 
 
-def volume_from_pulses(pulse_times_s: np.ndarray, dt: float, n: int,
-                       drop_volume_mm3: float | np.ndarray) -> np.ndarray:
-    """Volume deposited in each time step of a trajectory by a valve program.
+_TINY_MM = 1e-9  # shorter steps along a path are the same point, mm
 
-    pulse_times_s: (p,) float64, s, pulse instants from the start of the trajectory
-        (``ValveProgram.ticks * tick_s``).
-    dt: trajectory time step, s; n: number of samples.
-    drop_volume_mm3: volume of one drop, mm^3, scalar or (n,) per sample — from the
-        calibration table, q / nu at the commanded frequency (thesis 6.1).
-    Returns (n,) float64 mm^3: pulses falling in [i dt, (i + 1) dt) times the drop volume.
+
+def _pulse_segments(xy: np.ndarray, dt: float, pulse_t: np.ndarray, drop: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:
+    """Drops of one trajectory as deposition segments (see :func:`deposit_pulses`).
+
+    Returns a, b (m, 2) segment ends along the followed polyline (repeated samples
+    dropped, so corners keep their mitre), vol (m,) mm^3, (at (k, 2), at_vol (k,)): the
+    positions and volumes of drops that own no length of path (three or more at one
+    place, or a trajectory that does not move), and whether the polyline returns to its
+    start (closed).
     """
-    idx = np.clip(np.floor(np.asarray(pulse_times_s, dtype=np.float64) / dt).astype(np.int64),
-                  0, max(n - 1, 0))
-    count = np.bincount(idx, minlength=n)[:n].astype(np.float64)
-    return count * np.broadcast_to(np.asarray(drop_volume_mm3, dtype=np.float64), (n,))
+    xy = np.asarray(xy, dtype=np.float64)
+    n = len(xy)
+    p = len(pulse_t)
+    none = np.zeros((0, 2))
+    if p == 0 or n == 0:
+        return none, none, np.zeros(0), (none, np.zeros(0)), False
+    seg = np.linalg.norm(np.diff(xy, axis=0), axis=1)
+    S = np.concatenate([[0.0], np.cumsum(seg)])
+    length = float(S[-1])
+    if length <= _TINY_MM:
+        return none, none, np.zeros(0), (np.repeat(xy[:1], p, axis=0), drop.copy()), False
+    # where the nozzle is at each pulse instant: arc length at that time (thesis 6.2)
+    s_p = np.interp(pulse_t, np.arange(n) * dt, S)
+    bounds = np.concatenate([[0.0], 0.5 * (s_p[:-1] + s_p[1:]), [length]])
+    keep = np.concatenate([[True], seg > _TINY_MM])
+    poly, s_v = xy[keep], S[keep]
+    cuts = np.unique(np.concatenate([s_v, bounds]))
+    cuts = cuts[np.concatenate([[True], np.diff(cuts) > _TINY_MM])]
+    cuts[-1] = length
+    lens = np.diff(cuts)
+    owner = np.clip(np.searchsorted(bounds, 0.5 * (cuts[:-1] + cuts[1:]), side="right") - 1,
+                    0, p - 1)
+    strip = bounds[owner + 1] - bounds[owner]
+    vol = drop[owner] * np.divide(lens, strip, out=np.zeros_like(lens), where=strip > 0)
+    pts = _at(poly, s_v, cuts)
+    # drops whose strip is (nearly) empty keep their volume as a w x w square
+    rest = drop - np.bincount(owner, weights=vol, minlength=p)
+    lone = rest > 1e-9 * np.maximum(drop, 1e-300)
+    at = _at(poly, s_v, s_p[lone]) if lone.any() else none
+    closed = bool(np.linalg.norm(xy[-1] - xy[0]) <= 1e-6)
+    return pts[:-1], pts[1:], vol, (at, rest[lone]), closed
+
+
+def pulse_segments(xy: Sequence[np.ndarray], dt: Sequence[float],
+                   pulse_times_s: Sequence[np.ndarray], drop_mm3: Sequence[np.ndarray],
+                   width: Sequence[float]) -> tuple[np.ndarray, ...]:
+    """Deposition segments of many trajectories' valve pulses (see :func:`deposit_pulses`).
+
+    Per trajectory i: ``xy[i] (n_i, 2)`` mm part-frame nozzle positions every ``dt[i]`` s,
+    pulse instants ``pulse_times_s[i] (p_i,)`` s from its start, drop volumes
+    ``drop_mm3[i] (p_i,)``, path width ``width[i]`` mm.
+    Returns a (m, 2), b (m, 2), volume (m,) mm^3, half width (m,) mm, owner (m,) int64
+    (the trajectory each segment comes from), n0, n1, ext (:func:`_joints`), in the
+    trajectories' order.
+    """
+    a_l, b_l, v_l, hw_l, own_l, starts, closed = [], [], [], [], [], [], []
+    count = 0
+    for i, (pts, step, t, drop, w) in enumerate(zip(xy, dt, pulse_times_s, drop_mm3, width)):
+        a, b, vol, (at, at_vol), cl = _pulse_segments(pts, float(step),
+                                                       np.asarray(t, dtype=np.float64),
+                                                       np.asarray(drop, dtype=np.float64))
+        pieces = [(a, b, vol, cl)] if len(a) else []
+        # lone drops: a zero-length segment each, a path of its own (w x w square)
+        pieces += [(at[k:k + 1], at[k:k + 1], at_vol[k:k + 1], False) for k in range(len(at))]
+        for pa, pb, pv, pc in pieces:
+            starts.append(count)
+            closed.append(pc)
+            count += len(pa)
+            a_l.append(pa)
+            b_l.append(pb)
+            v_l.append(pv)
+            hw_l.append(np.full(len(pa), 0.5 * float(w)))
+            own_l.append(np.full(len(pa), i, dtype=np.int64))
+    if not a_l:
+        z2, z1 = np.zeros((0, 2)), np.zeros(0)
+        return z2, z2, z1, z1, np.zeros(0, dtype=np.int64), z2, z2, z1
+    a, b, hw = np.concatenate(a_l), np.concatenate(b_l), np.concatenate(hw_l)
+    n0, n1, ext = _joints(a, b, hw, np.asarray(starts, dtype=np.int64),
+                          np.asarray(closed, dtype=bool))
+    return a, b, np.concatenate(v_l), hw, np.concatenate(own_l), n0, n1, ext
+
+
+def deposit_pulses(surface: HeightMap, xy: np.ndarray, dt: float, pulse_times_s: np.ndarray,
+                   drop_mm3: float | np.ndarray, width: float) -> HeightMap:
+    """Deposit the drops of one valve program along one trajectory onto a height map.
+
+    surface: the current surface (finite ``z``).
+    xy: (n, 2) float64, mm, nozzle positions in the part frame every ``dt`` s (a
+        :class:`~icefab.types.Trajectory` through :func:`icefab.flow.trajectory_part_xy`).
+    pulse_times_s: (p,) float64, s, non-decreasing pulse instants from the trajectory start
+        (:func:`icefab.flow.pulse_times`).
+    drop_mm3: volume of each drop, mm^3, scalar or (p,) (:func:`pulse_drops`).
+    width: path width, mm.
+
+    Each drop lands where the nozzle is at its instant (the trajectory interpolated in
+    time) and is spread over the path width along its share of the path: from the
+    midpoint to the previous drop to the midpoint to the next (the first from the
+    trajectory's start, the last to its end), cut into pieces at the polyline's vertices
+    and laid down with the strip kernel of :func:`deposit` (mitre joins; a trajectory
+    ending where it starts is closed). Drops evenly spaced along the path give a strip of
+    even height, ``drop / (width * spacing)``; drops that own no length of path (three
+    at one place) cover a w x w square. The added volume is the sum of the drops.
+    """
+    pulse_t = np.asarray(pulse_times_s, dtype=np.float64).reshape(-1)
+    drop = np.broadcast_to(np.asarray(drop_mm3, dtype=np.float64), pulse_t.shape).copy()
+    xy = np.asarray(xy, dtype=np.float64)
+    if xy.ndim != 2 or xy.shape[1] != 2 or not (dt > 0 and width > 0) \
+            or not (np.isfinite(xy).all() and np.isfinite(pulse_t).all()
+                    and np.isfinite(drop).all()) or np.any(np.diff(pulse_t) < 0):
+        raise SimulationError("deposit_pulses: need xy (n, 2) finite, dt > 0, width > 0 and "
+                              "finite, non-decreasing pulse times")
+    a, b, vol, hw, _, n0, n1, ext = pulse_segments([xy], [dt], [pulse_t], [drop], [width])
+    z = np.array(surface.z, dtype=np.float64, copy=True)
+    if len(a):
+        _splat(z, surface.origin, surface.spacing, a, b, vol, hw, n0, n1, ext)
+    return HeightMap(origin=np.asarray(surface.origin, dtype=np.float64),
+                     spacing=float(surface.spacing), z=z)
+
+
+def pulse_drops(program: "ValveProgram", frequency: "FrequencyPlan | None",
+                material: str, job: "Job") -> tuple[np.ndarray, np.ndarray]:
+    """Pulse instants of a valve program and the volume each pulse drops (thesis 6.1).
+
+    program: from :func:`icefab.flow.plan_valves` / ``replan_valves``; frequency: the
+        commanded signal along the same trajectory (:func:`icefab.flow.valve_frequency`,
+        same action); needed in FM mode only.
+    Returns (t (p,) float64 s from the trajectory start, volume (p,) float64 mm^3).
+    FM: a pulse at frequency nu (the commanded frequency at its instant) drops the
+    calibrated volume per pulse ``Q(nu) / nu`` of the material's table (below the table's
+    first non-zero frequency: its slope there). PWM: ``Q(f) / f`` at the PWM frequency
+    scaled by ``width / flow.calibration_pulse_ms``. The simulated flow gain is applied
+    by the caller.
+    """
+    from icefab import flow
+
+    t = flow.pulse_times(program)
+    if len(t) == 0:
+        return t, np.zeros(0)
+    cal = flow.calibration_for(material, job)
+    if program.widths_us is None:
+        if frequency is None:
+            raise SimulationError("pulse_drops: an FM program needs its frequency plan")
+        nu = np.interp(t, frequency.t, frequency.nu)
+        pos = cal.frequency_hz[cal.frequency_hz > 0]
+        floor = 1e-6 * float(pos[0]) if len(pos) else 1e-9
+        nu = np.maximum(nu, floor)
+        return t, cal.flow(nu) / nu
+    f = job.flow.pwm_frequency_hz
+    per_pulse = float(cal.flow(np.array([f]))[0]) / f
+    widths_ms = np.concatenate([pc.widths_us for pc in flow.program_pieces(program)]
+                               ).astype(np.float64) / 1000.0
+    return t, per_pulse * widths_ms / job.flow.calibration_pulse_ms
 
 
 # --------------------------------------------------------------------------- laser
@@ -463,10 +621,13 @@ class LayerPlan:
     material: (m,) int8, 0 part, 1 scaffold.
     n0, n1: (m, 2) float64 unit normals of the cut lines at the segment ends and ext (m,)
         float64 mm, the mitre reach (see :func:`_joints`).
-    paths: the deposition paths; path i owns segments ``path_start[i]:path_start[i + 1]``
-        and is followed at ``path_speed[i]`` mm/s.
+    paths: the deposition paths; path i owns segments ``path_start[i]:path_start[i + 1]``.
     laser_tagged, laser_true: (k, 2) float64, mm, laser sample positions (empty when the
         layer has no measurement paths).
+    trajectories: the deposition trajectories (robot base frame, as planned) when the
+        layer was prepared from trajectories (:func:`plan_layer_motion`); the segments are
+        then their sample chords, path i being trajectory i. Empty for
+        :func:`plan_layer`.
     """
 
     index: int
@@ -480,9 +641,9 @@ class LayerPlan:
     ext: np.ndarray
     paths: tuple[Path, ...] = ()
     path_start: np.ndarray = field(default_factory=lambda: np.zeros(1, dtype=np.int64))
-    path_speed: np.ndarray = field(default_factory=lambda: np.zeros(0))
     laser_tagged: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     laser_true: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    trajectories: tuple[Trajectory, ...] = ()
 
     @property
     def midpoints(self) -> np.ndarray:
@@ -502,7 +663,7 @@ def plan_layer(index: int, paths: Sequence[Path], job: "Job") -> LayerPlan:
     dh = job.slicing.layer_thickness_mm * job.flow.layer_scale
     a_parts, b_parts, v_parts, w_parts, mat_parts = [], [], [], [], []
     starts, closed, count = [], [], 0
-    dep_paths, speeds = [], []
+    dep_paths = []
     tag_parts, true_parts = [], []
     for p in paths:
         pts = np.asarray(p.points, dtype=np.float64)
@@ -540,7 +701,6 @@ def plan_layer(index: int, paths: Sequence[Path], job: "Job") -> LayerPlan:
         closed.append(bool(p.closed))
         count += len(a)
         dep_paths.append(p)
-        speeds.append(speed)
         length = np.linalg.norm(b - a, axis=1)
         a_parts.append(a)
         b_parts.append(b)
@@ -558,8 +718,107 @@ def plan_layer(index: int, paths: Sequence[Path], job: "Job") -> LayerPlan:
                      material=cat(mat_parts, (0,), np.int8), n0=n0, n1=n1, ext=ext,
                      paths=tuple(dep_paths),
                      path_start=np.asarray(starts + [count], dtype=np.int64),
-                     path_speed=np.asarray(speeds, dtype=np.float64),
                      laser_tagged=cat(tag_parts, (0, 2)), laser_true=cat(true_parts, (0, 2)))
+
+
+def _traj_width(path: Path, job: "Job") -> float:
+    """Deposition width of a trajectory's path: its own, else the material's by role (a
+    trajectory file's stand-in paths carry none; as :mod:`icefab.flow` does)."""
+    if path.width > 0:
+        return float(path.width)
+    mat = job.materials[path.material]
+    return float(mat.fill_width_mm if path.role == "fill" else mat.path_width_mm)
+
+
+def _laser_in_time(xy: np.ndarray, dt: float, rate_hz: float, latency_s: float
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Laser samples along a measurement trajectory (part frame, every ``dt`` s): every
+    ``1 / rate_hz`` s from its start, tagged with the position then and reading where the
+    laser was ``latency_s`` earlier (clamped at the start). Returns (tagged, true)."""
+    t = np.arange(len(xy)) * dt
+    tk = np.arange(int(math.floor(t[-1] * rate_hz + 1e-9)) + 1) / rate_hz
+
+    def at(tq: np.ndarray) -> np.ndarray:
+        return np.stack([np.interp(tq, t, xy[:, 0]), np.interp(tq, t, xy[:, 1])], axis=1)
+
+    return at(tk), at(np.maximum(tk - latency_s, 0.0))
+
+
+def plan_layer_motion(layer: "LayerMotion", job: "Job") -> LayerPlan:
+    """One layer of trajectories (``icefab.motion``) prepared for the simulator.
+
+    Deposition trajectories (boundary, fill) are kept for their valve programs; their
+    samples, taken to the part frame under the material's nozzle
+    (:func:`icefab.flow.trajectory_part_xy`), make the segments (repeated samples where
+    the robot rests dropped), each with the commanded volume ``width * dh * layer_scale *
+    length`` (eq. 6.2: the figure for ``deposition = "flow"`` and for the commanded
+    total). Measurement trajectories give the laser samples in time
+    (``simulation.laser_rate_hz``, latency). Travel is skipped.
+    """
+    from icefab import flow
+    from icefab.paths import tool_offset
+
+    sim = job.simulation
+    dh = job.slicing.layer_thickness_mm * job.flow.layer_scale
+    ee = np.asarray(job.cell.ee_origin_mm, dtype=np.float64)
+    a_parts, b_parts, v_parts, w_parts, mat_parts = [], [], [], [], []
+    starts, closed, count = [], [], 0
+    dep, tag_parts, true_parts = [], [], []
+    for k, traj in enumerate(layer.trajectories):
+        p = traj.path
+        xy = np.asarray(traj.xy, dtype=np.float64)
+        if p is None:
+            raise SimulationError(f"layer {layer.index}: trajectory {k} has no path, so no "
+                                  "material or role; plan it from a Path")
+        if len(xy) == 0 or p.role == "travel":
+            continue
+        if xy.ndim != 2 or xy.shape[1] != 2 or not np.isfinite(xy).all():
+            raise SimulationError(f"layer {layer.index}: {p.material} {p.role} trajectory {k} "
+                                  "has NaN, infinite or malformed samples")
+        if not traj.dt > 0:
+            raise SimulationError(f"layer {layer.index}: trajectory {k} has time step "
+                                  f"{traj.dt} s; expected > 0")
+        if p.material not in MATERIAL_ID:
+            raise SimulationError(f"layer {layer.index}: unknown material {p.material!r}")
+        if p.role == "measure":
+            part_xy = xy - ee + tool_offset(p.tool_name, job)
+            tg, tr = _laser_in_time(part_xy, float(traj.dt), sim.laser_rate_hz,
+                                    sim.laser_latency_s)
+            tag_parts.append(tg)
+            true_parts.append(tr)
+            continue
+        if not p.depositing:
+            continue
+        pts = flow.trajectory_part_xy(traj, p.material, job)
+        if len(pts) > 1:
+            step = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+            pts = pts[np.concatenate([[True], step > _TINY_MM])]
+        if len(pts) < 2:
+            pts = np.vstack([pts[:1], pts[:1]])  # at rest: a w x w square, no volume
+        a, b = pts[:-1], pts[1:]
+        w = _traj_width(p, job)
+        starts.append(count)
+        closed.append(bool(len(pts) > 2 and np.linalg.norm(pts[-1] - pts[0]) <= 1e-6))
+        count += len(a)
+        dep.append(traj)
+        a_parts.append(a)
+        b_parts.append(b)
+        v_parts.append(w * dh * np.linalg.norm(b - a, axis=1))
+        w_parts.append(np.full(len(a), 0.5 * w))
+        mat_parts.append(np.full(len(a), MATERIAL_ID[p.material], dtype=np.int8))
+
+    def cat(parts: list[np.ndarray], shape: tuple[int, ...], dtype=np.float64) -> np.ndarray:
+        return np.concatenate(parts) if parts else np.zeros(shape, dtype=dtype)
+
+    a, b, hw = cat(a_parts, (0, 2)), cat(b_parts, (0, 2)), cat(w_parts, (0,))
+    n0, n1, ext = _joints(a, b, hw, np.asarray(starts, dtype=np.int64),
+                          np.asarray(closed, dtype=bool))
+    return LayerPlan(index=layer.index, a=a, b=b, volume=cat(v_parts, (0,)), half_width=hw,
+                     material=cat(mat_parts, (0,), np.int8), n0=n0, n1=n1, ext=ext,
+                     paths=tuple(t.path for t in dep),  # type: ignore[misc]
+                     path_start=np.asarray(starts + [count], dtype=np.int64),
+                     laser_tagged=cat(tag_parts, (0, 2)), laser_true=cat(true_parts, (0, 2)),
+                     trajectories=tuple(dep))
 
 
 # --------------------------------------------------------------------------- the build
@@ -610,6 +869,7 @@ class SimResult:
         error, drift, edge loss and control action).
     flow_gain: final flow gain of each valve (part, scaffold), drift included.
     n_layers: layers simulated.
+    pulses: valve pulses deposited (``deposition = "valves"``; 0 with ``"flow"``).
     """
 
     layers: np.ndarray
@@ -624,6 +884,7 @@ class SimResult:
     volume_deposited: float
     flow_gain: tuple[float, float]
     n_layers: int
+    pulses: int = 0
 
     def as_dict(self) -> dict:
         """JSON-ready figures (no surfaces)."""
@@ -633,13 +894,14 @@ class SimResult:
                 "rms_measured_mm": self.rms_measured.tolist(),
                 "volume_commanded_mm3": self.volume_commanded,
                 "volume_deposited_mm3": self.volume_deposited,
-                "flow_gain": list(self.flow_gain)}
+                "flow_gain": list(self.flow_gain), "pulses": self.pulses}
 
 
 def _grid_for(plans: Sequence[LayerPlan], job: "Job") -> HeightMap:
     pts = [p.a for p in plans if len(p.a)] + [p.b for p in plans if len(p.b)]
     if not pts:
-        raise SimulationError("nothing to deposit: the layers have no boundary or fill paths")
+        raise SimulationError("nothing to deposit: the layers have no boundary or fill paths "
+                              "(or trajectories)")
     allp = np.concatenate(pts)
     wmax = max(float(p.half_width.max()) for p in plans if len(p.half_width))
     margin = 2 * wmax + 2 * job.simulation.grid_mm
@@ -734,17 +996,28 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
              progress: Callable[[int, int], None] | None = None) -> SimResult:
     """Deposit ``plans`` layer by layer on the virtual cell, measuring and controlling.
 
-    plans: the layers to deposit, bottom first (:func:`plan_layer`).
+    plans: the layers to deposit, bottom first (:func:`plan_layer`, or
+        :func:`plan_layer_motion` for trajectories).
     measure_layers: positions in ``plans`` (0-based) after which the surface is measured.
     controller: called with a :class:`Measurement` after each measurement layer; returns
         the control action u(xy) applied to every segment until the next measurement
-        (None: keep nominal flow). Without a controller the build runs open loop.
+        (None: keep nominal flow). Without a controller the build runs open loop. With
+        ``simulation.deposition = "valves"`` the action re-plans the valve programs of the
+        next ``feedback.interval_layers`` layers (:func:`layer_valves`), whose pulses are
+        then deposited (the plans must come from :func:`plan_layer_motion`).
     keep_surfaces: toolpaths layer indices whose error surfaces are kept.
     """
     sim = job.simulation
     dh = job.slicing.layer_thickness_mm
     n_d = job.feedback.interval_layers
     valves = sim.deposition == "valves"
+    if valves:
+        for plan in plans:
+            if len(plan.paths) and not plan.trajectories:
+                raise SimulationError(
+                    f"layer {plan.index}: simulation.deposition = 'valves' needs the "
+                    "layer's trajectories (plan_layer_motion, or simulate_build, which plans "
+                    "them); this plan was made from paths (plan_layer)")
     surface = _grid_for(plans, job)
     z = surface.z
     g = surface.spacing
@@ -761,21 +1034,30 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
     surfaces: dict[int, HeightMap] = {}
     vol_cmd_total = 0.0
     vol_dep_total = 0.0
+    pulses = 0
+    # valve programs already re-planned with the latest action, by position in plans
+    pending: dict[int, LayerValves] = {}
     k = 0
     for j, plan in enumerate(plans):
         nominal = (j + 1) * dh
         layer_img = np.zeros((2,) + z.shape)
+        vol_cmd_total += float(plan.volume.sum())
         if valves:
-            # the valve programs re-planned with the current action: pulses x drop volume
-            v_all = valve_volumes(plan, job, action)
+            lv = pending.pop(j, None)
+            if lv is None:  # open loop, before the first measurement, or past n_d layers
+                lv = layer_valves(plan, job, action)
+            a, b, v_all, hw, mat_of, n0, n1, ext, n_p = valve_segments(lv, job)
+            pulses += n_p
         else:
             u = np.zeros(len(plan.volume))
             if action is not None and len(plan.volume):
                 u = np.asarray(action(plan.midpoints), dtype=np.float64)
                 u = np.where(np.isfinite(u), u, 0.0)
             v_all = plan.volume * np.clip(1.0 + u, 0.0, None)
+            a, b, hw, mat_of = plan.a, plan.b, plan.half_width, plan.material
+            n0, n1, ext = plan.n0, plan.n1, plan.ext
         for mat in (0, 1):
-            sel = plan.material == mat
+            sel = mat_of == mat
             if not sel.any():
                 continue
             v_cmd = v_all[sel]
@@ -784,9 +1066,8 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
             gain = (1.0 + sim.flow_error) * (1.0 + sim.flow_drift_per_m3 * before)
             used_cm3[mat] += v_cmd.sum() / 1000.0
             vol = v_cmd * gain
-            _splat(layer_img[mat], surface.origin, g, plan.a[sel], plan.b[sel], vol,
-                   plan.half_width[sel], plan.n0[sel], plan.n1[sel], plan.ext[sel])
-            vol_cmd_total += float(plan.volume[sel].sum())
+            _splat(layer_img[mat], surface.origin, g, a[sel], b[sel], vol, hw[sel], n0[sel],
+                   n1[sel], ext[sel])
         if sim.edge_loss > 0:
             # liquid runs off free edges: the edge of the merged footprint (outer rim and
             # holes), not the part/scaffold interface where the materials support each other
@@ -853,6 +1134,11 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
                     layer=plan.index, k=k, nominal_z=nominal, interval_mm=n_d * dh,
                     samples=samples, footprint=mask,
                     grid=HeightMap(origin=surface.origin.copy(), spacing=g, z=plane)))
+                if valves:
+                    # thesis 5.1.3: the action goes into the valve programs of the next
+                    # n_d layers (re-planned now, deposited when their turn comes)
+                    for jj in range(j + 1, min(j + n_d, len(plans) - 1) + 1):
+                        pending[jj] = layer_valves(plans[jj], job, action)
         if progress is not None:
             progress(j + 1, len(plans))
     arr = np.array(rows, dtype=np.float64).reshape(-1, 5)
@@ -863,56 +1149,79 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
                      max_abs=arr[:, 3], rms_measured=arr[:, 4], height=final,
                      surfaces=surfaces, closed_loop=controller is not None,
                      volume_commanded=vol_cmd_total, volume_deposited=vol_dep_total,
-                     flow_gain=gains, n_layers=len(plans))  # type: ignore[arg-type]
+                     flow_gain=gains, n_layers=len(plans),  # type: ignore[arg-type]
+                     pulses=pulses)
 
 
-def valve_volumes(plan: LayerPlan, job: "Job", action: ActionFn | None = None) -> np.ndarray:
-    """Volume each segment of a layer gets from the valve programs (thesis Ch. 6).
+@dataclass(frozen=True, eq=False)
+class LayerValves:
+    """The valve programs of one layer, as the cell runs them (thesis Ch. 6, 5.1.3).
 
-    Every deposition path is followed at its constant speed (lowered by less than one time
-    step's worth so that it ends on a sample), sampled every
-    ``job.motion.dt_s`` (a :class:`~icefab.types.Trajectory` in the robot base frame, as
-    the cell runs it); :func:`icefab.flow.plan_valves` gives its pulse instants (2 ms ticks,
-    the control action ``action`` applied as flow x (1 + u)); each pulse is one drop of
-    the calibrated volume Q / nu at the commanded frequency nu (the table nu = h(Q)),
-    deposited at the point the nozzle has reached. Returns (m,) float64 mm^3 per segment.
+    trajectories: the deposition trajectories (re-timed by the c-controller when
+        ``feedback.controller = "speed"``); programs: their valve programs, in order;
+    action: the control action they were planned with (None: nominal flow).
+    """
+
+    trajectories: tuple[Trajectory, ...]
+    programs: tuple["ValveProgram", ...]
+    action: ActionFn | None = None
+
+
+def _finite(action: ActionFn) -> ActionFn:
+    """The action with NaN/inf read as 0 (no correction), as the flow mode does."""
+    def u(xy: np.ndarray) -> np.ndarray:
+        v = np.asarray(action(xy), dtype=np.float64).reshape(-1)
+        return np.where(np.isfinite(v), v, 0.0)
+    return u
+
+
+def layer_valves(plan: LayerPlan, job: "Job", action: ActionFn | None = None) -> LayerValves:
+    """Plan (or re-plan, with the control action) the valve programs of one layer.
+
+    ``plan`` from :func:`plan_layer_motion`; the programs come from
+    :func:`icefab.flow.replan_valves` (nu-controller: flow x (1 + u); c-controller:
+    re-timed trajectories at nominal flow per mm x (1 + u)).
     """
     from icefab import flow
-    from icefab.paths import tool_offset
-    from icefab.types import Trajectory
 
-    dt = job.motion.dt_s
-    out = np.zeros(len(plan.volume))
-    seg_len = np.linalg.norm(plan.b - plan.a, axis=1)
-    for i, path in enumerate(plan.paths):
-        s0, s1 = plan.path_start[i], plan.path_start[i + 1]
-        if s1 <= s0:
+    u = None if action is None else _finite(action)
+    trajs, progs = flow.replan_valves(plan.trajectories, job, action=u)
+    return LayerValves(trajectories=tuple(trajs), programs=tuple(progs), action=u)
+
+
+def valve_segments(valves: LayerValves, job: "Job") -> tuple:
+    """The deposition segments of a layer's valve pulses (:func:`pulse_segments`).
+
+    Returns a, b (m, 2), volume (m,) mm^3 (drops as commanded, before the simulated flow
+    gain), half width (m,), material (m,) int8, n0, n1, ext, and the number of pulses.
+    """
+    from icefab import flow
+
+    xs, dts, ts, drops, widths, mats = [], [], [], [], [], []
+    for traj, prog in zip(valves.trajectories, valves.programs):
+        p = traj.path
+        if p is None or not p.depositing:
             continue
-        S = np.concatenate([[0.0], np.cumsum(seg_len[s0:s1])])
-        # constant speed, lowered a little so the path takes a whole number of steps
-        steps = max(1, int(math.ceil(S[-1] / (float(plan.path_speed[i]) * dt) - 1e-9)))
-        speed = S[-1] / (steps * dt)
-        n = steps + 1
-        s_at = np.minimum(np.arange(n) * speed * dt, S[-1])
-        poly = np.vstack([plan.a[s0:s1], plan.b[s1 - 1:s1]])
-        xy_part = _at(poly, S, s_at)
-        base = xy_part + np.asarray(job.cell.ee_origin_mm) - tool_offset(path.material, job)
-        traj = Trajectory(dt=dt, xy=base, joints=np.zeros((n, 0)), speed=np.full(n, speed),
-                          duration=(n - 1) * dt, path=path)
-        u = None if action is None else \
-            np.where(np.isfinite(a := np.asarray(action(xy_part), dtype=np.float64)), a, 0.0)
-        freq = flow.valve_frequency(traj, path.material, job, action=u)
-        prog = flow.plan_valves(traj, path.material, job, action=u)
-        t = flow.pulse_times(prog)
-        if len(t) == 0:
-            continue
-        nu = np.interp(t, freq.t, freq.nu)
-        q = flow.calibration_for(path.material, job).flow(nu)
-        drop = np.divide(q, nu, out=np.zeros_like(nu), where=nu > 0)
-        k = np.clip(np.searchsorted(S, np.minimum(t * speed, S[-1]), side="right") - 1,
-                    0, s1 - s0 - 1)
-        out[s0:s1] += np.bincount(k, weights=drop, minlength=s1 - s0)
-    return out
+        freq = flow.valve_frequency(traj, p.material, job, action=valves.action) \
+            if prog.widths_us is None else None
+        t, d = pulse_drops(prog, freq, p.material, job)
+        xs.append(flow.trajectory_part_xy(traj, p.material, job))
+        dts.append(float(traj.dt))
+        ts.append(t)
+        drops.append(d)
+        widths.append(_traj_width(p, job))
+        mats.append(MATERIAL_ID[p.material])
+    a, b, vol, hw, owner, n0, n1, ext = pulse_segments(xs, dts, ts, drops, widths)
+    material = np.asarray(mats, dtype=np.int8)[owner] if len(owner) else \
+        np.zeros(0, dtype=np.int8)
+    return a, b, vol, hw, material, n0, n1, ext, int(sum(len(t) for t in ts))
+
+
+def _measured(has_laser: Sequence[bool], interval_layers: int) -> list[int]:
+    with_paths = [j for j, h in enumerate(has_laser) if h]
+    if with_paths:
+        return with_paths
+    return [j for j in range(len(has_laser)) if (j + 1) % interval_layers == 0]
 
 
 def measurement_layers(plans: Sequence[LayerPlan], interval_layers: int) -> list[int]:
@@ -922,21 +1231,86 @@ def measurement_layers(plans: Sequence[LayerPlan], interval_layers: int) -> list
     ``job.feedback.interval_layers`` layers); otherwise every ``interval_layers``-th layer
     (the laser then reads along that layer's deposition paths).
     """
-    with_paths = [j for j, p in enumerate(plans) if len(p.laser_tagged)]
-    if with_paths:
-        return with_paths
-    return [j for j in range(len(plans)) if (j + 1) % interval_layers == 0]
+    return _measured([len(p.laser_tagged) > 0 for p in plans], interval_layers)
 
 
-def simulate_build(toolpaths: Toolpaths, job: "Job | None" = None, *,
+def _chosen(build: "Toolpaths | BuildMotion", job: "Job", layers: int | None) -> tuple:
+    n = layers if layers is not None else job.simulation.layers
+    if n is not None and n < 0:
+        raise SimulationError(f"layers = {n}: expected >= 0 (0: all)")
+    chosen = build.layers[:n] if n else build.layers
+    if not chosen:
+        raise SimulationError("the build has no layers to simulate")
+    return tuple(chosen)
+
+
+def _has_laser(layer: "LayerPaths | LayerMotion") -> bool:
+    """Whether a layer has a measurement path (trajectory) with at least one point: the
+    layers :func:`plan_layer` / :func:`plan_layer_motion` give laser samples."""
+    if isinstance(layer, LayerPaths):
+        return any(p.role == "measure" and len(p.points) > 0 for p in layer.paths)
+    return any(t.path is not None and t.path.role == "measure" and len(t.xy) > 0
+               for t in layer.trajectories)
+
+
+def measured_layers(build: "Toolpaths | BuildMotion", job: "Job | None" = None, *,
+                    layers: int | None = None) -> list[int]:
+    """Layer indices :func:`simulate_build` measures for these arguments, found without
+    simulating (so that options such as a surface layer are checked up front)."""
+    job = job if job is not None else build.job
+    chosen = _chosen(build, job, layers)
+    flags = [_has_laser(lay) for lay in chosen]
+    return [chosen[j].index for j in _measured(flags, job.feedback.interval_layers)]
+
+
+#: Settings that shape where trajectories put the material; a build simulated with another
+#: job than the one its trajectories were planned with must agree on them.
+MOTION_SETTINGS = ("slicing.layer_thickness_mm", "cell.ee_origin_mm", "cell.laser_offset_mm",
+                   "materials.part.nozzle_offset_mm", "materials.scaffold.nozzle_offset_mm",
+                   "materials.part.path_width_mm", "materials.part.fill_width_mm",
+                   "materials.scaffold.path_width_mm", "materials.scaffold.fill_width_mm")
+
+
+def check_motion_job(planned: "Job", job: "Job", source: str = "the trajectories") -> None:
+    """SimulationError if ``job`` differs from the job trajectories were ``planned`` with
+    in a setting that moves the material (:data:`MOTION_SETTINGS`): frames, tool offsets,
+    widths, layer thickness. Names the first difference and counts the others."""
+    from icefab.config import to_dict
+
+    a, b = to_dict(planned), to_dict(job)
+
+    def get(d: dict, dotted: str):
+        for key in dotted.split("."):
+            d = d[key]
+        return d
+
+    diff = [(k, get(a, k), get(b, k)) for k in MOTION_SETTINGS if get(a, k) != get(b, k)]
+    if diff:
+        k, va, vb = diff[0]
+        more = f" (and {len(diff) - 1} more)" if len(diff) > 1 else ""
+        raise SimulationError(f"{source} were planned with {k} = {va}, the job has {vb}{more}: "
+                              "simulate with the job they were planned with, or plan them "
+                              "again with this job ('icefab plan')")
+
+
+def simulate_build(build: "Toolpaths | BuildMotion", job: "Job | None" = None, *,
                    layers: int | None = None, closed_loop: bool = True,
                    controller: Controller | None = None,
                    keep_surfaces: Sequence[int] | None = None,
                    progress: Callable[[int, int], None] | None = None) -> SimResult:
-    """Build ``toolpaths`` on the virtual cell, open loop or with surface mapping feedback.
+    """Build on the virtual cell, open loop or with surface mapping feedback.
 
-    toolpaths: the build (``icefab.paths.plan_paths``); job: settings (default: the job
-        the toolpaths were made with).
+    build: the toolpaths (``icefab.paths.plan_paths``) or their trajectories
+        (``icefab.motion.plan_toolpaths`` / ``load_trajectories``); job: settings
+        (default: the job the build was made with; for trajectories it must agree with
+        that job on :data:`MOTION_SETTINGS`).
+    With ``job.simulation.deposition = "flow"`` the commanded volume is laid along the
+    paths (or the trajectories' sample chords). With ``"valves"`` every layer's
+    deposition trajectories run through their valve programs, pulse by pulse
+    (:func:`layer_valves`, :func:`deposit_pulses`); from toolpaths the minimum-time
+    trajectories of the simulated layers are planned first
+    (:func:`icefab.motion.plan_toolpaths`, ``cell.cpus`` processes) — to simulate the
+    same build twice, plan once and pass the ``BuildMotion``.
     layers: simulate only the first N layers (default ``job.simulation.layers``, 0 = all).
     closed_loop: run the SMF controller (``controller``, default :func:`smf_controller`)
         after every measurement layer; False runs open loop (no control action).
@@ -945,14 +1319,19 @@ def simulate_build(toolpaths: Toolpaths, job: "Job | None" = None, *,
         measurement layer.
     progress: called as ``progress(done, total)`` after every layer.
     """
-    job = job if job is not None else toolpaths.job
-    n = layers if layers is not None else job.simulation.layers
-    if n is not None and n < 0:
-        raise SimulationError(f"layers = {n}: expected >= 0 (0: all)")
-    chosen = toolpaths.layers[:n] if n else toolpaths.layers
-    if not chosen:
-        raise SimulationError("the toolpaths have no layers to simulate")
-    plans = [plan_layer(lp.index, lp.paths, job) for lp in chosen]
+    from icefab.motion import BuildMotion, plan_toolpaths
+
+    job = job if job is not None else build.job
+    chosen = _chosen(build, job, layers)
+    if isinstance(build, BuildMotion):
+        if job is not build.job:
+            check_motion_job(build.job, job)
+        plans = [plan_layer_motion(lm, job) for lm in chosen]
+    elif job.simulation.deposition == "valves":
+        motion = plan_toolpaths(Toolpaths(layers=chosen, job=build.job), job)
+        plans = [plan_layer_motion(lm, job) for lm in motion.layers]
+    else:
+        plans = [plan_layer(lp.index, lp.paths, job) for lp in chosen]
     measure = measurement_layers(plans, job.feedback.interval_layers)
     if keep_surfaces is None:
         keep_surfaces = [plans[measure[-1]].index] if measure else []
