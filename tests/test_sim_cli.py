@@ -11,8 +11,11 @@ import pytest
 sys.path.insert(0, str(Path(__file__).parent))
 from test_sim_build import annulus_toolpaths  # noqa: E402
 
+import numpy as np  # noqa: E402
+
 from icefab import Job  # noqa: E402
 from icefab.cli import main  # noqa: E402
+from icefab.motion import plan_toolpaths, save_trajectories  # noqa: E402
 from icefab.paths import save_toolpaths  # noqa: E402
 
 
@@ -20,6 +23,15 @@ from icefab.paths import save_toolpaths  # noqa: E402
 def toolpaths_file(tmp_path_factory):
     path = tmp_path_factory.mktemp("build") / "toolpaths.npz"
     save_toolpaths(annulus_toolpaths(Job(), 12), path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def trajectories_file(tmp_path_factory):
+    """What 'icefab plan' writes for the first 8 annulus layers."""
+    job = Job().replace(**{"cell.cpus": 1})
+    path = tmp_path_factory.mktemp("plan") / "trajectories.npz"
+    save_trajectories(plan_toolpaths(annulus_toolpaths(job, 8), job), path)
     return path
 
 
@@ -53,6 +65,81 @@ def test_simulate_errors_leave_no_output(toolpaths_file, tmp_path, capsys, args,
     out = tmp_path / "sim"
     assert main(["simulate", str(toolpaths_file), "-o", str(out), *args]) == 2
     assert message in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_simulate_checks_the_surface_layer_before_simulating(toolpaths_file, tmp_path,
+                                                           capsys, monkeypatch):
+    import icefab.sim
+
+    def no(*args, **kwargs):
+        raise AssertionError("simulated before the options were checked")
+
+    monkeypatch.setattr(icefab.sim, "simulate_build", no)
+    out = tmp_path / "sim"
+    assert main(["simulate", str(toolpaths_file), "--surface-layer", "6", "-o", str(out)]) == 2
+    assert "--surface-layer 6: not a measurement layer" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_simulate_runs_a_trajectories_file_through_its_valve_programs(trajectories_file,
+                                                                      tmp_path, capsys):
+    out = tmp_path / "sim"
+    assert main(["simulate", str(trajectories_file), "--flow-error", "0.2", "-o",
+                 str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "valve pulses along the minimum-time trajectories" in text
+    data = json.loads((out / "simulation.json").read_text())
+    assert data["settings"]["simulation"]["deposition"] == "valves"
+    assert data["open_loop"]["layers"] == [3, 7] and data["open_loop"]["pulses"] > 0
+    rows = list(csv.DictReader((out / "rms.csv").open()))
+    # +20 % flow through the valves: after 8 layers (2 mm) about 0.4 mm too high
+    assert float(rows[-1]["rms_open_mm"]) == pytest.approx(0.4, rel=0.15)
+    assert float(rows[-1]["rms_smf_mm"]) < float(rows[-1]["rms_open_mm"])
+
+
+def test_simulate_plans_the_trajectories_of_toolpaths_for_the_valves(toolpaths_file, tmp_path,
+                                                                     capsys):
+    out = tmp_path / "sim"
+    assert main(["simulate", str(toolpaths_file), "--layers", "4", "--deposition", "valves",
+                 "-o", str(out)]) == 0
+    assert "valve pulses" in capsys.readouterr().out
+    assert json.loads((out / "simulation.json").read_text())["smf"]["pulses"] > 0
+
+
+def _bad_trajectories(kind: str, src: Path, tmp: Path) -> list[str]:
+    """Arguments naming a bad trajectory input of the given kind."""
+    with np.load(src, allow_pickle=False) as z:
+        data = {k: z[k] for k in z.files}
+    bad = tmp / "bad.npz"
+    if kind == "mismatched job":
+        job = tmp / "job.toml"
+        job.write_text("[slicing]\nlayer_thickness_mm = 0.5\n")
+        return [str(src), "-c", str(job)]
+    if kind == "no programs":  # measurement and travel only: nothing for the valves
+        keep = np.isin(data["role"], [2, 3])
+        data["role"] = np.where(keep, data["role"], 3).astype(np.int8)
+    elif kind == "truncated":
+        del data["speed"]
+    elif kind == "not icefab":
+        data = {"x": np.zeros(3)}
+    np.savez(bad, **data)
+    return [str(bad)]
+
+
+@pytest.mark.parametrize("kind,message", [
+    ("mismatched job", "planned with slicing.layer_thickness_mm = 0.25, the job has 0.5"),
+    ("no programs", "no boundary or fill trajectories in the first 8 layers"),
+    ("truncated", "missing arrays speed"),
+    ("not icefab", "not an icefab toolpath or trajectory file"),
+])
+def test_bad_trajectory_input_is_one_error_and_no_output(trajectories_file, tmp_path, capsys,
+                                                         kind, message):
+    out = tmp_path / "sim"
+    args = _bad_trajectories(kind, trajectories_file, tmp_path)
+    assert main(["simulate", *args, "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1, err
     assert not out.exists()
 
 

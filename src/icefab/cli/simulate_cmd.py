@@ -1,4 +1,4 @@
-"""``icefab simulate MODEL|TOOLPATHS.npz|demo [-c job.toml] [--layers N] -o OUT``.
+"""``icefab simulate MODEL|TOOLPATHS.npz|TRAJECTORIES.npz|demo [-c job.toml] [--layers N] -o OUT``.
 
 Runs a build (or its first N layers) on the virtual cell (``icefab.sim``) twice with the
 same disturbances: open loop, and with surface mapping feedback. Prints the RMS height
@@ -13,8 +13,16 @@ to OUT:
 * ``rms.csv``: the table that was printed.
 
 MODEL is one or more mesh files (they replace ``parts.files`` of the job; placed, sliced,
-scaffolded and planned here), ``demo`` for the built-in mug, or a toolpaths file written
-by ``icefab paths``.
+scaffolded and planned here), ``demo`` for the built-in mug, a toolpaths file written
+by ``icefab paths``, or a trajectories file written by ``icefab plan``.
+
+Deposition (``--deposition``, ``simulation.deposition``): ``flow`` lays the commanded
+volume along the paths (an ideal valve); ``valves`` runs the minimum-time trajectories
+through their valve programs, pulse by pulse, and SMF re-plans the programs of the next
+layers (thesis Ch. 6, 5.1.3). From a mesh or toolpaths the trajectories of the simulated
+layers are planned once here; a trajectories file is simulated with ``valves`` unless
+``--deposition flow`` is given, with the job it was planned with unless ``-c`` names
+one (which must agree with it on frames, tool offsets, widths and layer thickness).
 """
 
 from __future__ import annotations
@@ -28,14 +36,16 @@ import time
 from pathlib import Path as FsPath
 from typing import TYPE_CHECKING
 
+import numpy as np
 
 from icefab.cli.common import Progress, add_job_argument, job_from_args, output_dir
 from icefab.atomic import write_atomic
-from icefab.errors import ConfigError
+from icefab.errors import ConfigError, StackFileError
 from icefab.report import plot_rms, plot_surfaces
 
 if TYPE_CHECKING:  # pragma: no cover
     from icefab.config import Job
+    from icefab.motion import BuildMotion
     from icefab.sim import SimResult
     from icefab.types import Toolpaths
 
@@ -47,10 +57,12 @@ def add_parser(subparsers) -> None:
                     "the job's disturbances (flow error and drift, noise, debris, edge "
                     "loss; section [simulation]), once open loop and once with surface "
                     "mapping feedback, and compare the RMS height deviation per measurement "
-                    "layer (thesis Fig. 5-8, 5-9). Input: mesh file(s), 'demo', or a "
-                    "toolpaths.npz from 'icefab paths'.")
-    p.add_argument("model", nargs="+", metavar="MODEL|TOOLPATHS",
-                   help="mesh file(s), 'demo' (the built-in mug) or one toolpaths .npz")
+                    "layer (thesis Fig. 5-8, 5-9). Input: mesh file(s), 'demo', a "
+                    "toolpaths.npz from 'icefab paths' or a trajectories.npz from "
+                    "'icefab plan'.")
+    p.add_argument("model", nargs="+", metavar="MODEL|TOOLPATHS|TRAJECTORIES",
+                   help="mesh file(s), 'demo' (the built-in mug), one toolpaths .npz or one "
+                        "trajectories .npz")
     add_job_argument(p)
     p.add_argument("-o", "--out", required=True, metavar="OUT", help="output folder")
     p.add_argument("--layers", type=int, metavar="N",
@@ -60,9 +72,10 @@ def add_parser(subparsers) -> None:
                    help="flow gain error, e.g. 0.1 for 10 %% too much (simulation.flow_error)")
     p.add_argument("--seed", type=int, metavar="S", help="random seed (simulation.seed)")
     p.add_argument("--deposition", choices=("flow", "valves"),
-                   help="'flow': commanded flow (ideal valve); 'valves': pulses of the valve "
-                        "programs, re-planned with the control action (slower) "
-                        "(simulation.deposition)")
+                   help="'flow': commanded flow along the paths (ideal valve); 'valves': the "
+                        "minimum-time trajectories run through their valve programs, pulse "
+                        "by pulse, re-planned with the control action (simulation."
+                        "deposition; default for a trajectories file: valves)")
     p.add_argument("--surface-layer", type=int, metavar="K",
                    help="measurement layer (toolpaths index) whose error surfaces are "
                         "drawn (default: the last one)")
@@ -87,21 +100,55 @@ def _job_with_options(job: "Job", args: argparse.Namespace) -> "Job":
     return job.replace(**changes) if changes else job
 
 
-def load_build(model: list[str], job: "Job", n_layers: int) -> "tuple[Toolpaths, Job]":
-    """Toolpaths of the first ``n_layers`` layers (0: all) from a toolpaths file, the demo
-    mug or mesh files (placed, sliced, scaffolded over the whole part, paths planned)."""
+def _npz_format(path: FsPath) -> str:
+    """The ``format`` entry of an icefab .npz file ('' when it has none)."""
+    import zipfile
+
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return str(data["format"]) if "format" in data.files else ""
+    except FileNotFoundError:
+        raise StackFileError(f"{path}: file not found") from None
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+        raise StackFileError(f"{path}: not a readable .npz file ({exc})") from None
+
+
+def load_build(model: list[str], job: "Job", args: argparse.Namespace
+               ) -> "tuple[Toolpaths | BuildMotion, Job]":
+    """The build to simulate and the job to simulate it with (the command's options
+    applied). From a trajectories file: its trajectories, with the job they were planned
+    with unless ``-c`` was given (checked against it), deposition ``valves`` unless
+    ``--deposition`` says otherwise. Otherwise toolpaths: from a toolpaths file, or the
+    first ``simulation.layers`` layers (0: all) of the demo mug or mesh files (placed,
+    sliced, scaffolded over the whole part, paths planned)."""
     from icefab.types import Stack
 
     first = FsPath(model[0])
     if len(model) == 1 and first.suffix.lower() == ".npz":
-        from icefab.paths import load_toolpaths
+        from icefab import motion as motion_mod
+        from icefab import paths as paths_mod
 
-        tp = load_toolpaths(first)
-        return tp, job
+        fmt = _npz_format(first)
+        if fmt == motion_mod.FORMAT:
+            from icefab.sim import check_motion_job
+
+            motion = motion_mod.load_trajectories(first)
+            job = _job_with_options(job if args.job else motion.job, args)
+            if args.deposition is None:
+                job = job.replace(**{"simulation.deposition": "valves"})
+            check_motion_job(motion.job, job, source=f"{first}: the trajectories")
+            return motion, job
+        if fmt != paths_mod.FORMAT:
+            raise StackFileError(f"{first}: not an icefab toolpath or trajectory file (format "
+                                 f"{fmt!r}; expected {paths_mod.FORMAT!r} from 'icefab paths' "
+                                 f"or {motion_mod.FORMAT!r} from 'icefab plan')")
+        return paths_mod.load_toolpaths(first), _job_with_options(job, args)
     from icefab.paths import plan_paths
     from icefab.regions import add_scaffold
     from icefab.slicing import slice_mesh
 
+    job = _job_with_options(job, args)
+    n_layers = job.simulation.layers
     if model == ["demo"]:
         from icefab.demo import demo_mug
         from icefab.mesh import transform
@@ -187,23 +234,39 @@ def write_simulation_outputs(open_loop: "SimResult", closed: "SimResult", out: F
 
 
 def run(args: argparse.Namespace) -> int:
-    from icefab.sim import simulate_build
+    from icefab.motion import BuildMotion, plan_toolpaths
+    from icefab.sim import measured_layers, simulate_build
+    from icefab.types import Toolpaths
 
-    job = _job_with_options(job_from_args(args), args)
     t0 = time.perf_counter()
-    toolpaths, job = load_build(args.model, job, job.simulation.layers)
-    n = job.simulation.layers or len(toolpaths)
-    n = min(n, len(toolpaths))
-    t_prep = time.perf_counter() - t0
-    keep = None if args.surface_layer is None else [args.surface_layer]
-    open_loop = simulate_build(toolpaths, job, layers=n, closed_loop=False,
-                               keep_surfaces=keep, progress=Progress("open loop"))
-    closed = simulate_build(toolpaths, job, layers=n, closed_loop=True, keep_surfaces=keep,
-                            progress=Progress("with SMF"))
-    t_sim = time.perf_counter() - t0 - t_prep
-    if len(open_loop.layers) == 0:
+    build, job = load_build(args.model, job_from_args(args), args)
+    n = job.simulation.layers or len(build)
+    n = min(n, len(build))
+    # check what can be checked before anything is planned or simulated
+    if isinstance(build, BuildMotion) and not any(
+            t.path is not None and t.path.depositing
+            for lm in build.layers[:n] for t in lm.trajectories):
+        raise ConfigError(f"{args.model[0]}: no boundary or fill trajectories in the first "
+                          f"{n} layers: no valve programs, nothing to deposit")
+    measured = measured_layers(build, job, layers=n)
+    if not measured:
         raise ConfigError(f"{n} layers hold no measurement layer (feedback.interval_layers "
                           f"= {job.feedback.interval_layers}): simulate more layers")
+    if args.surface_layer is not None and args.surface_layer not in measured:
+        raise ConfigError(f"--surface-layer {args.surface_layer}: not a measurement layer of "
+                          f"the simulation (measured: {', '.join(map(str, measured))})")
+    valves = job.simulation.deposition == "valves"
+    if valves and not isinstance(build, BuildMotion):
+        # the cell's minimum-time trajectories, planned once for both runs
+        build = plan_toolpaths(Toolpaths(layers=tuple(build.layers[:n]), job=build.job), job,
+                               progress=Progress("trajectories"))
+    t_prep = time.perf_counter() - t0
+    keep = None if args.surface_layer is None else [args.surface_layer]
+    open_loop = simulate_build(build, job, layers=n, closed_loop=False,
+                               keep_surfaces=keep, progress=Progress("open loop"))
+    closed = simulate_build(build, job, layers=n, closed_loop=True, keep_surfaces=keep,
+                            progress=Progress("with SMF"))
+    t_sim = time.perf_counter() - t0 - t_prep
     with output_dir(args.out) as tmp:
         write_simulation_outputs(open_loop, closed, tmp, surface_layer=args.surface_layer,
                                  job=job)
@@ -213,6 +276,12 @@ def run(args: argparse.Namespace) -> int:
           f"{sim.edge_loss:.0%}, seed {sim.seed}; gains Kp {job.feedback.kp:g}, "
           f"Ki* {job.feedback.ki:g}, Kd* {job.feedback.kd:g}, every "
           f"{job.feedback.interval_layers} layers")
+    if valves:
+        print(f"deposition: valve pulses along the minimum-time trajectories "
+              f"({open_loop.pulses} pulses open loop, {closed.pulses} with SMF)")
+    else:
+        print("deposition: commanded flow (ideal valve)"
+              + (" along the trajectories" if isinstance(build, BuildMotion) else ""))
     for line in format_table(table_rows(open_loop, closed)):
         print(line)
     print(f"final RMS height deviation: {open_loop.rms[-1]:.3f} mm open loop, "
