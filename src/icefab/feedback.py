@@ -106,6 +106,36 @@ STABLE_VOLUME_A = np.array([[0.5, 0.25, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]
                             [0.0, 0.0, -1.0]])
 STABLE_VOLUME_B = np.array([-1.0, 0.0, 0.0, 0.0])
 
+#: Stability margin of the constrained gain optimisation: every pole of H(z) at most
+#: ``1 - POLE_MARGIN`` from the origin, so a disturbance's effect shrinks by at least 1 %
+#: per measurement layer (e-fold within 100 layers, the thesis' design build). Eq. 5.25 is
+#: strict (Ki* > 0, Kp/2 + Ki*/4 + Kd* < 1); without a margin the optimum of a profile
+#: that needs no integral action (a lone pulse) slides to Ki* = 0, a pole on z = 1.
+POLE_MARGIN = 0.01
+
+
+def pole_margin_constraints(kp: float, ki: float, kd: float, radius: float
+                            ) -> tuple[np.ndarray, np.ndarray]:
+    """Jury's criterion (eq. 5.23) for ``max |pole| <= radius`` as smooth inequalities.
+
+    The poles of H(z) lie in the disc |z| <= r exactly when those of the scaled
+    denominator P(r z) / r^3 = z^3 + b1 z^2 + b2 z + b3 (b_i = a_i / r^i) lie in the closed
+    unit disc, i.e. when all of ``c = (Q(1), -Q(-1), 1 - b3, 1 + b3, 1 - b3^2 - (b3 b1 -
+    b2), 1 - b3^2 + (b3 b1 - b2))`` are >= 0 (Q the scaled polynomial). Returns
+    ``(c (6,), dc/d(Kp, Ki*, Kd*) (6, 3))``.
+    """
+    a = characteristic_polynomial(kp, ki, kd)[1:]
+    scale = radius ** -np.arange(1.0, 4.0)
+    b1, b2, b3 = a * scale
+    db = _DA[:, 1:].T * scale[:, None]  # (3 coefficients, 3 gains)
+    m = b3 * b1 - b2
+    dm = b3 * db[0] + b1 * db[2] - db[1]
+    c = np.array([1 + b1 + b2 + b3, 1 - b1 + b2 - b3, 1 - b3, 1 + b3,
+                  1 - b3 * b3 - m, 1 - b3 * b3 + m])
+    jac = np.vstack([db[0] + db[1] + db[2], -db[0] + db[1] - db[2], -db[2], db[2],
+                     -2 * b3 * db[2] - dm, -2 * b3 * db[2] + dm])
+    return c, jac
+
 
 @dataclass(frozen=True)
 class Disturbance:
@@ -189,7 +219,8 @@ class Sim1D:
 
     d: disturbance d_k; e: error e_k; u: controller output u_k (eq. 5.11a); nu: valve
     frequency nu_k = C_f (u_k + 1), Hz (eq. 5.11b, 5.14); height_mm: measured height
-    h_k - e_k dh_m at measurement layer k; dh_m: measurement interval, mm.
+    h_k - e_k dh_m at measurement layer k; dh_m: measurement interval, mm; rms: sigma_p*
+    (inf when the response of unstable gains overflows).
     """
 
     d: np.ndarray
@@ -220,13 +251,15 @@ def simulate_1d(gains: Gains, disturbance: Disturbance | np.ndarray,
         d = np.concatenate([d, np.zeros(max(0, n_layers - len(d)))])[:n_layers]
     kp, ki, kd = gains
     e = error_response(gains, d)
-    e_prev = np.concatenate([[0.0], e[:-1]])
-    u = kp * e + ki * np.cumsum(e) + kd * (e - e_prev)
     c_f = c_ff * speed * width * dh_d
     dh_m = n_d * dh_d
     k = np.arange(1, len(d) + 1)
-    return Sim1D(d=d, e=e, u=u, nu=c_f * (u + 1.0), height_mm=(k - e) * dh_m, dh_m=dh_m,
-                 rms=float(np.sqrt(np.mean(e ** 2))))
+    with np.errstate(over="ignore", invalid="ignore"):  # unstable gains: e may overflow
+        e_prev = np.concatenate([[0.0], e[:-1]])
+        u = kp * e + ki * np.cumsum(e) + kd * (e - e_prev)
+        rms = float(np.sqrt(np.mean(e ** 2)))
+        return Sim1D(d=d, e=e, u=u, nu=c_f * (u + 1.0), height_mm=(k - e) * dh_m, dh_m=dh_m,
+                     rms=rms if np.isfinite(rms) else float("inf"))
 
 
 # d a / d (Kp, Ki*, Kd*): derivative of the denominator coefficients (eq. 5.35, 5.40).
@@ -239,7 +272,8 @@ def rms_and_gradient(gains: Gains, disturbance: Disturbance | np.ndarray
 
     The sensitivities grad e_k follow from differentiating eq. 5.19 (eq. 5.35):
     A(q) grad e = -(dA) e, solved with the same recursive filter as e.
-    Returns ``(rms, grad (3,) float64)``.
+    Returns ``(rms, grad (3,) float64)``; ``(inf, nan)`` when the response overflows
+    (unstable gains over many layers).
     """
     d = _as_d(disturbance)
     a = characteristic_polynomial(*gains)
@@ -247,14 +281,17 @@ def rms_and_gradient(gains: Gains, disturbance: Disturbance | np.ndarray
     e_full = lfilter([0.0, -1.0, 1.0], a, x)  # index 0 is e_0 = 0
     e = e_full[1:len(d) + 1]
     n = len(d)
-    rms = float(np.sqrt(np.mean(e ** 2)))
-    if rms == 0.0:
-        return 0.0, np.zeros(3)
-    grad = np.empty(3)
-    for j in range(3):
-        rhs = -lfilter(_DA[j], [1.0], e_full)
-        de = lfilter([1.0], a, rhs)[1:n + 1]
-        grad[j] = float(np.dot(e, de)) / (rms * n)
+    with np.errstate(over="ignore", invalid="ignore"):  # unstable gains: e may overflow
+        rms = float(np.sqrt(np.mean(e ** 2)))
+        if rms == 0.0:
+            return 0.0, np.zeros(3)
+        if not np.isfinite(rms):
+            return float("inf"), np.full(3, np.nan)
+        grad = np.empty(3)
+        for j in range(3):
+            rhs = -lfilter(_DA[j], [1.0], e_full)
+            de = lfilter([1.0], a, rhs)[1:n + 1]
+            grad[j] = float(np.dot(e, de)) / (rms * n)
     return rms, grad
 
 
@@ -279,8 +316,17 @@ class TuneResult:
     message: str = ""
     e: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
-    def as_dict(self) -> dict[str, float | bool]:
-        return {"kp": self.kp, "ki": self.ki, "kd": self.kd, "rms": self.rms,
+    @property
+    def diverges(self) -> bool:
+        """True when the error response overflows (unstable gains over many layers):
+        ``rms`` is then not finite."""
+        return not np.isfinite(self.rms)
+
+    def as_dict(self) -> dict[str, float | bool | None]:
+        """Plain values for JSON: a non-finite rms (the response diverges) is None, so
+        ``json.dumps(..., allow_nan=False)`` gives valid JSON."""
+        return {"kp": self.kp, "ki": self.ki, "kd": self.kd,
+                "rms": self.rms if np.isfinite(self.rms) else None,
                 "max_pole": self.max_pole, "stable": self.stable}
 
 
@@ -292,7 +338,9 @@ def evaluate_gains(gains: Gains, disturbance: Disturbance | np.ndarray) -> TuneR
             raise ConfigError(f"gain {name} = {g!r}: must be finite")
     e = error_response((kp, ki, kd), disturbance)
     stable, m = stability(kp, ki, kd)
-    return TuneResult(kp, ki, kd, float(np.sqrt(np.mean(e ** 2))), m, stable, e=e)
+    with np.errstate(over="ignore", invalid="ignore"):  # unstable gains: e may overflow
+        rms = float(np.sqrt(np.mean(e ** 2)))
+    return TuneResult(kp, ki, kd, rms if np.isfinite(rms) else float("inf"), m, stable, e=e)
 
 
 _NAMES = ("kp", "ki", "kd")
@@ -300,7 +348,8 @@ _NAMES = ("kp", "ki", "kd")
 
 def tune_gains(disturbance: Disturbance | np.ndarray = Disturbance(), *,
                x0: Gains = (1.0, 1.0, 0.0), fix: dict[str, float] | None = None,
-               constrained: bool = True, tol: float = 1e-12) -> TuneResult:
+               constrained: bool = True, tol: float = 1e-12,
+               pole_margin: float = POLE_MARGIN) -> TuneResult:
     """Gains minimising sigma_p* (eq. 5.27) for a disturbance (thesis 5.6).
 
     disturbance: Disturbance or (n,) d_k (normalised); the default is the thesis'
@@ -308,9 +357,15 @@ def tune_gains(disturbance: Disturbance | np.ndarray = Disturbance(), *,
     x0: initial (Kp, Ki*, Kd*) (the thesis' k_0 = (1, 1, 0), Table 5-2).
     fix: gains held constant, e.g. ``{"kp": 1.0, "ki": 0.33}`` optimises Kd* only
         (eq. 5.39-5.40); the others start from x0.
-    constrained: search inside the gain-stable volume (eq. 5.25, 5.38) with SLSQP;
-        otherwise unconstrained BFGS (the thesis' FMINCON / FMINUNC). Both use the analytic
-        gradient (eq. 5.34-5.35).
+    constrained: search inside the gain-stable volume (eq. 5.25, 5.38) with SLSQP, kept
+        ``pole_margin`` inside the unit circle: every pole of the result has modulus
+        <= 1 - pole_margin (Jury's criterion on the scaled polynomial,
+        :func:`pole_margin_constraints`), so the result is strictly stable; otherwise
+        unconstrained BFGS (the thesis' FMINCON / FMINUNC), which may return unstable
+        gains (``stable`` False). Both use the analytic gradient (eq. 5.34-5.35).
+    pole_margin: in (0, 1), default :data:`POLE_MARGIN` (0.01).
+
+    Raises ConfigError when the fixed gains leave no stable choice of the others.
     """
     from scipy.optimize import minimize
 
@@ -337,27 +392,50 @@ def tune_gains(disturbance: Disturbance | np.ndarray = Disturbance(), *,
 
     xs = base[free].copy()
     if constrained:
+        if not 0.0 < pole_margin < 1.0:
+            raise ConfigError(f"pole_margin = {pole_margin!r}: must be in (0, 1)")
+        radius = 1.0 - pole_margin
         # Eq. 5.38: the coordinate planes become bounds (Kd* = 0, the thesis' optimum, is
-        # allowed), the plane Kp/2 + Ki*/4 + Kd* < 1 (pole at z = -1) a linear inequality
-        # kept a small margin inside.
+        # allowed), the plane Kp/2 + Ki*/4 + Kd* < 1 (pole at z = -1) a linear inequality.
+        # The planes only approximate the Jury region and their faces Ki* = 0 / Kp = 0 put
+        # poles ON the unit circle, so the poles are also kept within |z| <= 1 - margin
+        # (Jury on the scaled polynomial), which makes the optimum strictly stable.
         a = STABLE_VOLUME_A[0]
         fixed = sum(a[i] * base[i] for i in range(3) if i not in free)
         a_free = a[free]
-        cons = [{"type": "ineq", "fun": lambda x: 1.0 - 1e-9 - fixed - a_free @ x,
-                 "jac": lambda x: -a_free}]
         if fixed >= 1.0:
             raise ConfigError(f"fixed gains {fix}: outside the gain-stable volume (eq. 5.25: "
                               "Kp/2 + Ki*/4 + Kd* < 1)")
+
+        def margin(x: np.ndarray) -> np.ndarray:
+            return pole_margin_constraints(*full(x), radius)[0]
+
+        def margin_jac(x: np.ndarray) -> np.ndarray:
+            return pole_margin_constraints(*full(x), radius)[1][:, free]
+
+        cons = [{"type": "ineq", "fun": lambda x: 1.0 - 1e-9 - fixed - a_free @ x,
+                 "jac": lambda x: -a_free},
+                {"type": "ineq", "fun": margin, "jac": margin_jac}]
         xs = np.clip(xs, 0.0, None)
         if fixed + a_free @ xs >= 1.0:
             xs = xs * (1.0 - fixed) / (2 * max(a_free @ xs, 1e-12))
-        res = minimize(fun, xs, jac=True, method="SLSQP", constraints=cons,
-                       bounds=[(0.0, None)] * len(free),
-                       options={"ftol": tol, "maxiter": 500})
+        with np.errstate(over="ignore", invalid="ignore"):  # trial steps may diverge
+            res = minimize(fun, xs, jac=True, method="SLSQP", constraints=cons,
+                           bounds=[(0.0, None)] * len(free),
+                           options={"ftol": tol, "maxiter": 500})
+        g = full(res.x)
+        worst = float(np.max(np.abs(poles(*g))))
+        if not worst <= radius + 1e-6:
+            held = ", ".join(f"{k} = {v:g}" for k, v in fix.items()) or "none"
+            raise ConfigError(f"fixed gains ({held}): no {', '.join(_NAMES[i] for i in free)} "
+                              f"found keeping every pole within |z| <= {radius:g} (largest "
+                              f"pole modulus {worst:.4g}; pole margin {pole_margin:g}, "
+                              "eq. 5.23/5.25)")
     else:
-        res = minimize(fun, xs, jac=True, method="BFGS", options={"gtol": 1e-10,
-                                                                  "maxiter": 500})
-    g = full(res.x)
+        with np.errstate(over="ignore", invalid="ignore"):
+            res = minimize(fun, xs, jac=True, method="BFGS", options={"gtol": 1e-10,
+                                                                      "maxiter": 500})
+        g = full(res.x)
     out = evaluate_gains(tuple(g), d)  # type: ignore[arg-type]
     return dataclasses.replace(out, iterations=int(res.nit), converged=bool(res.success),
                                message=str(res.message))

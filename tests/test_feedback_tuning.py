@@ -1,0 +1,151 @@
+"""Constrained gain optimisation stays strictly stable; divergent responses stay honest.
+
+Thesis eq. 5.25 is strict (Ki* > 0, ...): a constrained optimum on its face Ki* = 0 has a
+pole on z = 1 and never removes a step. The expected poles come from ``numpy.roots`` of the
+denominator written out from eq. 5.22, not from the code under test.
+"""
+from __future__ import annotations
+
+import json
+import warnings
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from icefab.cli import main
+from icefab.errors import ConfigError
+from icefab.feedback import (POLE_MARGIN, Disturbance, evaluate_gains, pole_margin_constraints,
+                             rms_and_gradient, simulate_1d, tune_gains)
+
+
+def max_pole(kp, ki, kd):
+    # eq. 5.22: z^3 + (Kp + Ki* + Kd* - 2) z^2 + (1 - Kp - 2 Kd*) z + Kd*
+    return float(np.abs(np.roots([1.0, kp + ki + kd - 2.0, 1.0 - kp - 2.0 * kd, kd])).max())
+
+
+LIMIT = 1.0 - POLE_MARGIN + 1e-6
+
+
+@settings(max_examples=300, deadline=None)
+@given(kp=st.floats(0.0, 2.5), ki=st.floats(0.0, 2.5), kd=st.floats(0.0, 1.2),
+       r=st.sampled_from([0.5, 0.9, 0.99, 1.0]))
+def test_margin_constraints_are_the_pole_disc(kp, ki, kd, r):
+    c, _ = pole_margin_constraints(kp, ki, kd, r)
+    m = max_pole(kp, ki, kd)
+    if abs(m - r) > 1e-6:  # away from the boundary the two tests must agree
+        assert bool(np.all(c >= 0)) == (m < r)
+
+
+@pytest.mark.parametrize("gains", [(1.0, 0.33, 0.03), (0.4, 0.1, 0.3), (1.7, 0.5, 0.2)])
+def test_margin_jacobian_matches_finite_differences(gains):
+    _, jac = pole_margin_constraints(*gains, 0.97)
+    h = 1e-6
+    for j in range(3):
+        g1, g0 = np.array(gains), np.array(gains)
+        g1[j] += h
+        g0[j] -= h
+        fd = (pole_margin_constraints(*g1, 0.97)[0] - pole_margin_constraints(*g0, 0.97)[0])
+        np.testing.assert_allclose(jac[:, j], fd / (2 * h), atol=1e-6)
+
+
+def test_pulse_only_with_kp_fixed_stays_off_the_unit_circle():
+    """A lone pulse needs no integral action: the optimum slides toward Ki* = 0 (z = 1)."""
+    r = tune_gains(Disturbance(pulses=((0.5, 60),), steps=()), fix={"kp": 1.0})
+    assert r.stable and r.ki > 0
+    assert max_pole(r.kp, r.ki, r.kd) <= LIMIT
+    free = tune_gains(Disturbance(pulses=((0.5, 60),), steps=()))
+    assert free.stable and max_pole(free.kp, free.ki, free.kd) <= LIMIT
+
+
+def test_thesis_optimum_is_untouched_by_the_margin():
+    r = tune_gains(Disturbance())  # Table 5-2: (1, 0.33, 0), sigma 0.061, |pole| 0.67
+    assert (r.kp, r.ki) == (pytest.approx(1.0, abs=2e-3), pytest.approx(0.33, abs=5e-3))
+    assert r.rms == pytest.approx(0.061, abs=5e-4) and r.max_pole < 0.7
+
+
+def test_margin_is_a_parameter_and_checked():
+    r = tune_gains(Disturbance(pulses=((0.5, 60),), steps=()), fix={"kp": 1.0},
+                   pole_margin=0.1)
+    assert max_pole(r.kp, r.ki, r.kd) <= 0.9 + 1e-6
+    with pytest.raises(ConfigError, match="pole_margin"):
+        tune_gains(pole_margin=0.0)
+
+
+def test_fixed_gains_without_a_stable_completion_are_an_error():
+    # the product of the poles is -Kd*: Kd* = 0.995 > 0.99^3 leaves a pole beyond 0.99,
+    # though Kp/2 + Ki*/4 + Kd* < 1 (eq. 5.25's planes) is still reachable
+    with pytest.raises(ConfigError, match=r"fixed gains \(kd = 0.995\).*\|z\| <= 0.99"):
+        tune_gains(fix={"kd": 0.995})
+
+
+profiles = st.builds(
+    lambda n, pulses, steps, noise, seed: Disturbance(
+        n_layers=n, pulses=tuple((a, min(k, n)) for a, k in pulses),
+        steps=tuple((a, min(k, n)) for a, k in steps), noise=noise, seed=seed),
+    n=st.integers(10, 150),
+    pulses=st.lists(st.tuples(st.floats(-2, 2), st.integers(1, 150)), max_size=3),
+    steps=st.lists(st.tuples(st.floats(-2, 2), st.integers(1, 150)), max_size=2),
+    noise=st.sampled_from([0.0, 0.05, 0.5]), seed=st.integers(0, 5))
+
+
+@settings(max_examples=60, deadline=None)
+@given(dist=profiles,
+       fix=st.sampled_from([{}, {"kp": 1.0}, {"kp": 0.5}, {"ki": 0.33}, {"kd": 0.03},
+                            {"kp": 1.0, "ki": 0.33}, {"kp": 1.0, "kd": 0.0}]),
+       x0=st.sampled_from([(1.0, 1.0, 0.0), (0.5, 0.1, 0.2), (1.8, 0.1, 0.0)]))
+def test_constrained_results_are_always_strictly_stable(dist, fix, x0):
+    r = tune_gains(dist, x0=x0, fix=fix)
+    assert r.stable and max_pole(r.kp, r.ki, r.kd) <= LIMIT
+    assert r.kp >= 0 and r.ki > 0 and r.kd >= 0
+    for name, value in fix.items():
+        assert getattr(r, name) == value
+
+
+# ----------------------------------------------------------------------- divergence
+
+
+@pytest.mark.filterwarnings("error::RuntimeWarning")
+def test_divergent_response_has_infinite_rms_without_warnings():
+    d = Disturbance(n_layers=2000)
+    r = evaluate_gains((3.0, 3.0, 3.0), d)
+    assert r.rms == float("inf") and r.diverges and not r.stable
+    assert r.as_dict()["rms"] is None
+    assert simulate_1d((3.0, 3.0, 3.0), d).rms == float("inf")
+    assert rms_and_gradient((3.0, 3.0, 3.0), d)[0] == float("inf")
+    assert not evaluate_gains((1.0, 0.33, 0.03), d).diverges
+
+
+def strict_json(text):
+    def bad(name):
+        raise AssertionError(f"not JSON: {name}")
+    return json.loads(text, parse_constant=bad)
+
+
+def test_tune_json_is_valid_when_the_response_diverges(capsys, tmp_path):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        rc = main(["tune", "--gains", "3,3,3", "--layers", "2000", "--json"])
+        out, err = capsys.readouterr()
+        assert rc == 0 and err == ""
+        data = strict_json(out)
+        assert data["rms"] is None and data["stable"] is False and data["max_pole"] > 1
+        rc = main(["tune", "--gains", "3,3,3", "--layers", "2000", "-o", str(tmp_path / "t")])
+        out, err = capsys.readouterr()
+    assert rc == 0 and "diverges" in out and "UNSTABLE" in out
+    assert strict_json((tmp_path / "t" / "tune.json").read_text())["rms"] is None
+
+
+def test_tune_fix_kp_on_a_lone_pulse_is_stable(capsys):
+    assert main(["tune", "--pulse", "0.5@60", "--fix-kp", "1", "--json"]) == 0
+    data = strict_json(capsys.readouterr().out)
+    assert data["stable"] is True and data["ki"] > 0 and data["max_pole"] <= LIMIT
+
+
+def test_tune_pole_margin_option(capsys):
+    assert main(["tune", "--pulse", "0.5@60", "--fix-kp", "1", "--pole-margin", "0.2",
+                 "--json"]) == 0
+    assert strict_json(capsys.readouterr().out)["max_pole"] <= 0.8 + 1e-6
+    assert main(["tune", "--pole-margin", "1"]) == 2
+    assert "--pole-margin" in capsys.readouterr().err
