@@ -7,6 +7,10 @@ Examples::
     icefab tune --fix-kp --fix-ki                 # optimise Kd* only (eq. 5.39)
     icefab tune --gains 1,0.33,0.45               # evaluate: unstable, max pole 1.05
     icefab tune --noise 0.05 -o tune_out          # also writes tune_out/error_response.png
+
+Optimised gains stay strictly inside the gain-stable volume: every pole within
+|z| <= 1 - 0.01 (``--pole-margin``). ``--json`` prints strict JSON: ``rms`` is null when
+the error response of the given gains diverges.
 """
 
 from __future__ import annotations
@@ -15,6 +19,7 @@ import argparse
 import json
 import math
 import sys
+import warnings
 
 from icefab.report import plot_error_response
 from icefab.cli.common import add_job_argument, job_from_args, output_dir
@@ -52,6 +57,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                    help="initial gains of the optimisation (default 1,1,0 as thesis Table 5-2)")
     p.add_argument("--unconstrained", action="store_true",
                    help="search outside the gain-stable volume too (BFGS instead of SLSQP)")
+    p.add_argument("--pole-margin", default="0.01", metavar="EPS",
+                   help="constrained search: every pole within |z| <= 1 - EPS, so the "
+                        "result is strictly stable (default 0.01)")
     p.add_argument("--json", action="store_true",
                    help="print one JSON object with kp, ki, kd, rms, max_pole, stable")
     p.add_argument("-o", "--out", metavar="DIR",
@@ -121,22 +129,33 @@ def run(args: argparse.Namespace) -> int:
         mode = "evaluated"
     else:
         start = _triple(args.start, "--start")
-        result = tune_gains(dist, x0=start, fix=fix, constrained=not args.unconstrained)
+        margin = _number(args.pole_margin, "--pole-margin", lo=0.0)
+        if not 0.0 < margin < 1.0:
+            raise ConfigError(f"--pole-margin = {args.pole_margin!r}: must be in (0, 1)")
+        result = tune_gains(dist, x0=start, fix=fix, constrained=not args.unconstrained,
+                            pole_margin=margin)
         mode = "optimised" + (f" (fixed: {', '.join(fix)})" if fix else "")
     data = result.as_dict()
     if args.out:
-        with output_dir(args.out) as tmp:
+        with output_dir(args.out) as tmp, warnings.catch_warnings():
+            if result.diverges:  # huge values expected: matplotlib's overflow notes are noise
+                warnings.simplefilter("ignore", RuntimeWarning)
             plot_error_response(result, dist, job, tmp / "error_response.png", mode)
             (tmp / "tune.json").write_text(json.dumps(
                 {**data, "mode": mode, "n_layers": n_layers, "pulses": pulses,
-                 "steps": steps, "noise": noise, "seed": seed}, indent=2) + "\n")
-    if args.json:
-        print(json.dumps(data))
+                 "steps": steps, "noise": noise, "seed": seed}, indent=2,
+                allow_nan=False) + "\n")
+    if args.json:  # rms is null when the response diverges: strict JSON, no Infinity
+        print(json.dumps(data, allow_nan=False))
         return 0
     print(f"gains ({mode}): Kp = {result.kp:.4f}, Ki* = {result.ki:.4f}, "
           f"Kd* = {result.kd:.4f}")
-    print(f"RMS error sigma_p* = {result.rms:.4f} measurement intervals over {n_layers} "
-          "layers")
+    if result.diverges:
+        print(f"RMS error sigma_p*: the error response diverges (overflows within "
+              f"{n_layers} layers)")
+    else:
+        print(f"RMS error sigma_p* = {result.rms:.4f} measurement intervals over {n_layers} "
+              "layers")
     verdict = "stable" if result.stable else "UNSTABLE"
     print(f"{verdict}: largest pole modulus {result.max_pole:.4f}")
     if args.out:
