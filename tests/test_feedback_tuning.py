@@ -149,3 +149,19 @@ def test_tune_pole_margin_option(capsys):
     assert strict_json(capsys.readouterr().out)["max_pole"] <= 0.8 + 1e-6
     assert main(["tune", "--pole-margin", "1"]) == 2
     assert "--pole-margin" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("make,match", [
+    (lambda: Disturbance(pulses=((0.5, 60.7),)), r"pulse layer = 60.7: must be a whole"),
+    (lambda: Disturbance(noise=0.1, noise_from=500), r"noise_from = 500: .*1..100"),
+    (lambda: Disturbance(noise_from=0), r"noise_from = 0"),
+    (lambda: evaluate_gains((float("nan"), 0.3, 0.0), Disturbance()), r"kp = nan"),
+    (lambda: pole_margin_constraints(1.0, float("inf"), 0.0, 0.99), r"ki = inf"),
+    (lambda: tune_gains(x0=(1.0, 1.0)), r"initial gains \(1.0, 1.0\): expected three"),
+    (lambda: simulate_1d((1.0, 0.33, 0.03), Disturbance(), n_d=0), r"n_d = 0"),
+    (lambda: simulate_1d((1.0, 0.33, 0.03), Disturbance(), dh_d=-1.0), r"dh_d = -1.0"),
+])
+def test_analysis_inputs_are_checked(make, match):
+    with pytest.raises(ConfigError, match=match):
+        make()
+    assert Disturbance(pulses=((0.5, 60.0),), steps=()).sequence()[59] == 0.5  # layer 60

@@ -61,9 +61,23 @@ def characteristic_polynomial(kp: float, ki: float, kd: float) -> np.ndarray:
     """(4,) float64 denominator of H(z) (eq. 5.22), highest power of z first.
 
     z^3 + (Kp + Ki* + Kd* - 2) z^2 + (1 - Kp - 2 Kd*) z + Kd*; gains are the normalised
-    gains Kp, Ki* = Ki dh_m, Kd* = Kd / dh_m (eq. 5.2).
+    gains Kp, Ki* = Ki dh_m, Kd* = Kd / dh_m (eq. 5.2). ConfigError for a gain that is
+    not a finite number.
     """
+    _check_gains((kp, ki, kd))
     return np.array([1.0, kp + ki + kd - 2.0, 1.0 - kp - 2.0 * kd, kd], dtype=np.float64)
+
+
+def _check_gains(gains: Sequence[float], what: str = "gain") -> None:
+    try:
+        values = [float(g) for g in gains]
+    except (TypeError, ValueError):
+        raise ConfigError(f"{what}s {gains!r}: expected three numbers (Kp, Ki*, Kd*)") from None
+    if len(values) != 3:
+        raise ConfigError(f"{what}s {tuple(gains)!r}: expected three numbers (Kp, Ki*, Kd*)")
+    for name, g in zip(("kp", "ki", "kd"), values):
+        if not np.isfinite(g):
+            raise ConfigError(f"{what} {name} = {g!r}: must be finite")
 
 
 def transfer_function(kp: float, ki: float, kd: float) -> tuple[np.ndarray, np.ndarray]:
@@ -169,12 +183,17 @@ class Disturbance:
                 if not np.isfinite(amp):
                     raise ConfigError(f"disturbance {name[:-1]} amplitude = {amp!r}: must be "
                                       "finite")
-                if not 1 <= int(layer) <= self.n_layers:
-                    raise ConfigError(f"disturbance {name[:-1]} layer = {layer!r}: must be in "
-                                      f"1..{self.n_layers} (n_layers)")
+                if (not isinstance(layer, (int, np.integer, float, np.floating))
+                        or layer != int(layer) or not 1 <= int(layer) <= self.n_layers):
+                    raise ConfigError(f"disturbance {name[:-1]} layer = {layer!r}: must be a "
+                                      f"whole number in 1..{self.n_layers} (n_layers)")
         if not np.isfinite(self.noise) or self.noise < 0:
             raise ConfigError(f"disturbance noise = {self.noise!r}: must be a finite "
                               "number >= 0")
+        if (not isinstance(self.noise_from, (int, np.integer))
+                or not 1 <= self.noise_from <= self.n_layers):
+            raise ConfigError(f"disturbance noise_from = {self.noise_from!r}: must be a whole "
+                              f"number in 1..{self.n_layers} (n_layers)")
 
     def sequence(self) -> np.ndarray:
         """(n_layers,) float64: d_1 .. d_n (eq. 5.29)."""
@@ -249,7 +268,14 @@ def simulate_1d(gains: Gains, disturbance: Disturbance | np.ndarray,
         if n_layers < 1:
             raise ConfigError(f"n_layers = {n_layers}: must be >= 1")
         d = np.concatenate([d, np.zeros(max(0, n_layers - len(d)))])[:n_layers]
-    kp, ki, kd = gains
+    _check_gains(gains)
+    if not isinstance(n_d, (int, np.integer)) or n_d < 1:
+        raise ConfigError(f"n_d = {n_d!r}: must be a whole number >= 1 (layers per "
+                          "measurement layer)")
+    for name, v in (("dh_d", dh_d), ("c_ff", c_ff), ("speed", speed), ("width", width)):
+        if not (np.isfinite(v) and v > 0):
+            raise ConfigError(f"simulate_1d {name} = {v!r}: must be a finite number > 0")
+    kp, ki, kd = (float(g) for g in gains)
     e = error_response(gains, d)
     c_f = c_ff * speed * width * dh_d
     dh_m = n_d * dh_d
@@ -374,6 +400,7 @@ def tune_gains(disturbance: Disturbance | np.ndarray = Disturbance(), *,
     for k in fix:
         if k not in _NAMES:
             raise ConfigError(f"fix: unknown gain {k!r}: expected one of kp, ki, kd")
+    _check_gains(x0, "initial gain")
     base = np.array([fix.get(n, x0[i]) for i, n in enumerate(_NAMES)], dtype=np.float64)
     if not np.all(np.isfinite(base)):
         raise ConfigError(f"initial gains {tuple(base)}: must be finite")
