@@ -65,6 +65,76 @@ def test_save_load_round_trip(tmp_path):
             assert tb.dt == ta.dt
 
 
+def _narrow_layers(job):
+    """Toolpaths whose paths carry non-default widths (a narrow gap-fill ring), tools
+    and closed flags, as the paths stage makes them."""
+    th = np.linspace(0, 2 * np.pi, 120, endpoint=False)
+    ring = Path(points=np.c_[25 * np.cos(th), 25 * np.sin(th)], z=0.25, material="part",
+                role="fill", closed=True, width=0.6, layer=0)
+    laser = Path(points=np.c_[30 * np.cos(th), 30 * np.sin(th)], z=0.25, material="part",
+                 role="measure", closed=True, width=0.0, layer=0, tool="laser")
+    line = Path(points=np.array([[-20.0, 0.0], [20.0, 5.0]]), z=0.25, material="scaffold",
+                role="boundary", closed=False, width=2.2, layer=0)
+    return Toolpaths(layers=(LayerPaths(index=0, z=0.25, paths=(ring, laser, line)),),
+                     job=job)
+
+
+def test_round_trip_keeps_path_widths_tools_closed_and_dt(tmp_path):
+    import dataclasses
+
+    from icefab.motion import BuildMotion
+    job = Job()
+    tp = _narrow_layers(job)
+    motion = plan_toolpaths(tp, job.replace(**{"cell.cpus": 1}))
+    # a trajectory sampled at another dt (e.g. merged from another plan) keeps its dt
+    lm = motion.layers[0]
+    odd = dataclasses.replace(lm.trajectories[2], dt=0.008)
+    motion = BuildMotion(layers=(dataclasses.replace(
+        lm, trajectories=lm.trajectories[:2] + (odd,)),), job=motion.job,
+        robot=motion.robot, joint_names=motion.joint_names)
+    f = tmp_path / "t.npz"
+    save_trajectories(motion, f)
+    back = load_trajectories(f)
+    for p, tr, tb in zip(tp.layers[0].paths, motion.layers[0].trajectories,
+                         back.layers[0].trajectories):
+        q = tb.path
+        assert (q.width, q.closed, q.tool, q.material, q.role, q.layer, q.z) == \
+            (p.width, p.closed, p.tool, p.material, p.role, p.layer, p.z)
+        assert q.tool_name == p.tool_name
+        assert tb.dt == tr.dt
+        np.testing.assert_array_equal(q.polyline(), tr.xy)  # the samples, closed or not
+    assert [t.dt for t in back.layers[0].trajectories] == [0.016, 0.016, 0.008]
+    # the valve stage uses the stored widths: the 0.6 mm ring gets a fifth of the drops
+    # the job's 3 mm fill width would give it
+    from icefab import plan_valves
+    narrow = back.layers[0].trajectories[0]
+    wide = dataclasses.replace(narrow, path=dataclasses.replace(narrow.path, width=0.0))
+    n_narrow = len(plan_valves(narrow, "part", job).ticks)
+    n_wide = len(plan_valves(wide, "part", job).ticks)
+    assert job.materials.part.fill_width_mm == 3.0
+    assert n_narrow == pytest.approx(0.2 * n_wide, rel=0.05)
+
+
+def test_version_1_files_still_load_with_a_warning(tmp_path, caplog):
+    job = Job()
+    motion = plan_toolpaths(_narrow_layers(job), job.replace(**{"cell.cpus": 1}))
+    f = tmp_path / "t.npz"
+    save_trajectories(motion, f)
+    with np.load(f) as z:
+        data = {k: z[k] for k in z.files
+                if k not in ("traj_dt", "width", "closed", "tool", "path_z")}
+    data["version"] = np.array(1)
+    old = tmp_path / "v1.npz"
+    np.savez(old, **data)
+    with caplog.at_level("WARNING", logger="icefab.motion"):
+        back = load_trajectories(old)
+    assert "version 1" in caplog.text and "widths" in caplog.text
+    trs = back.layers[0].trajectories
+    assert [t.path.width for t in trs] == [0.0, 0.0, 0.0]
+    assert all(t.dt == 0.016 for t in trs) and trs[0].path.z == 0.25
+    np.testing.assert_array_equal(trs[0].xy, motion.layers[0].trajectories[0].xy)
+
+
 def test_load_rejects_bad_files(tmp_path):
     with pytest.raises(StackFileError, match="not found"):
         load_trajectories(tmp_path / "missing.npz")

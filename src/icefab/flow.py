@@ -17,15 +17,25 @@ the surface-mapping control action ``u``:
   or hold more than ``max_pulses`` (16 384) pulses is split automatically into pieces that
   start on trajectory samples (the trajectory is split there too).
 
-Limits (thesis 6.1): a flow beyond the calibration table, or a frequency beyond
-``max_frequency_hz`` (and ``1 / calibration_pulse_ms``), is clamped and counted (policy
-``job.flow.out_of_range = "clamp"``, the default) or raises :class:`FlowError` ("error").
-Fewer drops than ``min_drops_per_mm`` where the nozzle moves, and more pulses than one per
-tick (frequencies above ``1 / tick_s``: two pulses share a tick), are reported (logged and
-listed in :attr:`FrequencyPlan.warnings`), not changed. PWM mode keeps the frequency at
-``pwm_frequency_hz`` and varies the pulse width (flow per pulse proportional to the width,
-calibrated by the table at ``calibration_pulse_ms``); widths below ``min_pulse_ms`` are
-dropped (no pulse) or raised to it, widths above the period are cut to it, all reported.
+Limits (thesis 6.1), all recorded in :attr:`ValveProgram.warnings` (one text per limit and
+path, naming the setting; :func:`summarise_findings` condenses them per kind):
+
+* FM: a flow outside the calibration table (zero flow is 0 Hz, whatever the table's first
+  row) or a frequency above ``min(max_frequency_hz, 1 / calibration_pulse_ms)`` raises
+  :class:`FlowError` naming the path, the flow and the table's range under
+  ``job.flow.out_of_range = "error"``; under ``"clamp"`` it is clamped and the finding
+  states the volume delivered against the volume commanded. Pulses sharing a tick
+  (frequencies above ``1 / tick_s``) are counted; fewer drops than ``min_drops_per_mm``
+  where the nozzle moves are reported. Neither is changed.
+* PWM keeps the frequency at ``pwm_frequency_hz`` (at most ``min(max_frequency_hz,
+  1 / tick_s, 1 / min_pulse_ms)`` and inside the table: ConfigError otherwise) and varies
+  the pulse width (volume per pulse proportional to the width, calibrated by the table at
+  ``calibration_pulse_ms``); widths below ``min_pulse_ms / 2`` are dropped, below
+  ``min_pulse_ms`` raised to it, above the period cut to it (or FlowError under
+  ``"error"``); the counts and the resulting volume error are reported.
+
+Trajectories must be sampled as documented: ``dt > 0`` and ``duration = (n - 1) dt``
+(:func:`check_trajectory`, FlowError naming the path otherwise).
 
 Files (:func:`write_valve_program` / :func:`read_valve_program`), binary form,
 little-endian throughout::

@@ -54,18 +54,25 @@ robot can only tighten limits).
 
 Trajectory file format (``save_trajectories``/``load_trajectories``, ``.npz``):
 
-* ``format`` = "icefab-trajectories", ``version`` = 1, ``dt`` float s, ``robot`` str,
-  ``joint_names`` (j,) str, ``job`` str (TOML);
+* ``format`` = "icefab-trajectories", ``version`` = 2, ``dt`` float s (the first
+  trajectory's; ``traj_dt`` has each one's), ``robot`` str, ``joint_names`` (j,) str,
+  ``job`` str (TOML);
 * ``xy`` (M, 2) float64 mm (robot base frame), ``joints`` (M, j) float64 rad or mm,
   ``speed`` (M,) float64 mm/s: the samples of all trajectories, concatenated in order;
 * ``traj_start`` (T + 1,) int64: trajectory i is rows ``traj_start[i]:traj_start[i+1]``;
 * ``piece_start`` (Q,) int64 sample indices (within its trajectory) where pieces start
   and ``piece_owner`` (Q,) int64 the trajectory each belongs to;
-* per trajectory (T,): ``duration`` float64 s, ``layer`` int64, ``path_index`` int64
-  (index within its layer), ``material`` int8 (0 part, 1 scaffold), ``role`` int8
-  (0 boundary, 1 fill, 2 measure, 3 travel);
+* per trajectory (T,): ``duration`` float64 s, ``traj_dt`` float64 s, ``layer`` int64,
+  ``path_index`` int64 (index within its layer), ``material`` int8 (0 part, 1 scaffold),
+  ``role`` int8 (0 boundary, 1 fill, 2 measure, 3 travel), and the rest of its Path:
+  ``width`` float64 mm, ``closed`` bool, ``tool`` str ("" = derived), ``path_z``
+  float64 mm; a trajectory without a Path has width 0, closed False, tool "", z 0;
 * per layer (L,): ``layer_index`` int64, ``layer_z`` float64 mm, ``layer_start`` (L+1,)
   int64 (trajectories of layer k are ``layer_start[k]:layer_start[k+1]``).
+
+Version 1 files (no ``traj_dt``, ``width``, ``closed``, ``tool``, ``path_z``) still load,
+with a logged warning: every trajectory gets ``dt``, width 0 (the valve stage then uses
+the job's widths), closed False, the derived tool and the layer's z.
 """
 
 from __future__ import annotations
@@ -73,7 +80,6 @@ from __future__ import annotations
 import logging
 import math
 import os
-import tempfile
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from functools import lru_cache
@@ -804,18 +810,24 @@ def gcode_moves(traj: Trajectory, *, decimals: int = 3) -> list[str]:
 
 
 FORMAT = "icefab-trajectories"
-VERSION = 1
+VERSION = 2
+#: Versions load_trajectories reads (1: without per-trajectory dt and Path fields).
+_READABLE = (1, 2)
 
 
 def save_trajectories(motion: BuildMotion, path: str | os.PathLike) -> None:
     """Write a BuildMotion to ``.npz`` (format in the module docstring); written to a
-    temporary file and renamed, so a failure leaves nothing half-written."""
+    temporary file and renamed (``icefab.atomic``), so a failure leaves nothing
+    half-written."""
+    from icefab.atomic import atomic_path
     from icefab.config import to_toml
     trajs = [t for lm in motion.layers for t in lm.trajectories]
     owners = [(lm.index, i) for lm in motion.layers for i in range(len(lm.trajectories))]
+    zs = [lm.z for lm in motion.layers for _ in lm.trajectories]
     jn = len(motion.joint_names) or (trajs[0].joints.shape[1] if trajs else 0)
     counts = [len(t.xy) for t in trajs]
     pcs = [t.pieces if len(t.pieces) else np.zeros(1, np.int64) for t in trajs]
+    paths = [t.path for t in trajs]
     data = {
         "format": np.array(FORMAT), "version": np.array(VERSION),
         "dt": np.array(trajs[0].dt if trajs else motion.job.motion.dt_s),
@@ -829,12 +841,17 @@ def save_trajectories(motion: BuildMotion, path: str | os.PathLike) -> None:
         "piece_start": (np.concatenate(pcs) if pcs else np.zeros(0)).astype(np.int64),
         "piece_owner": np.repeat(np.arange(len(trajs)), [len(p) for p in pcs]).astype(np.int64),
         "duration": np.array([t.duration for t in trajs], dtype=np.float64),
+        "traj_dt": np.array([t.dt for t in trajs], dtype=np.float64),
         "layer": np.array([o[0] for o in owners], dtype=np.int64),
         "path_index": np.array([o[1] for o in owners], dtype=np.int64),
-        "material": np.array([_MATS.index(t.path.material) if t.path else 0 for t in trajs],
+        "material": np.array([_MATS.index(p.material) if p else 0 for p in paths],
                              dtype=np.int8),
-        "role": np.array([_ROLES.index(t.path.role) if t.path else 0 for t in trajs],
-                         dtype=np.int8),
+        "role": np.array([_ROLES.index(p.role) if p else 0 for p in paths], dtype=np.int8),
+        "width": np.array([float(p.width) if p else 0.0 for p in paths], dtype=np.float64),
+        "closed": np.array([bool(p.closed) if p else False for p in paths], dtype=bool),
+        "tool": np.array([p.tool if p else "" for p in paths], dtype=str).reshape(-1),
+        "path_z": np.array([float(p.z) if p else z for p, z in zip(paths, zs)],
+                           dtype=np.float64),
         "layer_index": np.array([lm.index for lm in motion.layers], dtype=np.int64),
         "layer_z": np.array([lm.z for lm in motion.layers], dtype=np.float64),
         "layer_start": np.concatenate(
@@ -842,21 +859,19 @@ def save_trajectories(motion: BuildMotion, path: str | os.PathLike) -> None:
     }
     target = FsPath(path)
     target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".npz", dir=target.parent)
-    os.close(fd)
-    try:
+    with atomic_path(target, suffix=".npz") as tmp:
         with open(tmp, "wb") as fh:
             np.savez_compressed(fh, **data)
-        os.replace(tmp, target)
-    except BaseException:
-        FsPath(tmp).unlink(missing_ok=True)
-        raise
 
 
 def load_trajectories(path: str | os.PathLike) -> BuildMotion:
-    """Read a file written by :func:`save_trajectories`. The trajectories' ``path`` is a
-    stand-in Path (points = the samples, frame "base") carrying layer, material and role.
-    StackFileError if the file is missing, truncated, corrupt or of another kind."""
+    """Read a file written by :func:`save_trajectories` (versions 1 and 2).
+
+    The trajectories' ``path`` is a stand-in Path in the robot base frame whose
+    ``polyline()`` is the samples (a closed path's last sample, back on its first, is the
+    closing point), carrying layer, z, material, role, width, closed and tool.
+    StackFileError if the file is missing, truncated, corrupt or of another kind.
+    """
     import zipfile
 
     from icefab.config import job_from_dict
@@ -874,11 +889,15 @@ def load_trajectories(path: str | os.PathLike) -> BuildMotion:
         raise bad(f"not a readable trajectory file ({exc})") from None
     if str(data.get("format", "")) != FORMAT:
         raise bad(f"not an icefab trajectory file (format {str(data.get('format', ''))!r})")
-    if int(data.get("version", -1)) != VERSION:
-        raise bad(f"trajectory file version {int(data.get('version', -1))}, expected {VERSION}")
-    need = ("dt", "xy", "joints", "speed", "traj_start", "piece_start", "piece_owner",
+    version = int(data.get("version", -1))
+    if version not in _READABLE:
+        raise bad(f"trajectory file version {version}, expected one of "
+                  f"{', '.join(map(str, _READABLE))}")
+    need = ["dt", "xy", "joints", "speed", "traj_start", "piece_start", "piece_owner",
             "duration", "layer", "path_index", "material", "role", "layer_index", "layer_z",
-            "layer_start", "job", "robot", "joint_names")
+            "layer_start", "job", "robot", "joint_names"]
+    if version >= 2:
+        need += ["traj_dt", "width", "closed", "tool", "path_z"]
     missing = [k for k in need if k not in data]
     if missing:
         raise bad(f"missing arrays {', '.join(missing)}")
@@ -886,22 +905,46 @@ def load_trajectories(path: str | os.PathLike) -> BuildMotion:
     job = job_from_dict(tomllib.loads(str(data["job"])))
     ts = data["traj_start"]
     nt = len(ts) - 1
-    if nt < 0 or ts[-1] != len(data["xy"]) or len(data["duration"]) != nt \
-            or np.any(np.diff(ts) < 0):
+    per_traj = ["duration", "layer", "material", "role"] + (
+        ["traj_dt", "width", "closed", "tool", "path_z"] if version >= 2 else [])
+    if nt < 0 or ts[-1] != len(data["xy"]) or np.any(np.diff(ts) < 0) \
+            or any(len(data[k]) != nt for k in per_traj):
         raise bad("inconsistent trajectory index arrays (truncated or corrupt)")
-    dt = float(data["dt"])
+    ls = data["layer_start"]
+    if version >= 2:
+        dts = data["traj_dt"].astype(np.float64)
+        widths = data["width"].astype(np.float64)
+        closed = data["closed"].astype(bool)
+        tools = [str(x) for x in data["tool"]]
+        zs = data["path_z"].astype(np.float64)
+    else:
+        log.warning("%s: trajectory file version 1 stores neither path widths, tools and "
+                    "closed flags nor each trajectory's dt: widths 0 (the valve stage uses "
+                    "the job's widths), open paths, dt %.4g s for all; re-run 'icefab plan' "
+                    "to store them", path, float(data["dt"]))
+        dts = np.full(nt, float(data["dt"]))
+        widths = np.zeros(nt)
+        closed = np.zeros(nt, dtype=bool)
+        tools = [""] * nt
+        zs = np.repeat(data["layer_z"].astype(np.float64), np.diff(ls)) \
+            if len(ls) and ls[-1] == nt else np.zeros(nt)
     owner = data["piece_owner"]
     pstart = data["piece_start"]
+    if len(owner) != len(pstart) or np.any(np.diff(owner) < 0):
+        raise bad("inconsistent piece arrays (truncated or corrupt)")
+    pb = np.searchsorted(owner, np.arange(nt + 1))  # pieces of trajectory i: pb[i]:pb[i+1]
     trajs = []
     for i in range(nt):
         r0, r1 = int(ts[i]), int(ts[i + 1])
-        stand_in = Path(points=data["xy"][r0:r1], material=_MATS[int(data["material"][i])],
-                        role=_ROLES[int(data["role"][i])], layer=int(data["layer"][i]),
-                        frame="base")
-        trajs.append(Trajectory(dt=dt, xy=data["xy"][r0:r1], joints=data["joints"][r0:r1],
+        xy = data["xy"][r0:r1]
+        pts = xy[:-1] if closed[i] and len(xy) > 2 and np.array_equal(xy[0], xy[-1]) else xy
+        stand_in = Path(points=pts, z=float(zs[i]), material=_MATS[int(data["material"][i])],
+                        role=_ROLES[int(data["role"][i])], closed=bool(closed[i]),
+                        width=float(widths[i]), layer=int(data["layer"][i]), frame="base",
+                        tool=tools[i])
+        trajs.append(Trajectory(dt=float(dts[i]), xy=xy, joints=data["joints"][r0:r1],
                                 speed=data["speed"][r0:r1], duration=float(data["duration"][i]),
-                                path=stand_in, pieces=pstart[owner == i]))
-    ls = data["layer_start"]
+                                path=stand_in, pieces=pstart[pb[i]:pb[i + 1]]))
     layers = tuple(LayerMotion(index=int(data["layer_index"][k]), z=float(data["layer_z"][k]),
                                trajectories=tuple(trajs[int(ls[k]):int(ls[k + 1])]))
                    for k in range(len(ls) - 1))
