@@ -103,7 +103,7 @@ def test_open_loop_error_grows_with_height_under_a_flow_error():
 
 
 def test_flow_gain_drifts_with_the_volume_through_each_valve():
-    job = quiet_job(**{"simulation.flow_drift_per_m3": 0.02})
+    job = quiet_job(**{"simulation.flow_drift_per_cm3": 0.02})
     res = simulate_build(annulus_toolpaths(job, 8), job, closed_loop=False)
     part_cm3 = 8 * DH * np.pi * (25.0 ** 2 - 10.0 ** 2) / 1000
     assert res.flow_gain[0] == pytest.approx(1 + 0.02 * part_cm3, rel=0.01)

@@ -300,7 +300,7 @@ class SimulationSettings:
     grid_mm: float = setting(0.5, "height map pitch", lo=0.0, lo_open=True)
     flow_error: float = setting(0.10, "flow gain error (fraction, +0.1 = 10 % too much)",
                                 lo=-0.9)
-    flow_drift_per_m3: float = setting(0.0, "flow gain drift per cm^3 deposited (fraction)")
+    flow_drift_per_cm3: float = setting(0.0, "flow gain drift per cm^3 deposited (fraction)")
     noise_mm: float = setting(0.02, "random height noise per layer (std)", lo=0.0)
     laser_noise_mm: float = setting(0.01, "laser measurement noise (std)", lo=0.0)
     debris_rate: float = setting(0.0, "debris pulses per layer", lo=0.0)

@@ -39,7 +39,7 @@ What it models
   run off the footprint.
 * **Disturbances** (thesis 5.6, eq. 5.29), drawn from ``job.simulation.seed`` so an
   open-loop and a closed-loop run see the same ones: the actual flow is the commanded flow
-  times ``(1 + flow_error) * (1 + flow_drift_per_m3 * V)``, ``V`` the volume in cm^3 that
+  times ``(1 + flow_error) * (1 + flow_drift_per_cm3 * V)``, ``V`` the volume in cm^3 that
   valve has already deposited (the thesis saw up to +20 %, Ch. 6.4; the setting's name is
   kept for compatibility, its unit is per cm^3; with valve pulses it multiplies every
   drop); correlated random height noise per layer; debris pulses (Gaussian bumps, Poisson
@@ -1063,7 +1063,7 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
             v_cmd = v_all[sel]
             # flow gain with drift by valve use (thesis 6.4): volume already through the valve
             before = used_cm3[mat] + (np.cumsum(v_cmd) - v_cmd) / 1000.0
-            gain = (1.0 + sim.flow_error) * (1.0 + sim.flow_drift_per_m3 * before)
+            gain = (1.0 + sim.flow_error) * (1.0 + sim.flow_drift_per_cm3 * before)
             used_cm3[mat] += v_cmd.sum() / 1000.0
             vol = v_cmd * gain
             _splat(layer_img[mat], surface.origin, g, a[sel], b[sel], vol, hw[sel], n0[sel],
@@ -1143,7 +1143,7 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
             progress(j + 1, len(plans))
     arr = np.array(rows, dtype=np.float64).reshape(-1, 5)
     final = HeightMap(origin=surface.origin.copy(), spacing=g, z=np.where(ever, z, np.nan))
-    gains = tuple(float((1 + sim.flow_error) * (1 + sim.flow_drift_per_m3 * c))
+    gains = tuple(float((1 + sim.flow_error) * (1 + sim.flow_drift_per_cm3 * c))
                   for c in used_cm3)
     return SimResult(layers=arr[:, 0].astype(np.int64), nominal_z=arr[:, 1], rms=arr[:, 2],
                      max_abs=arr[:, 3], rms_measured=arr[:, 4], height=final,

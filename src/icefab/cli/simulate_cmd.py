@@ -271,7 +271,7 @@ def run(args: argparse.Namespace) -> int:
         write_simulation_outputs(open_loop, closed, tmp, surface_layer=args.surface_layer,
                                  job=job)
     sim = job.simulation
-    print(f"{n} layers, flow error {sim.flow_error:+.0%}, drift {sim.flow_drift_per_m3:g}/cm³, "
+    print(f"{n} layers, flow error {sim.flow_error:+.0%}, drift {sim.flow_drift_per_cm3:g}/cm³, "
           f"noise {sim.noise_mm:g} mm, debris {sim.debris_rate:g}/layer, edge loss "
           f"{sim.edge_loss:.0%}, seed {sim.seed}; gains Kp {job.feedback.kp:g}, "
           f"Ki* {job.feedback.ki:g}, Kd* {job.feedback.kd:g}, every "
