@@ -18,6 +18,9 @@ log = logging.getLogger(__name__)
 
 JOB = Job()
 JOB_NOJERK = JOB.replace(**{"motion.jerk_limited": False})
+JOB_RAW = JOB.replace(**{"motion.smoothing_tolerance_mm": 0.0})  # path smoothing off
+#: issue 4: "the sampled trajectory follows the path within 0.02 mm" (the user's path)
+FOLLOW_MM = 0.02
 WELL = (250.0, -80.0)  # thesis Fig. 4-3, well placed
 
 
@@ -35,8 +38,10 @@ def poorly_placed_offset() -> tuple[float, float]:
 POOR = poorly_placed_offset()
 
 
-def check_trajectory(tr, pts, job, robot=None, *, vcap=None):
-    """The bounds of the issue; returns jerk statistics (mm/s^3)."""
+def check_trajectory(tr, pts, job, robot=None, *, vcap=None, follow_mm=FOLLOW_MM):
+    """The bounds of the issue; returns jerk statistics (mm/s^3). follow_mm: how close to
+    the input path the samples and the joints' positions must be (the issue's 0.02 mm;
+    more only for tests that ask for a looser smoothing tolerance)."""
     robot = robot or get_robot(job)
     m = job.motion
     dt = tr.dt
@@ -44,20 +49,18 @@ def check_trajectory(tr, pts, job, robot=None, *, vcap=None):
     n = len(tr.xy)
     assert tr.joints.shape[0] == n and len(tr.speed) == n
     assert abs(tr.duration - (n - 1) * dt) < 1e-9
-    # follows the path within 0.02 mm (the samples and the joints' forward kinematics):
-    # the input, or with path smoothing the smoothed path, itself within the tolerance
-    # + 0.02 mm of the input
+    # follows the INPUT path within 0.02 mm (issue 4): the samples and the joints' forward
+    # kinematics (Savitzky-Golay smoothed); the samples also within the smoothing
+    # tolerance (a hard bound: on the path itself with smoothing off)
     tol = m.smoothing_tolerance_mm
-    line = shapely.LineString(pts)
-    if tol > 0 and len(pts) > 1:
-        followed = shapely.MultiLineString(followed_path(pts, job))
-        d_in = shapely.distance(shapely.points(tr.xy), line)
-        assert d_in.max() <= tol + 0.02 + 1e-9, d_in.max()
-        line = followed
+    line = shapely.LineString(pts) if len(pts) > 1 else shapely.Point(pts[0])
     d_xy = shapely.distance(shapely.points(tr.xy), line)
     d_q = shapely.distance(shapely.points(robot.fk(tr.joints)), line)
-    assert d_xy.max() < 0.02, d_xy.max()
-    assert d_q.max() < 0.02, d_q.max()
+    assert d_xy.max() <= min(tol, follow_mm) + 1e-9, (d_xy.max(), tol)
+    assert d_q.max() <= follow_mm + 1e-9, d_q.max()
+    if tol > 0 and len(pts) > 1:  # the samples lie on the smoothed path they follow
+        followed = shapely.MultiLineString(followed_path(pts, job))
+        assert shapely.distance(shapely.points(tr.xy), followed).max() < 1e-3
     # starts and ends on the path's ends, at rest
     np.testing.assert_allclose(tr.xy[0], pts[0], atol=1e-9)
     np.testing.assert_allclose(tr.xy[-1], pts[-1], atol=1e-9)
@@ -65,7 +68,7 @@ def check_trajectory(tr, pts, job, robot=None, *, vcap=None):
     # finite-difference speed, total acceleration, joint speeds
     v = np.hypot(*np.diff(tr.xy, axis=0).T) / dt
     assert v.max() <= (vcap or m.speed_mm_s) * 1.01
-    acc = np.hypot(*np.diff(tr.xy, 2, axis=0).T) / dt ** 2
+    acc = np.hypot(*np.diff(tr.xy, 2, axis=0).T) / dt ** 2 if n > 2 else np.zeros(1)
     assert acc.max() <= m.accel_mm_s2 * 1.10, acc.max()
     qd = np.abs(np.diff(tr.joints, axis=0)) / dt
     lim = robot.joint_speed_max
@@ -95,10 +98,12 @@ def test_straight_line_trapezoid_duration():
     check_trajectory(trj, pts, JOB)
     assert trj.duration > tr.duration
     assert len(trj.pieces) == 1
+    check_trajectory(plan_motion(pts, JOB_RAW), pts, JOB_RAW)
 
 
 @pytest.mark.parametrize("radius", [1.0, 2.0, 5.0, 10.0, 20.0, 50.0])
-@pytest.mark.parametrize("job", [JOB_NOJERK, JOB], ids=["jerk-off", "jerk-on"])
+@pytest.mark.parametrize("job", [JOB_NOJERK, JOB, JOB_RAW],
+                         ids=["jerk-off", "jerk-on", "smoothing-off"])
 def test_circles_speed_set_by_radial_acceleration(radius, job):
     th = np.linspace(0.0, 2 * np.pi, int(2 * np.pi * radius / 0.05) + 1)
     pts = np.c_[300.0 + radius * np.cos(th), -60.0 + radius * np.sin(th)]
@@ -109,6 +114,29 @@ def test_circles_speed_set_by_radial_acceleration(radius, job):
     assert tr.speed.max() <= cmax * 1.005
     if job is JOB_NOJERK:
         assert tr.speed.max() >= cmax * 0.97
+
+
+@pytest.mark.parametrize("offset", [WELL, POOR], ids=["well-placed", "near-reach"])
+@pytest.mark.parametrize("job", [JOB, JOB_RAW], ids=["default", "smoothing-off"])
+def test_thesis_path_within_0_02_mm_of_the_input(offset, job):
+    # the issue's 0.02 mm against the user's path (Fig. 4-2 path, Fig. 4-3 placements)
+    pts = thesis_test_path(offset)
+    check_trajectory(plan_motion(pts, job), pts, job)
+    check_trajectory(plan_motion(pts, job.replace(**{"motion.jerk_limited": False})), pts,
+                     job)
+
+
+def test_default_smoothing_fits_the_0_02_mm_budget():
+    # smoothing tolerance + joint smoothing must fit inside the issue's 0.02 mm
+    from icefab.motion import SAVGOL_MAX_DEVIATION_MM
+    assert JOB.motion.smoothing_tolerance_mm + SAVGOL_MAX_DEVIATION_MM <= FOLLOW_MM + 1e-12
+    # a coarse polygon: every vertex is rounded off as far as the tolerance allows
+    th = np.linspace(0, 2 * np.pi, 73)
+    pts = np.c_[300 + 30 * np.cos(th), 30 * np.sin(th)]
+    tr = plan_motion(pts, JOB)
+    check_trajectory(tr, pts, JOB)
+    d = shapely.distance(shapely.points(tr.xy), shapely.LineString(pts))
+    assert d.max() > 0.5 * JOB.motion.smoothing_tolerance_mm  # the smoothing is at work
 
 
 def test_thesis_path_splits_and_stops_at_the_corner():
@@ -171,11 +199,76 @@ def test_joint_limits_bind_near_reach_fig_4_9():
     assert vy_p > 0.8 * vy_w
 
 
-def test_rest_start_moves_joints_beyond_encoder_resolution():
-    pts = np.array([[250.0, -150.0], [250.0, 50.0]])
-    tr = plan_motion(pts, JOB)
-    step = np.degrees(np.abs(tr.joints[1, :2] - tr.joints[0, :2])).max()
-    assert step > JOB.cell.encoder_resolution_deg / 2
+def test_joint_jerk_limits_bind_near_reach():
+    # eq. 4.10's joint jerk bounds: a wavy path (4 mm amplitude, 20 mm period) 5 mm
+    # inside the maximum reach, where theta2 moves fast for little tool motion
+    import dataclasses
+    y = np.linspace(-40.0, 40.0, 801)
+    pts = np.c_[590.0 + 4.0 * np.sin(2 * np.pi * y / 20.0), y]
+    assert np.hypot(*pts.T).max() < 596.0
+    robot = get_robot(JOB)
+    free = dataclasses.replace(robot, joint_jerk_max=np.full(3, np.inf))
+    limited = plan_motion(pts, JOB)
+    unlimited = plan_motion(pts, JOB, robot=free)
+    check_trajectory(limited, pts, JOB)
+    # the joint jerk bounds bind: measured +11 % time on this path
+    assert limited.duration > 1.05 * unlimited.duration
+
+    def joint_jerk(tr):  # (n - 3, 2) |third difference| / dt^3, in units of the bound
+        return np.abs(np.diff(tr.joints[:, :2], 3, axis=0)) / tr.dt ** 3 / \
+            robot.joint_jerk_max[:2]
+
+    on, off = joint_jerk(limited), joint_jerk(unlimited)
+    p50, p95, p99 = (np.percentile(on, q, axis=0) for q in (50, 95, 99))
+    log.info("joint jerk / bound (theta1, theta2): median %s, p95 %s, p99 %s, max %s; "
+             "without joint jerk bounds p95 %s, max %s", p50.round(2), p95.round(2),
+             p99.round(2), on.max(axis=0).round(2), np.percentile(off, 95, axis=0).round(2),
+             off.max(axis=0).round(2))
+    # Sampled third differences exceed the bound now and then: the planner bounds jerk
+    # through the speed envelope and the acceleration ramps of ACON on the 0.4 mm grid,
+    # JCON only acts on decrease spikes above bound + 20 % (thesis 4.2.4), and the
+    # tangential acceleration is piecewise constant between grid points. Measured p95
+    # 1.39x (theta2) with the bounds, 2.68x without; 2x is the test's margin.
+    assert (p95 <= 2.0).all(), p95
+    assert np.percentile(on, 95, axis=0)[1] < 0.7 * np.percentile(off, 95, axis=0)[1]
+
+
+PIECE_PATHS = {
+    "line": np.array([[250.0, -150.0], [250.0, 50.0]]),
+    "thesis-well": thesis_test_path(WELL),
+    "thesis-near-reach": thesis_test_path(POOR),
+    # tangential near the reach: joint 1 turns 1 mm / 595 mm per mm of travel
+    "tangent-near-reach": np.array([[595.0, -20.0], [595.0, 20.0]]),
+    "zigzag-near-reach": np.array([[590.0, -20.0], [592.0, -18.0], [590.0, -16.0],
+                                   [592.0, -14.0], [590.0, -12.0]]),
+    "short": np.array([[300.0, 0.0], [300.0, 0.2]]),
+}
+
+
+def _end_steps_deg(tr):
+    """(first, last) joint step of every piece: the largest |change| of joints 1, 2, deg."""
+    q = np.degrees(tr.joints[:, :2])
+    ends = list(tr.pieces) + [len(q) - 1]
+    return [(np.abs(q[a + 1] - q[a]).max(), np.abs(q[b] - q[b - 1]).max())
+            for a, b in zip(ends[:-1], ends[1:])]
+
+
+@pytest.mark.parametrize("name", sorted(PIECE_PATHS))
+@pytest.mark.parametrize("resolution", [None, 0.003], ids=["default", "coarse"])
+@pytest.mark.parametrize("job", [JOB, JOB_NOJERK], ids=["jerk-on", "jerk-off"])
+def test_rest_steps_move_joints_beyond_encoder_resolution(name, resolution, job):
+    # AREST (thesis 4.2.6): the commanded displacement of the first and the last step of
+    # every piece (from and to rest) turns a joint by at least its encoder resolution
+    if resolution is not None:
+        job = job.replace(**{"cell.encoder_resolution_deg": resolution})
+    res = job.cell.encoder_resolution_deg
+    pts = PIECE_PATHS[name]
+    tr = plan_motion(pts, job)
+    check_trajectory(tr, pts, job)
+    steps = _end_steps_deg(tr)
+    assert len(steps) == len(tr.pieces)
+    for first, last in steps:
+        assert first >= res and last >= res, (steps, res)
 
 
 def test_gantry_per_axis_limits():
@@ -192,6 +285,38 @@ def test_gantry_per_axis_limits():
     assert len(tr.pieces) == 2
     lines = gcode_moves(tr)
     assert lines[0].startswith("G0 X10.000 Y10.000") and "F" in lines[-1]
+    check_gcode_feedrates(lines, tr)
+
+
+def check_gcode_feedrates(lines, tr):
+    """Every G1 move ends on a sample and its F (mm/min) is the trajectory's speed over
+    that step (mean of the two samples' speeds) x 60, within 2 % + 0.5 mm/s (the speed is
+    not linear in time inside a step: rest curves, grid segments)."""
+    xy = tr.xy
+    k = 0
+    checked = 0
+    for line in lines[1:]:
+        words = dict((w[0], float(w[1:])) for w in line.split()[1:])
+        assert line.startswith("G1 ") and set(words) == {"X", "Y", "F"}, line
+        k += 1
+        while np.hypot(words["X"] - xy[k, 0], words["Y"] - xy[k, 1]) > 1e-3:
+            k += 1  # a zero-length step has no move
+        expect = 60.0 * 0.5 * (tr.speed[k - 1] + tr.speed[k])
+        assert words["F"] == pytest.approx(expect, rel=0.02, abs=30.0), (k, line, expect)
+        checked += 1
+    assert k == len(xy) - 1 and checked >= 0.9 * (len(xy) - 1)
+
+
+@pytest.mark.parametrize("job", [JOB, JOB_NOJERK], ids=["jerk-on", "jerk-off"])
+def test_gcode_feedrates_are_the_sample_speeds(job):
+    job = job.replace(**{"cell.robot": "gantry"})
+    pts = thesis_test_path((100.0, 120.0))
+    tr = plan_motion(pts, job)
+    check_trajectory(tr, pts, job)
+    lines = gcode_moves(tr)
+    check_gcode_feedrates(lines, tr)
+    assert max(float(x.split("F")[1]) for x in lines[1:]) == pytest.approx(
+        60.0 * job.motion.speed_mm_s, rel=0.01)
 
 
 # --------------------------------------------------------------------------- inputs
@@ -225,6 +350,41 @@ def test_workspace_error_before_planning_names_layer_path_point():
         plan_motion(np.array([[150.0, -100.0], [150.0, 100.0]]), JOB)
 
 
+def test_path_errors_name_the_path():
+    # a Path knows its layer, material and role, not its index: no made-up "path 0"
+    far = Path(points=np.array([[0.0, 0.0], [400.0, 0.0]]), layer=7, material="scaffold",
+               role="fill")
+    with pytest.raises(WorkspaceError) as exc:
+        plan_motion(far, JOB)
+    msg = str(exc.value)
+    assert msg.startswith("layer 7, scaffold fill path: point 1 at") and "path 0" not in msg
+    with pytest.raises(WorkspaceError, match=r"^layer 7, path 3 \(scaffold fill\): point 1"):
+        plan_motion(far, JOB, index=3)
+    nan = Path(points=np.array([[0.0, 0.0], [np.nan, 0.0]]), role="travel")
+    with pytest.raises(IcefabError, match=r"^part travel path: point 1 is not finite"):
+        plan_motion(nan, JOB)
+
+
+def test_build_workspace_check_finds_chords_through_the_inner_hole():
+    # both ends reachable, the chord between them passes inside the minimum reach: found
+    # by the up-front check, before any layer is planned
+    from icefab import LayerPaths, Toolpaths
+    from icefab.motion import check_build_workspace, plan_toolpaths
+    ok = Path(points=np.array([[300.0, 0.0], [310.0, 0.0]]), layer=0, frame="base")
+    chord = Path(points=np.array([[300.0, 0.0], [150.0, -100.0], [150.0, 100.0]]), layer=1,
+                 frame="base")
+    tp = Toolpaths(layers=(LayerPaths(index=0, z=0.25, paths=(ok,)),
+                           LayerPaths(index=1, z=0.5, paths=(ok, chord))), job=JOB)
+    with pytest.raises(WorkspaceError, match=r"^layer 1, path 1: the segment from point 1 "
+                                             r"to point 2 passes \(150.000, 0.000\) mm"):
+        check_build_workspace(tp)
+    calls = []
+    with pytest.raises(WorkspaceError, match="segment from point 1 to point 2"):
+        plan_toolpaths(tp, JOB.replace(**{"cell.cpus": 1}),
+                       progress=lambda d, t: calls.append(d))
+    assert calls == []  # no layer was planned
+
+
 def test_bad_points_rejected():
     with pytest.raises(IcefabError, match="shape"):
         plan_motion(np.zeros((4, 3)), JOB)
@@ -247,14 +407,40 @@ def test_degenerate_paths():
     assert len(tr.pieces) == 1
 
 
-def test_constant_spacing_output():
+@pytest.mark.parametrize("job", [JOB, JOB_NOJERK], ids=["jerk-on", "jerk-off"])
+def test_constant_spacing_output(job):
     pts = thesis_test_path(WELL)
-    tr = plan_motion(pts, JOB)
+    tr = plan_motion(pts, job)
     p, durations = constant_spacing(tr, 0.5)
     line = shapely.LineString(pts)
     along = np.diff(shapely.line_locate_point(line, shapely.points(p)))
     assert np.allclose(along, 0.5, rtol=0.01)
     assert durations.sum() == pytest.approx(tr.duration, rel=1e-6)
+    # the speed each point implies (spacing over the mean of its two durations) is the
+    # trajectory's speed there (its samples' speed, linear in arc length between them):
+    # within 5 % beyond 2 mm of a rest point (the implied speed averages over 1 mm, where
+    # the speed changes by up to ~4 %; durations shifted by one interval are 13 % off)
+    s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(tr.xy, axis=0).T))])
+    sp = np.hypot(*np.diff(p, axis=0).T)
+    sq = np.concatenate([[0.0], np.cumsum(sp)])
+    v_traj = np.interp(sq[1:-1], s, tr.speed)
+    v_impl = (sp[:-1] + sp[1:]) / (durations[:-1] + durations[1:])
+    rest = s[tr.speed == 0.0]
+    far = (np.abs(sq[1:-1, None] - rest[None, :]) > 2.0).all(axis=1)
+    assert far.sum() > 0.9 * len(far)
+    rel = np.abs(v_impl - v_traj)[far] / v_traj[far]
+    assert rel.max() < 0.05, rel.max()
+    assert np.percentile(rel, 99) < 0.03
+
+
+@pytest.mark.parametrize("bad", [0, 0.0, -0.5, float("nan"), float("inf"), "x"])
+def test_constant_spacing_rejects_bad_spacing(bad):
+    tr = plan_motion(np.array([[250.0, -150.0], [250.0, 50.0]]), JOB)
+    with pytest.raises(IcefabError, match="spacing_mm"):
+        constant_spacing(tr, bad)
+    # no spacing: the job's point spacing
+    p, _ = constant_spacing(tr)
+    assert np.hypot(*np.diff(p, axis=0).T).max() <= JOB.motion.point_spacing_mm + 1e-9
 
 
 def test_savgol_smoothing_keeps_path():
@@ -273,11 +459,11 @@ def test_optional_path_smoothing_within_tolerance():
     th = np.linspace(0, 2 * np.pi, 73)
     pts = np.c_[300 + 30 * np.cos(th), 30 * np.sin(th)]
     job = JOB.replace(**{"motion.smoothing_tolerance_mm": 0.05, "motion.smooth_angle_deg": 10.0})
-    check_trajectory(plan_motion(pts, job.replace(**{"motion.smoothing_tolerance_mm": 0.0})),
-                     pts, job)
-    raw_tr = plan_motion(pts, job.replace(**{"motion.smoothing_tolerance_mm": 0.0}))
+    raw_job = job.replace(**{"motion.smoothing_tolerance_mm": 0.0})
+    raw_tr = plan_motion(pts, raw_job)
+    check_trajectory(raw_tr, pts, raw_job)
     tr = plan_motion(pts, job)
-    check_trajectory(tr, pts, job)
+    check_trajectory(tr, pts, job, follow_mm=0.05)  # asked for 0.05 mm
     line = shapely.LineString(pts)
     # the smoothed path (points and chords) is within the tolerance; the samples follow it
     for piece in followed_path(pts, job):
@@ -324,10 +510,13 @@ def mug_toolpaths():
     return plan_paths(stack, job), job
 
 
-def test_real_layers_follow_paths_within_bounds(mug_toolpaths):
+@pytest.mark.parametrize("smoothing", [None, 0.0], ids=["default", "smoothing-off"])
+def test_real_layers_follow_paths_within_bounds(mug_toolpaths, smoothing):
     from icefab.motion import path_limits, plan_toolpaths
     from icefab.paths import estimate_build_time, to_base_frame
     tp, job = mug_toolpaths
+    if smoothing is not None:
+        job = job.replace(**{"motion.smoothing_tolerance_mm": smoothing})
     motion = plan_toolpaths(tp, job.replace(**{"cell.cpus": 1}))
     assert len(motion) == len(tp)
     n = 0
@@ -381,11 +570,12 @@ def test_random_polylines_respect_bounds(seed):
     n = min(int(rng.integers(20, 120)), int(120 / spacing))  # stays well inside the reach
     pts = _random_polyline(rng, n, rng.choice([4.0, 12.0, 40.0]), spacing)
     job = JOB if seed % 2 else JOB_NOJERK
-    # path smoothing within 0 (off), 0.05 (default) or 0.1 mm: check_trajectory checks
-    # the samples against the smoothed path (0.02 mm) and the input (tolerance + 0.02)
-    job = job.replace(**{"motion.smoothing_tolerance_mm": (0.0, 0.05, 0.1)[seed % 3]})
+    # path smoothing off, 0.01 mm (the default), or looser (0.05, 0.1 mm): the samples
+    # within the tolerance of the input, and within 0.02 mm unless the tolerance is looser
+    tol = (0.0, 0.01, 0.05, 0.1)[(seed // 2) % 4]
+    job = job.replace(**{"motion.smoothing_tolerance_mm": tol})
     tr = plan_motion(pts, job)
-    check_trajectory(tr, pts, job)
+    check_trajectory(tr, pts, job, follow_mm=max(FOLLOW_MM, tol))
     assert (tr.speed[tr.pieces] == 0).all()
 
 

@@ -8,7 +8,17 @@ from hypothesis import strategies as st
 
 from icefab import Job
 from icefab.errors import WorkspaceError
-from icefab.robots import Gantry, Robot, Scara, check_workspace, get_robot, register_robot
+from icefab.robots import (ROBOTS, Gantry, Robot, Scara, check_workspace, get_robot,
+                           place_part, register_robot)
+
+
+@pytest.fixture
+def robot_registry():
+    """The registry as it was before the test: robots a test registers are removed."""
+    saved = dict(ROBOTS)
+    yield ROBOTS
+    ROBOTS.clear()
+    ROBOTS.update(saved)
 
 
 def test_registry_builds_cobra_defaults():
@@ -24,7 +34,7 @@ def test_registry_builds_cobra_defaults():
     assert gantry.name == "gantry" and isinstance(gantry, Robot)
 
 
-def test_register_robot_by_name():
+def test_register_robot_by_name(robot_registry):
     class FakeCell:
         robot = "mine"
 
@@ -33,6 +43,29 @@ def test_register_robot_by_name():
 
     register_robot("mine", lambda job: Gantry(travel=(10.0, 10.0)))
     assert get_robot(FakeJob()).travel == (10.0, 10.0)
+    assert "mine" in robot_registry
+
+
+def test_registry_left_as_found():
+    # the fixture of the test above removed its robot (whatever the test order)
+    assert set(ROBOTS) >= {"scara", "gantry"}
+    assert "mine" not in ROBOTS
+
+
+def test_gantry_default_part_origin_at_travel_centre():
+    # the default part origin (260, -100) mm is a SCARA position: a gantry left at it
+    # builds at the centre of its travel; an origin the user set is kept
+    job = Job().replace(**{"cell.robot": "gantry", "cell.gantry_travel_mm": [400.0, 200.0]})
+    assert tuple(place_part(job).cell.ee_origin_mm) == (200.0, 100.0)
+    own = job.replace(**{"cell.ee_origin_mm": [50.0, 60.0]})
+    assert tuple(place_part(own).cell.ee_origin_mm) == (50.0, 60.0)
+    assert tuple(place_part(Job()).cell.ee_origin_mm) == (260.0, -100.0)  # SCARA unchanged
+
+
+def test_scara_joint_resolution_from_the_job():
+    robot = get_robot(Job().replace(**{"cell.encoder_resolution_deg": 0.002}))
+    np.testing.assert_allclose(np.degrees(robot.joint_resolution), [0.002, 0.002, 0.0])
+    np.testing.assert_allclose(np.degrees(Scara().joint_resolution), [0.001, 0.001, 0.0])
 
 
 def test_scara_known_configurations():

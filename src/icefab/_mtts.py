@@ -430,31 +430,95 @@ def _vertex_bounds(sv, tau, n, h, vcap, dt, A, xk, kv, ctau):
 @njit(cache=True, fastmath=_FM, error_model="numpy")
 def _rest_segment(v1, h, a_r):
     """AREST (thesis 4.1.5, 4.2.6) for a grid segment that starts (or ends) at rest:
-    instead of a constant acceleration, s(t) = a_r t^2 / 2 + j t^3 / 6 from rest, with
-    the initial acceleration a_r and the jerk j >= 0 chosen so the segment ends at speed
-    v1 after h mm. Returns (duration, j); j < 0 means "use constant acceleration" (a_r <
-    0: rest curves off, or v1 too low for a_r)."""
-    if a_r < 0.0 or v1 <= 0.0:
-        return (2.0 * h / v1 if v1 > 0.0 else 0.0), -1.0
-    if a_r > 0.0:
-        T = (-v1 / 3.0 + math.sqrt(v1 * v1 / 9.0 + 2.0 * a_r * h / 3.0)) / (a_r / 3.0)
+    s(t) = a t^2 / 2 + j t^3 / 6 from rest, reaching speed v1 after h mm.
+
+    a_r >= 0: the requested initial acceleration; a = min(a_r, 4 v1^2 / (3 h)) and the
+    jerk j follows from v1 and h. j < 0 (the acceleration falls from a) is allowed as
+    long as the speed rises monotonically to v1 (a T <= 2 v1, i.e. a <= 4 v1^2 / (3 h),
+    where the acceleration reaches 0 at T). a_r < 0: constant acceleration v1^2 / (2 h)
+    (rest curves off). Returns (duration T, initial acceleration a, jerk j); v1 <= 0
+    gives (0, 0, 0).
+    """
+    if v1 <= 0.0:
+        return 0.0, 0.0, 0.0
+    if a_r < 0.0:
+        return 2.0 * h / v1, v1 * v1 / (2.0 * h), 0.0
+    a = min(a_r, 4.0 * v1 * v1 / (3.0 * h))
+    if a > 0.0:
+        T = (-v1 / 3.0 + math.sqrt(v1 * v1 / 9.0 + 2.0 * a * h / 3.0)) / (a / 3.0)
     else:
         T = 3.0 * h / v1
-    j = 2.0 * (v1 - a_r * T) / (T * T)
-    if j < 0.0:
-        return 2.0 * h / v1, -1.0
-    return T, j
+    return T, a, 2.0 * (v1 - a * T) / (T * T)
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
-def _seg_dt(vp, i, n, h, a_r):
-    """Duration of grid segment i -> i+1 of a piece of n points (rest segments: AREST)."""
+def _seg_dt(vp, i, n, h, a0, a1):
+    """Duration of grid segment i -> i+1 of a piece of n points (the first and last
+    segments, from and to rest, follow _rest_segment with initial accelerations a0, a1)."""
     if i == 0 and vp[0] == 0.0:
-        return _rest_segment(vp[1], h, a_r)[0]
+        return _rest_segment(vp[1], h, a0)[0]
     if i == n - 2 and vp[n - 1] == 0.0:
-        return _rest_segment(vp[n - 2], h, a_r)[0]
+        return _rest_segment(vp[n - 2], h, a1)[0]
     vs = vp[i] + vp[i + 1]
     return 2.0 * h / vs if vs > 1e-12 else 0.0
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def rest_accelerations(gstart, h, v, T, dt, a_r, dmin0, dmin1, cap0, cap1):
+    """AREST and the joint encoder resolution (thesis 4.2.6): initial accelerations of
+    the from-rest (a0) and to-rest (a1) curves of every piece such that the first and the
+    last output step move the tool by at least dmin0[p] / dmin1[p] mm (the displacement
+    that turns some joint by its encoder resolution at that end).
+
+    The first sample is at c dt on the piece's own clock (c = T / (nsamp dt) <= 1, see
+    sample_pieces), so its displacement is a0 (c dt)^2 / 2 + j0 (c dt)^3 / 6 while it lies
+    in the rest segment (>= h after it). Where that falls short, a0 is raised (up to
+    cap0[p], the total and joint acceleration bounds at rest, and to what the rest segment
+    allows, _rest_segment), which shortens the piece and so changes c: a few rounds.
+    a_r: the configured initial acceleration (< 0: constant acceleration, jerk off).
+    Returns a0 (P,), a1 (P,), T (P,) (durations updated).
+    """
+    P = gstart.shape[0] - 1
+    a0 = np.full(P, a_r)
+    a1 = np.full(P, a_r)
+    Tn = T.copy()
+    for p in range(P):
+        if dmin0[p] <= 0.0 and dmin1[p] <= 0.0:
+            continue
+        i0 = gstart[p]
+        n = gstart[p + 1] - i0
+        hp = h[p]
+        vs = v[i0 + 1]
+        ve = v[i0 + n - 2]
+        if vs <= 0.0 or ve <= 0.0 or T[p] <= 0.0:
+            continue
+        r0 = _rest_segment(vs, hp, a_r)
+        r1 = _rest_segment(ve, hp, a_r)
+        tint = T[p] - r0[0] - r1[0]
+        for _ in range(12):
+            Tp = tint + r0[0] + r1[0]
+            r = Tp / max(1.0, math.ceil(Tp / dt - 1e-9))  # c dt
+            d0 = hp if r >= r0[0] else (0.5 * r0[1] + r0[2] * r / 6.0) * r * r
+            d1 = hp if r >= r1[0] else (0.5 * r1[1] + r1[2] * r / 6.0) * r * r
+            grew = False
+            if d0 < dmin0[p] and r0[1] < cap0[p] * (1.0 - 1e-9):
+                want = min(cap0[p], max(r0[1], 1e-9) * 1.05 * dmin0[p] / max(d0, 1e-300))
+                nr = _rest_segment(vs, hp, want)
+                if nr[1] > r0[1] * (1.0 + 1e-9):  # else the rest segment allows no more
+                    a0[p] = want
+                    r0 = nr
+                    grew = True
+            if d1 < dmin1[p] and r1[1] < cap1[p] * (1.0 - 1e-9):
+                want = min(cap1[p], max(r1[1], 1e-9) * 1.05 * dmin1[p] / max(d1, 1e-300))
+                nr = _rest_segment(ve, hp, want)
+                if nr[1] > r1[1] * (1.0 + 1e-9):
+                    a1[p] = want
+                    r1 = nr
+                    grew = True
+            if not grew:
+                break
+        Tn[p] = tint + r0[0] + r1[0]
+    return a0, a1, Tn
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
@@ -572,13 +636,13 @@ def speed_profiles(gstart, h, xy, q, vcap, A, J, jerk_on, qv, qa, qj, a_rest, jc
         a_r = a_rest if jerk_on else -1.0
         tt = 0.0
         for i in range(n - 1):
-            tt += _seg_dt(vp, i, n, hp, a_r)
+            tt += _seg_dt(vp, i, n, hp, a_r, a_r)
         T[p] = tt
     return v, env, T
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
-def sample_pieces(gstart, h, v, T, nsamp, sstart, dt, a_r):
+def sample_pieces(gstart, h, v, T, nsamp, sstart, dt, a0, a1):
     """Sample every piece at constant dt (thesis 4.2.6 output resolution).
 
     Piece p lasts T[p] s and gets nsamp[p] + 1 samples (k = 0..nsamp[p]); every speed
@@ -586,8 +650,9 @@ def sample_pieces(gstart, h, v, T, nsamp, sstart, dt, a_r):
     at rest (a uniform slow-down keeps every bound: speed scales by c, acceleration by
     c^2, jerk by c^3). Samples of piece p are written at
     ``sstart[p] .. sstart[p] + nsamp[p]``. Inside a grid segment the acceleration is
-    constant, except in the first and last segments with a_r >= 0, which follow the
-    AREST curve of _rest_segment. Returns s (M,) mm from the piece start and speed (M,)
+    constant, except in the first and last segments, which follow the AREST curves of
+    _rest_segment with the initial accelerations a0[p] and a1[p] (< 0: constant
+    acceleration; see rest_accelerations). Returns s (M,) mm from the piece start and speed (M,)
     mm/s.
     """
     P = gstart.shape[0] - 1
@@ -605,7 +670,9 @@ def sample_pieces(gstart, h, v, T, nsamp, sstart, dt, a_r):
         o = sstart[p]
         i = 0
         t_i = 0.0
-        dti = _seg_dt(vp, 0, n, hp, a_r)
+        ar0 = a0[p]
+        ar1 = a1[p]
+        dti = _seg_dt(vp, 0, n, hp, ar0, ar1)
         for k in range(ns + 1):
             tau = k * dt * c
             if k == ns:
@@ -615,23 +682,20 @@ def sample_pieces(gstart, h, v, T, nsamp, sstart, dt, a_r):
             while i < n - 2 and t_i + dti <= tau:
                 t_i += dti
                 i += 1
-                dti = _seg_dt(vp, i, n, hp, a_r)
+                dti = _seg_dt(vp, i, n, hp, ar0, ar1)
             r = tau - t_i
             if r > dti:
                 r = dti
-            ds = -1.0
             if i == 0 and vp[0] == 0.0:
-                Tr, j = _rest_segment(vp[1], hp, a_r)
-                if j >= 0.0:
-                    ds = 0.5 * a_r * r * r + j * r * r * r / 6.0
-                    sp = a_r * r + 0.5 * j * r * r
+                Tr, ar, j = _rest_segment(vp[1], hp, ar0)
+                ds = 0.5 * ar * r * r + j * r * r * r / 6.0
+                sp = ar * r + 0.5 * j * r * r
             elif i == n - 2 and vp[n - 1] == 0.0:
-                Tr, j = _rest_segment(vp[n - 2], hp, a_r)
-                if j >= 0.0:
-                    q = dti - r  # time left to the rest point
-                    ds = hp - (0.5 * a_r * q * q + j * q * q * q / 6.0)
-                    sp = a_r * q + 0.5 * j * q * q
-            if ds < 0.0:
+                Tr, ar, j = _rest_segment(vp[n - 2], hp, ar1)
+                q = dti - r  # time left to the rest point
+                ds = hp - (0.5 * ar * q * q + j * q * q * q / 6.0)
+                sp = ar * q + 0.5 * j * q * q
+            else:
                 acc = (vp[i + 1] ** 2 - vp[i] ** 2) / (2.0 * hp)
                 ds = vp[i] * r + 0.5 * acc * r * r
                 sp = vp[i] + acc * r

@@ -9,16 +9,18 @@ Steps (thesis 4.1, compiled kernels in :mod:`icefab._mtts`):
 1. PATHSPLIT (4.1.1): split each path where its direction turns by more than
    ``motion.smooth_angle_deg``; the robot stops there. Each piece is resampled along its
    length at ``motion.point_spacing_mm`` (at least 2 segments). Path smoothing within
-   ``motion.smoothing_tolerance_mm`` (default 0.05 mm, the slicer's own filter deviation
-   bound; 0 turns it off): a local quadratic regression along each piece (biweight
+   ``motion.smoothing_tolerance_mm`` (default 0.01 mm, see "Path following" below; 0
+   turns it off): a local quadratic regression along each piece (biweight
    window of 3 ``SMOOTH_SIGMA_MM``, narrowed where the path turns by more than
    ``SMOOTH_MAX_TURN_DEG`` within it, piece ends fixed), evaluated at the grid points and
    at the input's own vertices, displacements scaled smoothly to stay within the
    tolerance (``_mtts.smooth_pieces``). The output follows that polyline, so every
-   sample is within the tolerance of the input. It matters on real layers: the slicer's
-   0.4 mm / 0.05 mm point filter and the Clipper offsets leave fill rings as polygons
-   turning ~6 deg every ~2.6 mm, and a vertex turning by alpha costs v alpha / dt of
-   acceleration at speed v (about 76 mm/s where the ring's 25 mm radius allows 112).
+   sample is within the tolerance of the input (a hard bound: both ends of each of its
+   chords are moved by <= the tolerance from one input segment). It matters on real
+   layers: the slicer's 0.4 mm / 0.05 mm point filter and the Clipper offsets leave fill
+   rings as polygons turning ~6 deg every ~2.6 mm, and a vertex turning by alpha costs
+   v alpha / dt of acceleration at speed v (about 76 mm/s where the ring's 25 mm radius
+   allows 112).
 2. VCON (4.1.2): the maximum-speed envelope from the Cartesian speed, total acceleration
    (tangential + radial, eq. 4.8) and jerk bounds and from every joint's speed,
    acceleration and jerk bounds (eqs. 4.2-4.5, 4.10). The joints come from the robot's
@@ -34,14 +36,36 @@ Steps (thesis 4.1, compiled kernels in :mod:`icefab._mtts`):
 4. JCON (4.1.4, Fig. 4-6, eq. 4.12): speed-decrease jerk spikes are spread by cubic
    velocity polynomials (speeds only lowered).
 5. AREST (4.1.5, 4.2.6): every piece starts and ends at rest; with jerk on the from/to
-   rest curves start with ``motion.rest_accel_mm_s2`` (80 mm/s^2) so the first samples
-   move the joints by more than the encoder resolution.
+   rest curves start with ``motion.rest_accel_mm_s2`` (80 mm/s^2). The first and the
+   last output step of every piece must turn some joint by at least its encoder
+   resolution (``cell.encoder_resolution_deg``, ``Robot.joint_resolution``): where they
+   would not (tangential motion near the reach, short pieces, the last step shortened by
+   the rounding to whole steps), that end's initial acceleration is raised, up to the
+   total and joint acceleration bounds at rest (``_mtts.rest_accelerations``; jerk off
+   too). A rest curve may let its acceleration fall (negative jerk) so long as the speed
+   still rises monotonically.
 6. Sampling at constant dt: each piece is slowed uniformly by at most one time step so
    that it ends exactly on a sample; pieces are concatenated (the corner sample is shared:
    the robot is at rest there, ``Trajectory.pieces`` gives the indices). Joint angles are
    the inverse kinematics of the samples, smoothed with the 7-point cubic Savitzky-Golay
-   filter of thesis 4.2.6 (``motion.savgol_window``) wherever that moves the tool by less
-   than ``SAVGOL_MAX_DEVIATION_MM``.
+   filter of thesis 4.2.6 (``motion.savgol_window``) away from trajectory ends and rest
+   points, wherever that moves the tool by at most :func:`savgol_deviation_mm`.
+
+Path following (issue 4: within 0.02 mm of the path, ``PATH_FOLLOW_MM``): the samples lie
+on the followed polyline, within ``motion.smoothing_tolerance_mm`` of the input; the joint
+smoothing may move the tool by what the tolerance leaves of 0.02 mm (at most
+``SAVGOL_MAX_DEVIATION_MM`` = 0.01), so with the default 0.01 mm the tool (forward
+kinematics of the joints) stays within 0.02 mm of the input. A tolerance above 0.02 mm
+is the user's choice of a looser bound (joint smoothing then off). Between two samples
+the robot's own interpolation cuts chords: up to ~A dt^2 / 8 = 0.016 mm on curves at
+the acceleration bound, more across the input polygon's vertices (not part of the bound).
+
+Phi of eq. 4.11 (theta4 = phi - theta1 - theta2, the end-effector orientation) is 0:
+``Scara.phi`` is not a job setting.
+
+A gantry whose part origin was left at the default (a SCARA position) builds at the
+centre of its travel (:func:`icefab.robots.place_part`, applied by every entry point
+here; the trajectories' job records the origin used).
 
 Comparison with constant speed (thesis 4.4): :func:`constant_speed_motion` plans the
 thesis' "constant-speed" technique (boundaries 25 mm/s, fill 125 mm/s) with the same
@@ -92,7 +116,7 @@ from scipy.ndimage import convolve1d
 from icefab import _mtts
 from icefab.config import Job
 from icefab.errors import IcefabError, StackFileError, WorkspaceError
-from icefab.robots import Robot, get_robot
+from icefab.robots import Robot, get_robot, place_part
 from icefab.types import LayerPaths, Path, Toolpaths, Trajectory
 
 log = logging.getLogger(__name__)
@@ -102,7 +126,11 @@ __all__ = ["plan_motion", "plan_paths_motion", "plan_toolpaths", "constant_speed
            "save_trajectories", "load_trajectories", "constant_spacing", "gcode_moves",
            "path_limits"]
 
-#: Joint smoothing (Savitzky-Golay) is kept only where it moves the tool less than this.
+#: How closely the tool follows the input path (issue 4), mm: path smoothing within
+#: ``motion.smoothing_tolerance_mm`` plus the joints' Savitzky-Golay smoothing share it.
+PATH_FOLLOW_MM = 0.02
+#: Joint smoothing (Savitzky-Golay) is kept only where it moves the tool less than this,
+#: and less than what the path smoothing leaves of PATH_FOLLOW_MM (savgol_deviation_mm).
 SAVGOL_MAX_DEVIATION_MM = 0.01
 #: Jerk spikes above the bound by more than this fraction are smoothed by JCON (thesis
 #: 4.2.4 detects jerk violations at +20 %).
@@ -182,9 +210,13 @@ def _as_points(points: np.ndarray, what: str) -> np.ndarray:
 # --------------------------------------------------------------------------- core
 
 
-def _label(labels: Sequence[tuple[int, int]] | None, k: int) -> str:
+def _label(labels: Sequence[tuple[int, int] | str] | None, k: int) -> str:
+    """How error messages name polyline k: "path k" without labels, the label itself when
+    it is a string, else "layer L, path i" from a (layer, index) pair (layer -1: none)."""
     if labels is None:
         return "path" if k == 0 else f"path {k}"
+    if isinstance(labels[k], str):
+        return labels[k]
     layer, idx = labels[k]
     parts = []
     if layer >= 0:
@@ -426,12 +458,18 @@ def _plan_polylines(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
         jerk_on, qv[used], qa[used], qj[used], float(m.rest_accel_mm_s2),
         JCON_TOLERANCE, JERK_WINDOW_MM, float(m.dt_s), vstart, vs_loc, vtau)
 
-    # ---- constant-dt sampling
+    # ---- AREST with the encoder resolution: first and last steps of every piece
     dt = float(m.dt_s)
+    dmin0, dmin1, cap0, cap1 = _rest_step_bounds(gstart, hk, qgrid, robot, used, qa[used],
+                                                 float(m.accel_mm_s2))
+    a0, a1, T = _mtts.rest_accelerations(gstart, hk, v, T, dt,
+                                         float(m.rest_accel_mm_s2) if jerk_on else -1.0,
+                                         dmin0, dmin1, cap0, cap1)
+
+    # ---- constant-dt sampling
     nsamp = np.maximum(1, np.ceil(T / dt - 1e-9).astype(np.int64))
     sstart = np.concatenate([[0], np.cumsum(nsamp + 1)]).astype(np.int64)
-    s_loc, spd = _mtts.sample_pieces(gstart, hk, v, T, nsamp, sstart[:-1].copy(), dt,
-                                     float(m.rest_accel_mm_s2) if jerk_on else -1.0)
+    s_loc, spd = _mtts.sample_pieces(gstart, hk, v, T, nsamp, sstart[:-1].copy(), dt, a0, a1)
     # follow the input polyline, or the smoothed one (piecewise linear, parameter in S
     # units: the grid's s is the resampled path's arc length); rest points exactly on the
     # corners
@@ -452,7 +490,8 @@ def _plan_polylines(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
     piece_first_sample = cum - tstart[piece_path]
     piece_first_sample[~first_of_path] -= 1  # the shared corner sample
 
-    joints = _joint_samples(xy, tstart, job, robot)
+    rests = tstart[piece_path] + piece_first_sample  # every piece's first sample
+    joints = _joint_samples(xy, tstart, job, robot, rests)
 
     out: list[Trajectory] = []
     # pieces of path k: piece_path is sorted, so they are qb[k]:qb[k+1]
@@ -498,32 +537,84 @@ def _savgol_coeffs(window: int) -> np.ndarray:
     return coeffs
 
 
-def _joint_samples(xy: np.ndarray, tstart: np.ndarray, job: Job, robot: Robot) -> np.ndarray:
+def _rest_step_bounds(gstart: np.ndarray, hk: np.ndarray, qgrid: np.ndarray, robot: Robot,
+                      used: np.ndarray, qa: np.ndarray, accel: float
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """What AREST needs at both ends of every piece (thesis 4.2.6).
+
+    dmin0, dmin1 (Q,) mm: the shortest first / last step that turns some joint by its
+    encoder resolution (``robot.joint_resolution``, e.g. ``cell.encoder_resolution_deg``;
+    2 % margin for the joints' curvature over the step), from the joints' rate along s
+    over the end grid segment; 0 where no joint with a resolution moves. cap0, cap1 (Q,)
+    mm/s^2: the largest initial acceleration at rest (total acceleration bound and every
+    joint's acceleration bound: |q'_j| a <= qa_j at zero speed).
+    """
+    Q = len(gstart) - 1
+    res = getattr(robot, "joint_resolution", None)
+    res = (np.zeros(int(used.sum())) if res is None
+           else np.asarray(res, dtype=np.float64)[used])
+    g0 = gstart[:-1]
+    g1 = gstart[1:] - 1
+    out = []
+    for a, b in ((g0, g0 + 1), (g1 - 1, g1)):
+        rate = np.abs(qgrid[b] - qgrid[a]) / hk[:, None]  # joint units per mm
+        with np.errstate(divide="ignore", invalid="ignore"):
+            need = np.where((res > 0.0) & (rate > 1e-12), res / rate, np.inf)
+            cap = np.where(np.isfinite(qa) & (rate > 1e-12), qa / rate, np.inf)
+        dmin = need.min(axis=1) if need.shape[1] else np.full(Q, np.inf)
+        out.append(np.where(np.isfinite(dmin), 1.02 * dmin, 0.0))
+        out.append(np.minimum(cap.min(axis=1) if cap.shape[1] else np.inf, accel)
+                   * np.ones(Q))
+    return out[0], out[2], out[1], out[3]
+
+
+def _joint_samples(xy: np.ndarray, tstart: np.ndarray, job: Job, robot: Robot,
+                   rests: np.ndarray | None = None) -> np.ndarray:
     """(M, j) joints of the samples: inverse kinematics, then the 7-point cubic
-    Savitzky-Golay filter (thesis 4.2.6) away from trajectory ends, kept where the tool
-    moves by less than SAVGOL_MAX_DEVIATION_MM."""
+    Savitzky-Golay filter (thesis 4.2.6) away from trajectory ends and rest points
+    (``rests``: sample indices of every piece start; AREST's end steps stay as planned),
+    kept where the tool moves by less than :func:`savgol_deviation_mm`."""
     q = robot.ik(xy)
     w = int(job.motion.savgol_window)
-    if w == 0 or len(q) < w:
+    bound = savgol_deviation_mm(job)
+    if w == 0 or len(q) < w or bound <= 0.0:
         return q
     sm = convolve1d(q, _savgol_coeffs(w), axis=0, mode="nearest")
     h = w // 2
     near_end = np.zeros(len(q), dtype=bool)
-    ends = np.concatenate([tstart[:-1], tstart[1:] - 1])
+    ends = np.concatenate([tstart[:-1], tstart[1:] - 1]
+                          + ([np.asarray(rests, dtype=np.int64)] if rests is not None else []))
     off = np.arange(-h, h + 1)
     near = (ends[:, None] + off[None, :]).ravel()
     near_end[near[(near >= 0) & (near < len(q))]] = True
     dev = np.hypot(*(robot.fk(sm) - xy).T)
-    raw = near_end | (dev > SAVGOL_MAX_DEVIATION_MM) | ~np.isfinite(dev)
+    raw = near_end | (dev > bound) | ~np.isfinite(dev)
     sm[raw] = q[raw]
     return sm
+
+
+def savgol_deviation_mm(job: Job) -> float:
+    """How far the joints' Savitzky-Golay smoothing may move the tool, mm: what the path
+    smoothing leaves of ``PATH_FOLLOW_MM``, at most ``SAVGOL_MAX_DEVIATION_MM`` (0.01 with
+    the default smoothing tolerance 0.01; 0 from a tolerance of 0.02 mm up)."""
+    return float(min(SAVGOL_MAX_DEVIATION_MM,
+                     max(0.0, PATH_FOLLOW_MM - job.motion.smoothing_tolerance_mm)))
 
 
 # --------------------------------------------------------------------------- public
 
 
+def _path_label(path: Path, index: int | None) -> str:
+    """A Path's identity for error messages: its layer, its index in the layer when the
+    caller knows it, else its material and role."""
+    parts = [f"layer {path.layer}"] if path.layer >= 0 else []
+    parts.append(f"path {index} ({path.material} {path.role})" if index is not None
+                 else f"{path.material} {path.role} path")
+    return ", ".join(parts)
+
+
 def plan_motion(path_or_points: Path | np.ndarray, job: Job | None = None, *,
-                robot: Robot | None = None) -> Trajectory:
+                robot: Robot | None = None, index: int | None = None) -> Trajectory:
     """Minimum-time trajectory along one path (thesis Ch. 4).
 
     path_or_points: a :class:`~icefab.types.Path` (converted to the robot base frame with
@@ -532,19 +623,20 @@ def plan_motion(path_or_points: Path | np.ndarray, job: Job | None = None, *,
         points in mm in the robot base frame (an open path).
     job: settings (``job.motion``, ``job.cell``); default ``Job()``.
     robot: overrides the robot named by the job.
+    index: the path's index within its layer, for error messages (a Path does not know
+        it; without it a Path is named by its layer, material and role).
 
     Returns one Trajectory at constant ``dt``: ``xy (n, 2)`` mm in the base frame,
     ``joints (n, j)``, ``speed (n,)`` mm/s, ``duration`` s, ``pieces`` (rest points at
     split corners). Raises WorkspaceError (naming the point) before planning if any point
     is unreachable.
     """
-    job = job or Job()
+    job = place_part(job or Job())
     robot = robot or get_robot(job)
     if isinstance(path_or_points, Path):
-        pts = _as_points(_base_points(path_or_points, job), "path")
+        pts = _as_points(_base_points(path_or_points, job), _path_label(path_or_points, index))
         return _plan_polylines([pts], np.array([path_limits(path_or_points, job)]), job,
-                               robot, labels=[(path_or_points.layer, 0)] if
-                               path_or_points.layer >= 0 else None,
+                               robot, labels=[_path_label(path_or_points, index)],
                                paths=[path_or_points])[0]
     pts = _as_points(path_or_points, "path")
     return _plan_polylines([pts], np.array([job.motion.speed_mm_s]), job, robot)[0]
@@ -559,7 +651,7 @@ def plan_paths_motion(paths: Sequence[Path], job: Job | None = None, *,
     replacing :func:`path_limits` for paths of that role (never above
     ``motion.speed_mm_s``); used by :func:`constant_speed_motion`.
     """
-    job = job or Job()
+    job = place_part(job or Job())
     _check_role_speeds(role_speeds)
     robot = robot or get_robot(job)
     if not paths:
@@ -687,24 +779,55 @@ def _n_workers(job: Job) -> int:
 
 def check_build_workspace(toolpaths: Toolpaths, job: Job | None = None,
                           robot: Robot | None = None) -> None:
-    """Raise WorkspaceError (layer, path, point, coordinates, why) for the first point of
-    any path of the build, in the robot base frame, that the robot cannot reach."""
-    job = job or toolpaths.job
+    """Raise WorkspaceError (layer, path, point or segment, coordinates, why) for the first
+    place of any path of the build, in the robot base frame, that the robot cannot reach.
+
+    Checked: every point, and every segment's point nearest the robot base origin when it
+    lies inside the segment. A chord between two reachable points leaves a SCARA's
+    annular reach only by passing inside the minimum reach, so this catches it before any
+    layer is planned for one extra point per segment (a gantry's box is convex: chords
+    never leave it); the planner still checks every resampled (and smoothed) grid point
+    of each layer (e.g. a chord swinging joint 1 beyond its range around the back).
+    """
+    job = place_part(job or toolpaths.job)
     robot = robot or get_robot(job)
     for lp in toolpaths.layers:
         if not lp.paths:
             continue
         polys = [_base_points(p, job) for p in lp.paths]
         pts = np.concatenate(polys)
+        counts = np.array([len(p) for p in polys])
+        ends = np.cumsum(counts)
         bad, reasons = robot.workspace_violations(pts)
         if len(bad):
             i = int(bad[0])
-            ends = np.cumsum([len(p) for p in polys])
             k = int(np.searchsorted(ends, i, side="right"))
             j = i - (int(ends[k - 1]) if k else 0)
             raise WorkspaceError(f"layer {lp.index}, path {k}: point {j} at ({pts[i, 0]:.3f}, "
                                  f"{pts[i, 1]:.3f}) mm (robot base frame) is out of the "
                                  f"{robot.name} workspace: {reasons[0]}")
+        # segments (within a path): the point nearest the base origin
+        a, b = pts[:-1], pts[1:]
+        within = np.ones(len(a), dtype=bool)
+        within[ends[:-1] - 1] = False
+        d = b - a
+        dd = np.einsum("ij,ij->i", d, d)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = -np.einsum("ij,ij->i", a, d) / dd
+        inner = within & (dd > 0.0) & (t > 0.0) & (t < 1.0)
+        seg = np.flatnonzero(inner)
+        if not len(seg):
+            continue
+        near = a[seg] + t[seg, None] * d[seg]
+        sbad, sreasons = robot.workspace_violations(near)
+        if len(sbad):
+            g = int(seg[sbad[0]])
+            k = int(np.searchsorted(ends, g, side="right"))
+            j = g - (int(ends[k - 1]) if k else 0)
+            x, y = near[sbad[0]]
+            raise WorkspaceError(f"layer {lp.index}, path {k}: the segment from point {j} to "
+                                 f"point {j + 1} passes ({x:.3f}, {y:.3f}) mm (robot base "
+                                 f"frame), out of the {robot.name} workspace: {sreasons[0]}")
 
 
 def plan_toolpaths(toolpaths: Toolpaths, job: Job | None = None,
@@ -712,13 +835,14 @@ def plan_toolpaths(toolpaths: Toolpaths, job: Job | None = None,
                    role_speeds: Mapping[str, float] | None = None) -> BuildMotion:
     """Trajectories of all paths of a build, layer-parallel across ``cell.cpus`` processes.
 
-    Every point of every path is checked against the workspace before any layer is
-    planned (WorkspaceError names layer, path and point); chords leaving the workspace
-    between two reachable points are found when their layer is planned.
+    Every point of every path, and every chord's point nearest the robot base, is checked
+    against the workspace before any layer is planned (:func:`check_build_workspace`;
+    WorkspaceError names layer, path and point or segment); the resampled points of each
+    layer are checked again when it is planned.
     ``progress(done, total)`` is called after each layer. ``role_speeds``: see
     :func:`plan_paths_motion`.
     """
-    job = job or toolpaths.job
+    job = place_part(job or toolpaths.job)
     _check_role_speeds(role_speeds)
     robot = get_robot(job)
     layers = list(toolpaths.layers)
@@ -775,9 +899,22 @@ def constant_spacing(traj: Trajectory, spacing_mm: float | None = None,
     """The optional output with constant point spacing and variable duration.
 
     Returns (points (k, 2) float64 mm every ``spacing_mm`` along the trajectory (default
-    ``motion.point_spacing_mm``), durations (k - 1,) float64 s from each point to the next).
+    ``motion.point_spacing_mm``; the last interval ends on the trajectory's end, so the
+    spacing is the largest that divides the length into whole intervals, <= spacing_mm),
+    durations (k - 1,) float64 s from each point to the next: the trajectory's time at
+    each point, linear in arc length between its samples). Raises IcefabError naming
+    ``spacing_mm`` unless it is a positive finite number of mm.
     """
-    spacing = spacing_mm or (job or Job()).motion.point_spacing_mm
+    if spacing_mm is None:
+        spacing = float((job or Job()).motion.point_spacing_mm)
+    else:
+        try:
+            spacing = float(spacing_mm)
+        except (TypeError, ValueError):
+            spacing = math.nan
+        if not (math.isfinite(spacing) and spacing > 0.0):
+            raise IcefabError(f"constant_spacing: spacing_mm must be a positive number of mm, "
+                              f"got {spacing_mm!r}")
     xy = traj.xy
     if len(xy) < 2:
         return xy.copy(), np.zeros(0)

@@ -38,7 +38,7 @@ from icefab.errors import ConfigError, WorkspaceError
 log = logging.getLogger(__name__)
 
 __all__ = ["Robot", "Scara", "Gantry", "get_robot", "register_robot", "check_workspace",
-           "ROBOTS"]
+           "place_part", "ROBOTS"]
 
 
 @runtime_checkable
@@ -51,6 +51,10 @@ class Robot(Protocol):
     joint_names: one name per joint column returned by :meth:`ik`.
     joint_speed_max, joint_accel_max, joint_jerk_max: (j,) float64 bounds per joint in
         joint units per s, s^2, s^3 (rad or mm); ``inf`` for an unconstrained joint.
+
+    Optional: ``joint_resolution`` (j,) float64, the encoder resolution per joint in joint
+    units (0 or absent: not considered); AREST makes the first and last step of every
+    piece turn some joint by at least that much (thesis 4.2.6).
     """
 
     name: str
@@ -84,7 +88,10 @@ class Scara:
 
     l1, l2: link lengths, mm. reach: [min, max] radial reach, mm. joint_range: (2,) rad,
     symmetric range of joints 1 and 2. elbow: "right" (theta2 >= 0) or "left".
-    phi: end-effector orientation kept by joint 4, rad.
+    phi: end-effector orientation kept by joint 4, rad (eq. 4.11; the cell's phi is not a
+    job setting and stays 0). joint_resolution: (3,) rad encoder resolution of joints 1,
+    2 and 4 (default 0.001 deg for joints 1 and 2, ``cell.encoder_resolution_deg``; the
+    Cobra 600 has 0.00045 and 0.00072 deg, thesis 4.2.6; joint 4 not considered).
     """
 
     l1: float = 325.0
@@ -96,6 +103,7 @@ class Scara:
     joint_speed_max: np.ndarray = None  # type: ignore[assignment]
     joint_accel_max: np.ndarray = None  # type: ignore[assignment]
     joint_jerk_max: np.ndarray = None  # type: ignore[assignment]
+    joint_resolution: np.ndarray = None  # type: ignore[assignment]
     name: str = "scara"
     joint_names: tuple[str, ...] = ("theta1", "theta2", "theta4")
 
@@ -111,6 +119,12 @@ class Scara:
             if value.shape == (2,):
                 value = np.append(value, np.inf)
             object.__setattr__(self, attr, value)
+        res = np.radians((0.001, 0.001)) if self.joint_resolution is None \
+            else self.joint_resolution
+        res = np.broadcast_to(np.asarray(res, dtype=np.float64), (2,)) \
+            if np.ndim(res) == 0 else np.asarray(res, dtype=np.float64)
+        object.__setattr__(self, "joint_resolution",
+                           np.append(res, 0.0) if res.shape == (2,) else res)
 
     @property
     def _sign(self) -> float:
@@ -223,7 +237,8 @@ def _scara_from_job(job) -> Scara:
                  joint_range=tuple(np.radians(c.joint_range_deg)), elbow=c.elbow,
                  joint_speed_max=np.radians(m.joint_speed_deg_s),
                  joint_accel_max=np.radians(m.joint_accel_deg_s2),
-                 joint_jerk_max=np.radians(m.joint_jerk_deg_s3))
+                 joint_jerk_max=np.radians(m.joint_jerk_deg_s3),
+                 joint_resolution=np.radians(c.encoder_resolution_deg))
 
 
 def _gantry_from_job(job) -> Gantry:
@@ -249,6 +264,32 @@ def get_robot(job) -> Robot:
     if factory is None:
         raise ConfigError(f"cell.robot = {name!r}: expected one of {', '.join(sorted(ROBOTS))}")
     return factory(job)
+
+
+def place_part(job):
+    """The job with the part origin (``cell.ee_origin_mm``, where the end-effector frame
+    sits when the part origin is under it) where the robot can build.
+
+    Unchanged, except for a gantry whose origin was left at the default: that default,
+    (260, -100) mm, is the Cobra 600 position of the thesis (2.x), outside any gantry
+    travel starting at 0, so the part (centred on its origin by default,
+    ``parts.translation``) goes to the centre of the travel, ``cell.gantry_travel_mm / 2``
+    (logged). An origin the user set is always kept. Used by the motion stage wherever it
+    builds the base frame, so the trajectories' job carries the origin they were made for.
+    """
+    import dataclasses
+
+    from icefab.config import CellSettings
+    cell = job.cell
+    if cell.robot != "gantry":
+        return job
+    default = tuple(float(v) for v in CellSettings().ee_origin_mm)
+    if tuple(float(v) for v in cell.ee_origin_mm) != default:
+        return job
+    centre = tuple(0.5 * float(v) for v in cell.gantry_travel_mm)
+    log.info("cell.robot = gantry with the default part origin %s mm (a SCARA position): "
+             "the part origin goes to the centre of the travel, %s mm", default, centre)
+    return dataclasses.replace(job, cell=dataclasses.replace(cell, ee_origin_mm=centre))
 
 
 def check_workspace(points: np.ndarray, robot: Robot, *, layer: int = -1, path: int = -1,
