@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from icefab import Job
 from icefab.cli import main
@@ -53,3 +54,85 @@ def test_plan_errors_leave_nothing(tmp_path, capsys):
     assert main(["plan", str(src), "-o", str(out), "--layers", "7"]) == 2
     assert "--layers" in capsys.readouterr().err
     assert not out.exists()
+
+
+def _toolpath_file(tmp_path, n_layers=2):
+    from icefab.paths import save_toolpaths
+    from test_motion_io import _toolpaths
+    src = tmp_path / "tp.npz"
+    save_toolpaths(_toolpaths(Job(), n_layers), src)
+    return src
+
+
+def test_plan_gcode_and_constant_spacing_outputs(tmp_path, capsys):
+    src = _toolpath_file(tmp_path)
+    out = tmp_path / "o"
+    assert main(["plan", str(src), "-o", str(out), "--layers", "0", "--gcode",
+                 "--constant-spacing", "0.5"]) == 0
+    assert "trajectories.gcode" in capsys.readouterr().out
+    motion = load_trajectories(out / "trajectories.npz")
+    trajs = [t for lm in motion.layers for t in lm.trajectories]
+    # G-code: per layer a Z move, per path a comment, G0 to its start, G1 X Y F moves
+    # whose feedrates are the trajectory's speeds x 60 (mm/min)
+    text = (out / "trajectories.gcode").read_text()
+    assert text.count("G0 Z") == len(motion.layers)
+    g1 = [ln for ln in text.splitlines() if ln.startswith("G1 ")]
+    assert len(g1) == sum(len(t.xy) - 1 for t in trajs)
+    feeds = np.array([float(ln.split("F")[1]) for ln in g1])
+    speeds = np.concatenate([0.5 * (t.speed[1:] + t.speed[:-1]) for t in trajs])
+    np.testing.assert_allclose(feeds, 60.0 * speeds, rtol=0.02, atol=30.0)
+    assert feeds.max() <= 60.0 * motion.job.motion.speed_mm_s * 1.01
+    # constant spacing: points every <= 0.5 mm, durations adding up to each trajectory's
+    with np.load(out / "constant_spacing.npz") as z:
+        assert str(z["format"]) == "icefab-constant-spacing" and int(z["version"]) == 1
+        assert float(z["spacing_mm"]) == 0.5
+        xy, dur, start = z["xy"], z["duration"], z["path_start"]
+        assert len(start) == len(trajs) + 1 and start[-1] == len(xy) == len(dur)
+        for i, t in enumerate(trajs):
+            a, b = start[i], start[i + 1]
+            np.testing.assert_allclose(xy[a], t.xy[0])
+            np.testing.assert_allclose(xy[b - 1], t.xy[-1], atol=1e-9)
+            assert dur[b - 1] == 0.0
+            assert dur[a:b].sum() == pytest.approx(t.duration, rel=1e-9)
+            if b - a > 1:
+                assert np.hypot(*np.diff(xy[a:b], axis=0).T).max() <= 0.5 + 1e-9
+        np.testing.assert_array_equal(z["layer"], [t.path.layer for t in trajs])
+    assert not list(tmp_path.glob(".o.*"))  # no temporary folder left behind
+
+
+def test_plan_bad_constant_spacing_and_layers_fail_before_planning(tmp_path, capsys,
+                                                                    monkeypatch):
+    import icefab.motion
+    src = _toolpath_file(tmp_path)
+    out = tmp_path / "o"
+    planned = []
+    real = icefab.motion.plan_toolpaths
+    monkeypatch.setattr(icefab.motion, "plan_toolpaths",
+                        lambda *a, **k: planned.append(1) or real(*a, **k))
+    assert main(["plan", str(src), "-o", str(out), "--constant-spacing", "0"]) == 2
+    assert "--constant-spacing" in capsys.readouterr().err
+    assert main(["plan", str(src), "-o", str(out), "--layers", "0,9"]) == 2
+    assert "--layers" in capsys.readouterr().err
+    assert planned == [] and not out.exists()
+
+
+def test_plan_gantry_with_the_default_cell(tmp_path, capsys):
+    # [cell] robot = "gantry" alone: the default part origin (260, -100) is a SCARA
+    # position; the gantry builds at the centre of its travel
+    import trimesh
+    mesh = trimesh.creation.annulus(r_min=15, r_max=30, height=0.75, sections=96)
+    src = tmp_path / "ring.stl"
+    mesh.export(src)
+    cfg = tmp_path / "gantry.toml"
+    cfg.write_text('[cell]\nrobot = "gantry"\n', encoding="utf-8")
+    out = tmp_path / "o"
+    assert main(["plan", str(src), "-c", str(cfg), "-o", str(out), "--gcode"]) == 0
+    assert "(gantry, jerk on)" in capsys.readouterr().out
+    motion = load_trajectories(out / "trajectories.npz")
+    assert motion.robot == "gantry" and motion.joint_names == ("x", "y")
+    assert tuple(motion.job.cell.ee_origin_mm) == (150.0, 150.0)
+    xy = np.concatenate([t.xy for lm in motion.layers for t in lm.trajectories])
+    assert (xy >= 0.0).all() and (xy <= 300.0).all()
+    # the part (a 60 mm ring centred on its origin) sits around the travel centre
+    assert np.abs(xy.mean(axis=0) - 150.0).max() < 15.0
+    assert (out / "trajectories.gcode").stat().st_size > 1000

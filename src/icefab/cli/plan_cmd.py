@@ -1,8 +1,12 @@
-"""``icefab plan MODEL|TOOLPATHS [-c job.toml] -o OUT [--layers K,K] [--no-jerk]``.
+"""``icefab plan MODEL|TOOLPATHS [-c job.toml] -o OUT [--layers K,K] [--no-jerk] [--gcode]
+[--constant-spacing MM]``.
 
 Minimum-time trajectories for every path of a build (thesis Ch. 4). The input is a mesh
 (sliced, scaffolded and given paths with the job's settings) or a toolpath file written by
-``icefab paths`` (``.npz``). Writes into OUT (which appears only when everything worked):
+``icefab paths`` (``.npz``). ``--layers`` is checked as soon as the input is loaded. A
+gantry (``[cell] robot = "gantry"``) with the default part origin builds at the centre of
+its travel (``icefab.robots.place_part``). Writes into OUT (which appears only when
+everything worked; every file is written in a temporary folder first):
 
 * ``trajectories.npz`` — every trajectory at constant dt (format: ``icefab.motion``
   docstring);
@@ -11,15 +15,34 @@ Minimum-time trajectories for every path of a build (thesis Ch. 4). The input is
 * ``summary.txt`` — build time with MTTS next to the thesis' constant-speed case (4.4:
   boundaries 25 mm/s, fill 125 mm/s) planned with the robot's accelerations
   (``icefab.motion.constant_speed_motion``) and the idealised length / speed estimate
-  (``icefab.paths.estimate_build_time``), points, paths and computing time; also printed.
+  (``icefab.paths.estimate_build_time``), points, paths and computing time; also printed;
+* with ``--gcode``: ``trajectories.gcode`` — G-code for gantry-style machines (positions
+  with feedrates, as the thesis' conclusions suggest for CNC machines): ``G21``/``G90``,
+  per layer ``; layer K z Z`` and ``G0 Z..``, per path a ``; path I: MATERIAL ROLE, width
+  W mm, D s`` comment, ``G0`` to its first sample, then one ``G1 X Y F`` per sample (F in
+  mm/min = the step's length over dt, so each move takes one time step;
+  ``icefab.motion.gcode_moves``). X and Y are the tool point in the robot base frame (the
+  gantry's axes);
+* with ``--constant-spacing MM``: ``constant_spacing.npz`` — the optional output with
+  constant point spacing and variable duration (``icefab.motion.constant_spacing``):
+  ``format`` = "icefab-constant-spacing", ``version`` = 1, ``spacing_mm`` (the asked
+  spacing; each path uses the largest spacing <= it that divides its length),
+  ``xy`` (N, 2) float64 mm (robot base frame), ``duration`` (N,) float64 s from each point
+  to the next (0 on each path's last point), ``path_start`` (T + 1,) int64 (path i is
+  rows ``path_start[i]:path_start[i+1]``), per path (T,) ``layer`` int64, ``path_index``
+  int64 (within its layer), ``material`` int8 (0 part, 1 scaffold), ``role`` int8
+  (0 boundary, 1 fill, 2 measure, 3 travel), in the order of ``trajectories.npz``.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import time
 from pathlib import Path as FsPath
+
+import numpy as np
 
 from icefab.cli.common import (Progress, add_job_argument, job_from_args, output_dir,
                                parse_layers)
@@ -32,7 +55,9 @@ def add_parser(subparsers) -> None:
         "plan", help="minimum-time trajectories for all paths of a build",
         description="Plan minimum-time trajectories (thesis Ch. 4: PATHSPLIT, VCON, ACON, "
                     "JCON, AREST) for every path of a model or toolpath file. Writes "
-                    "OUT/trajectories.npz, OUT/speed_layer_K.png and OUT/summary.txt.")
+                    "OUT/trajectories.npz, OUT/speed_layer_K.png and OUT/summary.txt; "
+                    "with --gcode also OUT/trajectories.gcode, with --constant-spacing "
+                    "OUT/constant_spacing.npz (formats: 'pydoc icefab.cli.plan_cmd').")
     p.add_argument("input", metavar="MODEL|TOOLPATHS",
                    help="mesh file (STL, PLY, OBJ) or toolpath file (.npz from 'icefab paths')")
     add_job_argument(p)
@@ -41,6 +66,13 @@ def add_parser(subparsers) -> None:
                    help="layers to draw speed pictures of (default: three evenly spread)")
     p.add_argument("--no-jerk", action="store_true",
                    help="switch the jerk bounds off (motion.jerk_limited = false)")
+    p.add_argument("--gcode", action="store_true",
+                   help="also write OUT/trajectories.gcode: G1 X Y F moves per sample with "
+                        "feedrates in mm/min (each move lasts one time step), for "
+                        "gantry-style machines")
+    p.add_argument("--constant-spacing", type=float, metavar="MM", default=None,
+                   help="also write OUT/constant_spacing.npz: points every MM mm along each "
+                        "trajectory with the duration from each point to the next")
     p.set_defaults(func=run)
 
 
@@ -77,16 +109,21 @@ def _hms(s: float) -> str:
 def run(args: argparse.Namespace) -> int:
     from icefab.motion import constant_speed_motion, plan_toolpaths, save_trajectories
     from icefab.paths import estimate_build_time
+    from icefab.robots import place_part
 
+    spacing = getattr(args, "constant_spacing", None)
+    if spacing is not None and not (math.isfinite(spacing) and spacing > 0.0):
+        raise ConfigError(f"--constant-spacing {spacing:g}: expected a positive number of mm")
     job = job_from_args(args) if getattr(args, "job", None) else None
     t0 = time.perf_counter()
     tp, job = load_input(args.input, job)
+    ks = parse_layers(args.layers, len(tp.layers), default_count=3)  # before planning
     if args.no_jerk:
         job = job.replace(**{"motion.jerk_limited": False})
+    job = place_part(job)
     t1 = time.perf_counter()
     motion = plan_toolpaths(tp, job, progress=Progress("planning"))
     t_plan = time.perf_counter() - t1
-    ks = parse_layers(args.layers, len(motion), default_count=3)
     _, const = estimate_build_time(tp, job)
     const_acc = constant_speed_motion(tp, job, progress=Progress("constant speed")).duration
     n_traj = sum(len(lm.trajectories) for lm in motion.layers)
@@ -115,8 +152,59 @@ def run(args: argparse.Namespace) -> int:
         for k in ks:
             plot_speed(motion.layers[k], tmp / f"speed_layer_{motion.layers[k].index}.png", vmax)
         (tmp / "summary.txt").write_text("\n".join(lines) + "\n", encoding="utf-8")
+        extra = []
+        if getattr(args, "gcode", False):
+            write_gcode(motion, tmp / "trajectories.gcode")
+            extra.append("trajectories.gcode")
+        if spacing is not None:
+            write_constant_spacing(motion, spacing, tmp / "constant_spacing.npz")
+            extra.append("constant_spacing.npz")
     for line in lines:
         print(line)
-    print(f"wrote {args.out}/trajectories.npz, summary.txt and speed pictures of layers "
+    print(f"wrote {args.out}/trajectories.npz, summary.txt"
+          + "".join(f", {name}" for name in extra)
+          + f" and speed pictures of layers "
           f"{', '.join(str(motion.layers[k].index) for k in ks)}")
     return 0
+
+
+def write_gcode(motion, path: FsPath) -> None:
+    """``trajectories.gcode`` (format in the module docstring)."""
+    from icefab.motion import gcode_moves
+    with open(path, "w", encoding="utf-8") as fh:
+        fh.write(f"; icefab trajectories: {motion.robot}, dt {motion.job.motion.dt_s:g} s, "
+                 f"{motion.duration:.1f} s of motion\n; F = feedrate in mm/min; X, Y in the "
+                 f"robot base frame, mm\nG21\nG90\n")
+        for lm in motion.layers:
+            fh.write(f"; layer {lm.index} z {lm.z:.4f}\nG0 Z{lm.z:.4f}\n")
+            for i, tr in enumerate(lm.trajectories):
+                p = tr.path
+                what = f"{p.material} {p.role}, width {p.width:g} mm" if p is not None else "path"
+                fh.write(f"; path {i}: {what}, {tr.duration:.3f} s\n")
+                fh.write("\n".join(gcode_moves(tr)) + "\n")
+
+
+def write_constant_spacing(motion, spacing_mm: float, path: FsPath) -> None:
+    """``constant_spacing.npz`` (format in the module docstring)."""
+    from icefab.motion import constant_spacing
+    mats, roles = ("part", "scaffold"), ("boundary", "fill", "measure", "travel")
+    xy, dur, counts, layer, index, mat, role = [], [], [], [], [], [], []
+    for lm in motion.layers:
+        for i, tr in enumerate(lm.trajectories):
+            pts, d = constant_spacing(tr, spacing_mm)
+            xy.append(pts)
+            dur.append(np.append(d, 0.0) if len(pts) else d)
+            counts.append(len(pts))
+            layer.append(lm.index)
+            index.append(i)
+            mat.append(mats.index(tr.path.material) if tr.path is not None else 0)
+            role.append(roles.index(tr.path.role) if tr.path is not None else 0)
+    with open(path, "wb") as fh:
+        np.savez_compressed(
+            fh, format=np.array("icefab-constant-spacing"), version=np.array(1),
+            spacing_mm=np.array(float(spacing_mm)),
+            xy=np.concatenate(xy) if xy else np.zeros((0, 2)),
+            duration=np.concatenate(dur) if dur else np.zeros(0),
+            path_start=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
+            layer=np.array(layer, dtype=np.int64), path_index=np.array(index, dtype=np.int64),
+            material=np.array(mat, dtype=np.int8), role=np.array(role, dtype=np.int8))
