@@ -253,3 +253,19 @@ def test_findings_are_grouped_by_kind_with_counts():
     lines = summarise_findings([(3, a), (9, b), (9, c)])
     assert lines == [f"2 paths in 2 layers (3-9): {a}", f"1 path in layer 9: {c}"]
     assert summarise_findings([]) == []
+
+
+@pytest.mark.parametrize("factor,expect", [(2.0, "+100.0 %"), (0.5, "-50.0 %"), (1.04, None)])
+def test_speed_that_disagrees_with_the_samples_is_reported(factor, expect):
+    """The flow follows ``speed`` (eq. 6.2) while the nozzle follows ``xy``: a speed in the
+    wrong unit, or not updated after re-timing, changes the volume per mm."""
+    good = constant_trajectory(50.0)  # 40 mm in 0.8 s
+    bad = Trajectory(dt=good.dt, xy=good.xy, joints=good.joints, speed=good.speed * factor,
+                     duration=good.duration, path=good.path)
+    found = [w for w in plan_valves(bad, "part", Job()).warnings if "integrates" in w]
+    if expect is None:  # within 5 %: MTTS samples the speed, not the chords
+        assert found == []
+    else:
+        (w,) = found
+        assert f"integrates to {40 * factor:g} mm but its samples travel 40 mm" in w
+        assert expect in w and "layer 7" in w

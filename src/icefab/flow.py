@@ -377,6 +377,16 @@ def valve_frequency(trajectory: Trajectory, material: str, job: "Job", *,
     warnings: list[str] = []
     clamped = np.zeros(n, dtype=bool)
     where = _where(trajectory)
+    # the flow follows the speed array (eq. 6.2), the nozzle the samples: they must agree
+    travelled = float(np.linalg.norm(np.diff(np.asarray(trajectory.xy, np.float64), axis=0),
+                                     axis=1).sum()) if n > 1 else 0.0
+    integrated = _integral(speed, t)
+    if abs(integrated - travelled) > max(SPEED_MISMATCH_MM, SPEED_MISMATCH * travelled):
+        off = (f"{100.0 * (integrated / travelled - 1.0):+.1f} %" if travelled > 0 else
+               f"{w * dh * integrated:.4g} mm^3")
+        warnings.append(f"{where}: the trajectory speed integrates to {integrated:.4g} mm but "
+                        f"its samples travel {travelled:.4g} mm: the flow follows the speed, "
+                        f"so the volume is {off} off nominal")
     flowing = q > 0  # zero flow is 0 Hz whatever the table's first row
     limits: list[str] = []
     hint = "; lower the speed or set flow.out_of_range = 'clamp' to clamp and report instead"
@@ -429,6 +439,14 @@ def valve_frequency(trajectory: Trajectory, material: str, job: "Job", *,
         log.debug(m)
     return FrequencyPlan(t=t, q=q, u=u, nu=nu, clamped=int(np.count_nonzero(clamped)),
                          warnings=tuple(warnings))
+
+
+#: A trajectory whose speed integrates to a length differing from the distance its samples
+#: travel by more than SPEED_MISMATCH (relative) and SPEED_MISMATCH_MM is reported: the
+#: valve would deposit that much too little or too much (wrong units, a re-timed path whose
+#: speed was not updated).
+SPEED_MISMATCH = 0.05
+SPEED_MISMATCH_MM = 0.5
 
 
 def _integral(y: np.ndarray, t: np.ndarray) -> float:
