@@ -37,6 +37,9 @@ def test_toml_round_trip(tmp_path):
     ("[parts]\ncopies = [2, 1, 3]\n", "job.toml:2: parts.copies = (2, 1, 3): 3 copies do not "
      "fit a 2 x 1 grid"),
     ("slicing = { layer_thickness_mm = -1 }\n", "job.toml:1: slicing.layer_thickness_mm"),
+    ("[flow]\npwm_frequency_hz = 2000\n", "job.toml:2: flow.pwm_frequency_hz = 2000: must not "
+     "exceed 1 / flow.tick_s = 500 Hz"),
+    ("[flow]\n\ncalibration_pulse_ms = 0.2\n", "job.toml:3: flow.calibration_pulse_ms = 0.2"),
     ("[materials]\npart = { fill_width_mm = 3.0, path_width_mm = 0 }\n",
      "job.toml:2: materials.part.path_width_mm"),
 ])

@@ -8,7 +8,7 @@ from hypothesis import strategies as st
 from scipy.integrate import quad
 
 from icefab import Job
-from icefab.errors import FlowError, StackFileError
+from icefab.errors import ConfigError, FlowError, StackFileError
 from icefab.flow import (DATA_DIR, calibration_for, load_calibration, n_pulses, plan_valves,
                          program_pieces, pulse_instants, pulse_times, read_valve_program,
                          total_duration, valve_frequency, write_valve_program)
@@ -192,12 +192,12 @@ def test_out_of_range_clamp_or_error():
     u = np.full(len(traj.xy), 0.9)  # 3 * 0.25 * 125 * 1.9 = 178 mm^3/s, inside
     valve_frequency(traj, "part", Job(), action=u)
     fast = line_trajectory(length=400, vmax=300.0, accel=2000.0, width=3.0)
-    plan = valve_frequency(fast, "part", Job(), action=np.full(len(fast.xy), 0.3))
+    clamp = Job().replace(**{"flow.out_of_range": "clamp"})
+    plan = valve_frequency(fast, "part", clamp, action=np.full(len(fast.xy), 0.3))
     assert plan.clamped > 0 and any("outside the calibration table" in w for w in plan.warnings)
     assert plan.nu.max() <= 1000.0
-    with pytest.raises(FlowError, match="calibration table"):
-        valve_frequency(fast, "part", Job().replace(**{"flow.out_of_range": "error"}),
-                        action=np.full(len(fast.xy), 0.3))
+    with pytest.raises(FlowError, match="calibration table"):  # the default
+        valve_frequency(fast, "part", Job(), action=np.full(len(fast.xy), 0.3))
 
 
 def test_min_drops_per_mm_reported():
@@ -382,9 +382,9 @@ def test_pwm_drops_per_mm_and_pulse_width_settings():
     job = Job().replace(**{"flow.mode": "pwm"})
     plan = valve_frequency(traj, "part", job)
     assert any("pwm_frequency_hz" in w for w in plan.warnings)  # 125 Hz < 200 mm/s
-    bad = Job().replace(**{"flow.calibration_pulse_ms": 0.2})
-    with pytest.raises(FlowError, match="calibration_pulse_ms"):
-        plan_valves(traj, "part", bad)
+    with pytest.raises(ConfigError, match="flow.calibration_pulse_ms = 0.2: must be at least "
+                                          "flow.min_pulse_ms"):
+        Job().replace(**{"flow.calibration_pulse_ms": 0.2})
 
 
 def test_valve_limit_findings_travel_with_the_program():

@@ -91,7 +91,8 @@ def test_pwm_just_below_and_above_the_shortest_pulse():
 def test_pwm_above_the_period_is_cut_and_reported_or_an_error():
     # layer 2 mm: q = 3 c, width 0.5 * 3c / 125 / V_ref reaches the 8 ms period at 165 mm/s
     c_cut = 8.0 / 0.5 * V_REF * 125.0 / 3.0
-    job = Job().replace(**PWM, **{"flow.min_drops_per_mm": 0.5})  # 125 Hz at 167 mm/s
+    job = Job().replace(**PWM, **{"flow.min_drops_per_mm": 0.5,  # 125 Hz at 167 mm/s
+                                  "flow.out_of_range": "clamp"})
     ok = plan_valves(constant_trajectory(c_cut - 2), "part", job, layer_thickness=2.0)
     assert ok.warnings == () and ok.widths_us.max() <= 8000
     cut = plan_valves(constant_trajectory(c_cut + 2), "part", job, layer_thickness=2.0)
@@ -119,11 +120,15 @@ def test_pwm_volume_is_the_commanded_volume_inside_the_limits():
 
 
 @pytest.mark.parametrize("setting,value,match", [
-    ("flow.pwm_frequency_hz", 2000.0, r"flow.pwm_frequency_hz = 2000: .*flow.max_frequency_hz"),
+    ("flow.pwm_frequency_hz", 2000.0, r"flow.pwm_frequency_hz = 2000: .*1 / flow.tick_s = 500"),
     ("flow.pwm_frequency_hz", 600.0, r"flow.pwm_frequency_hz = 600: .*1 / flow.tick_s = 500"),
 ])
 def test_pwm_frequency_above_the_valve_or_the_tick_is_rejected(setting, value, match):
-    job = Job().replace(**{**PWM, setting: value})
+    with pytest.raises(ConfigError, match=match):  # the job cannot even be made
+        Job().replace(**{**PWM, setting: value})
+    # a job built around the check (unvalidated copy) is still refused where it is used
+    job = Job().replace(**PWM)
+    object.__setattr__(job.flow, "pwm_frequency_hz", value)
     with pytest.raises(ConfigError, match=match):
         plan_valves(constant_trajectory(100.0), "part", job)
     with pytest.raises(ConfigError, match=match):  # also for a path that deposits nothing
@@ -193,10 +198,7 @@ def test_flow_outside_the_table_is_an_error_naming_path_flow_range_and_setting()
         assert part in msg
 
 
-@pytest.mark.skipif(Job().flow.out_of_range != "error",
-                    reason="config.py still defaults flow.out_of_range to 'clamp' "
-                           "(recommended default: 'error', issue 5)")
-def test_flow_outside_the_table_is_an_error_by_default():  # pragma: no cover
+def test_flow_outside_the_table_is_an_error_by_default():
     with pytest.raises(FlowError, match="outside the calibration table"):
         plan_valves(constant_trajectory(100.0, width=3.0), "part", Job(), layer_thickness=1.0)
 

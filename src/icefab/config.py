@@ -258,9 +258,10 @@ class FlowSettings:
     min_drops_per_mm: float = setting(1.0, "at least this many drops per mm of path", lo=0.0)
     layer_scale: float = setting(1.0, "nominal flow factor c in q = w * dh * c", lo=0.0,
                                  lo_open=True)
-    out_of_range: str = setting("clamp", "a flow beyond the calibration table or a frequency "
-                                         "beyond max_frequency_hz: 'clamp' to the limit "
-                                         "(logged and counted) or 'error'",
+    out_of_range: str = setting("error", "a flow beyond the calibration table or a frequency "
+                                         "beyond max_frequency_hz: 'error' (default) or "
+                                         "'clamp' to the limit (opt-in; reported with the "
+                                         "volume it costs)",
                                 choices=("clamp", "error"))
     pwm_frequency_hz: float = setting(125.0, "PWM mode: constant valve frequency (thesis 6.1: "
                                              ">= 125 Hz for one drop per mm at 125 mm/s)",
@@ -420,6 +421,16 @@ def _check_cross(job: Job) -> None:
     if p3 > p1 * p2:
         raise ConfigError(f"parts.copies = {tuple(job.parts.copies)!r}: {p3} copies do not "
                           f"fit a {p1} x {p2} grid")
+    fl = job.flow
+    limits = {"flow.max_frequency_hz": fl.max_frequency_hz, "1 / flow.tick_s": 1.0 / fl.tick_s,
+              "1 / flow.min_pulse_ms": 1000.0 / fl.min_pulse_ms}
+    name, top = min(limits.items(), key=lambda kv: kv[1])
+    if fl.pwm_frequency_hz > top:
+        raise ConfigError(f"flow.pwm_frequency_hz = {fl.pwm_frequency_hz:g}: must not exceed "
+                          f"{name} = {top:g} Hz")
+    if fl.calibration_pulse_ms < fl.min_pulse_ms:
+        raise ConfigError(f"flow.calibration_pulse_ms = {fl.calibration_pulse_ms:g}: must be at "
+                          f"least flow.min_pulse_ms = {fl.min_pulse_ms:g}")
     order = job.materials.order
     allowed = {f"{m}:{r}" for m in ("part", "scaffold") for r in ("boundary", "fill")}
     bad = [o for o in order if o not in allowed]
