@@ -216,18 +216,21 @@ class MotionSettings:
                                       lo_open=True, hi=180.0)
     point_spacing_mm: float = setting(0.4, "resampling spacing of split pieces", lo=0.0,
                                       lo_open=True)
-    smoothing_tolerance_mm: float = setting(0.01, "smoothing of the resampled paths within "
+    smoothing_tolerance_mm: float = setting(0.02, "smoothing of the resampled paths within "
                                                   "this tolerance (0: off; a hard bound: "
                                                   "every sample stays within it of the input "
-                                                  "path). Default 0.01 mm: with the joints' "
-                                                  "Savitzky-Golay filter (<= 0.02 mm minus "
-                                                  "this, at most 0.01 mm) the tool stays "
-                                                  "within 0.02 mm of the input (issue 4); the "
-                                                  "slicer's filtered polygons turn a few "
+                                                  "path). The joints' Savitzky-Golay filter "
+                                                  "gets what is left of 0.02 mm (at most "
+                                                  "0.01; none at this default), so the tool "
+                                                  "stays within 0.02 mm "
+                                                  "of the input (issue 4). Default 0.02 mm: "
+                                                  "the slicer's filtered polygons turn a few "
                                                   "degrees at every vertex, which costs "
-                                                  "v*turn/dt of acceleration: 0.01 mm makes "
-                                                  "MTTS 3-5 % faster on the bunny and a "
-                                                  "rounded box (BENCHMARKS.md)",
+                                                  "v*turn/dt of acceleration; 0.02 mm makes "
+                                                  "MTTS 6-9 % faster on the bunny and a "
+                                                  "rounded box, twice what 0.01 mm with the "
+                                                  "joint filter gives, at the same joint jerk "
+                                                  "(BENCHMARKS.md)",
                                             lo=0.0)
     measure_speed_mm_s: float = setting(50.0, "speed along measurement paths", lo=0.0,
                                         lo_open=True)
