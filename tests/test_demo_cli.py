@@ -13,10 +13,13 @@ def test_demo_writes_every_stage(tmp_path, capsys):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["slice"]["layers"] == 24
     assert summary["valves"]["pulses"] > 0
+    # valve-limit findings condensed to one line per kind, printed as they are saved
+    text = capsys.readouterr().out
+    assert all(f"  {line}" in text for line in summary["valves"]["findings"])
     assert summary["motion"]["build_s"] > 0 and summary["motion"]["samples"] > 0
     sim = summary["simulation"]
     assert sim["final_rms_smf_mm"] < sim["final_rms_open_loop_mm"]
-    assert "wrote" in capsys.readouterr().out
+    assert "wrote" in text
     page = (out / "report.html").read_text()
     assert page.count("data:image/png;base64,") >= 3  # self-contained: pictures embedded
 

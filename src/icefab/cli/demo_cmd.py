@@ -41,7 +41,8 @@ def _say(text: str) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from icefab.demo import demo_mug
-    from icefab.flow import n_pulses, plan_valves, program_pieces, write_valve_program
+    from icefab.flow import (n_pulses, plan_valves, program_pieces, summarise_findings,
+                             write_valve_program)
     from icefab.mesh import check_mesh, transform, write_stl
     from icefab.motion import plan_toolpaths, save_trajectories
     from icefab.paths import estimate_build_time, plan_paths, save_toolpaths
@@ -112,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         progress = Progress("valve programs")
         pulses = pieces = 0
-        flagged: list[tuple[int, str]] = []  # (layer, first finding) per flagged path
+        flagged: list[tuple[int, str]] = []  # (layer, finding) of every flagged path
         valves_dir = out / "valves"
         valves_dir.mkdir()
         for i, lm in enumerate(motion.layers):
@@ -120,8 +121,7 @@ def run(args: argparse.Namespace) -> int:
                 if traj.path is None or not traj.path.depositing:
                     continue
                 prog = plan_valves(traj, traj.path.material, job)
-                if prog.warnings:
-                    flagged.append((lm.index, prog.warnings[0]))
+                flagged += [(lm.index, w) for w in prog.warnings]
                 pulses += n_pulses(prog)
                 pieces += len(program_pieces(prog))
                 if i == 0:  # one readable example layer; the rest are counted
@@ -129,12 +129,11 @@ def run(args: argparse.Namespace) -> int:
             progress(i + 1, len(motion.layers))
         summary["valves"] = {"pulses": pulses, "pieces": pieces,
                              "seconds": round(time.perf_counter() - t0, 3)}
-        summary["valves"]["paths_at_valve_limits"] = len(flagged)
+        findings = summarise_findings(flagged)  # one line per kind of valve limit
+        summary["valves"]["findings"] = findings
         _say(f"valve programs: {pulses} pulses in {pieces} pieces")
-        if flagged:
-            layers = sorted({k for k, _ in flagged})
-            _say(f"  {len(flagged)} paths in {len(layers)} layers (layers {layers[0]}-"
-                 f"{layers[-1]}) reach a valve limit; first: {flagged[0][1]}")
+        for line in findings:
+            _say(f"  {line}")
 
         if args.sim_layers:
             _run_simulator(toolpaths, job, min(args.sim_layers, n), out, summary)
