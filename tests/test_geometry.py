@@ -196,3 +196,109 @@ def test_property_points_inside_matches_shapely(rings, seed):
     ref = shapely.contains_xy(poly, pts[:, 0], pts[:, 1])
     near = shapely.distance(poly.boundary, shapely.points(pts)) < 1e-6
     assert np.array_equal(ours[~near], ref[~near])
+
+
+# ----------------------------------------------------------------------------- filter, medial
+
+
+def _slivers(seed: int, count: int):
+    """Thin wobbly rings (narrower than two point filters): where the chord filter, looking
+    only along the ring, may cut across to the other side."""
+    rng = np.random.default_rng(seed)
+    out = []
+    while len(out) < count:
+        n = int(rng.integers(5, 30))
+        x = np.sort(rng.uniform(0, 3, n))
+        y = 0.3 * np.sin(x * rng.uniform(0.5, 3))
+        half = rng.uniform(0.0025, 0.04)
+        ring = np.vstack([np.c_[x, y - half], np.c_[x[::-1], y[::-1] + half]])
+        ring = np.round(ring + rng.uniform(-0.01, 0.01, ring.shape), 4)
+        if shapely.LinearRing(ring).is_simple:
+            out.append(ring)
+    return out
+
+
+def test_simplify_never_makes_a_ring_cross_itself():
+    rings = _slivers(0, 400)
+    raw = [r[geo._filter_mask(r, np.array([0, len(r)]), geo.FILTER_MM, 64)] for r in rings]
+    # the plain chord filter does cross (the audit's bow-ties): the case is exercised
+    assert sum(len(f) >= 3 and not shapely.LinearRing(f).is_simple for f in raw) > 50
+    for ring in rings:
+        out = geo.simplify([ring])
+        for f in out:
+            assert shapely.LinearRing(f).is_simple
+            # points of the input, none moved; every input point within the filter of it
+            assert all((ring == q).all(axis=1).any() for q in f)
+        if out:
+            d = shapely.distance(shapely.MultiLineString([np.vstack([f, f[:1]]) for f in out]),
+                                 shapely.points(ring))
+            assert d.max() <= geo.FILTER_MM + 1e-9
+
+
+def test_simplify_cuts_a_ring_touching_itself_into_loops():
+    # Clipper may return two lobes touching at a vertex as one ring (spot, 2 mm, layer 8)
+    ring = np.array([[0, 0], [4, 0], [4, 4], [2, 2], [3, 6], [1, 6], [2, 2], [0, 4]], float)
+    assert not shapely.LinearRing(ring).is_simple
+    out = geo.simplify([ring], 0.01)
+    assert len(out) == 2 and all(shapely.LinearRing(r).is_simple for r in out)
+    assert sum(shapely.Polygon(r).area for r in out) == pytest.approx(shapely.Polygon(ring).area)
+
+
+@given(st.integers(0, 2**31 - 1), st.booleans())
+def test_property_simple_mask_matches_shapely(seed, closed):
+    rng = np.random.default_rng(seed)
+    lines = [np.round(rng.uniform(0, 4, (int(rng.integers(3, 9)), 2))) for _ in range(30)]
+    lines = [ln for ln in lines if len(np.unique(ln, axis=0)) == len(ln)]
+    ours = geo.simple_mask(lines, closed=closed)
+    ref = [(shapely.LinearRing(ln) if closed else shapely.LineString(ln)).is_simple
+           for ln in lines]
+    if not closed:  # an open line ending on its start is a closed line for GEOS
+        ref = [r and not (ln[0] == ln[-1]).all() for r, ln in zip(ref, lines)]
+    assert ours.tolist() == ref
+
+
+def test_medial_axis_of_strip_and_annulus():
+    # a 0.5 x 20 mm strip: one centre line at y = 0.25, clearance 0.25, ends where the
+    # clearance is reached (0.25 from the short sides)
+    chains = geo.medial_axis([rect(0, 0, 20, 0.5)], 0.1, 0.05)
+    long = max(chains, key=lambda c: np.ptp(c[0][:, 0]))
+    pts, clear, closed = long
+    assert not closed
+    assert np.allclose(pts[:, 1], 0.25, atol=1e-3) and np.allclose(clear, 0.25, atol=1e-3)
+    assert pts[:, 0].min() == pytest.approx(0.25, abs=0.05)
+    assert pts[:, 0].max() == pytest.approx(19.75, abs=0.05)
+    # an annulus 10 .. 10.4 mm: one closed centre line at 10.2 with clearance 0.2
+    chains = geo.medial_axis([circle(10.4, 400), circle(10.0, 400, hole=True)], 0.05, 0.05)
+    assert len(chains) == 1 and chains[0][2]
+    r = np.hypot(*chains[0][0].T)
+    assert r == pytest.approx(np.full_like(r, 10.2), abs=2e-3)
+    assert chains[0][1] == pytest.approx(np.full_like(r, 0.2), abs=2e-3)
+    # clearance is the true distance to the rings (shapely)
+    ring = shapely.Polygon(circle(10.4, 400), [circle(10.0, 400, hole=True)]).boundary
+    d = shapely.distance(ring, shapely.points(chains[0][0]))
+    assert np.abs(d - chains[0][1]).max() < 1e-6
+
+
+def test_width_runs_split_where_the_width_changes():
+    x = np.linspace(0, 10, 101)
+    w = np.where(x < 5, 1.0, 0.5)
+    runs = geo.width_runs([(np.c_[x, 0 * x], w, False)], ratio=1.3)
+    assert len(runs) == 2
+    (p0, (lo0, _m0, hi0), _c0), (p1, (lo1, _m1, hi1), _c1) = runs
+    assert (lo0, hi0) == (1.0, 1.0) and p0[-1, 0] == pytest.approx(4.9)
+    assert lo1 == 0.5 and p1[0, 0] == pytest.approx(4.9)  # runs share their end vertex
+    # never cut shorter than min_length: one run holding both widths
+    assert len(geo.width_runs([(np.c_[x, 0 * x], w, False)], 1.3, min_length=20.0)) == 1
+    # a closed chain of one width stays closed
+    t = np.linspace(0, 2 * np.pi, 50, endpoint=False)
+    (runs,) = geo.width_runs([(np.c_[np.cos(t), np.sin(t)], np.full(50, 0.3), True)], 1.3)
+    assert runs[2] and runs[1] == (0.3, pytest.approx(0.3), 0.3)
+
+
+@given(polygon_with_holes(), st.integers(0, 2**31 - 1))
+def test_property_distance_to_rings_matches_shapely(rings, seed):
+    pts = np.random.default_rng(seed).uniform(-32, 32, size=(200, 2))
+    ours = geo.distance_to_rings(pts, rings)
+    ref = shapely.distance(shapely.MultiLineString([np.vstack([r, r[:1]]) for r in rings]),
+                           shapely.points(pts))
+    assert ours == pytest.approx(ref, abs=1e-9)

@@ -13,9 +13,16 @@ move the other way, because of the ring orientation (outer rings counter-clockwi
 clockwise, ``icefab.types``). Joins are mitred (limit 2, squared beyond): round joins
 multiply vertex counts (and time) many-fold. Like the thesis (3.4.2: PATHFILTER after every
 BUFFERF call), ring points are filtered after every offset: a vertex closer than
-``filter_mm`` to the line through its neighbours is dropped. Results of Booleans are not
-filtered, so a region built as a difference keeps the exact shared edges (scaffold and
-part touch without overlapping).
+``filter_mm`` to the line through its neighbours is dropped. The filter never makes a ring
+cross or touch itself (the thesis' RPSLICE was written to end the previous code's
+self-intersecting paths): a ring whose filtered form is not simple keeps its points, and
+rings Clipper returns touching themselves at a vertex are cut into loops there
+(:func:`simplify`). Results of Booleans are not filtered, so a region built as a
+difference keeps the exact shared edges (scaffold and part touch without overlapping).
+
+Thin areas (gaps the paths leave) are described by their centre lines, the medial axis
+(:func:`medial_axis`, from scipy's Delaunay triangulation of the sampled rings), with the
+clearance (half the local width) at every point (:func:`width_runs`).
 
 Degenerate cases: an empty region in gives an empty region out; offsets by 0 return the
 input unchanged; rings with fewer than 3 points or (almost) no area after an offset are
@@ -280,23 +287,191 @@ def _filter_mask(pts: np.ndarray, starts: np.ndarray, eps: float, max_span: int
     return keep
 
 
+@njit(cache=True)
+def _segments_touch(ax, ay, bx, by, cx, cy, dx, dy) -> bool:  # pragma: no cover - compiled
+    """True when the closed segments ab and cd share a point (crossing or touching)."""
+    d1 = (dx - cx) * (ay - cy) - (dy - cy) * (ax - cx)
+    d2 = (dx - cx) * (by - cy) - (dy - cy) * (bx - cx)
+    d3 = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+    d4 = (bx - ax) * (dy - ay) - (by - ay) * (dx - ax)
+    if ((d1 > 0 and d2 < 0) or (d1 < 0 and d2 > 0)) and \
+            ((d3 > 0 and d4 < 0) or (d3 < 0 and d4 > 0)):
+        return True
+    # touching: an end point on the other segment (collinear cases included)
+    if d1 == 0 and min(cx, dx) <= ax <= max(cx, dx) and min(cy, dy) <= ay <= max(cy, dy):
+        return True
+    if d2 == 0 and min(cx, dx) <= bx <= max(cx, dx) and min(cy, dy) <= by <= max(cy, dy):
+        return True
+    if d3 == 0 and min(ax, bx) <= cx <= max(ax, bx) and min(ay, by) <= cy <= max(ay, by):
+        return True
+    if d4 == 0 and min(ax, bx) <= dx <= max(ax, bx) and min(ay, by) <= dy <= max(ay, by):
+        return True
+    return False
+
+
+@njit(cache=True)
+def _simple_mask(pts: np.ndarray, starts: np.ndarray, closed: bool
+                 ) -> np.ndarray:  # pragma: no cover - compiled
+    """(r,) bool: which of the concatenated rings (or open polylines) are simple.
+
+    A ring is simple when no two of its edges share a point except consecutive edges at
+    their common vertex (and those do not fold back onto each other): the definition of
+    GEOS' ``is_simple``, so a ring touching itself at a vertex is not simple. Edges are
+    swept in order of their smallest x, so each edge is only tested against the edges
+    whose x-range overlaps its own.
+    """
+    nr = len(starts) - 1
+    out = np.ones(nr, dtype=np.bool_)
+    for r in range(nr):
+        s0 = starts[r]
+        n = starts[r + 1] - s0
+        m = n if closed else n - 1  # number of edges
+        if m < 2:
+            continue
+        x0 = np.empty(m)
+        x1 = np.empty(m)
+        for i in range(m):
+            a = s0 + i
+            b = s0 + (i + 1) % n
+            x0[i] = min(pts[a, 0], pts[b, 0])
+            x1[i] = max(pts[a, 0], pts[b, 0])
+        order = np.argsort(x0)
+        ok = True
+        for oi in range(m):
+            i = order[oi]
+            ai = s0 + i
+            bi = s0 + (i + 1) % n
+            ax, ay, bx, by = pts[ai, 0], pts[ai, 1], pts[bi, 0], pts[bi, 1]
+            if ax == bx and ay == by:
+                ok = False  # zero-length edge: a repeated point
+                break
+            ylo = min(ay, by)
+            yhi = max(ay, by)
+            for oj in range(oi + 1, m):
+                j = order[oj]
+                if x0[j] > x1[i]:
+                    break
+                cj = s0 + j
+                dj = s0 + (j + 1) % n
+                cx, cy, dx, dy = pts[cj, 0], pts[cj, 1], pts[dj, 0], pts[dj, 1]
+                if max(cy, dy) < ylo or min(cy, dy) > yhi:
+                    continue
+                lo = min(i, j)
+                hi = max(i, j)
+                if hi == lo + 1 or (closed and lo == 0 and hi == m - 1 and m > 2):
+                    # consecutive edges share one vertex: not simple only if they fold back
+                    if hi == lo + 1:
+                        px, py = pts[s0 + lo, 0], pts[s0 + lo, 1]
+                        qx, qy = pts[s0 + hi, 0], pts[s0 + hi, 1]
+                        tx, ty = pts[s0 + (hi + 1) % n, 0], pts[s0 + (hi + 1) % n, 1]
+                    else:
+                        px, py = pts[s0 + m - 1, 0], pts[s0 + m - 1, 1]
+                        qx, qy = pts[s0, 0], pts[s0, 1]
+                        tx, ty = pts[s0 + 1, 0], pts[s0 + 1, 1]
+                    cr = (qx - px) * (ty - qy) - (qy - py) * (tx - qx)
+                    dot = (qx - px) * (tx - qx) + (qy - py) * (ty - qy)
+                    if cr == 0 and dot < 0:
+                        ok = False
+                        break
+                    continue
+                if _segments_touch(ax, ay, bx, by, cx, cy, dx, dy):
+                    ok = False
+                    break
+            if not ok:
+                break
+        out[r] = ok
+    return out
+
+
+def simple_mask(rings: Sequence[np.ndarray], closed: bool = True) -> np.ndarray:
+    """(r,) bool: which rings (closed) or open polylines have no self-intersection and do
+    not touch themselves (GEOS' ``is_simple``)."""
+    rings = [np.asarray(r, dtype=np.float64) for r in rings]
+    if not rings:
+        return np.zeros(0, dtype=bool)
+    pts = np.ascontiguousarray(np.concatenate(rings))
+    starts = np.concatenate([[0], np.cumsum([len(r) for r in rings])]).astype(np.int64)
+    return _simple_mask(pts, starts, closed)
+
+
+def _split_touching(ring: np.ndarray) -> Rings:
+    """A ring that passes through one vertex more than once (Clipper output may touch
+    itself at a vertex) cut there into loops, each a ring of its own."""
+    _u, inv, counts = np.unique(ring, axis=0, return_inverse=True, return_counts=True)
+    inv = inv.reshape(-1)
+    if counts.max() < 2:
+        return [ring]
+    # walk the ring; when a point repeats, the loop since its previous visit is closed off
+    out: Rings = []
+    stack: list[int] = []
+    seen: dict[int, int] = {}
+    for i, key in enumerate(inv):
+        key = int(key)
+        if key in seen:
+            j = seen[key]
+            loop = stack[j:]
+            if len(loop) >= 3:
+                out.append(ring[loop])
+            for k in stack[j + 1:]:
+                seen.pop(int(inv[k]), None)
+            del stack[j + 1:]
+            continue
+        seen[key] = len(stack)
+        stack.append(i)
+    if len(stack) >= 3:
+        out.append(ring[stack])
+    return out
+
+
 def simplify(rings: Rings, filter_mm: float = FILTER_MM) -> Rings:
     """Drop ring vertices so that the ring moves by at most ``filter_mm`` (thesis 3.4.2:
-    PATHFILTER after every buffering).
+    PATHFILTER after every buffering), never making a ring cross or touch itself.
 
-    Rings left with fewer than 3 points or less than MIN_RING_AREA are removed.
+    The chord filter only looks along the ring, so where a ring comes back within
+    ``2 filter_mm`` of itself (a sliver left by an offset, a narrow neck) its chords may
+    cross: such rings keep all their points. Rings that touch themselves at a vertex
+    (Clipper's offsets and Booleans may return those) are first cut there into separate
+    rings. Rings left with fewer than 3 points or less than MIN_RING_AREA are removed.
     """
     rings = [np.asarray(r, dtype=np.float64) for r in rings if len(r) >= 3]
     if filter_mm > 0 and rings:
-        pts = np.concatenate(rings)
+        pts = np.ascontiguousarray(np.concatenate(rings))
         starts = np.concatenate([[0], np.cumsum([len(r) for r in rings])]).astype(np.int64)
         keep = _filter_mask(pts, starts, float(filter_mm), 64)
-        rings = [pts[a:b][keep[a:b]] for a, b in zip(starts[:-1], starts[1:])]
+        out = [pts[a:b][keep[a:b]] for a, b in zip(starts[:-1], starts[1:])]
+        cnt = np.array([len(r) for r in out])
+        fstarts = np.concatenate([[0], np.cumsum(cnt)]).astype(np.int64)
+        ok = _simple_mask(np.concatenate(out), fstarts, True) & (cnt >= 3)
+        if not ok.all():
+            for i in np.flatnonzero(~ok):
+                out[i] = _simplify_slow(rings[i], filter_mm)
+            rings = [r for part in out for r in (part if isinstance(part, list) else [part])]
+        else:
+            rings = out
     rings = [r for r in rings if len(r) >= 3]
     if not rings:
         return []
     keep = np.abs(ring_areas(rings)) > MIN_RING_AREA
     return [r for r, k in zip(rings, keep) if k]
+
+
+def _simplify_slow(ring: np.ndarray, filter_mm: float) -> Rings:
+    """The rings one ring becomes when its filtered form is not simple: it is cut at the
+    vertices where it touches itself, each loop is filtered, and loops whose filtered form
+    still crosses itself keep all their points."""
+    out: Rings = []
+    for loop in _split_touching(ring):
+        if abs(signed_area(loop)) <= MIN_RING_AREA:
+            continue
+        starts = np.array([0, len(loop)], dtype=np.int64)
+        loop = np.ascontiguousarray(loop)
+        kept = loop[_filter_mask(loop, starts, float(filter_mm), 64)]
+        if len(kept) >= 3 and _simple_mask(kept, np.array([0, len(kept)], dtype=np.int64),
+                                           True)[0]:
+            out.append(kept)
+        else:
+            out.append(loop)
+    return out
 
 
 def offset_rings(rings: Rings, d: float, filter_mm: float = FILTER_MM) -> Rings:
@@ -456,6 +631,573 @@ def points_inside(points: np.ndarray, region: Region | Sequence[np.ndarray]) -> 
     starts = np.concatenate([[0], np.cumsum([len(r) for r in rings])]).astype(np.int64)
     return _even_odd(np.ascontiguousarray(pts[:, 0]), np.ascontiguousarray(pts[:, 1]),
                      allp, starts)
+
+
+@njit(cache=True)
+def _even_odd_rows(px: np.ndarray, py: np.ndarray, pts: np.ndarray, starts: np.ndarray
+                   ) -> np.ndarray:  # pragma: no cover - compiled
+    """:func:`_even_odd` with the edges bucketed into horizontal rows, so each point is
+    only tested against the edges whose y-range may hold it (many points, many edges)."""
+    ne = len(pts)
+    out = np.zeros(len(px), dtype=np.bool_)
+    if ne == 0:
+        return out
+    y0 = pts[:, 1].min()
+    y1 = pts[:, 1].max()
+    nrow = max(1, int(np.sqrt(ne)))
+    h = (y1 - y0) / nrow if y1 > y0 else 1.0
+    ea = np.empty(ne, dtype=np.int64)  # edge i runs from point ea[i] to point eb[i]
+    eb = np.empty(ne, dtype=np.int64)
+    k = 0
+    for r in range(len(starts) - 1):
+        s0 = starts[r]
+        n = starts[r + 1] - s0
+        for i in range(n):
+            ea[k] = s0 + i
+            eb[k] = s0 + (i + 1) % n
+            k += 1
+    r0 = np.empty(ne, dtype=np.int64)
+    r1 = np.empty(ne, dtype=np.int64)
+    count = np.zeros(nrow + 1, dtype=np.int64)
+    for i in range(ne):
+        lo = min(pts[ea[i], 1], pts[eb[i], 1])
+        hi = max(pts[ea[i], 1], pts[eb[i], 1])
+        r0[i] = min(nrow - 1, max(0, int((lo - y0) / h)))
+        r1[i] = min(nrow - 1, max(0, int((hi - y0) / h)))
+        for r in range(r0[i], r1[i] + 1):
+            count[r + 1] += 1
+    for r in range(nrow):
+        count[r + 1] += count[r]
+    fill = count[:-1].copy()
+    bucket = np.empty(count[nrow], dtype=np.int64)
+    for i in range(ne):
+        for r in range(r0[i], r1[i] + 1):
+            bucket[fill[r]] = i
+            fill[r] += 1
+    for k in range(len(px)):
+        x = px[k]
+        y = py[k]
+        if y < y0 or y > y1:
+            continue
+        r = min(nrow - 1, max(0, int((y - y0) / h)))
+        inside = False
+        for q in range(count[r], count[r + 1]):
+            i = bucket[q]
+            yi = pts[ea[i], 1]
+            yj = pts[eb[i], 1]
+            if (yi > y) != (yj > y):
+                xc = pts[ea[i], 0] + (y - yi) * (pts[eb[i], 0] - pts[ea[i], 0]) / (yj - yi)
+                if x < xc:
+                    inside = not inside
+        out[k] = inside
+    return out
+
+
+@njit(cache=True)
+def _filter_open_mask(pts: np.ndarray, starts: np.ndarray, eps: np.ndarray, max_span: int
+                      ) -> np.ndarray:  # pragma: no cover - compiled
+    """:func:`_filter_mask` for open polylines (``eps`` per polyline): both end points
+    are kept."""
+    keep = np.zeros(len(pts), dtype=np.bool_)
+    for r in range(len(starts) - 1):
+        eps2 = eps[r] * eps[r]
+        s0 = starts[r]
+        n = starts[r + 1] - s0
+        if n == 0:
+            continue
+        keep[s0] = True
+        keep[s0 + n - 1] = True
+        a = 0
+        while a < n - 1:
+            best = a + 1
+            j = a + 2
+            while j < n and j - a <= max_span:
+                ax = pts[s0 + a, 0]
+                ay = pts[s0 + a, 1]
+                dx = pts[s0 + j, 0] - ax
+                dy = pts[s0 + j, 1] - ay
+                L2 = dx * dx + dy * dy
+                ok = True
+                for i in range(a + 1, j):
+                    qx = pts[s0 + i, 0] - ax
+                    qy = pts[s0 + i, 1] - ay
+                    t = (qx * dx + qy * dy) / L2 if L2 > 0.0 else 0.0
+                    t = min(1.0, max(0.0, t))
+                    ex = qx - t * dx
+                    ey = qy - t * dy
+                    if ex * ex + ey * ey > eps2:
+                        ok = False
+                        break
+                if not ok:
+                    break
+                best = j
+                j += 1
+            keep[s0 + best] = True
+            a = best
+    return keep
+
+
+def simplify_open(lines: Sequence[np.ndarray], filter_mm: float | np.ndarray = FILTER_MM
+                  ) -> list[np.ndarray]:
+    """Open polylines with the points dropped that lie within ``filter_mm`` (one value,
+    or one per polyline) of the chord kept over them (the end points stay); a polyline
+    whose filtered form would cross itself keeps all its points."""
+    lines = [np.asarray(ln, dtype=np.float64) for ln in lines]
+    if not lines:
+        return lines
+    eps = np.broadcast_to(np.asarray(filter_mm, dtype=np.float64), (len(lines),))
+    pts = np.ascontiguousarray(np.concatenate(lines))
+    starts = np.concatenate([[0], np.cumsum([len(ln) for ln in lines])]).astype(np.int64)
+    keep = _filter_open_mask(pts, starts, np.ascontiguousarray(eps), 64)
+    out = [pts[a:b][keep[a:b]] for a, b in zip(starts[:-1], starts[1:])]
+    ok = simple_mask(out, closed=False)
+    return [o if k else ln for o, ln, k in zip(out, lines, ok)]
+
+
+# --------------------------------------------------------------------------- medial axis
+
+
+@njit(cache=True)
+def _chains(n: int, ea: np.ndarray, eb: np.ndarray):  # pragma: no cover - compiled
+    """Split a graph (vertices 0..n-1, edges ea[i]-eb[i]) into chains: maximal paths
+    whose inner vertices have degree 2, and cycles of degree-2 vertices.
+
+    Returns (vertex indices concatenated, chain starts (c+1,), closed flags (c,)); a
+    closed chain does not repeat its first vertex.
+    """
+    m = len(ea)
+    deg = np.zeros(n, dtype=np.int64)
+    for i in range(m):
+        deg[ea[i]] += 1
+        deg[eb[i]] += 1
+    off = np.zeros(n + 1, dtype=np.int64)
+    for v in range(n):
+        off[v + 1] = off[v] + deg[v]
+    fill = off[:-1].copy()
+    nbr = np.empty(2 * m, dtype=np.int64)
+    eid = np.empty(2 * m, dtype=np.int64)
+    for i in range(m):
+        a, b = ea[i], eb[i]
+        nbr[fill[a]] = b
+        eid[fill[a]] = i
+        fill[a] += 1
+        nbr[fill[b]] = a
+        eid[fill[b]] = i
+        fill[b] += 1
+    used = np.zeros(m, dtype=np.bool_)
+    verts = np.empty(2 * m + 1, dtype=np.int64)
+    starts = np.zeros(m + 1, dtype=np.int64)
+    closed = np.zeros(m, dtype=np.bool_)
+    nv = 0
+    nc = 0
+    for phase in range(2):
+        for v0 in range(n):
+            if deg[v0] == 0 or (phase == 0 and deg[v0] == 2):
+                continue
+            for q0 in range(off[v0], off[v0 + 1]):
+                if used[eid[q0]]:
+                    continue
+                starts[nc] = nv
+                verts[nv] = v0
+                nv += 1
+                q = q0
+                while True:
+                    used[eid[q]] = True
+                    v = nbr[q]
+                    if phase == 1 and v == v0:
+                        break
+                    verts[nv] = v
+                    nv += 1
+                    if deg[v] != 2:
+                        break
+                    nxt = -1
+                    for q2 in range(off[v], off[v + 1]):
+                        if not used[eid[q2]]:
+                            nxt = q2
+                            break
+                    if nxt < 0:
+                        break
+                    q = nxt
+                closed[nc] = phase == 1
+                nc += 1
+                starts[nc] = nv
+    return verts[:nv], starts[:nc + 1], closed[:nc]
+
+
+@njit(cache=True)
+def _width_runs(pts: np.ndarray, w: np.ndarray, starts: np.ndarray, closed: np.ndarray,
+                ratio: float, min_length: float):  # pragma: no cover - compiled
+    """Cut chains into runs of similar width (see :func:`width_runs`).
+
+    Returns per run: chain index, first and last vertex (local to the chain; for a cut
+    closed chain the last may be n, meaning its first vertex again), the smallest, the
+    length-weighted mean and the largest width, and whether the run is a whole closed
+    chain.
+    """
+    cap = len(w) + len(starts)
+    rch = np.empty(cap, dtype=np.int64)
+    rs = np.empty(cap, dtype=np.int64)
+    re = np.empty(cap, dtype=np.int64)
+    rlo = np.empty(cap)
+    rmean = np.empty(cap)
+    rhi = np.empty(cap)
+    rc = np.zeros(cap, dtype=np.bool_)
+    k = 0
+    for c in range(len(starts) - 1):
+        s0 = starts[c]
+        n = starts[c + 1] - s0
+        if n < 2:
+            continue
+        m = n + 1 if closed[c] else n
+        lo = w[s0]
+        hi = w[s0]
+        sw = 0.0
+        sl = 0.0
+        for i in range(1, m):
+            p = s0 + ((i - 1) % n)
+            q = s0 + (i % n)
+            d = np.sqrt((pts[q, 0] - pts[p, 0]) ** 2 + (pts[q, 1] - pts[p, 1]) ** 2)
+            sw += 0.5 * (w[p] + w[q]) * d
+            sl += d
+            lo = min(lo, w[q])
+            hi = max(hi, w[q])
+        if closed[c] and hi <= ratio * lo:
+            rch[k] = c
+            rs[k] = 0
+            re[k] = n - 1
+            rlo[k] = lo
+            rmean[k] = sw / sl if sl > 0 else lo
+            rhi[k] = hi
+            rc[k] = True
+            k += 1
+            continue
+        # a run takes vertices while its widths stay within the ratio, but is never cut
+        # shorter than ``min_length`` (a tapering corner would give many tiny runs); the
+        # vertex a run shares with the previous one counts for its smallest width (a
+        # bead ends there) but not for the ratio
+        a = 0
+        lo = w[s0]
+        hi = w[s0]
+        shared = w[s0]
+        sw = 0.0
+        sl = 0.0
+        for i in range(1, m):
+            p = s0 + ((i - 1) % n)
+            q = s0 + (i % n)
+            wi = w[q]
+            if max(hi, wi) > ratio * min(lo, wi) and sl >= min_length:
+                rch[k] = c
+                rs[k] = a
+                re[k] = i - 1
+                rlo[k] = min(lo, shared)
+                rmean[k] = sw / sl if sl > 0 else lo
+                rhi[k] = hi
+                k += 1
+                a = i - 1
+                shared = w[p]
+                lo = np.inf
+                hi = 0.0
+                sw = 0.0
+                sl = 0.0
+            d = np.sqrt((pts[q, 0] - pts[p, 0]) ** 2 + (pts[q, 1] - pts[p, 1]) ** 2)
+            sw += 0.5 * (w[p] + wi) * d
+            sl += d
+            lo = min(lo, wi)
+            hi = max(hi, wi)
+        rch[k] = c
+        rs[k] = a
+        re[k] = m - 1
+        rlo[k] = min(lo, shared)
+        rmean[k] = sw / sl if sl > 0 else lo
+        rhi[k] = hi
+        k += 1
+    return rch[:k], rs[:k], re[:k], rlo[:k], rmean[:k], rhi[:k], rc[:k]
+
+
+def width_runs(chains: Sequence[tuple[np.ndarray, np.ndarray, bool]], ratio: float,
+               min_length: float = 0.0
+               ) -> list[tuple[np.ndarray, tuple[float, float, float], bool]]:
+    """Cut width-carrying polylines into runs of similar width.
+
+    chains: ``(points (k, 2) mm, width (k,) mm, closed)``, e.g. :func:`medial_axis` chains
+        with twice the clearance as width.
+    ratio: within a run the largest width is at most ``ratio`` (> 1) times the smallest,
+        unless the run is not yet ``min_length`` (mm) long (a run is never cut shorter).
+    Returns ``(points, (smallest, length-weighted mean, largest width), closed)`` runs:
+    consecutive runs of a chain share their end vertex (it counts for the smallest width
+    of both, for the ratio and the largest of the first only); a closed chain whose widths all
+    agree stays closed, any other closed chain is cut into open runs, the last of which
+    comes back to its first vertex.
+    """
+    chains = [c for c in chains if len(c[0]) >= 2]
+    if not chains:
+        return []
+    w = np.concatenate([np.asarray(c[1], dtype=np.float64) for c in chains])
+    starts = np.concatenate([[0], np.cumsum([len(c[0]) for c in chains])]).astype(np.int64)
+    closed = np.array([bool(c[2]) for c in chains])
+    pts = np.ascontiguousarray(np.concatenate([np.asarray(c[0], dtype=np.float64)
+                                               for c in chains]))
+    rch, rs, re, rlo, rmean, rhi, rc = _width_runs(pts, w, starts, closed, float(ratio),
+                                                   float(min_length))
+    out = []
+    for c, a, b, lo, mean, hi, whole in zip(rch, rs, re, rlo, rmean, rhi, rc):
+        pts = chains[c][0]
+        widths = (float(lo), float(mean), float(hi))
+        if whole:
+            out.append((pts, widths, True))
+        elif b < len(pts):
+            out.append((pts[a:b + 1], widths, False))
+        else:
+            out.append((np.vstack([pts[a:], pts[:1]]), widths, False))
+    return out
+
+
+def _seg_dist(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(n,) distances of points p (n, 2) to segments a-b (n, 2 each)."""
+    d = b - a
+    L2 = np.einsum("ij,ij->i", d, d)
+    t = np.einsum("ij,ij->i", p - a, d) / np.where(L2 > 0, L2, 1.0)
+    t = np.clip(t, 0.0, 1.0)
+    e = p - (a + t[:, None] * d)
+    return np.sqrt(np.einsum("ij,ij->i", e, e))
+
+
+def _sample_rings(rings: Sequence[np.ndarray], spacing: float):
+    """Points along flat rings at most ``spacing`` apart (every vertex among them).
+
+    Returns (samples (s, 2), edge of each sample (s,), ring vertices concatenated (v, 2),
+    the end of each vertex's edge (v, 2), the previous edge of each vertex (v,), ring of
+    each sample (s,), arc position of each sample on its ring (s,), ring lengths (r,)).
+    """
+    a = np.ascontiguousarray(np.concatenate(rings))
+    counts = np.array([len(r) for r in rings])
+    first = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    nxt = np.arange(1, len(a) + 1)
+    nxt[first + counts - 1] = first
+    prv = np.arange(-1, len(a) - 1)
+    prv[first] = first + counts - 1
+    b = a[nxt]
+    seg = np.linalg.norm(b - a, axis=1)
+    nsub = np.maximum(1, np.ceil(seg / spacing).astype(np.int64))
+    edge = np.repeat(np.arange(len(a)), nsub)
+    k = np.arange(len(edge)) - np.repeat(np.cumsum(nsub) - nsub, nsub)
+    t = k / nsub[edge]
+    P = a[edge] + t[:, None] * (b - a)[edge]
+    ring_of_edge = np.repeat(np.arange(len(rings)), counts)
+    cum = np.concatenate([[0.0], np.cumsum(seg)])
+    arc = cum[edge] - cum[first][ring_of_edge[edge]] + t * seg[edge]
+    ring_len = np.add.reduceat(seg, first)
+    return P, edge, a, b, prv, ring_of_edge[edge], arc, ring_len
+
+
+def _nearest_edge_distance(q: np.ndarray, P: np.ndarray, edge: np.ndarray, a: np.ndarray,
+                           b: np.ndarray, prv: np.ndarray, tree=None) -> np.ndarray:
+    """(n,) distance of points q (n, 2) to the ring edges, through the edges of their
+    ``NEAR_SAMPLES`` nearest samples (exact when the samples are dense enough that the
+    nearest edge point lies near one of them)."""
+    from scipy.spatial import cKDTree
+
+    tree = tree if tree is not None else cKDTree(P)
+    near = tree.query(q, k=min(NEAR_SAMPLES, len(P)))[1].reshape(len(q), -1)
+    out = np.full(len(q), np.inf)
+    for col in range(near.shape[1]):
+        e = edge[near[:, col]]
+        for ed in (e, prv[e]):
+            out = np.minimum(out, _seg_dist(q, a[ed], b[ed]))
+    return out
+
+
+def distance_to_rings(points: np.ndarray, rings: Sequence[np.ndarray],
+                      spacing: float = 0.25) -> np.ndarray:
+    """(n,) float64: distance (mm) of points (n, 2) to the nearest edge of ``rings``
+    (edges are sampled every ``spacing`` mm to find the candidates)."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    rings = [np.asarray(r, dtype=np.float64) for r in rings if len(r) >= 2]
+    if not rings or not len(pts):
+        return np.full(len(pts), np.inf)
+    P, edge, a, b, prv, _ring, _arc, _len = _sample_rings(rings, spacing)
+    return _nearest_edge_distance(pts, P, edge, a, b, prv)
+
+
+#: Jitter of the samples given to qhull by :func:`medial_axis`, mm.
+JITTER_MM = 5e-5
+#: Samples nearest a medial-axis vertex whose edges give its clearance.
+NEAR_SAMPLES = 6
+#: Two samples are on different sides of the area (their Voronoi edge is medial) when
+#: they are this many times farther apart along their ring than across: 1.2 keeps the
+#: branches into corners up to 113 degrees (1 / sin(angle / 2)).
+FAR_RATIO = 1.2
+
+
+def medial_axis(rings: Sequence[np.ndarray], spacing: float, min_radius: float = 0.0
+                ) -> list[tuple[np.ndarray, np.ndarray, bool]]:
+    """Centre lines (medial axis) of the area bounded by flat oriented rings.
+
+    The ring edges are sampled every ``spacing`` mm at most; the Voronoi vertices of the
+    samples (circumcentres of their Delaunay triangles, ``scipy.spatial.Delaunay``) that
+    lie inside the area, linked where the two samples they separate lie on different
+    rings or far apart along their ring (more than ``FAR_RATIO`` times their distance:
+    the two sides of a strip, not neighbours on one side), form the medial axis. Each vertex
+    carries its clearance: the distance to the nearest ring edge (the edges of its
+    ``NEAR_SAMPLES`` nearest samples, and the empty circle's radius). Vertices with less
+    clearance than ``min_radius`` are dropped; a branch ending in a corner is pruned when
+    the disks of its clearance lie inside the disk at its branch point (it covers
+    nothing more: branches the sampling makes, not the shape).
+
+    Returns chains ``(points (k, 2) float64 mm, clearance (k,) float64 mm, closed)``:
+    open chains end at branch points or where the clearance falls below ``min_radius``;
+    closed ones (around a hole) do not repeat their first point.
+    """
+    from scipy.spatial import Delaunay, QhullError, cKDTree
+
+    rings = [np.asarray(r, dtype=np.float64) for r in rings if len(r) >= 3]
+    if not rings or spacing <= 0:
+        return []
+    # -- sample the edges; every sample remembers its edge, ring and arc position
+    P, edge, a, b, prv, ring, arc, ring_len = _sample_rings(rings, spacing)
+    counts = np.array([len(r) for r in rings])
+    if len(P) < 4:
+        return []
+    # a fixed sub-micrometre jitter keeps qhull away from the co-circular and collinear
+    # samples (offset arcs, straight edges) where its facet merging is slow or fails
+    rng = np.random.default_rng(len(P))
+    Pj = P + rng.uniform(-JITTER_MM, JITTER_MM, P.shape)
+    try:
+        tri = Delaunay(Pj)
+    except (QhullError, ValueError):
+        return []
+    S = tri.simplices
+    N = tri.neighbors
+    # -- circumcentres and their clearance
+    pa, pb, pc = P[S[:, 0]], P[S[:, 1]], P[S[:, 2]]
+    ba, ca = pb - pa, pc - pa
+    den = 2.0 * (ba[:, 0] * ca[:, 1] - ba[:, 1] * ca[:, 0])
+    ok = np.abs(den) > 1e-12
+    den = np.where(ok, den, 1.0)
+    b2 = np.einsum("ij,ij->i", ba, ba)
+    c2 = np.einsum("ij,ij->i", ca, ca)
+    C = pa + np.c_[(ca[:, 1] * b2 - ba[:, 1] * c2) / den, (ba[:, 0] * c2 - ca[:, 0] * b2) / den]
+    R = np.linalg.norm(C - pa, axis=1)
+    starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    inside = ok & _even_odd_rows(np.ascontiguousarray(C[:, 0]), np.ascontiguousarray(C[:, 1]),
+                                 np.ascontiguousarray(a), starts)
+    idx = np.flatnonzero(inside)
+    if not len(idx):
+        return []
+    # exact clearance: distance to the ring edges of the samples nearest the centre (the
+    # nearest edge point lies within spacing / 2 of a sample, so among the nearest ones)
+    clear = R.copy()
+    clear[idx] = np.minimum(R[idx], _nearest_edge_distance(C[idx], P, edge, a, b, prv,
+                                                           cKDTree(P)))
+    good = inside & (clear >= min_radius)
+    # -- Voronoi edges between good circumcentres separating far-apart samples
+    tt = np.repeat(np.arange(len(S)), 3)
+    col = np.tile(np.arange(3), len(S))
+    uu = N.reshape(-1)
+    sel = (uu > tt) & good[tt] & good[np.maximum(uu, 0)]
+    tt, col, uu = tt[sel], col[sel], uu[sel]
+    p1 = S[tt, (col + 1) % 3]
+    p2 = S[tt, (col + 2) % 3]
+    chord = np.linalg.norm(P[p1] - P[p2], axis=1)
+    d = np.abs(arc[p1] - arc[p2])
+    d = np.minimum(d, ring_len[ring[p1]] - d)
+    far = (ring[p1] != ring[p2]) | (d > FAR_RATIO * chord + 1e-9)
+    tt, uu = tt[far], uu[far]
+    if not len(tt):
+        return []
+    verts, cstarts, cclosed = _chains(len(S), tt, uu)
+    # -- prune short branches that end in a corner (a leaf) off a branch point
+    deg = np.bincount(np.concatenate([tt, uu]), minlength=len(S))
+    drop = np.zeros(len(tt), dtype=bool)
+    pruned = False
+    for i in range(len(cstarts) - 1):
+        if cclosed[i]:
+            continue
+        ch = verts[cstarts[i]:cstarts[i + 1]]
+        d0, d1 = deg[ch[0]], deg[ch[-1]]
+        if (d0 == 1) == (d1 == 1):
+            continue
+        junction, leaf = (ch[-1], ch[0]) if d0 == 1 else (ch[0], ch[-1])
+        length = float(np.linalg.norm(np.diff(C[ch], axis=0), axis=1).sum())
+        if length + clear[leaf] < clear[junction]:  # its disks lie in the junction's
+            inner = set(ch.tolist()) - {int(junction)}
+            drop |= np.isin(tt, list(inner)) | np.isin(uu, list(inner))
+            pruned = True
+    if pruned:
+        tt, uu = tt[~drop], uu[~drop]
+        if not len(tt):
+            return []
+        verts, cstarts, cclosed = _chains(len(S), tt, uu)
+    out = []
+    for s, e, c in zip(cstarts[:-1], cstarts[1:], cclosed):
+        v = verts[s:e]
+        pts = C[v]
+        step = np.any(pts != np.roll(pts, 1, axis=0), axis=1) if c else \
+            np.concatenate([[True], np.any(pts[1:] != pts[:-1], axis=1)])
+        if step.sum() >= (3 if c else 2):
+            out.append((pts[step], clear[v][step], bool(c)))
+    return out
+
+
+@njit(cache=True)
+def _rings_holding(pts: np.ndarray, starts: np.ndarray, px: np.ndarray, py: np.ndarray
+                   ) -> np.ndarray:  # pragma: no cover - compiled
+    """(p,) int64: for every point, the ring (alone, even-odd) of least absolute area
+    that holds it, or -1."""
+    nr = len(starts) - 1
+    lo = np.empty((nr, 2))
+    hi = np.empty((nr, 2))
+    area = np.empty(nr)
+    for r in range(nr):
+        s0 = starts[r]
+        n = starts[r + 1] - s0
+        lo[r, 0] = pts[s0:s0 + n, 0].min()
+        lo[r, 1] = pts[s0:s0 + n, 1].min()
+        hi[r, 0] = pts[s0:s0 + n, 0].max()
+        hi[r, 1] = pts[s0:s0 + n, 1].max()
+        a2 = 0.0
+        for i in range(n):
+            j = (i + 1) % n
+            a2 += pts[s0 + i, 0] * pts[s0 + j, 1] - pts[s0 + j, 0] * pts[s0 + i, 1]
+        area[r] = abs(a2) / 2.0
+    out = np.full(len(px), -1, dtype=np.int64)
+    for k in range(len(px)):
+        x = px[k]
+        y = py[k]
+        best = np.inf
+        for r in range(nr):
+            if x < lo[r, 0] or x > hi[r, 0] or y < lo[r, 1] or y > hi[r, 1]:
+                continue
+            if area[r] >= best:
+                continue
+            s0 = starts[r]
+            n = starts[r + 1] - s0
+            inside = False
+            j = s0 + n - 1
+            for i in range(s0, s0 + n):
+                yi = pts[i, 1]
+                yj = pts[j, 1]
+                if (yi > y) != (yj > y):
+                    xc = pts[i, 0] + (y - yi) * (pts[j, 0] - pts[i, 0]) / (yj - yi)
+                    if x < xc:
+                        inside = not inside
+                j = i
+            if inside:
+                best = area[r]
+                out[k] = r
+    return out
+
+
+def rings_holding(rings: Sequence[np.ndarray], points: np.ndarray) -> np.ndarray:
+    """(p,) int64: for every point (p, 2) mm, the index of the smallest of ``rings`` (each
+    taken alone) that holds it, -1 for none (points on an edge may go either way)."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    if not len(rings) or not len(pts):
+        return np.full(len(pts), -1, dtype=np.int64)
+    allp = np.ascontiguousarray(np.concatenate(rings))
+    starts = np.concatenate([[0], np.cumsum([len(r) for r in rings])]).astype(np.int64)
+    return _rings_holding(allp, starts, np.ascontiguousarray(pts[:, 0]),
+                          np.ascontiguousarray(pts[:, 1]))
 
 
 def ring_areas(rings: Sequence[np.ndarray]) -> np.ndarray:
