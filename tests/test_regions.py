@@ -14,6 +14,9 @@ from icefab.types import Layer, Region, Stack
 from test_geometry import circle, check_region_structure, rect, to_shapely
 
 T = 0.25
+#: How far inside the buffer the scaffold's outer edge may lie, mm: twice the point
+#: filter (on the input and the output of the grow) plus Clipper's grid.
+SURROUND_TOL = 2 * geo.FILTER_MM + 1.0 / geo.SCALE
 
 
 def make_stack(regions: list[Region], job: Job | None = None) -> Stack:
@@ -57,8 +60,11 @@ def check_invariants(stack: Stack, surround: float | None):
         # every part of the layers above, projected down, is carried
         assert above.difference(both).area < tol_area, f"layer {k}"
         if surround is not None and not part.is_empty:
-            # the part offset by the buffer (round, the strictest) lies inside part u scaffold
-            grown = part.buffer(surround - geo.FILTER_MM - 1e-3, quad_segs=16)
+            # the part offset by the buffer (round, the strictest) lies inside part u
+            # scaffold, less SURROUND_TOL: expand() filters the merged region's rings
+            # before growing them and the grown rings after, and each chord filter moves
+            # an edge inward by at most the filter (chords cut across convex bends)
+            grown = part.buffer(surround - SURROUND_TOL, quad_segs=16)
             assert grown.difference(both).area < tol_area, f"layer {k}"
         above = above.union(part)
 
@@ -149,6 +155,22 @@ def test_subset_limits_scaffold_height():
     st_ = add_scaffold(make_stack(prism(12), job))
     assert all(layer.scaffold.is_empty for layer in st_.layers[:6])
     assert all(not layer.scaffold.is_empty for layer in st_.layers[6:])
+
+
+def test_hook_wall_only_where_the_layer_keeps_scaffold():
+    # the hook wall anchors scaffold (thesis 3.7): no scaffold, no wall room
+    job = Job().replace(**{"scaffold.hook_wall": True, "scaffold.buffer_mm": 0.0})
+    st_ = add_scaffold(make_stack(prism(24), job))  # classic support, no overhang
+    assert all(layer.scaffold.is_empty for layer in st_.layers)
+    job = Job().replace(**{"scaffold.hook_wall": True, "scaffold.subset": (0.5, 1.0)})
+    st_ = add_scaffold(make_stack(prism(24), job))
+    assert all(layer.scaffold.is_empty for layer in st_.layers[:12])
+    assert all(not layer.scaffold.is_empty for layer in st_.layers[12:])
+    # where the layer keeps scaffold the wall's band is added (layers 0-19)
+    st_ = add_scaffold(make_stack(prism(24), job.replace(**{"scaffold.subset": (0.0, 1.0)})))
+    plain = add_scaffold(make_stack(prism(24), Job()))
+    assert st_.layers[5].scaffold.area > plain.layers[5].scaffold.area + 50
+    assert st_.layers[22].scaffold.area == pytest.approx(plain.layers[22].scaffold.area)
 
 
 def test_disabled_gives_empty_scaffold():

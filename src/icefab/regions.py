@@ -23,10 +23,17 @@ Algorithm (thesis 3.3, RPSCAF):
    ``min_width``) is removed too; ``min_width_mm = 0`` keeps everything.
 6. Thin part features (narrower than the part path width) are reported in
    ``Stack.warnings`` with their layer and location, not silently lost.
-7. Ice hook wall (thesis 3.7, Fig. 3-8): on layers 0-19 the scaffold is grown outward by
-   the band the two-ring wall takes (``icefab.paths.hook_band_mm(2)``), so the wall does
-   not eat into the surround, cannot merge with the part, and the outline does not step
-   out at layer 10; the rings themselves are made by ``icefab.paths``.
+7. Ice hook wall (thesis 3.7, Fig. 3-8): on layers 0-19 that keep scaffold (inside the
+   subset, and with some scaffold at all) the scaffold is grown outward by the band the
+   two-ring wall takes (``icefab.paths.hook_band_mm(2)``), so the wall does not eat into
+   the surround, cannot merge with the part, and the outline does not step out at layer
+   10; the rings themselves are made by ``icefab.paths``. The wall anchors scaffold: a
+   layer without scaffold gets none.
+
+The full surround is whole up to twice the point filter: ``expand`` filters the merged
+region's rings before growing them and the grown rings after, and each filter moves an
+edge inward by at most ``max_filter_deviation_mm`` (its chords cut across convex bends),
+so the scaffold's outer edge lies at least ``buffer - 2 * filter`` from the part.
 
 Degenerate cases: empty layers (no part) take the merged region of the layers above
 unchanged (scaffold columns pass through them); an empty stack returns unchanged. Slicer
@@ -290,7 +297,9 @@ def _hook_wall_room(parts: list[Region], scaffolds: list[Region], indices: list[
     out = list(scaffolds)
     band = hook_band_mm(2, job.materials.scaffold)
     for k, index in enumerate(indices):
-        if index >= 20 or (parts[k].is_empty and scaffolds[k].is_empty):
+        # only where the layer keeps scaffold: not outside the scaffolding subset, not
+        # where there is none (classic support on a part without overhang)
+        if index >= 20 or scaffolds[k].is_empty:
             continue
         both = geo.union(parts[k], scaffolds[k])
         grown = geo.expand(both, band, filt)
