@@ -1042,7 +1042,8 @@ def medial_axis(rings: Sequence[np.ndarray], spacing: float, min_radius: float =
     ``NEAR_SAMPLES`` nearest samples, and the empty circle's radius). Vertices with less
     clearance than ``min_radius`` are dropped; a branch ending in a corner is pruned when
     the disks of its clearance lie inside the disk at its branch point (it covers
-    nothing more: branches the sampling makes, not the shape).
+    nothing more: branches the sampling makes, not the shape), but every branch point
+    keeps two branches.
 
     Returns chains ``(points (k, 2) float64 mm, clearance (k,) float64 mm, closed)``:
     open chains end at branch points or where the clearance falls below ``min_radius``;
@@ -1081,7 +1082,7 @@ def medial_axis(rings: Sequence[np.ndarray], spacing: float, min_radius: float =
     starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     inside = ok & _even_odd_rows(np.ascontiguousarray(C[:, 0]), np.ascontiguousarray(C[:, 1]),
                                  np.ascontiguousarray(a), starts)
-    idx = np.flatnonzero(inside)
+    idx = np.flatnonzero(inside & (R >= min_radius))  # R bounds the clearance from above
     if not len(idx):
         return []
     # exact clearance: distance to the ring edges of the samples nearest the centre (the
@@ -1089,7 +1090,8 @@ def medial_axis(rings: Sequence[np.ndarray], spacing: float, min_radius: float =
     clear = R.copy()
     clear[idx] = np.minimum(R[idx], _nearest_edge_distance(C[idx], P, edge, a, b, prv,
                                                            cKDTree(P)))
-    good = inside & (clear >= min_radius)
+    good = np.zeros(len(S), dtype=bool)
+    good[idx] = clear[idx] >= min_radius
     # -- Voronoi edges between good circumcentres separating far-apart samples
     tt = np.repeat(np.arange(len(S)), 3)
     col = np.tile(np.arange(3), len(S))
@@ -1106,10 +1108,12 @@ def medial_axis(rings: Sequence[np.ndarray], spacing: float, min_radius: float =
     if not len(tt):
         return []
     verts, cstarts, cclosed = _chains(len(S), tt, uu)
-    # -- prune short branches that end in a corner (a leaf) off a branch point
+    # -- prune short branches that end in a corner (a leaf) off a branch point; a branch
+    # point keeps two branches at least (the longest), so a pocket keeps its axis
     deg = np.bincount(np.concatenate([tt, uu]), minlength=len(S))
     drop = np.zeros(len(tt), dtype=bool)
     pruned = False
+    prunable: dict[int, list[tuple[float, np.ndarray]]] = {}
     for i in range(len(cstarts) - 1):
         if cclosed[i]:
             continue
@@ -1119,9 +1123,14 @@ def medial_axis(rings: Sequence[np.ndarray], spacing: float, min_radius: float =
             continue
         junction, leaf = (ch[-1], ch[0]) if d0 == 1 else (ch[0], ch[-1])
         length = float(np.linalg.norm(np.diff(C[ch], axis=0), axis=1).sum())
-        if length + clear[leaf] < clear[junction]:  # its disks lie in the junction's
-            inner = set(ch.tolist()) - {int(junction)}
-            drop |= np.isin(tt, list(inner)) | np.isin(uu, list(inner))
+        # its disks lie in the junction's disk: it covers nothing more
+        if length + clear[leaf] < clear[junction]:
+            prunable.setdefault(int(junction), []).append((length, ch))
+    for junction, branches in prunable.items():
+        branches.sort(key=lambda b: b[0])
+        for _length, ch in branches[:max(0, int(deg[junction]) - 2)]:
+            inner = ch[ch != junction]
+            drop |= np.isin(tt, inner) | np.isin(uu, inner)
             pruned = True
     if pruned:
         tt, uu = tt[~drop], uu[~drop]
@@ -1130,13 +1139,43 @@ def medial_axis(rings: Sequence[np.ndarray], spacing: float, min_radius: float =
         verts, cstarts, cclosed = _chains(len(S), tt, uu)
     out = []
     for s, e, c in zip(cstarts[:-1], cstarts[1:], cclosed):
-        v = verts[s:e]
-        pts = C[v]
-        step = np.any(pts != np.roll(pts, 1, axis=0), axis=1) if c else \
-            np.concatenate([[True], np.any(pts[1:] != pts[:-1], axis=1)])
-        if step.sum() >= (3 if c else 2):
-            out.append((pts[step], clear[v][step], bool(c)))
+        v = _no_backtrack(C, verts[s:e], bool(c))
+        if len(v) >= (3 if c else 2):
+            out.append((C[v], clear[v], bool(c)))
     return out
+
+
+def _no_backtrack(C: np.ndarray, v: np.ndarray, closed: bool) -> np.ndarray:
+    """The vertices ``v`` of a chain without repeated points and without the ones where it
+    turns back (by more than 120 degrees): circumcentres of neighbouring triangles may step
+    back a little along a strip whose two sides are sampled at different spacings, and a
+    line doubling back on itself is not simple. End points of open chains stay."""
+    for _ in range(64):
+        p = C[v]
+        if len(v) < 3:
+            return v
+        prev = np.roll(p, 1, axis=0)
+        nxt = np.roll(p, -1, axis=0)
+        a = p - prev
+        b = nxt - p
+        same = ~np.any(a, axis=1)  # a repeated point
+        back = np.einsum("ij,ij->i", a, b) < -0.5 * np.linalg.norm(a, axis=1) * \
+            np.linalg.norm(b, axis=1)
+        bad = same | back
+        if not closed:
+            bad[0] = bad[-1] = False
+        if not bad.any():
+            return v
+        # drop every other flagged vertex at most, so two neighbours are not both lost
+        idx = np.flatnonzero(bad)
+        keep_flag = np.ones(len(v), dtype=bool)
+        last = -2
+        for i in idx:
+            if i != last + 1:
+                keep_flag[i] = False
+                last = i
+        v = v[keep_flag]
+    return v
 
 
 @njit(cache=True)

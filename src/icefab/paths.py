@@ -12,7 +12,9 @@ From a ``Stack`` with part and scaffold regions to ordered ``Path``s per layer:
   ``max(initial_offset - path_width/2, 0)``):
 
   - ``concentric``: rings at ``e + F/2``, then every ``F`` (fill width) inward until
-    nothing is left (iterative Clipper offsets, points filtered after each);
+    nothing is left (iterative Clipper offsets, points filtered after each); a ring
+    never gets a path wider than its room: the innermost rings are cut to the part of
+    their area at least ``F`` wide (:func:`_with_room`), the rest goes to the gap fill;
   - ``zigzag``: parallel lines at ``fill_angle_deg`` spaced ``F``, clipped to the region
     shrunk by ``e + F/2``, consecutive lines linked where the link stays inside;
   - ``raster``: the same lines unlinked, each its own path (the thesis' ZZFILL);
@@ -21,14 +23,21 @@ From a ``Stack`` with part and scaffold regions to ordered ``Path``s per layer:
     (eqs. 8-18, :func:`jin_segment_time`);
   - ``none``.
 
-  Gap fill (``gap_fill``, on by default; not in the thesis): what the paths leave of the
-  region is filled with rings of the boundary width where it is wider than that, and with
-  one ring of the gap's own width (less flow) along gaps between 0.3 and 1 path width
-  (e.g. the middle of a 4 mm wall). The rest of the *nominal* area (the region shrunk by
-  ``max(initial_offset - path_width/2, 0)``: the calibrated edge strip of the scaffold is
-  empty on purpose) that no path sweeps is reported in ``LayerPaths.unfilled_mm2``
-  (paths swept with mitred corners and round ends; gaps narrower than twice the point
-  filter + ``SWEEP_TOL`` are not counted).
+  Gap fill (``gap_fill``, on by default; not in the thesis; :func:`gap_fill_paths`):
+  what the paths leave of the region gets rings of the boundary width where it has room
+  for two, one ring in each pocket, and paths along the centre line of the remaining
+  strips, as wide as the strip (less width, less flow; e.g. between the two scaffold
+  boundaries where the surround is a little wider than they take, or the middle of a
+  thin wall). Strips narrower than ``THIN_GAP_MIN`` path widths get nothing. The rest of
+  the *nominal* area (the region shrunk by ``max(initial_offset - path_width/2, 0)``: the
+  calibrated edge strip of the scaffold is empty on purpose) that no path sweeps is
+  reported in ``LayerPaths.unfilled_mm2`` (paths swept with mitred corners and round ends;
+  gaps narrower than twice the point filter + ``SWEEP_TOL`` are not counted). What the
+  paths cover: at least 97 % of the nominal area, not counting the parts of the region
+  narrower than the path width (part features so thin are reported by ``add_scaffold``;
+  tested on every layer of the real meshes).
+* No deposition path crosses or touches itself (the point filter keeps rings simple,
+  :func:`icefab.geometry.simplify`; centre lines never double back).
 * Measurement paths (thesis 5.2.1): on layers with ``(index + 1) % interval_layers == 0``,
   concentric rings over each material's region (shrunk by half the measurement spacing,
   then every spacing), role "measure", one material per path, given for the laser tool.
@@ -138,17 +147,70 @@ def boundary_rings(region: Region, mat: MaterialSettings, filt: float) -> list[l
 
 
 def concentric_rings(region: Region, start_mm: float, step_mm: float, filt: float,
-                     max_rings: int = 100_000) -> list[list[np.ndarray]]:
+                     max_rings: int = 100_000, width_mm: float = 0.0
+                     ) -> list[list[np.ndarray]]:
     """Rings of ``region`` shrunk by ``start_mm``, then every ``step_mm`` until empty.
 
+    width_mm: the width of the paths along the rings; when > 0 every ring is given room
+        for it (:func:`_with_room`): a ring whose area is narrower than the path would
+        overlap itself.
     Returns one list of (k, 2) float64 rings (mm) per offset level, outermost first.
     """
     out: list[list[np.ndarray]] = []
     rings = geo.offset_rings(list(region.rings), -start_mm, filt)
     while rings and len(out) < max_rings:
-        out.append(rings)
-        rings = geo.offset_rings(rings, -step_mm, filt)
+        nxt = geo.offset_rings(rings, -step_mm, filt)
+        if width_mm > 0:
+            rings = _with_room(rings, nxt, width_mm, filt)
+        if rings:
+            out.append(rings)
+        rings = nxt
     return out
+
+
+def _with_room(rings: list[np.ndarray], inner: list[np.ndarray], width: float, filt: float
+               ) -> list[np.ndarray]:
+    """The rings of one offset level, with room for a path of ``width`` along them.
+
+    A ring's path reaches ``width / 2`` into the area the ring bounds; where that area is
+    narrower than ``width``, the path from one side overlaps the path from the other
+    (twice the material on a strip: issue 3's "no ring wider than its room"). The
+    innermost polygons of the level (outer rings holding no ring of the next level
+    ``inner``, with their holes) are replaced by their opening by ``width / 2``: what is
+    narrower than ``width`` is cut away (the gap fill takes it, with paths of its own
+    width), what is left holds a disk of diameter ``width`` under every point of its
+    path. Polygons holding a next-level ring are at least ``2 step`` wide somewhere and
+    keep their ring as it is (a neck narrower than the path between two wide parts of
+    one ring is not detected).
+    """
+    areas = geo.ring_areas(rings)
+    outer = np.flatnonzero(areas > 0)
+    if not len(outer):
+        return rings
+    outer_rings = [rings[i] for i in outer]
+    has_child = np.zeros(len(outer), dtype=bool)
+    if inner:
+        holder = geo.rings_holding(outer_rings, np.array([r[0] for r in inner]))
+        has_child[holder[holder >= 0]] = True
+    if has_child.all():
+        return rings
+    narrow = set(outer[~has_child].tolist())
+    holes = np.flatnonzero(areas < 0)
+    if len(holes):
+        holder = geo.rings_holding(outer_rings, np.array([rings[h][0] for h in holes]))
+        narrow.update(int(h) for h, o in zip(holes, holder) if o >= 0 and not has_child[o])
+    group = [rings[i] for i in sorted(narrow)]
+    h = width / 2.0
+    opened = geo.offset_rings(geo.offset_rings(group, -h, filt), h, filt)
+    if opened:
+        # clipped to what it was cut from: the mitred growth back re-sharpens corners the
+        # offsets had squared off (beyond the miter limit), which stick out; slivers the
+        # clipping leaves (no room) are dropped
+        opened = [r for r in geo.intersection(opened, group).rings
+                  if signed_area(r) < -geo.MIN_RING_AREA
+                  or (signed_area(r) > geo.MIN_RING_AREA
+                      and geo.offset_rings([r], -0.49 * width, 0.0))]
+    return [r for i, r in enumerate(rings) if i not in narrow] + opened
 
 
 def _rotate(pts: np.ndarray, angle: float) -> np.ndarray:
@@ -315,11 +377,12 @@ def fill_levels(region: Region, mat: MaterialSettings, job: Job
     if pattern == "none" or region.is_empty:
         return [], [], math.nan
     if pattern == "concentric":
-        return concentric_rings(region, e + F / 2.0, F, filt), [], math.nan
+        return concentric_rings(region, e + F / 2.0, F, filt, width_mm=F), [], math.nan
     levels: list[list[np.ndarray]] = []
     start = e + F / 2.0
     if pattern == "hybrid" and mat.hybrid_rings > 0:
-        levels = concentric_rings(region, start, F, filt, max_rings=mat.hybrid_rings)
+        levels = concentric_rings(region, start, F, filt, max_rings=mat.hybrid_rings,
+                                  width_mm=F)
         start += mat.hybrid_rings * F
     inner = geo.shrink(region, start, filt)
     if inner.is_empty:
@@ -510,52 +573,181 @@ def material_paths(region: Region, mat: MaterialSettings, job: Job, hook_levels:
                              tol)
     gaps = geo.difference_rings(nominal, bands)
     if mat.gap_fill and gaps:
-        extra = [(r, True, w) for r in geo.offset_rings(gaps, -w / 2.0, filt)]
-        if extra:
-            gaps = geo.difference_rings(gaps, geo.sweep_rings(extra, tol))
-        thin = _thin_gap_rings(gaps, w, filt)
-        if thin:
-            gaps = geo.difference_rings(gaps, geo.sweep_rings(thin, tol))
-        out["fill"] += extra + thin
+        extra, gaps = gap_fill_paths(gaps, nominal, mat, filt, whole)
+        out["fill"] += extra
     return out, hook, max(geo.area(gaps), 0.0)
 
 
 #: Growth of swept bands when measuring gaps, mm, on top of the point filter (closes
 #: slivers between touching bands; gaps narrower than twice the total are not counted).
 SWEEP_TOL = 0.005
-#: Gaps narrower than this fraction of the path width are left (and reported).
-THIN_GAP_MIN = 0.3
+#: Gaps narrower than this fraction of the path width get no path (and are reported).
+THIN_GAP_MIN = 0.1
+#: Gap paths along a centre line: a run's widest point is at most this many times its
+#: narrowest (unless the run is short, ``GAP_MIN_RUN_MM``), and its width is its widest,
+#: at most this many times its length-weighted mean width: a run covers its strip and
+#: deposits at most 30 % more than the strip holds (where the strip narrows, the bead
+#: overlaps its neighbours, as slicers' gap fill does; never beyond the region).
+GAP_RUN_RATIO = 1.3
+#: Runs are not cut shorter than this (mm): a strip whose width wobbles would give many
+#: tiny paths, each a stop of the robot.
+GAP_MIN_RUN_MM = 1.0
+#: Open gap paths sweeping less than this area (mm^2) are left out.
+GAP_MIN_AREA_MM2 = 0.05
+#: Gap pieces at least this round (isoperimetric ratio ``4 pi A / P^2``: 1 for a disk,
+#: 0.6 for an equilateral triangle, 0.35 for a 6:1 rectangle) are pockets, filled with one
+#: ring rather than along their centre line.
+GAP_BLOB_ROUNDNESS = 0.35
 
 
-def _thin_gap_rings(gaps: list[np.ndarray], w: float, filt: float
-                    ) -> list[tuple[np.ndarray, bool, float]]:
-    """One ring along the middle of every gap narrower than the path width ``w``, with the
-    gap's width as path width (less flow; e.g. the middle of a wall too thin for a fill
-    ring). The width of a gap piece is estimated as ``2 area / perimeter`` (a strip); the
-    ring is its counter-clockwise offset at 0.45 of that width, so an annular gap gets one
-    ring, not two. Pieces smaller than ``w^2/2`` or narrower than ``THIN_GAP_MIN * w``
-    are left (rings under ``0.1 w^2`` are ignored when grouping the gap rings into pieces).
-    gaps: flat oriented rings (mm)."""
+def gap_fill_paths(gaps: list[np.ndarray], nominal: Region, mat: MaterialSettings,
+                   filt: float, region: Region | None = None
+                   ) -> tuple[list[tuple[np.ndarray, bool, float]], list[np.ndarray]]:
+    """Paths for the gaps the boundaries and the fill leave (not in the thesis).
+
+    1. Where a gap has room for two beads of the path width ``w``: one ring ``w / 2``
+       inside its edge, with room (:func:`_with_room`: nowhere narrower than ``w``).
+    2. Pockets (round gap pieces, ``GAP_BLOB_ROUNDNESS``): one ring about as wide as the
+       pocket's inradius (``0.8 * 2 A / P``), half that inside its edge, with room.
+    3. What is left (strips: between two boundaries a little apart, in the middle of the
+       last fill ring, along the tips of the fill) is filled along its centre line
+       (medial axis, :func:`icefab.geometry.medial_axis`), the path width following the
+       local width of the strip (twice the clearance, at most ``max(w, fill width)``;
+       less width, less flow), in runs of similar width (``GAP_RUN_RATIO``,
+       ``GAP_MIN_RUN_MM``); never nearer the edge of ``region`` than half its width
+       (less the point filter). No ring doubles back on itself: the strips that offset
+       rings would cover twice get one centre line.
+
+    Gaps (or parts of gaps) narrower than ``THIN_GAP_MIN * w`` get no path and are
+    returned, with every other bit no path sweeps, as the unfilled remainder.
+
+    gaps: flat oriented rings (mm), the nominal area minus the bands already swept grown
+        by ``filt + SWEEP_TOL`` (so touching bands leave no slivers).
+    nominal: the nominal area (the paths stay in it).
+    Returns (paths ``(points, closed, width)``, remaining gaps as flat oriented rings).
+    """
+    w = mat.path_width_mm
+    tol = filt + SWEEP_TOL
+    w_min = THIN_GAP_MIN * w
+    w_max = max(w, mat.fill_width_mm)
+    paths: list[tuple[np.ndarray, bool, float]] = []
+
+    def take(new: list[tuple[np.ndarray, bool, float]]) -> None:
+        nonlocal gaps
+        if new:
+            paths.extend(new)
+            gaps = geo.difference_rings(gaps, geo.sweep_rings(new, tol))
+
+    rings = geo.offset_rings(gaps, -w / 2.0, filt)
+    take([(r, True, w) for r in _with_room(rings, [], w, filt)] if rings else [])
+    if gaps:
+        take(_pocket_rings(gaps, w_min, w, filt))
+    if gaps and geo.area(gaps) >= w_min * w_min:
+        # the gap before the bands' growth by tol: where the paths may go
+        room = geo.intersection(geo.offset_rings(gaps, tol, 0.0), nominal)
+        take(centre_paths(list(room.rings), w_min, w_max, filt, region))
+    return paths, gaps
+
+
+def _pocket_rings(gaps: list[np.ndarray], w_min: float, w_max: float, filt: float
+                  ) -> list[tuple[np.ndarray, bool, float]]:
+    """One ring in every round gap piece (see :func:`gap_fill_paths`, step 2); slivers
+    narrower than ``w_min`` (no path goes there) do not join pockets into one piece."""
     out: list[tuple[np.ndarray, bool, float]] = []
-    if not gaps:
-        return out
-    areas = geo.ring_areas(gaps)
-    big = [r for r, a in zip(gaps, areas) if abs(a) >= 0.1 * w * w]
-    if not big:
-        return out
-    for poly in geo.region_from_rings(big).polygons():
-        a = sum(signed_area(r) for r in poly)
-        if a < 0.5 * w * w:
+    pieces = geo.region_from_rings(gaps)
+    for poly in geo.intersection(geo.opening(pieces, w_min / 2.0, 0.0), pieces).polygons():
+        A = sum(signed_area(r) for r in poly)
+        P = sum(float(np.linalg.norm(np.diff(np.vstack([r, r[:1]]), axis=0), axis=1).sum())
+                for r in poly)
+        if A <= 0 or 4.0 * math.pi * A / P ** 2 < GAP_BLOB_ROUNDNESS:
             continue
-        perim = sum(float(np.linalg.norm(np.diff(np.vstack([r, r[:1]]), axis=0), axis=1).sum())
-                    for r in poly)
-        width = 2.0 * a / perim
-        if width < THIN_GAP_MIN * w:
+        # 2 A / P is the inradius of a polygon with an incircle and overestimates it
+        # for others (by 22 % for a half disk): the ring's room is checked anyway
+        wb = min(0.8 * 2.0 * A / P, w_max)
+        if wb < w_min:
             continue
-        width = min(width, w)
-        rings = geo.offset_rings(poly, -0.45 * width, filt)
-        out.extend((r, True, width) for r in rings if signed_area(r) > 0)
+        rings = geo.offset_rings(list(poly), -wb / 2.0, filt)
+        if rings:
+            out += [(r, True, wb) for r in _with_room(rings, [], wb, filt)]
     return out
+
+
+def centre_paths(rings: list[np.ndarray], w_min: float, w_max: float, filt: float,
+                 region: Region | None = None) -> list[tuple[np.ndarray, bool, float]]:
+    """Paths along the centre line of a thin area, about as wide as the area (see
+    :func:`gap_fill_paths`, step 3): ``(points (k, 2) mm, closed, width mm)``.
+
+    rings: flat oriented rings bounding the area. Parts narrower than ``w_min`` get no
+    path; widths are capped at ``w_max``, and at twice the distance to the edge of
+    ``region`` (the paths' region; less the filter's deviation) when given.
+    """
+    if not rings:
+        return []
+    perim = sum(float(np.linalg.norm(np.diff(np.vstack([r, r[:1]]), axis=0), axis=1).sum())
+                for r in rings)
+    typical = 2.0 * max(geo.area(rings), 0.0) / max(perim, 1e-12)  # a strip's width
+    spacing = float(np.clip(typical / 3.0, w_min / 3.0, w_max / 4.0))
+    chains = geo.medial_axis(rings, spacing, w_min / 2.0)
+    runs = geo.width_runs([(p, np.minimum(2.0 * r, w_max), c) for p, r, c in chains],
+                          GAP_RUN_RATIO, GAP_MIN_RUN_MM)
+    if not runs:
+        return []
+    lo, mean, hi = np.array([r[1] for r in runs]).T
+    widths = np.minimum(hi, GAP_RUN_RATIO * mean)
+    eps = np.minimum(0.5 * filt, 0.1 * widths)
+    keep = widths >= w_min
+    pts = [r[0] for r in runs]
+    closed = np.array([r[2] for r in runs])
+    idx = np.flatnonzero(keep & ~closed)
+    if len(idx):
+        for i, ln in zip(idx, geo.simplify_open([pts[i] for i in idx], eps[idx])):
+            pts[i] = ln
+    for i in np.flatnonzero(keep & closed):
+        f = geo.simplify([pts[i]], float(eps[i]))
+        pts[i] = f[0] if len(f) == 1 else pts[i]
+    if region is not None and not region.is_empty and keep.any():
+        # never nearer the region's edge than half the width: the distance of the paths
+        # as filtered, sampled every quarter millimetre
+        idx = np.flatnonzero(keep)
+        dense, owner = _densify([pts[i] for i in idx], closed[idx], 0.25)
+        d = geo.distance_to_rings(dense, list(region.rings))
+        dmin = np.full(len(idx), np.inf)
+        np.minimum.at(dmin, owner, d)
+        widths[idx] = np.minimum(widths[idx], 2.0 * dmin)
+        keep = widths >= w_min
+    out: list[tuple[np.ndarray, bool, float]] = []
+    for i in np.flatnonzero(keep):
+        p = pts[i]
+        if closed[i]:
+            # a centre line around a hole narrower than the path would overlap itself
+            if signed_area(p) > 0 and not geo.offset_rings([p], -0.49 * widths[i], 0.0):
+                continue
+            out.append((p, True, float(widths[i])))
+            continue
+        length = float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
+        if length > 1e-3 and length * widths[i] + math.pi / 4.0 * widths[i] ** 2 \
+                >= GAP_MIN_AREA_MM2:
+            out.append((p, False, float(widths[i])))
+    return out
+
+
+def _densify(lines: list[np.ndarray], closed: np.ndarray, step: float
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """Points along polylines (closed ones back to their first point) at most ``step``
+    apart, and the index of the polyline each belongs to."""
+    polys = [np.vstack([p, p[:1]]) if c else p for p, c in zip(lines, closed)]
+    n_pts = np.array([len(p) for p in polys])
+    allp = np.concatenate(polys)
+    owner_pt = np.repeat(np.arange(len(polys)), n_pts)
+    a, b = allp[:-1], allp[1:]
+    same = owner_pt[:-1] == owner_pt[1:]  # segments inside one polyline
+    a, b, own = a[same], b[same], owner_pt[:-1][same]
+    seg = np.linalg.norm(b - a, axis=1)
+    n = np.maximum(1, np.ceil(seg / step).astype(np.int64))
+    i = np.repeat(np.arange(len(seg)), n)
+    t = (np.arange(len(i)) - np.repeat(np.cumsum(n) - n, n)) / n[i]
+    pts = np.vstack([a[i] + t[:, None] * (b - a)[i], allp])
+    return pts, np.concatenate([own[i], owner_pt])
 
 
 def plan_layer(layer: Layer, job: Job) -> LayerPaths:
