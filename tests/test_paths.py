@@ -14,8 +14,8 @@ from icefab import geometry as geo
 from icefab.config import Job
 from icefab.errors import StackFileError
 from icefab.paths import (OFF, ON1, ON2, SWEEP_TOL, deposition_state, estimate_build_time,
-                          jin_segment_time, load_toolpaths, order_nearest, plan_layer,
-                          plan_paths, save_toolpaths, to_base_frame)
+                          jin_segment_time, layer_point_states, load_toolpaths, order_nearest,
+                          plan_layer, plan_paths, point_states, save_toolpaths, to_base_frame)
 from icefab.regions import add_scaffold
 from icefab.types import Layer, LayerPaths, Path, Region, Toolpaths, signed_area
 from test_geometry import (check_region_structure, polygon_with_holes, rect,
@@ -256,6 +256,55 @@ def test_base_frame_sign_convention():
     assert np.allclose(to_base_frame(p, "part", job), [[260.1, -99.7], [270.1, -94.7]])
     assert np.allclose(to_base_frame(p, "scaffold", job)[0], [259.8, -108.2])
     assert np.allclose(to_base_frame(p, "laser", job)[0], [290.0, -119.0])
+    # the EE carries the tools: EE position + tool offset (Table 3-1: the tool frame's
+    # origin in the EE frame) is the same base point for every tool, ee_origin + p
+    for tool in ("part", "scaffold", "laser"):
+        off = np.asarray(job.materials[tool].nozzle_offset_mm if tool != "laser"
+                         else job.cell.laser_offset_mm)
+        assert np.allclose(to_base_frame(p, tool, job) + off, p + [260.0, -100.0])
+
+
+def test_per_point_states_in_layer_order_and_in_the_file(tmp_path):
+    job = Job().replace(**{"feedback.interval_layers": 1})
+    st_ = add_scaffold(make_stack(table(2, 1), job))
+    tp = plan_paths(st_, job)
+    lp = tp.layers[0]
+    pts, states = layer_point_states(lp)
+    assert pts.shape == (sum(len(p.points) + p.closed for p in lp.paths), 2)
+    assert states.dtype == np.int8 and set(states.tolist()) == {OFF, ON1, ON2}
+    k = 0
+    for p in lp.paths:
+        n = len(p.points) + p.closed
+        seg = states[k:k + n]
+        assert np.array_equal(pts[k:k + len(p.points)], p.points)
+        # every path ends on a point whose segment does not deposit (Ossino 6)
+        assert seg[-1] == OFF
+        expect = {"part": ON1, "scaffold": ON2}[p.material] if p.depositing else OFF
+        assert (seg[:-1] == expect).all()
+        if p.closed:  # closed: back to the first point
+            assert np.array_equal(pts[k + n - 1], p.points[0])
+        k += n
+    # the file stores the state of every point, aligned with its points
+    f = tmp_path / "tp.npz"
+    save_toolpaths(tp, f)
+    with np.load(f) as d:
+        assert d["state"].shape == (len(d["points"]),) and d["state"].dtype == np.int8
+        data = {key: d[key] for key in d.files}
+        first = d["path_start"][:len(lp.paths) + 1]
+    for i, p in enumerate(lp.paths):
+        st = data["state"][first[i]:first[i + 1]]
+        assert np.array_equal(st, point_states(p))
+        assert st[-1] == (deposition_state(p) if p.closed else OFF)
+    load_toolpaths(f)
+    # a state that disagrees with its path is a corrupt file; version 1 files still load
+    bad = dict(data, state=np.where(data["state"] == ON1, ON2, data["state"]).astype(np.int8))
+    np.savez(tmp_path / "bad.npz", **bad)
+    with pytest.raises(StackFileError, match="states disagree"):
+        load_toolpaths(tmp_path / "bad.npz")
+    old = {key: v for key, v in data.items() if key != "state"}
+    old["version"] = np.array(1)
+    np.savez(tmp_path / "v1.npz", **old)
+    assert len(load_toolpaths(tmp_path / "v1.npz")) == len(tp)
 
 
 def test_deposition_states_and_order():

@@ -52,8 +52,10 @@ From a ``Stack`` with part and scaffold regions to ordered ``Path``s per layer:
   for the tool of the path that follows it; when the tool changes, its first point is the
   previous end point shifted by the difference of the two tool offsets, so the end effector
   moves continuously in the base frame.
-* Deposition state per point (Ossino 6): ON1 (part), ON2 (scaffold) or OFF, from
-  ``Path.depositing`` and ``Path.material``: :func:`deposition_state`.
+* Deposition state per point (Ossino 6): ON1 (part), ON2 (scaffold) or OFF, the state
+  of the segment leaving the point: :func:`point_states` (one path),
+  :func:`layer_point_states` (a layer's points in order, with states), stored per point
+  in the toolpath file (``state``).
 """
 
 from __future__ import annotations
@@ -108,16 +110,64 @@ def to_base_frame(points: np.ndarray, tool: str, job: Job) -> np.ndarray:
     tool's frame *in the EE frame* (the EE keeps a constant orientation, joint 4). A tool
     at EE position ``E`` is therefore at ``E + offset``; to put it at the part point ``p``
     (base point ``p + ee_origin``) the EE moves to ``p + ee_origin - offset``.
+
+    Why this sign: the EE frame moves with the end effector (4.1: joint 4 keeps its
+    orientation; "the two deposition nozzles and the laser displacement sensor ... are
+    all offset from the Joint 4 axis", Fig. 4-1), so a frame whose origin has fixed
+    coordinates in it is carried by the EE: the water, scaffold and laser frames are the
+    tool points (4.2.1: measurement paths are the deposition paths "offset to the
+    coordinate frame of the laser emission point"). Reading Table 3-1 instead as fixed
+    building frames placed at ``ee_origin + offset`` (``p + ee_origin + offset``) would
+    put the scaffold 2 x (0.3, 8.5) mm (about 17 mm) away from the water for the same
+    part point, since the EE carries both nozzles.
     """
     pts = np.asarray(points, dtype=np.float64)
     return pts + (np.asarray(job.cell.ee_origin_mm, dtype=np.float64) - tool_offset(tool, job))
 
 
 def deposition_state(path: Path) -> int:
-    """Ossino's state of every point of a path: ON1 (1, part), ON2 (2, scaffold), OFF (0)."""
+    """Ossino's state of a path's deposition: ON1 (1, part), ON2 (2, scaffold), OFF (0)."""
     if not path.depositing:
         return OFF
     return ON1 if path.material == "part" else ON2
+
+
+def point_states(path: Path) -> np.ndarray:
+    """(k,) int8: Ossino's state of every point of a path (Ossino 6), the state of the
+    segment that leaves the point along the path: :func:`deposition_state` at every point
+    of a depositing path but the last point of an open one (OFF: nothing follows on the
+    path); a closed path's last point leads back to its first (its closing edge
+    deposits). Travel and measurement paths: OFF throughout."""
+    out = np.full(len(path.points), deposition_state(path), dtype=np.int8)
+    if len(out) and not path.closed:
+        out[-1] = OFF
+    return out
+
+
+def layer_point_states(layer: LayerPaths) -> tuple[np.ndarray, np.ndarray]:
+    """A layer's points in the order the tools visit them, with Ossino's state of each.
+
+    Returns (points (N, 2) float64 mm, states (N,) int8): the points of every path in
+    order (travel paths included), a closed path followed by its first point again;
+    ``states[i]`` is the state of the segment from point i to point i + 1 (ON1 part,
+    ON2 scaffold, OFF), so the end point of every path marks the start of a segment that
+    does not deposit (Ossino 6: "the end-point of every closed contour must mark the
+    start of a non-depositing segment"). Points are in the part frame of the tool that
+    follows their path (``Path.tool_name``; :func:`to_base_frame`).
+    """
+    pts: list[np.ndarray] = []
+    states: list[np.ndarray] = []
+    for p in layer.paths:
+        st = point_states(p)
+        if p.closed and len(p.points):
+            pts.append(np.vstack([p.points, p.points[:1]]))
+            states.append(np.append(st, np.int8(OFF)))
+        else:
+            pts.append(p.points)
+            states.append(st)
+    if not pts:
+        return np.zeros((0, 2)), np.zeros(0, dtype=np.int8)
+    return np.concatenate(pts).astype(np.float64), np.concatenate(states).astype(np.int8)
 
 
 # --------------------------------------------------------------------------- fill pieces
@@ -887,7 +937,7 @@ def estimate_build_time(toolpaths: Toolpaths, job: Job | None = None
 
 #: Format of ``save_toolpaths`` files.
 FORMAT = "icefab-toolpaths"
-VERSION = 1
+VERSION = 2
 _MATS = ("part", "scaffold")
 _ROLES = ("boundary", "fill", "measure", "travel")
 _FRAMES = ("part", "base")
@@ -897,10 +947,14 @@ _TOOLS = ("", "part", "scaffold", "laser")
 def save_toolpaths(tp: Toolpaths, path: str | os.PathLike) -> None:
     """Write toolpaths to a ``.npz`` file (written to a temporary file, then renamed).
 
-    Format (version 1), arrays:
+    Format (version 2), arrays:
 
     * ``format`` str, ``version`` int, ``job`` str (the job as TOML), ``warnings`` (w,) str;
     * ``points`` (N, 2) float64 mm: the points of all paths, concatenated in order;
+    * ``state`` (N,) int8: Ossino's deposition state of every point (0 OFF, 1 ON1 part,
+      2 ON2 scaffold), the state of the segment leaving the point along its path
+      (:func:`point_states`: a closed path's last point deposits along its closing edge,
+      an open path's last point is OFF; travel and measurement points are OFF);
     * ``path_start`` (P + 1,) int64: path i has ``points[path_start[i]:path_start[i+1]]``;
     * per path (P,): ``z`` float64 mm, ``material`` int8 (0 part, 1 scaffold), ``role``
       int8 (0 boundary, 1 fill, 2 measure, 3 travel), ``closed`` bool, ``width`` float64
@@ -909,6 +963,8 @@ def save_toolpaths(tp: Toolpaths, path: str | os.PathLike) -> None:
     * per layer (L,): ``layer_index`` int64, ``layer_z`` float64 mm, ``layer_start``
       (L + 1,) int64 (paths of layer j are ``layer_start[j]:layer_start[j+1]``),
       ``unfilled_mm2`` (L, 2) float64.
+
+    Version 1 files (without ``state``) are still read; states are derived from the paths.
     """
     paths = [p for lp in tp.layers for p in lp.paths]
     counts = [len(p.points) for p in paths]
@@ -919,6 +975,8 @@ def save_toolpaths(tp: Toolpaths, path: str | os.PathLike) -> None:
         "warnings": np.array(list(tp.warnings), dtype=str),
         "points": (np.concatenate([p.points for p in paths]).astype(np.float64)
                    if paths else np.zeros((0, 2))),
+        "state": (np.concatenate([point_states(p) for p in paths]) if paths
+                  else np.zeros(0, dtype=np.int8)),
         "path_start": np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
         "z": np.array([p.z for p in paths], dtype=np.float64),
         "material": np.array([_MATS.index(p.material) for p in paths], dtype=np.int8),
@@ -960,8 +1018,9 @@ def load_toolpaths(path: str | os.PathLike) -> Toolpaths:
     if str(d.get("format", "")) != FORMAT:
         raise bad(f"not an icefab toolpath file (format {str(d.get('format', 'missing'))!r}, "
                   f"expected {FORMAT!r})")
-    if int(d.get("version", -1)) != VERSION:
-        raise bad(f"toolpath file version {int(d.get('version', -1))}: expected {VERSION}")
+    version = int(d.get("version", -1))
+    if version not in (1, VERSION):
+        raise bad(f"toolpath file version {version}: expected {VERSION} (or 1)")
     need = ("job", "warnings", "points", "path_start", "z", "material", "role", "closed",
             "width", "layer", "frame", "tool", "layer_index", "layer_z", "layer_start",
             "unfilled_mm2")
@@ -984,6 +1043,9 @@ def load_toolpaths(path: str | os.PathLike) -> Toolpaths:
                           and bool(np.all(np.diff(start) >= 0))))
           and (L == 0 or (d["layer_start"][0] == 0 and d["layer_start"][-1] == P
                           and bool(np.all(np.diff(d["layer_start"]) >= 0)))))
+    if version >= 2:
+        state = d.get("state")
+        ok = ok and state is not None and state.shape == (len(pts),)
     if not ok:
         raise bad("inconsistent array sizes (truncated or corrupt)")
     for key, names in (("material", _MATS), ("role", _ROLES), ("frame", _FRAMES),
@@ -993,10 +1055,15 @@ def load_toolpaths(path: str | os.PathLike) -> Toolpaths:
             raise bad(f"{key} codes out of range")
     if not np.all(np.isfinite(pts)):
         raise bad("non-finite point coordinates")
+    if version >= 2 and len(d["state"]) and (d["state"].min() < OFF or d["state"].max() > ON2):
+        raise bad("state codes out of range (expected 0 OFF, 1 ON1, 2 ON2)")
     paths = [Path(pts[start[i]:start[i + 1]].copy(), float(d["z"][i]),
                   _MATS[d["material"][i]], _ROLES[d["role"][i]], bool(d["closed"][i]),
                   float(d["width"][i]), int(d["layer"][i]), _FRAMES[d["frame"][i]],
                   _TOOLS[d["tool"][i]]) for i in range(P)]
+    if version >= 2 and paths and not np.array_equal(
+            d["state"], np.concatenate([point_states(p) for p in paths])):
+        raise bad("per-point states disagree with the paths' materials and roles")
     ls = d["layer_start"]
     layers = tuple(LayerPaths(int(d["layer_index"][j]), float(d["layer_z"][j]),
                               tuple(paths[ls[j]:ls[j + 1]]),
