@@ -29,6 +29,10 @@ def region_of(layer: Layer, material: str) -> Region:
     return layer.part if material == "part" else layer.scaffold
 
 
+def _geom(p: Path):
+    return LinearRing(p.points) if p.closed else LineString(p.points)
+
+
 def check_layer_paths(layer: Layer, lp: LayerPaths, job: Job, min_cover: float | None = 0.97,
                       hook: bool = False):
     """Must-show invariants of one layer's paths, measured with shapely."""
@@ -42,34 +46,47 @@ def check_layer_paths(layer: Layer, lp: LayerPaths, job: Job, min_cover: float |
             # the hook wall's ice rings take the place of outer scaffold paths
             P = to_shapely(layer.part).buffer(1e-6)
             deposit += [p for p in lp.paths if p.material == "part" and p.depositing
-                        and not P.covers(LinearRing(p.points))]
+                        and not P.covers(_geom(p))]
         if region.is_empty:
             assert not deposit
             continue
-        swept, swept_tol = [], []
-        for p in deposit:
-            geom = LinearRing(p.points) if p.closed else LineString(p.points)
+        if hook and material == "part":
+            # hook-wall rings (former scaffold paths) are checked with the scaffold
+            Rg = R.buffer(1e-6)
+            deposit = [p for p in deposit if Rg.covers(_geom(p))]
+        geoms = np.array([_geom(p) for p in deposit], dtype=object)
+        widths = np.array([p.width for p in deposit])
+        for p, g in zip(deposit, geoms):
             # no self-intersections (GEOS: a ring touching itself is not simple either)
-            assert geom.is_simple, (layer.index, material, p.role, "self-intersecting",
-                                    len(p.points))
-            # inside the region, at least half the path width from the edge, except the
-            # calibrated initial offset of boundaries (thesis 3.7) and the point filter
-            if hook and material == "part" and not R.buffer(1e-6).covers(geom):
-                continue  # hook-wall ring (a former scaffold path)
-            d = min(p.width / 2.0, mat.initial_offset_mm) if p.role == "boundary" \
-                else p.width / 2.0
-            assert R.buffer(-(d - FILT), quad_segs=16).covers(geom), \
-                (layer.index, material, p.role, "too close to the edge", p.width)
-            if p.role == "fill" and p.closed and signed_area(p.points) > 0:
-                # room: the area an outer fill ring bounds holds a disk as wide as the
-                # path (else the path overlaps itself all along), up to the point filter
-                assert not shapely.Polygon(p.points).buffer(-(p.width / 2 - FILT)).is_empty, \
-                    (layer.index, material, "fill ring wider than its room", p.width)
-            # swept bead: mitred corners (the robot stops at sharp corners, thesis 4.2
-            # PATHSPLIT, and the bead fills the corner), round ends where it stops
-            swept.append(geom.buffer(p.width / 2.0, join_style="mitre", mitre_limit=2.0))
-            swept_tol.append(geom.buffer(p.width / 2.0 + SWEEP_TOL + job.slicing.max_filter_deviation_mm,
-                                         join_style="mitre", mitre_limit=2.0))
+            assert g.is_simple, (layer.index, material, p.role, "self-intersecting",
+                                 len(p.points))
+        # inside the region, at least half the path width from the edge, except the
+        # calibrated initial offset of boundaries (thesis 3.7) and the point filter
+        # (exact distances to the region's edge)
+        d = np.array([min(p.width / 2.0, mat.initial_offset_mm) if p.role == "boundary"
+                      else p.width / 2.0 for p in deposit])
+        shapely.prepare(R)
+        edge = R.boundary
+        shapely.prepare(edge)
+        inside = shapely.covers(R, geoms) & ~shapely.dwithin(edge, geoms, d - FILT - 1e-9)
+        for p, ok in zip(deposit, inside):
+            assert ok, (layer.index, material, p.role, "too close to the edge", p.width)
+        # room: the area an outer fill ring bounds holds a disk as wide as the path (else
+        # the path overlaps itself all along), up to the point filter
+        rooms = [(p, shapely.Polygon(p.points)) for p in deposit
+                 if p.role == "fill" and p.closed and signed_area(p.points) > 0]
+        if rooms:
+            shrunk = shapely.buffer([q for _p, q in rooms],
+                                    [-(p.width / 2 - FILT) for p, _q in rooms])
+            for (p, _q), sh in zip(rooms, shrunk):
+                assert not sh.is_empty, (layer.index, material, "fill ring wider than its room",
+                                         p.width)
+        # swept bead: mitred corners (the robot stops at sharp corners, thesis 4.2
+        # PATHSPLIT, and the bead fills the corner), round ends where it stops
+        swept = shapely.buffer(geoms, widths / 2.0, join_style="mitre", mitre_limit=2.0)
+        swept_tol = shapely.buffer(
+            geoms, widths / 2.0 + SWEEP_TOL + job.slicing.max_filter_deviation_mm,
+            join_style="mitre", mitre_limit=2.0)
         if min_cover is not None:
             covered = shapely.union_all(swept)
             nominal = R.buffer(-max(mat.initial_offset_mm - mat.path_width_mm / 2, 0.0),
