@@ -991,32 +991,45 @@ def _sample_rings(rings: Sequence[np.ndarray], spacing: float):
 
 
 def _nearest_edge_distance(q: np.ndarray, P: np.ndarray, edge: np.ndarray, a: np.ndarray,
-                           b: np.ndarray, prv: np.ndarray, tree=None) -> np.ndarray:
+                           b: np.ndarray, prv: np.ndarray, tree=None,
+                           upper: float = np.inf) -> np.ndarray:
     """(n,) distance of points q (n, 2) to the ring edges, through the edges of their
     ``NEAR_SAMPLES`` nearest samples (exact when the samples are dense enough that the
-    nearest edge point lies near one of them)."""
+    nearest edge point lies near one of them); points with no sample within ``upper``
+    get ``inf`` (their distance exceeds ``upper`` less half the sampling)."""
     from scipy.spatial import cKDTree
 
     tree = tree if tree is not None else cKDTree(P)
-    near = tree.query(q, k=min(NEAR_SAMPLES, len(P)))[1].reshape(len(q), -1)
+    k = min(NEAR_SAMPLES, len(P))
+    dist, near = tree.query(q, k=k, distance_upper_bound=upper)
+    near = near.reshape(len(q), -1)
+    found = np.isfinite(dist.reshape(len(q), -1)[:, 0])
     out = np.full(len(q), np.inf)
-    for col in range(near.shape[1]):
-        e = edge[near[:, col]]
+    if not found.any():
+        return out
+    qf = q[found]
+    nf = near[found]
+    best = np.full(len(qf), np.inf)
+    for col in range(nf.shape[1]):
+        ok = nf[:, col] < len(P)  # missing neighbours come back as len(P)
+        e = edge[np.where(ok, nf[:, col], 0)]
         for ed in (e, prv[e]):
-            out = np.minimum(out, _seg_dist(q, a[ed], b[ed]))
+            best = np.minimum(best, np.where(ok, _seg_dist(qf, a[ed], b[ed]), np.inf))
+    out[found] = best
     return out
 
 
 def distance_to_rings(points: np.ndarray, rings: Sequence[np.ndarray],
-                      spacing: float = 0.25) -> np.ndarray:
+                      spacing: float = 0.25, upper: float = np.inf) -> np.ndarray:
     """(n,) float64: distance (mm) of points (n, 2) to the nearest edge of ``rings``
-    (edges are sampled every ``spacing`` mm to find the candidates)."""
+    (edges are sampled every ``spacing`` mm to find the candidates); with ``upper``,
+    points farther than ``upper + spacing`` from every sample get ``inf`` (cheaper)."""
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     rings = [np.asarray(r, dtype=np.float64) for r in rings if len(r) >= 2]
     if not rings or not len(pts):
         return np.full(len(pts), np.inf)
     P, edge, a, b, prv, _ring, _arc, _len = _sample_rings(rings, spacing)
-    return _nearest_edge_distance(pts, P, edge, a, b, prv)
+    return _nearest_edge_distance(pts, P, edge, a, b, prv, upper=upper + spacing)
 
 
 #: Jitter of the samples given to qhull by :func:`medial_axis`, mm.
@@ -1137,45 +1150,60 @@ def medial_axis(rings: Sequence[np.ndarray], spacing: float, min_radius: float =
         if not len(tt):
             return []
         verts, cstarts, cclosed = _chains(len(S), tt, uu)
+    # circumcentres of neighbouring triangles may step back a little along a strip whose
+    # two sides are sampled at different spacings: a line doubling back is not simple
+    keep = _no_backtrack_mask(C, verts, cstarts, cclosed)
     out = []
     for s, e, c in zip(cstarts[:-1], cstarts[1:], cclosed):
-        v = _no_backtrack(C, verts[s:e], bool(c))
+        v = verts[s:e][keep[s:e]]
         if len(v) >= (3 if c else 2):
             out.append((C[v], clear[v], bool(c)))
     return out
 
 
-def _no_backtrack(C: np.ndarray, v: np.ndarray, closed: bool) -> np.ndarray:
-    """The vertices ``v`` of a chain without repeated points and without the ones where it
-    turns back (by more than 120 degrees): circumcentres of neighbouring triangles may step
-    back a little along a strip whose two sides are sampled at different spacings, and a
-    line doubling back on itself is not simple. End points of open chains stay."""
-    for _ in range(64):
-        p = C[v]
-        if len(v) < 3:
-            return v
-        prev = np.roll(p, 1, axis=0)
-        nxt = np.roll(p, -1, axis=0)
-        a = p - prev
-        b = nxt - p
-        same = ~np.any(a, axis=1)  # a repeated point
-        back = np.einsum("ij,ij->i", a, b) < -0.5 * np.linalg.norm(a, axis=1) * \
-            np.linalg.norm(b, axis=1)
-        bad = same | back
-        if not closed:
-            bad[0] = bad[-1] = False
-        if not bad.any():
-            return v
-        # drop every other flagged vertex at most, so two neighbours are not both lost
-        idx = np.flatnonzero(bad)
-        keep_flag = np.ones(len(v), dtype=bool)
-        last = -2
-        for i in idx:
-            if i != last + 1:
-                keep_flag[i] = False
-                last = i
-        v = v[keep_flag]
-    return v
+@njit(cache=True)
+def _no_backtrack_mask(C: np.ndarray, verts: np.ndarray, starts: np.ndarray,
+                       closed: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
+    """Keep-mask over the concatenated chain vertices: repeated points and points where
+    the chain turns back by more than 120 degrees are dropped (see :func:`medial_axis`);
+    ends of open chains stay. Passes repeat until none is left, dropping at most every
+    other vertex of a run of flagged ones per pass."""
+    keep = np.ones(len(verts), dtype=np.bool_)
+    for c in range(len(starts) - 1):
+        s0 = starts[c]
+        n = starts[c + 1] - s0
+        for _ in range(64):
+            idx = np.empty(n, dtype=np.int64)
+            m = 0
+            for i in range(n):
+                if keep[s0 + i]:
+                    idx[m] = s0 + i
+                    m += 1
+            if m < 3:
+                break
+            changed = False
+            last = -2
+            for j in range(m):
+                if not closed[c] and (j == 0 or j == m - 1):
+                    continue
+                p = C[verts[idx[j]]]
+                q = C[verts[idx[(j - 1) % m]]]
+                r = C[verts[idx[(j + 1) % m]]]
+                ax = p[0] - q[0]
+                ay = p[1] - q[1]
+                bx = r[0] - p[0]
+                by = r[1] - p[1]
+                la = np.sqrt(ax * ax + ay * ay)
+                lb = np.sqrt(bx * bx + by * by)
+                bad = la == 0.0 or ax * bx + ay * by < -0.5 * la * lb
+                if bad and j != last + 1:
+                    keep[idx[j]] = False
+                    last = j
+                    changed = True
+            if not changed:
+                break
+    return keep
+
 
 
 @njit(cache=True)

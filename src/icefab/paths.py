@@ -703,22 +703,32 @@ def _pocket_rings(gaps: list[np.ndarray], w_min: float, w_max: float, filt: floa
                   ) -> list[tuple[np.ndarray, bool, float]]:
     """One ring in every round gap piece (see :func:`gap_fill_paths`, step 2); slivers
     narrower than ``w_min`` (no path goes there) do not join pockets into one piece."""
-    out: list[tuple[np.ndarray, bool, float]] = []
     pieces = geo.region_from_rings(gaps)
-    for poly in geo.intersection(geo.opening(pieces, w_min / 2.0, 0.0), pieces).polygons():
-        A = sum(signed_area(r) for r in poly)
-        P = sum(float(np.linalg.norm(np.diff(np.vstack([r, r[:1]]), axis=0), axis=1).sum())
-                for r in poly)
-        if A <= 0 or 4.0 * math.pi * A / P ** 2 < GAP_BLOB_ROUNDNESS:
+    core = geo.intersection(geo.opening(pieces, w_min / 2.0, 0.0), pieces)
+    if core.is_empty:
+        return []
+    rings = list(core.rings)
+    areas = geo.ring_areas(rings)
+    perims = np.array([float(np.linalg.norm(np.diff(np.vstack([r, r[:1]]), axis=0),
+                                            axis=1).sum()) for r in rings])
+    depth = core.depth()
+    # every hole (odd depth) counts for the outer ring it belongs to
+    owner = np.where(depth % 2 == 1, core.parent, np.arange(len(rings)))
+    A = np.bincount(owner, weights=areas, minlength=len(rings))
+    P = np.bincount(owner, weights=perims, minlength=len(rings))
+    out: list[tuple[np.ndarray, bool, float]] = []
+    for i in np.flatnonzero((depth % 2 == 0) & (A > 0)):
+        if 4.0 * math.pi * A[i] / P[i] ** 2 < GAP_BLOB_ROUNDNESS:
             continue
         # 2 A / P is the inradius of a polygon with an incircle and overestimates it
         # for others (by 22 % for a half disk): the ring's room is checked anyway
-        wb = min(0.8 * 2.0 * A / P, w_max)
+        wb = min(0.8 * 2.0 * A[i] / P[i], w_max)
         if wb < w_min:
             continue
-        rings = geo.offset_rings(list(poly), -wb / 2.0, filt)
-        if rings:
-            out += [(r, True, wb) for r in _with_room(rings, [], wb, filt)]
+        poly = [rings[i]] + [rings[j] for j in np.flatnonzero((owner == i) & (depth % 2 == 1))]
+        found = geo.offset_rings(poly, -wb / 2.0, filt)
+        if found:
+            out += [(r, True, wb) for r in _with_room(found, [], wb, filt)]
     return out
 
 
@@ -760,7 +770,7 @@ def centre_paths(rings: list[np.ndarray], w_min: float, w_max: float, filt: floa
         # as filtered, sampled every quarter millimetre
         idx = np.flatnonzero(keep)
         dense, owner = _densify([pts[i] for i in idx], closed[idx], 0.25)
-        d = geo.distance_to_rings(dense, list(region.rings))
+        d = geo.distance_to_rings(dense, list(region.rings), upper=float(widths.max()) / 2.0)
         dmin = np.full(len(idx), np.inf)
         np.minimum.at(dmin, owner, d)
         widths[idx] = np.minimum(widths[idx], 2.0 * dmin)
