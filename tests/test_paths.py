@@ -57,9 +57,12 @@ def check_layer_paths(layer: Layer, lp: LayerPaths, job: Job, min_cover: float |
         geoms = np.array([_geom(p) for p in deposit], dtype=object)
         widths = np.array([p.width for p in deposit])
         for p, g in zip(deposit, geoms):
-            # no self-intersections (GEOS: a ring touching itself is not simple either)
+            # no self-intersections (GEOS: a ring touching itself is not simple either),
+            # and a closed path bounds a valid polygon (no zero-area ring)
             assert g.is_simple, (layer.index, material, p.role, "self-intersecting",
                                  len(p.points))
+            assert not p.closed or shapely.Polygon(p.points).is_valid, \
+                (layer.index, material, p.role, "invalid ring", len(p.points))
         # inside the region, at least half the path width from the edge, except the
         # calibrated initial offset of boundaries (thesis 3.7) and the point filter
         # (exact distances to the region's edge)
