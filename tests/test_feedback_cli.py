@@ -66,3 +66,38 @@ def test_tune_bad_arguments_exit_2(tmp_path, capsys, argv, msg):
     assert rc == 2 and out == ""
     assert msg in err and err.count("\n") == 1
     assert not (tmp_path / "x").exists()
+
+
+
+def test_tune_plot_of_diverging_gains_stays_readable(tmp_path, capsys, monkeypatch):
+    """Unstable gains: the plot keeps the disturbance's scale and says the error diverges
+    (a linear axis up to 1e150 showed nothing); the summary prints the RMS compactly."""
+    import matplotlib.figure
+
+    from icefab import Job
+    from icefab.feedback import Disturbance, evaluate_gains
+    from icefab.report import plot_error_response
+
+    out = tmp_path / "t"
+    assert main(["tune", "--gains", "3,3,3", "--layers", "200", "-o", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "UNSTABLE" in text and "e+" in text and max(map(len, text.splitlines())) < 120
+    assert (out / "error_response.png").stat().st_size > 10_000
+
+    seen = {}
+    real_save = matplotlib.figure.Figure.savefig
+
+    def keep(fig, *a, **k):
+        seen["ylim"] = fig.axes[0].get_ylim()
+        seen["text"] = [t.get_text() for t in fig.axes[0].texts]
+        return real_save(fig, *a, **k)
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", keep)
+    dist = Disturbance(n_layers=200)
+    plot_error_response(evaluate_gains((3, 3, 3), dist), dist, Job(), tmp_path / "p.png",
+                        "evaluated")
+    assert max(abs(v) for v in seen["ylim"]) <= 20
+    assert any(t.startswith("diverges: |e| > 7 from layer") for t in seen["text"])
+    plot_error_response(evaluate_gains((1, 0.33, 0), dist), dist, Job(), tmp_path / "q.png",
+                        "evaluated")
+    assert seen["text"] == []

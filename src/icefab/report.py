@@ -261,9 +261,23 @@ def plot_error_response(result, dist, job, path, mode: str) -> None:
     ax1.set_ylabel("normalised by $\\Delta h_m$")
     ax1.legend(loc="upper right")
     ax1.set_title(f"SMF 1D response, {mode}: $K_p$={result.kp:.3f}, $K_i^*$={result.ki:.3f}, "
-                  f"$K_d^*$={result.kd:.3f}\n$\\sigma_p^*$={result.rms:.4f}, "
+                  f"$K_d^*$={result.kd:.3f}\n$\\sigma_p^*$={result.rms:.4g}, "
                   f"max |pole| = {result.max_pole:.3f}", fontsize=9)
     ax2.plot(k, sim.nu, color="C1")
+    # a diverging response (unstable gains) would flatten everything on a linear axis:
+    # keep the disturbance's scale and say how far the error runs away
+    lim = 10.0 * max(float(np.max(np.abs(sim.d))) if len(sim.d) else 0.0, 0.1)
+    with np.errstate(invalid="ignore"):
+        away = np.flatnonzero(~(np.abs(sim.e) <= lim))
+    if len(away):
+        ax1.set_ylim(-lim, lim)
+        last = sim.e[-1]
+        ax1.text(0.02, 0.05, f"diverges: |e| > {lim:g} from layer {int(k[away[0]])}, "
+                 f"{abs(last):.3g} at layer {int(k[-1])}", transform=ax1.transAxes,
+                 color="C3", fontsize=9)
+        nu_ok = sim.nu[:away[0]] if away[0] > 0 else sim.nu[:1]
+        span = float(np.max(np.abs(nu_ok))) if len(nu_ok) else 1.0
+        ax2.set_ylim(-3 * max(span, 1.0), 3 * max(span, 1.0))
     ax2.set_ylabel("valve frequency $\\nu$ (Hz)")
     ax2.set_xlabel("measurement layer k")
     fig.tight_layout()

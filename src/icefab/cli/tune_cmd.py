@@ -154,7 +154,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"RMS error sigma_p*: the error response diverges (overflows within "
               f"{n_layers} layers)")
     else:
-        print(f"RMS error sigma_p* = {result.rms:.4f} measurement intervals over {n_layers} "
+        print(f"RMS error sigma_p* = {result.rms:.4g} measurement intervals over {n_layers} "
               "layers")
     verdict = "stable" if result.stable else "UNSTABLE"
     print(f"{verdict}: largest pole modulus {result.max_pole:.4f}")
