@@ -596,26 +596,32 @@ def difference_rings(a: Region | Sequence[np.ndarray], b: Region | Sequence[np.n
 
 
 @njit(cache=True)
+def _in_ring(pts: np.ndarray, s0: int, e0: int, x: float, y: float
+             ) -> bool:  # pragma: no cover - compiled
+    """Even-odd crossing test of the point (x, y) against the ring pts[s0:e0]."""
+    inside = False
+    j = e0 - 1
+    for i in range(s0, e0):
+        yi = pts[i, 1]
+        yj = pts[j, 1]
+        if (yi > y) != (yj > y):
+            xc = pts[i, 0] + (y - yi) * (pts[j, 0] - pts[i, 0]) / (yj - yi)
+            if x < xc:
+                inside = not inside
+        j = i
+    return inside
+
+
+@njit(cache=True)
 def _even_odd(px: np.ndarray, py: np.ndarray, pts: np.ndarray, starts: np.ndarray
               ) -> np.ndarray:  # pragma: no cover - compiled
     """Even-odd crossing test of points against all ring edges."""
     out = np.zeros(len(px), dtype=np.bool_)
     for k in range(len(px)):
-        x = px[k]
-        y = py[k]
         inside = False
         for r in range(len(starts) - 1):
-            s0 = starts[r]
-            n = starts[r + 1] - s0
-            j = s0 + n - 1
-            for i in range(s0, s0 + n):
-                yi = pts[i, 1]
-                yj = pts[j, 1]
-                if (yi > y) != (yj > y):
-                    xc = pts[i, 0] + (y - yi) * (pts[j, 0] - pts[i, 0]) / (yj - yi)
-                    if x < xc:
-                        inside = not inside
-                j = i
+            if _in_ring(pts, starts[r], starts[r + 1], px[k], py[k]):
+                inside = not inside
         out[k] = inside
     return out
 
@@ -1237,19 +1243,7 @@ def _rings_holding(pts: np.ndarray, starts: np.ndarray, px: np.ndarray, py: np.n
                 continue
             if area[r] >= best:
                 continue
-            s0 = starts[r]
-            n = starts[r + 1] - s0
-            inside = False
-            j = s0 + n - 1
-            for i in range(s0, s0 + n):
-                yi = pts[i, 1]
-                yj = pts[j, 1]
-                if (yi > y) != (yj > y):
-                    xc = pts[i, 0] + (y - yi) * (pts[j, 0] - pts[i, 0]) / (yj - yi)
-                    if x < xc:
-                        inside = not inside
-                j = i
-            if inside:
+            if _in_ring(pts, starts[r], starts[r + 1], x, y):
                 best = area[r]
                 out[k] = r
     return out
