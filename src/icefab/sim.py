@@ -661,8 +661,7 @@ def plan_layer(index: int, paths: Sequence[Path], job: "Job") -> LayerPlan:
     m = job.motion
     sim = job.simulation
     dh = job.slicing.layer_thickness_mm * job.flow.layer_scale
-    a_parts, b_parts, v_parts, w_parts, mat_parts = [], [], [], [], []
-    starts, closed, count = [], [], 0
+    pieces: list[tuple[np.ndarray, bool, float, str]] = []
     dep_paths = []
     tag_parts, true_parts = [], []
     for p in paths:
@@ -695,30 +694,36 @@ def plan_layer(index: int, paths: Sequence[Path], job: "Job") -> LayerPlan:
         pts_s = _refine(pts, p.closed, speed * m.dt_s)
         if len(pts_s) < 2:
             continue
-        a = pts_s[:-1]
-        b = pts_s[1:]
-        starts.append(count)
-        closed.append(bool(p.closed))
-        count += len(a)
+        pieces.append((pts_s, bool(p.closed), float(p.width), p.material))
         dep_paths.append(p)
-        length = np.linalg.norm(b - a, axis=1)
-        a_parts.append(a)
-        b_parts.append(b)
-        v_parts.append(p.width * dh * length)
-        w_parts.append(np.full(len(a), 0.5 * p.width))
-        mat_parts.append(np.full(len(a), MATERIAL_ID[p.material], dtype=np.int8))
+    return _layer_plan(index, pieces, dh, tag_parts, true_parts, paths=tuple(dep_paths))
 
+
+def _layer_plan(index: int, pieces: list[tuple[np.ndarray, bool, float, str]], dh: float,
+                tag_parts: list[np.ndarray], true_parts: list[np.ndarray], *,
+                paths: tuple[Path, ...], trajectories: tuple = ()) -> LayerPlan:
+    """Segments of a layer from its deposition polylines: ``pieces`` holds (points (k >= 2,
+    2) mm part frame, closed, width mm, material) per path, each segment carrying the
+    commanded ``width * dh * length`` mm^3 (eq. 6.2); laser samples as given."""
     def cat(parts: list[np.ndarray], shape: tuple[int, ...], dtype=np.float64) -> np.ndarray:
         return np.concatenate(parts) if parts else np.zeros(shape, dtype=dtype)
 
-    a, b, hw = cat(a_parts, (0, 2)), cat(b_parts, (0, 2)), cat(w_parts, (0,))
-    n0, n1, ext = _joints(a, b, hw, np.asarray(starts, dtype=np.int64),
-                          np.asarray(closed, dtype=bool))
-    return LayerPlan(index=index, a=a, b=b, volume=cat(v_parts, (0,)), half_width=hw,
-                     material=cat(mat_parts, (0,), np.int8), n0=n0, n1=n1, ext=ext,
-                     paths=tuple(dep_paths),
-                     path_start=np.asarray(starts + [count], dtype=np.int64),
-                     laser_tagged=cat(tag_parts, (0, 2)), laser_true=cat(true_parts, (0, 2)))
+    a = cat([pts[:-1] for pts, *_ in pieces], (0, 2))
+    b = cat([pts[1:] for pts, *_ in pieces], (0, 2))
+    counts = [len(pts) - 1 for pts, *_ in pieces]
+    starts = np.concatenate([[0], np.cumsum(counts, dtype=np.int64)]).astype(np.int64)
+    w = cat([np.full(c, wd) for c, (_, _, wd, _) in zip(counts, pieces)], (0,))
+    mat = cat([np.full(c, MATERIAL_ID[m], dtype=np.int8)
+               for c, (_, _, _, m) in zip(counts, pieces)], (0,), np.int8)
+    hw = 0.5 * w
+    n0, n1, ext = _joints(a, b, hw, starts[:-1].copy(),
+                          np.asarray([c for _, c, _, _ in pieces], dtype=bool))
+    return LayerPlan(index=index, a=a, b=b, volume=w * dh * np.linalg.norm(b - a, axis=1),
+                     half_width=hw, material=mat, n0=n0, n1=n1, ext=ext, paths=paths,
+                     path_start=starts, laser_tagged=cat(tag_parts, (0, 2)),
+                     laser_true=cat(true_parts, (0, 2)), trajectories=trajectories)
+
+
 
 
 def _traj_width(path: Path, job: "Job") -> float:
@@ -761,8 +766,7 @@ def plan_layer_motion(layer: "LayerMotion", job: "Job") -> LayerPlan:
     sim = job.simulation
     dh = job.slicing.layer_thickness_mm * job.flow.layer_scale
     ee = np.asarray(job.cell.ee_origin_mm, dtype=np.float64)
-    a_parts, b_parts, v_parts, w_parts, mat_parts = [], [], [], [], []
-    starts, closed, count = [], [], 0
+    pieces: list[tuple[np.ndarray, bool, float, str]] = []
     dep, tag_parts, true_parts = [], [], []
     for k, traj in enumerate(layer.trajectories):
         p = traj.path
@@ -795,30 +799,11 @@ def plan_layer_motion(layer: "LayerMotion", job: "Job") -> LayerPlan:
             pts = pts[np.concatenate([[True], step > _TINY_MM])]
         if len(pts) < 2:
             pts = np.vstack([pts[:1], pts[:1]])  # at rest: a w x w square, no volume
-        a, b = pts[:-1], pts[1:]
-        w = _traj_width(p, job)
-        starts.append(count)
-        closed.append(bool(len(pts) > 2 and np.linalg.norm(pts[-1] - pts[0]) <= 1e-6))
-        count += len(a)
+        closed = bool(len(pts) > 2 and np.linalg.norm(pts[-1] - pts[0]) <= 1e-6)
+        pieces.append((pts, closed, _traj_width(p, job), p.material))
         dep.append(traj)
-        a_parts.append(a)
-        b_parts.append(b)
-        v_parts.append(w * dh * np.linalg.norm(b - a, axis=1))
-        w_parts.append(np.full(len(a), 0.5 * w))
-        mat_parts.append(np.full(len(a), MATERIAL_ID[p.material], dtype=np.int8))
-
-    def cat(parts: list[np.ndarray], shape: tuple[int, ...], dtype=np.float64) -> np.ndarray:
-        return np.concatenate(parts) if parts else np.zeros(shape, dtype=dtype)
-
-    a, b, hw = cat(a_parts, (0, 2)), cat(b_parts, (0, 2)), cat(w_parts, (0,))
-    n0, n1, ext = _joints(a, b, hw, np.asarray(starts, dtype=np.int64),
-                          np.asarray(closed, dtype=bool))
-    return LayerPlan(index=layer.index, a=a, b=b, volume=cat(v_parts, (0,)), half_width=hw,
-                     material=cat(mat_parts, (0,), np.int8), n0=n0, n1=n1, ext=ext,
-                     paths=tuple(t.path for t in dep),  # type: ignore[misc]
-                     path_start=np.asarray(starts + [count], dtype=np.int64),
-                     laser_tagged=cat(tag_parts, (0, 2)), laser_true=cat(true_parts, (0, 2)),
-                     trajectories=tuple(dep))
+    return _layer_plan(layer.index, pieces, dh, tag_parts, true_parts,
+                       paths=tuple(t.path for t in dep), trajectories=tuple(dep))
 
 
 # --------------------------------------------------------------------------- the build
