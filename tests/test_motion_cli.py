@@ -136,3 +136,29 @@ def test_plan_gantry_with_the_default_cell(tmp_path, capsys):
     # the part (a 60 mm ring centred on its origin) sits around the travel centre
     assert np.abs(xy.mean(axis=0) - 150.0).max() < 15.0
     assert (out / "trajectories.gcode").stat().st_size > 1000
+
+
+def test_gantry_default_origin_is_the_same_in_every_stage():
+    """A gantry job that never went through the motion stage (paths to base frame, valve
+    programs' part points, the simulator) uses the same travel-centre origin as the
+    planner, so a trajectory planned here maps back onto its part points."""
+    import numpy as np
+
+    from icefab import Job
+    from icefab.flow import trajectory_part_xy
+    from icefab.motion import plan_motion
+    from icefab.paths import part_origin, to_base_frame
+    from icefab.types import Path
+
+    job = Job().replace(**{"cell.robot": "gantry"})
+    centre = 0.5 * np.asarray(job.cell.gantry_travel_mm, dtype=float)
+    assert np.allclose(part_origin(job), centre)
+    part = np.array([[-20.0, -10.0], [20.0, -10.0], [20.0, 10.0], [-20.0, 10.0]])
+    path = Path(points=part, material="part", role="boundary", closed=True, width=1.5)
+    traj = plan_motion(path, job)  # a part-frame Path goes to the base frame in the planner
+    assert np.abs(traj.xy[0] - to_base_frame(part, "part", job)[0]).max() < 1e-6
+    back = trajectory_part_xy(traj, "part", job)
+    assert np.abs(back[0] - part[0]).max() < 1e-6
+    assert back[:, 0].min() >= -20.0 - 1e-6 and back[:, 0].max() <= 20.0 + 1e-6
+    # a SCARA job keeps the thesis origin untouched
+    assert np.allclose(part_origin(Job()), Job().cell.ee_origin_mm)

@@ -122,7 +122,17 @@ def to_base_frame(points: np.ndarray, tool: str, job: Job) -> np.ndarray:
     part point, since the EE carries both nozzles.
     """
     pts = np.asarray(points, dtype=np.float64)
-    return pts + (np.asarray(job.cell.ee_origin_mm, dtype=np.float64) - tool_offset(tool, job))
+    return pts + (part_origin(job) - tool_offset(tool, job))
+
+
+def part_origin(job: Job) -> np.ndarray:
+    """(2,) float64 mm: ``cell.ee_origin_mm`` as the robot builds with it
+    (:func:`icefab.robots.place_part`: a gantry left at the default, a SCARA position,
+    builds at its travel centre). Every stage that goes between part and base frame uses
+    this, so paths, trajectories, valve programs and the simulator agree."""
+    from icefab.robots import place_part
+
+    return np.asarray(place_part(job).cell.ee_origin_mm, dtype=np.float64)
 
 
 def deposition_state(path: Path) -> int:
