@@ -4,7 +4,8 @@
 
 1. All paths of the 1 M-facet bunny at 300 mm (``bench/meshes.py``), both materials, with
    the job's paths (``icefab.paths``); the toolpaths are built once and cached in
-   ``bench/.cache/bunny-toolpaths-motion.npz`` (slicing + scaffold + paths take minutes).
+   ``bench/.cache/`` under a key of the code, mesh and job that make them
+   (``bench/_cache.py``; slicing + scaffold + paths take minutes).
    The bunny's footprint (302 x 235 mm) does not fit the default part origin (260, -100)
    (its near corner would be inside the 163 mm minimum reach), so the end-effector origin
    is moved to (340, 0) mm. MTTS (jerk on, the thesis' limits) on one core: output
@@ -47,13 +48,14 @@ from icefab.paths import (estimate_build_time, load_toolpaths, plan_paths,  # no
                           save_toolpaths, to_base_frame)
 from icefab.regions import add_scaffold  # noqa: E402
 
-CACHE = HERE / ".cache"
+from _cache import PATHS_MODULES, cache_path, drop_stale  # noqa: E402
+
 BUNNY_EE = (340.0, 0.0)
 
 
 def _cached_toolpaths(path):
-    """The cached toolpaths at ``path`` if they are there, readable and placed for the
-    bunny; None otherwise (rebuilt: e.g. a job setting renamed since they were made)."""
+    """The cached toolpaths at ``path`` (see ``_cache.cache_path``: keyed by the code, mesh
+    and job that make them) if they are there and readable; None otherwise."""
     if not path.exists():
         return None
     try:
@@ -64,53 +66,61 @@ def _cached_toolpaths(path):
     return tp if tuple(tp.job.cell.ee_origin_mm) == BUNNY_EE else None
 
 
+def _save_cache(tp, path):
+    save_toolpaths(tp, path)
+    drop_stale(path)
+
+
+def bunny_job(pattern: str | None = None) -> Job:
+    """The default job with the end-effector origin moved so the 300 mm bunny fits the
+    reach, and optionally another fill pattern for both materials."""
+    job = Job().replace(**{"cell.ee_origin_mm": list(BUNNY_EE)})
+    if pattern is not None:
+        job = job.replace(**{"materials.part.fill_pattern": pattern,
+                             "materials.scaffold.fill_pattern": pattern})
+    return job
+
+
 def bunny_toolpaths():
-    path = CACHE / "bunny-toolpaths-motion.npz"
+    """The bunny's toolpaths with the default (concentric) fill, cached under
+    ``bench/.cache/bunny-toolpaths-concentric-<key>.npz``."""
+    from meshes import big_mesh
+    mesh = big_mesh("bunny")
+    job = bunny_job()
+    path = cache_path("bunny-toolpaths-concentric", PATHS_MODULES, mesh, repr(job))
     tp = _cached_toolpaths(path)
     if tp is not None:
         return tp, 0.0
-    from meshes import big_mesh
 
     from icefab.mesh import load_mesh
     from icefab.slicing import slice_mesh
-    job = Job().replace(**{"cell.ee_origin_mm": list(BUNNY_EE)})
     t0 = time.perf_counter()
     print("building bunny toolpaths (slice, scaffold, paths; cached afterwards) ...",
           flush=True)
-    stack = add_scaffold(slice_mesh(load_mesh(big_mesh("bunny")), job), job)
+    stack = add_scaffold(slice_mesh(load_mesh(mesh), job), job)
     tp = plan_paths(stack, job)
-    save_toolpaths(tp, path)
+    _save_cache(tp, path)
     return tp, time.perf_counter() - t0
 
 
-def bunny_zigzag_toolpaths(job):
+def bunny_zigzag_toolpaths():
     """The bunny's toolpaths with straight-line (zigzag) fill, for the thesis'
-    constant-speed case; built from the slicing benchmark's cached stack when there is
-    one, cached in ``bench/.cache/bunny-toolpaths-motion-zigzag.npz``."""
-    path = CACHE / "bunny-toolpaths-motion-zigzag.npz"
-    zjob = job.replace(**{"materials.part.fill_pattern": "zigzag",
-                          "materials.scaffold.fill_pattern": "zigzag"})
+    constant-speed case, cached under ``bench/.cache/bunny-toolpaths-zigzag-<key>.npz``."""
+    from meshes import big_mesh
+    mesh = big_mesh("bunny")
+    zjob = bunny_job("zigzag")
+    path = cache_path("bunny-toolpaths-zigzag", PATHS_MODULES, mesh, repr(zjob))
     tp = _cached_toolpaths(path)
     if tp is not None:
         return tp, 0.0
+
+    from icefab.mesh import load_mesh
+    from icefab.slicing import slice_mesh
     t0 = time.perf_counter()
     print("building bunny zigzag toolpaths (cached afterwards) ...", flush=True)
-    stack_cache = CACHE / "bunny-stack-0.25.npz"
-    stack = None
-    if stack_cache.exists():
-        from icefab.slicing import load_stack
-        try:
-            stack = load_stack(stack_cache)
-        except StackFileError as exc:
-            print(f"stack cache not usable: {exc}", flush=True)
-    if stack is None:
-        from meshes import big_mesh
-
-        from icefab.mesh import load_mesh
-        from icefab.slicing import slice_mesh
-        stack = slice_mesh(load_mesh(big_mesh("bunny")), zjob)
+    stack = slice_mesh(load_mesh(mesh), zjob)
     tp = plan_paths(add_scaffold(stack, zjob), zjob)
-    save_toolpaths(tp, path)
+    _save_cache(tp, path)
     return tp, time.perf_counter() - t0
 
 
@@ -229,7 +239,7 @@ def main() -> int:
     raw = plan_toolpaths(sub, pjob.replace(**{"motion.smoothing_tolerance_mm": 0.0})).duration
     cacc = constant_speed_motion(sub, pjob).duration
     cacc25 = constant_speed_motion(sub, pjob, fill_mm_s=vb).duration
-    tpz, t_z = bunny_zigzag_toolpaths(job)
+    tpz, t_z = bunny_zigzag_toolpaths()
     zjob = tpz.job.replace(**{"motion.smoothing_tolerance_mm": tol, "cell.cpus": workers})
     subz = type(tpz)(layers=tpz.layers[::args.layers_every], job=zjob)
     czz = constant_speed_motion(subz, zjob).duration

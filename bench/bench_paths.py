@@ -39,6 +39,7 @@ HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 sys.path.insert(0, str(HERE))
 
+from _cache import SLICING_MODULES, cache_path, drop_stale  # noqa: E402
 from _report import write_section  # noqa: E402
 from meshes import big_mesh  # noqa: E402
 
@@ -53,15 +54,17 @@ def _stack(name: str):
     from icefab.slicing import load_stack, save_stack, slice_mesh
 
     mesh_path = big_mesh(name)
-    cache = HERE / ".cache" / f"{name}-stack-0.25.npz"
-    if cache.exists() and cache.stat().st_mtime >= mesh_path.stat().st_mtime:
+    job = Job()
+    cache = cache_path(f"{name}-stack-0.25", SLICING_MODULES, mesh_path, repr(job))
+    if cache.exists():
         try:
             return load_stack(cache), None
-        except Exception as exc:  # noqa: BLE001 - a stale cache is rebuilt
+        except Exception as exc:  # noqa: BLE001 - an unreadable cache is rebuilt
             print(f"rebuilding the stack cache ({exc})")
     mesh = load_mesh(mesh_path)
-    stack = slice_mesh(mesh, Job())
+    stack = slice_mesh(mesh, job)
     save_stack(stack, cache)
+    drop_stale(cache)
     return stack, mesh.n_faces
 
 

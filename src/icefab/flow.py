@@ -389,32 +389,33 @@ def valve_frequency(trajectory: Trajectory, material: str, job: "Job", *,
                         f"so the volume is {off} off nominal")
     flowing = q > 0  # zero flow is 0 Hz whatever the table's first row
     limits: list[str] = []
-    hint = "; lower the speed or set flow.out_of_range = 'clamp' to clamp and report instead"
+
+    def out_of_range(mask: np.ndarray, msg: str) -> None:
+        """Raise under flow.out_of_range = "error", else note the samples as clamped."""
+        if fl.out_of_range == "error":
+            raise FlowError(f"{where}: {msg}; lower the speed or set flow.out_of_range = "
+                            "'clamp' to clamp and report instead")
+        limits.append(msg)
+        np.logical_or(clamped, mask, out=clamped)
+
     if fl.mode == "fm":
         hi = q > cal.max_flow
         lo = flowing & (q < cal.min_flow)
         if np.any(hi | lo):
             worst = float(q[hi].max()) if np.any(hi) else float(q[lo].min())
-            msg = (f"flow {worst:.4g} mm^3/s outside the calibration table "
-                   f"[{cal.min_flow:g}, {cal.max_flow:g}] mm^3/s ({cal.source}) at "
-                   f"{int(np.count_nonzero(hi | lo))} of {n} samples")
-            if fl.out_of_range == "error":
-                raise FlowError(f"{where}: {msg}{hint}")
-            limits.append(msg)
-            clamped |= hi | lo
+            out_of_range(hi | lo, f"flow {worst:.4g} mm^3/s outside the calibration table "
+                         f"[{cal.min_flow:g}, {cal.max_flow:g}] mm^3/s ({cal.source}) at "
+                         f"{int(np.count_nonzero(hi | lo))} of {n} samples")
     nu = np.where(flowing, cal.frequency(q), 0.0)  # eq. 6.4 (clamped to the table's ends)
     if fl.mode == "fm":
         nu_max = min(fl.max_frequency_hz, 1000.0 / fl.calibration_pulse_ms)
         over = nu > nu_max
         if np.any(over):
-            msg = (f"valve frequency {float(nu.max()):.4g} Hz above the limit {nu_max:g} Hz "
-                   f"(flow.max_frequency_hz, 1 / flow.calibration_pulse_ms) at "
-                   f"{int(np.count_nonzero(over))} of {n} samples")
-            if fl.out_of_range == "error":
-                raise FlowError(f"{where}: {msg}{hint}")
-            limits.append(msg)
+            out_of_range(over, f"valve frequency {float(nu.max()):.4g} Hz above the limit "
+                         f"{nu_max:g} Hz (flow.max_frequency_hz, 1 / "
+                         f"flow.calibration_pulse_ms) at {int(np.count_nonzero(over))} of "
+                         f"{n} samples")
             nu = np.minimum(nu, nu_max)
-            clamped |= over
         if limits:
             commanded = _integral(q, t)
             delivered = _integral(np.where(nu > 0, cal.flow(nu), 0.0), t)

@@ -231,60 +231,69 @@ def clip_lines(lines: Sequence[np.ndarray], region: Region | Sequence[np.ndarray
 
 
 @njit(cache=True)
-def _filter_mask(pts: np.ndarray, starts: np.ndarray, eps: float, max_span: int
-                 ) -> np.ndarray:  # pragma: no cover - compiled
-    """Greedy chord filter over concatenated closed rings (thesis PATHFILTER).
+def _seg_dist2(px: float, py: float, dx: float, dy: float
+               ) -> float:  # pragma: no cover - compiled
+    """Squared distance of the point (px, py) from the segment (0, 0)-(dx, dy)."""
+    L2 = dx * dx + dy * dy
+    t = (px * dx + py * dy) / L2 if L2 > 0.0 else 0.0
+    t = min(1.0, max(0.0, t))
+    ex = px - t * dx
+    ey = py - t * dy
+    return ex * ex + ey * ey
+
+
+@njit(cache=True)
+def _filter_mask(pts: np.ndarray, starts: np.ndarray, eps: np.ndarray, max_span: int,
+                 closed: bool) -> np.ndarray:  # pragma: no cover - compiled
+    """Greedy chord filter over concatenated rings or polylines (thesis PATHFILTER).
 
     From an anchor, extend the chord to the farthest point such that every skipped point
-    lies within ``eps`` of it (at most ``max_span`` points skipped); keep that point and
-    repeat. The first point of every ring is kept; the closing edge is included.
+    lies within ``eps[r]`` of it (at most ``max_span`` points skipped); keep that point and
+    repeat. The first point of every ring / polyline is kept; closed: the closing edge is
+    filtered too (chord end index n is the first point again); open: the last point is
+    kept.
     """
     keep = np.zeros(len(pts), dtype=np.bool_)
-    eps2 = eps * eps
     for r in range(len(starts) - 1):
+        eps2 = eps[r] * eps[r]
         s0 = starts[r]
         n = starts[r + 1] - s0
+        if n == 0:
+            continue
+        last = n if closed else n - 1  # the final chord end
         keep[s0] = True
+        keep[s0 + last % n] = True
         a = 0
-        while a < n:
+        while a < last:
             best = a + 1
             j = a + 2
-            while j <= n and j - a <= max_span:
-                # chord from a to j (index n is the first point again)
-                jx = pts[s0 + (j % n), 0]
-                jy = pts[s0 + (j % n), 1]
+            while j <= last and j - a <= max_span:
                 ax = pts[s0 + a, 0]
                 ay = pts[s0 + a, 1]
-                dx = jx - ax
-                dy = jy - ay
-                L2 = dx * dx + dy * dy
+                dx = pts[s0 + j % n, 0] - ax
+                dy = pts[s0 + j % n, 1] - ay
                 ok = True
                 for i in range(a + 1, j):
-                    px = pts[s0 + i, 0] - ax
-                    py = pts[s0 + i, 1] - ay
-                    if L2 > 0.0:
-                        t = (px * dx + py * dy) / L2
-                        if t < 0.0:
-                            t = 0.0
-                        elif t > 1.0:
-                            t = 1.0
-                        ex = px - t * dx
-                        ey = py - t * dy
-                    else:
-                        ex = px
-                        ey = py
-                    if ex * ex + ey * ey > eps2:
+                    if _seg_dist2(pts[s0 + i, 0] - ax, pts[s0 + i, 1] - ay, dx, dy) > eps2:
                         ok = False
                         break
                 if not ok:
                     break
                 best = j
                 j += 1
-            if best >= n:
+            if best >= last:
                 break
             keep[s0 + best] = True
             a = best
     return keep
+
+
+def _chord_keep(pts: np.ndarray, starts: np.ndarray, eps: float | np.ndarray,
+                closed: bool, max_span: int = 64) -> np.ndarray:
+    """:func:`_filter_mask` with ``eps`` one value or one per ring / polyline."""
+    eps = np.ascontiguousarray(np.broadcast_to(np.asarray(eps, dtype=np.float64),
+                                               (len(starts) - 1,)))
+    return _filter_mask(pts, starts, eps, max_span, closed)
 
 
 @njit(cache=True)
@@ -437,7 +446,7 @@ def simplify(rings: Rings, filter_mm: float = FILTER_MM) -> Rings:
     if filter_mm > 0 and rings:
         pts = np.ascontiguousarray(np.concatenate(rings))
         starts = np.concatenate([[0], np.cumsum([len(r) for r in rings])]).astype(np.int64)
-        keep = _filter_mask(pts, starts, float(filter_mm), 64)
+        keep = _chord_keep(pts, starts, float(filter_mm), closed=True)
         out = [pts[a:b][keep[a:b]] for a, b in zip(starts[:-1], starts[1:])]
         cnt = np.array([len(r) for r in out])
         fstarts = np.concatenate([[0], np.cumsum(cnt)]).astype(np.int64)
@@ -465,7 +474,7 @@ def _simplify_slow(ring: np.ndarray, filter_mm: float) -> Rings:
             continue
         starts = np.array([0, len(loop)], dtype=np.int64)
         loop = np.ascontiguousarray(loop)
-        kept = loop[_filter_mask(loop, starts, float(filter_mm), 64)]
+        kept = loop[_chord_keep(loop, starts, float(filter_mm), closed=True)]
         if len(kept) >= 3 and _simple_mask(kept, np.array([0, len(kept)], dtype=np.int64),
                                            True)[0]:
             out.append(kept)
@@ -699,50 +708,6 @@ def _even_odd_rows(px: np.ndarray, py: np.ndarray, pts: np.ndarray, starts: np.n
     return out
 
 
-@njit(cache=True)
-def _filter_open_mask(pts: np.ndarray, starts: np.ndarray, eps: np.ndarray, max_span: int
-                      ) -> np.ndarray:  # pragma: no cover - compiled
-    """:func:`_filter_mask` for open polylines (``eps`` per polyline): both end points
-    are kept."""
-    keep = np.zeros(len(pts), dtype=np.bool_)
-    for r in range(len(starts) - 1):
-        eps2 = eps[r] * eps[r]
-        s0 = starts[r]
-        n = starts[r + 1] - s0
-        if n == 0:
-            continue
-        keep[s0] = True
-        keep[s0 + n - 1] = True
-        a = 0
-        while a < n - 1:
-            best = a + 1
-            j = a + 2
-            while j < n and j - a <= max_span:
-                ax = pts[s0 + a, 0]
-                ay = pts[s0 + a, 1]
-                dx = pts[s0 + j, 0] - ax
-                dy = pts[s0 + j, 1] - ay
-                L2 = dx * dx + dy * dy
-                ok = True
-                for i in range(a + 1, j):
-                    qx = pts[s0 + i, 0] - ax
-                    qy = pts[s0 + i, 1] - ay
-                    t = (qx * dx + qy * dy) / L2 if L2 > 0.0 else 0.0
-                    t = min(1.0, max(0.0, t))
-                    ex = qx - t * dx
-                    ey = qy - t * dy
-                    if ex * ex + ey * ey > eps2:
-                        ok = False
-                        break
-                if not ok:
-                    break
-                best = j
-                j += 1
-            keep[s0 + best] = True
-            a = best
-    return keep
-
-
 def simplify_open(lines: Sequence[np.ndarray], filter_mm: float | np.ndarray = FILTER_MM
                   ) -> list[np.ndarray]:
     """Open polylines with the points dropped that lie within ``filter_mm`` (one value,
@@ -751,10 +716,9 @@ def simplify_open(lines: Sequence[np.ndarray], filter_mm: float | np.ndarray = F
     lines = [np.asarray(ln, dtype=np.float64) for ln in lines]
     if not lines:
         return lines
-    eps = np.broadcast_to(np.asarray(filter_mm, dtype=np.float64), (len(lines),))
     pts = np.ascontiguousarray(np.concatenate(lines))
     starts = np.concatenate([[0], np.cumsum([len(ln) for ln in lines])]).astype(np.int64)
-    keep = _filter_open_mask(pts, starts, np.ascontiguousarray(eps), 64)
+    keep = _chord_keep(pts, starts, filter_mm, closed=False)
     out = [pts[a:b][keep[a:b]] for a, b in zip(starts[:-1], starts[1:])]
     ok = simple_mask(out, closed=False)
     return [o if k else ln for o, ln, k in zip(out, lines, ok)]
