@@ -147,12 +147,12 @@ def test_gantry_default_origin_is_the_same_in_every_stage():
     from icefab import Job
     from icefab.flow import trajectory_part_xy
     from icefab.motion import plan_motion
-    from icefab.paths import part_origin, to_base_frame
+    from icefab.paths import to_base_frame
     from icefab.types import Path
 
     job = Job().replace(**{"cell.robot": "gantry"})
     centre = 0.5 * np.asarray(job.cell.gantry_travel_mm, dtype=float)
-    assert np.allclose(part_origin(job), centre)
+    assert np.allclose(job.cell.ee_origin_mm, centre)
     part = np.array([[-20.0, -10.0], [20.0, -10.0], [20.0, 10.0], [-20.0, 10.0]])
     path = Path(points=part, material="part", role="boundary", closed=True, width=1.5)
     traj = plan_motion(path, job)  # a part-frame Path goes to the base frame in the planner
@@ -161,4 +161,4 @@ def test_gantry_default_origin_is_the_same_in_every_stage():
     assert np.abs(back[0] - part[0]).max() < 1e-6
     assert back[:, 0].min() >= -20.0 - 1e-6 and back[:, 0].max() <= 20.0 + 1e-6
     # a SCARA job keeps the thesis origin untouched
-    assert np.allclose(part_origin(Job()), Job().cell.ee_origin_mm)
+    assert np.allclose(Job().cell.ee_origin_mm, (260.0, -100.0))

@@ -7,9 +7,10 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from icefab import Job
+from icefab.config import load_job, to_toml
 from icefab.errors import WorkspaceError
 from icefab.robots import (ROBOTS, Gantry, Robot, Scara, check_workspace, get_robot,
-                           place_part, register_robot)
+                           register_robot)
 
 
 @pytest.fixture
@@ -52,14 +53,21 @@ def test_registry_left_as_found():
     assert "mine" not in ROBOTS
 
 
-def test_gantry_default_part_origin_at_travel_centre():
+def test_gantry_default_part_origin_at_travel_centre(tmp_path):
     # the default part origin (260, -100) mm is a SCARA position: a gantry left at it
-    # builds at the centre of its travel; an origin the user set is kept
+    # builds at the centre of its travel, resolved when the job is built (also from a
+    # file, and kept through a save); an origin the user set is kept
     job = Job().replace(**{"cell.robot": "gantry", "cell.gantry_travel_mm": [400.0, 200.0]})
-    assert tuple(place_part(job).cell.ee_origin_mm) == (200.0, 100.0)
+    assert tuple(job.cell.ee_origin_mm) == (200.0, 100.0)
     own = job.replace(**{"cell.ee_origin_mm": [50.0, 60.0]})
-    assert tuple(place_part(own).cell.ee_origin_mm) == (50.0, 60.0)
-    assert tuple(place_part(Job()).cell.ee_origin_mm) == (260.0, -100.0)  # SCARA unchanged
+    assert tuple(own.cell.ee_origin_mm) == (50.0, 60.0)
+    assert tuple(Job().cell.ee_origin_mm) == (260.0, -100.0)  # SCARA unchanged
+    f = tmp_path / "gantry.toml"
+    f.write_text('[cell]\nrobot = "gantry"\n', encoding="utf-8")
+    assert tuple(load_job(f).cell.ee_origin_mm) == (150.0, 150.0)
+    saved = tmp_path / "saved.toml"
+    saved.write_text(to_toml(job), encoding="utf-8")
+    assert load_job(saved) == job
 
 
 def test_scara_joint_resolution_from_the_job():

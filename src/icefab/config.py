@@ -168,6 +168,23 @@ class Materials:
         return getattr(self, material)
 
 
+#: The part origin of the thesis' Cobra 600 cell (2.x), mm: ``cell.ee_origin_mm``'s default.
+SCARA_EE_ORIGIN_MM = (260.0, -100.0)
+
+
+def _placed(cell: "CellSettings") -> "CellSettings":
+    """The cell with the part origin where its robot can build: a gantry whose
+    ``ee_origin_mm`` was left at the default (a SCARA position, outside any gantry travel
+    starting at 0) builds at the centre of its travel, where the part (centred on its origin
+    by default, ``parts.translation``) fits. Resolved once, when the Job is built, so every
+    stage (paths to base frame, trajectories, valve programs, the simulator) and every saved
+    job carry the same origin. An origin the user set differently is kept."""
+    if cell.robot != "gantry" or tuple(map(float, cell.ee_origin_mm)) != SCARA_EE_ORIGIN_MM:
+        return cell
+    return dataclasses.replace(cell, ee_origin_mm=tuple(0.5 * float(v)
+                                                        for v in cell.gantry_travel_mm))
+
+
 @dataclass(frozen=True)
 class CellSettings:
     """The robot cell: kinematics, joint ranges and reference frames (thesis Ch. 2, 4.2)."""
@@ -181,8 +198,10 @@ class CellSettings:
     elbow: str = setting("right", "SCARA elbow configuration", choices=("right", "left"))
     gantry_travel_mm: Vec2 = setting((300.0, 300.0), "gantry x and y travel (from 0)",
                                      lo=0.0, lo_open=True)
-    ee_origin_mm: Vec2 = setting((260.0, -100.0), "end-effector frame origin in the robot base "
-                                                  "frame when building (part origin)")
+    ee_origin_mm: Vec2 = setting(SCARA_EE_ORIGIN_MM, "end-effector frame origin in the robot "
+                                                    "base frame when building (part origin); "
+                                                    "a gantry left at this default builds at "
+                                                    "the centre of its travel")
     laser_offset_mm: Vec2 = setting((-30.0, 19.0), "laser measurement frame origin in the "
                                                    "end-effector frame")
     encoder_resolution_deg: float = setting(0.001, "joint encoder resolution", lo=0.0)
@@ -345,6 +364,7 @@ class Job:
 
     def __post_init__(self) -> None:
         _validate(self, "")
+        object.__setattr__(self, "cell", _placed(self.cell))  # frozen: set once, here
         _check_cross(self)
 
     def replace(self, **changes: Any) -> "Job":

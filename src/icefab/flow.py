@@ -228,9 +228,9 @@ def trajectory_part_xy(trajectory: Trajectory, material: str, job: "Job") -> np.
     part point ``p = base - ee_origin + tool_offset`` under the material's nozzle.
     Control-action surfaces are measured in the part frame, so they are sampled here.
     """
-    from icefab.paths import part_origin, tool_offset
+    from icefab.paths import tool_offset
 
-    off = part_origin(job) - tool_offset(material, job)
+    off = np.asarray(job.cell.ee_origin_mm, dtype=np.float64) - tool_offset(material, job)
     return np.asarray(trajectory.xy, dtype=np.float64) - off
 
 

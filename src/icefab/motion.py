@@ -66,8 +66,8 @@ Phi of eq. 4.11 (theta4 = phi - theta1 - theta2, the end-effector orientation) i
 ``Scara.phi`` is not a job setting.
 
 A gantry whose part origin was left at the default (a SCARA position) builds at the
-centre of its travel (:func:`icefab.robots.place_part`, applied by every entry point
-here; the trajectories' job records the origin used).
+centre of its travel (resolved when the Job is built, ``config.CellSettings``; the
+trajectories' job records the origin used).
 
 Comparison with constant speed (thesis 4.4): :func:`constant_speed_motion` plans the
 thesis' "constant-speed" technique (boundaries 25 mm/s, fill 125 mm/s) with the same
@@ -118,7 +118,7 @@ from scipy.ndimage import convolve1d
 from icefab import _mtts
 from icefab.config import Job
 from icefab.errors import IcefabError, StackFileError, WorkspaceError
-from icefab.robots import Robot, get_robot, place_part
+from icefab.robots import Robot, get_robot
 from icefab.types import LayerPaths, Path, Toolpaths, Trajectory
 
 log = logging.getLogger(__name__)
@@ -634,7 +634,7 @@ def plan_motion(path_or_points: Path | np.ndarray, job: Job | None = None, *,
     split corners). Raises WorkspaceError (naming the point) before planning if any point
     is unreachable.
     """
-    job = place_part(job or Job())
+    job = job or Job()
     robot = robot or get_robot(job)
     if isinstance(path_or_points, Path):
         pts = _as_points(_base_points(path_or_points, job), _path_label(path_or_points, index))
@@ -654,7 +654,7 @@ def plan_paths_motion(paths: Sequence[Path], job: Job | None = None, *,
     replacing :func:`path_limits` for paths of that role (never above
     ``motion.speed_mm_s``); used by :func:`constant_speed_motion`.
     """
-    job = place_part(job or Job())
+    job = job or Job()
     _check_role_speeds(role_speeds)
     robot = robot or get_robot(job)
     if not paths:
@@ -792,7 +792,7 @@ def check_build_workspace(toolpaths: Toolpaths, job: Job | None = None,
     never leave it); the planner still checks every resampled (and smoothed) grid point
     of each layer (e.g. a chord swinging joint 1 beyond its range around the back).
     """
-    job = place_part(job or toolpaths.job)
+    job = job or toolpaths.job
     robot = robot or get_robot(job)
     for lp in toolpaths.layers:
         if not lp.paths:
@@ -845,7 +845,7 @@ def plan_toolpaths(toolpaths: Toolpaths, job: Job | None = None,
     ``progress(done, total)`` is called after each layer. ``role_speeds``: see
     :func:`plan_paths_motion`.
     """
-    job = place_part(job or toolpaths.job)
+    job = job or toolpaths.job
     _check_role_speeds(role_speeds)
     robot = get_robot(job)
     layers = list(toolpaths.layers)

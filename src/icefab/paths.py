@@ -122,17 +122,7 @@ def to_base_frame(points: np.ndarray, tool: str, job: Job) -> np.ndarray:
     part point, since the EE carries both nozzles.
     """
     pts = np.asarray(points, dtype=np.float64)
-    return pts + (part_origin(job) - tool_offset(tool, job))
-
-
-def part_origin(job: Job) -> np.ndarray:
-    """(2,) float64 mm: ``cell.ee_origin_mm`` as the robot builds with it
-    (:func:`icefab.robots.place_part`: a gantry left at the default, a SCARA position,
-    builds at its travel centre). Every stage that goes between part and base frame uses
-    this, so paths, trajectories, valve programs and the simulator agree."""
-    from icefab.robots import place_part
-
-    return np.asarray(place_part(job).cell.ee_origin_mm, dtype=np.float64)
+    return pts + (np.asarray(job.cell.ee_origin_mm, dtype=np.float64) - tool_offset(tool, job))
 
 
 def deposition_state(path: Path) -> int:
@@ -719,8 +709,7 @@ def _pocket_rings(gaps: list[np.ndarray], w_min: float, w_max: float, filt: floa
         return []
     rings = list(core.rings)
     areas = geo.ring_areas(rings)
-    perims = np.array([float(np.linalg.norm(np.diff(np.vstack([r, r[:1]]), axis=0),
-                                            axis=1).sum()) for r in rings])
+    perims = geo.ring_perimeters(rings)
     depth = core.depth()
     # every hole (odd depth) counts for the outer ring it belongs to
     owner = np.where(depth % 2 == 1, core.parent, np.arange(len(rings)))
@@ -753,8 +742,7 @@ def centre_paths(rings: list[np.ndarray], w_min: float, w_max: float, filt: floa
     """
     if not rings:
         return []
-    perim = sum(float(np.linalg.norm(np.diff(np.vstack([r, r[:1]]), axis=0), axis=1).sum())
-                for r in rings)
+    perim = float(geo.ring_perimeters(rings).sum())
     typical = 2.0 * max(geo.area(rings), 0.0) / max(perim, 1e-12)  # a strip's width
     spacing = float(np.clip(typical / 3.0, w_min / 3.0, w_max / 4.0))
     chains = geo.medial_axis(rings, spacing, w_min / 2.0)
@@ -811,13 +799,8 @@ def _densify(lines: list[np.ndarray], closed: np.ndarray, step: float
     owner_pt = np.repeat(np.arange(len(polys)), n_pts)
     a, b = allp[:-1], allp[1:]
     same = owner_pt[:-1] == owner_pt[1:]  # segments inside one polyline
-    a, b, own = a[same], b[same], owner_pt[:-1][same]
-    seg = np.linalg.norm(b - a, axis=1)
-    n = np.maximum(1, np.ceil(seg / step).astype(np.int64))
-    i = np.repeat(np.arange(len(seg)), n)
-    t = (np.arange(len(i)) - np.repeat(np.cumsum(n) - n, n)) / n[i]
-    pts = np.vstack([a[i] + t[:, None] * (b - a)[i], allp])
-    return pts, np.concatenate([own[i], owner_pt])
+    inner, i, _ = geo.subdivide_segments(a[same], b[same], step)
+    return np.vstack([inner, allp]), np.concatenate([owner_pt[:-1][same][i], owner_pt])
 
 
 def plan_layer(layer: Layer, job: Job) -> LayerPaths:

@@ -38,7 +38,7 @@ from icefab.errors import ConfigError, WorkspaceError
 log = logging.getLogger(__name__)
 
 __all__ = ["Robot", "Scara", "Gantry", "get_robot", "register_robot", "check_workspace",
-           "place_part", "ROBOTS"]
+           "ROBOTS"]
 
 
 @runtime_checkable
@@ -264,32 +264,6 @@ def get_robot(job) -> Robot:
     if factory is None:
         raise ConfigError(f"cell.robot = {name!r}: expected one of {', '.join(sorted(ROBOTS))}")
     return factory(job)
-
-
-def place_part(job):
-    """The job with the part origin (``cell.ee_origin_mm``, where the end-effector frame
-    sits when the part origin is under it) where the robot can build.
-
-    Unchanged, except for a gantry whose origin was left at the default: that default,
-    (260, -100) mm, is the Cobra 600 position of the thesis (2.x), outside any gantry
-    travel starting at 0, so the part (centred on its origin by default,
-    ``parts.translation``) goes to the centre of the travel, ``cell.gantry_travel_mm / 2``
-    (logged). An origin the user set is always kept. Used by the motion stage wherever it
-    builds the base frame, so the trajectories' job carries the origin they were made for.
-    """
-    import dataclasses
-
-    from icefab.config import CellSettings
-    cell = job.cell
-    if cell.robot != "gantry":
-        return job
-    default = tuple(float(v) for v in CellSettings().ee_origin_mm)
-    if tuple(float(v) for v in cell.ee_origin_mm) != default:
-        return job
-    centre = tuple(0.5 * float(v) for v in cell.gantry_travel_mm)
-    log.info("cell.robot = gantry with the default part origin %s mm (a SCARA position): "
-             "the part origin goes to the centre of the travel, %s mm", default, centre)
-    return dataclasses.replace(job, cell=dataclasses.replace(cell, ee_origin_mm=centre))
 
 
 def check_workspace(points: np.ndarray, robot: Robot, *, layer: int = -1, path: int = -1,

@@ -761,11 +761,11 @@ def plan_layer_motion(layer: "LayerMotion", job: "Job") -> LayerPlan:
     (``simulation.laser_rate_hz``, latency). Travel is skipped.
     """
     from icefab import flow
-    from icefab.paths import part_origin, tool_offset
+    from icefab.paths import tool_offset
 
     sim = job.simulation
     dh = job.slicing.layer_thickness_mm * job.flow.layer_scale
-    ee = part_origin(job)
+    ee = np.asarray(job.cell.ee_origin_mm, dtype=np.float64)
     pieces: list[tuple[np.ndarray, bool, float, str]] = []
     dep, tag_parts, true_parts = [], [], []
     for k, traj in enumerate(layer.trajectories):

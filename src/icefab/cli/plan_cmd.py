@@ -5,7 +5,7 @@ Minimum-time trajectories for every path of a build (thesis Ch. 4). The input is
 (sliced, scaffolded and given paths with the job's settings) or a toolpath file written by
 ``icefab paths`` (``.npz``). ``--layers`` is checked as soon as the input is loaded. A
 gantry (``[cell] robot = "gantry"``) with the default part origin builds at the centre of
-its travel (``icefab.robots.place_part``). Writes into OUT (which appears only when
+its travel (``cell.ee_origin_mm``). Writes into OUT (which appears only when
 everything worked; every file is written in a temporary folder first):
 
 * ``trajectories.npz`` — every trajectory at constant dt (format: ``icefab.motion``
@@ -109,7 +109,6 @@ def _hms(s: float) -> str:
 def run(args: argparse.Namespace) -> int:
     from icefab.motion import constant_speed_motion, plan_toolpaths, save_trajectories
     from icefab.paths import estimate_build_time
-    from icefab.robots import place_part
 
     spacing = getattr(args, "constant_spacing", None)
     if spacing is not None and not (math.isfinite(spacing) and spacing > 0.0):
@@ -120,7 +119,6 @@ def run(args: argparse.Namespace) -> int:
     ks = parse_layers(args.layers, len(tp.layers), default_count=3)  # before planning
     if args.no_jerk:
         job = job.replace(**{"motion.jerk_limited": False})
-    job = place_part(job)
     t1 = time.perf_counter()
     motion = plan_toolpaths(tp, job, progress=Progress("planning"))
     t_plan = time.perf_counter() - t1
