@@ -338,8 +338,8 @@ def _markdown(r: dict, machine: str, date: str, mesh: str) -> str:
              "the wall time is about half of them (plus the sequential merged scan).", "",
              "Gap fill (rings with room, pockets, centre lines of the strips left, as wide as "
              "the strip) is most of `plan_paths`' time and paths: before it (thin-gap rings "
-             "only, the previous run of this benchmark) the unfilled area was part 5,388 + "
-             "scaffold 20,693 mm².", "",
+             "only, this benchmark on 2026-11-22 before commit 7546cfb) the unfilled area "
+             "was part 5,388 + scaffold 20,693 mm².", "",
              f"Unfilled area reported: part {r['unfilled'][0]:.0f} mm², scaffold "
              f"{r['unfilled'][1]:.0f} mm² over all layers. The thesis needed 244 + 192 + 832 s "
              "(RPSCAF + BUFFERF bounds + BUFFERF fill) on 4 cores for a comparable 1 M-facet "

@@ -15,15 +15,17 @@ from typing import Iterator
 
 
 def _umask() -> int:
+    """The process umask (os.umask can only be read by setting it)."""
     mask = os.umask(0o022)
     os.umask(mask)
     return mask
 
 
+_UMASK = _umask()
 #: Mode bits of new files and folders: what open() and mkdir() would give (mkstemp and
 #: mkdtemp create 0600 / 0700 files and folders, which results must not keep).
-FILE_MODE = 0o666 & ~_umask()
-DIR_MODE = 0o777 & ~_umask()
+FILE_MODE = 0o666 & ~_UMASK
+DIR_MODE = 0o777 & ~_UMASK
 
 
 @contextmanager

@@ -795,23 +795,35 @@ def _chains(n: int, ea: np.ndarray, eb: np.ndarray):  # pragma: no cover - compi
 
 
 @njit(cache=True)
+def _record_run(ints: np.ndarray, floats: np.ndarray, whole: np.ndarray, k: int, c: int,
+                first: int, last: int, lo: float, mean: float, hi: float, is_whole: bool
+                ) -> int:  # pragma: no cover - compiled
+    """Store run k of :func:`_width_runs` (chain, first and last vertex; smallest, mean
+    and largest width; whole closed chain) and return k + 1."""
+    ints[k, 0] = c
+    ints[k, 1] = first
+    ints[k, 2] = last
+    floats[k, 0] = lo
+    floats[k, 1] = mean
+    floats[k, 2] = hi
+    whole[k] = is_whole
+    return k + 1
+
+
+@njit(cache=True)
 def _width_runs(pts: np.ndarray, w: np.ndarray, starts: np.ndarray, closed: np.ndarray,
                 ratio: float, min_length: float):  # pragma: no cover - compiled
     """Cut chains into runs of similar width (see :func:`width_runs`).
 
-    Returns per run: chain index, first and last vertex (local to the chain; for a cut
-    closed chain the last may be n, meaning its first vertex again), the smallest, the
-    length-weighted mean and the largest width, and whether the run is a whole closed
-    chain.
+    Returns per run: (chain index, first and last vertex) (r, 3) int64 (vertices local to
+    the chain; for a cut closed chain the last may be n, meaning its first vertex again),
+    (smallest, length-weighted mean, largest width) (r, 3) float64, and whether the run is
+    a whole closed chain (r,) bool.
     """
     cap = len(w) + len(starts)
-    rch = np.empty(cap, dtype=np.int64)
-    rs = np.empty(cap, dtype=np.int64)
-    re = np.empty(cap, dtype=np.int64)
-    rlo = np.empty(cap)
-    rmean = np.empty(cap)
-    rhi = np.empty(cap)
-    rc = np.zeros(cap, dtype=np.bool_)
+    ints = np.empty((cap, 3), dtype=np.int64)
+    floats = np.empty((cap, 3))
+    whole = np.zeros(cap, dtype=np.bool_)
     k = 0
     for c in range(len(starts) - 1):
         s0 = starts[c]
@@ -832,14 +844,8 @@ def _width_runs(pts: np.ndarray, w: np.ndarray, starts: np.ndarray, closed: np.n
             lo = min(lo, w[q])
             hi = max(hi, w[q])
         if closed[c] and hi <= ratio * lo:
-            rch[k] = c
-            rs[k] = 0
-            re[k] = n - 1
-            rlo[k] = lo
-            rmean[k] = sw / sl if sl > 0 else lo
-            rhi[k] = hi
-            rc[k] = True
-            k += 1
+            k = _record_run(ints, floats, whole, k, c, 0, n - 1, lo,
+                            sw / sl if sl > 0 else lo, hi, True)
             continue
         # a run takes vertices while its widths stay within the ratio, but is never cut
         # shorter than ``min_length`` (a tapering corner would give many tiny runs); the
@@ -856,13 +862,8 @@ def _width_runs(pts: np.ndarray, w: np.ndarray, starts: np.ndarray, closed: np.n
             q = s0 + (i % n)
             wi = w[q]
             if max(hi, wi) > ratio * min(lo, wi) and sl >= min_length:
-                rch[k] = c
-                rs[k] = a
-                re[k] = i - 1
-                rlo[k] = min(lo, shared)
-                rmean[k] = sw / sl if sl > 0 else lo
-                rhi[k] = hi
-                k += 1
+                k = _record_run(ints, floats, whole, k, c, a, i - 1, min(lo, shared),
+                                sw / sl if sl > 0 else lo, hi, False)
                 a = i - 1
                 shared = w[p]
                 lo = np.inf
@@ -874,14 +875,9 @@ def _width_runs(pts: np.ndarray, w: np.ndarray, starts: np.ndarray, closed: np.n
             sl += d
             lo = min(lo, wi)
             hi = max(hi, wi)
-        rch[k] = c
-        rs[k] = a
-        re[k] = m - 1
-        rlo[k] = min(lo, shared)
-        rmean[k] = sw / sl if sl > 0 else lo
-        rhi[k] = hi
-        k += 1
-    return rch[:k], rs[:k], re[:k], rlo[:k], rmean[:k], rhi[:k], rc[:k]
+        k = _record_run(ints, floats, whole, k, c, a, m - 1, min(lo, shared),
+                        sw / sl if sl > 0 else lo, hi, False)
+    return ints[:k], floats[:k], whole[:k]
 
 
 def width_runs(chains: Sequence[tuple[np.ndarray, np.ndarray, bool]], ratio: float,
@@ -907,10 +903,10 @@ def width_runs(chains: Sequence[tuple[np.ndarray, np.ndarray, bool]], ratio: flo
     closed = np.array([bool(c[2]) for c in chains])
     pts = np.ascontiguousarray(np.concatenate([np.asarray(c[0], dtype=np.float64)
                                                for c in chains]))
-    rch, rs, re, rlo, rmean, rhi, rc = _width_runs(pts, w, starts, closed, float(ratio),
-                                                   float(min_length))
+    ints, floats, whole_chain = _width_runs(pts, w, starts, closed, float(ratio),
+                                            float(min_length))
     out = []
-    for c, a, b, lo, mean, hi, whole in zip(rch, rs, re, rlo, rmean, rhi, rc):
+    for (c, a, b), (lo, mean, hi), whole in zip(ints, floats, whole_chain):
         pts = chains[c][0]
         widths = (float(lo), float(mean), float(hi))
         if whole:
@@ -932,6 +928,19 @@ def _seg_dist(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.sqrt(np.einsum("ij,ij->i", e, e))
 
 
+def subdivide_segments(a: np.ndarray, b: np.ndarray, step: float
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points along the segments ``a[i] -> b[i]`` ((n, 2) each, mm) at most ``step`` apart:
+    each segment's start and ``ceil(length / step) - 1`` evenly spaced inner points (its
+    end is the next segment's start, or not included). Returns (points (s, 2), segment of
+    each point (s,), fraction along it (s,))."""
+    seg = np.linalg.norm(b - a, axis=1)
+    n = np.maximum(1, np.ceil(seg / step).astype(np.int64))
+    i = np.repeat(np.arange(len(seg)), n)
+    t = (np.arange(len(i)) - np.repeat(np.cumsum(n) - n, n)) / n[i]
+    return a[i] + t[:, None] * (b - a)[i], i, t
+
+
 def _sample_rings(rings: Sequence[np.ndarray], spacing: float):
     """Points along flat rings at most ``spacing`` apart (every vertex among them).
 
@@ -939,21 +948,14 @@ def _sample_rings(rings: Sequence[np.ndarray], spacing: float):
     the end of each vertex's edge (v, 2), the previous edge of each vertex (v,), ring of
     each sample (s,), arc position of each sample on its ring (s,), ring lengths (r,)).
     """
-    a = np.ascontiguousarray(np.concatenate(rings))
-    counts = np.array([len(r) for r in rings])
-    first = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    nxt = np.arange(1, len(a) + 1)
-    nxt[first + counts - 1] = first
-    prv = np.arange(-1, len(a) - 1)
-    prv[first] = first + counts - 1
+    a, first, nxt = _wrapped(rings)
+    a = np.ascontiguousarray(a)
+    prv = np.empty_like(nxt)
+    prv[nxt] = np.arange(len(nxt))
     b = a[nxt]
     seg = np.linalg.norm(b - a, axis=1)
-    nsub = np.maximum(1, np.ceil(seg / spacing).astype(np.int64))
-    edge = np.repeat(np.arange(len(a)), nsub)
-    k = np.arange(len(edge)) - np.repeat(np.cumsum(nsub) - nsub, nsub)
-    t = k / nsub[edge]
-    P = a[edge] + t[:, None] * (b - a)[edge]
-    ring_of_edge = np.repeat(np.arange(len(rings)), counts)
+    P, edge, t = subdivide_segments(a, b, spacing)
+    ring_of_edge = np.repeat(np.arange(len(rings)), [len(r) for r in rings])
     cum = np.concatenate([[0.0], np.cumsum(seg)])
     arc = cum[edge] - cum[first][ring_of_edge[edge]] + t * seg[edge]
     ring_len = np.add.reduceat(seg, first)
@@ -1225,18 +1227,32 @@ def rings_holding(rings: Sequence[np.ndarray], points: np.ndarray) -> np.ndarray
                           np.ascontiguousarray(pts[:, 1]))
 
 
-def ring_areas(rings: Sequence[np.ndarray]) -> np.ndarray:
-    """(r,) float64 signed areas of rings, mm^2, in one vectorised pass."""
-    if not len(rings):
-        return np.zeros(0)
+def _wrapped(rings: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Concatenated ring points (v, 2), each ring's first index (r,), and the index of
+    every point's successor along its ring (v,), the last wrapping to the first."""
     pts = np.concatenate(rings)
     counts = np.array([len(r) for r in rings])
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     nxt = np.arange(1, len(pts) + 1)
-    ends = starts + counts
-    nxt[ends - 1] = starts  # wrap each ring to its first point
+    nxt[starts + counts - 1] = starts
+    return pts, starts, nxt
+
+
+def ring_areas(rings: Sequence[np.ndarray]) -> np.ndarray:
+    """(r,) float64 signed areas of rings, mm^2, in one vectorised pass."""
+    if not len(rings):
+        return np.zeros(0)
+    pts, starts, nxt = _wrapped(rings)
     cross = pts[:, 0] * pts[nxt, 1] - pts[nxt, 0] * pts[:, 1]
     return 0.5 * np.add.reduceat(cross, starts)
+
+
+def ring_perimeters(rings: Sequence[np.ndarray]) -> np.ndarray:
+    """(r,) float64 perimeters of rings (closing edge included), mm, in one pass."""
+    if not len(rings):
+        return np.zeros(0)
+    pts, starts, nxt = _wrapped(rings)
+    return np.add.reduceat(np.hypot(*(pts[nxt] - pts).T), starts)
 
 
 def area(region: Region | Sequence[np.ndarray]) -> float:
