@@ -621,20 +621,6 @@ def _in_ring(pts: np.ndarray, s0: int, e0: int, x: float, y: float
     return inside
 
 
-@njit(cache=True)
-def _even_odd(px: np.ndarray, py: np.ndarray, pts: np.ndarray, starts: np.ndarray
-              ) -> np.ndarray:  # pragma: no cover - compiled
-    """Even-odd crossing test of points against all ring edges."""
-    out = np.zeros(len(px), dtype=np.bool_)
-    for k in range(len(px)):
-        inside = False
-        for r in range(len(starts) - 1):
-            if _in_ring(pts, starts[r], starts[r + 1], px[k], py[k]):
-                inside = not inside
-        out[k] = inside
-    return out
-
-
 def points_inside(points: np.ndarray, region: Region | Sequence[np.ndarray]) -> np.ndarray:
     """(n,) bool: which points (n, 2) mm lie inside the region (even-odd rule over its
     properly nested rings; points on an edge may go either way)."""
@@ -644,15 +630,16 @@ def points_inside(points: np.ndarray, region: Region | Sequence[np.ndarray]) -> 
         return np.zeros(len(pts), dtype=bool)
     allp = np.ascontiguousarray(np.concatenate(rings))
     starts = np.concatenate([[0], np.cumsum([len(r) for r in rings])]).astype(np.int64)
-    return _even_odd(np.ascontiguousarray(pts[:, 0]), np.ascontiguousarray(pts[:, 1]),
-                     allp, starts)
+    return _even_odd_rows(np.ascontiguousarray(pts[:, 0]), np.ascontiguousarray(pts[:, 1]),
+                          allp, starts)
 
 
 @njit(cache=True)
 def _even_odd_rows(px: np.ndarray, py: np.ndarray, pts: np.ndarray, starts: np.ndarray
                    ) -> np.ndarray:  # pragma: no cover - compiled
-    """:func:`_even_odd` with the edges bucketed into horizontal rows, so each point is
-    only tested against the edges whose y-range may hold it (many points, many edges)."""
+    """Even-odd crossing test of points (px, py) against all ring edges, the edges
+    bucketed into horizontal rows so each point is only tested against the edges whose
+    y-range may hold it."""
     ne = len(pts)
     out = np.zeros(len(px), dtype=np.bool_)
     if ne == 0:
