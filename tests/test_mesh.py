@@ -669,3 +669,15 @@ def test_located_open_edge_after_unused_vertices_dropped(tmp_path):
     mids = [tuple((p + q) / 2) for p, q in ((a, b), (b, c), (c, a))]
     assert rep.open_edges == 3
     assert rep.open_edge_at in [pytest.approx(m) for m in mids]
+
+
+def test_clean_mesh_keeps_name_and_earlier_warnings():
+    from icefab.mesh import clean_mesh
+
+    tm = trimesh.creation.box()
+    inside_out = Mesh(np.asarray(tm.vertices, float), np.asarray(tm.faces)[:, ::-1].copy(),
+                      "box.stl", warnings=("box.stl: 1 duplicate facet removed",))
+    cleaned, report = clean_mesh(inside_out)
+    assert report.flipped
+    assert cleaned.name == "box.stl"
+    assert cleaned.warnings == inside_out.warnings

@@ -549,11 +549,11 @@ def clean_mesh(mesh: Mesh) -> tuple[Mesh, MeshReport]:
             ex_open, ex_nonman = (np.where(e >= 0, remap[np.maximum(e, 0)], -1)
                                   for e in edges[3:])
             edges = (*edges[:3], ex_open, ex_nonman)
-    cleaned = Mesh(vertices, f, mesh.name)
+    cleaned = dataclasses.replace(mesh, vertices=vertices, faces=f)
     report = _diagnose(cleaned, known_clean=True, edges=edges)
     flipped = False
     if report.inverted:
-        cleaned = Mesh(vertices, np.ascontiguousarray(f[:, ::-1]), mesh.name)
+        cleaned = dataclasses.replace(cleaned, faces=np.ascontiguousarray(f[:, ::-1]))
         report = dataclasses.replace(report, volume=-report.volume, inverted=False)
         flipped = True
     report = dataclasses.replace(report, removed_degenerate=int(degen.sum()),
@@ -704,9 +704,10 @@ def read_mesh(path: str | os.PathLike[str], *, inexact: bool = False,
     report = dataclasses.replace(report, merged_vertices=int(n_in - len(vertices)))
     if len(mesh.faces) == 0:
         raise MeshError(f"{p}: every face is degenerate; nothing left to slice")
-    for w in report.warnings():
+    found = tuple(report.warnings())
+    for w in found:
         log.warning("%s", w)
-    return dataclasses.replace(mesh, warnings=tuple(report.warnings())), report
+    return dataclasses.replace(mesh, warnings=found), report
 
 
 def load_mesh(path: str | os.PathLike[str], *, inexact: bool = False,
@@ -1775,7 +1776,7 @@ def transform(mesh: Mesh, parts: "PartSetup") -> Mesh:
                                   f"{'xyz'[axis]} entry must be a number, 'cent' or 'orig'")
         else:
             v[:, axis] += float(t) - lo[axis]
-    return Mesh(v, faces, mesh.name, mesh.warnings)
+    return dataclasses.replace(mesh, vertices=v, faces=faces)
 
 
 def part_fraction_range(mesh: Mesh, parts: "PartSetup") -> tuple[float, float]:
