@@ -221,7 +221,8 @@ class FrequencyPlan:
 
 
 def trajectory_part_xy(trajectory: Trajectory, material: str, job: "Job") -> np.ndarray:
-    """(n, 2) float64, mm: where the material's nozzle is, in the part (building) frame.
+    """(n, 2) float64, mm: where the material's nozzle (or, with ``material = "laser"``, the
+    laser spot) is, in the part (building) frame.
 
     Trajectory samples are end-effector positions in the robot base frame; the inverse of
     :func:`icefab.paths.to_base_frame` (``base = p + ee_origin - tool_offset``) gives the
@@ -265,7 +266,10 @@ def _action_values(action: ActionLike, trajectory: Trajectory, material: str,
     return u
 
 
-def _width(trajectory: Trajectory, material: str, job: "Job") -> float:
+def trajectory_width(trajectory: Trajectory, material: str, job: "Job") -> float:
+    """Deposition width of a trajectory, mm: its path's own, else the material's by role
+    (fill width for fill, path width otherwise; a trajectory file's stand-in paths and a
+    bare array carry none)."""
     path = trajectory.path
     if path is not None and path.width > 0:
         return float(path.width)
@@ -371,7 +375,7 @@ def valve_frequency(trajectory: Trajectory, material: str, job: "Job", *,
         raise FlowError(f"layer thickness = {dh!r} mm: must be > 0")
     cal = calibration or calibration_for(material, job)
     u = _action_values(action, trajectory, material, job)
-    w = _width(trajectory, material, job)
+    w = trajectory_width(trajectory, material, job)
     q = np.clip((1.0 + u), 0.0, None) * (w * dh * fl.layer_scale) * speed  # eq. 6.2-6.3
     t = np.arange(n) * float(trajectory.dt)
     warnings: list[str] = []

@@ -592,10 +592,10 @@ def material_paths(region: Region, mat: MaterialSettings, job: Job, hook_levels:
     Returns ``({"boundary": [...], "fill": [...]}, hook_rings, unfilled_mm2)`` where each
     path is ``(points (k, 2) float64 mm, closed, width mm)``; ``hook_rings`` are the
     rings of the ice hook wall (:func:`hook_wall`, ``hook_levels`` rings, given the layer's
-    ``part``) taken out of the scaffold (thesis 3.7); ``unfilled_mm2`` the nominal area (:func:`nominal_area`) that no path
-    sweeps. With ``mat.gap_fill`` the gaps wider than the boundary path width get extra
-    closed rings of that width (role fill), narrower ones a ring of their own width
-    (:func:`_thin_gap_rings`), before the remainder is measured.
+    ``part``) taken out of the scaffold (thesis 3.7); ``unfilled_mm2`` the nominal area
+    (:func:`nominal_area`) that no path sweeps. With ``mat.gap_fill`` the gaps get extra
+    fill paths (:func:`gap_fill_paths`: rings with room, pocket rings, centre lines of the
+    strips left) before the remainder is measured.
     """
     filt = job.slicing.max_filter_deviation_mm
     w = mat.path_width_mm

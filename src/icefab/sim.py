@@ -621,7 +621,7 @@ class LayerPlan:
     material: (m,) int8, 0 part, 1 scaffold.
     n0, n1: (m, 2) float64 unit normals of the cut lines at the segment ends and ext (m,)
         float64 mm, the mitre reach (see :func:`_joints`).
-    paths: the deposition paths; path i owns segments ``path_start[i]:path_start[i + 1]``.
+    paths: the deposition paths, in deposition order.
     laser_tagged, laser_true: (k, 2) float64, mm, laser sample positions (empty when the
         layer has no measurement paths).
     trajectories: the deposition trajectories (robot base frame, as planned) when the
@@ -640,7 +640,6 @@ class LayerPlan:
     n1: np.ndarray
     ext: np.ndarray
     paths: tuple[Path, ...] = ()
-    path_start: np.ndarray = field(default_factory=lambda: np.zeros(1, dtype=np.int64))
     laser_tagged: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     laser_true: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     trajectories: tuple[Trajectory, ...] = ()
@@ -720,19 +719,10 @@ def _layer_plan(index: int, pieces: list[tuple[np.ndarray, bool, float, str]], d
                           np.asarray([c for _, c, _, _ in pieces], dtype=bool))
     return LayerPlan(index=index, a=a, b=b, volume=w * dh * np.linalg.norm(b - a, axis=1),
                      half_width=hw, material=mat, n0=n0, n1=n1, ext=ext, paths=paths,
-                     path_start=starts, laser_tagged=cat(tag_parts, (0, 2)),
+                     laser_tagged=cat(tag_parts, (0, 2)),
                      laser_true=cat(true_parts, (0, 2)), trajectories=trajectories)
 
 
-
-
-def _traj_width(path: Path, job: "Job") -> float:
-    """Deposition width of a trajectory's path: its own, else the material's by role (a
-    trajectory file's stand-in paths carry none; as :mod:`icefab.flow` does)."""
-    if path.width > 0:
-        return float(path.width)
-    mat = job.materials[path.material]
-    return float(mat.fill_width_mm if path.role == "fill" else mat.path_width_mm)
 
 
 def _laser_in_time(xy: np.ndarray, dt: float, rate_hz: float, latency_s: float
@@ -761,11 +751,9 @@ def plan_layer_motion(layer: "LayerMotion", job: "Job") -> LayerPlan:
     (``simulation.laser_rate_hz``, latency). Travel is skipped.
     """
     from icefab import flow
-    from icefab.paths import tool_offset
 
     sim = job.simulation
     dh = job.slicing.layer_thickness_mm * job.flow.layer_scale
-    ee = np.asarray(job.cell.ee_origin_mm, dtype=np.float64)
     pieces: list[tuple[np.ndarray, bool, float, str]] = []
     dep, tag_parts, true_parts = [], [], []
     for k, traj in enumerate(layer.trajectories):
@@ -785,7 +773,7 @@ def plan_layer_motion(layer: "LayerMotion", job: "Job") -> LayerPlan:
         if p.material not in MATERIAL_ID:
             raise SimulationError(f"layer {layer.index}: unknown material {p.material!r}")
         if p.role == "measure":
-            part_xy = xy - ee + tool_offset(p.tool_name, job)
+            part_xy = flow.trajectory_part_xy(traj, p.tool_name, job)  # under the laser
             tg, tr = _laser_in_time(part_xy, float(traj.dt), sim.laser_rate_hz,
                                     sim.laser_latency_s)
             tag_parts.append(tg)
@@ -800,7 +788,7 @@ def plan_layer_motion(layer: "LayerMotion", job: "Job") -> LayerPlan:
         if len(pts) < 2:
             pts = np.vstack([pts[:1], pts[:1]])  # at rest: a w x w square, no volume
         closed = bool(len(pts) > 2 and np.linalg.norm(pts[-1] - pts[0]) <= 1e-6)
-        pieces.append((pts, closed, _traj_width(p, job), p.material))
+        pieces.append((pts, closed, flow.trajectory_width(traj, p.material, job), p.material))
         dep.append(traj)
     return _layer_plan(layer.index, pieces, dh, tag_parts, true_parts,
                        paths=tuple(t.path for t in dep), trajectories=tuple(dep))
@@ -1020,17 +1008,16 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
     vol_cmd_total = 0.0
     vol_dep_total = 0.0
     pulses = 0
-    # valve programs already re-planned with the latest action, by position in plans
-    pending: dict[int, LayerValves] = {}
     k = 0
     for j, plan in enumerate(plans):
         nominal = (j + 1) * dh
         layer_img = np.zeros((2,) + z.shape)
         vol_cmd_total += float(plan.volume.sum())
         if valves:
-            lv = pending.pop(j, None)
-            if lv is None:  # open loop, before the first measurement, or past n_d layers
-                lv = layer_valves(plan, job, action)
+            # thesis 5.1.3: a measurement's action goes into the valve programs of the
+            # layers after it; planned when the layer's turn comes (the action only
+            # changes at a measurement, so this is the program re-planned there)
+            lv = layer_valves(plan, job, action)
             a, b, v_all, hw, mat_of, n0, n1, ext, n_p = valve_segments(lv, job)
             pulses += n_p
         else:
@@ -1119,11 +1106,6 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
                     layer=plan.index, k=k, nominal_z=nominal, interval_mm=n_d * dh,
                     samples=samples, footprint=mask,
                     grid=HeightMap(origin=surface.origin.copy(), spacing=g, z=plane)))
-                if valves:
-                    # thesis 5.1.3: the action goes into the valve programs of the next
-                    # n_d layers (re-planned now, deposited when their turn comes)
-                    for jj in range(j + 1, min(j + n_d, len(plans) - 1) + 1):
-                        pending[jj] = layer_valves(plans[jj], job, action)
         if progress is not None:
             progress(j + 1, len(plans))
     arr = np.array(rows, dtype=np.float64).reshape(-1, 5)
@@ -1194,7 +1176,7 @@ def valve_segments(valves: LayerValves, job: "Job") -> tuple:
         dts.append(float(traj.dt))
         ts.append(t)
         drops.append(d)
-        widths.append(_traj_width(p, job))
+        widths.append(flow.trajectory_width(traj, p.material, job))
         mats.append(MATERIAL_ID[p.material])
     a, b, vol, hw, owner, n0, n1, ext = pulse_segments(xs, dts, ts, drops, widths)
     material = np.asarray(mats, dtype=np.int8)[owner] if len(owner) else \
