@@ -135,3 +135,18 @@ def test_slice_then_paths_into_the_same_folder(tmp_path, capsys):
     assert "--layers" in capsys.readouterr().err
     assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["job.toml", "out", "tube.stl"]
+
+
+@pytest.mark.parametrize("command", [
+    ["demo"], ["slice", "MISSING.stl"], ["paths", "MISSING.stl"], ["plan", "MISSING.npz"],
+    ["valves", "MISSING.npz"], ["simulate", "MISSING.npz"],
+    ["tune", "--gains", "1,0.33,0", "--layers", "20"]])
+def test_output_to_a_file_is_refused_before_any_work(tmp_path, capsys, command):
+    # the input does not even exist: the -o check comes first, so a long job is not run
+    # only to fail when its results are written
+    afile = tmp_path / "afile"
+    afile.write_text("keep me")
+    assert main(command + ["-o", str(afile)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].endswith(f"-o {afile}: exists and is not a folder")
+    assert afile.read_text() == "keep me"

@@ -14,6 +14,7 @@ import importlib
 import logging
 import sys
 
+from icefab.cli.common import check_output_dir
 from icefab.errors import IcefabError
 
 # Subcommand modules, in the order shown by --help. A module that does not exist yet is
@@ -52,6 +53,8 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
                         format="%(levelname)s: %(message)s")
     try:
+        if getattr(args, "out", None):  # before any work, not after a long job
+            check_output_dir(args.out)
         return int(args.func(args) or 0)
     except IcefabError as exc:
         print(f"icefab {args.command}: error: {exc}", file=sys.stderr)

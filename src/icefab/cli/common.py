@@ -81,6 +81,13 @@ class Progress:
         self.stream.flush()
 
 
+def check_output_dir(path: str | os.PathLike) -> None:
+    """OutputError when ``-o path`` names an existing file: checked before a command
+    starts its work (``icefab.cli.main``) and again when the folder is made."""
+    if Path(path).exists() and not Path(path).is_dir():
+        raise OutputError(f"-o {path}: exists and is not a folder")
+
+
 @contextmanager
 def output_dir(path: str | os.PathLike) -> Iterator[Path]:
     """A folder whose new results appear at ``path`` only if the block succeeds.
@@ -92,8 +99,7 @@ def output_dir(path: str | os.PathLike) -> Iterator[Path]:
     Raises OutputError when ``path`` or a parent is a file or cannot be written.
     """
     final = Path(path)
-    if final.exists() and not final.is_dir():
-        raise OutputError(f"-o {final}: exists and is not a folder")
+    check_output_dir(final)
     try:
         final.parent.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", dir=final.parent))

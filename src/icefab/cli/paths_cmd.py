@@ -19,7 +19,6 @@ import numpy as np
 
 from icefab.cli.common import (Progress, add_job_argument, job_from_args, output_dir,
                                parse_layers)
-from icefab.errors import OutputError
 from icefab.report import plot_toolpaths
 from icefab.types import Toolpaths
 
@@ -89,8 +88,6 @@ def run(args: argparse.Namespace) -> int:
 
     job = job_from_args(args)
     t0 = time.perf_counter()
-    if FsPath(args.out).exists() and not FsPath(args.out).is_dir():
-        raise OutputError(f"-o {args.out}: exists and is not a folder")
     stack, job = _load_stack(args, job)
     ks = parse_layers(args.layers, len(stack))
     if not any(not layer.scaffold.is_empty for layer in stack):

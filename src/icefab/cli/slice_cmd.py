@@ -17,7 +17,7 @@ import numpy as np
 
 from icefab.cli.common import (Progress, add_job_argument, job_from_args, output_dir,
                                parse_layers)
-from icefab.errors import ConfigError, OutputError
+from icefab.errors import ConfigError
 from icefab.report import plot_layers
 from icefab.types import Stack
 
@@ -74,8 +74,6 @@ def run(args: argparse.Namespace) -> int:
     if not job.parts.files:
         raise ConfigError("no model to slice: give MODEL or parts.files in the job file")
     out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise OutputError(f"-o {out}: exists and is not a folder")
     t0 = time.perf_counter()
     mesh = meshmod.prepare_parts(job)
     t_load = time.perf_counter() - t0
