@@ -955,6 +955,71 @@ VERSION = 2
 _READABLE = (1, 2)
 
 
+def _owners(motion: BuildMotion) -> dict[str, np.ndarray]:
+    """Per trajectory, in file order: ``layer`` (T,) int64, ``path_index`` (T,) int64
+    (within its layer), ``material`` (T,) int8 (0 part, 1 scaffold) and ``role`` (T,) int8
+    (0 boundary, 1 fill, 2 measure, 3 travel); a trajectory without a path counts as 0."""
+    owners = [(lm.index, i, t.path) for lm in motion.layers
+              for i, t in enumerate(lm.trajectories)]
+    return {"layer": np.array([o[0] for o in owners], dtype=np.int64),
+            "path_index": np.array([o[1] for o in owners], dtype=np.int64),
+            "material": np.array([_MATS.index(p.material) if p else 0 for *_, p in owners],
+                                 dtype=np.int8),
+            "role": np.array([_ROLES.index(p.role) if p else 0 for *_, p in owners],
+                             dtype=np.int8)}
+
+
+def save_gcode(motion: BuildMotion, path: str | os.PathLike) -> None:
+    """G-code for gantry-style machines (positions with feedrates, as the thesis'
+    conclusions suggest for CNC machines), written atomically: ``G21``/``G90``, per layer
+    ``; layer K z Z`` and ``G0 Z..``, per path a ``; path I: MATERIAL ROLE, width W mm,
+    D s`` comment, ``G0`` to its first sample, then one ``G1 X Y F`` per sample
+    (:func:`gcode_moves`: F in mm/min = the step's length over dt, so each move takes one
+    time step). X and Y are the tool point in the robot base frame (the gantry's axes)."""
+    from icefab.atomic import atomic_path
+
+    with atomic_path(path, suffix=".gcode") as tmp, open(tmp, "w", encoding="utf-8") as fh:
+        fh.write(f"; icefab trajectories: {motion.robot}, dt {motion.job.motion.dt_s:g} s, "
+                 f"{motion.duration:.1f} s of motion\n; F = feedrate in mm/min; X, Y in the "
+                 f"robot base frame, mm\nG21\nG90\n")
+        for lm in motion.layers:
+            fh.write(f"; layer {lm.index} z {lm.z:.4f}\nG0 Z{lm.z:.4f}\n")
+            for i, tr in enumerate(lm.trajectories):
+                p = tr.path
+                what = f"{p.material} {p.role}, width {p.width:g} mm" if p is not None else "path"
+                fh.write(f"; path {i}: {what}, {tr.duration:.3f} s\n")
+                fh.write("\n".join(gcode_moves(tr)) + "\n")
+
+
+def save_constant_spacing(motion: BuildMotion, spacing_mm: float,
+                          path: str | os.PathLike) -> None:
+    """The optional output with constant point spacing and variable duration
+    (:func:`constant_spacing`), ``.npz`` written atomically: ``format`` =
+    "icefab-constant-spacing", ``version`` = 1, ``spacing_mm`` (the asked spacing; each path
+    uses the largest spacing <= it that divides its length), ``xy`` (N, 2) float64 mm
+    (robot base frame), ``duration`` (N,) float64 s from each point to the next (0 on each
+    path's last point), ``path_start`` (T + 1,) int64 (path i is rows
+    ``path_start[i]:path_start[i+1]``), and per path ``layer``, ``path_index``,
+    ``material``, ``role`` as in ``trajectories.npz``, in its order."""
+    from icefab.atomic import atomic_path
+
+    xy, dur = [], []
+    for lm in motion.layers:
+        for tr in lm.trajectories:
+            pts, d = constant_spacing(tr, spacing_mm)
+            xy.append(pts)
+            dur.append(np.append(d, 0.0) if len(pts) else d)
+    data = {"format": np.array("icefab-constant-spacing"), "version": np.array(1),
+            "spacing_mm": np.array(float(spacing_mm)),
+            "xy": np.concatenate(xy) if xy else np.zeros((0, 2)),
+            "duration": np.concatenate(dur) if dur else np.zeros(0),
+            "path_start": np.concatenate([[0], np.cumsum([len(p) for p in xy])]
+                                         ).astype(np.int64),
+            **_owners(motion)}
+    with atomic_path(path, suffix=".npz") as tmp, open(tmp, "wb") as fh:
+        np.savez_compressed(fh, **data)
+
+
 def save_trajectories(motion: BuildMotion, path: str | os.PathLike) -> None:
     """Write a BuildMotion to ``.npz`` (format in the module docstring); written to a
     temporary file and renamed (``icefab.atomic``), so a failure leaves nothing
@@ -962,7 +1027,6 @@ def save_trajectories(motion: BuildMotion, path: str | os.PathLike) -> None:
     from icefab.atomic import atomic_path
     from icefab.config import to_toml
     trajs = [t for lm in motion.layers for t in lm.trajectories]
-    owners = [(lm.index, i) for lm in motion.layers for i in range(len(lm.trajectories))]
     zs = [lm.z for lm in motion.layers for _ in lm.trajectories]
     jn = len(motion.joint_names) or (trajs[0].joints.shape[1] if trajs else 0)
     counts = [len(t.xy) for t in trajs]
@@ -982,11 +1046,7 @@ def save_trajectories(motion: BuildMotion, path: str | os.PathLike) -> None:
         "piece_owner": np.repeat(np.arange(len(trajs)), [len(p) for p in pcs]).astype(np.int64),
         "duration": np.array([t.duration for t in trajs], dtype=np.float64),
         "traj_dt": np.array([t.dt for t in trajs], dtype=np.float64),
-        "layer": np.array([o[0] for o in owners], dtype=np.int64),
-        "path_index": np.array([o[1] for o in owners], dtype=np.int64),
-        "material": np.array([_MATS.index(p.material) if p else 0 for p in paths],
-                             dtype=np.int8),
-        "role": np.array([_ROLES.index(p.role) if p else 0 for p in paths], dtype=np.int8),
+        **_owners(motion),
         "width": np.array([float(p.width) if p else 0.0 for p in paths], dtype=np.float64),
         "closed": np.array([bool(p.closed) if p else False for p in paths], dtype=bool),
         "tool": np.array([p.tool if p else "" for p in paths], dtype=str).reshape(-1),

@@ -16,22 +16,10 @@ everything worked; every file is written in a temporary folder first):
   boundaries 25 mm/s, fill 125 mm/s) planned with the robot's accelerations
   (``icefab.motion.constant_speed_motion``) and the idealised length / speed estimate
   (``icefab.paths.estimate_build_time``), points, paths and computing time; also printed;
-* with ``--gcode``: ``trajectories.gcode`` — G-code for gantry-style machines (positions
-  with feedrates, as the thesis' conclusions suggest for CNC machines): ``G21``/``G90``,
-  per layer ``; layer K z Z`` and ``G0 Z..``, per path a ``; path I: MATERIAL ROLE, width
-  W mm, D s`` comment, ``G0`` to its first sample, then one ``G1 X Y F`` per sample (F in
-  mm/min = the step's length over dt, so each move takes one time step;
-  ``icefab.motion.gcode_moves``). X and Y are the tool point in the robot base frame (the
-  gantry's axes);
-* with ``--constant-spacing MM``: ``constant_spacing.npz`` — the optional output with
-  constant point spacing and variable duration (``icefab.motion.constant_spacing``):
-  ``format`` = "icefab-constant-spacing", ``version`` = 1, ``spacing_mm`` (the asked
-  spacing; each path uses the largest spacing <= it that divides its length),
-  ``xy`` (N, 2) float64 mm (robot base frame), ``duration`` (N,) float64 s from each point
-  to the next (0 on each path's last point), ``path_start`` (T + 1,) int64 (path i is
-  rows ``path_start[i]:path_start[i+1]``), per path (T,) ``layer`` int64, ``path_index``
-  int64 (within its layer), ``material`` int8 (0 part, 1 scaffold), ``role`` int8
-  (0 boundary, 1 fill, 2 measure, 3 travel), in the order of ``trajectories.npz``.
+* with ``--gcode``: ``trajectories.gcode`` — G-code for gantry-style machines
+  (``icefab.motion.save_gcode``, format in its docstring);
+* with ``--constant-spacing MM``: ``constant_spacing.npz`` — constant point spacing and
+  variable duration (``icefab.motion.save_constant_spacing``, format in its docstring).
 """
 
 from __future__ import annotations
@@ -42,7 +30,6 @@ import math
 import time
 from pathlib import Path as FsPath
 
-import numpy as np
 
 from icefab.cli.common import (Progress, add_job_argument, job_from_args, output_dir,
                                parse_layers)
@@ -57,7 +44,7 @@ def add_parser(subparsers) -> None:
                     "JCON, AREST) for every path of a model or toolpath file. Writes "
                     "OUT/trajectories.npz, OUT/speed_layer_K.png and OUT/summary.txt; "
                     "with --gcode also OUT/trajectories.gcode, with --constant-spacing "
-                    "OUT/constant_spacing.npz (formats: 'pydoc icefab.cli.plan_cmd').")
+                    "OUT/constant_spacing.npz (formats: 'pydoc icefab.motion').")
     p.add_argument("input", metavar="MODEL|TOOLPATHS",
                    help="mesh file (STL, PLY, OBJ) or toolpath file (.npz from 'icefab paths')")
     add_job_argument(p)
@@ -107,7 +94,8 @@ def _hms(s: float) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from icefab.motion import constant_speed_motion, plan_toolpaths, save_trajectories
+    from icefab.motion import (constant_speed_motion, plan_toolpaths, save_constant_spacing,
+                               save_gcode, save_trajectories)
     from icefab.paths import estimate_build_time
 
     spacing = getattr(args, "constant_spacing", None)
@@ -152,10 +140,10 @@ def run(args: argparse.Namespace) -> int:
         (tmp / "summary.txt").write_text("\n".join(lines) + "\n", encoding="utf-8")
         extra = []
         if getattr(args, "gcode", False):
-            write_gcode(motion, tmp / "trajectories.gcode")
+            save_gcode(motion, tmp / "trajectories.gcode")
             extra.append("trajectories.gcode")
         if spacing is not None:
-            write_constant_spacing(motion, spacing, tmp / "constant_spacing.npz")
+            save_constant_spacing(motion, spacing, tmp / "constant_spacing.npz")
             extra.append("constant_spacing.npz")
     for line in lines:
         print(line)
@@ -164,45 +152,3 @@ def run(args: argparse.Namespace) -> int:
           + f" and speed pictures of layers "
           f"{', '.join(str(motion.layers[k].index) for k in ks)}")
     return 0
-
-
-def write_gcode(motion, path: FsPath) -> None:
-    """``trajectories.gcode`` (format in the module docstring)."""
-    from icefab.motion import gcode_moves
-    with open(path, "w", encoding="utf-8") as fh:
-        fh.write(f"; icefab trajectories: {motion.robot}, dt {motion.job.motion.dt_s:g} s, "
-                 f"{motion.duration:.1f} s of motion\n; F = feedrate in mm/min; X, Y in the "
-                 f"robot base frame, mm\nG21\nG90\n")
-        for lm in motion.layers:
-            fh.write(f"; layer {lm.index} z {lm.z:.4f}\nG0 Z{lm.z:.4f}\n")
-            for i, tr in enumerate(lm.trajectories):
-                p = tr.path
-                what = f"{p.material} {p.role}, width {p.width:g} mm" if p is not None else "path"
-                fh.write(f"; path {i}: {what}, {tr.duration:.3f} s\n")
-                fh.write("\n".join(gcode_moves(tr)) + "\n")
-
-
-def write_constant_spacing(motion, spacing_mm: float, path: FsPath) -> None:
-    """``constant_spacing.npz`` (format in the module docstring)."""
-    from icefab.motion import constant_spacing
-    mats, roles = ("part", "scaffold"), ("boundary", "fill", "measure", "travel")
-    xy, dur, counts, layer, index, mat, role = [], [], [], [], [], [], []
-    for lm in motion.layers:
-        for i, tr in enumerate(lm.trajectories):
-            pts, d = constant_spacing(tr, spacing_mm)
-            xy.append(pts)
-            dur.append(np.append(d, 0.0) if len(pts) else d)
-            counts.append(len(pts))
-            layer.append(lm.index)
-            index.append(i)
-            mat.append(mats.index(tr.path.material) if tr.path is not None else 0)
-            role.append(roles.index(tr.path.role) if tr.path is not None else 0)
-    with open(path, "wb") as fh:
-        np.savez_compressed(
-            fh, format=np.array("icefab-constant-spacing"), version=np.array(1),
-            spacing_mm=np.array(float(spacing_mm)),
-            xy=np.concatenate(xy) if xy else np.zeros((0, 2)),
-            duration=np.concatenate(dur) if dur else np.zeros(0),
-            path_start=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
-            layer=np.array(layer, dtype=np.int64), path_index=np.array(index, dtype=np.int64),
-            material=np.array(mat, dtype=np.int8), role=np.array(role, dtype=np.int8))
