@@ -780,6 +780,12 @@ def _n_workers(job: Job) -> int:
     return max(1, int(n))
 
 
+def _locate(ends: np.ndarray, i: int) -> tuple[int, int]:
+    """(path, point within it) of row ``i`` of concatenated paths ending at ``ends``."""
+    k = int(np.searchsorted(ends, i, side="right"))
+    return k, i - (int(ends[k - 1]) if k else 0)
+
+
 def check_build_workspace(toolpaths: Toolpaths, job: Job | None = None,
                           robot: Robot | None = None) -> None:
     """Raise WorkspaceError (layer, path, point or segment, coordinates, why) for the first
@@ -804,8 +810,7 @@ def check_build_workspace(toolpaths: Toolpaths, job: Job | None = None,
         bad, reasons = robot.workspace_violations(pts)
         if len(bad):
             i = int(bad[0])
-            k = int(np.searchsorted(ends, i, side="right"))
-            j = i - (int(ends[k - 1]) if k else 0)
+            k, j = _locate(ends, i)
             raise WorkspaceError(f"layer {lp.index}, path {k}: point {j} at ({pts[i, 0]:.3f}, "
                                  f"{pts[i, 1]:.3f}) mm (robot base frame) is out of the "
                                  f"{robot.name} workspace: {reasons[0]}")
@@ -824,9 +829,7 @@ def check_build_workspace(toolpaths: Toolpaths, job: Job | None = None,
         near = a[seg] + t[seg, None] * d[seg]
         sbad, sreasons = robot.workspace_violations(near)
         if len(sbad):
-            g = int(seg[sbad[0]])
-            k = int(np.searchsorted(ends, g, side="right"))
-            j = g - (int(ends[k - 1]) if k else 0)
+            k, j = _locate(ends, int(seg[sbad[0]]))
             x, y = near[sbad[0]]
             raise WorkspaceError(f"layer {lp.index}, path {k}: the segment from point {j} to "
                                  f"point {j + 1} passes ({x:.3f}, {y:.3f}) mm (robot base "
