@@ -736,9 +736,9 @@ def load_legacy_control(path: str | FsPath, text: str | None = None) -> Job:
         line = raw.strip()
         if not line or line.startswith(("#", "%")):
             continue
-        before = settings_now()
         if re.fullmatch(r"[A-Z][A-Z\s]+", line):
             continue  # section heading like "SLICING CONTROL"
+        before = settings_now()
         values, desc = _legacy_split(line)
         low = desc.lower()
         key = next((k for pat, k in _LEGACY_KEYS if pat in low), None)
