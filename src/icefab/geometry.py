@@ -392,15 +392,20 @@ def _simple_mask(pts: np.ndarray, starts: np.ndarray, closed: bool
     return out
 
 
+def _pack(rings: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Rings or polylines as the compiled kernels take them: all points (v, 2) float64,
+    contiguous, and each one's first row (r + 1,) int64, the last entry v."""
+    pts = np.ascontiguousarray(np.concatenate(rings), dtype=np.float64)
+    return pts, np.concatenate([[0], np.cumsum([len(r) for r in rings])]).astype(np.int64)
+
+
 def simple_mask(rings: Sequence[np.ndarray], closed: bool = True) -> np.ndarray:
     """(r,) bool: which rings (closed) or open polylines have no self-intersection and do
     not touch themselves (GEOS' ``is_simple``)."""
     rings = [np.asarray(r, dtype=np.float64) for r in rings]
     if not rings:
         return np.zeros(0, dtype=bool)
-    pts = np.ascontiguousarray(np.concatenate(rings))
-    starts = np.concatenate([[0], np.cumsum([len(r) for r in rings])]).astype(np.int64)
-    return _simple_mask(pts, starts, closed)
+    return _simple_mask(*_pack(rings), closed)
 
 
 def _split_touching(ring: np.ndarray) -> Rings:
@@ -444,19 +449,12 @@ def simplify(rings: Rings, filter_mm: float = FILTER_MM) -> Rings:
     """
     rings = [np.asarray(r, dtype=np.float64) for r in rings if len(r) >= 3]
     if filter_mm > 0 and rings:
-        pts = np.ascontiguousarray(np.concatenate(rings))
-        starts = np.concatenate([[0], np.cumsum([len(r) for r in rings])]).astype(np.int64)
+        pts, starts = _pack(rings)
         keep = _chord_keep(pts, starts, float(filter_mm), closed=True)
         out = [pts[a:b][keep[a:b]] for a, b in zip(starts[:-1], starts[1:])]
-        cnt = np.array([len(r) for r in out])
-        fstarts = np.concatenate([[0], np.cumsum(cnt)]).astype(np.int64)
-        ok = _simple_mask(np.concatenate(out), fstarts, True) & (cnt >= 3)
-        if not ok.all():
-            for i in np.flatnonzero(~ok):
-                out[i] = _simplify_slow(rings[i], filter_mm)
-            rings = [r for part in out for r in (part if isinstance(part, list) else [part])]
-        else:
-            rings = out
+        ok = simple_mask(out) & (np.array([len(r) for r in out]) >= 3)
+        rings = [r for o, k, ring in zip(out, ok, rings)
+                 for r in ([o] if k else _simplify_slow(ring, filter_mm))]
     rings = [r for r in rings if len(r) >= 3]
     if not rings:
         return []
@@ -472,11 +470,9 @@ def _simplify_slow(ring: np.ndarray, filter_mm: float) -> Rings:
     for loop in _split_touching(ring):
         if abs(signed_area(loop)) <= MIN_RING_AREA:
             continue
-        starts = np.array([0, len(loop)], dtype=np.int64)
-        loop = np.ascontiguousarray(loop)
+        loop, starts = _pack([loop])
         kept = loop[_chord_keep(loop, starts, float(filter_mm), closed=True)]
-        if len(kept) >= 3 and _simple_mask(kept, np.array([0, len(kept)], dtype=np.int64),
-                                           True)[0]:
+        if len(kept) >= 3 and simple_mask([kept])[0]:
             out.append(kept)
         else:
             out.append(loop)
@@ -628,10 +624,8 @@ def points_inside(points: np.ndarray, region: Region | Sequence[np.ndarray]) -> 
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     if not rings or not len(pts):
         return np.zeros(len(pts), dtype=bool)
-    allp = np.ascontiguousarray(np.concatenate(rings))
-    starts = np.concatenate([[0], np.cumsum([len(r) for r in rings])]).astype(np.int64)
     return _even_odd_rows(np.ascontiguousarray(pts[:, 0]), np.ascontiguousarray(pts[:, 1]),
-                          allp, starts)
+                          *_pack(rings))
 
 
 @njit(cache=True)
@@ -703,8 +697,7 @@ def simplify_open(lines: Sequence[np.ndarray], filter_mm: float | np.ndarray = F
     lines = [np.asarray(ln, dtype=np.float64) for ln in lines]
     if not lines:
         return lines
-    pts = np.ascontiguousarray(np.concatenate(lines))
-    starts = np.concatenate([[0], np.cumsum([len(ln) for ln in lines])]).astype(np.int64)
+    pts, starts = _pack(lines)
     keep = _chord_keep(pts, starts, filter_mm, closed=False)
     out = [pts[a:b][keep[a:b]] for a, b in zip(starts[:-1], starts[1:])]
     ok = simple_mask(out, closed=False)
@@ -818,22 +811,23 @@ def _width_runs(pts: np.ndarray, w: np.ndarray, starts: np.ndarray, closed: np.n
         if n < 2:
             continue
         m = n + 1 if closed[c] else n
-        lo = w[s0]
-        hi = w[s0]
-        sw = 0.0
-        sl = 0.0
-        for i in range(1, m):
-            p = s0 + ((i - 1) % n)
-            q = s0 + (i % n)
-            d = np.sqrt((pts[q, 0] - pts[p, 0]) ** 2 + (pts[q, 1] - pts[p, 1]) ** 2)
-            sw += 0.5 * (w[p] + w[q]) * d
-            sl += d
-            lo = min(lo, w[q])
-            hi = max(hi, w[q])
-        if closed[c] and hi <= ratio * lo:
-            k = _record_run(ints, floats, whole, k, c, 0, n - 1, lo,
-                            sw / sl if sl > 0 else lo, hi, True)
-            continue
+        if closed[c]:  # a closed chain whose widths all agree stays whole
+            lo = w[s0]
+            hi = w[s0]
+            sw = 0.0
+            sl = 0.0
+            for i in range(1, m):
+                p = s0 + ((i - 1) % n)
+                q = s0 + (i % n)
+                d = np.sqrt((pts[q, 0] - pts[p, 0]) ** 2 + (pts[q, 1] - pts[p, 1]) ** 2)
+                sw += 0.5 * (w[p] + w[q]) * d
+                sl += d
+                lo = min(lo, w[q])
+                hi = max(hi, w[q])
+            if hi <= ratio * lo:
+                k = _record_run(ints, floats, whole, k, c, 0, n - 1, lo,
+                                sw / sl if sl > 0 else lo, hi, True)
+                continue
         # a run takes vertices while its widths stay within the ratio, but is never cut
         # shorter than ``min_length`` (a tapering corner would give many tiny runs); the
         # vertex a run shares with the previous one counts for its smallest width (a
@@ -886,10 +880,8 @@ def width_runs(chains: Sequence[tuple[np.ndarray, np.ndarray, bool]], ratio: flo
     if not chains:
         return []
     w = np.concatenate([np.asarray(c[1], dtype=np.float64) for c in chains])
-    starts = np.concatenate([[0], np.cumsum([len(c[0]) for c in chains])]).astype(np.int64)
     closed = np.array([bool(c[2]) for c in chains])
-    pts = np.ascontiguousarray(np.concatenate([np.asarray(c[0], dtype=np.float64)
-                                               for c in chains]))
+    pts, starts = _pack([c[0] for c in chains])
     ints, floats, whole_chain = _width_runs(pts, w, starts, closed, float(ratio),
                                             float(min_length))
     out = []
@@ -950,7 +942,7 @@ def _sample_rings(rings: Sequence[np.ndarray], spacing: float):
 
 
 def _nearest_edge_distance(q: np.ndarray, P: np.ndarray, edge: np.ndarray, a: np.ndarray,
-                           b: np.ndarray, prv: np.ndarray, tree=None,
+                           b: np.ndarray, prv: np.ndarray,
                            upper: float = np.inf) -> np.ndarray:
     """(n,) distance of points q (n, 2) to the ring edges, through the edges of their
     ``NEAR_SAMPLES`` nearest samples (exact when the samples are dense enough that the
@@ -958,7 +950,7 @@ def _nearest_edge_distance(q: np.ndarray, P: np.ndarray, edge: np.ndarray, a: np
     get ``inf`` (their distance exceeds ``upper`` less half the sampling)."""
     from scipy.spatial import cKDTree
 
-    tree = tree if tree is not None else cKDTree(P)
+    tree = cKDTree(P)
     k = min(NEAR_SAMPLES, len(P))
     dist, near = tree.query(q, k=k, distance_upper_bound=upper)
     near = near.reshape(len(q), -1)
@@ -1021,7 +1013,7 @@ def medial_axis(rings: Sequence[np.ndarray], spacing: float, min_radius: float =
     open chains end at branch points or where the clearance falls below ``min_radius``;
     closed ones (around a hole) do not repeat their first point.
     """
-    from scipy.spatial import Delaunay, QhullError, cKDTree
+    from scipy.spatial import Delaunay, QhullError
 
     rings = [np.asarray(r, dtype=np.float64) for r in rings if len(r) >= 3]
     if not rings or spacing <= 0:
@@ -1060,8 +1052,7 @@ def medial_axis(rings: Sequence[np.ndarray], spacing: float, min_radius: float =
     # exact clearance: distance to the ring edges of the samples nearest the centre (the
     # nearest edge point lies within spacing / 2 of a sample, so among the nearest ones)
     clear = R.copy()
-    clear[idx] = np.minimum(R[idx], _nearest_edge_distance(C[idx], P, edge, a, b, prv,
-                                                           cKDTree(P)))
+    clear[idx] = np.minimum(R[idx], _nearest_edge_distance(C[idx], P, edge, a, b, prv))
     good = np.zeros(len(S), dtype=bool)
     good[idx] = clear[idx] >= min_radius
     # -- Voronoi edges between good circumcentres separating far-apart samples
@@ -1208,9 +1199,7 @@ def rings_holding(rings: Sequence[np.ndarray], points: np.ndarray) -> np.ndarray
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     if not len(rings) or not len(pts):
         return np.full(len(pts), -1, dtype=np.int64)
-    allp = np.ascontiguousarray(np.concatenate(rings))
-    starts = np.concatenate([[0], np.cumsum([len(r) for r in rings])]).astype(np.int64)
-    return _rings_holding(allp, starts, np.ascontiguousarray(pts[:, 0]),
+    return _rings_holding(*_pack(rings), np.ascontiguousarray(pts[:, 0]),
                           np.ascontiguousarray(pts[:, 1]))
 
 
