@@ -283,9 +283,16 @@ def simulate_1d(gains: Gains, disturbance: Disturbance | np.ndarray,
     with np.errstate(over="ignore", invalid="ignore"):  # unstable gains: e may overflow
         e_prev = np.concatenate([[0.0], e[:-1]])
         u = kp * e + ki * np.cumsum(e) + kd * (e - e_prev)
-        rms = float(np.sqrt(np.mean(e ** 2)))
         return Sim1D(d=d, e=e, u=u, nu=c_f * (u + 1.0), height_mm=(k - e) * dh_m, dh_m=dh_m,
-                     rms=rms if np.isfinite(rms) else float("inf"))
+                     rms=_rms(e))
+
+
+def _rms(e: np.ndarray) -> float:
+    """sigma_p* = sqrt(mean(e^2)) (eq. 5.27); inf when the response of unstable gains
+    overflows."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        rms = float(np.sqrt(np.mean(e ** 2)))
+    return rms if np.isfinite(rms) else float("inf")
 
 
 # d a / d (Kp, Ki*, Kd*): derivative of the denominator coefficients (eq. 5.35, 5.40).
@@ -307,12 +314,12 @@ def rms_and_gradient(gains: Gains, disturbance: Disturbance | np.ndarray
     e_full = lfilter([0.0, -1.0, 1.0], a, x)  # index 0 is e_0 = 0
     e = e_full[1:len(d) + 1]
     n = len(d)
-    with np.errstate(over="ignore", invalid="ignore"):  # unstable gains: e may overflow
-        rms = float(np.sqrt(np.mean(e ** 2)))
-        if rms == 0.0:
-            return 0.0, np.zeros(3)
-        if not np.isfinite(rms):
-            return float("inf"), np.full(3, np.nan)
+    rms = _rms(e)
+    if rms == 0.0:
+        return 0.0, np.zeros(3)
+    if not np.isfinite(rms):
+        return rms, np.full(3, np.nan)
+    with np.errstate(over="ignore", invalid="ignore"):
         grad = np.empty(3)
         for j in range(3):
             rhs = -lfilter(_DA[j], [1.0], e_full)
@@ -358,15 +365,11 @@ class TuneResult:
 
 def evaluate_gains(gains: Gains, disturbance: Disturbance | np.ndarray) -> TuneResult:
     """RMS error, stability and the error response of given gains (no optimisation)."""
+    _check_gains(gains)
     kp, ki, kd = (float(g) for g in gains)
-    for name, g in (("kp", kp), ("ki", ki), ("kd", kd)):
-        if not np.isfinite(g):
-            raise ConfigError(f"gain {name} = {g!r}: must be finite")
     e = error_response((kp, ki, kd), disturbance)
     stable, m = stability(kp, ki, kd)
-    with np.errstate(over="ignore", invalid="ignore"):  # unstable gains: e may overflow
-        rms = float(np.sqrt(np.mean(e ** 2)))
-    return TuneResult(kp, ki, kd, rms if np.isfinite(rms) else float("inf"), m, stable, e=e)
+    return TuneResult(kp, ki, kd, _rms(e), m, stable, e=e)
 
 
 _NAMES = ("kp", "ki", "kd")
