@@ -218,6 +218,12 @@ def concentric_rings(region: Region, start_mm: float, step_mm: float, filt: floa
     return out
 
 
+def _has_room(ring: np.ndarray, width: float) -> bool:
+    """Whether an outer ring holds a disk of diameter ``width`` (less 2 %, so a strip
+    exactly as wide as the path counts), i.e. a path of that width fits inside it."""
+    return bool(geo.offset_rings([ring], -0.49 * width, 0.0))
+
+
 def _with_room(rings: list[np.ndarray], inner: list[np.ndarray], width: float, filt: float
                ) -> list[np.ndarray]:
     """The rings of one offset level, with room for a path of ``width`` along them.
@@ -259,7 +265,7 @@ def _with_room(rings: list[np.ndarray], inner: list[np.ndarray], width: float, f
         opened = [r for r in geo.intersection(opened, group).rings
                   if signed_area(r) < -geo.MIN_RING_AREA
                   or (signed_area(r) > geo.MIN_RING_AREA
-                      and geo.offset_rings([r], -0.49 * width, 0.0))]
+                      and _has_room(r, width))]
     return [r for i, r in enumerate(rings) if i not in narrow] + opened
 
 
@@ -778,7 +784,7 @@ def centre_paths(rings: list[np.ndarray], w_min: float, w_max: float, filt: floa
         p = pts[i]
         if closed[i]:
             # a centre line around a hole narrower than the path would overlap itself
-            if signed_area(p) > 0 and not geo.offset_rings([p], -0.49 * widths[i], 0.0):
+            if signed_area(p) > 0 and not _has_room(p, widths[i]):
                 continue
             out.append((p, True, float(widths[i])))
             continue
