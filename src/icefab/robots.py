@@ -108,23 +108,21 @@ class Scara:
     joint_names: tuple[str, ...] = ("theta1", "theta2", "theta4")
 
     def __post_init__(self) -> None:
-        # thesis eq. 4.10 defaults; joint 4 unconstrained (thesis 4.2.1)
-        defaults = {"joint_speed_max": (33.0, 39.0), "joint_accel_max": (165.0, 195.0),
-                    "joint_jerk_max": (1320.0, 1560.0)}
-        for attr, deg in defaults.items():
+        # thesis eq. 4.10 defaults and the 0.001 deg encoders (cell.encoder_resolution_deg);
+        # joint 4 unconstrained (thesis 4.2.1): no limit, no resolution
+        defaults = {"joint_speed_max": ((33.0, 39.0), np.inf),
+                    "joint_accel_max": ((165.0, 195.0), np.inf),
+                    "joint_jerk_max": ((1320.0, 1560.0), np.inf),
+                    "joint_resolution": (0.001, 0.0)}
+        for attr, (deg, joint4) in defaults.items():
             value = getattr(self, attr)
-            if value is None:
-                value = np.radians(deg)
+            value = np.radians(deg) if value is None else value
             value = np.asarray(value, dtype=np.float64)
+            if value.ndim == 0:  # one value for joints 1 and 2
+                value = np.full(2, float(value))
             if value.shape == (2,):
-                value = np.append(value, np.inf)
+                value = np.append(value, joint4)
             object.__setattr__(self, attr, value)
-        res = np.radians((0.001, 0.001)) if self.joint_resolution is None \
-            else self.joint_resolution
-        res = np.broadcast_to(np.asarray(res, dtype=np.float64), (2,)) \
-            if np.ndim(res) == 0 else np.asarray(res, dtype=np.float64)
-        object.__setattr__(self, "joint_resolution",
-                           np.append(res, 0.0) if res.shape == (2,) else res)
 
     @property
     def _sign(self) -> float:
