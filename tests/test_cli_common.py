@@ -10,22 +10,22 @@ from icefab.cli.common import Progress, output_dir
 def test_output_dir_appears_only_on_success(tmp_path):
     target = tmp_path / "out"
     with pytest.raises(RuntimeError):
-        with output_dir(target) as d:
+        with output_dir(target, "test") as d:
             (d / "half.txt").write_text("x")
             raise RuntimeError("stage failed")
     assert not target.exists()
     assert list(tmp_path.iterdir()) == []
-    with output_dir(target) as d:
+    with output_dir(target, "test") as d:
         (d / "a.txt").write_text("1")
     assert (target / "a.txt").read_text() == "1"
 
 
 def test_output_dir_keeps_old_results_when_a_rerun_fails(tmp_path):
     target = tmp_path / "out"
-    with output_dir(target) as d:
+    with output_dir(target, "test") as d:
         (d / "a.txt").write_text("old")
     with pytest.raises(ValueError):
-        with output_dir(target) as d:
+        with output_dir(target, "test") as d:
             (d / "a.txt").write_text("new")
             raise ValueError
     assert (target / "a.txt").read_text() == "old"
@@ -72,7 +72,7 @@ def test_output_dir_leaves_other_files_and_uses_normal_modes(tmp_path):
     target.mkdir()
     (target / "stack.npz").write_text("input")
     (target / "paths.png").write_text("old picture")
-    with output_dir(target) as d:
+    with output_dir(target, "test") as d:
         (d / "paths.png").write_text("new picture")
         (d / "toolpaths.npz").write_text("new")
     assert (target / "stack.npz").read_text() == "input"
@@ -88,10 +88,10 @@ def test_output_to_a_file_is_one_line_error(tmp_path, capsys):
     afile = tmp_path / "afile"
     afile.write_text("keep me")
     with pytest.raises(OutputError, match="exists and is not a folder"):
-        with output_dir(afile):
+        with output_dir(afile, "test"):
             pass
     with pytest.raises(OutputError, match="cannot create the output folder"):
-        with output_dir(afile / "sub"):
+        with output_dir(afile / "sub", "test"):
             pass
     assert afile.read_text() == "keep me"
     for out in (afile, afile / "sub"):
@@ -128,7 +128,8 @@ def test_slice_then_paths_into_the_same_folder(tmp_path, capsys):
     assert main(["slice", str(stl), "-c", str(job), "-o", str(out)]) == 0
     assert main(["paths", str(out / "stack.npz"), "-c", str(job), "-o", str(out)]) == 0
     names = sorted(p.name for p in out.iterdir())
-    assert names == ["layers.png", "paths.png", "stack.npz", "toolpaths.npz"]
+    assert names == [".icefab-paths", ".icefab-slice", "layers.png", "paths.png", "stack.npz",
+                     "toolpaths.npz"]  # each command's record of what it wrote
     before = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
     capsys.readouterr()
     assert main(["paths", str(out / "stack.npz"), "-o", str(out), "--layers", "7"]) == 2
@@ -150,3 +151,29 @@ def test_output_to_a_file_is_refused_before_any_work(tmp_path, capsys, command):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].endswith(f"-o {afile}: exists and is not a folder")
     assert afile.read_text() == "keep me"
+
+
+def test_output_dir_removes_only_its_commands_stale_results(tmp_path):
+    target = tmp_path / "out"
+    target.mkdir()
+    (target / "stack.npz").write_text("input, not written by this command")
+    with output_dir(target, "one") as d:
+        (d / "result.npz").write_text("1")
+        (d / "extra.gcode").write_text("1")
+        (d / "layer_0009").mkdir()
+        (d / "layer_0009" / "p.bin").write_text("1")
+    with output_dir(target, "other") as d:  # another command's results are not touched
+        (d / "theirs.png").write_text("2")
+    with output_dir(target, "one") as d:
+        (d / "result.npz").write_text("3")
+    assert sorted(p.name for p in target.iterdir() if not p.name.startswith(".")) == [
+        "result.npz", "stack.npz", "theirs.png"]
+    assert (target / "result.npz").read_text() == "3"
+    assert (target / ".icefab-one").read_text() == "result.npz\n"
+    # a record naming something outside the folder removes nothing there
+    (target / ".icefab-one").write_text("../outside\n.icefab-other\n")
+    (tmp_path / "outside").write_text("keep")
+    with output_dir(target, "one") as d:
+        (d / "result.npz").write_text("4")
+    assert (tmp_path / "outside").read_text() == "keep"
+    assert (target / ".icefab-other").exists()

@@ -98,6 +98,13 @@ def test_plan_gcode_and_constant_spacing_outputs(tmp_path, capsys):
                 assert np.hypot(*np.diff(xy[a:b], axis=0).T).max() <= 0.5 + 1e-9
         np.testing.assert_array_equal(z["layer"], [t.path.layer for t in trajs])
     assert not list(tmp_path.glob(".o.*"))  # no temporary folder left behind
+    # a re-run without those options into the same folder leaves none of them behind
+    # (they would no longer match the new trajectories); other files stay
+    (out / "notes.txt").write_text("mine")
+    assert main(["plan", str(src), "-o", str(out), "--layers", "0"]) == 0
+    assert not (out / "trajectories.gcode").exists()
+    assert not (out / "constant_spacing.npz").exists()
+    assert (out / "trajectories.npz").exists() and (out / "notes.txt").read_text() == "mine"
 
 
 def test_plan_bad_constant_spacing_and_layers_fail_before_planning(tmp_path, capsys,

@@ -15,7 +15,7 @@ from typing import Iterator
 import numpy as np
 
 from icefab.config import Job, load_job
-from icefab.atomic import DIR_MODE, FILE_MODE
+from icefab.atomic import DIR_MODE
 from icefab.errors import ConfigError, OutputError
 
 
@@ -89,13 +89,16 @@ def check_output_dir(path: str | os.PathLike) -> None:
 
 
 @contextmanager
-def output_dir(path: str | os.PathLike) -> Iterator[Path]:
+def output_dir(path: str | os.PathLike, command: str) -> Iterator[Path]:
     """A folder whose new results appear at ``path`` only if the block succeeds.
 
     Files are written into a temporary sibling folder. On success it becomes ``path``
-    (which did not exist) or its files replace their namesakes in ``path`` one rename each,
-    leaving other files there alone (the stack or toolpaths a command read from the same
-    folder). On failure nothing in ``path`` changes and the temporary folder goes.
+    (which did not exist) or its files replace their namesakes in ``path``, one rename
+    each. What ``command`` wrote there last time and did not write again is removed (its
+    names are kept in ``path/.icefab-COMMAND``), so an earlier run's G-code or pictures do
+    not sit next to results they no longer match; every other file is left alone (the
+    stack or toolpaths a command read from the same folder, the user's own files). On
+    failure nothing in ``path`` changes and the temporary folder goes.
     Raises OutputError when ``path`` or a parent is a file or cannot be written.
     """
     final = Path(path)
@@ -108,22 +111,31 @@ def output_dir(path: str | os.PathLike) -> Iterator[Path]:
                           f"({exc.strerror or exc})") from None
     try:
         yield tmp
-        _publish(tmp, final)
+        _publish(tmp, final, f".icefab-{command}")
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
-def _publish(tmp: Path, final: Path) -> None:
-    """Give the results in ``tmp`` normal modes and move them to ``final``."""
-    for root, dirs, files in os.walk(tmp):
-        os.chmod(root, DIR_MODE)
-        for name in files:
-            os.chmod(os.path.join(root, name), FILE_MODE)
+def _publish(tmp: Path, final: Path, manifest: str) -> None:
+    """Move the results in ``tmp`` to ``final`` (see :func:`output_dir`)."""
+    os.chmod(tmp, DIR_MODE)  # mkdtemp's 0700; what is inside was made with the umask
+    written = sorted(item.name for item in tmp.iterdir())
+    (tmp / manifest).write_text("".join(f"{name}\n" for name in written), encoding="utf-8")
     if not final.exists():
         tmp.rename(final)
         return
+    record = final / manifest
+    before = set(record.read_text(encoding="utf-8").splitlines()) if record.is_file() else set()
     for item in sorted(tmp.iterdir()):
         target = final / item.name
         if item.is_dir() and target.is_dir():
             shutil.rmtree(target)
         os.replace(item, target)
+    for name in sorted(before - set(written)):
+        stale = final / name
+        if not name or name != stale.name or name.startswith(".icefab-"):
+            continue  # only plain names this command wrote into the folder itself
+        if stale.is_dir() and not stale.is_symlink():
+            shutil.rmtree(stale)
+        elif stale.exists() or stale.is_symlink():
+            stale.unlink()

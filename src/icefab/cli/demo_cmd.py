@@ -58,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
     job = job_from_args(args)
     summary: dict = {}
     t_all = time.perf_counter()
-    with output_dir(args.out) as out:
+    with output_dir(args.out, "demo") as out:
         t0 = time.perf_counter()
         # Placed like any part (thesis 3.1.2): by default centred on the building origin.
         mesh = transform(demo_mug(), job.parts)

@@ -98,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
     per_layer, total = estimate_build_time(toolpaths, job)
     # OUT may hold the stack.npz this command read: output_dir leaves it there
     out = FsPath(args.out)
-    with output_dir(out) as tmp:
+    with output_dir(out, "paths") as tmp:
         save_toolpaths(toolpaths, tmp / "toolpaths.npz")
         plot_toolpaths(stack, toolpaths, ks, tmp / "paths.png")
     for line in summary_lines(toolpaths, per_layer, total):

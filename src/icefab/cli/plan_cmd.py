@@ -132,7 +132,7 @@ def run(args: argparse.Namespace) -> int:
         f"planning time: {t_plan:.2f} s ({motion.n_points / max(t_plan, 1e-9) / 1e6:.2f} M "
         f"samples/s), total {time.perf_counter() - t0:.2f} s",
     ]
-    with output_dir(args.out) as tmp:
+    with output_dir(args.out, "plan") as tmp:
         save_trajectories(motion, tmp / "trajectories.npz")
         vmax = job.motion.speed_mm_s
         for k in ks:

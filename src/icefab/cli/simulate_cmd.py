@@ -267,7 +267,7 @@ def run(args: argparse.Namespace) -> int:
     closed = simulate_build(build, job, layers=n, closed_loop=True, keep_surfaces=keep,
                             progress=Progress("with SMF"))
     t_sim = time.perf_counter() - t0 - t_prep
-    with output_dir(args.out) as tmp:
+    with output_dir(args.out, "simulate") as tmp:
         write_simulation_outputs(open_loop, closed, tmp, surface_layer=args.surface_layer,
                                  job=job)
     sim = job.simulation

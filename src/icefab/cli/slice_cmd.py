@@ -80,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
     stack = slice_mesh(mesh, job, progress=Progress("slicing"))
     elapsed = time.perf_counter() - t0
     ks = parse_layers(args.layers, len(stack), default_count=6)
-    with output_dir(out) as tmp:
+    with output_dir(out, "slice") as tmp:
         save_stack(stack, tmp / "stack.npz")
         plot_layers(stack, ks, tmp / "layers.png")
     stack_path, png = out / "stack.npz", out / "layers.png"

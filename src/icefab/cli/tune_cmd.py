@@ -137,7 +137,7 @@ def run(args: argparse.Namespace) -> int:
         mode = "optimised" + (f" (fixed: {', '.join(fix)})" if fix else "")
     data = result.as_dict()
     if args.out:
-        with output_dir(args.out) as tmp, warnings.catch_warnings():
+        with output_dir(args.out, "tune") as tmp, warnings.catch_warnings():
             if result.diverges:  # huge values expected: matplotlib's overflow notes are noise
                 warnings.simplefilter("ignore", RuntimeWarning)
             plot_error_response(result, dist, job, tmp / "error_response.png", mode)

@@ -79,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
     lines = ["layer  paths  pulses  pieces  findings"]
     totals = [0, 0, 0, 0]
     found: list[tuple[int, str]] = []
-    with output_dir(args.out) as tmp:
+    with output_dir(args.out, "valves") as tmp:
         for n, lm in enumerate(layers):
             folder = tmp / f"layer_{lm.index:04d}"
             paths = pulses = pieces = findings = 0
