@@ -171,9 +171,9 @@ def test_output_dir_removes_only_its_commands_stale_results(tmp_path):
     assert (target / "result.npz").read_text() == "3"
     assert (target / ".icefab-one").read_text() == "result.npz\n"
     # a record naming something outside the folder removes nothing there
-    (target / ".icefab-one").write_text("../outside\n.icefab-other\n")
+    (target / ".icefab-one").write_text("../outside\n..\n.\n\n.icefab-other\n")
     (tmp_path / "outside").write_text("keep")
     with output_dir(target, "one") as d:
         (d / "result.npz").write_text("4")
     assert (tmp_path / "outside").read_text() == "keep"
-    assert (target / ".icefab-other").exists()
+    assert (target / ".icefab-other").exists() and (target / "stack.npz").exists()

@@ -133,7 +133,7 @@ def _publish(tmp: Path, final: Path, manifest: str) -> None:
         os.replace(item, target)
     for name in sorted(before - set(written)):
         stale = final / name
-        if not name or name != stale.name or name.startswith(".icefab-"):
+        if name in ("", ".", "..") or name != stale.name or name.startswith(".icefab-"):
             continue  # only plain names this command wrote into the folder itself
         if stale.is_dir() and not stale.is_symlink():
             shutil.rmtree(stale)
