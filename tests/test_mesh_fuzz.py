@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 
 from icefab.errors import MeshError
 from icefab.mesh import load_mesh
-from icefab.types import Mesh
+from icefab.core import Mesh
 
 _TMP = Path(tempfile.mkdtemp(prefix="icefab-fuzz-"))
 atexit.register(shutil.rmtree, _TMP, True)

@@ -1,7 +1,7 @@
 """Mesh import, diagnostics and part set-up (thesis 3.1, Table 3-1).
 
 This is the only module of icefab that parses mesh files. Everything returns an indexed
-:class:`~icefab.types.Mesh` (``vertices (n, 3) float64 mm``, ``faces (m, 3) int64``).
+:class:`~icefab.core.Mesh` (``vertices (n, 3) float64 mm``, ``faces (m, 3) int64``).
 
 Formats (detected by content; the file extension is only a hint):
 
@@ -51,7 +51,7 @@ import os
 import re
 import warnings
 from dataclasses import dataclass
-from pathlib import Path as FsPath
+from pathlib import Path
 from typing import TYPE_CHECKING, Iterable, Sequence
 
 import numpy as np
@@ -59,7 +59,7 @@ from numba import njit
 
 from icefab.atomic import write_atomic
 from icefab.errors import MeshError
-from icefab.types import Mesh
+from icefab.core import Mesh
 
 if TYPE_CHECKING:  # pragma: no cover
     from icefab.config import Job, PartSetup
@@ -576,7 +576,7 @@ def _is_text(data: bytes | memoryview) -> bool:
     return bool(_TEXT_BYTES[np.frombuffer(data, np.uint8)].all())
 
 
-def _sniff(data: bytes, path: FsPath) -> str:
+def _sniff(data: bytes, path: Path) -> str:
     """The format of ``data``: 'stl', 'stl-ascii', 'ply' or 'obj' (content first)."""
     ext = path.suffix.lower()
     head = data[:5].lower()
@@ -606,7 +606,7 @@ def _sniff(data: bytes, path: FsPath) -> str:
                     f"content; extension {ext or 'none'!r})")
 
 
-def _read_stl_binary(data: bytes, path: FsPath) -> np.ndarray:
+def _read_stl_binary(data: bytes, path: Path) -> np.ndarray:
     """Corner coordinates (3 n, 3) float32 of a binary STL, one vectorised read."""
     if len(data) < 84:
         raise MeshError(f"{path}: binary STL shorter than its 84-byte header "
@@ -630,7 +630,7 @@ def _read_stl_binary(data: bytes, path: FsPath) -> np.ndarray:
     return np.ascontiguousarray(rec["corners"]).reshape(-1, 3)
 
 
-def _check_finite(points: np.ndarray, path: FsPath, corners: bool = False) -> None:
+def _check_finite(points: np.ndarray, path: Path, corners: bool = False) -> None:
     """MeshError naming the first non-finite vertex; ``corners``: the points are the
     facet corners of an STL (3 per facet), so name the facet (0-based) instead."""
     if np.isfinite(points).all():
@@ -651,7 +651,7 @@ def read_mesh(path: str | os.PathLike[str], *, inexact: bool = False,
     ``merged_vertices``) and what remains (open / non-manifold / misoriented edges,
     zero-area faces, volume). Every finding is also logged as a warning.
     """
-    p = FsPath(path)
+    p = Path(path)
     if tolerance <= 0 or not math.isfinite(tolerance):
         raise MeshError(f"{p}: weld tolerance {tolerance!r} must be a positive number (mm)")
     try:
@@ -1058,7 +1058,7 @@ def _line_text(data: bytes, line: int) -> str:
 
 
 def _finish_numbers(text_buf: np.ndarray, values: np.ndarray, slow: np.ndarray,
-                    lines: np.ndarray, per: int, path: FsPath, fmt: str) -> np.ndarray:
+                    lines: np.ndarray, per: int, path: Path, fmt: str) -> np.ndarray:
     """Fill the slots the compiled scan left (long mantissas, nan, inf) with ``strtod``.
 
     text_buf: uint8 tokens separated by spaces, one per entry of ``slow`` (slot indices
@@ -1088,7 +1088,7 @@ def _finish_numbers(text_buf: np.ndarray, values: np.ndarray, slow: np.ndarray,
     return values
 
 
-def _check_finite_lines(points: np.ndarray, lines: np.ndarray, path: FsPath,
+def _check_finite_lines(points: np.ndarray, lines: np.ndarray, path: Path,
                         fmt: str) -> None:
     bad = ~np.isfinite(points).all(axis=1)
     if bad.any():
@@ -1098,7 +1098,7 @@ def _check_finite_lines(points: np.ndarray, lines: np.ndarray, path: FsPath,
                         "expected finite numbers")
 
 
-def _read_stl_ascii(data: bytes, path: FsPath) -> np.ndarray:
+def _read_stl_ascii(data: bytes, path: Path) -> np.ndarray:
     """Corner coordinates (3 m, 3) float64 of an ASCII STL (one scan, one conversion)."""
     b = np.frombuffer(data, np.uint8)
     buf, values, slow, vlines, err, line = _scan_stl_ascii(b)
@@ -1249,7 +1249,7 @@ def _fan(flat: np.ndarray, counts: np.ndarray) -> np.ndarray:
     return np.stack([flat[base], flat[base + j + 1], flat[base + j + 2]], axis=1)
 
 
-def _read_obj(data: bytes, path: FsPath) -> tuple[np.ndarray, np.ndarray]:
+def _read_obj(data: bytes, path: Path) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (n, 3) float64 and triangles (m, 3) int64 of an OBJ file."""
     b = np.frombuffer(data, np.uint8)
     buf, values, slow, vlines, fidx, fcount, flines, n_short, err, line = _scan_obj(b)
@@ -1296,7 +1296,7 @@ class _PlyElement:
     line: int
 
 
-def _ply_header(data: bytes, path: FsPath) -> tuple[str, list[_PlyElement], int, int]:
+def _ply_header(data: bytes, path: Path) -> tuple[str, list[_PlyElement], int, int]:
     """Parse the header: (format, elements, byte offset of the body, header line count)."""
     end = data.find(b"end_header")
     if end < 0:
@@ -1412,7 +1412,7 @@ class _PlyData:
 
 
 def _ply_element_binary(b: np.ndarray, pos: int, el: _PlyElement, endian: str,
-                        path: FsPath) -> tuple[_PlyData, int]:
+                        path: Path) -> tuple[_PlyData, int]:
     """Read one element of a binary PLY starting at byte ``pos``; returns data and end."""
     remaining = len(b) - pos
     # guess a fixed layout from the first record's list counts (exact by induction when
@@ -1496,7 +1496,7 @@ def _gather(b: np.ndarray, starts: np.ndarray, dtype: str | np.dtype) -> np.ndar
 
 
 def _ply_element_ascii(t: np.ndarray, pos: int, el: _PlyElement,
-                       path: FsPath) -> tuple[_PlyData, int]:
+                       path: Path) -> tuple[_PlyData, int]:
     """Read one element from the token array ``t`` (ASCII PLY) starting at token ``pos``."""
     remaining = len(t) - pos
     kinds = [q.count is not None for q in el.props]
@@ -1572,7 +1572,7 @@ def _tristrips(strip: np.ndarray) -> np.ndarray:
     return tri[valid]
 
 
-def _read_ply(data: bytes, path: FsPath) -> tuple[np.ndarray, np.ndarray]:
+def _read_ply(data: bytes, path: Path) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (n, 3) float64 and triangles (m, 3) int64 of a binary or ASCII PLY."""
     fmt, elements, body, _ = _ply_header(data, path)
     names = [e.name for e in elements]
@@ -1648,7 +1648,7 @@ def _read_ply(data: bytes, path: FsPath) -> tuple[np.ndarray, np.ndarray]:
 
 def write_stl(mesh: Mesh, path: str | os.PathLike[str]) -> None:
     """Write a binary STL (float32; via a temporary file renamed into place)."""
-    p = FsPath(path)
+    p = Path(path)
     tri = mesh.triangles().astype(np.float32)
     rec = np.zeros(len(tri), dtype=_STL_DTYPE)
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
@@ -1800,8 +1800,8 @@ def prepare_parts(job: "Job", base_dir: str | os.PathLike[str] | None = None) ->
     parts = job.parts
     if not parts.files:
         raise MeshError("parts.files is empty: the job names no mesh file to build")
-    base = FsPath(base_dir) if base_dir is not None else None
-    paths = [FsPath(f) if base is None or FsPath(f).is_absolute() else base / f
+    base = Path(base_dir) if base_dir is not None else None
+    paths = [Path(f) if base is None or Path(f).is_absolute() else base / f
              for f in parts.files]
     mesh = load_meshes(paths, inexact=parts.inexact, tolerance=parts.weld_tolerance_mm)
     return transform(mesh, parts)
