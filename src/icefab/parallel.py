@@ -37,7 +37,7 @@ def parallel_map(fn: Callable[[T], R], items: Sequence[T], job: "Job",
     only one worker is configured or there are fewer than ``min_items`` items (process
     start-up would cost more than it saves). Items are cut into about ``8 * workers``
     contiguous chunks; no more workers are started than there are chunks.
-    progress: called as ``progress(done, total)`` as items complete (every 16 items when
+    progress: called as ``progress(done, total)`` as items complete (after every item when
     serial, after every chunk otherwise).
     """
     workers = n_workers(job)
@@ -46,7 +46,7 @@ def parallel_map(fn: Callable[[T], R], items: Sequence[T], job: "Job",
         out = []
         for i, x in enumerate(items):
             out.append(fn(x))
-            if progress is not None and (i % 16 == 15 or i == total - 1):
+            if progress is not None:
                 progress(i + 1, total)
         return out
     n_chunks = workers * 8

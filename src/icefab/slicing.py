@@ -104,7 +104,7 @@ import numpy as np
 from icefab.config import Job
 from icefab.atomic import atomic_path
 from icefab.errors import GeometryError, StackFileError
-from icefab.mesh import edge_buckets
+from icefab.mesh.topology import edge_buckets
 from icefab.core import Layer, Mesh, Region, Stack, signed_area
 
 log = logging.getLogger(__name__)
