@@ -54,7 +54,9 @@ def main() -> None:
     from icefab.mesh import transform
     from icefab.paths import plan_paths
     from icefab.regions import add_scaffold
-    from icefab.sim import _splat, _grid_for, plan_layer, simulate_build
+    from icefab.sim import plan_layer, simulate_build
+    from icefab.sim.cell import _grid_for
+    from icefab.sim.deposition import _splat
     from icefab.slicing import slice_mesh
     from icefab.core import Stack
 

@@ -192,7 +192,7 @@ def test_laser_latency_lags_the_reading_along_the_path(direction):
 
 def _closed(points, speed, dt=0.016):
     """Resample a closed polygon at constant speed; the sample count sets the volume."""
-    from icefab.sim import _resample
+    from icefab.sim.laser import _resample
     xy, _ = _resample(np.asarray(points, float), True, speed * dt)
     return xy
 

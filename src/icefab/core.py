@@ -250,6 +250,29 @@ class Toolpath:
 Path = Toolpath
 
 
+#: Ossino's deposition states (Ossino 6): nothing flows, part (water) valve, scaffold valve.
+OFF, ON1, ON2 = 0, 1, 2
+
+
+def deposition_state(path: Toolpath) -> int:
+    """Ossino's state of a path's deposition: ON1 (1, part), ON2 (2, scaffold), OFF (0)."""
+    if not path.depositing:
+        return OFF
+    return ON1 if path.material == "part" else ON2
+
+
+def point_states(path: Toolpath) -> np.ndarray:
+    """(k,) int8: Ossino's state of every point of a path (Ossino 6), the state of the
+    segment that leaves the point along the path: :func:`deposition_state` at every point
+    of a depositing path but the last point of an open one (OFF: nothing follows on the
+    path); a closed path's last point leads back to its first (its closing edge
+    deposits). Travel and measurement paths: OFF throughout."""
+    out = np.full(len(path.points), deposition_state(path), dtype=np.int8)
+    if len(out) and not path.closed:
+        out[-1] = OFF
+    return out
+
+
 @dataclass(frozen=True, eq=False)
 class LayerPaths:
     """The ordered paths of one layer, travel moves included, in deposition order."""
@@ -306,6 +329,56 @@ class Trajectory:
     def t(self) -> np.ndarray:
         """(n,) float64 sample times, s."""
         return np.arange(len(self.xy)) * self.dt
+
+
+@dataclass(frozen=True, eq=False)
+class LayerMotion:
+    """The trajectories of one layer, in deposition order (travel moves included)."""
+
+    index: int
+    z: float
+    trajectories: tuple[Trajectory, ...]
+
+    @property
+    def durations(self) -> np.ndarray:
+        """(t,) float64 s, per trajectory."""
+        return np.array([t.duration for t in self.trajectories], dtype=np.float64)
+
+    @property
+    def duration(self) -> float:
+        return float(self.durations.sum())
+
+    @property
+    def n_points(self) -> int:
+        return int(sum(len(t.xy) for t in self.trajectories))
+
+
+@dataclass(frozen=True, eq=False)
+class BuildMotion:
+    """Trajectories of every layer of a build."""
+
+    layers: tuple[LayerMotion, ...]
+    job: "Job"
+    robot: str = "scara"
+    joint_names: tuple[str, ...] = ()
+
+    @property
+    def layer_durations(self) -> np.ndarray:
+        """(L,) float64 s."""
+        return np.array([lm.duration for lm in self.layers], dtype=np.float64)
+
+    @property
+    def duration(self) -> float:
+        """Whole-build motion time, s."""
+        return float(self.layer_durations.sum())
+
+    @property
+    def n_points(self) -> int:
+        return int(sum(lm.n_points for lm in self.layers))
+
+    def __len__(self) -> int:
+        return len(self.layers)
+
 
 
 # --------------------------------------------------------------------------- valves

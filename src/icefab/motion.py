@@ -78,27 +78,8 @@ idealised length / speed figure.
 The planner only knows the :class:`icefab.robots.Robot` protocol (the Klipper rule: a
 robot can only tighten limits).
 
-Trajectory file format (``save_trajectories``/``load_trajectories``, ``.npz``):
-
-* ``format`` = "icefab-trajectories", ``version`` = 2, ``dt`` float s (the first
-  trajectory's; ``traj_dt`` has each one's), ``robot`` str, ``joint_names`` (j,) str,
-  ``job`` str (TOML);
-* ``xy`` (M, 2) float64 mm (robot base frame), ``joints`` (M, j) float64 rad or mm,
-  ``speed`` (M,) float64 mm/s: the samples of all trajectories, concatenated in order;
-* ``traj_start`` (T + 1,) int64: trajectory i is rows ``traj_start[i]:traj_start[i+1]``;
-* ``piece_start`` (Q,) int64 sample indices (within its trajectory) where pieces start
-  and ``piece_owner`` (Q,) int64 the trajectory each belongs to;
-* per trajectory (T,): ``duration`` float64 s, ``traj_dt`` float64 s, ``layer`` int64,
-  ``path_index`` int64 (index within its layer), ``material`` int8 (0 part, 1 scaffold),
-  ``role`` int8 (0 boundary, 1 fill, 2 measure, 3 travel), and the rest of its Path:
-  ``width`` float64 mm, ``closed`` bool, ``tool`` str ("" = derived), ``path_z``
-  float64 mm; a trajectory without a Path has width 0, closed False, tool "", z 0;
-* per layer (L,): ``layer_index`` int64, ``layer_z`` float64 mm, ``layer_start`` (L+1,)
-  int64 (trajectories of layer k are ``layer_start[k]:layer_start[k+1]``).
-
-Version 1 files (no ``traj_dt``, ``width``, ``closed``, ``tool``, ``path_z``) still load,
-with a logged warning: every trajectory gets ``dt``, width 0 (the valve stage then uses
-the job's widths), closed False, the derived tool and the layer's z.
+The trajectory file (``save_trajectories`` / ``load_trajectories``) is documented in
+:mod:`icefab.resultfiles`.
 """
 
 from __future__ import annotations
@@ -108,7 +89,6 @@ import math
 import os
 from dataclasses import dataclass
 from functools import lru_cache
-from pathlib import Path
 from typing import Callable, Mapping, Sequence
 
 import numpy as np
@@ -116,11 +96,16 @@ from scipy.ndimage import convolve1d
 
 from icefab import _mtts
 from icefab.config import Job
-from icefab.errors import IcefabError, StackFileError, WorkspaceError
+from icefab.errors import IcefabError, WorkspaceError
 from icefab.frames import to_base_frame
 from icefab.parallel import parallel_map
+from icefab.resultfiles import (TRAJECTORIES_FORMAT as FORMAT,  # noqa: F401 (old home)
+                                TRAJECTORIES_VERSION as VERSION, load_trajectories,
+                                owner_arrays, pack_trajectories, save_trajectories,
+                                unpack_trajectories)
 from icefab.robots import Robot, get_robot
-from icefab.core import LayerPaths, Toolpath, Toolpaths, Trajectory
+from icefab.core import (ROLES, BuildMotion, LayerMotion, LayerPaths, Toolpath, Toolpaths,
+                         Trajectory)
 
 log = logging.getLogger(__name__)
 
@@ -150,8 +135,6 @@ MERGE_MM = 1e-9
 #: Gap inserted between pieces in the concatenated arc length (keeps it increasing), mm.
 _GAP = 1.0
 
-_MATS = ("part", "scaffold")
-_ROLES = ("boundary", "fill", "measure", "travel")
 
 
 # --------------------------------------------------------------------------- inputs
@@ -180,9 +163,9 @@ def _role_cap(path: Toolpath, job: Job, role_speeds: Mapping[str, float] | None)
 
 def _check_role_speeds(role_speeds: Mapping[str, float] | None) -> None:
     for role, v in (role_speeds or {}).items():
-        if role not in _ROLES:
+        if role not in ROLES:
             raise IcefabError(f"role speeds: unknown path role {role!r}, expected one of "
-                              f"{', '.join(_ROLES)}")
+                              f"{', '.join(ROLES)}")
         if not (math.isfinite(v) and v > 0.0):
             raise IcefabError(f"role speeds: the speed of {role} paths must be a positive "
                               f"number of mm/s, got {v!r}")
@@ -691,55 +674,6 @@ def plan_paths_motion(paths: Sequence[Toolpath], job: Job | None = None, *,
     return _plan_polylines((V, counts), caps, job, robot, labels=labels, paths=list(paths))
 
 
-@dataclass(frozen=True, eq=False)
-class LayerMotion:
-    """The trajectories of one layer, in deposition order (travel moves included)."""
-
-    index: int
-    z: float
-    trajectories: tuple[Trajectory, ...]
-
-    @property
-    def durations(self) -> np.ndarray:
-        """(t,) float64 s, per trajectory."""
-        return np.array([t.duration for t in self.trajectories], dtype=np.float64)
-
-    @property
-    def duration(self) -> float:
-        return float(self.durations.sum())
-
-    @property
-    def n_points(self) -> int:
-        return int(sum(len(t.xy) for t in self.trajectories))
-
-
-@dataclass(frozen=True, eq=False)
-class BuildMotion:
-    """Trajectories of every layer of a build."""
-
-    layers: tuple[LayerMotion, ...]
-    job: Job
-    robot: str = "scara"
-    joint_names: tuple[str, ...] = ()
-
-    @property
-    def layer_durations(self) -> np.ndarray:
-        """(L,) float64 s."""
-        return np.array([lm.duration for lm in self.layers], dtype=np.float64)
-
-    @property
-    def duration(self) -> float:
-        """Whole-build motion time, s."""
-        return float(self.layer_durations.sum())
-
-    @property
-    def n_points(self) -> int:
-        return int(sum(lm.n_points for lm in self.layers))
-
-    def __len__(self) -> int:
-        return len(self.layers)
-
-
 def _plan_layer(lp: LayerPaths, job: Job,
                 role_speeds: Mapping[str, float] | None = None) -> LayerMotion:
     trajs = (plan_paths_motion(lp.paths, job, layer=lp.index, role_speeds=role_speeds)
@@ -747,31 +681,19 @@ def _plan_layer(lp: LayerPaths, job: Job,
     return LayerMotion(index=lp.index, z=lp.z, trajectories=tuple(trajs))
 
 
-def _plan_layer_task(args: tuple) -> tuple:
+def _plan_layer_task(args: tuple) -> dict[str, np.ndarray]:
     """Worker: plan one layer and return its trajectories packed in a few flat arrays
-    (sending one object per trajectory, with its Path, back through the pipe costs more
+    (sending one object per trajectory, with its Toolpath, back through the pipe costs more
     than planning it). args: (LayerPaths, Job, role_speeds or None)."""
     lp, job, role_speeds = args
     trajs = (plan_paths_motion(lp.paths, job, layer=lp.index, role_speeds=role_speeds)
              if lp.paths else [])
-    if not trajs:
-        return (np.zeros(1, np.int64), np.zeros((0, 2)), None, np.zeros(0),
-                np.zeros(1, np.int64), np.zeros(0, np.int64), np.zeros(0), 0.0)
-    counts = [len(t.xy) for t in trajs]
-    pcs = [t.pieces for t in trajs]
-    return (np.concatenate([[0], np.cumsum(counts)]), np.concatenate([t.xy for t in trajs]),
-            np.concatenate([t.joints for t in trajs]), np.concatenate([t.speed for t in trajs]),
-            np.concatenate([[0], np.cumsum([len(p) for p in pcs])]), np.concatenate(pcs),
-            np.array([t.duration for t in trajs]), trajs[0].dt)
+    return pack_trajectories(trajs, empty_pieces=True)
 
 
-def _unpack_layer(lp: LayerPaths, packed: tuple) -> LayerMotion:
-    start, xy, joints, speed, pstart, pieces, durations, dt = packed
-    trajs = tuple(Trajectory(dt=dt, xy=xy[a:b], joints=joints[a:b], speed=speed[a:b],
-                             duration=float(durations[i]), path=lp.paths[i],
-                             pieces=pieces[pstart[i]:pstart[i + 1]])
-                  for i, (a, b) in enumerate(zip(start[:-1], start[1:])))
-    return LayerMotion(index=lp.index, z=lp.z, trajectories=trajs)
+def _unpack_layer(lp: LayerPaths, packed: dict[str, np.ndarray]) -> LayerMotion:
+    return LayerMotion(index=lp.index, z=lp.z,
+                       trajectories=tuple(unpack_trajectories(packed, lp.paths)))
 
 
 def _locate(ends: np.ndarray, i: int) -> tuple[int, int]:
@@ -933,26 +855,6 @@ def gcode_moves(traj: Trajectory, *, decimals: int = 3) -> list[str]:
     return lines
 
 
-FORMAT = "icefab-trajectories"
-VERSION = 2
-#: Versions load_trajectories reads (1: without per-trajectory dt and Path fields).
-_READABLE = (1, 2)
-
-
-def _owners(motion: BuildMotion) -> dict[str, np.ndarray]:
-    """Per trajectory, in file order: ``layer`` (T,) int64, ``path_index`` (T,) int64
-    (within its layer), ``material`` (T,) int8 (0 part, 1 scaffold) and ``role`` (T,) int8
-    (0 boundary, 1 fill, 2 measure, 3 travel); a trajectory without a path counts as 0."""
-    owners = [(lm.index, i, t.path) for lm in motion.layers
-              for i, t in enumerate(lm.trajectories)]
-    return {"layer": np.array([o[0] for o in owners], dtype=np.int64),
-            "path_index": np.array([o[1] for o in owners], dtype=np.int64),
-            "material": np.array([_MATS.index(p.material) if p else 0 for *_, p in owners],
-                                 dtype=np.int8),
-            "role": np.array([_ROLES.index(p.role) if p else 0 for *_, p in owners],
-                             dtype=np.int8)}
-
-
 def save_gcode(motion: BuildMotion, path: str | os.PathLike) -> None:
     """G-code for gantry-style machines (positions with feedrates, as the thesis'
     conclusions suggest for CNC machines), written atomically: ``G21``/``G90``, per layer
@@ -999,141 +901,9 @@ def save_constant_spacing(motion: BuildMotion, spacing_mm: float,
             "duration": np.concatenate(dur) if dur else np.zeros(0),
             "path_start": np.concatenate([[0], np.cumsum([len(p) for p in xy])]
                                          ).astype(np.int64),
-            **_owners(motion)}
+            **owner_arrays(motion)}
     with atomic_path(path, suffix=".npz") as tmp, open(tmp, "wb") as fh:
         np.savez_compressed(fh, **data)
-
-
-def save_trajectories(motion: BuildMotion, path: str | os.PathLike) -> None:
-    """Write a BuildMotion to ``.npz`` (format in the module docstring); written to a
-    temporary file and renamed (``icefab.atomic``), so a failure leaves nothing
-    half-written."""
-    from icefab.atomic import atomic_path
-    from icefab.config import to_toml
-    trajs = [t for lm in motion.layers for t in lm.trajectories]
-    zs = [lm.z for lm in motion.layers for _ in lm.trajectories]
-    jn = len(motion.joint_names) or (trajs[0].joints.shape[1] if trajs else 0)
-    counts = [len(t.xy) for t in trajs]
-    pcs = [t.pieces if len(t.pieces) else np.zeros(1, np.int64) for t in trajs]
-    paths = [t.path for t in trajs]
-    data = {
-        "format": np.array(FORMAT), "version": np.array(VERSION),
-        "dt": np.array(trajs[0].dt if trajs else motion.job.motion.dt_s),
-        "robot": np.array(motion.robot),
-        "joint_names": np.array(list(motion.joint_names), dtype=str),
-        "job": np.array(to_toml(motion.job)),
-        "xy": np.concatenate([t.xy for t in trajs]) if trajs else np.zeros((0, 2)),
-        "joints": np.concatenate([t.joints for t in trajs]) if trajs else np.zeros((0, jn)),
-        "speed": np.concatenate([t.speed for t in trajs]) if trajs else np.zeros(0),
-        "traj_start": np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
-        "piece_start": (np.concatenate(pcs) if pcs else np.zeros(0)).astype(np.int64),
-        "piece_owner": np.repeat(np.arange(len(trajs)), [len(p) for p in pcs]).astype(np.int64),
-        "duration": np.array([t.duration for t in trajs], dtype=np.float64),
-        "traj_dt": np.array([t.dt for t in trajs], dtype=np.float64),
-        **_owners(motion),
-        "width": np.array([float(p.width) if p else 0.0 for p in paths], dtype=np.float64),
-        "closed": np.array([bool(p.closed) if p else False for p in paths], dtype=bool),
-        "tool": np.array([p.tool if p else "" for p in paths], dtype=str).reshape(-1),
-        "path_z": np.array([float(p.z) if p else z for p, z in zip(paths, zs)],
-                           dtype=np.float64),
-        "layer_index": np.array([lm.index for lm in motion.layers], dtype=np.int64),
-        "layer_z": np.array([lm.z for lm in motion.layers], dtype=np.float64),
-        "layer_start": np.concatenate(
-            [[0], np.cumsum([len(lm.trajectories) for lm in motion.layers])]).astype(np.int64),
-    }
-    target = Path(path)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(target, suffix=".npz") as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez_compressed(fh, **data)
-
-
-def load_trajectories(path: str | os.PathLike) -> BuildMotion:
-    """Read a file written by :func:`save_trajectories` (versions 1 and 2).
-
-    The trajectories' ``path`` is a stand-in Path in the robot base frame whose
-    ``polyline()`` is the samples (a closed path's last sample, back on its first, is the
-    closing point), carrying layer, z, material, role, width, closed and tool.
-    StackFileError if the file is missing, truncated, corrupt or of another kind.
-    """
-    import zipfile
-
-    from icefab.config import job_from_dict
-    path = Path(path)
-
-    def bad(msg: str) -> StackFileError:
-        return StackFileError(f"{path}: {msg}")
-
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except FileNotFoundError:
-        raise bad("trajectory file not found") from None
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
-        raise bad(f"not a readable trajectory file ({exc})") from None
-    if str(data.get("format", "")) != FORMAT:
-        raise bad(f"not an icefab trajectory file (format {str(data.get('format', ''))!r})")
-    version = int(data.get("version", -1))
-    if version not in _READABLE:
-        raise bad(f"trajectory file version {version}, expected one of "
-                  f"{', '.join(map(str, _READABLE))}")
-    need = ["dt", "xy", "joints", "speed", "traj_start", "piece_start", "piece_owner",
-            "duration", "layer", "path_index", "material", "role", "layer_index", "layer_z",
-            "layer_start", "job", "robot", "joint_names"]
-    if version >= 2:
-        need += ["traj_dt", "width", "closed", "tool", "path_z"]
-    missing = [k for k in need if k not in data]
-    if missing:
-        raise bad(f"missing arrays {', '.join(missing)}")
-    import tomllib
-    job = job_from_dict(tomllib.loads(str(data["job"])))
-    ts = data["traj_start"]
-    nt = len(ts) - 1
-    per_traj = ["duration", "layer", "material", "role"] + (
-        ["traj_dt", "width", "closed", "tool", "path_z"] if version >= 2 else [])
-    if nt < 0 or ts[-1] != len(data["xy"]) or np.any(np.diff(ts) < 0) \
-            or any(len(data[k]) != nt for k in per_traj):
-        raise bad("inconsistent trajectory index arrays (truncated or corrupt)")
-    ls = data["layer_start"]
-    if version >= 2:
-        dts = data["traj_dt"].astype(np.float64)
-        widths = data["width"].astype(np.float64)
-        closed = data["closed"].astype(bool)
-        tools = [str(x) for x in data["tool"]]
-        zs = data["path_z"].astype(np.float64)
-    else:
-        log.warning("%s: trajectory file version 1 stores neither path widths, tools and "
-                    "closed flags nor each trajectory's dt: widths 0 (the valve stage uses "
-                    "the job's widths), open paths, dt %.4g s for all; re-run 'icefab plan' "
-                    "to store them", path, float(data["dt"]))
-        dts = np.full(nt, float(data["dt"]))
-        widths = np.zeros(nt)
-        closed = np.zeros(nt, dtype=bool)
-        tools = [""] * nt
-        zs = np.repeat(data["layer_z"].astype(np.float64), np.diff(ls)) \
-            if len(ls) and ls[-1] == nt else np.zeros(nt)
-    owner = data["piece_owner"]
-    pstart = data["piece_start"]
-    if len(owner) != len(pstart) or np.any(np.diff(owner) < 0):
-        raise bad("inconsistent piece arrays (truncated or corrupt)")
-    pb = np.searchsorted(owner, np.arange(nt + 1))  # pieces of trajectory i: pb[i]:pb[i+1]
-    trajs = []
-    for i in range(nt):
-        r0, r1 = int(ts[i]), int(ts[i + 1])
-        xy = data["xy"][r0:r1]
-        pts = xy[:-1] if closed[i] and len(xy) > 2 and np.array_equal(xy[0], xy[-1]) else xy
-        stand_in = Toolpath(points=pts, z=float(zs[i]), material=_MATS[int(data["material"][i])],
-                        role=_ROLES[int(data["role"][i])], closed=bool(closed[i]),
-                        width=float(widths[i]), layer=int(data["layer"][i]), frame="base",
-                        tool=tools[i])
-        trajs.append(Trajectory(dt=float(dts[i]), xy=xy, joints=data["joints"][r0:r1],
-                                speed=data["speed"][r0:r1], duration=float(data["duration"][i]),
-                                path=stand_in, pieces=pstart[pb[i]:pb[i + 1]]))
-    layers = tuple(LayerMotion(index=int(data["layer_index"][k]), z=float(data["layer_z"][k]),
-                               trajectories=tuple(trajs[int(ls[k]):int(ls[k + 1])]))
-                   for k in range(len(ls) - 1))
-    return BuildMotion(layers=layers, job=job, robot=str(data["robot"]),
-                       joint_names=tuple(str(x) for x in data["joint_names"]))
 
 
 # --------------------------------------------------------------------------- reference shapes

@@ -62,46 +62,23 @@ from __future__ import annotations
 
 import logging
 import math
-import os
-import tomllib
-import zipfile
-from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
 
 from icefab import geometry as geo
-from icefab.config import Job, MaterialSettings, job_from_dict, to_toml
-from icefab.atomic import atomic_path
-from icefab.errors import ConfigError, StackFileError
+from icefab.config import Job, MaterialSettings
 from icefab.frames import TOOLS, tool_offset, to_base_frame  # noqa: F401 (old home)
 from icefab.parallel import parallel_map
 from icefab.regions import hook_band_mm
+from icefab.resultfiles import (TOOLPATHS_FORMAT as FORMAT, TOOLPATHS_VERSION as VERSION,  # noqa: F401
+                                load_toolpaths, pack_layer_paths, save_toolpaths,
+                                unpack_layer_paths)
 from icefab.geometry import signed_area
-from icefab.core import Layer, LayerPaths, Toolpath, Region, Stack, Toolpaths
+from icefab.core import (OFF, ON1, ON2, Layer, LayerPaths, Region, Stack, Toolpath,  # noqa: F401
+                         Toolpaths, deposition_state, point_states)
 
 log = logging.getLogger(__name__)
-
-#: Ossino's deposition states.
-OFF, ON1, ON2 = 0, 1, 2
-
-def deposition_state(path: Toolpath) -> int:
-    """Ossino's state of a path's deposition: ON1 (1, part), ON2 (2, scaffold), OFF (0)."""
-    if not path.depositing:
-        return OFF
-    return ON1 if path.material == "part" else ON2
-
-
-def point_states(path: Toolpath) -> np.ndarray:
-    """(k,) int8: Ossino's state of every point of a path (Ossino 6), the state of the
-    segment that leaves the point along the path: :func:`deposition_state` at every point
-    of a depositing path but the last point of an open one (OFF: nothing follows on the
-    path); a closed path's last point leads back to its first (its closing edge
-    deposits). Travel and measurement paths: OFF throughout."""
-    out = np.full(len(path.points), deposition_state(path), dtype=np.int8)
-    if len(out) and not path.closed:
-        out[-1] = OFF
-    return out
 
 
 def layer_point_states(layer: LayerPaths) -> tuple[np.ndarray, np.ndarray]:
@@ -830,7 +807,7 @@ def plan_paths(stack: Stack, job: Job | None = None, *,
     job = job or stack.job
     packed = parallel_map(_plan_task, [(layer, job) for layer in stack.layers], job,
                           min_items=8, progress=progress)
-    layers = [_unpack_layer(p) for p in packed]
+    layers = [unpack_layer_paths(p) for p in packed]
     warnings = list(stack.warnings)
     total = np.array([lp.unfilled_mm2 for lp in layers]).reshape(-1, 2).sum(axis=0)
     if total.sum() > 0:
@@ -843,27 +820,7 @@ def _plan_task(args: tuple[Layer, Job]) -> tuple:
     """Plan one layer in a worker; the result travels back packed in a few arrays (one
     pickled object per path would cost more than the planning of small layers)."""
     layer, job = args
-    return _pack_layer(plan_layer(layer, job))
-
-
-def _pack_layer(lp: LayerPaths) -> tuple:
-    paths = lp.paths
-    pts = (np.concatenate([p.points for p in paths]) if paths else np.zeros((0, 2)))
-    start = np.concatenate([[0], np.cumsum([len(p.points) for p in paths])]).astype(np.int64)
-    codes = np.array([(_MATS.index(p.material), _ROLES.index(p.role), int(p.closed),
-                       _FRAMES.index(p.frame), _TOOLS.index(p.tool)) for p in paths],
-                     dtype=np.int8).reshape(-1, 5)
-    nums = np.array([(p.z, p.width, p.layer) for p in paths], dtype=np.float64).reshape(-1, 3)
-    return lp.index, lp.z, lp.unfilled_mm2, pts, start, codes, nums
-
-
-def _unpack_layer(packed: tuple) -> LayerPaths:
-    index, z, unfilled, pts, start, codes, nums = packed
-    paths = tuple(Toolpath(pts[start[i]:start[i + 1]], float(nums[i, 0]), _MATS[codes[i, 0]],
-                       _ROLES[codes[i, 1]], bool(codes[i, 2]), float(nums[i, 1]),
-                       int(nums[i, 2]), _FRAMES[codes[i, 3]], _TOOLS[codes[i, 4]])
-                  for i in range(len(codes)))
-    return LayerPaths(index, z, paths, unfilled)
+    return pack_layer_paths(plan_layer(layer, job))
 
 
 # --------------------------------------------------------------------------- estimate
@@ -898,136 +855,3 @@ def estimate_build_time(toolpaths: Toolpaths, job: Job | None = None
 # --------------------------------------------------------------------------- files
 
 #: Format of ``save_toolpaths`` files.
-FORMAT = "icefab-toolpaths"
-VERSION = 2
-_MATS = ("part", "scaffold")
-_ROLES = ("boundary", "fill", "measure", "travel")
-_FRAMES = ("part", "base")
-_TOOLS = ("", "part", "scaffold", "laser")
-
-
-def save_toolpaths(tp: Toolpaths, path: str | os.PathLike) -> None:
-    """Write toolpaths to a ``.npz`` file (written to a temporary file, then renamed).
-
-    Format (version 2), arrays:
-
-    * ``format`` str, ``version`` int, ``job`` str (the job as TOML), ``warnings`` (w,) str;
-    * ``points`` (N, 2) float64 mm: the points of all paths, concatenated in order;
-    * ``state`` (N,) int8: Ossino's deposition state of every point (0 OFF, 1 ON1 part,
-      2 ON2 scaffold), the state of the segment leaving the point along its path
-      (:func:`point_states`: a closed path's last point deposits along its closing edge,
-      an open path's last point is OFF; travel and measurement points are OFF);
-    * ``path_start`` (P + 1,) int64: path i has ``points[path_start[i]:path_start[i+1]]``;
-    * per path (P,): ``z`` float64 mm, ``material`` int8 (0 part, 1 scaffold), ``role``
-      int8 (0 boundary, 1 fill, 2 measure, 3 travel), ``closed`` bool, ``width`` float64
-      mm, ``layer`` int64, ``frame`` int8 (0 part, 1 base), ``tool`` int8 (0 derived,
-      1 part nozzle, 2 scaffold nozzle, 3 laser);
-    * per layer (L,): ``layer_index`` int64, ``layer_z`` float64 mm, ``layer_start``
-      (L + 1,) int64 (paths of layer j are ``layer_start[j]:layer_start[j+1]``),
-      ``unfilled_mm2`` (L, 2) float64.
-
-    Version 1 files (without ``state``) are still read; states are derived from the paths.
-    """
-    paths = [p for lp in tp.layers for p in lp.paths]
-    counts = [len(p.points) for p in paths]
-    data = {
-        "format": np.array(FORMAT),
-        "version": np.array(VERSION),
-        "job": np.array(to_toml(tp.job)),
-        "warnings": np.array(list(tp.warnings), dtype=str),
-        "points": (np.concatenate([p.points for p in paths]).astype(np.float64)
-                   if paths else np.zeros((0, 2))),
-        "state": (np.concatenate([point_states(p) for p in paths]) if paths
-                  else np.zeros(0, dtype=np.int8)),
-        "path_start": np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
-        "z": np.array([p.z for p in paths], dtype=np.float64),
-        "material": np.array([_MATS.index(p.material) for p in paths], dtype=np.int8),
-        "role": np.array([_ROLES.index(p.role) for p in paths], dtype=np.int8),
-        "closed": np.array([p.closed for p in paths], dtype=bool),
-        "width": np.array([p.width for p in paths], dtype=np.float64),
-        "layer": np.array([p.layer for p in paths], dtype=np.int64),
-        "frame": np.array([_FRAMES.index(p.frame) for p in paths], dtype=np.int8),
-        "tool": np.array([_TOOLS.index(p.tool) for p in paths], dtype=np.int8),
-        "layer_index": np.array([lp.index for lp in tp.layers], dtype=np.int64),
-        "layer_z": np.array([lp.z for lp in tp.layers], dtype=np.float64),
-        "layer_start": np.concatenate(
-            [[0], np.cumsum([len(lp.paths) for lp in tp.layers])]).astype(np.int64),
-        "unfilled_mm2": np.array([lp.unfilled_mm2 for lp in tp.layers],
-                                 dtype=np.float64).reshape(-1, 2),
-    }
-    target = Path(path)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(target) as tmp, open(tmp, "wb") as fh:
-        np.savez_compressed(fh, **data)
-
-
-def load_toolpaths(path: str | os.PathLike) -> Toolpaths:
-    """Read a file written by :func:`save_toolpaths`; StackFileError if it is missing,
-    truncated, corrupt or not a toolpath file."""
-    path = Path(path)
-
-    def bad(msg: str) -> StackFileError:
-        return StackFileError(f"{path}: {msg}")
-
-    try:
-        with np.load(path, allow_pickle=False) as f:
-            d = {k: f[k] for k in f.files}
-    except FileNotFoundError:
-        raise bad("toolpath file not found") from None
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as exc:
-        raise bad(f"not a readable toolpath .npz file ({exc})") from None
-    if str(d.get("format", "")) != FORMAT:
-        raise bad(f"not an icefab toolpath file (format {str(d.get('format', 'missing'))!r}, "
-                  f"expected {FORMAT!r})")
-    version = int(d.get("version", -1))
-    if version not in (1, VERSION):
-        raise bad(f"toolpath file version {version}: expected {VERSION} (or 1)")
-    need = ("job", "warnings", "points", "path_start", "z", "material", "role", "closed",
-            "width", "layer", "frame", "tool", "layer_index", "layer_z", "layer_start",
-            "unfilled_mm2")
-    missing = [k for k in need if k not in d]
-    if missing:
-        raise bad(f"missing arrays {', '.join(missing)}")
-    try:
-        job = job_from_dict(tomllib.loads(str(d["job"])))
-    except (tomllib.TOMLDecodeError, ConfigError) as exc:
-        raise bad(f"stored job is invalid ({exc})") from None
-    pts, start = d["points"], d["path_start"]
-    P = len(d["z"])
-    L = len(d["layer_index"])
-    ok = (pts.ndim == 2 and pts.shape[1] == 2 and start.shape == (P + 1,)
-          and all(len(d[k]) == P for k in ("material", "role", "closed", "width", "layer",
-                                            "frame", "tool"))
-          and d["layer_start"].shape == (L + 1,) and len(d["layer_z"]) == L
-          and d["unfilled_mm2"].shape == (L, 2)
-          and (P == 0 or (start[0] == 0 and start[-1] == len(pts)
-                          and bool(np.all(np.diff(start) >= 0))))
-          and (L == 0 or (d["layer_start"][0] == 0 and d["layer_start"][-1] == P
-                          and bool(np.all(np.diff(d["layer_start"]) >= 0)))))
-    if version >= 2:
-        state = d.get("state")
-        ok = ok and state is not None and state.shape == (len(pts),)
-    if not ok:
-        raise bad("inconsistent array sizes (truncated or corrupt)")
-    for key, names in (("material", _MATS), ("role", _ROLES), ("frame", _FRAMES),
-                       ("tool", _TOOLS)):
-        v = d[key]
-        if len(v) and (v.min() < 0 or v.max() >= len(names)):
-            raise bad(f"{key} codes out of range")
-    if not np.all(np.isfinite(pts)):
-        raise bad("non-finite point coordinates")
-    if version >= 2 and len(d["state"]) and (d["state"].min() < OFF or d["state"].max() > ON2):
-        raise bad("state codes out of range (expected 0 OFF, 1 ON1, 2 ON2)")
-    paths = [Toolpath(pts[start[i]:start[i + 1]].copy(), float(d["z"][i]),
-                  _MATS[d["material"][i]], _ROLES[d["role"][i]], bool(d["closed"][i]),
-                  float(d["width"][i]), int(d["layer"][i]), _FRAMES[d["frame"][i]],
-                  _TOOLS[d["tool"][i]]) for i in range(P)]
-    if version >= 2 and paths and not np.array_equal(
-            d["state"], np.concatenate([point_states(p) for p in paths])):
-        raise bad("per-point states disagree with the paths' materials and roles")
-    ls = d["layer_start"]
-    layers = tuple(LayerPaths(int(d["layer_index"][j]), float(d["layer_z"][j]),
-                              tuple(paths[ls[j]:ls[j + 1]]),
-                              (float(d["unfilled_mm2"][j, 0]), float(d["unfilled_mm2"][j, 1])))
-                   for j in range(L))
-    return Toolpaths(layers, job, tuple(str(w) for w in d["warnings"]))

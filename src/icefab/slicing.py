@@ -78,34 +78,24 @@ Pipeline (RPSLICE's FACETSLICE = INTERSECTFACET + SEGMERGE + PATHFILTER, thesis 
    facet-oriented rings (``icefab.geometry``, Clipper on a 1e-4 mm grid); those layers
    are listed in ``SliceReport.union_layers`` and counted in a warning.
 
-Stack file format (:func:`save_stack` / :func:`load_stack`): one ``.npz`` (numpy zip)
-holding ``format`` ("icefab-stack"), ``version`` (1), ``points`` (P, 2) float64 mm (all
-rings of all layers, concatenated, first point not repeated), ``ring_offsets`` (R+1,)
-int64 into ``points``, ``ring_parent`` (R,) int64 (index within its layer, -1 top level),
-``ring_layer`` (R,) int64, ``layer_index`` (L,) int64, ``layer_z`` (L,) float64 mm,
-``layer_top_z`` (L,) float64 mm, ``layer_thickness`` () float64 mm, ``warnings`` (W,) str,
-and ``job`` (the job as TOML text, see ``icefab.config.to_toml``). Scaffold regions, when
-present, are stored the same way under the prefix ``scaffold_``.
+The stack file (``save_stack`` / ``load_stack``) is documented in :mod:`icefab.resultfiles`.
 """
 
 from __future__ import annotations
 
 import logging
-import os
-import zipfile
-import zlib
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Callable
 
 import numba
 import numpy as np
 
 from icefab.config import Job
-from icefab.atomic import atomic_path
-from icefab.errors import GeometryError, StackFileError
+from icefab.errors import GeometryError
 from icefab.mesh.topology import edge_buckets
 from icefab.core import Layer, Mesh, Region, Stack, signed_area
+from icefab.resultfiles import (STACK_FORMAT, STACK_VERSION, load_stack,  # noqa: F401 (old home)
+                                save_stack)
 
 log = logging.getLogger(__name__)
 
@@ -125,8 +115,6 @@ _CHUNK_SEGMENTS = 3_000_000
 #: Use the numpy expansion instead of the compiled cut kernel (tests compare the two).
 _USE_NUMPY_CUT = False
 
-STACK_FORMAT = "icefab-stack"
-STACK_VERSION = 1
 
 
 @dataclass
@@ -1240,125 +1228,3 @@ def _region_of(rings: _Rings, parent: np.ndarray, a: int, b: int) -> Region:
     pts = rings.points[s:e]
     cuts = rings.offsets[a + 1:b] - s
     return Region(rings=tuple(np.split(pts, cuts)), parent=parent[a:b].copy())
-
-
-# --------------------------------------------------------------------------- stack files
-
-
-def _pack_regions(regions: list[Region]) -> dict[str, np.ndarray]:
-    rings = [r for reg in regions for r in reg.rings]
-    counts = np.array([len(r) for r in rings], dtype=np.int64)
-    return {
-        "points": (np.concatenate(rings).astype(np.float64) if rings
-                   else np.zeros((0, 2))),
-        "ring_offsets": _offsets(counts),
-        "ring_parent": (np.concatenate([np.asarray(reg.parent, dtype=np.int64)
-                                        for reg in regions])
-                        if regions else np.zeros(0, dtype=np.int64)),
-        "ring_layer": np.repeat(np.arange(len(regions), dtype=np.int64),
-                                [len(reg.rings) for reg in regions]),
-    }
-
-
-def _unpack_regions(data: dict[str, np.ndarray], n_layers: int, path: str,
-                    prefix: str = "") -> list[Region]:
-    pts = data[prefix + "points"]
-    off = data[prefix + "ring_offsets"]
-    par = data[prefix + "ring_parent"]
-    lay = data[prefix + "ring_layer"]
-    n_r = len(lay)
-    if (pts.ndim != 2 or pts.shape[1] != 2 or len(off) != n_r + 1 or len(par) != n_r
-            or (n_r and (off[0] != 0 or off[-1] != len(pts) or np.any(np.diff(off) < 0)))
-            or (n_r and (np.any(np.diff(lay) < 0) or lay[0] < 0 or lay[-1] >= n_layers))):
-        raise StackFileError(f"{path}: inconsistent ring arrays ({prefix or 'part'}): the "
-                             "file is corrupt")
-    starts = np.searchsorted(lay, np.arange(n_layers + 1))
-    rings = np.split(pts, off[1:-1]) if n_r else []
-    out = []
-    for k in range(n_layers):
-        a, b = int(starts[k]), int(starts[k + 1])
-        p = par[a:b].astype(np.int64)
-        if np.any(p >= b - a) or np.any(p < -1):
-            raise StackFileError(f"{path}: layer {k}: ring parent out of range: the file is "
-                                 "corrupt")
-        out.append(Region(rings=tuple(rings[a:b]), parent=p))
-    return out
-
-
-def save_stack(stack: Stack, path: str | os.PathLike) -> Path:
-    """Write a stack to ``path`` (``.npz``, format in the module docstring), atomically.
-
-    Returns the path written. The file is written to a temporary file beside it and
-    renamed, so a failure leaves nothing half-written.
-    """
-    from icefab.config import to_toml
-
-    path = Path(path)
-    regions = [L.part for L in stack.layers]
-    arrays: dict[str, np.ndarray] = {
-        "format": np.array(STACK_FORMAT),
-        "version": np.array(STACK_VERSION),
-        "layer_index": np.array([L.index for L in stack.layers], dtype=np.int64),
-        "layer_z": np.array([L.z for L in stack.layers], dtype=np.float64),
-        "layer_top_z": np.array([L.top_z for L in stack.layers], dtype=np.float64),
-        "layer_thickness": np.array(float(stack.layer_thickness)),
-        "warnings": np.array(list(stack.warnings), dtype=str),
-        "job": np.array(to_toml(stack.job)),
-        **_pack_regions(regions),
-    }
-    if any(not L.scaffold.is_empty for L in stack.layers):
-        arrays.update({"scaffold_" + k: v for k, v in
-                       _pack_regions([L.scaffold for L in stack.layers]).items()})
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        np.savez_compressed(fh, **arrays)
-    return path
-
-
-def load_stack(path: str | os.PathLike) -> Stack:
-    """Read a stack written by :func:`save_stack`.
-
-    Raises StackFileError naming the file when it is missing, truncated, corrupt or not a
-    stack file.
-    """
-    import tomllib
-
-    from icefab.config import job_from_dict
-    from icefab.errors import ConfigError
-
-    path = Path(path)
-    if not path.is_file():
-        raise StackFileError(f"{path}: stack file not found")
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            data = {k: npz[k] for k in npz.files}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError, zlib.error) as exc:
-        raise StackFileError(f"{path}: not a readable stack file ({exc})") from None
-    need = ("format", "version", "points", "ring_offsets", "ring_parent", "ring_layer",
-            "layer_index", "layer_z", "layer_top_z", "layer_thickness", "warnings", "job")
-    missing = [k for k in need if k not in data]
-    if missing:
-        raise StackFileError(f"{path}: not an icefab stack file (missing {', '.join(missing)})")
-    if str(data["format"]) != STACK_FORMAT:
-        raise StackFileError(f"{path}: format {str(data['format'])!r}: expected "
-                             f"{STACK_FORMAT!r}")
-    if int(data["version"]) != STACK_VERSION:
-        raise StackFileError(f"{path}: stack file version {int(data['version'])}: this icefab "
-                             f"reads version {STACK_VERSION}")
-    try:
-        job = job_from_dict(tomllib.loads(str(data["job"])))
-    except (tomllib.TOMLDecodeError, ConfigError) as exc:
-        raise StackFileError(f"{path}: the stored job is invalid ({exc})") from None
-    n = len(data["layer_index"])
-    if len(data["layer_z"]) != n or len(data["layer_top_z"]) != n:
-        raise StackFileError(f"{path}: layer arrays of different lengths: the file is corrupt")
-    parts = _unpack_regions(data, n, str(path))
-    if "scaffold_points" in data:
-        scaffolds = _unpack_regions(data, n, str(path), "scaffold_")
-    else:
-        scaffolds = [Region() for _ in range(n)]
-    layers = tuple(Layer(index=int(data["layer_index"][k]), z=float(data["layer_z"][k]),
-                         part=parts[k], scaffold=scaffolds[k],
-                         top_z=float(data["layer_top_z"][k])) for k in range(n))
-    return Stack(layers=layers, job=job, layer_thickness=float(data["layer_thickness"]),
-                 warnings=tuple(str(w) for w in data["warnings"]))

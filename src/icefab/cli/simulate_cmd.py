@@ -36,12 +36,12 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import numpy as np
 
 from icefab.cli.common import Progress, add_job_argument, job_from_args, output_dir
 from icefab.atomic import write_atomic
 from icefab.errors import ConfigError, StackFileError
 from icefab.report import plot_rms, plot_surfaces
+from icefab.resultfiles import file_format
 
 if TYPE_CHECKING:  # pragma: no cover
     from icefab.config import Job
@@ -100,19 +100,6 @@ def _job_with_options(job: "Job", args: argparse.Namespace) -> "Job":
     return job.replace(**changes) if changes else job
 
 
-def _npz_format(path: Path) -> str:
-    """The ``format`` entry of an icefab .npz file ('' when it has none)."""
-    import zipfile
-
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            return str(data["format"]) if "format" in data.files else ""
-    except FileNotFoundError:
-        raise StackFileError(f"{path}: file not found") from None
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
-        raise StackFileError(f"{path}: not a readable .npz file ({exc})") from None
-
-
 def load_build(model: list[str], job: "Job", args: argparse.Namespace
                ) -> "tuple[Toolpaths | BuildMotion, Job]":
     """The build to simulate and the job to simulate it with (the command's options
@@ -128,7 +115,7 @@ def load_build(model: list[str], job: "Job", args: argparse.Namespace
         from icefab import motion as motion_mod
         from icefab import paths as paths_mod
 
-        fmt = _npz_format(first)
+        fmt = file_format(first)
         if fmt == motion_mod.FORMAT:
             from icefab.sim import check_motion_job
 

@@ -1,0 +1,286 @@
+"""The run loop of the virtual cell: layer after layer, deposit, let the liquid flow, add
+disturbances, measure with the laser and ask a controller for the next action
+(:func:`run_cell`). It works on :class:`~icefab.sim.plans.LayerPlan` s and a controller callable,
+so a build runner can drive it layer by layer from outside.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Callable, Sequence
+
+import numpy as np
+from scipy import ndimage
+
+from icefab.config import Job
+from icefab.core import HeightMap
+from icefab.errors import SimulationError
+from icefab.sim.deposition import ActionFn, _splat, empty_surface, level_liquid
+from icefab.sim.laser import laser_measure
+from icefab.sim.plans import LayerPlan, layer_valves, valve_segments
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, eq=False)
+class Measurement:
+    """What the cell hands to the controller at a measurement layer (thesis 5.1.1).
+
+    layer: toolpaths layer index just deposited; k: measurement count, 1 for the first.
+    nominal_z: nominal height of the surface, mm (from the platform).
+    interval_mm: measurement interval dh_m = n_d * dh, mm.
+    samples: (m, 3) float64, mm, laser samples (x, y, z).
+    footprint: (ny, nx) bool on the simulator grid ``grid``: the merged (part + scaffold)
+        footprint of the layer.
+    grid: the simulator grid (its ``z`` is the nominal-height plane, NaN outside).
+    """
+
+    layer: int
+    k: int
+    nominal_z: float
+    interval_mm: float
+    samples: np.ndarray
+    footprint: np.ndarray
+    grid: HeightMap
+
+
+Controller = Callable[[Measurement], ActionFn | None]
+
+
+@dataclass(frozen=True, eq=False)
+class SimResult:
+    """Outcome of a simulated build, one entry per measurement layer.
+
+    layers: (m,) int64 toolpaths layer index of each measurement layer.
+    nominal_z: (m,) float64, mm, nominal surface height there.
+    rms: (m,) float64, mm, RMS deviation of the true surface from nominal over the part
+        footprint of that layer (the thesis' sigma_l*, Fig. 5-9); NaN when the layer
+        holds no part.
+    max_abs: (m,) float64, mm, largest absolute deviation over the part footprint.
+    rms_measured: (m,) float64, mm, RMS of the laser samples' deviation from nominal.
+    height: final surface; NaN where nothing was ever deposited.
+    surfaces: error surfaces (true height - nominal, NaN outside the merged footprint and
+        on its partly covered outermost cells) at the layers asked for, by toolpaths
+        layer index.
+    closed_loop: whether the controller ran.
+    volume_commanded, volume_deposited: mm^3 over the build (deposited includes the flow
+        error, drift, edge loss and control action).
+    flow_gain: final flow gain of each valve (part, scaffold), drift included.
+    n_layers: layers simulated.
+    pulses: valve pulses deposited (``deposition = "valves"``; 0 with ``"flow"``).
+    """
+
+    layers: np.ndarray
+    nominal_z: np.ndarray
+    rms: np.ndarray
+    max_abs: np.ndarray
+    rms_measured: np.ndarray
+    height: HeightMap
+    surfaces: dict[int, HeightMap]
+    closed_loop: bool
+    volume_commanded: float
+    volume_deposited: float
+    flow_gain: tuple[float, float]
+    n_layers: int
+    pulses: int = 0
+
+    def as_dict(self) -> dict:
+        """JSON-ready figures (no surfaces)."""
+        return {"closed_loop": self.closed_loop, "n_layers": self.n_layers,
+                "layers": self.layers.tolist(), "nominal_z_mm": self.nominal_z.tolist(),
+                "rms_mm": self.rms.tolist(), "max_abs_mm": self.max_abs.tolist(),
+                "rms_measured_mm": self.rms_measured.tolist(),
+                "volume_commanded_mm3": self.volume_commanded,
+                "volume_deposited_mm3": self.volume_deposited,
+                "flow_gain": list(self.flow_gain), "pulses": self.pulses}
+
+
+def _grid_for(plans: Sequence[LayerPlan], job: "Job") -> HeightMap:
+    pts = [p.a for p in plans if len(p.a)] + [p.b for p in plans if len(p.b)]
+    if not pts:
+        raise SimulationError("nothing to deposit: the layers have no boundary or fill paths "
+                              "(or trajectories)")
+    allp = np.concatenate(pts)
+    wmax = max(float(p.half_width.max()) for p in plans if len(p.half_width))
+    margin = 2 * wmax + 2 * job.simulation.grid_mm
+    return empty_surface(allp.min(axis=0), allp.max(axis=0), job.simulation.grid_mm, margin)
+
+
+
+
+def _noise_field(rng: np.random.Generator, shape: tuple[int, int], sigma_cells: float
+                 ) -> np.ndarray:
+    """Unit-std Gaussian random field with correlation length ``sigma_cells``."""
+    f = rng.standard_normal(shape)
+    if sigma_cells > 0.5:
+        f = ndimage.gaussian_filter(f, sigma_cells, mode="wrap")
+        sd = f.std()
+        if sd > 0:
+            f /= sd
+    return f
+
+
+def _edge_factor(layer_z: np.ndarray, thresh: float, width: float, spacing: float,
+                 loss: float) -> np.ndarray:
+    """1 - loss within one path width of the edge of the deposited area, ramping to 1."""
+    mask = layer_z > thresh
+    d = ndimage.distance_transform_edt(mask) * spacing  # distance to the nearest outside cell
+    ramp = np.clip(1.0 - (d - 0.5 * spacing) / width, 0.0, 1.0)
+    return 1.0 - loss * ramp
+
+
+def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence[int],
+             controller: Controller | None = None, keep_surfaces: Sequence[int] = (),
+             progress: Callable[[int, int], None] | None = None) -> SimResult:
+    """Deposit ``plans`` layer by layer on the virtual cell, measuring and controlling.
+
+    plans: the layers to deposit, bottom first (:func:`plan_layer`, or
+        :func:`plan_layer_motion` for trajectories).
+    measure_layers: positions in ``plans`` (0-based) after which the surface is measured.
+    controller: called with a :class:`Measurement` after each measurement layer; returns
+        the control action u(xy) applied to every segment until the next measurement
+        (None: keep nominal flow). Without a controller the build runs open loop. With
+        ``simulation.deposition = "valves"`` the action re-plans the valve programs of the
+        next ``feedback.interval_layers`` layers (:func:`layer_valves`), whose pulses are
+        then deposited (the plans must come from :func:`plan_layer_motion`).
+    keep_surfaces: toolpaths layer indices whose error surfaces are kept.
+    """
+    sim = job.simulation
+    dh = job.slicing.layer_thickness_mm
+    n_d = job.feedback.interval_layers
+    valves = sim.deposition == "valves"
+    if valves:
+        for plan in plans:
+            if len(plan.paths) and not plan.trajectories:
+                raise SimulationError(
+                    f"layer {plan.index}: simulation.deposition = 'valves' needs the "
+                    "layer's trajectories (plan_layer_motion, or simulate_build, which plans "
+                    "them); this plan was made from paths (plan_layer)")
+    surface = _grid_for(plans, job)
+    z = surface.z
+    g = surface.spacing
+    ever = np.zeros(z.shape, dtype=bool)
+    rng_noise = np.random.default_rng([sim.seed, 1])
+    rng_debris = np.random.default_rng([sim.seed, 2])
+    rng_laser = np.random.default_rng([sim.seed, 3])
+    used_cm3 = np.zeros(2)
+    edge_width = max(job.materials.part.path_width_mm, job.materials.scaffold.path_width_mm)
+    measure_set = set(int(i) for i in measure_layers)
+    keep = set(int(i) for i in keep_surfaces)
+    action: ActionFn | None = None
+    rows: list[tuple[int, float, float, float, float]] = []
+    surfaces: dict[int, HeightMap] = {}
+    vol_cmd_total = 0.0
+    vol_dep_total = 0.0
+    pulses = 0
+    k = 0
+    for j, plan in enumerate(plans):
+        nominal = (j + 1) * dh
+        layer_img = np.zeros((2,) + z.shape)
+        vol_cmd_total += float(plan.volume.sum())
+        if valves:
+            # thesis 5.1.3: a measurement's action goes into the valve programs of the
+            # layers after it; planned when the layer's turn comes (the action only
+            # changes at a measurement, so this is the program re-planned there)
+            lv = layer_valves(plan, job, action)
+            a, b, v_all, hw, mat_of, n0, n1, ext, n_p = valve_segments(lv, job)
+            pulses += n_p
+        else:
+            u = np.zeros(len(plan.volume))
+            if action is not None and len(plan.volume):
+                u = np.asarray(action(plan.midpoints), dtype=np.float64)
+                u = np.where(np.isfinite(u), u, 0.0)
+            v_all = plan.volume * np.clip(1.0 + u, 0.0, None)
+            a, b, hw, mat_of = plan.a, plan.b, plan.half_width, plan.material
+            n0, n1, ext = plan.n0, plan.n1, plan.ext
+        for mat in (0, 1):
+            sel = mat_of == mat
+            if not sel.any():
+                continue
+            v_cmd = v_all[sel]
+            # flow gain with drift by valve use (thesis 6.4): volume already through the valve
+            before = used_cm3[mat] + (np.cumsum(v_cmd) - v_cmd) / 1000.0
+            gain = (1.0 + sim.flow_error) * (1.0 + sim.flow_drift_per_cm3 * before)
+            used_cm3[mat] += v_cmd.sum() / 1000.0
+            vol = v_cmd * gain
+            _splat(layer_img[mat], surface.origin, g, a[sel], b[sel], vol, hw[sel], n0[sel],
+                   n1[sel], ext[sel])
+        if sim.edge_loss > 0:
+            # liquid runs off free edges: the edge of the merged footprint (outer rim and
+            # holes), not the part/scaffold interface where the materials support each other
+            layer_img *= _edge_factor(layer_img[0] + layer_img[1], 0.25 * dh, edge_width, g,
+                                      sim.edge_loss)
+        added = layer_img[0] + layer_img[1]
+        vol_dep_total += float(added.sum() * g * g)
+        mask = added > 0.25 * dh
+        # part cells wholly inside this layer's part deposit (not the partly covered rim)
+        part_mask = ndimage.binary_erosion(layer_img[0] > 0.25 * dh)
+        if not part_mask.any():  # a part narrower than two cells: keep its rim
+            part_mask = layer_img[0] > 0.25 * dh
+        if sim.spread_mm > 0:
+            added = level_liquid(z, added, g, sim.spread_mm)
+            mask |= added > 0.25 * dh
+        if sim.noise_mm > 0 and mask.any():
+            added += sim.noise_mm * mask * _noise_field(rng_noise, z.shape,
+                                                          sim.noise_corr_mm / g)
+        if sim.debris_rate > 0 and len(plan.volume):
+            n_debris = rng_debris.poisson(sim.debris_rate)
+            if n_debris:
+                where = plan.midpoints[rng_debris.integers(0, len(plan.volume), n_debris)]
+                # Gaussian bumps on the layer's footprint (thesis 5.6: d_pulse), each
+                # summed over a +-4 sigma window: impulses at the debris cells, filtered
+                impulse = np.zeros(z.shape)
+                ix = np.clip(np.rint((where[:, 0] - surface.origin[0]) / g).astype(np.int64),
+                             0, z.shape[1] - 1)
+                iy = np.clip(np.rint((where[:, 1] - surface.origin[1]) / g).astype(np.int64),
+                             0, z.shape[0] - 1)
+                np.add.at(impulse, (iy, ix), 1.0)
+                sigma = sim.debris_radius_mm / g
+                bumps = ndimage.gaussian_filter(impulse, sigma, mode="constant", truncate=4.0)
+                added += mask * sim.debris_height_mm * 2 * np.pi * sigma ** 2 * bumps
+        z += added
+        ever |= mask
+        if j in measure_set:
+            k += 1
+            err = z - nominal
+            if part_mask.any():
+                e = err[part_mask]
+                rms = float(np.sqrt(np.mean(e ** 2)))
+                mx = float(np.abs(e).max())
+            else:
+                rms = mx = float("nan")
+            tagged, true = plan.laser_tagged, plan.laser_true
+            if len(tagged) == 0:
+                # no measurement paths in this layer: read along the deposition segments
+                tagged = true = plan.midpoints
+            samples = laser_measure(surface, tagged, true, noise_mm=sim.laser_noise_mm,
+                                    rng=rng_laser)
+            rms_meas = float(np.sqrt(np.mean((samples[:, 2] - nominal) ** 2))) \
+                if len(samples) else float("nan")
+            rows.append((plan.index, nominal, rms, mx, rms_meas))
+            log.debug("layer %d (%.2f mm): RMS %.4f mm, max %.4f mm, measured RMS %.4f mm",
+                      plan.index, nominal, rms, mx, rms_meas)
+            if plan.index in keep:
+                # without the partly covered outermost cells of the footprint
+                surfaces[plan.index] = HeightMap(origin=surface.origin.copy(), spacing=g,
+                                                 z=np.where(ndimage.binary_erosion(mask),
+                                                            err, np.nan))
+            if controller is not None:
+                plane = np.where(mask, nominal, np.nan)
+                action = controller(Measurement(
+                    layer=plan.index, k=k, nominal_z=nominal, interval_mm=n_d * dh,
+                    samples=samples, footprint=mask,
+                    grid=HeightMap(origin=surface.origin.copy(), spacing=g, z=plane)))
+        if progress is not None:
+            progress(j + 1, len(plans))
+    arr = np.array(rows, dtype=np.float64).reshape(-1, 5)
+    final = HeightMap(origin=surface.origin.copy(), spacing=g, z=np.where(ever, z, np.nan))
+    gains = tuple(float((1 + sim.flow_error) * (1 + sim.flow_drift_per_cm3 * c))
+                  for c in used_cm3)
+    return SimResult(layers=arr[:, 0].astype(np.int64), nominal_z=arr[:, 1], rms=arr[:, 2],
+                     max_abs=arr[:, 3], rms_measured=arr[:, 4], height=final,
+                     surfaces=surfaces, closed_loop=controller is not None,
+                     volume_commanded=vol_cmd_total, volume_deposited=vol_dep_total,
+                     flow_gain=gains, n_layers=len(plans),  # type: ignore[arg-type]
+                     pulses=pulses)

@@ -1,0 +1,287 @@
+"""Layer plans of the virtual cell: what one layer deposits and measures, from toolpaths
+(:func:`plan_layer`) or trajectories (:func:`plan_layer_motion`), the valve programs the cell
+runs for it (:func:`layer_valves`) and which layers are measured.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+
+from icefab import flow
+from icefab.config import Job
+from icefab.core import LayerMotion, Toolpath, Trajectory, ValveProgram
+from icefab.errors import SimulationError
+from icefab.sim.deposition import (MATERIAL_ID, _TINY_MM, ActionFn, _joints, pulse_drops,
+                                   pulse_segments)
+from icefab.sim.laser import _refine, laser_positions
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, eq=False)
+class LayerPlan:
+    """One layer prepared for the simulator: every deposition segment and laser sample.
+
+    index: toolpaths layer index.
+    a, b: (m, 2) float64, mm, segment ends (part coordinates), in deposition order.
+    volume: (m,) float64, mm^3, commanded volume of each segment (no control action).
+    half_width: (m,) float64, mm.
+    material: (m,) int8, 0 part, 1 scaffold.
+    n0, n1: (m, 2) float64 unit normals of the cut lines at the segment ends and ext (m,)
+        float64 mm, the mitre reach (see :func:`_joints`).
+    paths: the deposition paths, in deposition order.
+    laser_tagged, laser_true: (k, 2) float64, mm, laser sample positions (empty when the
+        layer has no measurement paths).
+    trajectories: the deposition trajectories (robot base frame, as planned) when the
+        layer was prepared from trajectories (:func:`plan_layer_motion`); the segments are
+        then their sample chords, path i being trajectory i. Empty for
+        :func:`plan_layer`.
+    """
+
+    index: int
+    a: np.ndarray
+    b: np.ndarray
+    volume: np.ndarray
+    half_width: np.ndarray
+    material: np.ndarray
+    n0: np.ndarray
+    n1: np.ndarray
+    ext: np.ndarray
+    paths: tuple[Toolpath, ...] = ()
+    laser_tagged: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    laser_true: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    trajectories: tuple[Trajectory, ...] = ()
+
+    @property
+    def midpoints(self) -> np.ndarray:
+        return 0.5 * (self.a + self.b)
+
+
+def plan_layer(index: int, paths: Sequence[Toolpath], job: "Job") -> LayerPlan:
+    """Cut the deposition paths of one layer into constant-speed segments (see module doc).
+
+    Each boundary/fill path's polyline has its edges split to at most ``speed * dt`` mm
+    (speed by role from ``job.motion``); a segment carries ``width * dh * layer_scale *
+    length`` mm^3 (eq. 6.2).
+    Measurement paths give the laser sample positions (:func:`laser_positions`).
+    """
+    m = job.motion
+    sim = job.simulation
+    dh = job.slicing.layer_thickness_mm * job.flow.layer_scale
+    pieces: list[tuple[np.ndarray, bool, float, str]] = []
+    dep_paths = []
+    tag_parts, true_parts = [], []
+    for p in paths:
+        pts = np.asarray(p.points, dtype=np.float64)
+        if len(pts) == 0 or p.role == "travel":
+            continue
+        if p.frame != "part":
+            raise SimulationError(f"layer {index}: {p.material} {p.role} path given in the "
+                                  f"{p.frame!r} frame; the simulator needs part-frame paths "
+                                  "(as icefab.paths.plan_paths makes them)")
+        if not np.isfinite(pts).all():
+            raise SimulationError(f"layer {index}: {p.material} {p.role} path has NaN or "
+                                  "infinite points")
+        if p.role == "measure":
+            # part (ice) is measured slowly, scaffold at full speed (icefab.paths.path_speed)
+            speed = m.measure_speed_mm_s if p.material == "part" else m.speed_mm_s
+            tg, tr = laser_positions(pts, p.closed, speed_mm_s=speed,
+                                     rate_hz=sim.laser_rate_hz, latency_s=sim.laser_latency_s)
+            tag_parts.append(tg)
+            true_parts.append(tr)
+            continue
+        if not p.depositing:
+            continue
+        if not p.width > 0:
+            raise SimulationError(f"layer {index}: {p.material} {p.role} path has width "
+                                  f"{p.width}; expected > 0 mm")
+        if p.material not in MATERIAL_ID:
+            raise SimulationError(f"layer {index}: unknown material {p.material!r}")
+        speed = m.boundary_speed_mm_s if p.role == "boundary" else m.fill_speed_mm_s
+        pts_s = _refine(pts, p.closed, speed * m.dt_s)
+        if len(pts_s) < 2:
+            continue
+        pieces.append((pts_s, bool(p.closed), float(p.width), p.material))
+        dep_paths.append(p)
+    return _layer_plan(index, pieces, dh, tag_parts, true_parts, paths=tuple(dep_paths))
+
+
+def _layer_plan(index: int, pieces: list[tuple[np.ndarray, bool, float, str]], dh: float,
+                tag_parts: list[np.ndarray], true_parts: list[np.ndarray], *,
+                paths: tuple[Toolpath, ...], trajectories: tuple = ()) -> LayerPlan:
+    """Segments of a layer from its deposition polylines: ``pieces`` holds (points (k >= 2,
+    2) mm part frame, closed, width mm, material) per path, each segment carrying the
+    commanded ``width * dh * length`` mm^3 (eq. 6.2); laser samples as given."""
+    def cat(parts: list[np.ndarray], shape: tuple[int, ...], dtype=np.float64) -> np.ndarray:
+        return np.concatenate(parts) if parts else np.zeros(shape, dtype=dtype)
+
+    a = cat([pts[:-1] for pts, *_ in pieces], (0, 2))
+    b = cat([pts[1:] for pts, *_ in pieces], (0, 2))
+    counts = [len(pts) - 1 for pts, *_ in pieces]
+    starts = np.concatenate([[0], np.cumsum(counts, dtype=np.int64)]).astype(np.int64)
+    w = cat([np.full(c, wd) for c, (_, _, wd, _) in zip(counts, pieces)], (0,))
+    mat = cat([np.full(c, MATERIAL_ID[m], dtype=np.int8)
+               for c, (_, _, _, m) in zip(counts, pieces)], (0,), np.int8)
+    hw = 0.5 * w
+    n0, n1, ext = _joints(a, b, hw, starts[:-1].copy(),
+                          np.asarray([c for _, c, _, _ in pieces], dtype=bool))
+    return LayerPlan(index=index, a=a, b=b, volume=w * dh * np.linalg.norm(b - a, axis=1),
+                     half_width=hw, material=mat, n0=n0, n1=n1, ext=ext, paths=paths,
+                     laser_tagged=cat(tag_parts, (0, 2)),
+                     laser_true=cat(true_parts, (0, 2)), trajectories=trajectories)
+
+
+
+
+def _laser_in_time(xy: np.ndarray, dt: float, rate_hz: float, latency_s: float
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Laser samples along a measurement trajectory (part frame, every ``dt`` s): every
+    ``1 / rate_hz`` s from its start, tagged with the position then and reading where the
+    laser was ``latency_s`` earlier (clamped at the start). Returns (tagged, true)."""
+    t = np.arange(len(xy)) * dt
+    tk = np.arange(int(math.floor(t[-1] * rate_hz + 1e-9)) + 1) / rate_hz
+
+    def at(tq: np.ndarray) -> np.ndarray:
+        return np.stack([np.interp(tq, t, xy[:, 0]), np.interp(tq, t, xy[:, 1])], axis=1)
+
+    return at(tk), at(np.maximum(tk - latency_s, 0.0))
+
+
+def plan_layer_motion(layer: "LayerMotion", job: "Job") -> LayerPlan:
+    """One layer of trajectories (``icefab.motion``) prepared for the simulator.
+
+    Deposition trajectories (boundary, fill) are kept for their valve programs; their
+    samples, taken to the part frame under the material's nozzle
+    (:func:`icefab.flow.trajectory_part_xy`), make the segments (repeated samples where
+    the robot rests dropped), each with the commanded volume ``width * dh * layer_scale *
+    length`` (eq. 6.2: the figure for ``deposition = "flow"`` and for the commanded
+    total). Measurement trajectories give the laser samples in time
+    (``simulation.laser_rate_hz``, latency). Travel is skipped.
+    """
+
+    sim = job.simulation
+    dh = job.slicing.layer_thickness_mm * job.flow.layer_scale
+    pieces: list[tuple[np.ndarray, bool, float, str]] = []
+    dep, tag_parts, true_parts = [], [], []
+    for k, traj in enumerate(layer.trajectories):
+        p = traj.path
+        xy = np.asarray(traj.xy, dtype=np.float64)
+        if p is None:
+            raise SimulationError(f"layer {layer.index}: trajectory {k} has no path, so no "
+                                  "material or role; plan it from a Path")
+        if len(xy) == 0 or p.role == "travel":
+            continue
+        if xy.ndim != 2 or xy.shape[1] != 2 or not np.isfinite(xy).all():
+            raise SimulationError(f"layer {layer.index}: {p.material} {p.role} trajectory {k} "
+                                  "has NaN, infinite or malformed samples")
+        if not traj.dt > 0:
+            raise SimulationError(f"layer {layer.index}: trajectory {k} has time step "
+                                  f"{traj.dt} s; expected > 0")
+        if p.material not in MATERIAL_ID:
+            raise SimulationError(f"layer {layer.index}: unknown material {p.material!r}")
+        if p.role == "measure":
+            part_xy = flow.trajectory_part_xy(traj, p.tool_name, job)  # under the laser
+            tg, tr = _laser_in_time(part_xy, float(traj.dt), sim.laser_rate_hz,
+                                    sim.laser_latency_s)
+            tag_parts.append(tg)
+            true_parts.append(tr)
+            continue
+        if not p.depositing:
+            continue
+        pts = flow.trajectory_part_xy(traj, p.material, job)
+        if len(pts) > 1:
+            step = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+            pts = pts[np.concatenate([[True], step > _TINY_MM])]
+        if len(pts) < 2:
+            pts = np.vstack([pts[:1], pts[:1]])  # at rest: a w x w square, no volume
+        closed = bool(len(pts) > 2 and np.linalg.norm(pts[-1] - pts[0]) <= 1e-6)
+        pieces.append((pts, closed, flow.trajectory_width(traj, p.material, job), p.material))
+        dep.append(traj)
+    return _layer_plan(layer.index, pieces, dh, tag_parts, true_parts,
+                       paths=tuple(t.path for t in dep), trajectories=tuple(dep))
+
+
+
+
+@dataclass(frozen=True, eq=False)
+class LayerValves:
+    """The valve programs of one layer, as the cell runs them (thesis Ch. 6, 5.1.3).
+
+    trajectories: the deposition trajectories (re-timed by the c-controller when
+        ``feedback.controller = "speed"``); programs: their valve programs, in order;
+    action: the control action they were planned with (None: nominal flow).
+    """
+
+    trajectories: tuple[Trajectory, ...]
+    programs: tuple["ValveProgram", ...]
+    action: ActionFn | None = None
+
+
+def _finite(action: ActionFn) -> ActionFn:
+    """The action with NaN/inf read as 0 (no correction), as the flow mode does."""
+    def u(xy: np.ndarray) -> np.ndarray:
+        v = np.asarray(action(xy), dtype=np.float64).reshape(-1)
+        return np.where(np.isfinite(v), v, 0.0)
+    return u
+
+
+def layer_valves(plan: LayerPlan, job: "Job", action: ActionFn | None = None) -> LayerValves:
+    """Plan (or re-plan, with the control action) the valve programs of one layer.
+
+    ``plan`` from :func:`plan_layer_motion`; the programs come from
+    :func:`icefab.flow.replan_valves` (nu-controller: flow x (1 + u); c-controller:
+    re-timed trajectories at nominal flow per mm x (1 + u)).
+    """
+
+    u = None if action is None else _finite(action)
+    trajs, progs = flow.replan_valves(plan.trajectories, job, action=u)
+    return LayerValves(trajectories=tuple(trajs), programs=tuple(progs), action=u)
+
+
+def valve_segments(valves: LayerValves, job: "Job") -> tuple:
+    """The deposition segments of a layer's valve pulses (:func:`pulse_segments`).
+
+    Returns a, b (m, 2), volume (m,) mm^3 (drops as commanded, before the simulated flow
+    gain), half width (m,), material (m,) int8, n0, n1, ext, and the number of pulses.
+    """
+
+    xs, dts, ts, drops, widths, mats = [], [], [], [], [], []
+    for traj, prog in zip(valves.trajectories, valves.programs):
+        p = traj.path
+        if p is None or not p.depositing:
+            continue
+        freq = flow.valve_frequency(traj, p.material, job, action=valves.action) \
+            if prog.widths_us is None else None
+        t, d = pulse_drops(prog, freq, p.material, job)
+        xs.append(flow.trajectory_part_xy(traj, p.material, job))
+        dts.append(float(traj.dt))
+        ts.append(t)
+        drops.append(d)
+        widths.append(flow.trajectory_width(traj, p.material, job))
+        mats.append(MATERIAL_ID[p.material])
+    a, b, vol, hw, owner, n0, n1, ext = pulse_segments(xs, dts, ts, drops, widths)
+    material = np.asarray(mats, dtype=np.int8)[owner] if len(owner) else \
+        np.zeros(0, dtype=np.int8)
+    return a, b, vol, hw, material, n0, n1, ext, int(sum(len(t) for t in ts))
+
+
+def _measured(has_laser: Sequence[bool], interval_layers: int) -> list[int]:
+    with_paths = [j for j, h in enumerate(has_laser) if h]
+    if with_paths:
+        return with_paths
+    return [j for j in range(len(has_laser)) if (j + 1) % interval_layers == 0]
+
+
+def measurement_layers(plans: Sequence[LayerPlan], interval_layers: int) -> list[int]:
+    """Positions in ``plans`` after which the surface is measured.
+
+    The layers that carry measurement paths when any does (``icefab.paths`` adds them every
+    ``job.feedback.interval_layers`` layers); otherwise every ``interval_layers``-th layer
+    (the laser then reads along that layer's deposition paths).
+    """
+    return _measured([len(p.laser_tagged) > 0 for p in plans], interval_layers)

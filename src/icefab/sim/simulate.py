@@ -1,0 +1,125 @@
+"""Simulating a build: a ``Toolpaths`` or ``BuildMotion`` turned into layer plans and run on
+the virtual cell, open loop or with SMF (:func:`simulate_build`).
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Callable, Sequence
+
+
+from icefab.config import Job, to_dict
+from icefab.core import BuildMotion, LayerMotion, LayerPaths, Toolpaths
+from icefab.errors import SimulationError
+from icefab.motion import plan_toolpaths
+from icefab.sim.cell import Controller, SimResult, run_cell
+from icefab.sim.plans import _measured, measurement_layers, plan_layer, plan_layer_motion
+from icefab.sim.smf import smf_controller
+
+log = logging.getLogger(__name__)
+
+
+def _chosen(build: "Toolpaths | BuildMotion", job: "Job", layers: int | None) -> tuple:
+    n = layers if layers is not None else job.simulation.layers
+    if n is not None and n < 0:
+        raise SimulationError(f"layers = {n}: expected >= 0 (0: all)")
+    chosen = build.layers[:n] if n else build.layers
+    if not chosen:
+        raise SimulationError("the build has no layers to simulate")
+    return tuple(chosen)
+
+
+def _has_laser(layer: "LayerPaths | LayerMotion") -> bool:
+    """Whether a layer has a measurement path (trajectory) with at least one point: the
+    layers :func:`plan_layer` / :func:`plan_layer_motion` give laser samples."""
+    if isinstance(layer, LayerPaths):
+        return any(p.role == "measure" and len(p.points) > 0 for p in layer.paths)
+    return any(t.path is not None and t.path.role == "measure" and len(t.xy) > 0
+               for t in layer.trajectories)
+
+
+def measured_layers(build: "Toolpaths | BuildMotion", job: "Job | None" = None, *,
+                    layers: int | None = None) -> list[int]:
+    """Layer indices :func:`simulate_build` measures for these arguments, found without
+    simulating (so that options such as a surface layer are checked up front)."""
+    job = job if job is not None else build.job
+    chosen = _chosen(build, job, layers)
+    flags = [_has_laser(lay) for lay in chosen]
+    return [chosen[j].index for j in _measured(flags, job.feedback.interval_layers)]
+
+
+#: Settings that shape where trajectories put the material; a build simulated with another
+#: job than the one its trajectories were planned with must agree on them.
+MOTION_SETTINGS = ("slicing.layer_thickness_mm", "cell.ee_origin_mm", "cell.laser_offset_mm",
+                   "materials.part.nozzle_offset_mm", "materials.scaffold.nozzle_offset_mm",
+                   "materials.part.path_width_mm", "materials.part.fill_width_mm",
+                   "materials.scaffold.path_width_mm", "materials.scaffold.fill_width_mm")
+
+
+def check_motion_job(planned: "Job", job: "Job", source: str = "the trajectories") -> None:
+    """SimulationError if ``job`` differs from the job trajectories were ``planned`` with
+    in a setting that moves the material (:data:`MOTION_SETTINGS`): frames, tool offsets,
+    widths, layer thickness. Names the first difference and counts the others."""
+
+    a, b = to_dict(planned), to_dict(job)
+
+    def get(d: dict, dotted: str):
+        for key in dotted.split("."):
+            d = d[key]
+        return d
+
+    diff = [(k, get(a, k), get(b, k)) for k in MOTION_SETTINGS if get(a, k) != get(b, k)]
+    if diff:
+        k, va, vb = diff[0]
+        more = f" (and {len(diff) - 1} more)" if len(diff) > 1 else ""
+        raise SimulationError(f"{source} were planned with {k} = {va}, the job has {vb}{more}: "
+                              "simulate with the job they were planned with, or plan them "
+                              "again with this job ('icefab plan')")
+
+
+def simulate_build(build: "Toolpaths | BuildMotion", job: "Job | None" = None, *,
+                   layers: int | None = None, closed_loop: bool = True,
+                   controller: Controller | None = None,
+                   keep_surfaces: Sequence[int] | None = None,
+                   progress: Callable[[int, int], None] | None = None) -> SimResult:
+    """Build on the virtual cell, open loop or with surface mapping feedback.
+
+    build: the toolpaths (``icefab.paths.plan_paths``) or their trajectories
+        (``icefab.motion.plan_toolpaths`` / ``load_trajectories``); job: settings
+        (default: the job the build was made with; for trajectories it must agree with
+        that job on :data:`MOTION_SETTINGS`).
+    With ``job.simulation.deposition = "flow"`` the commanded volume is laid along the
+    paths (or the trajectories' sample chords). With ``"valves"`` every layer's
+    deposition trajectories run through their valve programs, pulse by pulse
+    (:func:`layer_valves`, :func:`deposit_pulses`); from toolpaths the minimum-time
+    trajectories of the simulated layers are planned first
+    (:func:`icefab.motion.plan_toolpaths`, ``cell.cpus`` processes) — to simulate the
+    same build twice, plan once and pass the ``BuildMotion``.
+    layers: simulate only the first N layers (default ``job.simulation.layers``, 0 = all).
+    closed_loop: run the SMF controller (``controller``, default :func:`smf_controller`)
+        after every measurement layer; False runs open loop (no control action).
+    keep_surfaces: toolpaths layer indices of measurement layers whose error surfaces
+        are kept in the result (for plots like thesis Fig. 5-8); default: the last
+        measurement layer.
+    progress: called as ``progress(done, total)`` after every layer.
+    """
+
+    job = job if job is not None else build.job
+    chosen = _chosen(build, job, layers)
+    if isinstance(build, BuildMotion):
+        if job is not build.job:
+            check_motion_job(build.job, job)
+        plans = [plan_layer_motion(lm, job) for lm in chosen]
+    elif job.simulation.deposition == "valves":
+        motion = plan_toolpaths(Toolpaths(layers=chosen, job=build.job), job)
+        plans = [plan_layer_motion(lm, job) for lm in motion.layers]
+    else:
+        plans = [plan_layer(lp.index, lp.paths, job) for lp in chosen]
+    measure = measurement_layers(plans, job.feedback.interval_layers)
+    if keep_surfaces is None:
+        keep_surfaces = [plans[measure[-1]].index] if measure else []
+    if closed_loop and controller is None:
+        controller = smf_controller(job)
+    return run_cell(plans, job, measure_layers=measure,
+                    controller=controller if closed_loop else None,
+                    keep_surfaces=keep_surfaces, progress=progress)

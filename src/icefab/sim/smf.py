@@ -1,0 +1,72 @@
+"""Surface mapping feedback plugged into the virtual cell (thesis 5.1-5.2): the controller
+of :mod:`icefab.feedback` as a :data:`~icefab.sim.cell.Controller`.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from icefab import feedback
+from icefab.config import Job
+from icefab.core import HeightMap
+from icefab.errors import GeometryError
+from icefab.sim.cell import Controller, Measurement
+from icefab.sim.deposition import ActionFn
+
+log = logging.getLogger(__name__)
+
+
+def smf_controller(job: "Job") -> Controller:
+    """The surface mapping feedback of :mod:`icefab.feedback` as a simulator controller.
+
+    At each measurement: the laser samples become a surface on the controller grid
+    (``job.feedback.grid_mm``, Delaunay-linear, optional robust smoothing), restricted to
+    the layer's merged footprint (footprint nodes outside the samples' hull take the
+    nearest sample); the normalised error drives one step of the spatial PID (eq. 5.1,
+    saturation and anti-windup); the returned u(xy) samples the saturated action
+    (thesis 5.1-5.2).
+    """
+
+
+    fb = job.feedback
+    state = feedback.SmfState()
+
+    def control(m: Measurement) -> ActionFn:
+        nonlocal state
+        try:
+            surf = feedback.surface_from_samples(m.samples, None, fb.grid_mm,
+                                                 smoothing=fb.smoothing)
+        except GeometryError as exc:
+            # e.g. a tiny top layer with too few or collinear samples: the cell carries on
+            # at nominal flow until the next measurement
+            log.warning("layer %d: no surface from %d laser samples (%s); no control action",
+                        m.layer, len(m.samples), exc)
+            return lambda xy: np.zeros(len(xy))
+        x, y = surf.grid()
+        g = m.grid.spacing
+        ix = np.rint((x - m.grid.origin[0]) / g).astype(np.int64)
+        iy = np.rint((y - m.grid.origin[1]) / g).astype(np.int64)
+        ny, nx = m.footprint.shape
+        okx = (ix >= 0) & (ix < nx)
+        oky = (iy >= 0) & (iy < ny)
+        inside = m.footprint[np.clip(iy, 0, ny - 1)][:, np.clip(ix, 0, nx - 1)]
+        inside &= oky[:, None] & okx[None, :]
+        z = np.where(inside, surf.z, np.nan)
+        hole = inside & ~np.isfinite(surf.z)
+        if hole.any():
+            hy, hx = np.nonzero(hole)
+            _, nearest = cKDTree(m.samples[:, :2]).query(np.column_stack([x[hx], y[hy]]))
+            z[hy, hx] = m.samples[nearest, 2]
+        if not np.isfinite(z).any():
+            log.warning("layer %d: the laser samples miss the footprint; no control action",
+                        m.layer)
+            return lambda xy: np.zeros(len(xy))
+        error = feedback.error_surface(HeightMap(origin=surf.origin, spacing=surf.spacing,
+                                                 z=z), m.nominal_z, m.interval_mm)
+        action, state = feedback.smf_update(state, error, job)
+        return feedback.action_sampler(action)
+
+    return control
