@@ -17,6 +17,7 @@ import math
 
 import numpy as np
 
+from icefab.config import Job
 from icefab.core import Mesh
 
 MUG_HEIGHT_MM = 125.0
@@ -73,6 +74,4 @@ def demo_mug_volume_estimate() -> float:
 
 def demo_job():
     """The default job (Cobra 600 cell) used by ``icefab demo``."""
-    from icefab.config import Job
-
     return Job()

@@ -38,16 +38,14 @@ from __future__ import annotations
 import dataclasses
 import logging
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Callable, Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 from scipy.signal import lfilter
 
+from icefab.config import Job
 from icefab.errors import ConfigError, GeometryError
 from icefab.core import HeightMap, Region, Trajectory
-
-if TYPE_CHECKING:  # pragma: no cover
-    from icefab.config import Job
 
 log = logging.getLogger(__name__)
 
@@ -807,8 +805,6 @@ def smf_update(state: SmfState, error: HeightMap, job: "Job | None" = None, *,
     derivative contribution, and the derivative is left out at k = 1.
     """
     if job is None:
-        from icefab.config import Job
-
         job = Job()
     fb = job.feedback
     kp, ki, kd = gains if gains is not None else (fb.kp, fb.ki, fb.kd)
@@ -859,8 +855,6 @@ def smf_step(samples: np.ndarray, footprint: Region | Sequence[Region] | None,
     normalised by dh_m = ``interval_layers * layer_thickness_mm``, then :func:`smf_update`.
     """
     if job is None:
-        from icefab.config import Job
-
         job = Job()
     fb = job.feedback
     surface = surface_from_samples(samples, footprint, fb.grid_mm, smoothing=fb.smoothing)

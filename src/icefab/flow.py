@@ -79,6 +79,7 @@ from typing import TYPE_CHECKING, Any, Sequence
 import numpy as np
 from scipy.integrate import cumulative_trapezoid, trapezoid
 
+from icefab import feedback
 from icefab.atomic import write_atomic
 from icefab.errors import ConfigError, FlowError, StackFileError
 from icefab.frames import to_part_frame
@@ -248,7 +249,6 @@ def _action_values(action: ActionLike, trajectory: Trajectory, material: str,
             raise FlowError(f"control action: expected shape ({n},) (one value per trajectory "
                             f"sample), got {u.shape}")
     else:
-        from icefab import feedback
         xy = trajectory_part_xy(trajectory, material, job)
         if isinstance(action, (HeightMap, feedback.ControlAction)):
             u = feedback.action_along(action, xy)
@@ -892,7 +892,6 @@ def replan_valves(trajectories: "Sequence[Trajectory]", job: "Job", *,
     them, so the volume per mm becomes (1 + u) times nominal. Returns the (possibly
     re-timed) trajectories and their valve programs, in order.
     """
-    from icefab import feedback
 
     out_t: list[Trajectory] = []
     out_p: list[ValveProgram] = []

@@ -95,6 +95,7 @@ import numpy as np
 from scipy.ndimage import convolve1d
 
 from icefab import _mtts
+from icefab.atomic import atomic_path
 from icefab.config import Job
 from icefab.errors import IcefabError, WorkspaceError
 from icefab.frames import to_base_frame
@@ -862,8 +863,6 @@ def save_gcode(motion: BuildMotion, path: str | os.PathLike) -> None:
     D s`` comment, ``G0`` to its first sample, then one ``G1 X Y F`` per sample
     (:func:`gcode_moves`: F in mm/min = the step's length over dt, so each move takes one
     time step). X and Y are the tool point in the robot base frame (the gantry's axes)."""
-    from icefab.atomic import atomic_path
-
     with atomic_path(path, suffix=".gcode") as tmp, open(tmp, "w", encoding="utf-8") as fh:
         fh.write(f"; icefab trajectories: {motion.robot}, dt {motion.job.motion.dt_s:g} s, "
                  f"{motion.duration:.1f} s of motion\n; F = feedrate in mm/min; X, Y in the "
@@ -887,8 +886,6 @@ def save_constant_spacing(motion: BuildMotion, spacing_mm: float,
     path's last point), ``path_start`` (T + 1,) int64 (path i is rows
     ``path_start[i]:path_start[i+1]``), and per path ``layer``, ``path_index``,
     ``material``, ``role`` as in ``trajectories.npz``, in its order."""
-    from icefab.atomic import atomic_path
-
     xy, dur = [], []
     for lm in motion.layers:
         for tr in lm.trajectories:

@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any, Mapping, Sequence
 import numpy as np
 
 from icefab.atomic import atomic_path
+from icefab.feedback import simulate_1d
 from icefab.core import Stack, Toolpaths
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -244,12 +245,7 @@ def plot_surfaces(open_loop: "SimResult", closed: "SimResult", layer: int,
 
 
 def plot_error_response(result, dist, job, path, mode: str) -> None:
-    import numpy as np
-
     plt = pyplot()
-
-    from icefab.feedback import simulate_1d
-
     n_d = job.feedback.interval_layers
     dh = job.slicing.layer_thickness_mm
     sim = simulate_1d((result.kp, result.ki, result.kd), dist, n_d=n_d, dh_d=dh)

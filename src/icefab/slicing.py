@@ -92,6 +92,7 @@ import numpy as np
 
 from icefab.config import Job
 from icefab.errors import GeometryError
+from icefab.geometry import region_from_rings
 from icefab.mesh.topology import edge_buckets
 from icefab.core import Layer, Mesh, Region, Stack, signed_area
 from icefab.resultfiles import (STACK_FORMAT, STACK_VERSION, load_stack,  # noqa: F401 (old home)
@@ -1124,7 +1125,6 @@ def _union_layer(rings: _Rings, a: int, b: int) -> Region:
     When the rings' total signed area is negative the facets face inwards (an inside-out
     open surface): the union is then taken of the reversed rings.
     """
-    from icefab.geometry import region_from_rings
 
     ring_list = [rings.points[rings.offsets[r]:rings.offsets[r + 1]] for r in range(a, b)]
     total = sum(signed_area(r) for r in ring_list)
