@@ -302,3 +302,20 @@ def _um(value_mm: float, what: str) -> int:
     if not (np.isfinite(v) and 0 <= v * 1000 <= rp.MAX_INT):
         raise CellError(f"{what} {value_mm!r} mm: expected 0 .. {rp.MAX_INT / 1000:g} mm")
     return int(round(v * 1000))
+
+
+def as_received(motion):
+    """The trajectories as the controller stores them: every sample rounded to the
+    micrometre exactly as the wire carries it (``%.3f`` mm text read back), the rest
+    unchanged. Simulating these (``icefab simulate``) and running them through the
+    virtual cell deposit along the same points."""
+    import dataclasses
+
+    def wire(xy: np.ndarray) -> np.ndarray:
+        flat = [float(rp._fmt(v, "mm", "point")) for v in np.asarray(xy, np.float64).ravel()]
+        return np.array(flat, dtype=np.float64).reshape(np.shape(xy))
+
+    layers = tuple(dataclasses.replace(lm, trajectories=tuple(
+        dataclasses.replace(t, xy=wire(t.xy)) for t in lm.trajectories))
+        for lm in motion.layers)
+    return dataclasses.replace(motion, layers=layers)
