@@ -156,7 +156,7 @@ def path_samples(path, values_mm: np.ndarray, job, rate_hz: float | None = None
     value (NaN) are dropped. Raises CellError if there are more values than the path's
     duration allows.
     """
-    from icefab.paths import tool_offset
+    from icefab.frames import tool_offset
 
     rate = float(job.simulation.laser_rate_hz if rate_hz is None else rate_hz)
     xy = np.asarray(path.xy, dtype=np.float64) - (

@@ -218,7 +218,7 @@ class World:
         number of pulses.
         """
         from icefab import flow
-        from icefab.paths import tool_offset
+        from icefab.frames import tool_offset
 
         sim = _sim()
         job = self.job
@@ -338,7 +338,7 @@ class World:
         where the spot was ``simulation.laser_latency_s`` earlier, plus Gaussian noise
         (``laser_noise_mm``), relative to ``z_ref_mm`` (the laser is zeroed at the path
         height). Freezes the current layer first."""
-        from icefab.paths import tool_offset
+        from icefab.frames import tool_offset
         from icefab.core import HeightMap
 
         sim_mod = _sim()
