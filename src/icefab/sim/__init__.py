@@ -82,7 +82,7 @@ nominal top of the j-th simulated layer (j = 0, 1, ...) is ``(j + 1) * dh``.
 from __future__ import annotations
 
 from icefab.errors import SimulationError
-from icefab.sim.cell import Controller, Measurement, SimResult, run_cell
+from icefab.sim.cell import Controller, Measurement, SimResult, _grid_for, run_cell  # noqa: F401
 from icefab.sim.deposition import (MATERIAL_ID, ActionFn, deposit, deposit_pulses, empty_surface,
                                    level_liquid, pulse_drops, pulse_segments)
 from icefab.sim.laser import laser_measure, laser_positions, sample_surface

@@ -1,0 +1,145 @@
+"""``icefab export``: the V+ server file and its bad-input answers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from icefab import Job, LayerPaths, Path, Toolpaths
+from icefab.cli import main
+from icefab.motion import plan_toolpaths, save_trajectories
+
+
+def small_motion(n_layers=2, job=None):
+    """Two materials, a travel and a measurement path per layer, on the default cell."""
+    job = job or Job().replace(**{"cell.cpus": 1})
+    th = np.linspace(0, 2 * np.pi, 120, endpoint=False)
+    layers = []
+    for k in range(n_layers):
+        z = 0.5 * (k + 1)
+        ring = Path(points=np.c_[20 * np.cos(th), 20 * np.sin(th)], z=z, material="part",
+                    role="boundary", closed=True, width=1.5, layer=k)
+        sq = np.array([[-8.0, -8.0], [8.0, -8.0], [8.0, 8.0], [-8.0, 8.0]])
+        fill = Path(points=sq, z=z, material="scaffold", role="fill", closed=True,
+                    width=3.0, layer=k)
+        travel = Path(points=np.array([[20.0, 0.0], [-8.0, -8.0]]), z=z, role="travel",
+                      layer=k)
+        layers.append(LayerPaths(index=k, z=z, paths=(ring, travel, fill)))
+    return plan_toolpaths(Toolpaths(layers=tuple(layers), job=job), job)
+
+
+def test_export_vplus_writes_the_server_sized_for_the_trajectories(tmp_path, capsys):
+    motion = small_motion()
+    save_trajectories(motion, tmp_path / "t.npz")
+    assert main(["export", "vplus", str(tmp_path / "t.npz"), "-o", str(tmp_path / "out"),
+                 "--port", "7300"]) == 0
+    text = (tmp_path / "out" / "icefab_server.v2").read_bytes()
+    assert b"\r\n" in text and b"ice.port = 7300" in text and b"ice.maxpts = 1024" in text
+    assert "untested on a controller" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--port", "0"], "--port 0: expected 1..65535"),
+    (["--valve-output", "98"], "name the same output"),
+    (["missing.npz"], "missing.npz: trajectories file not found"),
+])
+def test_export_vplus_bad_input_is_one_line_and_exit_2(tmp_path, capsys, monkeypatch,
+                                                       argv, message):
+    monkeypatch.chdir(tmp_path)
+    assert main(["export", "vplus", "-o", "out", *argv]) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "out").exists()
+
+
+def test_export_vplus_refuses_a_corrupt_trajectories_file(tmp_path, capsys):
+    (tmp_path / "bad.npz").write_bytes(b"PK\x03\x04 not really")
+    assert main(["export", "vplus", str(tmp_path / "bad.npz"), "-o",
+                 str(tmp_path / "out")]) == 2
+    assert "bad.npz" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------- gantry G-code
+
+
+def _parse(lines):
+    out = []
+    for line in lines:
+        if line.startswith(";") or not line:
+            continue
+        words = line.split()
+        out.append((words[0], {w[0]: float(w[1:]) for w in words[1:] if len(w) > 1}))
+    return out
+
+
+def test_gcode_is_marlin_with_valve_duty_per_step_and_tool_changes():
+    from icefab import flow
+    from icefab.export import gcode_lines
+
+    job = Job().replace(**{"cell.cpus": 1, "cell.robot": "gantry"})
+    motion = small_motion(2, job)
+    cmds = _parse(list(gcode_lines(motion, job)))
+    names = [c for c, _ in cmds]
+    assert names[:3] == ["G21", "G90", "M3"] and names[-1] == "M5"
+    # a tool change before each material's first path of a layer, T0 part, T1 scaffold
+    assert [c for c in names if c.startswith("T")] == ["T0", "T1", "T0", "T1"]
+    g1 = [w for c, w in cmds if c == "G1"]
+    assert g1 and all(set(w) == {"X", "Y", "F", "S"} and 0 <= w["S"] <= 255 for w in g1)
+    assert all(w.get("S", 0) == 0 for c, w in cmds if c == "G0")
+    # each deposition move lasts one time step, dwells fill rests: the G-code's time is
+    # the deposition trajectories' duration
+    dt = job.motion.dt_s
+    pos, t_moves = None, 0.0
+    for c, w in cmds:
+        if c in ("G0", "G1") and "X" in w:
+            if c == "G1":
+                t_moves += np.hypot(w["X"] - pos[0], w["Y"] - pos[1]) / (w["F"] / 60.0)
+            pos = (w["X"], w["Y"])
+        elif c == "G4":
+            t_moves += w["P"] / 1000.0 if pos is not None else 0.0
+    dep = sum(t.duration for lm in motion.layers for t in lm.trajectories
+              if t.path is not None and t.path.depositing)
+    trav = sum(t.duration for lm in motion.layers for t in lm.trajectories
+               if t.path is None or not t.path.depositing)
+    assert dep - 0.01 <= t_moves <= dep + trav + 0.01
+    # the valve's duty delivers the commanded volume (thesis eq. 6.2: width x layer
+    # thickness x length), through the PWM calibration: Q(f) per unit of duty at
+    # calibration pulse width x frequency
+    f = job.flow.pwm_frequency_hz
+    for material, tool in (("part", "T0"), ("scaffold", "T1")):
+        cal = flow.calibration_for(material, job)
+        q_full = float(cal.flow(np.array([f]))[0]) / (f * job.flow.calibration_pulse_ms / 1000)
+        vol = 0.0
+        current = None
+        for c, w in cmds:
+            if c.startswith("T"):
+                current = c
+            elif c == "G1" and current == tool:
+                vol += w["S"] / 255.0 * dt * q_full
+        want = sum(t.path.width * job.slicing.layer_thickness_mm * job.flow.layer_scale
+                   * np.hypot(*np.diff(t.xy, axis=0).T).sum()
+                   for lm in motion.layers for t in lm.trajectories
+                   if t.path is not None and t.path.depositing and t.path.material == material)
+        # within 5 %: the PWM program's whole pulses and minimum width (icefab.flow) and
+        # the duty's 1/255 steps at the low duties of these slow paths (about 6 %)
+        assert vol == pytest.approx(want, rel=0.05)
+
+
+def test_plan_gcode_option_writes_the_marlin_file(tmp_path):
+    from icefab.paths import save_toolpaths
+
+    job = Job().replace(**{"cell.cpus": 1})
+    job_file = tmp_path / "job.toml"
+    job_file.write_text("[cell]\ncpus = 1\n")
+    save_toolpaths(_toolpaths(job), tmp_path / "tp.npz")
+    assert main(["plan", str(tmp_path / "tp.npz"), "-c", str(job_file), "-o",
+                 str(tmp_path / "out"), "--gcode"]) == 0
+    text = (tmp_path / "out" / "trajectories.gcode").read_text()
+    assert "M3 I S0" in text and "\nT0\n" in text and text.rstrip().endswith("M5")
+
+
+def _toolpaths(job):
+    th = np.linspace(0, 2 * np.pi, 120, endpoint=False)
+    ring = Path(points=np.c_[20 * np.cos(th), 20 * np.sin(th)], z=0.5, material="part",
+                role="boundary", closed=True, width=1.5, layer=0)
+    return Toolpaths(layers=(LayerPaths(index=0, z=0.5, paths=(ring,)),), job=job)
