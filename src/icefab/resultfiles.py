@@ -70,7 +70,10 @@ May import: ``icefab.core``, ``icefab.config``, ``icefab.errors``, ``icefab.atom
 from __future__ import annotations
 
 import logging
+import math
 import os
+import stat
+import struct
 import tomllib
 import zipfile
 import zlib
@@ -140,33 +143,239 @@ def _write(path: str | os.PathLike, arrays: dict[str, np.ndarray]) -> Path:
     return target
 
 
-def _read_all(path: Path, what: str) -> dict[str, np.ndarray]:
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            return {k: npz[k] for k in npz.files}
-    except FileNotFoundError:
-        raise StackFileError(f"{path}: {what} file not found") from None
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError, zlib.error) as exc:
-        raise StackFileError(f"{path}: not a readable {what} file ({exc})") from None
+#: Bounds a result file must respect before anything is decompressed or allocated: the
+#: uncompressed size of one member and of all its members (declared in the zip directory;
+#: a member that inflates beyond its declaration is a CRC error), and the size of the file
+#: itself. A build of the thesis' scale is far below them.
+MAX_MEMBER_BYTES = 1 << 30
+MAX_TOTAL_BYTES = 3 << 29
+MAX_FILE_BYTES = 1 << 31
+#: Coordinates, heights and widths beyond this are not a build of any cell, mm.
+MAX_COORD_MM = 1e5
+#: Errors the zip and npy readers raise on damaged data.
+_DAMAGE = (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError, KeyError,
+           NotImplementedError, RuntimeError, SyntaxError, TypeError, struct.error,
+           UnicodeDecodeError)
+_KIND_NAMES = {"f": "floating point", "iu": "integers", "b": "booleans", "U": "text",
+               "fiu": "a number"}
 
 
-def _job(data: dict[str, np.ndarray], path: Path):
-    try:
-        return job_from_dict(tomllib.loads(str(data["job"])))
-    except (tomllib.TOMLDecodeError, ConfigError) as exc:
-        raise StackFileError(f"{path}: the stored job is invalid ({exc})") from None
+class _Members:
+    """The members of one result file, read one at a time and checked before reading.
+
+    Only members a loader asks for are decompressed; a member is read only when its declared
+    size, dtype and shape fit what is asked. Every problem is a StackFileError naming the
+    file and the member.
+    """
+
+    def __init__(self, path: Path, what: str) -> None:
+        self.path, self.what, self.zip = path, what, None
+        try:
+            st = path.stat()
+        except FileNotFoundError:
+            raise StackFileError(f"{path}: {what} file not found") from None
+        except OSError as exc:
+            raise StackFileError(f"{path}: cannot read the {what} file ({exc.strerror or exc})"
+                                 ) from None
+        if not stat.S_ISREG(st.st_mode):
+            raise StackFileError(f"{path}: not a regular file, expected a {what} file (.npz)")
+        if st.st_size > MAX_FILE_BYTES:
+            raise StackFileError(f"{path}: {st.st_size} bytes, more than a {what} file may have "
+                                 f"({MAX_FILE_BYTES})")
+        try:
+            self.zip = zipfile.ZipFile(path)
+            infos = self.zip.infolist()
+        except _DAMAGE as exc:
+            self.close()
+            raise StackFileError(f"{path}: not a readable {what} file (not a numpy .npz "
+                                 f"archive: {exc})") from None
+        self.infos: dict[str, zipfile.ZipInfo] = {}
+        for info in infos:
+            name = info.filename[:-4]
+            if name in self.infos or not info.filename.endswith(".npy"):
+                self.close()
+                raise StackFileError(f"{path}: member {info.filename[:80]!r}: not a numpy "
+                                     "array or given twice; not an icefab result file")
+            self.infos[name] = info
+
+    def __enter__(self) -> "_Members":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        if self.zip is not None:
+            self.zip.close()
+            self.zip = None
+
+    def bad(self, name: str | None, msg: str) -> StackFileError:
+        where = f"{self.path}: member {name}" if name else f"{self.path}"
+        return StackFileError(f"{where}: {msg}")
+
+    @property
+    def names(self) -> set[str]:
+        return set(self.infos)
+
+    def expect(self, required: Sequence[str], optional: Sequence[str] = ()) -> None:
+        """Every required member present, no member outside required + optional, and their
+        declared sizes within the bounds."""
+        missing = [k for k in required if k not in self.infos]
+        if missing:
+            raise self.bad(None, f"not a complete {self.what} file: missing arrays "
+                           f"{', '.join(missing)}")
+        extra = sorted(self.names - set(required) - set(optional))
+        if extra:
+            raise self.bad(None, f"unexpected members {', '.join(x[:40] for x in extra[:5])} "
+                           "(not written by icefab: the file is corrupt or of another kind)")
+        total = sum(self.infos[k].file_size for k in self.names)
+        if total > MAX_TOTAL_BYTES:
+            raise self.bad(None, f"{total} bytes uncompressed, more than a {self.what} file "
+                           f"may hold ({MAX_TOTAL_BYTES})")
+
+    def array(self, name: str, kinds: str, ndim: int, cols: int | None = None) -> np.ndarray:
+        """Member ``name``: dtype kind one of ``kinds`` ("f" float, "i" signed and "u"
+        unsigned integer, "b" bool, "U" text), ``ndim`` dimensions, ``cols`` columns."""
+        info = self.infos.get(name)
+        if info is None:
+            raise self.bad(name, "missing")
+        if info.file_size > MAX_MEMBER_BYTES:
+            raise self.bad(name, f"{info.file_size} bytes uncompressed, more than a member may "
+                           f"hold ({MAX_MEMBER_BYTES})")
+        try:
+            with self.zip.open(info) as fh:
+                version = np.lib.format.read_magic(fh)
+                if version == (1, 0):
+                    shape, fortran, dtype = np.lib.format.read_array_header_1_0(fh)
+                elif version == (2, 0):
+                    shape, fortran, dtype = np.lib.format.read_array_header_2_0(fh)
+                else:
+                    raise self.bad(name, f"npy format version {version}, expected 1.0 or 2.0")
+                if dtype.hasobject or dtype.fields is not None or dtype.subdtype is not None:
+                    raise self.bad(name, f"dtype {dtype}: objects or records, expected plain "
+                                   "numbers or text")
+                if dtype.kind not in kinds or dtype.itemsize == 0:
+                    raise self.bad(name, f"dtype {dtype}, expected {_KIND_NAMES[kinds]}")
+                if len(shape) != ndim or (cols is not None and shape[1] != cols):
+                    want = "()" if ndim == 0 else "(n,)" if ndim == 1 else f"(n, {cols or 'm'})"
+                    raise self.bad(name, f"shape {shape}, expected {want}")
+                count = math.prod(shape)
+                nbytes = count * dtype.itemsize
+                held = info.file_size - fh.tell()
+                if nbytes != held:
+                    raise self.bad(name, f"shape {shape} of {dtype} needs {nbytes} bytes, the "
+                                   f"member holds {held}")
+                buf = bytearray(nbytes)
+                if fh.readinto(buf) != nbytes:
+                    raise self.bad(name, "truncated")
+        except StackFileError:
+            raise
+        except _DAMAGE as exc:
+            raise self.bad(name, f"unreadable ({type(exc).__name__}: {exc})") from None
+        arr = np.frombuffer(buf, dtype=dtype, count=count)
+        if not dtype.isnative:
+            arr = arr.astype(dtype.newbyteorder("="))
+        return arr.reshape(shape, order="F" if fortran else "C")
+
+    def text(self, name: str) -> str:
+        return str(self.array(name, "U", 0)[()])
+
+    def integer(self, name: str) -> int:
+        return int(self.array(name, "iu", 0)[()])
+
+    def number(self, name: str, lo: float, hi: float, *, lo_open: bool = False) -> float:
+        v = float(self.array(name, "fiu", 0)[()])
+        if not (math.isfinite(v) and (v > lo if lo_open else v >= lo) and v <= hi):
+            raise self.bad(name, f"{v!r}, expected a number in {'(' if lo_open else '['}{lo:g}, "
+                           f"{hi:g}]")
+        return v
+
+    def values(self, name: str, kinds: str, ndim: int, cols: int | None = None, *,
+               n: int | None = None, lo: float | None = None, hi: float | None = None,
+               nan_ok: bool = False) -> np.ndarray:
+        """:meth:`array` with ``n`` rows and every value finite (NaN allowed if ``nan_ok``)
+        within ``[lo, hi]``."""
+        a = self.array(name, kinds, ndim, cols)
+        if n is not None and len(a) != n:
+            raise self.bad(name, f"{len(a)} rows, expected {n}: the file is corrupt")
+        if a.size and a.dtype.kind in "fiu":
+            v = a[~np.isnan(a)] if nan_ok and a.dtype.kind == "f" else a
+            if v.dtype.kind == "f" and not np.isfinite(v).all():
+                raise self.bad(name, "NaN or infinite values, expected finite numbers")
+            if v.size and lo is not None and v.min() < lo:
+                raise self.bad(name, f"value {v.min()!r} below {lo:g}")
+            if v.size and hi is not None and v.max() > hi:
+                raise self.bad(name, f"value {v.max()!r} above {hi:g}")
+        return a
+
+    def offsets(self, name: str, n_items: int | None, n_rows: int) -> np.ndarray:
+        """(n_items + 1,) int64 offsets into ``n_rows`` rows: from 0 to n_rows, never
+        decreasing (``n_items`` None: any count)."""
+        a = self.array(name, "iu", 1)
+        if n_items is not None and len(a) != n_items + 1:
+            raise self.bad(name, f"{len(a)} offsets for {n_items} items, expected "
+                           f"{n_items + 1}: the file is corrupt")
+        b = a.astype(np.int64)
+        if len(b) == 0 or b[0] != 0 or b[-1] != n_rows or np.any(np.diff(b) < 0) \
+                or np.any(b != a):
+            raise self.bad(name, f"offsets must run from 0 to {n_rows} without decreasing: "
+                           "the file is corrupt")
+        return b
+
+    def codes(self, name: str, table: Sequence[str], n: int) -> np.ndarray:
+        return self.values(name, "iu", 1, n=n, lo=0, hi=len(table) - 1).astype(np.int64)
+
+    def header(self, fmt: str, readable: Sequence[int]) -> int:
+        """Check ``format`` (first, so another kind of file is named as such) and
+        ``version``; returns the version."""
+        if "format" not in self.infos:
+            raise self.bad(None, f"not an icefab {self.what} file (no format member)")
+        found = self.text("format")
+        if found != fmt:
+            raise self.bad(None, f"not an icefab {self.what} file (format {found[:80]!r}, "
+                           f"expected {fmt!r})")
+        version = self.integer("version")
+        if version not in readable:
+            raise self.bad("version", f"{self.what} file version {version}: this icefab reads "
+                           f"version {' or '.join(map(str, readable))}")
+        return version
+
+    def job(self):
+        text = self.text("job")
+        try:
+            return job_from_dict(tomllib.loads(text))
+        except (tomllib.TOMLDecodeError, ConfigError) as exc:
+            raise self.bad("job", f"the stored job is invalid ({exc})") from None
+
+    def strings(self, name: str) -> tuple[str, ...]:
+        return tuple(str(w) for w in self.array(name, "U", 1))
+
+
+def _check_tree(m: _Members, name: str, parent: np.ndarray, first: np.ndarray) -> None:
+    """Ring parents: ``parent[i]`` (index within its layer, -1 top level) must name another
+    ring of the same layer and the chains must end (a cycle would hang ``Region.depth``).
+    ``first[i]``: global index of the first ring of ring i's layer."""
+    r = len(parent)
+    if r == 0:
+        return
+    g = np.where(parent >= 0, parent + first, -1)
+    if np.any(g == np.arange(r)):
+        raise m.bad(name, "a ring is its own parent: the file is corrupt")
+    jump = g
+    for _ in range(int(r).bit_length() + 1):  # pointer doubling: 2^k-th ancestors
+        nxt = np.where(jump >= 0, jump[np.maximum(jump, 0)], -1)
+        if np.array_equal(nxt, jump):
+            break
+        jump = nxt
+    if np.any(jump >= 0):
+        raise m.bad(name, "ring parents form a cycle: the file is corrupt")
 
 
 def file_format(path: str | os.PathLike) -> str:
     """The ``format`` member of an icefab ``.npz`` result file ("" when it has none);
     reads only that member. StackFileError when the file is missing or not a readable npz."""
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            return str(npz["format"]) if "format" in npz.files else ""
-    except FileNotFoundError:
-        raise StackFileError(f"{path}: file not found") from None
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError, zlib.error) as exc:
-        raise StackFileError(f"{path}: not a readable .npz file ({exc})") from None
+    with _Members(Path(path), "result") as m:
+        return m.text("format") if "format" in m.names else ""
 
 
 # --------------------------------------------------------------------------- stack
@@ -185,29 +394,38 @@ def _pack_regions(regions: list[Region]) -> dict[str, np.ndarray]:
     }
 
 
-def _unpack_regions(data: dict[str, np.ndarray], n_layers: int, path: str,
-                    prefix: str = "") -> list[Region]:
-    pts = data[prefix + "points"]
-    off = data[prefix + "ring_offsets"]
-    par = data[prefix + "ring_parent"]
-    lay = data[prefix + "ring_layer"]
+def _unpack_regions(m: _Members, n_layers: int, prefix: str = "") -> list[Region]:
+    """The regions of every layer from the ring members under ``prefix``, checked: finite
+    points within MAX_COORD_MM, offsets, layers ascending, parents inside their layer and
+    without cycles."""
+    pts = m.values(prefix + "points", "f", 2, 2, lo=-MAX_COORD_MM, hi=MAX_COORD_MM)
+    lay = m.values(prefix + "ring_layer", "iu", 1, lo=0, hi=max(n_layers - 1, 0))
     n_r = len(lay)
-    if (pts.ndim != 2 or pts.shape[1] != 2 or len(off) != n_r + 1 or len(par) != n_r
-            or (n_r and (off[0] != 0 or off[-1] != len(pts) or np.any(np.diff(off) < 0)))
-            or (n_r and (np.any(np.diff(lay) < 0) or lay[0] < 0 or lay[-1] >= n_layers))):
-        raise StackFileError(f"{path}: inconsistent ring arrays ({prefix or 'part'}): the "
-                             "file is corrupt")
+    if n_r and n_layers == 0:
+        raise m.bad(prefix + "ring_layer", "rings but no layers: the file is corrupt")
+    if np.any(np.diff(lay.astype(np.int64)) < 0):
+        raise m.bad(prefix + "ring_layer", "layers not in ascending order: the file is corrupt")
+    off = m.offsets(prefix + "ring_offsets", n_r, len(pts))
+    if n_r and np.any(np.diff(off) < 3):
+        raise m.bad(prefix + "ring_offsets", "a ring with fewer than 3 points: the file is "
+                    "corrupt")
+    lay = lay.astype(np.int64)
     starts = np.searchsorted(lay, np.arange(n_layers + 1))
-    rings = np.split(pts, off[1:-1]) if n_r else []
-    out = []
-    for k in range(n_layers):
-        a, b = int(starts[k]), int(starts[k + 1])
-        p = par[a:b].astype(np.int64)
-        if np.any(p >= b - a) or np.any(p < -1):
-            raise StackFileError(f"{path}: layer {k}: ring parent out of range: the file is "
-                                 "corrupt")
-        out.append(Region(rings=tuple(rings[a:b]), parent=p))
-    return out
+    count = np.diff(starts)[lay] if n_r else np.zeros(0, np.int64)
+    par = m.values(prefix + "ring_parent", "iu", 1, n=n_r, lo=-1).astype(np.int64)
+    if n_r and np.any(par >= count):
+        raise m.bad(prefix + "ring_parent", "ring parent out of range of its layer: the file "
+                    "is corrupt")
+    _check_tree(m, prefix + "ring_parent", par, starts[lay] if n_r else lay)
+    rings = split(pts, off)
+    return [Region(rings=tuple(rings[starts[k]:starts[k + 1]]),
+                   parent=par[starts[k]:starts[k + 1]].copy()) for k in range(n_layers)]
+
+
+_STACK_REQUIRED = ("format", "version", "points", "ring_offsets", "ring_parent", "ring_layer",
+                   "layer_index", "layer_z", "layer_top_z", "layer_thickness", "warnings", "job")
+_STACK_SCAFFOLD = ("scaffold_points", "scaffold_ring_offsets", "scaffold_ring_parent",
+                   "scaffold_ring_layer")
 
 
 def save_stack(stack: Stack, path: str | os.PathLike) -> Path:
@@ -234,40 +452,31 @@ def save_stack(stack: Stack, path: str | os.PathLike) -> Path:
 
 
 def load_stack(path: str | os.PathLike) -> Stack:
-    """Read a stack written by :func:`save_stack`.
+    """Read a stack written by :func:`save_stack`, checking every member (module docstring).
 
-    Raises StackFileError naming the file when it is missing, truncated, corrupt or not a
-    stack file.
+    Raises StackFileError naming the file (and the member) when it is missing, truncated,
+    corrupt or not a stack file.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise StackFileError(f"{path}: stack file not found")
-    data = _read_all(path, "stack")
-    need = ("format", "version", "points", "ring_offsets", "ring_parent", "ring_layer",
-            "layer_index", "layer_z", "layer_top_z", "layer_thickness", "warnings", "job")
-    missing = [k for k in need if k not in data]
-    if missing:
-        raise StackFileError(f"{path}: not an icefab stack file (missing {', '.join(missing)})")
-    if str(data["format"]) != STACK_FORMAT:
-        raise StackFileError(f"{path}: format {str(data['format'])!r}: expected "
-                             f"{STACK_FORMAT!r}")
-    if int(data["version"]) != STACK_VERSION:
-        raise StackFileError(f"{path}: stack file version {int(data['version'])}: this icefab "
-                             f"reads version {STACK_VERSION}")
-    job = _job(data, path)
-    n = len(data["layer_index"])
-    if len(data["layer_z"]) != n or len(data["layer_top_z"]) != n:
-        raise StackFileError(f"{path}: layer arrays of different lengths: the file is corrupt")
-    parts = _unpack_regions(data, n, str(path))
-    if "scaffold_points" in data:
-        scaffolds = _unpack_regions(data, n, str(path), "scaffold_")
-    else:
-        scaffolds = [Region() for _ in range(n)]
-    layers = tuple(Layer(index=int(data["layer_index"][k]), z=float(data["layer_z"][k]),
-                         part=parts[k], scaffold=scaffolds[k],
-                         top_z=float(data["layer_top_z"][k])) for k in range(n))
-    return Stack(layers=layers, job=job, layer_thickness=float(data["layer_thickness"]),
-                 warnings=tuple(str(w) for w in data["warnings"]))
+    with _Members(Path(path), "stack") as m:
+        m.header(STACK_FORMAT, (STACK_VERSION,))
+        m.expect(_STACK_REQUIRED, _STACK_SCAFFOLD)
+        has_scaffold = [k in m.names for k in _STACK_SCAFFOLD]
+        if any(has_scaffold) and not all(has_scaffold):
+            raise m.bad(None, "scaffold ring members incomplete: the file is corrupt")
+        job = m.job()
+        thickness = m.number("layer_thickness", 0.0, 1e3, lo_open=True)
+        index = m.values("layer_index", "iu", 1, lo=0, hi=2**31 - 1)
+        n = len(index)
+        z = m.values("layer_z", "f", 1, n=n, lo=-MAX_COORD_MM, hi=MAX_COORD_MM)
+        top = m.values("layer_top_z", "f", 1, n=n, lo=-MAX_COORD_MM, hi=MAX_COORD_MM,
+                       nan_ok=True)
+        warnings = m.strings("warnings")
+        parts = _unpack_regions(m, n)
+        scaffolds = (_unpack_regions(m, n, "scaffold_") if all(has_scaffold)
+                     else [Region() for _ in range(n)])
+    layers = tuple(Layer(index=int(index[k]), z=float(z[k]), part=parts[k],
+                         scaffold=scaffolds[k], top_z=float(top[k])) for k in range(n))
+    return Stack(layers=layers, job=job, layer_thickness=thickness, warnings=warnings)
 
 
 # --------------------------------------------------------------------------- toolpaths
@@ -338,64 +547,49 @@ def save_toolpaths(tp: Toolpaths, path: str | os.PathLike) -> None:
     _write(path, data)
 
 
+_TOOLPATHS_REQUIRED = ("format", "version", "job", "warnings", "points", "path_start", "z",
+                       "material", "role", "closed", "width", "layer", "frame", "tool",
+                       "layer_index", "layer_z", "layer_start", "unfilled_mm2")
+
+
 def load_toolpaths(path: str | os.PathLike) -> Toolpaths:
-    """Read a file written by :func:`save_toolpaths`; StackFileError if it is missing,
+    """Read a file written by :func:`save_toolpaths`, checking every member (module
+    docstring); StackFileError naming the file (and the member) if it is missing,
     truncated, corrupt or not a toolpath file."""
-    path = Path(path)
-
-    def bad(msg: str) -> StackFileError:
-        return StackFileError(f"{path}: {msg}")
-
-    d = _read_all(path, "toolpath")
-    if str(d.get("format", "")) != TOOLPATHS_FORMAT:
-        raise bad(f"not an icefab toolpath file (format {str(d.get('format', 'missing'))!r}, "
-                  f"expected {TOOLPATHS_FORMAT!r})")
-    version = int(d.get("version", -1))
-    if version not in (1, TOOLPATHS_VERSION):
-        raise bad(f"toolpath file version {version}: expected {TOOLPATHS_VERSION} (or 1)")
-    need = ("job", "warnings", "points", "path_start", "z", "material", "role", "closed",
-            "width", "layer", "frame", "tool", "layer_index", "layer_z", "layer_start",
-            "unfilled_mm2")
-    missing = [k for k in need if k not in d]
-    if missing:
-        raise bad(f"missing arrays {', '.join(missing)}")
-    job = _job(d, path)
-    pts, start = d["points"], d["path_start"]
-    P = len(d["z"])
-    L = len(d["layer_index"])
-    ok = (pts.ndim == 2 and pts.shape[1] == 2 and start.shape == (P + 1,)
-          and all(len(d[k]) == P for k in ("material", "role", "closed", "width", "layer",
-                                            "frame", "tool"))
-          and d["layer_start"].shape == (L + 1,) and len(d["layer_z"]) == L
-          and d["unfilled_mm2"].shape == (L, 2)
-          and (P == 0 or (start[0] == 0 and start[-1] == len(pts)
-                          and bool(np.all(np.diff(start) >= 0))))
-          and (L == 0 or (d["layer_start"][0] == 0 and d["layer_start"][-1] == P
-                          and bool(np.all(np.diff(d["layer_start"]) >= 0)))))
-    if version >= 2:
-        state = d.get("state")
-        ok = ok and state is not None and state.shape == (len(pts),)
-    if not ok:
-        raise bad("inconsistent array sizes (truncated or corrupt)")
-    for key, names in (("material", MATERIAL_CODES), ("role", ROLE_CODES),
-                       ("frame", FRAME_CODES), ("tool", TOOL_CODES)):
-        v = d[key]
-        if len(v) and (v.min() < 0 or v.max() >= len(names)):
-            raise bad(f"{key} codes out of range")
-    if not np.all(np.isfinite(pts)):
-        raise bad("non-finite point coordinates")
-    if version >= 2 and len(d["state"]) and (d["state"].min() < OFF or d["state"].max() > ON2):
-        raise bad("state codes out of range (expected 0 OFF, 1 ON1, 2 ON2)")
-    paths = unpack_paths(d, copy=True)
-    if version >= 2 and paths and not np.array_equal(
-            d["state"], np.concatenate([point_states(p) for p in paths])):
-        raise bad("per-point states disagree with the paths' materials and roles")
-    ls = d["layer_start"]
-    layers = tuple(LayerPaths(int(d["layer_index"][j]), float(d["layer_z"][j]),
-                              tuple(paths[ls[j]:ls[j + 1]]),
-                              (float(d["unfilled_mm2"][j, 0]), float(d["unfilled_mm2"][j, 1])))
-                   for j in range(L))
-    return Toolpaths(layers, job, tuple(str(w) for w in d["warnings"]))
+    with _Members(Path(path), "toolpath") as m:
+        version = m.header(TOOLPATHS_FORMAT, (1, TOOLPATHS_VERSION))
+        m.expect(_TOOLPATHS_REQUIRED + (("state",) if version >= 2 else ()))
+        job = m.job()
+        warnings = m.strings("warnings")
+        pts = m.values("points", "f", 2, 2, lo=-MAX_COORD_MM, hi=MAX_COORD_MM)
+        z = m.values("z", "f", 1, lo=-MAX_COORD_MM, hi=MAX_COORD_MM)
+        n_paths = len(z)
+        d = {"points": pts, "z": z,
+             "path_start": m.offsets("path_start", n_paths, len(pts)),
+             "material": m.codes("material", MATERIAL_CODES, n_paths),
+             "role": m.codes("role", ROLE_CODES, n_paths),
+             "frame": m.codes("frame", FRAME_CODES, n_paths),
+             "tool": m.codes("tool", TOOL_CODES, n_paths),
+             "closed": m.values("closed", "b", 1, n=n_paths),
+             "width": m.values("width", "f", 1, n=n_paths, lo=0.0, hi=MAX_COORD_MM),
+             "layer": m.values("layer", "iu", 1, n=n_paths, lo=-1, hi=2**31 - 1)}
+        index = m.values("layer_index", "iu", 1, lo=-1, hi=2**31 - 1)
+        n_layers = len(index)
+        layer_z = m.values("layer_z", "f", 1, n=n_layers, lo=-MAX_COORD_MM, hi=MAX_COORD_MM)
+        ls = m.offsets("layer_start", n_layers, n_paths)
+        unfilled = m.values("unfilled_mm2", "f", 2, 2, n=n_layers, lo=0.0,
+                            hi=MAX_COORD_MM ** 2)
+        paths = unpack_paths(d, copy=True)
+        if version >= 2:
+            state = m.values("state", "iu", 1, n=len(pts), lo=OFF, hi=ON2)
+            if paths and not np.array_equal(
+                    state, np.concatenate([point_states(p) for p in paths])):
+                raise m.bad("state", "per-point states disagree with the paths' materials and "
+                            "roles: the file is corrupt")
+    layers = tuple(LayerPaths(int(index[j]), float(layer_z[j]), tuple(paths[ls[j]:ls[j + 1]]),
+                              (float(unfilled[j, 0]), float(unfilled[j, 1])))
+                   for j in range(n_layers))
+    return Toolpaths(layers, job, warnings)
 
 
 # --------------------------------------------------------------------------- trajectories
@@ -477,76 +671,93 @@ def save_trajectories(motion: BuildMotion, path: str | os.PathLike) -> None:
     _write(path, data)
 
 
+_TRAJ_REQUIRED = ("format", "version", "dt", "xy", "joints", "speed", "traj_start",
+                  "piece_start", "piece_owner", "duration", "layer", "path_index", "material",
+                  "role", "layer_index", "layer_z", "layer_start", "job", "robot",
+                  "joint_names")
+_TRAJ_V2 = ("traj_dt", "width", "closed", "tool", "path_z")
+#: Largest time step and joint value a trajectory file may hold (s; rad or mm).
+MAX_DT_S = 60.0
+MAX_JOINT = 1e6
+
+
 def load_trajectories(path: str | os.PathLike) -> BuildMotion:
-    """Read a file written by :func:`save_trajectories` (versions 1 and 2).
+    """Read a file written by :func:`save_trajectories` (versions 1 and 2), checking every
+    member (module docstring): finite samples within MAX_COORD_MM, joints one column per
+    joint name, speeds >= 0, time steps in (0, MAX_DT_S], pieces inside their trajectory,
+    codes and tools from their tables.
 
     The trajectories' ``path`` is a stand-in Toolpath in the robot base frame whose
     ``polyline()`` is the samples (a closed path's last sample, back on its first, is the
     closing point), carrying layer, z, material, role, width, closed and tool.
-    StackFileError if the file is missing, truncated, corrupt or of another kind.
+    StackFileError naming the file (and the member) if it is missing, truncated, corrupt or
+    of another kind.
     """
     path = Path(path)
-
-    def bad(msg: str) -> StackFileError:
-        return StackFileError(f"{path}: {msg}")
-
-    data = _read_all(path, "trajectory")
-    if str(data.get("format", "")) != TRAJECTORIES_FORMAT:
-        raise bad(f"not an icefab trajectory file (format {str(data.get('format', ''))!r})")
-    version = int(data.get("version", -1))
-    if version not in TRAJECTORIES_READABLE:
-        raise bad(f"trajectory file version {version}, expected one of "
-                  f"{', '.join(map(str, TRAJECTORIES_READABLE))}")
-    need = ["dt", "xy", "joints", "speed", "traj_start", "piece_start", "piece_owner",
-            "duration", "layer", "path_index", "material", "role", "layer_index", "layer_z",
-            "layer_start", "job", "robot", "joint_names"]
-    if version >= 2:
-        need += ["traj_dt", "width", "closed", "tool", "path_z"]
-    missing = [k for k in need if k not in data]
-    if missing:
-        raise bad(f"missing arrays {', '.join(missing)}")
-    job = _job(data, path)
-    ts = data["traj_start"]
-    nt = len(ts) - 1
-    per_traj = ["duration", "layer", "material", "role"] + (
-        ["traj_dt", "width", "closed", "tool", "path_z"] if version >= 2 else [])
-    if nt < 0 or ts[-1] != len(data["xy"]) or np.any(np.diff(ts) < 0) \
-            or any(len(data[k]) != nt for k in per_traj):
-        raise bad("inconsistent trajectory index arrays (truncated or corrupt)")
-    ls = data["layer_start"]
-    if version >= 2:
-        dts = data["traj_dt"].astype(np.float64)
-        widths = data["width"].astype(np.float64)
-        closed = data["closed"].astype(bool)
-        tools = [str(x) for x in data["tool"]]
-        zs = data["path_z"].astype(np.float64)
-    else:
-        log.warning("%s: trajectory file version 1 stores neither path widths, tools and "
-                    "closed flags nor each trajectory's dt: widths 0 (the valve stage uses "
-                    "the job's widths), open paths, dt %.4g s for all; re-run 'icefab plan' "
-                    "to store them", path, float(data["dt"]))
-        dts = np.full(nt, float(data["dt"]))
-        widths = np.zeros(nt)
-        closed = np.zeros(nt, dtype=bool)
-        tools = [""] * nt
-        zs = np.repeat(data["layer_z"].astype(np.float64), np.diff(ls)) \
-            if len(ls) and ls[-1] == nt else np.zeros(nt)
-    owner = data["piece_owner"]
-    pstart = data["piece_start"]
-    if len(owner) != len(pstart) or np.any(np.diff(owner) < 0):
-        raise bad("inconsistent piece arrays (truncated or corrupt)")
+    with _Members(path, "trajectory") as m:
+        version = m.header(TRAJECTORIES_FORMAT, TRAJECTORIES_READABLE)
+        m.expect(_TRAJ_REQUIRED + (_TRAJ_V2 if version >= 2 else ()))
+        job = m.job()
+        robot = m.text("robot")
+        joint_names = m.strings("joint_names")
+        dt = m.number("dt", 0.0, MAX_DT_S, lo_open=True)
+        xy = m.values("xy", "f", 2, 2, lo=-MAX_COORD_MM, hi=MAX_COORD_MM)
+        n = len(xy)
+        joints = m.values("joints", "f", 2, len(joint_names) or None, n=n, lo=-MAX_JOINT,
+                          hi=MAX_JOINT)
+        speed = m.values("speed", "f", 1, n=n, lo=0.0, hi=MAX_COORD_MM)
+        duration = m.values("duration", "f", 1, lo=0.0, hi=1e9)
+        nt = len(duration)
+        ts = m.offsets("traj_start", nt, n)
+        layer = m.values("layer", "iu", 1, n=nt, lo=-1, hi=2**31 - 1)
+        material = m.codes("material", MATERIAL_CODES, nt)
+        role = m.codes("role", ROLE_CODES, nt)
+        m.values("path_index", "iu", 1, n=nt, lo=0, hi=2**31 - 1)
+        index = m.values("layer_index", "iu", 1, lo=-1, hi=2**31 - 1)
+        layer_z = m.values("layer_z", "f", 1, n=len(index), lo=-MAX_COORD_MM, hi=MAX_COORD_MM)
+        ls = m.offsets("layer_start", len(index), nt)
+        owner = m.values("piece_owner", "iu", 1, lo=0, hi=max(nt - 1, 0)).astype(np.int64)
+        pstart = m.values("piece_start", "iu", 1, n=len(owner), lo=0).astype(np.int64)
+        if len(owner) and (nt == 0 or np.any(np.diff(owner) < 0)):
+            raise m.bad("piece_owner", "not in ascending trajectory order: the file is corrupt")
+        if len(owner) and np.any(pstart >= np.maximum(np.diff(ts)[owner], 1)):
+            raise m.bad("piece_start", "a piece starts after the end of its trajectory: the "
+                        "file is corrupt")
+        if version >= 2:
+            dts = m.values("traj_dt", "f", 1, n=nt, lo=0.0, hi=MAX_DT_S).astype(np.float64)
+            if np.any(dts <= 0.0):
+                raise m.bad("traj_dt", "a time step <= 0, expected > 0 s")
+            widths = m.values("width", "f", 1, n=nt, lo=0.0, hi=MAX_COORD_MM).astype(np.float64)
+            closed = m.values("closed", "b", 1, n=nt)
+            tools = [str(x) for x in m.values("tool", "U", 1, n=nt)]
+            unknown = sorted(set(tools) - set(TOOL_CODES))
+            if unknown:
+                raise m.bad("tool", f"unknown tool {unknown[0][:40]!r}, expected one of "
+                            f"{', '.join(map(repr, TOOL_CODES))}")
+            zs = m.values("path_z", "f", 1, n=nt, lo=-MAX_COORD_MM,
+                          hi=MAX_COORD_MM).astype(np.float64)
+        else:
+            log.warning("%s: trajectory file version 1 stores neither path widths, tools and "
+                        "closed flags nor each trajectory's dt: widths 0 (the valve stage uses "
+                        "the job's widths), open paths, dt %.4g s for all; re-run 'icefab plan' "
+                        "to store them", path, dt)
+            dts = np.full(nt, dt)
+            widths = np.zeros(nt)
+            closed = np.zeros(nt, dtype=bool)
+            tools = [""] * nt
+            zs = np.repeat(layer_z.astype(np.float64), np.diff(ls))
+    data = {"xy": xy, "joints": joints, "speed": speed, "traj_start": ts, "piece_start": pstart,
+            "piece_owner": owner, "duration": duration, "traj_dt": dts}
     stand_ins = []
     for i in range(nt):
-        xy = data["xy"][int(ts[i]):int(ts[i + 1])]
-        pts = xy[:-1] if closed[i] and len(xy) > 2 and np.array_equal(xy[0], xy[-1]) else xy
-        stand_ins.append(Toolpath(points=pts, z=float(zs[i]),
-                                  material=MATERIAL_CODES[int(data["material"][i])],
-                                  role=ROLE_CODES[int(data["role"][i])], closed=bool(closed[i]),
-                                  width=float(widths[i]), layer=int(data["layer"][i]),
-                                  frame="base", tool=tools[i]))
-    trajs = unpack_trajectories({**data, "traj_dt": dts}, stand_ins)
-    layers = tuple(LayerMotion(index=int(data["layer_index"][k]), z=float(data["layer_z"][k]),
+        s = xy[int(ts[i]):int(ts[i + 1])]
+        pts = s[:-1] if closed[i] and len(s) > 2 and np.array_equal(s[0], s[-1]) else s
+        stand_ins.append(Toolpath(points=pts, z=float(zs[i]), material=MATERIAL_CODES[material[i]],
+                                  role=ROLE_CODES[role[i]], closed=bool(closed[i]),
+                                  width=float(widths[i]), layer=int(layer[i]), frame="base",
+                                  tool=tools[i]))
+    trajs = unpack_trajectories(data, stand_ins)
+    layers = tuple(LayerMotion(index=int(index[k]), z=float(layer_z[k]),
                                trajectories=tuple(trajs[int(ls[k]):int(ls[k + 1])]))
-                   for k in range(len(ls) - 1))
-    return BuildMotion(layers=layers, job=job, robot=str(data["robot"]),
-                       joint_names=tuple(str(x) for x in data["joint_names"]))
+                   for k in range(len(index)))
+    return BuildMotion(layers=layers, job=job, robot=robot, joint_names=joint_names)

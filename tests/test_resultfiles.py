@@ -1,0 +1,321 @@
+"""The result files given back to icefab (stack, toolpaths, trajectories): round trips,
+and every damaged or crafted file is one StackFileError naming the file (and the member),
+never a traceback, a hang or a large allocation (issue 10). ``bench/fuzz_results.py`` runs
+the same mutations by the ten thousand."""
+
+from __future__ import annotations
+
+import io
+import os
+import struct
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+from icefab import resultfiles as rf
+from icefab.config import Job
+from icefab.core import (BuildMotion, Layer, LayerMotion, LayerPaths, Region, Stack, Toolpath,
+                         Toolpaths, Trajectory)
+from icefab.errors import StackFileError
+
+
+def _square(c: float, r: float, ccw: bool = True) -> np.ndarray:
+    sq = np.array([[c - r, c - r], [c + r, c - r], [c + r, c + r], [c - r, c + r]], float)
+    return sq if ccw else sq[::-1].copy()
+
+
+def small_stack() -> Stack:
+    part = Region(rings=(_square(0, 10), _square(0, 4, ccw=False)), parent=np.array([-1, 0]))
+    scaffold = Region(rings=(_square(0, 14), _square(0, 10.5, ccw=False)),
+                      parent=np.array([-1, 0]))
+    layers = tuple(Layer(index=k, z=0.125 + 0.25 * k, part=part, scaffold=scaffold,
+                         top_z=0.25 * (k + 1)) for k in range(3))
+    return Stack(layers=layers, job=Job(), layer_thickness=0.25, warnings=("a warning",))
+
+
+def small_toolpaths() -> Toolpaths:
+    paths = (Toolpath(_square(0, 9), 0.25, "part", "boundary", True, 1.5, 0),
+             Toolpath(np.array([[9.0, -9.0], [13.0, -13.0]]), 0.25, "scaffold", "travel",
+                      False, 0.0, 0, tool="scaffold"),
+             Toolpath(_square(0, 13), 0.25, "scaffold", "fill", True, 1.5, 0),
+             Toolpath(_square(0, 12), 0.25, "part", "measure", True, 0.0, 0))
+    return Toolpaths((LayerPaths(0, 0.25, paths, (1.0, 2.0)), LayerPaths(1, 0.5, paths[:2])),
+                     Job(), ("w",))
+
+
+def small_motion() -> BuildMotion:
+    def traj(n: int, path: Toolpath | None, pieces=(0,)) -> Trajectory:
+        t = np.linspace(0.0, 1.0, n)
+        xy = np.c_[250 + 10 * t, -100 + 5 * t]
+        return Trajectory(dt=0.016, xy=xy, joints=np.c_[t, -t, t, 2 * t], speed=10 * t,
+                          duration=0.016 * (n - 1), path=path,
+                          pieces=np.asarray(pieces, np.int64))
+
+    tp = small_toolpaths().layers[0].paths
+    layers = (LayerMotion(0, 0.25, (traj(5, tp[0], (0, 2)), traj(3, tp[1]), traj(4, tp[2]))),
+              LayerMotion(1, 0.5, (traj(6, tp[3]),)))
+    return BuildMotion(layers=layers, job=Job(), robot="scara",
+                       joint_names=("j1", "j2", "j3", "j4"))
+
+
+KINDS = {
+    "stack": (small_stack, rf.save_stack, rf.load_stack),
+    "toolpaths": (small_toolpaths, rf.save_toolpaths, rf.load_toolpaths),
+    "trajectories": (small_motion, rf.save_trajectories, rf.load_trajectories),
+}
+
+
+@pytest.fixture(scope="module")
+def good(tmp_path_factory) -> dict[str, bytes]:
+    out = {}
+    d = tmp_path_factory.mktemp("good")
+    for kind, (make, save, _) in KINDS.items():
+        save(make(), d / f"{kind}.npz")
+        out[kind] = (d / f"{kind}.npz").read_bytes()
+    return out
+
+
+def _members(data: bytes) -> dict[str, np.ndarray]:
+    with np.load(io.BytesIO(data), allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}
+
+
+# --------------------------------------------------------------------------- round trips
+
+
+def test_round_trips(tmp_path):
+    st_ = small_stack()
+    back = rf.load_stack(rf.save_stack(st_, tmp_path / "s.npz"))
+    assert back.layer_thickness == 0.25 and back.warnings == ("a warning",)
+    for a, b in zip(st_, back):
+        assert (a.index, a.z, a.top_z) == (b.index, b.z, b.top_z)
+        for ra, rb in ((a.part, b.part), (a.scaffold, b.scaffold)):
+            assert np.array_equal(ra.parent, rb.parent)
+            assert all(np.array_equal(x, y) for x, y in zip(ra.rings, rb.rings))
+    tp = small_toolpaths()
+    rf.save_toolpaths(tp, tmp_path / "t.npz")
+    back_tp = rf.load_toolpaths(tmp_path / "t.npz")
+    for la, lb in zip(tp, back_tp):
+        assert la.unfilled_mm2 == lb.unfilled_mm2
+        for p, q in zip(la.paths, lb.paths):
+            assert np.array_equal(p.points, q.points)
+            assert (p.z, p.material, p.role, p.closed, p.width, p.layer, p.frame, p.tool) == \
+                (q.z, q.material, q.role, q.closed, q.width, q.layer, q.frame, q.tool)
+    mo = small_motion()
+    rf.save_trajectories(mo, tmp_path / "m.npz")
+    back_mo = rf.load_trajectories(tmp_path / "m.npz")
+    assert back_mo.joint_names == mo.joint_names
+    for la, lb in zip(mo.layers, back_mo.layers):
+        for a, b in zip(la.trajectories, lb.trajectories):
+            for x, y in ((a.xy, b.xy), (a.joints, b.joints), (a.speed, b.speed),
+                         (a.pieces, b.pieces)):
+                assert np.array_equal(x, y)
+            assert (a.dt, a.duration, a.path.material, a.path.role, a.path.width) == \
+                (b.dt, b.duration, b.path.material, b.path.role, b.path.width)
+
+
+def test_ragged_encoding_round_trips():
+    items = [np.arange(6.0).reshape(3, 2), np.zeros((0, 2)), np.ones((1, 2))]
+    rows, offs = rf.pack(items)
+    assert offs.tolist() == [0, 3, 3, 4] and offs.dtype == np.int64
+    assert all(np.array_equal(a, b) for a, b in zip(rf.split(rows, offs), items))
+    rows, offs = rf.pack([])
+    assert rows.shape == (0, 2) and offs.tolist() == [0]
+
+
+# --------------------------------------------------------------------------- reproducers
+
+
+def _write(tmp_path: Path, members: dict[str, np.ndarray], name="bad.npz") -> Path:
+    p = tmp_path / name
+    np.savez_compressed(p, **members)
+    return p
+
+
+@pytest.mark.parametrize("kind,change,member", [
+    ("toolpaths", {"role": np.full(4, 99, np.int8)}, "role"),
+    ("trajectories", {"role": np.array([0, 3, 1, 99], np.int8)}, "role"),
+    ("stack", {"version": np.array("x")}, "version"),
+    ("toolpaths", {"version": np.array("x")}, "version"),
+    ("trajectories", {"version": np.array(2.5)}, "version"),
+    ("stack", {"job": np.array("[slicing\n")}, "job"),
+    ("trajectories", {"job": np.array("[slicing\n")}, "job"),
+    ("stack", {"points": None}, "points"),        # one NaN (262 PiB in `icefab paths`)
+    ("trajectories", {"xy": None}, "xy"),         # one NaN: accepted by `valves` before
+    ("stack", {"ring_parent": np.array([1, 0, -1, 0, -1, 0])}, "ring_parent"),  # a cycle
+    ("stack", {"layer_thickness": np.array(-0.25)}, "layer_thickness"),
+    ("toolpaths", {"path_start": np.array([0, 4, 2, 10, 14])}, "path_start"),
+    ("trajectories", {"joints": np.zeros((18, 3))}, "joints"),
+    ("trajectories", {"piece_start": np.array([0, 2, 0, 9, 0])}, "piece_start"),
+    ("trajectories", {"tool": np.array(["", "scaffold", "", "nozzle"])}, "tool"),
+    ("trajectories", {"traj_dt": np.array([0.016, 0.0, 0.016, 0.016])}, "traj_dt"),
+    ("toolpaths", {"points": np.zeros((18, 3))}, "points"),
+    ("toolpaths", {"width": np.array([1.5, 0, 1.5, np.inf])}, "width"),
+    ("stack", {"points": np.array([[1e300, 0.0]] * 24)}, "points"),
+])
+def test_bad_members_name_file_and_member(tmp_path, good, kind, change, member):
+    members = _members(good[kind])
+    for k, v in change.items():
+        if v is None:  # one NaN in the first coordinate
+            v = members[k].copy()
+            v.flat[0] = np.nan
+        members[k] = v
+    p = _write(tmp_path, members)
+    with pytest.raises(StackFileError) as e:
+        KINDS[kind][2](p)
+    msg = str(e.value)
+    assert "bad.npz" in msg and f"member {member}" in msg and "\n" not in msg, msg
+
+
+def test_raw_zlib_damage_is_one_line(tmp_path, good):
+    data = bytearray(good["trajectories"])
+    with zipfile.ZipFile(io.BytesIO(bytes(data))) as z:
+        info = z.getinfo("xy.npy")
+    # flip a byte inside the compressed data of xy: a zlib or CRC error, named
+    off = info.header_offset
+    n_name, n_extra = struct.unpack("<HH", bytes(data[off + 26:off + 30]))
+    pos = off + 30 + n_name + n_extra + 10
+    data[pos] ^= 0xFF
+    p = tmp_path / "flip.npz"
+    p.write_bytes(bytes(data))
+    with pytest.raises(StackFileError, match=r"flip.npz: member xy: unreadable"):
+        rf.load_trajectories(p)
+
+
+def test_members_not_needed_are_never_decompressed(tmp_path, good, monkeypatch):
+    """An unexpected member (here 64 MB of zeros, 64 kB on disk) is refused from the zip
+    directory alone; the loaders open only the members they know."""
+    members = _members(good["stack"])
+    p = tmp_path / "big.npz"
+    np.savez_compressed(p, **members, unused=np.zeros(8 << 20))
+    opened = []
+    real_open = zipfile.ZipFile.open
+
+    def spy(self, name, *a, **k):
+        opened.append(getattr(name, "filename", name))
+        return real_open(self, name, *a, **k)
+
+    monkeypatch.setattr(zipfile.ZipFile, "open", spy)
+    with pytest.raises(StackFileError, match="unexpected members unused"):
+        rf.load_stack(p)
+    assert "unused.npy" not in opened
+    opened.clear()
+    rf.load_stack(_write(tmp_path, members, "ok.npz"))
+    assert set(opened) <= {k + ".npy" for k in members}
+
+
+def test_declared_sizes_are_checked_before_reading(tmp_path, good, monkeypatch):
+    monkeypatch.setattr(rf, "MAX_MEMBER_BYTES", 200)
+    p = tmp_path / "s.npz"
+    p.write_bytes(good["stack"])
+    with pytest.raises(StackFileError, match=r"member \w+: \d+ bytes uncompressed, more than"):
+        rf.load_stack(p)
+    # a header promising more than the member holds is refused before any allocation
+    monkeypatch.setattr(rf, "MAX_MEMBER_BYTES", 1 << 30)
+    members = _members(good["toolpaths"])
+    with zipfile.ZipFile(tmp_path / "t.npz", "w") as z:
+        for k, v in members.items():
+            b = io.BytesIO()
+            if k == "points":  # 10^13 points promised (160 TB), 20 given
+                np.lib.format.write_array_header_1_0(
+                    b, {"descr": "<f8", "fortran_order": False, "shape": (10**13, 2)})
+                b.write(v.tobytes())
+            else:
+                np.lib.format.write_array(b, v)
+            z.writestr(k + ".npy", b.getvalue())
+    with pytest.raises(StackFileError, match=r"member points: shape \(10000000000000, 2\)"):
+        rf.load_toolpaths(tmp_path / "t.npz")
+
+
+@pytest.mark.parametrize("kind", list(KINDS))
+def test_other_files_are_named_as_such(tmp_path, kind):
+    fifo = tmp_path / "fifo.npz"
+    os.mkfifo(fifo)
+    with pytest.raises(StackFileError, match="not a regular file"):
+        KINDS[kind][2](fifo)
+    with pytest.raises(StackFileError, match="not found"):
+        KINDS[kind][2](tmp_path / "missing.npz")
+    p = _write(tmp_path, {"x": np.zeros(3)}, "other.npz")
+    with pytest.raises(StackFileError, match="not an icefab"):
+        KINDS[kind][2](p)
+
+
+# --------------------------------------------------------------------------- fuzz
+
+_DTYPES = st.sampled_from([np.float64, np.float32, np.int64, np.int8, np.uint16, np.bool_,
+                           np.dtype("<U4"), np.complex64])
+
+
+@st.composite
+def mutations(draw, members: dict[str, np.ndarray]):
+    """A crafted version of a good file's members: some replaced by arrays of any dtype and
+    shape (NaN, infinities, extremes included), dropped, or joined by unknown ones."""
+    out = dict(members)
+    names = sorted(members)
+    for _ in range(draw(st.integers(1, 3))):
+        what = draw(st.sampled_from(["replace", "replace", "drop", "add", "perturb"]))
+        name = draw(st.sampled_from(names))
+        if what == "drop":
+            out.pop(name, None)
+        elif what == "add":
+            out["extra_" + name] = np.zeros(2)
+        elif what == "perturb" and name in out and out[name].dtype.kind in "fiu" \
+                and out[name].size:
+            a = out[name].copy()
+            i = draw(st.integers(0, a.size - 1))
+            a.flat[i] = draw(st.sampled_from([np.nan, np.inf, -1, 1e300, 2**40, -(2**40), 0,
+                                              a.flat[i] + 1])) if a.dtype.kind == "f" else \
+                draw(st.sampled_from([-1, 0, 1, 127, np.iinfo(a.dtype).max,
+                                      np.iinfo(a.dtype).min]))
+            out[name] = a
+        else:
+            out[name] = draw(hnp.arrays(_DTYPES, hnp.array_shapes(min_dims=0, max_dims=3,
+                                                                  max_side=6)))
+    return out
+
+
+@pytest.mark.parametrize("kind", list(KINDS))
+def test_crafted_files_load_or_raise_stack_file_error(tmp_path, good, kind):
+    members = _members(good[kind])
+    load = KINDS[kind][2]
+    p = tmp_path / "crafted.npz"
+
+    @settings(max_examples=60, deadline=None, derandomize=True,
+              suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+    @given(mutations(members))
+    def check(crafted):
+        np.savez_compressed(p, **crafted)
+        try:
+            load(p)
+        except StackFileError as exc:
+            assert "crafted.npz" in str(exc) and "\n" not in str(exc)
+
+    check()
+
+
+@pytest.mark.parametrize("kind", list(KINDS))
+def test_damaged_bytes_load_or_raise_stack_file_error(tmp_path, good, kind):
+    data = good[kind]
+    load = KINDS[kind][2]
+    p = tmp_path / "damaged.npz"
+
+    @settings(max_examples=60, deadline=None, derandomize=True)
+    @given(st.lists(st.tuples(st.integers(0, len(data) - 1), st.integers(0, 255)),
+                    min_size=1, max_size=6), st.integers(1, len(data)))
+    def check(flips, cut):
+        b = bytearray(data[:cut])
+        for i, v in flips:
+            if i < len(b):
+                b[i] = v
+        p.write_bytes(bytes(b))
+        try:
+            load(p)
+        except StackFileError as exc:
+            assert "damaged.npz" in str(exc) and "\n" not in str(exc)
+
+    check()
