@@ -69,6 +69,7 @@ May import: ``icefab.core``, ``icefab.config``, ``icefab.errors``, ``icefab.atom
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import os
@@ -341,14 +342,20 @@ class _Members:
         return version
 
     def job(self):
-        text = self.text("job")
         try:
-            return job_from_dict(tomllib.loads(text))
+            return _job_from_toml(self.text("job"))
         except (tomllib.TOMLDecodeError, ConfigError) as exc:
             raise self.bad("job", f"the stored job is invalid ({exc})") from None
 
     def strings(self, name: str) -> tuple[str, ...]:
         return tuple(str(w) for w in self.array(name, "U", 1))
+
+
+@functools.lru_cache(maxsize=8)
+def _job_from_toml(text: str):
+    """The Job a result file stores (cached: the files of one build share it, and a Job is
+    frozen)."""
+    return job_from_dict(tomllib.loads(text))
 
 
 def _check_tree(m: _Members, name: str, parent: np.ndarray, first: np.ndarray) -> None:
