@@ -17,9 +17,17 @@ HERE = Path(__file__).resolve().parent
 CACHE = HERE / ".cache"
 SRC = HERE.parent / "src" / "icefab"
 
-# the modules whose code decides a stack (slicing) and toolpaths (scaffold + paths)
-SLICING_MODULES = ("config", "types", "mesh", "geometry", "slicing")
-PATHS_MODULES = SLICING_MODULES + ("regions", "paths", "robots")
+# the modules (or packages) whose code decides a stack (slicing) and toolpaths (scaffold +
+# paths); tests/test_architecture.py's STAGES says what each may import
+SLICING_MODULES = ("config", "core", "stages", "resultfiles", "mesh", "geometry", "slicing")
+PATHS_MODULES = SLICING_MODULES + ("parallel", "frames", "regions", "paths", "robots")
+
+
+def job_key(job, step: str) -> str:
+    """The settings of ``job`` that ``step`` and the steps before it read
+    (``icefab.stages``): two jobs give the same cache file exactly when they agree there."""
+    from icefab.stages import digest
+    return digest(job, step)
 
 
 def cache_path(stem: str, modules: tuple[str, ...], mesh: Path | None = None,
@@ -27,7 +35,10 @@ def cache_path(stem: str, modules: tuple[str, ...], mesh: Path | None = None,
     """``bench/.cache/<stem>-<digest>.npz`` for the given icefab modules, mesh and extra."""
     h = hashlib.sha1()
     for name in modules:
-        h.update((SRC / f"{name}.py").read_bytes())
+        files = (sorted((SRC / name).rglob("*.py")) if (SRC / name).is_dir()
+                 else [SRC / f"{name}.py"])
+        for f in files:
+            h.update(f.read_bytes())
     if mesh is not None:
         st = Path(mesh).stat()
         h.update(f"{Path(mesh).name}:{st.st_size}:{st.st_mtime_ns}".encode())

@@ -48,7 +48,7 @@ from icefab.paths import (estimate_build_time, load_toolpaths, plan_paths,  # no
                           save_toolpaths, to_base_frame)
 from icefab.regions import add_scaffold  # noqa: E402
 
-from _cache import PATHS_MODULES, cache_path, drop_stale  # noqa: E402
+from _cache import PATHS_MODULES, cache_path, drop_stale, job_key  # noqa: E402
 
 BUNNY_EE = (340.0, 0.0)
 
@@ -87,7 +87,7 @@ def bunny_toolpaths():
     from meshes import big_mesh
     mesh = big_mesh("bunny")
     job = bunny_job()
-    path = cache_path("bunny-toolpaths-concentric", PATHS_MODULES, mesh, repr(job))
+    path = cache_path("bunny-toolpaths-concentric", PATHS_MODULES, mesh, job_key(job, "paths"))
     tp = _cached_toolpaths(path)
     if tp is not None:
         return tp, 0.0
@@ -109,7 +109,7 @@ def bunny_zigzag_toolpaths():
     from meshes import big_mesh
     mesh = big_mesh("bunny")
     zjob = bunny_job("zigzag")
-    path = cache_path("bunny-toolpaths-zigzag", PATHS_MODULES, mesh, repr(zjob))
+    path = cache_path("bunny-toolpaths-zigzag", PATHS_MODULES, mesh, job_key(zjob, "paths"))
     tp = _cached_toolpaths(path)
     if tp is not None:
         return tp, 0.0

@@ -39,7 +39,7 @@ HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 sys.path.insert(0, str(HERE))
 
-from _cache import SLICING_MODULES, cache_path, drop_stale  # noqa: E402
+from _cache import SLICING_MODULES, cache_path, drop_stale, job_key  # noqa: E402
 from _report import write_section  # noqa: E402
 from meshes import big_mesh  # noqa: E402
 
@@ -55,7 +55,7 @@ def _stack(name: str):
 
     mesh_path = big_mesh(name)
     job = Job()
-    cache = cache_path(f"{name}-stack-0.25", SLICING_MODULES, mesh_path, repr(job))
+    cache = cache_path(f"{name}-stack-0.25", SLICING_MODULES, mesh_path, job_key(job, "slice"))
     if cache.exists():
         try:
             return load_stack(cache), None

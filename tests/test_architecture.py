@@ -18,8 +18,8 @@ SRC = Path(__file__).resolve().parents[1] / "src"
 #: names a module or a package (then every module inside it belongs to the stage too).
 STAGES: list[tuple[str, tuple[str, ...]]] = [
     ("foundation", ("icefab.errors", "icefab.atomic", "icefab.config", "icefab.core",
-                    "icefab.types", "icefab.parallel", "icefab.frames", "icefab.robots",
-                    "icefab.resultfiles")),
+                    "icefab.types", "icefab.stages", "icefab.parallel", "icefab.frames",
+                    "icefab.robots", "icefab.resultfiles")),
     ("geometry", ("icefab.geometry",)),
     ("mesh", ("icefab.mesh", "icefab.demo")),
     ("slicing", ("icefab.slicing",)),

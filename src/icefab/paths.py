@@ -70,6 +70,7 @@ from icefab import geometry as geo
 from icefab.config import Job, MaterialSettings
 from icefab.frames import TOOLS, tool_offset, to_base_frame  # noqa: F401 (old home)
 from icefab.parallel import parallel_map
+from icefab.stages import check_layer_thickness
 from icefab.regions import hook_band_mm
 from icefab.resultfiles import (TOOLPATHS_FORMAT as FORMAT, TOOLPATHS_VERSION as VERSION,  # noqa: F401
                                 load_toolpaths, pack_layer_paths, save_toolpaths,
@@ -802,9 +803,11 @@ def plan_paths(stack: Stack, job: Job | None = None, *,
         ``job.cell.cpus``); default ``stack.job``.
     progress: optional ``progress(done, total)`` callback (layers planned).
     Layers are planned independently on a process pool. Returns ``Toolpaths`` whose
-    warnings carry the stack's warnings plus a summary of unfilled area.
+    warnings carry the stack's warnings plus a summary of unfilled area. ConfigError if
+    ``job``'s layer thickness contradicts the stack's.
     """
     job = job or stack.job
+    check_layer_thickness(stack.layer_thickness, job)
     packed = parallel_map(_plan_task, [(layer, job) for layer in stack.layers], job,
                           min_items=8, progress=progress)
     layers = [unpack_layer_paths(p) for p in packed]

@@ -54,6 +54,7 @@ from icefab import geometry as geo
 from icefab.config import Job, MaterialSettings
 from icefab.core import Region, Stack
 from icefab.geometry import signed_area
+from icefab.stages import check_layer_thickness
 from icefab.parallel import n_workers, parallel_map  # noqa: F401  (n_workers: old home)
 
 log = logging.getLogger(__name__)
@@ -149,9 +150,11 @@ def add_scaffold(stack: Stack, job: Job | None = None, *,
         part report, ``job.cell.cpus``); default ``stack.job``.
     progress: optional ``progress(done, total)`` callback for the per-layer work.
     Returns a new Stack; ``warnings`` gains one line per thin part feature (layer, x, y,
-    area) narrower than the part path width.
+    area) narrower than the part path width. ConfigError if ``job``'s layer thickness
+    contradicts the stack's (the thickness the stack was sliced at travels with it).
     """
     job = job or stack.job
+    check_layer_thickness(stack.layer_thickness, job)
     s = job.scaffold
     layers = list(stack.layers)
     n = len(layers)

@@ -8,9 +8,10 @@ import logging
 from typing import Callable, Sequence
 
 
-from icefab.config import Job, to_dict
+from icefab.config import Job
 from icefab.core import BuildMotion, LayerMotion, LayerPaths, Toolpaths
 from icefab.errors import SimulationError
+from icefab.stages import PLACEMENT, placement_differences
 from icefab.motion import plan_toolpaths
 from icefab.sim.cell import Controller, SimResult, run_cell
 from icefab.sim.plans import _measured, measurement_layers, plan_layer, plan_layer_motion
@@ -48,27 +49,16 @@ def measured_layers(build: "Toolpaths | BuildMotion", job: "Job | None" = None, 
     return [chosen[j].index for j in _measured(flags, job.feedback.interval_layers)]
 
 
-#: Settings that shape where trajectories put the material; a build simulated with another
-#: job than the one its trajectories were planned with must agree on them.
-MOTION_SETTINGS = ("slicing.layer_thickness_mm", "cell.ee_origin_mm", "cell.laser_offset_mm",
-                   "materials.part.nozzle_offset_mm", "materials.scaffold.nozzle_offset_mm",
-                   "materials.part.path_width_mm", "materials.part.fill_width_mm",
-                   "materials.scaffold.path_width_mm", "materials.scaffold.fill_width_mm")
+#: Settings trajectories and the job simulating them must agree on (declared in
+#: :data:`icefab.stages.PLACEMENT`; this name is kept for one release).
+MOTION_SETTINGS = PLACEMENT
 
 
 def check_motion_job(planned: "Job", job: "Job", source: str = "the trajectories") -> None:
     """SimulationError if ``job`` differs from the job trajectories were ``planned`` with
-    in a setting that moves the material (:data:`MOTION_SETTINGS`): frames, tool offsets,
-    widths, layer thickness. Names the first difference and counts the others."""
-
-    a, b = to_dict(planned), to_dict(job)
-
-    def get(d: dict, dotted: str):
-        for key in dotted.split("."):
-            d = d[key]
-        return d
-
-    diff = [(k, get(a, k), get(b, k)) for k in MOTION_SETTINGS if get(a, k) != get(b, k)]
+    in a setting that moves the material (:data:`icefab.stages.PLACEMENT`): frames, tool
+    offsets, widths, layer thickness. Names the first difference and counts the others."""
+    diff = placement_differences(planned, job)
     if diff:
         k, va, vb = diff[0]
         more = f" (and {len(diff) - 1} more)" if len(diff) > 1 else ""

@@ -1,0 +1,138 @@
+"""Which settings each pipeline step reads, declared once.
+
+PrusaSlicer's ``PrintObjectStep`` invalidation is the model: every job setting belongs to
+the first step that reads it; changing it invalidates that step and every step after it
+(an earlier step's output stays valid). Used wherever a result of one job meets another
+job: the simulator's check of trajectories against the job it runs with, and the
+benchmarks' caches of stacks and toolpaths. A setting no step's output depends on
+(``cell.cpus``: the worker count never changes a result) is in :data:`NEUTRAL`.
+
+What an earlier step decided travels with its output (``Stack.layer_thickness``, the job
+stored in every result file); :func:`check_agrees` turns a contradiction between that and
+the job a later step is given into one error naming the setting and both values.
+
+May import: ``icefab.config``, ``icefab.errors``.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+from icefab.config import to_dict
+from icefab.errors import ConfigError
+
+if TYPE_CHECKING:  # pragma: no cover
+    from icefab.config import Job
+
+#: The steps in pipeline order.
+STEPS = ("slice", "scaffold", "paths", "motion", "valves", "simulate")
+
+#: Settings (dotted names; a trailing "." names a whole section) by the first step that
+#: reads them. Checked by the tests to cover every setting of the Job exactly once.
+READS: dict[str, tuple[str, ...]] = {
+    "slice": ("parts.", "slicing."),
+    "scaffold": ("scaffold.",),
+    "paths": ("materials.part.path_width_mm", "materials.part.fill_width_mm",
+              "materials.part.initial_offset_mm", "materials.part.boundary_count",
+              "materials.part.fill_pattern", "materials.part.fill_angle_deg",
+              "materials.part.hybrid_rings", "materials.part.hybrid_angle_step_deg",
+              "materials.part.nozzle_offset_mm", "materials.part.gap_fill",
+              "materials.scaffold.path_width_mm", "materials.scaffold.fill_width_mm",
+              "materials.scaffold.initial_offset_mm", "materials.scaffold.boundary_count",
+              "materials.scaffold.fill_pattern", "materials.scaffold.fill_angle_deg",
+              "materials.scaffold.hybrid_rings", "materials.scaffold.hybrid_angle_step_deg",
+              "materials.scaffold.nozzle_offset_mm", "materials.scaffold.gap_fill",
+              "materials.order", "cell.laser_offset_mm", "feedback.interval_layers",
+              "feedback.measure_spacing_mm"),
+    "motion": ("motion.", "cell.robot", "cell.l1_mm", "cell.l2_mm", "cell.reach_mm",
+               "cell.joint_range_deg", "cell.elbow", "cell.gantry_travel_mm",
+               "cell.ee_origin_mm", "cell.encoder_resolution_deg"),
+    "valves": ("flow.", "materials.part.calibration_file", "materials.part.density_g_cm3",
+               "materials.scaffold.calibration_file", "materials.scaffold.density_g_cm3"),
+    "simulate": ("simulation.", "feedback.", "cell.laser_latency_s"),
+}
+
+#: Settings no step's output depends on.
+NEUTRAL = ("cell.cpus",)
+
+#: Settings that decide where a build's material goes once its paths exist: frames, tool
+#: offsets, widths, layer thickness. Trajectories simulated with another job than the one
+#: they were planned with must agree on these (the simulator re-plans valve programs and
+#: deposits with the job's other settings).
+PLACEMENT = ("slicing.layer_thickness_mm", "cell.ee_origin_mm", "cell.laser_offset_mm",
+             "materials.part.nozzle_offset_mm", "materials.scaffold.nozzle_offset_mm",
+             "materials.part.path_width_mm", "materials.part.fill_width_mm",
+             "materials.scaffold.path_width_mm", "materials.scaffold.fill_width_mm")
+
+
+def _flat(job: "Job") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+
+    def walk(d: dict, prefix: str) -> None:
+        for k, v in d.items():
+            if isinstance(v, dict):
+                walk(v, f"{prefix}{k}.")
+            else:
+                out[prefix + k] = v
+
+    walk(to_dict(job), "")
+    return out
+
+
+def step_of(setting: str) -> str | None:
+    """The first step that reads ``setting`` (dotted name), None for a neutral one."""
+    if setting in NEUTRAL:
+        return None
+    best, rank = None, -1
+    for step in STEPS:
+        for name in READS[step]:
+            hit = setting == name or (name.endswith(".") and setting.startswith(name))
+            if hit and len(name) > rank:  # the most specific declaration wins
+                best, rank = step, len(name)
+    if best is None:
+        raise KeyError(f"setting {setting!r} is read by no step: declare it in "
+                       "icefab.stages.READS")
+    return best
+
+
+def settings_up_to(step: str, job: "Job") -> list[str]:
+    """Every setting of ``job`` that ``step`` or an earlier step reads, in job order."""
+    last = STEPS.index(step)
+    return [k for k in _flat(job) if (s := step_of(k)) is not None and STEPS.index(s) <= last]
+
+
+def differences(a: "Job", b: "Job", step: str) -> list[tuple[str, Any, Any]]:
+    """(setting, value in a, value in b) for every setting up to ``step`` that differs."""
+    fa, fb = _flat(a), _flat(b)
+    return [(k, fa[k], fb[k]) for k in settings_up_to(step, a) if fa[k] != fb[k]]
+
+
+def first_invalidated(a: "Job", b: "Job") -> str | None:
+    """The first step whose output made with ``a`` is not valid for ``b`` (None: all are)."""
+    fa, fb = _flat(a), _flat(b)
+    steps = [step_of(k) for k in fa if fa[k] != fb[k]]
+    steps = [s for s in steps if s is not None]
+    return min(steps, key=STEPS.index) if steps else None
+
+
+def digest(job: "Job", step: str) -> str:
+    """A text of every setting up to ``step`` (for cache keys: equal for two jobs exactly
+    when ``step``'s output is the same)."""
+    f = _flat(job)
+    return "\n".join(f"{k}={f[k]!r}" for k in settings_up_to(step, job))
+
+
+def placement_differences(a: "Job", b: "Job") -> list[tuple[str, Any, Any]]:
+    """(setting, value in a, value in b) for the :data:`PLACEMENT` settings that differ."""
+    fa, fb = _flat(a), _flat(b)
+    return [(k, fa[k], fb[k]) for k in PLACEMENT if fa[k] != fb[k]]
+
+
+def check_layer_thickness(stack_thickness: float, job: "Job", what: str = "the stack") -> None:
+    """ConfigError if ``job.slicing.layer_thickness_mm`` contradicts the thickness a stack
+    was sliced at (it travels with the stack: ``Stack.layer_thickness``)."""
+    t = float(job.slicing.layer_thickness_mm)
+    if abs(t - float(stack_thickness)) > 1e-12 * max(1.0, abs(t)):
+        raise ConfigError(f"slicing.layer_thickness_mm = {t:g}, but {what} was sliced at "
+                          f"{float(stack_thickness):g} mm: use the stack's thickness or slice "
+                          "again with this job")

@@ -1,0 +1,68 @@
+"""Stage settings (issue 12): which settings each step reads is declared once
+(icefab.stages), and what an earlier stage decided travels with its output."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from icefab import stages
+from icefab.config import Job
+from icefab.core import Layer, Region, Stack
+from icefab.errors import ConfigError
+from icefab.paths import plan_paths
+from icefab.regions import add_scaffold
+
+
+def _settings(job: Job) -> list[str]:
+    return list(stages._flat(job))
+
+
+def test_every_setting_is_read_by_exactly_one_first_step():
+    for key in _settings(Job()):
+        step = stages.step_of(key)
+        assert step in stages.STEPS or key in stages.NEUTRAL, key
+    assert set(stages.PLACEMENT) <= set(_settings(Job()))
+
+
+@pytest.mark.parametrize("change,first", [
+    ({"slicing.layer_thickness_mm": 0.5}, "slice"),
+    ({"scaffold.buffer_mm": 3.0}, "scaffold"),
+    ({"materials.part.fill_pattern": "zigzag"}, "paths"),
+    ({"motion.dt_s": 0.008}, "motion"),
+    ({"flow.tick_s": 0.001}, "valves"),
+    ({"simulation.seed": 7}, "simulate"),
+    ({"cell.cpus": 1}, None),  # the worker count never changes a result
+])
+def test_a_change_invalidates_its_first_reader_and_after(change, first):
+    a, b = Job(), Job().replace(**change)
+    assert stages.first_invalidated(a, b) == first
+    for step in stages.STEPS:
+        same = first is None or stages.STEPS.index(step) < stages.STEPS.index(first)
+        assert (stages.digest(a, step) == stages.digest(b, step)) == same, step
+
+
+def _stack(thickness: float) -> Stack:
+    sq = np.array([[0, 0], [20, 0], [20, 20], [0, 20]], float)
+    layers = tuple(Layer(k, (k + 0.5) * thickness, Region((sq,), np.array([-1])),
+                         top_z=(k + 1) * thickness) for k in range(3))
+    return Stack(layers, Job(), thickness)
+
+
+def test_a_job_contradicting_the_stacks_thickness_is_an_error():
+    # the issue's case: sliced at 0.25 mm, scaffolded with a 0.5 mm job
+    stack = _stack(0.25)
+    thick = Job().replace(**{"slicing.layer_thickness_mm": 0.5})
+    with pytest.raises(ConfigError, match=r"slicing.layer_thickness_mm = 0.5, but the stack "
+                                          r"was sliced at 0.25 mm"):
+        add_scaffold(stack, thick)
+    with pytest.raises(ConfigError, match="sliced at 0.25 mm"):
+        plan_paths(stack, thick)
+    assert len(add_scaffold(stack, Job())) == 3  # agreeing: fine
+
+
+def test_placement_differences_name_the_setting():
+    a = Job()
+    b = a.replace(**{"cell.ee_origin_mm": (250.0, -90.0), "motion.dt_s": 0.008})
+    diff = stages.placement_differences(a, b)
+    assert [d[0] for d in diff] == ["cell.ee_origin_mm"]  # dt does not move material
