@@ -1,5 +1,6 @@
 """CLI framework: one-line errors, exit codes, atomic output folders, progress."""
 import io
+from pathlib import Path
 
 import pytest
 
@@ -177,3 +178,18 @@ def test_output_dir_removes_only_its_commands_stale_results(tmp_path):
         (d / "result.npz").write_text("4")
     assert (tmp_path / "outside").read_text() == "keep"
     assert (target / ".icefab-other").exists() and (target / "stack.npz").exists()
+
+
+def test_every_listed_command_exists_and_none_is_skipped():
+    """The command table names modules that exist; each registers its command (a missing
+    or misspelled module used to be skipped silently)."""
+    import argparse
+
+    from icefab.cli import SUBCOMMANDS, build_parser
+
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    assert set(SUBCOMMANDS) <= set(sub.choices)
+    cli_dir = Path(__file__).resolve().parents[1] / "src" / "icefab" / "cli"
+    modules = {p.stem[:-4] for p in cli_dir.glob("*_cmd.py")}
+    assert modules == set(SUBCOMMANDS), "a *_cmd.py module not in SUBCOMMANDS, or the reverse"

@@ -78,3 +78,14 @@ def test_mug_has_through_hole_and_open_top():
 def test_demo_job_is_default():
     from icefab.config import Job
     assert demo_job() == Job()
+
+
+def test_shipped_mug_is_the_manifold3d_build():
+    """The demo mug ships as data (no manifold3d at run time); it is exactly what
+    manifold3d builds (the test extra installs it)."""
+    from icefab.demo import build_demo_mug
+
+    shipped, built = demo_mug(), build_demo_mug()
+    assert np.array_equal(shipped.vertices, built.vertices)
+    assert np.array_equal(shipped.faces, built.faces)
+    assert shipped.vertices.dtype == np.float64 and shipped.faces.dtype == np.int64

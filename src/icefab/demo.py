@@ -3,8 +3,10 @@
 The mug exercises what a slicer must get right: an open cup (a solid bottom, then a ring
 with a hole in every layer above it), a handle that forms a through-hole with the body
 (nested contours: two outer rings and holes), and the lower arc of the handle, which
-overhangs and needs scaffold. Built with manifold3d (exact, watertight Boolean operations)
-and converted to an icefab :class:`~icefab.core.Mesh`.
+overhangs and needs scaffold. Built with manifold3d (exact, watertight Boolean operations,
+:func:`build_demo_mug`) and shipped as data (``icefab/data/demo_mug.npz``, 31 kB), so
+icefab does not need manifold3d at run time; the tests check the data against a fresh
+build.
 
 Dimensions (mm): body outer radius 40, wall 4, bottom 6, height 125; handle: a torus of
 centre-line radius 30 and tube radius 7 in the x-z plane, its centre 45 mm from the axis
@@ -14,11 +16,13 @@ at mid height, so it sticks out about 42 mm from the body.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 
 from icefab.config import Job
 from icefab.core import Mesh
+from icefab.errors import ConfigError
 
 MUG_HEIGHT_MM = 125.0
 MUG_RADIUS_MM = 40.0
@@ -30,15 +34,37 @@ HANDLE_OFFSET_MM = 45.0      # distance of the ring centre from the mug axis
 HANDLE_Z_MM = 62.5           # height of the ring centre
 
 
-def demo_mug(segments: int = 96) -> Mesh:
+DEMO_SEGMENTS = 96
+_DATA = Path(__file__).resolve().parent / "data" / "demo_mug.npz"
+
+
+def demo_mug(segments: int = DEMO_SEGMENTS) -> Mesh:
     """A closed, watertight beer mug, about 125 mm tall and 80 mm in diameter (+ handle).
 
     segments: number of segments around the body and the handle ring (the handle tube
-        uses a third of it). The mug stands on z = 0, its axis is the z axis, the handle
-        points to +x. Returns a Mesh (vertices float64 mm, faces int64), < 50k faces for
-        segments <= 128.
+        uses a third of it); the default mug is read from the package data, another
+        count is built with :func:`build_demo_mug` (needs manifold3d). The mug stands on
+        z = 0, its axis is the z axis, the handle points to +x. Returns a Mesh (vertices
+        float64 mm, faces int64), < 50k faces for segments <= 128.
     """
-    import manifold3d as m3
+    if segments != DEMO_SEGMENTS:
+        return build_demo_mug(segments)
+    with np.load(_DATA, allow_pickle=False) as data:
+        vertices = np.ascontiguousarray(data["vertices"], dtype=np.float64)
+        faces = np.ascontiguousarray(data["faces"], dtype=np.int64)
+    return Mesh(vertices, faces, "demo-mug")
+
+
+def build_demo_mug(segments: int = DEMO_SEGMENTS) -> Mesh:
+    """The demo mug built with manifold3d (``pip install manifold3d``; the test extra has
+    it): how ``icefab/data/demo_mug.npz`` was made, with ``segments`` as in
+    :func:`demo_mug`."""
+    try:
+        import manifold3d as m3
+    except ImportError:
+        raise ConfigError(f"a demo mug of {segments} segments is built with manifold3d, which "
+                          "is not installed (pip install manifold3d); the default "
+                          f"{DEMO_SEGMENTS} needs nothing") from None
 
     body = m3.Manifold.cylinder(MUG_HEIGHT_MM, MUG_RADIUS_MM, MUG_RADIUS_MM, segments)
     cavity_h = MUG_HEIGHT_MM - MUG_BOTTOM_MM + 1.0  # pokes through the top: open cup

@@ -31,14 +31,29 @@ if TYPE_CHECKING:  # pragma: no cover
 _COLOUR = {"part": "tab:blue", "scaffold": "tab:orange"}
 
 
-def pyplot():
-    """matplotlib.pyplot on the non-interactive Agg backend (no display needed)."""
-    import matplotlib
+class _Figures:
+    """The part of ``matplotlib.pyplot`` the pictures use, on plain ``Figure`` objects: no
+    backend is chosen and no global figure list kept, so drawing a report leaves the
+    caller's matplotlib (an interactive session, a notebook) as it was."""
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    _FIGURE_KW = ("figsize", "dpi", "constrained_layout", "layout", "facecolor")
 
-    return plt
+    @classmethod
+    def subplots(cls, *args: Any, **kw: Any) -> tuple[Any, Any]:
+        from matplotlib.figure import Figure
+
+        fig = Figure(**{k: kw.pop(k) for k in cls._FIGURE_KW if k in kw})
+        return fig, fig.subplots(*args, **kw)
+
+    @staticmethod
+    def close(fig: Any) -> None:
+        """Nothing to release: the figure was never registered with pyplot."""
+
+
+def pyplot() -> type[_Figures]:
+    """What the pictures need of pyplot (``subplots``, ``close``), without pyplot: figures
+    are ``matplotlib.figure.Figure`` objects saved by :func:`save_figure`."""
+    return _Figures
 
 
 def save_figure(fig: Any, path: str | os.PathLike, *, dpi: int = 110) -> Path:

@@ -17,10 +17,11 @@ import sys
 from icefab.cli.common import check_output_dir
 from icefab.errors import IcefabError
 
-# Subcommand modules, in the order shown by --help. A module that does not exist yet is
-# skipped so the command keeps working while stages are added.
+# Subcommand modules ``icefab.cli.<name>_cmd``, in the order shown by --help. Add a command
+# here when its module lands: a listed module that cannot be imported is an error (it was
+# skipped silently, so a misspelled name dropped a command unnoticed).
 SUBCOMMANDS = ("demo", "slice", "paths", "plan", "valves", "simulate", "tune", "calibrate",
-               "build", "export", "cell", "report")
+               "export", "cell")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -32,13 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name in SUBCOMMANDS:
-        try:
-            module = importlib.import_module(f"icefab.cli.{name}_cmd")
-        except ModuleNotFoundError as exc:
-            if exc.name == f"icefab.cli.{name}_cmd":
-                continue
-            raise
-        module.add_parser(sub)
+        importlib.import_module(f"icefab.cli.{name}_cmd").add_parser(sub)
     return parser
 
 
