@@ -46,6 +46,7 @@ import test_resultfiles as fixtures  # noqa: E402  (the small good files of the 
 
 HANG_S = 20
 BIG_BYTES = 2 << 30
+ZERO_BYTES = 3 << 30
 
 
 class _Hang(Exception):
@@ -147,43 +148,42 @@ def _promise(members: dict[str, np.ndarray], victim: str, path: Path) -> None:
             z.writestr(k + ".npy", b.getvalue())
 
 
-def _zero_bombs(members: dict[str, np.ndarray], tmp: Path, kind: str, zeros_npy: Path,
+def _write_zeros(z: zipfile.ZipFile, name: str) -> None:
+    """A 3 GiB float64 npy of zeros as member ``name``, streamed from memory (deflated to
+    a few MB)."""
+    head = io.BytesIO()
+    np.lib.format.write_array_header_1_0(
+        head, {"descr": "<f8", "fortran_order": False, "shape": (ZERO_BYTES // 8,)})
+    chunk = bytes(64 << 20)
+    with z.open(name, "w", force_zip64=True) as fh:
+        fh.write(head.getvalue())
+        for _ in range(ZERO_BYTES // len(chunk)):
+            fh.write(chunk)
+
+
+def _zero_bombs(members: dict[str, np.ndarray], tmp: Path, kind: str,
                 rng: np.random.Generator) -> list[Path]:
-    """Files holding the 3 GiB zero member: unused, and in place of three used members
-    (deflating 3 GiB takes seconds, so these few are made once and loaded repeatedly)."""
+    """Files holding a 3 GiB zero member: unused, and in place of one used member
+    (deflating 3 GiB takes seconds, so these are made once and loaded repeatedly)."""
     names = sorted(members)
     out = []
-    for j, victim in enumerate([None] + [names[int(i)] for i in
-                                         rng.choice(len(names), 3, replace=False)]):
+    for j, victim in enumerate([None, names[int(rng.integers(len(names)))]]):
         path = tmp / f"bomb-{kind}-{j}.npz"
         with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as z:
             for k, v in members.items():
                 if k == victim:
-                    z.write(zeros_npy, k + ".npy")
+                    _write_zeros(z, k + ".npy")
                 else:
                     b = io.BytesIO()
                     np.lib.format.write_array(b, v)
                     z.writestr(k + ".npy", b.getvalue())
             if victim is None:
-                z.write(zeros_npy, "unused.npy")
+                _write_zeros(z, "unused.npy")
         out.append(path)
     return out
 
 
-def _zeros_npy(tmp: Path) -> Path:
-    """A 3 GiB npy of zeros (float64), written once."""
-    p = tmp / "zeros.npy"
-    n = 3 << 27
-    with open(p, "wb") as fh:
-        np.lib.format.write_array_header_1_0(
-            fh, {"descr": "<f8", "fortran_order": False, "shape": (n,)})
-        chunk = bytes(64 << 20)
-        for _ in range((n * 8) // len(chunk)):
-            fh.write(chunk)
-    return p
-
-
-def run(kind: str, cases: int, seed: int, tmp: Path, zeros_npy: Path | None) -> Counter:
+def run(kind: str, cases: int, seed: int, tmp: Path, bomb: bool) -> Counter:
     make, save, load = fixtures.KINDS[kind]
     good = tmp / f"{kind}.npz"
     save(make(), good)
@@ -193,7 +193,7 @@ def run(kind: str, cases: int, seed: int, tmp: Path, zeros_npy: Path | None) -> 
     counts: Counter = Counter()
     shown = 0
     path = tmp / f"crafted-{kind}.npz"
-    bombs = _zero_bombs(members, tmp, kind, zeros_npy, rng) if zeros_npy is not None else []
+    bombs = _zero_bombs(members, tmp, kind, rng) if bomb else []
     t_start = time.perf_counter()
     for i in range(cases):
         r = rng.random()
@@ -207,7 +207,7 @@ def run(kind: str, cases: int, seed: int, tmp: Path, zeros_npy: Path | None) -> 
         elif r < 0.8:
             _save(_mutate_members(members, rng), path)
             cls = "member"
-        elif r < 0.95 or zeros_npy is None:
+        elif r < 0.95 or not bomb:
             _save(_header(members, rng), path)
             cls = "header"
         else:
@@ -269,12 +269,11 @@ def main(argv: list[str] | None = None) -> int:
     bad = 0
     with tempfile.TemporaryDirectory(prefix="icefab-fuzz-results-") as tmp:
         tmp = Path(tmp)
-        zeros = None if args.no_bomb else _zeros_npy(tmp)
         vm = _address_space()
         resource.setrlimit(resource.RLIMIT_AS, (vm + BIG_BYTES, resource.RLIM_INFINITY))
         print(f"# address space before the first case {vm >> 20} MB; limit + 2048 MB")
         for kind in ([args.only] if args.only else sorted(fixtures.KINDS)):
-            c = run(kind, args.cases, args.seed, tmp, zeros)
+            c = run(kind, args.cases, args.seed, tmp, not args.no_bomb)
             bad += c["tracebacks"] + c["hangs"] + c["allocations > 2 GB"] \
                 + c["error not one line naming the file"]
             print(f"{kind}: " + ", ".join(f"{k} {v}" for k, v in sorted(c.items())))

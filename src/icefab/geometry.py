@@ -111,8 +111,6 @@ def _fix_nesting(rings: list[np.ndarray], parent: list[int]) -> Region:
     new parent is the smallest ring of the opposite orientation whose bounding box holds
     it and that contains most of its (up to 16 sampled) vertices (none: top level). Rings
     are re-ordered so parents come first."""
-    from matplotlib.path import Path as MplPath
-
     n = len(rings)
     areas = ring_areas(rings)
     par = np.asarray(parent, dtype=np.int64).copy()
@@ -129,7 +127,7 @@ def _fix_nesting(rings: list[np.ndarray], parent: list[int]) -> Region:
         sample = rings[i][np.linspace(0, len(rings[i]) - 1, min(16, len(rings[i]))).astype(int)]
         par[i] = -1
         for j in cand:
-            if MplPath(rings[j]).contains_points(sample).mean() > 0.5:
+            if points_inside(sample, [rings[j]]).mean() > 0.5:
                 par[i] = int(j)
                 break
     kids: dict[int, list[int]] = {}

@@ -92,7 +92,7 @@ import numpy as np
 
 from icefab.config import Job
 from icefab.errors import GeometryError
-from icefab.geometry import region_from_rings
+from icefab.geometry import _in_ring, region_from_rings
 from icefab.mesh.topology import edge_buckets
 from icefab.core import Layer, Mesh, Region, Stack, signed_area
 from icefab.resultfiles import (STACK_FORMAT, STACK_VERSION, load_stack,  # noqa: F401 (old home)
@@ -679,24 +679,6 @@ def _filter_compact(pts: np.ndarray, off: np.ndarray, order: np.ndarray, min_spa
 
 
 @numba.njit(cache=True)
-def _point_in_ring(x: float, y: float, pts: np.ndarray, s: int, e: int) -> bool:  # pragma: no cover
-    """Even-odd test of (x, y) against the ring pts[s:e]."""
-    inside = False
-    j = e - 1
-    for i in range(s, e):
-        xi = pts[i, 0]
-        yi = pts[i, 1]
-        xj = pts[j, 0]
-        yj = pts[j, 1]
-        if (yi > y) != (yj > y):
-            xc = xi + (y - yi) * (xj - xi) / (yj - yi)
-            if x < xc:
-                inside = not inside
-        j = i
-    return inside
-
-
-@numba.njit(cache=True)
 def _nesting(pts: np.ndarray, off: np.ndarray, group: np.ndarray,
              abs_area: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
     """Parent ring of every ring (Ossino 3.1 hierarchy array q), -1 for top level.
@@ -738,7 +720,7 @@ def _nesting(pts: np.ndarray, off: np.ndarray, group: np.ndarray,
                 votes = 0
                 for t in range(3):
                     i = s + (t * n) // 3
-                    if _point_in_ring(pts[i, 0], pts[i, 1], pts, off[c], off[c + 1]):
+                    if _in_ring(pts, off[c], off[c + 1], pts[i, 0], pts[i, 1]):
                         votes += 1
                 if votes == 1 or votes == 2:
                     overlap[r] = True
@@ -747,7 +729,7 @@ def _nesting(pts: np.ndarray, off: np.ndarray, group: np.ndarray,
                     break
                 if votes == 0:
                     for i in range(s, s + n):
-                        if _point_in_ring(pts[i, 0], pts[i, 1], pts, off[c], off[c + 1]):
+                        if _in_ring(pts, off[c], off[c + 1], pts[i, 0], pts[i, 1]):
                             overlap[r] = True
                             break
     return parent, overlap
