@@ -14,6 +14,7 @@ The thesis (Ch. 3.2) uses the opposite orientation; convert where thesis data is
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+import typing
 from typing import TYPE_CHECKING, Iterator, Literal
 
 import numpy as np
@@ -23,9 +24,14 @@ if TYPE_CHECKING:  # pragma: no cover
 
 Material = Literal["part", "scaffold"]
 Role = Literal["boundary", "fill", "measure", "travel"]
+Frame = Literal["part", "base"]
+#: The tool a path is given for; "" means derived from role and material (Toolpath.tool_name).
+Tool = Literal["", "part", "scaffold", "laser"]
 
-MATERIALS: tuple[str, ...] = ("part", "scaffold")
-ROLES: tuple[str, ...] = ("boundary", "fill", "measure", "travel")
+MATERIALS: tuple[str, ...] = typing.get_args(Material)
+ROLES: tuple[str, ...] = typing.get_args(Role)
+FRAMES: tuple[str, ...] = typing.get_args(Frame)
+TOOLS: tuple[str, ...] = typing.get_args(Tool)
 
 
 def signed_area(ring: np.ndarray) -> float:
@@ -210,13 +216,13 @@ class Toolpath:
 
     points: np.ndarray
     z: float = 0.0
-    material: str = "part"
-    role: str = "boundary"
+    material: Material = "part"
+    role: Role = "boundary"
     closed: bool = False
     width: float = 0.0
     layer: int = -1
-    frame: str = "part"
-    tool: str = ""
+    frame: Frame = "part"
+    tool: Tool = ""
 
     @property
     def tool_name(self) -> str:

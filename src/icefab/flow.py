@@ -74,7 +74,7 @@ import re
 import struct
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence, Union
 
 import numpy as np
 from scipy.integrate import cumulative_trapezoid, trapezoid
@@ -235,7 +235,11 @@ def trajectory_part_xy(trajectory: Trajectory, material: str, job: "Job") -> np.
     return to_part_frame(trajectory.xy, material, job)
 
 
-ActionLike = Any  # None | (n,) array | HeightMap | feedback.ControlAction | callable(xy)->(n,)
+#: A control action (fraction, 0 = nominal) given as: nothing; one value per trajectory
+#: sample ((n,) array or sequence); a surface sampled at the nozzle (HeightMap or
+#: ControlAction); or a callable mapping (n, 2) part-frame points, mm, to (n,) values.
+ActionLike = Union[None, np.ndarray, Sequence[float], HeightMap, feedback.ControlAction,
+                   Callable[[np.ndarray], np.ndarray]]
 
 
 def _action_values(action: ActionLike, trajectory: Trajectory, material: str,

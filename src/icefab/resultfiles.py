@@ -85,8 +85,9 @@ import numpy as np
 
 from icefab.atomic import atomic_path
 from icefab.config import job_from_dict, to_toml
-from icefab.core import (OFF, ON2, BuildMotion, Layer, LayerMotion, LayerPaths, Region, Stack,
-                         Toolpath, Toolpaths, Trajectory, point_states)
+from icefab.core import (FRAMES, MATERIALS, OFF, ON2, ROLES, TOOLS, BuildMotion, Layer,
+                         LayerMotion, LayerPaths, Region, Stack, Toolpath, Toolpaths,
+                         Trajectory, point_states)
 from icefab.errors import ConfigError, StackFileError
 
 log = logging.getLogger(__name__)
@@ -101,10 +102,10 @@ TRAJECTORIES_VERSION = 2
 TRAJECTORIES_READABLE = (1, 2)
 
 #: Codes of the path attributes in the files and worker packing (index = code).
-MATERIAL_CODES = ("part", "scaffold")
-ROLE_CODES = ("boundary", "fill", "measure", "travel")
-FRAME_CODES = ("part", "base")
-TOOL_CODES = ("", "part", "scaffold", "laser")
+MATERIAL_CODES = MATERIALS
+ROLE_CODES = ROLES
+FRAME_CODES = FRAMES
+TOOL_CODES = TOOLS
 
 
 # --------------------------------------------------------------------------- ragged arrays
