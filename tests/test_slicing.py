@@ -325,6 +325,8 @@ def test_random_rotated_boxes_match_convex_sections(ex, angles, t):
 
 def test_compiled_cut_equals_numpy_cut():
     """The parallel compiled kernel and the numpy expansion give identical segments."""
+    import _slicing_twins as twins
+
     from icefab import slicing as S
 
     tm = trimesh.creation.icosphere(subdivisions=3, radius=7.0)
@@ -338,13 +340,15 @@ def test_compiled_cut_equals_numpy_cut():
     nbr = S._facet_adjacency(f, len(v))
     for k0, k1 in [(0, len(q)), (5, 30)]:
         a = S._intersect(v, f, fz, q, lo, hi, k0, k1, nbr)
-        b = S._intersect_numpy(v, f, fz, q, lo, hi, k0, k1, nbr)
+        b = twins._intersect_numpy(v, f, fz, q, lo, hi, k0, k1, nbr)
         for name in ("layer", "facet", "edge", "points", "partner"):
             assert np.array_equal(getattr(a, name), getattr(b, name)), name
 
 
 def test_adjacency_hash_equals_sort():
     """Hash-table adjacency equals the sorting version, with boundary and non-manifold edges."""
+    import _slicing_twins as twins
+
     from icefab import slicing as S
 
     tm = trimesh.creation.icosphere(subdivisions=2)
@@ -354,7 +358,7 @@ def test_adjacency_hash_equals_sort():
     faces = np.vstack([faces[2:], fin])
     n = len(tm.vertices) + 1
     a = S._facet_adjacency(faces, n)
-    b = S._facet_adjacency_numpy(faces, n)
+    b = twins._facet_adjacency_numpy(faces, n)
     assert np.array_equal(a, b)
     assert (a == -1).any() and (a == -2).sum() == 3
 

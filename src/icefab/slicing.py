@@ -16,7 +16,7 @@ Pipeline (RPSLICE's FACETSLICE = INTERSECTFACET + SEGMERGE + PATHFILTER, thesis 
    and all layers at once: for every facet the range of planes it spans comes from
    ``searchsorted`` on its lowest and highest vertex, the (facet, plane) pairs are
    expanded with ``np.repeat``, and both crossing points are interpolated on the two
-   crossed facet edges (:func:`_intersect_numpy`). The production path runs the same
+   crossed facet edges (the numpy expansion lives in ``tests/_slicing_twins.py``). The production path runs the same
    rules and arithmetic in compiled kernels parallel over facets (:func:`_intersect`,
    bit-identical output, checked by the tests) to use both cores and skip the large
    temporaries.
@@ -113,8 +113,6 @@ MAX_WARNINGS = 500
 #: Segments per chunk of layers (bounds the memory of the vectorised intersection).
 _CHUNK_SEGMENTS = 3_000_000
 
-#: Use the numpy expansion instead of the compiled cut kernel (tests compare the two).
-_USE_NUMPY_CUT = False
 
 
 
@@ -171,40 +169,9 @@ def layer_planes(z_min: float, z_max: float, job: Job) -> tuple[np.ndarray, np.n
 # --------------------------------------------------------------------------- adjacency
 
 
-def _facet_adjacency_numpy(faces: np.ndarray, n_vertices: int) -> np.ndarray:
-    """Neighbour across every facet edge (sorting version; see :func:`_facet_adjacency`).
-
-    faces: (m, 3) int64. Local edge j of a facet joins its corners j and (j+1) % 3.
-    Returns (m, 3) int64: ``3*g + j'`` (facet g, its local edge j') of the facet across
-    that edge, -1 for a boundary edge (one facet), -2 for a non-manifold edge (> 2 facets).
-    """
-    m = len(faces)
-    a = faces
-    b = np.roll(faces, -1, axis=1)
-    lo = np.minimum(a, b).ravel()
-    hi = np.maximum(a, b).ravel()
-    key = lo.astype(np.int64) * np.int64(n_vertices) + hi
-    order = np.argsort(key, kind="stable")
-    ks = key[order]
-    nbr = np.full(3 * m, -1, dtype=np.int64)
-    if len(ks) == 0:
-        return nbr.reshape(m, 3)
-    start = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1]])
-    count = np.diff(np.r_[start, len(ks)])
-    two = start[count == 2]
-    h0, h1 = order[two], order[two + 1]
-    nbr[h0] = h1
-    nbr[h1] = h0
-    many = count > 2
-    if many.any():
-        idx = np.repeat(start[many], count[many]) + _ramp(count[many])
-        nbr[order[idx]] = -2
-    return nbr.reshape(m, 3)
-
-
 @numba.njit(cache=True)
 def _adjacency_kernel(faces: np.ndarray, n_vertices: int) -> np.ndarray:  # pragma: no cover
-    """Bucket twin of :func:`_facet_adjacency_numpy`: O(facets), no sort.
+    """Bucket twin of the sorting version in ``tests/_slicing_twins.py``: O(facets), no sort.
 
     Half-edges bucketed by their lower vertex (:func:`icefab.mesh.edge_buckets`) are
     matched by their upper vertex inside each small bucket.
@@ -276,74 +243,11 @@ class _Segments:
     partner: np.ndarray   # (2S,) int64 end on the other side of the edge, -1 none
 
 
-def _intersect_numpy(vertices: np.ndarray, faces: np.ndarray, fz: np.ndarray,
-                     q: np.ndarray, lo: np.ndarray, hi: np.ndarray, k0: int, k1: int,
-                     nbr: np.ndarray) -> _Segments:
-    """Cut every facet with the planes k0..k1-1 (thesis 3.2 INTERSECTFACET, Ossino eq. 1).
-
-    vertices (n, 3) float64 mm; faces (m, 3) int64; fz (m, 3) float64 corner heights;
-    q (L,) float64 classification heights; lo/hi (m,) int64 first plane above the lowest
-    corner / first plane above the highest corner (facet f is cut by planes lo..hi-1).
-    """
-    a = np.clip(lo, k0, k1)
-    b = np.clip(hi, k0, k1)
-    cnt = b - a
-    fsel = np.flatnonzero(cnt > 0)
-    cnt = cnt[fsel]
-    seg_f = np.repeat(fsel, cnt)
-    seg_k = np.repeat(a[fsel], cnt) + _ramp(cnt)
-    n_seg = len(seg_f)
-    qs = q[seg_k]
-    zc = fz[seg_f]                                   # (S, 3)
-    above = zc >= qs[:, None]
-    n_above = above.sum(axis=1)
-    lone = above ^ (n_above == 2)[:, None]           # the vertex alone on its side
-    i = np.argmax(lone, axis=1).astype(np.int8)
-    ip = (i + 2) % 3                                  # edge (i-1, i) has local index i-1
-    # Segment direction follows the facet orientation (material on the left, thesis 3.2):
-    # a lone vertex above runs from edge (i, i+1) to edge (i-1, i); below: the reverse.
-    lone_above = n_above == 1
-    e_start = np.where(lone_above, i, ip).astype(np.int8)
-    e_end = np.where(lone_above, ip, i).astype(np.int8)
-    edge = np.stack([e_start, e_end], axis=1)         # (S, 2)
-    # Crossing points, computed from the edge's corners in vertex-index order so that
-    # both facets sharing an edge produce bit-identical points.
-    fe = np.repeat(seg_f, 2)
-    le = edge.ravel().astype(np.int64)
-    va = faces[fe, le]
-    vb = faces[fe, (le + 1) % 3]
-    v0 = np.minimum(va, vb)
-    v1 = np.maximum(va, vb)
-    p0 = vertices[v0]
-    p1 = vertices[v1]
-    qe = np.repeat(qs, 2)
-    t = (qe - p0[:, 2]) / (p1[:, 2] - p0[:, 2])
-    pts = p0[:, :2] + t[:, None] * (p1[:, :2] - p0[:, :2])
-    # Partner of every end: the same layer's segment in the facet across the edge.
-    nb = nbr[fe, le]
-    partner = np.full(2 * n_seg, -1, dtype=np.int64)
-    ok = nb >= 0
-    if ok.any():
-        g = nb[ok] // 3
-        jg = nb[ok] % 3
-        kk = np.repeat(seg_k, 2)[ok]
-        base = np.zeros(len(lo), dtype=np.int64)
-        base[fsel] = np.cumsum(cnt) - cnt
-        inside = (kk >= a[g]) & (kk < b[g])
-        s2 = base[g] + kk - a[g]
-        s2 = np.where(inside, s2, 0)
-        which = (edge[s2, 1] == jg).astype(np.int64)
-        good = inside & ((edge[s2, 0] == jg) | (edge[s2, 1] == jg))
-        idx = np.flatnonzero(ok)
-        partner[idx[good]] = 2 * s2[good] + which[good]
-    return _Segments(layer=seg_k, facet=seg_f, edge=edge, points=pts, partner=partner)
-
-
 @numba.njit(cache=True, parallel=True)
 def _cut_kernel(vertices: np.ndarray, faces: np.ndarray, q: np.ndarray, fsel: np.ndarray,
                 a: np.ndarray, base: np.ndarray, cnt: np.ndarray, layer: np.ndarray,
                 edge: np.ndarray, pts: np.ndarray) -> None:  # pragma: no cover
-    """Compiled twin of the numpy expansion in :func:`_intersect_numpy` (same rules, same
+    """Compiled twin of the numpy expansion (``tests/_slicing_twins.py``) (same rules, same
     arithmetic, so bit-identical output), parallel over facets."""
     for ii in numba.prange(fsel.shape[0]):
         f = fsel[ii]
@@ -389,7 +293,7 @@ def _cut_kernel(vertices: np.ndarray, faces: np.ndarray, q: np.ndarray, fsel: np
 def _partner_kernel(fsel: np.ndarray, a: np.ndarray, base: np.ndarray, cnt: np.ndarray,
                     slot: np.ndarray, nbr: np.ndarray, edge: np.ndarray,
                     partner: np.ndarray) -> None:  # pragma: no cover
-    """Partner end across every end's edge (see :func:`_intersect_numpy`)."""
+    """Partner end across every end's edge (see the numpy twin in ``tests/_slicing_twins.py``)."""
     for ii in numba.prange(fsel.shape[0]):
         f = fsel[ii]
         for jj in range(cnt[ii]):
@@ -415,7 +319,8 @@ def _partner_kernel(fsel: np.ndarray, a: np.ndarray, base: np.ndarray, cnt: np.n
 def _intersect(vertices: np.ndarray, faces: np.ndarray, fz: np.ndarray, q: np.ndarray,
                lo: np.ndarray, hi: np.ndarray, k0: int, k1: int,
                nbr: np.ndarray) -> _Segments:
-    """Compiled, parallel version of :func:`_intersect_numpy` (identical output)."""
+    """Compiled, parallel version of the numpy expansion in ``tests/_slicing_twins.py``
+    (identical output, tested). ``fz`` is unused (kept for the twin's signature)."""
     a = np.clip(lo, k0, k1)
     cnt = np.clip(hi, k0, k1) - a
     fsel = np.flatnonzero(cnt > 0)
@@ -957,7 +862,7 @@ def _slice_rings(mesh: Mesh, q: np.ndarray, z_report: np.ndarray, job: Job,
     n_planes = len(q)
     if len(faces) == 0:
         return _Rings.empty()
-    fz = vertices[:, 2][faces] if _USE_NUMPY_CUT else None
+    fz = None  # the compiled cut reads the corner heights itself
     lo, hi = _facet_plane_range(vertices, faces, q)
     nbr = _facet_adjacency(faces, len(vertices))
     n_bad_edges = int((nbr == -2).sum())
@@ -980,8 +885,7 @@ def _slice_rings(mesh: Mesh, q: np.ndarray, z_report: np.ndarray, job: Job,
     open_by_layer: dict[int, list[tuple[np.ndarray, bool]]] = {}
     for c in range(len(bounds) - 1):
         k0, k1 = bounds[c], bounds[c + 1]
-        cut = _intersect_numpy if _USE_NUMPY_CUT else _intersect
-        seg = cut(vertices, faces, fz, q, lo, hi, k0, k1, nbr)
+        seg = _intersect(vertices, faces, fz, q, lo, hi, k0, k1, nbr)
         report.segments += len(seg.layer)
         if len(seg.layer):
             n_tol = _tolerance_match(seg, tol)
