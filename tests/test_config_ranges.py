@@ -77,4 +77,4 @@ def test_issue_settings_are_refused_with_one_line(name, value):
 def test_reach_cannot_exceed_the_arm():
     with pytest.raises(ConfigError, match=r"cell.reach_mm .* cell.l1_mm \+ cell.l2_mm = 600"):
         job_from_dict({"cell": {"reach_mm": [163, 700]}})
-    assert job_from_dict({"cell": {"reach_mm": [163, 700], "l1_mm": 400}}).cell.reach_mm[1] == 700
+    assert job_from_dict({"cell": {"reach_mm": [163, 700], "l1_mm": 500}}).cell.reach_mm[1] == 700
