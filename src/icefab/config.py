@@ -217,6 +217,12 @@ class MaterialSettings:
                                    "concentric rings) with extra rings of the boundary width")
     calibration_file: str = setting("", "CSV of valve frequency (Hz) vs flow (mm^3/s); empty: "
                                         "built-in table")
+    density_g_cm3: float = setting(
+        1.0,
+        "density of the material, g/cm^3 (turns the masses of 'icefab calibrate valve' into "
+        "volumes)",
+        lo=0.1, hi=25.0,
+        why="building materials weigh 0.5-2 g/cm^3; osmium, the densest, 22.6")
 
 
 def _part_material() -> MaterialSettings:
@@ -224,7 +230,9 @@ def _part_material() -> MaterialSettings:
 
 
 def _scaffold_material() -> MaterialSettings:
-    return MaterialSettings(initial_offset_mm=1.2, nozzle_offset_mm=(0.2, 8.2))
+    # shortening methyl ester (thesis 2.4): about 0.88 g/cm^3
+    return MaterialSettings(initial_offset_mm=1.2, nozzle_offset_mm=(0.2, 8.2),
+                            density_g_cm3=0.88)
 
 
 @dataclass(frozen=True)
@@ -302,6 +310,13 @@ class CellSettings:
         "laser measurement frame origin in the end-effector frame",
         lo=-200.0, hi=200.0,
         why="the laser sits on the end effector")
+    laser_latency_s: float = setting(
+        0.0,
+        "laser measurement latency: a sample reads the surface where the laser was this long "
+        "before the position it is tagged with; compensated when building on a cell ('icefab "
+        "calibrate laser', thesis 5.2.1)",
+        lo=0.0, hi=1.0,
+        why="sensor latency is milliseconds")
     encoder_resolution_deg: float = setting(
         0.001,
         "joint encoder resolution",
