@@ -59,7 +59,9 @@ from numba import njit
 
 from icefab.atomic import write_atomic
 from icefab.errors import MeshError
+from icefab.inputs import read_input
 from icefab.types import Mesh
+from icefab.workload import check_copies, check_placed_part
 
 if TYPE_CHECKING:  # pragma: no cover
     from icefab.config import Job, PartSetup
@@ -654,14 +656,7 @@ def read_mesh(path: str | os.PathLike[str], *, inexact: bool = False,
     p = FsPath(path)
     if tolerance <= 0 or not math.isfinite(tolerance):
         raise MeshError(f"{p}: weld tolerance {tolerance!r} must be a positive number (mm)")
-    try:
-        data = p.read_bytes()
-    except FileNotFoundError:
-        raise MeshError(f"{p}: mesh file not found") from None
-    except IsADirectoryError:
-        raise MeshError(f"{p}: is a directory, expected a mesh file") from None
-    except OSError as exc:
-        raise MeshError(f"{p}: cannot read mesh file ({exc.strerror or exc})") from None
+    data = read_input(p, "mesh", MeshError, "mesh file")  # regular, <= 1 GiB; no FIFO wait
     if not data[:4096].strip() and not data.strip():
         raise MeshError(f"{p}: empty file, expected a mesh (STL, PLY or OBJ)")
     if data[:3] == b"\xef\xbb\xbf" and _is_text(data[3:4099]):
@@ -1716,7 +1711,7 @@ def rotation_matrix(rotation_deg: Sequence[float], order: Sequence[int]) -> np.n
     return r
 
 
-def transform(mesh: Mesh, parts: "PartSetup") -> Mesh:
+def transform(mesh: Mesh, parts: "PartSetup", job: "Job | None" = None) -> Mesh:
     """Place a build as the part set-up asks (thesis 3.1.2, Table 3-1, paper Table 1).
 
     Steps, in this order:
@@ -1734,8 +1729,11 @@ def transform(mesh: Mesh, parts: "PartSetup") -> Mesh:
        coordinate on that axis (mm); ``'cent'`` centres its bounding box on 0; ``'orig'``
        keeps the bounding-box centre where the original model's was.
 
-    Returns a new Mesh (faces of copies appended after the original's).
+    Returns a new Mesh (faces of copies appended after the original's). ``job`` (default:
+    the default cell with these ``parts``) bounds the grid of copies by the robot's reach
+    before they are made (:func:`icefab.workload.check_copies`).
     """
+    from icefab.config import Job
     from icefab.errors import ConfigError
 
     v = np.array(mesh.vertices, dtype=np.float64)
@@ -1756,6 +1754,7 @@ def transform(mesh: Mesh, parts: "PartSetup") -> Mesh:
                           f"a {p1} x {p2} grid")
     if p3 > 1:
         lo, hi = v.min(axis=0), v.max(axis=0)
+        check_copies(hi - lo, job if job is not None else Job(parts=parts))  # before p3 copies are allocated
         pitch = (hi - lo)[:2] + float(parts.copy_gap_mm)
         k = np.arange(p3)
         shift = np.zeros((p3, 3))
@@ -1804,4 +1803,6 @@ def prepare_parts(job: "Job", base_dir: str | os.PathLike[str] | None = None) ->
     paths = [FsPath(f) if base is None or FsPath(f).is_absolute() else base / f
              for f in parts.files]
     mesh = load_meshes(paths, inexact=parts.inexact, tolerance=parts.weld_tolerance_mm)
-    return transform(mesh, parts)
+    placed = transform(mesh, parts, job)
+    check_placed_part(placed.vertices, job)  # units, stroke, reach: before slicing
+    return placed
