@@ -11,7 +11,7 @@ from icefab import Job
 from icefab.errors import ConfigError, SimulationError, WorkspaceError
 from icefab.mesh import load_mesh, prepare_parts, transform, write_stl
 from icefab.slicing import slice_mesh
-from icefab.types import Mesh
+from icefab.core import Mesh
 from icefab import workload
 
 
