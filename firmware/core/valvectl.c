@@ -77,7 +77,7 @@ static void clear_programs(vc_core *c)
     unsigned v;
     for (v = 0; v < VC_N_VALVES; v++) vc_store_clear(&c->store[v]);
     c->armed_mask = c->queued_mask = c->done_mask = 0;
-    c->trig_latched = c->early_trigger = 0;
+    c->trig_latched = c->early_trigger = c->resume = 0;
     c->early_ticks = 0;
 }
 
@@ -154,7 +154,7 @@ static uint32_t play_length(vc_core *c, uint8_t mask, int next)
     return len;
 }
 
-static void play_step(vc_core *c);
+static int play_step(vc_core *c);
 
 static void start_play(vc_core *c, uint32_t late0)
 {
@@ -208,12 +208,13 @@ static void finish_play(vc_core *c, uint32_t end)
         c->early_trigger = 0;
         c->early_ticks = 0;
         start_play(c, waited);
-        play_step(c);                                 /* its tick 0 is this tick */
+        if (!play_step(c)) c->resume = 1;              /* its tick 0 is this tick */
     }
 }
 
-/* Handle play tick c->play_tick: emit what is due, end the play when every program is. */
-static void play_step(vc_core *c)
+/* Handle play tick c->play_tick: emit what is due, end the play when every program is.
+ * Returns 0 if it waits for bytes (wait_for_data), else 1. */
+static int play_step(vc_core *c)
 {
     uint32_t t = c->play_tick, end = 0;
     unsigned v;
@@ -222,9 +223,10 @@ static void play_step(vc_core *c)
         if (!((c->armed_mask >> v) & 1u) || ((c->done_mask >> v) & 1u)) continue;
         for (;;) {
             int rc = vc_reader_step(s);
-            if (rc == VC_STEP_NEED) {                 /* a due pulse's bytes are missing */
+            if (rc == VC_STEP_NEED) {                 /* the next pulse's bytes are missing */
+                if (c->wait_for_data) return 0;
                 vc_fault(c, VC_FAULT_UNDERRUN);
-                return;
+                return 1;
             }
             if (rc == VC_STEP_END) { c->done_mask |= (uint8_t)(1u << v); break; }
             if (s->rd.next_tick > t) break;
@@ -237,16 +239,17 @@ static void play_step(vc_core *c)
         for (v = 0; v < VC_N_VALVES; v++)
             if (((c->armed_mask >> v) & 1u) && c->store[v].rd.end_tick > end)
                 end = c->store[v].rd.end_tick;
-        if (t >= end) { finish_play(c, end); return; }
+        if (t >= end) { finish_play(c, end); return 1; }
     }
     c->play_tick = t + 1u;
+    return 1;
 }
 
 void vc_trigger_edge(vc_core *c) { c->trig_latched = 1; }
 
 int vc_needs_tick(const vc_core *c)
 {
-    return c->state == VC_PLAYING || c->trig_latched;
+    return c->state == VC_PLAYING || c->trig_latched || c->resume;
 }
 
 int vc_can_advance(vc_core *c)
@@ -260,8 +263,13 @@ int vc_can_advance(vc_core *c)
     return 1;
 }
 
-void vc_tick(vc_core *c, int late)
+int vc_tick(vc_core *c, int late)
 {
+    if (c->resume) {                          /* finish the tick that waited for bytes */
+        c->resume = 0;
+        if (c->state == VC_PLAYING && !play_step(c)) { c->resume = 1; return 0; }
+        return 1;
+    }
     if (c->trig_latched) {                    /* sampled at the tick (PROTOCOL.md 7) */
         c->trig_latched = 0;
         if (c->state == VC_ARMED) {
@@ -273,10 +281,11 @@ void vc_tick(vc_core *c, int late)
             error(c, VC_E_TRIGGER, 0xFF, 0xFF, c->state, 0);
         }
     }
-    if (c->state != VC_PLAYING) return;
+    if (c->state != VC_PLAYING) return 1;
     if (late) c->late_ticks++;
     if (c->early_trigger) c->early_ticks++;
-    play_step(c);
+    if (!play_step(c)) { c->resume = 1; return 0; }
+    return 1;
 }
 
 /* ------------------------------------------------------------------ commands */

@@ -37,13 +37,17 @@ typedef struct {
     uint32_t play_len;
     uint16_t plays;
     uint32_t last_emitted[VC_N_VALVES];
+    uint8_t wait_for_data;   /* virtual clock: a tick waits for missing bytes (no UNDERRUN) */
+    uint8_t resume;          /* the last tick waited: the next call finishes it */
     vc_store store[VC_N_VALVES];
 } vc_core;
 
 void vc_init(vc_core *c, uint8_t reset_cause);
 void vc_rx(vc_core *c, const uint8_t *data, unsigned n, uint32_t now_ms);
 void vc_poll(vc_core *c, uint32_t now_ms);
-void vc_tick(vc_core *c, int late);
+/* Returns 1 when the tick was handled, 0 when it waits for program bytes (only with
+ * wait_for_data set; call again with the same tick when bytes came). */
+int vc_tick(vc_core *c, int late);
 void vc_trigger_edge(vc_core *c);
 /* Virtual clock: 1 if the next tick can run without waiting for program bytes. */
 int vc_can_advance(vc_core *c);

@@ -184,6 +184,7 @@ int main(int argc, char **argv)
     fflush(stdout);
 
     vc_init(&core, VC_RESET_POWER);
+    core.wait_for_data = (uint8_t)virtual_clock;
     period_us = (uint64_t)(VC_TICK_US / speed);
     if (period_us == 0) period_us = 1;
     t0 = last_feed = mono_us();
@@ -226,7 +227,7 @@ int main(int argc, char **argv)
         } else {
             int k;
             for (k = 0; k < 512 && vc_needs_tick(&core) && vc_can_advance(&core); k++) {
-                vc_tick(&core, 0);
+                if (!vc_tick(&core, 0)) break;           /* waits for program bytes */
                 ctrl_us += VC_TICK_US;
             }
             if (!vc_needs_tick(&core)) {        /* time passes to the last pulse's end */
@@ -242,7 +243,10 @@ int main(int argc, char **argv)
             stall_ms = 0;
             flush_tx();
             if (virtual_clock) {
-                if (ms >= watchdog_ms) vc_init(&core, VC_RESET_WATCHDOG);
+                if (ms >= watchdog_ms) {
+                    vc_init(&core, VC_RESET_WATCHDOG);
+                    core.wait_for_data = 1;
+                }
             } else {
                 uint64_t until = now + (uint64_t)ms * 1000u;
                 for (;;) {                       /* ticks go on (interrupt); frames do not */
