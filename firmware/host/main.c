@@ -196,9 +196,9 @@ int main(int argc, char **argv)
         if (!virtual_clock) {
             uint64_t due = (now - t0) / period_us;
             if (!vc_needs_tick(&core) && !got_trigger) ticks_done = due;  /* idle ticks: no work */
-            timeout = (int)((t0 + (ticks_done + 1) * period_us - now) / 1000u);
+            uint64_t next_at = t0 + (ticks_done + 1) * period_us;
+            timeout = next_at <= now ? 0 : (int)((next_at - now) / 1000u);
             if (timeout > 20) timeout = 20;
-            if (timeout < 0) timeout = 0;
         } else if (vc_needs_tick(&core) && vc_can_advance(&core)) {
             timeout = 0;
         }
