@@ -27,7 +27,7 @@ from icefab.cell import valve_frames as vf
 from icefab.cell.valve import ValveController, ValveLinkError, program_bytes
 from icefab.cell.valve_host import HostFirmware, build_host, firmware_dir, missing_tools
 from icefab.flow import n_pulses, plan_valves, program_pieces, pulse_times
-from icefab.types import Path as ToolPath, ValveProgram
+from icefab.core import Toolpath as ToolPath, ValveProgram
 
 FIRMWARE = Path(__file__).resolve().parents[1] / "firmware"
 REQUIRE = os.environ.get("ICEFAB_REQUIRE_FIRMWARE_TOOLS") == "1"

@@ -25,7 +25,7 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Any, Callable, Mapping
 
-from icefab.errors import IcefabError
+from icefab.errors import CellError
 from icefab.cell import valve_frames as vf
 
 log = logging.getLogger(__name__)
@@ -34,7 +34,7 @@ PART, SCAFFOLD = 0, 1
 VALVES = {"part": PART, "scaffold": SCAFFOLD}
 
 
-class ValveLinkError(IcefabError):
+class ValveLinkError(CellError):
     """The valve controller cannot be reached, refused a command, or faulted; the message
     names the port, the command and the controller's answer."""
 
@@ -70,7 +70,7 @@ class PlayReport:
 
 
 def program_bytes(program: Any) -> bytes:
-    """A :class:`icefab.types.ValveProgram` (with its pieces) or the bytes of its binary
+    """A :class:`icefab.core.ValveProgram` (with its pieces) or the bytes of its binary
     file, as bytes."""
     if isinstance(program, (bytes, bytearray, memoryview)):
         return bytes(program)
