@@ -15,9 +15,9 @@ Line time at 115 200 baud 8N1 (11 520 bytes/s each way), the driver waiting for 
 controller answers within its main loop; a PC UART or a USB adapter with a 1 ms latency
 timer) and, for comparison, L = 16 ms (an FTDI adapter at its default latency timer).
 Per path, what must be there before the trigger is what fits the controller's store
-(12 288 bytes, the rest streams while playing); it can be uploaded and armed while the
-previous depositing path plays (queued ARM, PROTOCOL.md 7), so the time available to path
-k is the motion time from the start of the previous depositing path to the start of k.
+(12 288 bytes, the rest streams while playing); programs are uploaded up to 4 ahead (the
+controller's queue) and armed while the previous path plays (queued ARM, PROTOCOL.md 7);
+:func:`robot_waits` replays a layer and says how long the robot would wait.
 """
 from __future__ import annotations
 
@@ -76,6 +76,41 @@ class Counting:
         return got
 
 
+def robot_waits(dur: np.ndarray, idx: np.ndarray, need: np.ndarray, arm_s: float,
+                queue: int = vf.QUEUE) -> tuple[np.ndarray, np.ndarray]:
+    """How long the robot waits at each depositing path for the valve link.
+
+    dur: (n,) s, motion time of every path of the layer in order; idx: (m,) indices of the
+    depositing paths; need: (m,) s, link time of each one's program (upload, verify, ARM).
+    The link works through the programs in order, one at a time; program j can be begun
+    once a queue slot is free (program j - queue has finished playing; the controller
+    queues 4 programs per valve, counted here over both valves: conservative) and must be
+    armed before its trigger, when the robot reaches path j; its ARM (``arm_s``, part of
+    ``need``) can be sent only once path j - 1 plays (one ARM is queued at a time). A late program delays the
+    robot and so everything after it. The layer starts with the link idle at time 0 (its
+    first programs are not preloaded during the previous layer). Returns (waits (m,) s,
+    slack (m,) s: trigger time minus the time the program was ready)."""
+    start = np.concatenate([[0.0], np.cumsum(dur)[:-1]])
+    m = len(idx)
+    waits, slack = np.zeros(m), np.zeros(m)
+    ends = np.zeros(m)
+    link_free, delay = 0.0, 0.0
+    for j in range(m):
+        can_begin = link_free if j < queue else max(link_free, ends[j - queue])
+        uploaded = can_begin + need[j] - arm_s       # upload and verify
+        link_free = uploaded
+        ready = uploaded if j == 0 else max(uploaded, ends[j - 1] - dur[idx[j - 1]])
+        ready += arm_s                               # ARM, once path j - 1 plays
+        trigger = start[idx[j]] + delay
+        if ready > trigger:
+            waits[j] = ready - trigger
+            delay += waits[j]
+            trigger = ready
+        slack[j] = trigger - ready
+        ends[j] = trigger + dur[idx[j]]
+    return waits, slack
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--layers", default="0.02,0.1,0.3,0.5,0.7,0.9",
@@ -132,23 +167,17 @@ def main() -> int:
                     streamed += len(data) - up.sent
                     exchanges += ex
                 dur = np.array(durations)
-                start = np.concatenate([[0.0], np.cumsum(dur)[:-1]])
                 idx = np.flatnonzero(deposit)
-                # available to path k: from the start of the previous depositing path
-                # (the first of the layer: the travel before it)
-                prev_start = np.concatenate([[0.0], start[idx[:-1]]]) if len(idx) else np.zeros(0)
-                avail = start[idx] - prev_start
-                slack = avail - np.array(need_s)[idx]
-                slack16 = avail - np.array(need16_s)[idx]
+                arm_line = (ARM_OUT + ARM_IN) / BYTES_S
+                waits1, slack1 = robot_waits(dur, idx, np.array(need_s)[idx], arm_line + 0.001)
+                waits16, slack16 = robot_waits(dur, idx, np.array(need16_s)[idx], arm_line + 0.016)
                 row = dict(layer=lp.index, z=lp.z, paths=len(lp.paths), dep=len(idx),
                            motion=float(dur.sum()), link=float(np.sum(need_s)),
                            link16=float(np.sum(need16_s)), bytes=total_bytes, pulses=pulses,
                            streamed=streamed, exchanges=exchanges,
-                           min_slack=float(slack[1:].min()) if len(slack) > 1 else float("nan"),
-                           waits=int(np.sum(slack[1:] < 0)), wait_s=float(-slack[1:][slack[1:] < 0].sum()),
-                           waits16=int(np.sum(slack16[1:] < 0)),
-                           wait16_s=float(-slack16[1:][slack16[1:] < 0].sum()),
-                           first_need=float(need_s[idx[0]]) if len(idx) else 0.0,
+                           min_slack=float(slack1.min()) if len(slack1) else float("nan"),
+                           waits=int(np.sum(waits1 > 0)), wait_s=float(waits1.sum()),
+                           waits16=int(np.sum(waits16 > 0)), wait16_s=float(waits16.sum()),
                            secs=time.perf_counter() - t_layer)
                 rows.append(row)
                 print(row, flush=True)
@@ -168,11 +197,11 @@ def main() -> int:
 
 `python3 bench/bench_valve_link.py` — {platform.machine()}, Python {platform.python_version()}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}. The 300 mm bunny (`bench/meshes.py`), default job with the end-effector origin at (340, 0) mm; layers at {args.layers} of the height plus the layer of largest area; every path's MTTS trajectory (travel and measurement included: the robot's motion time) and every depositing path's valve program (`icefab.flow`, FM). Each program was uploaded and verified by the real driver (`icefab.cell.valve`) to the firmware's host build through a pty and a byte-counting port; line time at 115 200 baud 8N1 (11 520 bytes/s each way) with the driver waiting for every reply: (bytes out + bytes in) / 11 520 + exchanges x turnaround, plus ARM and the DONE event per path. Turnaround L = 1 ms (the controller answers from its main loop; a PC UART or a USB adapter at a 1 ms latency timer); L = 16 ms for an FTDI adapter at its default latency timer.
 
-| layer (z) | paths / depositing | motion (s) | programs | exchanges | link at L = 1 ms (s) | motion / link | least slack | paths the robot waits for (time) | link at L = 16 ms (s) | waits at 16 ms |
+| layer (z) | paths / depositing | motion (s) | programs | exchanges | link at L = 1 ms (s) | motion / link | least slack | paths the robot waits for (total wait) | link at L = 16 ms (s) | waits at 16 ms |
 |---|---|---|---|---|---|---|---|---|---|---|
 {table}
 
-Over these layers the link needs {tot_l:.1f} s for {tot_m:.0f} s of motion: it keeps **{tot_m / tot_l:.0f} times** ahead on average (worst layer {worst['layer']}: {worst['motion'] / worst['link']:.1f}x). Per path ("least slack", "paths the robot waits for"): path k's program (what fits the 12 kB store; any rest streams while it plays, at {BYTES_S * 235 / 247 / 2:,.0f} FM pulses/s against the valve's 1 000 Hz limit) is uploaded, verified and its ARM queued while the previous depositing path plays; the slack is the time left over (the first path of each layer is not counted: it loads during the previous layer's end). Programs streamed while playing: {sum(r['streamed'] for r in rows):,} bytes in all.
+Over these layers the link needs {tot_l:.1f} s for {tot_m:.0f} s of motion: it keeps **{tot_m / tot_l:.0f} times** ahead on average (worst layer {worst['layer']}: {worst['motion'] / worst['link']:.1f}x). Per path ("least slack", "paths the robot waits for"): the driver works through the layer's programs in order, each uploaded (what fits the 12 kB store; any rest streams while it plays, at {BYTES_S * 235 / 247 / 2:,.0f} FM pulses/s against the valve's 1 000 Hz limit), verified and armed (a queued ARM while the previous path plays) up to 4 programs ahead of the robot (the controller's queue; counted over both valves, conservatively); the robot waits when it reaches a path whose program is not armed yet, and that delay carries on. Each layer starts with the link idle (nothing preloaded while the previous layer ends), so the first paths count too. Programs streamed while playing: {sum(r['streamed'] for r in rows):,} bytes in all.
 """
     print(text)
     if not args.no_write:
