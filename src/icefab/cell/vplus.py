@@ -339,7 +339,7 @@ _FIXED = r"""
     CALL ice.r.ok(seq)
 .END
 
-.PROGRAM ice.h.pb(seq, f.layer, f.index, f.flags, f.tool, f.widthum, f.npts, f.dtus, f.zum)
+.PROGRAM ice.h.pb(seq, f.layer, f.index, f.flags, f.tool, f.width, f.npts, f.dtus, f.zum)
     ; open the upload of one path into the next free slot (no reply unless refused)
     IF ice.uopen THEN
         CALL ice.r.er(seq, 7)
