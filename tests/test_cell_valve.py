@@ -440,3 +440,12 @@ def test_next_path_uploads_and_arms_while_one_plays(valvectl, tmp_path):
         done_b = [vf.parse_done(f.payload) for f in ctl.events if f.type == vf.EV_DONE]
         assert [d.play for d in done_b] == [1, 2] and done_b[1].emitted == (0, 3)
         assert done_b[1].late_ticks > 0
+
+
+def test_pwm_piece_larger_than_the_store_is_refused_by_name(ctl):
+    prog = ValveProgram(ticks=np.arange(4000, dtype=np.uint16), tick_s=0.002, duration=8.0,
+                        widths_us=np.full(4000, 600, np.uint16))
+    with pytest.raises(ValveLinkError, match="PWM piece of more than 3070 pulses"):
+        ctl.upload(0, prog)
+    st = ctl.status()
+    assert (st.state_name, st.valves[0].queued, st.outputs) == ("idle", 0, 0)
