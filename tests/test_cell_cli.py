@@ -47,3 +47,42 @@ def test_endpoints_of_a_cell_that_is_not_running_are_named(tmp_path):
     (tmp_path / "endpoints.json").write_text("{")
     with pytest.raises(CellError, match="malformed endpoints file"):
         read_endpoints(tmp_path)
+
+
+def test_check_names_the_device_that_does_not_answer(tmp_path, capsys):
+    import socket
+
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    port = srv.getsockname()[1]
+    srv.close()
+    assert main(["cell", "check", "--robot", f"127.0.0.1:{port}", "--timeout", "1"]) == 2
+    err = capsys.readouterr().err
+    assert f"robot at 127.0.0.1:{port}: cannot connect" in err
+    assert len(err.strip().splitlines()) == 1
+    assert main(["cell", "check", "--laser", str(tmp_path / "tty")]) == 2
+    assert "cannot open the serial port" in capsys.readouterr().err
+    assert main(["cell", "check", "--robot", "nohostport"]) == 2
+    assert "expected HOST:PORT" in capsys.readouterr().err
+
+
+def test_check_a_virtual_robot_and_laser(capsys):
+    from icefab.cell.laser_emulator import PtyLaser
+    from icefab.cell.virtual_robot import VirtualRobot
+
+    class Idle:
+        def layer_begin(self, *a): pass
+        def layer_end(self, *a): pass
+        def path_run(self, *a): return True
+        def abort(self): pass
+
+    vr = VirtualRobot(Idle()).start()
+    pty = PtyLaser().start()
+    try:
+        assert main(["cell", "check", "--robot", f"127.0.0.1:{vr.port}", "--laser",
+                     pty.path]) == 0
+    finally:
+        vr.stop()
+        pty.stop()
+    out = capsys.readouterr().out
+    assert "protocol 1, 8192 points x 4 paths, idle" in out and "storage stopped" in out
