@@ -175,7 +175,8 @@ def main() -> int:
                            motion=float(dur.sum()), link=float(np.sum(need_s)),
                            link16=float(np.sum(need16_s)), bytes=total_bytes, pulses=pulses,
                            streamed=streamed, exchanges=exchanges,
-                           min_slack=float(slack1.min()) if len(slack1) else float("nan"),
+                           min_slack=float(slack1[1:].min()) if len(slack1) > 1 else float("nan"),
+                           first_wait=float(waits1[0]) if len(waits1) else 0.0,
                            waits=int(np.sum(waits1 > 0)), wait_s=float(waits1.sum()),
                            waits16=int(np.sum(waits16 > 0)), wait16_s=float(waits16.sum()),
                            secs=time.perf_counter() - t_layer)
@@ -197,11 +198,11 @@ def main() -> int:
 
 `python3 bench/bench_valve_link.py` — {platform.machine()}, Python {platform.python_version()}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}. The 300 mm bunny (`bench/meshes.py`), default job with the end-effector origin at (340, 0) mm; layers at {args.layers} of the height plus the layer of largest area; every path's MTTS trajectory (travel and measurement included: the robot's motion time) and every depositing path's valve program (`icefab.flow`, FM). Each program was uploaded and verified by the real driver (`icefab.cell.valve`) to the firmware's host build through a pty and a byte-counting port; line time at 115 200 baud 8N1 (11 520 bytes/s each way) with the driver waiting for every reply: (bytes out + bytes in) / 11 520 + exchanges x turnaround, plus ARM and the DONE event per path. Turnaround L = 1 ms (the controller answers from its main loop; a PC UART or a USB adapter at a 1 ms latency timer); L = 16 ms for an FTDI adapter at its default latency timer.
 
-| layer (z) | paths / depositing | motion (s) | programs | exchanges | link at L = 1 ms (s) | motion / link | least slack | paths the robot waits for (total wait) | link at L = 16 ms (s) | waits at 16 ms |
+| layer (z) | paths / depositing | motion (s) | programs | exchanges | link at L = 1 ms (s) | motion / link | least slack after the first path | paths the robot waits for (total wait) | link at L = 16 ms (s) | waits at 16 ms |
 |---|---|---|---|---|---|---|---|---|---|---|
 {table}
 
-Over these layers the link needs {tot_l:.1f} s for {tot_m:.0f} s of motion: it keeps **{tot_m / tot_l:.0f} times** ahead on average (worst layer {worst['layer']}: {worst['motion'] / worst['link']:.1f}x). Per path ("least slack", "paths the robot waits for"): the driver works through the layer's programs in order, each uploaded (what fits the 12 kB store; any rest streams while it plays, at {BYTES_S * 235 / 247 / 2:,.0f} FM pulses/s against the valve's 1 000 Hz limit), verified and armed (a queued ARM while the previous path plays) up to 4 programs ahead of the robot (the controller's queue; counted over both valves, conservatively); the robot waits when it reaches a path whose program is not armed yet, and that delay carries on. Each layer starts with the link idle (nothing preloaded while the previous layer ends), so the first paths count too. Programs streamed while playing: {sum(r['streamed'] for r in rows):,} bytes in all.
+Over these layers the link needs {tot_l:.1f} s for {tot_m:.0f} s of motion: it keeps **{tot_m / tot_l:.0f} times** ahead on average (worst layer {worst['layer']}: {worst['motion'] / worst['link']:.1f}x). Per path ("least slack", "paths the robot waits for"): the driver works through the layer's programs in order, each uploaded (what fits the 12 kB store; any rest streams while it plays, at {BYTES_S * 235 / 247 / 2:,.0f} FM pulses/s against the valve's 1 000 Hz limit), verified and armed (a queued ARM while the previous path plays) up to 4 programs ahead of the robot (the controller's queue; counted over both valves, conservatively); the robot waits when it reaches a path whose program is not armed yet, and that delay carries on. Each layer starts with the link idle (nothing preloaded while the previous layer ends), so the robot waits at every layer's first path for that program's upload ({min(r['first_wait'] for r in rows):.2f}-{max(r['first_wait'] for r in rows):.2f} s here at L = 1 ms; a runner that uploads it during the previous layer's last path or measurement avoids that); "least slack after the first path" is the smallest margin by which a later program was armed before its trigger. Programs streamed while playing: {sum(r['streamed'] for r in rows):,} bytes in all.
 """
     print(text)
     if not args.no_write:

@@ -407,3 +407,45 @@ def test_open_missing_port_names_it():
 def test_firmware_dir_is_the_clones():
     assert firmware_dir() == FIRMWARE
     assert missing_tools() == [t for t in ("make", "cc") if shutil.which(t) is None]
+
+
+def test_next_path_uploads_and_arms_while_one_plays(valvectl, tmp_path):
+    """Path B's program is uploaded, verified and armed (queued) while A plays, and the
+    robot's trigger for B comes before A ends: B starts on the tick A ends (PROTOCOL.md 7)."""
+    a = ValveProgram(ticks=np.arange(0, 200, 20, dtype=np.uint16), tick_s=0.002, duration=0.4)
+    b = ValveProgram(ticks=np.array([0, 3, 7], np.uint16), tick_s=0.002, duration=0.02)
+    log = tmp_path / "p.log"
+    with HostFirmware(valvectl, clock="real", pulse_log=log) as fw, \
+            ValveController.open(fw.pty) as ctl:
+        ctl.upload(0, a)
+        ctl.arm(0)
+        ctl.trigger()
+        ctl.upload(1, b)
+        assert ctl.arm(1) == 10
+        st = ctl.status()
+        assert st.state_name == "playing" and st.flags & 1
+        ctl.trigger()                                   # early: kept until A ends
+        assert ctl.status().flags & 2
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and ctl.status().plays < 2:
+            time.sleep(0.02)
+        while time.monotonic() < deadline and ctl.status().state_name != "idle":
+            time.sleep(0.02)
+        lines = log.read_text().split("\n")
+        done_a = next(x for x in lines if x.startswith("done 1 "))
+        assert done_a == "done 1 200"
+        assert [(p[0], p[1], p[2]) for p in fw.pulses() if p[0] == 2] == \
+            [(2, 1, 0), (2, 1, 3), (2, 1, 7)]
+        # B started at the tick A ended: its late ticks are the ticks its trigger waited
+        done_b = [vf.parse_done(f.payload) for f in ctl.events if f.type == vf.EV_DONE]
+        assert [d.play for d in done_b] == [1, 2] and done_b[1].emitted == (0, 3)
+        assert done_b[1].late_ticks > 0
+
+
+def test_pwm_piece_larger_than_the_store_is_refused_by_name(ctl):
+    prog = ValveProgram(ticks=np.arange(4000, dtype=np.uint16), tick_s=0.002, duration=8.0,
+                        widths_us=np.full(4000, 600, np.uint16))
+    with pytest.raises(ValveLinkError, match="PWM piece of more than 3070 pulses"):
+        ctl.upload(0, prog)
+    st = ctl.status()
+    assert (st.state_name, st.valves[0].queued, st.outputs) == ("idle", 0, 0)

@@ -273,8 +273,12 @@ class ValveController:
             r = self.request(vf.PROG_DATA,
                              vf.data_payload(up.valve, up.sent, up.data[up.sent:up.sent + n]),
                              allow=frozenset({vf.E_NO_ROOM}))
-            if r.is_error:
-                return vf.parse_error(r.payload).detail
+            if r.is_error:                # NO_ROOM although it fitted: a PWM piece
+                raise ValveLinkError(      # too large to play from the store (discarded)
+                    f"{self.name}: valve {up.valve} program refused at byte {up.sent}: a PWM "
+                    f"piece of more than {(vf.STORE_BYTES - 8) // 4} pulses does not fit the "
+                    f"controller's {vf.STORE_BYTES}-byte store (its widths follow all its "
+                    "ticks); lower flow.max_pulses")
             up.sent += n
             free = struct.unpack_from("<I", r.payload, 5)[0]
         return free
