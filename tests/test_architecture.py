@@ -19,7 +19,8 @@ SRC = Path(__file__).resolve().parents[1] / "src"
 STAGES: list[tuple[str, tuple[str, ...]]] = [
     ("foundation", ("icefab.errors", "icefab.atomic", "icefab.config", "icefab.core",
                     "icefab.types", "icefab.stages", "icefab.parallel", "icefab.frames",
-                    "icefab.robots", "icefab.resultfiles")),
+                    "icefab.robots", "icefab.resultfiles", "icefab.inputs",
+                    "icefab.workload")),
     ("geometry", ("icefab.geometry",)),
     ("mesh", ("icefab.mesh", "icefab.demo")),
     ("slicing", ("icefab.slicing",)),

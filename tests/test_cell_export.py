@@ -143,3 +143,13 @@ def _toolpaths(job):
     ring = Path(points=np.c_[20 * np.cos(th), 20 * np.sin(th)], z=0.5, material="part",
                 role="boundary", closed=True, width=1.5, layer=0)
     return Toolpaths(layers=(LayerPaths(index=0, z=0.5, paths=(ring,)),), job=job)
+
+
+def test_export_gcode_from_a_trajectories_file(tmp_path, capsys):
+    motion = small_motion(1)
+    save_trajectories(motion, tmp_path / "t.npz")
+    assert main(["export", "gcode", str(tmp_path / "t.npz"), "-o", str(tmp_path / "g")]) == 0
+    text = (tmp_path / "g" / "trajectories.gcode").read_text()
+    assert text.startswith("; icefab G-code") and "M3 I S0" in text
+    assert main(["export", "gcode", str(tmp_path / "nope.npz"), "-o", str(tmp_path / "h")]) == 2
+    assert "nope.npz: trajectories file not found" in capsys.readouterr().err

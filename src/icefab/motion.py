@@ -107,6 +107,7 @@ from icefab.resultfiles import (TRAJECTORIES_FORMAT as FORMAT,  # noqa: F401 (ol
 from icefab.robots import Robot, get_robot
 from icefab.core import (ROLES, BuildMotion, LayerMotion, LayerPaths, Toolpath, Toolpaths,
                          Trajectory)
+from icefab.workload import check_motion
 
 log = logging.getLogger(__name__)
 
@@ -697,6 +698,21 @@ def _unpack_layer(lp: LayerPaths, packed: dict[str, np.ndarray]) -> LayerMotion:
                        trajectories=tuple(unpack_trajectories(packed, lp.paths)))
 
 
+def _path_lengths(layers: Sequence[LayerPaths]) -> tuple[float, float]:
+    """Total length, mm, of the depositing paths and of the other paths of ``layers``."""
+    out = [0.0, 0.0]
+    for lp in layers:
+        for p in lp.paths:
+            pts = np.asarray(p.points, dtype=np.float64)
+            if len(pts) < 2:
+                continue
+            d = float(np.hypot(*np.diff(pts, axis=0).T).sum())
+            if p.closed:
+                d += float(np.hypot(*(pts[0] - pts[-1])))
+            out[0 if p.depositing else 1] += d
+    return out[0], out[1]
+
+
 def _locate(ends: np.ndarray, i: int) -> tuple[int, int]:
     """(path, point within it) of row ``i`` of concatenated paths ending at ``ends``."""
     k = int(np.searchsorted(ends, i, side="right"))
@@ -770,6 +786,7 @@ def plan_toolpaths(toolpaths: Toolpaths, job: Job | None = None,
     _check_role_speeds(role_speeds)
     robot = get_robot(job)
     layers = list(toolpaths.layers)
+    check_motion(*_path_lengths(layers), job)  # sample budget before any planning
     check_build_workspace(toolpaths, job, robot)
     packed = parallel_map(_plan_layer_task, [(lp, job, role_speeds) for lp in layers], job,
                           min_items=2, progress=progress)

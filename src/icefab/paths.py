@@ -78,6 +78,7 @@ from icefab.resultfiles import (TOOLPATHS_FORMAT as FORMAT, TOOLPATHS_VERSION as
 from icefab.geometry import signed_area
 from icefab.core import (OFF, ON1, ON2, Layer, LayerPaths, Region, Stack, Toolpath,  # noqa: F401
                          Toolpaths, deposition_state, point_states)
+from icefab.workload import check_paths
 
 log = logging.getLogger(__name__)
 
@@ -808,6 +809,8 @@ def plan_paths(stack: Stack, job: Job | None = None, *,
     """
     job = job or stack.job
     check_layer_thickness(stack.layer_thickness, job)
+    check_paths((sum(layer.part.area for layer in stack.layers),
+                 sum(layer.scaffold.area for layer in stack.layers)), job)
     packed = parallel_map(_plan_task, [(layer, job) for layer in stack.layers], job,
                           min_items=8, progress=progress)
     layers = [unpack_layer_paths(p) for p in packed]

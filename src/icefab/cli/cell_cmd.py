@@ -50,6 +50,19 @@ def add_parser(subparsers) -> None:
     s.add_argument("--firmware", metavar="VALVECTL",
                    help="a built valve firmware host executable (default: build firmware/)")
     s.set_defaults(func=run_serve)
+    c = sub.add_parser(
+        "check", help="say hello on each link of a cell and print what answers",
+        description="Connect to the robot controller (TCP), the valve controller and the "
+                    "laser (serial) of a cell -- the virtual one of --state DIR or real "
+                    "devices -- and print each one's answer. Exit 2 with one line naming "
+                    "the first device that does not answer.")
+    c.add_argument("--state", metavar="DIR", help="a running 'icefab cell serve' state folder")
+    c.add_argument("--robot", metavar="HOST:PORT", help="the C40's V+ server")
+    c.add_argument("--valve", metavar="DEVICE", help="the valve controller's serial port")
+    c.add_argument("--laser", metavar="DEVICE", help="the laser controller's serial port")
+    c.add_argument("--timeout", type=float, default=5.0, metavar="S",
+                   help="seconds to wait for each answer (default 5)")
+    c.set_defaults(func=run_check)
 
 
 def _grid(args, job):
@@ -140,3 +153,44 @@ def _stored_job(state: Path):
     except (OSError, ValueError, KeyError) as exc:
         raise CellError(f"{state / 'surface.npz'}: cannot read the cell's job ({exc})"
                         ) from None
+
+
+def run_check(args: argparse.Namespace) -> int:
+    from icefab.cell.laser import LaserLink
+    from icefab.cell.robot import RobotLink
+
+    if not (math.isfinite(args.timeout) and args.timeout > 0):
+        raise ConfigError(f"--timeout {args.timeout}: expected a positive number of seconds")
+    ends = {}
+    if args.state:
+        from icefab.cell.virtual import read_endpoints
+
+        e = read_endpoints(args.state)
+        ends = {"robot": f"{e['robot']['host']}:{e['robot']['port']}",
+                "valve": e["valve"]["device"], "laser": e["laser"]["device"]}
+    for key in ("robot", "valve", "laser"):
+        if getattr(args, key):
+            ends[key] = getattr(args, key)
+    if not ends:
+        raise ConfigError("give --state DIR or at least one of --robot, --valve, --laser")
+    if "robot" in ends:
+        host, _, port = ends["robot"].rpartition(":")
+        if not host or not port.isdigit():
+            raise ConfigError(f"--robot {ends['robot']!r}: expected HOST:PORT")
+        with RobotLink.connect(host, int(port), timeout_s=args.timeout) as link:
+            info = link.hello()
+            st = link.status()
+        print(f"robot {ends['robot']}: protocol {info.version}, {info.max_points} points x "
+              f"{info.max_paths} paths, {st['state']}, {st['stored']} stored")
+    if ends.get("valve"):
+        from icefab.cell.valve import ValveController
+
+        with ValveController.open(ends["valve"]) as ctl:
+            st = ctl.status()
+        print(f"valve {ends['valve']}: state {st.state}, plays {st.plays}")
+    if ends.get("laser"):
+        with LaserLink.open(ends["laser"], timeout_s=args.timeout) as laser:
+            storing, count = laser.status()
+        print(f"laser {ends['laser']}: storage {'running' if storing else 'stopped'}, "
+              f"{count} values stored")
+    return 0

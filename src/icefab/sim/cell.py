@@ -16,6 +16,7 @@ from scipy import ndimage
 from icefab.config import Job
 from icefab.core import HeightMap
 from icefab.errors import SimulationError
+from icefab.workload import check_grid
 from icefab.sim.deposition import ActionFn, _splat, empty_surface, level_liquid
 from icefab.sim.laser import laser_measure
 from icefab.sim.plans import LayerPlan, layer_valves, valve_segments
@@ -104,6 +105,8 @@ def _grid_for(plans: Sequence[LayerPlan], job: "Job") -> HeightMap:
     allp = np.concatenate(pts)
     wmax = max(float(p.half_width.max()) for p in plans if len(p.half_width))
     margin = 2 * wmax + 2 * job.simulation.grid_mm
+    check_grid(allp.min(axis=0) - margin, allp.max(axis=0) + margin, job.simulation.grid_mm,
+               "simulation.grid_mm")
     return empty_surface(allp.min(axis=0), allp.max(axis=0), job.simulation.grid_mm, margin)
 
 
