@@ -15,7 +15,7 @@ from scipy.spatial import ConvexHull
 from icefab.config import Job
 from icefab.errors import GeometryError
 from icefab.slicing import layer_planes, slice_mesh, slice_report
-from icefab.types import Mesh, signed_area
+from icefab.core import Mesh, signed_area
 
 EXACT = Job().replace(**{"slicing.min_point_spacing_mm": 0.0,
                          "slicing.max_filter_deviation_mm": 0.0})

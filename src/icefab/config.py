@@ -23,9 +23,10 @@ from __future__ import annotations
 import dataclasses
 import re
 import tomllib
+import types
 import typing
 from dataclasses import dataclass, field
-from pathlib import Path as FsPath
+from pathlib import Path
 from typing import Any, Callable
 
 from icefab.errors import ConfigError
@@ -489,7 +490,7 @@ def _coerce(path: str, value: Any, hint: Any) -> Any:
             raise ConfigError(f"{path} = {value!r}: expected {len(args)} values, got "
                               f"{len(value)}")
         return tuple(_coerce(f"{path}[{i}]", v, a) for i, (v, a) in enumerate(zip(value, args)))
-    if origin in (typing.Union, getattr(__import__("types"), "UnionType", None)):
+    if origin in (typing.Union, types.UnionType):
         for a in typing.get_args(hint):
             try:
                 return _coerce(path, value, a)
@@ -611,7 +612,7 @@ def _setting_of(msg: str) -> str:
     return re.split(r"[ :=]", msg.removeprefix("unknown setting "), maxsplit=1)[0]
 
 
-def _located(exc: ConfigError, path: FsPath, line_of: Callable[[str], int | None]
+def _located(exc: ConfigError, path: Path, line_of: Callable[[str], int | None]
              ) -> ConfigError:
     """``exc`` prefixed with ``path:line`` of the setting it names (``path`` alone when the
     line is unknown)."""
@@ -620,12 +621,12 @@ def _located(exc: ConfigError, path: FsPath, line_of: Callable[[str], int | None
     return ConfigError(f"{path}:{line}: {msg}" if line else f"{path}: {msg}")
 
 
-def load_job(path: str | FsPath) -> Job:
+def load_job(path: str | Path) -> Job:
     """Read a job from a TOML file (``.toml``) or a legacy control text file (other).
 
     Raises ConfigError naming the file and line on any problem.
     """
-    path = FsPath(path)
+    path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
@@ -643,7 +644,7 @@ def load_job(path: str | FsPath) -> Job:
     except ConfigError as exc:
         raise _located(exc, path, lambda name: _line_of(text, name)) from None
     # Relative mesh paths are relative to the job file.
-    files = tuple(str((path.parent / f).resolve()) if not FsPath(f).is_absolute() else f
+    files = tuple(str((path.parent / f).resolve()) if not Path(f).is_absolute() else f
                   for f in job.parts.files)
     return dataclasses.replace(job, parts=dataclasses.replace(job.parts, files=files))
 
@@ -704,14 +705,14 @@ def _legacy_split(line: str) -> tuple[list[str], str]:
     return values, desc
 
 
-def load_legacy_control(path: str | FsPath, text: str | None = None) -> Job:
+def load_legacy_control(path: str | Path, text: str | None = None) -> Job:
     """Read the thesis' control-parameter text file (Table 3-1 / paper Table 1 layout).
 
     Each line is ``values [units] [format] (restrictions) description``; lines whose
     description is not recognised, and section headings in capitals, are errors and
     skipped respectively. Switch entries ``1/0 a b c`` turn a vector on or off.
     """
-    path = FsPath(path)
+    path = Path(path)
     if text is None:
         try:
             text = path.read_text(encoding="utf-8")

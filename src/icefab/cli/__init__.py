@@ -20,7 +20,7 @@ from icefab.errors import IcefabError
 # Subcommand modules, in the order shown by --help. A module that does not exist yet is
 # skipped so the command keeps working while stages are added.
 SUBCOMMANDS = ("demo", "slice", "paths", "plan", "valves", "simulate", "tune", "calibrate",
-               "build", "export", "report")
+               "build", "export", "cell", "report")
 
 
 def build_parser() -> argparse.ArgumentParser:
