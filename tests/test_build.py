@@ -37,7 +37,7 @@ def planned(tmp_path_factory):
     from icefab.paths import plan_paths
     from icefab.regions import add_scaffold
     from icefab.slicing import slice_mesh
-    from icefab.types import Stack
+    from icefab.core import Stack
 
     job = Job()
     stack = add_scaffold(slice_mesh(transform(demo_mug(), job.parts), job), job)
@@ -179,6 +179,37 @@ def _kill_cell(build: Path) -> None:
             pass
 
 
+def done_commands(build: Path) -> int:
+    """Commands the journal shows done (read-only; -1 before the journal exists)."""
+    f = build / bmod.JOURNAL
+    if not f.exists():
+        return -1
+    try:
+        db = sqlite3.connect(f"{f.as_uri()}?mode=ro", uri=True, timeout=5)
+        try:
+            return int(db.execute("SELECT COUNT(*) FROM commands WHERE done IS NOT NULL"
+                                  ).fetchone()[0])
+        finally:
+            db.close()
+    except sqlite3.OperationalError:
+        return -1
+
+
+def _wait_progress(build: Path, proc, timeout_s: float = 300.0) -> int | None:
+    """Wait until the journal shows one more command done than when called; None when
+    the process ended first."""
+    start = done_commands(build)
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            return None
+        n = done_commands(build)
+        if n > start:
+            return n
+        time.sleep(0.05)
+    raise AssertionError(f"{build}: no progress within {timeout_s:g} s")
+
+
 def test_sigkill_the_build_and_resume(planned, tmp_path):
     r = _icefab("build", str(planned), "-o", "ref", "--virtual", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
@@ -189,11 +220,13 @@ def test_sigkill_the_build_and_resume(planned, tmp_path):
                             stderr=subprocess.PIPE)
     kills = 0
     try:
-        while not (tmp_path / "k" / bmod.JOURNAL).exists():    # the build has started
-            assert proc.poll() is None, proc.stderr.read().decode()
-            time.sleep(0.1)
-        while True:
-            time.sleep(float(rng.uniform(1.0, 5.0)))
+        while kills < 4 and proc.poll() is None:
+            # a random moment after the (resumed) build made progress, so every run
+            # gets somewhere however slowly this machine starts a Python process
+            done = _wait_progress(tmp_path / "k", proc)
+            if done is None:
+                break
+            time.sleep(float(rng.uniform(0.0, 1.5)))
             if proc.poll() is not None:
                 break
             proc.send_signal(signal.SIGKILL)
@@ -202,6 +235,7 @@ def test_sigkill_the_build_and_resume(planned, tmp_path):
             proc = subprocess.Popen([sys.executable, "-m", "icefab", "build", "--resume", "k"],
                                     cwd=tmp_path, stdout=subprocess.DEVNULL,
                                     stderr=subprocess.PIPE)
+        proc.wait(timeout=600)
         assert proc.returncode == 0, proc.stderr.read().decode()
     finally:
         if proc.poll() is None:
@@ -252,7 +286,9 @@ def test_cell_killed_mid_path_build_completes(planned, tmp_path):
     rng = np.random.default_rng(5)
     try:
         for _ in range(3):
-            time.sleep(float(rng.uniform(3.0, 6.0)))
+            if _wait_progress(tmp_path / "f", proc) is None:
+                break
+            time.sleep(float(rng.uniform(0.0, 1.0)))
             if proc.poll() is not None:
                 break
             _kill_cell(tmp_path / "f")

@@ -49,7 +49,7 @@ import numpy as np
 from icefab.errors import IcefabError, WorkspaceError
 from icefab.journal import Journal, digest_text, pack_arrays, unpack_arrays
 from icefab.runcell import Cell, CellError, CellPath
-from icefab.types import HeightMap
+from icefab.core import HeightMap
 
 if TYPE_CHECKING:  # pragma: no cover
     from icefab.config import Job

@@ -50,7 +50,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from icefab.errors import IcefabError
+from icefab.errors import CellError, IcefabError
 
 log = logging.getLogger(__name__)
 
@@ -59,10 +59,6 @@ SURFACE_FILE = "surface.npz"
 ENDPOINTS_FILE = "endpoints.json"
 JOB_FILE = "job.toml"
 LASER_DIR = "laser"
-
-
-class CellError(IcefabError):
-    """The cell refused a command, does not answer, or its link broke."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -360,7 +356,7 @@ class VirtualCell:
 
     def _measure(self, seq: int, path: CellPath) -> None:
         from icefab.sim import sample_surface
-        from icefab.types import HeightMap
+        from icefab.core import HeightMap
 
         st = self._st
         job = self.job
@@ -394,7 +390,7 @@ class VirtualCell:
 
 
 def _tool_offset(tool: str, job) -> np.ndarray:
-    from icefab.paths import tool_offset
+    from icefab.frames import tool_offset
 
     return np.asarray(tool_offset(tool, job), dtype=np.float64)
 
@@ -545,8 +541,16 @@ def cell_alive(state_dir: str | os.PathLike) -> bool:
     """Whether the process named in ``DIR/endpoints.json`` is running."""
     try:
         pid = int(json.loads((Path(state_dir) / ENDPOINTS_FILE).read_text())["pid"])
-        os.kill(pid, 0)
     except (OSError, ValueError, KeyError):
+        return False
+    try:  # our own child that died is a zombie until reaped: reap it
+        if os.waitpid(pid, os.WNOHANG)[0] == pid:
+            return False
+    except ChildProcessError:
+        pass
+    try:
+        os.kill(pid, 0)
+    except OSError:
         return False
     return True
 

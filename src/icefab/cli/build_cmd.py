@@ -106,7 +106,7 @@ def _plan(args: argparse.Namespace):
     from icefab.cli.common import Progress, job_from_args
     from icefab.cli.simulate_cmd import load_build
     from icefab.motion import BuildMotion, plan_toolpaths
-    from icefab.types import Toolpaths
+    from icefab.core import Toolpaths
 
     ns = argparse.Namespace(job=args.job, flow_error=None, seed=None, deposition="valves",
                             layers=args.layers or 0)
