@@ -412,7 +412,7 @@ def test_firmware_dir_is_the_clones():
 def test_next_path_uploads_and_arms_while_one_plays(valvectl, tmp_path):
     """Path B's program is uploaded, verified and armed (queued) while A plays, and the
     robot's trigger for B comes before A ends: B starts on the tick A ends (PROTOCOL.md 7)."""
-    a = ValveProgram(ticks=np.arange(0, 200, 20, dtype=np.uint16), tick_s=0.002, duration=0.4)
+    a = ValveProgram(ticks=np.arange(0, 1500, 150, dtype=np.uint16), tick_s=0.002, duration=3.0)
     b = ValveProgram(ticks=np.array([0, 3, 7], np.uint16), tick_s=0.002, duration=0.02)
     log = tmp_path / "p.log"
     with HostFirmware(valvectl, clock="real", pulse_log=log) as fw, \
@@ -426,14 +426,12 @@ def test_next_path_uploads_and_arms_while_one_plays(valvectl, tmp_path):
         assert st.state_name == "playing" and st.flags & 1
         ctl.trigger()                                   # early: kept until A ends
         assert ctl.status().flags & 2
-        deadline = time.monotonic() + 10
-        while time.monotonic() < deadline and ctl.status().plays < 2:
-            time.sleep(0.02)
-        while time.monotonic() < deadline and ctl.status().state_name != "idle":
-            time.sleep(0.02)
+        assert ctl.wait_done(1, timeout_s=10).emitted == (10, 0)
+        assert ctl.wait_done(2, timeout_s=10).emitted == (0, 3)
+        assert ctl.status().state_name == "idle"
         lines = log.read_text().split("\n")
         done_a = next(x for x in lines if x.startswith("done 1 "))
-        assert done_a == "done 1 200"
+        assert done_a == "done 1 1500"
         assert [(p[0], p[1], p[2]) for p in fw.pulses() if p[0] == 2] == \
             [(2, 1, 0), (2, 1, 3), (2, 1, 7)]
         # B started at the tick A ended: its late ticks are the ticks its trigger waited
