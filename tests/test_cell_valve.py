@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, strategies as st
 
 from icefab import Job
 from icefab.cell import valve_frames as vf
@@ -447,3 +448,32 @@ def test_pwm_piece_larger_than_the_store_is_refused_by_name(ctl):
         ctl.upload(0, prog)
     st = ctl.status()
     assert (st.state_name, st.valves[0].queued, st.outputs) == ("idle", 0, 0)
+
+
+@given(frames=st.lists(st.tuples(st.integers(0, 255), st.sampled_from([vf.STATUS, vf.ARM, 0x91]),
+                                 st.binary(max_size=240)), max_size=6),
+       junk=st.lists(st.binary(max_size=20), min_size=7, max_size=7),
+       cuts=st.lists(st.integers(0, 2000), max_size=8))
+def test_frame_reader_recovers_frames_between_junk_in_any_pieces(frames, junk, cuts):
+    """Frames with arbitrary junk between them (junk without the marker), fed in arbitrary
+    pieces, come out whole and in order."""
+    junk = [j.replace(b"\xa5", b"\x00") for j in junk]
+    stream = junk[0] + b"".join(vf.encode(s, t, p) + junk[i + 1] for i, (s, t, p) in enumerate(frames))
+    r, got, pos = vf.FrameReader(), [], 0
+    for c in sorted(set(cuts)) + [len(stream)]:
+        got += r.feed(stream[pos:c])
+        pos = max(pos, c)
+    assert [(f.seq, f.type, f.payload) for f in got] == frames
+
+
+def test_the_file_icefab_valves_writes_is_what_the_controller_stores(ctl, tmp_path):
+    """The bytes of the .bin file (flow.write_valve_program) go up unchanged: the
+    controller's CRC over what it stored is the file's CRC."""
+    from icefab.flow import write_valve_program
+    prog = demo_program()
+    write_valve_program(prog, tmp_path / "p.bin")
+    data = (tmp_path / "p.bin").read_bytes()
+    ctl.upload(0, data)
+    v = ctl.verify(0)
+    assert (v.complete, v.received, v.crc, v.pulses) == (True, len(data), vf.crc16(data),
+                                                          n_pulses(prog))
