@@ -34,7 +34,7 @@ STAGES: list[tuple[str, tuple[str, ...]]] = [
     ("export", ("icefab.export",)),
     ("cell", ("icefab.cell",)),
     ("calibration", ("icefab.calibration",)),
-    ("build", ("icefab.build",)),
+    ("build", ("icefab.journal", "icefab.runcell", "icefab.build")),
     ("cli", ("icefab.cli", "icefab.__main__", "icefab")),
 ]
 

@@ -21,7 +21,7 @@ from icefab.errors import IcefabError
 # here when its module lands: a listed module that cannot be imported is an error (it was
 # skipped silently, so a misspelled name dropped a command unnoticed).
 SUBCOMMANDS = ("demo", "slice", "paths", "plan", "valves", "simulate", "tune", "calibrate",
-               "export", "cell")
+               "build", "export", "cell")
 
 
 def build_parser() -> argparse.ArgumentParser:
