@@ -82,9 +82,12 @@ nominal top of the j-th simulated layer (j = 0, 1, ...) is ``(j + 1) * dh``.
 from __future__ import annotations
 
 from icefab.errors import SimulationError
-from icefab.sim.cell import Controller, Measurement, SimResult, _grid_for, run_cell  # noqa: F401
-from icefab.sim.deposition import (MATERIAL_ID, ActionFn, deposit, deposit_pulses, empty_surface,
-                                   level_liquid, pulse_drops, pulse_segments)
+# private blocks the cell's world and the build runner reuse (icefab.cell.world, icefab.runcell)
+from icefab.sim.cell import (Controller, Measurement, SimResult, _edge_factor,  # noqa: F401
+                             _grid_for, _noise_field, run_cell)
+from icefab.sim.deposition import (MATERIAL_ID, ActionFn, _splat, deposit,  # noqa: F401
+                                   deposit_pulses, empty_surface, level_liquid, pulse_drops,
+                                   pulse_segments)
 from icefab.sim.laser import laser_measure, laser_positions, sample_surface
 from icefab.sim.plans import (LayerPlan, LayerValves, layer_valves, measurement_layers,
                               plan_layer, plan_layer_motion, valve_segments)
