@@ -30,7 +30,7 @@ STEPS = ("slice", "scaffold", "paths", "motion", "valves", "simulate")
 #: Settings (dotted names; a trailing "." names a whole section) by the first step that
 #: reads them. Checked by the tests to cover every setting of the Job exactly once.
 READS: dict[str, tuple[str, ...]] = {
-    "slice": ("parts.", "slicing."),
+    "slice": ("parts.", "slicing.", "cell.stroke_mm"),  # the stroke: checked before slicing
     "scaffold": ("scaffold.",),
     "paths": ("materials.part.path_width_mm", "materials.part.fill_width_mm",
               "materials.part.initial_offset_mm", "materials.part.boundary_count",
