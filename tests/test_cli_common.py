@@ -66,8 +66,9 @@ def test_output_dir_leaves_other_files_and_uses_normal_modes(tmp_path):
     the other files; results get the umask's modes, not mkstemp's 0600."""
     import os
 
-    from icefab.atomic import FILE_MODE
-
+    mask = os.umask(0o022)  # read the umask (a test may; icefab itself never does)
+    os.umask(mask)
+    file_mode = 0o666 & ~mask
     target = tmp_path / "out"
     target.mkdir()
     (target / "stack.npz").write_text("input")
@@ -79,7 +80,7 @@ def test_output_dir_leaves_other_files_and_uses_normal_modes(tmp_path):
     assert (target / "paths.png").read_text() == "new picture"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
     for name in ("paths.png", "toolpaths.npz"):
-        assert os.stat(target / name).st_mode & 0o777 == FILE_MODE
+        assert os.stat(target / name).st_mode & 0o777 == file_mode
 
 
 def test_output_to_a_file_is_one_line_error(tmp_path, capsys):

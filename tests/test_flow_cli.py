@@ -40,7 +40,7 @@ def test_valves_writes_programs(tmp_path, traj_file, capsys):
     np.testing.assert_array_equal(a.ticks, b.ticks)
     ref = plan_valves(line_trajectory(), "part", Job())
     assert n_pulses(a) == n_pulses(ref)
-    assert (out / "summary.txt").read_text().startswith("layer")
+    assert (out / "valves-summary.txt").read_text().startswith("layer")
 
 
 def test_valves_bad_input(tmp_path, traj_file, capsys):
@@ -67,7 +67,7 @@ def test_valves_prints_each_kind_of_finding_once_with_its_count(tmp_path, fast_f
     rc = main(["valves", str(fast_file), "-o", str(out), "--out-of-range", "clamp"])
     text = capsys.readouterr().out
     assert rc == 0
-    summary = (out / "summary.txt").read_text()
+    summary = (out / "valves-summary.txt").read_text()
     assert text.strip() == summary.strip()
     kind = [ln for ln in text.splitlines() if "outside the calibration table" in ln]
     assert len(kind) == 1  # two paths, one line

@@ -12,7 +12,7 @@ everything worked; every file is written in a temporary folder first):
   docstring);
 * ``speed_layer_K.png`` — per chosen layer, the trajectory samples coloured by speed
   (thesis Fig. 4-11: the speed lives in the point spacing);
-* ``summary.txt`` — build time with MTTS next to the thesis' constant-speed case (4.4:
+* ``plan-summary.txt`` — build time with MTTS next to the thesis' constant-speed case (4.4:
   boundaries 25 mm/s, fill 125 mm/s) planned with the robot's accelerations
   (``icefab.motion.constant_speed_motion``) and the idealised length / speed estimate
   (``icefab.paths.estimate_build_time``), points, paths and computing time; also printed;
@@ -42,7 +42,7 @@ def add_parser(subparsers) -> None:
         "plan", help="minimum-time trajectories for all paths of a build",
         description="Plan minimum-time trajectories (thesis Ch. 4: PATHSPLIT, VCON, ACON, "
                     "JCON, AREST) for every path of a model or toolpath file. Writes "
-                    "OUT/trajectories.npz, OUT/speed_layer_K.png and OUT/summary.txt; "
+                    "OUT/trajectories.npz, OUT/speed_layer_K.png and OUT/plan-summary.txt; "
                     "with --gcode also OUT/trajectories.gcode, with --constant-spacing "
                     "OUT/constant_spacing.npz (formats: 'pydoc icefab.motion').")
     p.add_argument("input", metavar="MODEL|TOOLPATHS",
@@ -137,7 +137,7 @@ def run(args: argparse.Namespace) -> int:
         vmax = job.motion.speed_mm_s
         for k in ks:
             plot_speed(motion.layers[k], tmp / f"speed_layer_{motion.layers[k].index}.png", vmax)
-        (tmp / "summary.txt").write_text("\n".join(lines) + "\n", encoding="utf-8")
+        (tmp / "plan-summary.txt").write_text("\n".join(lines) + "\n", encoding="utf-8")
         extra = []
         if getattr(args, "gcode", False):
             save_gcode(motion, tmp / "trajectories.gcode")
@@ -147,7 +147,7 @@ def run(args: argparse.Namespace) -> int:
             extra.append("constant_spacing.npz")
     for line in lines:
         print(line)
-    print(f"wrote {args.out}/trajectories.npz, summary.txt"
+    print(f"wrote {args.out}/trajectories.npz, plan-summary.txt"
           + "".join(f", {name}" for name in extra)
           + f" and speed pictures of layers "
           f"{', '.join(str(motion.layers[k].index) for k in ks)}")

@@ -8,7 +8,7 @@ appears only when everything worked):
 * ``layer_KKKK/path_NNNN.bin`` (and/or ``.txt``): one program per path, in the binary or
   text form documented in :mod:`icefab.flow` (pulse instants as uint16 ticks of 2 ms,
   split into pieces at 131.072 s / 16 384 pulses);
-* ``summary.txt``: paths, pulses, pieces and the number of limit findings per layer, then
+* ``valves-summary.txt``: paths, pulses, pieces and the number of limit findings per layer, then
   every kind of finding once with its count (:func:`icefab.flow.summarise_findings`); also
   printed.
 
@@ -33,7 +33,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         description="Make the variable-flow valve program of every depositing trajectory "
                     "(thesis Ch. 6): flow w * dh * speed, frequency from the calibration "
                     "table, pulse instants as uint16 ticks, split at the microcontroller's "
-                    "limits. Writes OUT/layer_KKKK/path_NNNN.bin|txt and OUT/summary.txt.")
+                    "limits. Writes OUT/layer_KKKK/path_NNNN.bin|txt and OUT/valves-summary.txt.")
     p.add_argument("input", metavar="TRAJECTORIES",
                    help="trajectory file (trajectories.npz from 'icefab plan')")
     add_job_argument(p)
@@ -107,6 +107,6 @@ def run(args: argparse.Namespace) -> int:
         if found:
             lines.append(f"findings ({len(found)}), one line per kind:")
             lines.extend(f"  {t}" for t in summarise_findings(found))
-        (tmp / "summary.txt").write_text("\n".join(lines) + "\n")
+        (tmp / "valves-summary.txt").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0
