@@ -32,6 +32,7 @@ import csv
 import dataclasses
 import io
 import json
+import math
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -40,7 +41,7 @@ import numpy as np
 
 from icefab.cli.common import Progress, add_job_argument, job_from_args, output_dir
 from icefab.atomic import write_atomic
-from icefab.errors import ConfigError, StackFileError
+from icefab.errors import ConfigError, SimulationError, StackFileError
 from icefab.report import plot_rms, plot_surfaces
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -190,6 +191,51 @@ def format_table(rows: list[list[float]]) -> list[str]:
     return lines
 
 
+#: What a null in simulation.json's per-layer lists means (strict JSON has no NaN).
+NULL_MEANS = ("rms_mm and max_abs_mm are null at a measurement layer whose part footprint "
+              "is empty; rms_measured_mm where the laser took no samples")
+_PER_LAYER = ("rms_mm", "max_abs_mm", "rms_measured_mm")
+
+
+def _strict_json_figures(result: "SimResult", name: str, job: "Job | None") -> dict:
+    """``result.as_dict()`` with NaN per-layer figures as None (see :data:`NULL_MEANS`).
+
+    Raises SimulationError when the simulation itself broke down: an infinite height on the
+    simulated surface, or any non-finite figure other than those per-layer gaps (NaN or
+    Infinity would make simulation.json invalid JSON, and a number like 1e308 misleads).
+    """
+    data = result.as_dict()
+    bad = []
+    z = np.asarray(result.height.z, dtype=np.float64)
+    if np.isinf(z).any():
+        bad.append(f"{int(np.isinf(z).sum())} surface heights are infinite")
+    for key, value in data.items():
+        if key in _PER_LAYER:
+            data[key] = [None if not math.isfinite(v) else v for v in value]
+            inf = [k for k, v in zip(data["layers"], value) if math.isinf(v)]
+            if inf:
+                bad.append(f"{key} infinite at layer {inf[0]}")
+        elif isinstance(value, float) and not math.isfinite(value):
+            bad.append(f"{key} = {value}")
+        elif isinstance(value, list) and any(isinstance(v, float) and not math.isfinite(v)
+                                             for v in value):
+            bad.append(f"{key} = {value}")
+    if bad:
+        hint = ""
+        if job is not None:
+            from icefab.config import Job as _Job, to_dict
+
+            now, default = to_dict(job), to_dict(_Job())
+            changed = [f"{sec}.{k} = {v!r}" for sec in ("simulation", "flow")
+                       for k, v in now[sec].items() if default[sec].get(k) != v]
+            if changed:
+                hint = f"; settings changed from the defaults: {', '.join(changed[:6])}"
+        raise SimulationError(f"the {name} simulation's results are not finite ("
+                              f"{'; '.join(bad[:3])}): the simulated surface overflowed, "
+                              f"nothing was written{hint}")
+    return data
+
+
 def write_simulation_outputs(open_loop: "SimResult", closed: "SimResult", out: Path, *,
                              surface_layer: int | None = None,
                              job: "Job | None" = None) -> list[Path]:
@@ -206,15 +252,17 @@ def write_simulation_outputs(open_loop: "SimResult", closed: "SimResult", out: P
     if surface_layer is not None and surface_layer not in common:
         raise ConfigError(f"--surface-layer {surface_layer}: not a measurement layer of the "
                           f"simulation (measured: {', '.join(map(str, open_loop.layers))})")
-    data = {"open_loop": open_loop.as_dict(), "smf": closed.as_dict(),
-            "surface_layer": surface_layer}
+    data = {"open_loop": _strict_json_figures(open_loop, "open-loop", job),
+            "smf": _strict_json_figures(closed, "SMF", job),
+            "surface_layer": surface_layer, "null_means": NULL_MEANS}
     if job is not None:
         from icefab.config import to_dict
 
         settings = to_dict(job)
         data["settings"] = {"simulation": settings["simulation"],
                             "feedback": settings["feedback"]}
-    write_atomic(out / "simulation.json", (json.dumps(data, indent=2) + "\n").encode())
+    write_atomic(out / "simulation.json",
+                 (json.dumps(data, indent=2, allow_nan=False) + "\n").encode())
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(HEADER)
