@@ -28,6 +28,7 @@ import numpy as np
 
 from icefab.core import Mesh
 from icefab.errors import MeshError
+from icefab.inputs import read_input
 from icefab.mesh import compressed, obj, ply, stl
 from icefab.mesh.repair import MeshReport, clean_mesh
 from icefab.mesh.topology import weld_vertices
@@ -122,14 +123,7 @@ def read_mesh(path: str | os.PathLike[str], *, inexact: bool = False,
     p = Path(path)
     if tolerance <= 0 or not math.isfinite(tolerance):
         raise MeshError(f"{p}: weld tolerance {tolerance!r} must be a positive number (mm)")
-    try:
-        data = p.read_bytes()
-    except FileNotFoundError:
-        raise MeshError(f"{p}: mesh file not found") from None
-    except IsADirectoryError:
-        raise MeshError(f"{p}: is a directory, expected a mesh file") from None
-    except OSError as exc:
-        raise MeshError(f"{p}: cannot read mesh file ({exc.strerror or exc})") from None
+    data = read_input(p, "mesh", MeshError, "mesh file")  # regular, <= 1 GiB; no FIFO wait
     if compressed.is_gzip(data):
         data = compressed.gunzip(data, p)
     if not data[:4096].strip() and not data.strip():
