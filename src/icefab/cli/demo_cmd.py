@@ -41,8 +41,8 @@ def _say(text: str) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from icefab.demo import demo_mug
-    from icefab.flow import (n_pulses, plan_valves, program_pieces, summarise_findings,
-                             write_valve_program)
+    from icefab.flow import (LayerProgram, n_pulses, plan_valves, program_pieces,
+                             summarise_findings, write_valve_layer)
     from icefab.mesh import check_mesh, transform, write_stl
     from icefab.motion import plan_toolpaths, save_trajectories
     from icefab.paths import estimate_build_time, plan_paths, save_toolpaths
@@ -119,6 +119,7 @@ def run(args: argparse.Namespace) -> int:
         valves_dir = out / "valves"
         valves_dir.mkdir()
         for i, lm in enumerate(motion.layers):
+            example: list[LayerProgram] = []
             for j, traj in enumerate(lm.trajectories):
                 if traj.path is None or not traj.path.depositing:
                     continue
@@ -127,7 +128,10 @@ def run(args: argparse.Namespace) -> int:
                 pulses += n_pulses(prog)
                 pieces += len(program_pieces(prog))
                 if i == 0:  # one readable example layer; the rest are counted
-                    write_valve_program(prog, valves_dir / f"layer0_path{j}.txt", fmt="txt")
+                    example.append(LayerProgram(j, traj.path.material, prog))
+            if i == 0:  # the form 'icefab valves' writes, as text
+                write_valve_layer(lm.index, example, valves_dir / f"layer_{lm.index:04d}.txt",
+                                  fmt="txt")
             progress(i + 1, len(motion.layers))
         summary["valves"] = {"pulses": pulses, "pieces": pieces,
                              "seconds": round(time.perf_counter() - t0, 3)}
