@@ -178,3 +178,17 @@ def test_output_dir_removes_only_its_commands_stale_results(tmp_path):
         (d / "result.npz").write_text("4")
     assert (tmp_path / "outside").read_text() == "keep"
     assert (target / ".icefab-other").exists() and (target / "stack.npz").exists()
+
+
+def test_one_build_time_comparison_in_words():
+    """Issue 10: paths said 2.71 h, plan '-153.3 % reduction' against it, the demo '41 %
+    less'. Now one comparison (both times a robot can run), said in words."""
+    from icefab.cli.common import compare_build_times, hours
+
+    assert hours(3 * 3600 + 360) == "3.10 h" and hours(90) == "1.5 min"
+    faster = compare_build_times(3600.0, 7200.0)
+    assert faster == ("minimum-time trajectories take 1.00 h, the same paths at constant "
+                      "speed 2.00 h: minimum-time is 50 % shorter (2.00x as fast)")
+    slower = compare_build_times(7200.0, 3600.0)
+    assert slower.endswith("minimum-time is 100 % longer") and "-100" not in slower
+    assert "no motion" in compare_build_times(0.0, 10.0)

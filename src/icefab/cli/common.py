@@ -82,6 +82,30 @@ class Progress:
         self.stream.flush()
 
 
+def hours(seconds: float) -> str:
+    """``5.81 h`` (or ``42.0 min`` under an hour): build times as people read them."""
+    return f"{seconds / 3600:.2f} h" if seconds >= 3600 else f"{seconds / 60:.1f} min"
+
+
+#: How every command names the length / speed figure (paths, plan, demo): it is not a build
+#: time a robot can achieve, so nothing is compared with it.
+ESTIMATE_WORDS = ("path length / speed at the thesis' constant speeds, accelerations "
+                  "ignored: a lower bound for constant speed, not a build time")
+
+
+def compare_build_times(mtts_s: float, constant_s: float) -> str:
+    """The one build-time comparison icefab makes, in words: minimum-time trajectories
+    (MTTS) against the same paths planned at the thesis' constant speeds with the robot's
+    accelerations (thesis 4.4); both are build motion times the robot can run."""
+    if not (constant_s > 0 and mtts_s > 0):
+        return "minimum-time vs constant speed: no motion to compare"
+    change = 1.0 - mtts_s / constant_s
+    how = (f"{100 * change:.0f} % shorter ({constant_s / mtts_s:.2f}x as fast)" if change >= 0
+           else f"{-100 * change:.0f} % longer")
+    return (f"minimum-time trajectories take {hours(mtts_s)}, the same paths at constant "
+            f"speed {hours(constant_s)}: minimum-time is {how}")
+
+
 def check_output_dir(path: str | os.PathLike) -> None:
     """OutputError when ``-o path`` names an existing file: checked before a command
     starts its work (``icefab.cli.main``) and again when the folder is made."""

@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from icefab.cli.common import (Progress, add_job_argument, job_from_args, output_dir,
-                               parse_layers)
+from icefab.cli.common import (ESTIMATE_WORDS, Progress, add_job_argument, hours,
+                               job_from_args, output_dir, parse_layers)
 from icefab.report import plot_toolpaths
 from icefab.core import Toolpaths
 
@@ -56,8 +56,9 @@ def summary_lines(toolpaths: Toolpaths, per_layer_s: np.ndarray, total_s: float)
     unf = np.array([lp.unfilled_mm2 for lp in toolpaths]).reshape(-1, 2).sum(axis=0)
     lines.append(f"unfilled area: part {unf[0]:.0f} mm², scaffold {unf[1]:.0f} mm²")
     if len(per_layer_s):
-        lines.append(f"constant-speed build time: {total_s / 3600:.2f} h (layers "
-                     f"{per_layer_s.min():.1f} .. {per_layer_s.max():.1f} s)")
+        lines.append(f"constant-speed estimate: {hours(total_s)} (layers "
+                     f"{per_layer_s.min():.1f} .. {per_layer_s.max():.1f} s; "
+                     f"{ESTIMATE_WORDS}; 'icefab plan' gives the build time)")
     ws = toolpaths.warnings
     lines.append(f"warnings: {len(ws)}")
     lines += [f"  {w}" for w in ws[:SHOW_WARNINGS]]

@@ -31,7 +31,8 @@ import time
 from pathlib import Path
 
 
-from icefab.cli.common import (Progress, add_job_argument, job_from_args, output_dir,
+from icefab.cli.common import (ESTIMATE_WORDS, Progress, add_job_argument, compare_build_times,
+                               hours, job_from_args, output_dir,
                                parse_layers)
 from icefab.errors import ConfigError
 from icefab.report import plot_speed
@@ -125,11 +126,9 @@ def run(args: argparse.Namespace) -> int:
         f"constant speed, planned:  {const_acc:.1f} s ({_hms(const_acc)}; boundary "
         f"{job.motion.boundary_speed_mm_s:g}, fill {job.motion.fill_speed_mm_s:g} mm/s with "
         f"the robot's accelerations, thesis 4.4)",
-        f"constant-speed estimate:  {const:.1f} s ({_hms(const)}; length / speed, "
-        f"accelerations ignored)",
-        f"reduction: {100 * (1 - motion.duration / const_acc):.1f} % against constant speed "
-        f"planned, {100 * (1 - motion.duration / const):.1f} % against the estimate"
-        if const > 0 and const_acc > 0 else "reduction: n/a",
+        compare_build_times(motion.duration, const_acc),
+        f"constant-speed estimate:  {hours(const)} ({ESTIMATE_WORDS}; 'icefab paths' "
+        f"prints it)",
         f"planning time: {t_plan:.2f} s ({motion.n_points / max(t_plan, 1e-9) / 1e6:.2f} M "
         f"samples/s), total {time.perf_counter() - t0:.2f} s",
     ]
@@ -137,7 +136,8 @@ def run(args: argparse.Namespace) -> int:
         save_trajectories(motion, tmp / "trajectories.npz")
         vmax = job.motion.speed_mm_s
         for k in ks:
-            plot_speed(motion.layers[k], tmp / f"speed_layer_{motion.layers[k].index}.png", vmax)
+            plot_speed(motion.layers[k], tmp / f"speed_layer_{motion.layers[k].index}.png", vmax,
+                       job)
         (tmp / "plan-summary.txt").write_text("\n".join(lines) + "\n", encoding="utf-8")
         extra = []
         if getattr(args, "gcode", False):
