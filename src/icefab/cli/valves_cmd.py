@@ -157,10 +157,11 @@ def _drop_spacing(traj, prog, min_drops_per_mm: float) -> tuple[float, float, fl
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))])
     t = np.arange(len(xy)) * float(traj.dt)
     at = np.interp(pulse_times(prog), t, s)
-    if len(at) < 2:
-        return float(s[-1]), float(s[-1]), float(s[-1]) if min_drops_per_mm > 0 else 0.0
-    gaps = np.diff(at)
     limit = 1.0 / min_drops_per_mm if min_drops_per_mm > 0 else np.inf
+    if len(at) < 2:  # one drop (or none) for the whole path
+        length = float(s[-1])
+        return length, length, length if length > limit else 0.0
+    gaps = np.diff(at)
     return float(s[-1]), float(gaps.max()), float(gaps[gaps > limit].sum())
 
 
