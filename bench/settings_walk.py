@@ -126,8 +126,12 @@ def main() -> None:
                     if i is not None:
                         value = list(default)
                         value[i] = bound
-                    if isinstance(default if i is None else default[i], float):
-                        value = [float(x) for x in value] if i is not None else float(value)
+                    if i is not None:
+                        value = [float(x) if isinstance(d, float) else x
+                                 for x, d in zip(value, default)]
+                        value[i] = type(default[i])(bound)
+                    else:
+                        value = type(default)(bound)
                     text = _toml(name, value)
                     if not name.startswith("cell."):
                         text += "[cell]\ncpus = 1\n"
