@@ -71,6 +71,10 @@ class PartSetup:
     copy_gap_mm: float = setting(10.0, "gap between part copies in the grid", lo=0.0)
     part_fraction: Vec2 = setting((0.0, 1.0), "[min, max] fraction of the part height to slice",
                                   lo=0.0, hi=1.0)
+    close_holes: bool = setting(True, "close the holes of an open surface (a scan) in 3D, "
+                                      "once, after placement and before slicing "
+                                      "(icefab.holes); the per-layer closure of "
+                                      "slicing.open_contours is then only a last resort")
 
 
 @dataclass(frozen=True)
@@ -88,13 +92,18 @@ class SlicingSettings:
     max_filter_deviation_mm: float = setting(0.05, "path filter: largest distance a removed "
                                                    "point may lie from the filtered contour",
                                              lo=0.0)
-    open_contours: str = setting("close", "open chains that cannot be linked: 'close' joins "
-                                          "their ends (reported), 'drop' removes them "
-                                          "(reported)", choices=("close", "drop"))
-    max_gap_mm: float = setting(2.0, "gaps in open chains up to this are closed, each "
-                                     "reported; longer ones are holes in the mesh: closed "
-                                     "and reported ('close') or their chain dropped ('drop')",
-                                lo=0.0)
+    open_contours: str = setting("refuse", "open chains left after the 3D hole closing "
+                                           "(parts.close_holes) whose closure in the layer "
+                                           "needs a straight chord longer than max_gap_mm: "
+                                           "'refuse' (default) stops with the layer, the "
+                                           "chord and this setting named; 'close' builds "
+                                           "the layer closed across it (your consent, "
+                                           "reported); 'drop' leaves the chain out "
+                                           "(reported)", choices=("refuse", "close", "drop"))
+    max_gap_mm: float = setting(2.0, "the bound of the per-layer last resort: a straight "
+                                     "chord closing an open contour in its layer may be at "
+                                     "most this long (each closure reported); longer ones "
+                                     "follow open_contours", lo=0.0)
 
 
 @dataclass(frozen=True)
@@ -275,7 +284,11 @@ class FlowSettings:
     max_piece_s: float = setting(131.072, "longest program piece (uint16 ticks)", lo=0.0,
                                  lo_open=True)
     max_pulses: int = setting(16384, "most pulses in one program piece", lo=1)
-    max_frequency_hz: float = setting(1000.0, "highest valve frequency", lo=0.0, lo_open=True)
+    max_frequency_hz: float = setting(500.0, "highest valve frequency the cell can make: "
+                                             "at most one pulse per tick (1 / tick_s, "
+                                             "500 Hz at the thesis' 2 ms tick, 2.3.1); the "
+                                             "valve itself is rated 1000 Hz (thesis 6.1)",
+                                      lo=0.0, lo_open=True)
     min_pulse_ms: float = setting(0.5, "shortest valve opening", lo=0.0, lo_open=True)
     min_drops_per_mm: float = setting(1.0, "at least this many drops per mm of path", lo=0.0)
     layer_scale: float = setting(1.0, "nominal flow factor c in q = w * dh * c", lo=0.0,
@@ -445,7 +458,12 @@ def _check_cross(job: Job) -> None:
         raise ConfigError(f"parts.copies = {tuple(job.parts.copies)!r}: {p3} copies do not "
                           f"fit a {p1} x {p2} grid")
     fl = job.flow
-    limits = {"flow.max_frequency_hz": fl.max_frequency_hz, "1 / flow.tick_s": 1.0 / fl.tick_s,
+    if fl.max_frequency_hz * fl.tick_s > 1.0 + 1e-9:
+        raise ConfigError(f"flow.max_frequency_hz = {fl.max_frequency_hz:g}: above "
+                          f"1 / flow.tick_s = {1.0 / fl.tick_s:g} Hz, one pulse per "
+                          "microcontroller tick (pulses would share a tick); lower "
+                          "flow.max_frequency_hz or flow.tick_s")
+    limits = {"1 / flow.tick_s": 1.0 / fl.tick_s, "flow.max_frequency_hz": fl.max_frequency_hz,
               "1 / flow.min_pulse_ms": 1000.0 / fl.min_pulse_ms}
     name, top = min(limits.items(), key=lambda kv: kv[1])
     if fl.pwm_frequency_hz > top:

@@ -41,12 +41,16 @@ from __future__ import annotations
 import dataclasses
 import logging
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numba import njit
 
 from icefab.mesh import edge_buckets
 from icefab.types import Mesh
+
+if TYPE_CHECKING:
+    from icefab.config import Job
 
 log = logging.getLogger(__name__)
 
@@ -252,3 +256,33 @@ def close_holes(mesh: Mesh) -> tuple[Mesh, HoleReport]:
     for w in report.warnings(mesh.name or "mesh"):
         log.info("%s", w)
     return out, report
+
+
+#: The mesh loader's located findings (``icefab.mesh.MeshReport.warnings``), given in the
+#: file's coordinates; :func:`prepare_closed` replaces them by findings in the build's.
+_LOCATED = ("open edges (the surface has holes)", "non-manifold edges (shared by more")
+
+
+def prepare_closed(mesh: Mesh, job: "Job") -> Mesh:
+    """The build mesh as the slicer gets it: placed ``mesh`` with its holes closed.
+
+    mesh: the merged parts after ``icefab.mesh.transform`` (vertices in the build's
+    coordinates, mm). With ``job.parts.close_holes`` the holes are closed
+    (:func:`close_holes`). Either way, the loader's open and non-manifold edge findings,
+    located in the file's coordinates, are replaced by the same findings located in the
+    build's coordinates (after scale, rotation and translation), mm.
+    """
+    from icefab.mesh import check_mesh
+
+    name = mesh.name or "mesh"
+    kept = tuple(w for w in mesh.warnings if not any(k in w for k in _LOCATED))
+    found: list[str] = []
+    if job.parts.close_holes:
+        mesh, holes = close_holes(mesh)
+        found += holes.warnings(name)
+    if len(kept) != len(mesh.warnings) or found:
+        report = check_mesh(mesh)
+        found += [w for w in report.warnings() if any(k in w for k in _LOCATED)]
+    found = [w.replace(") mm", ") mm (build coordinates)", 1) if "e.g. at (" in w else w
+             for w in found]
+    return dataclasses.replace(mesh, warnings=kept + tuple(found))

@@ -1795,7 +1795,9 @@ def prepare_parts(job: "Job", base_dir: str | os.PathLike[str] | None = None) ->
     """Load ``job.parts.files`` (relative to ``base_dir``), merge and place them.
 
     Welding follows ``job.parts.inexact`` / ``weld_tolerance_mm``; placement follows
-    :func:`transform`. Raises :class:`MeshError` when the job names no file.
+    :func:`transform`; then holes are closed in 3D (``job.parts.close_holes``) and defects
+    located in the build's coordinates (:func:`icefab.holes.prepare_closed`). Raises
+    :class:`MeshError` when the job names no file.
     """
     parts = job.parts
     if not parts.files:
@@ -1804,4 +1806,6 @@ def prepare_parts(job: "Job", base_dir: str | os.PathLike[str] | None = None) ->
     paths = [FsPath(f) if base is None or FsPath(f).is_absolute() else base / f
              for f in parts.files]
     mesh = load_meshes(paths, inexact=parts.inexact, tolerance=parts.weld_tolerance_mm)
-    return transform(mesh, parts)
+    from icefab.holes import prepare_closed  # holes closed in 3D, defects located in mm
+
+    return prepare_closed(transform(mesh, parts), job)

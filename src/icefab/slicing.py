@@ -46,15 +46,18 @@ Pipeline (RPSLICE's FACETSLICE = INTERSECTFACET + SEGMERGE + PATHFILTER, thesis 
    (``job.parts.weld_tolerance_mm``, cKDTree) -- logged, counted in ``SliceReport`` and
    in a warning.
 
-4. **Open chains** that still cannot close (holes in a scan): within the layer, chains are
-   joined end-to-start greedily by the nearest free endpoint (a chain may be reversed),
-   preferring to close on itself when its own start is nearest; then each chain is closed
-   on itself. Gaps up to ``job.slicing.max_gap_mm`` are closed, each reported in
+4. **Open chains** that still cannot close (holes in a scan the 3D closing of
+   ``icefab.holes`` left open, or a mesh sliced without it -- the per-layer last resort):
+   within the layer, chains are joined end-to-start greedily by the nearest free endpoint
+   (a chain may be reversed), preferring to close on itself when its own start is
+   nearest; then each chain is closed on itself. Straight chords up to
+   ``job.slicing.max_gap_mm`` (the bound, 2 mm by default) are closed, each reported in
    ``Stack.warnings`` with its layer, location and length (and counted in one summary
-   line). Longer gaps: with ``open_contours = "close"`` (default) they are closed too and
-   reported as holes in the mesh -- no layer of an open scan is lost; with ``"drop"`` no
-   join or closure may cross more than ``max_gap_mm``, and a chain that cannot close is
-   dropped and reported. Areas are never silently wrong: every non-trivial closure is reported.
+   line). A longer chord needs the user's consent: with ``open_contours = "refuse"``
+   (default) slicing stops with one line naming the layer, the chord and the settings;
+   ``"close"`` closes it too (reported); with ``"drop"`` no join or closure may cross more
+   than ``max_gap_mm``, and a chain that cannot close is dropped and reported. Areas are
+   never silently wrong: every non-trivial closure is reported.
 
 5. **Path filter** (PATHFILTER): points closer than ``min_point_spacing_mm`` to the last
    kept point and (near-)collinear points are removed, per contour in a compiled kernel,
@@ -950,6 +953,14 @@ def _close_open_chains(chains_in: list[tuple[np.ndarray, bool]], layer: int, z: 
             warn.add(f"{where}: open contour dropped: it cannot close within max_gap_mm = "
                      f"{max_gap} (gap {g:.2f} mm at {_fmt_pt(p)})")
             continue
+        long = [(g, p) for g, p in gaps if g > max_gap]
+        if long and job.slicing.open_contours == "refuse":
+            g, p = max(long, key=lambda gp: gp[0])
+            raise GeometryError(
+                f"{where}: an open contour would be closed across a {g:.2f} mm straight "
+                f"chord at {_fmt_pt(p)}, longer than slicing.max_gap_mm = {max_gap:g} (the "
+                "hole was not closed in 3D); set slicing.open_contours = \"close\" to build "
+                "it anyway, \"drop\" to leave the contour out, or raise slicing.max_gap_mm")
         for g, p in gaps:
             if _NOISE_GAP_MM < g <= max_gap:
                 report.gaps_closed += 1
@@ -958,8 +969,8 @@ def _close_open_chains(chains_in: list[tuple[np.ndarray, bool]], layer: int, z: 
             elif g > max_gap:
                 report.large_gaps_closed += 1
                 warn.add(f"{where}: open contour closed across a {g:.2f} mm gap at "
-                         f"{_fmt_pt(p)} (longer than max_gap_mm = {max_gap}; hole in the "
-                         "mesh)")
+                         f"{_fmt_pt(p)} (longer than max_gap_mm = {max_gap}; built as "
+                         "slicing.open_contours = \"close\" allows)")
         ring = np.concatenate(cur)
         if len(ring) > 1 and np.array_equal(ring[0], ring[-1]):
             ring = ring[:-1]            # drop a repeated closing point
