@@ -38,7 +38,7 @@ from icefab import Job  # noqa: E402
 from icefab.feedback import (SmfState, error_surface, region_mask, smf_update,  # noqa: E402
                              surface_from_samples, tune_gains)
 from icefab.flow import plan_valves, replan_valves, trajectory_part_xy  # noqa: E402
-from icefab.types import HeightMap, Path as IPath, Region, Trajectory  # noqa: E402
+from icefab.core import HeightMap, Region, Toolpath, Trajectory  # noqa: E402
 
 N_D = 4
 
@@ -98,7 +98,7 @@ def setup_synthetic(job: Job):
             ring = ellipse(100 - k, 75 - 0.75 * k, 800)
             pts = resample(np.vstack([ring, ring[:1]]), 50.0 * j.motion.dt_s)
             n = len(pts)
-            path = IPath(points=ring, material="part" if k > 30 else "scaffold", role="fill",
+            path = Toolpath(points=ring, material="part" if k > 30 else "scaffold", role="fill",
                          closed=True, width=1.5, layer=N_D + layer)
             trajs.append(Trajectory(dt=j.motion.dt_s, xy=pts + off, joints=np.zeros((n, 0)),
                                     speed=np.full(n, 50.0), duration=(n - 1) * j.motion.dt_s,

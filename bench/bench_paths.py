@@ -248,7 +248,7 @@ def main() -> int:
     from icefab.config import Job
     from icefab.paths import plan_paths
     from icefab.regions import add_scaffold, parallel_map
-    from icefab.types import Stack
+    from icefab.core import Stack
 
     stack, _ = _stack(args.mesh)
     if args.layers:

@@ -56,7 +56,7 @@ def main() -> None:
     from icefab.regions import add_scaffold
     from icefab.sim import _splat, _grid_for, plan_layer, simulate_build
     from icefab.slicing import slice_mesh
-    from icefab.types import Stack
+    from icefab.core import Stack
 
     job = Job()
     n = args.layers

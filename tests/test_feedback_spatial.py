@@ -12,7 +12,7 @@ from icefab.errors import GeometryError
 from icefab.feedback import (ControlAction, SmfState, action_along, error_surface, grid_over,
                              region_mask, regrid, retime_trajectory, saturation_limits,
                              smf_update, surface_from_samples)
-from icefab.types import HeightMap, Path, Region, Trajectory
+from icefab.core import HeightMap, Toolpath, Region, Trajectory
 
 
 def square(x0, y0, x1, y1, ccw=True):
@@ -219,7 +219,7 @@ def _line_traj(n=200, dt=0.016, v=50.0):
     t = np.arange(n) * dt
     xy = np.column_stack([v * t, 0 * t])
     return Trajectory(dt=dt, xy=xy, joints=np.column_stack([t, -t]), speed=np.full(n, v),
-                      duration=(n - 1) * dt, path=Path(points=xy[[0, -1]], width=1.5))
+                      duration=(n - 1) * dt, path=Toolpath(points=xy[[0, -1]], width=1.5))
 
 
 def test_retime_constant_action():

@@ -12,7 +12,7 @@ from icefab.errors import ConfigError, FlowError, StackFileError
 from icefab.flow import (DATA_DIR, calibration_for, load_calibration, n_pulses, plan_valves,
                          program_pieces, pulse_instants, pulse_times, read_valve_program,
                          total_duration, valve_frequency, write_valve_program)
-from icefab.types import HeightMap, Path, Trajectory, ValveProgram
+from icefab.core import HeightMap, Toolpath, Trajectory, ValveProgram
 
 
 def line_trajectory(length=100.0, vmax=50.0, accel=500.0, dt=0.016, role="boundary",
@@ -36,7 +36,7 @@ def line_trajectory(length=100.0, vmax=50.0, accel=500.0, dt=0.016, role="bounda
     job = Job()
     off = np.asarray(job.cell.ee_origin_mm) - np.asarray(job.materials[material].nozzle_offset_mm)
     xy = np.column_stack([s, np.full(n, y)]) + off
-    path = Path(points=np.array([[0.0, y], [length, y]]), material=material, role=role,
+    path = Toolpath(points=np.array([[0.0, y], [length, y]]), material=material, role=role,
                 width=width, layer=3)
     return Trajectory(dt=dt, xy=xy, joints=np.zeros((n, 0)), speed=v, duration=(n - 1) * dt,
                       path=path)
@@ -357,7 +357,7 @@ def test_mtts_trajectory_volume_per_mm_is_nominal():
     from icefab.motion import thesis_test_path
     job = Job()
     pts = thesis_test_path(offset_mm=(-50.0, -30.0))
-    path = Path(points=pts, material="part", role="boundary", width=1.5, layer=0)
+    path = Toolpath(points=pts, material="part", role="boundary", width=1.5, layer=0)
     traj = plan_motion(path, job)
     assert traj.speed.max() > 2 * np.median(traj.speed[traj.speed > 0]) / 3
     plan = valve_frequency(traj, "part", job)
@@ -394,13 +394,13 @@ def test_valve_limit_findings_travel_with_the_program():
     import numpy as np
     from icefab import Job
     from icefab.flow import plan_valves
-    from icefab.types import Path, Trajectory
+    from icefab.core import Toolpath, Trajectory
 
     job = Job().replace(**{"flow.min_drops_per_mm": 50.0})
     n = 200
     xy = np.column_stack([np.linspace(0, 100, n), np.zeros(n)])
     speed = np.full(n, 100.0)
-    path = Path(points=xy[[0, -1]], material="part", role="fill", width=3.0)
+    path = Toolpath(points=xy[[0, -1]], material="part", role="fill", width=3.0)
     traj = Trajectory(dt=0.005, xy=xy, joints=np.zeros((n, 2)), speed=speed,
                       duration=(n - 1) * 0.005, path=path)
     prog = plan_valves(traj, "part", job)

@@ -18,7 +18,7 @@ from icefab import Job
 from icefab.errors import ConfigError, FlowError
 from icefab.flow import (finding_kind, n_pulses, plan_valves, program_pieces, pulse_times,
                          summarise_findings, valve_frequency)
-from icefab.types import Path, Trajectory
+from icefab.core import Toolpath, Trajectory
 
 V_REF = 30.95 / 125.0  # mm^3 per 0.5 ms pulse at 125 Hz (table row 125 Hz, 30.95 mm^3/s)
 PWM = {"flow.mode": "pwm"}
@@ -31,7 +31,7 @@ def constant_trajectory(speed, duration=0.8, dt=0.016, width=1.5, role="boundary
     n = int(round(duration / dt)) + 1
     s = np.arange(n) * dt * speed
     xy = np.column_stack([s, np.zeros(n)]) + np.array([200.0, -100.0])
-    path = Path(points=xy[[0, -1]] if n > 1 else xy[[0, 0]], material=material, role=role,
+    path = Toolpath(points=xy[[0, -1]] if n > 1 else xy[[0, 0]], material=material, role=role,
                 width=width, layer=7)
     return Trajectory(dt=dt, xy=xy, joints=np.zeros((n, 0)), speed=np.full(n, float(speed)),
                       duration=(n - 1) * dt, path=path)

@@ -11,7 +11,7 @@ from shapely.geometry import Polygon
 from shapely.validation import explain_validity
 
 from icefab import geometry as geo
-from icefab.types import Region, signed_area
+from icefab.core import Region, signed_area
 
 # ----------------------------------------------------------------------------- helpers
 

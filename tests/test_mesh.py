@@ -17,7 +17,7 @@ import trimesh
 from icefab.errors import MeshError
 from icefab.mesh import (check_mesh, load_mesh, load_meshes, merge_meshes, read_mesh,
                          weld_vertices)
-from icefab.types import Mesh
+from icefab.core import Mesh
 
 # --------------------------------------------------------------------------- references
 

@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 
 from icefab.errors import MeshError
 from icefab.mesh import load_mesh
-from icefab.types import Mesh
+from icefab.core import Mesh
 
 _TMP = Path(tempfile.mkdtemp(prefix="icefab-fuzz-"))
 atexit.register(shutil.rmtree, _TMP, True)
@@ -173,7 +173,7 @@ def _strip_reference(strip):
 
 @given(st.lists(st.integers(-1, 6), max_size=60))
 def test_tristrip_decoder_matches_reference(strip):
-    from icefab.mesh import _tristrips
+    from icefab.mesh.ply import _tristrips
     got = _tristrips(np.array(strip, np.int64)).tolist()
     assert [tuple(t) for t in got] == _strip_reference(strip)
 
@@ -181,7 +181,7 @@ def test_tristrip_decoder_matches_reference(strip):
 @given(st.lists(st.lists(st.integers(0, 50), min_size=3, max_size=9), min_size=1,
                 max_size=20))
 def test_fan_triangulation_matches_reference(polys):
-    from icefab.mesh import _fan
+    from icefab.mesh.topology import _fan
     flat = np.array([i for p in polys for i in p], np.int64)
     counts = np.array([len(p) for p in polys], np.int64)
     want = [(p[0], p[j + 1], p[j + 2]) for p in polys for j in range(len(p) - 2)]

@@ -10,7 +10,7 @@ from icefab.config import Job, PartSetup
 from icefab.errors import ConfigError, MeshError
 from icefab.mesh import (check_mesh, part_fraction_range, prepare_parts, transform,
                          write_stl)
-from icefab.types import Mesh
+from icefab.core import Mesh
 
 
 def _box(lo=(0.0, 0.0, 0.0), size=(10.0, 20.0, 30.0)) -> Mesh:

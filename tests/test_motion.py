@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import shapely
 
-from icefab import Job, Path
+from icefab import Job, Toolpath
 from icefab.errors import IcefabError, WorkspaceError
 from icefab.motion import (constant_spacing, followed_path, gcode_moves, pathsplit,
                            plan_motion, plan_paths_motion, thesis_test_path)
@@ -336,20 +336,20 @@ def test_gcode_feedrates_are_the_sample_speeds(job):
 def test_path_objects_frames_and_measure_speed():
     th = np.linspace(0, 2 * np.pi, 400, endpoint=False)
     ring = np.c_[40 * np.cos(th), 40 * np.sin(th)]
-    water = Path(points=ring, material="part", role="measure", closed=True, layer=2)
+    water = Toolpath(points=ring, material="part", role="measure", closed=True, layer=2)
     tr = plan_motion(water, JOB)
     assert tr.path is water
     from icefab.paths import to_base_frame
     base = to_base_frame(water.polyline(), "laser", JOB)
     check_trajectory(tr, base, JOB, vcap=50.0)
     assert tr.speed.max() <= 50.0 * 1.001
-    dep = Path(points=ring, material="part", role="boundary", closed=True, layer=2)
+    dep = Toolpath(points=ring, material="part", role="boundary", closed=True, layer=2)
     assert plan_motion(dep, JOB).speed.max() > 60.0
 
 
 def test_workspace_error_before_planning_names_layer_path_point():
-    ok = Path(points=np.array([[0.0, 0.0], [10.0, 0.0]]), layer=4)
-    far = Path(points=np.array([[0.0, 0.0], [10.0, 0.0], [600.0, 0.0]]), layer=4)
+    ok = Toolpath(points=np.array([[0.0, 0.0], [10.0, 0.0]]), layer=4)
+    far = Toolpath(points=np.array([[0.0, 0.0], [10.0, 0.0], [600.0, 0.0]]), layer=4)
     with pytest.raises(WorkspaceError, match=r"layer 4, path 1: point 2 at .*radius"):
         plan_paths_motion([ok, far], JOB)
     with pytest.raises(WorkspaceError, match="point 1"):
@@ -363,7 +363,7 @@ def test_workspace_error_before_planning_names_layer_path_point():
 
 def test_path_errors_name_the_path():
     # a Path knows its layer, material and role, not its index: no made-up "path 0"
-    far = Path(points=np.array([[0.0, 0.0], [400.0, 0.0]]), layer=7, material="scaffold",
+    far = Toolpath(points=np.array([[0.0, 0.0], [400.0, 0.0]]), layer=7, material="scaffold",
                role="fill")
     with pytest.raises(WorkspaceError) as exc:
         plan_motion(far, JOB)
@@ -371,7 +371,7 @@ def test_path_errors_name_the_path():
     assert msg.startswith("layer 7, scaffold fill path: point 1 at") and "path 0" not in msg
     with pytest.raises(WorkspaceError, match=r"^layer 7, path 3 \(scaffold fill\): point 1"):
         plan_motion(far, JOB, index=3)
-    nan = Path(points=np.array([[0.0, 0.0], [np.nan, 0.0]]), role="travel")
+    nan = Toolpath(points=np.array([[0.0, 0.0], [np.nan, 0.0]]), role="travel")
     with pytest.raises(IcefabError, match=r"^part travel path: point 1 is not finite"):
         plan_motion(nan, JOB)
 
@@ -381,8 +381,8 @@ def test_build_workspace_check_finds_chords_through_the_inner_hole():
     # by the up-front check, before any layer is planned
     from icefab import LayerPaths, Toolpaths
     from icefab.motion import check_build_workspace, plan_toolpaths
-    ok = Path(points=np.array([[300.0, 0.0], [310.0, 0.0]]), layer=0, frame="base")
-    chord = Path(points=np.array([[300.0, 0.0], [150.0, -100.0], [150.0, 100.0]]), layer=1,
+    ok = Toolpath(points=np.array([[300.0, 0.0], [310.0, 0.0]]), layer=0, frame="base")
+    chord = Toolpath(points=np.array([[300.0, 0.0], [150.0, -100.0], [150.0, 100.0]]), layer=1,
                  frame="base")
     tp = Toolpaths(layers=(LayerPaths(index=0, z=0.25, paths=(ok,)),
                            LayerPaths(index=1, z=0.5, paths=(ok, chord))), job=JOB)

@@ -155,13 +155,13 @@ def test_gantry_default_origin_is_the_same_in_every_stage():
     from icefab.flow import trajectory_part_xy
     from icefab.motion import plan_motion
     from icefab.paths import to_base_frame
-    from icefab.types import Path
+    from icefab.core import Toolpath
 
     job = Job().replace(**{"cell.robot": "gantry"})
     centre = 0.5 * np.asarray(job.cell.gantry_travel_mm, dtype=float)
     assert np.allclose(job.cell.ee_origin_mm, centre)
     part = np.array([[-20.0, -10.0], [20.0, -10.0], [20.0, 10.0], [-20.0, 10.0]])
-    path = Path(points=part, material="part", role="boundary", closed=True, width=1.5)
+    path = Toolpath(points=part, material="part", role="boundary", closed=True, width=1.5)
     traj = plan_motion(path, job)  # a part-frame Path goes to the base frame in the planner
     assert np.abs(traj.xy[0] - to_base_frame(part, "part", job)[0]).max() < 1e-6
     back = trajectory_part_xy(traj, "part", job)

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from icefab import Job, LayerPaths, Path, Toolpaths
+from icefab import Job, LayerPaths, Toolpath, Toolpaths
 from icefab.errors import IcefabError
 from icefab.motion import (constant_speed_motion, plan_paths_motion, plan_toolpaths,
                            thesis_test_path)
@@ -33,7 +33,7 @@ def test_straight_line_constant_speed_plus_ramps(jerk, role, speed):
     # from/to-rest curves starting at zero acceleration: the textbook S-curve
     job = Job().replace(**{"motion.jerk_limited": jerk, "motion.rest_accel_mm_s2": 0.0})
     m = job.motion
-    p = Path(points=LINE, role=role, frame="base", width=1.5)
+    p = Toolpath(points=LINE, role=role, frame="base", width=1.5)
     tr = plan_paths_motion([p], job, role_speeds={role: speed})[0]
     expect = _line_time(200.0, speed, m.accel_mm_s2, m.jerk_mm_s3 if jerk else None)
     assert expect - 1e-6 <= tr.duration + 1e-9
@@ -55,8 +55,8 @@ def _box_toolpaths(job):
     fill = np.asarray(zz) + off
     layers = []
     for k in range(2):
-        paths = (Path(points=bnd, role="boundary", frame="base", layer=k, width=1.5),
-                 Path(points=fill, role="fill", frame="base", layer=k, width=3.0))
+        paths = (Toolpath(points=bnd, role="boundary", frame="base", layer=k, width=1.5),
+                 Toolpath(points=fill, role="fill", frame="base", layer=k, width=3.0))
         layers.append(LayerPaths(index=k, z=0.25 * (k + 1), paths=paths))
     return Toolpaths(layers=tuple(layers), job=job)
 

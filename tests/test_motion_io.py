@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from icefab import Job, LayerPaths, Path, Toolpaths
+from icefab import Job, LayerPaths, Toolpath, Toolpaths
 from icefab.errors import StackFileError, WorkspaceError
 from icefab.motion import load_trajectories, plan_toolpaths, save_trajectories
 
@@ -14,12 +14,12 @@ def _toolpaths(job, n_layers=4):
     th = np.linspace(0, 2 * np.pi, 200, endpoint=False)
     for k in range(n_layers):
         r = 20.0 + 5 * k
-        ring = Path(points=np.c_[r * np.cos(th), r * np.sin(th)], z=0.25 * (k + 1),
+        ring = Toolpath(points=np.c_[r * np.cos(th), r * np.sin(th)], z=0.25 * (k + 1),
                     material="part", role="boundary", closed=True, width=1.5, layer=k)
         sq = np.array([[-10.0, -10.0], [10.0, -10.0], [10.0, 10.0], [-10.0, 10.0]])
-        fill = Path(points=sq, z=0.25 * (k + 1), material="scaffold", role="fill",
+        fill = Toolpath(points=sq, z=0.25 * (k + 1), material="scaffold", role="fill",
                     closed=True, width=3.0, layer=k)
-        travel = Path(points=np.array([[r, 0.0], [-10.0, -10.0]]), z=0.25 * (k + 1),
+        travel = Toolpath(points=np.array([[r, 0.0], [-10.0, -10.0]]), z=0.25 * (k + 1),
                       role="travel", layer=k)
         layers.append(LayerPaths(index=k, z=0.25 * (k + 1), paths=(ring, travel, fill)))
     return Toolpaths(layers=tuple(layers), job=job)
@@ -69,11 +69,11 @@ def _narrow_layers(job):
     """Toolpaths whose paths carry non-default widths (a narrow gap-fill ring), tools
     and closed flags, as the paths stage makes them."""
     th = np.linspace(0, 2 * np.pi, 120, endpoint=False)
-    ring = Path(points=np.c_[25 * np.cos(th), 25 * np.sin(th)], z=0.25, material="part",
+    ring = Toolpath(points=np.c_[25 * np.cos(th), 25 * np.sin(th)], z=0.25, material="part",
                 role="fill", closed=True, width=0.6, layer=0)
-    laser = Path(points=np.c_[30 * np.cos(th), 30 * np.sin(th)], z=0.25, material="part",
+    laser = Toolpath(points=np.c_[30 * np.cos(th), 30 * np.sin(th)], z=0.25, material="part",
                  role="measure", closed=True, width=0.0, layer=0, tool="laser")
-    line = Path(points=np.array([[-20.0, 0.0], [20.0, 5.0]]), z=0.25, material="scaffold",
+    line = Toolpath(points=np.array([[-20.0, 0.0], [20.0, 5.0]]), z=0.25, material="scaffold",
                 role="boundary", closed=False, width=2.2, layer=0)
     return Toolpaths(layers=(LayerPaths(index=0, z=0.25, paths=(ring, laser, line)),),
                      job=job)
@@ -156,7 +156,7 @@ def test_workspace_error_names_layer_in_build():
     job = Job()
     tp = _toolpaths(job, 3)
     last = tp.layers[-1]
-    far = Path(points=np.array([[0.0, 0.0], [400.0, 0.0]]), role="travel", layer=2)
+    far = Toolpath(points=np.array([[0.0, 0.0], [400.0, 0.0]]), role="travel", layer=2)
     tp = Toolpaths(layers=tp.layers[:-1] + (LayerPaths(index=2, z=last.z,
                                                         paths=last.paths + (far,)),),
                    job=job)

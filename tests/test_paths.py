@@ -17,7 +17,7 @@ from icefab.paths import (OFF, ON1, ON2, SWEEP_TOL, deposition_state, estimate_b
                           jin_segment_time, layer_point_states, load_toolpaths, order_nearest,
                           plan_layer, plan_paths, point_states, save_toolpaths, to_base_frame)
 from icefab.regions import add_scaffold
-from icefab.types import Layer, LayerPaths, Path, Region, Toolpaths, signed_area
+from icefab.core import Layer, LayerPaths, Toolpath, Region, Toolpaths, signed_area
 from test_geometry import (check_region_structure, polygon_with_holes, rect,
                            to_shapely)
 from test_regions import make_stack, prism, table
@@ -29,7 +29,7 @@ def region_of(layer: Layer, material: str) -> Region:
     return layer.part if material == "part" else layer.scaffold
 
 
-def _geom(p: Path):
+def _geom(p: Toolpath):
     return LinearRing(p.points) if p.closed else LineString(p.points)
 
 
@@ -358,11 +358,11 @@ def test_nearest_neighbour_order_and_start_points():
 def test_estimate_build_time_constant_speeds():
     job = Job()
     sq = rect(0, 0, 10, 10)
-    paths = (Path(sq, 0.1, "part", "boundary", True, 1.5, 0),
-             Path(np.array([[0.0, 0.0], [0.0, 125.0]]), 0.1, "part", "travel", False, 0.0, 0),
-             Path(sq, 0.1, "part", "fill", True, 3.0, 0),
-             Path(sq, 0.1, "part", "measure", True, 0.0, 0),
-             Path(sq, 0.1, "scaffold", "measure", True, 0.0, 0))
+    paths = (Toolpath(sq, 0.1, "part", "boundary", True, 1.5, 0),
+             Toolpath(np.array([[0.0, 0.0], [0.0, 125.0]]), 0.1, "part", "travel", False, 0.0, 0),
+             Toolpath(sq, 0.1, "part", "fill", True, 3.0, 0),
+             Toolpath(sq, 0.1, "part", "measure", True, 0.0, 0),
+             Toolpath(sq, 0.1, "scaffold", "measure", True, 0.0, 0))
     tp = Toolpaths((LayerPaths(0, 0.1, paths), LayerPaths(1, 0.3, paths[:1])), job)
     per, total = estimate_build_time(tp)
     expected0 = 40 / 25 + 125 / 125 + 40 / 125 + 40 / 50 + 40 / 125

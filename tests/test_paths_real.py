@@ -86,7 +86,7 @@ def test_real_mesh_invariants_on_every_layer(mesh_dir, name):
 
 def test_demo_mug_overhang_mode_and_hook_wall():
     from icefab.demo import demo_mug
-    from icefab.types import Stack
+    from icefab.core import Stack
     from test_regions import check_overhang_invariants
 
     job = Job().replace(**{"slicing.layer_thickness_mm": 0.25, "cell.cpus": 1,

@@ -10,7 +10,7 @@ from hypothesis import given, settings, strategies as st
 from icefab import geometry as geo
 from icefab.config import Job
 from icefab.regions import add_scaffold, merged_regions
-from icefab.types import Layer, Region, Stack
+from icefab.core import Layer, Region, Stack
 from test_geometry import circle, check_region_structure, rect, to_shapely
 
 T = 0.25

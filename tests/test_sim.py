@@ -7,7 +7,7 @@ from hypothesis import given, strategies as st
 
 from icefab.sim import (SimulationError, deposit, deposit_pulses, empty_surface,
                         laser_measure, laser_positions, sample_surface)
-from icefab.types import HeightMap
+from icefab.core import HeightMap
 
 G = 0.5
 

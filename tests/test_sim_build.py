@@ -13,7 +13,7 @@ from scipy.spatial import cKDTree
 
 from icefab import Job
 from icefab.sim import Measurement, SimulationError, simulate_build
-from icefab.types import HeightMap, LayerPaths, Path, Toolpaths
+from icefab.core import HeightMap, LayerPaths, Toolpath, Toolpaths
 
 DH = 0.25
 
@@ -37,10 +37,10 @@ def annulus_toolpaths(job: Job, n_layers: int, *, measure: bool = True) -> Toolp
     layers = []
     for i in range(n_layers):
         z = (i + 1) * DH
-        paths = [Path(points=_circle(r), z=z, material=m, role=role, closed=True, width=w,
+        paths = [Toolpath(points=_circle(r), z=z, material=m, role=role, closed=True, width=w,
                       layer=i) for m, role, r, w in rings]
         if measure and (i + 1) % n_d == 0:
-            paths += [Path(points=_circle(r), z=z, material="part" if r < 25 else "scaffold",
+            paths += [Toolpath(points=_circle(r), z=z, material="part" if r < 25 else "scaffold",
                            role="measure", closed=True, layer=i)
                       for r in np.arange(11.5, 30.0, 3.0)]
         layers.append(LayerPaths(index=i, z=z, paths=tuple(paths)))
@@ -220,10 +220,10 @@ def test_the_c_controller_corrects_as_well():
 
 def test_paths_the_simulator_cannot_use_are_named():
     job = quiet_job()
-    bad = [Path(points=_circle(20.0), z=0.25, role="fill", closed=True, width=3.0,
+    bad = [Toolpath(points=_circle(20.0), z=0.25, role="fill", closed=True, width=3.0,
                 frame="base"),
-           Path(points=np.array([[0.0, 0.0], [np.nan, 1.0]]), z=0.25, role="fill", width=3.0),
-           Path(points=_circle(20.0), z=0.25, role="fill", closed=True, width=0.0)]
+           Toolpath(points=np.array([[0.0, 0.0], [np.nan, 1.0]]), z=0.25, role="fill", width=3.0),
+           Toolpath(points=_circle(20.0), z=0.25, role="fill", closed=True, width=0.0)]
     for path, msg in zip(bad, ["'base' frame", "NaN", "width 0.0"]):
         tp = Toolpaths(layers=(LayerPaths(index=5, z=0.25, paths=(path,)),), job=job)
         with pytest.raises(SimulationError, match=f"layer 5: .*{msg}"):

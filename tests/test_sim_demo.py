@@ -18,7 +18,7 @@ from icefab.paths import plan_paths
 from icefab.regions import add_scaffold
 from icefab.sim import simulate_build
 from icefab.slicing import slice_mesh
-from icefab.types import Stack
+from icefab.core import Stack
 
 N_LAYERS = 48  # 12 mm: the mug's solid bottom (6 mm) and the first 6 mm of its wall
 
@@ -61,7 +61,7 @@ def test_smf_through_the_valve_programs_holds_the_demo_part_too(demo_toolpaths):
     # the same must-show with the cell's real signals: minimum-time trajectories and
     # their valve programs deposited pulse by pulse, SMF re-planning the programs
     from icefab.motion import plan_toolpaths
-    from icefab.types import Toolpaths
+    from icefab.core import Toolpaths
 
     tp, job = demo_toolpaths
     job = job.replace(**{"simulation.deposition": "valves"})

@@ -9,12 +9,12 @@ the speed profile, one at constant frequency does not.
 from __future__ import annotations
 
 import sys
-from pathlib import Path as FsPath
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(FsPath(__file__).parent))
+sys.path.insert(0, str(Path(__file__).parent))
 from test_sim_build import annulus_toolpaths, quiet_job  # noqa: E402
 
 from icefab import Job, flow  # noqa: E402
@@ -22,7 +22,7 @@ from icefab.motion import BuildMotion, LayerMotion, plan_motion, plan_toolpaths 
 from icefab.sim import (Measurement, SimulationError, deposit_pulses, empty_surface,  # noqa: E402
                         layer_valves, level_liquid, plan_layer, plan_layer_motion,
                         pulse_drops, run_cell, simulate_build)
-from icefab.types import Path, ValveProgram  # noqa: E402
+from icefab.core import Toolpath, ValveProgram  # noqa: E402
 
 G = 0.5
 DH = 0.25
@@ -32,7 +32,7 @@ W = 3.0
 def _straight(job: Job, length: float = 60.0):
     """A 60 mm fill line along x at y = 0 (part frame), its MTTS trajectory and the nozzle
     positions in the part frame."""
-    path = Path(points=np.array([[-length / 2, 0.0], [length / 2, 0.0]]), z=DH,
+    path = Toolpath(points=np.array([[-length / 2, 0.0], [length / 2, 0.0]]), z=DH,
                 material="part", role="fill", width=W, layer=0)
     traj = plan_motion(path, job)
     return traj, flow.trajectory_part_xy(traj, "part", job)

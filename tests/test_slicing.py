@@ -15,7 +15,7 @@ from scipy.spatial import ConvexHull
 from icefab.config import Job
 from icefab.errors import GeometryError
 from icefab.slicing import layer_planes, slice_mesh, slice_report
-from icefab.types import Mesh, signed_area
+from icefab.core import Mesh, signed_area
 
 # The tests of the per-layer last resort consent to chords longer than max_gap_mm
 # ("close"); the default refuses them (test_long_chord_refused_without_consent).

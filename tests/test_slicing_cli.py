@@ -113,7 +113,7 @@ def _scaled(mesh: icefab.Mesh, height: float) -> icefab.Mesh:
 
 @pytest.mark.parametrize("name", REAL)
 def test_real_meshes_slice_without_losing_layers(mesh_dir, name):
-    from icefab.holes import close_holes
+    from icefab.mesh.holes import close_holes
 
     mesh, holes = close_holes(_scaled(icefab.load_mesh(mesh_dir / name), 40.0))
     st = slice_mesh(mesh, Job())

@@ -9,7 +9,7 @@ import trimesh
 from icefab.config import Job
 from icefab.errors import StackFileError
 from icefab.slicing import load_stack, save_stack, slice_mesh, slice_report
-from icefab.types import Layer, Mesh, Region, Stack
+from icefab.core import Layer, Mesh, Region, Stack
 
 
 def as_mesh(tm):

@@ -13,8 +13,8 @@ from typing import Any
 
 from icefab.config import Job, load_job
 from icefab.errors import IcefabError
-from icefab.types import (HeightMap, Layer, LayerPaths, Mesh, Path, Region, Stack,
-                          Toolpaths, Trajectory, ValveProgram)
+from icefab.core import (HeightMap, Layer, LayerPaths, Mesh, Path, Region, Stack, Toolpath,
+                         Toolpaths, Trajectory, ValveProgram)
 
 __version__ = "0.1.0"
 
@@ -46,6 +46,6 @@ def __getattr__(name: str) -> Any:
     return getattr(importlib.import_module(module), name)
 
 
-__all__ = ["Job", "load_job", "IcefabError", "Mesh", "Region", "Layer", "Stack", "Path",
-           "LayerPaths", "Toolpaths", "Trajectory", "ValveProgram", "HeightMap",
+__all__ = ["Job", "load_job", "IcefabError", "Mesh", "Region", "Layer", "Stack", "Toolpath",
+           "Path", "LayerPaths", "Toolpaths", "Trajectory", "ValveProgram", "HeightMap",
            *_LAZY]

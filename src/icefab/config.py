@@ -23,9 +23,10 @@ from __future__ import annotations
 import dataclasses
 import re
 import tomllib
+import types
 import typing
 from dataclasses import dataclass, field
-from pathlib import Path as FsPath
+from pathlib import Path
 from typing import Any, Callable
 
 from icefab.errors import ConfigError
@@ -73,7 +74,7 @@ class PartSetup:
                                   lo=0.0, hi=1.0)
     close_holes: bool = setting(True, "close the holes of an open surface (a scan) in 3D, "
                                       "once, after placement and before slicing "
-                                      "(icefab.holes); the per-layer closure of "
+                                      "(icefab.mesh.holes); the per-layer closure of "
                                       "slicing.open_contours is then only a last resort")
 
 
@@ -151,6 +152,9 @@ class MaterialSettings:
                                    "concentric rings) with extra rings of the boundary width")
     calibration_file: str = setting("", "CSV of valve frequency (Hz) vs flow (mm^3/s); empty: "
                                         "built-in table")
+    density_g_cm3: float = setting(1.0, "density of the material, g/cm^3 (turns the masses of "
+                                        "'icefab calibrate valve' into volumes)", lo=0.0,
+                                   lo_open=True)
 
 
 def _part_material() -> MaterialSettings:
@@ -158,7 +162,9 @@ def _part_material() -> MaterialSettings:
 
 
 def _scaffold_material() -> MaterialSettings:
-    return MaterialSettings(initial_offset_mm=1.2, nozzle_offset_mm=(0.2, 8.2))
+    # shortening methyl ester (thesis 2.4): about 0.88 g/cm^3
+    return MaterialSettings(initial_offset_mm=1.2, nozzle_offset_mm=(0.2, 8.2),
+                            density_g_cm3=0.88)
 
 
 @dataclass(frozen=True)
@@ -213,6 +219,11 @@ class CellSettings:
                                                     "the centre of its travel")
     laser_offset_mm: Vec2 = setting((-30.0, 19.0), "laser measurement frame origin in the "
                                                    "end-effector frame")
+    laser_latency_s: float = setting(0.0, "laser measurement latency: a sample reads the "
+                                          "surface where the laser was this long before the "
+                                          "position it is tagged with; compensated when "
+                                          "building on a cell ('icefab calibrate laser', "
+                                          "thesis 5.2.1)", lo=0.0, hi=1.0)
     encoder_resolution_deg: float = setting(0.001, "joint encoder resolution", lo=0.0)
     cpus: int = setting(0, "worker processes for parallel stages (0: all cores)", lo=0)
 
@@ -497,7 +508,7 @@ def _coerce(path: str, value: Any, hint: Any) -> Any:
             raise ConfigError(f"{path} = {value!r}: expected {len(args)} values, got "
                               f"{len(value)}")
         return tuple(_coerce(f"{path}[{i}]", v, a) for i, (v, a) in enumerate(zip(value, args)))
-    if origin in (typing.Union, getattr(__import__("types"), "UnionType", None)):
+    if origin in (typing.Union, types.UnionType):
         for a in typing.get_args(hint):
             try:
                 return _coerce(path, value, a)
@@ -619,7 +630,7 @@ def _setting_of(msg: str) -> str:
     return re.split(r"[ :=]", msg.removeprefix("unknown setting "), maxsplit=1)[0]
 
 
-def _located(exc: ConfigError, path: FsPath, line_of: Callable[[str], int | None]
+def _located(exc: ConfigError, path: Path, line_of: Callable[[str], int | None]
              ) -> ConfigError:
     """``exc`` prefixed with ``path:line`` of the setting it names (``path`` alone when the
     line is unknown)."""
@@ -628,12 +639,12 @@ def _located(exc: ConfigError, path: FsPath, line_of: Callable[[str], int | None
     return ConfigError(f"{path}:{line}: {msg}" if line else f"{path}: {msg}")
 
 
-def load_job(path: str | FsPath) -> Job:
+def load_job(path: str | Path) -> Job:
     """Read a job from a TOML file (``.toml``) or a legacy control text file (other).
 
     Raises ConfigError naming the file and line on any problem.
     """
-    path = FsPath(path)
+    path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
@@ -651,7 +662,7 @@ def load_job(path: str | FsPath) -> Job:
     except ConfigError as exc:
         raise _located(exc, path, lambda name: _line_of(text, name)) from None
     # Relative mesh paths are relative to the job file.
-    files = tuple(str((path.parent / f).resolve()) if not FsPath(f).is_absolute() else f
+    files = tuple(str((path.parent / f).resolve()) if not Path(f).is_absolute() else f
                   for f in job.parts.files)
     return dataclasses.replace(job, parts=dataclasses.replace(job.parts, files=files))
 
@@ -712,14 +723,14 @@ def _legacy_split(line: str) -> tuple[list[str], str]:
     return values, desc
 
 
-def load_legacy_control(path: str | FsPath, text: str | None = None) -> Job:
+def load_legacy_control(path: str | Path, text: str | None = None) -> Job:
     """Read the thesis' control-parameter text file (Table 3-1 / paper Table 1 layout).
 
     Each line is ``values [units] [format] (restrictions) description``; lines whose
     description is not recognised, and section headings in capitals, are errors and
     skipped respectively. Switch entries ``1/0 a b c`` turn a vector on or off.
     """
-    path = FsPath(path)
+    path = Path(path)
     if text is None:
         try:
             text = path.read_text(encoding="utf-8")

@@ -4,7 +4,7 @@ The mug exercises what a slicer must get right: an open cup (a solid bottom, the
 with a hole in every layer above it), a handle that forms a through-hole with the body
 (nested contours: two outer rings and holes), and the lower arc of the handle, which
 overhangs and needs scaffold. Built with manifold3d (exact, watertight Boolean operations)
-and converted to an icefab :class:`~icefab.types.Mesh`.
+and converted to an icefab :class:`~icefab.core.Mesh`.
 
 Dimensions (mm): body outer radius 40, wall 4, bottom 6, height 125; handle: a torus of
 centre-line radius 30 and tube radius 7 in the x-z plane, its centre 45 mm from the axis
@@ -17,7 +17,7 @@ import math
 
 import numpy as np
 
-from icefab.types import Mesh
+from icefab.core import Mesh
 
 MUG_HEIGHT_MM = 125.0
 MUG_RADIUS_MM = 40.0

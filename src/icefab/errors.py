@@ -42,3 +42,8 @@ class SimulationError(IcefabError):
 
 class OutputError(IcefabError):
     """Results cannot be written where asked (the output folder is a file, not writable)."""
+
+
+class CellError(IcefabError):
+    """A device link of the cell failed: unreachable host or port, a malformed or
+    unexpected message, a device's error reply, a timeout, or a bad cell state folder."""

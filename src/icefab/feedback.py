@@ -44,7 +44,7 @@ import numpy as np
 from scipy.signal import lfilter
 
 from icefab.errors import ConfigError, GeometryError
-from icefab.types import HeightMap, Region, Trajectory
+from icefab.core import HeightMap, Region, Trajectory
 
 if TYPE_CHECKING:  # pragma: no cover
     from icefab.config import Job

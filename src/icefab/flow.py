@@ -73,7 +73,7 @@ import os
 import re
 import struct
 from dataclasses import dataclass
-from pathlib import Path as FsPath
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
@@ -81,14 +81,15 @@ from scipy.integrate import cumulative_trapezoid, trapezoid
 
 from icefab.atomic import write_atomic
 from icefab.errors import ConfigError, FlowError, StackFileError
-from icefab.types import HeightMap, Trajectory, ValveProgram
+from icefab.frames import to_part_frame
+from icefab.core import HeightMap, Trajectory, ValveProgram
 
 if TYPE_CHECKING:  # pragma: no cover
     from icefab.config import Job
 
 log = logging.getLogger(__name__)
 
-DATA_DIR = FsPath(__file__).resolve().parent / "data"
+DATA_DIR = Path(__file__).resolve().parent / "data"
 MAGIC = b"ICEV"
 VERSION = 1
 TEXT_MAGIC = "icefab-valve-program"
@@ -135,7 +136,7 @@ def load_calibration(path: str | os.PathLike) -> Calibration:
     Both columns must be finite and strictly increasing, with at least two rows. Raises
     FlowError naming the file and line.
     """
-    path = FsPath(path)
+    path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
@@ -188,7 +189,7 @@ def calibration_for(material: str, job: "Job") -> Calibration:
     """The calibration of a material: ``job.materials[material].calibration_file`` or the
     built-in table ``icefab/data/calibration_<material>.csv``."""
     settings = job.materials[material]
-    path = FsPath(settings.calibration_file) if settings.calibration_file else \
+    path = Path(settings.calibration_file) if settings.calibration_file else \
         DATA_DIR / f"calibration_{material}.csv"
     try:
         mtime = path.stat().st_mtime
@@ -225,14 +226,12 @@ def trajectory_part_xy(trajectory: Trajectory, material: str, job: "Job") -> np.
     laser spot) is, in the part (building) frame.
 
     Trajectory samples are end-effector positions in the robot base frame; the inverse of
-    :func:`icefab.paths.to_base_frame` (``base = p + ee_origin - tool_offset``) gives the
-    part point ``p = base - ee_origin + tool_offset`` under the material's nozzle.
+    :func:`icefab.frames.to_base_frame` (``base = p + ee_origin - tool_offset``) gives the
+    part point ``p = base - ee_origin + tool_offset`` under the material's nozzle
+    (:func:`icefab.frames.to_part_frame`).
     Control-action surfaces are measured in the part frame, so they are sampled here.
     """
-    from icefab.paths import tool_offset
-
-    off = np.asarray(job.cell.ee_origin_mm, dtype=np.float64) - tool_offset(material, job)
-    return np.asarray(trajectory.xy, dtype=np.float64) - off
+    return to_part_frame(trajectory.xy, material, job)
 
 
 ActionLike = Any  # None | (n,) array | HeightMap | feedback.ControlAction | callable(xy)->(n,)
@@ -714,7 +713,7 @@ def summarise_findings(findings: "Sequence[tuple[int, str]]") -> list[str]:
 # =========================================================================== files
 
 
-def _atomic_write(path: FsPath, data: bytes) -> None:
+def _atomic_write(path: Path, data: bytes) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     write_atomic(path, data)
 
@@ -847,7 +846,7 @@ def parse_valve_program(text: str, source: str = "valve program") -> ValveProgra
 
 def write_valve_program(prog: ValveProgram, path: str | os.PathLike, fmt: str = "bin") -> None:
     """Write a program in the binary (``fmt="bin"``) or text (``"txt"``) form, atomically."""
-    path = FsPath(path)
+    path = Path(path)
     if fmt == "bin":
         data = encode_valve_program(prog)
     elif fmt == "txt":
@@ -859,7 +858,7 @@ def write_valve_program(prog: ValveProgram, path: str | os.PathLike, fmt: str = 
 
 def read_valve_program(path: str | os.PathLike) -> ValveProgram:
     """Read a program written by :func:`write_valve_program` (either form, detected)."""
-    path = FsPath(path)
+    path = Path(path)
     try:
         data = path.read_bytes()
     except FileNotFoundError:

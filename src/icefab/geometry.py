@@ -10,7 +10,7 @@ as float64 millimetres.
 
 Offsets are named by intent: :func:`expand` (outward) and :func:`shrink` (inward). Holes
 move the other way, because of the ring orientation (outer rings counter-clockwise, holes
-clockwise, ``icefab.types``). Joins are mitred (limit 2, squared beyond): round joins
+clockwise, ``icefab.core``). Joins are mitred (limit 2, squared beyond): round joins
 multiply vertex counts (and time) many-fold. Like the thesis (3.4.2: PATHFILTER after every
 BUFFERF call), ring points are filtered after every offset: a vertex closer than
 ``filter_mm`` to the line through its neighbours is dropped. The filter never makes a ring
@@ -37,12 +37,12 @@ import numpy as np
 import pyclipr
 from numba import njit
 
-from icefab.types import Region
+from icefab.core import Region
 
 
 def signed_area(ring: np.ndarray) -> float:
     """Signed area (mm^2) of a ring ``(k, 2)``: positive when counter-clockwise (the
-    shoelace formula of ``icefab.types.signed_area`` without temporary arrays)."""
+    shoelace formula of ``icefab.core.signed_area`` without temporary arrays)."""
     x = ring[:, 0]
     y = ring[:, 1]
     return 0.5 * float(np.dot(x[:-1], y[1:]) - np.dot(x[1:], y[:-1])

@@ -106,10 +106,9 @@ from __future__ import annotations
 import logging
 import math
 import os
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from functools import lru_cache
-from pathlib import Path as FsPath
+from pathlib import Path
 from typing import Callable, Mapping, Sequence
 
 import numpy as np
@@ -118,8 +117,10 @@ from scipy.ndimage import convolve1d
 from icefab import _mtts
 from icefab.config import Job
 from icefab.errors import IcefabError, StackFileError, WorkspaceError
+from icefab.frames import to_base_frame
+from icefab.parallel import parallel_map
 from icefab.robots import Robot, get_robot
-from icefab.types import LayerPaths, Path, Toolpaths, Trajectory
+from icefab.core import LayerPaths, Toolpath, Toolpaths, Trajectory
 
 log = logging.getLogger(__name__)
 
@@ -156,7 +157,7 @@ _ROLES = ("boundary", "fill", "measure", "travel")
 # --------------------------------------------------------------------------- inputs
 
 
-def path_limits(path: Path, job: Job) -> float:
+def path_limits(path: Toolpath, job: Job) -> float:
     """Speed bound along one path, mm/s: ``motion.speed_mm_s``, lowered to
     ``motion.measure_speed_mm_s`` for part (ice) measurement paths (thesis 4.2.1) and to
     ``motion.travel_speed_mm_s`` for travel moves."""
@@ -169,7 +170,7 @@ def path_limits(path: Path, job: Job) -> float:
     return float(v)
 
 
-def _role_cap(path: Path, job: Job, role_speeds: Mapping[str, float] | None) -> float:
+def _role_cap(path: Toolpath, job: Job, role_speeds: Mapping[str, float] | None) -> float:
     """Speed bound of one path: :func:`path_limits`, or ``role_speeds[path.role]`` (capped
     by ``motion.speed_mm_s``) when given for its role."""
     if role_speeds and path.role in role_speeds:
@@ -187,12 +188,11 @@ def _check_role_speeds(role_speeds: Mapping[str, float] | None) -> None:
                               f"number of mm/s, got {v!r}")
 
 
-def _base_points(path: Path, job: Job) -> np.ndarray:
+def _base_points(path: Toolpath, job: Job) -> np.ndarray:
     """(k, 2) float64 mm: a Path's points in the robot base frame (closing point repeated)."""
     pts = path.polyline()
     if path.frame == "base":
         return np.asarray(pts, dtype=np.float64)
-    from icefab.paths import to_base_frame  # the frames belong to the paths stage
     return to_base_frame(pts, path.tool_name, job)
 
 
@@ -379,7 +379,7 @@ def followed_path(points: np.ndarray, job: Job | None = None) -> list[np.ndarray
 def _plan_polylines(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
                     vcaps: np.ndarray, job: Job, robot: Robot,
                     labels: Sequence[tuple[int, int]] | None = None,
-                    paths: Sequence[Path | None] | None = None) -> list[Trajectory]:
+                    paths: Sequence[Toolpath | None] | None = None) -> list[Trajectory]:
     """Plan many polylines at once (one compiled call for all of them).
 
     polys: P arrays (k_i, 2) float64 mm in the robot base frame (closed paths with their
@@ -523,7 +523,7 @@ def _vertices(pts: np.ndarray, start: np.ndarray
     return start, s_loc, tau
 
 
-def _single_point(p: np.ndarray, job: Job, robot: Robot, path: Path | None) -> Trajectory:
+def _single_point(p: np.ndarray, job: Job, robot: Robot, path: Toolpath | None) -> Trajectory:
     xy = np.asarray(p, dtype=np.float64).reshape(1, 2)
     return Trajectory(dt=float(job.motion.dt_s), xy=xy, joints=robot.ik(xy),
                       speed=np.zeros(1), duration=0.0, path=path,
@@ -607,7 +607,7 @@ def savgol_deviation_mm(job: Job) -> float:
 # --------------------------------------------------------------------------- public
 
 
-def _path_label(path: Path, index: int | None) -> str:
+def _path_label(path: Toolpath, index: int | None) -> str:
     """A Path's identity for error messages: its layer, its index in the layer when the
     caller knows it, else its material and role."""
     parts = [f"layer {path.layer}"] if path.layer >= 0 else []
@@ -616,12 +616,12 @@ def _path_label(path: Path, index: int | None) -> str:
     return ", ".join(parts)
 
 
-def plan_motion(path_or_points: Path | np.ndarray, job: Job | None = None, *,
+def plan_motion(path_or_points: Toolpath | np.ndarray, job: Job | None = None, *,
                 robot: Robot | None = None, index: int | None = None) -> Trajectory:
     """Minimum-time trajectory along one path (thesis Ch. 4).
 
-    path_or_points: a :class:`~icefab.types.Path` (converted to the robot base frame with
-        its tool's frame, ``icefab.paths.to_base_frame``; speed bound lowered for
+    path_or_points: a :class:`~icefab.core.Toolpath` (converted to the robot base frame with
+        its tool's frame, ``icefab.frames.to_base_frame``; speed bound lowered for
         measurement and travel paths, :func:`path_limits`), or plain ``(k, 2) float64``
         points in mm in the robot base frame (an open path).
     job: settings (``job.motion``, ``job.cell``); default ``Job()``.
@@ -636,7 +636,7 @@ def plan_motion(path_or_points: Path | np.ndarray, job: Job | None = None, *,
     """
     job = job or Job()
     robot = robot or get_robot(job)
-    if isinstance(path_or_points, Path):
+    if isinstance(path_or_points, Toolpath):
         pts = _as_points(_base_points(path_or_points, job), _path_label(path_or_points, index))
         return _plan_polylines([pts], np.array([path_limits(path_or_points, job)]), job,
                                robot, labels=[_path_label(path_or_points, index)],
@@ -645,7 +645,7 @@ def plan_motion(path_or_points: Path | np.ndarray, job: Job | None = None, *,
     return _plan_polylines([pts], np.array([job.motion.speed_mm_s]), job, robot)[0]
 
 
-def plan_paths_motion(paths: Sequence[Path], job: Job | None = None, *,
+def plan_paths_motion(paths: Sequence[Toolpath], job: Job | None = None, *,
                       robot: Robot | None = None, layer: int = -1,
                       role_speeds: Mapping[str, float] | None = None) -> list[Trajectory]:
     """Trajectories of many paths (e.g. one layer) in one compiled call; one per path.
@@ -673,7 +673,6 @@ def plan_paths_motion(paths: Sequence[Path], job: Job | None = None, *,
         off = offsets.get(key)
         if off is None:
             if key:
-                from icefab.paths import to_base_frame  # the frames belong to the paths stage
                 off = to_base_frame(np.zeros((1, 2)), key, job)[0]
             else:
                 off = np.zeros(2)
@@ -775,11 +774,6 @@ def _unpack_layer(lp: LayerPaths, packed: tuple) -> LayerMotion:
     return LayerMotion(index=lp.index, z=lp.z, trajectories=trajs)
 
 
-def _n_workers(job: Job) -> int:
-    n = job.cell.cpus or os.cpu_count() or 1
-    return max(1, int(n))
-
-
 def _locate(ends: np.ndarray, i: int) -> tuple[int, int]:
     """(path, point within it) of row ``i`` of concatenated paths ending at ``ends``."""
     k = int(np.searchsorted(ends, i, side="right"))
@@ -845,7 +839,8 @@ def plan_toolpaths(toolpaths: Toolpaths, job: Job | None = None,
     against the workspace before any layer is planned (:func:`check_build_workspace`;
     WorkspaceError names layer, path and point or segment); the resampled points of each
     layer are checked again when it is planned.
-    ``progress(done, total)`` is called after each layer. ``role_speeds``: see
+    ``progress(done, total)`` is called as layers complete (:func:`icefab.parallel.parallel_map`).
+    ``role_speeds``: see
     :func:`plan_paths_motion`.
     """
     job = job or toolpaths.job
@@ -853,23 +848,9 @@ def plan_toolpaths(toolpaths: Toolpaths, job: Job | None = None,
     robot = get_robot(job)
     layers = list(toolpaths.layers)
     check_build_workspace(toolpaths, job, robot)
-    total = len(layers)
-    out: list[LayerMotion] = []
-    workers = min(_n_workers(job), max(1, total))
-    if workers <= 1 or total <= 1:
-        for i, lp in enumerate(layers):
-            out.append(_plan_layer(lp, job, role_speeds))
-            if progress:
-                progress(i + 1, total)
-    else:
-        with ProcessPoolExecutor(max_workers=workers) as ex:
-            chunk = max(1, total // (workers * 8))
-            for i, packed in enumerate(ex.map(_plan_layer_task,
-                                              [(lp, job, role_speeds) for lp in layers],
-                                              chunksize=chunk)):
-                out.append(_unpack_layer(layers[i], packed))
-                if progress:
-                    progress(i + 1, total)
+    packed = parallel_map(_plan_layer_task, [(lp, job, role_speeds) for lp in layers], job,
+                          min_items=2, progress=progress)
+    out = [_unpack_layer(lp, p) for lp, p in zip(layers, packed)]
     return BuildMotion(layers=tuple(out), job=job, robot=robot.name,
                        joint_names=tuple(robot.joint_names))
 
@@ -1060,7 +1041,7 @@ def save_trajectories(motion: BuildMotion, path: str | os.PathLike) -> None:
         "layer_start": np.concatenate(
             [[0], np.cumsum([len(lm.trajectories) for lm in motion.layers])]).astype(np.int64),
     }
-    target = FsPath(path)
+    target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(target, suffix=".npz") as tmp:
         with open(tmp, "wb") as fh:
@@ -1078,7 +1059,7 @@ def load_trajectories(path: str | os.PathLike) -> BuildMotion:
     import zipfile
 
     from icefab.config import job_from_dict
-    path = FsPath(path)
+    path = Path(path)
 
     def bad(msg: str) -> StackFileError:
         return StackFileError(f"{path}: {msg}")
@@ -1141,7 +1122,7 @@ def load_trajectories(path: str | os.PathLike) -> BuildMotion:
         r0, r1 = int(ts[i]), int(ts[i + 1])
         xy = data["xy"][r0:r1]
         pts = xy[:-1] if closed[i] and len(xy) > 2 and np.array_equal(xy[0], xy[-1]) else xy
-        stand_in = Path(points=pts, z=float(zs[i]), material=_MATS[int(data["material"][i])],
+        stand_in = Toolpath(points=pts, z=float(zs[i]), material=_MATS[int(data["material"][i])],
                         role=_ROLES[int(data["role"][i])], closed=bool(closed[i]),
                         width=float(widths[i]), layer=int(data["layer"][i]), frame="base",
                         tool=tools[i])

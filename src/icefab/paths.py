@@ -63,8 +63,9 @@ from __future__ import annotations
 import logging
 import math
 import os
+import tomllib
 import zipfile
-from pathlib import Path as FsPath
+from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
@@ -73,66 +74,25 @@ from icefab import geometry as geo
 from icefab.config import Job, MaterialSettings, job_from_dict, to_toml
 from icefab.atomic import atomic_path
 from icefab.errors import ConfigError, StackFileError
-from icefab.regions import parallel_map
+from icefab.frames import TOOLS, tool_offset, to_base_frame  # noqa: F401 (old home)
+from icefab.parallel import parallel_map
+from icefab.regions import hook_band_mm
 from icefab.geometry import signed_area
-from icefab.types import Layer, LayerPaths, Path, Region, Stack, Toolpaths
+from icefab.core import Layer, LayerPaths, Toolpath, Region, Stack, Toolpaths
 
 log = logging.getLogger(__name__)
 
 #: Ossino's deposition states.
 OFF, ON1, ON2 = 0, 1, 2
-TOOLS = ("part", "scaffold", "laser")
 
-# --------------------------------------------------------------------------- frames
-
-
-def tool_offset(tool: str, job: Job) -> np.ndarray:
-    """(2,) float64, mm: origin of a tool's frame in the end-effector frame (Table 3-1).
-
-    tool: "part" (water nozzle), "scaffold" (scaffold nozzle) or "laser".
-    """
-    if tool == "laser":
-        return np.asarray(job.cell.laser_offset_mm, dtype=np.float64)
-    if tool in ("part", "scaffold"):
-        return np.asarray(job.materials[tool].nozzle_offset_mm, dtype=np.float64)
-    raise ConfigError(f"unknown tool {tool!r}: expected one of {', '.join(TOOLS)}")
-
-
-def to_base_frame(points: np.ndarray, tool: str, job: Job) -> np.ndarray:
-    """End-effector positions in the robot base frame that put ``tool`` on part points.
-
-    points: (n, 2) float64, mm, part-frame points where the tool must be.
-    Returns (n, 2) float64, mm: ``points + ee_origin - tool_offset``.
-
-    Sign convention (thesis Table 3-1, 2.x): ``cell.ee_origin_mm`` is where the end
-    effector (EE) frame origin sits in the base frame when the part origin is under it,
-    and a tool's offset (``nozzle_offset_mm``, ``laser_offset_mm``) is the origin of the
-    tool's frame *in the EE frame* (the EE keeps a constant orientation, joint 4). A tool
-    at EE position ``E`` is therefore at ``E + offset``; to put it at the part point ``p``
-    (base point ``p + ee_origin``) the EE moves to ``p + ee_origin - offset``.
-
-    Why this sign: the EE frame moves with the end effector (4.1: joint 4 keeps its
-    orientation; "the two deposition nozzles and the laser displacement sensor ... are
-    all offset from the Joint 4 axis", Fig. 4-1), so a frame whose origin has fixed
-    coordinates in it is carried by the EE: the water, scaffold and laser frames are the
-    tool points (4.2.1: measurement paths are the deposition paths "offset to the
-    coordinate frame of the laser emission point"). Reading Table 3-1 instead as fixed
-    building frames placed at ``ee_origin + offset`` (``p + ee_origin + offset``) would
-    put the scaffold 2 x (0.3, 8.5) mm (about 17 mm) away from the water for the same
-    part point, since the EE carries both nozzles.
-    """
-    pts = np.asarray(points, dtype=np.float64)
-    return pts + (np.asarray(job.cell.ee_origin_mm, dtype=np.float64) - tool_offset(tool, job))
-
-
-def deposition_state(path: Path) -> int:
+def deposition_state(path: Toolpath) -> int:
     """Ossino's state of a path's deposition: ON1 (1, part), ON2 (2, scaffold), OFF (0)."""
     if not path.depositing:
         return OFF
     return ON1 if path.material == "part" else ON2
 
 
-def point_states(path: Path) -> np.ndarray:
+def point_states(path: Toolpath) -> np.ndarray:
     """(k,) int8: Ossino's state of every point of a path (Ossino 6), the state of the
     segment that leaves the point along the path: :func:`deposition_state` at every point
     of a depositing path but the last point of an open one (OFF: nothing follows on the
@@ -541,13 +501,6 @@ def _hook_wall_count(index: int) -> int:
     return 0
 
 
-def hook_band_mm(count: int, mat: MaterialSettings) -> float:
-    """Width of the outer scaffold band the hook wall's ``count`` ice rings take, mm."""
-    if count <= 0:
-        return 0.0
-    return mat.initial_offset_mm + (count - 0.5) * mat.path_width_mm
-
-
 def hook_wall(scaffold: Region, part: Region, count: int, mat: MaterialSettings, filt: float
               ) -> tuple[list[np.ndarray], Region]:
     """Split the ice hook wall off a layer's scaffold (thesis 3.7, Fig. 3-8).
@@ -842,7 +795,7 @@ def plan_layer(layer: Layer, job: Job) -> LayerPaths:
                 for r in measure_rings(region, job.feedback.measure_spacing_mm, filt)]
             order.append(f"{material}:measure")
 
-    paths: list[Path] = []
+    paths: list[Toolpath] = []
     cur = np.zeros(2)
     cur_tool: str | None = None
     for key in order:
@@ -854,9 +807,9 @@ def plan_layer(layer: Layer, job: Job) -> LayerPaths:
                 a = cur if cur_tool == tool else (
                     cur - tool_offset(cur_tool, job) + tool_offset(tool, job))
                 if float(np.hypot(*(pts[0] - a))) > 1e-9:
-                    paths.append(Path(np.array([a, pts[0]]), z, material, "travel", False,
+                    paths.append(Toolpath(np.array([a, pts[0]]), z, material, "travel", False,
                                       0.0, layer.index, "part", tool))
-            paths.append(Path(np.ascontiguousarray(pts), z, material, role, closed,
+            paths.append(Toolpath(np.ascontiguousarray(pts), z, material, role, closed,
                               width, layer.index, "part", tool))
             cur = pts[0] if closed else pts[-1]
             cur_tool = tool
@@ -906,7 +859,7 @@ def _pack_layer(lp: LayerPaths) -> tuple:
 
 def _unpack_layer(packed: tuple) -> LayerPaths:
     index, z, unfilled, pts, start, codes, nums = packed
-    paths = tuple(Path(pts[start[i]:start[i + 1]], float(nums[i, 0]), _MATS[codes[i, 0]],
+    paths = tuple(Toolpath(pts[start[i]:start[i + 1]], float(nums[i, 0]), _MATS[codes[i, 0]],
                        _ROLES[codes[i, 1]], bool(codes[i, 2]), float(nums[i, 1]),
                        int(nums[i, 2]), _FRAMES[codes[i, 3]], _TOOLS[codes[i, 4]])
                   for i in range(len(codes)))
@@ -916,7 +869,7 @@ def _unpack_layer(packed: tuple) -> LayerPaths:
 # --------------------------------------------------------------------------- estimate
 
 
-def path_speed(path: Path, job: Job) -> float:
+def path_speed(path: Toolpath, job: Job) -> float:
     """Constant speed used for a path in the estimate, mm/s: boundary 25, fill 125,
     travel ``travel_speed_mm_s``, part measurement ``measure_speed_mm_s`` (50: the
     reflective ice, thesis 4.2), scaffold measurement ``speed_mm_s`` (125)."""
@@ -1002,7 +955,7 @@ def save_toolpaths(tp: Toolpaths, path: str | os.PathLike) -> None:
         "unfilled_mm2": np.array([lp.unfilled_mm2 for lp in tp.layers],
                                  dtype=np.float64).reshape(-1, 2),
     }
-    target = FsPath(path)
+    target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(target) as tmp, open(tmp, "wb") as fh:
         np.savez_compressed(fh, **data)
@@ -1011,8 +964,7 @@ def save_toolpaths(tp: Toolpaths, path: str | os.PathLike) -> None:
 def load_toolpaths(path: str | os.PathLike) -> Toolpaths:
     """Read a file written by :func:`save_toolpaths`; StackFileError if it is missing,
     truncated, corrupt or not a toolpath file."""
-    path = FsPath(path)
-    import tomllib
+    path = Path(path)
 
     def bad(msg: str) -> StackFileError:
         return StackFileError(f"{path}: {msg}")
@@ -1066,7 +1018,7 @@ def load_toolpaths(path: str | os.PathLike) -> Toolpaths:
         raise bad("non-finite point coordinates")
     if version >= 2 and len(d["state"]) and (d["state"].min() < OFF or d["state"].max() > ON2):
         raise bad("state codes out of range (expected 0 OFF, 1 ON1, 2 ON2)")
-    paths = [Path(pts[start[i]:start[i + 1]].copy(), float(d["z"][i]),
+    paths = [Toolpath(pts[start[i]:start[i + 1]].copy(), float(d["z"][i]),
                   _MATS[d["material"][i]], _ROLES[d["role"][i]], bool(d["closed"][i]),
                   float(d["width"][i]), int(d["layer"][i]), _FRAMES[d["frame"][i]],
                   _TOOLS[d["tool"][i]]) for i in range(P)]

@@ -25,7 +25,7 @@ Algorithm (thesis 3.3, RPSCAF):
    ``Stack.warnings`` with their layer and location, not silently lost.
 7. Ice hook wall (thesis 3.7, Fig. 3-8): on layers 0-19 that keep scaffold (inside the
    subset, and with some scaffold at all) the scaffold is grown outward by the band the
-   two-ring wall takes (``icefab.paths.hook_band_mm(2)``), so the wall does not eat into
+   two-ring wall takes (:func:`hook_band_mm` ``(2)``), so the wall does not eat into
    the surround, cannot merge with the part, and the outline does not step out at layer
    10; the rings themselves are made by ``icefab.paths``. The wall anchors scaffold: a
    layer without scaffold gets none.
@@ -46,64 +46,20 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-import os
-from concurrent.futures import ProcessPoolExecutor
-from typing import Callable, Sequence, TypeVar
+from typing import Callable, Sequence
 
 import numpy as np
 
 from icefab import geometry as geo
-from icefab.config import Job
+from icefab.config import Job, MaterialSettings
+from icefab.core import Region, Stack
 from icefab.geometry import signed_area
-from icefab.types import Region, Stack
+from icefab.parallel import n_workers, parallel_map  # noqa: F401  (n_workers: old home)
 
 log = logging.getLogger(__name__)
 
-T = TypeVar("T")
-R = TypeVar("R")
-
 #: Thin features smaller than this area (mm^2) are not reported.
 THIN_REPORT_AREA_MM2 = 0.5
-
-
-def n_workers(job: Job) -> int:
-    """Worker processes for parallel stages: ``job.cell.cpus`` (0 = all cores)."""
-    n = job.cell.cpus or (os.cpu_count() or 1)
-    return max(1, int(n))
-
-
-def parallel_map(fn: Callable[[T], R], items: Sequence[T], job: Job,
-                 min_items: int = 40,
-                 progress: Callable[[int, int], None] | None = None) -> list[R]:
-    """``[fn(x) for x in items]`` on a process pool over contiguous chunks of items.
-
-    Runs serially when only one worker is configured or there are fewer than
-    ``min_items`` items (process start-up would cost more than it saves).
-    progress: called as ``progress(done, total)`` as items complete.
-    """
-    workers = n_workers(job)
-    total = len(items)
-    if workers <= 1 or total < min_items:
-        out = []
-        for i, x in enumerate(items):
-            out.append(fn(x))
-            if progress is not None and (i % 16 == 15 or i == total - 1):
-                progress(i + 1, total)
-        return out
-    n_chunks = workers * 8
-    size = max(1, math.ceil(total / n_chunks))
-    chunks = [list(items[i:i + size]) for i in range(0, total, size)]
-    out = []
-    with ProcessPoolExecutor(max_workers=workers) as pool:
-        for chunk in pool.map(_apply_chunk, [fn] * len(chunks), chunks):
-            out.extend(chunk)
-            if progress is not None:
-                progress(len(out), total)
-    return out
-
-
-def _apply_chunk(fn: Callable[[T], R], chunk: list[T]) -> list[R]:
-    return [fn(x) for x in chunk]
 
 
 # --------------------------------------------------------------------------- scans
@@ -283,6 +239,15 @@ def _expand_task(args: tuple[Region, float, float]) -> Region:
     return geo.union(region, geo.expand(region, d, filt))
 
 
+def hook_band_mm(count: int, mat: MaterialSettings) -> float:
+    """Width of the outer scaffold band the hook wall's ``count`` ice rings take, mm
+    (thesis 3.7): the regions grow by it (``count = 2``), ``icefab.paths`` cuts the rings
+    from it."""
+    if count <= 0:
+        return 0.0
+    return mat.initial_offset_mm + (count - 0.5) * mat.path_width_mm
+
+
 def _hook_wall_room(parts: list[Region], scaffolds: list[Region], indices: list[int],
                     job: Job) -> list[Region]:
     """Extra scaffold outside layers 0-19 for the ice hook wall (thesis 3.7).
@@ -291,8 +256,6 @@ def _hook_wall_room(parts: list[Region], scaffolds: list[Region], indices: list[
     not step outward at layer 10 (no overhang): layers 0-9 get one ice ring at the
     outside, layers 10-19 a second one just inside it, on top of scaffold: the hook.
     """
-    from icefab.paths import hook_band_mm
-
     filt = job.slicing.max_filter_deviation_mm
     out = list(scaffolds)
     band = hook_band_mm(2, job.materials.scaffold)

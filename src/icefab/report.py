@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any, Mapping, Sequence
 import numpy as np
 
 from icefab.atomic import atomic_path
-from icefab.types import Stack, Toolpaths
+from icefab.core import Stack, Toolpaths
 
 if TYPE_CHECKING:  # pragma: no cover
     from icefab.sim import SimResult

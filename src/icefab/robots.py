@@ -22,7 +22,7 @@ Implementations
 
 Points handed to a robot are positions of its controlled point (the joint-4 axis for the
 SCARA) in the robot base frame, mm; the tool offsets (nozzles, laser) are applied
-before that by ``icefab.paths.to_base_frame``.
+before that by ``icefab.frames.to_base_frame``.
 """
 
 from __future__ import annotations

@@ -80,13 +80,13 @@ from numba import njit
 from scipy import ndimage
 
 from icefab.errors import GeometryError, SimulationError
-from icefab.types import HeightMap, LayerPaths, Path, Toolpaths, Trajectory
+from icefab.core import HeightMap, LayerPaths, Toolpath, Toolpaths, Trajectory
 
 if TYPE_CHECKING:  # pragma: no cover
     from icefab.config import Job
     from icefab.flow import FrequencyPlan
     from icefab.motion import BuildMotion, LayerMotion
-    from icefab.types import ValveProgram
+    from icefab.core import ValveProgram
 
 log = logging.getLogger(__name__)
 
@@ -311,7 +311,7 @@ def deposit(surface: HeightMap, xy: np.ndarray, volume: np.ndarray,
     width: path width, mm, scalar or (n,) per sample.
     path_starts: index of the first sample of each path (default: one path).
     closed: per path (or one for all), whether it returns to its first sample (which is
-        not repeated, as in :class:`~icefab.types.Path`).
+        not repeated, as in :class:`~icefab.core.Toolpath`).
 
     Returns a new HeightMap with the deposited heights added. The added volume (sum of
     height increments x cell area) equals ``volume.sum()`` to rounding unless the strip
@@ -456,7 +456,7 @@ def deposit_pulses(surface: HeightMap, xy: np.ndarray, dt: float, pulse_times_s:
 
     surface: the current surface (finite ``z``).
     xy: (n, 2) float64, mm, nozzle positions in the part frame every ``dt`` s (a
-        :class:`~icefab.types.Trajectory` through :func:`icefab.flow.trajectory_part_xy`).
+        :class:`~icefab.core.Trajectory` through :func:`icefab.flow.trajectory_part_xy`).
     pulse_times_s: (p,) float64, s, non-decreasing pulse instants from the trajectory start
         (:func:`icefab.flow.pulse_times`).
     drop_mm3: volume of each drop, mm^3, scalar or (p,) (:func:`pulse_drops`).
@@ -639,7 +639,7 @@ class LayerPlan:
     n0: np.ndarray
     n1: np.ndarray
     ext: np.ndarray
-    paths: tuple[Path, ...] = ()
+    paths: tuple[Toolpath, ...] = ()
     laser_tagged: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     laser_true: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     trajectories: tuple[Trajectory, ...] = ()
@@ -649,7 +649,7 @@ class LayerPlan:
         return 0.5 * (self.a + self.b)
 
 
-def plan_layer(index: int, paths: Sequence[Path], job: "Job") -> LayerPlan:
+def plan_layer(index: int, paths: Sequence[Toolpath], job: "Job") -> LayerPlan:
     """Cut the deposition paths of one layer into constant-speed segments (see module doc).
 
     Each boundary/fill path's polyline has its edges split to at most ``speed * dt`` mm
@@ -700,7 +700,7 @@ def plan_layer(index: int, paths: Sequence[Path], job: "Job") -> LayerPlan:
 
 def _layer_plan(index: int, pieces: list[tuple[np.ndarray, bool, float, str]], dh: float,
                 tag_parts: list[np.ndarray], true_parts: list[np.ndarray], *,
-                paths: tuple[Path, ...], trajectories: tuple = ()) -> LayerPlan:
+                paths: tuple[Toolpath, ...], trajectories: tuple = ()) -> LayerPlan:
     """Segments of a layer from its deposition polylines: ``pieces`` holds (points (k >= 2,
     2) mm part frame, closed, width mm, material) per path, each segment carrying the
     commanded ``width * dh * length`` mm^3 (eq. 6.2); laser samples as given."""

@@ -47,7 +47,7 @@ Pipeline (RPSLICE's FACETSLICE = INTERSECTFACET + SEGMERGE + PATHFILTER, thesis 
    in a warning.
 
 4. **Open chains** that still cannot close (holes in a scan the 3D closing of
-   ``icefab.holes`` left open, or a mesh sliced without it -- the per-layer last resort):
+   ``icefab.mesh.holes`` left open, or a mesh sliced without it -- the per-layer last resort):
    within the layer, chains are joined end-to-start greedily by the nearest free endpoint
    (a chain may be reversed), preferring to close on itself when its own start is
    nearest; then each chain is closed on itself. Straight chords up to
@@ -98,7 +98,7 @@ import os
 import zipfile
 import zlib
 from dataclasses import dataclass, field
-from pathlib import Path as FsPath
+from pathlib import Path
 from typing import Callable
 
 import numba
@@ -107,8 +107,8 @@ import numpy as np
 from icefab.config import Job
 from icefab.atomic import atomic_path
 from icefab.errors import GeometryError, StackFileError
-from icefab.mesh import edge_buckets
-from icefab.types import Layer, Mesh, Region, Stack, signed_area
+from icefab.mesh.topology import edge_buckets
+from icefab.core import Layer, Mesh, Region, Stack, signed_area
 
 log = logging.getLogger(__name__)
 
@@ -1296,7 +1296,7 @@ def _unpack_regions(data: dict[str, np.ndarray], n_layers: int, path: str,
     return out
 
 
-def save_stack(stack: Stack, path: str | os.PathLike) -> FsPath:
+def save_stack(stack: Stack, path: str | os.PathLike) -> Path:
     """Write a stack to ``path`` (``.npz``, format in the module docstring), atomically.
 
     Returns the path written. The file is written to a temporary file beside it and
@@ -1304,7 +1304,7 @@ def save_stack(stack: Stack, path: str | os.PathLike) -> FsPath:
     """
     from icefab.config import to_toml
 
-    path = FsPath(path)
+    path = Path(path)
     regions = [L.part for L in stack.layers]
     arrays: dict[str, np.ndarray] = {
         "format": np.array(STACK_FORMAT),
@@ -1337,7 +1337,7 @@ def load_stack(path: str | os.PathLike) -> Stack:
     from icefab.config import job_from_dict
     from icefab.errors import ConfigError
 
-    path = FsPath(path)
+    path = Path(path)
     if not path.is_file():
         raise StackFileError(f"{path}: stack file not found")
     try:

@@ -19,8 +19,8 @@ from icefab.errors import IcefabError
 
 # Subcommand modules, in the order shown by --help. A module that does not exist yet is
 # skipped so the command keeps working while stages are added.
-SUBCOMMANDS = ("demo", "slice", "paths", "plan", "valves", "simulate", "tune", "build",
-               "export", "report")
+SUBCOMMANDS = ("demo", "slice", "paths", "plan", "valves", "simulate", "tune", "calibrate",
+               "build", "export", "cell", "report")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -48,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
     from icefab.paths import estimate_build_time, plan_paths, save_toolpaths
     from icefab.regions import add_scaffold
     from icefab.slicing import save_stack, slice_mesh
-    from icefab.types import Stack, Toolpaths
+    from icefab.core import Stack, Toolpaths
 
     from icefab.errors import ConfigError
 

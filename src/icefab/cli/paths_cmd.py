@@ -13,14 +13,14 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import time
-from pathlib import Path as FsPath
+from pathlib import Path
 
 import numpy as np
 
 from icefab.cli.common import (Progress, add_job_argument, job_from_args, output_dir,
                                parse_layers)
 from icefab.report import plot_toolpaths
-from icefab.types import Toolpaths
+from icefab.core import Toolpaths
 
 SHOW_WARNINGS = 5
 
@@ -70,13 +70,13 @@ def _load_stack(args: argparse.Namespace, job):
     from icefab import mesh as meshmod
     from icefab.slicing import load_stack, slice_mesh
 
-    first = FsPath(args.model[0])
+    first = Path(args.model[0])
     if len(args.model) == 1 and first.suffix.lower() == ".npz":
         stack = load_stack(first)
         if args.job:
             stack = dataclasses.replace(stack, job=job)
         return stack, stack.job
-    files = tuple(str(FsPath(m).resolve()) for m in args.model)
+    files = tuple(str(Path(m).resolve()) for m in args.model)
     job = dataclasses.replace(job, parts=dataclasses.replace(job.parts, files=files))
     mesh = meshmod.prepare_parts(job)
     return slice_mesh(mesh, job, progress=Progress("slicing")), job
@@ -97,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
     t_paths = time.perf_counter() - t0 - t_scaf
     per_layer, total = estimate_build_time(toolpaths, job)
     # OUT may hold the stack.npz this command read: output_dir leaves it there
-    out = FsPath(args.out)
+    out = Path(args.out)
     with output_dir(out, "paths") as tmp:
         save_toolpaths(toolpaths, tmp / "toolpaths.npz")
         plot_toolpaths(stack, toolpaths, ks, tmp / "paths.png")

@@ -28,7 +28,7 @@ import argparse
 import dataclasses
 import math
 import time
-from pathlib import Path as FsPath
+from pathlib import Path
 
 
 from icefab.cli.common import (Progress, add_job_argument, job_from_args, output_dir,
@@ -66,7 +66,7 @@ def add_parser(subparsers) -> None:
 def load_input(path: str, job):
     """Toolpaths from a toolpath file, or from a mesh through slicing, scaffold and paths."""
     from icefab.paths import load_toolpaths, plan_paths
-    src = FsPath(path)
+    src = Path(path)
     if not src.exists():
         raise ConfigError(f"{src}: input file not found")
     if src.suffix.lower() == ".npz":

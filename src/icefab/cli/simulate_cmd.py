@@ -33,7 +33,7 @@ import dataclasses
 import io
 import json
 import time
-from pathlib import Path as FsPath
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -47,7 +47,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from icefab.config import Job
     from icefab.motion import BuildMotion
     from icefab.sim import SimResult
-    from icefab.types import Toolpaths
+    from icefab.core import Toolpaths
 
 
 def add_parser(subparsers) -> None:
@@ -100,7 +100,7 @@ def _job_with_options(job: "Job", args: argparse.Namespace) -> "Job":
     return job.replace(**changes) if changes else job
 
 
-def _npz_format(path: FsPath) -> str:
+def _npz_format(path: Path) -> str:
     """The ``format`` entry of an icefab .npz file ('' when it has none)."""
     import zipfile
 
@@ -121,9 +121,9 @@ def load_build(model: list[str], job: "Job", args: argparse.Namespace
     ``--deposition`` says otherwise. Otherwise toolpaths: from a toolpaths file, or the
     first ``simulation.layers`` layers (0: all) of the demo mug or mesh files (placed,
     sliced, scaffolded over the whole part, paths planned)."""
-    from icefab.types import Stack
+    from icefab.core import Stack
 
-    first = FsPath(model[0])
+    first = Path(model[0])
     if len(model) == 1 and first.suffix.lower() == ".npz":
         from icefab import motion as motion_mod
         from icefab import paths as paths_mod
@@ -157,7 +157,7 @@ def load_build(model: list[str], job: "Job", args: argparse.Namespace
     else:
         from icefab.mesh import prepare_parts
 
-        files = tuple(str(FsPath(m).resolve()) for m in model)
+        files = tuple(str(Path(m).resolve()) for m in model)
         job = dataclasses.replace(job, parts=dataclasses.replace(job.parts, files=files))
         mesh = prepare_parts(job)
     stack = slice_mesh(mesh, job, progress=Progress("slicing"))
@@ -190,13 +190,13 @@ def format_table(rows: list[list[float]]) -> list[str]:
     return lines
 
 
-def write_simulation_outputs(open_loop: "SimResult", closed: "SimResult", out: FsPath, *,
+def write_simulation_outputs(open_loop: "SimResult", closed: "SimResult", out: Path, *,
                              surface_layer: int | None = None,
-                             job: "Job | None" = None) -> list[FsPath]:
+                             job: "Job | None" = None) -> list[Path]:
     """Write rms_vs_height.png, surfaces.png, simulation.json and rms.csv into ``out``
     (created if missing). ``surface_layer``: the measurement layer drawn (default: the last
     one whose surfaces both results kept). Returns the files written."""
-    out = FsPath(out)
+    out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     rows = table_rows(open_loop, closed)
     written = []
@@ -236,7 +236,7 @@ def write_simulation_outputs(open_loop: "SimResult", closed: "SimResult", out: F
 def run(args: argparse.Namespace) -> int:
     from icefab.motion import BuildMotion, plan_toolpaths
     from icefab.sim import measured_layers, simulate_build
-    from icefab.types import Toolpaths
+    from icefab.core import Toolpaths
 
     t0 = time.perf_counter()
     build, job = load_build(args.model, job_from_args(args), args)

@@ -19,7 +19,7 @@ from icefab.cli.common import (Progress, add_job_argument, job_from_args, output
                                parse_layers)
 from icefab.errors import ConfigError
 from icefab.report import plot_layers
-from icefab.types import Stack
+from icefab.core import Stack
 
 #: warnings printed in full by the summary
 SHOW_WARNINGS = 5

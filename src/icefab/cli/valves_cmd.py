@@ -21,7 +21,7 @@ costs.
 from __future__ import annotations
 
 import argparse
-from pathlib import Path as FsPath
+from pathlib import Path
 
 from icefab.cli.common import Progress, add_job_argument, output_dir
 from icefab.errors import ConfigError
@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
                              write_valve_program)
     from icefab.motion import load_trajectories
 
-    src = FsPath(args.input)
+    src = Path(args.input)
     if not src.exists():
         raise ConfigError(f"{src}: trajectory file not found")
     motion = load_trajectories(src)

@@ -33,7 +33,8 @@ orientation) is not closed and is reported (``HoleReport.unclosed_edges``): the 
 per-layer rule then applies there. Loops of fewer than three edges cannot be capped and
 count as unclosed too.
 
-May import: ``icefab.types`` (``icefab.core``), ``icefab.errors``, numpy, manifold3d.
+May import: ``icefab.core``, ``icefab.mesh.topology``, ``icefab.mesh.repair``, numpy,
+manifold3d.
 """
 
 from __future__ import annotations
@@ -46,8 +47,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numba import njit
 
-from icefab.mesh import edge_buckets
-from icefab.types import Mesh
+from icefab.core import Mesh
+from icefab.mesh.repair import check_mesh
+from icefab.mesh.topology import edge_buckets
 
 if TYPE_CHECKING:
     from icefab.config import Job
@@ -103,7 +105,7 @@ class HoleReport:
 @njit(cache=True)
 def _boundary_half_edges(faces: np.ndarray, nv: int) -> np.ndarray:  # pragma: no cover
     """Ids ``3 f + k`` of the half-edges whose undirected edge no other face uses, O(m):
-    the vertex buckets of :func:`icefab.mesh.edge_buckets`, each sorted by upper vertex."""
+    the vertex buckets of :func:`icefab.mesh.topology.edge_buckets`, each sorted by upper vertex."""
     start, half, hi = edge_buckets(faces, nv)
     out = np.empty(half.size, np.int64)
     n = 0
@@ -272,8 +274,6 @@ def prepare_closed(mesh: Mesh, job: "Job") -> Mesh:
     located in the file's coordinates, are replaced by the same findings located in the
     build's coordinates (after scale, rotation and translation), mm.
     """
-    from icefab.mesh import check_mesh
-
     name = mesh.name or "mesh"
     kept = tuple(w for w in mesh.warnings if not any(k in w for k in _LOCATED))
     found: list[str] = []

@@ -1,0 +1,828 @@
+"""Calibrations a real cell needs: the laser's offset and latency, the valves' tables.
+
+Laser (thesis 5.2.1). The laser spot is ``laser_offset_mm`` from the end effector (EE) in
+the robot base frame (the frames are pure translations, :func:`icefab.paths.to_base_frame`),
+and a sample is tagged with the EE position the encoders report at its instant while the
+surface was read ``latency`` seconds earlier. Along a straight scan at signed speed ``v``
+(mm/s along the scan axis) an elevation edge at base-frame coordinate ``X`` is therefore
+seen at the tagged EE coordinate::
+
+    x_tag = X - offset + v * latency                                  (1)
+
+* **Latency** (the thesis' "sharp elevation change mapped with parallel paths in opposite
+  directions"): the edge's position is unknown, but the same edge crossed at ``+v`` and
+  ``-v`` is seen ``2 v latency`` apart. :func:`fit_latency` fits every crossing of every
+  scan by least squares to ``x_tag = a + b * across + v * latency`` (``across``: the other
+  coordinate, so a skewed edge costs nothing) and gives the latency and its standard
+  uncertainty from the residuals. This is what the thesis reads from the "skewed
+  topography at the common edge between paths traversed in opposite directions", without
+  building the interpolation surface.
+* **Offset** (the thesis' "test jig with known elevation changes"): a jig with edges at
+  known base-frame positions (:class:`JigEdge`, ``x`` edges crossed by scans along x,
+  ``y`` edges by scans along y) gives, per crossing and by (1),
+  ``offset = X - x_tag + v * latency``; :func:`fit_offset` averages them per axis and adds
+  the latency's uncertainty times the mean speed (slow scans make it small).
+* A crossing is where the reading passes the middle of the levels on either side of a
+  jump (linear interpolation between the two samples around it, :func:`find_crossings`).
+* The thesis' tolerances: offset known within 0.2 mm, latency within 0.002 s
+  (:data:`OFFSET_TOLERANCE_MM`, :data:`LATENCY_TOLERANCE_S`); a calibration meets them
+  when its expanded uncertainty (95 %: the standard uncertainty times Student's t for the
+  fit's degrees of freedom, about 2 for many crossings, :func:`expanded`) is within them.
+
+Scan files (CSV, one header line, ``#`` comments)::
+
+    scan,t_s,x_mm,y_mm,z_mm        <- scan id, sample time, tagged EE position (base frame),
+    0,0.000,200.000,-50.000,12.3      laser reading; a scan is one straight path
+
+Jig files: ``axis,position_mm,step_mm`` (``x`` or ``y``; the edge's base-frame coordinate;
+the elevation change when the coordinate increases across it).
+
+Valves (thesis 6.1): "approximately 20 values in the frequency range to be used are
+selected; for each value, the mass of liquid deposited during a certain amount of time is
+found". Mass files: ``frequency_hz,duration_s,mass_g`` (repeats allowed); with the
+material's density (``materials.*.density_g_cm3``) each row is a flow
+``Q = 1000 * mass / (density * duration)`` mm^3/s. :func:`fit_valve_table` fits them with
+a polynomial through 0 Hz = no flow (weighted least squares on relative deviations, the
+degree up to 5 chosen by AICc), and the table is the fit at the measured frequencies: it
+averages the scatter of single runs over neighbouring frequencies (with ~20 frequencies
+and 2 runs each, a 1 % run-to-run scatter leaves about 0.5 % in the table instead of the
+0.7 % of plain per-frequency means) and must increase strictly; it is written by
+:func:`write_valve_table` in the layout :func:`icefab.flow.load_calibration` reads.
+
+The synthetic generators (:func:`scan_line`, :func:`synthetic_jig_scans`,
+:func:`synthetic_edge_scans`, :func:`synthetic_masses`) produce such data with known true
+values and realistic noise (laser noise, encoder noise, a finite spot, per-path latency
+jitter, random sampling phase; balance resolution and per-run flow scatter), so that the
+virtual cell and the tests can check that the calibrations recover them.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path as FsPath
+from typing import Callable, Sequence
+
+import numpy as np
+
+from icefab.atomic import write_atomic
+from icefab.errors import ConfigError, FlowError
+
+log = logging.getLogger(__name__)
+
+#: Thesis 5.2.1: the laser's position must be known within 0.2 mm ...
+OFFSET_TOLERANCE_MM = 0.2
+#: ... and the latency of its measurements within 0.002 s.
+LATENCY_TOLERANCE_S = 0.002
+#: Confidence level of the expanded uncertainties.
+CONFIDENCE = 0.95
+
+
+def expanded(sigma: float, dof: int) -> float:
+    """95 % expanded uncertainty of a standard uncertainty ``sigma`` estimated with ``dof``
+    degrees of freedom (Student's t: 12.7 sigma for 1, 2.0 for 60)."""
+    from scipy.stats import t
+
+    return float(sigma * t.ppf(0.5 + 0.5 * CONFIDENCE, max(int(dof), 1)))
+
+SCAN_HEADER = "scan,t_s,x_mm,y_mm,z_mm"
+JIG_HEADER = "axis,position_mm,step_mm"
+MASS_HEADER = "frequency_hz,duration_s,mass_g"
+
+
+# =========================================================================== files
+
+
+def _rows(path: FsPath, header: str, kinds: str) -> list[tuple[int, list]]:
+    """The data rows of a small CSV file: (line number, values) per row.
+
+    ``kinds``: one letter per column, ``f`` a finite float, ``i`` an integer, ``a`` an
+    axis name (x or y). A first line equal to ``header`` (or any first line whose first
+    cell is not a number) is skipped; ``#`` starts a comment. Raises ConfigError naming
+    the file and line.
+    """
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: file not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path}: cannot read ({exc})") from None
+    names = header.split(",")
+    out: list[tuple[int, list]] = []
+    for n, raw in enumerate(text.splitlines(), start=1):
+        line = raw.split("#", 1)[0].strip()
+        if not line:
+            continue
+        cells = [c.strip() for c in line.split(",")]
+        if not out and [c.lower() for c in cells] == names:
+            continue
+        if len(cells) != len(kinds):
+            raise ConfigError(f"{path}:{n}: expected {len(kinds)} columns ({header}), got "
+                              f"{len(cells)}: {raw.strip()!r}")
+        values: list = []
+        for cell, kind, name in zip(cells, kinds, names):
+            if kind == "a":
+                if cell.lower() not in ("x", "y"):
+                    raise ConfigError(f"{path}:{n}: {name} must be 'x' or 'y', got {cell!r}")
+                values.append(cell.lower())
+                continue
+            try:
+                v = int(cell) if kind == "i" else float(cell)
+            except ValueError:
+                raise ConfigError(f"{path}:{n}: {name} must be "
+                                  f"{'an integer' if kind == 'i' else 'a number'}, got "
+                                  f"{cell!r}") from None
+            if kind == "f" and not math.isfinite(v):
+                raise ConfigError(f"{path}:{n}: {name} must be finite, got {cell!r}")
+            values.append(v)
+        out.append((n, values))
+    if not out:
+        raise ConfigError(f"{path}: no data rows (expected lines '{header}')")
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class Scan:
+    """One straight laser scan: samples in time order.
+
+    scan: its id; t: (n,) float64 s; xy: (n, 2) float64 mm, tagged EE positions in the
+    robot base frame (encoders at each sample instant); z: (n,) float64 mm, readings.
+    """
+
+    scan: int
+    t: np.ndarray
+    xy: np.ndarray
+    z: np.ndarray
+
+
+def read_scans(path: str | os.PathLike) -> list[Scan]:
+    """Scans from a CSV file (module docstring); ConfigError naming the file and line for a
+    malformed row, a scan with fewer than 8 samples or time not increasing."""
+    path = FsPath(path)
+    rows = _rows(path, SCAN_HEADER, "iffff")
+    by: dict[int, list[tuple[int, list]]] = {}
+    for n, v in rows:
+        by.setdefault(v[0], []).append((n, v))
+    scans = []
+    for sid, items in by.items():
+        t = np.array([v[1] for _, v in items])
+        if np.any(np.diff(t) <= 0):
+            k = int(np.argmax(np.diff(t) <= 0)) + 1
+            raise ConfigError(f"{path}:{items[k][0]}: scan {sid}: t_s must increase within a "
+                              f"scan ({t[k - 1]:g} then {t[k]:g})")
+        if len(items) < 8:
+            raise ConfigError(f"{path}:{items[0][0]}: scan {sid} has {len(items)} samples; "
+                              "expected at least 8")
+        scans.append(Scan(scan=sid, t=t, xy=np.array([[v[2], v[3]] for _, v in items]),
+                          z=np.array([v[4] for _, v in items])))
+    return scans
+
+
+def write_scans(scans: Sequence[Scan], path: str | os.PathLike) -> None:
+    """Write scans as CSV (atomically)."""
+    lines = [SCAN_HEADER]
+    for s in scans:
+        for t, (x, y), z in zip(s.t, s.xy, s.z):
+            lines.append(f"{s.scan},{t:.6f},{x:.5f},{y:.5f},{z:.5f}")
+    write_atomic(path, "\n".join(lines) + "\n")
+
+
+@dataclass(frozen=True)
+class JigEdge:
+    """An elevation edge of the test jig: at ``position_mm`` on ``axis`` (base frame; an
+    ``x`` edge is the line x = position, crossed by scans along x); ``step_mm``: the
+    elevation change when the coordinate increases across it."""
+
+    axis: str
+    position_mm: float
+    step_mm: float
+
+
+def read_jig(path: str | os.PathLike) -> list[JigEdge]:
+    """Jig edges from a CSV file ``axis,position_mm,step_mm``; ConfigError naming the file
+    and line for a bad row or a zero step."""
+    path = FsPath(path)
+    edges = []
+    for n, (axis, pos, step) in _rows(path, JIG_HEADER, "aff"):
+        if step == 0:
+            raise ConfigError(f"{path}:{n}: step_mm must not be 0")
+        edges.append(JigEdge(axis, pos, step))
+    return edges
+
+
+def write_jig(edges: Sequence[JigEdge], path: str | os.PathLike) -> None:
+    write_atomic(path, "\n".join([JIG_HEADER] + [f"{e.axis},{e.position_mm:.4f},{e.step_mm:.4f}"
+                                                 for e in edges]) + "\n")
+
+
+# =========================================================================== crossings
+
+
+@dataclass(frozen=True)
+class Crossing:
+    """Where a scan crossed an elevation edge.
+
+    scan: scan id; axis: the scan axis ('x' or 'y'); tagged_mm: tagged EE coordinate along
+    the axis at the crossing; across_mm: the other coordinate there; speed_mm_s: signed
+    EE speed along the axis; step_mm: the elevation change in the direction of increasing
+    coordinate (so the same edge has the same sign in both scan directions).
+    """
+
+    scan: int
+    axis: str
+    tagged_mm: float
+    across_mm: float
+    speed_mm_s: float
+    step_mm: float
+
+
+def find_crossings(scan: Scan, threshold_mm: float, *, window: int = 3,
+                   levels: int = 5) -> list[Crossing]:
+    """Every elevation edge a scan crosses: a change of more than ``threshold_mm`` within
+    ``window`` samples. The crossing is where the reading passes the middle of the levels
+    before and after the jump (medians of ``levels`` samples), interpolated linearly
+    between the two samples around it; the speed is the slope of a straight line through
+    the tagged coordinate against time over the samples around it. Scans that do not move
+    along one axis by more than 1 mm give none."""
+    t, xy, z = scan.t, scan.xy, scan.z
+    travel = np.abs(xy[-1] - xy[0])
+    if travel.max() < 1.0:
+        return []
+    ax = int(np.argmax(travel))
+    s = xy[:, ax]
+    n = len(z)
+    w = max(1, int(window))
+    if n <= 2 * w + 2 * levels:
+        return []
+    jump = np.abs(z[w:] - z[:-w]) > threshold_mm        # jump[i]: between i and i + w
+    out: list[Crossing] = []
+    i = 0
+    while i < len(jump):
+        if not jump[i]:
+            i += 1
+            continue
+        j = i
+        while j + 1 < len(jump) and jump[j + 1]:
+            j += 1
+        lo, hi = i, j + w                                # the jump lies within [lo, hi]
+        i = j + 1
+        if lo - levels < 0 or hi + levels >= n:
+            continue                                     # too near the scan's ends
+        before = float(np.median(z[lo - levels + 1:lo + 1]))
+        after = float(np.median(z[hi:hi + levels]))
+        if abs(after - before) <= threshold_mm:
+            continue
+        mid = 0.5 * (before + after)
+        seg = z[lo:hi + 1] - mid
+        k = np.nonzero(np.sign(seg[:-1]) != np.sign(seg[1:]))[0]
+        if len(k) == 0:
+            continue
+        k0 = lo + int(k[0])
+        f = (mid - z[k0]) / (z[k0 + 1] - z[k0])
+        pos = s[k0] + f * (s[k0 + 1] - s[k0])
+        tc = t[k0] + f * (t[k0 + 1] - t[k0])
+        a, b = max(0, k0 - 6), min(n, k0 + 8)
+        v = float(np.polyfit(t[a:b] - tc, s[a:b], 1)[0])
+        if abs(v) < 1e-6:
+            continue
+        step = (after - before) * (1.0 if v > 0 else -1.0)
+        out.append(Crossing(scan=scan.scan, axis="xy"[ax], tagged_mm=float(pos),
+                            across_mm=float(xy[k0, 1 - ax]), speed_mm_s=v,
+                            step_mm=float(step)))
+    return out
+
+
+# =========================================================================== laser fits
+
+
+@dataclass(frozen=True)
+class LatencyFit:
+    """Latency from opposite-direction scans of one edge (thesis 5.2.1).
+
+    latency_s and its standard uncertainty sigma_s; crossings used; residual_mm: RMS of the
+    fit's residuals; speed_mm_s: mean absolute scan speed; dof: degrees of freedom of
+    sigma_s.
+    """
+
+    latency_s: float
+    sigma_s: float
+    crossings: int
+    residual_mm: float
+    speed_mm_s: float
+    dof: int = 1
+
+    @property
+    def expanded_s(self) -> float:
+        return expanded(self.sigma_s, self.dof)
+
+
+def fit_latency(scans: Sequence[Scan], threshold_mm: float | None = None) -> LatencyFit:
+    """Latency from scans across one straight edge in both directions (module docstring).
+
+    threshold_mm: smallest elevation change taken for the edge (default: half the range
+    of the readings). Raises ConfigError when the scans do not cross an edge in both
+    directions at least twice each.
+    """
+    if not scans:
+        raise ConfigError("latency calibration: no scans")
+    if threshold_mm is None:
+        zall = np.concatenate([s.z for s in scans])
+        threshold_mm = 0.5 * float(np.percentile(zall, 95) - np.percentile(zall, 5))
+    cr = [c for s in scans for c in find_crossings(s, threshold_mm)]
+    if not cr:
+        raise ConfigError("latency calibration: no scan crosses an edge (an elevation change "
+                          f"of more than {threshold_mm:.3g} mm)")
+    axis = max("xy", key=lambda a: sum(c.axis == a for c in cr))
+    cr = [c for c in cr if c.axis == axis]
+    v = np.array([c.speed_mm_s for c in cr])
+    if np.count_nonzero(v > 0) < 2 or np.count_nonzero(v < 0) < 2:
+        raise ConfigError(f"latency calibration: {np.count_nonzero(v > 0)} crossings in the "
+                          f"+{axis} and {np.count_nonzero(v < 0)} in the -{axis} direction; "
+                          "need at least 2 in each (parallel paths in opposite directions)")
+    across = np.array([c.across_mm for c in cr])
+    x = np.array([c.tagged_mm for c in cr])
+    # x_tag = a + b * across + v * latency (eq. 1 with a straight, possibly skewed edge)
+    A = np.column_stack([np.ones(len(cr)), across - across.mean(), v])
+    if np.ptp(across) < 1e-6:
+        A = A[:, [0, 2]]
+    coef, *_ = np.linalg.lstsq(A, x, rcond=None)
+    res = x - A @ coef
+    dof = max(1, len(x) - A.shape[1])
+    s2 = float(res @ res) / dof
+    cov = s2 * np.linalg.inv(A.T @ A)
+    return LatencyFit(latency_s=float(coef[-1]), sigma_s=float(math.sqrt(cov[-1, -1])),
+                      crossings=len(cr), residual_mm=float(math.sqrt(s2)),
+                      speed_mm_s=float(np.mean(np.abs(v))), dof=dof)
+
+
+@dataclass(frozen=True)
+class OffsetFit:
+    """Laser offset from jig scans (thesis 5.2.1).
+
+    offset_mm: (x, y) laser frame origin in the EE frame; sigma_mm: (x, y) standard
+    uncertainties (the crossings' scatter and the latency's uncertainty); crossings:
+    (x, y) matched crossings; unmatched: crossings not within ``match_mm`` of any edge;
+    expanded_mm: (x, y) 95 % expanded uncertainties (the scatter's with its n - 1 degrees
+    of freedom, the latency's with the latency fit's).
+    """
+
+    offset_mm: tuple[float, float]
+    sigma_mm: tuple[float, float]
+    crossings: tuple[int, int]
+    unmatched: int
+    expanded_mm: tuple[float, float] = (0.0, 0.0)
+
+
+def fit_offset(scans: Sequence[Scan], jig: Sequence[JigEdge], *, latency_s: float,
+               latency_sigma_s: float = 0.0, latency_dof: int = 1000,
+               nominal_offset_mm: Sequence[float] = (0.0, 0.0), match_mm: float = 5.0
+               ) -> OffsetFit:
+    """Laser offset from scans over a jig with known edges (module docstring, eq. 1).
+
+    Each crossing is matched to the jig edge on its axis with the same step sign whose
+    expected tagged position ``X - nominal_offset + v * latency`` is nearest, within
+    ``match_mm``. Needs at least two matched crossings on each axis (ConfigError
+    otherwise, naming the axis).
+    """
+    if not jig:
+        raise ConfigError("offset calibration: the jig has no edges")
+    steps = min(abs(e.step_mm) for e in jig)
+    cr = [c for s in scans for c in find_crossings(s, 0.5 * steps)]
+    nominal = np.asarray(nominal_offset_mm, dtype=np.float64)
+    est: dict[str, list[float]] = {"x": [], "y": []}
+    speeds: dict[str, list[float]] = {"x": [], "y": []}
+    unmatched = 0
+    for c in cr:
+        ai = "xy".index(c.axis)
+        best, dist = None, match_mm
+        for e in jig:
+            if e.axis != c.axis or np.sign(e.step_mm) != np.sign(c.step_mm):
+                continue
+            expect = e.position_mm - nominal[ai] + c.speed_mm_s * latency_s
+            if abs(expect - c.tagged_mm) <= dist:
+                best, dist = e, abs(expect - c.tagged_mm)
+        if best is None:
+            unmatched += 1
+            continue
+        est[c.axis].append(best.position_mm - c.tagged_mm + c.speed_mm_s * latency_s)
+        speeds[c.axis].append(c.speed_mm_s)
+    off, sig, count, exp = [], [], [], []
+    for a in "xy":
+        e = np.asarray(est[a])
+        if len(e) < 2:
+            raise ConfigError(f"offset calibration: {len(e)} jig crossings along {a} matched "
+                              f"an edge (within {match_mm:g} mm of where the nominal offset "
+                              f"{tuple(nominal.tolist())} puts it); need at least 2")
+        v_mean = float(np.mean(speeds[a]))
+        spread = float(np.std(e, ddof=1)) / math.sqrt(len(e))
+        off.append(float(e.mean()))
+        sig.append(math.hypot(spread, abs(v_mean) * latency_sigma_s))
+        exp.append(math.hypot(expanded(spread, len(e) - 1),
+                              abs(v_mean) * expanded(latency_sigma_s, latency_dof)))
+        count.append(len(e))
+    if unmatched:
+        log.info("offset calibration: %d crossings matched no jig edge", unmatched)
+    return OffsetFit(offset_mm=(off[0], off[1]), sigma_mm=(sig[0], sig[1]),
+                     crossings=(count[0], count[1]), unmatched=unmatched,
+                     expanded_mm=(exp[0], exp[1]))
+
+
+@dataclass(frozen=True)
+class LaserCalibration:
+    """The laser's offset and latency with their standard uncertainties (thesis 5.2.1)."""
+
+    offset: OffsetFit
+    latency: LatencyFit
+
+    @property
+    def offset_within(self) -> bool:
+        return max(self.offset.expanded_mm) <= OFFSET_TOLERANCE_MM
+
+    @property
+    def latency_within(self) -> bool:
+        return self.latency.expanded_s <= LATENCY_TOLERANCE_S
+
+    @property
+    def within_tolerances(self) -> bool:
+        return self.offset_within and self.latency_within
+
+    def findings(self) -> list[str]:
+        """One line per tolerance of thesis 5.2.1 that the expanded uncertainty misses."""
+        out = []
+        if not self.offset_within:
+            out.append(f"laser offset uncertainty +-{max(self.offset.expanded_mm):.3f}"
+                       f" mm (95 %) exceeds the thesis' {OFFSET_TOLERANCE_MM} mm (5.2.1): "
+                       "scan the jig more often or more slowly")
+        if not self.latency_within:
+            out.append(f"laser latency uncertainty +-{self.latency.expanded_s:.4f} s "
+                       f"(95 %) exceeds the thesis' {LATENCY_TOLERANCE_S} s (5.2.1): scan "
+                       "the edge with more parallel paths or faster")
+        return out
+
+    def as_dict(self) -> dict:
+        o, lt = self.offset, self.latency
+        return {"laser_offset_mm": list(o.offset_mm), "laser_offset_sigma_mm": list(o.sigma_mm),
+                "laser_latency_s": lt.latency_s, "laser_latency_sigma_s": lt.sigma_s,
+                "offset_crossings": list(o.crossings), "latency_crossings": lt.crossings,
+                "latency_residual_mm": lt.residual_mm, "unmatched_crossings": o.unmatched,
+                "laser_offset_expanded_mm": list(o.expanded_mm),
+                "laser_latency_expanded_s": lt.expanded_s,
+                "confidence": CONFIDENCE, "offset_tolerance_mm": OFFSET_TOLERANCE_MM,
+                "latency_tolerance_s": LATENCY_TOLERANCE_S,
+                "within_tolerances": self.within_tolerances}
+
+    def to_toml(self) -> str:
+        """A job fragment (``[cell]`` settings) with the uncertainties as comments."""
+        o, lt = self.offset, self.latency
+        return (
+            "# Laser calibration (icefab calibrate laser; thesis 5.2.1).\n"
+            f"# offset: +-{o.sigma_mm[0]:.4f}, +-{o.sigma_mm[1]:.4f} mm (1 sigma) from "
+            f"{o.crossings[0]} + {o.crossings[1]} jig crossings\n"
+            f"# latency: +-{lt.sigma_s:.5f} s (1 sigma) from {lt.crossings} edge crossings "
+            f"at {lt.speed_mm_s:.0f} mm/s\n"
+            f"# 95 %: +-{max(o.expanded_mm):.4f} mm, +-{lt.expanded_s:.5f} s; thesis "
+            f"tolerances: offset {OFFSET_TOLERANCE_MM} mm, latency "
+            f"{LATENCY_TOLERANCE_S} s: {'met' if self.within_tolerances else 'NOT met'}\n"
+            "[cell]\n"
+            f"laser_offset_mm = [{o.offset_mm[0]:.4f}, {o.offset_mm[1]:.4f}]\n"
+            f"laser_latency_s = {lt.latency_s:.6f}\n")
+
+
+def calibrate_laser(jig_scans: Sequence[Scan], jig: Sequence[JigEdge],
+                    edge_scans: Sequence[Scan], *,
+                    nominal_offset_mm: Sequence[float] = (0.0, 0.0),
+                    match_mm: float = 5.0) -> LaserCalibration:
+    """Latency from the edge scans (:func:`fit_latency`), then the offset from the jig
+    scans with that latency (:func:`fit_offset`)."""
+    lat = fit_latency(edge_scans)
+    off = fit_offset(jig_scans, jig, latency_s=lat.latency_s, latency_sigma_s=lat.sigma_s,
+                     latency_dof=lat.dof, nominal_offset_mm=nominal_offset_mm, match_mm=match_mm)
+    return LaserCalibration(offset=off, latency=lat)
+
+
+# =========================================================================== valves
+
+
+@dataclass(frozen=True, eq=False)
+class ValveFit:
+    """A valve's frequency-flow table from mass measurements (thesis 6.1).
+
+    frequency_hz, flow_mm3_s: (k,) the table (0 Hz = 0 first), strictly increasing.
+    measured_hz, measured_mm3_s: (n,) every measurement as a flow; residual: (n,) its
+    relative deviation from the fit, (measured - fit) / fit.
+    density_g_cm3: the density used.
+    """
+
+    frequency_hz: np.ndarray
+    flow_mm3_s: np.ndarray
+    measured_hz: np.ndarray
+    measured_mm3_s: np.ndarray
+    residual: np.ndarray
+    density_g_cm3: float
+    fit: Callable[[np.ndarray], np.ndarray] = field(repr=False, default=None)  # type: ignore
+
+    @property
+    def rms_residual(self) -> float:
+        return float(np.sqrt(np.mean(self.residual ** 2))) if len(self.residual) else 0.0
+
+
+def read_masses(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(frequency_hz, duration_s, mass_g) arrays from a mass-measurement CSV; ConfigError
+    naming the file and line for a bad row, a frequency or mass < 0 or a duration <= 0."""
+    path = FsPath(path)
+    rows = _rows(path, MASS_HEADER, "fff")
+    for n, (f, d, m) in rows:
+        if f < 0:
+            raise ConfigError(f"{path}:{n}: frequency_hz must be >= 0, got {f:g}")
+        if d <= 0:
+            raise ConfigError(f"{path}:{n}: duration_s must be > 0, got {d:g}")
+        if m < 0:
+            raise ConfigError(f"{path}:{n}: mass_g must be >= 0, got {m:g}")
+    a = np.array([v for _, v in rows], dtype=np.float64)
+    return a[:, 0], a[:, 1], a[:, 2]
+
+
+MAX_DEGREE = 5
+#: A frequency whose mean flow is further than this (relative) from the fit is refused.
+MAX_MISFIT = 0.10
+
+
+def _flow_polynomial(f: np.ndarray, q: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+    """Q(f) = sum_k c_k (f / f_max)^k, k = 1..d (no flow at 0 Hz), by least squares on the
+    relative deviations (every run counts by its relative scatter), the degree d <= 5
+    (and below the number of distinct frequencies) chosen by the small-sample Akaike
+    criterion (AICc), so a table shaped like thesis Fig. 6-1 is followed without
+    chasing the noise of single runs."""
+    fmax = float(f.max())
+    w = 1.0 / np.maximum(np.abs(q), 1e-9 * max(float(np.abs(q).max()), 1e-300))
+    n = len(f)
+    best = None
+    for d in range(1, min(MAX_DEGREE, len(np.unique(f[f > 0])) - 1) + 1):
+        if n - d - 1 <= 0:
+            break
+        A = np.column_stack([(f / fmax) ** k for k in range(1, d + 1)])
+        coef, *_ = np.linalg.lstsq(A * w[:, None], q * w, rcond=None)
+        rss = float(np.sum(((A @ coef - q) * w) ** 2))
+        aicc = n * math.log(max(rss, 1e-300) / n) + 2 * d + 2 * d * (d + 1) / (n - d - 1)
+        if best is None or aicc < best[0]:
+            best = (aicc, coef)
+    assert best is not None  # len(freqs) >= 3 and n >= 3 give d = 1 at least
+    coef = best[1]
+
+    def flow(x: np.ndarray) -> np.ndarray:
+        x = np.asarray(x, dtype=np.float64) / fmax
+        return sum(c * x ** k for k, c in enumerate(coef, start=1)) + 0.0 * x
+
+    return flow
+
+
+def fit_valve_table(frequency_hz: np.ndarray, duration_s: np.ndarray, mass_g: np.ndarray,
+                    density_g_cm3: float, *, source: str = "mass measurements") -> ValveFit:
+    """The frequency-flow table of a valve from mass measurements (module docstring).
+
+    frequency_hz, duration_s, mass_g: (n,) one row per measurement (repeats allowed);
+    density_g_cm3: the material's density. Raises FlowError naming ``source`` when fewer
+    than 3 distinct non-zero frequencies were measured or the fitted flow does not
+    increase strictly with the frequency (measure longer or with more repeats).
+    """
+    if not density_g_cm3 > 0:
+        raise ConfigError(f"density {density_g_cm3!r} g/cm^3: must be > 0")
+    f = np.asarray(frequency_hz, dtype=np.float64)
+    q = 1000.0 * np.asarray(mass_g, dtype=np.float64) / (density_g_cm3 *
+                                                          np.asarray(duration_s, np.float64))
+    freqs = np.unique(f[f > 0])
+    if len(freqs) < 3:
+        raise FlowError(f"{source}: {len(freqs)} distinct non-zero frequencies; the thesis "
+                        "measures about 20 (6.1), at least 3 are needed")
+    model = _flow_polynomial(f, q)
+    x = np.concatenate([[0.0], freqs])
+    table = model(x)
+    table[0] = 0.0
+    bad = np.nonzero(np.diff(table) <= 0)[0]
+    if len(bad):
+        k = int(bad[0])
+        raise FlowError(f"{source}: the fitted flow does not increase from {x[k]:g} Hz "
+                        f"({table[k]:.4g} mm^3/s) to {x[k + 1]:g} Hz ({table[k + 1]:.4g} "
+                        "mm^3/s): measure longer or repeat those frequencies")
+    fitted = model(f)
+    resid = np.divide(q - fitted, fitted, out=np.zeros_like(q), where=np.abs(fitted) > 1e-12)
+    for v in freqs:
+        mean = float(q[f == v].mean())
+        fv = float(model(np.array([v]))[0])
+        if abs(mean - fv) > MAX_MISFIT * abs(fv):
+            raise FlowError(f"{source}: the runs at {v:g} Hz ({mean:.4g} mm^3/s) are "
+                            f"{100 * abs(mean / fv - 1):.0f} % off the fitted table "
+                            f"({fv:.4g} mm^3/s; more than {100 * MAX_MISFIT:.0f} %): check "
+                            "those runs or measure more frequencies")
+    return ValveFit(frequency_hz=x, flow_mm3_s=table, measured_hz=f, measured_mm3_s=q,
+                    residual=resid, density_g_cm3=float(density_g_cm3), fit=model)
+
+
+def format_valve_table(fit: ValveFit, material: str) -> str:
+    """The table as the calibration CSV :func:`icefab.flow.load_calibration` reads."""
+    lines = [f"# Valve frequency-flow table nu = h(Q) for the {material} material (thesis 6.1),",
+             f"# fitted by 'icefab calibrate valve' from {len(fit.measured_hz)} mass "
+             f"measurements at density {fit.density_g_cm3:g} g/cm^3;",
+             f"# RMS relative residual {100 * fit.rms_residual:.2f} %.",
+             "frequency_hz,flow_mm3_s"]
+    lines += [f"{fv:g},{qv:.4f}" for fv, qv in zip(fit.frequency_hz, fit.flow_mm3_s)]
+    return "\n".join(lines) + "\n"
+
+
+def write_valve_table(fit: ValveFit, path: str | os.PathLike, material: str) -> None:
+    write_atomic(path, format_valve_table(fit, material))
+
+
+def plot_valve_fit(fit: ValveFit, path: str | os.PathLike, title: str = "") -> None:
+    """The measurements, the fitted table and the relative residuals (PNG)."""
+    from icefab.report import pyplot, save_figure
+
+    plt = pyplot()
+    fig, (a, b) = plt.subplots(2, 1, figsize=(7, 6), sharex=True,
+                               gridspec_kw={"height_ratios": [3, 1.4]})
+    xs = np.linspace(0.0, float(fit.frequency_hz[-1]), 400)
+    a.plot(fit.measured_hz, fit.measured_mm3_s, "o", ms=4, label="measured")
+    a.plot(xs, fit.fit(xs), "-", label="polynomial fit")
+    a.plot(fit.frequency_hz, fit.flow_mm3_s, "s", mfc="none", label="table written")
+    a.set_ylabel("flow Q (mm$^3$/s)")
+    a.set_title(title or "valve frequency-flow calibration (thesis 6.1)")
+    a.legend(loc="upper left")
+    a.grid(alpha=0.3)
+    b.axhline(0.0, color="k", lw=0.8)
+    b.plot(fit.measured_hz, 100 * fit.residual, "o", ms=4)
+    b.set_xlabel("valve frequency (Hz)")
+    b.set_ylabel("residual (%)")
+    b.grid(alpha=0.3)
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+# =========================================================================== synthetic data
+
+
+HeightFn = Callable[[np.ndarray], np.ndarray]  # (n, 2) base-frame points, mm -> (n,) mm
+
+
+def _edge(u: np.ndarray, spot_mm: float) -> np.ndarray:
+    """0 -> 1 step at u = 0 blurred by a Gaussian spot of std ``spot_mm``."""
+    from scipy.special import ndtr
+
+    if spot_mm <= 0:
+        return (u >= 0).astype(np.float64)
+    return ndtr(u / spot_mm)
+
+
+def jig_height(jig: Sequence[JigEdge], base_mm: float = 0.0, spot_mm: float = 0.05
+               ) -> HeightFn:
+    """The jig's elevation (base frame) as the laser sees it through a Gaussian spot."""
+    def z(p: np.ndarray) -> np.ndarray:
+        p = np.asarray(p, dtype=np.float64).reshape(-1, 2)
+        out = np.full(len(p), float(base_mm))
+        for e in jig:
+            out += e.step_mm * _edge(p[:, "xy".index(e.axis)] - e.position_mm, spot_mm)
+        return out
+    return z
+
+
+def edge_height(x0_mm: float, step_mm: float, *, skew: float = 0.0, y_ref_mm: float = 0.0,
+                spot_mm: float = 0.05) -> HeightFn:
+    """An object with one sharp edge x = x0 + skew * (y - y_ref), ``step_mm`` higher on
+    the +x side."""
+    def z(p: np.ndarray) -> np.ndarray:
+        p = np.asarray(p, dtype=np.float64).reshape(-1, 2)
+        return step_mm * _edge(p[:, 0] - (x0_mm + skew * (p[:, 1] - y_ref_mm)), spot_mm)
+    return z
+
+
+def scan_line(height: HeightFn, start_mm: Sequence[float], end_mm: Sequence[float], *,
+              speed_mm_s: float, offset_mm: Sequence[float], latency_s: float,
+              rate_hz: float = 100.0, accel_mm_s2: float = 500.0, noise_mm: float = 0.01,
+              position_noise_mm: float = 0.005, rng: np.random.Generator,
+              scan: int = 0) -> Scan:
+    """A laser scan along a straight EE move from rest to rest (trapezoidal speed).
+
+    start_mm, end_mm: EE positions in the base frame; offset_mm: the laser's TRUE offset
+    from the EE; latency_s: its TRUE latency. Samples every ``1 / rate_hz`` s from a random
+    phase, tagged with the EE position then (plus encoder noise ``position_noise_mm``),
+    reading ``height`` at the spot where the EE was ``latency_s`` earlier plus laser noise
+    ``noise_mm`` (thesis 5.2.1: 100 Hz, read out after each path).
+    """
+    a = np.asarray(start_mm, dtype=np.float64)
+    b = np.asarray(end_mm, dtype=np.float64)
+    length = float(np.linalg.norm(b - a))
+    u = (b - a) / length
+    v, acc = float(speed_mm_s), float(accel_mm_s2)
+    t_acc = v / acc
+    d_acc = 0.5 * acc * t_acc ** 2
+    if 2 * d_acc > length:      # triangular profile
+        t_acc = math.sqrt(length / acc)
+        v = acc * t_acc
+        d_acc = 0.5 * length
+    t_flat = (length - 2 * d_acc) / v
+    total = 2 * t_acc + t_flat
+
+    def s_of(t: np.ndarray) -> np.ndarray:
+        t = np.clip(t, 0.0, total)
+        s1 = 0.5 * acc * np.minimum(t, t_acc) ** 2
+        s2 = v * np.clip(t - t_acc, 0.0, t_flat)
+        td = np.clip(t - t_acc - t_flat, 0.0, t_acc)
+        s3 = v * td - 0.5 * acc * td ** 2
+        return s1 + s2 + s3
+
+    t = rng.uniform(0.0, 1.0 / rate_hz) + np.arange(int(total * rate_hz)) / rate_hz
+    ee = a + s_of(t)[:, None] * u
+    read_at = a + s_of(t - latency_s)[:, None] * u + np.asarray(offset_mm, dtype=np.float64)
+    z = height(read_at) + rng.normal(0.0, noise_mm, len(t))
+    tagged = ee + rng.normal(0.0, position_noise_mm, ee.shape)
+    return Scan(scan=scan, t=t, xy=tagged, z=z)
+
+
+def default_jig(origin_mm: Sequence[float] = (230.0, -80.0)) -> list[JigEdge]:
+    """A stepped test jig: three 2 mm steps up and one 6 mm step down along x and along
+    y, 10 mm apart, near ``origin_mm`` (base frame)."""
+    ox, oy = map(float, origin_mm)
+    edges = []
+    for axis, o in (("x", ox), ("y", oy)):
+        edges += [JigEdge(axis, o + 10.0 * k, 2.0) for k in range(3)]
+        edges.append(JigEdge(axis, o + 30.0, -6.0))
+    return edges
+
+
+def synthetic_jig_scans(jig: Sequence[JigEdge], *, offset_mm: Sequence[float],
+                        latency_s: float, speed_mm_s: float = 10.0, passes: int = 3,
+                        spot_mm: float = 0.05, latency_jitter_s: float = 3e-4,
+                        rng: np.random.Generator, **noise) -> list[Scan]:
+    """Jig scans (thesis 5.2.1) with a known offset and latency: ``passes`` scans along
+    each axis in each direction, 10 mm either side of the jig's edges, laser spot on the
+    jig (the EE path is placed with the TRUE offset: an operator aims roughly). Per-path
+    latency varies by ``latency_jitter_s`` (the C40's start delay). ``noise``: laser and
+    encoder noise for :func:`scan_line`."""
+    z = jig_height(jig, spot_mm=spot_mm)
+    off = np.asarray(offset_mm, dtype=np.float64)
+    scans = []
+    for ai, axis in enumerate("xy"):
+        pos = [e.position_mm for e in jig if e.axis == axis]
+        if not pos:
+            continue
+        other = [e.position_mm for e in jig if e.axis != axis]
+        across = (min(other) - 10.0) if other else 0.0   # outside the other edges' span
+        lo, hi = min(pos) - 10.0, max(pos) + 10.0
+        for k in range(passes):
+            for sign in (1, -1):
+                p0 = np.zeros(2)
+                p1 = np.zeros(2)
+                p0[ai], p1[ai] = (lo, hi) if sign > 0 else (hi, lo)
+                p0[1 - ai] = p1[1 - ai] = across - 2.0 * k
+                lat = latency_s + rng.normal(0.0, latency_jitter_s)
+                scans.append(scan_line(z, p0 - off, p1 - off, speed_mm_s=speed_mm_s,
+                                       offset_mm=off, latency_s=lat, rng=rng,
+                                       scan=len(scans), **noise))
+    return scans
+
+
+def synthetic_edge_scans(*, offset_mm: Sequence[float], latency_s: float,
+                         x0_mm: float = 260.0, y0_mm: float = -100.0, step_mm: float = 5.0,
+                         skew: float = 0.02, paths: int = 100, spacing_mm: float = 0.5,
+                         speed_mm_s: float = 50.0, length_mm: float = 40.0,
+                         spot_mm: float = 0.05, latency_jitter_s: float = 3e-4,
+                         rng: np.random.Generator, **noise) -> list[Scan]:
+    """Parallel scans across one sharp, slightly skewed edge in alternating directions
+    (thesis 5.2.1: "relatively high speed but in opposite directions"), ``spacing_mm``
+    apart, with a known offset and latency."""
+    z = edge_height(x0_mm, step_mm, skew=skew, y_ref_mm=y0_mm, spot_mm=spot_mm)
+    off = np.asarray(offset_mm, dtype=np.float64)
+    scans = []
+    for k in range(paths):
+        y = y0_mm + (k - 0.5 * (paths - 1)) * spacing_mm
+        a = np.array([x0_mm - 0.5 * length_mm, y])
+        b = np.array([x0_mm + 0.5 * length_mm, y])
+        if k % 2:
+            a, b = b, a
+        lat = latency_s + rng.normal(0.0, latency_jitter_s)
+        scans.append(scan_line(z, a - off, b - off, speed_mm_s=speed_mm_s, offset_mm=off,
+                               latency_s=lat, rng=rng, scan=k, **noise))
+    return scans
+
+
+def synthetic_masses(flow: Callable[[np.ndarray], np.ndarray], frequencies_hz: Sequence[float],
+                     *, density_g_cm3: float, duration_s: float = 60.0, repeats: int = 2,
+                     balance_g: float = 0.001, scatter: float = 0.01,
+                     rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mass measurements of a valve whose TRUE flow is ``flow(frequency)`` mm^3/s: each
+    run collects for ``duration_s`` s; its flow scatters by ``scatter`` (relative std:
+    temperature, drops left on the nozzle) and the balance reads to ``balance_g`` (std).
+    Returns (frequency_hz, duration_s, mass_g) arrays, one row per run."""
+    f = np.repeat(np.asarray(frequencies_hz, dtype=np.float64), repeats)
+    q = np.asarray(flow(f), dtype=np.float64) * (1.0 + rng.normal(0.0, scatter, len(f)))
+    mass = np.maximum(q * duration_s * density_g_cm3 / 1000.0
+                      + rng.normal(0.0, balance_g, len(f)), 0.0)
+    return f, np.full(len(f), float(duration_s)), mass
+
+
+def write_masses(path: str | os.PathLike, frequency_hz: np.ndarray, duration_s: np.ndarray,
+                 mass_g: np.ndarray) -> None:
+    lines = [MASS_HEADER] + [f"{f:g},{d:g},{m:.4f}"
+                             for f, d, m in zip(frequency_hz, duration_s, mass_g)]
+    write_atomic(path, "\n".join(lines) + "\n")

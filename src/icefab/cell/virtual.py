@@ -1,0 +1,267 @@
+"""The virtual cell: ``icefab cell serve --state DIR`` (thesis Fig. 2-5 behind its links).
+
+One process, independent of any client, with the three devices of the cell behind the
+same links as the real ones:
+
+* the robot: :class:`~icefab.cell.virtual_robot.VirtualRobot` on 127.0.0.1 (TCP, the
+  protocol of :mod:`icefab.cell.robot_protocol`);
+* the valve controller: the firmware's host build (the real C core, ``firmware/``) on a
+  pty, its trigger input driven by the virtual robot (SIGUSR1, as the C40's digital
+  output drives the LPC2148's pin), its pulses read from its pulse log;
+* the laser controller: :class:`~icefab.cell.laser_emulator.PtyLaser` on a pty, its
+  timing input driven by the virtual robot.
+
+``DIR/endpoints.json`` says where they are::
+
+    {"robot": {"host": "127.0.0.1", "port": 7100}, "valve": {"device": "/dev/pts/5"},
+     "laser": {"device": "/dev/pts/6"}, "pid": 1234, "state": "DIR",
+     "time_factor": 0.0}
+
+The part lives in ``DIR/surface.npz`` (:mod:`icefab.cell.world`: layout, model and
+determinism), saved after every path, so a restarted cell carries on with the same
+surface, as real ice would. Time runs as fast as possible (``time_factor`` 0) or at a
+factor of real time (1: real time).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from icefab.cell import robot_protocol as rp
+from icefab.cell.laser_emulator import PtyLaser
+from icefab.cell.robot import RobotPath
+from icefab.cell.virtual_robot import VirtualRobot
+from icefab.cell.world import World
+from icefab.errors import CellError
+
+log = logging.getLogger(__name__)
+
+__all__ = ["VirtualCell", "FirmwareValves", "ValveHookup", "read_endpoints"]
+
+
+class ValveHookup:
+    """What the virtual cell needs from the valve controller: its serial device, the
+    trigger input, and the pulses of the play a trigger started."""
+
+    device: str = ""
+
+    def trigger(self) -> None:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def play_pulses(self, timeout_s: float) -> list[tuple[int, float, float]]:
+        """After :meth:`trigger`: (valve, t s from the trigger, width us) of the play it
+        started, once the play ended; [] if it started none (nothing armed)."""
+        raise NotImplementedError  # pragma: no cover - interface
+
+    def close(self) -> None:  # pragma: no cover - interface
+        pass
+
+
+class FirmwareValves(ValveHookup):
+    """The firmware's host build (``firmware/PROTOCOL.md`` section 9) on a pty, virtual
+    clock, with a pulse log in the state folder. The trigger is SIGUSR1 (the pin)."""
+
+    def __init__(self, state_dir: Path, *, tick_s: float, time_factor: float = 0.0,
+                 exe: str | os.PathLike | None = None):
+        from icefab.cell import valve_host
+
+        build = state_dir / "firmware-build"
+        exe = Path(exe) if exe else valve_host.build_host(build)
+        self.log_path = state_dir / "valve-pulses.log"
+        self.log_path.unlink(missing_ok=True)
+        clock = "virtual" if time_factor <= 0 else "real"
+        self.host = valve_host.HostFirmware(exe, clock=clock,
+                                            speed=time_factor if time_factor > 0 else 1.0,
+                                            pulse_log=self.log_path)
+        self.device = self.host.pty
+        self.tick_s = float(tick_s)
+        self._offset = 0
+        self._buf = ""
+
+    def trigger(self) -> None:
+        import signal
+
+        self._mark = self._offset
+        os.kill(self.host.pid, signal.SIGUSR1)
+
+    def _lines(self) -> list[str]:
+        try:
+            with open(self.log_path, "r", encoding="ascii") as fh:
+                fh.seek(self._offset)
+                data = fh.read()
+        except FileNotFoundError:
+            return []
+        self._offset += len(data.encode("ascii"))
+        data = self._buf + data
+        lines = data.split("\n")
+        self._buf = lines.pop()
+        return lines
+
+    def play_pulses(self, timeout_s: float) -> list[tuple[int, float, float]]:
+        pulses: list[tuple[int, float, float]] = []
+        play = None
+        deadline = time.monotonic() + timeout_s
+        start_deadline = time.monotonic() + 2.0
+        while True:
+            for line in self._lines():
+                f = line.split()
+                if not f:
+                    continue
+                if f[0] == "start" and play is None:
+                    play = int(f[1])
+                elif f[0] == "pulse" and play is not None and int(f[1]) == play:
+                    pulses.append((int(f[2]), int(f[3]) * self.tick_s, float(f[4])))
+                elif f[0] in ("done", "abort") and play is not None and int(f[1]) == play:
+                    return pulses
+                elif f[0] == "fault" and play is not None:
+                    log.warning("virtual cell: valve controller fault %s during play %d",
+                                f[1], play)
+                    return pulses
+            now = time.monotonic()
+            if play is None and now > start_deadline:
+                log.warning("virtual cell: the valve trigger started no play (nothing armed)")
+                return []
+            if now > deadline:
+                log.warning("virtual cell: valve play %s did not end in %.0f s", play,
+                            timeout_s)
+                return pulses
+            time.sleep(0.002)
+
+    def close(self) -> None:
+        self.host.stop()
+
+
+class _Hooks:
+    """What the robot's motion does in the virtual cell (see VirtualRobot)."""
+
+    def __init__(self, cell: "VirtualCell"):
+        self.cell = cell
+
+    def layer_begin(self, layer: int, z_mm: float) -> None:
+        with self.cell.lock:
+            self.cell.world._layer(layer)
+            self.cell.world.save()
+
+    def layer_end(self, layer: int) -> None:
+        with self.cell.lock:
+            self.cell.world.freeze()
+            self.cell.world.save()
+
+    def path_run(self, seq: int, path: RobotPath, stop: threading.Event,
+                 time_factor: float) -> bool:
+        cell = self.cell
+        if path.flags & rp.FLAG_LASER:
+            with cell.lock:
+                values = cell.world.laser_values(path.xy, path.dt_s, path.z_mm)
+            cell.laser.controller.timing_path(values)
+        if path.flags & rp.FLAG_VALVE and cell.valves is not None:
+            cell.valves.trigger()
+        if time_factor > 0 and stop.wait(path.duration_s / time_factor):
+            return False
+        if path.flags & rp.FLAG_VALVE:
+            pulses = [] if cell.valves is None else \
+                cell.valves.play_pulses(30.0 + 2.0 * path.duration_s)
+            with cell.lock:
+                cell.world.deposit_path(path.layer, path.xy, path.dt_s, path.width_mm,
+                                        path.tool, pulses)
+        with cell.lock:
+            cell.world.save()
+        cell.paths_run += 1
+        return not stop.is_set()
+
+    def abort(self) -> None:
+        log.info("virtual cell: robot abort")
+
+
+class VirtualCell:
+    """The three virtual devices and the surface; see the module docstring.
+
+    state_dir: the state folder; job: the cell's settings (simulation model, frames,
+    calibration); grid: (origin (2,), shape (ny, nx), spacing) for a new surface (None if
+    ``state_dir/surface.npz`` exists); time_factor: 0 fast, else a factor of real time;
+    robot_port: 0 for any free port; firmware_exe: a built ``valvectl`` (default: build
+    ``firmware/`` into the state folder); valves: False to run without a valve
+    controller (deposition paths then drop nothing; for tests of the other links).
+    """
+
+    def __init__(self, state_dir: str | os.PathLike, job, *, grid=None,
+                 time_factor: float = 0.0, robot_port: int = 0,
+                 firmware_exe: str | os.PathLike | None = None, valves: bool = True):
+        if not (np.isfinite(time_factor) and time_factor >= 0):
+            raise CellError(f"time factor {time_factor!r}: expected 0 (as fast as possible) "
+                            "or a positive factor of real time")
+        self.dir = Path(state_dir)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.lock = threading.RLock()
+        origin, shape, spacing = grid if grid is not None else (None, None, None)
+        self.world = World(self.dir, job, origin=origin, shape=shape, spacing=spacing)
+        self.job = self.world.job
+        self.time_factor = float(time_factor)
+        self.paths_run = 0
+        self.valves: ValveHookup | None = None
+        self.laser = PtyLaser().start()
+        try:
+            if valves:
+                self.valves = FirmwareValves(self.dir, tick_s=job.flow.tick_s,
+                                             time_factor=time_factor, exe=firmware_exe)
+            self.robot = VirtualRobot(_Hooks(self), port=robot_port,
+                                      time_factor=time_factor).start()
+        except BaseException:
+            self.laser.stop()
+            if self.valves is not None:
+                self.valves.close()
+            raise
+        self.endpoints = {"robot": {"host": "127.0.0.1", "port": self.robot.port},
+                          "valve": {"device": self.valves.device if self.valves else ""},
+                          "laser": {"device": self.laser.path}, "pid": os.getpid(),
+                          "state": str(self.dir), "time_factor": self.time_factor}
+        from icefab.atomic import atomic_path
+
+        with atomic_path(self.dir / "endpoints.json", suffix=".json") as tmp:
+            Path(tmp).write_text(json.dumps(self.endpoints, indent=1) + "\n",
+                                 encoding="utf-8")
+
+    def close(self) -> None:
+        """Stop the devices; the surface stays in the state folder."""
+        self.robot.stop()
+        self.laser.stop()
+        if self.valves is not None:
+            self.valves.close()
+        with self.lock:
+            self.world.save()
+        try:
+            (self.dir / "endpoints.json").unlink()
+        except FileNotFoundError:
+            pass
+
+    def __enter__(self) -> "VirtualCell":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def read_endpoints(state_dir: str | os.PathLike, timeout_s: float = 0.0) -> dict:
+    """``DIR/endpoints.json`` of a running cell (waiting up to ``timeout_s`` for it to
+    appear). CellError naming the file if it is missing or malformed."""
+    path = Path(state_dir) / "endpoints.json"
+    deadline = time.monotonic() + timeout_s
+    while not path.exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+        data["robot"]["port"] = int(data["robot"]["port"])
+        str(data["valve"]["device"]), str(data["laser"]["device"])
+    except FileNotFoundError:
+        raise CellError(f"{path}: no endpoints (is 'icefab cell serve --state "
+                        f"{state_dir}' running?)") from None
+    except (ValueError, KeyError, TypeError) as exc:
+        raise CellError(f"{path}: malformed endpoints file ({exc})") from None
+    return data

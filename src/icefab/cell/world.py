@@ -1,0 +1,378 @@
+"""The physical side of the virtual cell: the part's surface, what valves and laser do to
+and read from it, and its state on disk (``DIR/surface.npz``).
+
+The model is :mod:`icefab.sim`'s, valve-pulse deposition (``simulation.deposition =
+"valves"``), applied as the cell runs: each deposition path leaves its pulses' drops in
+the current layer's liquid (:func:`icefab.sim.pulse_segments`); the layer freezes
+(:meth:`World.freeze`) when its first measurement path starts or the robot ends the layer
+(``LE``): flow gain with drift, edge loss, liquid levelling, height noise and debris, then
+added to the frozen surface -- the steps and the order of :func:`icefab.sim.run_cell`'s
+layer loop. Laser paths read the frozen surface (latency, noise) at the storage rate.
+
+Determinism: the random numbers come from generators seeded by ``simulation.seed``
+(height noise ``[seed, 1]``, debris ``[seed, 2]``, laser ``[seed, 3]``, as in
+``run_cell``) whose states are saved with the surface after every path, so the same
+sequence of paths gives a bit-identical surface whatever the timing and across restarts.
+
+The valve model: a pulse of valve ``v`` (0 part, 1 scaffold) with width ``w`` drops, in
+PWM mode, ``Q(f) / f * w / calibration_pulse_ms`` at the PWM frequency ``f`` (as
+:func:`icefab.sim.pulse_drops`); in FM mode ``Q(nu) / nu`` at the rate ``nu`` the valve is
+actually pulsing at (the inverse of the mean of the intervals to its neighbouring pulses),
+where the simulator uses the commanded frequency the cell cannot know. The drops land
+along the path the robot ran, in the part frame under the valve's nozzle, with the path's
+width.
+
+``surface.npz`` layout (format "icefab-cell-surface", version 1), all lengths in mm:
+
+* ``origin`` (2,) float64: x, y of grid node [0, 0] (part frame); ``spacing`` float64;
+  ``z`` (ny, nx) float64: frozen height above the platform at node (iy, ix) = point
+  ``origin + (ix, iy) * spacing``; ``ever`` (ny, nx) bool: ever deposited on;
+* ``layers_frozen`` int64, ``used_cm3`` (2,) float64 (volume through each valve, drift);
+* ``rng_noise``, ``rng_debris``, ``rng_laser``: JSON of the generators' states;
+* ``job``: TOML of the job the cell runs with;
+* the current layer's liquid not frozen yet: ``pend_*`` arrays (segments of its drops:
+  ``pend_a``, ``pend_b`` (m, 2), ``pend_vol``, ``pend_hw``, ``pend_ext`` (m,),
+  ``pend_mat`` (m,) int8, ``pend_n0``, ``pend_n1`` (m, 2); ``pend_mid`` (k, 2) the
+  midpoints of the layer's commanded path chords, where debris falls), ``pend_layer``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from icefab.errors import CellError
+
+log = logging.getLogger(__name__)
+
+FORMAT = "icefab-cell-surface"
+VERSION = 1
+_TINY_MM = 1e-9
+MATERIAL_OF_VALVE = ("part", "scaffold")
+
+
+def _sim():
+    """The simulator's building blocks (one place to import them from)."""
+    from icefab import sim
+    return sim
+
+
+@dataclass
+class Pending:
+    """The current layer's liquid: drop segments (commanded volumes) and chord midpoints."""
+
+    layer: int = -1
+    a: list = field(default_factory=list)
+    b: list = field(default_factory=list)
+    vol: list = field(default_factory=list)
+    hw: list = field(default_factory=list)
+    mat: list = field(default_factory=list)
+    n0: list = field(default_factory=list)
+    n1: list = field(default_factory=list)
+    ext: list = field(default_factory=list)
+    mid: list = field(default_factory=list)
+
+    def empty(self) -> bool:
+        return not self.mid and not self.a
+
+    def arrays(self) -> dict:
+        def cat(parts, shape, dtype=np.float64):
+            return np.concatenate(parts).astype(dtype) if parts else np.zeros(shape, dtype)
+        return {"pend_layer": np.int64(self.layer),
+                "pend_a": cat(self.a, (0, 2)), "pend_b": cat(self.b, (0, 2)),
+                "pend_vol": cat(self.vol, (0,)), "pend_hw": cat(self.hw, (0,)),
+                "pend_mat": cat(self.mat, (0,), np.int8), "pend_n0": cat(self.n0, (0, 2)),
+                "pend_n1": cat(self.n1, (0, 2)), "pend_ext": cat(self.ext, (0,)),
+                "pend_mid": cat(self.mid, (0, 2))}
+
+
+def pulse_rate_drops(t: np.ndarray, material: str, job) -> np.ndarray:
+    """FM drop volumes, mm^3, of pulses at instants ``t`` (s, non-decreasing) of one valve
+    along one path: ``Q(nu) / nu`` with ``nu`` the rate the valve pulses at (1 / mean of
+    the intervals to the neighbouring pulses; one pulse alone: the table's lowest non-zero
+    frequency), clamped to the table."""
+    from icefab import flow
+
+    cal = flow.calibration_for(material, job)
+    pos = cal.frequency_hz[cal.frequency_hz > 0]
+    lo, hi = float(pos[0]), float(cal.frequency_hz[-1])
+    n = len(t)
+    if n == 0:
+        return np.zeros(0)
+    if n == 1:
+        nu = np.array([lo])
+    else:
+        d = np.diff(t)
+        left = np.concatenate([d[:1], d])
+        right = np.concatenate([d, d[-1:]])
+        mean = 0.5 * (left + right)
+        nu = np.divide(1.0, mean, out=np.full(n, hi), where=mean > 0)
+    nu = np.clip(nu, lo, hi)
+    return cal.flow(nu) / nu
+
+
+class World:
+    """The virtual cell's surface and its state folder. See the module docstring."""
+
+    def __init__(self, state_dir: str | os.PathLike, job, *, origin=None, shape=None,
+                 spacing: float | None = None):
+        self.dir = Path(state_dir)
+        self.job = job
+        self.file = self.dir / "surface.npz"
+        self.pending = Pending()
+        if self.file.exists():
+            self._load()
+        else:
+            if origin is None or shape is None:
+                raise CellError(f"{self.file}: no surface yet; give the grid (--grid-for "
+                                "TRAJECTORIES or --bounds) to start a new one")
+            sim = job.simulation
+            self.origin = np.asarray(origin, dtype=np.float64)
+            self.spacing = float(spacing if spacing is not None else sim.grid_mm)
+            self.z = np.zeros(tuple(int(v) for v in shape))
+            self.ever = np.zeros(self.z.shape, dtype=bool)
+            self.layers_frozen = 0
+            self.used_cm3 = np.zeros(2)
+            self.rng_noise = np.random.default_rng([sim.seed, 1])
+            self.rng_debris = np.random.default_rng([sim.seed, 2])
+            self.rng_laser = np.random.default_rng([sim.seed, 3])
+            self.save()
+
+    # ------------------------------------------------------------------ state on disk
+
+    def save(self) -> None:
+        """Write ``surface.npz`` atomically (a crash leaves the previous state)."""
+        from icefab.atomic import atomic_path
+        from icefab.config import to_toml
+
+        self.dir.mkdir(parents=True, exist_ok=True)
+        data = {"format": np.array(FORMAT), "version": np.array(VERSION),
+                "origin": self.origin, "spacing": np.float64(self.spacing), "z": self.z,
+                "ever": self.ever, "layers_frozen": np.int64(self.layers_frozen),
+                "used_cm3": self.used_cm3,
+                "rng_noise": np.array(json.dumps(self.rng_noise.bit_generator.state)),
+                "rng_debris": np.array(json.dumps(self.rng_debris.bit_generator.state)),
+                "rng_laser": np.array(json.dumps(self.rng_laser.bit_generator.state)),
+                "job": np.array(to_toml(self.job)), **self.pending.arrays()}
+        with atomic_path(self.file, suffix=".npz") as tmp, open(tmp, "wb") as fh:
+            np.savez(fh, **data)
+
+    def _load(self) -> None:
+        try:
+            with np.load(self.file, allow_pickle=False) as d:
+                if str(d["format"]) != FORMAT or int(d["version"]) != VERSION:
+                    raise CellError(f"{self.file}: not an icefab cell surface (format "
+                                    f"{str(d['format'])!r} version {int(d['version'])})")
+                self.origin = np.asarray(d["origin"], dtype=np.float64).reshape(2)
+                self.spacing = float(d["spacing"])
+                self.z = np.array(d["z"], dtype=np.float64)
+                self.ever = np.array(d["ever"], dtype=bool)
+                self.layers_frozen = int(d["layers_frozen"])
+                self.used_cm3 = np.array(d["used_cm3"], dtype=np.float64).reshape(2)
+                gens = []
+                for key in ("rng_noise", "rng_debris", "rng_laser"):
+                    g = np.random.default_rng()
+                    g.bit_generator.state = json.loads(str(d[key]))
+                    gens.append(g)
+                self.rng_noise, self.rng_debris, self.rng_laser = gens
+                p = Pending(layer=int(d["pend_layer"]))
+                if len(d["pend_a"]) or len(d["pend_mid"]):
+                    p.a, p.b = [d["pend_a"].copy()], [d["pend_b"].copy()]
+                    p.vol, p.hw = [d["pend_vol"].copy()], [d["pend_hw"].copy()]
+                    p.mat = [d["pend_mat"].copy()]
+                    p.n0, p.n1 = [d["pend_n0"].copy()], [d["pend_n1"].copy()]
+                    p.ext, p.mid = [d["pend_ext"].copy()], [d["pend_mid"].copy()]
+                self.pending = p
+        except CellError:
+            raise
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise CellError(f"{self.file}: cannot read the cell surface ({exc})") from None
+        if self.z.ndim != 2 or self.ever.shape != self.z.shape or not self.spacing > 0 \
+                or not np.isfinite(self.z).all() or not np.isfinite(self.origin).all():
+            raise CellError(f"{self.file}: inconsistent surface arrays (z {self.z.shape}, "
+                            f"ever {self.ever.shape}, spacing {self.spacing})")
+
+    def height_map(self):
+        """The frozen surface as a :class:`~icefab.core.HeightMap` (NaN where nothing was
+        ever deposited), like ``SimResult.height``."""
+        from icefab.core import HeightMap
+
+        return HeightMap(origin=self.origin.copy(), spacing=self.spacing,
+                         z=np.where(self.ever, self.z, np.nan))
+
+    # ------------------------------------------------------------------ deposition
+
+    def deposit_path(self, layer: int, xy_base: np.ndarray, dt_s: float, width_mm: float,
+                     tool: str, pulses: list[tuple[int, float, float]]) -> int:
+        """The drops of one deposition path into the layer's liquid.
+
+        xy_base: (n, 2) mm, the joint-4 axis in the base frame every ``dt_s`` (as run);
+        width_mm: the path's width; tool: "part" or "scaffold", the nozzle the path was
+        planned for (its chords are where debris can fall); pulses: (valve, t s from the
+        trigger, width us) in order, each drop under its valve's nozzle. Returns the
+        number of pulses.
+        """
+        from icefab import flow
+        from icefab.frames import tool_offset
+
+        sim = _sim()
+        job = self.job
+        if tool not in MATERIAL_OF_VALVE:
+            raise CellError(f"a deposition path for tool {tool!r}; expected part or scaffold")
+        self._layer(layer)
+
+        def part_xy(material: str) -> np.ndarray:
+            return np.asarray(xy_base, dtype=np.float64) - (
+                np.asarray(job.cell.ee_origin_mm, dtype=np.float64)
+                - tool_offset(material, job))
+
+        by_valve: dict[int, list] = {}
+        for v, t, w in pulses:
+            if int(v) not in (0, 1):
+                raise CellError(f"valve {v}: the cell has valves 0 (part) and 1 (scaffold)")
+            by_valve.setdefault(int(v), []).append((float(t), float(w)))
+        p = self.pending
+        for v in sorted(by_valve):
+            material = MATERIAL_OF_VALVE[v]
+            t = np.array([q[0] for q in by_valve[v]], dtype=np.float64)
+            if job.flow.mode == "pwm":
+                f = job.flow.pwm_frequency_hz
+                cal = flow.calibration_for(material, job)
+                per_pulse = float(cal.flow(np.array([f]))[0]) / f
+                widths_ms = np.array([q[1] for q in by_valve[v]], dtype=np.float64) / 1000.0
+                drops = per_pulse * widths_ms / job.flow.calibration_pulse_ms
+            else:
+                drops = pulse_rate_drops(t, material, job)
+            a, b, vol, hw, _, n0, n1, ext = sim.pulse_segments(
+                [part_xy(material)], [float(dt_s)], [t], [drops], [float(width_mm)])
+            p.a.append(a)
+            p.b.append(b)
+            p.vol.append(vol)
+            p.hw.append(hw)
+            p.mat.append(np.full(len(a), v, dtype=np.int8))
+            p.n0.append(n0)
+            p.n1.append(n1)
+            p.ext.append(ext)
+        p.mid.append(_chord_midpoints(part_xy(tool)))
+        return len(pulses)
+
+    def _layer(self, layer: int) -> None:
+        """Paths of a new layer freeze the previous one's liquid first."""
+        if self.pending.layer != layer:
+            if not self.pending.empty():
+                self.freeze()
+            self.pending.layer = int(layer)
+
+    def freeze(self) -> bool:
+        """The current layer's liquid levels and freezes onto the surface (the body of
+        :func:`icefab.sim.run_cell`'s layer loop for valve pulses). Returns whether there
+        was anything to freeze."""
+        from scipy import ndimage
+
+        sim_mod = _sim()
+        p = self.pending
+        if p.empty():
+            return False
+        job = self.job
+        sim = job.simulation
+        dh = job.slicing.layer_thickness_mm
+        arr = p.arrays()
+        a, b, v_all, hw = arr["pend_a"], arr["pend_b"], arr["pend_vol"], arr["pend_hw"]
+        mat_of, n0, n1, ext = arr["pend_mat"], arr["pend_n0"], arr["pend_n1"], arr["pend_ext"]
+        mid = arr["pend_mid"]
+        z = self.z
+        g = self.spacing
+        layer_img = np.zeros((2,) + z.shape)
+        edge_width = max(job.materials.part.path_width_mm, job.materials.scaffold.path_width_mm)
+        for mat in (0, 1):
+            sel = mat_of == mat
+            if not sel.any():
+                continue
+            v_cmd = v_all[sel]
+            before = self.used_cm3[mat] + (np.cumsum(v_cmd) - v_cmd) / 1000.0
+            gain = (1.0 + sim.flow_error) * (1.0 + sim.flow_drift_per_cm3 * before)
+            self.used_cm3[mat] += v_cmd.sum() / 1000.0
+            vol = v_cmd * gain
+            sim_mod._splat(layer_img[mat], self.origin, g, a[sel], b[sel], vol, hw[sel],
+                           n0[sel], n1[sel], ext[sel])
+        if sim.edge_loss > 0:
+            layer_img *= sim_mod._edge_factor(layer_img[0] + layer_img[1], 0.25 * dh,
+                                              edge_width, g, sim.edge_loss)
+        added = layer_img[0] + layer_img[1]
+        mask = added > 0.25 * dh
+        if sim.spread_mm > 0:
+            added = sim_mod.level_liquid(z, added, g, sim.spread_mm)
+            mask |= added > 0.25 * dh
+        if sim.noise_mm > 0 and mask.any():
+            added += sim.noise_mm * mask * sim_mod._noise_field(self.rng_noise, z.shape,
+                                                                sim.noise_corr_mm / g)
+        if sim.debris_rate > 0 and len(mid):
+            n_debris = self.rng_debris.poisson(sim.debris_rate)
+            if n_debris:
+                where = mid[self.rng_debris.integers(0, len(mid), n_debris)]
+                impulse = np.zeros(z.shape)
+                ix = np.clip(np.rint((where[:, 0] - self.origin[0]) / g).astype(np.int64),
+                             0, z.shape[1] - 1)
+                iy = np.clip(np.rint((where[:, 1] - self.origin[1]) / g).astype(np.int64),
+                             0, z.shape[0] - 1)
+                np.add.at(impulse, (iy, ix), 1.0)
+                sigma = sim.debris_radius_mm / g
+                bumps = ndimage.gaussian_filter(impulse, sigma, mode="constant", truncate=4.0)
+                added += mask * sim.debris_height_mm * 2 * np.pi * sigma ** 2 * bumps
+        z += added
+        self.ever |= mask
+        self.layers_frozen += 1
+        self.pending = Pending(layer=p.layer)
+        return True
+
+    # ------------------------------------------------------------------ laser
+
+    def laser_values(self, xy_base: np.ndarray, dt_s: float, z_ref_mm: float) -> np.ndarray:
+        """What the laser head reads along one measurement path, one value per storage
+        cycle from the trigger (``simulation.laser_rate_hz``): the frozen surface height
+        where the spot was ``simulation.laser_latency_s`` earlier, plus Gaussian noise
+        (``laser_noise_mm``), relative to ``z_ref_mm`` (the laser is zeroed at the path
+        height). Freezes the current layer first."""
+        from icefab.frames import tool_offset
+        from icefab.core import HeightMap
+
+        sim_mod = _sim()
+        self.freeze()
+        job = self.job
+        sim = job.simulation
+        xy = np.asarray(xy_base, dtype=np.float64) - (
+            np.asarray(job.cell.ee_origin_mm, dtype=np.float64) - tool_offset("laser", job))
+        tagged, true = sim_mod._laser_in_time(xy, float(dt_s), sim.laser_rate_hz,
+                                              sim.laser_latency_s)
+        surf = HeightMap(origin=self.origin, spacing=self.spacing, z=self.z)
+        samples = sim_mod.laser_measure(surf, tagged, true, noise_mm=sim.laser_noise_mm,
+                                        rng=self.rng_laser)
+        return samples[:, 2] - z_ref_mm
+
+
+def _chord_midpoints(xy: np.ndarray) -> np.ndarray:
+    """Midpoints of a path's chords with repeated samples dropped (as
+    ``icefab.sim.plan_layer_motion`` makes its segments)."""
+    pts = xy
+    if len(pts) > 1:
+        step = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+        pts = pts[np.concatenate([[True], step > _TINY_MM])]
+    if len(pts) < 2:
+        pts = np.vstack([pts[:1], pts[:1]])
+    return 0.5 * (pts[:-1] + pts[1:])
+
+
+def grid_for(motion, job, layers: int | None = None) -> tuple[np.ndarray, tuple[int, int],
+                                                                float]:
+    """The grid ``icefab simulate`` uses for these trajectories (first ``layers``
+    layers): (origin (2,) mm, shape (ny, nx), spacing mm)."""
+    sim = _sim()
+    chosen = motion.layers[:layers] if layers else motion.layers
+    plans = [sim.plan_layer_motion(lm, job) for lm in chosen]
+    hm = sim._grid_for(plans, job)
+    return np.asarray(hm.origin, dtype=np.float64), hm.z.shape, float(hm.spacing)

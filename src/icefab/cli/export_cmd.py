@@ -1,0 +1,90 @@
+"""``icefab export vplus [TRAJECTORIES] -o OUT`` (and ``icefab export gcode``).
+
+``vplus`` writes ``OUT/icefab_server.v2``: the V+ server for the Adept C40
+(:mod:`icefab.cell.vplus`; untested on a controller) that receives each layer's
+trajectories from the control PC over TCP and runs them at constant dt with the valve and
+laser triggers. Given a ``trajectories.npz`` it checks that every path fits the
+controller's path store and sizes the store for the longest path.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path as FsPath
+
+from icefab.cli.common import output_dir
+from icefab.errors import ConfigError
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "export", help="programs for the cell's controllers (V+ for the C40, G-code)",
+        description="Write controller programs: 'vplus' the Adept C40's V+ server of the "
+                    "robot link (untested on a controller), 'gcode' G-code for a gantry "
+                    "running Marlin.")
+    sub = p.add_subparsers(dest="what", metavar="WHAT")
+    sub.required = True
+    v = sub.add_parser("vplus", help="the V+ server program for the Adept C40",
+                       description="Write OUT/icefab_server.v2, the V+ programs of the robot "
+                                   "link (icefab.cell.vplus). UNTESTED ON A CONTROLLER.")
+    v.add_argument("input", nargs="?", metavar="TRAJECTORIES",
+                   help="trajectories.npz from 'icefab plan': checked to fit, sizes the "
+                        "path store")
+    v.add_argument("-o", "--out", required=True, metavar="OUT", help="output folder")
+    v.add_argument("--port", type=int, default=7100, help="TCP port (default 7100)")
+    v.add_argument("--valve-output", type=int, default=97,
+                   help="digital output wired to the valve controller's trigger (97)")
+    v.add_argument("--laser-output", type=int, default=98,
+                   help="digital output wired to the laser controller's timing input (98)")
+    v.add_argument("--zbase", type=float, default=0.0, metavar="MM",
+                   help="build platform height in the robot base frame, mm (teach it)")
+    v.add_argument("--yaw", type=float, default=0.0, metavar="DEG",
+                   help="fixed end-effector orientation, degrees (teach it)")
+    v.add_argument("--max-paths", type=int, default=4,
+                   help="paths the controller stores at once (default 4)")
+    v.set_defaults(func=run_vplus)
+
+
+def run_vplus(args: argparse.Namespace) -> int:
+    from icefab.cell.vplus import VplusSettings, vplus_program
+
+    if not 1 <= args.port <= 65535:
+        raise ConfigError(f"--port {args.port}: expected 1..65535")
+    for name in ("valve_output", "laser_output"):
+        if not 1 <= getattr(args, name) <= 4096:
+            raise ConfigError(f"--{name.replace('_', '-')} {getattr(args, name)}: expected "
+                              "a V+ digital output number")
+    if args.valve_output == args.laser_output:
+        raise ConfigError("--valve-output and --laser-output name the same output")
+    for name in ("zbase", "yaw"):
+        if not math.isfinite(getattr(args, name)):
+            raise ConfigError(f"--{name} {getattr(args, name)}: expected a finite number")
+    if not 1 <= args.max_paths <= 64:
+        raise ConfigError(f"--max-paths {args.max_paths}: expected 1..64")
+    max_points = 8192
+    summary = ""
+    if args.input:
+        from icefab.motion import load_trajectories
+
+        src = FsPath(args.input)
+        if not src.is_file():
+            raise ConfigError(f"{src}: trajectories file not found")
+        motion = load_trajectories(src)
+        longest = max((len(t.xy) for lm in motion.layers for t in lm.trajectories), default=0)
+        max_points = max(1024, 1024 * math.ceil(longest / 1024))
+        if max_points * args.max_paths > 1_000_000:
+            raise ConfigError(f"{src}: the longest path has {longest} points; "
+                              f"{args.max_paths} of them ({max_points * args.max_paths} "
+                              "points) do not fit the controller's arrays (1 000 000); plan "
+                              "shorter paths or lower --max-paths")
+        summary = (f" for {src.name}: longest path {longest} points, path store "
+                   f"{args.max_paths} x {max_points} points")
+    text = vplus_program(VplusSettings(port=args.port, valve_output=args.valve_output,
+                                       laser_output=args.laser_output, zbase_mm=args.zbase,
+                                       yaw_deg=args.yaw, max_points=max_points,
+                                       max_paths=args.max_paths))
+    with output_dir(args.out, "export-vplus") as tmp:
+        (tmp / "icefab_server.v2").write_text(text, encoding="ascii", newline="\r\n")
+    print(f"wrote {args.out}/icefab_server.v2 (V+, untested on a controller){summary}")
+    return 0

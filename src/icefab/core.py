@@ -1,0 +1,362 @@
+"""Core data types: the contract between pipeline stages.
+
+All types are frozen dataclasses holding numpy arrays; stages are pure functions over
+them. Units: millimetres and seconds; angles in radians inside arrays (degrees only at the
+interface: config, CLI, files).
+
+Ring convention (icefab): a ring is an ``(k, 2) float64`` array of distinct points, the
+closing edge from the last point back to the first is implied (the first point is NOT
+repeated). Outer rings are counter-clockwise (positive signed area), holes are clockwise
+(negative signed area), so the signed areas of a region's rings add up to its area.
+The thesis (Ch. 3.2) uses the opposite orientation; convert where thesis data is read.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Iterator, Literal
+
+import numpy as np
+
+if TYPE_CHECKING:  # pragma: no cover
+    from icefab.config import Job
+
+Material = Literal["part", "scaffold"]
+Role = Literal["boundary", "fill", "measure", "travel"]
+
+MATERIALS: tuple[str, ...] = ("part", "scaffold")
+ROLES: tuple[str, ...] = ("boundary", "fill", "measure", "travel")
+
+
+def signed_area(ring: np.ndarray) -> float:
+    """Signed area (mm^2) of a ring ``(k, 2)``: positive when counter-clockwise."""
+    x = ring[:, 0]
+    y = ring[:, 1]
+    return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y))
+
+
+# --------------------------------------------------------------------------- mesh
+
+
+@dataclass(frozen=True, eq=False)
+class Mesh:
+    """An indexed triangle mesh.
+
+    vertices: (n, 3) float64, mm.
+    faces: (m, 3) int64, indices into ``vertices``; counter-clockwise seen from outside.
+    name: where it came from (file name or generator), used in messages.
+    warnings: what loading found and fixed (counts per defect, see ``MeshReport``); the
+        slicer passes them on to ``Stack.warnings``.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    name: str = ""
+    warnings: tuple[str, ...] = ()
+
+    @property
+    def bounds(self) -> np.ndarray:
+        """(2, 3) float64: minimum and maximum corner, mm."""
+        if len(self.vertices) == 0:
+            return np.zeros((2, 3))
+        return np.stack([self.vertices.min(axis=0), self.vertices.max(axis=0)])
+
+    @property
+    def n_faces(self) -> int:
+        return int(len(self.faces))
+
+    def triangles(self) -> np.ndarray:
+        """(m, 3, 3) float64: the corner coordinates of every face, mm."""
+        return self.vertices[self.faces]
+
+
+# --------------------------------------------------------------------------- regions
+
+
+@dataclass(frozen=True, eq=False)
+class Region:
+    """A planar area bounded by closed rings (see the module docstring for orientation).
+
+    rings: tuple of (k_i, 2) float64 arrays, mm, first point not repeated.
+    parent: (r,) int64; ``parent[i]`` is the index of the ring directly enclosing ring i,
+        or -1 for a top-level outer ring. Holes have an outer ring as parent; an island
+        inside a hole has that hole as parent (the thesis' hierarchy array q, Ch. 3.2).
+        Depth parity tells outer (even) from hole (odd).
+    """
+
+    rings: tuple[np.ndarray, ...] = ()
+    parent: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+
+    @staticmethod
+    def empty() -> "Region":
+        return Region()
+
+    def __len__(self) -> int:
+        return len(self.rings)
+
+    @property
+    def is_empty(self) -> bool:
+        return len(self.rings) == 0
+
+    @property
+    def area(self) -> float:
+        """Area in mm^2 (sum of signed ring areas)."""
+        return float(sum(signed_area(r) for r in self.rings))
+
+    def ring_areas(self) -> np.ndarray:
+        """(r,) float64 signed areas, mm^2."""
+        return np.array([signed_area(r) for r in self.rings], dtype=np.float64)
+
+    def depth(self) -> np.ndarray:
+        """(r,) int64 nesting depth of every ring (0 = top-level outer ring)."""
+        d = np.zeros(len(self.rings), dtype=np.int64)
+        for i in range(len(self.rings)):
+            p = int(self.parent[i])
+            while p >= 0:
+                d[i] += 1
+                p = int(self.parent[p])
+        return d
+
+    def polygons(self) -> list[list[np.ndarray]]:
+        """The region as polygons ``[outer, hole, hole, ...]`` (the thesis' contour groups A)."""
+        depth = self.depth()
+        groups: dict[int, list[np.ndarray]] = {}
+        order: list[int] = []
+        for i, ring in enumerate(self.rings):
+            if depth[i] % 2 == 0:
+                groups[i] = [ring]
+                order.append(i)
+        for i, ring in enumerate(self.rings):
+            if depth[i] % 2 == 1:
+                groups[int(self.parent[i])].append(ring)
+        return [groups[i] for i in order]
+
+    def bounds(self) -> np.ndarray:
+        """(2, 2) float64 min and max corner, mm; zeros when empty."""
+        if self.is_empty:
+            return np.zeros((2, 2))
+        pts = np.concatenate(self.rings)
+        return np.stack([pts.min(axis=0), pts.max(axis=0)])
+
+    @property
+    def n_points(self) -> int:
+        return int(sum(len(r) for r in self.rings))
+
+
+# --------------------------------------------------------------------------- layers
+
+
+@dataclass(frozen=True, eq=False)
+class Layer:
+    """One layer of the build.
+
+    index: 0 for the bottom layer.
+    z: height of the cutting plane actually used, mm (see ``icefab.slicing`` for where
+        inside the layer it lies); the layer's top surface is at ``top_z``.
+    top_z: height of the layer's top surface, mm.
+    part: the part-material (water) region.
+    scaffold: the scaffold-material region (empty until ``add_scaffold``).
+    """
+
+    index: int
+    z: float
+    part: Region
+    scaffold: Region = field(default_factory=Region)
+    top_z: float = float("nan")
+
+
+@dataclass(frozen=True, eq=False)
+class Stack:
+    """All layers of a build, bottom first, with the job they were made with.
+
+    warnings: human-readable findings made while slicing (open contours closed, thin
+        features, ...), each naming its layer.
+    """
+
+    layers: tuple[Layer, ...]
+    job: "Job"
+    layer_thickness: float
+    warnings: tuple[str, ...] = ()
+
+    def __len__(self) -> int:
+        return len(self.layers)
+
+    def __iter__(self) -> Iterator[Layer]:
+        return iter(self.layers)
+
+    def __getitem__(self, i: int) -> Layer:
+        return self.layers[i]
+
+
+# --------------------------------------------------------------------------- paths
+
+
+@dataclass(frozen=True, eq=False)
+class Toolpath:
+    """One deposition, measurement or travel path.
+
+    points: (k, 2) float64, mm, in the part (building) frame unless ``frame`` says else.
+    z: height, mm.
+    material: "part" or "scaffold" (the tool: water or scaffold nozzle; measure paths
+        carry the material whose surface they measure).
+    role: "boundary", "fill", "measure" or "travel".
+    closed: a closed path returns to its first point (the point is not repeated).
+    width: deposition width, mm (0 for travel and measure).
+    layer: index of the layer it belongs to (-1 when not part of a stack).
+    frame: "part" (building frame) or "base" (robot base frame).
+    tool: whose frame the points are given for: "part" (water nozzle), "scaffold"
+        (scaffold nozzle) or "laser"; "" means derived (see ``tool_name``).
+    """
+
+    points: np.ndarray
+    z: float = 0.0
+    material: str = "part"
+    role: str = "boundary"
+    closed: bool = False
+    width: float = 0.0
+    layer: int = -1
+    frame: str = "part"
+    tool: str = ""
+
+    @property
+    def tool_name(self) -> str:
+        """The tool that follows the path: ``tool`` if set, else "laser" for measure
+        paths and the material's nozzle otherwise."""
+        if self.tool:
+            return self.tool
+        return "laser" if self.role == "measure" else self.material
+
+    @property
+    def depositing(self) -> bool:
+        """True when material flows along this path (Ossino's ON1/ON2 vs OFF)."""
+        return self.role in ("boundary", "fill")
+
+    def polyline(self) -> np.ndarray:
+        """(k or k+1, 2) points with the first point repeated at the end when closed."""
+        if self.closed and len(self.points) > 1:
+            return np.vstack([self.points, self.points[:1]])
+        return self.points
+
+    @property
+    def length(self) -> float:
+        """Length along the path, mm (including the closing segment when closed)."""
+        p = self.polyline()
+        if len(p) < 2:
+            return 0.0
+        return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
+
+
+#: The name before 0.2 (it shadowed ``pathlib.Path`` in every module using both).
+Path = Toolpath
+
+
+@dataclass(frozen=True, eq=False)
+class LayerPaths:
+    """The ordered paths of one layer, travel moves included, in deposition order."""
+
+    index: int
+    z: float
+    paths: tuple[Toolpath, ...]
+    #: (part, scaffold) area of the regions left uncovered by the deposition paths, mm^2.
+    unfilled_mm2: tuple[float, float] = (0.0, 0.0)
+
+
+@dataclass(frozen=True, eq=False)
+class Toolpaths:
+    """Ordered paths of every layer of a build."""
+
+    layers: tuple[LayerPaths, ...]
+    job: "Job"
+    warnings: tuple[str, ...] = ()
+
+    def __len__(self) -> int:
+        return len(self.layers)
+
+    def __iter__(self) -> Iterator[LayerPaths]:
+        return iter(self.layers)
+
+
+# --------------------------------------------------------------------------- motion
+
+
+@dataclass(frozen=True, eq=False)
+class Trajectory:
+    """A path followed in time, sampled at a constant time step.
+
+    dt: time step, s (default 0.016); the speed lives in the point spacing.
+    xy: (n, 2) float64, mm, sampled points in the robot base frame.
+    joints: (n, j) float64, rad (or mm for prismatic axes), joint positions.
+    speed: (n,) float64, mm/s, speed along the path at each sample.
+    duration: s, ``(n - 1) * dt`` for a single piece.
+    path: the Toolpath it follows (None for a plain point array).
+    pieces: (p,) int64 sample index where each piece (PATHSPLIT sub-path, thesis 4.1.1)
+        starts; the robot is at rest at every one of them and at the last sample. Empty
+        means a single piece starting at sample 0.
+    """
+
+    dt: float
+    xy: np.ndarray
+    joints: np.ndarray
+    speed: np.ndarray
+    duration: float
+    path: Toolpath | None = None
+    pieces: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+
+    @property
+    def t(self) -> np.ndarray:
+        """(n,) float64 sample times, s."""
+        return np.arange(len(self.xy)) * self.dt
+
+
+# --------------------------------------------------------------------------- valves
+
+
+@dataclass(frozen=True, eq=False)
+class ValveProgram:
+    """Pulse instants for one valve along one trajectory piece (thesis Ch. 6, 2.3.1).
+
+    ticks: (p,) uint16, pulse instants in ticks of ``tick_s`` from the piece start.
+    tick_s: tick length, s (0.002 on the Cobra 600 microcontroller).
+    duration: s, length of the trajectory piece the pulses belong to.
+    pieces: further pieces when the program was split (131.072 s / 16384 pulses).
+    widths_us: (p,) uint16 pulse widths in microseconds (PWM mode; None in FM mode, where
+        every pulse has the valve's fixed pulse width).
+    warnings: valve limits reached while planning (clamped flow, too few drops per mm),
+        each naming the setting; kept on the first piece.
+    """
+
+    ticks: np.ndarray
+    tick_s: float = 0.002
+    duration: float = 0.0
+    pieces: tuple["ValveProgram", ...] = ()
+    widths_us: np.ndarray | None = None
+    warnings: tuple[str, ...] = ()
+
+
+# --------------------------------------------------------------------------- surfaces
+
+
+@dataclass(frozen=True, eq=False)
+class HeightMap:
+    """A surface on a regular grid.
+
+    origin: (2,) float64, mm, x and y of grid node (0, 0).
+    spacing: grid pitch, mm.
+    z: (ny, nx) float64, mm; NaN outside the footprint. Row i is y = origin[1] + i*spacing.
+    """
+
+    origin: np.ndarray
+    spacing: float
+    z: np.ndarray
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.z.shape  # type: ignore[return-value]
+
+    def grid(self) -> tuple[np.ndarray, np.ndarray]:
+        """(nx,), (ny,) float64 node coordinates, mm."""
+        ny, nx = self.z.shape
+        return (
+            self.origin[0] + self.spacing * np.arange(nx),
+            self.origin[1] + self.spacing * np.arange(ny),
+        )

@@ -1,0 +1,154 @@
+"""OBJ: ``v`` and ``f`` lines (``f 1/2/3 4//5 -1``), negative indices, polygons
+fan-triangulated, scanned in one compiled pass like ASCII STL; other lines ignored.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+from numba import njit
+
+from icefab.errors import MeshError
+from icefab.mesh._text import (_E_FEW, _E_INDEX, _E_NUMBER, _check_finite_lines, _finish_numbers,
+                               _is_number, _is_ws, _line_text, _store_number)
+from icefab.mesh.topology import _fan
+
+log = logging.getLogger(__name__)
+
+
+@njit(cache=True)
+def _scan_obj(b):  # pragma: no cover
+    """Scan an OBJ: vertex coordinate tokens and face indices.
+
+    Returns (slow_text, values, slow, vlines, fidx, fcount, flines, n_short, err,
+    err_line): ``values`` the first three numbers of every ``v`` line (slots in ``slow``
+    still to be converted from ``slow_text``, see :func:`_finish_numbers`); ``fidx``
+    (k,) int64 0-based vertex indices of all faces (negative indices resolved against
+    the vertices read so far), ``fcount`` (f,) corners per face, ``flines`` (f,) line of each face; ``n_short``
+    faces with fewer than 3 corners were skipped.
+    """
+    n = b.size
+    out = np.empty(n + 1, np.uint8)
+    vlines = np.empty(n // 6 + 1, np.int64)
+    values = np.empty(3 * (n // 6 + 1), np.float64)
+    slow = np.empty(3 * (n // 6 + 1), np.int64)
+    ns = 0
+    fidx = np.empty(n // 2 + 1, np.int64)
+    fcount = np.empty(n // 6 + 1, np.int64)
+    flines = np.empty(n // 6 + 1, np.int64)
+    o = 0
+    nv = 0
+    nk = 0
+    nf = 0
+    n_short = 0
+    err = 0
+    i = 0
+    line = 1
+    while i < n:
+        # start of a line: skip blanks (not newlines)
+        while i < n and (b[i] == 32 or b[i] == 9 or b[i] == 13):
+            i += 1
+        if i >= n:
+            break
+        if b[i] == 10:
+            line += 1
+            i += 1
+            continue
+        s = i
+        while i < n and not _is_ws(b[i]):
+            i += 1
+        e = i
+        if e - s == 1 and b[s] == 118:  # 'v'
+            k = 0
+            while True:
+                while i < n and (b[i] == 32 or b[i] == 9 or b[i] == 13):
+                    i += 1
+                if i >= n or b[i] == 10 or b[i] == 35:
+                    break
+                s = i
+                while i < n and not _is_ws(b[i]):
+                    i += 1
+                if k < 3:
+                    if not _is_number(b, s, i):
+                        err = _E_NUMBER
+                        break
+                    ns, o = _store_number(b, s, i, values, 3 * nv + k, slow, ns, out, o)
+                k += 1
+            if err == 0 and k < 3:
+                err = _E_FEW
+            if err:
+                break
+            vlines[nv] = line
+            nv += 1
+        elif e - s == 1 and b[s] == 102:  # 'f'
+            k = 0
+            while True:
+                while i < n and (b[i] == 32 or b[i] == 9 or b[i] == 13):
+                    i += 1
+                if i >= n or b[i] == 10 or b[i] == 35:
+                    break
+                neg = False
+                if b[i] == 45:
+                    neg = True
+                    i += 1
+                elif b[i] == 43:
+                    i += 1
+                val = 0
+                nd = 0
+                while i < n and 48 <= b[i] <= 57 and nd < 18:
+                    val = val * 10 + (b[i] - 48)
+                    i += 1
+                    nd += 1
+                if nd == 0 or (i < n and not _is_ws(b[i]) and b[i] != 47):
+                    err = _E_NUMBER
+                    break
+                while i < n and not _is_ws(b[i]):  # '/vt/vn' part
+                    i += 1
+                idx = nv - val if neg else val - 1
+                if val == 0 or idx < 0:
+                    err = _E_INDEX
+                    break
+                fidx[nk] = idx
+                nk += 1
+                k += 1
+            if err:
+                break
+            if k < 3:
+                nk -= k
+                n_short += 1
+            else:
+                fcount[nf] = k
+                flines[nf] = line
+                nf += 1
+        else:
+            pass  # vt, vn, o, g, s, usemtl, comments...: not needed
+        while i < n and b[i] != 10:  # rest of the line
+            i += 1
+    return (out[:o], values[:3 * nv], slow[:ns], vlines[:nv], fidx[:nk], fcount[:nf],
+            flines[:nf], n_short, err, line if err else 0)
+
+
+def read(data: bytes, path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (n, 3) float64 and triangles (m, 3) int64 of an OBJ file."""
+    b = np.frombuffer(data, np.uint8)
+    buf, values, slow, vlines, fidx, fcount, flines, n_short, err, line = _scan_obj(b)
+    if err:
+        what = {_E_NUMBER: "cannot read a number", _E_FEW: "a vertex needs 3 coordinates",
+                _E_INDEX: "face index 0 or before the first vertex"}[err]
+        raise MeshError(f"{path}: OBJ line {line}: {what} "
+                        f"(line reads {_line_text(data, line)!r})")
+    if len(vlines) == 0:
+        raise MeshError(f"{path}: OBJ without vertices ('v' lines)")
+    values = _finish_numbers(buf, values, slow, vlines, 3, path, "OBJ")
+    vertices = values.reshape(-1, 3)
+    _check_finite_lines(vertices, vlines, path, "OBJ")
+    if len(fidx) and fidx.max() >= len(vertices):
+        k = int(np.searchsorted(np.cumsum(fcount), int(np.argmax(fidx >= len(vertices))),
+                                side="right"))
+        raise MeshError(f"{path}: OBJ line {int(flines[k])}: face index out of range: the "
+                        f"file has {len(vertices)} vertices")
+    if n_short:
+        log.warning("%s: skipped %d OBJ faces with fewer than 3 corners", path, n_short)
+    return vertices, _fan(fidx, fcount)

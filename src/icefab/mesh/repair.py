@@ -1,0 +1,248 @@
+"""Mesh diagnostics and clean-up: :class:`MeshReport`, :func:`check_mesh`, :func:`clean_mesh`.
+
+Clean-up after welding (each reported as a warning with its count): faces with a repeated
+vertex index (degenerate) are removed; faces with the same three vertices as an earlier
+face (duplicates, in either orientation) are removed (searched for only when a
+non-manifold or misoriented edge shows one may exist); vertices no face uses are dropped;
+a closed mesh with negative signed volume (inside out) has all faces flipped. Open and
+non-manifold edges are reported with their count and the location of one of them, never
+"repaired" here (the slicer closes gaps per layer and reports them). Faces with distinct
+but collinear corners (zero area) are counted, not removed: removing them would open the
+surface.
+
+May import: ``icefab.mesh.topology``, ``icefab.core``, ``icefab.errors``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from icefab.core import Mesh
+from icefab.errors import MeshError
+from icefab.mesh.topology import _duplicate_faces, _edge_topology, _face_measures
+
+log = logging.getLogger(__name__)
+
+
+# --------------------------------------------------------------------------- report
+
+
+@dataclass(frozen=True)
+class MeshReport:
+    """Diagnostics of a mesh (counts; see :func:`check_mesh`).
+
+    open_edges: edges used by exactly one face (holes in the surface).
+    non_manifold_edges: edges used by more than two faces.
+    misoriented_edges: edges shared by two faces that traverse them in the same direction
+        (inconsistent face orientation).
+    degenerate_faces: faces with a repeated vertex index.
+    zero_area_faces: faces with three distinct vertices but (numerically) zero area.
+    duplicate_faces: faces with the same three vertices as an earlier face.
+    nonfinite_vertices: vertices with a NaN or infinite coordinate.
+    volume: signed enclosed volume, mm^3 (meaningful for closed meshes).
+    inverted: closed mesh with negative volume (faces point inwards).
+    removed_degenerate, removed_duplicate, merged_vertices, flipped: what loading fixed.
+    open_edge_at, non_manifold_edge_at: midpoint (mm) of one such edge, to find it.
+    """
+
+    name: str
+    n_vertices: int
+    n_faces: int
+    open_edges: int
+    non_manifold_edges: int
+    misoriented_edges: int
+    degenerate_faces: int
+    zero_area_faces: int
+    duplicate_faces: int
+    nonfinite_vertices: int
+    volume: float
+    inverted: bool
+    removed_degenerate: int = 0
+    removed_duplicate: int = 0
+    merged_vertices: int = 0
+    flipped: bool = False
+    open_edge_at: tuple[float, float, float] | None = None
+    non_manifold_edge_at: tuple[float, float, float] | None = None
+
+    @property
+    def closed(self) -> bool:
+        """No open and no non-manifold edges."""
+        return self.open_edges == 0 and self.non_manifold_edges == 0 and self.n_faces > 0
+
+    @property
+    def watertight(self) -> bool:
+        """Closed, consistently oriented, without degenerate faces."""
+        return (self.closed and self.misoriented_edges == 0 and self.degenerate_faces == 0
+                and self.nonfinite_vertices == 0)
+
+    def warnings(self) -> list[str]:
+        """Human-readable findings, each with its count and the mesh name."""
+        w: list[str] = []
+        n = self.name or "mesh"
+        if self.removed_degenerate:
+            w.append(f"{n}: removed {self.removed_degenerate} degenerate faces "
+                     "(repeated vertex)")
+        if self.removed_duplicate:
+            w.append(f"{n}: removed {self.removed_duplicate} duplicate faces")
+        if self.flipped:
+            w.append(f"{n}: the closed mesh was inside out (volume < 0); all faces flipped")
+        if self.nonfinite_vertices:
+            w.append(f"{n}: {self.nonfinite_vertices} vertices with NaN/Inf coordinates")
+        if self.degenerate_faces:
+            w.append(f"{n}: {self.degenerate_faces} degenerate faces (repeated vertex)")
+        if self.duplicate_faces:
+            w.append(f"{n}: {self.duplicate_faces} duplicate faces")
+        if self.zero_area_faces:
+            w.append(f"{n}: {self.zero_area_faces} zero-area faces")
+        if self.open_edges:
+            w.append(f"{n}: {self.open_edges} open edges (the surface has holes)"
+                     + _at(self.open_edge_at))
+        if self.non_manifold_edges:
+            w.append(f"{n}: {self.non_manifold_edges} non-manifold edges (shared by more "
+                     "than two faces)" + _at(self.non_manifold_edge_at))
+        if self.misoriented_edges:
+            w.append(f"{n}: {self.misoriented_edges} edges between faces of inconsistent "
+                     "orientation")
+        if self.inverted and not self.flipped:
+            w.append(f"{n}: inverted orientation (negative volume {self.volume:.6g} mm^3)")
+        return w
+
+
+def _at(point: tuple[float, float, float] | None) -> str:
+    if point is None:
+        return ""
+    return ", e.g. at ({:.4g}, {:.4g}, {:.4g}) mm".format(*point)
+
+
+def mesh_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """Signed volume (mm^3) enclosed by the faces (divergence theorem); > 0 when outward."""
+    if len(faces) == 0:
+        return 0.0
+    # shift to the centroid of the bounding box for accuracy
+    c = 0.5 * (vertices.min(axis=0) + vertices.max(axis=0))
+    v = vertices - c
+    a, b, d = v[faces[:, 0]], v[faces[:, 1]], v[faces[:, 2]]
+    return float(np.einsum("ij,ij->", a, np.cross(b, d)) / 6.0)
+
+
+def _edge_stats(faces: np.ndarray, n_vertices: int) -> tuple[int, int, int, np.ndarray,
+                                                             np.ndarray]:
+    """(open, non-manifold, misoriented) undirected edge counts of non-degenerate faces,
+    and the vertex pair of one open and one non-manifold edge ((-1, -1) when none)."""
+    if len(faces) == 0:
+        none = np.full(2, -1, np.int64)
+        return 0, 0, 0, none, none
+    o, n, m, ex_o, ex_n = _edge_topology(faces, int(n_vertices))
+    return int(o), int(n), int(m), ex_o, ex_n
+
+
+def _degenerate_mask(faces: np.ndarray) -> np.ndarray:
+    return ((faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2])
+            | (faces[:, 0] == faces[:, 2]))
+
+
+def _duplicate_mask(faces: np.ndarray, n_vertices: int) -> np.ndarray:
+    """(m,) bool: face has the same vertex set as an earlier face (either orientation)."""
+    if len(faces) == 0:
+        return np.zeros(0, bool)
+    return _duplicate_faces(faces, int(n_vertices))
+
+
+def check_mesh(mesh: Mesh) -> MeshReport:
+    """Diagnose a mesh: edge topology, degenerate/duplicate faces, orientation.
+
+    Compiled O(m) passes: edges are bucketed by their lower vertex and counted, duplicate
+    faces found the same way; volume and zero-area faces in one pass over the faces.
+    """
+    return _diagnose(mesh, known_clean=False)
+
+
+def _diagnose(mesh: Mesh, known_clean: bool,
+              edges: tuple | None = None) -> MeshReport:
+    """check_mesh; ``known_clean`` skips the degenerate/duplicate search (just removed),
+    ``edges`` are the (open, non-manifold, misoriented) counts when already known."""
+    v, f = mesh.vertices, np.ascontiguousarray(mesh.faces, dtype=np.int64)
+    if f.ndim != 2 or (len(f) and f.shape[1] != 3) or (v.ndim != 2 or v.shape[1] != 3):
+        raise MeshError(f"{mesh.name or 'mesh'}: expected vertices (n, 3) and faces (m, 3), "
+                        f"got {v.shape} and {f.shape}")
+    if len(f) and (f.min() < 0 or f.max() >= len(v)):
+        raise MeshError(f"{mesh.name or 'mesh'}: face index out of range [0, {len(v)})")
+    v = np.ascontiguousarray(v, dtype=np.float64)
+    nonfinite = 0 if np.isfinite(v).all() else int(np.count_nonzero(
+        ~np.isfinite(v).all(axis=1)))
+    if known_clean:
+        good, degen, dup = f, np.zeros(0, bool), np.zeros(0, bool)
+    else:
+        degen = _degenerate_mask(f)
+        good = f[~degen] if degen.any() else f
+        dup = _duplicate_mask(good, len(v))
+    open_, nonman, misor, ex_open, ex_nonman = (edges if edges is not None
+                                                else _edge_stats(good, len(v)))
+    if nonfinite == 0 and len(good):
+        scale = float(np.abs(v).max()) or 1.0
+        zero_area, volume = _face_measures(v, good, (1e-12 * scale) ** 2)
+        zero_area, volume = int(zero_area), float(volume)
+    else:
+        zero_area, volume = 0, float("nan")
+    closed = open_ == 0 and nonman == 0 and len(good) > 0
+    return MeshReport(name=mesh.name, n_vertices=int(len(v)), n_faces=int(len(f)),
+                      open_edges=open_, non_manifold_edges=nonman, misoriented_edges=misor,
+                      degenerate_faces=int(degen.sum()), zero_area_faces=zero_area,
+                      duplicate_faces=int(dup.sum()), nonfinite_vertices=nonfinite,
+                      volume=volume, inverted=bool(closed and misor == 0 and volume < 0),
+                      open_edge_at=_midpoint(v, ex_open),
+                      non_manifold_edge_at=_midpoint(v, ex_nonman))
+
+
+def _midpoint(v: np.ndarray, edge: np.ndarray) -> tuple[float, float, float] | None:
+    if edge[0] < 0:
+        return None
+    return tuple(float(x) for x in 0.5 * (v[edge[0]] + v[edge[1]]))  # type: ignore
+
+
+def clean_mesh(mesh: Mesh) -> tuple[Mesh, MeshReport]:
+    """Remove degenerate and duplicate faces, flip an inside-out closed mesh.
+
+    Returns the cleaned mesh and the report of the cleaned mesh with the ``removed_*`` and
+    ``flipped`` fields telling what was changed.
+    """
+    f = np.ascontiguousarray(mesh.faces, dtype=np.int64)
+    nv = len(mesh.vertices)
+    degen = _degenerate_mask(f)
+    if degen.any():
+        f = f[~degen]
+    edges = _edge_stats(f, nv)
+    n_dup = 0
+    # A duplicate face always leaves a non-manifold or misoriented edge (except a lone
+    # two-sided pair, which encloses nothing), so clean meshes skip the search.
+    if edges[1] or edges[2]:
+        dup = _duplicate_mask(f, nv)
+        n_dup = int(dup.sum())
+        if n_dup:
+            f = f[~dup]
+            edges = _edge_stats(f, nv)
+    vertices = mesh.vertices
+    if len(f):
+        used = np.zeros(len(vertices), bool)
+        used[f] = True
+        if not used.all():  # drop vertices no face refers to (renumbered, order kept)
+            remap = np.cumsum(used) - 1
+            f = remap[f]
+            vertices = vertices[used]
+            ex_open, ex_nonman = (np.where(e >= 0, remap[np.maximum(e, 0)], -1)
+                                  for e in edges[3:])
+            edges = (*edges[:3], ex_open, ex_nonman)
+    cleaned = dataclasses.replace(mesh, vertices=vertices, faces=f)
+    report = _diagnose(cleaned, known_clean=True, edges=edges)
+    flipped = False
+    if report.inverted:
+        cleaned = dataclasses.replace(cleaned, faces=np.ascontiguousarray(f[:, ::-1]))
+        report = dataclasses.replace(report, volume=-report.volume, inverted=False)
+        flipped = True
+    report = dataclasses.replace(report, removed_degenerate=int(degen.sum()),
+                                 removed_duplicate=n_dup, flipped=flipped)
+    return cleaned, report

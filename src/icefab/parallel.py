@@ -1,0 +1,65 @@
+"""Parallel execution of the per-layer stages: the worker count and one process-pool map.
+
+Every stage that works layer by layer (scaffold scans, path planning, trajectory planning)
+goes through :func:`parallel_map`, so the number of workers is decided in one place
+(:func:`n_workers`, from ``job.cell.cpus``) and results come back in input order, whatever
+the number of workers: the output never depends on ``cpus``.
+
+May import: ``icefab.config`` (the Job) only.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from concurrent.futures import ProcessPoolExecutor
+from typing import TYPE_CHECKING, Callable, Sequence, TypeVar
+
+if TYPE_CHECKING:  # pragma: no cover
+    from icefab.config import Job
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+
+def n_workers(job: "Job") -> int:
+    """Worker processes for parallel stages: ``job.cell.cpus`` (0 = all cores)."""
+    n = job.cell.cpus or (os.cpu_count() or 1)
+    return max(1, int(n))
+
+
+def parallel_map(fn: Callable[[T], R], items: Sequence[T], job: "Job",
+                 min_items: int = 40,
+                 progress: Callable[[int, int], None] | None = None) -> list[R]:
+    """``[fn(x) for x in items]`` on a process pool over contiguous chunks of items.
+
+    fn must be a module-level function (it is pickled to the workers). Runs serially when
+    only one worker is configured or there are fewer than ``min_items`` items (process
+    start-up would cost more than it saves). Items are cut into about ``8 * workers``
+    contiguous chunks; no more workers are started than there are chunks.
+    progress: called as ``progress(done, total)`` as items complete (after every item when
+    serial, after every chunk otherwise).
+    """
+    workers = n_workers(job)
+    total = len(items)
+    if workers <= 1 or total < min_items:
+        out = []
+        for i, x in enumerate(items):
+            out.append(fn(x))
+            if progress is not None:
+                progress(i + 1, total)
+        return out
+    n_chunks = workers * 8
+    size = max(1, math.ceil(total / n_chunks))
+    chunks = [list(items[i:i + size]) for i in range(0, total, size)]
+    out = []
+    with ProcessPoolExecutor(max_workers=min(workers, len(chunks))) as pool:
+        for chunk in pool.map(_apply_chunk, [fn] * len(chunks), chunks):
+            out.extend(chunk)
+            if progress is not None:
+                progress(len(out), total)
+    return out
+
+
+def _apply_chunk(fn: Callable[[T], R], chunk: list[T]) -> list[R]:
+    return [fn(x) for x in chunk]

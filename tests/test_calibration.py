@@ -1,0 +1,192 @@
+"""Laser and valve calibrations (thesis 5.2.1, 6.1) recover the known true values of
+synthetic data with realistic noise; their files are checked line by line."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from hypothesis import given, seed, strategies as st
+
+from icefab import calibration as cal
+from icefab.config import load_job
+from icefab.errors import ConfigError, FlowError
+from icefab.flow import DATA_DIR, load_calibration
+
+
+@pytest.mark.parametrize("seed_", [1, 2, 3])
+def test_laser_offset_and_latency_recovered(seed_):
+    rng = np.random.default_rng(seed_)
+    nominal = np.array([-30.0, 19.0])
+    true_off = nominal + rng.uniform(-0.5, 0.5, 2)        # machining/assembly error
+    true_lat = float(rng.uniform(0.003, 0.02))
+    jig = cal.default_jig()
+    js = cal.synthetic_jig_scans(jig, offset_mm=true_off, latency_s=true_lat, rng=rng)
+    es = cal.synthetic_edge_scans(offset_mm=true_off, latency_s=true_lat, rng=rng)
+    res = cal.calibrate_laser(js, jig, es, nominal_offset_mm=nominal)
+    assert np.abs(np.subtract(res.offset.offset_mm, true_off)).max() < 0.05
+    assert abs(res.latency.latency_s - true_lat) < 0.001
+    assert res.within_tolerances and not res.findings()
+    # the stated uncertainty covers the actual error
+    assert abs(res.latency.latency_s - true_lat) < 4 * res.latency.sigma_s + 1e-4
+    assert res.offset.crossings == (24, 24)  # 4 edges x 3 passes x 2 directions per axis
+
+
+def test_latency_is_zero_when_there_is_none_and_skew_is_absorbed():
+    rng = np.random.default_rng(7)
+    es = cal.synthetic_edge_scans(offset_mm=(0.0, 0.0), latency_s=0.0, skew=0.2,
+                                  latency_jitter_s=0.0, rng=rng)
+    lat = cal.fit_latency(es)
+    assert abs(lat.latency_s) < 5e-4
+
+
+def test_one_direction_only_is_refused():
+    rng = np.random.default_rng(0)
+    es = cal.synthetic_edge_scans(offset_mm=(0.0, 0.0), latency_s=0.01, rng=rng)
+    with pytest.raises(ConfigError, match="opposite directions"):
+        cal.fit_latency(es[::2])
+
+
+def test_tolerance_missed_with_too_few_fast_noisy_scans():
+    rng = np.random.default_rng(3)
+    off, lat = (-30.0, 19.0), 0.01
+    jig = cal.default_jig()
+    js = cal.synthetic_jig_scans(jig, offset_mm=off, latency_s=lat, rng=rng, passes=1,
+                                 speed_mm_s=120.0, noise_mm=0.05)
+    es = cal.synthetic_edge_scans(offset_mm=off, latency_s=lat, rng=rng, paths=4,
+                                  speed_mm_s=10.0, latency_jitter_s=0.004)
+    res = cal.calibrate_laser(js, jig, es, nominal_offset_mm=off)
+    assert not res.within_tolerances
+    assert any("0.002 s (5.2.1)" in f for f in res.findings())
+
+
+@pytest.mark.parametrize("material", ["part", "scaffold"])
+@pytest.mark.parametrize("seed_", [0, 1, 2])
+def test_valve_table_recovered_within_2_percent(material, seed_):
+    truth = load_calibration(DATA_DIR / f"calibration_{material}.csv")
+    freqs = truth.frequency_hz[truth.frequency_hz > 0]
+    density = 1.0 if material == "part" else 0.88
+    f, d, m = cal.synthetic_masses(truth.flow, freqs, density_g_cm3=density,
+                                   rng=np.random.default_rng(seed_))
+    fit = cal.fit_valve_table(f, d, m, density)
+    np.testing.assert_array_equal(fit.frequency_hz, truth.frequency_hz)
+    rel = fit.flow_mm3_s[1:] / truth.flow_mm3_s[1:] - 1.0
+    assert np.abs(rel).max() < 0.02
+    assert fit.flow_mm3_s[0] == 0.0
+    assert fit.rms_residual < 0.03
+
+
+def test_valve_table_written_is_what_flow_reads(tmp_path):
+    # a linear valve: 0.25 mm^3/s per Hz (thesis 5.7: c_ff = 4 Hz/(mm^3/s)), no noise
+    f = np.array([50.0, 100.0, 200.0, 400.0])
+    mass = 0.25 * f * 30.0 * 1.0 / 1000.0
+    fit = cal.fit_valve_table(f, np.full(4, 30.0), mass, 1.0)
+    np.testing.assert_allclose(fit.flow_mm3_s, [0.0, 12.5, 25.0, 50.0, 100.0], rtol=1e-9)
+    cal.write_valve_table(fit, tmp_path / "t.csv", "part")
+    back = load_calibration(tmp_path / "t.csv")
+    np.testing.assert_allclose(back.flow_mm3_s, fit.flow_mm3_s, atol=1e-4)
+
+
+def test_valve_not_increasing_is_refused():
+    f = np.array([100.0, 200.0, 300.0, 400.0])    # a valve that clogs as it speeds up
+    mass = np.array([4.0, 3.0, 2.0, 1.0])
+    with pytest.raises(FlowError, match=r"runs at 100 Hz .* off the fitted table"):
+        cal.fit_valve_table(f, np.ones(4), mass, 1.0)
+    f = np.arange(1, 9) * 100.0
+    mass = np.array([1.0, 2.0, 3.0, 4.0, 5.0, 4.0, 3.0, 2.0])
+    with pytest.raises(FlowError, match="does not increase from"):
+        cal.fit_valve_table(f, np.ones(8), mass, 1.0)
+    with pytest.raises(FlowError, match="at least 3"):
+        cal.fit_valve_table(f[:2], np.ones(2), mass[:2], 1.0)
+
+
+@pytest.mark.parametrize("text, where", [
+    ("frequency_hz,duration_s,mass_g\n100,10,1\n200,ten,2\n", ":3: duration_s must be a number"),
+    ("100,10,1\n200,10\n", ":2: expected 3 columns"),
+    ("100,10,1\n200,0,1\n", ":2: duration_s must be > 0"),
+    ("100,10,nan\n", ":1: mass_g must be finite"),
+    ("# nothing\n", "no data rows"),
+])
+def test_bad_mass_files_name_file_and_line(tmp_path, text, where):
+    p = tmp_path / "m.csv"
+    p.write_text(text)
+    with pytest.raises(ConfigError) as e:
+        cal.read_masses(p)
+    assert str(p) in str(e.value) and where in str(e.value)
+
+
+def test_bad_scan_and_jig_files(tmp_path):
+    p = tmp_path / "s.csv"
+    p.write_text("scan,t_s,x_mm,y_mm,z_mm\n" + "".join(f"0,{t},1,2,3\n" for t in range(9))
+                 + "0,3,1,2,3\n")
+    with pytest.raises(ConfigError, match=r"s\.csv:11: scan 0: t_s must increase"):
+        cal.read_scans(p)
+    p.write_text("0,0,1,2,3\n")
+    with pytest.raises(ConfigError, match="at least 8"):
+        cal.read_scans(p)
+    j = tmp_path / "j.csv"
+    j.write_text("axis,position_mm,step_mm\nz,1,2\n")
+    with pytest.raises(ConfigError, match=r"j\.csv:2: axis must be 'x' or 'y'"):
+        cal.read_jig(j)
+
+
+@seed(14)
+@given(st.lists(st.text(alphabet="0123456789.,-e#xyn \t", max_size=30), max_size=12))
+def test_csv_readers_never_fail_otherwise(tmp_path_factory, lines):
+    p = tmp_path_factory.mktemp("fuzz") / "f.csv"
+    p.write_text("\n".join(lines))
+    for reader in (cal.read_masses, cal.read_scans, cal.read_jig):
+        try:
+            reader(p)
+        except ConfigError as exc:
+            assert str(p) in str(exc) and "\n" not in str(exc)
+
+
+def _icefab(*args, cwd):
+    return subprocess.run([sys.executable, "-m", "icefab", *args], cwd=cwd,
+                          capture_output=True, text=True)
+
+
+def test_cli_end_to_end(tmp_path):
+    r = _icefab("calibrate", "synthetic", "--seed", "5", "-o", "data", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    truth = json.loads((tmp_path / "data" / "truth.json").read_text())
+    r = _icefab("calibrate", "laser", "--jig", "data/jig.csv", "--jig-scans",
+                "data/jig_scans.csv", "--edge-scans", "data/edge_scans.csv", "-o", "laser",
+                cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    job = load_job(tmp_path / "laser" / "laser.toml")       # a valid job fragment
+    assert np.abs(np.subtract(job.cell.laser_offset_mm, truth["laser_offset_mm"])).max() < 0.05
+    assert abs(job.cell.laser_latency_s - truth["laser_latency_s"]) < 0.001
+    r = _icefab("calibrate", "valve", "data/masses_part.csv", "-o", "valve", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    job = load_job(tmp_path / "valve" / "valve_part.toml")
+    table = load_calibration(job.materials.part.calibration_file)
+    t = truth["part_table"]
+    np.testing.assert_allclose(table.flow_mm3_s[1:], np.array(t["flow_mm3_s"])[1:], rtol=0.02)
+    assert (tmp_path / "valve" / "valve_part.png").stat().st_size > 1000
+    # a bad file: one line naming it and the line, exit 2, nothing written
+    (tmp_path / "bad.csv").write_text("100,10,1\n100,x,1\n")
+    r = _icefab("calibrate", "valve", "bad.csv", "-o", "v2", cwd=tmp_path)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "bad.csv:2:" in r.stderr
+    assert not (tmp_path / "v2").exists()
+
+
+def test_cli_refuses_a_calibration_outside_the_tolerances(tmp_path):
+    rng = np.random.default_rng(3)
+    jig = cal.default_jig()
+    cal.write_jig(jig, tmp_path / "jig.csv")
+    cal.write_scans(cal.synthetic_jig_scans(jig, offset_mm=(-30, 19), latency_s=0.01, rng=rng),
+                    tmp_path / "js.csv")
+    cal.write_scans(cal.synthetic_edge_scans(offset_mm=(-30, 19), latency_s=0.01, rng=rng,
+                                             paths=4, speed_mm_s=10.0,
+                                             latency_jitter_s=0.004), tmp_path / "es.csv")
+    args = ["calibrate", "laser", "--jig", "jig.csv", "--jig-scans", "js.csv",
+            "--edge-scans", "es.csv", "-o", "out"]
+    r = _icefab(*args, cwd=tmp_path)
+    assert r.returncode == 2 and "exceeds the thesis' 0.002 s" in r.stderr
+    assert not (tmp_path / "out").exists()
+    r = _icefab(*args, "--force", cwd=tmp_path)
+    assert r.returncode == 0 and "NOT met" in (tmp_path / "out" / "laser.toml").read_text()

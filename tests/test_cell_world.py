@@ -1,0 +1,115 @@
+"""The virtual cell's surface model: the simulator's layer step, persisted.
+
+Ground truth: ``icefab.sim.simulate_build`` in valves mode on the same trajectories (the
+cell must give the same surface bit for bit when its valves drop what the simulator's
+do: PWM), determinism across restarts (a new World read from the state folder between
+every step), and the layout of surface.npz.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_sim_build import annulus_toolpaths  # noqa: E402
+
+from icefab import Job, flow  # noqa: E402
+from icefab.cell import robot_protocol as rp  # noqa: E402
+from icefab.cell.robot import as_received, robot_paths  # noqa: E402
+from icefab.cell.world import World, grid_for  # noqa: E402
+from icefab.errors import CellError  # noqa: E402
+from icefab.motion import plan_toolpaths  # noqa: E402
+from icefab.sim import layer_valves, plan_layer_motion, simulate_build  # noqa: E402
+
+
+def _job(mode):
+    return Job().replace(**{"simulation.deposition": "valves", "flow.mode": mode,
+                            "cell.cpus": 1, "feedback.interval_layers": 2})
+
+
+@pytest.fixture(scope="module", params=["pwm", "fm"])
+def build(request):
+    job = _job(request.param)
+    motion = as_received(plan_toolpaths(annulus_toolpaths(job, 4), job))
+    return job, motion, simulate_build(motion, job, closed_loop=False)
+
+
+def _run(world_factory, motion, job):
+    """Every layer through a World as the cell runs it: each deposition path's pulses
+    (the programs the host would upload, played from t = 0), laser paths read, layer end.
+    world_factory() gives the World to use for each step (the same, or re-read)."""
+    values = []
+    for lm in motion.layers:
+        progs = iter(layer_valves(plan_layer_motion(lm, job), job).programs)
+        for p in robot_paths(lm, job):
+            w = world_factory()
+            if p.flags & rp.FLAG_VALVE:
+                prog = next(progs)
+                t = flow.pulse_times(prog)
+                widths = prog.widths_us if prog.widths_us is not None else np.full(len(t), 500)
+                valve = 0 if p.tool == "part" else 1
+                w.deposit_path(lm.index, p.xy, p.dt_s, p.width_mm, p.tool,
+                               [(valve, ti, wi) for ti, wi in zip(t, widths)])
+            elif p.flags & rp.FLAG_LASER:
+                values.append(w.laser_values(p.xy, p.dt_s, p.z_mm))
+            w.save()
+        w = world_factory()
+        w.freeze()
+        w.save()
+    return world_factory(), values
+
+
+def test_pwm_cell_surface_is_the_simulators_bit_for_bit(build, tmp_path):
+    job, motion, res = build
+    world = World(tmp_path, job, *(), **dict(zip(("origin", "shape", "spacing"),
+                                                 grid_for(motion, job))))
+    world, _ = _run(lambda: world, motion, job)
+    got = world.height_map()
+    np.testing.assert_array_equal(got.origin, res.height.origin)
+    if job.flow.mode == "pwm":
+        np.testing.assert_array_equal(got.z, res.height.z)       # NaN where never deposited
+    else:
+        # FM: the cell's valve drops Q(nu)/nu at the rate it actually pulses at, the
+        # simulator at the commanded frequency; the same footprint, heights within 1 %
+        assert np.array_equal(np.isnan(got.z), np.isnan(res.height.z))
+        ok = np.isfinite(got.z)
+        rel = np.abs(got.z[ok] - res.height.z[ok]).max() / np.nanmax(res.height.z)
+        assert 0 < rel < 0.01
+
+
+def test_same_steps_give_the_same_surface_across_restarts(build, tmp_path):
+    job, motion, _ = build
+    grid = dict(zip(("origin", "shape", "spacing"), grid_for(motion, job, layers=2)))
+    sub = type(motion)(layers=motion.layers[:2], job=motion.job, robot=motion.robot,
+                       joint_names=motion.joint_names)
+    a = World(tmp_path / "a", job, **grid)
+    a, va = _run(lambda: a, sub, job)
+    World(tmp_path / "b", job, **grid)
+    b, vb = _run(lambda: World(tmp_path / "b", job), sub, job)   # re-read at every step
+    np.testing.assert_array_equal(a.z, b.z)
+    assert len(va) == len(vb) > 0
+    for x, y in zip(va, vb):
+        np.testing.assert_array_equal(x, y)
+
+
+def test_surface_file_layout(tmp_path):
+    job = _job("fm")
+    w = World(tmp_path, job, origin=(-5.0, -3.0), shape=(7, 11), spacing=0.5)
+    with np.load(tmp_path / "surface.npz") as d:
+        assert str(d["format"]) == "icefab-cell-surface" and int(d["version"]) == 1
+        np.testing.assert_array_equal(d["origin"], [-5.0, -3.0])
+        assert float(d["spacing"]) == 0.5 and d["z"].shape == (7, 11)
+    assert np.isnan(w.height_map().z).all()
+
+
+def test_a_new_state_needs_a_grid_and_a_corrupt_one_is_named(tmp_path):
+    with pytest.raises(CellError, match="no surface yet"):
+        World(tmp_path / "none", _job("fm"))
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / "surface.npz").write_bytes(b"garbage")
+    with pytest.raises(CellError, match="surface.npz: cannot read the cell surface"):
+        World(tmp_path / "bad", _job("fm"))
