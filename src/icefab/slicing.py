@@ -76,10 +76,12 @@ Pipeline (RPSLICE's FACETSLICE = INTERSECTFACET + SEGMERGE + PATHFILTER, thesis 
    a chain closed across gaps takes the orientation of most of its points). Where the
    two disagree for some rings of a layer but not all (all: the surface is inside out,
    and the nesting stands), or where rings cross each other (found by the nesting tests)
-   -- overlapping shells, such as a spout or handle pushed into a body, or merged parts
-   that overlap -- the layer's region is the non-zero union of the
-   facet-oriented rings (``icefab.geometry``, Clipper on a 1e-4 mm grid); those layers
-   are listed in ``SliceReport.union_layers`` and counted in a warning.
+   or themselves (``icefab.geometry.simple_mask``) -- self-intersecting surfaces,
+   overlapping shells, such as a spout or handle pushed into a body, or merged parts that
+   overlap -- the layer's region is the non-zero union of the facet-oriented rings (``icefab.geometry``, Clipper on a 1e-4 mm grid); those layers
+   are listed in ``SliceReport.union_layers`` and counted in a warning. So every region
+   from slicing is simple (valid in the OGC sense) and ``Region.area`` counts an overlap
+   once: it is the area of the non-zero union of what the mesh encloses.
 
 Stack file format (:func:`save_stack` / :func:`load_stack`): one ``.npz`` (numpy zip)
 holding ``format`` ("icefab-stack"), ``version`` (1), ``points`` (P, 2) float64 mm (all
@@ -1089,13 +1091,23 @@ def _finish_rings(rings: _Rings, job: Job, report: SliceReport
     # collapsed: < 3 points, (almost) no area, or thinner than the filter's own bound
     # (2|A|/perimeter -- the radius of a circle, half the width of a sliver -- below
     # max_filter_deviation_mm: the filter may move every point of such a ring onto a line)
-    ok = ((counts >= 3) & (np.abs(area) >= MIN_RING_AREA_MM2)
-          & (2.0 * np.abs(area) >= job.slicing.max_filter_deviation_mm * perim))
+    # a ring crossing (or touching) itself -- a self-intersecting surface, or two shells
+    # walked into one contour -- has no nesting of its own, and its signed area is not its
+    # area (a bow tie's is 0): it is never "collapsed", and its layer is united below, so a
+    # region from slicing is always simple and counts no overlap twice (issue 11)
+    from icefab.geometry import simple_mask
+
+    selfx = ~simple_mask([rings.points[rings.offsets[r]:rings.offsets[r + 1]]
+                          for r in range(len(rings.layer))])
+    ok = (counts >= 3) & (selfx | ((np.abs(area) >= MIN_RING_AREA_MM2)
+                                   & (2.0 * np.abs(area)
+                                      >= job.slicing.max_filter_deviation_mm * perim)))
     report.rings_collapsed += int((~ok).sum())
     if not ok.all():
         rings = _Rings(rings.points[np.repeat(ok, counts)], _offsets(counts[ok]),
                        rings.layer[ok], rings.oriented[ok], rings.gap[ok])
         area = area[ok]
+        selfx = selfx[ok]
     report.points_after_filter = len(rings.points)
     group = np.searchsorted(rings.layer, np.arange(int(rings.layer.max()) + 2)) \
         if len(rings.layer) else np.zeros(1, dtype=np.int64)
@@ -1127,6 +1139,7 @@ def _finish_rings(rings: _Rings, job: Job, report: SliceReport
     against = np.bincount(rings.layer[flip & rings.oriented], minlength=n_layers)
     along = np.bincount(rings.layer[~flip & rings.oriented], minlength=n_layers)
     crossing = np.bincount(rings.layer[overlap], minlength=n_layers)
+    crossing += np.bincount(rings.layer[selfx], minlength=n_layers)
     for k in np.flatnonzero(((against > 0) & (along > 0)) | (crossing > 0)):
         unions[int(k)] = _union_layer(rings, int(group[k]), int(group[k + 1]))
     if flip.any():
