@@ -95,6 +95,10 @@ def run(args: argparse.Namespace) -> int:
     t_scaf = time.perf_counter() - t0
     toolpaths = plan_paths(stack, job, progress=Progress("paths"))
     t_paths = time.perf_counter() - t0 - t_scaf
+    # reach, before any build time is estimated or a file written (issue 11)
+    from icefab.motion import check_build_workspace
+
+    check_build_workspace(toolpaths, job)
     per_layer, total = estimate_build_time(toolpaths, job)
     # OUT may hold the stack.npz this command read: output_dir leaves it there
     out = Path(args.out)
