@@ -57,3 +57,99 @@ def test_export_vplus_refuses_a_corrupt_trajectories_file(tmp_path, capsys):
     assert main(["export", "vplus", str(tmp_path / "bad.npz"), "-o",
                  str(tmp_path / "out")]) == 2
     assert "bad.npz" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------- gantry G-code
+
+
+def _parse(lines):
+    out = []
+    for line in lines:
+        if line.startswith(";") or not line:
+            continue
+        words = line.split()
+        out.append((words[0], {w[0]: float(w[1:]) for w in words[1:] if len(w) > 1}))
+    return out
+
+
+def test_gcode_is_marlin_with_valve_duty_per_step_and_tool_changes():
+    from icefab import flow
+    from icefab.export import gcode_lines
+
+    job = Job().replace(**{"cell.cpus": 1, "cell.robot": "gantry"})
+    motion = small_motion(2, job)
+    cmds = _parse(list(gcode_lines(motion, job)))
+    names = [c for c, _ in cmds]
+    assert names[:3] == ["G21", "G90", "M3"] and names[-1] == "M5"
+    # a tool change before each material's first path of a layer, T0 part, T1 scaffold
+    assert [c for c in names if c.startswith("T")] == ["T0", "T1", "T0", "T1"]
+    g1 = [w for c, w in cmds if c == "G1"]
+    assert g1 and all(set(w) == {"X", "Y", "F", "S"} and 0 <= w["S"] <= 255 for w in g1)
+    assert all(w.get("S", 0) == 0 for c, w in cmds if c == "G0")
+    # each deposition move lasts one time step, dwells fill rests: the G-code's time is
+    # the deposition trajectories' duration
+    dt = job.motion.dt_s
+    pos, t_moves = None, 0.0
+    for c, w in cmds:
+        if c in ("G0", "G1") and "X" in w:
+            if c == "G1":
+                t_moves += np.hypot(w["X"] - pos[0], w["Y"] - pos[1]) / (w["F"] / 60.0)
+            pos = (w["X"], w["Y"])
+        elif c == "G4":
+            t_moves += w["P"] / 1000.0 if pos is not None else 0.0
+    dep = sum(t.duration for lm in motion.layers for t in lm.trajectories
+              if t.path is not None and t.path.depositing)
+    trav = sum(t.duration for lm in motion.layers for t in lm.trajectories
+               if t.path is None or not t.path.depositing)
+    assert dep - 0.01 <= t_moves <= dep + trav + 0.01
+    # the valve's duty delivers the commanded volume (thesis eq. 6.2: width x layer
+    # thickness x length), through the PWM calibration: Q(f) per unit of duty at
+    # calibration pulse width x frequency
+    f = job.flow.pwm_frequency_hz
+    for material, tool in (("part", "T0"), ("scaffold", "T1")):
+        cal = flow.calibration_for(material, job)
+        q_full = float(cal.flow(np.array([f]))[0]) / (f * job.flow.calibration_pulse_ms / 1000)
+        vol = 0.0
+        current = None
+        for c, w in cmds:
+            if c.startswith("T"):
+                current = c
+            elif c == "G1" and current == tool:
+                vol += w["S"] / 255.0 * dt * q_full
+        want = sum(t.path.width * job.slicing.layer_thickness_mm * job.flow.layer_scale
+                   * np.hypot(*np.diff(t.xy, axis=0).T).sum()
+                   for lm in motion.layers for t in lm.trajectories
+                   if t.path is not None and t.path.depositing and t.path.material == material)
+        # within 5 %: the PWM program's whole pulses and minimum width (icefab.flow) and
+        # the duty's 1/255 steps at the low duties of these slow paths (about 6 %)
+        assert vol == pytest.approx(want, rel=0.05)
+
+
+def test_plan_gcode_option_writes_the_marlin_file(tmp_path):
+    from icefab.paths import save_toolpaths
+
+    job = Job().replace(**{"cell.cpus": 1})
+    job_file = tmp_path / "job.toml"
+    job_file.write_text("[cell]\ncpus = 1\n")
+    save_toolpaths(_toolpaths(job), tmp_path / "tp.npz")
+    assert main(["plan", str(tmp_path / "tp.npz"), "-c", str(job_file), "-o",
+                 str(tmp_path / "out"), "--gcode"]) == 0
+    text = (tmp_path / "out" / "trajectories.gcode").read_text()
+    assert "M3 I S0" in text and "\nT0\n" in text and text.rstrip().endswith("M5")
+
+
+def _toolpaths(job):
+    th = np.linspace(0, 2 * np.pi, 120, endpoint=False)
+    ring = Path(points=np.c_[20 * np.cos(th), 20 * np.sin(th)], z=0.5, material="part",
+                role="boundary", closed=True, width=1.5, layer=0)
+    return Toolpaths(layers=(LayerPaths(index=0, z=0.5, paths=(ring,)),), job=job)
+
+
+def test_export_gcode_from_a_trajectories_file(tmp_path, capsys):
+    motion = small_motion(1)
+    save_trajectories(motion, tmp_path / "t.npz")
+    assert main(["export", "gcode", str(tmp_path / "t.npz"), "-o", str(tmp_path / "g")]) == 0
+    text = (tmp_path / "g" / "trajectories.gcode").read_text()
+    assert text.startswith("; icefab G-code") and "M3 I S0" in text
+    assert main(["export", "gcode", str(tmp_path / "nope.npz"), "-o", str(tmp_path / "h")]) == 2
+    assert "nope.npz: trajectories file not found" in capsys.readouterr().err

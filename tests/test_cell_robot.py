@@ -125,7 +125,7 @@ def test_a_wrong_check_sum_or_count_is_refused(robot):
     s = socket.create_connection(("127.0.0.1", vr.port), timeout=5)
     f = s.makefile("rb")
     pts = [(1.0, 2.0), (3.0, 4.0)]
-    s.sendall(rp.encode("path_begin", 7, 0, 0, 1, 0, 1000, 2, 16000, 500)
+    s.sendall(rp.encode("path_begin", 7, 0, 0, 1, 0, 1.0, 2, 16000, 500)
               + rp.encode("path_points", 7, 0, 2, group=pts)
               + rp.encode("path_end", 7, 2, rp.point_check([1, 3], [2, 4]) + 1))
     assert rp.decode(f.readline(), "robot").values == {"code": 5}
@@ -141,7 +141,7 @@ def test_a_repeated_command_gets_the_same_reply_and_runs_once(robot):
     vr, hooks = robot
     s = socket.create_connection(("127.0.0.1", vr.port), timeout=5)
     f = s.makefile("rb")
-    up = (rp.encode("path_begin", 5, 0, 0, 1, 0, 1000, 2, 16000, 500)
+    up = (rp.encode("path_begin", 5, 0, 0, 1, 0, 1.0, 2, 16000, 500)
           + rp.encode("path_points", 5, 0, 2, group=[(1.0, 2.0), (3.0, 4.0)])
           + rp.encode("path_end", 5, 2, rp.point_check([1, 3], [2, 4])))
     s.sendall(up)
@@ -185,3 +185,10 @@ def test_point_check_matches_a_hand_computed_value():
     # (1000 + 600000) + (2000 + 600000) = 1203000 -> mod 999983 = 203017; then
     # 203017 + (-1 + 600000) + (0 + 600000) = 1403016 -> 403033
     assert rp.point_check([1.0, -0.001], [2.0, 0.0]) == 403033
+
+
+@settings(max_examples=200, deadline=None, derandomize=True)
+@given(st.floats(0, 1000, allow_nan=False))
+def test_a_width_travels_exactly(width):
+    line = rp.encode("path_begin", 3, 0, 0, rp.FLAG_VALVE, 0, width, 10, 16000, 250)
+    assert rp.decode(line, "host")["width"] == width

@@ -25,7 +25,7 @@ def test_toml_round_trip(tmp_path):
 
 
 @pytest.mark.parametrize("text, fragment", [
-    ("[slicing]\nlayer_thickness_mm = -1\n", "job.toml:2: slicing.layer_thickness_mm = -1.0: must be > 0"),
+    ("[slicing]\nlayer_thickness_mm = -1\n", "job.toml:2: slicing.layer_thickness_mm = -1.0: must be >= 0.01 and <= 10"),
     ("[slicing]\nlayer_thicknes_mm = 1\n", "job.toml:2: unknown setting slicing.layer_thicknes_mm"),
     ("[parts]\n\ncopies = [0, 1, 1]\n", "job.toml:3: parts.copies = (0, 1, 1): must be >= 1"),
     ("[parts]\npart_fraction = [0, 1.5]\n", "job.toml:2: parts.part_fraction"),

@@ -86,10 +86,10 @@ def test_thesis_table_3_1(tmp_path):
 
 @pytest.mark.parametrize("old, new, fragment", [
     ("0.25 [mm]	[float] (> 0) slice thickness", "-0.25 [mm]	[float] (> 0) slice thickness",
-     "control.txt:8: slicing.layer_thickness_mm = -0.25: must be > 0"),
+     "control.txt:8: slicing.layer_thickness_mm = -0.25: must be >= 0.01"),
     ("1.5 1.2 [mm]	[float float] (> 0) [part scaffolding] deposition path width",
      "1.5 0 [mm]	[float float] (> 0) [part scaffolding] deposition path width",
-     "control.txt:7: materials.scaffold.path_width_mm = 0.0: must be > 0"),
+     "control.txt:7: materials.scaffold.path_width_mm = 0.0: must be >= 0.05"),
     ("0.25 [mm]	[float] (> 0) slice thickness", "abc [mm]	[float] (> 0) slice thickness",
      "control.txt:8: slice thickness: expected 1 number, got none"),
     ("3 1 2	[int int int]", "3 3 2	[int int int]", "control.txt:14: rotation axis order"),
@@ -120,3 +120,44 @@ def test_part_fraction_error_names_its_line(tmp_path):
                                  "0.5 1.5	[float float] [min max] Part fraction")
     with pytest.raises(ConfigError, match=r"control.txt:13: parts.part_fraction"):
         load_job(write(tmp_path, text))
+
+
+# issue 10: inf/nan/1e400 in integer entries were an OverflowError traceback; 'nan inexact'
+# was silently true. Every entry kind, every non-finite or non-whole spelling.
+@pytest.mark.parametrize("bad", ["inf", "-inf", "nan", "NaN", "1e400", "-1e400", "2.5",
+                                 "1e30"])
+@pytest.mark.parametrize("old, template", [
+    ("1	[int] Number of STL", "{} [int] Number of STL"),
+    ("0	[1/0 (on/off)] inexact option", "{} [1/0 (on/off)] inexact option"),
+    ("2	[1/2/3] Slicing option", "{} [1/2/3] Slicing option"),
+    ("1	[1/0 (on/off)] scaffolding option", "{} [1/0 (on/off)] scaffolding option"),
+    ("1 1 1	[int int int] [p1 p2 p3]", "1 {} 1	[int int int] [p1 p2 p3]"),
+    ("0 0 0 0	[1/0 float float float] [(on/off) Sx", "{} 1 1 1	[1/0 float float float] "
+                                                       "[(on/off) Sx"),
+    ("1 -90 0 0 [deg]", "{} -90 0 0 [deg]"),
+    ("0 0 0 0 [mm]	[(1/0) Tx", "{} 0 0 0 [mm]	[(1/0) Tx"),
+    ("0.4 [mm]	[float] Slice thickness", "{} [mm]	[float] Slice thickness"),
+    ("5 [mm]	[float] Scaffolding buffer", "{} [mm]	[float] Scaffolding buffer"),
+])
+def test_non_finite_or_fractional_entries_are_one_config_error(tmp_path, bad, old, template):
+    assert old in PAPER_TABLE_1
+    text = PAPER_TABLE_1.replace(old, template.format(bad))
+    line = next(n for n, t in enumerate(text.splitlines(), 1) if t.startswith(bad) or
+                f" {bad}" in t.split("[")[0])
+    try:
+        job = load_job(write(tmp_path, text))
+    except ConfigError as err:
+        assert f"control.txt:{line}:" in str(err) and "\n" not in str(err)
+    else:
+        # only a fraction where a length belongs may pass; never in a switch or a count
+        assert bad == "2.5" and ("Slice thickness" in template or "buffer" in template)
+        assert job is not None
+
+
+def test_switches_accept_only_one_and_zero(tmp_path):
+    on = load_job(write(tmp_path, PAPER_TABLE_1.replace(
+        "0	[1/0 (on/off)] inexact option", "1	[1/0 (on/off)] inexact option")))
+    assert on.parts.inexact is True
+    with pytest.raises(ConfigError, match=r"control.txt:3: inexact option = 2: must be 1 "):
+        load_job(write(tmp_path, PAPER_TABLE_1.replace(
+            "0	[1/0 (on/off)] inexact option", "2	[1/0 (on/off)] inexact option")))

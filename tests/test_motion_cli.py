@@ -72,13 +72,14 @@ def test_plan_gcode_and_constant_spacing_outputs(tmp_path, capsys):
     assert "trajectories.gcode" in capsys.readouterr().out
     motion = load_trajectories(out / "trajectories.npz")
     trajs = [t for lm in motion.layers for t in lm.trajectories]
-    # G-code: per layer a Z move, per path a comment, G0 to its start, G1 X Y F moves
-    # whose feedrates are the trajectory's speeds x 60 (mm/min)
+    # G-code (icefab.export): per layer a Z move, per path a comment, G0 to its start,
+    # then a move per time step (G1 ... S duty depositing, G0 ... S0 travel) whose
+    # feedrates are the trajectory's speeds x 60 (mm/min)
     text = (out / "trajectories.gcode").read_text()
     assert text.count("G0 Z") == len(motion.layers)
-    g1 = [ln for ln in text.splitlines() if ln.startswith("G1 ")]
+    g1 = [ln for ln in text.splitlines() if ln.startswith(("G1 ", "G0 ")) and " F" in ln]
     assert len(g1) == sum(len(t.xy) - 1 for t in trajs)
-    feeds = np.array([float(ln.split("F")[1]) for ln in g1])
+    feeds = np.array([float(ln.split("F")[1].split()[0]) for ln in g1])
     speeds = np.concatenate([0.5 * (t.speed[1:] + t.speed[:-1]) for t in trajs])
     np.testing.assert_allclose(feeds, 60.0 * speeds, rtol=0.02, atol=30.0)
     assert feeds.max() <= 60.0 * motion.job.motion.speed_mm_s * 1.01

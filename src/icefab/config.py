@@ -21,6 +21,7 @@ naming the file, line, setting, value and what was expected.
 from __future__ import annotations
 
 import dataclasses
+import math
 import re
 import tomllib
 import types
@@ -30,18 +31,25 @@ from pathlib import Path
 from typing import Any, Callable
 
 from icefab.errors import ConfigError
+from icefab.inputs import read_input_text
 
 Vec2 = tuple[float, float]
 Vec3 = tuple[float, float, float]
 
 
 def setting(default: Any, help: str, *, lo: float | None = None, hi: float | None = None,
-            lo_open: bool = False, choices: tuple[str, ...] | None = None) -> Any:
+            lo_open: bool = False, choices: tuple[str, ...] | None = None,
+            why: str = "") -> Any:
     """A dataclass field with a description and an allowed range.
 
-    lo/hi bound the value (every element for tuples); ``lo_open`` makes ``lo`` exclusive.
+    lo/hi bound the value (every element for tuples); ``lo_open`` makes ``lo`` exclusive;
+    ``why`` says what the range means physically (shown in range errors). Every numeric
+    setting has both bounds (tests/test_config_ranges.py), so no setting can ask the
+    pipeline for absurd work; work that depends on several settings and the part is
+    estimated before it starts (:mod:`icefab.workload`).
     """
-    meta = {"help": help, "lo": lo, "hi": hi, "lo_open": lo_open, "choices": choices}
+    meta = {"help": help, "lo": lo, "hi": hi, "lo_open": lo_open, "choices": choices,
+            "why": why}
     if isinstance(default, (list, dict)):
         raise TypeError("use tuples for defaults")
     return field(default=default, metadata=meta)
@@ -57,19 +65,40 @@ class PartSetup:
     files: tuple[str, ...] = setting((), "mesh files (STL, PLY, OBJ) merged into one build")
     inexact: bool = setting(False, "weld vertices within weld_tolerance_mm instead of exactly "
                                    "(thesis 'inexact' option)")
-    weld_tolerance_mm: float = setting(1e-4, "tolerance for inexact welding and point "
-                                             "comparison", lo=0.0, lo_open=True)
-    scale: Vec3 = setting((1.0, 1.0, 1.0), "scaling factors along x, y, z", lo=0.0, lo_open=True)
-    rotation_deg: Vec3 = setting((0.0, 0.0, 0.0), "rotations about the space-fixed x, y, z axes")
+    weld_tolerance_mm: float = setting(
+        1e-4,
+        "tolerance for inexact welding and point comparison",
+        lo=0.0, hi=1.0, lo_open=True,
+        why="beyond 1 mm welding merges distinct features of any part the cell builds")
+    scale: Vec3 = setting(
+        (1.0, 1.0, 1.0),
+        "scaling factors along x, y, z",
+        lo=1e-4, hi=1e4,
+        why="unit conversions (1000: metres to mm, 0.001: micrometres) times a resize; the "
+            "placed part must still fit the cell (checked before slicing)")
+    rotation_deg: Vec3 = setting(
+        (0.0, 0.0, 0.0),
+        "rotations about the space-fixed x, y, z axes",
+        lo=-360.0, hi=360.0,
+        why="one turn either way")
     rotation_order: tuple[int, int, int] = setting((1, 2, 3), "order of the rotations (axes 1-3)",
                                                    lo=1, hi=3)
     translation: tuple[float | str, float | str, float | str] = setting(
         ("cent", "cent", 0.0),
         "per axis: a number is the part's minimum coordinate (mm), 'cent' centres it on 0, "
-        "'orig' keeps the original position")
-    copies: tuple[int, int, int] = setting((1, 1, 1), "p1 x p2 grid of copies, p3 copies in all",
-                                           lo=1)
-    copy_gap_mm: float = setting(10.0, "gap between part copies in the grid", lo=0.0)
+        "'orig' keeps the original position",
+        lo=-1e4, hi=1e4,
+        why="mm; the placed part must fit the workspace (checked before slicing)")
+    copies: tuple[int, int, int] = setting(
+        (1, 1, 1),
+        "p1 x p2 grid of copies, p3 copies in all",
+        lo=1, hi=100,
+        why="more than 100 copies along an axis fit no workspace")
+    copy_gap_mm: float = setting(
+        10.0,
+        "gap between part copies in the grid",
+        lo=0.0, hi=1000.0,
+        why="wider than the largest workspace")
     part_fraction: Vec2 = setting((0.0, 1.0), "[min, max] fraction of the part height to slice",
                                   lo=0.0, hi=1.0)
     close_holes: bool = setting(True, "close the holes of an open surface (a scan) in 3D, "
@@ -82,17 +111,27 @@ class PartSetup:
 class SlicingSettings:
     """Layer planes, contour linking and the path filter (thesis 3.2, Ossino 2)."""
 
-    layer_thickness_mm: float = setting(0.25, "layer (slice) thickness", lo=0.0, lo_open=True)
+    layer_thickness_mm: float = setting(
+        0.25,
+        "layer (slice) thickness",
+        lo=0.01, hi=10.0,
+        why="deposited layers are 0.1-1 mm (thesis 3.2: 0.25); 0.01 mm is 21 000 layers in the "
+            "210 mm stroke, 10 mm is thicker than any drop")
     cut_fraction: float = setting(0.5, "where inside each layer the cutting plane lies: 0 "
                                        "bottom, 0.5 middle, 1 top", lo=0.0, hi=1.0)
     mode: str = setting("3d", "'3d' slices every layer; '2d' slices once and copies the "
                               "contour to all layers (thesis slicing option 3)",
                         choices=("3d", "2d"))
-    min_point_spacing_mm: float = setting(0.4, "path filter: minimum distance between "
-                                               "consecutive contour points", lo=0.0)
-    max_filter_deviation_mm: float = setting(0.05, "path filter: largest distance a removed "
-                                                   "point may lie from the filtered contour",
-                                             lo=0.0)
+    min_point_spacing_mm: float = setting(
+        0.4,
+        "path filter: minimum distance between consecutive contour points",
+        lo=0.0, hi=10.0,
+        why="0: no filter; over 10 mm the filter removes the shape")
+    max_filter_deviation_mm: float = setting(
+        0.05,
+        "path filter: largest distance a removed point may lie from the filtered contour",
+        lo=0.0, hi=5.0,
+        why="over 5 mm the filtered contour no longer describes the part")
     open_contours: str = setting("refuse", "open chains left after the 3D hole closing "
                                            "(parts.close_holes) whose closure in the layer "
                                            "needs a straight chord longer than max_gap_mm: "
@@ -101,10 +140,13 @@ class SlicingSettings:
                                            "the layer closed across it (your consent, "
                                            "reported); 'drop' leaves the chain out "
                                            "(reported)", choices=("refuse", "close", "drop"))
-    max_gap_mm: float = setting(2.0, "the bound of the per-layer last resort: a straight "
-                                     "chord closing an open contour in its layer may be at "
-                                     "most this long (each closure reported); longer ones "
-                                     "follow open_contours", lo=0.0)
+    max_gap_mm: float = setting(
+        2.0,
+        "the bound of the per-layer last resort: a straight chord closing an open contour in "
+        "its layer may be at most this long (each closure reported); longer ones follow "
+        "open_contours",
+        lo=0.0, hi=100.0,
+        why="a gap over 100 mm is not a mesh defect")
 
 
 @dataclass(frozen=True)
@@ -112,8 +154,12 @@ class ScaffoldSettings:
     """Scaffold (support) regions (thesis 3.3, 3.7; Ossino 4)."""
 
     enabled: bool = setting(True, "generate scaffolding")
-    buffer_mm: float = setting(3.3, "how far the scaffold surrounds the merged part region "
-                                    "(0: classic support only under what is above)", lo=0.0)
+    buffer_mm: float = setting(
+        3.3,
+        "how far the scaffold surrounds the merged part region (0: classic support only under "
+        "what is above)",
+        lo=0.0, hi=100.0,
+        why="the scaffold must fit the workspace beside the part")
     mode: str = setting("surround", "'surround': full scaffold around everything above; "
                                     "'overhang': only under overhangs steeper than "
                                     "overhang_angle_deg", choices=("surround", "overhang"))
@@ -121,8 +167,11 @@ class ScaffoldSettings:
                                               "(overhang mode)", lo=0.0, hi=90.0)
     subset: Vec2 = setting((0.0, 1.0), "[min, max] fraction of the height that gets scaffold",
                            lo=0.0, hi=1.0)
-    min_width_mm: float = setting(1.5, "scaffold pieces narrower than this are removed or "
-                                       "merged", lo=0.0)
+    min_width_mm: float = setting(
+        1.5,
+        "scaffold pieces narrower than this are removed or merged",
+        lo=0.0, hi=100.0,
+        why="wider than any scaffold piece")
     hook_wall: bool = setting(False, "ice hook wall: outer scaffold paths of the first layers "
                                      "become part paths (thesis 3.7, Fig. 3-8)")
 
@@ -131,30 +180,60 @@ class ScaffoldSettings:
 class MaterialSettings:
     """Deposition settings of one material (thesis Table 3-1, 3.4-3.5)."""
 
-    path_width_mm: float = setting(1.5, "boundary path width", lo=0.0, lo_open=True)
-    fill_width_mm: float = setting(3.0, "fill path width (spacing of fill paths)", lo=0.0,
-                                   lo_open=True)
-    initial_offset_mm: float = setting(0.6, "inward offset of the first boundary path from "
-                                            "the region edge", lo=0.0)
-    boundary_count: int = setting(1, "number of boundary paths", lo=0)
+    path_width_mm: float = setting(
+        1.5,
+        "boundary path width",
+        lo=0.05, hi=20.0,
+        why="a deposited line is 0.5-5 mm wide (thesis 3.4: 1.5)")
+    fill_width_mm: float = setting(
+        3.0,
+        "fill path width (spacing of fill paths)",
+        lo=0.05, hi=50.0,
+        why="fill paths are spaced by about one line width")
+    initial_offset_mm: float = setting(
+        0.6,
+        "inward offset of the first boundary path from the region edge",
+        lo=0.0, hi=50.0,
+        why="about half a path width")
+    boundary_count: int = setting(
+        1,
+        "number of boundary paths",
+        lo=0, hi=100,
+        why="100 rings of 1.5 mm fill 300 mm")
     fill_pattern: str = setting("concentric", "fill: 'concentric', 'zigzag', 'raster' "
                                               "(unlinked), 'hybrid' (rings then zigzag), "
                                               "'none'",
                                 choices=("concentric", "zigzag", "raster", "hybrid", "none"))
-    fill_angle_deg: float = setting(0.0, "raster angle for zigzag/raster fill; hybrid "
-                                         "chooses its own")
-    hybrid_rings: int = setting(2, "contour rings before zigzag in hybrid fill", lo=0)
-    hybrid_angle_step_deg: float = setting(15.0, "step of the raster angles compared in "
-                                                 "hybrid fill", lo=0.0, lo_open=True, hi=90.0)
-    nozzle_offset_mm: Vec2 = setting((-0.1, -0.3), "origin of this material's building frame "
-                                                   "in the end-effector frame")
+    fill_angle_deg: float = setting(
+        0.0,
+        "raster angle for zigzag/raster fill; hybrid chooses its own",
+        lo=-360.0, hi=360.0,
+        why="one turn either way")
+    hybrid_rings: int = setting(
+        2,
+        "contour rings before zigzag in hybrid fill",
+        lo=0, hi=100,
+        why="100 rings of 1.5 mm fill 300 mm")
+    hybrid_angle_step_deg: float = setting(
+        15.0,
+        "step of the raster angles compared in hybrid fill",
+        lo=1.0, hi=90.0,
+        why="at most 90 raster angles compared per region")
+    nozzle_offset_mm: Vec2 = setting(
+        (-0.1, -0.3),
+        "origin of this material's building frame in the end-effector frame",
+        lo=-200.0, hi=200.0,
+        why="the nozzles sit on the end effector, within centimetres of joint 4")
     gap_fill: bool = setting(True, "fill the gaps the fill paths leave (e.g. between "
                                    "concentric rings) with extra rings of the boundary width")
     calibration_file: str = setting("", "CSV of valve frequency (Hz) vs flow (mm^3/s); empty: "
                                         "built-in table")
-    density_g_cm3: float = setting(1.0, "density of the material, g/cm^3 (turns the masses of "
-                                        "'icefab calibrate valve' into volumes)", lo=0.0,
-                                   lo_open=True)
+    density_g_cm3: float = setting(
+        1.0,
+        "density of the material, g/cm^3 (turns the masses of 'icefab calibrate valve' into "
+        "volumes)",
+        lo=0.1, hi=25.0,
+        why="building materials weigh 0.5-2 g/cm^3; osmium, the densest, 22.6")
 
 
 def _part_material() -> MaterialSettings:
@@ -205,85 +284,174 @@ class CellSettings:
     """The robot cell: kinematics, joint ranges and reference frames (thesis Ch. 2, 4.2)."""
 
     robot: str = setting("scara", "kinematics: 'scara' or 'gantry'", choices=("scara", "gantry"))
-    l1_mm: float = setting(325.0, "SCARA inner link length", lo=0.0, lo_open=True)
-    l2_mm: float = setting(275.0, "SCARA outer link length", lo=0.0, lo_open=True)
-    reach_mm: Vec2 = setting((163.0, 600.0), "[min, max] radial reach of the SCARA", lo=0.0)
-    joint_range_deg: Vec2 = setting((105.0, 150.0), "SCARA joint 1 and 2 ranges (+/-)",
-                                    lo=0.0, lo_open=True)
+    l1_mm: float = setting(
+        325.0,
+        "SCARA inner link length",
+        lo=10.0, hi=2000.0,
+        why="SCARA links are 0.1-1 m long (Cobra 600: 325 mm)")
+    l2_mm: float = setting(
+        275.0,
+        "SCARA outer link length",
+        lo=10.0, hi=2000.0,
+        why="SCARA links are 0.1-1 m long (Cobra 600: 275 mm)")
+    reach_mm: Vec2 = setting(
+        (163.0, 600.0),
+        "[min, max] radial reach of the SCARA",
+        lo=0.0, hi=4000.0,
+        why="the maximum is at most l1_mm + l2_mm (checked)")
+    joint_range_deg: Vec2 = setting(
+        (105.0, 150.0),
+        "SCARA joint 1 and 2 ranges (+/-)",
+        lo=0.0, hi=360.0, lo_open=True,
+        why="a revolute joint turns at most a full turn either way")
     elbow: str = setting("right", "SCARA elbow configuration", choices=("right", "left"))
-    gantry_travel_mm: Vec2 = setting((300.0, 300.0), "gantry x and y travel (from 0)",
-                                     lo=0.0, lo_open=True)
-    ee_origin_mm: Vec2 = setting(SCARA_EE_ORIGIN_MM, "end-effector frame origin in the robot "
-                                                    "base frame when building (part origin); "
-                                                    "a gantry left at this default builds at "
-                                                    "the centre of its travel")
-    laser_offset_mm: Vec2 = setting((-30.0, 19.0), "laser measurement frame origin in the "
-                                                   "end-effector frame")
-    laser_latency_s: float = setting(0.0, "laser measurement latency: a sample reads the "
-                                          "surface where the laser was this long before the "
-                                          "position it is tagged with; compensated when "
-                                          "building on a cell ('icefab calibrate laser', "
-                                          "thesis 5.2.1)", lo=0.0, hi=1.0)
-    encoder_resolution_deg: float = setting(0.001, "joint encoder resolution", lo=0.0)
-    cpus: int = setting(0, "worker processes for parallel stages (0: all cores)", lo=0)
+    gantry_travel_mm: Vec2 = setting(
+        (300.0, 300.0),
+        "gantry x and y travel (from 0)",
+        lo=10.0, hi=5000.0,
+        why="gantry printers travel 0.1-2 m")
+    ee_origin_mm: Vec2 = setting(
+        SCARA_EE_ORIGIN_MM,
+        "end-effector frame origin in the robot base frame when building (part origin); a gantry"
+        " left at this default builds at the centre of its travel",
+        lo=-5000.0, hi=5000.0,
+        why="within the largest workspace")
+    laser_offset_mm: Vec2 = setting(
+        (-30.0, 19.0),
+        "laser measurement frame origin in the end-effector frame",
+        lo=-200.0, hi=200.0,
+        why="the laser sits on the end effector")
+    laser_latency_s: float = setting(
+        0.0,
+        "laser measurement latency: a sample reads the surface where the laser was this long "
+        "before the position it is tagged with; compensated when building on a cell ('icefab "
+        "calibrate laser', thesis 5.2.1)",
+        lo=0.0, hi=1.0,
+        why="sensor latency is milliseconds")
+    encoder_resolution_deg: float = setting(
+        0.001,
+        "joint encoder resolution",
+        lo=0.0, hi=1.0,
+        why="robot encoders resolve far below a degree")
+    stroke_mm: float = setting(
+        210.0,
+        "vertical stroke: the tallest build the cell can make (Cobra 600, thesis Table 2-1)",
+        lo=1.0, hi=5000.0,
+        why="robot and gantry z axes travel 0.05-2 m")
+    cpus: int = setting(
+        0,
+        "worker processes for parallel stages (0: all cores)",
+        lo=0, hi=1024,
+        why="used as min(cpus, the machine's cores)")
 
 
 @dataclass(frozen=True)
 class MotionSettings:
     """Minimum-time trajectory shaping limits (thesis Ch. 4, eq. 4.10)."""
 
-    dt_s: float = setting(0.016, "output time step", lo=0.0, lo_open=True)
-    speed_mm_s: float = setting(125.0, "Cartesian speed bound", lo=0.0, lo_open=True)
-    accel_mm_s2: float = setting(500.0, "total Cartesian acceleration bound", lo=0.0,
-                                 lo_open=True)
-    jerk_mm_s3: float = setting(4000.0, "Cartesian jerk bound", lo=0.0, lo_open=True)
+    dt_s: float = setting(
+        0.016,
+        "output time step",
+        lo=0.001, hi=1.0,
+        why="the controller's trajectory step (Cobra 600 C40: 16 ms)")
+    speed_mm_s: float = setting(
+        125.0,
+        "Cartesian speed bound",
+        lo=1.0, hi=10000.0,
+        why="the Cobra 600 exceeds 1 m/s; below 1 mm/s water freezes in the nozzle")
+    accel_mm_s2: float = setting(
+        500.0,
+        "total Cartesian acceleration bound",
+        lo=1.0, hi=1e6,
+        why="up to 100 g")
+    jerk_mm_s3: float = setting(
+        4000.0,
+        "Cartesian jerk bound",
+        lo=1.0, hi=1e8,
+        why="up to 10 000 g/s")
     jerk_limited: bool = setting(True, "apply jerk bounds (off: compare with TOPP-RA)")
-    joint_speed_deg_s: Vec2 = setting((33.0, 39.0), "joint 1, 2 speed bounds", lo=0.0,
-                                      lo_open=True)
-    joint_accel_deg_s2: Vec2 = setting((165.0, 195.0), "joint 1, 2 acceleration bounds",
-                                       lo=0.0, lo_open=True)
-    joint_jerk_deg_s3: Vec2 = setting((1320.0, 1560.0), "joint 1, 2 jerk bounds", lo=0.0,
-                                      lo_open=True)
-    gantry_speed_mm_s: Vec2 = setting((250.0, 250.0), "gantry x, y axis speed bounds", lo=0.0,
-                                      lo_open=True)
-    gantry_accel_mm_s2: Vec2 = setting((2000.0, 2000.0), "gantry x, y axis acceleration bounds",
-                                       lo=0.0, lo_open=True)
-    gantry_jerk_mm_s3: Vec2 = setting((20000.0, 20000.0), "gantry x, y axis jerk bounds",
-                                      lo=0.0, lo_open=True)
-    smooth_angle_deg: float = setting(30.0, "direction change above which a path is split "
-                                            "and the robot stops (PATHSPLIT)", lo=0.0,
-                                      lo_open=True, hi=180.0)
-    point_spacing_mm: float = setting(0.4, "resampling spacing of split pieces", lo=0.0,
-                                      lo_open=True)
-    smoothing_tolerance_mm: float = setting(0.02, "smoothing of the resampled paths within "
-                                                  "this tolerance (0: off; a hard bound: "
-                                                  "every sample stays within it of the input "
-                                                  "path). The joints' Savitzky-Golay filter "
-                                                  "gets what is left of 0.02 mm (at most "
-                                                  "0.01; none at this default), so the tool "
-                                                  "stays within 0.02 mm "
-                                                  "of the input (issue 4). Default 0.02 mm: "
-                                                  "the slicer's filtered polygons turn a few "
-                                                  "degrees at every vertex, which costs "
-                                                  "v*turn/dt of acceleration; 0.02 mm makes "
-                                                  "MTTS 6-9 % faster on the bunny and a "
-                                                  "rounded box, twice what 0.01 mm with the "
-                                                  "joint filter gives, at the same joint jerk "
-                                                  "(BENCHMARKS.md)",
-                                            lo=0.0)
-    measure_speed_mm_s: float = setting(50.0, "speed along measurement paths", lo=0.0,
-                                        lo_open=True)
-    travel_speed_mm_s: float = setting(125.0, "speed of travel moves", lo=0.0, lo_open=True)
-    boundary_speed_mm_s: float = setting(25.0, "constant speed of boundary paths in the "
-                                               "constant-speed estimate", lo=0.0, lo_open=True)
-    fill_speed_mm_s: float = setting(125.0, "constant speed of fill paths in the "
-                                            "constant-speed estimate", lo=0.0, lo_open=True)
-    savgol_window: int = setting(7, "Savitzky-Golay window for joint vectors (odd, 0: off)",
-                                 lo=0)
-    rest_accel_mm_s2: float = setting(80.0, "initial and final acceleration of the from/to "
-                                            "rest curves with jerk on, so the first samples "
-                                            "move the joints beyond the encoder resolution "
-                                            "(thesis 4.2.6)", lo=0.0)
+    joint_speed_deg_s: Vec2 = setting(
+        (33.0, 39.0),
+        "joint 1, 2 speed bounds",
+        lo=0.1, hi=3600.0,
+        why="up to 10 turns/s")
+    joint_accel_deg_s2: Vec2 = setting(
+        (165.0, 195.0),
+        "joint 1, 2 acceleration bounds",
+        lo=1.0, hi=1e5,
+        why="robot joints")
+    joint_jerk_deg_s3: Vec2 = setting(
+        (1320.0, 1560.0),
+        "joint 1, 2 jerk bounds",
+        lo=1.0, hi=1e7,
+        why="robot joints")
+    gantry_speed_mm_s: Vec2 = setting(
+        (250.0, 250.0),
+        "gantry x, y axis speed bounds",
+        lo=1.0, hi=10000.0,
+        why="up to 10 m/s")
+    gantry_accel_mm_s2: Vec2 = setting(
+        (2000.0, 2000.0),
+        "gantry x, y axis acceleration bounds",
+        lo=1.0, hi=1e6,
+        why="up to 100 g")
+    gantry_jerk_mm_s3: Vec2 = setting(
+        (20000.0, 20000.0),
+        "gantry x, y axis jerk bounds",
+        lo=1.0, hi=1e8,
+        why="up to 10 000 g/s")
+    smooth_angle_deg: float = setting(
+        30.0,
+        "direction change above which a path is split and the robot stops (PATHSPLIT)",
+        lo=1.0, hi=180.0,
+        why="below 1 degree every filtered vertex stops the robot")
+    point_spacing_mm: float = setting(
+        0.4,
+        "resampling spacing of split pieces",
+        lo=0.01, hi=10.0,
+        why="samples within a drop width of each other")
+    smoothing_tolerance_mm: float = setting(
+        0.02,
+        "smoothing of the resampled paths within this tolerance (0: off; a hard bound: every "
+        "sample stays within it of the input path). The joints' Savitzky-Golay filter gets what "
+        "is left of 0.02 mm (at most 0.01; none at this default), so the tool stays within 0.02 "
+        "mm of the input (issue 4). Default 0.02 mm: the slicer's filtered polygons turn a few "
+        "degrees at every vertex, which costs v*turn/dt of acceleration; 0.02 mm makes MTTS 6-9 "
+        "% faster on the bunny and a rounded box, twice what 0.01 mm with the joint filter "
+        "gives, at the same joint jerk (BENCHMARKS.md)",
+        lo=0.0, hi=1.0,
+        why="below the path width")
+    measure_speed_mm_s: float = setting(
+        50.0,
+        "speed along measurement paths",
+        lo=1.0, hi=10000.0,
+        why="as speed_mm_s")
+    travel_speed_mm_s: float = setting(
+        125.0,
+        "speed of travel moves",
+        lo=1.0, hi=10000.0,
+        why="as speed_mm_s")
+    boundary_speed_mm_s: float = setting(
+        25.0,
+        "constant speed of boundary paths in the constant-speed estimate",
+        lo=1.0, hi=10000.0,
+        why="as speed_mm_s")
+    fill_speed_mm_s: float = setting(
+        125.0,
+        "constant speed of fill paths in the constant-speed estimate",
+        lo=1.0, hi=10000.0,
+        why="as speed_mm_s")
+    savgol_window: int = setting(
+        7,
+        "Savitzky-Golay window for joint vectors (odd, 0: off)",
+        lo=0, hi=101,
+        why="samples; a wider window averages whole paths")
+    rest_accel_mm_s2: float = setting(
+        80.0,
+        "initial and final acceleration of the from/to rest curves with jerk on, so the first "
+        "samples move the joints beyond the encoder resolution (thesis 4.2.6)",
+        lo=0.0, hi=1e6,
+        why="as accel_mm_s2")
 
 
 @dataclass(frozen=True)
@@ -291,31 +459,59 @@ class FlowSettings:
     """Variable-flow valve control (thesis Ch. 6, 2.3.1)."""
 
     mode: str = setting("fm", "'fm' frequency modulation or 'pwm'", choices=("fm", "pwm"))
-    tick_s: float = setting(0.002, "microcontroller tick", lo=0.0, lo_open=True)
-    max_piece_s: float = setting(131.072, "longest program piece (uint16 ticks)", lo=0.0,
-                                 lo_open=True)
-    max_pulses: int = setting(16384, "most pulses in one program piece", lo=1)
-    max_frequency_hz: float = setting(500.0, "highest valve frequency the cell can make: "
-                                             "at most one pulse per tick (1 / tick_s, "
-                                             "500 Hz at the thesis' 2 ms tick, 2.3.1); the "
-                                             "valve itself is rated 1000 Hz (thesis 6.1)",
-                                      lo=0.0, lo_open=True)
-    min_pulse_ms: float = setting(0.5, "shortest valve opening", lo=0.0, lo_open=True)
-    min_drops_per_mm: float = setting(1.0, "at least this many drops per mm of path", lo=0.0)
-    layer_scale: float = setting(1.0, "nominal flow factor c in q = w * dh * c", lo=0.0,
-                                 lo_open=True)
+    tick_s: float = setting(
+        0.002,
+        "microcontroller tick",
+        lo=1e-5, hi=0.1,
+        why="microcontroller timers tick in 10 us-100 ms (thesis 2.3.1: 2 ms)")
+    max_piece_s: float = setting(
+        131.072,
+        "longest program piece (uint16 ticks)",
+        lo=0.01, hi=1e4,
+        why="a piece spans at least a few ticks")
+    max_pulses: int = setting(
+        16384,
+        "most pulses in one program piece",
+        lo=1, hi=1048576,
+        why="a program piece in microcontroller memory")
+    max_frequency_hz: float = setting(
+        500.0,
+        "highest valve frequency the cell can make: at most one pulse per tick (1 / tick_s, "
+        "500 Hz at the thesis' 2 ms tick, 2.3.1); the valve itself is rated 1000 Hz (6.1)",
+        lo=1.0, hi=1e5,
+        why="solenoid valves switch below 10 kHz")
+    min_pulse_ms: float = setting(
+        0.5,
+        "shortest valve opening",
+        lo=0.01, hi=1000.0,
+        why="valve openings")
+    min_drops_per_mm: float = setting(
+        1.0,
+        "at least this many drops per mm of path",
+        lo=0.0, hi=100.0,
+        why="drops are about 0.1-1 mm apart")
+    layer_scale: float = setting(
+        1.0,
+        "nominal flow factor c in q = w * dh * c",
+        lo=0.1, hi=10.0,
+        why="the deposited volume is within a factor 10 of w * dh")
     out_of_range: str = setting("error", "a flow beyond the calibration table or a frequency "
                                          "beyond max_frequency_hz: 'error' (default) or "
                                          "'clamp' to the limit (opt-in; reported with the "
                                          "volume it costs)",
                                 choices=("clamp", "error"))
-    pwm_frequency_hz: float = setting(125.0, "PWM mode: constant valve frequency (thesis 6.1: "
-                                             ">= 125 Hz for one drop per mm at 125 mm/s)",
-                                      lo=0.0, lo_open=True)
-    calibration_pulse_ms: float = setting(0.5, "pulse width at which the calibration table "
-                                               "was measured (FM pulse width; PWM scales "
-                                               "flow per pulse with the width)", lo=0.0,
-                                          lo_open=True)
+    pwm_frequency_hz: float = setting(
+        125.0,
+        "PWM mode: constant valve frequency (thesis 6.1: >= 125 Hz for one drop per mm at 125 "
+        "mm/s)",
+        lo=1.0, hi=1e5,
+        why="as max_frequency_hz")
+    calibration_pulse_ms: float = setting(
+        0.5,
+        "pulse width at which the calibration table was measured (FM pulse width; PWM scales "
+        "flow per pulse with the width)",
+        lo=0.01, hi=1000.0,
+        why="as min_pulse_ms")
 
 
 @dataclass(frozen=True)
@@ -323,19 +519,48 @@ class FeedbackSettings:
     """Surface mapping feedback (thesis Ch. 5)."""
 
     enabled: bool = setting(True, "close the loop with the laser measurements")
-    interval_layers: int = setting(4, "n_d: measure every this many layers", lo=1)
-    kp: float = setting(1.0, "proportional gain Kp", lo=0.0)
-    ki: float = setting(0.33, "normalised integral gain Ki* = Ki * dh_m", lo=0.0)
-    kd: float = setting(0.03, "normalised derivative gain Kd* = Kd / dh_m", lo=0.0)
-    saturation: float = setting(0.3, "saturation of the control action U (fraction)", lo=0.0,
-                                lo_open=True)
-    integral_saturation: float = setting(0.3, "saturation of the integral term (fraction)",
-                                         lo=0.0, lo_open=True)
+    interval_layers: int = setting(
+        4,
+        "n_d: measure every this many layers",
+        lo=1, hi=1000,
+        why="at least one measurement per 1000 layers")
+    kp: float = setting(
+        1.0,
+        "proportional gain Kp",
+        lo=0.0, hi=100.0,
+        why="stable gains are of order 1 (thesis 5.5)")
+    ki: float = setting(
+        0.33,
+        "normalised integral gain Ki* = Ki * dh_m",
+        lo=0.0, hi=100.0,
+        why="stable gains are of order 1 (thesis 5.5)")
+    kd: float = setting(
+        0.03,
+        "normalised derivative gain Kd* = Kd / dh_m",
+        lo=0.0, hi=100.0,
+        why="stable gains are of order 1 (thesis 5.5)")
+    saturation: float = setting(
+        0.3,
+        "saturation of the control action U (fraction)",
+        lo=0.0, hi=1.0, lo_open=True,
+        why="at most the whole nominal flow")
+    integral_saturation: float = setting(
+        0.3,
+        "saturation of the integral term (fraction)",
+        lo=0.0, hi=1.0, lo_open=True,
+        why="as saturation")
     controller: str = setting("flow", "'flow' (nu-controller, valve flow) or 'speed' "
                                       "(c-controller)", choices=("flow", "speed"))
-    grid_mm: float = setting(1.0, "error surface grid pitch", lo=0.0, lo_open=True)
-    measure_spacing_mm: float = setting(3.0, "spacing of concentric measurement paths", lo=0.0,
-                                        lo_open=True)
+    grid_mm: float = setting(
+        1.0,
+        "error surface grid pitch",
+        lo=0.1, hi=20.0,
+        why="near the laser spot and path width")
+    measure_spacing_mm: float = setting(
+        3.0,
+        "spacing of concentric measurement paths",
+        lo=0.1, hi=100.0,
+        why="about the path width")
     smoothing: bool = setting(True, "robust smoothing of the measured surface")
 
 
@@ -343,33 +568,83 @@ class FeedbackSettings:
 class SimulationSettings:
     """The virtual cell's disturbances (thesis 5.6-5.7)."""
 
-    seed: int = setting(0, "random seed", lo=0)
-    grid_mm: float = setting(0.5, "height map pitch", lo=0.0, lo_open=True)
-    flow_error: float = setting(0.10, "flow gain error (fraction, +0.1 = 10 % too much)",
-                                lo=-0.9)
-    flow_drift_per_cm3: float = setting(0.0, "flow gain drift per cm^3 deposited (fraction)")
-    noise_mm: float = setting(0.02, "random height noise per layer (std)", lo=0.0)
-    laser_noise_mm: float = setting(0.01, "laser measurement noise (std)", lo=0.0)
-    debris_rate: float = setting(0.0, "debris pulses per layer", lo=0.0)
+    seed: int = setting(
+        0,
+        "random seed",
+        lo=0, hi=4294967295,
+        why="a 32-bit seed")
+    grid_mm: float = setting(
+        0.5,
+        "height map pitch",
+        lo=0.05, hi=20.0,
+        why="finer than a drop; the demo mug needs 0.5 mm")
+    flow_error: float = setting(
+        0.10,
+        "flow gain error (fraction, +0.1 = 10 % too much)",
+        lo=-0.9, hi=10.0,
+        why="fraction")
+    flow_drift_per_cm3: float = setting(
+        0.0,
+        "flow gain drift per cm^3 deposited (fraction)",
+        lo=-0.1, hi=0.1,
+        why="10 % per cm^3 is a valve failing within a few layers")
+    noise_mm: float = setting(
+        0.02,
+        "random height noise per layer (std)",
+        lo=0.0, hi=10.0,
+        why="beyond 10 mm per layer nothing is built")
+    laser_noise_mm: float = setting(
+        0.01,
+        "laser measurement noise (std)",
+        lo=0.0, hi=10.0,
+        why="laser sensors resolve microns")
+    debris_rate: float = setting(
+        0.0,
+        "debris pulses per layer",
+        lo=0.0, hi=1000.0,
+        why="per layer")
     edge_loss: float = setting(0.1, "weaker deposition at region edges (fraction)", lo=0.0,
                                hi=1.0)
-    layers: int = setting(0, "simulate only the first N layers (0: all)", lo=0)
-    noise_corr_mm: float = setting(3.0, "correlation length of the height noise", lo=0.0)
-    debris_height_mm: float = setting(0.5, "height of one debris pulse (thesis d_p = 0.5 "
-                                           "measurement intervals)", lo=0.0)
-    debris_radius_mm: float = setting(2.0, "radius (Gaussian sigma) of one debris pulse",
-                                      lo=0.0, lo_open=True)
-    laser_latency_s: float = setting(0.002, "uncompensated laser latency: samples lag behind "
-                                            "the position they are tagged with", lo=0.0)
-    laser_rate_hz: float = setting(100.0, "laser sampling rate along measurement paths",
-                                   lo=0.0, lo_open=True)
+    layers: int = setting(
+        0,
+        "simulate only the first N layers (0: all)",
+        lo=0, hi=1000000,
+        why="layers")
+    noise_corr_mm: float = setting(
+        3.0,
+        "correlation length of the height noise",
+        lo=0.0, hi=1000.0,
+        why="up to the workspace")
+    debris_height_mm: float = setting(
+        0.5,
+        "height of one debris pulse (thesis d_p = 0.5 measurement intervals)",
+        lo=0.0, hi=10.0,
+        why="about a layer")
+    debris_radius_mm: float = setting(
+        2.0,
+        "radius (Gaussian sigma) of one debris pulse",
+        lo=0.0, hi=100.0, lo_open=True,
+        why="about a drop")
+    laser_latency_s: float = setting(
+        0.002,
+        "uncompensated laser latency: samples lag behind the position they are tagged with",
+        lo=0.0, hi=1.0,
+        why="sensor latency is milliseconds")
+    laser_rate_hz: float = setting(
+        100.0,
+        "laser sampling rate along measurement paths",
+        lo=1.0, hi=1e5,
+        why="laser sensors sample at 10 Hz-50 kHz")
     deposition: str = setting("flow", "volume deposited along the paths: 'flow' = the "
                                       "commanded flow (ideal valve), 'valves' = the pulses of "
                                       "the valve programs x the calibrated drop volume",
                               choices=("flow", "valves"))
-    spread_mm: float = setting(1.0, "how far the liquid of a layer flows (diffusion length) "
-                                    "before it freezes: fills gaps between paths up to twice "
-                                    "this wide (0: off)", lo=0.0)
+    spread_mm: float = setting(
+        1.0,
+        "how far the liquid of a layer flows (diffusion length) before it freezes: fills gaps "
+        "between paths up to twice this wide (0: off)",
+        lo=0.0, hi=50.0,
+        why="liquid water freezes within millimetres")
 
 
 @dataclass(frozen=True)
@@ -422,11 +697,12 @@ def _check_value(path: str, value: Any, meta: dict[str, Any]) -> None:
             continue
         if v != v or v in (float("inf"), float("-inf")):
             raise ConfigError(f"{path} = {value!r}: must be a finite number")
-        if lo is not None and (v <= lo if meta.get("lo_open") else v < lo):
-            rel = ">" if meta.get("lo_open") else ">="
-            raise ConfigError(f"{path} = {value!r}: must be {rel} {lo}")
-        if hi is not None and v > hi:
-            raise ConfigError(f"{path} = {value!r}: must be <= {hi}")
+        below = lo is not None and (v <= lo if meta.get("lo_open") else v < lo)
+        if below or (hi is not None and v > hi):
+            rng = [f"{'>' if meta.get('lo_open') else '>='} {lo:g}"] if lo is not None else []
+            rng += [f"<= {hi:g}"] if hi is not None else []
+            why = f" ({meta['why']})" if meta.get("why") else ""
+            raise ConfigError(f"{path} = {value!r}: must be {' and '.join(rng)}{why}")
     choices = meta.get("choices")
     if choices and value not in choices:
         raise ConfigError(f"{path} = {value!r}: must be one of {', '.join(choices)}")
@@ -454,6 +730,10 @@ def _check_cross(job: Job) -> None:
     rmin, rmax = job.cell.reach_mm
     if rmin >= rmax:
         raise ConfigError(f"cell.reach_mm = {job.cell.reach_mm!r}: min must be below max")
+    links = job.cell.l1_mm + job.cell.l2_mm
+    if rmax > links:
+        raise ConfigError(f"cell.reach_mm = {job.cell.reach_mm!r}: max must not exceed "
+                          f"cell.l1_mm + cell.l2_mm = {links:g} (the arm stretched out)")
     w = job.motion.savgol_window
     if w and (w % 2 == 0 or w < 5):
         raise ConfigError(f"motion.savgol_window = {w}: must be 0 (off) or an odd number >= 5")
@@ -645,12 +925,7 @@ def load_job(path: str | Path) -> Job:
     Raises ConfigError naming the file and line on any problem.
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: job file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{path}: cannot read job file ({exc})") from None
+    text = read_input_text(path, "job", ConfigError)
     if path.suffix.lower() != ".toml":
         return load_legacy_control(path, text)
     try:
@@ -732,10 +1007,7 @@ def load_legacy_control(path: str | Path, text: str | None = None) -> Job:
     """
     path = Path(path)
     if text is None:
-        try:
-            text = path.read_text(encoding="utf-8")
-        except FileNotFoundError:
-            raise ConfigError(f"{path}: control file not found") from None
+        text = read_input_text(path, "job", ConfigError, "control file")
     data: dict[str, dict[str, Any]] = {k: {} for k in
                                        ("parts", "slicing", "scaffold", "cell")}
     materials: dict[str, dict[str, Any]] = {"part": {}, "scaffold": {}}
@@ -750,10 +1022,27 @@ def load_legacy_control(path: str | Path, text: str | None = None) -> Job:
             raise fail(f"{what}: expected {count} number{'s' * (count > 1)}, got "
                        f"{' '.join(vals) or 'none'}")
         try:
-            return [float(v) for v in vals[:count]]
+            out = [float(v) for v in vals[:count]]
         except ValueError:
             raise fail(f"{what}: expected {count} number{'s' * (count > 1)}, got "
                        f"{' '.join(vals)}") from None
+        if not all(math.isfinite(x) for x in out):
+            raise fail(f"{what} = {' '.join(vals[:count])}: must be finite numbers")
+        return out
+
+    def whole(vals: list[str], count: int, what: str) -> list[int]:
+        """Whole numbers (a float such as 1e400 or 2.5 is refused, not truncated)."""
+        out = nums(vals, count, what)
+        if any(x != int(x) or abs(x) > 2**31 for x in out):
+            raise fail(f"{what} = {' '.join(vals[:count])}: must be whole numbers")
+        return [int(x) for x in out]
+
+    def switch(vals: list[str], what: str) -> bool:
+        """A 1/0 switch (thesis Table 3-1); anything else, NaN included, is refused."""
+        x = nums(vals, 1, what)[0]
+        if x not in (0.0, 1.0):
+            raise fail(f"{what} = {vals[0]}: must be 1 (on) or 0 (off)")
+        return x == 1.0
 
     set_on: dict[str, int] = {}  # dotted setting -> line that set it, for range errors
 
@@ -777,7 +1066,7 @@ def load_legacy_control(path: str | Path, text: str | None = None) -> Job:
             raise fail(f"unrecognised control entry {line!r}")
         try:
             if key == "n_files":
-                expect_files = int(nums(values, 1, "number of files")[0])
+                expect_files = whole(values, 1, "number of files")[0]
                 if expect_files < 1:
                     raise fail(f"number of files = {expect_files}: must be >= 1")
             elif key == "files":
@@ -785,9 +1074,9 @@ def load_legacy_control(path: str | Path, text: str | None = None) -> Job:
                 data["parts"]["files"] = data["parts"].get("files", []) + files
                 expect_files -= len(values)
             elif key == "inexact":
-                data["parts"]["inexact"] = bool(nums(values, 1, "inexact option")[0])
+                data["parts"]["inexact"] = switch(values, "inexact option")
             elif key == "slicing_option":
-                opt = int(nums(values, 1, "slicing option")[0])
+                opt = whole(values, 1, "slicing option")[0]
                 if opt not in (1, 2, 3):
                     raise fail(f"slicing option = {opt}: must be 1, 2 or 3")
                 if opt == 3:
@@ -796,7 +1085,7 @@ def load_legacy_control(path: str | Path, text: str | None = None) -> Job:
                     materials["part"]["fill_pattern"] = "none"
                     materials["scaffold"]["fill_pattern"] = "none"
             elif key == "scaffold_on":
-                data["scaffold"]["enabled"] = bool(nums(values, 1, "scaffolding option")[0])
+                data["scaffold"]["enabled"] = switch(values, "scaffolding option")
             elif key == "tolerance":
                 data["parts"]["weld_tolerance_mm"] = nums(values, 1, "tolerance")[0]
             elif key == "path_width":
@@ -810,11 +1099,11 @@ def load_legacy_control(path: str | Path, text: str | None = None) -> Job:
                                                                          "smooth angle")[0]
             elif key == "scale":
                 v = nums(values, 4, "scaling vector")
-                if v[0]:
+                if switch(values, "scaling vector on/off"):
                     data["parts"]["scale"] = v[1:]
             elif key == "rotation":
                 v = nums(values, 4, "rotation vector")
-                if v[0]:
+                if switch(values, "rotation vector on/off"):
                     data["parts"]["rotation_deg"] = v[1:]
             elif key == "rot_order":
                 v = nums(values, 3, "rotation axis order")
@@ -825,7 +1114,7 @@ def load_legacy_control(path: str | Path, text: str | None = None) -> Job:
             elif key == "translation":
                 if len(values) < 4:
                     raise fail(f"translation vector: expected 4 entries, got {values}")
-                if nums(values, 1, "translation on/off")[0]:
+                if switch(values, "translation on/off"):
                     t: list[Any] = []
                     for v in values[1:4]:
                         if v in ("cent", "orig"):
@@ -840,14 +1129,11 @@ def load_legacy_control(path: str | Path, text: str | None = None) -> Job:
             elif key == "scaffold_subset":
                 data["scaffold"]["subset"] = nums(values, 2, "scaffolding subset")
             elif key == "copies":
-                v = nums(values, 3, "part copy vector")
-                if any(x != int(x) for x in v):
-                    raise fail(f"part copy vector = {values[:3]}: must be whole numbers")
-                data["parts"]["copies"] = [int(x) for x in v]
+                data["parts"]["copies"] = whole(values, 3, "part copy vector")
             elif key == "buffer":
                 data["scaffold"]["buffer_mm"] = nums(values, 1, "scaffolding buffer")[0]
             elif key == "cpus":
-                data["cell"]["cpus"] = int(nums(values, 1, "number of CPUs")[0])
+                data["cell"]["cpus"] = whole(values, 1, "number of CPUs")[0]
             elif key == "ee":
                 data["cell"]["ee_origin_mm"] = nums(values, 2, "end-effector origin")
             elif key == "water_frame":

@@ -45,6 +45,7 @@ from scipy.signal import lfilter
 
 from icefab.errors import ConfigError, GeometryError
 from icefab.core import HeightMap, Region, Trajectory
+from icefab.workload import check_grid
 
 if TYPE_CHECKING:  # pragma: no cover
     from icefab.config import Job
@@ -643,9 +644,12 @@ def surface_from_samples(xyz: np.ndarray, footprint: Region | Sequence[Region] |
          if not r.is_empty]
     if regions:
         bb = np.stack([r.bounds() for r in regions])
+        check_grid(bb[:, 0].min(axis=0), bb[:, 1].max(axis=0), spacing,
+                   "grid spacing (feedback.grid_mm)")
         origin, nx, ny = grid_over(np.stack([bb[:, 0].min(axis=0), bb[:, 1].max(axis=0)]),
                                    spacing)
     else:
+        check_grid(xy.min(axis=0), xy.max(axis=0), spacing, "grid spacing (feedback.grid_mm)")
         origin, nx, ny = grid_over(np.stack([xy.min(axis=0), xy.max(axis=0)]), spacing)
     x = origin[0] + spacing * np.arange(nx)
     y = origin[1] + spacing * np.arange(ny)

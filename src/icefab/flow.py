@@ -81,6 +81,7 @@ from scipy.integrate import cumulative_trapezoid, trapezoid
 
 from icefab.atomic import write_atomic
 from icefab.errors import ConfigError, FlowError, StackFileError
+from icefab.inputs import check_input, read_input_text
 from icefab.frames import to_part_frame
 from icefab.core import HeightMap, Trajectory, ValveProgram
 
@@ -137,12 +138,7 @@ def load_calibration(path: str | os.PathLike) -> Calibration:
     FlowError naming the file and line.
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise FlowError(f"{path}: calibration table not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise FlowError(f"{path}: cannot read calibration table ({exc})") from None
+    text = read_input_text(path, "calibration", FlowError, "calibration table")
     freq: list[float] = []
     flow: list[float] = []
     lines: list[int] = []
@@ -191,12 +187,10 @@ def calibration_for(material: str, job: "Job") -> Calibration:
     settings = job.materials[material]
     path = Path(settings.calibration_file) if settings.calibration_file else \
         DATA_DIR / f"calibration_{material}.csv"
-    try:
-        mtime = path.stat().st_mtime
-    except FileNotFoundError:
-        where = (f"materials.{material}.calibration_file = {str(path)!r}"
-                 if settings.calibration_file else str(path))
-        raise FlowError(f"{where}: calibration table not found") from None
+    what = ("calibration table" + (f" (materials.{material}.calibration_file)"
+                                   if settings.calibration_file else ""))
+    check_input(path, "calibration", FlowError, what)
+    mtime = path.stat().st_mtime
     return _cached_calibration(str(path), mtime)
 
 

@@ -121,6 +121,7 @@ from icefab.frames import to_base_frame
 from icefab.parallel import parallel_map
 from icefab.robots import Robot, get_robot
 from icefab.core import LayerPaths, Toolpath, Toolpaths, Trajectory
+from icefab.workload import check_motion
 
 log = logging.getLogger(__name__)
 
@@ -774,6 +775,21 @@ def _unpack_layer(lp: LayerPaths, packed: tuple) -> LayerMotion:
     return LayerMotion(index=lp.index, z=lp.z, trajectories=trajs)
 
 
+def _path_lengths(layers: Sequence[LayerPaths]) -> tuple[float, float]:
+    """Total length, mm, of the depositing paths and of the other paths of ``layers``."""
+    out = [0.0, 0.0]
+    for lp in layers:
+        for p in lp.paths:
+            pts = np.asarray(p.points, dtype=np.float64)
+            if len(pts) < 2:
+                continue
+            d = float(np.hypot(*np.diff(pts, axis=0).T).sum())
+            if p.closed:
+                d += float(np.hypot(*(pts[0] - pts[-1])))
+            out[0 if p.depositing else 1] += d
+    return out[0], out[1]
+
+
 def _locate(ends: np.ndarray, i: int) -> tuple[int, int]:
     """(path, point within it) of row ``i`` of concatenated paths ending at ``ends``."""
     k = int(np.searchsorted(ends, i, side="right"))
@@ -847,6 +863,7 @@ def plan_toolpaths(toolpaths: Toolpaths, job: Job | None = None,
     _check_role_speeds(role_speeds)
     robot = get_robot(job)
     layers = list(toolpaths.layers)
+    check_motion(*_path_lengths(layers), job)  # sample budget before any planning
     check_build_workspace(toolpaths, job, robot)
     packed = parallel_map(_plan_layer_task, [(lp, job, role_speeds) for lp in layers], job,
                           min_items=2, progress=progress)
@@ -917,19 +934,35 @@ def constant_spacing(traj: Trajectory, spacing_mm: float | None = None,
     return pts, np.diff(tq)
 
 
-def gcode_moves(traj: Trajectory, *, decimals: int = 3) -> list[str]:
-    """G-code-style moves for gantry machines: ``G1 X.. Y.. F..`` per sample, the feedrate
-    (mm/min) being the average speed over the step to that sample."""
+def gcode_moves(traj: Trajectory, *, decimals: int = 3, power: np.ndarray | None = None,
+                dwell: bool = False) -> list[str]:
+    """G-code-style moves for gantry machines: ``G0`` to the first sample, then ``G1 X.. Y..
+    F..`` per sample, the feedrate (mm/min) being the average speed over the step to that
+    sample (each move lasts one time step, thesis 4.3).
+
+    power: (n - 1,) int, 0..255, per step: appended as ``S..`` to each step's move (Marlin's
+    inline cutter power, :mod:`icefab.export`). dwell: a step that does not move becomes
+    ``G4 P<ms>`` (consecutive ones merged) so the timing holds; without it such steps are
+    left out.
+    """
     xy = traj.xy
     if len(xy) == 0:
         return []
     lines = [f"G0 X{xy[0, 0]:.{decimals}f} Y{xy[0, 1]:.{decimals}f}"]
     d = np.hypot(*np.diff(xy, axis=0).T)
     feed = d / traj.dt * 60.0
-    for (x, y), f in zip(xy[1:], feed):
+    rest = 0
+    for i, ((x, y), f) in enumerate(zip(xy[1:], feed)):
         if f <= 0.0:
+            rest += 1
             continue
-        lines.append(f"G1 X{x:.{decimals}f} Y{y:.{decimals}f} F{f:.1f}")
+        if rest and dwell:
+            lines.append(f"G4 P{rest * traj.dt * 1000:.0f}")
+        rest = 0
+        s = "" if power is None else f" S{int(power[i])}"
+        lines.append(f"G1 X{x:.{decimals}f} Y{y:.{decimals}f} F{f:.1f}{s}")
+    if rest and dwell:
+        lines.append(f"G4 P{rest * traj.dt * 1000:.0f}")
     return lines
 
 
@@ -951,28 +984,6 @@ def _owners(motion: BuildMotion) -> dict[str, np.ndarray]:
                                  dtype=np.int8),
             "role": np.array([_ROLES.index(p.role) if p else 0 for *_, p in owners],
                              dtype=np.int8)}
-
-
-def save_gcode(motion: BuildMotion, path: str | os.PathLike) -> None:
-    """G-code for gantry-style machines (positions with feedrates, as the thesis'
-    conclusions suggest for CNC machines), written atomically: ``G21``/``G90``, per layer
-    ``; layer K z Z`` and ``G0 Z..``, per path a ``; path I: MATERIAL ROLE, width W mm,
-    D s`` comment, ``G0`` to its first sample, then one ``G1 X Y F`` per sample
-    (:func:`gcode_moves`: F in mm/min = the step's length over dt, so each move takes one
-    time step). X and Y are the tool point in the robot base frame (the gantry's axes)."""
-    from icefab.atomic import atomic_path
-
-    with atomic_path(path, suffix=".gcode") as tmp, open(tmp, "w", encoding="utf-8") as fh:
-        fh.write(f"; icefab trajectories: {motion.robot}, dt {motion.job.motion.dt_s:g} s, "
-                 f"{motion.duration:.1f} s of motion\n; F = feedrate in mm/min; X, Y in the "
-                 f"robot base frame, mm\nG21\nG90\n")
-        for lm in motion.layers:
-            fh.write(f"; layer {lm.index} z {lm.z:.4f}\nG0 Z{lm.z:.4f}\n")
-            for i, tr in enumerate(lm.trajectories):
-                p = tr.path
-                what = f"{p.material} {p.role}, width {p.width:g} mm" if p is not None else "path"
-                fh.write(f"; path {i}: {what}, {tr.duration:.3f} s\n")
-                fh.write("\n".join(gcode_moves(tr)) + "\n")
 
 
 def save_constant_spacing(motion: BuildMotion, spacing_mm: float,

@@ -12,6 +12,9 @@ from __future__ import annotations
 
 import math
 import os
+import signal
+import threading
+import time
 from concurrent.futures import ProcessPoolExecutor
 from typing import TYPE_CHECKING, Callable, Sequence, TypeVar
 
@@ -22,10 +25,49 @@ T = TypeVar("T")
 R = TypeVar("R")
 
 
+def machine_cores() -> int:
+    """Cores this process may run on (its CPU affinity where the OS tells, else all)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
+
+
 def n_workers(job: "Job") -> int:
-    """Worker processes for parallel stages: ``job.cell.cpus`` (0 = all cores)."""
-    n = job.cell.cpus or (os.cpu_count() or 1)
-    return max(1, int(n))
+    """Worker processes for parallel stages: ``job.cell.cpus`` (0 = all cores), never
+    more than the machine's cores (issue 10: ``cpus = 1000000`` forked hundreds of
+    workers; more processes than cores only add start-up and memory)."""
+    cores = machine_cores()
+    return max(1, min(int(job.cell.cpus or cores), cores))
+
+
+_PR_SET_PDEATHSIG = 1  # linux/prctl.h
+
+
+def _die_with_parent(parent: int) -> None:
+    """Pool worker initializer: end this worker when the process that started it ends,
+    even by ``kill -9`` (which runs no clean-up in the parent). On Linux the kernel sends
+    SIGKILL (``prctl(PR_SET_PDEATHSIG)``); elsewhere a daemon thread watches the parent."""
+    try:
+        import ctypes
+        libc = ctypes.CDLL(None, use_errno=True)
+        ok = libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) == 0
+    except (OSError, AttributeError):  # pragma: no cover - not Linux
+        ok = False
+    if os.getppid() != parent:  # the parent ended before prctl took effect
+        os._exit(1)
+    if not ok:  # pragma: no cover - not Linux
+        def watch() -> None:
+            while os.getppid() == parent:
+                time.sleep(1.0)
+            os._exit(1)
+        threading.Thread(target=watch, daemon=True).start()
+
+
+def process_pool(workers: int) -> ProcessPoolExecutor:
+    """A process pool of ``workers`` whose workers die with this process."""
+    return ProcessPoolExecutor(max_workers=workers, initializer=_die_with_parent,
+                               initargs=(os.getpid(),))
 
 
 def parallel_map(fn: Callable[[T], R], items: Sequence[T], job: "Job",
@@ -53,7 +95,7 @@ def parallel_map(fn: Callable[[T], R], items: Sequence[T], job: "Job",
     size = max(1, math.ceil(total / n_chunks))
     chunks = [list(items[i:i + size]) for i in range(0, total, size)]
     out = []
-    with ProcessPoolExecutor(max_workers=min(workers, len(chunks))) as pool:
+    with process_pool(min(workers, len(chunks))) as pool:
         for chunk in pool.map(_apply_chunk, [fn] * len(chunks), chunks):
             out.extend(chunk)
             if progress is not None:

@@ -81,6 +81,7 @@ from scipy import ndimage
 
 from icefab.errors import GeometryError, SimulationError
 from icefab.core import HeightMap, LayerPaths, Toolpath, Toolpaths, Trajectory
+from icefab.workload import check_grid
 
 if TYPE_CHECKING:  # pragma: no cover
     from icefab.config import Job
@@ -878,6 +879,8 @@ def _grid_for(plans: Sequence[LayerPlan], job: "Job") -> HeightMap:
     allp = np.concatenate(pts)
     wmax = max(float(p.half_width.max()) for p in plans if len(p.half_width))
     margin = 2 * wmax + 2 * job.simulation.grid_mm
+    check_grid(allp.min(axis=0) - margin, allp.max(axis=0) + margin, job.simulation.grid_mm,
+               "simulation.grid_mm")
     return empty_surface(allp.min(axis=0), allp.max(axis=0), job.simulation.grid_mm, margin)
 
 

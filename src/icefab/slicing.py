@@ -111,6 +111,7 @@ from icefab.atomic import atomic_path
 from icefab.errors import GeometryError, StackFileError
 from icefab.mesh.topology import edge_buckets
 from icefab.core import Layer, Mesh, Region, Stack, signed_area
+from icefab.workload import check_layers
 
 log = logging.getLogger(__name__)
 
@@ -1192,6 +1193,7 @@ def slice_mesh(mesh: Mesh, job: Job | None = None, *, progress: Progress | None 
     if not np.isfinite([z_min, z_max]).all() or z_max <= z_min:
         raise GeometryError(f"{mesh.name or 'mesh'}: height {z_max - z_min!r} mm: a part "
                             "needs a positive, finite height to be sliced")
+    check_layers(z_min, z_max, job)  # before any per-layer array (issue 10: z = 1e9)
     # thesis Table 3-1 "number of CPUs": job.cell.cpus threads for the compiled kernels
     prev_threads = numba.get_num_threads()
     numba.set_num_threads(max(1, min(job.cell.cpus or prev_threads,

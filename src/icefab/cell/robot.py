@@ -255,7 +255,7 @@ class RobotLink:
                             f"{path.dt_s!r} s is not a whole number of microseconds")
         lines = [rp.encode("path_begin", seq, int(path.layer), int(path.index),
                            int(path.flags), rp.TOOLS.index(path.tool),
-                           _um(path.width_mm, "width"), len(xy), dt_us,
+                           float(path.width_mm), len(xy), dt_us,
                            _um(path.z_mm, "path height"))]
         k = rp.POINTS_PER_LINE
         for i in range(0, len(xy), k):

@@ -12,7 +12,9 @@ Wire format
 ASCII lines, one message per line: ``TYPE,SEQ,FIELD,...`` ending in CR LF, at most
 :data:`MAX_LINE` characters (V+ strings hold 128). ``TYPE`` is two letters; every field
 is a decimal number in the format its table entry names: ``int`` (0 <= v < 2**24, exact
-in a V+ single-precision REAL) or ``mm`` (``%.3f``, |v| < 100 000). A line with another
+in a V+ single-precision REAL), ``mm`` (``%.3f``, |v| < 100 000) or ``real`` (Python's
+shortest round-trip text of a double, |v| < 100 000: a value the controller only records,
+carried exactly for the virtual cell). A line with another
 type, another field count or a field that does not parse is malformed.
 
 Sequence numbers (``SEQ``, 1 .. 2**24 - 1, wrapping to 1) are drawn by the host from one
@@ -33,7 +35,7 @@ cell freezes the layer's deposit at ``LE``). ``AB`` stops the motion at once (V+
 ``BRAKE``), drops both triggers and discards every stored path.
 
 Units: x, y in mm in the robot base frame (the planner's base-frame samples, the joint-4
-axis), heights in micrometres, time steps in microseconds, widths in micrometres.
+axis), heights in micrometres, time steps in microseconds, widths in mm.
 """
 
 from __future__ import annotations
@@ -83,7 +85,7 @@ MESSAGES: tuple[Message, ...] = (
             doc="a layer starts (toolpaths layer index, nominal top height)"),
     Message("PB", "path_begin", "host",
             (("layer", "int"), ("index", "int"), ("flags", "int"), ("tool", "int"),
-             ("width_um", "int"), ("npts", "int"), ("dt_us", "int"), ("z_um", "int")),
+             ("width", "real"), ("npts", "int"), ("dt_us", "int"), ("z_um", "int")),
             doc="path header: triggers (flags), tool, width, point count, time step, z"),
     Message("PP", "path_points", "host", (("first", "int"), ("n", "int")),
             group=(("x", "mm"), ("y", "mm")), repeat_count="n", max_repeat=POINTS_PER_LINE,
@@ -130,6 +132,11 @@ def _fmt(value: float, kind: str, what: str) -> str:
                             f"0..{MAX_INT}")
         return str(v)
     v = float(value)
+    if kind == "real":
+        if not abs(v) <= MAX_MM:
+            raise CellError(f"robot message field {what} = {value!r}: expected a finite "
+                            f"number within +-{MAX_MM}")
+        return repr(v + 0.0)
     if not abs(v) <= MAX_MM:  # also NaN
         raise CellError(f"robot message field {what} = {value!r}: expected a finite length "
                         f"within +-{MAX_MM} mm")
@@ -193,13 +200,15 @@ def _parse(text: str, kind: str, what: str) -> float:
             if v > MAX_INT:
                 raise ValueError
             return v
+        if not text or text.strip() != text or "_" in text:
+            raise ValueError
         v = float(text)
         if not abs(v) <= MAX_MM:
             raise ValueError
         return v
     except ValueError:
         raise CellError(f"malformed robot message: field {what} = {text[:20]!r} is not "
-                        f"{'an integer 0..' + str(MAX_INT) if kind == 'int' else 'a length in mm'}"
+                        f"{'an integer 0..' + str(MAX_INT) if kind == 'int' else 'a number'}"
                         ) from None
 
 

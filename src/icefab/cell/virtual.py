@@ -88,7 +88,7 @@ class FirmwareValves(ValveHookup):
     def trigger(self) -> None:
         import signal
 
-        self._mark = self._offset
+        self._lines()   # what came before this trigger (an aborted play's tail) is not ours
         os.kill(self.host.pid, signal.SIGUSR1)
 
     def _lines(self) -> list[str]:
@@ -114,7 +114,7 @@ class FirmwareValves(ValveHookup):
                 f = line.split()
                 if not f:
                     continue
-                if f[0] == "start" and play is None:
+                if f[0] == "start" and play is None:   # the first play after the trigger
                     play = int(f[1])
                 elif f[0] == "pulse" and play is not None and int(f[1]) == play:
                     pulses.append((int(f[2]), int(f[3]) * self.tick_s, float(f[4])))

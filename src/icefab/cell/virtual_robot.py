@@ -250,7 +250,7 @@ class VirtualRobot:
             path = RobotPath(xy=np.column_stack([up.xs, up.ys]).astype(np.float64),
                              dt_s=h["dt_us"] / 1e6, z_mm=h["z_um"] / 1000.0,
                              flags=int(h["flags"]), tool=rp.TOOLS[int(h["tool"])],
-                             width_mm=h["width_um"] / 1000.0, layer=int(h["layer"]),
+                             width_mm=float(h["width"]), layer=int(h["layer"]),
                              index=int(h["index"]))
             self._stored.append((msg.seq, path))
         self._reply("PE", "ok", msg.seq)

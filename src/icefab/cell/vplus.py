@@ -13,7 +13,9 @@ version.
 
 What it does (the thesis' cycle, Fig. 2-5): ``ice.server`` (task 0, robot attached) starts
 ``ice.comm`` on task 1, which serves one client on a TCP port and stores uploaded paths in
-a ring of ``max_paths`` slots (``ice.px``/``ice.py``). On ``GO`` the motion task moves to
+a ring of ``max_paths`` slots (``ice.px``/``ice.py``; the upload task only counts
+``ice.nup`` up and the motion task only ``ice.ndone``, so the two tasks never write the
+same counter). On ``GO`` the motion task moves to
 the path's first point (``ice.approach`` mm/s, then ``BREAK``: at rest), raises the valve
 trigger (deposition) or the laser trigger (measurement) on its digital output, moves
 through every point with ``DURATION dt ALWAYS`` and ``MOVES`` (constant point-to-point
@@ -152,7 +154,7 @@ def _parse_program() -> list[str]:
 _GLOBALS = {
     "REAL": ["ice.port", "ice.vsig", "ice.lsig", "ice.zbase", "ice.yaw", "ice.appspd",
              "ice.maxpts", "ice.maxpaths", "ice.lun", "ice.handle", "ice.quit", "ice.abort",
-             "ice.state", "ice.qhead", "ice.qcount", "ice.uopen", "ice.uslot", "ice.useq",
+             "ice.state", "ice.nup", "ice.ndone", "ice.uopen", "ice.uslot", "ice.useq",
              "ice.urecv", "ice.ucheck", "ice.gopend", "ice.goseq", "ice.dnpend", "ice.dnseq",
              "ice.dnpts", "ice.lastseq", "ice.lastdone", "ice.layer",
              "ice.px[]", "ice.py[]", "ice.pn[]", "ice.pdt[]", "ice.pz[]", "ice.pflags[]",
@@ -195,8 +197,8 @@ _FIXED = r"""
     SIGNAL -ice.vsig, -ice.lsig
     ice.abort = FALSE
     ice.state = 0
-    ice.qhead = 0
-    ice.qcount = 0
+    ice.nup = 0
+    ice.ndone = 0
     ice.uopen = FALSE
     ice.uslot = 0
     ice.useq = 0
@@ -218,7 +220,7 @@ _FIXED = r"""
     WHILE NOT ice.quit DO
         WAIT ice.gopend OR ice.quit
         IF ice.gopend AND NOT ice.quit THEN
-            slot = ice.qhead
+            slot = ice.ndone MOD ice.maxpaths
             n = ice.pn[slot]
             ice.state = 1
             ; to the first point at the approach speed, then at rest (thesis 4.3)
@@ -247,8 +249,7 @@ _FIXED = r"""
             SIGNAL -ice.vsig, -ice.lsig
             DURATION 0 ALWAYS
             IF NOT ice.abort THEN
-                ice.qhead = (ice.qhead+1) MOD ice.maxpaths
-                ice.qcount = ice.qcount-1
+                ice.ndone = ice.ndone+1
                 ice.dnseq = ice.pseq[slot]
                 ice.dnpts = i
                 ice.lastdone = ice.pseq[slot]
@@ -339,13 +340,13 @@ _FIXED = r"""
     CALL ice.r.ok(seq)
 .END
 
-.PROGRAM ice.h.pb(seq, f.layer, f.index, f.flags, f.tool, f.widthum, f.npts, f.dtus, f.zum)
+.PROGRAM ice.h.pb(seq, f.layer, f.index, f.flags, f.tool, f.width, f.npts, f.dtus, f.zum)
     ; open the upload of one path into the next free slot (no reply unless refused)
     IF ice.uopen THEN
         CALL ice.r.er(seq, 7)
         RETURN
     END
-    IF ice.qcount >= ice.maxpaths THEN
+    IF ice.nup-ice.ndone >= ice.maxpaths THEN
         CALL ice.r.er(seq, 3)
         RETURN
     END
@@ -353,7 +354,7 @@ _FIXED = r"""
         CALL ice.r.er(seq, 4)
         RETURN
     END
-    ice.uslot = (ice.qhead+ice.qcount) MOD ice.maxpaths
+    ice.uslot = ice.nup MOD ice.maxpaths
     ice.useq = seq
     ice.urecv = 0
     ice.ucheck = 0
@@ -416,7 +417,7 @@ _FIXED = r"""
         CALL ice.r.er(seq, 5)
         RETURN
     END
-    ice.qcount = ice.qcount+1
+    ice.nup = ice.nup+1
     CALL ice.r.ok(seq)
 .END
 
@@ -426,11 +427,11 @@ _FIXED = r"""
         CALL ice.r.er(seq, 7)
         RETURN
     END
-    IF (ice.qcount < 1) THEN
+    IF ice.nup-ice.ndone < 1 THEN
         CALL ice.r.er(seq, 6)
         RETURN
     END
-    IF ice.pseq[ice.qhead] <> seq THEN
+    IF ice.pseq[ice.ndone MOD ice.maxpaths] <> seq THEN
         CALL ice.r.er(seq, 6)
         RETURN
     END
@@ -445,8 +446,7 @@ _FIXED = r"""
     ice.abort = TRUE
     BRAKE
     SIGNAL -ice.vsig, -ice.lsig
-    ice.qhead = 0
-    ice.qcount = 0
+    ice.ndone = ice.nup
     ice.uopen = FALSE
     ice.dnpend = FALSE
     ice.state = 2
@@ -454,7 +454,7 @@ _FIXED = r"""
 .END
 
 .PROGRAM ice.h.st(seq)
-    CALL ice.r.ss(seq, ice.state, ice.qcount, ice.lastdone)
+    CALL ice.r.ss(seq, ice.state, ice.nup-ice.ndone, ice.lastdone)
 .END
 """
 

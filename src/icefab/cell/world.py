@@ -56,10 +56,28 @@ _TINY_MM = 1e-9
 MATERIAL_OF_VALVE = ("part", "scaffold")
 
 
+_SIM = None
+
+
 def _sim():
-    """The simulator's building blocks (one place to import them from)."""
-    from icefab import sim
-    return sim
+    """The simulator's building blocks, public and private (deposition kernel, edge loss,
+    noise field, laser timing, grid), found in ``icefab.sim`` whether it is one module or
+    the package of its split (one place to import them from, until the simulator offers a
+    layer-step API that both ``run_cell`` and this module call)."""
+    global _SIM
+    if _SIM is None:
+        import importlib
+        from types import SimpleNamespace
+
+        names: dict = {}
+        for mod in ("icefab.sim", "icefab.sim.deposition", "icefab.sim.laser",
+                    "icefab.sim.plans", "icefab.sim.cell"):
+            try:
+                names.update(vars(importlib.import_module(mod)))
+            except ModuleNotFoundError:
+                continue
+        _SIM = SimpleNamespace(**names)
+    return _SIM
 
 
 @dataclass

@@ -48,6 +48,7 @@ def run(args: argparse.Namespace) -> int:
     from icefab.paths import estimate_build_time, plan_paths, save_toolpaths
     from icefab.regions import add_scaffold
     from icefab.slicing import save_stack, slice_mesh
+    from icefab.workload import check_placed_part
     from icefab.core import Stack, Toolpaths
 
     from icefab.errors import ConfigError
@@ -61,7 +62,8 @@ def run(args: argparse.Namespace) -> int:
     with output_dir(args.out, "demo") as out:
         t0 = time.perf_counter()
         # Placed like any part (thesis 3.1.2): by default centred on the building origin.
-        mesh = transform(demo_mug(), job.parts)
+        mesh = transform(demo_mug(), job.parts, job)
+        check_placed_part(mesh.vertices, job)  # units, stroke, reach: before slicing
         report = check_mesh(mesh)
         write_stl(mesh, out / "demo-mug.stl")
         _say(f"part: demo mug, {mesh.n_faces} facets, size "

@@ -1,10 +1,13 @@
-"""``icefab export vplus [TRAJECTORIES] -o OUT`` (and ``icefab export gcode``).
+"""``icefab export vplus [TRAJECTORIES] -o OUT`` and ``icefab export gcode TRAJECTORIES -o OUT``.
 
 ``vplus`` writes ``OUT/icefab_server.v2``: the V+ server for the Adept C40
 (:mod:`icefab.cell.vplus`; untested on a controller) that receives each layer's
 trajectories from the control PC over TCP and runs them at constant dt with the valve and
 laser triggers. Given a ``trajectories.npz`` it checks that every path fits the
 controller's path store and sizes the store for the longest path.
+
+``gcode`` writes ``OUT/trajectories.gcode`` for a gantry running Marlin
+(:mod:`icefab.export`, the convention in its docstring).
 """
 
 from __future__ import annotations
@@ -44,6 +47,29 @@ def add_parser(subparsers) -> None:
     v.add_argument("--max-paths", type=int, default=4,
                    help="paths the controller stores at once (default 4)")
     v.set_defaults(func=run_vplus)
+    g = sub.add_parser("gcode", help="G-code for a gantry running Marlin (valve duty inline)",
+                       description="Write OUT/trajectories.gcode from a trajectories.npz "
+                                   "(icefab.export: Marlin cutter PWM drives the valve, T0/T1 "
+                                   "material, G0 travel). Plan the trajectories for a gantry "
+                                   "([cell] robot = 'gantry').")
+    g.add_argument("input", metavar="TRAJECTORIES", help="trajectories.npz from 'icefab plan'")
+    g.add_argument("-o", "--out", required=True, metavar="OUT", help="output folder")
+    g.set_defaults(func=run_gcode)
+
+
+def run_gcode(args: argparse.Namespace) -> int:
+    from icefab.export import save_gcode
+    from icefab.motion import load_trajectories
+
+    src = FsPath(args.input)
+    if not src.is_file():
+        raise ConfigError(f"{src}: trajectories file not found")
+    motion = load_trajectories(src)
+    with output_dir(args.out, "export-gcode") as tmp:
+        save_gcode(motion, tmp / "trajectories.gcode")
+    print(f"wrote {args.out}/trajectories.gcode (Marlin, {len(motion.layers)} layers, "
+          f"{motion.duration:.1f} s of motion)")
+    return 0
 
 
 def run_vplus(args: argparse.Namespace) -> int:

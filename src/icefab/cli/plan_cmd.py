@@ -17,7 +17,7 @@ everything worked; every file is written in a temporary folder first):
   (``icefab.motion.constant_speed_motion``) and the idealised length / speed estimate
   (``icefab.paths.estimate_build_time``), points, paths and computing time; also printed;
 * with ``--gcode``: ``trajectories.gcode`` — G-code for gantry-style machines
-  (``icefab.motion.save_gcode``, format in its docstring);
+  (``icefab.export.save_gcode``: Marlin, valve duty inline, format in its docstring);
 * with ``--constant-spacing MM``: ``constant_spacing.npz`` — constant point spacing and
   variable duration (``icefab.motion.save_constant_spacing``, format in its docstring).
 """
@@ -94,8 +94,9 @@ def _hms(s: float) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from icefab.export import save_gcode
     from icefab.motion import (constant_speed_motion, plan_toolpaths, save_constant_spacing,
-                               save_gcode, save_trajectories)
+                               save_trajectories)
     from icefab.paths import estimate_build_time
 
     spacing = getattr(args, "constant_spacing", None)

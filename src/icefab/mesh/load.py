@@ -25,6 +25,7 @@ import numpy as np
 
 from icefab.core import Mesh
 from icefab.errors import MeshError
+from icefab.inputs import read_input
 from icefab.mesh import obj, ply, stl
 from icefab.mesh.repair import MeshReport, clean_mesh
 from icefab.mesh.topology import weld_vertices
@@ -117,14 +118,7 @@ def read_mesh(path: str | os.PathLike[str], *, inexact: bool = False,
     p = Path(path)
     if tolerance <= 0 or not math.isfinite(tolerance):
         raise MeshError(f"{p}: weld tolerance {tolerance!r} must be a positive number (mm)")
-    try:
-        data = p.read_bytes()
-    except FileNotFoundError:
-        raise MeshError(f"{p}: mesh file not found") from None
-    except IsADirectoryError:
-        raise MeshError(f"{p}: is a directory, expected a mesh file") from None
-    except OSError as exc:
-        raise MeshError(f"{p}: cannot read mesh file ({exc.strerror or exc})") from None
+    data = read_input(p, "mesh", MeshError, "mesh file")  # regular, <= 1 GiB; no FIFO wait
     if not data[:4096].strip() and not data.strip():
         raise MeshError(f"{p}: empty file, expected a mesh (STL, PLY or OBJ)")
     if data[:3] == b"\xef\xbb\xbf" and _is_text(data[3:4099]):

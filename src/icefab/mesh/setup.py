@@ -17,6 +17,7 @@ from icefab.core import Mesh
 from icefab.errors import ConfigError, MeshError
 from icefab.mesh.holes import prepare_closed
 from icefab.mesh.load import load_meshes
+from icefab.workload import check_copies, check_placed_part
 
 if TYPE_CHECKING:  # pragma: no cover
     from icefab.config import Job, PartSetup
@@ -50,7 +51,7 @@ def rotation_matrix(rotation_deg: Sequence[float], order: Sequence[int]) -> np.n
     return r
 
 
-def transform(mesh: Mesh, parts: "PartSetup") -> Mesh:
+def transform(mesh: Mesh, parts: "PartSetup", job: "Job | None" = None) -> Mesh:
     """Place a build as the part set-up asks (thesis 3.1.2, Table 3-1, paper Table 1).
 
     Steps, in this order:
@@ -68,8 +69,11 @@ def transform(mesh: Mesh, parts: "PartSetup") -> Mesh:
        coordinate on that axis (mm); ``'cent'`` centres its bounding box on 0; ``'orig'``
        keeps the bounding-box centre where the original model's was.
 
-    Returns a new Mesh (faces of copies appended after the original's).
+    Returns a new Mesh (faces of copies appended after the original's). ``job`` (default:
+    the default cell with these ``parts``) bounds the grid of copies by the robot's reach
+    before they are made (:func:`icefab.workload.check_copies`).
     """
+    from icefab.config import Job
     v = np.array(mesh.vertices, dtype=np.float64)
     if len(v) == 0:
         raise MeshError(f"{mesh.name or 'mesh'}: nothing to transform (no vertices)")
@@ -88,6 +92,7 @@ def transform(mesh: Mesh, parts: "PartSetup") -> Mesh:
                           f"a {p1} x {p2} grid")
     if p3 > 1:
         lo, hi = v.min(axis=0), v.max(axis=0)
+        check_copies(hi - lo, job if job is not None else Job(parts=parts))  # before copying
         pitch = (hi - lo)[:2] + float(parts.copy_gap_mm)
         k = np.arange(p3)
         shift = np.zeros((p3, 3))
@@ -138,4 +143,6 @@ def prepare_parts(job: "Job", base_dir: str | os.PathLike[str] | None = None) ->
     paths = [Path(f) if base is None or Path(f).is_absolute() else base / f
              for f in parts.files]
     mesh = load_meshes(paths, inexact=parts.inexact, tolerance=parts.weld_tolerance_mm)
-    return prepare_closed(transform(mesh, parts), job)
+    placed = transform(mesh, parts, job)
+    check_placed_part(placed.vertices, job)  # units, stroke, reach: before slicing
+    return prepare_closed(placed, job)

@@ -28,6 +28,12 @@ log = logging.getLogger(__name__)
 # --------------------------------------------------------------------------- hashing
 
 
+#: Buckets (half-edges or faces sharing a lowest vertex) up to this size are sorted or
+#: scanned pairwise (fast for the usual valence of 6); larger ones by a merge sort, so a
+#: mesh with a vertex of huge valence loads in O(m log m), not O(m^2).
+_SMALL_BUCKET = 32
+
+
 @njit(cache=True)
 def _hash3(a, b, c):  # pragma: no cover
     h = ((np.uint64(a) * np.uint64(0x9E3779B97F4A7C15))
@@ -147,16 +153,22 @@ def _edge_topology(faces: np.ndarray, nv: int):  # pragma: no cover
     for v in range(nv):
         s = start[v]
         e = start[v + 1]
-        for i in range(s + 1, e):  # insertion sort of the bucket by upper vertex
-            x = hi[i]
-            d = dr[i]
-            j = i - 1
-            while j >= s and hi[j] > x:
-                hi[j + 1] = hi[j]
-                dr[j + 1] = dr[j]
-                j -= 1
-            hi[j + 1] = x
-            dr[j + 1] = d
+        if e - s > _SMALL_BUCKET:  # a vertex of huge valence (e.g. thousands of copies
+            # of one facet, issue 10): a merge sort keeps the whole pass O(m log m)
+            perm = np.argsort(hi[s:e], kind="mergesort")
+            hi[s:e] = hi[s:e][perm]
+            dr[s:e] = dr[s:e][perm]
+        else:
+            for i in range(s + 1, e):  # insertion sort of the small bucket by upper vertex
+                x = hi[i]
+                d = dr[i]
+                j = i - 1
+                while j >= s and hi[j] > x:
+                    hi[j + 1] = hi[j]
+                    dr[j + 1] = dr[j]
+                    j -= 1
+                hi[j + 1] = x
+                dr[j + 1] = d
         i = s
         while i < e:
             j = i
@@ -205,7 +217,19 @@ def _duplicate_faces(faces: np.ndarray, nv: int) -> np.ndarray:  # pragma: no co
         fill[a] += 1
     dup = np.zeros(m, np.bool_)
     for v in range(nv):
-        for i in range(start[v] + 1, start[v + 1]):
+        s = start[v]
+        e = start[v + 1]
+        if e - s > _SMALL_BUCKET:  # e.g. the fan of one OBJ face with 200 000 corners:
+            # sort the bucket by (b, c), stably (faces stay in file order within a run);
+            # every face of a run after its first is a duplicate
+            fs = order[s:e]
+            key = srt[fs, 1] * (nv + 1) + srt[fs, 2]
+            perm = np.argsort(key, kind="mergesort")
+            for r in range(1, e - s):
+                if key[perm[r]] == key[perm[r - 1]]:
+                    dup[fs[perm[r]]] = True
+            continue
+        for i in range(s + 1, e):
             fi = order[i]
             for j in range(start[v], i):
                 fj = order[j]

@@ -1,0 +1,273 @@
+/* Program store, upload validator and play reader: see program.h. */
+#include <string.h>
+#include "program.h"
+#include "crc16.h"
+
+static uint32_t le32(const uint8_t *p)
+{
+    return (uint32_t)p[0] | ((uint32_t)p[1] << 8) | ((uint32_t)p[2] << 16) |
+           ((uint32_t)p[3] << 24);
+}
+
+uint32_t vc_ticks_round(uint64_t us)
+{
+    return (uint32_t)((us + VC_TICK_US / 2u) / VC_TICK_US);
+}
+
+/* ------------------------------------------------------------------ upload validator */
+
+void vc_dec_init(vc_dec *d)
+{
+    memset(d, 0, sizeof *d);
+    d->phase = VC_DEC_HEADER;
+}
+
+static void piece_done(vc_dec *d)
+{
+    d->pieces_left--;
+    d->phase = d->pieces_left ? VC_DEC_PIECE : VC_DEC_DONE;
+    d->nacc = 0;
+}
+
+/* 0 fine; -1 layout or limit violated (PROGRAM); -2 a PWM piece larger than the store
+ * (NO_ROOM). The violation is at byte d->pos (d->pos is advanced only on success). */
+int vc_dec_byte(vc_dec *d, uint8_t b)
+{
+    switch (d->phase) {
+    case VC_DEC_HEADER:
+        d->acc[d->nacc++] = b;
+        switch (d->nacc) {
+        case 1: if (b != 'I') return -1; break;
+        case 2: if (b != 'C') return -1; break;
+        case 3: if (b != 'E') return -1; break;
+        case 4: if (b != 'V') return -1; break;
+        case 6: if (d->acc[4] != 1 || d->acc[5] != 0) return -1; break;  /* version 1 */
+        case 7: if (b > 1) return -1; d->mode = b; break;                /* FM / PWM */
+        case 8: if (b != 0) return -1; break;                            /* reserved */
+        case 12: if (le32(d->acc + 8) != VC_TICK_US) return -1; break;   /* our tick */
+        case 16:
+            d->pieces_left = le32(d->acc + 12);
+            if (d->pieces_left == 0) return -1;
+            d->phase = VC_DEC_PIECE;
+            d->nacc = 0;
+            break;
+        default: break;
+        }
+        break;
+    case VC_DEC_PIECE:
+        d->acc[d->nacc++] = b;
+        if (d->nacc == 4) {
+            d->n = le32(d->acc);
+            if (d->n > VC_MAX_PULSES) return -1;            /* thesis 2.3.1: 16 384 */
+            if (d->mode == 1 && 8u + 4u * d->n > VC_STORE_BYTES) return -2;
+        } else if (d->nacc == 8) {
+            d->dur_us = le32(d->acc + 4);
+            if (d->dur_us > VC_MAX_PIECE_US) return -1;     /* thesis 2.3.1: 131.072 s */
+            d->total_us += d->dur_us;
+            d->i = 0;
+            d->nacc = 0;
+            if (d->n == 0) piece_done(d);
+            else d->phase = VC_DEC_TICKS;
+        }
+        break;
+    case VC_DEC_TICKS:
+        d->acc[d->nacc++] = b;
+        if (d->nacc == 2) {
+            uint16_t t = (uint16_t)(d->acc[0] | (d->acc[1] << 8));
+            if (d->i > 0 && t < d->last_tick) return -1;    /* non-decreasing */
+            if ((uint32_t)t * VC_TICK_US > d->dur_us + VC_TICK_US) return -1;
+            d->last_tick = t;
+            d->nacc = 0;
+            d->pulses++;
+            if (++d->i == d->n) {
+                d->i = 0;
+                if (d->mode == 1) d->phase = VC_DEC_WIDTHS;
+                else piece_done(d);
+            }
+        }
+        break;
+    case VC_DEC_WIDTHS:
+        if (++d->nacc == 2) {
+            d->nacc = 0;
+            if (++d->i == d->n) piece_done(d);
+        }
+        break;
+    default:
+        return -1;                                          /* bytes after the last piece */
+    }
+    d->pos++;
+    return 0;
+}
+
+/* ------------------------------------------------------------------ store */
+
+void vc_store_init(vc_store *s)
+{
+    memset(s, 0, sizeof *s);
+    s->pulse_us = VC_DEFAULT_PULSE_US;
+}
+
+void vc_store_clear(vc_store *s)
+{
+    uint16_t pulse = s->pulse_us;
+    vc_store_init(s);
+    s->pulse_us = pulse;
+}
+
+uint32_t vc_store_free(const vc_store *s)
+{
+    return VC_STORE_BYTES - s->used;
+}
+
+vc_prog *vc_store_at(vc_store *s, unsigned k)
+{
+    if (k >= s->count) return 0;
+    return &s->progs[(s->head + k) % VC_QUEUE];
+}
+
+vc_prog *vc_store_tail(vc_store *s)
+{
+    return s->count ? vc_store_at(s, s->count - 1u) : 0;
+}
+
+int vc_store_begin(vc_store *s, uint32_t total)
+{
+    vc_prog *p;
+    if (s->count >= VC_QUEUE) return -1;
+    p = &s->progs[(s->head + s->count) % VC_QUEUE];
+    memset(p, 0, sizeof *p);
+    p->total = total;
+    p->crc = VC_CRC_INIT;
+    vc_dec_init(&p->dec);
+    s->count++;
+    return 0;
+}
+
+void vc_store_drop_tail(vc_store *s)
+{
+    vc_prog *p = vc_store_tail(s);
+    if (!p) return;
+    /* an unlocked tail is not being read: all its bytes are still in the ring */
+    s->w = (s->w + VC_STORE_BYTES - p->received) % VC_STORE_BYTES;
+    s->used -= p->received;
+    s->count--;
+}
+
+int vc_store_append(vc_store *s, const uint8_t *data, uint32_t n, uint32_t *bad)
+{
+    vc_prog *p = vc_store_tail(s);
+    vc_dec d;
+    uint32_t k;
+    int rc;
+    if (!p) { *bad = 0; return -1; }
+    if (n > p->total - p->received) { *bad = p->total; return -1; }
+    d = p->dec;
+    for (k = 0; k < n; k++) {
+        rc = vc_dec_byte(&d, data[k]);
+        if (rc) { *bad = d.pos; return rc; }
+    }
+    if (p->received + n == p->total && d.phase != VC_DEC_DONE) {
+        *bad = p->total;                                    /* announced bytes missing */
+        return -1;
+    }
+    for (k = 0; k < n; k++) {
+        s->buf[s->w] = data[k];
+        s->w = (s->w + 1u == VC_STORE_BYTES) ? 0u : s->w + 1u;
+    }
+    s->used += n;
+    p->dec = d;
+    p->crc = vc_crc16_update(p->crc, data, n);
+    p->received += n;
+    p->complete = (p->received == p->total);
+    return 0;
+}
+
+void vc_store_pop(vc_store *s)
+{
+    if (!s->count) return;
+    s->head = (uint8_t)((s->head + 1u) % VC_QUEUE);
+    s->count--;
+}
+
+/* ------------------------------------------------------------------ play reader */
+
+static uint8_t at(const vc_store *s, uint32_t k)
+{
+    uint32_t i = s->r + k;
+    if (i >= VC_STORE_BYTES) i -= VC_STORE_BYTES;
+    return s->buf[i];
+}
+
+static uint32_t at32(const vc_store *s, uint32_t k)
+{
+    return (uint32_t)at(s, k) | ((uint32_t)at(s, k + 1) << 8) |
+           ((uint32_t)at(s, k + 2) << 16) | ((uint32_t)at(s, k + 3) << 24);
+}
+
+static void consume(vc_store *s, uint32_t k)
+{
+    s->r = (s->r + k) % VC_STORE_BYTES;
+    s->used -= k;
+    s->rd.consumed += k;
+}
+
+void vc_reader_start(vc_store *s)
+{
+    memset(&s->rd, 0, sizeof s->rd);
+    s->rd.phase = VC_RD_HEADER;
+}
+
+int vc_reader_step(vc_store *s)
+{
+    vc_reader *rd = &s->rd;
+    vc_prog *p = vc_store_at(s, 0);
+    uint32_t avail;
+    if (rd->have_next) return VC_STEP_PULSE;
+    if (!p) return VC_STEP_END;
+    for (;;) {
+        avail = p->received - rd->consumed;
+        switch (rd->phase) {
+        case VC_RD_HEADER:
+            if (avail < 16) return VC_STEP_NEED;
+            rd->mode = at(s, 6);
+            rd->pieces_left = at32(s, 12);
+            consume(s, 16);
+            rd->phase = VC_RD_PIECE;
+            break;
+        case VC_RD_PIECE:
+            if (rd->pieces_left == 0) {
+                rd->end_tick = vc_ticks_round(rd->total_us);
+                rd->phase = VC_RD_END;
+                return VC_STEP_END;
+            }
+            if (avail < 8) return VC_STEP_NEED;
+            rd->n = at32(s, 0);
+            if (rd->mode == 1 && avail < 8u + 4u * rd->n) return VC_STEP_NEED;
+            rd->start_us = rd->total_us;
+            rd->total_us += at32(s, 4);
+            rd->piece_tick = vc_ticks_round(rd->start_us);
+            rd->i = 0;
+            consume(s, 8);
+            rd->phase = VC_RD_PULSES;
+            break;
+        case VC_RD_PULSES:
+            if (rd->i == rd->n) {
+                if (rd->mode == 1) consume(s, 2u * rd->n);  /* the piece's widths */
+                rd->pieces_left--;
+                rd->phase = VC_RD_PIECE;
+                break;
+            }
+            if (avail < 2) return VC_STEP_NEED;
+            rd->next_tick = rd->piece_tick + (uint32_t)(at(s, 0) | (at(s, 1) << 8));
+            /* PWM: width i sits 2n bytes after tick i (n - i ticks, then i widths) */
+            rd->next_width = rd->mode == 1 ?
+                (uint16_t)(at(s, 2u * rd->n) | (at(s, 2u * rd->n + 1u) << 8)) : 0u;
+            consume(s, 2);
+            rd->i++;
+            rd->have_next = 1;
+            return VC_STEP_PULSE;
+        default:
+            return VC_STEP_END;
+        }
+    }
+}

@@ -1,0 +1,59 @@
+/* The valve controller core: frame parser, command handling, state machine and pulse
+ * scheduler (PROTOCOL.md). Portable C99, no hardware access: a board feeds it received
+ * bytes (vc_rx), the time for the byte timeout (vc_poll), one call per valve tick
+ * (vc_tick) and trigger edges (vc_trigger_edge), and implements board.h.
+ *
+ * Concurrency: the core is not reentrant. On the LPC2148 the tick runs in the timer
+ * interrupt and vc_rx / vc_poll in the main loop with interrupts disabled around them. */
+#ifndef VC_VALVECTL_H
+#define VC_VALVECTL_H
+
+#include <stdint.h>
+#include "protocol.h"
+#include "program.h"
+
+typedef struct {
+    /* link */
+    uint8_t fb[VC_MAX_FRAME];
+    uint16_t flen;
+    uint32_t last_rx_ms;
+    uint32_t noise;
+    uint8_t expected;
+    uint8_t have_cache;
+    uint8_t cache_len;
+    uint8_t cache[VC_FRAME_OVERHEAD + 64];
+    uint8_t ev_seq;
+    uint32_t errors_sent;
+    /* state */
+    uint8_t state, fault, last_fault;
+    uint8_t armed_mask;      /* ARMED: armed; PLAYING: playing */
+    uint8_t queued_mask;     /* PLAYING: ARM queued behind */
+    uint8_t done_mask;       /* PLAYING: valves whose program ended */
+    uint8_t trig_latched;    /* an edge since the last tick */
+    uint8_t early_trigger;   /* PLAYING with a queued arm: the next play's trigger came */
+    uint32_t early_ticks;    /* ticks it has waited */
+    uint32_t play_tick;      /* tick of the current play to be handled next */
+    uint32_t late_ticks;
+    uint32_t play_len;
+    uint16_t plays;
+    uint32_t last_emitted[VC_N_VALVES];
+    uint8_t wait_for_data;   /* virtual clock: a tick waits for missing bytes (no UNDERRUN) */
+    uint8_t resume;          /* the last tick waited: the next call finishes it */
+    vc_store store[VC_N_VALVES];
+} vc_core;
+
+void vc_init(vc_core *c, uint8_t reset_cause);
+void vc_rx(vc_core *c, const uint8_t *data, unsigned n, uint32_t now_ms);
+void vc_poll(vc_core *c, uint32_t now_ms);
+/* Returns 1 when the tick was handled, 0 when it waits for program bytes (only with
+ * wait_for_data set; call again with the same tick when bytes came). */
+int vc_tick(vc_core *c, int late);
+void vc_trigger_edge(vc_core *c);
+/* Virtual clock: 1 if the next tick can run without waiting for program bytes. */
+int vc_can_advance(vc_core *c);
+/* 1 while a tick has work: playing, or a trigger edge is latched. */
+int vc_needs_tick(const vc_core *c);
+/* Enter FAULT (every valve off, programs discarded, FAULT event). */
+void vc_fault(vc_core *c, uint8_t fault);
+
+#endif

@@ -1,0 +1,195 @@
+/* LPC2148 board layer (PROTOCOL.md 9; thesis 2.3.1): 12 MHz crystal, PLL to 48 MHz,
+ * PCLK 48 MHz; UART0 115 200 8N1 (divisor 26: 115 385 baud, +0.16 %); Timer0 counting
+ * microseconds: MR0 the 2 ms valve tick, MR1 / MR2 the end of valve 0 / 1's pulse; valve
+ * outputs P0.12 (part) and P0.13 (scaffold); trigger input P0.16 from the Adept C40,
+ * sampled every tick; 10 s watchdog fed by the main loop. */
+#include <stdint.h>
+#include "lpc2148.h"
+#include "../core/board.h"
+#include "../core/valvectl.h"
+
+#define VALVE0 (1u << 12)
+#define VALVE1 (1u << 13)
+#define TRIGGER_PIN (1u << 16)
+#define PCLK_HZ 48000000u
+#define WDT_TICKS (PCLK_HZ / 4u * (VC_WATCHDOG_MS / 1000u))   /* WDT clock = PCLK / 4 */
+
+static vc_core core;
+static volatile uint8_t rx_ring[512];
+static volatile uint16_t rx_head, rx_tail;
+static uint8_t tx_ring[1024];
+static volatile uint16_t tx_head, tx_tail;
+static volatile uint32_t now_ms;
+static uint32_t trig_prev;
+static const uint32_t valve_pin[VC_N_VALVES] = { VALVE0, VALVE1 };
+
+static inline uint32_t irq_save(void)
+{
+    uint32_t cpsr;
+    __asm volatile("mrs %0, cpsr" : "=r"(cpsr));
+    __asm volatile("msr cpsr_c, %0" : : "r"(cpsr | 0x80u) : "memory");
+    return cpsr;
+}
+
+static inline void irq_restore(uint32_t cpsr)
+{
+    __asm volatile("msr cpsr_c, %0" : : "r"(cpsr) : "memory");
+}
+
+/* ------------------------------------------------------------------ board.h
+ * Called by the core with interrupts disabled (from an ISR, or main's critical section). */
+
+void board_tx(const uint8_t *data, unsigned n)
+{
+    unsigned i, used = (uint16_t)(tx_head - tx_tail) % sizeof tx_ring;
+    if (n > sizeof tx_ring - 1u - used) return;                 /* full: dropped */
+    for (i = 0; i < n; i++) {
+        tx_ring[tx_head] = data[i];
+        tx_head = (uint16_t)((tx_head + 1u) % sizeof tx_ring);
+    }
+}
+
+void board_valve_pulse(unsigned valve, uint16_t width_us, uint32_t play_tick)
+{
+    uint32_t end = T0TC + width_us;
+    (void)play_tick;
+    if (valve >= VC_N_VALVES) return;
+    IO0SET = valve_pin[valve];
+    if (valve == 0) {
+        if (!(T0MCR & (1u << 3)) || (int32_t)(end - T0MR1) > 0) T0MR1 = end;
+        T0MCR |= 1u << 3;                                       /* MR1 interrupt */
+    } else {
+        if (!(T0MCR & (1u << 6)) || (int32_t)(end - T0MR2) > 0) T0MR2 = end;
+        T0MCR |= 1u << 6;                                       /* MR2 interrupt */
+    }
+}
+
+void board_valves_off(void)
+{
+    IO0CLR = VALVE0 | VALVE1;
+    T0MCR &= ~((1u << 3) | (1u << 6));
+}
+
+uint8_t board_outputs(void)
+{
+    uint32_t pins = IO0PIN;
+    return (uint8_t)(((pins & VALVE0) ? 1u : 0u) | ((pins & VALVE1) ? 2u : 0u));
+}
+
+void board_note(int what, uint32_t a, uint32_t b) { (void)what; (void)a; (void)b; }
+
+/* ------------------------------------------------------------------ interrupts */
+
+void timer0_isr(void) __attribute__((interrupt("IRQ")));
+void timer0_isr(void)
+{
+    uint32_t ir = T0IR;
+    if (ir & 1u) {                                              /* MR0: the valve tick */
+        uint32_t due = T0MR0, pin;
+        T0MR0 = due + VC_TICK_US;
+        T0IR = 1u;
+        now_ms += VC_TICK_US / 1000u;
+        pin = IO0PIN & TRIGGER_PIN;
+        if (pin && !trig_prev) vc_trigger_edge(&core);           /* rising edge */
+        trig_prev = pin;
+        vc_tick(&core, (T0TC - due) > VC_TICK_US);
+    }
+    if (ir & 2u) { IO0CLR = VALVE0; T0MCR &= ~(1u << 3); T0IR = 2u; }
+    if (ir & 4u) { IO0CLR = VALVE1; T0MCR &= ~(1u << 6); T0IR = 4u; }
+    VICVectAddr = 0;
+}
+
+void uart0_isr(void) __attribute__((interrupt("IRQ")));
+void uart0_isr(void)
+{
+    while (U0LSR & LSR_RDR) {
+        uint8_t b = (uint8_t)U0RBR;
+        uint16_t next = (uint16_t)((rx_head + 1u) % sizeof rx_ring);
+        if (next != rx_tail) { rx_ring[rx_head] = b; rx_head = next; }
+    }
+    (void)U0IIR;
+    VICVectAddr = 0;
+}
+
+/* ------------------------------------------------------------------ start-up */
+
+static void feed_watchdog(void)
+{
+    uint32_t s = irq_save();
+    WDFEED = 0xAA;
+    WDFEED = 0x55;
+    irq_restore(s);
+}
+
+static void clocks(void)
+{
+    PLLCFG = 0x23;                   /* M = 4 (MSEL 3), P = 2 (PSEL 1): 48 MHz, Fcco 192 MHz */
+    PLLCON = 1;
+    PLLFEED = 0xAA; PLLFEED = 0x55;
+    while (!(PLLSTAT & (1u << 10))) { }                          /* PLOCK */
+    PLLCON = 3;
+    PLLFEED = 0xAA; PLLFEED = 0x55;
+    MAMCR = 0; MAMTIM = 3; MAMCR = 2;                            /* flash accelerator */
+    VPBDIV = 1;                                                  /* PCLK = CCLK */
+}
+
+int main(void)
+{
+    uint8_t cause = (RSIR & (1u << 2)) ? VC_RESET_WATCHDOG : VC_RESET_POWER;
+    RSIR = 0x0F;
+    clocks();
+    PINSEL0 = (PINSEL0 & ~0x0Fu) | 0x05u;                        /* P0.0 TXD0, P0.1 RXD0 */
+    PINSEL0 &= ~(0x0Fu << 24);                                   /* P0.12, P0.13 GPIO */
+    PINSEL1 &= ~0x03u;                                           /* P0.16 GPIO */
+    IO0CLR = VALVE0 | VALVE1;
+    IO0DIR = (IO0DIR | VALVE0 | VALVE1) & ~TRIGGER_PIN;
+
+    U0LCR = 0x83;                                                /* 8N1, divisor latch */
+    U0DLL = PCLK_HZ / 16u / 115200u;                             /* 26 */
+    U0DLM = 0;
+    U0LCR = 0x03;
+    U0FCR = 0x07;                                                /* FIFOs on and reset */
+    U0IER = 0x01;                                                /* receive interrupt */
+
+    vc_init(&core, cause);
+
+    T0TCR = 2;                                                   /* reset */
+    T0PR = PCLK_HZ / 1000000u - 1u;                              /* 1 us per count */
+    T0MR0 = VC_TICK_US;
+    T0MCR = 1;                                                   /* MR0 interrupt, no reset */
+    T0TCR = 1;
+
+    VICIntSelect = 0;
+    VICVectAddr0 = (uint32_t)timer0_isr;
+    VICVectCntl0 = 0x20u | VIC_TIMER0;
+    VICVectAddr1 = (uint32_t)uart0_isr;
+    VICVectCntl1 = 0x20u | VIC_UART0;
+    VICIntEnable = (1u << VIC_TIMER0) | (1u << VIC_UART0);
+
+    WDTC = WDT_TICKS;                                            /* thesis 2.3.1: 10 s */
+    WDMOD = 0x03;                                                /* enable + reset */
+    feed_watchdog();
+    irq_restore(irq_save() & ~0x80u);                            /* IRQs on */
+
+    for (;;) {
+        uint32_t s;
+        feed_watchdog();
+        while (rx_tail != rx_head) {
+            uint8_t b = rx_ring[rx_tail];
+            rx_tail = (uint16_t)((rx_tail + 1u) % sizeof rx_ring);
+            s = irq_save();
+            vc_rx(&core, &b, 1, now_ms);
+            irq_restore(s);
+        }
+        s = irq_save();
+        vc_poll(&core, now_ms);
+        irq_restore(s);
+        while (tx_tail != tx_head && (U0LSR & LSR_THRE)) {
+            unsigned k;
+            for (k = 0; k < 16u && tx_tail != tx_head; k++) {    /* one FIFO's worth */
+                U0THR = tx_ring[tx_tail];
+                tx_tail = (uint16_t)((tx_tail + 1u) % sizeof tx_ring);
+            }
+        }
+    }
+}

@@ -1,0 +1,196 @@
+"""``icefab cell serve --state DIR [-c JOB] [--grid-for TRAJECTORIES [--layers N] |
+--bounds X0,Y0,X1,Y1] [--time-factor F] [--port P]``.
+
+Runs the virtual cell (:mod:`icefab.cell.virtual`) in the foreground until SIGTERM or
+Ctrl-C: a virtual Adept C40 on 127.0.0.1:PORT (robot link), the valve firmware's host
+build on a pty, the LK-G laser emulator on a pty. Writes ``DIR/endpoints.json`` and keeps
+the part in ``DIR/surface.npz`` (restart with the same DIR to carry on). A new DIR needs
+the surface grid: ``--grid-for`` gives the grid ``icefab simulate`` uses for those
+trajectories (so both can be compared bit for bit), ``--bounds`` a rectangle in the part
+frame (mm). The job's simulation settings (seed, disturbances) model the cell.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import signal
+import threading
+from pathlib import Path
+
+from icefab.cli.common import add_job_argument, job_from_args
+from icefab.errors import CellError, ConfigError
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser("cell", help="the virtual cell (robot, valve controller, laser)",
+                              description="The virtual cell behind the real cell's links.")
+    sub = p.add_subparsers(dest="what", metavar="WHAT")
+    sub.required = True
+    s = sub.add_parser(
+        "serve", help="run the virtual cell until stopped",
+        description="Run a virtual Adept C40 (TCP on 127.0.0.1), the valve firmware's host "
+                    "build (pty) and the Keyence LK-G emulator (pty), depositing on "
+                    "DIR/surface.npz with icefab's simulator. Endpoints in "
+                    "DIR/endpoints.json. Stop with SIGTERM or Ctrl-C.")
+    s.add_argument("--state", required=True, metavar="DIR",
+                   help="state folder (surface.npz, endpoints.json, logs)")
+    add_job_argument(s)
+    s.add_argument("--grid-for", metavar="TRAJECTORIES",
+                   help="a new surface on the grid 'icefab simulate' uses for this "
+                        "trajectories.npz")
+    s.add_argument("--layers", type=int, default=0,
+                   help="with --grid-for: the first N layers only (0: all)")
+    s.add_argument("--bounds", metavar="X0,Y0,X1,Y1",
+                   help="a new surface over this rectangle of the part frame, mm")
+    s.add_argument("--time-factor", type=float, default=0.0, metavar="F",
+                   help="0: as fast as possible (default); F > 0: F times real time")
+    s.add_argument("--port", type=int, default=7100,
+                   help="robot TCP port on 127.0.0.1 (default 7100; 0: any free port)")
+    s.add_argument("--firmware", metavar="VALVECTL",
+                   help="a built valve firmware host executable (default: build firmware/)")
+    s.set_defaults(func=run_serve)
+    c = sub.add_parser(
+        "check", help="say hello on each link of a cell and print what answers",
+        description="Connect to the robot controller (TCP), the valve controller and the "
+                    "laser (serial) of a cell -- the virtual one of --state DIR or real "
+                    "devices -- and print each one's answer. Exit 2 with one line naming "
+                    "the first device that does not answer.")
+    c.add_argument("--state", metavar="DIR", help="a running 'icefab cell serve' state folder")
+    c.add_argument("--robot", metavar="HOST:PORT", help="the C40's V+ server")
+    c.add_argument("--valve", metavar="DEVICE", help="the valve controller's serial port")
+    c.add_argument("--laser", metavar="DEVICE", help="the laser controller's serial port")
+    c.add_argument("--timeout", type=float, default=5.0, metavar="S",
+                   help="seconds to wait for each answer (default 5)")
+    c.set_defaults(func=run_check)
+
+
+def _grid(args, job):
+    if args.grid_for and args.bounds:
+        raise ConfigError("--grid-for and --bounds: give one of them")
+    if args.layers < 0:
+        raise ConfigError(f"--layers {args.layers}: expected >= 0")
+    if args.grid_for:
+        from icefab.cell.world import grid_for
+        from icefab.motion import load_trajectories
+
+        src = Path(args.grid_for)
+        if not src.is_file():
+            raise ConfigError(f"--grid-for {src}: trajectories file not found")
+        return grid_for(load_trajectories(src), job, layers=args.layers or None)
+    if args.bounds:
+        import numpy as np
+
+        try:
+            x0, y0, x1, y1 = (float(v) for v in args.bounds.split(","))
+        except ValueError:
+            raise ConfigError(f"--bounds {args.bounds!r}: expected X0,Y0,X1,Y1 in mm"
+                              ) from None
+        g = job.simulation.grid_mm
+        if not all(map(math.isfinite, (x0, y0, x1, y1))) or x1 <= x0 or y1 <= y0:
+            raise ConfigError(f"--bounds {args.bounds!r}: expected X0 < X1 and Y0 < Y1")
+        shape = (int(math.floor((y1 - y0) / g)) + 2, int(math.floor((x1 - x0) / g)) + 2)
+        if shape[0] * shape[1] > 50_000_000:
+            raise ConfigError(f"--bounds {args.bounds!r}: {shape[0]} x {shape[1]} cells of "
+                              f"{g} mm is too large")
+        return np.array([x0, y0]), shape, g
+    return None
+
+
+def run_serve(args: argparse.Namespace) -> int:
+    from icefab.cell.virtual import VirtualCell
+
+    if not (math.isfinite(args.time_factor) and args.time_factor >= 0):
+        raise ConfigError(f"--time-factor {args.time_factor}: expected 0 or a positive "
+                          "factor of real time")
+    if not 0 <= args.port <= 65535:
+        raise ConfigError(f"--port {args.port}: expected 0..65535")
+    state = Path(args.state)
+    if state.exists() and not state.is_dir():
+        raise ConfigError(f"--state {state}: exists and is not a folder")
+    exists = (state / "surface.npz").exists()
+    if exists and (args.grid_for or args.bounds):
+        raise ConfigError(f"--state {state}: already holds a surface; --grid-for and "
+                          "--bounds only start a new one")
+    if exists and not getattr(args, "job", None):
+        job = _stored_job(state)
+    else:
+        job = job_from_args(args)
+    grid = None if exists else _grid(args, job)
+    if grid is None and not exists:
+        raise ConfigError(f"--state {state}: no surface yet; give --grid-for TRAJECTORIES "
+                          "or --bounds X0,Y0,X1,Y1")
+    stop = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: stop.set())
+    try:
+        cell = VirtualCell(state, job, grid=grid, time_factor=args.time_factor,
+                           robot_port=args.port, firmware_exe=args.firmware)
+    except OSError as exc:
+        raise CellError(f"virtual cell: cannot start ({exc.strerror or exc})") from None
+    e = cell.endpoints
+    print(f"robot 127.0.0.1:{e['robot']['port']}  valve {e['valve']['device']}  laser "
+          f"{e['laser']['device']}  (endpoints in {state / 'endpoints.json'})", flush=True)
+    try:
+        while not stop.wait(0.5):
+            pass
+    finally:
+        cell.close()
+    print(f"stopped after {cell.paths_run} paths; surface in {state / 'surface.npz'}")
+    return 0
+
+
+def _stored_job(state: Path):
+    import tomllib
+
+    import numpy as np
+
+    from icefab.config import job_from_dict
+
+    try:
+        with np.load(state / "surface.npz", allow_pickle=False) as d:
+            return job_from_dict(tomllib.loads(str(d["job"])))
+    except (OSError, ValueError, KeyError) as exc:
+        raise CellError(f"{state / 'surface.npz'}: cannot read the cell's job ({exc})"
+                        ) from None
+
+
+def run_check(args: argparse.Namespace) -> int:
+    from icefab.cell.laser import LaserLink
+    from icefab.cell.robot import RobotLink
+
+    if not (math.isfinite(args.timeout) and args.timeout > 0):
+        raise ConfigError(f"--timeout {args.timeout}: expected a positive number of seconds")
+    ends = {}
+    if args.state:
+        from icefab.cell.virtual import read_endpoints
+
+        e = read_endpoints(args.state)
+        ends = {"robot": f"{e['robot']['host']}:{e['robot']['port']}",
+                "valve": e["valve"]["device"], "laser": e["laser"]["device"]}
+    for key in ("robot", "valve", "laser"):
+        if getattr(args, key):
+            ends[key] = getattr(args, key)
+    if not ends:
+        raise ConfigError("give --state DIR or at least one of --robot, --valve, --laser")
+    if "robot" in ends:
+        host, _, port = ends["robot"].rpartition(":")
+        if not host or not port.isdigit():
+            raise ConfigError(f"--robot {ends['robot']!r}: expected HOST:PORT")
+        with RobotLink.connect(host, int(port), timeout_s=args.timeout) as link:
+            info = link.hello()
+            st = link.status()
+        print(f"robot {ends['robot']}: protocol {info.version}, {info.max_points} points x "
+              f"{info.max_paths} paths, {st['state']}, {st['stored']} stored")
+    if ends.get("valve"):
+        from icefab.cell.valve import ValveController
+
+        with ValveController.open(ends["valve"]) as ctl:
+            st = ctl.status()
+        print(f"valve {ends['valve']}: state {st.state}, plays {st.plays}")
+    if ends.get("laser"):
+        with LaserLink.open(ends["laser"], timeout_s=args.timeout) as laser:
+            storing, count = laser.status()
+        print(f"laser {ends['laser']}: storage {'running' if storing else 'stopped'}, "
+              f"{count} values stored")
+    return 0

@@ -1,0 +1,103 @@
+"""Programs for other machines: G-code for a gantry cell (thesis 7: "many three-axis CNC
+machines use positioning data coupled with feedrates", and MTTS output converts to it).
+
+Convention: **Marlin 2.x with its cutter (laser/spindle) output driving the valve**
+(``LASER_FEATURE``, ``LASER_POWER_INLINE``, power unit PWM255). Marlin applies inline
+power per planner block, so the valve's duty changes exactly with the moves, the way
+the C40's trigger keeps the valve controller in step with the robot (thesis 2.3.1).
+
+* ``G21``, ``G90``; ``M3 I S0``: inline power mode, valve closed.
+* Per layer: ``; layer K z Z`` and ``G0 Z..`` (the layer height, mm above the platform).
+* Material (nozzle) change: ``T0`` (part, water) / ``T1`` (scaffold) before a path of the
+  other material. The machine routes the cutter PWM to that nozzle's valve in its tool
+  change (for example Marlin's ``EVENT_GCODE_TOOLCHANGE_T0`` / ``_T1`` switching a mux pin
+  with ``M42``). X, Y are already the carriage positions that put the chosen nozzle on the
+  part (the trajectories' base-frame samples), so the tool change applies no offset.
+* Travel and measurement paths: ``G0`` moves, valve closed (``S0``).
+* Deposition paths: ``G0`` to the first sample, then one ``G1 X Y F S`` per time step
+  (:func:`icefab.motion.gcode_moves`): ``F`` the step's length over ``dt`` (mm/min), so
+  each move lasts one time step (thesis 4.3), and ``S`` the valve's duty over that step,
+  0..255: the pulse widths of the path's PWM valve program (:func:`icefab.flow.plan_valves`
+  with ``flow.mode = "pwm"``, thesis 6.1: flow by pulse width at
+  ``flow.pwm_frequency_hz``) falling in the step, over the step's length. Set the
+  machine's cutter PWM frequency (``SPINDLE_LASER_FREQUENCY``) to
+  ``flow.pwm_frequency_hz``. A step at rest is a dwell ``G4 P<ms>`` (valve closed).
+* End: ``M5`` (valve off).
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+__all__ = ["save_gcode", "step_duty", "gcode_lines"]
+
+TOOL_NUMBER = {"part": 0, "scaffold": 1}
+
+
+def step_duty(trajectory, program) -> np.ndarray:
+    """(n - 1,) float64 in [0, 1]: the valve's duty over each time step of ``trajectory``
+    (samples every ``dt``): the pulse widths of the PWM ``program`` whose pulses fall in
+    the step (pulse instants from :func:`icefab.flow.pulse_times`), over ``dt``."""
+    from icefab import flow
+
+    n = len(trajectory.xy)
+    if n < 2:
+        return np.zeros(0)
+    t = flow.pulse_times(program)
+    widths = np.concatenate([p.widths_us for p in flow.program_pieces(program)]
+                            ).astype(np.float64) * 1e-6 if len(t) else np.zeros(0)
+    step = np.clip(np.floor(t / trajectory.dt + 1e-9).astype(np.int64), 0, n - 2)
+    on = np.bincount(step, weights=widths, minlength=n - 1)
+    return np.clip(on / trajectory.dt, 0.0, 1.0)
+
+
+def gcode_lines(motion, job=None):
+    """The G-code of a BuildMotion, line by line (see the module docstring)."""
+    from icefab import flow
+    from icefab.motion import gcode_moves
+
+    job = job if job is not None else motion.job
+    pwm = job.replace(**{"flow.mode": "pwm"}) if job.flow.mode != "pwm" else job
+    yield (f"; icefab G-code for a gantry, Marlin 2.x (cutter PWM drives the valve, inline "
+           f"power 0-255, PWM at {pwm.flow.pwm_frequency_hz:g} Hz)")
+    yield (f"; {motion.robot}, dt {job.motion.dt_s:g} s, {motion.duration:.1f} s of motion; "
+           "X, Y: carriage (base frame), mm; F: mm/min; T0 part, T1 scaffold")
+    yield "G21"
+    yield "G90"
+    yield "M3 I S0"
+    tool = None
+    for lm in motion.layers:
+        yield f"; layer {lm.index} z {lm.z:.4f}"
+        yield f"G0 Z{lm.z:.4f}"
+        for i, tr in enumerate(lm.trajectories):
+            if len(tr.xy) == 0:
+                continue
+            p = tr.path
+            role = p.role if p is not None else "travel"
+            depositing = p is not None and p.depositing
+            what = f"{p.material} {role}, width {p.width:g} mm" if p is not None else "path"
+            yield f"; path {i}: {what}, {tr.duration:.3f} s"
+            if not depositing:
+                # travel or measurement: positioning only, valve closed
+                for line in gcode_moves(tr, dwell=True):
+                    yield line.replace("G1 ", "G0 ", 1) + " S0" if line.startswith("G1") \
+                        else line
+                continue
+            if tool != p.material:
+                tool = p.material
+                yield f"T{TOOL_NUMBER[tool]}"
+            prog = flow.plan_valves(tr, p.material, pwm)
+            s = np.rint(255.0 * step_duty(tr, prog)).astype(np.int64)
+            yield from gcode_moves(tr, power=s, dwell=True)
+    yield "M5"
+
+
+def save_gcode(motion, path: str | os.PathLike, job=None) -> None:
+    """Write :func:`gcode_lines` to ``path`` atomically (``icefab plan --gcode``)."""
+    from icefab.atomic import atomic_path
+
+    with atomic_path(path, suffix=".gcode") as tmp, open(tmp, "w", encoding="utf-8") as fh:
+        for line in gcode_lines(motion, job):
+            fh.write(line + "\n")

@@ -1,0 +1,212 @@
+"""Work estimates: refuse a build the cell cannot make, or absurd work, before it starts.
+
+Ranges on single settings (:mod:`icefab.config`) cannot catch work that depends on the
+part and several settings together: a vertex at z = 1e9 mm makes four billion layers at
+any layer thickness; a fine simulation grid is fine on a mug and 40 GB on a part as wide
+as the workspace. Each stage that allocates in proportion to such work asks this module
+first; every check is a few arithmetic operations on bounds and settings, never the work
+itself, and raises one line naming the settings to change.
+
+Two kinds of checks:
+
+* the placed part against the machine (:func:`check_placed_part`, before slicing): it
+  must fit the vertical stroke (``cell.stroke_mm``, Cobra 600: 210 mm, thesis Table
+  2-1) and the reach of the robot (SCARA annulus ``cell.reach_mm`` around the base, or
+  the gantry's travel box) where the water nozzle must go, and must not be implausibly
+  small for the path width (a file in metres read as millimetres);
+* the work of a stage against fixed budgets (:data:`MAX_LAYERS`, :data:`MAX_GRID_CELLS`,
+  :data:`MAX_SAMPLES`), each sized so the stage stays well under 2 GB.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from icefab.config import Job
+from icefab.errors import ConfigError, SimulationError, WorkspaceError
+
+#: Most layers a build may have: the tallest stroke a job may describe (5 m,
+#: ``cell.stroke_mm``'s upper bound) in the thinnest layers (0.01 mm) would be 500 000;
+#: a real build within the Cobra 600's 210 mm stroke has at most 21 000.
+MAX_LAYERS = 500_000
+
+#: Most nodes of one height-map or error-surface grid (float64: 8 bytes each, and the
+#: simulator keeps a few copies): 25 million is 200 MB per copy, a 500 mm square at
+#: 0.1 mm.
+MAX_GRID_CELLS = 25_000_000
+
+#: Most trajectory samples (or resampled path points) of a build: each sample carries
+#: about 10 float64 (position, joints, speed, flow), so 40 million are about 3 GB spread
+#: over the layers; the demo mug at the defaults has under a million.
+MAX_SAMPLES = 40_000_000
+
+#: A placed part whose largest horizontal extent is under this many path widths cannot
+#: hold a boundary path on each side: almost surely a file in other units.
+MIN_WIDTHS_ACROSS = 2.0
+
+
+def _fmt(v: float) -> str:
+    return f"{v:.4g}"
+
+
+def check_layers(z_min: float, z_max: float, job: Job) -> int:
+    """The number of layers of a part spanning ``z_min``-``z_max`` mm (after
+    ``parts.part_fraction``); ConfigError when it exceeds :data:`MAX_LAYERS` or the
+    height is not finite."""
+    f0, f1 = job.parts.part_fraction
+    height = (float(z_max) - float(z_min)) * (f1 - f0)
+    t = job.slicing.layer_thickness_mm
+    if not math.isfinite(height):
+        raise ConfigError(f"part height {height} mm is not finite: check the mesh "
+                          "coordinates and parts.scale")
+    n = height / t
+    if n > MAX_LAYERS:
+        raise ConfigError(f"slicing.layer_thickness_mm = {t:g}: a part {_fmt(height)} mm tall "
+                          f"would make {n:.3g} layers, more than {MAX_LAYERS} "
+                          "(icefab.workload.MAX_LAYERS); check the part's size (parts.scale, "
+                          "a stray vertex) or use thicker layers")
+    return max(1, int(round(n)))
+
+
+def check_placed_part(vertices: np.ndarray, job: Job) -> None:
+    """Refuse a placed part that cannot be built by this cell, before slicing.
+
+    vertices: (n, 3) float64, mm, the placed part (after ``parts`` scale, rotation,
+    copies and translation), in the part frame.
+    Raises WorkspaceError naming the settings to change when the part (the slice of it
+    ``parts.part_fraction`` selects) is taller than ``cell.stroke_mm``, when a surface
+    point lies outside the robot's reach where the water nozzle must put it (with a
+    slack of the boundary path's inset, since the paths lie inside the surface), and
+    ConfigError when it is under :data:`MIN_WIDTHS_ACROSS` path widths across.
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    if len(v) == 0:
+        return
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    size = hi - lo
+    if not np.all(np.isfinite(size)):
+        raise WorkspaceError("the placed part has non-finite size: check parts.scale and "
+                             "parts.translation")
+    f0, f1 = job.parts.part_fraction
+    height = size[2] * (f1 - f0)
+    stroke = job.cell.stroke_mm
+    if height > stroke:
+        raise WorkspaceError(
+            f"the placed part is {_fmt(height)} mm tall (z {_fmt(lo[2])} to {_fmt(hi[2])} mm: "
+            "a stray vertex?), more than the vertical stroke "
+            f"cell.stroke_mm = {stroke:g} mm: scale it down (parts.scale = "
+            f"{list(job.parts.scale)}), slice part of it (parts.part_fraction) or rotate it "
+            "(parts.rotation_deg)")
+    check_layers(lo[2], hi[2], job)
+    width = job.materials.part.path_width_mm
+    across = float(max(size[0], size[1]))
+    if across < MIN_WIDTHS_ACROSS * width:
+        raise ConfigError(
+            f"the placed part is {_fmt(size[0])} x {_fmt(size[1])} x {_fmt(size[2])} mm, "
+            f"under {MIN_WIDTHS_ACROSS:g} path widths (materials.part.path_width_mm = "
+            f"{width:g}) across: is the file in metres or inches? set parts.scale (e.g. "
+            "[1000, 1000, 1000] for metres, [25.4, 25.4, 25.4] for inches)")
+    z0, z1 = lo[2] + f0 * size[2], lo[2] + f1 * size[2]
+    xy = v[(v[:, 2] >= z0) & (v[:, 2] <= z1), :2]
+    if len(xy) == 0:
+        return
+    mat = job.materials.part
+    slack = mat.initial_offset_mm + mat.path_width_mm
+    base = xy + (np.asarray(job.cell.ee_origin_mm) - np.asarray(mat.nozzle_offset_mm))
+    cell = job.cell
+    where = ("move or scale it (parts.translation, parts.scale) or the part origin "
+             f"(cell.ee_origin_mm = {list(cell.ee_origin_mm)})")
+    if cell.robot == "scara":
+        r = np.hypot(base[:, 0], base[:, 1])
+        rmin, rmax = cell.reach_mm
+        k = int(np.argmax(r))
+        if r[k] > rmax + slack:
+            raise WorkspaceError(
+                f"the placed part reaches {_fmt(r[k])} mm from the robot base at part point "
+                f"({_fmt(xy[k, 0])}, {_fmt(xy[k, 1])}) mm, beyond the reach cell.reach_mm = "
+                f"{list(cell.reach_mm)} (part {_fmt(size[0])} x {_fmt(size[1])} mm across): "
+                + where)
+        k = int(np.argmin(r))
+        if r[k] < rmin - slack:
+            raise WorkspaceError(
+                f"the placed part comes within {_fmt(r[k])} mm of the robot base at part "
+                f"point ({_fmt(xy[k, 0])}, {_fmt(xy[k, 1])}) mm, inside the minimum reach "
+                f"cell.reach_mm = {list(cell.reach_mm)}: " + where)
+    else:
+        travel = np.asarray(cell.gantry_travel_mm, dtype=np.float64)
+        out = (base < -slack) | (base > travel + slack)
+        if out.any():
+            k = int(np.flatnonzero(out.any(axis=1))[0])
+            raise WorkspaceError(
+                f"the placed part point ({_fmt(xy[k, 0])}, {_fmt(xy[k, 1])}) mm is at "
+                f"({_fmt(base[k, 0])}, {_fmt(base[k, 1])}) mm on the gantry, outside its "
+                f"travel cell.gantry_travel_mm = {list(cell.gantry_travel_mm)} (part "
+                f"{_fmt(size[0])} x {_fmt(size[1])} mm across): " + where)
+
+
+def check_copies(extent_mm: np.ndarray, job: Job) -> None:
+    """Refuse ``parts.copies`` whose grid is wider than any workspace of this cell before
+    the copies are made (a 100 x 100 grid of a large part would allocate gigabytes).
+
+    extent_mm: (3,) float64, the size of one placed copy before translation.
+    """
+    p1, p2, p3 = job.parts.copies
+    if p3 <= 1:
+        return
+    cols, rows = min(p1, p3), math.ceil(p3 / p1)
+    gap = job.parts.copy_gap_mm
+    wide = cols * float(extent_mm[0]) + (cols - 1) * gap
+    deep = rows * float(extent_mm[1]) + (rows - 1) * gap
+    cell = job.cell
+    room = (2.0 * cell.reach_mm[1] if cell.robot == "scara"
+            else float(max(cell.gantry_travel_mm)))
+    if max(wide, deep) > room:
+        raise WorkspaceError(
+            f"parts.copies = {list(job.parts.copies)}: the grid of copies is "
+            f"{_fmt(wide)} x {_fmt(deep)} mm, wider than the {_fmt(room)} mm the robot can "
+            "reach; make fewer copies or a smaller gap (parts.copy_gap_mm)")
+
+
+def check_grid(lo: np.ndarray, hi: np.ndarray, spacing: float, setting: str) -> None:
+    """Refuse a grid over the box ``lo``-``hi`` (mm, (2,)) at ``spacing`` mm with more than
+    :data:`MAX_GRID_CELLS` nodes; the message names ``setting`` (the pitch's setting)."""
+    span = np.asarray(hi, dtype=np.float64) - np.asarray(lo, dtype=np.float64)
+    if not (spacing > 0 and np.all(np.isfinite(span))):
+        raise SimulationError(f"{setting} = {spacing!r}: grid over {span.tolist()} mm "
+                              "cannot be made")
+    cells = (span[0] / spacing + 2.0) * (span[1] / spacing + 2.0)
+    if cells > MAX_GRID_CELLS:
+        raise SimulationError(
+            f"{setting} = {spacing:g}: a {_fmt(span[0])} x {_fmt(span[1])} mm grid would have "
+            f"{cells:.3g} nodes, more than {MAX_GRID_CELLS} (icefab.workload.MAX_GRID_CELLS); "
+            "use a coarser pitch")
+
+
+def check_samples(length_mm: float, spacing_mm: float, setting: str) -> None:
+    """Refuse resampling ``length_mm`` of paths every ``spacing_mm`` when that makes more
+    than :data:`MAX_SAMPLES` samples; the message names ``setting``."""
+    n = float(length_mm) / spacing_mm
+    if not math.isfinite(n) or n > MAX_SAMPLES:
+        raise ConfigError(
+            f"{setting}: the build would need {n:.3g} samples, more than {MAX_SAMPLES} "
+            "(icefab.workload.MAX_SAMPLES)")
+
+
+def check_motion(deposit_mm: float, other_mm: float, job: Job) -> None:
+    """Refuse trajectory planning whose samples alone exceed the budget.
+
+    deposit_mm, other_mm: total length of the depositing paths and of the rest (travel,
+    measurement), mm. Counted: every path resampled every ``motion.point_spacing_mm``,
+    and sampled every ``motion.dt_s`` at no more than its speed bound (depositing paths
+    ``motion.speed_mm_s``, the rest the fastest of the travel and measurement speeds), a
+    lower bound of the samples the planner makes.
+    """
+    m = job.motion
+    check_samples(deposit_mm + other_mm, m.point_spacing_mm,
+                  f"motion.point_spacing_mm = {m.point_spacing_mm:g}")
+    fast = max(m.travel_speed_mm_s, m.measure_speed_mm_s)
+    n_mm = deposit_mm / m.speed_mm_s + other_mm / fast  # seconds: samples x dt
+    check_samples(n_mm, m.dt_s, f"motion.dt_s = {m.dt_s:g} with motion.speed_mm_s = "
+                                f"{m.speed_mm_s:g}")

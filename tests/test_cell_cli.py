@@ -1,0 +1,88 @@
+"""``icefab cell serve``: bad input is one line and exit 2, before any device starts."""
+
+from __future__ import annotations
+
+import pytest
+
+from icefab.cli import main
+
+
+@pytest.mark.parametrize("argv, message", [
+    ([], "no surface yet; give --grid-for TRAJECTORIES or --bounds"),
+    (["--grid-for", "missing.npz"], "--grid-for missing.npz: trajectories file not found"),
+    (["--bounds", "1,2,3"], "--bounds '1,2,3': expected X0,Y0,X1,Y1 in mm"),
+    (["--bounds", "5,0,1,1"], "expected X0 < X1 and Y0 < Y1"),
+    (["--bounds", "0,0,1,1", "--time-factor", "-1"], "--time-factor -1.0: expected 0"),
+    (["--bounds", "0,0,1,1", "--port", "70000"], "--port 70000: expected 0..65535"),
+    (["--bounds", "0,0,1,1", "--grid-for", "x.npz"], "give one of them"),
+])
+def test_serve_bad_input_is_one_line_and_exit_2(tmp_path, monkeypatch, capsys, argv, message):
+    monkeypatch.chdir(tmp_path)
+    assert main(["cell", "serve", "--state", "st", *argv]) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "st" / "endpoints.json").exists()
+
+
+def test_serve_refuses_a_state_that_is_a_file(tmp_path, capsys):
+    (tmp_path / "st").write_text("x")
+    assert main(["cell", "serve", "--state", str(tmp_path / "st"), "--bounds", "0,0,1,1"]) == 2
+    assert "exists and is not a folder" in capsys.readouterr().err
+
+
+def test_serve_refuses_a_corrupt_surface(tmp_path, capsys):
+    (tmp_path / "st").mkdir()
+    (tmp_path / "st" / "surface.npz").write_bytes(b"not a zip")
+    assert main(["cell", "serve", "--state", str(tmp_path / "st")]) == 2
+    err = capsys.readouterr().err
+    assert "surface.npz: cannot read" in err and len(err.strip().splitlines()) == 1
+
+
+def test_endpoints_of_a_cell_that_is_not_running_are_named(tmp_path):
+    from icefab.cell.virtual import read_endpoints
+    from icefab.errors import CellError
+
+    with pytest.raises(CellError, match="endpoints.json: no endpoints"):
+        read_endpoints(tmp_path)
+    (tmp_path / "endpoints.json").write_text("{")
+    with pytest.raises(CellError, match="malformed endpoints file"):
+        read_endpoints(tmp_path)
+
+
+def test_check_names_the_device_that_does_not_answer(tmp_path, capsys):
+    import socket
+
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    port = srv.getsockname()[1]
+    srv.close()
+    assert main(["cell", "check", "--robot", f"127.0.0.1:{port}", "--timeout", "1"]) == 2
+    err = capsys.readouterr().err
+    assert f"robot at 127.0.0.1:{port}: cannot connect" in err
+    assert len(err.strip().splitlines()) == 1
+    assert main(["cell", "check", "--laser", str(tmp_path / "tty")]) == 2
+    assert "cannot open the serial port" in capsys.readouterr().err
+    assert main(["cell", "check", "--robot", "nohostport"]) == 2
+    assert "expected HOST:PORT" in capsys.readouterr().err
+
+
+def test_check_a_virtual_robot_and_laser(capsys):
+    from icefab.cell.laser_emulator import PtyLaser
+    from icefab.cell.virtual_robot import VirtualRobot
+
+    class Idle:
+        def layer_begin(self, *a): pass
+        def layer_end(self, *a): pass
+        def path_run(self, *a): return True
+        def abort(self): pass
+
+    vr = VirtualRobot(Idle()).start()
+    pty = PtyLaser().start()
+    try:
+        assert main(["cell", "check", "--robot", f"127.0.0.1:{vr.port}", "--laser",
+                     pty.path]) == 0
+    finally:
+        vr.stop()
+        pty.stop()
+    out = capsys.readouterr().out
+    assert "protocol 1, 8192 points x 4 paths, idle" in out and "storage stopped" in out

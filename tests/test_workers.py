@@ -1,0 +1,80 @@
+"""Worker pools: never more workers than cores, and workers die with their parent
+(issue 10: cpus = 1000000 forked hundreds of workers, 230 orphans stayed after a kill)."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+from icefab import Job
+from icefab.parallel import machine_cores, n_workers
+
+
+def test_cpus_beyond_the_machine_are_capped():
+    assert n_workers(Job().replace(**{"cell.cpus": 1024})) == machine_cores()
+    assert n_workers(Job().replace(**{"cell.cpus": 0})) == machine_cores()
+    assert n_workers(Job().replace(**{"cell.cpus": 1})) == 1
+
+
+def _children(pid: int) -> set[int]:
+    out: set[int] = set()
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        out |= {int(c) for c in (task / "children").read_text().split()}
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except FileNotFoundError:
+        return False
+    return state not in ("Z", "X")
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(),
+                    reason="needs Linux /proc to find the pool's workers")
+def test_pool_workers_die_when_the_parent_is_killed(tmp_path):
+    script = textwrap.dedent("""
+        import sys, time
+        from icefab import Job
+        from icefab.parallel import parallel_map
+        def nap(x):
+            time.sleep(60)
+            return x
+        if __name__ == "__main__":
+            print("go", flush=True)
+            parallel_map(nap, list(range(8)), Job().replace(**{"cell.cpus": 1024}),
+                         min_items=1)
+    """)
+    (tmp_path / "pool.py").write_text(script)
+    proc = subprocess.Popen([sys.executable, str(tmp_path / "pool.py")],
+                            stdout=subprocess.PIPE, cwd=tmp_path, env=os.environ.copy())
+    _alive_workers: set[int] = set()
+    try:
+        assert proc.stdout.readline().strip() == b"go"
+        workers: set[int] = set()
+        _alive_workers = workers
+        deadline = time.monotonic() + 60
+        want = min(machine_cores(), 8)
+        while len(workers) < want and time.monotonic() < deadline:
+            time.sleep(0.2)
+            workers |= {c for c in _children(proc.pid) if _alive(c)}
+        assert len(workers) == want  # capped at the cores, not 1024
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(10)
+        deadline = time.monotonic() + 10
+        while any(_alive(w) for w in workers) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not [w for w in workers if _alive(w)], "pool workers outlived their parent"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        for w in _alive_workers:
+            if _alive(w):
+                os.kill(w, signal.SIGKILL)  # never leave orphans behind a failed run

@@ -1,0 +1,122 @@
+"""Work estimates refuse what the cell cannot build, or absurd work, before it starts
+(issue 10: a vertex at z = 1e9 was a 29.8 GiB allocation; a 2 m model ran for minutes; a
+1.7 mm model sliced into 7 layers without a word)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from icefab import Job
+from icefab.errors import ConfigError, SimulationError, WorkspaceError
+from icefab.mesh import load_mesh, prepare_parts, transform, write_stl
+from icefab.slicing import slice_mesh
+from icefab.core import Mesh
+from icefab import workload
+
+
+def _box(extents, centre=(0.0, 0.0, 0.0)) -> Mesh:
+    b = trimesh.creation.box(extents=extents)
+    v = np.asarray(b.vertices) + np.asarray(centre) + [0, 0, extents[2] / 2]
+    return Mesh(v, np.asarray(b.faces, np.int64), "box")
+
+
+def _job_for(tmp_path, mesh, **settings) -> Job:
+    f = tmp_path / "part.stl"
+    write_stl(mesh, f)
+    return Job().replace(**{"parts.files": [str(f)], **settings})
+
+
+def test_a_stray_vertex_at_1e9_is_refused_before_slicing():
+    m = _box((40, 40, 40))
+    v = m.vertices.copy()
+    v[0, 2] = 1e9
+    with pytest.raises(ConfigError, match="would make 4e\\+09 layers, more than 500000"):
+        slice_mesh(Mesh(v, m.faces, "tall"), Job())
+
+
+def test_a_bit_flipped_stl_exponent_is_refused_in_one_line(tmp_path):
+    f = tmp_path / "flip.stl"
+    write_stl(_box((40, 40, 40)), f)
+    data = bytearray(f.read_bytes())
+    corners = np.frombuffer(bytes(data[84:]), np.dtype([("n", "<f4", 3), ("v", "<f4", (3, 3)),
+                                                        ("a", "<u2")]))["v"]
+    facet, corner = np.argwhere(corners[:, :, 2] == 40.0)[0]
+    at = 84 + 50 * facet + 12 + 12 * corner + 8  # that corner's z, little-endian float32
+    data[at + 3] ^= 0x20  # one exponent bit: 40 -> 40 * 2**64
+    f.write_bytes(bytes(data))
+    z = float(np.frombuffer(bytes(data[at:at + 4]), "<f4")[0])
+    assert abs(z) > 1e20
+    job = Job().replace(**{"parts.files": [str(f)]})
+    with pytest.raises(WorkspaceError, match="mm tall .*a stray vertex.*cell.stroke_mm = 210"):
+        prepare_parts(job)
+
+
+def test_a_2_m_part_is_taller_than_the_stroke(tmp_path):
+    job = _job_for(tmp_path, _box((50, 50, 2000)))
+    with pytest.raises(WorkspaceError, match="2000 mm tall.*cell.stroke_mm = 210"):
+        prepare_parts(job)
+    # the same part sliced in part fits: the setting named in the message works
+    short = job.replace(**{"parts.part_fraction": [0.0, 0.1]})
+    assert prepare_parts(short).bounds[1, 2] == pytest.approx(2000)
+
+
+def test_a_flat_part_wider_than_the_reach_is_refused(tmp_path):
+    job = _job_for(tmp_path, _box((2000, 2000, 10)))
+    with pytest.raises(WorkspaceError, match="beyond the reach cell.reach_mm"):
+        prepare_parts(job)
+
+
+def test_a_part_over_the_robot_base_is_inside_the_minimum_reach(tmp_path):
+    # the default part origin is (260, -100) in the base frame: a part placed at
+    # (-260, 100) sits on the base
+    job = _job_for(tmp_path, _box((20, 20, 10)), **{"parts.translation": [-270.0, 90.0, 0.0]})
+    with pytest.raises(WorkspaceError, match="inside the minimum reach"):
+        prepare_parts(job)
+
+
+def test_a_gantry_part_outside_its_travel_is_refused(tmp_path):
+    job = _job_for(tmp_path, _box((500, 50, 10)), **{"cell.robot": "gantry"})
+    with pytest.raises(WorkspaceError, match="outside its travel cell.gantry_travel_mm"):
+        prepare_parts(job)
+
+
+def test_a_file_in_metres_is_refused_with_the_scale_to_set(tmp_path):
+    job = _job_for(tmp_path, _box((0.08, 0.08, 0.1)))
+    with pytest.raises(ConfigError, match=r"file in metres or inches\? set parts.scale"):
+        prepare_parts(job)
+    ok = job.replace(**{"parts.scale": [1000.0, 1000.0, 1000.0]})
+    assert prepare_parts(ok).bounds[1, 2] == pytest.approx(100.0)
+
+
+def test_the_demo_mug_and_the_thesis_defaults_pass(tmp_path):
+    import icefab
+    job = _job_for(tmp_path, icefab.demo_mug())
+    placed = prepare_parts(job)
+    workload.check_placed_part(placed.vertices, job)
+
+
+def test_copies_wider_than_the_workspace_are_refused_before_copying():
+    job = Job().replace(**{"parts.copies": [100, 100, 100]})
+    big = _box((80, 80, 100))
+    with pytest.raises(WorkspaceError, match="parts.copies = \\[100, 100, 100\\]: the grid"):
+        transform(big, job.parts, job)
+    small = transform(big, Job().replace(**{"parts.copies": [2, 2, 3]}).parts)
+    assert len(small.faces) == 3 * len(big.faces)
+
+
+def test_grid_budget_names_the_setting():
+    with pytest.raises(SimulationError, match="simulation.grid_mm = 0.05: a 600 x 600 mm grid"):
+        workload.check_grid(np.zeros(2), np.array([600.0, 600.0]), 0.05, "simulation.grid_mm")
+    workload.check_grid(np.zeros(2), np.array([200.0, 200.0]), 0.05, "simulation.grid_mm")
+
+
+def test_motion_budget_counts_both_spacings():
+    job = Job()
+    workload.check_motion(1e6, 1e5, job)  # 1 km of paths at the defaults: fine
+    slow = job.replace(**{"motion.speed_mm_s": 1.0, "motion.dt_s": 0.001})
+    with pytest.raises(ConfigError, match="motion.dt_s = 0.001 with motion.speed_mm_s = 1"):
+        workload.check_motion(1e6, 1e5, slow)
+    fine = job.replace(**{"motion.point_spacing_mm": 0.01})
+    with pytest.raises(ConfigError, match="motion.point_spacing_mm = 0.01"):
+        workload.check_motion(1e6, 0.0, fine)
