@@ -123,8 +123,9 @@ MIN_RING_AREA_MM2 = 1e-9
 COLLINEAR_TOL_MM = 1e-9
 #: Longest gap (mm) closed without mention: numerical noise of tolerance matching.
 _NOISE_GAP_MM = 1e-6
-#: At most this many individual warnings; the rest are summarised.
-MAX_WARNINGS = 500
+#: At most this many individual warnings (a bound on memory only: the CLI summarises them
+#: by kind and writes them all to warnings.txt, ``icefab.findings``); the rest are counted.
+MAX_WARNINGS = 100_000
 #: Segments per chunk of layers (bounds the memory of the vectorised intersection).
 _CHUNK_SEGMENTS = 3_000_000
 
