@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import trimesh
 
 from icefab.cli import main
@@ -46,3 +47,22 @@ def test_slice_prints_kinds_and_writes_every_warning(tmp_path, capsys):
     assert {warning_layer(w) for w in per_layer} == set(range(40))
     assert "(40 layers, 0-39)" in printed and "warnings.txt" in printed
     assert len(printed.splitlines()) < 25                    # one screen
+
+
+def test_clamped_volume_totals_what_the_valve_could_not_give():
+    """Two paths at 160 mm/s, 3 mm x 0.25 mm: 120 mm^3/s commanded, the 2 ms tick's
+    500 Hz gives 115.28 mm^3/s (the table's row): clamped, and the totals say so."""
+    from test_flow_limits import constant_trajectory
+
+    from icefab import Job
+    from icefab.findings import clamped_volume
+    from icefab.flow import plan_valves
+
+    job = Job().replace(**{"flow.out_of_range": "clamp"})
+    found = []
+    for layer in (4, 9):
+        traj = constant_trajectory(160.0, width=3.0)
+        found += [(layer, w) for w in plan_valves(traj, "part", job).warnings]
+    paths, layers, got, asked = clamped_volume(found)
+    assert (paths, layers) == (2, 2)
+    assert got / asked == pytest.approx(115.28 / 120.0, rel=2e-3)

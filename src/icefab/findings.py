@@ -62,6 +62,25 @@ def summarise_warnings(warnings: Sequence[str]) -> list[str]:
     return out
 
 
+_CLAMPED = re.compile(r"clamped \(flow\.out_of_range = 'clamp'\), delivers "
+                      r"([-+0-9.eE]+) of ([-+0-9.eE]+) mm\^3 commanded")
+
+
+def clamped_volume(findings: Sequence[tuple[int, str]]) -> tuple[int, int, float, float]:
+    """What ``flow.out_of_range = "clamp"`` clamped, from valve findings (``(layer,
+    text)`` pairs of ``icefab.flow``): (paths, layers, delivered mm^3, commanded mm^3) of
+    the paths whose flow or frequency was clamped."""
+    paths, layers, got, asked = 0, set(), 0.0, 0.0
+    for layer, text in findings:
+        m = _CLAMPED.search(text)
+        if m:
+            paths += 1
+            layers.add(int(layer))
+            got += float(m.group(1))
+            asked += float(m.group(2))
+    return paths, len(layers), got, asked
+
+
 def warnings_text(warnings: Sequence[str], source: str = "") -> str:
     """The full list as the text of ``warnings.txt``: a heading line, then one warning a
     line (newlines inside a warning replaced by spaces)."""

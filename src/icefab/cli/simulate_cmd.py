@@ -290,6 +290,18 @@ def run(args: argparse.Namespace) -> int:
               + (" along the trajectories" if isinstance(build, BuildMotion) else ""))
     for line in headroom:
         print(f"warning: {line}")
+    if valves:  # what the valve limits did, once per kind, and the volume clamping cost
+        from icefab.findings import clamped_volume
+        from icefab.flow import summarise_findings
+
+        for label, res in (("open loop", open_loop), ("with SMF", closed)):
+            n_paths, n_layers, got, asked = clamped_volume(res.findings)
+            if n_paths:
+                print(f"clamped ({label}, flow.out_of_range = 'clamp'): {n_paths} paths in "
+                      f"{n_layers} layers deliver {got:.6g} of {asked:.6g} mm^3 commanded "
+                      f"({100 * (got / asked - 1):+.2f} %)")
+            for line in summarise_findings(res.findings)[:8]:
+                print(f"valve limits ({label}): {line}")
     for line in format_table(table_rows(open_loop, closed)):
         print(line)
     print(f"final RMS height deviation: {open_loop.rms[-1]:.3f} mm open loop, "
