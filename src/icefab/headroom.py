@@ -128,12 +128,15 @@ def _headroom(material: str, q: float, layer: int, role: str, w: float, v: float
 
 
 def check_feedback_headroom(rooms: list[Headroom], job: "Job") -> list[str]:
-    """Raise FlowError for the first path without headroom under ``flow.out_of_range =
-    "error"`` with feedback on; under ``"clamp"`` return the findings (one line each).
-    FM only, and only when ``feedback.enabled``."""
+    """Raise FlowError for the first path whose nominal flow fits but whose corrected
+    flow does not, under ``flow.out_of_range = "error"`` with feedback on; under
+    ``"clamp"`` return the findings (one line each). FM only, and only when
+    ``feedback.enabled``."""
     if not job.feedback.enabled or job.flow.mode != "fm":
         return []
-    short = [r for r in rooms if not r.fits]
+    # a nominal flow beyond the valve is not a headroom matter: the valve programs'
+    # own error names that path (icefab.flow)
+    short = [r for r in rooms if not r.fits and r.nominal_mm3_s <= r.limit_mm3_s]
     if short and job.flow.out_of_range == "error":
         raise FlowError(short[0].message(job))
     return [r.message(job) for r in short]
