@@ -2,18 +2,20 @@
 
 ``big_mesh(name) -> pathlib.Path`` returns a binary STL in ``bench/.cache/`` (gitignored):
 
-* ``"rocker-arm"``: ../shared/meshes/rocker-arm.obj (closed, with holes), midpoint-
+* ``"rocker-arm"``: tests/data/meshes/rocker-arm.obj.gz (closed, with holes), midpoint-
   subdivided three times (20 088 -> 1 285 632 facets; midpoint subdivision keeps a closed
   mesh closed), scaled to 300 mm tall.
-* ``"bunny"``: ../shared/meshes/stanford-bunny.obj (a scan, open at its base, with
+* ``"bunny"``: tests/data/meshes/stanford-bunny.obj.gz (a scan, open at its base, with
   holes), turned so its up axis (y) is z, subdivided twice (69 451 -> 1 111 216 facets),
   scaled to 300 mm tall.
 
-Both stand on z = 0, centred on x = y = 0. Built with trimesh (only here, not in icefab).
+Both stand on z = 0, centred on x = y = 0. Built with trimesh (only here, not in icefab)
+from the gzip-compressed meshes that ship with the repository (tests/data/meshes/README.md).
 Run ``python3 bench/meshes.py`` to build both and print their sizes.
 """
 from __future__ import annotations
 
+import gzip
 import os
 import sys
 from pathlib import Path
@@ -22,13 +24,13 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 CACHE = HERE / ".cache"
-SHARED = Path(os.environ.get("ICEFAB_MESHES", HERE.parent.parent / "shared" / "meshes"))
+SOURCE_DIR = HERE.parent / "tests" / "data" / "meshes"
 HEIGHT_MM = 300.0
 
 # name -> (source file, subdivisions, rotation taking the source's up axis to z)
 SOURCES = {
-    "rocker-arm": ("rocker-arm.obj", 3, None),
-    "bunny": ("stanford-bunny.obj", 2, "y-up"),
+    "rocker-arm": ("rocker-arm.obj.gz", 3, None),
+    "bunny": ("stanford-bunny.obj.gz", 2, "y-up"),
 }
 
 
@@ -36,7 +38,8 @@ def _build(name: str, path: Path) -> None:
     import trimesh
 
     src, n_sub, up = SOURCES[name]
-    tm = trimesh.load(SHARED / src, force="mesh", process=True)
+    with gzip.open(SOURCE_DIR / src) as f:
+        tm = trimesh.load(f, file_type="obj", force="mesh", process=True)
     if up == "y-up":
         tm.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
     for _ in range(n_sub):

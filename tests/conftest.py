@@ -8,8 +8,10 @@ import pytest
 from hypothesis import HealthCheck, settings
 
 REPO = Path(__file__).resolve().parents[1]
-# The real meshes live in the shared folder beside the repository (../shared/meshes).
-MESH_DIR = Path(os.environ.get("ICEFAB_MESHES", REPO.parent / "shared" / "meshes"))
+# The real meshes ship with the repository, gzip-compressed and read through icefab's own
+# loader (tests/data/meshes/README.md: what they are and where they come from). Nothing the
+# suite reads lies outside the repository (tests/test_self_contained.py proves it).
+MESH_DIR = REPO / "tests" / "data" / "meshes"
 
 settings.register_profile("ci", max_examples=100, deadline=None,
                           suppress_health_check=[HealthCheck.too_slow])
@@ -20,6 +22,7 @@ settings.load_profile("ci" if os.environ.get("CI") else "dev")
 
 @pytest.fixture(scope="session")
 def mesh_dir() -> Path:
+    """The folder of the real test meshes (``NAME.obj.gz``, ``igea.ply.gz``)."""
     if not MESH_DIR.is_dir():
-        pytest.fail(f"real meshes not found at {MESH_DIR}; set ICEFAB_MESHES")
+        pytest.fail(f"real meshes not found at {MESH_DIR}: they are part of the repository")
     return MESH_DIR

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, strategies as st
 
 from icefab import Job
 from icefab.cell import valve_frames as vf
@@ -412,7 +413,7 @@ def test_firmware_dir_is_the_clones():
 def test_next_path_uploads_and_arms_while_one_plays(valvectl, tmp_path):
     """Path B's program is uploaded, verified and armed (queued) while A plays, and the
     robot's trigger for B comes before A ends: B starts on the tick A ends (PROTOCOL.md 7)."""
-    a = ValveProgram(ticks=np.arange(0, 200, 20, dtype=np.uint16), tick_s=0.002, duration=0.4)
+    a = ValveProgram(ticks=np.arange(0, 1500, 150, dtype=np.uint16), tick_s=0.002, duration=3.0)
     b = ValveProgram(ticks=np.array([0, 3, 7], np.uint16), tick_s=0.002, duration=0.02)
     log = tmp_path / "p.log"
     with HostFirmware(valvectl, clock="real", pulse_log=log) as fw, \
@@ -426,14 +427,12 @@ def test_next_path_uploads_and_arms_while_one_plays(valvectl, tmp_path):
         assert st.state_name == "playing" and st.flags & 1
         ctl.trigger()                                   # early: kept until A ends
         assert ctl.status().flags & 2
-        deadline = time.monotonic() + 10
-        while time.monotonic() < deadline and ctl.status().plays < 2:
-            time.sleep(0.02)
-        while time.monotonic() < deadline and ctl.status().state_name != "idle":
-            time.sleep(0.02)
+        assert ctl.wait_done(1, timeout_s=10).emitted == (10, 0)
+        assert ctl.wait_done(2, timeout_s=10).emitted == (0, 3)
+        assert ctl.status().state_name == "idle"
         lines = log.read_text().split("\n")
         done_a = next(x for x in lines if x.startswith("done 1 "))
-        assert done_a == "done 1 200"
+        assert done_a == "done 1 1500"
         assert [(p[0], p[1], p[2]) for p in fw.pulses() if p[0] == 2] == \
             [(2, 1, 0), (2, 1, 3), (2, 1, 7)]
         # B started at the tick A ended: its late ticks are the ticks its trigger waited
@@ -449,3 +448,32 @@ def test_pwm_piece_larger_than_the_store_is_refused_by_name(ctl):
         ctl.upload(0, prog)
     st = ctl.status()
     assert (st.state_name, st.valves[0].queued, st.outputs) == ("idle", 0, 0)
+
+
+@given(frames=st.lists(st.tuples(st.integers(0, 255), st.sampled_from([vf.STATUS, vf.ARM, 0x91]),
+                                 st.binary(max_size=240)), max_size=6),
+       junk=st.lists(st.binary(max_size=20), min_size=7, max_size=7),
+       cuts=st.lists(st.integers(0, 2000), max_size=8))
+def test_frame_reader_recovers_frames_between_junk_in_any_pieces(frames, junk, cuts):
+    """Frames with arbitrary junk between them (junk without the marker), fed in arbitrary
+    pieces, come out whole and in order."""
+    junk = [j.replace(b"\xa5", b"\x00") for j in junk]
+    stream = junk[0] + b"".join(vf.encode(s, t, p) + junk[i + 1] for i, (s, t, p) in enumerate(frames))
+    r, got, pos = vf.FrameReader(), [], 0
+    for c in sorted(set(cuts)) + [len(stream)]:
+        got += r.feed(stream[pos:c])
+        pos = max(pos, c)
+    assert [(f.seq, f.type, f.payload) for f in got] == frames
+
+
+def test_the_file_icefab_valves_writes_is_what_the_controller_stores(ctl, tmp_path):
+    """The bytes of the .bin file (flow.write_valve_program) go up unchanged: the
+    controller's CRC over what it stored is the file's CRC."""
+    from icefab.flow import write_valve_program
+    prog = demo_program()
+    write_valve_program(prog, tmp_path / "p.bin")
+    data = (tmp_path / "p.bin").read_bytes()
+    ctl.upload(0, data)
+    v = ctl.verify(0)
+    assert (v.complete, v.received, v.crc, v.pulses) == (True, len(data), vf.crc16(data),
+                                                          n_pulses(prog))

@@ -55,3 +55,22 @@ def test_binary_job_file_is_one_line(tmp_path):
     f.write_bytes(b"\xff\xfe\x00garbage")
     with pytest.raises(ConfigError, match="not UTF-8"):
         load_job(f)
+
+
+def test_mesh_loader_refuses_dev_zero_fifo_and_oversize(tmp_path, monkeypatch):
+    from icefab.mesh import load_mesh
+    with pytest.raises(MeshError, match="/dev/zero: mesh file is a character device"):
+        load_mesh("/dev/zero")
+    fifo = tmp_path / "part.stl"
+    os.mkfifo(fifo)
+    result = []
+    t = threading.Thread(target=lambda: result.append(pytest.raises(MeshError, load_mesh, fifo)))
+    t.start()
+    t.join(10)
+    assert not t.is_alive(), "load_mesh blocked on a FIFO"
+    assert "FIFO" in str(result[0].value)
+    big = tmp_path / "big.stl"
+    big.write_bytes(b"\0" * 200)
+    monkeypatch.setitem(inputs.MAX_BYTES, "mesh", 100)
+    with pytest.raises(MeshError, match="larger than the 100 bytes limit for mesh files"):
+        load_mesh(big)

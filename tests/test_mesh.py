@@ -6,6 +6,7 @@ quads), so the expected geometry never comes from icefab itself.
 """
 from __future__ import annotations
 
+import gzip
 import io
 import logging
 import struct
@@ -301,8 +302,8 @@ def _tristrip_reference(strip: np.ndarray) -> np.ndarray:
 
 
 def test_igea_tristrips(mesh_dir):
-    path = mesh_dir / "igea.ply"
-    data = path.read_bytes()
+    path = mesh_dir / "igea.ply.gz"
+    data = gzip.decompress(path.read_bytes())
     body = data.index(b"end_header\n") + len(b"end_header\n")
     nv = 134345
     vertices = np.frombuffer(data, "<f4", count=3 * nv, offset=body).reshape(-1, 3)
@@ -345,17 +346,19 @@ def test_tristrips_small(tmp_path):
 # --------------------------------------------------------------------------- real meshes
 
 
-@pytest.mark.parametrize("name", ["fandisk.obj", "rocker-arm.obj", "spot.obj",
-                                  "stanford-bunny.obj", "teapot.obj", "igea.ply"])
+@pytest.mark.parametrize("name", ["fandisk.obj.gz", "rocker-arm.obj.gz", "spot.obj.gz",
+                                  "stanford-bunny.obj.gz", "teapot.obj.gz",
+                                  "igea.ply.gz"])
 def test_real_meshes_load(mesh_dir, name):
     mesh, report = read_mesh(mesh_dir / name)
     assert mesh.n_faces > 1000
     assert mesh.faces.min() >= 0 and mesh.faces.max() < len(mesh.vertices)
-    tm = trimesh.load(mesh_dir / name, process=False) if name.endswith(".obj") else None
+    tm = (trimesh.load(gzip.open(mesh_dir / name), file_type="obj", process=False)
+          if name.endswith(".obj.gz") else None)
     if tm is not None:
         assert mesh.n_faces + report.removed_degenerate + report.removed_duplicate == \
             len(tm.faces)
-    if name in ("teapot.obj", "stanford-bunny.obj"):
+    if name in ("teapot.obj.gz", "stanford-bunny.obj.gz"):
         assert report.open_edges > 0 and not report.watertight
         assert any("open edges" in w for w in report.warnings())
     else:
@@ -364,7 +367,7 @@ def test_real_meshes_load(mesh_dir, name):
 
 
 def test_teapot_open_edges_match_trimesh(mesh_dir):
-    mesh, report = read_mesh(mesh_dir / "teapot.obj")
+    mesh, report = read_mesh(mesh_dir / "teapot.obj.gz")
     tm = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
     edges = np.sort(tm.edges, axis=1)
     _, c = np.unique(edges, axis=0, return_counts=True)

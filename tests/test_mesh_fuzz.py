@@ -201,3 +201,22 @@ def test_exact_weld_property(points):
     # first occurrence order
     firsts = [int(np.flatnonzero(idx == k)[0]) for k in range(len(v))]
     assert firsts == sorted(firsts)
+
+
+def test_ply_element_declared_twice_is_one_mesh_error():
+    # found by bench/fuzz_inputs.py (mesh:662): a repeated 'element vertex' without
+    # properties shadowed the first and was a KeyError traceback
+    data = VALID["ply-le"].replace(b"element face", b"element vertex 8\nelement face", 1)
+    p = _TMP / "twice.ply"
+    p.write_bytes(data)
+    with pytest.raises(MeshError, match="element 'vertex' declared twice"):
+        load_mesh(p)
+
+
+@pytest.mark.parametrize("blank", [b"\x0b", b"\x0c"])
+def test_obj_vertical_tab_or_form_feed_between_numbers_does_not_hang(blank):
+    # found by bench/fuzz_inputs.py (mesh:2338): 'v 1 2 3\x0b...' looped forever
+    data = VALID["obj"].replace(b"\n", blank + b"7\n", 1)
+    p = _TMP / "vt.obj"
+    p.write_bytes(data)
+    assert load_mesh(p).n_faces == 12

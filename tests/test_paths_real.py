@@ -68,8 +68,8 @@ def test_demo_mug_invariants():
 
 @pytest.mark.slow
 # (teapot.obj is left out: its spout intersects the body, so its slices overlap)
-@pytest.mark.parametrize("name", ["stanford-bunny.obj", "rocker-arm.obj", "fandisk.obj",
-                                  "spot.obj", "igea.ply"])
+@pytest.mark.parametrize("name", ["stanford-bunny.obj.gz", "rocker-arm.obj.gz",
+                                  "fandisk.obj.gz", "spot.obj.gz", "igea.ply.gz"])
 def test_real_mesh_invariants_on_every_layer(mesh_dir, name):
     from icefab.mesh import load_mesh, transform
 

@@ -102,8 +102,8 @@ def test_cli_missing_file_exits_2(tmp_path, capsys):
 
 # --------------------------------------------------------------------------- real meshes
 
-REAL = ["fandisk.obj", "igea.ply", "rocker-arm.obj", "spot.obj", "stanford-bunny.obj",
-        "teapot.obj"]
+REAL = ["fandisk.obj.gz", "igea.ply.gz", "rocker-arm.obj.gz", "spot.obj.gz",
+        "stanford-bunny.obj.gz", "teapot.obj.gz"]
 
 
 def _scaled(mesh: icefab.Mesh, height: float) -> icefab.Mesh:
@@ -123,7 +123,7 @@ def test_real_meshes_slice_without_losing_layers(mesh_dir, name):
     for layer in st:
         depth = layer.part.depth()
         assert np.all((layer.part.ring_areas() > 0) == (depth % 2 == 0))
-    if name in ("teapot.obj", "stanford-bunny.obj"):  # open meshes: closed in 3D first
+    if name in ("teapot.obj.gz", "stanford-bunny.obj.gz"):  # open: closed in 3D first
         assert len(holes.holes) >= 5 and holes.unclosed_edges == 0
     assert rep.open_chains == 0           # so no layer needs the per-layer chord
 
@@ -138,7 +138,7 @@ def _even_odd_area(rings) -> float:
     return float(region.area)
 
 
-@pytest.mark.parametrize("name", ["rocker-arm.obj", "spot.obj"])
+@pytest.mark.parametrize("name", ["rocker-arm.obj.gz", "spot.obj.gz"])
 def test_real_mesh_areas_match_trimesh_multiplane(mesh_dir, name):
     """Layer areas equal trimesh's section_multiplane + shapely (closed meshes)."""
     mesh = _scaled(icefab.load_mesh(mesh_dir / name), 30.0)

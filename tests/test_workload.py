@@ -120,3 +120,13 @@ def test_motion_budget_counts_both_spacings():
     fine = job.replace(**{"motion.point_spacing_mm": 0.01})
     with pytest.raises(ConfigError, match="motion.point_spacing_mm = 0.01"):
         workload.check_motion(1e6, 0.0, fine)
+
+
+def test_paths_budget_refuses_hairline_fill_before_planning():
+    job = Job()
+    workload.check_paths((2.5e6, 2.5e6), job)  # about the demo mug's 500 layers
+    hairline = job.replace(**{"materials.part.fill_width_mm": 0.05,
+                              "materials.scaffold.fill_width_mm": 0.05})
+    with pytest.raises(ConfigError, match=r"materials.\*.fill_width_mm = 0.05 / 0.05: .* m of "
+                                          "fill paths"):
+        workload.check_paths((2.5e6, 2.5e6), hairline)

@@ -87,7 +87,9 @@ int vc_dec_byte(vc_dec *d, uint8_t b)
         }
         break;
     case VC_DEC_WIDTHS:
-        if (++d->nacc == 2) {
+        d->acc[d->nacc++] = b;
+        if (d->nacc == 2) {
+            if (d->acc[0] == 0 && d->acc[1] == 0) return -1;   /* width 0: no pulse */
             d->nacc = 0;
             if (++d->i == d->n) piece_done(d);
         }

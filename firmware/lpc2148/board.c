@@ -62,6 +62,12 @@ void board_valve_pulse(unsigned valve, uint16_t width_us, uint32_t play_tick)
         if (!(T0MCR & (1u << 6)) || (int32_t)(end - T0MR2) > 0) T0MR2 = end;
         T0MCR |= 1u << 6;                                       /* MR2 interrupt */
     }
+    /* a match already passed while it was being set (a very short pulse) would fire only
+     * when the counter wraps, 71 minutes later: close the valve now instead */
+    if ((int32_t)(T0TC - (valve == 0 ? T0MR1 : T0MR2)) >= 0) {
+        IO0CLR = valve_pin[valve];
+        T0MCR &= ~(valve == 0 ? (1u << 3) : (1u << 6));
+    }
 }
 
 void board_valves_off(void)

@@ -230,6 +230,9 @@ static void test_play_pwm_and_config(void)
     CHECK_EQ(pulses[0].valve, 1);
     CHECK_EQ(pulses[0].tick, 1); CHECK_EQ(pulses[2].tick, 9);
     CHECK_EQ(pulses[0].width, 700); CHECK_EQ(pulses[1].width, 1200); CHECK_EQ(pulses[2].width, 3000);
+    widths[1] = 0;                                    /* a zero width is refused */
+    len = make_program(prog, 1, 1, n, dur, ticks, widths);
+    CHECK_EQ(upload(1, prog, len, len), 0xFF);
 }
 
 static void test_sequence_rules(void)

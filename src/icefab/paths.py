@@ -79,6 +79,7 @@ from icefab.parallel import parallel_map
 from icefab.regions import hook_band_mm
 from icefab.geometry import signed_area
 from icefab.core import Layer, LayerPaths, Toolpath, Region, Stack, Toolpaths
+from icefab.workload import check_paths
 
 log = logging.getLogger(__name__)
 
@@ -828,6 +829,8 @@ def plan_paths(stack: Stack, job: Job | None = None, *,
     warnings carry the stack's warnings plus a summary of unfilled area.
     """
     job = job or stack.job
+    check_paths((sum(layer.part.area for layer in stack.layers),
+                 sum(layer.scaffold.area for layer in stack.layers)), job)
     packed = parallel_map(_plan_task, [(layer, job) for layer in stack.layers], job,
                           min_items=8, progress=progress)
     layers = [_unpack_layer(p) for p in packed]

@@ -194,6 +194,27 @@ def check_samples(length_mm: float, spacing_mm: float, setting: str) -> None:
             "(icefab.workload.MAX_SAMPLES)")
 
 
+def check_paths(areas_mm2: tuple[float, float], job: Job) -> None:
+    """Refuse path planning whose fill alone exceeds the sample budget.
+
+    areas_mm2: total (part, scaffold) area over all layers, mm^2. A region of area A
+    filled at ``fill_width_mm`` w holds about A / w mm of fill paths; the trajectories
+    resample them every ``motion.point_spacing_mm``, so a build over
+    :data:`MAX_SAMPLES` x that spacing of fill would be refused there after the whole
+    path planning: refuse it here, before.
+    """
+    mats = job.materials
+    length = areas_mm2[0] / mats.part.fill_width_mm + areas_mm2[1] / mats.scaffold.fill_width_mm
+    spacing = job.motion.point_spacing_mm
+    if not math.isfinite(length) or length / spacing > MAX_SAMPLES:
+        raise ConfigError(
+            f"materials.*.fill_width_mm = {mats.part.fill_width_mm:g} / "
+            f"{mats.scaffold.fill_width_mm:g}: {_fmt(sum(areas_mm2) / 100.0)} cm^2 of layers "
+            f"would need about {_fmt(length / 1000.0)} m of fill paths, {length / spacing:.3g} "
+            f"samples at motion.point_spacing_mm = {spacing:g}, more than {MAX_SAMPLES} "
+            "(icefab.workload.MAX_SAMPLES)")
+
+
 def check_motion(deposit_mm: float, other_mm: float, job: Job) -> None:
     """Refuse trajectory planning whose samples alone exceed the budget.
 

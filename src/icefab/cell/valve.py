@@ -327,36 +327,49 @@ class ValveController:
             raise ValveLinkError(f"{self.name}: play needs at least one program")
         if timeout_s is None:
             timeout_s = 10.0 + 1.5 * max(_duration_s(u.data) for u in ups)
-        before = self.status().plays
+        play = (self.status().plays + 1) & 0xFFFF
         self.events.clear()
         self.arm([u.valve for u in ups])
         if trigger == "command":
             self.trigger()
         elif callable(trigger):
             trigger()
+        return self.wait_done(play, ups, timeout_s=timeout_s, poll_s=poll_s)
+
+    def wait_done(self, play: int, streaming: "list[Upload] | tuple[Upload, ...]" = (), *,
+                  timeout_s: float = 600.0, poll_s: float = 0.005) -> PlayReport:
+        """Wait for the end of play number ``play`` (STATUS ``plays`` + 1 when it was
+        armed), sending the rest of every incomplete upload in ``streaming`` as room frees
+        up. Meanwhile the caller may have uploaded and armed the next path (queued ARM).
+
+        Raises ValveLinkError on a fault (every valve is then off) or after ``timeout_s``
+        (the controller is aborted first)."""
         streamed = 0
         deadline = time.monotonic() + timeout_s
         while True:
             st = self.status()
             if st.state == vf.FAULT:
                 raise ValveLinkError(f"{self.name}: controller fault '{st.fault_name}' during "
-                                     "the play; every valve is off")
-            done = self._done_event((before + 1) & 0xFFFF)
+                                     f"play {play}; every valve is off")
+            done = self._done_event(play)
             if done is not None:
                 return PlayReport(done.play, done.play_len, done.late_ticks, done.emitted, streamed)
-            for u in ups:
+            for u in streaming:
                 if not u.complete:
                     sent = u.sent
                     self.send_data(u, st.valves[u.valve].free)
                     streamed += u.sent - sent
-            if st.plays != before and st.state not in (vf.PLAYING, vf.ARMED):
+            if st.plays == play and st.state not in (vf.PLAYING, vf.ARMED):  # DONE lost
                 return PlayReport(st.plays, st.play_len, st.late_ticks,
                                   (st.valves[0].emitted, st.valves[1].emitted), streamed)
+            if 0 < (st.plays - play) & 0xFFFF < 0x8000:
+                raise ValveLinkError(f"{self.name}: play {play} ended but its DONE report was "
+                                     f"lost (play {st.plays} runs now)")
             if time.monotonic() > deadline:
                 self.abort()
-                raise ValveLinkError(f"{self.name}: play did not end within {timeout_s:g} s; "
-                                     "aborted, every valve is off")
-            if all(u.complete for u in ups):
+                raise ValveLinkError(f"{self.name}: play {play} did not end within "
+                                     f"{timeout_s:g} s; aborted, every valve is off")
+            if all(u.complete for u in streaming):
                 time.sleep(poll_s)
 
     def _done_event(self, play: int) -> vf.Done | None:

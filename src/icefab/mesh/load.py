@@ -6,8 +6,11 @@ corner soup for STL), which are checked for NaN/Inf, welded
 (:func:`icefab.mesh.topology.weld_vertices`) and cleaned
 (:func:`icefab.mesh.repair.clean_mesh`).
 
+A gzip-compressed file of any of these formats is read too (recognised by content,
+:mod:`icefab.mesh.compressed`, with a bound on the decompressed size).
+
 Errors (:class:`~icefab.errors.MeshError`, the message names the file): missing or empty
-file, unknown format, truncated binary STL or PLY, NaN/Inf coordinates, text that cannot
+file, corrupt or oversized gzip data, unknown format, truncated binary STL or PLY, NaN/Inf coordinates, text that cannot
 be read (with its line number), face index out of range, nothing but degenerate faces.
 """
 
@@ -26,7 +29,7 @@ import numpy as np
 from icefab.core import Mesh
 from icefab.errors import MeshError
 from icefab.inputs import read_input
-from icefab.mesh import obj, ply, stl
+from icefab.mesh import compressed, obj, ply, stl
 from icefab.mesh.repair import MeshReport, clean_mesh
 from icefab.mesh.topology import weld_vertices
 
@@ -46,6 +49,8 @@ def _is_text(data: bytes | memoryview) -> bool:
 def _sniff(data: bytes, path: Path) -> str:
     """The format of ``data``: 'stl', 'stl-ascii', 'ply' or 'obj' (content first)."""
     ext = path.suffix.lower()
+    if ext == ".gz":  # part.obj.gz: the hint is the extension under the compression's
+        ext = Path(path.stem).suffix.lower()
     head = data[:5].lower()
     if data[:3] == b"ply" and data[3:4] in (b"\n", b"\r", b" "):
         return "ply"
@@ -119,6 +124,8 @@ def read_mesh(path: str | os.PathLike[str], *, inexact: bool = False,
     if tolerance <= 0 or not math.isfinite(tolerance):
         raise MeshError(f"{p}: weld tolerance {tolerance!r} must be a positive number (mm)")
     data = read_input(p, "mesh", MeshError, "mesh file")  # regular, <= 1 GiB; no FIFO wait
+    if compressed.is_gzip(data):
+        data = compressed.gunzip(data, p)
     if not data[:4096].strip() and not data.strip():
         raise MeshError(f"{p}: empty file, expected a mesh (STL, PLY or OBJ)")
     if data[:3] == b"\xef\xbb\xbf" and _is_text(data[3:4099]):

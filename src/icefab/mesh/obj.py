@@ -19,6 +19,14 @@ log = logging.getLogger(__name__)
 
 
 @njit(cache=True)
+def _is_blank(c):  # pragma: no cover
+    """Whitespace within a line: every byte :func:`_is_ws` stops a token at except the
+    newline (a vertical tab or form feed between numbers used to stop the token scan
+    without being skipped: an endless loop, found by bench/fuzz_inputs.py mesh:2338)."""
+    return c == 32 or (9 <= c <= 13 and c != 10)
+
+
+@njit(cache=True)
 def _scan_obj(b):  # pragma: no cover
     """Scan an OBJ: vertex coordinate tokens and face indices.
 
@@ -48,7 +56,7 @@ def _scan_obj(b):  # pragma: no cover
     line = 1
     while i < n:
         # start of a line: skip blanks (not newlines)
-        while i < n and (b[i] == 32 or b[i] == 9 or b[i] == 13):
+        while i < n and _is_blank(b[i]):
             i += 1
         if i >= n:
             break
@@ -63,7 +71,7 @@ def _scan_obj(b):  # pragma: no cover
         if e - s == 1 and b[s] == 118:  # 'v'
             k = 0
             while True:
-                while i < n and (b[i] == 32 or b[i] == 9 or b[i] == 13):
+                while i < n and _is_blank(b[i]):
                     i += 1
                 if i >= n or b[i] == 10 or b[i] == 35:
                     break
@@ -85,7 +93,7 @@ def _scan_obj(b):  # pragma: no cover
         elif e - s == 1 and b[s] == 102:  # 'f'
             k = 0
             while True:
-                while i < n and (b[i] == 32 or b[i] == 9 or b[i] == 13):
+                while i < n and _is_blank(b[i]):
                     i += 1
                 if i >= n or b[i] == 10 or b[i] == 35:
                     break

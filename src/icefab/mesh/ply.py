@@ -320,6 +320,11 @@ def read(data: bytes, path: Path) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (n, 3) float64 and triangles (m, 3) int64 of a binary or ASCII PLY."""
     fmt, elements, body, _ = _ply_header(data, path)
     names = [e.name for e in elements]
+    for name in ("vertex", "face", "tristrips"):
+        if names.count(name) > 1:  # a second declaration would shadow the first's data
+            line = [e for e in elements if e.name == name][1].line
+            raise MeshError(f"{path}: PLY header line {line}: element {name!r} declared "
+                            "twice")
     if "vertex" not in names:
         raise MeshError(f"{path}: PLY without a 'vertex' element")
     vel = elements[names.index("vertex")]
