@@ -85,10 +85,10 @@ def test_paths_arrive_as_sent_and_report_their_sequence_numbers(robot):
 
 def test_next_path_uploads_while_one_moves_and_storage_is_bounded(robot):
     vr, _ = robot
-    vr.time_factor = 5.0     # 0.5 s path takes 0.1 s
+    vr.time_factor = 1.0     # path a takes 2 s: long enough to upload and be refused during it
     with RobotLink.connect("127.0.0.1", vr.port, timeout_s=5) as link:
         link.hello()
-        a = link.upload(_path(n=32))
+        a = link.upload(_path(n=64, dt=0.032))
         link.go(a)
         b = link.upload(_path(n=32, index=1))        # while a moves
         with pytest.raises(CellError, match="error 3"):
@@ -109,7 +109,6 @@ def test_abort_stops_the_motion_and_drops_stored_paths(robot):
         link.go(a)
         b = link.upload(_path(n=32, index=1))
         time.sleep(0.1)
-        t0 = time.monotonic()
         link.abort()
         with pytest.raises(CellError, match="no reply"):
             link.wait_done(a, timeout_s=1.5)
@@ -117,7 +116,7 @@ def test_abort_stops_the_motion_and_drops_stored_paths(robot):
         with pytest.raises(CellError, match="error 6"):
             link.go(b)                                 # dropped by the abort
     assert ("stopped", a) in hooks.events and ("abort",) in hooks.events
-    assert time.monotonic() - t0 < 1.8
+    assert ("triggers_off", a) not in hooks.events
 
 
 def test_a_wrong_check_sum_or_count_is_refused(robot):

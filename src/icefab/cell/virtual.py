@@ -108,7 +108,7 @@ class FirmwareValves(ValveHookup):
         pulses: list[tuple[int, float, float]] = []
         play = None
         deadline = time.monotonic() + timeout_s
-        start_deadline = time.monotonic() + 2.0
+        start_deadline = time.monotonic() + 10.0   # a loaded machine may be slow to start it
         while True:
             for line in self._lines():
                 f = line.split()

@@ -1,0 +1,540 @@
+"""The build runner: a closed-loop build on a cell that survives crashes (thesis 2.5, 5.2).
+
+Per layer of the build's trajectories (``icefab.motion``), in the order the cell runs them:
+
+1. the valve programs of the layer's deposition trajectories are planned with the current
+   control action (:func:`icefab.sim.layer_valves`: nu-controller flow x (1 + u); for the
+   c-controller the trajectories are re-timed and every re-timed speed is checked against
+   ``motion.speed_mm_s``, findings journaled);
+2. every trajectory (deposition with its program, travel) goes to the cell as one
+   :class:`~icefab.runcell.CellPath`; the command is journaled **before** it is sent and
+   completed in the journal when the cell reports the path done;
+3. the layer's end (the deposit freezes);
+4. on a measurement layer (one with measurement paths; ``paths`` adds them every
+   ``feedback.interval_layers``): the measurement paths, the laser samples (tagged with
+   the end-effector position at their instant; the calibrated latency
+   ``cell.laser_latency_s`` is taken off by reading the trajectory that much earlier and
+   the calibrated ``cell.laser_offset_mm`` puts them under the laser, thesis 5.2.1),
+   the SMF update (:func:`icefab.feedback.smf_update` on the samples' surface,
+   eq. 5.1) and its state and action journaled.
+
+Exactly once (:mod:`icefab.journal`, :mod:`icefab.runcell`): every command has a sequence
+number, kept when it is re-sent after a crash; the cell answers a number it completed
+with "done" instead of running it again. On start the runner asks the cell what it
+completed (``status``): journaled commands at or below it are completed in the journal,
+a path a cell fault cut short is recorded as cut (never re-run: half a path twice would
+deposit its first half twice) and the next measurement lets SMF absorb the error. Whole
+layers the journal shows complete are skipped; the control action is restored from the
+journal's last SMF row, so the re-planned programs are the ones an uninterrupted build
+sends (their digests are checked against the journal).
+
+Files in BUILD: ``journal.sqlite``, ``trajectories.npz`` (planned once at the start),
+``job.toml``, ``status.json`` (:func:`write_status`), ``report.html``
+(:func:`write_report`), ``cell/`` (the virtual cell's state with ``--virtual``).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Callable
+
+import numpy as np
+
+from icefab.errors import IcefabError, WorkspaceError
+from icefab.journal import Journal, digest_text, pack_arrays, unpack_arrays
+from icefab.runcell import Cell, CellError, CellPath
+from icefab.core import HeightMap
+
+if TYPE_CHECKING:  # pragma: no cover
+    from icefab.config import Job
+    from icefab.motion import BuildMotion, LayerMotion
+
+log = logging.getLogger(__name__)
+
+JOURNAL = "journal.sqlite"
+TRAJECTORIES = "trajectories.npz"
+STATUS = "status.json"
+REPORT = "report.html"
+STOP_REQUEST = "stop.request"
+CELL_DIR = "cell"
+
+#: Cobra 600 vertical (joint 3) stroke, mm (thesis Table 2-1): a taller part cannot be built.
+Z_STROKE_MM = 210.0
+
+
+class BuildStopped(IcefabError):
+    """The build was stopped (``--stop``, Ctrl-C): valves off, robot safe, journaled."""
+
+
+# =========================================================================== checks
+
+
+def check_build(motion: "BuildMotion", job: "Job", layers: int) -> None:
+    """Refuse, before anything moves, a build the cell cannot make: a part taller than
+    the vertical stroke (WorkspaceError naming it). Reach and joint limits were checked
+    when the trajectories were planned (:func:`icefab.motion.plan_toolpaths`)."""
+    top = max((float(lm.z) for lm in motion.layers[:layers]), default=0.0) \
+        + job.slicing.layer_thickness_mm
+    if top > Z_STROKE_MM:
+        raise WorkspaceError(f"the part is {top:.1f} mm tall over its first {layers} layers: "
+                             f"beyond the robot's vertical stroke of {Z_STROKE_MM:g} mm "
+                             "(Cobra 600, thesis Table 2-1)")
+
+
+def check_speeds(trajectories, job: "Job", layer: int) -> list[str]:
+    """Findings for re-timed trajectories (c-controller, thesis 5.2.2) faster than the
+    Cartesian speed bound ``motion.speed_mm_s``: one line per trajectory."""
+    vmax = job.motion.speed_mm_s
+    out = []
+    for k, tr in enumerate(trajectories):
+        if len(tr.xy) < 2:
+            continue
+        v = float(np.max(np.linalg.norm(np.diff(tr.xy, axis=0), axis=1)) / tr.dt)
+        if v > vmax * (1 + 1e-6):
+            out.append(f"layer {layer}: re-timed trajectory {k} reaches {v:.1f} mm/s, above "
+                       f"motion.speed_mm_s = {vmax:g}")
+    return out
+
+
+# =========================================================================== SMF state
+
+
+def pack_smf(state, action_u: HeightMap | None, filled: np.ndarray | None) -> bytes:
+    """The SMF controller state and its action as npz bytes (:func:`unpack_smf`)."""
+    def hm(prefix: str, h: HeightMap | None) -> dict:
+        if h is None:
+            return {}
+        return {f"{prefix}_origin": h.origin, f"{prefix}_spacing": np.float64(h.spacing),
+                f"{prefix}_z": h.z}
+
+    return pack_arrays(k=np.int64(state.k), **hm("integral", state.integral),
+                       **hm("previous", state.previous_error), **hm("u", action_u),
+                       filled=filled)
+
+
+def unpack_smf(data: bytes):
+    """(SmfState, action sampler or None) from :func:`pack_smf` bytes."""
+    from icefab import feedback
+
+    a = unpack_arrays(data)
+
+    def hm(prefix: str) -> HeightMap | None:
+        if f"{prefix}_z" not in a:
+            return None
+        return HeightMap(origin=a[f"{prefix}_origin"], spacing=float(a[f"{prefix}_spacing"]),
+                         z=a[f"{prefix}_z"])
+
+    state = feedback.SmfState(integral=hm("integral"), previous_error=hm("previous"),
+                              k=int(a["k"]))
+    u = hm("u")
+    if u is None:
+        return state, None
+    z = np.zeros_like(u.z)
+    action = feedback.ControlAction(u=u, unsaturated=u, p=z, i=z, d=z, saturated=0.0,
+                                    _filled=a.get("filled"))
+    return state, feedback.action_sampler(action)
+
+
+def smf_from_samples(samples: np.ndarray, nominal_z: float, state, job: "Job"):
+    """One SMF update from part-frame laser samples (m, 3): (new state, action u
+    HeightMap, filled u, measured RMS). Too few samples: the state is kept and the
+    action is None (nominal flow until the next measurement)."""
+    from icefab import feedback
+    from icefab.errors import GeometryError
+
+    fb = job.feedback
+    rms = float(np.sqrt(np.mean((samples[:, 2] - nominal_z) ** 2))) if len(samples) \
+        else float("nan")
+    try:
+        surf = feedback.surface_from_samples(samples, None, fb.grid_mm, smoothing=fb.smoothing)
+    except GeometryError as exc:
+        log.warning("no surface from %d laser samples (%s); no control action",
+                    len(samples), exc)
+        return state, None, None, rms
+    err = feedback.error_surface(surf, nominal_z, fb.interval_layers *
+                                 job.slicing.layer_thickness_mm)
+    action, new = feedback.smf_update(state, err, job)
+    return new, action.u, action._filled, rms
+
+
+# =========================================================================== the run
+
+
+@dataclass
+class Progress:
+    """What the runner reports after every path (``icefab build`` prints it)."""
+
+    layer_pos: int = 0          # layers completed
+    layers: int = 0             # layers to build
+    layer: int = 0              # toolpaths index of the current layer
+    paths_done: int = 0
+    paths: int = 0
+    remaining_s: float = 0.0    # planned motion time left, s
+    last_rms_mm: float = float("nan")
+    state: str = "running"
+    rms: list = field(default_factory=list)   # (layer, nominal z, measured RMS)
+
+
+def _items(lm: "LayerMotion") -> tuple[list[tuple[int, object]], list[tuple[int, object]]]:
+    """(deposition and travel, measurement) trajectories of a layer as (index, traj)."""
+    run, measure = [], []
+    for i, tr in enumerate(lm.trajectories):
+        if len(tr.xy) == 0:
+            continue
+        role = tr.path.role if tr.path is not None else "travel"
+        (measure if role == "measure" else run).append((i, tr))
+    return run, measure
+
+
+def laser_to_part(raw: np.ndarray, traj, job: "Job") -> np.ndarray:
+    """(m, 3) part-frame laser samples from a cell's (m, 4) rows (t s, EE x, y base frame,
+    z): the calibrated latency ``cell.laser_latency_s`` taken off (the spot read the
+    surface where the trajectory was that long before the sample's instant; clamped at
+    the path's start) and the calibrated laser offset applied (thesis 5.2.1)."""
+    if len(raw) == 0:
+        return np.zeros((0, 3))
+    xy = np.asarray(traj.xy, dtype=np.float64)
+    t = np.arange(len(xy)) * float(traj.dt)
+    tq = np.maximum(raw[:, 0] - job.cell.laser_latency_s, 0.0)
+    pos = np.column_stack([np.interp(tq, t, xy[:, 0]), np.interp(tq, t, xy[:, 1])])
+    part = pos - np.asarray(job.cell.ee_origin_mm) + np.asarray(job.cell.laser_offset_mm)
+    return np.column_stack([part, raw[:, 3]])
+
+
+class Runner:
+    """Runs (or resumes) a build on a cell; see the module docstring.
+
+    build_dir: BUILD; motion: the layers to build; job; journal: the build's journal;
+    connect: returns a connected :class:`~icefab.runcell.Cell` (called again after a cell
+    fault: for the virtual cell it restarts the cell process); on_progress: called with a
+    :class:`Progress` after every path; should_stop: polled between paths.
+    """
+
+    def __init__(self, build_dir: Path, motion: "BuildMotion", job: "Job", journal: Journal,
+                 connect: Callable[[], Cell], *,
+                 on_progress: Callable[[Progress], None] | None = None,
+                 should_stop: Callable[[], bool] = lambda: False,
+                 max_faults: int = 20) -> None:
+        self.dir = Path(build_dir)
+        self.motion = motion
+        self.job = job
+        self.journal = journal
+        self.connect = connect
+        self.on_progress = on_progress
+        self.should_stop = should_stop
+        self.max_faults = max_faults
+        self.cell: Cell | None = None
+        self.faults = 0
+        self.findings: list[str] = []
+        n_paths = [len(_items(lm)[0]) + len(_items(lm)[1]) for lm in motion.layers]
+        self.progress = Progress(layers=len(motion.layers), paths=int(sum(n_paths)))
+        self._durations = [lm.duration for lm in motion.layers]
+        self._last_status = 0.0
+
+    # ------------------------------------------------------------------ cell link
+
+    def _link(self) -> Cell:
+        if self.cell is None:
+            self.cell = self.connect()
+            self.cell.hello()
+            self._reconcile()
+        return self.cell
+
+    def _reconcile(self) -> None:
+        """Bring the journal up to what the cell completed (after a crash or fault)."""
+        st = self.cell.status()
+        for c in self.journal.commands():
+            if c["done"] is not None:
+                continue
+            if c["seq"] == st.cut:
+                self.journal.done(c["seq"], cut=True)
+                self.journal.event("cell-fault", f"{c['kind']} {c['layer']}/{c['item']} "
+                                   f"(seq {c['seq']}) was cut short by a cell fault; the rest "
+                                   "of it is not deposited, SMF absorbs the error at the next "
+                                   "measurement", layer=c["layer"])
+            elif c["seq"] <= st.last_done:
+                self.journal.done(c["seq"])
+
+    def _call(self, fn: Callable[[Cell], object]) -> object:
+        """A cell call, reconnecting (and reconciling) after a broken link."""
+        while True:
+            try:
+                return fn(self._link())
+            except CellError as exc:
+                self.faults += 1
+                self.journal.event("cell-link", f"cell link lost: {exc}",
+                                   layer=self.progress.layer)
+                self.cell = None
+                if self.faults > self.max_faults:
+                    raise
+                time.sleep(0.1)
+
+    def _send(self, kind: str, layer: int, item: int, digest: str,
+              fn: Callable[[Cell, int], bool]) -> None:
+        seq, _ = self.journal.command(kind, layer, item, digest)
+        if self.journal.is_done(seq):
+            return
+        self._call(lambda cell: None)  # connected and reconciled before sending
+        if self.journal.is_done(seq):  # the reconciliation found it done or cut
+            return
+        self.journal.sent(seq)
+        executed = self._call(lambda cell: fn(cell, seq))
+        if self.journal.is_done(seq):  # a fault during the call, reconciled
+            return
+        self.journal.acked(seq)
+        self.journal.done(seq)
+        if executed is False:
+            log.info("%s %d/%d (seq %d): the cell had done it already", kind, layer, item,
+                     seq)
+
+    # ------------------------------------------------------------------ the build
+
+    def _restore(self):
+        """The SMF state and action sampler after the journal's last SMF update."""
+        from icefab import feedback
+
+        last = self.journal.last_smf()
+        if last is None:
+            return feedback.SmfState(), None
+        return unpack_smf(last[2])
+
+    def run(self) -> Progress:
+        job = self.job
+        from icefab import flow
+        from icefab import sim as simmod
+
+        state, action = self._restore()
+        done_layers = set(self.journal.layers_done())
+        measured = {m["layer"]: m for m in self.journal.measurements()}
+        smf_layers = {m["layer"] for m in self.journal.measurements()}
+        dh = job.slicing.layer_thickness_mm
+        p = self.progress
+        p.rms = [(m["layer"], m["nominal_z"], m["rms_measured"]) for m in measured.values()]
+        if p.rms:
+            p.last_rms_mm = p.rms[-1][2]
+        p.paths_done = self.journal.paths_done()
+        self._call(lambda cell: None)
+        for j, lm in enumerate(self.motion.layers):
+            L = int(lm.index)
+            run_items, meas_items = _items(lm)
+            p.layer = L
+            p.layer_pos = j
+            p.remaining_s = float(sum(self._durations[j:]))
+            if L in done_layers and (not meas_items or L in smf_layers):
+                continue
+            plan = simmod.plan_layer_motion(lm, job)
+            lv = simmod.layer_valves(plan, job, action)
+            if job.feedback.controller == "speed" and action is not None:
+                for f in check_speeds(lv.trajectories, job, L):
+                    if f not in self.findings:
+                        self.findings.append(f)
+                        self.journal.event("motion-limit", f, layer=L)
+            dep = iter(zip(lv.trajectories, lv.programs))
+            z_mm = float(lm.z) + dh
+            for i, tr in run_items:
+                self._stop_point()
+                path = tr.path
+                if path is not None and path.depositing:
+                    traj, prog = next(dep)
+                    cp = CellPath(layer=L, item=i, role=path.role, tool=path.material,
+                                  xy=np.asarray(traj.xy, np.float64), dt_s=float(traj.dt),
+                                  z_mm=z_mm, width_mm=flow.trajectory_width(traj,
+                                                                            path.material, job),
+                                  program=flow.encode_valve_program(prog))
+                else:
+                    cp = CellPath(layer=L, item=i, role="travel", tool="none",
+                                  xy=np.asarray(tr.xy, np.float64), dt_s=float(tr.dt),
+                                  z_mm=z_mm, width_mm=0.0)
+                self._send("path", L, i, cp.digest(), lambda c, s, cp=cp: c.run_path(s, cp))
+                p.paths_done = self.journal.paths_done()
+                p.remaining_s -= float(tr.duration)
+                self._report()
+            self._stop_point()
+            self._send("layer_end", L, -1, digest_text(f"layer_end {L}"),
+                       lambda c, s, L=L: c.end_layer(s, L))
+            if meas_items:
+                raws = []
+                for i, tr in meas_items:
+                    self._stop_point()
+                    cp = CellPath(layer=L, item=i, role="measure", tool="laser",
+                                  xy=np.asarray(tr.xy, np.float64), dt_s=float(tr.dt),
+                                  z_mm=z_mm, width_mm=0.0)
+                    self._send("path", L, i, cp.digest(), lambda c, s, cp=cp: c.run_path(s, cp))
+                    seq, _ = self.journal.command("path", L, i, cp.digest())
+                    raw = self._call(lambda c, s=seq: c.laser_samples(s))
+                    raws.append(laser_to_part(np.asarray(raw), tr, job))
+                    p.paths_done = self.journal.paths_done()
+                    p.remaining_s -= float(tr.duration)
+                samples = np.concatenate(raws) if raws else np.zeros((0, 3))
+                nominal = (j + 1) * dh
+                if L not in smf_layers:
+                    state, u, filled, rms = smf_from_samples(samples, nominal, state, job)
+                    k = len(smf_layers) + 1
+                    self.journal.measurement(k, L, nominal, samples, rms)
+                    self.journal.smf_state(k, L, pack_smf(state, u, filled))
+                    smf_layers.add(L)
+                    p.rms.append((L, nominal, rms))
+                    p.last_rms_mm = rms
+                state, action = self._restore()
+                self._report(force=True, measured=True)
+            p.layer_pos = j + 1
+            self._report(force=True)
+        p.state = "complete"
+        p.layer_pos = len(self.motion.layers)
+        p.remaining_s = 0.0
+        self.journal.event("complete", f"build complete: {p.paths_done} paths")
+        self._report(force=True, measured=True)
+        return p
+
+    def _stop_point(self) -> None:
+        if self.should_stop():
+            self.stop("a stop was asked for")
+
+    def stop(self, why: str) -> None:
+        """Valves off first, robot to its safe point (the cell's ``stop``), journaled;
+        then BuildStopped."""
+        try:
+            if self.cell is not None:
+                self.cell.stop()
+        except CellError as exc:
+            self.journal.event("stop", f"the cell did not answer the stop ({exc})",
+                               layer=self.progress.layer)
+        self.journal.event("stop", f"stopped at layer {self.progress.layer} after "
+                           f"{self.progress.paths_done} paths: {why}", layer=self.progress.layer)
+        self.progress.state = "stopped"
+        self._report(force=True, measured=True)
+        raise BuildStopped(f"stopped at layer {self.progress.layer}: {why}; resume with "
+                           f"'icefab build --resume {self.dir}'")
+
+    def _report(self, *, force: bool = False, measured: bool = False) -> None:
+        if self.on_progress is not None:
+            self.on_progress(self.progress)
+        now = time.monotonic()
+        if force or now - self._last_status > 1.0:
+            self._last_status = now
+            write_status(self.dir, self.progress, self.journal)
+        if measured:
+            write_report(self.dir, self.progress, self.journal, self.job)
+
+
+# =========================================================================== status, report
+
+
+def status_dict(progress: Progress, journal: Journal) -> dict:
+    return {"state": progress.state, "pid": os.getpid(), "time": time.time(),
+            "layer": progress.layer, "layers_done": progress.layer_pos,
+            "layers": progress.layers, "paths_done": progress.paths_done,
+            "paths": progress.paths, "eta_s": progress.remaining_s,
+            "last_rms_mm": None if not math.isfinite(progress.last_rms_mm)
+            else progress.last_rms_mm,
+            "rms": [{"layer": int(a), "nominal_z_mm": float(b),
+                     "rms_measured_mm": None if not math.isfinite(c) else float(c)}
+                    for a, b, c in progress.rms],
+            "events": [e["text"] for e in journal.events()[-20:]]}
+
+
+def write_status(build_dir: Path, progress: Progress, journal: Journal) -> None:
+    from icefab.atomic import write_atomic
+
+    write_atomic(Path(build_dir) / STATUS,
+                 json.dumps(status_dict(progress, journal), indent=1) + "\n")
+
+
+def format_eta(seconds: float) -> str:
+    s = max(0, int(round(seconds)))
+    return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}"
+
+
+def progress_line(p: Progress) -> str:
+    rms = f"{p.last_rms_mm:.3f} mm" if math.isfinite(p.last_rms_mm) else "-"
+    return (f"layer {min(p.layer_pos + 1, p.layers)} of {p.layers}, paths {p.paths_done}/"
+            f"{p.paths}, ETA {format_eta(p.remaining_s)}, last RMS {rms}")
+
+
+def write_report(build_dir: Path, progress: Progress, journal: Journal, job: "Job") -> None:
+    """``BUILD/report.html``: RMS vs height (inline SVG), the latest measured error
+    surface (PNG), status and ETA, findings and events; self-contained, refreshes itself
+    every 30 s, no scripts."""
+    import base64
+    import html
+    import io
+
+    from icefab.atomic import write_atomic
+    from icefab.report import pyplot
+
+    plt = pyplot()
+    rows = progress.rms
+    fig, ax = plt.subplots(figsize=(6.4, 3.4))
+    if rows:
+        zs = [r[1] for r in rows]
+        ax.plot(zs, [r[2] for r in rows], "o-", label="measured RMS")
+    ax.set_xlabel("nominal height (mm)")
+    ax.set_ylabel("RMS height error (mm)")
+    ax.set_title("RMS error vs height (laser samples)")
+    ax.grid(alpha=0.3)
+    buf = io.StringIO()
+    fig.savefig(buf, format="svg")
+    plt.close(fig)
+    svg = buf.getvalue()
+    svg = svg[svg.index("<svg"):].replace("<svg", '<svg id="rms-plot" role="img"', 1)
+    surface_img = ""
+    meas = journal.measurements()
+    if meas:
+        from icefab import feedback
+        from icefab.errors import GeometryError
+
+        m = meas[-1]
+        try:
+            surf = feedback.surface_from_samples(m["samples"], None, job.feedback.grid_mm)
+            err = surf.z - m["nominal_z"]
+            x, y = surf.grid()
+            fig, ax = plt.subplots(figsize=(5.2, 4.2))
+            lim = float(np.nanmax(np.abs(err))) if np.isfinite(err).any() else 1.0
+            im = ax.pcolormesh(x, y, err, cmap="RdBu_r", vmin=-lim, vmax=lim, shading="nearest")
+            fig.colorbar(im, ax=ax, label="measured - nominal (mm)")
+            ax.set_aspect("equal")
+            ax.set_title(f"error surface, layer {m['layer']} (z = {m['nominal_z']:.2f} mm)")
+            b = io.BytesIO()
+            fig.savefig(b, format="png", dpi=80)
+            plt.close(fig)
+            surface_img = ('<img id="error-surface" alt="latest error surface" src="data:image/'
+                           f'png;base64,{base64.b64encode(b.getvalue()).decode()}">')
+        except GeometryError:
+            surface_img = "<p>too few laser samples for a surface</p>"
+    st = status_dict(progress, journal)
+    e = html.escape
+    status_rows = "".join(
+        f"<tr><th>{e(k)}</th><td>{e(str(v))}</td></tr>" for k, v in (
+            ("state", st["state"]), ("layer", f"{min(progress.layer_pos + 1, progress.layers)}"
+                                              f" of {progress.layers}"),
+            ("paths", f"{progress.paths_done} of {progress.paths}"),
+            ("ETA (planned motion)", format_eta(progress.remaining_s)),
+            ("last RMS (mm)", "-" if st["last_rms_mm"] is None
+             else f"{st['last_rms_mm']:.4f}"),
+            ("updated", time.strftime("%Y-%m-%d %H:%M:%S", time.localtime()))))
+    events = "".join(f"<li>{e(time.strftime('%H:%M:%S', time.localtime(ev['time'])))} "
+                     f"[{e(ev['kind'])}] {e(ev['text'])}</li>" for ev in journal.events()[-30:])
+    page = f"""<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8">
+<meta http-equiv="refresh" content="30">
+<title>icefab build: {e(st['state'])}</title>
+<style>body{{font-family:sans-serif;margin:1.5em;max-width:60em}}
+th{{text-align:left;padding-right:1em}} img,svg{{max-width:100%;height:auto}}</style>
+</head><body>
+<h1>icefab build</h1>
+<table id="status">{status_rows}</table>
+<h2>RMS height error vs height</h2>
+{svg}
+<h2>Latest error surface</h2>
+{surface_img or '<p>no measurement yet</p>'}
+<h2>Findings and events</h2>
+<ul id="events">{events or '<li>none</li>'}</ul>
+</body></html>
+"""
+    write_atomic(Path(build_dir) / REPORT, page)

@@ -1,0 +1,359 @@
+"""``icefab build``: a closed-loop build on a cell that survives crashes (thesis 2.5).
+
+* ``icefab build INPUT... [-c JOB] -o BUILD --virtual|--cell ENDPOINTS [--layers N]``:
+  INPUT is mesh file(s), ``demo``, a toolpaths or a trajectories file (as for
+  ``icefab simulate``); the trajectories of the first N layers are planned once and kept
+  in ``BUILD/trajectories.npz``. ``--virtual`` starts a virtual cell as its own process
+  with its state in ``BUILD/cell/`` (killing the build leaves it running);
+  ``--cell ENDPOINTS`` uses a cell already running (its ``endpoints.json``).
+* ``icefab build --resume BUILD``: after a crash, power cut, ``--stop`` or Ctrl-C:
+  reconnect, ask the cell what it completed, carry on so that every path is deposited
+  exactly once.
+* ``icefab build --status BUILD [--json]``; ``icefab build --stop BUILD`` (valves off
+  first, robot to its safe point, journaled); Ctrl-C does the same.
+
+Refused before anything moves (exit 2, one line): a BUILD that holds a journal already
+(resume it), inputs or job changed since the journal (digests), a part taller than the
+vertical stroke (210 mm) or out of reach (checked when planning), a cell that does not
+answer its handshake. Files: :mod:`icefab.build`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import shutil
+import signal
+import sys
+import time
+from pathlib import Path
+
+from icefab.cli.common import add_job_argument
+from icefab.errors import ConfigError
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "build", help="run a closed-loop build on a cell, crash-safe (journal, resume)",
+        description="Build layer by layer on a cell (virtual or real): trajectories, valve "
+                    "programs, measurement every n_d layers, SMF; every command journaled "
+                    "before it is sent (BUILD/journal.sqlite) so a build resumes after a "
+                    "crash with every path deposited exactly once.")
+    p.add_argument("input", nargs="*", metavar="INPUT",
+                   help="mesh file(s), 'demo', a toolpaths .npz or a trajectories .npz")
+    add_job_argument(p)
+    p.add_argument("-o", "--out", metavar="BUILD", help="build folder (new build)")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--virtual", action="store_true",
+                       help="start a virtual cell process with its state in BUILD/cell")
+    where.add_argument("--cell", metavar="ENDPOINTS",
+                       help="a running cell's endpoints.json")
+    p.add_argument("--layers", type=int, metavar="N", help="build only the first N layers")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--resume", metavar="BUILD", help="resume the build in BUILD")
+    mode.add_argument("--status", metavar="BUILD", help="show the state of the build")
+    mode.add_argument("--stop", metavar="BUILD", help="stop the build: valves off first, "
+                                                     "robot to its safe point")
+    p.add_argument("--json", action="store_true", help="--status as JSON")
+    p.add_argument("--cell-dwell", type=float, default=0.0, help=argparse.SUPPRESS)
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.status:
+        return _status(Path(args.status), args.json)
+    if args.stop:
+        return _stop(Path(args.stop))
+    if args.resume:
+        if args.out:
+            raise ConfigError("--resume BUILD and -o BUILD: give one of them")
+        return _run(Path(args.resume), args, resume=True)
+    if not args.out:
+        raise ConfigError("-o BUILD is required for a new build (or --resume/--status/--stop "
+                          "BUILD)")
+    if not args.input:
+        raise ConfigError("a new build needs an INPUT: mesh file(s), 'demo', toolpaths or "
+                          "trajectories")
+    if not (args.virtual or args.cell):
+        raise ConfigError("choose the cell: --virtual (start one) or --cell ENDPOINTS")
+    if args.layers is not None and args.layers < 1:
+        raise ConfigError(f"--layers {args.layers}: expected a number >= 1")
+    return _run(Path(args.out), args, resume=False)
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _input_digest(inputs: list[str]) -> str:
+    from icefab.journal import digest_file, digest_text
+
+    parts = []
+    for name in inputs:
+        if name == "demo":
+            parts.append("demo")
+        else:
+            f = Path(name)
+            if not f.is_file():
+                raise ConfigError(f"{f}: input file not found")
+            parts.append(f"{f.name}:{digest_file(f)}")
+    return digest_text("|".join(parts))
+
+
+def _plan(args: argparse.Namespace):
+    """(BuildMotion of the layers to build, job)."""
+    from icefab.cli.common import Progress, job_from_args
+    from icefab.cli.simulate_cmd import load_build
+    from icefab.motion import BuildMotion, plan_toolpaths
+    from icefab.core import Toolpaths
+
+    ns = argparse.Namespace(job=args.job, flow_error=None, seed=None, deposition="valves",
+                            layers=args.layers or 0)
+    build, job = load_build(list(args.input), job_from_args(args), ns)
+    n = min(args.layers or len(build), len(build))
+    if isinstance(build, BuildMotion):
+        motion = BuildMotion(layers=tuple(build.layers[:n]), job=build.job, robot=build.robot,
+                             joint_names=build.joint_names)
+    else:
+        motion = plan_toolpaths(Toolpaths(layers=tuple(build.layers[:n]), job=build.job), job,
+                                progress=Progress("trajectories"))
+    if not any(t.path is not None and t.path.depositing for lm in motion.layers
+               for t in lm.trajectories):
+        raise ConfigError(f"{args.input[0]}: nothing to deposit in the first {n} layers")
+    return motion, job
+
+
+def _box(motion, job):
+    """Part-frame box (lo, hi) of every deposition and measurement point, mm."""
+    import numpy as np
+
+    from icefab import flow
+
+    pts = []
+    for lm in motion.layers:
+        for tr in lm.trajectories:
+            p = tr.path
+            if p is None or len(tr.xy) == 0 or p.role == "travel":
+                continue
+            tool = "laser" if p.role == "measure" else p.material
+            pts.append(flow.trajectory_part_xy(tr, tool, job))
+    allp = np.concatenate(pts)
+    return allp.min(axis=0), allp.max(axis=0)
+
+
+def _shutdown_cell(cdir: Path) -> None:
+    """End the virtual cell process serving ``cdir`` if one runs (by its pid)."""
+    from icefab.runcell import ENDPOINTS_FILE, cell_alive
+
+    if cell_alive(cdir):
+        pid = int(json.loads((cdir / ENDPOINTS_FILE).read_text(encoding="utf-8"))["pid"])
+        os.kill(pid, signal.SIGTERM)
+        deadline = time.monotonic() + 10
+        while cell_alive(cdir) and time.monotonic() < deadline:
+            time.sleep(0.05)
+
+
+def _lock(build: Path):
+    import fcntl
+
+    f = open(build / "build.lock", "a+")
+    try:
+        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        f.close()
+        raise ConfigError(f"{build}: a build is running in this folder already "
+                          f"('icefab build --status {build}')") from None
+    return f
+
+
+def _connector(build: Path, args: argparse.Namespace, meta: dict):
+    from icefab import build as bmod
+    from icefab.runcell import ENDPOINTS_FILE, RemoteCell, cell_alive, start_virtual_cell
+
+    if meta.get("cell") == "virtual":
+        cdir = build / bmod.CELL_DIR
+        dwell = float(meta.get("cell_dwell", 0.0))
+
+        def connect():
+            if not cell_alive(cdir):
+                start_virtual_cell(cdir, dwell_s=dwell)
+            return RemoteCell(cdir / ENDPOINTS_FILE)
+        return connect
+    endpoints = Path(args.cell) if getattr(args, "cell", None) else Path(meta["cell"])
+    return lambda: RemoteCell(endpoints)
+
+
+# --------------------------------------------------------------------------- run
+
+
+def _run(build: Path, args: argparse.Namespace, *, resume: bool) -> int:
+    from icefab import build as bmod
+    from icefab.config import load_job, to_toml
+    from icefab.journal import Journal, digest_file, digest_text
+    from icefab.motion import load_trajectories, save_trajectories
+
+    jpath = build / bmod.JOURNAL
+    if resume:
+        journal = Journal.open(jpath)
+        meta = journal.meta()
+        digests = {"job": digest_file(build / "job.toml"),
+                   "trajectories": digest_file(build / bmod.TRAJECTORIES)}
+        if args.job:
+            digests["job"] = digest_text(to_toml(load_job(args.job)))
+        if args.input:
+            digests["input"] = _input_digest(list(args.input))
+        journal.check_digests(digests)
+        job = load_job(build / "job.toml")
+        motion = load_trajectories(build / bmod.TRAJECTORIES)
+        if args.cell:
+            meta["cell"] = str(Path(args.cell).resolve())
+        lock = _lock(build)
+        (build / bmod.STOP_REQUEST).unlink(missing_ok=True)
+        journal.event("resume", "resumed")
+    else:
+        if jpath.exists():
+            raise ConfigError(f"{build}: holds a build journal already: resume it with "
+                              f"'icefab build --resume {build}' or choose another -o")
+        in_digest = _input_digest(list(args.input))
+        motion, job = _plan(args)
+        bmod.check_build(motion, job, len(motion.layers))
+        build.mkdir(parents=True, exist_ok=True)
+        lock = _lock(build)
+        cdir = build / bmod.CELL_DIR
+        if cdir.is_dir():
+            # a start killed before its journal existed: nothing was sent; start afresh
+            _shutdown_cell(cdir)
+            shutil.rmtree(cdir)
+        job_toml = to_toml(job)
+        (build / "job.toml").write_text(job_toml, encoding="utf-8")
+        save_trajectories(motion, build / bmod.TRAJECTORIES)
+        meta = {"cell": "virtual" if args.virtual else str(Path(args.cell).resolve()),
+                "cell_dwell": args.cell_dwell, "layers": len(motion.layers),
+                "inputs": list(args.input),
+                "digests": {"input": in_digest, "job": digest_file(build / "job.toml"),
+                            "trajectories": digest_file(build / bmod.TRAJECTORIES)}}
+        connect = _connector(build, args, meta)
+        try:
+            cell = connect()
+            cell.hello()                      # the handshake, before anything is journaled
+        except Exception:
+            (build / "job.toml").unlink(missing_ok=True)
+            (build / bmod.TRAJECTORIES).unlink(missing_ok=True)
+            raise
+        st = cell.status()
+        if not st.prepared:
+            lo, hi = _box(motion, job)
+            cell.prepare(job_toml, tuple(lo), tuple(hi))
+        journal = Journal.create(jpath, meta)
+        journal.event("start", f"build of {len(motion.layers)} layers on "
+                      f"{'a virtual cell' if args.virtual else meta['cell']}")
+        if hasattr(cell, "close"):
+            cell.close()
+    connect = _connector(build, args, meta)
+    stop_flag = {"signal": None}
+
+    def on_signal(signum, frame):
+        stop_flag["signal"] = signum
+
+    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    last = [0.0]
+    tty = sys.stderr.isatty()
+
+    def on_progress(p):
+        now = time.monotonic()
+        if now - last[0] < (0.2 if tty else 2.0) and p.state == "running":
+            return
+        last[0] = now
+        line = bmod.progress_line(p)
+        sys.stderr.write(("\r" + line) if tty else (line + "\n"))
+        sys.stderr.flush()
+
+    runner = bmod.Runner(build, motion, job, journal, connect, on_progress=on_progress,
+                         should_stop=lambda: stop_flag["signal"] is not None
+                         or (build / bmod.STOP_REQUEST).exists())
+    try:
+        p = runner.run()
+    except bmod.BuildStopped as exc:
+        if tty:
+            sys.stderr.write("\n")
+        print(f"icefab build: {exc}", file=sys.stderr)
+        return 130 if stop_flag["signal"] == signal.SIGINT else 0
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+        journal.close()
+        lock.close()
+    if tty:
+        sys.stderr.write("\n")
+    if meta.get("cell") == "virtual" and runner.cell is not None:
+        runner.cell.shutdown()      # the build is complete: the virtual cell may go
+    rms = f"{p.last_rms_mm:.3f} mm" if math.isfinite(p.last_rms_mm) else "-"
+    print(f"build complete: {p.layers} layers, {p.paths_done} paths, last measured RMS {rms}; "
+          f"{build / bmod.REPORT}")
+    return 0
+
+
+# --------------------------------------------------------------------------- status, stop
+
+
+def _status(build: Path, as_json: bool) -> int:
+    from icefab import build as bmod
+    from icefab.journal import Journal
+
+    f = build / bmod.STATUS
+    if not f.is_file():
+        Journal.open(build / bmod.JOURNAL).close()   # names the folder when it is no build
+        raise ConfigError(f"{build}: no status yet (the build has not started a layer)")
+    st = json.loads(f.read_text(encoding="utf-8"))
+    alive = False
+    try:
+        os.kill(int(st.get("pid", -1)), 0)
+        alive = True
+    except (OSError, ValueError):
+        pass
+    if st["state"] == "running" and not alive:
+        st["state"] = "interrupted (resume with --resume)"
+    if as_json:
+        print(json.dumps(st, indent=1))
+        return 0
+    rms = "-" if st["last_rms_mm"] is None else f"{st['last_rms_mm']:.3f} mm"
+    print(f"{build}: {st['state']}; layer {min(st['layers_done'] + 1, st['layers'])} of "
+          f"{st['layers']}, paths {st['paths_done']}/{st['paths']}, ETA "
+          f"{bmod.format_eta(st['eta_s'])}, last RMS {rms}")
+    for line in st.get("events", [])[-5:]:
+        print(f"  {line}")
+    return 0
+
+
+def _stop(build: Path) -> int:
+    from icefab import build as bmod
+    from icefab.journal import Journal
+
+    journal = Journal.open(build / bmod.JOURNAL)
+    meta = journal.meta()
+    (build / bmod.STOP_REQUEST).write_text("stop\n", encoding="utf-8")
+    st = {}
+    try:
+        st = json.loads((build / bmod.STATUS).read_text(encoding="utf-8"))
+        os.kill(int(st.get("pid", -1)), 0)
+        running = st.get("state") == "running"
+    except (OSError, ValueError):
+        running = False
+    if running:
+        deadline = time.monotonic() + 60.0
+        while time.monotonic() < deadline:
+            time.sleep(0.2)
+            st = json.loads((build / bmod.STATUS).read_text(encoding="utf-8"))
+            if st.get("state") != "running":
+                print(f"{build}: stopped ({st.get('events', ['-'])[-1]})")
+                return 0
+        raise ConfigError(f"{build}: the build did not stop within 60 s")
+    # no build process: tell the cell directly
+    connect = _connector(build, argparse.Namespace(cell=None), meta)
+    cell = connect()
+    cell.stop()
+    journal.event("stop", "stop sent to the cell (no build was running)")
+    journal.close()
+    print(f"{build}: no build was running; the cell was told to stop")
+    return 0

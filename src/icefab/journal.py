@@ -1,0 +1,281 @@
+"""The build journal: ``BUILD/journal.sqlite``, so a crash never loses a build (thesis 2.5).
+
+SQLite (the standard library's ``sqlite3``) in write-ahead-log mode with
+``synchronous=FULL``: a transaction that returned is on disk, whatever happens to the
+process or the power afterwards; every step is one transaction. What it holds:
+
+* ``meta``: the job and input digests (:func:`digest_file`, :func:`digest_text`) and the
+  build's settings; a resume with other inputs is refused before anything moves.
+* ``commands``: every command to the cell, **written before it is sent** (``sent`` NULL
+  until the send returned) and its acknowledgement after (``acked``): ``seq`` is the
+  command's sequence number, unique for the whole build; a command repeated after a crash
+  carries its old ``seq`` (:meth:`Journal.command`), so the cell acknowledges it instead of
+  executing it again. ``kind``: ``path`` (one trajectory with its valve program: ``layer``,
+  ``item`` = the trajectory's index in the layer), ``layer_end``, ``stop``. ``done`` is set
+  when the cell reported the path complete, ``cut`` when a cell fault cut it short.
+* ``measurements``: every measurement (layer, laser samples as npy bytes, measured RMS).
+* ``smf``: the SMF controller state and control action after every update, as npz bytes
+  (:func:`pack_arrays`), so a resumed build re-plans with exactly the action it had.
+* ``events``: what happened and where (start, resume, cell faults, stop), for the report.
+
+Rows are only ever added or completed, never rewritten with other content.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import sqlite3
+import time
+from pathlib import Path
+from typing import Any, Iterator, Mapping
+
+import numpy as np
+
+from icefab.errors import IcefabError
+
+SCHEMA_VERSION = 1
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS commands (
+    seq INTEGER PRIMARY KEY, kind TEXT NOT NULL, layer INTEGER, item INTEGER,
+    digest TEXT NOT NULL, created REAL NOT NULL, sent REAL, acked REAL, done REAL,
+    cut INTEGER NOT NULL DEFAULT 0, UNIQUE (kind, layer, item));
+CREATE TABLE IF NOT EXISTS measurements (
+    k INTEGER PRIMARY KEY, layer INTEGER NOT NULL, nominal_z REAL NOT NULL,
+    samples BLOB NOT NULL, rms_measured REAL, time REAL NOT NULL);
+CREATE TABLE IF NOT EXISTS smf (
+    k INTEGER PRIMARY KEY, layer INTEGER NOT NULL, state BLOB NOT NULL, time REAL NOT NULL);
+CREATE TABLE IF NOT EXISTS events (
+    id INTEGER PRIMARY KEY AUTOINCREMENT, time REAL NOT NULL, kind TEXT NOT NULL,
+    layer INTEGER, text TEXT NOT NULL);
+"""
+
+
+class JournalError(IcefabError):
+    """The journal cannot be used: other inputs, another schema, a broken file."""
+
+
+def digest_bytes(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def digest_file(path: str | os.PathLike) -> str:
+    """SHA-256 of a file's bytes (hex)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def digest_text(text: str) -> str:
+    return digest_bytes(text.encode("utf-8"))
+
+
+def pack_arrays(**arrays: Any) -> bytes:
+    """npz bytes of named arrays (None entries left out)."""
+    buf = io.BytesIO()
+    np.savez(buf, **{k: np.asarray(v) for k, v in arrays.items() if v is not None})
+    return buf.getvalue()
+
+
+def unpack_arrays(data: bytes) -> dict[str, np.ndarray]:
+    with np.load(io.BytesIO(data), allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}
+
+
+class Journal:
+    """One build's journal (see the module docstring). Use :meth:`create` or :meth:`open`."""
+
+    def __init__(self, path: Path, conn: sqlite3.Connection) -> None:
+        self.path = path
+        self._db = conn
+
+    # ------------------------------------------------------------------ opening
+
+    @staticmethod
+    def _connect(path: Path) -> sqlite3.Connection:
+        conn = sqlite3.connect(str(path), timeout=30.0, isolation_level=None)
+        conn.execute("PRAGMA journal_mode=WAL")
+        conn.execute("PRAGMA synchronous=FULL")
+        return conn
+
+    @classmethod
+    def create(cls, path: str | os.PathLike, meta: Mapping[str, Any]) -> "Journal":
+        """A new journal with ``meta`` (JSON-able values); JournalError if one exists."""
+        path = Path(path)
+        if path.exists():
+            raise JournalError(f"{path}: a journal exists already (resume it with "
+                               "'icefab build --resume')")
+        j = cls(path, cls._connect(path))
+        with j._tx() as db:
+            for stmt in _SCHEMA.strip().split(";"):
+                if stmt.strip():
+                    db.execute(stmt)
+            rows = {"schema": SCHEMA_VERSION, "created": time.time(), **meta}
+            db.executemany("INSERT INTO meta VALUES (?, ?)",
+                           [(k, json.dumps(v)) for k, v in rows.items()])
+        return j
+
+    @classmethod
+    def open(cls, path: str | os.PathLike) -> "Journal":
+        """An existing journal; JournalError naming the file if it is not one."""
+        path = Path(path)
+        if not path.is_file():
+            raise JournalError(f"{path}: no build journal here")
+        try:
+            j = cls(path, cls._connect(path))
+            schema = j.meta().get("schema")
+        except sqlite3.DatabaseError as exc:
+            raise JournalError(f"{path}: not a build journal ({exc})") from None
+        if schema != SCHEMA_VERSION:
+            raise JournalError(f"{path}: journal schema {schema}, this icefab reads "
+                               f"{SCHEMA_VERSION}")
+        return j
+
+    def close(self) -> None:
+        self._db.close()
+
+    class _Tx:
+        def __init__(self, db: sqlite3.Connection) -> None:
+            self.db = db
+
+        def __enter__(self) -> sqlite3.Connection:
+            self.db.execute("BEGIN IMMEDIATE")
+            return self.db
+
+        def __exit__(self, exc_type, exc, tb) -> None:
+            self.db.execute("ROLLBACK" if exc_type else "COMMIT")
+
+    def _tx(self) -> "Journal._Tx":
+        """One transaction: committed (to disk, synchronous=FULL) when the block ends."""
+        return Journal._Tx(self._db)
+
+    # ------------------------------------------------------------------ meta
+
+    def meta(self) -> dict[str, Any]:
+        return {k: json.loads(v) for k, v in self._db.execute("SELECT key, value FROM meta")}
+
+    def set_meta(self, **values: Any) -> None:
+        with self._tx() as db:
+            db.executemany("INSERT OR REPLACE INTO meta VALUES (?, ?)",
+                           [(k, json.dumps(v)) for k, v in values.items()])
+
+    def check_digests(self, digests: Mapping[str, str]) -> None:
+        """JournalError naming the first input whose digest differs from the journal's."""
+        meta = self.meta()
+        known = meta.get("digests", {})
+        for name, value in digests.items():
+            if known.get(name) != value:
+                raise JournalError(f"{self.path}: {name} changed since the build started "
+                                   f"(digest {str(known.get(name))[:12]} in the journal, "
+                                   f"{value[:12]} now): resume with the same inputs and job, "
+                                   "or start a new build in another folder")
+
+    # ------------------------------------------------------------------ commands
+
+    def command(self, kind: str, layer: int, item: int, digest: str) -> tuple[int, bool]:
+        """The sequence number of a command, journaled before it is sent.
+
+        A command already journaled (same kind, layer, item) keeps its old ``seq``: the
+        repeat after a crash. Returns (seq, new). A repeat whose digest differs (the
+        command's content changed) is a JournalError: it would not be the same command.
+        """
+        row = self._db.execute("SELECT seq, digest FROM commands WHERE kind=? AND layer=? "
+                               "AND item=?", (kind, layer, item)).fetchone()
+        if row is not None:
+            if row[1] != digest:
+                raise JournalError(f"{self.path}: {kind} {layer}/{item} was journaled with "
+                                   "other content than is about to be sent again (seq "
+                                   f"{row[0]}): the build's plan is not deterministic")
+            return int(row[0]), False
+        with self._tx() as db:
+            seq = int(db.execute("SELECT COALESCE(MAX(seq), 0) + 1 FROM commands"
+                                 ).fetchone()[0])
+            db.execute("INSERT INTO commands (seq, kind, layer, item, digest, created) "
+                       "VALUES (?, ?, ?, ?, ?, ?)", (seq, kind, layer, item, digest,
+                                                    time.time()))
+        return seq, True
+
+    def _stamp(self, column: str, seq: int) -> None:
+        with self._tx() as db:
+            db.execute(f"UPDATE commands SET {column} = COALESCE({column}, ?) WHERE seq = ?",
+                       (time.time(), seq))
+
+    def sent(self, seq: int) -> None:
+        self._stamp("sent", seq)
+
+    def acked(self, seq: int) -> None:
+        self._stamp("acked", seq)
+
+    def done(self, seq: int, cut: bool = False) -> None:
+        """The cell reported the path complete (``cut``: cut short by a cell fault)."""
+        with self._tx() as db:
+            db.execute("UPDATE commands SET done = COALESCE(done, ?), cut = ? WHERE seq = ?",
+                       (time.time(), int(cut), seq))
+
+    def is_done(self, seq: int) -> bool:
+        row = self._db.execute("SELECT done FROM commands WHERE seq=?", (seq,)).fetchone()
+        return row is not None and row[0] is not None
+
+    def commands(self) -> list[dict[str, Any]]:
+        cur = self._db.execute("SELECT seq, kind, layer, item, digest, created, sent, acked, "
+                               "done, cut FROM commands ORDER BY seq")
+        names = [d[0] for d in cur.description]
+        return [dict(zip(names, r)) for r in cur]
+
+    def paths_done(self) -> int:
+        return int(self._db.execute("SELECT COUNT(*) FROM commands WHERE kind='path' AND "
+                                    "done IS NOT NULL").fetchone()[0])
+
+    def layers_done(self) -> list[int]:
+        return [int(r[0]) for r in self._db.execute(
+            "SELECT layer FROM commands WHERE kind='layer_end' AND done IS NOT NULL "
+            "ORDER BY layer")]
+
+    # ------------------------------------------------------------------ measurements, SMF
+
+    def measurement(self, k: int, layer: int, nominal_z: float, samples: np.ndarray,
+                    rms_measured: float) -> None:
+        buf = io.BytesIO()
+        np.save(buf, np.asarray(samples, dtype=np.float64), allow_pickle=False)
+        with self._tx() as db:
+            db.execute("INSERT OR IGNORE INTO measurements VALUES (?, ?, ?, ?, ?, ?)",
+                       (k, layer, nominal_z, buf.getvalue(), rms_measured, time.time()))
+
+    def measurements(self) -> list[dict[str, Any]]:
+        out = []
+        for k, layer, nz, blob, rms, t in self._db.execute(
+                "SELECT k, layer, nominal_z, samples, rms_measured, time FROM measurements "
+                "ORDER BY k"):
+            out.append({"k": k, "layer": layer, "nominal_z": nz, "rms_measured": rms,
+                        "time": t, "samples": np.load(io.BytesIO(blob), allow_pickle=False)})
+        return out
+
+    def smf_state(self, k: int, layer: int, state: bytes) -> None:
+        with self._tx() as db:
+            db.execute("INSERT OR IGNORE INTO smf VALUES (?, ?, ?, ?)",
+                       (k, layer, state, time.time()))
+
+    def last_smf(self) -> tuple[int, int, bytes] | None:
+        row = self._db.execute("SELECT k, layer, state FROM smf ORDER BY k DESC LIMIT 1"
+                               ).fetchone()
+        return None if row is None else (int(row[0]), int(row[1]), bytes(row[2]))
+
+    # ------------------------------------------------------------------ events
+
+    def event(self, kind: str, text: str, layer: int | None = None) -> None:
+        with self._tx() as db:
+            db.execute("INSERT INTO events (time, kind, layer, text) VALUES (?, ?, ?, ?)",
+                       (time.time(), kind, layer, text))
+
+    def events(self) -> list[dict[str, Any]]:
+        cur = self._db.execute("SELECT time, kind, layer, text FROM events ORDER BY id")
+        return [{"time": t, "kind": k, "layer": lay, "text": x} for t, k, lay, x in cur]
+
+    def __iter__(self) -> Iterator[dict[str, Any]]:  # pragma: no cover - convenience
+        return iter(self.commands())

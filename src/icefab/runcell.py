@@ -1,0 +1,572 @@
+"""The cell as the build runner sees it: a small interface, and a virtual cell behind it.
+
+:class:`Cell` is everything :mod:`icefab.build` asks of a cell (thesis 2.5, Fig. 2-5):
+a handshake, the cell's state (which sequence number it completed last, which path a
+fault cut short), one path at a time (its trajectory and, for deposition, its valve
+program; the cell uploads and verifies the program, triggers, runs the motion and
+reports the path done), the end of a layer, the laser samples of a measurement path,
+and a stop (valves off first, robot to a safe point).
+
+Sequence numbers make every command idempotent: a cell remembers the highest ``seq`` it
+completed (paths run in ``seq`` order) and answers a command with ``seq`` at or below
+it with "already done" instead of running it again. So after a crash of the control PC
+the runner re-sends what its journal does not show as done, with the old numbers, and
+every path is deposited exactly once.
+
+:class:`VirtualCell` keeps its state in a folder (``state.npz``, written atomically and
+fsync'ed after every path, and ``surface.npz``: ``origin`` (2,) mm, ``spacing`` mm,
+``z`` (ny, nx) mm heights from the platform, NaN where nothing was deposited; rewritten
+at every layer end), so it survives a restart of its process as real ice would. It
+deposits with :mod:`icefab.sim`'s kernels: every valve pulse drops the volume its valve's
+calibration table gives at the pulse's local frequency (from the pulse intervals: the
+virtual valve only sees pulse instants, like the real one), times the simulated flow
+error and drift, along the nozzle's trajectory (:func:`icefab.sim.pulse_segments`); at a
+layer's end the liquid levels, the edges lose some and height noise is added, drawn
+from ``(simulation.seed, layer)`` so that the same commands give the same surface
+whatever the timing or the interruptions. The laser reads the frozen surface at 100 Hz
+along measurement paths with the simulated latency (``simulation.laser_latency_s``) and
+noise drawn from ``(seed, layer, item)``; samples are tagged with the end-effector
+position (robot base frame) at their instant, as the real cell reports them.
+
+``icefab.runcell serve --state DIR`` runs a virtual cell as its own process (so killing
+the build leaves it running, as a real controller would) behind a local socket
+(``multiprocessing.connection``, authenticated; ``DIR/endpoints.json`` names the address
+and key); :class:`RemoteCell` is the client. This is the build runner's stand-in until the
+cell links of issue 13 (``icefab cell serve``: the robot protocol, the valve firmware on a
+pty, the laser emulator) are bound behind the same :class:`Cell` interface.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import secrets
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from icefab.errors import CellError, IcefabError
+
+log = logging.getLogger(__name__)
+
+STATE_FILE = "state.npz"
+SURFACE_FILE = "surface.npz"
+ENDPOINTS_FILE = "endpoints.json"
+JOB_FILE = "job.toml"
+LASER_DIR = "laser"
+
+
+@dataclass(frozen=True, eq=False)
+class CellPath:
+    """One path as sent to the cell.
+
+    layer: toolpaths layer index; item: the trajectory's index in the layer; role:
+    boundary / fill / measure / travel; tool: part / scaffold (deposition), laser, none.
+    xy: (n, 2) float64 mm, end-effector positions in the robot base frame every dt_s s.
+    z_mm: nominal top of the layer, mm. width_mm: deposition width (0 otherwise).
+    program: the valve program's bytes (:func:`icefab.flow.encode_valve_program`) for a
+    deposition path, else empty.
+    """
+
+    layer: int
+    item: int
+    role: str
+    tool: str
+    xy: np.ndarray
+    dt_s: float
+    z_mm: float
+    width_mm: float
+    program: bytes = b""
+
+    def digest(self) -> str:
+        from icefab.journal import digest_bytes
+
+        head = f"{self.layer}|{self.item}|{self.role}|{self.tool}|{self.dt_s!r}|" \
+               f"{self.z_mm!r}|{self.width_mm!r}|".encode()
+        return digest_bytes(head + np.ascontiguousarray(self.xy, np.float64).tobytes()
+                            + self.program)
+
+    @property
+    def duration_s(self) -> float:
+        return max(len(self.xy) - 1, 0) * self.dt_s
+
+
+@dataclass(frozen=True)
+class CellStatus:
+    """last_done: highest seq completed (0: none); cut: seq of a path a fault cut short
+    (0: none); grid: whether the cell holds a build (prepared)."""
+
+    last_done: int
+    cut: int
+    prepared: bool
+
+
+class Cell(Protocol):
+    """What the build runner needs from a cell (see the module docstring)."""
+
+    def hello(self) -> dict: ...
+
+    def status(self) -> CellStatus: ...
+
+    def prepare(self, job_toml: str, lo_mm: tuple[float, float],
+                hi_mm: tuple[float, float]) -> None: ...
+
+    def run_path(self, seq: int, path: CellPath) -> bool: ...
+
+    def end_layer(self, seq: int, layer: int) -> bool: ...
+
+    def laser_samples(self, seq: int) -> np.ndarray: ...
+
+    def stop(self) -> None: ...
+
+
+# =========================================================================== the virtual cell
+
+
+def _fsync_write_npz(path: Path, **arrays: Any) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with open(tmp, "wb") as f:
+        np.savez(f, **arrays)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+    dfd = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(dfd)
+    finally:
+        os.close(dfd)
+
+
+class VirtualCell:
+    """A virtual cell whose state lives in ``state_dir`` (see the module docstring).
+
+    dwell_s: wall time a path takes, split in two halves with the state saved between
+    them (so a cell killed mid-path leaves half a path deposited and reports it cut);
+    0 (the default) runs as fast as the machine allows.
+    """
+
+    def __init__(self, state_dir: str | os.PathLike, *, dwell_s: float = 0.0) -> None:
+        self.dir = Path(state_dir)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        (self.dir / LASER_DIR).mkdir(exist_ok=True)
+        self.dwell_s = float(dwell_s)
+        self._job = None
+        self._st: dict[str, np.ndarray] | None = None
+        f = self.dir / STATE_FILE
+        if f.is_file():
+            with np.load(f) as z:
+                self._st = {k: z[k] for k in z.files}
+            if self._st["running"] != 0:
+                # a path was under way when the cell stopped: cut short
+                self._st["cut"] = self._st["running"].copy()
+                self._st["running"] = np.int64(0)
+                self._save()
+
+    # ------------------------------------------------------------------ helpers
+
+    @property
+    def job(self):
+        if self._job is None:
+            from icefab.config import load_job
+
+            self._job = load_job(self.dir / JOB_FILE)
+        return self._job
+
+    def _save(self) -> None:
+        _fsync_write_npz(self.dir / STATE_FILE, **self._st)
+
+    def _need(self) -> dict[str, np.ndarray]:
+        if self._st is None:
+            raise CellError("the virtual cell holds no build: prepare it first")
+        return self._st
+
+    # ------------------------------------------------------------------ Cell
+
+    def hello(self) -> dict:
+        return {"cell": "icefab virtual cell", "version": 1, "pid": os.getpid()}
+
+    def status(self) -> CellStatus:
+        st = self._st
+        if st is None:
+            return CellStatus(0, 0, False)
+        return CellStatus(int(st["last_done"]), int(st["cut"]), True)
+
+    def prepare(self, job_toml: str, lo_mm, hi_mm) -> None:
+        """Start a build: the job (the cell's physics: calibration tables, frames,
+        disturbances) and the box the part and scaffold occupy (part frame, mm)."""
+        from icefab.sim import empty_surface
+
+        if self._st is not None:
+            raise CellError("the virtual cell holds a build already")
+        (self.dir / JOB_FILE).write_text(job_toml, encoding="utf-8")
+        self._job = None
+        job = self.job
+        wmax = max(job.materials.part.fill_width_mm, job.materials.scaffold.fill_width_mm,
+                   job.materials.part.path_width_mm, job.materials.scaffold.path_width_mm)
+        g = job.simulation.grid_mm
+        surf = empty_surface(np.asarray(lo_mm), np.asarray(hi_mm), g, 2 * wmax + 2 * g)
+        ny, nx = surf.z.shape
+        self._st = {"origin": surf.origin, "spacing": np.float64(g), "z": surf.z,
+                    "layer_img": np.zeros((2, ny, nx)), "ever": np.zeros((ny, nx), bool),
+                    "used_cm3": np.zeros(2), "last_done": np.int64(0), "running": np.int64(0),
+                    "cut": np.int64(0), "layers": np.int64(0)}
+        self._save()
+
+    def run_path(self, seq: int, path: CellPath) -> bool:
+        """Run one path; False (nothing done) when ``seq`` was completed already."""
+        st = self._need()
+        if seq <= int(st["last_done"]):
+            return False
+        pieces = self._drops(path) if path.tool in ("part", "scaffold") and path.program \
+            else None
+        st["running"] = np.int64(seq)
+        if pieces is None:
+            if path.role == "measure":
+                self._measure(seq, path)
+            if self.dwell_s:
+                time.sleep(self.dwell_s)
+        else:
+            half = (len(pieces[1]) + 1) // 2
+            self._deposit(path, pieces, slice(0, half))
+            if self.dwell_s:
+                self._save()
+                time.sleep(0.5 * self.dwell_s)
+            self._deposit(path, pieces, slice(half, None))
+            if self.dwell_s:
+                time.sleep(0.5 * self.dwell_s)
+        st["running"] = np.int64(0)
+        st["last_done"] = np.int64(seq)
+        self._save()
+        self._executed(seq)
+        return True
+
+    def _executed(self, seq: int) -> None:
+        """Append ``seq`` to ``executed.log``: what the cell really ran, once per line
+        (the exactly-once evidence the tests and the benchmark read)."""
+        with open(self.dir / "executed.log", "a", encoding="utf-8") as f:
+            f.write(f"{seq}\n")
+            f.flush()
+            os.fsync(f.fileno())
+
+    def end_layer(self, seq: int, layer: int) -> bool:
+        """Freeze the layer's deposit: the liquid levels, edges lose, noise is added."""
+        from icefab import sim as simmod
+
+        st = self._need()
+        if seq <= int(st["last_done"]):
+            return False
+        job = self.job
+        s = job.simulation
+        dh = job.slicing.layer_thickness_mm
+        g = float(st["spacing"])
+        img = st["layer_img"]
+        z = st["z"]
+        if s.edge_loss > 0:
+            w = max(job.materials.part.path_width_mm, job.materials.scaffold.path_width_mm)
+            img = img * simmod._edge_factor(img[0] + img[1], 0.25 * dh, w, g, s.edge_loss)
+        added = img[0] + img[1]
+        mask = added > 0.25 * dh
+        if s.spread_mm > 0:
+            added = simmod.level_liquid(z, added, g, s.spread_mm)
+            mask |= added > 0.25 * dh
+        if s.noise_mm > 0 and mask.any():
+            rng = np.random.default_rng([s.seed, 1, int(layer)])
+            added = added + s.noise_mm * mask * simmod._noise_field(rng, z.shape,
+                                                                    s.noise_corr_mm / g)
+        st["z"] = z + added
+        st["ever"] = st["ever"] | mask
+        st["layer_img"] = np.zeros_like(img)
+        st["layers"] = np.int64(int(st["layers"]) + 1)
+        st["last_done"] = np.int64(seq)
+        _fsync_write_npz(self.dir / SURFACE_FILE, origin=st["origin"],
+                         spacing=st["spacing"], z=np.where(st["ever"], st["z"], np.nan))
+        self._save()
+        self._executed(seq)
+        return True
+
+    def laser_samples(self, seq: int) -> np.ndarray:
+        """(m, 4) float64: t s from the path start, EE x, y (base frame, mm), z reading mm
+        of the measurement path with this ``seq``."""
+        f = self.dir / LASER_DIR / f"{seq:08d}.npy"
+        if not f.is_file():
+            raise CellError(f"no laser samples for path {seq}")
+        return np.load(f)
+
+    def stop(self) -> None:
+        """Valves off, robot to its safe point: the virtual cell runs nothing between
+        commands, so there is nothing to stop."""
+        return None
+
+    # ------------------------------------------------------------------ physics
+
+    def _drops(self, path: CellPath):
+        """Segments of a deposition path's pulses: (a, b, volume, half width, n0, n1,
+        ext) from :func:`icefab.sim.pulse_segments`, volumes as the valve drops them."""
+        from icefab import flow
+        from icefab import sim as simmod
+
+        job = self.job
+        prog = flow.decode_valve_program(path.program, f"path {path.layer}/{path.item}")
+        t = flow.pulse_times(prog)
+        cal = flow.calibration_for(path.tool, job)
+        if len(t) == 0:
+            drops = np.zeros(0)
+        elif prog.widths_us is None:
+            # the local frequency: the inverse of the mean interval to the neighbours
+            if len(t) == 1:
+                period = np.array([max(prog.duration, job.flow.tick_s)])
+            else:
+                d = np.diff(t)
+                left = np.concatenate([d[:1], d])
+                right = np.concatenate([d, d[-1:]])
+                period = np.maximum(0.5 * (left + right), job.flow.tick_s)
+            nu = 1.0 / period
+            drops = cal.flow(nu) / nu
+        else:
+            f = job.flow.pwm_frequency_hz
+            per = float(cal.flow(np.array([f]))[0]) / f
+            w = np.concatenate([pc.widths_us for pc in flow.program_pieces(prog)])
+            drops = per * w.astype(np.float64) / 1000.0 / job.flow.calibration_pulse_ms
+        off = np.asarray(job.cell.ee_origin_mm) - _tool_offset(path.tool, job)
+        xy = np.asarray(path.xy, dtype=np.float64) - off
+        a, b, vol, hw, owner, n0, n1, ext = simmod.pulse_segments(
+            [xy], [path.dt_s], [t], [drops], [path.width_mm])
+        return a, b, vol, hw, n0, n1, ext
+
+    def _deposit(self, path: CellPath, seg, part: slice) -> None:
+        from icefab import sim as simmod
+
+        st = self._st
+        job = self.job
+        s = job.simulation
+        a, b, vol, hw, n0, n1, ext = (x[part] for x in seg)
+        if len(vol) == 0:
+            return
+        mat = 0 if path.tool == "part" else 1
+        before = st["used_cm3"][mat] + (np.cumsum(vol) - vol) / 1000.0
+        gain = (1.0 + s.flow_error) * (1.0 + s.flow_drift_per_cm3 * before)
+        st["used_cm3"][mat] += vol.sum() / 1000.0
+        simmod._splat(st["layer_img"][mat], st["origin"], float(st["spacing"]), a, b,
+                      vol * gain, hw, n0, n1, ext)
+
+    def _measure(self, seq: int, path: CellPath) -> None:
+        from icefab.sim import sample_surface
+        from icefab.core import HeightMap
+
+        st = self._st
+        job = self.job
+        s = job.simulation
+        xy = np.asarray(path.xy, dtype=np.float64)
+        if len(xy) < 2:
+            out = np.zeros((0, 4))
+        else:
+            tt = np.arange(len(xy)) * path.dt_s
+            tk = np.arange(int(np.floor(tt[-1] * s.laser_rate_hz + 1e-9)) + 1) / s.laser_rate_hz
+
+            def at(q: np.ndarray) -> np.ndarray:
+                return np.column_stack([np.interp(q, tt, xy[:, 0]), np.interp(q, tt, xy[:, 1])])
+
+            ee = at(tk)
+            spot = at(np.maximum(tk - s.laser_latency_s, 0.0)) \
+                - np.asarray(job.cell.ee_origin_mm) + np.asarray(job.cell.laser_offset_mm)
+            surf = HeightMap(origin=st["origin"], spacing=float(st["spacing"]), z=st["z"])
+            zr = sample_surface(surf, spot)
+            if s.laser_noise_mm > 0:
+                rng = np.random.default_rng([s.seed, 3, path.layer, path.item])
+                zr = zr + rng.normal(0.0, s.laser_noise_mm, len(zr))
+            out = np.column_stack([tk, ee, zr])
+        f = self.dir / LASER_DIR / f"{seq:08d}.npy"
+        tmp = f.with_name(f".{f.name}.tmp")
+        with open(tmp, "wb") as fh:
+            np.save(fh, out)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, f)
+
+
+def _tool_offset(tool: str, job) -> np.ndarray:
+    from icefab.frames import tool_offset
+
+    return np.asarray(tool_offset(tool, job), dtype=np.float64)
+
+
+# =========================================================================== the process
+
+
+def serve(state_dir: str | os.PathLike, *, dwell_s: float = 0.0) -> None:
+    """Serve a :class:`VirtualCell` on 127.0.0.1 until killed (one client at a time)."""
+    from multiprocessing.connection import Listener
+
+    cell = VirtualCell(state_dir, dwell_s=dwell_s)
+    key = secrets.token_bytes(16)
+    with Listener(("127.0.0.1", 0), authkey=key) as listener:
+        host, port = listener.address
+        ep = {"kind": "icefab-virtual-cell", "host": host, "port": port,
+              "authkey": key.hex(), "pid": os.getpid()}
+        path = cell.dir / ENDPOINTS_FILE
+        tmp = path.with_name(".endpoints.tmp")
+        tmp.write_text(json.dumps(ep) + "\n", encoding="utf-8")
+        os.replace(tmp, path)
+        while True:
+            try:
+                conn = listener.accept()
+            except (OSError, EOFError):
+                continue
+            with conn:
+                while True:
+                    try:
+                        name, args = conn.recv()
+                    except (EOFError, OSError):
+                        break
+                    if name == "shutdown":
+                        conn.send(("ok", None))
+                        return
+                    try:
+                        if name not in _CALLS:
+                            raise CellError(f"unknown command {name!r}")
+                        reply = ("ok", getattr(cell, name)(*args))
+                    except IcefabError as exc:
+                        reply = ("error", str(exc))
+                    try:
+                        conn.send(reply)
+                    except (OSError, EOFError):
+                        break
+
+
+_CALLS = ("hello", "status", "prepare", "run_path", "end_layer", "laser_samples", "stop")
+
+
+class RemoteCell:
+    """A client of a served virtual cell (``DIR/endpoints.json``)."""
+
+    def __init__(self, endpoints: str | os.PathLike, *, timeout_s: float = 10.0) -> None:
+        from multiprocessing.connection import Client
+
+        self.endpoints = Path(endpoints)
+        try:
+            ep = json.loads(self.endpoints.read_text(encoding="utf-8"))
+            addr = (ep["host"], int(ep["port"]))
+            key = bytes.fromhex(ep["authkey"])
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise CellError(f"{self.endpoints}: not a cell's endpoints file ({exc})") from None
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                self._conn = Client(addr, authkey=key)
+                break
+            except (OSError, EOFError) as exc:
+                if time.monotonic() > deadline:
+                    raise CellError(f"{self.endpoints}: the cell at {addr[0]}:{addr[1]} does "
+                                    f"not answer ({exc})") from None
+                time.sleep(0.05)
+
+    def _call(self, name: str, *args: Any) -> Any:
+        try:
+            self._conn.send((name, args))
+            kind, value = self._conn.recv()
+        except (OSError, EOFError) as exc:
+            raise CellError(f"the cell's link broke during {name} ({exc or 'closed'})") \
+                from None
+        if kind == "error":
+            raise CellError(value)
+        return value
+
+    def close(self) -> None:
+        try:
+            self._conn.close()
+        except OSError:  # pragma: no cover
+            pass
+
+    def hello(self) -> dict:
+        return self._call("hello")
+
+    def status(self) -> CellStatus:
+        return self._call("status")
+
+    def prepare(self, job_toml: str, lo_mm, hi_mm) -> None:
+        self._call("prepare", job_toml, tuple(map(float, lo_mm)), tuple(map(float, hi_mm)))
+
+    def run_path(self, seq: int, path: CellPath) -> bool:
+        return self._call("run_path", seq, path)
+
+    def end_layer(self, seq: int, layer: int) -> bool:
+        return self._call("end_layer", seq, layer)
+
+    def laser_samples(self, seq: int) -> np.ndarray:
+        return self._call("laser_samples", seq)
+
+    def stop(self) -> None:
+        self._call("stop")
+
+    def shutdown(self) -> None:
+        """End the served cell's process (its state stays in its folder)."""
+        self._call("shutdown")
+
+
+def start_virtual_cell(state_dir: str | os.PathLike, *, dwell_s: float = 0.0,
+                       timeout_s: float = 30.0) -> int:
+    """Start ``serve`` as its own process (own session: killing the build leaves it
+    running) and wait for its endpoints file. Returns its pid."""
+    import subprocess
+
+    d = Path(state_dir)
+    d.mkdir(parents=True, exist_ok=True)
+    ep = d / ENDPOINTS_FILE
+    ep.unlink(missing_ok=True)
+    log_f = open(d / "cell.log", "ab")
+    # through -c so that pickled classes are icefab.runcell's, not __main__'s
+    proc = subprocess.Popen([sys.executable, "-c", "import sys; from icefab.runcell import "
+                             "main; sys.exit(main(sys.argv[1:]))", "serve", "--state",
+                             str(d), "--dwell", repr(float(dwell_s))],
+                            stdin=subprocess.DEVNULL, stdout=log_f, stderr=log_f,
+                            start_new_session=True)
+    log_f.close()
+    deadline = time.monotonic() + timeout_s
+    while not ep.is_file():
+        if proc.poll() is not None:
+            raise CellError(f"the virtual cell exited at start (status {proc.returncode}); "
+                            f"see {d / 'cell.log'}")
+        if time.monotonic() > deadline:
+            raise CellError(f"the virtual cell did not start within {timeout_s:g} s")
+        time.sleep(0.05)
+    return proc.pid
+
+
+def cell_alive(state_dir: str | os.PathLike) -> bool:
+    """Whether the process named in ``DIR/endpoints.json`` is running."""
+    try:
+        pid = int(json.loads((Path(state_dir) / ENDPOINTS_FILE).read_text())["pid"])
+    except (OSError, ValueError, KeyError):
+        return False
+    try:  # our own child that died is a zombie until reaped: reap it
+        if os.waitpid(pid, os.WNOHANG)[0] == pid:
+            return False
+    except ChildProcessError:
+        pass
+    try:
+        os.kill(pid, 0)
+    except OSError:
+        return False
+    return True
+
+
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+
+    p = argparse.ArgumentParser(prog="python -m icefab.runcell")
+    sub = p.add_subparsers(dest="cmd", required=True)
+    s = sub.add_parser("serve")
+    s.add_argument("--state", required=True)
+    s.add_argument("--dwell", type=float, default=0.0)
+    args = p.parse_args(argv)
+    serve(args.state, dwell_s=args.dwell)
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
