@@ -324,3 +324,33 @@ def _publish(tmp: Path, final: Path, command: str) -> None:
         raise OutputError(f"{final / current}: cannot put the result in place "
                           f"({exc.strerror or exc}); {final} is as it was") from None
     shutil.rmtree(backup, ignore_errors=True)
+
+
+def warnings_file(command: str) -> str:
+    """``COMMAND-warnings.txt``: each command's own name, so two commands writing into
+    one folder (slice, then paths) never replace each other's list."""
+    from icefab.findings import WARNINGS_FILE
+
+    return f"{command}-{WARNINGS_FILE}"
+
+
+def warning_lines(warnings, command: str) -> list[str]:
+    """The summary's warning lines: the count, then one line per kind with its count and
+    layers (:func:`icefab.findings.summarise_warnings`), and where the full list is."""
+    from icefab.findings import summarise_warnings
+
+    if not warnings:
+        return ["warnings: 0"]
+    return ([f"warnings: {len(warnings)} (all in {warnings_file(command)}), by kind:"]
+            + [f"  {line}" for line in summarise_warnings(warnings)])
+
+
+def write_warnings(warnings, folder: Path, command: str) -> None:
+    """The full list of ``warnings`` as ``folder/COMMAND-warnings.txt`` (the publishing
+    folder of :func:`output_dir`, so it appears with the results or not at all); nothing
+    when there are none."""
+    from icefab.findings import warnings_text
+
+    source = f"icefab {command}"
+    if warnings:
+        (folder / warnings_file(command)).write_text(warnings_text(warnings, source), encoding="utf-8")

@@ -82,6 +82,11 @@ def run(args: argparse.Namespace) -> int:
                               f"{min(known)}..{max(known)}" if known else
                               f"--layers {args.layers!r}: the file has no layers")
         layers = tuple(lm for lm in layers if lm.index in wanted)
+    from icefab.headroom import check_feedback_headroom, feedback_headroom
+
+    # the closed-loop build's needs, before any program is written (issue 11)
+    headroom = check_feedback_headroom(feedback_headroom(
+        ((lm.index, t) for lm in layers for t in lm.trajectories), job), job)
     fmts = ("bin", "txt") if args.format == "both" else (args.format,)
     progress = Progress("valves")
     table = ["layer  paths  pulses  pieces  findings"]
@@ -133,6 +138,7 @@ def run(args: argparse.Namespace) -> int:
             w.writerows(rows)
         lines = _summary(args.out, layers, fmts, totals, sparse_paths, max_gap,
                          max_gap_width, found, job)
+        lines[2:2] = headroom  # the closed-loop build's needs (issue 11), before findings
         (tmp / "valves-summary.txt").write_text(
             "\n".join(lines + ["", "per layer:"] + table) + "\n", encoding="utf-8")
     print("\n".join(lines))
