@@ -139,3 +139,24 @@ def _publish(tmp: Path, final: Path, manifest: str) -> None:
             shutil.rmtree(stale)
         elif stale.exists() or stale.is_symlink():
             stale.unlink()
+
+
+def warning_lines(warnings) -> list[str]:
+    """The summary's warning lines: the count, then one line per kind with its count and
+    layers (:func:`icefab.findings.summarise_warnings`), and where the full list is."""
+    from icefab.findings import WARNINGS_FILE, summarise_warnings
+
+    if not warnings:
+        return ["warnings: 0"]
+    return ([f"warnings: {len(warnings)} (all in {WARNINGS_FILE}), by kind:"]
+            + [f"  {line}" for line in summarise_warnings(warnings)])
+
+
+def write_warnings(warnings, folder: Path, source: str = "") -> None:
+    """The full list of ``warnings`` as ``folder/warnings.txt`` (the publishing folder of
+    :func:`output_dir`, so it appears with the results or not at all); nothing when there
+    are none."""
+    from icefab.findings import WARNINGS_FILE, warnings_text
+
+    if warnings:
+        (folder / WARNINGS_FILE).write_text(warnings_text(warnings, source), encoding="utf-8")

@@ -260,6 +260,12 @@ def run(args: argparse.Namespace) -> int:
         # the cell's minimum-time trajectories, planned once for both runs
         build = plan_toolpaths(Toolpaths(layers=tuple(build.layers[:n]), job=build.job), job,
                                progress=Progress("trajectories"))
+    headroom: list[str] = []
+    if valves:  # the feedback's headroom, before 2 x n layers are simulated (issue 11)
+        from icefab.headroom import check_feedback_headroom, feedback_headroom
+
+        headroom = check_feedback_headroom(feedback_headroom(
+            ((lm.index, t) for lm in build.layers[:n] for t in lm.trajectories), job), job)
     t_prep = time.perf_counter() - t0
     keep = None if args.surface_layer is None else [args.surface_layer]
     open_loop = simulate_build(build, job, layers=n, closed_loop=False,
@@ -282,6 +288,20 @@ def run(args: argparse.Namespace) -> int:
     else:
         print("deposition: commanded flow (ideal valve)"
               + (" along the trajectories" if isinstance(build, BuildMotion) else ""))
+    for line in headroom:
+        print(f"warning: {line}")
+    if valves:  # what the valve limits did, once per kind, and the volume clamping cost
+        from icefab.findings import clamped_volume
+        from icefab.flow import summarise_findings
+
+        for label, res in (("open loop", open_loop), ("with SMF", closed)):
+            n_paths, n_layers, got, asked = clamped_volume(res.findings)
+            if n_paths:
+                print(f"clamped ({label}, flow.out_of_range = 'clamp'): {n_paths} paths in "
+                      f"{n_layers} layers deliver {got:.6g} of {asked:.6g} mm^3 commanded "
+                      f"({100 * (got / asked - 1):+.2f} %)")
+            for line in summarise_findings(res.findings)[:8]:
+                print(f"valve limits ({label}): {line}")
     for line in format_table(table_rows(open_loop, closed)):
         print(line)
     print(f"final RMS height deviation: {open_loop.rms[-1]:.3f} mm open loop, "

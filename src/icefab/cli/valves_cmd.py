@@ -74,6 +74,11 @@ def run(args: argparse.Namespace) -> int:
                               f"{min(known)}..{max(known)}" if known else
                               f"--layers {args.layers!r}: the file has no layers")
         layers = tuple(lm for lm in layers if lm.index in wanted)
+    from icefab.headroom import check_feedback_headroom, feedback_headroom
+
+    # the closed-loop build's needs, before any program is written (issue 11)
+    headroom = check_feedback_headroom(feedback_headroom(
+        ((lm.index, t) for lm in layers for t in lm.trajectories), job), job)
     fmts = ("bin", "txt") if args.format == "both" else (args.format,)
     progress = Progress("valves")
     lines = ["layer  paths  pulses  pieces  findings"]
@@ -104,6 +109,7 @@ def run(args: argparse.Namespace) -> int:
         lines.append(f"mode {job.flow.mode}, tick {job.flow.tick_s * 1e3:g} ms, split at "
                      f"{job.flow.max_piece_s:g} s / {job.flow.max_pulses} pulses, "
                      f"flow.out_of_range = {job.flow.out_of_range!r}")
+        lines.extend(headroom)
         if found:
             lines.append(f"findings ({len(found)}), one line per kind:")
             lines.extend(f"  {t}" for t in summarise_findings(found))
