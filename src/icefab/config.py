@@ -183,13 +183,14 @@ class MaterialSettings:
     path_width_mm: float = setting(
         1.5,
         "boundary path width",
-        lo=0.05, hi=20.0,
+        lo=0.2, hi=20.0,
         why="a deposited line is 0.5-5 mm wide (thesis 3.4: 1.5)")
     fill_width_mm: float = setting(
         3.0,
         "fill path width (spacing of fill paths)",
-        lo=0.05, hi=50.0,
-        why="fill paths are spaced by about one line width")
+        lo=0.5, hi=50.0,
+        why="fill paths are spaced by about one line width, 0.5 mm or more (at 0.05 mm the "
+            "demo mug's first 4 layers took over 120 s of path planning)")
     initial_offset_mm: float = setting(
         0.6,
         "inward offset of the first boundary path from the region edge",
@@ -559,8 +560,9 @@ class FeedbackSettings:
     measure_spacing_mm: float = setting(
         3.0,
         "spacing of concentric measurement paths",
-        lo=0.1, hi=100.0,
-        why="about the path width")
+        lo=1.0, hi=100.0,
+        why="about the path width (thesis Fig. 5-5: concentric BUFFERF paths); at 0.1 mm "
+            "the demo mug's first 4 layers took over 120 s to plan")
     smoothing: bool = setting(True, "robust smoothing of the measured surface")
 
 
