@@ -51,6 +51,23 @@ def _kill_cell(build: Path) -> None:
             pass
 
 
+def _done(build: Path) -> int:
+    import sqlite3
+
+    f = build / "journal.sqlite"
+    if not f.exists():
+        return -1
+    try:
+        db = sqlite3.connect(f"{f.as_uri()}?mode=ro", uri=True, timeout=5)
+        try:
+            return int(db.execute("SELECT COUNT(*) FROM commands WHERE done IS NOT NULL"
+                                  ).fetchone()[0])
+        finally:
+            db.close()
+    except sqlite3.OperationalError:
+        return -1
+
+
 def kills(args: argparse.Namespace) -> None:
     d = Path(tempfile.mkdtemp(prefix="bench_build."))
     traj = _plan_demo(d, args.layers)
@@ -60,15 +77,20 @@ def kills(args: argparse.Namespace) -> None:
                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     t_ref = time.perf_counter() - t0
     rng = np.random.default_rng(args.seed)
-    # random moments spread over the uninterrupted build's duration
-    moments = np.sort(rng.uniform(0.0, 1.0, args.kills))
     proc = subprocess.Popen(cmd + [str(traj), "-o", "k", "--virtual"], cwd=d,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    while not (d / "k" / "journal.sqlite").exists():
-        time.sleep(0.05)
     n = 0
-    for _ in moments:
-        time.sleep(float(rng.uniform(0.2, 2.0 * t_ref / args.kills)))
+    # each kill: a random moment (up to twice the mean share of the uninterrupted build's
+    # time per kill) after the (resumed) build journaled one more command done, so that a
+    # slow process start on a loaded machine cannot starve the build
+    share = t_ref / args.kills
+    while n < args.kills:
+        start = _done(d / "k")
+        while proc.poll() is None and _done(d / "k") <= start:
+            time.sleep(0.02)
+        if proc.poll() is not None:
+            break
+        time.sleep(float(rng.uniform(0.0, 2.0 * share)))
         if proc.poll() is not None:
             break
         proc.send_signal(signal.SIGKILL)

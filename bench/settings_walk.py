@@ -103,6 +103,10 @@ def main() -> None:
     ap.add_argument("--timeout", type=float, default=60.0)
     ap.add_argument("--out", default="settings_walk.jsonl")
     ap.add_argument("--only", help="a substring of the setting names to walk")
+    ap.add_argument("--first", default="layer_thickness,parts.scale,fill_width,measure_spacing,"
+                    "max_piece_s,tick_s,dt_s,buffer_mm,speed_mm_s,point_spacing,grid_mm,"
+                    "copies,reach_mm,debris_rate,noise_mm,layer_scale,cpus",
+                    help="walk settings whose names contain these first (issue 10's list)")
     args = ap.parse_args()
     done = set()
     out = Path(args.out)
@@ -112,7 +116,11 @@ def main() -> None:
         work = Path(tmp)
         base = run_case("[cell]\ncpus = 1\n", args.layers, 600.0, work)
         print(f"defaults: {base}", flush=True)
-        for name, i, lo, hi, default in numeric_settings():
+        first = [w for w in args.first.split(",") if w]
+        order = sorted(numeric_settings(),
+                       key=lambda c: next((k for k, w in enumerate(first) if w in c[0]),
+                                          len(first)))
+        for name, i, lo, hi, default in order:
             if args.only and args.only not in name:
                 continue
             label = name if i is None else f"{name}[{i}]"
@@ -126,8 +134,12 @@ def main() -> None:
                     if i is not None:
                         value = list(default)
                         value[i] = bound
-                    if isinstance(default if i is None else default[i], float):
-                        value = [float(x) for x in value] if i is not None else float(value)
+                    if i is not None:
+                        value = [float(x) if isinstance(d, float) else x
+                                 for x, d in zip(value, default)]
+                        value[i] = type(default[i])(bound)
+                    else:
+                        value = type(default)(bound)
                     text = _toml(name, value)
                     if not name.startswith("cell."):
                         text += "[cell]\ncpus = 1\n"

@@ -28,7 +28,7 @@ STAGES: list[tuple[str, tuple[str, ...]]] = [
     ("paths", ("icefab.paths",)),
     ("motion", ("icefab._mtts", "icefab.motion")),
     ("feedback", ("icefab.feedback",)),
-    ("flow", ("icefab.flow",)),
+    ("flow", ("icefab.flow", "icefab.headroom", "icefab.findings")),
     ("sim", ("icefab.sim",)),
     ("report", ("icefab.report",)),
     ("export", ("icefab.export",)),

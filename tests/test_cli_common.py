@@ -67,8 +67,9 @@ def test_output_dir_leaves_other_files_and_uses_normal_modes(tmp_path):
     the other files; results get the umask's modes, not mkstemp's 0600."""
     import os
 
-    from icefab.atomic import FILE_MODE
-
+    mask = os.umask(0o022)  # read the umask (a test may; icefab itself never does)
+    os.umask(mask)
+    file_mode = 0o666 & ~mask
     target = tmp_path / "out"
     target.mkdir()
     (target / "stack.npz").write_text("input")
@@ -80,7 +81,7 @@ def test_output_dir_leaves_other_files_and_uses_normal_modes(tmp_path):
     assert (target / "paths.png").read_text() == "new picture"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
     for name in ("paths.png", "toolpaths.npz"):
-        assert os.stat(target / name).st_mode & 0o777 == FILE_MODE
+        assert os.stat(target / name).st_mode & 0o777 == file_mode
 
 
 def test_output_to_a_file_is_one_line_error(tmp_path, capsys):
@@ -193,3 +194,17 @@ def test_every_listed_command_exists_and_none_is_skipped():
     cli_dir = Path(__file__).resolve().parents[1] / "src" / "icefab" / "cli"
     modules = {p.stem[:-4] for p in cli_dir.glob("*_cmd.py")}
     assert modules == set(SUBCOMMANDS), "a *_cmd.py module not in SUBCOMMANDS, or the reverse"
+
+
+def test_one_build_time_comparison_in_words():
+    """Issue 10: paths said 2.71 h, plan '-153.3 % reduction' against it, the demo '41 %
+    less'. Now one comparison (both times a robot can run), said in words."""
+    from icefab.cli.common import compare_build_times, hours
+
+    assert hours(3 * 3600 + 360) == "3.10 h" and hours(90) == "1.5 min"
+    faster = compare_build_times(3600.0, 7200.0)
+    assert faster == ("minimum-time trajectories take 1.00 h, the same paths at constant "
+                      "speed 2.00 h: minimum-time is 50 % shorter (2.00x as fast)")
+    slower = compare_build_times(7200.0, 3600.0)
+    assert slower.endswith("minimum-time is 100 % longer") and "-100" not in slower
+    assert "no motion" in compare_build_times(0.0, 10.0)

@@ -89,7 +89,7 @@ def test_thesis_table_3_1(tmp_path):
      "control.txt:8: slicing.layer_thickness_mm = -0.25: must be >= 0.01"),
     ("1.5 1.2 [mm]	[float float] (> 0) [part scaffolding] deposition path width",
      "1.5 0 [mm]	[float float] (> 0) [part scaffolding] deposition path width",
-     "control.txt:7: materials.scaffold.path_width_mm = 0.0: must be >= 0.05"),
+     "control.txt:7: materials.scaffold.path_width_mm = 0.0: must be >= 0.2"),
     ("0.25 [mm]	[float] (> 0) slice thickness", "abc [mm]	[float] (> 0) slice thickness",
      "control.txt:8: slice thickness: expected 1 number, got none"),
     ("3 1 2	[int int int]", "3 3 2	[int int int]", "control.txt:14: rotation axis order"),

@@ -8,7 +8,8 @@ def test_demo_writes_every_stage(tmp_path, capsys):
     out = tmp_path / "demo"
     assert main(["demo", "-o", str(out), "--layers", "24", "--sim-layers", "24"]) == 0
     for name in ("demo-mug.stl", "stack.npz", "toolpaths.npz", "trajectories.npz",
-                 "layers.png", "summary.json", "report.html", "simulation/rms_vs_height.png"):
+                 "layers.png", "summary.json", "report.html", "simulation/rms_vs_height.png",
+                 "valves/layer_0000.txt"):
         assert (out / name).stat().st_size > 0, name
     summary = json.loads((out / "summary.json").read_text())
     assert summary["slice"]["layers"] == 24

@@ -11,7 +11,7 @@ import warnings
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import given, seed, settings
 from hypothesis import strategies as st
 
 from icefab.cli import main
@@ -135,6 +135,28 @@ def test_tune_json_is_valid_when_the_response_diverges(capsys, tmp_path):
         out, err = capsys.readouterr()
     assert rc == 0 and "diverges" in out and "UNSTABLE" in out
     assert strict_json((tmp_path / "t" / "tune.json").read_text())["rms"] is None
+
+
+def test_tune_json_rms_is_null_for_unstable_gains_that_have_not_overflowed_yet(capsys):
+    """Issue 10: ``--gains 5,5,5`` over the default 100 layers printed rms 2.5e+77 (the
+    response had not overflowed yet); a pole outside the unit circle means it diverges."""
+    assert main(["tune", "--gains", "5,5,5", "--json"]) == 0
+    data = strict_json(capsys.readouterr().out)
+    assert data["stable"] is False and data["max_pole"] > 1 and data["rms"] is None
+    assert main(["tune", "--gains", "5,5,5"]) == 0
+    out = capsys.readouterr().out
+    assert "diverges" in out and "e+77" not in out
+
+
+@settings(max_examples=40, deadline=None)
+@seed(10)
+@given(st.tuples(*[st.floats(0.0, 6.0)] * 3))
+def test_a_finite_rms_is_only_reported_for_a_bounded_response(gains):
+    r = evaluate_gains(gains, Disturbance(n_layers=100))
+    if r.as_dict()["rms"] is not None:
+        assert r.max_pole <= 1.0 and np.isfinite(r.rms)
+    else:
+        assert r.diverges
 
 
 def test_tune_fix_kp_on_a_lone_pulse_is_stable(capsys):

@@ -188,16 +188,18 @@ def test_non_depositing_path_has_no_pulses():
 
 
 def test_out_of_range_clamp_or_error():
+    # a cell with a 1 ms tick can use the whole 1000 Hz table (thesis 6.1)
+    ms = Job().replace(**{"flow.tick_s": 0.001, "flow.max_frequency_hz": 1000.0})
     traj = line_trajectory(length=200, vmax=125.0, width=3.0)
     u = np.full(len(traj.xy), 0.9)  # 3 * 0.25 * 125 * 1.9 = 178 mm^3/s, inside
-    valve_frequency(traj, "part", Job(), action=u)
+    valve_frequency(traj, "part", ms, action=u)
     fast = line_trajectory(length=400, vmax=300.0, accel=2000.0, width=3.0)
-    clamp = Job().replace(**{"flow.out_of_range": "clamp"})
+    clamp = ms.replace(**{"flow.out_of_range": "clamp"})
     plan = valve_frequency(fast, "part", clamp, action=np.full(len(fast.xy), 0.3))
     assert plan.clamped > 0 and any("outside the calibration table" in w for w in plan.warnings)
     assert plan.nu.max() <= 1000.0
     with pytest.raises(FlowError, match="calibration table"):  # the default
-        valve_frequency(fast, "part", Job(), action=np.full(len(fast.xy), 0.3))
+        valve_frequency(fast, "part", ms, action=np.full(len(fast.xy), 0.3))
 
 
 def test_min_drops_per_mm_reported():

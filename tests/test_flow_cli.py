@@ -1,6 +1,7 @@
 """``icefab valves`` end to end on a small trajectory file."""
 from __future__ import annotations
 
+import csv
 import re
 
 import numpy as np
@@ -8,7 +9,8 @@ import pytest
 
 from icefab import Job
 from icefab.cli import main
-from icefab.flow import n_pulses, plan_valves, read_valve_program
+from icefab.flow import decode_valve_program as read_valve_program_bytes
+from icefab.flow import n_pulses, plan_valves, read_valve_layer
 from icefab.motion import BuildMotion, LayerMotion, save_trajectories
 
 from test_flow import line_trajectory
@@ -31,16 +33,33 @@ def test_valves_writes_programs(tmp_path, traj_file, capsys):
     rc = main(["valves", str(traj_file), "-o", str(out), "--format", "both"])
     assert rc == 0
     text = capsys.readouterr().out
-    assert text.splitlines()[0].startswith("layer")
+    assert text.splitlines()[0].startswith("valve programs: 4 paths in 2 layers")
     files = sorted(p.relative_to(out).as_posix() for p in out.rglob("*"))
-    assert "layer_0000/path_0000.bin" in files and "layer_0001/path_0002.txt" in files
-    assert "layer_0000/path_0001.bin" not in files  # travel: no valve program
-    a = read_valve_program(out / "layer_0000" / "path_0000.bin")
-    b = read_valve_program(out / "layer_0000" / "path_0000.txt")
+    # one file per layer and form, not one per path (--format both wrote 56 000 files)
+    assert [f for f in files if f.startswith("valves/")] == [
+        "valves/layer_0000.bin", "valves/layer_0000.txt", "valves/layer_0001.bin",
+        "valves/layer_0001.txt"]
+    for form in ("bin", "txt"):
+        layer, programs = read_valve_layer(out / "valves" / f"layer_0001.{form}")
+        assert layer == 1
+        # travel (trajectory 1) has no valve program; build order and valves kept
+        assert [(lp.path, lp.material) for lp in programs] == [(0, "part"), (2, "scaffold")]
+    a = read_valve_layer(out / "valves" / "layer_0000.bin")[1][0].program
+    b = read_valve_layer(out / "valves" / "layer_0000.txt")[1][0].program
     np.testing.assert_array_equal(a.ticks, b.ticks)
     ref = plan_valves(line_trajectory(), "part", Job())
     assert n_pulses(a) == n_pulses(ref)
-    assert (out / "summary.txt").read_text().startswith("layer")
+    # each record's bytes are the per-program binary layout, unchanged
+    data = (out / "valves" / "layer_0000.bin").read_bytes()
+    assert data[:4] == b"ICVL" and data[28:32] == b"ICEV"
+    assert read_valve_program_bytes(data[28:28 + int.from_bytes(data[24:28], "little")]
+                                    ).ticks.tolist() == ref.ticks.tolist()
+    assert "per layer:" in (out / "valves-summary.txt").read_text()
+    rows = list(csv.DictReader((out / "valves-paths.csv").open()))
+    assert [(r["layer"], r["path"], r["material"]) for r in rows] == [
+        ("0", "0", "part"), ("0", "2", "scaffold"), ("1", "0", "part"), ("1", "2", "scaffold")]
+    # the line is 100 mm long (line_trajectory): the table's length is the samples' length
+    assert float(rows[0]["length_mm"]) == pytest.approx(100.0, rel=1e-6)
 
 
 def test_valves_bad_input(tmp_path, traj_file, capsys):
@@ -67,15 +86,15 @@ def test_valves_prints_each_kind_of_finding_once_with_its_count(tmp_path, fast_f
     rc = main(["valves", str(fast_file), "-o", str(out), "--out-of-range", "clamp"])
     text = capsys.readouterr().out
     assert rc == 0
-    summary = (out / "summary.txt").read_text()
-    assert text.strip() == summary.strip()
+    summary = (out / "valves-summary.txt").read_text()
+    assert summary.startswith(text.strip())
+    assert len(text.splitlines()) <= 25  # one screen
     kind = [ln for ln in text.splitlines() if "outside the calibration table" in ln]
     assert len(kind) == 1  # two paths, one line
     assert re.match(r"2 paths in 2 layers \(0-1\): layer \d+ part fill path: flow 300 mm\^3/s "
                     r"outside the calibration table \[0, 195\] mm\^3/s", kind[0].lstrip())
     assert "clamped (flow.out_of_range = 'clamp')" in kind[0] and "commanded (-" in kind[0]
-    assert any(ln.startswith("mode fm") and ln.endswith("flow.out_of_range = 'clamp'")
-               for ln in text.splitlines())
+    assert "(mode fm, tick 2 ms" in text and "flow.out_of_range = 'clamp')" in text
 
 
 def test_valves_out_of_range_error_names_path_flow_and_setting(tmp_path, fast_file, capsys):

@@ -162,21 +162,30 @@ def test_pwm_pulses_never_share_a_tick(f, dt, duration):
 # ----------------------------------------------------------------------------- FM limits
 
 
-def test_fm_pulses_sharing_a_tick_are_counted():
+def test_fm_frequency_never_above_one_pulse_per_tick():
+    """Thesis 2.3.1: pulse instants in 2 ms ticks, so at most 500 pulses/s; the default
+    flow.max_frequency_hz agrees (the valve's own 1000 Hz, thesis 6.1, is out of reach),
+    and a pair that disagrees is refused naming both settings."""
+    job = Job()
+    assert job.flow.max_frequency_hz * job.flow.tick_s == pytest.approx(1.0)
     # 3 mm x 0.25 mm at 160 mm/s = 120 mm^3/s: above 115.28 mm^3/s = 500 Hz in the table
-    prog = plan_valves(constant_trajectory(160.0, width=3.0), "part", Job())
-    shared = sum(int(np.count_nonzero(np.diff(p.ticks.astype(int)) == 0))
-                 for p in program_pieces(prog))
-    assert shared > 0
-    assert any(f"{shared} pulses share a 2 ms tick" in w for w in prog.warnings)
-    slow = plan_valves(constant_trajectory(140.0, width=3.0), "part", Job())
-    assert not any("share" in w for w in slow.warnings)
+    with pytest.raises(FlowError, match="flow.max_frequency_hz"):
+        plan_valves(constant_trajectory(160.0, width=3.0), "part", job)
+    clamp = job.replace(**{"flow.out_of_range": "clamp"})
+    prog = plan_valves(constant_trajectory(160.0, width=3.0), "part", clamp)
+    for p in program_pieces(prog):
+        assert np.all(np.diff(p.ticks.astype(int)) >= 1)     # no tick holds two pulses
+    with pytest.raises(ConfigError, match=r"flow.max_frequency_hz = 1000: above 1 / "
+                                          r"flow.tick_s = 500 Hz"):
+        Job().replace(**{"flow.max_frequency_hz": 1000.0})
+    Job().replace(**{"flow.max_frequency_hz": 1000.0, "flow.tick_s": 0.001})
 
 
 def test_clamped_flow_reports_the_volume_lost():
     # 3 mm x 1 mm at 100 mm/s = 300 mm^3/s; the table ends at 195 mm^3/s: 35 % short
     traj = constant_trajectory(100.0, width=3.0)
-    job = Job().replace(**{"flow.out_of_range": "clamp"})
+    job = Job().replace(**{"flow.out_of_range": "clamp", "flow.tick_s": 0.001,
+                           "flow.max_frequency_hz": 1000.0})   # the whole table usable
     prog = plan_valves(traj, "part", job, layer_thickness=1.0)
     (w,) = [w for w in prog.warnings if "calibration table" in w]
     assert "flow 300 mm^3/s outside the calibration table [0, 195]" in w

@@ -25,7 +25,8 @@ def test_plan_toolpath_file(tmp_path, capsys):
     assert (out / "speed_layer_2.png").exists()
     motion = load_trajectories(out / "trajectories.npz")
     assert len(motion) == 3
-    assert "reduction" in (out / "summary.txt").read_text()
+    summary = (out / "plan-summary.txt").read_text()
+    assert "minimum-time trajectories take" in summary and "reduction" not in summary
 
 
 def test_plan_mesh_no_jerk(tmp_path, capsys):

@@ -446,7 +446,8 @@ def test_cli_paths_from_stack_file(tmp_path, capsys):
     out = tmp_path / "out"
     assert main(["paths", str(stack_file), "-o", str(out), "--layers", "0,5"]) == 0
     text = capsys.readouterr().out
-    assert "constant-speed build time" in text and "scaffold boundary" in text
+    assert "constant-speed estimate" in text and "not a build time" in text
+    assert "scaffold boundary" in text
     tp = load_toolpaths(out / "toolpaths.npz")
     assert len(tp) == 6
     assert (out / "paths.png").stat().st_size > 10_000

@@ -77,7 +77,9 @@ def test_real_mesh_invariants_on_every_layer(mesh_dir, name):
     mesh = load_mesh(mesh_dir / name)
     scale = HEIGHT_MM / float(np.ptp(mesh.vertices[:, 2]))
     job = job.replace(**{"parts.scale": (scale, scale, scale)})
-    mesh = transform(mesh, job.parts)
+    from icefab.mesh.holes import prepare_closed
+
+    mesh = prepare_closed(transform(mesh, job.parts), job)  # as prepare_parts: holes closed
     stack = _sliced(mesh, job)
     assert len(stack) == round(HEIGHT_MM / LAYER_MM)
     scaffolded = _check_stack(stack, job)

@@ -146,3 +146,57 @@ def test_bad_trajectory_input_is_one_error_and_no_output(trajectories_file, tmp_
 def test_simulate_reports_a_missing_input(tmp_path, capsys):
     assert main(["simulate", str(tmp_path / "nothing.npz"), "-o", str(tmp_path / "o")]) == 2
     assert "nothing.npz" in capsys.readouterr().err
+
+
+def _corrupting(monkeypatch, change):
+    """Wrap simulate_build so its result is changed by ``change(result) -> result``."""
+    import dataclasses
+
+    import icefab.sim
+
+    real = icefab.sim.simulate_build
+
+    def wrapped(*a, **k):
+        return change(real(*a, **k), dataclasses)
+
+    monkeypatch.setattr(icefab.sim, "simulate_build", wrapped)
+
+
+def test_a_surface_that_overflowed_is_an_error_not_infinity_in_json(toolpaths_file, tmp_path,
+                                                                    capsys, monkeypatch):
+    """Issue 10: simulate exited 0 writing NaN/Infinity into simulation.json."""
+    def overflow(r, dc):
+        z = r.height.z.copy()
+        z[np.isfinite(z)] = np.inf
+        return dc.replace(r, height=dc.replace(r.height, z=z),
+                          rms=np.full_like(r.rms, np.nan),
+                          volume_deposited=float("inf"))
+
+    _corrupting(monkeypatch, overflow)
+    out = tmp_path / "sim"
+    assert main(["simulate", str(toolpaths_file), "--layers", "8", "-o", str(out)]) == 2
+    err = [line for line in capsys.readouterr().err.strip().splitlines()
+           if "error" in line]  # progress lines come before it
+    assert len(err) == 1 and "results are not finite" in err[0]
+    assert "surface heights are infinite" in err[0] and "nothing was written" in err[0]
+    assert not out.exists()
+
+
+def test_layers_without_a_part_are_strict_json_nulls_with_the_reason(toolpaths_file,
+                                                                     tmp_path, monkeypatch):
+    def no_part_at_first(r, dc):
+        rms, mx = r.rms.copy(), r.max_abs.copy()
+        rms[0] = mx[0] = np.nan
+        return dc.replace(r, rms=rms, max_abs=mx)
+
+    _corrupting(monkeypatch, no_part_at_first)
+    out = tmp_path / "sim"
+    assert main(["simulate", str(toolpaths_file), "--layers", "8", "-o", str(out)]) == 0
+
+    def strict(name):
+        raise AssertionError(f"not strict JSON: {name}")
+
+    data = json.loads((out / "simulation.json").read_text(), parse_constant=strict)
+    assert data["open_loop"]["rms_mm"][0] is None and data["smf"]["max_abs_mm"][0] is None
+    assert isinstance(data["open_loop"]["rms_mm"][1], float)
+    assert "part footprint is empty" in data["null_means"]

@@ -17,8 +17,11 @@ from icefab.errors import GeometryError
 from icefab.slicing import layer_planes, slice_mesh, slice_report
 from icefab.core import Mesh, signed_area
 
+# The tests of the per-layer last resort consent to chords longer than max_gap_mm
+# ("close"); the default refuses them (test_long_chord_refused_without_consent).
 EXACT = Job().replace(**{"slicing.min_point_spacing_mm": 0.0,
-                         "slicing.max_filter_deviation_mm": 0.0})
+                         "slicing.max_filter_deviation_mm": 0.0,
+                         "slicing.open_contours": "close"})
 
 
 def as_mesh(tm: trimesh.Trimesh, name: str = "test") -> Mesh:
@@ -247,6 +250,18 @@ def test_open_mesh_gap_closed_and_reported():
     big = [w for w in stack.warnings if "20.00 mm gap" in w]
     assert len(big) == 20 and "layer 0 " in big[0]
     assert slice_report(stack).empty_layers == []
+
+
+def test_long_chord_refused_without_consent():
+    """Default settings: a 20 mm chord (> max_gap_mm = 2) stops slicing with one line
+    naming the layer and the settings that decide; nothing is built from it."""
+    job = EXACT.replace(**{"slicing.open_contours": "refuse"})
+    with pytest.raises(GeometryError) as e:
+        slice_mesh(as_mesh(_box_without_side()), job)
+    msg = str(e.value)
+    assert "\n" not in msg and "layer 0 " in msg and "20.00 mm" in msg
+    assert "slicing.open_contours" in msg and "slicing.max_gap_mm = 2" in msg
+    assert Job().slicing.open_contours == "refuse"
 
 
 def test_open_mesh_drop_mode_drops_and_reports():

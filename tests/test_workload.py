@@ -125,8 +125,17 @@ def test_motion_budget_counts_both_spacings():
 def test_paths_budget_refuses_hairline_fill_before_planning():
     job = Job()
     workload.check_paths((2.5e6, 2.5e6), job)  # about the demo mug's 500 layers
-    hairline = job.replace(**{"materials.part.fill_width_mm": 0.05,
-                              "materials.scaffold.fill_width_mm": 0.05})
-    with pytest.raises(ConfigError, match=r"materials.\*.fill_width_mm = 0.05 / 0.05: .* m of "
+    workload.check_paths((2e7, 2e7), job)      # 8x the mug's area at the default widths
+    hairline = job.replace(**{"materials.part.fill_width_mm": 0.5,
+                              "materials.scaffold.fill_width_mm": 0.5})
+    with pytest.raises(ConfigError, match=r"materials.\*.fill_width_mm = 0.5 / 0.5: .* m of "
                                           "fill paths"):
-        workload.check_paths((2.5e6, 2.5e6), hairline)
+        workload.check_paths((2e7, 2e7), hairline)
+
+
+def test_a_part_thinner_than_one_layer_is_refused(tmp_path):
+    # bench/settings_walk.py: parts.scale z at 1e-4 made the demo mug 0.0125 mm tall and the
+    # demo failed with an IndexError after slicing one layer
+    job = _job_for(tmp_path, _box((40, 40, 40)), **{"parts.scale": [1.0, 1.0, 1e-4]})
+    with pytest.raises(ConfigError, match="0.004 mm tall, less than one layer"):
+        prepare_parts(job)

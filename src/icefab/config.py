@@ -101,6 +101,10 @@ class PartSetup:
         why="wider than the largest workspace")
     part_fraction: Vec2 = setting((0.0, 1.0), "[min, max] fraction of the part height to slice",
                                   lo=0.0, hi=1.0)
+    close_holes: bool = setting(True, "close the holes of an open surface (a scan) in 3D, "
+                                      "once, after placement and before slicing "
+                                      "(icefab.mesh.holes); the per-layer closure of "
+                                      "slicing.open_contours is then only a last resort")
 
 
 @dataclass(frozen=True)
@@ -128,13 +132,19 @@ class SlicingSettings:
         "path filter: largest distance a removed point may lie from the filtered contour",
         lo=0.0, hi=5.0,
         why="over 5 mm the filtered contour no longer describes the part")
-    open_contours: str = setting("close", "open chains that cannot be linked: 'close' joins "
-                                          "their ends (reported), 'drop' removes them "
-                                          "(reported)", choices=("close", "drop"))
+    open_contours: str = setting("refuse", "open chains left after the 3D hole closing "
+                                           "(parts.close_holes) whose closure in the layer "
+                                           "needs a straight chord longer than max_gap_mm: "
+                                           "'refuse' (default) stops with the layer, the "
+                                           "chord and this setting named; 'close' builds "
+                                           "the layer closed across it (your consent, "
+                                           "reported); 'drop' leaves the chain out "
+                                           "(reported)", choices=("refuse", "close", "drop"))
     max_gap_mm: float = setting(
         2.0,
-        "gaps in open chains up to this are closed, each reported; longer ones are holes in the "
-        "mesh: closed and reported ('close') or their chain dropped ('drop')",
+        "the bound of the per-layer last resort: a straight chord closing an open contour in "
+        "its layer may be at most this long (each closure reported); longer ones follow "
+        "open_contours",
         lo=0.0, hi=100.0,
         why="a gap over 100 mm is not a mesh defect")
 
@@ -173,13 +183,14 @@ class MaterialSettings:
     path_width_mm: float = setting(
         1.5,
         "boundary path width",
-        lo=0.05, hi=20.0,
+        lo=0.2, hi=20.0,
         why="a deposited line is 0.5-5 mm wide (thesis 3.4: 1.5)")
     fill_width_mm: float = setting(
         3.0,
         "fill path width (spacing of fill paths)",
-        lo=0.05, hi=50.0,
-        why="fill paths are spaced by about one line width")
+        lo=0.5, hi=50.0,
+        why="fill paths are spaced by about one line width, 0.5 mm or more (at 0.05 mm the "
+            "demo mug's first 4 layers took over 120 s of path planning)")
     initial_offset_mm: float = setting(
         0.6,
         "inward offset of the first boundary path from the region edge",
@@ -465,8 +476,9 @@ class FlowSettings:
         lo=1, hi=1048576,
         why="a program piece in microcontroller memory")
     max_frequency_hz: float = setting(
-        1000.0,
-        "highest valve frequency",
+        500.0,
+        "highest valve frequency the cell can make: at most one pulse per tick (1 / tick_s, "
+        "500 Hz at the thesis' 2 ms tick, 2.3.1); the valve itself is rated 1000 Hz (6.1)",
         lo=1.0, hi=1e5,
         why="solenoid valves switch below 10 kHz")
     min_pulse_ms: float = setting(
@@ -548,8 +560,9 @@ class FeedbackSettings:
     measure_spacing_mm: float = setting(
         3.0,
         "spacing of concentric measurement paths",
-        lo=0.1, hi=100.0,
-        why="about the path width")
+        lo=1.0, hi=100.0,
+        why="about the path width (thesis Fig. 5-5: concentric BUFFERF paths); at 0.1 mm "
+            "the demo mug's first 4 layers took over 120 s to plan")
     smoothing: bool = setting(True, "robust smoothing of the measured surface")
 
 
@@ -738,7 +751,12 @@ def _check_cross(job: Job) -> None:
         raise ConfigError(f"parts.copies = {tuple(job.parts.copies)!r}: {p3} copies do not "
                           f"fit a {p1} x {p2} grid")
     fl = job.flow
-    limits = {"flow.max_frequency_hz": fl.max_frequency_hz, "1 / flow.tick_s": 1.0 / fl.tick_s,
+    if fl.max_frequency_hz * fl.tick_s > 1.0 + 1e-9:
+        raise ConfigError(f"flow.max_frequency_hz = {fl.max_frequency_hz:g}: above "
+                          f"1 / flow.tick_s = {1.0 / fl.tick_s:g} Hz, one pulse per "
+                          "microcontroller tick (pulses would share a tick); lower "
+                          "flow.max_frequency_hz or flow.tick_s")
+    limits = {"1 / flow.tick_s": 1.0 / fl.tick_s, "flow.max_frequency_hz": fl.max_frequency_hz,
               "1 / flow.min_pulse_ms": 1000.0 / fl.min_pulse_ms}
     name, top = min(limits.items(), key=lambda kv: kv[1])
     if fl.pwm_frequency_hz > top:

@@ -25,7 +25,20 @@ class GeometryError(IcefabError):
 
 
 class WorkspaceError(IcefabError):
-    """A path point is outside the robot workspace or needs a joint beyond its range."""
+    """A path point is outside the robot workspace or needs a joint beyond its range.
+
+    The message of a point or segment out of reach ends with the settings that move the
+    part in the cell (:data:`MOVE_PART`), so the one line says what to change."""
+
+    def __init__(self, message: str) -> None:
+        reach = "workspace" in message or "beyond its range" in message
+        super().__init__(message + MOVE_PART if reach and MOVE_PART not in message
+                         else message)
+
+
+#: What moves the part relative to the robot (issue 11): appended to reach errors.
+MOVE_PART = ("; move the part: cell.ee_origin_mm (where the part's origin lies in the robot "
+             "base frame, mm), or its placement parts.translation / parts.rotation_deg")
 
 
 class FlowError(IcefabError):

@@ -350,15 +350,18 @@ class TuneResult:
 
     @property
     def diverges(self) -> bool:
-        """True when the error response overflows (unstable gains over many layers):
-        ``rms`` is then not finite."""
-        return not np.isfinite(self.rms)
+        """True when the error response grows without bound: a pole outside the unit
+        circle (``max_pole > 1``; the error then grows like ``max_pole ** k``, so an RMS
+        over any finite number of layers only says how long the run was) or an RMS that
+        overflowed."""
+        return not np.isfinite(self.rms) or self.max_pole > 1.0
 
     def as_dict(self) -> dict[str, float | bool | None]:
-        """Plain values for JSON: a non-finite rms (the response diverges) is None, so
-        ``json.dumps(..., allow_nan=False)`` gives valid JSON."""
+        """Plain values for JSON: ``rms`` is None when the response diverges
+        (:attr:`diverges`), so ``json.dumps(..., allow_nan=False)`` gives valid JSON and a
+        diverging response never shows a finite-looking RMS."""
         return {"kp": self.kp, "ki": self.ki, "kd": self.kd,
-                "rms": self.rms if np.isfinite(self.rms) else None,
+                "rms": None if self.diverges else float(self.rms),
                 "max_pole": self.max_pole, "stable": self.stable}
 
 

@@ -53,6 +53,27 @@ little-endian throughout::
            2n    uint16 ticks (pulse instants from the piece start)
            2n    uint16 pulse widths, microseconds (PWM only)
 
+Layer files (:func:`write_valve_layer` / :func:`read_valve_layer`): every program of one
+layer in build order, in one file a controller link can stream from start to end (the host
+uploads each record's program bytes with PROG_BEGIN / PROG_DATA, firmware/PROTOCOL.md,
+section 5). Binary form, little-endian::
+
+    offset size  field
+    0      4     magic b"ICVL"
+    4      2     uint16 format version (1)
+    6      2     uint16 reserved (0)
+    8      4     uint32 layer index
+    12     4     uint32 number of programs N
+    then for each of the N programs, in the order the paths are built:
+           4     uint32 path number (the trajectory's index in its layer of trajectories.npz)
+           1     uint8 valve: 0 = part, 1 = scaffold (PROTOCOL.md's valve numbers)
+           3     reserved (0)
+           4     uint32 length L of the program, bytes
+           L     the program exactly as the binary form above (b"ICEV" ...)
+
+Text form of a layer: ``icefab-valve-layer 1``, ``layer K``, ``programs N``, then per
+program a line ``program PATH valve part|scaffold`` followed by the program's text form.
+
 Text form (one item per line, ``#`` comments)::
 
     icefab-valve-program 1
@@ -92,6 +113,10 @@ if TYPE_CHECKING:  # pragma: no cover
 log = logging.getLogger(__name__)
 
 DATA_DIR = Path(__file__).resolve().parent / "data"
+LAYER_MAGIC = b"ICVL"
+LAYER_TEXT_MAGIC = "icefab-valve-layer"
+#: Valve number of each material on the controller (firmware/PROTOCOL.md, icefab.cell.valve).
+VALVE_NUMBER = {"part": 0, "scaffold": 1}
 MAGIC = b"ICEV"
 VERSION = 1
 TEXT_MAGIC = "icefab-valve-program"
@@ -868,6 +893,129 @@ def read_valve_program(path: str | os.PathLike) -> ValveProgram:
     except UnicodeDecodeError:
         raise StackFileError(f"{path}: neither a binary nor a text valve program") from None
     return parse_valve_program(text, str(path))
+
+
+@dataclass(frozen=True)
+class LayerProgram:
+    """One path's valve program in a layer file.
+
+    path: the trajectory's index in its layer (``trajectories.npz``); material: "part" or
+    "scaffold" (the valve, :data:`VALVE_NUMBER`); program: the pulses.
+    """
+
+    path: int
+    material: str
+    program: ValveProgram
+
+
+def encode_valve_layer(layer: int, programs: "Sequence[LayerProgram]") -> bytes:
+    """The binary layer form (module docstring) as bytes."""
+    out = [LAYER_MAGIC, struct.pack("<HHII", VERSION, 0, int(layer), len(programs))]
+    for lp in programs:
+        body = encode_valve_program(lp.program)
+        out.append(struct.pack("<IB3xI", int(lp.path), VALVE_NUMBER[lp.material], len(body)))
+        out.append(body)
+    return b"".join(out)
+
+
+def decode_valve_layer(data: bytes, source: str = "valve layer file"
+                       ) -> tuple[int, list[LayerProgram]]:
+    """Parse the binary layer form: (layer index, programs); StackFileError naming the
+    record when truncated or corrupt."""
+    if len(data) < 16 or data[:4] != LAYER_MAGIC:
+        raise StackFileError(f"{source}: not an icefab valve layer file (bad magic or too "
+                             "short)")
+    version, _, layer, n = struct.unpack_from("<HHII", data, 4)
+    if version != VERSION:
+        raise StackFileError(f"{source}: valve layer file version {version}, expected "
+                             f"{VERSION}")
+    valves = {v: k for k, v in VALVE_NUMBER.items()}
+    pos, out = 16, []
+    for i in range(n):
+        if pos + 12 > len(data):
+            raise StackFileError(f"{source}: truncated in the header of program {i}")
+        path, valve, length = struct.unpack_from("<IB3xI", data, pos)
+        pos += 12
+        if valve not in valves:
+            raise StackFileError(f"{source}: program {i}: valve {valve}, expected 0 or 1")
+        if pos + length > len(data):
+            raise StackFileError(f"{source}: truncated in program {i} ({length} bytes "
+                                 "announced)")
+        prog = decode_valve_program(data[pos:pos + length], f"{source}: program {i}")
+        out.append(LayerProgram(int(path), valves[valve], prog))
+        pos += length
+    if pos != len(data):
+        raise StackFileError(f"{source}: {len(data) - pos} bytes after the last program")
+    return int(layer), out
+
+
+def format_valve_layer(layer: int, programs: "Sequence[LayerProgram]") -> str:
+    """The text layer form (module docstring)."""
+    parts = [f"{LAYER_TEXT_MAGIC} {VERSION}\nlayer {int(layer)}\nprograms {len(programs)}\n"]
+    for lp in programs:
+        parts.append(f"program {int(lp.path)} valve {lp.material}\n")
+        parts.append(format_valve_program(lp.program))
+    return "".join(parts)
+
+
+def parse_valve_layer(text: str, source: str = "valve layer file"
+                      ) -> tuple[int, list[LayerProgram]]:
+    """Parse the text layer form; StackFileError naming the line on any problem."""
+    lines = text.splitlines()
+    head = [(i + 1, ln.split("#", 1)[0].split()) for i, ln in enumerate(lines[:3])]
+    want = ((LAYER_TEXT_MAGIC, str(VERSION)), ("layer",), ("programs",))
+    for (n, r), w in zip(head, want):
+        if len(r) != 2 or r[0] != w[0] or (len(w) == 2 and r[1] != w[1]):
+            raise StackFileError(f"{source}:{n}: expected {' '.join(w)!r}")
+    if len(head) < 3:
+        raise StackFileError(f"{source}: truncated header")
+    try:
+        layer, n_programs = int(head[1][1][1]), int(head[2][1][1])
+    except ValueError:
+        raise StackFileError(f"{source}: layer and programs must be integers") from None
+    starts = [i for i, ln in enumerate(lines) if ln.startswith("program ")]
+    if len(starts) != n_programs:
+        raise StackFileError(f"{source}: {len(starts)} programs, the header says "
+                             f"{n_programs}")
+    out = []
+    for k, i in enumerate(starts):
+        r = lines[i].split()
+        if len(r) != 4 or r[2] != "valve" or r[3] not in VALVE_NUMBER or not r[1].isdigit():
+            raise StackFileError(f"{source}:{i + 1}: expected 'program PATH valve "
+                                 "part|scaffold'")
+        end = starts[k + 1] if k + 1 < len(starts) else len(lines)
+        prog = parse_valve_program("\n".join(lines[i + 1:end]),
+                                   f"{source}: program {k} (line {i + 2})")
+        out.append(LayerProgram(int(r[1]), r[3], prog))
+    return layer, out
+
+
+def write_valve_layer(layer: int, programs: "Sequence[LayerProgram]",
+                      path: str | os.PathLike, fmt: str = "bin") -> None:
+    """Write every program of a layer into one file (binary or text), atomically."""
+    if fmt == "bin":
+        data = encode_valve_layer(layer, programs)
+    elif fmt == "txt":
+        data = format_valve_layer(layer, programs).encode("utf-8")
+    else:
+        raise FlowError(f"valve layer file format {fmt!r}: expected 'bin' or 'txt'")
+    _atomic_write(Path(path), data)
+
+
+def read_valve_layer(path: str | os.PathLike) -> tuple[int, list[LayerProgram]]:
+    """Read a layer file written by :func:`write_valve_layer` (either form, detected)."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise StackFileError(f"{path}: valve layer file not found") from None
+    if data[:4] == LAYER_MAGIC:
+        return decode_valve_layer(data, str(path))
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError:
+        raise StackFileError(f"{path}: neither a binary nor a text valve layer file") from None
+    return parse_valve_layer(text, str(path))
 
 
 # =========================================================================== re-planning

@@ -13,7 +13,9 @@ picture is embedded, so it can be mailed or archived as it is.
 from __future__ import annotations
 
 import base64
+import dataclasses
 import html
+import math
 import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Mapping, Sequence
@@ -25,6 +27,7 @@ from icefab.feedback import simulate_1d
 from icefab.core import Stack, Toolpaths
 
 if TYPE_CHECKING:  # pragma: no cover
+    from icefab.config import Job
     from icefab.sim import SimResult
 
 # Material colours shared by every picture: part (water) blue, scaffold orange.
@@ -66,16 +69,56 @@ def save_figure(fig: Any, path: str | os.PathLike, *, dpi: int = 110) -> Path:
     return Path(path)
 
 
+#: Words for the keys of the demo's summary.json in report.html (others: underscores to
+#: spaces, a unit suffix such as ``_mm`` or ``_s`` shown as ", mm" / ", s").
+LABELS = {
+    "slice": "slicing", "paths": "paths", "motion": "trajectories", "valves": "valve programs",
+    "simulation": "build simulator", "seconds": "time taken, s",
+    "constant_speed_s": "constant-speed estimate (length / speed, no accelerations), s",
+    "build_s": "build motion time, minimum-time trajectories, s",
+    "samples": "trajectory samples", "pulses": "valve pulses", "pieces": "program pieces",
+    "findings": "valve-limit findings", "warnings": "warnings", "layers": "layers",
+    "final_rms_open_loop_mm": "final RMS height error, open loop, mm",
+    "final_rms_smf_mm": "final RMS height error, with SMF, mm",
+}
+_UNITS = {"mm": "mm", "s": "s", "mm2": "mm²", "mm3": "mm³", "h": "h", "hz": "Hz"}
+
+
+def _label(key: str) -> str:
+    if key in LABELS:
+        return LABELS[key]
+    head, _, unit = key.rpartition("_")
+    if head and unit.lower() in _UNITS:
+        return f"{head.replace('_', ' ')}, {_UNITS[unit.lower()]}"
+    return key.replace("_", " ")
+
+
+def _number(value: float) -> str:
+    """A figure as people read it: thousands separated, about four significant digits,
+    never an exponent between 1e-3 and 1e15 (``35,240``, ``2.716``, ``0.04912``)."""
+    if not math.isfinite(value):
+        return "n/a"
+    a = abs(value)
+    if a == 0:
+        return "0"
+    if a < 1e-3 or a >= 1e15:
+        return f"{value:.3e}"
+    decimals = max(0, 3 - int(math.floor(math.log10(a))))
+    return f"{value:,.{decimals}f}"
+
+
 def _rows(data: Mapping[str, Any], prefix: str = "") -> list[tuple[str, str]]:
     rows: list[tuple[str, str]] = []
     for key, value in data.items():
-        name = f"{prefix}{key}"
+        name = f"{prefix}{_label(str(key))}"
         if isinstance(value, Mapping):
             rows += _rows(value, name + " / ")
         elif isinstance(value, float):
-            rows.append((name, f"{value:,.4g}"))
+            rows.append((name, _number(value)))
         elif isinstance(value, int) and not isinstance(value, bool):
             rows.append((name, f"{value:,}"))
+        elif isinstance(value, (list, tuple)):
+            rows.append((name, "; ".join(str(v) for v in value) if value else "none"))
         else:
             rows.append((name, str(value)))
     return rows
@@ -295,17 +338,28 @@ def plot_error_response(result, dist, job, path, mode: str) -> None:
     save_figure(fig, path)
 
 
-def plot_speed(layer, path: Path, vmax: float) -> None:
+def plot_speed(layer, path: Path, vmax: float, job: "Job | None" = None) -> None:
     """Samples of one layer's trajectories (``icefab.motion.LayerMotion``) coloured by
-    speed, mm/s from 0 to ``vmax`` (thesis Fig. 4-11), PNG."""
+    speed, mm/s from 0 to ``vmax`` (thesis Fig. 4-11), PNG.
+
+    job: when given, each trajectory is drawn where its tool is, in the part frame
+    (:func:`icefab.frames.to_part_frame`), so part and scaffold paths lie on their regions;
+    without it the end effector's base-frame positions are drawn and the axis label says
+    that each material's paths are then offset by its nozzle's offset (about 8.5 mm for the
+    Cobra 600's scaffold nozzle)."""
     plt = pyplot()
     from matplotlib.collections import LineCollection
+
+    from icefab.frames import to_part_frame
 
     fig, ax = plt.subplots(figsize=(7.5, 6.5))
     segs, speeds, pts = [], [], []
     for tr in layer.trajectories:
         if len(tr.xy) < 2:
             continue
+        if job is not None:
+            tool = tr.path.tool_name if tr.path is not None else "part"
+            tr = dataclasses.replace(tr, xy=to_part_frame(tr.xy, tool, job))
         if tr.path is not None and tr.path.role == "travel":
             ax.plot(tr.xy[:, 0], tr.xy[:, 1], color="0.75", lw=0.5, ls="--", zorder=1)
             continue
@@ -324,7 +378,11 @@ def plot_speed(layer, path: Path, vmax: float) -> None:
     ax.set_aspect("equal")
     ax.set_title(f"layer {layer.index}: z = {layer.z:.2f} mm, {layer.n_points} samples, "
                  f"{layer.duration:.1f} s", fontsize=10)
-    ax.set_xlabel("x, robot base frame (mm)")
+    if job is not None:
+        ax.set_xlabel("x, part frame: where each nozzle is (mm)")
+    else:
+        ax.set_xlabel("x, end effector in the robot base frame; each material's paths "
+                      "shifted by its nozzle offset (mm)", fontsize=8)
     ax.set_ylabel("y (mm)")
     fig.tight_layout()
     save_figure(fig, path, dpi=120)

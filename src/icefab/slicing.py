@@ -46,15 +46,18 @@ Pipeline (RPSLICE's FACETSLICE = INTERSECTFACET + SEGMERGE + PATHFILTER, thesis 
    (``job.parts.weld_tolerance_mm``, cKDTree) -- logged, counted in ``SliceReport`` and
    in a warning.
 
-4. **Open chains** that still cannot close (holes in a scan): within the layer, chains are
-   joined end-to-start greedily by the nearest free endpoint (a chain may be reversed),
-   preferring to close on itself when its own start is nearest; then each chain is closed
-   on itself. Gaps up to ``job.slicing.max_gap_mm`` are closed, each reported in
+4. **Open chains** that still cannot close (holes in a scan the 3D closing of
+   ``icefab.mesh.holes`` left open, or a mesh sliced without it -- the per-layer last resort):
+   within the layer, chains are joined end-to-start greedily by the nearest free endpoint
+   (a chain may be reversed), preferring to close on itself when its own start is
+   nearest; then each chain is closed on itself. Straight chords up to
+   ``job.slicing.max_gap_mm`` (the bound, 2 mm by default) are closed, each reported in
    ``Stack.warnings`` with its layer, location and length (and counted in one summary
-   line). Longer gaps: with ``open_contours = "close"`` (default) they are closed too and
-   reported as holes in the mesh -- no layer of an open scan is lost; with ``"drop"`` no
-   join or closure may cross more than ``max_gap_mm``, and a chain that cannot close is
-   dropped and reported. Areas are never silently wrong: every non-trivial closure is reported.
+   line). A longer chord needs the user's consent: with ``open_contours = "refuse"``
+   (default) slicing stops with one line naming the layer, the chord and the settings;
+   ``"close"`` closes it too (reported); with ``"drop"`` no join or closure may cross more
+   than ``max_gap_mm``, and a chain that cannot close is dropped and reported. Areas are
+   never silently wrong: every non-trivial closure is reported.
 
 5. **Path filter** (PATHFILTER): points closer than ``min_point_spacing_mm`` to the last
    kept point and (near-)collinear points are removed, per contour in a compiled kernel,
@@ -73,10 +76,12 @@ Pipeline (RPSLICE's FACETSLICE = INTERSECTFACET + SEGMERGE + PATHFILTER, thesis 
    a chain closed across gaps takes the orientation of most of its points). Where the
    two disagree for some rings of a layer but not all (all: the surface is inside out,
    and the nesting stands), or where rings cross each other (found by the nesting tests)
-   -- overlapping shells, such as a spout or handle pushed into a body, or merged parts
-   that overlap -- the layer's region is the non-zero union of the
-   facet-oriented rings (``icefab.geometry``, Clipper on a 1e-4 mm grid); those layers
-   are listed in ``SliceReport.union_layers`` and counted in a warning.
+   or themselves (``icefab.geometry.simple_mask``) -- self-intersecting surfaces,
+   overlapping shells, such as a spout or handle pushed into a body, or merged parts that
+   overlap -- the layer's region is the non-zero union of the facet-oriented rings (``icefab.geometry``, Clipper on a 1e-4 mm grid); those layers
+   are listed in ``SliceReport.union_layers`` and counted in a warning. So every region
+   from slicing is simple (valid in the OGC sense) and ``Region.area`` counts an overlap
+   once: it is the area of the non-zero union of what the mesh encloses.
 
 The stack file (``save_stack`` / ``load_stack``) is documented in :mod:`icefab.resultfiles`.
 """
@@ -109,8 +114,9 @@ MIN_RING_AREA_MM2 = 1e-9
 COLLINEAR_TOL_MM = 1e-9
 #: Longest gap (mm) closed without mention: numerical noise of tolerance matching.
 _NOISE_GAP_MM = 1e-6
-#: At most this many individual warnings; the rest are summarised.
-MAX_WARNINGS = 500
+#: At most this many individual warnings (a bound on memory only: the CLI summarises them
+#: by kind and writes them all to warnings.txt, ``icefab.findings``); the rest are counted.
+MAX_WARNINGS = 100_000
 #: Segments per chunk of layers (bounds the memory of the vectorised intersection).
 _CHUNK_SEGMENTS = 3_000_000
 
@@ -827,6 +833,14 @@ def _close_open_chains(chains_in: list[tuple[np.ndarray, bool]], layer: int, z: 
             warn.add(f"{where}: open contour dropped: it cannot close within max_gap_mm = "
                      f"{max_gap} (gap {g:.2f} mm at {_fmt_pt(p)})")
             continue
+        long = [(g, p) for g, p in gaps if g > max_gap]
+        if long and job.slicing.open_contours == "refuse":
+            g, p = max(long, key=lambda gp: gp[0])
+            raise GeometryError(
+                f"{where}: an open contour would be closed across a {g:.2f} mm straight "
+                f"chord at {_fmt_pt(p)}, longer than slicing.max_gap_mm = {max_gap:g} (the "
+                "hole was not closed in 3D); set slicing.open_contours = \"close\" to build "
+                "it anyway, \"drop\" to leave the contour out, or raise slicing.max_gap_mm")
         for g, p in gaps:
             if _NOISE_GAP_MM < g <= max_gap:
                 report.gaps_closed += 1
@@ -835,8 +849,8 @@ def _close_open_chains(chains_in: list[tuple[np.ndarray, bool]], layer: int, z: 
             elif g > max_gap:
                 report.large_gaps_closed += 1
                 warn.add(f"{where}: open contour closed across a {g:.2f} mm gap at "
-                         f"{_fmt_pt(p)} (longer than max_gap_mm = {max_gap}; hole in the "
-                         "mesh)")
+                         f"{_fmt_pt(p)} (longer than max_gap_mm = {max_gap}; built as "
+                         "slicing.open_contours = \"close\" allows)")
         ring = np.concatenate(cur)
         if len(ring) > 1 and np.array_equal(ring[0], ring[-1]):
             ring = ring[:-1]            # drop a repeated closing point
@@ -954,13 +968,23 @@ def _finish_rings(rings: _Rings, job: Job, report: SliceReport
     # collapsed: < 3 points, (almost) no area, or thinner than the filter's own bound
     # (2|A|/perimeter -- the radius of a circle, half the width of a sliver -- below
     # max_filter_deviation_mm: the filter may move every point of such a ring onto a line)
-    ok = ((counts >= 3) & (np.abs(area) >= MIN_RING_AREA_MM2)
-          & (2.0 * np.abs(area) >= job.slicing.max_filter_deviation_mm * perim))
+    # a ring crossing (or touching) itself -- a self-intersecting surface, or two shells
+    # walked into one contour -- has no nesting of its own, and its signed area is not its
+    # area (a bow tie's is 0): it is never "collapsed", and its layer is united below, so a
+    # region from slicing is always simple and counts no overlap twice (issue 11)
+    from icefab.geometry import simple_mask
+
+    selfx = ~simple_mask([rings.points[rings.offsets[r]:rings.offsets[r + 1]]
+                          for r in range(len(rings.layer))])
+    ok = (counts >= 3) & (selfx | ((np.abs(area) >= MIN_RING_AREA_MM2)
+                                   & (2.0 * np.abs(area)
+                                      >= job.slicing.max_filter_deviation_mm * perim)))
     report.rings_collapsed += int((~ok).sum())
     if not ok.all():
         rings = _Rings(rings.points[np.repeat(ok, counts)], _offsets(counts[ok]),
                        rings.layer[ok], rings.oriented[ok], rings.gap[ok])
         area = area[ok]
+        selfx = selfx[ok]
     report.points_after_filter = len(rings.points)
     group = np.searchsorted(rings.layer, np.arange(int(rings.layer.max()) + 2)) \
         if len(rings.layer) else np.zeros(1, dtype=np.int64)
@@ -992,6 +1016,7 @@ def _finish_rings(rings: _Rings, job: Job, report: SliceReport
     against = np.bincount(rings.layer[flip & rings.oriented], minlength=n_layers)
     along = np.bincount(rings.layer[~flip & rings.oriented], minlength=n_layers)
     crossing = np.bincount(rings.layer[overlap], minlength=n_layers)
+    crossing += np.bincount(rings.layer[selfx], minlength=n_layers)
     for k in np.flatnonzero(((against > 0) & (along > 0)) | (crossing > 0)):
         unions[int(k)] = _union_layer(rings, int(group[k]), int(group[k + 1]))
     if flip.any():

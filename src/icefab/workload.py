@@ -108,6 +108,12 @@ def check_placed_part(vertices: np.ndarray, job: Job) -> None:
             f"under {MIN_WIDTHS_ACROSS:g} path widths (materials.part.path_width_mm = "
             f"{width:g}) across: is the file in metres or inches? set parts.scale (e.g. "
             "[1000, 1000, 1000] for metres, [25.4, 25.4, 25.4] for inches)")
+    t = job.slicing.layer_thickness_mm
+    if height < t:
+        raise ConfigError(
+            f"the placed part is {_fmt(height)} mm tall, less than one layer "
+            f"(slicing.layer_thickness_mm = {t:g}): check parts.scale = "
+            f"{list(job.parts.scale)} (a file in metres needs [1000, 1000, 1000])")
     z0, z1 = lo[2] + f0 * size[2], lo[2] + f1 * size[2]
     xy = v[(v[:, 2] >= z0) & (v[:, 2] <= z1), :2]
     if len(xy) == 0:

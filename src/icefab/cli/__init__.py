@@ -15,6 +15,7 @@ import logging
 import sys
 
 from icefab.cli.common import check_output_dir
+from icefab.cli.compiling import compile_notice
 from icefab.errors import IcefabError
 
 # Subcommand modules ``icefab.cli.<name>_cmd``, in the order shown by --help. Add a command
@@ -50,7 +51,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if getattr(args, "out", None):  # before any work, not after a long job
             check_output_dir(args.out)
-        return int(args.func(args) or 0)
+        with compile_notice():  # the first run's silent numba compiling, said plainly
+            return int(args.func(args) or 0)
     except IcefabError as exc:
         print(f"icefab {args.command}: error: {exc}", file=sys.stderr)
         return 2

@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import fcntl
 import os
+import re
 import shutil
 import sys
-import tempfile
 import time
 from contextlib import contextmanager
 from pathlib import Path
@@ -15,7 +16,7 @@ from typing import Iterator
 import numpy as np
 
 from icefab.config import Job, load_job
-from icefab.atomic import DIR_MODE
+from icefab.atomic import fsync_path, fsync_tree, make_temp_dir, replace_durably
 from icefab.errors import ConfigError, OutputError
 
 
@@ -81,6 +82,30 @@ class Progress:
         self.stream.flush()
 
 
+def hours(seconds: float) -> str:
+    """``5.81 h`` (or ``42.0 min`` under an hour): build times as people read them."""
+    return f"{seconds / 3600:.2f} h" if seconds >= 3600 else f"{seconds / 60:.1f} min"
+
+
+#: How every command names the length / speed figure (paths, plan, demo): it is not a build
+#: time a robot can achieve, so nothing is compared with it.
+ESTIMATE_WORDS = ("path length / speed at the thesis' constant speeds, accelerations "
+                  "ignored: a lower bound for constant speed, not a build time")
+
+
+def compare_build_times(mtts_s: float, constant_s: float) -> str:
+    """The one build-time comparison icefab makes, in words: minimum-time trajectories
+    (MTTS) against the same paths planned at the thesis' constant speeds with the robot's
+    accelerations (thesis 4.4); both are build motion times the robot can run."""
+    if not (constant_s > 0 and mtts_s > 0):
+        return "minimum-time vs constant speed: no motion to compare"
+    change = 1.0 - mtts_s / constant_s
+    how = (f"{100 * change:.0f} % shorter ({constant_s / mtts_s:.2f}x as fast)" if change >= 0
+           else f"{-100 * change:.0f} % longer")
+    return (f"minimum-time trajectories take {hours(mtts_s)}, the same paths at constant "
+            f"speed {hours(constant_s)}: minimum-time is {how}")
+
+
 def check_output_dir(path: str | os.PathLike) -> None:
     """OutputError when ``-o path`` names an existing file: checked before a command
     starts its work (``icefab.cli.main``) and again when the folder is made."""
@@ -88,54 +113,244 @@ def check_output_dir(path: str | os.PathLike) -> None:
         raise OutputError(f"-o {path}: exists and is not a folder")
 
 
+#: Hidden folders beside OUT (``.OUT.icefab-PID.RANDOM``) hold a running command's results
+#: until they are published; inside OUT, ``.icefab-backup-PID.RANDOM`` holds the files a
+#: publish replaces until it has finished (for the roll-back).
+_TEMP = ".icefab-"
+_BACKUP = ".icefab-backup-"
+#: Temporary folders of icefab before it named them with their process (``.OUT.XXXXXXXX``
+#: from ``tempfile.mkdtemp``) are removed once they are this old, seconds.
+LEGACY_TEMP_AGE_S = 3600.0
+
+
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+def remove_stale_temporaries(final: Path) -> list[Path]:
+    """Remove what killed icefab commands left beside and inside ``final``: temporary
+    result folders (``.OUT.icefab-PID.RANDOM``) and publish backups
+    (``OUT/.icefab-backup-PID.RANDOM``) whose process no longer runs, and the older
+    ``.OUT.XXXXXXXX`` folders (no process recorded) once older than an hour.
+    Returns the removed paths."""
+    own = re.compile(rf"^\.{re.escape(final.name)}\.icefab-(\d+)\.[0-9a-f]{{8}}$")
+    legacy = re.compile(rf"^\.{re.escape(final.name)}\.[a-z0-9_]{{8}}$")
+    backup = re.compile(rf"^{re.escape(_BACKUP)}(\d+)\.[0-9a-f]{{8}}$")
+    removed = []
+    now = time.time()
+    places = [(final.parent, own, True)] + ([(final, backup, False)] if final.is_dir() else [])
+    for folder, pattern, legacy_too in places:
+        try:
+            entries = list(os.scandir(folder))
+        except OSError:
+            continue
+        for entry in entries:
+            if not entry.is_dir(follow_symlinks=False):
+                continue
+            m = pattern.match(entry.name)
+            if m:
+                stale = not _alive(int(m.group(1)))
+            elif legacy_too and legacy.match(entry.name):
+                try:
+                    stale = now - entry.stat(follow_symlinks=False).st_mtime > LEGACY_TEMP_AGE_S
+                except OSError:
+                    stale = False
+            else:
+                continue
+            if stale:
+                shutil.rmtree(entry.path, ignore_errors=True)
+                removed.append(Path(entry.path))
+    return removed
+
+
+@contextmanager
+def _locked(folder: Path, final: Path) -> Iterator[None]:
+    """Hold an exclusive lock for publishing into ``final``: a ``flock`` on its parent
+    folder, so two commands never interleave their renames (whoever comes second waits,
+    saying so once on stderr, and then publishes on top of the first's complete set)."""
+    fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            sys.stderr.write(f"waiting for another icefab command writing into {folder} "
+                             f"to finish...\n")
+            sys.stderr.flush()
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
+
+
 @contextmanager
 def output_dir(path: str | os.PathLike, command: str) -> Iterator[Path]:
     """A folder whose new results appear at ``path`` only if the block succeeds.
 
-    Files are written into a temporary sibling folder. On success it becomes ``path``
-    (which did not exist) or its files replace their namesakes in ``path``, one rename
-    each. What ``command`` wrote there last time and did not write again is removed (its
-    names are kept in ``path/.icefab-COMMAND``), so an earlier run's G-code or pictures do
-    not sit next to results they no longer match; every other file is left alone (the
-    stack or toolpaths a command read from the same folder, the user's own files). On
-    failure nothing in ``path`` changes and the temporary folder goes.
-    Raises OutputError when ``path`` or a parent is a file or cannot be written.
+    Files are written into a temporary sibling folder (``.OUT.icefab-PID.RANDOM``). On
+    success it becomes ``path`` (which did not exist) or its files replace their
+    namesakes in ``path``. What ``command`` wrote there last time and did not write
+    again is removed (its names are kept in ``path/.icefab-COMMAND``), so an earlier run's
+    G-code or pictures do not sit next to results they no longer match; every other file
+    is left alone (the stack or toolpaths a command read from the same folder, the user's
+    own files, another command's results).
+
+    All or nothing, as the user sees ``path``: every obstacle (a file where a folder goes
+    or the reverse, a symbolic link, a name another command's results use) is found
+    before anything changes; replaced files are moved aside, not deleted, until the record
+    ``.icefab-COMMAND`` is swapped in last, and any failure puts them back. Publishing
+    holds a lock on the folder (:func:`_locked`); temporary folders that killed runs left
+    are removed first (:func:`remove_stale_temporaries`). On failure nothing in ``path``
+    changes and the temporary folder goes.
+    Raises OutputError naming the user's path when ``path`` or a parent is a file, cannot
+    be written or a result cannot be put in place.
     """
     final = Path(path)
     check_output_dir(final)
     try:
         final.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", dir=final.parent))
+        remove_stale_temporaries(final)
+        tmp = make_temp_dir(final.parent, f".{final.name}{_TEMP}{os.getpid()}.")
     except OSError as exc:
         raise OutputError(f"-o {final}: cannot create the output folder "
                           f"({exc.strerror or exc})") from None
     try:
         yield tmp
-        _publish(tmp, final, f".icefab-{command}")
+        with _locked(final.parent, final):
+            _publish(tmp, final, command)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
-def _publish(tmp: Path, final: Path, manifest: str) -> None:
+def _kind(path: Path) -> str:
+    if path.is_symlink():
+        return "a symbolic link"
+    if path.is_dir():
+        return "a folder"
+    return "a file" if path.exists() else "absent"
+
+
+def _records(final: Path) -> dict[str, set[str]]:
+    """The names each command's record in ``final`` lists: {command: names}."""
+    out = {}
+    for record in final.glob(".icefab-*"):
+        if record.is_file() and not record.is_symlink() and \
+                not record.name.startswith(_BACKUP):
+            try:
+                names = record.read_text(encoding="utf-8").splitlines()
+            except (OSError, UnicodeDecodeError):
+                continue
+            out[record.name.removeprefix(".icefab-")] = set(names)
+    return out
+
+
+def _plain_name(name: str) -> bool:
+    """A name a record may list for removal: a plain entry of the folder itself."""
+    return name not in ("", ".", "..") and "/" not in name and "\0" not in name \
+        and not name.startswith(".icefab-")
+
+
+def _publish(tmp: Path, final: Path, command: str) -> None:
     """Move the results in ``tmp`` to ``final`` (see :func:`output_dir`)."""
-    os.chmod(tmp, DIR_MODE)  # mkdtemp's 0700; what is inside was made with the umask
+    manifest = f".icefab-{command}"
     written = sorted(item.name for item in tmp.iterdir())
     (tmp / manifest).write_text("".join(f"{name}\n" for name in written), encoding="utf-8")
-    if not final.exists():
-        tmp.rename(final)
+    if not final.exists() and not final.is_symlink():
+        try:
+            replace_durably(tmp, final)
+        except OSError as exc:
+            raise OutputError(f"{final}: cannot move the results into place "
+                              f"({exc.strerror or exc})") from None
         return
-    record = final / manifest
-    before = set(record.read_text(encoding="utf-8").splitlines()) if record.is_file() else set()
-    for item in sorted(tmp.iterdir()):
-        target = final / item.name
-        if item.is_dir() and target.is_dir():
-            shutil.rmtree(target)
-        os.replace(item, target)
-    for name in sorted(before - set(written)):
-        stale = final / name
-        if name in ("", ".", "..") or name != stale.name or name.startswith(".icefab-"):
-            continue  # only plain names this command wrote into the folder itself
-        if stale.is_dir() and not stale.is_symlink():
-            shutil.rmtree(stale)
-        elif stale.exists() or stale.is_symlink():
-            stale.unlink()
+    if final.is_symlink() or not final.is_dir():
+        raise OutputError(f"-o {final}: exists and is not a folder")
+    records = _records(final)
+    before = records.pop(command, set())
+    # every obstacle is found before anything changes
+    for name in written:
+        target, item = final / name, tmp / name
+        for other, names in sorted(records.items()):
+            if name in names and (target.exists() or target.is_symlink()):
+                raise OutputError(f"{target}: written there by 'icefab {other}', which this "
+                                  f"command would overwrite; write into another folder (-o)")
+        have, want = _kind(target), _kind(item)
+        if have == "a symbolic link" or (have != "absent" and have != want):
+            raise OutputError(f"{target}: is {have}, where icefab writes {want}; move it "
+                              f"away or write into another folder (-o)")
+    stale = [n for n in sorted(before - set(written)) if _plain_name(n)
+             and (final / n).exists() and not (final / n).is_symlink()]
+    try:
+        backup = make_temp_dir(final, f"{_BACKUP}{os.getpid()}.")
+    except OSError as exc:
+        raise OutputError(f"{final}: cannot write into the output folder "
+                          f"({exc.strerror or exc})") from None
+    moved_aside: list[str] = []   # old entries now in backup/
+    placed: list[str] = []        # new entries now in final/
+    current = ""
+    try:
+        for name in written + [manifest]:   # the record last
+            current = name
+            target = final / name
+            if target.exists():
+                os.rename(target, backup / name)
+                moved_aside.append(name)
+            fsync_tree(tmp / name) if (tmp / name).is_dir() else fsync_path(tmp / name)
+            os.rename(tmp / name, target)
+            placed.append(name)
+        for name in stale:
+            current = name
+            os.rename(final / name, backup / name)
+            moved_aside.append(name)
+        fsync_path(final)
+    except OSError as exc:
+        for name in reversed(placed):
+            try:
+                os.rename(final / name, tmp / name)
+            except OSError:
+                pass
+        for name in reversed(moved_aside):
+            try:
+                os.rename(backup / name, final / name)
+            except OSError:
+                pass
+        shutil.rmtree(backup, ignore_errors=True)
+        raise OutputError(f"{final / current}: cannot put the result in place "
+                          f"({exc.strerror or exc}); {final} is as it was") from None
+    shutil.rmtree(backup, ignore_errors=True)
+
+
+def warnings_file(command: str) -> str:
+    """``COMMAND-warnings.txt``: each command's own name, so two commands writing into
+    one folder (slice, then paths) never replace each other's list."""
+    from icefab.findings import WARNINGS_FILE
+
+    return f"{command}-{WARNINGS_FILE}"
+
+
+def warning_lines(warnings, command: str) -> list[str]:
+    """The summary's warning lines: the count, then one line per kind with its count and
+    layers (:func:`icefab.findings.summarise_warnings`), and where the full list is."""
+    from icefab.findings import summarise_warnings
+
+    if not warnings:
+        return ["warnings: 0"]
+    return ([f"warnings: {len(warnings)} (all in {warnings_file(command)}), by kind:"]
+            + [f"  {line}" for line in summarise_warnings(warnings)])
+
+
+def write_warnings(warnings, folder: Path, command: str) -> None:
+    """The full list of ``warnings`` as ``folder/COMMAND-warnings.txt`` (the publishing
+    folder of :func:`output_dir`, so it appears with the results or not at all); nothing
+    when there are none."""
+    from icefab.findings import warnings_text
+
+    source = f"icefab {command}"
+    if warnings:
+        (folder / warnings_file(command)).write_text(warnings_text(warnings, source), encoding="utf-8")

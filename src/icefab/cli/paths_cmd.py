@@ -17,8 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from icefab.cli.common import (Progress, add_job_argument, job_from_args, output_dir,
-                               parse_layers)
+from icefab.cli.common import (ESTIMATE_WORDS, Progress, add_job_argument, hours,
+                               job_from_args, output_dir, parse_layers, warning_lines,
+                               write_warnings)
 from icefab.report import plot_toolpaths
 from icefab.core import Toolpaths
 
@@ -56,13 +57,11 @@ def summary_lines(toolpaths: Toolpaths, per_layer_s: np.ndarray, total_s: float)
     unf = np.array([lp.unfilled_mm2 for lp in toolpaths]).reshape(-1, 2).sum(axis=0)
     lines.append(f"unfilled area: part {unf[0]:.0f} mm², scaffold {unf[1]:.0f} mm²")
     if len(per_layer_s):
-        lines.append(f"constant-speed build time: {total_s / 3600:.2f} h (layers "
-                     f"{per_layer_s.min():.1f} .. {per_layer_s.max():.1f} s)")
+        lines.append(f"constant-speed estimate: {hours(total_s)} (layers "
+                     f"{per_layer_s.min():.1f} .. {per_layer_s.max():.1f} s; "
+                     f"{ESTIMATE_WORDS}; 'icefab plan' gives the build time)")
     ws = toolpaths.warnings
-    lines.append(f"warnings: {len(ws)}")
-    lines += [f"  {w}" for w in ws[:SHOW_WARNINGS]]
-    if len(ws) > SHOW_WARNINGS:
-        lines.append(f"  ... {len(ws) - SHOW_WARNINGS} more in the toolpath file")
+    lines += warning_lines(ws, "paths")
     return lines
 
 
@@ -95,12 +94,17 @@ def run(args: argparse.Namespace) -> int:
     t_scaf = time.perf_counter() - t0
     toolpaths = plan_paths(stack, job, progress=Progress("paths"))
     t_paths = time.perf_counter() - t0 - t_scaf
+    # reach, before any build time is estimated or a file written (issue 11)
+    from icefab.motion import check_build_workspace
+
+    check_build_workspace(toolpaths, job)
     per_layer, total = estimate_build_time(toolpaths, job)
     # OUT may hold the stack.npz this command read: output_dir leaves it there
     out = Path(args.out)
     with output_dir(out, "paths") as tmp:
         save_toolpaths(toolpaths, tmp / "toolpaths.npz")
         plot_toolpaths(stack, toolpaths, ks, tmp / "paths.png")
+        write_warnings(toolpaths.warnings, tmp, "paths")
     for line in summary_lines(toolpaths, per_layer, total):
         print(line)
     print(f"time: stack and scaffold {t_scaf:.2f} s, paths {t_paths:.2f} s")

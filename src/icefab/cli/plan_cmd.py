@@ -12,7 +12,7 @@ everything worked; every file is written in a temporary folder first):
   docstring);
 * ``speed_layer_K.png`` — per chosen layer, the trajectory samples coloured by speed
   (thesis Fig. 4-11: the speed lives in the point spacing);
-* ``summary.txt`` — build time with MTTS next to the thesis' constant-speed case (4.4:
+* ``plan-summary.txt`` — build time with MTTS next to the thesis' constant-speed case (4.4:
   boundaries 25 mm/s, fill 125 mm/s) planned with the robot's accelerations
   (``icefab.motion.constant_speed_motion``) and the idealised length / speed estimate
   (``icefab.paths.estimate_build_time``), points, paths and computing time; also printed;
@@ -31,7 +31,8 @@ import time
 from pathlib import Path
 
 
-from icefab.cli.common import (Progress, add_job_argument, job_from_args, output_dir,
+from icefab.cli.common import (ESTIMATE_WORDS, Progress, add_job_argument, compare_build_times,
+                               hours, job_from_args, output_dir,
                                parse_layers)
 from icefab.errors import ConfigError
 from icefab.report import plot_speed
@@ -42,7 +43,7 @@ def add_parser(subparsers) -> None:
         "plan", help="minimum-time trajectories for all paths of a build",
         description="Plan minimum-time trajectories (thesis Ch. 4: PATHSPLIT, VCON, ACON, "
                     "JCON, AREST) for every path of a model or toolpath file. Writes "
-                    "OUT/trajectories.npz, OUT/speed_layer_K.png and OUT/summary.txt; "
+                    "OUT/trajectories.npz, OUT/speed_layer_K.png and OUT/plan-summary.txt; "
                     "with --gcode also OUT/trajectories.gcode, with --constant-spacing "
                     "OUT/constant_spacing.npz (formats: 'pydoc icefab.motion').")
     p.add_argument("input", metavar="MODEL|TOOLPATHS",
@@ -125,20 +126,25 @@ def run(args: argparse.Namespace) -> int:
         f"constant speed, planned:  {const_acc:.1f} s ({_hms(const_acc)}; boundary "
         f"{job.motion.boundary_speed_mm_s:g}, fill {job.motion.fill_speed_mm_s:g} mm/s with "
         f"the robot's accelerations, thesis 4.4)",
-        f"constant-speed estimate:  {const:.1f} s ({_hms(const)}; length / speed, "
-        f"accelerations ignored)",
-        f"reduction: {100 * (1 - motion.duration / const_acc):.1f} % against constant speed "
-        f"planned, {100 * (1 - motion.duration / const):.1f} % against the estimate"
-        if const > 0 and const_acc > 0 else "reduction: n/a",
+        compare_build_times(motion.duration, const_acc),
+        f"constant-speed estimate:  {hours(const)} ({ESTIMATE_WORDS}; 'icefab paths' "
+        f"prints it)",
         f"planning time: {t_plan:.2f} s ({motion.n_points / max(t_plan, 1e-9) / 1e6:.2f} M "
         f"samples/s), total {time.perf_counter() - t0:.2f} s",
     ]
+    from icefab.headroom import feedback_headroom
+
+    if job.feedback.enabled and job.flow.mode == "fm":  # what valves/simulate will refuse
+        lines += [f"warning: {r.message(job)}" for r in feedback_headroom(
+            ((lm.index, t) for lm in motion.layers for t in lm.trajectories), job)
+            if not r.fits]
     with output_dir(args.out, "plan") as tmp:
         save_trajectories(motion, tmp / "trajectories.npz")
         vmax = job.motion.speed_mm_s
         for k in ks:
-            plot_speed(motion.layers[k], tmp / f"speed_layer_{motion.layers[k].index}.png", vmax)
-        (tmp / "summary.txt").write_text("\n".join(lines) + "\n", encoding="utf-8")
+            plot_speed(motion.layers[k], tmp / f"speed_layer_{motion.layers[k].index}.png", vmax,
+                       job)
+        (tmp / "plan-summary.txt").write_text("\n".join(lines) + "\n", encoding="utf-8")
         extra = []
         if getattr(args, "gcode", False):
             save_gcode(motion, tmp / "trajectories.gcode")
@@ -148,7 +154,7 @@ def run(args: argparse.Namespace) -> int:
             extra.append("constant_spacing.npz")
     for line in lines:
         print(line)
-    print(f"wrote {args.out}/trajectories.npz, summary.txt"
+    print(f"wrote {args.out}/trajectories.npz, plan-summary.txt"
           + "".join(f", {name}" for name in extra)
           + f" and speed pictures of layers "
           f"{', '.join(str(motion.layers[k].index) for k in ks)}")

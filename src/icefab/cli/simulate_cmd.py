@@ -32,6 +32,7 @@ import csv
 import dataclasses
 import io
 import json
+import math
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -39,7 +40,7 @@ from typing import TYPE_CHECKING
 
 from icefab.cli.common import Progress, add_job_argument, job_from_args, output_dir
 from icefab.atomic import write_atomic
-from icefab.errors import ConfigError, StackFileError
+from icefab.errors import ConfigError, SimulationError, StackFileError
 from icefab.report import plot_rms, plot_surfaces
 from icefab.resultfiles import file_format
 
@@ -177,6 +178,51 @@ def format_table(rows: list[list[float]]) -> list[str]:
     return lines
 
 
+#: What a null in simulation.json's per-layer lists means (strict JSON has no NaN).
+NULL_MEANS = ("rms_mm and max_abs_mm are null at a measurement layer whose part footprint "
+              "is empty; rms_measured_mm where the laser took no samples")
+_PER_LAYER = ("rms_mm", "max_abs_mm", "rms_measured_mm")
+
+
+def _strict_json_figures(result: "SimResult", name: str, job: "Job | None") -> dict:
+    """``result.as_dict()`` with NaN per-layer figures as None (see :data:`NULL_MEANS`).
+
+    Raises SimulationError when the simulation itself broke down: an infinite height on the
+    simulated surface, or any non-finite figure other than those per-layer gaps (NaN or
+    Infinity would make simulation.json invalid JSON, and a number like 1e308 misleads).
+    """
+    data = result.as_dict()
+    bad = []
+    z = np.asarray(result.height.z, dtype=np.float64)
+    if np.isinf(z).any():
+        bad.append(f"{int(np.isinf(z).sum())} surface heights are infinite")
+    for key, value in data.items():
+        if key in _PER_LAYER:
+            data[key] = [None if not math.isfinite(v) else v for v in value]
+            inf = [k for k, v in zip(data["layers"], value) if math.isinf(v)]
+            if inf:
+                bad.append(f"{key} infinite at layer {inf[0]}")
+        elif isinstance(value, float) and not math.isfinite(value):
+            bad.append(f"{key} = {value}")
+        elif isinstance(value, list) and any(isinstance(v, float) and not math.isfinite(v)
+                                             for v in value):
+            bad.append(f"{key} = {value}")
+    if bad:
+        hint = ""
+        if job is not None:
+            from icefab.config import Job as _Job, to_dict
+
+            now, default = to_dict(job), to_dict(_Job())
+            changed = [f"{sec}.{k} = {v!r}" for sec in ("simulation", "flow")
+                       for k, v in now[sec].items() if default[sec].get(k) != v]
+            if changed:
+                hint = f"; settings changed from the defaults: {', '.join(changed[:6])}"
+        raise SimulationError(f"the {name} simulation's results are not finite ("
+                              f"{'; '.join(bad[:3])}): the simulated surface overflowed, "
+                              f"nothing was written{hint}")
+    return data
+
+
 def write_simulation_outputs(open_loop: "SimResult", closed: "SimResult", out: Path, *,
                              surface_layer: int | None = None,
                              job: "Job | None" = None) -> list[Path]:
@@ -193,15 +239,17 @@ def write_simulation_outputs(open_loop: "SimResult", closed: "SimResult", out: P
     if surface_layer is not None and surface_layer not in common:
         raise ConfigError(f"--surface-layer {surface_layer}: not a measurement layer of the "
                           f"simulation (measured: {', '.join(map(str, open_loop.layers))})")
-    data = {"open_loop": open_loop.as_dict(), "smf": closed.as_dict(),
-            "surface_layer": surface_layer}
+    data = {"open_loop": _strict_json_figures(open_loop, "open-loop", job),
+            "smf": _strict_json_figures(closed, "SMF", job),
+            "surface_layer": surface_layer, "null_means": NULL_MEANS}
     if job is not None:
         from icefab.config import to_dict
 
         settings = to_dict(job)
         data["settings"] = {"simulation": settings["simulation"],
                             "feedback": settings["feedback"]}
-    write_atomic(out / "simulation.json", (json.dumps(data, indent=2) + "\n").encode())
+    write_atomic(out / "simulation.json",
+                 (json.dumps(data, indent=2, allow_nan=False) + "\n").encode())
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(HEADER)
@@ -247,6 +295,12 @@ def run(args: argparse.Namespace) -> int:
         # the cell's minimum-time trajectories, planned once for both runs
         build = plan_toolpaths(Toolpaths(layers=tuple(build.layers[:n]), job=build.job), job,
                                progress=Progress("trajectories"))
+    headroom: list[str] = []
+    if valves:  # the feedback's headroom, before 2 x n layers are simulated (issue 11)
+        from icefab.headroom import check_feedback_headroom, feedback_headroom
+
+        headroom = check_feedback_headroom(feedback_headroom(
+            ((lm.index, t) for lm in build.layers[:n] for t in lm.trajectories), job), job)
     t_prep = time.perf_counter() - t0
     keep = None if args.surface_layer is None else [args.surface_layer]
     open_loop = simulate_build(build, job, layers=n, closed_loop=False,
@@ -269,6 +323,20 @@ def run(args: argparse.Namespace) -> int:
     else:
         print("deposition: commanded flow (ideal valve)"
               + (" along the trajectories" if isinstance(build, BuildMotion) else ""))
+    for line in headroom:
+        print(f"warning: {line}")
+    if valves:  # what the valve limits did, once per kind, and the volume clamping cost
+        from icefab.findings import clamped_volume
+        from icefab.flow import summarise_findings
+
+        for label, res in (("open loop", open_loop), ("with SMF", closed)):
+            n_paths, n_layers, got, asked = clamped_volume(res.findings)
+            if n_paths:
+                print(f"clamped ({label}, flow.out_of_range = 'clamp'): {n_paths} paths in "
+                      f"{n_layers} layers deliver {got:.6g} of {asked:.6g} mm^3 commanded "
+                      f"({100 * (got / asked - 1):+.2f} %)")
+            for line in summarise_findings(res.findings)[:8]:
+                print(f"valve limits ({label}): {line}")
     for line in format_table(table_rows(open_loop, closed)):
         print(line)
     print(f"final RMS height deviation: {open_loop.rms[-1]:.3f} mm open loop, "

@@ -16,13 +16,11 @@ from pathlib import Path
 import numpy as np
 
 from icefab.cli.common import (Progress, add_job_argument, job_from_args, output_dir,
-                               parse_layers)
+                               parse_layers, warning_lines, write_warnings)
 from icefab.errors import ConfigError
 from icefab.report import plot_layers
 from icefab.core import Stack
 
-#: warnings printed in full by the summary
-SHOW_WARNINGS = 5
 
 
 def add_parser(subparsers) -> None:
@@ -54,10 +52,7 @@ def summary_lines(stack: Stack, elapsed_s: float | None = None) -> list[str]:
                      f"(empty layers: {int((areas <= 0).sum())})")
     else:
         lines.append("area: every layer is empty")
-    lines.append(f"warnings: {len(stack.warnings)}")
-    lines += [f"  {w}" for w in stack.warnings[:SHOW_WARNINGS]]
-    if len(stack.warnings) > SHOW_WARNINGS:
-        lines.append(f"  ... {len(stack.warnings) - SHOW_WARNINGS} more in the stack file")
+    lines += warning_lines(stack.warnings, "slice")
     if elapsed_s is not None:
         lines.append(f"time: {elapsed_s:.2f} s")
     return lines
@@ -83,6 +78,7 @@ def run(args: argparse.Namespace) -> int:
     with output_dir(out, "slice") as tmp:
         save_stack(stack, tmp / "stack.npz")
         plot_layers(stack, ks, tmp / "layers.png")
+        write_warnings(stack.warnings, tmp, "slice")
     stack_path, png = out / "stack.npz", out / "layers.png"
     print(f"{mesh.name or 'model'}: {len(mesh.faces)} facets, loaded and placed in "
           f"{t_load:.2f} s")

@@ -151,8 +151,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"gains ({mode}): Kp = {result.kp:.4f}, Ki* = {result.ki:.4f}, "
           f"Kd* = {result.kd:.4f}")
     if result.diverges:
-        print(f"RMS error sigma_p*: the error response diverges (overflows within "
-              f"{n_layers} layers)")
+        print(f"RMS error sigma_p*: none, the error response diverges (a pole at "
+              f"|z| = {result.max_pole:.4g} > 1 grows without bound)")
     else:
         print(f"RMS error sigma_p* = {result.rms:.4g} measurement intervals over {n_layers} "
               "layers")

@@ -5,12 +5,15 @@ Variable-flow valve programs (thesis Ch. 6, 2.3.1) for every depositing trajecto
 trajectory file written by ``icefab plan`` (``trajectories.npz``). Writes into OUT (which
 appears only when everything worked):
 
-* ``layer_KKKK/path_NNNN.bin`` (and/or ``.txt``): one program per path, in the binary or
-  text form documented in :mod:`icefab.flow` (pulse instants as uint16 ticks of 2 ms,
-  split into pieces at 131.072 s / 16 384 pulses);
-* ``summary.txt``: paths, pulses, pieces and the number of limit findings per layer, then
-  every kind of finding once with its count (:func:`icefab.flow.summarise_findings`); also
-  printed.
+* ``valves/layer_KKKK.bin`` (and/or ``.txt``): one file per layer holding every program of
+  the layer in build order, the form a controller link streams (:mod:`icefab.flow`, "Layer
+  files"; each program keeps the per-program binary layout, pulse instants as uint16
+  ticks of 2 ms, split into pieces at 131.072 s / 16 384 pulses);
+* ``valves-paths.csv``: one row per path (length, duration, pulses, pieces, drop
+  spacing, the length deposited with fewer drops than ``flow.min_drops_per_mm``, findings);
+* ``valves-summary.txt``: the summary printed (one screen: totals, every kind of finding
+  once with its count, what it costs in volume and whether it matters), then the
+  per-layer table.
 
 A flow outside the calibration table (or, in PWM, beyond the valve fully open) stops the
 command with an error naming the path, unless ``flow.out_of_range = "clamp"`` (or
@@ -21,7 +24,10 @@ costs.
 from __future__ import annotations
 
 import argparse
+import csv
 from pathlib import Path
+
+import numpy as np
 
 from icefab.cli.common import Progress, add_job_argument, output_dir
 from icefab.errors import ConfigError
@@ -33,13 +39,15 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         description="Make the variable-flow valve program of every depositing trajectory "
                     "(thesis Ch. 6): flow w * dh * speed, frequency from the calibration "
                     "table, pulse instants as uint16 ticks, split at the microcontroller's "
-                    "limits. Writes OUT/layer_KKKK/path_NNNN.bin|txt and OUT/summary.txt.")
+                    "limits. Writes OUT/valves/layer_KKKK.bin|txt (every program of a "
+                    "layer in one file), OUT/valves-paths.csv and OUT/valves-summary.txt.")
     p.add_argument("input", metavar="TRAJECTORIES",
                    help="trajectory file (trajectories.npz from 'icefab plan')")
     add_job_argument(p)
     p.add_argument("-o", "--out", required=True, metavar="OUT", help="output folder")
     p.add_argument("--format", choices=("bin", "txt", "both"), default="bin",
-                   help="file form of the programs (default bin)")
+                   help="file form of the layer files (default bin; both: one of each per "
+                        "layer)")
     p.add_argument("--layers", metavar="K,K,...", help="only these layers (default all)")
     p.add_argument("--out-of-range", choices=("error", "clamp"), default=None,
                    help="a flow beyond the calibration table: stop with an error, or clamp "
@@ -50,8 +58,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from icefab.config import load_job
-    from icefab.flow import (n_pulses, plan_valves, program_pieces, summarise_findings,
-                             write_valve_program)
+    from icefab.flow import (LayerProgram, n_pulses, plan_valves, program_pieces,
+                             trajectory_width, write_valve_layer)
     from icefab.motion import load_trajectories
 
     src = Path(args.input)
@@ -74,39 +82,127 @@ def run(args: argparse.Namespace) -> int:
                               f"{min(known)}..{max(known)}" if known else
                               f"--layers {args.layers!r}: the file has no layers")
         layers = tuple(lm for lm in layers if lm.index in wanted)
+    from icefab.headroom import check_feedback_headroom, feedback_headroom
+
+    # the closed-loop build's needs, before any program is written (issue 11)
+    headroom = check_feedback_headroom(feedback_headroom(
+        ((lm.index, t) for lm in layers for t in lm.trajectories), job), job)
     fmts = ("bin", "txt") if args.format == "both" else (args.format,)
     progress = Progress("valves")
-    lines = ["layer  paths  pulses  pieces  findings"]
-    totals = [0, 0, 0, 0]
+    table = ["layer  paths  pulses  pieces  findings"]
+    totals = dict(paths=0, pulses=0, pieces=0, findings=0, length=0.0, sparse=0.0)
+    sparse_paths = 0
+    max_gap = max_gap_width = 0.0
     found: list[tuple[int, str]] = []
+    rows = []
     with output_dir(args.out, "valves") as tmp:
+        folder = tmp / "valves"
+        folder.mkdir()
         for n, lm in enumerate(layers):
-            folder = tmp / f"layer_{lm.index:04d}"
-            paths = pulses = pieces = findings = 0
+            programs: list[LayerProgram] = []
+            counts = [0, 0, 0, 0]
             for i, traj in enumerate(lm.trajectories):
                 p = traj.path
                 if p is not None and not p.depositing:
                     continue
                 material = p.material if p is not None else "part"
                 prog = plan_valves(traj, material, job)
-                for f in fmts:
-                    write_valve_program(prog, folder / f"path_{i:04d}.{f}", fmt=f)
-                paths += 1
-                pulses += n_pulses(prog)
-                pieces += len(program_pieces(prog))
-                findings += len(prog.warnings)
+                programs.append(LayerProgram(i, material, prog))
+                length, gap, sparse = _drop_spacing(traj, prog, job.flow.min_drops_per_mm)
+                width = trajectory_width(traj, material, job)
+                pulses, pieces = n_pulses(prog), len(program_pieces(prog))
+                rows.append([lm.index, i, material, p.role if p is not None else "",
+                             f"{length:.3f}", f"{traj.duration:.3f}", pulses, pieces,
+                             f"{width:.3f}", f"{gap:.3f}", f"{sparse:.3f}",
+                             len(prog.warnings), " | ".join(prog.warnings)])
+                for k, v in enumerate((1, pulses, pieces, len(prog.warnings))):
+                    counts[k] += v
+                totals["length"] += length
+                totals["sparse"] += sparse
+                if sparse > 0:
+                    sparse_paths += 1
+                if gap - width > max_gap - max_gap_width:
+                    max_gap, max_gap_width = gap, width
                 found.extend((lm.index, w) for w in prog.warnings)
-            lines.append(f"{lm.index:5d}  {paths:5d}  {pulses:6d}  {pieces:6d}  {findings:8d}")
-            for k, v in enumerate((paths, pulses, pieces, findings)):
-                totals[k] += v
+            for f in fmts:
+                write_valve_layer(lm.index, programs, folder / f"layer_{lm.index:04d}.{f}",
+                                  fmt=f)
+            table.append(f"{lm.index:5d}  {counts[0]:5d}  {counts[1]:6d}  {counts[2]:6d}  "
+                         f"{counts[3]:8d}")
+            for k, key in enumerate(("paths", "pulses", "pieces", "findings")):
+                totals[key] += counts[k]
             progress(n + 1, len(layers))
-        lines.append(f"total  {totals[0]:5d}  {totals[1]:6d}  {totals[2]:6d}  {totals[3]:8d}")
-        lines.append(f"mode {job.flow.mode}, tick {job.flow.tick_s * 1e3:g} ms, split at "
-                     f"{job.flow.max_piece_s:g} s / {job.flow.max_pulses} pulses, "
-                     f"flow.out_of_range = {job.flow.out_of_range!r}")
-        if found:
-            lines.append(f"findings ({len(found)}), one line per kind:")
-            lines.extend(f"  {t}" for t in summarise_findings(found))
-        (tmp / "summary.txt").write_text("\n".join(lines) + "\n")
+        with open(tmp / "valves-paths.csv", "w", newline="", encoding="utf-8") as fh:
+            w = csv.writer(fh)
+            w.writerow(PATH_COLUMNS)
+            w.writerows(rows)
+        lines = _summary(args.out, layers, fmts, totals, sparse_paths, max_gap,
+                         max_gap_width, found, job)
+        lines[2:2] = headroom  # the closed-loop build's needs (issue 11), before findings
+        (tmp / "valves-summary.txt").write_text(
+            "\n".join(lines + ["", "per layer:"] + table) + "\n", encoding="utf-8")
     print("\n".join(lines))
     return 0
+
+
+#: Columns of valves-paths.csv (lengths mm, times s).
+PATH_COLUMNS = ["layer", "path", "material", "role", "length_mm", "duration_s", "pulses",
+                "pieces", "width_mm", "largest_drop_spacing_mm", "sparse_length_mm",
+                "findings", "finding_texts"]
+
+
+def _drop_spacing(traj, prog, min_drops_per_mm: float) -> tuple[float, float, float]:
+    """Path length, largest distance between consecutive drops, and the length over which
+    drops are farther apart than ``1 / min_drops_per_mm`` (mm), from the program's pulse
+    instants placed on the trajectory (what the valve will do, not the planned frequency)."""
+    from icefab.flow import pulse_times
+
+    xy = np.asarray(traj.xy, dtype=np.float64)
+    if len(xy) < 2:
+        return 0.0, 0.0, 0.0
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))])
+    t = np.arange(len(xy)) * float(traj.dt)
+    at = np.interp(pulse_times(prog), t, s)
+    limit = 1.0 / min_drops_per_mm if min_drops_per_mm > 0 else np.inf
+    if len(at) < 2:  # one drop (or none) for the whole path
+        length = float(s[-1])
+        return length, length, length if length > limit else 0.0
+    gaps = np.diff(at)
+    return float(s[-1]), float(gaps.max()), float(gaps[gaps > limit].sum())
+
+
+def _summary(out, layers, fmts, totals, sparse_paths, max_gap, max_gap_width, found, job
+             ) -> list[str]:
+    """The one-screen summary of a valves run."""
+    from icefab.flow import summarise_findings
+
+    fl = job.flow
+    n_layers = len(layers)
+    files = " and ".join(f"{out}/valves/layer_KKKK.{f}" for f in fmts)
+    lines = [f"valve programs: {totals['paths']} paths in {n_layers} layers, "
+             f"{totals['pulses']} pulses in {totals['pieces']} pieces "
+             f"(mode {fl.mode}, tick {fl.tick_s * 1e3:g} ms, split at {fl.max_piece_s:g} s / "
+             f"{fl.max_pulses} pulses, flow.out_of_range = {fl.out_of_range!r})",
+             f"written: {files} (one file per layer, its programs in build order), "
+             f"{out}/valves-paths.csv (one row per path), {out}/valves-summary.txt"]
+    if not found:
+        lines.append("findings: none")
+        return lines
+    kinds = summarise_findings(found)
+    lines.append(f"findings: {len(found)}, one line per kind (each path's own: "
+                 f"valves-paths.csv):")
+    for line in kinds:
+        lines.append(f"  {line}")
+        if "min_drops_per_mm" in line:
+            total_m, sparse_m = totals["length"] / 1000, totals["sparse"] / 1000
+            share = 100 * totals["sparse"] / totals["length"] if totals["length"] else 0.0
+            verdict = ("drops never lie farther apart than the path is wide, so they still "
+                       "touch: a continuous bead" if max_gap <= max_gap_width else
+                       f"the widest spacing, {max_gap:.2f} mm, exceeds its path's width "
+                       f"{max_gap_width:.2f} mm: there the bead may break into separate "
+                       "drops")
+            lines.append(f"    volume cost: none (every pulse is still placed; the volume "
+                         f"per mm is as commanded); affected: {sparse_m:.2f} m of "
+                         f"{total_m:.2f} m deposited ({share:.1f} %) on {sparse_paths} "
+                         f"paths; {verdict}")
+    return lines

@@ -13,6 +13,8 @@ One module per concern (trimesh's ``exchange/`` is the model):
   they share;
 * :mod:`icefab.mesh.topology` — welding, edges, duplicate faces, facet measures;
 * :mod:`icefab.mesh.repair` — :class:`MeshReport`, :func:`check_mesh`, :func:`clean_mesh`;
+* :mod:`icefab.mesh.holes` — closing the holes of open surfaces in 3D before slicing:
+  :func:`~icefab.mesh.holes.close_holes`;
 * :mod:`icefab.mesh.setup` — part placement: :func:`transform`, :func:`prepare_parts`.
 
 Everything public is importable from ``icefab.mesh`` as before the split.

@@ -15,6 +15,7 @@ import numpy as np
 
 from icefab.core import Mesh
 from icefab.errors import ConfigError, MeshError
+from icefab.mesh.holes import prepare_closed
 from icefab.mesh.load import load_meshes
 from icefab.workload import check_copies, check_placed_part
 
@@ -131,7 +132,9 @@ def prepare_parts(job: "Job", base_dir: str | os.PathLike[str] | None = None) ->
     """Load ``job.parts.files`` (relative to ``base_dir``), merge and place them.
 
     Welding follows ``job.parts.inexact`` / ``weld_tolerance_mm``; placement follows
-    :func:`transform`. Raises :class:`MeshError` when the job names no file.
+    :func:`transform`; then holes are closed in 3D (``job.parts.close_holes``) and defects
+    located in the build's coordinates (:func:`icefab.mesh.holes.prepare_closed`). Raises
+    :class:`MeshError` when the job names no file.
     """
     parts = job.parts
     if not parts.files:
@@ -142,4 +145,4 @@ def prepare_parts(job: "Job", base_dir: str | os.PathLike[str] | None = None) ->
     mesh = load_meshes(paths, inexact=parts.inexact, tolerance=parts.weld_tolerance_mm)
     placed = transform(mesh, parts, job)
     check_placed_part(placed.vertices, job)  # units, stroke, reach: before slicing
-    return placed
+    return prepare_closed(placed, job)

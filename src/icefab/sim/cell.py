@@ -70,6 +70,9 @@ class SimResult:
     flow_gain: final flow gain of each valve (part, scaffold), drift included.
     n_layers: layers simulated.
     pulses: valve pulses deposited (``deposition = "valves"``; 0 with ``"flow"``).
+    findings: ``(layer index, text)`` of every valve-limit finding of the programs run
+        (``deposition = "valves"``), e.g. what ``flow.out_of_range = "clamp"`` clamped
+        and the volume it cost (``icefab.findings.clamped_volume``).
     """
 
     layers: np.ndarray
@@ -85,6 +88,7 @@ class SimResult:
     flow_gain: tuple[float, float]
     n_layers: int
     pulses: int = 0
+    findings: tuple[tuple[int, str], ...] = ()
 
     def as_dict(self) -> dict:
         """JSON-ready figures (no surfaces)."""
@@ -177,6 +181,7 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
     vol_cmd_total = 0.0
     vol_dep_total = 0.0
     pulses = 0
+    findings: list[tuple[int, str]] = []
     k = 0
     for j, plan in enumerate(plans):
         nominal = (j + 1) * dh
@@ -189,6 +194,7 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
             lv = layer_valves(plan, job, action)
             a, b, v_all, hw, mat_of, n0, n1, ext, n_p = valve_segments(lv, job)
             pulses += n_p
+            findings += [(plan.index, w) for prog in lv.programs for w in prog.warnings]
         else:
             u = np.zeros(len(plan.volume))
             if action is not None and len(plan.volume):
@@ -286,4 +292,4 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
                      surfaces=surfaces, closed_loop=controller is not None,
                      volume_commanded=vol_cmd_total, volume_deposited=vol_dep_total,
                      flow_gain=gains, n_layers=len(plans),  # type: ignore[arg-type]
-                     pulses=pulses)
+                     pulses=pulses, findings=tuple(findings))

@@ -1,0 +1,142 @@
+"""The feedback's headroom: can the valves give what surface mapping feedback may ask?
+
+SMF corrects the next layers' flow by the control action u, saturated at
+``feedback.saturation`` (thesis 5.3, eq. 5.14: |u| <= U_max, 30 % by default). So along a
+path the valve must be able to give ``(1 + saturation) x`` the nominal flow
+``q_nom = w dh_d c`` (thesis eq. 6.2) -- inside the calibration table nu = h(Q) (6.1) and at
+a frequency the cell can make (``flow.max_frequency_hz``, one pulse per tick, and
+``1 / flow.calibration_pulse_ms``). A path whose nominal flow fits but whose corrected flow
+does not makes a closed-loop build fail (or clamp) in the middle; this module finds it from
+the planned trajectories (or, before motion is planned, from the speed bound) so plan,
+valves and simulate can say so before anything runs.
+
+FM only: in PWM the frequency is fixed and the flow per pulse is bounded by the period; the
+PWM limits are applied per pulse by ``icefab.flow.plan_valves``.
+
+May import: ``icefab.flow``, ``icefab.core``, ``icefab.errors``, numpy.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Iterable
+
+import numpy as np
+
+from icefab.errors import FlowError
+from icefab.flow import calibration_for, trajectory_width
+
+if TYPE_CHECKING:
+    from icefab.config import Job
+    from icefab.core import Trajectory
+
+
+@dataclass(frozen=True)
+class Headroom:
+    """The tightest path of one material.
+
+    material; layer (index, -1 when from the speed bound); role; width_mm; speed_mm_s (the
+    path's highest); nominal_mm3_s (w dh c at that speed); needed_mm3_s (nominal x (1 +
+    saturation)); limit_mm3_s (the highest flow the valve gives: the calibration table at
+    the cell's highest frequency); max_speed_mm_s (the highest speed at which the
+    corrected flow fits).
+    """
+
+    material: str
+    layer: int
+    role: str
+    width_mm: float
+    speed_mm_s: float
+    nominal_mm3_s: float
+    needed_mm3_s: float
+    limit_mm3_s: float
+    max_speed_mm_s: float
+
+    @property
+    def fits(self) -> bool:
+        return self.needed_mm3_s <= self.limit_mm3_s * (1 + 1e-12)
+
+    def message(self, job: "Job") -> str:
+        """One line naming the path, the flows and the settings that change them."""
+        fix = ("the valve programs clamp it (flow.out_of_range = 'clamp'); to keep it, "
+               if job.flow.out_of_range == "clamp" else "")
+        where = (f"layer {self.layer} {self.material} {self.role} path" if self.layer >= 0
+                 else f"{self.material} {self.role} paths at motion.speed_mm_s")
+        return (f"feedback headroom: SMF may raise the flow by feedback.saturation = "
+                f"{job.feedback.saturation:.0%} to {self.needed_mm3_s:.4g} mm^3/s on the "
+                f"{where} ({self.nominal_mm3_s:.4g} mm^3/s nominal = {self.width_mm:g} mm x "
+                f"{job.slicing.layer_thickness_mm:g} mm x {self.speed_mm_s:.4g} mm/s), above "
+                f"the {self.limit_mm3_s:.4g} mm^3/s the valve gives at its highest frequency "
+                f"({_limit_hz(job):g} Hz, flow.max_frequency_hz) in the calibration table; "
+                f"{fix}keep the speed below {self.max_speed_mm_s:.4g} mm/s (motion.speed_mm_s), "
+                "lower feedback.saturation" + ("" if fix else
+                                               " or set flow.out_of_range = 'clamp'"))
+
+
+def _limit_hz(job: "Job") -> float:
+    fl = job.flow
+    return min(fl.max_frequency_hz, 1000.0 / fl.calibration_pulse_ms)
+
+
+def _limit_flow(material: str, job: "Job") -> float:
+    cal = calibration_for(material, job)
+    return float(min(cal.max_flow, cal.flow(np.array([_limit_hz(job)]))[0]))
+
+
+def feedback_headroom(trajectories: Iterable[tuple[int, "Trajectory"]], job: "Job"
+                      ) -> list[Headroom]:
+    """The tightest depositing path of each material (see :class:`Headroom`).
+
+    trajectories: ``(layer index, Trajectory)`` pairs; a trajectory's ``speed (n,)`` mm/s
+    and its path's material, role and width are used (travel and measurement paths
+    deposit nothing and are skipped).
+    """
+    dh = job.slicing.layer_thickness_mm * job.flow.layer_scale
+    worst: dict[str, tuple[float, int, str, float, float]] = {}
+    for layer, t in trajectories:
+        path = t.path
+        if path is None or not path.depositing or len(t.speed) == 0:
+            continue
+        w = trajectory_width(t, path.material, job)
+        v = float(np.max(t.speed))
+        q = w * dh * v
+        if path.material not in worst or q > worst[path.material][0]:
+            worst[path.material] = (q, int(layer), path.role, w, v)
+    return [_headroom(m, *worst[m], job) for m in sorted(worst)]
+
+
+def speed_bound_headroom(job: "Job") -> list[Headroom]:
+    """The same check before motion is planned: every material's fill (the widest path)
+    at the speed bound ``motion.speed_mm_s``."""
+    dh = job.slicing.layer_thickness_mm * job.flow.layer_scale
+    v = job.motion.speed_mm_s
+    out = []
+    for m in ("part", "scaffold"):
+        w = max(job.materials[m].fill_width_mm, job.materials[m].path_width_mm)
+        out.append(_headroom(m, w * dh * v, -1, "fill", w, v, job))
+    return out
+
+
+def _headroom(material: str, q: float, layer: int, role: str, w: float, v: float,
+              job: "Job") -> Headroom:
+    s = job.feedback.saturation
+    limit = _limit_flow(material, job)
+    dh = job.slicing.layer_thickness_mm * job.flow.layer_scale
+    return Headroom(material=material, layer=layer, role=role, width_mm=w, speed_mm_s=v,
+                    nominal_mm3_s=q, needed_mm3_s=q * (1 + s), limit_mm3_s=limit,
+                    max_speed_mm_s=limit / ((1 + s) * w * dh))
+
+
+def check_feedback_headroom(rooms: list[Headroom], job: "Job") -> list[str]:
+    """Raise FlowError for the first path whose nominal flow fits but whose corrected
+    flow does not, under ``flow.out_of_range = "error"`` with feedback on; under
+    ``"clamp"`` return the findings (one line each). FM only, and only when
+    ``feedback.enabled``."""
+    if not job.feedback.enabled or job.flow.mode != "fm":
+        return []
+    # a nominal flow beyond the valve is not a headroom matter: the valve programs'
+    # own error names that path (icefab.flow)
+    short = [r for r in rooms if not r.fits and r.nominal_mm3_s <= r.limit_mm3_s]
+    if short and job.flow.out_of_range == "error":
+        raise FlowError(short[0].message(job))
+    return [r.message(job) for r in short]

@@ -1,0 +1,52 @@
+"""The feedback's headroom (issue 11): nominal flow x (1 + feedback.saturation) must fit
+the calibration table at the cell's highest frequency, checked before a build runs."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from icefab import Job
+from icefab.core import Toolpath, Trajectory
+from icefab.errors import FlowError
+from icefab.headroom import check_feedback_headroom, feedback_headroom
+
+
+def traj(speed: float, width: float, material: str = "part") -> Trajectory:
+    n = 50
+    dt = 0.016
+    x = np.arange(n) * speed * dt
+    xy = np.c_[x, np.zeros(n)]
+    path = Toolpath(points=xy, z=0.0, material=material, role="fill", closed=False,
+                    width=width)
+    return Trajectory(dt=dt, xy=xy, joints=np.zeros((n, 2)), speed=np.full(n, speed),
+                      duration=(n - 1) * dt, path=path)
+
+
+def test_issue_case_nominal_fits_but_not_with_the_saturation():
+    """3 mm x 0.5 mm x 125 mm/s = 187.5 mm^3/s nominal fits the 1000 Hz table (195 mm^3/s);
+    +30 % = 243.75 does not: refused naming the feedback's headroom and the settings."""
+    job = Job().replace(**{"slicing.layer_thickness_mm": 0.5, "flow.tick_s": 0.001,
+                           "flow.max_frequency_hz": 1000.0})
+    (room,) = feedback_headroom([(3, traj(125.0, 3.0))], job)
+    assert room.nominal_mm3_s == pytest.approx(187.5)
+    assert room.needed_mm3_s == pytest.approx(243.75)
+    assert room.limit_mm3_s == pytest.approx(195.0)       # the table's last row
+    assert room.max_speed_mm_s == pytest.approx(195.0 / 1.3 / 1.5)
+    with pytest.raises(FlowError) as e:
+        check_feedback_headroom([room], job)
+    msg = str(e.value)
+    assert msg.startswith("feedback headroom") and "feedback.saturation = 30%" in msg
+    assert "layer 3 part fill" in msg and "motion.speed_mm_s" in msg and "\n" not in msg
+    clamp = job.replace(**{"flow.out_of_range": "clamp"})
+    (line,) = check_feedback_headroom([room], clamp)
+    assert "clamp" in line
+    off = job.replace(**{"feedback.enabled": False})
+    assert check_feedback_headroom([room], off) == []
+
+
+def test_default_cell_limit_is_the_table_at_500_hz():
+    """Default cell: 2 ms tick -> 500 Hz -> 115.28 mm^3/s (the table's 500 Hz row)."""
+    job = Job()
+    (room,) = feedback_headroom([(0, traj(50.0, 1.5))], job)
+    assert room.limit_mm3_s == pytest.approx(115.28)
+    assert room.fits and check_feedback_headroom([room], job) == []
