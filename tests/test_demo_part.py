@@ -81,8 +81,8 @@ def test_demo_job_is_default():
 
 
 def test_shipped_mug_is_the_manifold3d_build():
-    """The demo mug ships as data (no manifold3d at run time); it is exactly what
-    manifold3d builds (the test extra installs it)."""
+    """The demo mug ships as data (no Boolean operations at run time); it is exactly what
+    manifold3d builds (manifold3d, a runtime dependency for hole closing)."""
     from icefab.demo import build_demo_mug
 
     shipped, built = demo_mug(), build_demo_mug()

@@ -5,7 +5,7 @@ with a hole in every layer above it), a handle that forms a through-hole with th
 (nested contours: two outer rings and holes), and the lower arc of the handle, which
 overhangs and needs scaffold. Built with manifold3d (exact, watertight Boolean operations,
 :func:`build_demo_mug`) and shipped as data (``icefab/data/demo_mug.npz``, 31 kB), so
-icefab does not need manifold3d at run time; the tests check the data against a fresh
+the demo needs no Boolean operations at run time; the tests check the data against a fresh
 build.
 
 Dimensions (mm): body outer radius 40, wall 4, bottom 6, height 125; handle: a torus of
