@@ -24,6 +24,7 @@ STAGES: list[tuple[str, tuple[str, ...]]] = [
     ("geometry", ("icefab.geometry",)),
     ("mesh", ("icefab.mesh", "icefab.demo")),
     ("slicing", ("icefab.slicing",)),
+    ("ruled", ("icefab.ruled",)),
     ("regions", ("icefab.regions",)),
     ("paths", ("icefab.paths",)),
     ("motion", ("icefab._mtts", "icefab.motion")),

@@ -194,6 +194,39 @@ class Stack:
         return self.layers[i]
 
 
+@dataclass(frozen=True, eq=False)
+class RuledEdges:
+    """The generators from every part contour point of layer k to layer k+1.
+
+    Per contour point (n,), in the order of the stack's layers, rings and points:
+    layer: int64 index (in the stack) of the lower layer; ring: int64 ring index within
+    its region; point: (n, 2) float64 mm, the contour point; z: float64 mm, its layer's
+    cutting height; match: (n, 2) float64 mm, the matched point on the next layer's
+    contour (NaN when none); match_ring: int64 ring index in the next layer (-1 none);
+    dz: float64 mm, the height to the next layer's cutting plane (NaN when none);
+    tilt: float64 rad in (-pi/2, pi/2), the generator's angle from vertical, positive
+    leaning out of the material (NaN when no match).
+    Made by :func:`icefab.ruled.ruled_edges`; the top layer has no match anywhere.
+    """
+
+    layer: np.ndarray
+    ring: np.ndarray
+    point: np.ndarray
+    z: np.ndarray
+    match: np.ndarray
+    match_ring: np.ndarray
+    dz: np.ndarray
+    tilt: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.layer)
+
+    @property
+    def matched(self) -> np.ndarray:
+        """(n,) bool: points with a generator."""
+        return self.match_ring >= 0
+
+
 # --------------------------------------------------------------------------- paths
 
 

@@ -981,6 +981,58 @@ def distance_to_rings(points: np.ndarray, rings: Sequence[np.ndarray],
     return _nearest_edge_distance(pts, P, edge, a, b, prv, upper=upper + spacing)
 
 
+def nearest_on_rings(points: np.ndarray, rings: Sequence[np.ndarray], spacing: float = 0.25
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The nearest point on ``rings``' edges to each of ``points`` (n, 2), mm: exact.
+
+    The edges are sampled every ``spacing`` mm (every vertex among the samples). If the
+    nearest sample is d0 away, the nearest edge point f is at most d0 away and a sample of
+    its edge lies within ``spacing / 2`` of f, so within ``d0 + spacing / 2`` of the point:
+    the edges (leaving and arriving) of every sample in that ball hold the answer. The ball
+    is gathered by k-nearest queries, k doubled until it is covered.
+    Returns (distance (n,), foot (n, 2), index of the foot's ring (n,)); with no rings the
+    distances are ``inf``, feet NaN and rings -1.
+    """
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    keep = [i for i, r in enumerate(rings) if len(r) >= 2]
+    dist = np.full(len(pts), np.inf)
+    foot = np.full((len(pts), 2), np.nan)
+    ring = np.full(len(pts), -1, dtype=np.int64)
+    if not keep or not len(pts):
+        return dist, foot, ring
+    from scipy.spatial import cKDTree
+
+    P, edge, a, b, prv, _r, _arc, _len = _sample_rings(
+        [np.asarray(rings[i], dtype=np.float64) for i in keep], spacing)
+    ring_of_edge = np.repeat(np.asarray(keep), [len(rings[i]) for i in keep])
+    tree = cKDTree(P)
+    k = min(8, len(P))
+    while True:
+        dd, near = tree.query(pts, k=k)
+        dd, near = dd.reshape(len(pts), -1), near.reshape(len(pts), -1)
+        if k == len(P) or np.all(dd[:, -1] > dd[:, 0] + 0.5 * spacing + 1e-12):
+            break
+        k = min(2 * k, len(P))
+    radius = dd[:, :1] + 0.5 * spacing + 1e-12
+    for col in range(near.shape[1]):
+        inside = dd[:, col] <= radius[:, 0]
+        if not inside.any():
+            break
+        e = edge[near[:, col]]
+        for ed in (e, prv[e]):
+            d = b[ed] - a[ed]
+            L2 = np.einsum("ij,ij->i", d, d)
+            t = np.clip(np.einsum("ij,ij->i", pts - a[ed], d) / np.where(L2 > 0, L2, 1.0),
+                        0.0, 1.0)
+            f = a[ed] + t[:, None] * d
+            fd = np.hypot(*(pts - f).T)
+            better = inside & (fd < dist)
+            dist[better] = fd[better]
+            foot[better] = f[better]
+            ring[better] = ring_of_edge[ed[better]]
+    return dist, foot, ring
+
+
 #: Jitter of the samples given to qhull by :func:`medial_axis`, mm.
 JITTER_MM = 5e-5
 #: Samples nearest a medial-axis vertex whose edges give its clearance.

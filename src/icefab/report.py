@@ -24,7 +24,7 @@ import numpy as np
 
 from icefab.atomic import atomic_path
 from icefab.feedback import simulate_1d
-from icefab.core import Stack, Toolpaths
+from icefab.core import RuledEdges, Stack, Toolpaths
 
 if TYPE_CHECKING:  # pragma: no cover
     from icefab.config import Job
@@ -197,6 +197,47 @@ def plot_layers(stack: Stack, ks: list[int], path: Path) -> None:
         ax.tick_params(labelsize=7)
     for ax in axes.ravel()[len(ks):]:
         ax.axis("off")
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def plot_ruled(edges: RuledEdges, stack: Stack, ks: list[int], path: Path) -> None:
+    """Ruled layer edges in a PNG at ``path``: for layers ``ks`` the contour (grey), the
+    next layer's contour (black) and each generator's foot coloured by its tilt in plan
+    view; and the tilt of every generator against height (degrees from vertical, positive
+    leaning out of the material)."""
+    plt = pyplot()
+    n = len(ks)
+    fig, axes = plt.subplots(1, n + 1, figsize=(4.2 * (n + 1), 4.2), squeeze=False)
+    axes = axes.ravel()
+    ok = edges.matched
+    tilt = np.degrees(edges.tilt)
+    lim = float(np.nanmax(np.abs(tilt))) if ok.any() else 1.0
+    lim = max(lim, 1.0)
+    for ax, k in zip(axes, ks):
+        for ring in stack[k].part.rings:
+            c = np.vstack([ring, ring[:1]])
+            ax.plot(c[:, 0], c[:, 1], color="0.6", lw=0.8)
+        if k + 1 < len(stack):
+            for ring in stack[k + 1].part.rings:
+                c = np.vstack([ring, ring[:1]])
+                ax.plot(c[:, 0], c[:, 1], color="k", lw=0.5)
+        sel = (edges.layer == k) & ok
+        sc = ax.scatter(edges.point[sel, 0], edges.point[sel, 1], c=tilt[sel], s=4,
+                        cmap="coolwarm", vmin=-lim, vmax=lim)
+        ax.set_title(f"layer {k} (z = {stack[k].z:.2f} mm) to {k + 1}", fontsize=9)
+        ax.set_aspect("equal")
+        ax.set_xlabel("x (mm, part frame)", fontsize=8)
+        ax.set_ylabel("y (mm)", fontsize=8)
+        ax.tick_params(labelsize=7)
+        fig.colorbar(sc, ax=ax, shrink=0.7).set_label("tilt (deg)", fontsize=8)
+    ax = axes[n]
+    ax.scatter(edges.z[ok], tilt[ok], s=1, color="tab:blue", alpha=0.3)
+    ax.set_xlabel("z (mm)", fontsize=8)
+    ax.set_ylabel("generator tilt from vertical (deg; + overhang)", fontsize=8)
+    ax.set_title(f"{int(ok.sum())} generators, {int((~ok).sum())} points without",
+                 fontsize=9)
+    ax.tick_params(labelsize=7)
     fig.tight_layout()
     save_figure(fig, path)
 

@@ -1,4 +1,5 @@
-"""Result files given back to icefab: ``stack.npz``, ``toolpaths.npz``, ``trajectories.npz``.
+"""Result files given back to icefab: ``stack.npz``, ``toolpaths.npz``, ``trajectories.npz``
+(and ``ruled.npz``, layout at :func:`save_ruled`).
 
 One module reads and writes all three (and packs the same data for worker processes), so
 their shared parts exist once: the header (``format``, ``version``, the job as TOML text,
@@ -86,8 +87,8 @@ import numpy as np
 from icefab.atomic import atomic_path
 from icefab.config import job_from_dict, to_toml
 from icefab.core import (FRAMES, MATERIALS, OFF, ON2, ROLES, TOOLS, BuildMotion, Layer,
-                         LayerMotion, LayerPaths, Region, Stack, Toolpath, Toolpaths,
-                         Trajectory, point_states)
+                         LayerMotion, LayerPaths, Region, RuledEdges, Stack, Toolpath,
+                         Toolpaths, Trajectory, point_states)
 from icefab.errors import ConfigError, StackFileError
 
 log = logging.getLogger(__name__)
@@ -305,9 +306,9 @@ class _Members:
             if v.dtype.kind == "f" and not np.isfinite(v).all():
                 raise self.bad(name, "NaN or infinite values, expected finite numbers")
             if v.size and lo is not None and v.min() < lo:
-                raise self.bad(name, f"value {v.min()!r} below {lo:g}")
+                raise self.bad(name, f"value {v.min().item()!r} below {lo:g}")
             if v.size and hi is not None and v.max() > hi:
-                raise self.bad(name, f"value {v.max()!r} above {hi:g}")
+                raise self.bad(name, f"value {v.max().item()!r} above {hi:g}")
         return a
 
     def offsets(self, name: str, n_items: int | None, n_rows: int) -> np.ndarray:
@@ -769,3 +770,60 @@ def load_trajectories(path: str | os.PathLike) -> BuildMotion:
                                trajectories=tuple(trajs[int(ls[k]):int(ls[k + 1])]))
                    for k in range(len(index)))
     return BuildMotion(layers=layers, job=job, robot=robot, joint_names=joint_names)
+
+
+# --------------------------------------------------------------------------- ruled edges
+
+RULED_FORMAT = "icefab-ruled"
+RULED_VERSION = 1
+_RULED_REQUIRED = ("format", "version", "job", "layer", "ring", "point", "z", "match",
+                   "match_ring", "dz", "tilt")
+
+
+def save_ruled(edges: RuledEdges, job, path: str | os.PathLike) -> Path:
+    """Write ruled layer edges (``icefab export ruled``) to ``path`` atomically.
+
+    Layout: ``format`` "icefab-ruled", ``version`` 1, ``job`` str (TOML, the stack's);
+    per contour point (n,): ``layer`` int64, ``ring`` int64, ``point`` (n, 2) float64 mm,
+    ``z`` float64 mm, ``match`` (n, 2) float64 mm (NaN: none), ``match_ring`` int64 (-1:
+    none), ``dz`` float64 mm (NaN: none), ``tilt`` float64 rad (NaN: none); the meaning of
+    each in :class:`icefab.core.RuledEdges`.
+    """
+    arrays = {"format": np.array(RULED_FORMAT), "version": np.array(RULED_VERSION),
+              "job": np.array(to_toml(job))}
+    arrays.update({k: np.asarray(getattr(edges, k)) for k in _RULED_REQUIRED[3:]})
+    return _write(path, arrays)
+
+
+def load_ruled(path: str | os.PathLike) -> tuple[RuledEdges, object]:
+    """Read a file of :func:`save_ruled`, every member checked: (edges, job).
+
+    A point has a match exactly when ``match_ring >= 0``; then its match and dz are finite,
+    dz > 0 and |tilt| < pi/2. StackFileError naming the file and member otherwise.
+    """
+    with _Members(Path(path), "ruled edges") as m:
+        m.header(RULED_FORMAT, (RULED_VERSION,))
+        m.expect(_RULED_REQUIRED)
+        job = m.job()
+        layer = m.values("layer", "iu", 1, lo=0, hi=2**31 - 1).astype(np.int64)
+        n = len(layer)
+        ring = m.values("ring", "iu", 1, n=n, lo=0, hi=2**31 - 1).astype(np.int64)
+        point = m.values("point", "f", 2, 2, n=n, lo=-MAX_COORD_MM, hi=MAX_COORD_MM)
+        z = m.values("z", "f", 1, n=n, lo=-MAX_COORD_MM, hi=MAX_COORD_MM)
+        mring = m.values("match_ring", "iu", 1, n=n, lo=-1, hi=2**31 - 1).astype(np.int64)
+        match = m.values("match", "f", 2, 2, n=n, lo=-MAX_COORD_MM, hi=MAX_COORD_MM,
+                         nan_ok=True)
+        dz = m.values("dz", "f", 1, n=n, lo=0.0, hi=MAX_COORD_MM, nan_ok=True)
+        tilt = m.values("tilt", "f", 1, n=n, lo=-math.pi / 2, hi=math.pi / 2, nan_ok=True)
+        has = mring >= 0
+        for name, col in (("match", np.isnan(match).any(axis=1)), ("dz", np.isnan(dz)),
+                          ("tilt", np.isnan(tilt))):
+            if np.any(col == has):
+                raise m.bad(name, "must be given exactly where match_ring >= 0: the file is "
+                            "corrupt")
+        if np.any(dz[has] <= 0.0):
+            raise m.bad("dz", "a layer height <= 0: the file is corrupt")
+        if np.any(np.diff(layer) < 0):
+            raise m.bad("layer", "layers not in ascending order: the file is corrupt")
+    return RuledEdges(layer=layer, ring=ring, point=point, z=z, match=match, match_ring=mring,
+                      dz=dz, tilt=tilt), job

@@ -8,12 +8,18 @@ controller's path store and sizes the store for the longest path.
 
 ``gcode`` writes ``OUT/trajectories.gcode`` for a gantry running Marlin
 (:mod:`icefab.export`, the convention in its docstring).
+
+``ruled STACK -o OUT`` writes ``OUT/ruled.npz`` (layout: ``icefab.resultfiles.save_ruled``)
+and ``OUT/ruled.png``: the ruled side surface of every layer for cells that tilt their
+nozzle or trim the layer edge (:mod:`icefab.ruled`; planar cells ignore it).
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+
+import numpy as np
 from pathlib import Path as FsPath
 
 from icefab.cli.common import output_dir
@@ -55,6 +61,58 @@ def add_parser(subparsers) -> None:
     g.add_argument("input", metavar="TRAJECTORIES", help="trajectories.npz from 'icefab plan'")
     g.add_argument("-o", "--out", required=True, metavar="OUT", help="output folder")
     g.set_defaults(func=run_gcode)
+    r = sub.add_parser("ruled", help="ruled layer edges for multi-axis cells",
+                       description="Write OUT/ruled.npz and OUT/ruled.png: for every part "
+                                   "contour point the matching point on the next layer's "
+                                   "contour and the tilt of the straight edge between them "
+                                   "(icefab.ruled, Zhang & Liou). The tilt is as exact as the "
+                                   "contours: slice with a small "
+                                   "slicing.max_filter_deviation_mm (the filter moves a "
+                                   "contour by up to it, which tilts an edge by up to "
+                                   "atan(2 x deviation / layer height)).")
+    r.add_argument("input", metavar="STACK", help="stack.npz from 'icefab slice'")
+    r.add_argument("-o", "--out", required=True, metavar="OUT", help="output folder")
+    r.add_argument("--max-tilt", type=float, default=80.0, metavar="DEG",
+                   help="edges flatter than this from vertical are ledges, not edges "
+                        "(default 80)")
+    r.add_argument("--layers", metavar="K,K,...",
+                   help="layers drawn in ruled.png (default: three evenly spread)")
+    r.set_defaults(func=run_ruled)
+
+
+def run_ruled(args: argparse.Namespace) -> int:
+    from icefab.cli.common import Progress, parse_layers
+    from icefab.report import plot_ruled
+    from icefab.resultfiles import load_stack, save_ruled
+    from icefab.ruled import ruled_edges
+
+    if not (math.isfinite(args.max_tilt) and 0.0 < args.max_tilt < 90.0):
+        raise ConfigError(f"--max-tilt {args.max_tilt}: expected a number of degrees between "
+                          "0 and 90")
+    stack = load_stack(args.input)
+    if not len(stack):
+        raise ConfigError(f"{args.input}: the stack has no layers")
+    ks = parse_layers(args.layers, max(len(stack) - 1, 1), default_count=3)
+    edges = ruled_edges(stack, args.max_tilt, progress=Progress("ruled edges"))
+    sl = stack.job.slicing
+    dev = sl.max_filter_deviation_mm if sl.min_point_spacing_mm > 0 else 0.0  # 0: no filter
+    bound = math.degrees(math.atan(2.0 * dev / stack.layer_thickness))
+    with output_dir(args.out, "export-ruled") as tmp:
+        save_ruled(edges, stack.job, tmp / "ruled.npz")
+        plot_ruled(edges, stack, ks, tmp / "ruled.png")
+    ok = edges.matched
+    tilt = np.degrees(np.abs(edges.tilt[ok]))
+    print(f"ruled edges: {int(ok.sum())} of {len(edges)} contour points have an edge to the "
+          f"next layer ({int((~ok).sum())} without: top layer, ledges flatter than "
+          f"{args.max_tilt:g} deg, contours that end)")
+    if ok.any():
+        print(f"tilt from vertical: median {np.median(tilt):.1f} deg, 95 % under "
+              f"{np.percentile(tilt, 95):.1f} deg, largest {tilt.max():.1f} deg; contour filter "
+              f"{dev:g} mm over {stack.layer_thickness:g} mm layers: tilts uncertain by up to "
+              f"{bound:.1f} deg")
+    print(f"wrote {args.out}/ruled.npz and {args.out}/ruled.png (layers "
+          f"{', '.join(map(str, ks))})")
+    return 0
 
 
 def run_gcode(args: argparse.Namespace) -> int:
