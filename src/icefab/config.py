@@ -132,6 +132,23 @@ class SlicingSettings:
         "path filter: largest distance a removed point may lie from the filtered contour",
         lo=0.0, hi=5.0,
         why="over 5 mm the filtered contour no longer describes the part")
+    fit_contours: bool = setting(
+        False, "replace the path filter by smooth contours: a local cubic B-spline through "
+               "the exact section's points (icefab.fitting, Zhang & Liou), within "
+               "fit_tolerance_mm of it, corners over corner_angle_deg kept, sampled at most "
+               "min_point_spacing_mm apart (0.4 mm when 0); for faceted meshes, whose "
+               "polygon vertices cap MTTS' curvature-limited speed")
+    fit_tolerance_mm: float = setting(
+        0.02, "largest distance between a fitted contour and the exact section",
+        lo=0.001, hi=0.05, lo_open=False,
+        why="0.02 mm is the paths' own smoothing bound (motion.smoothing_tolerance_mm); "
+            "over 0.05 mm the fit moves the part more than the path filter does; under "
+            "0.001 mm it is the polygon")
+    corner_angle_deg: float = setting(
+        40.0, "with fit_contours: a contour turning by more than this at one point keeps "
+              "the point as a sharp corner (a CAD edge, not faceting)",
+        lo=5.0, hi=175.0,
+        why="a 16-facet cylinder turns 22.5 degrees per facet; CAD edges turn 60-90")
     open_contours: str = setting("refuse", "open chains left after the 3D hole closing "
                                            "(parts.close_holes) whose closure in the layer "
                                            "needs a straight chord longer than max_gap_mm: "

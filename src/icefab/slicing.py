@@ -97,6 +97,7 @@ import numpy as np
 
 from icefab.config import Job
 from icefab.errors import GeometryError
+from icefab.fitting import fit_rings
 from icefab.geometry import _in_ring, region_from_rings
 from icefab.mesh.topology import edge_buckets
 from icefab.core import Layer, Mesh, Region, Stack, signed_area
@@ -959,9 +960,15 @@ def _finish_rings(rings: _Rings, job: Job, report: SliceReport
         return rings, np.zeros(0, dtype=np.int64), {}
     # filter, and sort the rings by layer (stable) in the same gather
     order = np.argsort(rings.layer, kind="stable")
-    pts, off = _filter_compact(rings.points, rings.offsets, order,
-                               float(job.slicing.min_point_spacing_mm),
-                               float(job.slicing.max_filter_deviation_mm))
+    sl = job.slicing
+    if sl.fit_contours:  # smooth contours instead of the filter (icefab.fitting)
+        pts, off = _filter_compact(rings.points, rings.offsets, order, 0.0, 0.0)
+        pts, off = fit_rings(pts, off, float(sl.fit_tolerance_mm), float(sl.corner_angle_deg),
+                             float(sl.min_point_spacing_mm) or 0.4)
+    else:
+        pts, off = _filter_compact(rings.points, rings.offsets, order,
+                                   float(sl.min_point_spacing_mm),
+                                   float(sl.max_filter_deviation_mm))
     rings = _Rings(pts, off, rings.layer[order], rings.oriented[order], rings.gap[order])
     counts = np.diff(rings.offsets)
     area, perim = _ring_measures(rings.points, rings.offsets)

@@ -1,0 +1,122 @@
+"""Smooth contours (icefab.fitting; Zhang & Liou III): fitted rings against the exact
+section, measured independently (shapely's Hausdorff distance, trimesh's cross-sections),
+corners kept, straight runs straight, and the slicer's setting."""
+from __future__ import annotations
+
+import math
+
+import manifold3d as m3
+import numpy as np
+import pytest
+import shapely
+import trimesh
+from hypothesis import given, settings, strategies as st
+
+from icefab.config import Job, job_from_dict
+from icefab.core import Mesh, signed_area
+from icefab.errors import ConfigError
+from icefab.fitting import fit_ring
+from icefab.slicing import slice_mesh
+
+FIT = job_from_dict({"slicing": {"fit_contours": True}})
+
+
+def mesh_of(solid) -> Mesh:
+    m = solid.to_mesh()
+    return Mesh(np.asarray(m.vert_properties)[:, :3].astype(np.float64),
+                np.asarray(m.tri_verts).astype(np.int64), name="manifold")
+
+
+def turns_deg(ring: np.ndarray) -> np.ndarray:
+    a = ring - np.roll(ring, 1, axis=0)
+    b = np.roll(ring, -1, axis=0) - ring
+    return np.degrees(np.abs(np.arctan2(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0],
+                                        np.einsum("ij,ij->i", a, b))))
+
+
+def star(radii) -> np.ndarray:
+    t = np.linspace(0.0, 2.0 * math.pi, len(radii), endpoint=False)
+    r = np.asarray(radii)
+    return np.c_[r * np.cos(t), r * np.sin(t)]
+
+
+@settings(max_examples=80, deadline=None, derandomize=True)
+@given(radii=st.lists(st.floats(2.0, 30.0), min_size=3, max_size=60),
+       tol=st.sampled_from([0.005, 0.02, 0.05]), corner=st.floats(10.0, 120.0),
+       spacing=st.floats(0.1, 2.0))
+def test_fit_stays_within_tolerance(radii, tol, corner, spacing):
+    """Any star-shaped ring: the fitted ring is within tol of it both ways (Hausdorff, by
+    shapely), keeps every input point, its orientation and its corners, and samples at
+    most ``spacing`` apart."""
+    ring = star(radii)
+    fit = fit_ring(ring, tol, corner, spacing)
+    h = shapely.hausdorff_distance(shapely.LinearRing(fit), shapely.LinearRing(ring),
+                                   densify=0.05)
+    assert h <= tol * (1 + 1e-9) + 1e-12
+    near = np.min(np.hypot(*(ring[:, None, :] - fit[None, :, :]).transpose(2, 0, 1)), axis=1)
+    assert near.max() < 1e-9  # the section's own points are on the curve
+    assert np.sign(signed_area(fit)) == np.sign(signed_area(ring))
+    gaps = np.hypot(*(np.roll(fit, -1, axis=0) - fit).T)
+    assert gaps.max() <= spacing * (1 + 1e-9)
+    sharp = turns_deg(ring) > corner
+    for p, turn in zip(ring[sharp], turns_deg(ring)[sharp]):
+        i = int(np.argmin(np.hypot(*(fit - p).T)))
+        assert turns_deg(fit)[i] == pytest.approx(turn, abs=1e-6)  # the corner, unrounded
+
+
+def test_straight_runs_stay_straight_and_corners_sharp():
+    """A box section: the fit is the rectangle itself (area to 1e-9), its four corners."""
+    rect = np.array([[0.0, 0.0], [20.0, 0.0], [20.0, 10.0], [0.0, 10.0]])
+    fit = fit_ring(rect, 0.02)
+    assert signed_area(fit) == pytest.approx(200.0, abs=1e-9)
+    assert np.sort(turns_deg(fit))[-4:] == pytest.approx([90.0] * 4)
+    assert np.sort(turns_deg(fit))[:-4].max() < 1e-9
+
+
+def test_faceting_is_smoothed():
+    """A 256-gon (a finely meshed circle of radius 30, 1.4 degree turns at its vertices and
+    none between): the fit lies on the true circle (within 1e-6 mm) and turns evenly, its
+    curvature (turn per mm) everywhere within 1 % of the circle's 1/30 mm^-1."""
+    t = np.linspace(0.0, 2.0 * math.pi, 256, endpoint=False)
+    ring = 30.0 * np.c_[np.cos(t), np.sin(t)]
+    fit = fit_ring(ring, 0.02, spacing=0.4)
+    assert np.abs(np.hypot(*fit.T) - 30.0).max() < 1e-6
+    chord = np.hypot(*(np.roll(fit, -1, axis=0) - fit).T)
+    curvature = np.radians(turns_deg(fit)) / (0.5 * (chord + np.roll(chord, 1)))
+    assert np.abs(curvature * 30.0 - 1.0).max() < 0.01
+
+
+SOLIDS = {
+    "coarse cylinder": lambda: m3.Manifold.cylinder(6.0, 20.0, 20.0, 16),
+    "coarse sphere": lambda: m3.Manifold.sphere(15.0, 24).translate([0.0, 0.0, 15.0]),
+    "box": lambda: m3.Manifold.cube([20.0, 10.0, 3.0]),
+}
+
+
+@pytest.mark.parametrize("name", list(SOLIDS))
+def test_sliced_contours_within_the_bound_of_the_exact_section(name):
+    """Every fitted ring of every layer within slicing.fit_tolerance_mm of the mesh's exact
+    cross-section at its height, computed by trimesh (independent of the slicer)."""
+    mesh = mesh_of(SOLIDS[name]())
+    stack = slice_mesh(mesh, FIT)
+    tm = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
+    worst = 0.0
+    for layer in stack:
+        sec = tm.section(plane_origin=[0.0, 0.0, layer.z], plane_normal=[0.0, 0.0, 1.0])
+        exact = shapely.MultiLineString([np.asarray(e) for e in sec.discrete])
+        for ring in layer.part.rings:
+            worst = max(worst, shapely.hausdorff_distance(shapely.LinearRing(ring), exact,
+                                                          densify=0.01))
+    assert worst <= FIT.slicing.fit_tolerance_mm
+    # and the default slicer is untouched by the setting's existence
+    plain = slice_mesh(mesh, Job())
+    assert len(plain) == len(stack)
+
+
+def test_fit_settings_are_checked():
+    for key, value in (("fit_tolerance_mm", 0.0), ("fit_tolerance_mm", 0.5),
+                       ("corner_angle_deg", 0.0), ("corner_angle_deg", 180.0)):
+        with pytest.raises(ConfigError, match=f"slicing.{key}"):
+            job_from_dict({"slicing": {key: value}})
+    with pytest.raises(ValueError, match="tolerance"):
+        fit_ring(star([1.0, 2.0, 3.0]), 0.0)
