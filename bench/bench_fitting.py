@@ -7,7 +7,7 @@ a faceted CAD part and the 300 mm bunny. One command:
 * fandisk (tests/data/meshes/fandisk.obj.gz, 12 946 facets, scaled x20: a 97 x 105 x 54 mm
   CAD part with sharp edges and large flat facets), every layer;
 * the 1 M-facet bunny at 300 mm (``bench/meshes.py``; end-effector origin (340, 0) as in
-  bench_motion.py), every K-th layer of the full stack and scaffold (paths and MTTS of
+  bench_motion.py; ``cell.stroke_mm`` 400: it is taller than the Cobra's 210 mm), every K-th layer of the full stack and scaffold (paths and MTTS of
   those layers; the whole build's time is K times theirs, an estimate said as such).
 
 Per case: MTTS time (jerk on, default limits) in total and on boundary paths, the
@@ -52,7 +52,8 @@ def case_job(mesh: str, fit: bool, extra: dict | None = None, smoothing: float |
     else:
         from meshes import big_mesh
         parts = {"files": [str(big_mesh("bunny"))]}
-        cell = {"ee_origin_mm": [340.0, 0.0]}
+        # 300 mm is taller than the Cobra's 210 mm stroke: a taller cell of the same robot
+        cell = {"ee_origin_mm": [340.0, 0.0], "stroke_mm": 400.0}
     data = {"parts": parts, "cell": cell,
             "slicing": {"fit_contours": fit, **(extra or {})}}
     if smoothing is not None:
