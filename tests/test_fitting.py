@@ -58,10 +58,14 @@ def test_fit_stays_within_tolerance(radii, tol, corner, spacing):
     assert np.sign(signed_area(fit)) == np.sign(signed_area(ring))
     gaps = np.hypot(*(np.roll(fit, -1, axis=0) - fit).T)
     assert gaps.max() <= spacing * (1 + 1e-9)
+    # corners: the curve passes through them (above) and leaves along the chords, so the
+    # samples turn there by nearly the whole angle (the chord to the next sample cuts the
+    # curve's first bend: up to 8 degrees less in 3 000 random rings); a rounded corner
+    # would spread the turn over many samples
     sharp = turns_deg(ring) > corner
     for p, turn in zip(ring[sharp], turns_deg(ring)[sharp]):
         i = int(np.argmin(np.hypot(*(fit - p).T)))
-        assert turns_deg(fit)[i] == pytest.approx(turn, abs=1e-6)  # the corner, unrounded
+        assert turns_deg(fit)[i] > turn - 10.0
 
 
 def test_straight_runs_stay_straight_and_corners_sharp():
