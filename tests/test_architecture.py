@@ -23,7 +23,7 @@ STAGES: list[tuple[str, tuple[str, ...]]] = [
                     "icefab.workload")),
     ("geometry", ("icefab.geometry",)),
     ("mesh", ("icefab.mesh", "icefab.demo")),
-    ("slicing", ("icefab.fitting", "icefab.slicing")),
+    ("slicing", ("icefab.adaptive", "icefab.fitting", "icefab.slicing")),
     ("ruled", ("icefab.ruled",)),
     ("regions", ("icefab.regions",)),
     ("paths", ("icefab.paths",)),

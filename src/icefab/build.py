@@ -46,7 +46,7 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
-from icefab.errors import IcefabError, WorkspaceError
+from icefab.errors import ConfigError, IcefabError, WorkspaceError
 from icefab.journal import Journal, digest_text, pack_arrays, unpack_arrays
 from icefab.runcell import Cell, CellError, CellPath
 from icefab.core import HeightMap
@@ -78,7 +78,13 @@ class BuildStopped(IcefabError):
 def check_build(motion: "BuildMotion", job: "Job", layers: int) -> None:
     """Refuse, before anything moves, a build the cell cannot make: a part taller than
     the vertical stroke (WorkspaceError naming it). Reach and joint limits were checked
-    when the trajectories were planned (:func:`icefab.motion.plan_toolpaths`)."""
+    when the trajectories were planned (:func:`icefab.motion.plan_toolpaths`).
+    Adaptive layers (own thicknesses) are refused: the runner's SMF interval and the
+    virtual cell still count in layers of ``slicing.layer_thickness_mm``."""
+    if any(np.isfinite(lm.thickness) for lm in motion.layers):
+        raise ConfigError("these trajectories have adaptive layers (slicing.cusp_height_mm > "
+                          "0): the build runner does not run them yet; simulate them "
+                          "('icefab simulate') or plan with slicing.cusp_height_mm = 0")
     top = max((float(lm.z) for lm in motion.layers[:layers]), default=0.0) \
         + job.slicing.layer_thickness_mm
     if top > Z_STROKE_MM:

@@ -132,6 +132,20 @@ class SlicingSettings:
         "path filter: largest distance a removed point may lie from the filtered contour",
         lo=0.0, hi=5.0,
         why="over 5 mm the filtered contour no longer describes the part")
+    cusp_height_mm: float = setting(
+        0.0, "adaptive layers (icefab.adaptive, Zhang & Liou): each layer as thick as keeps "
+             "the staircase's cusp height t * |n_z| under this bound, within "
+             "[min_layer_thickness_mm, max_layer_thickness_mm]; 0: every layer "
+             "layer_thickness_mm thick (the water cell's default, thesis 4.1)",
+        lo=0.0, hi=5.0,
+        why="0: off; a cusp over 5 mm is no surface finish")
+    min_layer_thickness_mm: float = setting(
+        0.05, "with cusp_height_mm: the thinnest layer", lo=0.01, hi=10.0,
+        why="as layer_thickness_mm")
+    max_layer_thickness_mm: float = setting(
+        0.0, "with cusp_height_mm: the thickest layer (0: layer_thickness_mm, so the bound "
+             "only ever thins layers)", lo=0.0, hi=10.0,
+        why="0: layer_thickness_mm; else as layer_thickness_mm")
     fit_contours: bool = setting(
         False, "replace the path filter by smooth contours: a local cubic B-spline through "
                "the exact section's points (icefab.fitting, Zhang & Liou), within "
@@ -746,6 +760,12 @@ def _check_cross(job: Job) -> None:
     lo, hi = job.scaffold.subset
     if lo > hi:
         raise ConfigError(f"scaffold.subset = {job.scaffold.subset!r}: min must not exceed max")
+    sl = job.slicing
+    if sl.cusp_height_mm > 0 and sl.min_layer_thickness_mm > (sl.max_layer_thickness_mm
+                                                            or sl.layer_thickness_mm):
+        raise ConfigError(f"slicing.min_layer_thickness_mm = {sl.min_layer_thickness_mm:g} "
+                          "must not exceed slicing.max_layer_thickness_mm (or, when that is "
+                          f"0, slicing.layer_thickness_mm = {sl.layer_thickness_mm:g})")
     rmin, rmax = job.cell.reach_mm
     if rmin >= rmax:
         raise ConfigError(f"cell.reach_mm = {job.cell.reach_mm!r}: min must be below max")

@@ -162,6 +162,8 @@ class Layer:
     top_z: height of the layer's top surface, mm.
     part: the part-material (water) region.
     scaffold: the scaffold-material region (empty until ``add_scaffold``).
+    thickness: the layer's own thickness, mm, when layers differ (adaptive slicing,
+        ``slicing.cusp_height_mm``); NaN: the stack's ``layer_thickness``.
     """
 
     index: int
@@ -169,6 +171,7 @@ class Layer:
     part: Region
     scaffold: Region = field(default_factory=Region)
     top_z: float = float("nan")
+    thickness: float = float("nan")
 
 
 @dataclass(frozen=True, eq=False)
@@ -192,6 +195,12 @@ class Stack:
 
     def __getitem__(self, i: int) -> Layer:
         return self.layers[i]
+
+    @property
+    def thicknesses(self) -> np.ndarray:
+        """(n,) float64 mm: every layer's thickness (its own, else ``layer_thickness``)."""
+        t = np.array([L.thickness for L in self.layers], dtype=np.float64)
+        return np.where(np.isfinite(t), t, self.layer_thickness)
 
 
 @dataclass(frozen=True, eq=False)
@@ -321,6 +330,8 @@ class LayerPaths:
     paths: tuple[Toolpath, ...]
     #: (part, scaffold) area of the regions left uncovered by the deposition paths, mm^2.
     unfilled_mm2: tuple[float, float] = (0.0, 0.0)
+    #: The layer's own thickness, mm (adaptive slicing); NaN: the job's layer thickness.
+    thickness: float = float("nan")
 
 
 @dataclass(frozen=True, eq=False)
@@ -377,6 +388,8 @@ class LayerMotion:
     index: int
     z: float
     trajectories: tuple[Trajectory, ...]
+    #: The layer's own thickness, mm (adaptive slicing); NaN: the job's layer thickness.
+    thickness: float = float("nan")
 
     @property
     def durations(self) -> np.ndarray:

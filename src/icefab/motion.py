@@ -680,7 +680,8 @@ def _plan_layer(lp: LayerPaths, job: Job,
                 role_speeds: Mapping[str, float] | None = None) -> LayerMotion:
     trajs = (plan_paths_motion(lp.paths, job, layer=lp.index, role_speeds=role_speeds)
              if lp.paths else [])
-    return LayerMotion(index=lp.index, z=lp.z, trajectories=tuple(trajs))
+    return LayerMotion(index=lp.index, z=lp.z, trajectories=tuple(trajs),
+                       thickness=lp.thickness)
 
 
 def _plan_layer_task(args: tuple) -> dict[str, np.ndarray]:
@@ -695,7 +696,8 @@ def _plan_layer_task(args: tuple) -> dict[str, np.ndarray]:
 
 def _unpack_layer(lp: LayerPaths, packed: dict[str, np.ndarray]) -> LayerMotion:
     return LayerMotion(index=lp.index, z=lp.z,
-                       trajectories=tuple(unpack_trajectories(packed, lp.paths)))
+                       trajectories=tuple(unpack_trajectories(packed, lp.paths)),
+                       thickness=lp.thickness)
 
 
 def _path_lengths(layers: Sequence[LayerPaths]) -> tuple[float, float]:

@@ -70,7 +70,7 @@ from icefab import geometry as geo
 from icefab.config import Job, MaterialSettings
 from icefab.frames import TOOLS, tool_offset, to_base_frame  # noqa: F401 (old home)
 from icefab.parallel import parallel_map
-from icefab.stages import check_layer_thickness
+from icefab.stages import check_layer_thickness, measured_layers
 from icefab.regions import hook_band_mm
 from icefab.resultfiles import (TOOLPATHS_FORMAT as FORMAT, TOOLPATHS_VERSION as VERSION,  # noqa: F401
                                 load_toolpaths, pack_layer_paths, save_toolpaths,
@@ -741,8 +741,11 @@ def _densify(lines: list[np.ndarray], closed: np.ndarray, step: float
     return np.vstack([inner, allp]), np.concatenate([owner_pt[:-1][same][i], owner_pt])
 
 
-def plan_layer(layer: Layer, job: Job) -> LayerPaths:
-    """Ordered paths of one layer (see the module docstring)."""
+def plan_layer(layer: Layer, job: Job, measured: bool | None = None) -> LayerPaths:
+    """Ordered paths of one layer (see the module docstring). ``measured``: whether the
+    layer carries measurement paths (None: every ``feedback.interval_layers``-th layer by
+    index; :func:`plan_paths` decides by height for adaptive layers,
+    :func:`icefab.stages.measured_layers`)."""
     filt = job.slicing.max_filter_deviation_mm
     z = layer.z
     groups: dict[str, list[tuple[np.ndarray, bool, float]]] = {}
@@ -764,7 +767,9 @@ def plan_layer(layer: Layer, job: Job) -> LayerPaths:
         w = job.materials.part.path_width_mm
         groups["part:boundary"] = groups["part:boundary"] + [(r, True, w) for r in hook]
 
-    measured = job.feedback.enabled and (layer.index + 1) % job.feedback.interval_layers == 0
+    if measured is None:
+        measured = job.feedback.enabled and \
+            (layer.index + 1) % job.feedback.interval_layers == 0
     order = list(job.materials.order)
     if measured:
         for material in ("part", "scaffold"):
@@ -792,7 +797,8 @@ def plan_layer(layer: Layer, job: Job) -> LayerPaths:
                               width, layer.index, "part", tool))
             cur = pts[0] if closed else pts[-1]
             cur_tool = tool
-    return LayerPaths(layer.index, z, tuple(paths), (float(unfilled[0]), float(unfilled[1])))
+    return LayerPaths(layer.index, z, tuple(paths), (float(unfilled[0]), float(unfilled[1])),
+                      layer.thickness)
 
 
 def plan_paths(stack: Stack, job: Job | None = None, *,
@@ -811,7 +817,12 @@ def plan_paths(stack: Stack, job: Job | None = None, *,
     check_layer_thickness(stack.layer_thickness, job)
     check_paths((sum(layer.part.area for layer in stack.layers),
                  sum(layer.scaffold.area for layer in stack.layers)), job)
-    packed = parallel_map(_plan_task, [(layer, job) for layer in stack.layers], job,
+    if np.isfinite([L.thickness for L in stack.layers]).any():  # adaptive: by height
+        flags = measured_layers([L.thickness for L in stack.layers], job)
+    else:
+        flags = [None] * len(stack.layers)
+    packed = parallel_map(_plan_task, [(layer, job, m) for layer, m in
+                                       zip(stack.layers, flags)], job,
                           min_items=8, progress=progress)
     layers = [unpack_layer_paths(p) for p in packed]
     warnings = list(stack.warnings)
@@ -822,11 +833,11 @@ def plan_paths(stack: Stack, job: Job | None = None, *,
     return Toolpaths(tuple(layers), job, tuple(warnings))
 
 
-def _plan_task(args: tuple[Layer, Job]) -> tuple:
+def _plan_task(args: tuple[Layer, Job, bool | None]) -> tuple:
     """Plan one layer in a worker; the result travels back packed in a few arrays (one
     pickled object per path would cost more than the planning of small layers)."""
-    layer, job = args
-    return pack_layer_paths(plan_layer(layer, job))
+    layer, job, measured = args
+    return pack_layer_paths(plan_layer(layer, job, measured))
 
 
 # --------------------------------------------------------------------------- estimate

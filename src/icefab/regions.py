@@ -175,7 +175,7 @@ def add_scaffold(stack: Stack, job: Job | None = None, *,
             scaffolds = [d[0] for d in done]
             thin = [d[1] for d in done]
         else:
-            scaffolds = _overhang_scan(parts, part_above, stack.layer_thickness, job)
+            scaffolds = _overhang_scan(parts, part_above, stack.thicknesses, job)
         inside = _in_subset(stack, job)
         scaffolds = [sc if inside[k] else Region() for k, sc in enumerate(scaffolds)]
         if s.hook_wall:
@@ -195,16 +195,20 @@ def add_scaffold(stack: Stack, job: Job | None = None, *,
     return dataclasses.replace(stack, layers=new_layers, job=job, warnings=tuple(warnings))
 
 
-def _overhang_scan(parts: list[Region], part_above: list[Region], thickness: float,
+def _overhang_scan(parts: list[Region], part_above: list[Region], thickness: np.ndarray,
                    job: Job) -> list[Region]:
-    """Overhang-only support (Ossino 4): scan from the top comparing adjacent layers."""
+    """Overhang-only support (Ossino 4): scan from the top comparing adjacent layers.
+
+    thickness: (n,) every layer's thickness, mm: layer k + 1 may overhang layer k by its
+    own thickness times tan(overhang angle) (adaptive layers: a thin layer less)."""
     s = job.scaffold
     filt = job.slicing.max_filter_deviation_mm
     angle = math.radians(min(s.overhang_angle_deg, 89.0))
-    reach = thickness * math.tan(angle)
+    above_t = np.append(thickness[1:], thickness[-1:]) if len(thickness) else thickness
+    reaches = [float(t) * math.tan(angle) for t in above_t]
     # A finer point filter here: its chords must not eat into the (small) reach.
-    carried = parallel_map(_expand_task, [(p, reach, min(filt, reach / 4.0)) for p in parts],
-                           job)
+    carried = parallel_map(_expand_task, [(p, r, min(filt, r / 4.0))
+                                          for p, r in zip(parts, reaches)], job)
     n = len(parts)
     out: list[Region] = [Region()] * n
     above = Region()  # P_{k+1} u S_{k+1}
@@ -220,7 +224,7 @@ def _overhang_scan(parts: list[Region], part_above: list[Region], thickness: flo
             if needed.area < 1e-6:
                 sc = Region()
             else:
-                grown = geo.expand(needed, reach + 2.0 * filt + 1e-3, filt)
+                grown = geo.expand(needed, reaches[k] + 2.0 * filt + 1e-3, filt)
                 sc = geo.difference(geo.intersection(grown, above), parts[k])
                 sc = _drop_thin(sc, part_above[k], s.min_width_mm, filt)
         out[k] = sc

@@ -17,7 +17,9 @@ Stack file (``icefab slice``; :func:`save_stack` / :func:`load_stack`):
   (index within its layer, -1 top level); ``ring_layer`` (R,) int64;
 * ``layer_index`` (L,) int64, ``layer_z`` (L,) float64 mm, ``layer_top_z`` (L,) float64
   mm, ``layer_thickness`` () float64 mm, ``warnings`` (W,) str;
-* scaffold regions, when present, stored the same way under the prefix ``scaffold_``.
+* scaffold regions, when present, stored the same way under the prefix ``scaffold_``;
+* ``layer_height`` (L,) float64 mm, only for adaptive layers (``slicing.cusp_height_mm``):
+  each layer's own thickness (the toolpath and trajectory files carry it the same way).
 
 Toolpath file (``icefab paths``; :func:`save_toolpaths` / :func:`load_toolpaths`),
 version 2:
@@ -387,6 +389,27 @@ def file_format(path: str | os.PathLike) -> str:
         return m.text("format") if "format" in m.names else ""
 
 
+# --------------------------------------------------------------------------- layer heights
+
+
+def _heights(values: Sequence[float]) -> dict[str, np.ndarray]:
+    """The optional ``layer_height`` member (L,) float64 mm: every layer's own thickness
+    (adaptive slicing), written only when the layers have one, so uniform builds keep
+    their files unchanged."""
+    h = np.asarray(list(values), dtype=np.float64)
+    return {"layer_height": h} if h.size and np.isfinite(h).any() else {}
+
+
+def _read_heights(m: "_Members", n: int) -> np.ndarray:
+    """(n,) float64: the ``layer_height`` member, or NaN (the job's thickness) without."""
+    if "layer_height" not in m.names:
+        return np.full(n, np.nan)
+    h = m.values("layer_height", "f", 1, n=n, lo=0.0, hi=1e3)
+    if np.any(h <= 0):
+        raise m.bad("layer_height", "a layer thickness <= 0: the file is corrupt")
+    return h
+
+
 # --------------------------------------------------------------------------- stack
 
 
@@ -453,6 +476,7 @@ def save_stack(stack: Stack, path: str | os.PathLike) -> Path:
         "warnings": np.array(list(stack.warnings), dtype=str),
         "job": np.array(to_toml(stack.job)),
         **_pack_regions(regions),
+        **_heights([L.thickness for L in stack.layers]),
     }
     if any(not L.scaffold.is_empty for L in stack.layers):
         arrays.update({"scaffold_" + k: v for k, v in
@@ -468,7 +492,7 @@ def load_stack(path: str | os.PathLike) -> Stack:
     """
     with _Members(Path(path), "stack") as m:
         m.header(STACK_FORMAT, (STACK_VERSION,))
-        m.expect(_STACK_REQUIRED, _STACK_SCAFFOLD)
+        m.expect(_STACK_REQUIRED, _STACK_SCAFFOLD + ("layer_height",))
         has_scaffold = [k in m.names for k in _STACK_SCAFFOLD]
         if any(has_scaffold) and not all(has_scaffold):
             raise m.bad(None, "scaffold ring members incomplete: the file is corrupt")
@@ -480,11 +504,13 @@ def load_stack(path: str | os.PathLike) -> Stack:
         top = m.values("layer_top_z", "f", 1, n=n, lo=-MAX_COORD_MM, hi=MAX_COORD_MM,
                        nan_ok=True)
         warnings = m.strings("warnings")
+        heights = _read_heights(m, n)
         parts = _unpack_regions(m, n)
         scaffolds = (_unpack_regions(m, n, "scaffold_") if all(has_scaffold)
                      else [Region() for _ in range(n)])
     layers = tuple(Layer(index=int(index[k]), z=float(z[k]), part=parts[k],
-                         scaffold=scaffolds[k], top_z=float(top[k])) for k in range(n))
+                         scaffold=scaffolds[k], top_z=float(top[k]),
+                         thickness=float(heights[k])) for k in range(n))
     return Stack(layers=layers, job=job, layer_thickness=thickness, warnings=warnings)
 
 
@@ -526,12 +552,12 @@ def unpack_paths(d: dict[str, np.ndarray], copy: bool = False) -> list[Toolpath]
 def pack_layer_paths(lp: LayerPaths) -> tuple:
     """One layer's paths for the trip back from a worker process (one pickled object per
     path would cost more than planning a small layer)."""
-    return lp.index, lp.z, lp.unfilled_mm2, pack_paths(lp.paths)
+    return lp.index, lp.z, lp.unfilled_mm2, pack_paths(lp.paths), lp.thickness
 
 
 def unpack_layer_paths(packed: tuple) -> LayerPaths:
-    index, z, unfilled, arrays = packed
-    return LayerPaths(index, z, tuple(unpack_paths(arrays)), unfilled)
+    index, z, unfilled, arrays, thickness = packed
+    return LayerPaths(index, z, tuple(unpack_paths(arrays)), unfilled, thickness)
 
 
 def save_toolpaths(tp: Toolpaths, path: str | os.PathLike) -> None:
@@ -552,6 +578,7 @@ def save_toolpaths(tp: Toolpaths, path: str | os.PathLike) -> None:
         "layer_start": offsets([len(lp.paths) for lp in tp.layers]),
         "unfilled_mm2": np.array([lp.unfilled_mm2 for lp in tp.layers],
                                  dtype=np.float64).reshape(-1, 2),
+        **_heights([lp.thickness for lp in tp.layers]),
     }
     _write(path, data)
 
@@ -567,7 +594,8 @@ def load_toolpaths(path: str | os.PathLike) -> Toolpaths:
     truncated, corrupt or not a toolpath file."""
     with _Members(Path(path), "toolpath") as m:
         version = m.header(TOOLPATHS_FORMAT, (1, TOOLPATHS_VERSION))
-        m.expect(_TOOLPATHS_REQUIRED + (("state",) if version >= 2 else ()))
+        m.expect(_TOOLPATHS_REQUIRED + (("state",) if version >= 2 else ()),
+                 ("layer_height",))
         job = m.job()
         warnings = m.strings("warnings")
         pts = m.values("points", "f", 2, 2, lo=-MAX_COORD_MM, hi=MAX_COORD_MM)
@@ -588,6 +616,7 @@ def load_toolpaths(path: str | os.PathLike) -> Toolpaths:
         ls = m.offsets("layer_start", n_layers, n_paths)
         unfilled = m.values("unfilled_mm2", "f", 2, 2, n=n_layers, lo=0.0,
                             hi=MAX_COORD_MM ** 2)
+        heights = _read_heights(m, n_layers)
         paths = unpack_paths(d, copy=True)
         if version >= 2:
             state = m.values("state", "iu", 1, n=len(pts), lo=OFF, hi=ON2)
@@ -596,7 +625,8 @@ def load_toolpaths(path: str | os.PathLike) -> Toolpaths:
                 raise m.bad("state", "per-point states disagree with the paths' materials and "
                             "roles: the file is corrupt")
     layers = tuple(LayerPaths(int(index[j]), float(layer_z[j]), tuple(paths[ls[j]:ls[j + 1]]),
-                              (float(unfilled[j, 0]), float(unfilled[j, 1])))
+                              (float(unfilled[j, 0]), float(unfilled[j, 1])),
+                              float(heights[j]))
                    for j in range(n_layers))
     return Toolpaths(layers, job, warnings)
 
@@ -676,6 +706,7 @@ def save_trajectories(motion: BuildMotion, path: str | os.PathLike) -> None:
         "layer_index": np.array([lm.index for lm in motion.layers], dtype=np.int64),
         "layer_z": np.array([lm.z for lm in motion.layers], dtype=np.float64),
         "layer_start": offsets([len(lm.trajectories) for lm in motion.layers]),
+        **_heights([lm.thickness for lm in motion.layers]),
     }
     _write(path, data)
 
@@ -705,7 +736,7 @@ def load_trajectories(path: str | os.PathLike) -> BuildMotion:
     path = Path(path)
     with _Members(path, "trajectory") as m:
         version = m.header(TRAJECTORIES_FORMAT, TRAJECTORIES_READABLE)
-        m.expect(_TRAJ_REQUIRED + (_TRAJ_V2 if version >= 2 else ()))
+        m.expect(_TRAJ_REQUIRED + (_TRAJ_V2 if version >= 2 else ()), ("layer_height",))
         job = m.job()
         robot = m.text("robot")
         joint_names = m.strings("joint_names")
@@ -724,6 +755,7 @@ def load_trajectories(path: str | os.PathLike) -> BuildMotion:
         m.values("path_index", "iu", 1, n=nt, lo=0, hi=2**31 - 1)
         index = m.values("layer_index", "iu", 1, lo=-1, hi=2**31 - 1)
         layer_z = m.values("layer_z", "f", 1, n=len(index), lo=-MAX_COORD_MM, hi=MAX_COORD_MM)
+        heights = _read_heights(m, len(index))
         ls = m.offsets("layer_start", len(index), nt)
         owner = m.values("piece_owner", "iu", 1, lo=0, hi=max(nt - 1, 0)).astype(np.int64)
         pstart = m.values("piece_start", "iu", 1, n=len(owner), lo=0).astype(np.int64)
@@ -767,7 +799,8 @@ def load_trajectories(path: str | os.PathLike) -> BuildMotion:
                                   tool=tools[i]))
     trajs = unpack_trajectories(data, stand_ins)
     layers = tuple(LayerMotion(index=int(index[k]), z=float(layer_z[k]),
-                               trajectories=tuple(trajs[int(ls[k]):int(ls[k + 1])]))
+                               trajectories=tuple(trajs[int(ls[k]):int(ls[k + 1])]),
+                               thickness=float(heights[k]))
                    for k in range(len(index)))
     return BuildMotion(layers=layers, job=job, robot=robot, joint_names=joint_names)
 

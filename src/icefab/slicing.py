@@ -96,6 +96,7 @@ import numba
 import numpy as np
 
 from icefab.config import Job
+from icefab.adaptive import AdaptiveLayers, plan_layers
 from icefab.errors import GeometryError
 from icefab.fitting import fit_rings
 from icefab.geometry import _in_ring, region_from_rings
@@ -141,29 +142,46 @@ class SliceReport:
     points_before_filter: int = 0
     points_after_filter: int = 0
     empty_layers: list[int] = field(default_factory=list)
+    #: adaptive layers: the count uniform slicing needs for the same cusp bound, and the
+    #: largest cusp height the layers keep (t_k * max |n_z|), mm
+    uniform_layers: int = 0
+    max_cusp_mm: float = 0.0
 
 
 # --------------------------------------------------------------------------- planes
 
 
-def layer_planes(z_min: float, z_max: float, job: Job) -> tuple[np.ndarray, np.ndarray,
-                                                                  np.ndarray, np.ndarray]:
+def layer_planes(z_min: float, z_max: float, job: Job, mesh: Mesh | None = None, *,
+                 adaptive: AdaptiveLayers | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Layer bottoms, tops, cutting heights and evaluation heights for a part.
 
-    z_min, z_max: the part's z range, mm.
+    z_min, z_max: the part's z range, mm. mesh: the part, needed for adaptive layers
+    (``slicing.cusp_height_mm`` > 0: thicknesses from its facet normals,
+    :mod:`icefab.adaptive`); ``adaptive``: those layers when already planned.
     Returns ``(bottom, top, z, q)``, each (n,) float64 mm: layer bottom and top, the
     reported cutting height, and the height ``q`` the vertex classification ``z >= q``
     uses (see the module docstring: ``q`` is ``z`` or the next float above it).
     """
-    t = job.slicing.layer_thickness_mm
+    sl = job.slicing
+    t = sl.layer_thickness_mm
     f0, f1 = job.parts.part_fraction
     height = z_max - z_min
     z_lo = z_min + f0 * height
     z_hi = z_min + f1 * height
-    n = max(1, int(round((z_hi - z_lo) / t)))
-    k = np.arange(n, dtype=np.float64)
-    bottom = z_lo + k * t
-    top = z_lo + (k + 1.0) * t
+    if sl.cusp_height_mm > 0:
+        if adaptive is None:
+            if mesh is None:
+                raise ValueError("layer_planes: adaptive layers need the mesh")
+            adaptive = adaptive_layers(mesh, z_lo, z_hi, job)
+        edges = adaptive.edges
+        bottom, top = edges[:-1].copy(), edges[1:].copy()
+        n = len(bottom)
+    else:
+        n = max(1, int(round((z_hi - z_lo) / t)))
+        k = np.arange(n, dtype=np.float64)
+        bottom = z_lo + k * t
+        top = z_lo + (k + 1.0) * t
     c = job.slicing.cut_fraction
     # inside the part's share of the layer (the top layer may reach past the part)
     z = np.clip(bottom + c * (np.minimum(top, z_hi) - bottom), z_lo, z_hi)
@@ -172,6 +190,14 @@ def layer_planes(z_min: float, z_max: float, job: Job) -> tuple[np.ndarray, np.n
     above[z >= z_hi] = False
     q = np.where(above, np.nextafter(z, np.inf), z)
     return bottom, top, z, q
+
+
+def adaptive_layers(mesh: Mesh, z_lo: float, z_hi: float, job: Job) -> AdaptiveLayers:
+    """The cusp-bounded layers of ``mesh`` between ``z_lo`` and ``z_hi`` mm with the job's
+    ``slicing`` bound and thickness range (:func:`icefab.adaptive.plan_layers`)."""
+    sl = job.slicing
+    return plan_layers(mesh, z_lo, z_hi, sl.cusp_height_mm, sl.min_layer_thickness_mm,
+                       sl.max_layer_thickness_mm or sl.layer_thickness_mm)
 
 
 # --------------------------------------------------------------------------- adjacency
@@ -1081,8 +1107,17 @@ def slice_mesh(mesh: Mesh, job: Job | None = None, *, progress: Progress | None 
     numba.set_num_threads(max(1, min(job.cell.cpus or prev_threads,
                                      numba.config.NUMBA_NUM_THREADS)))
     try:
-        bottom, top, z, q = layer_planes(z_min, z_max, job)
+        planned = None
+        if job.slicing.cusp_height_mm > 0:
+            f0, f1 = job.parts.part_fraction
+            planned = adaptive_layers(mesh, z_min + f0 * (z_max - z_min),
+                                      z_min + f1 * (z_max - z_min), job)
+            report.uniform_layers = planned.uniform_layers
+            report.max_cusp_mm = float(planned.cusp.max()) if len(planned.cusp) else 0.0
+        bottom, top, z, q = layer_planes(z_min, z_max, job, mesh, adaptive=planned)
         n = len(z)
+        adaptive = job.slicing.cusp_height_mm > 0
+        own = (top - bottom) if adaptive else np.full(n, np.nan)
         if job.slicing.mode == "2d":
             # thesis slicing option 3: cut once (at the middle layer's plane), copy everywhere
             mid = n // 2
@@ -1090,8 +1125,8 @@ def slice_mesh(mesh: Mesh, job: Job | None = None, *, progress: Progress | None 
             rings.layer[:] = 0
             rings, parent, unions = _finish_rings(rings, job, report)
             region = unions.get(0) or _region_of(rings, parent, 0, len(rings.layer))
-            layers = tuple(Layer(index=k, z=float(z[k]), part=region, top_z=float(top[k]))
-                           for k in range(n))
+            layers = tuple(Layer(index=k, z=float(z[k]), part=region, top_z=float(top[k]),
+                                 thickness=float(own[k])) for k in range(n))
             if progress is not None:
                 progress(n, n)
         else:
@@ -1099,6 +1134,7 @@ def slice_mesh(mesh: Mesh, job: Job | None = None, *, progress: Progress | None 
             rings, parent, unions = _finish_rings(rings, job, report)
             starts = np.searchsorted(rings.layer, np.arange(n + 1))
             layers = tuple(Layer(index=k, z=float(z[k]), top_z=float(top[k]),
+                                 thickness=float(own[k]),
                                  part=unions[k] if k in unions else
                                  _region_of(rings, parent, int(starts[k]), int(starts[k + 1])))
                            for k in range(n))

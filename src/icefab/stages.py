@@ -16,7 +16,10 @@ May import: ``icefab.config``, ``icefab.errors``.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+import math
+from typing import TYPE_CHECKING, Any, Sequence
+
+import numpy as np
 
 from icefab.config import to_dict
 from icefab.errors import ConfigError
@@ -136,3 +139,27 @@ def check_layer_thickness(stack_thickness: float, job: "Job", what: str = "the s
         raise ConfigError(f"slicing.layer_thickness_mm = {t:g}, but {what} was sliced at "
                           f"{float(stack_thickness):g} mm: use the stack's thickness or slice "
                           "again with this job")
+
+
+def layer_height(thickness: float, job: "Job") -> float:
+    """A layer's thickness, mm: its own (adaptive slicing carries one per layer through
+    the stack, toolpaths and trajectories) or, when that is NaN, the job's
+    ``slicing.layer_thickness_mm``."""
+    return float(thickness) if math.isfinite(thickness) else job.slicing.layer_thickness_mm
+
+
+def measured_layers(thicknesses: Sequence[float], job: "Job") -> list[bool]:
+    """Which layers carry measurement paths (thesis 5.2.1): every
+    ``feedback.interval_layers``-th layer; with adaptive layers (own thicknesses) the
+    interval is a height, ``interval_layers * layer_thickness_mm``, and a layer is
+    measured when the build's height crosses a multiple of it."""
+    fb = job.feedback
+    t = np.asarray(list(thicknesses), dtype=np.float64)
+    if not fb.enabled:
+        return [False] * len(t)
+    if not np.isfinite(t).any():
+        return [(k + 1) % fb.interval_layers == 0 for k in range(len(t))]
+    h = np.cumsum(np.where(np.isfinite(t), t, job.slicing.layer_thickness_mm))
+    step = fb.interval_layers * job.slicing.layer_thickness_mm
+    count = np.floor(h / step + 1e-9)
+    return list(np.diff(np.concatenate([[0.0], count])) > 0)

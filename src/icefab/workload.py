@@ -57,13 +57,15 @@ def check_layers(z_min: float, z_max: float, job: Job) -> int:
     height is not finite."""
     f0, f1 = job.parts.part_fraction
     height = (float(z_max) - float(z_min)) * (f1 - f0)
-    t = job.slicing.layer_thickness_mm
+    sl = job.slicing
+    t = sl.min_layer_thickness_mm if sl.cusp_height_mm > 0 else sl.layer_thickness_mm
     if not math.isfinite(height):
         raise ConfigError(f"part height {height} mm is not finite: check the mesh "
                           "coordinates and parts.scale")
     n = height / t
     if n > MAX_LAYERS:
-        raise ConfigError(f"slicing.layer_thickness_mm = {t:g}: a part {_fmt(height)} mm tall "
+        name = "min_layer_thickness_mm" if sl.cusp_height_mm > 0 else "layer_thickness_mm"
+        raise ConfigError(f"slicing.{name} = {t:g}: a part {_fmt(height)} mm tall "
                           f"would make {n:.3g} layers, more than {MAX_LAYERS} "
                           "(icefab.workload.MAX_LAYERS); check the part's size (parts.scale, "
                           "a stray vertex) or use thicker layers")

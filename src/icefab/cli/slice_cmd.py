@@ -43,7 +43,10 @@ def summary_lines(stack: Stack, elapsed_s: float | None = None) -> list[str]:
     n_rings = sum(len(L.part) for L in stack)
     n_pts = sum(L.part.n_points for L in stack)
     nonempty = areas[areas > 0]
-    lines = [f"layers: {len(stack)} of {stack.layer_thickness:g} mm, z = "
+    t = stack.thicknesses
+    each = (f"{t.min():.3g} .. {t.max():.3g} mm (adaptive)" if len(t) and
+            np.isfinite([L.thickness for L in stack]).any() else f"{stack.layer_thickness:g} mm")
+    lines = [f"layers: {len(stack)} of {each}, z = "
              f"{stack[0].z:.3f} .. {stack[len(stack) - 1].z:.3f} mm"
              if len(stack) else "layers: 0",
              f"contours: {n_rings} ({n_pts} points)"]
@@ -85,6 +88,12 @@ def run(args: argparse.Namespace) -> int:
     for line in summary_lines(stack, elapsed):
         print(line)
     rep = slice_report(stack)
+    if rep is not None and rep.uniform_layers:
+        sl = stack.job.slicing
+        print(f"adaptive layers: cusp height at most {rep.max_cusp_mm:.3g} mm (bound "
+              f"{sl.cusp_height_mm:g} mm) in {len(stack)} layers; uniform layers thin enough "
+              f"for the same bound: {rep.uniform_layers} ({rep.uniform_layers - len(stack)} "
+              "more)")
     if rep is not None:
         print(f"linking: {rep.segments} segments, {rep.open_chains} open chains "
               f"({rep.gaps_closed} small and {rep.large_gaps_closed} large gaps closed, "

@@ -58,6 +58,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from icefab.config import load_job
+    from icefab.stages import layer_height
     from icefab.flow import (LayerProgram, n_pulses, plan_valves, program_pieces,
                              trajectory_width, write_valve_layer)
     from icefab.motion import load_trajectories
@@ -106,7 +107,8 @@ def run(args: argparse.Namespace) -> int:
                 if p is not None and not p.depositing:
                     continue
                 material = p.material if p is not None else "part"
-                prog = plan_valves(traj, material, job)
+                prog = plan_valves(traj, material, job,
+                                   layer_thickness=layer_height(lm.thickness, job))
                 programs.append(LayerProgram(i, material, prog))
                 length, gap, sparse = _drop_spacing(traj, prog, job.flow.min_drops_per_mm)
                 width = trajectory_width(traj, material, job)

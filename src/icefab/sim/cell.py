@@ -7,6 +7,7 @@ so a build runner can drive it layer by layer from outside.
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 from typing import Callable, Sequence
 
@@ -16,6 +17,7 @@ from scipy import ndimage
 from icefab.config import Job
 from icefab.core import HeightMap
 from icefab.errors import SimulationError
+from icefab.stages import layer_height
 from icefab.workload import check_grid
 from icefab.sim.deposition import ActionFn, _splat, empty_surface, level_liquid
 from icefab.sim.laser import laser_measure
@@ -156,6 +158,12 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
     sim = job.simulation
     dh = job.slicing.layer_thickness_mm
     n_d = job.feedback.interval_layers
+    # adaptive layers (own thicknesses): heights add up layer by layer, and a measurement's
+    # interval is the height built since the previous one (uniform: (j + 1) dh, n_d dh)
+    own = [layer_height(p.thickness, job) for p in plans]
+    adaptive = any(math.isfinite(p.thickness) for p in plans)
+    heights = np.cumsum(own) if adaptive else None
+    last_measured = 0.0
     valves = sim.deposition == "valves"
     if valves:
         for plan in plans:
@@ -184,7 +192,11 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
     findings: list[tuple[int, str]] = []
     k = 0
     for j, plan in enumerate(plans):
-        nominal = (j + 1) * dh
+        if adaptive:
+            dh = own[j]
+            nominal = float(heights[j])
+        else:
+            nominal = (j + 1) * dh
         layer_img = np.zeros((2,) + z.shape)
         vol_cmd_total += float(plan.volume.sum())
         if valves:
@@ -278,9 +290,11 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
             if controller is not None:
                 plane = np.where(mask, nominal, np.nan)
                 action = controller(Measurement(
-                    layer=plan.index, k=k, nominal_z=nominal, interval_mm=n_d * dh,
+                    layer=plan.index, k=k, nominal_z=nominal,
+                    interval_mm=(nominal - last_measured) if adaptive else n_d * dh,
                     samples=samples, footprint=mask,
                     grid=HeightMap(origin=surface.origin.copy(), spacing=g, z=plane)))
+            last_measured = nominal
         if progress is not None:
             progress(j + 1, len(plans))
     arr = np.array(rows, dtype=np.float64).reshape(-1, 5)

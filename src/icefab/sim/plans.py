@@ -16,6 +16,7 @@ from icefab import flow
 from icefab.config import Job
 from icefab.core import LayerMotion, Toolpath, Trajectory, ValveProgram
 from icefab.errors import SimulationError
+from icefab.stages import layer_height
 from icefab.sim.deposition import (MATERIAL_ID, _TINY_MM, ActionFn, _joints, pulse_drops,
                                    pulse_segments)
 from icefab.sim.laser import _refine, laser_positions
@@ -37,6 +38,7 @@ class LayerPlan:
     paths: the deposition paths, in deposition order.
     laser_tagged, laser_true: (k, 2) float64, mm, laser sample positions (empty when the
         layer has no measurement paths).
+    thickness: the layer's own thickness, mm (adaptive layers), NaN for the job's.
     trajectories: the deposition trajectories (robot base frame, as planned) when the
         layer was prepared from trajectories (:func:`plan_layer_motion`); the segments are
         then their sample chords, path i being trajectory i. Empty for
@@ -55,6 +57,8 @@ class LayerPlan:
     paths: tuple[Toolpath, ...] = ()
     laser_tagged: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     laser_true: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    #: The layer's own thickness, mm (adaptive layers); NaN: the job's layer thickness.
+    thickness: float = float("nan")
     trajectories: tuple[Trajectory, ...] = ()
 
     @property
@@ -62,17 +66,18 @@ class LayerPlan:
         return 0.5 * (self.a + self.b)
 
 
-def plan_layer(index: int, paths: Sequence[Toolpath], job: "Job") -> LayerPlan:
+def plan_layer(index: int, paths: Sequence[Toolpath], job: "Job",
+               thickness: float = float("nan")) -> LayerPlan:
     """Cut the deposition paths of one layer into constant-speed segments (see module doc).
 
     Each boundary/fill path's polyline has its edges split to at most ``speed * dt`` mm
     (speed by role from ``job.motion``); a segment carries ``width * dh * layer_scale *
-    length`` mm^3 (eq. 6.2).
+    length`` mm^3 (eq. 6.2), dh the layer's ``thickness`` (NaN: the job's).
     Measurement paths give the laser sample positions (:func:`laser_positions`).
     """
     m = job.motion
     sim = job.simulation
-    dh = job.slicing.layer_thickness_mm * job.flow.layer_scale
+    dh = layer_height(thickness, job) * job.flow.layer_scale
     pieces: list[tuple[np.ndarray, bool, float, str]] = []
     dep_paths = []
     tag_parts, true_parts = [], []
@@ -108,12 +113,14 @@ def plan_layer(index: int, paths: Sequence[Toolpath], job: "Job") -> LayerPlan:
             continue
         pieces.append((pts_s, bool(p.closed), float(p.width), p.material))
         dep_paths.append(p)
-    return _layer_plan(index, pieces, dh, tag_parts, true_parts, paths=tuple(dep_paths))
+    return _layer_plan(index, pieces, dh, tag_parts, true_parts, paths=tuple(dep_paths),
+                       thickness=thickness)
 
 
 def _layer_plan(index: int, pieces: list[tuple[np.ndarray, bool, float, str]], dh: float,
                 tag_parts: list[np.ndarray], true_parts: list[np.ndarray], *,
-                paths: tuple[Toolpath, ...], trajectories: tuple = ()) -> LayerPlan:
+                paths: tuple[Toolpath, ...], trajectories: tuple = (),
+                thickness: float = float("nan")) -> LayerPlan:
     """Segments of a layer from its deposition polylines: ``pieces`` holds (points (k >= 2,
     2) mm part frame, closed, width mm, material) per path, each segment carrying the
     commanded ``width * dh * length`` mm^3 (eq. 6.2); laser samples as given."""
@@ -133,7 +140,8 @@ def _layer_plan(index: int, pieces: list[tuple[np.ndarray, bool, float, str]], d
     return LayerPlan(index=index, a=a, b=b, volume=w * dh * np.linalg.norm(b - a, axis=1),
                      half_width=hw, material=mat, n0=n0, n1=n1, ext=ext, paths=paths,
                      laser_tagged=cat(tag_parts, (0, 2)),
-                     laser_true=cat(true_parts, (0, 2)), trajectories=trajectories)
+                     laser_true=cat(true_parts, (0, 2)), trajectories=trajectories,
+                     thickness=thickness)
 
 
 
@@ -165,7 +173,7 @@ def plan_layer_motion(layer: "LayerMotion", job: "Job") -> LayerPlan:
     """
 
     sim = job.simulation
-    dh = job.slicing.layer_thickness_mm * job.flow.layer_scale
+    dh = layer_height(layer.thickness, job) * job.flow.layer_scale
     pieces: list[tuple[np.ndarray, bool, float, str]] = []
     dep, tag_parts, true_parts = [], [], []
     for k, traj in enumerate(layer.trajectories):
@@ -203,7 +211,8 @@ def plan_layer_motion(layer: "LayerMotion", job: "Job") -> LayerPlan:
         pieces.append((pts, closed, flow.trajectory_width(traj, p.material, job), p.material))
         dep.append(traj)
     return _layer_plan(layer.index, pieces, dh, tag_parts, true_parts,
-                       paths=tuple(t.path for t in dep), trajectories=tuple(dep))
+                       paths=tuple(t.path for t in dep), trajectories=tuple(dep),
+                       thickness=layer.thickness)
 
 
 
@@ -220,6 +229,8 @@ class LayerValves:
     trajectories: tuple[Trajectory, ...]
     programs: tuple["ValveProgram", ...]
     action: ActionFn | None = None
+    #: The layer's own thickness, mm (adaptive layers); NaN: the job's.
+    thickness: float = float("nan")
 
 
 def _finite(action: ActionFn) -> ActionFn:
@@ -239,8 +250,10 @@ def layer_valves(plan: LayerPlan, job: "Job", action: ActionFn | None = None) ->
     """
 
     u = None if action is None else _finite(action)
-    trajs, progs = flow.replan_valves(plan.trajectories, job, action=u)
-    return LayerValves(trajectories=tuple(trajs), programs=tuple(progs), action=u)
+    trajs, progs = flow.replan_valves(plan.trajectories, job, action=u,
+                                      layer_thickness=layer_height(plan.thickness, job))
+    return LayerValves(trajectories=tuple(trajs), programs=tuple(progs), action=u,
+                       thickness=plan.thickness)
 
 
 def valve_segments(valves: LayerValves, job: "Job") -> tuple:
@@ -255,7 +268,8 @@ def valve_segments(valves: LayerValves, job: "Job") -> tuple:
         p = traj.path
         if p is None or not p.depositing:
             continue
-        freq = flow.valve_frequency(traj, p.material, job, action=valves.action) \
+        freq = flow.valve_frequency(traj, p.material, job, action=valves.action,
+                                    layer_thickness=layer_height(valves.thickness, job)) \
             if prog.widths_us is None else None
         t, d = pulse_drops(prog, freq, p.material, job)
         xs.append(flow.trajectory_part_xy(traj, p.material, job))

@@ -104,7 +104,7 @@ def simulate_build(build: "Toolpaths | BuildMotion", job: "Job | None" = None, *
         motion = plan_toolpaths(Toolpaths(layers=chosen, job=build.job), job)
         plans = [plan_layer_motion(lm, job) for lm in motion.layers]
     else:
-        plans = [plan_layer(lp.index, lp.paths, job) for lp in chosen]
+        plans = [plan_layer(lp.index, lp.paths, job, lp.thickness) for lp in chosen]
     measure = measurement_layers(plans, job.feedback.interval_layers)
     if keep_surfaces is None:
         keep_surfaces = [plans[measure[-1]].index] if measure else []

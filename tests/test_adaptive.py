@@ -1,0 +1,230 @@
+"""Adaptive layers by cusp height (icefab.adaptive, Zhang & Liou IV): the cusp bound
+checked analytically on a sphere, flats as layer boundaries, the thickness carried through
+the result files, the scaffold, the paths' measurement schedule, the valve flow and the
+simulator; the default unchanged."""
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+
+import manifold3d as m3
+import numpy as np
+import pytest
+
+from icefab.adaptive import plan_layers
+from icefab.config import Job, job_from_dict
+from icefab.core import Mesh
+from icefab.errors import ConfigError, StackFileError
+from icefab.flow import valve_frequency
+from icefab.motion import plan_toolpaths
+from icefab.paths import plan_paths
+from icefab.regions import add_scaffold
+from icefab.resultfiles import (load_stack, load_toolpaths, load_trajectories, save_stack,
+                                save_toolpaths, save_trajectories)
+from icefab.sim import simulate_build
+from icefab.slicing import slice_mesh, slice_report
+from icefab.stages import measured_layers
+
+R = 15.0
+CUSP = 0.05
+
+
+def mesh_of(solid) -> Mesh:
+    m = solid.to_mesh()
+    return Mesh(np.asarray(m.vert_properties)[:, :3].astype(np.float64),
+                np.asarray(m.tri_verts).astype(np.int64), name="manifold")
+
+
+def sphere_mesh(segments: int = 256) -> Mesh:
+    return mesh_of(m3.Manifold.sphere(R, segments).translate([0.0, 0.0, R]))
+
+
+ADAPTIVE = job_from_dict({"slicing": {"cusp_height_mm": CUSP,
+                                      "min_layer_thickness_mm": CUSP,
+                                      "max_layer_thickness_mm": 1.0}})
+
+
+def test_sphere_cusp_within_bound_in_every_layer():
+    """Each layer is the extrusion of its cut contour (a circle of the sphere's radius at
+    the cutting height) from its bottom to its top; every point of that wall is within the
+    cusp bound of the true sphere (distance along the normal, |sqrt(rho^2 + z^2) - R|),
+    plus the facets' own sag (256 segments: R (1 - cos(pi / 256)) = 1.1 um)."""
+    stack = slice_mesh(sphere_mesh(), ADAPTIVE)
+    t = stack.thicknesses
+    top = np.array([L.top_z for L in stack])
+    bottom = top - t
+    zc = np.array([L.z for L in stack]) - R
+    rho = np.sqrt(np.maximum(R * R - zc * zc, 0.0))
+    sag = R * (1 - math.cos(math.pi / 256))
+    worst = 0.0
+    for b, tp, r in zip(bottom, top, rho):
+        z = np.linspace(b, tp, 50) - R
+        worst = max(worst, float(np.abs(np.sqrt(r * r + z * z) - R).max()))
+    assert worst <= CUSP + sag
+    assert np.all(t <= 1.0 + 1e-12) and np.isclose(top[-1], 2 * R) and np.isclose(bottom[0], 0)
+    np.testing.assert_allclose(bottom[1:], top[:-1], atol=1e-9)  # no gap, no overlap
+    # uniform slicing needs C_max-thick layers for the poles: 600 of them
+    rep = slice_report(stack)
+    assert rep.uniform_layers == round(2 * R / CUSP)
+    assert len(stack) < 0.75 * rep.uniform_layers
+    assert rep.max_cusp_mm <= CUSP + 1e-12
+    assert t.max() > 0.5  # near the equator the wall is steep: thick layers there
+
+
+def test_flats_end_layers_and_vertical_walls_take_the_largest_thickness():
+    """A 10 mm block under a 3 mm one: vertical walls need no thin layers, and the step's
+    flat at z = 10 is a layer boundary."""
+    mesh = mesh_of(m3.Manifold.cube([10.0, 10.0, 10.0])
+                   + m3.Manifold.cube([5.0, 5.0, 3.0]).translate([0.0, 0.0, 10.0]))
+    a = plan_layers(mesh, 0.0, 13.0, 0.05, 0.05, 1.0)
+    np.testing.assert_allclose(a.edges, np.arange(14.0), atol=1e-9)
+    assert a.cusp.max() == 0.0
+    with pytest.raises(ValueError, match="t_min"):
+        plan_layers(mesh, 0.0, 13.0, 0.05, 2.0, 1.0)
+
+
+def test_default_is_uniform_and_settings_are_checked():
+    stack = slice_mesh(sphere_mesh(64), Job())
+    assert np.isnan([L.thickness for L in stack]).all()
+    assert len(stack) == round(2 * R / 0.25)
+    with pytest.raises(ConfigError, match="slicing.min_layer_thickness_mm = 0.5 must not "
+                                          "exceed"):
+        job_from_dict({"slicing": {"cusp_height_mm": 0.1, "min_layer_thickness_mm": 0.5}})
+    with pytest.raises(ConfigError, match="slicing.cusp_height_mm"):
+        job_from_dict({"slicing": {"cusp_height_mm": -1.0}})
+
+
+def test_measurement_schedule_is_by_height():
+    job = Job()  # interval_layers 4 x 0.25 mm = 1 mm
+    n = job.feedback.interval_layers
+    uniform = measured_layers([math.nan] * 12, job)
+    assert uniform == [(k + 1) % n == 0 for k in range(12)]
+    # 0.1 mm layers then 0.5 mm: measured when the height crosses 1, 2, 3 mm
+    t = [0.1] * 10 + [0.5] * 4
+    flags = measured_layers(t, job)
+    h = np.cumsum(t)
+    assert [round(float(x), 6) for x in h[np.array(flags)]] == [1.0, 2.0, 3.0]
+
+
+@pytest.fixture(scope="module")
+def adaptive_build():
+    job = job_from_dict({"slicing": {"cusp_height_mm": CUSP, "min_layer_thickness_mm": CUSP},
+                         "scaffold": {"mode": "overhang"}})
+    stack = add_scaffold(slice_mesh(sphere_mesh(96), job), job)
+    tp = plan_paths(stack, job)
+    motion = plan_toolpaths(tp, job)
+    return job, stack, tp, motion
+
+
+def test_thickness_travels_through_the_files(adaptive_build, tmp_path):
+    job, stack, tp, motion = adaptive_build
+    t = stack.thicknesses
+    assert t.min() < 0.1 and t.max() == pytest.approx(0.25)
+    save_stack(stack, tmp_path / "stack.npz")
+    save_toolpaths(tp, tmp_path / "toolpaths.npz")
+    save_trajectories(motion, tmp_path / "trajectories.npz")
+    np.testing.assert_array_equal(load_stack(tmp_path / "stack.npz").thicknesses, t)
+    np.testing.assert_array_equal([lp.thickness for lp in
+                                   load_toolpaths(tmp_path / "toolpaths.npz").layers], t)
+    np.testing.assert_array_equal([lm.thickness for lm in
+                                   load_trajectories(tmp_path / "trajectories.npz").layers], t)
+    with np.load(tmp_path / "stack.npz") as f:
+        members = dict(f)
+    members["layer_height"] = -members["layer_height"]
+    np.savez(tmp_path / "bad.npz", **members)
+    with pytest.raises(StackFileError, match="member layer_height"):
+        load_stack(tmp_path / "bad.npz")
+
+
+def test_measurement_paths_every_millimetre_of_height(adaptive_build):
+    job, stack, tp, _ = adaptive_build
+    measured = [any(p.role == "measure" for p in lp.paths) for lp in tp.layers]
+    height = np.cumsum(stack.thicknesses)
+    step = job.feedback.interval_layers * job.slicing.layer_thickness_mm
+    crossed = np.floor(height / step + 1e-9)
+    due = crossed > np.r_[0.0, crossed[:-1]]
+    assert due.sum() == int(np.floor(height[-1] / step + 1e-9)) == 30
+    # measured exactly where due, but for a layer too small to hold a measurement ring
+    # (the top of the sphere: a 1.5 mm wide square)
+    for k, (m, d) in enumerate(zip(measured, due)):
+        assert m == d or (d and stack[k].part.area < 2.0), k
+
+
+def test_valve_flow_uses_the_layer_thickness(adaptive_build):
+    """q = w * dh_k * c (eq. 6.2) with each layer's own dh_k: the flow per mm of path of a
+    thin layer's trajectory over the path width is that layer's thickness."""
+    job, stack, _, motion = adaptive_build
+    thin = min(motion.layers, key=lambda lm: lm.thickness)
+    traj = next(t for t in thin.trajectories if t.path is not None and t.path.depositing)
+    plan = valve_frequency(traj, traj.path.material, job, layer_thickness=thin.thickness)
+    moving = traj.speed > 1.0
+    dh = plan.q[moving] / (traj.path.width * traj.speed[moving])
+    np.testing.assert_allclose(dh, thin.thickness, rtol=1e-9)
+    assert thin.thickness < 0.5 * job.slicing.layer_thickness_mm
+
+
+def test_simulated_surface_follows_the_thin_layers(adaptive_build):
+    """Open loop, no disturbances: the simulated part's top after each measured layer lies
+    at the summed thicknesses (not k x 0.25 mm)."""
+    job, stack, _, motion = adaptive_build
+    quiet = job_from_dict({**_as_dict(job), "simulation": {
+        "noise_mm": 0.0, "debris_rate": 0.0, "flow_error": 0.0, "flow_drift_per_cm3": 0.0,
+        "edge_loss": 0.0, "spread_mm": 0.0, "laser_noise_mm": 0.0}})
+    n = 70
+    res = simulate_build(motion, quiet, layers=n, closed_loop=False)
+    heights = np.cumsum(stack.thicknesses[:n])
+    assert len(res.layers) >= 3
+    for index, nominal in zip(res.layers, res.nominal_z):
+        assert nominal == pytest.approx(heights[int(index)])
+    # the deposited volume follows the thin layers too: the true surface stays within a
+    # default layer (0.25 mm) of those heights (had the flow used 0.25 mm per layer, the
+    # part would stand 4-5 times too tall here)
+    assert np.nanmax(res.rms) < 0.25
+
+
+def _as_dict(job):
+    from icefab.config import to_dict
+    return to_dict(job)
+
+
+def test_slice_cli_reports_the_layers_saved(tmp_path):
+    path = tmp_path / "sphere.stl"
+    import trimesh
+    m = sphere_mesh(64)
+    trimesh.Trimesh(m.vertices, m.faces).export(path)
+    job = tmp_path / "job.toml"
+    job.write_text("[slicing]\ncusp_height_mm = 0.05\nmin_layer_thickness_mm = 0.05\n"
+                   "max_layer_thickness_mm = 1.0\n[parts]\ntranslation = [0.0, 0.0, 0.0]\n")
+    r = subprocess.run([sys.executable, "-m", "icefab", "slice", str(path), "-c", str(job),
+                        "-o", str(tmp_path / "out")], capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "(adaptive)" in r.stdout and "uniform layers thin enough" in r.stdout
+
+
+def test_valves_command_uses_each_layer_thickness(adaptive_build, tmp_path):
+    """``icefab valves`` on adaptive trajectories: a layer's pulses (FM: frequency follows
+    the flow q = w dh_k c) scale with its own thickness against the same trajectories
+    taken as uniform 0.25 mm layers (the layer_height member removed)."""
+    import csv
+    job, stack, _, motion = adaptive_build
+    save_trajectories(motion, tmp_path / "adaptive.npz")
+    with np.load(tmp_path / "adaptive.npz") as f:
+        members = {k: v for k, v in f.items() if k != "layer_height"}
+    np.savez_compressed(tmp_path / "uniform.npz", **members)
+    pulses = {}
+    for name in ("adaptive", "uniform"):
+        r = subprocess.run([sys.executable, "-m", "icefab", "valves", str(tmp_path /
+                            f"{name}.npz"), "-o", str(tmp_path / name), "--layers", "0,1,150"],
+                           capture_output=True, text=True, timeout=600)
+        assert r.returncode == 0, r.stderr
+        with open(tmp_path / name / "valves-paths.csv", encoding="utf-8") as fh:
+            rows = list(csv.DictReader(fh))
+        per = {}
+        for row in rows:
+            per[int(row["layer"])] = per.get(int(row["layer"]), 0) + int(row["pulses"])
+        pulses[name] = per
+    for k, n in pulses["adaptive"].items():
+        ratio = n / pulses["uniform"][k]
+        assert ratio == pytest.approx(stack.thicknesses[k] / 0.25, rel=0.03), k
