@@ -15,6 +15,16 @@ and the valve and SMF tune for it. So the bound is off by default
 ``slicing.layer_thickness_mm``: cells depositing paste or semi-solid materials, whose bead
 aspect ratio allows thick layers on vertical walls, turn it on.
 
+Downstream, each layer's thickness travels with it (``Layer.thickness``,
+``LayerPaths.thickness``, ``LayerMotion.thickness``, the ``layer_height`` member of the
+result files) and is used where one thickness was assumed: the overhang scaffold's reach
+(``icefab.regions``), the measurement schedule, by height (``icefab.stages.measured_layers``),
+the valve flow q = w dh_k c (eq. 6.2; ``icefab valves``, the simulator's valve programs, the
+SMF headroom check), the simulator's nominal heights and SMF's measurement interval
+(``icefab.sim``). Path widths stay the nozzle's (``materials.*.path_width_mm``): a thinner
+layer gets less flow along the same paths, not narrower ones. The build runner refuses
+adaptive trajectories for now (its journal and virtual cell count in uniform layers).
+
 The layer planner works on a fine grid of heights (bins of a quarter of the minimum
 thickness): each bin holds the largest |n_z| of the facets reaching into it, and a sparse
 table answers "the largest |n_z| in this slab" in O(1) per query (conservative by up to a

@@ -56,6 +56,12 @@ class Headroom:
     def fits(self) -> bool:
         return self.needed_mm3_s <= self.limit_mm3_s * (1 + 1e-12)
 
+    def layer_mm(self, job: "Job") -> float:
+        """The layer thickness of the nominal flow, mm (adaptive layers: that layer's)."""
+        t = self.nominal_mm3_s / (self.width_mm * self.speed_mm_s * job.flow.layer_scale)
+        uniform = job.slicing.layer_thickness_mm
+        return uniform if abs(t - uniform) <= 1e-9 * uniform else float(f"{t:.4g}")
+
     def message(self, job: "Job") -> str:
         """One line naming the path, the flows and the settings that change them."""
         fix = ("the valve programs clamp it (flow.out_of_range = 'clamp'); to keep it, "
@@ -65,7 +71,7 @@ class Headroom:
         return (f"feedback headroom: SMF may raise the flow by feedback.saturation = "
                 f"{job.feedback.saturation:.0%} to {self.needed_mm3_s:.4g} mm^3/s on the "
                 f"{where} ({self.nominal_mm3_s:.4g} mm^3/s nominal = {self.width_mm:g} mm x "
-                f"{job.slicing.layer_thickness_mm:g} mm x {self.speed_mm_s:.4g} mm/s), above "
+                f"{self.layer_mm(job):g} mm x {self.speed_mm_s:.4g} mm/s), above "
                 f"the {self.limit_mm3_s:.4g} mm^3/s the valve gives at its highest frequency "
                 f"({_limit_hz(job):g} Hz, flow.max_frequency_hz) in the calibration table; "
                 f"{fix}keep the speed below {self.max_speed_mm_s:.4g} mm/s (motion.speed_mm_s), "
@@ -87,22 +93,23 @@ def feedback_headroom(trajectories: Iterable[tuple[int, "Trajectory"]], job: "Jo
                       ) -> list[Headroom]:
     """The tightest depositing path of each material (see :class:`Headroom`).
 
-    trajectories: ``(layer index, Trajectory)`` pairs; a trajectory's ``speed (n,)`` mm/s
-    and its path's material, role and width are used (travel and measurement paths
-    deposit nothing and are skipped).
+    trajectories: ``(layer index, Trajectory)`` pairs, or ``(layer index, Trajectory,
+    layer thickness mm)`` for adaptive layers (a thick layer needs more flow); a
+    trajectory's ``speed (n,)`` mm/s and its path's material, role and width are used
+    (travel and measurement paths deposit nothing and are skipped).
     """
-    dh = job.slicing.layer_thickness_mm * job.flow.layer_scale
-    worst: dict[str, tuple[float, int, str, float, float]] = {}
-    for layer, t in trajectories:
+    worst: dict[str, tuple[float, int, str, float, float, float]] = {}
+    for layer, t, *own in trajectories:
         path = t.path
         if path is None or not path.depositing or len(t.speed) == 0:
             continue
+        dh = (own[0] if own else job.slicing.layer_thickness_mm) * job.flow.layer_scale
         w = trajectory_width(t, path.material, job)
         v = float(np.max(t.speed))
         q = w * dh * v
         if path.material not in worst or q > worst[path.material][0]:
-            worst[path.material] = (q, int(layer), path.role, w, v)
-    return [_headroom(m, *worst[m], job) for m in sorted(worst)]
+            worst[path.material] = (q, int(layer), path.role, w, v, dh)
+    return [_headroom(m, *worst[m][:5], job, dh=worst[m][5]) for m in sorted(worst)]
 
 
 def speed_bound_headroom(job: "Job") -> list[Headroom]:
@@ -118,10 +125,11 @@ def speed_bound_headroom(job: "Job") -> list[Headroom]:
 
 
 def _headroom(material: str, q: float, layer: int, role: str, w: float, v: float,
-              job: "Job") -> Headroom:
+              job: "Job", dh: float | None = None) -> Headroom:
     s = job.feedback.saturation
     limit = _limit_flow(material, job)
-    dh = job.slicing.layer_thickness_mm * job.flow.layer_scale
+    if dh is None:
+        dh = job.slicing.layer_thickness_mm * job.flow.layer_scale
     return Headroom(material=material, layer=layer, role=role, width_mm=w, speed_mm_s=v,
                     nominal_mm3_s=q, needed_mm3_s=q * (1 + s), limit_mm3_s=limit,
                     max_speed_mm_s=limit / ((1 + s) * w * dh))

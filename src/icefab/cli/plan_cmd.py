@@ -132,11 +132,13 @@ def run(args: argparse.Namespace) -> int:
         f"planning time: {t_plan:.2f} s ({motion.n_points / max(t_plan, 1e-9) / 1e6:.2f} M "
         f"samples/s), total {time.perf_counter() - t0:.2f} s",
     ]
+    from icefab.stages import layer_height
     from icefab.headroom import feedback_headroom
 
     if job.feedback.enabled and job.flow.mode == "fm":  # what valves/simulate will refuse
         lines += [f"warning: {r.message(job)}" for r in feedback_headroom(
-            ((lm.index, t) for lm in motion.layers for t in lm.trajectories), job)
+            ((lm.index, t, layer_height(lm.thickness, job)) for lm in motion.layers
+             for t in lm.trajectories), job)
             if not r.fits]
     with output_dir(args.out, "plan") as tmp:
         save_trajectories(motion, tmp / "trajectories.npz")

@@ -299,9 +299,11 @@ def run(args: argparse.Namespace) -> int:
     headroom: list[str] = []
     if valves:  # the feedback's headroom, before 2 x n layers are simulated (issue 11)
         from icefab.headroom import check_feedback_headroom, feedback_headroom
+        from icefab.stages import layer_height
 
         headroom = check_feedback_headroom(feedback_headroom(
-            ((lm.index, t) for lm in build.layers[:n] for t in lm.trajectories), job), job)
+            ((lm.index, t, layer_height(lm.thickness, job)) for lm in build.layers[:n]
+             for t in lm.trajectories), job), job)
     t_prep = time.perf_counter() - t0
     keep = None if args.surface_layer is None else [args.surface_layer]
     open_loop = simulate_build(build, job, layers=n, closed_loop=False,
