@@ -61,8 +61,8 @@ def part(name: str, slicing: dict):
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--cusp", type=float, default=0.05)
-    ap.add_argument("--min", type=float, default=0.1)
+    ap.add_argument("--cusp", type=float, default=0.1)
+    ap.add_argument("--min", type=float, default=0.05)
     ap.add_argument("--max", type=float, default=1.0)
     ap.add_argument("--parts", default="sphere,fandisk,bunny")
     ap.add_argument("--plan", action="store_true")
