@@ -684,3 +684,21 @@ def test_clean_mesh_keeps_name_and_earlier_warnings():
     assert report.flipped
     assert cleaned.name == "box.stl"
     assert cleaned.warnings == inside_out.warnings
+
+
+@pytest.mark.parametrize("count", ["nan", "inf", "-3", "2.5"])
+def test_ascii_ply_bad_list_count_is_one_clean_line(tmp_path, count):
+    """A list count that is not a whole non-negative number: one MeshError naming the file,
+    no numpy warning on the way (the cast of a NaN count warned before the error)."""
+    import warnings
+
+    path = tmp_path / "bad.ply"
+    path.write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\n"
+                    "property float y\nproperty float z\nelement face 1\n"
+                    "property list uchar int vertex_indices\nend_header\n"
+                    f"0 0 0\n1 0 0\n0 1 0\n{count} 0 1 2\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(MeshError, match="bad.ply") as err:
+            load_mesh(path)
+    assert "np." not in str(err.value) and "\n" not in str(err.value)

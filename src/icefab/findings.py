@@ -3,8 +3,10 @@
 A build can carry thousands of warnings (a scan's gap closures, one per layer and hole).
 Listing the first few hides the rest -- an empty layer's warning fell into "... and 443
 more" (issue 11). Instead every kind of warning is summarised once, with its count and the
-layers it concerns, and the full list goes in ``warnings.txt`` beside the results (written
-by the CLI inside its publishing folder, ``icefab.cli.common.output_dir``).
+layers it concerns, and the full list goes in ``COMMAND-warnings.txt`` beside the results
+(``slice-warnings.txt``, ``paths-warnings.txt``: each command its own file, so two commands
+writing into one folder do not collide; written by the CLI inside its publishing folder,
+``icefab.cli.common.output_dir`` / ``write_warnings``).
 
 The kind of a warning is its text without its ``layer K (z = Z mm): `` prefix and with
 every number replaced by ``#``: "open contour closed across a # mm gap at (#, #)". The
@@ -17,7 +19,8 @@ from __future__ import annotations
 import re
 from typing import Sequence
 
-#: File name of the full list beside the results.
+#: File name of the full list beside the results, after the command's name and a dash
+#: (``icefab.cli.common.warnings_file``: ``slice-warnings.txt``).
 WARNINGS_FILE = "warnings.txt"
 
 _LAYER = re.compile(r"^layer (\d+)(?: \(z = [^)]*\))?[:,]? ?")
@@ -82,7 +85,7 @@ def clamped_volume(findings: Sequence[tuple[int, str]]) -> tuple[int, int, float
 
 
 def warnings_text(warnings: Sequence[str], source: str = "") -> str:
-    """The full list as the text of ``warnings.txt``: a heading line, then one warning a
+    """The full list as the text of ``COMMAND-warnings.txt``: a heading line, then one warning a
     line (newlines inside a warning replaced by spaces)."""
     head = f"# {len(warnings)} warnings" + (f" of {source}" if source else "")
     return "\n".join([head, *(w.replace("\n", " ") for w in warnings)]) + "\n"

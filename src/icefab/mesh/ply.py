@@ -259,7 +259,7 @@ def _ply_element_ascii(t: np.ndarray, pos: int, el: _PlyElement,
             c = t[pos + width] if pos + width < len(t) else -1
             if not (c >= 0 and c == np.floor(c)):
                 raise MeshError(f"{path}: ASCII PLY element {el.name!r}: bad list count "
-                                f"{c!r}")
+                                f"{float(c):g}")
             guess.append((width, int(c)))
             width += 1 + int(c)
     if el.n * width <= remaining:
