@@ -50,3 +50,28 @@ def test_default_cell_limit_is_the_table_at_500_hz():
     (room,) = feedback_headroom([(0, traj(50.0, 1.5))], job)
     assert room.limit_mm3_s == pytest.approx(115.28)
     assert room.fits and check_feedback_headroom([room], job) == []
+
+
+def test_slowest_flow_is_checked_before_slicing(tmp_path):
+    """A 10 mm layer needs 1.5 x 10 x 25 = 375 mm^3/s on the part's boundaries, beyond the
+    default valve table (115 mm^3/s at 500 Hz): refused before anything is sliced, naming
+    the settings; the default job and 'clamp' pass."""
+    import subprocess
+    import sys
+
+    from icefab.config import job_from_dict
+    from icefab.headroom import check_slowest_flow
+
+    check_slowest_flow(Job())
+    thick = job_from_dict({"slicing": {"layer_thickness_mm": 10.0}})
+    with pytest.raises(FlowError, match=r"375 mm\^3/s .*slicing.layer_thickness_mm = 10 mm"):
+        check_slowest_flow(thick)
+    check_slowest_flow(job_from_dict({"slicing": {"layer_thickness_mm": 10.0},
+                                      "flow": {"out_of_range": "clamp"}}))
+    job = tmp_path / "job.toml"
+    job.write_text("[slicing]\nlayer_thickness_mm = 10.0\n")
+    r = subprocess.run([sys.executable, "-m", "icefab", "demo", "-c", str(job), "-o",
+                        str(tmp_path / "out")], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and len(r.stderr.splitlines()) == 1
+    assert "slicing.layer_thickness_mm = 10 mm" in r.stderr and "slicing:" not in r.stderr
+    assert not (tmp_path / "out").exists()

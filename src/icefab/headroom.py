@@ -148,3 +148,30 @@ def check_feedback_headroom(rooms: list[Headroom], job: "Job") -> list[str]:
     if short and job.flow.out_of_range == "error":
         raise FlowError(short[0].message(job))
     return [r.message(job) for r in short]
+
+
+def check_slowest_flow(job: "Job") -> None:
+    """Refuse, before slicing, a job whose nominal flow cannot be made even on the slowest
+    depositing paths: every material's boundary at ``motion.boundary_speed_mm_s`` with
+    its path width and the largest layer thickness needs ``w dh c`` (eq. 6.2) within the
+    calibration table, else FlowError naming the settings (FM; under
+    ``flow.out_of_range = "clamp"`` the valve programs clamp instead, and nothing is
+    refused). Faster paths need more, and the valve programs name those."""
+    if job.flow.mode != "fm" or job.flow.out_of_range != "error":
+        return
+    sl = job.slicing
+    dh = (max(sl.layer_thickness_mm, sl.max_layer_thickness_mm) if sl.cusp_height_mm > 0
+          else sl.layer_thickness_mm) * job.flow.layer_scale
+    v = job.motion.boundary_speed_mm_s
+    for m in ("part", "scaffold"):
+        w = job.materials[m].path_width_mm
+        q = w * dh * v
+        limit = _limit_flow(m, job)
+        if q > limit * (1 + 1e-12):
+            raise FlowError(
+                f"the {m} boundary needs {q:.4g} mm^3/s (materials.{m}.path_width_mm = "
+                f"{w:g} mm x slicing.layer_thickness_mm = {dh / job.flow.layer_scale:g} mm x "
+                f"motion.boundary_speed_mm_s = {v:g} mm/s, thesis eq. 6.2), more than the "
+                f"valve's {limit:.4g} mm^3/s at its highest frequency in the calibration "
+                "table: thinner layers, narrower paths or slower boundaries (or "
+                "flow.out_of_range = 'clamp')")

@@ -53,6 +53,7 @@ def run(args: argparse.Namespace) -> int:
     from icefab.core import Stack, Toolpaths
 
     from icefab.errors import ConfigError
+    from icefab.headroom import check_slowest_flow
 
     if args.layers < 0 or args.sim_layers < 0:
         raise ConfigError(f"--layers {args.layers} / --sim-layers {args.sim_layers}: must be "
@@ -65,6 +66,7 @@ def run(args: argparse.Namespace) -> int:
         # Placed like any part (thesis 3.1.2): by default centred on the building origin.
         mesh = transform(demo_mug(), job.parts, job)
         check_placed_part(mesh.vertices, job)  # units, stroke, reach: before slicing
+        check_slowest_flow(job)  # a flow no valve program can make: before slicing
         report = check_mesh(mesh)
         write_stl(mesh, out / "demo-mug.stl")
         _say(f"part: demo mug, {mesh.n_faces} facets, size "
