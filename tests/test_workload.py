@@ -139,3 +139,16 @@ def test_a_part_thinner_than_one_layer_is_refused(tmp_path):
     job = _job_for(tmp_path, _box((40, 40, 40)), **{"parts.scale": [1.0, 1.0, 1e-4]})
     with pytest.raises(ConfigError, match="0.004 mm tall, less than one layer"):
         prepare_parts(job)
+
+
+def test_the_scaffold_buffer_counts_in_the_reach(tmp_path):
+    """A 40 mm box at the default origin fits; surrounded by a 100 mm scaffold it reaches
+    inside the minimum reach (the scaffold nozzle lays it there): refused before slicing,
+    naming scaffold.buffer_mm; without the scaffold the same buffer is harmless."""
+    box = _box((40, 40, 10))
+    prepare_parts(_job_for(tmp_path, box))
+    with pytest.raises(WorkspaceError, match=r"with the scaffold around it "
+                                             r"\(scaffold.buffer_mm = 100\)"):
+        prepare_parts(_job_for(tmp_path, box, **{"scaffold.buffer_mm": 100.0}))
+    prepare_parts(_job_for(tmp_path, box, **{"scaffold.buffer_mm": 100.0,
+                                              "scaffold.enabled": False}))

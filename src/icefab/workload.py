@@ -120,38 +120,47 @@ def check_placed_part(vertices: np.ndarray, job: Job) -> None:
     xy = v[(v[:, 2] >= z0) & (v[:, 2] <= z1), :2]
     if len(xy) == 0:
         return
-    mat = job.materials.part
-    slack = mat.initial_offset_mm + mat.path_width_mm
-    base = xy + (np.asarray(job.cell.ee_origin_mm) - np.asarray(mat.nozzle_offset_mm))
     cell = job.cell
     where = ("move or scale it (parts.translation, parts.scale) or the part origin "
              f"(cell.ee_origin_mm = {list(cell.ee_origin_mm)})")
-    if cell.robot == "scara":
-        r = np.hypot(base[:, 0], base[:, 1])
-        rmin, rmax = cell.reach_mm
-        k = int(np.argmax(r))
-        if r[k] > rmax + slack:
-            raise WorkspaceError(
-                f"the placed part reaches {_fmt(r[k])} mm from the robot base at part point "
-                f"({_fmt(xy[k, 0])}, {_fmt(xy[k, 1])}) mm, beyond the reach cell.reach_mm = "
-                f"{list(cell.reach_mm)} (part {_fmt(size[0])} x {_fmt(size[1])} mm across): "
-                + where)
-        k = int(np.argmin(r))
-        if r[k] < rmin - slack:
-            raise WorkspaceError(
-                f"the placed part comes within {_fmt(r[k])} mm of the robot base at part "
-                f"point ({_fmt(xy[k, 0])}, {_fmt(xy[k, 1])}) mm, inside the minimum reach "
-                f"cell.reach_mm = {list(cell.reach_mm)}: " + where)
-    else:
-        travel = np.asarray(cell.gantry_travel_mm, dtype=np.float64)
-        out = (base < -slack) | (base > travel + slack)
-        if out.any():
-            k = int(np.flatnonzero(out.any(axis=1))[0])
-            raise WorkspaceError(
-                f"the placed part point ({_fmt(xy[k, 0])}, {_fmt(xy[k, 1])}) mm is at "
-                f"({_fmt(base[k, 0])}, {_fmt(base[k, 1])}) mm on the gantry, outside its "
-                f"travel cell.gantry_travel_mm = {list(cell.gantry_travel_mm)} (part "
-                f"{_fmt(size[0])} x {_fmt(size[1])} mm across): " + where)
+    # the part under the water nozzle; with a surrounding scaffold also the scaffold, which
+    # reaches scaffold.buffer_mm beyond the part, under the scaffold nozzle
+    checks = [("part", 0.0, "")]
+    sc = job.scaffold
+    if sc.enabled and sc.mode == "surround" and sc.buffer_mm > 0:
+        checks.append(("scaffold", sc.buffer_mm,
+                       f" with the scaffold around it (scaffold.buffer_mm = {sc.buffer_mm:g})"))
+    for material, grow, what in checks:
+        mat = job.materials[material]
+        slack = mat.initial_offset_mm + mat.path_width_mm - grow
+        base = xy + (np.asarray(cell.ee_origin_mm) - np.asarray(mat.nozzle_offset_mm))
+        if cell.robot == "scara":
+            r = np.hypot(base[:, 0], base[:, 1])
+            rmin, rmax = cell.reach_mm
+            k = int(np.argmax(r))
+            if r[k] > rmax + slack:
+                raise WorkspaceError(
+                    f"the placed part{what} reaches {_fmt(r[k] + grow)} mm from the robot "
+                    f"base at part point ({_fmt(xy[k, 0])}, {_fmt(xy[k, 1])}) mm, beyond the "
+                    f"reach cell.reach_mm = {list(cell.reach_mm)} (part {_fmt(size[0])} x "
+                    f"{_fmt(size[1])} mm across): " + where)
+            k = int(np.argmin(r))
+            if r[k] < rmin - slack:
+                raise WorkspaceError(
+                    f"the placed part{what} comes within {_fmt(max(r[k] - grow, 0.0))} mm of "
+                    f"the robot base at part point ({_fmt(xy[k, 0])}, {_fmt(xy[k, 1])}) mm, "
+                    f"inside the minimum reach cell.reach_mm = {list(cell.reach_mm)}: "
+                    + where)
+        else:
+            travel = np.asarray(cell.gantry_travel_mm, dtype=np.float64)
+            out = (base < -slack) | (base > travel + slack)
+            if out.any():
+                k = int(np.flatnonzero(out.any(axis=1))[0])
+                raise WorkspaceError(
+                    f"the placed part{what} point ({_fmt(xy[k, 0])}, {_fmt(xy[k, 1])}) mm is "
+                    f"at ({_fmt(base[k, 0])}, {_fmt(base[k, 1])}) mm on the gantry, outside "
+                    f"its travel cell.gantry_travel_mm = {list(cell.gantry_travel_mm)} (part "
+                    f"{_fmt(size[0])} x {_fmt(size[1])} mm across): " + where)
 
 
 def check_copies(extent_mm: np.ndarray, job: Job) -> None:
