@@ -280,3 +280,16 @@ def test_speed_that_disagrees_with_the_samples_is_reported(factor, expect):
         (w,) = found
         assert f"integrates to {40 * factor:g} mm but its samples travel 40 mm" in w
         assert expect in w and "layer 7" in w
+
+
+def test_pwm_pieces_fit_the_valve_controllers_store():
+    """A 40 s PWM path at 125 Hz has 5 000 pulses: the valve controller must hold a PWM
+    piece whole (4 n + 8 bytes in its 12 288-byte store, firmware/PROTOCOL.md), so the
+    program comes in pieces of at most 3 070 pulses; FM keeps flow.max_pulses (16 384)."""
+    traj = constant_trajectory(100.0, duration=40.0)
+    pwm = program_pieces(plan_valves(traj, "part", Job().replace(**PWM)))
+    assert sum(len(p.ticks) for p in pwm) >= 4900 and len(pwm) >= 2
+    assert max(len(p.ticks) for p in pwm) <= 3070
+    assert all(4 * len(p.ticks) + 8 <= 12288 for p in pwm)
+    fm = program_pieces(plan_valves(traj, "part", Job()))
+    assert len(fm) == 1 and len(fm[0].ticks) > 3070

@@ -503,9 +503,11 @@ class FlowSettings:
         why="a piece spans at least a few ticks")
     max_pulses: int = setting(
         16384,
-        "most pulses in one program piece",
-        lo=1, hi=1048576,
-        why="a program piece in microcontroller memory")
+        "most pulses in one program piece (PWM pieces also at most 3 070: the valve "
+        "controller must hold a PWM piece whole, icefab.flow.PWM_PIECE_PULSES)",
+        lo=1, hi=16384,
+        why="the valve controller's protocol takes at most 16 384 pulses a piece "
+            "(firmware/PROTOCOL.md, thesis 2.3.1)")
     max_frequency_hz: float = setting(
         500.0,
         "highest valve frequency the cell can make: at most one pulse per tick (1 / tick_s, "

@@ -521,10 +521,25 @@ def pulse_instants(t: np.ndarray, nu: np.ndarray) -> np.ndarray:
     return t[idx - 1] + frac * (t[idx] - t[idx - 1])
 
 
+#: Most pulses of a PWM piece the valve controller can take: its widths follow all its
+#: ticks, so the piece must fit the 12 288-byte program store whole (4 n + 8 bytes,
+#: firmware/PROTOCOL.md); FM pieces stream through the store and keep flow.max_pulses.
+PWM_PIECE_PULSES = 3070
+
+
+def piece_pulses(job: "Job") -> int:
+    """Most pulses in one program piece: ``flow.max_pulses``, and in PWM mode at most what
+    the controller's store holds whole (:data:`PWM_PIECE_PULSES`)."""
+    fl = job.flow
+    return fl.max_pulses if fl.mode == "fm" else min(fl.max_pulses, PWM_PIECE_PULSES)
+
+
 def _split(times: np.ndarray, widths: np.ndarray | None, duration: float, dt: float,
            job: "Job") -> ValveProgram:
-    """Pieces of at most max_piece_s and max_pulses, boundaries on trajectory samples."""
+    """Pieces of at most max_piece_s and :func:`piece_pulses` pulses, boundaries on
+    trajectory samples."""
     fl = job.flow
+    most = piece_pulses(job)
     tick = fl.tick_s
     # ticks must fit uint16: an instant less than 65535.5 ticks from the piece start
     max_len = min(fl.max_piece_s, 65535.5 * tick)
@@ -534,10 +549,10 @@ def _split(times: np.ndarray, widths: np.ndarray | None, duration: float, dt: fl
     p = len(times)
     while True:
         limit = t0 + max_len
-        if p - i0 > fl.max_pulses:
+        if p - i0 > most:
             # pulse i0 + max_pulses must open the next piece
-            limit = min(limit, float(times[i0 + fl.max_pulses]))
-        last = limit >= duration and p - i0 <= fl.max_pulses
+            limit = min(limit, float(times[i0 + most]))
+        last = limit >= duration and p - i0 <= most
         if last:
             t_end, i1 = duration, p
         else:
@@ -546,7 +561,7 @@ def _split(times: np.ndarray, widths: np.ndarray | None, duration: float, dt: fl
                 t_end -= dt
             if t_end <= t0 + 1e-12:  # a time step longer than the piece: cut between samples
                 t_end = limit
-            i1 = min(int(np.searchsorted(times, t_end, side="left")), i0 + fl.max_pulses)
+            i1 = min(int(np.searchsorted(times, t_end, side="left")), i0 + most)
         rel = (times[i0:i1] - t0) / tick
         # round half up (with a hair of tolerance): instants exactly one tick apart at a
         # half-tick phase (PWM at 1 / tick_s) keep distinct ticks; rint's half-to-even
