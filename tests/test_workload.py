@@ -152,3 +152,27 @@ def test_the_scaffold_buffer_counts_in_the_reach(tmp_path):
         prepare_parts(_job_for(tmp_path, box, **{"scaffold.buffer_mm": 100.0}))
     prepare_parts(_job_for(tmp_path, box, **{"scaffold.buffer_mm": 100.0,
                                               "scaffold.enabled": False}))
+
+
+def test_valve_pulse_budget_names_the_frequency():
+    """Pulses counted at the highest rate the valve is driven, before any program: a
+    500 s path at a 50 kHz PWM would be 2.5e7 pulses on one path; 30 000 paths of 20 s at
+    1 kHz are 6e8 in the build."""
+    from icefab.core import LayerMotion, Toolpath, Trajectory
+
+    def layer(durations):
+        path = Toolpath(points=np.zeros((2, 2)), role="fill", width=1.5)
+        return LayerMotion(0, 0.125, tuple(
+            Trajectory(dt=d, xy=np.zeros((2, 2)), joints=np.zeros((2, 0)),
+                       speed=np.zeros(2), duration=d, path=path) for d in durations))
+
+    workload.check_pulses([layer([100.0] * 10)], Job())
+    fast = Job().replace(**{"flow.mode": "pwm", "flow.pwm_frequency_hz": 5e4,
+                            "flow.max_frequency_hz": 1e5, "flow.tick_s": 1e-5,
+                            "flow.min_pulse_ms": 0.01})
+    with pytest.raises(ConfigError, match="flow.pwm_frequency_hz = 50000: the longest"):
+        workload.check_pulses([layer([500.0])], fast)
+    many = Job().replace(**{"flow.max_frequency_hz": 1000.0, "flow.tick_s": 1e-3,
+                            "flow.calibration_pulse_ms": 0.5})
+    with pytest.raises(ConfigError, match="MAX_BUILD_PULSES"):
+        workload.check_pulses([layer([20.0] * 30000)], many)

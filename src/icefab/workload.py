@@ -42,6 +42,12 @@ MAX_GRID_CELLS = 25_000_000
 #: over the layers; the demo mug at the defaults has under a million.
 MAX_SAMPLES = 40_000_000
 
+#: Most valve pulses of one depositing path (its program's instants are float64 while it
+#: is planned: 20 million are 160 MB) and of a whole build (2 bytes a pulse on disk, more
+#: with PWM widths: 500 million are 1-2 GB of programs). The demo mug has about 3 million.
+MAX_PATH_PULSES = 20_000_000
+MAX_BUILD_PULSES = 500_000_000
+
 #: A placed part whose largest horizontal extent is under this many path widths cannot
 #: hold a boundary path on each side: almost surely a file in other units.
 MIN_WIDTHS_ACROSS = 2.0
@@ -248,3 +254,37 @@ def check_motion(deposit_mm: float, other_mm: float, job: Job) -> None:
     n_mm = deposit_mm / m.speed_mm_s + other_mm / fast  # seconds: samples x dt
     check_samples(n_mm, m.dt_s, f"motion.dt_s = {m.dt_s:g} with motion.speed_mm_s = "
                                 f"{m.speed_mm_s:g}")
+
+
+def check_pulses(layers, job: Job) -> None:
+    """Refuse valve programs whose pulses would exceed :data:`MAX_PATH_PULSES` on one path
+    or :data:`MAX_BUILD_PULSES` in all, before any is planned.
+
+    layers: the ``LayerMotion`` whose depositing trajectories get programs; their
+    durations are counted at the highest
+    rate the valve is driven: in FM ``min(flow.max_frequency_hz, 1 / flow.tick_s, 1000 /
+    flow.calibration_pulse_ms)``, in PWM ``flow.pwm_frequency_hz`` (an upper bound: FM
+    pulses follow the flow).
+    """
+    fl = job.flow
+    if fl.mode == "fm":
+        rate = min(fl.max_frequency_hz, 1.0 / fl.tick_s, 1000.0 / fl.calibration_pulse_ms)
+        name = f"flow.max_frequency_hz = {fl.max_frequency_hz:g}"
+    else:
+        rate = fl.pwm_frequency_hz
+        name = f"flow.pwm_frequency_hz = {fl.pwm_frequency_hz:g}"
+    d = np.array([t.duration for lm in layers for t in lm.trajectories
+                  if t.path is None or t.path.depositing], dtype=np.float64)
+    if not d.size:
+        return
+    longest, total = float(d.max()) * rate, float(d.sum()) * rate
+    if longest > MAX_PATH_PULSES:
+        raise ConfigError(f"{name}: the longest depositing path ({_fmt(float(d.max()))} s) "
+                          f"would take up to {longest:.3g} valve pulses, more than "
+                          f"{MAX_PATH_PULSES} (icefab.workload.MAX_PATH_PULSES): a lower "
+                          "valve frequency, or shorter paths")
+    if total > MAX_BUILD_PULSES:
+        raise ConfigError(f"{name}: the build's depositing paths ({_fmt(float(d.sum()))} s) "
+                          f"would take up to {total:.3g} valve pulses, more than "
+                          f"{MAX_BUILD_PULSES} (icefab.workload.MAX_BUILD_PULSES): a lower "
+                          "valve frequency, or fewer layers at a time (--layers)")

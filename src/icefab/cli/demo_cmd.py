@@ -54,6 +54,8 @@ def run(args: argparse.Namespace) -> int:
 
     from icefab.errors import ConfigError
     from icefab.headroom import check_slowest_flow
+    from icefab.stages import layer_height
+    from icefab.workload import check_pulses
 
     if args.layers < 0 or args.sim_layers < 0:
         raise ConfigError(f"--layers {args.layers} / --sim-layers {args.sim_layers}: must be "
@@ -113,6 +115,7 @@ def run(args: argparse.Namespace) -> int:
              "('icefab plan' compares it with constant speed)")
 
         t0 = time.perf_counter()
+        check_pulses(motion.layers, job)
         progress = Progress("valve programs")
         pulses = pieces = 0
         flagged: list[tuple[int, str]] = []  # (layer, finding) of every flagged path
@@ -123,7 +126,8 @@ def run(args: argparse.Namespace) -> int:
             for j, traj in enumerate(lm.trajectories):
                 if traj.path is None or not traj.path.depositing:
                     continue
-                prog = plan_valves(traj, traj.path.material, job)
+                prog = plan_valves(traj, traj.path.material, job,
+                                   layer_thickness=layer_height(lm.thickness, job))
                 flagged += [(lm.index, w) for w in prog.warnings]
                 pulses += n_pulses(prog)
                 pieces += len(program_pieces(prog))

@@ -300,6 +300,9 @@ def run(args: argparse.Namespace) -> int:
     if valves:  # the feedback's headroom, before 2 x n layers are simulated (issue 11)
         from icefab.headroom import check_feedback_headroom, feedback_headroom
         from icefab.stages import layer_height
+        from icefab.workload import check_pulses
+
+        check_pulses(build.layers[:n], job)
 
         headroom = check_feedback_headroom(feedback_headroom(
             ((lm.index, t, layer_height(lm.thickness, job)) for lm in build.layers[:n]

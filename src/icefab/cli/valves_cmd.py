@@ -58,7 +58,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from icefab.config import load_job
-    from icefab.stages import layer_height
     from icefab.flow import (LayerProgram, n_pulses, plan_valves, program_pieces,
                              trajectory_width, write_valve_layer)
     from icefab.motion import load_trajectories
@@ -85,9 +84,14 @@ def run(args: argparse.Namespace) -> int:
         layers = tuple(lm for lm in layers if lm.index in wanted)
     from icefab.headroom import check_feedback_headroom, feedback_headroom
 
+    from icefab.stages import layer_height
+    from icefab.workload import check_pulses
+
+    check_pulses(layers, job)
     # the closed-loop build's needs, before any program is written (issue 11)
     headroom = check_feedback_headroom(feedback_headroom(
-        ((lm.index, t) for lm in layers for t in lm.trajectories), job), job)
+        ((lm.index, t, layer_height(lm.thickness, job)) for lm in layers
+         for t in lm.trajectories), job), job)
     fmts = ("bin", "txt") if args.format == "both" else (args.format,)
     progress = Progress("valves")
     table = ["layer  paths  pulses  pieces  findings"]
