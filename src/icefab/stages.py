@@ -34,8 +34,10 @@ STEPS = ("slice", "scaffold", "paths", "motion", "valves", "simulate")
 #: reads them. Checked by the tests to cover every setting of the Job exactly once.
 READS: dict[str, tuple[str, ...]] = {
     "slice": ("parts.", "slicing.", "cell.stroke_mm"),  # the stroke: checked before slicing
-    "scaffold": ("scaffold.",),
-    "paths": ("materials.part.path_width_mm", "materials.part.fill_width_mm",
+    # the part's path width: the scaffold's report of part features thinner than a path
+    # and the hook wall's ring width (tests/test_stage_reads.py found it read there)
+    "scaffold": ("scaffold.", "materials.part.path_width_mm"),
+    "paths": ("materials.part.fill_width_mm",
               "materials.part.initial_offset_mm", "materials.part.boundary_count",
               "materials.part.fill_pattern", "materials.part.fill_angle_deg",
               "materials.part.hybrid_rings", "materials.part.hybrid_angle_step_deg",
@@ -45,8 +47,8 @@ READS: dict[str, tuple[str, ...]] = {
               "materials.scaffold.fill_pattern", "materials.scaffold.fill_angle_deg",
               "materials.scaffold.hybrid_rings", "materials.scaffold.hybrid_angle_step_deg",
               "materials.scaffold.nozzle_offset_mm", "materials.scaffold.gap_fill",
-              "materials.order", "cell.laser_offset_mm", "feedback.interval_layers",
-              "feedback.measure_spacing_mm"),
+              "materials.order", "cell.laser_offset_mm", "feedback.enabled",
+              "feedback.interval_layers", "feedback.measure_spacing_mm"),
     "motion": ("motion.", "cell.robot", "cell.l1_mm", "cell.l2_mm", "cell.reach_mm",
                "cell.joint_range_deg", "cell.elbow", "cell.gantry_travel_mm",
                "cell.ee_origin_mm", "cell.encoder_resolution_deg"),
@@ -57,6 +59,12 @@ READS: dict[str, tuple[str, ...]] = {
 
 #: Settings no step's output depends on.
 NEUTRAL = ("cell.cpus",)
+
+#: Later steps' settings a step reads only to refuse, before it starts, work a later step
+#: could not do (icefab.workload's estimates): they never change the step's output.
+CHECKED_EARLY: dict[str, tuple[str, ...]] = {
+    "paths": ("motion.point_spacing_mm",),  # fill samples budget (workload.check_paths)
+}
 
 #: Settings that decide where a build's material goes once its paths exist: frames, tool
 #: offsets, widths, layer thickness. Trajectories simulated with another job than the one
