@@ -55,7 +55,7 @@ def main() -> None:
     from icefab.paths import plan_paths
     from icefab.regions import add_scaffold
     from icefab.sim import plan_layer, simulate_build
-    from icefab.sim.cell import _grid_for
+    from icefab.sim.cell import grid_for
     from icefab.sim.deposition import _splat
     from icefab.slicing import slice_mesh
     from icefab.core import Stack
@@ -83,7 +83,7 @@ def main() -> None:
     # one deposition: a wall layer of the mug (part + scaffold), mine vs the peer
     k = min(n - 1, 40)
     plan = plans[k]
-    grid = _grid_for([plan], job)
+    grid = grid_for([plan], job)
     dh = job.slicing.layer_thickness_mm
     times_me, times_peer = [], []
     for _ in range(3):

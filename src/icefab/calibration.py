@@ -62,7 +62,7 @@ import logging
 import math
 import os
 from dataclasses import dataclass, field
-from pathlib import Path as FsPath
+from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
@@ -95,7 +95,7 @@ MASS_HEADER = "frequency_hz,duration_s,mass_g"
 # =========================================================================== files
 
 
-def _rows(path: FsPath, header: str, kinds: str) -> list[tuple[int, list]]:
+def _rows(path: Path, header: str, kinds: str) -> list[tuple[int, list]]:
     """The data rows of a small CSV file: (line number, values) per row.
 
     ``kinds``: one letter per column, ``f`` a finite float, ``i`` an integer, ``a`` an
@@ -160,7 +160,7 @@ class Scan:
 def read_scans(path: str | os.PathLike) -> list[Scan]:
     """Scans from a CSV file (module docstring); ConfigError naming the file and line for a
     malformed row, a scan with fewer than 8 samples or time not increasing."""
-    path = FsPath(path)
+    path = Path(path)
     rows = _rows(path, SCAN_HEADER, "iffff")
     by: dict[int, list[tuple[int, list]]] = {}
     for n, v in rows:
@@ -203,7 +203,7 @@ class JigEdge:
 def read_jig(path: str | os.PathLike) -> list[JigEdge]:
     """Jig edges from a CSV file ``axis,position_mm,step_mm``; ConfigError naming the file
     and line for a bad row or a zero step."""
-    path = FsPath(path)
+    path = Path(path)
     edges = []
     for n, (axis, pos, step) in _rows(path, JIG_HEADER, "aff"):
         if step == 0:
@@ -531,7 +531,7 @@ class ValveFit:
 def read_masses(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(frequency_hz, duration_s, mass_g) arrays from a mass-measurement CSV; ConfigError
     naming the file and line for a bad row, a frequency or mass < 0 or a duration <= 0."""
-    path = FsPath(path)
+    path = Path(path)
     rows = _rows(path, MASS_HEADER, "fff")
     for n, (f, d, m) in rows:
         if f < 0:

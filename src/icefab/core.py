@@ -34,11 +34,36 @@ FRAMES: tuple[str, ...] = typing.get_args(Frame)
 TOOLS: tuple[str, ...] = typing.get_args(Tool)
 
 
+def offsets(counts) -> np.ndarray:
+    """(n + 1,) int64 start offsets of ``n`` items of ``counts`` rows each: ``[0, cumsum]``
+    (item i is rows ``offsets[i]:offsets[i + 1]`` of the items concatenated). The one
+    encoding of ragged arrays (``icefab.resultfiles`` stores them so)."""
+    return np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+
+
+def arc_lengths(seg: np.ndarray) -> np.ndarray:
+    """(k + 1,) float64 distance along a polyline at each of its points, from its
+    segments' lengths ``seg`` (k,) mm: ``[0, cumsum(seg)]``."""
+    return np.concatenate([[0.0], np.cumsum(seg)])
+
+
+def closed_polyline(points: np.ndarray, closed: bool = True) -> np.ndarray:
+    """The polyline of a ring (first point not repeated) with its closing edge: the first
+    point appended, when ``closed`` and the ring has more than one point; else the points
+    as they are. The one place a ring is closed."""
+    if closed and len(points) > 1:
+        return np.concatenate([points, points[:1]])
+    return points
+
+
 def signed_area(ring: np.ndarray) -> float:
-    """Signed area (mm^2) of a ring ``(k, 2)``: positive when counter-clockwise."""
+    """Signed area (mm^2) of a ring ``(k, 2)``: positive when counter-clockwise (the
+    shoelace formula, the closing edge's term added apart so no array is copied; the one
+    definition, ``icefab.geometry`` re-exports it)."""
     x = ring[:, 0]
     y = ring[:, 1]
-    return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y))
+    return 0.5 * float(np.dot(x[:-1], y[1:]) - np.dot(x[1:], y[:-1])
+                       + x[-1] * y[0] - x[0] * y[-1])
 
 
 # --------------------------------------------------------------------------- mesh
@@ -281,9 +306,7 @@ class Toolpath:
 
     def polyline(self) -> np.ndarray:
         """(k or k+1, 2) points with the first point repeated at the end when closed."""
-        if self.closed and len(self.points) > 1:
-            return np.vstack([self.points, self.points[:1]])
-        return self.points
+        return closed_polyline(self.points, self.closed)
 
     @property
     def length(self) -> float:

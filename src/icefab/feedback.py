@@ -45,7 +45,7 @@ from scipy.signal import lfilter
 
 from icefab.config import Job
 from icefab.errors import ConfigError, GeometryError
-from icefab.core import HeightMap, Region, Trajectory
+from icefab.core import HeightMap, Region, Trajectory, arc_lengths
 from icefab.workload import check_grid
 
 log = logging.getLogger(__name__)
@@ -926,7 +926,7 @@ def retime_trajectory(traj: Trajectory, u: np.ndarray, *, max_change: float = 0.
     f = np.clip(1.0 / np.maximum(1.0 + u, 1e-9), 1.0 - max_change, 1.0 + max_change)
     dt = float(traj.dt)
     seg = dt / (0.5 * (f[1:] + f[:-1]))
-    T = np.concatenate([[0.0], np.cumsum(seg)])
+    T = arc_lengths(seg)
     n_new = max(2, int(np.rint(T[-1] / dt)) + 1)
     T *= (n_new - 1) * dt / T[-1]
     t_new = np.arange(n_new) * dt

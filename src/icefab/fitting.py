@@ -43,6 +43,8 @@ import math
 
 import numpy as np
 
+from icefab.core import offsets
+
 #: Densification rounds before a ring is given up as already the polygon (a round halves
 #: the failing chords: 30 rounds take a 100 mm chord to 1e-7 mm).
 MAX_ROUNDS = 30
@@ -184,13 +186,13 @@ def _sample(q: np.ndarray, p1: np.ndarray, p2: np.ndarray, chord_tol: float,
             + b3[:, None] * p3[seg])
 
 
-def fit_rings(points: np.ndarray, offsets: np.ndarray, tolerance: float,
+def fit_rings(points: np.ndarray, ring_offsets: np.ndarray, tolerance: float,
               corner_deg: float = 40.0, spacing: float = 0.4
               ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`fit_ring` over rings stored as concatenated points (P, 2) with (R + 1,)
     offsets; returns the fitted rings the same way."""
     out = [fit_ring(points[a:b], tolerance, corner_deg, spacing)
-           for a, b in zip(offsets[:-1], offsets[1:])]
+           for a, b in zip(ring_offsets[:-1], ring_offsets[1:])]
     counts = np.array([len(r) for r in out], dtype=np.int64)
     pts = np.concatenate(out) if out else np.zeros((0, 2))
-    return pts, np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    return pts, offsets(counts)

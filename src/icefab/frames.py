@@ -23,8 +23,9 @@ from icefab.errors import ConfigError
 if TYPE_CHECKING:  # pragma: no cover
     from icefab.config import Job
 
-#: The tools whose frames paths can be given in.
-TOOLS = ("part", "scaffold", "laser")
+#: The tools that have a frame of their own (paths can be given in it); ``core.TOOLS``
+#: is the set a Toolpath's ``tool`` may name, which adds "" (derived from its role).
+FRAME_TOOLS = ("part", "scaffold", "laser")
 
 
 def tool_offset(tool: str, job: "Job") -> np.ndarray:
@@ -36,7 +37,7 @@ def tool_offset(tool: str, job: "Job") -> np.ndarray:
         return np.asarray(job.cell.laser_offset_mm, dtype=np.float64)
     if tool in ("part", "scaffold"):
         return np.asarray(job.materials[tool].nozzle_offset_mm, dtype=np.float64)
-    raise ConfigError(f"unknown tool {tool!r}: expected one of {', '.join(TOOLS)}")
+    raise ConfigError(f"unknown tool {tool!r}: expected one of {', '.join(FRAME_TOOLS)}")
 
 
 def to_base_frame(points: np.ndarray, tool: str, job: "Job") -> np.ndarray:

@@ -37,16 +37,8 @@ import numpy as np
 import pyclipr
 from numba import njit
 
-from icefab.core import Region
-
-
-def signed_area(ring: np.ndarray) -> float:
-    """Signed area (mm^2) of a ring ``(k, 2)``: positive when counter-clockwise (the
-    shoelace formula of ``icefab.core.signed_area`` without temporary arrays)."""
-    x = ring[:, 0]
-    y = ring[:, 1]
-    return 0.5 * float(np.dot(x[:-1], y[1:]) - np.dot(x[1:], y[:-1])
-                       + x[-1] * y[0] - x[0] * y[-1])
+from icefab.core import (Region, arc_lengths, offsets,  # noqa: F401 (signed_area re-exported)
+                         signed_area)
 
 #: Clipper integer units per millimetre (the one scale constant: resolution 1e-4 mm).
 SCALE = 10_000.0
@@ -394,7 +386,7 @@ def _pack(rings: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """Rings or polylines as the compiled kernels take them: all points (v, 2) float64,
     contiguous, and each one's first row (r + 1,) int64, the last entry v."""
     pts = np.ascontiguousarray(np.concatenate(rings), dtype=np.float64)
-    return pts, np.concatenate([[0], np.cumsum([len(r) for r in rings])]).astype(np.int64)
+    return pts, offsets([len(r) for r in rings])
 
 
 def simple_mask(rings: Sequence[np.ndarray], closed: bool = True) -> np.ndarray:
@@ -933,7 +925,7 @@ def _sample_rings(rings: Sequence[np.ndarray], spacing: float):
     seg = np.linalg.norm(b - a, axis=1)
     P, edge, t = subdivide_segments(a, b, spacing)
     ring_of_edge = np.repeat(np.arange(len(rings)), [len(r) for r in rings])
-    cum = np.concatenate([[0.0], np.cumsum(seg)])
+    cum = arc_lengths(seg)
     arc = cum[edge] - cum[first][ring_of_edge[edge]] + t * seg[edge]
     ring_len = np.add.reduceat(seg, first)
     return P, edge, a, b, prv, ring_of_edge[edge], arc, ring_len
@@ -1093,7 +1085,7 @@ def medial_axis(rings: Sequence[np.ndarray], spacing: float, min_radius: float =
     c2 = np.einsum("ij,ij->i", ca, ca)
     C = pa + np.c_[(ca[:, 1] * b2 - ba[:, 1] * c2) / den, (ba[:, 0] * c2 - ca[:, 0] * b2) / den]
     R = np.linalg.norm(C - pa, axis=1)
-    starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    starts = offsets(counts)
     inside = ok & _even_odd_rows(np.ascontiguousarray(C[:, 0]), np.ascontiguousarray(C[:, 1]),
                                  np.ascontiguousarray(a), starts)
     idx = np.flatnonzero(inside & (R >= min_radius))  # R bounds the clearance from above

@@ -106,7 +106,7 @@ from icefab.resultfiles import (TRAJECTORIES_FORMAT as FORMAT,  # noqa: F401 (ol
                                 unpack_trajectories)
 from icefab.robots import Robot, get_robot
 from icefab.core import (ROLES, BuildMotion, LayerMotion, LayerPaths, Toolpath, Toolpaths,
-                         Trajectory)
+                         Trajectory, arc_lengths, offsets)
 from icefab.workload import check_motion
 
 log = logging.getLogger(__name__)
@@ -246,7 +246,7 @@ def _pathsplit(V: np.ndarray, counts: np.ndarray, job: Job) -> _Split:
     m = job.motion
     P = len(counts)
     pid = np.repeat(np.arange(P), counts)
-    pstart = np.concatenate([[0], np.cumsum(counts)])
+    pstart = offsets(counts)
     # ---- merge repeated points (zero-length segments are dropped)
     seg = np.diff(V, axis=0)
     seglen = np.hypot(seg[:, 0], seg[:, 1])
@@ -257,7 +257,7 @@ def _pathsplit(V: np.ndarray, counts: np.ndarray, job: Job) -> _Split:
     V = V[keep]
     pid = pid[keep]
     counts = np.bincount(pid, minlength=P)
-    pstart = np.concatenate([[0], np.cumsum(counts)])
+    pstart = offsets(counts)
     K = len(V)
 
     # ---- PATHSPLIT (thesis 4.1.1): break where the direction turns more than the angle
@@ -292,7 +292,7 @@ def _pathsplit(V: np.ndarray, counts: np.ndarray, job: Job) -> _Split:
 
     # ---- piece vertex lists and their concatenated arc length (gap between pieces)
     plen = b - a + 1
-    pvs = np.concatenate([[0], np.cumsum(plen)])
+    pvs = offsets(plen)
     idx = np.arange(pvs[-1]) - np.repeat(pvs[:-1] - a, plen)
     PV = V[idx]
     d = np.diff(PV, axis=0)
@@ -305,7 +305,7 @@ def _pathsplit(V: np.ndarray, counts: np.ndarray, job: Job) -> _Split:
     # ---- resample each piece uniformly (PATHSPLIT, 0.4 mm)
     nseg = np.maximum(2, np.ceil(L / m.point_spacing_mm - 1e-9).astype(np.int64))
     hk = L / nseg
-    gstart = np.concatenate([[0], np.cumsum(nseg + 1)]).astype(np.int64)
+    gstart = offsets(nseg + 1)
     G = int(gstart[-1])
     loc = np.arange(G) - np.repeat(gstart[:-1], nseg + 1)
     gl = loc * np.repeat(hk, nseg + 1)  # from the piece start, mm
@@ -382,7 +382,7 @@ def _plan_polylines(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
     if P == 0:
         return []
     pid = np.repeat(np.arange(P), counts)
-    pstart = np.concatenate([[0], np.cumsum(counts)])
+    pstart = offsets(counts)
 
     sp = _pathsplit(V, counts, job)
     trajs_empty = sp.counts == 1
@@ -455,7 +455,7 @@ def _plan_polylines(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
 
     # ---- constant-dt sampling
     nsamp = np.maximum(1, np.ceil(T / dt - 1e-9).astype(np.int64))
-    sstart = np.concatenate([[0], np.cumsum(nsamp + 1)]).astype(np.int64)
+    sstart = offsets(nsamp + 1)
     s_loc, spd = _mtts.sample_pieces(gstart, hk, v, T, nsamp, sstart[:-1].copy(), dt, a0, a1)
     # follow the input polyline, or the smoothed one (piecewise linear, parameter in S
     # units: the grid's s is the resampled path's arc length); rest points exactly on the
@@ -471,9 +471,9 @@ def _plan_polylines(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
     spd = spd[keep_s]
     piece_n = nsamp + first_of_path  # samples each piece contributes
     path_n = np.bincount(piece_path, weights=piece_n, minlength=P).astype(np.int64)
-    tstart = np.concatenate([[0], np.cumsum(path_n)])
+    tstart = offsets(path_n)
     # piece start indices within their trajectory
-    cum = np.concatenate([[0], np.cumsum(piece_n)])[:-1]
+    cum = offsets(piece_n)[:-1]
     piece_first_sample = cum - tstart[piece_path]
     piece_first_sample[~first_of_path] -= 1  # the shared corner sample
 
@@ -848,7 +848,7 @@ def constant_spacing(traj: Trajectory, spacing_mm: float | None = None,
     if len(xy) < 2:
         return xy.copy(), np.zeros(0)
     d = np.hypot(*np.diff(xy, axis=0).T)
-    s = np.concatenate([[0.0], np.cumsum(d)])
+    s = arc_lengths(d)
     n = max(1, int(math.ceil(s[-1] / spacing - 1e-9)))
     sq = np.linspace(0.0, s[-1], n + 1)
     t = traj.t
@@ -913,8 +913,7 @@ def save_constant_spacing(motion: BuildMotion, spacing_mm: float,
             "spacing_mm": np.array(float(spacing_mm)),
             "xy": np.concatenate(xy) if xy else np.zeros((0, 2)),
             "duration": np.concatenate(dur) if dur else np.zeros(0),
-            "path_start": np.concatenate([[0], np.cumsum([len(p) for p in xy])]
-                                         ).astype(np.int64),
+            "path_start": offsets([len(p) for p in xy]),
             **owner_arrays(motion)}
     with atomic_path(path, suffix=".npz") as tmp, open(tmp, "wb") as fh:
         np.savez_compressed(fh, **data)

@@ -68,7 +68,7 @@ import numpy as np
 
 from icefab import geometry as geo
 from icefab.config import Job, MaterialSettings
-from icefab.frames import TOOLS, tool_offset, to_base_frame  # noqa: F401 (old home)
+from icefab.frames import FRAME_TOOLS as TOOLS, tool_offset, to_base_frame  # noqa: F401 (old home)
 from icefab.parallel import parallel_map
 from icefab.stages import check_layer_thickness, measured_layers
 from icefab.regions import hook_band_mm
@@ -77,7 +77,7 @@ from icefab.resultfiles import (TOOLPATHS_FORMAT as FORMAT, TOOLPATHS_VERSION as
                                 unpack_layer_paths)
 from icefab.geometry import signed_area
 from icefab.core import (OFF, ON1, ON2, Layer, LayerPaths, Region, Stack, Toolpath,  # noqa: F401
-                         Toolpaths, deposition_state, point_states)
+                         Toolpaths, closed_polyline, deposition_state, offsets, point_states)
 from icefab.workload import check_paths
 
 log = logging.getLogger(__name__)
@@ -99,7 +99,7 @@ def layer_point_states(layer: LayerPaths) -> tuple[np.ndarray, np.ndarray]:
     for p in layer.paths:
         st = point_states(p)
         if p.closed and len(p.points):
-            pts.append(np.vstack([p.points, p.points[:1]]))
+            pts.append(closed_polyline(p.points))
             states.append(np.append(st, np.int8(OFF)))
         else:
             pts.append(p.points)
@@ -442,7 +442,7 @@ def order_nearest(items: Sequence[tuple], start: np.ndarray) -> tuple[list[tuple
     P = np.concatenate(cand_pts)
     owner = np.concatenate(cand_owner)
     index = np.concatenate(cand_idx)
-    bounds = np.concatenate([[0], np.cumsum([len(c) for c in cand_pts])])
+    bounds = offsets([len(c) for c in cand_pts])
     alive = np.ones(len(P), dtype=bool)
     cur = np.asarray(start, dtype=np.float64)
     out: list[tuple] = []
@@ -731,7 +731,7 @@ def _densify(lines: list[np.ndarray], closed: np.ndarray, step: float
              ) -> tuple[np.ndarray, np.ndarray]:
     """Points along polylines (closed ones back to their first point) at most ``step``
     apart, and the index of the polyline each belongs to."""
-    polys = [np.vstack([p, p[:1]]) if c else p for p, c in zip(lines, closed)]
+    polys = [closed_polyline(p, bool(c)) for p, c in zip(lines, closed)]
     n_pts = np.array([len(p) for p in polys])
     allp = np.concatenate(polys)
     owner_pt = np.repeat(np.arange(len(polys)), n_pts)

@@ -24,7 +24,7 @@ import numpy as np
 
 from icefab.atomic import atomic_path
 from icefab.feedback import simulate_1d
-from icefab.core import RuledEdges, Stack, Toolpaths
+from icefab.core import RuledEdges, Stack, Toolpaths, closed_polyline
 
 if TYPE_CHECKING:  # pragma: no cover
     from icefab.config import Job
@@ -180,7 +180,7 @@ def plot_layers(stack: Stack, ks: list[int], path: Path) -> None:
         reg = layer.part
         depth = reg.depth() if len(reg) else np.zeros(0, dtype=int)
         for ring, d in zip(reg.rings, depth):
-            closed = np.vstack([ring, ring[:1]])
+            closed = closed_polyline(ring)
             hole = d % 2 == 1
             ax.plot(closed[:, 0], closed[:, 1], "--" if hole else "-",
                     color="tab:red" if hole else "tab:blue", lw=0.9)
@@ -216,11 +216,11 @@ def plot_ruled(edges: RuledEdges, stack: Stack, ks: list[int], path: Path) -> No
     lim = max(lim, 1.0)
     for ax, k in zip(axes, ks):
         for ring in stack[k].part.rings:
-            c = np.vstack([ring, ring[:1]])
+            c = closed_polyline(ring)
             ax.plot(c[:, 0], c[:, 1], color="0.6", lw=0.8)
         if k + 1 < len(stack):
             for ring in stack[k + 1].part.rings:
-                c = np.vstack([ring, ring[:1]])
+                c = closed_polyline(ring)
                 ax.plot(c[:, 0], c[:, 1], color="k", lw=0.5)
         sel = (edges.layer == k) & ok
         sc = ax.scatter(edges.point[sel, 0], edges.point[sel, 1], c=tilt[sel], s=4,
@@ -260,7 +260,7 @@ def plot_toolpaths(stack: Stack, toolpaths: Toolpaths, ks: list[int], path: Path
                 continue
             verts, codes = [], []
             for ring in region.rings:
-                verts.append(np.vstack([ring, ring[:1]]))
+                verts.append(closed_polyline(ring))
                 c = np.full(len(ring) + 1, MplPath.LINETO)
                 c[0], c[-1] = MplPath.MOVETO, MplPath.CLOSEPOLY
                 codes.append(c)

@@ -90,7 +90,7 @@ from icefab.atomic import atomic_path
 from icefab.config import job_from_dict, to_toml
 from icefab.core import (FRAMES, MATERIALS, OFF, ON2, ROLES, TOOLS, BuildMotion, Layer,
                          LayerMotion, LayerPaths, Region, RuledEdges, Stack, Toolpath,
-                         Toolpaths, Trajectory, point_states)
+                         Toolpaths, Trajectory, offsets, point_states)
 from icefab.errors import ConfigError, StackFileError
 
 log = logging.getLogger(__name__)
@@ -114,9 +114,6 @@ TOOL_CODES = TOOLS
 # --------------------------------------------------------------------------- ragged arrays
 
 
-def offsets(counts: Sequence[int] | np.ndarray) -> np.ndarray:
-    """(n + 1,) int64 start offsets of ``n`` items of ``counts`` rows: ``[0, cumsum]``."""
-    return np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
 
 
 def pack(items: Sequence[np.ndarray], empty: tuple[int, ...] = (0, 2),

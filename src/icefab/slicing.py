@@ -101,7 +101,7 @@ from icefab.errors import GeometryError
 from icefab.fitting import fit_rings
 from icefab.geometry import _in_ring, region_from_rings
 from icefab.mesh.topology import edge_buckets
-from icefab.core import Layer, Mesh, Region, Stack, signed_area
+from icefab.core import Layer, Mesh, Region, Stack, offsets, signed_area
 from icefab.resultfiles import (STACK_FORMAT, STACK_VERSION, load_stack,  # noqa: F401 (old home)
                                 save_stack)
 from icefab.workload import check_layers
@@ -744,7 +744,7 @@ def _facet_plane_range(vertices: np.ndarray, faces: np.ndarray,
 
 
 def _offsets(counts: np.ndarray) -> np.ndarray:
-    return np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    return offsets(counts)
 
 
 def _fmt_pt(p: np.ndarray) -> str:

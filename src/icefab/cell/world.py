@@ -46,6 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
+from icefab import sim as _simulator  # the layer step and blocks shared with run_cell
 from icefab.errors import CellError
 
 log = logging.getLogger(__name__)
@@ -54,30 +55,6 @@ FORMAT = "icefab-cell-surface"
 VERSION = 1
 _TINY_MM = 1e-9
 MATERIAL_OF_VALVE = ("part", "scaffold")
-
-
-_SIM = None
-
-
-def _sim():
-    """The simulator's building blocks, public and private (deposition kernel, edge loss,
-    noise field, laser timing, grid), found in ``icefab.sim`` whether it is one module or
-    the package of its split (one place to import them from, until the simulator offers a
-    layer-step API that both ``run_cell`` and this module call)."""
-    global _SIM
-    if _SIM is None:
-        import importlib
-        from types import SimpleNamespace
-
-        names: dict = {}
-        for mod in ("icefab.sim", "icefab.sim.deposition", "icefab.sim.laser",
-                    "icefab.sim.plans", "icefab.sim.cell"):
-            try:
-                names.update(vars(importlib.import_module(mod)))
-            except ModuleNotFoundError:
-                continue
-        _SIM = SimpleNamespace(**names)
-    return _SIM
 
 
 @dataclass
@@ -238,7 +215,7 @@ class World:
         from icefab import flow
         from icefab.frames import tool_offset
 
-        sim = _sim()
+        sim = _simulator
         job = self.job
         if tool not in MATERIAL_OF_VALVE:
             raise CellError(f"a deposition path for tool {tool!r}; expected part or scaffold")
@@ -287,61 +264,23 @@ class World:
             self.pending.layer = int(layer)
 
     def freeze(self) -> bool:
-        """The current layer's liquid levels and freezes onto the surface (the body of
-        :func:`icefab.sim.run_cell`'s layer loop for valve pulses). Returns whether there
-        was anything to freeze."""
-        from scipy import ndimage
-
-        sim_mod = _sim()
+        """The current layer's liquid levels and freezes onto the surface: the simulator's
+        own layer step (:func:`icefab.sim.deposit_layer`, as :func:`icefab.sim.run_cell`
+        takes it for valve pulses). Returns whether there was anything to freeze."""
+        sim_mod = _simulator
         p = self.pending
         if p.empty():
             return False
         job = self.job
-        sim = job.simulation
         dh = job.slicing.layer_thickness_mm
         arr = p.arrays()
         a, b, v_all, hw = arr["pend_a"], arr["pend_b"], arr["pend_vol"], arr["pend_hw"]
         mat_of, n0, n1, ext = arr["pend_mat"], arr["pend_n0"], arr["pend_n1"], arr["pend_ext"]
         mid = arr["pend_mid"]
         z = self.z
-        g = self.spacing
-        layer_img = np.zeros((2,) + z.shape)
-        edge_width = max(job.materials.part.path_width_mm, job.materials.scaffold.path_width_mm)
-        for mat in (0, 1):
-            sel = mat_of == mat
-            if not sel.any():
-                continue
-            v_cmd = v_all[sel]
-            before = self.used_cm3[mat] + (np.cumsum(v_cmd) - v_cmd) / 1000.0
-            gain = (1.0 + sim.flow_error) * (1.0 + sim.flow_drift_per_cm3 * before)
-            self.used_cm3[mat] += v_cmd.sum() / 1000.0
-            vol = v_cmd * gain
-            sim_mod._splat(layer_img[mat], self.origin, g, a[sel], b[sel], vol, hw[sel],
-                           n0[sel], n1[sel], ext[sel])
-        if sim.edge_loss > 0:
-            layer_img *= sim_mod._edge_factor(layer_img[0] + layer_img[1], 0.25 * dh,
-                                              edge_width, g, sim.edge_loss)
-        added = layer_img[0] + layer_img[1]
-        mask = added > 0.25 * dh
-        if sim.spread_mm > 0:
-            added = sim_mod.level_liquid(z, added, g, sim.spread_mm)
-            mask |= added > 0.25 * dh
-        if sim.noise_mm > 0 and mask.any():
-            added += sim.noise_mm * mask * sim_mod._noise_field(self.rng_noise, z.shape,
-                                                                sim.noise_corr_mm / g)
-        if sim.debris_rate > 0 and len(mid):
-            n_debris = self.rng_debris.poisson(sim.debris_rate)
-            if n_debris:
-                where = mid[self.rng_debris.integers(0, len(mid), n_debris)]
-                impulse = np.zeros(z.shape)
-                ix = np.clip(np.rint((where[:, 0] - self.origin[0]) / g).astype(np.int64),
-                             0, z.shape[1] - 1)
-                iy = np.clip(np.rint((where[:, 1] - self.origin[1]) / g).astype(np.int64),
-                             0, z.shape[0] - 1)
-                np.add.at(impulse, (iy, ix), 1.0)
-                sigma = sim.debris_radius_mm / g
-                bumps = ndimage.gaussian_filter(impulse, sigma, mode="constant", truncate=4.0)
-                added += mask * sim.debris_height_mm * 2 * np.pi * sigma ** 2 * bumps
+        _img, added, mask = sim_mod.deposit_layer(
+            z, self.origin, self.spacing, (a, b, v_all, hw, mat_of, n0, n1, ext),
+            self.used_cm3, mid, job, dh, self.rng_noise, self.rng_debris)
         z += added
         self.ever |= mask
         self.layers_frozen += 1
@@ -359,13 +298,13 @@ class World:
         from icefab.frames import tool_offset
         from icefab.core import HeightMap
 
-        sim_mod = _sim()
+        sim_mod = _simulator
         self.freeze()
         job = self.job
         sim = job.simulation
         xy = np.asarray(xy_base, dtype=np.float64) - (
             np.asarray(job.cell.ee_origin_mm, dtype=np.float64) - tool_offset("laser", job))
-        tagged, true = sim_mod._laser_in_time(xy, float(dt_s), sim.laser_rate_hz,
+        tagged, true = sim_mod.laser_in_time(xy, float(dt_s), sim.laser_rate_hz,
                                               sim.laser_latency_s)
         surf = HeightMap(origin=self.origin, spacing=self.spacing, z=self.z)
         samples = sim_mod.laser_measure(surf, tagged, true, noise_mm=sim.laser_noise_mm,
@@ -389,8 +328,8 @@ def grid_for(motion, job, layers: int | None = None) -> tuple[np.ndarray, tuple[
                                                                 float]:
     """The grid ``icefab simulate`` uses for these trajectories (first ``layers``
     layers): (origin (2,) mm, shape (ny, nx), spacing mm)."""
-    sim = _sim()
+    sim = _simulator
     chosen = motion.layers[:layers] if layers else motion.layers
     plans = [sim.plan_layer_motion(lm, job) for lm in chosen]
-    hm = sim._grid_for(plans, job)
+    hm = sim.grid_for(plans, job)
     return np.asarray(hm.origin, dtype=np.float64), hm.z.shape, float(hm.spacing)

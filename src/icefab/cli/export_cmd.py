@@ -20,7 +20,7 @@ import argparse
 import math
 
 import numpy as np
-from pathlib import Path as FsPath
+from pathlib import Path
 
 from icefab.cli.common import output_dir
 from icefab.errors import ConfigError
@@ -119,7 +119,7 @@ def run_gcode(args: argparse.Namespace) -> int:
     from icefab.export import save_gcode
     from icefab.motion import load_trajectories
 
-    src = FsPath(args.input)
+    src = Path(args.input)
     if not src.is_file():
         raise ConfigError(f"{src}: trajectories file not found")
     motion = load_trajectories(src)
@@ -151,7 +151,7 @@ def run_vplus(args: argparse.Namespace) -> int:
     if args.input:
         from icefab.motion import load_trajectories
 
-        src = FsPath(args.input)
+        src = Path(args.input)
         if not src.is_file():
             raise ConfigError(f"{src}: trajectories file not found")
         motion = load_trajectories(src)

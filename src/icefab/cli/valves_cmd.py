@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from icefab.cli.common import Progress, add_job_argument, output_dir
+from icefab.core import arc_lengths
 from icefab.errors import ConfigError
 
 
@@ -166,7 +167,7 @@ def _drop_spacing(traj, prog, min_drops_per_mm: float) -> tuple[float, float, fl
     xy = np.asarray(traj.xy, dtype=np.float64)
     if len(xy) < 2:
         return 0.0, 0.0, 0.0
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))])
+    s = arc_lengths(np.linalg.norm(np.diff(xy, axis=0), axis=1))
     t = np.arange(len(xy)) * float(traj.dt)
     at = np.interp(pulse_times(prog), t, s)
     limit = 1.0 / min_drops_per_mm if min_drops_per_mm > 0 else np.inf

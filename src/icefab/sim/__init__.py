@@ -82,20 +82,23 @@ nominal top of the j-th simulated layer (j = 0, 1, ...) is ``(j + 1) * dh``.
 from __future__ import annotations
 
 from icefab.errors import SimulationError
-# private blocks the cell's world and the build runner reuse (icefab.cell.world, icefab.runcell)
+# the layer step and grid the virtual cell's process shares (icefab.cell.world), and
+# private blocks the build runner's stand-in cell still reuses (icefab.runcell)
 from icefab.sim.cell import (Controller, Measurement, SimResult, _edge_factor,  # noqa: F401
-                             _grid_for, _noise_field, run_cell)
+                             _grid_for, _noise_field, deposit_layer, grid_for, run_cell)
 from icefab.sim.deposition import (MATERIAL_ID, ActionFn, _splat, deposit,  # noqa: F401
                                    deposit_pulses, empty_surface, level_liquid, pulse_drops,
                                    pulse_segments)
 from icefab.sim.laser import laser_measure, laser_positions, sample_surface
-from icefab.sim.plans import (LayerPlan, LayerValves, layer_valves, measurement_layers,
-                              plan_layer, plan_layer_motion, valve_segments)
+from icefab.sim.plans import (LayerPlan, LayerValves, laser_in_time, layer_valves,
+                              measurement_layers, plan_layer, plan_layer_motion,
+                              valve_segments)
 from icefab.sim.simulate import (MOTION_SETTINGS, check_motion_job, measured_layers,
                                  simulate_build)
 from icefab.sim.smf import smf_controller
 
 __all__ = ["SimulationError", "Controller", "Measurement", "SimResult", "run_cell",
+           "deposit_layer", "grid_for", "laser_in_time",
            "MATERIAL_ID", "ActionFn", "deposit", "deposit_pulses", "empty_surface",
            "level_liquid", "pulse_drops", "pulse_segments", "laser_measure", "laser_positions",
            "sample_surface", "LayerPlan", "LayerValves", "layer_valves", "measurement_layers",

@@ -103,7 +103,7 @@ class SimResult:
                 "flow_gain": list(self.flow_gain), "pulses": self.pulses}
 
 
-def _grid_for(plans: Sequence[LayerPlan], job: "Job") -> HeightMap:
+def grid_for(plans: Sequence[LayerPlan], job: "Job") -> HeightMap:
     pts = [p.a for p in plans if len(p.a)] + [p.b for p in plans if len(p.b)]
     if not pts:
         raise SimulationError("nothing to deposit: the layers have no boundary or fill paths "
@@ -139,6 +139,77 @@ def _edge_factor(layer_z: np.ndarray, thresh: float, width: float, spacing: floa
     return 1.0 - loss * ramp
 
 
+_grid_for = grid_for  # old private name (bench scripts of earlier versions)
+
+
+def deposit_layer(z: np.ndarray, origin: np.ndarray, spacing: float, segments: tuple,
+                  used_cm3: np.ndarray, midpoints: np.ndarray, job: "Job", dh: float,
+                  rng_noise: np.random.Generator, rng_debris: np.random.Generator
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One layer of the virtual cell, from its deposition segments to the height it adds:
+    the step :func:`run_cell` and the virtual cell's process (``icefab.cell.world``) both
+    take, so they cannot drift apart.
+
+    z: (ny, nx) current surface, mm (read, not changed); origin (2,) and spacing: its grid,
+    mm. segments: ``(a, b, volume, half_width, material, n0, n1, ext)`` as
+    :func:`valve_segments` or a :class:`LayerPlan` give them (volumes mm^3 as commanded).
+    used_cm3: (2,) volume already through each valve, cm^3, updated in place (the flow
+    drift of thesis 6.4 grows with it). midpoints: (m, 2) mm where debris may land (the
+    layer's segments). dh: the layer's thickness, mm (what counts as covered: a quarter of
+    it). The generators are advanced exactly as the sequential simulator does.
+
+    Returns ``(layer_img (2, ny, nx) per material before levelling, added (ny, nx) mm,
+    mask (ny, nx) bool cells the layer covers)``; the caller adds ``added`` to ``z``.
+    """
+    from scipy import ndimage
+
+    sim = job.simulation
+    a, b, v_all, hw, mat_of, n0, n1, ext = segments
+    g = spacing
+    layer_img = np.zeros((2,) + z.shape)
+    edge_width = max(job.materials.part.path_width_mm, job.materials.scaffold.path_width_mm)
+    for mat in (0, 1):
+        sel = mat_of == mat
+        if not sel.any():
+            continue
+        v_cmd = v_all[sel]
+        # flow gain with drift by valve use (thesis 6.4): volume already through the valve
+        before = used_cm3[mat] + (np.cumsum(v_cmd) - v_cmd) / 1000.0
+        gain = (1.0 + sim.flow_error) * (1.0 + sim.flow_drift_per_cm3 * before)
+        used_cm3[mat] += v_cmd.sum() / 1000.0
+        vol = v_cmd * gain
+        _splat(layer_img[mat], origin, g, a[sel], b[sel], vol, hw[sel], n0[sel], n1[sel],
+               ext[sel])
+    if sim.edge_loss > 0:
+        # liquid runs off free edges: the edge of the merged footprint (outer rim and
+        # holes), not the part/scaffold interface where the materials support each other
+        layer_img *= _edge_factor(layer_img[0] + layer_img[1], 0.25 * dh, edge_width, g,
+                                  sim.edge_loss)
+    added = layer_img[0] + layer_img[1]
+    mask = added > 0.25 * dh
+    if sim.spread_mm > 0:
+        added = level_liquid(z, added, g, sim.spread_mm)
+        mask |= added > 0.25 * dh
+    if sim.noise_mm > 0 and mask.any():
+        added += sim.noise_mm * mask * _noise_field(rng_noise, z.shape, sim.noise_corr_mm / g)
+    if sim.debris_rate > 0 and len(midpoints):
+        n_debris = rng_debris.poisson(sim.debris_rate)
+        if n_debris:
+            where = midpoints[rng_debris.integers(0, len(midpoints), n_debris)]
+            # Gaussian bumps on the layer's footprint (thesis 5.6: d_pulse), each summed
+            # over a +-4 sigma window: impulses at the debris cells, filtered
+            impulse = np.zeros(z.shape)
+            ix = np.clip(np.rint((where[:, 0] - origin[0]) / g).astype(np.int64),
+                         0, z.shape[1] - 1)
+            iy = np.clip(np.rint((where[:, 1] - origin[1]) / g).astype(np.int64),
+                         0, z.shape[0] - 1)
+            np.add.at(impulse, (iy, ix), 1.0)
+            sigma = sim.debris_radius_mm / g
+            bumps = ndimage.gaussian_filter(impulse, sigma, mode="constant", truncate=4.0)
+            added += mask * sim.debris_height_mm * 2 * np.pi * sigma ** 2 * bumps
+    return layer_img, added, mask
+
+
 def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence[int],
              controller: Controller | None = None, keep_surfaces: Sequence[int] = (),
              progress: Callable[[int, int], None] | None = None) -> SimResult:
@@ -172,7 +243,7 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
                     f"layer {plan.index}: simulation.deposition = 'valves' needs the "
                     "layer's trajectories (plan_layer_motion, or simulate_build, which plans "
                     "them); this plan was made from paths (plan_layer)")
-    surface = _grid_for(plans, job)
+    surface = grid_for(plans, job)
     z = surface.z
     g = surface.spacing
     ever = np.zeros(z.shape, dtype=bool)
@@ -180,7 +251,6 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
     rng_debris = np.random.default_rng([sim.seed, 2])
     rng_laser = np.random.default_rng([sim.seed, 3])
     used_cm3 = np.zeros(2)
-    edge_width = max(job.materials.part.path_width_mm, job.materials.scaffold.path_width_mm)
     measure_set = set(int(i) for i in measure_layers)
     keep = set(int(i) for i in keep_surfaces)
     action: ActionFn | None = None
@@ -197,7 +267,6 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
             nominal = float(heights[j])
         else:
             nominal = (j + 1) * dh
-        layer_img = np.zeros((2,) + z.shape)
         vol_cmd_total += float(plan.volume.sum())
         if valves:
             # thesis 5.1.3: a measurement's action goes into the valve programs of the
@@ -215,51 +284,14 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
             v_all = plan.volume * np.clip(1.0 + u, 0.0, None)
             a, b, hw, mat_of = plan.a, plan.b, plan.half_width, plan.material
             n0, n1, ext = plan.n0, plan.n1, plan.ext
-        for mat in (0, 1):
-            sel = mat_of == mat
-            if not sel.any():
-                continue
-            v_cmd = v_all[sel]
-            # flow gain with drift by valve use (thesis 6.4): volume already through the valve
-            before = used_cm3[mat] + (np.cumsum(v_cmd) - v_cmd) / 1000.0
-            gain = (1.0 + sim.flow_error) * (1.0 + sim.flow_drift_per_cm3 * before)
-            used_cm3[mat] += v_cmd.sum() / 1000.0
-            vol = v_cmd * gain
-            _splat(layer_img[mat], surface.origin, g, a[sel], b[sel], vol, hw[sel], n0[sel],
-                   n1[sel], ext[sel])
-        if sim.edge_loss > 0:
-            # liquid runs off free edges: the edge of the merged footprint (outer rim and
-            # holes), not the part/scaffold interface where the materials support each other
-            layer_img *= _edge_factor(layer_img[0] + layer_img[1], 0.25 * dh, edge_width, g,
-                                      sim.edge_loss)
-        added = layer_img[0] + layer_img[1]
-        vol_dep_total += float(added.sum() * g * g)
-        mask = added > 0.25 * dh
+        layer_img, added, mask = deposit_layer(
+            z, surface.origin, g, (a, b, v_all, hw, mat_of, n0, n1, ext), used_cm3,
+            plan.midpoints, job, dh, rng_noise, rng_debris)
+        vol_dep_total += float((layer_img[0] + layer_img[1]).sum() * g * g)
         # part cells wholly inside this layer's part deposit (not the partly covered rim)
         part_mask = ndimage.binary_erosion(layer_img[0] > 0.25 * dh)
         if not part_mask.any():  # a part narrower than two cells: keep its rim
             part_mask = layer_img[0] > 0.25 * dh
-        if sim.spread_mm > 0:
-            added = level_liquid(z, added, g, sim.spread_mm)
-            mask |= added > 0.25 * dh
-        if sim.noise_mm > 0 and mask.any():
-            added += sim.noise_mm * mask * _noise_field(rng_noise, z.shape,
-                                                          sim.noise_corr_mm / g)
-        if sim.debris_rate > 0 and len(plan.volume):
-            n_debris = rng_debris.poisson(sim.debris_rate)
-            if n_debris:
-                where = plan.midpoints[rng_debris.integers(0, len(plan.volume), n_debris)]
-                # Gaussian bumps on the layer's footprint (thesis 5.6: d_pulse), each
-                # summed over a +-4 sigma window: impulses at the debris cells, filtered
-                impulse = np.zeros(z.shape)
-                ix = np.clip(np.rint((where[:, 0] - surface.origin[0]) / g).astype(np.int64),
-                             0, z.shape[1] - 1)
-                iy = np.clip(np.rint((where[:, 1] - surface.origin[1]) / g).astype(np.int64),
-                             0, z.shape[0] - 1)
-                np.add.at(impulse, (iy, ix), 1.0)
-                sigma = sim.debris_radius_mm / g
-                bumps = ndimage.gaussian_filter(impulse, sigma, mode="constant", truncate=4.0)
-                added += mask * sim.debris_height_mm * 2 * np.pi * sigma ** 2 * bumps
         z += added
         ever |= mask
         if j in measure_set:

@@ -17,7 +17,7 @@ from scipy import ndimage
 
 from icefab import flow
 from icefab.config import Job
-from icefab.core import HeightMap, ValveProgram
+from icefab.core import HeightMap, ValveProgram, arc_lengths
 from icefab.errors import SimulationError
 from icefab.flow import FrequencyPlan
 
@@ -325,7 +325,7 @@ def _pulse_segments(xy: np.ndarray, dt: float, pulse_t: np.ndarray, drop: np.nda
     if p == 0 or n == 0:
         return none, none, np.zeros(0), (none, np.zeros(0)), False
     seg = np.linalg.norm(np.diff(xy, axis=0), axis=1)
-    S = np.concatenate([[0.0], np.cumsum(seg)])
+    S = arc_lengths(seg)
     length = float(S[-1])
     if length <= _TINY_MM:
         return none, none, np.zeros(0), (np.repeat(xy[:1], p, axis=0), drop.copy()), False

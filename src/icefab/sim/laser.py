@@ -10,7 +10,7 @@ import math
 import numpy as np
 from scipy import ndimage
 
-from icefab.core import HeightMap
+from icefab.core import HeightMap, arc_lengths, closed_polyline
 
 from icefab.sim.deposition import _at
 
@@ -26,11 +26,11 @@ def sample_surface(surface: HeightMap, xy: np.ndarray) -> np.ndarray:
 
 def _resample(points: np.ndarray, closed: bool, spacing: float) -> tuple[np.ndarray, np.ndarray]:
     """Points every ``spacing`` mm along a polyline: (k, 2) points and (k,) arc length."""
-    poly = np.vstack([points, points[:1]]) if closed and len(points) > 1 else points
+    poly = closed_polyline(points, closed)
     if len(poly) < 2:
         return poly.copy(), np.zeros(len(poly))
     seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
-    s = np.concatenate([[0.0], np.cumsum(seg)])
+    s = arc_lengths(seg)
     total = s[-1]
     if total <= 0:
         return poly[:1].copy(), np.zeros(1)
@@ -42,7 +42,7 @@ def _resample(points: np.ndarray, closed: bool, spacing: float) -> tuple[np.ndar
 def _refine(points: np.ndarray, closed: bool, max_step: float) -> np.ndarray:
     """The polyline of a path (closed: first point repeated at the end) with every edge
     longer than ``max_step`` split into equal parts, repeated points dropped."""
-    poly = np.vstack([points, points[:1]]) if closed and len(points) > 1 else points
+    poly = closed_polyline(points, closed)
     if len(poly) < 2:
         return poly
     seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
@@ -69,12 +69,12 @@ def laser_positions(points: np.ndarray, closed: bool, *, speed_mm_s: float, rate
     earlier along the path (clamped at the path start).
     """
     spacing = speed_mm_s / rate_hz
-    poly = np.vstack([points, points[:1]]) if closed and len(points) > 1 else points
+    poly = closed_polyline(points, closed)
     tagged, t = _resample(points, closed, spacing)
     if len(poly) < 2 or latency_s == 0:
         return tagged, tagged.copy()
     seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
-    s = np.concatenate([[0.0], np.cumsum(seg)])
+    s = arc_lengths(seg)
     true = _at(poly, s, np.maximum(t - speed_mm_s * latency_s, 0.0))
     return tagged, true
 

@@ -14,7 +14,7 @@ import numpy as np
 
 from icefab import flow
 from icefab.config import Job
-from icefab.core import LayerMotion, Toolpath, Trajectory, ValveProgram
+from icefab.core import LayerMotion, Toolpath, Trajectory, ValveProgram, offsets
 from icefab.errors import SimulationError
 from icefab.stages import layer_height
 from icefab.sim.deposition import (MATERIAL_ID, _TINY_MM, ActionFn, _joints, pulse_drops,
@@ -130,7 +130,7 @@ def _layer_plan(index: int, pieces: list[tuple[np.ndarray, bool, float, str]], d
     a = cat([pts[:-1] for pts, *_ in pieces], (0, 2))
     b = cat([pts[1:] for pts, *_ in pieces], (0, 2))
     counts = [len(pts) - 1 for pts, *_ in pieces]
-    starts = np.concatenate([[0], np.cumsum(counts, dtype=np.int64)]).astype(np.int64)
+    starts = offsets(counts)
     w = cat([np.full(c, wd) for c, (_, _, wd, _) in zip(counts, pieces)], (0,))
     mat = cat([np.full(c, MATERIAL_ID[m], dtype=np.int8)
                for c, (_, _, _, m) in zip(counts, pieces)], (0,), np.int8)
@@ -146,7 +146,7 @@ def _layer_plan(index: int, pieces: list[tuple[np.ndarray, bool, float, str]], d
 
 
 
-def _laser_in_time(xy: np.ndarray, dt: float, rate_hz: float, latency_s: float
+def laser_in_time(xy: np.ndarray, dt: float, rate_hz: float, latency_s: float
                    ) -> tuple[np.ndarray, np.ndarray]:
     """Laser samples along a measurement trajectory (part frame, every ``dt`` s): every
     ``1 / rate_hz`` s from its start, tagged with the position then and reading where the
@@ -194,7 +194,7 @@ def plan_layer_motion(layer: "LayerMotion", job: "Job") -> LayerPlan:
             raise SimulationError(f"layer {layer.index}: unknown material {p.material!r}")
         if p.role == "measure":
             part_xy = flow.trajectory_part_xy(traj, p.tool_name, job)  # under the laser
-            tg, tr = _laser_in_time(part_xy, float(traj.dt), sim.laser_rate_hz,
+            tg, tr = laser_in_time(part_xy, float(traj.dt), sim.laser_rate_hz,
                                     sim.laser_latency_s)
             tag_parts.append(tg)
             true_parts.append(tr)
