@@ -25,6 +25,7 @@ moves; a joint with |q'_j| ~ 0 gives no bound on u (only on x through q''_j).
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -521,21 +522,71 @@ def rest_accelerations(gstart, h, v, T, dt, a_r, dmin0, dmin1, cap0, cap1):
     return a0, a1, Tn
 
 
+class PieceGrid(NamedTuple):
+    """The path to time, cut into pieces sampled on a uniform grid.
+
+    gstart (P+1,) int64: grid points of piece p are ``gstart[p]:gstart[p+1]``; h (P,) mm,
+    each piece's grid step; xy (N, 2) mm, the grid points; vstart (P+1,) int64, vs_loc
+    (K,) mm, vtau (K, 2): the vertices of the polyline each piece follows, their arc length
+    from the piece start and turning vectors (see _vertex_bounds).
+    """
+
+    gstart: np.ndarray
+    h: np.ndarray
+    xy: np.ndarray
+    vstart: np.ndarray
+    vs_loc: np.ndarray
+    vtau: np.ndarray
+
+
+class CartesianLimits(NamedTuple):
+    """The tool point's constraint (thesis 4.1.2-4.1.5): speed vcap (P,) mm/s per piece,
+    acceleration accel mm/s^2, jerk mm/s^3 (applied when jerk_on), and rest_accel mm/s^2,
+    the initial/final acceleration of the from/to-rest curves (thesis 4.2.6)."""
+
+    vcap: np.ndarray
+    accel: float
+    jerk: float
+    jerk_on: bool
+    rest_accel: float
+
+
+class JointLimits(NamedTuple):
+    """The robot's joint constraint: q (N, m) joint values on the grid (rad or mm), and
+    per-joint speed, acceleration and jerk bounds vel, acc, jerk (m,) (inf = none)."""
+
+    q: np.ndarray
+    vel: np.ndarray
+    acc: np.ndarray
+    jerk: np.ndarray
+
+
+class Sampling(NamedTuple):
+    """How the profiles are evaluated: dt s, the output time step (see _step_curvature);
+    jerk_window mm, the length over which curvature is averaged before taking its slope
+    for the jerk bounds; jcon_tol, the JCON iteration's relative tolerance."""
+
+    dt: float
+    jerk_window: float
+    jcon_tol: float
+
+
 @njit(cache=True, fastmath=_FM, error_model="numpy")
-def speed_profiles(gstart, h, xy, q, vcap, A, J, jerk_on, qv, qa, qj, a_rest, jcon_tol,
-                   jerk_window, dt, vstart, vs_loc, vtau):
+def speed_profiles(grid, cart, joints, sampling):
     """VCON + ACON forward/backward + JCON for every piece (thesis 4.1.2-4.1.5).
 
-    gstart (P+1,) int64; h (P,) mm; xy (N, 2) mm grid points; q (N, m) joints on the grid;
-    vcap (P,) mm/s speed bound per piece; A mm/s^2; J mm/s^3; qv, qa, qj (m,) joint bounds
-    (inf = none); a_rest mm/s^2 initial/final acceleration of the from/to-rest curves
-    (thesis 4.2.6); jerk_window mm, the length over which curvature is averaged before
-    taking its slope for the jerk bounds; dt s, the output step (see _step_curvature);
-    vstart (P+1,), vs_loc (K,) mm, vtau (K, 2): the vertices of the polyline each piece
-    follows, their arc length from the piece start and turning vectors (see _vertex_bounds).
+    One object per constraint, as TOPP-RA takes them: grid (:class:`PieceGrid`), the
+    tool point's limits (:class:`CartesianLimits`), the joints' (:class:`JointLimits`),
+    and the evaluation (:class:`Sampling`).
     Returns v (N,) mm/s on the grid, envelope (N,) mm/s, and the piece
     durations T (P,) s.
     """
+    gstart, h, xy = grid.gstart, grid.h, grid.xy
+    vstart, vs_loc, vtau = grid.vstart, grid.vs_loc, grid.vtau
+    vcap, A, J = cart.vcap, cart.accel, cart.jerk
+    jerk_on, a_rest = cart.jerk_on, cart.rest_accel
+    q, qv, qa, qj = joints.q, joints.vel, joints.acc, joints.jerk
+    dt, jerk_window, jcon_tol = sampling.dt, sampling.jerk_window, sampling.jcon_tol
     N = xy.shape[0]
     m = q.shape[1]
     P = gstart.shape[0] - 1

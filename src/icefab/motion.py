@@ -441,9 +441,11 @@ def _plan_polylines(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
     # the polyline each piece follows (its vertices, turning vectors, arc length)
     vstart, vs_loc, vtau = _vertices(sp.fxy, sp.fstart)
     v, env, T = _mtts.speed_profiles(
-        gstart, hk, gxy, qgrid, vcap_piece, float(m.accel_mm_s2), float(m.jerk_mm_s3),
-        jerk_on, qv[used], qa[used], qj[used], float(m.rest_accel_mm_s2),
-        JCON_TOLERANCE, JERK_WINDOW_MM, float(m.dt_s), vstart, vs_loc, vtau)
+        _mtts.PieceGrid(gstart, hk, gxy, vstart, vs_loc, vtau),
+        _mtts.CartesianLimits(vcap_piece, float(m.accel_mm_s2), float(m.jerk_mm_s3),
+                              bool(jerk_on), float(m.rest_accel_mm_s2)),
+        _mtts.JointLimits(qgrid, qv[used], qa[used], qj[used]),
+        _mtts.Sampling(float(m.dt_s), JERK_WINDOW_MM, JCON_TOLERANCE))
 
     # ---- AREST with the encoder resolution: first and last steps of every piece
     dt = float(m.dt_s)
