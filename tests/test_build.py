@@ -20,6 +20,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from icefab.errors import WorkspaceError
+
 from icefab import build as bmod
 from icefab.config import Job, to_toml
 from icefab.journal import Journal, JournalError
@@ -76,9 +78,13 @@ def test_stroke_is_checked_before_anything_moves(planned):
 
     m = load_trajectories(planned)
     tall = BuildMotion(layers=(LayerMotion(index=0, z=230.0, trajectories=()),), job=m.job)
-    with pytest.raises(Exception, match="vertical stroke of 210 mm"):
+    with pytest.raises(WorkspaceError, match="vertical stroke cell.stroke_mm = 210 mm"):
         bmod.check_build(tall, m.job, 1)
     bmod.check_build(m, m.job, len(m.layers))
+    # the cell's own stroke, not the Cobra's constant: a taller cell takes it
+    bmod.check_build(tall, m.job.replace(**{"cell.stroke_mm": 300.0}), 1)
+    with pytest.raises(WorkspaceError, match="cell.stroke_mm = 200 mm"):
+        bmod.check_build(tall, m.job.replace(**{"cell.stroke_mm": 200.0}), 1)
 
 
 class Crash(BaseException):

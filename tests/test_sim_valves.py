@@ -196,9 +196,18 @@ def test_the_control_action_goes_into_the_valve_programs_of_the_next_layers(
     nominal = layer_valves(plan, job)
     ratio = sum(map(flow.n_pulses, lv.programs)) / sum(map(flow.n_pulses, nominal.programs))
     assert ratio == pytest.approx(0.8, rel=0.01)
-    if controller == "speed":  # the c-controller re-times: 1 / 0.8 times as fast
-        assert sum(t.duration for t in lv.trajectories) == pytest.approx(
-            0.8 * sum(t.duration for t in nominal.trajectories), rel=0.02)
+    if controller == "speed":
+        # the c-controller re-times toward 1 / 0.8 times as fast, but only as far as the
+        # motion limits allow (issue 14): these paths were planned at the speed bound, so
+        # they keep their time; the volume per mm follows the action all the same (above)
+        from icefab.motion import limit_ratio
+
+        t_new = sum(t.duration for t in lv.trajectories)
+        t_nom = sum(t.duration for t in nominal.trajectories)
+        assert 0.8 * t_nom * 0.98 <= t_new <= t_nom * 1.02
+        for new, old in zip(lv.trajectories, nominal.trajectories):
+            assert limit_ratio(new, job).min() >= min(1.0, limit_ratio(old, job).min()) * (
+                1 - 1e-6)
 
 
 def test_smf_through_the_valves_removes_a_flow_error_on_the_annulus(annulus_motion):

@@ -64,7 +64,8 @@ REPORT = "report.html"
 STOP_REQUEST = "stop.request"
 CELL_DIR = "cell"
 
-#: Cobra 600 vertical (joint 3) stroke, mm (thesis Table 2-1): a taller part cannot be built.
+#: Cobra 600 vertical (joint 3) stroke, mm (thesis Table 2-1); the build checks the job's
+#: cell.stroke_mm (this default).
 Z_STROKE_MM = 210.0
 
 
@@ -87,10 +88,11 @@ def check_build(motion: "BuildMotion", job: "Job", layers: int) -> None:
                           "('icefab simulate') or plan with slicing.cusp_height_mm = 0")
     top = max((float(lm.z) for lm in motion.layers[:layers]), default=0.0) \
         + job.slicing.layer_thickness_mm
-    if top > Z_STROKE_MM:
+    stroke = job.cell.stroke_mm
+    if top > stroke:
         raise WorkspaceError(f"the part is {top:.1f} mm tall over its first {layers} layers: "
-                             f"beyond the robot's vertical stroke of {Z_STROKE_MM:g} mm "
-                             "(Cobra 600, thesis Table 2-1)")
+                             f"beyond the robot's vertical stroke cell.stroke_mm = {stroke:g} "
+                             "mm (Cobra 600: 210 mm, thesis Table 2-1)")
 
 
 def check_speeds(trajectories, job: "Job", layer: int) -> list[str]:

@@ -899,18 +899,21 @@ def action_sampler(action: HeightMap | ControlAction) -> Callable[[np.ndarray], 
     return lambda xy: rgi(np.asarray(xy, dtype=np.float64).reshape(-1, 2)[:, ::-1])
 
 
-def retime_trajectory(traj: Trajectory, u: np.ndarray, *, max_change: float = 0.3
-                      ) -> Trajectory:
+def retime_trajectory(traj: Trajectory, u: np.ndarray, *, max_change: float = 0.3,
+                      cap: np.ndarray | None = None) -> Trajectory:
     """The c-controller (thesis 5.2.2, eqs. 5.7, 5.10, Fig. 5-6): speed c_nom / (1 + u).
 
     traj: constant-dt trajectory; u: (n,) control action at its samples.
     max_change: the speed stays within +-max_change of nominal (thesis: 30 %).
+    cap: (n,) the largest speed-up each sample allows under the motion limits
+    (:func:`icefab.motion.speedup_cap`); None: only ``max_change`` bounds it.
 
     The speed factor f = clip(1 / (1 + u), 1 - max_change, 1 + max_change) changes the time
     to cover each segment to dt / f (f averaged over the segment's ends); the path is then
     re-sampled at the SAME dt by linear interpolation in time, so the speed lives in the
     point spacing (Fig. 5-6) instead of in variable point-to-point durations. The time axis
-    is stretched by at most dt / duration so the last sample lands exactly on (n'-1) dt.
+    is stretched by at most dt / duration so the last sample lands exactly on (n'-1) dt
+    (with a ``cap``, only lengthened).
     Joints are re-sampled the same way; piece starts (``traj.pieces``) move to the sample
     nearest their new time.
     """
@@ -923,11 +926,20 @@ def retime_trajectory(traj: Trajectory, u: np.ndarray, *, max_change: float = 0.
         raise ConfigError(f"max_change = {max_change!r}: must be in [0, 1)")
     if n < 2:
         return traj
-    f = np.clip(1.0 / np.maximum(1.0 + u, 1e-9), 1.0 - max_change, 1.0 + max_change)
+    hi = 1.0 + max_change
+    if cap is not None:
+        cap = np.asarray(cap, dtype=np.float64)
+        if cap.shape != (n,):
+            raise ConfigError(f"retime_trajectory: cap has shape {cap.shape}, expected ({n},)")
+        hi = np.minimum(hi, np.maximum(cap, 1.0))
+    f = np.clip(1.0 / np.maximum(1.0 + u, 1e-9), 1.0 - max_change, hi)
     dt = float(traj.dt)
     seg = dt / (0.5 * (f[1:] + f[:-1]))
     T = arc_lengths(seg)
-    n_new = max(2, int(np.rint(T[-1] / dt)) + 1)
+    # the last sample lands on a whole step: the time axis is stretched to it, and with a
+    # cap only ever lengthened (a shortened axis would speed the path past the cap)
+    steps = np.ceil(T[-1] / dt - 1e-9) if cap is not None else np.rint(T[-1] / dt)
+    n_new = max(2, int(steps) + 1)
     T *= (n_new - 1) * dt / T[-1]
     t_new = np.arange(n_new) * dt
     xy_new = np.column_stack([np.interp(t_new, T, xy[:, j]) for j in range(2)])

@@ -105,6 +105,7 @@ from icefab.atomic import write_atomic
 from icefab.errors import ConfigError, FlowError, StackFileError
 from icefab.inputs import check_input, read_input_text
 from icefab.frames import to_part_frame
+from icefab.motion import limit_ratio, speedup_cap
 from icefab.core import HeightMap, Trajectory, ValveProgram
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -1036,6 +1037,42 @@ def read_valve_layer(path: str | os.PathLike) -> tuple[int, list[LayerProgram]]:
 # =========================================================================== re-planning
 
 
+#: Time over which the c-controller's speed-up may change, s: a step in the speed factor
+#: f at speed v adds v df / dt of acceleration and v d2f / dt2 of jerk, so the cap ramps.
+CAP_RAMP_S = 0.5
+
+
+def _smooth_cap(cap: np.ndarray, dt: float) -> np.ndarray:
+    """The speed-up cap eased into ramps of :data:`CAP_RAMP_S`: a moving minimum over the
+    ramp (so it never exceeds the cap) averaged over the same window (so it changes
+    gradually)."""
+    from scipy.ndimage import minimum_filter1d, uniform_filter1d
+
+    w = max(3, int(round(CAP_RAMP_S / dt)) | 1)
+    finite = np.minimum(cap, 10.0)
+    low = minimum_filter1d(finite, size=2 * w + 1, mode="nearest")
+    return np.minimum(uniform_filter1d(low, size=w, mode="nearest"), finite)
+
+
+def _retime_within_limits(traj: Trajectory, u: np.ndarray, job: "Job") -> Trajectory:
+    """The c-controller's re-timing (:func:`icefab.feedback.retime_trajectory`) with
+    speed-ups only where every motion limit still holds: the re-timed path is not planned
+    again by MTTS, so speed, acceleration and jerk, Cartesian and per joint, are kept by
+    capping the speed-up (:func:`icefab.motion.speedup_cap`) and checked on the result
+    (:func:`icefab.motion.limit_ratio`); where the cap's own changes along the path still
+    break a limit, the speed-ups are halved until none does (no speed-up at all last)."""
+    nominal = min(1.0, float(limit_ratio(traj, job).min()))
+    cap = _smooth_cap(speedup_cap(traj, job), float(traj.dt))
+    out = traj
+    for _ in range(8):
+        out = feedback.retime_trajectory(traj, u, max_change=job.feedback.saturation, cap=cap)
+        if float(limit_ratio(out, job).min()) >= nominal * (1.0 - 1e-6):
+            return out
+        cap = 1.0 + 0.5 * (cap - 1.0)
+    return feedback.retime_trajectory(traj, u, max_change=job.feedback.saturation,
+                                      cap=np.ones(len(traj.xy)))
+
+
 def replan_valves(trajectories: "Sequence[Trajectory]", job: "Job", *,
                   action: ActionLike = None, layer_thickness: float | None = None
                   ) -> tuple[list[Trajectory], list[ValveProgram]]:
@@ -1048,7 +1085,8 @@ def replan_valves(trajectories: "Sequence[Trajectory]", job: "Job", *,
 
     ``job.feedback.controller == "flow"`` (nu-controller, default): trajectories are kept,
     flow x (1 + u). ``"speed"`` (c-controller, eq. 5.7-5.10): depositing trajectories are
-    re-timed to c_nom / (1 + u) within +-``feedback.saturation``
+    re-timed to c_nom / (1 + u) within +-``feedback.saturation`` and every motion limit
+    (:func:`_retime_within_limits`)
     (:func:`icefab.feedback.retime_trajectory`) and the valve keeps the nominal flow along
     them, so the volume per mm becomes (1 + u) times nominal. Returns the (possibly
     re-timed) trajectories and their valve programs, in order.
@@ -1064,7 +1102,7 @@ def replan_valves(trajectories: "Sequence[Trajectory]", job: "Job", *,
         depositing = traj.path is None or traj.path.depositing
         if speed_ctl and depositing:
             u = _action_values(action, traj, material, job)
-            traj = feedback.retime_trajectory(traj, u, max_change=job.feedback.saturation)
+            traj = _retime_within_limits(traj, u, job)
             u_new = _action_values(action, traj, material, job)
             prog = plan_valves(traj, material, job, action=u_new,
                                layer_thickness=layer_thickness)

@@ -825,6 +825,68 @@ def constant_speed_motion(toolpaths: Toolpaths, job: Job | None = None, *,
 # --------------------------------------------------------------------------- outputs
 
 
+def speedup_cap(traj: Trajectory, job: Job | None = None) -> np.ndarray:
+    """:func:`limit_ratio`, never below 1: a sample already at a limit is not slowed, only
+    not sped up."""
+    return np.maximum(limit_ratio(traj, job), 1.0)
+
+
+def limit_ratio(traj: Trajectory, job: Job | None = None) -> np.ndarray:
+    """(n,) the largest factor by which a trajectory's speed may be raised at each sample
+    without breaking a motion limit it respects (thesis 4.1: the limits MTTS planned it
+    under), for the c-controller's re-timing (thesis 5.2.2, which speeds paths up by up to
+    ``feedback.saturation``).
+
+    Raising the speed uniformly by f scales speeds by f, accelerations by f^2 and jerks by
+    f^3, Cartesian (``motion.speed_mm_s``, ``accel_mm_s2``, ``jerk_mm_s3`` when
+    ``motion.jerk_limited``) and per joint (the robot's bounds) alike, so the cap is the
+    smallest of ``limit / value``, its square root and its cube root over the quantities,
+    each measured by finite differences of the samples (at the trajectory's dt) and taken
+    over the samples each difference spans. Below 1 where a limit is exceeded (by that
+    factor); inf where nothing bounds a sample.
+    """
+    job = job or Job()
+    m = job.motion
+    robot = get_robot(job)
+    dt = float(traj.dt)
+    xy = np.asarray(traj.xy, dtype=np.float64)
+    n = len(xy)
+    cap = np.full(n, np.inf)
+    if n < 2 or not dt > 0:
+        return np.full(n, np.inf)
+
+    def bound(values: np.ndarray, limit, power: float) -> None:
+        """values (k, ...) the order-th differences over samples i..i+order; limit scalar
+        or per column; the cap of every sample a difference spans."""
+        if not len(values):
+            return
+        lim = np.asarray(limit, dtype=np.float64)
+        mag = np.abs(values) if values.ndim > 1 else values
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r = np.where(mag > 1e-12, lim / mag, np.inf) ** (1.0 / power)
+        r = r.min(axis=1) if r.ndim > 1 else r
+        order = n - len(r)
+        for k in range(order + 1):
+            cap[k:k + len(r)] = np.minimum(cap[k:k + len(r)], r)
+
+    d1 = np.diff(xy, axis=0) / dt
+    bound(np.hypot(d1[:, 0], d1[:, 1]), m.speed_mm_s, 1.0)
+    d2 = np.diff(d1, axis=0) / dt
+    bound(np.hypot(d2[:, 0], d2[:, 1]), m.accel_mm_s2, 2.0)
+    if m.jerk_limited:
+        d3 = np.diff(d2, axis=0) / dt
+        bound(np.hypot(d3[:, 0], d3[:, 1]), m.jerk_mm_s3, 3.0)
+    q = np.asarray(traj.joints, dtype=np.float64)
+    if q.ndim == 2 and len(q) == n and q.shape[1] == len(robot.joint_speed_max):
+        q1 = np.diff(q, axis=0) / dt
+        bound(q1, robot.joint_speed_max, 1.0)
+        q2 = np.diff(q1, axis=0) / dt
+        bound(q2, robot.joint_accel_max, 2.0)
+        if m.jerk_limited:
+            bound(np.diff(q2, axis=0) / dt, robot.joint_jerk_max, 3.0)
+    return cap
+
+
 def constant_spacing(traj: Trajectory, spacing_mm: float | None = None,
                      job: Job | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The optional output with constant point spacing and variable duration.
