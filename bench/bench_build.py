@@ -80,8 +80,9 @@ def kills(args: argparse.Namespace) -> None:
     proc = subprocess.Popen(cmd + [str(traj), "-o", "k", "--virtual"], cwd=d,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     n = 0
-    # each kill: a random moment (up to twice the mean share of the uninterrupted build's
-    # time per kill) after the (resumed) build journaled one more command done, so that a
+    # each kill: a random moment (up to the mean share of the uninterrupted build's time
+    # per kill, so all kills fit in the build: up to twice that let the build finish
+    # after 28 of 30) after the (resumed) build journaled one more command done, so that a
     # slow process start on a loaded machine cannot starve the build
     share = t_ref / args.kills
     while n < args.kills:
@@ -90,7 +91,7 @@ def kills(args: argparse.Namespace) -> None:
             time.sleep(0.02)
         if proc.poll() is not None:
             break
-        time.sleep(float(rng.uniform(0.0, 2.0 * share)))
+        time.sleep(float(rng.uniform(0.0, share)))
         if proc.poll() is not None:
             break
         proc.send_signal(signal.SIGKILL)
