@@ -6,6 +6,7 @@ at a random command, before or after the cell ran it) and, end to end, by SIGKIL
 ``icefab build`` process; the virtual cell keeps its state in its folder."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import shutil
@@ -20,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from icefab.errors import WorkspaceError
+from icefab.errors import CellError, WorkspaceError
 
 from icefab import build as bmod
 from icefab.config import Job, to_toml
@@ -132,6 +133,56 @@ def _inprocess(build: Path, motion, job, crash_at=None, after=False):
         return runner.run()
     finally:
         journal.close()
+
+
+class FaultingCell:
+    """A cell that faults at the start of the first deposition path of ``layer``: the link
+    drops and, reconnected, the cell reports that path as cut (nothing of it deposited)."""
+
+    def __init__(self, cell: VirtualCell, layer: int) -> None:
+        self.cell, self.layer, self.cut = cell, layer, 0
+
+    def __getattr__(self, name):
+        return getattr(self.cell, name)
+
+    def status(self):
+        st = self.cell.status()
+        return dataclasses.replace(st, cut=self.cut) if self.cut else st
+
+    def run_path(self, seq, path):
+        if not self.cut and path.layer == self.layer and path.role != "measure":
+            self.cut = seq
+            raise CellError("link lost (cell fault)")
+        return self.cell.run_path(seq, path)
+
+
+def test_a_cell_fault_is_measured_before_the_next_layer(planned, tmp_path):
+    """Layer 1 (not a measurement layer: every 4th is) has a path cut by a cell fault: it
+    is journaled as cut, never re-run, and the surface is measured at the layer's end with
+    the nearest measurement layer's paths, an SMF update made there."""
+    from icefab.motion import load_trajectories
+
+    motion = load_trajectories(planned)
+    job = motion.job
+    build = tmp_path / "b"
+    build.mkdir()
+    journal = Journal.create(build / bmod.JOURNAL, {"digests": {}})
+    cell = VirtualCell(build / "cell")
+    from icefab.cli.build_cmd import _box
+
+    lo, hi = _box(motion, job)
+    cell.prepare(to_toml(job), tuple(lo), tuple(hi))
+    faulty = FaultingCell(cell, layer=1)
+    runner = bmod.Runner(build, motion, job, journal, lambda: faulty)
+    runner.run()
+    cut = [c for c in journal.commands() if c["cut"]]
+    assert len(cut) == 1 and cut[0]["seq"] == faulty.cut and cut[0]["layer"] == 1
+    assert faulty.cut not in _executed(build)  # never run again
+    measured = [m["layer"] for m in journal.measurements()]
+    assert measured[0] == 1  # before any regular measurement (layer 3)
+    assert [e["layer"] for e in journal.events() if e["kind"] == "fault-measure"] == [1]
+    assert any(c["kind"] == "fault_measure" and c["layer"] == 1 for c in journal.commands())
+    journal.close()
 
 
 def _executed(build: Path) -> list[int]:
@@ -308,6 +359,13 @@ def test_cell_killed_mid_path_build_completes(planned, tmp_path):
     j = Journal.open(tmp_path / "f" / bmod.JOURNAL)
     faults = [e for e in j.events() if e["kind"] in ("cell-link", "cell-fault")]
     assert faults
+    # every layer in which a fault cut a path short is measured at its end (its own
+    # measurement paths, or the nearest layer's: a "fault-measure"), before the next layer
+    measured = {m["layer"] for m in j.measurements()}
+    cut = {c["layer"] for c in j.commands() if c["cut"]}
+    assert cut <= measured, (cut, measured)
+    fault_measures = {e["layer"] for e in j.events() if e["kind"] == "fault-measure"}
+    assert fault_measures <= cut
     ref = Journal.open(tmp_path / "ref" / bmod.JOURNAL).measurements()[-1]["rms_measured"]
     got = j.measurements()[-1]["rms_measured"]
     assert got <= 2 * ref

@@ -23,7 +23,9 @@ number, kept when it is re-sent after a crash; the cell answers a number it comp
 with "done" instead of running it again. On start the runner asks the cell what it
 completed (``status``): journaled commands at or below it are completed in the journal,
 a path a cell fault cut short is recorded as cut (never re-run: half a path twice would
-deposit its first half twice) and the next measurement lets SMF absorb the error. Whole
+deposit its first half twice), and the surface is measured at the end of that layer (with
+the nearest measurement layer's paths when it has none of its own: journal event
+"fault-measure"), so SMF absorbs the error before the next layer. Whole
 layers the journal shows complete are skipped; the control action is restored from the
 journal's last SMF row, so the re-planned programs are the ones an uninterrupted build
 sends (their digests are checked against the journal).
@@ -292,7 +294,11 @@ class Runner:
         if self.journal.is_done(seq):  # the reconciliation found it done or cut
             return
         self.journal.sent(seq)
-        executed = self._call(lambda cell: fn(cell, seq))
+        # after a lost link _call reconnects and reconciles, then calls again: a command the
+        # reconciliation found done or cut must not be sent a second time (a cut path sent
+        # again would deposit its first part twice)
+        executed = self._call(lambda cell: None if self.journal.is_done(seq)
+                              else fn(cell, seq))
         if self.journal.is_done(seq):  # a fault during the call, reconciled
             return
         self.journal.acked(seq)
@@ -334,7 +340,8 @@ class Runner:
             p.layer = L
             p.layer_pos = j
             p.remaining_s = float(sum(self._durations[j:]))
-            if L in done_layers and (not meas_items or L in smf_layers):
+            cut_here = L in self._cut_layers()
+            if L in done_layers and (not (meas_items or cut_here) or L in smf_layers):
                 continue
             plan = simmod.plan_layer_motion(lm, job)
             lv = simmod.layer_valves(plan, job, action)
@@ -366,6 +373,16 @@ class Runner:
             self._stop_point()
             self._send("layer_end", L, -1, digest_text(f"layer_end {L}"),
                        lambda c, s, L=L: c.end_layer(s, L))
+            kind = "path"
+            if not meas_items and L in self._cut_layers():
+                # a cell fault cut a path of this layer short: measure the surface before
+                # the next layer (with the nearest measurement layer's paths) so SMF absorbs
+                # the missing material now, not n_d layers later
+                meas_items = self._fault_measure_items(j)
+                kind = "fault_measure"
+                if meas_items and L not in smf_layers:
+                    self.journal.event("fault-measure", f"layer {L}: surface measured after "
+                                       "the cell fault, before the next layer", layer=L)
             if meas_items:
                 raws = []
                 for i, tr in meas_items:
@@ -373,8 +390,8 @@ class Runner:
                     cp = CellPath(layer=L, item=i, role="measure", tool="laser",
                                   xy=np.asarray(tr.xy, np.float64), dt_s=float(tr.dt),
                                   z_mm=z_mm, width_mm=0.0)
-                    self._send("path", L, i, cp.digest(), lambda c, s, cp=cp: c.run_path(s, cp))
-                    seq, _ = self.journal.command("path", L, i, cp.digest())
+                    self._send(kind, L, i, cp.digest(), lambda c, s, cp=cp: c.run_path(s, cp))
+                    seq, _ = self.journal.command(kind, L, i, cp.digest())
                     raw = self._call(lambda c, s=seq: c.laser_samples(s))
                     raws.append(laser_to_part(np.asarray(raw), tr, job))
                     p.paths_done = self.journal.paths_done()
@@ -399,6 +416,21 @@ class Runner:
         self.journal.event("complete", f"build complete: {p.paths_done} paths")
         self._report(force=True, measured=True)
         return p
+
+    def _cut_layers(self) -> set[int]:
+        """Layers in which a cell fault cut a path short (journaled by the reconciliation)."""
+        return {int(c["layer"]) for c in self.journal.commands() if c["cut"]}
+
+    def _fault_measure_items(self, j: int) -> list:
+        """The measurement trajectories nearest layer position ``j`` (the last measurement
+        layer at or below it, else the next one above): their paths cover the part's
+        footprint there."""
+        order = sorted(range(len(self.motion.layers)), key=lambda k: (abs(k - j), k > j))
+        for k in order:
+            _run, meas = _items(self.motion.layers[k])
+            if meas:
+                return meas
+        return []
 
     def _stop_point(self) -> None:
         if self.should_stop():
