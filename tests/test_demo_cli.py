@@ -29,3 +29,20 @@ def test_demo_rejects_negative_layers(tmp_path, capsys):
     assert main(["demo", "-o", str(tmp_path / "x"), "--layers", "-1"]) == 2
     assert "--layers -1" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
+
+
+def test_a_simulation_without_a_measurement_is_refused_before_any_work(tmp_path):
+    """feedback.interval_layers beyond the simulated layers: SMF would never act (the
+    settings walk found an IndexError after the whole pipeline); one line, nothing
+    written, before slicing."""
+    import subprocess
+    import sys
+
+    job = tmp_path / "job.toml"
+    job.write_text("[feedback]\ninterval_layers = 1000\n")
+    r = subprocess.run([sys.executable, "-m", "icefab", "demo", "-c", str(job), "--layers",
+                        "4", "--sim-layers", "4", "-o", str(tmp_path / "out")],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and len(r.stderr.splitlines()) == 1, r.stderr
+    assert "feedback.interval_layers = 1000" in r.stderr
+    assert not (tmp_path / "out").exists()
