@@ -88,6 +88,20 @@ def test_stroke_is_checked_before_anything_moves(planned):
         bmod.check_build(tall, m.job.replace(**{"cell.stroke_mm": 200.0}), 1)
 
 
+def test_reach_of_the_builds_cell_is_checked_before_anything_moves(planned):
+    """Trajectories planned for one cell, built with a job whose reach is shorter: refused
+    before anything moves, naming the layer, path, point and the reach."""
+    from icefab.motion import load_trajectories
+
+    m = load_trajectories(planned)
+    r = max(float(np.hypot(*t.xy.T).max()) for lm in m.layers for t in lm.trajectories
+            if len(t.xy))
+    short = m.job.replace(**{"cell.reach_mm": [163.0, r - 5.0]})
+    with pytest.raises(WorkspaceError, match=r"layer \d+, path \d+, before anything moves"):
+        bmod.check_build(m, short, len(m.layers))
+    bmod.check_build(m, m.job.replace(**{"cell.reach_mm": [163.0, r + 1.0]}), len(m.layers))
+
+
 class Crash(BaseException):
     """The control PC dies (not an error the runner handles)."""
 

@@ -49,6 +49,7 @@ from typing import TYPE_CHECKING, Callable
 import numpy as np
 
 from icefab.errors import ConfigError, IcefabError, WorkspaceError
+from icefab.robots import check_workspace, get_robot
 from icefab.journal import Journal, digest_text, pack_arrays, unpack_arrays
 from icefab.runcell import Cell, CellError, CellPath
 from icefab.core import HeightMap
@@ -79,15 +80,28 @@ class BuildStopped(IcefabError):
 
 
 def check_build(motion: "BuildMotion", job: "Job", layers: int) -> None:
-    """Refuse, before anything moves, a build the cell cannot make: a part taller than
-    the vertical stroke (WorkspaceError naming it). Reach and joint limits were checked
-    when the trajectories were planned (:func:`icefab.motion.plan_toolpaths`).
+    """Refuse, before anything moves, a build the cell cannot make: a trajectory point
+    beyond the reach or a joint's range of this job's cell (the planner checked the job it
+    planned with; the cell the build runs on may differ), a part taller than the vertical
+    stroke (WorkspaceError naming layer, path and point, or the stroke).
     Adaptive layers (own thicknesses) are refused: the runner's SMF interval and the
     virtual cell still count in layers of ``slicing.layer_thickness_mm``."""
     if any(np.isfinite(lm.thickness) for lm in motion.layers):
         raise ConfigError("these trajectories have adaptive layers (slicing.cusp_height_mm > "
                           "0): the build runner does not run them yet; simulate them "
                           "('icefab simulate') or plan with slicing.cusp_height_mm = 0")
+    robot = get_robot(job)
+    for lm in motion.layers[:layers]:  # the cell's own reach and joint ranges (this job's)
+        trajs = [t for t in lm.trajectories if len(t.xy)]
+        if not trajs:
+            continue
+        pts = np.concatenate([np.asarray(t.xy, dtype=np.float64) for t in trajs])
+        bad, _reasons = robot.workspace_violations(pts)
+        if len(bad):
+            first = np.cumsum([len(t.xy) for t in trajs])
+            k = int(np.searchsorted(first, int(bad[0]), side="right"))
+            check_workspace(trajs[k].xy, robot, layer=int(lm.index), path=k,
+                            what="before anything moves (cell.reach_mm, cell.joint_range_deg)")
     top = max((float(lm.z) for lm in motion.layers[:layers]), default=0.0) \
         + job.slicing.layer_thickness_mm
     stroke = job.cell.stroke_mm
