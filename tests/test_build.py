@@ -31,9 +31,8 @@ from icefab.runcell import CellPath, VirtualCell
 LAYERS = 5          # the demo mug's first 5 layers: 4 and 8 hold measurement paths (n_d = 4)
 
 
-@pytest.fixture(scope="module")
-def planned(tmp_path_factory):
-    """The demo mug's first LAYERS layers, trajectories planned once (trajectories.npz)."""
+def _plan_mug(n_layers: int, folder: Path) -> Path:
+    """The demo mug's first ``n_layers`` layers, trajectories planned (trajectories.npz)."""
     from icefab.demo import demo_mug
     from icefab.mesh import transform
     from icefab.motion import plan_toolpaths, save_trajectories
@@ -44,12 +43,17 @@ def planned(tmp_path_factory):
 
     job = Job()
     stack = add_scaffold(slice_mesh(transform(demo_mug(), job.parts), job), job)
-    stack = Stack(layers=stack.layers[:LAYERS], job=stack.job,
+    stack = Stack(layers=stack.layers[:n_layers], job=stack.job,
                   layer_thickness=stack.layer_thickness, warnings=stack.warnings)
     motion = plan_toolpaths(plan_paths(stack, job), job)
-    d = tmp_path_factory.mktemp("plan")
-    save_trajectories(motion, d / "small.npz")
-    return d / "small.npz"
+    save_trajectories(motion, folder / f"mug{n_layers}.npz")
+    return folder / f"mug{n_layers}.npz"
+
+
+@pytest.fixture(scope="module")
+def planned(tmp_path_factory):
+    """The demo mug's first LAYERS layers, trajectories planned once (trajectories.npz)."""
+    return _plan_mug(LAYERS, tmp_path_factory.mktemp("plan"))
 
 
 def test_journal_is_wal_full_and_keeps_sequence_numbers(tmp_path):
@@ -394,20 +398,27 @@ def _chromium() -> str | None:
     return None
 
 
-def test_report_of_a_running_build_in_chromium(planned, tmp_path):
+def test_report_of_a_running_build_in_chromium(tmp_path):
     browser = _chromium()
     if browser is None:
         pytest.skip("headless Chromium is not installed (Debian package 'chromium'; "
                     ".ci/run installs it): the report's browser check cannot run here")
+    # 9 layers: the report first appears after layer 4's measurement, with layers 5-8 to go
+    planned = _plan_mug(2 * 4 + 1, tmp_path)
     proc = subprocess.Popen([sys.executable, "-m", "icefab", "build", str(planned), "-o",
                              "b", "--virtual", "--cell-dwell", "0.01"], cwd=tmp_path,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    cell_pid = None
     try:
         report = tmp_path / "b" / bmod.REPORT
         deadline = time.monotonic() + 300
         while not report.exists() and time.monotonic() < deadline:
-            time.sleep(0.5)
+            time.sleep(0.02)
         assert report.exists()
+        # freeze the cell (a robot still moving): the build waits on it, still running,
+        # however slowly Chromium starts on a loaded machine
+        cell_pid = json.loads((tmp_path / "b" / "cell" / "endpoints.json").read_text())["pid"]
+        os.kill(cell_pid, signal.SIGSTOP)
         assert proc.poll() is None          # the build is still running
         snap = tmp_path / "snapshot.html"
         shutil.copy(report, snap)
@@ -417,6 +428,8 @@ def test_report_of_a_running_build_in_chromium(planned, tmp_path):
                             "--v=0", "--dump-dom", snap.as_uri()],
                            capture_output=True, text=True, timeout=120)
     finally:
+        if cell_pid is not None:
+            os.kill(cell_pid, signal.SIGCONT)
         if proc.poll() is None:
             proc.send_signal(signal.SIGINT)
             proc.wait(timeout=120)
