@@ -171,7 +171,7 @@ def test_ledges_have_no_edge():
     others = (edges.layer != k) & (edges.layer < len(stack) - 1)
     assert edges.matched[others].all()
     np.testing.assert_allclose(edges.tilt[others], 0.0, atol=1e-9)
-    # a steeper limit than the walls' 0 degrees is still accepted, a wrong one refused
+    # a limit outside (0, 90) degrees is refused
     with pytest.raises(ValueError, match="max_tilt_deg"):
         ruled_edges(stack, 90.0)
 

@@ -39,7 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from icefab.core import Mesh
+from icefab.core import Mesh, offsets
 
 #: Facets whose |n_z| is at least this are horizontal (flats).
 FLAT = 1.0 - 1e-9
@@ -106,8 +106,7 @@ def plan_layers(mesh: Mesh, z_lo: float, z_hi: float, cusp_mm: float, t_min: flo
     hi = np.clip(np.floor((fz1[slanted] - z_lo) / b).astype(np.int64), 0, nbins - 1)
     # every facet marks the bins it reaches into (facets are short: a few bins each)
     count = hi - lo + 1
-    idx = np.repeat(lo - np.concatenate([[0], np.cumsum(count)[:-1]]), count) \
-        + np.arange(int(count.sum()))
+    idx = np.repeat(lo - offsets(count)[:-1], count) + np.arange(int(count.sum()))
     bins = np.zeros(nbins)
     np.maximum.at(bins, idx, np.repeat(nz[slanted], count))
     rmq = _RangeMax(bins)

@@ -354,7 +354,7 @@ class Runner:
             p.layer = L
             p.layer_pos = j
             p.remaining_s = float(sum(self._durations[j:]))
-            cut_here = L in self._cut_layers()
+            cut_here = L in self.journal.cut_layers()
             if L in done_layers and (not (meas_items or cut_here) or L in smf_layers):
                 continue
             plan = simmod.plan_layer_motion(lm, job)
@@ -388,7 +388,7 @@ class Runner:
             self._send("layer_end", L, -1, digest_text(f"layer_end {L}"),
                        lambda c, s, L=L: c.end_layer(s, L))
             kind = "path"
-            if not meas_items and L in self._cut_layers():
+            if not meas_items and L in self.journal.cut_layers():  # cut during this layer
                 # a cell fault cut a path of this layer short: measure the surface before
                 # the next layer (with the nearest measurement layer's paths) so SMF absorbs
                 # the missing material now, not n_d layers later
@@ -430,10 +430,6 @@ class Runner:
         self.journal.event("complete", f"build complete: {p.paths_done} paths")
         self._report(force=True, measured=True)
         return p
-
-    def _cut_layers(self) -> set[int]:
-        """Layers in which a cell fault cut a path short (journaled by the reconciliation)."""
-        return {int(c["layer"]) for c in self.journal.commands() if c["cut"]}
 
     def _fault_measure_items(self, j: int) -> list:
         """The measurement trajectories nearest layer position ``j`` (the last measurement

@@ -154,7 +154,7 @@ class SlicingSettings:
                "polygon vertices cap MTTS' curvature-limited speed")
     fit_tolerance_mm: float = setting(
         0.02, "largest distance between a fitted contour and the exact section",
-        lo=0.001, hi=0.05, lo_open=False,
+        lo=0.001, hi=0.05,
         why="0.02 mm is the paths' own smoothing bound (motion.smoothing_tolerance_mm); "
             "over 0.05 mm the fit moves the part more than the path filter does; under "
             "0.001 mm it is the polygon")

@@ -41,7 +41,7 @@ when one corner is kept. The paper's local interpolation (each segment from its 
 points, corners as tangent breaks) gives both the pointwise bound and the corners, at the
 cost of these ~100 lines of numpy (vectorised per ring).
 
-May import: ``icefab.core`` (nothing of the pipeline).
+May import: ``icefab.core``, ``icefab.geometry``.
 """
 
 from __future__ import annotations
@@ -51,6 +51,7 @@ import math
 import numpy as np
 
 from icefab.core import offsets
+from icefab.geometry import segment_distance
 
 #: Densification rounds before a ring is given up as already the polygon (a round halves
 #: the failing chords: 30 rounds take a 100 mm chord to 1e-7 mm).
@@ -120,16 +121,8 @@ def _deviation(q: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
         t = np.clip(r, 0.0, 1.0)
         best = np.maximum(best, np.abs(3 * d1 * t * (1 - t) ** 2 + 3 * d2 * t * t * (1 - t)))
     inside = (a1 >= 0) & (a1 <= L) & (a2 >= 0) & (a2 <= L)
-    hull = np.maximum(_seg_dist(p1, q, nxt), _seg_dist(p2, q, nxt))
+    hull = np.maximum(segment_distance(p1, q, nxt), segment_distance(p2, q, nxt))
     return np.where(inside, best, hull)
-
-
-def _seg_dist(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    d = b - a
-    L2 = np.einsum("ij,ij->i", d, d)
-    t = np.clip(np.einsum("ij,ij->i", p - a, d) / np.where(L2 > 0, L2, 1.0), 0.0, 1.0)
-    e = p - (a + t[:, None] * d)
-    return np.hypot(e[:, 0], e[:, 1])
 
 
 def _turns(q: np.ndarray) -> np.ndarray:

@@ -887,8 +887,8 @@ def width_runs(chains: Sequence[tuple[np.ndarray, np.ndarray, bool]], ratio: flo
     return out
 
 
-def _seg_dist(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(n,) distances of points p (n, 2) to segments a-b (n, 2 each)."""
+def segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(n,) distances of points p (n, 2) to segments a-b (n, 2 each), mm."""
     d = b - a
     L2 = np.einsum("ij,ij->i", d, d)
     t = np.einsum("ij,ij->i", p - a, d) / np.where(L2 > 0, L2, 1.0)
@@ -955,7 +955,7 @@ def _nearest_edge_distance(q: np.ndarray, P: np.ndarray, edge: np.ndarray, a: np
         ok = nf[:, col] < len(P)  # missing neighbours come back as len(P)
         e = edge[np.where(ok, nf[:, col], 0)]
         for ed in (e, prv[e]):
-            best = np.minimum(best, np.where(ok, _seg_dist(qf, a[ed], b[ed]), np.inf))
+            best = np.minimum(best, np.where(ok, segment_distance(qf, a[ed], b[ed]), np.inf))
     out[found] = best
     return out
 

@@ -39,7 +39,8 @@ class Headroom:
     path's highest); nominal_mm3_s (w dh c at that speed); needed_mm3_s (nominal x (1 +
     saturation)); limit_mm3_s (the highest flow the valve gives: the calibration table at
     the cell's highest frequency); max_speed_mm_s (the highest speed at which the
-    corrected flow fits).
+    corrected flow fits); thickness_mm (the layer thickness of the nominal flow: that
+    layer's own with adaptive layers).
     """
 
     material: str
@@ -51,16 +52,11 @@ class Headroom:
     needed_mm3_s: float
     limit_mm3_s: float
     max_speed_mm_s: float
+    thickness_mm: float
 
     @property
     def fits(self) -> bool:
         return self.needed_mm3_s <= self.limit_mm3_s * (1 + 1e-12)
-
-    def layer_mm(self, job: "Job") -> float:
-        """The layer thickness of the nominal flow, mm (adaptive layers: that layer's)."""
-        t = self.nominal_mm3_s / (self.width_mm * self.speed_mm_s * job.flow.layer_scale)
-        uniform = job.slicing.layer_thickness_mm
-        return uniform if abs(t - uniform) <= 1e-9 * uniform else float(f"{t:.4g}")
 
     def message(self, job: "Job") -> str:
         """One line naming the path, the flows and the settings that change them."""
@@ -71,7 +67,7 @@ class Headroom:
         return (f"feedback headroom: SMF may raise the flow by feedback.saturation = "
                 f"{job.feedback.saturation:.0%} to {self.needed_mm3_s:.4g} mm^3/s on the "
                 f"{where} ({self.nominal_mm3_s:.4g} mm^3/s nominal = {self.width_mm:g} mm x "
-                f"{self.layer_mm(job):g} mm x {self.speed_mm_s:.4g} mm/s), above "
+                f"{self.thickness_mm:g} mm x {self.speed_mm_s:.4g} mm/s), above "
                 f"the {self.limit_mm3_s:.4g} mm^3/s the valve gives at its highest frequency "
                 f"({_limit_hz(job):g} Hz, flow.max_frequency_hz) in the calibration table; "
                 f"{fix}keep the speed below {self.max_speed_mm_s:.4g} mm/s (motion.speed_mm_s), "
@@ -132,7 +128,8 @@ def _headroom(material: str, q: float, layer: int, role: str, w: float, v: float
         dh = job.slicing.layer_thickness_mm * job.flow.layer_scale
     return Headroom(material=material, layer=layer, role=role, width_mm=w, speed_mm_s=v,
                     nominal_mm3_s=q, needed_mm3_s=q * (1 + s), limit_mm3_s=limit,
-                    max_speed_mm_s=limit / ((1 + s) * w * dh))
+                    max_speed_mm_s=limit / ((1 + s) * w * dh),
+                    thickness_mm=dh / job.flow.layer_scale)
 
 
 def check_feedback_headroom(rooms: list[Headroom], job: "Job") -> list[str]:

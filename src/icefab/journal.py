@@ -232,6 +232,11 @@ class Journal:
         return int(self._db.execute("SELECT COUNT(*) FROM commands WHERE kind='path' AND "
                                     "done IS NOT NULL").fetchone()[0])
 
+    def cut_layers(self) -> set[int]:
+        """Layers with a path a cell fault cut short (``done(seq, cut=True)``)."""
+        return {int(r[0]) for r in self._db.execute(
+            "SELECT DISTINCT layer FROM commands WHERE cut")}
+
     def layers_done(self) -> list[int]:
         return [int(r[0]) for r in self._db.execute(
             "SELECT layer FROM commands WHERE kind='layer_end' AND done IS NOT NULL "

@@ -124,7 +124,7 @@ def layer_generators(lower: Region, upper: Region, dz: float,
         cand = cands[r]
         if len(cand):
             dist, foot, which = geometry.nearest_on_rings(
-                ring, [upper.rings[j] for j in cand], spacing=min(spacing, limit + spacing))
+                ring, [upper.rings[j] for j in cand], spacing=spacing)
             ok = dist <= limit
             sl = slice(start, stop)
             match[sl][ok] = foot[ok]

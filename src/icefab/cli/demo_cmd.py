@@ -63,10 +63,7 @@ def run(args: argparse.Namespace) -> int:
     job = job_from_args(args)
     n_sim = min(args.sim_layers, args.layers) if args.layers else args.sim_layers
     if n_sim and n_sim < job.feedback.interval_layers:  # before any work, not after it
-        raise ConfigError(f"the simulator's {n_sim} layers hold no measurement layer "
-                          f"(feedback.interval_layers = {job.feedback.interval_layers}): SMF "
-                          "would never act; simulate more layers (--sim-layers) or measure "
-                          "more often")
+        raise _no_measurement(n_sim, job)
     summary: dict = {}
     t_all = time.perf_counter()
     with output_dir(args.out, "demo") as out:
@@ -173,18 +170,22 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _no_measurement(n_layers: int, job) -> Exception:
+    from icefab.errors import ConfigError
+
+    return ConfigError(f"the simulator's {n_layers} layers hold no measurement layer "
+                       f"(feedback.interval_layers = {job.feedback.interval_layers}): SMF "
+                       "would never act; simulate more layers (--sim-layers) or measure "
+                       "more often")
+
+
 def _run_simulator(toolpaths, job, n_layers: int, out, summary: dict) -> None:
     from icefab.cli.simulate_cmd import write_simulation_outputs
-    from icefab.sim import simulate_build
+    from icefab.sim import measured_layers, simulate_build
 
-    from icefab.errors import ConfigError
-    from icefab.sim import measured_layers
-
+    # the exact check (which layers carry measurement paths) after the early one in run()
     if not measured_layers(toolpaths, job, layers=n_layers):
-        raise ConfigError(f"the simulator's {n_layers} layers hold no measurement layer "
-                          f"(feedback.interval_layers = {job.feedback.interval_layers}): SMF "
-                          "would never act; simulate more layers (--sim-layers) or measure "
-                          "more often")
+        raise _no_measurement(n_layers, job)
     t0 = time.perf_counter()
     open_loop = simulate_build(toolpaths, job, layers=n_layers, closed_loop=False,
                                progress=Progress("simulator, open loop"))

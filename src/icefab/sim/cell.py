@@ -139,8 +139,6 @@ def _edge_factor(layer_z: np.ndarray, thresh: float, width: float, spacing: floa
     return 1.0 - loss * ramp
 
 
-_grid_for = grid_for  # old private name (bench scripts of earlier versions)
-
 
 def deposit_layer(z: np.ndarray, origin: np.ndarray, spacing: float, segments: tuple,
                   used_cm3: np.ndarray, midpoints: np.ndarray, job: "Job", dh: float,
