@@ -2,9 +2,16 @@
 from __future__ import annotations
 
 import io
+import os
+import re
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
 
 import numba
 import numpy as np
+import pytest
 
 from icefab.cli.compiling import FIRST_LINE, compile_notice
 
@@ -40,3 +47,40 @@ def test_nothing_is_said_when_nothing_compiles():
     with compile_notice(err) as notice:
         assert once(2) == 3
     assert err.getvalue() == "" and notice.kernels == 0
+
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_the_build_environment_holds_every_dependency():
+    """The editable install compiles the kernels in pip's build environment: it needs the
+    package's dependencies, at the same bounds (so it resolves the numba the install
+    resolves, and its cache is the install's)."""
+    meta = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))
+    requires = set(meta["build-system"]["requires"])
+    missing = [d for d in meta["project"]["dependencies"] if d not in requires]
+    assert not missing, f"add to [build-system] requires: {missing}"
+    assert meta["build-system"]["build-backend"] == "icefab_build"
+    assert (ROOT / meta["build-system"]["backend-path"][0] / "icefab_build.py").is_file()
+
+
+@pytest.mark.slow
+def test_after_the_install_warm_up_the_demo_compiles_nothing(tmp_path, monkeypatch, capsys):
+    sys.path.insert(0, str(ROOT / "tools"))
+    try:
+        import icefab_build
+    finally:
+        sys.path.remove(str(ROOT / "tools"))
+    cache = tmp_path / "numba-cache"  # an empty cache, not the one the other tests share
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(cache))
+    assert icefab_build.compile_kernels(ROOT)
+    said = capsys.readouterr().err
+    n = int(re.search(r"compiled (\d+) numba kernels ahead", said).group(1))
+    assert n >= 20, said
+    (tmp_path / "one.toml").write_text("[cell]\ncpus = 1\n")  # every kernel in one process
+    r = subprocess.run([sys.executable, "-m", "icefab", "demo", "-c", "one.toml", "-o", "d",
+                        "--layers", "12", "--sim-layers", "8"], cwd=tmp_path,
+                       capture_output=True, text=True, timeout=600,
+                       env={**os.environ, "ICEFAB_COMPILE_NOTICE": "1"})
+    assert r.returncode == 0, r.stderr
+    assert FIRST_LINE not in r.stderr, r.stderr      # nothing left to compile

@@ -41,7 +41,6 @@ from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
 import numpy as np
-from scipy.signal import lfilter
 
 from icefab.config import Job
 from icefab.errors import ConfigError, GeometryError
@@ -225,6 +224,7 @@ def error_response(gains: Gains, disturbance: Disturbance | np.ndarray) -> np.nd
     derivative term left out at k = 1) with ``scipy.signal.lfilter``:
     e_{k+1} + a1 e_k + a2 e_{k-1} + a3 e_{k-2} = d_{k-1} - d_k.
     """
+    from scipy.signal import lfilter  # 1.4 s to import: only where used
     d = _as_d(disturbance)
     a = characteristic_polynomial(*gains)
     x = np.concatenate([[0.0], d])
@@ -307,6 +307,7 @@ def rms_and_gradient(gains: Gains, disturbance: Disturbance | np.ndarray
     Returns ``(rms, grad (3,) float64)``; ``(inf, nan)`` when the response overflows
     (unstable gains over many layers).
     """
+    from scipy.signal import lfilter  # 1.4 s to import: only where used
     d = _as_d(disturbance)
     a = characteristic_polynomial(*gains)
     x = np.concatenate([[0.0], d])

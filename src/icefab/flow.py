@@ -106,10 +106,13 @@ from icefab.errors import ConfigError, FlowError, StackFileError
 from icefab.inputs import check_input, read_input_text
 from icefab.frames import to_part_frame
 from icefab.motion import limit_ratio, speedup_cap
+from icefab.parallel import parallel_map
+from icefab.stages import layer_height
 from icefab.core import HeightMap, Trajectory, ValveProgram
 
 if TYPE_CHECKING:  # pragma: no cover
     from icefab.config import Job
+    from icefab.core import LayerMotion
 
 log = logging.getLogger(__name__)
 
@@ -922,6 +925,43 @@ class LayerProgram:
     path: int
     material: str
     program: ValveProgram
+
+
+def plan_layer_valves(layer: "LayerMotion", job: "Job") -> list[LayerProgram]:
+    """The nominal valve programs (no control action) of every depositing trajectory of one
+    layer, in build order, each with its trajectory's index in the layer (thesis 6.2).
+
+    The flow uses the layer's own thickness with adaptive layers (``slicing.
+    layer_thickness_mm`` otherwise); a trajectory without a path (a bare trajectory file)
+    deposits part material. The calibration tables are read once per layer.
+    """
+    dh = layer_height(layer.thickness, job)
+    tables: dict[str, Calibration] = {}
+    out: list[LayerProgram] = []
+    for i, traj in enumerate(layer.trajectories):
+        path = traj.path
+        if path is not None and not path.depositing:
+            continue
+        material = path.material if path is not None else "part"
+        if material not in tables:
+            tables[material] = calibration_for(material, job)
+        out.append(LayerProgram(i, material, plan_valves(
+            traj, material, job, layer_thickness=dh, calibration=tables[material])))
+    return out
+
+
+def _layer_valves_task(item: tuple["LayerMotion", "Job"]) -> list[LayerProgram]:
+    return plan_layer_valves(*item)
+
+
+def plan_build_valves(layers: "Sequence[LayerMotion]", job: "Job",
+                      progress: Callable[[int, int], None] | None = None
+                      ) -> list[list[LayerProgram]]:
+    """:func:`plan_layer_valves` of every layer, in layer order, on the job's worker
+    processes (``cell.cpus``; the programs never depend on the number of workers).
+    progress: called as ``progress(done, total)`` in layers."""
+    return parallel_map(_layer_valves_task, [(lm, job) for lm in layers], job, min_items=8,
+                        progress=progress)
 
 
 def encode_valve_layer(layer: int, programs: "Sequence[LayerProgram]") -> bytes:

@@ -42,7 +42,7 @@ def _say(text: str) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from icefab.demo import demo_mug
-    from icefab.flow import (LayerProgram, n_pulses, plan_valves, program_pieces,
+    from icefab.flow import (n_pulses, plan_build_valves, program_pieces,
                              summarise_findings, write_valve_layer)
     from icefab.mesh import check_mesh, transform, write_stl
     from icefab.motion import plan_toolpaths, save_trajectories
@@ -54,7 +54,6 @@ def run(args: argparse.Namespace) -> int:
 
     from icefab.errors import ConfigError
     from icefab.headroom import check_slowest_flow
-    from icefab.stages import layer_height
     from icefab.workload import check_pulses
 
     if args.layers < 0 or args.sim_layers < 0:
@@ -119,27 +118,19 @@ def run(args: argparse.Namespace) -> int:
 
         t0 = time.perf_counter()
         check_pulses(motion.layers, job)
-        progress = Progress("valve programs")
+        programs = plan_build_valves(motion.layers, job, progress=Progress("valve programs"))
         pulses = pieces = 0
         flagged: list[tuple[int, str]] = []  # (layer, finding) of every flagged path
+        for lm, layer_programs in zip(motion.layers, programs):
+            for lp in layer_programs:
+                flagged += [(lm.index, w) for w in lp.program.warnings]
+                pulses += n_pulses(lp.program)
+                pieces += len(program_pieces(lp.program))
         valves_dir = out / "valves"
         valves_dir.mkdir()
-        for i, lm in enumerate(motion.layers):
-            example: list[LayerProgram] = []
-            for j, traj in enumerate(lm.trajectories):
-                if traj.path is None or not traj.path.depositing:
-                    continue
-                prog = plan_valves(traj, traj.path.material, job,
-                                   layer_thickness=layer_height(lm.thickness, job))
-                flagged += [(lm.index, w) for w in prog.warnings]
-                pulses += n_pulses(prog)
-                pieces += len(program_pieces(prog))
-                if i == 0:  # one readable example layer; the rest are counted
-                    example.append(LayerProgram(j, traj.path.material, prog))
-            if i == 0:  # the form 'icefab valves' writes, as text
-                write_valve_layer(lm.index, example, valves_dir / f"layer_{lm.index:04d}.txt",
-                                  fmt="txt")
-            progress(i + 1, len(motion.layers))
+        first = motion.layers[0].index
+        # one readable example layer, in the form 'icefab valves' writes; the rest are counted
+        write_valve_layer(first, programs[0], valves_dir / f"layer_{first:04d}.txt", fmt="txt")
         summary["valves"] = {"pulses": pulses, "pieces": pieces,
                              "seconds": round(time.perf_counter() - t0, 3)}
         findings = summarise_findings(flagged)  # one line per kind of valve limit

@@ -59,8 +59,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from icefab.config import load_job
-    from icefab.flow import (LayerProgram, n_pulses, plan_valves, program_pieces,
-                             trajectory_width, write_valve_layer)
+    from icefab.flow import (n_pulses, plan_build_valves, program_pieces, trajectory_width,
+                             write_valve_layer)
     from icefab.motion import load_trajectories
 
     src = Path(args.input)
@@ -104,21 +104,17 @@ def run(args: argparse.Namespace) -> int:
     with output_dir(args.out, "valves") as tmp:
         folder = tmp / "valves"
         folder.mkdir()
-        for n, lm in enumerate(layers):
-            programs: list[LayerProgram] = []
+        planned = plan_build_valves(layers, job, progress=progress)
+        for lm, programs in zip(layers, planned):
             counts = [0, 0, 0, 0]
-            for i, traj in enumerate(lm.trajectories):
+            for lp in programs:
+                material, prog = lp.material, lp.program
+                traj = lm.trajectories[lp.path]
                 p = traj.path
-                if p is not None and not p.depositing:
-                    continue
-                material = p.material if p is not None else "part"
-                prog = plan_valves(traj, material, job,
-                                   layer_thickness=layer_height(lm.thickness, job))
-                programs.append(LayerProgram(i, material, prog))
                 length, gap, sparse = _drop_spacing(traj, prog, job.flow.min_drops_per_mm)
                 width = trajectory_width(traj, material, job)
                 pulses, pieces = n_pulses(prog), len(program_pieces(prog))
-                rows.append([lm.index, i, material, p.role if p is not None else "",
+                rows.append([lm.index, lp.path, material, p.role if p is not None else "",
                              f"{length:.3f}", f"{traj.duration:.3f}", pulses, pieces,
                              f"{width:.3f}", f"{gap:.3f}", f"{sparse:.3f}",
                              len(prog.warnings), " | ".join(prog.warnings)])
@@ -138,7 +134,6 @@ def run(args: argparse.Namespace) -> int:
                          f"{counts[3]:8d}")
             for k, key in enumerate(("paths", "pulses", "pieces", "findings")):
                 totals[key] += counts[k]
-            progress(n + 1, len(layers))
         with open(tmp / "valves-paths.csv", "w", newline="", encoding="utf-8") as fh:
             w = csv.writer(fh)
             w.writerow(PATH_COLUMNS)
