@@ -22,7 +22,7 @@ from pathlib import Path
 from setuptools import build_meta as _setuptools
 from setuptools.build_meta import *  # noqa: F401,F403 - the other PEP 517 hooks as they are
 
-WARM_UP = "from icefab.cli.compiling import warm_up_main; warm_up_main()"
+WARM_UP = "from icefab.cli.warm_up import warm_up_main; warm_up_main()"
 #: Longest the warm-up may take, s (about a minute on 2 cores).
 WARM_UP_TIMEOUT_S = 900
 
@@ -34,7 +34,7 @@ def build_editable(wheel_directory, config_settings=None, metadata_directory=Non
 
 
 def compile_kernels(checkout: Path) -> bool:
-    """Run :func:`icefab.cli.compiling.warm_up` on the checkout's sources; says on stderr
+    """Run :func:`icefab.cli.warm_up.warm_up` on the checkout's sources; says on stderr
     what happened (pip shows it with ``-v``). False when it did not work."""
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(
