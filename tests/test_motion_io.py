@@ -192,3 +192,16 @@ def test_version_2_files_with_float_samples_still_load_exactly(tmp_path):
         np.testing.assert_array_equal(ta.xy, tb.xy)
         np.testing.assert_array_equal(ta.speed, tb.speed)
         assert tb.path.width == ta.path.width and tb.dt == ta.dt
+
+
+def test_constant_speed_time_is_the_constant_speed_motions_duration():
+    from icefab.motion import constant_speed_motion, constant_speed_time
+    job = Job()
+    tp = _toolpaths(job, 3)
+    for cpus in (1, 2):
+        j = job.replace(**{"cell.cpus": cpus})
+        full = constant_speed_motion(tp, j, fill_mm_s=60.0)
+        assert constant_speed_time(tp, j, fill_mm_s=60.0) == pytest.approx(full.duration,
+                                                                           rel=1e-12)
+    # and it is not the minimum-time plan's (slower fill)
+    assert constant_speed_time(tp, job) > plan_toolpaths(tp, job).duration

@@ -14,7 +14,7 @@ everything worked; every file is written in a temporary folder first):
   (thesis Fig. 4-11: the speed lives in the point spacing);
 * ``plan-summary.txt`` — build time with MTTS next to the thesis' constant-speed case (4.4:
   boundaries 25 mm/s, fill 125 mm/s) planned with the robot's accelerations
-  (``icefab.motion.constant_speed_motion``) and the idealised length / speed estimate
+  (``icefab.motion.constant_speed_time``) and the idealised length / speed estimate
   (``icefab.paths.estimate_build_time``), points, paths and computing time; also printed;
 * with ``--gcode``: ``trajectories.gcode`` — G-code for gantry-style machines
   (``icefab.export.save_gcode``: Marlin, valve duty inline, format in its docstring);
@@ -96,7 +96,7 @@ def _hms(s: float) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from icefab.export import save_gcode
-    from icefab.motion import (constant_speed_motion, plan_toolpaths, save_constant_spacing,
+    from icefab.motion import (constant_speed_time, plan_toolpaths, save_constant_spacing,
                                save_trajectories)
     from icefab.paths import estimate_build_time
 
@@ -113,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
     motion = plan_toolpaths(tp, job, progress=Progress("planning"))
     t_plan = time.perf_counter() - t1
     _, const = estimate_build_time(tp, job)
-    const_acc = constant_speed_motion(tp, job, progress=Progress("constant speed")).duration
+    const_acc = constant_speed_time(tp, job, progress=Progress("constant speed"))
     n_traj = sum(len(lm.trajectories) for lm in motion.layers)
     dep = sum(t.duration for lm in motion.layers for t in lm.trajectories
               if t.path is not None and t.path.depositing)
