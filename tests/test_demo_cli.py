@@ -1,6 +1,8 @@
 """`icefab demo` end to end (on the first layers of the mug, to keep CI short)."""
 import json
 
+import pytest
+
 from icefab.cli import main
 
 
@@ -46,3 +48,13 @@ def test_a_simulation_without_a_measurement_is_refused_before_any_work(tmp_path)
     assert r.returncode == 2 and len(r.stderr.splitlines()) == 1, r.stderr
     assert "feedback.interval_layers = 1000" in r.stderr
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("layers", [1, 2])
+def test_demo_of_one_or_two_layers(tmp_path, capsys, layers):
+    """The pictures pick their layers among those built (one layer: a traceback before)."""
+    out = tmp_path / "d"
+    assert main(["demo", "-o", str(out), "--layers", str(layers), "--sim-layers", "0"]) == 0
+    speed = sorted(p.name for p in out.glob("speed_layer_*.png"))
+    assert speed == ["speed_layer_0.png"] if layers == 1 else ["speed_layer_1.png"]
+    assert "report.html" in {p.name for p in out.iterdir()}

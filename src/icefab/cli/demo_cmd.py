@@ -104,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         motion = plan_toolpaths(toolpaths, job, progress=Progress("trajectories"))
         save_trajectories(motion, out / "trajectories.npz")
-        for k in (ks[1], ks[2]):
+        for k in ks[1:3] or ks[:1]:  # two layers, or the one there is
             plot_speed(motion.layers[k], out / f"speed_layer_{motion.layers[k].index}.png",
                        job.motion.speed_mm_s, job)
         summary["motion"] = {"samples": motion.n_points, "build_s": round(motion.duration, 1),
