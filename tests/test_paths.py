@@ -454,3 +454,68 @@ def test_cli_paths_from_stack_file(tmp_path, capsys):
     # bad layer list: one-line error, exit 2, nothing new written
     assert main(["paths", str(stack_file), "-o", str(tmp_path / "o2"), "--layers", "99"]) == 2
     assert "layer numbers must be between 0 and 5" in capsys.readouterr().err
+
+
+def _line_angles(lines: list[np.ndarray]) -> np.ndarray:
+    """Directions (deg in [0, 180)) of the longest segment of each fill line."""
+    out = []
+    for ln in lines:
+        d = np.diff(ln, axis=0)
+        k = int(np.argmax(np.hypot(*d.T)))
+        out.append(math.degrees(math.atan2(d[k, 1], d[k, 0])) % 180.0)
+    return np.array(out)
+
+
+def _rotated_rect(cx, cy, length, width, angle_deg):
+    c, s = math.cos(math.radians(angle_deg)), math.sin(math.radians(angle_deg))
+    pts = np.array([[-length / 2, -width / 2], [length / 2, -width / 2],
+                    [length / 2, width / 2], [-length / 2, width / 2]])
+    return pts @ np.array([[c, s], [-s, c]]) + [cx, cy]
+
+
+def test_zigzag_takes_each_islands_optimal_angle():
+    """Two long strips at 30 and 120 degrees in one region: each is zigzagged along its
+    length (Jin's model: fewest turns), whatever fill_angle_deg says; 'fixed' uses that."""
+    from icefab.paths import fill_levels
+    job = Job().replace(**{"materials.part.fill_pattern": "zigzag", "feedback.enabled": False})
+    region = geo.region_from_rings([_rotated_rect(0, 0, 120, 24, 30.0),
+                                    _rotated_rect(150, 0, 120, 24, 120.0)])
+    _levels, lines, angle = fill_levels(region, job.materials.part, job)
+    dirs = _line_angles(lines)
+    left = np.array([ln[:, 0].mean() < 75 for ln in lines])
+    assert left.any() and (~left).any()
+    assert np.allclose(dirs[left], 30.0, atol=1e-3)  # the point filter moves ends a little
+    assert np.allclose(dirs[~left], 120.0, atol=1e-3)
+    assert angle in (30.0, 120.0)  # the larger island's (equal areas: either)
+    fixed = job.replace(**{"materials.part.fill_angle_mode": "fixed",
+                           "materials.part.fill_angle_deg": 0.0})
+    _levels, lines, angle = fill_levels(region, fixed.materials.part, fixed)
+    d = _line_angles(lines)
+    assert angle == 0.0 and np.allclose(np.minimum(d, 180.0 - d), 0.0, atol=1e-3)
+
+
+@pytest.mark.parametrize("pattern", ["zigzag", "raster"])
+def test_optimal_angle_is_never_slower_than_the_fixed_one_by_jin_time(pattern):
+    from icefab.paths import fill_levels, zigzag_time
+    job = Job().replace(**{"materials.part.fill_pattern": pattern})
+    fixed = job.replace(**{"materials.part.fill_angle_mode": "fixed"})
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        ring = _rotated_rect(0, 0, rng.uniform(20, 80), rng.uniform(10, 40), rng.uniform(0, 180))
+        region = geo.region_from_rings([ring])
+        t_opt = zigzag_time(fill_levels(region, job.materials.part, job)[1], job)
+        t_fix = zigzag_time(fill_levels(region, fixed.materials.part, fixed)[1], fixed)
+        assert t_opt <= t_fix + 1e-9
+
+
+def test_a_job_file_giving_an_angle_fixes_it(tmp_path):
+    from icefab.config import load_job, to_toml
+    f = tmp_path / "j.toml"
+    f.write_text("[materials.part]\nfill_pattern = \"zigzag\"\nfill_angle_deg = 30.0\n")
+    job = load_job(f)
+    assert job.materials.part.fill_angle_mode == "fixed"
+    assert job.materials.scaffold.fill_angle_mode == "optimal"  # gave no angle
+    f.write_text("[materials.part]\nfill_angle_deg = 30.0\nfill_angle_mode = \"optimal\"\n")
+    assert load_job(f).materials.part.fill_angle_mode == "optimal"
+    f.write_text(to_toml(job))
+    assert load_job(f) == job

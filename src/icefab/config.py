@@ -238,9 +238,16 @@ class MaterialSettings:
                                 choices=("concentric", "zigzag", "raster", "hybrid", "none"))
     fill_angle_deg: float = setting(
         0.0,
-        "raster angle for zigzag/raster fill; hybrid chooses its own",
+        "raster angle for zigzag/raster fill with fill_angle_mode = 'fixed'",
         lo=-360.0, hi=360.0,
         why="one turn either way")
+    fill_angle_mode: str = setting(
+        "optimal",
+        "zigzag/raster angle: 'optimal' (each island of the region at the angle of least "
+        "time by Jin's model, in steps of hybrid_angle_step_deg; hybrid fill always does "
+        "this) or 'fixed' (fill_angle_deg); a job file that gives fill_angle_deg without "
+        "it means 'fixed'",
+        choices=("optimal", "fixed"))
     hybrid_rings: int = setting(
         2,
         "contour rings before zigzag in hybrid fill",
@@ -248,7 +255,7 @@ class MaterialSettings:
         why="100 rings of 1.5 mm fill 300 mm")
     hybrid_angle_step_deg: float = setting(
         15.0,
-        "step of the raster angles compared in hybrid fill",
+        "step of the raster angles compared by the optimal angle (zigzag, raster, hybrid)",
         lo=1.0, hi=90.0,
         why="at most 90 raster angles compared per region")
     nozzle_offset_mm: Vec2 = setting(
@@ -874,7 +881,18 @@ def _build(cls: type, data: dict[str, Any], prefix: str) -> Any:
 
 def job_from_dict(data: dict[str, Any]) -> Job:
     """Build and validate a Job from nested plain data (as read from TOML)."""
-    return _build(Job, data, "")
+    return _build(Job, _angles_given(data), "")
+
+
+def _angles_given(data: dict[str, Any]) -> dict[str, Any]:
+    """A material section that gives ``fill_angle_deg`` and no ``fill_angle_mode`` asks for
+    that angle: its mode is 'fixed' (the default, 'optimal', would ignore the angle)."""
+    mats = data.get("materials")
+    if not isinstance(mats, dict):
+        return data
+    fixed = {k: {**v, "fill_angle_mode": "fixed"} for k, v in mats.items()
+             if isinstance(v, dict) and "fill_angle_deg" in v and "fill_angle_mode" not in v}
+    return {**data, "materials": {**mats, **fixed}} if fixed else data
 
 
 def to_dict(obj: Any) -> dict[str, Any]:

@@ -15,12 +15,14 @@ From a ``Stack`` with part and scaffold regions to ordered ``Path``s per layer:
     nothing is left (iterative Clipper offsets, points filtered after each); a ring
     never gets a path wider than its room: the innermost rings are cut to the part of
     their area at least ``F`` wide (:func:`_with_room`), the rest goes to the gap fill;
-  - ``zigzag``: parallel lines at ``fill_angle_deg`` spaced ``F``, clipped to the region
-    shrunk by ``e + F/2``, consecutive lines linked where the link stays inside;
+  - ``zigzag``: parallel lines spaced ``F``, clipped to the region shrunk by ``e + F/2``,
+    consecutive lines linked where the link stays inside; each island of the region at
+    the angle (in steps of ``hybrid_angle_step_deg`` over [0, 180)) with the least time
+    by Jin's model (eqs. 8-18, :func:`jin_segment_time`), or at ``fill_angle_deg`` with
+    ``fill_angle_mode = "fixed"``;
   - ``raster``: the same lines unlinked, each its own path (the thesis' ZZFILL);
-  - ``hybrid``: ``hybrid_rings`` concentric rings, then zigzag inside at the angle (in
-    steps of ``hybrid_angle_step_deg`` over [0, 180)) with the least time by Jin's model
-    (eqs. 8-18, :func:`jin_segment_time`);
+  - ``hybrid``: ``hybrid_rings`` concentric rings, then zigzag inside at each island's
+    optimal angle;
   - ``none``.
 
   Gap fill (``gap_fill``, on by default; not in the thesis; :func:`gap_fill_paths`):
@@ -382,21 +384,40 @@ def fill_levels(region: Region, mat: MaterialSettings, job: Job
     inner = geo.shrink(region, start, filt)
     if inner.is_empty:
         return levels, [], math.nan
-    if pattern == "hybrid":
-        step = mat.hybrid_angle_step_deg
-        angles = np.arange(0.0, 180.0 - 1e-9, step)
-        best = None
-        for ang in angles:
-            lines = _zigzag_at(inner, F, float(ang), filt, True)
-            t = zigzag_time(lines, job)
-            if best is None or t < best[0] - 1e-9:
-                best = (t, float(ang), lines)
-        assert best is not None
-        _t, angle, lines = best
+    linked = pattern != "raster"
+    if pattern == "hybrid" or mat.fill_angle_mode == "optimal":
+        # each island at its own angle: the least time by Jin's model (Jin et al. 3-4)
+        lines, angle, area = [], math.nan, -1.0
+        for island in _islands(inner):
+            best = _best_angle(island, F, filt, linked, mat.hybrid_angle_step_deg, job)
+            lines += best[1]
+            a = geo.area(list(island.rings))
+            if a > area:  # the angle reported: the largest island's
+                angle, area = best[0], a
     else:
         angle = mat.fill_angle_deg
-        lines = _zigzag_at(inner, F, angle, filt, pattern == "zigzag")
+        lines = _zigzag_at(inner, F, angle, filt, linked)
     return levels, lines, angle
+
+
+def _best_angle(area: Region, spacing: float, filt: float, linked: bool, step_deg: float,
+                job: Job) -> tuple[float, list[np.ndarray]]:
+    """The raster angle over [0, 180) in steps of ``step_deg`` whose zigzag (or raster)
+    lines take the least time by Jin's model (:func:`zigzag_time`), and the lines."""
+    best: tuple[float, float, list[np.ndarray]] | None = None
+    for ang in np.arange(0.0, 180.0 - 1e-9, step_deg):
+        lines = _zigzag_at(area, spacing, float(ang), filt, linked)
+        t = zigzag_time(lines, job)
+        if best is None or t < best[0] - 1e-9:
+            best = (t, float(ang), lines)
+    assert best is not None
+    return best[1], best[2]
+
+
+def _islands(region: Region) -> list[Region]:
+    """The connected pieces of a region: each outer ring with its holes."""
+    polygons = region.polygons()
+    return [region] if len(polygons) <= 1 else [geo.region_from_rings(p) for p in polygons]
 
 
 def measure_rings(region: Region, spacing: float, filt: float) -> list[np.ndarray]:
