@@ -49,8 +49,9 @@ Trajectory file (``icefab plan``; :func:`save_trajectories` / :func:`load_trajec
   ``job`` str (TOML);
 * the samples of all trajectories, concatenated in order, as integer counts of a
   resolution (issue 17: what the cell can use, in a tenth of the bytes): ``xy_counts``
-  (2M, 8) uint8 at ``xy_resolution`` mm (robot base frame), ``joint_counts`` (jM, 8) at
-  ``joint_resolution`` (rad or mm), ``speed_counts`` (M, 8) at ``speed_resolution`` mm/s,
+  (2, 8, M) uint8 at ``xy_resolution`` mm (robot base frame), ``joint_counts`` (j, 8, M)
+  at ``joint_resolution`` (rad or mm), ``speed_counts`` (1, 8, M) at ``speed_resolution``
+  mm/s,
   each resolution a float member; the reader gives back float64 ``xy`` (M, 2), ``joints``
   (M, j) and ``speed`` (M,) within half a resolution of what was saved
   (:func:`encode_counts` says how the counts are stored). Version 2 stored the float64
@@ -88,7 +89,7 @@ import tomllib
 import zipfile
 import zlib
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -156,7 +157,7 @@ def split(rows: np.ndarray, offs: np.ndarray) -> list[np.ndarray]:
 COMPRESS_LEVEL = 1
 
 
-def _write(path: str | os.PathLike, arrays: dict[str, np.ndarray]) -> Path:
+def _write(path: str | os.PathLike, arrays: "dict[str, np.ndarray | _Counts]") -> Path:
     """An ``.npz`` (numpy's zip of ``.npy`` members, as ``np.savez_compressed`` writes it,
     at :data:`COMPRESS_LEVEL`), written atomically."""
     target = Path(path)
@@ -165,7 +166,10 @@ def _write(path: str | os.PathLike, arrays: dict[str, np.ndarray]) -> Path:
             tmp, "w", zipfile.ZIP_DEFLATED, compresslevel=COMPRESS_LEVEL) as zf:
         for name, value in arrays.items():
             with zf.open(name + ".npy", "w", force_zip64=True) as fh:
-                np.lib.format.write_array(fh, np.asanyarray(value), allow_pickle=False)
+                if isinstance(value, _Counts):
+                    value.write(fh)
+                else:
+                    np.lib.format.write_array(fh, np.asanyarray(value), allow_pickle=False)
     return target
 
 
@@ -656,21 +660,25 @@ def load_toolpaths(path: str | os.PathLike) -> Toolpaths:
 
 
 def pack_trajectories(trajs: Sequence[Trajectory], n_joints: int = 0, *,
-                      empty_pieces: bool = False) -> dict[str, np.ndarray]:
+                      empty_pieces: bool = False, samples: bool = True
+                      ) -> dict[str, np.ndarray]:
     """Trajectories' samples as flat arrays (the trajectory file's members, the worker
     processes' packing): ``xy``, ``joints``, ``speed``, ``traj_start``, ``piece_start``,
     ``piece_owner``, ``duration``, ``traj_dt``. A trajectory without pieces (one piece from
     sample 0) stores the piece at 0, unless ``empty_pieces`` (the worker packing keeps it
-    empty, so the trajectory comes back as it was)."""
-    xy, start = pack([t.xy for t in trajs])
+    empty, so the trajectory comes back as it was). ``samples=False`` leaves out ``xy``,
+    ``joints`` and ``speed`` (the file streams them)."""
     pcs = [t.pieces if len(t.pieces) or empty_pieces else np.zeros(1, np.int64)
            for t in trajs]
+    out = {}
+    if samples:
+        out["xy"], _ = pack([t.xy for t in trajs])
+        out["joints"] = (np.concatenate([t.joints for t in trajs]) if trajs
+                         else np.zeros((0, n_joints)))
+        out["speed"] = np.concatenate([t.speed for t in trajs]) if trajs else np.zeros(0)
     return {
-        "xy": xy,
-        "joints": (np.concatenate([t.joints for t in trajs]) if trajs
-                   else np.zeros((0, n_joints))),
-        "speed": np.concatenate([t.speed for t in trajs]) if trajs else np.zeros(0),
-        "traj_start": start,
+        **out,
+        "traj_start": offsets([len(t.xy) for t in trajs]),
         "piece_start": (np.concatenate(pcs) if pcs else np.zeros(0)).astype(np.int64),
         "piece_owner": np.repeat(np.arange(len(trajs)), [len(p) for p in pcs]).astype(np.int64),
         "duration": np.array([t.duration for t in trajs], dtype=np.float64),
@@ -704,30 +712,61 @@ def owner_arrays(motion: BuildMotion) -> dict[str, np.ndarray]:
                              dtype=np.int8)}
 
 
+def _zigzag_counts(column: np.ndarray, resolution: float) -> np.ndarray:
+    """(n,) float64 -> (n,) little-endian uint64: the values as integer counts of
+    ``resolution`` (rounded to the nearest), their second differences (the first ones
+    against zeros), zig-zag mapped to unsigned (0, -1, 1, -2, ... -> 0, 1, 2, 3, ...)."""
+    q = np.rint(np.asarray(column, np.float64) / resolution).astype(np.int64)
+    d = np.diff(np.diff(q, prepend=0), prepend=0)
+    return ((d << 1) ^ (d >> 63)).astype("<u8")
+
+
 def encode_counts(values: np.ndarray, resolution: float) -> np.ndarray:
-    """Samples as a trajectory file stores them: ``(n * c, 8)`` uint8, Fortran order.
+    """Samples as a trajectory file stores them: ``(c, 8, n)`` uint8.
 
-    ``values`` (n,) or (n, c) float64 become integer counts of ``resolution`` (rounded to
-    the nearest), then their second differences down each column (the first row against
-    zeros: a sampled motion's differences are its acceleration in counts, a few units),
-    zig-zag mapped to unsigned (0, -1, 1, -2, ... -> 0, 1, 2, 3, ...), as little-endian
-    uint64 split into 8 byte planes (the shuffle filter of Blosc and HDF5): the high planes
+    ``values`` (n,) or (n, c) float64 become, column by column, integer counts of
+    ``resolution``, their second differences down the column (a sampled motion's are its
+    accelerations in counts: a few units), zig-zag mapped and split into the 8 byte planes
+    of their little-endian uint64 (the shuffle filter of Blosc and HDF5): the high planes
     of small numbers are zeros that deflate to nearly nothing. The demo's trajectories
-    take 5 MB instead of 53.
+    take 5 MB instead of 53. :func:`decode_counts` inverts it exactly.
     """
-    q = np.rint(np.asarray(values, np.float64) / resolution).astype(np.int64)
-    q = q[:, None] if q.ndim == 1 else q
-    d = np.diff(np.diff(q, axis=0, prepend=0), axis=0, prepend=0)
-    zz = ((d << 1) ^ (d >> 63)).astype("<u8").T.reshape(-1)  # column after column
-    return np.asfortranarray(zz.view(np.uint8).reshape(-1, 8))
+    v = np.asarray(values, np.float64)
+    v = v[:, None] if v.ndim == 1 else v
+    out = np.empty((v.shape[1], 8, len(v)), np.uint8)
+    for col in range(v.shape[1]):
+        out[col] = _zigzag_counts(v[:, col], resolution).view(np.uint8).reshape(-1, 8).T
+    return out
 
 
-def decode_counts(planes: np.ndarray, cols: int, resolution: float) -> np.ndarray:
-    """The float64 ``(n, cols)`` samples of :func:`encode_counts`' planes (exact counts)."""
-    zz = np.ascontiguousarray(planes, dtype=np.uint8).view("<u8").reshape(cols, -1)
-    d = (zz >> np.uint64(1)).astype(np.int64) ^ -(zz & np.uint64(1)).astype(np.int64)
-    q = np.cumsum(np.cumsum(d, axis=1), axis=1)  # overflow wraps: the bounds catch it
-    return (q.T * resolution).astype(np.float64)
+def decode_counts(planes: np.ndarray, resolution: float) -> np.ndarray:
+    """The float64 ``(n, c)`` samples of :func:`encode_counts`' ``(c, 8, n)`` planes."""
+    c, _, n = planes.shape
+    out = np.empty((n, c), np.float64)
+    for col in range(c):
+        zz = np.ascontiguousarray(planes[col].T).view("<u8").reshape(n)
+        d = (zz >> np.uint64(1)).astype(np.int64) ^ -(zz & np.uint64(1)).astype(np.int64)
+        out[:, col] = np.cumsum(np.cumsum(d)) * resolution  # overflow wraps: bounds catch it
+    return out
+
+
+class _Counts:
+    """A counts member (:func:`encode_counts` of ``column(0..cols-1)``, each (n,) float64)
+    written to the file column by column: the memory it takes is one column's, not the
+    build's samples again (issue 17: saving doubled ``icefab plan``'s peak)."""
+
+    def __init__(self, column: Callable[[int], np.ndarray], n: int, cols: int,
+                 resolution: float) -> None:
+        self.column, self.shape, self.resolution = column, (cols, 8, n), resolution
+
+    def write(self, fh) -> None:
+        np.lib.format.write_array_header_1_0(
+            fh, {"descr": "|u1", "fortran_order": False, "shape": self.shape})
+        cols, _, n = self.shape
+        for col in range(cols):
+            b = _zigzag_counts(self.column(col), self.resolution).view(np.uint8).reshape(n, 8)
+            for k in range(8):
+                fh.write(np.ascontiguousarray(b[:, k]).data)
 
 
 def save_trajectories(motion: BuildMotion, path: str | os.PathLike) -> None:
@@ -736,17 +775,26 @@ def save_trajectories(motion: BuildMotion, path: str | os.PathLike) -> None:
     zs = [lm.z for lm in motion.layers for _ in lm.trajectories]
     jn = len(motion.joint_names) or (trajs[0].joints.shape[1] if trajs else 0)
     paths = [t.path for t in trajs]
-    packed = pack_trajectories(trajs, jn)
+    packed = pack_trajectories(trajs, jn, samples=False)
+    n = int(packed["traj_start"][-1])
+
+    def column(attr: str) -> Callable[[int], np.ndarray]:
+        """Column c of every trajectory's ``attr`` samples, concatenated (n,)."""
+        def get(c: int) -> np.ndarray:
+            parts = [np.asarray(getattr(t, attr), np.float64) for t in trajs]
+            return (np.concatenate([a[:, c] if a.ndim == 2 else a for a in parts]) if parts
+                    else np.zeros(0))
+        return get
     data = {
         "format": np.array(TRAJECTORIES_FORMAT), "version": np.array(TRAJECTORIES_VERSION),
         "dt": np.array(trajs[0].dt if trajs else motion.job.motion.dt_s),
         "robot": np.array(motion.robot),
         "joint_names": np.array(list(motion.joint_names), dtype=str),
         "job": np.array(to_toml(motion.job)),
-        **{k: v for k, v in packed.items() if k not in ("xy", "joints", "speed")},
-        "xy_counts": encode_counts(packed["xy"], XY_RESOLUTION_MM),
-        "joint_counts": encode_counts(packed["joints"], JOINT_RESOLUTION),
-        "speed_counts": encode_counts(packed["speed"], SPEED_RESOLUTION_MM_S),
+        **packed,
+        "xy_counts": _Counts(column("xy"), n, 2, XY_RESOLUTION_MM),
+        "joint_counts": _Counts(column("joints"), n, jn, JOINT_RESOLUTION),
+        "speed_counts": _Counts(column("speed"), n, 1, SPEED_RESOLUTION_MM_S),
         "xy_resolution": np.array(XY_RESOLUTION_MM),
         "joint_resolution": np.array(JOINT_RESOLUTION),
         "speed_resolution": np.array(SPEED_RESOLUTION_MM_S),
@@ -786,15 +834,14 @@ def _sample_counts(m: "_Members", n_joints: int
                                ("joint", n_joints, -MAX_JOINT, MAX_JOINT),
                                ("speed", 1, 0.0, MAX_COORD_MM)):
         res = m.number(f"{name}_resolution", 0.0, 1.0, lo_open=True)
-        planes = m.array(f"{name}_counts", "u", 2, 8)
-        if planes.dtype.itemsize != 1:
-            raise m.bad(f"{name}_counts", f"dtype {planes.dtype}, expected uint8 byte planes")
-        rows = len(planes) // cols if cols else n
-        if (rows or 0) * cols != len(planes) or (n is not None and rows != n):
-            raise m.bad(f"{name}_counts", f"{len(planes)} values for {cols} columns of "
-                        f"{n if n is not None else 'the'} samples: the file is corrupt")
-        n = rows
-        v = decode_counts(planes, cols, res) if cols else np.zeros((n or 0, 0))
+        planes = m.array(f"{name}_counts", "u", 3)
+        if planes.dtype.itemsize != 1 or planes.shape[:2] != (cols, 8) or \
+                (n is not None and planes.shape[2] != n):
+            raise m.bad(f"{name}_counts", f"{planes.dtype} of shape {planes.shape}, expected "
+                        f"uint8 byte planes of shape ({cols}, 8, "
+                        f"{'n' if n is None else n}): the file is corrupt")
+        n = planes.shape[2]
+        v = decode_counts(planes, res)
         if v.size and not (v.min() >= lo and v.max() <= hi):
             raise m.bad(f"{name}_counts", f"a value outside [{lo:g}, {hi:g}]: the file is "
                         "corrupt")
