@@ -104,3 +104,26 @@ def test_valves_out_of_range_error_names_path_flow_and_setting(tmp_path, fast_fi
     assert re.search(r"layer \d+ part fill path: flow 300 mm\^3/s outside the calibration "
                      r"table \[0, 195\] mm\^3/s", err)
     assert "flow.out_of_range = 'clamp'" in err and err.count("\n") == 1
+
+
+@pytest.mark.parametrize("cpus", [1, 2])
+def test_build_valves_in_batches_equal_the_paths_one_by_one(cpus):
+    """plan_build_valves (worker pool) and iter_build_valves (batches of layers) give every
+    depositing path the program plan_valves gives it alone, in order."""
+    from icefab.flow import iter_build_valves, plan_build_valves, plan_valves
+    job = Job().replace(**{"cell.cpus": cpus})
+    layers = tuple(LayerMotion(index=k, z=0.25 * (k + 1), trajectories=(
+        line_trajectory(y=float(k)), line_trajectory(role="travel", width=0.0),
+        line_trajectory(vmax=100.0, role="fill", material="scaffold", y=5.0 + k)))
+        for k in range(11))
+    whole = plan_build_valves(layers, job)
+    seen = []
+    batches = list(iter_build_valves(layers, job, progress=lambda d, t: seen.append((d, t)),
+                                     batch=4))
+    assert [lm.index for lm, _ in batches] == list(range(11)) and seen[-1] == (11, 11)
+    for lm, progs, ref in zip(layers, (p for _, p in batches), whole):
+        assert [lp.path for lp in progs] == [0, 2] == [lp.path for lp in ref]
+        for lp, r in zip(progs, ref):
+            alone = plan_valves(lm.trajectories[lp.path], lp.material, job)
+            assert np.array_equal(lp.program.ticks, alone.ticks)
+            assert np.array_equal(r.program.ticks, alone.ticks) and lp.material == r.material

@@ -95,7 +95,7 @@ import re
 import struct
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Sequence, Union
+from typing import TYPE_CHECKING, Callable, Iterator, Sequence, Union
 
 import numpy as np
 from scipy.integrate import cumulative_trapezoid, trapezoid
@@ -962,6 +962,27 @@ def plan_build_valves(layers: "Sequence[LayerMotion]", job: "Job",
     progress: called as ``progress(done, total)`` in layers."""
     return parallel_map(_layer_valves_task, [(lm, job) for lm in layers], job, min_items=8,
                         progress=progress)
+
+
+#: Layers planned per batch by :func:`iter_build_valves`: enough to keep the workers busy,
+#: few enough that a batch's programs are small next to the trajectories.
+VALVE_BATCH_LAYERS = 96
+
+
+def iter_build_valves(layers: "Sequence[LayerMotion]", job: "Job",
+                      progress: Callable[[int, int], None] | None = None,
+                      batch: int = VALVE_BATCH_LAYERS
+                      ) -> "Iterator[tuple[LayerMotion, list[LayerProgram]]]":
+    """``(layer, its programs)`` for every layer in order, planned ``batch`` layers at a
+    time by :func:`plan_build_valves`: a caller that writes each layer's programs as they
+    come never holds the whole build's (issue 17). progress as plan_build_valves'."""
+    done = 0
+    for i in range(0, len(layers), batch):
+        chunk = list(layers[i:i + batch])
+        report = None if progress is None else \
+            (lambda d, t, base=done: progress(base + d, len(layers)))
+        yield from zip(chunk, plan_build_valves(chunk, job, progress=report))
+        done += len(chunk)
 
 
 def encode_valve_layer(layer: int, programs: "Sequence[LayerProgram]") -> bytes:

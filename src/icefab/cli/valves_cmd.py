@@ -59,7 +59,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from icefab.config import load_job
-    from icefab.flow import (n_pulses, plan_build_valves, program_pieces, trajectory_width,
+    from icefab.flow import (iter_build_valves, n_pulses, program_pieces, trajectory_width,
                              write_valve_layer)
     from icefab.motion import load_trajectories
 
@@ -104,8 +104,7 @@ def run(args: argparse.Namespace) -> int:
     with output_dir(args.out, "valves") as tmp:
         folder = tmp / "valves"
         folder.mkdir()
-        planned = plan_build_valves(layers, job, progress=progress)
-        for lm, programs in zip(layers, planned):
+        for lm, programs in iter_build_valves(layers, job, progress=progress):
             counts = [0, 0, 0, 0]
             for lp in programs:
                 material, prog = lp.material, lp.program
