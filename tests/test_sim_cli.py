@@ -149,17 +149,17 @@ def test_simulate_reports_a_missing_input(tmp_path, capsys):
 
 
 def _corrupting(monkeypatch, change):
-    """Wrap simulate_build so its result is changed by ``change(result) -> result``."""
+    """Wrap the simulator so both its results are changed by ``change(result) -> result``."""
     import dataclasses
 
     import icefab.sim
 
-    real = icefab.sim.simulate_build
+    real = icefab.sim.simulate_open_and_smf
 
     def wrapped(*a, **k):
-        return change(real(*a, **k), dataclasses)
+        return tuple(change(r, dataclasses) for r in real(*a, **k))
 
-    monkeypatch.setattr(icefab.sim, "simulate_build", wrapped)
+    monkeypatch.setattr(icefab.sim, "simulate_open_and_smf", wrapped)
 
 
 def test_a_surface_that_overflowed_is_an_error_not_infinity_in_json(toolpaths_file, tmp_path,
@@ -200,3 +200,17 @@ def test_layers_without_a_part_are_strict_json_nulls_with_the_reason(toolpaths_f
     assert data["open_loop"]["rms_mm"][0] is None and data["smf"]["max_abs_mm"][0] is None
     assert isinstance(data["open_loop"]["rms_mm"][1], float)
     assert "part footprint is empty" in data["null_means"]
+
+
+@pytest.mark.parametrize("cpus", [1, 2])
+def test_open_loop_and_smf_side_by_side_equal_two_runs_in_a_row(toolpaths_file, cpus):
+    from icefab.paths import load_toolpaths
+    from icefab.sim import simulate_build, simulate_open_and_smf
+    tp = load_toolpaths(toolpaths_file)
+    job = tp.job.replace(**{"cell.cpus": cpus})
+    pair = simulate_open_and_smf(tp, job, layers=8)
+    for closed, res in zip((False, True), pair):
+        alone = simulate_build(tp, job, layers=8, closed_loop=closed)
+        assert np.array_equal(res.rms, alone.rms, equal_nan=True)
+        assert np.array_equal(res.height.z, alone.height.z, equal_nan=True)
+    assert not np.array_equal(pair[0].rms, pair[1].rms, equal_nan=True)  # SMF acts

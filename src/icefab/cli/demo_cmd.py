@@ -172,16 +172,14 @@ def _no_measurement(n_layers: int, job) -> Exception:
 
 def _run_simulator(toolpaths, job, n_layers: int, out, summary: dict) -> None:
     from icefab.cli.simulate_cmd import write_simulation_outputs
-    from icefab.sim import measured_layers, simulate_build
+    from icefab.sim import measured_layers, simulate_open_and_smf
 
     # the exact check (which layers carry measurement paths) after the early one in run()
     if not measured_layers(toolpaths, job, layers=n_layers):
         raise _no_measurement(n_layers, job)
     t0 = time.perf_counter()
-    open_loop = simulate_build(toolpaths, job, layers=n_layers, closed_loop=False,
-                               progress=Progress("simulator, open loop"))
-    closed = simulate_build(toolpaths, job, layers=n_layers, closed_loop=True,
-                            progress=Progress("simulator, SMF"))
+    open_loop, closed = simulate_open_and_smf(toolpaths, job, layers=n_layers,
+                                              progress=Progress("simulator, open loop and SMF"))
     write_simulation_outputs(open_loop, closed, out / "simulation")
     summary["simulation"] = {"layers": n_layers,
                              "final_rms_open_loop_mm": float(open_loop.rms[-1]),

@@ -271,7 +271,7 @@ def write_simulation_outputs(open_loop: "SimResult", closed: "SimResult", out: P
 
 def run(args: argparse.Namespace) -> int:
     from icefab.motion import BuildMotion, plan_toolpaths
-    from icefab.sim import measured_layers, simulate_build
+    from icefab.sim import measured_layers, simulate_open_and_smf
     from icefab.core import Toolpaths
 
     t0 = time.perf_counter()
@@ -309,10 +309,8 @@ def run(args: argparse.Namespace) -> int:
              for t in lm.trajectories), job), job)
     t_prep = time.perf_counter() - t0
     keep = None if args.surface_layer is None else [args.surface_layer]
-    open_loop = simulate_build(build, job, layers=n, closed_loop=False,
-                               keep_surfaces=keep, progress=Progress("open loop"))
-    closed = simulate_build(build, job, layers=n, closed_loop=True, keep_surfaces=keep,
-                            progress=Progress("with SMF"))
+    open_loop, closed = simulate_open_and_smf(build, job, layers=n, keep_surfaces=keep,
+                                              progress=Progress("open loop and with SMF"))
     t_sim = time.perf_counter() - t0 - t_prep
     with output_dir(args.out, "simulate") as tmp:
         write_simulation_outputs(open_loop, closed, tmp, surface_layer=args.surface_layer,

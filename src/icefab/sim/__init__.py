@@ -70,7 +70,8 @@ build runner steps :func:`run_cell` with its own plans and controller):
   :class:`SimResult`) over plans and a controller callable;
 * :mod:`icefab.sim.smf` — the surface mapping feedback of :mod:`icefab.feedback` as a
   controller (:func:`smf_controller`);
-* :mod:`icefab.sim.simulate` — :func:`simulate_build`: a ``Toolpaths`` or a
+* :mod:`icefab.sim.simulate` — :func:`simulate_build` (and :func:`simulate_open_and_smf`, the
+  two runs side by side): a ``Toolpaths`` or a
   ``BuildMotion`` prepared and run open loop or with SMF.
 
 Everything public is importable from ``icefab.sim`` as before the split.
@@ -94,7 +95,7 @@ from icefab.sim.plans import (LayerPlan, LayerValves, laser_in_time, layer_valve
                               measurement_layers, plan_layer, plan_layer_motion,
                               valve_segments)
 from icefab.sim.simulate import (MOTION_SETTINGS, check_motion_job, measured_layers,
-                                 simulate_build)
+                                 simulate_build, simulate_open_and_smf)
 from icefab.sim.smf import smf_controller
 
 __all__ = ["SimulationError", "Controller", "Measurement", "SimResult", "run_cell",
@@ -103,4 +104,5 @@ __all__ = ["SimulationError", "Controller", "Measurement", "SimResult", "run_cel
            "level_liquid", "pulse_drops", "pulse_segments", "laser_measure", "laser_positions",
            "sample_surface", "LayerPlan", "LayerValves", "layer_valves", "measurement_layers",
            "plan_layer", "plan_layer_motion", "valve_segments", "MOTION_SETTINGS",
-           "check_motion_job", "measured_layers", "simulate_build", "smf_controller"]
+           "check_motion_job", "measured_layers", "simulate_build", "simulate_open_and_smf",
+           "smf_controller"]

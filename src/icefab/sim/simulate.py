@@ -4,6 +4,7 @@ the virtual cell, open loop or with SMF (:func:`simulate_build`).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from typing import Callable, Sequence
 
@@ -113,3 +114,27 @@ def simulate_build(build: "Toolpaths | BuildMotion", job: "Job | None" = None, *
     return run_cell(plans, job, measure_layers=measure,
                     controller=controller if closed_loop else None,
                     keep_surfaces=keep_surfaces, progress=progress)
+
+
+def _simulate_task(args: tuple) -> SimResult:
+    build, job, layers, closed_loop, keep = args
+    return simulate_build(build, job, layers=layers, closed_loop=closed_loop,
+                          keep_surfaces=keep)
+
+
+def simulate_open_and_smf(build: "Toolpaths | BuildMotion", job: "Job | None" = None, *,
+                          layers: int | None = None, keep_surfaces: Sequence[int] | None = None,
+                          progress: Callable[[int, int], None] | None = None
+                          ) -> tuple[SimResult, SimResult]:
+    """:func:`simulate_build` open loop and with SMF, the two builds side by side on two
+    worker processes (``cell.cpus`` permitting): they are independent runs of the same
+    seeded cell, so the results are those of two calls in a row. progress: in builds
+    (2)."""
+    from icefab.parallel import parallel_map
+
+    if layers is not None:  # only the layers simulated travel to the workers
+        build = dataclasses.replace(build, layers=tuple(build.layers[:max(int(layers), 0)]))
+    items = [(build, job, layers, closed, keep_surfaces) for closed in (False, True)]
+    open_loop, closed = parallel_map(_simulate_task, items, job or build.job, min_items=2,
+                                     progress=progress)
+    return open_loop, closed
