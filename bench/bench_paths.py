@@ -50,7 +50,7 @@ BUFFER = 3.3
 
 def _stack(name: str):
     from icefab.config import Job
-    from icefab.mesh import load_mesh
+    from icefab.mesh import prepare_parts
     from icefab.slicing import load_stack, save_stack, slice_mesh
 
     mesh_path = big_mesh(name)
@@ -61,7 +61,12 @@ def _stack(name: str):
             return load_stack(cache), None
         except Exception as exc:  # noqa: BLE001 - an unreadable cache is rebuilt
             print(f"rebuilding the stack cache ({exc})")
-    mesh = load_mesh(mesh_path)
+    # as 'icefab slice' prepares it: placed, and the scan's holes closed in 3D (issue 11;
+    # slicing the open scan as it is refuses its open contours)
+    # (the placement checks against a cell the 300 mm part fits: taller than the Cobra's
+    # 210 mm stroke, and outside joint 1's range at the default origin)
+    mesh = prepare_parts(job.replace(**{"parts.files": [str(mesh_path)], "cell.stroke_mm": 400.0,
+                                        "cell.ee_origin_mm": (340.0, 0.0)}))
     stack = slice_mesh(mesh, job)
     save_stack(stack, cache)
     drop_stale(cache)
