@@ -7,9 +7,9 @@ compiling them for a minute.
 
 from __future__ import annotations
 
+import contextlib
 import io
 import os
-import sys
 import tempfile
 import time
 
@@ -48,12 +48,9 @@ def warm_up() -> int:
         with open(job, "w", encoding="utf-8") as fh:
             fh.write("[cell]\ncpus = 1\n")  # the kernels compile in this process
         out = io.StringIO()
-        stdout, sys.stdout = sys.stdout, out
-        try:
+        with contextlib.redirect_stdout(out):
             code = main(["demo", "-c", job, "-o", folder, "--layers", "8",
                          "--sim-layers", "4"])
-        finally:
-            sys.stdout = stdout
         if code:
             raise RuntimeError(f"icefab demo (warm-up) exited with {code}: {out.getvalue()}")
         load_mesh(os.path.join(folder, "demo-mug.stl"))
