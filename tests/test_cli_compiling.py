@@ -84,3 +84,18 @@ def test_after_the_install_warm_up_the_demo_compiles_nothing(tmp_path, monkeypat
                        env={**os.environ, "ICEFAB_COMPILE_NOTICE": "1"})
     assert r.returncode == 0, r.stderr
     assert FIRST_LINE not in r.stderr, r.stderr      # nothing left to compile
+
+
+def test_the_sdist_carries_the_build_backend(tmp_path):
+    """pyproject.toml's backend lives in tools/: an sdist without it builds no wheel."""
+    import tarfile
+
+    code = ("import sys; sys.path.insert(0, 'tools'); import icefab_build; "
+            f"print(icefab_build.build_sdist({str(tmp_path)!r}))")
+    r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
+                       text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    with tarfile.open(tmp_path / r.stdout.strip().splitlines()[-1]) as tar:
+        names = tar.getnames()
+    assert any(n.endswith("/tools/icefab_build.py") for n in names)
+    assert any(n.endswith("/src/icefab/data/demo_mug.npz") for n in names)
