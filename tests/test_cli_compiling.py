@@ -88,11 +88,17 @@ def test_after_the_install_warm_up_the_demo_compiles_nothing(tmp_path, monkeypat
 
 def test_the_sdist_carries_the_build_backend(tmp_path):
     """pyproject.toml's backend lives in tools/: an sdist without it builds no wheel."""
+    import shutil
     import tarfile
 
+    # a clean copy: an egg-info left by an earlier build would list the files for it
+    src = tmp_path / "src-copy"
+    shutil.copytree(ROOT, src, ignore=shutil.ignore_patterns(
+        "*.egg-info", "__pycache__", ".venv", ".git", "build", "dist", ".cache",
+        "icefab-demo", ".hypothesis", ".pytest_cache"))
     code = ("import sys; sys.path.insert(0, 'tools'); import icefab_build; "
             f"print(icefab_build.build_sdist({str(tmp_path)!r}))")
-    r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
+    r = subprocess.run([sys.executable, "-c", code], cwd=src, capture_output=True,
                        text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     with tarfile.open(tmp_path / r.stdout.strip().splitlines()[-1]) as tar:
