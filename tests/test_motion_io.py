@@ -205,3 +205,16 @@ def test_constant_speed_time_is_the_constant_speed_motions_duration():
                                                                            rel=1e-12)
     # and it is not the minimum-time plan's (slower fill)
     assert constant_speed_time(tp, job) > plan_toolpaths(tp, job).duration
+
+
+def test_trajectories_without_joint_names_keep_their_joints(tmp_path):
+    """A BuildMotion whose joints carry no names (as version 2 read it: any columns)."""
+    import dataclasses
+    job = Job()
+    motion = plan_toolpaths(_toolpaths(job, 1), job.replace(**{"cell.cpus": 1}))
+    unnamed = dataclasses.replace(motion, joint_names=())
+    save_trajectories(unnamed, tmp_path / "t.npz")
+    back = load_trajectories(tmp_path / "t.npz")
+    for ta, tb in zip(motion.layers[0].trajectories, back.layers[0].trajectories):
+        assert tb.joints.shape == ta.joints.shape == (len(ta.xy), 3)
+        np.testing.assert_allclose(tb.joints, ta.joints, rtol=0, atol=JOINT_RESOLUTION / 2)

@@ -976,13 +976,11 @@ def iter_build_valves(layers: "Sequence[LayerMotion]", job: "Job",
     """``(layer, its programs)`` for every layer in order, planned ``batch`` layers at a
     time by :func:`plan_build_valves`: a caller that writes each layer's programs as they
     come never holds the whole build's (issue 17). progress as plan_build_valves'."""
-    done = 0
     for i in range(0, len(layers), batch):
         chunk = list(layers[i:i + batch])
         report = None if progress is None else \
-            (lambda d, t, base=done: progress(base + d, len(layers)))
+            (lambda d, t, base=i: progress(base + d, len(layers)))
         yield from zip(chunk, plan_build_valves(chunk, job, progress=report))
-        done += len(chunk)
 
 
 def encode_valve_layer(layer: int, programs: "Sequence[LayerProgram]") -> bytes:

@@ -832,11 +832,17 @@ def constant_speed_motion(toolpaths: Toolpaths, job: Job | None = None, *,
     achieve. Layer-parallel like :func:`plan_toolpaths`.
     """
     job = job or toolpaths.job
+    return plan_toolpaths(toolpaths, job, progress,
+                          role_speeds=_constant_speeds(job, boundary_mm_s, fill_mm_s))
+
+
+def _constant_speeds(job: Job, boundary_mm_s: float | None, fill_mm_s: float | None
+                     ) -> dict[str, float]:
+    """The role speeds of the constant-speed case (defaults: the job's, thesis 4.4)."""
     m = job.motion
-    speeds = {"boundary": float(m.boundary_speed_mm_s if boundary_mm_s is None
-                                else boundary_mm_s),
-              "fill": float(m.fill_speed_mm_s if fill_mm_s is None else fill_mm_s)}
-    return plan_toolpaths(toolpaths, job, progress, role_speeds=speeds)
+    return {"boundary": float(m.boundary_speed_mm_s if boundary_mm_s is None
+                              else boundary_mm_s),
+            "fill": float(m.fill_speed_mm_s if fill_mm_s is None else fill_mm_s)}
 
 
 def constant_speed_time(toolpaths: Toolpaths, job: Job | None = None, *,
@@ -849,10 +855,7 @@ def constant_speed_time(toolpaths: Toolpaths, job: Job | None = None, *,
     layers and sends back their times.
     """
     job = job or toolpaths.job
-    m = job.motion
-    speeds = {"boundary": float(m.boundary_speed_mm_s if boundary_mm_s is None
-                                else boundary_mm_s),
-              "fill": float(m.fill_speed_mm_s if fill_mm_s is None else fill_mm_s)}
+    speeds = _constant_speeds(job, boundary_mm_s, fill_mm_s)
     times = parallel_map(_layer_time_task, _checked_items(toolpaths, job, speeds), job,
                          min_items=2, progress=progress)
     return float(sum(times))

@@ -712,13 +712,15 @@ def owner_arrays(motion: BuildMotion) -> dict[str, np.ndarray]:
                              dtype=np.int8)}
 
 
-def _zigzag_counts(column: np.ndarray, resolution: float) -> np.ndarray:
-    """(n,) float64 -> (n,) little-endian uint64: the values as integer counts of
-    ``resolution`` (rounded to the nearest), their second differences (the first ones
-    against zeros), zig-zag mapped to unsigned (0, -1, 1, -2, ... -> 0, 1, 2, 3, ...)."""
+def _planes(column: np.ndarray, resolution: float) -> np.ndarray:
+    """(n,) float64 -> (8, n) uint8: the values as integer counts of ``resolution``
+    (rounded to the nearest), their second differences (the first ones against zeros),
+    zig-zag mapped to unsigned (0, -1, 1, -2, ... -> 0, 1, 2, 3, ...), as the 8 byte planes
+    of their little-endian uint64."""
     q = np.rint(np.asarray(column, np.float64) / resolution).astype(np.int64)
     d = np.diff(np.diff(q, prepend=0), prepend=0)
-    return ((d << 1) ^ (d >> 63)).astype("<u8")
+    zz = ((d << 1) ^ (d >> 63)).astype("<u8")
+    return np.ascontiguousarray(zz.view(np.uint8).reshape(-1, 8).T)
 
 
 def encode_counts(values: np.ndarray, resolution: float) -> np.ndarray:
@@ -735,7 +737,7 @@ def encode_counts(values: np.ndarray, resolution: float) -> np.ndarray:
     v = v[:, None] if v.ndim == 1 else v
     out = np.empty((v.shape[1], 8, len(v)), np.uint8)
     for col in range(v.shape[1]):
-        out[col] = _zigzag_counts(v[:, col], resolution).view(np.uint8).reshape(-1, 8).T
+        out[col] = _planes(v[:, col], resolution)
     return out
 
 
@@ -762,11 +764,8 @@ class _Counts:
     def write(self, fh) -> None:
         np.lib.format.write_array_header_1_0(
             fh, {"descr": "|u1", "fortran_order": False, "shape": self.shape})
-        cols, _, n = self.shape
-        for col in range(cols):
-            b = _zigzag_counts(self.column(col), self.resolution).view(np.uint8).reshape(n, 8)
-            for k in range(8):
-                fh.write(np.ascontiguousarray(b[:, k]).data)
+        for col in range(self.shape[0]):
+            fh.write(_planes(self.column(col), self.resolution).data)
 
 
 def save_trajectories(motion: BuildMotion, path: str | os.PathLike) -> None:
@@ -827,7 +826,7 @@ MAX_JOINT = 1e6
 def _sample_counts(m: "_Members", n_joints: int
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The samples of a version 3 trajectory file (xy (M, 2), joints (M, j), speed (M,)),
-    decoded and checked like version 2's float members."""
+    decoded and checked like version 2's float members (``n_joints`` 0: any number)."""
     out = []
     n = None
     for name, cols, lo, hi in (("xy", 2, -MAX_COORD_MM, MAX_COORD_MM),
@@ -835,6 +834,8 @@ def _sample_counts(m: "_Members", n_joints: int
                                ("speed", 1, 0.0, MAX_COORD_MM)):
         res = m.number(f"{name}_resolution", 0.0, 1.0, lo_open=True)
         planes = m.array(f"{name}_counts", "u", 3)
+        if name == "joint" and not cols:  # unnamed joints: as many as stored (as version 2)
+            cols = planes.shape[0]
         if planes.dtype.itemsize != 1 or planes.shape[:2] != (cols, 8) or \
                 (n is not None and planes.shape[2] != n):
             raise m.bad(f"{name}_counts", f"{planes.dtype} of shape {planes.shape}, expected "

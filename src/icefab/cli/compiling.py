@@ -103,4 +103,3 @@ def compile_notice(stream: TextIO | None = None, interval_s: float = 5.0
     line = notice.summary()
     if line:
         notice._say(line)
-

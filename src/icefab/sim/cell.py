@@ -139,7 +139,6 @@ def _edge_factor(layer_z: np.ndarray, thresh: float, width: float, spacing: floa
     return 1.0 - loss * ramp
 
 
-
 def deposit_layer(z: np.ndarray, origin: np.ndarray, spacing: float, segments: tuple,
                   used_cm3: np.ndarray, midpoints: np.ndarray, job: "Job", dh: float,
                   rng_noise: np.random.Generator, rng_debris: np.random.Generator
