@@ -35,7 +35,7 @@ STAGES: list[tuple[str, tuple[str, ...]]] = [
     ("export", ("icefab.export",)),
     ("cell", ("icefab.cell",)),
     ("calibration", ("icefab.calibration",)),
-    ("build", ("icefab.journal", "icefab.runcell", "icefab.build")),
+    ("build", ("icefab.journal", "icefab.runcell", "icefab.linkedcell", "icefab.build")),
     ("cli", ("icefab.cli", "icefab.__main__", "icefab")),
 ]
 

@@ -344,11 +344,17 @@ def test_refusals(planned, tmp_path):
         f.write("\n# edited\n")
     r = _icefab("build", "--resume", "b", cwd=tmp_path)
     assert r.returncode == 2 and "job changed" in r.stderr
+    # not an endpoints file
+    (tmp_path / "old.json").write_text(json.dumps({"host": "127.0.0.1", "port": 9}))
+    r = _icefab("build", str(planned), "-o", "c", "--cell", "old.json", cwd=tmp_path)
+    assert r.returncode == 2 and "old.json: not a cell's endpoints file" in r.stderr
     # a cell that does not answer its handshake: nothing journaled
-    (tmp_path / "ep.json").write_text(json.dumps({"host": "127.0.0.1", "port": 9,
-                                                  "authkey": "00"}))
+    (tmp_path / "ep.json").write_text(json.dumps({
+        "robot": {"host": "127.0.0.1", "port": 9}, "valve": {"device": "/dev/null"},
+        "laser": {"device": "/dev/null"}}))
     r = _icefab("build", str(planned), "-o", "c", "--cell", "ep.json", cwd=tmp_path)
-    assert r.returncode == 2 and "does not answer" in r.stderr
+    assert r.returncode == 2 and "robot at 127.0.0.1:9: cannot connect" in r.stderr
+    assert r.stderr.count("\n") == 1
     assert not (tmp_path / "c" / bmod.JOURNAL).exists()
 
 
@@ -356,7 +362,7 @@ def test_cell_killed_mid_path_build_completes(planned, tmp_path):
     r = _icefab("build", str(planned), "-o", "ref", "--virtual", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     proc = subprocess.Popen([sys.executable, "-m", "icefab", "build", str(planned), "-o",
-                             "f", "--virtual", "--cell-dwell", "0.02"], cwd=tmp_path,
+                             "f", "--virtual", "--cell-time-factor", "50"], cwd=tmp_path,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     rng = np.random.default_rng(5)
     try:
@@ -406,15 +412,15 @@ def test_report_of_a_running_build_in_chromium(tmp_path):
     # 9 layers: the report first appears after layer 4's measurement, with layers 5-8 to go
     planned = _plan_mug(2 * 4 + 1, tmp_path)
     proc = subprocess.Popen([sys.executable, "-m", "icefab", "build", str(planned), "-o",
-                             "b", "--virtual", "--cell-dwell", "0.01"], cwd=tmp_path,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                             "b", "--virtual", "--cell-time-factor", "100"], cwd=tmp_path,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     cell_pid = None
     try:
         report = tmp_path / "b" / bmod.REPORT
         deadline = time.monotonic() + 300
-        while not report.exists() and time.monotonic() < deadline:
+        while not report.exists() and time.monotonic() < deadline and proc.poll() is None:
             time.sleep(0.02)
-        assert report.exists()
+        assert report.exists(), proc.stderr.read() if proc.poll() is not None else "timeout"
         # freeze the cell (a robot still moving): the build waits on it, still running,
         # however slowly Chromium starts on a loaded machine
         cell_pid = json.loads((tmp_path / "b" / "cell" / "endpoints.json").read_text())["pid"]

@@ -85,4 +85,4 @@ def test_check_a_virtual_robot_and_laser(capsys):
         vr.stop()
         pty.stop()
     out = capsys.readouterr().out
-    assert "protocol 1, 8192 points x 4 paths, idle" in out and "storage stopped" in out
+    assert "protocol 2, 8192 points x 4 paths, idle" in out and "storage stopped" in out

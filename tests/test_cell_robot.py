@@ -72,7 +72,8 @@ def test_paths_arrive_as_sent_and_report_their_sequence_numbers(robot):
             assert done.seq == seq and done.points == len(p.xy)
             seqs.append(seq)
         link.end_layer(3)
-        assert link.status() == {"state": "idle", "stored": 0, "last_done": seqs[-1]}
+        assert link.status() == {"state": "idle", "stored": 0, "last_done": seqs[-1],
+                                 "cut": 0}
     assert len(set(seqs)) == len(seqs)
     for (seq, got), want, s in zip(hooks.paths, sent, seqs):
         assert seq == s
@@ -112,7 +113,8 @@ def test_abort_stops_the_motion_and_drops_stored_paths(robot):
         link.abort()
         with pytest.raises(CellError, match="no reply"):
             link.wait_done(a, timeout_s=1.5)
-        assert link.status()["state"] == "aborted"
+        st = link.status()
+        assert st["state"] == "aborted" and st["cut"] == a    # a was stopped mid-motion
         with pytest.raises(CellError, match="error 6"):
             link.go(b)                                 # dropped by the abort
     assert ("stopped", a) in hooks.events and ("abort",) in hooks.events

@@ -265,10 +265,26 @@ class Runner:
 
     def _link(self) -> Cell:
         if self.cell is None:
-            self.cell = self.connect()
-            self.cell.hello()
+            cell = self.connect()
+            try:
+                cell.hello()
+            except BaseException:
+                close = getattr(cell, "close", None)
+                if close is not None:
+                    close()
+                raise
+            self.cell = cell
             self._reconcile()
         return self.cell
+
+    def _drop_link(self) -> None:
+        cell, self.cell = self.cell, None
+        close = getattr(cell, "close", None)
+        if close is not None:
+            try:
+                close()
+            except (OSError, CellError):
+                pass
 
     def _reconcile(self) -> None:
         """Bring the journal up to what the cell completed (after a crash or fault)."""
@@ -294,7 +310,7 @@ class Runner:
                 self.faults += 1
                 self.journal.event("cell-link", f"cell link lost: {exc}",
                                    layer=self.progress.layer)
-                self.cell = None
+                self._drop_link()
                 if self.faults > self.max_faults:
                     raise
                 time.sleep(0.1)
@@ -406,7 +422,13 @@ class Runner:
                                   z_mm=z_mm, width_mm=0.0)
                     self._send(kind, L, i, cp.digest(), lambda c, s, cp=cp: c.run_path(s, cp))
                     seq, _ = self.journal.command(kind, L, i, cp.digest())
-                    raw = self._call(lambda c, s=seq: c.laser_samples(s))
+                    if self.journal.is_cut(seq):   # a fault stopped it: no samples
+                        raw = np.zeros((0, 4))
+                    else:
+                        raw = self._call(lambda c, s=seq, cp=cp: c.laser_samples(s, cp))
+                    if len(raw) == 0 and L not in smf_layers:
+                        self.journal.event("measurement", f"layer {L}: measurement path {i} "
+                                           "gave no laser samples", layer=L)
                     raws.append(laser_to_part(np.asarray(raw), tr, job))
                     p.paths_done = self.journal.paths_done()
                     p.remaining_s -= float(tr.duration)

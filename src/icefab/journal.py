@@ -222,6 +222,11 @@ class Journal:
         row = self._db.execute("SELECT done FROM commands WHERE seq=?", (seq,)).fetchone()
         return row is not None and row[0] is not None
 
+    def is_cut(self, seq: int) -> bool:
+        """Whether a cell fault cut command ``seq`` short."""
+        row = self._db.execute("SELECT cut FROM commands WHERE seq=?", (seq,)).fetchone()
+        return row is not None and bool(row[0])
+
     def commands(self) -> list[dict[str, Any]]:
         cur = self._db.execute("SELECT seq, kind, layer, item, digest, created, sent, acked, "
                                "done, cut FROM commands ORDER BY seq")

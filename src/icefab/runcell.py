@@ -1,4 +1,4 @@
-"""The cell as the build runner sees it: a small interface, and a virtual cell behind it.
+"""The cell as the build runner sees it: a small interface, and an in-process model cell.
 
 :class:`Cell` is everything :mod:`icefab.build` asks of a cell (thesis 2.5, Fig. 2-5):
 a handshake, the cell's state (which sequence number it completed last, which path a
@@ -13,11 +13,14 @@ it with "already done" instead of running it again. So after a crash of the cont
 the runner re-sends what its journal does not show as done, with the old numbers, and
 every path is deposited exactly once.
 
-:class:`VirtualCell` keeps its state in a folder (``state.npz``, written atomically and
-fsync'ed after every path, and ``surface.npz``: ``origin`` (2,) mm, ``spacing`` mm,
+``icefab build`` runs on :class:`icefab.linkedcell.LinkedCell`: this interface on
+the three links of a real cell or of ``icefab cell serve`` (issue 13). :class:`VirtualCell`
+here is a model cell in the runner's own process, for the runner's tests that inject a
+crash at any command: it keeps its state in a folder (``state.npz``, written atomically
+and fsync'ed after every path, and ``surface.npz``: ``origin`` (2,) mm, ``spacing`` mm,
 ``z`` (ny, nx) mm heights from the platform, NaN where nothing was deposited; rewritten
-at every layer end), so it survives a restart of its process as real ice would. It
-deposits with :mod:`icefab.sim`'s kernels: every valve pulse drops the volume its valve's
+at every layer end), so it survives being opened again as real ice would. It deposits
+with :mod:`icefab.sim`'s kernels: every valve pulse drops the volume its valve's
 calibration table gives at the pulse's local frequency (from the pulse intervals: the
 virtual valve only sees pulse instants, like the real one), times the simulated flow
 error and drift, along the nozzle's trajectory (:func:`icefab.sim.pulse_segments`); at a
@@ -27,22 +30,12 @@ whatever the timing or the interruptions. The laser reads the frozen surface at 
 along measurement paths with the simulated latency (``simulation.laser_latency_s``) and
 noise drawn from ``(seed, layer, item)``; samples are tagged with the end-effector
 position (robot base frame) at their instant, as the real cell reports them.
-
-``icefab.runcell serve --state DIR`` runs a virtual cell as its own process (so killing
-the build leaves it running, as a real controller would) behind a local socket
-(``multiprocessing.connection``, authenticated; ``DIR/endpoints.json`` names the address
-and key); :class:`RemoteCell` is the client. This is the build runner's stand-in until the
-cell links of issue 13 (``icefab cell serve``: the robot protocol, the valve firmware on a
-pty, the laser emulator) are bound behind the same :class:`Cell` interface.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import os
-import secrets
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -50,13 +43,12 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from icefab.errors import CellError, IcefabError
+from icefab.errors import CellError
 
 log = logging.getLogger(__name__)
 
 STATE_FILE = "state.npz"
 SURFACE_FILE = "surface.npz"
-ENDPOINTS_FILE = "endpoints.json"
 JOB_FILE = "job.toml"
 LASER_DIR = "laser"
 
@@ -120,7 +112,7 @@ class Cell(Protocol):
 
     def end_layer(self, seq: int, layer: int) -> bool: ...
 
-    def laser_samples(self, seq: int) -> np.ndarray: ...
+    def laser_samples(self, seq: int, path: CellPath) -> np.ndarray: ...
 
     def stop(self) -> None: ...
 
@@ -289,7 +281,7 @@ class VirtualCell:
         self._executed(seq)
         return True
 
-    def laser_samples(self, seq: int) -> np.ndarray:
+    def laser_samples(self, seq: int, path: CellPath) -> np.ndarray:
         """(m, 4) float64: t s from the path start, EE x, y (base frame, mm), z reading mm
         of the measurement path with this ``seq``."""
         f = self.dir / LASER_DIR / f"{seq:08d}.npy"
@@ -393,180 +385,3 @@ def _tool_offset(tool: str, job) -> np.ndarray:
     from icefab.frames import tool_offset
 
     return np.asarray(tool_offset(tool, job), dtype=np.float64)
-
-
-# =========================================================================== the process
-
-
-def serve(state_dir: str | os.PathLike, *, dwell_s: float = 0.0) -> None:
-    """Serve a :class:`VirtualCell` on 127.0.0.1 until killed (one client at a time)."""
-    from multiprocessing.connection import Listener
-
-    cell = VirtualCell(state_dir, dwell_s=dwell_s)
-    key = secrets.token_bytes(16)
-    with Listener(("127.0.0.1", 0), authkey=key) as listener:
-        host, port = listener.address
-        ep = {"kind": "icefab-virtual-cell", "host": host, "port": port,
-              "authkey": key.hex(), "pid": os.getpid()}
-        path = cell.dir / ENDPOINTS_FILE
-        tmp = path.with_name(".endpoints.tmp")
-        tmp.write_text(json.dumps(ep) + "\n", encoding="utf-8")
-        os.replace(tmp, path)
-        while True:
-            try:
-                conn = listener.accept()
-            except (OSError, EOFError):
-                continue
-            with conn:
-                while True:
-                    try:
-                        name, args = conn.recv()
-                    except (EOFError, OSError):
-                        break
-                    if name == "shutdown":
-                        conn.send(("ok", None))
-                        return
-                    try:
-                        if name not in _CALLS:
-                            raise CellError(f"unknown command {name!r}")
-                        reply = ("ok", getattr(cell, name)(*args))
-                    except IcefabError as exc:
-                        reply = ("error", str(exc))
-                    try:
-                        conn.send(reply)
-                    except (OSError, EOFError):
-                        break
-
-
-_CALLS = ("hello", "status", "prepare", "run_path", "end_layer", "laser_samples", "stop")
-
-
-class RemoteCell:
-    """A client of a served virtual cell (``DIR/endpoints.json``)."""
-
-    def __init__(self, endpoints: str | os.PathLike, *, timeout_s: float = 10.0) -> None:
-        from multiprocessing.connection import Client
-
-        self.endpoints = Path(endpoints)
-        try:
-            ep = json.loads(self.endpoints.read_text(encoding="utf-8"))
-            addr = (ep["host"], int(ep["port"]))
-            key = bytes.fromhex(ep["authkey"])
-        except (OSError, ValueError, KeyError, TypeError) as exc:
-            raise CellError(f"{self.endpoints}: not a cell's endpoints file ({exc})") from None
-        deadline = time.monotonic() + timeout_s
-        while True:
-            try:
-                self._conn = Client(addr, authkey=key)
-                break
-            except (OSError, EOFError) as exc:
-                if time.monotonic() > deadline:
-                    raise CellError(f"{self.endpoints}: the cell at {addr[0]}:{addr[1]} does "
-                                    f"not answer ({exc})") from None
-                time.sleep(0.05)
-
-    def _call(self, name: str, *args: Any) -> Any:
-        try:
-            self._conn.send((name, args))
-            kind, value = self._conn.recv()
-        except (OSError, EOFError) as exc:
-            raise CellError(f"the cell's link broke during {name} ({exc or 'closed'})") \
-                from None
-        if kind == "error":
-            raise CellError(value)
-        return value
-
-    def close(self) -> None:
-        try:
-            self._conn.close()
-        except OSError:  # pragma: no cover
-            pass
-
-    def hello(self) -> dict:
-        return self._call("hello")
-
-    def status(self) -> CellStatus:
-        return self._call("status")
-
-    def prepare(self, job_toml: str, lo_mm, hi_mm) -> None:
-        self._call("prepare", job_toml, tuple(map(float, lo_mm)), tuple(map(float, hi_mm)))
-
-    def run_path(self, seq: int, path: CellPath) -> bool:
-        return self._call("run_path", seq, path)
-
-    def end_layer(self, seq: int, layer: int) -> bool:
-        return self._call("end_layer", seq, layer)
-
-    def laser_samples(self, seq: int) -> np.ndarray:
-        return self._call("laser_samples", seq)
-
-    def stop(self) -> None:
-        self._call("stop")
-
-    def shutdown(self) -> None:
-        """End the served cell's process (its state stays in its folder)."""
-        self._call("shutdown")
-
-
-def start_virtual_cell(state_dir: str | os.PathLike, *, dwell_s: float = 0.0,
-                       timeout_s: float = 30.0) -> int:
-    """Start ``serve`` as its own process (own session: killing the build leaves it
-    running) and wait for its endpoints file. Returns its pid."""
-    import subprocess
-
-    d = Path(state_dir)
-    d.mkdir(parents=True, exist_ok=True)
-    ep = d / ENDPOINTS_FILE
-    ep.unlink(missing_ok=True)
-    log_f = open(d / "cell.log", "ab")
-    # through -c so that pickled classes are icefab.runcell's, not __main__'s
-    proc = subprocess.Popen([sys.executable, "-c", "import sys; from icefab.runcell import "
-                             "main; sys.exit(main(sys.argv[1:]))", "serve", "--state",
-                             str(d), "--dwell", repr(float(dwell_s))],
-                            stdin=subprocess.DEVNULL, stdout=log_f, stderr=log_f,
-                            start_new_session=True)
-    log_f.close()
-    deadline = time.monotonic() + timeout_s
-    while not ep.is_file():
-        if proc.poll() is not None:
-            raise CellError(f"the virtual cell exited at start (status {proc.returncode}); "
-                            f"see {d / 'cell.log'}")
-        if time.monotonic() > deadline:
-            raise CellError(f"the virtual cell did not start within {timeout_s:g} s")
-        time.sleep(0.05)
-    return proc.pid
-
-
-def cell_alive(state_dir: str | os.PathLike) -> bool:
-    """Whether the process named in ``DIR/endpoints.json`` is running."""
-    try:
-        pid = int(json.loads((Path(state_dir) / ENDPOINTS_FILE).read_text())["pid"])
-    except (OSError, ValueError, KeyError):
-        return False
-    try:  # our own child that died is a zombie until reaped: reap it
-        if os.waitpid(pid, os.WNOHANG)[0] == pid:
-            return False
-    except ChildProcessError:
-        pass
-    try:
-        os.kill(pid, 0)
-    except OSError:
-        return False
-    return True
-
-
-def main(argv: list[str] | None = None) -> int:
-    import argparse
-
-    p = argparse.ArgumentParser(prog="python -m icefab.runcell")
-    sub = p.add_subparsers(dest="cmd", required=True)
-    s = sub.add_parser("serve")
-    s.add_argument("--state", required=True)
-    s.add_argument("--dwell", type=float, default=0.0)
-    args = p.parse_args(argv)
-    serve(args.state, dwell_s=args.dwell)
-    return 0
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())

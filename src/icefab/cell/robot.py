@@ -21,6 +21,7 @@ a closed connection or a timeout.
 from __future__ import annotations
 
 import logging
+import secrets
 import socket
 import time
 from dataclasses import dataclass
@@ -126,7 +127,8 @@ class RobotLink:
     def __init__(self, sock: socket.socket, *, timeout_s: float = 10.0, where: str = ""):
         self._sock = sock
         self._buf = b""
-        self._seq = 0
+        # the link's own numbers: the upper half, from a random point (robot_protocol)
+        self._seq = rp.FIRST_LINK_SEQ + secrets.randbelow(rp.MAX_SEQ - rp.FIRST_LINK_SEQ)
         self._done: dict[int, DoneReport] = {}
         self.timeout_s = float(timeout_s)
         self.where = where
@@ -161,7 +163,7 @@ class RobotLink:
     # ------------------------------------------------------------------ plumbing
 
     def _next_seq(self) -> int:
-        self._seq = self._seq % rp.MAX_SEQ + 1
+        self._seq = self._seq + 1 if self._seq < rp.MAX_SEQ else rp.FIRST_LINK_SEQ
         return self._seq
 
     def _send(self, data: bytes) -> None:
@@ -232,12 +234,20 @@ class RobotLink:
     def begin_layer(self, layer: int, z_mm: float) -> None:
         self._command("layer_begin", int(layer), _um(z_mm, "layer height"))
 
-    def end_layer(self, layer: int) -> None:
-        self._command("layer_end", int(layer))
+    def end_layer(self, layer: int, seq: int | None = None) -> None:
+        """``LE``; ``seq``: a build's journal number (a repeat after a crash is answered,
+        not executed twice), else the link's next one."""
+        if seq is None:
+            self._command("layer_end", int(layer))
+        else:
+            self._send(rp.encode("layer_end", int(seq), int(layer)))
+            self._await(int(seq), ("ok",))
 
-    def upload(self, path: RobotPath) -> int:
+    def upload(self, path: RobotPath, seq: int | None = None) -> int:
         """Store one path on the controller; returns its sequence number (reported back
-        by :meth:`wait_done`). CellError if the controller refuses it."""
+        by :meth:`wait_done`): ``seq`` (a build's journal number, 1 ..
+        ``FIRST_LINK_SEQ`` - 1) or the link's next one. CellError if the controller
+        refuses it."""
         xy = np.asarray(path.xy, dtype=np.float64)
         if xy.ndim != 2 or xy.shape[1] != 2 or len(xy) == 0 or not np.isfinite(xy).all():
             raise CellError(f"layer {path.layer} path {path.index}: points must be a "
@@ -248,7 +258,12 @@ class RobotLink:
         if path.tool not in rp.TOOLS:
             raise CellError(f"layer {path.layer} path {path.index}: tool {path.tool!r}; "
                             f"expected one of {', '.join(rp.TOOLS)}")
-        seq = self._next_seq()
+        if seq is None:
+            seq = self._next_seq()
+        elif not 1 <= int(seq) < rp.FIRST_LINK_SEQ:
+            raise CellError(f"layer {path.layer} path {path.index}: sequence number {seq}: "
+                            f"expected 1..{rp.FIRST_LINK_SEQ - 1}")
+        seq = int(seq)
         dt_us = int(round(path.dt_s * 1e6))
         if abs(dt_us - path.dt_s * 1e6) > 1e-6 * max(1.0, path.dt_s * 1e6):
             raise CellError(f"layer {path.layer} path {path.index}: time step "
@@ -291,10 +306,13 @@ class RobotLink:
         self._command("abort")
 
     def status(self) -> dict:
-        """``{"state": "idle"|"moving"|"aborted", "stored": n, "last_done": seq}``."""
+        """``{"state": "idle"|"moving"|"aborted", "stored": n, "last_done": seq,
+        "cut": seq}``: the number of the last path run to its end and of the last one an
+        abort or fault stopped mid-motion (0: none)."""
         msg = self._command("status", reply=("state",))
         return {"state": rp.STATES.get(int(msg["state"]), str(msg["state"])),
-                "stored": int(msg["stored"]), "last_done": int(msg["last_done"])}
+                "stored": int(msg["stored"]), "last_done": int(msg["last_done"]),
+                "cut": int(msg["cut"])}
 
 
 def _um(value_mm: float, what: str) -> int:

@@ -17,10 +17,17 @@ shortest round-trip text of a double, |v| < 100 000: a value the controller only
 carried exactly for the virtual cell). A line with another
 type, another field count or a field that does not parse is malformed.
 
-Sequence numbers (``SEQ``, 1 .. 2**24 - 1, wrapping to 1) are drawn by the host from one
-counter, one per command; a path uses ONE number for its whole upload (``PB``, every
-``PP`` and ``PE``), and the controller reports that number back when the path's motion is
-done (``DN``). Every command except ``PP`` gets exactly one reply with its ``SEQ``:
+Sequence numbers (``SEQ``, 1 .. 2**24 - 1) are drawn by the host, one per command; a path
+uses ONE number for its whole upload (``PB``, every ``PP`` and ``PE``), and the controller
+reports that number back when the path's motion is done (``DN``). A build numbers its
+paths and layer ends from its journal (increasing, below :data:`FIRST_LINK_SEQ`) and
+keeps a command's number when it sends it again after a crash; the link's other commands
+(``HI``, ``LB``, ``ST``, ``AB``) take numbers from :data:`FIRST_LINK_SEQ` up, starting at
+a random point each session so that a new session's first ``ST`` is never taken for a
+repeat of the last one. The controller remembers the number of the last path it ran to
+its end (``last_done``) and of the last path an ``AB`` or a fault stopped mid-motion
+(``cut``) and reports both in ``SS``: after a crash of the control PC the build asks
+``ST`` and knows which paths are done, which one was cut short, and sends the rest. Every command except ``PP`` gets exactly one reply with its ``SEQ``:
 ``OK``, ``ER`` (with a code, :data:`ERRORS`) or its own answer (``HI``, ``SS``); ``GO``
 gets ``OK`` when the motion starts and ``DN`` when it is done. A command repeated with the
 ``SEQ`` of the last reply sent (its reply was lost) gets that reply again and is not
@@ -44,10 +51,11 @@ from dataclasses import dataclass
 
 from icefab.errors import CellError
 
-VERSION = 1
+VERSION = 2       # 2: SS carries "cut" (a path an abort or fault stopped mid-motion)
 MAX_LINE = 120          # characters before CR LF; V+ strings hold 128
 POINTS_PER_LINE = 4     # (x, y) pairs per PP line: 4 x 2 x 10 characters + header < 120
 MAX_SEQ = 2 ** 24 - 1   # exact in a single-precision REAL
+FIRST_LINK_SEQ = 2 ** 23  # journal numbers below, the link's own commands from here up
 MAX_INT = 2 ** 24 - 1
 MAX_MM = 99_999.999
 CHECK_MODULUS = 999_983         # point_check: a prime < 2**20, sums stay exact in REALs
@@ -105,8 +113,8 @@ MESSAGES: tuple[Message, ...] = (
             doc="the path with this SEQ was run to its end (points moved through)"),
     Message("ER", "error", "robot", (("code", "int"),), doc="refused (ERRORS)"),
     Message("SS", "state", "robot",
-            (("state", "int"), ("stored", "int"), ("last_done", "int")),
-            doc="state (STATES), paths stored, SEQ of the last path done (0: none)"),
+            (("state", "int"), ("stored", "int"), ("last_done", "int"), ("cut", "int")),
+            doc="state, paths stored, last path done, last path cut (SEQ, 0: none)"),
 )
 
 #: error codes of ``ER`` replies

@@ -150,8 +150,19 @@ class ValveController:
 
     # ------------------------------------------------------------------ frames
 
+    def _write(self, frame: bytes) -> None:
+        try:
+            self._port.write(frame)
+        except OSError as exc:    # pyserial's SerialException too: the port is gone
+            raise ValveLinkError(f"{self.name}: the serial link failed while sending "
+                                 f"({exc})") from None
+
     def _poll(self) -> list[vf.Frame]:
-        data = self._port.read(4096)
+        try:
+            data = self._port.read(4096)
+        except OSError as exc:
+            raise ValveLinkError(f"{self.name}: the serial link failed while reading "
+                                 f"({exc})") from None
         frames = self._reader.feed(data) if data else []
         for f in frames:
             if f.is_event:
@@ -169,7 +180,7 @@ class ValveController:
         seq = self._seq & 0xFF
         frame = vf.encode(seq, type_, payload)
         for _attempt in range(self.retries + 1):
-            self._port.write(frame)
+            self._write(frame)
             deadline = time.monotonic() + self.timeout_s
             resend = False
             while not resend and time.monotonic() < deadline:
@@ -203,7 +214,7 @@ class ValveController:
         """HELLO with ``seq`` (accepted whatever the controller expects)."""
         frame = vf.encode(seq, vf.HELLO, vf.hello_payload())
         for _ in range(self.retries + 1):
-            self._port.write(frame)
+            self._write(frame)
             deadline = time.monotonic() + self.timeout_s
             while time.monotonic() < deadline:
                 for f in self._poll():

@@ -51,6 +51,17 @@ def build_host(build_dir: str | os.PathLike) -> Path:
     return build_dir / "valvectl"
 
 
+def _end_with_parent() -> None:
+    """In the child before exec (Linux): SIGTERM when the process that started it dies,
+    so a virtual cell killed with SIGKILL leaves no firmware behind holding its pty."""
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGTERM))   # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):   # not Linux: the firmware outlives a killed cell
+        pass
+
+
 class HostFirmware:
     """A running host build. ``pty``: the serial device to open; ``pid``: for SIGUSR1 (the
     trigger input). Use as a context manager, or call :meth:`stop`.
@@ -67,7 +78,7 @@ class HostFirmware:
         if pulse_log is not None:
             args += ["--pulse-log", str(pulse_log)]
         self.proc = subprocess.Popen(args, stdout=subprocess.PIPE, stdin=subprocess.DEVNULL,
-                                     text=True)
+                                     text=True, preexec_fn=_end_with_parent)
         self.pid = self.proc.pid
         self.pulse_log = None if pulse_log is None else Path(pulse_log)
         assert self.proc.stdout is not None

@@ -18,8 +18,10 @@ same links as the real ones:
      "time_factor": 0.0}
 
 The part lives in ``DIR/surface.npz`` (:mod:`icefab.cell.world`: layout, model and
-determinism), saved after every path, so a restarted cell carries on with the same
-surface, as real ice would. Time runs as fast as possible (``time_factor`` 0) or at a
+determinism), saved after every path together with the robot's ``last_done``, so a
+restarted cell carries on with the same surface, as real ice would, and reports what it
+completed; a path under way when the process died (``DIR/robot-running``) is reported
+``cut``. ``DIR/executed.log`` lists the paths run to their end, one per line. Time runs as fast as possible (``time_factor`` 0) or at a
 factor of real time (1: real time).
 """
 
@@ -44,6 +46,9 @@ from icefab.errors import CellError
 log = logging.getLogger(__name__)
 
 __all__ = ["VirtualCell", "FirmwareValves", "ValveHookup", "read_endpoints"]
+
+RUNNING_FILE = "robot-running"
+EXECUTED_FILE = "executed.log"
 
 
 class ValveHookup:
@@ -157,6 +162,7 @@ class _Hooks:
     def path_run(self, seq: int, path: RobotPath, stop: threading.Event,
                  time_factor: float) -> bool:
         cell = self.cell
+        cell.mark_running(seq)
         if path.flags & rp.FLAG_LASER:
             with cell.lock:
                 values = cell.world.laser_values(path.xy, path.dt_s, path.z_mm)
@@ -164,6 +170,9 @@ class _Hooks:
         if path.flags & rp.FLAG_VALVE and cell.valves is not None:
             cell.valves.trigger()
         if time_factor > 0 and stop.wait(path.duration_s / time_factor):
+            with cell.lock:
+                cell.world.cut = seq
+                cell.world.save()
             return False
         if path.flags & rp.FLAG_VALVE:
             pulses = [] if cell.valves is None else \
@@ -171,10 +180,18 @@ class _Hooks:
             with cell.lock:
                 cell.world.deposit_path(path.layer, path.xy, path.dt_s, path.width_mm,
                                         path.tool, pulses)
+        finished = not stop.is_set()
         with cell.lock:
+            # the deposit and the number that says it is done, in one atomic save
+            if finished:
+                cell.world.last_done = seq
+            else:
+                cell.world.cut = seq
             cell.world.save()
+        if finished:
+            cell.executed(seq)
         cell.paths_run += 1
-        return not stop.is_set()
+        return finished
 
     def abort(self) -> None:
         log.info("virtual cell: robot abort")
@@ -205,6 +222,7 @@ class VirtualCell:
         self.job = self.world.job
         self.time_factor = float(time_factor)
         self.paths_run = 0
+        self._recover_cut()
         self.valves: ValveHookup | None = None
         self.laser = PtyLaser().start()
         try:
@@ -212,7 +230,8 @@ class VirtualCell:
                 self.valves = FirmwareValves(self.dir, tick_s=job.flow.tick_s,
                                              time_factor=time_factor, exe=firmware_exe)
             self.robot = VirtualRobot(_Hooks(self), port=robot_port,
-                                      time_factor=time_factor).start()
+                                      time_factor=time_factor, last_done=self.world.last_done,
+                                      cut=self.world.cut).start()
         except BaseException:
             self.laser.stop()
             if self.valves is not None:
@@ -227,6 +246,34 @@ class VirtualCell:
         with atomic_path(self.dir / "endpoints.json", suffix=".json") as tmp:
             Path(tmp).write_text(json.dumps(self.endpoints, indent=1) + "\n",
                                  encoding="utf-8")
+
+    # ------------------------------------------------------------------ restarts
+
+    def mark_running(self, seq: int) -> None:
+        """Note that path ``seq`` starts (``DIR/robot-running``): a cell that dies before
+        the path's end reports it cut when it starts again (:meth:`_recover_cut`)."""
+        from icefab.atomic import write_atomic
+
+        write_atomic(self.dir / RUNNING_FILE, f"{int(seq)}\n")
+
+    def _recover_cut(self) -> None:
+        """A path that had started when the cell's process died, neither done nor cut in
+        the surface's state, was cut short: the robot reports it as ``cut``."""
+        try:
+            seq = int((self.dir / RUNNING_FILE).read_text(encoding="ascii"))
+        except (OSError, ValueError):
+            return
+        if seq not in (self.world.last_done, self.world.cut):
+            log.warning("virtual cell: path %d was under way when the cell stopped: cut short",
+                        seq)
+            self.world.cut = seq
+            self.world.save()
+
+    def executed(self, seq: int) -> None:
+        """Append ``seq`` to ``DIR/executed.log``: the paths the cell ran to their end, one
+        line each (the exactly-once evidence tests and benchmarks read)."""
+        with open(self.dir / EXECUTED_FILE, "a", encoding="ascii") as fh:
+            fh.write(f"{int(seq)}\n")
 
     def close(self) -> None:
         """Stop the devices; the surface stays in the state folder."""

@@ -59,7 +59,8 @@ class VirtualRobot:
     :attr:`port`) and serves one client at a time on a thread; ``stop()`` ends it."""
 
     def __init__(self, hooks: RobotHooks, *, port: int = 0, time_factor: float = 0.0,
-                 max_points: int = 8192, max_paths: int = 4, host: str = "127.0.0.1"):
+                 max_points: int = 8192, max_paths: int = 4, host: str = "127.0.0.1",
+                 last_done: int = 0, cut: int = 0):
         self.hooks = hooks
         self.time_factor = float(time_factor)
         self.max_points = int(max_points)
@@ -74,7 +75,8 @@ class VirtualRobot:
         self._upload: _Upload | None = None
         self._moving: int = 0
         self._state = 0
-        self._last_done = 0
+        self._last_done = int(last_done)   # kept by the cell across restarts (its hooks)
+        self._cut = int(cut)
         self._last: tuple[str, int, bytes] | None = None
         self._conn: socket.socket | None = None
         self._motion = threading.Thread(target=self._motion_loop, daemon=True)
@@ -273,6 +275,8 @@ class VirtualRobot:
     def _on_abort(self, msg: rp.Decoded) -> None:
         self._stop_motion.set()
         with self._go:
+            if self._moving:
+                self._cut = self._moving   # reported in SS: never to be sent again
             self._stored.clear()
             self._upload = None
             self._queue = [q for q in self._queue if q[0] != "go"]
@@ -282,7 +286,7 @@ class VirtualRobot:
 
     def _on_status(self, msg: rp.Decoded) -> None:
         with self._lock:
-            vals = (self._state, len(self._stored), self._last_done)
+            vals = (self._state, len(self._stored), self._last_done, self._cut)
         self._reply("ST", "state", msg.seq, *vals)
 
     # ------------------------------------------------------------------ motion
@@ -316,6 +320,7 @@ class VirtualRobot:
                             self._state = 0
                             done = True
                         else:
+                            self._cut = seq
                             done = False
                     if done:
                         self._reply("GO", "done", seq, len(path.xy))

@@ -156,7 +156,7 @@ _GLOBALS = {
              "ice.maxpts", "ice.maxpaths", "ice.lun", "ice.handle", "ice.quit", "ice.abort",
              "ice.state", "ice.nup", "ice.ndone", "ice.uopen", "ice.uslot", "ice.useq",
              "ice.urecv", "ice.ucheck", "ice.gopend", "ice.goseq", "ice.dnpend", "ice.dnseq",
-             "ice.dnpts", "ice.lastseq", "ice.lastdone", "ice.layer",
+             "ice.dnpts", "ice.lastseq", "ice.lastdone", "ice.cut", "ice.layer",
              "ice.px[]", "ice.py[]", "ice.pn[]", "ice.pdt[]", "ice.pz[]", "ice.pflags[]",
              "ice.pseq[]"],
     "STRING": ["$ice.lasttype", "$ice.lastrep", "$ice.curtype"],
@@ -186,6 +186,7 @@ def _globals_program(s: VplusSettings) -> list[str]:
             '    $ice.lastrep = ""',
             '    $ice.curtype = ""',
             "    ice.lastdone = 0",
+            "    ice.cut = 0",
             "    ice.layer = -1",
             ".END", ""]
     return out
@@ -442,7 +443,11 @@ _FIXED = r"""
 .END
 
 .PROGRAM ice.h.ab(seq)
-    ; stop at once (BRAKE works from any task), triggers off, everything dropped
+    ; stop at once (BRAKE works from any task), triggers off, everything dropped; a path
+    ; under way is reported cut (SS) so the host never sends it again
+    IF ice.gopend THEN
+        ice.cut = ice.goseq
+    END
     ice.abort = TRUE
     BRAKE
     SIGNAL -ice.vsig, -ice.lsig
@@ -454,7 +459,7 @@ _FIXED = r"""
 .END
 
 .PROGRAM ice.h.st(seq)
-    CALL ice.r.ss(seq, ice.state, ice.nup-ice.ndone, ice.lastdone)
+    CALL ice.r.ss(seq, ice.state, ice.nup-ice.ndone, ice.lastdone, ice.cut)
 .END
 """
 

@@ -28,6 +28,10 @@ width.
   ``z`` (ny, nx) float64: frozen height above the platform at node (iy, ix) = point
   ``origin + (ix, iy) * spacing``; ``ever`` (ny, nx) bool: ever deposited on;
 * ``layers_frozen`` int64, ``used_cm3`` (2,) float64 (volume through each valve, drift);
+* ``last_done``, ``cut`` int64: the robot's sequence numbers of the last path run to its
+  end and of the last path stopped mid-motion (0: none), saved with the deposit they
+  describe so that a restarted cell reports what its surface holds (absent in files
+  written before them: 0);
 * ``rng_noise``, ``rng_debris``, ``rng_laser``: JSON of the generators' states;
 * ``job``: TOML of the job the cell runs with;
 * the current layer's liquid not frozen yet: ``pend_*`` arrays (segments of its drops:
@@ -132,6 +136,8 @@ class World:
             self.z = np.zeros(tuple(int(v) for v in shape))
             self.ever = np.zeros(self.z.shape, dtype=bool)
             self.layers_frozen = 0
+            self.last_done = 0
+            self.cut = 0
             self.used_cm3 = np.zeros(2)
             self.rng_noise = np.random.default_rng([sim.seed, 1])
             self.rng_debris = np.random.default_rng([sim.seed, 2])
@@ -149,6 +155,7 @@ class World:
         data = {"format": np.array(FORMAT), "version": np.array(VERSION),
                 "origin": self.origin, "spacing": np.float64(self.spacing), "z": self.z,
                 "ever": self.ever, "layers_frozen": np.int64(self.layers_frozen),
+                "last_done": np.int64(self.last_done), "cut": np.int64(self.cut),
                 "used_cm3": self.used_cm3,
                 "rng_noise": np.array(json.dumps(self.rng_noise.bit_generator.state)),
                 "rng_debris": np.array(json.dumps(self.rng_debris.bit_generator.state)),
@@ -168,6 +175,8 @@ class World:
                 self.z = np.array(d["z"], dtype=np.float64)
                 self.ever = np.array(d["ever"], dtype=bool)
                 self.layers_frozen = int(d["layers_frozen"])
+                self.last_done = int(d["last_done"]) if "last_done" in d.files else 0
+                self.cut = int(d["cut"]) if "cut" in d.files else 0
                 self.used_cm3 = np.array(d["used_cm3"], dtype=np.float64).reshape(2)
                 gens = []
                 for key in ("rng_noise", "rng_debris", "rng_laser"):

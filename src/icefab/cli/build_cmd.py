@@ -57,7 +57,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     mode.add_argument("--stop", metavar="BUILD", help="stop the build: valves off first, "
                                                      "robot to its safe point")
     p.add_argument("--json", action="store_true", help="--status as JSON")
-    p.add_argument("--cell-dwell", type=float, default=0.0, help=argparse.SUPPRESS)
+    # the virtual cell's speed (icefab cell serve --time-factor): tests that kill it mid-path
+    p.add_argument("--cell-time-factor", type=float, default=0.0, help=argparse.SUPPRESS)
     p.set_defaults(func=run)
 
 
@@ -143,15 +144,10 @@ def _box(motion, job):
 
 
 def _shutdown_cell(cdir: Path) -> None:
-    """End the virtual cell process serving ``cdir`` if one runs (by its pid)."""
-    from icefab.runcell import ENDPOINTS_FILE, cell_alive
+    """End the virtual cell process serving ``cdir`` if one runs."""
+    from icefab.linkedcell import shutdown_virtual_cell
 
-    if cell_alive(cdir):
-        pid = int(json.loads((cdir / ENDPOINTS_FILE).read_text(encoding="utf-8"))["pid"])
-        os.kill(pid, signal.SIGTERM)
-        deadline = time.monotonic() + 10
-        while cell_alive(cdir) and time.monotonic() < deadline:
-            time.sleep(0.05)
+    shutdown_virtual_cell(cdir)
 
 
 def _lock(build: Path):
@@ -167,21 +163,26 @@ def _lock(build: Path):
     return f
 
 
-def _connector(build: Path, args: argparse.Namespace, meta: dict):
+def _connector(build: Path, args: argparse.Namespace, meta: dict, job):
+    """A function that returns a new :class:`~icefab.linkedcell.LinkedCell`: on the
+    virtual cell of ``BUILD/cell`` (started as its own process when it does not run: at
+    the start, after it was killed) or on the cell of an endpoints file."""
     from icefab import build as bmod
-    from icefab.runcell import ENDPOINTS_FILE, RemoteCell, cell_alive, start_virtual_cell
+    from icefab.linkedcell import (LinkedCell, cell_alive, load_endpoints,
+                                        start_virtual_cell)
 
     if meta.get("cell") == "virtual":
         cdir = build / bmod.CELL_DIR
-        dwell = float(meta.get("cell_dwell", 0.0))
+        factor = float(meta.get("cell_time_factor", 0.0))
 
         def connect():
             if not cell_alive(cdir):
-                start_virtual_cell(cdir, dwell_s=dwell)
-            return RemoteCell(cdir / ENDPOINTS_FILE)
+                start_virtual_cell(cdir, build / "job.toml", build / bmod.TRAJECTORIES,
+                                   time_factor=factor)
+            return LinkedCell(load_endpoints(cdir), job)
         return connect
     endpoints = Path(args.cell) if getattr(args, "cell", None) else Path(meta["cell"])
-    return lambda: RemoteCell(endpoints)
+    return lambda: LinkedCell(load_endpoints(endpoints), job)
 
 
 # --------------------------------------------------------------------------- run
@@ -229,28 +230,32 @@ def _run(build: Path, args: argparse.Namespace, *, resume: bool) -> int:
         (build / "job.toml").write_text(job_toml, encoding="utf-8")
         save_trajectories(motion, build / bmod.TRAJECTORIES)
         meta = {"cell": "virtual" if args.virtual else str(Path(args.cell).resolve()),
-                "cell_dwell": args.cell_dwell, "layers": len(motion.layers),
+                "cell_time_factor": args.cell_time_factor, "layers": len(motion.layers),
                 "inputs": list(args.input),
                 "digests": {"input": in_digest, "job": digest_file(build / "job.toml"),
                             "trajectories": digest_file(build / bmod.TRAJECTORIES)}}
-        connect = _connector(build, args, meta)
+        connect = _connector(build, args, meta, job)
+        cell = None
         try:
             cell = connect()
             cell.hello()                      # the handshake, before anything is journaled
+            st = cell.status()
+            if not st.prepared:
+                lo, hi = _box(motion, job)
+                cell.prepare(job_toml, tuple(lo), tuple(hi))
         except Exception:
+            if cell is not None:
+                cell.close()
+            if args.virtual:
+                _shutdown_cell(build / bmod.CELL_DIR)
             (build / "job.toml").unlink(missing_ok=True)
             (build / bmod.TRAJECTORIES).unlink(missing_ok=True)
             raise
-        st = cell.status()
-        if not st.prepared:
-            lo, hi = _box(motion, job)
-            cell.prepare(job_toml, tuple(lo), tuple(hi))
         journal = Journal.create(jpath, meta)
         journal.event("start", f"build of {len(motion.layers)} layers on "
                       f"{'a virtual cell' if args.virtual else meta['cell']}")
-        if hasattr(cell, "close"):
-            cell.close()
-    connect = _connector(build, args, meta)
+        cell.close()
+    connect = _connector(build, args, meta, job)
     stop_flag = {"signal": None}
 
     def on_signal(signum, frame):
@@ -286,8 +291,10 @@ def _run(build: Path, args: argparse.Namespace, *, resume: bool) -> int:
         lock.close()
     if tty:
         sys.stderr.write("\n")
-    if meta.get("cell") == "virtual" and runner.cell is not None:
-        runner.cell.shutdown()      # the build is complete: the virtual cell may go
+    if runner.cell is not None:
+        runner.cell.close()
+    if meta.get("cell") == "virtual":
+        _shutdown_cell(build / bmod.CELL_DIR)   # the build is complete: the cell may go
     rms = f"{p.last_rms_mm:.3f} mm" if math.isfinite(p.last_rms_mm) else "-"
     print(f"build complete: {p.layers} layers, {p.paths_done} paths, last measured RMS {rms}; "
           f"{build / bmod.REPORT}")
@@ -350,9 +357,23 @@ def _stop(build: Path) -> int:
                 return 0
         raise ConfigError(f"{build}: the build did not stop within 60 s")
     # no build process: tell the cell directly
-    connect = _connector(build, argparse.Namespace(cell=None), meta)
+    from icefab.linkedcell import cell_alive
+    from icefab.config import load_job
+
+    if meta.get("cell") == "virtual" and not cell_alive(build / bmod.CELL_DIR):
+        journal.event("stop", "stop asked: no build and no virtual cell were running")
+        journal.close()
+        print(f"{build}: no build and no virtual cell were running")
+        return 0
+
+    connect = _connector(build, argparse.Namespace(cell=None), meta,
+                         load_job(build / "job.toml"))
     cell = connect()
-    cell.stop()
+    try:
+        cell.hello()
+        cell.stop()
+    finally:
+        cell.close()
     journal.event("stop", "stop sent to the cell (no build was running)")
     journal.close()
     print(f"{build}: no build was running; the cell was told to stop")

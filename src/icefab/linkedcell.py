@@ -1,0 +1,322 @@
+"""The build runner's cell on the cell's three links: what ``icefab build`` drives.
+
+:class:`LinkedCell` is the :class:`icefab.runcell.Cell` of :mod:`icefab.build` on
+:class:`~icefab.cell.links.CellLinks`: the robot controller (TCP, :mod:`~icefab.cell.robot`),
+the valve controller (serial, :mod:`~icefab.cell.valve`) and the laser (serial,
+:mod:`~icefab.cell.laser`), of a real cell or of ``icefab cell serve``
+(:func:`start_virtual_cell` starts one as its own process). Per path it does what
+:func:`icefab.cell.links.run_layer` does (thesis 2.3, Fig. 2-5), with the build's journal
+sequence numbers:
+
+* a deposition path: the robot path is uploaded under the path's journal number, the valve
+  program is uploaded, verified and armed, and the robot's ``GO`` is the trigger; the path
+  is done when the valve controller reports its play over and the robot its ``DN``;
+* a measurement path: the laser's storage is cleared and started before ``GO``, stopped
+  and read out after ``DN``; its values are kept for :meth:`LinkedCell.laser_samples`;
+* travel: ``GO`` and ``DN``; ``LB`` before the first path of a layer, ``LE`` (journal
+  number) at its end.
+
+Exactly once across crashes (robot_protocol: sequence numbers): the controller keeps the
+number of the last path it ran to its end (``last_done``) and of the last one it stopped
+mid-motion (``cut``). On connecting, :meth:`LinkedCell.hello` lets a motion the crashed
+session started finish, discards paths it had stored and valve programs it had uploaded or
+armed (nothing half-sent is played later), and stops the laser's storage; then
+:meth:`~LinkedCell.status` tells the runner what is done. The laser values of a
+measurement path whose ``DN`` the crash lost are still in the laser's storage (it is only
+cleared before the next measurement path) and are read from there.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from icefab.cell import robot_protocol as rp
+from icefab.errors import CellError
+
+log = logging.getLogger(__name__)
+
+__all__ = ["LinkedCell", "start_virtual_cell", "cell_alive", "shutdown_virtual_cell",
+           "load_endpoints"]
+
+#: how long :meth:`LinkedCell.hello` waits for a motion the previous session started
+SETTLE_S = 600.0
+
+
+def load_endpoints(path: str | os.PathLike) -> dict:
+    """A cell's endpoints: ``endpoints.json`` of ``icefab cell serve`` (or its folder), or
+    the same keys for a real cell::
+
+        {"robot": {"host": "192.168.0.10", "port": 7100},
+         "valve": {"device": "/dev/ttyUSB0"}, "laser": {"device": "/dev/ttyS0"}}
+
+    CellError naming the file when it is missing or malformed."""
+    from icefab.cell.virtual import read_endpoints
+
+    p = Path(path)
+    if p.is_dir():
+        return read_endpoints(p)
+    try:
+        data = json.loads(p.read_text(encoding="utf-8"))
+        data["robot"]["host"] = str(data["robot"]["host"])
+        data["robot"]["port"] = int(data["robot"]["port"])
+        str(data["valve"]["device"]), str(data["laser"]["device"])
+    except FileNotFoundError:
+        raise CellError(f"{p}: no cell endpoints file") from None
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise CellError(f"{p}: not a cell's endpoints file: expected robot host and port, "
+                        f"valve and laser devices ({type(exc).__name__}: {exc})") from None
+    return data
+
+
+class LinkedCell:
+    """The runner's :class:`~icefab.runcell.Cell` on a cell's links (module docstring).
+
+    endpoints: as :func:`load_endpoints` returns; job: the build's job (frames for the
+    laser samples, the storage rate); timeout_s: per reply on every link.
+    """
+
+    def __init__(self, endpoints: dict, job, *, timeout_s: float = 10.0) -> None:
+        self.endpoints = endpoints
+        self.job = job
+        self.timeout_s = float(timeout_s)
+        self.links = None
+        self._layer: int | None = None
+        self._last_done = 0
+        self._samples: dict[int, np.ndarray] = {}
+
+    # ------------------------------------------------------------------ session
+
+    def hello(self) -> dict:
+        """Open the three links (the handshake on each) and settle what a previous
+        session left: a motion under way runs to its end, stored paths and valve programs
+        are discarded, the laser stops storing."""
+        from icefab.cell.links import CellLinks
+
+        if self.links is None:
+            self.links = CellLinks.open(self.endpoints, timeout_s=self.timeout_s)
+        robot = self.links.robot
+        deadline = time.monotonic() + SETTLE_S
+        st = robot.status()
+        while st["state"] == "moving":
+            if time.monotonic() > deadline:
+                raise CellError(f"{robot.where}: still moving {SETTLE_S:g} s after "
+                                "connecting")
+            time.sleep(0.02)
+            st = robot.status()
+        if st["stored"]:
+            robot.abort()           # paths the crashed session uploaded but never started
+        self.links.valves.abort()   # programs uploaded or armed for them: never played
+        self.links.laser.stop()
+        self._last_done = st["last_done"]
+        self._layer = None
+        info = robot.info
+        return {"cell": "icefab cell links", "robot": robot.where,
+                "protocol": None if info is None else info.version,
+                "valve": self.links.valves.name, "laser": self.links.laser.where}
+
+    def close(self) -> None:
+        if self.links is not None:
+            self.links.close()
+            self.links = None
+
+    def _need(self):
+        if self.links is None:
+            raise CellError("the cell's links are not open (hello first)")
+        return self.links
+
+    def status(self):
+        from icefab.runcell import CellStatus
+
+        st = self._need().robot.status()
+        self._last_done = st["last_done"]
+        return CellStatus(last_done=st["last_done"], cut=st["cut"], prepared=True)
+
+    def prepare(self, job_toml: str, lo_mm, hi_mm) -> None:
+        """Nothing to do: a cell (or ``icefab cell serve``) holds its build plate."""
+        return None
+
+    # ------------------------------------------------------------------ paths
+
+    def _robot_path(self, path):
+        from icefab.cell.robot import RobotPath, path_flags
+
+        role = path.role if path.tool != "none" else "travel"
+        return RobotPath(xy=np.asarray(path.xy, dtype=np.float64), dt_s=float(path.dt_s),
+                         z_mm=float(path.z_mm), flags=path_flags(role), tool=path.tool,
+                         width_mm=float(path.width_mm), layer=int(path.layer),
+                         index=int(path.item))
+
+    def run_path(self, seq: int, path) -> bool:
+        """Run one :class:`~icefab.runcell.CellPath` under journal number ``seq``; False
+        (nothing run) when the controller completed ``seq`` already."""
+        from icefab.cell.valve import VALVES
+
+        links = self._need()
+        if seq <= self._last_done:
+            return False
+        robot = links.robot
+        if self._layer != path.layer:
+            robot.begin_layer(int(path.layer), float(path.z_mm))
+            self._layer = int(path.layer)
+        rpath = self._robot_path(path)
+        wait = self.timeout_s + rpath.duration_s
+        robot.upload(rpath, seq)
+        if rpath.flags & rp.FLAG_VALVE:
+            if not path.program:
+                raise CellError(f"layer {path.layer} path {path.item}: a deposition path "
+                                "without a valve program")
+            links.valves.play({VALVES[path.tool]: path.program},
+                              trigger=lambda: robot.go(seq))
+            robot.wait_done(seq, wait)
+        elif rpath.flags & rp.FLAG_LASER:
+            links.laser.clear()
+            links.laser.start()
+            robot.go(seq)
+            robot.wait_done(seq, wait)
+            links.laser.stop()
+            self._samples[seq] = self._rows(rpath, links.laser.read_stored())
+        else:
+            robot.go(seq)
+            robot.wait_done(seq, wait)
+        self._last_done = seq
+        return True
+
+    def _rows(self, rpath, values: np.ndarray) -> np.ndarray:
+        """(m, 4) rows (t s from the trigger, EE x, y base frame mm, height mm) of the
+        stored laser values of one measurement path (NaN values dropped)."""
+        from icefab.cell.laser import sample_times
+
+        xy = rpath.xy
+        t = np.arange(len(xy)) * rpath.dt_s
+        rate = float(self.job.simulation.laser_rate_hz)
+        tk = sample_times(t[-1], rate)
+        vals = np.asarray(values, dtype=np.float64).reshape(-1)
+        if len(vals) > len(tk):
+            raise CellError(f"laser: {len(vals)} stored values for a {t[-1]:.3f} s path at "
+                            f"{rate:g} Hz (at most {len(tk)})")
+        tk = tk[:len(vals)]
+        ok = np.isfinite(vals)
+        ee = np.column_stack([np.interp(tk, t, xy[:, 0]), np.interp(tk, t, xy[:, 1])])
+        return np.column_stack([tk[ok], ee[ok], rpath.z_mm + vals[ok]])
+
+    def end_layer(self, seq: int, layer: int) -> bool:
+        """``LE`` under journal number ``seq`` (the virtual cell freezes the layer)."""
+        self._need().robot.end_layer(int(layer), int(seq))
+        self._layer = None
+        return True
+
+    def laser_samples(self, seq: int, path) -> np.ndarray:
+        """(m, 4) rows of measurement path ``seq``: t s from its trigger, end-effector x, y
+        (base frame, mm), height mm. After a crash between its ``DN`` and this call the
+        values are read from the laser's storage (the last path stored); (0, 4) and a
+        warning when they are gone."""
+        got = self._samples.pop(seq, None)
+        if got is not None:
+            return got
+        links = self._need()
+        if seq == self._last_done:
+            try:
+                return self._rows(self._robot_path(path), links.laser.read_stored())
+            except CellError as exc:
+                log.warning("measurement path %d: its laser values are gone (%s)", seq, exc)
+        else:
+            log.warning("measurement path %d: its laser values are gone (another path ran "
+                        "since)", seq)
+        return np.zeros((0, 4))
+
+    def stop(self) -> None:
+        """Valves off first (every program discarded), then the robot stops at once with
+        both triggers off (``AB``: V+ ``BRAKE``)."""
+        links = self._need()
+        try:
+            links.valves.abort()
+        finally:
+            links.robot.abort()
+
+
+# =========================================================================== the process
+
+
+def start_virtual_cell(state_dir: str | os.PathLike, job_file: str | os.PathLike,
+                       trajectories: str | os.PathLike, *, layers: int = 0,
+                       time_factor: float = 0.0, timeout_s: float = 120.0) -> int:
+    """Start ``icefab cell serve`` as its own process (own session: killing the build
+    leaves it running, as a real controller would) with its state in ``state_dir``; a new
+    folder gets the grid ``icefab simulate`` uses for ``trajectories`` (first ``layers``).
+    Waits for its endpoints; returns its pid. CellError (naming ``DIR/cell.log``) if it
+    does not start."""
+    from icefab.cell.virtual import read_endpoints
+
+    d = Path(state_dir)
+    d.mkdir(parents=True, exist_ok=True)
+    (d / "endpoints.json").unlink(missing_ok=True)   # a killed cell's: not this one's
+    args = [sys.executable, "-m", "icefab", "cell", "serve", "--state", str(d), "--port", "0",
+            "--time-factor", repr(float(time_factor))]
+    if not (d / "surface.npz").exists():
+        args += ["-c", str(job_file), "--grid-for", str(trajectories), "--layers",
+                 str(int(layers))]
+    with open(d / "cell.log", "ab") as log_f:
+        proc = subprocess.Popen(args, stdin=subprocess.DEVNULL, stdout=log_f, stderr=log_f,
+                                start_new_session=True)
+    deadline = time.monotonic() + timeout_s
+    while not (d / "endpoints.json").is_file():
+        if proc.poll() is not None:
+            tail = (d / "cell.log").read_text(errors="replace").strip().splitlines()[-1:]
+            raise CellError(f"the virtual cell exited at start (status {proc.returncode}"
+                            f"{': ' + tail[0] if tail else ''}); see {d / 'cell.log'}")
+        if time.monotonic() > deadline:
+            proc.kill()
+            raise CellError(f"the virtual cell did not start within {timeout_s:g} s; see "
+                            f"{d / 'cell.log'}")
+        time.sleep(0.05)
+    read_endpoints(d)
+    return proc.pid
+
+
+def _pid(state_dir: Path) -> int | None:
+    try:
+        return int(json.loads((state_dir / "endpoints.json").read_text())["pid"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def cell_alive(state_dir: str | os.PathLike) -> bool:
+    """Whether the cell process named in ``DIR/endpoints.json`` is running."""
+    pid = _pid(Path(state_dir))
+    if pid is None:
+        return False
+    try:  # our own child that died is a zombie until reaped: reap it
+        if os.waitpid(pid, os.WNOHANG)[0] == pid:
+            return False
+    except ChildProcessError:
+        pass
+    try:
+        os.kill(pid, 0)
+    except OSError:
+        return False
+    return True
+
+
+def shutdown_virtual_cell(state_dir: str | os.PathLike, timeout_s: float = 30.0) -> None:
+    """End the virtual cell serving ``state_dir`` (SIGTERM: it saves its surface and
+    removes its endpoints), if one runs."""
+    d = Path(state_dir)
+    if not cell_alive(d):
+        return
+    pid = _pid(d)
+    try:
+        os.kill(pid, signal.SIGTERM)
+    except OSError:
+        return
+    deadline = time.monotonic() + timeout_s
+    while cell_alive(d) and time.monotonic() < deadline:
+        time.sleep(0.05)
