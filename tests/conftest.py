@@ -1,4 +1,5 @@
-"""Shared test fixtures: where the real meshes are, and hypothesis profiles."""
+"""Shared test fixtures: where the real meshes are, the valve firmware's host build (the
+virtual cell needs it), and hypothesis profiles."""
 from __future__ import annotations
 
 import os
@@ -26,3 +27,28 @@ def mesh_dir() -> Path:
     if not MESH_DIR.is_dir():
         pytest.fail(f"real meshes not found at {MESH_DIR}: they are part of the repository")
     return MESH_DIR
+
+
+@pytest.fixture(scope="session")
+def firmware_tools() -> None:
+    """make and a C compiler, which the virtual cell (``icefab cell serve``, ``icefab build
+    --virtual``) needs for the valve firmware's host build. Without them the tests say so
+    and are skipped on a user's machine; CI (``.ci/run``, ICEFAB_REQUIRE_FIRMWARE_TOOLS=1)
+    installs them and fails instead."""
+    from icefab.cell import valve_host
+
+    missing = valve_host.missing_tools()
+    if missing:
+        msg = (f"{', '.join(missing)} not found: the virtual cell needs the valve firmware's "
+               "host build (apt-get install gcc make)")
+        if os.environ.get("ICEFAB_REQUIRE_FIRMWARE_TOOLS") == "1":
+            pytest.fail(msg)
+        pytest.skip(msg)
+
+
+@pytest.fixture(scope="session")
+def firmware_exe(firmware_tools, tmp_path_factory) -> Path:
+    """The valve firmware's host build (``valvectl``), compiled once per session."""
+    from icefab.cell import valve_host
+
+    return valve_host.build_host(tmp_path_factory.mktemp("fw"))

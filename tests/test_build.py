@@ -285,7 +285,7 @@ def _wait_progress(build: Path, proc, timeout_s: float = 300.0) -> int | None:
     raise AssertionError(f"{build}: no progress within {timeout_s:g} s")
 
 
-def test_sigkill_the_build_and_resume(planned, tmp_path):
+def test_sigkill_the_build_and_resume(firmware_tools, planned, tmp_path):
     r = _icefab("build", str(planned), "-o", "ref", "--virtual", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     assert "build complete" in r.stdout
@@ -328,7 +328,7 @@ def test_sigkill_the_build_and_resume(planned, tmp_path):
     assert json.loads(st.stdout)["state"] == "complete"
 
 
-def test_refusals(planned, tmp_path):
+def test_refusals(firmware_tools, planned, tmp_path):
     r = _icefab("build", str(planned), "-o", "b", "--virtual", "--layers", "1", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     _kill_cell(tmp_path / "b")
@@ -358,7 +358,7 @@ def test_refusals(planned, tmp_path):
     assert not (tmp_path / "c" / bmod.JOURNAL).exists()
 
 
-def test_cell_killed_mid_path_build_completes(planned, tmp_path):
+def test_cell_killed_mid_path_build_completes(firmware_tools, planned, tmp_path):
     r = _icefab("build", str(planned), "-o", "ref", "--virtual", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     proc = subprocess.Popen([sys.executable, "-m", "icefab", "build", str(planned), "-o",
@@ -404,7 +404,7 @@ def _chromium() -> str | None:
     return None
 
 
-def test_report_of_a_running_build_in_chromium(tmp_path):
+def test_report_of_a_running_build_in_chromium(firmware_tools, tmp_path):
     browser = _chromium()
     if browser is None:
         pytest.skip("headless Chromium is not installed (Debian package 'chromium'; "

@@ -40,23 +40,6 @@ def _job(mode):
                             "cell.cpus": 1, "feedback.interval_layers": 2})
 
 
-@pytest.fixture(scope="module")
-def firmware_exe(tmp_path_factory):
-    """The firmware's host build. Without make or a C compiler the tests say so and are
-    skipped on a user's machine; CI (``.ci/run``, ICEFAB_REQUIRE_FIRMWARE_TOOLS=1) installs
-    them and fails instead."""
-    from icefab.cell import valve_host
-
-    missing = valve_host.missing_tools()
-    if missing:
-        msg = (f"{', '.join(missing)} not found: the virtual cell needs the firmware's host "
-               "build (apt-get install gcc make)")
-        if os.environ.get("ICEFAB_REQUIRE_FIRMWARE_TOOLS") == "1":
-            pytest.fail(msg)
-        pytest.skip(msg)
-    return valve_host.build_host(tmp_path_factory.mktemp("fw"))
-
-
 _BUILDS: dict = {}
 
 

@@ -14,7 +14,8 @@ Per layer of the build's trajectories (``icefab.motion``), in the order the cell
    ``feedback.interval_layers``): the measurement paths, the laser samples (tagged with
    the end-effector position at their instant; the calibrated latency
    ``cell.laser_latency_s`` is taken off by reading the trajectory that much earlier and
-   the calibrated ``cell.laser_offset_mm`` puts them under the laser, thesis 5.2.1),
+   the calibrated ``cell.laser_offset_mm`` puts them under the laser, thesis 5.2.1;
+   each path's samples are journaled before the next path is sent),
    the SMF update (:func:`icefab.feedback.smf_update` on the samples' surface,
    eq. 5.1) and its state and action journaled.
 
@@ -32,7 +33,9 @@ sends (their digests are checked against the journal).
 
 Files in BUILD: ``journal.sqlite``, ``trajectories.npz`` (planned once at the start),
 ``job.toml``, ``status.json`` (:func:`write_status`), ``report.html``
-(:func:`write_report`), ``cell/`` (the virtual cell's state with ``--virtual``).
+(:func:`write_report`), ``cell/`` (the state of ``icefab cell serve`` with ``--virtual``).
+The cell is an :class:`icefab.runcell.Cell`: :class:`icefab.linkedcell.LinkedCell` on the
+cell's links for ``icefab build``.
 """
 
 from __future__ import annotations
@@ -422,10 +425,13 @@ class Runner:
                                   z_mm=z_mm, width_mm=0.0)
                     self._send(kind, L, i, cp.digest(), lambda c, s, cp=cp: c.run_path(s, cp))
                     seq, _ = self.journal.command(kind, L, i, cp.digest())
-                    if self.journal.is_cut(seq):   # a fault stopped it: no samples
+                    raw = self.journal.laser_of(seq)
+                    if raw is None and self.journal.is_cut(seq):   # a fault stopped it
                         raw = np.zeros((0, 4))
-                    else:
+                    elif raw is None:
+                        # journaled before the next path: the laser keeps one path's values
                         raw = self._call(lambda c, s=seq, cp=cp: c.laser_samples(s, cp))
+                        self.journal.laser(seq, raw)
                     if len(raw) == 0 and L not in smf_layers:
                         self.journal.event("measurement", f"layer {L}: measurement path {i} "
                                            "gave no laser samples", layer=L)

@@ -13,6 +13,9 @@ process or the power afterwards; every step is one transaction. What it holds:
   executing it again. ``kind``: ``path`` (one trajectory with its valve program: ``layer``,
   ``item`` = the trajectory's index in the layer), ``layer_end``, ``stop``. ``done`` is set
   when the cell reported the path complete, ``cut`` when a cell fault cut it short.
+* ``laser``: the laser samples of every measurement path as the cell returned them (npy
+  bytes), journaled before the next path is sent: a real laser stores one path's values,
+  so a resumed build takes the earlier paths of a layer's measurement from here.
 * ``measurements``: every measurement (layer, laser samples as npy bytes, measured RMS).
 * ``smf``: the SMF controller state and control action after every update, as npz bytes
   (:func:`pack_arrays`), so a resumed build re-plans with exactly the action it had.
@@ -36,7 +39,7 @@ import numpy as np
 
 from icefab.errors import IcefabError
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2   # 2: the laser table (version 1 journals ran on the stand-in cell)
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -44,6 +47,8 @@ CREATE TABLE IF NOT EXISTS commands (
     seq INTEGER PRIMARY KEY, kind TEXT NOT NULL, layer INTEGER, item INTEGER,
     digest TEXT NOT NULL, created REAL NOT NULL, sent REAL, acked REAL, done REAL,
     cut INTEGER NOT NULL DEFAULT 0, UNIQUE (kind, layer, item));
+CREATE TABLE IF NOT EXISTS laser (
+    seq INTEGER PRIMARY KEY, samples BLOB NOT NULL, time REAL NOT NULL);
 CREATE TABLE IF NOT EXISTS measurements (
     k INTEGER PRIMARY KEY, layer INTEGER NOT NULL, nominal_z REAL NOT NULL,
     samples BLOB NOT NULL, rms_measured REAL, time REAL NOT NULL);
@@ -248,6 +253,18 @@ class Journal:
             "ORDER BY layer")]
 
     # ------------------------------------------------------------------ measurements, SMF
+
+    def laser(self, seq: int, samples: np.ndarray) -> None:
+        """The raw laser samples of measurement path ``seq`` (kept once)."""
+        buf = io.BytesIO()
+        np.save(buf, np.asarray(samples, dtype=np.float64), allow_pickle=False)
+        with self._tx() as db:
+            db.execute("INSERT OR IGNORE INTO laser VALUES (?, ?, ?)",
+                       (seq, buf.getvalue(), time.time()))
+
+    def laser_of(self, seq: int) -> np.ndarray | None:
+        row = self._db.execute("SELECT samples FROM laser WHERE seq=?", (seq,)).fetchone()
+        return None if row is None else np.load(io.BytesIO(row[0]), allow_pickle=False)
 
     def measurement(self, k: int, layer: int, nominal_z: float, samples: np.ndarray,
                     rms_measured: float) -> None:

@@ -1,0 +1,225 @@
+"""The build runner on the cell's links (icefab.linkedcell): exactly once through the real
+protocols when the control PC dies at any point of a path's exchange, and a cell whose
+process dies mid-path reporting that path cut after its restart.
+
+The cell is ``icefab.cell.virtual.VirtualCell`` (the virtual C40, the valve firmware's
+host build, the laser emulator) in this process for the crash test, and ``icefab cell
+serve`` in its own process for the kill test. The build is a 4-layer two-material
+annulus with measurement paths on layers 1 and 3, the default disturbances (noise,
+debris, laser noise: all drawn from the seed)."""
+from __future__ import annotations
+
+import dataclasses
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_sim_build import annulus_toolpaths  # noqa: E402
+
+from icefab import Job  # noqa: E402
+from icefab import build as bmod  # noqa: E402
+from icefab.cell.robot import RobotLink, RobotPath  # noqa: E402
+from icefab.cell.virtual import VirtualCell, read_endpoints  # noqa: E402
+from icefab.cell.world import grid_for  # noqa: E402
+from icefab.config import to_toml  # noqa: E402
+from icefab.journal import Journal  # noqa: E402
+from icefab.linkedcell import LinkedCell, load_endpoints  # noqa: E402
+from icefab.motion import plan_toolpaths, save_trajectories  # noqa: E402
+from icefab.errors import CellError  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def planned():
+    job = Job().replace(**{"cell.cpus": 1, "feedback.interval_layers": 2})
+    return job, plan_toolpaths(annulus_toolpaths(job, 4), job)
+
+
+class Crash(BaseException):
+    """The control PC dies: its links close (as the OS closes a dead process's sockets
+    and ports), nothing else happens."""
+
+
+class CrashingLinkedCell(LinkedCell):
+    """A LinkedCell whose PC dies at the ``at``-th robot upload or GO of the session,
+    just before it is sent (``after`` False) or just after it was (the reply lost)."""
+
+    def __init__(self, endpoints, job, at: int, after: bool):
+        super().__init__(endpoints, job)
+        self.at, self.after, self.n = at, after, 0
+
+    def hello(self):
+        out = super().hello()
+        robot = self.links.robot
+        for name in ("upload", "go"):
+            setattr(robot, name, self._crashing(getattr(robot, name)))
+        return out
+
+    def _crashing(self, fn):
+        def call(*a, **kw):
+            self.n += 1
+            if self.n == self.at and not self.after:
+                self._die()
+            out = fn(*a, **kw)
+            if self.n == self.at:
+                self._die()
+            return out
+        return call
+
+    def _die(self):
+        self.close()
+        raise Crash()
+
+
+def _build(build: Path, motion, job, endpoints, crash=None) -> None:
+    jpath = build / bmod.JOURNAL
+    build.mkdir(exist_ok=True)
+    journal = Journal.open(jpath) if jpath.exists() else Journal.create(jpath, {"digests": {}})
+
+    def connect():
+        if crash is None:
+            return LinkedCell(endpoints, job)
+        return CrashingLinkedCell(endpoints, job, *crash)
+    runner = bmod.Runner(build, motion, job, journal, connect)
+    try:
+        runner.run()
+    finally:
+        if runner.cell is not None:
+            runner.cell.close()
+        journal.close()
+
+
+def _executed(state: Path) -> list[int]:
+    return [int(x) for x in (state / "executed.log").read_text().split()]
+
+
+def test_exactly_once_through_the_links_when_the_pc_dies_anywhere(planned, firmware_exe,
+                                                                   tmp_path):
+    job, motion = planned
+    grid = grid_for(motion, job)
+    with VirtualCell(tmp_path / "ref-cell", job, grid=grid, firmware_exe=firmware_exe) as c:
+        _build(tmp_path / "ref", motion, job, c.endpoints)
+    ref = _executed(tmp_path / "ref-cell")
+    n_robot_calls = 2 * len(ref)           # an upload and a GO per path
+    rng = np.random.default_rng(7)
+    deaths = Counter()
+    with VirtualCell(tmp_path / "cell", job, grid=grid, firmware_exe=firmware_exe) as c:
+        while True:
+            crash = (int(rng.integers(1, max(2, n_robot_calls // 4))),
+                     bool(rng.integers(0, 2)))
+            try:
+                _build(tmp_path / "b", motion, job, c.endpoints, crash)
+                break
+            except Crash:
+                deaths[crash[1]] += 1
+    assert deaths[True] >= 2 and deaths[False] >= 2, deaths   # before and after sending
+    with np.load(tmp_path / "ref-cell" / "surface.npz") as a, \
+            np.load(tmp_path / "cell" / "surface.npz") as b:
+        assert np.array_equal(a["z"], b["z"]) and np.array_equal(a["ever"], b["ever"])
+    ex = _executed(tmp_path / "cell")
+    assert ex == ref                        # every path once, in the same order
+    j = Journal.open(tmp_path / "b" / bmod.JOURNAL)
+    cmds = j.commands()
+    assert all(c["done"] is not None and not c["cut"] for c in cmds)
+    ref_j = Journal.open(tmp_path / "ref" / bmod.JOURNAL)
+    # the same laser samples reached SMF, so its state is the uninterrupted build's
+    got, want = j.measurements(), ref_j.measurements()
+    assert len(got) == len(want) == 2
+    for m, r in zip(got, want):
+        np.testing.assert_array_equal(m["samples"], r["samples"])
+    assert j.last_smf()[2] == ref_j.last_smf()[2]
+
+
+def test_a_new_session_settles_what_a_dead_one_left(planned, firmware_exe, tmp_path):
+    """A path uploaded (not started) by a session that died is discarded, so its number
+    can be uploaded again; the laser values of a measurement path whose DN was lost are
+    read from the laser's storage."""
+    job, motion = planned
+    with VirtualCell(tmp_path / "cell", job, grid=grid_for(motion, job),
+                     firmware_exe=firmware_exe) as c:
+        xy = np.column_stack([340 + 10 * np.cos(np.linspace(0, 3, 50)),
+                              10 * np.sin(np.linspace(0, 3, 50))])
+        with RobotLink.connect("127.0.0.1", c.endpoints["robot"]["port"]) as dead:
+            dead.hello()
+            dead.upload(RobotPath(xy=xy, dt_s=0.02, z_mm=1.0, flags=0, tool="none",
+                                  width_mm=0.0, layer=0, index=0), 5)
+        cell = LinkedCell(c.endpoints, job)
+        cell.hello()
+        st = cell.links.robot.status()
+        assert st["stored"] == 0 and st["last_done"] == 0
+        from icefab.runcell import CellPath
+
+        meas = CellPath(layer=0, item=1, role="measure", tool="laser", xy=xy, dt_s=0.02,
+                        z_mm=1.0, width_mm=0.0)
+        assert cell.run_path(5, meas) is True
+        want = cell.laser_samples(5, meas)
+        assert want.shape == (len(np.arange(0, 49 * 0.02 + 1e-9, 0.01)), 4)
+        assert cell.status().last_done == 5
+        assert cell.run_path(5, meas) is False        # done already: not run again
+        cell.close()
+        again = LinkedCell(c.endpoints, job)
+        again.hello()
+        np.testing.assert_array_equal(again.laser_samples(5, meas), want)
+        again.close()
+    assert _executed(tmp_path / "cell") == [5]
+
+
+def test_a_cell_killed_mid_path_reports_it_cut_after_its_restart(planned, firmware_tools,
+                                                                 tmp_path):
+    job, motion = planned
+    save_trajectories(motion, tmp_path / "t.npz")
+    (tmp_path / "job.toml").write_text(to_toml(job))
+    state = tmp_path / "cell"
+
+    def serve(factor):
+        args = [sys.executable, "-m", "icefab", "cell", "serve", "--state", str(state),
+                "--port", "0", "--time-factor", str(factor)]
+        if not (state / "surface.npz").exists():
+            args += ["-c", str(tmp_path / "job.toml"), "--grid-for", str(tmp_path / "t.npz")]
+        (state / "endpoints.json").unlink(missing_ok=True)
+        proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                                text=True)
+        try:
+            read_endpoints(state, timeout_s=120)
+        except CellError:
+            proc.kill()
+            raise AssertionError(proc.communicate()[1])
+        return proc
+
+    xy = np.column_stack([340 + np.linspace(0, 20, 101), np.zeros(101)])
+    travel = RobotPath(xy=xy, dt_s=0.02, z_mm=1.0, flags=0, tool="none", width_mm=0.0,
+                       layer=0, index=0)
+    proc = serve(1.0)          # real time: the 2 s path is under way when the cell dies
+    try:
+        ep = load_endpoints(state)
+        with RobotLink.connect("127.0.0.1", ep["robot"]["port"]) as link:
+            link.hello()
+            link.upload(dataclasses.replace(travel, xy=xy[:3]), 1)
+            link.go(1)
+            link.wait_done(1)                  # path 1 done
+            link.upload(travel, 2)
+            link.go(2)
+            time.sleep(0.3)
+            os.kill(proc.pid, signal.SIGKILL)
+            proc.wait()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    proc = serve(0.0)
+    try:
+        cell = LinkedCell(load_endpoints(state), job)
+        cell.hello()
+        st = cell.status()
+        assert (st.last_done, st.cut) == (1, 2)
+        cell.close()
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=60)
+    assert _executed(state) == [1]
