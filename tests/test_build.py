@@ -167,11 +167,11 @@ class FaultingCell:
         st = self.cell.status()
         return dataclasses.replace(st, cut=self.cut) if self.cut else st
 
-    def run_path(self, seq, path):
+    def run_path(self, seq, path, upcoming=None):
         if not self.cut and path.layer == self.layer and path.role != "measure":
             self.cut = seq
             raise CellError("link lost (cell fault)")
-        return self.cell.run_path(seq, path)
+        return self.cell.run_path(seq, path, upcoming)
 
 
 def test_a_cell_fault_is_measured_before_the_next_layer(planned, tmp_path):

@@ -137,6 +137,64 @@ def test_exactly_once_through_the_links_when_the_pc_dies_anywhere(planned, firmw
     assert j.last_smf()[2] == ref_j.last_smf()[2]
 
 
+class RecordingLinkedCell(LinkedCell):
+    """Records the order of robot uploads and DN waits (and the valve uploads)."""
+
+    events: list = []
+
+    def hello(self):
+        out = super().hello()
+        robot, valves = self.links.robot, self.links.valves
+        up, wait, vup = robot.upload, robot.wait_done, valves.upload
+
+        def upload(path, seq=None):
+            self.events.append(("upload", seq))
+            return up(path, seq)
+
+        def wait_done(seq, timeout_s=None):
+            out = wait(seq, timeout_s)
+            self.events.append(("done", seq))
+            return out
+
+        def valve_upload(valve, program, **kw):
+            self.events.append(("valve", None))
+            return vup(valve, program, **kw)
+        robot.upload, robot.wait_done, valves.upload = upload, wait_done, valve_upload
+        return out
+
+
+def test_the_next_path_is_uploaded_while_one_moves(planned, firmware_exe, tmp_path):
+    """Within a layer, path k+1 (robot path and valve program) is uploaded between the
+    GO and the DN of path k: the robot never waits for the PC's data."""
+    job, motion = planned
+    RecordingLinkedCell.events = ev = []
+    with VirtualCell(tmp_path / "cell", job, grid=grid_for(motion, job),
+                     firmware_exe=firmware_exe) as c:
+        journal = Journal.create(tmp_path / bmod.JOURNAL, {"digests": {}})
+        bmod.Runner(tmp_path, motion, job, journal,
+                    lambda: RecordingLinkedCell(c.endpoints, job)).run()
+    cmds = journal.commands()
+    journal.close()
+    ends = {r["layer"]: r["seq"] for r in cmds if r["kind"] == "layer_end"}
+    # deposition and travel (measurement paths come after the layer's end)
+    paths = [r for r in cmds if r["kind"] == "path" and r["seq"] < ends[r["layer"]]]
+    pos = {e: k for k, e in enumerate(ev)}
+    pairs = [(a["seq"], b["seq"]) for a, b in zip(paths, paths[1:])
+             if a["layer"] == b["layer"] and a["seq"] + 1 == b["seq"]]
+    assert len(pairs) > 30
+    depositing = {r["seq"] for r in paths if _traj(motion, r).path is not None
+                  and _traj(motion, r).path.depositing}
+    for a, b in pairs:
+        assert pos[("upload", b)] < pos[("done", a)], (a, b)
+        if b in depositing:   # its valve program too, before path a's DN
+            assert any(e[0] == "valve" for e in ev[pos[("upload", b)]:pos[("done", a)]])
+
+
+def _traj(motion, row):
+    lm = next(lm for lm in motion.layers if lm.index == row["layer"])
+    return lm.trajectories[row["item"]]
+
+
 def test_a_new_session_settles_what_a_dead_one_left(planned, firmware_exe, tmp_path):
     """A path uploaded (not started) by a session that died is discarded, so its number
     can be uploaded again; the laser values of a measurement path whose DN was lost are

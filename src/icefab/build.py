@@ -319,7 +319,11 @@ class Runner:
                 time.sleep(0.1)
 
     def _send(self, kind: str, layer: int, item: int, digest: str,
-              fn: Callable[[Cell, int], bool]) -> None:
+              fn: Callable[..., bool], upcoming: tuple | None = None) -> None:
+        """Journal, send and complete one command. ``upcoming``: (kind, layer, item,
+        digest, CellPath) of the path after this one, which the cell may upload while this
+        one runs (journaled as sent first); ``fn(cell, seq)``, or ``fn(cell, seq, (seq,
+        CellPath) or None)`` when ``upcoming`` is given."""
         seq, _ = self.journal.command(kind, layer, item, digest)
         if self.journal.is_done(seq):
             return
@@ -327,6 +331,15 @@ class Runner:
         if self.journal.is_done(seq):  # the reconciliation found it done or cut
             return
         self.journal.sent(seq)
+        if upcoming is not None:
+            up_seq, _ = self.journal.command(*upcoming[:4])
+            if self.journal.is_done(up_seq):
+                up = None
+            else:
+                self.journal.sent(up_seq)     # it may reach the cell from now on
+                up = (up_seq, upcoming[4])
+            call = fn
+            fn = lambda cell, s: call(cell, s, up)    # noqa: E731
         # after a lost link _call reconnects and reconciles, then calls again: a command the
         # reconciliation found done or cut must not be sent a second time (a cut path sent
         # again would deposit its first part twice)
@@ -385,8 +398,8 @@ class Runner:
                         self.journal.event("motion-limit", f, layer=L)
             dep = iter(zip(lv.trajectories, lv.programs))
             z_mm = float(lm.z) + dh
+            cps = []
             for i, tr in run_items:
-                self._stop_point()
                 path = tr.path
                 if path is not None and path.depositing:
                     traj, prog = next(dep)
@@ -399,7 +412,14 @@ class Runner:
                     cp = CellPath(layer=L, item=i, role="travel", tool="none",
                                   xy=np.asarray(tr.xy, np.float64), dt_s=float(tr.dt),
                                   z_mm=z_mm, width_mm=0.0)
-                self._send("path", L, i, cp.digest(), lambda c, s, cp=cp: c.run_path(s, cp))
+                cps.append((i, tr, cp, cp.digest()))
+            for k, (i, tr, cp, dg) in enumerate(cps):
+                self._stop_point()
+                # the next path of the layer goes to the cell while this one moves
+                nxt = cps[k + 1] if k + 1 < len(cps) else None
+                self._send("path", L, i, dg, lambda c, s, u=None, cp=cp: c.run_path(s, cp, u),
+                           upcoming=None if nxt is None else ("path", L, nxt[0], nxt[3],
+                                                              nxt[2]))
                 p.paths_done = self.journal.paths_done()
                 p.remaining_s -= float(tr.duration)
                 self._report()

@@ -92,6 +92,7 @@ class LinkedCell:
         self._layer: int | None = None
         self._last_done = 0
         self._samples: dict[int, np.ndarray] = {}
+        self._preloaded: tuple | None = None   # (seq, CellPath, valve uploads or None)
 
     # ------------------------------------------------------------------ session
 
@@ -118,6 +119,7 @@ class LinkedCell:
         self.links.laser.stop()
         self._last_done = st["last_done"]
         self._layer = None
+        self._preloaded = None
         info = robot.info
         return {"cell": "icefab cell links", "robot": robot.where,
                 "protocol": None if info is None else info.version,
@@ -155,40 +157,87 @@ class LinkedCell:
                          width_mm=float(path.width_mm), layer=int(path.layer),
                          index=int(path.item))
 
-    def run_path(self, seq: int, path) -> bool:
+    def run_path(self, seq: int, path, upcoming=None) -> bool:
         """Run one :class:`~icefab.runcell.CellPath` under journal number ``seq``; False
-        (nothing run) when the controller completed ``seq`` already."""
-        from icefab.cell.valve import VALVES
-
+        (nothing run) when the controller completed ``seq`` already. ``upcoming`` (seq,
+        CellPath): the next path of the layer, uploaded to the robot and its valve
+        program to the valve controller while this one moves, so that between this path's
+        ``DN`` and the next ``GO`` only the arm of its valves remains."""
         links = self._need()
         if seq <= self._last_done:
             return False
-        robot = links.robot
+        robot, valves = links.robot, links.valves
         if self._layer != path.layer:
             robot.begin_layer(int(path.layer), float(path.z_mm))
             self._layer = int(path.layer)
         rpath = self._robot_path(path)
         wait = self.timeout_s + rpath.duration_s
-        robot.upload(rpath, seq)
+        ups = self._take_preloaded(seq)
+        if ups is None:
+            robot.upload(rpath, seq)
+            ups = self._upload_program(path)
         if rpath.flags & rp.FLAG_VALVE:
-            if not path.program:
+            if not ups:
                 raise CellError(f"layer {path.layer} path {path.item}: a deposition path "
                                 "without a valve program")
-            links.valves.play({VALVES[path.tool]: path.program},
-                              trigger=lambda: robot.go(seq))
+            st = valves.status()
+            for u in ups:       # what did not fit while the previous program played
+                if not u.complete:
+                    valves.send_data(u, st.valves[u.valve].free)
+            play = (st.plays + 1) & 0xFFFF
+            valves.events.clear()
+            valves.arm([u.valve for u in ups])
+            robot.go(seq)                      # the robot's output is the valves' trigger
+            self._preload(upcoming, streaming=not all(u.complete for u in ups))
+            valves.wait_done(play, ups, timeout_s=10.0 + 1.5 * rpath.duration_s)
             robot.wait_done(seq, wait)
         elif rpath.flags & rp.FLAG_LASER:
             links.laser.clear()
             links.laser.start()
             robot.go(seq)
+            self._preload(upcoming)
             robot.wait_done(seq, wait)
             links.laser.stop()
             self._samples[seq] = self._rows(rpath, links.laser.read_stored())
         else:
             robot.go(seq)
+            self._preload(upcoming)
             robot.wait_done(seq, wait)
         self._last_done = seq
         return True
+
+    def _upload_program(self, path) -> list:
+        """Upload and verify a deposition path's valve program (what fits the store; the
+        rest streams while it plays); [] for other paths."""
+        from icefab.cell.valve import VALVES
+
+        if path.tool not in VALVES or not path.program:
+            return []
+        return [self._need().valves.upload(VALVES[path.tool], path.program)]
+
+    def _preload(self, upcoming, *, streaming: bool = False) -> None:
+        """Upload the next path while this one moves (robot always; its valve program
+        unless this path's program still streams into the store)."""
+        if upcoming is None or self._preloaded is not None:
+            return
+        seq, path = upcoming
+        if seq <= self._last_done or int(path.layer) != self._layer:
+            return
+        self._need().robot.upload(self._robot_path(path), seq)
+        self._preloaded = (seq, path, None if streaming else self._upload_program(path))
+
+    def _take_preloaded(self, seq: int):
+        """The valve uploads of path ``seq`` if it was preloaded (robot path stored), else
+        None; a preload of another path is discarded (robot ``AB`` while idle, valves
+        aborted)."""
+        pre, self._preloaded = self._preloaded, None
+        if pre is None:
+            return None
+        if pre[0] == seq:
+            return pre[2] if pre[2] is not None else self._upload_program(pre[1])
+        self._need().robot.abort()
+        self._need().valves.abort()
+        return None
 
     def _rows(self, rpath, values: np.ndarray) -> np.ndarray:
         """(m, 4) rows (t s from the trigger, EE x, y base frame mm, height mm) of the

@@ -108,7 +108,12 @@ class Cell(Protocol):
     def prepare(self, job_toml: str, lo_mm: tuple[float, float],
                 hi_mm: tuple[float, float]) -> None: ...
 
-    def run_path(self, seq: int, path: CellPath) -> bool: ...
+    def run_path(self, seq: int, path: CellPath,
+                 upcoming: tuple[int, CellPath] | None = None) -> bool:
+        """Run one path (False: ``seq`` was done already). ``upcoming``: the next path
+        (its journal number and CellPath), which the cell may upload while this one runs
+        so that the robot never waits for data; it is run by the next call."""
+        ...
 
     def end_layer(self, seq: int, layer: int) -> bool: ...
 
@@ -209,8 +214,9 @@ class VirtualCell:
                     "cut": np.int64(0), "layers": np.int64(0)}
         self._save()
 
-    def run_path(self, seq: int, path: CellPath) -> bool:
-        """Run one path; False (nothing done) when ``seq`` was completed already."""
+    def run_path(self, seq: int, path: CellPath, upcoming=None) -> bool:
+        """Run one path; False (nothing done) when ``seq`` was completed already
+        (``upcoming``: not used, nothing here takes time to upload)."""
         st = self._need()
         if seq <= int(st["last_done"]):
             return False
