@@ -3,7 +3,7 @@
 the host's overhead per layer against the layer's motion time.
 
     python3 bench/bench_build.py kills [--layers 60] [--kills 30] [--seed 0]
-    python3 bench/bench_build.py overhead TRAJECTORIES.npz [--layers N]
+    python3 bench/bench_build.py overhead [--first 300] [--layers 4]
 
 Prints its figures; BENCHMARKS.md records them.
 """
@@ -115,45 +115,115 @@ def kills(args: argparse.Namespace) -> None:
                       "same_commands_as_uninterrupted": ex == ref_ex, "dir": str(d)}))
 
 
+def _bunny_layers(first: int, count: int):
+    """Trajectories of the 300 mm bunny's layers ``first`` .. ``first + count - 1``
+    (prepared as ``icefab slice`` does: origin (340, 0), stroke 400 mm; scaffold and
+    paths of the whole stack, trajectories of those layers), and the job."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    from meshes import big_mesh
+
+    from icefab.config import Job
+    from icefab.core import Stack
+    from icefab.mesh import prepare_parts
+    from icefab.motion import plan_toolpaths
+    from icefab.paths import plan_paths
+    from icefab.regions import add_scaffold
+    from icefab.slicing import slice_mesh
+
+    job = Job().replace(**{"cell.ee_origin_mm": (340.0, 0.0), "cell.stroke_mm": 400.0})
+    mesh = prepare_parts(job.replace(**{"parts.files": [str(big_mesh("bunny"))]}))
+    stack = add_scaffold(slice_mesh(mesh, job), job)
+    sub = Stack(layers=stack.layers[first:first + count], job=stack.job,
+                layer_thickness=stack.layer_thickness, warnings=stack.warnings)
+    return plan_toolpaths(plan_paths(sub, job), job), job
+
+
 def overhead(args: argparse.Namespace) -> None:
-    """Host time per layer (valve planning, SMF, journal, cell calls) vs motion time."""
+    """Where the robot waits for the PC: the runner on the cell's links (LinkedCell) and
+    an in-process virtual cell (``icefab cell serve``'s devices), as fast as it goes.
+
+    Per path the robot waits when the PC is not ready for the next GO at the end of the
+    current motion: ready = (its preload after this GO) + (the PC's work between this
+    DN and the next GO); wait = max(0, ready - motion of this path). A layer's first path
+    waits for everything between the last DN of the layer before (its end, measurement,
+    SMF) and its GO: there the robot stands (it has nothing stored)."""
     from icefab import build as bmod
-    from icefab.cli.build_cmd import _box
-    from icefab.config import to_toml
+    from icefab.cell.valve_host import build_host
+    from icefab.cell.virtual import VirtualCell
+    from icefab.cell.world import grid_for
     from icefab.journal import Journal
-    from icefab.motion import BuildMotion, load_trajectories
-    from icefab.runcell import VirtualCell
+    from icefab.linkedcell import LinkedCell
 
-    m = load_trajectories(args.trajectories)
-    layers = m.layers[:args.layers] if args.layers else m.layers
-    motion = BuildMotion(layers=tuple(layers), job=m.job, robot=m.robot,
-                         joint_names=m.joint_names)
-    d = Path(tempfile.mkdtemp(prefix="bench_overhead."))
-    journal = Journal.create(d / "journal.sqlite", {"digests": {}})
-    cell = VirtualCell(d / "cell")
-    lo, hi = _box(motion, m.job)
-    cell.prepare(to_toml(m.job), tuple(lo), tuple(hi))
-    times = {}
-
-    class Timed:
-        def __getattr__(self, name):
-            fn = getattr(cell, name)
-
-            def call(*a):
-                t = time.perf_counter()
-                try:
-                    return fn(*a)
-                finally:
-                    times[name] = times.get(name, 0.0) + time.perf_counter() - t
-            return call
     t0 = time.perf_counter()
-    bmod.Runner(d, motion, m.job, journal, lambda: Timed()).run()
-    total = time.perf_counter() - t0
-    cell_s = sum(times.values())
-    motion_s = motion.duration
-    print(json.dumps({"layers": len(layers), "motion_s": round(motion_s, 1),
-                      "host_s": round(total - cell_s, 2), "virtual_cell_s": round(cell_s, 2),
-                      "host_fraction_of_motion": round((total - cell_s) / motion_s, 4)}))
+    motion, job = _bunny_layers(args.first, args.layers)
+    if args.interval:
+        job = job.replace(**{"feedback.interval_layers": args.interval})
+    t_plan = time.perf_counter() - t0
+    d = Path(tempfile.mkdtemp(prefix="bench_overhead."))
+    rec: list = []           # (kind, seq, time, layer, motion s)
+
+    class Timed(LinkedCell):
+        def hello(self):
+            out = super().hello()
+            robot = self.links.robot
+            go, wait = robot.go, robot.wait_done
+
+            def timed_go(seq):
+                go(seq)
+                rec.append(("go", seq, time.perf_counter()))
+
+            def timed_wait(seq, timeout_s=None):
+                out = wait(seq, timeout_s)
+                rec.append(("dn", seq, time.perf_counter()))
+                return out
+            robot.go, robot.wait_done = timed_go, timed_wait
+            return out
+
+        def run_path(self, seq, path, upcoming=None):
+            rec.append(("path", seq, path.layer, path.duration_s))
+            return super().run_path(seq, path, upcoming)
+
+        def _preload(self, upcoming, *, streaming=False):
+            super()._preload(upcoming, streaming=streaming)
+            rec.append(("preloaded", None, time.perf_counter()))
+
+    exe = build_host(d / "fw")
+    journal = Journal.create(d / "journal.sqlite", {"digests": {}})
+    with VirtualCell(d / "cell", job, grid=grid_for(motion, job), firmware_exe=exe) as c:
+        t1 = time.perf_counter()
+        bmod.Runner(d, motion, job, journal, lambda: Timed(c.endpoints, job)).run()
+        wall = time.perf_counter() - t1
+    # one row per path: layer, motion, GO time, preload end (None), DN time
+    paths, cur = [], None
+    for r in rec:
+        if r[0] == "path":
+            cur = {"seq": r[1], "layer": r[2], "motion": r[3], "pre": None}
+            paths.append(cur)
+        elif r[0] == "go":
+            cur["go"] = r[2]
+        elif r[0] == "preloaded":
+            cur["pre"] = r[2]
+        elif r[0] == "dn":
+            cur["dn"] = r[2]
+    waits_in, waits_first = [], []
+    for a, b in zip(paths, paths[1:]):
+        if b["layer"] == a["layer"] and a["pre"] is not None:
+            ready = (a["pre"] - a["go"]) + (b["go"] - a["dn"])
+            waits_in.append(max(0.0, ready - a["motion"]))
+        else:
+            waits_first.append(b["go"] - a["dn"])
+    motion_s = float(sum(p["motion"] for p in paths))
+    w_in, w_first = float(sum(waits_in)), float(sum(waits_first))
+    print(json.dumps({
+        "layers": [int(lm.index) for lm in motion.layers], "paths": len(paths),
+        "planning_s": round(t_plan, 1), "build_wall_s": round(wall, 1),
+        "motion_s": round(motion_s, 1),
+        "robot_waits_within_layers_s": round(w_in, 3),
+        "paths_that_wait": int(sum(1 for w in waits_in if w > 0)),
+        "largest_wait_within_s": round(max(waits_in, default=0.0), 3),
+        "robot_waits_at_layer_starts_s": [round(w, 2) for w in waits_first],
+        "robot_wait_fraction_of_motion": round((w_in + w_first) / motion_s, 5),
+        "measurement_layers": sorted({m["layer"] for m in journal.measurements()})}))
 
 
 def main() -> None:
@@ -164,8 +234,10 @@ def main() -> None:
     k.add_argument("--kills", type=int, default=30)
     k.add_argument("--seed", type=int, default=0)
     o = sub.add_parser("overhead")
-    o.add_argument("trajectories")
-    o.add_argument("--layers", type=int, default=0)
+    o.add_argument("--first", type=int, default=300, help="first bunny layer")
+    o.add_argument("--layers", type=int, default=4)
+    o.add_argument("--interval", type=int, default=0,
+                   help="feedback.interval_layers (0: the job's)")
     args = p.parse_args()
     kills(args) if args.what == "kills" else overhead(args)
 

@@ -448,3 +448,31 @@ def test_report_of_a_running_build_in_chromium(firmware_tools, tmp_path):
     # Ctrl-C stopped it: journaled, resumable
     st = json.loads((tmp_path / "b" / bmod.STATUS).read_text())
     assert st["state"] == "stopped"
+
+
+def test_planning_ahead_sends_the_programs_of_planning_in_turn(planned, tmp_path,
+                                                               monkeypatch):
+    """The next layer's valve programs, planned on a thread while a layer runs, are the
+    ones planned in turn (same digests of every command, same surface), and they are
+    planned ahead for the layers without measurement before them."""
+    from icefab.motion import load_trajectories
+
+    motion = load_trajectories(planned)
+    job = motion.job
+    used = []
+    real = bmod.Runner._layer_valves
+
+    def spy(self, j, action):
+        used.append((j, self._ahead is not None and self._ahead[0] == j))
+        return real(self, j, action)
+    monkeypatch.setattr(bmod.Runner, "_layer_valves", spy)
+    _inprocess(tmp_path / "ahead", motion, job)
+    assert [j for j, ahead in used if ahead] == [1, 2, 3]   # layer 3 measures: not 4
+    monkeypatch.setattr(bmod.Runner, "_prefetch", lambda self, j, action: None)
+    _inprocess(tmp_path / "in-turn", motion, job)
+    a = Journal.open(tmp_path / "ahead" / bmod.JOURNAL).commands()
+    b = Journal.open(tmp_path / "in-turn" / bmod.JOURNAL).commands()
+    assert [c["digest"] for c in a] == [c["digest"] for c in b]
+    za = np.load(tmp_path / "ahead" / "cell" / "surface.npz")["z"]
+    zb = np.load(tmp_path / "in-turn" / "cell" / "surface.npz")["z"]
+    assert np.array_equal(za, zb, equal_nan=True)

@@ -263,6 +263,8 @@ class Runner:
         self.progress = Progress(layers=len(motion.layers), paths=int(sum(n_paths)))
         self._durations = [lm.duration for lm in motion.layers]
         self._last_status = 0.0
+        self._pool = None       # one thread that plans the next layer ahead (_prefetch)
+        self._ahead = None      # (layer position, future of (plan, valves, action))
 
     # ------------------------------------------------------------------ cell link
 
@@ -365,9 +367,17 @@ class Runner:
         return unpack_smf(last[2])
 
     def run(self) -> Progress:
+        """Run (or resume) the build to its end; see the module docstring."""
+        try:
+            return self._run()
+        finally:
+            if self._pool is not None:
+                self._pool.shutdown(wait=True, cancel_futures=True)
+                self._pool, self._ahead = None, None
+
+    def _run(self) -> Progress:
         job = self.job
         from icefab import flow
-        from icefab import sim as simmod
 
         state, action = self._restore()
         done_layers = set(self.journal.layers_done())
@@ -389,8 +399,11 @@ class Runner:
             cut_here = L in self.journal.cut_layers()
             if L in done_layers and (not (meas_items or cut_here) or L in smf_layers):
                 continue
-            plan = simmod.plan_layer_motion(lm, job)
-            lv = simmod.layer_valves(plan, job, action)
+            lv = self._layer_valves(j, action)
+            if not meas_items and not cut_here:
+                # the action stays until this layer's end: plan the next layer's programs
+                # while this one runs, so the robot does not wait for them
+                self._prefetch(j + 1, action)
             if job.feedback.controller == "speed" and action is not None:
                 for f in check_speeds(lv.trajectories, job, L):
                     if f not in self.findings:
@@ -478,6 +491,38 @@ class Runner:
         self.journal.event("complete", f"build complete: {p.paths_done} paths")
         self._report(force=True, measured=True)
         return p
+
+    def _layer_valves(self, j: int, action):
+        """The valve programs of layer position ``j`` with ``action``: the prefetched
+        ones when they were planned with this very action, else planned now."""
+        from icefab import sim as simmod
+
+        fut, self._ahead = self._ahead, None
+        if fut is not None and fut[0] == j:
+            plan, lv, with_action = fut[1].result()
+            if with_action is action:
+                return lv
+        else:
+            plan = simmod.plan_layer_motion(self.motion.layers[j], self.job)
+        return simmod.layer_valves(plan, self.job, action)
+
+    def _prefetch(self, j: int, action) -> None:
+        """Plan layer position ``j`` (motion plan and valve programs with ``action``) on a
+        background thread; :meth:`_layer_valves` takes it when its turn comes."""
+        from concurrent.futures import ThreadPoolExecutor
+
+        from icefab import sim as simmod
+
+        if j >= len(self.motion.layers) or (self._ahead is not None and self._ahead[0] == j):
+            return
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="plan-ahead")
+        lm, job = self.motion.layers[j], self.job
+
+        def plan_ahead():
+            plan = simmod.plan_layer_motion(lm, job)
+            return plan, simmod.layer_valves(plan, job, action), action
+        self._ahead = (j, self._pool.submit(plan_ahead))
 
     def _fault_measure_items(self, j: int) -> list:
         """The measurement trajectories nearest layer position ``j`` (the last measurement
