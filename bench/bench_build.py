@@ -115,7 +115,7 @@ def kills(args: argparse.Namespace) -> None:
                       "same_commands_as_uninterrupted": ex == ref_ex, "dir": str(d)}))
 
 
-def _bunny_layers(first: int, count: int):
+def _bunny_layers(first: int, count: int, **changes):
     """Trajectories of the 300 mm bunny's layers ``first`` .. ``first + count - 1``
     (prepared as ``icefab slice`` does: origin (340, 0), stroke 400 mm; scaffold and
     paths of the whole stack, trajectories of those layers), and the job."""
@@ -130,7 +130,8 @@ def _bunny_layers(first: int, count: int):
     from icefab.regions import add_scaffold
     from icefab.slicing import slice_mesh
 
-    job = Job().replace(**{"cell.ee_origin_mm": (340.0, 0.0), "cell.stroke_mm": 400.0})
+    job = Job().replace(**{"cell.ee_origin_mm": (340.0, 0.0), "cell.stroke_mm": 400.0,
+                           **changes})
     mesh = prepare_parts(job.replace(**{"parts.files": [str(big_mesh("bunny"))]}))
     stack = add_scaffold(slice_mesh(mesh, job), job)
     sub = Stack(layers=stack.layers[first:first + count], job=stack.job,
@@ -155,9 +156,8 @@ def overhead(args: argparse.Namespace) -> None:
     from icefab.linkedcell import LinkedCell
 
     t0 = time.perf_counter()
-    motion, job = _bunny_layers(args.first, args.layers)
-    if args.interval:
-        job = job.replace(**{"feedback.interval_layers": args.interval})
+    motion, job = _bunny_layers(args.first, args.layers, **(
+        {"feedback.interval_layers": args.interval} if args.interval else {}))
     t_plan = time.perf_counter() - t0
     d = Path(tempfile.mkdtemp(prefix="bench_overhead."))
     rec: list = []           # (kind, seq, time, layer, motion s)
@@ -234,7 +234,7 @@ def main() -> None:
     k.add_argument("--kills", type=int, default=30)
     k.add_argument("--seed", type=int, default=0)
     o = sub.add_parser("overhead")
-    o.add_argument("--first", type=int, default=300, help="first bunny layer")
+    o.add_argument("--first", type=int, default=301, help="first bunny layer (0-based)")
     o.add_argument("--layers", type=int, default=4)
     o.add_argument("--interval", type=int, default=0,
                    help="feedback.interval_layers (0: the job's)")

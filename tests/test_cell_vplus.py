@@ -139,3 +139,14 @@ def test_the_check_sum_constants_are_the_hosts():
 
 def test_no_line_is_too_long_for_the_controller_editor():
     assert max(len(line) for line in TEXT.splitlines()) <= 128
+
+
+def test_a_park_motion_is_not_recorded_as_the_last_path_done_and_an_abort_reports_cut():
+    server = "\n".join(PROGRAMS["ice.server"][1])
+    guard = f"IF NOT (ice.pflags[slot] BAND {rp.FLAG_PARK}) THEN"
+    assert guard in server
+    assert server.index(guard) < server.index("ice.lastdone = ice.pseq[slot]")
+    ab = "\n".join(PROGRAMS["ice.h.ab"][1])
+    assert "ice.cut = ice.goseq" in ab
+    st = "\n".join(PROGRAMS["ice.h.st"][1])
+    assert "ice.lastdone, ice.cut)" in st

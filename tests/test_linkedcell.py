@@ -26,6 +26,7 @@ from test_sim_build import annulus_toolpaths  # noqa: E402
 
 from icefab import Job  # noqa: E402
 from icefab import build as bmod  # noqa: E402
+from icefab.cell import robot_protocol as rp  # noqa: E402
 from icefab.cell.robot import RobotLink, RobotPath  # noqa: E402
 from icefab.cell.virtual import VirtualCell, read_endpoints  # noqa: E402
 from icefab.cell.world import grid_for  # noqa: E402
@@ -100,13 +101,22 @@ def _executed(state: Path) -> list[int]:
     return [int(x) for x in (state / "executed.log").read_text().split()]
 
 
+@pytest.fixture(scope="module")
+def reference(planned, firmware_exe, tmp_path_factory):
+    """The uninterrupted build: its folder (``ref``: journal; ``ref-cell``: the cell)."""
+    job, motion = planned
+    d = tmp_path_factory.mktemp("reference")
+    with VirtualCell(d / "ref-cell", job, grid=grid_for(motion, job),
+                     firmware_exe=firmware_exe) as c:
+        _build(d / "ref", motion, job, c.endpoints)
+    return d
+
+
 def test_exactly_once_through_the_links_when_the_pc_dies_anywhere(planned, firmware_exe,
-                                                                   tmp_path):
+                                                                   reference, tmp_path):
     job, motion = planned
     grid = grid_for(motion, job)
-    with VirtualCell(tmp_path / "ref-cell", job, grid=grid, firmware_exe=firmware_exe) as c:
-        _build(tmp_path / "ref", motion, job, c.endpoints)
-    ref = _executed(tmp_path / "ref-cell")
+    ref = _executed(reference / "ref-cell")
     n_robot_calls = 2 * len(ref)           # an upload and a GO per path
     rng = np.random.default_rng(7)
     deaths = Counter()
@@ -120,7 +130,7 @@ def test_exactly_once_through_the_links_when_the_pc_dies_anywhere(planned, firmw
             except Crash:
                 deaths[crash[1]] += 1
     assert deaths[True] >= 2 and deaths[False] >= 2, deaths   # before and after sending
-    with np.load(tmp_path / "ref-cell" / "surface.npz") as a, \
+    with np.load(reference / "ref-cell" / "surface.npz") as a, \
             np.load(tmp_path / "cell" / "surface.npz") as b:
         assert np.array_equal(a["z"], b["z"]) and np.array_equal(a["ever"], b["ever"])
     ex = _executed(tmp_path / "cell")
@@ -128,13 +138,58 @@ def test_exactly_once_through_the_links_when_the_pc_dies_anywhere(planned, firmw
     j = Journal.open(tmp_path / "b" / bmod.JOURNAL)
     cmds = j.commands()
     assert all(c["done"] is not None and not c["cut"] for c in cmds)
-    ref_j = Journal.open(tmp_path / "ref" / bmod.JOURNAL)
+    ref_j = Journal.open(reference / "ref" / bmod.JOURNAL)
     # the same laser samples reached SMF, so its state is the uninterrupted build's
     got, want = j.measurements(), ref_j.measurements()
     assert len(got) == len(want) == 2
     for m, r in zip(got, want):
         np.testing.assert_array_equal(m["samples"], r["samples"])
     assert j.last_smf()[2] == ref_j.last_smf()[2]
+
+
+def test_a_stop_lifts_the_tool_and_the_build_resumes_exactly_once(planned, firmware_exe,
+                                                                   reference, tmp_path):
+    """``--stop`` / Ctrl-C between paths: valves off, robot stopped, then a one-point
+    park path 20 mm above where the last one ended, which the robot does not count as a
+    path done (a path the PC had uploaded ahead and the stop discarded is sent again on
+    resume); resumed, the build runs exactly the uninterrupted build's paths."""
+    from icefab.linkedcell import SAFE_LIFT_MM
+
+    job, motion = planned
+    lifts = []
+
+    class Watching(LinkedCell):
+        def stop(self):
+            self.links.robot.upload = _spy(self.links.robot.upload, lifts)
+            return super().stop()
+
+    with VirtualCell(tmp_path / "cell", job, grid=grid_for(motion, job),
+                     firmware_exe=firmware_exe) as c:
+        journal = Journal.create(tmp_path / bmod.JOURNAL, {"digests": {}})
+        calls = iter(range(10 ** 6))
+        runner = bmod.Runner(tmp_path, motion, job, journal, lambda: Watching(c.endpoints, job),
+                             should_stop=lambda: next(calls) == 40)
+        with pytest.raises(bmod.BuildStopped):
+            runner.run()
+        runner.cell.close()
+        (path, seq), = lifts
+        assert seq is None and len(path.xy) == 1 and path.flags == rp.FLAG_PARK
+        stopped_at = [e["layer"] for e in journal.events() if e["kind"] == "stop"]
+        journal.close()
+        _build(tmp_path, motion, job, c.endpoints)       # resume
+    assert _executed(tmp_path / "cell") == _executed(reference / "ref-cell")
+    with np.load(reference / "ref-cell" / "surface.npz") as a, \
+            np.load(tmp_path / "cell" / "surface.npz") as b:
+        assert np.array_equal(a["z"], b["z"])
+    lm = next(lm for lm in motion.layers if lm.index == stopped_at[0])
+    assert path.z_mm == pytest.approx(lm.z + job.slicing.layer_thickness_mm + SAFE_LIFT_MM)
+
+
+def _spy(fn, out):
+    def upload(path, seq=None):
+        out.append((path, seq))
+        return fn(path, seq)
+    return upload
 
 
 class RecordingLinkedCell(LinkedCell):

@@ -49,6 +49,8 @@ __all__ = ["LinkedCell", "start_virtual_cell", "cell_alive", "shutdown_virtual_c
 
 #: how long :meth:`LinkedCell.hello` waits for a motion the previous session started
 SETTLE_S = 600.0
+#: how far :meth:`LinkedCell.stop` lifts the tool above the last path's height, mm
+SAFE_LIFT_MM = 20.0
 
 
 def load_endpoints(path: str | os.PathLike) -> dict:
@@ -93,6 +95,7 @@ class LinkedCell:
         self._last_done = 0
         self._samples: dict[int, np.ndarray] = {}
         self._preloaded: tuple | None = None   # (seq, CellPath, valve uploads or None)
+        self._last_path = None                  # the RobotPath run last (stop's lift)
 
     # ------------------------------------------------------------------ session
 
@@ -204,6 +207,7 @@ class LinkedCell:
             self._preload(upcoming)
             robot.wait_done(seq, wait)
         self._last_done = seq
+        self._last_path = rpath
         return True
 
     def _upload_program(self, path) -> list:
@@ -284,12 +288,26 @@ class LinkedCell:
 
     def stop(self) -> None:
         """Valves off first (every program discarded), then the robot stops at once with
-        both triggers off (``AB``: V+ ``BRAKE``)."""
+        both triggers off (``AB``: V+ ``BRAKE``) and lifts the tool :data:`SAFE_LIFT_MM`
+        straight up from where the last path of this session ended (within
+        ``cell.stroke_mm``): a one-point park path (``FLAG_PARK``: the controller does not
+        count it as the last path done, so the journal's numbering stays whole), which it
+        reaches at its approach speed (thesis 4.3), clear of the part's top."""
+        from icefab.cell.robot import RobotPath
+
         links = self._need()
         try:
             links.valves.abort()
         finally:
             links.robot.abort()
+        if self._last_path is None:
+            return
+        last = self._last_path
+        z = min(float(last.z_mm) + SAFE_LIFT_MM, float(self.job.cell.stroke_mm))
+        lift = RobotPath(xy=np.asarray(last.xy[-1:], dtype=np.float64), dt_s=0.01, z_mm=z,
+                         flags=rp.FLAG_PARK, tool="none", width_mm=0.0,
+                         layer=int(last.layer), index=0)
+        links.robot.run(lift, self.timeout_s + 30.0)
 
 
 # =========================================================================== the process

@@ -119,7 +119,10 @@ class Cell(Protocol):
 
     def laser_samples(self, seq: int, path: CellPath) -> np.ndarray: ...
 
-    def stop(self) -> None: ...
+    def stop(self) -> None:
+        """Valves off first, then the robot stops and retracts to a safe point above the
+        part (a motion that does not count as a path done)."""
+        ...
 
 
 # =========================================================================== the virtual cell
@@ -296,7 +299,7 @@ class VirtualCell:
         return np.load(f)
 
     def stop(self) -> None:
-        """Valves off, robot to its safe point: the virtual cell runs nothing between
+        """Valves off, robot to its safe point: the model cell runs nothing between
         commands, so there is nothing to stop."""
         return None
 

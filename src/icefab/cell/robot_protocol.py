@@ -33,7 +33,9 @@ gets ``OK`` when the motion starts and ``DN`` when it is done. A command repeate
 ``SEQ`` of the last reply sent (its reply was lost) gets that reply again and is not
 executed twice.
 
-A path upload: ``PB`` (header: point count, time step, height, triggers), then the points
+A path upload: ``PB`` (header: point count, time step, height, flags: the triggers, or
+:data:`FLAG_PARK` for a park motion such as a stop's lift, which the controller runs and
+reports but does not record as ``last_done``), then the points
 in ``PP`` lines of up to :data:`POINTS_PER_LINE` (x, y) pairs in order, then ``PE`` with
 the count and a check sum (:func:`point_check`); the controller answers ``PE`` with
 ``OK`` (stored) or ``ER``. ``GO`` runs the oldest stored path, which must carry its
@@ -64,6 +66,7 @@ CHECK_OFFSET_UM = 600_000       # makes coordinates positive before summing
 # flags of a path (PB)
 FLAG_VALVE = 1   # raise the valve-controller trigger for the path (deposition)
 FLAG_LASER = 2   # raise the laser trigger for the path (measurement)
+FLAG_PARK = 4    # a park motion (a stop's lift): run and reported (DN), not last_done
 
 # tools of a path (PB): which tool point the path was planned for
 TOOLS = ("part", "scaffold", "laser", "none")

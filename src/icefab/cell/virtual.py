@@ -162,6 +162,10 @@ class _Hooks:
     def path_run(self, seq: int, path: RobotPath, stop: threading.Event,
                  time_factor: float) -> bool:
         cell = self.cell
+        if path.flags & rp.FLAG_PARK:      # a stop's lift: no path of the build
+            if time_factor > 0:
+                stop.wait(path.duration_s / time_factor)
+            return not stop.is_set()
         cell.mark_running(seq)
         if path.flags & rp.FLAG_LASER:
             with cell.lock:

@@ -316,7 +316,8 @@ class VirtualRobot:
                         self._moving = 0
                         if finished and not self._stop_motion.is_set():
                             self._stored.pop(0)
-                            self._last_done = seq
+                            if not path.flags & rp.FLAG_PARK:
+                                self._last_done = seq
                             self._state = 0
                             done = True
                         else:
