@@ -1,9 +1,12 @@
-"""Build runner benchmarks (issue 14): SIGKILL the build at random moments and resume
-(final surface bit-identical to an uninterrupted build's, every path executed once), and
-the host's overhead per layer against the layer's motion time.
+"""Build runner benchmarks (issue 14), on the cell's links (``icefab build --virtual``:
+``icefab cell serve``): SIGKILL the build at random moments and resume (final surface
+bit-identical to an uninterrupted build's, every path executed once); SIGKILL the cell
+mid-path (the build completes, final RMS against the uninterrupted build's); where the
+robot waits for the PC on the 300 mm bunny.
 
     python3 bench/bench_build.py kills [--layers 60] [--kills 30] [--seed 0]
-    python3 bench/bench_build.py overhead [--first 300] [--layers 4]
+    python3 bench/bench_build.py cellkills [--layers 60] [--kills 5] [--time-factor 100]
+    python3 bench/bench_build.py overhead [--first 301] [--layers 4] [--interval N]
 
 Prints its figures; BENCHMARKS.md records them.
 """
@@ -113,6 +116,50 @@ def kills(args: argparse.Namespace) -> None:
                       "commands": len(ex), "max_executions_per_command":
                           Counter(ex).most_common(1)[0][1],
                       "same_commands_as_uninterrupted": ex == ref_ex, "dir": str(d)}))
+
+
+def cell_kills(args: argparse.Namespace) -> None:
+    """SIGKILL the virtual cell's process (``icefab cell serve``) mid-path a few times
+    during a build; the build reconnects (restarting the cell), the path cut short is
+    journaled and the surface measured at once; the final RMS against the uninterrupted
+    build's."""
+    from icefab.journal import Journal
+
+    d = Path(tempfile.mkdtemp(prefix="bench_cellkills."))
+    traj = _plan_demo(d, args.layers)
+    cmd = [sys.executable, "-m", "icefab", "build", str(traj), "--virtual",
+           "--cell-time-factor", str(args.time_factor)]
+    subprocess.run(cmd + ["-o", "ref"], cwd=d, check=True, stdout=subprocess.DEVNULL,
+                   stderr=subprocess.DEVNULL)
+    rng = np.random.default_rng(args.seed)
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd + ["-o", "f"], cwd=d, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    n = 0
+    while n < args.kills and proc.poll() is None:
+        start = _done(d / "f")
+        while proc.poll() is None and _done(d / "f") <= start + args.gap:
+            time.sleep(0.05)
+        time.sleep(float(rng.uniform(0.0, 0.5)))
+        if proc.poll() is not None:
+            break
+        _kill_cell(d / "f")
+        n += 1
+    proc.wait()
+    wall = time.perf_counter() - t0
+    _kill_cell(d / "f")
+    _kill_cell(d / "ref")
+    j = Journal.open(d / "f" / "journal.sqlite")
+    ref = Journal.open(d / "ref" / "journal.sqlite")
+    ex = [int(x) for x in (d / "f" / "cell" / "executed.log").read_text().split()]
+    print(json.dumps({
+        "layers": args.layers, "cell_kills": n, "exit": proc.returncode,
+        "wall_s": round(wall, 1), "cut_paths": sum(1 for c in j.commands() if c["cut"]),
+        "fault_measurements": sum(1 for e in j.events() if e["kind"] == "fault-measure"),
+        "max_executions_per_command": Counter(ex).most_common(1)[0][1],
+        "final_rms_mm": j.measurements()[-1]["rms_measured"],
+        "uninterrupted_final_rms_mm": ref.measurements()[-1]["rms_measured"],
+        "dir": str(d)}))
 
 
 def _bunny_layers(first: int, count: int, **changes):
@@ -233,13 +280,19 @@ def main() -> None:
     k.add_argument("--layers", type=int, default=60)
     k.add_argument("--kills", type=int, default=30)
     k.add_argument("--seed", type=int, default=0)
+    c = sub.add_parser("cellkills")
+    c.add_argument("--layers", type=int, default=60)
+    c.add_argument("--kills", type=int, default=5)
+    c.add_argument("--gap", type=int, default=200, help="commands done between kills")
+    c.add_argument("--time-factor", type=float, default=100.0)
+    c.add_argument("--seed", type=int, default=0)
     o = sub.add_parser("overhead")
     o.add_argument("--first", type=int, default=301, help="first bunny layer (0-based)")
     o.add_argument("--layers", type=int, default=4)
     o.add_argument("--interval", type=int, default=0,
                    help="feedback.interval_layers (0: the job's)")
     args = p.parse_args()
-    kills(args) if args.what == "kills" else overhead(args)
+    {"kills": kills, "cellkills": cell_kills, "overhead": overhead}[args.what](args)
 
 
 if __name__ == "__main__":
