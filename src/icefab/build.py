@@ -377,8 +377,6 @@ class Runner:
 
     def _run(self) -> Progress:
         job = self.job
-        from icefab import flow
-
         state, action = self._restore()
         done_layers = set(self.journal.layers_done())
         measured = {m["layer"]: m for m in self.journal.measurements()}
@@ -392,14 +390,14 @@ class Runner:
         self._call(lambda cell: None)
         for j, lm in enumerate(self.motion.layers):
             L = int(lm.index)
-            run_items, meas_items = _items(lm)
+            meas_items = _items(lm)[1]
             p.layer = L
             p.layer_pos = j
             p.remaining_s = float(sum(self._durations[j:]))
             cut_here = L in self.journal.cut_layers()
             if L in done_layers and (not (meas_items or cut_here) or L in smf_layers):
                 continue
-            lv = self._layer_valves(j, action)
+            lv, cps = self._layer_valves(j, action)
             if not meas_items and not cut_here:
                 # the action stays until this layer's end: plan the next layer's programs
                 # while this one runs, so the robot does not wait for them
@@ -409,23 +407,7 @@ class Runner:
                     if f not in self.findings:
                         self.findings.append(f)
                         self.journal.event("motion-limit", f, layer=L)
-            dep = iter(zip(lv.trajectories, lv.programs))
             z_mm = float(lm.z) + dh
-            cps = []
-            for i, tr in run_items:
-                path = tr.path
-                if path is not None and path.depositing:
-                    traj, prog = next(dep)
-                    cp = CellPath(layer=L, item=i, role=path.role, tool=path.material,
-                                  xy=np.asarray(traj.xy, np.float64), dt_s=float(traj.dt),
-                                  z_mm=z_mm, width_mm=flow.trajectory_width(traj,
-                                                                            path.material, job),
-                                  program=flow.encode_valve_program(prog))
-                else:
-                    cp = CellPath(layer=L, item=i, role="travel", tool="none",
-                                  xy=np.asarray(tr.xy, np.float64), dt_s=float(tr.dt),
-                                  z_mm=z_mm, width_mm=0.0)
-                cps.append((i, tr, cp, cp.digest()))
             for k, (i, tr, cp, dg) in enumerate(cps):
                 self._stop_point()
                 # the next path of the layer goes to the cell while this one moves
@@ -493,18 +475,46 @@ class Runner:
         return p
 
     def _layer_valves(self, j: int, action):
-        """The valve programs of layer position ``j`` with ``action``: the prefetched
-        ones when they were planned with this very action, else planned now."""
+        """(valve programs, cell paths) of layer position ``j`` with ``action``: the
+        prefetched ones when they were planned with this very action, else planned now.
+        Cell paths: (trajectory index, trajectory, CellPath, its digest) of every
+        deposition and travel trajectory in order."""
         from icefab import sim as simmod
 
         fut, self._ahead = self._ahead, None
         if fut is not None and fut[0] == j:
-            plan, lv, with_action = fut[1].result()
+            plan, lv, cps, with_action = fut[1].result()
             if with_action is action:
-                return lv
+                return lv, cps
         else:
             plan = simmod.plan_layer_motion(self.motion.layers[j], self.job)
-        return simmod.layer_valves(plan, self.job, action)
+        lv = simmod.layer_valves(plan, self.job, action)
+        return lv, self._cell_paths(j, lv)
+
+    def _cell_paths(self, j: int, lv) -> list:
+        from icefab import flow
+
+        job = self.job
+        lm = self.motion.layers[j]
+        L = int(lm.index)
+        dep = iter(zip(lv.trajectories, lv.programs))
+        z_mm = float(lm.z) + job.slicing.layer_thickness_mm
+        cps = []
+        for i, tr in _items(lm)[0]:
+            path = tr.path
+            if path is not None and path.depositing:
+                traj, prog = next(dep)
+                cp = CellPath(layer=L, item=i, role=path.role, tool=path.material,
+                              xy=np.asarray(traj.xy, np.float64), dt_s=float(traj.dt),
+                              z_mm=z_mm, width_mm=flow.trajectory_width(traj, path.material,
+                                                                        job),
+                              program=flow.encode_valve_program(prog))
+            else:
+                cp = CellPath(layer=L, item=i, role="travel", tool="none",
+                              xy=np.asarray(tr.xy, np.float64), dt_s=float(tr.dt),
+                              z_mm=z_mm, width_mm=0.0)
+            cps.append((i, tr, cp, cp.digest()))
+        return cps
 
     def _prefetch(self, j: int, action) -> None:
         """Plan layer position ``j`` (motion plan and valve programs with ``action``) on a
@@ -521,7 +531,8 @@ class Runner:
 
         def plan_ahead():
             plan = simmod.plan_layer_motion(lm, job)
-            return plan, simmod.layer_valves(plan, job, action), action
+            lv = simmod.layer_valves(plan, job, action)
+            return plan, lv, self._cell_paths(j, lv), action
         self._ahead = (j, self._pool.submit(plan_ahead))
 
     def _fault_measure_items(self, j: int) -> list:
