@@ -476,3 +476,96 @@ def test_planning_ahead_sends_the_programs_of_planning_in_turn(planned, tmp_path
     za = np.load(tmp_path / "ahead" / "cell" / "surface.npz")["z"]
     zb = np.load(tmp_path / "in-turn" / "cell" / "surface.npz")["z"]
     assert np.array_equal(za, zb, equal_nan=True)
+
+
+def test_a_fault_on_a_layers_last_path_after_the_next_layer_was_sent(planned, tmp_path,
+                                                                     monkeypatch):
+    """The next layer's first path is numbered (and may be uploaded) while a layer's last
+    path moves. If a cell fault cuts that last path, a measurement now would be numbered
+    after a path that must run first: the runner skips it, says so, and every other
+    command runs exactly once, in number order."""
+    from concurrent.futures import Future
+
+    from icefab import sim as simmod
+    from icefab.motion import load_trajectories
+
+    def plan_now(self, j, action):      # planned ahead at once: deterministic for the test
+        if j < len(self.motion.layers):
+            plan = simmod.plan_layer_motion(self.motion.layers[j], self.job)
+            lv = simmod.layer_valves(plan, self.job, action)
+            f = Future()
+            f.set_result((plan, lv, self._cell_paths(j, lv), action))
+            self._ahead = (j, f)
+    monkeypatch.setattr(bmod.Runner, "_prefetch", plan_now)
+    motion = load_trajectories(planned)
+    job = motion.job
+    last_item = bmod._items(motion.layers[1])[0][-1][0]
+
+    class LastPathFault(FaultingCell):
+        def run_path(self, seq, path, upcoming=None):
+            if not self.cut and path.layer == 1 and path.item == last_item:
+                assert upcoming is not None and upcoming[1].layer == 2   # sent ahead
+                self.cut = seq
+                raise CellError("link lost (cell fault)")
+            return self.cell.run_path(seq, path, upcoming)
+
+    build = tmp_path / "b"
+    build.mkdir()
+    journal = Journal.create(build / bmod.JOURNAL, {"digests": {}})
+    cell = VirtualCell(build / "cell")
+    from icefab.cli.build_cmd import _box
+
+    lo, hi = _box(motion, job)
+    cell.prepare(to_toml(job), tuple(lo), tuple(hi))
+    faulty = LastPathFault(cell, layer=1)
+    bmod.Runner(build, motion, job, journal, lambda: faulty).run()
+    cmds = journal.commands()
+    cut = [c for c in cmds if c["cut"]]
+    assert len(cut) == 1 and cut[0]["layer"] == 1 and cut[0]["item"] == last_item
+    assert not any(c["kind"] == "fault_measure" for c in cmds)
+    assert any("not measured after the cell fault" in e["text"] for e in journal.events())
+    ex = _executed(build)
+    assert Counter(ex).most_common(1)[0][1] == 1 and faulty.cut not in ex
+    assert ex == sorted(ex)                                       # in number order
+    assert sorted(ex + [faulty.cut]) == [c["seq"] for c in cmds]  # nothing skipped
+    journal.close()
+
+
+def test_a_crash_during_a_fault_measurement_resumes_it(planned, tmp_path):
+    """The PC dies after the first path of the measurement that follows a cell fault;
+    the resumed build finishes that measurement (its own numbers after the layer's end
+    do not count as a later layer's) and makes the SMF update at that layer."""
+    from icefab.motion import load_trajectories
+
+    motion = load_trajectories(planned)
+    job = motion.job
+    build = tmp_path / "b"
+    build.mkdir()
+    cell = VirtualCell(build / "cell")
+    from icefab.cli.build_cmd import _box
+
+    lo, hi = _box(motion, job)
+    cell.prepare(to_toml(job), tuple(lo), tuple(hi))
+    faulty = FaultingCell(cell, layer=1)
+
+    class DiesInTheMeasurement:
+        def __getattr__(self, name):
+            return getattr(faulty, name)
+
+        def run_path(self, seq, path, upcoming=None):
+            out = faulty.run_path(seq, path, upcoming)
+            if path.layer == 1 and path.role == "measure":
+                raise Crash()
+            return out
+
+    journal = Journal.create(build / bmod.JOURNAL, {"digests": {}})
+    with pytest.raises(Crash):
+        bmod.Runner(build, motion, job, journal, DiesInTheMeasurement).run()
+    journal.close()
+    journal = Journal.open(build / bmod.JOURNAL)
+    bmod.Runner(build, motion, job, journal, lambda: faulty).run()
+    fm = [c for c in journal.commands() if c["kind"] == "fault_measure"]
+    assert len(fm) > 1 and all(c["done"] is not None for c in fm)
+    assert [m["layer"] for m in journal.measurements()][0] == 1
+    assert not any("not measured" in e["text"] for e in journal.events())
+    journal.close()

@@ -243,6 +243,20 @@ def test_the_next_path_is_uploaded_while_one_moves(planned, firmware_exe, tmp_pa
         assert pos[("upload", b)] < pos[("done", a)], (a, b)
         if b in depositing:   # its valve program too, before path a's DN
             assert any(e[0] == "valve" for e in ev[pos[("upload", b)]:pos[("done", a)]])
+    # across a layer end without measurement (layers 0 -> 1, 2 -> 3): the next layer's
+    # first path is uploaded during the last path of the layer, numbered after its LE
+    measured = {lm.index for lm in motion.layers
+                if any(t.path is not None and t.path.role == "measure" for t in lm.trajectories)}
+    crossings = 0
+    for L in sorted(ends)[:-1]:
+        if L in measured:
+            continue
+        last = max(r["seq"] for r in paths if r["layer"] == L)
+        first = min(r["seq"] for r in paths if r["layer"] == L + 1)
+        assert last < ends[L] < first
+        assert pos[("upload", first)] < pos[("done", last)]
+        crossings += 1
+    assert crossings == 2
 
 
 def _traj(motion, row):

@@ -408,19 +408,25 @@ class Runner:
                         self.findings.append(f)
                         self.journal.event("motion-limit", f, layer=L)
             z_mm = float(lm.z) + dh
+            le_digest = digest_text(f"layer_end {L}")
             for k, (i, tr, cp, dg) in enumerate(cps):
                 self._stop_point()
-                # the next path of the layer goes to the cell while this one moves
-                nxt = cps[k + 1] if k + 1 < len(cps) else None
+                # the next path goes to the cell while this one moves
+                if k + 1 < len(cps):
+                    nxt = cps[k + 1]
+                    upcoming = ("path", L, nxt[0], nxt[3], nxt[2])
+                else:
+                    upcoming = self._next_layer_first(j, done_layers)
+                    if upcoming is not None:
+                        # numbered in the order the cell runs them: this layer's end first
+                        self.journal.command("layer_end", L, -1, le_digest)
                 self._send("path", L, i, dg, lambda c, s, u=None, cp=cp: c.run_path(s, cp, u),
-                           upcoming=None if nxt is None else ("path", L, nxt[0], nxt[3],
-                                                              nxt[2]))
+                           upcoming=upcoming)
                 p.paths_done = self.journal.paths_done()
                 p.remaining_s -= float(tr.duration)
                 self._report()
             self._stop_point()
-            self._send("layer_end", L, -1, digest_text(f"layer_end {L}"),
-                       lambda c, s, L=L: c.end_layer(s, L))
+            self._send("layer_end", L, -1, le_digest, lambda c, s, L=L: c.end_layer(s, L))
             kind = "path"
             if not meas_items and L in self.journal.cut_layers():  # cut during this layer
                 # a cell fault cut a path of this layer short: measure the surface before
@@ -428,7 +434,18 @@ class Runner:
                 # the missing material now, not n_d layers later
                 meas_items = self._fault_measure_items(j)
                 kind = "fault_measure"
-                if meas_items and L not in smf_layers:
+                if meas_items and self._numbered_beyond(L, le_digest):
+                    # the fault cut the layer's last path while the next layer's first
+                    # path had been sent ahead: numbered before any measurement now, it
+                    # must run first (numbers run in order); SMF absorbs the error at the
+                    # next measurement
+                    meas_items = []
+                    if L not in smf_layers:
+                        self.journal.event("fault-measure", f"layer {L}: not measured after "
+                                           "the cell fault (the next layer's first path was "
+                                           "sent already); SMF absorbs it at the next "
+                                           "measurement", layer=L)
+                elif meas_items and L not in smf_layers:
                     self.journal.event("fault-measure", f"layer {L}: surface measured after "
                                        "the cell fault, before the next layer", layer=L)
             if meas_items:
@@ -534,6 +551,31 @@ class Runner:
             lv = simmod.layer_valves(plan, job, action)
             return plan, lv, self._cell_paths(j, lv), action
         self._ahead = (j, self._pool.submit(plan_ahead))
+
+    def _next_layer_first(self, j: int, done_layers: set) -> tuple | None:
+        """(kind, layer, item, digest, CellPath) of the first path of layer position
+        ``j + 1`` when it was planned ahead (with this layer's action) and is ready: the
+        cell may upload it while this layer's last path moves. None otherwise (a layer
+        with measurement or a cut path before it: its action changes)."""
+        a = self._ahead
+        if a is None or a[0] != j + 1 or not a[1].done() or a[1].exception() is not None:
+            return None
+        L = int(self.motion.layers[j].index)
+        nxt = self.motion.layers[j + 1]
+        if _items(self.motion.layers[j])[1] or L in self.journal.cut_layers() \
+                or int(nxt.index) in done_layers:
+            return None
+        cps = a[1].result()[2]
+        if not cps:
+            return None
+        i, _tr, cp, dg = cps[0]
+        return ("path", int(nxt.index), i, dg, cp)
+
+    def _numbered_beyond(self, layer: int, le_digest: str) -> bool:
+        """Whether a command of a later layer was numbered after layer ``layer``'s end
+        (its own fault measurement, numbered on an earlier run, does not count)."""
+        seq, _ = self.journal.command("layer_end", layer, -1, le_digest)
+        return any(c["seq"] > seq and c["layer"] != layer for c in self.journal.commands())
 
     def _fault_measure_items(self, j: int) -> list:
         """The measurement trajectories nearest layer position ``j`` (the last measurement

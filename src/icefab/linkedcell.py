@@ -221,11 +221,12 @@ class LinkedCell:
 
     def _preload(self, upcoming, *, streaming: bool = False) -> None:
         """Upload the next path while this one moves (robot always; its valve program
-        unless this path's program still streams into the store)."""
+        unless this path's program still streams into the store). It may be the next
+        layer's first: its ``LB`` is sent when it runs, after this layer's ``LE``."""
         if upcoming is None or self._preloaded is not None:
             return
         seq, path = upcoming
-        if seq <= self._last_done or int(path.layer) != self._layer:
+        if seq <= self._last_done:
             return
         self._need().robot.upload(self._robot_path(path), seq)
         self._preloaded = (seq, path, None if streaming else self._upload_program(path))
