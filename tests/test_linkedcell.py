@@ -218,9 +218,22 @@ class RecordingLinkedCell(LinkedCell):
         return out
 
 
-def test_the_next_path_is_uploaded_while_one_moves(planned, firmware_exe, tmp_path):
+def test_the_next_path_is_uploaded_while_one_moves(planned, firmware_exe, tmp_path,
+                                                   monkeypatch):
     """Within a layer, path k+1 (robot path and valve program) is uploaded between the
     GO and the DN of path k: the robot never waits for the PC's data."""
+    from concurrent.futures import Future
+
+    from icefab import sim as simmod
+
+    def plan_now(self, j, action):   # the next layer planned ahead at once (the thread
+        if j < len(self.motion.layers):   # may be late on a loaded machine)
+            plan = simmod.plan_layer_motion(self.motion.layers[j], self.job)
+            lv = simmod.layer_valves(plan, self.job, action)
+            f = Future()
+            f.set_result((plan, lv, self._cell_paths(j, lv), action))
+            self._ahead = (j, f)
+    monkeypatch.setattr(bmod.Runner, "_prefetch", plan_now)
     job, motion = planned
     RecordingLinkedCell.events = ev = []
     with VirtualCell(tmp_path / "cell", job, grid=grid_for(motion, job),

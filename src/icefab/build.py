@@ -398,10 +398,10 @@ class Runner:
             if L in done_layers and (not (meas_items or cut_here) or L in smf_layers):
                 continue
             lv, cps = self._layer_valves(j, action)
-            if not meas_items and not cut_here:
-                # the action stays until this layer's end: plan the next layer's programs
-                # while this one runs, so the robot does not wait for them
-                self._prefetch(j + 1, action)
+            # the action stays until this layer's end: plan the next layer's programs
+            # while this one runs (from its first path on: the planning thread holds the
+            # GIL in stretches, which must not delay the layer's first GO)
+            ahead = not meas_items and not cut_here
             if job.feedback.controller == "speed" and action is not None:
                 for f in check_speeds(lv.trajectories, job, L):
                     if f not in self.findings:
@@ -422,9 +422,13 @@ class Runner:
                         self.journal.command("layer_end", L, -1, le_digest)
                 self._send("path", L, i, dg, lambda c, s, u=None, cp=cp: c.run_path(s, cp, u),
                            upcoming=upcoming)
+                if k == 0 and ahead:
+                    self._prefetch(j + 1, action)
                 p.paths_done = self.journal.paths_done()
                 p.remaining_s -= float(tr.duration)
                 self._report()
+            if not cps and ahead:
+                self._prefetch(j + 1, action)
             self._stop_point()
             self._send("layer_end", L, -1, le_digest, lambda c, s, L=L: c.end_layer(s, L))
             kind = "path"
