@@ -188,7 +188,7 @@ def _bunny_layers(first: int, count: int, **changes):
 
 def overhead(args: argparse.Namespace) -> None:
     """Where the robot waits for the PC: the runner on the cell's links (LinkedCell) and
-    an in-process virtual cell (``icefab cell serve``'s devices), as fast as it goes.
+    the virtual cell in its own process (``icefab cell serve``), as fast as it goes.
 
     Per path the robot waits when the PC is not ready for the next GO at the end of the
     current motion: ready = (its preload after this GO) + (the PC's work between this
@@ -196,11 +196,11 @@ def overhead(args: argparse.Namespace) -> None:
     waits for everything between the last DN of the layer before (its end, measurement,
     SMF) and its GO: there the robot stands (it has nothing stored)."""
     from icefab import build as bmod
-    from icefab.cell.valve_host import build_host
-    from icefab.cell.virtual import VirtualCell
-    from icefab.cell.world import grid_for
+    from icefab.config import to_toml
     from icefab.journal import Journal
-    from icefab.linkedcell import LinkedCell
+    from icefab.linkedcell import (LinkedCell, load_endpoints, shutdown_virtual_cell,
+                                   start_virtual_cell)
+    from icefab.motion import save_trajectories
 
     t0 = time.perf_counter()
     motion, job = _bunny_layers(args.first, args.layers, **(
@@ -216,8 +216,9 @@ def overhead(args: argparse.Namespace) -> None:
             go, wait = robot.go, robot.wait_done
 
             def timed_go(seq):
+                t = time.perf_counter()
                 go(seq)
-                rec.append(("go", seq, time.perf_counter()))
+                rec.append(("go", seq, time.perf_counter(), time.perf_counter() - t))
 
             def timed_wait(seq, timeout_s=None):
                 out = wait(seq, timeout_s)
@@ -227,38 +228,49 @@ def overhead(args: argparse.Namespace) -> None:
             return out
 
         def run_path(self, seq, path, upcoming=None):
-            rec.append(("path", seq, path.layer, path.duration_s))
+            pre = self._preloaded is not None and self._preloaded[0] == seq
+            rec.append(("path", seq, path.layer, path.duration_s, pre))
             return super().run_path(seq, path, upcoming)
 
         def _preload(self, upcoming, *, streaming=False):
             super()._preload(upcoming, streaming=streaming)
             rec.append(("preloaded", None, time.perf_counter()))
 
-    exe = build_host(d / "fw")
+    # the cell in its own process, as icefab build --virtual runs it (in this process its
+    # physics would hold the runner's GIL)
+    save_trajectories(motion, d / "t.npz")
+    (d / "job.toml").write_text(to_toml(job), encoding="utf-8")
+    start_virtual_cell(d / "cell", d / "job.toml", d / "t.npz")
     journal = Journal.create(d / "journal.sqlite", {"digests": {}})
-    with VirtualCell(d / "cell", job, grid=grid_for(motion, job), firmware_exe=exe) as c:
+    try:
+        endpoints = load_endpoints(d / "cell")
         t1 = time.perf_counter()
-        bmod.Runner(d, motion, job, journal, lambda: Timed(c.endpoints, job)).run()
+        bmod.Runner(d, motion, job, journal, lambda: Timed(endpoints, job)).run()
         wall = time.perf_counter() - t1
+    finally:
+        shutdown_virtual_cell(d / "cell")
     # one row per path: layer, motion, GO time, preload end (None), DN time
     paths, cur = [], None
     for r in rec:
         if r[0] == "path":
-            cur = {"seq": r[1], "layer": r[2], "motion": r[3], "pre": None}
+            cur = {"seq": r[1], "layer": r[2], "motion": r[3], "pre": None,
+                   "preloaded": r[4]}
             paths.append(cur)
         elif r[0] == "go":
-            cur["go"] = r[2]
+            cur["go"], cur["go_s"] = r[2], r[3]
         elif r[0] == "preloaded":
             cur["pre"] = r[2]
         elif r[0] == "dn":
             cur["dn"] = r[2]
-    waits_in, waits_first = [], []
+    waits_in, waits_first, first_pre, go_first = [], [], [], []
     for a, b in zip(paths, paths[1:]):
         if b["layer"] == a["layer"] and a["pre"] is not None:
             ready = (a["pre"] - a["go"]) + (b["go"] - a["dn"])
             waits_in.append(max(0.0, ready - a["motion"]))
         else:
             waits_first.append(b["go"] - a["dn"])
+            first_pre.append(b["preloaded"])
+            go_first.append(b["go_s"])
     motion_s = float(sum(p["motion"] for p in paths))
     w_in, w_first = float(sum(waits_in)), float(sum(waits_first))
     print(json.dumps({
@@ -269,6 +281,10 @@ def overhead(args: argparse.Namespace) -> None:
         "paths_that_wait": int(sum(1 for w in waits_in if w > 0)),
         "largest_wait_within_s": round(max(waits_in, default=0.0), 3),
         "robot_waits_at_layer_starts_s": [round(w, 2) for w in waits_first],
+        "layer_first_path_sent_ahead": first_pre,
+        # the GO's own round trip: the virtual cell answers it after freezing the layer
+        # (the GIL), which a real controller does not do
+        "layer_first_go_round_trip_s": [round(w, 2) for w in go_first],
         "robot_wait_fraction_of_motion": round((w_in + w_first) / motion_s, 5),
         "measurement_layers": sorted({m["layer"] for m in journal.measurements()})}))
 

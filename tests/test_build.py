@@ -453,8 +453,8 @@ def test_report_of_a_running_build_in_chromium(firmware_tools, tmp_path):
 def test_planning_ahead_sends_the_programs_of_planning_in_turn(planned, tmp_path,
                                                                monkeypatch):
     """The next layer's valve programs, planned on a thread while a layer runs, are the
-    ones planned in turn (same digests of every command, same surface), and they are
-    planned ahead for the layers without measurement before them."""
+    ones planned in turn (same digests of every command, same surface); they are planned
+    ahead for the layers without measurement before them, the motion plan for all."""
     from icefab.motion import load_trajectories
 
     motion = load_trajectories(planned)
@@ -463,12 +463,16 @@ def test_planning_ahead_sends_the_programs_of_planning_in_turn(planned, tmp_path
     real = bmod.Runner._layer_valves
 
     def spy(self, j, action):
-        used.append((j, self._ahead is not None and self._ahead[0] == j))
+        a = self._ahead
+        if a is not None and a[0] == j:
+            used.append((j, "programs" if a[1].result()[1] is not None else "motion plan"))
         return real(self, j, action)
     monkeypatch.setattr(bmod.Runner, "_layer_valves", spy)
     _inprocess(tmp_path / "ahead", motion, job)
-    assert [j for j, ahead in used if ahead] == [1, 2, 3]   # layer 3 measures: not 4
-    monkeypatch.setattr(bmod.Runner, "_prefetch", lambda self, j, action: None)
+    # layer 3 measures: layer 4's programs wait for its SMF update, its motion plan not
+    assert used == [(1, "programs"), (2, "programs"), (3, "programs"), (4, "motion plan")]
+    monkeypatch.setattr(bmod.Runner, "_prefetch",
+                        lambda self, j, action, plan_only=False: None)
     _inprocess(tmp_path / "in-turn", motion, job)
     a = Journal.open(tmp_path / "ahead" / bmod.JOURNAL).commands()
     b = Journal.open(tmp_path / "in-turn" / bmod.JOURNAL).commands()
@@ -489,12 +493,12 @@ def test_a_fault_on_a_layers_last_path_after_the_next_layer_was_sent(planned, tm
     from icefab import sim as simmod
     from icefab.motion import load_trajectories
 
-    def plan_now(self, j, action):      # planned ahead at once: deterministic for the test
+    def plan_now(self, j, action, plan_only=False):      # planned ahead at once: deterministic for the test
         if j < len(self.motion.layers):
             plan = simmod.plan_layer_motion(self.motion.layers[j], self.job)
-            lv = simmod.layer_valves(plan, self.job, action)
+            lv = None if plan_only else simmod.layer_valves(plan, self.job, action)
             f = Future()
-            f.set_result((plan, lv, self._cell_paths(j, lv), action))
+            f.set_result((plan, lv, lv and self._cell_paths(j, lv), action))
             self._ahead = (j, f)
     monkeypatch.setattr(bmod.Runner, "_prefetch", plan_now)
     motion = load_trajectories(planned)

@@ -226,12 +226,12 @@ def test_the_next_path_is_uploaded_while_one_moves(planned, firmware_exe, tmp_pa
 
     from icefab import sim as simmod
 
-    def plan_now(self, j, action):   # the next layer planned ahead at once (the thread
+    def plan_now(self, j, action, plan_only=False):   # the next layer planned ahead at once (the thread
         if j < len(self.motion.layers):   # may be late on a loaded machine)
             plan = simmod.plan_layer_motion(self.motion.layers[j], self.job)
-            lv = simmod.layer_valves(plan, self.job, action)
+            lv = None if plan_only else simmod.layer_valves(plan, self.job, action)
             f = Future()
-            f.set_result((plan, lv, self._cell_paths(j, lv), action))
+            f.set_result((plan, lv, lv and self._cell_paths(j, lv), action))
             self._ahead = (j, f)
     monkeypatch.setattr(bmod.Runner, "_prefetch", plan_now)
     job, motion = planned

@@ -388,6 +388,7 @@ class Runner:
             p.last_rms_mm = p.rms[-1][2]
         p.paths_done = self.journal.paths_done()
         self._call(lambda cell: None)
+        report_due = False
         for j, lm in enumerate(self.motion.layers):
             L = int(lm.index)
             meas_items = _items(lm)[1]
@@ -398,9 +399,9 @@ class Runner:
             if L in done_layers and (not (meas_items or cut_here) or L in smf_layers):
                 continue
             lv, cps = self._layer_valves(j, action)
-            # the action stays until this layer's end: plan the next layer's programs
-            # while this one runs (from its first path on: the planning thread holds the
-            # GIL in stretches, which must not delay the layer's first GO)
+            # the action stays until this layer's end unless it measures: plan the next
+            # layer's programs while this one runs (from its first path on: the planning
+            # thread holds the GIL in stretches, which must not delay the first GO)
             ahead = not meas_items and not cut_here
             if job.feedback.controller == "speed" and action is not None:
                 for f in check_speeds(lv.trajectories, job, L):
@@ -422,13 +423,20 @@ class Runner:
                         self.journal.command("layer_end", L, -1, le_digest)
                 self._send("path", L, i, dg, lambda c, s, u=None, cp=cp: c.run_path(s, cp, u),
                            upcoming=upcoming)
-                if k == 0 and ahead:
-                    self._prefetch(j + 1, action)
+                if k == 0:
+                    # with a measurement ahead only the motion plan: no action changes it
+                    self._prefetch(j + 1, action, plan_only=not ahead)
+                    if report_due:
+                        self._report(force=True, measured=True)
+                        report_due = False
                 p.paths_done = self.journal.paths_done()
                 p.remaining_s -= float(tr.duration)
                 self._report()
-            if not cps and ahead:
-                self._prefetch(j + 1, action)
+            if not cps:
+                self._prefetch(j + 1, action, plan_only=not ahead)
+            if report_due:
+                self._report(force=True, measured=True)
+                report_due = False
             self._stop_point()
             self._send("layer_end", L, -1, le_digest, lambda c, s, L=L: c.end_layer(s, L))
             kind = "path"
@@ -485,7 +493,8 @@ class Runner:
                     p.rms.append((L, nominal, rms))
                     p.last_rms_mm = rms
                 state, action = self._restore()
-                self._report(force=True, measured=True)
+                # the report's pictures take a while: drawn once the next layer runs
+                report_due = True
             p.layer_pos = j + 1
             self._report(force=True)
         p.state = "complete"
@@ -505,7 +514,7 @@ class Runner:
         fut, self._ahead = self._ahead, None
         if fut is not None and fut[0] == j:
             plan, lv, cps, with_action = fut[1].result()
-            if with_action is action:
+            if lv is not None and with_action is action:
                 return lv, cps
         else:
             plan = simmod.plan_layer_motion(self.motion.layers[j], self.job)
@@ -537,8 +546,9 @@ class Runner:
             cps.append((i, tr, cp, cp.digest()))
         return cps
 
-    def _prefetch(self, j: int, action) -> None:
-        """Plan layer position ``j`` (motion plan and valve programs with ``action``) on a
+    def _prefetch(self, j: int, action, *, plan_only: bool = False) -> None:
+        """Plan layer position ``j`` (motion plan and valve programs with ``action``, or
+        with ``plan_only`` the motion plan alone, which no action changes) on a
         background thread; :meth:`_layer_valves` takes it when its turn comes."""
         from concurrent.futures import ThreadPoolExecutor
 
@@ -552,6 +562,8 @@ class Runner:
 
         def plan_ahead():
             plan = simmod.plan_layer_motion(lm, job)
+            if plan_only:
+                return plan, None, None, None
             lv = simmod.layer_valves(plan, job, action)
             return plan, lv, self._cell_paths(j, lv), action
         self._ahead = (j, self._pool.submit(plan_ahead))
