@@ -226,8 +226,9 @@ def test_the_next_path_is_uploaded_while_one_moves(planned, firmware_exe, tmp_pa
 
     from icefab import sim as simmod
 
-    def plan_now(self, j, action, plan_only=False):   # the next layer planned ahead at once (the thread
-        if j < len(self.motion.layers):   # may be late on a loaded machine)
+    # the next layer planned ahead at once (the thread may be late on a loaded machine)
+    def plan_now(self, j, action, plan_only=False):
+        if j < len(self.motion.layers):
             plan = simmod.plan_layer_motion(self.motion.layers[j], self.job)
             lv = None if plan_only else simmod.layer_valves(plan, self.job, action)
             f = Future()
