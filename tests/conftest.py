@@ -52,3 +52,22 @@ def firmware_exe(firmware_tools, tmp_path_factory) -> Path:
     from icefab.cell import valve_host
 
     return valve_host.build_host(tmp_path_factory.mktemp("fw"))
+
+
+@pytest.fixture
+def plan_ahead_at_once(monkeypatch):
+    """The build runner plans the next layer ahead at once instead of on its thread, so
+    tests that rely on it having been planned do not depend on the machine's load."""
+    from concurrent.futures import Future
+
+    from icefab import build as bmod
+    from icefab import sim as simmod
+
+    def plan_now(self, j, action, plan_only=False):
+        if j < len(self.motion.layers):
+            plan = simmod.plan_layer_motion(self.motion.layers[j], self.job)
+            lv = None if plan_only else simmod.layer_valves(plan, self.job, action)
+            f = Future()
+            f.set_result((plan, lv, lv and self._cell_paths(j, lv), action))
+            self._ahead = (j, f)
+    monkeypatch.setattr(bmod.Runner, "_prefetch", plan_now)

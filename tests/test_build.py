@@ -134,17 +134,12 @@ class CrashingCell:
 
 
 def _inprocess(build: Path, motion, job, crash_at=None, after=False):
-    cell_dir = build / "cell"
     jpath = build / bmod.JOURNAL
-    new = not jpath.exists()
-    build.mkdir(exist_ok=True)
-    journal = Journal.create(jpath, {"digests": {}}) if new else Journal.open(jpath)
-    cell = VirtualCell(cell_dir)
-    if new:
-        from icefab.cli.build_cmd import _box
-
-        lo, hi = _box(motion, job)
-        cell.prepare(to_toml(job), tuple(lo), tuple(hi))
+    if jpath.exists():
+        journal, cell = Journal.open(jpath), VirtualCell(build / "cell")
+    else:
+        cell = _prepared(build, motion, job)
+        journal = Journal.create(jpath, {"digests": {}})
     c = cell if crash_at is None else CrashingCell(cell, crash_at, after)
     runner = bmod.Runner(build, motion, job, journal, lambda: c)
     try:
@@ -174,6 +169,17 @@ class FaultingCell:
         return self.cell.run_path(seq, path, upcoming)
 
 
+def _prepared(build: Path, motion, job) -> VirtualCell:
+    """A model cell in ``build/cell`` holding a new build of these trajectories."""
+    from icefab.cli.build_cmd import _box
+
+    build.mkdir(exist_ok=True)
+    cell = VirtualCell(build / "cell")
+    lo, hi = _box(motion, job)
+    cell.prepare(to_toml(job), tuple(lo), tuple(hi))
+    return cell
+
+
 def test_a_cell_fault_is_measured_before_the_next_layer(planned, tmp_path):
     """Layer 1 (not a measurement layer: every 4th is) has a path cut by a cell fault: it
     is journaled as cut, never re-run, and the surface is measured at the layer's end with
@@ -183,13 +189,8 @@ def test_a_cell_fault_is_measured_before_the_next_layer(planned, tmp_path):
     motion = load_trajectories(planned)
     job = motion.job
     build = tmp_path / "b"
-    build.mkdir()
+    cell = _prepared(build, motion, job)
     journal = Journal.create(build / bmod.JOURNAL, {"digests": {}})
-    cell = VirtualCell(build / "cell")
-    from icefab.cli.build_cmd import _box
-
-    lo, hi = _box(motion, job)
-    cell.prepare(to_toml(job), tuple(lo), tuple(hi))
     faulty = FaultingCell(cell, layer=1)
     runner = bmod.Runner(build, motion, job, journal, lambda: faulty)
     runner.run()
@@ -483,24 +484,13 @@ def test_planning_ahead_sends_the_programs_of_planning_in_turn(planned, tmp_path
 
 
 def test_a_fault_on_a_layers_last_path_after_the_next_layer_was_sent(planned, tmp_path,
-                                                                     monkeypatch):
+                                                                     plan_ahead_at_once):
     """The next layer's first path is numbered (and may be uploaded) while a layer's last
     path moves. If a cell fault cuts that last path, a measurement now would be numbered
     after a path that must run first: the runner skips it, says so, and every other
     command runs exactly once, in number order."""
-    from concurrent.futures import Future
-
-    from icefab import sim as simmod
     from icefab.motion import load_trajectories
 
-    def plan_now(self, j, action, plan_only=False):      # planned ahead at once: deterministic for the test
-        if j < len(self.motion.layers):
-            plan = simmod.plan_layer_motion(self.motion.layers[j], self.job)
-            lv = None if plan_only else simmod.layer_valves(plan, self.job, action)
-            f = Future()
-            f.set_result((plan, lv, lv and self._cell_paths(j, lv), action))
-            self._ahead = (j, f)
-    monkeypatch.setattr(bmod.Runner, "_prefetch", plan_now)
     motion = load_trajectories(planned)
     job = motion.job
     last_item = bmod._items(motion.layers[1])[0][-1][0]
@@ -514,13 +504,8 @@ def test_a_fault_on_a_layers_last_path_after_the_next_layer_was_sent(planned, tm
             return self.cell.run_path(seq, path, upcoming)
 
     build = tmp_path / "b"
-    build.mkdir()
+    cell = _prepared(build, motion, job)
     journal = Journal.create(build / bmod.JOURNAL, {"digests": {}})
-    cell = VirtualCell(build / "cell")
-    from icefab.cli.build_cmd import _box
-
-    lo, hi = _box(motion, job)
-    cell.prepare(to_toml(job), tuple(lo), tuple(hi))
     faulty = LastPathFault(cell, layer=1)
     bmod.Runner(build, motion, job, journal, lambda: faulty).run()
     cmds = journal.commands()
@@ -544,12 +529,7 @@ def test_a_crash_during_a_fault_measurement_resumes_it(planned, tmp_path):
     motion = load_trajectories(planned)
     job = motion.job
     build = tmp_path / "b"
-    build.mkdir()
-    cell = VirtualCell(build / "cell")
-    from icefab.cli.build_cmd import _box
-
-    lo, hi = _box(motion, job)
-    cell.prepare(to_toml(job), tuple(lo), tuple(hi))
+    cell = _prepared(build, motion, job)
     faulty = FaultingCell(cell, layer=1)
 
     class DiesInTheMeasurement:

@@ -219,22 +219,9 @@ class RecordingLinkedCell(LinkedCell):
 
 
 def test_the_next_path_is_uploaded_while_one_moves(planned, firmware_exe, tmp_path,
-                                                   monkeypatch):
+                                                   plan_ahead_at_once):
     """Within a layer, path k+1 (robot path and valve program) is uploaded between the
     GO and the DN of path k: the robot never waits for the PC's data."""
-    from concurrent.futures import Future
-
-    from icefab import sim as simmod
-
-    # the next layer planned ahead at once (the thread may be late on a loaded machine)
-    def plan_now(self, j, action, plan_only=False):
-        if j < len(self.motion.layers):
-            plan = simmod.plan_layer_motion(self.motion.layers[j], self.job)
-            lv = None if plan_only else simmod.layer_valves(plan, self.job, action)
-            f = Future()
-            f.set_result((plan, lv, lv and self._cell_paths(j, lv), action))
-            self._ahead = (j, f)
-    monkeypatch.setattr(bmod.Runner, "_prefetch", plan_now)
     job, motion = planned
     RecordingLinkedCell.events = ev = []
     with VirtualCell(tmp_path / "cell", job, grid=grid_for(motion, job),
