@@ -300,9 +300,10 @@ class Runner:
             if c["seq"] == st.cut:
                 self.journal.done(c["seq"], cut=True)
                 self.journal.event("cell-fault", f"{c['kind']} {c['layer']}/{c['item']} "
-                                   f"(seq {c['seq']}) was cut short by a cell fault; the rest "
-                                   "of it is not deposited, SMF absorbs the error at the next "
-                                   "measurement", layer=c["layer"])
+                                   f"(seq {c['seq']}) was cut short by a cell fault and is not "
+                                   "run again: a deposition path's rest is missing (SMF "
+                                   "absorbs it), a measurement path's samples are",
+                                   layer=c["layer"])
             elif c["seq"] <= st.last_done:
                 self.journal.done(c["seq"])
 
