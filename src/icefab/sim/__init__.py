@@ -84,7 +84,7 @@ from __future__ import annotations
 
 from icefab.errors import SimulationError
 # the layer step and grid the virtual cell's process shares (icefab.cell.world), and
-# private blocks the build runner's stand-in cell still reuses (icefab.runcell)
+# private blocks the build runner's in-process model cell reuses (icefab.runcell)
 from icefab.sim.cell import (Controller, Measurement, SimResult, _edge_factor,  # noqa: F401
                              _noise_field, deposit_layer, grid_for, run_cell)
 from icefab.sim.deposition import (MATERIAL_ID, ActionFn, _splat, deposit,  # noqa: F401
