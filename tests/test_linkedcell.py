@@ -351,3 +351,19 @@ def test_a_cell_killed_mid_path_reports_it_cut_after_its_restart(planned, firmwa
         proc.send_signal(signal.SIGTERM)
         proc.wait(timeout=60)
     assert _executed(state) == [1]
+
+
+def test_paths_longer_than_the_controller_stores_are_refused_before_anything_moves(planned):
+    from types import SimpleNamespace
+
+    from icefab.cell.robot import RobotInfo
+
+    job, motion = planned
+    longest = max(len(t.xy) for lm in motion.layers for t in lm.trajectories)
+    cell = LinkedCell({}, job)
+    cell.links = SimpleNamespace(robot=SimpleNamespace(info=RobotInfo(2, longest, 4)))
+    cell.check_paths(motion)                                   # fits exactly
+    cell.links.robot.info = RobotInfo(2, longest - 1, 4)
+    with pytest.raises(CellError, match=rf"{longest} points, the robot controller stores "
+                                        rf"{longest - 1} per path"):
+        cell.check_paths(motion)

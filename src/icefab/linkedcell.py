@@ -128,6 +128,23 @@ class LinkedCell:
                 "protocol": None if info is None else info.version,
                 "valve": self.links.valves.name, "laser": self.links.laser.where}
 
+    def check_paths(self, motion) -> None:
+        """Refuse, before anything moves, trajectories the controller cannot store: more
+        points in one path than its ``max_points`` (``HI``). CellError naming the first
+        such path."""
+        info = self._need().robot.info
+        if info is None:
+            return
+        for lm in motion.layers:
+            for k, tr in enumerate(lm.trajectories):
+                if len(tr.xy) > info.max_points:
+                    raise CellError(
+                        f"layer {lm.index} path {k}: {len(tr.xy)} points, the robot "
+                        f"controller stores {info.max_points} per path: raise max_points "
+                        "in the controller's V+ program (icefab.cell.vplus) if its memory "
+                        "allows")
+        return None
+
     def close(self) -> None:
         if self.links is not None:
             self.links.close()

@@ -239,6 +239,7 @@ def _run(build: Path, args: argparse.Namespace, *, resume: bool) -> int:
         try:
             cell = connect()
             cell.hello()                      # the handshake, before anything is journaled
+            cell.check_paths(motion)
             st = cell.status()
             if not st.prepared:
                 lo, hi = _box(motion, job)
