@@ -26,7 +26,7 @@ STAGES: list[tuple[str, tuple[str, ...]]] = [
     ("slicing", ("icefab.adaptive", "icefab.fitting", "icefab.slicing")),
     ("ruled", ("icefab.ruled",)),
     ("regions", ("icefab.regions",)),
-    ("paths", ("icefab.paths",)),
+    ("paths", ("icefab._tour", "icefab.paths")),
     ("motion", ("icefab._mtts", "icefab.motion")),
     ("feedback", ("icefab.feedback",)),
     ("flow", ("icefab.flow", "icefab.headroom", "icefab.findings")),

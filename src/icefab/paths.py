@@ -47,8 +47,9 @@ From a ``Stack`` with part and scaffold regions to ordered ``Path``s per layer:
   scaffold boundaries, scaffold fill), measurement paths last; inside each set nearest
   neighbour from the current position (the layer starts at the part-frame origin), with the
   start point of every closed path chosen as its point nearest to the current position and
-  either end of an open path; explicit travel paths (role "travel", width 0) between
-  consecutive paths.
+  either end of an open path, then shortened by 2-opt and a better start vertex for each
+  closed path (:func:`icefab._tour.improve`: never longer than nearest neighbour);
+  explicit travel paths (role "travel", width 0) between consecutive paths.
 * Reference frames (thesis Table 3-1): points are in the part (building) frame of the tool
   that follows them (``Path.tool_name``). See :func:`to_base_frame`. A travel path is given
   for the tool of the path that follows it; when the tool changes, its first point is the
@@ -68,6 +69,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from icefab import _tour
 from icefab import geometry as geo
 from icefab.config import Job, MaterialSettings
 from icefab.frames import FRAME_TOOLS as TOOLS, tool_offset, to_base_frame  # noqa: F401 (old home)
@@ -434,6 +436,13 @@ def measure_rings(region: Region, spacing: float, filt: float) -> list[np.ndarra
 MAX_START_CANDIDATES = 64
 
 
+def _start_candidates(n: int) -> np.ndarray:
+    """Indices of the vertices of a closed path of ``n`` points that may become its start:
+    all, or ``MAX_START_CANDIDATES`` evenly spread."""
+    return (np.arange(n) if n <= MAX_START_CANDIDATES else
+            np.linspace(0, n - 1, MAX_START_CANDIDATES).astype(np.int64))
+
+
 def order_nearest(items: Sequence[tuple], start: np.ndarray) -> tuple[list[tuple], np.ndarray]:
     """Order paths by nearest neighbour from ``start``, choosing start points.
 
@@ -452,8 +461,7 @@ def order_nearest(items: Sequence[tuple], start: np.ndarray) -> tuple[list[tuple
         pts, closed = item[0], item[1]
         if closed:
             # at most MAX_START_CANDIDATES evenly spread vertices may become the start
-            idx = (np.arange(len(pts)) if len(pts) <= MAX_START_CANDIDATES else
-                   np.linspace(0, len(pts) - 1, MAX_START_CANDIDATES).astype(np.int64))
+            idx = _start_candidates(len(pts))
             cand_pts.append(pts[idx])
             cand_idx.append(idx)
         else:
@@ -807,6 +815,8 @@ def plan_layer(layer: Layer, job: Job, measured: bool | None = None) -> LayerPat
         material, role = key.split(":")
         tool = "laser" if role == "measure" else material
         ordered, _end = order_nearest(groups.get(key, []), cur)
+        ordered, _end = _tour.improve(ordered, cur, [_start_candidates(len(it[0]))
+                                                     for it in ordered])
         for pts, closed, width in ordered:
             if cur_tool is not None:
                 a = cur if cur_tool == tool else (

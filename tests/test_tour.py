@@ -1,0 +1,78 @@
+"""Travel between a layer's paths: 2-opt after nearest neighbour (icefab._tour).
+
+Invariants (hypothesis): the improved order visits the same paths (a closed path only
+rotated to another start vertex among its candidates, an open one possibly reversed) and
+its travel is never longer than the nearest-neighbour order's; on random layouts it is
+clearly shorter, and never shorter than a lower bound (every path but the first is
+entered from the nearest other path at best)."""
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from icefab._tour import improve, travel_length
+from icefab.paths import _start_candidates, order_nearest
+
+
+def _layout(seed: int, n: int) -> list[tuple]:
+    rng = np.random.default_rng(seed)
+    items = []
+    for k in range(n):
+        c = rng.uniform(0, 200, 2)
+        if rng.random() < 0.5:
+            t = np.linspace(0, 2 * np.pi, int(rng.integers(3, 90)), endpoint=False)
+            r = rng.uniform(1, 5)
+            items.append((c + np.column_stack([r * np.cos(t), r * np.sin(t)]), True, k))
+        else:
+            d = rng.normal(size=2)
+            items.append((np.array([c, c + rng.uniform(1, 20) * d / np.linalg.norm(d)]),
+                          False, k))
+    return items
+
+
+def _improved(items, start):
+    nn, _ = order_nearest(items, start)
+    out, end = improve(nn, start, [_start_candidates(len(it[0])) for it in nn])
+    return nn, out, end
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 10 ** 6), st.integers(0, 60))
+def test_the_same_paths_and_never_longer_than_nearest_neighbour(seed, n):
+    items = _layout(seed, n)
+    start = np.array([5.0, -3.0])
+    nn, out, end = _improved(items, start)
+    assert sorted(it[2] for it in out) == list(range(n))
+    by_id = {it[2]: it for it in items}
+    for pts, closed, k in out:
+        orig = by_id[k][0]
+        if closed:
+            j = int(np.flatnonzero((orig == pts[0]).all(axis=1))[0])
+            np.testing.assert_array_equal(pts, np.roll(orig, -j, axis=0))
+        else:
+            assert np.array_equal(pts, orig) or np.array_equal(pts, orig[::-1])
+    assert travel_length(out, start) <= travel_length(nn, start) + 1e-9
+    if out:
+        last = out[-1]
+        np.testing.assert_array_equal(end, last[0][0] if last[1] else last[0][-1])
+
+
+def _lower_bound(items) -> float:
+    """Every path but one is entered from another path's end or vertex, at best the
+    nearest one (brute force: small layouts)."""
+    ends = [it[0] if it[1] else it[0][[0, -1]] for it in items]
+    near = []
+    for i, a in enumerate(ends):
+        near.append(min(float(np.min(np.linalg.norm(a[:, None] - b[None], axis=2)))
+                        for j, b in enumerate(ends) if j != i))
+    return float(sum(near) - max(near))
+
+
+def test_clearly_shorter_on_a_random_layout_and_above_the_lower_bound():
+    items = _layout(1, 150)
+    start = np.zeros(2)
+    nn, out, _ = _improved(items, start)
+    a, b = travel_length(nn, start), travel_length(out, start)
+    assert b < 0.93 * a, (a, b)
+    assert b >= _lower_bound(items)
