@@ -553,3 +553,38 @@ def test_a_crash_during_a_fault_measurement_resumes_it(planned, tmp_path):
     assert [m["layer"] for m in journal.measurements()][0] == 1
     assert not any("not measured" in e["text"] for e in journal.events())
     journal.close()
+
+
+def test_a_refused_command_stops_the_build_at_once(planned, tmp_path):
+    """A refusal that sending again cannot change (here: the controller's "out of reach",
+    error 8) ends the build with its message and a journal event, after one attempt; a
+    lost link is retried instead."""
+    from icefab.errors import CellRefused
+    from icefab.motion import load_trajectories
+
+    motion = load_trajectories(planned)
+    job = motion.job
+    build = tmp_path / "b"
+    cell = _prepared(build, motion, job)
+    journal = Journal.create(build / bmod.JOURNAL, {"digests": {}})
+    calls = {"connect": 0, "run": 0}
+
+    class Refusing:
+        def __getattr__(self, name):
+            return getattr(cell, name)
+
+        def run_path(self, seq, path, upcoming=None):
+            calls["run"] += 1
+            if calls["run"] == 3:
+                raise CellRefused("robot: command 3 refused: error 8 (a point is out of "
+                                  "the robot's reach)")
+            return cell.run_path(seq, path, upcoming)
+
+    def connect():
+        calls["connect"] += 1
+        return Refusing()
+    with pytest.raises(CellRefused, match="error 8"):
+        bmod.Runner(build, motion, job, journal, connect).run()
+    assert calls == {"connect": 1, "run": 3}
+    assert [e["kind"] for e in journal.events()].count("cell-refused") == 1
+    journal.close()

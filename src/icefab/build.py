@@ -51,7 +51,7 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
-from icefab.errors import ConfigError, IcefabError, WorkspaceError
+from icefab.errors import CellRefused, ConfigError, IcefabError, WorkspaceError
 from icefab.robots import check_workspace, get_robot
 from icefab.journal import Journal, digest_text, pack_arrays, unpack_arrays
 from icefab.runcell import Cell, CellError, CellPath
@@ -312,6 +312,11 @@ class Runner:
         while True:
             try:
                 return fn(self._link())
+            except CellRefused as exc:    # the same again would be refused again
+                self.journal.event("cell-refused", f"the cell refused a command: {exc}",
+                                   layer=self.progress.layer)
+                self._drop_link()
+                raise
             except CellError as exc:
                 self.faults += 1
                 self.journal.event("cell-link", f"cell link lost: {exc}",

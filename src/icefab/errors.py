@@ -60,3 +60,9 @@ class OutputError(IcefabError):
 class CellError(IcefabError):
     """A device link of the cell failed: unreachable host or port, a malformed or
     unexpected message, a device's error reply, a timeout, or a bad cell state folder."""
+
+
+class CellRefused(CellError):
+    """A device refused a command for a reason that sending it again cannot change (a
+    path with more points than the controller stores, a point out of its reach, another
+    protocol version): the build stops at once instead of reconnecting."""

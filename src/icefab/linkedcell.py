@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from icefab.cell import robot_protocol as rp
-from icefab.errors import CellError
+from icefab.errors import CellError, CellRefused
 
 log = logging.getLogger(__name__)
 
@@ -138,7 +138,7 @@ class LinkedCell:
         for lm in motion.layers:
             for k, tr in enumerate(lm.trajectories):
                 if len(tr.xy) > info.max_points:
-                    raise CellError(
+                    raise CellRefused(
                         f"layer {lm.index} path {k}: {len(tr.xy)} points, the robot "
                         f"controller stores {info.max_points} per path: raise max_points "
                         "in the controller's V+ program (icefab.cell.vplus) if its memory "
@@ -198,8 +198,8 @@ class LinkedCell:
             ups = self._upload_program(path)
         if rpath.flags & rp.FLAG_VALVE:
             if not ups:
-                raise CellError(f"layer {path.layer} path {path.item}: a deposition path "
-                                "without a valve program")
+                raise CellRefused(f"layer {path.layer} path {path.item}: a deposition "
+                                  "path without a valve program")
             st = valves.status()
             for u in ups:       # what did not fit while the previous program played
                 if not u.complete:

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from icefab.cell import robot_protocol as rp
-from icefab.errors import CellError
+from icefab.errors import CellError, CellRefused
 
 log = logging.getLogger(__name__)
 
@@ -209,8 +209,9 @@ class RobotLink:
                                 f"{msg.seq} while waiting for {seq}")
             if msg.name == "error":
                 code = int(msg["code"])
-                raise CellError(f"{self.where}: command {seq} refused: error {code} "
-                                f"({rp.ERRORS.get(code, 'unknown code')})")
+                kind = CellRefused if code in rp.PERMANENT_ERRORS else CellError
+                raise kind(f"{self.where}: command {seq} refused: error {code} "
+                           f"({rp.ERRORS.get(code, 'unknown code')})")
             if msg.name not in names:
                 raise CellError(f"{self.where}: unexpected reply {msg.message.code} to "
                                 f"command {seq}")
@@ -246,27 +247,27 @@ class RobotLink:
     def upload(self, path: RobotPath, seq: int | None = None) -> int:
         """Store one path on the controller; returns its sequence number (reported back
         by :meth:`wait_done`): ``seq`` (a build's journal number, 1 ..
-        ``FIRST_LINK_SEQ`` - 1) or the link's next one. CellError if the controller
-        refuses it."""
+        ``FIRST_LINK_SEQ`` - 1) or the link's next one. CellRefused for a path no
+        controller takes (checked here first) or one this controller refuses for good."""
         xy = np.asarray(path.xy, dtype=np.float64)
         if xy.ndim != 2 or xy.shape[1] != 2 or len(xy) == 0 or not np.isfinite(xy).all():
-            raise CellError(f"layer {path.layer} path {path.index}: points must be a "
+            raise CellRefused(f"layer {path.layer} path {path.index}: points must be a "
                             "non-empty finite (n, 2) array")
         if self.info is not None and len(xy) > self.info.max_points:
-            raise CellError(f"layer {path.layer} path {path.index}: {len(xy)} points, the "
+            raise CellRefused(f"layer {path.layer} path {path.index}: {len(xy)} points, the "
                             f"controller takes {self.info.max_points} per path")
         if path.tool not in rp.TOOLS:
-            raise CellError(f"layer {path.layer} path {path.index}: tool {path.tool!r}; "
+            raise CellRefused(f"layer {path.layer} path {path.index}: tool {path.tool!r}; "
                             f"expected one of {', '.join(rp.TOOLS)}")
         if seq is None:
             seq = self._next_seq()
         elif not 1 <= int(seq) < rp.FIRST_LINK_SEQ:
-            raise CellError(f"layer {path.layer} path {path.index}: sequence number {seq}: "
+            raise CellRefused(f"layer {path.layer} path {path.index}: sequence number {seq}: "
                             f"expected 1..{rp.FIRST_LINK_SEQ - 1}")
         seq = int(seq)
         dt_us = int(round(path.dt_s * 1e6))
         if abs(dt_us - path.dt_s * 1e6) > 1e-6 * max(1.0, path.dt_s * 1e6):
-            raise CellError(f"layer {path.layer} path {path.index}: time step "
+            raise CellRefused(f"layer {path.layer} path {path.index}: time step "
                             f"{path.dt_s!r} s is not a whole number of microseconds")
         lines = [rp.encode("path_begin", seq, int(path.layer), int(path.index),
                            int(path.flags), rp.TOOLS.index(path.tool),

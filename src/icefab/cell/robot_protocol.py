@@ -128,6 +128,10 @@ ERRORS = {1: "malformed message", 2: "sequence: points or end of another path th
           "oldest stored one", 7: "not allowed now (moving, or no upload open)",
           8: "a point is out of the robot's reach", 9: "unsupported protocol version"}
 
+#: refusals that the same command sent again would meet again (the others: a damaged
+#: line, a full store, a motion under way, may pass after a new session settles)
+PERMANENT_ERRORS = frozenset({4, 8, 9})
+
 #: robot states of ``SS`` replies
 STATES = {0: "idle", 1: "moving", 2: "aborted"}
 
