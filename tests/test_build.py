@@ -588,3 +588,16 @@ def test_a_refused_command_stops_the_build_at_once(planned, tmp_path):
     assert calls == {"connect": 1, "run": 3}
     assert [e["kind"] for e in journal.events()].count("cell-refused") == 1
     journal.close()
+
+
+def test_the_journal_counts_paths_done_as_a_query_would(tmp_path):
+    j = Journal.create(tmp_path / "j.sqlite", {"digests": {}})
+    seqs = [j.command("path", 0, i, f"d{i}")[0] for i in range(6)]
+    le, _ = j.command("layer_end", 0, -1, "le")
+    assert j.paths_done() == 0
+    for s in (seqs[0], seqs[1], seqs[1], le, seqs[3]):   # a repeat and a layer end
+        j.done(s)
+    j.done(seqs[4], cut=True)
+    assert j.paths_done() == 4
+    j.close()
+    assert Journal.open(tmp_path / "j.sqlite").paths_done() == 4     # counted afresh

@@ -99,6 +99,7 @@ class Journal:
     def __init__(self, path: Path, conn: sqlite3.Connection) -> None:
         self.path = path
         self._db = conn
+        self._paths_done: int | None = None
 
     # ------------------------------------------------------------------ opening
 
@@ -219,9 +220,13 @@ class Journal:
 
     def done(self, seq: int, cut: bool = False) -> None:
         """The cell reported the path complete (``cut``: cut short by a cell fault)."""
+        row = self._db.execute("SELECT kind, done FROM commands WHERE seq=?", (seq,)).fetchone()
         with self._tx() as db:
             db.execute("UPDATE commands SET done = COALESCE(done, ?), cut = ? WHERE seq = ?",
                        (time.time(), int(cut), seq))
+        if row is not None and row[0] == "path" and row[1] is None \
+                and self._paths_done is not None:
+            self._paths_done += 1
 
     def is_done(self, seq: int) -> bool:
         row = self._db.execute("SELECT done FROM commands WHERE seq=?", (seq,)).fetchone()
@@ -239,8 +244,13 @@ class Journal:
         return [dict(zip(names, r)) for r in cur]
 
     def paths_done(self) -> int:
-        return int(self._db.execute("SELECT COUNT(*) FROM commands WHERE kind='path' AND "
-                                    "done IS NOT NULL").fetchone()[0])
+        """Paths completed (counted once, then kept up to date by :meth:`done`: the
+        runner asks after every path)."""
+        if self._paths_done is None:
+            self._paths_done = int(self._db.execute(
+                "SELECT COUNT(*) FROM commands WHERE kind='path' AND done IS NOT NULL"
+            ).fetchone()[0])
+        return self._paths_done
 
     def cut_layers(self) -> set[int]:
         """Layers with a path a cell fault cut short (``done(seq, cut=True)``)."""
