@@ -76,3 +76,35 @@ def test_clearly_shorter_on_a_random_layout_and_above_the_lower_bound():
     a, b = travel_length(nn, start), travel_length(out, start)
     assert b < 0.93 * a, (a, b)
     assert b >= _lower_bound(items)
+
+
+def _nearest_reference(items, start):
+    """Nearest neighbour written plainly: every candidate entry of every unvisited path,
+    the first nearest on a tie."""
+    left = list(range(len(items)))
+    cur = np.asarray(start, dtype=np.float64)
+    out = []
+    while left:
+        best = None
+        for i in left:
+            pts, closed = items[i][0], items[i][1]
+            idx = _start_candidates(len(pts)) if closed else np.array([0, len(pts) - 1])
+            for j in idx:
+                d = float(((pts[j] - cur) ** 2).sum())
+                if best is None or d < best[0]:
+                    best = (d, i, int(j))
+        _, i, j = best
+        left.remove(i)
+        pts, closed = items[i][0], items[i][1]
+        pts = np.roll(pts, -j, axis=0) if closed else (pts[::-1] if j else pts)
+        out.append(items[i][2])
+        cur = pts[0] if closed else pts[-1]
+    return out
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 10 ** 6), st.integers(0, 40))
+def test_nearest_neighbour_is_the_plain_algorithm(seed, n):
+    items = _layout(seed, n)
+    got, _ = order_nearest(items, np.array([1.0, 2.0]))
+    assert [it[2] for it in got] == _nearest_reference(items, np.array([1.0, 2.0]))

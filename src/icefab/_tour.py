@@ -32,6 +32,45 @@ def _dist(a0: float, a1: float, b0: float, b1: float) -> float:
 
 
 @njit(cache=True, error_model="numpy")
+def nearest_order(P: np.ndarray, owner: np.ndarray, bounds: np.ndarray, closed: np.ndarray,
+                  sx: float, sy: float) -> np.ndarray:
+    """Nearest-neighbour order of paths given by their candidate entry points.
+
+    P (m, 2): every path's candidate entries (a closed path's candidate vertices, an open
+    path's first and last point), path i's being rows ``bounds[i]:bounds[i + 1]``;
+    owner (m,): the path of each row. From (sx, sy), repeatedly the nearest candidate of a
+    path not yet visited (the first one on a tie); leaving a closed path where it was
+    entered, an open one at its other end. Returns (n,) int64: the chosen row per step.
+    """
+    m = P.shape[0]
+    n = bounds.shape[0] - 1
+    alive = np.ones(m, dtype=np.bool_)
+    out = np.empty(n, dtype=np.int64)
+    cx, cy = sx, sy
+    for t in range(n):
+        best = np.inf
+        kb = -1
+        for k in range(m):
+            if alive[k]:
+                dx = P[k, 0] - cx
+                dy = P[k, 1] - cy
+                d = dx * dx + dy * dy
+                if d < best:
+                    best = d
+                    kb = k
+        i = owner[kb]
+        out[t] = kb
+        for k in range(bounds[i], bounds[i + 1]):
+            alive[k] = False
+        if closed[i]:
+            cx, cy = P[kb, 0], P[kb, 1]
+        else:   # the other end
+            o = bounds[i] + 1 if kb == bounds[i] else bounds[i]
+            cx, cy = P[o, 0], P[o, 1]
+    return out
+
+
+@njit(cache=True, error_model="numpy")
 def _two_opt(en: np.ndarray, ex: np.ndarray, perm: np.ndarray, flip: np.ndarray,
              sx: float, sy: float, max_passes: int) -> bool:
     """2-opt passes in place over entries ``en`` / exits ``ex`` (n, 2) in visiting order;

@@ -468,21 +468,18 @@ def order_nearest(items: Sequence[tuple], start: np.ndarray) -> tuple[list[tuple
             cand_pts.append(pts[[0, -1]])
             cand_idx.append(np.array([0, len(pts) - 1]))
         cand_owner.append(np.full(len(cand_pts[-1]), i))
-    P = np.concatenate(cand_pts)
-    owner = np.concatenate(cand_owner)
+    P = np.concatenate(cand_pts).astype(np.float64)
+    owner = np.concatenate(cand_owner).astype(np.int64)
     index = np.concatenate(cand_idx)
     bounds = offsets([len(c) for c in cand_pts])
-    alive = np.ones(len(P), dtype=bool)
+    closed = np.array([bool(item[1]) for item in items])
     cur = np.asarray(start, dtype=np.float64)
     out: list[tuple] = []
-    for _ in range(len(items)):
-        d2 = np.einsum("ij,ij->i", P - cur, P - cur)
-        d2[~alive] = np.inf
-        k = int(np.argmin(d2))
+    for k in _tour.nearest_order(P, owner, bounds, closed, float(cur[0]), float(cur[1])):
         i = int(owner[k])
         j = int(index[k])
-        pts, closed = items[i][0], items[i][1]
-        if closed:
+        pts, is_closed = items[i][0], items[i][1]
+        if is_closed:
             if j:
                 pts = np.roll(pts, -j, axis=0)
             end = pts[0]
@@ -490,8 +487,7 @@ def order_nearest(items: Sequence[tuple], start: np.ndarray) -> tuple[list[tuple
             if j:
                 pts = pts[::-1]
             end = pts[-1]
-        out.append((pts, closed, *items[i][2:]))
-        alive[bounds[i]:bounds[i + 1]] = False
+        out.append((pts, is_closed, *items[i][2:]))
         cur = end
     return out, cur
 
