@@ -8,7 +8,9 @@ scaffold, and plans the paths of ``--layers`` evenly spread layers twice: with t
 nearest-neighbour order alone (the peer: today's order before this change) and with 2-opt
 after it. Per variant: travel length, the MTTS time of the travel moves and of the whole
 layers (``icefab.motion.plan_toolpaths``, jerk on, default limits), the time to plan the
-paths; and a lower bound of the travel (in every set of one material and role, every
+paths; the robot's rest stops per layer (where every trajectory and every PATHSPLIT
+piece starts: travel moves, path starts, corner splits inside paths); and a lower bound
+of the travel (in every set of one material and role, every
 path but one is entered at best from the nearest other path's end or start vertex).
 """
 from __future__ import annotations
@@ -94,12 +96,23 @@ def _run(stack, job, picks, improve: bool) -> dict:
     motion = plan_toolpaths(tp, job)
     travel_s = sum(float(t.duration) for lm in motion.layers for t in lm.trajectories
                    if t.path is None or t.path.role == "travel")
+    # rest stops: the robot is at rest where every trajectory and every PATHSPLIT piece
+    # starts (thesis 4.1.1)
+    stops = {"travel": 0, "path starts": 0, "corner splits": 0}
+    for lm in motion.layers:
+        for t in lm.trajectories:
+            if t.path is None or t.path.role == "travel":
+                stops["travel"] += 1
+            else:
+                stops["path starts"] += 1
+                stops["corner splits"] += max(len(t.pieces) - 1, 0)
     return {"travel_mm": sum(p.length for lp in tp.layers for p in lp.paths
                              if p.role == "travel"),
             "travel_moves": sum(1 for lp in tp.layers for p in lp.paths
                                 if p.role == "travel"),
             "travel_s": travel_s, "layers_s": float(motion.duration),
-            "paths_s": t_paths, "bound_mm": sum(_lower_bound(lp) for lp in tp.layers)}
+            "paths_s": t_paths, "bound_mm": sum(_lower_bound(lp) for lp in tp.layers),
+            "stops_per_layer": {k: v / len(picks) for k, v in stops.items()}}
 
 
 def main() -> None:
@@ -121,6 +134,8 @@ def main() -> None:
              opt["travel_s"] / 3600),
             ("MTTS time of the layers (h)", nn["layers_s"] / 3600, opt["layers_s"] / 3600),
             ("plan_paths wall time (s)", nn["paths_s"], opt["paths_s"])]
+    rows += [(f"rest stops per layer: {k}", nn["stops_per_layer"][k],
+              opt["stops_per_layer"][k]) for k in nn["stops_per_layer"]]
     print(f"{platform.machine()}, Python {platform.python_version()}; layers {picks}")
     print("| figure | nearest neighbour | + 2-opt | ratio |")
     print("| --- | --- | --- | --- |")
