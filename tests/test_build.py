@@ -601,3 +601,49 @@ def test_the_journal_counts_paths_done_as_a_query_would(tmp_path):
     assert j.paths_done() == 4
     j.close()
     assert Journal.open(tmp_path / "j.sqlite").paths_done() == 4     # counted afresh
+
+
+def test_stop_and_resume_on_a_separately_started_cell(firmware_tools, planned, tmp_path):
+    """``--cell ENDPOINTS`` on ``icefab cell serve`` started by hand (as a real cell would
+    be): ``icefab build --stop`` stops the running build (valves off, robot lifted,
+    journaled), ``--resume`` finishes it, every path runs once, and the cell, not the
+    build's, keeps running."""
+    from icefab.cell.virtual import read_endpoints
+    from icefab.linkedcell import shutdown_virtual_cell
+
+    state = tmp_path / "cell"
+    serve = subprocess.Popen([sys.executable, "-m", "icefab", "cell", "serve", "--state",
+                              str(state), "--port", "0", "--grid-for", str(planned),
+                              "--time-factor", "50"], stdout=subprocess.DEVNULL,
+                             stderr=subprocess.PIPE, text=True)
+    try:
+        read_endpoints(state, timeout_s=120)
+        ep = str(state / "endpoints.json")
+        proc = subprocess.Popen([sys.executable, "-m", "icefab", "build", str(planned), "-o",
+                                 "b", "--cell", ep], cwd=tmp_path, stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)
+        try:
+            assert _wait_progress(tmp_path / "b", proc) is not None
+            r = _icefab("build", "--stop", "b", cwd=tmp_path)
+            assert r.returncode == 0 and "stopped" in r.stdout, r.stderr
+            out, err = proc.communicate(timeout=120)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+        assert proc.returncode == 0 and "stopped at layer" in err, err
+        st = json.loads((tmp_path / "b" / bmod.STATUS).read_text())
+        assert st["state"] == "stopped" and st["paths_done"] < st["paths"]
+        r = _icefab("build", "--resume", "b", cwd=tmp_path)
+        assert r.returncode == 0 and "build complete" in r.stdout, r.stderr
+        assert serve.poll() is None                      # the cell is not the build's
+        ex = [int(x) for x in (state / "executed.log").read_text().split()]
+        assert Counter(ex).most_common(1)[0][1] == 1
+        j = Journal.open(tmp_path / "b" / bmod.JOURNAL)
+        # every path ran (the cell's log lists paths; layer ends freeze, they do not run)
+        assert ex == [c["seq"] for c in j.commands() if c["kind"] != "layer_end"]
+        assert any(e["kind"] == "stop" for e in j.events())
+        j.close()
+    finally:
+        shutdown_virtual_cell(state)
+        if serve.poll() is None:
+            serve.kill()
