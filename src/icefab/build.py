@@ -29,7 +29,19 @@ the nearest measurement layer's paths when it has none of its own: journal event
 "fault-measure"), so SMF absorbs the error before the next layer. Whole
 layers the journal shows complete are skipped; the control action is restored from the
 journal's last SMF row, so the re-planned programs are the ones an uninterrupted build
-sends (their digests are checked against the journal).
+sends (their digests are checked against the journal). Numbers run in order: the cell
+runs commands in the order of their numbers, which is what makes "at or below
+``last_done``" mean "done".
+
+So that the robot does not wait for the PC: each path is sent with the next one
+(``upcoming``, journaled as sent first), which the cell uploads while the path moves;
+the next layer's first path goes with a layer's last one, numbered after that layer's
+end; the next layer's valve programs and cell paths are planned on a thread while a
+layer runs (its motion plan alone when a measurement comes first: the action then
+changes); the report's pictures are drawn once the next layer runs. A cell fault that
+cuts a layer's last path after the next layer's first path was numbered is not
+measured at once (the measurement would be numbered after a path that must run first):
+journaled, SMF absorbs it at the next measurement.
 
 Files in BUILD: ``journal.sqlite``, ``trajectories.npz`` (planned once at the start),
 ``job.toml``, ``status.json`` (:func:`write_status`), ``report.html``

@@ -16,6 +16,13 @@ sequence numbers:
 * travel: ``GO`` and ``DN``; ``LB`` before the first path of a layer, ``LE`` (journal
   number) at its end.
 
+The robot does not wait for data: while a path moves (between its ``GO`` and its ``DN``)
+the next one the runner names (``upcoming``, already journaled as sent) is uploaded to
+the robot and its valve program to the valve controller, so only the valves' ``ARM``
+lies between a ``DN`` and the next ``GO``. :meth:`LinkedCell.stop`: valves off, ``AB``,
+and the tool lifted :data:`SAFE_LIFT_MM` by a park path (``FLAG_PARK``: not a build path).
+A refusal no repeat can change (:class:`~icefab.errors.CellRefused`) ends the build.
+
 Exactly once across crashes (robot_protocol: sequence numbers): the controller keeps the
 number of the last path it ran to its end (``last_done``) and of the last one it stopped
 mid-motion (``cut``). On connecting, :meth:`LinkedCell.hello` lets a motion the crashed
