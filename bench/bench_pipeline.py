@@ -13,8 +13,12 @@ and the size of what it wrote; then the whole.
 ``icefab demo --layers 2``'s STL). The job is the default Cobra 600 cell with the
 end-effector origin at (340, 0) mm for the 300 mm parts (at the default origin they leave
 joint 1's range) and a 400 mm stroke (they are taller than the Cobra's 210 mm); for every
-part ``flow.out_of_range = "clamp"`` (the default fill leaves SMF no headroom). The peer figure (PrusaSlicer's whole G-code job on the bunny, 92 s and
-4.5 GB on this machine) is issue 17's; PrusaSlicer is not installed here to rerun it.
+part ``flow.out_of_range = "clamp"`` (the default fill leaves SMF no headroom).
+
+The peer, in the same run: PrusaSlicer's whole G-code job on the same mesh (Debian's
+``prusa-slicer``, ``apt-get install prusa-slicer``; skipped with a line when it is not
+installed): 0.25 mm layers, 100 % rectilinear infill, support material on, a 400 x 400 x
+400 mm build volume, its own threads on both cores.
 """
 from __future__ import annotations
 
@@ -89,6 +93,7 @@ def run_part(name: str, root: Path) -> None:
             wall, gb = _run(args, d)
         except RuntimeError as exc:  # refused (a budget, a setting): the rest cannot run
             print(f"| `icefab {cmd}` | refused | | {exc} |")
+            run_peer(mesh, d)
             return
         total += wall
         peak = max(peak, gb)
@@ -98,6 +103,30 @@ def run_part(name: str, root: Path) -> None:
               + " |", flush=True)
         src = written
     print(f"| whole | **{total:.1f}** | **{peak:.2f}** | |")
+    run_peer(mesh, d)
+
+
+def run_peer(mesh: Path, d: Path) -> None:
+    """PrusaSlicer's whole job on the mesh (module docstring), as one more table row."""
+    exe = shutil.which("prusa-slicer")
+    if exe is None:
+        print("| peer: PrusaSlicer | not installed (apt-get install prusa-slicer) | | |")
+        return
+    lines = subprocess.run([exe, "--help"], capture_output=True, text=True).stdout
+    version = next((ln.split(" ")[0] for ln in lines.splitlines()
+                    if ln.startswith("PrusaSlicer-")), "PrusaSlicer")
+    out = d / "peer.gcode"
+    args = [exe, "--export-gcode", "--output", str(out), "--layer-height", "0.25",
+            "--first-layer-height", "0.25", "--bed-shape", "0x0,400x0,400x400,0x400",
+            "--max-print-height", "400", "--center", "200,200", "--fill-density", "100%",
+            "--fill-pattern", "rectilinear", "--support-material", str(mesh)]
+    try:
+        wall, gb = _run(args, d)
+    except RuntimeError as exc:
+        print(f"| peer: {version} | failed | | {exc} |")
+        return
+    print(f"| peer: {version}, whole G-code job | {wall:.1f} | {gb:.2f} | G-code "
+          f"{_size(out) / 1e6:.1f} MB |", flush=True)
 
 
 def main() -> None:
