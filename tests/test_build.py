@@ -26,7 +26,7 @@ from icefab.errors import CellError, WorkspaceError
 from icefab import build as bmod
 from icefab.config import Job, to_toml
 from icefab.journal import Journal, JournalError
-from icefab.runcell import CellPath, VirtualCell
+from icefab.runcell import VirtualCell
 
 LAYERS = 5          # the demo mug's first 5 layers: 4 and 8 hold measurement paths (n_d = 4)
 
