@@ -277,6 +277,7 @@ class Runner:
         self._last_status = 0.0
         self._pool = None       # one thread that plans the next layer ahead (_prefetch)
         self._ahead = None      # (layer position, future of (plan, valves, action))
+        self._report_due = False   # a measurement's report, drawn once the next layer runs
 
     # ------------------------------------------------------------------ cell link
 
@@ -286,9 +287,7 @@ class Runner:
             try:
                 cell.hello()
             except BaseException:
-                close = getattr(cell, "close", None)
-                if close is not None:
-                    close()
+                cell.close()
                 raise
             self.cell = cell
             self._reconcile()
@@ -296,10 +295,9 @@ class Runner:
 
     def _drop_link(self) -> None:
         cell, self.cell = self.cell, None
-        close = getattr(cell, "close", None)
-        if close is not None:
+        if cell is not None:
             try:
-                close()
+                cell.close()
             except (OSError, CellError):
                 pass
 
@@ -406,7 +404,6 @@ class Runner:
             p.last_rms_mm = p.rms[-1][2]
         p.paths_done = self.journal.paths_done()
         self._call(lambda cell: None)
-        report_due = False
         for j, lm in enumerate(self.motion.layers):
             L = int(lm.index)
             meas_items = _items(lm)[1]
@@ -442,19 +439,12 @@ class Runner:
                 self._send("path", L, i, dg, lambda c, s, u=None, cp=cp: c.run_path(s, cp, u),
                            upcoming=upcoming)
                 if k == 0:
-                    # with a measurement ahead only the motion plan: no action changes it
-                    self._prefetch(j + 1, action, plan_only=not ahead)
-                    if report_due:
-                        self._report(force=True, measured=True)
-                        report_due = False
+                    self._layer_started(j, action, ahead)
                 p.paths_done = self.journal.paths_done()
                 p.remaining_s -= float(tr.duration)
                 self._report()
             if not cps:
-                self._prefetch(j + 1, action, plan_only=not ahead)
-            if report_due:
-                self._report(force=True, measured=True)
-                report_due = False
+                self._layer_started(j, action, ahead)
             self._stop_point()
             self._send("layer_end", L, -1, le_digest, lambda c, s, L=L: c.end_layer(s, L))
             kind = "path"
@@ -512,7 +502,7 @@ class Runner:
                     p.last_rms_mm = rms
                 state, action = self._restore()
                 # the report's pictures take a while: drawn once the next layer runs
-                report_due = True
+                self._report_due = True
             p.layer_pos = j + 1
             self._report(force=True)
         p.state = "complete"
@@ -521,6 +511,15 @@ class Runner:
         self.journal.event("complete", f"build complete: {p.paths_done} paths")
         self._report(force=True, measured=True)
         return p
+
+    def _layer_started(self, j: int, action, ahead: bool) -> None:
+        """Work that waits until layer position ``j`` runs (its first path done): plan
+        the next layer ahead (with a measurement first only its motion plan, which no
+        action changes) and draw the report a measurement left due."""
+        self._prefetch(j + 1, action, plan_only=not ahead)
+        if self._report_due:
+            self._report_due = False
+            self._report(force=True, measured=True)
 
     def _layer_valves(self, j: int, action):
         """(valve programs, cell paths) of layer position ``j`` with ``action``: the

@@ -93,6 +93,17 @@ def unpack_arrays(data: bytes) -> dict[str, np.ndarray]:
         return {k: z[k] for k in z.files}
 
 
+def _samples_blob(samples: np.ndarray) -> bytes:
+    """npy bytes of a float64 samples array (the laser and measurements tables)."""
+    buf = io.BytesIO()
+    np.save(buf, np.asarray(samples, dtype=np.float64), allow_pickle=False)
+    return buf.getvalue()
+
+
+def _samples(blob: bytes) -> np.ndarray:
+    return np.load(io.BytesIO(blob), allow_pickle=False)
+
+
 class Journal:
     """One build's journal (see the module docstring). Use :meth:`create` or :meth:`open`."""
 
@@ -266,23 +277,20 @@ class Journal:
 
     def laser(self, seq: int, samples: np.ndarray) -> None:
         """The raw laser samples of measurement path ``seq`` (kept once)."""
-        buf = io.BytesIO()
-        np.save(buf, np.asarray(samples, dtype=np.float64), allow_pickle=False)
         with self._tx() as db:
             db.execute("INSERT OR IGNORE INTO laser VALUES (?, ?, ?)",
-                       (seq, buf.getvalue(), time.time()))
+                       (seq, _samples_blob(samples), time.time()))
 
     def laser_of(self, seq: int) -> np.ndarray | None:
         row = self._db.execute("SELECT samples FROM laser WHERE seq=?", (seq,)).fetchone()
-        return None if row is None else np.load(io.BytesIO(row[0]), allow_pickle=False)
+        return None if row is None else _samples(row[0])
 
     def measurement(self, k: int, layer: int, nominal_z: float, samples: np.ndarray,
                     rms_measured: float) -> None:
-        buf = io.BytesIO()
-        np.save(buf, np.asarray(samples, dtype=np.float64), allow_pickle=False)
         with self._tx() as db:
             db.execute("INSERT OR IGNORE INTO measurements VALUES (?, ?, ?, ?, ?, ?)",
-                       (k, layer, nominal_z, buf.getvalue(), rms_measured, time.time()))
+                       (k, layer, nominal_z, _samples_blob(samples), rms_measured,
+                        time.time()))
 
     def measurements(self) -> list[dict[str, Any]]:
         out = []
@@ -290,7 +298,7 @@ class Journal:
                 "SELECT k, layer, nominal_z, samples, rms_measured, time FROM measurements "
                 "ORDER BY k"):
             out.append({"k": k, "layer": layer, "nominal_z": nz, "rms_measured": rms,
-                        "time": t, "samples": np.load(io.BytesIO(blob), allow_pickle=False)})
+                        "time": t, "samples": _samples(blob)})
         return out
 
     def smf_state(self, k: int, layer: int, state: bytes) -> None:

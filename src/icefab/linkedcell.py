@@ -150,7 +150,6 @@ class LinkedCell:
                         f"controller stores {info.max_points} per path: raise max_points "
                         "in the controller's V+ program (icefab.cell.vplus) if its memory "
                         "allows")
-        return None
 
     def close(self) -> None:
         if self.links is not None:
@@ -271,17 +270,11 @@ class LinkedCell:
     def _rows(self, rpath, values: np.ndarray) -> np.ndarray:
         """(m, 4) rows (t s from the trigger, EE x, y base frame mm, height mm) of the
         stored laser values of one measurement path (NaN values dropped)."""
-        from icefab.cell.laser import sample_times
+        from icefab.cell.laser import stored_times
 
         xy = rpath.xy
         t = np.arange(len(xy)) * rpath.dt_s
-        rate = float(self.job.simulation.laser_rate_hz)
-        tk = sample_times(t[-1], rate)
-        vals = np.asarray(values, dtype=np.float64).reshape(-1)
-        if len(vals) > len(tk):
-            raise CellError(f"laser: {len(vals)} stored values for a {t[-1]:.3f} s path at "
-                            f"{rate:g} Hz (at most {len(tk)})")
-        tk = tk[:len(vals)]
+        tk, vals = stored_times(rpath, values, float(self.job.simulation.laser_rate_hz))
         ok = np.isfinite(vals)
         ee = np.column_stack([np.interp(tk, t, xy[:, 0]), np.interp(tk, t, xy[:, 1])])
         return np.column_stack([tk[ok], ee[ok], rpath.z_mm + vals[ok]])

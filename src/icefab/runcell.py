@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import logging
 import os
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -124,6 +123,10 @@ class Cell(Protocol):
         part (a motion that does not count as a path done)."""
         ...
 
+    def close(self) -> None:
+        """Close the links (the cell itself carries on)."""
+        ...
+
 
 # =========================================================================== the virtual cell
 
@@ -143,29 +146,20 @@ def _fsync_write_npz(path: Path, **arrays: Any) -> None:
 
 
 class VirtualCell:
-    """A virtual cell whose state lives in ``state_dir`` (see the module docstring).
+    """A model cell whose state lives in ``state_dir`` (see the module docstring). A path
+    runs within one call, so it is never cut short here: tests that need a cut say so
+    through :meth:`status`."""
 
-    dwell_s: wall time a path takes, split in two halves with the state saved between
-    them (so a cell killed mid-path leaves half a path deposited and reports it cut);
-    0 (the default) runs as fast as the machine allows.
-    """
-
-    def __init__(self, state_dir: str | os.PathLike, *, dwell_s: float = 0.0) -> None:
+    def __init__(self, state_dir: str | os.PathLike) -> None:
         self.dir = Path(state_dir)
         self.dir.mkdir(parents=True, exist_ok=True)
         (self.dir / LASER_DIR).mkdir(exist_ok=True)
-        self.dwell_s = float(dwell_s)
         self._job = None
         self._st: dict[str, np.ndarray] | None = None
         f = self.dir / STATE_FILE
         if f.is_file():
             with np.load(f) as z:
                 self._st = {k: z[k] for k in z.files}
-            if self._st["running"] != 0:
-                # a path was under way when the cell stopped: cut short
-                self._st["cut"] = self._st["running"].copy()
-                self._st["running"] = np.int64(0)
-                self._save()
 
     # ------------------------------------------------------------------ helpers
 
@@ -213,7 +207,7 @@ class VirtualCell:
         ny, nx = surf.z.shape
         self._st = {"origin": surf.origin, "spacing": np.float64(g), "z": surf.z,
                     "layer_img": np.zeros((2, ny, nx)), "ever": np.zeros((ny, nx), bool),
-                    "used_cm3": np.zeros(2), "last_done": np.int64(0), "running": np.int64(0),
+                    "used_cm3": np.zeros(2), "last_done": np.int64(0),
                     "cut": np.int64(0), "layers": np.int64(0)}
         self._save()
 
@@ -223,24 +217,10 @@ class VirtualCell:
         st = self._need()
         if seq <= int(st["last_done"]):
             return False
-        pieces = self._drops(path) if path.tool in ("part", "scaffold") and path.program \
-            else None
-        st["running"] = np.int64(seq)
-        if pieces is None:
-            if path.role == "measure":
-                self._measure(seq, path)
-            if self.dwell_s:
-                time.sleep(self.dwell_s)
-        else:
-            half = (len(pieces[1]) + 1) // 2
-            self._deposit(path, pieces, slice(0, half))
-            if self.dwell_s:
-                self._save()
-                time.sleep(0.5 * self.dwell_s)
-            self._deposit(path, pieces, slice(half, None))
-            if self.dwell_s:
-                time.sleep(0.5 * self.dwell_s)
-        st["running"] = np.int64(0)
+        if path.tool in ("part", "scaffold") and path.program:
+            self._deposit(path, self._drops(path))
+        elif path.role == "measure":
+            self._measure(seq, path)
         st["last_done"] = np.int64(seq)
         self._save()
         self._executed(seq)
@@ -303,6 +283,10 @@ class VirtualCell:
         commands, so there is nothing to stop."""
         return None
 
+    def close(self) -> None:
+        """Nothing to close: the model cell is this object."""
+        return None
+
     # ------------------------------------------------------------------ physics
 
     def _drops(self, path: CellPath):
@@ -339,13 +323,13 @@ class VirtualCell:
             [xy], [path.dt_s], [t], [drops], [path.width_mm])
         return a, b, vol, hw, n0, n1, ext
 
-    def _deposit(self, path: CellPath, seg, part: slice) -> None:
+    def _deposit(self, path: CellPath, seg) -> None:
         from icefab import sim as simmod
 
         st = self._st
         job = self.job
         s = job.simulation
-        a, b, vol, hw, n0, n1, ext = (x[part] for x in seg)
+        a, b, vol, hw, n0, n1, ext = seg
         if len(vol) == 0:
             return
         mat = 0 if path.tool == "part" else 1

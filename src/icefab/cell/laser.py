@@ -28,7 +28,7 @@ from icefab.errors import CellError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["LaserLink", "path_samples", "sample_times"]
+__all__ = ["LaserLink", "path_samples", "sample_times", "stored_times"]
 
 
 class LaserLink:
@@ -143,6 +143,21 @@ def sample_times(duration_s: float, rate_hz: float = lkg.RATE_HZ) -> np.ndarray:
     return np.arange(n) / rate_hz
 
 
+def stored_times(path, values_mm: np.ndarray, rate_hz: float) -> tuple[np.ndarray,
+                                                                         np.ndarray]:
+    """(t, values): the instants (s from the trigger) of the values stored along one
+    measurement path, one per storage cycle, and the values as float64. Raises CellError
+    if there are more values than the path's duration allows (storage not cleared)."""
+    duration = max(len(path.xy) - 1, 0) * path.dt_s
+    tk = sample_times(duration, rate_hz)
+    vals = np.asarray(values_mm, dtype=np.float64).reshape(-1)
+    if len(vals) > len(tk):
+        raise CellError(f"laser: {len(vals)} stored values for a {duration:.3f} s path at "
+                        f"{rate_hz:g} Hz (at most {len(tk)}): storage was not cleared, or "
+                        "another path was stored")
+    return tk[:len(vals)], vals
+
+
 def path_samples(path, values_mm: np.ndarray, job, rate_hz: float | None = None
                  ) -> np.ndarray:
     """Laser samples (x, y, z) of one measurement path, part frame, mm.
@@ -162,13 +177,7 @@ def path_samples(path, values_mm: np.ndarray, job, rate_hz: float | None = None
     xy = np.asarray(path.xy, dtype=np.float64) - (
         np.asarray(job.cell.ee_origin_mm, dtype=np.float64) - tool_offset("laser", job))
     t = np.arange(len(xy)) * path.dt_s
-    tk = sample_times(t[-1], rate)
-    vals = np.asarray(values_mm, dtype=np.float64).reshape(-1)
-    if len(vals) > len(tk):
-        raise CellError(f"laser: {len(vals)} stored values for a {t[-1]:.3f} s path at "
-                        f"{rate:g} Hz (at most {len(tk)}): storage was not cleared, or "
-                        "another path was stored")
-    tk = tk[:len(vals)]
+    tk, vals = stored_times(path, values_mm, rate)
     pos = np.column_stack([np.interp(tk, t, xy[:, 0]), np.interp(tk, t, xy[:, 1])])
     ok = np.isfinite(vals)
     return np.column_stack([pos[ok], path.z_mm + vals[ok]])

@@ -27,11 +27,12 @@ a random point each session so that a new session's first ``ST`` is never taken 
 repeat of the last one. The controller remembers the number of the last path it ran to
 its end (``last_done``) and of the last path an ``AB`` or a fault stopped mid-motion
 (``cut``) and reports both in ``SS``: after a crash of the control PC the build asks
-``ST`` and knows which paths are done, which one was cut short, and sends the rest. Every command except ``PP`` gets exactly one reply with its ``SEQ``:
-``OK``, ``ER`` (with a code, :data:`ERRORS`) or its own answer (``HI``, ``SS``); ``GO``
-gets ``OK`` when the motion starts and ``DN`` when it is done. A command repeated with the
-``SEQ`` of the last reply sent (its reply was lost) gets that reply again and is not
-executed twice.
+``ST`` and knows which paths are done, which one was cut short, and sends the rest.
+
+Every command except ``PP`` gets exactly one reply with its ``SEQ``: ``OK``, ``ER``
+(with a code, :data:`ERRORS`) or its own answer (``HI``, ``SS``); ``GO`` gets ``OK`` when
+the motion starts and ``DN`` when it is done. A command repeated with the ``SEQ`` of the
+last reply sent (its reply was lost) gets that reply again and is not executed twice.
 
 A path upload: ``PB`` (header: point count, time step, height, flags: the triggers, or
 :data:`FLAG_PARK` for a park motion such as a stop's lift, which the controller runs and

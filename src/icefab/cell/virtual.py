@@ -21,8 +21,8 @@ The part lives in ``DIR/surface.npz`` (:mod:`icefab.cell.world`: layout, model a
 determinism), saved after every path together with the robot's ``last_done``, so a
 restarted cell carries on with the same surface, as real ice would, and reports what it
 completed; a path under way when the process died (``DIR/robot-running``) is reported
-``cut``. ``DIR/executed.log`` lists the paths run to their end, one per line. Time runs as fast as possible (``time_factor`` 0) or at a
-factor of real time (1: real time).
+``cut``. ``DIR/executed.log`` lists the paths run to their end, one per line. Time runs
+as fast as possible (``time_factor`` 0) or at a factor of real time (1: real time).
 """
 
 from __future__ import annotations
