@@ -81,6 +81,10 @@ def test_paths_arrive_as_sent_and_report_their_sequence_numbers(robot):
         assert (got.dt_s, got.z_mm, got.flags, got.tool, got.width_mm, got.layer,
                 got.index) == (0.016, 1.5, rp.FLAG_VALVE, "part", 1.2, 3, want.index)
     assert hooks.events[0] == ("layer_begin", 3, 1.5)
+    # LE is acknowledged when queued behind the motion; its hook runs on the motion thread
+    deadline = time.monotonic() + 5
+    while hooks.events[-1] != ("layer_end", 3) and time.monotonic() < deadline:
+        time.sleep(0.01)
     assert hooks.events[-1] == ("layer_end", 3)
 
 
