@@ -128,8 +128,9 @@ def test_version_1_files_still_load_with_a_warning(tmp_path, caplog):
     save_trajectories(motion, f)
     with np.load(f) as z:
         data = {k: z[k] for k in z.files
-                if k not in ("traj_dt", "width", "closed", "tool", "path_z")
-                and not k.endswith(("_counts", "_resolution"))}
+                if k not in ("traj_dt", "width", "closed", "tool", "path_z",
+                             "block_layer_start")
+                and "_counts" not in k and not k.endswith("_resolution")}
     # version 1 stored the samples as float64
     packed = pack_trajectories([t for lm in motion.layers for t in lm.trajectories], 3)
     data.update({k: packed[k] for k in ("xy", "joints", "speed")})
@@ -183,7 +184,8 @@ def test_version_2_files_with_float_samples_still_load_exactly(tmp_path):
     f = tmp_path / "t.npz"
     save_trajectories(motion, f)
     with np.load(f) as z:
-        data = {k: z[k] for k in z.files if not k.endswith(("_counts", "_resolution"))}
+        data = {k: z[k] for k in z.files if "_counts" not in k and k != "block_layer_start"
+                and not k.endswith("_resolution")}
     packed = pack_trajectories([t for lm in motion.layers for t in lm.trajectories], 3)
     data.update({k: packed[k] for k in ("xy", "joints", "speed")}, version=np.array(2))
     np.savez(tmp_path / "v2.npz", **data)
@@ -218,3 +220,105 @@ def test_trajectories_without_joint_names_keep_their_joints(tmp_path):
     for ta, tb in zip(motion.layers[0].trajectories, back.layers[0].trajectories):
         assert tb.joints.shape == ta.joints.shape == (len(ta.xy), 3)
         np.testing.assert_allclose(tb.joints, ta.joints, rtol=0, atol=JOINT_RESOLUTION / 2)
+
+
+def _same_samples(a, b):
+    """Two BuildMotions' layers agree: samples within half the file's resolution, the rest
+    exactly."""
+    assert [lm.index for lm in a.layers] == [lm.index for lm in b.layers]
+    for la, lb in zip(a.layers, b.layers):
+        assert la.z == lb.z and len(la.trajectories) == len(lb.trajectories)
+        for ta, tb in zip(la.trajectories, lb.trajectories):
+            np.testing.assert_allclose(tb.xy, ta.xy, rtol=0, atol=XY_RESOLUTION_MM / 2)
+            np.testing.assert_allclose(tb.joints, ta.joints, rtol=0, atol=JOINT_RESOLUTION / 2)
+            np.testing.assert_allclose(tb.speed, ta.speed, rtol=0,
+                                       atol=SPEED_RESOLUTION_MM_S / 2)
+            np.testing.assert_array_equal(ta.pieces, tb.pieces)
+            assert (tb.dt, tb.duration, tb.path.role, tb.path.material, tb.path.width) == \
+                (ta.dt, ta.duration, ta.path.role, ta.path.material, ta.path.width)
+
+
+@pytest.fixture(scope="module")
+def four_layers():
+    job = Job()
+    return plan_toolpaths(_toolpaths(job, 4), job.replace(**{"cell.cpus": 1}))
+
+
+@pytest.mark.parametrize("block_samples", [1, 700, 10**9])
+def test_blocks_read_back_the_same_build_and_any_layers_of_it(tmp_path, four_layers,
+                                                              block_samples):
+    from icefab.resultfiles import TrajectoryFile
+    motion = four_layers
+    f = tmp_path / "t.npz"
+    save_trajectories(motion, f, block_samples=block_samples)
+    with np.load(f) as z:
+        blocks = z["block_layer_start"].tolist()
+    # one layer a block, a few layers a block, the whole build in one
+    assert {1: [0, 1, 2, 3, 4], 10**9: [0, 4]}.get(block_samples, blocks) == blocks
+    assert 2 < len(blocks) < 5 or block_samples != 700
+    _same_samples(motion, load_trajectories(f))
+    with TrajectoryFile(f) as tf:
+        assert tf.n_layers == 4 and tf.n_points == motion.n_points
+        assert tf.duration == pytest.approx(motion.duration)
+        picked = list(tf.iter_layers({1, 3}))
+        assert [lm.index for lm in picked] == [1, 3]
+        for lm, want in zip(picked, (motion.layers[1], motion.layers[3])):
+            _same_samples(type(motion)(layers=(want,), job=motion.job),
+                          type(motion)(layers=(lm,), job=motion.job))
+        assert list(tf.iter_layers(set())) == []
+        assert [lm.index for lm in tf.layers] == [0, 1, 2, 3]
+
+
+def test_version_3_files_one_block_still_load(tmp_path, four_layers):
+    f = tmp_path / "t.npz"
+    save_trajectories(four_layers, f)
+    with np.load(f) as z:
+        data = {k.replace("_counts_0", "_counts"): z[k] for k in z.files
+                if k != "block_layer_start"}
+    data["version"] = np.array(3)
+    np.savez(tmp_path / "v3.npz", **data)
+    _same_samples(four_layers, load_trajectories(tmp_path / "v3.npz"))
+
+
+def test_a_bad_block_table_or_block_is_named(tmp_path, four_layers):
+    f = tmp_path / "t.npz"
+    save_trajectories(four_layers, f, block_samples=1)
+    with np.load(f) as z:
+        data = {k: z[k] for k in z.files}
+    for change, member in (({"block_layer_start": np.array([0, 2, 1, 3, 4])},
+                            "block_layer_start"),
+                           ({"block_layer_start": np.array([0, 2, 5])}, None),
+                           ({"joint_counts_2": data["joint_counts_1"]}, "joint_counts_2")):
+        bad = {**data, **change}
+        if member is None:  # blocks 2 and 3 are not named by the table: unexpected members
+            member = "unexpected members"
+        np.savez(tmp_path / "bad.npz", **bad)
+        with pytest.raises(StackFileError, match=f"bad.npz: .*{member}"):
+            load_trajectories(tmp_path / "bad.npz")
+
+
+def test_a_failed_write_leaves_no_file(tmp_path, four_layers):
+    from icefab.resultfiles import TrajectoryWriter
+    f = tmp_path / "t.npz"
+    with pytest.raises(RuntimeError):
+        with TrajectoryWriter(f, four_layers.job, "scara", four_layers.joint_names,
+                              block_samples=1) as w:
+            w.add(four_layers.layers[0])   # a block is written
+            raise RuntimeError("planning failed")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_streamed_plan_gives_the_same_layers_in_order(four_layers):
+    from icefab.motion import iter_plan_toolpaths
+    job = Job().replace(**{"cell.cpus": 2})
+    calls = []
+    streamed = list(iter_plan_toolpaths(_toolpaths(job, 4), job,
+                                        progress=lambda d, t: calls.append(d)))
+    assert [lm.index for lm in streamed] == [0, 1, 2, 3] and calls[-1] == 4
+    for a, b in zip(four_layers.layers, streamed):
+        for ta, tb in zip(a.trajectories, b.trajectories):
+            np.testing.assert_array_equal(ta.xy, tb.xy)
+            np.testing.assert_array_equal(ta.joints, tb.joints)
+            np.testing.assert_array_equal(ta.pieces, tb.pieces)
+            assert (ta.path.role, ta.path.layer) == (tb.path.role, tb.path.layer)
+            np.testing.assert_array_equal(ta.path.points, tb.path.points)

@@ -151,14 +151,14 @@ def _write(tmp_path: Path, members: dict[str, np.ndarray], name="bad.npz") -> Pa
     ("trajectories", {"job": np.array("[slicing\n")}, "job"),
     ("stack", {"points": None}, "points"),        # one NaN (262 PiB in `icefab paths`)
     ("trajectories", {"xy_resolution": np.array(np.nan)}, "xy_resolution"),
-    ("trajectories", {"xy_counts": "ff"}, "xy_counts"),  # counts far outside any cell
+    ("trajectories", {"xy_counts_0": "ff"}, "xy_counts_0"),  # counts far outside any cell
     ("stack", {"ring_parent": np.array([1, 0, -1, 0, -1, 0])}, "ring_parent"),  # a cycle
     ("stack", {"layer_thickness": np.array(-0.25)}, "layer_thickness"),
     ("toolpaths", {"path_start": np.array([0, 4, 2, 10, 14])}, "path_start"),
-    ("trajectories", {"joint_counts": np.zeros((3, 8, 17), np.uint8)}, "joint_counts"),
-    ("trajectories", {"joint_counts": np.zeros((2, 8, 18), np.uint8)}, "joint_counts"),
-    ("trajectories", {"speed_counts": np.zeros((1, 8, 18), np.int64)}, "speed_counts"),
-    ("trajectories", {"speed_counts": np.zeros((18, 8), np.uint8)}, "speed_counts"),
+    ("trajectories", {"joint_counts_0": np.zeros((3, 8, 17), np.uint8)}, "joint_counts_0"),
+    ("trajectories", {"joint_counts_0": np.zeros((2, 8, 18), np.uint8)}, "joint_counts_0"),
+    ("trajectories", {"speed_counts_0": np.zeros((1, 8, 18), np.int64)}, "speed_counts_0"),
+    ("trajectories", {"speed_counts_0": np.zeros((18, 8), np.uint8)}, "speed_counts_0"),
     ("trajectories", {"piece_start": np.array([0, 2, 0, 9, 0])}, "piece_start"),
     ("trajectories", {"tool": np.array(["", "scaffold", "", "nozzle"])}, "tool"),
     ("trajectories", {"traj_dt": np.array([0.016, 0.0, 0.016, 0.016])}, "traj_dt"),
@@ -185,7 +185,7 @@ def test_bad_members_name_file_and_member(tmp_path, good, kind, change, member):
 def test_raw_zlib_damage_is_one_line(tmp_path, good):
     data = bytearray(good["trajectories"])
     with zipfile.ZipFile(io.BytesIO(bytes(data))) as z:
-        info = z.getinfo("xy_counts.npy")
+        info = z.getinfo("xy_counts_0.npy")
     # flip a byte inside the compressed data of the positions: a zlib or CRC error, named
     off = info.header_offset
     n_name, n_extra = struct.unpack("<HH", bytes(data[off + 26:off + 30]))
@@ -193,7 +193,7 @@ def test_raw_zlib_damage_is_one_line(tmp_path, good):
     data[pos] ^= 0xFF
     p = tmp_path / "flip.npz"
     p.write_bytes(bytes(data))
-    with pytest.raises(StackFileError, match=r"flip.npz: member xy_counts: unreadable"):
+    with pytest.raises(StackFileError, match=r"flip.npz: member xy_counts_0: unreadable"):
         rf.load_trajectories(p)
 
 

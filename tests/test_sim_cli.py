@@ -120,7 +120,7 @@ def _bad_trajectories(kind: str, src: Path, tmp: Path) -> list[str]:
         keep = np.isin(data["role"], [2, 3])
         data["role"] = np.where(keep, data["role"], 3).astype(np.int8)
     elif kind == "truncated":
-        del data["speed_counts"]
+        del data["speed_counts_0"]
     elif kind == "not icefab":
         data = {"x": np.zeros(3)}
     np.savez(bad, **data)
@@ -130,7 +130,7 @@ def _bad_trajectories(kind: str, src: Path, tmp: Path) -> list[str]:
 @pytest.mark.parametrize("kind,message", [
     ("mismatched job", "planned with slicing.layer_thickness_mm = 0.25, the job has 0.5"),
     ("no programs", "no boundary or fill trajectories in the first 8 layers"),
-    ("truncated", "missing arrays speed_counts"),
+    ("truncated", "missing arrays speed_counts_0"),
     ("not icefab", "not an icefab toolpath or trajectory file"),
 ])
 def test_bad_trajectory_input_is_one_error_and_no_output(trajectories_file, tmp_path, capsys,

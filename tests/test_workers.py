@@ -78,3 +78,29 @@ def test_pool_workers_die_when_the_parent_is_killed(tmp_path):
         for w in _alive_workers:
             if _alive(w):
                 os.kill(w, signal.SIGKILL)  # never leave orphans behind a failed run
+
+
+def _square(x: int) -> int:
+    return x * x
+
+
+@pytest.mark.parametrize("cpus", [1, 2])
+def test_parallel_imap_yields_in_order_and_reports_progress(cpus):
+    from icefab.parallel import parallel_imap
+    job = Job().replace(**{"cell.cpus": cpus})
+    calls = []
+    got = list(parallel_imap(_square, list(range(100)), job, chunk_items=3,
+                             progress=lambda d, t: calls.append((d, t))))
+    assert got == [x * x for x in range(100)]
+    assert calls[-1] == (100, 100) and [d for d, _ in calls] == sorted(d for d, _ in calls)
+
+
+def test_parallel_imap_holds_a_bounded_window_and_stops_when_the_consumer_does():
+    from icefab.parallel import parallel_imap
+    job = Job().replace(**{"cell.cpus": 2})
+    calls = []
+    stream = parallel_imap(_square, list(range(10_000)), job, chunk_items=5, window=2,
+                           progress=lambda d, t: calls.append(d))
+    assert next(stream) == 0
+    stream.close()            # the pool ends; the chunks not yet started are dropped
+    assert calls[-1] <= 5 * (2 * 2 + 1)

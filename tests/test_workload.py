@@ -176,3 +176,30 @@ def test_valve_pulse_budget_names_the_frequency():
                             "flow.calibration_pulse_ms": 0.5})
     with pytest.raises(ConfigError, match="MAX_BUILD_PULSES"):
         workload.check_pulses([layer([20.0] * 30000)], many)
+
+
+def test_streamed_budget_is_per_layer_and_larger_for_the_build():
+    from icefab.motion import _checked_items
+    job = Job()
+    # six layers of a quarter of MAX_SAMPLES each: refused in memory, fine as a stream;
+    # one layer over MAX_SAMPLES is refused by name; 60 layers exceed the streamed budget
+    th = np.linspace(0, 2 * np.pi, 64, endpoint=False)
+    ring = np.c_[50 * np.cos(th), 50 * np.sin(th)]
+    per_layer = 2 * np.pi * 50  # mm
+    n_laps = int(workload.MAX_SAMPLES * job.motion.point_spacing_mm / per_layer / 4)
+    from icefab import LayerPaths, Toolpath, Toolpaths
+    laps = Toolpath(points=np.tile(ring, (n_laps, 1)), role="fill", width=1.5, closed=False,
+                    z=0.25)
+    tp = Toolpaths(layers=tuple(LayerPaths(index=k, z=0.25 * (k + 1), paths=(laps,))
+                                for k in range(6)), job=job)
+    with pytest.raises(ConfigError, match=r"the build would need .* \(icefab.workload.MAX_SAMPLES\)"):
+        _checked_items(tp, job, None)
+    assert len(_checked_items(tp, job, None, streamed=True)) == 6
+    big = Toolpaths(layers=(LayerPaths(index=7, z=0.25, paths=(
+        Toolpath(points=np.tile(ring, (5 * n_laps, 1)), role="fill", width=1.5, z=0.25),)),),
+        job=job)
+    with pytest.raises(ConfigError, match=r"layer 7 would need .* \(icefab.workload.MAX_SAMPLES\)"):
+        _checked_items(big, job, None, streamed=True)
+    many = Toolpaths(layers=tp.layers * 10, job=job)
+    with pytest.raises(ConfigError, match=r"MAX_STREAMED_SAMPLES"):
+        _checked_items(many, job, None, streamed=True)

@@ -89,13 +89,14 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import itertools
 import logging
 import os
 import re
 import struct
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Iterator, Sequence, Union
+from typing import TYPE_CHECKING, Callable, Iterable, Iterator, Sequence, Union
 
 import numpy as np
 from scipy.integrate import cumulative_trapezoid, trapezoid
@@ -969,18 +970,25 @@ def plan_build_valves(layers: "Sequence[LayerMotion]", job: "Job",
 VALVE_BATCH_LAYERS = 96
 
 
-def iter_build_valves(layers: "Sequence[LayerMotion]", job: "Job",
+def iter_build_valves(layers: "Iterable[LayerMotion]", job: "Job",
                       progress: Callable[[int, int], None] | None = None,
-                      batch: int = VALVE_BATCH_LAYERS
+                      batch: int = VALVE_BATCH_LAYERS, total: int | None = None
                       ) -> "Iterator[tuple[LayerMotion, list[LayerProgram]]]":
     """``(layer, its programs)`` for every layer in order, planned ``batch`` layers at a
     time by :func:`plan_build_valves`: a caller that writes each layer's programs as they
-    come never holds the whole build's (issue 17). progress as plan_build_valves'."""
-    for i in range(0, len(layers), batch):
-        chunk = list(layers[i:i + batch])
+    come never holds the whole build's (issue 17), and ``layers`` may be a stream (e.g.
+    ``icefab.resultfiles.TrajectoryFile.iter_layers``), of which ``batch`` layers are taken
+    at a time. progress as plan_build_valves', over ``total`` layers (default
+    ``len(layers)``)."""
+    if total is None:
+        total = len(layers)  # type: ignore[arg-type]
+    stream = iter(layers)
+    done = 0
+    while chunk := list(itertools.islice(stream, batch)):
         report = None if progress is None else \
-            (lambda d, t, base=i: progress(base + d, len(layers)))
+            (lambda d, t, base=done: progress(base + d, total))
         yield from zip(chunk, plan_build_valves(chunk, job, progress=report))
+        done += len(chunk)
 
 
 def encode_valve_layer(layer: int, programs: "Sequence[LayerProgram]") -> bytes:

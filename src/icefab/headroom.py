@@ -108,6 +108,16 @@ def feedback_headroom(trajectories: Iterable[tuple[int, "Trajectory"]], job: "Jo
     return [_headroom(m, *worst[m][:5], job, dh=worst[m][5]) for m in sorted(worst)]
 
 
+def tightest(rooms: Iterable[Headroom]) -> list[Headroom]:
+    """The tightest of several :func:`feedback_headroom` results (e.g. one per layer of a
+    build planned as a stream), one per material: the largest nominal flow."""
+    worst: dict[str, Headroom] = {}
+    for r in rooms:
+        if r.material not in worst or r.nominal_mm3_s > worst[r.material].nominal_mm3_s:
+            worst[r.material] = r
+    return [worst[m] for m in sorted(worst)]
+
+
 def speed_bound_headroom(job: "Job") -> list[Headroom]:
     """The same check before motion is planned: every material's fill (the widest path)
     at the speed bound ``motion.speed_mm_s``."""

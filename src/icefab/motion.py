@@ -89,7 +89,7 @@ import math
 import os
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import Callable, Mapping, Sequence
+from typing import Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 from scipy.ndimage import convolve1d
@@ -99,11 +99,11 @@ from icefab.atomic import atomic_path
 from icefab.config import Job
 from icefab.errors import IcefabError, WorkspaceError
 from icefab.frames import to_base_frame
-from icefab.parallel import parallel_map
+from icefab.parallel import parallel_imap, parallel_map
 from icefab.resultfiles import (TRAJECTORIES_FORMAT as FORMAT,  # noqa: F401 (old home)
-                                TRAJECTORIES_VERSION as VERSION, load_trajectories,
-                                owner_arrays, pack_trajectories, save_trajectories,
-                                unpack_trajectories)
+                                TRAJECTORIES_VERSION as VERSION, TrajectoryFile,
+                                TrajectoryWriter, load_trajectories, owner_arrays,
+                                pack_trajectories, save_trajectories, unpack_trajectories)
 from icefab.robots import Robot, get_robot
 from icefab.core import (ROLES, BuildMotion, LayerMotion, LayerPaths, Toolpath, Toolpaths,
                          Trajectory, arc_lengths, offsets)
@@ -111,10 +111,12 @@ from icefab.workload import check_motion
 
 log = logging.getLogger(__name__)
 
-__all__ = ["plan_motion", "plan_paths_motion", "plan_toolpaths", "constant_speed_motion",
+__all__ = ["plan_motion", "plan_paths_motion", "plan_toolpaths", "iter_plan_toolpaths",
+           "constant_speed_motion",
            "constant_speed_time",
            "check_build_workspace", "LayerMotion", "BuildMotion",
-           "save_trajectories", "load_trajectories", "constant_spacing", "gcode_moves",
+           "save_trajectories", "load_trajectories", "TrajectoryFile", "TrajectoryWriter",
+           "constant_spacing", "gcode_moves",
            "path_limits"]
 
 #: How closely the tool follows the input path (issue 4), mm: path smoothing within
@@ -705,13 +707,23 @@ def _layer_time_task(args: tuple) -> float:
         lp.paths, job, layer=lp.index, role_speeds=role_speeds))) if lp.paths else 0.0
 
 
-def _checked_items(toolpaths: Toolpaths, job: Job, role_speeds: Mapping[str, float] | None
-                   ) -> list[tuple]:
+def _checked_items(toolpaths: Toolpaths, job: Job, role_speeds: Mapping[str, float] | None,
+                   streamed: bool = False) -> list[tuple]:
     """The per-layer work items of a build's planning, once the build has passed the checks
-    made before any layer is planned (role speeds, sample budget, workspace)."""
+    made before any layer is planned (role speeds, sample budget, workspace).
+
+    The sample budget: the whole build within :data:`icefab.workload.MAX_SAMPLES` when it
+    is held in memory; ``streamed`` (one layer's samples at a time): every layer within it
+    and the build within ``MAX_STREAMED_SAMPLES``."""
     _check_role_speeds(role_speeds)
     layers = list(toolpaths.layers)
-    check_motion(*_path_lengths(layers), job)  # sample budget before any planning
+    lengths = _path_lengths(layers)  # sample budget before any planning
+    if streamed:
+        for lp, (dep, other) in zip(layers, lengths):
+            check_motion(dep, other, job, what=f"layer {lp.index}")
+        check_motion(*lengths.sum(axis=0), job, budget="MAX_STREAMED_SAMPLES")
+    else:
+        check_motion(*lengths.sum(axis=0), job)
     check_build_workspace(toolpaths, job, get_robot(job))
     return [(lp, job, role_speeds) for lp in layers]
 
@@ -722,10 +734,11 @@ def _unpack_layer(lp: LayerPaths, packed: dict[str, np.ndarray]) -> LayerMotion:
                        thickness=lp.thickness)
 
 
-def _path_lengths(layers: Sequence[LayerPaths]) -> tuple[float, float]:
-    """Total length, mm, of the depositing paths and of the other paths of ``layers``."""
-    out = [0.0, 0.0]
-    for lp in layers:
+def _path_lengths(layers: Sequence[LayerPaths]) -> np.ndarray:
+    """(L, 2) float64 mm: per layer, the total length of its depositing paths and of its
+    other paths."""
+    out = np.zeros((len(layers), 2))
+    for k, lp in enumerate(layers):
         for p in lp.paths:
             pts = np.asarray(p.points, dtype=np.float64)
             if len(pts) < 2:
@@ -733,8 +746,8 @@ def _path_lengths(layers: Sequence[LayerPaths]) -> tuple[float, float]:
             d = float(np.hypot(*np.diff(pts, axis=0).T).sum())
             if p.closed:
                 d += float(np.hypot(*(pts[0] - pts[-1])))
-            out[0 if p.depositing else 1] += d
-    return out[0], out[1]
+            out[k, 0 if p.depositing else 1] += d
+    return out
 
 
 def _locate(ends: np.ndarray, i: int) -> tuple[int, int]:
@@ -804,7 +817,8 @@ def plan_toolpaths(toolpaths: Toolpaths, job: Job | None = None,
     layer are checked again when it is planned.
     ``progress(done, total)`` is called as layers complete (:func:`icefab.parallel.parallel_map`).
     ``role_speeds``: see
-    :func:`plan_paths_motion`.
+    :func:`plan_paths_motion`. The whole build is held in memory, within
+    :data:`icefab.workload.MAX_SAMPLES`; :func:`iter_plan_toolpaths` streams it.
     """
     job = job or toolpaths.job
     robot = get_robot(job)
@@ -814,6 +828,22 @@ def plan_toolpaths(toolpaths: Toolpaths, job: Job | None = None,
     out = [_unpack_layer(lp, p) for lp, p in zip(layers, packed)]
     return BuildMotion(layers=tuple(out), job=job, robot=robot.name,
                        joint_names=tuple(robot.joint_names))
+
+
+def iter_plan_toolpaths(toolpaths: Toolpaths, job: Job | None = None,
+                        progress: Callable[[int, int], None] | None = None
+                        ) -> Iterator[LayerMotion]:
+    """:func:`plan_toolpaths`' layers, yielded in build order as the workers plan them
+    (:func:`icefab.parallel.parallel_imap`): a caller that writes each layer away
+    (:class:`icefab.resultfiles.TrajectoryWriter`) holds a few layers' samples, not the
+    build's (issue 17). Same checks before the first layer, with the streamed sample
+    budget (every layer within ``MAX_SAMPLES``, the build within ``MAX_STREAMED_SAMPLES``);
+    the same trajectories."""
+    job = job or toolpaths.job
+    items = _checked_items(toolpaths, job, None, streamed=True)
+    for lp, packed in zip(toolpaths.layers, parallel_imap(_plan_layer_task, items, job,
+                                                          progress=progress)):
+        yield _unpack_layer(lp, packed)
 
 
 def constant_speed_motion(toolpaths: Toolpaths, job: Job | None = None, *,
@@ -856,8 +886,8 @@ def constant_speed_time(toolpaths: Toolpaths, job: Job | None = None, *,
     """
     job = job or toolpaths.job
     speeds = _constant_speeds(job, boundary_mm_s, fill_mm_s)
-    times = parallel_map(_layer_time_task, _checked_items(toolpaths, job, speeds), job,
-                         min_items=2, progress=progress)
+    times = parallel_map(_layer_time_task, _checked_items(toolpaths, job, speeds, True),
+                         job, min_items=2, progress=progress)
     return float(sum(times))
 
 

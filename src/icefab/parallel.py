@@ -1,7 +1,7 @@
 """Parallel execution of the per-layer stages: the worker count and one process-pool map.
 
 Every stage that works layer by layer (scaffold scans, path planning, trajectory planning)
-goes through :func:`parallel_map`, so the number of workers is decided in one place
+goes through :func:`parallel_map` (or :func:`parallel_imap`, its streaming form), so the number of workers is decided in one place
 (:func:`n_workers`, from ``job.cell.cpus``) and results come back in input order, whatever
 the number of workers: the output never depends on ``cpus``.
 
@@ -10,13 +10,15 @@ May import: ``icefab.config`` (the Job) only.
 
 from __future__ import annotations
 
+import collections
+import itertools
 import math
 import os
 import signal
 import threading
 import time
 from concurrent.futures import ProcessPoolExecutor
-from typing import TYPE_CHECKING, Callable, Sequence, TypeVar
+from typing import TYPE_CHECKING, Callable, Iterator, Sequence, TypeVar
 
 if TYPE_CHECKING:  # pragma: no cover
     from icefab.config import Job
@@ -105,3 +107,46 @@ def parallel_map(fn: Callable[[T], R], items: Sequence[T], job: "Job",
 
 def _apply_chunk(fn: Callable[[T], R], chunk: list[T]) -> list[R]:
     return [fn(x) for x in chunk]
+
+
+def parallel_imap(fn: Callable[[T], R], items: Sequence[T], job: "Job", *,
+                  chunk_items: int = 8, window: int = 3, min_items: int = 2,
+                  progress: Callable[[int, int], None] | None = None) -> Iterator[R]:
+    """``fn(x) for x in items``, yielded in input order as the pool completes them.
+
+    Unlike :func:`parallel_map`, the results are not collected: a consumer that writes
+    each one away holds only those in flight, at most ``window`` chunks of
+    ``chunk_items`` items per worker (issue 17: a stage that works layer by layer must not
+    need the whole build in memory). Chunks are submitted ahead so the workers never wait
+    for the consumer, unless it is slower than they are. Serial under the same conditions
+    as :func:`parallel_map`; progress as there.
+    """
+    workers = n_workers(job)
+    total = len(items)
+    if workers <= 1 or total < min_items:
+        for i, x in enumerate(items):
+            yield fn(x)
+            if progress is not None:
+                progress(i + 1, total)
+        return
+    size = max(1, min(int(chunk_items), math.ceil(total / (workers * 8))))
+    starts = range(0, total, size)
+    workers = min(workers, len(starts))
+    done = 0
+    with process_pool(workers) as pool:
+        pending: collections.deque = collections.deque()
+        nxt = iter(starts)
+        try:
+            for a in itertools.islice(nxt, workers * window):
+                pending.append(pool.submit(_apply_chunk, fn, list(items[a:a + size])))
+            while pending:
+                chunk = pending.popleft().result()
+                for a in itertools.islice(nxt, 1):
+                    pending.append(pool.submit(_apply_chunk, fn, list(items[a:a + size])))
+                done += len(chunk)
+                if progress is not None:
+                    progress(done, total)
+                yield from chunk
+        finally:  # the consumer stopped early (an error, a generator closed): drop the rest
+            for f in pending:
+                f.cancel()

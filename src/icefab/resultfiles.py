@@ -44,18 +44,22 @@ paths.
 
 Trajectory file (``icefab plan``; :func:`save_trajectories` / :func:`load_trajectories`):
 
-* ``format`` = "icefab-trajectories", ``version`` = 3, ``dt`` float s (the first
+* ``format`` = "icefab-trajectories", ``version`` = 4, ``dt`` float s (the first
   trajectory's; ``traj_dt`` has each one's), ``robot`` str, ``joint_names`` (j,) str,
   ``job`` str (TOML);
-* the samples of all trajectories, concatenated in order, as integer counts of a
-  resolution (issue 17: what the cell can use, in a tenth of the bytes): ``xy_counts``
-  (2, 8, M) uint8 at ``xy_resolution`` mm (robot base frame), ``joint_counts`` (j, 8, M)
-  at ``joint_resolution`` (rad or mm), ``speed_counts`` (1, 8, M) at ``speed_resolution``
-  mm/s,
-  each resolution a float member; the reader gives back float64 ``xy`` (M, 2), ``joints``
-  (M, j) and ``speed`` (M,) within half a resolution of what was saved
-  (:func:`encode_counts` says how the counts are stored). Version 2 stored the float64
-  arrays ``xy``, ``joints`` and ``speed`` themselves and is still read;
+* the samples of all trajectories, in order, as integer counts of a resolution (issue
+  17: what the cell can use, in a tenth of the bytes), in blocks of whole layers
+  (``block_layer_start`` (B + 1,) int64: block k holds layers
+  ``block_layer_start[k]:block_layer_start[k+1]``, about :data:`BLOCK_SAMPLES` samples,
+  so a reader or writer holds one block at a time, :class:`TrajectoryFile`,
+  :class:`TrajectoryWriter`): ``xy_counts_K`` (2, 8, M_k) uint8 at ``xy_resolution`` mm
+  (robot base frame), ``joint_counts_K`` (j, 8, M_k) at ``joint_resolution`` (rad or
+  mm), ``speed_counts_K`` (1, 8, M_k) at ``speed_resolution`` mm/s, each resolution a
+  float member; the reader gives back float64 ``xy`` (M, 2), ``joints`` (M, j) and
+  ``speed`` (M,) within half a resolution of what was saved (:func:`encode_counts` says
+  how the counts are stored). Version 3 stored one block, as ``xy_counts``,
+  ``joint_counts`` and ``speed_counts`` without ``block_layer_start``; version 2 the
+  float64 arrays ``xy``, ``joints`` and ``speed`` themselves; both are still read;
 * ``traj_start`` (T + 1,) int64: trajectory i is rows ``traj_start[i]:traj_start[i+1]``;
 * ``piece_start`` (Q,) int64 sample indices (within its trajectory) where pieces start
   and ``piece_owner`` (Q,) int64 the trajectory each belongs to;
@@ -79,17 +83,19 @@ May import: ``icefab.core``, ``icefab.config``, ``icefab.errors``, ``icefab.atom
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
 import math
 import os
 import stat
 import struct
+import sys
 import tomllib
 import zipfile
 import zlib
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Callable, Iterator, Sequence
 
 import numpy as np
 
@@ -107,10 +113,10 @@ STACK_VERSION = 1
 TOOLPATHS_FORMAT = "icefab-toolpaths"
 TOOLPATHS_VERSION = 2
 TRAJECTORIES_FORMAT = "icefab-trajectories"
-TRAJECTORIES_VERSION = 3
+TRAJECTORIES_VERSION = 4
 #: Versions load_trajectories reads (1: without per-trajectory dt and Path fields; 2: float
-#: samples).
-TRAJECTORIES_READABLE = (1, 2, 3)
+#: samples; 3: the samples in one block).
+TRAJECTORIES_READABLE = (1, 2, 3, 4)
 #: Resolutions of the samples in a trajectory file (version 3): 1 um of tool position (the
 #: Cobra 600 repeats to 17 um), 1e-5 rad (0.00057 deg, finer than its 0.001 deg encoder
 #: counts) or 1e-5 mm of a joint, 1 um/s of path speed.
@@ -247,9 +253,11 @@ class _Members:
     def names(self) -> set[str]:
         return set(self.infos)
 
-    def expect(self, required: Sequence[str], optional: Sequence[str] = ()) -> None:
+    def expect(self, required: Sequence[str], optional: Sequence[str] = (),
+               streamed: Sequence[str] = ()) -> None:
         """Every required member present, no member outside required + optional, and their
-        declared sizes within the bounds."""
+        declared sizes within the bounds; the ``streamed`` members (read a block at a time,
+        :meth:`block_bound`) are left out of the total."""
         missing = [k for k in required if k not in self.infos]
         if missing:
             raise self.bad(None, f"not a complete {self.what} file: missing arrays "
@@ -258,10 +266,17 @@ class _Members:
         if extra:
             raise self.bad(None, f"unexpected members {', '.join(x[:40] for x in extra[:5])} "
                            "(not written by icefab: the file is corrupt or of another kind)")
-        total = sum(self.infos[k].file_size for k in self.names)
+        total = sum(self.infos[k].file_size for k in self.names - set(streamed))
         if total > MAX_TOTAL_BYTES:
             raise self.bad(None, f"{total} bytes uncompressed, more than a {self.what} file "
                            f"may hold ({MAX_TOTAL_BYTES})")
+
+    def block_bound(self, names: Sequence[str]) -> None:
+        """The members read together as one block hold at most MAX_TOTAL_BYTES."""
+        total = sum(self.infos[k].file_size for k in names)
+        if total > MAX_TOTAL_BYTES:
+            raise self.bad(names[0], f"its block holds {total} bytes uncompressed, more than "
+                           f"a {self.what} file may hold at once ({MAX_TOTAL_BYTES})")
 
     def array(self, name: str, kinds: str, ndim: int, cols: int | None = None) -> np.ndarray:
         """Member ``name``: dtype kind one of ``kinds`` ("f" float, "i" signed and "u"
@@ -768,47 +783,162 @@ class _Counts:
             fh.write(_planes(self.column(col), self.resolution).data)
 
 
-def save_trajectories(motion: BuildMotion, path: str | os.PathLike) -> None:
-    """Write a BuildMotion to ``.npz`` (layout in the module docstring), atomically."""
-    trajs = [t for lm in motion.layers for t in lm.trajectories]
-    zs = [lm.z for lm in motion.layers for _ in lm.trajectories]
-    jn = len(motion.joint_names) or (trajs[0].joints.shape[1] if trajs else 0)
-    paths = [t.path for t in trajs]
-    packed = pack_trajectories(trajs, jn, samples=False)
-    n = int(packed["traj_start"][-1])
+#: Samples per block of a version 4 trajectory file: a reader decodes one block at a time
+#: (float64 position, joints and speed: 80 MB for a SCARA at this size), a writer encodes
+#: one; a 300 mm bunny layer has about 35 000 samples, the demo mug's whole build under a
+#: million.
+BLOCK_SAMPLES = 2_000_000
 
-    def column(attr: str) -> Callable[[int], np.ndarray]:
-        """Column c of every trajectory's ``attr`` samples, concatenated (n,)."""
-        def get(c: int) -> np.ndarray:
-            parts = [np.asarray(getattr(t, attr), np.float64) for t in trajs]
-            return (np.concatenate([a[:, c] if a.ndim == 2 else a for a in parts]) if parts
-                    else np.zeros(0))
-        return get
-    data = {
-        "format": np.array(TRAJECTORIES_FORMAT), "version": np.array(TRAJECTORIES_VERSION),
-        "dt": np.array(trajs[0].dt if trajs else motion.job.motion.dt_s),
-        "robot": np.array(motion.robot),
-        "joint_names": np.array(list(motion.joint_names), dtype=str),
-        "job": np.array(to_toml(motion.job)),
-        **packed,
-        "xy_counts": _Counts(column("xy"), n, 2, XY_RESOLUTION_MM),
-        "joint_counts": _Counts(column("joints"), n, jn, JOINT_RESOLUTION),
-        "speed_counts": _Counts(column("speed"), n, 1, SPEED_RESOLUTION_MM_S),
-        "xy_resolution": np.array(XY_RESOLUTION_MM),
-        "joint_resolution": np.array(JOINT_RESOLUTION),
-        "speed_resolution": np.array(SPEED_RESOLUTION_MM_S),
-        **owner_arrays(motion),
-        "width": np.array([float(p.width) if p else 0.0 for p in paths], dtype=np.float64),
-        "closed": np.array([bool(p.closed) if p else False for p in paths], dtype=bool),
-        "tool": np.array([p.tool if p else "" for p in paths], dtype=str).reshape(-1),
-        "path_z": np.array([float(p.z) if p else z for p, z in zip(paths, zs)],
-                           dtype=np.float64),
-        "layer_index": np.array([lm.index for lm in motion.layers], dtype=np.int64),
-        "layer_z": np.array([lm.z for lm in motion.layers], dtype=np.float64),
-        "layer_start": offsets([len(lm.trajectories) for lm in motion.layers]),
-        **_heights([lm.thickness for lm in motion.layers]),
-    }
-    _write(path, data)
+
+class TrajectoryWriter:
+    """A trajectory file written layer by layer (issue 17: ``icefab plan`` streams the
+    build into it instead of holding every layer's samples).
+
+    Use as a context manager; :meth:`add` each layer in build order. Layers are buffered
+    until they hold :data:`BLOCK_SAMPLES` samples, then written as one block of counts
+    members; the per-trajectory and per-layer members follow on a clean exit, and the
+    file appears at ``path`` only then (atomically; an exception leaves nothing).
+    """
+
+    def __init__(self, path: str | os.PathLike, job, robot: str,
+                 joint_names: Sequence[str], block_samples: int = BLOCK_SAMPLES) -> None:
+        self.path = Path(path)
+        self.job, self.robot, self.joint_names = job, robot, tuple(joint_names)
+        self.block_samples = max(1, int(block_samples))
+        self._buffer: list[LayerMotion] = []
+        self._buffered = 0
+        self._blocks = [0]        # layer offsets of the blocks written
+        self._meta: dict[str, list] = {k: [] for k in (
+            "lengths", "piece_start", "piece_count", "duration", "traj_dt", "layer",
+            "path_index", "material", "role", "width", "closed", "tool", "path_z")}
+        self._layers: list[tuple[int, float, int, float]] = []
+        self._dt: float | None = None
+        self._n_joints = len(self.joint_names)
+        self._zip: zipfile.ZipFile | None = None
+
+    def __enter__(self) -> "TrajectoryWriter":
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._stack = contextlib.ExitStack()
+        tmp = self._stack.enter_context(atomic_path(self.path))
+        self._zip = self._stack.enter_context(zipfile.ZipFile(
+            tmp, "w", zipfile.ZIP_DEFLATED, compresslevel=COMPRESS_LEVEL))
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        if exc_type is None:
+            try:
+                self._flush()
+                self._finish()
+            except BaseException:
+                if not self._stack.__exit__(*sys.exc_info()):
+                    raise
+                return False
+        return self._stack.__exit__(exc_type, exc, tb)
+
+    @property
+    def n_layers(self) -> int:
+        return len(self._layers)
+
+    def add(self, layer: LayerMotion) -> None:
+        """Append one layer (after the previous one)."""
+        trajs = layer.trajectories
+        if trajs and self._dt is None:
+            self._dt = float(trajs[0].dt)
+        if trajs and not self._n_joints:
+            self._n_joints = int(np.asarray(trajs[0].joints).reshape(len(trajs[0].xy), -1)
+                                 .shape[1])
+        m = self._meta
+        for i, t in enumerate(trajs):
+            p = t.path
+            pcs = t.pieces if len(t.pieces) else np.zeros(1, np.int64)
+            m["lengths"].append(len(t.xy))
+            m["piece_start"].append(np.asarray(pcs, np.int64))
+            m["piece_count"].append(len(pcs))
+            m["duration"].append(float(t.duration))
+            m["traj_dt"].append(float(t.dt))
+            m["layer"].append(int(layer.index))
+            m["path_index"].append(i)
+            m["material"].append(MATERIAL_CODES.index(p.material) if p else 0)
+            m["role"].append(ROLE_CODES.index(p.role) if p else 0)
+            m["width"].append(float(p.width) if p else 0.0)
+            m["closed"].append(bool(p.closed) if p else False)
+            m["tool"].append(p.tool if p else "")
+            m["path_z"].append(float(p.z) if p else float(layer.z))
+        self._layers.append((int(layer.index), float(layer.z), len(trajs),
+                             float(layer.thickness)))
+        self._buffer.append(layer)
+        self._buffered += sum(len(t.xy) for t in trajs)
+        if self._buffered >= self.block_samples:
+            self._flush()
+
+    def _flush(self) -> None:
+        """Write the buffered layers' samples as the next block."""
+        if not self._buffer:
+            return
+        trajs = [t for lm in self._buffer for t in lm.trajectories]
+        n, k = self._buffered, len(self._blocks) - 1
+
+        def column(attr: str) -> Callable[[int], np.ndarray]:
+            """Column c of every buffered trajectory's ``attr`` samples, concatenated."""
+            def get(c: int) -> np.ndarray:
+                parts = [np.asarray(getattr(t, attr), np.float64) for t in trajs]
+                return (np.concatenate([a[:, c] if a.ndim == 2 else a for a in parts])
+                        if parts else np.zeros(0))
+            return get
+        for name, counts in ((f"xy_counts_{k}", _Counts(column("xy"), n, 2, XY_RESOLUTION_MM)),
+                             (f"joint_counts_{k}", _Counts(column("joints"), n, self._n_joints,
+                                                           JOINT_RESOLUTION)),
+                             (f"speed_counts_{k}", _Counts(column("speed"), n, 1,
+                                                           SPEED_RESOLUTION_MM_S))):
+            with self._zip.open(name + ".npy", "w", force_zip64=True) as fh:
+                counts.write(fh)
+        self._blocks.append(self._blocks[-1] + len(self._buffer))
+        self._buffer, self._buffered = [], 0
+
+    def _finish(self) -> None:
+        m, L = self._meta, self._layers
+        counts = np.array(m["piece_count"], dtype=np.int64)
+        data = {
+            "format": np.array(TRAJECTORIES_FORMAT), "version": np.array(TRAJECTORIES_VERSION),
+            "dt": np.array(self._dt if self._dt is not None else self.job.motion.dt_s),
+            "robot": np.array(self.robot),
+            "joint_names": np.array(list(self.joint_names), dtype=str),
+            "job": np.array(to_toml(self.job)),
+            "xy_resolution": np.array(XY_RESOLUTION_MM),
+            "joint_resolution": np.array(JOINT_RESOLUTION),
+            "speed_resolution": np.array(SPEED_RESOLUTION_MM_S),
+            "block_layer_start": np.array(self._blocks, dtype=np.int64),
+            "traj_start": offsets(m["lengths"]),
+            "piece_start": (np.concatenate(m["piece_start"]) if m["piece_start"]
+                            else np.zeros(0)).astype(np.int64),
+            "piece_owner": np.repeat(np.arange(len(counts)), counts).astype(np.int64),
+            "duration": np.array(m["duration"], dtype=np.float64),
+            "traj_dt": np.array(m["traj_dt"], dtype=np.float64),
+            "layer": np.array(m["layer"], dtype=np.int64),
+            "path_index": np.array(m["path_index"], dtype=np.int64),
+            "material": np.array(m["material"], dtype=np.int8),
+            "role": np.array(m["role"], dtype=np.int8),
+            "width": np.array(m["width"], dtype=np.float64),
+            "closed": np.array(m["closed"], dtype=bool),
+            "tool": np.array(m["tool"], dtype=str).reshape(-1),
+            "path_z": np.array(m["path_z"], dtype=np.float64),
+            "layer_index": np.array([x[0] for x in L], dtype=np.int64),
+            "layer_z": np.array([x[1] for x in L], dtype=np.float64),
+            "layer_start": offsets([x[2] for x in L]),
+            **_heights([x[3] for x in L]),
+        }
+        for name, value in data.items():
+            with self._zip.open(name + ".npy", "w", force_zip64=True) as fh:
+                np.lib.format.write_array(fh, np.asanyarray(value), allow_pickle=False)
+
+
+def save_trajectories(motion: BuildMotion, path: str | os.PathLike,
+                      block_samples: int = BLOCK_SAMPLES) -> None:
+    """Write a BuildMotion to ``.npz`` (layout in the module docstring), atomically."""
+    with TrajectoryWriter(path, motion.job, motion.robot, motion.joint_names,
+                          block_samples) as w:
+        for lm in motion.layers:
+            w.add(lm)
 
 
 _TRAJ_REQUIRED = ("format", "version", "dt", "traj_start", "piece_start", "piece_owner",
@@ -818,79 +948,115 @@ _TRAJ_FLOATS = ("xy", "joints", "speed")
 _TRAJ_COUNTS = ("xy_counts", "joint_counts", "speed_counts", "xy_resolution",
                 "joint_resolution", "speed_resolution")
 _TRAJ_V2 = ("traj_dt", "width", "closed", "tool", "path_z")
+#: The sample members of one block of a version 4 file (``NAME_K`` for block K).
+_TRAJ_BLOCK = ("xy_counts", "joint_counts", "speed_counts")
 #: Largest time step and joint value a trajectory file may hold (s; rad or mm).
 MAX_DT_S = 60.0
 MAX_JOINT = 1e6
+#: Sample bounds per member: (name, lo, hi).
+_SAMPLE_BOUNDS = (("xy", -MAX_COORD_MM, MAX_COORD_MM), ("joint", -MAX_JOINT, MAX_JOINT),
+                  ("speed", 0.0, MAX_COORD_MM))
 
 
-def _sample_counts(m: "_Members", n_joints: int
+def _sample_counts(m: "_Members", n_joints: int, suffix: str = "", n: int | None = None
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The samples of a version 3 trajectory file (xy (M, 2), joints (M, j), speed (M,)),
-    decoded and checked like version 2's float members (``n_joints`` 0: any number)."""
+    """The samples of a version 3 trajectory file, or of block ``suffix`` ("_K") of a
+    version 4 one (xy (M, 2), joints (M, j), speed (M,)), decoded and checked like version
+    2's float members (``n_joints`` 0: any number; ``n``: the rows expected)."""
     out = []
-    n = None
-    for name, cols, lo, hi in (("xy", 2, -MAX_COORD_MM, MAX_COORD_MM),
-                               ("joint", n_joints, -MAX_JOINT, MAX_JOINT),
-                               ("speed", 1, 0.0, MAX_COORD_MM)):
+    for name, lo, hi in _SAMPLE_BOUNDS:
+        cols = {"xy": 2, "joint": n_joints, "speed": 1}[name]
         res = m.number(f"{name}_resolution", 0.0, 1.0, lo_open=True)
-        planes = m.array(f"{name}_counts", "u", 3)
+        member = f"{name}_counts{suffix}"
+        planes = m.array(member, "u", 3)
         if name == "joint" and not cols:  # unnamed joints: as many as stored (as version 2)
             cols = planes.shape[0]
         if planes.dtype.itemsize != 1 or planes.shape[:2] != (cols, 8) or \
                 (n is not None and planes.shape[2] != n):
-            raise m.bad(f"{name}_counts", f"{planes.dtype} of shape {planes.shape}, expected "
+            raise m.bad(member, f"{planes.dtype} of shape {planes.shape}, expected "
                         f"uint8 byte planes of shape ({cols}, 8, "
                         f"{'n' if n is None else n}): the file is corrupt")
         n = planes.shape[2]
         v = decode_counts(planes, res)
+        del planes
         if v.size and not (v.min() >= lo and v.max() <= hi):
-            raise m.bad(f"{name}_counts", f"a value outside [{lo:g}, {hi:g}]: the file is "
-                        "corrupt")
+            raise m.bad(member, f"a value outside [{lo:g}, {hi:g}]: the file is corrupt")
         out.append(v)
     xy, joints, speed = out
     return xy, joints, speed[:, 0]
 
 
-def load_trajectories(path: str | os.PathLike) -> BuildMotion:
-    """Read a file written by :func:`save_trajectories` (versions 1 to 3), checking every
-    member (module docstring): finite samples within MAX_COORD_MM, joints one column per
-    joint name, speeds >= 0, time steps in (0, MAX_DT_S], pieces inside their trajectory,
-    codes and tools from their tables.
+class TrajectoryFile:
+    """A trajectory file (versions 1 to 4) open for reading: its per-layer and
+    per-trajectory members at once, its samples block by block (:meth:`layers`), so a
+    stage that works layer by layer holds one block of samples (issue 17). It stands in
+    for a BuildMotion wherever the layers are walked once.
 
-    The trajectories' ``path`` is a stand-in Toolpath in the robot base frame whose
-    ``polyline()`` is the samples (a closed path's last sample, back on its first, is the
-    closing point), carrying layer, z, material, role, width, closed and tool.
-    StackFileError naming the file (and the member) if it is missing, truncated, corrupt or
-    of another kind.
+    Every member is checked as :func:`load_trajectories` says. Attributes: ``path``,
+    ``version``, ``job``, ``robot``, ``joint_names``, ``dt``, ``duration``, ``n_points``;
+    per layer (L,)
+    ``layer_index``, ``layer_z``, ``heights`` (NaN: the job's thickness),
+    ``layer_start`` (L + 1,); per trajectory (T,) ``durations`` s, ``material`` and
+    ``role`` codes (the file's tables).
     """
-    path = Path(path)
-    with _Members(path, "trajectory") as m:
-        version = m.header(TRAJECTORIES_FORMAT, TRAJECTORIES_READABLE)
-        m.expect(_TRAJ_REQUIRED + (_TRAJ_V2 if version >= 2 else ())
-                 + (_TRAJ_COUNTS if version >= 3 else _TRAJ_FLOATS), ("layer_height",))
-        job = m.job()
-        robot = m.text("robot")
-        joint_names = m.strings("joint_names")
-        dt = m.number("dt", 0.0, MAX_DT_S, lo_open=True)
-        if version >= 3:
-            xy, joints, speed = _sample_counts(m, len(joint_names))
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.path = Path(path)
+        self._m = _Members(self.path, "trajectory")
+        try:
+            self._read_header()
+        except BaseException:
+            self.close()
+            raise
+
+    def __enter__(self) -> "TrajectoryFile":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._m.close()
+
+    def _read_header(self) -> None:
+        m = self._m
+        version = self.version = m.header(TRAJECTORIES_FORMAT, TRAJECTORIES_READABLE)
+        if version >= 4:
+            if "block_layer_start" not in m.names:
+                raise m.bad(None, "not a complete trajectory file: missing arrays "
+                            "block_layer_start")
+            bls = m.array("block_layer_start", "iu", 1).astype(np.int64)
+            if not 1 <= len(bls) <= 1_000_000:
+                raise m.bad("block_layer_start", f"{len(bls)} offsets: the file is corrupt")
+            blocks = [f"{s}_{k}" for k in range(len(bls) - 1) for s in _TRAJ_BLOCK]
+            m.expect(_TRAJ_REQUIRED + _TRAJ_V2 + _TRAJ_COUNTS[3:]
+                     + ("block_layer_start",) + tuple(blocks), ("layer_height",),
+                     streamed=blocks)
         else:
-            xy = m.values("xy", "f", 2, 2, lo=-MAX_COORD_MM, hi=MAX_COORD_MM)
-            joints = m.values("joints", "f", 2, len(joint_names) or None, n=len(xy),
-                              lo=-MAX_JOINT, hi=MAX_JOINT)
-            speed = m.values("speed", "f", 1, n=len(xy), lo=0.0, hi=MAX_COORD_MM)
-        n = len(xy)
-        duration = m.values("duration", "f", 1, lo=0.0, hi=1e9)
+            m.expect(_TRAJ_REQUIRED + (_TRAJ_V2 if version >= 2 else ())
+                     + (_TRAJ_COUNTS if version >= 3 else _TRAJ_FLOATS), ("layer_height",))
+        self.job = m.job()
+        self.robot = m.text("robot")
+        self.joint_names = m.strings("joint_names")
+        self.dt = dt = m.number("dt", 0.0, MAX_DT_S, lo_open=True)
+        self.durations = duration = m.values("duration", "f", 1, lo=0.0, hi=1e9)
         nt = len(duration)
-        ts = m.offsets("traj_start", nt, n)
-        layer = m.values("layer", "iu", 1, n=nt, lo=-1, hi=2**31 - 1)
-        material = m.codes("material", MATERIAL_CODES, nt)
-        role = m.codes("role", ROLE_CODES, nt)
+        if version >= 4:
+            ts = m.array("traj_start", "iu", 1)
+            ts = m.offsets("traj_start", nt, int(ts[-1]) if len(ts) else 0)
+        else:
+            self._samples = self._whole_samples()
+            ts = m.offsets("traj_start", nt, len(self._samples[0]))
+        self._ts = ts
+        self._layer = m.values("layer", "iu", 1, n=nt, lo=-1, hi=2**31 - 1)
+        self.material = m.codes("material", MATERIAL_CODES, nt)
+        self.role = m.codes("role", ROLE_CODES, nt)
         m.values("path_index", "iu", 1, n=nt, lo=0, hi=2**31 - 1)
-        index = m.values("layer_index", "iu", 1, lo=-1, hi=2**31 - 1)
-        layer_z = m.values("layer_z", "f", 1, n=len(index), lo=-MAX_COORD_MM, hi=MAX_COORD_MM)
-        heights = _read_heights(m, len(index))
-        ls = m.offsets("layer_start", len(index), nt)
+        self.layer_index = index = m.values("layer_index", "iu", 1, lo=-1, hi=2**31 - 1)
+        self.layer_z = m.values("layer_z", "f", 1, n=len(index), lo=-MAX_COORD_MM,
+                                hi=MAX_COORD_MM)
+        self.heights = _read_heights(m, len(index))
+        self.layer_start = ls = m.offsets("layer_start", len(index), nt)
         owner = m.values("piece_owner", "iu", 1, lo=0, hi=max(nt - 1, 0)).astype(np.int64)
         pstart = m.values("piece_start", "iu", 1, n=len(owner), lo=0).astype(np.int64)
         if len(owner) and (nt == 0 or np.any(np.diff(owner) < 0)):
@@ -898,6 +1064,7 @@ def load_trajectories(path: str | os.PathLike) -> BuildMotion:
         if len(owner) and np.any(pstart >= np.maximum(np.diff(ts)[owner], 1)):
             raise m.bad("piece_start", "a piece starts after the end of its trajectory: the "
                         "file is corrupt")
+        self._owner, self._pstart = owner, pstart
         if version >= 2:
             dts = m.values("traj_dt", "f", 1, n=nt, lo=0.0, hi=MAX_DT_S).astype(np.float64)
             if np.any(dts <= 0.0):
@@ -915,28 +1082,121 @@ def load_trajectories(path: str | os.PathLike) -> BuildMotion:
             log.warning("%s: trajectory file version 1 stores neither path widths, tools and "
                         "closed flags nor each trajectory's dt: widths 0 (the valve stage uses "
                         "the job's widths), open paths, dt %.4g s for all; re-run 'icefab plan' "
-                        "to store them", path, dt)
+                        "to store them", self.path, dt)
             dts = np.full(nt, dt)
             widths = np.zeros(nt)
             closed = np.zeros(nt, dtype=bool)
             tools = [""] * nt
-            zs = np.repeat(layer_z.astype(np.float64), np.diff(ls))
-    data = {"xy": xy, "joints": joints, "speed": speed, "traj_start": ts, "piece_start": pstart,
-            "piece_owner": owner, "duration": duration, "traj_dt": dts}
-    stand_ins = []
-    for i in range(nt):
-        s = xy[int(ts[i]):int(ts[i + 1])]
-        pts = s[:-1] if closed[i] and len(s) > 2 and np.array_equal(s[0], s[-1]) else s
-        stand_ins.append(Toolpath(points=pts, z=float(zs[i]), material=MATERIAL_CODES[material[i]],
-                                  role=ROLE_CODES[role[i]], closed=bool(closed[i]),
-                                  width=float(widths[i]), layer=int(layer[i]), frame="base",
-                                  tool=tools[i]))
-    trajs = unpack_trajectories(data, stand_ins)
-    layers = tuple(LayerMotion(index=int(index[k]), z=float(layer_z[k]),
-                               trajectories=tuple(trajs[int(ls[k]):int(ls[k + 1])]),
-                               thickness=float(heights[k]))
-                   for k in range(len(index)))
-    return BuildMotion(layers=layers, job=job, robot=robot, joint_names=joint_names)
+            zs = np.repeat(self.layer_z.astype(np.float64), np.diff(ls))
+        self._dts, self._widths, self._closed, self._tools, self._zs = (dts, widths, closed,
+                                                                          tools, zs)
+        if version >= 4:
+            if bls[0] != 0 or bls[-1] != len(index) or np.any(np.diff(bls) < 0):
+                raise m.bad("block_layer_start", f"offsets must run from 0 to {len(index)} "
+                            "layers without decreasing: the file is corrupt")
+            self._block_layers = bls
+        else:
+            self._block_layers = np.array([0, len(index)], dtype=np.int64)
+
+    def _whole_samples(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The samples of a version 1 to 3 file (one block)."""
+        m = self._m
+        if self.version >= 3:
+            return _sample_counts(m, len(self.joint_names))
+        xy = m.values("xy", "f", 2, 2, lo=-MAX_COORD_MM, hi=MAX_COORD_MM)
+        joints = m.values("joints", "f", 2, len(self.joint_names) or None, n=len(xy),
+                          lo=-MAX_JOINT, hi=MAX_JOINT)
+        speed = m.values("speed", "f", 1, n=len(xy), lo=0.0, hi=MAX_COORD_MM)
+        return xy, joints, speed
+
+    @property
+    def n_layers(self) -> int:
+        return len(self.layer_index)
+
+    @property
+    def n_points(self) -> int:
+        return int(self._ts[-1])
+
+    @property
+    def duration(self) -> float:
+        """Whole-build motion time, s."""
+        return float(self.durations.sum())
+
+    def depositing(self) -> np.ndarray:
+        """(T,) bool: the trajectories that deposit (part or scaffold, boundary or fill)."""
+        return np.isin(self.role, [ROLE_CODES.index(r) for r in ("boundary", "fill")])
+
+    @property
+    def layers(self) -> "Iterator[LayerMotion]":
+        """Every layer, decoded one block at a time: a new pass each time it is asked for,
+        so a consumer of a BuildMotion that walks its layers once (``icefab.export``'s
+        G-code, ``owner_arrays``) takes the file instead."""
+        return self.iter_layers()
+
+    def iter_layers(self, wanted: "set[int] | None" = None) -> "Iterator[LayerMotion]":
+        """The layers in file order (only those whose index is in ``wanted``, if given),
+        decoded one block at a time."""
+        bls, ls, ts = self._block_layers, self.layer_start, self._ts
+        for k in range(len(bls) - 1):
+            a, b = int(bls[k]), int(bls[k + 1])
+            if wanted is not None and not wanted.intersection(
+                    self.layer_index[a:b].tolist()):
+                continue
+            t0, t1 = int(ls[a]), int(ls[b])
+            r0, r1 = int(ts[t0]), int(ts[t1])
+            if self.version >= 4:
+                self._m.block_bound([f"{s}_{k}" for s in _TRAJ_BLOCK])
+                xy, joints, speed = _sample_counts(self._m, len(self.joint_names), f"_{k}",
+                                                   r1 - r0)
+            else:
+                xy, joints, speed = (x[r0:r1] for x in self._samples)
+            yield from self._layers_of(a, b, xy, joints, speed, wanted)
+
+    def _layers_of(self, a: int, b: int, xy, joints, speed, wanted) -> "Iterator[LayerMotion]":
+        """LayerMotion of layers a..b-1 from their samples (rows from the first one's)."""
+        ls, ts = self.layer_start, self._ts
+        t0, t1 = int(ls[a]), int(ls[b])
+        r0 = int(ts[t0])
+        lo, hi = np.searchsorted(self._owner, [t0, t1])
+        data = {"xy": xy, "joints": joints, "speed": speed,
+                "traj_start": ts[t0:t1 + 1] - r0, "piece_start": self._pstart[lo:hi],
+                "piece_owner": self._owner[lo:hi] - t0, "duration": self.durations[t0:t1],
+                "traj_dt": self._dts[t0:t1]}
+        stand_ins = []
+        for i in range(t0, t1):
+            s = xy[int(ts[i]) - r0:int(ts[i + 1]) - r0]
+            closed = bool(self._closed[i])
+            pts = s[:-1] if closed and len(s) > 2 and np.array_equal(s[0], s[-1]) else s
+            stand_ins.append(Toolpath(points=pts, z=float(self._zs[i]),
+                                      material=MATERIAL_CODES[self.material[i]],
+                                      role=ROLE_CODES[self.role[i]], closed=closed,
+                                      width=float(self._widths[i]), layer=int(self._layer[i]),
+                                      frame="base", tool=self._tools[i]))
+        trajs = unpack_trajectories(data, stand_ins)
+        for k in range(a, b):
+            if wanted is not None and int(self.layer_index[k]) not in wanted:
+                continue
+            yield LayerMotion(index=int(self.layer_index[k]), z=float(self.layer_z[k]),
+                              trajectories=tuple(trajs[int(ls[k]) - t0:int(ls[k + 1]) - t0]),
+                              thickness=float(self.heights[k]))
+
+
+def load_trajectories(path: str | os.PathLike) -> BuildMotion:
+    """Read a file written by :func:`save_trajectories` (versions 1 to 4), checking every
+    member (module docstring): finite samples within MAX_COORD_MM, joints one column per
+    joint name, speeds >= 0, time steps in (0, MAX_DT_S], pieces inside their trajectory,
+    codes and tools from their tables. The whole build in memory: a stage that works layer
+    by layer reads :class:`TrajectoryFile`'s layers instead.
+
+    The trajectories' ``path`` is a stand-in Toolpath in the robot base frame whose
+    ``polyline()`` is the samples (a closed path's last sample, back on its first, is the
+    closing point), carrying layer, z, material, role, width, closed and tool.
+    StackFileError naming the file (and the member) if it is missing, truncated, corrupt or
+    of another kind.
+    """
+    with TrajectoryFile(path) as f:
+        layers = tuple(f.iter_layers())
+        return BuildMotion(layers=layers, job=f.job, robot=f.robot, joint_names=f.joint_names)
 
 
 # --------------------------------------------------------------------------- ruled edges

@@ -42,6 +42,13 @@ MAX_GRID_CELLS = 25_000_000
 #: over the layers; the demo mug at the defaults has under a million.
 MAX_SAMPLES = 40_000_000
 
+#: Most trajectory samples of a build planned as a stream (``icefab plan``, the
+#: constant-speed comparison: one layer's samples in memory at a time, each layer within
+#: :data:`MAX_SAMPLES`): the trajectory file stores about 6 bytes a sample, so 200 million
+#: are about 1.2 GB on disk, within the 2 GB a result file may have
+#: (``icefab.resultfiles.MAX_FILE_BYTES``); the 300 mm bunny has 42 million.
+MAX_STREAMED_SAMPLES = 200_000_000
+
 #: Most valve pulses of one depositing path (its program's instants are float64 while it
 #: is planned: 20 million are 160 MB) and of a whole build (2 bytes a pulse on disk, more
 #: with PWM widths: 500 million are 1-2 GB of programs). The demo mug has about 3 million.
@@ -207,14 +214,17 @@ def check_grid(lo: np.ndarray, hi: np.ndarray, spacing: float, setting: str) -> 
             "use a coarser pitch")
 
 
-def check_samples(length_mm: float, spacing_mm: float, setting: str) -> None:
+def check_samples(length_mm: float, spacing_mm: float, setting: str, *,
+                  budget: str = "MAX_SAMPLES", what: str = "the build") -> None:
     """Refuse resampling ``length_mm`` of paths every ``spacing_mm`` when that makes more
-    than :data:`MAX_SAMPLES` samples; the message names ``setting``."""
+    samples than the budget named ``budget`` (:data:`MAX_SAMPLES` or
+    :data:`MAX_STREAMED_SAMPLES`); the message names ``setting`` and ``what``."""
+    limit = globals()[budget]
     n = float(length_mm) / spacing_mm
-    if not math.isfinite(n) or n > MAX_SAMPLES:
+    if not math.isfinite(n) or n > limit:
         raise ConfigError(
-            f"{setting}: the build would need {n:.3g} samples, more than {MAX_SAMPLES} "
-            "(icefab.workload.MAX_SAMPLES)")
+            f"{setting}: {what} would need {n:.3g} samples, more than {limit} "
+            f"(icefab.workload.{budget})")
 
 
 def check_paths(areas_mm2: tuple[float, float], job: Job) -> None:
@@ -238,8 +248,10 @@ def check_paths(areas_mm2: tuple[float, float], job: Job) -> None:
             "(icefab.workload.MAX_SAMPLES)")
 
 
-def check_motion(deposit_mm: float, other_mm: float, job: Job) -> None:
-    """Refuse trajectory planning whose samples alone exceed the budget.
+def check_motion(deposit_mm: float, other_mm: float, job: Job, *,
+                 budget: str = "MAX_SAMPLES", what: str = "the build") -> None:
+    """Refuse trajectory planning whose samples alone exceed the budget (``budget``,
+    ``what``: as :func:`check_samples`'s).
 
     deposit_mm, other_mm: total length of the depositing paths and of the rest (travel,
     measurement), mm. Counted: every path resampled every ``motion.point_spacing_mm``,
@@ -249,22 +261,31 @@ def check_motion(deposit_mm: float, other_mm: float, job: Job) -> None:
     """
     m = job.motion
     check_samples(deposit_mm + other_mm, m.point_spacing_mm,
-                  f"motion.point_spacing_mm = {m.point_spacing_mm:g}")
+                  f"motion.point_spacing_mm = {m.point_spacing_mm:g}", budget=budget, what=what)
     fast = max(m.travel_speed_mm_s, m.measure_speed_mm_s)
     n_mm = deposit_mm / m.speed_mm_s + other_mm / fast  # seconds: samples x dt
     check_samples(n_mm, m.dt_s, f"motion.dt_s = {m.dt_s:g} with motion.speed_mm_s = "
-                                f"{m.speed_mm_s:g}")
+                                f"{m.speed_mm_s:g}", budget=budget, what=what)
 
 
 def check_pulses(layers, job: Job) -> None:
     """Refuse valve programs whose pulses would exceed :data:`MAX_PATH_PULSES` on one path
     or :data:`MAX_BUILD_PULSES` in all, before any is planned.
 
-    layers: the ``LayerMotion`` whose depositing trajectories get programs; their
-    durations are counted at the highest
-    rate the valve is driven: in FM ``min(flow.max_frequency_hz, 1 / flow.tick_s, 1000 /
-    flow.calibration_pulse_ms)``, in PWM ``flow.pwm_frequency_hz`` (an upper bound: FM
-    pulses follow the flow).
+    layers: the ``LayerMotion`` whose depositing trajectories get programs
+    (:func:`check_pulse_durations` of their durations).
+    """
+    check_pulse_durations(np.array([t.duration for lm in layers for t in lm.trajectories
+                                    if t.path is None or t.path.depositing],
+                                   dtype=np.float64), job)
+
+
+def check_pulse_durations(durations: np.ndarray, job: Job) -> None:
+    """:func:`check_pulses` from the durations (s) of the depositing trajectories, e.g. a
+    trajectory file's per-trajectory members, before any sample is read. They are counted
+    at the highest rate the valve is driven: in FM ``min(flow.max_frequency_hz, 1 /
+    flow.tick_s, 1000 / flow.calibration_pulse_ms)``, in PWM ``flow.pwm_frequency_hz`` (an
+    upper bound: FM pulses follow the flow).
     """
     fl = job.flow
     if fl.mode == "fm":
@@ -273,8 +294,7 @@ def check_pulses(layers, job: Job) -> None:
     else:
         rate = fl.pwm_frequency_hz
         name = f"flow.pwm_frequency_hz = {fl.pwm_frequency_hz:g}"
-    d = np.array([t.duration for lm in layers for t in lm.trajectories
-                  if t.path is None or t.path.depositing], dtype=np.float64)
+    d = np.asarray(durations, dtype=np.float64)
     if not d.size:
         return
     longest, total = float(d.max()) * rate, float(d.sum()) * rate

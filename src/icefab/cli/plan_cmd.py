@@ -96,9 +96,12 @@ def _hms(s: float) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from icefab.export import save_gcode
-    from icefab.motion import (constant_speed_time, plan_toolpaths, save_constant_spacing,
-                               save_trajectories)
+    from icefab.headroom import feedback_headroom, tightest
+    from icefab.motion import (TrajectoryFile, TrajectoryWriter, constant_speed_time,
+                               iter_plan_toolpaths, save_constant_spacing)
     from icefab.paths import estimate_build_time
+    from icefab.robots import get_robot
+    from icefab.stages import layer_height
 
     spacing = getattr(args, "constant_spacing", None)
     if spacing is not None and not (math.isfinite(spacing) and spacing > 0.0):
@@ -109,55 +112,67 @@ def run(args: argparse.Namespace) -> int:
     ks = parse_layers(args.layers, len(tp.layers), default_count=3)  # before planning
     if args.no_jerk:
         job = job.replace(**{"motion.jerk_limited": False})
-    t1 = time.perf_counter()
-    motion = plan_toolpaths(tp, job, progress=Progress("planning"))
-    t_plan = time.perf_counter() - t1
-    _, const = estimate_build_time(tp, job)
-    const_acc = constant_speed_time(tp, job, progress=Progress("constant speed"))
-    n_traj = sum(len(lm.trajectories) for lm in motion.layers)
-    dep = sum(t.duration for lm in motion.layers for t in lm.trajectories
-              if t.path is not None and t.path.depositing)
-    lines = [
-        f"layers: {len(motion)}, trajectories: {n_traj}, samples: {motion.n_points} "
-        f"at dt = {job.motion.dt_s * 1000:g} ms ({motion.robot}, jerk "
-        f"{'on' if job.motion.jerk_limited else 'off'})",
-        f"build motion time (MTTS): {motion.duration:.1f} s ({_hms(motion.duration)}), "
-        f"depositing {dep:.1f} s",
-        f"constant speed, planned:  {const_acc:.1f} s ({_hms(const_acc)}; boundary "
-        f"{job.motion.boundary_speed_mm_s:g}, fill {job.motion.fill_speed_mm_s:g} mm/s with "
-        f"the robot's accelerations, thesis 4.4)",
-        compare_build_times(motion.duration, const_acc),
-        f"constant-speed estimate:  {hours(const)} ({ESTIMATE_WORDS}; 'icefab paths' "
-        f"prints it)",
-        f"planning time: {t_plan:.2f} s ({motion.n_points / max(t_plan, 1e-9) / 1e6:.2f} M "
-        f"samples/s), total {time.perf_counter() - t0:.2f} s",
-    ]
-    from icefab.stages import layer_height
-    from icefab.headroom import feedback_headroom
-
-    if job.feedback.enabled and job.flow.mode == "fm":  # what valves/simulate will refuse
-        lines += [f"warning: {r.message(job)}" for r in feedback_headroom(
-            ((lm.index, t, layer_height(lm.thickness, job)) for lm in motion.layers
-             for t in lm.trajectories), job)
-            if not r.fits]
+    robot = get_robot(job)
+    # what valves/simulate will refuse, from each layer as it passes
+    rooms = job.feedback.enabled and job.flow.mode == "fm"
     with output_dir(args.out, "plan") as tmp:
-        save_trajectories(motion, tmp / "trajectories.npz")
+        # the build streams into the file: a few layers' samples in memory (issue 17)
+        t1 = time.perf_counter()
+        pictured, room = {}, []
+        n_traj = n_points = 0
+        total = dep = 0.0
+        with TrajectoryWriter(tmp / "trajectories.npz", job, robot.name,
+                              robot.joint_names) as out:
+            for k, lm in enumerate(iter_plan_toolpaths(tp, job, progress=Progress("planning"))):
+                out.add(lm)
+                n_traj += len(lm.trajectories)
+                n_points += lm.n_points
+                total += lm.duration
+                dep += sum(t.duration for t in lm.trajectories
+                           if t.path is not None and t.path.depositing)
+                if rooms:
+                    room = tightest(room + feedback_headroom(
+                        ((lm.index, t, layer_height(lm.thickness, job))
+                         for t in lm.trajectories), job))
+                if k in ks:
+                    pictured[k] = lm
+        t_plan = time.perf_counter() - t1
+        _, const = estimate_build_time(tp, job)
+        const_acc = constant_speed_time(tp, job, progress=Progress("constant speed"))
+        lines = [
+            f"layers: {len(tp.layers)}, trajectories: {n_traj}, samples: {n_points} "
+            f"at dt = {job.motion.dt_s * 1000:g} ms ({robot.name}, jerk "
+            f"{'on' if job.motion.jerk_limited else 'off'})",
+            f"build motion time (MTTS): {total:.1f} s ({_hms(total)}), "
+            f"depositing {dep:.1f} s",
+            f"constant speed, planned:  {const_acc:.1f} s ({_hms(const_acc)}; boundary "
+            f"{job.motion.boundary_speed_mm_s:g}, fill {job.motion.fill_speed_mm_s:g} mm/s with "
+            f"the robot's accelerations, thesis 4.4)",
+            compare_build_times(total, const_acc),
+            f"constant-speed estimate:  {hours(const)} ({ESTIMATE_WORDS}; 'icefab paths' "
+            f"prints it)",
+            f"planning and writing the trajectories: {t_plan:.2f} s "
+            f"({n_points / max(t_plan, 1e-9) / 1e6:.2f} M samples/s), total "
+            f"{time.perf_counter() - t0:.2f} s",
+        ]
+        lines += [f"warning: {r.message(job)}" for r in room if not r.fits]
         vmax = job.motion.speed_mm_s
         for k in ks:
-            plot_speed(motion.layers[k], tmp / f"speed_layer_{motion.layers[k].index}.png", vmax,
-                       job)
+            plot_speed(pictured[k], tmp / f"speed_layer_{pictured[k].index}.png", vmax, job)
         (tmp / "plan-summary.txt").write_text("\n".join(lines) + "\n", encoding="utf-8")
         extra = []
-        if getattr(args, "gcode", False):
-            save_gcode(motion, tmp / "trajectories.gcode")
-            extra.append("trajectories.gcode")
-        if spacing is not None:
-            save_constant_spacing(motion, spacing, tmp / "constant_spacing.npz")
-            extra.append("constant_spacing.npz")
+        if getattr(args, "gcode", False) or spacing is not None:
+            with TrajectoryFile(tmp / "trajectories.npz") as motion:  # read back a block at a time
+                if getattr(args, "gcode", False):
+                    save_gcode(motion, tmp / "trajectories.gcode")
+                    extra.append("trajectories.gcode")
+                if spacing is not None:
+                    save_constant_spacing(motion, spacing, tmp / "constant_spacing.npz")
+                    extra.append("constant_spacing.npz")
     for line in lines:
         print(line)
     print(f"wrote {args.out}/trajectories.npz, plan-summary.txt"
           + "".join(f", {name}" for name in extra)
           + f" and speed pictures of layers "
-          f"{', '.join(str(motion.layers[k].index) for k in ks)}")
+          f"{', '.join(str(pictured[k].index) for k in ks)}")
     return 0

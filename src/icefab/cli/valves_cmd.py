@@ -58,41 +58,55 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from icefab.config import load_job
-    from icefab.flow import (iter_build_valves, n_pulses, program_pieces, trajectory_width,
-                             write_valve_layer)
-    from icefab.motion import load_trajectories
+    from icefab.motion import TrajectoryFile
 
     src = Path(args.input)
     if not src.exists():
         raise ConfigError(f"{src}: trajectory file not found")
-    motion = load_trajectories(src)
+    with TrajectoryFile(src) as motion:  # its samples are read a block at a time
+        return _run(args, motion)
+
+
+def _run(args: argparse.Namespace, motion) -> int:
+    from icefab.config import load_job
+    from icefab.flow import (iter_build_valves, n_pulses, program_pieces, trajectory_width,
+                             write_valve_layer)
+    from icefab.headroom import check_feedback_headroom, feedback_headroom, tightest
+    from icefab.stages import layer_height
+    from icefab.workload import check_pulse_durations
+
     job = load_job(args.job) if args.job else motion.job
     if args.out_of_range:
         job = job.replace(**{"flow.out_of_range": args.out_of_range})
-    layers = motion.layers
+    known = {int(k) for k in motion.layer_index}
+    wanted = None
     if args.layers:
         try:
             wanted = {int(t) for t in args.layers.replace(" ", "").split(",") if t}
         except ValueError:
             raise ConfigError(f"--layers {args.layers!r}: expected comma-separated layer "
                               "numbers") from None
-        known = {lm.index for lm in layers}
         if not wanted or not wanted <= known:
             raise ConfigError(f"--layers {args.layers!r}: layers must be among "
                               f"{min(known)}..{max(known)}" if known else
                               f"--layers {args.layers!r}: the file has no layers")
-        layers = tuple(lm for lm in layers if lm.index in wanted)
-    from icefab.headroom import check_feedback_headroom, feedback_headroom
+    chosen = np.isin(motion.layer_index, list(wanted if wanted else known))
+    check_pulse_durations(motion.durations[np.repeat(chosen, np.diff(motion.layer_start))
+                                           & motion.depositing()], job)
+    n_layers = int(chosen.sum())
+    rooms: list = []
 
-    from icefab.stages import layer_height
-    from icefab.workload import check_pulses
+    def checked(layers):
+        """The layers, each checked for the closed-loop build's needs before its programs
+        are planned (issue 11): the command stops at the first that lacks them."""
+        nonlocal rooms
+        for lm in layers:
+            rooms = tightest(rooms + feedback_headroom(
+                ((lm.index, t, layer_height(lm.thickness, job)) for t in lm.trajectories),
+                job))
+            check_feedback_headroom(rooms, job)
+            yield lm
 
-    check_pulses(layers, job)
-    # the closed-loop build's needs, before any program is written (issue 11)
-    headroom = check_feedback_headroom(feedback_headroom(
-        ((lm.index, t, layer_height(lm.thickness, job)) for lm in layers
-         for t in lm.trajectories), job), job)
     fmts = ("bin", "txt") if args.format == "both" else (args.format,)
     progress = Progress("valves")
     table = ["layer  paths  pulses  pieces  findings"]
@@ -100,11 +114,14 @@ def run(args: argparse.Namespace) -> int:
     sparse_paths = 0
     max_gap = max_gap_width = 0.0
     found: list[tuple[int, str]] = []
-    rows = []
-    with output_dir(args.out, "valves") as tmp:
+    with output_dir(args.out, "valves") as tmp, \
+            open(tmp / "valves-paths.csv", "w", newline="", encoding="utf-8") as fh:
         folder = tmp / "valves"
         folder.mkdir()
-        for lm, programs in iter_build_valves(layers, job, progress=progress):
+        rows = csv.writer(fh)  # a row per path as it comes: 0.5 M paths on the bunny
+        rows.writerow(PATH_COLUMNS)
+        for lm, programs in iter_build_valves(checked(motion.iter_layers(wanted)), job,
+                                              progress=progress, total=n_layers):
             counts = [0, 0, 0, 0]
             for lp in programs:
                 material, prog = lp.material, lp.program
@@ -113,10 +130,10 @@ def run(args: argparse.Namespace) -> int:
                 length, gap, sparse = _drop_spacing(traj, prog, job.flow.min_drops_per_mm)
                 width = trajectory_width(traj, material, job)
                 pulses, pieces = n_pulses(prog), len(program_pieces(prog))
-                rows.append([lm.index, lp.path, material, p.role if p is not None else "",
-                             f"{length:.3f}", f"{traj.duration:.3f}", pulses, pieces,
-                             f"{width:.3f}", f"{gap:.3f}", f"{sparse:.3f}",
-                             len(prog.warnings), " | ".join(prog.warnings)])
+                rows.writerow([lm.index, lp.path, material, p.role if p is not None else "",
+                               f"{length:.3f}", f"{traj.duration:.3f}", pulses, pieces,
+                               f"{width:.3f}", f"{gap:.3f}", f"{sparse:.3f}",
+                               len(prog.warnings), " | ".join(prog.warnings)])
                 for k, v in enumerate((1, pulses, pieces, len(prog.warnings))):
                     counts[k] += v
                 totals["length"] += length
@@ -133,13 +150,10 @@ def run(args: argparse.Namespace) -> int:
                          f"{counts[3]:8d}")
             for k, key in enumerate(("paths", "pulses", "pieces", "findings")):
                 totals[key] += counts[k]
-        with open(tmp / "valves-paths.csv", "w", newline="", encoding="utf-8") as fh:
-            w = csv.writer(fh)
-            w.writerow(PATH_COLUMNS)
-            w.writerows(rows)
-        lines = _summary(args.out, layers, fmts, totals, sparse_paths, max_gap,
+        lines = _summary(args.out, n_layers, fmts, totals, sparse_paths, max_gap,
                          max_gap_width, found, job)
-        lines[2:2] = headroom  # the closed-loop build's needs (issue 11), before findings
+        # the closed-loop build's needs (issue 11), before findings
+        lines[2:2] = check_feedback_headroom(rooms, job)
         (tmp / "valves-summary.txt").write_text(
             "\n".join(lines + ["", "per layer:"] + table) + "\n", encoding="utf-8")
     print("\n".join(lines))
@@ -172,13 +186,12 @@ def _drop_spacing(traj, prog, min_drops_per_mm: float) -> tuple[float, float, fl
     return float(s[-1]), float(gaps.max()), float(gaps[gaps > limit].sum())
 
 
-def _summary(out, layers, fmts, totals, sparse_paths, max_gap, max_gap_width, found, job
+def _summary(out, n_layers, fmts, totals, sparse_paths, max_gap, max_gap_width, found, job
              ) -> list[str]:
     """The one-screen summary of a valves run."""
     from icefab.flow import summarise_findings
 
     fl = job.flow
-    n_layers = len(layers)
     files = " and ".join(f"{out}/valves/layer_KKKK.{f}" for f in fmts)
     lines = [f"valve programs: {totals['paths']} paths in {n_layers} layers, "
              f"{totals['pulses']} pulses in {totals['pieces']} pieces "
