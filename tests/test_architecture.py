@@ -19,7 +19,7 @@ SRC = Path(__file__).resolve().parents[1] / "src"
 STAGES: list[tuple[str, tuple[str, ...]]] = [
     ("foundation", ("icefab.errors", "icefab.atomic", "icefab.config", "icefab.core",
                     "icefab.types", "icefab.stages", "icefab.parallel", "icefab.frames",
-                    "icefab.robots", "icefab.resultfiles", "icefab.inputs",
+                    "icefab.robots", "icefab._codec", "icefab.resultfiles", "icefab.inputs",
                     "icefab.workload")),
     ("geometry", ("icefab.geometry",)),
     ("mesh", ("icefab.mesh", "icefab.demo")),
@@ -29,7 +29,7 @@ STAGES: list[tuple[str, tuple[str, ...]]] = [
     ("paths", ("icefab._tour", "icefab.paths")),
     ("motion", ("icefab._mtts", "icefab.motion")),
     ("feedback", ("icefab.feedback",)),
-    ("flow", ("icefab.flow", "icefab.headroom", "icefab.findings")),
+    ("flow", ("icefab._pulses", "icefab.flow", "icefab.headroom", "icefab.findings")),
     ("sim", ("icefab.sim",)),
     ("report", ("icefab.report",)),
     ("export", ("icefab.export",)),

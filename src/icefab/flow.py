@@ -699,6 +699,8 @@ def _pwm(plan: FrequencyPlan, cal: Calibration, job: "Job", duration: float, whe
 
 def program_pieces(prog: ValveProgram) -> tuple[ValveProgram, ...]:
     """All pieces of a program in order (the first piece, then ``prog.pieces``)."""
+    if not prog.pieces:  # one piece (most programs): itself, without a copy
+        return (prog,)
     first = dataclasses.replace(prog, pieces=())
     return (first, *prog.pieces)
 
@@ -934,11 +936,13 @@ def plan_layer_valves(layer: "LayerMotion", job: "Job") -> list[LayerProgram]:
 
     The flow uses the layer's own thickness with adaptive layers (``slicing.
     layer_thickness_mm`` otherwise); a trajectory without a path (a bare trajectory file)
-    deposits part material. The calibration tables are read once per layer.
+    deposits part material. The calibration tables are read once per layer. The programs
+    are :func:`plan_valves`' (in FM mode most are made for the whole layer at once,
+    :func:`_nominal_fm_programs`, identical to it).
     """
     dh = layer_height(layer.thickness, job)
     tables: dict[str, Calibration] = {}
-    out: list[LayerProgram] = []
+    picked: list[tuple[int, str, Trajectory]] = []
     for i, traj in enumerate(layer.trajectories):
         path = traj.path
         if path is not None and not path.depositing:
@@ -946,8 +950,127 @@ def plan_layer_valves(layer: "LayerMotion", job: "Job") -> list[LayerProgram]:
         material = path.material if path is not None else "part"
         if material not in tables:
             tables[material] = calibration_for(material, job)
-        out.append(LayerProgram(i, material, plan_valves(
-            traj, material, job, layer_thickness=dh, calibration=tables[material])))
+        picked.append((i, material, traj))
+    progs = (_nominal_fm_programs([x[2] for x in picked], [x[1] for x in picked], dh,
+                                  tables, job)
+             if job.flow.mode == "fm" else [None] * len(picked))
+    return [LayerProgram(i, material, prog if prog is not None else plan_valves(
+                traj, material, job, layer_thickness=dh, calibration=tables[material]))
+            for (i, material, traj), prog in zip(picked, progs)]
+
+
+def _nominal_fm_programs(trajs: "Sequence[Trajectory]", materials: Sequence[str], dh: float,
+                         tables: dict[str, Calibration], job: "Job"
+                         ) -> list["ValveProgram | None"]:
+    """:func:`plan_valves` of many depositing trajectories (FM, no control action, layer
+    thickness ``dh`` mm) in a few array operations over all their samples, for the common
+    case: each program equals plan_valves' bit for bit (the same elementwise operations,
+    the pulse instants by :func:`icefab._pulses.pulse_instants_many`).
+
+    None for a trajectory this does not make (a sampling contract broken, a speed that does
+    not integrate to the distance travelled, a flow outside the calibration table, a
+    frequency above the valve's limit, fewer than two samples): the caller plans it with
+    plan_valves, which makes or refuses it with its own messages. Programs of more than
+    one piece are split by plan_valves' own ``_split``. Issue 17: one call per path made
+    ``icefab valves`` spend two minutes in Python on the 1 M-facet bunny.
+    """
+    from icefab._pulses import pulse_instants_many
+
+    fl = job.flow
+    m = len(trajs)
+    if not m:
+        return []
+    check_flow_settings(job)
+    n = np.array([len(t.xy) for t in trajs], dtype=np.int64)
+    dt = np.array([float(t.dt) for t in trajs])
+    dur = np.array([float(t.duration) for t in trajs])
+    ok = (n >= 2) & np.isfinite(dt) & (dt > 0)
+    expected = (n - 1) * dt
+    ok &= np.isfinite(dur) & (np.abs(dur - expected) <= 1e-6 + 1e-9 * expected)
+    ok &= np.array([np.shape(t.speed) == (len(t.xy),) and np.shape(t.xy)[1:] == (2,)
+                    for t in trajs])
+    out: list[ValveProgram | None] = [None] * m
+    idx = np.flatnonzero(ok)
+    if not len(idx):
+        return out
+    sel = [trajs[i] for i in idx]
+    n, dt, dur = n[idx], dt[idx], dur[idx]
+    starts = np.concatenate([[0], np.cumsum(n)])
+    owner = np.repeat(np.arange(len(idx)), n)
+    first = starts[:-1]
+    speed = np.concatenate([np.asarray(t.speed, np.float64) for t in sel])
+    xy = np.concatenate([np.asarray(t.xy, np.float64) for t in sel])
+    bad = ~(np.isfinite(speed) & (speed >= 0))
+    # the flow, frequency and time axis of every sample, as valve_frequency makes them
+    c = np.array([trajectory_width(t, materials[i], job) * dh * fl.layer_scale
+                  for t, i in zip(sel, idx)])
+    q = c[owner] * speed
+    t = (np.arange(len(speed)) - first[owner]).astype(np.float64) * dt[owner]
+    mats = [materials[i] for i in idx]
+    lo_flow = np.array([tables[mt].min_flow for mt in mats])[owner]
+    hi_flow = np.array([tables[mt].max_flow for mt in mats])[owner]
+    flowing = q > 0
+    nu = np.zeros(len(q))
+    for mt in set(mats):
+        rows = np.array([x == mt for x in mats])[owner]
+        nu[rows] = np.where(flowing[rows], tables[mt].frequency(q[rows]), 0.0)
+    nu_max = min(fl.max_frequency_hz, 1000.0 / fl.calibration_pulse_ms)
+    bad |= (q > hi_flow) | (flowing & (q < lo_flow)) | (nu > nu_max)
+    # the speed must integrate to the distance travelled (valve_frequency's warning)
+    inner = np.ones(len(q), dtype=bool)
+    inner[starts[1:] - 1] = False               # the step from each path's last sample
+    step = np.zeros(len(q))
+    seg = np.flatnonzero(inner)
+    d = xy[seg + 1] - xy[seg]
+    step[seg] = np.sqrt(d[:, 0] ** 2 + d[:, 1] ** 2)
+    trap = np.zeros(len(q))
+    trap[seg] = (t[seg + 1] - t[seg]) * (speed[seg + 1] + speed[seg]) / 2.0
+    travelled = np.add.reduceat(step, first)
+    integrated = np.add.reduceat(trap, first)
+    mismatch = np.abs(integrated - travelled) > np.maximum(SPEED_MISMATCH_MM,
+                                                           SPEED_MISMATCH * travelled)
+    fast = ~(np.add.reduceat(bad.astype(np.int64), first) > 0) & ~mismatch
+    # fewer drops per mm than flow.min_drops_per_mm
+    moving = speed > 1e-9
+    drops = np.divide(nu, speed, out=np.full(len(q), np.inf), where=moving)
+    few = moving & (drops < fl.min_drops_per_mm) & flowing
+    n_few = np.add.reduceat(few.astype(np.int64), first)
+    few_min = np.minimum.reduceat(np.where(few, drops, np.inf), first)
+    nu_peak = np.maximum.reduceat(nu, first)
+    times, toff = pulse_instants_many(t, nu, starts)
+    tick = fl.tick_s
+    most = piece_pulses(job)
+    max_len = min(fl.max_piece_s, 65535.5 * tick)
+    ticks_all = np.clip(np.floor(times / tick + (0.5 + 1e-9)), 0, 65535).astype(np.uint16)
+    # pulses sharing a tick with the one before, within each path's one-piece program
+    same = np.zeros(len(ticks_all), dtype=np.int64)
+    same[1:] = ticks_all[1:] == ticks_all[:-1]
+    same[toff[:-1][toff[:-1] < len(same)]] = 0       # no "before" at a path's first pulse
+    shared_one = np.add.reduceat(np.append(same, 0), np.minimum(toff[:-1], len(same)))
+    shared_one[toff[1:] == toff[:-1]] = 0
+    for k in np.flatnonzero(fast):
+        tr = sel[k]
+        where = _where(tr)
+        warnings = []
+        if n_few[k]:
+            warnings.append(f"{where}: fewer than flow.min_drops_per_mm = "
+                            f"{fl.min_drops_per_mm:g} drops per mm ({float(few_min[k]):.3g}) at "
+                            f"{int(n_few[k])} samples")
+        a, b = toff[k], toff[k + 1]
+        if b - a <= most and max_len >= dur[k]:  # one piece (_split's first and last)
+            prog = ValveProgram(ticks=ticks_all[a:b], tick_s=tick, duration=float(dur[k]))
+            shared = int(shared_one[k])
+        else:
+            prog = _split(times[a:b], None, float(dur[k]), float(dt[k]), job)
+            shared = sum(int(np.count_nonzero(np.diff(p.ticks.astype(np.int64)) == 0))
+                         for p in program_pieces(prog))
+        if shared:
+            warnings.append(f"{where}: {shared} pulses share a {tick * 1e3:g} ms tick with "
+                            f"the pulse before (valve frequency up to {float(nu_peak[k]):.4g} "
+                            f"Hz, above 1 / flow.tick_s = {1.0 / tick:g} Hz)")
+        for w in warnings:
+            log.debug(w)
+        out[idx[k]] = dataclasses.replace(prog, warnings=tuple(warnings)) if warnings else prog
     return out
 
 
@@ -958,15 +1081,26 @@ def _layer_valves_task(item: tuple["LayerMotion", "Job"]) -> list[LayerProgram]:
 def plan_build_valves(layers: "Sequence[LayerMotion]", job: "Job",
                       progress: Callable[[int, int], None] | None = None
                       ) -> list[list[LayerProgram]]:
-    """:func:`plan_layer_valves` of every layer, in layer order, on the job's worker
-    processes (``cell.cpus``; the programs never depend on the number of workers).
-    progress: called as ``progress(done, total)`` in layers."""
+    """:func:`plan_layer_valves` of every layer, in layer order. progress: called as
+    ``progress(done, total)`` in layers.
+
+    FM (the default) runs in this process: a layer's programs take a few milliseconds
+    (7 ms a bunny layer, :func:`_nominal_fm_programs`), less than sending its trajectories
+    to a worker process costs. PWM, planned path by path, runs on the job's worker
+    processes (``cell.cpus``); the programs never depend on the number of workers."""
+    if job.flow.mode == "fm":
+        out = []
+        for k, lm in enumerate(layers):
+            out.append(plan_layer_valves(lm, job))
+            if progress is not None:
+                progress(k + 1, len(layers))
+        return out
     return parallel_map(_layer_valves_task, [(lm, job) for lm in layers], job, min_items=8,
                         progress=progress)
 
 
-#: Layers planned per batch by :func:`iter_build_valves`: enough to keep the workers busy,
-#: few enough that a batch's programs are small next to the trajectories.
+#: Layers planned per batch by :func:`iter_build_valves`: enough to keep the workers busy
+#: (PWM), few enough that a batch's programs are small next to the trajectories.
 VALVE_BATCH_LAYERS = 96
 
 

@@ -78,7 +78,8 @@ then uses the job's widths), closed False, the derived tool and the layer's z.
 Errors: :class:`~icefab.errors.StackFileError` naming the file (and the member) when a
 file is missing, truncated, corrupt or of another kind.
 
-May import: ``icefab.core``, ``icefab.config``, ``icefab.errors``, ``icefab.atomic``.
+May import: ``icefab.core``, ``icefab.config``, ``icefab.errors``, ``icefab.atomic``,
+``icefab._codec``.
 """
 
 from __future__ import annotations
@@ -117,12 +118,15 @@ TRAJECTORIES_VERSION = 4
 #: Versions load_trajectories reads (1: without per-trajectory dt and Path fields; 2: float
 #: samples; 3: the samples in one block).
 TRAJECTORIES_READABLE = (1, 2, 3, 4)
-#: Resolutions of the samples in a trajectory file (version 3): 1 um of tool position (the
-#: Cobra 600 repeats to 17 um), 1e-5 rad (0.00057 deg, finer than its 0.001 deg encoder
-#: counts) or 1e-5 mm of a joint, 1 um/s of path speed.
+#: Resolutions of the samples in a trajectory file (versions 3 and 4; each file stores its
+#: own): 1 um of tool position (the Cobra 600 repeats to 17 um), 1e-5 rad (0.00057 deg,
+#: finer than its 0.001 deg encoder counts) or 1e-5 mm of a joint, 0.01 mm/s of path
+#: speed (1/12 500 of the 125 mm/s bound: the valve frequency follows the speed far more
+#: finely than the calibration table knows the flow; at 1 um/s, version 3's, the speed took
+#: a quarter of the bunny's 197 MB file).
 XY_RESOLUTION_MM = 1e-3
 JOINT_RESOLUTION = 1e-5
-SPEED_RESOLUTION_MM_S = 1e-3
+SPEED_RESOLUTION_MM_S = 1e-2
 
 #: Codes of the path attributes in the files and worker packing (index = code).
 MATERIAL_CODES = MATERIALS
@@ -757,13 +761,14 @@ def encode_counts(values: np.ndarray, resolution: float) -> np.ndarray:
 
 
 def decode_counts(planes: np.ndarray, resolution: float) -> np.ndarray:
-    """The float64 ``(n, c)`` samples of :func:`encode_counts`' ``(c, 8, n)`` planes."""
+    """The float64 ``(n, c)`` samples of :func:`encode_counts`' ``(c, 8, n)`` planes
+    (compiled, :mod:`icefab._codec`; overflow wraps: the callers' bounds catch it)."""
+    from icefab._codec import decode_plane_column
+
     c, _, n = planes.shape
     out = np.empty((n, c), np.float64)
     for col in range(c):
-        zz = np.ascontiguousarray(planes[col].T).view("<u8").reshape(n)
-        d = (zz >> np.uint64(1)).astype(np.int64) ^ -(zz & np.uint64(1)).astype(np.int64)
-        out[:, col] = np.cumsum(np.cumsum(d)) * resolution  # overflow wraps: bounds catch it
+        decode_plane_column(np.ascontiguousarray(planes[col]), float(resolution), out[:, col])
     return out
 
 
@@ -1162,16 +1167,22 @@ class TrajectoryFile:
                 "traj_start": ts[t0:t1 + 1] - r0, "piece_start": self._pstart[lo:hi],
                 "piece_owner": self._owner[lo:hi] - t0, "duration": self.durations[t0:t1],
                 "traj_dt": self._dts[t0:t1]}
-        stand_ins = []
-        for i in range(t0, t1):
-            s = xy[int(ts[i]) - r0:int(ts[i + 1]) - r0]
-            closed = bool(self._closed[i])
-            pts = s[:-1] if closed and len(s) > 2 and np.array_equal(s[0], s[-1]) else s
-            stand_ins.append(Toolpath(points=pts, z=float(self._zs[i]),
-                                      material=MATERIAL_CODES[self.material[i]],
-                                      role=ROLE_CODES[self.role[i]], closed=closed,
-                                      width=float(self._widths[i]), layer=int(self._layer[i]),
-                                      frame="base", tool=self._tools[i]))
+        # one stand-in Toolpath per trajectory (558 872 on the bunny): its fields as lists
+        # first, and the closing check of closed paths (first sample == last) for all
+        lo_row, hi_row = ts[t0:t1] - r0, ts[t0 + 1:t1 + 1] - r0
+        closed = self._closed[t0:t1].tolist()
+        longer = (hi_row - lo_row) > 2
+        ends = np.zeros(t1 - t0, dtype=bool)
+        ends[longer] = (xy[lo_row[longer]] == xy[hi_row[longer] - 1]).all(axis=1)
+        cut = (self._closed[t0:t1] & ends).tolist()
+        materials = [MATERIAL_CODES[c] for c in self.material[t0:t1].tolist()]
+        roles = [ROLE_CODES[c] for c in self.role[t0:t1].tolist()]
+        stand_ins = [Toolpath(points=xy[a0:b0 - 1] if c else xy[a0:b0], z=z, material=mt,
+                              role=rl, closed=cl, width=w, layer=ly, frame="base", tool=tl)
+                     for a0, b0, c, z, mt, rl, cl, w, ly, tl in zip(
+                         lo_row.tolist(), hi_row.tolist(), cut, self._zs[t0:t1].tolist(),
+                         materials, roles, closed, self._widths[t0:t1].tolist(),
+                         self._layer[t0:t1].tolist(), self._tools[t0:t1])]
         trajs = unpack_trajectories(data, stand_ins)
         for k in range(a, b):
             if wanted is not None and int(self.layer_index[k]) not in wanted:

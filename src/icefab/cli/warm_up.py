@@ -33,12 +33,14 @@ def warm_up() -> int:
 
     Runs what a newcomer runs first, small: ``icefab demo`` on the demo mug's first 8
     layers (4 on the simulator, SMF included) with one worker, so every stage's kernels
-    compile with the argument types of a real run, and reads the mug back as binary STL
-    and a tetrahedron as OBJ and PLY (the mesh readers' kernels). Nothing is written
+    compile with the argument types of a real run, reads its trajectory file back (the
+    sample decoder's kernel), and reads the mug back as binary STL and a tetrahedron as
+    OBJ and PLY (the mesh readers' kernels). Nothing is written
     outside a temporary folder but numba's cache (beside the sources, or
     ``NUMBA_CACHE_DIR``).
     """
     from icefab.mesh import load_mesh
+    from icefab.resultfiles import load_trajectories
 
     notice_text = io.StringIO()
     with tempfile.TemporaryDirectory(prefix="icefab-warm-") as tmp, \
@@ -53,6 +55,7 @@ def warm_up() -> int:
                          "--sim-layers", "4"])
         if code:
             raise RuntimeError(f"icefab demo (warm-up) exited with {code}: {out.getvalue()}")
+        load_trajectories(os.path.join(folder, "trajectories.npz"))
         load_mesh(os.path.join(folder, "demo-mug.stl"))
         for name, text in _TEXT_MESHES.items():
             with open(os.path.join(tmp, name), "w", encoding="ascii") as fh:

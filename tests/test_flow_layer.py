@@ -1,0 +1,145 @@
+"""A layer's valve programs made at once (flow._nominal_fm_programs, issue 17) are
+plan_valves' programs, bit for bit, findings and refusals included."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from icefab import Job
+from icefab.core import LayerMotion, Toolpath, Trajectory
+from icefab.errors import FlowError
+from icefab.flow import calibration_for, plan_layer_valves, plan_valves, program_pieces
+from icefab.stages import layer_height
+
+
+def _trajectory(rng, n, dt, v_top, role, material, width, mismatch):
+    """A wavy path with a random smooth speed profile sampled at dt; ``mismatch`` scales
+    the speed array away from the distance the samples travel."""
+    v = v_top * np.clip(np.sin(np.linspace(0, np.pi, n)) + rng.uniform(-0.2, 0.2, n), 0, None)
+    v[0] = v[-1] = 0.0
+    s = np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) * dt)])
+    xy = np.column_stack([340.0 + s, 2.0 * np.sin(s / 7.0)])
+    path = Toolpath(points=xy.copy(), material=material, role=role, width=width, layer=2,
+                    frame="base")
+    return Trajectory(dt=dt, xy=xy, joints=np.zeros((n, 3)), speed=v * mismatch,
+                      duration=(n - 1) * dt, path=path)
+
+
+def _programs_agree(a, b):
+    pa, pb = program_pieces(a), program_pieces(b)
+    assert len(pa) == len(pb)
+    for x, y in zip(pa, pb):
+        assert x.ticks.dtype == y.ticks.dtype and np.array_equal(x.ticks, y.ticks)
+        assert (x.duration, x.tick_s, x.widths_us) == (y.duration, y.tick_s, y.widths_us)
+    assert a.warnings == b.warnings
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**32 - 1), count=st.integers(1, 12),
+       high_rate=st.booleans(), short_pieces=st.booleans(), clamp=st.booleans(),
+       thickness=st.sampled_from([float("nan"), 0.1, 0.6]))
+def test_a_layer_at_once_equals_path_by_path(seed, count, high_rate, short_pieces, clamp,
+                                             thickness):
+    rng = np.random.default_rng(seed)
+    job = Job().replace(**{"flow.out_of_range": "clamp" if clamp else "error"})
+    if high_rate:  # pulses above one per tick: shared ticks
+        job = job.replace(**{"flow.max_frequency_hz": 250.0, "flow.tick_s": 0.004})
+    if short_pieces:  # programs split into pieces
+        job = job.replace(**{"flow.max_piece_s": 0.5, "flow.max_pulses": 40})
+    trajs = []
+    for _ in range(count):
+        n = int(rng.choice([1, 2, 3, 40, 400]))
+        role = str(rng.choice(["fill", "boundary", "travel", "measure"]))
+        trajs.append(_trajectory(rng, n, float(rng.choice([0.016, 0.008])),
+                                 float(rng.choice([5.0, 60.0, 125.0, 400.0])), role,
+                                 str(rng.choice(["part", "scaffold"])),
+                                 float(rng.choice([0.0, 0.7, 1.5, 3.0])),
+                                 float(rng.choice([1.0, 1.0, 1.0, 1.3]))))
+    layer = LayerMotion(index=2, z=0.5, trajectories=tuple(trajs), thickness=thickness)
+    dh = layer_height(thickness, job)
+    want, refused = [], None
+    for i, tr in enumerate(trajs):
+        if not tr.path.depositing:
+            continue
+        try:
+            want.append((i, tr.path.material, plan_valves(
+                tr, tr.path.material, job, layer_thickness=dh,
+                calibration=calibration_for(tr.path.material, job))))
+        except FlowError as exc:
+            refused = str(exc)
+            break
+    if refused is not None:
+        with pytest.raises(FlowError) as e:
+            plan_layer_valves(layer, job)
+        assert str(e.value) == refused
+        return
+    got = plan_layer_valves(layer, job)
+    assert [(lp.path, lp.material) for lp in got] == [(i, m) for i, m, _ in want]
+    for lp, (_, _, prog) in zip(got, want):
+        _programs_agree(lp.program, prog)
+
+
+def test_the_cases_it_hands_back_are_met():
+    """The example above must reach shared ticks, pieces, findings and refusals: one of
+    each, fixed."""
+    rng = np.random.default_rng(7)
+    job = Job().replace(**{"flow.max_piece_s": 0.5, "flow.max_pulses": 40,
+                           "flow.out_of_range": "clamp"})
+    trajs = [_trajectory(rng, 400, 0.016, v, "fill", mt, w, m)
+             for v, mt, w, m in ((60.0, "part", 1.5, 1.0), (400.0, "part", 1.5, 1.0),
+                                 (125.0, "part", 0.7, 1.0), (60.0, "part", 1.5, 1.3))]
+    layer = LayerMotion(index=2, z=0.5, trajectories=tuple(trajs))
+    got = plan_layer_valves(layer, job)
+    text = " ".join(w for lp in got for w in lp.program.warnings)
+    for finding in ("clamped (flow.out_of_range = 'clamp')", "drops per mm", "integrates to"):
+        assert finding in text
+    assert any(lp.program.pieces for lp in got)
+    for lp, tr in zip(got, trajs):
+        _programs_agree(lp.program, plan_valves(tr, tr.path.material, job))
+
+
+def test_pulses_sharing_a_tick_are_counted_per_path(monkeypatch):
+    """A valid FM job drives the valve at most once per tick, so pulses share a tick only
+    through rounding; the count is checked on instants made to collide."""
+    import icefab._pulses as kernel
+
+    real = kernel.pulse_instants_many
+
+    def colliding(t, nu, starts):
+        times, offsets = real(t, nu, starts)
+        out = times.copy()
+        for i in range(len(offsets) - 1):   # every third pulse of a path onto the one before
+            a, b = offsets[i], offsets[i + 1]
+            out[a + 3:b:3] = out[a + 2:b - 1:3]
+        return out, offsets
+
+    monkeypatch.setattr(kernel, "pulse_instants_many", colliding)
+    rng = np.random.default_rng(3)
+    job = Job()
+    trajs = [_trajectory(rng, n, 0.016, 60.0, "fill", "part", 1.5, 1.0) for n in (400, 2, 90)]
+    got = plan_layer_valves(LayerMotion(index=2, z=0.5, trajectories=tuple(trajs)), job)
+    for lp in got:
+        ticks = lp.program.ticks.astype(np.int64)
+        shared = int(np.count_nonzero(np.diff(ticks) == 0))
+        said = [w for w in lp.program.warnings if "share a 2 ms tick" in w]
+        assert shared == 0 and not said or said and said[0].split(": ")[1].startswith(
+            f"{shared} pulses share")
+    assert sum("share" in w for lp in got for w in lp.program.warnings) == 2
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), count=st.integers(1, 8))
+def test_drop_spacing_of_a_layer_equals_path_by_path(seed, count):
+    from icefab.cli.valves_cmd import _drop_spacing, _drop_spacings
+    rng = np.random.default_rng(seed)
+    job = Job().replace(**{"flow.max_piece_s": 0.5, "flow.out_of_range": "clamp"})
+    trajs = [_trajectory(rng, int(rng.choice([1, 2, 5, 300])), 0.016,
+                         float(rng.choice([2.0, 60.0, 125.0])), "fill", "part",
+                         float(rng.choice([0.7, 1.5])), 1.0) for _ in range(count)]
+    progs = [plan_valves(t, "part", job) for t in trajs]
+    for limit in (1.0, 0.0):
+        got = _drop_spacings(trajs, progs, limit)
+        want = [_drop_spacing(t, p, limit) for t, p in zip(trajs, progs)]
+        np.testing.assert_allclose(np.array(got), np.array(want), rtol=0, atol=1e-9)
