@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from icefab import Job, LayerPaths, Toolpath, Toolpaths
 from icefab.errors import StackFileError, WorkspaceError
@@ -322,3 +324,25 @@ def test_streamed_plan_gives_the_same_layers_in_order(four_layers):
             np.testing.assert_array_equal(ta.pieces, tb.pieces)
             assert (ta.path.role, ta.path.layer) == (tb.path.role, tb.path.layer)
             np.testing.assert_array_equal(ta.path.points, tb.path.points)
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 9), st.booleans()), min_size=0, max_size=12),
+       st.integers(0, 2**32 - 1))
+def test_path_lengths_at_once_equal_each_paths_length(shapes, seed):
+    from icefab.core import path_lengths
+    rng = np.random.default_rng(seed)
+    paths = [Toolpath(points=rng.uniform(-50, 50, (max(k, 1), 2)), closed=c)
+             for k, c in shapes]
+    np.testing.assert_allclose(path_lengths(paths), [p.length for p in paths], rtol=1e-12,
+                               atol=1e-9)
+
+
+def test_plan_and_compare_in_one_pass_gives_both_figures(four_layers):
+    from icefab.motion import constant_speed_time, iter_plan_and_compare
+    job = Job().replace(**{"cell.cpus": 2})
+    tp = _toolpaths(job, 4)
+    pairs = list(iter_plan_and_compare(tp, job))
+    assert sum(t for _, t in pairs) == pytest.approx(constant_speed_time(tp, job), rel=1e-12)
+    for (lm, _), want in zip(pairs, four_layers.layers):
+        assert lm.duration == want.duration

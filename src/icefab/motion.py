@@ -106,12 +106,13 @@ from icefab.resultfiles import (TRAJECTORIES_FORMAT as FORMAT,  # noqa: F401 (ol
                                 pack_trajectories, save_trajectories, unpack_trajectories)
 from icefab.robots import Robot, get_robot
 from icefab.core import (ROLES, BuildMotion, LayerMotion, LayerPaths, Toolpath, Toolpaths,
-                         Trajectory, arc_lengths, offsets)
+                         Trajectory, arc_lengths, offsets, path_lengths)
 from icefab.workload import check_motion
 
 log = logging.getLogger(__name__)
 
 __all__ = ["plan_motion", "plan_paths_motion", "plan_toolpaths", "iter_plan_toolpaths",
+           "iter_plan_and_compare",
            "constant_speed_motion",
            "constant_speed_time",
            "check_build_workspace", "LayerMotion", "BuildMotion",
@@ -707,6 +708,13 @@ def _layer_time_task(args: tuple) -> float:
         lp.paths, job, layer=lp.index, role_speeds=role_speeds))) if lp.paths else 0.0
 
 
+def _plan_compare_task(args: tuple) -> tuple[dict[str, np.ndarray], float]:
+    """Worker: :func:`_plan_layer_task` and the layer's constant-speed time
+    (:func:`_layer_time_task` at ``speeds``). args: (LayerPaths, Job, speeds)."""
+    lp, job, speeds = args
+    return _plan_layer_task((lp, job, None)), _layer_time_task((lp, job, speeds))
+
+
 def _checked_items(toolpaths: Toolpaths, job: Job, role_speeds: Mapping[str, float] | None,
                    streamed: bool = False) -> list[tuple]:
     """The per-layer work items of a build's planning, once the build has passed the checks
@@ -734,19 +742,36 @@ def _unpack_layer(lp: LayerPaths, packed: dict[str, np.ndarray]) -> LayerMotion:
                        thickness=lp.thickness)
 
 
+def _layer_base_points(lp: LayerPaths, job: Job) -> tuple[np.ndarray, np.ndarray]:
+    """(points (N, 2) float64 mm, counts (P,) int64): the polylines of a layer's paths
+    (closing point repeated) in the robot base frame, concatenated: :func:`_base_points` of
+    each, with one shift per tool added to all points at once."""
+    polys = [p.polyline() for p in lp.paths]
+    counts = np.array([len(q) for q in polys], dtype=np.int64)
+    if not len(polys):
+        return np.zeros((0, 2)), counts
+    shifts: dict[str, np.ndarray] = {}
+    shift = np.zeros((len(polys), 2))
+    for i, p in enumerate(lp.paths):
+        if p.frame == "base":
+            continue
+        name = p.tool_name
+        if name not in shifts:
+            shifts[name] = to_base_frame(np.zeros((1, 2)), name, job)[0]
+        shift[i] = shifts[name]
+    pts = np.concatenate([np.asarray(q, dtype=np.float64) for q in polys])
+    return pts + np.repeat(shift, counts, axis=0), counts
+
+
 def _path_lengths(layers: Sequence[LayerPaths]) -> np.ndarray:
     """(L, 2) float64 mm: per layer, the total length of its depositing paths and of its
     other paths."""
     out = np.zeros((len(layers), 2))
     for k, lp in enumerate(layers):
-        for p in lp.paths:
-            pts = np.asarray(p.points, dtype=np.float64)
-            if len(pts) < 2:
-                continue
-            d = float(np.hypot(*np.diff(pts, axis=0).T).sum())
-            if p.closed:
-                d += float(np.hypot(*(pts[0] - pts[-1])))
-            out[k, 0 if p.depositing else 1] += d
+        if lp.paths:
+            per = path_lengths(lp.paths)
+            dep = np.array([p.depositing for p in lp.paths])
+            out[k] = per[dep].sum(), per[~dep].sum()
     return out
 
 
@@ -773,9 +798,7 @@ def check_build_workspace(toolpaths: Toolpaths, job: Job | None = None,
     for lp in toolpaths.layers:
         if not lp.paths:
             continue
-        polys = [_base_points(p, job) for p in lp.paths]
-        pts = np.concatenate(polys)
-        counts = np.array([len(p) for p in polys])
+        pts, counts = _layer_base_points(lp, job)
         ends = np.cumsum(counts)
         bad, reasons = robot.workspace_violations(pts)
         if len(bad):
@@ -844,6 +867,21 @@ def iter_plan_toolpaths(toolpaths: Toolpaths, job: Job | None = None,
     for lp, packed in zip(toolpaths.layers, parallel_imap(_plan_layer_task, items, job,
                                                           progress=progress)):
         yield _unpack_layer(lp, packed)
+
+
+def iter_plan_and_compare(toolpaths: Toolpaths, job: Job | None = None,
+                          progress: Callable[[int, int], None] | None = None
+                          ) -> Iterator[tuple[LayerMotion, float]]:
+    """:func:`iter_plan_toolpaths` with each layer's :func:`constant_speed_time` (s)
+    beside it, planned by the same worker in the same pass (``icefab plan``'s comparison:
+    one pass over the build, one set of checks, instead of two)."""
+    job = job or toolpaths.job
+    speeds = _constant_speeds(job, None, None)
+    _check_role_speeds(speeds)
+    items = [(lp, j, speeds) for lp, j, _ in _checked_items(toolpaths, job, None, streamed=True)]
+    for lp, (packed, t) in zip(toolpaths.layers, parallel_imap(_plan_compare_task, items, job,
+                                                               progress=progress)):
+        yield _unpack_layer(lp, packed), t
 
 
 def constant_speed_motion(toolpaths: Toolpaths, job: Job | None = None, *,

@@ -81,7 +81,8 @@ from icefab.resultfiles import (TOOLPATHS_FORMAT as FORMAT, TOOLPATHS_VERSION as
                                 unpack_layer_paths)
 from icefab.geometry import signed_area
 from icefab.core import (OFF, ON1, ON2, Layer, LayerPaths, Region, Stack, Toolpath,  # noqa: F401
-                         Toolpaths, closed_polyline, deposition_state, offsets, point_states)
+                         Toolpaths, closed_polyline, deposition_state, offsets, path_lengths,
+                         point_states)
 from icefab.workload import check_paths
 
 log = logging.getLogger(__name__)
@@ -891,8 +892,9 @@ def estimate_build_time(toolpaths: Toolpaths, job: Job | None = None
     Returns (per-layer times (n,) float64 s, total s). Accelerations are ignored.
     """
     job = job or toolpaths.job
-    per = np.array([sum(p.length / path_speed(p, job) for p in lp.paths)
-                    for lp in toolpaths.layers], dtype=np.float64)
+    per = np.array([float((path_lengths(lp.paths)
+                           / np.array([path_speed(p, job) for p in lp.paths])).sum())
+                    if lp.paths else 0.0 for lp in toolpaths.layers], dtype=np.float64)
     return per, float(per.sum())
 
 

@@ -97,8 +97,8 @@ def _hms(s: float) -> str:
 def run(args: argparse.Namespace) -> int:
     from icefab.export import save_gcode
     from icefab.headroom import feedback_headroom, tightest
-    from icefab.motion import (TrajectoryFile, TrajectoryWriter, constant_speed_time,
-                               iter_plan_toolpaths, save_constant_spacing)
+    from icefab.motion import (TrajectoryFile, TrajectoryWriter, iter_plan_and_compare,
+                               save_constant_spacing)
     from icefab.paths import estimate_build_time
     from icefab.robots import get_robot
     from icefab.stages import layer_height
@@ -120,11 +120,13 @@ def run(args: argparse.Namespace) -> int:
         t1 = time.perf_counter()
         pictured, room = {}, []
         n_traj = n_points = 0
-        total = dep = 0.0
+        total = dep = const_acc = 0.0
         with TrajectoryWriter(tmp / "trajectories.npz", job, robot.name,
                               robot.joint_names) as out:
-            for k, lm in enumerate(iter_plan_toolpaths(tp, job, progress=Progress("planning"))):
+            for k, (lm, t_const) in enumerate(iter_plan_and_compare(
+                    tp, job, progress=Progress("planning"))):
                 out.add(lm)
+                const_acc += t_const
                 n_traj += len(lm.trajectories)
                 n_points += lm.n_points
                 total += lm.duration
@@ -138,7 +140,6 @@ def run(args: argparse.Namespace) -> int:
                     pictured[k] = lm
         t_plan = time.perf_counter() - t1
         _, const = estimate_build_time(tp, job)
-        const_acc = constant_speed_time(tp, job, progress=Progress("constant speed"))
         lines = [
             f"layers: {len(tp.layers)}, trajectories: {n_traj}, samples: {n_points} "
             f"at dt = {job.motion.dt_s * 1000:g} ms ({robot.name}, jerk "
@@ -151,7 +152,7 @@ def run(args: argparse.Namespace) -> int:
             compare_build_times(total, const_acc),
             f"constant-speed estimate:  {hours(const)} ({ESTIMATE_WORDS}; 'icefab paths' "
             f"prints it)",
-            f"planning and writing the trajectories: {t_plan:.2f} s "
+            f"planning (MTTS and constant speed) and writing the trajectories: {t_plan:.2f} s "
             f"({n_points / max(t_plan, 1e-9) / 1e6:.2f} M samples/s), total "
             f"{time.perf_counter() - t0:.2f} s",
         ]
