@@ -21,7 +21,7 @@ from icefab.cli.common import (ESTIMATE_WORDS, Progress, add_job_argument, hours
                                job_from_args, output_dir, parse_layers, warning_lines,
                                write_warnings)
 from icefab.report import plot_toolpaths
-from icefab.core import Toolpaths
+from icefab.core import Toolpaths, path_lengths
 
 SHOW_WARNINGS = 5
 
@@ -47,10 +47,10 @@ def summary_lines(toolpaths: Toolpaths, per_layer_s: np.ndarray, total_s: float)
     counts: dict[str, int] = {}
     length: dict[str, float] = {}
     for lp in toolpaths:
-        for p in lp.paths:
+        for p, mm in zip(lp.paths, path_lengths(lp.paths).tolist()):
             key = f"{p.material} {p.role}" if p.role != "travel" else "travel"
             counts[key] = counts.get(key, 0) + 1
-            length[key] = length.get(key, 0.0) + p.length
+            length[key] = length.get(key, 0.0) + mm
     lines = [f"layers: {len(toolpaths)}"]
     for key in sorted(counts):
         lines.append(f"  {key}: {counts[key]} paths, {length[key] / 1000:.2f} m")
