@@ -346,3 +346,35 @@ def test_plan_and_compare_in_one_pass_gives_both_figures(four_layers):
     assert sum(t for _, t in pairs) == pytest.approx(constant_speed_time(tp, job), rel=1e-12)
     for (lm, _), want in zip(pairs, four_layers.layers):
         assert lm.duration == want.duration
+
+
+def test_open_trajectories_reads_layers_as_asked_for(tmp_path, four_layers):
+    import threading
+
+    from icefab.motion import open_trajectories
+    f = tmp_path / "t.npz"
+    save_trajectories(four_layers, f, block_samples=700)   # a few blocks
+    lazy = open_trajectories(f)
+    whole = load_trajectories(f)
+    assert len(lazy.layers) == 4 and lazy.job == whole.job and lazy.robot == whole.robot
+    _same_samples(whole, type(whole)(layers=tuple(lazy.layers), job=whole.job))
+    assert [lm.index for lm in lazy.layers[1:3]] == [1, 2] and lazy.layers[-1].index == 3
+    assert [lm.index for lm in lazy.layers[::-2]] == [3, 1] and len(lazy.layers[2:]) == 2
+    with pytest.raises(IndexError):
+        lazy.layers[4]
+    # the build runner's planning thread reads ahead while the main thread reads
+    rng = np.random.default_rng(5)
+    picks = rng.integers(0, 4, size=(2, 200))
+    wrong = []
+
+    def read(order):
+        for k in order:
+            lm = lazy.layers[int(k)]
+            if lm.index != k or len(lm.trajectories) != len(whole.layers[k].trajectories):
+                wrong.append(k)
+    threads = [threading.Thread(target=read, args=(p,)) for p in picks]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not wrong

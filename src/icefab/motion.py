@@ -102,7 +102,8 @@ from icefab.frames import to_base_frame
 from icefab.parallel import parallel_imap, parallel_map
 from icefab.resultfiles import (TRAJECTORIES_FORMAT as FORMAT,  # noqa: F401 (old home)
                                 TRAJECTORIES_VERSION as VERSION, TrajectoryFile,
-                                TrajectoryWriter, load_trajectories, owner_arrays,
+                                TrajectoryWriter, load_trajectories, open_trajectories,
+                                owner_arrays,
                                 pack_trajectories, save_trajectories, unpack_trajectories)
 from icefab.robots import Robot, get_robot
 from icefab.core import (ROLES, BuildMotion, LayerMotion, LayerPaths, Toolpath, Toolpaths,
@@ -116,7 +117,8 @@ __all__ = ["plan_motion", "plan_paths_motion", "plan_toolpaths", "iter_plan_tool
            "constant_speed_motion",
            "constant_speed_time",
            "check_build_workspace", "LayerMotion", "BuildMotion",
-           "save_trajectories", "load_trajectories", "TrajectoryFile", "TrajectoryWriter",
+           "save_trajectories", "load_trajectories", "open_trajectories", "TrajectoryFile",
+           "TrajectoryWriter",
            "constant_spacing", "gcode_moves",
            "path_limits"]
 

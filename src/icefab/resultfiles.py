@@ -84,6 +84,7 @@ May import: ``icefab.core``, ``icefab.config``, ``icefab.errors``, ``icefab.atom
 
 from __future__ import annotations
 
+import collections.abc
 import contextlib
 import functools
 import logging
@@ -92,6 +93,7 @@ import os
 import stat
 import struct
 import sys
+import threading
 import tomllib
 import zipfile
 import zlib
@@ -1008,6 +1010,8 @@ class TrajectoryFile:
     def __init__(self, path: str | os.PathLike) -> None:
         self.path = Path(path)
         self._m = _Members(self.path, "trajectory")
+        self._lock = threading.RLock()
+        self._cache: dict[int, list[LayerMotion]] = {}
         try:
             self._read_header()
         except BaseException:
@@ -1131,6 +1135,31 @@ class TrajectoryFile:
         """(T,) bool: the trajectories that deposit (part or scaffold, boundary or fill)."""
         return np.isin(self.role, [ROLE_CODES.index(r) for r in ("boundary", "fill")])
 
+    def layer_at(self, pos: int) -> LayerMotion:
+        """The layer at position ``pos`` (0-based, file order), from a cache of the two
+        blocks last decoded (thread-safe: the build runner's planning thread reads ahead)."""
+        with self._lock:
+            k = int(np.searchsorted(self._block_layers, pos, side="right")) - 1
+            if not 0 <= pos < self.n_layers:
+                raise IndexError(f"layer position {pos} of {self.n_layers}")
+            block = self._cache.get(k)
+            if block is None:
+                block = list(self._decode_block(k, None))
+                self._cache[k] = block
+                while len(self._cache) > 2:
+                    self._cache.pop(next(iter(self._cache)))
+            return block[pos - int(self._block_layers[k])]
+
+    def sequence(self) -> "LayerSequence":
+        """The layers as a read-only sequence, decoded a block at a time as they are asked
+        for (:meth:`layer_at`)."""
+        return LayerSequence(self, range(self.n_layers))
+
+    def motion(self) -> BuildMotion:
+        """A BuildMotion whose layers are :meth:`sequence` (read while this file is open)."""
+        return BuildMotion(layers=self.sequence(), job=self.job, robot=self.robot,
+                           joint_names=self.joint_names)
+
     @property
     def layers(self) -> "Iterator[LayerMotion]":
         """Every layer, decoded one block at a time: a new pass each time it is asked for,
@@ -1141,21 +1170,27 @@ class TrajectoryFile:
     def iter_layers(self, wanted: "set[int] | None" = None) -> "Iterator[LayerMotion]":
         """The layers in file order (only those whose index is in ``wanted``, if given),
         decoded one block at a time."""
-        bls, ls, ts = self._block_layers, self.layer_start, self._ts
+        bls = self._block_layers
         for k in range(len(bls) - 1):
             a, b = int(bls[k]), int(bls[k + 1])
             if wanted is not None and not wanted.intersection(
                     self.layer_index[a:b].tolist()):
                 continue
-            t0, t1 = int(ls[a]), int(ls[b])
-            r0, r1 = int(ts[t0]), int(ts[t1])
-            if self.version >= 4:
-                self._m.block_bound([f"{s}_{k}" for s in _TRAJ_BLOCK])
-                xy, joints, speed = _sample_counts(self._m, len(self.joint_names), f"_{k}",
-                                                   r1 - r0)
-            else:
-                xy, joints, speed = (x[r0:r1] for x in self._samples)
-            yield from self._layers_of(a, b, xy, joints, speed, wanted)
+            yield from self._decode_block(k, wanted)
+
+    def _decode_block(self, k: int, wanted: "set[int] | None") -> "Iterator[LayerMotion]":
+        """The layers of block k (those in ``wanted``, if given)."""
+        bls, ls, ts = self._block_layers, self.layer_start, self._ts
+        a, b = int(bls[k]), int(bls[k + 1])
+        t0, t1 = int(ls[a]), int(ls[b])
+        r0, r1 = int(ts[t0]), int(ts[t1])
+        if self.version >= 4:
+            self._m.block_bound([f"{s}_{k}" for s in _TRAJ_BLOCK])
+            xy, joints, speed = _sample_counts(self._m, len(self.joint_names), f"_{k}",
+                                               r1 - r0)
+        else:
+            xy, joints, speed = (x[r0:r1] for x in self._samples)
+        yield from self._layers_of(a, b, xy, joints, speed, wanted)
 
     def _layers_of(self, a: int, b: int, xy, joints, speed, wanted) -> "Iterator[LayerMotion]":
         """LayerMotion of layers a..b-1 from their samples (rows from the first one's)."""
@@ -1208,6 +1243,36 @@ def load_trajectories(path: str | os.PathLike) -> BuildMotion:
     with TrajectoryFile(path) as f:
         layers = tuple(f.iter_layers())
         return BuildMotion(layers=layers, job=f.job, robot=f.robot, joint_names=f.joint_names)
+
+
+class LayerSequence(collections.abc.Sequence):
+    """A trajectory file's layers as a read-only sequence (``BuildMotion.layers`` of
+    :func:`open_trajectories`): indexing decodes the layer's block (two kept,
+    :meth:`TrajectoryFile.layer_at`), a slice is another such sequence, iterating walks
+    the blocks once."""
+
+    def __init__(self, source: TrajectoryFile, positions: range) -> None:
+        self._source, self._positions = source, positions
+
+    def __len__(self) -> int:
+        return len(self._positions)
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            return LayerSequence(self._source, self._positions[i])
+        return self._source.layer_at(self._positions[i])
+
+    def __iter__(self) -> "Iterator[LayerMotion]":
+        for pos in self._positions:
+            yield self._source.layer_at(pos)
+
+
+def open_trajectories(path: str | os.PathLike) -> BuildMotion:
+    """A trajectory file as a BuildMotion whose layers are read a block at a time as they
+    are asked for (:class:`LayerSequence`): what :func:`load_trajectories` gives, in the
+    memory of two blocks (issue 17: the build runner on a 1 M-facet part). The file stays
+    open while the BuildMotion lives. Same checks and errors as load_trajectories."""
+    return TrajectoryFile(path).motion()
 
 
 # --------------------------------------------------------------------------- ruled edges

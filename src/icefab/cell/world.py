@@ -339,6 +339,5 @@ def grid_for(motion, job, layers: int | None = None) -> tuple[np.ndarray, tuple[
     layers): (origin (2,) mm, shape (ny, nx), spacing mm)."""
     sim = _simulator
     chosen = motion.layers[:layers] if layers else motion.layers
-    plans = [sim.plan_layer_motion(lm, job) for lm in chosen]
-    hm = sim.grid_for(plans, job)
+    hm = sim.grid_for((sim.plan_layer_motion(lm, job) for lm in chosen), job)
     return np.asarray(hm.origin, dtype=np.float64), hm.z.shape, float(hm.spacing)

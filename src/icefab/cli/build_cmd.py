@@ -27,6 +27,7 @@ import os
 import shutil
 import signal
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -102,27 +103,35 @@ def _input_digest(inputs: list[str]) -> str:
     return digest_text("|".join(parts))
 
 
-def _plan(args: argparse.Namespace):
-    """(BuildMotion of the layers to build, job)."""
+def _plan(args: argparse.Namespace, out: Path):
+    """The job, after writing the trajectories of the layers to build to ``out`` (a
+    trajectories file), planned layer by layer as they stream into it: a 1 M-facet part's
+    build never holds its samples in memory (issue 17)."""
     from icefab.cli.common import Progress, job_from_args
     from icefab.cli.simulate_cmd import load_build
-    from icefab.motion import BuildMotion, plan_toolpaths
     from icefab.core import Toolpaths
+    from icefab.motion import BuildMotion, TrajectoryFile, TrajectoryWriter, iter_plan_toolpaths
+    from icefab.robots import get_robot
 
     ns = argparse.Namespace(job=args.job, flow_error=None, seed=None, deposition="valves",
                             layers=args.layers or 0)
     build, job = load_build(list(args.input), job_from_args(args), ns)
     n = min(args.layers or len(build), len(build))
-    if isinstance(build, BuildMotion):
-        motion = BuildMotion(layers=tuple(build.layers[:n]), job=build.job, robot=build.robot,
-                             joint_names=build.joint_names)
+    if isinstance(build, BuildMotion):  # kept with the job it was planned with
+        planned, robot, joints, layers = build.job, build.robot, build.joint_names, \
+            build.layers[:n]
     else:
-        motion = plan_toolpaths(Toolpaths(layers=tuple(build.layers[:n]), job=build.job), job,
-                                progress=Progress("trajectories"))
-    if not any(t.path is not None and t.path.depositing for lm in motion.layers
-               for t in lm.trajectories):
-        raise ConfigError(f"{args.input[0]}: nothing to deposit in the first {n} layers")
-    return motion, job
+        r = get_robot(job)
+        planned, robot, joints = job, r.name, r.joint_names
+        layers = iter_plan_toolpaths(Toolpaths(layers=tuple(build.layers[:n]), job=build.job),
+                                     job, progress=Progress("trajectories"))
+    with TrajectoryWriter(out, planned, robot, joints) as w:
+        for lm in layers:
+            w.add(lm)
+    with TrajectoryFile(out) as f:
+        if not f.depositing().any():
+            raise ConfigError(f"{args.input[0]}: nothing to deposit in the first {n} layers")
+    return job
 
 
 def _box(motion, job):
@@ -192,7 +201,7 @@ def _run(build: Path, args: argparse.Namespace, *, resume: bool) -> int:
     from icefab import build as bmod
     from icefab.config import load_job, to_toml
     from icefab.journal import Journal, digest_file, digest_text
-    from icefab.motion import load_trajectories, save_trajectories
+    from icefab.motion import TrajectoryFile, open_trajectories
 
     jpath = build / bmod.JOURNAL
     if resume:
@@ -206,7 +215,7 @@ def _run(build: Path, args: argparse.Namespace, *, resume: bool) -> int:
             digests["input"] = _input_digest(list(args.input))
         journal.check_digests(digests)
         job = load_job(build / "job.toml")
-        motion = load_trajectories(build / bmod.TRAJECTORIES)
+        motion = open_trajectories(build / bmod.TRAJECTORIES)  # a block at a time
         if args.cell:
             meta["cell"] = str(Path(args.cell).resolve())
         lock = _lock(build)
@@ -217,18 +226,22 @@ def _run(build: Path, args: argparse.Namespace, *, resume: bool) -> int:
             raise ConfigError(f"{build}: holds a build journal already: resume it with "
                               f"'icefab build --resume {build}' or choose another -o")
         in_digest = _input_digest(list(args.input))
-        motion, job = _plan(args)
-        bmod.check_build(motion, job, len(motion.layers))
-        build.mkdir(parents=True, exist_ok=True)
-        lock = _lock(build)
-        cdir = build / bmod.CELL_DIR
-        if cdir.is_dir():
-            # a start killed before its journal existed: nothing was sent; start afresh
-            _shutdown_cell(cdir)
-            shutil.rmtree(cdir)
-        job_toml = to_toml(job)
-        (build / "job.toml").write_text(job_toml, encoding="utf-8")
-        save_trajectories(motion, build / bmod.TRAJECTORIES)
+        with tempfile.TemporaryDirectory(prefix="icefab-build-plan-") as tmp:
+            planned = Path(tmp) / bmod.TRAJECTORIES
+            job = _plan(args, planned)
+            with TrajectoryFile(planned) as f:
+                bmod.check_build(f.motion(), job, f.n_layers)
+            build.mkdir(parents=True, exist_ok=True)
+            lock = _lock(build)
+            cdir = build / bmod.CELL_DIR
+            if cdir.is_dir():
+                # a start killed before its journal existed: nothing was sent; start afresh
+                _shutdown_cell(cdir)
+                shutil.rmtree(cdir)
+            job_toml = to_toml(job)
+            (build / "job.toml").write_text(job_toml, encoding="utf-8")
+            shutil.move(planned, build / bmod.TRAJECTORIES)
+        motion = open_trajectories(build / bmod.TRAJECTORIES)
         meta = {"cell": "virtual" if args.virtual else str(Path(args.cell).resolve()),
                 "cell_time_factor": args.cell_time_factor, "layers": len(motion.layers),
                 "inputs": list(args.input),

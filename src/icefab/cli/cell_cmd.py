@@ -72,12 +72,12 @@ def _grid(args, job):
         raise ConfigError(f"--layers {args.layers}: expected >= 0")
     if args.grid_for:
         from icefab.cell.world import grid_for
-        from icefab.motion import load_trajectories
+        from icefab.motion import open_trajectories
 
         src = Path(args.grid_for)
         if not src.is_file():
             raise ConfigError(f"--grid-for {src}: trajectories file not found")
-        return grid_for(load_trajectories(src), job, layers=args.layers or None)
+        return grid_for(open_trajectories(src), job, layers=args.layers or None)
     if args.bounds:
         import numpy as np
 

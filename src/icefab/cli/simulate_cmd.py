@@ -121,7 +121,7 @@ def load_build(model: list[str], job: "Job", args: argparse.Namespace
         if fmt == motion_mod.FORMAT:
             from icefab.sim import check_motion_job
 
-            motion = motion_mod.load_trajectories(first)
+            motion = motion_mod.open_trajectories(first)  # its layers read as asked for
             job = _job_with_options(job if args.job else motion.job, args)
             if args.deposition is None:
                 job = job.replace(**{"simulation.deposition": "valves"})

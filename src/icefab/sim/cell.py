@@ -9,7 +9,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
-from typing import Callable, Sequence
+from typing import Callable, Iterable, Sequence
 
 import numpy as np
 from scipy import ndimage
@@ -103,19 +103,26 @@ class SimResult:
                 "flow_gain": list(self.flow_gain), "pulses": self.pulses}
 
 
-def grid_for(plans: Sequence[LayerPlan], job: "Job") -> HeightMap:
-    pts = [p.a for p in plans if len(p.a)] + [p.b for p in plans if len(p.b)]
-    if not pts:
+def grid_for(plans: Iterable[LayerPlan], job: "Job") -> HeightMap:
+    """The empty surface over every deposition point of ``plans`` (walked once: a stream
+    of plans is never held, e.g. the virtual cell's grid for a 1 M-facet build) with a
+    margin of two path widths and two grid cells."""
+    lo = hi = None
+    wmax = 0.0
+    for p in plans:
+        for pts in (p.a, p.b):
+            if len(pts):
+                a, b = pts.min(axis=0), pts.max(axis=0)
+                lo = a if lo is None else np.minimum(lo, a)
+                hi = b if hi is None else np.maximum(hi, b)
+        if len(p.half_width):
+            wmax = max(wmax, float(p.half_width.max()))
+    if lo is None:
         raise SimulationError("nothing to deposit: the layers have no boundary or fill paths "
                               "(or trajectories)")
-    allp = np.concatenate(pts)
-    wmax = max(float(p.half_width.max()) for p in plans if len(p.half_width))
     margin = 2 * wmax + 2 * job.simulation.grid_mm
-    check_grid(allp.min(axis=0) - margin, allp.max(axis=0) + margin, job.simulation.grid_mm,
-               "simulation.grid_mm")
-    return empty_surface(allp.min(axis=0), allp.max(axis=0), job.simulation.grid_mm, margin)
-
-
+    check_grid(lo - margin, hi + margin, job.simulation.grid_mm, "simulation.grid_mm")
+    return empty_surface(lo, hi, job.simulation.grid_mm, margin)
 
 
 def _noise_field(rng: np.random.Generator, shape: tuple[int, int], sigma_cells: float
