@@ -630,3 +630,29 @@ def test_kernels_match_numpy_reference():
     sg = np.minimum(sl, np.repeat(L, ns)) + np.repeat(s0, ns)
     ref = np.c_[np.interp(sg, fu, pts[:, 0]), np.interp(sg, fu, pts[:, 1])]
     np.testing.assert_allclose(xy, ref, atol=1e-9)
+
+
+_DIGEST = """
+import hashlib, numpy as np
+from icefab import Job
+from icefab.motion import plan_motion, thesis_test_path
+tr = plan_motion(thesis_test_path((250.0, -30.0)), Job())
+h = hashlib.sha256()
+for a in (tr.xy, tr.joints, tr.speed):
+    h.update(np.ascontiguousarray(a).tobytes())
+print(h.hexdigest())
+"""
+
+
+def test_trajectories_do_not_depend_on_whether_numbas_cache_existed(tmp_path):
+    """The kernels compiled in the process and the same kernels loaded from numba's cache
+    give the same samples, bit for bit (fast-math "reassoc" and "contract" made them round
+    differently, _mtts._FM)."""
+    import os
+    import subprocess
+    import sys
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
+    runs = [subprocess.run([sys.executable, "-c", _DIGEST], env=env, capture_output=True,
+                           text=True, check=True).stdout for _ in range(2)]
+    assert (tmp_path / "numba").is_dir()        # the first run compiled, the second loaded
+    assert runs[0] == runs[1] and len(runs[0].strip()) == 64
