@@ -52,13 +52,14 @@ Trajectory file (``icefab plan``; :func:`save_trajectories` / :func:`load_trajec
   (``block_layer_start`` (B + 1,) int64: block k holds layers
   ``block_layer_start[k]:block_layer_start[k+1]``, about :data:`BLOCK_SAMPLES` samples,
   so a reader or writer holds one block at a time, :class:`TrajectoryFile`,
-  :class:`TrajectoryWriter`): ``xy_counts_K`` (2, 8, M_k) uint8 at ``xy_resolution`` mm
-  (robot base frame), ``joint_counts_K`` (j, 8, M_k) at ``joint_resolution`` (rad or
-  mm), ``speed_counts_K`` (1, 8, M_k) at ``speed_resolution`` mm/s, each resolution a
-  float member; the reader gives back float64 ``xy`` (M, 2), ``joints`` (M, j) and
-  ``speed`` (M,) within half a resolution of what was saved (:func:`encode_counts` says
-  how the counts are stored). Version 3 stored one block, as ``xy_counts``,
-  ``joint_counts`` and ``speed_counts`` without ``block_layer_start``; version 2 the
+  :class:`TrajectoryWriter`): ``xy_counts_K`` (2, k, M_k) uint8 at ``xy_resolution`` mm
+  (robot base frame), ``joint_counts_K`` (j, k, M_k) at ``joint_resolution`` (rad or
+  mm), ``speed_counts_K`` (1, k, M_k) at ``speed_resolution`` mm/s (k <= 8 byte planes,
+  each member its own), each resolution a float member; the reader gives back float64
+  ``xy`` (M, 2), ``joints`` (M, j) and ``speed`` (M,) within half a resolution of what was
+  saved (:func:`encode_counts` says how the counts are stored). Version 3 stored one
+  block, as ``xy_counts``, ``joint_counts`` and ``speed_counts`` of 8 planes each without
+  ``block_layer_start``; version 2 the
   float64 arrays ``xy``, ``joints`` and ``speed`` themselves; both are still read;
 * ``traj_start`` (T + 1,) int64: trajectory i is rows ``traj_start[i]:traj_start[i+1]``;
 * ``piece_start`` (Q,) int64 sample indices (within its trajectory) where pieces start
@@ -733,37 +734,33 @@ def owner_arrays(motion: BuildMotion) -> dict[str, np.ndarray]:
                              dtype=np.int8)}
 
 
-def _planes(column: np.ndarray, resolution: float) -> np.ndarray:
-    """(n,) float64 -> (8, n) uint8: the values as integer counts of ``resolution``
-    (rounded to the nearest), their second differences (the first ones against zeros),
-    zig-zag mapped to unsigned (0, -1, 1, -2, ... -> 0, 1, 2, 3, ...), as the 8 byte planes
-    of their little-endian uint64."""
-    q = np.rint(np.asarray(column, np.float64) / resolution).astype(np.int64)
-    d = np.diff(np.diff(q, prepend=0), prepend=0)
-    zz = ((d << 1) ^ (d >> 63)).astype("<u8")
-    return np.ascontiguousarray(zz.view(np.uint8).reshape(-1, 8).T)
-
-
 def encode_counts(values: np.ndarray, resolution: float) -> np.ndarray:
-    """Samples as a trajectory file stores them: ``(c, 8, n)`` uint8.
+    """Samples as a trajectory file stores them: ``(c, k, n)`` uint8.
 
     ``values`` (n,) or (n, c) float64 become, column by column, integer counts of
-    ``resolution``, their second differences down the column (a sampled motion's are its
-    accelerations in counts: a few units), zig-zag mapped and split into the 8 byte planes
-    of their little-endian uint64 (the shuffle filter of Blosc and HDF5): the high planes
-    of small numbers are zeros that deflate to nearly nothing. The demo's trajectories
-    take 5 MB instead of 53. :func:`decode_counts` inverts it exactly.
+    ``resolution`` (rounded to the nearest), their second differences down the column (a
+    sampled motion's are its accelerations in counts: a few units; the first ones against
+    zeros), zig-zag mapped to unsigned (0, -1, 1, -2, ... -> 0, 1, 2, 3, ...) and split
+    into the byte planes of their little-endian uint64 (the shuffle filter of Blosc and
+    HDF5), of which the low ``k`` that hold any non-zero byte are kept (``k`` <= 8; the
+    first samples' absolute counts need about three): what is left deflates to little.
+    The demo's trajectories take 5 MB instead of 53. :func:`decode_counts` inverts it
+    exactly (compiled, :mod:`icefab._codec`).
     """
+    from icefab._codec import encode_plane_column
+
     v = np.asarray(values, np.float64)
     v = v[:, None] if v.ndim == 1 else v
     out = np.empty((v.shape[1], 8, len(v)), np.uint8)
+    k = 1
     for col in range(v.shape[1]):
-        out[col] = _planes(v[:, col], resolution)
-    return out
+        k = max(k, encode_plane_column(np.ascontiguousarray(v[:, col]), float(resolution),
+                                       out[col]))
+    return np.ascontiguousarray(out[:, :k])
 
 
 def decode_counts(planes: np.ndarray, resolution: float) -> np.ndarray:
-    """The float64 ``(n, c)`` samples of :func:`encode_counts`' ``(c, 8, n)`` planes
+    """The float64 ``(n, c)`` samples of :func:`encode_counts`' ``(c, k, n)`` planes
     (compiled, :mod:`icefab._codec`; overflow wraps: the callers' bounds catch it)."""
     from icefab._codec import decode_plane_column
 
@@ -775,19 +772,26 @@ def decode_counts(planes: np.ndarray, resolution: float) -> np.ndarray:
 
 
 class _Counts:
-    """A counts member (:func:`encode_counts` of ``column(0..cols-1)``, each (n,) float64)
-    written to the file column by column: the memory it takes is one column's, not the
-    build's samples again (issue 17: saving doubled ``icefab plan``'s peak)."""
+    """A counts member (:func:`encode_counts` of ``column(0..cols-1)``, each (n,) float64):
+    the columns are encoded one at a time, so the memory it takes is the planes', not the
+    float samples again (issue 17: saving doubled ``icefab plan``'s peak)."""
 
     def __init__(self, column: Callable[[int], np.ndarray], n: int, cols: int,
                  resolution: float) -> None:
-        self.column, self.shape, self.resolution = column, (cols, 8, n), resolution
+        self.column, self.cols, self.n, self.resolution = column, cols, n, resolution
 
     def write(self, fh) -> None:
+        from icefab._codec import encode_plane_column
+
+        planes = np.empty((self.cols, 8, self.n), np.uint8)
+        k = 1
+        for col in range(self.cols):
+            k = max(k, encode_plane_column(np.ascontiguousarray(self.column(col)),
+                                           float(self.resolution), planes[col]))
         np.lib.format.write_array_header_1_0(
-            fh, {"descr": "|u1", "fortran_order": False, "shape": self.shape})
-        for col in range(self.shape[0]):
-            fh.write(_planes(self.column(col), self.resolution).data)
+            fh, {"descr": "|u1", "fortran_order": False, "shape": (self.cols, k, self.n)})
+        for col in range(self.cols):
+            fh.write(np.ascontiguousarray(planes[col, :k]).data)
 
 
 #: Samples per block of a version 4 trajectory file: a reader decodes one block at a time
@@ -978,10 +982,10 @@ def _sample_counts(m: "_Members", n_joints: int, suffix: str = "", n: int | None
         planes = m.array(member, "u", 3)
         if name == "joint" and not cols:  # unnamed joints: as many as stored (as version 2)
             cols = planes.shape[0]
-        if planes.dtype.itemsize != 1 or planes.shape[:2] != (cols, 8) or \
-                (n is not None and planes.shape[2] != n):
+        if planes.dtype.itemsize != 1 or planes.shape[0] != cols or \
+                not 1 <= planes.shape[1] <= 8 or (n is not None and planes.shape[2] != n):
             raise m.bad(member, f"{planes.dtype} of shape {planes.shape}, expected "
-                        f"uint8 byte planes of shape ({cols}, 8, "
+                        f"uint8 byte planes of shape ({cols}, 1..8, "
                         f"{'n' if n is None else n}): the file is corrupt")
         n = planes.shape[2]
         v = decode_counts(planes, res)
