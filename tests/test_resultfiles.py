@@ -362,3 +362,20 @@ def test_smooth_samples_take_a_few_bits_a_value():
     # samples' absolute counts need three planes, the rest are left out
     assert planes.shape[1] == 3 and not planes[:, 2:, 2:].any()
     assert len(zlib.compress(planes.tobytes(), 1)) < 0.1 * xy.nbytes
+
+
+@given(st.lists(st.tuples(st.integers(1, 6), st.sampled_from(["boundary", "fill", "measure",
+                                                             "travel"]),
+                          st.sampled_from(["part", "scaffold"]), st.booleans()),
+                max_size=30))
+def test_point_states_of_packed_paths_are_each_paths(shapes):
+    from icefab.core import Toolpath, point_states
+    paths = [Toolpath(points=np.zeros((k, 2)) + i, role=r, material=m, closed=c)
+             for i, (k, r, m, c) in enumerate(shapes)]
+    want = (np.concatenate([point_states(p) for p in paths]) if paths
+            else np.zeros(0, np.int8))
+    got = rf._point_states(rf.pack_paths(paths))
+    assert got.dtype == np.int8 and np.array_equal(got, want)
+    back = rf.unpack_paths(rf.pack_paths(paths))
+    assert [(p.role, p.material, p.closed, len(p.points)) for p in back] == \
+        [(r, m, c, k) for k, r, m, c in shapes]

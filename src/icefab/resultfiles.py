@@ -105,9 +105,9 @@ import numpy as np
 
 from icefab.atomic import atomic_path
 from icefab.config import job_from_dict, to_toml
-from icefab.core import (FRAMES, MATERIALS, OFF, ON2, ROLES, TOOLS, BuildMotion, Layer,
+from icefab.core import (FRAMES, MATERIALS, OFF, ON1, ON2, ROLES, TOOLS, BuildMotion, Layer,
                          LayerMotion, LayerPaths, Region, RuledEdges, Stack, Toolpath,
-                         Toolpaths, Trajectory, offsets, point_states)
+                         Toolpaths, Trajectory, offsets)
 from icefab.errors import ConfigError, StackFileError
 
 log = logging.getLogger(__name__)
@@ -569,31 +569,48 @@ def pack_paths(paths: Sequence[Toolpath]) -> dict[str, np.ndarray]:
     worker processes' packing): ``points``, ``path_start``, ``z``, ``material``, ``role``,
     ``closed``, ``width``, ``layer``, ``frame``, ``tool``."""
     points, start = pack([p.points for p in paths])
+
+    def codes(attr: str, table: Sequence[str]) -> np.ndarray:
+        code = {name: k for k, name in enumerate(table)}
+        return np.array([code[getattr(p, attr)] for p in paths], dtype=np.int8)
     return {
         "points": points,
         "path_start": start,
         "z": np.array([p.z for p in paths], dtype=np.float64),
-        "material": np.array([MATERIAL_CODES.index(p.material) for p in paths], dtype=np.int8),
-        "role": np.array([ROLE_CODES.index(p.role) for p in paths], dtype=np.int8),
+        "material": codes("material", MATERIAL_CODES),
+        "role": codes("role", ROLE_CODES),
         "closed": np.array([p.closed for p in paths], dtype=bool),
         "width": np.array([p.width for p in paths], dtype=np.float64),
         "layer": np.array([p.layer for p in paths], dtype=np.int64),
-        "frame": np.array([FRAME_CODES.index(p.frame) for p in paths], dtype=np.int8),
-        "tool": np.array([TOOL_CODES.index(p.tool) for p in paths], dtype=np.int8),
+        "frame": codes("frame", FRAME_CODES),
+        "tool": codes("tool", TOOL_CODES),
     }
+
+
+def _point_states(packed: dict[str, np.ndarray]) -> np.ndarray:
+    """:func:`icefab.core.point_states` of every path of :func:`pack_paths`' arrays, at
+    once: each path's state at all its points, OFF at the last point of an open path."""
+    start = packed["path_start"]
+    role, material = packed["role"], packed["material"]
+    depositing = np.isin(role, [ROLE_CODES.index("boundary"), ROLE_CODES.index("fill")])
+    state = np.where(depositing, np.where(material == MATERIAL_CODES.index("part"), ON1, ON2),
+                     OFF).astype(np.int8)
+    out = np.repeat(state, np.diff(start))
+    ends = start[1:] - 1
+    last = ~packed["closed"] & (np.diff(start) > 0)
+    out[ends[last]] = OFF
+    return out
 
 
 def unpack_paths(d: dict[str, np.ndarray], copy: bool = False) -> list[Toolpath]:
     """The paths of :func:`pack_paths`' arrays (points are views unless ``copy``)."""
-    pts, start = d["points"], d["path_start"]
-    out = []
-    for i in range(len(start) - 1):
-        p = pts[start[i]:start[i + 1]]
-        out.append(Toolpath(p.copy() if copy else p, float(d["z"][i]),
-                            MATERIAL_CODES[d["material"][i]], ROLE_CODES[d["role"][i]],
-                            bool(d["closed"][i]), float(d["width"][i]), int(d["layer"][i]),
-                            FRAME_CODES[d["frame"][i]], TOOL_CODES[d["tool"][i]]))
-    return out
+    pts, start = d["points"], d["path_start"].tolist()
+    fields = zip(start[:-1], start[1:], d["z"].tolist(), d["material"].tolist(),
+                 d["role"].tolist(), d["closed"].tolist(), d["width"].tolist(),
+                 d["layer"].tolist(), d["frame"].tolist(), d["tool"].tolist())
+    return [Toolpath(pts[a:b].copy() if copy else pts[a:b], float(z), MATERIAL_CODES[m],
+                     ROLE_CODES[r], bool(c), float(w), int(ly), FRAME_CODES[f], TOOL_CODES[t])
+            for a, b, z, m, r, c, w, ly, f, t in fields]
 
 
 def pack_layer_paths(lp: LayerPaths) -> tuple:
@@ -617,8 +634,7 @@ def save_toolpaths(tp: Toolpaths, path: str | os.PathLike) -> None:
         "job": np.array(to_toml(tp.job)),
         "warnings": np.array(list(tp.warnings), dtype=str),
         "points": packed.pop("points"),
-        "state": (np.concatenate([point_states(p) for p in paths]) if paths
-                  else np.zeros(0, dtype=np.int8)),
+        "state": _point_states(packed),
         **packed,
         "layer_index": np.array([lp.index for lp in tp.layers], dtype=np.int64),
         "layer_z": np.array([lp.z for lp in tp.layers], dtype=np.float64),
@@ -667,8 +683,7 @@ def load_toolpaths(path: str | os.PathLike) -> Toolpaths:
         paths = unpack_paths(d, copy=True)
         if version >= 2:
             state = m.values("state", "iu", 1, n=len(pts), lo=OFF, hi=ON2)
-            if paths and not np.array_equal(
-                    state, np.concatenate([point_states(p) for p in paths])):
+            if paths and not np.array_equal(state, _point_states(d)):
                 raise m.bad("state", "per-point states disagree with the paths' materials and "
                             "roles: the file is corrupt")
     layers = tuple(LayerPaths(int(index[j]), float(layer_z[j]), tuple(paths[ls[j]:ls[j + 1]]),
