@@ -170,7 +170,7 @@ def split(rows: np.ndarray, offs: np.ndarray) -> list[np.ndarray]:
 COMPRESS_LEVEL = 1
 
 
-def _write(path: str | os.PathLike, arrays: "dict[str, np.ndarray | _Counts]") -> Path:
+def _write(path: str | os.PathLike, arrays: "dict[str, np.ndarray]") -> Path:
     """An ``.npz`` (numpy's zip of ``.npy`` members, as ``np.savez_compressed`` writes it,
     at :data:`COMPRESS_LEVEL`), written atomically."""
     target = Path(path)
@@ -179,10 +179,7 @@ def _write(path: str | os.PathLike, arrays: "dict[str, np.ndarray | _Counts]") -
             tmp, "w", zipfile.ZIP_DEFLATED, compresslevel=COMPRESS_LEVEL) as zf:
         for name, value in arrays.items():
             with zf.open(name + ".npy", "w", force_zip64=True) as fh:
-                if isinstance(value, _Counts):
-                    value.write(fh)
-                else:
-                    np.lib.format.write_array(fh, np.asanyarray(value), allow_pickle=False)
+                np.lib.format.write_array(fh, np.asanyarray(value), allow_pickle=False)
     return target
 
 
@@ -697,24 +694,20 @@ def load_toolpaths(path: str | os.PathLike) -> Toolpaths:
 
 
 def pack_trajectories(trajs: Sequence[Trajectory], n_joints: int = 0, *,
-                      empty_pieces: bool = False, samples: bool = True
-                      ) -> dict[str, np.ndarray]:
-    """Trajectories' samples as flat arrays (the trajectory file's members, the worker
-    processes' packing): ``xy``, ``joints``, ``speed``, ``traj_start``, ``piece_start``,
-    ``piece_owner``, ``duration``, ``traj_dt``. A trajectory without pieces (one piece from
-    sample 0) stores the piece at 0, unless ``empty_pieces`` (the worker packing keeps it
-    empty, so the trajectory comes back as it was). ``samples=False`` leaves out ``xy``,
-    ``joints`` and ``speed`` (the file streams them)."""
+                      empty_pieces: bool = False) -> dict[str, np.ndarray]:
+    """Trajectories' samples as flat arrays (the worker processes' packing, the members of
+    a version 2 trajectory file): ``xy``, ``joints``, ``speed``, ``traj_start``,
+    ``piece_start``, ``piece_owner``, ``duration``, ``traj_dt``. A trajectory without
+    pieces (one piece from sample 0) gets the piece at 0, unless ``empty_pieces`` (the
+    worker packing keeps it empty, so the trajectory comes back as it was)."""
     pcs = [t.pieces if len(t.pieces) or empty_pieces else np.zeros(1, np.int64)
            for t in trajs]
-    out = {}
-    if samples:
-        out["xy"], _ = pack([t.xy for t in trajs])
-        out["joints"] = (np.concatenate([t.joints for t in trajs]) if trajs
-                         else np.zeros((0, n_joints)))
-        out["speed"] = np.concatenate([t.speed for t in trajs]) if trajs else np.zeros(0)
+    xy, _ = pack([t.xy for t in trajs])
     return {
-        **out,
+        "xy": xy,
+        "joints": (np.concatenate([t.joints for t in trajs]) if trajs
+                   else np.zeros((0, n_joints))),
+        "speed": np.concatenate([t.speed for t in trajs]) if trajs else np.zeros(0),
         "traj_start": offsets([len(t.xy) for t in trajs]),
         "piece_start": (np.concatenate(pcs) if pcs else np.zeros(0)).astype(np.int64),
         "piece_owner": np.repeat(np.arange(len(trajs)), [len(p) for p in pcs]).astype(np.int64),
@@ -860,10 +853,6 @@ class TrajectoryWriter:
                     raise
                 return False
         return self._stack.__exit__(exc_type, exc, tb)
-
-    @property
-    def n_layers(self) -> int:
-        return len(self._layers)
 
     def add(self, layer: LayerMotion) -> None:
         """Append one layer (after the previous one)."""
