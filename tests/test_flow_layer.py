@@ -143,3 +143,22 @@ def test_drop_spacing_of_a_layer_equals_path_by_path(seed, count):
         got = _drop_spacings(trajs, progs, limit)
         want = [_drop_spacing(t, p, limit) for t, p in zip(trajs, progs)]
         np.testing.assert_allclose(np.array(got), np.array(want), rtol=0, atol=1e-9)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), count=st.integers(0, 10),
+       thickness=st.sampled_from([float("nan"), 0.1, 0.6]))
+def test_layer_headroom_equals_the_path_by_path_one(seed, count, thickness):
+    from icefab.headroom import feedback_headroom, layer_headroom
+    rng = np.random.default_rng(seed)
+    trajs = [_trajectory(rng, int(rng.choice([1, 2, 40])), 0.016,
+                         float(rng.choice([60.0, 125.0])),
+                         str(rng.choice(["fill", "boundary", "travel", "measure"])),
+                         str(rng.choice(["part", "scaffold"])), float(rng.choice([0.0, 1.5])),
+                         1.0) for _ in range(count)]
+    if count > 2:  # a tie: the first of the largest is named
+        trajs.append(trajs[0])
+    layer = LayerMotion(index=4, z=1.0, trajectories=tuple(trajs), thickness=thickness)
+    job = Job()
+    want = feedback_headroom(((4, t, layer_height(thickness, job)) for t in trajs), job)
+    assert layer_headroom(layer, job) == want

@@ -71,8 +71,7 @@ def _run(args: argparse.Namespace, motion) -> int:
     from icefab.config import load_job
     from icefab.flow import (iter_build_valves, n_pulses, program_pieces, trajectory_width,
                              write_valve_layer)
-    from icefab.headroom import check_feedback_headroom, feedback_headroom, tightest
-    from icefab.stages import layer_height
+    from icefab.headroom import check_feedback_headroom, layer_headroom, tightest
     from icefab.workload import check_pulse_durations
 
     job = load_job(args.job) if args.job else motion.job
@@ -101,9 +100,7 @@ def _run(args: argparse.Namespace, motion) -> int:
         are planned (issue 11): the command stops at the first that lacks them."""
         nonlocal rooms
         for lm in layers:
-            rooms = tightest(rooms + feedback_headroom(
-                ((lm.index, t, layer_height(lm.thickness, job)) for t in lm.trajectories),
-                job))
+            rooms = tightest(rooms + layer_headroom(lm, job))
             check_feedback_headroom(rooms, job)
             yield lm
 
@@ -192,7 +189,8 @@ def _drop_spacings(trajs, progs, min_drops_per_mm: float) -> list[tuple[float, f
     span = (n - 1) * dt + 1.0                                    # each path's time, and a gap
     shift = np.concatenate([[0.0], np.cumsum(span)[:-1]])
     t = local * np.repeat(dt, n) + np.repeat(shift, n)
-    pulses = [pulse_times(p) for p in progs]
+    pulses = [p.ticks.astype(np.float64) * p.tick_s if not p.pieces else pulse_times(p)
+              for p in progs]   # a one-piece program's instants are its ticks' (pulse_times)
     n_p = np.array([len(a) for a in pulses], dtype=np.int64)
     at = np.interp(np.concatenate(pulses) + np.repeat(shift, n_p), t, s) - np.repeat(s0, n_p)
     limit = 1.0 / min_drops_per_mm if min_drops_per_mm > 0 else np.inf
