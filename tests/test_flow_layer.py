@@ -148,8 +148,10 @@ def test_drop_spacing_of_a_layer_equals_path_by_path(seed, count):
 @settings(max_examples=40, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), count=st.integers(0, 10),
        thickness=st.sampled_from([float("nan"), 0.1, 0.6]))
-def test_layer_headroom_equals_the_path_by_path_one(seed, count, thickness):
-    from icefab.headroom import feedback_headroom, layer_headroom
+def test_layer_headroom_names_the_first_fastest_widest_path_of_each_material(seed, count,
+                                                                           thickness):
+    from icefab.flow import trajectory_width
+    from icefab.headroom import layer_headroom
     rng = np.random.default_rng(seed)
     trajs = [_trajectory(rng, int(rng.choice([1, 2, 40])), 0.016,
                          float(rng.choice([60.0, 125.0])),
@@ -158,7 +160,18 @@ def test_layer_headroom_equals_the_path_by_path_one(seed, count, thickness):
                          1.0) for _ in range(count)]
     if count > 2:  # a tie: the first of the largest is named
         trajs.append(trajs[0])
-    layer = LayerMotion(index=4, z=1.0, trajectories=tuple(trajs), thickness=thickness)
     job = Job()
-    want = feedback_headroom(((4, t, layer_height(thickness, job)) for t in trajs), job)
-    assert layer_headroom(layer, job) == want
+    dh = layer_height(thickness, job) * job.flow.layer_scale
+    want = {}   # path by path, in order: the largest nominal flow w dh v_max of each material
+    for t in trajs:
+        if t.path.depositing:
+            w = trajectory_width(t, t.path.material, job)
+            q = w * dh * float(np.max(t.speed))
+            if t.path.material not in want or q > want[t.path.material][0]:
+                want[t.path.material] = (q, t.path.role, w, float(np.max(t.speed)))
+    got = layer_headroom(LayerMotion(index=4, z=1.0, trajectories=tuple(trajs),
+                                     thickness=thickness), job)
+    assert [r.material for r in got] == sorted(want)
+    for r in got:
+        assert (r.nominal_mm3_s, r.role, r.width_mm, r.speed_mm_s, r.layer) == \
+            (*want[r.material], 4)

@@ -1046,8 +1046,8 @@ def _nominal_fm_programs(trajs: "Sequence[Trajectory]", materials: Sequence[str]
     same = np.zeros(len(ticks_all), dtype=np.int64)
     same[1:] = ticks_all[1:] == ticks_all[:-1]
     same[toff[:-1][toff[:-1] < len(same)]] = 0       # no "before" at a path's first pulse
-    shared_one = np.add.reduceat(np.append(same, 0), np.minimum(toff[:-1], len(same)))
-    shared_one[toff[1:] == toff[:-1]] = 0
+    counted = np.concatenate([[0], np.cumsum(same)])
+    shared_one = counted[toff[1:]] - counted[toff[:-1]]
     for k in np.flatnonzero(fast):
         tr = sel[k]
         where = _where(tr)

@@ -94,44 +94,39 @@ def feedback_headroom(trajectories: Iterable[tuple[int, "Trajectory"]], job: "Jo
     trajectory's ``speed (n,)`` mm/s and its path's material, role and width are used
     (travel and measurement paths deposit nothing and are skipped).
     """
-    worst: dict[str, tuple[float, int, str, float, float, float]] = {}
-    for layer, t, *own in trajectories:
-        path = t.path
-        if path is None or not path.depositing or len(t.speed) == 0:
-            continue
-        dh = (own[0] if own else job.slicing.layer_thickness_mm) * job.flow.layer_scale
-        w = trajectory_width(t, path.material, job)
-        v = float(np.max(t.speed))
-        q = w * dh * v
-        if path.material not in worst or q > worst[path.material][0]:
-            worst[path.material] = (q, int(layer), path.role, w, v, dh)
-    return [_headroom(m, *worst[m][:5], job, dh=worst[m][5]) for m in sorted(worst)]
+    picked = [(int(layer), t, (own[0] if own else job.slicing.layer_thickness_mm)
+               * job.flow.layer_scale)
+              for layer, t, *own in trajectories
+              if t.path is not None and t.path.depositing and len(t.speed)]
+    if not picked:
+        return []
+    # each trajectory's top speed over all the samples at once (a bunny layer has 466
+    # trajectories: one ``max`` call each cost ``icefab valves`` 3 s)
+    n = np.array([len(t.speed) for _, t, _ in picked])
+    vmax = np.maximum.reduceat(np.concatenate([np.asarray(t.speed, np.float64)
+                                               for _, t, _ in picked]),
+                               np.concatenate([[0], np.cumsum(n)[:-1]]))
+    w = np.array([trajectory_width(t, t.path.material, job) for _, t, _ in picked])
+    dh = np.array([d for *_, d in picked])
+    q = w * dh * vmax
+    materials = np.array([t.path.material for _, t, _ in picked])
+    out = []
+    for m in sorted(set(materials.tolist())):
+        mine = np.flatnonzero(materials == m)
+        k = int(mine[np.argmax(q[mine])])        # the first of the largest
+        layer, t, _ = picked[k]
+        out.append(_headroom(m, float(q[k]), layer, t.path.role, float(w[k]), float(vmax[k]),
+                             job, dh=float(dh[k])))
+    return out
 
 
 def layer_headroom(layer: "LayerMotion", job: "Job") -> list[Headroom]:
-    """:func:`feedback_headroom` of one layer's trajectories (at the layer's own thickness,
-    :func:`icefab.stages.layer_height`), each trajectory's top speed taken over all the
-    layer's samples at once (a bunny layer has 466 trajectories: one ``max`` call each cost
-    ``icefab valves`` 3 s)."""
+    """:func:`feedback_headroom` of one layer's trajectories, at the layer's own thickness
+    (:func:`icefab.stages.layer_height`)."""
     from icefab.stages import layer_height
 
-    trajs = [t for t in layer.trajectories
-             if t.path is not None and t.path.depositing and len(t.speed)]
-    if not trajs:
-        return []
-    n = np.array([len(t.speed) for t in trajs])
-    vmax = np.maximum.reduceat(np.concatenate([np.asarray(t.speed, np.float64) for t in trajs]),
-                               np.concatenate([[0], np.cumsum(n)[:-1]]))
-    dh = layer_height(layer.thickness, job) * job.flow.layer_scale
-    w = np.array([trajectory_width(t, t.path.material, job) for t in trajs])
-    q = w * dh * vmax
-    out = []
-    for m in sorted({t.path.material for t in trajs}):
-        mine = np.flatnonzero([t.path.material == m for t in trajs])
-        k = int(mine[np.argmax(q[mine])])        # the first of the largest, as feedback_headroom
-        out.append(_headroom(m, float(q[k]), int(layer.index), trajs[k].path.role,
-                             float(w[k]), float(vmax[k]), job, dh=dh))
-    return out
+    h = layer_height(layer.thickness, job)
+    return feedback_headroom(((layer.index, t, h) for t in layer.trajectories), job)
 
 
 def tightest(rooms: Iterable[Headroom]) -> list[Headroom]:

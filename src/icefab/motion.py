@@ -652,28 +652,14 @@ def plan_paths_motion(paths: Sequence[Toolpath], job: Job | None = None, *,
     robot = robot or get_robot(job)
     if not paths:
         return []
-    # the base frame: every path's points shifted by its tool's offset (one shift per
-    # tool, added to all points at once)
     polys = []
-    shift = np.empty((len(paths), 2))
-    offsets: dict[str, np.ndarray] = {}
     for i, p in enumerate(paths):
         pts = p.polyline()
         if not (isinstance(pts, np.ndarray) and pts.dtype == np.float64 and pts.ndim == 2
                 and pts.shape[1] == 2 and len(pts)):
             pts = _as_points(pts, f"layer {p.layer}, path {i}")
-        key = "" if p.frame == "base" else p.tool_name
-        off = offsets.get(key)
-        if off is None:
-            if key:
-                off = to_base_frame(np.zeros((1, 2)), key, job)[0]
-            else:
-                off = np.zeros(2)
-            offsets[key] = off
-        shift[i] = off
         polys.append(pts)
-    counts = np.array([len(q) for q in polys], dtype=np.int64)
-    V = np.concatenate(polys) + np.repeat(shift, counts, axis=0)
+    V, counts = _to_base(paths, polys, job)
     if not np.isfinite(V).all():
         bad = np.flatnonzero(~np.isfinite(V).all(axis=1))[0]
         ends = np.cumsum(counts)
@@ -731,7 +717,7 @@ def _checked_items(toolpaths: Toolpaths, job: Job, role_speeds: Mapping[str, flo
     if streamed:
         for lp, (dep, other) in zip(layers, lengths):
             check_motion(dep, other, job, what=f"layer {lp.index}")
-        check_motion(*lengths.sum(axis=0), job, budget="MAX_STREAMED_SAMPLES")
+        check_motion(*lengths.sum(axis=0), job, streamed=True)
     else:
         check_motion(*lengths.sum(axis=0), job)
     check_build_workspace(toolpaths, job, get_robot(job))
@@ -744,23 +730,21 @@ def _unpack_layer(lp: LayerPaths, packed: dict[str, np.ndarray]) -> LayerMotion:
                        thickness=lp.thickness)
 
 
-def _layer_base_points(lp: LayerPaths, job: Job) -> tuple[np.ndarray, np.ndarray]:
-    """(points (N, 2) float64 mm, counts (P,) int64): the polylines of a layer's paths
-    (closing point repeated) in the robot base frame, concatenated: :func:`_base_points` of
-    each, with one shift per tool added to all points at once."""
-    polys = [p.polyline() for p in lp.paths]
+def _to_base(paths: Sequence[Toolpath], polys: Sequence[np.ndarray], job: Job
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """(points (N, 2) float64 mm, counts (P,) int64): the polylines ``polys`` of ``paths``
+    concatenated and moved to the robot base frame (:func:`_base_points` of each), each
+    path by its tool's offset, one shift per tool added to all points at once."""
     counts = np.array([len(q) for q in polys], dtype=np.int64)
     if not len(polys):
         return np.zeros((0, 2)), counts
-    shifts: dict[str, np.ndarray] = {}
-    shift = np.zeros((len(polys), 2))
-    for i, p in enumerate(lp.paths):
-        if p.frame == "base":
-            continue
-        name = p.tool_name
-        if name not in shifts:
-            shifts[name] = to_base_frame(np.zeros((1, 2)), name, job)[0]
-        shift[i] = shifts[name]
+    shifts: dict[str, np.ndarray] = {"": np.zeros(2)}
+    shift = np.empty((len(polys), 2))
+    for i, p in enumerate(paths):
+        key = "" if p.frame == "base" else p.tool_name
+        if key not in shifts:
+            shifts[key] = to_base_frame(np.zeros((1, 2)), key, job)[0]
+        shift[i] = shifts[key]
     pts = np.concatenate([np.asarray(q, dtype=np.float64) for q in polys])
     return pts + np.repeat(shift, counts, axis=0), counts
 
@@ -800,7 +784,7 @@ def check_build_workspace(toolpaths: Toolpaths, job: Job | None = None,
     for lp in toolpaths.layers:
         if not lp.paths:
             continue
-        pts, counts = _layer_base_points(lp, job)
+        pts, counts = _to_base(lp.paths, [p.polyline() for p in lp.paths], job)
         ends = np.cumsum(counts)
         bad, reasons = robot.workspace_violations(pts)
         if len(bad):

@@ -1,9 +1,10 @@
 """Parallel execution of the per-layer stages: the worker count and one process-pool map.
 
 Every stage that works layer by layer (scaffold scans, path planning, trajectory planning)
-goes through :func:`parallel_map` (or :func:`parallel_imap`, its streaming form), so the number of workers is decided in one place
-(:func:`n_workers`, from ``job.cell.cpus``) and results come back in input order, whatever
-the number of workers: the output never depends on ``cpus``.
+goes through :func:`parallel_map` (or :func:`parallel_imap`, its streaming form), so the
+number of workers is decided in one place (:func:`n_workers`, from ``job.cell.cpus``) and
+results come back in input order, whatever the number of workers: the output never
+depends on ``cpus``.
 
 May import: ``icefab.config`` (the Job) only.
 """
@@ -136,13 +137,17 @@ def parallel_imap(fn: Callable[[T], R], items: Sequence[T], job: "Job", *,
     with process_pool(workers) as pool:
         pending: collections.deque = collections.deque()
         nxt = iter(starts)
+
+        def submit(a: int) -> None:
+            pending.append(pool.submit(_apply_chunk, fn, list(items[a:a + size])))
         try:
             for a in itertools.islice(nxt, workers * window):
-                pending.append(pool.submit(_apply_chunk, fn, list(items[a:a + size])))
+                submit(a)
             while pending:
                 chunk = pending.popleft().result()
-                for a in itertools.islice(nxt, 1):
-                    pending.append(pool.submit(_apply_chunk, fn, list(items[a:a + size])))
+                a = next(nxt, None)
+                if a is not None:   # one more in flight for each one done
+                    submit(a)
                 done += len(chunk)
                 if progress is not None:
                     progress(done, total)

@@ -99,7 +99,7 @@ import tomllib
 import zipfile
 import zlib
 from pathlib import Path
-from typing import Callable, Iterator, Sequence
+from typing import Iterable, Iterator, Sequence
 
 import numpy as np
 
@@ -357,17 +357,19 @@ class _Members:
                 raise self.bad(name, f"value {v.max().item()!r} above {hi:g}")
         return a
 
-    def offsets(self, name: str, n_items: int | None, n_rows: int) -> np.ndarray:
+    def offsets(self, name: str, n_items: int | None, n_rows: int | None) -> np.ndarray:
         """(n_items + 1,) int64 offsets into ``n_rows`` rows: from 0 to n_rows, never
-        decreasing (``n_items`` None: any count)."""
+        decreasing (``n_items`` None: any count; ``n_rows`` None: any end, e.g. rows
+        stored in blocks that are checked against it when read)."""
         a = self.array(name, "iu", 1)
         if n_items is not None and len(a) != n_items + 1:
             raise self.bad(name, f"{len(a)} offsets for {n_items} items, expected "
                            f"{n_items + 1}: the file is corrupt")
         b = a.astype(np.int64)
-        if len(b) == 0 or b[0] != 0 or b[-1] != n_rows or np.any(np.diff(b) < 0) \
+        end = n_rows if n_rows is not None else (int(b[-1]) if len(b) else 0)
+        if len(b) == 0 or b[0] != 0 or b[-1] != end or np.any(np.diff(b) < 0) \
                 or np.any(b != a):
-            raise self.bad(name, f"offsets must run from 0 to {n_rows} without decreasing: "
+            raise self.bad(name, f"offsets must run from 0 to {end} without decreasing: "
                            "the file is corrupt")
         return b
 
@@ -728,18 +730,41 @@ def unpack_trajectories(d: dict[str, np.ndarray],
             for i, (a, b) in enumerate(zip(ts[:-1], ts[1:]))]
 
 
+#: The per-trajectory members a trajectory file takes from each trajectory's Path, with
+#: their dtypes (:func:`_path_fields`).
+_PATH_FIELDS = {"layer": np.int64, "path_index": np.int64, "material": np.int8,
+                "role": np.int8, "width": np.float64, "closed": bool, "tool": str,
+                "path_z": np.float64}
+
+
+def _path_fields(layer: LayerMotion) -> dict[str, list]:
+    """Per trajectory of a layer, the values of :data:`_PATH_FIELDS`: its layer, index in
+    the layer, material and role codes and its Path's width, closed flag, tool and z (a
+    trajectory without a Path: codes 0, width 0, open, tool "", the layer's z)."""
+    codes = {"material": {n: k for k, n in enumerate(MATERIAL_CODES)},
+             "role": {n: k for k, n in enumerate(ROLE_CODES)}}
+    paths = [t.path for t in layer.trajectories]
+    return {"layer": [int(layer.index)] * len(paths),
+            "path_index": list(range(len(paths))),
+            "material": [codes["material"][p.material] if p else 0 for p in paths],
+            "role": [codes["role"][p.role] if p else 0 for p in paths],
+            "width": [float(p.width) if p else 0.0 for p in paths],
+            "closed": [bool(p.closed) if p else False for p in paths],
+            "tool": [p.tool if p else "" for p in paths],
+            "path_z": [float(p.z) if p else float(layer.z) for p in paths]}
+
+
 def owner_arrays(motion: BuildMotion) -> dict[str, np.ndarray]:
     """Per trajectory, in file order: ``layer`` (T,) int64, ``path_index`` (T,) int64
     (within its layer), ``material`` (T,) int8 (0 part, 1 scaffold) and ``role`` (T,) int8
     (0 boundary, 1 fill, 2 measure, 3 travel); a trajectory without a path counts as 0."""
-    owners = [(lm.index, i, t.path) for lm in motion.layers
-              for i, t in enumerate(lm.trajectories)]
-    return {"layer": np.array([o[0] for o in owners], dtype=np.int64),
-            "path_index": np.array([o[1] for o in owners], dtype=np.int64),
-            "material": np.array([MATERIAL_CODES.index(p.material) if p else 0
-                                  for *_, p in owners], dtype=np.int8),
-            "role": np.array([ROLE_CODES.index(p.role) if p else 0 for *_, p in owners],
-                             dtype=np.int8)}
+    keys = ("layer", "path_index", "material", "role")
+    out: dict[str, list] = {k: [] for k in keys}
+    for lm in motion.layers:
+        fields = _path_fields(lm)
+        for k in keys:
+            out[k].extend(fields[k])
+    return {k: np.array(v, dtype=_PATH_FIELDS[k]) for k, v in out.items()}
 
 
 def encode_counts(values: np.ndarray, resolution: float) -> np.ndarray:
@@ -755,16 +780,25 @@ def encode_counts(values: np.ndarray, resolution: float) -> np.ndarray:
     The demo's trajectories take 5 MB instead of 53. :func:`decode_counts` inverts it
     exactly (compiled, :mod:`icefab._codec`).
     """
-    from icefab._codec import encode_plane_column
-
     v = np.asarray(values, np.float64)
     v = v[:, None] if v.ndim == 1 else v
-    out = np.empty((v.shape[1], 8, len(v)), np.uint8)
+    return _encode_columns((v[:, c] for c in range(v.shape[1])), v.shape[1], len(v),
+                           resolution)
+
+
+def _encode_columns(columns: Iterable[np.ndarray], cols: int, n: int, resolution: float
+                    ) -> np.ndarray:
+    """:func:`encode_counts` of ``cols`` columns of ``n`` values each, taken one at a time
+    from ``columns`` (a writer concatenates each from its trajectories only when asked:
+    the float samples are never held again whole, issue 17)."""
+    from icefab._codec import encode_plane_column
+
+    planes = np.empty((cols, 8, n), np.uint8)
     k = 1
-    for col in range(v.shape[1]):
-        k = max(k, encode_plane_column(np.ascontiguousarray(v[:, col]), float(resolution),
-                                       out[col]))
-    return np.ascontiguousarray(out[:, :k])
+    for c, column in enumerate(columns):
+        k = max(k, encode_plane_column(np.ascontiguousarray(column, dtype=np.float64),
+                                       float(resolution), planes[c]))
+    return np.ascontiguousarray(planes[:, :k])
 
 
 def decode_counts(planes: np.ndarray, resolution: float) -> np.ndarray:
@@ -777,29 +811,6 @@ def decode_counts(planes: np.ndarray, resolution: float) -> np.ndarray:
     for col in range(c):
         decode_plane_column(np.ascontiguousarray(planes[col]), float(resolution), out[:, col])
     return out
-
-
-class _Counts:
-    """A counts member (:func:`encode_counts` of ``column(0..cols-1)``, each (n,) float64):
-    the columns are encoded one at a time, so the memory it takes is the planes', not the
-    float samples again (issue 17: saving doubled ``icefab plan``'s peak)."""
-
-    def __init__(self, column: Callable[[int], np.ndarray], n: int, cols: int,
-                 resolution: float) -> None:
-        self.column, self.cols, self.n, self.resolution = column, cols, n, resolution
-
-    def write(self, fh) -> None:
-        from icefab._codec import encode_plane_column
-
-        planes = np.empty((self.cols, 8, self.n), np.uint8)
-        k = 1
-        for col in range(self.cols):
-            k = max(k, encode_plane_column(np.ascontiguousarray(self.column(col)),
-                                           float(self.resolution), planes[col]))
-        np.lib.format.write_array_header_1_0(
-            fh, {"descr": "|u1", "fortran_order": False, "shape": (self.cols, k, self.n)})
-        for col in range(self.cols):
-            fh.write(np.ascontiguousarray(planes[col, :k]).data)
 
 
 #: Samples per block of a version 4 trajectory file: a reader decodes one block at a time
@@ -828,8 +839,7 @@ class TrajectoryWriter:
         self._buffered = 0
         self._blocks = [0]        # layer offsets of the blocks written
         self._meta: dict[str, list] = {k: [] for k in (
-            "lengths", "piece_start", "piece_count", "duration", "traj_dt", "layer",
-            "path_index", "material", "role", "width", "closed", "tool", "path_z")}
+            "lengths", "piece_start", "piece_count", "duration", "traj_dt", *_PATH_FIELDS)}
         self._layers: list[tuple[int, float, int, float]] = []
         self._dt: float | None = None
         self._n_joints = len(self.joint_names)
@@ -863,22 +873,15 @@ class TrajectoryWriter:
             self._n_joints = int(np.asarray(trajs[0].joints).reshape(len(trajs[0].xy), -1)
                                  .shape[1])
         m = self._meta
-        for i, t in enumerate(trajs):
-            p = t.path
+        for t in trajs:
             pcs = t.pieces if len(t.pieces) else np.zeros(1, np.int64)
             m["lengths"].append(len(t.xy))
             m["piece_start"].append(np.asarray(pcs, np.int64))
             m["piece_count"].append(len(pcs))
             m["duration"].append(float(t.duration))
             m["traj_dt"].append(float(t.dt))
-            m["layer"].append(int(layer.index))
-            m["path_index"].append(i)
-            m["material"].append(MATERIAL_CODES.index(p.material) if p else 0)
-            m["role"].append(ROLE_CODES.index(p.role) if p else 0)
-            m["width"].append(float(p.width) if p else 0.0)
-            m["closed"].append(bool(p.closed) if p else False)
-            m["tool"].append(p.tool if p else "")
-            m["path_z"].append(float(p.z) if p else float(layer.z))
+        for k, v in _path_fields(layer).items():
+            m[k].extend(v)
         self._layers.append((int(layer.index), float(layer.z), len(trajs),
                              float(layer.thickness)))
         self._buffer.append(layer)
@@ -893,20 +896,18 @@ class TrajectoryWriter:
         trajs = [t for lm in self._buffer for t in lm.trajectories]
         n, k = self._buffered, len(self._blocks) - 1
 
-        def column(attr: str) -> Callable[[int], np.ndarray]:
-            """Column c of every buffered trajectory's ``attr`` samples, concatenated."""
-            def get(c: int) -> np.ndarray:
-                parts = [np.asarray(getattr(t, attr), np.float64) for t in trajs]
-                return (np.concatenate([a[:, c] if a.ndim == 2 else a for a in parts])
-                        if parts else np.zeros(0))
-            return get
-        for name, counts in ((f"xy_counts_{k}", _Counts(column("xy"), n, 2, XY_RESOLUTION_MM)),
-                             (f"joint_counts_{k}", _Counts(column("joints"), n, self._n_joints,
-                                                           JOINT_RESOLUTION)),
-                             (f"speed_counts_{k}", _Counts(column("speed"), n, 1,
-                                                           SPEED_RESOLUTION_MM_S))):
-            with self._zip.open(name + ".npy", "w", force_zip64=True) as fh:
-                counts.write(fh)
+        def columns(attr: str, cols: int) -> Iterator[np.ndarray]:
+            """Column by column, every buffered trajectory's ``attr`` samples."""
+            arrays = [np.asarray(getattr(t, attr), np.float64) for t in trajs]
+            for c in range(cols):
+                yield (np.concatenate([a[:, c] if a.ndim == 2 else a for a in arrays])
+                       if arrays else np.zeros(0))
+        for name, attr, cols, res in (("xy", "xy", 2, XY_RESOLUTION_MM),
+                                      ("joint", "joints", self._n_joints, JOINT_RESOLUTION),
+                                      ("speed", "speed", 1, SPEED_RESOLUTION_MM_S)):
+            planes = _encode_columns(columns(attr, cols), cols, n, res)
+            with self._zip.open(f"{name}_counts_{k}.npy", "w", force_zip64=True) as fh:
+                np.lib.format.write_array(fh, planes, allow_pickle=False)
         self._blocks.append(self._blocks[-1] + len(self._buffer))
         self._buffer, self._buffered = [], 0
 
@@ -929,14 +930,7 @@ class TrajectoryWriter:
             "piece_owner": np.repeat(np.arange(len(counts)), counts).astype(np.int64),
             "duration": np.array(m["duration"], dtype=np.float64),
             "traj_dt": np.array(m["traj_dt"], dtype=np.float64),
-            "layer": np.array(m["layer"], dtype=np.int64),
-            "path_index": np.array(m["path_index"], dtype=np.int64),
-            "material": np.array(m["material"], dtype=np.int8),
-            "role": np.array(m["role"], dtype=np.int8),
-            "width": np.array(m["width"], dtype=np.float64),
-            "closed": np.array(m["closed"], dtype=bool),
-            "tool": np.array(m["tool"], dtype=str).reshape(-1),
-            "path_z": np.array(m["path_z"], dtype=np.float64),
+            **{k: np.array(m[k], dtype=dt).reshape(-1) for k, dt in _PATH_FIELDS.items()},
             "layer_index": np.array([x[0] for x in L], dtype=np.int64),
             "layer_z": np.array([x[1] for x in L], dtype=np.float64),
             "layer_start": offsets([x[2] for x in L]),
@@ -1003,7 +997,7 @@ def _sample_counts(m: "_Members", n_joints: int, suffix: str = "", n: int | None
 
 class TrajectoryFile:
     """A trajectory file (versions 1 to 4) open for reading: its per-layer and
-    per-trajectory members at once, its samples block by block (:meth:`layers`), so a
+    per-trajectory members at once, its samples block by block (:meth:`iter_layers`), so a
     stage that works layer by layer holds one block of samples (issue 17). It stands in
     for a BuildMotion wherever the layers are walked once.
 
@@ -1058,9 +1052,8 @@ class TrajectoryFile:
         self.dt = dt = m.number("dt", 0.0, MAX_DT_S, lo_open=True)
         self.durations = duration = m.values("duration", "f", 1, lo=0.0, hi=1e9)
         nt = len(duration)
-        if version >= 4:
-            ts = m.array("traj_start", "iu", 1)
-            ts = m.offsets("traj_start", nt, int(ts[-1]) if len(ts) else 0)
+        if version >= 4:  # each block's rows are checked against it when read
+            ts = m.offsets("traj_start", nt, None)
         else:
             self._samples = self._whole_samples()
             ts = m.offsets("traj_start", nt, len(self._samples[0]))

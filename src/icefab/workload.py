@@ -44,9 +44,9 @@ MAX_SAMPLES = 40_000_000
 
 #: Most trajectory samples of a build planned as a stream (``icefab plan``, the
 #: constant-speed comparison: one layer's samples in memory at a time, each layer within
-#: :data:`MAX_SAMPLES`): the trajectory file stores about 6 bytes a sample, so 200 million
-#: are about 1.2 GB on disk, within the 2 GB a result file may have
-#: (``icefab.resultfiles.MAX_FILE_BYTES``); the 300 mm bunny has 42 million.
+#: :data:`MAX_SAMPLES`): the trajectory file stores about 5 bytes a sample, so 200 million
+#: are about 1 GB on disk, within the 2 GB a result file may have
+#: (``icefab.resultfiles.MAX_FILE_BYTES``); the 300 mm bunny has 36 million.
 MAX_STREAMED_SAMPLES = 200_000_000
 
 #: Most valve pulses of one depositing path (its program's instants are float64 while it
@@ -215,11 +215,12 @@ def check_grid(lo: np.ndarray, hi: np.ndarray, spacing: float, setting: str) -> 
 
 
 def check_samples(length_mm: float, spacing_mm: float, setting: str, *,
-                  budget: str = "MAX_SAMPLES", what: str = "the build") -> None:
+                  streamed: bool = False, what: str = "the build") -> None:
     """Refuse resampling ``length_mm`` of paths every ``spacing_mm`` when that makes more
-    samples than the budget named ``budget`` (:data:`MAX_SAMPLES` or
-    :data:`MAX_STREAMED_SAMPLES`); the message names ``setting`` and ``what``."""
-    limit = globals()[budget]
+    samples than :data:`MAX_SAMPLES` (``streamed``: :data:`MAX_STREAMED_SAMPLES`); the
+    message names ``setting`` and ``what``."""
+    limit, budget = ((MAX_STREAMED_SAMPLES, "MAX_STREAMED_SAMPLES") if streamed
+                     else (MAX_SAMPLES, "MAX_SAMPLES"))
     n = float(length_mm) / spacing_mm
     if not math.isfinite(n) or n > limit:
         raise ConfigError(
@@ -249,8 +250,8 @@ def check_paths(areas_mm2: tuple[float, float], job: Job) -> None:
 
 
 def check_motion(deposit_mm: float, other_mm: float, job: Job, *,
-                 budget: str = "MAX_SAMPLES", what: str = "the build") -> None:
-    """Refuse trajectory planning whose samples alone exceed the budget (``budget``,
+                 streamed: bool = False, what: str = "the build") -> None:
+    """Refuse trajectory planning whose samples alone exceed the budget (``streamed``,
     ``what``: as :func:`check_samples`'s).
 
     deposit_mm, other_mm: total length of the depositing paths and of the rest (travel,
@@ -261,11 +262,11 @@ def check_motion(deposit_mm: float, other_mm: float, job: Job, *,
     """
     m = job.motion
     check_samples(deposit_mm + other_mm, m.point_spacing_mm,
-                  f"motion.point_spacing_mm = {m.point_spacing_mm:g}", budget=budget, what=what)
+                  f"motion.point_spacing_mm = {m.point_spacing_mm:g}", streamed=streamed, what=what)
     fast = max(m.travel_speed_mm_s, m.measure_speed_mm_s)
     n_mm = deposit_mm / m.speed_mm_s + other_mm / fast  # seconds: samples x dt
     check_samples(n_mm, m.dt_s, f"motion.dt_s = {m.dt_s:g} with motion.speed_mm_s = "
-                                f"{m.speed_mm_s:g}", budget=budget, what=what)
+                                f"{m.speed_mm_s:g}", streamed=streamed, what=what)
 
 
 def check_pulses(layers, job: Job) -> None:

@@ -96,12 +96,11 @@ def _hms(s: float) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from icefab.export import save_gcode
-    from icefab.headroom import feedback_headroom, tightest
+    from icefab.headroom import layer_headroom, tightest
     from icefab.motion import (TrajectoryFile, TrajectoryWriter, iter_plan_and_compare,
                                save_constant_spacing)
     from icefab.paths import estimate_build_time
     from icefab.robots import get_robot
-    from icefab.stages import layer_height
 
     spacing = getattr(args, "constant_spacing", None)
     if spacing is not None and not (math.isfinite(spacing) and spacing > 0.0):
@@ -114,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
         job = job.replace(**{"motion.jerk_limited": False})
     robot = get_robot(job)
     # what valves/simulate will refuse, from each layer as it passes
-    rooms = job.feedback.enabled and job.flow.mode == "fm"
+    check_room = job.feedback.enabled and job.flow.mode == "fm"
     with output_dir(args.out, "plan") as tmp:
         # the build streams into the file: a few layers' samples in memory (issue 17)
         t1 = time.perf_counter()
@@ -132,10 +131,8 @@ def run(args: argparse.Namespace) -> int:
                 total += lm.duration
                 dep += sum(t.duration for t in lm.trajectories
                            if t.path is not None and t.path.depositing)
-                if rooms:
-                    room = tightest(room + feedback_headroom(
-                        ((lm.index, t, layer_height(lm.thickness, job))
-                         for t in lm.trajectories), job))
+                if check_room:
+                    room = tightest(room + layer_headroom(lm, job))
                 if k in ks:
                     pictured[k] = lm
         t_plan = time.perf_counter() - t1
