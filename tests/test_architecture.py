@@ -21,7 +21,7 @@ STAGES: list[tuple[str, tuple[str, ...]]] = [
                     "icefab.types", "icefab.stages", "icefab.parallel", "icefab.frames",
                     "icefab.robots", "icefab._codec", "icefab.resultfiles", "icefab.inputs",
                     "icefab.workload")),
-    ("geometry", ("icefab.geometry",)),
+    ("geometry", ("icefab._smooth", "icefab.geometry")),
     ("mesh", ("icefab.mesh", "icefab.demo")),
     ("slicing", ("icefab.adaptive", "icefab.fitting", "icefab.slicing")),
     ("ruled", ("icefab.ruled",)),

@@ -37,6 +37,7 @@ import numpy as np
 import pyclipr
 from numba import njit
 
+from icefab import _smooth
 from icefab.core import (Region, arc_lengths, offsets,  # noqa: F401 (signed_area re-exported)
                          signed_area)
 
@@ -450,6 +451,91 @@ def simplify(rings: Rings, filter_mm: float = FILTER_MM) -> Rings:
         return []
     keep = np.abs(ring_areas(rings)) > MIN_RING_AREA
     return [r for r, k in zip(rings, keep) if k]
+
+
+#: Grid spacing of :func:`smooth_rings` (mm): a tenth of its usual window.
+SMOOTH_SPACING_MM = 0.5
+
+
+def smooth_rings(rings: Rings, tol_mm: float, sigma_mm: float, max_turn_deg: float = 60.0
+                 ) -> tuple[Rings, float]:
+    """Closed rings smoothed within ``tol_mm``: the scan noise of a sliced mesh taken off
+    the paths that follow them, corners kept.
+
+    The ring is resampled every ~``SMOOTH_SPACING_MM`` and fitted by the same local
+    quadratic regression as the motion stage's smoothing (:func:`icefab._smooth.smooth_pieces`,
+    thesis 4.1.1), with a window of half-width ``3 sigma_mm`` that runs round the ring
+    (no fixed start point) and narrows where the ring turns by more than ``max_turn_deg``
+    within it (a corner stays a corner). Every displacement is scaled down to at most
+    ``tol_mm``, smoothly along the ring. The result is the ring's own vertices and the grid
+    points, moved, then filtered by ``min(tol_mm / 5, 0.01)`` (the smoothing itself gets
+    the rest of the tolerance): every point of the result is within ``tol_mm`` of the
+    input ring, and so is every chord (the points of one chord lie on one input segment).
+
+    Why: a jerk-limited robot slows down for noise, not for length. A ring of a 300 mm
+    scan with 0.05 mm vertex noise changes curvature every few millimetres, which caps the
+    speed at ~40 mm/s under a 4 000 mm/s^3 jerk bound (BENCHMARKS.md, issue 15).
+
+    Orientation is kept. Rings shorter than 8 grid steps, and rings whose smoothed form is
+    not simple (a neck narrower than twice the tolerance), come back unchanged.
+
+    Returns (the rings, ``reach`` mm): how far the area the input rings bound reaches
+    outside the area the smoothed ones bound, i.e. the largest move of a point into that
+    area (icefab's orientation: the area lies left of every ring), plus the filter's part;
+    0 when nothing moved inward. Growing the smoothed area by ``reach`` covers the input's.
+    """
+    rings = [np.asarray(r, dtype=np.float64) for r in rings]
+    if not tol_mm > 0 or not rings:
+        return list(rings), 0.0
+    eps = min(tol_mm / 5.0, 0.01)
+    short = ring_perimeters(rings) < 8.0 * SMOOTH_SPACING_MM
+    work = [i for i, r in enumerate(rings) if len(r) >= 3 and not short[i]]
+    if not work:
+        return list(rings), 0.0
+    pts, starts = _pack([rings[i] for i in work])
+    gstart, graw, h, fstart, fu, fraw, own = _smooth.periodic_pieces(
+        pts, starts, SMOOTH_SPACING_MM, 3.0 * sigma_mm, 8)
+    moved = _smooth.smooth_pieces(gstart, graw, h, fstart, fu, fraw,
+                                  sigma_mm / SMOOTH_SPACING_MM, tol_mm - eps,
+                                  np.radians(max_turn_deg))
+    # inward moves: a point that moves into the area (against the left normal of an input
+    # segment it lies on: the one to the next point or the one from the previous) counts
+    # with the whole length of its move, which bounds how far it is from the smoothed
+    # ring; along a chord the move is linear between its ends.
+    nxt = np.diff(fraw, axis=0, append=fraw[-1:])
+    prv = np.diff(fraw, axis=0, prepend=fraw[:1])
+    first, last = fstart[:-1], fstart[1:] - 1
+    nxt[last] = prv[last]
+    prv[first] = nxt[first]
+    d = moved - fraw
+    into = ((d * np.column_stack([-nxt[:, 1], nxt[:, 0]])).sum(axis=1) > 0) | \
+        ((d * np.column_stack([-prv[:, 1], prv[:, 0]])).sum(axis=1) > 0)
+    inward = np.where(into, np.hypot(d[:, 0], d[:, 1]), 0.0)
+    owner = np.repeat(np.arange(len(work)), np.diff(fstart))
+    reach_of = np.zeros(len(work))
+    np.maximum.at(reach_of, owner[own], inward[own])
+    owner = owner[own]
+    cut = offsets(np.bincount(owner, minlength=len(work)))
+    moved = moved[own]
+    smoothed = [moved[a:b] for a, b in zip(cut[:-1], cut[1:])]
+    simple = simple_mask(smoothed)
+    out = list(rings)
+    used = np.zeros(len(work), dtype=bool)
+    for k, i in enumerate(work):
+        if simple[k] and len(smoothed[k]) >= 3:
+            out[i] = smoothed[k]
+            used[k] = True
+    if not used.any():
+        return out, 0.0
+    done = [work[k] for k in np.flatnonzero(used)]
+    filtered, fstarts = _pack([out[i] for i in done])
+    keep = _chord_keep(filtered, fstarts, float(eps), closed=True)
+    thinned = [filtered[a:b][keep[a:b]] for a, b in zip(fstarts[:-1], fstarts[1:])]
+    fine = simple_mask(thinned) & (np.array([len(r) for r in thinned]) >= 3)
+    for k in np.flatnonzero(fine):
+        out[done[k]] = thinned[k]
+    reach = float(reach_of[used].max())
+    return out, (reach + eps if reach > 1e-6 else 0.0)
 
 
 def _simplify_slow(ring: np.ndarray, filter_mm: float) -> Rings:

@@ -14,7 +14,7 @@ Steps (thesis 4.1, compiled kernels in :mod:`icefab._mtts`):
    window of 3 ``SMOOTH_SIGMA_MM``, narrowed where the path turns by more than
    ``SMOOTH_MAX_TURN_DEG`` within it, piece ends fixed), evaluated at the grid points and
    at the input's own vertices, displacements scaled smoothly to stay within the
-   tolerance (``_mtts.smooth_pieces``). The output follows that polyline, so every
+   tolerance (``_smooth.smooth_pieces``). The output follows that polyline, so every
    sample is within the tolerance of the input (a hard bound: both ends of each of its
    chords are moved by <= the tolerance from one input segment). It matters on real
    layers: the slicer's 0.4 mm / 0.05 mm point filter and the Clipper offsets leave fill
