@@ -136,6 +136,11 @@ def rounded_rect(w, h, r, step=0.5):
 
 def rounded_box_toolpaths(job, height_mm=20.0):
     """Toolpaths of the Fig. 4-15-like box: every layer has the same region."""
+    return plan_paths(rounded_box_stack(job, height_mm), job)
+
+
+def rounded_box_stack(job, height_mm=20.0):
+    """The Fig. 4-15-like box's stack, scaffold added: every layer has the same region."""
     outer = rounded_rect(150.0, 110.0, 20.0)
     hole = thesis_test_path((-50.0, -30.0), step_mm=0.5)[::-1].copy()
     region = Region(rings=(outer, hole), parent=np.array([-1, 0]))
@@ -144,7 +149,7 @@ def rounded_box_toolpaths(job, height_mm=20.0):
     layers = tuple(Layer(index=i, z=(i + 0.5) * dz, part=region, top_z=(i + 1) * dz)
                    for i in range(n))
     stack = Stack(layers=layers, job=job, layer_thickness=dz)
-    return plan_paths(add_scaffold(stack, job), job)
+    return add_scaffold(stack, job)
 
 
 def toppra_duration(pts, job, robot, inscribed=True):

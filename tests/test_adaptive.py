@@ -221,10 +221,14 @@ def test_valves_command_uses_each_layer_thickness(adaptive_build, tmp_path):
         assert r.returncode == 0, r.stderr
         with open(tmp_path / name / "valves-paths.csv", encoding="utf-8") as fh:
             rows = list(csv.DictReader(fh))
-        per = {}
+        per, paths = {}, {}
         for row in rows:
             per[int(row["layer"])] = per.get(int(row["layer"]), 0) + int(row["pulses"])
+            paths[int(row["layer"])] = paths.get(int(row["layer"]), 0) + 1
         pulses[name] = per
     for k, n in pulses["adaptive"].items():
-        ratio = n / pulses["uniform"][k]
-        assert ratio == pytest.approx(stack.thicknesses[k] / 0.25, rel=0.03), k
+        # each path's pulse count is a whole number: it misses its share by under one
+        # pulse, in both runs (a thin layer's few dozen pulses: several per cent)
+        r = stack.thicknesses[k] / 0.25
+        assert abs(n - r * pulses["uniform"][k]) <= (1.0 + r) * paths[k], k
+        assert n / pulses["uniform"][k] == pytest.approx(r, rel=0.1), k

@@ -236,6 +236,15 @@ class MaterialSettings:
                                               "(unlinked), 'hybrid' (rings then zigzag), "
                                               "'none'",
                                 choices=("concentric", "zigzag", "raster", "hybrid", "none"))
+    fill_smoothing_mm: float = setting(
+        0.25,
+        "concentric fill: how far the outermost fill ring may move to take the noise of the "
+        "contour off (a scanned mesh's slices wiggle by ~0.05 mm every few mm, which holds a "
+        "jerk-limited robot to ~40 mm/s); the rings inside are offsets of it, each smoothed "
+        "within the path filter. The first ring then overlaps the boundary by up to twice "
+        "this, never leaving a sliver between them. 0: off",
+        lo=0.0, hi=2.0,
+        why="beyond 2 mm the fill no longer follows the part's shape")
     fill_angle_deg: float = setting(
         0.0,
         "raster angle for zigzag/raster fill with fill_angle_mode = 'fixed'",

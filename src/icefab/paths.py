@@ -140,19 +140,43 @@ def boundary_rings(region: Region, mat: MaterialSettings, filt: float) -> list[l
     return out
 
 
+#: Window of the fill rings' smoothing (``materials.*.fill_smoothing_mm``): the standard
+#: deviation (mm) of :func:`icefab.geometry.smooth_rings`' regression window (half-width 3x).
+#: The wiggles of a scanned mesh's slices span a few millimetres; 5 and 8 mm gave the same
+#: MTTS time on bunny layers, 2 mm a third of the gain (BENCHMARKS.md, issue 15).
+FILL_SMOOTH_SIGMA_MM = 5.0
+
+
 def concentric_rings(region: Region, start_mm: float, step_mm: float, filt: float,
-                     max_rings: int = 100_000, width_mm: float = 0.0
-                     ) -> list[list[np.ndarray]]:
+                     max_rings: int = 100_000, width_mm: float = 0.0,
+                     smooth_mm: float = 0.0) -> list[list[np.ndarray]]:
     """Rings of ``region`` shrunk by ``start_mm``, then every ``step_mm`` until empty.
 
     width_mm: the width of the paths along the rings; when > 0 every ring is given room
         for it (:func:`_with_room`): a ring whose area is narrower than the path would
         overlap itself.
+    smooth_mm: when > 0 the rings follow a smoothed contour (issue 15: the robot's jerk
+        bound makes it crawl along the wiggles of a scanned mesh): the edge of the first
+        ring's band (``region`` shrunk by ``start_mm - step_mm / 2``) is smoothed within
+        ``smooth_mm`` (:func:`icefab.geometry.smooth_rings`) and grown by as much as the
+        true edge reaches outside it (at most ``smooth_mm``; nothing on a clean contour),
+        so it lies outside the true edge everywhere: the first band overlaps what is
+        outside it by up to ``2 smooth_mm`` and leaves no sliver. The first ring is
+        ``step_mm / 2`` inside it. Every ring is smoothed within ``filt`` (as far as the
+        point filter moves it anyway) before the next is offset from it, so the bands of
+        consecutive rings meet as closely as without smoothing.
     Returns one list of (k, 2) float64 rings (mm) per offset level, outermost first.
     """
     out: list[list[np.ndarray]] = []
-    rings = geo.offset_rings(list(region.rings), -start_mm, filt)
+    if smooth_mm > 0:
+        edge = geo.offset_rings(list(region.rings), -(start_mm - step_mm / 2.0), filt)
+        smooth, reach = geo.smooth_rings(edge, smooth_mm, FILL_SMOOTH_SIGMA_MM)
+        rings = geo.offset_rings(smooth, -(step_mm / 2.0 - reach), filt)
+    else:
+        rings = geo.offset_rings(list(region.rings), -start_mm, filt)
     while rings and len(out) < max_rings:
+        if smooth_mm > 0:
+            rings = geo.smooth_rings(rings, filt, FILL_SMOOTH_SIGMA_MM)[0]
         nxt = geo.offset_rings(rings, -step_mm, filt)
         if width_mm > 0:
             rings = _with_room(rings, nxt, width_mm, filt)
@@ -377,7 +401,8 @@ def fill_levels(region: Region, mat: MaterialSettings, job: Job
     if pattern == "none" or region.is_empty:
         return [], [], math.nan
     if pattern == "concentric":
-        return concentric_rings(region, e + F / 2.0, F, filt, width_mm=F), [], math.nan
+        return concentric_rings(region, e + F / 2.0, F, filt, width_mm=F,
+                                smooth_mm=mat.fill_smoothing_mm), [], math.nan
     levels: list[list[np.ndarray]] = []
     start = e + F / 2.0
     if pattern == "hybrid" and mat.hybrid_rings > 0:

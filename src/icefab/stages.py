@@ -40,6 +40,7 @@ READS: dict[str, tuple[str, ...]] = {
     "paths": ("materials.part.fill_width_mm",
               "materials.part.initial_offset_mm", "materials.part.boundary_count",
               "materials.part.fill_pattern", "materials.part.fill_angle_deg",
+              "materials.part.fill_smoothing_mm", "materials.scaffold.fill_smoothing_mm",
               "materials.part.fill_angle_mode", "materials.scaffold.fill_angle_mode",
               "materials.part.hybrid_rings", "materials.part.hybrid_angle_step_deg",
               "materials.part.nozzle_offset_mm", "materials.part.gap_fill",

@@ -1,0 +1,176 @@
+"""Build time of the 300 mm bunny and a rounded box like Fig. 4-15 (issue 15), beside a
+peer job and the speed-bound floor.
+
+    python3 bench/bench_build_time.py [--layers-every K] [--peer SETTING=VALUE ...]
+
+Both parts are planned twice in one run, the default job and the peer (by default the
+default job with ``materials.*.fill_smoothing_mm = 0``: icefab before fill smoothing):
+``plan_paths`` (timed, 2 workers), then MTTS of every layer (``iter_plan_toolpaths``,
+jerk on, default limits) summed without keeping the samples. Per variant:
+
+* MTTS build time, and by role (boundary, fill rings of the fill width, gap paths of
+  other widths, travel, measurement);
+* the speed-bound floor: every path's length over its speed bound (``speed_mm_s`` for
+  deposition, ``travel_speed_mm_s``, ``measure_speed_mm_s``), i.e. no acceleration at all;
+* rest stops per layer by cause: travel moves, path starts, PATHSPLIT corners inside
+  paths (every trajectory and every split piece starts and ends at rest, thesis 4.1.1);
+* unfilled area (the paths stage's own measure, ``LayerPaths.unfilled_mm2``) and the
+  lowest coverage of any layer's material region of at least 100 mm^2;
+* paths and the ``plan_paths`` wall time.
+
+The bunny is sliced as ``icefab slice`` does (origin (340, 0), stroke 400 mm; the stack
+cached in ``bench/.cache/``), the box as ``bench_motion.py`` builds it.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+BUNNY_EE = (340.0, 0.0)
+
+
+def _parse_peer(items: list[str]) -> dict:
+    out = {}
+    for item in items:
+        key, _, value = item.partition("=")
+        out[key] = json.loads(value)
+    return out
+
+
+def _bunny_stack(job, every: int):
+    from bench_paths import _stack
+
+    from icefab.core import Stack
+    from icefab.regions import add_scaffold
+
+    stack, _ = _stack("bunny")
+    stack = add_scaffold(stack, job)
+    if every > 1:
+        stack = Stack(layers=stack.layers[::every], job=stack.job,
+                      layer_thickness=stack.layer_thickness, warnings=stack.warnings)
+    return stack
+
+
+def _coverage(stack, tp) -> float:
+    """The lowest 1 - unfilled / region area over every layer's part and scaffold region of
+    at least 100 mm^2."""
+    from icefab import geometry as geo
+
+    worst = 1.0
+    for layer, lp in zip(stack.layers, tp.layers):
+        for k, region in enumerate((layer.part, layer.scaffold)):
+            a = geo.area(region)
+            if a >= 100.0:
+                worst = min(worst, 1.0 - lp.unfilled_mm2[k] / a)
+    return worst
+
+
+def measure(stack, job) -> dict:
+    from icefab.motion import iter_plan_toolpaths
+    from icefab.paths import plan_paths
+
+    t0 = time.perf_counter()
+    tp = plan_paths(stack, job)
+    t_paths = time.perf_counter() - t0
+    m = job.motion
+    speed = {"travel": m.travel_speed_mm_s, "measure": m.measure_speed_mm_s}
+    by_role: dict[str, float] = {}
+    floor = 0.0
+    stops = {"travel moves": 0, "path starts": 0, "PATHSPLIT corners": 0}
+    fill_width = {"part": job.materials.part.fill_width_mm,
+                  "scaffold": job.materials.scaffold.fill_width_mm}
+    n_paths = 0
+    for lm in iter_plan_toolpaths(tp, job):
+        for t in lm.trajectories:
+            p = t.path
+            role = "travel" if p is None else p.role
+            if role == "fill":
+                role = "fill" if abs(p.width - fill_width[p.material]) < 1e-9 else "gap"
+            by_role[role] = by_role.get(role, 0.0) + float(t.duration)
+            if p is not None:
+                floor += p.length / speed.get(p.role, m.speed_mm_s)
+            if role == "travel":
+                stops["travel moves"] += 1
+            else:
+                n_paths += 1
+                stops["path starts"] += 1
+                stops["PATHSPLIT corners"] += max(len(t.pieces) - 1, 0)
+    n = len(tp.layers)
+    unfilled = np.array([lp.unfilled_mm2 for lp in tp.layers]).sum(axis=0)
+    return {"mtts_h": sum(by_role.values()) / 3600.0, "floor_h": floor / 3600.0,
+            "by_role_h": {k: v / 3600.0 for k, v in sorted(by_role.items())},
+            "stops_per_layer": {k: v / n for k, v in stops.items()},
+            "unfilled_mm2": [float(unfilled[0]), float(unfilled[1])],
+            "min_coverage": _coverage(stack, tp), "paths": n_paths, "layers": n,
+            "plan_paths_s": t_paths}
+
+
+def _rows(a: dict, b: dict) -> list[tuple[str, float, float]]:
+    rows = [("MTTS build time (h)", a["mtts_h"], b["mtts_h"]),
+            ("speed-bound floor (h)", a["floor_h"], b["floor_h"])]
+    for k in sorted(set(a["by_role_h"]) | set(b["by_role_h"])):
+        rows.append((f"  MTTS of {k} paths (h)", a["by_role_h"].get(k, 0.0),
+                     b["by_role_h"].get(k, 0.0)))
+    for k in a["stops_per_layer"]:
+        rows.append((f"rest stops per layer: {k}", a["stops_per_layer"][k],
+                     b["stops_per_layer"][k]))
+    rows += [("unfilled part / scaffold (mm^2)", a["unfilled_mm2"][0], b["unfilled_mm2"][0]),
+             ("", a["unfilled_mm2"][1], b["unfilled_mm2"][1]),
+             ("lowest coverage of a region", a["min_coverage"], b["min_coverage"]),
+             ("paths (deposition and measurement)", a["paths"], b["paths"]),
+             ("plan_paths wall time (s)", a["plan_paths_s"], b["plan_paths_s"])]
+    return rows
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--layers-every", type=int, default=1,
+                    help="the bunny's every K-th layer only (default: all 1 200)")
+    ap.add_argument("--box-height", type=float, default=20.0, help="rounded box height, mm")
+    ap.add_argument("--peer", nargs="*", default=None, metavar="SETTING=VALUE",
+                    help="the peer job's settings (JSON values); default: "
+                         "materials.part.fill_smoothing_mm=0 "
+                         "materials.scaffold.fill_smoothing_mm=0")
+    ap.add_argument("--skip-bunny", action="store_true")
+    args = ap.parse_args()
+    from icefab.config import Job
+
+    peer_settings = _parse_peer(args.peer) if args.peer is not None else {
+        "materials.part.fill_smoothing_mm": 0.0, "materials.scaffold.fill_smoothing_mm": 0.0}
+    print(f"machine: {os.cpu_count()}-core {platform.machine()}, Python "
+          f"{platform.python_version()}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}")
+    print(f"peer: {peer_settings}")
+    results = {}
+    from bench_motion import rounded_box_stack
+
+    parts = [("rounded box like Fig. 4-15", Job(),
+              lambda j: rounded_box_stack(j, args.box_height))]
+    if not args.skip_bunny:
+        bjob = Job().replace(**{"cell.ee_origin_mm": BUNNY_EE, "cell.stroke_mm": 400.0})
+        parts.append(("bunny, 300 mm", bjob, lambda j: _bunny_stack(j, args.layers_every)))
+    for name, job, make in parts:
+        stack = make(job)
+        peer = measure(stack, job.replace(**peer_settings))
+        mine = measure(stack, job)
+        results[name] = {"peer": peer, "default": mine}
+        print(f"\n{name}: {mine['layers']} layers")
+        print("| figure | peer | default job | ratio |")
+        print("| --- | ---: | ---: | ---: |")
+        for label, a, b in _rows(peer, mine):
+            ratio = f"{b / a:.3f}" if a else ""
+            print(f"| {label} | {a:,.3f} | {b:,.3f} | {ratio} |", flush=True)
+    print(json.dumps(results))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
