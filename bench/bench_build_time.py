@@ -78,6 +78,8 @@ def measure(stack, job) -> dict:
     from icefab.motion import iter_plan_toolpaths
     from icefab.paths import plan_paths
 
+    plan_paths(type(stack)(layers=stack.layers[:2], job=stack.job,
+                           layer_thickness=stack.layer_thickness), job)  # kernels loaded
     t0 = time.perf_counter()
     tp = plan_paths(stack, job)
     t_paths = time.perf_counter() - t0

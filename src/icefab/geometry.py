@@ -514,27 +514,16 @@ def smooth_rings(rings: Rings, tol_mm: float, sigma_mm: float, max_turn_deg: flo
     owner = np.repeat(np.arange(len(work)), np.diff(fstart))
     reach_of = np.zeros(len(work))
     np.maximum.at(reach_of, owner[own], inward[own])
-    owner = owner[own]
-    cut = offsets(np.bincount(owner, minlength=len(work)))
-    moved = moved[own]
-    smoothed = [moved[a:b] for a, b in zip(cut[:-1], cut[1:])]
-    simple = simple_mask(smoothed)
+    # the smoothed rings, packed as the kernels take them, thinned by eps
+    moved = np.ascontiguousarray(moved[own])
+    cut = offsets(np.bincount(owner[own], minlength=len(work)))
+    keep = _chord_keep(moved, cut, float(eps), closed=True)
+    thinned = [moved[a:b][keep[a:b]] for a, b in zip(cut[:-1], cut[1:])]
+    used = simple_mask(thinned) & (np.array([len(r) for r in thinned]) >= 3)
     out = list(rings)
-    used = np.zeros(len(work), dtype=bool)
-    for k, i in enumerate(work):
-        if simple[k] and len(smoothed[k]) >= 3:
-            out[i] = smoothed[k]
-            used[k] = True
-    if not used.any():
-        return out, 0.0
-    done = [work[k] for k in np.flatnonzero(used)]
-    filtered, fstarts = _pack([out[i] for i in done])
-    keep = _chord_keep(filtered, fstarts, float(eps), closed=True)
-    thinned = [filtered[a:b][keep[a:b]] for a, b in zip(fstarts[:-1], fstarts[1:])]
-    fine = simple_mask(thinned) & (np.array([len(r) for r in thinned]) >= 3)
-    for k in np.flatnonzero(fine):
-        out[done[k]] = thinned[k]
-    reach = float(reach_of[used].max())
+    for k in np.flatnonzero(used):
+        out[work[k]] = thinned[k]
+    reach = float(reach_of[used].max()) if used.any() else 0.0
     return out, (reach + eps if reach > 1e-6 else 0.0)
 
 
