@@ -261,10 +261,13 @@ def test_measurement_paths_on_every_nth_layer_in_laser_frame():
             # measurement comes after all deposition
             roles = [p.role for p in lp.paths if p.role != "travel"]
             assert roles.index("measure") > max(i for i, r in enumerate(roles) if r != "measure")
-            # rings 1.5 mm inside, then every 3 mm: inside the region
+            # rings 1.5 mm inside (less up to twice their smoothing), then every 3 mm:
+            # inside the region
+            from icefab.paths import MEASURE_SMOOTHING_MM
             for p in meas:
                 R = to_shapely(region_of(st_.layers[lp.index], p.material))
-                assert R.buffer(-(1.5 - FILT)).covers(LinearRing(p.points))
+                inset = 1.5 - 2 * MEASURE_SMOOTHING_MM - FILT
+                assert R.buffer(-inset).covers(LinearRing(p.points))
         else:
             assert not meas
 
