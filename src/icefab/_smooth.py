@@ -204,7 +204,7 @@ def smooth_pieces(gstart, graw, h, fstart, fu, fraw, sigma_pts, tol, max_turn):
 
 
 @njit(cache=True, error_model="numpy")
-def periodic_pieces(pts, starts, spacing, pad_mm, min_pts):
+def periodic_pieces(pts, starts, spacing, pad_mm, min_pts, min_length):
     """Closed rings as pieces for :func:`smooth_pieces`, padded so that they wrap.
 
     Ring r is ``pts[starts[r]:starts[r+1]]`` (k >= 3 points, not repeated at the end), of
@@ -217,7 +217,8 @@ def periodic_pieces(pts, starts, spacing, pad_mm, min_pts):
 
     Returns gstart (R+1,), graw (G, 2) mm, h (R,) mm, fstart (R+1,), fu (F,) mm from the
     piece start, fraw (F, 2) mm, own (F,) bool (the point lies in [0, L) of its ring: the
-    smoothed ring is made of those). A ring with no length has empty pieces.
+    smoothed ring is made of those). A ring shorter than ``min_length`` mm (or of no
+    length) has empty pieces.
     """
     R = starts.shape[0] - 1
     nseg = np.zeros(R, np.int64)
@@ -234,7 +235,7 @@ def periodic_pieces(pts, starts, spacing, pad_mm, min_pts):
             j = i + 1 if i + 1 < b else a
             L += math.sqrt((pts[j, 0] - pts[i, 0]) ** 2 + (pts[j, 1] - pts[i, 1]) ** 2)
         per[r] = L
-        if not L > 0.0:
+        if not L >= min_length or not L > 0.0:
             continue
         n = max(min_pts, int(math.ceil(L / spacing - 1e-9)))
         h[r] = L / n
@@ -329,3 +330,55 @@ def periodic_pieces(pts, starts, spacing, pad_mm, min_pts):
     gstart[R] = g
     fstart[R] = f
     return gstart, graw, h, fstart, fu[:f], fraw[:f], own[:f]
+
+
+@njit(cache=True, error_model="numpy")
+def collect_rings(moved, fraw, fstart, own):
+    """The smoothed rings out of :func:`periodic_pieces`' padded pieces, and how far each
+    ring's input reaches outside its smoothed form.
+
+    moved (F, 2) mm: the smoothed points of every piece; fraw (F, 2) mm their input
+    positions; fstart (R+1,), own (F,) as :func:`periodic_pieces` returns them. A point
+    that moves into the area (against the left normal of an input segment it lies on: the
+    one to the next point or the one from the previous; icefab's rings have their area on
+    the left) counts with the whole length of its move, which bounds how far it lies from
+    the smoothed ring; along a chord the move is linear between its ends.
+
+    Returns (points (M, 2) mm, starts (R+1,) int64: ring r is ``points[starts[r]:
+    starts[r+1]]``, reach (R,) mm: the largest such move of ring r, 0 if none).
+    """
+    R = fstart.shape[0] - 1
+    M = 0
+    for i in range(own.shape[0]):
+        if own[i]:
+            M += 1
+    pts = np.empty((M, 2))
+    starts = np.zeros(R + 1, np.int64)
+    reach = np.zeros(R)
+    m = 0
+    for r in range(R):
+        starts[r] = m
+        a = fstart[r]
+        b = fstart[r + 1]
+        for i in range(a, b):
+            if not own[i]:
+                continue
+            pts[m, 0] = moved[i, 0]
+            pts[m, 1] = moved[i, 1]
+            m += 1
+            dx = moved[i, 0] - fraw[i, 0]
+            dy = moved[i, 1] - fraw[i, 1]
+            if dx == 0.0 and dy == 0.0:
+                continue
+            into = False
+            for j in (i - 1, i + 1):
+                if j < a or j >= b:
+                    continue
+                sx = fraw[max(i, j), 0] - fraw[min(i, j), 0]
+                sy = fraw[max(i, j), 1] - fraw[min(i, j), 1]
+                if dy * sx - dx * sy > 0.0:  # d . (-sy, sx) > 0: into the left side
+                    into = True
+            if into:
+                reach[r] = max(reach[r], math.sqrt(dx * dx + dy * dy))
+    starts[R] = m
+    return pts, starts, reach

@@ -488,38 +488,21 @@ def smooth_rings(rings: Rings, tol_mm: float, sigma_mm: float, max_turn_deg: flo
     if not tol_mm > 0 or not rings:
         return list(rings), 0.0
     eps = min(tol_mm / 5.0, 0.01)
-    short = ring_perimeters(rings) < 8.0 * SMOOTH_SPACING_MM
-    work = [i for i, r in enumerate(rings) if len(r) >= 3 and not short[i]]
+    work = [i for i, r in enumerate(rings) if len(r) >= 3]
     if not work:
         return list(rings), 0.0
     pts, starts = _pack([rings[i] for i in work])
+    # rings shorter than 8 grid steps get no grid (empty pieces) and stay as they are
     gstart, graw, h, fstart, fu, fraw, own = _smooth.periodic_pieces(
-        pts, starts, SMOOTH_SPACING_MM, 3.0 * sigma_mm, 8)
+        pts, starts, SMOOTH_SPACING_MM, 3.0 * sigma_mm, 8, 8.0 * SMOOTH_SPACING_MM)
     moved = _smooth.smooth_pieces(gstart, graw, h, fstart, fu, fraw,
                                   sigma_mm / SMOOTH_SPACING_MM, tol_mm - eps,
                                   np.radians(max_turn_deg))
-    # inward moves: a point that moves into the area (against the left normal of an input
-    # segment it lies on: the one to the next point or the one from the previous) counts
-    # with the whole length of its move, which bounds how far it is from the smoothed
-    # ring; along a chord the move is linear between its ends.
-    nxt = np.diff(fraw, axis=0, append=fraw[-1:])
-    prv = np.diff(fraw, axis=0, prepend=fraw[:1])
-    first, last = fstart[:-1], fstart[1:] - 1
-    nxt[last] = prv[last]
-    prv[first] = nxt[first]
-    d = moved - fraw
-    into = ((d * np.column_stack([-nxt[:, 1], nxt[:, 0]])).sum(axis=1) > 0) | \
-        ((d * np.column_stack([-prv[:, 1], prv[:, 0]])).sum(axis=1) > 0)
-    inward = np.where(into, np.hypot(d[:, 0], d[:, 1]), 0.0)
-    owner = np.repeat(np.arange(len(work)), np.diff(fstart))
-    reach_of = np.zeros(len(work))
-    np.maximum.at(reach_of, owner[own], inward[own])
-    # the smoothed rings, packed as the kernels take them, thinned by eps
-    moved = np.ascontiguousarray(moved[own])
-    cut = offsets(np.bincount(owner[own], minlength=len(work)))
+    moved, cut, reach_of = _smooth.collect_rings(moved, fraw, fstart, own)
     keep = _chord_keep(moved, cut, float(eps), closed=True)
     thinned = [moved[a:b][keep[a:b]] for a, b in zip(cut[:-1], cut[1:])]
-    used = simple_mask(thinned) & (np.array([len(r) for r in thinned]) >= 3)
+    used = simple_mask(thinned) & (np.diff(cut) > 0) & \
+        (np.array([len(r) for r in thinned]) >= 3)
     out = list(rings)
     for k in np.flatnonzero(used):
         out[work[k]] = thinned[k]
