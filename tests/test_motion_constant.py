@@ -99,3 +99,26 @@ def test_bad_role_speeds():
         constant_speed_motion(tp, Job(), fill_mm_s=-1.0)
     with pytest.raises(IcefabError, match="unknown path role"):
         plan_paths_motion(tp.layers[0].paths, Job(), role_speeds={"wall": 10.0})
+
+
+@pytest.mark.parametrize("constant", [False, True])
+def test_durations_without_samples_equal_the_planned_ones(constant):
+    """plan_paths_durations (the constant-speed comparison's worker) gives exactly the
+    durations plan_paths_motion samples, for rings, open paths, travel and a one-point
+    path, at MTTS and at the constant speeds."""
+    from icefab.motion import _constant_speeds, plan_paths_durations
+    job = Job()
+    th = np.linspace(0.0, 2.0 * np.pi, 90, endpoint=False)
+    ring = np.c_[40.0 * np.cos(th), 25.0 * np.sin(th)]
+    zig = np.array([[0.0, 0.0], [30.0, 0.0], [30.0, 3.0], [0.0, 3.0], [0.0, 6.0]])
+    paths = [Toolpath(points=ring, closed=True, role="boundary", width=1.5),
+             Toolpath(points=zig, role="fill", width=3.0),
+             Toolpath(points=np.array([[0.0, 6.0], [40.0, 0.0]]), role="travel"),
+             Toolpath(points=np.array([[5.0, 5.0]]), role="fill", width=3.0),
+             Toolpath(points=ring * 0.5, closed=True, role="measure")]
+    speeds = _constant_speeds(job, None, None) if constant else None
+    planned = [t.duration for t in plan_paths_motion(paths, job, role_speeds=speeds)]
+    got = plan_paths_durations(paths, job, role_speeds=speeds)
+    assert got.tolist() == planned
+    assert got[3] == 0.0 and (got[[0, 1, 2, 4]] > 0).all()
+    assert plan_paths_durations([], job).shape == (0,)

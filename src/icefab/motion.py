@@ -89,7 +89,7 @@ import math
 import os
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import Callable, Iterator, Mapping, Sequence
+from typing import Callable, Iterator, Mapping, NamedTuple, Sequence
 
 import numpy as np
 from scipy.ndimage import convolve1d
@@ -112,7 +112,8 @@ from icefab.workload import check_motion
 
 log = logging.getLogger(__name__)
 
-__all__ = ["plan_motion", "plan_paths_motion", "plan_toolpaths", "iter_plan_toolpaths",
+__all__ = ["plan_motion", "plan_paths_motion", "plan_paths_durations", "plan_toolpaths",
+           "iter_plan_toolpaths",
            "iter_plan_and_compare",
            "constant_speed_motion",
            "constant_speed_time",
@@ -367,17 +368,23 @@ def followed_path(points: np.ndarray, job: Job | None = None) -> list[np.ndarray
     return [sp.fxy[a:b] for a, b in zip(sp.fstart[:-1], sp.fstart[1:])]
 
 
-def _plan_polylines(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
-                    vcaps: np.ndarray, job: Job, robot: Robot,
-                    labels: Sequence[tuple[int, int]] | None = None,
-                    paths: Sequence[Toolpath | None] | None = None) -> list[Trajectory]:
-    """Plan many polylines at once (one compiled call for all of them).
+class _Profiles(NamedTuple):
+    """The speed profiles of many polylines (:func:`_speed_profiles`), before sampling."""
 
-    polys: P arrays (k_i, 2) float64 mm in the robot base frame (closed paths with their
-    first point repeated at the end), or already concatenated: a tuple (V (K, 2) float64
-    mm, counts (P,) int64). vcaps: (P,) mm/s speed bound per path.
-    labels: (layer, path index) per polyline, for error messages.
-    """
+    sp: _Split             # the PATHSPLIT pieces
+    P: int                 # polylines
+    v: np.ndarray          # (G,) speed at the grid points, mm/s
+    T: np.ndarray          # (Q,) duration of every piece, s
+    a0: np.ndarray         # (Q,) rest accelerations at the piece starts and ends
+    a1: np.ndarray
+
+
+def _speed_profiles(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
+                    vcaps: np.ndarray, job: Job, robot: Robot,
+                    labels: Sequence[tuple[int, int]] | None = None) -> _Profiles:
+    """PATHSPLIT, workspace checks and the minimum-time speed profile of every piece (one
+    compiled call for all of them), up to the durations (no pieces, and empty profiles,
+    when every polyline is a single point). Arguments as :func:`_plan_polylines`."""
     m = job.motion
     if isinstance(polys, tuple):
         V, counts = polys
@@ -386,7 +393,7 @@ def _plan_polylines(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
         V = np.concatenate(polys).astype(np.float64, copy=False) if len(polys) else None
     P = len(counts)
     if P == 0:
-        return []
+        V = np.zeros((0, 2))
     pid = np.repeat(np.arange(P), counts)
     pstart = offsets(counts)
 
@@ -402,8 +409,8 @@ def _plan_polylines(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
                                  f"(robot base frame) is out of the {robot.name} workspace: "
                                  f"{sreasons[0]}")
     if len(sp.a) == 0:
-        return [_single_point(sp.V[sp.pstart[k]], job, robot, paths[k] if paths else None)
-                for k in range(P)]
+        z = np.zeros(0)
+        return _Profiles(sp=sp, P=P, v=z, T=z, a0=z, a1=z)
     V, pid, counts, pstart, orig_index = sp.V, sp.pid, sp.counts, sp.pstart, sp.orig_index
     a, piece_path, pvs, S, s0, L = sp.a, sp.piece_path, sp.pvs, sp.S, sp.s0, sp.L
     hk, gstart, gxy, gs = sp.hk, sp.gstart, sp.gxy, sp.gs
@@ -460,9 +467,54 @@ def _plan_polylines(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
     a0, a1, T = _mtts.rest_accelerations(gstart, hk, v, T, dt,
                                          float(m.rest_accel_mm_s2) if jerk_on else -1.0,
                                          dmin0, dmin1, cap0, cap1)
+    return _Profiles(sp=sp, P=P, v=v, T=T, a0=a0, a1=a1)
+
+
+def _piece_samples(T: np.ndarray, dt: float) -> np.ndarray:
+    """Sampling steps of every piece: its duration in whole steps of dt (>= 1)."""
+    return np.maximum(1, np.ceil(T / dt - 1e-9).astype(np.int64))
+
+
+def _plan_durations(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
+                    vcaps: np.ndarray, job: Job, robot: Robot,
+                    labels: Sequence[tuple[int, int]] | None = None) -> np.ndarray:
+    """(P,) the duration, s, of every polyline's trajectory as :func:`_plan_polylines`
+    samples it (its pieces' whole steps of dt; 0 for a single point), without the
+    samples: what a comparison of build times needs (``icefab plan``'s constant-speed
+    case), at the cost of the speed profiles alone."""
+    pr = _speed_profiles(polys, vcaps, job, robot, labels)
+    if len(pr.T) == 0:
+        return np.zeros(pr.P)
+    steps = np.bincount(pr.sp.piece_path, weights=_piece_samples(pr.T, float(job.motion.dt_s)),
+                        minlength=pr.P)
+    return steps * float(job.motion.dt_s)
+
+
+def _plan_polylines(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
+                    vcaps: np.ndarray, job: Job, robot: Robot,
+                    labels: Sequence[tuple[int, int]] | None = None,
+                    paths: Sequence[Toolpath | None] | None = None) -> list[Trajectory]:
+    """Plan many polylines at once (one compiled call for all of them).
+
+    polys: P arrays (k_i, 2) float64 mm in the robot base frame (closed paths with their
+    first point repeated at the end), or already concatenated: a tuple (V (K, 2) float64
+    mm, counts (P,) int64). vcaps: (P,) mm/s speed bound per path.
+    labels: (layer, path index) per polyline, for error messages.
+    """
+    pr = _speed_profiles(polys, vcaps, job, robot, labels)
+    if len(pr.T) == 0:
+        return [_single_point(pr.sp.V[pr.sp.pstart[k]], job, robot, paths[k] if paths else None)
+                for k in range(pr.P)]
+    sp, P, v, T, a0, a1 = pr.sp, pr.P, pr.v, pr.T, pr.a0, pr.a1
+    trajs_empty = sp.counts == 1
+    V, pstart = sp.V, sp.pstart
+    piece_path, s0, L = sp.piece_path, sp.s0, sp.L
+    hk, gstart = sp.hk, sp.gstart
+    Q = len(sp.a)
+    dt = float(job.motion.dt_s)
 
     # ---- constant-dt sampling
-    nsamp = np.maximum(1, np.ceil(T / dt - 1e-9).astype(np.int64))
+    nsamp = _piece_samples(T, dt)
     sstart = offsets(nsamp + 1)
     s_loc, spd = _mtts.sample_pieces(gstart, hk, v, T, nsamp, sstart[:-1].copy(), dt, a0, a1)
     # follow the input polyline, or the smoothed one (piecewise linear, parameter in S
@@ -652,6 +704,31 @@ def plan_paths_motion(paths: Sequence[Toolpath], job: Job | None = None, *,
     robot = robot or get_robot(job)
     if not paths:
         return []
+    V, counts, caps, labels = _paths_input(paths, job, layer, role_speeds)
+    return _plan_polylines((V, counts), caps, job, robot, labels=labels, paths=list(paths))
+
+
+def plan_paths_durations(paths: Sequence[Toolpath], job: Job | None = None, *,
+                         robot: Robot | None = None, layer: int = -1,
+                         role_speeds: Mapping[str, float] | None = None) -> np.ndarray:
+    """(P,) float64 s: the duration of each path's trajectory, exactly as
+    :func:`plan_paths_motion` plans it, without sampling it (the speed profiles alone:
+    what a comparison of build times needs)."""
+    job = job or Job()
+    _check_role_speeds(role_speeds)
+    robot = robot or get_robot(job)
+    if not paths:
+        return np.zeros(0)
+    V, counts, caps, labels = _paths_input(paths, job, layer, role_speeds)
+    return _plan_durations((V, counts), caps, job, robot, labels=labels)
+
+
+def _paths_input(paths: Sequence[Toolpath], job: Job, layer: int,
+                 role_speeds: Mapping[str, float] | None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[tuple[int, int]]]:
+    """The paths as the planner takes them: all points in the robot base frame (closed
+    paths back to their first point), checked finite; points per path, speed bound per
+    path, (layer, index) labels for messages."""
     polys = []
     for i, p in enumerate(paths):
         pts = p.polyline()
@@ -667,7 +744,7 @@ def plan_paths_motion(paths: Sequence[Toolpath], job: Job | None = None, *,
         _as_points(V[ends[i] - counts[i]:ends[i]], f"layer {paths[i].layer}, path {i}")
     caps = np.array([_role_cap(p, job, role_speeds) for p in paths], dtype=np.float64)
     labels = [(p.layer if p.layer >= 0 else layer, i) for i, p in enumerate(paths)]
-    return _plan_polylines((V, counts), caps, job, robot, labels=labels, paths=list(paths))
+    return V, counts, caps, labels
 
 
 def _plan_layer(lp: LayerPaths, job: Job,
@@ -692,8 +769,8 @@ def _layer_time_task(args: tuple) -> float:
     """Worker: one layer's motion time, s; its samples are not sent back. args as
     :func:`_plan_layer_task`'s."""
     lp, job, role_speeds = args
-    return float(sum(t.duration for t in plan_paths_motion(
-        lp.paths, job, layer=lp.index, role_speeds=role_speeds))) if lp.paths else 0.0
+    return float(plan_paths_durations(lp.paths, job, layer=lp.index,
+                                      role_speeds=role_speeds).sum()) if lp.paths else 0.0
 
 
 def _plan_compare_task(args: tuple) -> tuple[dict[str, np.ndarray], float]:
