@@ -468,9 +468,10 @@ def smooth_rings(rings: Rings, tol_mm: float, sigma_mm: float, max_turn_deg: flo
     (no fixed start point) and narrows where the ring turns by more than ``max_turn_deg``
     within it (a corner stays a corner). Every displacement is scaled down to at most
     ``tol_mm``, smoothly along the ring. The result is the ring's own vertices and the grid
-    points, moved, then filtered by ``min(tol_mm / 5, 0.01)`` (the smoothing itself gets
-    the rest of the tolerance): every point of the result is within ``tol_mm`` of the
-    input ring, and so is every chord (the points of one chord lie on one input segment).
+    points, moved, put on Clipper's grid (``1 / SCALE``) and filtered by
+    ``min(tol_mm / 5, 0.01)`` (the smoothing itself gets the rest of the tolerance): every
+    point of the result is within ``tol_mm`` of the input ring, and so is every chord (the
+    points of one chord lie on one input segment).
 
     Why: a jerk-limited robot slows down for noise, not for length. A ring of a 300 mm
     scan with 0.05 mm vertex noise changes curvature every few millimetres, which caps the
@@ -481,7 +482,8 @@ def smooth_rings(rings: Rings, tol_mm: float, sigma_mm: float, max_turn_deg: flo
 
     Returns (the rings, ``reach`` mm): how far the area the input rings bound reaches
     outside the area the smoothed ones bound, i.e. the largest move of a point into that
-    area (icefab's orientation: the area lies left of every ring), plus the filter's part;
+    area (icefab's orientation: the area lies left of every ring), plus the filter's and
+    the grid's part;
     0 when nothing moved inward. Growing the smoothed area by ``reach`` covers the input's.
     """
     rings = [np.asarray(r, dtype=np.float64) for r in rings]
@@ -496,9 +498,12 @@ def smooth_rings(rings: Rings, tol_mm: float, sigma_mm: float, max_turn_deg: flo
     gstart, graw, h, fstart, fu, fraw, own = _smooth.periodic_pieces(
         pts, starts, SMOOTH_SPACING_MM, 3.0 * sigma_mm, 8, 8.0 * SMOOTH_SPACING_MM)
     moved = _smooth.smooth_pieces(gstart, graw, h, fstart, fu, fraw,
-                                  sigma_mm / SMOOTH_SPACING_MM, tol_mm - eps,
+                                  sigma_mm / SMOOTH_SPACING_MM, tol_mm - eps - 1.0 / SCALE,
                                   np.radians(max_turn_deg))
     moved, cut, reach_of = _smooth.collect_rings(moved, fraw, fstart, own)
+    # on Clipper's grid, as every other ring: coordinates that are whole multiples of
+    # 1 / SCALE compress (a toolpath file of smoothed rings took twice the bytes)
+    moved = np.round(moved * SCALE) / SCALE
     keep = _chord_keep(moved, cut, float(eps), closed=True)
     thinned = [moved[a:b][keep[a:b]] for a, b in zip(cut[:-1], cut[1:])]
     used = simple_mask(thinned) & (np.diff(cut) > 0) & \
@@ -507,7 +512,7 @@ def smooth_rings(rings: Rings, tol_mm: float, sigma_mm: float, max_turn_deg: flo
     for k in np.flatnonzero(used):
         out[work[k]] = thinned[k]
     reach = float(reach_of[used].max()) if used.any() else 0.0
-    return out, (reach + eps if reach > 1e-6 else 0.0)
+    return out, (reach + eps + 1.0 / SCALE if reach > 1e-6 else 0.0)
 
 
 def _simplify_slow(ring: np.ndarray, filter_mm: float) -> Rings:
