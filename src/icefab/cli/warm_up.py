@@ -28,14 +28,32 @@ _TEXT_MESHES = {
 }
 
 
+def _gap_fill_kernels() -> None:
+    """The gap fill's centre lines (medial axis, width runs) on a thin strip and a narrow
+    ring: the mug's first layers may leave no gap that needs them (its smoothed fill
+    rings meet closely), while a longer run does."""
+    import numpy as np
+
+    from icefab import geometry as geo
+    from icefab.paths import centre_paths
+
+    strip = np.array([[0.0, 0.0], [30.0, 0.0], [30.0, 0.8], [0.0, 1.2]])
+    outer = np.array([[-10.0, -10.0], [10.0, -10.0], [10.0, 10.0], [-10.0, 10.0]])
+    hole = (outer * 0.95)[::-1].copy()
+    for rings in ([strip], [outer, hole]):
+        region = geo.region_from_rings([r * 1.5 for r in rings])
+        centre_paths(rings, 0.15, 3.0, 0.05, region)
+
+
 def warm_up() -> int:
     """Compile and cache the numba kernels of a first run; returns how many compiled.
 
     Runs what a newcomer runs first, small: ``icefab demo`` on the demo mug's first 8
     layers (4 on the simulator, SMF included) with one worker, so every stage's kernels
     compile with the argument types of a real run, reads its trajectory file back (the
-    sample decoder's kernel), and reads the mug back as binary STL and a tetrahedron as
-    OBJ and PLY (the mesh readers' kernels). Nothing is written
+    sample decoder's kernel), runs the gap fill's centre lines on a strip and a narrow ring,
+    and reads the mug back as binary STL and a tetrahedron as OBJ and PLY (the mesh
+    readers' kernels). Nothing is written
     outside a temporary folder but numba's cache (beside the sources, or
     ``NUMBA_CACHE_DIR``).
     """
@@ -56,6 +74,7 @@ def warm_up() -> int:
         if code:
             raise RuntimeError(f"icefab demo (warm-up) exited with {code}: {out.getvalue()}")
         load_trajectories(os.path.join(folder, "trajectories.npz"))
+        _gap_fill_kernels()
         load_mesh(os.path.join(folder, "demo-mug.stl"))
         for name, text in _TEXT_MESHES.items():
             with open(os.path.join(tmp, name), "w", encoding="ascii") as fh:
