@@ -16,7 +16,12 @@ jerk on, default limits) summed without keeping the samples. Per variant:
   paths (every trajectory and every split piece starts and ends at rest, thesis 4.1.1);
 * unfilled area (the paths stage's own measure, ``LayerPaths.unfilled_mm2``) and the
   lowest coverage of any layer's material region of at least 100 mm^2;
-* paths and the ``plan_paths`` wall time.
+* paths and the ``plan_paths`` wall time;
+* on ``--toppra-layers`` evenly spread layers, the whole layer tours (every path and
+  travel move, each PATHSPLIT piece from rest to rest) timed by TOPP-RA without jerk (the
+  independent planner of ``tests/test_motion_toppra.py``: joint speed and acceleration,
+  Cartesian speed and a 64-gon total acceleration bound) beside MTTS with jerk off and on
+  on the same layers: how much of the gap to the floor is the jerk bound.
 
 The bunny is sliced as ``icefab slice`` does (origin (340, 0), stroke 400 mm; the stack
 cached in ``bench/.cache/``), the box as ``bench_motion.py`` builds it.
@@ -34,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(0, str(Path(__file__).parent.parent))  # tests.test_motion_toppra
 
 BUNNY_EE = (340.0, 0.0)
 
@@ -74,7 +80,35 @@ def _coverage(stack, tp) -> float:
     return worst
 
 
-def measure(stack, job) -> dict:
+def _toppra_tours(tp, job, picks) -> dict:
+    """TOPP-RA (no jerk) and MTTS (jerk off, on) times of the picked layers' whole tours."""
+    from tests.test_motion_toppra import toppra_duration
+
+    from icefab.frames import to_base_frame
+    from icefab.motion import path_limits, pathsplit, plan_paths_motion
+    from icefab.robots import get_robot
+
+    robot = get_robot(job)
+    off = job.replace(**{"motion.jerk_limited": False})
+    out = {"toppra_s": 0.0, "mtts_nojerk_s": 0.0, "mtts_s": 0.0, "failed": 0}
+    for k in picks:
+        lp = tp.layers[k]
+        out["mtts_s"] += sum(t.duration for t in plan_paths_motion(lp.paths, job))
+        out["mtts_nojerk_s"] += sum(t.duration for t in plan_paths_motion(lp.paths, off))
+        for p in lp.paths:
+            pts = to_base_frame(p.polyline(), p.tool_name, job)
+            if len(pts) < 2:
+                continue
+            jb = off.replace(**{"motion.speed_mm_s": path_limits(p, off)})
+            for piece in pathsplit(pts, jb):
+                try:
+                    out["toppra_s"] += toppra_duration(piece, jb, robot)
+                except Exception:  # noqa: BLE001 - counted and reported
+                    out["failed"] += 1
+    return out
+
+
+def measure(stack, job, toppra_layers: int = 0) -> dict:
     from icefab.motion import iter_plan_toolpaths
     from icefab.paths import plan_paths
 
@@ -108,12 +142,15 @@ def measure(stack, job) -> dict:
                 stops["PATHSPLIT corners"] += max(len(t.pieces) - 1, 0)
     n = len(tp.layers)
     unfilled = np.array([lp.unfilled_mm2 for lp in tp.layers]).sum(axis=0)
+    picks = sorted({int(round(x)) for x in np.linspace(0, n - 1, toppra_layers + 2)[1:-1]}) \
+        if toppra_layers else []
+    tours = _toppra_tours(tp, job, picks) if picks else None
     return {"mtts_h": sum(by_role.values()) / 3600.0, "floor_h": floor / 3600.0,
             "by_role_h": {k: v / 3600.0 for k, v in sorted(by_role.items())},
             "stops_per_layer": {k: v / n for k, v in stops.items()},
             "unfilled_mm2": [float(unfilled[0]), float(unfilled[1])],
             "min_coverage": _coverage(stack, tp), "paths": n_paths, "layers": n,
-            "plan_paths_s": t_paths}
+            "plan_paths_s": t_paths, "toppra_layers": picks, "tours": tours}
 
 
 def _rows(a: dict, b: dict) -> list[tuple[str, float, float]]:
@@ -130,6 +167,13 @@ def _rows(a: dict, b: dict) -> list[tuple[str, float, float]]:
              ("lowest coverage of a region", a["min_coverage"], b["min_coverage"]),
              ("paths (deposition and measurement)", a["paths"], b["paths"]),
              ("plan_paths wall time (s)", a["plan_paths_s"], b["plan_paths_s"])]
+    if a["tours"] and b["tours"]:
+        where = ", ".join(str(k) for k in b["toppra_layers"])
+        for key, label in (("toppra_s", "TOPP-RA, no jerk"), ("mtts_nojerk_s", "MTTS, jerk off"),
+                           ("mtts_s", "MTTS, jerk on")):
+            rows.append((f"layers {where}: {label} (s)", a["tours"][key], b["tours"][key]))
+        rows.append(("  TOPP-RA pieces without a solution", a["tours"]["failed"],
+                     b["tours"]["failed"]))
     return rows
 
 
@@ -143,6 +187,8 @@ def main() -> int:
                          "materials.part.fill_smoothing_mm=0 "
                          "materials.scaffold.fill_smoothing_mm=0")
     ap.add_argument("--skip-bunny", action="store_true")
+    ap.add_argument("--toppra-layers", type=int, default=1,
+                    help="layers of each part whose whole tours TOPP-RA times (0: none)")
     args = ap.parse_args()
     from icefab.config import Job
 
@@ -161,8 +207,8 @@ def main() -> int:
         parts.append(("bunny, 300 mm", bjob, lambda j: _bunny_stack(j, args.layers_every)))
     for name, job, make in parts:
         stack = make(job)
-        peer = measure(stack, job.replace(**peer_settings))
-        mine = measure(stack, job)
+        peer = measure(stack, job.replace(**peer_settings), args.toppra_layers)
+        mine = measure(stack, job, args.toppra_layers)
         results[name] = {"peer": peer, "default": mine}
         print(f"\n{name}: {mine['layers']} layers")
         print("| figure | peer | default job | ratio |")
