@@ -396,3 +396,19 @@ def test_smooth_rings_keeps_clean_polygons_and_corners():
     np.testing.assert_array_equal(geo.smooth_rings([tiny], 0.3, 5.0)[0][0], tiny)
     np.testing.assert_array_equal(geo.smooth_rings([square], 0.0, 5.0)[0][0], square)
     assert geo.smooth_rings([], 0.3, 5.0) == ([], 0.0)
+
+
+def test_smooth_rings_takes_repeated_and_collinear_points():
+    """Repeated vertices (zero-length edges), collinear runs and a ring of one repeated
+    point do not upset the smoothing: the result stays within the tolerance, a point-ring
+    comes back as it was."""
+    noisy = _noisy_ellipse(n=120, noise=0.1)
+    ring = np.repeat(noisy, 2, axis=0)                    # every vertex twice
+    ring = np.insert(ring, 7, (ring[6] + ring[8]) / 2.0, axis=0)  # a collinear point
+    (out,), reach = geo.smooth_rings([ring], 0.2, 5.0)
+    assert _farthest_from(out, noisy) <= 0.2 + 1e-9
+    assert 0.0 < reach <= 0.2 + 1e-9
+    dot = np.zeros((4, 2))
+    (same,), r = geo.smooth_rings([dot], 0.2, 5.0)
+    np.testing.assert_array_equal(same, dot)
+    assert r == 0.0
