@@ -1,8 +1,11 @@
-"""Shared by the benchmarks: replace one section of BENCHMARKS.md with new figures."""
+"""Shared by the benchmarks: replace one section of BENCHMARKS.md with new figures; pick
+layers evenly; count where the robot stands still."""
 from __future__ import annotations
 
 import re
+from collections import Counter
 from pathlib import Path
+from typing import Iterable
 
 from icefab.atomic import write_atomic
 
@@ -21,3 +24,24 @@ def write_section(heading: str, text: str, path: Path = BENCHMARKS) -> None:
         end = start + len(heading) + m.start() if m else len(doc)
         doc = doc[:start] + text + "\n" + doc[end:]
     write_atomic(path, doc)
+
+
+def evenly_spread(n: int, k: int) -> list[int]:
+    """``k`` layer indices spread evenly over ``n`` layers, the first and last left out."""
+    import numpy as np
+    return sorted({int(round(x)) for x in np.linspace(0, n - 1, k + 2)[1:-1]})
+
+
+def rest_stops(trajectories: Iterable) -> Counter:
+    """Where the robot stands still along trajectories: every trajectory and every
+    PATHSPLIT piece starts and ends at rest (thesis 4.1.1). Counts "travel moves" (a
+    travel trajectory), "path starts" (any other) and "PATHSPLIT corners" (the pieces
+    after a path's first)."""
+    stops = Counter({"travel moves": 0, "path starts": 0, "PATHSPLIT corners": 0})
+    for t in trajectories:
+        if t.path is None or t.path.role == "travel":
+            stops["travel moves"] += 1
+        else:
+            stops["path starts"] += 1
+            stops["PATHSPLIT corners"] += max(len(t.pieces) - 1, 0)
+    return stops

@@ -10,8 +10,8 @@ jerk on, default limits) summed without keeping the samples. Per variant:
 
 * MTTS build time, and by role (boundary, fill rings of the fill width, gap paths of
   other widths, travel, measurement);
-* the speed-bound floor: every path's length over its speed bound (``speed_mm_s`` for
-  deposition, ``travel_speed_mm_s``, ``measure_speed_mm_s``), i.e. no acceleration at all;
+* the speed-bound floor: every path's length over the speed bound MTTS plans it under
+  (``motion.path_limits``), i.e. no acceleration at all;
 * rest stops per layer by cause: travel moves, path starts, PATHSPLIT corners inside
   paths (every trajectory and every split piece starts and ends at rest, thesis 4.1.1);
 * unfilled area (the paths stage's own measure, ``LayerPaths.unfilled_mm2``) and the
@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from collections import Counter
 import os
 import platform
 import sys
@@ -40,6 +41,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
 sys.path.insert(0, str(Path(__file__).parent.parent))  # tests.test_motion_toppra
+
+from _report import evenly_spread, rest_stops  # noqa: E402
 
 BUNNY_EE = (340.0, 0.0)
 
@@ -109,7 +112,7 @@ def _toppra_tours(tp, job, picks) -> dict:
 
 
 def measure(stack, job, toppra_layers: int = 0) -> dict:
-    from icefab.motion import iter_plan_toolpaths
+    from icefab.motion import iter_plan_toolpaths, path_limits
     from icefab.paths import plan_paths
 
     plan_paths(type(stack)(layers=stack.layers[:2], job=stack.job,
@@ -117,15 +120,13 @@ def measure(stack, job, toppra_layers: int = 0) -> dict:
     t0 = time.perf_counter()
     tp = plan_paths(stack, job)
     t_paths = time.perf_counter() - t0
-    m = job.motion
-    speed = {"travel": m.travel_speed_mm_s, "measure": m.measure_speed_mm_s}
     by_role: dict[str, float] = {}
     floor = 0.0
-    stops = {"travel moves": 0, "path starts": 0, "PATHSPLIT corners": 0}
+    stops: Counter = Counter()
     fill_width = {"part": job.materials.part.fill_width_mm,
                   "scaffold": job.materials.scaffold.fill_width_mm}
-    n_paths = 0
     for lm in iter_plan_toolpaths(tp, job):
+        stops.update(rest_stops(lm.trajectories))
         for t in lm.trajectories:
             p = t.path
             role = "travel" if p is None else p.role
@@ -133,23 +134,16 @@ def measure(stack, job, toppra_layers: int = 0) -> dict:
                 role = "fill" if abs(p.width - fill_width[p.material]) < 1e-9 else "gap"
             by_role[role] = by_role.get(role, 0.0) + float(t.duration)
             if p is not None:
-                floor += p.length / speed.get(p.role, m.speed_mm_s)
-            if role == "travel":
-                stops["travel moves"] += 1
-            else:
-                n_paths += 1
-                stops["path starts"] += 1
-                stops["PATHSPLIT corners"] += max(len(t.pieces) - 1, 0)
+                floor += p.length / path_limits(p, job)
     n = len(tp.layers)
     unfilled = np.array([lp.unfilled_mm2 for lp in tp.layers]).sum(axis=0)
-    picks = sorted({int(round(x)) for x in np.linspace(0, n - 1, toppra_layers + 2)[1:-1]}) \
-        if toppra_layers else []
+    picks = evenly_spread(n, toppra_layers) if toppra_layers else []
     tours = _toppra_tours(tp, job, picks) if picks else None
     return {"mtts_h": sum(by_role.values()) / 3600.0, "floor_h": floor / 3600.0,
             "by_role_h": {k: v / 3600.0 for k, v in sorted(by_role.items())},
             "stops_per_layer": {k: v / n for k, v in stops.items()},
             "unfilled_mm2": [float(unfilled[0]), float(unfilled[1])],
-            "min_coverage": _coverage(stack, tp), "paths": n_paths, "layers": n,
+            "min_coverage": _coverage(stack, tp), "paths": stops["path starts"], "layers": n,
             "plan_paths_s": t_paths, "toppra_layers": picks, "tours": tours}
 
 

@@ -27,6 +27,8 @@ from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(Path(__file__).parent))
 
+from _report import evenly_spread, rest_stops  # noqa: E402
+
 
 def _stack():
     from meshes import big_mesh
@@ -96,16 +98,7 @@ def _run(stack, job, picks, improve: bool) -> dict:
     motion = plan_toolpaths(tp, job)
     travel_s = sum(float(t.duration) for lm in motion.layers for t in lm.trajectories
                    if t.path is None or t.path.role == "travel")
-    # rest stops: the robot is at rest where every trajectory and every PATHSPLIT piece
-    # starts (thesis 4.1.1)
-    stops = {"travel": 0, "path starts": 0, "corner splits": 0}
-    for lm in motion.layers:
-        for t in lm.trajectories:
-            if t.path is None or t.path.role == "travel":
-                stops["travel"] += 1
-            else:
-                stops["path starts"] += 1
-                stops["corner splits"] += max(len(t.pieces) - 1, 0)
+    stops = rest_stops(t for lm in motion.layers for t in lm.trajectories)
     return {"travel_mm": sum(p.length for lp in tp.layers for p in lp.paths
                              if p.role == "travel"),
             "travel_moves": sum(1 for lp in tp.layers for p in lp.paths
@@ -122,7 +115,7 @@ def main() -> None:
     t0 = time.perf_counter()
     stack, job = _stack()
     n = len(stack.layers)
-    picks = sorted({int(round(x)) for x in np.linspace(0, n - 1, args.layers + 2)[1:-1]})
+    picks = evenly_spread(n, args.layers)
     print(f"bunny: {n} layers, {len(picks)} picked; sliced in "
           f"{time.perf_counter() - t0:.0f} s", flush=True)
     nn = _run(stack, job, picks, improve=False)
