@@ -109,7 +109,7 @@ from icefab.frames import to_part_frame
 from icefab.motion import limit_ratio, speedup_cap
 from icefab.parallel import parallel_map
 from icefab.stages import layer_height
-from icefab.core import HeightMap, Trajectory, ValveProgram
+from icefab.core import HeightMap, Trajectory, ValveProgram, offsets
 
 if TYPE_CHECKING:  # pragma: no cover
     from icefab.config import Job
@@ -707,6 +707,8 @@ def program_pieces(prog: ValveProgram) -> tuple[ValveProgram, ...]:
 
 def pulse_times(prog: ValveProgram) -> np.ndarray:
     """(p,) float64 pulse instants, s, from the start of the trajectory (all pieces)."""
+    if not prog.pieces:  # one piece (most programs): its ticks, without joining pieces
+        return prog.ticks.astype(np.float64) * prog.tick_s
     out = []
     t0 = 0.0
     for piece in program_pieces(prog):
@@ -1046,7 +1048,7 @@ def _nominal_fm_programs(trajs: "Sequence[Trajectory]", materials: Sequence[str]
     same = np.zeros(len(ticks_all), dtype=np.int64)
     same[1:] = ticks_all[1:] == ticks_all[:-1]
     same[toff[:-1][toff[:-1] < len(same)]] = 0       # no "before" at a path's first pulse
-    counted = np.concatenate([[0], np.cumsum(same)])
+    counted = offsets(same)
     shared_one = counted[toff[1:]] - counted[toff[:-1]]
     for k in np.flatnonzero(fast):
         tr = sel[k]

@@ -483,8 +483,8 @@ def smooth_rings(rings: Rings, tol_mm: float, sigma_mm: float, max_turn_deg: flo
     Returns (the rings, ``reach`` mm): how far the area the input rings bound reaches
     outside the area the smoothed ones bound, i.e. the largest move of a point into that
     area (icefab's orientation: the area lies left of every ring), plus the filter's and
-    the grid's part;
-    0 when nothing moved inward. Growing the smoothed area by ``reach`` covers the input's.
+    the grid's part; 0 when nothing moved inward. Growing the smoothed area by ``reach``
+    covers the input's.
     """
     rings = [np.asarray(r, dtype=np.float64) for r in rings]
     if not tol_mm > 0 or not rings:

@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Iterable
 
 import numpy as np
 
+from icefab.core import offsets
 from icefab.errors import FlowError
 from icefab.flow import calibration_for, trajectory_width
 
@@ -105,7 +106,7 @@ def feedback_headroom(trajectories: Iterable[tuple[int, "Trajectory"]], job: "Jo
     n = np.array([len(t.speed) for _, t, _ in picked])
     vmax = np.maximum.reduceat(np.concatenate([np.asarray(t.speed, np.float64)
                                                for _, t, _ in picked]),
-                               np.concatenate([[0], np.cumsum(n)[:-1]]))
+                               offsets(n)[:-1])
     w = np.array([trajectory_width(t, t.path.material, job) for _, t, _ in picked])
     dh = np.array([d for *_, d in picked])
     q = w * dh * vmax

@@ -390,15 +390,11 @@ def _speed_profiles(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
         V, counts = polys
     else:
         counts = np.array([len(p) for p in polys], dtype=np.int64)
-        V = np.concatenate(polys).astype(np.float64, copy=False) if len(polys) else None
+        V = (np.concatenate(polys).astype(np.float64, copy=False) if len(polys)
+             else np.zeros((0, 2)))
     P = len(counts)
-    if P == 0:
-        V = np.zeros((0, 2))
-    pid = np.repeat(np.arange(P), counts)
-    pstart = offsets(counts)
 
     sp = _pathsplit(V, counts, job)
-    trajs_empty = sp.counts == 1
     single = np.flatnonzero(sp.counts == 1)
     if len(single):  # single-point paths have no grid: check their point here
         sbad, sreasons = robot.workspace_violations(sp.V[sp.pstart[single]])
@@ -411,11 +407,10 @@ def _speed_profiles(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
     if len(sp.a) == 0:
         z = np.zeros(0)
         return _Profiles(sp=sp, P=P, v=z, T=z, a0=z, a1=z)
-    V, pid, counts, pstart, orig_index = sp.V, sp.pid, sp.counts, sp.pstart, sp.orig_index
-    a, piece_path, pvs, S, s0, L = sp.a, sp.piece_path, sp.pvs, sp.S, sp.s0, sp.L
+    V, pid, orig_index = sp.V, sp.pid, sp.orig_index
+    a, piece_path, pvs, S = sp.a, sp.piece_path, sp.pvs, sp.S
     hk, gstart, gxy, gs = sp.hk, sp.gstart, sp.gxy, sp.gs
     K = len(V)
-    Q = len(a)
 
     # ---- workspace check before any planning: every input point, then every grid point
     # (a chord can leave the workspace between two reachable points, e.g. across the inner
@@ -483,11 +478,10 @@ def _plan_durations(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
     samples: what a comparison of build times needs (``icefab plan``'s constant-speed
     case), at the cost of the speed profiles alone."""
     pr = _speed_profiles(polys, vcaps, job, robot, labels)
+    dt = float(job.motion.dt_s)
     if len(pr.T) == 0:
         return np.zeros(pr.P)
-    steps = np.bincount(pr.sp.piece_path, weights=_piece_samples(pr.T, float(job.motion.dt_s)),
-                        minlength=pr.P)
-    return steps * float(job.motion.dt_s)
+    return np.bincount(pr.sp.piece_path, weights=_piece_samples(pr.T, dt), minlength=pr.P) * dt
 
 
 def _plan_polylines(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
@@ -770,7 +764,7 @@ def _layer_time_task(args: tuple) -> float:
     :func:`_plan_layer_task`'s."""
     lp, job, role_speeds = args
     return float(plan_paths_durations(lp.paths, job, layer=lp.index,
-                                      role_speeds=role_speeds).sum()) if lp.paths else 0.0
+                                      role_speeds=role_speeds).sum())
 
 
 def _plan_compare_task(args: tuple) -> tuple[dict[str, np.ndarray], float]:

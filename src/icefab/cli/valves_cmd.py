@@ -189,8 +189,7 @@ def _drop_spacings(trajs, progs, min_drops_per_mm: float) -> list[tuple[float, f
     span = (n - 1) * dt + 1.0                                    # each path's time, and a gap
     shift = np.concatenate([[0.0], np.cumsum(span)[:-1]])
     t = local * np.repeat(dt, n) + np.repeat(shift, n)
-    pulses = [p.ticks.astype(np.float64) * p.tick_s if not p.pieces else pulse_times(p)
-              for p in progs]   # a one-piece program's instants are its ticks' (pulse_times)
+    pulses = [pulse_times(p) for p in progs]
     n_p = np.array([len(a) for a in pulses], dtype=np.int64)
     at = np.interp(np.concatenate(pulses) + np.repeat(shift, n_p), t, s) - np.repeat(s0, n_p)
     limit = 1.0 / min_drops_per_mm if min_drops_per_mm > 0 else np.inf
