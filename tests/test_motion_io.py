@@ -130,7 +130,7 @@ def test_version_1_files_still_load_with_a_warning(tmp_path, caplog):
     save_trajectories(motion, f)
     with np.load(f) as z:
         data = {k: z[k] for k in z.files
-                if k not in ("traj_dt", "width", "closed", "tool", "path_z",
+                if k not in ("traj_dt", "width", "closed", "tool", "path_z", "variable",
                              "block_layer_start")
                 and "_counts" not in k and not k.endswith("_resolution")}
     # version 1 stored the samples as float64
@@ -187,7 +187,7 @@ def test_version_2_files_with_float_samples_still_load_exactly(tmp_path):
     save_trajectories(motion, f)
     with np.load(f) as z:
         data = {k: z[k] for k in z.files if "_counts" not in k and k != "block_layer_start"
-                and not k.endswith("_resolution")}
+                and not k.endswith("_resolution") and k != "variable"}
     packed = pack_trajectories([t for lm in motion.layers for t in lm.trajectories], 3)
     data.update({k: packed[k] for k in ("xy", "joints", "speed")}, version=np.array(2))
     np.savez(tmp_path / "v2.npz", **data)
@@ -276,10 +276,26 @@ def test_version_3_files_one_block_still_load(tmp_path, four_layers):
     save_trajectories(four_layers, f)
     with np.load(f) as z:
         data = {k.replace("_counts_0", "_counts"): z[k] for k in z.files
-                if k != "block_layer_start"}
+                if k != "block_layer_start" and k not in _V5 and not k.startswith("width_")}
     data["version"] = np.array(3)
     np.savez(tmp_path / "v3.npz", **data)
     _same_samples(four_layers, load_trajectories(tmp_path / "v3.npz"))
+
+
+#: What version 5 added to version 4: per-sample widths of variable-width paths.
+_V5 = ("variable", "width_resolution")
+
+
+def test_version_4_files_without_widths_still_load(tmp_path, four_layers):
+    f = tmp_path / "t.npz"
+    save_trajectories(four_layers, f, block_samples=1)
+    with np.load(f) as z:
+        data = {k: z[k] for k in z.files if k not in _V5 and not k.startswith("width_")}
+    data["version"] = np.array(4)
+    np.savez(tmp_path / "v4.npz", **data)
+    back = load_trajectories(tmp_path / "v4.npz")
+    _same_samples(four_layers, back)
+    assert all(t.widths is None for lm in back.layers for t in lm.trajectories)
 
 
 def test_a_bad_block_table_or_block_is_named(tmp_path, four_layers):

@@ -274,11 +274,16 @@ class Toolpath:
         carry the material whose surface they measure).
     role: "boundary", "fill", "measure" or "travel".
     closed: a closed path returns to its first point (the point is not repeated).
-    width: deposition width, mm (0 for travel and measure).
+    width: deposition width, mm (0 for travel and measure); for a variable-width path its
+        nominal width: the mean of ``widths`` over the length.
     layer: index of the layer it belongs to (-1 when not part of a stack).
     frame: "part" (building frame) or "base" (robot base frame).
     tool: whose frame the points are given for: "part" (water nozzle), "scaffold"
         (scaffold nozzle) or "laser"; "" means derived (see ``tool_name``).
+    widths: None (the path is ``width`` wide all along) or (k,) float64 mm, the deposition
+        width at each point of a variable-width path (issue 15; the idea of Arachne): it
+        varies linearly along every segment (a closed path's last segment from the last
+        point's width back to the first's) and the valve deposits ``w(s) dh c(s)``.
     """
 
     points: np.ndarray
@@ -290,6 +295,7 @@ class Toolpath:
     layer: int = -1
     frame: Frame = "part"
     tool: Tool = ""
+    widths: np.ndarray | None = None
 
     @property
     def tool_name(self) -> str:
@@ -308,6 +314,13 @@ class Toolpath:
         """(k or k+1, 2) points with the first point repeated at the end when closed."""
         return closed_polyline(self.points, self.closed)
 
+    def polyline_widths(self) -> np.ndarray:
+        """(k or k+1,) float64 mm: the width at every point of :meth:`polyline` (``width``
+        everywhere for a constant-width path)."""
+        if self.widths is None:
+            return np.full(len(self.polyline()), float(self.width))
+        return closed_polyline(np.asarray(self.widths, dtype=np.float64), self.closed)
+
     @property
     def length(self) -> float:
         """Length along the path, mm (including the closing segment when closed)."""
@@ -315,6 +328,19 @@ class Toolpath:
         if len(p) < 2:
             return 0.0
         return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
+
+
+def widths_problem(path: Toolpath) -> str:
+    """What is wrong with a path's per-point widths ('' when nothing: None, or (k,) finite
+    and >= 0 with the points' k)."""
+    if path.widths is None:
+        return ""
+    w = np.asarray(path.widths)
+    if w.shape != (len(path.points),):
+        return f"widths have shape {w.shape}, expected ({len(path.points)},): one per point"
+    if w.dtype.kind not in "fiu" or not np.all(np.isfinite(w)) or np.any(w < 0):
+        return "widths must be finite numbers >= 0 mm"
+    return ""
 
 
 def path_lengths(paths: "Sequence[Toolpath]") -> np.ndarray:
@@ -406,6 +432,9 @@ class Trajectory:
     pieces: (p,) int64 sample index where each piece (PATHSPLIT sub-path, thesis 4.1.1)
         starts; the robot is at rest at every one of them and at the last sample. Empty
         means a single piece starting at sample 0.
+    widths: None (the path's ``width`` all along) or (n,) float64 mm, the deposition width
+        at every sample of a variable-width path (:attr:`Toolpath.widths` at the sample's
+        place along the path).
     """
 
     dt: float
@@ -415,6 +444,7 @@ class Trajectory:
     duration: float
     path: Toolpath | None = None
     pieces: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    widths: np.ndarray | None = None
 
     @property
     def t(self) -> np.ndarray:

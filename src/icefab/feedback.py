@@ -915,7 +915,7 @@ def retime_trajectory(traj: Trajectory, u: np.ndarray, *, max_change: float = 0.
     point spacing (Fig. 5-6) instead of in variable point-to-point durations. The time axis
     is stretched by at most dt / duration so the last sample lands exactly on (n'-1) dt
     (with a ``cap``, only lengthened).
-    Joints are re-sampled the same way; piece starts (``traj.pieces``) move to the sample
+    Joints (and a variable-width path's widths) are re-sampled the same way; piece starts (``traj.pieces``) move to the sample
     nearest their new time.
     """
     xy = np.asarray(traj.xy, dtype=np.float64)
@@ -956,5 +956,7 @@ def retime_trajectory(traj: Trajectory, u: np.ndarray, *, max_change: float = 0.
     if len(pieces):  # piece starts (rest points) move with the time axis
         pieces = np.unique(np.clip(np.rint(T[np.clip(pieces, 0, n - 1)] / dt), 0, n_new - 1)
                            ).astype(np.int64)
+    widths = (None if traj.widths is None else
+              np.interp(t_new, T, np.asarray(traj.widths, dtype=np.float64)))
     return Trajectory(dt=dt, xy=xy_new, joints=joints_new, speed=speed_new,
-                      duration=(n_new - 1) * dt, path=traj.path, pieces=pieces)
+                      duration=(n_new - 1) * dt, path=traj.path, pieces=pieces, widths=widths)

@@ -306,6 +306,22 @@ def trajectory_width(trajectory: Trajectory, material: str, job: "Job") -> float
     return float(settings.path_width_mm)
 
 
+def sample_widths(trajectory: Trajectory, material: str, job: "Job") -> np.ndarray:
+    """(n,) float64 mm: the deposition width at every sample: a variable-width
+    trajectory's own (:attr:`~icefab.core.Trajectory.widths`), else
+    :func:`trajectory_width` all along. FlowError naming the path when the widths are not
+    one finite number >= 0 per sample."""
+    n = len(trajectory.xy)
+    if trajectory.widths is None:
+        return np.full(n, trajectory_width(trajectory, material, job))
+    w = np.asarray(trajectory.widths)
+    if w.shape != (n,) or w.dtype.kind not in "fiu" or not np.all(np.isfinite(w)) \
+            or np.any(w < 0):
+        raise FlowError(f"{_where(trajectory)}: trajectory widths must be ({n},) finite "
+                        f"numbers >= 0 mm, one per sample; got shape {w.shape}")
+    return w.astype(np.float64, copy=False)
+
+
 def _pwm_limit_hz(job: "Job") -> float:
     """Highest usable PWM frequency: ``min(max_frequency_hz, 1 / tick_s, 1 / min_pulse_ms)``
     (the valve's limit, one pulse per microcontroller tick, a shortest pulse per period)."""
@@ -402,7 +418,7 @@ def valve_frequency(trajectory: Trajectory, material: str, job: "Job", *,
         raise FlowError(f"layer thickness = {dh!r} mm: must be > 0")
     cal = calibration or calibration_for(material, job)
     u = _action_values(action, trajectory, material, job)
-    w = trajectory_width(trajectory, material, job)
+    w = sample_widths(trajectory, material, job)   # eq. 6.2 with a width per sample
     q = np.clip((1.0 + u), 0.0, None) * (w * dh * fl.layer_scale) * speed  # eq. 6.2-6.3
     t = np.arange(n) * float(trajectory.dt)
     warnings: list[str] = []
@@ -414,7 +430,7 @@ def valve_frequency(trajectory: Trajectory, material: str, job: "Job", *,
     integrated = _integral(speed, t)
     if abs(integrated - travelled) > max(SPEED_MISMATCH_MM, SPEED_MISMATCH * travelled):
         off = (f"{100.0 * (integrated / travelled - 1.0):+.1f} %" if travelled > 0 else
-               f"{w * dh * integrated:.4g} mm^3")
+               f"{dh * _integral(w * speed, t):.4g} mm^3")
         warnings.append(f"{where}: the trajectory speed integrates to {integrated:.4g} mm but "
                         f"its samples travel {travelled:.4g} mm: the flow follows the speed, "
                         f"so the volume is {off} off nominal")
@@ -1004,9 +1020,11 @@ def _nominal_fm_programs(trajs: "Sequence[Trajectory]", materials: Sequence[str]
     xy = np.concatenate([np.asarray(t.xy, np.float64) for t in sel])
     bad = ~(np.isfinite(speed) & (speed >= 0))
     # the flow, frequency and time axis of every sample, as valve_frequency makes them
-    c = np.array([trajectory_width(t, materials[i], job) * dh * fl.layer_scale
-                  for t, i in zip(sel, idx)])
-    q = c[owner] * speed
+    width = np.array([trajectory_width(t, materials[i], job) for t, i in zip(sel, idx)])[owner]
+    for k, (tr, i) in enumerate(zip(sel, idx)):
+        if tr.widths is not None:   # a variable-width path: eq. 6.2 with w(s)
+            width[first[k]:first[k] + n[k]] = sample_widths(tr, materials[i], job)
+    q = width * dh * fl.layer_scale * speed
     t = (np.arange(len(speed)) - first[owner]).astype(np.float64) * dt[owner]
     mats = [materials[i] for i in idx]
     lo_flow = np.array([tables[mt].min_flow for mt in mats])[owner]

@@ -25,7 +25,7 @@ import numpy as np
 
 from icefab.core import offsets
 from icefab.errors import FlowError
-from icefab.flow import calibration_for, trajectory_width
+from icefab.flow import calibration_for, sample_widths, trajectory_width
 
 if TYPE_CHECKING:
     from icefab.config import Job
@@ -37,7 +37,8 @@ class Headroom:
     """The tightest path of one material.
 
     material; layer (index, -1 when from the speed bound); role; width_mm; speed_mm_s (the
-    path's highest); nominal_mm3_s (w dh c at that speed); needed_mm3_s (nominal x (1 +
+    path's highest; a variable-width path's width and speed where w c is largest);
+    nominal_mm3_s (w dh c at that speed); needed_mm3_s (nominal x (1 +
     saturation)); limit_mm3_s (the highest flow the valve gives: the calibration table at
     the cell's highest frequency); max_speed_mm_s (the highest speed at which the
     corrected flow fits); thickness_mm (the layer thickness of the nominal flow: that
@@ -93,7 +94,8 @@ def feedback_headroom(trajectories: Iterable[tuple[int, "Trajectory"]], job: "Jo
     trajectories: ``(layer index, Trajectory)`` pairs, or ``(layer index, Trajectory,
     layer thickness mm)`` for adaptive layers (a thick layer needs more flow); a
     trajectory's ``speed (n,)`` mm/s and its path's material, role and width are used
-    (travel and measurement paths deposit nothing and are skipped).
+    (a variable-width one's sample of largest ``w * c``; travel and measurement paths
+    deposit nothing and are skipped).
     """
     picked = [(int(layer), t, (own[0] if own else job.slicing.layer_thickness_mm)
                * job.flow.layer_scale)
@@ -108,6 +110,11 @@ def feedback_headroom(trajectories: Iterable[tuple[int, "Trajectory"]], job: "Jo
                                                for _, t, _ in picked]),
                                offsets(n)[:-1])
     w = np.array([trajectory_width(t, t.path.material, job) for _, t, _ in picked])
+    for k, (_, t, _) in enumerate(picked):
+        if t.widths is not None:   # a variable-width path: its largest w * c, and there
+            ws = sample_widths(t, t.path.material, job)
+            i = int(np.argmax(ws * np.asarray(t.speed, np.float64)))
+            w[k], vmax[k] = ws[i], float(t.speed[i])
     dh = np.array([d for *_, d in picked])
     q = w * dh * vmax
     materials = np.array([t.path.material for _, t, _ in picked])

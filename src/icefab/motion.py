@@ -107,7 +107,7 @@ from icefab.resultfiles import (TRAJECTORIES_FORMAT as FORMAT,  # noqa: F401 (ol
                                 pack_trajectories, save_trajectories, unpack_trajectories)
 from icefab.robots import Robot, get_robot
 from icefab.core import (ROLES, BuildMotion, LayerMotion, LayerPaths, Toolpath, Toolpaths,
-                         Trajectory, arc_lengths, offsets, path_lengths)
+                         Trajectory, arc_lengths, offsets, path_lengths, widths_problem)
 from icefab.workload import check_motion
 
 log = logging.getLogger(__name__)
@@ -496,6 +496,8 @@ def _plan_polylines(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
     labels: (layer, path index) per polyline, for error messages.
     """
     pr = _speed_profiles(polys, vcaps, job, robot, labels)
+    in_counts = (polys[1] if isinstance(polys, tuple) else
+                 np.array([len(p) for p in polys], dtype=np.int64))
     if len(pr.T) == 0:
         return [_single_point(pr.sp.V[pr.sp.pstart[k]], job, robot, paths[k] if paths else None)
                 for k in range(pr.P)]
@@ -515,6 +517,9 @@ def _plan_polylines(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
     # units: the grid's s is the resampled path's arc length); rest points exactly on the
     # corners
     xy = _mtts.follow_samples(s_loc, sstart, L, sp.fstart, sp.fu, sp.fxy, s0)
+    widths = (_sample_widths(paths, in_counts, labels, sp, s_loc, nsamp)
+              if paths and any(p is not None and p.widths is not None for p in paths)
+              else None)
 
     # ---- concatenate the pieces of each path: the shared corner sample appears once
     first_of_path = np.ones(Q, dtype=bool)
@@ -523,6 +528,8 @@ def _plan_polylines(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
     keep_s[sstart[:-1][~first_of_path]] = False
     xy = xy[keep_s]
     spd = spd[keep_s]
+    if widths is not None:
+        widths = widths[keep_s]
     piece_n = nsamp + first_of_path  # samples each piece contributes
     path_n = np.bincount(piece_path, weights=piece_n, minlength=P).astype(np.int64)
     tstart = offsets(path_n)
@@ -548,8 +555,36 @@ def _plan_polylines(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
         r0, r1 = ts[k], ts[k + 1]
         out.append(Trajectory(dt=dt, xy=xy[r0:r1], joints=joints[r0:r1], speed=spd[r0:r1],
                               duration=(r1 - r0 - 1) * dt, path=pth,
-                              pieces=piece_first_sample[qb[k]:qb[k + 1]]))
+                              pieces=piece_first_sample[qb[k]:qb[k + 1]],
+                              widths=(widths[r0:r1] if pth is not None
+                                      and pth.widths is not None else None)))
     return out
+
+
+def _sample_widths(paths: Sequence[Toolpath | None], in_counts: np.ndarray,
+                   labels: Sequence[tuple[int, int]] | None, sp: _Split, s_loc: np.ndarray,
+                   nsamp: np.ndarray) -> np.ndarray:
+    """(M,) float64 mm: the deposition width at every sample of every piece (before the
+    shared corner samples are dropped): the paths' per-point widths
+    (:meth:`~icefab.core.Toolpath.polyline_widths`), linear along each segment, at the
+    sample's arc position (the samples follow the path, or its smoothing within
+    ``motion.smoothing_tolerance_mm``, at the same parameter). IcefabError naming the
+    path when its widths are not one finite number >= 0 per point."""
+    parts = []
+    for k, p in enumerate(paths):
+        if p is None:
+            parts.append(np.zeros(in_counts[k]))
+            continue
+        problem = widths_problem(p)
+        if problem:
+            raise IcefabError(f"{_label(labels, k)}: {problem}")
+        parts.append(p.polyline_widths())
+    W = np.concatenate(parts)
+    Wv = W[offsets(in_counts)[:-1][sp.pid] + sp.orig_index]   # the merged vertices'
+    plen = np.diff(sp.pvs)
+    Wpv = Wv[np.arange(sp.pvs[-1]) - np.repeat(sp.pvs[:-1] - sp.a, plen)]
+    q = np.repeat(np.arange(len(nsamp)), nsamp + 1)
+    return np.interp(np.minimum(s_loc, sp.L[q]) + sp.s0[q], sp.S, Wpv)
 
 
 def _vertices(pts: np.ndarray, start: np.ndarray
@@ -564,9 +599,12 @@ def _vertices(pts: np.ndarray, start: np.ndarray
 
 def _single_point(p: np.ndarray, job: Job, robot: Robot, path: Toolpath | None) -> Trajectory:
     xy = np.asarray(p, dtype=np.float64).reshape(1, 2)
+    widths = None
+    if path is not None and path.widths is not None:
+        widths = np.asarray(path.polyline_widths()[:1], dtype=np.float64)
     return Trajectory(dt=float(job.motion.dt_s), xy=xy, joints=robot.ik(xy),
                       speed=np.zeros(1), duration=0.0, path=path,
-                      pieces=np.zeros(1, dtype=np.int64))
+                      pieces=np.zeros(1, dtype=np.int64), widths=widths)
 
 
 @lru_cache(maxsize=8)

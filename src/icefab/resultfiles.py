@@ -22,7 +22,7 @@ Stack file (``icefab slice``; :func:`save_stack` / :func:`load_stack`):
   each layer's own thickness (the toolpath and trajectory files carry it the same way).
 
 Toolpath file (``icefab paths``; :func:`save_toolpaths` / :func:`load_toolpaths`),
-version 2:
+version 3:
 
 * ``format`` "icefab-toolpaths", ``version`` int, ``job`` str (TOML), ``warnings`` (w,) str;
 * ``points`` (N, 2) float64 mm: the points of all paths, concatenated in order;
@@ -35,16 +35,19 @@ version 2:
   int8 (0 boundary, 1 fill, 2 measure, 3 travel), ``closed`` bool, ``width`` float64
   mm, ``layer`` int64, ``frame`` int8 (0 part, 1 base), ``tool`` int8 (0 derived,
   1 part nozzle, 2 scaffold nozzle, 3 laser);
+* only when some path has a width per point (:attr:`icefab.core.Toolpath.widths`):
+  ``variable`` (P,) bool, which paths do, and ``point_width`` (N,) float64 mm, the width
+  at every point (a constant-width path's ``width`` repeated);
 * per layer (L,): ``layer_index`` int64, ``layer_z`` float64 mm, ``layer_start``
   (L + 1,) int64 (paths of layer j are ``layer_start[j]:layer_start[j+1]``),
   ``unfilled_mm2`` (L, 2) float64.
 
-Version 1 toolpath files (without ``state``) are still read; states are derived from the
-paths.
+Version 1 toolpath files (without ``state``) and version 2 (no per-point widths) are still
+read; states are derived from the paths.
 
 Trajectory file (``icefab plan``; :func:`save_trajectories` / :func:`load_trajectories`):
 
-* ``format`` = "icefab-trajectories", ``version`` = 4, ``dt`` float s (the first
+* ``format`` = "icefab-trajectories", ``version`` = 5, ``dt`` float s (the first
   trajectory's; ``traj_dt`` has each one's), ``robot`` str, ``joint_names`` (j,) str,
   ``job`` str (TOML);
 * the samples of all trajectories, in order, as integer counts of a resolution (issue
@@ -57,7 +60,9 @@ Trajectory file (``icefab plan``; :func:`save_trajectories` / :func:`load_trajec
   mm), ``speed_counts_K`` (1, k, M_k) at ``speed_resolution`` mm/s (k <= 8 byte planes,
   each member its own), each resolution a float member; the reader gives back float64
   ``xy`` (M, 2), ``joints`` (M, j) and ``speed`` (M,) within half a resolution of what was
-  saved (:func:`encode_counts` says how the counts are stored). Version 3 stored one
+  saved (:func:`encode_counts` says how the counts are stored); ``width_counts_K`` (1, k,
+  W_k) at ``width_resolution`` mm: the width at every sample of the block's variable-width
+  trajectories (``variable``), in order. Version 4 had no widths; version 3 stored one
   block, as ``xy_counts``, ``joint_counts`` and ``speed_counts`` of 8 planes each without
   ``block_layer_start``; version 2 the
   float64 arrays ``xy``, ``joints`` and ``speed`` themselves; both are still read;
@@ -68,7 +73,8 @@ Trajectory file (``icefab plan``; :func:`save_trajectories` / :func:`load_trajec
   ``path_index`` int64 (index within its layer), ``material`` int8 (0 part, 1 scaffold),
   ``role`` int8 (0 boundary, 1 fill, 2 measure, 3 travel), and the rest of its Path:
   ``width`` float64 mm, ``closed`` bool, ``tool`` str ("" = derived), ``path_z``
-  float64 mm; a trajectory without a Path has width 0, closed False, tool "", z 0;
+  float64 mm, ``variable`` bool (its Path has a width per point, and the trajectory a
+  width per sample); a trajectory without a Path has width 0, closed False, tool "", z 0;
 * per layer (L,): ``layer_index`` int64, ``layer_z`` float64 mm, ``layer_start`` (L+1,)
   int64 (trajectories of layer k are ``layer_start[k]:layer_start[k+1]``).
 
@@ -115,12 +121,12 @@ log = logging.getLogger(__name__)
 STACK_FORMAT = "icefab-stack"
 STACK_VERSION = 1
 TOOLPATHS_FORMAT = "icefab-toolpaths"
-TOOLPATHS_VERSION = 2
+TOOLPATHS_VERSION = 3
 TRAJECTORIES_FORMAT = "icefab-trajectories"
-TRAJECTORIES_VERSION = 4
+TRAJECTORIES_VERSION = 5
 #: Versions load_trajectories reads (1: without per-trajectory dt and Path fields; 2: float
-#: samples; 3: the samples in one block).
-TRAJECTORIES_READABLE = (1, 2, 3, 4)
+#: samples; 3: the samples in one block; 4: no per-sample widths).
+TRAJECTORIES_READABLE = (1, 2, 3, 4, 5)
 #: Resolutions of the samples in a trajectory file (versions 3 and 4; each file stores its
 #: own): 1 um of tool position (the Cobra 600 repeats to 17 um), 1e-5 rad (0.00057 deg,
 #: finer than its 0.001 deg encoder counts) or 1e-5 mm of a joint, 0.01 mm/s of path
@@ -128,6 +134,9 @@ TRAJECTORIES_READABLE = (1, 2, 3, 4)
 #: finely than the calibration table knows the flow; at 1 um/s, version 3's, the speed took
 #: a quarter of the bunny's 197 MB file).
 XY_RESOLUTION_MM = 1e-3
+#: ... and 0.1 um of a variable-width path's width (version 5): the flow is proportional
+#: to it, so 1e-4 mm of a 0.15 mm bead is 0.07 % of its flow.
+WIDTH_RESOLUTION_MM = 1e-4
 JOINT_RESOLUTION = 1e-5
 SPEED_RESOLUTION_MM_S = 1e-2
 
@@ -566,12 +575,20 @@ def load_stack(path: str | os.PathLike) -> Stack:
 def pack_paths(paths: Sequence[Toolpath]) -> dict[str, np.ndarray]:
     """The paths as flat arrays (the toolpath file's per-point and per-path members, the
     worker processes' packing): ``points``, ``path_start``, ``z``, ``material``, ``role``,
-    ``closed``, ``width``, ``layer``, ``frame``, ``tool``."""
+    ``closed``, ``width``, ``layer``, ``frame``, ``tool``, and ``variable`` and
+    ``point_width`` when some path has per-point widths."""
     points, start = pack([p.points for p in paths])
 
     def codes(attr: str, table: Sequence[str]) -> np.ndarray:
         code = {name: k for k, name in enumerate(table)}
         return np.array([code[getattr(p, attr)] for p in paths], dtype=np.int8)
+    variable = np.array([p.widths is not None for p in paths], dtype=bool)
+    extra = {}
+    if variable.any():
+        extra = {"variable": variable,
+                 "point_width": np.concatenate(
+                     [np.asarray(p.widths, np.float64) if p.widths is not None
+                      else np.full(len(p.points), float(p.width)) for p in paths])}
     return {
         "points": points,
         "path_start": start,
@@ -583,6 +600,7 @@ def pack_paths(paths: Sequence[Toolpath]) -> dict[str, np.ndarray]:
         "layer": np.array([p.layer for p in paths], dtype=np.int64),
         "frame": codes("frame", FRAME_CODES),
         "tool": codes("tool", TOOL_CODES),
+        **extra,
     }
 
 
@@ -607,9 +625,16 @@ def unpack_paths(d: dict[str, np.ndarray], copy: bool = False) -> list[Toolpath]
     fields = zip(start[:-1], start[1:], d["z"].tolist(), d["material"].tolist(),
                  d["role"].tolist(), d["closed"].tolist(), d["width"].tolist(),
                  d["layer"].tolist(), d["frame"].tolist(), d["tool"].tolist())
-    return [Toolpath(pts[a:b].copy() if copy else pts[a:b], float(z), MATERIAL_CODES[m],
-                     ROLE_CODES[r], bool(c), float(w), int(ly), FRAME_CODES[f], TOOL_CODES[t])
-            for a, b, z, m, r, c, w, ly, f, t in fields]
+    paths = [Toolpath(pts[a:b].copy() if copy else pts[a:b], float(z), MATERIAL_CODES[m],
+                      ROLE_CODES[r], bool(c), float(w), int(ly), FRAME_CODES[f],
+                      TOOL_CODES[t])
+             for a, b, z, m, r, c, w, ly, f, t in fields]
+    if "variable" in d:
+        pw = d["point_width"]
+        for i in np.flatnonzero(d["variable"]).tolist():
+            w = pw[start[i]:start[i + 1]]
+            object.__setattr__(paths[i], "widths", w.copy() if copy else w)
+    return paths
 
 
 def pack_layer_paths(lp: LayerPaths) -> tuple:
@@ -657,7 +682,7 @@ def load_toolpaths(path: str | os.PathLike) -> Toolpaths:
     with _Members(Path(path), "toolpath") as m:
         version = m.header(TOOLPATHS_FORMAT, (1, TOOLPATHS_VERSION))
         m.expect(_TOOLPATHS_REQUIRED + (("state",) if version >= 2 else ()),
-                 ("layer_height",))
+                 ("layer_height",) + (("variable", "point_width") if version >= 3 else ()))
         job = m.job()
         warnings = m.strings("warnings")
         pts = m.values("points", "f", 2, 2, lo=-MAX_COORD_MM, hi=MAX_COORD_MM)
@@ -672,6 +697,13 @@ def load_toolpaths(path: str | os.PathLike) -> Toolpaths:
              "closed": m.values("closed", "b", 1, n=n_paths),
              "width": m.values("width", "f", 1, n=n_paths, lo=0.0, hi=MAX_COORD_MM),
              "layer": m.values("layer", "iu", 1, n=n_paths, lo=-1, hi=2**31 - 1)}
+        if ("variable" in m.names) != ("point_width" in m.names):
+            raise m.bad(None, "members 'variable' and 'point_width' come together: one is "
+                        "missing")
+        if "variable" in m.names:
+            d["variable"] = m.values("variable", "b", 1, n=n_paths)
+            d["point_width"] = m.values("point_width", "f", 1, n=len(pts), lo=0.0,
+                                        hi=MAX_COORD_MM)
         index = m.values("layer_index", "iu", 1, lo=-1, hi=2**31 - 1)
         n_layers = len(index)
         layer_z = m.values("layer_z", "f", 1, n=n_layers, lo=-MAX_COORD_MM, hi=MAX_COORD_MM)
@@ -715,7 +747,19 @@ def pack_trajectories(trajs: Sequence[Trajectory], n_joints: int = 0, *,
         "piece_owner": np.repeat(np.arange(len(trajs)), [len(p) for p in pcs]).astype(np.int64),
         "duration": np.array([t.duration for t in trajs], dtype=np.float64),
         "traj_dt": np.array([t.dt for t in trajs], dtype=np.float64),
+        **_sample_widths(trajs),
     }
+
+
+def _sample_widths(trajs: Sequence[Trajectory]) -> dict[str, np.ndarray]:
+    """``variable`` (T,) bool and ``widths`` (W,) float64 mm, the samples' widths of the
+    variable-width trajectories in order; nothing when there are none."""
+    variable = np.array([t.widths is not None for t in trajs], dtype=bool)
+    if not variable.any():
+        return {}
+    return {"variable": variable,
+            "widths": np.concatenate([np.asarray(t.widths, np.float64) for t in trajs
+                                      if t.widths is not None])}
 
 
 def unpack_trajectories(d: dict[str, np.ndarray],
@@ -724,10 +768,16 @@ def unpack_trajectories(d: dict[str, np.ndarray],
     ts = d["traj_start"]
     pb = np.searchsorted(d["piece_owner"], np.arange(len(ts)))
     pstart = d["piece_start"]
-    return [Trajectory(dt=float(d["traj_dt"][i]), xy=d["xy"][a:b], joints=d["joints"][a:b],
-                       speed=d["speed"][a:b], duration=float(d["duration"][i]),
-                       path=paths[i], pieces=pstart[pb[i]:pb[i + 1]])
-            for i, (a, b) in enumerate(zip(ts[:-1], ts[1:]))]
+    trajs = [Trajectory(dt=float(d["traj_dt"][i]), xy=d["xy"][a:b], joints=d["joints"][a:b],
+                        speed=d["speed"][a:b], duration=float(d["duration"][i]),
+                        path=paths[i], pieces=pstart[pb[i]:pb[i + 1]])
+             for i, (a, b) in enumerate(zip(ts[:-1], ts[1:]))]
+    if "variable" in d:
+        idx = np.flatnonzero(d["variable"])
+        wstart = offsets(np.diff(ts)[idx])
+        for j, i in enumerate(idx.tolist()):
+            object.__setattr__(trajs[i], "widths", d["widths"][wstart[j]:wstart[j + 1]])
+    return trajs
 
 
 #: The per-trajectory members a trajectory file takes from each trajectory's Path, with
@@ -839,7 +889,8 @@ class TrajectoryWriter:
         self._buffered = 0
         self._blocks = [0]        # layer offsets of the blocks written
         self._meta: dict[str, list] = {k: [] for k in (
-            "lengths", "piece_start", "piece_count", "duration", "traj_dt", *_PATH_FIELDS)}
+            "lengths", "piece_start", "piece_count", "duration", "traj_dt", "variable",
+            *_PATH_FIELDS)}
         self._layers: list[tuple[int, float, int, float]] = []
         self._dt: float | None = None
         self._n_joints = len(self.joint_names)
@@ -880,6 +931,7 @@ class TrajectoryWriter:
             m["piece_count"].append(len(pcs))
             m["duration"].append(float(t.duration))
             m["traj_dt"].append(float(t.dt))
+            m["variable"].append(t.widths is not None)
         for k, v in _path_fields(layer).items():
             m[k].extend(v)
         self._layers.append((int(layer.index), float(layer.z), len(trajs),
@@ -908,6 +960,11 @@ class TrajectoryWriter:
             planes = _encode_columns(columns(attr, cols), cols, n, res)
             with self._zip.open(f"{name}_counts_{k}.npy", "w", force_zip64=True) as fh:
                 np.lib.format.write_array(fh, planes, allow_pickle=False)
+        widths = [np.asarray(t.widths, np.float64) for t in trajs if t.widths is not None]
+        planes = _encode_columns(iter([np.concatenate(widths) if widths else np.zeros(0)]), 1,
+                                 sum(len(w) for w in widths), WIDTH_RESOLUTION_MM)
+        with self._zip.open(f"width_counts_{k}.npy", "w", force_zip64=True) as fh:
+            np.lib.format.write_array(fh, planes, allow_pickle=False)
         self._blocks.append(self._blocks[-1] + len(self._buffer))
         self._buffer, self._buffered = [], 0
 
@@ -923,6 +980,8 @@ class TrajectoryWriter:
             "xy_resolution": np.array(XY_RESOLUTION_MM),
             "joint_resolution": np.array(JOINT_RESOLUTION),
             "speed_resolution": np.array(SPEED_RESOLUTION_MM_S),
+            "width_resolution": np.array(WIDTH_RESOLUTION_MM),
+            "variable": np.array(m["variable"], dtype=bool),
             "block_layer_start": np.array(self._blocks, dtype=np.int64),
             "traj_start": offsets(m["lengths"]),
             "piece_start": (np.concatenate(m["piece_start"]) if m["piece_start"]
@@ -957,8 +1016,10 @@ _TRAJ_FLOATS = ("xy", "joints", "speed")
 _TRAJ_COUNTS = ("xy_counts", "joint_counts", "speed_counts", "xy_resolution",
                 "joint_resolution", "speed_resolution")
 _TRAJ_V2 = ("traj_dt", "width", "closed", "tool", "path_z")
-#: The sample members of one block of a version 4 file (``NAME_K`` for block K).
+#: The sample members of one block of a version 4 file (``NAME_K`` for block K); version 5
+#: adds ``width_counts``.
 _TRAJ_BLOCK = ("xy_counts", "joint_counts", "speed_counts")
+_TRAJ_V5 = ("variable", "width_resolution")
 #: Largest time step and joint value a trajectory file may hold (s; rad or mm).
 MAX_DT_S = 60.0
 MAX_JOINT = 1e6
@@ -996,7 +1057,7 @@ def _sample_counts(m: "_Members", n_joints: int, suffix: str = "", n: int | None
 
 
 class TrajectoryFile:
-    """A trajectory file (versions 1 to 4) open for reading: its per-layer and
+    """A trajectory file (versions 1 to 5) open for reading: its per-layer and
     per-trajectory members at once, its samples block by block (:meth:`iter_layers`), so a
     stage that works layer by layer holds one block of samples (issue 17). It stands in
     for a BuildMotion wherever the layers are walked once.
@@ -1039,9 +1100,11 @@ class TrajectoryFile:
             bls = m.array("block_layer_start", "iu", 1).astype(np.int64)
             if not 1 <= len(bls) <= 1_000_000:
                 raise m.bad("block_layer_start", f"{len(bls)} offsets: the file is corrupt")
-            blocks = [f"{s}_{k}" for k in range(len(bls) - 1) for s in _TRAJ_BLOCK]
+            block = _TRAJ_BLOCK + (("width_counts",) if version >= 5 else ())
+            blocks = [f"{s}_{k}" for k in range(len(bls) - 1) for s in block]
             m.expect(_TRAJ_REQUIRED + _TRAJ_V2 + _TRAJ_COUNTS[3:]
-                     + ("block_layer_start",) + tuple(blocks), ("layer_height",),
+                     + ("block_layer_start",) + tuple(blocks)
+                     + (_TRAJ_V5 if version >= 5 else ()), ("layer_height",),
                      streamed=blocks)
         else:
             m.expect(_TRAJ_REQUIRED + (_TRAJ_V2 if version >= 2 else ())
@@ -1100,6 +1163,8 @@ class TrajectoryFile:
             zs = np.repeat(self.layer_z.astype(np.float64), np.diff(ls))
         self._dts, self._widths, self._closed, self._tools, self._zs = (dts, widths, closed,
                                                                           tools, zs)
+        self._variable = (m.values("variable", "b", 1, n=nt).astype(bool) if version >= 5
+                          else np.zeros(nt, dtype=bool))
         if version >= 4:
             if bls[0] != 0 or bls[-1] != len(index) or np.any(np.diff(bls) < 0):
                 raise m.bad("block_layer_start", f"offsets must run from 0 to {len(index)} "
@@ -1185,15 +1250,35 @@ class TrajectoryFile:
         a, b = int(bls[k]), int(bls[k + 1])
         t0, t1 = int(ls[a]), int(ls[b])
         r0, r1 = int(ts[t0]), int(ts[t1])
+        widths = None
         if self.version >= 4:
             self._m.block_bound([f"{s}_{k}" for s in _TRAJ_BLOCK])
             xy, joints, speed = _sample_counts(self._m, len(self.joint_names), f"_{k}",
                                                r1 - r0)
+            if self.version >= 5:
+                widths = self._block_widths(k, t0, t1)
         else:
             xy, joints, speed = (x[r0:r1] for x in self._samples)
-        yield from self._layers_of(a, b, xy, joints, speed, wanted)
+        yield from self._layers_of(a, b, xy, joints, speed, wanted, widths)
 
-    def _layers_of(self, a: int, b: int, xy, joints, speed, wanted) -> "Iterator[LayerMotion]":
+    def _block_widths(self, k: int, t0: int, t1: int) -> np.ndarray:
+        """The widths at the samples of the variable-width trajectories t0..t1-1 (block k)."""
+        m, member = self._m, f"width_counts_{k}"
+        n = int(np.diff(self._ts[t0:t1 + 1])[self._variable[t0:t1]].sum())
+        res = m.number("width_resolution", 0.0, 1.0, lo_open=True)
+        planes = m.array(member, "u", 3)
+        if planes.dtype.itemsize != 1 or planes.shape[0] != 1 or \
+                not 1 <= planes.shape[1] <= 8 or planes.shape[2] != n:
+            raise m.bad(member, f"{planes.dtype} of shape {planes.shape}, expected uint8 "
+                        f"byte planes of shape (1, 1..8, {n}): the file is corrupt")
+        w = decode_counts(planes, res)[:, 0]
+        if w.size and not (w.min() >= 0.0 and w.max() <= MAX_COORD_MM):
+            raise m.bad(member, f"a width outside [0, {MAX_COORD_MM:g}] mm: the file is "
+                        "corrupt")
+        return w
+
+    def _layers_of(self, a: int, b: int, xy, joints, speed, wanted,
+                   widths: np.ndarray | None = None) -> "Iterator[LayerMotion]":
         """LayerMotion of layers a..b-1 from their samples (rows from the first one's)."""
         ls, ts = self.layer_start, self._ts
         t0, t1 = int(ls[a]), int(ls[b])
@@ -1203,6 +1288,9 @@ class TrajectoryFile:
                 "traj_start": ts[t0:t1 + 1] - r0, "piece_start": self._pstart[lo:hi],
                 "piece_owner": self._owner[lo:hi] - t0, "duration": self.durations[t0:t1],
                 "traj_dt": self._dts[t0:t1]}
+        variable = self._variable[t0:t1]
+        if variable.any():
+            data["variable"], data["widths"] = variable, widths
         # one stand-in Toolpath per trajectory (558 872 on the bunny): its fields as lists
         # first, and the closing check of closed paths (first sample == last) for all
         lo_row, hi_row = ts[t0:t1] - r0, ts[t0 + 1:t1 + 1] - r0
@@ -1220,6 +1308,9 @@ class TrajectoryFile:
                          materials, roles, closed, self._widths[t0:t1].tolist(),
                          self._layer[t0:t1].tolist(), self._tools[t0:t1])]
         trajs = unpack_trajectories(data, stand_ins)
+        for t, c in zip(trajs, cut):
+            if t.widths is not None:   # the stand-in's points are the samples
+                object.__setattr__(t.path, "widths", t.widths[:-1] if c else t.widths)
         for k in range(a, b):
             if wanted is not None and int(self.layer_index[k]) not in wanted:
                 continue
@@ -1229,7 +1320,7 @@ class TrajectoryFile:
 
 
 def load_trajectories(path: str | os.PathLike) -> BuildMotion:
-    """Read a file written by :func:`save_trajectories` (versions 1 to 4), checking every
+    """Read a file written by :func:`save_trajectories` (versions 1 to 5), checking every
     member (module docstring): finite samples within MAX_COORD_MM, joints one column per
     joint name, speeds >= 0, time steps in (0, MAX_DT_S], pieces inside their trajectory,
     codes and tools from their tables. The whole build in memory: a stage that works layer

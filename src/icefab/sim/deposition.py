@@ -308,27 +308,32 @@ def _at(poly: np.ndarray, s: np.ndarray, t: np.ndarray) -> np.ndarray:
                      np.interp(t, s[keep], poly[keep, 1])], axis=1)
 
 
-def _pulse_segments(xy: np.ndarray, dt: float, pulse_t: np.ndarray, drop: np.ndarray
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:
+def _pulse_segments(xy: np.ndarray, dt: float, pulse_t: np.ndarray, drop: np.ndarray,
+                    width: float | np.ndarray = 0.0) -> tuple:
     """Drops of one trajectory as deposition segments (see :func:`deposit_pulses`).
 
+    width: the path width, mm: one for the whole path or (n,) one per sample (a
+    variable-width path, linear between samples).
     Returns a, b (m, 2) segment ends along the followed polyline (repeated samples
-    dropped, so corners keep their mitre), vol (m,) mm^3, (at (k, 2), at_vol (k,)): the
-    positions and volumes of drops that own no length of path (three or more at one
-    place, or a trajectory that does not move), and whether the polyline returns to its
-    start (closed).
+    dropped, so corners keep their mitre), vol (m,) mm^3, w (m,) mm the width at each
+    segment's middle, (at (k, 2), at_vol (k,), at_w (k,)): the positions, volumes and
+    widths of drops that own no length of path (three or more at one place, or a
+    trajectory that does not move), and whether the polyline returns to its start
+    (closed).
     """
     xy = np.asarray(xy, dtype=np.float64)
     n = len(xy)
     p = len(pulse_t)
     none = np.zeros((0, 2))
+    wn = np.broadcast_to(np.asarray(width, dtype=np.float64), (n,))
     if p == 0 or n == 0:
-        return none, none, np.zeros(0), (none, np.zeros(0)), False
+        return none, none, np.zeros(0), np.zeros(0), (none, np.zeros(0), np.zeros(0)), False
     seg = np.linalg.norm(np.diff(xy, axis=0), axis=1)
     S = arc_lengths(seg)
     length = float(S[-1])
     if length <= _TINY_MM:
-        return none, none, np.zeros(0), (np.repeat(xy[:1], p, axis=0), drop.copy()), False
+        return (none, none, np.zeros(0), np.zeros(0),
+                (np.repeat(xy[:1], p, axis=0), drop.copy(), np.full(p, wn[0])), False)
     # where the nozzle is at each pulse instant: arc length at that time (thesis 6.2)
     s_p = np.interp(pulse_t, np.arange(n) * dt, S)
     bounds = np.concatenate([[0.0], 0.5 * (s_p[:-1] + s_p[1:]), [length]])
@@ -348,17 +353,20 @@ def _pulse_segments(xy: np.ndarray, dt: float, pulse_t: np.ndarray, drop: np.nda
     lone = rest > 1e-9 * np.maximum(drop, 1e-300)
     at = _at(poly, s_v, s_p[lone]) if lone.any() else none
     closed = bool(np.linalg.norm(xy[-1] - xy[0]) <= 1e-6)
-    return pts[:-1], pts[1:], vol, (at, rest[lone]), closed
+    w_seg = np.interp(0.5 * (cuts[:-1] + cuts[1:]), s_v, wn[keep])
+    return (pts[:-1], pts[1:], vol, w_seg,
+            (at, rest[lone], np.interp(s_p[lone], s_v, wn[keep])), closed)
 
 
 def pulse_segments(xy: Sequence[np.ndarray], dt: Sequence[float],
                    pulse_times_s: Sequence[np.ndarray], drop_mm3: Sequence[np.ndarray],
-                   width: Sequence[float]) -> tuple[np.ndarray, ...]:
+                   width: Sequence[float | np.ndarray]) -> tuple[np.ndarray, ...]:
     """Deposition segments of many trajectories' valve pulses (see :func:`deposit_pulses`).
 
     Per trajectory i: ``xy[i] (n_i, 2)`` mm part-frame nozzle positions every ``dt[i]`` s,
     pulse instants ``pulse_times_s[i] (p_i,)`` s from its start, drop volumes
-    ``drop_mm3[i] (p_i,)``, path width ``width[i]`` mm.
+    ``drop_mm3[i] (p_i,)``, path width ``width[i]`` mm (or (n_i,) one per sample: a
+    variable-width path).
     Returns a (m, 2), b (m, 2), volume (m,) mm^3, half width (m,) mm, owner (m,) int64
     (the trajectory each segment comes from), n0, n1, ext (:func:`_joints`), in the
     trajectories' order.
@@ -366,20 +374,21 @@ def pulse_segments(xy: Sequence[np.ndarray], dt: Sequence[float],
     a_l, b_l, v_l, hw_l, own_l, starts, closed = [], [], [], [], [], [], []
     count = 0
     for i, (pts, step, t, drop, w) in enumerate(zip(xy, dt, pulse_times_s, drop_mm3, width)):
-        a, b, vol, (at, at_vol), cl = _pulse_segments(pts, float(step),
-                                                       np.asarray(t, dtype=np.float64),
-                                                       np.asarray(drop, dtype=np.float64))
-        pieces = [(a, b, vol, cl)] if len(a) else []
+        a, b, vol, ws, (at, at_vol, at_w), cl = _pulse_segments(
+            pts, float(step), np.asarray(t, dtype=np.float64),
+            np.asarray(drop, dtype=np.float64), w)
+        pieces = [(a, b, vol, ws, cl)] if len(a) else []
         # lone drops: a zero-length segment each, a path of its own (w x w square)
-        pieces += [(at[k:k + 1], at[k:k + 1], at_vol[k:k + 1], False) for k in range(len(at))]
-        for pa, pb, pv, pc in pieces:
+        pieces += [(at[k:k + 1], at[k:k + 1], at_vol[k:k + 1], at_w[k:k + 1], False)
+                   for k in range(len(at))]
+        for pa, pb, pv, pw, pc in pieces:
             starts.append(count)
             closed.append(pc)
             count += len(pa)
             a_l.append(pa)
             b_l.append(pb)
             v_l.append(pv)
-            hw_l.append(np.full(len(pa), 0.5 * float(w)))
+            hw_l.append(0.5 * pw)
             own_l.append(np.full(len(pa), i, dtype=np.int64))
     if not a_l:
         z2, z1 = np.zeros((0, 2)), np.zeros(0)
@@ -391,7 +400,7 @@ def pulse_segments(xy: Sequence[np.ndarray], dt: Sequence[float],
 
 
 def deposit_pulses(surface: HeightMap, xy: np.ndarray, dt: float, pulse_times_s: np.ndarray,
-                   drop_mm3: float | np.ndarray, width: float) -> HeightMap:
+                   drop_mm3: float | np.ndarray, width: float | np.ndarray) -> HeightMap:
     """Deposit the drops of one valve program along one trajectory onto a height map.
 
     surface: the current surface (finite ``z``).
@@ -400,7 +409,9 @@ def deposit_pulses(surface: HeightMap, xy: np.ndarray, dt: float, pulse_times_s:
     pulse_times_s: (p,) float64, s, non-decreasing pulse instants from the trajectory start
         (:func:`icefab.flow.pulse_times`).
     drop_mm3: volume of each drop, mm^3, scalar or (p,) (:func:`pulse_drops`).
-    width: path width, mm.
+    width: path width, mm, or (n,) the width at every sample (a variable-width path,
+        :func:`icefab.flow.sample_widths`; each piece of a drop's share is as wide as the
+        path at its middle).
 
     Each drop lands where the nozzle is at its instant (the trajectory interpolated in
     time) and is spread over the path width along its share of the path: from the
@@ -414,11 +425,15 @@ def deposit_pulses(surface: HeightMap, xy: np.ndarray, dt: float, pulse_times_s:
     pulse_t = np.asarray(pulse_times_s, dtype=np.float64).reshape(-1)
     drop = np.broadcast_to(np.asarray(drop_mm3, dtype=np.float64), pulse_t.shape).copy()
     xy = np.asarray(xy, dtype=np.float64)
-    if xy.ndim != 2 or xy.shape[1] != 2 or not (dt > 0 and width > 0) \
+    w = np.asarray(width, dtype=np.float64)
+    if xy.ndim != 2 or xy.shape[1] != 2 or not dt > 0 \
+            or w.shape not in ((), (len(xy),)) or not np.all(w > 0) \
             or not (np.isfinite(xy).all() and np.isfinite(pulse_t).all()
-                    and np.isfinite(drop).all()) or np.any(np.diff(pulse_t) < 0):
-        raise SimulationError("deposit_pulses: need xy (n, 2) finite, dt > 0, width > 0 and "
-                              "finite, non-decreasing pulse times")
+                    and np.isfinite(drop).all() and np.isfinite(w).all()) \
+            or np.any(np.diff(pulse_t) < 0):
+        raise SimulationError("deposit_pulses: need xy (n, 2) finite, dt > 0, width > 0 "
+                              "(one, or one per sample) and finite, non-decreasing pulse "
+                              "times")
     a, b, vol, hw, _, n0, n1, ext = pulse_segments([xy], [dt], [pulse_t], [drop], [width])
     z = np.array(surface.z, dtype=np.float64, copy=True)
     if len(a):

@@ -14,7 +14,7 @@ import numpy as np
 
 from icefab import flow
 from icefab.config import Job
-from icefab.core import LayerMotion, Toolpath, Trajectory, ValveProgram, offsets
+from icefab.core import LayerMotion, Toolpath, Trajectory, ValveProgram, arc_lengths, offsets
 from icefab.errors import SimulationError
 from icefab.stages import layer_height
 from icefab.sim.deposition import (MATERIAL_ID, _TINY_MM, ActionFn, _joints, pulse_drops,
@@ -111,7 +111,13 @@ def plan_layer(index: int, paths: Sequence[Toolpath], job: "Job",
         pts_s = _refine(pts, p.closed, speed * m.dt_s)
         if len(pts_s) < 2:
             continue
-        pieces.append((pts_s, bool(p.closed), float(p.width), p.material))
+        width: float | np.ndarray = float(p.width)
+        if p.widths is not None:   # a variable-width path: its widths where the points are
+            poly = p.polyline()
+            width = np.interp(arc_lengths(np.linalg.norm(np.diff(pts_s, axis=0), axis=1)),
+                              arc_lengths(np.linalg.norm(np.diff(poly, axis=0), axis=1)),
+                              p.polyline_widths())
+        pieces.append((pts_s, bool(p.closed), width, p.material))
         dep_paths.append(p)
     return _layer_plan(index, pieces, dh, tag_parts, true_parts, paths=tuple(dep_paths),
                        thickness=thickness)
@@ -122,8 +128,9 @@ def _layer_plan(index: int, pieces: list[tuple[np.ndarray, bool, float, str]], d
                 paths: tuple[Toolpath, ...], trajectories: tuple = (),
                 thickness: float = float("nan")) -> LayerPlan:
     """Segments of a layer from its deposition polylines: ``pieces`` holds (points (k >= 2,
-    2) mm part frame, closed, width mm, material) per path, each segment carrying the
-    commanded ``width * dh * length`` mm^3 (eq. 6.2); laser samples as given."""
+    2) mm part frame, closed, width mm (or (k,) one per point), material) per path, each
+    segment carrying the commanded ``width * dh * length`` mm^3 (eq. 6.2, the width at the
+    segment's middle); laser samples as given."""
     def cat(parts: list[np.ndarray], shape: tuple[int, ...], dtype=np.float64) -> np.ndarray:
         return np.concatenate(parts) if parts else np.zeros(shape, dtype=dtype)
 
@@ -131,7 +138,8 @@ def _layer_plan(index: int, pieces: list[tuple[np.ndarray, bool, float, str]], d
     b = cat([pts[1:] for pts, *_ in pieces], (0, 2))
     counts = [len(pts) - 1 for pts, *_ in pieces]
     starts = offsets(counts)
-    w = cat([np.full(c, wd) for c, (_, _, wd, _) in zip(counts, pieces)], (0,))
+    w = cat([np.full(c, wd) if np.ndim(wd) == 0 else 0.5 * (wd[:-1] + wd[1:])
+             for c, (_, _, wd, _) in zip(counts, pieces)], (0,))
     mat = cat([np.full(c, MATERIAL_ID[m], dtype=np.int8)
                for c, (_, _, _, m) in zip(counts, pieces)], (0,), np.int8)
     hw = 0.5 * w
@@ -202,13 +210,19 @@ def plan_layer_motion(layer: "LayerMotion", job: "Job") -> LayerPlan:
         if not p.depositing:
             continue
         pts = flow.trajectory_part_xy(traj, p.material, job)
+        width: float | np.ndarray = flow.trajectory_width(traj, p.material, job)
+        if traj.widths is not None:
+            width = flow.sample_widths(traj, p.material, job)
         if len(pts) > 1:
             step = np.linalg.norm(np.diff(pts, axis=0), axis=1)
-            pts = pts[np.concatenate([[True], step > _TINY_MM])]
+            moved = np.concatenate([[True], step > _TINY_MM])
+            pts = pts[moved]
+            width = width[moved] if np.ndim(width) else width
         if len(pts) < 2:
             pts = np.vstack([pts[:1], pts[:1]])  # at rest: a w x w square, no volume
+            width = np.concatenate([width[:1], width[:1]]) if np.ndim(width) else width
         closed = bool(len(pts) > 2 and np.linalg.norm(pts[-1] - pts[0]) <= 1e-6)
-        pieces.append((pts, closed, flow.trajectory_width(traj, p.material, job), p.material))
+        pieces.append((pts, closed, width, p.material))
         dep.append(traj)
     return _layer_plan(layer.index, pieces, dh, tag_parts, true_parts,
                        paths=tuple(t.path for t in dep), trajectories=tuple(dep),
@@ -276,7 +290,8 @@ def valve_segments(valves: LayerValves, job: "Job") -> tuple:
         dts.append(float(traj.dt))
         ts.append(t)
         drops.append(d)
-        widths.append(flow.trajectory_width(traj, p.material, job))
+        widths.append(flow.sample_widths(traj, p.material, job) if traj.widths is not None
+                      else flow.trajectory_width(traj, p.material, job))
         mats.append(MATERIAL_ID[p.material])
     a, b, vol, hw, owner, n0, n1, ext = pulse_segments(xs, dts, ts, drops, widths)
     material = np.asarray(mats, dtype=np.int8)[owner] if len(owner) else \
