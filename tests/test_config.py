@@ -54,3 +54,22 @@ def test_bad_settings_name_setting_and_line(tmp_path, text, fragment):
 def test_python_construction_is_validated_too():
     with pytest.raises(ConfigError, match="scaffold.buffer_mm"):
         job_from_dict({"scaffold": {"buffer_mm": -2}})
+
+
+def test_a_section_given_keeps_the_defaults_of_its_place(tmp_path):
+    # a job file that sets one scaffold material setting keeps the scaffold's own defaults
+    # (its initial offset, nozzle offset and density are not the part's): before, the
+    # whole section was rebuilt from the generic material defaults
+    f = tmp_path / "job.toml"
+    f.write_text("[materials.scaffold]\npath_width_mm = 2.0\n[materials.part]\n"
+                 "gap_fill = false\n")
+    job, default = load_job(f), Job()
+    assert job.materials.scaffold == default.materials.scaffold.__class__(
+        **{**default.materials.scaffold.__dict__, "path_width_mm": 2.0})
+    assert job.materials.scaffold.initial_offset_mm == 1.2
+    assert job.materials.scaffold.nozzle_offset_mm == (0.2, 8.2)
+    assert job.materials.part.gap_fill is False
+    assert job_from_dict({"materials": {"scaffold": {"density_g_cm3": 0.9}}}
+                         ).materials.scaffold.initial_offset_mm == 1.2
+    with pytest.raises(ConfigError, match="materials.scaffold.initial_offset_mm"):
+        job_from_dict({"materials": {"scaffold": {"initial_offset_mm": -1.0}}})

@@ -274,6 +274,11 @@ class MaterialSettings:
         why="the nozzles sit on the end effector, within centimetres of joint 4")
     gap_fill: bool = setting(True, "fill the gaps the fill paths leave (e.g. between "
                                    "concentric rings) with extra rings of the boundary width")
+    variable_width: bool = setting(
+        True, "gap fill along a strip's centre line: one path per centre line whose width "
+              "follows the strip's (the valve's flow follows it, w dh c); False: runs of "
+              "one width each (a path wherever the width changes by 30 %), for a valve "
+              "whose bead should not vary")
     calibration_file: str = setting("", "CSV of valve frequency (Hz) vs flow (mm^3/s); empty: "
                                         "built-in table")
     density_g_cm3: float = setting(
@@ -873,19 +878,29 @@ def _coerce(path: str, value: Any, hint: Any) -> Any:
     raise ConfigError(f"{path}: unsupported setting type {hint!r}")  # pragma: no cover
 
 
-def _build(cls: type, data: dict[str, Any], prefix: str) -> Any:
+def _build(cls: type, data: dict[str, Any], prefix: str, base: Any = None) -> Any:
+    """A settings section from its table: the values given, the others from ``base`` (the
+    section's default where it sits: the scaffold's material settings are not the part's)
+    or the class's defaults."""
     hints = _hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}
+    fields = {f.name: f for f in dataclasses.fields(cls)}
     kwargs = {}
     for key, value in data.items():
-        if key not in names:
+        if key not in fields:
             raise ConfigError(f"unknown setting {prefix}{key!r}".replace("'", "") +
-                              f": expected one of {', '.join(sorted(names))}")
-        kwargs[key] = _coerce(prefix + key, value, hints[key])
+                              f": expected one of {', '.join(sorted(fields))}")
+        if dataclasses.is_dataclass(hints[key]) and isinstance(value, dict):
+            f = fields[key]
+            default = (f.default_factory() if f.default_factory is not dataclasses.MISSING
+                       else None if f.default is dataclasses.MISSING else f.default)
+            kwargs[key] = _build(hints[key], value, prefix + key + ".", default)
+        else:
+            kwargs[key] = _coerce(prefix + key, value, hints[key])
     if cls is Job:
         return Job(**kwargs)
-    obj = cls(**kwargs)
-    return obj
+    if base is not None:
+        return dataclasses.replace(base, **kwargs)
+    return cls(**kwargs)
 
 
 def job_from_dict(data: dict[str, Any]) -> Job:
