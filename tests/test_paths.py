@@ -8,14 +8,16 @@ import numpy as np
 import pytest
 import shapely
 from hypothesis import given, settings
+from hypothesis import strategies as st
 from shapely.geometry import LinearRing, LineString
 
 from icefab import geometry as geo
 from icefab.config import Job
 from icefab.errors import StackFileError
-from icefab.paths import (OFF, ON1, ON2, SWEEP_TOL, deposition_state, estimate_build_time,
-                          jin_segment_time, layer_point_states, load_toolpaths, order_nearest,
-                          plan_layer, plan_paths, point_states, save_toolpaths, to_base_frame)
+from icefab.paths import (OFF, ON1, ON2, SWEEP_TOL, centre_paths, deposition_state,
+                          estimate_build_time, jin_segment_time, layer_point_states,
+                          load_toolpaths, order_nearest, plan_layer, plan_paths, point_states,
+                          save_toolpaths, to_base_frame)
 from icefab.regions import add_scaffold
 from icefab.core import Layer, LayerPaths, Toolpath, Region, Toolpaths, signed_area
 from test_geometry import (check_region_structure, polygon_with_holes, rect,
@@ -31,6 +33,28 @@ def region_of(layer: Layer, material: str) -> Region:
 
 def _geom(p: Toolpath):
     return LinearRing(p.points) if p.closed else LineString(p.points)
+
+
+def _variable_sweep(p: Toolpath, grow: float = 0.0):
+    """The area a variable-width path sweeps, independently of icefab.geometry: the union
+    of the convex hulls of the disks (half its width + ``grow``) at consecutive points."""
+    pts, r = p.polyline(), p.polyline_widths() / 2.0 + grow
+    disks = shapely.buffer(shapely.points(pts), r, quad_segs=16)
+    return shapely.union_all(shapely.convex_hull(shapely.union(disks[:-1], disks[1:])))
+
+
+def _too_close(p: Toolpath, edge, allowance: float) -> bool:
+    """Whether a variable-width path comes nearer ``edge`` than half its width there, less
+    ``allowance`` (every segment checked at points 0.05 mm apart)."""
+    pts, w = p.polyline(), p.polyline_widths()
+    seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+    n = np.maximum(1, np.ceil(seg / 0.05).astype(int))
+    i = np.repeat(np.arange(len(seg)), n)
+    t = (np.arange(len(i)) - np.repeat(np.cumsum(n) - n, n)) / n[i]
+    q = pts[i] + t[:, None] * (pts[i + 1] - pts[i])
+    wq = w[i] + t * (w[i + 1] - w[i])
+    d = shapely.distance(edge, shapely.points(q))
+    return bool(np.any(d < wq / 2.0 - allowance))
 
 
 def check_layer_paths(layer: Layer, lp: LayerPaths, job: Job, min_cover: float | None = 0.97,
@@ -71,9 +95,14 @@ def check_layer_paths(layer: Layer, lp: LayerPaths, job: Job, min_cover: float |
         shapely.prepare(R)
         edge = R.boundary
         shapely.prepare(edge)
-        inside = shapely.covers(R, geoms) & ~shapely.dwithin(edge, geoms, d - FILT - 1e-9)
+        variable = np.array([p.widths is not None for p in deposit], dtype=bool)
+        inside = shapely.covers(R, geoms) & (
+            variable | ~shapely.dwithin(edge, geoms, d - FILT - 1e-9))
         for p, ok in zip(deposit, inside):
             assert ok, (layer.index, material, p.role, "too close to the edge", p.width)
+            # a variable-width path: half its width there from the edge, at every point
+            assert p.widths is None or not _too_close(p, edge, FILT + 1e-9), \
+                (layer.index, material, p.role, "too close to the edge", p.widths)
         # room: the area an outer fill ring bounds holds a disk as wide as the path (else
         # the path overlaps itself all along), up to the point filter
         rooms = [(p, shapely.Polygon(p.points)) for p in deposit
@@ -87,9 +116,12 @@ def check_layer_paths(layer: Layer, lp: LayerPaths, job: Job, min_cover: float |
         # swept bead: mitred corners (the robot stops at sharp corners, thesis 4.2
         # PATHSPLIT, and the bead fills the corner), round ends where it stops
         swept = shapely.buffer(geoms, widths / 2.0, join_style="mitre", mitre_limit=2.0)
-        swept_tol = shapely.buffer(
-            geoms, widths / 2.0 + SWEEP_TOL + job.slicing.max_filter_deviation_mm,
-            join_style="mitre", mitre_limit=2.0)
+        grow = SWEEP_TOL + job.slicing.max_filter_deviation_mm
+        swept_tol = shapely.buffer(geoms, widths / 2.0 + grow, join_style="mitre",
+                                   mitre_limit=2.0)
+        for k in np.flatnonzero(variable):     # round joins, the width of each point
+            swept[k] = _variable_sweep(deposit[k])
+            swept_tol[k] = _variable_sweep(deposit[k], grow)
         if min_cover is not None:
             covered = shapely.union_all(swept)
             nominal = R.buffer(-max(mat.initial_offset_mm - mat.path_width_mm / 2, 0.0),
@@ -153,6 +185,53 @@ def test_strip_between_the_scaffold_boundaries_is_filled_along_its_centre():
     for p in gap:
         assert shapely.distance(mid, shapely.points(p.points)).max() < 0.05
     assert sum(p.length for p in gap) == pytest.approx(mid.length, rel=0.02)
+
+
+def _strip(h: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """A strip along x between y = -h(x) and h(x), as a counter-clockwise ring."""
+    return np.vstack([np.column_stack([x, -h]), np.column_stack([x[::-1], h[::-1]])])
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.floats(0.15, 0.6), st.floats(0.0, 0.25), st.floats(0.1, 0.6), st.floats(0, 6.3))
+def test_a_strip_of_changing_width_is_one_path_as_wide_as_it(mean, amp, freq, phase):
+    # the centre line of a strip whose half width h(x) wanders: one variable-width path
+    # along it (runs of one width need several), as wide as the strip wherever it goes,
+    # covering it but for its ends (the medial axis stops short of the corners)
+    x = np.linspace(0.0, 30.0, 301)
+    h = np.maximum(mean + amp * np.sin(freq * x + phase), 0.1)
+    ring = _strip(h, x)
+    var = centre_paths([ring], 0.15, 1.5, 0.05)
+    runs = centre_paths([ring], 0.15, 1.5, 0.05, variable=False)
+    assert len(var) <= len(runs)
+    main = max(var, key=lambda q: float(np.linalg.norm(np.diff(q[0], axis=0), axis=1).sum()))
+    pts, closed, w = main
+    assert not closed and w.shape == (len(pts),)
+    inner = (pts[:, 0] > 2.0) & (pts[:, 0] < 28.0)
+    want = 2.0 * np.interp(pts[inner, 0], x, h)
+    # twice the clearance (a little less than the strip's width where it slopes), widened
+    # by at most twice the 0.05 mm simplification tolerance
+    assert np.all(w[inner] <= want + 2 * 0.05 + 1e-9)
+    assert np.all(w[inner] >= 0.8 * want)
+    strip = shapely.Polygon(ring)
+    swept = shapely.union_all([_variable_sweep(Toolpath(points=q, closed=c, widths=ww))
+                               for q, c, ww in var])
+    core = strip.intersection(shapely.box(1.5, -2, 28.5, 2))
+    assert core.intersection(swept).area >= 0.97 * core.area
+
+
+def test_ordering_keeps_each_width_with_its_point():
+    rng = np.random.default_rng(5)
+    items = []
+    for k in range(12):
+        pts = rng.uniform(0, 50, (int(rng.integers(2, 9)), 2))
+        items.append((pts, bool(k % 3 == 0), pts[:, 0] / 10.0))   # width = x / 10
+    ordered, _ = order_nearest(items, np.zeros(2))
+    from icefab import _tour
+    improved, _ = _tour.improve(ordered, np.zeros(2), [np.arange(len(it[0])) for it in ordered])
+    for pts, _c, w in ordered + improved:
+        np.testing.assert_array_equal(w, pts[:, 0] / 10.0)
+    assert sorted(len(it[0]) for it in improved) == sorted(len(it[0]) for it in items)
 
 
 def test_gap_paths_never_reach_past_the_region():
@@ -324,7 +403,8 @@ def test_per_point_states_in_layer_order_and_in_the_file(tmp_path):
     np.savez(tmp_path / "bad.npz", **bad)
     with pytest.raises(StackFileError, match="states disagree"):
         load_toolpaths(tmp_path / "bad.npz")
-    old = {key: v for key, v in data.items() if key != "state"}
+    old = {key: v for key, v in data.items()
+           if key not in ("state", "variable", "point_width")}
     old["version"] = np.array(1)
     np.savez(tmp_path / "v1.npz", **old)
     assert len(load_toolpaths(tmp_path / "v1.npz")) == len(tp)

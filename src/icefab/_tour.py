@@ -170,6 +170,23 @@ def travel_length(items, start) -> float:
     return total
 
 
+def moved(item: tuple, roll: int = 0, flip: bool = False) -> tuple:
+    """An ordering item ``(points (k, 2), closed, width, ...)`` entered at vertex ``roll``
+    (a closed path, rotated to start there) or run backwards (``flip``, an open path); a
+    width given per point ((k,) array: a variable-width path) moves with its points."""
+    pts, closed, *rest = item
+    per_point = bool(rest) and isinstance(rest[0], np.ndarray)
+    if roll:
+        pts = np.roll(pts, -roll, axis=0)
+        if per_point:
+            rest[0] = np.roll(rest[0], -roll)
+    if flip:
+        pts = pts[::-1]
+        if per_point:
+            rest[0] = rest[0][::-1]
+    return (pts, closed, *rest)
+
+
 def improve(items: list[tuple], start, candidates: list[np.ndarray],
             max_rounds: int = 4, max_passes: int = 50) -> tuple[list[tuple], np.ndarray]:
     """Shorten the travel of an order (module docstring).
@@ -204,14 +221,10 @@ def improve(items: list[tuple], start, candidates: list[np.ndarray],
     out = []
     for k in range(n):
         i = int(perm[k])
-        pts = items[i][0]
         if closed[i]:
-            if choice[i] >= 0:
-                j = int(cand_idx[i][choice[i] - cand_start[i]])
-                if j:
-                    pts = np.roll(pts, -j, axis=0)
-        elif flip[k]:
-            pts = pts[::-1]
-        out.append((pts, *items[i][1:]))
+            j = int(cand_idx[i][choice[i] - cand_start[i]]) if choice[i] >= 0 else 0
+            out.append(moved(items[i], roll=j))
+        else:
+            out.append(moved(items[i], flip=bool(flip[k])))
     last = out[-1]
     return out, np.asarray(last[0][0] if last[1] else last[0][-1], dtype=np.float64)

@@ -81,8 +81,8 @@ from icefab.resultfiles import (TOOLPATHS_FORMAT as FORMAT, TOOLPATHS_VERSION as
                                 unpack_layer_paths)
 from icefab.geometry import signed_area
 from icefab.core import (OFF, ON1, ON2, Layer, LayerPaths, Region, Stack, Toolpath,  # noqa: F401
-                         Toolpaths, closed_polyline, deposition_state, offsets, path_lengths,
-                         point_states)
+                         Toolpaths, arc_lengths, closed_polyline, deposition_state, offsets,
+                         path_lengths, point_states)
 from icefab.workload import check_paths
 
 log = logging.getLogger(__name__)
@@ -512,17 +512,12 @@ def order_nearest(items: Sequence[tuple], start: np.ndarray) -> tuple[list[tuple
     for k in _tour.nearest_order(P, owner, bounds, closed, float(cur[0]), float(cur[1])):
         i = int(owner[k])
         j = int(index[k])
-        pts, is_closed = items[i][0], items[i][1]
-        if is_closed:
-            if j:
-                pts = np.roll(pts, -j, axis=0)
-            end = pts[0]
-        else:
-            if j:
-                pts = pts[::-1]
-            end = pts[-1]
-        out.append((pts, is_closed, *items[i][2:]))
-        cur = end
+        # a closed path rotated to start at vertex j, an open one reversed when entered
+        # from its last point (j > 0)
+        item = _tour.moved(items[i], roll=j) if items[i][1] else \
+            _tour.moved(items[i], flip=j > 0)
+        out.append(item)
+        cur = item[0][0] if item[1] else item[0][-1]
     return out, cur
 
 
@@ -663,10 +658,11 @@ def gap_fill_paths(gaps: list[np.ndarray], nominal: Region, mat: MaterialSetting
        last fill ring, along the tips of the fill) is filled along its centre line
        (medial axis, :func:`icefab.geometry.medial_axis`), the path width following the
        local width of the strip (twice the clearance, at most ``max(w, fill width)``;
-       less width, less flow), in runs of similar width (``GAP_RUN_RATIO``,
-       ``GAP_MIN_RUN_MM``); never nearer the edge of ``region`` than half its width
-       (less the point filter). No ring doubles back on itself: the strips that offset
-       rings would cover twice get one centre line.
+       less width, less flow): with ``mat.variable_width`` one path per centre line, its
+       width given at every point (issue 15: the valve follows it), else in runs of
+       similar width (``GAP_RUN_RATIO``, ``GAP_MIN_RUN_MM``); never nearer the edge of
+       ``region`` than half its width (less the point filter). No ring doubles back on
+       itself: the strips that offset rings would cover twice get one centre line.
 
     Gaps (or parts of gaps) narrower than ``THIN_GAP_MIN * w`` get no path and are
     returned, with every other bit no path sweeps, as the unfilled remainder.
@@ -674,7 +670,8 @@ def gap_fill_paths(gaps: list[np.ndarray], nominal: Region, mat: MaterialSetting
     gaps: flat oriented rings (mm), the nominal area minus the bands already swept grown
         by ``filt + SWEEP_TOL`` (so touching bands leave no slivers).
     nominal: the nominal area (the paths stay in it).
-    Returns (paths ``(points, closed, width)``, remaining gaps as flat oriented rings).
+    Returns (paths ``(points, closed, width)``, the width one number or, for a
+    variable-width path, (k,) one per point; remaining gaps as flat oriented rings).
     """
     w = mat.path_width_mm
     tol = filt + SWEEP_TOL
@@ -695,7 +692,7 @@ def gap_fill_paths(gaps: list[np.ndarray], nominal: Region, mat: MaterialSetting
     if gaps and geo.area(gaps) >= w_min * w_min:
         # the gap before the bands' growth by tol: where the paths may go
         room = geo.intersection(geo.offset_rings(gaps, tol, 0.0), nominal)
-        take(centre_paths(list(room.rings), w_min, w_max, filt, region))
+        take(centre_paths(list(room.rings), w_min, w_max, filt, region, mat.variable_width))
     return paths, gaps
 
 
@@ -739,13 +736,17 @@ def _pocket_rings(gaps: list[np.ndarray], w_min: float, w_max: float, filt: floa
 
 
 def centre_paths(rings: list[np.ndarray], w_min: float, w_max: float, filt: float,
-                 region: Region | None = None) -> list[tuple[np.ndarray, bool, float]]:
+                 region: Region | None = None, variable: bool = True
+                 ) -> list[tuple[np.ndarray, bool, float | np.ndarray]]:
     """Paths along the centre line of a thin area, about as wide as the area (see
-    :func:`gap_fill_paths`, step 3): ``(points (k, 2) mm, closed, width mm)``.
+    :func:`gap_fill_paths`, step 3): ``(points (k, 2) mm, closed, width)``.
 
     rings: flat oriented rings bounding the area. Parts narrower than ``w_min`` get no
     path; widths are capped at ``w_max``, and at twice the distance to the edge of
     ``region`` (the paths' region; less the filter's deviation) when given.
+    variable: one path per centre-line chain with a width per point (``width`` (k,) mm,
+    twice the clearance: :func:`_chain_paths`); else runs of one width each
+    (:func:`_run_paths`).
     """
     if not rings:
         return []
@@ -753,6 +754,129 @@ def centre_paths(rings: list[np.ndarray], w_min: float, w_max: float, filt: floa
     typical = 2.0 * max(geo.area(rings), 0.0) / max(perim, 1e-12)  # a strip's width
     spacing = float(np.clip(typical / 3.0, w_min / 3.0, w_max / 4.0))
     chains = geo.medial_axis(rings, spacing, w_min / 2.0)
+    if variable:
+        return _chain_paths(chains, w_min, w_max, filt, region)
+    return _run_paths(chains, w_min, w_max, filt, region)
+
+
+def _chain_paths(chains: list[tuple[np.ndarray, np.ndarray, bool]], w_min: float,
+                 w_max: float, filt: float, region: Region | None
+                 ) -> list[tuple[np.ndarray, bool, np.ndarray]]:
+    """Variable-width centre-line paths (issue 15): each medial-axis chain is one path
+    whose width at every point is twice its clearance, simplified within ``eps``, the
+    point filter (a thin bead by at most 15 % of its narrowest width), the width profile
+    too (:func:`_simplified`: the bead still reaches as far as the dropped points' disks),
+    at most ``w_max``, capped at twice the distance to ``region``'s edge, and cut where it
+    is narrower than ``w_min``."""
+    chains = [(np.asarray(p, np.float64), np.minimum(2.0 * np.asarray(r, np.float64), w_max),
+               bool(c)) for p, r, c in chains if len(p) >= 2]
+    if not chains:
+        return []
+    # closed chains as polylines back to their first point: simplified with it kept
+    lines = [closed_polyline(p, c) for p, _w, c in chains]
+    widths = [closed_polyline(w, c) for _p, w, c in chains]
+    eps = np.array([min(filt, 0.15 * float(w.min())) for w in widths])
+    lines, widths = _simplified(lines, widths, geo.simplify_open_masks(lines, eps), eps)
+    widths = [np.minimum(w, w_max) for w in widths]
+    if region is not None and not region.is_empty:
+        widths = _edge_capped(lines, widths, region, w_max)
+    out: list[tuple[np.ndarray, bool, np.ndarray]] = []
+    for (_p, _w, closed), ln, w in zip(chains, lines, widths):
+        ok = w >= w_min
+        if closed and ok.all() and len(ln) > 3:
+            pts, wr = ln[:-1], w[:-1]
+            # a centre line around a hole narrower than the path would overlap itself
+            if signed_area(pts) > 0 and not _has_room(pts, float(wr.max())):
+                continue
+            out.append((pts, True, wr))
+            continue
+        if closed and not ok.all():   # start the polyline where it is too narrow
+            j = int(np.flatnonzero(~ok)[0])
+            ln = np.concatenate([ln[j:-1], ln[:j + 1]])
+            w, ok = np.concatenate([w[j:-1], w[:j + 1]]), np.concatenate([ok[j:-1], ok[:j + 1]])
+        # the runs of consecutive points wide enough, each a path
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], ok.astype(np.int8), [0]])))
+        for a, b in zip(edges[::2], edges[1::2]):
+            if b - a < 2:
+                continue
+            pts, wr = ln[a:b], w[a:b]
+            seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+            swept = float(np.sum(seg * 0.5 * (wr[1:] + wr[:-1]))) \
+                + math.pi / 8.0 * float(wr[0] ** 2 + wr[-1] ** 2)
+            if seg.sum() > 1e-3 and swept >= GAP_MIN_AREA_MM2:
+                out.append((pts, False, wr))
+    return out
+
+
+def _simplified(lines: list[np.ndarray], widths: list[np.ndarray], masks: list[np.ndarray],
+                tol: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Width-carrying polylines reduced to the points of ``masks`` (a simplification within
+    ``tol``, one per polyline) and the points needed for the width: dropped points whose
+    width lies more than ``tol`` from the profile interpolated linearly along the arc
+    between the kept points around them are kept back (each round the worst of every
+    span). Every span's two ends are then widened so that its bead reaches, on both sides,
+    as far as the disk of each point it dropped (half its width plus its distance to the
+    span's chord): the simplified path covers what the full one covered."""
+    P = np.concatenate(lines)
+    W = np.concatenate(widths)
+    K = np.concatenate(masks).copy()
+    n = np.array([len(ln) for ln in lines])
+    T = np.repeat(np.asarray(tol, np.float64), n)
+    s = arc_lengths(np.linalg.norm(np.diff(P, axis=0), axis=1))
+    idx = np.arange(len(P))
+    while True:
+        # the kept points around each point (the first and last of a line are kept)
+        prev = np.maximum.accumulate(np.where(K, idx, 0))
+        nxt = np.minimum.accumulate(np.where(K, idx, len(P) - 1)[::-1])[::-1]
+        span = s[nxt] - s[prev]
+        f = np.divide(s - s[prev], span, out=np.zeros(len(P)), where=span > 0)
+        w_lin = W[prev] + f * (W[nxt] - W[prev])
+        bad = np.flatnonzero(~K & (np.abs(W - w_lin) > T))
+        if not len(bad):
+            break
+        o = bad[np.lexsort((-np.abs(W - w_lin)[bad], prev[bad]))]
+        K[o[np.concatenate([[True], prev[o][1:] != prev[o][:-1]])]] = True
+    # how far each dropped point's disk reaches beyond the bead of its span
+    short = np.where(K, 0.0, W / 2.0 + geo.segment_distance(P, P[prev], P[nxt]) - w_lin / 2.0)
+    pad = np.zeros(len(P))
+    np.maximum.at(pad, prev, short)          # the span's start ...
+    np.maximum.at(pad, nxt, short)           # ... and its end
+    W = W + 2.0 * pad
+    cut = np.cumsum(n)[:-1]
+    return ([ln[k] for ln, k in zip(lines, np.split(K, cut))],
+            [w[k] for w, k in zip(np.split(W, cut), np.split(K, cut))])
+
+
+def _edge_capped(lines: list[np.ndarray], widths: list[np.ndarray], region: Region,
+                 w_max: float) -> list[np.ndarray]:
+    """Widths no more than twice the distance of the path to ``region``'s edge: per
+    segment the least distance of its points a quarter millimetre apart, per point the
+    lesser of its two segments'."""
+    polys = [np.asarray(ln, np.float64) for ln in lines]
+    n = np.array([len(p) for p in polys])
+    allp = np.concatenate(polys)
+    owner = np.repeat(np.arange(len(polys)), n)
+    same = owner[:-1] == owner[1:]
+    seg = np.flatnonzero(same)
+    dense, i, _ = geo.subdivide_segments(allp[seg], allp[seg + 1], 0.25)
+    edge = list(region.rings)
+    d_dense = geo.distance_to_rings(dense, edge, upper=w_max / 2.0)
+    d_end = geo.distance_to_rings(allp[seg + 1], edge, upper=w_max / 2.0)
+    d_seg = d_end.copy()        # the dense points hold every segment's start
+    np.minimum.at(d_seg, i, d_dense)
+    cap = np.full(len(allp), np.inf)
+    np.minimum.at(cap, seg, d_seg)
+    np.minimum.at(cap, seg + 1, d_seg)
+    W = np.minimum(np.concatenate(widths), 2.0 * cap)
+    return np.split(W, np.cumsum(n)[:-1])
+
+
+def _run_paths(chains: list[tuple[np.ndarray, np.ndarray, bool]], w_min: float,
+               w_max: float, filt: float, region: Region | None
+               ) -> list[tuple[np.ndarray, bool, float]]:
+    """Constant-width centre-line paths: each chain cut into runs of similar width
+    (``GAP_RUN_RATIO``, ``GAP_MIN_RUN_MM``), each run as wide as its widest point (at most
+    ``GAP_RUN_RATIO`` times its mean)."""
     runs = geo.width_runs([(p, np.minimum(2.0 * r, w_max), c) for p, r, c in chains],
                           GAP_RUN_RATIO, GAP_MIN_RUN_MM)
     if not runs:
@@ -814,6 +938,17 @@ def _densify(lines: list[np.ndarray], closed: np.ndarray, step: float
     return np.vstack([inner, allp]), np.concatenate([owner_pt[:-1][same][i], owner_pt])
 
 
+def _mean_width(pts: np.ndarray, closed: bool, widths: np.ndarray) -> float:
+    """The length-weighted mean of a variable width (mm; the first point's on a path of no
+    length): the path's nominal ``width``."""
+    poly, w = closed_polyline(pts, closed), closed_polyline(widths, closed)
+    seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
+    total = float(seg.sum())
+    if total <= 0.0:
+        return float(w[0])
+    return float(np.sum(seg * 0.5 * (w[1:] + w[:-1])) / total)
+
+
 def plan_layer(layer: Layer, job: Job, measured: bool | None = None) -> LayerPaths:
     """Ordered paths of one layer (see the module docstring). ``measured``: whether the
     layer carries measurement paths (None: every ``feedback.interval_layers``-th layer by
@@ -862,6 +997,10 @@ def plan_layer(layer: Layer, job: Job, measured: bool | None = None) -> LayerPat
         ordered, _end = _tour.improve(ordered, cur, [_start_candidates(len(it[0]))
                                                      for it in ordered])
         for pts, closed, width in ordered:
+            widths = None
+            if isinstance(width, np.ndarray):   # a variable-width path: its mean width
+                widths = np.ascontiguousarray(width, dtype=np.float64)
+                width = _mean_width(pts, closed, widths)
             if cur_tool is not None:
                 a = cur if cur_tool == tool else (
                     cur - tool_offset(cur_tool, job) + tool_offset(tool, job))
@@ -869,7 +1008,7 @@ def plan_layer(layer: Layer, job: Job, measured: bool | None = None) -> LayerPat
                     paths.append(Toolpath(np.array([a, pts[0]]), z, material, "travel", False,
                                       0.0, layer.index, "part", tool))
             paths.append(Toolpath(np.ascontiguousarray(pts), z, material, role, closed,
-                              width, layer.index, "part", tool))
+                                  float(width), layer.index, "part", tool, widths))
             cur = pts[0] if closed else pts[-1]
             cur_tool = tool
     return LayerPaths(layer.index, z, tuple(paths), (float(unfilled[0]), float(unfilled[1])),
@@ -902,9 +1041,9 @@ def plan_paths(stack: Stack, job: Job | None = None, *,
     layers = [unpack_layer_paths(p) for p in packed]
     warnings = list(stack.warnings)
     total = np.array([lp.unfilled_mm2 for lp in layers]).reshape(-1, 2).sum(axis=0)
-    if total.sum() > 0:
-        warnings.append(f"unfilled area (gaps the paths cannot fill): part {total[0]:.1f} "
-                        f"mm^2, scaffold {total[1]:.1f} mm^2 over {len(layers)} layers")
+    if total.sum() >= GAP_MIN_AREA_MM2:    # less than the smallest gap path is no finding
+        warnings.append(f"unfilled area (gaps the paths cannot fill): part {total[0]:.3g} "
+                        f"mm^2, scaffold {total[1]:.3g} mm^2 over {len(layers)} layers")
     return Toolpaths(tuple(layers), job, tuple(warnings))
 
 
