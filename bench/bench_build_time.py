@@ -4,12 +4,13 @@ peer job and the speed-bound floor.
     python3 bench/bench_build_time.py [--layers-every K] [--peer SETTING=VALUE ...]
 
 Both parts are planned twice in one run, the default job and the peer (by default the
-default job with ``materials.*.fill_smoothing_mm = 0``: icefab before fill smoothing):
+default job with ``materials.*.variable_width = false``: gap fill in constant-width runs,
+icefab before variable-width paths):
 ``plan_paths`` (timed, 2 workers), then MTTS of every layer (``iter_plan_toolpaths``,
 jerk on, default limits) summed without keeping the samples. Per variant:
 
 * MTTS build time, and by role (boundary, fill rings of the fill width, gap paths of
-  other widths, travel, measurement);
+  other or variable widths, travel, measurement);
 * the speed-bound floor: every path's length over the speed bound MTTS plans it under
   (``motion.path_limits``), i.e. no acceleration at all;
 * rest stops per layer by cause: travel moves, path starts, PATHSPLIT corners inside
@@ -131,7 +132,8 @@ def measure(stack, job, toppra_layers: int = 0) -> dict:
             p = t.path
             role = "travel" if p is None else p.role
             if role == "fill":
-                role = "fill" if abs(p.width - fill_width[p.material]) < 1e-9 else "gap"
+                role = "fill" if p.widths is None and \
+                    abs(p.width - fill_width[p.material]) < 1e-9 else "gap"
             by_role[role] = by_role.get(role, 0.0) + float(t.duration)
             if p is not None:
                 floor += p.length / path_limits(p, job)
@@ -178,8 +180,8 @@ def main() -> int:
     ap.add_argument("--box-height", type=float, default=20.0, help="rounded box height, mm")
     ap.add_argument("--peer", nargs="*", default=None, metavar="SETTING=VALUE",
                     help="the peer job's settings (JSON values); default: "
-                         "materials.part.fill_smoothing_mm=0 "
-                         "materials.scaffold.fill_smoothing_mm=0")
+                         "materials.part.variable_width=false "
+                         "materials.scaffold.variable_width=false")
     ap.add_argument("--skip-bunny", action="store_true")
     ap.add_argument("--toppra-layers", type=int, default=1,
                     help="layers of each part whose whole tours TOPP-RA times (0: none)")
@@ -187,7 +189,7 @@ def main() -> int:
     from icefab.config import Job
 
     peer_settings = _parse_peer(args.peer) if args.peer is not None else {
-        "materials.part.fill_smoothing_mm": 0.0, "materials.scaffold.fill_smoothing_mm": 0.0}
+        "materials.part.variable_width": False, "materials.scaffold.variable_width": False}
     print(f"machine: {os.cpu_count()}-core {platform.machine()}, Python "
           f"{platform.python_version()}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}")
     print(f"peer: {peer_settings}")
