@@ -620,18 +620,17 @@ def sweep_rings(paths: Sequence[tuple[np.ndarray, bool, float | np.ndarray]],
 
 
 #: Sides of the polygon inscribed in the disk a variable-width path sweeps at each of its
-#: points (its area is 2.6 % short of the disk's: the sweep is never overestimated).
-DISK_SIDES = 16
+#: points (its area is 0.6 % short of the disk's: the sweep is never overestimated).
+DISK_SIDES = 32
 
 
 def variable_sweep_rings(paths: Sequence[tuple[np.ndarray, bool, np.ndarray]],
                          grow: float = 0.0) -> Rings:
     """The bands variable-width paths sweep (+ ``2 grow``), as flat counter-clockwise
-    rings that overlap (the clip side of a NonZero Boolean): per segment the quadrilateral
-    between the offsets of its ends by their half widths along its normal, per point a
-    disk of its half width (inscribed ``DISK_SIDES``-gon). Their union lies inside the
-    true sweep (the convex hulls of consecutive disks): it misses slivers where the width
-    changes fast, of second order in the width's slope.
+    rings that overlap (the clip side of a NonZero Boolean): the convex hull of the disks
+    of consecutive points (radius half the width), as a disk at every point (inscribed
+    ``DISK_SIDES``-gon) and per segment the quadrilateral between the disks' outer common
+    tangents (where one disk holds the other, the disk alone).
 
     paths: (points (k, 2) float64 mm, closed, widths (k,) mm) triples.
     """
@@ -653,11 +652,14 @@ def variable_sweep_rings(paths: Sequence[tuple[np.ndarray, bool, np.ndarray]],
     a, b, ra, rb = P[:-1][inner], P[1:][inner], r[:-1][inner], r[1:][inner]
     d = b - a
     L = np.hypot(d[:, 0], d[:, 1])
-    use = (L > 0) & (ra > 0) & (rb > 0)
-    n = np.stack([-d[use, 1], d[use, 0]], axis=1) / L[use, None]
+    use = (L > np.abs(ra - rb)) & (ra > 0) & (rb > 0)
+    t = d[use] / L[use, None]
+    n = np.stack([-t[:, 1], t[:, 0]], axis=1)     # left of a -> b
+    sin_b = ((ra - rb)[use] / L[use])[:, None]
+    cos_b = np.sqrt(1.0 - sin_b ** 2)
+    left, right = n * cos_b + t * sin_b, -n * cos_b + t * sin_b   # unit, to the tangents
     a, b, ra, rb = a[use], b[use], ra[use, None], rb[use, None]
-    # a - n ra, b - n rb, b + n rb, a + n ra: counter-clockwise (n is left of a -> b)
-    quads = np.stack([a - n * ra, b - n * rb, b + n * rb, a + n * ra], axis=1)
+    quads = np.stack([a + right * ra, b + right * rb, b + left * rb, a + left * ra], axis=1)
     return list(disks) + list(quads)
 
 

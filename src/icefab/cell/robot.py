@@ -48,7 +48,10 @@ class RobotPath:
         the controller raises for the path.
     tool: one of :data:`~icefab.cell.robot_protocol.TOOLS` (the tool point the path was
         planned for; the controller records it, the virtual cell deposits under it).
-    width_mm: deposition width (recorded; the virtual cell uses it); 0 when not depositing.
+    width_mm: deposition width (recorded; the virtual cell uses it); 0 when not depositing;
+        a variable-width path's nominal (mean) width: the controller needs none, and the
+        virtual cell spreads the valve program's drops (whose volumes follow the width)
+        over it.
     layer, index: toolpaths layer index and the trajectory's index in that layer.
     """
 
