@@ -792,8 +792,24 @@ def _chain_paths(chains: list[tuple[np.ndarray, np.ndarray, bool]], w_min: float
     widths = [np.minimum(w, w_max) for w in widths]
     if region is not None and not region.is_empty:
         widths = _edge_capped(lines, widths, region, w_max)
+    # length and swept area of every whole line at once (most are open and wide enough)
+    n = np.array([len(ln) for ln in lines])
+    P, W = np.concatenate(lines), np.concatenate(widths)
+    owner = np.repeat(np.arange(len(lines)), n)[1:]
+    inside = np.ones(len(P) - 1, dtype=bool)
+    inside[np.cumsum(n)[:-1] - 1] = False
+    seg = np.linalg.norm(np.diff(P, axis=0), axis=1)[inside]
+    length = np.bincount(owner[inside], weights=seg, minlength=len(lines))
+    first, last = np.cumsum(n) - n, np.cumsum(n) - 1
+    swept = np.bincount(owner[inside], weights=seg * 0.5 * (W[:-1] + W[1:])[inside],
+                        minlength=len(lines)) + math.pi / 8.0 * (W[first] ** 2 + W[last] ** 2)
+    wide = np.minimum.reduceat(W, first) >= w_min
     out: list[tuple[np.ndarray, bool, np.ndarray]] = []
-    for (_p, _w, closed), ln, w in zip(chains, lines, widths):
+    for k, ((_p, _w, closed), ln, w) in enumerate(zip(chains, lines, widths)):
+        if wide[k] and not closed:
+            if length[k] > 1e-3 and swept[k] >= GAP_MIN_AREA_MM2:
+                out.append((ln, False, w))
+            continue
         ok = w >= w_min
         if closed and ok.all() and len(ln) > 3:
             pts, wr = ln[:-1], w[:-1]
@@ -950,15 +966,28 @@ def _densify(lines: list[np.ndarray], closed: np.ndarray, step: float
     return np.vstack([inner, allp]), np.concatenate([owner_pt[:-1][same][i], owner_pt])
 
 
-def _mean_width(pts: np.ndarray, closed: bool, widths: np.ndarray) -> float:
-    """The length-weighted mean of a variable width (mm; the first point's on a path of no
-    length): the path's nominal ``width``."""
-    poly, w = closed_polyline(pts, closed), closed_polyline(widths, closed)
-    seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
-    total = float(seg.sum())
-    if total <= 0.0:
-        return float(w[0])
-    return float(np.sum(seg * 0.5 * (w[1:] + w[:-1])) / total)
+def _mean_widths(items: Sequence[tuple]) -> np.ndarray:
+    """Per ordering item ``(points, closed, width)``: the length-weighted mean of a
+    variable width ((k,) array; mm; the first point's on a path of no length), the path's
+    nominal ``width``; NaN for a constant width."""
+    out = np.full(len(items), np.nan)
+    var = [i for i, it in enumerate(items) if isinstance(it[2], np.ndarray)]
+    if not var:
+        return out
+    polys = [closed_polyline(items[i][0], items[i][1]) for i in var]
+    ws = [closed_polyline(np.asarray(items[i][2], np.float64), items[i][1]) for i in var]
+    n = np.array([len(q) for q in polys])
+    P, W = np.concatenate(polys), np.concatenate(ws)
+    owner = np.repeat(np.arange(len(var)), n)[1:]
+    inside = np.ones(len(P) - 1, dtype=bool)
+    inside[np.cumsum(n)[:-1] - 1] = False
+    seg = np.linalg.norm(np.diff(P, axis=0), axis=1)[inside]
+    total = np.bincount(owner[inside], weights=seg, minlength=len(var))
+    area = np.bincount(owner[inside], weights=seg * 0.5 * (W[:-1] + W[1:])[inside],
+                       minlength=len(var))
+    first = W[np.cumsum(n) - n]
+    out[var] = np.where(total > 0, area / np.where(total > 0, total, 1.0), first)
+    return out
 
 
 def plan_layer(layer: Layer, job: Job, measured: bool | None = None) -> LayerPaths:
@@ -1008,11 +1037,12 @@ def plan_layer(layer: Layer, job: Job, measured: bool | None = None) -> LayerPat
         ordered, _end = order_nearest(groups.get(key, []), cur)
         ordered, _end = _tour.improve(ordered, cur, [_start_candidates(len(it[0]))
                                                      for it in ordered])
-        for pts, closed, width in ordered:
+        means = _mean_widths(ordered)
+        for (pts, closed, width), mean in zip(ordered, means):
             widths = None
             if isinstance(width, np.ndarray):   # a variable-width path: its mean width
                 widths = np.ascontiguousarray(width, dtype=np.float64)
-                width = _mean_width(pts, closed, widths)
+                width = mean
             if cur_tool is not None:
                 a = cur if cur_tool == tool else (
                     cur - tool_offset(cur_tool, job) + tool_offset(tool, job))
