@@ -221,6 +221,24 @@ def test_a_strip_of_changing_width_is_one_path_as_wide_as_it(mean, amp, freq, ph
     assert core.intersection(swept).area >= 0.97 * core.area
 
 
+def test_centre_lines_cut_where_too_narrow_beside_whole_ones():
+    # a chain cut where it is narrower than the thinnest bead, then a whole open one and
+    # a closed one: every part wide enough becomes a path (the bunny's layers mix them)
+    from icefab.paths import _chain_paths
+    x = np.linspace(0.0, 10.0, 41)
+    line = np.c_[x, np.zeros_like(x)]
+    neck = np.where(np.abs(x - 5.0) < 1.0, 0.05, 0.4)        # clearance, mm
+    t = np.linspace(0.0, 2.0 * np.pi, 60, endpoint=False)
+    chains = [(line, neck, False), (line + [0.0, 5.0], np.full(41, 0.4), False),
+              (np.c_[20 + 4 * np.cos(t), 4 * np.sin(t)], np.full(60, 0.4), True),
+              (line + [0.0, 9.0], neck, False)]
+    out = _chain_paths(chains, 0.15, 1.5, 0.05, None)
+    assert sorted((round(float(p[:, 0].min()), 1), bool(c)) for p, c, _w in out) == [
+        (0.0, False), (0.0, False), (0.0, False), (6.0, False), (6.0, False), (16.0, True)]
+    for p, _c, w in out:
+        assert w.shape == (len(p),) and np.all(w >= 0.15)
+
+
 def test_ordering_keeps_each_width_with_its_point():
     rng = np.random.default_rng(5)
     items = []

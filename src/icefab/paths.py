@@ -832,10 +832,10 @@ def _chain_paths(chains: list[tuple[np.ndarray, np.ndarray, bool]], w_min: float
             if b - a < 2:
                 continue
             pts, wr = ln[a:b], w[a:b]
-            seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
-            swept = float(np.sum(seg * 0.5 * (wr[1:] + wr[:-1]))) \
+            piece = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+            area = float(np.sum(piece * 0.5 * (wr[1:] + wr[:-1]))) \
                 + math.pi / 8.0 * float(wr[0] ** 2 + wr[-1] ** 2)
-            if seg.sum() > 1e-3 and swept >= GAP_MIN_AREA_MM2:
+            if piece.sum() > 1e-3 and area >= GAP_MIN_AREA_MM2:
                 out.append((pts, False, wr))
     return out
 
