@@ -800,17 +800,19 @@ def simplify_open(lines: Sequence[np.ndarray], filter_mm: float | np.ndarray = F
     return [ln[k] for ln, k in zip(lines, simplify_open_masks(lines, filter_mm))]
 
 
-def simplify_open_masks(lines: Sequence[np.ndarray], filter_mm: float | np.ndarray = FILTER_MM
-                        ) -> list[np.ndarray]:
+def simplify_open_masks(lines: Sequence[np.ndarray], filter_mm: float | np.ndarray = FILTER_MM,
+                        closed: bool = False) -> list[np.ndarray]:
     """The points :func:`simplify_open` keeps, as one (k,) bool mask per polyline (to
-    carry values the points hold, e.g. widths, along)."""
+    carry values the points hold, e.g. widths, along); ``closed``: the lines are rings
+    (first point not repeated), their closing edge filtered too and their filtered form
+    checked as a ring."""
     lines = [np.asarray(ln, dtype=np.float64) for ln in lines]
     if not lines:
         return []
     pts, starts = _pack(lines)
-    keep = _chord_keep(pts, starts, filter_mm, closed=False)
+    keep = _chord_keep(pts, starts, filter_mm, closed=closed)
     masks = [keep[a:b] for a, b in zip(starts[:-1], starts[1:])]
-    ok = simple_mask([ln[m] for ln, m in zip(lines, masks)], closed=False)
+    ok = simple_mask([ln[m] for ln, m in zip(lines, masks)], closed=closed)
     return [m if k else np.ones(len(m), dtype=bool) for m, k in zip(masks, ok)]
 
 

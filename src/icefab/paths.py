@@ -776,9 +776,9 @@ def _chain_paths(chains: list[tuple[np.ndarray, np.ndarray, bool]], w_min: float
                  ) -> list[tuple[np.ndarray, bool, np.ndarray]]:
     """Variable-width centre-line paths (issue 15): each medial-axis chain is one path
     whose width at every point is twice its clearance, smoothed (:func:`_smoothed_axis`),
-    simplified within the point filter ``filt``, the width profile too (:func:`_simplified`: the bead still reaches as far as
-    the disks of the points it replaced), at most ``w_max``, capped at twice the distance
-    to ``region``'s edge, and cut where it is narrower than ``w_min``."""
+    simplified within the point filter ``filt``, the width profile too
+    (:func:`_simplified`), at most ``w_max``, capped at twice the distance to ``region``'s
+    edge, and cut where it is narrower than ``w_min``."""
     chains = [(np.asarray(p, np.float64), np.minimum(2.0 * np.asarray(r, np.float64), w_max),
                bool(c)) for p, r, c in chains if len(p) >= 2]
     if not chains:
@@ -787,12 +787,22 @@ def _chain_paths(chains: list[tuple[np.ndarray, np.ndarray, bool]], w_min: float
     # closed chains as polylines back to their first point: simplified with it kept
     lines = [closed_polyline(p, c) for p, _w, c in chains]
     widths = [closed_polyline(w, c) for _p, w, c in chains]
-    # within the point filter, as every ring is: the bead is widened by what the line
-    # moves off the axis (_simplified), where a tighter tolerance kept the axis' zigzag
-    # (10 bunny layers: 25 % less gap time with the whole filter than with 15 % of the
-    # bead's width, the unfilled area 3 % smaller)
+    # within the point filter, as every ring is: a tighter tolerance (15 % of the bead's
+    # width) kept the axis' zigzag (10 bunny layers: 25 % less gap time with the whole
+    # filter)
     eps = np.full(len(lines), float(filt))
-    lines, widths = _simplified(lines, widths, geo.simplify_open_masks(lines, eps), eps)
+    # a closed chain is filtered as a ring (as a polyline back to its first point it
+    # would touch itself there and keep every point)
+    closed = np.array([c for _p, _w, c in chains], dtype=bool)
+    masks: list[np.ndarray] = [np.zeros(0, bool)] * len(lines)
+    for flag in (False, True):
+        idx = np.flatnonzero(closed == flag)
+        if len(idx):
+            got = geo.simplify_open_masks([lines[i][:-1] if flag else lines[i] for i in idx],
+                                          eps[idx], closed=flag)
+            for i, m in zip(idx, got):
+                masks[i] = np.append(m, True) if flag else m
+    lines, widths = _simplified(lines, widths, masks, eps)
     widths = [np.minimum(w, w_max) for w in widths]
     if region is not None and not region.is_empty:
         widths = _edge_capped(lines, widths, region, w_max)
@@ -885,10 +895,10 @@ def _simplified(lines: list[np.ndarray], widths: list[np.ndarray], masks: list[n
     arc between the points kept around it, a point is added back (each round for the worst
     of every span), on the simplified line at its arc position: the width's breakpoints
     add no turns (a medial axis zigzags by a tenth of a millimetre, and every turn over
-    ``motion.smooth_angle_deg`` would stop the robot). Every span's ends are then widened
-    so that its bead reaches, on both sides, as far as the disk of each point it replaced
-    (half its width plus its distance to the line): the simplified path covers what the
-    full one covered."""
+    ``motion.smooth_angle_deg`` would stop the robot). The widths are not widened for what
+    the line moves (at most ``tol``): the bead shifts by that much, as every filtered ring
+    does; widening it had laid 6 % more gap bead on 10 bunny layers for 5 % less unfilled
+    area, and the demo mug's open-loop height error rose from 1.868 to 1.987 mm."""
     P = np.concatenate(lines)
     W = np.concatenate(widths)
     G = np.concatenate(masks)
@@ -916,12 +926,6 @@ def _simplified(lines: list[np.ndarray], widths: list[np.ndarray], masks: list[n
             break
         o = bad[np.lexsort((-np.abs(W - w_lin)[bad], prev[bad]))]
         K[o[np.concatenate([[True], prev[o][1:] != prev[o][:-1]])]] = True
-    # how far each replaced point's disk reaches beyond the bead where it was
-    short = np.where(G, 0.0, W / 2.0 + geo.segment_distance(P, P[gp], P[gn]) - w_lin / 2.0)
-    pad = np.zeros(len(P))
-    np.maximum.at(pad, prev, short)          # the span's start ...
-    np.maximum.at(pad, nxt, short)           # ... and its end
-    W = W + 2.0 * pad
     pos = np.where(G[:, None], P, on_line)
     cut = np.cumsum(n)[:-1]
     return ([q[k] for q, k in zip(np.split(pos, cut), np.split(K, cut))],

@@ -36,8 +36,8 @@ version 3:
   mm, ``layer`` int64, ``frame`` int8 (0 part, 1 base), ``tool`` int8 (0 derived,
   1 part nozzle, 2 scaffold nozzle, 3 laser);
 * only when some path has a width per point (:attr:`icefab.core.Toolpath.widths`):
-  ``variable`` (P,) bool, which paths do, and ``point_width`` (N,) float64 mm, the width
-  at every point (a constant-width path's ``width`` repeated);
+  ``variable`` (P,) bool, which paths do, and ``point_width`` (V,) float64 mm, the width
+  at every point of those paths, in order;
 * per layer (L,): ``layer_index`` int64, ``layer_z`` float64 mm, ``layer_start``
   (L + 1,) int64 (paths of layer j are ``layer_start[j]:layer_start[j+1]``),
   ``unfilled_mm2`` (L, 2) float64.
@@ -586,9 +586,8 @@ def pack_paths(paths: Sequence[Toolpath]) -> dict[str, np.ndarray]:
     extra = {}
     if variable.any():
         extra = {"variable": variable,
-                 "point_width": np.concatenate(
-                     [np.asarray(p.widths, np.float64) if p.widths is not None
-                      else np.full(len(p.points), float(p.width)) for p in paths])}
+                 "point_width": np.concatenate([np.asarray(p.widths, np.float64)
+                                                for p in paths if p.widths is not None])}
     return {
         "points": points,
         "path_start": start,
@@ -631,8 +630,10 @@ def unpack_paths(d: dict[str, np.ndarray], copy: bool = False) -> list[Toolpath]
              for a, b, z, m, r, c, w, ly, f, t in fields]
     if "variable" in d:
         pw = d["point_width"]
-        for i in np.flatnonzero(d["variable"]).tolist():
-            w = pw[start[i]:start[i + 1]]
+        idx = np.flatnonzero(d["variable"])
+        ws = offsets(np.diff(d["path_start"])[idx])
+        for j, i in enumerate(idx.tolist()):
+            w = pw[ws[j]:ws[j + 1]]
             object.__setattr__(paths[i], "widths", w.copy() if copy else w)
     return paths
 
@@ -702,7 +703,8 @@ def load_toolpaths(path: str | os.PathLike) -> Toolpaths:
                         "missing")
         if "variable" in m.names:
             d["variable"] = m.values("variable", "b", 1, n=n_paths)
-            d["point_width"] = m.values("point_width", "f", 1, n=len(pts), lo=0.0,
+            n_var = int(np.diff(d["path_start"])[d["variable"].astype(bool)].sum())
+            d["point_width"] = m.values("point_width", "f", 1, n=n_var, lo=0.0,
                                         hi=MAX_COORD_MM)
         index = m.values("layer_index", "iu", 1, lo=-1, hi=2**31 - 1)
         n_layers = len(index)
