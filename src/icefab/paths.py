@@ -807,16 +807,12 @@ def _chain_paths(chains: list[tuple[np.ndarray, np.ndarray, bool]], w_min: float
     if region is not None and not region.is_empty:
         widths = _edge_capped(lines, widths, region, w_max)
     # length and swept area of every whole line at once (most are open and wide enough)
+    length, band = _length_and_band(lines, widths)
+    W = np.concatenate(widths)
     n = np.array([len(ln) for ln in lines])
-    P, W = np.concatenate(lines), np.concatenate(widths)
-    owner = np.repeat(np.arange(len(lines)), n)[1:]
-    inside = np.ones(len(P) - 1, dtype=bool)
-    inside[np.cumsum(n)[:-1] - 1] = False
-    seg = np.linalg.norm(np.diff(P, axis=0), axis=1)[inside]
-    length = np.bincount(owner[inside], weights=seg, minlength=len(lines))
-    first, last = np.cumsum(n) - n, np.cumsum(n) - 1
-    swept = np.bincount(owner[inside], weights=seg * 0.5 * (W[:-1] + W[1:])[inside],
-                        minlength=len(lines)) + math.pi / 8.0 * (W[first] ** 2 + W[last] ** 2)
+    first = np.cumsum(n) - n
+    last = first + n - 1
+    swept = band + math.pi / 8.0 * (W[first] ** 2 + W[last] ** 2)   # round ends
     wide = np.minimum.reduceat(W, first) >= w_min
     out: list[tuple[np.ndarray, bool, np.ndarray]] = []
     for k, ((_p, _w, closed), ln, w) in enumerate(zip(chains, lines, widths)):
@@ -1023,6 +1019,22 @@ def _densify(lines: list[np.ndarray], closed: np.ndarray, step: float
     return np.vstack([inner, allp]), np.concatenate([owner_pt[:-1][same][i], owner_pt])
 
 
+def _length_and_band(lines: Sequence[np.ndarray], widths: Sequence[np.ndarray]
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Per polyline (its width (k,) at each point, linear between): its length (mm) and
+    the area its band covers without the ends (mm^2, the trapezoids of its segments), all
+    at once."""
+    n = np.array([len(ln) for ln in lines])
+    P, W = np.concatenate(lines), np.concatenate(widths)
+    owner = np.repeat(np.arange(len(lines)), n)[1:]
+    inside = np.ones(len(P) - 1, dtype=bool)
+    inside[np.cumsum(n)[:-1] - 1] = False        # from one polyline to the next
+    seg = np.linalg.norm(np.diff(P, axis=0), axis=1)[inside]
+    return (np.bincount(owner[inside], weights=seg, minlength=len(lines)),
+            np.bincount(owner[inside], weights=seg * 0.5 * (W[:-1] + W[1:])[inside],
+                        minlength=len(lines)))
+
+
 def _mean_widths(items: Sequence[tuple]) -> np.ndarray:
     """Per ordering item ``(points, closed, width)``: the length-weighted mean of a
     variable width ((k,) array; mm; the first point's on a path of no length), the path's
@@ -1031,18 +1043,10 @@ def _mean_widths(items: Sequence[tuple]) -> np.ndarray:
     var = [i for i, it in enumerate(items) if isinstance(it[2], np.ndarray)]
     if not var:
         return out
-    polys = [closed_polyline(items[i][0], items[i][1]) for i in var]
     ws = [closed_polyline(np.asarray(items[i][2], np.float64), items[i][1]) for i in var]
-    n = np.array([len(q) for q in polys])
-    P, W = np.concatenate(polys), np.concatenate(ws)
-    owner = np.repeat(np.arange(len(var)), n)[1:]
-    inside = np.ones(len(P) - 1, dtype=bool)
-    inside[np.cumsum(n)[:-1] - 1] = False
-    seg = np.linalg.norm(np.diff(P, axis=0), axis=1)[inside]
-    total = np.bincount(owner[inside], weights=seg, minlength=len(var))
-    area = np.bincount(owner[inside], weights=seg * 0.5 * (W[:-1] + W[1:])[inside],
-                       minlength=len(var))
-    first = W[np.cumsum(n) - n]
+    total, area = _length_and_band([closed_polyline(items[i][0], items[i][1]) for i in var],
+                                   ws)
+    first = np.array([w[0] for w in ws])
     out[var] = np.where(total > 0, area / np.where(total > 0, total, 1.0), first)
     return out
 
