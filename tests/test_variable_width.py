@@ -42,8 +42,8 @@ def test_a_paths_widths_close_with_it_and_bad_ones_are_named():
     assert sq.polyline_widths().tolist() == [1.0, 2.0, 3.0, 4.0, 1.0]
     assert Toolpath(points=np.zeros((3, 2)), width=0.7).polyline_widths().tolist() == [0.7] * 3
     assert widths_problem(sq) == ""
-    assert "one per point" in widths_problem(_line((1.0, 2.0)).__class__(
-        points=np.zeros((3, 2)), widths=np.ones(2)))
+    assert "one per point" in widths_problem(Toolpath(points=np.zeros((3, 2)),
+                                                      widths=np.ones(2)))
     for bad in ([1.0, np.nan], [1.0, -0.1]):
         assert ">= 0" in widths_problem(Toolpath(points=np.zeros((2, 2)),
                                                  widths=np.array(bad)))

@@ -915,8 +915,8 @@ def retime_trajectory(traj: Trajectory, u: np.ndarray, *, max_change: float = 0.
     point spacing (Fig. 5-6) instead of in variable point-to-point durations. The time axis
     is stretched by at most dt / duration so the last sample lands exactly on (n'-1) dt
     (with a ``cap``, only lengthened).
-    Joints (and a variable-width path's widths) are re-sampled the same way; piece starts (``traj.pieces``) move to the sample
-    nearest their new time.
+    Joints (and a variable-width path's widths) are re-sampled the same way; piece starts
+    (``traj.pieces``) move to the sample nearest their new time.
     """
     xy = np.asarray(traj.xy, dtype=np.float64)
     n = len(xy)

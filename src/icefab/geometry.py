@@ -797,11 +797,11 @@ def simplify_open(lines: Sequence[np.ndarray], filter_mm: float | np.ndarray = F
     or one per polyline) of the chord kept over them (the end points stay); a polyline
     whose filtered form would cross itself keeps all its points."""
     lines = [np.asarray(ln, dtype=np.float64) for ln in lines]
-    return [ln[k] for ln, k in zip(lines, simplify_open_masks(lines, filter_mm))]
+    return [ln[k] for ln, k in zip(lines, simplify_masks(lines, filter_mm))]
 
 
-def simplify_open_masks(lines: Sequence[np.ndarray], filter_mm: float | np.ndarray = FILTER_MM,
-                        closed: bool = False) -> list[np.ndarray]:
+def simplify_masks(lines: Sequence[np.ndarray], filter_mm: float | np.ndarray = FILTER_MM,
+                   closed: bool = False) -> list[np.ndarray]:
     """The points :func:`simplify_open` keeps, as one (k,) bool mask per polyline (to
     carry values the points hold, e.g. widths, along); ``closed``: the lines are rings
     (first point not repeated), their closing edge filtered too and their filtered form

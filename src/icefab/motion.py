@@ -570,16 +570,15 @@ def _sample_widths(paths: Sequence[Toolpath | None], in_counts: np.ndarray,
     sample's arc position (the samples follow the path, or its smoothing within
     ``motion.smoothing_tolerance_mm``, at the same parameter). IcefabError naming the
     path when its widths are not one finite number >= 0 per point."""
-    parts = []
+    starts = offsets(in_counts)
+    # every point at its path's width, then the variable paths' own
+    W = np.repeat([0.0 if p is None else float(p.width) for p in paths], in_counts)
     for k, p in enumerate(paths):
-        if p is None:
-            parts.append(np.zeros(in_counts[k]))
-            continue
-        problem = widths_problem(p)
-        if problem:
-            raise IcefabError(f"{_label(labels, k)}: {problem}")
-        parts.append(p.polyline_widths())
-    W = np.concatenate(parts)
+        if p is not None and p.widths is not None:
+            problem = widths_problem(p)
+            if problem:
+                raise IcefabError(f"{_label(labels, k)}: {problem}")
+            W[starts[k]:starts[k + 1]] = p.polyline_widths()
     Wv = W[offsets(in_counts)[:-1][sp.pid] + sp.orig_index]   # the merged vertices'
     plen = np.diff(sp.pvs)
     Wpv = Wv[np.arange(sp.pvs[-1]) - np.repeat(sp.pvs[:-1] - sp.a, plen)]

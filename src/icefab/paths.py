@@ -784,7 +784,8 @@ def _chain_paths(chains: list[tuple[np.ndarray, np.ndarray, bool]], w_min: float
     if not chains:
         return []
     chains = _smoothed_axis(chains)
-    # closed chains as polylines back to their first point: simplified with it kept
+    # closed chains as polylines back to their first point (the widths' profile, the
+    # edge cap and the areas work on polylines)
     lines = [closed_polyline(p, c) for p, _w, c in chains]
     widths = [closed_polyline(w, c) for _p, w, c in chains]
     # within the point filter, as every ring is: a tighter tolerance (15 % of the bead's
@@ -798,8 +799,8 @@ def _chain_paths(chains: list[tuple[np.ndarray, np.ndarray, bool]], w_min: float
     for flag in (False, True):
         idx = np.flatnonzero(closed == flag)
         if len(idx):
-            got = geo.simplify_open_masks([lines[i][:-1] if flag else lines[i] for i in idx],
-                                          eps[idx], closed=flag)
+            got = geo.simplify_masks([lines[i][:-1] if flag else lines[i] for i in idx],
+                                     eps[idx], closed=flag)
             for i, m in zip(idx, got):
                 masks[i] = np.append(m, True) if flag else m
     lines, widths = _simplified(lines, widths, masks, eps)
@@ -838,10 +839,9 @@ def _chain_paths(chains: list[tuple[np.ndarray, np.ndarray, bool]], w_min: float
             if b - a < 2:
                 continue
             pts, wr = ln[a:b], w[a:b]
-            piece = np.linalg.norm(np.diff(pts, axis=0), axis=1)
-            area = float(np.sum(piece * 0.5 * (wr[1:] + wr[:-1]))) \
-                + math.pi / 8.0 * float(wr[0] ** 2 + wr[-1] ** 2)
-            if piece.sum() > 1e-3 and area >= GAP_MIN_AREA_MM2:
+            (piece,), (area,) = _length_and_band([pts], [wr])
+            if piece > 1e-3 and area + math.pi / 8.0 * (wr[0] ** 2 + wr[-1] ** 2) \
+                    >= GAP_MIN_AREA_MM2:
                 out.append((pts, False, wr))
     return out
 

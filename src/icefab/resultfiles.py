@@ -127,7 +127,7 @@ TRAJECTORIES_VERSION = 5
 #: Versions load_trajectories reads (1: without per-trajectory dt and Path fields; 2: float
 #: samples; 3: the samples in one block; 4: no per-sample widths).
 TRAJECTORIES_READABLE = (1, 2, 3, 4, 5)
-#: Resolutions of the samples in a trajectory file (versions 3 and 4; each file stores its
+#: Resolutions of the samples in a trajectory file (versions 3 to 5; each file stores its
 #: own): 1 um of tool position (the Cobra 600 repeats to 17 um), 1e-5 rad (0.00057 deg,
 #: finer than its 0.001 deg encoder counts) or 1e-5 mm of a joint, 0.01 mm/s of path
 #: speed (1/12 500 of the 125 mm/s bound: the valve frequency follows the speed far more
@@ -749,11 +749,11 @@ def pack_trajectories(trajs: Sequence[Trajectory], n_joints: int = 0, *,
         "piece_owner": np.repeat(np.arange(len(trajs)), [len(p) for p in pcs]).astype(np.int64),
         "duration": np.array([t.duration for t in trajs], dtype=np.float64),
         "traj_dt": np.array([t.dt for t in trajs], dtype=np.float64),
-        **_sample_widths(trajs),
+        **_packed_widths(trajs),
     }
 
 
-def _sample_widths(trajs: Sequence[Trajectory]) -> dict[str, np.ndarray]:
+def _packed_widths(trajs: Sequence[Trajectory]) -> dict[str, np.ndarray]:
     """``variable`` (T,) bool and ``widths`` (W,) float64 mm, the samples' widths of the
     variable-width trajectories in order; nothing when there are none."""
     variable = np.array([t.widths is not None for t in trajs], dtype=bool)
@@ -962,9 +962,8 @@ class TrajectoryWriter:
             planes = _encode_columns(columns(attr, cols), cols, n, res)
             with self._zip.open(f"{name}_counts_{k}.npy", "w", force_zip64=True) as fh:
                 np.lib.format.write_array(fh, planes, allow_pickle=False)
-        widths = [np.asarray(t.widths, np.float64) for t in trajs if t.widths is not None]
-        planes = _encode_columns(iter([np.concatenate(widths) if widths else np.zeros(0)]), 1,
-                                 sum(len(w) for w in widths), WIDTH_RESOLUTION_MM)
+        widths = _packed_widths(trajs).get("widths", np.zeros(0))
+        planes = _encode_columns(iter([widths]), 1, len(widths), WIDTH_RESOLUTION_MM)
         with self._zip.open(f"width_counts_{k}.npy", "w", force_zip64=True) as fh:
             np.lib.format.write_array(fh, planes, allow_pickle=False)
         self._blocks.append(self._blocks[-1] + len(self._buffer))
@@ -1102,8 +1101,8 @@ class TrajectoryFile:
             bls = m.array("block_layer_start", "iu", 1).astype(np.int64)
             if not 1 <= len(bls) <= 1_000_000:
                 raise m.bad("block_layer_start", f"{len(bls)} offsets: the file is corrupt")
-            block = _TRAJ_BLOCK + (("width_counts",) if version >= 5 else ())
-            blocks = [f"{s}_{k}" for k in range(len(bls) - 1) for s in block]
+            self._block = _TRAJ_BLOCK + (("width_counts",) if version >= 5 else ())
+            blocks = [f"{s}_{k}" for k in range(len(bls) - 1) for s in self._block]
             m.expect(_TRAJ_REQUIRED + _TRAJ_V2 + _TRAJ_COUNTS[3:]
                      + ("block_layer_start",) + tuple(blocks)
                      + (_TRAJ_V5 if version >= 5 else ()), ("layer_height",),
@@ -1254,7 +1253,7 @@ class TrajectoryFile:
         r0, r1 = int(ts[t0]), int(ts[t1])
         widths = None
         if self.version >= 4:
-            self._m.block_bound([f"{s}_{k}" for s in _TRAJ_BLOCK])
+            self._m.block_bound([f"{s}_{k}" for s in self._block])
             xy, joints, speed = _sample_counts(self._m, len(self.joint_names), f"_{k}",
                                                r1 - r0)
             if self.version >= 5:
@@ -1310,9 +1309,9 @@ class TrajectoryFile:
                          materials, roles, closed, self._widths[t0:t1].tolist(),
                          self._layer[t0:t1].tolist(), self._tools[t0:t1])]
         trajs = unpack_trajectories(data, stand_ins)
-        for t, c in zip(trajs, cut):
-            if t.widths is not None:   # the stand-in's points are the samples
-                object.__setattr__(t.path, "widths", t.widths[:-1] if c else t.widths)
+        for i in np.flatnonzero(variable).tolist():   # the stand-in's points are the samples
+            t = trajs[i]
+            object.__setattr__(t.path, "widths", t.widths[:-1] if cut[i] else t.widths)
         for k in range(a, b):
             if wanted is not None and int(self.layer_index[k]) not in wanted:
                 continue

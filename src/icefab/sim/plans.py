@@ -210,17 +210,14 @@ def plan_layer_motion(layer: "LayerMotion", job: "Job") -> LayerPlan:
         if not p.depositing:
             continue
         pts = flow.trajectory_part_xy(traj, p.material, job)
-        width: float | np.ndarray = flow.trajectory_width(traj, p.material, job)
-        if traj.widths is not None:
-            width = flow.sample_widths(traj, p.material, job)
+        width = flow.sample_widths(traj, p.material, job)
         if len(pts) > 1:
             step = np.linalg.norm(np.diff(pts, axis=0), axis=1)
             moved = np.concatenate([[True], step > _TINY_MM])
-            pts = pts[moved]
-            width = width[moved] if np.ndim(width) else width
+            pts, width = pts[moved], width[moved]
         if len(pts) < 2:
             pts = np.vstack([pts[:1], pts[:1]])  # at rest: a w x w square, no volume
-            width = np.concatenate([width[:1], width[:1]]) if np.ndim(width) else width
+            width = np.concatenate([width[:1], width[:1]])
         closed = bool(len(pts) > 2 and np.linalg.norm(pts[-1] - pts[0]) <= 1e-6)
         pieces.append((pts, closed, width, p.material))
         dep.append(traj)
@@ -290,8 +287,7 @@ def valve_segments(valves: LayerValves, job: "Job") -> tuple:
         dts.append(float(traj.dt))
         ts.append(t)
         drops.append(d)
-        widths.append(flow.sample_widths(traj, p.material, job) if traj.widths is not None
-                      else flow.trajectory_width(traj, p.material, job))
+        widths.append(flow.sample_widths(traj, p.material, job))
         mats.append(MATERIAL_ID[p.material])
     a, b, vol, hw, owner, n0, n1, ext = pulse_segments(xs, dts, ts, drops, widths)
     material = np.asarray(mats, dtype=np.int8)[owner] if len(owner) else \
