@@ -82,7 +82,7 @@ def _bounds_and_fill(args):
     for material, region in (("part", layer.part), ("scaffold", layer.scaffold)):
         mat = job.materials[material]
         b = boundary_rings(region, mat, FILT)
-        levels, _lines, _a = fill_levels(region, mat, job)
+        levels = fill_levels(region, mat, job).levels
         n += sum(len(lv) for lv in b) + sum(len(lv) for lv in levels)
     return n
 

@@ -331,6 +331,37 @@ def _farthest_from(ring_out: np.ndarray, ring_in: np.ndarray) -> float:
 
 @settings(deadline=None, max_examples=40)
 @given(seed=st.integers(0, 10_000), noise=st.floats(0.0, 0.3),
+       tol=st.floats(0.01, 0.5), hole=st.booleans())
+def test_smooth_rings_moved_bounds_how_far_each_point_went_into_the_area(seed, noise, tol,
+                                                                         hole):
+    """``smooth_rings_moved`` gives the rings ``smooth_rings`` gives and, per point, a
+    move into the area that is at least the point's distance from the input ring when it
+    lies inside the input's area (what a widened fill bead needs to reach back to the raw
+    ring's band, paths.concentric_levels), and never more than the tolerance."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(12, 400))
+    th = np.sort(rng.uniform(0.0, 2.0 * np.pi, n))
+    r = 30.0 + 8.0 * np.sin(3.0 * th + rng.uniform(0, 6)) + rng.normal(0.0, noise, n)
+    ring = np.c_[r * np.cos(th), r * np.sin(th)]
+    if hole:
+        ring = ring[::-1]
+    if not shapely.LinearRing(ring).is_simple:
+        return
+    (out,), reach, (inward,) = geo.smooth_rings_moved([ring], tol, 5.0)
+    (same,), same_reach = geo.smooth_rings([ring], tol, 5.0)
+    np.testing.assert_array_equal(out, same)
+    assert reach == same_reach
+    assert inward.shape == (len(out),)
+    assert (inward >= 0.0).all() and (inward <= tol + 1e-9).all()
+    d = shapely.distance(shapely.LinearRing(ring), shapely.points(out))
+    inside = shapely.contains_xy(Polygon(ring), out[:, 0], out[:, 1])
+    into = inside ^ hole  # a hole's area lies outside its ring
+    grid = 2.0 / geo.SCALE  # the points are put on Clipper's grid after the move
+    assert (inward[into & (d > grid)] >= d[into & (d > grid)] - grid).all()
+
+
+@settings(deadline=None, max_examples=40)
+@given(seed=st.integers(0, 10_000), noise=st.floats(0.0, 0.3),
        tol=st.floats(0.01, 0.5), sigma=st.floats(0.5, 8.0), hole=st.booleans())
 def test_smooth_rings_stays_within_the_tolerance_and_reach_covers_the_input(
         seed, noise, tol, sigma, hole):

@@ -345,7 +345,8 @@ def collect_rings(moved, fraw, fstart, own):
     the smoothed ring; along a chord the move is linear between its ends.
 
     Returns (points (M, 2) mm, starts (R+1,) int64: ring r is ``points[starts[r]:
-    starts[r+1]]``, reach (R,) mm: the largest such move of ring r, 0 if none).
+    starts[r+1]]``, reach (R,) mm: the largest such move of ring r, 0 if none, inward
+    (M,) mm: each point's move if it moved into the area, else 0).
     """
     R = fstart.shape[0] - 1
     M = 0
@@ -355,6 +356,7 @@ def collect_rings(moved, fraw, fstart, own):
     pts = np.empty((M, 2))
     starts = np.zeros(R + 1, np.int64)
     reach = np.zeros(R)
+    inward = np.zeros(M)
     m = 0
     for r in range(R):
         starts[r] = m
@@ -379,6 +381,7 @@ def collect_rings(moved, fraw, fstart, own):
                 if dy * sx - dx * sy > 0.0:  # d . (-sy, sx) > 0: into the left side
                     into = True
             if into:
-                reach[r] = max(reach[r], math.sqrt(dx * dx + dy * dy))
+                inward[m - 1] = math.sqrt(dx * dx + dy * dy)
+                reach[r] = max(reach[r], inward[m - 1])
     starts[R] = m
-    return pts, starts, reach
+    return pts, starts, reach, inward

@@ -486,13 +486,23 @@ def smooth_rings(rings: Rings, tol_mm: float, sigma_mm: float, max_turn_deg: flo
     the grid's part; 0 when nothing moved inward. Growing the smoothed area by ``reach``
     covers the input's.
     """
+    out, reach, _inward = smooth_rings_moved(rings, tol_mm, sigma_mm, max_turn_deg)
+    return out, reach
+
+
+def smooth_rings_moved(rings: Rings, tol_mm: float, sigma_mm: float,
+                       max_turn_deg: float = 60.0) -> tuple[Rings, float, list[np.ndarray]]:
+    """:func:`smooth_rings`, and how far each point of each ring moved into the area
+    (mm, (k,) per ring: the whole length of its move if it moved into it, else 0; zeros
+    for a ring that came back unchanged)."""
     rings = [np.asarray(r, dtype=np.float64) for r in rings]
+    still = [np.zeros(len(r)) for r in rings]
     if not tol_mm > 0 or not rings:
-        return list(rings), 0.0
+        return list(rings), 0.0, still
     eps = min(tol_mm / 5.0, 0.01)
     work = [i for i, r in enumerate(rings) if len(r) >= 3]
     if not work:
-        return list(rings), 0.0
+        return list(rings), 0.0, still
     pts, starts = _pack([rings[i] for i in work])
     # rings shorter than 8 grid steps get no grid (empty pieces) and stay as they are
     gstart, graw, h, fstart, fu, fraw, own = _smooth.periodic_pieces(
@@ -500,7 +510,7 @@ def smooth_rings(rings: Rings, tol_mm: float, sigma_mm: float, max_turn_deg: flo
     moved = _smooth.smooth_pieces(gstart, graw, h, fstart, fu, fraw,
                                   sigma_mm / SMOOTH_SPACING_MM, tol_mm - eps - 1.0 / SCALE,
                                   np.radians(max_turn_deg))
-    moved, cut, reach_of = _smooth.collect_rings(moved, fraw, fstart, own)
+    moved, cut, reach_of, inward = _smooth.collect_rings(moved, fraw, fstart, own)
     # on Clipper's grid, as every other ring: coordinates that are whole multiples of
     # 1 / SCALE compress (a toolpath file of smoothed rings took twice the bytes)
     moved = np.round(moved * SCALE) / SCALE
@@ -511,8 +521,10 @@ def smooth_rings(rings: Rings, tol_mm: float, sigma_mm: float, max_turn_deg: flo
     out = list(rings)
     for k in np.flatnonzero(used):
         out[work[k]] = thinned[k]
+        a, b = cut[k], cut[k + 1]
+        still[work[k]] = inward[a:b][keep[a:b]]
     reach = float(reach_of[used].max()) if used.any() else 0.0
-    return out, (reach + eps + 1.0 / SCALE if reach > 1e-6 else 0.0)
+    return out, (reach + eps + 1.0 / SCALE if reach > 1e-6 else 0.0), still
 
 
 def _simplify_slow(ring: np.ndarray, filter_mm: float) -> Rings:

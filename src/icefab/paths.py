@@ -65,7 +65,7 @@ from __future__ import annotations
 
 import logging
 import math
-from typing import Callable, Sequence
+from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
 
@@ -161,25 +161,53 @@ FILL_SMOOTH_SIGMA_MM = 5.0
 
 def concentric_rings(region: Region, start_mm: float, step_mm: float, filt: float,
                      max_rings: int = 100_000, width_mm: float = 0.0,
-                     smooth_mm: float = 0.0) -> list[list[np.ndarray]]:
-    """Rings of ``region`` shrunk by ``start_mm``, then every ``step_mm`` until empty.
+                     smooth_mm: float = 0.0, ring_smooth_mm: float = 0.0,
+                     max_turn_deg: float = 60.0) -> list[list[np.ndarray]]:
+    """Rings of ``region`` shrunk by ``start_mm``, then every ``step_mm`` until empty
+    (:func:`concentric_levels` without the bead widths)."""
+    return concentric_levels(region, start_mm, step_mm, filt, max_rings, width_mm,
+                             smooth_mm, ring_smooth_mm, max_turn_deg).levels
+
+
+def concentric_levels(region: Region, start_mm: float, step_mm: float, filt: float,
+                      max_rings: int = 100_000, width_mm: float = 0.0,
+                      smooth_mm: float = 0.0, ring_smooth_mm: float = 0.0,
+                      max_turn_deg: float = 60.0) -> "FillLevels":
+    """Rings of ``region`` shrunk by ``start_mm``, then every ``step_mm`` until empty, and
+    the width of the bead along each.
 
     width_mm: the width of the paths along the rings; when > 0 every ring is given room
         for it (:func:`_with_room`): a ring whose area is narrower than the path would
         overlap itself.
     smooth_mm: when > 0 the rings follow a smoothed contour (issue 15: the robot's jerk
-        bound makes it crawl along the wiggles of a scanned mesh): the edge of the first
-        ring's band (``region`` shrunk by ``start_mm - step_mm / 2``) is smoothed within
-        ``smooth_mm`` (:func:`icefab.geometry.smooth_rings`) and grown by as much as the
-        true edge reaches outside it (at most ``smooth_mm``; nothing on a clean contour),
-        so it lies outside the true edge everywhere: the first band overlaps what is
-        outside it by up to ``2 smooth_mm`` and leaves no sliver. The first ring is
-        ``step_mm / 2`` inside it. Every ring is smoothed within ``filt`` (as far as the
-        point filter moves it anyway) before the next is offset from it, so the bands of
-        consecutive rings meet as closely as without smoothing.
-    Returns one list of (k, 2) float64 rings (mm) per offset level, outermost first.
+        and acceleration bounds make it crawl along the wiggles of a scanned mesh and
+        round every corner of an offset slowly):
+
+        * the edge of the first ring's band (``region`` shrunk by ``start_mm - step_mm /
+          2``) is smoothed within ``smooth_mm`` (:func:`icefab.geometry.smooth_rings`)
+          and grown by as much as the true edge reaches outside it (at most ``smooth_mm``;
+          nothing on a clean contour), so it lies outside the true edge everywhere: the
+          first band overlaps what is outside it by up to ``2 smooth_mm`` and leaves no
+          sliver. The first ring is ``step_mm / 2`` inside it.
+        * every further ring, the offset of the ring before, is smoothed within
+          ``ring_smooth_mm`` (corners over ``max_turn_deg`` kept), and the next is offset
+          from the smoothed ring, so the moves never add up. Offsetting inward turns the
+          bumps of a contour into corners (where the offset swallows a bump narrower
+          than the offset); rounded, they no longer stop or slow the robot. Where a ring
+          moved inward, away from the band outside it, by more than the point filter
+          (which the sweeps allow for), its bead is widened by twice the excess (when
+          ``width_mm`` > 0): the valve lays ``w(s) dh c(s)`` and the band outside stays
+          covered; where it moved outward the beads overlap.
+        * with ``ring_smooth_mm`` <= ``filt`` the rings after the first are smoothed
+          within ``filt`` (as far as the point filter moves them anyway).
+    Returns a :class:`FillLevels` without lines: one list of (k, 2) float64 rings (mm)
+    per offset level, outermost first; the same lists of bead widths (None for a ring
+    ``width_mm`` wide all along, else (k,) float64 mm, one per point, >= ``width_mm``);
+    the area the widened beads cover beyond their levels' bands.
     """
     out: list[list[np.ndarray]] = []
+    widths: list[list[np.ndarray | None]] = []
+    cover: list[np.ndarray] = []
     if smooth_mm > 0:
         edge = geo.offset_rings(list(region.rings), -(start_mm - step_mm / 2.0), filt)
         smooth, reach = geo.smooth_rings(edge, smooth_mm, FILL_SMOOTH_SIGMA_MM)
@@ -187,15 +215,70 @@ def concentric_rings(region: Region, start_mm: float, step_mm: float, filt: floa
     else:
         rings = geo.offset_rings(list(region.rings), -start_mm, filt)
     while rings and len(out) < max_rings:
+        raw = None
         if smooth_mm > 0:
-            rings = geo.smooth_rings(rings, filt, FILL_SMOOTH_SIGMA_MM)[0]
+            tol = max(ring_smooth_mm, filt) if out else filt
+            if tol > filt:
+                raw = rings
+            rings, _reach, inward = geo.smooth_rings_moved(rings, tol, FILL_SMOOTH_SIGMA_MM,
+                                                           max_turn_deg)
         nxt = geo.offset_rings(rings, -step_mm, filt)
+        smoothed = rings
         if width_mm > 0:
             rings = _with_room(rings, nxt, width_mm, filt)
         if rings:
             out.append(rings)
+            ws: list[np.ndarray | None] = [None] * len(rings)
+            if raw is not None and width_mm > 0:
+                ws, more = _widened_beads(rings, smoothed, inward, raw, width_mm)
+                cover += more
+            widths.append(ws)
         rings = nxt
-    return out
+    return FillLevels(out, [], math.nan, widths, cover)
+
+
+def _widened_beads(rings: list[np.ndarray], smoothed: list[np.ndarray],
+                   inward: list[np.ndarray], raw: list[np.ndarray], width: float
+                   ) -> tuple[list[np.ndarray | None], list[np.ndarray]]:
+    """Bead widths of one level of smoothed rings (:func:`concentric_levels`) and the area
+    the widening covers beyond the level's band.
+
+    rings: the level as :func:`_with_room` left it; smoothed: the level before that, with
+    how far each point moved into the ring's area (``inward``,
+    :func:`icefab.geometry.smooth_rings_moved`); raw: the level before smoothing (ring
+    ``i`` of ``smoothed`` is ring ``i`` of ``raw`` smoothed). A ring's bead is ``width``
+    plus twice its point's inward move, so its outer edge stays where the raw ring's would
+    be; None where that adds at most ``WIDEN_MIN_MM`` and for the rings ``_with_room``
+    replaced. The cover is the raw rings' outer band edge less the smoothed rings'
+    (``expand(raw, width / 2) - expand(smoothed, width / 2)``, flat oriented rings): the
+    slivers the widened beads reach into."""
+    out: list[np.ndarray | None] = [None] * len(rings)
+    pos = {id(r): i for i, r in enumerate(smoothed)}
+    kept = []   # the rings _with_room left: whole outers with their holes
+    for i, r in enumerate(rings):
+        j = pos.get(id(r))
+        if j is None:
+            continue
+        kept.append(j)
+        if inward[j].max(initial=0.0) * 2.0 > WIDEN_MIN_MM:
+            out[i] = width + 2.0 * inward[j]
+    if all(w is None for w in out):
+        return out, []
+    # offsets of whole polygons (an outer with its holes): a hole alone would grow
+    cover = geo.difference_rings(
+        geo.offset_rings([raw[j] for j in kept], width / 2.0, 0.0),
+        geo.offset_rings([smoothed[j] for j in kept], width / 2.0, 0.0))
+    return out, cover
+
+
+#: Concentric fill (with ``fill_smoothing_mm`` > 0): every ring after the first is smoothed
+#: within this fraction of the fill width, its bead widened where it moved inward
+#: (:func:`concentric_levels`). On 10 bunny layers 0.1 / 0.15 / 0.25 / 0.3 mm of the 3 mm
+#: width took 9.2 / 11.5 / 12.9 / 13.1 % off the fill's MTTS time, the unfilled area +1.7
+#: / 0 / +6.1 / +8.4 % (BENCHMARKS.md, issue 15).
+RING_SMOOTHING = 0.05
+#: A smoothed ring's bead is widened only where it would grow by more than this (mm).
+WIDEN_MIN_MM = 0.01
 
 
 def _has_room(ring: np.ndarray, width: float) -> bool:
@@ -394,36 +477,56 @@ def _zigzag_at(inner: Region, spacing: float, angle: float, filt: float,
 
 
 def fill_paths(region: Region, mat: MaterialSettings, job: Job
-               ) -> tuple[list[tuple[np.ndarray, bool]], float]:
-    """Fill paths of one material's region: ``[(points, closed), ...]`` and the raster
-    angle used (deg; NaN for concentric or none)."""
-    levels, lines, angle = fill_levels(region, mat, job)
-    return [(r, True) for lv in levels for r in lv] + [(ln, False) for ln in lines], angle
+               ) -> tuple[list[tuple[np.ndarray, bool, float | np.ndarray]], float]:
+    """Fill paths of one material's region: ``[(points, closed, width), ...]`` (width: mm,
+    or (k,) mm per point for a widened smoothed ring) and the raster angle used (deg; NaN
+    for concentric or none)."""
+    fill = fill_levels(region, mat, job)
+    F = mat.fill_width_mm
+    return fill.paths(F), fill.angle
 
 
-def fill_levels(region: Region, mat: MaterialSettings, job: Job
-                ) -> tuple[list[list[np.ndarray]], list[np.ndarray], float]:
+class FillLevels(NamedTuple):
+    """Fill of one material's region (:func:`fill_levels`)."""
+
+    levels: list[list[np.ndarray]]          # concentric rings, one list per offset level
+    lines: list[np.ndarray]                 # open raster/zigzag lines
+    angle: float                            # raster angle, deg (NaN: concentric or none)
+    widths: list[list[np.ndarray | None]]   # per ring as ``levels``: None or (k,) mm
+    cover: list[np.ndarray] = []            # what widened beads cover beyond the levels'
+                                            # bands (flat oriented rings)
+
+    def paths(self, width: float) -> list[tuple[np.ndarray, bool, float | np.ndarray]]:
+        """``(points, closed, width)`` of every ring and line (``width`` unless widened)."""
+        return ([(r, True, width if w is None else w)
+                 for lv, ws in zip(self.levels, self.widths) for r, w in zip(lv, ws)]
+                + [(ln, False, width) for ln in self.lines])
+
+
+def fill_levels(region: Region, mat: MaterialSettings, job: Job) -> FillLevels:
     """Fill of one material's region as concentric ring levels (each a list of oriented
-    rings at one offset), open raster/zigzag lines, and the raster angle (deg; NaN for
-    concentric or none)."""
+    rings at one offset) with their bead widths, open raster/zigzag lines, and the raster
+    angle (deg; NaN for concentric or none)."""
     filt = job.slicing.max_filter_deviation_mm
     pattern = mat.fill_pattern
     F = mat.fill_width_mm
     e = _fill_edge(mat)
     if pattern == "none" or region.is_empty:
-        return [], [], math.nan
+        return FillLevels([], [], math.nan, [])
     if pattern == "concentric":
-        return concentric_rings(region, e + F / 2.0, F, filt, width_mm=F,
-                                smooth_mm=mat.fill_smoothing_mm), [], math.nan
+        return concentric_levels(region, e + F / 2.0, F, filt, width_mm=F,
+                                 smooth_mm=mat.fill_smoothing_mm,
+                                 ring_smooth_mm=RING_SMOOTHING * F)
     levels: list[list[np.ndarray]] = []
     start = e + F / 2.0
     if pattern == "hybrid" and mat.hybrid_rings > 0:
         levels = concentric_rings(region, start, F, filt, max_rings=mat.hybrid_rings,
                                   width_mm=F)
         start += mat.hybrid_rings * F
+    plain = [[None] * len(lv) for lv in levels]
     inner = geo.shrink(region, start, filt)
     if inner.is_empty:
-        return levels, [], math.nan
+        return FillLevels(levels, [], math.nan, plain)
     linked = pattern != "raster"
     if pattern == "hybrid" or mat.fill_angle_mode == "optimal":
         # each island at its own angle: the least time by Jin's model (Jin et al. 3-4)
@@ -437,7 +540,7 @@ def fill_levels(region: Region, mat: MaterialSettings, job: Job
     else:
         angle = mat.fill_angle_deg
         lines = _zigzag_at(inner, F, angle, filt, linked)
-    return levels, lines, angle
+    return FillLevels(levels, lines, angle, plain)
 
 
 def _best_angle(area: Region, spacing: float, filt: float, linked: bool, step_deg: float,
@@ -460,18 +563,24 @@ def _islands(region: Region) -> list[Region]:
     return [region] if len(polygons) <= 1 else [geo.region_from_rings(p) for p in polygons]
 
 
-#: Measurement rings follow the region's contour smoothed within this (mm), as the fill
-#: does (:func:`concentric_rings`): the laser's heights are placed where it was (the
-#: trajectory's samples), so the rings need not hug the contour, and on a scanned part the
-#: smoothed rings take 22 % less time at the laser's speed (bunny layers, BENCHMARKS.md).
-MEASURE_SMOOTHING_MM = 0.25
+#: Measurement rings follow the region's contour smoothed within this (mm), each ring
+#: within it again before the next is offset from it (:func:`concentric_levels`), and no
+#: corner is kept (``MEASURE_MAX_TURN_DEG``): the laser's heights are placed where it was
+#: (the trajectory's samples), so the rings need not hug the contour. On bunny layers the
+#: first ring's smoothing at 0.25 mm took 22 % off the time at the laser's speed; every
+#: ring's at 0.5 mm, corners rounded, another 12 % (BENCHMARKS.md, issue 15).
+MEASURE_SMOOTHING_MM = 0.5
+#: Turns kept as corners in measurement rings: none (a corner stops the robot).
+MEASURE_MAX_TURN_DEG = 180.0
 
 
 def measure_rings(region: Region, spacing: float, filt: float) -> list[np.ndarray]:
     """Concentric measurement rings over a region (thesis 5.2.1): shrunk by spacing/2,
-    then every spacing, smoothed (``MEASURE_SMOOTHING_MM``)."""
+    then every spacing, smoothed (``MEASURE_SMOOTHING_MM``, ``MEASURE_MAX_TURN_DEG``)."""
     levels = concentric_rings(region, spacing / 2.0, spacing, filt,
-                              smooth_mm=MEASURE_SMOOTHING_MM)
+                              smooth_mm=MEASURE_SMOOTHING_MM,
+                              ring_smooth_mm=MEASURE_SMOOTHING_MM,
+                              max_turn_deg=MEASURE_MAX_TURN_DEG)
     return [r for lv in levels for r in lv]
 
 
@@ -611,10 +720,10 @@ def material_paths(region: Region, mat: MaterialSettings, job: Job, hook_levels:
     if hook_levels and part is not None:
         hook, region = hook_wall(region, part, hook_levels, mat, filt)
     bounds = boundary_rings(region, mat, filt)
-    levels, lines, _angle = fill_levels(region, mat, job)
+    fill = fill_levels(region, mat, job)
     F = mat.fill_width_mm
     out["boundary"] = [(r, True, w) for lv in bounds for r in lv]
-    out["fill"] = [(r, True, F) for lv in levels for r in lv] + [(ln, False, F) for ln in lines]
+    out["fill"] = fill.paths(F)
     nominal = nominal_area(whole, mat, filt)
     # Flat Booleans (no nesting tree): the bands only clip. Ring levels sweep as
     # expand(level) - shrink(level) (two polygon offsets, much cheaper than sweeping each
@@ -622,9 +731,10 @@ def material_paths(region: Region, mat: MaterialSettings, job: Job, hook_levels:
     # against the next) plus SWEEP_TOL, so touching bands leave no slivers.
     tol = filt + SWEEP_TOL
     bands = geo.level_bands([(lv, w / 2.0 + tol) for lv in bounds]
-                            + [(lv, F / 2.0 + tol) for lv in levels])
-    bands += geo.sweep_rings([(ln, False, F) for ln in lines] + [(r, True, w) for r in hook],
-                             tol)
+                            + [(lv, F / 2.0 + tol) for lv in fill.levels])
+    bands += geo.sweep_rings([(ln, False, F) for ln in fill.lines]
+                             + [(r, True, w) for r in hook], tol)
+    bands += fill.cover  # the slivers widened fill beads reach into
     gaps = geo.difference_rings(nominal, bands)
     if mat.gap_fill and gaps:
         extra, gaps = gap_fill_paths(gaps, nominal, mat, filt, whole)
