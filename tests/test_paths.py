@@ -709,11 +709,11 @@ def test_inner_fill_rings_are_smoothed_and_their_beads_widened_where_they_moved_
         monkeypatch):
     """The rings inside the first are smoothed within RING_SMOOTHING x the fill width
     (the corners inward offsets make of the bumps rounded off): a jerk-limited robot
-    follows the fill in >= 5 % less time. Where a ring moved inward its bead is widened
-    by twice the move (F <= w <= F + 2 tol), so the beads cover the region at least as
-    well as the unsmoothed rings' (shapely: exact disk hulls) and icefab counts no more
-    unfilled area; the same smoothed rings at the plain width would leave > 10 mm^2 more
-    uncovered."""
+    follows the fill in >= 5 % less time. Where a ring moved inward beyond the point
+    filter its bead is widened by twice the excess (F <= w <= F + 2 (tol - filter)), so
+    the beads cover the region as well as the unsmoothed rings' within 0.01 % of its area
+    (shapely: exact disk hulls) and icefab counts no more unfilled area; the same smoothed
+    rings at the plain width would leave > 10 mm^2 more uncovered."""
     from icefab import paths as paths_mod
     region = _bumpy_disk()
     job = Job()
@@ -728,10 +728,11 @@ def test_inner_fill_rings_are_smoothed_and_their_beads_widened_where_they_moved_
     sets = got["smooth"][0]
     rings = [(p, w) for p, c, w in sets["fill"] if c]
     widened = [w for _p, w in rings if np.ndim(w)]
-    assert len(widened) >= len(rings) // 2
+    assert len(widened) >= len(rings) // 3
+    filt = job.slicing.max_filter_deviation_mm
     for w in widened:
-        assert w.min() >= F and w.max() <= F + 2.0 * tol + 1e-9
-    assert max(w.max() for w in widened) > F + tol
+        assert w.min() >= F and w.max() <= F + 2.0 * (tol - filt) + 1e-9
+    assert max(w.max() for w in widened) > F + (tol - filt)
     assert not any(np.ndim(w) and c for _p, c, w in got["plain"][0]["fill"])
     assert _fill_time(sets, job) < 0.95 * _fill_time(got["plain"][0], job)
     area = geo.area(region)
@@ -746,9 +747,9 @@ def test_inner_fill_rings_are_smoothed_and_their_beads_widened_where_they_moved_
 
 def test_measurement_rings_are_smoothed_all_the_way_in():
     """Every measurement ring is smoothed within MEASURE_SMOOTHING_MM before the next is
-    offset from it, corners rounded as far as that lets: on the bumpy disk the laser
-    follows them faster than rings smoothed only at the first (the former rule), and
-    every ring stays inside the region."""
+    offset from it: on the bumpy disk the laser follows them in >= 5 % less time than
+    rings smoothed only at the first (the former rule), and every ring stays inside the
+    region."""
     from icefab.motion import plan_paths_motion
     from icefab.paths import (MEASURE_SMOOTHING_MM, concentric_rings, measure_rings)
     region = _bumpy_disk()
@@ -764,7 +765,7 @@ def test_measurement_rings_are_smoothed_all_the_way_in():
     old = [r for lv in concentric_rings(region, spacing / 2.0, spacing, FILT,
                                         smooth_mm=0.25) for r in lv]
     assert abs(len(new) - len(old)) <= 1
-    assert time(new) < 0.97 * time(old)
+    assert time(new) < 0.95 * time(old)
     inset = spacing / 2.0 - 2.0 * MEASURE_SMOOTHING_MM - FILT
     R = shapely.Polygon(list(region.rings)[0]).buffer(-inset)
     assert all(R.covers(LinearRing(r)) for r in new)

@@ -161,18 +161,17 @@ FILL_SMOOTH_SIGMA_MM = 5.0
 
 def concentric_rings(region: Region, start_mm: float, step_mm: float, filt: float,
                      max_rings: int = 100_000, width_mm: float = 0.0,
-                     smooth_mm: float = 0.0, ring_smooth_mm: float = 0.0,
-                     max_turn_deg: float = 60.0) -> list[list[np.ndarray]]:
+                     smooth_mm: float = 0.0, ring_smooth_mm: float = 0.0
+                     ) -> list[list[np.ndarray]]:
     """Rings of ``region`` shrunk by ``start_mm``, then every ``step_mm`` until empty
     (:func:`concentric_levels` without the bead widths)."""
     return concentric_levels(region, start_mm, step_mm, filt, max_rings, width_mm,
-                             smooth_mm, ring_smooth_mm, max_turn_deg).levels
+                             smooth_mm, ring_smooth_mm).levels
 
 
 def concentric_levels(region: Region, start_mm: float, step_mm: float, filt: float,
                       max_rings: int = 100_000, width_mm: float = 0.0,
-                      smooth_mm: float = 0.0, ring_smooth_mm: float = 0.0,
-                      max_turn_deg: float = 60.0) -> "FillLevels":
+                      smooth_mm: float = 0.0, ring_smooth_mm: float = 0.0) -> "FillLevels":
     """Rings of ``region`` shrunk by ``start_mm``, then every ``step_mm`` until empty, and
     the width of the bead along each.
 
@@ -190,7 +189,7 @@ def concentric_levels(region: Region, start_mm: float, step_mm: float, filt: flo
           first band overlaps what is outside it by up to ``2 smooth_mm`` and leaves no
           sliver. The first ring is ``step_mm / 2`` inside it.
         * every further ring, the offset of the ring before, is smoothed within
-          ``ring_smooth_mm`` (corners over ``max_turn_deg`` kept), and the next is offset
+          ``ring_smooth_mm`` (corners over 60 degrees kept), and the next is offset
           from the smoothed ring, so the moves never add up. Offsetting inward turns the
           bumps of a contour into corners (where the offset swallows a bump narrower
           than the offset); rounded, they no longer stop or slow the robot. Where a ring
@@ -220,8 +219,7 @@ def concentric_levels(region: Region, start_mm: float, step_mm: float, filt: flo
             tol = max(ring_smooth_mm, filt) if out else filt
             if tol > filt:
                 raw = rings
-            rings, _reach, inward = geo.smooth_rings_moved(rings, tol, FILL_SMOOTH_SIGMA_MM,
-                                                           max_turn_deg)
+            rings, _reach, inward = geo.smooth_rings_moved(rings, tol, FILL_SMOOTH_SIGMA_MM)
         nxt = geo.offset_rings(rings, -step_mm, filt)
         smoothed = rings
         if width_mm > 0:
@@ -230,7 +228,7 @@ def concentric_levels(region: Region, start_mm: float, step_mm: float, filt: flo
             out.append(rings)
             ws: list[np.ndarray | None] = [None] * len(rings)
             if raw is not None and width_mm > 0:
-                ws, more = _widened_beads(rings, smoothed, inward, raw, width_mm)
+                ws, more = _widened_beads(rings, smoothed, inward, raw, width_mm, filt)
                 cover += more
             widths.append(ws)
         rings = nxt
@@ -238,8 +236,8 @@ def concentric_levels(region: Region, start_mm: float, step_mm: float, filt: flo
 
 
 def _widened_beads(rings: list[np.ndarray], smoothed: list[np.ndarray],
-                   inward: list[np.ndarray], raw: list[np.ndarray], width: float
-                   ) -> tuple[list[np.ndarray | None], list[np.ndarray]]:
+                   inward: list[np.ndarray], raw: list[np.ndarray], width: float,
+                   filt: float) -> tuple[list[np.ndarray | None], list[np.ndarray]]:
     """Bead widths of one level of smoothed rings (:func:`concentric_levels`) and the area
     the widening covers beyond the level's band.
 
@@ -247,9 +245,12 @@ def _widened_beads(rings: list[np.ndarray], smoothed: list[np.ndarray],
     how far each point moved into the ring's area (``inward``,
     :func:`icefab.geometry.smooth_rings_moved`); raw: the level before smoothing (ring
     ``i`` of ``smoothed`` is ring ``i`` of ``raw`` smoothed). A ring's bead is ``width``
-    plus twice its point's inward move, so its outer edge stays where the raw ring's would
-    be; None where that adds at most ``WIDEN_MIN_MM`` and for the rings ``_with_room``
-    replaced. The cover is the raw rings' outer band edge less the smoothed rings'
+    plus twice how far its point moved inward beyond the point filter ``filt`` (which the
+    swept bands are grown by), so its outer edge stays within the filter of where the raw
+    ring's would be: widening by the whole move laid 0.5 % more fill on bunny layers for
+    no less unfilled area, and raised the demo mug's open-loop height error from 1.868 to
+    1.883 mm. None where the widening adds at most ``WIDEN_MIN_MM`` and for the rings
+    ``_with_room`` replaced. The cover is the raw rings' outer band edge less the smoothed rings'
     (``expand(raw, width / 2) - expand(smoothed, width / 2)``, flat oriented rings): the
     slivers the widened beads reach into."""
     out: list[np.ndarray | None] = [None] * len(rings)
@@ -260,8 +261,9 @@ def _widened_beads(rings: list[np.ndarray], smoothed: list[np.ndarray],
         if j is None:
             continue
         kept.append(j)
-        if inward[j].max(initial=0.0) * 2.0 > WIDEN_MIN_MM:
-            out[i] = width + 2.0 * inward[j]
+        extra = 2.0 * np.maximum(inward[j] - filt, 0.0)
+        if extra.max(initial=0.0) > WIDEN_MIN_MM:
+            out[i] = width + extra
     if all(w is None for w in out):
         return out, []
     # offsets of whole polygons (an outer with its holes): a hole alone would grow
@@ -275,7 +277,7 @@ def _widened_beads(rings: list[np.ndarray], smoothed: list[np.ndarray],
 #: within this fraction of the fill width, its bead widened where it moved inward
 #: (:func:`concentric_levels`). On 10 bunny layers 0.1 / 0.15 / 0.25 / 0.3 mm of the 3 mm
 #: width took 9.2 / 11.5 / 12.9 / 13.1 % off the fill's MTTS time, the unfilled area +1.7
-#: / 0 / +6.1 / +8.4 % (BENCHMARKS.md, issue 15).
+#: / 0 / +6.1 / +8.4 % (BENCHMARKS.md, issue 15). The fill laid is 0.01 % more.
 RING_SMOOTHING = 0.05
 #: A smoothed ring's bead is widened only where it would grow by more than this (mm).
 WIDEN_MIN_MM = 0.01
@@ -564,23 +566,21 @@ def _islands(region: Region) -> list[Region]:
 
 
 #: Measurement rings follow the region's contour smoothed within this (mm), each ring
-#: within it again before the next is offset from it (:func:`concentric_levels`), and no
-#: corner is kept (``MEASURE_MAX_TURN_DEG``): the laser's heights are placed where it was
-#: (the trajectory's samples), so the rings need not hug the contour. On bunny layers the
-#: first ring's smoothing at 0.25 mm took 22 % off the time at the laser's speed; every
-#: ring's at 0.5 mm, corners rounded, another 12 % (BENCHMARKS.md, issue 15).
+#: within it again before the next is offset from it (:func:`concentric_levels`): the
+#: laser's heights are placed where it was (the trajectory's samples), so the rings need
+#: not hug the contour. On bunny layers the first ring's smoothing at 0.25 mm took 22 % off
+#: the time at the laser's speed, every ring's at 0.5 mm another 6 % (BENCHMARKS.md, issue
+#: 15). Rounding their corners too (no corner kept) saved 3 % more but raised the demo
+#: mug's SMF height error by 1.3 %.
 MEASURE_SMOOTHING_MM = 0.5
-#: Turns kept as corners in measurement rings: none (a corner stops the robot).
-MEASURE_MAX_TURN_DEG = 180.0
 
 
 def measure_rings(region: Region, spacing: float, filt: float) -> list[np.ndarray]:
     """Concentric measurement rings over a region (thesis 5.2.1): shrunk by spacing/2,
-    then every spacing, smoothed (``MEASURE_SMOOTHING_MM``, ``MEASURE_MAX_TURN_DEG``)."""
+    then every spacing, smoothed (``MEASURE_SMOOTHING_MM``)."""
     levels = concentric_rings(region, spacing / 2.0, spacing, filt,
                               smooth_mm=MEASURE_SMOOTHING_MM,
-                              ring_smooth_mm=MEASURE_SMOOTHING_MM,
-                              max_turn_deg=MEASURE_MAX_TURN_DEG)
+                              ring_smooth_mm=MEASURE_SMOOTHING_MM)
     return [r for lv in levels for r in lv]
 
 
