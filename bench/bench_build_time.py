@@ -9,8 +9,8 @@ icefab before variable-width paths):
 ``plan_paths`` (timed, 2 workers), then MTTS of every layer (``iter_plan_toolpaths``,
 jerk on, default limits) summed without keeping the samples. Per variant:
 
-* MTTS build time, and by role (boundary, fill rings of the fill width, gap paths of
-  other or variable widths, travel, measurement);
+* MTTS build time, and by role (boundary, fill rings of the fill width or widened from
+  it, gap paths of other or variable widths, travel, measurement);
 * the speed-bound floor: every path's length over the speed bound MTTS plans it under
   (``motion.path_limits``), i.e. no acceleration at all;
 * rest stops per layer by cause: travel moves, path starts, PATHSPLIT corners inside
@@ -68,6 +68,14 @@ def _bunny_stack(job, every: int):
         stack = Stack(layers=stack.layers[::every], job=stack.job,
                       layer_thickness=stack.layer_thickness, warnings=stack.warnings)
     return stack
+
+
+def _is_fill_ring(p, width: float) -> bool:
+    """A fill ring of the fill width (constant, or widened where smoothing moved it
+    inward: never narrower), not a gap path (centre lines, gap and pocket rings)."""
+    if p.widths is None:
+        return abs(p.width - width) < 1e-9
+    return bool(p.closed and p.widths.min() >= width - 1e-9)
 
 
 def _coverage(stack, tp) -> float:
@@ -132,8 +140,7 @@ def measure(stack, job, toppra_layers: int = 0) -> dict:
             p = t.path
             role = "travel" if p is None else p.role
             if role == "fill":
-                role = "fill" if p.widths is None and \
-                    abs(p.width - fill_width[p.material]) < 1e-9 else "gap"
+                role = "fill" if _is_fill_ring(p, fill_width[p.material]) else "gap"
             by_role[role] = by_role.get(role, 0.0) + float(t.duration)
             if p is not None:
                 floor += p.length / path_limits(p, job)

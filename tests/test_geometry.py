@@ -464,3 +464,20 @@ def test_a_variable_width_sweep_is_the_hull_of_its_disks(pts, closed, grow):
         shapely.union_all([Polygon(q) for q in band.rings if signed_area(q) < 0]) or Polygon())
     assert got.difference(exact.buffer(1e-3)).area <= 1e-6
     assert got.area >= 0.99 * exact.area
+
+
+@pytest.mark.parametrize("where", [(0.0, 40.0), (0.0, -40.0), (40.0, 0.0), (-40.0, 0.0)])
+def test_an_orphan_hole_does_not_turn_an_offset_inside_out(where):
+    """Clipper takes a whole set's orientation from its lowest ring: a stray clockwise
+    sliver outside every outer ring (a bunny fill level had one) emptied the next fill
+    level. offset_rings and level_bands drop such holes; the result is the outer's."""
+    sq = np.array([[0, 0], [10, 0], [10, 10], [0, 10]], float)
+    tiny = np.array([[-0.7916, 2.1763], [0.0, 2.6829], [-1.5576, 1.6221]]) + where
+    assert signed_area(tiny) < 0
+    assert np.allclose(geo.ring_areas(geo.offset_rings([sq, tiny], -1.0, 0.0)), [64.0])
+    assert np.allclose(sorted(geo.ring_areas(geo.level_bands([([tiny, sq], 0.5)]))),
+                       [-81.0, 121.0])
+    # a hole its outer holds stays
+    hole = np.array([[4, 4], [4, 6], [6, 6], [6, 4]], float)
+    assert np.allclose(sorted(geo.ring_areas(geo.offset_rings([sq, hole], -1.0, 0.0))),
+                       [-16.0, 64.0])

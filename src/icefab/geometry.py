@@ -555,9 +555,34 @@ def offset_rings(rings: Rings, d: float, filter_mm: float = FILTER_MM) -> Rings:
     if d == 0:
         return list(rings)
     o = _offsetter()
-    o.addPaths(rings, pyclipr.JoinType.Miter, pyclipr.EndType.Polygon)
+    o.addPaths(without_orphan_holes(rings), pyclipr.JoinType.Miter, pyclipr.EndType.Polygon)
     out = o.execute(float(d))
     return simplify(list(out), filter_mm)
+
+
+def without_orphan_holes(rings: Rings) -> Rings:
+    """The rings less the holes (clockwise rings) that no outer ring of the list holds.
+
+    Why: Clipper's offset takes the orientation of a whole set from the ring with its
+    lowest point. A stray clockwise sliver lowest of all (a bunny layer's fill level had
+    one of 0.02 mm^2, left by the offset of the level before) turns the set inside out, and
+    the next fill level came back empty: 730 mm^2 of the layer went unfilled."""
+    rings = list(rings)
+    if len(rings) < 2:
+        return rings
+    areas = ring_areas(rings)
+    holes = np.flatnonzero(areas < 0)
+    outers = np.flatnonzero(areas > 0)
+    if not len(holes):
+        return rings
+    held = np.zeros(len(holes), dtype=bool)
+    if len(outers):
+        held = rings_holding([rings[i] for i in outers],
+                             np.array([rings[i][0] for i in holes])) >= 0
+    if held.all():
+        return rings
+    drop = set(holes[~held].tolist())
+    return [r for i, r in enumerate(rings) if i not in drop]
 
 
 def _offset_region(region: Region, d: float, filter_mm: float) -> Region:
@@ -684,11 +709,12 @@ def level_bands(levels: Sequence[tuple[Sequence[np.ndarray], float]]) -> Rings:
     for rings, h in levels:
         if not len(rings):
             continue
+        rings = without_orphan_holes(rings)
         o = _offsetter()
-        o.addPaths(list(rings), pyclipr.JoinType.Miter, pyclipr.EndType.Polygon)
+        o.addPaths(rings, pyclipr.JoinType.Miter, pyclipr.EndType.Polygon)
         out.extend(o.execute(h))
         o = _offsetter()
-        o.addPaths(list(rings), pyclipr.JoinType.Miter, pyclipr.EndType.Polygon)
+        o.addPaths(rings, pyclipr.JoinType.Miter, pyclipr.EndType.Polygon)
         out.extend(np.ascontiguousarray(r[::-1]) for r in o.execute(-h))
     return out
 
