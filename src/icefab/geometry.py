@@ -700,18 +700,24 @@ def variable_sweep_rings(paths: Sequence[tuple[np.ndarray, bool, np.ndarray]],
     return list(disks) + list(quads)
 
 
-def level_bands(levels: Sequence[tuple[Sequence[np.ndarray], float]]) -> Rings:
+def level_bands(levels: Sequence[tuple[Sequence[np.ndarray], float]
+                                | tuple[Sequence[np.ndarray], float, Sequence[np.ndarray]]]
+                ) -> Rings:
     """Bands swept by the rings of offset levels: for each level (oriented rings bounding
-    an area D, half-width h) the rings of ``expand(D, h)`` plus the reversed rings of
-    ``shrink(D, h)``, whose NonZero winding is 1 exactly in the band. Use them as the clip
-    side of a NonZero Boolean (bands of different levels may touch or overlap)."""
+    an area D, half-width h, optionally rings bounding an area E the band's outer edge
+    holds too: widened beads) the rings of ``expand(D + E, h)`` plus the reversed rings
+    of ``shrink(D, h)``, whose NonZero winding is 1 exactly in the band. Use them as the
+    clip side of a NonZero Boolean (bands of different levels may touch or overlap)."""
     out: Rings = []
-    for rings, h in levels:
+    for level in levels:
+        rings, h = level[0], level[1]
         if not len(rings):
             continue
         rings = without_orphan_holes(rings)
+        also = without_orphan_holes(level[2]) if len(level) > 2 else []
         o = _offsetter()
-        o.addPaths(rings, pyclipr.JoinType.Miter, pyclipr.EndType.Polygon)
+        # one offset of both sets: Clipper unites what it offsets (D and E overlap)
+        o.addPaths(rings + also, pyclipr.JoinType.Miter, pyclipr.EndType.Polygon)
         out.extend(o.execute(h))
         o = _offsetter()
         o.addPaths(rings, pyclipr.JoinType.Miter, pyclipr.EndType.Polygon)

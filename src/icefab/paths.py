@@ -202,11 +202,11 @@ def concentric_levels(region: Region, start_mm: float, step_mm: float, filt: flo
     Returns a :class:`FillLevels` without lines: one list of (k, 2) float64 rings (mm)
     per offset level, outermost first; the same lists of bead widths (None for a ring
     ``width_mm`` wide all along, else (k,) float64 mm, one per point, >= ``width_mm``);
-    the area the widened beads cover beyond their levels' bands.
+    per level, the rings whose area the widened beads' outer edge also holds.
     """
     out: list[list[np.ndarray]] = []
     widths: list[list[np.ndarray | None]] = []
-    cover: list[np.ndarray] = []
+    held_by: list[list[np.ndarray]] = []
     if smooth_mm > 0:
         edge = geo.offset_rings(list(region.rings), -(start_mm - step_mm / 2.0), filt)
         smooth, reach = geo.smooth_rings(edge, smooth_mm, FILL_SMOOTH_SIGMA_MM)
@@ -227,19 +227,20 @@ def concentric_levels(region: Region, start_mm: float, step_mm: float, filt: flo
         if rings:
             out.append(rings)
             ws: list[np.ndarray | None] = [None] * len(rings)
+            held: list[np.ndarray] = []
             if raw is not None and width_mm > 0:
-                ws, more = _widened_beads(rings, smoothed, inward, raw, width_mm, filt)
-                cover += more
+                ws, held = _widened_beads(rings, smoothed, inward, raw, width_mm, filt)
             widths.append(ws)
+            held_by.append(held)
         rings = nxt
-    return FillLevels(out, [], math.nan, widths, cover)
+    return FillLevels(out, [], math.nan, widths, held_by)
 
 
 def _widened_beads(rings: list[np.ndarray], smoothed: list[np.ndarray],
                    inward: list[np.ndarray], raw: list[np.ndarray], width: float,
                    filt: float) -> tuple[list[np.ndarray | None], list[np.ndarray]]:
-    """Bead widths of one level of smoothed rings (:func:`concentric_levels`) and the area
-    the widening covers beyond the level's band.
+    """Bead widths of one level of smoothed rings (:func:`concentric_levels`) and the
+    rings whose area the widened beads' outer edge holds besides the smoothed rings'.
 
     rings: the level as :func:`_with_room` left it; smoothed: the level before that, with
     how far each point moved into the ring's area (``inward``,
@@ -250,9 +251,12 @@ def _widened_beads(rings: list[np.ndarray], smoothed: list[np.ndarray],
     ring's would be: widening by the whole move laid 0.5 % more fill on bunny layers for
     no less unfilled area, and raised the demo mug's open-loop height error from 1.868 to
     1.883 mm. None where the widening adds at most ``WIDEN_MIN_MM`` and for the rings
-    ``_with_room`` replaced. The cover is the raw rings' outer band edge less the smoothed rings'
-    (``expand(raw, width / 2) - expand(smoothed, width / 2)``, flat oriented rings): the
-    slivers the widened beads reach into."""
+    ``_with_room`` replaced. The outer edge of the widened beads is that of the smoothed
+    rings' band or of the raw rings' shrunk by the filter, whichever lies farther out:
+    the level's band is ``expand(smoothed + held, width / 2) - shrink(smoothed, width / 2)``
+    (:func:`icefab.geometry.level_bands`) with ``held`` the raw rings of the level (those
+    ``_with_room`` kept: whole outers with their holes) shrunk by ``filt``; none when no
+    bead was widened."""
     out: list[np.ndarray | None] = [None] * len(rings)
     pos = {id(r): i for i, r in enumerate(smoothed)}
     kept = []   # the rings _with_room left: whole outers with their holes
@@ -266,11 +270,7 @@ def _widened_beads(rings: list[np.ndarray], smoothed: list[np.ndarray],
             out[i] = width + extra
     if all(w is None for w in out):
         return out, []
-    # offsets of whole polygons (an outer with its holes): a hole alone would grow
-    cover = geo.difference_rings(
-        geo.offset_rings([raw[j] for j in kept], width / 2.0, 0.0),
-        geo.offset_rings([smoothed[j] for j in kept], width / 2.0, 0.0))
-    return out, cover
+    return out, geo.offset_rings([raw[j] for j in kept], -filt, 0.0)
 
 
 #: Concentric fill (with ``fill_smoothing_mm`` > 0): every ring after the first is smoothed
@@ -495,8 +495,8 @@ class FillLevels(NamedTuple):
     lines: list[np.ndarray]                 # open raster/zigzag lines
     angle: float                            # raster angle, deg (NaN: concentric or none)
     widths: list[list[np.ndarray | None]]   # per ring as ``levels``: None or (k,) mm
-    cover: list[np.ndarray] = []            # what widened beads cover beyond the levels'
-                                            # bands (flat oriented rings)
+    reach: list[list[np.ndarray]] = []      # per level: rings whose area the widened
+                                            # beads' outer edge holds too
 
     def paths(self, width: float) -> list[tuple[np.ndarray, bool, float | np.ndarray]]:
         """``(points, closed, width)`` of every ring and line (``width`` unless widened)."""
@@ -731,10 +731,11 @@ def material_paths(region: Region, mat: MaterialSettings, job: Job, hook_levels:
     # against the next) plus SWEEP_TOL, so touching bands leave no slivers.
     tol = filt + SWEEP_TOL
     bands = geo.level_bands([(lv, w / 2.0 + tol) for lv in bounds]
-                            + [(lv, F / 2.0 + tol) for lv in fill.levels])
+                            + [(lv, F / 2.0 + tol, held)
+                               for lv, held in zip(fill.levels, fill.reach or
+                                                   [[]] * len(fill.levels))])
     bands += geo.sweep_rings([(ln, False, F) for ln in fill.lines]
                              + [(r, True, w) for r in hook], tol)
-    bands += fill.cover  # the slivers widened fill beads reach into
     gaps = geo.difference_rings(nominal, bands)
     if mat.gap_fill and gaps:
         extra, gaps = gap_fill_paths(gaps, nominal, mat, filt, whole)
