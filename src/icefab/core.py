@@ -38,7 +38,10 @@ def offsets(counts) -> np.ndarray:
     """(n + 1,) int64 start offsets of ``n`` items of ``counts`` rows each: ``[0, cumsum]``
     (item i is rows ``offsets[i]:offsets[i + 1]`` of the items concatenated). The one
     encoding of ragged arrays (``icefab.resultfiles`` stores them so)."""
-    return np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    counts = np.asarray(counts, dtype=np.int64).reshape(-1)
+    out = np.zeros(len(counts) + 1, dtype=np.int64)
+    np.cumsum(counts, out=out[1:])
+    return out
 
 
 def arc_lengths(seg: np.ndarray) -> np.ndarray:
