@@ -495,8 +495,8 @@ class FillLevels(NamedTuple):
     lines: list[np.ndarray]                 # open raster/zigzag lines
     angle: float                            # raster angle, deg (NaN: concentric or none)
     widths: list[list[np.ndarray | None]]   # per ring as ``levels``: None or (k,) mm
-    reach: list[list[np.ndarray]] = []      # per level: rings whose area the widened
-                                            # beads' outer edge holds too
+    held: tuple = ()                        # per level: rings whose area the widened
+                                            # beads' outer edge holds too (or empty)
 
     def paths(self, width: float) -> list[tuple[np.ndarray, bool, float | np.ndarray]]:
         """``(points, closed, width)`` of every ring and line (``width`` unless widened)."""
@@ -732,7 +732,7 @@ def material_paths(region: Region, mat: MaterialSettings, job: Job, hook_levels:
     tol = filt + SWEEP_TOL
     bands = geo.level_bands([(lv, w / 2.0 + tol) for lv in bounds]
                             + [(lv, F / 2.0 + tol, held)
-                               for lv, held in zip(fill.levels, fill.reach or
+                               for lv, held in zip(fill.levels, fill.held or
                                                    [[]] * len(fill.levels))])
     bands += geo.sweep_rings([(ln, False, F) for ln in fill.lines]
                              + [(r, True, w) for r in hook], tol)
