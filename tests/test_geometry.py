@@ -329,6 +329,17 @@ def _farthest_from(ring_out: np.ndarray, ring_in: np.ndarray) -> float:
         shapely.points(np.asarray(pts.coords))).max())
 
 
+def _lobed_ring(seed: int, noise: float, hole: bool) -> np.ndarray:
+    """A three-lobed ring of 12-400 random vertices, radius 30 +- 8 mm, each moved by
+    ``noise`` mm (normal); clockwise for a hole."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(12, 400))
+    th = np.sort(rng.uniform(0.0, 2.0 * np.pi, n))
+    r = 30.0 + 8.0 * np.sin(3.0 * th + rng.uniform(0, 6)) + rng.normal(0.0, noise, n)
+    ring = np.c_[r * np.cos(th), r * np.sin(th)]
+    return ring[::-1] if hole else ring
+
+
 @settings(deadline=None, max_examples=40)
 @given(seed=st.integers(0, 10_000), noise=st.floats(0.0, 0.3),
        tol=st.floats(0.01, 0.5), hole=st.booleans())
@@ -340,13 +351,7 @@ def test_smooth_rings_moved_bounds_how_far_each_point_went_into_the_area(seed, n
     ring's band, paths.concentric_levels), and never more than the tolerance. A point
     that slid along the ring past a convex vertex is counted by its own segment only
     (not into it) and may lie inside by a little: 0.012 mm at most over 400 seeds."""
-    rng = np.random.default_rng(seed)
-    n = int(rng.integers(12, 400))
-    th = np.sort(rng.uniform(0.0, 2.0 * np.pi, n))
-    r = 30.0 + 8.0 * np.sin(3.0 * th + rng.uniform(0, 6)) + rng.normal(0.0, noise, n)
-    ring = np.c_[r * np.cos(th), r * np.sin(th)]
-    if hole:
-        ring = ring[::-1]
+    ring = _lobed_ring(seed, noise, hole)
     if not shapely.LinearRing(ring).is_simple:
         return
     (out,), reach, (inward,) = geo.smooth_rings_moved([ring], tol, 5.0)
@@ -374,13 +379,7 @@ def test_smooth_rings_stays_within_the_tolerance_and_reach_covers_the_input(
     """Every point of a smoothed ring (vertices and chords) lies within the tolerance of
     the input ring; orientation is kept; the smoothed area grown by ``reach`` holds the
     input's area (what the fill's first ring relies on to leave no sliver)."""
-    rng = np.random.default_rng(seed)
-    n = int(rng.integers(12, 400))
-    th = np.sort(rng.uniform(0.0, 2.0 * np.pi, n))
-    r = 30.0 + 8.0 * np.sin(3.0 * th + rng.uniform(0, 6)) + rng.normal(0.0, noise, n)
-    ring = np.c_[r * np.cos(th), r * np.sin(th)]
-    if hole:
-        ring = ring[::-1]
+    ring = _lobed_ring(seed, noise, hole)
     if not shapely.LinearRing(ring).is_simple:
         return
     (out,), reach = geo.smooth_rings([ring], tol, sigma)
