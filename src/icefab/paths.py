@@ -14,7 +14,10 @@ From a ``Stack`` with part and scaffold regions to ordered ``Path``s per layer:
   - ``concentric``: rings at ``e + F/2``, then every ``F`` (fill width) inward until
     nothing is left (iterative Clipper offsets, points filtered after each); a ring
     never gets a path wider than its room: the innermost rings are cut to the part of
-    their area at least ``F`` wide (:func:`_with_room`), the rest goes to the gap fill;
+    their area at least ``F`` wide (:func:`_with_room`), the rest goes to the gap fill.
+    With ``fill_smoothing_mm`` > 0 the first ring follows the smoothed contour and every
+    ring after it is smoothed within ``RING_SMOOTHING * F``, its bead widened where it
+    moved inward (a width per point, :func:`concentric_levels`);
   - ``zigzag``: parallel lines spaced ``F``, clipped to the region shrunk by ``e + F/2``,
     consecutive lines linked where the link stays inside; each island of the region at
     the angle (in steps of ``hybrid_angle_step_deg`` over [0, 180)) with the least time
