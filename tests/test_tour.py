@@ -33,7 +33,7 @@ def _layout(seed: int, n: int) -> list[tuple]:
 
 def _improved(items, start):
     nn, _ = order_nearest(items, start)
-    out, end = improve(nn, start, [_start_candidates(len(it[0])) for it in nn])
+    out, end = improve(nn, start, [_start_candidates(it[0]) for it in nn])
     return nn, out, end
 
 
@@ -88,7 +88,7 @@ def _nearest_reference(items, start):
         best = None
         for i in left:
             pts, closed = items[i][0], items[i][1]
-            idx = _start_candidates(len(pts)) if closed else np.array([0, len(pts) - 1])
+            idx = _start_candidates(pts) if closed else np.array([0, len(pts) - 1])
             for j in idx:
                 d = float(((pts[j] - cur) ** 2).sum())
                 if best is None or d < best[0]:
@@ -108,3 +108,35 @@ def test_nearest_neighbour_is_the_plain_algorithm(seed, n):
     items = _layout(seed, n)
     got, _ = order_nearest(items, np.array([1.0, 2.0]))
     assert [it[2] for it in got] == _nearest_reference(items, np.array([1.0, 2.0]))
+
+
+def test_a_ring_with_corners_starts_at_one_and_stops_once_less():
+    """A closed path with corners over the PATHSPLIT angle may start only at one of them
+    (the robot stops there anyway: start, end and corner are one stop), one without may
+    start anywhere. A square entered from beside the middle of an edge starts at a
+    corner, and MTTS plans it as its 4 sides, not 5 pieces."""
+    from icefab.config import Job
+    from icefab.motion import plan_paths_motion
+    from icefab.core import Toolpath
+    job = Job()
+    corner = job.motion.smooth_angle_deg
+    t = np.linspace(0.0, 10.0, 21)[:-1]
+    square = np.concatenate([np.c_[t, 0 * t], np.c_[10 + 0 * t, t],
+                             np.c_[10 - t, 10 + 0 * t], np.c_[0 * t, 10 - t]])
+    got = _start_candidates(square, corner)
+    assert sorted(got.tolist()) == [0, 20, 40, 60]
+    th = np.linspace(0.0, 2 * np.pi, 90, endpoint=False)
+    circle = np.c_[np.cos(th), np.sin(th)] * 10.0
+    assert len(_start_candidates(circle, corner)) == min(90, 64)
+    assert len(_start_candidates(square)) == min(len(square), 64)  # no angle: every vertex
+    (entered,), _ = order_nearest([(square, True, 0)], np.array([5.0, -1.0]), corner)
+    assert tuple(entered[0][0]) in {(0.0, 0.0), (10.0, 0.0)}
+    (plain,), _ = order_nearest([(square, True, 0)], np.array([5.0, -1.0]))
+    assert tuple(plain[0][0]) == (5.0, 0.0)
+
+    def pieces(pts):
+        path = Toolpath(points=pts + [340.0, 0.0], closed=True, role="fill", width=3.0,
+                        frame="base")
+        return len(plan_paths_motion([path], job)[0].pieces)
+
+    assert pieces(entered[0]) == 4 and pieces(plain[0]) == 5

@@ -594,20 +594,40 @@ def measure_rings(region: Region, spacing: float, filt: float) -> list[np.ndarra
 MAX_START_CANDIDATES = 64
 
 
-def _start_candidates(n: int) -> np.ndarray:
-    """Indices of the vertices of a closed path of ``n`` points that may become its start:
-    all, or ``MAX_START_CANDIDATES`` evenly spread."""
-    return (np.arange(n) if n <= MAX_START_CANDIDATES else
-            np.linspace(0, n - 1, MAX_START_CANDIDATES).astype(np.int64))
+def _start_candidates(pts: np.ndarray, corner_deg: float | None = None) -> np.ndarray:
+    """Indices of the vertices of a closed path ``pts`` (k, 2) that may become its start:
+    its corners (turns over ``corner_deg``) when it has any, else all vertices; at most
+    ``MAX_START_CANDIDATES`` of them, evenly spread.
+
+    Why corners: the robot stops at every turn over the PATHSPLIT angle and at a path's
+    start and end (thesis 4.1.1); a closed path that starts at one of its corners pays
+    for both with one stop. On bunny layers 38 % of the rings with a corner started
+    elsewhere (BENCHMARKS.md, issue 15)."""
+    n = len(pts)
+    idx = np.arange(n)
+    if corner_deg is not None and n >= 3:
+        e = np.diff(pts, axis=0, append=pts[:1])          # segment leaving each vertex
+        f = np.roll(e, 1, axis=0)                          # segment arriving at it
+        cross = f[:, 0] * e[:, 1] - f[:, 1] * e[:, 0]
+        dot = f[:, 0] * e[:, 0] + f[:, 1] * e[:, 1]
+        turn = np.degrees(np.abs(np.arctan2(cross, dot)))
+        corners = np.flatnonzero(turn > corner_deg)
+        if len(corners):
+            idx = corners
+    if len(idx) <= MAX_START_CANDIDATES:
+        return idx
+    return idx[np.linspace(0, len(idx) - 1, MAX_START_CANDIDATES).astype(np.int64)]
 
 
-def order_nearest(items: Sequence[tuple], start: np.ndarray) -> tuple[list[tuple], np.ndarray]:
+def order_nearest(items: Sequence[tuple], start: np.ndarray,
+                  corner_deg: float | None = None) -> tuple[list[tuple], np.ndarray]:
     """Order paths by nearest neighbour from ``start``, choosing start points.
 
     items: tuples ``(points (k, 2) float64 mm, closed, ...)``; further fields are kept.
     A closed path may start at any of up to ``MAX_START_CANDIDATES`` evenly spread vertices
-    (it is rotated to start there); an open path at either end (it is reversed when
-    entered from its last point).
+    (its corners over ``corner_deg`` only, when given and it has any:
+    :func:`_start_candidates`; it is rotated to start there); an open path at either end
+    (it is reversed when entered from its last point).
     Returns the re-ordered items and the final position (2,) mm.
     """
     if not items:
@@ -619,7 +639,7 @@ def order_nearest(items: Sequence[tuple], start: np.ndarray) -> tuple[list[tuple
         pts, closed = item[0], item[1]
         if closed:
             # at most MAX_START_CANDIDATES evenly spread vertices may become the start
-            idx = _start_candidates(len(pts))
+            idx = _start_candidates(pts, corner_deg)
             cand_pts.append(pts[idx])
             cand_idx.append(idx)
         else:
@@ -1209,8 +1229,9 @@ def plan_layer(layer: Layer, job: Job, measured: bool | None = None) -> LayerPat
     for key in order:
         material, role = key.split(":")
         tool = "laser" if role == "measure" else material
-        ordered, _end = order_nearest(groups.get(key, []), cur)
-        ordered, _end = _tour.improve(ordered, cur, [_start_candidates(len(it[0]))
+        corner = job.motion.smooth_angle_deg
+        ordered, _end = order_nearest(groups.get(key, []), cur, corner)
+        ordered, _end = _tour.improve(ordered, cur, [_start_candidates(it[0], corner)
                                                      for it in ordered])
         means = _mean_widths(ordered)
         for (pts, closed, width), mean in zip(ordered, means):

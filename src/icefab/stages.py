@@ -51,7 +51,10 @@ READS: dict[str, tuple[str, ...]] = {
               "materials.scaffold.hybrid_rings", "materials.scaffold.hybrid_angle_step_deg",
               "materials.scaffold.nozzle_offset_mm", "materials.scaffold.gap_fill",
               "materials.order", "cell.laser_offset_mm", "feedback.enabled",
-              "feedback.interval_layers", "feedback.measure_spacing_mm"),
+              "feedback.interval_layers", "feedback.measure_spacing_mm",
+              # the PATHSPLIT angle: a closed path starts at one of its corners
+              # (paths._start_candidates), where the robot stops anyway
+              "motion.smooth_angle_deg"),
     "motion": ("motion.", "cell.robot", "cell.l1_mm", "cell.l2_mm", "cell.reach_mm",
                "cell.joint_range_deg", "cell.elbow", "cell.gantry_travel_mm",
                "cell.ee_origin_mm", "cell.encoder_resolution_deg"),
