@@ -349,8 +349,9 @@ def test_smooth_rings_moved_bounds_how_far_each_point_went_into_the_area(seed, n
     move into the area that is at least the point's distance from the input ring when it
     lies inside the input's area (what a widened fill bead needs to reach back to the raw
     ring's band, paths.concentric_levels), and never more than the tolerance. A point
-    that slid along the ring past a convex vertex is counted by its own segment only
-    (not into it) and may lie inside by a little: 0.012 mm at most over 400 seeds."""
+    is judged by the input segment it lay on: one that slid past a vertex may lie inside
+    uncounted, by 0.06 x the tolerance at most over 300 seeds, 0.29 x in the worst case
+    hypothesis found (a ring jagged by 0.16 mm at every vertex)."""
     ring = _lobed_ring(seed, noise, hole)
     if not shapely.LinearRing(ring).is_simple:
         return
@@ -363,12 +364,13 @@ def test_smooth_rings_moved_bounds_how_far_each_point_went_into_the_area(seed, n
     d = shapely.distance(shapely.LinearRing(ring), shapely.points(out))
     inside = shapely.contains_xy(Polygon(ring), out[:, 0], out[:, 1])
     into = inside ^ hole  # a hole's area lies outside its ring
-    slide = 0.02
-    assert (inward[into] >= d[into] - slide).all()
-    # and most points that lie inside are counted in full (Clipper's grid aside)
-    deep = into & (d > slide)
+    assert (inward[into] >= d[into] - tol / 2.0).all()
+    # and nearly every point that lies inside is counted in full (Clipper's grid aside):
+    # >= 98.9 % over 300 seeds
     grid = 2.0 / geo.SCALE
-    assert (inward[deep] >= d[deep] - grid).mean() >= 0.9 if deep.any() else True
+    deep = into & (d > grid)
+    if deep.sum() >= 10:
+        assert (inward[deep] >= d[deep] - grid).mean() >= 0.95
 
 
 @settings(deadline=None, max_examples=40)
@@ -486,3 +488,25 @@ def test_an_orphan_hole_does_not_turn_an_offset_inside_out(where):
     hole = np.array([[4, 4], [4, 6], [6, 6], [6, 4]], float)
     assert np.allclose(sorted(geo.ring_areas(geo.offset_rings([sq, hole], -1.0, 0.0))),
                        [-16.0, 64.0])
+
+
+@settings(deadline=None, max_examples=60)
+@given(seed=st.integers(0, 10_000), angle=st.floats(1.0, 179.0))
+def test_corner_vertices_are_the_turns_over_the_angle(seed, angle):
+    """corner_vertices against the turn angle of every vertex (atan2 of the arriving and
+    leaving segments, the closing one included); a repeated point turns by nothing."""
+    rng = np.random.default_rng(seed)
+    ring = rng.uniform(-10, 10, (int(rng.integers(3, 40)), 2))
+    ring = np.vstack([ring, ring[-1:]]) if seed % 3 == 0 else ring  # a repeated point
+    e = np.diff(ring, axis=0, append=ring[:1])
+    f = np.roll(e, 1, axis=0)
+    turn = np.degrees(np.abs(np.arctan2(f[:, 0] * e[:, 1] - f[:, 1] * e[:, 0],
+                                        (f * e).sum(axis=1))))
+    moving = (np.hypot(*e.T) > 0) & (np.hypot(*f.T) > 0)
+    want = np.flatnonzero(moving & (turn > angle))
+    got = geo.corner_vertices(ring, angle)
+    near = np.abs(turn - angle) < 1e-6  # rounding at the threshold may go either way
+    assert set(got.tolist()) ^ set(want.tolist()) <= set(np.flatnonzero(near).tolist())
+    square = np.array([[0, 0], [10, 0], [10, 10], [0, 10]], float)
+    assert geo.corner_vertices(square, 30.0).tolist() == [0, 1, 2, 3]
+    assert geo.corner_vertices(square, 91.0).tolist() == []

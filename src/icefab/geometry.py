@@ -31,6 +31,7 @@ dropped.
 
 from __future__ import annotations
 
+import math
 from typing import Iterable, Sequence
 
 import numpy as np
@@ -495,8 +496,9 @@ def smooth_rings_moved(rings: Rings, tol_mm: float, sigma_mm: float,
     """:func:`smooth_rings`, and how far each point of each ring moved into the area
     (mm, (k,) per ring: the whole length of its move if it moved into it, else 0; zeros
     for a ring that came back unchanged). "Into" is judged against the input segments
-    the point lay on: a point that slid along the ring past a convex vertex may end up
-    inside by a little with no move counted (at most ~0.01 mm in tests)."""
+    the point lay on: a point that slid along the ring past a vertex may end up inside
+    with no move counted (in tests: 1 point in 100 at most, by up to 0.06 x ``tol_mm``
+    over 300 random rings, 0.29 x on one jagged by 0.16 mm at every vertex)."""
     rings = [np.asarray(r, dtype=np.float64) for r in rings]
     still = [np.zeros(len(r)) for r in rings]
     if not tol_mm > 0 or not rings:
@@ -1445,6 +1447,35 @@ def _packed_areas(pts: np.ndarray, starts: np.ndarray) -> np.ndarray:  # pragma:
             j = i + 1 if i + 1 < b else a
             acc += pts[i, 0] * pts[j, 1] - pts[j, 0] * pts[i, 1]
         out[r] = 0.5 * acc
+    return out
+
+
+def corner_vertices(ring: np.ndarray, angle_deg: float) -> np.ndarray:
+    """(c,) int64: the vertices of a closed ring (k, 2) where it turns by more than
+    ``angle_deg`` (0-180; the closing segment counts; repeated points do not turn)."""
+    pts = np.ascontiguousarray(ring, dtype=np.float64)
+    if len(pts) < 3:
+        return np.zeros(0, dtype=np.int64)
+    return np.flatnonzero(_turn_mask(pts, math.cos(math.radians(angle_deg))))
+
+
+@njit(cache=True)
+def _turn_mask(pts: np.ndarray, cos_limit: float) -> np.ndarray:  # pragma: no cover
+    """Vertices of a closed ring whose arriving and leaving segments make an angle whose
+    cosine is below ``cos_limit`` (a turn over the angle)."""
+    n = len(pts)
+    out = np.zeros(n, dtype=np.bool_)
+    for i in range(n):
+        p = i - 1 if i > 0 else n - 1
+        q = i + 1 if i + 1 < n else 0
+        fx = pts[i, 0] - pts[p, 0]
+        fy = pts[i, 1] - pts[p, 1]
+        ex = pts[q, 0] - pts[i, 0]
+        ey = pts[q, 1] - pts[i, 1]
+        nf = math.sqrt(fx * fx + fy * fy)
+        ne = math.sqrt(ex * ex + ey * ey)
+        if nf > 0.0 and ne > 0.0:
+            out[i] = fx * ex + fy * ey < cos_limit * nf * ne
     return out
 
 

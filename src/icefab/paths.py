@@ -603,15 +603,9 @@ def _start_candidates(pts: np.ndarray, corner_deg: float | None = None) -> np.nd
     start and end (thesis 4.1.1); a closed path that starts at one of its corners pays
     for both with one stop. On bunny layers 38 % of the rings with a corner started
     elsewhere (BENCHMARKS.md, issue 15)."""
-    n = len(pts)
-    idx = np.arange(n)
-    if corner_deg is not None and n >= 3:
-        e = np.diff(pts, axis=0, append=pts[:1])          # segment leaving each vertex
-        f = np.roll(e, 1, axis=0)                          # segment arriving at it
-        cross = f[:, 0] * e[:, 1] - f[:, 1] * e[:, 0]
-        dot = f[:, 0] * e[:, 0] + f[:, 1] * e[:, 1]
-        turn = np.degrees(np.abs(np.arctan2(cross, dot)))
-        corners = np.flatnonzero(turn > corner_deg)
+    idx = np.arange(len(pts))
+    if corner_deg is not None:
+        corners = geo.corner_vertices(pts, corner_deg)
         if len(corners):
             idx = corners
     if len(idx) <= MAX_START_CANDIDATES:
