@@ -498,8 +498,8 @@ class FillLevels(NamedTuple):
     lines: list[np.ndarray]                 # open raster/zigzag lines
     angle: float                            # raster angle, deg (NaN: concentric or none)
     widths: list[list[np.ndarray | None]]   # per ring as ``levels``: None or (k,) mm
-    held: tuple = ()                        # per level: rings whose area the widened
-                                            # beads' outer edge holds too (or empty)
+    held: list[list[np.ndarray]]            # per level: rings whose area the widened
+                                            # beads' outer edge holds too (or none)
 
     def paths(self, width: float) -> list[tuple[np.ndarray, bool, float | np.ndarray]]:
         """``(points, closed, width)`` of every ring and line (``width`` unless widened)."""
@@ -517,7 +517,7 @@ def fill_levels(region: Region, mat: MaterialSettings, job: Job) -> FillLevels:
     F = mat.fill_width_mm
     e = _fill_edge(mat)
     if pattern == "none" or region.is_empty:
-        return FillLevels([], [], math.nan, [])
+        return FillLevels([], [], math.nan, [], [])
     if pattern == "concentric":
         return concentric_levels(region, e + F / 2.0, F, filt, width_mm=F,
                                  smooth_mm=mat.fill_smoothing_mm,
@@ -528,10 +528,11 @@ def fill_levels(region: Region, mat: MaterialSettings, job: Job) -> FillLevels:
         levels = concentric_rings(region, start, F, filt, max_rings=mat.hybrid_rings,
                                   width_mm=F)
         start += mat.hybrid_rings * F
-    plain = [[None] * len(lv) for lv in levels]
+    plain = [[None] * len(lv) for lv in levels]   # no ring smoothed, none widened
+    held: list[list[np.ndarray]] = [[] for _ in levels]
     inner = geo.shrink(region, start, filt)
     if inner.is_empty:
-        return FillLevels(levels, [], math.nan, plain)
+        return FillLevels(levels, [], math.nan, plain, held)
     linked = pattern != "raster"
     if pattern == "hybrid" or mat.fill_angle_mode == "optimal":
         # each island at its own angle: the least time by Jin's model (Jin et al. 3-4)
@@ -545,7 +546,7 @@ def fill_levels(region: Region, mat: MaterialSettings, job: Job) -> FillLevels:
     else:
         angle = mat.fill_angle_deg
         lines = _zigzag_at(inner, F, angle, filt, linked)
-    return FillLevels(levels, lines, angle, plain)
+    return FillLevels(levels, lines, angle, plain, held)
 
 
 def _best_angle(area: Region, spacing: float, filt: float, linked: bool, step_deg: float,
@@ -749,8 +750,7 @@ def material_paths(region: Region, mat: MaterialSettings, job: Job, hook_levels:
     tol = filt + SWEEP_TOL
     bands = geo.level_bands([(lv, w / 2.0 + tol) for lv in bounds]
                             + [(lv, F / 2.0 + tol, held)
-                               for lv, held in zip(fill.levels, fill.held or
-                                                   [[]] * len(fill.levels))])
+                               for lv, held in zip(fill.levels, fill.held)])
     bands += geo.sweep_rings([(ln, False, F) for ln in fill.lines]
                              + [(r, True, w) for r in hook], tol)
     gaps = geo.difference_rings(nominal, bands)
