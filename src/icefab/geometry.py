@@ -442,16 +442,48 @@ def simplify(rings: Rings, filter_mm: float = FILTER_MM) -> Rings:
     rings = [np.asarray(r, dtype=np.float64) for r in rings if len(r) >= 3]
     if filter_mm > 0 and rings:
         pts, starts = _pack(rings)
-        keep = _chord_keep(pts, starts, float(filter_mm), closed=True)
-        out = [pts[a:b][keep[a:b]] for a, b in zip(starts[:-1], starts[1:])]
-        ok = simple_mask(out) & (np.array([len(r) for r in out]) >= 3)
-        rings = [r for o, k, ring in zip(out, ok, rings)
-                 for r in ([o] if k else _simplify_slow(ring, filter_mm))]
+        # one compiled pass filters, tests and measures the filtered rings (three packings
+        # of the same rings cost as much as the filter: some 150 offsets a layer)
+        kept, cut, ok, areas, _keep = _filtered_rings(pts, starts, float(filter_mm))
+        if ok.all():
+            return [kept[a:b] for a, b, big in zip(cut[:-1], cut[1:], np.abs(areas) > MIN_RING_AREA)
+                    if big]
+        rings = [r for a, b, k, ring in zip(cut[:-1], cut[1:], ok, rings)
+                 for r in ([kept[a:b]] if k else _simplify_slow(ring, filter_mm))]
     rings = [r for r in rings if len(r) >= 3]
     if not rings:
         return []
     keep = np.abs(ring_areas(rings)) > MIN_RING_AREA
     return [r for r, k in zip(rings, keep) if k]
+
+
+@njit(cache=True)
+def _filtered_rings(pts: np.ndarray, starts: np.ndarray, eps: float
+                    ) -> tuple:  # pragma: no cover - compiled
+    """:func:`simplify`'s fast path: the rings packed in ``pts, starts`` filtered by the
+    chord filter within ``eps``, packed the same way, which of them are simple with at
+    least 3 points, their signed areas, and the filter's keep-mask over ``pts``."""
+    keep = _filter_mask(pts, starts, np.full(len(starts) - 1, eps), 64, True)
+    nr = len(starts) - 1
+    cut = np.zeros(nr + 1, dtype=np.int64)
+    for r in range(nr):
+        c = 0
+        for i in range(starts[r], starts[r + 1]):
+            if keep[i]:
+                c += 1
+        cut[r + 1] = cut[r] + c
+    kept = np.empty((cut[nr], 2))
+    k = 0
+    for i in range(len(pts)):
+        if keep[i]:
+            kept[k, 0] = pts[i, 0]
+            kept[k, 1] = pts[i, 1]
+            k += 1
+    ok = _simple_mask(kept, cut, True)
+    for r in range(nr):
+        if cut[r + 1] - cut[r] < 3:
+            ok[r] = False
+    return kept, cut, ok, _packed_areas(kept, cut), keep
 
 
 #: Grid spacing of :func:`smooth_rings` (mm): a tenth of its usual window.
@@ -518,15 +550,13 @@ def smooth_rings_moved(rings: Rings, tol_mm: float, sigma_mm: float,
     # on Clipper's grid, as every other ring: coordinates that are whole multiples of
     # 1 / SCALE compress (a toolpath file of smoothed rings took twice the bytes)
     moved = np.round(moved * SCALE) / SCALE
-    keep = _chord_keep(moved, cut, float(eps), closed=True)
-    thinned = [moved[a:b][keep[a:b]] for a, b in zip(cut[:-1], cut[1:])]
-    used = simple_mask(thinned) & (np.diff(cut) > 0) & \
-        (np.array([len(r) for r in thinned]) >= 3)
+    thinned, tcut, used, _areas, keep = _filtered_rings(moved, cut, float(eps))
+    inward = inward[keep]
     out = list(rings)
     for k in np.flatnonzero(used):
-        out[work[k]] = thinned[k]
-        a, b = cut[k], cut[k + 1]
-        still[work[k]] = inward[a:b][keep[a:b]]
+        a, b = tcut[k], tcut[k + 1]
+        out[work[k]] = thinned[a:b]
+        still[work[k]] = inward[a:b]
     reach = float(reach_of[used].max()) if used.any() else 0.0
     return out, (reach + eps + 1.0 / SCALE if reach > 1e-6 else 0.0), still
 
@@ -1118,15 +1148,40 @@ def _nearest_edge_distance(q: np.ndarray, P: np.ndarray, edge: np.ndarray, a: np
     out = np.full(len(q), np.inf)
     if not found.any():
         return out
-    qf = q[found]
-    nf = near[found]
-    best = np.full(len(qf), np.inf)
-    for col in range(nf.shape[1]):
-        ok = nf[:, col] < len(P)  # missing neighbours come back as len(P)
-        e = edge[np.where(ok, nf[:, col], 0)]
-        for ed in (e, prv[e]):
-            best = np.minimum(best, np.where(ok, segment_distance(qf, a[ed], b[ed]), np.inf))
-    out[found] = best
+    out[found] = _near_edges_distance(np.ascontiguousarray(q[found]),
+                                      np.ascontiguousarray(near[found]), len(P), edge, prv,
+                                      np.ascontiguousarray(a), np.ascontiguousarray(b))
+    return out
+
+
+@njit(cache=True)
+def _near_edges_distance(q: np.ndarray, near: np.ndarray, n_samples: int, edge: np.ndarray,
+                         prv: np.ndarray, a: np.ndarray, b: np.ndarray
+                         ) -> np.ndarray:  # pragma: no cover - compiled
+    """(n,) distance of each point q (n, 2) to the edges leaving and arriving at its
+    samples ``near`` (n, k) (``n_samples``: a missing neighbour), as
+    :func:`segment_distance` computes it."""
+    out = np.full(len(q), np.inf)
+    for i in range(len(q)):
+        best = np.inf
+        for col in range(near.shape[1]):
+            s = near[i, col]
+            if s >= n_samples:
+                continue
+            e = edge[s]
+            for ed in (e, prv[e]):
+                dx = b[ed, 0] - a[ed, 0]
+                dy = b[ed, 1] - a[ed, 1]
+                L2 = dx * dx + dy * dy
+                t = ((q[i, 0] - a[ed, 0]) * dx + (q[i, 1] - a[ed, 1]) * dy) / \
+                    (L2 if L2 > 0 else 1.0)
+                t = min(max(t, 0.0), 1.0)
+                ex = q[i, 0] - (a[ed, 0] + t * dx)
+                ey = q[i, 1] - (a[ed, 1] + t * dy)
+                d = math.sqrt(ex * ex + ey * ey)
+                if d < best:
+                    best = d
+        out[i] = best
     return out
 
 
