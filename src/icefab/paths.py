@@ -76,7 +76,7 @@ from icefab import _tour
 from icefab import geometry as geo
 from icefab.config import Job, MaterialSettings
 from icefab.frames import FRAME_TOOLS as TOOLS, tool_offset, to_base_frame  # noqa: F401 (old home)
-from icefab.parallel import parallel_map
+from icefab.parallel import parallel_imap
 from icefab.stages import check_layer_thickness, measured_layers
 from icefab.regions import hook_band_mm
 from icefab.resultfiles import (TOOLPATHS_FORMAT as FORMAT, TOOLPATHS_VERSION as VERSION,  # noqa: F401
@@ -1267,10 +1267,11 @@ def plan_paths(stack: Stack, job: Job | None = None, *,
         flags = measured_layers([L.thickness for L in stack.layers], job)
     else:
         flags = [None] * len(stack.layers)
-    packed = parallel_map(_plan_task, [(layer, job, m) for layer, m in
-                                       zip(stack.layers, flags)], job,
-                          min_items=8, progress=progress)
-    layers = [unpack_layer_paths(p) for p in packed]
+    # unpacked as the workers hand the layers back, not after the last one (a second of
+    # the bunny's 1 200 layers the workers would otherwise wait out)
+    layers = [unpack_layer_paths(p) for p in parallel_imap(
+        _plan_task, [(layer, job, m) for layer, m in zip(stack.layers, flags)], job,
+        min_items=8, progress=progress)]
     warnings = list(stack.warnings)
     total = np.array([lp.unfilled_mm2 for lp in layers]).reshape(-1, 2).sum(axis=0)
     if total.sum() >= GAP_MIN_AREA_MM2:    # less than the smallest gap path is no finding
