@@ -825,3 +825,56 @@ def test_smoothing_leaves_clean_fill_rings_almost_alone():
     for a, b in zip(rings[:-1], rings[1:]):
         spacing = (a.area - b.area) / (0.5 * (a.length + b.length))
         assert 3.0 <= spacing <= 3.0 + 2 * (0.05 + SWEEP_TOL)
+
+
+def test_a_wall_narrower_than_the_measurement_spacing_is_measured_along_its_middle():
+    """A ring-shaped wall 2.5 mm wide holds no measurement ring at 3 mm spacing (the
+    offset by 1.5 mm is empty): the feedback had no height of it and corrected it with
+    the scaffold's. It is measured along its centre line, one closed path near radius
+    21.25 mm; a disk gets its concentric rings and nothing more."""
+    from icefab.paths import measure_paths, measure_rings
+    from test_geometry import circle
+    spacing = Job().feedback.measure_spacing_mm
+    wall = geo.region_from_rings([circle(22.5), circle(20.0, hole=True)])
+    assert measure_rings(wall, spacing, FILT) == []
+    (pts, closed), = measure_paths(wall, spacing, FILT)
+    assert closed
+    assert np.allclose(np.hypot(*pts.T), 21.25, atol=0.05)
+    disk = geo.region_from_rings([circle(20.0)])
+    got = measure_paths(disk, spacing, FILT)
+    assert len(got) == len(measure_rings(disk, spacing, FILT)) and all(c for _p, c in got)
+
+
+@settings(max_examples=30, deadline=None)
+@given(polygon_with_holes(), st.floats(2.0, 8.0), st.one_of(st.none(), st.floats(0.3, 1.5)))
+def test_every_piece_of_a_region_the_rings_leave_unmeasured_gets_a_measurement_path(
+        rings, spacing, wall):
+    """Whatever the measurement rings leave farther than half the spacing (plus their
+    smoothing) is measured too: every such piece of at least spacing^2 holds a stretch of
+    a measurement path, which runs inside the region. ``wall``: the region is the random
+    shape's wall, that many spacings thick (thin walls are what the rings miss)."""
+    from icefab.paths import MEASURE_SMOOTHING_MM, measure_paths, unmeasured
+    region = geo.region_from_rings(rings)
+    if wall is not None:
+        region = geo.difference(region, geo.shrink(region, wall * spacing))
+    if region.is_empty:
+        return
+    got = measure_paths(region, spacing, FILT)
+    rings_only = [p for p, c in got if c and len(p) >= 3]
+    # the rings may reach out by their smoothing less half the spacing (as in
+    # test_measurement_rings_are_smoothed_all_the_way_in), the centre lines by the filter
+    out = max(2.0 * MEASURE_SMOOTHING_MM + FILT - spacing / 2.0, 0.0) + FILT
+    R = shapely.union_all([shapely.Polygon(pc[0], pc[1:]) for pc in region.polygons()]
+                          ).buffer(out + 1e-3)
+    lines = [LineString(np.vstack([p, p[:1]]) if c else p) for p, c in got]
+    assert all(R.covers(ln) for ln in lines)
+    # the pieces the concentric rings alone leave
+    from icefab.paths import measure_rings
+    left = unmeasured(region, measure_rings(region, spacing, FILT), spacing, FILT)
+    for piece in left.polygons():
+        if geo.area(piece) < spacing * spacing:
+            continue
+        poly = shapely.Polygon(piece[0], piece[1:])
+        assert any(poly.intersection(ln).length > 0.0 for ln in lines), \
+            f"an unmeasured piece of {poly.area:.1f} mm^2 got no path"
+    assert len(rings_only) <= len(got)

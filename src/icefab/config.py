@@ -616,7 +616,9 @@ class FeedbackSettings:
         why="near the laser spot and path width")
     measure_spacing_mm: float = setting(
         3.0,
-        "spacing of concentric measurement paths",
+        "spacing of concentric measurement paths; what the rings leave farther than half "
+        "of it (a wall narrower than the spacing holds none) is measured along its centre "
+        "line",
         lo=1.0, hi=100.0,
         why="about the path width (thesis Fig. 5-5: concentric BUFFERF paths); at 0.1 mm "
             "the demo mug's first 4 layers took over 120 s to plan")
