@@ -868,9 +868,13 @@ def test_every_piece_of_a_region_the_rings_leave_unmeasured_gets_a_measurement_p
                           ).buffer(out + 1e-3)
     lines = [LineString(np.vstack([p, p[:1]]) if c else p) for p, c in got]
     assert all(R.covers(ln) for ln in lines)
-    # the pieces the concentric rings alone leave
-    from icefab.paths import measure_rings
-    left = unmeasured(region, measure_rings(region, spacing, FILT), spacing, FILT)
+    # the pieces the concentric rings alone leave: neither inside their outermost level
+    # nor within reach of it (test_unmeasured_is_what_lies_beyond_the_rings_reach)
+    from icefab.paths import concentric_rings
+    levels = concentric_rings(region, spacing / 2.0, spacing, FILT,
+                              smooth_mm=MEASURE_SMOOTHING_MM,
+                              ring_smooth_mm=MEASURE_SMOOTHING_MM)
+    left = unmeasured(region, levels[0] if levels else [], spacing, FILT)
     for piece in left.polygons():
         if geo.area(piece) < spacing * spacing:
             continue
@@ -878,3 +882,26 @@ def test_every_piece_of_a_region_the_rings_leave_unmeasured_gets_a_measurement_p
         assert any(poly.intersection(ln).length > 0.0 for ln in lines), \
             f"an unmeasured piece of {poly.area:.1f} mm^2 got no path"
     assert len(rings_only) <= len(got)
+
+
+def test_unmeasured_is_what_lies_beyond_the_rings_reach():
+    """A 40 x 20 mm block with a tab 2 mm wide and 40 mm long: at 3 mm spacing the tab
+    holds no ring, and the block's outermost ring (1.5 mm in) measures up to half the
+    spacing plus its smoothing and the filter beyond itself (x = 40.55 mm). What is left
+    is the rest of the tab, 2 x 39.45 mm; it is measured along its middle."""
+    from icefab.paths import (MEASURE_SMOOTHING_MM, concentric_rings, measure_paths,
+                              unmeasured)
+    spacing = 3.0
+    region = geo.union(geo.region_from_rings([rect(0, 0, 40, 20)]),
+                       geo.region_from_rings([rect(39, 9, 80, 11)]))
+    levels = concentric_rings(region, spacing / 2.0, spacing, FILT,
+                              smooth_mm=MEASURE_SMOOTHING_MM,
+                              ring_smooth_mm=MEASURE_SMOOTHING_MM)
+    left = unmeasured(region, levels[0], spacing, FILT)
+    reach = spacing / 2.0 + MEASURE_SMOOTHING_MM + FILT
+    assert geo.area(left) == pytest.approx(2.0 * (80.0 - (40.0 - spacing / 2.0 + reach)),
+                                           abs=0.5)
+    lines = [p for p, closed in measure_paths(region, spacing, FILT) if not closed]
+    assert len(lines) == 1
+    assert np.allclose(lines[0][:, 1], 10.0, atol=0.05)
+    assert lines[0][:, 0].min() < 42.0 and lines[0][:, 0].max() > 78.5   # ends: half a width in

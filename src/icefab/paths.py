@@ -597,9 +597,12 @@ def measure_paths(region: Region, spacing: float, filt: float
     is empty), and the feedback would correct it with the heights of whatever was measured
     nearest (issue 15; on the demo mug at 4.5 mm the wall went unmeasured from 6 mm up and
     the SMF height error grew as in open loop, 1.18 mm instead of 0.05 mm)."""
-    rings = measure_rings(region, spacing, filt)
-    out: list[tuple[np.ndarray, bool]] = [(r, True) for r in rings]
-    left = [p for p in unmeasured(region, rings, spacing, filt).polygons()
+    levels = concentric_rings(region, spacing / 2.0, spacing, filt,
+                              smooth_mm=MEASURE_SMOOTHING_MM,
+                              ring_smooth_mm=MEASURE_SMOOTHING_MM)
+    out: list[tuple[np.ndarray, bool]] = [(r, True) for lv in levels for r in lv]
+    left = [p for p in unmeasured(region, levels[0] if levels else [], spacing,
+                                  filt).polygons()
             if geo.area(p) >= spacing * spacing]
     if not left:
         return out
@@ -634,16 +637,17 @@ def measure_paths(region: Region, spacing: float, filt: float
     return out
 
 
-def unmeasured(region: Region, paths: Sequence[np.ndarray], spacing: float, filt: float
+def unmeasured(region: Region, first: Sequence[np.ndarray], spacing: float, filt: float
                ) -> Region:
-    """What of ``region`` lies farther than ``spacing / 2`` from the measurement rings
-    ``paths`` (plus their smoothing, ``MEASURE_SMOOTHING_MM``, and the point filter
-    ``filt``): the surface there is only extrapolated (thesis 5.2.1: the heights are
-    interpolated between the paths)."""
-    if not len(paths):
+    """What of ``region`` the measurement rings leave unmeasured, given their outermost
+    level ``first`` (:func:`measure_rings`): what lies neither inside that level (where
+    the deeper rings are, and the heights are interpolated between rings, thesis 5.2.1)
+    nor within ``spacing / 2`` of it (plus its smoothing, ``MEASURE_SMOOTHING_MM``, and
+    the point filter ``filt``). The surface there would only be extrapolated."""
+    if not len(first):
         return region
     reach = spacing / 2.0 + MEASURE_SMOOTHING_MM + filt
-    return geo.difference(region, geo.sweep_rings([(r, True, 2.0 * reach) for r in paths]))
+    return geo.difference(region, geo.offset_rings(list(first), reach, 0.0))
 
 
 # --------------------------------------------------------------------------- ordering
