@@ -45,7 +45,9 @@ From a ``Stack`` with part and scaffold regions to ordered ``Path``s per layer:
   :func:`icefab.geometry.simplify`; centre lines never double back).
 * Measurement paths (thesis 5.2.1): on layers with ``(index + 1) % interval_layers == 0``,
   concentric rings over each material's region (shrunk by half the measurement spacing,
-  then every spacing), role "measure", one material per path, given for the laser tool.
+  then every spacing) and the centre lines of what they leave unmeasured (a wall narrower
+  than the spacing: :func:`measure_paths`), role "measure", one material per path, given
+  for the laser tool.
 * Order within a layer: ``job.materials.order`` (default part boundaries, part fill,
   scaffold boundaries, scaffold fill), measurement paths last; inside each set nearest
   neighbour from the current position (the layer starts at the part-frame origin), with the
