@@ -289,3 +289,35 @@ def test_atomic_write_fsyncs_the_data_before_the_rename_and_the_folder_after(tmp
     assert any(k == "fsync" and Path(p).name.startswith(".result.npz.")
                for k, p in events[:at])                      # the data, before
     assert ("fsync", str(tmp_path)) in events[at + 1:]         # the folder, after
+
+
+def test_paths_writes_its_file_beside_the_picture_and_nothing_when_the_picture_fails(
+        tmp_path, monkeypatch):
+    """``icefab paths`` writes the toolpath file on a thread while it draws: a picture
+    that fails leaves OUT as it was (the file thread is waited for, then all is dropped);
+    one that works leaves the file whole (it loads)."""
+    from icefab.cli import main, paths_cmd
+    from icefab.demo import demo_mug
+    from icefab.mesh import write_stl
+    from icefab.paths import load_toolpaths
+
+    job = tmp_path / "job.toml"
+    job.write_text("[slicing]\nlayer_thickness_mm = 8.0\n[cell]\ncpus = 1\n")
+    write_stl(demo_mug(), tmp_path / "mug.stl")
+    out = tmp_path / "out"
+
+    def broken(*_a, **_k):
+        raise RuntimeError("no picture")
+    monkeypatch.setattr(paths_cmd, "plot_toolpaths", broken)
+    with pytest.raises(RuntimeError, match="no picture"):
+        paths_cmd.run(paths_cmd_args(tmp_path / "mug.stl", job, out))
+    assert not out.exists() or not any(out.iterdir())
+    monkeypatch.undo()
+    assert main(["paths", str(tmp_path / "mug.stl"), "-c", str(job), "-o", str(out)]) == 0
+    assert len(load_toolpaths(out / "toolpaths.npz").layers) > 0
+    assert (out / "paths.png").stat().st_size > 0
+
+
+def paths_cmd_args(model: Path, job: Path, out: Path):
+    from icefab.cli import build_parser
+    return build_parser().parse_args(["paths", str(model), "-c", str(job), "-o", str(out)])
