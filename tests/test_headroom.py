@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from icefab import Job
 from icefab.core import Toolpath, Trajectory
@@ -75,3 +77,45 @@ def test_slowest_flow_is_checked_before_slicing(tmp_path):
     assert r.returncode == 2 and len(r.stderr.splitlines()) == 1
     assert "slicing.layer_thickness_mm = 10 mm" in r.stderr and "slicing:" not in r.stderr
     assert not (tmp_path / "out").exists()
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.integers(1, 30), st.integers(0, 10_000), st.booleans()),
+                min_size=1, max_size=8))
+def test_variable_width_peaks_at_once_are_argmax_path_by_path(shapes):
+    """The tightest sample of every variable-width trajectory, found for all at once, is
+    the one ``argmax`` of ``w * c`` finds path by path (the first of equal products:
+    widths and speeds drawn from few values so that ties are common); a trajectory with
+    a bad width is still named (FlowError)."""
+    from icefab.flow import sample_widths
+    from icefab.headroom import _variable_peaks
+    job = Job()
+    picked = []
+    for n, seed, variable in shapes:
+        rng = np.random.default_rng(seed)
+        t = traj(50.0, 1.5)
+        xy = t.xy[:n]
+        speed = rng.choice([10.0, 20.0, 40.0], n)
+        widths = rng.choice([0.5, 1.0, 2.0], n) if variable else None
+        picked.append((0, Trajectory(dt=t.dt, xy=xy, joints=t.joints[:n], speed=speed,
+                                     duration=(n - 1) * t.dt, path=t.path, widths=widths),
+                       0.25))
+    var = [k for k, (_, t, _) in enumerate(picked) if t.widths is not None]
+    if not var:
+        return
+    w, v = np.zeros(len(picked)), np.zeros(len(picked))
+    assert _variable_peaks(picked, var, w, v)
+    for k in var:
+        t = picked[k][1]
+        ws = sample_widths(t, "part", job)
+        i = int(np.argmax(ws * t.speed))
+        assert (w[k], v[k]) == (ws[i], t.speed[i])
+    # a NaN width: nothing written, the path by path rule names it
+    t = picked[var[0]][1]
+    bad = t.widths.copy()
+    bad[0] = np.nan
+    picked[var[0]] = (0, Trajectory(dt=t.dt, xy=t.xy, joints=t.joints, speed=t.speed,
+                                    duration=t.duration, path=t.path, widths=bad), 0.25)
+    assert not _variable_peaks(picked, var, np.zeros(len(picked)), np.zeros(len(picked)))
+    with pytest.raises(FlowError, match="widths"):
+        feedback_headroom([(0, picked[var[0]][1])], job)

@@ -110,9 +110,11 @@ def feedback_headroom(trajectories: Iterable[tuple[int, "Trajectory"]], job: "Jo
                                                for _, t, _ in picked]),
                                offsets(n)[:-1])
     w = np.array([trajectory_width(t, t.path.material, job) for _, t, _ in picked])
-    for k, (_, t, _) in enumerate(picked):
-        if t.widths is not None:   # a variable-width path: its largest w * c, and there
-            ws = sample_widths(t, t.path.material, job)
+    var = [k for k, (_, t, _) in enumerate(picked) if t.widths is not None]
+    if var and not _variable_peaks(picked, var, w, vmax):
+        for k in var:   # a variable-width path: its largest w * c, and there
+            t = picked[k][1]
+            ws = sample_widths(t, t.path.material, job)   # FlowError on bad widths
             i = int(np.argmax(ws * np.asarray(t.speed, np.float64)))
             w[k], vmax[k] = ws[i], float(t.speed[i])
     dh = np.array([d for *_, d in picked])
@@ -126,6 +128,35 @@ def feedback_headroom(trajectories: Iterable[tuple[int, "Trajectory"]], job: "Jo
         out.append(_headroom(m, float(q[k]), layer, t.path.role, float(w[k]), float(vmax[k]),
                              job, dh=float(dh[k])))
     return out
+
+
+def _variable_peaks(picked: list, var: list[int], w: np.ndarray, vmax: np.ndarray) -> bool:
+    """For the variable-width trajectories ``picked[k]``, k in ``var``: the width and speed
+    at the sample of largest ``w * c`` (the first of equals, as ``argmax``) into ``w[k]``
+    and ``vmax[k]``, all at once (a bunny layer has some 150: one call each cost ``icefab
+    plan`` and ``valves`` 3 s). False, with nothing written, when some widths are not one
+    finite number >= 0 per sample or a product is not a number: the caller goes path by
+    path and names the bad one."""
+    ws = [np.asarray(picked[k][1].widths) for k in var]
+    speeds = [np.asarray(picked[k][1].speed, np.float64) for k in var]
+    if any(x.shape != (len(picked[k][1].xy),) or x.shape != v.shape or x.dtype.kind not in "fiu"
+           for x, v, k in zip(ws, speeds, var)):
+        return False
+    W = np.concatenate(ws).astype(np.float64, copy=False)
+    V = np.concatenate(speeds)
+    if not (np.all(np.isfinite(W)) and np.all(W >= 0)):
+        return False
+    P = W * V
+    lens = np.array([len(x) for x in ws])
+    seg = np.repeat(np.arange(len(var)), lens)
+    peak = np.maximum.reduceat(P, offsets(lens)[:-1])
+    hit = np.flatnonzero(P == peak[seg])
+    _segs, first = np.unique(seg[hit], return_index=True)
+    if len(first) != len(var):   # a NaN speed: argmax's rule path by path
+        return False
+    at = hit[first]
+    w[var], vmax[var] = W[at], V[at]
+    return True
 
 
 def layer_headroom(layer: "LayerMotion", job: "Job") -> list[Headroom]:
