@@ -2,6 +2,8 @@
 plan_valves' programs, bit for bit, findings and refusals included."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -39,9 +41,9 @@ def _programs_agree(a, b):
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(seed=st.integers(0, 2**32 - 1), count=st.integers(1, 12),
        high_rate=st.booleans(), short_pieces=st.booleans(), clamp=st.booleans(),
-       thickness=st.sampled_from([float("nan"), 0.1, 0.6]))
+       thickness=st.sampled_from([float("nan"), 0.1, 0.6]), variable=st.booleans())
 def test_a_layer_at_once_equals_path_by_path(seed, count, high_rate, short_pieces, clamp,
-                                             thickness):
+                                             thickness, variable):
     rng = np.random.default_rng(seed)
     job = Job().replace(**{"flow.out_of_range": "clamp" if clamp else "error"})
     if high_rate:  # pulses above one per tick: shared ticks
@@ -57,6 +59,11 @@ def test_a_layer_at_once_equals_path_by_path(seed, count, high_rate, short_piece
                                  str(rng.choice(["part", "scaffold"])),
                                  float(rng.choice([0.0, 0.7, 1.5, 3.0])),
                                  float(rng.choice([1.0, 1.0, 1.0, 1.3]))))
+        if variable and rng.random() < 0.5:   # a variable-width path (issue 15)
+            w = rng.uniform(0.3, 3.0, len(trajs[-1].xy))
+            if rng.random() < 0.05:
+                w[0] = np.nan   # refused by name, as path by path
+            trajs[-1] = dataclasses.replace(trajs[-1], widths=w)
     layer = LayerMotion(index=2, z=0.5, trajectories=tuple(trajs), thickness=thickness)
     dh = layer_height(thickness, job)
     want, refused = [], None
