@@ -1087,8 +1087,9 @@ def _nominal_fm_programs(trajs: "Sequence[Trajectory]", materials: Sequence[str]
                             f"{fl.min_drops_per_mm:g} drops per mm ({float(few_min[k]):.3g}) at "
                             f"{int(n_few[k])} samples")
         a, b = toff[k], toff[k + 1]
-        if b - a <= most and max_len >= dur[k]:  # one piece (_split's first and last)
-            prog = ValveProgram(ticks=ticks_all[a:b], tick_s=tick, duration=float(dur[k]))
+        one = b - a <= most and max_len >= dur[k]    # one piece (_split's first and last)
+        prog = None
+        if one:
             shared = int(shared_one[k])
         else:
             prog = _split(times[a:b], None, float(dur[k]), float(dt[k]), job)
@@ -1100,7 +1101,12 @@ def _nominal_fm_programs(trajs: "Sequence[Trajectory]", materials: Sequence[str]
                             f"Hz, above 1 / flow.tick_s = {1.0 / tick:g} Hz)")
         for w in warnings:
             log.debug(w)
-        out[idx[k]] = dataclasses.replace(prog, warnings=tuple(warnings)) if warnings else prog
+        if prog is None:   # made with its findings (a copy per program cost the bunny 1 s)
+            out[idx[k]] = ValveProgram(ticks=ticks_all[a:b], tick_s=tick,
+                                       duration=float(dur[k]), warnings=tuple(warnings))
+        else:
+            out[idx[k]] = (dataclasses.replace(prog, warnings=tuple(warnings)) if warnings
+                           else prog)
     return out
 
 
