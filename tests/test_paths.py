@@ -850,10 +850,11 @@ def test_a_wall_narrower_than_the_measurement_spacing_is_measured_along_its_midd
 def test_every_piece_of_a_region_the_rings_leave_unmeasured_gets_a_measurement_path(
         rings, spacing, wall):
     """Whatever the measurement rings leave farther than half the spacing (plus their
-    smoothing) is measured too: every such piece of at least spacing^2 holds a stretch of
-    a measurement path, which runs inside the region. ``wall``: the region is the random
+    smoothing) is measured too: every such piece of at least spacing^2 that holds a disk
+    of radius MEASURE_EDGE_MM holds a stretch of a measurement path, which runs inside the
+    region. ``wall``: the region is the random
     shape's wall, that many spacings thick (thin walls are what the rings miss)."""
-    from icefab.paths import MEASURE_SMOOTHING_MM, measure_paths, unmeasured
+    from icefab.paths import MEASURE_EDGE_MM, MEASURE_SMOOTHING_MM, measure_paths, unmeasured
     region = geo.region_from_rings(rings)
     if wall is not None:
         region = geo.difference(region, geo.shrink(region, wall * spacing))
@@ -879,9 +880,19 @@ def test_every_piece_of_a_region_the_rings_leave_unmeasured_gets_a_measurement_p
         if geo.area(piece) < spacing * spacing:
             continue
         poly = shapely.Polygon(piece[0], piece[1:])
+        if poly.buffer(-MEASURE_EDGE_MM - 1e-3).is_empty:   # too thin for the laser
+            continue
         assert any(poly.intersection(ln).length > 0.0 for ln in lines), \
             f"an unmeasured piece of {poly.area:.1f} mm^2 got no path"
     assert len(rings_only) <= len(got)
+    # the centre lines (after the rings) keep off the region's edge, where the surface
+    # falls away (less what their smoothing and the point filter move them)
+    n_rings = sum(len(lv) for lv in levels)
+    edge = shapely.union_all([shapely.Polygon(pc[0], pc[1:])
+                              for pc in region.polygons()]).boundary
+    for pts, _closed in got[n_rings:]:
+        assert shapely.distance(shapely.points(pts), edge).min() >= \
+            MEASURE_EDGE_MM - FILT - 0.1
 
 
 def test_unmeasured_is_what_lies_beyond_the_rings_reach():
