@@ -182,3 +182,24 @@ def test_layer_headroom_names_the_first_fastest_widest_path_of_each_material(see
     for r in got:
         assert (r.nominal_mm3_s, r.role, r.width_mm, r.speed_mm_s, r.layer) == \
             (*want[r.material], 4)
+
+
+def test_a_path_with_bad_widths_is_refused_in_its_turn():
+    """Refusals come in path order, as plan_valves path by path gives them: a boundary
+    whose flow leaves the table, then a fill with a NaN width - the boundary's message
+    (the widths of a layer are checked at once; a bad one had been refused first)."""
+    rng = np.random.default_rng(3)
+    job = Job()
+    fast = _trajectory(rng, 40, 0.016, 400.0, "boundary", "part", 3.0, 1.0)
+    fill = _trajectory(rng, 40, 0.016, 60.0, "fill", "part", 1.5, 1.0)
+    w = np.full(len(fill.xy), 1.5)
+    w[3] = np.nan
+    fill = dataclasses.replace(fill, widths=w)
+    with pytest.raises(FlowError) as first:
+        plan_valves(fast, "part", job, calibration=calibration_for("part", job))
+    assert "outside the calibration table" in str(first.value)
+    with pytest.raises(FlowError) as e:
+        plan_layer_valves(LayerMotion(index=2, z=0.5, trajectories=(fast, fill)), job)
+    assert str(e.value) == str(first.value)
+    with pytest.raises(FlowError, match="widths"):
+        plan_layer_valves(LayerMotion(index=2, z=0.5, trajectories=(fill, fast)), job)

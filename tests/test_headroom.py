@@ -86,7 +86,7 @@ def test_variable_width_peaks_at_once_are_argmax_path_by_path(shapes):
     """The tightest sample of every variable-width trajectory, found for all at once, is
     the one ``argmax`` of ``w * c`` finds path by path (the first of equal products:
     widths and speeds drawn from few values so that ties are common); a trajectory with
-    a bad width is still named (FlowError)."""
+    a bad width among them is named (FlowError)."""
     from icefab.flow import sample_widths
     from icefab.headroom import _variable_peaks
     job = Job()
@@ -104,18 +104,18 @@ def test_variable_width_peaks_at_once_are_argmax_path_by_path(shapes):
     if not var:
         return
     w, v = np.zeros(len(picked)), np.zeros(len(picked))
-    assert _variable_peaks(picked, var, w, v)
+    assert _variable_peaks([picked[k][1] for k in var], var, w, v)
     for k in var:
         t = picked[k][1]
         ws = sample_widths(t, "part", job)
         i = int(np.argmax(ws * t.speed))
         assert (w[k], v[k]) == (ws[i], t.speed[i])
-    # a NaN width: nothing written, the path by path rule names it
-    t = picked[var[0]][1]
+    # a NaN width: gone through path by path, which names it
+    t = picked[var[-1]][1]
     bad = t.widths.copy()
     bad[0] = np.nan
-    picked[var[0]] = (0, Trajectory(dt=t.dt, xy=t.xy, joints=t.joints, speed=t.speed,
-                                    duration=t.duration, path=t.path, widths=bad), 0.25)
-    assert not _variable_peaks(picked, var, np.zeros(len(picked)), np.zeros(len(picked)))
+    picked[var[-1]] = (0, Trajectory(dt=t.dt, xy=t.xy, joints=t.joints, speed=t.speed,
+                                     duration=t.duration, path=t.path, widths=bad), 0.25)
+    assert not _variable_peaks([picked[k][1] for k in var], var, w, v)   # path by path
     with pytest.raises(FlowError, match="widths"):
-        feedback_headroom([(0, picked[var[0]][1])], job)
+        feedback_headroom([(layer, t) for layer, t, _h in picked], job)

@@ -322,6 +322,28 @@ def sample_widths(trajectory: Trajectory, material: str, job: "Job") -> np.ndarr
     return w.astype(np.float64, copy=False)
 
 
+def variable_widths(trajectories: "Sequence[Trajectory]") -> tuple[np.ndarray, np.ndarray]:
+    """The widths of many variable-width trajectories, checked all at once (one
+    :func:`sample_widths` call per path cost the bunny's ``icefab plan`` and ``valves``
+    seconds): ``(ok (m,) bool`` - one finite number >= 0 per sample -, ``widths`` of the
+    ok ones concatenated, float64 mm``)``. :func:`sample_widths` names a bad one."""
+    ws = [np.asarray(t.widths) for t in trajectories]
+    ok = np.array([w.shape == (len(t.xy),) and w.dtype.kind in "fiu"
+                   for w, t in zip(ws, trajectories)], dtype=bool)
+    good = [w for w, k in zip(ws, ok) if k]
+    if not good:
+        return ok, np.zeros(0)
+    W = np.concatenate(good).astype(np.float64, copy=False)
+    lens = np.array([len(w) for w in good])
+    fine = np.isfinite(W) & (W >= 0)
+    if not fine.all():
+        owner = np.repeat(np.arange(len(good)), lens)
+        clean = np.bincount(owner[~fine], minlength=len(good)) == 0
+        ok[np.flatnonzero(ok)[~clean]] = False
+        W = W[clean[owner]]
+    return ok, W
+
+
 def _pwm_limit_hz(job: "Job") -> float:
     """Highest usable PWM frequency: ``min(max_frequency_hz, 1 / tick_s, 1 / min_pulse_ms)``
     (the valve's limit, one pulse per microcontroller tick, a shortest pulse per period)."""
@@ -999,7 +1021,7 @@ def _nominal_fm_programs(trajs: "Sequence[Trajectory]", materials: Sequence[str]
     if not m:
         return []
     check_flow_settings(job)
-    n = np.array([len(t.xy) for t in trajs], dtype=np.int64)
+    n = n_all = np.array([len(t.xy) for t in trajs], dtype=np.int64)
     dt = np.array([float(t.dt) for t in trajs])
     dur = np.array([float(t.duration) for t in trajs])
     ok = (n >= 2) & np.isfinite(dt) & (dt > 0)
@@ -1007,6 +1029,10 @@ def _nominal_fm_programs(trajs: "Sequence[Trajectory]", materials: Sequence[str]
     ok &= np.isfinite(dur) & (np.abs(dur - expected) <= 1e-6 + 1e-9 * expected)
     ok &= np.array([np.shape(t.speed) == (len(t.xy),) and np.shape(t.xy)[1:] == (2,)
                     for t in trajs])
+    var = np.array([t.widths is not None for t in trajs], dtype=bool)
+    if var.any():   # bad widths: plan_valves refuses the path, in its turn
+        var_ok, var_w = variable_widths([t for t, v in zip(trajs, var) if v])
+        ok[np.flatnonzero(var)[~var_ok]] = False
     out: list[ValveProgram | None] = [None] * m
     idx = np.flatnonzero(ok)
     if not len(idx):
@@ -1021,19 +1047,15 @@ def _nominal_fm_programs(trajs: "Sequence[Trajectory]", materials: Sequence[str]
     bad = ~(np.isfinite(speed) & (speed >= 0))
     # the flow, frequency and time axis of every sample, as valve_frequency makes them
     width = np.array([trajectory_width(t, materials[i], job) for t, i in zip(sel, idx)])[owner]
-    var = [k for k, tr in enumerate(sel) if tr.widths is not None]
-    if var:   # variable-width paths: eq. 6.2 with w(s)
-        ws = [np.asarray(sel[k].widths) for k in var]
-        W = np.concatenate(ws).astype(np.float64, copy=False) if all(
-            x.shape == (n[k],) and x.dtype.kind in "fiu" for x, k in zip(ws, var)) else None
-        if W is not None and np.all(np.isfinite(W)) and np.all(W >= 0):
-            # all at once (one call per path cost the bunny 2 s)
-            lens = n[var]
-            width[np.arange(len(W)) + np.repeat(first[var] - (np.cumsum(lens) - lens),
-                                                lens)] = W
-        else:   # path by path: sample_widths names the bad one
-            for k in var:
-                width[first[k]:first[k] + n[k]] = sample_widths(sel[k], materials[idx[k]], job)
+    mine = np.flatnonzero(var[idx])
+    if len(mine):   # variable-width paths: eq. 6.2 with w(s), into their samples' places
+        # var_w holds the widths of every variable-width trajectory with good ones; the
+        # selected are among them (bad widths made a trajectory not ok)
+        good = np.flatnonzero(var)[var_ok]
+        w_first = offsets(n_all[good])[:-1][np.searchsorted(good, idx[mine])]
+        lens = n[mine]
+        within = np.arange(lens.sum()) - np.repeat(np.cumsum(lens) - lens, lens)
+        width[np.repeat(first[mine], lens) + within] = var_w[np.repeat(w_first, lens) + within]
     q = width * dh * fl.layer_scale * speed
     t = (np.arange(len(speed)) - first[owner]).astype(np.float64) * dt[owner]
     mats = [materials[i] for i in idx]

@@ -25,7 +25,7 @@ import numpy as np
 
 from icefab.core import offsets
 from icefab.errors import FlowError
-from icefab.flow import calibration_for, sample_widths, trajectory_width
+from icefab.flow import calibration_for, sample_widths, trajectory_width, variable_widths
 
 if TYPE_CHECKING:
     from icefab.config import Job
@@ -111,10 +111,10 @@ def feedback_headroom(trajectories: Iterable[tuple[int, "Trajectory"]], job: "Jo
                                offsets(n)[:-1])
     w = np.array([trajectory_width(t, t.path.material, job) for _, t, _ in picked])
     var = [k for k, (_, t, _) in enumerate(picked) if t.widths is not None]
-    if var and not _variable_peaks(picked, var, w, vmax):
+    if var and not _variable_peaks([picked[k][1] for k in var], var, w, vmax):
         for k in var:   # a variable-width path: its largest w * c, and there
             t = picked[k][1]
-            ws = sample_widths(t, t.path.material, job)   # FlowError on bad widths
+            ws = sample_widths(t, t.path.material, job)
             i = int(np.argmax(ws * np.asarray(t.speed, np.float64)))
             w[k], vmax[k] = ws[i], float(t.speed[i])
     dh = np.array([d for *_, d in picked])
@@ -130,29 +130,24 @@ def feedback_headroom(trajectories: Iterable[tuple[int, "Trajectory"]], job: "Jo
     return out
 
 
-def _variable_peaks(picked: list, var: list[int], w: np.ndarray, vmax: np.ndarray) -> bool:
-    """For the variable-width trajectories ``picked[k]``, k in ``var``: the width and speed
-    at the sample of largest ``w * c`` (the first of equals, as ``argmax``) into ``w[k]``
-    and ``vmax[k]``, all at once (a bunny layer has some 150: one call each cost ``icefab
-    plan`` and ``valves`` 3 s). False, with nothing written, when some widths are not one
-    finite number >= 0 per sample or a product is not a number: the caller goes path by
-    path and names the bad one."""
-    ws = [np.asarray(picked[k][1].widths) for k in var]
-    speeds = [np.asarray(picked[k][1].speed, np.float64) for k in var]
-    if any(x.shape != (len(picked[k][1].xy),) or x.shape != v.shape or x.dtype.kind not in "fiu"
-           for x, v, k in zip(ws, speeds, var)):
+def _variable_peaks(trajs: list, var: list[int], w: np.ndarray, vmax: np.ndarray) -> bool:
+    """For the variable-width trajectories ``trajs`` (``var``: their places in ``w`` and
+    ``vmax``): the width and speed at the sample of largest ``w * c`` (the first of equals,
+    as ``argmax``), all at once (a bunny layer has some 150). False, with nothing
+    written, when some widths (:func:`icefab.flow.variable_widths`) or speeds are not one
+    number per sample, or a speed is NaN: the caller goes path by path (and
+    :func:`icefab.flow.sample_widths` names a path with bad widths)."""
+    ok, W = variable_widths(trajs)
+    speeds = [np.asarray(t.speed, np.float64) for t in trajs]
+    if not ok.all() or any(v.shape != (len(t.xy),) for v, t in zip(speeds, trajs)):
         return False
-    W = np.concatenate(ws).astype(np.float64, copy=False)
     V = np.concatenate(speeds)
-    if not (np.all(np.isfinite(W)) and np.all(W >= 0)):
-        return False
     P = W * V
-    lens = np.array([len(x) for x in ws])
-    seg = np.repeat(np.arange(len(var)), lens)
-    peak = np.maximum.reduceat(P, offsets(lens)[:-1])
-    hit = np.flatnonzero(P == peak[seg])
+    lens = np.array([len(v) for v in speeds])
+    seg = np.repeat(np.arange(len(trajs)), lens)
+    hit = np.flatnonzero(P == np.maximum.reduceat(P, offsets(lens)[:-1])[seg])
     _segs, first = np.unique(seg[hit], return_index=True)
-    if len(first) != len(var):   # a NaN speed: argmax's rule path by path
+    if len(first) != len(trajs):   # a NaN speed: argmax's rule path by path
         return False
     at = hit[first]
     w[var], vmax[var] = W[at], V[at]
