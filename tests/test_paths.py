@@ -871,10 +871,8 @@ def test_every_piece_of_a_region_the_rings_leave_unmeasured_gets_a_measurement_p
     assert all(R.covers(ln) for ln in lines)
     # the pieces the concentric rings alone leave: neither inside their outermost level
     # nor within reach of it (test_unmeasured_is_what_lies_beyond_the_rings_reach)
-    from icefab.paths import concentric_rings
-    levels = concentric_rings(region, spacing / 2.0, spacing, FILT,
-                              smooth_mm=MEASURE_SMOOTHING_MM,
-                              ring_smooth_mm=MEASURE_SMOOTHING_MM)
+    from icefab.paths import measure_levels
+    levels = measure_levels(region, spacing, FILT)
     left = unmeasured(region, levels[0] if levels else [], spacing, FILT)
     for piece in left.polygons():
         if geo.area(piece) < spacing * spacing:
@@ -900,14 +898,11 @@ def test_unmeasured_is_what_lies_beyond_the_rings_reach():
     holds no ring, and the block's outermost ring (1.5 mm in) measures up to half the
     spacing plus its smoothing and the filter beyond itself (x = 40.55 mm). What is left
     is the rest of the tab, 2 x 39.45 mm; it is measured along its middle."""
-    from icefab.paths import (MEASURE_SMOOTHING_MM, concentric_rings, measure_paths,
-                              unmeasured)
+    from icefab.paths import MEASURE_SMOOTHING_MM, measure_levels, measure_paths, unmeasured
     spacing = 3.0
     region = geo.union(geo.region_from_rings([rect(0, 0, 40, 20)]),
                        geo.region_from_rings([rect(39, 9, 80, 11)]))
-    levels = concentric_rings(region, spacing / 2.0, spacing, FILT,
-                              smooth_mm=MEASURE_SMOOTHING_MM,
-                              ring_smooth_mm=MEASURE_SMOOTHING_MM)
+    levels = measure_levels(region, spacing, FILT)
     left = unmeasured(region, levels[0], spacing, FILT)
     reach = spacing / 2.0 + MEASURE_SMOOTHING_MM + FILT
     assert geo.area(left) == pytest.approx(2.0 * (80.0 - (40.0 - spacing / 2.0 + reach)),

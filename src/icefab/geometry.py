@@ -446,8 +446,8 @@ def simplify(rings: Rings, filter_mm: float = FILTER_MM) -> Rings:
         # of the same rings cost as much as the filter: some 150 offsets a layer)
         kept, cut, ok, areas, _keep = _filtered_rings(pts, starts, float(filter_mm))
         if ok.all():
-            return [kept[a:b] for a, b, big in zip(cut[:-1], cut[1:], np.abs(areas) > MIN_RING_AREA)
-                    if big]
+            big = np.abs(areas) > MIN_RING_AREA
+            return [kept[a:b] for a, b, k in zip(cut[:-1], cut[1:], big) if k]
         rings = [r for a, b, k, ring in zip(cut[:-1], cut[1:], ok, rings)
                  for r in ([kept[a:b]] if k else _simplify_slow(ring, filter_mm))]
     rings = [r for r in rings if len(r) >= 3]
@@ -1159,8 +1159,9 @@ def _near_edges_distance(q: np.ndarray, near: np.ndarray, n_samples: int, edge: 
                          prv: np.ndarray, a: np.ndarray, b: np.ndarray
                          ) -> np.ndarray:  # pragma: no cover - compiled
     """(n,) distance of each point q (n, 2) to the edges leaving and arriving at its
-    samples ``near`` (n, k) (``n_samples``: a missing neighbour), as
-    :func:`segment_distance` computes it."""
+    samples ``near`` (n, k) (``n_samples``: a missing neighbour), rounded as
+    :func:`segment_distance` computes it: ``_seg_dist2``'s order of operations gave other
+    last bits, and some bunny paths moved."""
     out = np.full(len(q), np.inf)
     for i in range(len(q)):
         best = np.inf

@@ -581,13 +581,18 @@ def _islands(region: Region) -> list[Region]:
 MEASURE_SMOOTHING_MM = 0.5
 
 
+def measure_levels(region: Region, spacing: float, filt: float) -> list[list[np.ndarray]]:
+    """Concentric measurement rings over a region (thesis 5.2.1), level by level,
+    outermost first: shrunk by spacing/2, then every spacing, smoothed
+    (``MEASURE_SMOOTHING_MM``)."""
+    return concentric_rings(region, spacing / 2.0, spacing, filt,
+                            smooth_mm=MEASURE_SMOOTHING_MM,
+                            ring_smooth_mm=MEASURE_SMOOTHING_MM)
+
+
 def measure_rings(region: Region, spacing: float, filt: float) -> list[np.ndarray]:
-    """Concentric measurement rings over a region (thesis 5.2.1): shrunk by spacing/2,
-    then every spacing, smoothed (``MEASURE_SMOOTHING_MM``)."""
-    levels = concentric_rings(region, spacing / 2.0, spacing, filt,
-                              smooth_mm=MEASURE_SMOOTHING_MM,
-                              ring_smooth_mm=MEASURE_SMOOTHING_MM)
-    return [r for lv in levels for r in lv]
+    """The rings of :func:`measure_levels`, all levels in one list."""
+    return [r for lv in measure_levels(region, spacing, filt) for r in lv]
 
 
 #: Centre-line measurement paths keep this far (mm) inside what they measure: a chain of
@@ -608,9 +613,7 @@ def measure_paths(region: Region, spacing: float, filt: float
     is empty), and the feedback would correct it with the heights of whatever was measured
     nearest (issue 15; on the demo mug at 4.5 mm the wall went unmeasured from 6 mm up and
     the SMF height error grew as in open loop, 1.18 mm instead of 0.05 mm)."""
-    levels = concentric_rings(region, spacing / 2.0, spacing, filt,
-                              smooth_mm=MEASURE_SMOOTHING_MM,
-                              ring_smooth_mm=MEASURE_SMOOTHING_MM)
+    levels = measure_levels(region, spacing, filt)
     out: list[tuple[np.ndarray, bool]] = [(r, True) for lv in levels for r in lv]
     left = [p for p in unmeasured(region, levels[0] if levels else [], spacing,
                                   filt).polygons()
@@ -624,22 +627,18 @@ def measure_paths(region: Region, spacing: float, filt: float
                              MEASURE_EDGE_MM)
     if not chains:
         return out
-    # a chain ends at a branch point (where it meets others) or in a corner (a leaf):
-    # leaves shorter than half the spacing reach into corners the rest measures anyway
-    ends = np.array([p[k] for p, _c, closed in chains if not closed for k in (0, -1)])
-    _u, inv, meets = np.unique(np.round(ends, 9), axis=0, return_inverse=True,
-                               return_counts=True) if len(ends) else (None, [], [])
-    meets = np.asarray(meets)[np.asarray(inv).reshape(-1)] if len(ends) else np.zeros(0)
+    # a chain ends at a branch point (where it meets others) or in a corner (a leaf, an
+    # end no other chain shares): leaves shorter than half the spacing reach into
+    # corners the rest measures anyway
+    ends = np.array([[p[0], p[-1]] if not closed else [[np.nan] * 2] * 2
+                     for p, _c, closed in chains]).reshape(-1, 2)
+    _u, inv, count = np.unique(np.round(ends, 9), axis=0, return_inverse=True,
+                               return_counts=True)
+    leaf = (count[inv.reshape(-1)] == 1).reshape(-1, 2).any(axis=1) & \
+        ~np.array([closed for _p, _c, closed in chains])
     chains = _smoothed_axis([(p, 2.0 * c, closed) for p, c, closed in chains])
-    lines = [closed_polyline(p, c) for p, _w, c in chains]
-    k = 0
-    for (pts, _w, closed), line in zip(chains, lines):
-        leaf = False
-        if not closed:
-            leaf = bool(meets[k] == 1 or meets[k + 1] == 1)
-            k += 2
-        length = float(np.hypot(*np.diff(line, axis=0).T).sum())
-        if leaf and length < spacing / 2.0:
+    for (pts, _w, closed), is_leaf in zip(chains, leaf):
+        if is_leaf and np.hypot(*np.diff(pts, axis=0).T).sum() < spacing / 2.0:
             continue
         keep = geo.simplify_masks([pts], np.array([float(filt)]), closed=closed)[0]
         if closed and keep.sum() >= 3:
@@ -1295,10 +1294,10 @@ def plan_layer(layer: Layer, job: Job, measured: bool | None = None) -> LayerPat
     paths: list[Toolpath] = []
     cur = np.zeros(2)
     cur_tool: str | None = None
+    corner = job.motion.smooth_angle_deg
     for key in order:
         material, role = key.split(":")
         tool = "laser" if role == "measure" else material
-        corner = job.motion.smooth_angle_deg
         ordered, _end = order_nearest(groups.get(key, []), cur, corner)
         ordered, _end = _tour.improve(ordered, cur, [_start_candidates(it[0], corner)
                                                      for it in ordered])
