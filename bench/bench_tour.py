@@ -46,8 +46,6 @@ def _stack():
 def _lower_bound(lp) -> float:
     """Sum over the layer's sets (consecutive paths of one material and role) of: every
     path but the one entered first is entered at best from the nearest other path."""
-    from icefab.paths import _start_candidates
-
     total = 0.0
     groups: dict = {}
     for p in lp.paths:
@@ -58,8 +56,9 @@ def _lower_bound(lp) -> float:
             continue
         pts, owner = [], []
         for k, p in enumerate(paths):
-            q = p.points[_start_candidates(len(p.points))] if p.closed \
-                else p.points[[0, -1]]
+            # a closed path may be entered at any vertex here (a superset of the
+            # planner's candidates, so the bound stays a bound)
+            q = p.points if p.closed else p.points[[0, -1]]
             pts.append(q)
             owner.append(np.full(len(q), k))
         P, O = np.concatenate(pts), np.concatenate(owner)

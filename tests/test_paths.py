@@ -251,7 +251,8 @@ def test_ordering_keeps_each_width_with_its_point():
         items.append((pts, bool(k % 3 == 0), pts[:, 0] / 10.0))   # width = x / 10
     ordered, _ = order_nearest(items, np.zeros(2))
     from icefab import _tour
-    improved, _ = _tour.improve(ordered, np.zeros(2), [np.arange(len(it[0])) for it in ordered])
+    from icefab.paths import _entry_candidates
+    improved, _ = _tour.improve(ordered, np.zeros(2), _entry_candidates(ordered))
     for pts, _c, w in ordered + improved:
         np.testing.assert_array_equal(w, pts[:, 0] / 10.0)
     assert sorted(len(it[0]) for it in improved) == sorted(len(it[0]) for it in items)

@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from icefab._tour import improve, travel_length
-from icefab.paths import _start_candidates, order_nearest
+from icefab.paths import _entry_candidates, _start_candidates, order_nearest
 
 
 def _layout(seed: int, n: int) -> list[tuple]:
@@ -33,7 +33,7 @@ def _layout(seed: int, n: int) -> list[tuple]:
 
 def _improved(items, start):
     nn, _ = order_nearest(items, start)
-    out, end = improve(nn, start, [_start_candidates(it[0]) for it in nn])
+    out, end = improve(nn, start, _entry_candidates(nn))
     return nn, out, end
 
 
@@ -140,3 +140,43 @@ def test_a_ring_with_corners_starts_at_one_and_stops_once_less():
         return len(plan_paths_motion([path], job)[0].pieces)
 
     assert pieces(entered[0]) == 4 and pieces(plain[0]) == 5
+
+
+def _plain_candidates(pts, closed, corner_deg):
+    """The entry candidates written plainly (numpy over one path at a time)."""
+    from icefab import geometry as geo
+    from icefab.paths import MAX_START_CANDIDATES
+    if not closed:
+        return np.array([0, len(pts) - 1])
+    idx = np.arange(len(pts))
+    if corner_deg is not None:
+        corners = geo.corner_vertices(pts, corner_deg)
+        if len(corners):
+            idx = corners
+    if len(idx) <= MAX_START_CANDIDATES:
+        return idx
+    return idx[np.linspace(0, len(idx) - 1, MAX_START_CANDIDATES).astype(np.int64)]
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.integers(0, 10 ** 6), st.sampled_from([None, 10.0, 30.0, 90.0]))
+def test_entry_candidates_of_a_set_are_each_paths_own(seed, corner_deg):
+    """One compiled pass over a set gives every path the candidates it would get alone:
+    corners or every vertex, at most 64 evenly spread, an open path's two ends; rings with
+    repeated points, two points or jagged outlines of up to 300 vertices among them."""
+    rng = np.random.default_rng(seed)
+    items = []
+    for _ in range(int(rng.integers(1, 12))):
+        k = int(rng.integers(1, 300))
+        pts = np.cumsum(rng.normal(size=(k, 2)), axis=0)
+        if k > 3 and rng.random() < 0.3:
+            pts[1] = pts[0]                                  # a repeated point
+        if rng.random() < 0.3:                               # a smooth ring
+            th = np.linspace(0, 2 * np.pi, k, endpoint=False)
+            pts = np.c_[np.cos(th), np.sin(th)] * 20.0
+        items.append((pts, bool(rng.random() < 0.7)))
+    index, rows = _entry_candidates(items, corner_deg)
+    assert rows[0] == 0 and rows[-1] == len(index)
+    for i, (pts, closed) in enumerate(items):
+        np.testing.assert_array_equal(index[rows[i]:rows[i + 1]],
+                                      _plain_candidates(pts, closed, corner_deg))

@@ -32,6 +32,69 @@ def _dist(a0: float, a1: float, b0: float, b1: float) -> float:
 
 
 @njit(cache=True, error_model="numpy")
+def entry_candidates(pts: np.ndarray, starts: np.ndarray, closed: np.ndarray,
+                     cos_limit: float, use_corners: bool, max_c: int
+                     ) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """Candidate entry vertices of paths packed as ``pts (v, 2)`` with path ``r`` at rows
+    ``starts[r]:starts[r + 1]``: an open path's first and last point; a closed path's
+    corners (vertices whose segments turn by more than the angle of ``cos_limit``, the
+    closing segment included, repeated points never turning; only with ``use_corners``
+    and at least 3 points) when it has any, else all its vertices; at most ``max_c`` of
+    them, evenly spread as ``idx[np.linspace(0, len(idx) - 1, max_c).astype(int)]``.
+    Returns (vertex index within its path (m,) int64, each path's rows (n + 1,) int64)."""
+    n = len(starts) - 1
+    bound = 0
+    longest = 0
+    for r in range(n):
+        k = starts[r + 1] - starts[r]
+        bound += 2 if not closed[r] else min(k, max_c)
+        longest = max(longest, k)
+    index = np.empty(bound, dtype=np.int64)
+    rows = np.zeros(n + 1, dtype=np.int64)
+    buf = np.empty(longest, dtype=np.int64)
+    m = 0
+    for r in range(n):
+        a = starts[r]
+        k = starts[r + 1] - a
+        if not closed[r]:
+            index[m] = 0
+            index[m + 1] = k - 1
+            m += 2
+            rows[r + 1] = m
+            continue
+        c = 0
+        if use_corners and k >= 3:
+            for i in range(k):
+                p = a + (i - 1 if i > 0 else k - 1)
+                q = a + (i + 1 if i + 1 < k else 0)
+                fx = pts[a + i, 0] - pts[p, 0]
+                fy = pts[a + i, 1] - pts[p, 1]
+                ex = pts[q, 0] - pts[a + i, 0]
+                ey = pts[q, 1] - pts[a + i, 1]
+                nf = np.sqrt(fx * fx + fy * fy)
+                ne = np.sqrt(ex * ex + ey * ey)
+                if nf > 0.0 and ne > 0.0 and fx * ex + fy * ey < cos_limit * nf * ne:
+                    buf[c] = i
+                    c += 1
+        if c == 0:
+            for i in range(k):
+                buf[i] = i
+            c = k
+        if c <= max_c:
+            for j in range(c):
+                index[m + j] = buf[j]
+            m += c
+        else:
+            step = (c - 1) / (max_c - 1)
+            for j in range(max_c - 1):
+                index[m + j] = buf[int(j * step)]
+            index[m + max_c - 1] = buf[c - 1]
+            m += max_c
+        rows[r + 1] = m
+    return index[:m].copy(), rows
+
+
+@njit(cache=True, error_model="numpy")
 def nearest_order(P: np.ndarray, owner: np.ndarray, bounds: np.ndarray, closed: np.ndarray,
                   sx: float, sy: float) -> np.ndarray:
     """Nearest-neighbour order of paths given by their candidate entry points.
@@ -187,14 +250,16 @@ def moved(item: tuple, roll: int = 0, flip: bool = False) -> tuple:
     return (pts, closed, *rest)
 
 
-def improve(items: list[tuple], start, candidates: list[np.ndarray],
+def improve(items: list[tuple], start, candidates: tuple[np.ndarray, np.ndarray],
             max_rounds: int = 4, max_passes: int = 50) -> tuple[list[tuple], np.ndarray]:
     """Shorten the travel of an order (module docstring).
 
     items: the order to improve, each ``(points (k, 2) mm, closed, ...)`` as entered (a
-    closed path starts at its entry vertex); candidates[i]: the vertex indices of item i
-    that may become its entry (closed paths; ignored for open ones). Returns the new order
-    (closed paths rotated, open paths reversed as run) and the final position.
+    closed path starts at its entry vertex); candidates: ``(index (m,), rows (n + 1,))``,
+    the vertex indices of item i that may become its entry at ``index[rows[i]:rows[i +
+    1]]`` (closed paths; ignored for open ones), as :func:`entry_candidates` gives them.
+    Returns the new order (closed paths rotated, open paths reversed as run) and the final
+    position.
     """
     start = np.asarray(start, dtype=np.float64)
     n = len(items)
@@ -204,11 +269,16 @@ def improve(items: list[tuple], start, candidates: list[np.ndarray],
     closed = np.array([bool(it[1]) for it in items])
     en = np.array([it[0][0] for it in items], dtype=np.float64)
     ex = np.array([it[0][0] if it[1] else it[0][-1] for it in items], dtype=np.float64)
-    cand_idx = [np.asarray(candidates[i], dtype=np.int64) if closed[i]
-                else np.zeros(0, np.int64) for i in range(n)]
-    cand = np.concatenate([items[i][0][cand_idx[i]] for i in range(n)]
-                          ).astype(np.float64).reshape(-1, 2)
-    cand_start = np.concatenate([[0], np.cumsum([len(c) for c in cand_idx])]).astype(np.int64)
+    index, rows = (np.asarray(a, dtype=np.int64) for a in candidates)
+    # the closed paths' rows only
+    per = np.where(closed, np.diff(rows), 0)
+    cand_start = np.concatenate([[0], np.cumsum(per)]).astype(np.int64)
+    take = np.repeat(rows[:-1], per) + (np.arange(cand_start[-1]) - np.repeat(cand_start[:-1], per))
+    cand_idx = index[take]
+    owner = np.repeat(np.arange(n), per)
+    first = np.concatenate([[0], np.cumsum([len(it[0]) for it in items])])
+    cand = np.concatenate([it[0] for it in items]).astype(np.float64).reshape(-1, 2)[
+        first[owner] + cand_idx]
     choice = np.full(n, -1, dtype=np.int64)   # -1: the vertex it was entered at
     perm = np.arange(n, dtype=np.int64)
     flip = np.zeros(n, dtype=np.bool_)
@@ -222,7 +292,7 @@ def improve(items: list[tuple], start, candidates: list[np.ndarray],
     for k in range(n):
         i = int(perm[k])
         if closed[i]:
-            j = int(cand_idx[i][choice[i] - cand_start[i]]) if choice[i] >= 0 else 0
+            j = int(cand_idx[choice[i]]) if choice[i] >= 0 else 0
             out.append(moved(items[i], roll=j))
         else:
             out.append(moved(items[i], flip=bool(flip[k])))

@@ -671,20 +671,30 @@ MAX_START_CANDIDATES = 64
 def _start_candidates(pts: np.ndarray, corner_deg: float | None = None) -> np.ndarray:
     """Indices of the vertices of a closed path ``pts`` (k, 2) that may become its start:
     its corners (turns over ``corner_deg``) when it has any, else all vertices; at most
-    ``MAX_START_CANDIDATES`` of them, evenly spread.
+    ``MAX_START_CANDIDATES`` of them, evenly spread (:func:`_entry_candidates` of one
+    closed path).
 
     Why corners: the robot stops at every turn over the PATHSPLIT angle and at a path's
     start and end (thesis 4.1.1); a closed path that starts at one of its corners pays
     for both with one stop. On bunny layers 38 % of the rings with a corner started
     elsewhere (BENCHMARKS.md, issue 15)."""
-    idx = np.arange(len(pts))
-    if corner_deg is not None:
-        corners = geo.corner_vertices(pts, corner_deg)
-        if len(corners):
-            idx = corners
-    if len(idx) <= MAX_START_CANDIDATES:
-        return idx
-    return idx[np.linspace(0, len(idx) - 1, MAX_START_CANDIDATES).astype(np.int64)]
+    return _entry_candidates([(pts, True)], corner_deg)[0]
+
+
+def _entry_candidates(items: Sequence[tuple], corner_deg: float | None = None
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """The vertices each of ``items`` (``(points (k, 2), closed, ...)``) may be entered
+    at, all in one compiled pass: a closed path's :func:`_start_candidates`, an open
+    path's first and last point. Returns (vertex index within its path (m,) int64, the
+    rows of each item (n + 1,) int64)."""
+    if not items:
+        return np.zeros(0, dtype=np.int64), np.zeros(1, dtype=np.int64)
+    pts = np.ascontiguousarray(np.concatenate([it[0] for it in items]), dtype=np.float64)
+    starts = offsets([len(it[0]) for it in items])
+    closed = np.array([bool(it[1]) for it in items])
+    cos_limit = math.cos(math.radians(corner_deg)) if corner_deg is not None else 0.0
+    return _tour.entry_candidates(pts, starts, closed, cos_limit, corner_deg is not None,
+                                  MAX_START_CANDIDATES)
 
 
 def order_nearest(items: Sequence[tuple], start: np.ndarray,
@@ -700,24 +710,10 @@ def order_nearest(items: Sequence[tuple], start: np.ndarray,
     """
     if not items:
         return [], np.asarray(start, dtype=np.float64)
-    cand_pts = []
-    cand_owner = []
-    cand_idx = []
-    for i, item in enumerate(items):
-        pts, closed = item[0], item[1]
-        if closed:
-            # at most MAX_START_CANDIDATES evenly spread vertices may become the start
-            idx = _start_candidates(pts, corner_deg)
-            cand_pts.append(pts[idx])
-            cand_idx.append(idx)
-        else:
-            cand_pts.append(pts[[0, -1]])
-            cand_idx.append(np.array([0, len(pts) - 1]))
-        cand_owner.append(np.full(len(cand_pts[-1]), i))
-    P = np.concatenate(cand_pts).astype(np.float64)
-    owner = np.concatenate(cand_owner).astype(np.int64)
-    index = np.concatenate(cand_idx)
-    bounds = offsets([len(c) for c in cand_pts])
+    index, bounds = _entry_candidates(items, corner_deg)
+    owner = np.repeat(np.arange(len(items)), np.diff(bounds))
+    first = offsets([len(it[0]) for it in items])
+    P = np.concatenate([it[0] for it in items]).astype(np.float64)[first[owner] + index]
     closed = np.array([bool(item[1]) for item in items])
     cur = np.asarray(start, dtype=np.float64)
     out: list[tuple] = []
@@ -1299,8 +1295,7 @@ def plan_layer(layer: Layer, job: Job, measured: bool | None = None) -> LayerPat
         material, role = key.split(":")
         tool = "laser" if role == "measure" else material
         ordered, _end = order_nearest(groups.get(key, []), cur, corner)
-        ordered, _end = _tour.improve(ordered, cur, [_start_candidates(it[0], corner)
-                                                     for it in ordered])
+        ordered, _end = _tour.improve(ordered, cur, _entry_candidates(ordered, corner))
         means = _mean_widths(ordered)
         for (pts, closed, width), mean in zip(ordered, means):
             widths = None
