@@ -117,7 +117,7 @@ __all__ = ["plan_motion", "plan_paths_motion", "plan_paths_durations", "plan_too
            "iter_plan_and_compare",
            "constant_speed_motion",
            "constant_speed_time",
-           "check_build_workspace", "LayerMotion", "BuildMotion",
+           "check_build_workspace", "check_layer_workspace", "LayerMotion", "BuildMotion",
            "save_trajectories", "load_trajectories", "open_trajectories", "TrajectoryFile",
            "TrajectoryWriter",
            "constant_spacing", "gcode_moves",
@@ -878,7 +878,17 @@ def _locate(ends: np.ndarray, i: int) -> tuple[int, int]:
 def check_build_workspace(toolpaths: Toolpaths, job: Job | None = None,
                           robot: Robot | None = None) -> None:
     """Raise WorkspaceError (layer, path, point or segment, coordinates, why) for the first
-    place of any path of the build, in the robot base frame, that the robot cannot reach.
+    place of any path of the build, in the robot base frame, that the robot cannot reach
+    (:func:`check_layer_workspace`, layer by layer)."""
+    job = job or toolpaths.job
+    robot = robot or get_robot(job)
+    for lp in toolpaths.layers:
+        check_layer_workspace(lp, job, robot)
+
+
+def check_layer_workspace(lp: LayerPaths, job: Job, robot: Robot | None = None) -> None:
+    """Raise WorkspaceError (layer, path, point or segment, coordinates, why) for the first
+    place of one layer's paths, in the robot base frame, that the robot cannot reach.
 
     Checked: every point, and every segment's point nearest the robot base origin when it
     lies inside the segment. A chord between two reachable points leaves a SCARA's
@@ -887,40 +897,38 @@ def check_build_workspace(toolpaths: Toolpaths, job: Job | None = None,
     never leave it); the planner still checks every resampled (and smoothed) grid point
     of each layer (e.g. a chord swinging joint 1 beyond its range around the back).
     """
-    job = job or toolpaths.job
+    if not lp.paths:
+        return
     robot = robot or get_robot(job)
-    for lp in toolpaths.layers:
-        if not lp.paths:
-            continue
-        pts, counts = _to_base(lp.paths, [p.polyline() for p in lp.paths], job)
-        ends = np.cumsum(counts)
-        bad, reasons = robot.workspace_violations(pts)
-        if len(bad):
-            i = int(bad[0])
-            k, j = _locate(ends, i)
-            raise WorkspaceError(f"layer {lp.index}, path {k}: point {j} at ({pts[i, 0]:.3f}, "
-                                 f"{pts[i, 1]:.3f}) mm (robot base frame) is out of the "
-                                 f"{robot.name} workspace: {reasons[0]}")
-        # segments (within a path): the point nearest the base origin
-        a, b = pts[:-1], pts[1:]
-        within = np.ones(len(a), dtype=bool)
-        within[ends[:-1] - 1] = False
-        d = b - a
-        dd = np.einsum("ij,ij->i", d, d)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = -np.einsum("ij,ij->i", a, d) / dd
-        inner = within & (dd > 0.0) & (t > 0.0) & (t < 1.0)
-        seg = np.flatnonzero(inner)
-        if not len(seg):
-            continue
-        near = a[seg] + t[seg, None] * d[seg]
-        sbad, sreasons = robot.workspace_violations(near)
-        if len(sbad):
-            k, j = _locate(ends, int(seg[sbad[0]]))
-            x, y = near[sbad[0]]
-            raise WorkspaceError(f"layer {lp.index}, path {k}: the segment from point {j} to "
-                                 f"point {j + 1} passes ({x:.3f}, {y:.3f}) mm (robot base "
-                                 f"frame), out of the {robot.name} workspace: {sreasons[0]}")
+    pts, counts = _to_base(lp.paths, [p.polyline() for p in lp.paths], job)
+    ends = np.cumsum(counts)
+    bad, reasons = robot.workspace_violations(pts)
+    if len(bad):
+        i = int(bad[0])
+        k, j = _locate(ends, i)
+        raise WorkspaceError(f"layer {lp.index}, path {k}: point {j} at ({pts[i, 0]:.3f}, "
+                             f"{pts[i, 1]:.3f}) mm (robot base frame) is out of the "
+                             f"{robot.name} workspace: {reasons[0]}")
+    # segments (within a path): the point nearest the base origin
+    a, b = pts[:-1], pts[1:]
+    within = np.ones(len(a), dtype=bool)
+    within[ends[:-1] - 1] = False
+    d = b - a
+    dd = np.einsum("ij,ij->i", d, d)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = -np.einsum("ij,ij->i", a, d) / dd
+    inner = within & (dd > 0.0) & (t > 0.0) & (t < 1.0)
+    seg = np.flatnonzero(inner)
+    if not len(seg):
+        return
+    near = a[seg] + t[seg, None] * d[seg]
+    sbad, sreasons = robot.workspace_violations(near)
+    if len(sbad):
+        k, j = _locate(ends, int(seg[sbad[0]]))
+        x, y = near[sbad[0]]
+        raise WorkspaceError(f"layer {lp.index}, path {k}: the segment from point {j} to "
+                             f"point {j + 1} passes ({x:.3f}, {y:.3f}) mm (robot base "
+                             f"frame), out of the {robot.name} workspace: {sreasons[0]}")
 
 
 def plan_toolpaths(toolpaths: Toolpaths, job: Job | None = None,

@@ -70,7 +70,7 @@ from __future__ import annotations
 
 import logging
 import math
-from typing import Callable, NamedTuple, Sequence
+from typing import Callable, Iterable, Iterator, NamedTuple, Sequence
 
 import numpy as np
 
@@ -1329,6 +1329,16 @@ def plan_paths(stack: Stack, job: Job | None = None, *,
     ``job``'s layer thickness contradicts the stack's.
     """
     job = job or stack.job
+    return collect_toolpaths(stack, job, iter_plan_paths(stack, job, progress=progress))
+
+
+def iter_plan_paths(stack: Stack, job: Job | None = None, *,
+                    progress: Callable[[int, int], None] | None = None
+                    ) -> Iterator[LayerPaths]:
+    """:func:`plan_paths` layer by layer: each layer's paths, in order, as the pool hands
+    them back (``icefab paths`` checks and tallies each one while the workers plan the
+    next: issue 17). The settings are checked before any layer is planned."""
+    job = job or stack.job
     check_layer_thickness(stack.layer_thickness, job)
     check_paths((sum(layer.part.area for layer in stack.layers),
                  sum(layer.scaffold.area for layer in stack.layers)), job)
@@ -1336,11 +1346,15 @@ def plan_paths(stack: Stack, job: Job | None = None, *,
         flags = measured_layers([L.thickness for L in stack.layers], job)
     else:
         flags = [None] * len(stack.layers)
-    # unpacked as the workers hand the layers back, not after the last one (a second of
-    # the bunny's 1 200 layers the workers would otherwise wait out)
-    layers = [unpack_layer_paths(p) for p in parallel_imap(
+    return (unpack_layer_paths(p) for p in parallel_imap(
         _plan_task, [(layer, job, m) for layer, m in zip(stack.layers, flags)], job,
-        min_items=8, progress=progress)]
+        min_items=8, progress=progress))
+
+
+def collect_toolpaths(stack: Stack, job: Job, layers: Iterable[LayerPaths]) -> Toolpaths:
+    """The ``Toolpaths`` of a stack's planned ``layers`` (:func:`iter_plan_paths`): the
+    stack's warnings plus a summary of the area no path sweeps."""
+    layers = list(layers)
     warnings = list(stack.warnings)
     total = np.array([lp.unfilled_mm2 for lp in layers]).reshape(-1, 2).sum(axis=0)
     if total.sum() >= GAP_MIN_AREA_MM2:    # less than the smallest gap path is no finding
@@ -1380,10 +1394,18 @@ def estimate_build_time(toolpaths: Toolpaths, job: Job | None = None
     Returns (per-layer times (n,) float64 s, total s). Accelerations are ignored.
     """
     job = job or toolpaths.job
-    per = np.array([float((path_lengths(lp.paths)
-                           / np.array([path_speed(p, job) for p in lp.paths])).sum())
-                    if lp.paths else 0.0 for lp in toolpaths.layers], dtype=np.float64)
+    per = np.array([layer_estimate(lp, job) for lp in toolpaths.layers], dtype=np.float64)
     return per, float(per.sum())
+
+
+def layer_estimate(lp: LayerPaths, job: Job, lengths: np.ndarray | None = None) -> float:
+    """One layer's :func:`estimate_build_time`, s; ``lengths``: its paths' lengths (mm,
+    :func:`icefab.core.path_lengths`) when the caller has them."""
+    if not lp.paths:
+        return 0.0
+    if lengths is None:
+        lengths = path_lengths(lp.paths)
+    return float((lengths / np.array([path_speed(p, job) for p in lp.paths])).sum())
 
 
 # --------------------------------------------------------------------------- files

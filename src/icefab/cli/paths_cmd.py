@@ -22,7 +22,7 @@ from icefab.cli.common import (ESTIMATE_WORDS, Progress, add_job_argument, hours
                                job_from_args, output_dir, parse_layers, warning_lines,
                                write_warnings)
 from icefab.report import plot_toolpaths
-from icefab.core import Toolpaths, path_lengths
+from icefab.core import LayerPaths, Toolpaths, path_lengths
 
 SHOW_WARNINGS = 5
 
@@ -43,22 +43,39 @@ def add_parser(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-def summary_lines(toolpaths: Toolpaths, per_layer_s: np.ndarray, total_s: float) -> list[str]:
-    """Counts by role and material, length, unfilled area and the time estimate."""
-    counts: dict[str, int] = {}
-    length: dict[str, float] = {}
-    for lp in toolpaths:
-        for p, mm in zip(lp.paths, path_lengths(lp.paths).tolist()):
+class PathTally:
+    """Counts and lengths of a build's paths by material and role, and the constant-speed
+    estimate of every layer (:func:`icefab.paths.layer_estimate`), added layer by layer as
+    the pool hands them back: one pass over each layer's paths, made while the workers plan
+    the next ones (issue 17)."""
+
+    def __init__(self, job) -> None:
+        self.job = job
+        self.counts: dict[str, int] = {}
+        self.length: dict[str, float] = {}
+        self.per_layer: list[float] = []
+
+    def add(self, lp: LayerPaths) -> None:
+        from icefab.paths import layer_estimate
+
+        lengths = path_lengths(lp.paths)
+        for p, mm in zip(lp.paths, lengths.tolist()):
             key = f"{p.material} {p.role}" if p.role != "travel" else "travel"
-            counts[key] = counts.get(key, 0) + 1
-            length[key] = length.get(key, 0.0) + mm
+            self.counts[key] = self.counts.get(key, 0) + 1
+            self.length[key] = self.length.get(key, 0.0) + mm
+        self.per_layer.append(layer_estimate(lp, self.job, lengths))
+
+
+def summary_lines(toolpaths: Toolpaths, tally: PathTally) -> list[str]:
+    """Counts by role and material, length, unfilled area and the time estimate."""
+    per_layer_s = np.array(tally.per_layer, dtype=np.float64)
     lines = [f"layers: {len(toolpaths)}"]
-    for key in sorted(counts):
-        lines.append(f"  {key}: {counts[key]} paths, {length[key] / 1000:.2f} m")
+    for key in sorted(tally.counts):
+        lines.append(f"  {key}: {tally.counts[key]} paths, {tally.length[key] / 1000:.2f} m")
     unf = np.array([lp.unfilled_mm2 for lp in toolpaths]).reshape(-1, 2).sum(axis=0)
     lines.append(f"unfilled area: part {unf[0]:.0f} mm², scaffold {unf[1]:.0f} mm²")
     if len(per_layer_s):
-        lines.append(f"constant-speed estimate: {hours(total_s)} (layers "
+        lines.append(f"constant-speed estimate: {hours(float(per_layer_s.sum()))} (layers "
                      f"{per_layer_s.min():.1f} .. {per_layer_s.max():.1f} s; "
                      f"{ESTIMATE_WORDS}; 'icefab plan' gives the build time)")
     ws = toolpaths.warnings
@@ -83,8 +100,10 @@ def _load_stack(args: argparse.Namespace, job):
 
 
 def run(args: argparse.Namespace) -> int:
-    from icefab.paths import estimate_build_time, plan_paths, save_toolpaths
+    from icefab.motion import check_layer_workspace
+    from icefab.paths import collect_toolpaths, iter_plan_paths, save_toolpaths
     from icefab.regions import add_scaffold
+    from icefab.robots import get_robot
 
     job = job_from_args(args)
     t0 = time.perf_counter()
@@ -93,23 +112,28 @@ def run(args: argparse.Namespace) -> int:
     if not any(not layer.scaffold.is_empty for layer in stack):
         stack = add_scaffold(stack, job, progress=Progress("scaffold"))
     t_scaf = time.perf_counter() - t0
-    toolpaths = plan_paths(stack, job, progress=Progress("paths"))
-    t_paths = time.perf_counter() - t0 - t_scaf
-    # reach, before any build time is estimated or a file written (issue 11)
-    from icefab.motion import check_build_workspace
+    # each layer's reach is checked as it comes, before any file is written (issue 11):
+    # an unreachable part stops the planning at its first bad layer; the summary's
+    # counts and estimate are taken on the way (the main process waits for the workers)
+    robot = get_robot(job)
+    tally = PathTally(job)
 
-    check_build_workspace(toolpaths, job)
+    def checked(lp: LayerPaths) -> LayerPaths:
+        check_layer_workspace(lp, job, robot)
+        tally.add(lp)
+        return lp
+    toolpaths = collect_toolpaths(stack, job, map(checked, iter_plan_paths(
+        stack, job, progress=Progress("paths"))))
+    t_paths = time.perf_counter() - t0 - t_scaf
     # OUT may hold the stack.npz this command read: output_dir leaves it there
     out = Path(args.out)
     with output_dir(out, "paths") as tmp, ThreadPoolExecutor(1) as pool:
         # the file is written (mostly zlib, which lets other threads run) while the
-        # picture, the estimate and the summary are made: 4 s of the bunny's 7 s after
-        # the paths (issue 17)
+        # picture and the summary are made (issue 17)
         saving = pool.submit(save_toolpaths, toolpaths, tmp / "toolpaths.npz")
         plot_toolpaths(stack, toolpaths, ks, tmp / "paths.png")
         write_warnings(toolpaths.warnings, tmp, "paths")
-        per_layer, total = estimate_build_time(toolpaths, job)
-        summary = summary_lines(toolpaths, per_layer, total)
+        summary = summary_lines(toolpaths, tally)
         saving.result()
     for line in summary:
         print(line)
