@@ -240,9 +240,10 @@ def moved(item: tuple, roll: int = 0, flip: bool = False) -> tuple:
     pts, closed, *rest = item
     per_point = bool(rest) and isinstance(rest[0], np.ndarray)
     if roll:
-        pts = np.roll(pts, -roll, axis=0)
+        # np.roll's result, without its general-axis overhead (a layer rotates thousands)
+        pts = np.concatenate((pts[roll:], pts[:roll]))
         if per_point:
-            rest[0] = np.roll(rest[0], -roll)
+            rest[0] = np.concatenate((rest[0][roll:], rest[0][:roll]))
     if flip:
         pts = pts[::-1]
         if per_point:

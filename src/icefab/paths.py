@@ -1076,8 +1076,7 @@ def _smoothed_axis(chains: list[tuple[np.ndarray, np.ndarray, bool]]
     after = np.where(~closed & (i == last), i, nxt)
     off = np.minimum(geo.segment_distance(P, Q[before], Q), geo.segment_distance(P, Q, Q[after]))
     W = W + 2.0 * off
-    cut = np.cumsum(n)[:-1]
-    return [(q, w, c) for q, w, (_p, _w, c) in zip(np.split(Q, cut), np.split(W, cut), chains)]
+    return [(q, w, c) for q, w, (_p, _w, c) in zip(_split(Q, n), _split(W, n), chains)]
 
 
 def _simplified(lines: list[np.ndarray], widths: list[np.ndarray], masks: list[np.ndarray],
@@ -1120,9 +1119,9 @@ def _simplified(lines: list[np.ndarray], widths: list[np.ndarray], masks: list[n
         o = bad[np.lexsort((-np.abs(W - w_lin)[bad], prev[bad]))]
         K[o[np.concatenate([[True], prev[o][1:] != prev[o][:-1]])]] = True
     pos = np.where(G[:, None], P, on_line)
-    cut = np.cumsum(n)[:-1]
-    return ([q[k] for q, k in zip(np.split(pos, cut), np.split(K, cut))],
-            [w[k] for w, k in zip(np.split(W, cut), np.split(K, cut))])
+    keep = _split(K, n)
+    return ([q[k] for q, k in zip(_split(pos, n), keep)],
+            [w[k] for w, k in zip(_split(W, n), keep)])
 
 
 def _edge_capped(lines: list[np.ndarray], widths: list[np.ndarray], region: Region,
@@ -1146,7 +1145,15 @@ def _edge_capped(lines: list[np.ndarray], widths: list[np.ndarray], region: Regi
     np.minimum.at(cap, seg, d_seg)
     np.minimum.at(cap, seg + 1, d_seg)
     W = np.minimum(np.concatenate(widths), 2.0 * cap)
-    return np.split(W, np.cumsum(n)[:-1])
+    return _split(W, n)
+
+
+def _split(a: np.ndarray, counts) -> list[np.ndarray]:
+    """``a`` cut into consecutive pieces of ``counts`` rows each (views, as ``np.split``
+    at the cumulated counts gives them, without its per-piece cost: the centre lines of a
+    bunny layer are cut into thousands)."""
+    ends = np.cumsum(counts).tolist()
+    return [a[s:e] for s, e in zip([0] + ends[:-1], ends)]
 
 
 def _run_paths(chains: list[tuple[np.ndarray, np.ndarray, bool]], w_min: float,
