@@ -394,3 +394,32 @@ def test_open_trajectories_reads_layers_as_asked_for(tmp_path, four_layers):
     for t in threads:
         t.join()
     assert not wrong
+
+
+def test_a_layer_shipped_to_a_worker_arrives_whole():
+    """The planning's work items pickle a layer as a few packed arrays (icefab plan sent
+    the bunny's 432 k Toolpath objects one by one): every field of every path, the
+    per-point widths of a variable-width path and the layer's own fields come back."""
+    import pickle
+
+    from icefab.motion import _ShippedLayer
+    base = _toolpaths(Job()).layers[1]
+    var = Toolpath(points=np.array([[0.0, 0.0], [1.0, 0.5], [2.0, 0.25]]), z=0.5,
+                   material="scaffold", role="fill", width=1.2, layer=1,
+                   widths=np.array([0.9, 1.4, 1.3]))
+    laser = Toolpath(points=np.array([[5.0, 5.0], [6.0, 5.0], [6.0, 6.0]]), z=0.5,
+                     role="measure", closed=True, layer=1, frame="base", tool="laser")
+    lp = LayerPaths(index=1, z=0.5, paths=base.paths + (var, laser), unfilled_mm2=(1.5, 2.5),
+                    thickness=0.3)
+    got = pickle.loads(pickle.dumps(_ShippedLayer(lp))).lp
+    assert (got.index, got.z, got.unfilled_mm2, got.thickness) == (1, 0.5, (1.5, 2.5), 0.3)
+    assert len(got.paths) == len(lp.paths)
+    for a, b in zip(lp.paths, got.paths):
+        np.testing.assert_array_equal(a.points, b.points)
+        assert (a.z, a.material, a.role, a.closed, a.width, a.layer, a.frame, a.tool) == \
+            (b.z, b.material, b.role, b.closed, b.width, b.layer, b.frame, b.tool)
+        assert (a.widths is None) == (b.widths is None)
+        if a.widths is not None:
+            np.testing.assert_array_equal(a.widths, b.widths)
+    # a serial run does not pickle: the layer itself is the item's
+    assert _ShippedLayer(lp).lp is lp
