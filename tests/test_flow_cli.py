@@ -127,3 +127,82 @@ def test_build_valves_in_batches_equal_the_paths_one_by_one(cpus):
             alone = plan_valves(lm.trajectories[lp.path], lp.material, job)
             assert np.array_equal(lp.program.ticks, alone.ticks)
             assert np.array_equal(r.program.ticks, alone.ticks) and lp.material == r.material
+
+
+def _blocked_file(tmp_path, n=9, fast_layer=None):
+    """n layers in a trajectory file of blocks of about one layer each (the bunny's hold
+    about 100): the workers of ``icefab valves`` take a block each. ``fast_layer``: that
+    layer's part path commands 300 mm^3/s (the table's top is 195)."""
+    layers = []
+    for k in range(n):
+        first = (line_trajectory(length=600, vmax=400.0, accel=4000.0, width=3.0,
+                                 role="fill", y=float(k)) if k == fast_layer
+                 else line_trajectory(y=float(k)))
+        layers.append(LayerMotion(index=k, z=0.25 * (k + 1), trajectories=(
+            first, line_trajectory(role="travel", width=0.0),
+            line_trajectory(vmax=100.0, role="fill", material="scaffold", y=5.0 + k))))
+    f = tmp_path / "blocked.npz"
+    save_trajectories(BuildMotion(layers=tuple(layers), job=Job()), f, block_samples=100)
+    return f
+
+
+def _cpus_job(tmp_path, cpus):
+    f = tmp_path / f"cpus{cpus}.toml"
+    f.write_text(f"[cell]\ncpus = {cpus}\n")
+    return f
+
+
+def test_valves_on_two_workers_write_what_one_writes(tmp_path, capsys):
+    """The file's blocks shared out to two workers: the same layer files, rows, summary
+    and printed lines, byte for byte, as one process reading the blocks in turn."""
+    from icefab.motion import TrajectoryFile
+    f = _blocked_file(tmp_path)
+    with TrajectoryFile(f) as motion:
+        assert len(motion.blocks()) >= 5
+        assert motion.blocks({3}) == [k for k in motion.blocks()
+                                      if 3 in [lm.index for lm in motion.iter_block(k)]]
+    printed = {}
+    for cpus in (1, 2):
+        out = tmp_path / f"out{cpus}"
+        assert main(["valves", str(f), "-o", str(out), "-c", str(_cpus_job(tmp_path, cpus)),
+                     "--format", "both"]) == 0
+        printed[cpus] = capsys.readouterr().out.replace(str(out), "OUT")
+    assert printed[1] == printed[2]
+    one = sorted(p.relative_to(tmp_path / "out1") for p in (tmp_path / "out1").rglob("*")
+                 if p.is_file())
+    two = sorted(p.relative_to(tmp_path / "out2") for p in (tmp_path / "out2").rglob("*")
+                 if p.is_file())
+    assert one == two and len([p for p in one if p.parts[0] == "valves"]) == 18
+    for rel in one:
+        a, b = (tmp_path / "out1" / rel).read_bytes(), (tmp_path / "out2" / rel).read_bytes()
+        if rel.name == "valves-summary.txt":
+            a, b = a.replace(b"out1", b"OUT"), b.replace(b"out2", b"OUT")
+        assert a == b, rel
+    rows = list(csv.DictReader((tmp_path / "out2" / "valves-paths.csv").open()))
+    assert [int(r["layer"]) for r in rows] == [k for k in range(9) for _ in range(2)]
+    # some layers only: the blocks that hold them, each layer once, in build order
+    out = tmp_path / "some"
+    assert main(["valves", str(f), "-o", str(out), "-c", str(_cpus_job(tmp_path, 2)),
+                 "--layers", "7,2,3"]) == 0
+    rows = list(csv.DictReader((out / "valves-paths.csv").open()))
+    assert [int(r["layer"]) for r in rows] == [2, 2, 3, 3, 7, 7]
+    assert sorted(p.name for p in (out / "valves").iterdir()) == [
+        "layer_0002.bin", "layer_0003.bin", "layer_0007.bin"]
+    for name in ("layer_0002.bin", "layer_0007.bin"):
+        assert (out / "valves" / name).read_bytes() == \
+            (tmp_path / "out1" / "valves" / name).read_bytes()
+
+
+def test_valves_on_two_workers_stop_at_the_first_bad_layer(tmp_path, capsys):
+    """A flow beyond the table in layer 6 stops the command with the error one process
+    gives (the layers after it, planned by the other worker meanwhile, change nothing),
+    and nothing is written."""
+    f = _blocked_file(tmp_path, fast_layer=6)
+    errors = {}
+    for cpus in (1, 2):
+        out = tmp_path / f"o{cpus}"
+        rc = main(["valves", str(f), "-o", str(out), "-c", str(_cpus_job(tmp_path, cpus)),
+                   "--out-of-range", "error"])
+        errors[cpus] = capsys.readouterr().err
+        assert rc == 2 and not out.exists()
+    assert errors[1] == errors[2] and "layer 6 part fill path: flow 300" in errors[1]

@@ -1237,13 +1237,21 @@ class TrajectoryFile:
     def iter_layers(self, wanted: "set[int] | None" = None) -> "Iterator[LayerMotion]":
         """The layers in file order (only those whose index is in ``wanted``, if given),
         decoded one block at a time."""
-        bls = self._block_layers
-        for k in range(len(bls) - 1):
-            a, b = int(bls[k]), int(bls[k + 1])
-            if wanted is not None and not wanted.intersection(
-                    self.layer_index[a:b].tolist()):
-                continue
+        for k in self.blocks(wanted):
             yield from self._decode_block(k, wanted)
+
+    def blocks(self, wanted: "set[int] | None" = None) -> list[int]:
+        """The blocks that hold layers (whose index is in ``wanted``, if given), in file
+        order: each one :meth:`iter_block` decodes at once (a worker's share of a build)."""
+        bls = self._block_layers
+        return [k for k in range(len(bls) - 1)
+                if wanted is None or wanted.intersection(
+                    self.layer_index[int(bls[k]):int(bls[k + 1])].tolist())]
+
+    def iter_block(self, k: int, wanted: "set[int] | None" = None
+                   ) -> "Iterator[LayerMotion]":
+        """The layers of block ``k`` (only those whose index is in ``wanted``, if given)."""
+        return self._decode_block(k, wanted)
 
     def _decode_block(self, k: int, wanted: "set[int] | None") -> "Iterator[LayerMotion]":
         """The layers of block k (those in ``wanted``, if given)."""

@@ -25,7 +25,9 @@ from __future__ import annotations
 
 import argparse
 import csv
+import os
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -69,9 +71,8 @@ def run(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace, motion) -> int:
     from icefab.config import load_job
-    from icefab.flow import (iter_build_valves, n_pulses, program_pieces, trajectory_width,
-                             write_valve_layer)
-    from icefab.headroom import check_feedback_headroom, layer_headroom, tightest
+    from icefab.headroom import check_feedback_headroom, tightest
+    from icefab.parallel import parallel_imap
     from icefab.workload import check_pulse_durations
 
     job = load_job(args.job) if args.job else motion.job
@@ -94,16 +95,6 @@ def _run(args: argparse.Namespace, motion) -> int:
                                            & motion.depositing()], job)
     n_layers = int(chosen.sum())
     rooms: list = []
-
-    def checked(layers):
-        """The layers, each checked for the closed-loop build's needs before its programs
-        are planned (issue 11): the command stops at the first that lacks them."""
-        nonlocal rooms
-        for lm in layers:
-            rooms = tightest(rooms + layer_headroom(lm, job))
-            check_feedback_headroom(rooms, job)
-            yield lm
-
     fmts = ("bin", "txt") if args.format == "both" else (args.format,)
     progress = Progress("valves")
     table = ["layer  paths  pulses  pieces  findings"]
@@ -111,44 +102,43 @@ def _run(args: argparse.Namespace, motion) -> int:
     sparse_paths = 0
     max_gap = max_gap_width = 0.0
     found: list[tuple[int, str]] = []
+    done = 0
     with output_dir(args.out, "valves") as tmp, \
             open(tmp / "valves-paths.csv", "w", newline="", encoding="utf-8") as fh:
         folder = tmp / "valves"
         folder.mkdir()
-        rows = csv.writer(fh)  # a row per path as it comes: 0.5 M paths on the bunny
-        rows.writerow(PATH_COLUMNS)
-        for lm, programs in iter_build_valves(checked(motion.iter_layers(wanted)), job,
-                                              progress=progress, total=n_layers):
-            counts = [0, 0, 0, 0]
-            spacing = _drop_spacings([lm.trajectories[lp.path] for lp in programs],
-                                     [lp.program for lp in programs],
-                                     job.flow.min_drops_per_mm)
-            for lp, (length, gap, sparse) in zip(programs, spacing):
-                material, prog = lp.material, lp.program
-                traj = lm.trajectories[lp.path]
-                p = traj.path
-                width = trajectory_width(traj, material, job)
-                pulses, pieces = n_pulses(prog), len(program_pieces(prog))
-                rows.writerow([lm.index, lp.path, material, p.role if p is not None else "",
-                               f"{length:.3f}", f"{traj.duration:.3f}", pulses, pieces,
-                               f"{width:.3f}", f"{gap:.3f}", f"{sparse:.3f}",
-                               len(prog.warnings), " | ".join(prog.warnings)])
-                for k, v in enumerate((1, pulses, pieces, len(prog.warnings))):
-                    counts[k] += v
-                totals["length"] += length
-                totals["sparse"] += sparse
-                if sparse > 0:
-                    sparse_paths += 1
-                if gap - width > max_gap - max_gap_width:
-                    max_gap, max_gap_width = gap, width
-                found.extend((lm.index, w) for w in prog.warnings)
-            for f in fmts:
-                write_valve_layer(lm.index, programs, folder / f"layer_{lm.index:04d}.{f}",
-                                  fmt=f)
-            table.append(f"{lm.index:5d}  {counts[0]:5d}  {counts[1]:6d}  {counts[2]:6d}  "
-                         f"{counts[3]:8d}")
-            for k, key in enumerate(("paths", "pulses", "pieces", "findings")):
-                totals[key] += counts[k]
+        csv.writer(fh).writerow(PATH_COLUMNS)
+        # the file's blocks are shared out to the workers, which read them, make and write
+        # their layers' programs and hand back what the summary needs (issue 17: one core
+        # did it all); their results are taken in build order
+        items = [(str(motion.path), k, wanted, job, fmts, str(folder))
+                 for k in motion.blocks(wanted)]
+        own = (os.getpid(), str(motion.path))
+        _OPEN[own] = motion   # a serial run reads the command's own file
+        try:
+            for block in parallel_imap(_block_valves, items, job, chunk_items=1):
+                for lv in block:
+                    # the closed-loop build's needs (issue 11), as far as this layer: the
+                    # workers checked each layer's own before its programs, so the first
+                    # layer that lacks them stopped the command there
+                    rooms = tightest(rooms + lv.rooms)
+                    fh.write(lv.rows)
+                    for length, sparse, gap, width in lv.paths:
+                        totals["length"] += length
+                        totals["sparse"] += sparse
+                        if sparse > 0:
+                            sparse_paths += 1
+                        if gap - width > max_gap - max_gap_width:
+                            max_gap, max_gap_width = gap, width
+                    found.extend((lv.index, w) for w in lv.found)
+                    table.append(f"{lv.index:5d}  {lv.counts[0]:5d}  {lv.counts[1]:6d}  "
+                                 f"{lv.counts[2]:6d}  {lv.counts[3]:8d}")
+                    for k, key in enumerate(("paths", "pulses", "pieces", "findings")):
+                        totals[key] += lv.counts[k]
+                    done += 1
+                    progress(done, n_layers)
+        finally:
+            _OPEN.pop(own, None)
         lines = _summary(args.out, n_layers, fmts, totals, sparse_paths, max_gap,
                          max_gap_width, found, job)
         # the closed-loop build's needs (issue 11), before findings
@@ -157,6 +147,74 @@ def _run(args: argparse.Namespace, motion) -> int:
             "\n".join(lines + ["", "per layer:"] + table) + "\n", encoding="utf-8")
     print("\n".join(lines))
     return 0
+
+
+class _LayerValves(NamedTuple):
+    """What the summary needs of one layer's valve programs (:func:`_block_valves`)."""
+
+    index: int
+    rooms: list            # the layer's feedback headroom (icefab.headroom)
+    rows: str              # its valves-paths.csv rows
+    counts: tuple          # paths, pulses, pieces, findings
+    paths: list            # per path: length, sparse length, largest drop gap, width (mm)
+    found: list            # its findings' texts
+
+
+#: Trajectory files open for :func:`_block_valves`, by (process, path): a worker opens its
+#: own once and reads several blocks; a serial run reads the command's own (a file object
+#: inherited through a fork would share its offset with the parent's).
+_OPEN: dict = {}
+
+
+def _block_valves(args: tuple) -> list[_LayerValves]:
+    """Worker: the valve programs of the layers of one block of a trajectory file (those
+    in ``wanted``), each checked for the closed-loop build's needs first (issue 11: the
+    first layer that lacks them stops the command), written as layer files into
+    ``folder``; returns what the summary needs of each. args: (trajectory file, block,
+    wanted layer indices or None, Job, formats, folder)."""
+    import io
+
+    from icefab.flow import (n_pulses, plan_build_valves, program_pieces, trajectory_width,
+                             write_valve_layer)
+    from icefab.headroom import check_feedback_headroom, layer_headroom, tightest
+    from icefab.motion import TrajectoryFile
+
+    src, k, wanted, job, fmts, folder = args
+    key = (os.getpid(), src)
+    motion = _OPEN.get(key)
+    if motion is None:
+        motion = _OPEN[key] = TrajectoryFile(src).__enter__()
+    out = []
+    for lm in motion.iter_block(k, wanted):
+        rooms = layer_headroom(lm, job)
+        check_feedback_headroom(tightest(rooms), job)
+        (programs,) = plan_build_valves([lm], job)
+        spacing = _drop_spacings([lm.trajectories[lp.path] for lp in programs],
+                                 [lp.program for lp in programs], job.flow.min_drops_per_mm)
+        text = io.StringIO()
+        rows = csv.writer(text)
+        counts = [0, 0, 0, 0]
+        per_path, found = [], []
+        for lp, (length, gap, sparse) in zip(programs, spacing):
+            material, prog = lp.material, lp.program
+            traj = lm.trajectories[lp.path]
+            p = traj.path
+            width = trajectory_width(traj, material, job)
+            pulses, pieces = n_pulses(prog), len(program_pieces(prog))
+            rows.writerow([lm.index, lp.path, material, p.role if p is not None else "",
+                           f"{length:.3f}", f"{traj.duration:.3f}", pulses, pieces,
+                           f"{width:.3f}", f"{gap:.3f}", f"{sparse:.3f}",
+                           len(prog.warnings), " | ".join(prog.warnings)])
+            for c, v in enumerate((1, pulses, pieces, len(prog.warnings))):
+                counts[c] += v
+            per_path.append((length, sparse, gap, width))
+            found.extend(prog.warnings)
+        for f in fmts:
+            write_valve_layer(lm.index, programs, Path(folder) / f"layer_{lm.index:04d}.{f}",
+                              fmt=f)
+        out.append(_LayerValves(int(lm.index), rooms, text.getvalue(), tuple(counts),
+                                per_path, found))
+    return out
 
 
 #: Columns of valves-paths.csv (lengths mm, times s).
