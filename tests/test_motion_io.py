@@ -423,3 +423,46 @@ def test_a_layer_shipped_to_a_worker_arrives_whole():
             np.testing.assert_array_equal(a.widths, b.widths)
     # a serial run does not pickle: the layer itself is the item's
     assert _ShippedLayer(lp).lp is lp
+
+
+def _count_samples(lp, trajectories, job):
+    """per_layer of the test below (module level: it reaches the workers by name)."""
+    return lp.index, sum(len(t.xy) for t in trajectories)
+
+
+@pytest.mark.parametrize("cpus", [1, 2])
+def test_packed_planning_gives_the_same_layers_and_the_workers_results(cpus, tmp_path):
+    """iter_plan_packed: the trajectories as the workers pack them, the constant-speed time
+    and per_layer's result on each layer; unpacked, the layers iter_plan_and_compare
+    gives; written, the file TrajectoryWriter.add writes of those layers."""
+    import zipfile
+
+    from icefab.motion import (iter_plan_and_compare, iter_plan_packed,
+                               unpack_layer_motion)
+    from icefab.resultfiles import TrajectoryWriter
+    job = Job().replace(**{"cell.cpus": cpus})
+    tp = _toolpaths(job, n_layers=5)
+    packed = list(iter_plan_packed(tp, job, per_layer=_count_samples))
+    whole = list(iter_plan_and_compare(tp, job))
+    assert [pl.paths.index for pl in packed] == [lm.index for lm, _ in whole] == list(range(5))
+    for pl, (lm, t) in zip(packed, whole):
+        assert pl.const_s == t and pl.extra == (lm.index, lm.n_points)
+        got = unpack_layer_motion(pl.paths, pl.packed)
+        for a, b in zip(got.trajectories, lm.trajectories):
+            np.testing.assert_array_equal(a.xy, b.xy)
+            np.testing.assert_array_equal(a.pieces, b.pieces)
+            assert a.path is b.path and a.duration == b.duration
+    files = {}
+    for how in ("add", "add_packed"):
+        path = tmp_path / f"{how}.npz"
+        with TrajectoryWriter(path, job, "scara", ("theta1", "theta2", "theta4"),
+                              block_samples=300) as w:
+            for pl, (lm, _) in zip(packed, whole):
+                if how == "add":
+                    w.add(lm)
+                else:
+                    w.add_packed(pl.paths.index, pl.paths.z, pl.paths.thickness,
+                                 pl.paths.paths, pl.packed)
+        with zipfile.ZipFile(path) as z:
+            files[how] = {n: z.read(n) for n in z.namelist()}
+    assert files["add"] == files["add_packed"] and len(files["add"]) > 20

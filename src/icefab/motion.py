@@ -115,7 +115,8 @@ log = logging.getLogger(__name__)
 
 __all__ = ["plan_motion", "plan_paths_motion", "plan_paths_durations", "plan_toolpaths",
            "iter_plan_toolpaths",
-           "iter_plan_and_compare",
+           "iter_plan_and_compare", "iter_plan_packed", "PlannedLayer",
+           "unpack_layer_motion",
            "constant_speed_motion",
            "constant_speed_time",
            "check_build_workspace", "check_layer_workspace", "LayerMotion", "BuildMotion",
@@ -826,11 +827,16 @@ def _layer_time_task(args: tuple) -> float:
                                       role_speeds=role_speeds).sum())
 
 
-def _plan_compare_task(args: tuple) -> tuple[dict[str, np.ndarray], float]:
-    """Worker: :func:`_plan_layer_task` and the layer's constant-speed time
-    (:func:`_layer_time_task` at ``speeds``). args: (_ShippedLayer, Job, speeds)."""
-    shipped, job, speeds = args
-    return _plan_layer_task((shipped, job, None)), _layer_time_task((shipped, job, speeds))
+def _plan_packed_task(args: tuple) -> tuple[dict[str, np.ndarray], float, object]:
+    """Worker: a layer's trajectories packed (as :func:`_plan_layer_task`), its
+    constant-speed time (:func:`_layer_time_task` at ``speeds``) and ``per_layer``'s result
+    on its trajectories. args: (_ShippedLayer, Job, speeds, per_layer or None)."""
+    shipped, job, speeds, per_layer = args
+    lp = shipped.lp
+    trajs = (plan_paths_motion(lp.paths, job, layer=lp.index) if lp.paths else [])
+    extra = per_layer(lp, trajs, job) if per_layer is not None else None
+    return (pack_trajectories(trajs, empty_pieces=True),
+            _layer_time_task((shipped, job, speeds)), extra)
 
 
 def _checked_items(toolpaths: Toolpaths, job: Job, role_speeds: Mapping[str, float] | None,
@@ -852,6 +858,11 @@ def _checked_items(toolpaths: Toolpaths, job: Job, role_speeds: Mapping[str, flo
         check_motion(*lengths.sum(axis=0), job)
     check_build_workspace(toolpaths, job, get_robot(job))
     return [(_ShippedLayer(lp), job, role_speeds) for lp in layers]
+
+
+def unpack_layer_motion(lp: LayerPaths, packed: dict[str, np.ndarray]) -> LayerMotion:
+    """The LayerMotion of a layer's packed trajectories (:class:`PlannedLayer`)."""
+    return _unpack_layer(lp, packed)
 
 
 def _unpack_layer(lp: LayerPaths, packed: dict[str, np.ndarray]) -> LayerMotion:
@@ -999,13 +1010,43 @@ def iter_plan_and_compare(toolpaths: Toolpaths, job: Job | None = None,
     """:func:`iter_plan_toolpaths` with each layer's :func:`constant_speed_time` (s)
     beside it, planned by the same worker in the same pass (``icefab plan``'s comparison:
     one pass over the build, one set of checks, instead of two)."""
+    for pl in iter_plan_packed(toolpaths, job, progress):
+        yield _unpack_layer(pl.paths, pl.packed), pl.const_s
+
+
+class PlannedLayer(NamedTuple):
+    """One layer as :func:`iter_plan_packed` hands it over."""
+
+    #: The layer's paths (trajectory i follows ``paths.paths[i]``).
+    paths: LayerPaths
+    #: Its trajectories as :func:`icefab.resultfiles.pack_trajectories` packs them
+    #: (pieces kept empty where a trajectory has none), what
+    #: :meth:`icefab.resultfiles.TrajectoryWriter.add_packed` writes.
+    packed: dict
+    #: The layer's :func:`constant_speed_time`, s.
+    const_s: float
+    #: What ``per_layer`` gave in the worker (None without one).
+    extra: object
+
+
+def iter_plan_packed(toolpaths: Toolpaths, job: Job | None = None,
+                     progress: Callable[[int, int], None] | None = None,
+                     per_layer: Callable[[LayerPaths, list[Trajectory], Job], object]
+                     | None = None) -> Iterator[PlannedLayer]:
+    """:func:`iter_plan_and_compare` with the trajectories left packed, as the workers send
+    them: a caller that writes them to a file (``icefab plan``) needs no Trajectory objects
+    (unpacking and packing again took the bunny's main process 4-5 s, issue 17).
+    ``per_layer(paths, trajectories, job)``, a module-level function (it reaches the
+    workers by name), runs in the worker on each layer's trajectories; its result comes
+    back with them."""
     job = job or toolpaths.job
     speeds = _constant_speeds(job, None, None)
     _check_role_speeds(speeds)
-    items = [(lp, j, speeds) for lp, j, _ in _checked_items(toolpaths, job, None, streamed=True)]
-    for lp, (packed, t) in zip(toolpaths.layers, parallel_imap(_plan_compare_task, items, job,
-                                                               progress=progress)):
-        yield _unpack_layer(lp, packed), t
+    items = [(lp, j, speeds, per_layer)
+             for lp, j, _ in _checked_items(toolpaths, job, None, streamed=True)]
+    for lp, (packed, t, extra) in zip(toolpaths.layers, parallel_imap(
+            _plan_packed_task, items, job, progress=progress)):
+        yield PlannedLayer(lp, packed, t, extra)
 
 
 def constant_speed_motion(toolpaths: Toolpaths, job: Job | None = None, *,

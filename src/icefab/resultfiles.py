@@ -789,21 +789,22 @@ _PATH_FIELDS = {"layer": np.int64, "path_index": np.int64, "material": np.int8,
                 "path_z": np.float64}
 
 
-def _path_fields(layer: LayerMotion) -> dict[str, list]:
-    """Per trajectory of a layer, the values of :data:`_PATH_FIELDS`: its layer, index in
-    the layer, material and role codes and its Path's width, closed flag, tool and z (a
-    trajectory without a Path: codes 0, width 0, open, tool "", the layer's z)."""
+def _path_fields(index: int, z: float, paths: "Sequence[Toolpath | None]"
+                 ) -> dict[str, list]:
+    """Per trajectory of a layer (``index``, ``z``) following ``paths``, the values of
+    :data:`_PATH_FIELDS`: its layer, index in the layer, material and role codes and its
+    Path's width, closed flag, tool and z (a trajectory without a Path: codes 0, width 0,
+    open, tool "", the layer's z)."""
     codes = {"material": {n: k for k, n in enumerate(MATERIAL_CODES)},
              "role": {n: k for k, n in enumerate(ROLE_CODES)}}
-    paths = [t.path for t in layer.trajectories]
-    return {"layer": [int(layer.index)] * len(paths),
+    return {"layer": [int(index)] * len(paths),
             "path_index": list(range(len(paths))),
             "material": [codes["material"][p.material] if p else 0 for p in paths],
             "role": [codes["role"][p.role] if p else 0 for p in paths],
             "width": [float(p.width) if p else 0.0 for p in paths],
             "closed": [bool(p.closed) if p else False for p in paths],
             "tool": [p.tool if p else "" for p in paths],
-            "path_z": [float(p.z) if p else float(layer.z) for p in paths]}
+            "path_z": [float(p.z) if p else float(z) for p in paths]}
 
 
 def owner_arrays(motion: BuildMotion) -> dict[str, np.ndarray]:
@@ -813,7 +814,7 @@ def owner_arrays(motion: BuildMotion) -> dict[str, np.ndarray]:
     keys = ("layer", "path_index", "material", "role")
     out: dict[str, list] = {k: [] for k in keys}
     for lm in motion.layers:
-        fields = _path_fields(lm)
+        fields = _path_fields(lm.index, lm.z, [t.path for t in lm.trajectories])
         for k in keys:
             out[k].extend(fields[k])
     return {k: np.array(v, dtype=_PATH_FIELDS[k]) for k, v in out.items()}
@@ -887,7 +888,7 @@ class TrajectoryWriter:
         self.path = Path(path)
         self.job, self.robot, self.joint_names = job, robot, tuple(joint_names)
         self.block_samples = max(1, int(block_samples))
-        self._buffer: list[LayerMotion] = []
+        self._buffer: list[dict[str, np.ndarray]] = []   # packed layers
         self._buffered = 0
         self._blocks = [0]        # layer offsets of the blocks written
         self._meta: dict[str, list] = {k: [] for k in (
@@ -920,26 +921,41 @@ class TrajectoryWriter:
     def add(self, layer: LayerMotion) -> None:
         """Append one layer (after the previous one)."""
         trajs = layer.trajectories
-        if trajs and self._dt is None:
-            self._dt = float(trajs[0].dt)
-        if trajs and not self._n_joints:
-            self._n_joints = int(np.asarray(trajs[0].joints).reshape(len(trajs[0].xy), -1)
-                                 .shape[1])
+        self.add_packed(layer.index, layer.z, layer.thickness, [t.path for t in trajs],
+                        pack_trajectories(trajs, self._n_joints, empty_pieces=True))
+
+    def add_packed(self, index: int, z: float, thickness: float,
+                   paths: Sequence[Toolpath | None], packed: dict[str, np.ndarray]) -> None:
+        """Append one layer given as :func:`pack_trajectories` packs it (``empty_pieces``
+        either way), trajectory i following ``paths[i]`` (None: no path): what the
+        planning's workers send, written without making Trajectory objects of it."""
+        ts = np.asarray(packed["traj_start"], np.int64)
+        n_traj = len(ts) - 1
+        if n_traj and self._dt is None:
+            self._dt = float(packed["traj_dt"][0])
+        if n_traj and not self._n_joints:
+            self._n_joints = int(np.asarray(packed["joints"]).reshape(int(ts[-1]), -1).shape[1])
         m = self._meta
-        for t in trajs:
-            pcs = t.pieces if len(t.pieces) else np.zeros(1, np.int64)
-            m["lengths"].append(len(t.xy))
-            m["piece_start"].append(np.asarray(pcs, np.int64))
-            m["piece_count"].append(len(pcs))
-            m["duration"].append(float(t.duration))
-            m["traj_dt"].append(float(t.dt))
-            m["variable"].append(t.widths is not None)
-        for k, v in _path_fields(layer).items():
+        # a trajectory without pieces has one, from its first sample
+        owner = np.asarray(packed["piece_owner"], np.int64)
+        starts = np.asarray(packed["piece_start"], np.int64)
+        count = np.bincount(owner, minlength=n_traj)
+        if (count == 0).any():
+            where = np.searchsorted(owner, np.flatnonzero(count == 0))
+            starts = np.insert(starts, where, 0)
+            count = np.maximum(count, 1)
+        m["lengths"].extend(np.diff(ts).tolist())
+        m["piece_start"].append(starts)
+        m["piece_count"].extend(count.tolist())
+        m["duration"].extend(np.asarray(packed["duration"], np.float64).tolist())
+        m["traj_dt"].extend(np.asarray(packed["traj_dt"], np.float64).tolist())
+        m["variable"].extend(np.asarray(packed["variable"], bool).tolist()
+                             if "variable" in packed else [False] * n_traj)
+        for k, v in _path_fields(index, z, paths).items():
             m[k].extend(v)
-        self._layers.append((int(layer.index), float(layer.z), len(trajs),
-                             float(layer.thickness)))
-        self._buffer.append(layer)
-        self._buffered += sum(len(t.xy) for t in trajs)
+        self._layers.append((int(index), float(z), n_traj, float(thickness)))
+        self._buffer.append(packed)
+        self._buffered += int(ts[-1])
         if self._buffered >= self.block_samples:
             self._flush()
 
@@ -947,22 +963,22 @@ class TrajectoryWriter:
         """Write the buffered layers' samples as the next block."""
         if not self._buffer:
             return
-        trajs = [t for lm in self._buffer for t in lm.trajectories]
         n, k = self._buffered, len(self._blocks) - 1
 
-        def columns(attr: str, cols: int) -> Iterator[np.ndarray]:
-            """Column by column, every buffered trajectory's ``attr`` samples."""
-            arrays = [np.asarray(getattr(t, attr), np.float64) for t in trajs]
+        def columns(name: str, cols: int) -> Iterator[np.ndarray]:
+            """Column by column, every buffered layer's ``name`` samples."""
+            arrays = [np.asarray(d[name], np.float64) for d in self._buffer]
+            whole = np.concatenate(arrays) if arrays else np.zeros((0, cols))
             for c in range(cols):
-                yield (np.concatenate([a[:, c] if a.ndim == 2 else a for a in arrays])
-                       if arrays else np.zeros(0))
+                yield np.ascontiguousarray(whole[:, c] if whole.ndim == 2 else whole)
         for name, attr, cols, res in (("xy", "xy", 2, XY_RESOLUTION_MM),
                                       ("joint", "joints", self._n_joints, JOINT_RESOLUTION),
                                       ("speed", "speed", 1, SPEED_RESOLUTION_MM_S)):
             planes = _encode_columns(columns(attr, cols), cols, n, res)
             with self._zip.open(f"{name}_counts_{k}.npy", "w", force_zip64=True) as fh:
                 np.lib.format.write_array(fh, planes, allow_pickle=False)
-        widths = _packed_widths(trajs).get("widths", np.zeros(0))
+        widths = np.concatenate([np.asarray(d["widths"], np.float64) for d in self._buffer
+                                 if "widths" in d] or [np.zeros(0)])
         planes = _encode_columns(iter([widths]), 1, len(widths), WIDTH_RESOLUTION_MM)
         with self._zip.open(f"width_counts_{k}.npy", "w", force_zip64=True) as fh:
             np.lib.format.write_array(fh, planes, allow_pickle=False)

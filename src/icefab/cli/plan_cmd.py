@@ -94,11 +94,22 @@ def _hms(s: float) -> str:
     return f"{h}:{m:02d}:{sec:02d}"
 
 
+def _layer_rooms(lp, trajectories, job) -> list:
+    """In a planning worker: the layer's feedback headroom (:func:`icefab.headroom.
+    layer_headroom` of its trajectories)."""
+    from icefab.core import LayerMotion
+    from icefab.headroom import layer_headroom
+
+    return layer_headroom(LayerMotion(index=lp.index, z=lp.z,
+                                      trajectories=tuple(trajectories),
+                                      thickness=lp.thickness), job)
+
+
 def run(args: argparse.Namespace) -> int:
     from icefab.export import save_gcode
-    from icefab.headroom import layer_headroom, tightest
-    from icefab.motion import (TrajectoryFile, TrajectoryWriter, iter_plan_and_compare,
-                               save_constant_spacing)
+    from icefab.headroom import tightest
+    from icefab.motion import (TrajectoryFile, TrajectoryWriter, iter_plan_packed,
+                               save_constant_spacing, unpack_layer_motion)
     from icefab.paths import estimate_build_time
     from icefab.robots import get_robot
 
@@ -122,19 +133,24 @@ def run(args: argparse.Namespace) -> int:
         total = dep = const_acc = 0.0
         with TrajectoryWriter(tmp / "trajectories.npz", job, robot.name,
                               robot.joint_names) as out:
-            for k, (lm, t_const) in enumerate(iter_plan_and_compare(
-                    tp, job, progress=Progress("planning"))):
-                out.add(lm)
-                const_acc += t_const
-                n_traj += len(lm.trajectories)
-                n_points += lm.n_points
-                total += lm.duration
-                dep += sum(t.duration for t in lm.trajectories
-                           if t.path is not None and t.path.depositing)
+            # the trajectories go to the file as the workers packed them (no Trajectory
+            # objects but the pictured layers'); the workers take each layer's feedback
+            # headroom too (issue 17)
+            for k, pl in enumerate(iter_plan_packed(
+                    tp, job, progress=Progress("planning"),
+                    per_layer=_layer_rooms if check_room else None)):
+                lp, packed = pl.paths, pl.packed
+                out.add_packed(lp.index, lp.z, lp.thickness, lp.paths, packed)
+                const_acc += pl.const_s
+                durations = packed["duration"]
+                n_traj += len(durations)
+                n_points += int(packed["traj_start"][-1])
+                total += float(durations.sum())
+                dep += sum(d for d, p in zip(durations.tolist(), lp.paths) if p.depositing)
                 if check_room:
-                    room = tightest(room + layer_headroom(lm, job))
+                    room = tightest(room + pl.extra)
                 if k in ks:
-                    pictured[k] = lm
+                    pictured[k] = unpack_layer_motion(lp, packed)
         t_plan = time.perf_counter() - t1
         _, const = estimate_build_time(tp, job)
         lines = [
