@@ -22,8 +22,12 @@ family of k-opt moves, of which 2-opt is the simplest).
 
 from __future__ import annotations
 
+from typing import Sequence
+
 import numpy as np
 from numba import njit
+
+from icefab.geometry import _turn_mask
 
 
 @njit(cache=True, error_model="numpy")
@@ -63,17 +67,10 @@ def entry_candidates(pts: np.ndarray, starts: np.ndarray, closed: np.ndarray,
             rows[r + 1] = m
             continue
         c = 0
-        if use_corners and k >= 3:
+        if use_corners and k >= 3:   # geometry.corner_vertices' test
+            turns = _turn_mask(pts[a:a + k], cos_limit)
             for i in range(k):
-                p = a + (i - 1 if i > 0 else k - 1)
-                q = a + (i + 1 if i + 1 < k else 0)
-                fx = pts[a + i, 0] - pts[p, 0]
-                fy = pts[a + i, 1] - pts[p, 1]
-                ex = pts[q, 0] - pts[a + i, 0]
-                ey = pts[q, 1] - pts[a + i, 1]
-                nf = np.sqrt(fx * fx + fy * fy)
-                ne = np.sqrt(ex * ex + ey * ey)
-                if nf > 0.0 and ne > 0.0 and fx * ex + fy * ey < cos_limit * nf * ne:
+                if turns[i]:
                     buf[c] = i
                     c += 1
         if c == 0:
@@ -221,6 +218,16 @@ def _closed_vertices(en: np.ndarray, ex: np.ndarray, perm: np.ndarray, closed: n
     return changed
 
 
+def entry_points(items: Sequence[tuple], index: np.ndarray, rows: np.ndarray
+                 ) -> np.ndarray:
+    """(m, 2) float64 mm: the points of ``items`` (``(points (k, 2), closed, ...)``) at
+    their candidate entries ``index[rows[i]:rows[i + 1]]`` (:func:`entry_candidates`)."""
+    owner = np.repeat(np.arange(len(items)), np.diff(rows))
+    first = np.concatenate([[0], np.cumsum([len(it[0]) for it in items])]).astype(np.int64)
+    pts = np.concatenate([it[0] for it in items]).astype(np.float64).reshape(-1, 2)
+    return pts[first[owner] + index]
+
+
 def travel_length(items, start) -> float:
     """Travel of visiting ``items`` ((points, closed, ...) as entered: a closed path at
     its first point, an open path from first to last point) in order from ``start``."""
@@ -270,16 +277,9 @@ def improve(items: list[tuple], start, candidates: tuple[np.ndarray, np.ndarray]
     closed = np.array([bool(it[1]) for it in items])
     en = np.array([it[0][0] for it in items], dtype=np.float64)
     ex = np.array([it[0][0] if it[1] else it[0][-1] for it in items], dtype=np.float64)
-    index, rows = (np.asarray(a, dtype=np.int64) for a in candidates)
-    # the closed paths' rows only
-    per = np.where(closed, np.diff(rows), 0)
-    cand_start = np.concatenate([[0], np.cumsum(per)]).astype(np.int64)
-    take = np.repeat(rows[:-1], per) + (np.arange(cand_start[-1]) - np.repeat(cand_start[:-1], per))
-    cand_idx = index[take]
-    owner = np.repeat(np.arange(n), per)
-    first = np.concatenate([[0], np.cumsum([len(it[0]) for it in items])])
-    cand = np.concatenate([it[0] for it in items]).astype(np.float64).reshape(-1, 2)[
-        first[owner] + cand_idx]
+    # every item's rows (_closed_vertices looks at the closed ones' only)
+    cand_idx, cand_start = (np.asarray(a, dtype=np.int64) for a in candidates)
+    cand = entry_points(items, cand_idx, cand_start)
     choice = np.full(n, -1, dtype=np.int64)   # -1: the vertex it was entered at
     perm = np.arange(n, dtype=np.int64)
     flip = np.zeros(n, dtype=np.bool_)

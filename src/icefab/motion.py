@@ -812,10 +812,8 @@ def _plan_layer_task(args: tuple) -> dict[str, np.ndarray]:
     (sending one object per trajectory, with its Toolpath, back through the pipe costs more
     than planning it). args: (_ShippedLayer, Job, role_speeds or None)."""
     shipped, job, role_speeds = args
-    lp = shipped.lp
-    trajs = (plan_paths_motion(lp.paths, job, layer=lp.index, role_speeds=role_speeds)
-             if lp.paths else [])
-    return pack_trajectories(trajs, empty_pieces=True)
+    return pack_trajectories(_plan_layer(shipped.lp, job, role_speeds).trajectories,
+                             empty_pieces=True)
 
 
 def _layer_time_task(args: tuple) -> float:
@@ -832,10 +830,9 @@ def _plan_packed_task(args: tuple) -> tuple[dict[str, np.ndarray], float, object
     constant-speed time (:func:`_layer_time_task` at ``speeds``) and ``per_layer``'s result
     on its trajectories. args: (_ShippedLayer, Job, speeds, per_layer or None)."""
     shipped, job, speeds, per_layer = args
-    lp = shipped.lp
-    trajs = (plan_paths_motion(lp.paths, job, layer=lp.index) if lp.paths else [])
-    extra = per_layer(lp, trajs, job) if per_layer is not None else None
-    return (pack_trajectories(trajs, empty_pieces=True),
+    lm = _plan_layer(shipped.lp, job)
+    extra = per_layer(lm, job) if per_layer is not None else None
+    return (pack_trajectories(lm.trajectories, empty_pieces=True),
             _layer_time_task((shipped, job, speeds)), extra)
 
 
@@ -861,11 +858,7 @@ def _checked_items(toolpaths: Toolpaths, job: Job, role_speeds: Mapping[str, flo
 
 
 def unpack_layer_motion(lp: LayerPaths, packed: dict[str, np.ndarray]) -> LayerMotion:
-    """The LayerMotion of a layer's packed trajectories (:class:`PlannedLayer`)."""
-    return _unpack_layer(lp, packed)
-
-
-def _unpack_layer(lp: LayerPaths, packed: dict[str, np.ndarray]) -> LayerMotion:
+    """The LayerMotion of a layer's packed trajectories (a worker's, :class:`PlannedLayer`)."""
     return LayerMotion(index=lp.index, z=lp.z,
                        trajectories=tuple(unpack_trajectories(packed, lp.paths)),
                        thickness=lp.thickness)
@@ -983,7 +976,7 @@ def plan_toolpaths(toolpaths: Toolpaths, job: Job | None = None,
     layers = list(toolpaths.layers)
     packed = parallel_map(_plan_layer_task, _checked_items(toolpaths, job, role_speeds),
                           job, min_items=2, progress=progress)
-    out = [_unpack_layer(lp, p) for lp, p in zip(layers, packed)]
+    out = [unpack_layer_motion(lp, p) for lp, p in zip(layers, packed)]
     return BuildMotion(layers=tuple(out), job=job, robot=robot.name,
                        joint_names=tuple(robot.joint_names))
 
@@ -1001,7 +994,7 @@ def iter_plan_toolpaths(toolpaths: Toolpaths, job: Job | None = None,
     items = _checked_items(toolpaths, job, None, streamed=True)
     for lp, packed in zip(toolpaths.layers, parallel_imap(_plan_layer_task, items, job,
                                                           progress=progress)):
-        yield _unpack_layer(lp, packed)
+        yield unpack_layer_motion(lp, packed)
 
 
 def iter_plan_and_compare(toolpaths: Toolpaths, job: Job | None = None,
@@ -1011,7 +1004,7 @@ def iter_plan_and_compare(toolpaths: Toolpaths, job: Job | None = None,
     beside it, planned by the same worker in the same pass (``icefab plan``'s comparison:
     one pass over the build, one set of checks, instead of two)."""
     for pl in iter_plan_packed(toolpaths, job, progress):
-        yield _unpack_layer(pl.paths, pl.packed), pl.const_s
+        yield unpack_layer_motion(pl.paths, pl.packed), pl.const_s
 
 
 class PlannedLayer(NamedTuple):
@@ -1031,14 +1024,14 @@ class PlannedLayer(NamedTuple):
 
 def iter_plan_packed(toolpaths: Toolpaths, job: Job | None = None,
                      progress: Callable[[int, int], None] | None = None,
-                     per_layer: Callable[[LayerPaths, list[Trajectory], Job], object]
-                     | None = None) -> Iterator[PlannedLayer]:
+                     per_layer: Callable[[LayerMotion, Job], object] | None = None
+                     ) -> Iterator[PlannedLayer]:
     """:func:`iter_plan_and_compare` with the trajectories left packed, as the workers send
     them: a caller that writes them to a file (``icefab plan``) needs no Trajectory objects
     (unpacking and packing again took the bunny's main process 4-5 s, issue 17).
-    ``per_layer(paths, trajectories, job)``, a module-level function (it reaches the
-    workers by name), runs in the worker on each layer's trajectories; its result comes
-    back with them."""
+    ``per_layer(layer, job)``, a module-level function (it reaches the workers by name, e.g.
+    :func:`icefab.headroom.layer_headroom`), runs in the worker on each planned layer; its
+    result comes back with the layer."""
     job = job or toolpaths.job
     speeds = _constant_speeds(job, None, None)
     _check_role_speeds(speeds)

@@ -712,8 +712,7 @@ def order_nearest(items: Sequence[tuple], start: np.ndarray,
         return [], np.asarray(start, dtype=np.float64)
     index, bounds = _entry_candidates(items, corner_deg)
     owner = np.repeat(np.arange(len(items)), np.diff(bounds))
-    first = offsets([len(it[0]) for it in items])
-    P = np.concatenate([it[0] for it in items]).astype(np.float64)[first[owner] + index]
+    P = _tour.entry_points(items, index, bounds)
     closed = np.array([bool(item[1]) for item in items])
     cur = np.asarray(start, dtype=np.float64)
     out: list[tuple] = []

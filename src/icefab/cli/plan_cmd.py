@@ -94,20 +94,9 @@ def _hms(s: float) -> str:
     return f"{h}:{m:02d}:{sec:02d}"
 
 
-def _layer_rooms(lp, trajectories, job) -> list:
-    """In a planning worker: the layer's feedback headroom (:func:`icefab.headroom.
-    layer_headroom` of its trajectories)."""
-    from icefab.core import LayerMotion
-    from icefab.headroom import layer_headroom
-
-    return layer_headroom(LayerMotion(index=lp.index, z=lp.z,
-                                      trajectories=tuple(trajectories),
-                                      thickness=lp.thickness), job)
-
-
 def run(args: argparse.Namespace) -> int:
     from icefab.export import save_gcode
-    from icefab.headroom import tightest
+    from icefab.headroom import layer_headroom, tightest
     from icefab.motion import (TrajectoryFile, TrajectoryWriter, iter_plan_packed,
                                save_constant_spacing, unpack_layer_motion)
     from icefab.paths import estimate_build_time
@@ -138,7 +127,7 @@ def run(args: argparse.Namespace) -> int:
             # headroom too (issue 17)
             for k, pl in enumerate(iter_plan_packed(
                     tp, job, progress=Progress("planning"),
-                    per_layer=_layer_rooms if check_room else None)):
+                    per_layer=layer_headroom if check_room else None)):
                 lp, packed = pl.paths, pl.packed
                 out.add_packed(lp.index, lp.z, lp.thickness, lp.paths, packed)
                 const_acc += pl.const_s

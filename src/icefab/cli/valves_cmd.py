@@ -183,7 +183,7 @@ def _block_valves(args: tuple) -> list[_LayerValves]:
     key = (os.getpid(), src)
     motion = _OPEN.get(key)
     if motion is None:
-        motion = _OPEN[key] = TrajectoryFile(src).__enter__()
+        motion = _OPEN[key] = TrajectoryFile(src)   # closed when the worker ends
     out = []
     for lm in motion.iter_block(k, wanted):
         rooms = layer_headroom(lm, job)
