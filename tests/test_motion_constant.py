@@ -122,3 +122,36 @@ def test_durations_without_samples_equal_the_planned_ones(constant):
     assert got.tolist() == planned
     assert got[3] == 0.0 and (got[[0, 1, 2, 4]] > 0).all()
     assert plan_paths_durations([], job).shape == (0,)
+
+
+def test_one_preparation_plans_both_cases_as_two_would():
+    """icefab plan's worker (_plan_layer_and_time) splits and checks a layer once for both
+    the MTTS plan and the constant-speed time: the same trajectories, sample for sample,
+    and the same time as planning each case on its own; an empty layer takes no time."""
+    from icefab.motion import (_constant_speeds, _plan_layer, _plan_layer_and_time,
+                               plan_paths_durations)
+    job = Job()
+    th = np.linspace(0.0, 2.0 * np.pi, 90, endpoint=False)
+    ring = np.c_[40.0 * np.cos(th), 25.0 * np.sin(th)]
+    zig = np.array([[0.0, 0.0], [30.0, 0.0], [30.0, 3.0], [0.0, 3.0], [0.0, 6.0]])
+    paths = (Toolpath(points=ring, closed=True, role="boundary", width=1.5, layer=3),
+             Toolpath(points=zig, role="fill", width=3.0, layer=3),
+             Toolpath(points=np.array([[0.0, 6.0], [40.0, 0.0]]), role="travel", layer=3),
+             Toolpath(points=np.array([[5.0, 5.0]]), role="fill", width=3.0, layer=3),
+             Toolpath(points=ring * 0.5, closed=True, role="measure", layer=3))
+    lp = LayerPaths(index=3, z=1.0, paths=paths)
+    speeds = _constant_speeds(job, None, None)
+    lm, const_s = _plan_layer_and_time(lp, job, speeds)
+    want = _plan_layer(lp, job)
+    assert len(lm.trajectories) == len(want.trajectories) == 5
+    for a, b in zip(lm.trajectories, want.trajectories):
+        np.testing.assert_array_equal(a.xy, b.xy)
+        np.testing.assert_array_equal(a.joints, b.joints)
+        np.testing.assert_array_equal(a.speed, b.speed)
+        np.testing.assert_array_equal(a.pieces, b.pieces)
+        assert a.duration == b.duration and a.path is b.path
+    assert const_s == float(plan_paths_durations(paths, job, layer=3,
+                                                 role_speeds=speeds).sum())
+    assert const_s > lm.duration > 0.0
+    empty, t = _plan_layer_and_time(LayerPaths(index=4, z=1.2, paths=()), job, speeds)
+    assert empty.trajectories == () and t == 0.0

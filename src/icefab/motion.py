@@ -381,13 +381,25 @@ class _Profiles(NamedTuple):
     a1: np.ndarray
 
 
-def _speed_profiles(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
-                    vcaps: np.ndarray, job: Job, robot: Robot,
-                    labels: Sequence[tuple[int, int]] | None = None) -> _Profiles:
-    """PATHSPLIT, workspace checks and the minimum-time speed profile of every piece (one
-    compiled call for all of them), up to the durations (no pieces, and empty profiles,
-    when every polyline is a single point). Arguments as :func:`_plan_polylines`."""
-    m = job.motion
+class _Prepared(NamedTuple):
+    """What the speed profiles of a set of polylines share whatever their speed bounds
+    (:func:`_prepare`): ``icefab plan`` plans every layer twice, at MTTS' bounds and at
+    the constant-speed case's, and PATHSPLIT, the joint angles at the grid points and the
+    workspace checks were a third of each plan (issue 17)."""
+
+    sp: _Split             # the PATHSPLIT pieces
+    P: int                 # polylines
+    qgrid: np.ndarray      # (G, j) joint angles at the grid points (joints with a bound)
+    used: np.ndarray       # (J,) bool: the robot's joints with a finite bound
+    vertices: tuple        # the followed polyline of every piece (:func:`_vertices`)
+    rest: tuple            # the first and last steps' bounds (:func:`_rest_step_bounds`)
+
+
+def _prepare(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray], job: Job,
+             robot: Robot, labels: Sequence[tuple[int, int]] | None = None) -> _Prepared:
+    """PATHSPLIT and the workspace checks of many polylines, and what their speed profiles
+    need besides the speed bounds (no pieces when every polyline is a single point).
+    Arguments as :func:`_plan_polylines`."""
     if isinstance(polys, tuple):
         V, counts = polys
     else:
@@ -407,8 +419,8 @@ def _speed_profiles(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
                                  f"(robot base frame) is out of the {robot.name} workspace: "
                                  f"{sreasons[0]}")
     if len(sp.a) == 0:
-        z = np.zeros(0)
-        return _Profiles(sp=sp, P=P, v=z, T=z, a0=z, a1=z)
+        return _Prepared(sp=sp, P=P, qgrid=np.zeros((0, 0)), used=np.zeros(0, bool),
+                         vertices=(), rest=())
     V, pid, orig_index = sp.V, sp.pid, sp.orig_index
     a, piece_path, pvs, S = sp.a, sp.piece_path, sp.pvs, sp.S
     hk, gstart, gxy, gs = sp.hk, sp.gstart, sp.gxy, sp.gs
@@ -444,27 +456,55 @@ def _speed_profiles(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
     qj = np.asarray(robot.joint_jerk_max, dtype=np.float64)
     used = np.isfinite(qv) | np.isfinite(qa) | np.isfinite(qj)
     qgrid = np.ascontiguousarray(qgrid[:, used])
+    # the polyline each piece follows (its vertices, turning vectors, arc length)
+    vertices = _vertices(sp.fxy, sp.fstart)
+    rest = _rest_step_bounds(gstart, hk, qgrid, robot, used, qa[used],
+                             float(job.motion.accel_mm_s2))
+    return _Prepared(sp=sp, P=P, qgrid=qgrid, used=used, vertices=vertices, rest=rest)
+
+
+def _profiles(prep: _Prepared, vcaps: np.ndarray, job: Job, robot: Robot) -> _Profiles:
+    """The minimum-time speed profile of every piece of ``prep`` under the speed bounds
+    ``vcaps`` ((P,) mm/s, one per polyline): VCON, ACON, JCON, AREST in one compiled call
+    for all of them, up to the durations."""
+    sp = prep.sp
+    if len(sp.a) == 0:
+        z = np.zeros(0)
+        return _Profiles(sp=sp, P=prep.P, v=z, T=z, a0=z, a1=z)
+    m = job.motion
+    used = prep.used
+    qv = np.asarray(robot.joint_speed_max, dtype=np.float64)[used]
+    qa = np.asarray(robot.joint_accel_max, dtype=np.float64)[used]
+    qj = np.asarray(robot.joint_jerk_max, dtype=np.float64)[used]
+    gstart, hk = sp.gstart, sp.hk
 
     # ---- VCON, ACON, JCON, AREST (compiled)
     jerk_on = bool(m.jerk_limited)
-    vcap_piece = np.asarray(vcaps, dtype=np.float64)[piece_path]
-    # the polyline each piece follows (its vertices, turning vectors, arc length)
-    vstart, vs_loc, vtau = _vertices(sp.fxy, sp.fstart)
+    vcap_piece = np.asarray(vcaps, dtype=np.float64)[sp.piece_path]
+    vstart, vs_loc, vtau = prep.vertices
     v, env, T = _mtts.speed_profiles(
-        _mtts.PieceGrid(gstart, hk, gxy, vstart, vs_loc, vtau),
+        _mtts.PieceGrid(gstart, hk, sp.gxy, vstart, vs_loc, vtau),
         _mtts.CartesianLimits(vcap_piece, float(m.accel_mm_s2), float(m.jerk_mm_s3),
                               bool(jerk_on), float(m.rest_accel_mm_s2)),
-        _mtts.JointLimits(qgrid, qv[used], qa[used], qj[used]),
+        _mtts.JointLimits(prep.qgrid, qv, qa, qj),
         _mtts.Sampling(float(m.dt_s), JERK_WINDOW_MM, JCON_TOLERANCE))
 
     # ---- AREST with the encoder resolution: first and last steps of every piece
     dt = float(m.dt_s)
-    dmin0, dmin1, cap0, cap1 = _rest_step_bounds(gstart, hk, qgrid, robot, used, qa[used],
-                                                 float(m.accel_mm_s2))
+    dmin0, dmin1, cap0, cap1 = prep.rest
     a0, a1, T = _mtts.rest_accelerations(gstart, hk, v, T, dt,
                                          float(m.rest_accel_mm_s2) if jerk_on else -1.0,
                                          dmin0, dmin1, cap0, cap1)
-    return _Profiles(sp=sp, P=P, v=v, T=T, a0=a0, a1=a1)
+    return _Profiles(sp=sp, P=prep.P, v=v, T=T, a0=a0, a1=a1)
+
+
+def _speed_profiles(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
+                    vcaps: np.ndarray, job: Job, robot: Robot,
+                    labels: Sequence[tuple[int, int]] | None = None) -> _Profiles:
+    """PATHSPLIT, workspace checks and the minimum-time speed profile of every piece (one
+    compiled call for all of them), up to the durations (no pieces, and empty profiles,
+    when every polyline is a single point). Arguments as :func:`_plan_polylines`."""
+    return _profiles(_prepare(polys, job, robot, labels), vcaps, job, robot)
 
 
 def _piece_samples(T: np.ndarray, dt: float) -> np.ndarray:
@@ -479,7 +519,11 @@ def _plan_durations(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
     samples it (its pieces' whole steps of dt; 0 for a single point), without the
     samples: what a comparison of build times needs (``icefab plan``'s constant-speed
     case), at the cost of the speed profiles alone."""
-    pr = _speed_profiles(polys, vcaps, job, robot, labels)
+    return _durations(_speed_profiles(polys, vcaps, job, robot, labels), job)
+
+
+def _durations(pr: _Profiles, job: Job) -> np.ndarray:
+    """(P,) s: every polyline's duration from its pieces' profiles (whole steps of dt)."""
     dt = float(job.motion.dt_s)
     if len(pr.T) == 0:
         return np.zeros(pr.P)
@@ -489,15 +533,18 @@ def _plan_durations(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
 def _plan_polylines(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
                     vcaps: np.ndarray, job: Job, robot: Robot,
                     labels: Sequence[tuple[int, int]] | None = None,
-                    paths: Sequence[Toolpath | None] | None = None) -> list[Trajectory]:
+                    paths: Sequence[Toolpath | None] | None = None,
+                    prep: _Prepared | None = None) -> list[Trajectory]:
     """Plan many polylines at once (one compiled call for all of them).
 
     polys: P arrays (k_i, 2) float64 mm in the robot base frame (closed paths with their
     first point repeated at the end), or already concatenated: a tuple (V (K, 2) float64
     mm, counts (P,) int64). vcaps: (P,) mm/s speed bound per path.
     labels: (layer, path index) per polyline, for error messages.
+    prep: ``_prepare(polys, job, robot, labels)`` when the caller has it already.
     """
-    pr = _speed_profiles(polys, vcaps, job, robot, labels)
+    pr = _profiles(prep if prep is not None else _prepare(polys, job, robot, labels),
+                   vcaps, job, robot)
     in_counts = (polys[1] if isinstance(polys, tuple) else
                  np.array([len(p) for p in polys], dtype=np.int64))
     if len(pr.T) == 0:
@@ -825,15 +872,33 @@ def _layer_time_task(args: tuple) -> float:
                                       role_speeds=role_speeds).sum())
 
 
+def _plan_layer_and_time(lp: LayerPaths, job: Job, role_speeds: Mapping[str, float]
+                         ) -> tuple[LayerMotion, float]:
+    """A layer planned (as :func:`_plan_layer`) and its motion time at ``role_speeds``
+    (as :func:`_layer_time_task`), the same values, from one PATHSPLIT, one set of joint
+    angles and one workspace check (:func:`_prepare`)."""
+    if not lp.paths:
+        return _plan_layer(lp, job), 0.0
+    robot = get_robot(job)
+    V, counts, caps, labels = _paths_input(lp.paths, job, lp.index, None)
+    other = np.array([_role_cap(p, job, role_speeds) for p in lp.paths], dtype=np.float64)
+    prep = _prepare((V, counts), job, robot, labels)
+    trajs = _plan_polylines((V, counts), caps, job, robot, labels=labels,
+                            paths=list(lp.paths), prep=prep)
+    lm = LayerMotion(index=lp.index, z=lp.z, trajectories=tuple(trajs),
+                     thickness=lp.thickness)
+    return lm, float(_durations(_profiles(prep, other, job, robot), job).sum())
+
+
 def _plan_packed_task(args: tuple) -> tuple[dict[str, np.ndarray], float, object]:
     """Worker: a layer's trajectories packed (as :func:`_plan_layer_task`), its
     constant-speed time (:func:`_layer_time_task` at ``speeds``) and ``per_layer``'s result
     on its trajectories. args: (_ShippedLayer, Job, speeds, per_layer or None)."""
     shipped, job, speeds, per_layer = args
-    lm = _plan_layer(shipped.lp, job)
+    _check_role_speeds(speeds)
+    lm, const_s = _plan_layer_and_time(shipped.lp, job, speeds)
     extra = per_layer(lm, job) if per_layer is not None else None
-    return (pack_trajectories(lm.trajectories, empty_pieces=True),
-            _layer_time_task((shipped, job, speeds)), extra)
+    return pack_trajectories(lm.trajectories, empty_pieces=True), const_s, extra
 
 
 def _checked_items(toolpaths: Toolpaths, job: Job, role_speeds: Mapping[str, float] | None,
