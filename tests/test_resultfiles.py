@@ -379,3 +379,41 @@ def test_point_states_of_packed_paths_are_each_paths(shapes):
     back = rf.unpack_paths(rf.pack_paths(paths))
     assert [(p.role, p.material, p.closed, len(p.points)) for p in back] == \
         [(r, m, c, k) for k, r, m, c in shapes]
+
+
+@given(st.lists(st.lists(st.tuples(st.integers(1, 5), st.booleans(), st.booleans()),
+                         max_size=6), max_size=5))
+def test_packed_layers_concatenate_to_the_packing_of_all_their_paths(layers):
+    """concat_packed (icefab paths writes the workers' packed layers without packing the
+    paths again) gives pack_paths of all the paths, member for member, dtypes too:
+    layers with and without variable-width paths, and empty ones."""
+    from icefab.core import Toolpath
+    layer_paths = []
+    for li, shapes in enumerate(layers):
+        layer_paths.append([
+            Toolpath(points=np.arange(2.0 * k).reshape(k, 2) + 10 * li + i, z=0.25 * li,
+                     role="fill", closed=c, width=1.5, layer=li,
+                     widths=np.linspace(1.0, 2.0, k) + i if var else None)
+            for i, (k, c, var) in enumerate(shapes)])
+    want = rf.pack_paths([p for paths in layer_paths for p in paths])
+    got = rf.concat_packed([rf.pack_paths(paths) for paths in layer_paths])
+    assert sorted(got) == sorted(want)
+    for key in want:
+        assert got[key].dtype == want[key].dtype, key
+        np.testing.assert_array_equal(got[key], want[key], err_msg=key)
+
+
+def test_toolpath_file_from_packed_layers_is_the_same_file(tmp_path):
+    """save_toolpaths with the layers packed writes the bytes it writes from the paths."""
+    from icefab.core import Toolpath
+    layers = tuple(LayerPaths(k, 0.5 * k, tuple(
+        Toolpath(points=_square(3.0 * i, 1.0 + i), z=0.5 * k, role="boundary", closed=True,
+                 width=1.5, layer=k, widths=np.full(4, 1.2) if i == 1 else None)
+        for i in range(k)), (0.1 * k, 0.0)) for k in range(4))
+    tp = Toolpaths(layers, Job())
+    rf.save_toolpaths(tp, tmp_path / "a.npz")
+    rf.save_toolpaths(tp, tmp_path / "b.npz",
+                      [rf.pack_paths(lp.paths) for lp in layers])
+    assert (tmp_path / "a.npz").read_bytes() == (tmp_path / "b.npz").read_bytes()
+    with pytest.raises(ValueError, match="3 packed layers for 4"):
+        rf.save_toolpaths(tp, tmp_path / "c.npz", [rf.pack_paths(()) for _ in range(3)])

@@ -1344,6 +1344,17 @@ def iter_plan_paths(stack: Stack, job: Job | None = None, *,
     """:func:`plan_paths` layer by layer: each layer's paths, in order, as the pool hands
     them back (``icefab paths`` checks and tallies each one while the workers plan the
     next: issue 17). The settings are checked before any layer is planned."""
+    return (unpack_layer_paths(p)
+            for p in iter_plan_paths_packed(stack, job, progress=progress))
+
+
+def iter_plan_paths_packed(stack: Stack, job: Job | None = None, *,
+                           progress: Callable[[int, int], None] | None = None
+                           ) -> Iterator[tuple]:
+    """:func:`iter_plan_paths` with each layer as the workers send it
+    (:func:`icefab.resultfiles.pack_layer_paths`; ``unpack_layer_paths`` makes it a
+    LayerPaths): what ``save_toolpaths(..., packed_layers=...)`` writes without packing
+    the paths again. The settings are checked before any layer is planned."""
     job = job or stack.job
     check_layer_thickness(stack.layer_thickness, job)
     check_paths((sum(layer.part.area for layer in stack.layers),
@@ -1352,9 +1363,8 @@ def iter_plan_paths(stack: Stack, job: Job | None = None, *,
         flags = measured_layers([L.thickness for L in stack.layers], job)
     else:
         flags = [None] * len(stack.layers)
-    return (unpack_layer_paths(p) for p in parallel_imap(
-        _plan_task, [(layer, job, m) for layer, m in zip(stack.layers, flags)], job,
-        min_items=8, progress=progress))
+    return parallel_imap(_plan_task, [(layer, job, m) for layer, m in zip(stack.layers, flags)],
+                         job, min_items=8, progress=progress)
 
 
 def collect_toolpaths(stack: Stack, job: Job, layers: Iterable[LayerPaths]) -> Toolpaths:

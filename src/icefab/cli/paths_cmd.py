@@ -101,7 +101,8 @@ def _load_stack(args: argparse.Namespace, job):
 
 def run(args: argparse.Namespace) -> int:
     from icefab.motion import check_layer_workspace
-    from icefab.paths import collect_toolpaths, iter_plan_paths, save_toolpaths
+    from icefab.paths import (collect_toolpaths, iter_plan_paths_packed, save_toolpaths,
+                              unpack_layer_paths)
     from icefab.regions import add_scaffold
     from icefab.robots import get_robot
 
@@ -117,12 +118,15 @@ def run(args: argparse.Namespace) -> int:
     # counts and estimate are taken on the way (the main process waits for the workers)
     robot = get_robot(job)
     tally = PathTally(job)
+    packed_layers = []   # as the workers packed them: the file's members (issue 17)
 
-    def checked(lp: LayerPaths) -> LayerPaths:
+    def checked(packed: tuple) -> LayerPaths:
+        lp = unpack_layer_paths(packed)
         check_layer_workspace(lp, job, robot)
         tally.add(lp)
+        packed_layers.append(packed[3])
         return lp
-    toolpaths = collect_toolpaths(stack, job, map(checked, iter_plan_paths(
+    toolpaths = collect_toolpaths(stack, job, map(checked, iter_plan_paths_packed(
         stack, job, progress=Progress("paths"))))
     t_paths = time.perf_counter() - t0 - t_scaf
     # OUT may hold the stack.npz this command read: output_dir leaves it there
@@ -130,7 +134,8 @@ def run(args: argparse.Namespace) -> int:
     with output_dir(out, "paths") as tmp, ThreadPoolExecutor(1) as pool:
         # the file is written (mostly zlib, which lets other threads run) while the
         # picture and the summary are made (issue 17)
-        saving = pool.submit(save_toolpaths, toolpaths, tmp / "toolpaths.npz")
+        saving = pool.submit(save_toolpaths, toolpaths, tmp / "toolpaths.npz",
+                             packed_layers)
         plot_toolpaths(stack, toolpaths, ks, tmp / "paths.png")
         write_warnings(toolpaths.warnings, tmp, "paths")
         summary = summary_lines(toolpaths, tally)
