@@ -124,10 +124,14 @@ def test_durations_without_samples_equal_the_planned_ones(constant):
     assert plan_paths_durations([], job).shape == (0,)
 
 
-def test_one_preparation_plans_both_cases_as_two_would():
+@pytest.mark.parametrize("speeds", [None, {"boundary": 25.0, "fill": 60.0},
+                                    {"boundary": 125.0, "fill": 125.0}])
+def test_one_preparation_plans_both_cases_as_two_would(speeds):
     """icefab plan's worker (_plan_layer_and_time) splits and checks a layer once for both
-    the MTTS plan and the constant-speed time: the same trajectories, sample for sample,
-    and the same time as planning each case on its own; an empty layer takes no time."""
+    the MTTS plan and the constant-speed time, and plans again only the pieces whose
+    bound differs (the boundaries at the default speeds; the fill too at 60 mm/s; none
+    when every bound is MTTS'): the same trajectories, sample for sample, and the same time
+    as planning each case on its own; an empty layer takes no time."""
     from icefab.motion import (_constant_speeds, _plan_layer, _plan_layer_and_time,
                                plan_paths_durations)
     job = Job()
@@ -140,7 +144,7 @@ def test_one_preparation_plans_both_cases_as_two_would():
              Toolpath(points=np.array([[5.0, 5.0]]), role="fill", width=3.0, layer=3),
              Toolpath(points=ring * 0.5, closed=True, role="measure", layer=3))
     lp = LayerPaths(index=3, z=1.0, paths=paths)
-    speeds = _constant_speeds(job, None, None)
+    speeds = speeds or _constant_speeds(job, None, None)
     lm, const_s = _plan_layer_and_time(lp, job, speeds)
     want = _plan_layer(lp, job)
     assert len(lm.trajectories) == len(want.trajectories) == 5
@@ -152,6 +156,28 @@ def test_one_preparation_plans_both_cases_as_two_would():
         assert a.duration == b.duration and a.path is b.path
     assert const_s == float(plan_paths_durations(paths, job, layer=3,
                                                  role_speeds=speeds).sum())
-    assert const_s > lm.duration > 0.0
+    assert const_s >= lm.duration > 0.0
+    assert (const_s > lm.duration) == (speeds["boundary"] < 125.0)
     empty, t = _plan_layer_and_time(LayerPaths(index=4, z=1.2, paths=()), job, speeds)
     assert empty.trajectories == () and t == 0.0
+
+
+def test_any_pieces_planned_alone_get_the_durations_planned_together():
+    """_piece_times plans a subset of a layer's pieces on their own rows: each gets the
+    duration the whole layer's compiled call gives it (pieces are independent)."""
+    from icefab.motion import _paths_input, _piece_times, _prepare, _profiles
+    from icefab.robots import get_robot
+    job = Job()
+    robot = get_robot(job)
+    rng = np.random.default_rng(7)
+    paths = [Toolpath(points=np.cumsum(rng.uniform(-8, 8, (int(k), 2)), axis=0),
+                      role="fill", width=1.5, closed=bool(k % 2))
+             for k in rng.integers(1, 12, 25)]
+    V, counts, caps, labels = _paths_input(paths, job, 0, None)
+    caps = rng.uniform(20.0, 125.0, len(caps))
+    prep = _prepare((V, counts), job, robot, labels)
+    T = _profiles(prep, caps, job, robot).T
+    assert len(T) > 25
+    for sel in (np.arange(len(T)), np.array([0]), np.array([len(T) - 1]),
+                np.flatnonzero(rng.random(len(T)) < 0.4), np.zeros(0, np.int64)):
+        assert _piece_times(prep, caps, job, robot, sel).tolist() == T[sel].tolist()

@@ -471,31 +471,69 @@ def _profiles(prep: _Prepared, vcaps: np.ndarray, job: Job, robot: Robot) -> _Pr
     if len(sp.a) == 0:
         z = np.zeros(0)
         return _Profiles(sp=sp, P=prep.P, v=z, T=z, a0=z, a1=z)
+    vcap_piece = np.asarray(vcaps, dtype=np.float64)[sp.piece_path]
+    v, T, a0, a1 = _piece_profiles(sp.gstart, sp.hk, sp.gxy, prep.vertices, prep.qgrid,
+                                   prep.rest, vcap_piece, prep.used, job, robot)
+    return _Profiles(sp=sp, P=prep.P, v=v, T=T, a0=a0, a1=a1)
+
+
+def _piece_profiles(gstart: np.ndarray, hk: np.ndarray, gxy: np.ndarray, vertices: tuple,
+                    qgrid: np.ndarray, rest: tuple, vcap_piece: np.ndarray, used: np.ndarray,
+                    job: Job, robot: Robot
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The compiled speed profiles of pieces on their grids (:class:`_Prepared`'s arrays,
+    ``vcap_piece`` (Q,) mm/s one per piece): v (G,), T, a0, a1 (Q,). Each piece is
+    planned on its own rows alone, so any subset of pieces gets the same values."""
     m = job.motion
-    used = prep.used
     qv = np.asarray(robot.joint_speed_max, dtype=np.float64)[used]
     qa = np.asarray(robot.joint_accel_max, dtype=np.float64)[used]
     qj = np.asarray(robot.joint_jerk_max, dtype=np.float64)[used]
-    gstart, hk = sp.gstart, sp.hk
 
     # ---- VCON, ACON, JCON, AREST (compiled)
     jerk_on = bool(m.jerk_limited)
-    vcap_piece = np.asarray(vcaps, dtype=np.float64)[sp.piece_path]
-    vstart, vs_loc, vtau = prep.vertices
+    vstart, vs_loc, vtau = vertices
     v, env, T = _mtts.speed_profiles(
-        _mtts.PieceGrid(gstart, hk, sp.gxy, vstart, vs_loc, vtau),
+        _mtts.PieceGrid(gstart, hk, gxy, vstart, vs_loc, vtau),
         _mtts.CartesianLimits(vcap_piece, float(m.accel_mm_s2), float(m.jerk_mm_s3),
                               bool(jerk_on), float(m.rest_accel_mm_s2)),
-        _mtts.JointLimits(prep.qgrid, qv, qa, qj),
+        _mtts.JointLimits(qgrid, qv, qa, qj),
         _mtts.Sampling(float(m.dt_s), JERK_WINDOW_MM, JCON_TOLERANCE))
 
     # ---- AREST with the encoder resolution: first and last steps of every piece
     dt = float(m.dt_s)
-    dmin0, dmin1, cap0, cap1 = prep.rest
+    dmin0, dmin1, cap0, cap1 = rest
     a0, a1, T = _mtts.rest_accelerations(gstart, hk, v, T, dt,
                                          float(m.rest_accel_mm_s2) if jerk_on else -1.0,
                                          dmin0, dmin1, cap0, cap1)
-    return _Profiles(sp=sp, P=prep.P, v=v, T=T, a0=a0, a1=a1)
+    return v, T, a0, a1
+
+
+def _ragged_rows(starts: np.ndarray, sel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of the ragged items ``sel`` (item k: rows ``starts[k]:starts[k + 1]``): their
+    row indices, in order, and their own starts (len(sel) + 1,)."""
+    counts = np.diff(starts)[sel]
+    new = offsets(counts)
+    return np.repeat(starts[:-1][sel] - new[:-1], counts) + np.arange(new[-1]), new
+
+
+def _piece_times(prep: _Prepared, vcaps: np.ndarray, job: Job, robot: Robot,
+                 sel: np.ndarray) -> np.ndarray:
+    """(len(sel),) s: the durations :func:`_profiles` gives the pieces ``sel`` (indices)
+    under ``vcaps`` ((P,) mm/s, one per polyline), planning those pieces alone."""
+    sp = prep.sp
+    if not len(sel):
+        return np.zeros(0)
+    rows, gstart = _ragged_rows(sp.gstart, sel)
+    vstart, vs_loc, vtau = prep.vertices
+    vrows, vnew = _ragged_rows(vstart, sel)
+    rest = tuple(np.ascontiguousarray(r[sel]) for r in prep.rest)
+    return _piece_profiles(gstart, np.ascontiguousarray(sp.hk[sel]),
+                           np.ascontiguousarray(sp.gxy[rows]),
+                           (vnew, np.ascontiguousarray(vs_loc[vrows]),
+                            np.ascontiguousarray(vtau[vrows])),
+                           np.ascontiguousarray(prep.qgrid[rows]), rest,
+                           np.asarray(vcaps, dtype=np.float64)[sp.piece_path[sel]],
+                           prep.used, job, robot)[1]
 
 
 def _speed_profiles(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
@@ -534,17 +572,18 @@ def _plan_polylines(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
                     vcaps: np.ndarray, job: Job, robot: Robot,
                     labels: Sequence[tuple[int, int]] | None = None,
                     paths: Sequence[Toolpath | None] | None = None,
-                    prep: _Prepared | None = None) -> list[Trajectory]:
+                    profiles: _Profiles | None = None) -> list[Trajectory]:
     """Plan many polylines at once (one compiled call for all of them).
 
     polys: P arrays (k_i, 2) float64 mm in the robot base frame (closed paths with their
     first point repeated at the end), or already concatenated: a tuple (V (K, 2) float64
     mm, counts (P,) int64). vcaps: (P,) mm/s speed bound per path.
     labels: (layer, path index) per polyline, for error messages.
-    prep: ``_prepare(polys, job, robot, labels)`` when the caller has it already.
+    profiles: ``_speed_profiles(polys, vcaps, job, robot, labels)`` when the caller has
+    them already.
     """
-    pr = _profiles(prep if prep is not None else _prepare(polys, job, robot, labels),
-                   vcaps, job, robot)
+    pr = profiles if profiles is not None else _speed_profiles(polys, vcaps, job, robot,
+                                                               labels)
     in_counts = (polys[1] if isinstance(polys, tuple) else
                  np.array([len(p) for p in polys], dtype=np.int64))
     if len(pr.T) == 0:
@@ -883,11 +922,20 @@ def _plan_layer_and_time(lp: LayerPaths, job: Job, role_speeds: Mapping[str, flo
     V, counts, caps, labels = _paths_input(lp.paths, job, lp.index, None)
     other = np.array([_role_cap(p, job, role_speeds) for p in lp.paths], dtype=np.float64)
     prep = _prepare((V, counts), job, robot, labels)
+    pr = _profiles(prep, caps, job, robot)
     trajs = _plan_polylines((V, counts), caps, job, robot, labels=labels,
-                            paths=list(lp.paths), prep=prep)
+                            paths=list(lp.paths), profiles=pr)
     lm = LayerMotion(index=lp.index, z=lp.z, trajectories=tuple(trajs),
                      thickness=lp.thickness)
-    return lm, float(_durations(_profiles(prep, other, job, robot), job).sum())
+    # a piece under the same bound in both cases has the same profile (the fill, travel
+    # and measurement paths at the default speeds): only the others are planned again
+    if len(pr.T):
+        piece = prep.sp.piece_path
+        again = np.flatnonzero(caps[piece] != other[piece])
+        T = pr.T.copy()
+        T[again] = _piece_times(prep, other, job, robot, again)
+        pr = pr._replace(T=T)
+    return lm, float(_durations(pr, job).sum())
 
 
 def _plan_packed_task(args: tuple) -> tuple[dict[str, np.ndarray], float, object]:
