@@ -3,6 +3,8 @@ stage to every sample, through both result files, into the valve programs (eq. 6
 w(s)), the feedback headroom, the speed controller's re-timing and the simulator."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -75,6 +77,14 @@ def test_a_path_with_bad_widths_is_refused_by_name():
     with pytest.raises(IcefabError, match="layer 3, path 1: widths must be finite"):
         plan_paths_motion([Toolpath(points=np.array([[0.0, 0.0], [5.0, 0.0]]), width=1.0),
                            bad], Job())
+    # the widths of a layer are checked at once: still the first bad path is named
+    good = dataclasses.replace(bad, widths=np.array([1.0, 2.0]))
+    short = dataclasses.replace(bad, widths=np.array([1.0]))
+    negative = dataclasses.replace(bad, widths=np.array([1.0, -0.5]))
+    with pytest.raises(IcefabError, match=r"layer 3, path 1: widths have shape \(1,\)"):
+        plan_paths_motion([good, short, negative, bad], Job())
+    with pytest.raises(IcefabError, match="layer 3, path 2: widths must be finite"):
+        plan_paths_motion([good, good, negative, short], Job())
 
 
 def _build(paths) -> Toolpaths:
