@@ -45,16 +45,16 @@ def test_paths_stops_planning_at_the_first_unreachable_layer(tmp_path, monkeypat
         planned.append(layer.index)
         return plan_layer(layer, job, measured)
 
-    check = motion.check_layer_workspace
+    check = motion.check_packed_workspace
 
-    def refusing(lp, job, robot=None):
-        if lp.index == 2:
-            raise WorkspaceError(f"layer {lp.index}, path 0: point 0 at (0.000, 0.000) mm "
+    def refusing(index, packed, job, robot=None):
+        if index == 2:
+            raise WorkspaceError(f"layer {index}, path 0: point 0 at (0.000, 0.000) mm "
                                  "(robot base frame) is out of the scara workspace: a test")
-        check(lp, job, robot)
+        check(index, packed, job, robot)
 
     monkeypatch.setattr(paths, "plan_layer", counting)
-    monkeypatch.setattr(motion, "check_layer_workspace", refusing)
+    monkeypatch.setattr(motion, "check_packed_workspace", refusing)
     tm = trimesh.creation.box(extents=(20.0, 20.0, 5.0))
     write_stl(Mesh(tm.vertices, tm.faces, "box"), tmp_path / "box.stl")
     (tmp_path / "job.toml").write_text("[cell]\ncpus = 1\n")   # serial: layers in order
@@ -63,3 +63,84 @@ def test_paths_stops_planning_at_the_first_unreachable_layer(tmp_path, monkeypat
     _out, err = capsys.readouterr()
     assert code == 2 and "layer 2, path 0" in err
     assert planned == [0, 1, 2] and not (tmp_path / "out").exists()
+
+
+def _layer_of(paths):
+    from icefab.core import LayerPaths
+    return LayerPaths(index=7, z=1.0, paths=tuple(paths))
+
+
+def _reach_error(check, *args):
+    try:
+        check(*args)
+    except WorkspaceError as e:
+        return str(e)
+    return None
+
+
+def test_the_packed_reach_check_is_the_paths_one():
+    """icefab paths checks the workers' packed layers (check_packed_workspace): the same
+    verdict and message as check_layer_workspace on the same paths, for a point out of
+    reach, a chord across the inner reach circle, a closing edge, other tools' offsets
+    and points already in the base frame."""
+    import numpy as np
+
+    from icefab import Job
+    from icefab.core import Toolpath
+    from icefab.motion import check_layer_workspace, check_packed_workspace
+    from icefab.resultfiles import pack_paths
+    job = Job()
+    ok = Toolpath(points=np.array([[0.0, 0.0], [20.0, 0.0], [20.0, 20.0]]), role="fill",
+                  width=1.0, closed=True)
+    cases = {
+        "reachable": [ok, Toolpath(points=np.array([[5.0, 5.0]]), role="measure"),
+                      Toolpath(points=np.array([[0.0, 0.0], [3.0, 0.0]]), role="travel",
+                               material="scaffold", tool="scaffold")],
+        "far point": [ok, Toolpath(points=np.array([[0.0, 0.0], [900.0, 0.0]]),
+                                   role="fill", width=1.0)],
+        # the base origin is inside the minimum reach: a chord through it
+        "chord": [Toolpath(points=np.array([[-300.0, -5.0], [300.0, -5.0]]), frame="base",
+                           role="travel")],
+        "closing edge": [ok, Toolpath(points=np.array([[300.0, 0.0], [300.0, 1.0],
+                                                       [-300.0, 1.0]]), frame="base",
+                                      role="boundary", width=1.0, closed=True)],
+        "laser": [ok, Toolpath(points=np.array([[0.0, 290.0], [0.0, 900.0]]),
+                               role="measure")],
+    }
+    for name, paths in cases.items():
+        lp = _layer_of(paths)
+        want = _reach_error(check_layer_workspace, lp, job)
+        got = _reach_error(check_packed_workspace, 7, pack_paths(paths), job)
+        assert got == want, name
+        assert (want is None) == (name == "reachable"), (name, want)
+    assert _reach_error(check_packed_workspace, 7, pack_paths([]), job) is None
+
+
+def test_the_paths_summary_tally_of_packed_layers_is_the_paths_one():
+    """PathTally.add_packed (icefab paths' counts, lengths and estimate, from the workers'
+    packed layers) gives what the paths themselves give: path_lengths summed one path
+    after the other per kind, layer_estimate per layer."""
+    import numpy as np
+
+    from icefab import Job
+    from icefab.cli.paths_cmd import PathTally
+    from icefab.core import Toolpath, path_lengths
+    from icefab.paths import layer_estimate
+    from icefab.resultfiles import pack_paths
+    rng = np.random.default_rng(3)
+    job = Job()
+    tally = PathTally(job)
+    want_counts, want_length = {}, {}
+    for li in range(4):
+        paths = [Toolpath(points=rng.uniform(-50, 50, (int(rng.integers(1, 6)), 2)),
+                          role=str(rng.choice(["boundary", "fill", "measure", "travel"])),
+                          material=str(rng.choice(["part", "scaffold"])),
+                          closed=bool(rng.integers(2)), width=1.0, layer=li)
+                 for _ in range(int(rng.integers(0, 30)))]
+        tally.add_packed(pack_paths(paths))
+        for p, mm in zip(paths, path_lengths(paths).tolist()):
+            key = f"{p.material} {p.role}" if p.role != "travel" else "travel"
+            want_counts[key] = want_counts.get(key, 0) + 1
+            want_length[key] = want_length.get(key, 0.0) + mm
+        assert tally.per_layer[-1] == layer_estimate(_layer_of(paths), job)
+    assert tally.counts == want_counts and tally.length == want_length

@@ -354,14 +354,20 @@ def path_lengths(paths: "Sequence[Toolpath]") -> np.ndarray:
         return np.zeros(0)
     polys = [p.polyline() for p in paths]
     counts = np.array([len(q) for q in polys], dtype=np.int64)
-    pts = np.concatenate([np.asarray(q, dtype=np.float64) for q in polys])
+    return polyline_lengths(np.concatenate([np.asarray(q, dtype=np.float64) for q in polys]),
+                            counts)
+
+
+def polyline_lengths(pts: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """(P,) float64 mm: the length of each of P polylines concatenated in ``pts`` (N, 2),
+    ``counts`` (P,) points each."""
     if len(pts) < 2:
-        return np.zeros(len(paths))
+        return np.zeros(len(counts))
     step = np.linalg.norm(np.diff(pts, axis=0), axis=1)
     inside = np.ones(len(step), dtype=bool)
     inside[np.cumsum(counts)[:-1] - 1] = False        # from one path to the next
-    owner = np.repeat(np.arange(len(paths)), counts)[1:]
-    return np.bincount(owner[inside], weights=step[inside], minlength=len(paths))
+    owner = np.repeat(np.arange(len(counts)), counts)[1:]
+    return np.bincount(owner[inside], weights=step[inside], minlength=len(counts))
 
 
 #: The name before 0.2 (it shadowed ``pathlib.Path`` in every module using both).

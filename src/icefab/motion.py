@@ -103,7 +103,8 @@ from icefab.parallel import parallel_imap, parallel_map
 from icefab.resultfiles import (TRAJECTORIES_FORMAT as FORMAT,  # noqa: F401 (old home)
                                 TRAJECTORIES_VERSION as VERSION, TrajectoryFile,
                                 TrajectoryWriter, load_trajectories, open_trajectories,
-                                owner_arrays, pack_layer_paths,
+                                owner_arrays, pack_layer_paths, packed_polylines,
+                                packed_tools,
                                 pack_trajectories, save_trajectories, unpack_layer_paths,
                                 unpack_trajectories)
 from icefab.robots import Robot, get_robot
@@ -1048,14 +1049,37 @@ def check_layer_workspace(lp: LayerPaths, job: Job, robot: Robot | None = None) 
     """
     if not lp.paths:
         return
-    robot = robot or get_robot(job)
     pts, counts = _to_base(lp.paths, [p.polyline() for p in lp.paths], job)
+    _check_reach(lp.index, pts, counts, robot or get_robot(job))
+
+
+def check_packed_workspace(index: int, packed: dict[str, np.ndarray], job: Job,
+                           robot: Robot | None = None) -> None:
+    """:func:`check_layer_workspace` of layer ``index`` given as
+    :func:`icefab.resultfiles.pack_paths` packed its paths (``icefab paths`` checks the
+    workers' layers so: no Toolpath made for it, issue 17); the same checks, points and
+    messages."""
+    if not len(packed["z"]):
+        return
+    pts, counts = packed_polylines(packed)
+    tools = packed_tools(packed)
+    shifts = {key: (np.zeros(2) if key == "" else to_base_frame(np.zeros((1, 2)), key,
+                                                                   job)[0])
+              for key in np.unique(tools).tolist()}
+    shift = np.array([shifts[key] for key in tools.tolist()]).reshape(-1, 2)
+    _check_reach(index, pts + np.repeat(shift, counts, axis=0), counts,
+                 robot or get_robot(job))
+
+
+def _check_reach(index: int, pts: np.ndarray, counts: np.ndarray, robot: Robot) -> None:
+    """The reach checks of :func:`check_layer_workspace` on a layer's polylines in the
+    robot base frame (``pts`` (N, 2) mm, ``counts`` (P,) points each)."""
     ends = np.cumsum(counts)
     bad, reasons = robot.workspace_violations(pts)
     if len(bad):
         i = int(bad[0])
         k, j = _locate(ends, i)
-        raise WorkspaceError(f"layer {lp.index}, path {k}: point {j} at ({pts[i, 0]:.3f}, "
+        raise WorkspaceError(f"layer {index}, path {k}: point {j} at ({pts[i, 0]:.3f}, "
                              f"{pts[i, 1]:.3f}) mm (robot base frame) is out of the "
                              f"{robot.name} workspace: {reasons[0]}")
     # segments (within a path): the point nearest the base origin
@@ -1075,7 +1099,7 @@ def check_layer_workspace(lp: LayerPaths, job: Job, robot: Robot | None = None) 
     if len(sbad):
         k, j = _locate(ends, int(seg[sbad[0]]))
         x, y = near[sbad[0]]
-        raise WorkspaceError(f"layer {lp.index}, path {k}: the segment from point {j} to "
+        raise WorkspaceError(f"layer {index}, path {k}: the segment from point {j} to "
                              f"point {j + 1} passes ({x:.3f}, {y:.3f}) mm (robot base "
                              f"frame), out of the {robot.name} workspace: {sreasons[0]}")
 

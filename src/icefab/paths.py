@@ -82,12 +82,12 @@ from icefab.parallel import parallel_imap
 from icefab.stages import check_layer_thickness, measured_layers
 from icefab.regions import hook_band_mm
 from icefab.resultfiles import (TOOLPATHS_FORMAT as FORMAT, TOOLPATHS_VERSION as VERSION,  # noqa: F401
-                                load_toolpaths, pack_layer_paths, save_toolpaths,
+                                LayerHead, load_toolpaths, pack_layer_paths, save_toolpaths,
                                 unpack_layer_paths)
 from icefab.geometry import signed_area
-from icefab.core import (OFF, ON1, ON2, Layer, LayerPaths, Region, Stack, Toolpath,  # noqa: F401
-                         Toolpaths, arc_lengths, closed_polyline, deposition_state, offsets,
-                         path_lengths, point_states)
+from icefab.core import (MATERIALS, OFF, ON1, ON2, ROLES, Layer, LayerPaths,  # noqa: F401
+                         Region, Stack, Toolpath, Toolpaths, arc_lengths, closed_polyline,
+                         deposition_state, offsets, path_lengths, point_states)
 from icefab.workload import check_paths
 
 log = logging.getLogger(__name__)
@@ -1371,12 +1371,18 @@ def collect_toolpaths(stack: Stack, job: Job, layers: Iterable[LayerPaths]) -> T
     """The ``Toolpaths`` of a stack's planned ``layers`` (:func:`iter_plan_paths`): the
     stack's warnings plus a summary of the area no path sweeps."""
     layers = list(layers)
+    return Toolpaths(tuple(layers), job, paths_warnings(stack, layers))
+
+
+def paths_warnings(stack: Stack, layers: Sequence[LayerPaths | LayerHead]) -> tuple[str, ...]:
+    """The warnings of a stack's planned layers (LayerPaths, or the heads ``icefab paths``
+    keeps): the stack's, and a summary of the area no path sweeps."""
     warnings = list(stack.warnings)
     total = np.array([lp.unfilled_mm2 for lp in layers]).reshape(-1, 2).sum(axis=0)
     if total.sum() >= GAP_MIN_AREA_MM2:    # less than the smallest gap path is no finding
         warnings.append(f"unfilled area (gaps the paths cannot fill): part {total[0]:.3g} "
                         f"mm^2, scaffold {total[1]:.3g} mm^2 over {len(layers)} layers")
-    return Toolpaths(tuple(layers), job, tuple(warnings))
+    return tuple(warnings)
 
 
 def _plan_task(args: tuple[Layer, Job, bool | None]) -> tuple:
@@ -1393,14 +1399,27 @@ def path_speed(path: Toolpath, job: Job) -> float:
     """Constant speed used for a path in the estimate, mm/s: boundary 25, fill 125,
     travel ``travel_speed_mm_s``, part measurement ``measure_speed_mm_s`` (50: the
     reflective ice, thesis 4.2), scaffold measurement ``speed_mm_s`` (125)."""
+    return float(_speed_table(job)[ROLES.index(path.role),
+                                   MATERIALS.index(path.material)])
+
+
+def _speed_table(job: Job) -> np.ndarray:
+    """(roles, materials) float64 mm/s: :func:`path_speed` of every role and material
+    (indexed as ``icefab.core.ROLES`` and ``MATERIALS``: the packed paths' codes)."""
     m = job.motion
-    if path.role == "boundary":
-        return m.boundary_speed_mm_s
-    if path.role == "fill":
-        return m.fill_speed_mm_s
-    if path.role == "travel":
-        return m.travel_speed_mm_s
-    return m.measure_speed_mm_s if path.material == "part" else m.speed_mm_s
+    table = np.empty((len(ROLES), len(MATERIALS)))
+    for r, role in enumerate(ROLES):
+        for k, material in enumerate(MATERIALS):
+            if role == "boundary":
+                v = m.boundary_speed_mm_s
+            elif role == "fill":
+                v = m.fill_speed_mm_s
+            elif role == "travel":
+                v = m.travel_speed_mm_s
+            else:
+                v = m.measure_speed_mm_s if material == "part" else m.speed_mm_s
+            table[r, k] = v
+    return table
 
 
 def estimate_build_time(toolpaths: Toolpaths, job: Job | None = None
@@ -1421,7 +1440,20 @@ def layer_estimate(lp: LayerPaths, job: Job, lengths: np.ndarray | None = None) 
         return 0.0
     if lengths is None:
         lengths = path_lengths(lp.paths)
-    return float((lengths / np.array([path_speed(p, job) for p in lp.paths])).sum())
+    table = _speed_table(job)
+    speeds = table[[ROLES.index(p.role) for p in lp.paths],
+                   [MATERIALS.index(p.material) for p in lp.paths]]
+    return float((lengths / speeds).sum())
+
+
+def packed_estimate(packed: dict[str, np.ndarray], job: Job, lengths: np.ndarray) -> float:
+    """:func:`layer_estimate` of a layer as :func:`icefab.resultfiles.pack_paths` packed
+    its paths (``lengths``: theirs, mm), the same value."""
+    if not len(lengths):
+        return 0.0
+    speeds = _speed_table(job)[packed["role"].astype(np.int64),
+                               packed["material"].astype(np.int64)]
+    return float((lengths / speeds).sum())
 
 
 # --------------------------------------------------------------------------- files

@@ -24,7 +24,7 @@ import numpy as np
 
 from icefab.atomic import atomic_path
 from icefab.feedback import simulate_1d
-from icefab.core import RuledEdges, Stack, Toolpaths, closed_polyline
+from icefab.core import LayerPaths, RuledEdges, Stack, Toolpaths, closed_polyline
 
 if TYPE_CHECKING:  # pragma: no cover
     from icefab.config import Job
@@ -242,9 +242,13 @@ def plot_ruled(edges: RuledEdges, stack: Stack, ks: list[int], path: Path) -> No
     save_figure(fig, path)
 
 
-def plot_toolpaths(stack: Stack, toolpaths: Toolpaths, ks: list[int], path: Path) -> None:
+def plot_toolpaths(stack: Stack, toolpaths: Toolpaths | Mapping[int, LayerPaths],
+                   ks: list[int], path: Path) -> None:
     """Draw layers ``ks``: regions filled (part blue, scaffold orange), boundaries solid,
-    fill thin, travel dashed grey, measurement dotted green. PNG written atomically."""
+    fill thin, travel dashed grey, measurement dotted green. PNG written atomically.
+    toolpaths: the build's, or the layers ``ks`` alone by index (``icefab paths`` keeps no
+    other layer's paths)."""
+    layers = toolpaths if isinstance(toolpaths, Mapping) else toolpaths.layers
     plt = pyplot()
     from matplotlib.patches import PathPatch
     from matplotlib.path import Path as MplPath
@@ -268,7 +272,7 @@ def plot_toolpaths(stack: Stack, toolpaths: Toolpaths, ks: list[int], path: Path
                               facecolor=_COLOUR[material], alpha=0.18, lw=0,
                               label=f"{material} region")
             ax.add_patch(patch)
-        lp = toolpaths.layers[k]
+        lp = layers[k]
         seen = set()
         for p in lp.paths:
             pts = p.polyline()

@@ -105,12 +105,12 @@ import tomllib
 import zipfile
 import zlib
 from pathlib import Path
-from typing import Iterable, Iterator, Sequence
+from typing import Iterable, Iterator, NamedTuple, Sequence
 
 import numpy as np
 
 from icefab.atomic import atomic_path
-from icefab.config import job_from_dict, to_toml
+from icefab.config import Job, job_from_dict, to_toml
 from icefab.core import (FRAMES, MATERIALS, OFF, ON1, ON2, ROLES, TOOLS, BuildMotion, Layer,
                          LayerMotion, LayerPaths, Region, RuledEdges, Stack, Toolpath,
                          Toolpaths, Trajectory, offsets)
@@ -618,6 +618,27 @@ def _point_states(packed: dict[str, np.ndarray]) -> np.ndarray:
     return out
 
 
+def packed_polylines(d: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Every path's :meth:`~icefab.core.Toolpath.polyline` (closed ones back to their first
+    point) of :func:`pack_paths`' arrays, concatenated: points (N, 2) and counts (P,), as
+    the paths would give them, without a Toolpath."""
+    start = d["path_start"]
+    n = np.diff(start)
+    close = d["closed"].astype(bool) & (n > 1)
+    order = np.insert(np.arange(len(d["points"])), start[1:][close], start[:-1][close])
+    return d["points"][order], n + close
+
+
+def packed_tools(d: dict[str, np.ndarray]) -> np.ndarray:
+    """(P,) the :attr:`~icefab.core.Toolpath.tool_name` of every path of
+    :func:`pack_paths`' arrays ("" where the points are in the robot base frame)."""
+    tool = np.array(TOOL_CODES, dtype=object)[d["tool"]]
+    derived = np.where(d["role"] == ROLE_CODES.index("measure"), "laser",
+                       np.array(MATERIAL_CODES, dtype=object)[d["material"]])
+    out = np.where(tool != "", tool, derived)
+    return np.where(d["frame"] == FRAME_CODES.index("base"), "", out)
+
+
 def unpack_paths(d: dict[str, np.ndarray], copy: bool = False) -> list[Toolpath]:
     """The paths of :func:`pack_paths`' arrays (points are views unless ``copy``)."""
     pts, start = d["points"], d["path_start"].tolist()
@@ -675,32 +696,53 @@ def concat_packed(parts: Sequence[dict[str, np.ndarray]]) -> dict[str, np.ndarra
     return out
 
 
+class LayerHead(NamedTuple):
+    """A layer of a toolpath file but its paths: what :func:`save_toolpath_layers` takes
+    beside the layer's packed paths (``icefab paths`` writes the workers' packed layers
+    without making their Toolpaths, issue 17); a LayerPaths serves as well."""
+
+    index: int
+    z: float
+    #: (part, scaffold) mm^2 that no path sweeps.
+    unfilled_mm2: tuple[float, float]
+    #: The layer's own thickness, mm; NaN: the job's.
+    thickness: float = math.nan
+
+
 def save_toolpaths(tp: Toolpaths, path: str | os.PathLike,
                    packed_layers: Sequence[dict[str, np.ndarray]] | None = None) -> None:
     """Write toolpaths to a ``.npz`` file (layout in the module docstring), atomically.
     packed_layers: every layer's paths as :func:`pack_paths` packed them, when the caller
     has them (``icefab paths``: the workers send them so), else they are packed here."""
-    if packed_layers is not None:
-        if len(packed_layers) != len(tp.layers):
-            raise ValueError(f"save_toolpaths: {len(packed_layers)} packed layers for "
-                             f"{len(tp.layers)} layers")
-        packed = concat_packed(packed_layers)
-    else:
-        packed = pack_paths([p for lp in tp.layers for p in lp.paths])
+    if packed_layers is None:
+        packed_layers = [pack_paths(lp.paths) for lp in tp.layers]
+    save_toolpath_layers(path, tp.job, tp.warnings, tp.layers, packed_layers)
+
+
+def save_toolpath_layers(path: str | os.PathLike, job: Job, warnings: Sequence[str],
+                         layers: Sequence[LayerHead | LayerPaths],
+                         packed_layers: Sequence[dict[str, np.ndarray]]) -> None:
+    """:func:`save_toolpaths` of layers given as their heads (index, z, unfilled area,
+    thickness: :class:`LayerHead` or LayerPaths) and their paths as :func:`pack_paths`
+    packed them, one dict per layer."""
+    if len(packed_layers) != len(layers):
+        raise ValueError(f"save_toolpaths: {len(packed_layers)} packed layers for "
+                         f"{len(layers)} layers")
+    packed = concat_packed(packed_layers)
     data = {
         "format": np.array(TOOLPATHS_FORMAT),
         "version": np.array(TOOLPATHS_VERSION),
-        "job": np.array(to_toml(tp.job)),
-        "warnings": np.array(list(tp.warnings), dtype=str),
+        "job": np.array(to_toml(job)),
+        "warnings": np.array(list(warnings), dtype=str),
         "points": packed.pop("points"),
         "state": _point_states(packed),
         **packed,
-        "layer_index": np.array([lp.index for lp in tp.layers], dtype=np.int64),
-        "layer_z": np.array([lp.z for lp in tp.layers], dtype=np.float64),
-        "layer_start": offsets([len(lp.paths) for lp in tp.layers]),
-        "unfilled_mm2": np.array([lp.unfilled_mm2 for lp in tp.layers],
+        "layer_index": np.array([lp.index for lp in layers], dtype=np.int64),
+        "layer_z": np.array([lp.z for lp in layers], dtype=np.float64),
+        "layer_start": offsets([len(d["z"]) for d in packed_layers]),
+        "unfilled_mm2": np.array([lp.unfilled_mm2 for lp in layers],
                                  dtype=np.float64).reshape(-1, 2),
-        **_heights([lp.thickness for lp in tp.layers]),
+        **_heights([lp.thickness for lp in layers]),
     }
     _write(path, data)
 

@@ -15,14 +15,16 @@ import dataclasses
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
 from icefab.cli.common import (ESTIMATE_WORDS, Progress, add_job_argument, hours,
                                job_from_args, output_dir, parse_layers, warning_lines,
                                write_warnings)
+from icefab.core import MATERIALS, ROLES, polyline_lengths
 from icefab.report import plot_toolpaths
-from icefab.core import LayerPaths, Toolpaths, path_lengths
+from icefab.resultfiles import LayerHead, packed_polylines
 
 SHOW_WARNINGS = 5
 
@@ -43,11 +45,17 @@ def add_parser(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+#: The summary's name of every (role, material) code pair, as ``role * len(MATERIALS) +
+#: material``: "<material> <role>", travel moves of both tools as one.
+_KEYS = np.array(["travel" if role == "travel" else f"{material} {role}"
+                  for role in ROLES for material in MATERIALS], dtype=object)
+
+
 class PathTally:
     """Counts and lengths of a build's paths by material and role, and the constant-speed
     estimate of every layer (:func:`icefab.paths.layer_estimate`), added layer by layer as
-    the pool hands them back: one pass over each layer's paths, made while the workers plan
-    the next ones (issue 17)."""
+    the pool hands them back, from the arrays the workers packed them in: made while the
+    workers plan the next layers, without a Toolpath (issue 17)."""
 
     def __init__(self, job) -> None:
         self.job = job
@@ -55,31 +63,36 @@ class PathTally:
         self.length: dict[str, float] = {}
         self.per_layer: list[float] = []
 
-    def add(self, lp: LayerPaths) -> None:
-        from icefab.paths import layer_estimate
+    def add_packed(self, packed: dict[str, np.ndarray]) -> None:
+        """One layer's paths as :func:`icefab.resultfiles.pack_paths` packed them."""
+        from icefab.paths import packed_estimate
 
-        lengths = path_lengths(lp.paths)
-        for p, mm in zip(lp.paths, lengths.tolist()):
-            key = f"{p.material} {p.role}" if p.role != "travel" else "travel"
-            self.counts[key] = self.counts.get(key, 0) + 1
-            self.length[key] = self.length.get(key, 0.0) + mm
-        self.per_layer.append(layer_estimate(lp, self.job, lengths))
+        lengths = polyline_lengths(*packed_polylines(packed))
+        key = _KEYS[packed["role"].astype(np.int64) * len(MATERIALS)
+                    + packed["material"].astype(np.int64)]
+        for k in sorted(set(key.tolist())):
+            mask = key == k
+            self.counts[k] = self.counts.get(k, 0) + int(mask.sum())
+            # added one path after the other, as a running sum would (cumsum is sequential)
+            self.length[k] = float(np.cumsum(np.concatenate(
+                [[self.length.get(k, 0.0)], lengths[mask]]))[-1])
+        self.per_layer.append(packed_estimate(packed, self.job, lengths))
 
 
-def summary_lines(toolpaths: Toolpaths, tally: PathTally) -> list[str]:
+def summary_lines(layers: Sequence[LayerHead], warnings: Sequence[str],
+                  tally: PathTally) -> list[str]:
     """Counts by role and material, length, unfilled area and the time estimate."""
     per_layer_s = np.array(tally.per_layer, dtype=np.float64)
-    lines = [f"layers: {len(toolpaths)}"]
+    lines = [f"layers: {len(layers)}"]
     for key in sorted(tally.counts):
         lines.append(f"  {key}: {tally.counts[key]} paths, {tally.length[key] / 1000:.2f} m")
-    unf = np.array([lp.unfilled_mm2 for lp in toolpaths]).reshape(-1, 2).sum(axis=0)
+    unf = np.array([lp.unfilled_mm2 for lp in layers]).reshape(-1, 2).sum(axis=0)
     lines.append(f"unfilled area: part {unf[0]:.0f} mm², scaffold {unf[1]:.0f} mm²")
     if len(per_layer_s):
         lines.append(f"constant-speed estimate: {hours(float(per_layer_s.sum()))} (layers "
                      f"{per_layer_s.min():.1f} .. {per_layer_s.max():.1f} s; "
                      f"{ESTIMATE_WORDS}; 'icefab plan' gives the build time)")
-    ws = toolpaths.warnings
-    lines += warning_lines(ws, "paths")
+    lines += warning_lines(warnings, "paths")
     return lines
 
 
@@ -100,10 +113,10 @@ def _load_stack(args: argparse.Namespace, job):
 
 
 def run(args: argparse.Namespace) -> int:
-    from icefab.motion import check_layer_workspace
-    from icefab.paths import (collect_toolpaths, iter_plan_paths_packed, save_toolpaths,
-                              unpack_layer_paths)
+    from icefab.motion import check_packed_workspace
+    from icefab.paths import iter_plan_paths_packed, paths_warnings
     from icefab.regions import add_scaffold
+    from icefab.resultfiles import save_toolpath_layers, unpack_layer_paths
     from icefab.robots import get_robot
 
     job = job_from_args(args)
@@ -115,30 +128,35 @@ def run(args: argparse.Namespace) -> int:
     t_scaf = time.perf_counter() - t0
     # each layer's reach is checked as it comes, before any file is written (issue 11):
     # an unreachable part stops the planning at its first bad layer; the summary's
-    # counts and estimate are taken on the way (the main process waits for the workers)
+    # counts and estimate are taken on the way (the main process waits for the workers).
+    # The layers stay as the workers packed them (the file's members); only the pictured
+    # ones become Toolpaths (issue 17: 432 k of them took the bunny's main process 2.5 s)
     robot = get_robot(job)
     tally = PathTally(job)
-    packed_layers = []   # as the workers packed them: the file's members (issue 17)
-
-    def checked(packed: tuple) -> LayerPaths:
-        lp = unpack_layer_paths(packed)
-        check_layer_workspace(lp, job, robot)
-        tally.add(lp)
-        packed_layers.append(packed[3])
-        return lp
-    toolpaths = collect_toolpaths(stack, job, map(checked, iter_plan_paths_packed(
-        stack, job, progress=Progress("paths"))))
+    heads: list[LayerHead] = []
+    packed_layers: list[dict[str, np.ndarray]] = []
+    pictured = {}
+    for k, packed in enumerate(iter_plan_paths_packed(stack, job,
+                                                      progress=Progress("paths"))):
+        index, z, unfilled, arrays, thickness = packed
+        check_packed_workspace(index, arrays, job, robot)
+        tally.add_packed(arrays)
+        heads.append(LayerHead(index, z, unfilled, thickness))
+        packed_layers.append(arrays)
+        if k in ks:
+            pictured[k] = unpack_layer_paths(packed)
+    warnings = paths_warnings(stack, heads)
     t_paths = time.perf_counter() - t0 - t_scaf
     # OUT may hold the stack.npz this command read: output_dir leaves it there
     out = Path(args.out)
     with output_dir(out, "paths") as tmp, ThreadPoolExecutor(1) as pool:
         # the file is written (mostly zlib, which lets other threads run) while the
         # picture and the summary are made (issue 17)
-        saving = pool.submit(save_toolpaths, toolpaths, tmp / "toolpaths.npz",
-                             packed_layers)
-        plot_toolpaths(stack, toolpaths, ks, tmp / "paths.png")
-        write_warnings(toolpaths.warnings, tmp, "paths")
-        summary = summary_lines(toolpaths, tally)
+        saving = pool.submit(save_toolpath_layers, tmp / "toolpaths.npz", job, warnings,
+                             heads, packed_layers)
+        plot_toolpaths(stack, pictured, ks, tmp / "paths.png")
+        write_warnings(warnings, tmp, "paths")
+        summary = summary_lines(heads, warnings, tally)
         saving.result()
     for line in summary:
         print(line)
