@@ -466,3 +466,63 @@ def test_packed_planning_gives_the_same_layers_and_the_workers_results(cpus, tmp
         with zipfile.ZipFile(path) as z:
             files[how] = {n: z.read(n) for n in z.namelist()}
     assert files["add"] == files["add_packed"] and len(files["add"]) > 20
+
+
+@pytest.mark.parametrize("cpus", [1, 2])
+def test_a_build_loaded_as_arrays_plans_and_writes_as_its_toolpaths(cpus, tmp_path):
+    """icefab plan loads its toolpath file as arrays (load_packed_toolpaths: no Toolpath
+    made) and iter_plan_packed checks and ships them as they are: the same trajectories,
+    times and per_layer results as the Toolpaths loaded from that file, each layer with
+    its path arrays, and written by TrajectoryWriter.add_packed from those arrays the
+    same file byte for byte; the constant-speed estimate is the same too."""
+    import zipfile
+
+    from icefab.motion import iter_plan_packed
+    from icefab.paths import estimate_build_time
+    from icefab.resultfiles import (LayerHead, TrajectoryWriter, load_packed_toolpaths,
+                                    load_toolpaths, save_toolpaths)
+    job = Job().replace(**{"cell.cpus": cpus})
+    f = tmp_path / "tp.npz"
+    save_toolpaths(_toolpaths(job, n_layers=5), f)
+    whole, arrays = load_toolpaths(f), load_packed_toolpaths(f)
+    (per_a, sum_a), (per_w, sum_w) = (estimate_build_time(tp, job) for tp in (arrays, whole))
+    assert per_a.tolist() == per_w.tolist() and sum_a == sum_w > 0
+    got = list(iter_plan_packed(arrays, job, per_layer=_count_samples))
+    want = list(iter_plan_packed(whole, job, per_layer=_count_samples))
+    files = []
+    for planned, kind in ((got, "arrays"), (want, "paths")):
+        path = tmp_path / f"{kind}.npz"
+        with TrajectoryWriter(path, job, "scara", ("theta1", "theta2", "theta4"),
+                              block_samples=300) as w:
+            for pl in planned:
+                w.add_packed(pl.paths.index, pl.paths.z, pl.paths.thickness,
+                             pl.path_arrays if kind == "arrays" else pl.paths.paths,
+                             pl.packed)
+        with zipfile.ZipFile(path) as z:
+            files.append({n: z.read(n) for n in z.namelist()})
+    assert files[0] == files[1]
+    for a, b in zip(got, want):
+        assert isinstance(a.paths, LayerHead) and a.path_arrays is not None
+        assert b.path_arrays is None and a.paths.index == b.paths.index
+        assert a.const_s == b.const_s and a.extra == b.extra
+        for key in b.packed:
+            np.testing.assert_array_equal(a.packed[key], b.packed[key], err_msg=key)
+
+
+def test_unreachable_builds_loaded_as_arrays_are_refused_before_planning(monkeypatch, tmp_path):
+    """The up-front checks of a build loaded as arrays: the reach of every layer (the
+    same message as its Toolpaths get) before any layer is planned."""
+    import icefab.motion as motion
+    from icefab.errors import WorkspaceError
+    from icefab.resultfiles import load_packed_toolpaths, load_toolpaths, save_toolpaths
+    job = Job().replace(**{"cell.cpus": 1, "cell.ee_origin_mm": (560.0, 0.0)})
+    f = tmp_path / "tp.npz"
+    save_toolpaths(_toolpaths(job, n_layers=5), f)
+    monkeypatch.setattr(motion, "_plan_packed_task",
+                        lambda args: pytest.fail("planned an unreachable build"))
+    messages = []
+    for tp in (load_packed_toolpaths(f), load_toolpaths(f)):
+        with pytest.raises(WorkspaceError) as e:
+            next(motion.iter_plan_packed(tp, job))
+        messages.append(str(e.value))
+    assert messages[0] == messages[1] and "layer 4, path 0: point 0" in messages[0]

@@ -417,3 +417,40 @@ def test_toolpath_file_from_packed_layers_is_the_same_file(tmp_path):
     assert (tmp_path / "a.npz").read_bytes() == (tmp_path / "b.npz").read_bytes()
     with pytest.raises(ValueError, match="3 packed layers for 4"):
         rf.save_toolpaths(tp, tmp_path / "c.npz", [rf.pack_paths(()) for _ in range(3)])
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.lists(st.tuples(st.integers(1, 5), st.booleans(), st.booleans()),
+                         max_size=5), min_size=1, max_size=5))
+def test_toolpath_files_read_as_arrays_give_each_layers_paths(layers):
+    """load_packed_toolpaths cuts the file's arrays into layers: each layer's arrays are
+    pack_paths of that layer's paths (variable widths in some layers only, empty layers),
+    and its Toolpaths those of load_toolpaths."""
+    import tempfile
+
+    from icefab.core import Toolpath
+    tp = Toolpaths(tuple(
+        LayerPaths(li, 0.25 * (li + 1), tuple(
+            Toolpath(points=np.arange(2.0 * k).reshape(k, 2) + i, z=0.25 * (li + 1),
+                     role="fill", closed=c, width=1.5, layer=li,
+                     widths=np.linspace(1.0, 2.0, k) if var else None)
+            for i, (k, c, var) in enumerate(shapes)), (0.5 * li, 0.0))
+        for li, shapes in enumerate(layers)), Job())
+    with tempfile.TemporaryDirectory() as d:
+        f = Path(d) / "t.npz"
+        rf.save_toolpaths(tp, f)
+        arrays, whole = rf.load_packed_toolpaths(f), rf.load_toolpaths(f)
+    assert len(arrays) == len(tp.layers) and arrays.warnings == whole.warnings
+    for k, lp in enumerate(tp.layers):
+        want = rf.pack_paths(lp.paths)
+        got = arrays.layers[k]
+        assert sorted(got) == sorted(want)
+        for key in want:
+            np.testing.assert_array_equal(got[key], want[key], err_msg=key)
+        assert arrays.heads[k][:3] == (lp.index, lp.z, lp.unfilled_mm2)
+        assert np.isnan(arrays.heads[k].thickness) and np.isnan(whole.layers[k].thickness)
+        back = arrays.layer_paths(k)
+        assert [(p.role, p.closed, p.points.tolist(),
+                 None if p.widths is None else p.widths.tolist()) for p in back.paths] == \
+            [(p.role, p.closed, p.points.tolist(),
+              None if p.widths is None else p.widths.tolist()) for p in whole.layers[k].paths]

@@ -32,6 +32,10 @@ MATERIALS: tuple[str, ...] = typing.get_args(Material)
 ROLES: tuple[str, ...] = typing.get_args(Role)
 FRAMES: tuple[str, ...] = typing.get_args(Frame)
 TOOLS: tuple[str, ...] = typing.get_args(Tool)
+#: The roles along which material flows (:attr:`Toolpath.depositing`), and their indices
+#: in ``ROLES`` (the codes of packed paths).
+DEPOSITING_ROLES: tuple[str, ...] = ("boundary", "fill")
+DEPOSITING_CODES: tuple[int, ...] = tuple(ROLES.index(r) for r in DEPOSITING_ROLES)
 
 
 def offsets(counts) -> np.ndarray:
@@ -311,7 +315,7 @@ class Toolpath:
     @property
     def depositing(self) -> bool:
         """True when material flows along this path (Ossino's ON1/ON2 vs OFF)."""
-        return self.role in ("boundary", "fill")
+        return self.role in DEPOSITING_ROLES
 
     def polyline(self) -> np.ndarray:
         """(k or k+1, 2) points with the first point repeated at the end when closed."""

@@ -103,13 +103,14 @@ from icefab.parallel import parallel_imap, parallel_map
 from icefab.resultfiles import (TRAJECTORIES_FORMAT as FORMAT,  # noqa: F401 (old home)
                                 TRAJECTORIES_VERSION as VERSION, TrajectoryFile,
                                 TrajectoryWriter, load_trajectories, open_trajectories,
-                                owner_arrays, pack_layer_paths, packed_polylines,
-                                packed_tools,
+                                PackedToolpaths, owner_arrays, pack_layer_paths,
+                                packed_polylines, packed_tools,
                                 pack_trajectories, save_trajectories, unpack_layer_paths,
                                 unpack_trajectories)
 from icefab.robots import Robot, get_robot
-from icefab.core import (ROLES, BuildMotion, LayerMotion, LayerPaths, Toolpath, Toolpaths,
-                         Trajectory, arc_lengths, offsets, path_lengths, widths_problem)
+from icefab.core import (DEPOSITING_CODES, ROLES, BuildMotion, LayerMotion, LayerPaths,
+                         Toolpath, Toolpaths, Trajectory, arc_lengths, offsets, path_lengths,
+                         polyline_lengths, widths_problem)
 from icefab.workload import check_motion
 
 log = logging.getLogger(__name__)
@@ -891,13 +892,23 @@ class _ShippedLayer:
     object per path cost the bunny's ``icefab plan`` 2.0 s to send and 4.8 s to receive,
     240 MB through the pipes); a serial run (no pickling) packs nothing."""
 
-    __slots__ = ("lp",)
+    __slots__ = ("_lp", "_packed")
 
-    def __init__(self, lp: LayerPaths) -> None:
-        self.lp = lp
+    def __init__(self, lp: LayerPaths | None = None, packed: tuple | None = None) -> None:
+        """lp: the layer; or ``packed``, the layer as ``pack_layer_paths`` gives it (a
+        :class:`~icefab.resultfiles.PackedToolpaths` layer: sent as it is)."""
+        self._lp = lp
+        self._packed = packed
+
+    @property
+    def lp(self) -> LayerPaths:
+        if self._lp is None:
+            self._lp = unpack_layer_paths(self._packed)
+        return self._lp
 
     def __reduce__(self):
-        return _arrived_layer, (pack_layer_paths(self.lp),)
+        return _arrived_layer, (self._packed if self._packed is not None
+                                else pack_layer_paths(self._lp),)
 
 
 def _arrived_layer(packed: tuple) -> _ShippedLayer:
@@ -960,25 +971,35 @@ def _plan_packed_task(args: tuple) -> tuple[dict[str, np.ndarray], float, object
     return pack_trajectories(lm.trajectories, empty_pieces=True), const_s, extra
 
 
-def _checked_items(toolpaths: Toolpaths, job: Job, role_speeds: Mapping[str, float] | None,
+def _checked_items(toolpaths: Toolpaths | PackedToolpaths, job: Job,
+                   role_speeds: Mapping[str, float] | None,
                    streamed: bool = False) -> list[tuple]:
     """The per-layer work items of a build's planning, once the build has passed the checks
     made before any layer is planned (role speeds, sample budget, workspace).
 
     The sample budget: the whole build within :data:`icefab.workload.MAX_SAMPLES` when it
     is held in memory; ``streamed`` (one layer's samples at a time): every layer within it
-    and the build within ``MAX_STREAMED_SAMPLES``."""
+    and the build within ``MAX_STREAMED_SAMPLES``. A :class:`PackedToolpaths` build is
+    checked and sent as its arrays (no Toolpath made in this process)."""
     _check_role_speeds(role_speeds)
-    layers = list(toolpaths.layers)
-    lengths = _path_lengths(layers)  # sample budget before any planning
+    packed = isinstance(toolpaths, PackedToolpaths)
+    heads = toolpaths.heads if packed else list(toolpaths.layers)
+    # sample budget before any planning
+    lengths = _packed_path_lengths(toolpaths.layers) if packed else _path_lengths(heads)
     if streamed:
-        for lp, (dep, other) in zip(layers, lengths):
+        for lp, (dep, other) in zip(heads, lengths):
             check_motion(dep, other, job, what=f"layer {lp.index}")
         check_motion(*lengths.sum(axis=0), job, streamed=True)
     else:
         check_motion(*lengths.sum(axis=0), job)
-    check_build_workspace(toolpaths, job, get_robot(job))
-    return [(_ShippedLayer(lp), job, role_speeds) for lp in layers]
+    robot = get_robot(job)
+    if not packed:
+        check_build_workspace(toolpaths, job, robot)
+        return [(_ShippedLayer(lp), job, role_speeds) for lp in heads]
+    for head, arrays in zip(heads, toolpaths.layers):
+        check_packed_workspace(head.index, arrays, job, robot)
+    return [(_ShippedLayer(packed=toolpaths.packed_layer(k)), job, role_speeds)
+            for k in range(len(heads))]
 
 
 def unpack_layer_motion(lp: LayerPaths, packed: dict[str, np.ndarray]) -> LayerMotion:
@@ -1015,6 +1036,18 @@ def _path_lengths(layers: Sequence[LayerPaths]) -> np.ndarray:
         if lp.paths:
             per = path_lengths(lp.paths)
             dep = np.array([p.depositing for p in lp.paths])
+            out[k] = per[dep].sum(), per[~dep].sum()
+    return out
+
+
+def _packed_path_lengths(layers: Sequence[dict[str, np.ndarray]]) -> np.ndarray:
+    """:func:`_path_lengths` of layers given as :func:`icefab.resultfiles.pack_paths`
+    packs them, the same values."""
+    out = np.zeros((len(layers), 2))
+    for k, d in enumerate(layers):
+        if len(d["z"]):
+            per = polyline_lengths(*packed_polylines(d))
+            dep = np.isin(d["role"], DEPOSITING_CODES)
             out[k] = per[dep].sum(), per[~dep].sum()
     return out
 
@@ -1167,9 +1200,13 @@ class PlannedLayer(NamedTuple):
     const_s: float
     #: What ``per_layer`` gave in the worker (None without one).
     extra: object
+    #: For a :class:`~icefab.resultfiles.PackedToolpaths` build, the layer's paths as
+    #: :func:`~icefab.resultfiles.pack_paths` packs them (``paths`` is then the layer's
+    #: :class:`~icefab.resultfiles.LayerHead`); None otherwise.
+    path_arrays: dict | None = None
 
 
-def iter_plan_packed(toolpaths: Toolpaths, job: Job | None = None,
+def iter_plan_packed(toolpaths: Toolpaths | PackedToolpaths, job: Job | None = None,
                      progress: Callable[[int, int], None] | None = None,
                      per_layer: Callable[[LayerMotion, Job], object] | None = None
                      ) -> Iterator[PlannedLayer]:
@@ -1178,14 +1215,21 @@ def iter_plan_packed(toolpaths: Toolpaths, job: Job | None = None,
     (unpacking and packing again took the bunny's main process 4-5 s, issue 17).
     ``per_layer(layer, job)``, a module-level function (it reaches the workers by name, e.g.
     :func:`icefab.headroom.layer_headroom`), runs in the worker on each planned layer; its
-    result comes back with the layer."""
+    result comes back with the layer. A :class:`~icefab.resultfiles.PackedToolpaths` build
+    (``icefab plan`` loads its file so) is checked and sent as its arrays, and each
+    PlannedLayer carries them (``path_arrays``)."""
     job = job or toolpaths.job
     speeds = _constant_speeds(job, None, None)
     _check_role_speeds(speeds)
     items = [(lp, j, speeds, per_layer)
              for lp, j, _ in _checked_items(toolpaths, job, None, streamed=True)]
-    for lp, (packed, t, extra) in zip(toolpaths.layers, parallel_imap(
-            _plan_packed_task, items, job, progress=progress)):
+    planned = parallel_imap(_plan_packed_task, items, job, progress=progress)
+    if isinstance(toolpaths, PackedToolpaths):
+        for head, arrays, (packed, t, extra) in zip(toolpaths.heads, toolpaths.layers,
+                                                     planned):
+            yield PlannedLayer(head, packed, t, extra, arrays)
+        return
+    for lp, (packed, t, extra) in zip(toolpaths.layers, planned):
         yield PlannedLayer(lp, packed, t, extra)
 
 

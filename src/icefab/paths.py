@@ -82,12 +82,13 @@ from icefab.parallel import parallel_imap
 from icefab.stages import check_layer_thickness, measured_layers
 from icefab.regions import hook_band_mm
 from icefab.resultfiles import (TOOLPATHS_FORMAT as FORMAT, TOOLPATHS_VERSION as VERSION,  # noqa: F401
-                                LayerHead, load_toolpaths, pack_layer_paths, save_toolpaths,
-                                unpack_layer_paths)
+                                LayerHead, PackedToolpaths, load_toolpaths, pack_layer_paths,
+                                packed_polylines, save_toolpaths, unpack_layer_paths)
 from icefab.geometry import signed_area
 from icefab.core import (MATERIALS, OFF, ON1, ON2, ROLES, Layer, LayerPaths,  # noqa: F401
                          Region, Stack, Toolpath, Toolpaths, arc_lengths, closed_polyline,
-                         deposition_state, offsets, path_lengths, point_states)
+                         deposition_state, offsets, path_lengths, point_states,
+                         polyline_lengths)
 from icefab.workload import check_paths
 
 log = logging.getLogger(__name__)
@@ -1422,14 +1423,19 @@ def _speed_table(job: Job) -> np.ndarray:
     return table
 
 
-def estimate_build_time(toolpaths: Toolpaths, job: Job | None = None
+def estimate_build_time(toolpaths: Toolpaths | PackedToolpaths, job: Job | None = None
                         ) -> tuple[np.ndarray, float]:
     """Build time at constant speeds (thesis 4.2), to compare with trajectory planning.
 
     Returns (per-layer times (n,) float64 s, total s). Accelerations are ignored.
     """
     job = job or toolpaths.job
-    per = np.array([layer_estimate(lp, job) for lp in toolpaths.layers], dtype=np.float64)
+    if isinstance(toolpaths, PackedToolpaths):   # as its arrays (icefab plan), the same
+        per = np.array([packed_estimate(d, job, polyline_lengths(*packed_polylines(d)))
+                        for d in toolpaths.layers], dtype=np.float64)
+    else:
+        per = np.array([layer_estimate(lp, job) for lp in toolpaths.layers],
+                       dtype=np.float64)
     return per, float(per.sum())
 
 

@@ -93,6 +93,7 @@ from __future__ import annotations
 
 import collections.abc
 import contextlib
+import dataclasses
 import functools
 import logging
 import math
@@ -756,6 +757,12 @@ def load_toolpaths(path: str | os.PathLike) -> Toolpaths:
     """Read a file written by :func:`save_toolpaths`, checking every member (module
     docstring); StackFileError naming the file (and the member) if it is missing,
     truncated, corrupt or not a toolpath file."""
+    return load_packed_toolpaths(path).toolpaths()
+
+
+def load_packed_toolpaths(path: str | os.PathLike) -> "PackedToolpaths":
+    """:func:`load_toolpaths` without making a Toolpath: the same checks, the build as
+    :class:`PackedToolpaths`."""
     with _Members(Path(path), "toolpath") as m:
         version = m.header(TOOLPATHS_FORMAT, (1, TOOLPATHS_VERSION))
         m.expect(_TOOLPATHS_REQUIRED + (("state",) if version >= 2 else ()),
@@ -789,17 +796,72 @@ def load_toolpaths(path: str | os.PathLike) -> Toolpaths:
         unfilled = m.values("unfilled_mm2", "f", 2, 2, n=n_layers, lo=0.0,
                             hi=MAX_COORD_MM ** 2)
         heights = _read_heights(m, n_layers)
-        paths = unpack_paths(d, copy=True)
         if version >= 2:
             state = m.values("state", "iu", 1, n=len(pts), lo=OFF, hi=ON2)
-            if paths and not np.array_equal(state, _point_states(d)):
+            if n_paths and not np.array_equal(state, _point_states(d)):
                 raise m.bad("state", "per-point states disagree with the paths' materials and "
                             "roles: the file is corrupt")
-    layers = tuple(LayerPaths(int(index[j]), float(layer_z[j]), tuple(paths[ls[j]:ls[j + 1]]),
-                              (float(unfilled[j, 0]), float(unfilled[j, 1])),
-                              float(heights[j]))
-                   for j in range(n_layers))
-    return Toolpaths(layers, job, warnings)
+    heads = tuple(LayerHead(int(index[j]), float(layer_z[j]),
+                            (float(unfilled[j, 0]), float(unfilled[j, 1])), float(heights[j]))
+                  for j in range(n_layers))
+    return PackedToolpaths(job, tuple(warnings), heads, tuple(_split_packed(d, ls)))
+
+
+def _split_packed(d: dict[str, np.ndarray], layer_start: np.ndarray
+                  ) -> list[dict[str, np.ndarray]]:
+    """:func:`pack_paths`' arrays of many layers cut into each layer's (views; the path
+    starts counted from the layer's first point), layer j holding paths
+    ``layer_start[j]:layer_start[j + 1]``."""
+    start = d["path_start"]
+    var = d.get("variable")
+    if var is not None:   # where each path's point widths begin
+        wstart = offsets(np.where(var.astype(bool), np.diff(start), 0))
+    out = []
+    for a, b in zip(layer_start[:-1].tolist(), layer_start[1:].tolist()):
+        p0, p1 = int(start[a]), int(start[b])
+        layer = {"points": d["points"][p0:p1], "path_start": start[a:b + 1] - p0}
+        for key in ("z", "material", "role", "closed", "width", "layer", "frame", "tool"):
+            layer[key] = d[key][a:b]
+        if var is not None and var[a:b].any():
+            layer["variable"] = var[a:b]
+            layer["point_width"] = d["point_width"][int(wstart[a]):int(wstart[b])]
+        out.append(layer)
+    return out
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class PackedToolpaths:
+    """A toolpath file's build as its arrays, layer by layer, with no Toolpath made
+    (:func:`load_packed_toolpaths`; ``icefab plan`` checks and ships the layers so, issue
+    17: the bunny's 432 k Toolpaths took 2.2 s to make before any planning began).
+
+    job, warnings: the file's; heads: per layer its :class:`LayerHead`; layers: per layer
+    its paths as :func:`pack_paths` packs them (views into the file's arrays).
+    """
+
+    job: Job
+    warnings: tuple[str, ...]
+    heads: tuple[LayerHead, ...]
+    layers: tuple[dict[str, np.ndarray], ...]
+
+    def __len__(self) -> int:
+        return len(self.heads)
+
+    def packed_layer(self, k: int) -> tuple:
+        """Layer k as :func:`pack_layer_paths` gives it (what the workers take)."""
+        h = self.heads[k]
+        return h.index, h.z, h.unfilled_mm2, self.layers[k], h.thickness
+
+    def layer_paths(self, k: int) -> LayerPaths:
+        """Layer k with its Toolpaths (their points copied out of the file's arrays)."""
+        h = self.heads[k]
+        return LayerPaths(h.index, h.z, tuple(unpack_paths(self.layers[k], copy=True)),
+                          h.unfilled_mm2, h.thickness)
+
+    def toolpaths(self) -> Toolpaths:
+        """The build with every layer's Toolpaths."""
+        return Toolpaths(tuple(self.layer_paths(k) for k in range(len(self))), self.job,
+                         self.warnings)
 
 
 # --------------------------------------------------------------------------- trajectories
@@ -881,6 +943,19 @@ def _path_fields(index: int, z: float, paths: "Sequence[Toolpath | None]"
             "closed": [bool(p.closed) if p else False for p in paths],
             "tool": [p.tool if p else "" for p in paths],
             "path_z": [float(p.z) if p else float(z) for p in paths]}
+
+
+def _packed_path_fields(index: int, d: dict[str, np.ndarray]) -> dict[str, list]:
+    """:func:`_path_fields` of a layer's paths as :func:`pack_paths` packs them."""
+    n = len(d["z"])
+    return {"layer": [int(index)] * n,
+            "path_index": list(range(n)),
+            "material": d["material"].astype(np.int64).tolist(),
+            "role": d["role"].astype(np.int64).tolist(),
+            "width": d["width"].astype(np.float64).tolist(),
+            "closed": d["closed"].astype(bool).tolist(),
+            "tool": [TOOL_CODES[t] for t in d["tool"].tolist()],
+            "path_z": d["z"].astype(np.float64).tolist()}
 
 
 def owner_arrays(motion: BuildMotion) -> dict[str, np.ndarray]:
@@ -1001,10 +1076,12 @@ class TrajectoryWriter:
                         pack_trajectories(trajs, self._n_joints, empty_pieces=True))
 
     def add_packed(self, index: int, z: float, thickness: float,
-                   paths: Sequence[Toolpath | None], packed: dict[str, np.ndarray]) -> None:
+                   paths: Sequence[Toolpath | None] | dict[str, np.ndarray],
+                   packed: dict[str, np.ndarray]) -> None:
         """Append one layer given as :func:`pack_trajectories` packs it (``empty_pieces``
-        either way), trajectory i following ``paths[i]`` (None: no path): what the
-        planning's workers send, written without making Trajectory objects of it."""
+        either way), trajectory i following ``paths[i]`` (None: no path), or path i of
+        ``paths`` given as :func:`pack_paths` packs them: what the planning's workers
+        send, written without making Trajectory (or Toolpath) objects of it."""
         ts = np.asarray(packed["traj_start"], np.int64)
         n_traj = len(ts) - 1
         if n_traj and self._dt is None:
@@ -1027,7 +1104,9 @@ class TrajectoryWriter:
         m["traj_dt"].extend(np.asarray(packed["traj_dt"], np.float64).tolist())
         m["variable"].extend(np.asarray(packed["variable"], bool).tolist()
                              if "variable" in packed else [False] * n_traj)
-        for k, v in _path_fields(index, z, paths).items():
+        fields = (_packed_path_fields(index, paths) if isinstance(paths, dict)
+                  else _path_fields(index, z, paths))
+        for k, v in fields.items():
             m[k].extend(v)
         self._layers.append((int(index), float(z), n_traj, float(thickness)))
         self._buffer.append(packed)

@@ -30,10 +30,12 @@ import math
 import time
 from pathlib import Path
 
+import numpy as np
 
 from icefab.cli.common import (ESTIMATE_WORDS, Progress, add_job_argument, compare_build_times,
                                hours, job_from_args, output_dir,
                                parse_layers)
+from icefab.core import DEPOSITING_CODES
 from icefab.errors import ConfigError
 from icefab.report import plot_speed
 
@@ -66,12 +68,14 @@ def add_parser(subparsers) -> None:
 
 def load_input(path: str, job):
     """Toolpaths from a toolpath file, or from a mesh through slicing, scaffold and paths."""
-    from icefab.paths import load_toolpaths, plan_paths
+    from icefab.paths import plan_paths
+    from icefab.resultfiles import load_packed_toolpaths
     src = Path(path)
     if not src.exists():
         raise ConfigError(f"{src}: input file not found")
     if src.suffix.lower() == ".npz":
-        tp = load_toolpaths(src)
+        # as its arrays: checked and sent to the workers so, no Toolpath made (issue 17)
+        tp = load_packed_toolpaths(src)
         return tp, tp.job if job is None else job
     from icefab import mesh as meshmod
     from icefab.regions import add_scaffold
@@ -128,18 +132,24 @@ def run(args: argparse.Namespace) -> int:
             for k, pl in enumerate(iter_plan_packed(
                     tp, job, progress=Progress("planning"),
                     per_layer=layer_headroom if check_room else None)):
-                lp, packed = pl.paths, pl.packed
-                out.add_packed(lp.index, lp.z, lp.thickness, lp.paths, packed)
+                lp, packed, arrays = pl.paths, pl.packed, pl.path_arrays
+                out.add_packed(lp.index, lp.z, lp.thickness,
+                               lp.paths if arrays is None else arrays, packed)
                 const_acc += pl.const_s
                 durations = packed["duration"]
                 n_traj += len(durations)
                 n_points += int(packed["traj_start"][-1])
                 total += float(durations.sum())
-                dep += sum(d for d, p in zip(durations.tolist(), lp.paths) if p.depositing)
+                if arrays is None:
+                    depositing = [p.depositing for p in lp.paths]
+                else:
+                    depositing = np.isin(arrays["role"], DEPOSITING_CODES).tolist()
+                dep += sum(d for d, keep in zip(durations.tolist(), depositing) if keep)
                 if check_room:
                     room = tightest(room + pl.extra)
                 if k in ks:
-                    pictured[k] = unpack_layer_motion(lp, packed)
+                    pictured[k] = unpack_layer_motion(
+                        lp if arrays is None else tp.layer_paths(k), packed)
         t_plan = time.perf_counter() - t1
         _, const = estimate_build_time(tp, job)
         lines = [
