@@ -404,7 +404,8 @@ def test_packed_layers_concatenate_to_the_packing_of_all_their_paths(layers):
 
 
 def test_toolpath_file_from_packed_layers_is_the_same_file(tmp_path):
-    """save_toolpaths with the layers packed writes the bytes it writes from the paths."""
+    """save_toolpath_layers (icefab paths: the layers' heads and the workers' packed
+    arrays) writes the bytes save_toolpaths writes from the paths."""
     from icefab.core import Toolpath
     layers = tuple(LayerPaths(k, 0.5 * k, tuple(
         Toolpath(points=_square(3.0 * i, 1.0 + i), z=0.5 * k, role="boundary", closed=True,
@@ -412,11 +413,13 @@ def test_toolpath_file_from_packed_layers_is_the_same_file(tmp_path):
         for i in range(k)), (0.1 * k, 0.0)) for k in range(4))
     tp = Toolpaths(layers, Job())
     rf.save_toolpaths(tp, tmp_path / "a.npz")
-    rf.save_toolpaths(tp, tmp_path / "b.npz",
-                      [rf.pack_paths(lp.paths) for lp in layers])
+    heads = [rf.LayerHead(lp.index, lp.z, lp.unfilled_mm2, lp.thickness) for lp in layers]
+    rf.save_toolpath_layers(tmp_path / "b.npz", tp.job, tp.warnings, heads,
+                            [rf.pack_paths(lp.paths) for lp in layers])
     assert (tmp_path / "a.npz").read_bytes() == (tmp_path / "b.npz").read_bytes()
     with pytest.raises(ValueError, match="3 packed layers for 4"):
-        rf.save_toolpaths(tp, tmp_path / "c.npz", [rf.pack_paths(()) for _ in range(3)])
+        rf.save_toolpath_layers(tmp_path / "c.npz", tp.job, (), heads,
+                                [rf.pack_paths(()) for _ in range(3)])
 
 
 @settings(max_examples=40, deadline=None)

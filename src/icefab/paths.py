@@ -1354,8 +1354,8 @@ def iter_plan_paths_packed(stack: Stack, job: Job | None = None, *,
                            ) -> Iterator[tuple]:
     """:func:`iter_plan_paths` with each layer as the workers send it
     (:func:`icefab.resultfiles.pack_layer_paths`; ``unpack_layer_paths`` makes it a
-    LayerPaths): what ``save_toolpaths(..., packed_layers=...)`` writes without packing
-    the paths again. The settings are checked before any layer is planned."""
+    LayerPaths): what ``icefab paths`` checks, tallies and writes
+    (:func:`icefab.resultfiles.save_toolpath_layers`) without making the Toolpaths. The settings are checked before any layer is planned."""
     job = job or stack.job
     check_layer_thickness(stack.layer_thickness, job)
     check_paths((sum(layer.part.area for layer in stack.layers),

@@ -710,14 +710,10 @@ class LayerHead(NamedTuple):
     thickness: float = math.nan
 
 
-def save_toolpaths(tp: Toolpaths, path: str | os.PathLike,
-                   packed_layers: Sequence[dict[str, np.ndarray]] | None = None) -> None:
-    """Write toolpaths to a ``.npz`` file (layout in the module docstring), atomically.
-    packed_layers: every layer's paths as :func:`pack_paths` packed them, when the caller
-    has them (``icefab paths``: the workers send them so), else they are packed here."""
-    if packed_layers is None:
-        packed_layers = [pack_paths(lp.paths) for lp in tp.layers]
-    save_toolpath_layers(path, tp.job, tp.warnings, tp.layers, packed_layers)
+def save_toolpaths(tp: Toolpaths, path: str | os.PathLike) -> None:
+    """Write toolpaths to a ``.npz`` file (layout in the module docstring), atomically."""
+    save_toolpath_layers(path, tp.job, tp.warnings, tp.layers,
+                         [pack_paths(lp.paths) for lp in tp.layers])
 
 
 def save_toolpath_layers(path: str | os.PathLike, job: Job, warnings: Sequence[str],
@@ -725,9 +721,9 @@ def save_toolpath_layers(path: str | os.PathLike, job: Job, warnings: Sequence[s
                          packed_layers: Sequence[dict[str, np.ndarray]]) -> None:
     """:func:`save_toolpaths` of layers given as their heads (index, z, unfilled area,
     thickness: :class:`LayerHead` or LayerPaths) and their paths as :func:`pack_paths`
-    packed them, one dict per layer."""
+    packed them, one dict per layer (``icefab paths``: as its workers send them)."""
     if len(packed_layers) != len(layers):
-        raise ValueError(f"save_toolpaths: {len(packed_layers)} packed layers for "
+        raise ValueError(f"save_toolpath_layers: {len(packed_layers)} packed layers for "
                          f"{len(layers)} layers")
     packed = concat_packed(packed_layers)
     data = {
