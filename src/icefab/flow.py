@@ -99,7 +99,6 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Iterable, Iterator, Sequence, Union
 
 import numpy as np
-from scipy.integrate import cumulative_trapezoid, trapezoid
 
 from icefab import feedback
 from icefab.atomic import write_atomic
@@ -521,6 +520,7 @@ SPEED_MISMATCH_MM = 0.5
 
 def _integral(y: np.ndarray, t: np.ndarray) -> float:
     """Trapezoidal integral of samples ``y (n,)`` over times ``t (n,)``."""
+    from scipy.integrate import trapezoid  # scipy.integrate takes 0.4 s to import: here only
     return float(trapezoid(y, t)) if len(t) > 1 else 0.0
 
 
@@ -549,6 +549,7 @@ def pulse_instants(t: np.ndarray, nu: np.ndarray) -> np.ndarray:
     """
     if len(t) < 2:
         return np.zeros(0)
+    from scipy.integrate import cumulative_trapezoid  # slow to import (see _integral)
     cum = cumulative_trapezoid(nu, t, initial=0.0)
     total = float(cum[-1])
     p = int(np.floor(total + 0.5))
@@ -698,6 +699,7 @@ def _pwm(plan: FrequencyPlan, cal: Calibration, job: "Job", duration: float, whe
     if count == 1:
         times = np.minimum(times, 0.5 * duration)
     edges = np.append(np.arange(count) * period, duration)
+    from scipy.integrate import cumulative_trapezoid  # slow to import (see _integral)
     cum = cumulative_trapezoid(plan.q, plan.t, initial=0.0) if len(plan.t) > 1 else \
         np.zeros(len(plan.t))
     vol = np.diff(np.interp(edges, plan.t, cum)) if len(plan.t) > 1 else np.zeros(count)
