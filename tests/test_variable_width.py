@@ -238,3 +238,32 @@ def test_the_simulators_layer_plans_carry_the_widths():
         # widths at the segments' middles, linear along the line
         np.testing.assert_allclose(2.0 * lp.half_width, want, atol=0.1)
         assert lp.volume.sum() == pytest.approx(60.0 * 2.0 * DH, rel=0.01)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.integers(1, 5),
+                          st.sampled_from(["good", "short", "nan", "negative", "inf", "text"])),
+                max_size=8))
+def test_widths_checked_at_once_agree_with_each_paths_check(cases):
+    """core.checked_widths (the layer-at-once check of the planning, the valves and the
+    headroom) says of each path what widths_problem says of it alone, and gives the good
+    paths' widths, concatenated in order."""
+    from icefab.core import checked_widths
+    paths = []
+    for n, kind in cases:
+        w = np.linspace(0.5, 2.0, n)
+        if kind == "short":
+            w = w[:-1] if n > 1 else np.zeros(2)
+        elif kind == "nan":
+            w[-1] = np.nan
+        elif kind == "negative":
+            w[0] = -0.1
+        elif kind == "inf":
+            w[0] = np.inf
+        elif kind == "text":
+            w = np.array(["1"] * n)
+        paths.append(Toolpath(points=np.zeros((n, 2)), role="fill", width=1.0, widths=w))
+    ok, W = checked_widths([p.widths for p in paths], [len(p.points) for p in paths])
+    assert ok.tolist() == [widths_problem(p) == "" for p in paths]
+    good = [np.asarray(p.widths, np.float64) for p, k in zip(paths, ok) if k]
+    np.testing.assert_array_equal(W, np.concatenate(good) if good else np.zeros(0))

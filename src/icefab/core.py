@@ -350,6 +350,28 @@ def widths_problem(path: Toolpath) -> str:
     return ""
 
 
+def checked_widths(widths: "Sequence[np.ndarray]", counts: "Sequence[int]"
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Many paths' per-point widths checked at once, as :func:`widths_problem` checks one
+    (a bunny layer has hundreds: one by one they cost the planning and the valves
+    seconds): ``(ok (m,) bool`` - ``counts[i]`` finite numbers >= 0 -, ``the ok ones
+    concatenated, float64 mm)``."""
+    ws = [np.asarray(w) for w in widths]
+    ok = np.array([w.shape == (int(n),) and w.dtype.kind in "fiu"
+                   for w, n in zip(ws, counts)], dtype=bool)
+    good = [w for w, k in zip(ws, ok) if k]
+    if not good:
+        return ok, np.zeros(0)
+    W = np.concatenate(good).astype(np.float64, copy=False)
+    fine = np.isfinite(W) & (W >= 0)
+    if not fine.all():
+        owner = np.repeat(np.arange(len(good)), [len(w) for w in good])
+        clean = np.bincount(owner[~fine], minlength=len(good)) == 0
+        ok[np.flatnonzero(ok)[~clean]] = False
+        W = W[clean[owner]]
+    return ok, W
+
+
 def path_lengths(paths: "Sequence[Toolpath]") -> np.ndarray:
     """(P,) float64 mm: :attr:`Toolpath.length` of each path, in a few array operations
     over all their points (a layer has thousands of paths, the bunny 0.5 M; the sums agree

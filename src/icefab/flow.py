@@ -108,7 +108,7 @@ from icefab.frames import to_part_frame
 from icefab.motion import limit_ratio, speedup_cap
 from icefab.parallel import parallel_map
 from icefab.stages import layer_height
-from icefab.core import HeightMap, Trajectory, ValveProgram, offsets
+from icefab.core import HeightMap, Trajectory, ValveProgram, checked_widths, offsets
 
 if TYPE_CHECKING:  # pragma: no cover
     from icefab.config import Job
@@ -322,25 +322,11 @@ def sample_widths(trajectory: Trajectory, material: str, job: "Job") -> np.ndarr
 
 
 def variable_widths(trajectories: "Sequence[Trajectory]") -> tuple[np.ndarray, np.ndarray]:
-    """The widths of many variable-width trajectories, checked all at once (one
-    :func:`sample_widths` call per path cost the bunny's ``icefab plan`` and ``valves``
-    seconds): ``(ok (m,) bool`` - one finite number >= 0 per sample -, ``widths`` of the
-    ok ones concatenated, float64 mm``)``. :func:`sample_widths` names a bad one."""
-    ws = [np.asarray(t.widths) for t in trajectories]
-    ok = np.array([w.shape == (len(t.xy),) and w.dtype.kind in "fiu"
-                   for w, t in zip(ws, trajectories)], dtype=bool)
-    good = [w for w, k in zip(ws, ok) if k]
-    if not good:
-        return ok, np.zeros(0)
-    W = np.concatenate(good).astype(np.float64, copy=False)
-    lens = np.array([len(w) for w in good])
-    fine = np.isfinite(W) & (W >= 0)
-    if not fine.all():
-        owner = np.repeat(np.arange(len(good)), lens)
-        clean = np.bincount(owner[~fine], minlength=len(good)) == 0
-        ok[np.flatnonzero(ok)[~clean]] = False
-        W = W[clean[owner]]
-    return ok, W
+    """The widths of many variable-width trajectories, checked all at once
+    (:func:`icefab.core.checked_widths`): ``(ok (m,) bool`` - one finite number >= 0 per
+    sample -, ``widths`` of the ok ones concatenated, float64 mm``)``.
+    :func:`sample_widths` names a bad one."""
+    return checked_widths([t.widths for t in trajectories], [len(t.xy) for t in trajectories])
 
 
 def _pwm_limit_hz(job: "Job") -> float:

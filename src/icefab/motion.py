@@ -103,14 +103,14 @@ from icefab.parallel import parallel_imap, parallel_map
 from icefab.resultfiles import (TRAJECTORIES_FORMAT as FORMAT,  # noqa: F401 (old home)
                                 TRAJECTORIES_VERSION as VERSION, TrajectoryFile,
                                 TrajectoryWriter, load_trajectories, open_trajectories,
-                                PackedToolpaths, owner_arrays, pack_layer_paths,
+                                LayerHead, PackedToolpaths, owner_arrays, pack_layer_paths,
                                 packed_polylines, packed_tools,
                                 pack_trajectories, save_trajectories, unpack_layer_paths,
                                 unpack_trajectories)
 from icefab.robots import Robot, get_robot
 from icefab.core import (DEPOSITING_CODES, ROLES, BuildMotion, LayerMotion, LayerPaths,
-                         Toolpath, Toolpaths, Trajectory, arc_lengths, offsets, path_lengths,
-                         polyline_lengths, widths_problem)
+                         Toolpath, Toolpaths, Trajectory, arc_lengths, checked_widths, offsets,
+                         path_lengths, polyline_lengths, widths_problem)
 from icefab.workload import check_motion
 
 log = logging.getLogger(__name__)
@@ -664,15 +664,10 @@ def _sample_widths(paths: Sequence[Toolpath | None], in_counts: np.ndarray,
     # every point at its path's width, then the variable paths' own
     W = np.repeat([0.0 if p is None else float(p.width) for p in paths], in_counts)
     var = [k for k, p in enumerate(paths) if p is not None and p.widths is not None]
-    ws = [np.asarray(paths[k].widths) for k in var]
-    # all of them checked at once (a bunny layer has hundreds: one by one it was 5 % of
-    # icefab plan's workers), path by path only to name the first bad one
-    good = all(w.shape == (len(paths[k].points),) and w.dtype.kind in "fiu"
-               for k, w in zip(var, ws))
-    if good and ws:
-        every = np.concatenate(ws)
-        good = bool(np.isfinite(every).all() and (every >= 0).all())
-    if not good:
+    # all of them checked at once, path by path only to name the first bad one
+    ok, _w = checked_widths([paths[k].widths for k in var],
+                            [len(paths[k].points) for k in var])
+    if not ok.all():
         for k in var:
             problem = widths_problem(paths[k])
             if problem:
@@ -965,7 +960,6 @@ def _plan_packed_task(args: tuple) -> tuple[dict[str, np.ndarray], float, object
     constant-speed time (:func:`_layer_time_task` at ``speeds``) and ``per_layer``'s result
     on its trajectories. args: (_ShippedLayer, Job, speeds, per_layer or None)."""
     shipped, job, speeds, per_layer = args
-    _check_role_speeds(speeds)
     lm, const_s = _plan_layer_and_time(shipped.lp, job, speeds)
     extra = per_layer(lm, job) if per_layer is not None else None
     return pack_trajectories(lm.trajectories, empty_pieces=True), const_s, extra
@@ -1017,15 +1011,21 @@ def _to_base(paths: Sequence[Toolpath], polys: Sequence[np.ndarray], job: Job
     counts = np.array([len(q) for q in polys], dtype=np.int64)
     if not len(polys):
         return np.zeros((0, 2)), counts
-    shifts: dict[str, np.ndarray] = {"": np.zeros(2)}
-    shift = np.empty((len(polys), 2))
-    for i, p in enumerate(paths):
-        key = "" if p.frame == "base" else p.tool_name
-        if key not in shifts:
-            shifts[key] = to_base_frame(np.zeros((1, 2)), key, job)[0]
-        shift[i] = shifts[key]
+    shift = _tool_shifts(["" if p.frame == "base" else p.tool_name for p in paths], job)
     pts = np.concatenate([np.asarray(q, dtype=np.float64) for q in polys])
     return pts + np.repeat(shift, counts, axis=0), counts
+
+
+def _tool_shifts(tools: Sequence[str], job: Job) -> np.ndarray:
+    """(P, 2) mm: what moves each path's points into the robot base frame, by the tool
+    that follows it ("": points already in the base frame), one shift per tool."""
+    shifts: dict[str, np.ndarray] = {"": np.zeros(2)}
+    out = np.empty((len(tools), 2))
+    for i, key in enumerate(tools):
+        if key not in shifts:
+            shifts[key] = to_base_frame(np.zeros((1, 2)), key, job)[0]
+        out[i] = shifts[key]
+    return out
 
 
 def _path_lengths(layers: Sequence[LayerPaths]) -> np.ndarray:
@@ -1095,11 +1095,7 @@ def check_packed_workspace(index: int, packed: dict[str, np.ndarray], job: Job,
     if not len(packed["z"]):
         return
     pts, counts = packed_polylines(packed)
-    tools = packed_tools(packed)
-    shifts = {key: (np.zeros(2) if key == "" else to_base_frame(np.zeros((1, 2)), key,
-                                                                   job)[0])
-              for key in np.unique(tools).tolist()}
-    shift = np.array([shifts[key] for key in tools.tolist()]).reshape(-1, 2)
+    shift = _tool_shifts(packed_tools(packed).tolist(), job)
     _check_reach(index, pts + np.repeat(shift, counts, axis=0), counts,
                  robot or get_robot(job))
 
@@ -1190,8 +1186,9 @@ def iter_plan_and_compare(toolpaths: Toolpaths, job: Job | None = None,
 class PlannedLayer(NamedTuple):
     """One layer as :func:`iter_plan_packed` hands it over."""
 
-    #: The layer's paths (trajectory i follows ``paths.paths[i]``).
-    paths: LayerPaths
+    #: The layer's paths (trajectory i follows ``paths.paths[i]``), or its LayerHead
+    #: (see ``path_arrays``).
+    paths: LayerPaths | LayerHead
     #: Its trajectories as :func:`icefab.resultfiles.pack_trajectories` packs them
     #: (pieces kept empty where a trajectory has none), what
     #: :meth:`icefab.resultfiles.TrajectoryWriter.add_packed` writes.

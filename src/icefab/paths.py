@@ -70,7 +70,7 @@ from __future__ import annotations
 
 import logging
 import math
-from typing import Callable, Iterable, Iterator, NamedTuple, Sequence
+from typing import Callable, Iterator, NamedTuple, Sequence
 
 import numpy as np
 
@@ -1336,26 +1336,21 @@ def plan_paths(stack: Stack, job: Job | None = None, *,
     ``job``'s layer thickness contradicts the stack's.
     """
     job = job or stack.job
-    return collect_toolpaths(stack, job, iter_plan_paths(stack, job, progress=progress))
-
-
-def iter_plan_paths(stack: Stack, job: Job | None = None, *,
-                    progress: Callable[[int, int], None] | None = None
-                    ) -> Iterator[LayerPaths]:
-    """:func:`plan_paths` layer by layer: each layer's paths, in order, as the pool hands
-    them back (``icefab paths`` checks and tallies each one while the workers plan the
-    next: issue 17). The settings are checked before any layer is planned."""
-    return (unpack_layer_paths(p)
-            for p in iter_plan_paths_packed(stack, job, progress=progress))
+    # unpacked as the workers hand the layers back, not after the last one
+    layers = [unpack_layer_paths(p)
+              for p in iter_plan_paths_packed(stack, job, progress=progress)]
+    return Toolpaths(tuple(layers), job, paths_warnings(stack, layers))
 
 
 def iter_plan_paths_packed(stack: Stack, job: Job | None = None, *,
                            progress: Callable[[int, int], None] | None = None
                            ) -> Iterator[tuple]:
-    """:func:`iter_plan_paths` with each layer as the workers send it
-    (:func:`icefab.resultfiles.pack_layer_paths`; ``unpack_layer_paths`` makes it a
-    LayerPaths): what ``icefab paths`` checks, tallies and writes
-    (:func:`icefab.resultfiles.save_toolpath_layers`) without making the Toolpaths. The settings are checked before any layer is planned."""
+    """:func:`plan_paths` layer by layer, in order, as the pool hands the layers back and
+    as the workers send them (:func:`icefab.resultfiles.pack_layer_paths`;
+    ``unpack_layer_paths`` makes one a LayerPaths): ``icefab paths`` checks, tallies and
+    writes them (:func:`icefab.resultfiles.save_toolpath_layers`) while the workers plan
+    the next, without making their Toolpaths (issue 17). The settings are checked before
+    any layer is planned."""
     job = job or stack.job
     check_layer_thickness(stack.layer_thickness, job)
     check_paths((sum(layer.part.area for layer in stack.layers),
@@ -1366,13 +1361,6 @@ def iter_plan_paths_packed(stack: Stack, job: Job | None = None, *,
         flags = [None] * len(stack.layers)
     return parallel_imap(_plan_task, [(layer, job, m) for layer, m in zip(stack.layers, flags)],
                          job, min_items=8, progress=progress)
-
-
-def collect_toolpaths(stack: Stack, job: Job, layers: Iterable[LayerPaths]) -> Toolpaths:
-    """The ``Toolpaths`` of a stack's planned ``layers`` (:func:`iter_plan_paths`): the
-    stack's warnings plus a summary of the area no path sweeps."""
-    layers = list(layers)
-    return Toolpaths(tuple(layers), job, paths_warnings(stack, layers))
 
 
 def paths_warnings(stack: Stack, layers: Sequence[LayerPaths | LayerHead]) -> tuple[str, ...]:
@@ -1439,17 +1427,13 @@ def estimate_build_time(toolpaths: Toolpaths | PackedToolpaths, job: Job | None 
     return per, float(per.sum())
 
 
-def layer_estimate(lp: LayerPaths, job: Job, lengths: np.ndarray | None = None) -> float:
-    """One layer's :func:`estimate_build_time`, s; ``lengths``: its paths' lengths (mm,
-    :func:`icefab.core.path_lengths`) when the caller has them."""
+def layer_estimate(lp: LayerPaths, job: Job) -> float:
+    """One layer's :func:`estimate_build_time`, s."""
     if not lp.paths:
         return 0.0
-    if lengths is None:
-        lengths = path_lengths(lp.paths)
-    table = _speed_table(job)
-    speeds = table[[ROLES.index(p.role) for p in lp.paths],
-                   [MATERIALS.index(p.material) for p in lp.paths]]
-    return float((lengths / speeds).sum())
+    speeds = _speed_table(job)[[ROLES.index(p.role) for p in lp.paths],
+                               [MATERIALS.index(p.material) for p in lp.paths]]
+    return float((path_lengths(lp.paths) / speeds).sum())
 
 
 def packed_estimate(packed: dict[str, np.ndarray], job: Job, lengths: np.ndarray) -> float:

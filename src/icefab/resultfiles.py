@@ -756,7 +756,7 @@ def load_toolpaths(path: str | os.PathLike) -> Toolpaths:
     return load_packed_toolpaths(path).toolpaths()
 
 
-def load_packed_toolpaths(path: str | os.PathLike) -> "PackedToolpaths":
+def load_packed_toolpaths(path: str | os.PathLike) -> PackedToolpaths:
     """:func:`load_toolpaths` without making a Toolpath: the same checks, the build as
     :class:`PackedToolpaths`."""
     with _Members(Path(path), "toolpath") as m:
