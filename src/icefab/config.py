@@ -241,11 +241,11 @@ class MaterialSettings:
         "concentric fill: how far the outermost fill ring may move to take the noise of the "
         "contour off (a scanned mesh's slices wiggle by ~0.05 mm every few mm, which holds a "
         "jerk-limited robot to ~40 mm/s); the first ring then overlaps the boundary by up to "
-        "twice this, never leaving a sliver between them. The rings inside are offsets of it, "
-        "each smoothed within 5 % of the fill width (the corners inward offsets make of a "
-        "contour's bumps rounded off), its bead widened by twice how far it moved inward "
-        "beyond the path filter, so the band outside stays covered (the valve follows the "
-        "width). 0: off",
+        "twice this, never leaving a sliver between them. Every ring, this one too, is then "
+        "smoothed within 5 % of the fill width (the corners inward offsets make of a "
+        "contour's bumps rounded off) and the next offset from it, its bead widened by twice "
+        "how far it moved inward (beyond the path filter inside the first), so the band "
+        "outside stays covered (the valve follows the width). 0: off",
         lo=0.0, hi=2.0,
         why="beyond 2 mm the fill no longer follows the part's shape")
     fill_angle_deg: float = setting(

@@ -16,8 +16,8 @@ From a ``Stack`` with part and scaffold regions to ordered ``Path``s per layer:
     never gets a path wider than its room: the innermost rings are cut to the part of
     their area at least ``F`` wide (:func:`_with_room`), the rest goes to the gap fill.
     With ``fill_smoothing_mm`` > 0 the first ring follows the smoothed contour and every
-    ring after it is smoothed within ``RING_SMOOTHING * F``, its bead widened where it
-    moved inward (a width per point, :func:`concentric_levels`);
+    ring, the first too, is smoothed within ``RING_SMOOTHING * F``, its bead widened where
+    it moved inward (a width per point, :func:`concentric_levels`);
   - ``zigzag``: parallel lines spaced ``F``, clipped to the region shrunk by ``e + F/2``,
     consecutive lines linked where the link stays inside; each island of the region at
     the angle (in steps of ``hybrid_angle_step_deg`` over [0, 180)) with the least time
@@ -194,17 +194,22 @@ def concentric_levels(region: Region, start_mm: float, step_mm: float, filt: flo
           nothing on a clean contour), so it lies outside the true edge everywhere: the
           first band overlaps what is outside it by up to ``2 smooth_mm`` and leaves no
           sliver. The first ring is ``step_mm / 2`` inside it.
-        * every further ring, the offset of the ring before, is smoothed within
+        * every ring, the first (the offset of the smoothed edge) too, is smoothed within
           ``ring_smooth_mm`` (corners over 60 degrees kept), and the next is offset
           from the smoothed ring, so the moves never add up. Offsetting inward turns the
           bumps of a contour into corners (where the offset swallows a bump narrower
-          than the offset); rounded, they no longer stop or slow the robot. Where a ring
-          moved inward, away from the band outside it, by more than the point filter
-          (which the sweeps allow for), its bead is widened by twice the excess (when
-          ``width_mm`` > 0): the valve lays ``w(s) dh c(s)`` and the band outside stays
-          covered; where it moved outward the beads overlap.
-        * with ``ring_smooth_mm`` <= ``filt`` the rings after the first are smoothed
-          within ``filt`` (as far as the point filter moves them anyway).
+          than the offset), and what the edge's smoothing left of the noise into
+          wiggles; rounded, they no longer stop or slow the robot (the first ring of
+          the bunny's middle layer: 8.7 -> 7.5 s at the first ring's 0.15 mm). Where a
+          ring moved inward, away from the band outside it, by more than the point
+          filter (which the sweeps allow for), its bead is widened by twice the excess
+          (when ``width_mm`` > 0): the valve lays ``w(s) dh c(s)`` and the band outside
+          stays covered; where it moved outward the beads overlap. The first ring's bead
+          is widened by twice its whole inward move: with the filter's allowance it
+          left slivers against the boundaries' band (exact disk hulls, shapely:
+          ``tests/test_paths.py``).
+        * with ``ring_smooth_mm`` <= ``filt`` the rings are smoothed within ``filt`` (as
+          far as the point filter moves them anyway).
     Returns a :class:`FillLevels` without lines: one list of (k, 2) float64 rings (mm)
     per offset level, outermost first; the same lists of bead widths (None for a ring
     ``width_mm`` wide all along, else (k,) float64 mm, one per point, >= ``width_mm``);
@@ -221,8 +226,9 @@ def concentric_levels(region: Region, start_mm: float, step_mm: float, filt: flo
         rings = geo.offset_rings(list(region.rings), -start_mm, filt)
     while rings and len(out) < max_rings:
         raw = None
+        first = not out
         if smooth_mm > 0:
-            tol = max(ring_smooth_mm, filt) if out else filt
+            tol = max(ring_smooth_mm, filt)
             if tol > filt:
                 raw = rings
             rings, _reach, inward = geo.smooth_rings_moved(rings, tol, FILL_SMOOTH_SIGMA_MM)
@@ -235,7 +241,8 @@ def concentric_levels(region: Region, start_mm: float, step_mm: float, filt: flo
             ws: list[np.ndarray | None] = [None] * len(rings)
             held: list[np.ndarray] = []
             if raw is not None and width_mm > 0:
-                ws, held = _widened_beads(rings, smoothed, inward, raw, width_mm, filt)
+                ws, held = _widened_beads(rings, smoothed, inward, raw, width_mm,
+                                          0.0 if first else filt)
             widths.append(ws)
             held_by.append(held)
         rings = nxt
@@ -257,8 +264,10 @@ def _widened_beads(rings: list[np.ndarray], smoothed: list[np.ndarray],
     ring's would be: widening by the whole move laid 0.5 % more fill on bunny layers for
     no less unfilled area, and raised the demo mug's open-loop height error from 1.868 to
     1.883 mm. None where the widening adds at most ``WIDEN_MIN_MM`` and for the rings
-    ``_with_room`` replaced. The outer edge of the widened beads is that of the smoothed
-    rings' band or of the raw rings' shrunk by the filter, whichever lies farther out:
+    ``_with_room`` replaced. ``filt`` is that allowance: the point filter, 0 for the
+    first level (:func:`concentric_levels`). The outer edge of the widened beads is that
+    of the smoothed rings' band or of the raw rings' shrunk by ``filt``, whichever lies
+    farther out:
     the level's band is ``expand(smoothed + held, width / 2) - shrink(smoothed, width / 2)``
     (:func:`icefab.geometry.level_bands`) with ``held`` the raw rings of the level (those
     ``_with_room`` kept: whole outers with their holes) shrunk by ``filt``; none when no
@@ -279,11 +288,12 @@ def _widened_beads(rings: list[np.ndarray], smoothed: list[np.ndarray],
     return out, geo.offset_rings([raw[j] for j in kept], -filt, 0.0)
 
 
-#: Concentric fill (with ``fill_smoothing_mm`` > 0): every ring after the first is smoothed
-#: within this fraction of the fill width, its bead widened where it moved inward
+#: Concentric fill (with ``fill_smoothing_mm`` > 0): every ring is smoothed within this
+#: fraction of the fill width, its bead widened where it moved inward
 #: (:func:`concentric_levels`). On 10 bunny layers 0.1 / 0.15 / 0.25 / 0.3 mm of the 3 mm
 #: width took 9.2 / 11.5 / 12.9 / 13.1 % off the fill's MTTS time, the unfilled area +1.7
-#: / 0 / +6.1 / +8.4 % (BENCHMARKS.md, issue 15). The fill laid is 0.01 % more.
+#: / 0 / +6.1 / +8.4 % (BENCHMARKS.md, issue 15; the rings after the first then). The fill
+#: laid is 0.01 % more. The first ring too: 2 % off 7 measured bunny layers' MTTS time.
 RING_SMOOTHING = 0.05
 #: A smoothed ring's bead is widened only where it would grow by more than this (mm).
 WIDEN_MIN_MM = 0.01
