@@ -153,13 +153,16 @@ def test_measurement_paths_every_millimetre_of_height(adaptive_build):
 
 def test_valve_flow_uses_the_layer_thickness(adaptive_build):
     """q = w * dh_k * c (eq. 6.2) with each layer's own dh_k: the flow per mm of path of a
-    thin layer's trajectory over the path width is that layer's thickness."""
+    thin layer's trajectory over the path width (each sample's, for a variable-width
+    path) is that layer's thickness."""
+    from icefab.flow import sample_widths
     job, stack, _, motion = adaptive_build
     thin = min(motion.layers, key=lambda lm: lm.thickness)
     traj = next(t for t in thin.trajectories if t.path is not None and t.path.depositing)
     plan = valve_frequency(traj, traj.path.material, job, layer_thickness=thin.thickness)
     moving = traj.speed > 1.0
-    dh = plan.q[moving] / (traj.path.width * traj.speed[moving])
+    w = sample_widths(traj, traj.path.material, job)
+    dh = plan.q[moving] / (w[moving] * traj.speed[moving])
     np.testing.assert_allclose(dh, thin.thickness, rtol=1e-9)
     assert thin.thickness < 0.5 * job.slicing.layer_thickness_mm
 

@@ -2,6 +2,7 @@
 times and frames, ordering, file round trip."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -280,6 +281,37 @@ def test_gap_paths_never_reach_past_the_region():
                 line = LinearRing(p.points) if p.closed else LineString(p.points)
                 d = shapely.distance(R.boundary, shapely.points(line.segmentize(0.01).coords))
                 assert d.min() >= p.width / 2 - 1e-6
+
+
+@pytest.mark.parametrize("size", [1.6, 2.2])
+def test_a_pocket_gets_a_variable_width_centre_line_not_a_ring(size):
+    """A round gap piece (a rounded triangle, isoperimetric ratio 0.7) gets a ring about as
+    wide as its inradius only when the gap fill lays constant-width runs (it turns at every
+    corner and the runs fill what it leaves); with variable widths its centre lines alone
+    fill it, as wide as the pocket along their axis: nothing of it left (exact disk hulls),
+    in under 60 % of the time a jerk-limited robot takes for the ring and its runs."""
+    from icefab.motion import plan_paths_motion
+    from icefab.paths import gap_fill_paths
+    job = Job()
+    filt = job.slicing.max_filter_deviation_mm
+    th = np.linspace(0.0, 2.0 * np.pi, 3, endpoint=False) + 0.3
+    pocket = shapely.Polygon(np.c_[np.cos(th), np.sin(th)] * size).buffer(0.3, quad_segs=8)
+    ring = np.asarray(pocket.exterior.coords)[:-1]
+    ring = ring if signed_area(ring) > 0 else ring[::-1]
+    nominal = geo.region_from_rings([rect(-10, -10, 10, 10)])
+    got = {}
+    for variable in (False, True):
+        mat = dataclasses.replace(job.materials.part, variable_width=variable)
+        paths, _left = gap_fill_paths([ring], nominal, mat, filt)
+        time = sum(t.duration for t in plan_paths_motion(
+            [Toolpath(points=p + [340.0, 0.0], closed=c, role="fill", frame="base",
+                      width=float(np.mean(w)), widths=w if np.ndim(w) else None)
+             for p, c, w in paths], job))
+        missed = pocket.difference(_exact_cover({"boundary": [], "fill": paths})).area
+        got[variable] = ([c for _p, c, _w in paths], missed, time)
+    assert any(got[False][0]) and not any(got[True][0])
+    assert got[True][1] < 1e-3 < got[False][1]
+    assert got[True][2] < 0.6 * got[False][2]
 
 
 def test_boundary_count_and_fill_none():
