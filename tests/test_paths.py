@@ -776,10 +776,11 @@ def _exact_cover(sets) -> shapely.Geometry:
 
 def test_inner_fill_rings_are_smoothed_and_their_beads_widened_where_they_moved_inward(
         monkeypatch):
-    """The rings inside the first are smoothed within RING_SMOOTHING x the fill width
-    (the corners inward offsets make of the bumps rounded off): a jerk-limited robot
-    follows the fill in >= 5 % less time. Where a ring moved inward beyond the point
-    filter its bead is widened by twice the excess (F <= w <= F + 2 (tol - filter)), so
+    """The rings are smoothed within RING_SMOOTHING x the fill width (the corners inward
+    offsets make of the bumps rounded off): a jerk-limited robot follows the fill in >= 5 %
+    less time. Where a ring moved inward beyond the point filter its bead is widened by
+    twice the excess (F <= w <= F + 2 (tol - filter); the first ring, next to the
+    boundary, by twice its whole move: <= F + 2 tol), so
     the beads cover the region as well as the unsmoothed rings' within 0.01 % of its area
     (shapely: exact disk hulls) and icefab counts no more unfilled area; the same smoothed
     rings at the plain width would leave > 10 mm^2 more uncovered."""
@@ -799,8 +800,11 @@ def test_inner_fill_rings_are_smoothed_and_their_beads_widened_where_they_moved_
     widened = [w for _p, w in rings if np.ndim(w)]
     assert len(widened) >= len(rings) // 3
     filt = job.slicing.max_filter_deviation_mm
-    for w in widened:
-        assert w.min() >= F and w.max() <= F + 2.0 * (tol - filt) + 1e-9
+    first = max(range(len(rings)), key=lambda i: abs(signed_area(rings[i][0])))
+    for i, (_p, w) in enumerate(rings):
+        if np.ndim(w):
+            top = F + 2.0 * (tol if i == first else tol - filt)
+            assert w.min() >= F and w.max() <= top + 1e-9
     assert max(w.max() for w in widened) > F + (tol - filt)
     assert not any(np.ndim(w) and c for _p, c, w in got["plain"][0]["fill"])
     assert _fill_time(sets, job) < 0.95 * _fill_time(got["plain"][0], job)
