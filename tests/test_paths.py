@@ -780,10 +780,10 @@ def test_inner_fill_rings_are_smoothed_and_their_beads_widened_where_they_moved_
     offsets make of the bumps rounded off): a jerk-limited robot follows the fill in >= 5 %
     less time. Where a ring moved inward beyond the point filter its bead is widened by
     twice the excess (F <= w <= F + 2 (tol - filter); the first ring, next to the
-    boundary, by twice its whole move: <= F + 2 tol), so
-    the beads cover the region as well as the unsmoothed rings' within 0.01 % of its area
-    (shapely: exact disk hulls) and icefab counts no more unfilled area; the same smoothed
-    rings at the plain width would leave > 10 mm^2 more uncovered."""
+    boundary, by twice its whole move: <= F + 2 tol), so the beads cover the region as
+    well as the unsmoothed rings' within 0.01 % of its area (shapely: exact disk hulls) and
+    icefab counts no more unfilled area; the same smoothed rings at the plain width would
+    leave > 10 mm^2 more uncovered."""
     from icefab import paths as paths_mod
     region = _bumpy_disk()
     job = Job()

@@ -28,20 +28,19 @@ From a ``Stack`` with part and scaffold regions to ordered ``Path``s per layer:
     optimal angle;
   - ``none``.
 
-  Gap fill (``gap_fill``, on by default; not in the thesis; :func:`gap_fill_paths`):
-  what the paths leave of the region gets rings of the boundary width where it has room
-  for two, one ring in each pocket (constant-width gap fill only), and paths along the
-  centre line of the remaining strips and pockets, as wide as the strip (less width, less
-  flow; e.g. between the two scaffold
-  boundaries where the surround is a little wider than they take, or the middle of a
-  thin wall). Strips narrower than ``THIN_GAP_MIN`` path widths get nothing. The rest of
-  the *nominal* area (the region shrunk by ``max(initial_offset - path_width/2, 0)``: the
-  calibrated edge strip of the scaffold is empty on purpose) that no path sweeps is
-  reported in ``LayerPaths.unfilled_mm2`` (paths swept with mitred corners and round ends;
-  gaps narrower than twice the point filter + ``SWEEP_TOL`` are not counted). What the
-  paths cover: at least 97 % of the nominal area, not counting the parts of the region
-  narrower than the path width (part features so thin are reported by ``add_scaffold``;
-  tested on every layer of the real meshes).
+  Gap fill (``gap_fill``, on by default; not in the thesis; :func:`gap_fill_paths`): what
+  the paths leave of the region gets rings of the boundary width where it has room for
+  two, one ring in each pocket (constant-width gap fill only), and paths along the centre
+  line of the remaining strips and pockets, as wide as the strip (less width, less flow;
+  e.g. between the two scaffold boundaries where the surround is a little wider than they
+  take, or the middle of a thin wall). Strips narrower than ``THIN_GAP_MIN`` path widths
+  get nothing. The rest of the *nominal* area (the region shrunk by ``max(initial_offset -
+  path_width/2, 0)``: the calibrated edge strip of the scaffold is empty on purpose) that
+  no path sweeps is reported in ``LayerPaths.unfilled_mm2`` (paths swept with mitred
+  corners and round ends; gaps narrower than twice the point filter + ``SWEEP_TOL`` are
+  not counted). What the paths cover: at least 97 % of the nominal area, not counting the
+  parts of the region narrower than the path width (part features so thin are reported by
+  ``add_scaffold``; tested on every layer of the real meshes).
 * No deposition path crosses or touches itself (the point filter keeps rings simple,
   :func:`icefab.geometry.simplify`; centre lines never double back).
 * Measurement paths (thesis 5.2.1): on layers with ``(index + 1) % interval_layers == 0``,
@@ -202,13 +201,13 @@ def concentric_levels(region: Region, start_mm: float, step_mm: float, filt: flo
           inward turns the bumps of a contour into corners (where the offset swallows a
           bump narrower than the offset), and what the edge's smoothing left of the
           noise into wiggles; rounded, they no longer stop or slow the robot (the first
-          ring of the bunny's middle layer: 8.7 -> 7.5 s at the first ring's 0.15 mm). Where a
-          ring moved inward, away from the band outside it, by more than the point
-          filter (which the sweeps allow for), its bead is widened by twice the excess
-          (when ``width_mm`` > 0): the valve lays ``w(s) dh c(s)`` and the band outside
-          stays covered; where it moved outward the beads overlap. The first ring's bead
-          is widened by twice its whole inward move: with the filter's allowance it
-          left slivers against the boundaries' band (exact disk hulls, shapely:
+          ring of the bunny's middle layer: 8.72 -> 7.42 s for 633 mm). Where a ring
+          moved inward, away from the band outside it, by more than the point filter
+          (which the sweeps allow for), its bead is widened by twice the excess (when
+          ``width_mm`` > 0): the valve lays ``w(s) dh c(s)`` and the band outside stays
+          covered; where it moved outward the beads overlap. The first ring's bead is
+          widened by twice its whole inward move: with the filter's allowance it left
+          slivers against the boundaries' band (exact disk hulls, shapely:
           ``tests/test_paths.py``).
         * with ``ring_smooth_mm`` <= ``filt`` the rings are smoothed within ``filt`` (as
           far as the point filter moves them anyway).
