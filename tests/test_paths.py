@@ -290,7 +290,6 @@ def test_a_pocket_gets_a_variable_width_centre_line_not_a_ring(size):
     corner and the runs fill what it leaves); with variable widths its centre lines alone
     fill it, as wide as the pocket along their axis: nothing of it left (exact disk hulls),
     in under 60 % of the time a jerk-limited robot takes for the ring and its runs."""
-    from icefab.motion import plan_paths_motion
     from icefab.paths import gap_fill_paths
     job = Job()
     filt = job.slicing.max_filter_deviation_mm
@@ -303,12 +302,9 @@ def test_a_pocket_gets_a_variable_width_centre_line_not_a_ring(size):
     for variable in (False, True):
         mat = dataclasses.replace(job.materials.part, variable_width=variable)
         paths, _left = gap_fill_paths([ring], nominal, mat, filt)
-        time = sum(t.duration for t in plan_paths_motion(
-            [Toolpath(points=p + [340.0, 0.0], closed=c, role="fill", frame="base",
-                      width=float(np.mean(w)), widths=w if np.ndim(w) else None)
-             for p, c, w in paths], job))
         missed = pocket.difference(_exact_cover({"boundary": [], "fill": paths})).area
-        got[variable] = ([c for _p, c, _w in paths], missed, time)
+        got[variable] = ([c for _p, c, _w in paths], missed,
+                         _fill_time({"fill": paths}, job))
     assert any(got[False][0]) and not any(got[True][0])
     assert got[True][1] < 1e-3 < got[False][1]
     assert got[True][2] < 0.6 * got[False][2]
@@ -722,7 +718,6 @@ def test_the_first_fill_ring_is_smoothed_like_the_rings_inside_it():
     jerk-limited robot follows it in >= 15 % less time than the offset alone (24 %), its
     bead widened where it moved inward by twice the whole move (F <= w <= F + 2 tol)."""
     from icefab import paths as paths_mod
-    from icefab.motion import plan_motion
     region = _noisy_lobed_disk()
     job = Job()
     mat = job.materials.part
@@ -736,8 +731,7 @@ def test_the_first_fill_ring_is_smoothed_like_the_rings_inside_it():
 
     def time(levels):
         (ring,) = levels.levels[0]
-        return plan_motion(Toolpath(points=ring + [340.0, 0.0], closed=True, role="fill",
-                                    frame="base", width=F), job).duration
+        return _fill_time({"fill": [(ring, True, F)]}, job)
 
     assert time(got["smoothed"]) < 0.85 * time(got["offset"])
     (w,) = got["smoothed"].widths[0]
