@@ -467,10 +467,20 @@ def test_a_variable_width_sweep_is_the_hull_of_its_disks(pts, closed, grow):
     r = (np.concatenate([w, w[:1]]) if closed else w) / 2.0 + grow
     disks = shapely.buffer(shapely.points(poly), r, quad_segs=64)
     exact = shapely.union_all(shapely.convex_hull(shapely.union(disks[:-1], disks[1:])))
-    got = shapely.union_all([Polygon(q) for q in band.rings if signed_area(q) > 0]).difference(
-        shapely.union_all([Polygon(q) for q in band.rings if signed_area(q) < 0]) or Polygon())
+    # Clipper's rings may touch themselves at a vertex (valid for Clipper, not for GEOS)
+    def polys(sign):
+        return shapely.union_all([shapely.make_valid(Polygon(q)) for q in band.rings
+                                  if sign * signed_area(q) > 0])
+    got = polys(1).difference(polys(-1))
     assert got.difference(exact.buffer(1e-3)).area <= 1e-6
     assert got.area >= 0.99 * exact.area
+    # no part of any point's disk (inscribed 32-gon) is left out: the sweep only keeps
+    # the pieces of them its quadrilaterals do not hold; what is missing may only be
+    # Clipper's rounding to 1e-4 mm along the edges
+    ang = 2.0 * np.pi * np.arange(32) / 32
+    disks32 = shapely.union_all([Polygon(c + rc * np.stack([np.cos(ang), np.sin(ang)], 1))
+                                 for c, rc in zip(poly, r)])
+    assert disks32.difference(got).area <= 1e-4 * disks32.length
 
 
 @pytest.mark.parametrize("where", [(0.0, 40.0), (0.0, -40.0), (40.0, 0.0), (-40.0, 0.0)])

@@ -693,15 +693,25 @@ def sweep_rings(paths: Sequence[tuple[np.ndarray, bool, float | np.ndarray]],
 #: Sides of the polygon inscribed in the disk a variable-width path sweeps at each of its
 #: points (its area is 0.6 % short of the disk's: the sweep is never overestimated).
 DISK_SIDES = 32
+#: Pieces of a disk (:func:`_disk_pieces`) smaller than this are left out, mm^2.
+_MIN_PIECE_MM2 = 1e-6
+#: How far a piece of a disk reaches into the quadrilaterals beside it, mm (ten of
+#: Clipper's grid units; the piece stays inside its disk).
+_PIECE_OVERLAP_MM = 1e-3
 
 
 def variable_sweep_rings(paths: Sequence[tuple[np.ndarray, bool, np.ndarray]],
                          grow: float = 0.0) -> Rings:
     """The bands variable-width paths sweep (+ ``2 grow``), as flat counter-clockwise
     rings that overlap (the clip side of a NonZero Boolean): the convex hull of the disks
-    of consecutive points (radius half the width), as a disk at every point (inscribed
-    ``DISK_SIDES``-gon) and per segment the quadrilateral between the disks' outer common
-    tangents (where one disk holds the other, the disk alone).
+    of consecutive points (radius half the width), as per segment the quadrilateral
+    between the disks' outer common tangents and, at every point, what of its disk
+    (inscribed ``DISK_SIDES``-gon) those quadrilaterals leave (:func:`_disk_pieces`).
+
+    Where one disk holds the other a segment has no quadrilateral and both disks stay
+    whole on its side. A full disk at every point gives the same union, but each overlaps
+    its neighbours' in dozens of crossings: on the bunny the Boolean that subtracts the
+    sweep of the gap fill's centre lines took twice as long (BENCHMARKS.md, issue 17).
 
     paths: (points (k, 2) float64 mm, closed, widths (k,) mm) triples.
     """
@@ -715,23 +725,100 @@ def variable_sweep_rings(paths: Sequence[tuple[np.ndarray, bool, np.ndarray]],
         return []
     P, starts = _pack(polys)
     r = np.concatenate(radii)
-    ok = r > 0
-    ang = 2.0 * np.pi * np.arange(DISK_SIDES) / DISK_SIDES
-    disks = P[ok, None, :] + r[ok, None, None] * np.stack([np.cos(ang), np.sin(ang)], axis=1)
     inner = np.ones(len(P) - 1, dtype=bool)
     inner[starts[1:-1] - 1] = False               # from one path to the next
-    a, b, ra, rb = P[:-1][inner], P[1:][inner], r[:-1][inner], r[1:][inner]
-    d = b - a
+    d = P[1:] - P[:-1]
     L = np.hypot(d[:, 0], d[:, 1])
-    use = (L > np.abs(ra - rb)) & (ra > 0) & (rb > 0)
-    t = d[use] / L[use, None]
+    use = inner & (L > np.abs(r[:-1] - r[1:])) & (r[:-1] > 0) & (r[1:] > 0)
+    t = np.zeros_like(d)
+    t[use] = d[use] / L[use, None]
+    sin_b = np.zeros(len(L))
+    sin_b[use] = (r[:-1] - r[1:])[use] / L[use]
+    ang = 2.0 * np.pi * np.arange(DISK_SIDES) / DISK_SIDES
+    circle = np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    verts, vstarts = _disk_pieces(P, r, t, sin_b, use, circle)
+    pieces = np.split(verts, vstarts[1:-1])
+    # the quadrilaterals between the disks' outer common tangents
+    a, b, ra, rb = P[:-1][use], P[1:][use], r[:-1][use, None], r[1:][use, None]
+    t, sb = t[use], sin_b[use][:, None]
     n = np.stack([-t[:, 1], t[:, 0]], axis=1)     # left of a -> b
-    sin_b = ((ra - rb)[use] / L[use])[:, None]
-    cos_b = np.sqrt(1.0 - sin_b ** 2)
-    left, right = n * cos_b + t * sin_b, -n * cos_b + t * sin_b   # unit, to the tangents
-    a, b, ra, rb = a[use], b[use], ra[use, None], rb[use, None]
+    cos_b = np.sqrt(1.0 - sb ** 2)
+    left, right = n * cos_b + t * sb, -n * cos_b + t * sb   # unit, to the tangents
     quads = np.stack([a + right * ra, b + right * rb, b + left * rb, a + left * ra], axis=1)
-    return list(disks) + list(quads)
+    return [q for q in pieces if len(q) >= 3] + list(quads)
+
+
+@njit(cache=True)
+def _disk_pieces(P: np.ndarray, r: np.ndarray, t: np.ndarray, sin_b: np.ndarray,
+                 use: np.ndarray, circle: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """What of the disk at every point the tangent quadrilaterals of its two segments
+    leave: the inscribed polygon (``circle`` scaled by r) clipped to the half-planes
+    beyond the chord where the incoming segment's quadrilateral ends, ``(p - b) . t_in
+    >= r sin_in``, and behind the chord where the outgoing one's starts, ``(p - b) .
+    t_out <= r sin_out`` (the chords between a disk's tangent points are perpendicular
+    to the segment). A side without a quadrilateral (path end, one disk holding the
+    other) clips nothing. Returns the pieces' vertices (counter-clockwise) and their
+    start indices (n + 1,); an empty piece (or one under ``_MIN_PIECE_MM2``) has none."""
+    n = P.shape[0]
+    ns = circle.shape[0]
+    out = np.empty((n * (ns + 4), 2))
+    starts = np.zeros(n + 1, dtype=np.int64)
+    buf = np.empty((ns + 4, 2))
+    nxt = np.empty((ns + 4, 2))
+    k = 0
+    for i in range(n):
+        bx, by, rr = P[i, 0], P[i, 1], r[i]
+        m = 0
+        if rr > 0.0:
+            for j in range(ns):
+                buf[m, 0] = bx + rr * circle[j, 0]
+                buf[m, 1] = by + rr * circle[j, 1]
+                m += 1
+        for side in range(2):
+            if m < 3:
+                break
+            # each piece reaches _PIECE_OVERLAP_MM into the quadrilateral it abuts: on
+            # Clipper's grid, edges that only meet leave hairline slivers
+            if side == 0:
+                if i == 0 or not use[i - 1]:
+                    continue
+                ux, uy, c = t[i - 1, 0], t[i - 1, 1], rr * sin_b[i - 1] - _PIECE_OVERLAP_MM
+            else:
+                if i == n - 1 or not use[i]:
+                    continue
+                # behind the outgoing chord: -(p - b) . t_out >= -r sin_out
+                ux, uy, c = -t[i, 0], -t[i, 1], -rr * sin_b[i] - _PIECE_OVERLAP_MM
+            q = 0
+            for j in range(m):
+                jn = j + 1 if j + 1 < m else 0
+                da = (buf[j, 0] - bx) * ux + (buf[j, 1] - by) * uy - c
+                db = (buf[jn, 0] - bx) * ux + (buf[jn, 1] - by) * uy - c
+                if da >= 0.0:
+                    nxt[q, 0] = buf[j, 0]
+                    nxt[q, 1] = buf[j, 1]
+                    q += 1
+                if (da > 0.0 and db < 0.0) or (da < 0.0 and db > 0.0):
+                    f = da / (da - db)
+                    nxt[q, 0] = buf[j, 0] + f * (buf[jn, 0] - buf[j, 0])
+                    nxt[q, 1] = buf[j, 1] + f * (buf[jn, 1] - buf[j, 1])
+                    q += 1
+            for j in range(q):
+                buf[j, 0] = nxt[j, 0]
+                buf[j, 1] = nxt[j, 1]
+            m = q
+        area = 0.0
+        for j in range(m):
+            jn = j + 1 if j + 1 < m else 0
+            area += buf[j, 0] * buf[jn, 1] - buf[jn, 0] * buf[j, 1]
+        # slivers where the two chords nearly meet add nothing and only upset Booleans
+        if m >= 3 and area > 2.0 * _MIN_PIECE_MM2:
+            for j in range(m):
+                out[k, 0] = buf[j, 0]
+                out[k, 1] = buf[j, 1]
+                k += 1
+        starts[i + 1] = k
+    return out[:k], starts
 
 
 def level_bands(levels: Sequence[tuple[Sequence[np.ndarray], float]
