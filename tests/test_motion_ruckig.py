@@ -2,14 +2,14 @@
 from rest to rest, MTTS against Ruckig's time-optimal jerk-limited profile (the ``ruckig``
 package) under the same speed, acceleration and jerk bounds.
 
-The line leaves nothing to the path's shape: no curvature, no joint bound (a gantry with
-unbounded axes), one PATHSPLIT piece. What is left is how ACON ramps the acceleration with
-the jerk bound, how JCON spreads the fall of the acceleration where the forward and the
-backward curves meet (thesis 4.1.3-4.1.4) and AREST's initial acceleration (4.2.6: the
-profile starts at ``motion.rest_accel_mm_s2``, given to Ruckig as the initial and the
-final acceleration).
+The line leaves nothing to the path's shape: no curvature, no joint bound that acts (a
+gantry whose axis bounds lie far above the Cartesian ones), one PATHSPLIT piece. What is
+left is how ACON ramps the acceleration with the jerk bound, how JCON spreads the fall of
+the acceleration where the forward and the backward curves meet (thesis 4.1.3-4.1.4) and
+AREST's initial acceleration (4.2.6: the profile starts at ``motion.rest_accel_mm_s2``,
+given to Ruckig as the initial and the final acceleration).
 
-Measured (dt 16 ms): within 2 % of Ruckig from 30 mm on; 12-14 % over it at 8-15 mm,
+Measured (dt 16 ms): within 2.3 % of Ruckig from 30 mm on; 12-14 % over it at 8-15 mm,
 where the forward and backward curves meet below full speed and JCON's cubic spreads the
 junction over an interval timed on the speeds before it (BENCHMARKS.md, issue 15); a
 millimetre or two takes less than Ruckig's time, because the first and last grid segment
