@@ -1286,6 +1286,52 @@ def distance_to_rings(points: np.ndarray, rings: Sequence[np.ndarray],
     return _nearest_edge_distance(pts, P, edge, a, b, prv, upper=upper + spacing)
 
 
+def ring_nearest(points: np.ndarray, ring: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For points (n, 2) and one closed ring (k, 2): the arc length along the ring (from
+    its first point) of the ring's point nearest each, and that distance, mm, (n,) each.
+    Every pair of point and edge, compiled: for a few points, where
+    :func:`distance_to_rings`' sampling of the ring would cost more than it saves."""
+    pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
+    r = np.ascontiguousarray(ring, dtype=np.float64).reshape(-1, 2)
+    if not len(r):
+        return np.zeros(len(pts)), np.full(len(pts), np.inf)
+    return _ring_nearest(pts, r)
+
+
+@njit(cache=True)
+def _ring_nearest(pts: np.ndarray, ring: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    n = len(ring)
+    arc = np.empty(n + 1)
+    arc[0] = 0.0
+    for j in range(n):
+        k = j + 1 if j + 1 < n else 0
+        arc[j + 1] = arc[j] + np.hypot(ring[k, 0] - ring[j, 0], ring[k, 1] - ring[j, 1])
+    at = np.empty(len(pts))
+    dist = np.empty(len(pts))
+    for i in range(len(pts)):
+        best = np.inf
+        best_at = 0.0
+        for j in range(n):
+            k = j + 1 if j + 1 < n else 0
+            dx = ring[k, 0] - ring[j, 0]
+            dy = ring[k, 1] - ring[j, 1]
+            px = pts[i, 0] - ring[j, 0]
+            py = pts[i, 1] - ring[j, 1]
+            L2 = dx * dx + dy * dy
+            t = (px * dx + py * dy) / L2 if L2 > 0.0 else 0.0
+            t = min(1.0, max(0.0, t))
+            ex = px - t * dx
+            ey = py - t * dy
+            d2 = ex * ex + ey * ey
+            if d2 < best:
+                best = d2
+                best_at = arc[j] + t * (arc[j + 1] - arc[j])
+        at[i] = best_at
+        dist[i] = np.sqrt(best)
+    return at, dist
+
+
 def nearest_on_rings(points: np.ndarray, rings: Sequence[np.ndarray], spacing: float = 0.25
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The nearest point on ``rings``' edges to each of ``points`` (n, 2), mm: exact.

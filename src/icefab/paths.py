@@ -45,9 +45,10 @@ From a ``Stack`` with part and scaffold regions to ordered ``Path``s per layer:
   :func:`icefab.geometry.simplify`; centre lines never double back).
 * Measurement paths (thesis 5.2.1): on layers with ``(index + 1) % interval_layers == 0``,
   concentric rings over each material's region (shrunk by half the measurement spacing,
-  then every spacing) and the centre lines of what they leave unmeasured (a wall narrower
-  than the spacing: :func:`measure_paths`), role "measure", one material per path, given
-  for the laser tool.
+  then every spacing), joined into spirals where they nest (:func:`join_measure_rings`:
+  the laser runs from one ring into the next without a stop), and the centre lines of
+  what they leave unmeasured (a wall narrower than the spacing: :func:`measure_paths`),
+  role "measure", one material per path, given for the laser tool.
 * Order within a layer: ``job.materials.order`` (default part boundaries, part fill,
   scaffold boundaries, scaffold fill), measurement paths last; inside each set nearest
   neighbour from the current position (the layer starts at the part-frame origin), with the
@@ -618,8 +619,8 @@ def measure_rings(region: Region, spacing: float, filt: float) -> list[np.ndarra
 MEASURE_EDGE_MM = 0.5
 
 
-def measure_paths(region: Region, spacing: float, filt: float
-                  ) -> list[tuple[np.ndarray, bool]]:
+def measure_paths(region: Region, spacing: float, filt: float, lane_mm: float = 0.0,
+                  max_length_mm: float = math.inf) -> list[tuple[np.ndarray, bool]]:
     """Measurement paths over a region, ``(points (k, 2) mm, closed)``: the concentric
     rings of :func:`measure_rings`, then a path along the centre line of every piece of
     the region they leave unmeasured (:func:`unmeasured`) of at least ``spacing^2``, kept
@@ -627,9 +628,15 @@ def measure_paths(region: Region, spacing: float, filt: float
     wall or a strip narrower than ``spacing`` holds no ring (the offset by ``spacing / 2``
     is empty), and the feedback would correct it with the heights of whatever was measured
     nearest (issue 15; on the demo mug at 4.5 mm the wall went unmeasured from 6 mm up and
-    the SMF height error grew as in open loop, 1.18 mm instead of 0.05 mm)."""
+    the SMF height error grew as in open loop, 1.18 mm instead of 0.05 mm).
+
+    With ``lane_mm`` > 0 the rings that nest are joined into spirals
+    (:func:`join_measure_rings`, lane changes ``lane_mm`` long, each spiral at most
+    ``max_length_mm``): the rings come first, joined or not, then the centre lines."""
     levels = measure_levels(region, spacing, filt)
-    out: list[tuple[np.ndarray, bool]] = [(r, True) for lv in levels for r in lv]
+    out: list[tuple[np.ndarray, bool]] = (
+        join_measure_rings(levels, region, spacing, lane_mm, max_length_mm) if lane_mm > 0
+        else [(r, True) for lv in levels for r in lv])
     left = [p for p in unmeasured(region, levels[0] if levels else [], spacing,
                                   filt).polygons()
             if geo.area(p) >= spacing * spacing]
@@ -660,6 +667,177 @@ def measure_paths(region: Region, spacing: float, filt: float
             out.append((np.ascontiguousarray(pts[keep]), True))
         elif not closed and keep.sum() >= 2:
             out.append((np.ascontiguousarray(pts[keep]), False))
+    return out
+
+
+#: A measurement spiral changes from one ring to the next in at least this many spacings
+#: of length, and in at least ``MEASURE_LANE_S`` at its speed (:func:`measure_lane_mm`):
+#: a quintic blend across one spacing over ``L`` turns at most ``5.8 spacing / L^2``
+#: (1/mm), i.e. 0.12 /mm (300 mm/s^2 at the part's 50 mm/s) over 12 mm at the default 3 mm
+#: spacing, and 0.028 /mm (430 mm/s^2 at 125 mm/s) over 25 mm for the scaffold: the robot
+#: does not slow down for it under the 500 mm/s^2 bound.
+MEASURE_LANE_SPACINGS = 4.0
+MEASURE_LANE_S = 0.2
+#: A joined measurement path holds at most this many laser samples: the LK-G3001P stores
+#: 65 536 values (``icefab.cell.lkg.STORAGE_CAPACITY``) and the cell reads them after each
+#: measurement path (thesis 5.2.1); half of it leaves room for the path's speed-ups.
+MEASURE_MAX_SAMPLES = 32_768
+
+
+def measure_lane_mm(spacing: float, speed_mm_s: float) -> float:
+    """Length (mm) of a measurement spiral's lane change from one ring to the next."""
+    return max(MEASURE_LANE_SPACINGS * spacing, MEASURE_LANE_S * speed_mm_s)
+
+
+def join_measure_rings(levels: Sequence[Sequence[np.ndarray]], region: Region,
+                       spacing: float, lane_mm: float, max_length_mm: float = math.inf
+                       ) -> list[tuple[np.ndarray, bool]]:
+    """Concentric measurement rings (:func:`measure_levels`, outermost level first)
+    joined into spirals where they nest: issue 15's continuous tours for the laser, which
+    deposits nothing, so a path may run from one ring into the next without a stop (the
+    thesis' BUFFERF rings, 5.2.1, each started and ended at rest; on bunny layers joining
+    took 5 % off the measurement's time, most of it the travel moves between rings).
+
+    A ring is followed by the ring of the next level that lies within 1.5 spacings of it
+    (the same orientation: an island's rings, or a hole's), the largest if several do;
+    each spiral leaves a ring ``lane_mm`` before it closes, along a quintic blend
+    (continuous in curvature at both ends) from it onto the stretch of the next ring
+    beside it (:func:`_lane_change`), and goes on round that one. A lane change is made
+    only where the rings
+    run side by side (at most 1.6 spacings apart along it) and the blend stays inside the
+    region at least ``MEASURE_EDGE_MM`` from its edge; elsewhere, and past
+    ``max_length_mm``, the spiral ends and the next ring starts a path of its own. The
+    first ring of a spiral is left where the next lies nearest.
+
+    Returns ``(points (k, 2) mm, closed)``: a spiral is open, a ring not joined is closed.
+    What a lane change leaves out of the two rings (the stretches it runs beside) lies
+    within 1.6 spacings of the blend."""
+    areas = [geo.ring_areas(list(lv)) for lv in levels]
+    boxes = [[(r.min(axis=0), r.max(axis=0)) for r in lv] for lv in levels]
+    child: dict[tuple[int, int], int] = {}
+    for k in range(len(levels) - 1):
+        taken: set[int] = set()
+        for j in np.argsort(-np.abs(areas[k + 1])):
+            ring = levels[k + 1][j]
+            lo, hi = boxes[k + 1][j]
+            probe = ring[::max(1, len(ring) // 64)]
+            best: tuple[int, float] | None = None
+            for i, parent in enumerate(levels[k]):
+                plo, phi = boxes[k][i]
+                if i in taken or np.sign(areas[k][i]) != np.sign(areas[k + 1][j]) or \
+                        np.any(lo < plo - 2.0 * spacing) or np.any(hi > phi + 2.0 * spacing):
+                    continue
+                d = float(geo.ring_nearest(probe, parent)[1].min())
+                if d < 1.5 * spacing and (best is None or d < best[1]):
+                    best = (i, d)
+            if best is not None:
+                child[(k, best[0])] = int(j)
+                taken.add(best[0])
+    followed = {(k + 1, j) for (k, _i), j in child.items()}
+    if not child:
+        return [(r, True) for lv in levels for r in lv]
+    inner = geo.shrink(region, MEASURE_EDGE_MM, 0.0)   # where a lane change may run
+    out: list[tuple[np.ndarray, bool]] = []
+    for k, lv in enumerate(levels):
+        for i in range(len(lv)):
+            if (k, i) in followed:
+                continue
+            chain = [lv[i]]
+            kk, ii = k, i
+            while (kk, ii) in child:
+                kk, ii = kk + 1, child[(kk, ii)]
+                chain.append(levels[kk][ii])
+            out += _spirals(chain, inner, spacing, lane_mm, max_length_mm)
+    return out
+
+
+def _ring_arc(ring: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A ring closed (k + 1, 2) and the arc length at each of its points (k + 1,), mm."""
+    closed = np.vstack([ring, ring[:1]])
+    return closed, np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(closed, axis=0).T))])
+
+
+def _ring_at(closed: np.ndarray, arc: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Points (n, 2) of a ring (:func:`_ring_arc`) at arc lengths ``t`` (n,), mm, taken
+    round the ring."""
+    t = np.mod(t, arc[-1])
+    return np.column_stack([np.interp(t, arc, closed[:, 0]), np.interp(t, arc, closed[:, 1])])
+
+
+def _lane_change(ring: tuple[np.ndarray, np.ndarray], leave: float,
+                 nxt: tuple[np.ndarray, np.ndarray], length: float, spacing: float,
+                 inner: Region) -> tuple[float, float, np.ndarray] | None:
+    """The blend from ``ring`` at arc ``leave`` onto the ring ``nxt`` over ``length`` mm
+    of ``ring`` (:func:`join_measure_rings`), side by side with the part of ``nxt`` nearest
+    it (rings of different curvature run at different rates: the inner ring of a bend is
+    shorter). Returns (arc of ``nxt`` where the blend starts beside it, the length of
+    ``nxt`` it runs beside, its points (n, 2)), or None where the rings do not run side by
+    side (over 1.6 spacings apart, or ``nxt`` doubling back) or the blend leaves ``inner``
+    (the region shrunk by ``MEASURE_EDGE_MM``)."""
+    u = np.linspace(0.0, 1.0, max(int(math.ceil(length / 0.5)), 4) + 1)
+    a = _ring_at(*ring, leave + u * length)
+    total = nxt[1][-1]
+    at, gap = geo.ring_nearest(a, nxt[0][:-1])
+    run = np.unwrap(at, period=total)
+    step = np.diff(run)
+    # the nearest point may stay put for a while (a corner of the inner ring faces a bend
+    # of the outer one) but not run back
+    if gap.max() > 1.6 * spacing or np.any(step < -1e-9) or \
+            not 0.0 < run[-1] - run[0] < 0.5 * total:
+        return None
+    b = _ring_at(*nxt, run)
+    w = (u ** 3 * (10.0 - 15.0 * u + 6.0 * u * u))[:, None]
+    blend = (1.0 - w) * a + w * b
+    if not geo.points_inside(blend, inner).all():
+        return None
+    return float(run[0]), float(run[-1] - run[0]), blend
+
+
+def _spirals(chain: list[np.ndarray], inner: Region, spacing: float, lane_mm: float,
+             max_length_mm: float) -> list[tuple[np.ndarray, bool]]:
+    """A chain of nested rings (outermost first) as spirals and single rings; ``inner``:
+    where a lane change may run (:func:`_lane_change`)."""
+    out: list[tuple[np.ndarray, bool]] = []
+    while chain:
+        ring = _ring_arc(chain[0])
+        pieces: list[np.ndarray] = []
+        start = done = 0.0      # where the current ring's lap starts; what a lane took
+        length = 0.0
+        joined = 0
+        for nxt_ring in chain[1:]:
+            nxt = _ring_arc(nxt_ring)
+            total = ring[1][-1]
+            lane = min(lane_mm, 0.5 * (total - done), nxt[1][-1] / 3.0)
+            if lane < 2.0 * spacing or length + total + nxt[1][-1] > max_length_mm:
+                break
+            if not joined:   # leave the first ring where the next lies nearest
+                every = max(1, (len(ring[0]) - 1) // 256)
+                near = geo.ring_nearest(ring[0][:-1:every], nxt_ring)[1]
+                start = ring[1][:-1:every][int(np.argmin(near))] + lane
+            found = _lane_change(ring, start + total - lane, nxt, lane, spacing, inner)
+            if found is None:
+                break
+            nxt_start, beside, blend = found
+            rel = np.mod(ring[1][:-1] - start, total)
+            between = np.sort(rel[(rel > done) & (rel < total - lane)])
+            pieces += [_ring_at(*ring, start + np.concatenate([[done], between,
+                                                                [total - lane]])),
+                       blend[1:]]
+            length += total
+            ring, start, done = nxt, nxt_start, beside
+            joined += 1
+        if not joined:
+            out.append((chain[0], True))
+            chain = chain[1:]
+            continue
+        total = ring[1][-1]
+        rel = np.mod(ring[1][:-1] - start, total)
+        between = np.sort(rel[rel > done])
+        pieces.append(_ring_at(*ring, start + np.concatenate([[done], between, [total]])))
+        pts = np.concatenate(pieces)
+        keep = np.concatenate([[True], np.hypot(*np.diff(pts, axis=0).T) > 1e-9])
+        out.append((np.ascontiguousarray(pts[keep]), False))
+        chain = chain[joined + 1:]
     return out
 
 
@@ -1308,10 +1486,15 @@ def plan_layer(layer: Layer, job: Job, measured: bool | None = None) -> LayerPat
     if measured:
         for material in ("part", "scaffold"):
             region = layer.part if material == "part" else layer.scaffold
+            spacing = job.feedback.measure_spacing_mm
+            # the laser's speed as the motion stage bounds it (icefab.motion.path_limits)
+            speed = (job.motion.measure_speed_mm_s if material == "part"
+                     else job.motion.speed_mm_s)
+            longest = speed * MEASURE_MAX_SAMPLES / job.simulation.laser_rate_hz
             groups[f"{material}:measure"] = [
                 (pts, closed, 0.0)
-                for pts, closed in measure_paths(region, job.feedback.measure_spacing_mm,
-                                                 filt)]
+                for pts, closed in measure_paths(region, spacing, filt,
+                                                 measure_lane_mm(spacing, speed), longest)]
             order.append(f"{material}:measure")
 
     paths: list[Toolpath] = []

@@ -54,7 +54,10 @@ READS: dict[str, tuple[str, ...]] = {
               "feedback.interval_layers", "feedback.measure_spacing_mm",
               # the PATHSPLIT angle: a closed path starts at one of its corners
               # (paths._start_candidates), where the robot stops anyway
-              "motion.smooth_angle_deg"),
+              "motion.smooth_angle_deg",
+              # the laser's speeds and sampling rate: a measurement spiral's lane changes
+              # and its length within the laser's storage (paths.join_measure_rings)
+              "motion.measure_speed_mm_s", "motion.speed_mm_s", "simulation.laser_rate_hz"),
     "motion": ("motion.", "cell.robot", "cell.l1_mm", "cell.l2_mm", "cell.reach_mm",
                "cell.joint_range_deg", "cell.elbow", "cell.gantry_travel_mm",
                "cell.ee_origin_mm", "cell.encoder_resolution_deg"),
