@@ -838,6 +838,38 @@ def test_measurement_rings_are_smoothed_all_the_way_in():
     assert all(R.covers(LinearRing(r)) for r in new)
 
 
+def test_measurement_rings_after_the_first_are_smoothed_at_their_turns_too():
+    """The fill's smoothing keeps turns over 60 degrees as corners; the measurement rings
+    after the first are smoothed there too (MEASURE_CORNER_DEG): on the bumpy disk their
+    PATHSPLIT pieces (each a stop) fall by at least 15 % (97 -> 77), every ring still
+    near the ring smoothed with its corners kept (Hausdorff, shapely), and the first level
+    within the point filter of it."""
+    from icefab.motion import pathsplit
+    from icefab.paths import MEASURE_SMOOTHING_MM, concentric_rings, measure_levels
+    region = _bumpy_disk()
+    job = Job()
+    spacing = job.feedback.measure_spacing_mm
+    kept = concentric_rings(region, spacing / 2.0, spacing, FILT, smooth_mm=0.5,
+                            ring_smooth_mm=0.5, corner_deg=60.0)
+    got = measure_levels(region, spacing, FILT)
+
+    def pieces(levels):
+        return sum(len(pathsplit(Toolpath(points=r, closed=True, role="measure").polyline(),
+                                 job)) for lv in levels[1:] for r in lv)
+    assert pieces(got) <= 0.85 * pieces(kept)
+    # the first ring is smoothed within the point filter only, with or without corners
+    assert len(got[0]) == len(kept[0])
+    assert all(shapely.hausdorff_distance(LinearRing(a), LinearRing(b)) <= 2.0 * FILT
+               for a, b in zip(got[0], kept[0]))
+    assert abs(sum(map(len, got)) - sum(map(len, kept))) <= 1
+    for a, b in zip(got[1:], kept[1:]):
+        for ra, rb in zip(a, b):
+            # each level is offset from the one before, so the moves may add up; they
+            # stay within the smoothing of every level so far
+            assert shapely.hausdorff_distance(LinearRing(ra), LinearRing(rb)) <= \
+                MEASURE_SMOOTHING_MM * len(got)
+
+
 def test_boundaries_keep_within_the_filter_of_the_exact_offset_and_are_followed_faster():
     """A noisy contour's boundary rings are the exact offsets smoothed within the point
     filter: every point stays within it of the exact offset (shapely's), and a
