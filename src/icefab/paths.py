@@ -850,7 +850,9 @@ def _spirals(chain: list[np.ndarray], inner: Region, spacing: float, lane_mm: fl
         rel = np.mod(ring[1][:-1] - start, total)
         between = np.sort(rel[rel > done])
         pieces.append(_ring_at(*ring, start + np.concatenate([[done], between, [total]])))
-        pts = np.concatenate(pieces)
+        # on Clipper's grid, as the rings were: the interpolated vertices differ from it
+        # by rounding only, and grid coordinates compress (the toolpath file, issue 17)
+        pts = np.round(np.concatenate(pieces) * geo.SCALE) / geo.SCALE
         keep = np.concatenate([[True], np.hypot(*np.diff(pts, axis=0).T) > 1e-9])
         out.append((np.ascontiguousarray(pts[keep]), False))
         chain = chain[joined + 1:]
