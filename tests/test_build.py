@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from icefab.errors import CellError, WorkspaceError
+from icefab.errors import CellError, ConfigError, WorkspaceError
 
 from icefab import build as bmod
 from icefab.config import Job, to_toml
@@ -104,6 +104,25 @@ def test_reach_of_the_builds_cell_is_checked_before_anything_moves(planned):
     with pytest.raises(WorkspaceError, match=r"layer \d+, path \d+, before anything moves"):
         bmod.check_build(m, short, len(m.layers))
     bmod.check_build(m, m.job.replace(**{"cell.reach_mm": [163.0, r + 1.0]}), len(m.layers))
+
+
+def test_a_measurement_path_the_laser_cannot_store_is_refused_before_anything_moves(planned):
+    """The LK-G3001P stores 65 536 values and the cell reads them after each measurement
+    path: at a sampling rate that would overflow it on the longest measurement path, the
+    build is refused before anything moves, naming the layer, the path and the highest
+    rate that fits; at that rate it starts."""
+    from icefab.cell.lkg import STORAGE_CAPACITY
+    from icefab.motion import load_trajectories
+
+    m = load_trajectories(planned)
+    longest = max(tr.duration for lm in m.layers for _i, tr in bmod._items(lm)[1])
+    assert longest > 0.0
+    fits = (STORAGE_CAPACITY - 1) / longest
+    bmod.check_build(m, m.job.replace(**{"simulation.laser_rate_hz": fits}), len(m.layers))
+    with pytest.raises(ConfigError, match=r"layer \d+, measurement path \d+: .* lower "
+                                          r"simulation.laser_rate_hz to at most"):
+        bmod.check_build(m, m.job.replace(**{"simulation.laser_rate_hz": 1.01 * fits}),
+                         len(m.layers))
 
 
 class Crash(BaseException):

@@ -98,7 +98,9 @@ def check_build(motion: "BuildMotion", job: "Job", layers: int) -> None:
     """Refuse, before anything moves, a build the cell cannot make: a trajectory point
     beyond the reach or a joint's range of this job's cell (the planner checked the job it
     planned with; the cell the build runs on may differ), a part taller than the vertical
-    stroke (WorkspaceError naming layer, path and point, or the stroke).
+    stroke (WorkspaceError naming layer, path and point, or the stroke), a measurement
+    path with more laser values than the controller stores (ConfigError naming the layer,
+    path and ``simulation.laser_rate_hz``).
     Adaptive layers (own thicknesses) are refused: the runner's SMF interval and the
     virtual cell still count in layers of ``slicing.layer_thickness_mm``."""
     if any(np.isfinite(lm.thickness) for lm in motion.layers):
@@ -117,6 +119,7 @@ def check_build(motion: "BuildMotion", job: "Job", layers: int) -> None:
             k = int(np.searchsorted(first, int(bad[0]), side="right"))
             check_workspace(trajs[k].xy, robot, layer=int(lm.index), path=k,
                             what="before anything moves (cell.reach_mm, cell.joint_range_deg)")
+    _check_laser_storage(motion, job, layers)
     top = max((float(lm.z) for lm in motion.layers[:layers]), default=0.0) \
         + job.slicing.layer_thickness_mm
     stroke = job.cell.stroke_mm
@@ -124,6 +127,28 @@ def check_build(motion: "BuildMotion", job: "Job", layers: int) -> None:
         raise WorkspaceError(f"the part is {top:.1f} mm tall over its first {layers} layers: "
                              f"beyond the robot's vertical stroke cell.stroke_mm = {stroke:g} "
                              "mm (Cobra 600: 210 mm, thesis Table 2-1)")
+
+
+def _check_laser_storage(motion: "BuildMotion", job: "Job", layers: int) -> None:
+    """Refuse a measurement path whose values the laser controller cannot hold: it stores
+    one every cycle (``simulation.laser_rate_hz``) while the path runs and 65 536 at most
+    (LK-G3001P, thesis Table 2-3); the cell reads them after the path, so a longer path
+    would be measured only in part, with nothing to say so. The paths stage keeps its
+    spirals within half of it at the laser's speed (``paths.MEASURE_MAX_SAMPLES``); a
+    single ring is as long as the part makes it."""
+    from icefab.cell.lkg import STORAGE_CAPACITY
+
+    rate = float(job.simulation.laser_rate_hz)
+    for lm in motion.layers[:layers]:
+        for i, tr in _items(lm)[1]:
+            n = int(math.floor(tr.duration * rate + 1e-9)) + 1
+            if n > STORAGE_CAPACITY:
+                raise ConfigError(
+                    f"layer {lm.index}, measurement path {i}: {tr.duration:.1f} s at "
+                    f"simulation.laser_rate_hz = {rate:g} Hz is {n} laser values, more than "
+                    f"the laser controller stores ({STORAGE_CAPACITY}, LK-G3001P); lower "
+                    f"simulation.laser_rate_hz to at most "
+                    f"{(STORAGE_CAPACITY - 1) / tr.duration:.0f} Hz")
 
 
 def check_speeds(trajectories, job: "Job", layer: int) -> list[str]:
