@@ -26,6 +26,23 @@ def write_section(heading: str, text: str, path: Path = BENCHMARKS) -> None:
     write_atomic(path, doc)
 
 
+def parse_settings(items: Iterable[str]) -> dict:
+    """``SETTING=VALUE`` command-line items as a dict for ``Job.replace`` (values JSON:
+    ``false``, ``4.5``, ``[340, 0]``). ValueError naming the item when it is not one."""
+    import json
+    out = {}
+    for item in items:
+        key, eq, value = item.partition("=")
+        try:
+            if not eq or not key:
+                raise ValueError
+            out[key] = json.loads(value)
+        except ValueError:
+            raise ValueError(f"{item!r}: expected SETTING=VALUE with a JSON value, e.g. "
+                             "materials.part.variable_width=false") from None
+    return out
+
+
 def evenly_spread(n: int, k: int) -> list[int]:
     """``k`` layer indices spread evenly over ``n`` layers, the first and last left out."""
     import numpy as np

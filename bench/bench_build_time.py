@@ -43,17 +43,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent))
 sys.path.insert(0, str(Path(__file__).parent.parent))  # tests.test_motion_toppra
 
-from _report import evenly_spread, rest_stops  # noqa: E402
+from _report import evenly_spread, parse_settings, rest_stops  # noqa: E402
 
 BUNNY_EE = (340.0, 0.0)
-
-
-def _parse_peer(items: list[str]) -> dict:
-    out = {}
-    for item in items:
-        key, _, value = item.partition("=")
-        out[key] = json.loads(value)
-    return out
 
 
 def _bunny_stack(job, every: int):
@@ -195,7 +187,7 @@ def main() -> int:
     args = ap.parse_args()
     from icefab.config import Job
 
-    peer_settings = _parse_peer(args.peer) if args.peer is not None else {
+    peer_settings = parse_settings(args.peer) if args.peer is not None else {
         "materials.part.variable_width": False, "materials.scaffold.variable_width": False}
     print(f"machine: {os.cpu_count()}-core {platform.machine()}, Python "
           f"{platform.python_version()}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}")

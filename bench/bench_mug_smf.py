@@ -1,14 +1,15 @@
 """Issue 15's accuracy check on the demo mug, over many disturbance seeds.
 
-    python3 bench/bench_mug_smf.py [--seeds 40] [--layers 60]
+    python3 bench/bench_mug_smf.py [--seeds 40] [--layers 60] [--peer SETTING=VALUE ...]
 
 The build simulator (``icefab.sim.simulate_open_and_smf``, the default job: +10 % flow
 error, laser noise, debris) runs the demo mug's first ``--layers`` layers open loop and
-with SMF, once with the default paths (the gap fill's centre lines with a width per point,
-``materials.*.variable_width = true``) and once with the peer, the same job with
-``variable_width = false`` (the centre lines in runs of one width each, issue 15's
-"today's gap fill"), under seeds 0 .. ``--seeds`` - 1 (``simulation.seed``: the noise and
-the debris). The paths do not depend on the seed; each variant's are planned once.
+with SMF, once with the default job and once with the peer, under seeds 0 .. ``--seeds``
+- 1 (``simulation.seed``: the noise and the debris). The peer is by default the same job
+with ``variable_width = false`` (the gap fill's centre lines in runs of one width each,
+issue 15's "today's gap fill"); ``--peer`` names other settings (JSON values, e.g.
+``feedback.measure_spacing_mm=4.5``), which act on the paths and the simulated cell
+alike. The paths do not depend on the seed; each variant's are planned once.
 
 Prints, for open loop and SMF: the final RMS height error of each variant (mean over the
 seeds), their ratio, the paired difference (default - peer: mean, standard deviation), in
@@ -23,7 +24,13 @@ import datetime
 import platform
 import time
 
+import sys
+from pathlib import Path
+
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).parent))
+from _report import parse_settings  # noqa: E402
 
 PEER = {"materials.part.variable_width": False, "materials.scaffold.variable_width": False}
 
@@ -44,11 +51,19 @@ def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seeds", type=int, default=40)
     ap.add_argument("--layers", type=int, default=60)
+    ap.add_argument("--peer", nargs="*", default=None, metavar="SETTING=VALUE",
+                    help="the peer job's settings (JSON values); default: "
+                         "materials.part.variable_width=false "
+                         "materials.scaffold.variable_width=false")
     ap.add_argument("--no-write", action="store_true", help="accepted for run_all.py; this "
                     "benchmark only prints (its figures are copied into BENCHMARKS.md by hand)")
     args, _ = ap.parse_known_args()
     if args.seeds < 2 or args.layers < 1:
         ap.error("--seeds must be >= 2 and --layers >= 1")
+    try:
+        peer = parse_settings(args.peer) if args.peer is not None else PEER
+    except ValueError as exc:
+        ap.error(f"--peer {exc}")
     from scipy import stats
 
     from icefab import Job
@@ -61,7 +76,14 @@ def main() -> int:
 
     print(f"{platform.machine()}, {platform.python_version()}, "
           f"{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC", flush=True)
+    from icefab.errors import ConfigError
+
     job = Job()
+    try:
+        peer_job = job.replace(**peer)   # a bad setting stops here, before any work
+    except ConfigError as exc:
+        ap.error(f"--peer: {exc}")
+    print(f"peer: {peer}", flush=True)
     t0 = time.perf_counter()
     # the scaffold of the whole mug (a layer's scaffold depends on the layers above), then
     # the simulated layers alone
@@ -70,13 +92,12 @@ def main() -> int:
                   layer_thickness=stack.layer_thickness, warnings=stack.warnings)
     seeds = range(args.seeds)
     res = {}
-    for name, over in (("default", {}), ("peer", PEER)):
-        vjob = job.replace(**over)
+    for name, vjob in (("default", job), ("peer", peer_job)):
         res[name] = final_rms(plan_paths(stack, vjob), vjob, args.layers, seeds)
         print(f"{name}: {len(seeds)} seeds simulated ({time.perf_counter() - t0:.0f} s)",
               flush=True)
-    print(f"\ndemo mug, first {args.layers} layers, seeds 0-{args.seeds - 1}; default: "
-          "variable-width centre lines; peer: variable_width = false\n")
+    print(f"\ndemo mug, first {args.layers} layers, seeds 0-{args.seeds - 1}; default: the "
+          f"default job; peer: {peer}\n")
     print("| final RMS height error | default (mm) | peer (mm) | ratio | paired difference "
           "(um) | default worse in | Wilcoxon p |")
     print("| --- | ---: | ---: | ---: | ---: | ---: | ---: |")
