@@ -520,3 +520,23 @@ def test_corner_vertices_are_the_turns_over_the_angle(seed, angle):
     square = np.array([[0, 0], [10, 0], [10, 10], [0, 10]], float)
     assert geo.corner_vertices(square, 30.0).tolist() == [0, 1, 2, 3]
     assert geo.corner_vertices(square, 91.0).tolist() == []
+
+
+@settings(max_examples=40, deadline=None)
+@given(polygon_with_holes(), st.lists(st.tuples(st.floats(-40, 40), st.floats(-40, 40)),
+                                      min_size=1, max_size=20))
+def test_ring_nearest_is_shapelys_projection(rings, points):
+    """:func:`icefab.geometry.ring_nearest` against shapely: the distance of every point
+    to the ring's edges, and an arc length (from the ring's first point) whose point on
+    the ring (shapely's interpolation) lies at that distance: a nearest point, whichever
+    of several equally near ones."""
+    ring = np.asarray(rings[0], dtype=np.float64)
+    pts = np.asarray(points, dtype=np.float64)
+    at, dist = geo.ring_nearest(pts, ring)
+    line = shapely.LinearRing(ring)
+    sp = shapely.points(pts)
+    assert np.allclose(dist, shapely.distance(sp, line), atol=1e-9)
+    foot = shapely.get_coordinates(shapely.line_interpolate_point(line, at))
+    # the foot at the arc position given is that far from the point
+    assert np.allclose(np.hypot(*(foot - pts).T), dist, atol=1e-7)
+    assert np.all((at >= 0.0) & (at <= line.length + 1e-9))

@@ -769,8 +769,8 @@ def join_measure_rings(levels: Sequence[Sequence[np.ndarray]], region: Region,
 
 def _ring_arc(ring: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """A ring closed (k + 1, 2) and the arc length at each of its points (k + 1,), mm."""
-    closed = np.vstack([ring, ring[:1]])
-    return closed, np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(closed, axis=0).T))])
+    closed = closed_polyline(ring)
+    return closed, arc_lengths(np.hypot(*np.diff(closed, axis=0).T))
 
 
 def _ring_at(closed: np.ndarray, arc: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -778,6 +778,15 @@ def _ring_at(closed: np.ndarray, arc: np.ndarray, t: np.ndarray) -> np.ndarray:
     round the ring."""
     t = np.mod(t, arc[-1])
     return np.column_stack([np.interp(t, arc, closed[:, 0]), np.interp(t, arc, closed[:, 1])])
+
+
+def _lap(ring: tuple[np.ndarray, np.ndarray], start: float, frm: float, to: float
+         ) -> np.ndarray:
+    """The stretch of a ring (:func:`_ring_arc`) from arc ``start + frm`` to ``start +
+    to`` (0 <= frm < to <= its length), with every vertex between: points (k, 2) mm."""
+    rel = np.mod(ring[1][:-1] - start, ring[1][-1])
+    between = np.sort(rel[(rel > frm) & (rel < to)])
+    return _ring_at(*ring, start + np.concatenate([[frm], between, [to]]))
 
 
 def _lane_change(ring: tuple[np.ndarray, np.ndarray], leave: float,
@@ -788,8 +797,8 @@ def _lane_change(ring: tuple[np.ndarray, np.ndarray], leave: float,
     it (rings of different curvature run at different rates: the inner ring of a bend is
     shorter). Returns (arc of ``nxt`` where the blend starts beside it, the length of
     ``nxt`` it runs beside, its points (n, 2)), or None where the rings do not run side by
-    side (over 1.6 spacings apart, or ``nxt`` doubling back) or the blend leaves ``inner``
-    (the region shrunk by ``MEASURE_EDGE_MM``)."""
+    side (over 1.6 spacings apart, or the nearest point running back along ``nxt``) or the
+    blend leaves ``inner`` (the region shrunk by ``MEASURE_EDGE_MM``)."""
     u = np.linspace(0.0, 1.0, max(int(math.ceil(length / 0.5)), 4) + 1)
     a = _ring_at(*ring, leave + u * length)
     total = nxt[1][-1]
@@ -834,11 +843,7 @@ def _spirals(chain: list[np.ndarray], inner: Region, spacing: float, lane_mm: fl
             if found is None:
                 break
             nxt_start, beside, blend = found
-            rel = np.mod(ring[1][:-1] - start, total)
-            between = np.sort(rel[(rel > done) & (rel < total - lane)])
-            pieces += [_ring_at(*ring, start + np.concatenate([[done], between,
-                                                                [total - lane]])),
-                       blend[1:]]
+            pieces += [_lap(ring, start, done, total - lane), blend[1:]]
             length += total
             ring, start, done = nxt, nxt_start, beside
             joined += 1
@@ -846,10 +851,7 @@ def _spirals(chain: list[np.ndarray], inner: Region, spacing: float, lane_mm: fl
             out.append((chain[0], True))
             chain = chain[1:]
             continue
-        total = ring[1][-1]
-        rel = np.mod(ring[1][:-1] - start, total)
-        between = np.sort(rel[rel > done])
-        pieces.append(_ring_at(*ring, start + np.concatenate([[done], between, [total]])))
+        pieces.append(_lap(ring, start, done, ring[1][-1]))
         # on Clipper's grid, as the rings were: the interpolated vertices differ from it
         # by rounding only, and grid coordinates compress (the toolpath file, issue 17)
         pts = np.round(np.concatenate(pieces) * geo.SCALE) / geo.SCALE
@@ -1505,9 +1507,7 @@ def plan_layer(layer: Layer, job: Job, measured: bool | None = None) -> LayerPat
         for material in ("part", "scaffold"):
             region = layer.part if material == "part" else layer.scaffold
             spacing = job.feedback.measure_spacing_mm
-            # the laser's speed as the motion stage bounds it (icefab.motion.path_limits)
-            speed = (job.motion.measure_speed_mm_s if material == "part"
-                     else job.motion.speed_mm_s)
+            speed = laser_speed(material, job)
             longest = speed * MEASURE_MAX_SAMPLES / job.simulation.laser_rate_hz
             groups[f"{material}:measure"] = [
                 (pts, closed, 0.0)
@@ -1613,6 +1613,14 @@ def path_speed(path: Toolpath, job: Job) -> float:
                                    MATERIALS.index(path.material)])
 
 
+def laser_speed(material: str, job: Job) -> float:
+    """Speed along a measurement path of ``material``, mm/s, as the motion stage bounds it
+    (:func:`icefab.motion.path_limits`): ``measure_speed_mm_s`` over the ice (50: its
+    reflective surface, thesis 4.2), ``speed_mm_s`` over the scaffold (125)."""
+    m = job.motion
+    return float(m.measure_speed_mm_s if material == "part" else m.speed_mm_s)
+
+
 def _speed_table(job: Job) -> np.ndarray:
     """(roles, materials) float64 mm/s: :func:`path_speed` of every role and material
     (indexed as ``icefab.core.ROLES`` and ``MATERIALS``: the packed paths' codes)."""
@@ -1627,7 +1635,7 @@ def _speed_table(job: Job) -> np.ndarray:
             elif role == "travel":
                 v = m.travel_speed_mm_s
             else:
-                v = m.measure_speed_mm_s if material == "part" else m.speed_mm_s
+                v = laser_speed(material, job)
             table[r, k] = v
     return table
 

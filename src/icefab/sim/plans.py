@@ -16,6 +16,7 @@ from icefab import flow
 from icefab.config import Job
 from icefab.core import LayerMotion, Toolpath, Trajectory, ValveProgram, arc_lengths, offsets
 from icefab.errors import SimulationError
+from icefab.paths import laser_speed
 from icefab.stages import layer_height
 from icefab.sim.deposition import (MATERIAL_ID, _TINY_MM, ActionFn, _joints, pulse_drops,
                                    pulse_segments)
@@ -93,8 +94,7 @@ def plan_layer(index: int, paths: Sequence[Toolpath], job: "Job",
             raise SimulationError(f"layer {index}: {p.material} {p.role} path has NaN or "
                                   "infinite points")
         if p.role == "measure":
-            # part (ice) is measured slowly, scaffold at full speed (icefab.paths.path_speed)
-            speed = m.measure_speed_mm_s if p.material == "part" else m.speed_mm_s
+            speed = laser_speed(p.material, job)   # ice slowly, scaffold at full speed
             tg, tr = laser_positions(pts, p.closed, speed_mm_s=speed,
                                      rate_hz=sim.laser_rate_hz, latency_s=sim.laser_latency_s)
             tag_parts.append(tg)
