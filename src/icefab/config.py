@@ -195,7 +195,19 @@ class ScaffoldSettings:
                                     "'overhang': only under overhangs steeper than "
                                     "overhang_angle_deg", choices=("surround", "overhang"))
     overhang_angle_deg: float = setting(45.0, "limiting overhang angle from vertical "
-                                              "(overhang mode)", lo=0.0, hi=90.0)
+                                              "(overhang mode: steeper overhangs get "
+                                              "scaffold; surround mode: how far the smoothed "
+                                              "outer wall may lean out)", lo=0.0, hi=90.0)
+    smoothing_mm: float = setting(
+        0.5,
+        "surround mode: how far the scaffold's outer wall may move outward to lose the "
+        "scan's noise (0: the exact buffer). The buffer's offset keeps every wiggle of the "
+        "part's slices, which holds the jerk-limited robot to ~40 mm/s along the outermost "
+        "scaffold paths; the wall is smoothed within this and grown back over the buffer, "
+        "so the scaffold only gets wider",
+        lo=0.0, hi=10.0,
+        why="the wall's wiggles are a few tenths of a millimetre; 10 mm would move it by "
+            "three buffers")
     subset: Vec2 = setting((0.0, 1.0), "[min, max] fraction of the height that gets scaffold",
                            lo=0.0, hi=1.0)
     min_width_mm: float = setting(
