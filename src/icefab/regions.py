@@ -8,16 +8,21 @@ Algorithm (thesis 3.3, RPSCAF):
 2. ``surround`` mode: the scaffold of layer ``k`` is ``expand(M_k, buffer) - P_k``
    (thesis: BUFFERF on the merged region, then a Boolean subtraction), independently per
    layer, so it runs on a process pool over chunks of layers (``job.cell.cpus``).
-   ``buffer = 0`` gives classic support: only what is above. With ``smoothing_mm`` > 0
-   (and a buffer) the outer wall ``E_k = expand(M_k, buffer)`` is first smoothed within
-   it and grown back over ``E_k`` (:func:`smoothed_wall`: the scaffold only gets wider,
-   by up to about twice the smoothing), then ``O_k = W_k u shrink(O_{k+1}, d_k)`` from
-   the top, ``d_k`` being layer ``k + 1``'s thickness times tan(``overhang_angle_deg``):
-   the exact walls only ever step inward going up, and the smoothed ones may not lean out
-   by more than the limiting angle either (unsmoothed, the walls of a shrinking ear's tip
-   leaned out by up to 1 mm per layer on the bunny). Why: the buffer's offset keeps every
-   wiggle of a scanned part's slices, and the outermost scaffold paths at 125 mm/s crawl
-   along them under the jerk bound (issue 15: 5 bunny layers -2.9 % of MTTS time).
+   ``buffer = 0`` gives classic support: only what is above. With a buffer:
+
+   * the outer wall ``E_k = expand(M_k, buffer)`` is smoothed within ``smoothing_mm``
+     and grown back over ``E_k`` (:func:`smoothed_wall`: the scaffold only gets wider, by
+     up to about twice the smoothing). Why: the buffer's offset keeps every wiggle of a
+     scanned part's slices, and the outermost scaffold paths at 125 mm/s crawl along them
+     under the jerk bound (issue 15: within 0.1 mm, -2.2 % of the MTTS time on 5 bunny
+     layers; more widens the band between part and wall past what its two boundary paths
+     cover, and leaves slivers unfilled);
+   * then ``O_k = W_k u shrink(O_{k+1}, d_k)`` from the top, ``d_k`` being layer
+     ``k + 1``'s thickness times tan(``overhang_angle_deg``), so no wall leans out over
+     the one below by more than the limiting angle (:func:`leaning_walls`). Mitred
+     offsets are not nested: the sharp tip of a bunny's ear mitres up to twice the buffer
+     out, the blunter tip of the layer below less, and the exact walls leaned out by over
+     1 mm per layer there.
 3. ``overhang`` mode (Ossino 4: compare adjacent layers, limiting angle 0-45 deg): the
    area of the layer above ``U_{k+1} = P_{k+1} u S_{k+1}`` not carried by the part within
    the limiting angle, ``N_k = U_{k+1} - expand(P_k, t * tan(angle))``, needs support;
@@ -106,7 +111,8 @@ def _in_subset(stack: Stack, job: Job) -> np.ndarray:
 #: Window of the outer wall's smoothing (``scaffold.smoothing_mm``): the standard deviation
 #: (mm) of :func:`icefab.geometry.smooth_rings`' window, as the fill rings'
 #: (``paths.FILL_SMOOTH_SIGMA_MM``): a scan's wiggles span a few millimetres. On 5 bunny
-#: layers 3 / 5 / 8 mm took 2.2 / 2.9 / 2.0 % off the MTTS time (BENCHMARKS.md, issue 15).
+#: layers, smoothing within 0.5 mm, 3 / 5 / 8 mm took 2.2 / 2.9 / 2.0 % off the MTTS time
+#: (BENCHMARKS.md, issue 15).
 WALL_SMOOTH_SIGMA_MM = 5.0
 
 
@@ -240,7 +246,7 @@ def add_scaffold(stack: Stack, job: Job | None = None, *,
                                              for k in range(n)], job, progress=half)
             walls = [d[0] for d in done]
             thin = [d[1] for d in done]
-            if s.buffer_mm > 0 and s.smoothing_mm > 0:
+            if s.buffer_mm > 0:
                 walls = leaning_walls(walls, _leans(stack.thicknesses, s.overhang_angle_deg))
             scaffolds = parallel_map(_surround_task, [(walls[k], parts[k], part_above[k],
                                                        s.min_width_mm, filt)
