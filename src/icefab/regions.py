@@ -118,18 +118,21 @@ WALL_SMOOTH_SIGMA_MM = 5.0
 
 def smoothed_wall(outer: Region, tol_mm: float, filt: float) -> Region:
     """``outer`` with its rings smoothed within ``tol_mm`` (corners over 60 degrees kept,
-    :func:`icefab.geometry.smooth_rings`) and grown by as far as ``outer`` reached outside
-    the smoothed rings (plus twice the point filter ``filt``, which the growth's chords
-    may cut back), united with ``outer``: it holds ``outer`` and lies within about
-    ``2 tol_mm + 2 filt`` of it. (The union is for the rare point the smoothing's reach
-    misses: on teeth 0.25 mm high every 2 mm, 0.07 mm^2 of a 20 mm disk stayed out.)
-    ``tol_mm`` <= 0 or an empty region: ``outer`` itself."""
+    :func:`icefab.geometry.smooth_rings`), chord-filtered within ``filt`` (the smoothing
+    leaves a point every 0.01 mm of deviation, for the robot; a region's edge needs the
+    slices' filter only: 17 % more scaffold points on the bunny without it) and grown by as
+    far as ``outer`` reached outside the smoothed rings plus ``filt``, united with
+    ``outer``: it holds ``outer`` and lies within about ``2 tol_mm + filt`` of it. (The
+    union is for the rare point the smoothing's reach misses: on teeth 0.25 mm high every
+    2 mm, 0.07 mm^2 of a 20 mm disk stayed out.) ``tol_mm`` <= 0 or an empty region:
+    ``outer`` itself."""
     if not tol_mm > 0 or outer.is_empty:
         return outer
     rings, reach = geo.smooth_rings(list(outer.rings), tol_mm, WALL_SMOOTH_SIGMA_MM)
-    smooth = geo.region_from_rings(rings)
-    grown = geo.expand(smooth, reach + 2.0 * filt, filt) if reach > 0 else smooth
-    return geo.union(outer, grown)
+    if reach <= 0:
+        return geo.union(outer, geo.region_from_rings(rings))
+    smooth = geo.region_from_rings(geo.simplify(rings, filt))
+    return geo.union(outer, geo.expand(smooth, reach + filt, 0.0))
 
 
 def _wall_task(args: tuple[Region, Region, float, float, float, float]
