@@ -153,7 +153,7 @@ def leaning_walls(walls: Sequence[Region], leans: Sequence[float]) -> list[Regio
     """``O_k = W_k u shrink(O_{k+1}, leans[k])`` from the top: every wall holds the one
     above it shrunk by ``leans[k]`` mm (``inf``: no constraint), so no wall leans out over
     the one below it by more than that. Sequential, one shrink and one union per layer
-    (1.1 s for the 1 200 bunny layers)."""
+    (0.45 s for the 1 200 bunny layers)."""
     n = len(walls)
     out: list[Region] = list(walls)
     above = Region()
