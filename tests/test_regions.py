@@ -138,14 +138,16 @@ def test_table_gets_scaffold_under_the_whole_slab():
         assert layer.scaffold.area == pytest.approx(46.6 ** 2 - 100, abs=1e-6)
 
 
-def rippled_disk(r=40.0, n=1000, amp=0.1, wavelength=5.0, noise=0.02, seed=0):
+def rippled_disk(r=40.0, n=1000, amp=0.1, wavelength=5.0, noise=0.02, seed=0,
+                 centre=(0.0, 0.0)):
     """A disk whose edge wiggles like a scanned part's slice: a 0.1 mm ripple every 5 mm
     and 0.02 mm of noise at every point (0.25 mm apart)."""
     rng = np.random.default_rng(seed)
     t = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
-    rad = r + amp * np.sin(round(2.0 * np.pi * r / wavelength) * t) \
+    rad = r + amp * np.sin(max(round(2.0 * np.pi * r / wavelength), 1) * t) \
         + noise * rng.standard_normal(n)
-    return geo.region_from_rings([np.c_[rad * np.cos(t), rad * np.sin(t)]])
+    return geo.region_from_rings([np.c_[centre[0] + rad * np.cos(t),
+                                        centre[1] + rad * np.sin(t)]])
 
 
 def test_smoothed_outer_wall_lets_the_robot_follow_the_outer_scaffold_path():
@@ -355,3 +357,27 @@ def test_property_invariants_random_parts(regions, buffer, min_width):
     st_ = add_scaffold(make_stack(regions, job))
     # thin-piece removal may take away surround narrower than min_width (never support)
     check_invariants(st_, buffer if buffer > 0 and min_width == 0 else None)
+
+
+@st.composite
+def scanned_stack(draw):
+    """Layers of one or two wiggling disks that move and shrink or grow from layer to
+    layer (a scan's ear tips): the smoothed walls and the leaning pass at work."""
+    n = draw(st.integers(2, 5))
+    layers = []
+    for _ in range(n):
+        disks = [rippled_disk(draw(st.floats(3.0, 15.0)), 300, draw(st.floats(0.0, 0.3)),
+                              draw(st.floats(2.0, 8.0)), draw(st.floats(0.0, 0.03)),
+                              draw(st.integers(0, 1000)),
+                              (draw(st.floats(-10, 10)), draw(st.floats(-10, 10))))
+                 for _ in range(draw(st.integers(1, 2)))]
+        layers.append(geo.union(*disks))
+    return layers
+
+
+@settings(max_examples=25, deadline=None)
+@given(scanned_stack(), st.sampled_from([0.1, 0.5]), st.sampled_from([30.0, 45.0]))
+def test_property_invariants_scanned_parts(regions, smoothing, angle):
+    job = Job().replace(**{"scaffold.smoothing_mm": smoothing, "cell.cpus": 1,
+                           "scaffold.overhang_angle_deg": angle, "scaffold.min_width_mm": 0.0})
+    check_invariants(add_scaffold(make_stack(regions, job)), 3.3)
