@@ -14,7 +14,7 @@ Algorithm (thesis 3.3, RPSCAF):
      and grown back over ``E_k`` (:func:`smoothed_wall`: the scaffold only gets wider, by
      up to about twice the smoothing). Why: the buffer's offset keeps every wiggle of a
      scanned part's slices, and the outermost scaffold paths at 125 mm/s crawl along them
-     under the jerk bound (issue 15: within 0.1 mm, -2.2 % of the MTTS time on 5 bunny
+     under the jerk bound (issue 15: within 0.1 mm, -1.8 % of the MTTS time on 5 bunny
      layers; more widens the band between part and wall past what its two boundary paths
      cover, and leaves slivers unfilled);
    * then ``O_k = W_k u shrink(O_{k+1}, d_k)`` from the top, ``d_k`` being layer
@@ -111,8 +111,8 @@ def _in_subset(stack: Stack, job: Job) -> np.ndarray:
 #: Window of the outer wall's smoothing (``scaffold.smoothing_mm``): the standard deviation
 #: (mm) of :func:`icefab.geometry.smooth_rings`' window, as the fill rings'
 #: (``paths.FILL_SMOOTH_SIGMA_MM``): a scan's wiggles span a few millimetres. On 5 bunny
-#: layers, smoothing within 0.5 mm, 3 / 5 / 8 mm took 2.2 / 2.9 / 2.0 % off the MTTS time
-#: (BENCHMARKS.md, issue 15).
+#: layers, smoothing within 0.5 mm (its first form), 3 / 5 / 8 mm took 2.2 / 2.9 / 2.0 % off
+#: the MTTS time (BENCHMARKS.md, issue 15).
 WALL_SMOOTH_SIGMA_MM = 5.0
 
 
