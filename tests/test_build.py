@@ -41,7 +41,12 @@ def _plan_mug(n_layers: int, folder: Path) -> Path:
     from icefab.slicing import slice_mesh
     from icefab.core import Stack
 
-    job = Job()
+    # The default job leaves the part valve no room for SMF's full correction at 125 mm/s
+    # (121.9 mm^3/s needed, 115.3 given: icefab.headroom), and a resumed build's surface,
+    # and so its correction, differs from the uninterrupted one's: under the default
+    # flow.out_of_range = "error" such a build can end on a valve frequency a few percent
+    # over the limit, which is not what these tests are about. Clamped and journaled.
+    job = Job().replace(**{"flow.out_of_range": "clamp"})
     stack = add_scaffold(slice_mesh(transform(demo_mug(), job.parts), job), job)
     stack = Stack(layers=stack.layers[:n_layers], job=stack.job,
                   layer_thickness=stack.layer_thickness, warnings=stack.warnings)
