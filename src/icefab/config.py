@@ -258,7 +258,7 @@ class MaterialSettings:
         "contour off (a scanned mesh's slices wiggle by ~0.05 mm every few mm, which holds a "
         "jerk-limited robot to ~40 mm/s); the first ring then overlaps the boundary by up to "
         "twice this, never leaving a sliver between them. Every ring, this one too, is then "
-        "smoothed within 5 % of the fill width (the corners inward offsets make of a "
+        "smoothed within 10 % of the fill width (the corners inward offsets make of a "
         "contour's bumps rounded off) and the next offset from it, its bead widened by twice "
         "how far it moved inward (beyond the path filter inside the first), so the band "
         "outside stays covered (the valve follows the width). 0: off",

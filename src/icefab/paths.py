@@ -16,8 +16,9 @@ From a ``Stack`` with part and scaffold regions to ordered ``Path``s per layer:
     never gets a path wider than its room: the innermost rings are cut to the part of
     their area at least ``F`` wide (:func:`_with_room`), the rest goes to the gap fill.
     With ``fill_smoothing_mm`` > 0 the first ring follows the smoothed contour and every
-    ring, the first too, is smoothed within ``RING_SMOOTHING * F``, its bead widened where
-    it moved inward (a width per point, :func:`concentric_levels`);
+    ring, the first too, is smoothed within ``RING_SMOOTHING * F`` (in a wider window,
+    ``RING_SMOOTH_SIGMA_MM``), its bead widened where it moved inward (a width per point,
+    :func:`concentric_levels`);
   - ``zigzag``: parallel lines spaced ``F``, clipped to the region shrunk by ``e + F/2``,
     consecutive lines linked where the link stays inside; each island of the region at
     the angle (in steps of ``hybrid_angle_step_deg`` over [0, 180)) with the least time
@@ -179,7 +180,8 @@ def concentric_rings(region: Region, start_mm: float, step_mm: float, filt: floa
 def concentric_levels(region: Region, start_mm: float, step_mm: float, filt: float,
                       max_rings: int = 100_000, width_mm: float = 0.0,
                       smooth_mm: float = 0.0, ring_smooth_mm: float = 0.0,
-                      corner_deg: float = 60.0) -> "FillLevels":
+                      corner_deg: float = 60.0,
+                      ring_sigma_mm: float = FILL_SMOOTH_SIGMA_MM) -> "FillLevels":
     """Rings of ``region`` shrunk by ``start_mm``, then every ``step_mm`` until empty, and
     the width of the bead along each.
 
@@ -197,9 +199,10 @@ def concentric_levels(region: Region, start_mm: float, step_mm: float, filt: flo
           first band overlaps what is outside it by up to ``2 smooth_mm`` and leaves no
           sliver. The first ring is ``step_mm / 2`` inside it.
         * every ring, the first (the offset of the smoothed edge) too when ``width_mm``
-          > 0, is smoothed within ``ring_smooth_mm`` (corners turning by over
-          ``corner_deg`` kept; the edge's smoothing keeps those over 60 degrees; the
-          first measurement ring stays put, so the laser keeps off the edge), and the
+          > 0, is smoothed within ``ring_smooth_mm`` in a window of ``ring_sigma_mm``
+          (corners turning by over ``corner_deg`` kept; the edge's smoothing keeps those
+          over 60 degrees; the first measurement ring stays put, so the laser keeps off
+          the edge), and the
           next is offset from the smoothed ring, so the moves never add up. Offsetting
           inward turns the bumps of a contour into corners (where the offset swallows a
           bump narrower than the offset), and what the edge's smoothing left of the
@@ -238,7 +241,7 @@ def concentric_levels(region: Region, start_mm: float, step_mm: float, filt: flo
             tol = max(ring_smooth_mm, filt) if (out or width_mm > 0) else filt
             if tol > filt:
                 raw = rings
-            rings, _reach, inward = geo.smooth_rings_moved(rings, tol, FILL_SMOOTH_SIGMA_MM,
+            rings, _reach, inward = geo.smooth_rings_moved(rings, tol, ring_sigma_mm,
                                                            corner_deg)
         nxt = geo.offset_rings(rings, -step_mm, filt)
         smoothed = rings
@@ -298,11 +301,24 @@ def _widened_beads(rings: list[np.ndarray], smoothed: list[np.ndarray],
 
 #: Concentric fill (with ``fill_smoothing_mm`` > 0): every ring is smoothed within this
 #: fraction of the fill width, its bead widened where it moved inward
-#: (:func:`concentric_levels`). On 10 bunny layers 0.1 / 0.15 / 0.25 / 0.3 mm of the 3 mm
-#: width took 9.2 / 11.5 / 12.9 / 13.1 % off the fill's MTTS time, the unfilled area +1.7
-#: / 0 / +6.1 / +8.4 % (BENCHMARKS.md, issue 15; the rings after the first then). The fill
-#: laid is 0.01 % more. The first ring too: 2 % off 7 measured bunny layers' MTTS time.
-RING_SMOOTHING = 0.05
+#: (:func:`concentric_levels`), in a window of ``RING_SMOOTH_SIGMA_MM``. On 10 bunny
+#: layers 0.1 / 0.15 / 0.25 / 0.3 mm of the 3 mm width (5 mm window) took 9.2 / 11.5 /
+#: 12.9 / 13.1 % off the fill's MTTS time, the unfilled area +1.7 / 0 / +6.1 / +8.4 %
+#: (BENCHMARKS.md, issue 15; the rings after the first then); the first ring too, 2 % off
+#: 7 measured layers. The bumps that then still slow the robot are long: on bunny layer 550
+#: the outer rings' curvature swings by ~0.02 / mm every ~30 mm, which the jerk bound
+#: holds to ~100 mm/s, and a 5 mm window barely reaches them. 0.3 mm in a 7.5 mm window
+#: (0.15 mm in 5 mm before): the whole bunny 87.89 -> 86.21 h (-1.9 %), unfilled 1 014 ->
+#: 1 023 mm^2; the rounded box +0.7 % (one more gap path per layer where the rings of its
+#: annulus meet), the demo mug's height errors unchanged; the rings' bead area +0.4 %. A
+#: 10 mm window: -1.8 %, 1 038 mm^2, the box +1.3 %; 0.15 mm in 10 mm: slower than
+#: today; 0.45 / 0.6 mm (15 / 20 mm windows) gained nothing more: what is left of the
+#: rings' time is their ends and the corners inward offsets make (BENCHMARKS.md).
+RING_SMOOTHING = 0.1
+#: Window of every fill ring's smoothing (mm, the standard deviation as
+#: ``FILL_SMOOTH_SIGMA_MM``, which stays the window of the first ring's band edge and of
+#: the measurement rings).
+RING_SMOOTH_SIGMA_MM = 7.5
 #: A smoothed ring's bead is widened only where it would grow by more than this (mm).
 WIDEN_MIN_MM = 0.01
 
@@ -542,7 +558,8 @@ def fill_levels(region: Region, mat: MaterialSettings, job: Job) -> FillLevels:
     if pattern == "concentric":
         return concentric_levels(region, e + F / 2.0, F, filt, width_mm=F,
                                  smooth_mm=mat.fill_smoothing_mm,
-                                 ring_smooth_mm=RING_SMOOTHING * F)
+                                 ring_smooth_mm=RING_SMOOTHING * F,
+                                 ring_sigma_mm=RING_SMOOTH_SIGMA_MM)
     levels: list[list[np.ndarray]] = []
     start = e + F / 2.0
     if pattern == "hybrid" and mat.hybrid_rings > 0:
