@@ -312,8 +312,8 @@ def _widened_beads(rings: list[np.ndarray], smoothed: list[np.ndarray],
 #: 1 023 mm^2; the rounded box +0.7 % (one more gap path per layer where the rings of its
 #: annulus meet), the demo mug's height errors unchanged; the rings' bead area +0.4 %. A
 #: 10 mm window: -1.8 %, 1 038 mm^2, the box +1.3 %; 0.15 mm in 10 mm: slower than
-#: today; 0.45 / 0.6 mm (15 / 20 mm windows) gained nothing more: what is left of the
-#: rings' time is their ends and the corners inward offsets make (BENCHMARKS.md).
+#: before; 0.45-1.5 mm in 10-20 mm windows gained nothing more on 5 layers: what is left
+#: of the rings' time is their ends and the corners inward offsets make (BENCHMARKS.md).
 RING_SMOOTHING = 0.1
 #: Window of every fill ring's smoothing (mm, the standard deviation as
 #: ``FILL_SMOOTH_SIGMA_MM``, which stays the window of the first ring's band edge and of
