@@ -202,11 +202,10 @@ def concentric_levels(region: Region, start_mm: float, step_mm: float, filt: flo
           > 0, is smoothed within ``ring_smooth_mm`` in a window of ``ring_sigma_mm``
           (corners turning by over ``corner_deg`` kept; the edge's smoothing keeps those
           over 60 degrees; the first measurement ring stays put, so the laser keeps off
-          the edge), and the
-          next is offset from the smoothed ring, so the moves never add up. Offsetting
-          inward turns the bumps of a contour into corners (where the offset swallows a
-          bump narrower than the offset), and what the edge's smoothing left of the
-          noise into wiggles; rounded, they no longer stop or slow the robot (the first
+          the edge), and the next is offset from the smoothed ring, so the moves never
+          add up. Offsetting inward turns the bumps of a contour into corners (where the
+          offset swallows a bump narrower than the offset), and what the edge's smoothing
+          left of the noise into wiggles; rounded, they no longer stop or slow the robot (the first
           ring of the bunny's middle layer: 8.72 -> 7.42 s for 633 mm). Where a ring
           moved inward, away from the band outside it, by more than the point filter
           (which the sweeps allow for), its bead is widened by twice the excess (when
