@@ -715,7 +715,7 @@ def test_the_first_fill_ring_is_smoothed_like_the_rings_inside_it():
     """The first fill ring is the offset of the smoothed contour: the offset turns what
     the contour's smoothing left of the noise into wiggles, so it is smoothed within
     RING_SMOOTHING x the fill width like every ring inside it. On a noisy contour a
-    jerk-limited robot follows it in >= 15 % less time than the offset alone (24 %), its
+    jerk-limited robot follows it in >= 15 % less time than the offset alone (25 %), its
     bead widened where it moved inward by twice the whole move (F <= w <= F + 2 tol)."""
     from icefab import paths as paths_mod
     region = _noisy_lobed_disk()
