@@ -32,6 +32,8 @@ if TYPE_CHECKING:  # pragma: no cover
 
 # Material colours shared by every picture: part (water) blue, scaffold orange.
 _COLOUR = {"part": "tab:blue", "scaffold": "tab:orange"}
+#: Drawing order of a layer's kinds of path in :func:`plot_toolpaths` (later on top).
+_LINE_ORDER = {"travel": 0, "measure": 1, "fill": 2, "boundary": 3}
 
 
 class _Figures:
@@ -250,6 +252,7 @@ def plot_toolpaths(stack: Stack, toolpaths: Toolpaths | Mapping[int, LayerPaths]
     other layer's paths)."""
     layers = toolpaths if isinstance(toolpaths, Mapping) else toolpaths.layers
     plt = pyplot()
+    from matplotlib.collections import LineCollection
     from matplotlib.patches import PathPatch
     from matplotlib.path import Path as MplPath
 
@@ -273,20 +276,23 @@ def plot_toolpaths(stack: Stack, toolpaths: Toolpaths | Mapping[int, LayerPaths]
                               label=f"{material} region")
             ax.add_patch(patch)
         lp = layers[k]
-        seen = set()
+        # one collection per kind of line: a bunny layer holds hundreds of paths, and one
+        # ax.plot each took most of the picture's time (issue 17)
+        kinds: dict[str, list[np.ndarray]] = {}
         for p in lp.paths:
-            pts = p.polyline()
-            if p.role == "travel":
-                style = dict(color="0.45", lw=0.6, ls="--")
-            elif p.role == "measure":
-                style = dict(color="tab:green", lw=0.6, ls=":")
-            elif p.role == "boundary":
-                style = dict(color=_COLOUR[p.material], lw=1.3, ls="-")
-            else:
-                style = dict(color=_COLOUR[p.material], lw=0.5, ls="-", alpha=0.8)
             label = f"{p.material} {p.role}" if p.role in ("boundary", "fill") else p.role
-            ax.plot(pts[:, 0], pts[:, 1], label=None if label in seen else label, **style)
-            seen.add(label)
+            kinds.setdefault(label, []).append(p.polyline())
+        for label in sorted(kinds, key=lambda n: _LINE_ORDER.get(n.split()[-1], 0)):
+            role = label.split()[-1]
+            if role == "travel":
+                style = dict(colors="0.45", linewidths=0.6, linestyles="--")
+            elif role == "measure":
+                style = dict(colors="tab:green", linewidths=0.6, linestyles=":")
+            elif role == "boundary":
+                style = dict(colors=_COLOUR[label.split()[0]], linewidths=1.3)
+            else:
+                style = dict(colors=_COLOUR[label.split()[0]], linewidths=0.5, alpha=0.8)
+            ax.add_collection(LineCollection(kinds[label], label=label, **style))
         ax.set_title(f"layer {k}: z = {layer.z:.2f} mm, {len(lp.paths)} paths, unfilled "
                      f"{lp.unfilled_mm2[0]:.0f}/{lp.unfilled_mm2[1]:.0f} mm²", fontsize=9)
         ax.set_aspect("equal")
