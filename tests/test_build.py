@@ -357,6 +357,20 @@ def test_refusals(firmware_tools, planned, tmp_path):
     r = _icefab("build", str(planned), "-o", "b", "--virtual", "--layers", "1", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     _kill_cell(tmp_path / "b")
+    # the feedback's headroom, said and journaled once the build starts: the default fill
+    # at 125 mm/s leaves the part valve no room for SMF's 30 % (icefab.headroom); these
+    # plans clamp
+    assert "warning: feedback headroom" in r.stderr and "valve programs clamp it" in r.stderr
+    j = Journal.open(tmp_path / "b" / bmod.JOURNAL)
+    assert [e["kind"] for e in j.events()][:2] == ["start", "headroom"]
+    j.close()
+    # under the default flow.out_of_range = "error" the warning says the build may stop
+    (tmp_path / "default.toml").write_text("# the default job\n")
+    r = _icefab("build", str(planned), "-o", "d", "-c", "default.toml", "--virtual",
+                "--layers", "1", cwd=tmp_path)
+    _kill_cell(tmp_path / "d")
+    assert r.returncode == 0, r.stderr
+    assert "under flow.out_of_range = 'error' this build stops where SMF asks" in r.stderr
     # a second start in the same folder
     r = _icefab("build", str(planned), "-o", "b", "--virtual", cwd=tmp_path)
     assert r.returncode == 2 and "--resume" in r.stderr

@@ -202,14 +202,20 @@ def check_feedback_headroom(rooms: list[Headroom], job: "Job") -> list[str]:
     flow does not, under ``flow.out_of_range = "error"`` with feedback on; under
     ``"clamp"`` return the findings (one line each). FM only, and only when
     ``feedback.enabled``."""
-    if not job.feedback.enabled or job.flow.mode != "fm":
-        return []
-    # a nominal flow beyond the valve is not a headroom matter: the valve programs'
-    # own error names that path (icefab.flow)
-    short = [r for r in rooms if not r.fits and r.nominal_mm3_s <= r.limit_mm3_s]
+    short = short_of_headroom(rooms, job)
     if short and job.flow.out_of_range == "error":
         raise FlowError(short[0].message(job))
     return [r.message(job) for r in short]
+
+
+def short_of_headroom(rooms: Iterable[Headroom], job: "Job") -> list[Headroom]:
+    """The paths among ``rooms`` whose nominal flow fits the valve but whose flow with
+    SMF's full correction does not (FM, feedback on; none otherwise). A nominal flow
+    beyond the valve is not a headroom matter: the valve programs' own error names that
+    path (:mod:`icefab.flow`)."""
+    if not job.feedback.enabled or job.flow.mode != "fm":
+        return []
+    return [r for r in rooms if not r.fits and r.nominal_mm3_s <= r.limit_mm3_s]
 
 
 def check_slowest_flow(job: "Job") -> None:

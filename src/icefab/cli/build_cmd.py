@@ -104,12 +104,14 @@ def _input_digest(inputs: list[str]) -> str:
 
 
 def _plan(args: argparse.Namespace, out: Path):
-    """The job, after writing the trajectories of the layers to build to ``out`` (a
-    trajectories file), planned layer by layer as they stream into it: a 1 M-facet part's
-    build never holds its samples in memory (issue 17)."""
+    """The job and the feedback headroom warnings (:func:`_headroom_warnings`), after
+    writing the trajectories of the layers to build to ``out`` (a trajectories file),
+    planned layer by layer as they stream into it: a 1 M-facet part's build never holds
+    its samples in memory (issue 17)."""
     from icefab.cli.common import Progress, job_from_args
     from icefab.cli.simulate_cmd import load_build
     from icefab.core import Toolpaths
+    from icefab.headroom import layer_headroom, tightest
     from icefab.motion import BuildMotion, TrajectoryFile, TrajectoryWriter, iter_plan_toolpaths
     from icefab.robots import get_robot
 
@@ -125,13 +127,32 @@ def _plan(args: argparse.Namespace, out: Path):
         planned, robot, joints = job, r.name, r.joint_names
         layers = iter_plan_toolpaths(Toolpaths(layers=tuple(build.layers[:n]), job=build.job),
                                      job, progress=Progress("trajectories"))
+    room: list = []
     with TrajectoryWriter(out, planned, robot, joints) as w:
         for lm in layers:
             w.add(lm)
+            room = tightest(room + layer_headroom(lm, job))
     with TrajectoryFile(out) as f:
         if not f.depositing().any():
             raise ConfigError(f"{args.input[0]}: nothing to deposit in the first {n} layers")
-    return job
+    return job, _headroom_warnings(room, job)
+
+
+def _headroom_warnings(room: list, job) -> list[str]:
+    """Warnings, before anything moves, for the paths whose flow with SMF's full
+    correction the valve cannot give (:func:`icefab.headroom.short_of_headroom`): under
+    ``flow.out_of_range = "error"`` the build stops at the first such path SMF asks that
+    much of, perhaps hours in; under "clamp" the valve programs clamp it."""
+    from icefab.headroom import short_of_headroom
+
+    out = []
+    for r in short_of_headroom(room, job):
+        line = f"warning: {r.message(job)}"
+        if job.flow.out_of_range == "error":
+            line += ("; under flow.out_of_range = 'error' this build stops where SMF asks "
+                     "more of the valve than it gives")
+        out.append(line)
+    return out
 
 
 def _box(motion, job):
@@ -230,7 +251,7 @@ def _run(build: Path, args: argparse.Namespace, *, resume: bool) -> int:
         in_digest = _input_digest(list(args.input))
         with tempfile.TemporaryDirectory(prefix="icefab-build-plan-") as tmp:
             planned = Path(tmp) / bmod.TRAJECTORIES
-            job = _plan(args, planned)
+            job, room_warnings = _plan(args, planned)
             with TrajectoryFile(planned) as f:
                 bmod.check_build(f.motion(), job, f.n_layers)
             build.mkdir(parents=True, exist_ok=True)
@@ -270,6 +291,9 @@ def _run(build: Path, args: argparse.Namespace, *, resume: bool) -> int:
         journal = Journal.create(jpath, meta)
         journal.event("start", f"build of {len(motion.layers)} layers on "
                       f"{'a virtual cell' if args.virtual else meta['cell']}")
+        for line in room_warnings:   # once the build starts (a refusal is one line)
+            journal.event("headroom", line)
+            print(line, file=sys.stderr)
         cell.close()
     connect = _connector(build, args, meta, job)
     stop_flag = {"signal": None}
