@@ -278,21 +278,22 @@ def plot_toolpaths(stack: Stack, toolpaths: Toolpaths | Mapping[int, LayerPaths]
         lp = layers[k]
         # one collection per kind of line: a bunny layer holds hundreds of paths, and one
         # ax.plot each took most of the picture's time (issue 17)
-        kinds: dict[str, list[np.ndarray]] = {}
+        kinds: dict[tuple[str, str], list[np.ndarray]] = {}
         for p in lp.paths:
-            label = f"{p.material} {p.role}" if p.role in ("boundary", "fill") else p.role
-            kinds.setdefault(label, []).append(p.polyline())
-        for label in sorted(kinds, key=lambda n: _LINE_ORDER.get(n.split()[-1], 0)):
-            role = label.split()[-1]
+            # travel and measurement: one kind whatever the material (one legend entry)
+            material = p.material if p.role in ("boundary", "fill") else ""
+            kinds.setdefault((p.role, material), []).append(p.polyline())
+        for role, material in sorted(kinds, key=lambda rm: (_LINE_ORDER.get(rm[0], 0), rm[1])):
             if role == "travel":
                 style = dict(colors="0.45", linewidths=0.6, linestyles="--")
             elif role == "measure":
                 style = dict(colors="tab:green", linewidths=0.6, linestyles=":")
             elif role == "boundary":
-                style = dict(colors=_COLOUR[label.split()[0]], linewidths=1.3)
+                style = dict(colors=_COLOUR[material], linewidths=1.3)
             else:
-                style = dict(colors=_COLOUR[label.split()[0]], linewidths=0.5, alpha=0.8)
-            ax.add_collection(LineCollection(kinds[label], label=label, **style))
+                style = dict(colors=_COLOUR[material], linewidths=0.5, alpha=0.8)
+            label = f"{material} {role}" if material else role
+            ax.add_collection(LineCollection(kinds[(role, material)], label=label, **style))
         ax.set_title(f"layer {k}: z = {layer.z:.2f} mm, {len(lp.paths)} paths, unfilled "
                      f"{lp.unfilled_mm2[0]:.0f}/{lp.unfilled_mm2[1]:.0f} mm²", fontsize=9)
         ax.set_aspect("equal")

@@ -30,9 +30,14 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from icefab.cli.common import add_job_argument
 from icefab.errors import ConfigError
+
+if TYPE_CHECKING:
+    from icefab.config import Job
+    from icefab.headroom import Headroom
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -138,7 +143,7 @@ def _plan(args: argparse.Namespace, out: Path):
     return job, _headroom_warnings(room, job)
 
 
-def _headroom_warnings(room: list, job) -> list[str]:
+def _headroom_warnings(room: list["Headroom"], job: "Job") -> list[str]:
     """Warnings, before anything moves, for the paths whose flow with SMF's full
     correction the valve cannot give (:func:`icefab.headroom.short_of_headroom`): under
     ``flow.out_of_range = "error"`` the build stops at the first such path SMF asks that
