@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from icefab import Job
 from icefab.core import Toolpath, Trajectory
 from icefab.errors import FlowError
-from icefab.headroom import check_feedback_headroom, feedback_headroom
+from icefab.headroom import feedback_headroom, headroom_findings
 
 
 def traj(speed: float, width: float, material: str = "part") -> Trajectory:
@@ -26,7 +26,8 @@ def traj(speed: float, width: float, material: str = "part") -> Trajectory:
 
 def test_issue_case_nominal_fits_but_not_with_the_saturation():
     """3 mm x 0.5 mm x 125 mm/s = 187.5 mm^3/s nominal fits the 1000 Hz table (195 mm^3/s);
-    +30 % = 243.75 does not: refused naming the feedback's headroom and the settings."""
+    +30 % = 243.75 does not: named, with the settings and the correction the valve leaves
+    (195 / 187.5 - 1 = +4 %), under either flow.out_of_range; nothing with feedback off."""
     job = Job().replace(**{"slicing.layer_thickness_mm": 0.5, "flow.tick_s": 0.001,
                            "flow.max_frequency_hz": 1000.0})
     (room,) = feedback_headroom([(3, traj(125.0, 3.0))], job)
@@ -34,16 +35,73 @@ def test_issue_case_nominal_fits_but_not_with_the_saturation():
     assert room.needed_mm3_s == pytest.approx(243.75)
     assert room.limit_mm3_s == pytest.approx(195.0)       # the table's last row
     assert room.max_speed_mm_s == pytest.approx(195.0 / 1.3 / 1.5)
-    with pytest.raises(FlowError) as e:
-        check_feedback_headroom([room], job)
-    msg = str(e.value)
-    assert msg.startswith("feedback headroom") and "feedback.saturation = 30%" in msg
-    assert "layer 3 part fill" in msg and "motion.speed_mm_s" in msg and "\n" not in msg
-    clamp = job.replace(**{"flow.out_of_range": "clamp"})
-    (line,) = check_feedback_headroom([room], clamp)
-    assert "clamp" in line
+    for out_of_range in ("error", "clamp"):
+        (msg,) = headroom_findings([room], job.replace(**{"flow.out_of_range": out_of_range}))
+        assert msg.startswith("feedback headroom") and "feedback.saturation = 30%" in msg
+        assert "layer 3 part fill" in msg and "motion.speed_mm_s" in msg and "\n" not in msg
+        assert "saturates SMF's correction at +4%" in msg
     off = job.replace(**{"feedback.enabled": False})
-    assert check_feedback_headroom([room], off) == []
+    assert headroom_findings([room], off) == []
+
+
+def test_the_valve_saturates_the_correction_where_the_nominal_flow_fits():
+    """Thesis 5.2.2: with the valve's frequency the control action, saturation keeps it
+    within the valve's range. The same path as above under flow.out_of_range = "error":
+    +30 % is held at the table's 195 mm^3/s (1000 Hz) and said, not refused; -30 % fits
+    and is given as asked; a nominal flow beyond the valve stays refused."""
+    from icefab.flow import valve_flow_range, valve_frequency
+
+    job = Job().replace(**{"slicing.layer_thickness_mm": 0.5, "flow.tick_s": 0.001,
+                           "flow.max_frequency_hz": 1000.0})
+    t = traj(125.0, 3.0)
+    up = valve_frequency(t, "part", job, action=np.full(50, 0.3))
+    assert np.allclose(up.q, 195.0) and up.nu.max() <= 1000.0
+    (said,) = up.warnings
+    assert "SMF's correction saturated at the valve's" in said and "50 of 50" in said
+    assert "asked 243.8 mm^3/s" in said and "(-20.0 %)" in said
+    down = valve_frequency(t, "part", job, action=np.full(50, -0.3))
+    assert np.allclose(down.q, 0.7 * 187.5) and not down.warnings
+    assert valve_flow_range(_table(job), job)[1] == pytest.approx(195.0)
+    with pytest.raises(FlowError, match="outside the calibration table"):
+        valve_frequency(traj(140.0, 3.0), "part", job, action=np.full(50, 0.3))
+
+
+def _table(job):
+    from icefab.flow import calibration_for
+    return calibration_for("part", job)
+
+
+@settings(max_examples=80, deadline=None)
+@given(share=st.floats(0.3, 1.2), u=st.lists(st.floats(-0.3, 0.3), min_size=50,
+                                             max_size=50),
+       pwm=st.booleans())
+def test_a_corrected_flow_is_what_was_asked_or_the_valves_end(share, u, pwm):
+    """For any nominal flow (``share`` of the valve's top) and action, FM and PWM, under
+    flow.out_of_range = "error": where the nominal flow fits the valve, the flow planned
+    is (1 + u) x nominal clipped to the valve's range -- exactly what was asked where that
+    fits, the range's end where it does not, said in a finding; a nominal flow beyond it
+    is refused (by the valve programs)."""
+    from icefab.flow import plan_valves, valve_flow_range, valve_frequency
+
+    job = Job().replace(**{"flow.out_of_range": "error", "flow.mode": "pwm" if pwm else "fm"})
+    lo, hi = valve_flow_range(_table(job), job)
+    dh = job.slicing.layer_thickness_mm * job.flow.layer_scale
+    speed = share * hi / (4.0 * dh)
+    t = traj(speed, 4.0)
+    nominal = 4.0 * dh * speed
+    asked = (1.0 + np.array(u)) * nominal
+    if nominal > hi * (1 + 1e-9):
+        with pytest.raises(FlowError):
+            plan_valves(t, "part", job, action=np.array(u))
+        return
+    plan = valve_frequency(t, "part", job, action=np.array(u))
+    assert np.allclose(plan.q, np.clip(asked, lo, hi), rtol=1e-12)
+    assert plan.q.max() <= hi * (1 + 1e-12)
+    beyond = bool(np.any(asked > hi * (1 + 1e-12)))
+    assert any("saturated" in w for w in plan.warnings) == beyond
+    if not pwm:
+        assert plan.nu.max() <= job.flow.max_frequency_hz
+    plan_valves(t, "part", job, action=np.array(u))   # programs made, not refused
 
 
 def test_default_cell_limit_is_the_table_at_500_hz():
@@ -51,7 +109,7 @@ def test_default_cell_limit_is_the_table_at_500_hz():
     job = Job()
     (room,) = feedback_headroom([(0, traj(50.0, 1.5))], job)
     assert room.limit_mm3_s == pytest.approx(115.28)
-    assert room.fits and check_feedback_headroom([room], job) == []
+    assert room.fits and headroom_findings([room], job) == []
 
 
 def test_slowest_flow_is_checked_before_slicing(tmp_path):
@@ -119,3 +177,20 @@ def test_variable_width_peaks_at_once_are_argmax_path_by_path(shapes):
     assert not _variable_peaks([picked[k][1] for k in var], var, w, v)   # path by path
     with pytest.raises(FlowError, match="widths"):
         feedback_headroom([(layer, t) for layer, t, _h in picked], job)
+
+
+def test_a_build_layer_says_how_much_the_valve_saturated():
+    """The build runner journals one line per layer whose programs the valve saturated
+    (icefab.build.saturation_finding): paths, and the volume given of the volume asked."""
+    from icefab.build import saturation_finding
+    from icefab.flow import plan_valves
+
+    job = Job().replace(**{"slicing.layer_thickness_mm": 0.5, "flow.tick_s": 0.001,
+                           "flow.max_frequency_hz": 1000.0})
+    up = np.full(50, 0.3)
+    progs = [plan_valves(traj(125.0, 3.0), "part", job, action=up),
+             plan_valves(traj(50.0, 3.0), "part", job, action=up)]   # 97.5 mm^3/s fits
+    line = saturation_finding(progs, 7)
+    assert line.startswith("layer 7: the valve saturated SMF's correction on 1 of 2 paths")
+    assert "(-20.0 %)" in line
+    assert saturation_finding(progs[1:], 7) is None

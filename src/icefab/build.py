@@ -56,6 +56,7 @@ import json
 import logging
 import math
 import os
+import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -164,6 +165,30 @@ def check_speeds(trajectories, job: "Job", layer: int) -> list[str]:
             out.append(f"layer {layer}: re-timed trajectory {k} reaches {v:.1f} mm/s, above "
                        f"motion.speed_mm_s = {vmax:g}")
     return out
+
+
+_SATURATED = re.compile(r"SMF's correction saturated at the valve's \[[^]]*\] mm\^3/s .*"
+                        r"delivers ([-+0-9.eE]+) of ([-+0-9.eE]+) mm\^3 commanded")
+
+
+def saturation_finding(programs, layer: int) -> str | None:
+    """One line for a layer whose valve programs saturate SMF's correction at the valve's
+    range (thesis 5.2.2, :func:`icefab.flow.valve_frequency`), None if none do: how many
+    paths, and the volume given of the volume asked."""
+    got = asked = 0.0
+    paths = 0
+    for prog in programs:
+        for text in prog.warnings:
+            m = _SATURATED.search(text)
+            if m:
+                paths += 1
+                got += float(m.group(1))
+                asked += float(m.group(2))
+    if not paths:
+        return None
+    return (f"layer {layer}: the valve saturated SMF's correction on {paths} of "
+            f"{len(programs)} paths (thesis 5.2.2): {got:.4g} of the {asked:.4g} mm^3 "
+            f"asked ({100.0 * (got / asked - 1.0):+.1f} %)")
 
 
 # =========================================================================== SMF state
@@ -439,6 +464,10 @@ class Runner:
             if L in done_layers and (not (meas_items or cut_here) or L in smf_layers):
                 continue
             lv, cps = self._layer_valves(j, action)
+            said = saturation_finding(lv.programs, L)
+            if said is not None and said not in self.findings:
+                self.findings.append(said)
+                self.journal.event("saturation", said, layer=L)
             # the action stays until this layer's end unless it measures: plan the next
             # layer's programs while this one runs (from its first path on: the planning
             # thread holds the GIL in stretches, which must not delay the first GO)

@@ -568,10 +568,11 @@ class FlowSettings:
         "nominal flow factor c in q = w * dh * c",
         lo=0.1, hi=10.0,
         why="the deposited volume is within a factor 10 of w * dh")
-    out_of_range: str = setting("error", "a flow beyond the calibration table or a frequency "
-                                         "beyond max_frequency_hz: 'error' (default) or "
-                                         "'clamp' to the limit (opt-in; reported with the "
-                                         "volume it costs)",
+    out_of_range: str = setting("error", "a nominal flow beyond the calibration table or a "
+                                         "frequency beyond max_frequency_hz: 'error' "
+                                         "(default) or 'clamp' to the limit (opt-in; reported "
+                                         "with the volume it costs); SMF's correction beyond "
+                                         "the valve is always saturated (thesis 5.2.2)",
                                 choices=("clamp", "error"))
     pwm_frequency_hz: float = setting(
         125.0,

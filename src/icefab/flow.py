@@ -33,6 +33,11 @@ path, naming the setting; :func:`summarise_findings` condenses them per kind):
   ``calibration_pulse_ms``); widths below ``min_pulse_ms / 2`` are dropped, below
   ``min_pulse_ms`` raised to it, above the period cut to it (or FlowError under
   ``"error"``); the counts and the resulting volume error are reported.
+* Both: where the nominal flow fits the valve (:func:`valve_flow_range`) but SMF's control
+  action asks for more (or less) than it gives, the flow is held at the range's end
+  whatever ``out_of_range`` says -- the actuator's saturation (thesis 5.2.2) -- and the
+  finding states the volume delivered against the volume asked. The limits above are the
+  plan's; this one is the controller's.
 
 Trajectories must be sampled as documented: ``dt > 0`` and ``duration = (n - 1) dt``
 (:func:`check_trajectory`, FlowError naming the path otherwise).
@@ -426,11 +431,23 @@ def valve_frequency(trajectory: Trajectory, material: str, job: "Job", *,
     cal = calibration or calibration_for(material, job)
     u = _action_values(action, trajectory, material, job)
     w = sample_widths(trajectory, material, job)   # eq. 6.2 with a width per sample
-    q = np.clip((1.0 + u), 0.0, None) * (w * dh * fl.layer_scale) * speed  # eq. 6.2-6.3
+    q_nom = (w * dh * fl.layer_scale) * speed
+    q = np.clip((1.0 + u), 0.0, None) * q_nom  # eq. 6.2-6.3
     t = np.arange(n) * float(trajectory.dt)
     warnings: list[str] = []
     clamped = np.zeros(n, dtype=bool)
     where = _where(trajectory)
+    saturated = _saturate_action(q, q_nom, cal, job)
+    if np.any(saturated):
+        asked = q.copy()
+        lo, hi = valve_flow_range(cal, job)
+        q[saturated] = np.clip(q[saturated], lo, hi)
+        worst = float(asked[saturated].max() if np.any(asked[saturated] > hi)
+                      else asked[saturated].min())
+        warnings.append(f"{where}: SMF's correction saturated at the valve's "
+                        f"[{lo:.4g}, {hi:.4g}] mm^3/s (thesis 5.2.2; asked {worst:.4g} "
+                        f"mm^3/s) at {int(np.count_nonzero(saturated))} of {n} samples, "
+                        f"{_volume_error(_integral(q, t), _integral(asked, t))}")
     # the flow follows the speed array (eq. 6.2), the nozzle the samples: they must agree
     travelled = float(np.linalg.norm(np.diff(np.asarray(trajectory.xy, np.float64), axis=0),
                                      axis=1).sum()) if n > 1 else 0.0
@@ -462,7 +479,10 @@ def valve_frequency(trajectory: Trajectory, material: str, job: "Job", *,
                          f"{int(np.count_nonzero(hi | lo))} of {n} samples")
     nu = np.where(flowing, cal.frequency(q), 0.0)  # eq. 6.4 (clamped to the table's ends)
     if fl.mode == "fm":
-        nu_max = min(fl.max_frequency_hz, 1000.0 / fl.calibration_pulse_ms)
+        nu_max = _max_frequency(job)
+        # a flow saturated at the valve's top is the table's flow at nu_max: its frequency
+        # read back may exceed nu_max by the interpolation's rounding
+        nu[saturated] = np.minimum(nu[saturated], nu_max)
         over = nu > nu_max
         if np.any(over):
             out_of_range(over, f"valve frequency {float(nu.max()):.4g} Hz above the limit "
@@ -494,6 +514,48 @@ def valve_frequency(trajectory: Trajectory, material: str, job: "Job", *,
         log.debug(m)
     return FrequencyPlan(t=t, q=q, u=u, nu=nu, clamped=int(np.count_nonzero(clamped)),
                          warnings=tuple(warnings))
+
+
+def _max_frequency(job: "Job") -> float:
+    """The highest valve frequency the cell makes, Hz: ``flow.max_frequency_hz``, and one
+    calibration pulse at a time (``1 / flow.calibration_pulse_ms``)."""
+    fl = job.flow
+    return min(fl.max_frequency_hz, 1000.0 / fl.calibration_pulse_ms)
+
+
+def valve_flow_range(calibration: Calibration, job: "Job") -> tuple[float, float]:
+    """The flows the valve gives, ``(lowest, highest)`` mm^3/s.
+
+    FM: the calibration table's range, up to its flow at the highest frequency the cell
+    makes (:func:`_max_frequency`). PWM: from no pulse to the valve open for the whole
+    period (``min(1 / flow.pwm_frequency_hz, 65.535 ms)``; pulse widths scale the table's
+    volume at ``flow.calibration_pulse_ms``, see :func:`_pwm`).
+    """
+    fl = job.flow
+    cal = calibration
+    if fl.mode == "fm":
+        top = float(cal.flow(np.array([_max_frequency(job)]))[0])
+        return cal.min_flow, min(cal.max_flow, top)
+    f = fl.pwm_frequency_hz
+    open_ms = min(1000.0 / f, 65.535)
+    return 0.0, float(cal.flow(np.array([f]))[0]) * open_ms / fl.calibration_pulse_ms
+
+
+def _saturate_action(q: np.ndarray, q_nom: np.ndarray, cal: Calibration, job: "Job"
+                     ) -> np.ndarray:
+    """The samples ``(n,) bool`` whose corrected flow ``q`` leaves the valve's range
+    (:func:`valve_flow_range`) while the nominal flow ``q_nom`` is inside it.
+
+    There the control action, not the plan, asks too much, and the valve's range is the
+    actuator's saturation (thesis 5.2.2: "if valve frequency is the control action,
+    saturation keeps the requested frequency within the range of valve capabilities"):
+    the flow is held at the range's end whatever ``flow.out_of_range`` says. A nominal
+    flow beyond the range is the plan's fault and stays ``out_of_range``'s matter.
+    """
+    lo, hi = valve_flow_range(cal, job)
+    lo, hi = lo * (1 - 1e-12), hi * (1 + 1e-12)   # a flow at the range's ends is inside
+    nominal_fits = (q_nom <= hi) & ((q_nom >= lo) | (q_nom <= 0))
+    return nominal_fits & (q > 0) & ((q > hi) | (q < lo))
 
 
 #: A trajectory whose speed integrates to a length differing from the distance its samples
@@ -1054,7 +1116,7 @@ def _nominal_fm_programs(trajs: "Sequence[Trajectory]", materials: Sequence[str]
     for mt in set(mats):
         rows = np.array([x == mt for x in mats])[owner]
         nu[rows] = np.where(flowing[rows], tables[mt].frequency(q[rows]), 0.0)
-    nu_max = min(fl.max_frequency_hz, 1000.0 / fl.calibration_pulse_ms)
+    nu_max = _max_frequency(job)
     bad |= (q > hi_flow) | (flowing & (q < lo_flow)) | (nu > nu_max)
     # the speed must integrate to the distance travelled (valve_frequency's warning)
     inner = np.ones(len(q), dtype=bool)

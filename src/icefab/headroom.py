@@ -5,10 +5,12 @@ SMF corrects the next layers' flow by the control action u, saturated at
 path the valve must be able to give ``(1 + saturation) x`` the nominal flow
 ``q_nom = w dh_d c`` (thesis eq. 6.2) -- inside the calibration table nu = h(Q) (6.1) and at
 a frequency the cell can make (``flow.max_frequency_hz``, one pulse per tick, and
-``1 / flow.calibration_pulse_ms``). A path whose nominal flow fits but whose corrected flow
-does not makes a closed-loop build fail (or clamp) in the middle; this module finds it from
-the planned trajectories (or, before motion is planned, from the speed bound) so plan,
-valves and simulate can say so before anything runs.
+``1 / flow.calibration_pulse_ms``). On a path whose nominal flow fits but whose corrected
+flow does not, the valve saturates the correction (thesis 5.2.2, :func:`icefab.flow.
+valve_frequency`): the controller has less authority there than ``feedback.saturation``
+says. This module finds such paths from the planned trajectories (or, before motion is
+planned, from the speed bound) so plan, valves, simulate and build can say so before
+anything runs.
 
 FM only: in PWM the frequency is fixed and the flow per pulse is bounded by the period; the
 PWM limits are applied per pulse by ``icefab.flow.plan_valves``.
@@ -25,7 +27,8 @@ import numpy as np
 
 from icefab.core import offsets
 from icefab.errors import FlowError
-from icefab.flow import calibration_for, sample_widths, trajectory_width, variable_widths
+from icefab.flow import (_max_frequency, calibration_for, sample_widths, trajectory_width,
+                         valve_flow_range, variable_widths)
 
 if TYPE_CHECKING:
     from icefab.config import Job
@@ -62,8 +65,6 @@ class Headroom:
 
     def message(self, job: "Job") -> str:
         """One line naming the path, the flows and the settings that change them."""
-        fix = ("the valve programs clamp it (flow.out_of_range = 'clamp'); to keep it, "
-               if job.flow.out_of_range == "clamp" else "")
         where = (f"layer {self.layer} {self.material} {self.role} path" if self.layer >= 0
                  else f"{self.material} {self.role} paths at motion.speed_mm_s")
         return (f"feedback headroom: SMF may raise the flow by feedback.saturation = "
@@ -71,20 +72,18 @@ class Headroom:
                 f"{where} ({self.nominal_mm3_s:.4g} mm^3/s nominal = {self.width_mm:g} mm x "
                 f"{self.thickness_mm:g} mm x {self.speed_mm_s:.4g} mm/s), above "
                 f"the {self.limit_mm3_s:.4g} mm^3/s the valve gives at its highest frequency "
-                f"({_limit_hz(job):g} Hz, flow.max_frequency_hz) in the calibration table; "
-                f"{fix}keep the speed below {self.max_speed_mm_s:.4g} mm/s (motion.speed_mm_s), "
-                "lower feedback.saturation" + ("" if fix else
-                                               " or set flow.out_of_range = 'clamp'"))
-
-
-def _limit_hz(job: "Job") -> float:
-    fl = job.flow
-    return min(fl.max_frequency_hz, 1000.0 / fl.calibration_pulse_ms)
+                f"({_max_frequency(job):g} Hz, flow.max_frequency_hz) in the calibration "
+                f"table: " + (
+                    f"there the valve saturates SMF's correction at +"
+                    f"{self.limit_mm3_s / self.nominal_mm3_s - 1.0:.0%} (thesis 5.2.2)"
+                    if self.nominal_mm3_s <= self.limit_mm3_s else
+                    "its nominal flow is beyond the valve already (flow.out_of_range)")
+                + f"; for SMF's full range keep the speed below {self.max_speed_mm_s:.4g} mm/s "
+                "(motion.speed_mm_s) or lower feedback.saturation")
 
 
 def _limit_flow(material: str, job: "Job") -> float:
-    cal = calibration_for(material, job)
-    return float(min(cal.max_flow, cal.flow(np.array([_limit_hz(job)]))[0]))
+    return valve_flow_range(calibration_for(material, job), job)[1]
 
 
 def feedback_headroom(trajectories: Iterable[tuple[int, "Trajectory"]], job: "Job"
@@ -197,15 +196,13 @@ def _headroom(material: str, q: float, layer: int, role: str, w: float, v: float
                     thickness_mm=dh / job.flow.layer_scale)
 
 
-def check_feedback_headroom(rooms: list[Headroom], job: "Job") -> list[str]:
-    """Raise FlowError for the first path whose nominal flow fits but whose corrected
-    flow does not, under ``flow.out_of_range = "error"`` with feedback on; under
-    ``"clamp"`` return the findings (one line each). FM only, and only when
-    ``feedback.enabled``."""
-    short = short_of_headroom(rooms, job)
-    if short and job.flow.out_of_range == "error":
-        raise FlowError(short[0].message(job))
-    return [r.message(job) for r in short]
+def headroom_findings(rooms: list[Headroom], job: "Job") -> list[str]:
+    """One line for each path whose nominal flow fits the valve but whose flow with SMF's
+    full correction does not (:func:`short_of_headroom`): there the valve programs hold
+    the flow at the valve's capacity (:func:`icefab.flow.valve_frequency`), so the
+    correction has less room than ``feedback.saturation``. FM only, and only when
+    ``feedback.enabled``; a warning, not a refusal: the build runs."""
+    return [r.message(job) for r in short_of_headroom(rooms, job)]
 
 
 def short_of_headroom(rooms: Iterable[Headroom], job: "Job") -> list[Headroom]:

@@ -145,19 +145,11 @@ def _plan(args: argparse.Namespace, out: Path):
 
 def _headroom_warnings(room: list["Headroom"], job: "Job") -> list[str]:
     """Warnings, before anything moves, for the paths whose flow with SMF's full
-    correction the valve cannot give (:func:`icefab.headroom.short_of_headroom`): under
-    ``flow.out_of_range = "error"`` the build stops at the first such path SMF asks that
-    much of, perhaps hours in; under "clamp" the valve programs clamp it."""
-    from icefab.headroom import short_of_headroom
+    correction the valve cannot give (:func:`icefab.headroom.headroom_findings`): there
+    the valve saturates the correction (thesis 5.2.2) and the build goes on."""
+    from icefab.headroom import headroom_findings
 
-    out = []
-    for r in short_of_headroom(room, job):
-        line = f"warning: {r.message(job)}"
-        if job.flow.out_of_range == "error":
-            line += ("; under flow.out_of_range = 'error' this build stops where SMF asks "
-                     "more of the valve than it gives")
-        out.append(line)
-    return out
+    return [f"warning: {line}" for line in headroom_findings(room, job)]
 
 
 def _box(motion, job):

@@ -298,13 +298,13 @@ def run(args: argparse.Namespace) -> int:
                                progress=Progress("trajectories"))
     headroom: list[str] = []
     if valves:  # the feedback's headroom, before 2 x n layers are simulated (issue 11)
-        from icefab.headroom import check_feedback_headroom, feedback_headroom
+        from icefab.headroom import headroom_findings, feedback_headroom
         from icefab.stages import layer_height
         from icefab.workload import check_pulses
 
         check_pulses(build.layers[:n], job)
 
-        headroom = check_feedback_headroom(feedback_headroom(
+        headroom = headroom_findings(feedback_headroom(
             ((lm.index, t, layer_height(lm.thickness, job)) for lm in build.layers[:n]
              for t in lm.trajectories), job), job)
     t_prep = time.perf_counter() - t0

@@ -18,7 +18,9 @@ appears only when everything worked):
 A flow outside the calibration table (or, in PWM, beyond the valve fully open) stops the
 command with an error naming the path, unless ``flow.out_of_range = "clamp"`` (or
 ``--out-of-range clamp``): then it is clamped and the findings say how much volume that
-costs.
+costs. A path whose nominal flow fits but whose flow with SMF's full correction
+(``feedback.saturation``) does not is named in the summary: in a closed-loop build the
+valve saturates the correction there (thesis 5.2.2).
 """
 
 from __future__ import annotations
@@ -71,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace, motion) -> int:
     from icefab.config import load_job
-    from icefab.headroom import check_feedback_headroom, tightest
+    from icefab.headroom import headroom_findings, tightest
     from icefab.parallel import parallel_imap
     from icefab.workload import check_pulse_durations
 
@@ -118,9 +120,8 @@ def _run(args: argparse.Namespace, motion) -> int:
         try:
             for block in parallel_imap(_block_valves, items, job, chunk_items=1):
                 for lv in block:
-                    # the closed-loop build's needs (issue 11), as far as this layer: the
-                    # workers checked each layer's own before its programs, so the first
-                    # layer that lacks them stopped the command there
+                    # the closed-loop build's needs (issue 11): the tightest path of
+                    # each material so far
                     rooms = tightest(rooms + lv.rooms)
                     fh.write(lv.rows)
                     for length, sparse, gap, width in lv.paths:
@@ -142,7 +143,7 @@ def _run(args: argparse.Namespace, motion) -> int:
         lines = _summary(args.out, n_layers, fmts, totals, sparse_paths, max_gap,
                          max_gap_width, found, job)
         # the closed-loop build's needs (issue 11), before findings
-        lines[2:2] = check_feedback_headroom(rooms, job)
+        lines[2:2] = headroom_findings(rooms, job)
         (tmp / "valves-summary.txt").write_text(
             "\n".join(lines + ["", "per layer:"] + table) + "\n", encoding="utf-8")
     print("\n".join(lines))
@@ -168,15 +169,14 @@ _OPEN: dict = {}
 
 def _block_valves(args: tuple) -> list[_LayerValves]:
     """Worker: the valve programs of the layers of one block of a trajectory file (those
-    in ``wanted``), each checked for the closed-loop build's needs first (issue 11: the
-    first layer that lacks them stops the command), written as layer files into
-    ``folder``; returns what the summary needs of each. args: (trajectory file, block,
+    in ``wanted``) with each layer's feedback headroom (issue 11), written as layer files
+    into ``folder``; returns what the summary needs of each. args: (trajectory file, block,
     wanted layer indices or None, Job, formats, folder)."""
     import io
 
     from icefab.flow import (n_pulses, plan_build_valves, program_pieces, trajectory_width,
                              write_valve_layer)
-    from icefab.headroom import check_feedback_headroom, layer_headroom, tightest
+    from icefab.headroom import layer_headroom
     from icefab.motion import TrajectoryFile
 
     src, k, wanted, job, fmts, folder = args
@@ -187,7 +187,6 @@ def _block_valves(args: tuple) -> list[_LayerValves]:
     out = []
     for lm in motion.iter_block(k, wanted):
         rooms = layer_headroom(lm, job)
-        check_feedback_headroom(tightest(rooms), job)
         (programs,) = plan_build_valves([lm], job)
         spacing = _drop_spacings([lm.trajectories[lp.path] for lp in programs],
                                  [lp.program for lp in programs], job.flow.min_drops_per_mm)
