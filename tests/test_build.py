@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 import os
 import shutil
 import signal
@@ -224,6 +225,33 @@ def test_a_cell_fault_is_measured_before_the_next_layer(planned, tmp_path):
     assert measured[0] == 1  # before any regular measurement (layer 3)
     assert [e["layer"] for e in journal.events() if e["kind"] == "fault-measure"] == [1]
     assert any(c["kind"] == "fault_measure" and c["layer"] == 1 for c in journal.commands())
+    journal.close()
+
+
+def test_the_valve_saturates_a_correction_it_cannot_give_and_the_build_goes_on(planned,
+                                                                                tmp_path):
+    """The virtual cell lays 30 % too little (simulation.flow_error): after the
+    measurement of layer 3, SMF asks for about +30 % on layer 4, more than the part valve
+    gives along the mug's widest fill at 125 mm/s (+23 %: icefab.headroom). The valve
+    saturates it (thesis 5.2.2): the build completes, and the layer's journal says how
+    much volume it gave of what SMF asked. Under the default flow.out_of_range = "error"
+    this build used to stop there with a valve frequency above 500 Hz."""
+    from icefab.motion import load_trajectories
+
+    motion = load_trajectories(planned)
+    job = motion.job.replace(**{"simulation.flow_error": -0.3})
+    assert job.flow.out_of_range == "error"
+    build = tmp_path / "b"
+    cell = _prepared(build, motion, job)
+    journal = Journal.create(build / bmod.JOURNAL, {"digests": {}})
+    bmod.Runner(build, motion, job, journal, lambda: cell).run()
+    said = [e for e in journal.events() if e["kind"] == "saturation"]
+    assert said and all(e["layer"] == 4 for e in said), said
+    assert "the valve saturated SMF's correction on" in said[0]["text"]
+    got, asked = (float(x) for x in re.search(r"([0-9.]+) of the ([0-9.]+) mm\^3",
+                                              said[0]["text"]).groups())
+    assert 0 < got < asked
+    assert len(journal.measurements()) >= 1
     journal.close()
 
 
