@@ -194,3 +194,18 @@ def test_a_build_layer_says_how_much_the_valve_saturated():
     assert line.startswith("layer 7: the valve saturated SMF's correction on 1 of 2 paths")
     assert "(-20.0 %)" in line
     assert saturation_finding(progs[1:], 7) is None
+
+
+def test_a_flow_at_the_valves_top_is_no_limit_reached():
+    """Found by hypothesis: the nominal flow at the valve's top (the table's flow at the
+    highest frequency) with an action of 1e-12 read back as 500 Hz plus the
+    interpolation's rounding, and was refused as "500 Hz above the limit 500 Hz"."""
+    from icefab.flow import valve_flow_range, valve_frequency
+
+    job = Job()
+    hi = valve_flow_range(_table(job), job)[1]
+    dh = job.slicing.layer_thickness_mm * job.flow.layer_scale
+    for tiny in (0.0, 1e-13, 1e-12):
+        plan = valve_frequency(traj(hi / (4.0 * dh), 4.0), "part", job,
+                               action=np.r_[np.zeros(49), tiny])
+        assert plan.nu.max() <= job.flow.max_frequency_hz and not plan.warnings

@@ -480,16 +480,16 @@ def valve_frequency(trajectory: Trajectory, material: str, job: "Job", *,
     nu = np.where(flowing, cal.frequency(q), 0.0)  # eq. 6.4 (clamped to the table's ends)
     if fl.mode == "fm":
         nu_max = _max_frequency(job)
-        # a flow saturated at the valve's top is the table's flow at nu_max: its frequency
-        # read back may exceed nu_max by the interpolation's rounding
-        nu[saturated] = np.minimum(nu[saturated], nu_max)
-        over = nu > nu_max
+        # a flow at the valve's top (saturated there, or nominal) is the table's flow at
+        # nu_max: its frequency read back may exceed nu_max by the interpolation's
+        # rounding, which is no limit reached
+        over = nu > nu_max * (1.0 + 1e-9)
         if np.any(over):
             out_of_range(over, f"valve frequency {float(nu.max()):.4g} Hz above the limit "
                          f"{nu_max:g} Hz (flow.max_frequency_hz, 1 / "
                          f"flow.calibration_pulse_ms) at {int(np.count_nonzero(over))} of "
                          f"{n} samples")
-            nu = np.minimum(nu, nu_max)
+        nu = np.minimum(nu, nu_max)
         if limits:
             commanded = _integral(q, t)
             delivered = _integral(np.where(nu > 0, cal.flow(nu), 0.0), t)
