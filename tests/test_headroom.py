@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from icefab import Job
@@ -90,7 +90,10 @@ def test_a_corrected_flow_is_what_was_asked_or_the_valves_end(share, u, pwm):
     t = traj(speed, 4.0)
     nominal = 4.0 * dh * speed
     asked = (1.0 + np.array(u)) * nominal
-    if nominal > hi * (1 + 1e-9):
+    # within a rounding's reach above the top the plan's own limit, with its tolerance,
+    # decides (test_a_flow_at_the_valves_top_is_no_limit_reached)
+    assume(not hi * (1 + 1e-12) < nominal <= hi * (1 + 1e-6))
+    if nominal > hi * (1 + 1e-6):
         with pytest.raises(FlowError):
             plan_valves(t, "part", job, action=np.array(u))
         return
