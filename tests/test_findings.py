@@ -66,3 +66,24 @@ def test_clamped_volume_totals_what_the_valve_could_not_give():
     paths, layers, got, asked = clamped_volume(found)
     assert (paths, layers) == (2, 2)
     assert got / asked == pytest.approx(115.28 / 120.0, rel=2e-3)
+
+
+def test_saturated_volume_totals_what_the_valve_gave_of_what_smf_asked():
+    """3 mm x 0.25 mm at 125 mm/s is 93.75 mm^3/s nominal; +30 % asks 121.9, the valve
+    gives 115.28 at 500 Hz (its saturation, thesis 5.2.2), under the default 'error'."""
+    from test_flow_limits import constant_trajectory
+
+    from icefab import Job
+    from icefab.findings import clamped_volume, saturated_volume
+    from icefab.flow import plan_valves
+
+    job = Job()
+    found = []
+    for layer in (4, 9):
+        traj = constant_trajectory(125.0, width=3.0)
+        u = np.full(len(traj.xy), 0.3)
+        found += [(layer, w) for w in plan_valves(traj, "part", job, action=u).warnings]
+    paths, layers, got, asked = saturated_volume(found)
+    assert (paths, layers) == (2, 2)
+    assert got / asked == pytest.approx(115.28 / (1.3 * 93.75), rel=2e-3)
+    assert clamped_volume(found) == (0, 0, 0.0, 0.0)

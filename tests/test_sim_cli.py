@@ -98,6 +98,25 @@ def test_simulate_runs_a_trajectories_file_through_its_valve_programs(trajectori
     assert float(rows[-1]["rms_smf_mm"]) < float(rows[-1]["rms_open_mm"])
 
 
+def test_simulate_says_where_the_valve_saturated_smf(trajectories_file, tmp_path, capsys):
+    """-30 % flow: SMF asks up to +30 %. With the valve at most at 400 Hz (94.43 mm^3/s)
+    the part's fill at 104 mm/s (77.98 mm^3/s nominal) has room for +21 %: the valve
+    saturates the correction there (thesis 5.2.2), the simulation runs on, says so before
+    and how much the valve gave with SMF (none open loop); SMF still betters open loop."""
+    (tmp_path / "job.toml").write_text("[flow]\nmax_frequency_hz = 400\n")
+    assert main(["simulate", str(trajectories_file), "--flow-error", "-0.3", "-c",
+                 str(tmp_path / "job.toml"), "-o", str(tmp_path / "sim")]) == 0
+    text = capsys.readouterr().out
+    assert "warning: feedback headroom" in text and "saturates SMF's correction at +21%" in text
+    assert "saturated (open loop" not in text
+    line = next(x for x in text.splitlines() if x.startswith("saturated (with SMF"))
+    got, asked = (float(v) for v in line.split("delivers ")[1].split(" mm^3")[0]
+                  .split(" of "))
+    assert 0 < got < asked
+    rows = list(csv.DictReader((tmp_path / "sim" / "rms.csv").open()))
+    assert float(rows[-1]["rms_smf_mm"]) < float(rows[-1]["rms_open_mm"])
+
+
 def test_simulate_plans_the_trajectories_of_toolpaths_for_the_valves(toolpaths_file, tmp_path,
                                                                      capsys):
     out = tmp_path / "sim"

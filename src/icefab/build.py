@@ -56,7 +56,6 @@ import json
 import logging
 import math
 import os
-import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -167,23 +166,14 @@ def check_speeds(trajectories, job: "Job", layer: int) -> list[str]:
     return out
 
 
-_SATURATED = re.compile(r"SMF's correction saturated at the valve's \[[^]]*\] mm\^3/s .*"
-                        r"delivers ([-+0-9.eE]+) of ([-+0-9.eE]+) mm\^3 commanded")
-
-
 def saturation_finding(programs, layer: int) -> str | None:
     """One line for a layer whose valve programs saturate SMF's correction at the valve's
     range (thesis 5.2.2, :func:`icefab.flow.valve_frequency`), None if none do: how many
     paths, and the volume given of the volume asked."""
-    got = asked = 0.0
-    paths = 0
-    for prog in programs:
-        for text in prog.warnings:
-            m = _SATURATED.search(text)
-            if m:
-                paths += 1
-                got += float(m.group(1))
-                asked += float(m.group(2))
+    from icefab.findings import saturated_volume
+
+    paths, _, got, asked = saturated_volume([(layer, text) for prog in programs
+                                             for text in prog.warnings])
     if not paths:
         return None
     return (f"layer {layer}: the valve saturated SMF's correction on {paths} of "

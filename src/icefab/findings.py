@@ -84,6 +84,25 @@ def clamped_volume(findings: Sequence[tuple[int, str]]) -> tuple[int, int, float
     return paths, len(layers), got, asked
 
 
+_SATURATED = re.compile(r"SMF's correction saturated at the valve's \[[^]]*\] mm\^3/s .*"
+                        r"delivers ([-+0-9.eE]+) of ([-+0-9.eE]+) mm\^3 commanded")
+
+
+def saturated_volume(findings: Sequence[tuple[int, str]]) -> tuple[int, int, float, float]:
+    """Where the valve saturated SMF's correction (thesis 5.2.2, ``icefab.flow.
+    valve_frequency``), from valve findings (``(layer, text)`` pairs): (paths, layers,
+    delivered mm^3, asked mm^3) of those paths."""
+    paths, layers, got, asked = 0, set(), 0.0, 0.0
+    for layer, text in findings:
+        m = _SATURATED.search(text)
+        if m:
+            paths += 1
+            layers.add(int(layer))
+            got += float(m.group(1))
+            asked += float(m.group(2))
+    return paths, len(layers), got, asked
+
+
 def warnings_text(warnings: Sequence[str], source: str = "") -> str:
     """The full list as the text of ``COMMAND-warnings.txt``: a heading line, then one warning a
     line (newlines inside a warning replaced by spaces)."""

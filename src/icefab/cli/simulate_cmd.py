@@ -330,7 +330,7 @@ def run(args: argparse.Namespace) -> int:
     for line in headroom:
         print(f"warning: {line}")
     if valves:  # what the valve limits did, once per kind, and the volume clamping cost
-        from icefab.findings import clamped_volume
+        from icefab.findings import clamped_volume, saturated_volume
         from icefab.flow import summarise_findings
 
         for label, res in (("open loop", open_loop), ("with SMF", closed)):
@@ -339,6 +339,11 @@ def run(args: argparse.Namespace) -> int:
                 print(f"clamped ({label}, flow.out_of_range = 'clamp'): {n_paths} paths in "
                       f"{n_layers} layers deliver {got:.6g} of {asked:.6g} mm^3 commanded "
                       f"({100 * (got / asked - 1):+.2f} %)")
+            n_paths, n_layers, got, asked = saturated_volume(res.findings)
+            if n_paths:
+                print(f"saturated ({label}, the valve's range, thesis 5.2.2): SMF's "
+                      f"correction on {n_paths} paths in {n_layers} layers delivers "
+                      f"{got:.6g} of {asked:.6g} mm^3 asked ({100 * (got / asked - 1):+.2f} %)")
             for line in summarise_findings(res.findings)[:8]:
                 print(f"valve limits ({label}): {line}")
     for line in format_table(table_rows(open_loop, closed)):
