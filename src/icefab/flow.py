@@ -479,7 +479,7 @@ def valve_frequency(trajectory: Trajectory, material: str, job: "Job", *,
                          f"{int(np.count_nonzero(hi | lo))} of {n} samples")
     nu = np.where(flowing, cal.frequency(q), 0.0)  # eq. 6.4 (clamped to the table's ends)
     if fl.mode == "fm":
-        nu_max = _max_frequency(job)
+        nu_max = max_valve_frequency(job)
         # a flow at the valve's top (saturated there, or nominal) is the table's flow at
         # nu_max: its frequency read back may exceed nu_max by the interpolation's
         # rounding, which is no limit reached
@@ -516,7 +516,7 @@ def valve_frequency(trajectory: Trajectory, material: str, job: "Job", *,
                          warnings=tuple(warnings))
 
 
-def _max_frequency(job: "Job") -> float:
+def max_valve_frequency(job: "Job") -> float:
     """The highest valve frequency the cell makes, Hz: ``flow.max_frequency_hz``, and one
     calibration pulse at a time (``1 / flow.calibration_pulse_ms``)."""
     fl = job.flow
@@ -527,14 +527,14 @@ def valve_flow_range(calibration: Calibration, job: "Job") -> tuple[float, float
     """The flows the valve gives, ``(lowest, highest)`` mm^3/s.
 
     FM: the calibration table's range, up to its flow at the highest frequency the cell
-    makes (:func:`_max_frequency`). PWM: from no pulse to the valve open for the whole
+    makes (:func:`max_valve_frequency`). PWM: from no pulse to the valve open for the whole
     period (``min(1 / flow.pwm_frequency_hz, 65.535 ms)``; pulse widths scale the table's
     volume at ``flow.calibration_pulse_ms``, see :func:`_pwm`).
     """
     fl = job.flow
     cal = calibration
     if fl.mode == "fm":
-        top = float(cal.flow(np.array([_max_frequency(job)]))[0])
+        top = float(cal.flow(np.array([max_valve_frequency(job)]))[0])
         return cal.min_flow, min(cal.max_flow, top)
     f = fl.pwm_frequency_hz
     open_ms = min(1000.0 / f, 65.535)
@@ -1116,7 +1116,7 @@ def _nominal_fm_programs(trajs: "Sequence[Trajectory]", materials: Sequence[str]
     for mt in set(mats):
         rows = np.array([x == mt for x in mats])[owner]
         nu[rows] = np.where(flowing[rows], tables[mt].frequency(q[rows]), 0.0)
-    nu_max = _max_frequency(job)
+    nu_max = max_valve_frequency(job)
     bad |= (q > hi_flow) | (flowing & (q < lo_flow)) | (nu > nu_max)
     # the speed must integrate to the distance travelled (valve_frequency's warning)
     inner = np.ones(len(q), dtype=bool)

@@ -27,8 +27,8 @@ import numpy as np
 
 from icefab.core import offsets
 from icefab.errors import FlowError
-from icefab.flow import (_max_frequency, calibration_for, sample_widths, trajectory_width,
-                         valve_flow_range, variable_widths)
+from icefab.flow import (calibration_for, max_valve_frequency, sample_widths,
+                         trajectory_width, valve_flow_range, variable_widths)
 
 if TYPE_CHECKING:
     from icefab.config import Job
@@ -72,7 +72,7 @@ class Headroom:
                 f"{where} ({self.nominal_mm3_s:.4g} mm^3/s nominal = {self.width_mm:g} mm x "
                 f"{self.thickness_mm:g} mm x {self.speed_mm_s:.4g} mm/s), above "
                 f"the {self.limit_mm3_s:.4g} mm^3/s the valve gives at its highest frequency "
-                f"({_max_frequency(job):g} Hz, flow.max_frequency_hz) in the calibration "
+                f"({max_valve_frequency(job):g} Hz, flow.max_frequency_hz) in the calibration "
                 f"table: " + (
                     f"there the valve saturates SMF's correction at +"
                     f"{self.limit_mm3_s / self.nominal_mm3_s - 1.0:.0%} (thesis 5.2.2)"

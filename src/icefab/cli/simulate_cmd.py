@@ -298,7 +298,7 @@ def run(args: argparse.Namespace) -> int:
                                progress=Progress("trajectories"))
     headroom: list[str] = []
     if valves:  # the feedback's headroom, before 2 x n layers are simulated (issue 11)
-        from icefab.headroom import headroom_findings, feedback_headroom
+        from icefab.headroom import feedback_headroom, headroom_findings
         from icefab.stages import layer_height
         from icefab.workload import check_pulses
 
