@@ -67,40 +67,37 @@ def summarise_warnings(warnings: Sequence[str]) -> list[str]:
 
 _CLAMPED = re.compile(r"clamped \(flow\.out_of_range = 'clamp'\), delivers "
                       r"([-+0-9.eE]+) of ([-+0-9.eE]+) mm\^3 commanded")
+_SATURATED = re.compile(r"SMF's correction saturated at the valve's \[[^]]*\] mm\^3/s .*"
+                        r"delivers ([-+0-9.eE]+) of ([-+0-9.eE]+) mm\^3 commanded")
+
+
+def _volumes(findings: Sequence[tuple[int, str]], kind: re.Pattern
+             ) -> tuple[int, int, float, float]:
+    """(paths, layers, delivered mm^3, commanded mm^3) of the findings ``kind`` matches,
+    whose groups are the delivered and commanded volumes."""
+    paths, layers, got, asked = 0, set(), 0.0, 0.0
+    for layer, text in findings:
+        m = kind.search(text)
+        if m:
+            paths += 1
+            layers.add(int(layer))
+            got += float(m.group(1))
+            asked += float(m.group(2))
+    return paths, len(layers), got, asked
 
 
 def clamped_volume(findings: Sequence[tuple[int, str]]) -> tuple[int, int, float, float]:
     """What ``flow.out_of_range = "clamp"`` clamped, from valve findings (``(layer,
     text)`` pairs of ``icefab.flow``): (paths, layers, delivered mm^3, commanded mm^3) of
     the paths whose flow or frequency was clamped."""
-    paths, layers, got, asked = 0, set(), 0.0, 0.0
-    for layer, text in findings:
-        m = _CLAMPED.search(text)
-        if m:
-            paths += 1
-            layers.add(int(layer))
-            got += float(m.group(1))
-            asked += float(m.group(2))
-    return paths, len(layers), got, asked
-
-
-_SATURATED = re.compile(r"SMF's correction saturated at the valve's \[[^]]*\] mm\^3/s .*"
-                        r"delivers ([-+0-9.eE]+) of ([-+0-9.eE]+) mm\^3 commanded")
+    return _volumes(findings, _CLAMPED)
 
 
 def saturated_volume(findings: Sequence[tuple[int, str]]) -> tuple[int, int, float, float]:
     """Where the valve saturated SMF's correction (thesis 5.2.2, ``icefab.flow.
     valve_frequency``), from valve findings (``(layer, text)`` pairs): (paths, layers,
     delivered mm^3, asked mm^3) of those paths."""
-    paths, layers, got, asked = 0, set(), 0.0, 0.0
-    for layer, text in findings:
-        m = _SATURATED.search(text)
-        if m:
-            paths += 1
-            layers.add(int(layer))
-            got += float(m.group(1))
-            asked += float(m.group(2))
-    return paths, len(layers), got, asked
+    return _volumes(findings, _SATURATED)
 
 
 def warnings_text(warnings: Sequence[str], source: str = "") -> str:
