@@ -206,8 +206,8 @@ class ScaffoldSettings:
         "scaffold paths; the wall is smoothed within this and grown back over the buffer, "
         "so the scaffold only gets wider, by up to about twice this. More widens the band "
         "between the part and the wall past what its two boundary paths cover: on the "
-        "bunny 0.1 mm took 1.8 % off 5 layers' MTTS time and left 6 mm^2 less unfilled, 0.5 mm 2.4 % and "
-        "85 mm^2 more (BENCHMARKS.md, issue 15)",
+        "bunny 0.1 mm took 1.8 % off 5 layers' MTTS time and left 6 mm^2 less unfilled, "
+        "0.5 mm 2.4 % and 85 mm^2 more (BENCHMARKS.md, issue 15)",
         lo=0.0, hi=10.0,
         why="a scan's wiggles are a few hundredths to tenths of a millimetre; 10 mm would "
             "move the wall by six buffers")

@@ -437,10 +437,10 @@ def valve_frequency(trajectory: Trajectory, material: str, job: "Job", *,
     warnings: list[str] = []
     clamped = np.zeros(n, dtype=bool)
     where = _where(trajectory)
-    saturated = _saturate_action(q, q_nom, cal, job)
+    lo, hi = valve_flow_range(cal, job)
+    saturated = _saturated(q, q_nom, lo, hi)
     if np.any(saturated):
         asked = q.copy()
-        lo, hi = valve_flow_range(cal, job)
         q[saturated] = np.clip(q[saturated], lo, hi)
         worst = float(asked[saturated].max() if np.any(asked[saturated] > hi)
                       else asked[saturated].min())
@@ -541,10 +541,10 @@ def valve_flow_range(calibration: Calibration, job: "Job") -> tuple[float, float
     return 0.0, float(cal.flow(np.array([f]))[0]) * open_ms / fl.calibration_pulse_ms
 
 
-def _saturate_action(q: np.ndarray, q_nom: np.ndarray, cal: Calibration, job: "Job"
-                     ) -> np.ndarray:
+def _saturated(q: np.ndarray, q_nom: np.ndarray, lo: float, hi: float) -> np.ndarray:
     """The samples ``(n,) bool`` whose corrected flow ``q`` leaves the valve's range
-    (:func:`valve_flow_range`) while the nominal flow ``q_nom`` is inside it.
+    ``[lo, hi]`` mm^3/s (:func:`valve_flow_range`) while the nominal flow ``q_nom`` is
+    inside it.
 
     There the control action, not the plan, asks too much, and the valve's range is the
     actuator's saturation (thesis 5.2.2: "if valve frequency is the control action,
@@ -552,7 +552,6 @@ def _saturate_action(q: np.ndarray, q_nom: np.ndarray, cal: Calibration, job: "J
     the flow is held at the range's end whatever ``flow.out_of_range`` says. A nominal
     flow beyond the range is the plan's fault and stays ``out_of_range``'s matter.
     """
-    lo, hi = valve_flow_range(cal, job)
     lo, hi = lo * (1 - 1e-12), hi * (1 + 1e-12)   # a flow at the range's ends is inside
     nominal_fits = (q_nom <= hi) & ((q_nom >= lo) | (q_nom <= 0))
     return nominal_fits & (q > 0) & ((q > hi) | (q < lo))

@@ -196,23 +196,16 @@ def _headroom(material: str, q: float, layer: int, role: str, w: float, v: float
                     thickness_mm=dh / job.flow.layer_scale)
 
 
-def headroom_findings(rooms: list[Headroom], job: "Job") -> list[str]:
-    """One line for each path whose nominal flow fits the valve but whose flow with SMF's
-    full correction does not (:func:`short_of_headroom`): there the valve programs hold
-    the flow at the valve's capacity (:func:`icefab.flow.valve_frequency`), so the
-    correction has less room than ``feedback.saturation``. FM only, and only when
-    ``feedback.enabled``; a warning, not a refusal: the build runs."""
-    return [r.message(job) for r in short_of_headroom(rooms, job)]
-
-
-def short_of_headroom(rooms: Iterable[Headroom], job: "Job") -> list[Headroom]:
-    """The paths among ``rooms`` whose nominal flow fits the valve but whose flow with
-    SMF's full correction does not (FM, feedback on; none otherwise). A nominal flow
-    beyond the valve is not a headroom matter: the valve programs' own error names that
-    path (:mod:`icefab.flow`)."""
+def headroom_findings(rooms: Iterable[Headroom], job: "Job") -> list[str]:
+    """One line for each path among ``rooms`` whose nominal flow fits the valve but whose
+    flow with SMF's full correction does not: there the valve programs hold the flow at
+    the valve's capacity (:func:`icefab.flow.valve_frequency`), so the correction has less
+    room than ``feedback.saturation``. FM only, and only when ``feedback.enabled``; a
+    warning, not a refusal: the build runs. A nominal flow beyond the valve is not a
+    headroom matter: the valve programs' own error names that path (:mod:`icefab.flow`)."""
     if not job.feedback.enabled or job.flow.mode != "fm":
         return []
-    return [r for r in rooms if not r.fits and r.nominal_mm3_s <= r.limit_mm3_s]
+    return [r.message(job) for r in rooms if not r.fits and r.nominal_mm3_s <= r.limit_mm3_s]
 
 
 def check_slowest_flow(job: "Job") -> None:

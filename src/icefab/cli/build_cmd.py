@@ -30,14 +30,9 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from icefab.cli.common import add_job_argument
 from icefab.errors import ConfigError
-
-if TYPE_CHECKING:
-    from icefab.config import Job
-    from icefab.headroom import Headroom
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -109,14 +104,16 @@ def _input_digest(inputs: list[str]) -> str:
 
 
 def _plan(args: argparse.Namespace, out: Path):
-    """The job and the feedback headroom warnings (:func:`_headroom_warnings`), after
-    writing the trajectories of the layers to build to ``out`` (a trajectories file),
-    planned layer by layer as they stream into it: a 1 M-facet part's build never holds
-    its samples in memory (issue 17)."""
+    """The job and a warning for each path whose flow with SMF's full correction the
+    valve cannot give (:func:`icefab.headroom.headroom_findings`: there the valve
+    saturates the correction and the build goes on), after writing the trajectories of
+    the layers to build to ``out`` (a trajectories file), planned layer by layer as they
+    stream into it: a 1 M-facet part's build never holds its samples in memory (issue
+    17)."""
     from icefab.cli.common import Progress, job_from_args
     from icefab.cli.simulate_cmd import load_build
     from icefab.core import Toolpaths
-    from icefab.headroom import layer_headroom, tightest
+    from icefab.headroom import headroom_findings, layer_headroom, tightest
     from icefab.motion import BuildMotion, TrajectoryFile, TrajectoryWriter, iter_plan_toolpaths
     from icefab.robots import get_robot
 
@@ -140,16 +137,7 @@ def _plan(args: argparse.Namespace, out: Path):
     with TrajectoryFile(out) as f:
         if not f.depositing().any():
             raise ConfigError(f"{args.input[0]}: nothing to deposit in the first {n} layers")
-    return job, _headroom_warnings(room, job)
-
-
-def _headroom_warnings(room: list["Headroom"], job: "Job") -> list[str]:
-    """Warnings, before anything moves, for the paths whose flow with SMF's full
-    correction the valve cannot give (:func:`icefab.headroom.headroom_findings`): there
-    the valve saturates the correction (thesis 5.2.2) and the build goes on."""
-    from icefab.headroom import headroom_findings
-
-    return [f"warning: {line}" for line in headroom_findings(room, job)]
+    return job, [f"warning: {line}" for line in headroom_findings(room, job)]
 
 
 def _box(motion, job):
