@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import re
 import os
+import re
 import shutil
 import signal
 import sqlite3
@@ -253,6 +253,34 @@ def test_the_valve_saturates_a_correction_it_cannot_give_and_the_build_goes_on(p
     assert 0 < got < asked
     assert len(journal.measurements()) >= 1
     journal.close()
+
+
+def test_the_build_says_it_runs_before_its_first_path(planned, tmp_path):
+    """status.json shows the build running, with its process, before the first path
+    runs: 'icefab build --stop' asked then stops the build (a stop asked before it found
+    no status and went to the cell alone)."""
+    from icefab.motion import load_trajectories
+
+    motion = load_trajectories(planned)
+    job = motion.job
+    build = tmp_path / "b"
+    cell = _prepared(build, motion, job)
+    seen = []
+
+    class Watching:
+        def __getattr__(self, name):
+            return getattr(cell, name)
+
+        def run_path(self, seq, path, upcoming=None):
+            if not seen:
+                seen.append(json.loads((build / bmod.STATUS).read_text()))
+            return cell.run_path(seq, path, upcoming)
+
+    journal = Journal.create(build / bmod.JOURNAL, {"digests": {}})
+    bmod.Runner(build, motion, job, journal, lambda: Watching()).run()
+    journal.close()
+    assert seen[0]["state"] == "running" and seen[0]["pid"] == os.getpid()
+    assert seen[0]["paths_done"] == 0
 
 
 def _executed(build: Path) -> list[int]:

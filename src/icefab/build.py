@@ -444,6 +444,9 @@ class Runner:
             p.last_rms_mm = p.rms[-1][2]
         p.paths_done = self.journal.paths_done()
         self._call(lambda cell: None)
+        # running from here on for 'icefab build --stop': without it a stop asked during
+        # the first path found no status, told the cell directly, and the build ran on
+        self._report(force=True)
         for j, lm in enumerate(self.motion.layers):
             L = int(lm.index)
             meas_items = _items(lm)[1]
