@@ -1478,18 +1478,18 @@ def medial_axis(rings: Sequence[np.ndarray], spacing: float, min_radius: float =
     drop = np.zeros(len(tt), dtype=bool)
     pruned = False
     prunable: dict[int, list[tuple[float, np.ndarray]]] = {}
-    for i in range(len(cstarts) - 1):
-        if cclosed[i]:
-            continue
-        ch = verts[cstarts[i]:cstarts[i + 1]]
-        d0, d1 = deg[ch[0]], deg[ch[-1]]
-        if (d0 == 1) == (d1 == 1):
-            continue
-        junction, leaf = (ch[-1], ch[0]) if d0 == 1 else (ch[0], ch[-1])
-        length = float(np.linalg.norm(np.diff(C[ch], axis=0), axis=1).sum())
-        # its disks lie in the junction's disk: it covers nothing more
-        if length + clear[leaf] < clear[junction]:
-            prunable.setdefault(int(junction), []).append((length, ch))
+    # every chain at once (thousands per layer): the branches with one leaf end
+    first, last = verts[cstarts[:-1]], verts[cstarts[1:] - 1]
+    branch = ~cclosed & ((deg[first] == 1) != (deg[last] == 1))
+    hub = np.where(deg[first] == 1, last, first)
+    leaf = np.where(deg[first] == 1, first, last)
+    step = np.r_[np.linalg.norm(np.diff(C[verts], axis=0), axis=1), 0.0]
+    step[cstarts[1:] - 1] = 0.0  # no step from one chain's end to the next's start
+    length = np.add.reduceat(step, cstarts[:-1])
+    # its disks lie in the junction's disk: it covers nothing more
+    for i in np.flatnonzero(branch & (length + clear[leaf] < clear[hub])):
+        prunable.setdefault(int(hub[i]), []).append(
+            (float(length[i]), verts[cstarts[i]:cstarts[i + 1]]))
     for junction, branches in prunable.items():
         branches.sort(key=lambda b: b[0])
         for _length, ch in branches[:max(0, int(deg[junction]) - 2)]:
