@@ -255,6 +255,45 @@ def test_the_valve_saturates_a_correction_it_cannot_give_and_the_build_goes_on(p
     journal.close()
 
 
+class CrashInLayer:
+    """A cell whose control PC 'dies' right after the first path of ``layer`` ran."""
+
+    def __init__(self, cell: VirtualCell, layer: int) -> None:
+        self.cell, self.layer, self.crashed = cell, layer, False
+
+    def __getattr__(self, name):
+        return getattr(self.cell, name)
+
+    def run_path(self, seq, path, upcoming=None):
+        out = self.cell.run_path(seq, path, upcoming)
+        if path.layer == self.layer and not self.crashed:
+            self.crashed = True
+            raise Crash()
+        return out
+
+
+def test_a_resumed_build_journals_its_findings_once(planned, tmp_path):
+    """The saturation build above, its PC killed in layer 4 after the layer's finding was
+    journaled: the resumed build plans the layer's programs again, finds the same, and
+    does not journal it twice (it did: the findings said were kept in memory only)."""
+    from icefab.motion import load_trajectories
+
+    motion = load_trajectories(planned)
+    job = motion.job.replace(**{"simulation.flow_error": -0.3})
+    build = tmp_path / "b"
+    cell = CrashInLayer(_prepared(build, motion, job), layer=4)
+    journal = Journal.create(build / bmod.JOURNAL, {"digests": {}})
+    with pytest.raises(Crash):
+        bmod.Runner(build, motion, job, journal, lambda: cell).run()
+    journal.close()
+    assert cell.crashed
+    _inprocess(build, motion, job)
+    journal = Journal.open(build / bmod.JOURNAL)
+    said = [e["layer"] for e in journal.events() if e["kind"] == "saturation"]
+    journal.close()
+    assert said == [4]
+
+
 def test_the_build_says_it_runs_before_its_first_path(planned, tmp_path):
     """status.json shows the build running, with its process, before the first path
     runs: 'icefab build --stop' asked then stops the build (a stop asked before it found

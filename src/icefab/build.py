@@ -166,6 +166,10 @@ def check_speeds(trajectories, job: "Job", layer: int) -> list[str]:
     return out
 
 
+#: Journal events that say something about the build's programs, once per build.
+FINDING_EVENTS = ("saturation", "motion-limit")
+
+
 def saturation_finding(programs, layer: int) -> str | None:
     """One line for a layer whose valve programs saturate SMF's correction at the valve's
     range (thesis 5.2.2, :func:`icefab.flow.valve_frequency`), None if none do: how many
@@ -310,7 +314,10 @@ class Runner:
         self.max_faults = max_faults
         self.cell: Cell | None = None
         self.faults = 0
-        self.findings: list[str] = []
+        # what the journal already says (a resumed build re-plans the layer it stopped in
+        # and would say it again)
+        self.findings: list[str] = [e["text"] for e in journal.events()
+                                    if e["kind"] in FINDING_EVENTS]
         n_paths = [len(_items(lm)[0]) + len(_items(lm)[1]) for lm in motion.layers]
         self.progress = Progress(layers=len(motion.layers), paths=int(sum(n_paths)))
         self._durations = [lm.duration for lm in motion.layers]
