@@ -9,9 +9,11 @@ a 20 s limit per case, enforced by the parent (it kills and restarts a worker th
 not answer in time: counted as a hang, whether Python or a compiled kernel is stuck).
 
 Outcomes per case: ``ok`` (a result), ``refused`` (an IcefabError with one line),
-``traceback`` (any other exception, or an IcefabError of several lines), ``memory``
+``traceback`` (any other exception, or an IcefabError of several lines), ``warning`` (ok
+or refused, but a Python or numpy warning reached the terminal on the way), ``memory``
 (MemoryError under the limit), ``hang``, ``crash`` (the worker died). The issue's goal
-(issue 10): 0 traceback, 0 memory, 0 hang, 0 crash. Counts go to BENCHMARKS.md.
+(issue 10): 0 traceback, 0 warning, 0 memory, 0 hang, 0 crash. Counts go to
+BENCHMARKS.md.
 
 What a case does:
 * mesh: a valid small file (binary/ASCII STL, PLY in three encodings, OBJ) mutated
@@ -36,6 +38,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import warnings
 from collections import Counter
 from pathlib import Path
 
@@ -269,6 +272,9 @@ def _worker() -> None:  # pragma: no cover - runs in the subprocess
         cls, seed, index = line.split()
         rng = np.random.default_rng([int(seed), CLASSES.index(cls), int(index)])
         t0 = time.perf_counter()
+        caught = warnings.catch_warnings(record=True)
+        said = caught.__enter__()
+        warnings.simplefilter("always")
         try:
             if cls == "mesh":
                 data, ext = gen_mesh(rng, valid)
@@ -292,6 +298,14 @@ def _worker() -> None:  # pragma: no cover - runs in the subprocess
             outcome, detail = "memory", ""
         except Exception as exc:  # noqa: BLE001 - counting what escapes is the point
             outcome, detail = "traceback", f"{type(exc).__name__}: {str(exc)[:200]}"
+        finally:
+            caught.__exit__(None, None, None)
+        if said and outcome in ("ok", "refused"):
+            # a numpy or Python warning on the user's terminal is a defect too
+            w = said[0]
+            outcome = "warning"
+            detail = f"{w.category.__name__} at {Path(w.filename).name}:{w.lineno}: " \
+                     f"{str(w.message)[:160]}"
         dt = time.perf_counter() - t0
         print(json.dumps([outcome, detail, dt]), flush=True)
 
@@ -373,12 +387,13 @@ def main() -> None:
                     print(f"{cls}:{i} {outcome} {detail}", file=sys.stderr, flush=True)
             wall = time.perf_counter() - t0
             results[cls] = {"cases": args.cases, **{k: counts.get(k, 0) for k in
-                            ("ok", "refused", "traceback", "memory", "hang", "crash")},
+                            ("ok", "refused", "traceback", "warning", "memory", "hang",
+                                      "crash")},
                             "slowest_case_s": round(slowest, 3), "wall_s": round(wall, 1),
                             "failures": bad[:50]}
             r = results[cls]
             print(f"{cls}: {args.cases} cases in {wall:.0f} s: ok {r['ok']}, refused "
-                  f"{r['refused']}, traceback {r['traceback']}, memory > 2 GiB "
+                  f"{r['refused']}, traceback {r['traceback']}, warning {r['warning']}, memory > 2 GiB "
                   f"{r['memory']}, hang > {TIMEOUT_S:g} s {r['hang']}, crash {r['crash']}; "
                   f"slowest case {slowest:.2f} s", flush=True)
     finally:

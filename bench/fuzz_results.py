@@ -16,7 +16,9 @@ Each case is loaded in this process with a 20 s alarm, and with the address spac
 (``RLIMIT_AS``) to what the process had before the first case plus 2 GB, so any allocation
 over 2 GB fails with MemoryError and is counted (untouched memory counts too, unlike RSS).
 Counted: loads, StackFileError (the documented error), tracebacks (any other exception),
-hangs (over 20 s) and allocations over 2 GB; the first few tracebacks are printed. The exit status is 1 if any traceback, hang or large allocation occurred.
+warnings (a Python or numpy warning on the way), hangs (over 20 s) and allocations over
+2 GB; the first few tracebacks and warnings are printed. The exit status is 1 if any
+traceback, warning, hang or large allocation occurred.
 
     python3 bench/fuzz_results.py [--cases 10000] [--seed 1] [--only stack]
 """
@@ -32,6 +34,7 @@ import sys
 import tempfile
 import time
 import traceback
+import warnings
 import zipfile
 from collections import Counter
 from pathlib import Path
@@ -220,6 +223,9 @@ def run(kind: str, cases: int, seed: int, tmp: Path, bomb: bool) -> Counter:
         counts["class " + cls] += 1
         signal.alarm(HANG_S + 5)
         t0 = time.perf_counter()
+        caught = warnings.catch_warnings(record=True)
+        said = caught.__enter__()
+        warnings.simplefilter("always")
         try:
             load(target)
             counts["loaded"] += 1
@@ -239,6 +245,14 @@ def run(kind: str, cases: int, seed: int, tmp: Path, bomb: bool) -> Counter:
                 traceback.print_exc()
         finally:
             signal.alarm(0)
+            caught.__exit__(None, None, None)
+        if said:  # a Python or numpy warning on the user's terminal is a defect too
+            counts["warnings"] += 1
+            if shown < 3:
+                shown += 1
+                w = said[0]
+                print(f"--- {kind} case {i} ({cls}): {w.category.__name__} at "
+                      f"{Path(w.filename).name}:{w.lineno}: {w.message}", file=sys.stderr)
         dt = time.perf_counter() - t0
         if dt > HANG_S:
             counts["hangs"] += 1
@@ -274,7 +288,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"# address space before the first case {vm >> 20} MB; limit + 2048 MB")
         for kind in ([args.only] if args.only else sorted(fixtures.KINDS)):
             c = run(kind, args.cases, args.seed, tmp, not args.no_bomb)
-            bad += c["tracebacks"] + c["hangs"] + c["allocations > 2 GB"] \
+            bad += c["tracebacks"] + c["warnings"] + c["hangs"] + c["allocations > 2 GB"] \
                 + c["error not one line naming the file"]
             print(f"{kind}: " + ", ".join(f"{k} {v}" for k, v in sorted(c.items())))
     return 1 if bad else 0

@@ -591,6 +591,38 @@ def test_error_ply_index_out_of_range(tmp_path, fmt):
         load_mesh(_write(tmp_path, "box.ply", data))
 
 
+@pytest.mark.parametrize("fmt", ["binary_little_endian", "ascii"])
+@pytest.mark.parametrize("index,message", [
+    (1e30, r"PLY face vertex index 1e\+30 out of range: the file has 8 vertices"),
+    (-1e30, r"PLY face vertex index -1e\+30 out of range: the file has 8 vertices"),
+    (np.inf, r"PLY face indices are not integers"),
+    (2.5, r"PLY face indices are not integers")])
+def test_error_ply_float_index_list_holding_no_vertex_index(tmp_path, fmt, index,
+                                                            message):
+    """A float-typed index list (legal PLY) holding a whole number beyond any integer or
+    an infinity: one error naming the file and the value, no numpy cast warning (the
+    loader said 'index [0, 1, -9223372036854775808] out of range' after a
+    RuntimeWarning)."""
+    import warnings
+
+    v, quads = _box_quads()
+    head = ["ply", f"format {fmt} 1.0", "element vertex 8"]
+    head += [f"property float {a}" for a in "xyz"]
+    head += ["element face 2", "property list uchar double vertex_indices", "end_header"]
+    faces = [[0, 2, 3], [0, 1, index]]
+    if fmt == "ascii":
+        body = "".join(f"{x} {y} {z}\n" for x, y, z in v)
+        body += "".join(" ".join(["3", *(repr(float(i)) for i in f)]) + "\n" for f in faces)
+        data = ("\n".join(head) + "\n" + body).encode()
+    else:
+        data = ("\n".join(head) + "\n").encode() + np.asarray(v, "<f4").tobytes()
+        data += b"".join(struct.pack("<B3d", 3, *map(float, f)) for f in faces)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(MeshError, match=r"big\.ply: " + message):
+            load_mesh(_write(tmp_path, "big.ply", data))
+
+
 def test_error_ply_truncated(tmp_path):
     ref = _tm("sphere")
     data = _ply_bytes(np.asarray(ref.vertices, np.float32), ref.faces)

@@ -197,8 +197,9 @@ def _ply_element_binary(b: np.ndarray, pos: int, el: _PlyElement, endian: str,
         rec = np.frombuffer(b, dt, count=el.n, offset=pos)
         if all(np.all(rec["__n_" + k] == c) for k, c in guess.items()):
             scal = {q.name: rec[q.name] for q in el.props if q.count is None}
-            lists = {k: (rec[k].reshape(-1).astype(np.int64),
-                         np.full(el.n, c, np.int64)) for k, c in guess.items()}
+            # values as stored: a float index list is checked where indices are read
+            lists = {k: (rec[k].reshape(-1), np.full(el.n, c, np.int64))
+                     for k, c in guess.items()}
             return _PlyData(scal, lists), pos + el.n * dt.itemsize
     # variable layout: every record is at least its count fields and scalars long
     min_size = sum(np.dtype(q.count or q.dtype).itemsize for q in el.props)
@@ -228,7 +229,7 @@ def _ply_element_binary(b: np.ndarray, pos: int, el: _PlyElement, endian: str,
             rec_of = np.repeat(np.arange(el.n), counts)
             j = np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)
             starts = offsets[rec_of, qi] + np.dtype(cdt).itemsize + j * vdt.itemsize
-            lists[q.name] = (_gather(b, starts, vdt).astype(np.int64), counts)
+            lists[q.name] = (_gather(b, starts, vdt), counts)
     return _PlyData(scal, lists), int(end)
 
 
@@ -368,8 +369,14 @@ def read(data: bytes, path: Path) -> tuple[np.ndarray, np.ndarray]:
             raise MeshError(f"{path}: PLY element {name!r} has no vertex index list")
         flat, counts = lists[key]
         flat = np.asarray(flat)
-        if not np.all(flat == np.floor(flat)):
-            raise MeshError(f"{path}: PLY {name} indices are not integers")
+        if flat.dtype.kind == "f":  # float-typed index lists are legal PLY
+            if not np.all(np.isfinite(flat) & (flat == np.floor(flat))):
+                raise MeshError(f"{path}: PLY {name} indices are not integers")
+            # beyond int64 the cast would warn and give garbage: no file has the vertices
+            huge = np.abs(flat) >= 2.0 ** 62
+            if huge.any():
+                raise MeshError(f"{path}: PLY {name} vertex index {flat[huge][0]:g} out of "
+                                f"range: the file has {vel.n} vertices")
         flat = flat.astype(np.int64)
         if name == "face":
             short = counts < 3
