@@ -14,6 +14,7 @@ import struct
 import numpy as np
 import pytest
 import trimesh
+from hypothesis import HealthCheck, given, settings, strategies as st
 
 from icefab.errors import MeshError
 from icefab.mesh import (check_mesh, load_mesh, load_meshes, merge_meshes, read_mesh,
@@ -605,7 +606,16 @@ def test_error_ply_float_index_list_holding_no_vertex_index(tmp_path, fmt, index
     RuntimeWarning)."""
     import warnings
 
-    v, quads = _box_quads()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(MeshError, match=r"big\.ply: " + message):
+            load_mesh(_write(tmp_path, "big.ply", _ply_float_index(fmt, index)))
+
+
+def _ply_float_index(fmt: str, index: float) -> bytes:
+    """The box's first two triangles in a PLY with a double-typed index list, the last
+    index ``index``."""
+    v, _quads = _box_quads()
     head = ["ply", f"format {fmt} 1.0", "element vertex 8"]
     head += [f"property float {a}" for a in "xyz"]
     head += ["element face 2", "property list uchar double vertex_indices", "end_header"]
@@ -613,14 +623,31 @@ def test_error_ply_float_index_list_holding_no_vertex_index(tmp_path, fmt, index
     if fmt == "ascii":
         body = "".join(f"{x} {y} {z}\n" for x, y, z in v)
         body += "".join(" ".join(["3", *(repr(float(i)) for i in f)]) + "\n" for f in faces)
-        data = ("\n".join(head) + "\n" + body).encode()
-    else:
-        data = ("\n".join(head) + "\n").encode() + np.asarray(v, "<f4").tobytes()
-        data += b"".join(struct.pack("<B3d", 3, *map(float, f)) for f in faces)
+        return ("\n".join(head) + "\n" + body).encode()
+    data = ("\n".join(head) + "\n").encode() + np.asarray(v, "<f4").tobytes()
+    return data + b"".join(struct.pack("<B3d", 3, *map(float, f)) for f in faces)
+
+
+@settings(max_examples=200, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(fmt=st.sampled_from(["binary_little_endian", "ascii"]),
+       index=st.floats(allow_nan=True, allow_infinity=True))
+def test_any_float_index_loads_or_is_refused_without_warning(tmp_path, fmt, index):
+    """Whatever number a float-typed PLY index list holds: the mesh loads (a whole number
+    naming one of the 8 vertices) or one MeshError naming the file, and no warning."""
+    import warnings
+
+    names_a_vertex = bool(np.isfinite(index) and float(index).is_integer() and 0 <= index < 8)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        with pytest.raises(MeshError, match=r"big\.ply: " + message):
-            load_mesh(_write(tmp_path, "big.ply", data))
+        try:
+            mesh = load_mesh(_write(tmp_path, "any.ply", _ply_float_index(fmt, index)))
+        except MeshError as exc:
+            assert "any.ply" in str(exc) and "\n" not in str(exc)
+            assert not names_a_vertex
+        else:
+            assert names_a_vertex
+            assert len(mesh.faces) == (1 if index in (0, 1) else 2)  # 0 1 0: degenerate
 
 
 def test_error_ply_truncated(tmp_path):
