@@ -301,7 +301,8 @@ def plot_toolpaths(stack: Stack, toolpaths: Toolpaths | Mapping[int, LayerPaths]
         ax.set_xlabel("x (mm)", fontsize=8)
         ax.set_ylabel("y (mm)", fontsize=8)
         ax.tick_params(labelsize=7)
-        ax.legend(fontsize=6, loc="upper right")
+        if ax.get_legend_handles_labels()[0]:  # an empty layer has nothing to name
+            ax.legend(fontsize=6, loc="upper right")
     for ax in axes.ravel()[len(ks):]:
         ax.axis("off")
     fig.tight_layout()
