@@ -13,7 +13,8 @@ before it see the whole mug).
 
 Outcomes: ``works`` (exit 0 within the limits), ``refused`` (exit 2 with one line on
 stderr naming the setting or what is wrong), ``failed`` (anything else: a traceback,
-MemoryError under the 2 GiB limit, a kill by the timeout). Each case is appended to the
+MemoryError under the 2 GiB limit, a kill by the timeout), ``warned`` (exit 0 or 2, but a
+Python or numpy warning on stderr on the way). Each case is appended to the
 JSONL file as it finishes, so a partial run still reports what it saw. ``cell.cpus`` is
 set to 1 in every case (two cores are shared) except when it is the setting walked.
 """
@@ -24,6 +25,7 @@ import argparse
 import dataclasses
 import json
 import os
+import re
 import resource
 import subprocess
 import sys
@@ -90,6 +92,10 @@ def run_case(job_text: str, layers: int, timeout: float, work: Path) -> dict:
     dt = round(time.perf_counter() - t0, 1)
     err = [line for line in p.stderr.splitlines() if line.strip()]
     last = err[-1] if err else ""
+    # a Python or numpy warning ("file.py:12: RuntimeWarning: ...") is a defect too
+    warned = [line for line in err if re.search(r":\d+: \w*Warning: ", line)]
+    if warned and p.returncode in (0, 2):
+        return {"outcome": "warned", "why": warned[0][:300], "seconds": dt}
     if p.returncode == 0:
         return {"outcome": "works", "seconds": dt}
     if p.returncode == 2 and ": error: " in last and "Traceback" not in p.stderr:
