@@ -34,6 +34,19 @@ sys.path.insert(0, str(Path(__file__).parent))
 from bench_build_time import BUNNY_EE, _bunny_stack  # noqa: E402
 
 
+def bunny_layers(spec: str):
+    """(job, stack, picks, layers): the default job at the bunny's origin (340, 0), the
+    bunny's stack and its layers ``spec`` ("150,350,...") planned without measurement."""
+    from icefab.config import Job
+    from icefab.paths import plan_layer
+
+    job = Job().replace(**{"cell.ee_origin_mm": BUNNY_EE, "cell.stroke_mm": 400.0})
+    stack = _bunny_stack(job, 1)
+    picks = [int(k) for k in spec.split(",")]
+    return job, stack, picks, [plan_layer(stack.layers[k], job, measured=False)
+                               for k in picks]
+
+
 def _durations(layers, job):
     from icefab.motion import plan_paths_durations
     return [plan_paths_durations(lp.paths, job, layer=lp.index) for lp in layers]
@@ -63,16 +76,12 @@ def main() -> int:
     ap.add_argument("--layers", default="150,350,550,750,950",
                     help="bunny layer indices (default: five spread over the part)")
     args = ap.parse_args()
-    from icefab.config import Job
     from icefab.motion import plan_motion
     from icefab.paths import plan_layer
 
     print(f"machine: {os.cpu_count()}-core {platform.processor() or platform.machine()}, "
           f"Python {platform.python_version()}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}")
-    job = Job().replace(**{"cell.ee_origin_mm": BUNNY_EE, "cell.stroke_mm": 400.0})
-    stack = _bunny_stack(job, 1)
-    picks = [int(k) for k in args.layers.split(",")]
-    layers = [plan_layer(stack.layers[k], job, measured=False) for k in picks]
+    job, stack, picks, layers = bunny_layers(args.layers)
     base = _durations(layers, job)
     total = _total(base)
     print(f"\nbunny layers {picks}: MTTS {total:.1f} s (jerk on, default limits)")

@@ -40,7 +40,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from bench_build_time import BUNNY_EE, _bunny_stack  # noqa: E402
+from bench_time_levers import bunny_layers  # noqa: E402
 
 #: Turn bins (degrees) of the per-kind table.
 TURNS = ((0, 60), (60, 120), (120, 240), (240, 361))
@@ -92,17 +92,12 @@ def main() -> int:
     ap.add_argument("--handle", type=float, default=0.3,
                     help="connector handle length over the gap")
     args = ap.parse_args()
-    from icefab.config import Job
     from icefab.core import Toolpath
     from icefab.motion import plan_paths_durations
-    from icefab.paths import plan_layer
 
     print(f"machine: {os.cpu_count()}-core {platform.machine()}, Python "
           f"{platform.python_version()}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}")
-    job = Job().replace(**{"cell.ee_origin_mm": BUNNY_EE, "cell.stroke_mm": 400.0})
-    stack = _bunny_stack(job, 1)
-    picks = [int(k) for k in args.layers.split(",")]
-    layers = [plan_layer(stack.layers[k], job, measured=False) for k in picks]
+    job, _stack, picks, layers = bunny_layers(args.layers)
 
     def joined(a, pts, layer):
         return Toolpath(pts, material=a.material, role=a.role, layer=layer)
