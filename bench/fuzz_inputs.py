@@ -272,34 +272,31 @@ def _worker() -> None:  # pragma: no cover - runs in the subprocess
         cls, seed, index = line.split()
         rng = np.random.default_rng([int(seed), CLASSES.index(cls), int(index)])
         t0 = time.perf_counter()
-        caught = warnings.catch_warnings(record=True)
-        said = caught.__enter__()
-        warnings.simplefilter("always")
-        try:
-            if cls == "mesh":
-                data, ext = gen_mesh(rng, valid)
-                f = work / f"case{ext}"
-                f.write_bytes(data)
-                load_mesh(f)
-                job = Job().replace(**{"parts.files": [str(f)], "cell.cpus": 1,
-                                       "slicing.layer_thickness_mm": 1.0})
-                slice_mesh(prepare_parts(job), job)
-            else:
-                data = gen_toml(rng, names, default) if cls == "toml" else gen_legacy(rng)
-                f = work / ("job.toml" if cls == "toml" else "control.txt")
-                f.write_bytes(data)
-                load_job(f)
-            outcome, detail = "ok", ""
-        except IcefabError as exc:
-            msg = str(exc)
-            outcome, detail = ("refused", "") if "\n" not in msg.strip() else \
-                ("traceback", "multi-line message: " + msg[:200])
-        except MemoryError:
-            outcome, detail = "memory", ""
-        except Exception as exc:  # noqa: BLE001 - counting what escapes is the point
-            outcome, detail = "traceback", f"{type(exc).__name__}: {str(exc)[:200]}"
-        finally:
-            caught.__exit__(None, None, None)
+        with warnings.catch_warnings(record=True) as said:
+            warnings.simplefilter("always")
+            try:
+                if cls == "mesh":
+                    data, ext = gen_mesh(rng, valid)
+                    f = work / f"case{ext}"
+                    f.write_bytes(data)
+                    load_mesh(f)
+                    job = Job().replace(**{"parts.files": [str(f)], "cell.cpus": 1,
+                                           "slicing.layer_thickness_mm": 1.0})
+                    slice_mesh(prepare_parts(job), job)
+                else:
+                    data = gen_toml(rng, names, default) if cls == "toml" else gen_legacy(rng)
+                    f = work / ("job.toml" if cls == "toml" else "control.txt")
+                    f.write_bytes(data)
+                    load_job(f)
+                outcome, detail = "ok", ""
+            except IcefabError as exc:
+                msg = str(exc)
+                outcome, detail = ("refused", "") if "\n" not in msg.strip() else \
+                    ("traceback", "multi-line message: " + msg[:200])
+            except MemoryError:
+                outcome, detail = "memory", ""
+            except Exception as exc:  # noqa: BLE001 - counting what escapes is the point
+                outcome, detail = "traceback", f"{type(exc).__name__}: {str(exc)[:200]}"
         if said and outcome in ("ok", "refused"):
             # a numpy or Python warning on the user's terminal is a defect too
             w = said[0]
@@ -393,8 +390,9 @@ def main() -> None:
                             "failures": bad[:50]}
             r = results[cls]
             print(f"{cls}: {args.cases} cases in {wall:.0f} s: ok {r['ok']}, refused "
-                  f"{r['refused']}, traceback {r['traceback']}, warning {r['warning']}, memory > 2 GiB "
-                  f"{r['memory']}, hang > {TIMEOUT_S:g} s {r['hang']}, crash {r['crash']}; "
+                  f"{r['refused']}, traceback {r['traceback']}, warning {r['warning']}, "
+                  f"memory > 2 GiB {r['memory']}, hang > {TIMEOUT_S:g} s {r['hang']}, "
+                  f"crash {r['crash']}; "
                   f"slowest case {slowest:.2f} s", flush=True)
     finally:
         runner.stop()

@@ -226,29 +226,27 @@ def run(kind: str, cases: int, seed: int, tmp: Path, bomb: bool) -> Counter:
         counts["class " + cls] += 1
         signal.alarm(HANG_S + 5)
         t0 = time.perf_counter()
-        caught = warnings.catch_warnings(record=True)
-        said = caught.__enter__()
-        warnings.simplefilter("always")
-        try:
-            load(target)
-            counts["loaded"] += 1
-        except StackFileError as exc:
-            counts["StackFileError"] += 1
-            if "\n" in str(exc) or str(target) not in str(exc):
-                counts["error not one line naming the file"] += 1
-        except _Hang:
-            counts["hangs"] += 1
-        except MemoryError:
-            counts["allocations > 2 GB"] += 1
-        except Exception:
-            counts["tracebacks"] += 1
-            if shown < 3:
-                shown += 1
-                print(f"--- {kind} case {i} ({cls}): traceback", file=sys.stderr)
-                traceback.print_exc()
-        finally:
-            signal.alarm(0)
-            caught.__exit__(None, None, None)
+        with warnings.catch_warnings(record=True) as said:
+            warnings.simplefilter("always")
+            try:
+                load(target)
+                counts["loaded"] += 1
+            except StackFileError as exc:
+                counts["StackFileError"] += 1
+                if "\n" in str(exc) or str(target) not in str(exc):
+                    counts["error not one line naming the file"] += 1
+            except _Hang:
+                counts["hangs"] += 1
+            except MemoryError:
+                counts["allocations > 2 GB"] += 1
+            except Exception:
+                counts["tracebacks"] += 1
+                if shown < 3:
+                    shown += 1
+                    print(f"--- {kind} case {i} ({cls}): traceback", file=sys.stderr)
+                    traceback.print_exc()
+            finally:
+                signal.alarm(0)
         if said:  # a Python or numpy warning on the user's terminal is a defect too
             counts["warnings"] += 1
             if shown < 3:

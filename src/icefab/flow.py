@@ -412,7 +412,10 @@ def valve_frequency(trajectory: Trajectory, material: str, job: "Job", *,
     FM: a flow outside the calibration table (zero flow excepted: 0 Hz) or a frequency
     above ``min(max_frequency_hz, 1 / calibration_pulse_ms)`` raises FlowError under
     ``flow.out_of_range = "error"``; under ``"clamp"`` it is clamped and the finding says
-    how much volume that costs (delivered vs commanded). PWM: ``nu`` is the FM-equivalent
+    how much volume that costs (delivered vs commanded). Where only the control action
+    takes the flow out of the valve's range (:func:`valve_flow_range`), it is held at the
+    range's end whatever ``out_of_range`` says (:func:`_saturated`, thesis 5.2.2) and a
+    finding states the volume given of the volume asked. PWM: ``nu`` is the FM-equivalent
     frequency h(q), for information; the PWM limits are applied per pulse by
     :func:`plan_valves`.
     """
@@ -437,15 +440,15 @@ def valve_frequency(trajectory: Trajectory, material: str, job: "Job", *,
     warnings: list[str] = []
     clamped = np.zeros(n, dtype=bool)
     where = _where(trajectory)
-    lo, hi = valve_flow_range(cal, job)
-    saturated = _saturated(q, q_nom, lo, hi)
+    q_lo, q_hi = valve_flow_range(cal, job)
+    saturated = _saturated(q, q_nom, q_lo, q_hi)
     if np.any(saturated):
         asked = q.copy()
-        q[saturated] = np.clip(q[saturated], lo, hi)
-        worst = float(asked[saturated].max() if np.any(asked[saturated] > hi)
+        q[saturated] = np.clip(q[saturated], q_lo, q_hi)
+        worst = float(asked[saturated].max() if np.any(asked[saturated] > q_hi)
                       else asked[saturated].min())
         warnings.append(f"{where}: SMF's correction saturated at the valve's "
-                        f"[{lo:.4g}, {hi:.4g}] mm^3/s (thesis 5.2.2; asked {worst:.4g} "
+                        f"[{q_lo:.4g}, {q_hi:.4g}] mm^3/s (thesis 5.2.2; asked {worst:.4g} "
                         f"mm^3/s) at {int(np.count_nonzero(saturated))} of {n} samples, "
                         f"{_volume_error(_integral(q, t), _integral(asked, t))}")
     # the flow follows the speed array (eq. 6.2), the nozzle the samples: they must agree
