@@ -14,7 +14,9 @@ jerk on, default limits) summed without keeping the samples. Per variant:
 * the speed-bound floor: every path's length over the speed bound MTTS plans it under
   (``motion.path_limits``), i.e. no acceleration at all;
 * rest stops per layer by cause: travel moves, path starts, PATHSPLIT corners inside
-  paths (every trajectory and every split piece starts and ends at rest, thesis 4.1.1);
+  paths (every trajectory and every split piece starts and ends at rest, thesis 4.1.1),
+  and the joins of continuous tours (``paths.join_tours``: stops not made); tours are
+  timed as "boundary tour" / "fill tour";
 * unfilled area (the paths stage's own measure, ``LayerPaths.unfilled_mm2``) and the
   lowest coverage of any layer's material region of at least 100 mm^2;
 * paths and the ``plan_paths`` wall time;
@@ -113,6 +115,7 @@ def _toppra_tours(tp, job, picks) -> dict:
 
 
 def measure(stack, job, toppra_layers: int = 0) -> dict:
+    from icefab.core import tour_members
     from icefab.motion import iter_plan_toolpaths, path_limits
     from icefab.paths import plan_paths
 
@@ -126,12 +129,16 @@ def measure(stack, job, toppra_layers: int = 0) -> dict:
     stops: Counter = Counter()
     fill_width = {"part": job.materials.part.fill_width_mm,
                   "scaffold": job.materials.scaffold.fill_width_mm}
+    joins = 0
     for lm in iter_plan_toolpaths(tp, job):
         stops.update(rest_stops(lm.trajectories))
         for t in lm.trajectories:
             p = t.path
             role = "travel" if p is None else p.role
-            if role == "fill":
+            if p is not None and p.off is not None:   # a continuous tour
+                joins += len(tour_members(p)) - 1
+                role = f"{role} tour"
+            elif role == "fill":
                 role = "fill" if _is_fill_ring(p, fill_width[p.material]) else "gap"
             by_role[role] = by_role.get(role, 0.0) + float(t.duration)
             if p is not None:
@@ -143,6 +150,7 @@ def measure(stack, job, toppra_layers: int = 0) -> dict:
     return {"mtts_h": sum(by_role.values()) / 3600.0, "floor_h": floor / 3600.0,
             "by_role_h": {k: v / 3600.0 for k, v in sorted(by_role.items())},
             "stops_per_layer": {k: v / n for k, v in stops.items()},
+            "joins_per_layer": joins / n,
             "unfilled_mm2": [float(unfilled[0]), float(unfilled[1])],
             "min_coverage": _coverage(stack, tp), "paths": stops["path starts"], "layers": n,
             "plan_paths_s": t_paths, "toppra_layers": picks, "tours": tours}
@@ -157,6 +165,8 @@ def _rows(a: dict, b: dict) -> list[tuple[str, float, float]]:
     for k in a["stops_per_layer"]:
         rows.append((f"rest stops per layer: {k}", a["stops_per_layer"][k],
                      b["stops_per_layer"][k]))
+    rows.append(("paths joined into tours per layer (stops saved)", a["joins_per_layer"],
+                 b["joins_per_layer"]))
     rows += [("unfilled part / scaffold (mm^2)", a["unfilled_mm2"][0], b["unfilled_mm2"][0]),
              ("", a["unfilled_mm2"][1], b["unfilled_mm2"][1]),
              ("lowest coverage of a region", a["min_coverage"], b["min_coverage"]),

@@ -34,13 +34,15 @@ sys.path.insert(0, str(Path(__file__).parent))
 from bench_build_time import BUNNY_EE, _bunny_stack  # noqa: E402
 
 
-def bunny_layers(spec: str):
-    """(job, stack, picks, layers): the default job at the bunny's origin (340, 0), the
-    bunny's stack and its layers ``spec`` ("150,350,...") planned without measurement."""
+def bunny_layers(spec: str, **settings):
+    """(job, stack, picks, layers): the default job (with ``settings``, dotted names) at
+    the bunny's origin (340, 0), the bunny's stack and its layers ``spec``
+    ("150,350,...") planned without measurement."""
     from icefab.config import Job
     from icefab.paths import plan_layer
 
-    job = Job().replace(**{"cell.ee_origin_mm": BUNNY_EE, "cell.stroke_mm": 400.0})
+    job = Job().replace(**{"cell.ee_origin_mm": BUNNY_EE, "cell.stroke_mm": 400.0,
+                           **settings})
     stack = _bunny_stack(job, 1)
     picks = [int(k) for k in spec.split(",")]
     return job, stack, picks, [plan_layer(stack.layers[k], job, measured=False)

@@ -23,8 +23,10 @@ Prints:
   apart, and the sum of the joins that save time taken one by one (joining only where
   it pays): what joining is worth in today's order, which only shortens travel.
 
-Not a feature: icefab's paths and trajectories still start and end at rest
-(thesis 4.1.1). This is the measurement that decides whether tours are worth building.
+The paths are planned with tours off (``materials.*.tour_max_turn_deg = 0``): this is
+the measurement that decided to build them and how (``icefab.paths.join_tours`` joins by
+the turn, as the table below shows it pays; ``bench_build_time.py --peer`` with tours off
+measures what the built ones give).
 """
 from __future__ import annotations
 
@@ -97,7 +99,10 @@ def main() -> int:
 
     print(f"machine: {os.cpu_count()}-core {platform.machine()}, Python "
           f"{platform.python_version()}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}")
-    job, _stack, picks, layers = bunny_layers(args.layers)
+    # the paths apart, as before tours: each join measured on its own
+    job, _stack, picks, layers = bunny_layers(
+        args.layers, **{"materials.part.tour_max_turn_deg": 0.0,
+                        "materials.scaffold.tour_max_turn_deg": 0.0})
 
     def joined(a, pts, layer):
         return Toolpath(pts, material=a.material, role=a.role, layer=layer)

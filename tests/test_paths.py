@@ -20,7 +20,8 @@ from icefab.paths import (OFF, ON1, ON2, SWEEP_TOL, centre_paths, deposition_sta
                           load_toolpaths, order_nearest, plan_layer, plan_paths, point_states,
                           save_toolpaths, to_base_frame)
 from icefab.regions import add_scaffold
-from icefab.core import Layer, LayerPaths, Toolpath, Region, Toolpaths, signed_area
+from icefab.core import (Layer, LayerPaths, Toolpath, Region, Toolpaths, signed_area,
+                         tour_members)
 from test_geometry import (check_region_structure, polygon_with_holes, rect,
                            to_shapely)
 from test_regions import make_stack, prism, table
@@ -58,6 +59,11 @@ def _too_close(p: Toolpath, edge, allowance: float) -> bool:
     return bool(np.any(d < wq / 2.0 - allowance))
 
 
+def _members(lp: LayerPaths) -> list[Toolpath]:
+    """A layer's paths with every continuous tour as the paths it joins."""
+    return [m for p in lp.paths for m in tour_members(p)]
+
+
 def check_layer_paths(layer: Layer, lp: LayerPaths, job: Job, min_cover: float | None = 0.97,
                       hook: bool = False):
     """Must-show invariants of one layer's paths, measured with shapely."""
@@ -66,11 +72,13 @@ def check_layer_paths(layer: Layer, lp: LayerPaths, job: Job, min_cover: float |
         mat = job.materials[material]
         check_region_structure(region)
         R = to_shapely(region)
-        deposit = [p for p in lp.paths if p.material == material and p.depositing]
+        # a continuous tour is checked path by path: its travel deposits nothing
+        members = [m for p in lp.paths for m in tour_members(p)]
+        deposit = [p for p in members if p.material == material and p.depositing]
         if hook and material == "scaffold":
             # the hook wall's ice rings take the place of outer scaffold paths
             P = to_shapely(layer.part).buffer(1e-6)
-            deposit += [p for p in lp.paths if p.material == "part" and p.depositing
+            deposit += [p for p in members if p.material == "part" and p.depositing
                         and not P.covers(_geom(p))]
         if region.is_empty:
             assert not deposit
@@ -180,7 +188,7 @@ def test_strip_between_the_scaffold_boundaries_is_filled_along_its_centre():
     layer = st_.layers[0]
     lp = plan_layer(layer, job)
     check_layer_paths(layer, lp, job)
-    gap = [p for p in lp.paths if p.material == "scaffold" and p.role == "fill"]
+    gap = [p for p in _members(lp) if p.material == "scaffold" and p.role == "fill"]
     assert gap and all(0.25 <= p.width <= 0.3 * 1.3 for p in gap)
     mid = shapely.box(-2.1, -2.1, 22.1, 22.1).exterior  # the strip's centre line
     for p in gap:
@@ -270,11 +278,11 @@ def test_gap_paths_never_reach_past_the_region():
                         geo.region_from_rings([rect(20, 10 - width / 2, 30, 10 + width / 2)]))
         lp = plan_layer(Layer(0, 0.125, fin), job)
         R = to_shapely(fin)
-        in_fin = [p for p in lp.paths if p.role == "fill" and p.points[:, 0].mean() > 20]
+        in_fin = [p for p in _members(lp) if p.role == "fill" and p.points[:, 0].mean() > 20]
         assert len(in_fin) >= 1
         main = max(in_fin, key=lambda p: p.length)
         assert main.width == pytest.approx(width, rel=0.05) and main.length > 8
-        for p in lp.paths:
+        for p in _members(lp):
             if p.role == "fill" and p.widths is not None:   # half its width there
                 assert not _too_close(p, R.boundary, 1e-6)
             elif p.role == "fill":
@@ -345,11 +353,15 @@ def test_tube_with_hole_and_mug_like_rings():
 def test_zigzag_links_lines_and_raster_does_not():
     job = Job().replace(**{"materials.part.fill_pattern": "zigzag", "feedback.enabled": False})
     layer = Layer(0, 0.125, geo.region_from_rings([rect(0, 0, 40, 20)]))
-    zig = [p for p in plan_layer(layer, job).paths if p.role == "fill" and p.width == 3.0]
+    zig = [p for p in _members(plan_layer(layer, job)) if p.role == "fill" and p.width == 3.0]
     assert len(zig) == 1 and len(zig[0].points) > 4  # one linked zigzag
     job2 = job.replace(**{"materials.part.fill_pattern": "raster"})
-    ras = [p for p in plan_layer(layer, job2).paths if p.role == "fill" and p.width == 3.0]
+    lp = plan_layer(layer, job2)
+    ras = [p for p in _members(lp) if p.role == "fill" and p.width == 3.0]
     assert len(ras) > 3 and all(len(p.points) == 2 for p in ras)
+    # the lines are deposited apart, but the robot runs from one to the next without a
+    # stop (a continuous tour)
+    assert any(p.off is not None for p in lp.paths if p.role == "fill")
     # lines parallel to x (angle 0) spaced by the fill width
     ys = sorted(p.points[0, 1] for p in ras)
     assert np.allclose(np.diff(ys), 3.0)
@@ -436,8 +448,11 @@ def test_per_point_states_in_layer_order_and_in_the_file(tmp_path):
         assert np.array_equal(pts[k:k + len(p.points)], p.points)
         # every path ends on a point whose segment does not deposit (Ossino 6)
         assert seg[-1] == OFF
-        expect = {"part": ON1, "scaffold": ON2}[p.material] if p.depositing else OFF
-        assert (seg[:-1] == expect).all()
+        expect = np.full(n - 1, {"part": ON1, "scaffold": ON2}[p.material] if p.depositing
+                         else OFF, dtype=np.int8)
+        if p.off is not None:   # a tour: OFF over its travel curves
+            expect[p.off[:n - 1]] = OFF
+        assert np.array_equal(seg[:-1], expect)
         if p.closed:  # closed: back to the first point
             assert np.array_equal(pts[k + n - 1], p.points[0])
         k += n
@@ -459,7 +474,7 @@ def test_per_point_states_in_layer_order_and_in_the_file(tmp_path):
     with pytest.raises(StackFileError, match="states disagree"):
         load_toolpaths(tmp_path / "bad.npz")
     old = {key: v for key, v in data.items()
-           if key not in ("state", "variable", "point_width")}
+           if key not in ("state", "variable", "point_width", "point_off")}
     old["version"] = np.array(1)
     np.savez(tmp_path / "v1.npz", **old)
     assert len(load_toolpaths(tmp_path / "v1.npz")) == len(tp)

@@ -297,6 +297,16 @@ class MaterialSettings:
               "follows the strip's (the valve's flow follows it, w dh c); False: runs of "
               "one width each (a path wherever the width changes by 30 %), for a valve "
               "whose bead should not vary")
+    tour_max_turn_deg: float = setting(
+        240.0,
+        "continuous tours (issue 15): consecutive boundary or fill paths of this material "
+        "are joined through a travel curve the robot does not stop for (the valve is off "
+        "over it) when the heading turns by at most this much from one path's end to the "
+        "next one's start (120 deg from one closed path to another); 0: every path starts "
+        "and ends at rest",
+        lo=0.0, hi=360.0,
+        why="degrees of heading change, 360 a U-turn; on 5 bunny layers 240 saves 3.8 % of "
+            "the MTTS time, 120 2.8 %, 360 3.3 % (BENCHMARKS.md, issue 15)")
     calibration_file: str = setting("", "CSV of valve frequency (Hz) vs flow (mm^3/s); empty: "
                                         "built-in table")
     density_g_cm3: float = setting(

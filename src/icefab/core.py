@@ -13,7 +13,7 @@ The thesis (Ch. 3.2) uses the opposite orientation; convert where thesis data is
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 import typing
 from typing import TYPE_CHECKING, Iterator, Literal, Sequence
 
@@ -291,6 +291,12 @@ class Toolpath:
         width at each point of a variable-width path (issue 15; the idea of Arachne): it
         varies linearly along every segment (a closed path's last segment from the last
         point's width back to the first's) and the valve deposits ``w(s) dh c(s)``.
+    off: None (a depositing path deposits all along) or (k,) bool: True where the segment
+        leaving the point deposits nothing (the valve is OFF: Ossino's state OFF). A
+        continuous tour (issue 15, :func:`icefab.paths.join_tours`) is one open path of
+        several deposition paths and the travel between them, which the robot follows
+        without stopping; its travel segments are off. The last point of an open path
+        leaves no segment (its entry is ignored).
     """
 
     points: np.ndarray
@@ -303,6 +309,7 @@ class Toolpath:
     frame: Frame = "part"
     tool: Tool = ""
     widths: np.ndarray | None = None
+    off: np.ndarray | None = None
 
     @property
     def tool_name(self) -> str:
@@ -328,6 +335,29 @@ class Toolpath:
             return np.full(len(self.polyline()), float(self.width))
         return closed_polyline(np.asarray(self.widths, dtype=np.float64), self.closed)
 
+    def segment_on(self) -> np.ndarray:
+        """(k - 1 or k,) bool: which segments of :meth:`polyline` deposit (all of a
+        depositing path without ``off``, none of a travel or measurement path)."""
+        n = max(len(self.polyline()) - 1, 0)
+        if not self.depositing:
+            return np.zeros(n, dtype=bool)
+        if self.off is None:
+            return np.ones(n, dtype=bool)
+        return ~np.asarray(self.off, dtype=bool)[:n]
+
+    def deposited_runs(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The stretches of :meth:`polyline` that deposit, as ``(points (m >= 2, 2) mm,
+        widths (m,) mm)`` pairs in path order: the whole polyline of a depositing path
+        without ``off``, a tour's deposition paths without its travel, nothing for travel
+        and measurement paths."""
+        on = self.segment_on()
+        if not on.any():
+            return []
+        poly, w = self.polyline(), self.polyline_widths()
+        edge = np.diff(np.r_[0, on.astype(np.int8), 0])
+        return [(poly[a:b + 1], w[a:b + 1])
+                for a, b in zip(np.flatnonzero(edge == 1), np.flatnonzero(edge == -1))]
+
     @property
     def length(self) -> float:
         """Length along the path, mm (including the closing segment when closed)."""
@@ -347,6 +377,53 @@ def widths_problem(path: Toolpath) -> str:
         return f"widths have shape {w.shape}, expected ({len(path.points)},): one per point"
     if w.dtype.kind not in "fiu" or not np.all(np.isfinite(w)) or np.any(w < 0):
         return "widths must be finite numbers >= 0 mm"
+    return ""
+
+
+def tour_members(path: Toolpath) -> list[Toolpath]:
+    """The deposition paths a continuous tour joins (its :meth:`Toolpath.deposited_runs`
+    as paths of its material, role and layer: closed where a run returns to its first
+    point, with widths per point when the tour has them); ``[path]`` for any other path.
+    What the coverage and shape checks look at: a tour's travel deposits nothing."""
+    if path.off is None:
+        return [path]
+    out = []
+    for pts, w in path.deposited_runs():
+        closed = len(pts) > 3 and bool(np.all(pts[-1] == pts[0]))
+        if closed:
+            pts, w = pts[:-1], w[:-1]
+        if path.widths is None or np.ptp(w) == 0:   # a path of one width
+            out.append(replace(path, points=np.ascontiguousarray(pts), closed=closed,
+                               widths=None, width=float(w[0]), off=None))
+            continue
+        out.append(replace(path, points=np.ascontiguousarray(pts), closed=closed,
+                           widths=np.ascontiguousarray(w), off=None,
+                           width=_mean_width(closed_polyline(pts, closed),
+                                             closed_polyline(w, closed))))
+    return out
+
+
+def _mean_width(poly: np.ndarray, w: np.ndarray) -> float:
+    """Length-weighted mean of widths linear along a polyline's segments, mm (the first
+    point's on a polyline of no length)."""
+    seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
+    total = float(seg.sum())
+    return float((seg * 0.5 * (w[:-1] + w[1:])).sum() / total) if total > 0 else float(w[0])
+
+
+def off_problem(path: Toolpath) -> str:
+    """What is wrong with a path's ``off`` mask ('' when nothing: None, or (k,) booleans
+    on a depositing path that leave some segment depositing)."""
+    if path.off is None:
+        return ""
+    off = np.asarray(path.off)
+    if off.shape != (len(path.points),) or off.dtype.kind != "b":
+        return (f"off has shape {off.shape} and dtype {off.dtype}, expected "
+                f"({len(path.points)},) bool: one per point")
+    if not path.depositing:
+        return f"off is given on a {path.role} path, which deposits nothing anyway"
+    if not path.segment_on().any():
+        return "off leaves no segment depositing: a travel move is a path of role 'travel'"
     return ""
 
 
@@ -415,9 +492,12 @@ def point_states(path: Toolpath) -> np.ndarray:
     """(k,) int8: Ossino's state of every point of a path (Ossino 6), the state of the
     segment that leaves the point along the path: :func:`deposition_state` at every point
     of a depositing path but the last point of an open one (OFF: nothing follows on the
-    path); a closed path's last point leads back to its first (its closing edge
-    deposits). Travel and measurement paths: OFF throughout."""
+    path) and the points whose segment is ``off`` (a tour's travel); a closed path's last
+    point leads back to its first (its closing edge deposits). Travel and measurement
+    paths: OFF throughout."""
     out = np.full(len(path.points), deposition_state(path), dtype=np.int8)
+    if path.off is not None and len(out):
+        out[np.asarray(path.off, dtype=bool)] = OFF
     if len(out) and not path.closed:
         out[-1] = OFF
     return out

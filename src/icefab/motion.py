@@ -110,7 +110,7 @@ from icefab.resultfiles import (TRAJECTORIES_FORMAT as FORMAT,  # noqa: F401 (ol
 from icefab.robots import Robot, get_robot
 from icefab.core import (DEPOSITING_CODES, ROLES, BuildMotion, LayerMotion, LayerPaths,
                          Toolpath, Toolpaths, Trajectory, arc_lengths, checked_widths, offsets,
-                         path_lengths, polyline_lengths, widths_problem)
+                         off_problem, path_lengths, polyline_lengths, widths_problem)
 from icefab.workload import check_motion
 
 log = logging.getLogger(__name__)
@@ -608,8 +608,7 @@ def _plan_polylines(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
     # corners
     xy = _mtts.follow_samples(s_loc, sstart, L, sp.fstart, sp.fu, sp.fxy, s0)
     widths = (_sample_widths(paths, in_counts, labels, sp, s_loc, nsamp)
-              if paths and any(p is not None and p.widths is not None for p in paths)
-              else None)
+              if paths and any(_own_widths(p) for p in paths) else None)
 
     # ---- concatenate the pieces of each path: the shared corner sample appears once
     first_of_path = np.ones(Q, dtype=bool)
@@ -646,9 +645,14 @@ def _plan_polylines(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
         out.append(Trajectory(dt=dt, xy=xy[r0:r1], joints=joints[r0:r1], speed=spd[r0:r1],
                               duration=(r1 - r0 - 1) * dt, path=pth,
                               pieces=piece_first_sample[qb[k]:qb[k + 1]],
-                              widths=(widths[r0:r1] if pth is not None
-                                      and pth.widths is not None else None)))
+                              widths=widths[r0:r1] if _own_widths(pth) else None))
     return out
+
+
+def _own_widths(path: Toolpath | None) -> bool:
+    """Whether a path's trajectory carries a width per sample: a variable-width path, or
+    one with ``off`` segments (a tour: 0 wide where the valve is off)."""
+    return path is not None and (path.widths is not None or path.off is not None)
 
 
 def _sample_widths(paths: Sequence[Toolpath | None], in_counts: np.ndarray,
@@ -658,11 +662,20 @@ def _sample_widths(paths: Sequence[Toolpath | None], in_counts: np.ndarray,
     shared corner samples are dropped): the paths' per-point widths
     (:meth:`~icefab.core.Toolpath.polyline_widths`), linear along each segment, at the
     sample's arc position (the samples follow the path, or its smoothing within
-    ``motion.smoothing_tolerance_mm``, at the same parameter). IcefabError naming the
-    path when its widths are not one finite number >= 0 per point."""
+    ``motion.smoothing_tolerance_mm``, at the same parameter); 0 on the segments that are
+    ``off`` (a tour's travel: the valve is off there, Ossino's OFF). IcefabError naming the
+    path when its widths are not one finite number >= 0 per point, or its ``off`` not one
+    bool per point."""
     starts = offsets(in_counts)
     # every point at its path's width, then the variable paths' own
     W = np.repeat([0.0 if p is None else float(p.width) for p in paths], in_counts)
+    O = np.zeros(len(W), dtype=bool)
+    for k, p in enumerate(paths):
+        if p is not None and p.off is not None:
+            problem = off_problem(p)
+            if problem:
+                raise IcefabError(f"{_label(labels, k)}: {problem}")
+            O[starts[k]:starts[k] + len(p.points)] = np.asarray(p.off, dtype=bool)
     var = [k for k, p in enumerate(paths) if p is not None and p.widths is not None]
     # all of them checked at once, path by path only to name the first bad one
     ok, _w = checked_widths([paths[k].widths for k in var],
@@ -676,9 +689,19 @@ def _sample_widths(paths: Sequence[Toolpath | None], in_counts: np.ndarray,
         W[starts[k]:starts[k + 1]] = paths[k].polyline_widths()
     Wv = W[offsets(in_counts)[:-1][sp.pid] + sp.orig_index]   # the merged vertices'
     plen = np.diff(sp.pvs)
-    Wpv = Wv[np.arange(sp.pvs[-1]) - np.repeat(sp.pvs[:-1] - sp.a, plen)]
+    pv = np.arange(sp.pvs[-1]) - np.repeat(sp.pvs[:-1] - sp.a, plen)
+    Wpv = Wv[pv]
     q = np.repeat(np.arange(len(nsamp)), nsamp + 1)
-    return np.interp(np.minimum(s_loc, sp.L[q]) + sp.s0[q], sp.S, Wpv)
+    x = np.minimum(s_loc, sp.L[q]) + sp.s0[q]
+    out = np.interp(x, sp.S, Wpv)
+    if O.any():
+        Opv = O[offsets(in_counts)[:-1][sp.pid] + sp.orig_index][pv]
+        # the segment each sample lies on, named by its first vertex (a piece's last
+        # sample by the segment it ends)
+        j = np.searchsorted(sp.S, x, side="right") - 1
+        j = np.maximum(np.minimum(j, sp.pvs[1:][q] - 2), sp.pvs[:-1][q])
+        out[Opv[j]] = 0.0
+    return out
 
 
 def _vertices(pts: np.ndarray, start: np.ndarray

@@ -247,7 +247,8 @@ def plot_ruled(edges: RuledEdges, stack: Stack, ks: list[int], path: Path) -> No
 def plot_toolpaths(stack: Stack, toolpaths: Toolpaths | Mapping[int, LayerPaths],
                    ks: list[int], path: Path) -> None:
     """Draw layers ``ks``: regions filled (part blue, scaffold orange), boundaries solid,
-    fill thin, travel dashed grey, measurement dotted green. PNG written atomically.
+    fill thin, travel (a tour's travel curves too) dashed grey, measurement dotted green.
+    PNG written atomically.
     toolpaths: the build's, or the layers ``ks`` alone by index (``icefab paths`` keeps no
     other layer's paths)."""
     layers = toolpaths if isinstance(toolpaths, Mapping) else toolpaths.layers
@@ -282,7 +283,16 @@ def plot_toolpaths(stack: Stack, toolpaths: Toolpaths | Mapping[int, LayerPaths]
         for p in lp.paths:
             # travel and measurement: one kind whatever the material (one legend entry)
             material = p.material if p.role in ("boundary", "fill") else ""
-            kinds.setdefault((p.role, material), []).append(p.polyline())
+            if p.off is None:
+                kinds.setdefault((p.role, material), []).append(p.polyline())
+                continue
+            # a tour: its runs as the role's lines, its travel curves as travel
+            kinds.setdefault((p.role, material), []).extend(r for r, _ in p.deposited_runs())
+            poly, on = p.polyline(), p.segment_on()
+            edge = np.diff(np.r_[0, (~on).astype(np.int8), 0])
+            kinds.setdefault(("travel", ""), []).extend(
+                poly[a:b + 1] for a, b in zip(np.flatnonzero(edge == 1),
+                                              np.flatnonzero(edge == -1)))
         for role, material in sorted(kinds, key=lambda rm: (_LINE_ORDER.get(rm[0], 0), rm[1])):
             if role == "travel":
                 style = dict(colors="0.45", linewidths=0.6, linestyles="--")

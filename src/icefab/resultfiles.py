@@ -22,14 +22,15 @@ Stack file (``icefab slice``; :func:`save_stack` / :func:`load_stack`):
   each layer's own thickness (the toolpath and trajectory files carry it the same way).
 
 Toolpath file (``icefab paths``; :func:`save_toolpaths` / :func:`load_toolpaths`),
-version 3:
+version 4:
 
 * ``format`` "icefab-toolpaths", ``version`` int, ``job`` str (TOML), ``warnings`` (w,) str;
 * ``points`` (N, 2) float64 mm: the points of all paths, concatenated in order;
 * ``state`` (N,) int8: Ossino's deposition state of every point (0 OFF, 1 ON1 part,
   2 ON2 scaffold), the state of the segment leaving the point along its path
   (:func:`icefab.core.point_states`: a closed path's last point deposits along its
-  closing edge, an open path's last point is OFF; travel and measurement points are OFF);
+  closing edge, an open path's last point is OFF, as are a tour's travel segments; travel
+  and measurement points are OFF);
 * ``path_start`` (P + 1,) int64: path i has ``points[path_start[i]:path_start[i+1]]``;
 * per path (P,): ``z`` float64 mm, ``material`` int8 (0 part, 1 scaffold), ``role``
   int8 (0 boundary, 1 fill, 2 measure, 3 travel), ``closed`` bool, ``width`` float64
@@ -38,12 +39,15 @@ version 3:
 * only when some path has a width per point (:attr:`icefab.core.Toolpath.widths`):
   ``variable`` (P,) bool, which paths do, and ``point_width`` (V,) float64 mm, the width
   at every point of those paths, in order;
+* only when some path has segments that deposit nothing (:attr:`icefab.core.Toolpath.off`,
+  a continuous tour's travel; version 4): ``point_off`` (N,) bool, True where the segment
+  leaving the point is off (its ``state`` is OFF);
 * per layer (L,): ``layer_index`` int64, ``layer_z`` float64 mm, ``layer_start``
   (L + 1,) int64 (paths of layer j are ``layer_start[j]:layer_start[j+1]``),
   ``unfilled_mm2`` (L, 2) float64.
 
-Version 1 toolpath files (without ``state``) and version 2 (no per-point widths) are still
-read; states are derived from the paths.
+Version 1 toolpath files (without ``state``), version 2 (no per-point widths) and version 3
+(no tours) are still read; states are derived from the paths.
 
 Trajectory file (``icefab plan``; :func:`save_trajectories` / :func:`load_trajectories`):
 
@@ -122,7 +126,7 @@ log = logging.getLogger(__name__)
 STACK_FORMAT = "icefab-stack"
 STACK_VERSION = 1
 TOOLPATHS_FORMAT = "icefab-toolpaths"
-TOOLPATHS_VERSION = 3
+TOOLPATHS_VERSION = 4
 TRAJECTORIES_FORMAT = "icefab-trajectories"
 TRAJECTORIES_VERSION = 5
 #: Versions load_trajectories reads (1: without per-trajectory dt and Path fields; 2: float
@@ -577,7 +581,8 @@ def pack_paths(paths: Sequence[Toolpath]) -> dict[str, np.ndarray]:
     """The paths as flat arrays (the toolpath file's per-point and per-path members, the
     worker processes' packing): ``points``, ``path_start``, ``z``, ``material``, ``role``,
     ``closed``, ``width``, ``layer``, ``frame``, ``tool``, and ``variable`` and
-    ``point_width`` when some path has per-point widths."""
+    ``point_width`` when some path has per-point widths, ``point_off`` when some path has
+    ``off`` segments (a continuous tour)."""
     points, start = pack([p.points for p in paths])
 
     def codes(attr: str, table: Sequence[str]) -> np.ndarray:
@@ -589,6 +594,10 @@ def pack_paths(paths: Sequence[Toolpath]) -> dict[str, np.ndarray]:
         extra = {"variable": variable,
                  "point_width": np.concatenate([np.asarray(p.widths, np.float64)
                                                 for p in paths if p.widths is not None])}
+    if any(p.off is not None for p in paths):
+        extra["point_off"] = np.concatenate(
+            [np.zeros(len(p.points), dtype=bool) if p.off is None
+             else np.asarray(p.off, dtype=bool) for p in paths])
     return {
         "points": points,
         "path_start": start,
@@ -606,7 +615,8 @@ def pack_paths(paths: Sequence[Toolpath]) -> dict[str, np.ndarray]:
 
 def _point_states(packed: dict[str, np.ndarray]) -> np.ndarray:
     """:func:`icefab.core.point_states` of every path of :func:`pack_paths`' arrays, at
-    once: each path's state at all its points, OFF at the last point of an open path."""
+    once: each path's state at all its points, OFF at the last point of an open path and
+    where ``point_off`` is set."""
     start = packed["path_start"]
     role, material = packed["role"], packed["material"]
     depositing = np.isin(role, [ROLE_CODES.index("boundary"), ROLE_CODES.index("fill")])
@@ -616,6 +626,8 @@ def _point_states(packed: dict[str, np.ndarray]) -> np.ndarray:
     ends = start[1:] - 1
     last = ~packed["closed"] & (np.diff(start) > 0)
     out[ends[last]] = OFF
+    if "point_off" in packed:
+        out[np.asarray(packed["point_off"], dtype=bool)] = OFF
     return out
 
 
@@ -657,6 +669,11 @@ def unpack_paths(d: dict[str, np.ndarray], copy: bool = False) -> list[Toolpath]
         for j, i in enumerate(idx.tolist()):
             w = pw[ws[j]:ws[j + 1]]
             object.__setattr__(paths[i], "widths", w.copy() if copy else w)
+    if "point_off" in d:
+        po = np.asarray(d["point_off"], dtype=bool)
+        owner = np.repeat(np.arange(len(paths)), np.diff(d["path_start"]))
+        for i in np.unique(owner[po]).tolist():
+            object.__setattr__(paths[i], "off", po[start[i]:start[i + 1]].copy())
     return paths
 
 
@@ -694,6 +711,10 @@ def concat_packed(parts: Sequence[dict[str, np.ndarray]]) -> dict[str, np.ndarra
         out["point_width"] = np.concatenate([d["point_width"] for d in parts
                                              if "variable" in d]).astype(np.float64,
                                                                          copy=False)
+    if any("point_off" in d for d in parts):
+        out["point_off"] = np.concatenate(
+            [d["point_off"] if "point_off" in d else np.zeros(len(d["points"]), dtype=bool)
+             for d in parts])
     return out
 
 
@@ -762,7 +783,8 @@ def load_packed_toolpaths(path: str | os.PathLike) -> PackedToolpaths:
     with _Members(Path(path), "toolpath") as m:
         version = m.header(TOOLPATHS_FORMAT, (1, TOOLPATHS_VERSION))
         m.expect(_TOOLPATHS_REQUIRED + (("state",) if version >= 2 else ()),
-                 ("layer_height",) + (("variable", "point_width") if version >= 3 else ()))
+                 ("layer_height",) + (("variable", "point_width") if version >= 3 else ())
+                 + (("point_off",) if version >= 4 else ()))
         job = m.job()
         warnings = m.strings("warnings")
         pts = m.values("points", "f", 2, 2, lo=-MAX_COORD_MM, hi=MAX_COORD_MM)
@@ -785,6 +807,12 @@ def load_packed_toolpaths(path: str | os.PathLike) -> PackedToolpaths:
             n_var = int(np.diff(d["path_start"])[d["variable"].astype(bool)].sum())
             d["point_width"] = m.values("point_width", "f", 1, n=n_var, lo=0.0,
                                         hi=MAX_COORD_MM)
+        if "point_off" in m.names:
+            d["point_off"] = m.values("point_off", "b", 1, n=len(pts))
+            if np.any(d["point_off"] & ~np.repeat(
+                    np.isin(d["role"], [ROLE_CODES.index("boundary"), ROLE_CODES.index("fill")]),
+                    np.diff(d["path_start"]))):
+                raise m.bad("point_off", "off segments on a path that deposits nothing")
         index = m.values("layer_index", "iu", 1, lo=-1, hi=2**31 - 1)
         n_layers = len(index)
         layer_z = m.values("layer_z", "f", 1, n=n_layers, lo=-MAX_COORD_MM, hi=MAX_COORD_MM)
@@ -821,6 +849,8 @@ def _split_packed(d: dict[str, np.ndarray], layer_start: np.ndarray
         if var is not None and var[a:b].any():
             layer["variable"] = var[a:b]
             layer["point_width"] = d["point_width"][int(wstart[a]):int(wstart[b])]
+        if "point_off" in d and d["point_off"][p0:p1].any():
+            layer["point_off"] = d["point_off"][p0:p1]
         out.append(layer)
     return out
 

@@ -45,6 +45,7 @@ READS: dict[str, tuple[str, ...]] = {
               "materials.part.hybrid_rings", "materials.part.hybrid_angle_step_deg",
               "materials.part.nozzle_offset_mm", "materials.part.gap_fill",
               "materials.part.variable_width", "materials.scaffold.variable_width",
+              "materials.part.tour_max_turn_deg", "materials.scaffold.tour_max_turn_deg",
               "materials.scaffold.path_width_mm", "materials.scaffold.fill_width_mm",
               "materials.scaffold.initial_offset_mm", "materials.scaffold.boundary_count",
               "materials.scaffold.fill_pattern", "materials.scaffold.fill_angle_deg",
@@ -57,7 +58,10 @@ READS: dict[str, tuple[str, ...]] = {
               "motion.smooth_angle_deg",
               # the laser's speeds and sampling rate: a measurement spiral's lane changes
               # and its length within the laser's storage (paths.join_measure_rings)
-              "motion.measure_speed_mm_s", "motion.speed_mm_s", "simulation.laser_rate_hz"),
+              "motion.measure_speed_mm_s", "motion.speed_mm_s", "simulation.laser_rate_hz",
+              # tours only where travel may move at the deposition's speed bound
+              # (paths.plan_layer)
+              "motion.travel_speed_mm_s"),
     "motion": ("motion.", "cell.robot", "cell.l1_mm", "cell.l2_mm", "cell.reach_mm",
                "cell.joint_range_deg", "cell.elbow", "cell.gantry_travel_mm",
                "cell.ee_origin_mm", "cell.encoder_resolution_deg"),

@@ -14,7 +14,8 @@ import numpy as np
 
 from icefab import flow
 from icefab.config import Job
-from icefab.core import LayerMotion, Toolpath, Trajectory, ValveProgram, arc_lengths, offsets
+from icefab.core import (LayerMotion, Toolpath, Trajectory, ValveProgram, arc_lengths,
+                         closed_polyline, offsets)
 from icefab.errors import SimulationError
 from icefab.paths import laser_speed
 from icefab.stages import layer_height
@@ -108,16 +109,22 @@ def plan_layer(index: int, paths: Sequence[Toolpath], job: "Job",
         if p.material not in MATERIAL_ID:
             raise SimulationError(f"layer {index}: unknown material {p.material!r}")
         speed = m.boundary_speed_mm_s if p.role == "boundary" else m.fill_speed_mm_s
-        pts_s = _refine(pts, p.closed, speed * m.dt_s)
-        if len(pts_s) < 2:
-            continue
-        width: float | np.ndarray = float(p.width)
-        if p.widths is not None:   # a variable-width path: its widths where the points are
-            poly = p.polyline()
-            width = np.interp(arc_lengths(np.linalg.norm(np.diff(pts_s, axis=0), axis=1)),
-                              arc_lengths(np.linalg.norm(np.diff(poly, axis=0), axis=1)),
-                              p.polyline_widths())
-        pieces.append((pts_s, bool(p.closed), width, p.material))
+        # a tour deposits along its runs, not over its travel (Toolpath.off)
+        runs = ([(pts, bool(p.closed), p.polyline_widths() if p.widths is not None else None)]
+                if p.off is None else
+                [(r, False, w if p.widths is not None else None)
+                 for r, w in p.deposited_runs()])
+        for run, closed, run_w in runs:
+            pts_s = _refine(run, closed, speed * m.dt_s)
+            if len(pts_s) < 2:
+                continue
+            width: float | np.ndarray = float(p.width)
+            if run_w is not None:   # a variable width: its widths where the points are
+                poly = closed_polyline(run, closed)
+                width = np.interp(arc_lengths(np.linalg.norm(np.diff(pts_s, axis=0), axis=1)),
+                                  arc_lengths(np.linalg.norm(np.diff(poly, axis=0), axis=1)),
+                                  run_w)
+            pieces.append((pts_s, closed, width, p.material))
         dep_paths.append(p)
     return _layer_plan(index, pieces, dh, tag_parts, true_parts, paths=tuple(dep_paths),
                        thickness=thickness)
@@ -209,17 +216,19 @@ def plan_layer_motion(layer: "LayerMotion", job: "Job") -> LayerPlan:
             continue
         if not p.depositing:
             continue
-        pts = flow.trajectory_part_xy(traj, p.material, job)
-        width = flow.sample_widths(traj, p.material, job)
-        if len(pts) > 1:
-            step = np.linalg.norm(np.diff(pts, axis=0), axis=1)
-            moved = np.concatenate([[True], step > _TINY_MM])
-            pts, width = pts[moved], width[moved]
-        if len(pts) < 2:
-            pts = np.vstack([pts[:1], pts[:1]])  # at rest: a w x w square, no volume
-            width = np.concatenate([width[:1], width[:1]])
-        closed = bool(len(pts) > 2 and np.linalg.norm(pts[-1] - pts[0]) <= 1e-6)
-        pieces.append((pts, closed, width, p.material))
+        xy_all = flow.trajectory_part_xy(traj, p.material, job)
+        w_all = flow.sample_widths(traj, p.material, job)
+        for a, b in on_runs(w_all):   # a tour: not over its travel (0 wide)
+            pts, width = xy_all[a:b + 1], w_all[a:b + 1]
+            if len(pts) > 1:
+                step = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+                moved = np.concatenate([[True], step > _TINY_MM])
+                pts, width = pts[moved], width[moved]
+            if len(pts) < 2:
+                pts = np.vstack([pts[:1], pts[:1]])  # at rest: a w x w square, no volume
+                width = np.concatenate([width[:1], width[:1]])
+            closed = bool(len(pts) > 2 and np.linalg.norm(pts[-1] - pts[0]) <= 1e-6)
+            pieces.append((pts, closed, width, p.material))
         dep.append(traj)
     return _layer_plan(layer.index, pieces, dh, tag_parts, true_parts,
                        paths=tuple(t.path for t in dep), trajectories=tuple(dep),
@@ -283,16 +292,39 @@ def valve_segments(valves: LayerValves, job: "Job") -> tuple:
                                     layer_thickness=layer_height(valves.thickness, job)) \
             if prog.widths_us is None else None
         t, d = pulse_drops(prog, freq, p.material, job)
-        xs.append(flow.trajectory_part_xy(traj, p.material, job))
-        dts.append(float(traj.dt))
-        ts.append(t)
-        drops.append(d)
-        widths.append(flow.sample_widths(traj, p.material, job))
-        mats.append(MATERIAL_ID[p.material])
+        xy = flow.trajectory_part_xy(traj, p.material, job)
+        w = flow.sample_widths(traj, p.material, job)
+        dt = float(traj.dt)
+        # a tour's runs apart: a drop's strip never reaches over the travel between them
+        for a, b in on_runs(w):
+            inside = (t >= a * dt - 1e-12) & (t <= b * dt + 1e-12)
+            xs.append(xy[a:b + 1])
+            dts.append(dt)
+            ts.append(t[inside] - a * dt)
+            drops.append(d[inside])
+            widths.append(w[a:b + 1])
+            mats.append(MATERIAL_ID[p.material])
+            t, d = t[~inside], d[~inside]
     a, b, vol, hw, owner, n0, n1, ext = pulse_segments(xs, dts, ts, drops, widths)
     material = np.asarray(mats, dtype=np.int8)[owner] if len(owner) else \
         np.zeros(0, dtype=np.int8)
     return a, b, vol, hw, material, n0, n1, ext, int(sum(len(t) for t in ts))
+
+
+def on_runs(widths: np.ndarray) -> list[tuple[int, int]]:
+    """The sample ranges ``(first, last)`` (inclusive) of a trajectory that deposit: every
+    segment between two samples of which one is wider than 0 (a tour's travel is 0 wide,
+    :attr:`icefab.core.Toolpath.off`); the whole trajectory when no two consecutive
+    samples are 0 wide (a single sample: ``[(0, 0)]``)."""
+    w = np.asarray(widths)
+    if len(w) < 2:
+        return [(0, len(w) - 1)] if len(w) else []
+    on = (w[:-1] > 0) | (w[1:] > 0)
+    if on.all():
+        return [(0, len(w) - 1)]
+    edge = np.diff(np.r_[0, on.astype(np.int8), 0])
+    return [(int(a), int(b)) for a, b in zip(np.flatnonzero(edge == 1),
+                                             np.flatnonzero(edge == -1))]
 
 
 def _measured(has_laser: Sequence[bool], interval_layers: int) -> list[int]:

@@ -1,0 +1,240 @@
+"""Continuous tours (issue 15): consecutive paths joined through travel the robot does not
+stop for, the valve off over it (icefab.paths.join_tours, Toolpath.off)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import shapely
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from icefab import Job, flow
+from icefab.core import (OFF, ON1, LayerMotion, LayerPaths, Toolpath, Toolpaths,
+                         point_states, tour_members)
+from icefab.errors import IcefabError, StackFileError
+from icefab.motion import plan_motion, plan_paths_durations
+from icefab.paths import (RING_TO_RING_MAX_TURN_DEG, TOUR_MIN_MEMBER_MM, join_tours,
+                          tour_turn_deg)
+from icefab.resultfiles import load_toolpaths, save_toolpaths
+from icefab.sim.plans import layer_valves, plan_layer, plan_layer_motion, valve_segments
+
+DH = 0.25
+
+
+def _fill(points, width=1.5, closed=False, material="part", **kw) -> Toolpath:
+    return Toolpath(points=np.asarray(points, dtype=np.float64), z=DH, material=material,
+                    role="fill", closed=closed, width=width, layer=0, **kw)
+
+
+def _in_line(gap=10.0, length=40.0):
+    """Two fill lines along x, the second starting ``gap`` mm past the first's end."""
+    return [_fill([[0.0, 0.0], [length, 0.0]]),
+            _fill([[length + gap, 0.0], [2 * length + gap, 0.0]])]
+
+
+def _travel(a: Toolpath, b: Toolpath) -> Toolpath:
+    return Toolpath(points=np.array([a.polyline()[-1], b.points[0]]), z=DH, material="part",
+                    role="travel", layer=0)
+
+
+def _lines_distance(lines, xy):
+    geoms = shapely.union_all([shapely.LineString(p.polyline()) for p in lines])
+    return shapely.distance(geoms, shapely.points(xy))
+
+
+def test_paths_in_line_become_one_tour_whose_travel_is_off():
+    a, b = _in_line()
+    (tour,) = join_tours([a, b], 240.0)
+    assert not tour.closed and tour.depositing and tour.off is not None
+    n_a = len(a.points)
+    # off exactly from the first path's end to the second's start
+    on = tour.segment_on()
+    assert on[:n_a - 1].all() and on[-(len(b.points) - 1):].all()
+    assert not on[n_a - 1:len(tour.points) - len(b.points)].any()
+    st_ = point_states(tour)
+    assert (st_[:n_a - 1] == ON1).all() and (st_[n_a - 1:-len(b.points)] == OFF).all()
+    assert st_[-1] == OFF
+    # the members come back as they were
+    back = tour_members(tour)
+    assert len(back) == 2
+    for m, p in zip(back, (a, b)):
+        np.testing.assert_array_equal(m.points, p.points)
+        assert m.width == p.width and m.widths is None and m.off is None
+    # G1 where the travel curve meets the paths: it leaves and arrives along them
+    pts = tour.points
+    leave = pts[n_a] - pts[n_a - 1]
+    arrive = pts[-len(b.points)] - pts[-len(b.points) - 1]
+    assert abs(np.arctan2(leave[1], leave[0])) < 1e-9
+    assert abs(np.arctan2(arrive[1], arrive[0])) < 1e-9
+
+
+def test_a_join_is_made_by_the_turn_it_needs():
+    a, b = _in_line()
+    assert tour_turn_deg(a.points[-1], np.array([1.0, 0]), b.points[0],
+                         np.array([1.0, 0])) == pytest.approx(0.0)
+    # a path that starts 10 mm behind the end of the last: the robot turns back and
+    # round again (354 deg), joined only when allowed
+    behind = _fill([[30.0, 0.5], [70.0, 0.5]])
+    assert tour_turn_deg(a.points[-1], np.array([1.0, 0]), behind.points[0],
+                         np.array([1.0, 0])) > 350.0
+    assert len(join_tours([a, behind], 240.0)) == 2
+    assert len(join_tours([a, behind], 360.0)) == 1
+    # 0: no tours at all
+    assert len(join_tours([a, b], 0.0)) == 2
+    # other material, role or a measurement path: never joined
+    assert len(join_tours([a, _fill(b.points, material="scaffold")], 360.0)) == 2
+    meas = Toolpath(points=b.points, z=DH, material="part", role="measure", layer=0)
+    assert len(join_tours([a, meas], 360.0)) == 2
+    # ring to ring: a turn of 180 deg is too much between closed paths, not between open
+    sq1 = _fill([[0, 0], [10, 0], [10, 10], [0, 10]], closed=True)
+    sq2 = _fill([[2, 2], [8, 2], [8, 8], [2, 8]], closed=True)
+    turn = tour_turn_deg(np.zeros(2), np.array([0, -1.0]), np.array([2.0, 2.0]),
+                         np.array([1.0, 0]))
+    assert RING_TO_RING_MAX_TURN_DEG < turn <= 240.0
+    assert len(join_tours([sq1, sq2], 240.0)) == 2
+    open1 = _fill([[0, 10], [0, 0]])
+    assert len(join_tours([open1, _fill(sq2.points)], 240.0)) == 1
+
+
+def test_a_path_too_short_to_be_sampled_ends_its_tour():
+    a, b = _in_line(gap=3.0)
+    tiny = _fill([[43.0 + 2.0, 0.0], [45.0 + TOUR_MIN_MEMBER_MM / 2, 0.0]])
+    c = _fill([[b.points[-1, 0] + 3.0, 0.0], [b.points[-1, 0] + 40.0, 0.0]])
+    tours = join_tours([a, tiny, b, c], 240.0)
+    assert len(tours) == 2 and len(tour_members(tours[0])) == 2
+    assert len(tour_members(tours[1])) == 2
+
+
+def test_a_tours_trajectory_is_off_over_its_travel_and_faster_than_its_paths_apart():
+    job = Job()
+    a, b = _in_line(gap=10.0)
+    (tour,) = join_tours([a, b], 240.0)
+    tr = plan_motion(tour, job)
+    assert tr.widths is not None and tr.widths.shape == (len(tr.xy),)
+    d = _lines_distance([a, b], flow.trajectory_part_xy(tr, "part", job))
+    # on the lines: the path's width; on the travel curve: nothing
+    assert np.all(tr.widths[d > 1e-6] == 0.0)
+    assert np.all(tr.widths[tr.widths > 0] == 1.5)
+    assert np.count_nonzero(tr.widths == 0) >= 3
+    # no rest stop between the two paths: one piece, and faster than A, travel, B apart
+    assert len(tr.pieces) <= 1
+    apart = plan_paths_durations([a, _travel(a, b), b], job, layer=0).sum()
+    assert tr.duration < apart - 0.1
+
+
+def _linear_table_job(tmp_path) -> Job:
+    """A linear calibration table: every pulse, at any frequency, drops 0.25 mm^3."""
+    table = tmp_path / "linear.csv"
+    table.write_text("frequency_hz,flow_mm3_s\n0,0\n1000,250\n")
+    return Job().replace(**{"materials.part.calibration_file": str(table)})
+
+
+def test_the_valve_pulses_only_over_the_tours_paths(tmp_path):
+    job = _linear_table_job(tmp_path)
+    a, b = _in_line(gap=10.0)
+    (tour,) = join_tours([a, b], 240.0)
+    tr = plan_motion(tour, job)
+    prog = flow.plan_valves(tr, "part", job)
+    t = flow.pulse_times(prog)
+    x = np.interp(t, tr.t, tr.xy[:, 0]) - tr.xy[0, 0]
+    # the valve switches within one sample of the paths' ends: none in the gap's middle
+    step = float(np.max(tr.speed)) * tr.dt
+    assert step < 4.0
+    assert not np.any((x > 40.0 + step) & (x < 50.0 - step))
+    # and lays the two paths' volume (80 mm x 1.5 mm x dh), not the travel's: the flow
+    # follows the samples, so each of the two switches may be up to half a step off
+    assert flow.n_pulses(prog) * 0.25 == pytest.approx(80.0 * 1.5 * DH,
+                                                       abs=_switch_error(step) + 0.25)
+
+
+def _switch_error(step: float, switches: int = 2, width: float = 1.5) -> float:
+    """mm^3 the valve may be off at ``switches`` ON/OFF switches: half a sample step of
+    bead at each (the flow is linear between samples; unbiased, as likely more as less)."""
+    return switches * 0.5 * step * width * DH
+
+
+def test_the_simulator_lays_nothing_over_a_tours_travel(tmp_path):
+    job = _linear_table_job(tmp_path)
+    a, b = _in_line(gap=10.0)
+    (tour,) = join_tours([a, b], 240.0)
+    from_paths = plan_layer(0, [tour], job)
+    layer = LayerMotion(0, DH, (plan_motion(tour, job),))
+    from_motion = plan_layer_motion(layer, job)
+    for plan in (from_paths, from_motion):
+        mid = plan.midpoints
+        gap = (mid[:, 0] > 40.0 + 2.5) & (mid[:, 0] < 50.0 - 2.5)
+        assert not gap.any()
+    step = float(np.max(layer.trajectories[0].speed)) * layer.trajectories[0].dt
+    assert from_paths.volume.sum() == pytest.approx(80.0 * 1.5 * DH, rel=1e-9)
+    assert from_motion.volume.sum() == pytest.approx(80.0 * 1.5 * DH, abs=_switch_error(step))
+    # the valves' drops: a drop's strip does not reach over the travel either
+    a_, b_, vol, *_rest = valve_segments(layer_valves(from_motion, job), job)
+    assert len(vol) and vol.sum() == pytest.approx(80.0 * 1.5 * DH,
+                                                   abs=_switch_error(step) + 0.25)
+    mid = 0.5 * (a_ + b_)
+    assert not np.any((mid[:, 0] > 40.0 + 2.5) & (mid[:, 0] < 50.0 - 2.5))
+
+
+def test_toolpath_files_keep_the_tours(tmp_path):
+    a, b = _in_line()
+    (tour,) = join_tours([a, b], 240.0)
+    other = _fill([[0, 5.0], [30, 5.0]], width=2.0)
+    tp = Toolpaths((LayerPaths(0, DH, (tour, other), (0.0, 0.0)),), Job())
+    save_toolpaths(tp, tmp_path / "tp.npz")
+    (got, plain) = load_toolpaths(tmp_path / "tp.npz").layers[0].paths
+    np.testing.assert_array_equal(got.off, tour.off)
+    np.testing.assert_array_equal(point_states(got), point_states(tour))
+    assert plain.off is None
+    # off segments on a path that deposits nothing: a corrupt file
+    with np.load(tmp_path / "tp.npz") as d:
+        data = {k: d[k] for k in d.files}
+    data["role"] = np.array([1, 3], dtype=np.int8)       # the tour made a travel move
+    data["point_off"] = np.ones_like(data["point_off"])
+    np.savez(tmp_path / "bad.npz", **data)
+    with pytest.raises(StackFileError, match="point_off"):
+        load_toolpaths(tmp_path / "bad.npz")
+
+
+def test_an_off_mask_that_is_not_one_bool_per_point_is_refused():
+    a, b = _in_line()
+    bad = _fill(a.points, off=np.array([True]))
+    with pytest.raises(IcefabError, match="one per point"):
+        plan_motion(bad, Job())
+    all_off = _fill(a.points, off=np.array([True, False]))
+    with pytest.raises(IcefabError, match="no segment depositing"):
+        plan_motion(all_off, Job())
+
+
+@st.composite
+def _open_paths(draw):
+    """Open fill paths of 2-5 points, each starting a little beyond the last one's end."""
+    n = draw(st.integers(1, 6))
+    out, cur = [], np.zeros(2)
+    for _ in range(n):
+        k = draw(st.integers(2, 5))
+        steps = np.array(draw(st.lists(st.tuples(st.floats(-20, 20), st.floats(-20, 20)),
+                                       min_size=k, max_size=k)))
+        pts = cur + np.cumsum(steps, axis=0)
+        if np.any(np.linalg.norm(np.diff(pts, axis=0), axis=1) < 1e-3):
+            continue
+        out.append(_fill(pts, width=draw(st.sampled_from([1.5, 3.0]))))
+        cur = pts[-1]
+    return out
+
+
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(_open_paths(), st.sampled_from([0.0, 60.0, 240.0, 360.0]))
+def test_tours_give_back_their_paths_in_order(paths, max_turn):
+    tours = join_tours(paths, max_turn)
+    members = [m for t in tours for m in tour_members(t)]
+    assert len(members) == len(paths)
+    for m, p in zip(members, paths):
+        np.testing.assert_array_equal(m.points, p.points)
+        assert m.width == pytest.approx(p.width)
+    for t in tours:
+        if t.off is not None:
+            # what deposits is exactly its members' length; states OFF over the travel
+            on = t.segment_on()
+            seg = np.linalg.norm(np.diff(t.polyline(), axis=0), axis=1)
+            assert seg[on].sum() == pytest.approx(sum(m.length for m in tour_members(t)))
+            assert np.array_equal(point_states(t)[:-1] == OFF, ~on)
