@@ -9,7 +9,9 @@ with SMF, once with the default job and once with the peer, under seeds 0 .. ``-
 with ``variable_width = false`` (the gap fill's centre lines in runs of one width each,
 issue 15's "today's gap fill"); ``--peer`` names other settings (JSON values, e.g.
 ``feedback.measure_spacing_mm=4.5``), which act on the paths and the simulated cell
-alike. The paths do not depend on the seed; each variant's are planned once.
+alike; ``--base`` sets both jobs (e.g. ``simulation.deposition="valves"``: the valve
+programs' pulses, not the ideal flow). The paths do not depend on the seed; each
+variant's are planned once.
 
 Prints, for open loop and SMF: the final RMS height error of each variant (mean over the
 seeds), their ratio, the paired difference (default - peer: mean, standard deviation), in
@@ -55,6 +57,9 @@ def main() -> int:
                     help="the peer job's settings (JSON values); default: "
                          "materials.part.variable_width=false "
                          "materials.scaffold.variable_width=false")
+    ap.add_argument("--base", nargs="*", default=[], metavar="SETTING=VALUE",
+                    help="settings of both jobs (JSON values), e.g. "
+                         "simulation.deposition=\"valves\"")
     ap.add_argument("--no-write", action="store_true", help="accepted for run_all.py; this "
                     "benchmark only prints (its figures are copied into BENCHMARKS.md by hand)")
     args, _ = ap.parse_known_args()
@@ -62,8 +67,9 @@ def main() -> int:
         ap.error("--seeds must be >= 2 and --layers >= 1")
     try:
         peer = parse_settings(args.peer) if args.peer is not None else PEER
+        base = parse_settings(args.base)
     except ValueError as exc:
-        ap.error(f"--peer {exc}")
+        ap.error(f"--peer / --base {exc}")
     from scipy import stats
 
     from icefab import Job
@@ -78,12 +84,12 @@ def main() -> int:
           f"{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC", flush=True)
     from icefab.errors import ConfigError
 
-    job = Job()
     try:
+        job = Job().replace(**base)
         peer_job = job.replace(**peer)   # a bad setting stops here, before any work
     except ConfigError as exc:
-        ap.error(f"--peer: {exc}")
-    print(f"peer: {peer}", flush=True)
+        ap.error(f"--peer / --base: {exc}")
+    print(f"peer: {peer}; both: {base}", flush=True)
     t0 = time.perf_counter()
     # the scaffold of the whole mug (a layer's scaffold depends on the layers above), then
     # the simulated layers alone

@@ -562,8 +562,8 @@ def test_hook_wall_turns_outer_scaffold_rings_to_ice():
     R = to_shapely(st_.layers[0].part).buffer(1e-6)
     for k, expect in ((0, 1), (12, 2), (21, 0)):
         lp, lp0 = tp.layers[k], plain.layers[k]
-        ice = [p for p in lp.paths if p.material == "part" and p.depositing]
-        ice0 = [p for p in lp0.paths if p.material == "part" and p.depositing]
+        ice = [p for p in _members(lp) if p.material == "part" and p.depositing]
+        ice0 = [p for p in _members(lp0) if p.material == "part" and p.depositing]
         hook = [p for p in ice if not R.covers(LinearRing(p.points))]
         assert len(hook) == expect == len(ice) - len(ice0)
         # the ice rings lie in the scaffold, along its outer edge (not in the tube's hole)

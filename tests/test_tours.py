@@ -238,3 +238,37 @@ def test_tours_give_back_their_paths_in_order(paths, max_turn):
             seg = np.linalg.norm(np.diff(t.polyline(), axis=0), axis=1)
             assert seg[on].sum() == pytest.approx(sum(m.length for m in tour_members(t)))
             assert np.array_equal(point_states(t)[:-1] == OFF, ~on)
+
+
+def test_every_path_of_the_demo_mugs_tours_is_deposited():
+    """On the demo mug's layers (default job): every path a tour joins gets samples of its
+    own width (none falls between two samples, ``TOUR_MIN_MEMBER_MM``), and the valve's
+    width x speed integrates to the paths' area within half a sample step per switch."""
+    from icefab.demo import demo_mug
+    from icefab.motion import plan_paths_motion
+    from icefab.paths import plan_layer
+    from icefab.regions import add_scaffold
+    from icefab.slicing import slice_mesh
+
+    job = Job().replace(**{"cell.cpus": 1})
+    stack = add_scaffold(slice_mesh(demo_mug(), job), job)
+    tours = 0
+    for k in (3, 40, 90, 130, 170):
+        lp = plan_layer(stack.layers[k], job)
+        for p, tr in zip(lp.paths, plan_paths_motion(lp.paths, job, layer=k)):
+            if p.off is None:
+                continue
+            tours += 1
+            on = p.segment_on()
+            runs = np.diff(np.r_[0, on.astype(np.int8), 0])
+            sampled = np.diff(np.r_[0, (tr.widths > 0).astype(np.int8), 0])
+            assert np.count_nonzero(sampled == 1) == np.count_nonzero(runs == 1), (k, p.role)
+            poly, w = p.polyline(), p.polyline_widths()
+            seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
+            area = float(np.sum(seg[on] * 0.5 * (w[:-1] + w[1:])[on]))
+            got = float(np.trapezoid(tr.widths * tr.speed, dx=tr.dt))
+            step = float(tr.speed.max()) * tr.dt
+            switches = 2 * np.count_nonzero(runs == 1) - 2
+            assert abs(got - area) <= switches * 0.5 * step * w.max() + 1e-3 * area, (k, got,
+                                                                                   area)
+    assert tours > 10

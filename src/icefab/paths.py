@@ -966,9 +966,6 @@ TOUR_HANDLE = 0.3
 TOUR_HANDLE_MIN_MM = 0.5
 TOUR_STEP_MM = 0.1
 TOUR_MAX_POINTS = 400
-#: The headings a join follows are taken over this much of each path's end, mm (the
-#: chord: a last segment of a few microns says nothing about where the path goes).
-TOUR_TANGENT_SPAN_MM = 1.0
 #: From a closed path to a closed one (concentric rings) a join turning more than this
 #: loses time: the rings start at corners, where the robot stops anyway (degrees;
 #: BENCHMARKS.md, issue 15).
@@ -983,16 +980,17 @@ TOUR_SAME_POINT_MM = 1e-6
 
 
 def _heading(poly: np.ndarray, at_end: bool) -> np.ndarray | None:
-    """Unit direction of travel over the last (or first) ``TOUR_TANGENT_SPAN_MM`` of a
-    polyline; None when it has no length."""
+    """Unit direction of a polyline's last (or first) segment of any length (repeated
+    points skipped): where a tour's travel curve meets the path it is tangent to it (G1),
+    so MTTS does not stop there (PATHSPLIT, thesis 4.1.1). None when it has no length."""
     p = poly[::-1] if at_end else poly
-    if len(p) < 2:
-        return None
-    arc = arc_lengths(np.linalg.norm(np.diff(p, axis=0), axis=1))
-    k = int(np.clip(np.searchsorted(arc, TOUR_TANGENT_SPAN_MM), 1, len(p) - 1))
-    t = p[0] - p[k] if at_end else p[k] - p[0]
-    n = float(np.hypot(*t))
-    return t / n if n > 0 else None
+    x0, y0 = float(p[0, 0]), float(p[0, 1])
+    for k in range(1, len(p)):
+        dx, dy = float(p[k, 0]) - x0, float(p[k, 1]) - y0
+        n = math.hypot(dx, dy)
+        if n > TOUR_SAME_POINT_MM:
+            return np.array([-dx / n, -dy / n] if at_end else [dx / n, dy / n])
+    return None
 
 
 def tour_turn_deg(a: np.ndarray, ta: np.ndarray, b: np.ndarray, tb: np.ndarray) -> float:
@@ -1014,13 +1012,26 @@ def tour_connector(a: np.ndarray, ta: np.ndarray, b: np.ndarray, tb: np.ndarray
     """(m, 2) mm: the inner points of a tour's travel curve from ``a`` (leaving along the
     unit ``ta``) to ``b`` (arriving along ``tb``): a cubic Bezier tangent to both ends (G1:
     no corner where it meets the paths, so MTTS need not stop there, thesis 4.1.1)."""
-    gap = float(np.hypot(*(b - a)))
-    h = max(TOUR_HANDLE * gap, TOUR_HANDLE_MIN_MM)
-    c = np.array([a, a + ta * h, b - tb * h, b], dtype=np.float64)
-    n = int(np.clip(math.ceil((gap + 2.0 * h) / TOUR_STEP_MM), 8, TOUR_MAX_POINTS))
-    s = np.linspace(0.0, 1.0, n)[1:-1, None]
-    return ((1 - s) ** 3 * c[0] + 3 * (1 - s) ** 2 * s * c[1]
-            + 3 * (1 - s) * s * s * c[2] + s ** 3 * c[3])
+    pts, _counts = tour_connectors(*(np.reshape(v, (1, 2)) for v in (a, ta, b, tb)))
+    return pts
+
+
+def tour_connectors(a: np.ndarray, ta: np.ndarray, b: np.ndarray, tb: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`tour_connector` of many joins at once, each argument (j, 2): their inner
+    points concatenated (M, 2) mm and how many each has (j,) int64."""
+    gap = np.hypot(*(b - a).T)
+    h = np.maximum(TOUR_HANDLE * gap, TOUR_HANDLE_MIN_MM)[:, None]
+    n = np.clip(np.ceil((gap + 2.0 * h[:, 0]) / TOUR_STEP_MM), 8, TOUR_MAX_POINTS
+                ).astype(np.int64)
+    counts = n - 2
+    owner = np.repeat(np.arange(len(n)), counts)
+    s = ((np.arange(counts.sum()) - np.repeat(offsets(counts)[:-1], counts) + 1)
+         / (n[owner] - 1))[:, None]
+    c0, c1, c2, c3 = a[owner], (a + ta * h)[owner], (b - tb * h)[owner], b[owner]
+    pts = ((1 - s) ** 3 * c0 + 3 * (1 - s) ** 2 * s * c1 + 3 * (1 - s) * s * s * c2
+           + s ** 3 * c3)
+    return pts, counts
 
 
 def _tour_parts(path: Toolpath) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -1055,45 +1066,74 @@ def join_tours(paths: Sequence[Toolpath], max_turn_deg: float) -> list[Toolpath]
     trajectory's samples (:func:`icefab.motion._sample_widths`: 0 wide on a travel curve),
     so it switches within one sample (16 ms) of where a path ends or starts.
     """
-    out: list[Toolpath] = []
-    if max_turn_deg <= 0:
+    if max_turn_deg <= 0 or len(paths) < 2:
         return list(paths)
-    last: Toolpath | None = None     # the last path joined into out[-1]
-    for p in paths:
-        prev = out[-1] if out else None
-        joinable = (prev is not None and last is not None and p.depositing
-                    and p.material == prev.material and p.role == prev.role
-                    and p.tool_name == prev.tool_name and len(p.points) >= 2
-                    and len(prev.points) >= 2
-                    and last.length >= TOUR_MIN_MEMBER_MM)
-        limit = (min(max_turn_deg, RING_TO_RING_MAX_TURN_DEG)
-                 if last is not None and last.closed and p.closed else max_turn_deg)
-        last = p
-        if not joinable:
-            out.append(p)
-            continue
-        pa, wa, oa = _tour_parts(prev)
-        pb, wb, ob = _tour_parts(p)
-        ta, tb = _heading(pa, True), _heading(pb, False)
-        # paths that meet end to end stay apart: a tour's members are what its travel
-        # curves separate (core.tour_members)
-        if (ta is None or tb is None or tour_turn_deg(pa[-1], ta, pb[0], tb) > limit
-                or float(np.hypot(*(pb[0] - pa[-1]))) <= TOUR_SAME_POINT_MM):
-            out.append(p)
-            continue
-        c = tour_connector(pa[-1], ta, pb[0], tb)
-        oa = oa.copy()
-        oa[-1] = True                            # leaving the path onto the travel curve
-        pts = np.concatenate([pa, c, pb])
-        widths = np.concatenate([wa, np.zeros(len(c)), wb])
-        off = np.concatenate([oa, np.ones(len(c), dtype=bool), ob])
-        off[-1] = False                          # an open path's last point leaves nothing
-        same = prev.widths is None and p.widths is None and prev.width == p.width
-        width = float(prev.width) if same else _deposited_mean_width(pts, widths, off)
-        out[-1] = Toolpath(np.ascontiguousarray(pts), prev.z, prev.material, prev.role, False,
-                           width, prev.layer, prev.frame, prev.tool, None if same else widths,
-                           off)
+    join, (a, ta, b, tb) = _joins(paths, max_turn_deg)
+    pts, counts = tour_connectors(a[join], ta[join], b[join], tb[join])
+    curves = iter(np.split(pts, np.cumsum(counts)[:-1]) if len(counts) else [])
+    out: list[Toolpath] = []
+    first = 0
+    for i in range(1, len(paths) + 1):
+        if i == len(paths) or not join[i - 1]:
+            out.append(_tour_path(paths[first:i], [next(curves) for _ in range(i - first - 1)]))
+            first = i
     return out
+
+
+def _joins(paths: Sequence[Toolpath], max_turn_deg: float
+           ) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+    """(n - 1,) bool: whether :func:`join_tours` joins path i to path i + 1 (every rule
+    looks at the two alone), for all pairs at once; and each pair's (n - 1, 2) arrays
+    ``a, ta, b, tb`` (:func:`tour_connectors`: where and along what path i ends, path
+    i + 1 starts)."""
+    polys = [p.polyline() for p in paths]
+    ends = np.array([q[-1] for q in polys], dtype=np.float64)
+    starts = np.array([q[0] for q in polys], dtype=np.float64)
+    t_end = np.array([_heading(q, True) if len(q) > 1 else (np.nan, np.nan) for q in polys],
+                     dtype=np.float64)
+    t_start = np.array([_heading(q, False) if len(q) > 1 else (np.nan, np.nan)
+                        for q in polys], dtype=np.float64)
+    kind = [(p.depositing, p.material, p.role, p.tool_name) for p in paths]
+    closed = np.array([p.closed for p in paths], dtype=bool)
+    lengths = path_lengths(paths)
+    same = np.array([k[0] and k == n for k, n in zip(kind[:-1], kind[1:])], dtype=bool)
+    a, b, ta, tb = ends[:-1], starts[1:], t_end[:-1], t_start[1:]
+    gap = np.hypot(*(b - a).T)
+    u = (b - a) / np.where(gap > 0, gap, 1.0)[:, None]
+    turn = np.degrees(np.arccos(np.clip(np.sum(ta * u, axis=1), -1.0, 1.0))
+                      + np.arccos(np.clip(np.sum(u * tb, axis=1), -1.0, 1.0)))
+    limit = np.where(closed[:-1] & closed[1:],
+                     min(max_turn_deg, RING_TO_RING_MAX_TURN_DEG), max_turn_deg)
+    # (a NaN heading, a path of no length, compares False)
+    join = (same & (lengths[:-1] >= TOUR_MIN_MEMBER_MM) & (gap > TOUR_SAME_POINT_MM)
+            & (turn <= limit))
+    return join, (a, ta, b, tb)
+
+
+def _tour_path(members: Sequence[Toolpath], curves: Sequence[np.ndarray]) -> Toolpath:
+    """One open path through ``members`` (consecutive, checked by :func:`join_tours`),
+    ``curves[i]`` between members i and i + 1, off; a single member as it is."""
+    if len(members) == 1:
+        return members[0]
+    pts, widths, off = [], [], []
+    for i, m in enumerate(members):
+        poly, w, o = _tour_parts(m)
+        if i:
+            c = curves[i - 1]
+            off[-1][-1] = True                   # leaving the path onto the travel curve
+            pts.append(c)
+            widths.append(np.zeros(len(c)))
+            off.append(np.ones(len(c), dtype=bool))
+        pts.append(poly)
+        widths.append(w)
+        off.append(o)
+    P, W, O = np.concatenate(pts), np.concatenate(widths), np.concatenate(off)
+    O[-1] = False                                # an open path's last point leaves nothing
+    first = members[0]
+    same = all(m.widths is None and m.width == first.width for m in members)
+    return Toolpath(np.ascontiguousarray(P), first.z, first.material, first.role, False,
+                    float(first.width) if same else _deposited_mean_width(P, W, O),
+                    first.layer, first.frame, first.tool, None if same else W, O)
 
 
 def _deposited_mean_width(pts: np.ndarray, widths: np.ndarray, off: np.ndarray) -> float:
