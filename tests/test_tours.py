@@ -17,6 +17,7 @@ from icefab.paths import (RING_TO_RING_MAX_TURN_DEG, TOUR_MIN_MEMBER_MM, join_to
                           tour_turn_deg)
 from icefab.resultfiles import load_toolpaths, save_toolpaths
 from icefab.sim.plans import layer_valves, plan_layer, plan_layer_motion, valve_segments
+from test_variable_width import _linear_table_job  # every pulse drops 0.25 mm^3
 
 DH = 0.25
 
@@ -120,13 +121,6 @@ def test_a_tours_trajectory_is_off_over_its_travel_and_faster_than_its_paths_apa
     assert len(tr.pieces) <= 1
     apart = plan_paths_durations([a, _travel(a, b), b], job, layer=0).sum()
     assert tr.duration < apart - 0.1
-
-
-def _linear_table_job(tmp_path) -> Job:
-    """A linear calibration table: every pulse, at any frequency, drops 0.25 mm^3."""
-    table = tmp_path / "linear.csv"
-    table.write_text("frequency_hz,flow_mm3_s\n0,0\n1000,250\n")
-    return Job().replace(**{"materials.part.calibration_file": str(table)})
 
 
 def test_the_valve_pulses_only_over_the_tours_paths(tmp_path):
@@ -272,3 +266,18 @@ def test_every_path_of_the_demo_mugs_tours_is_deposited():
             assert abs(got - area) <= switches * 0.5 * step * w.max() + 1e-3 * area, (k, got,
                                                                                    area)
     assert tours > 10
+
+
+def test_the_paths_summary_counts_the_tours_and_their_travel():
+    from icefab.cli.paths_cmd import PathTally
+    from icefab.resultfiles import pack_paths
+
+    a, b = _in_line(gap=10.0)
+    (tour,) = join_tours([a, b], 240.0)
+    tally = PathTally(Job())
+    tally.add_packed(pack_paths([tour, _fill([[0, 5.0], [30, 5.0]])]))
+    n, joined, curve = tally.tours["part fill"]
+    on = tour.segment_on()
+    seg = np.linalg.norm(np.diff(tour.points, axis=0), axis=1)
+    assert (n, joined) == (1, 2) and curve == pytest.approx(seg[~on].sum())
+    assert curve == pytest.approx(10.0) and tally.counts["part fill"] == 2   # in line

@@ -62,6 +62,9 @@ class PathTally:
         self.counts: dict[str, int] = {}
         self.length: dict[str, float] = {}
         self.per_layer: list[float] = []
+        #: continuous tours (icefab.paths.join_tours) by key: tours, the paths they join,
+        #: mm of travel curves (included in ``length``)
+        self.tours: dict[str, list[float]] = {}
 
     def add_packed(self, packed: dict[str, np.ndarray]) -> None:
         """One layer's paths as :func:`icefab.resultfiles.pack_paths` packed them."""
@@ -76,7 +79,27 @@ class PathTally:
             # added one path after the other, as a running sum would (cumsum is sequential)
             self.length[k] = float(np.cumsum(np.concatenate(
                 [[self.length.get(k, 0.0)], lengths[mask]]))[-1])
+        if "point_off" in packed:
+            self._add_tours(packed, key)
         self.per_layer.append(packed_estimate(packed, self.job, lengths))
+
+    def _add_tours(self, packed: dict[str, np.ndarray], key: np.ndarray) -> None:
+        off = np.asarray(packed["point_off"], dtype=bool)
+        pts, start = packed["points"], packed["path_start"]
+        owner = np.repeat(np.arange(len(start) - 1), np.diff(start))
+        # a tour's travel curves never include a closed path's closing edge
+        seg = np.zeros(len(pts))
+        seg[:-1] = np.hypot(*np.diff(pts, axis=0).T)
+        curve = np.bincount(owner[off], weights=seg[off], minlength=len(start) - 1)
+        first = off & ~np.r_[False, off[:-1]]   # where a travel curve begins
+        first[start[:-1]] &= off[start[:-1]]
+        curves = np.bincount(owner[first], minlength=len(start) - 1)
+        for k in sorted(set(key[curves > 0].tolist())):
+            m = (key == k) & (curves > 0)
+            t = self.tours.setdefault(k, [0, 0, 0.0])
+            t[0] += int(m.sum())
+            t[1] += int((curves[m] + 1).sum())
+            t[2] += float(curve[m].sum())
 
 
 def summary_lines(layers: Sequence[LayerHead], warnings: Sequence[str],
@@ -85,7 +108,12 @@ def summary_lines(layers: Sequence[LayerHead], warnings: Sequence[str],
     per_layer_s = np.array(tally.per_layer, dtype=np.float64)
     lines = [f"layers: {len(layers)}"]
     for key in sorted(tally.counts):
-        lines.append(f"  {key}: {tally.counts[key]} paths, {tally.length[key] / 1000:.2f} m")
+        line = f"  {key}: {tally.counts[key]} paths, {tally.length[key] / 1000:.2f} m"
+        if key in tally.tours:
+            n, joined, curve = tally.tours[key]
+            line += (f" ({n} of them continuous tours of {joined} paths, with "
+                     f"{curve / 1000:.2f} m of travel curves, valve off)")
+        lines.append(line)
     unf = np.array([lp.unfilled_mm2 for lp in layers]).reshape(-1, 2).sum(axis=0)
     lines.append(f"unfilled area: part {unf[0]:.0f} mm², scaffold {unf[1]:.0f} mm²")
     if len(per_layer_s):
