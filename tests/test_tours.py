@@ -281,3 +281,15 @@ def test_the_paths_summary_counts_the_tours_and_their_travel():
     seg = np.linalg.norm(np.diff(tour.points, axis=0), axis=1)
     assert (n, joined) == (1, 2) and curve == pytest.approx(seg[~on].sum())
     assert curve == pytest.approx(10.0) and tally.counts["part fill"] == 2   # in line
+
+
+def test_the_simulator_lays_a_tours_paths_as_it_lays_them_apart():
+    # a closed ring keeps the mitred joint where it closes inside a tour
+    ring = _fill([[0.0, 0.0], [20.0, 0.0], [20.0, 20.0], [0.0, 20.0]], closed=True)
+    line = _fill([[-3.0, -2.0], [-3.0, 30.0]])
+    (tour,) = join_tours([ring, line], 240.0)
+    job = Job()
+    joined, apart = plan_layer(0, [tour], job), plan_layer(0, [ring, line], job)
+    for field in ("a", "b", "volume", "half_width", "n0", "n1", "ext"):
+        np.testing.assert_allclose(getattr(joined, field), getattr(apart, field),
+                                   err_msg=field)

@@ -15,7 +15,7 @@ import numpy as np
 from icefab import flow
 from icefab.config import Job
 from icefab.core import (LayerMotion, Toolpath, Trajectory, ValveProgram, arc_lengths,
-                         closed_polyline, offsets)
+                         offsets, tour_members)
 from icefab.errors import SimulationError
 from icefab.paths import laser_speed
 from icefab.stages import layer_height
@@ -109,22 +109,18 @@ def plan_layer(index: int, paths: Sequence[Toolpath], job: "Job",
         if p.material not in MATERIAL_ID:
             raise SimulationError(f"layer {index}: unknown material {p.material!r}")
         speed = m.boundary_speed_mm_s if p.role == "boundary" else m.fill_speed_mm_s
-        # a tour deposits along its runs, not over its travel (Toolpath.off)
-        runs = ([(pts, bool(p.closed), p.polyline_widths() if p.widths is not None else None)]
-                if p.off is None else
-                [(r, False, w if p.widths is not None else None)
-                 for r, w in p.deposited_runs()])
-        for run, closed, run_w in runs:
-            pts_s = _refine(run, closed, speed * m.dt_s)
+        # a tour deposits its paths, not its travel (Toolpath.off)
+        for q in tour_members(p):
+            pts_s = _refine(np.asarray(q.points, dtype=np.float64), q.closed, speed * m.dt_s)
             if len(pts_s) < 2:
                 continue
-            width: float | np.ndarray = float(p.width)
-            if run_w is not None:   # a variable width: its widths where the points are
-                poly = closed_polyline(run, closed)
+            width: float | np.ndarray = float(q.width)
+            if q.widths is not None:   # a variable width: its widths where the points are
+                poly = q.polyline()
                 width = np.interp(arc_lengths(np.linalg.norm(np.diff(pts_s, axis=0), axis=1)),
                                   arc_lengths(np.linalg.norm(np.diff(poly, axis=0), axis=1)),
-                                  run_w)
-            pieces.append((pts_s, closed, width, p.material))
+                                  q.polyline_widths())
+            pieces.append((pts_s, bool(q.closed), width, p.material))
         dep_paths.append(p)
     return _layer_plan(index, pieces, dh, tag_parts, true_parts, paths=tuple(dep_paths),
                        thickness=thickness)
