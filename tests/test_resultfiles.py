@@ -44,7 +44,11 @@ def small_toolpaths() -> Toolpaths:
              Toolpath(np.array([[9.0, -9.0], [13.0, -13.0]]), 0.25, "scaffold", "travel",
                       False, 0.0, 0, tool="scaffold"),
              Toolpath(_square(0, 13), 0.25, "scaffold", "fill", True, 1.5, 0),
-             Toolpath(_square(0, 12), 0.25, "part", "measure", True, 0.0, 0))
+             Toolpath(_square(0, 12), 0.25, "part", "measure", True, 0.0, 0),
+             # a continuous tour: two fill lines, the travel between them off
+             Toolpath(np.array([[-8.0, -8.0], [8.0, -8.0], [8.0, -6.5], [-8.0, -6.5]]), 0.25,
+                      "part", "fill", False, 1.5, 0,
+                      off=np.array([False, True, False, False])))
     return Toolpaths((LayerPaths(0, 0.25, paths, (1.0, 2.0)), LayerPaths(1, 0.5, paths[:2])),
                      Job(), ("w",))
 
@@ -423,12 +427,13 @@ def test_toolpath_file_from_packed_layers_is_the_same_file(tmp_path):
 
 
 @settings(max_examples=40, deadline=None)
-@given(st.lists(st.lists(st.tuples(st.integers(1, 5), st.booleans(), st.booleans()),
+@given(st.lists(st.lists(st.tuples(st.integers(1, 5), st.booleans(), st.booleans(),
+                                   st.booleans()),
                          max_size=5), min_size=1, max_size=5))
 def test_toolpath_files_read_as_arrays_give_each_layers_paths(layers):
     """load_packed_toolpaths cuts the file's arrays into layers: each layer's arrays are
-    pack_paths of that layer's paths (variable widths in some layers only, empty layers),
-    and its Toolpaths those of load_toolpaths."""
+    pack_paths of that layer's paths (variable widths and tours' off segments in some
+    layers only, empty layers), and its Toolpaths those of load_toolpaths."""
     import tempfile
 
     from icefab.core import Toolpath
@@ -436,8 +441,9 @@ def test_toolpath_files_read_as_arrays_give_each_layers_paths(layers):
         LayerPaths(li, 0.25 * (li + 1), tuple(
             Toolpath(points=np.arange(2.0 * k).reshape(k, 2) + i, z=0.25 * (li + 1),
                      role="fill", closed=c, width=1.5, layer=li,
-                     widths=np.linspace(1.0, 2.0, k) if var else None)
-            for i, (k, c, var) in enumerate(shapes)), (0.5 * li, 0.0))
+                     widths=np.linspace(1.0, 2.0, k) if var else None,
+                     off=np.arange(k) == 1 if tour and not c and k >= 3 else None)
+            for i, (k, c, var, tour) in enumerate(shapes)), (0.5 * li, 0.0))
         for li, shapes in enumerate(layers)), Job())
     with tempfile.TemporaryDirectory() as d:
         f = Path(d) / "t.npz"
@@ -454,6 +460,11 @@ def test_toolpath_files_read_as_arrays_give_each_layers_paths(layers):
         assert np.isnan(arrays.heads[k].thickness) and np.isnan(whole.layers[k].thickness)
         back = arrays.layer_paths(k)
         assert [(p.role, p.closed, p.points.tolist(),
-                 None if p.widths is None else p.widths.tolist()) for p in back.paths] == \
+                 None if p.widths is None else p.widths.tolist(),
+                 None if p.off is None else p.off.tolist()) for p in back.paths] == \
             [(p.role, p.closed, p.points.tolist(),
-              None if p.widths is None else p.widths.tolist()) for p in whole.layers[k].paths]
+              None if p.widths is None else p.widths.tolist(),
+              None if p.off is None else p.off.tolist()) for p in whole.layers[k].paths] == \
+            [(p.role, p.closed, p.points.tolist(),
+              None if p.widths is None else p.widths.tolist(),
+              None if p.off is None else p.off.tolist()) for p in lp.paths]
