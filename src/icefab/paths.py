@@ -1031,7 +1031,9 @@ def tour_connectors(a: np.ndarray, ta: np.ndarray, b: np.ndarray, tb: np.ndarray
     c0, c1, c2, c3 = a[owner], (a + ta * h)[owner], (b - tb * h)[owner], b[owner]
     pts = ((1 - s) ** 3 * c0 + 3 * (1 - s) ** 2 * s * c1 + 3 * (1 - s) * s * s * c2
            + s ** 3 * c3)
-    return pts, counts
+    # on Clipper's grid, as every other point of the paths: arbitrary floats took the
+    # demo mug's toolpath file from 6.1 to 9.9 MB of compressed points
+    return np.round(pts * geo.SCALE) / geo.SCALE, counts
 
 
 def _tour_parts(path: Toolpath) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
