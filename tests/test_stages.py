@@ -29,7 +29,8 @@ def test_every_setting_is_read_by_exactly_one_first_step():
     ({"slicing.layer_thickness_mm": 0.5}, "slice"),
     ({"scaffold.buffer_mm": 3.0}, "scaffold"),
     ({"materials.part.fill_pattern": "zigzag"}, "paths"),
-    ({"motion.dt_s": 0.008}, "motion"),
+    ({"motion.jerk_limited": False}, "motion"),
+    ({"motion.dt_s": 0.008}, "paths"),  # the seconds of one path the robot stores
     ({"flow.tick_s": 0.001}, "valves"),
     ({"simulation.seed": 7}, "simulate"),
     ({"cell.cpus": 1}, None),  # the worker count never changes a result

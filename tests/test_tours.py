@@ -293,3 +293,31 @@ def test_the_simulator_lays_a_tours_paths_as_it_lays_them_apart():
     for field in ("a", "b", "volume", "half_width", "n0", "n1", "ext"):
         np.testing.assert_allclose(getattr(joined, field), getattr(apart, field),
                                    err_msg=field)
+
+
+def test_a_tour_ends_where_it_would_grow_too_long():
+    a, b = _in_line(gap=10.0)
+    c = _fill([[b.points[-1, 0] + 10.0, 0.0], [b.points[-1, 0] + 50.0, 0.0]])
+    tours = join_tours([a, b, c], 240.0, max_length_mm=100.0)   # 40 + 10 + 40, then no
+    assert [len(tour_members(t)) for t in tours] == [2, 1]
+    assert len(join_tours([a, b, c], 240.0)) == 1
+
+
+def test_long_paths_fit_the_robot_controllers_store():
+    """A measured layer of a 260 mm square: every measurement path and tour is planned
+    within the samples the robot controller stores of one path (before, the bunny's
+    measurement spirals took up to 14 318 of its 8 192 and the build was refused)."""
+    from icefab import geometry as geo
+    from icefab.core import Layer
+    from icefab.motion import plan_paths_motion
+    from icefab.paths import plan_layer
+    from icefab.robots import CONTROLLER_PATH_POINTS
+
+    job = Job().replace(**{"cell.ee_origin_mm": [340.0, 0.0], "materials.part.fill_pattern":
+                           "zigzag", "materials.part.gap_fill": False})
+    sq = np.array([[-130.0, -130.0], [130.0, -130.0], [130.0, 130.0], [-130.0, 130.0]])
+    lp = plan_layer(Layer(3, 1.0, geo.region_from_rings([sq])), job, measured=True)
+    meas = [p for p in lp.paths if p.role == "measure"]
+    assert sum(p.length for p in meas) > 20_000.0        # more than one store's worth
+    longest = max(len(t.xy) for t in plan_paths_motion(meas, job, layer=3))
+    assert longest <= CONTROLLER_PATH_POINTS

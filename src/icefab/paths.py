@@ -83,6 +83,7 @@ from icefab.frames import FRAME_TOOLS as TOOLS, tool_offset, to_base_frame  # no
 from icefab.parallel import parallel_imap
 from icefab.stages import check_layer_thickness, measured_layers
 from icefab.regions import hook_band_mm
+from icefab.robots import CONTROLLER_PATH_POINTS
 from icefab.resultfiles import (TOOLPATHS_FORMAT as FORMAT, TOOLPATHS_VERSION as VERSION,  # noqa: F401
                                 LayerHead, PackedToolpaths, load_toolpaths, pack_layer_paths,
                                 packed_polylines, save_toolpaths, unpack_layer_paths)
@@ -714,6 +715,17 @@ MEASURE_LANE_S = 0.2
 #: 65 536 values (``icefab.cell.lkg.STORAGE_CAPACITY``) and the cell reads them after each
 #: measurement path (thesis 5.2.1); half of it leaves room for the path's speed-ups.
 MEASURE_MAX_SAMPLES = 32_768
+#: ... and lasts at most this fraction of what the robot controller stores of one path
+#: (:func:`path_store_s`: 65 s at the defaults, 3.3 m of ice), leaving room for its
+#: slow-downs: the bunny's longest spirals took 9 640-14 318 samples, more than the
+#: 8 192 the controller takes, and ``icefab build`` refused the part before it started.
+MEASURE_STORE_FRACTION = 0.5
+
+
+def path_store_s(job: Job) -> float:
+    """Seconds of motion the robot controller stores of one path, s:
+    :data:`icefab.robots.CONTROLLER_PATH_POINTS` samples of ``motion.dt_s``."""
+    return CONTROLLER_PATH_POINTS * job.motion.dt_s
 
 
 def measure_lane_mm(spacing: float, speed_mm_s: float) -> float:
@@ -974,6 +986,10 @@ RING_TO_RING_MAX_TURN_DEG = 120.0
 #: it within one sample (16 ms is 2 mm at 125 mm/s) and the valve, which follows the
 #: samples, would miss it. On 5 bunny layers none is missed and the tours save 3.8 %.
 TOUR_MIN_MEMBER_MM = 0.5
+#: A tour is at most this fraction of what the robot controller stores of one path
+#: (:func:`path_store_s`) long at the speed bound (MTTS takes about twice that on the
+#: bunny's fill: 83 h against a 44 h floor), so that it fits the store.
+TOUR_STORE_FRACTION = 0.25
 #: Paths whose ends are closer than this are not joined (mm): no travel curve would
 #: separate them in the tour.
 TOUR_SAME_POINT_MM = 1e-6
@@ -1047,13 +1063,15 @@ def _tour_parts(path: Toolpath) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return poly, path.polyline_widths(), off
 
 
-def join_tours(paths: Sequence[Toolpath], max_turn_deg: float) -> list[Toolpath]:
+def join_tours(paths: Sequence[Toolpath], max_turn_deg: float,
+               max_length_mm: float = math.inf) -> list[Toolpath]:
     """Continuous tours (issue 15): consecutive deposition paths (one material, role and
     tool, in deposition order) joined into one open path through a travel curve
     (:func:`tour_connector`) whose segments are ``off``, wherever the heading turns by at
     most ``max_turn_deg`` (:func:`tour_turn_deg`; ``RING_TO_RING_MAX_TURN_DEG`` at most
-    from one closed path to the next; 0: no joins). Not joined: paths that meet end to
-    end, and anything after a path shorter than ``TOUR_MIN_MEMBER_MM``.
+    from one closed path to the next; 0: no joins), while the tour stays within
+    ``max_length_mm`` (its paths and the straight gaps between them). Not joined: paths
+    that meet end to end, and anything after a path shorter than ``TOUR_MIN_MEMBER_MM``.
 
     Why: every path starts and ends at rest (thesis 4.1.1), and on the bunny a rest stop
     pair with its travel costs 0.3-0.35 s; a join between paths in line saves 0.22-0.42
@@ -1070,7 +1088,15 @@ def join_tours(paths: Sequence[Toolpath], max_turn_deg: float) -> list[Toolpath]
     """
     if max_turn_deg <= 0 or len(paths) < 2:
         return list(paths)
-    join, (a, ta, b, tb) = _joins(paths, max_turn_deg)
+    join, (a, ta, b, tb), lengths = _joins(paths, max_turn_deg)
+    if np.isfinite(max_length_mm):   # a tour ends where it would grow too long
+        gap = np.hypot(*(b - a).T)
+        run = float(lengths[0])
+        for i in range(1, len(paths)):
+            run = run + float(gap[i - 1] + lengths[i]) if join[i - 1] else float(lengths[i])
+            if join[i - 1] and run > max_length_mm:
+                join[i - 1] = False
+                run = float(lengths[i])
     pts, counts = tour_connectors(a[join], ta[join], b[join], tb[join])
     curves = iter(np.split(pts, np.cumsum(counts)[:-1]) if len(counts) else [])
     out: list[Toolpath] = []
@@ -1085,9 +1111,9 @@ def join_tours(paths: Sequence[Toolpath], max_turn_deg: float) -> list[Toolpath]
 def _joins(paths: Sequence[Toolpath], max_turn_deg: float
            ) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
     """(n - 1,) bool: whether :func:`join_tours` joins path i to path i + 1 (every rule
-    looks at the two alone), for all pairs at once; and each pair's (n - 1, 2) arrays
+    looks at the two alone), for all pairs at once; each pair's (n - 1, 2) arrays
     ``a, ta, b, tb`` (:func:`tour_connectors`: where and along what path i ends, path
-    i + 1 starts)."""
+    i + 1 starts); the paths' lengths (n,) mm."""
     polys = [p.polyline() for p in paths]
     ends = np.array([q[-1] for q in polys], dtype=np.float64)
     starts = np.array([q[0] for q in polys], dtype=np.float64)
@@ -1109,7 +1135,7 @@ def _joins(paths: Sequence[Toolpath], max_turn_deg: float
     # (a NaN heading, a path of no length, compares False)
     join = (same & (lengths[:-1] >= TOUR_MIN_MEMBER_MM) & (gap > TOUR_SAME_POINT_MM)
             & (turn <= limit))
-    return join, (a, ta, b, tb)
+    return join, (a, ta, b, tb), lengths
 
 
 def _tour_path(members: Sequence[Toolpath], curves: Sequence[np.ndarray]) -> Toolpath:
@@ -1715,7 +1741,8 @@ def plan_layer(layer: Layer, job: Job, measured: bool | None = None) -> LayerPat
             region = layer.part if material == "part" else layer.scaffold
             spacing = job.feedback.measure_spacing_mm
             speed = laser_speed(material, job)
-            longest = speed * MEASURE_MAX_SAMPLES / job.simulation.laser_rate_hz
+            longest = speed * min(MEASURE_MAX_SAMPLES / job.simulation.laser_rate_hz,
+                                  MEASURE_STORE_FRACTION * path_store_s(job))
             groups[f"{material}:measure"] = [
                 (pts, closed, 0.0)
                 for pts, closed in measure_paths(region, spacing, filt,
@@ -1743,7 +1770,8 @@ def plan_layer(layer: Layer, job: Job, measured: bool | None = None) -> LayerPat
             group.append(Toolpath(np.ascontiguousarray(pts), z, material, role, closed,
                                   float(width), layer.index, "part", tool, widths))
         if role != "measure" and tours:
-            group = join_tours(group, job.materials[material].tour_max_turn_deg)
+            group = join_tours(group, job.materials[material].tour_max_turn_deg,
+                               TOUR_STORE_FRACTION * path_store_s(job) * job.motion.speed_mm_s)
         for p in group:
             pts = p.points
             if cur_tool is not None:

@@ -37,6 +37,12 @@ from icefab.errors import ConfigError, WorkspaceError
 
 log = logging.getLogger(__name__)
 
+#: Samples of one path the robot controller stores (the V+ server's default
+#: ``icefab.cell.vplus.VplusSettings.max_points``; the virtual C40's too): 131 s at 16 ms.
+#: A path is uploaded whole before it runs, so the paths stage keeps its long paths (a
+#: measurement spiral, a tour) well inside it.
+CONTROLLER_PATH_POINTS = 8192
+
 __all__ = ["Robot", "Scara", "Gantry", "get_robot", "register_robot", "check_workspace",
            "ROBOTS"]
 

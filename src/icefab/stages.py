@@ -60,8 +60,9 @@ READS: dict[str, tuple[str, ...]] = {
               # and its length within the laser's storage (paths.join_measure_rings)
               "motion.measure_speed_mm_s", "motion.speed_mm_s", "simulation.laser_rate_hz",
               # tours only where travel may move at the deposition's speed bound
-              # (paths.plan_layer)
-              "motion.travel_speed_mm_s"),
+              # (paths.plan_layer); tours and measurement paths within the seconds of
+              # motion the robot controller stores of one path (paths.path_store_s)
+              "motion.travel_speed_mm_s", "motion.dt_s"),
     "motion": ("motion.", "cell.robot", "cell.l1_mm", "cell.l2_mm", "cell.reach_mm",
                "cell.joint_range_deg", "cell.elbow", "cell.gantry_travel_mm",
                "cell.ee_origin_mm", "cell.encoder_resolution_deg"),

@@ -25,6 +25,7 @@ import numpy as np
 from icefab.cell import robot_protocol as rp
 from icefab.cell.robot import RobotPath
 from icefab.errors import CellError
+from icefab.robots import CONTROLLER_PATH_POINTS
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +60,7 @@ class VirtualRobot:
     :attr:`port`) and serves one client at a time on a thread; ``stop()`` ends it."""
 
     def __init__(self, hooks: RobotHooks, *, port: int = 0, time_factor: float = 0.0,
-                 max_points: int = 8192, max_paths: int = 4, host: str = "127.0.0.1",
+                 max_points: int = CONTROLLER_PATH_POINTS, max_paths: int = 4, host: str = "127.0.0.1",
                  last_done: int = 0, cut: int = 0):
         self.hooks = hooks
         self.time_factor = float(time_factor)

@@ -35,6 +35,7 @@ import re
 from dataclasses import dataclass
 
 from icefab.cell import robot_protocol as rp
+from icefab.robots import CONTROLLER_PATH_POINTS
 
 __all__ = ["VplusSettings", "vplus_program", "V_KEYWORDS", "vplus_name"]
 
@@ -57,7 +58,7 @@ class VplusSettings:
     zbase_mm: float = 0.0
     yaw_deg: float = 0.0
     approach_mm_s: float = 100.0
-    max_points: int = 8192
+    max_points: int = CONTROLLER_PATH_POINTS
     max_paths: int = 4
 
 
