@@ -56,7 +56,12 @@ From a ``Stack`` with part and scaffold regions to ordered ``Path``s per layer:
   start point of every closed path chosen as its point nearest to the current position and
   either end of an open path, then shortened by 2-opt and a better start vertex for each
   closed path (:func:`icefab._tour.improve`: never longer than nearest neighbour);
-  explicit travel paths (role "travel", width 0) between consecutive paths.
+  continuous tours (:func:`join_tours`, issue 15): consecutive boundary or fill paths of
+  one material joined through a travel curve the robot does not stop for, the valve off
+  over it (``Toolpath.off``), where the heading turns by at most
+  ``materials.*.tour_max_turn_deg``; explicit travel paths (role "travel", width 0)
+  between consecutive paths. Measurement paths and tours stay within what the robot
+  controller stores of one path (:func:`path_store_s`).
 * Reference frames (thesis Table 3-1): points are in the part (building) frame of the tool
   that follows them (``Path.tool_name``). See :func:`to_base_frame`. A travel path is given
   for the tool of the path that follows it; when the tool changes, its first point is the
