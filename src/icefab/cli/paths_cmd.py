@@ -92,7 +92,8 @@ class PathTally:
         seg[:-1] = np.hypot(*np.diff(pts, axis=0).T)
         curve = np.bincount(owner[off], weights=seg[off], minlength=len(start) - 1)
         first = off & ~np.r_[False, off[:-1]]   # where a travel curve begins
-        first[start[:-1]] &= off[start[:-1]]
+        heads = start[:-1][start[:-1] < len(pts)]
+        first[heads] = off[heads]               # a path's first point follows no other
         curves = np.bincount(owner[first], minlength=len(start) - 1)
         for k in sorted(set(key[curves > 0].tolist())):
             m = (key == k) & (curves > 0)
