@@ -321,3 +321,12 @@ def test_long_paths_fit_the_robot_controllers_store():
     assert sum(p.length for p in meas) > 20_000.0        # more than one store's worth
     longest = max(len(t.xy) for t in plan_paths_motion(meas, job, layer=3))
     assert longest <= CONTROLLER_PATH_POINTS
+
+
+def test_a_tour_of_two_widths_is_as_wide_as_what_it_deposits_on_average():
+    a, b = _in_line(gap=10.0)
+    wide = _fill(b.points, width=3.0)
+    (tour,) = join_tours([a, wide], 240.0)
+    # 40 mm at 1.5 and 40 mm at 3.0; the 10 mm of travel (0 wide) does not count
+    assert tour.width == pytest.approx(2.25)
+    assert [m.width for m in tour_members(tour)] == [1.5, 3.0]

@@ -354,9 +354,7 @@ class Toolpath:
         if not on.any():
             return []
         poly, w = self.polyline(), self.polyline_widths()
-        edge = np.diff(np.r_[0, on.astype(np.int8), 0])
-        return [(poly[a:b + 1], w[a:b + 1])
-                for a, b in zip(np.flatnonzero(edge == 1), np.flatnonzero(edge == -1))]
+        return [(poly[a:b + 1], w[a:b + 1]) for a, b in true_runs(on)]
 
     @property
     def length(self) -> float:
@@ -398,17 +396,31 @@ def tour_members(path: Toolpath) -> list[Toolpath]:
             continue
         out.append(replace(path, points=np.ascontiguousarray(pts), closed=closed,
                            widths=np.ascontiguousarray(w), off=None,
-                           width=_mean_width(closed_polyline(pts, closed),
-                                             closed_polyline(w, closed))))
+                           width=mean_width(closed_polyline(pts, closed),
+                                            closed_polyline(w, closed))))
     return out
 
 
-def _mean_width(poly: np.ndarray, w: np.ndarray) -> float:
-    """Length-weighted mean of widths linear along a polyline's segments, mm (the first
-    point's on a polyline of no length)."""
+def true_runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """The runs of True in a bool array as ``(first, end)`` index pairs (``end``
+    exclusive), in order: a path's depositing or travel stretches by segment."""
+    edge = np.diff(np.r_[0, np.asarray(mask, dtype=np.int8), 0])
+    return list(zip(np.flatnonzero(edge == 1).tolist(), np.flatnonzero(edge == -1).tolist()))
+
+
+def mean_width(poly: np.ndarray, w: np.ndarray, on: np.ndarray | None = None) -> float:
+    """Length-weighted mean of widths ``w`` (per point, linear along each segment) over a
+    polyline's segments, or those of them ``on`` (bool per segment), mm; with no length
+    there, the plain mean of the widths at the points of those segments (0 with none)."""
     seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
-    total = float(seg.sum())
-    return float((seg * 0.5 * (w[:-1] + w[1:])).sum() / total) if total > 0 else float(w[0])
+    on = np.ones(len(seg), dtype=bool) if on is None else np.asarray(on, dtype=bool)
+    total = float(seg[on].sum())
+    if total > 0:
+        return float((seg[on] * 0.5 * (w[:-1] + w[1:])[on]).sum() / total)
+    at = np.zeros(len(w), dtype=bool)
+    at[:-1] |= on
+    at[1:] |= on
+    return float(w[at].mean()) if at.any() else (float(w[0]) if len(w) else 0.0)
 
 
 def off_problem(path: Toolpath) -> str:

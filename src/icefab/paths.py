@@ -95,7 +95,7 @@ from icefab.resultfiles import (TOOLPATHS_FORMAT as FORMAT, TOOLPATHS_VERSION as
 from icefab.geometry import signed_area
 from icefab.core import (MATERIALS, OFF, ON1, ON2, ROLES, Layer, LayerPaths,  # noqa: F401
                          Region, Stack, Toolpath, Toolpaths, arc_lengths, closed_polyline,
-                         deposition_state, offsets, path_lengths, point_states,
+                         deposition_state, mean_width, offsets, path_lengths, point_states,
                          polyline_lengths)
 from icefab.workload import check_paths
 
@@ -976,7 +976,7 @@ def order_nearest(items: Sequence[tuple], start: np.ndarray,
 
 # --------------------------------------------------------------------------- tours
 
-#: A tour's travel curve (:func:`tour_connector`): a cubic Bezier whose handles are this
+#: A tour's travel curve (:func:`tour_connectors`): a cubic Bezier whose handles are this
 #: fraction of the gap long (at least ``TOUR_HANDLE_MIN_MM``), sampled about every
 #: ``TOUR_STEP_MM`` (8 to ``TOUR_MAX_POINTS`` points).
 TOUR_HANDLE = 0.3
@@ -1014,33 +1014,27 @@ def _heading(poly: np.ndarray, at_end: bool) -> np.ndarray | None:
     return None
 
 
-def tour_turn_deg(a: np.ndarray, ta: np.ndarray, b: np.ndarray, tb: np.ndarray) -> float:
+def tour_turn_deg(a: np.ndarray, ta: np.ndarray, b: np.ndarray, tb: np.ndarray
+                  ) -> np.ndarray:
     """How far the heading turns from a path leaving ``a`` along ``ta`` to the next one
-    entering at ``b`` along ``tb`` (unit vectors), degrees in [0, 360]: to the gap's
-    direction and from it to ``tb``. 0 for paths in line, 180 for a sideways step between
-    parallel paths, 360 for a U-turn on the spot."""
-    u = np.asarray(b, np.float64) - a
-    n = float(np.hypot(*u))
-    if n <= TOUR_SAME_POINT_MM:
-        return math.degrees(math.acos(float(np.clip(ta @ tb, -1.0, 1.0))))
-    u = u / n
-    return math.degrees(math.acos(float(np.clip(ta @ u, -1.0, 1.0)))
-                        + math.acos(float(np.clip(u @ tb, -1.0, 1.0))))
-
-
-def tour_connector(a: np.ndarray, ta: np.ndarray, b: np.ndarray, tb: np.ndarray
-                   ) -> np.ndarray:
-    """(m, 2) mm: the inner points of a tour's travel curve from ``a`` (leaving along the
-    unit ``ta``) to ``b`` (arriving along ``tb``): a cubic Bezier tangent to both ends (G1:
-    no corner where it meets the paths, so MTTS need not stop there, thesis 4.1.1)."""
-    pts, _counts = tour_connectors(*(np.reshape(v, (1, 2)) for v in (a, ta, b, tb)))
-    return pts
+    entering at ``b`` along ``tb`` (unit vectors; (2,) or (j, 2) each), degrees in
+    [0, 360]: to the gap's direction and from it to ``tb`` (with no gap, from ``ta`` to
+    ``tb``). 0 for paths in line, 180 for a sideways step between parallel paths, 360 for
+    a U-turn on the spot."""
+    d = np.asarray(b, np.float64) - a
+    gap = np.hypot(d[..., 0], d[..., 1])[..., None]
+    u = np.where(gap > TOUR_SAME_POINT_MM, d / np.where(gap > 0, gap, 1.0), ta)
+    return np.degrees(np.arccos(np.clip(np.sum(ta * u, axis=-1), -1.0, 1.0))
+                      + np.arccos(np.clip(np.sum(u * tb, axis=-1), -1.0, 1.0)))
 
 
 def tour_connectors(a: np.ndarray, ta: np.ndarray, b: np.ndarray, tb: np.ndarray
                     ) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`tour_connector` of many joins at once, each argument (j, 2): their inner
-    points concatenated (M, 2) mm and how many each has (j,) int64."""
+    """The inner points of the travel curves of many joins, each argument (j, 2): from
+    ``a`` (leaving along the unit ``ta``) to ``b`` (arriving along ``tb``), a cubic Bezier
+    tangent to both ends (G1: no corner where it meets the paths, so MTTS need not stop
+    there, thesis 4.1.1). Returns the points concatenated (M, 2) mm and how many each
+    curve has (j,) int64."""
     gap = np.hypot(*(b - a).T)
     h = np.maximum(TOUR_HANDLE * gap, TOUR_HANDLE_MIN_MM)[:, None]
     n = np.clip(np.ceil((gap + 2.0 * h[:, 0]) / TOUR_STEP_MM), 8, TOUR_MAX_POINTS
@@ -1072,7 +1066,7 @@ def join_tours(paths: Sequence[Toolpath], max_turn_deg: float,
                max_length_mm: float = math.inf) -> list[Toolpath]:
     """Continuous tours (issue 15): consecutive deposition paths (one material, role and
     tool, in deposition order) joined into one open path through a travel curve
-    (:func:`tour_connector`) whose segments are ``off``, wherever the heading turns by at
+    (:func:`tour_connectors`) whose segments are ``off``, wherever the heading turns by at
     most ``max_turn_deg`` (:func:`tour_turn_deg`; ``RING_TO_RING_MAX_TURN_DEG`` at most
     from one closed path to the next; 0: no joins), while the tour stays within
     ``max_length_mm`` (its paths and the straight gaps between them). Not joined: paths
@@ -1132,9 +1126,7 @@ def _joins(paths: Sequence[Toolpath], max_turn_deg: float
     same = np.array([k[0] and k == n for k, n in zip(kind[:-1], kind[1:])], dtype=bool)
     a, b, ta, tb = ends[:-1], starts[1:], t_end[:-1], t_start[1:]
     gap = np.hypot(*(b - a).T)
-    u = (b - a) / np.where(gap > 0, gap, 1.0)[:, None]
-    turn = np.degrees(np.arccos(np.clip(np.sum(ta * u, axis=1), -1.0, 1.0))
-                      + np.arccos(np.clip(np.sum(u * tb, axis=1), -1.0, 1.0)))
+    turn = tour_turn_deg(a, ta, b, tb)
     limit = np.where(closed[:-1] & closed[1:],
                      min(max_turn_deg, RING_TO_RING_MAX_TURN_DEG), max_turn_deg)
     # (a NaN heading, a path of no length, compares False)
@@ -1165,18 +1157,8 @@ def _tour_path(members: Sequence[Toolpath], curves: Sequence[np.ndarray]) -> Too
     first = members[0]
     same = all(m.widths is None and m.width == first.width for m in members)
     return Toolpath(np.ascontiguousarray(P), first.z, first.material, first.role, False,
-                    float(first.width) if same else _deposited_mean_width(P, W, O),
+                    float(first.width) if same else mean_width(P, W, ~O[:-1]),
                     first.layer, first.frame, first.tool, None if same else W, O)
-
-
-def _deposited_mean_width(pts: np.ndarray, widths: np.ndarray, off: np.ndarray) -> float:
-    """Length-weighted mean width over the segments that deposit (mm; widths linear along
-    each segment)."""
-    seg = np.linalg.norm(np.diff(pts, axis=0), axis=1) * ~off[:-1]
-    total = float(seg.sum())
-    if total <= 0:
-        return float(widths[~off].mean()) if (~off).any() else 0.0
-    return float((seg * 0.5 * (widths[:-1] + widths[1:])).sum() / total)
 
 
 # --------------------------------------------------------------------------- one layer

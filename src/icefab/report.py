@@ -24,7 +24,7 @@ import numpy as np
 
 from icefab.atomic import atomic_path
 from icefab.feedback import simulate_1d
-from icefab.core import LayerPaths, RuledEdges, Stack, Toolpaths, closed_polyline
+from icefab.core import LayerPaths, RuledEdges, Stack, Toolpaths, closed_polyline, true_runs
 
 if TYPE_CHECKING:  # pragma: no cover
     from icefab.config import Job
@@ -288,11 +288,9 @@ def plot_toolpaths(stack: Stack, toolpaths: Toolpaths | Mapping[int, LayerPaths]
                 continue
             # a tour: its runs as the role's lines, its travel curves as travel
             kinds.setdefault((p.role, material), []).extend(r for r, _ in p.deposited_runs())
-            poly, on = p.polyline(), p.segment_on()
-            edge = np.diff(np.r_[0, (~on).astype(np.int8), 0])
+            poly = p.polyline()
             kinds.setdefault(("travel", ""), []).extend(
-                poly[a:b + 1] for a, b in zip(np.flatnonzero(edge == 1),
-                                              np.flatnonzero(edge == -1)))
+                poly[a:b + 1] for a, b in true_runs(~p.segment_on()))
         for role, material in sorted(kinds, key=lambda rm: (_LINE_ORDER.get(rm[0], 0), rm[1])):
             if role == "travel":
                 style = dict(colors="0.45", linewidths=0.6, linestyles="--")

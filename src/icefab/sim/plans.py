@@ -15,7 +15,7 @@ import numpy as np
 from icefab import flow
 from icefab.config import Job
 from icefab.core import (LayerMotion, Toolpath, Trajectory, ValveProgram, arc_lengths,
-                         offsets, tour_members)
+                         offsets, tour_members, true_runs)
 from icefab.errors import SimulationError
 from icefab.paths import laser_speed
 from icefab.stages import layer_height
@@ -318,9 +318,7 @@ def on_runs(widths: np.ndarray) -> list[tuple[int, int]]:
     on = (w[:-1] > 0) | (w[1:] > 0)
     if on.all():
         return [(0, len(w) - 1)]
-    edge = np.diff(np.r_[0, on.astype(np.int8), 0])
-    return [(int(a), int(b)) for a, b in zip(np.flatnonzero(edge == 1),
-                                             np.flatnonzero(edge == -1))]
+    return true_runs(on)     # segments a .. b - 1: samples a .. b
 
 
 def _measured(has_laser: Sequence[bool], interval_layers: int) -> list[int]:
