@@ -483,6 +483,23 @@ def test_a_variable_width_sweep_is_the_hull_of_its_disks(pts, closed, grow):
     assert disks32.difference(got).area <= 1e-4 * disks32.length
 
 
+def test_a_smoothing_tolerance_within_the_grid_moves_nothing_and_a_lone_hole_is_dropped():
+    """Smoothed within less than Clipper's grid, a ring was turned inside out (the cap on
+    each point's move, the tolerance less the grid and the filter, was negative); the
+    next offset of that lone clockwise ring was a square 1.8e15 mm wide, whose smoothing
+    asked for more memory than there is (hypothesis found it: fill_smoothing_mm = 1e-96)."""
+    ring = circle(8.0, 32)
+    for tol in (1e-96, 1e-30, 1.0 / geo.SCALE, 2.0 / geo.SCALE):
+        got, reach = geo.smooth_rings([ring], tol, 5.0)
+        assert reach == 0.0 and np.array_equal(got[0], ring)
+    moved, _reach = geo.smooth_rings([ring], 3.0 / geo.SCALE, 5.0)
+    assert signed_area(moved[0]) > 0   # just above it: smoothed, orientation kept
+    hole = circle(8.0, 32, hole=True)
+    assert geo.without_orphan_holes([hole]) == []
+    assert geo.offset_rings([hole], -1.0) == [] and geo.offset_rings([hole], 1.0) == []
+    assert len(geo.without_orphan_holes([ring])) == 1
+
+
 @pytest.mark.parametrize("where", [(0.0, 40.0), (0.0, -40.0), (40.0, 0.0), (-40.0, 0.0)])
 def test_an_orphan_hole_does_not_turn_an_offset_inside_out(where):
     """Clipper takes a whole set's orientation from its lowest ring: a stray clockwise

@@ -511,7 +511,8 @@ def smooth_rings(rings: Rings, tol_mm: float, sigma_mm: float, max_turn_deg: flo
     speed at ~40 mm/s under a 4 000 mm/s^3 jerk bound (BENCHMARKS.md, issue 15).
 
     Orientation is kept. Rings shorter than 8 grid steps, and rings whose smoothed form is
-    not simple (a neck narrower than twice the tolerance), come back unchanged.
+    not simple (a neck narrower than twice the tolerance), come back unchanged; so does
+    every ring when ``tol_mm`` is at most two grid steps.
 
     Returns (the rings, ``reach`` mm): how far the area the input rings bound reaches
     outside the area the smoothed ones bound, i.e. the largest move of a point into that
@@ -533,7 +534,9 @@ def smooth_rings_moved(rings: Rings, tol_mm: float, sigma_mm: float,
     over 300 random rings, 0.29 x on one jagged by 0.16 mm at every vertex)."""
     rings = [np.asarray(r, dtype=np.float64) for r in rings]
     still = [np.zeros(len(r)) for r in rings]
-    if not tol_mm > 0 or not rings:
+    if not tol_mm > 2.0 / SCALE or not rings:
+        # within the grid nothing can move (the cap below would be negative: it turned
+        # rings inside out)
         return list(rings), 0.0, still
     eps = min(tol_mm / 5.0, 0.01)
     work = [i for i, r in enumerate(rings) if len(r) >= 3]
@@ -603,7 +606,9 @@ def without_orphan_holes(rings: Rings) -> Rings:
     the next fill level came back empty: 730 mm^2 of the layer went unfilled."""
     rings = list(rings)
     if len(rings) < 2:
-        return rings
+        # a lone clockwise ring is an orphan too: offset, Clipper made it a square
+        # 1.8e15 mm wide (a fill level smoothed within less than the grid was one)
+        return [r for r in rings if signed_area(r) >= 0]
     areas = ring_areas(rings)
     holes = np.flatnonzero(areas < 0)
     outers = np.flatnonzero(areas > 0)
