@@ -500,6 +500,27 @@ def test_a_smoothing_tolerance_within_the_grid_moves_nothing_and_a_lone_hole_is_
     assert len(geo.without_orphan_holes([ring])) == 1
 
 
+def test_level_gaps_are_the_area_less_every_band_when_the_levels_nest():
+    """Square rings 3 mm apart, bands 1.6 mm half-wide (0.2 mm of overlap): the gaps are
+    the corner tips the mitred bands miss, the centre and what lies outside the first
+    band, as one Boolean of every band gives them. Levels that do not nest (a ring out of
+    turn, inside the band two levels out) give other gaps: the precondition is real."""
+    area = [rect(-20, -20, 20, 20)]
+    nested = [([rect(-c, -c, c, c)], 1.6) for c in (18.0, 15.0, 12.0, 9.0)]
+    nested.append(([circle(4.0, 64)], 1.6, [rect(-5, -5, 5, 5)]))  # with a held area
+    def both(levels):
+        fast = geo.union(geo.level_gaps(area, levels))
+        ref = geo.union(geo.difference_rings(area, geo.level_bands(levels)))
+        return fast, ref
+    fast, ref = both(nested)
+    assert ref.area > 1.0   # the centre at least
+    assert to_shapely(fast).symmetric_difference(to_shapely(ref)).area < 1e-6
+    out_of_turn = nested[:2] + [([rect(-17.5, -17.5, 17.5, 17.5)], 0.2)] + nested[2:]
+    fast, ref = both(out_of_turn)
+    assert to_shapely(fast).symmetric_difference(to_shapely(ref)).area > 1.0
+    assert geo.level_gaps(area, []) and geo.union(geo.level_gaps(area, [])).area == 1600.0
+
+
 @pytest.mark.parametrize("where", [(0.0, 40.0), (0.0, -40.0), (40.0, 0.0), (-40.0, 0.0)])
 def test_an_orphan_hole_does_not_turn_an_offset_inside_out(where):
     """Clipper takes a whole set's orientation from its lowest ring: a stray clockwise

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 import shapely
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from shapely.geometry import LinearRing, LineString
 
@@ -587,6 +587,50 @@ def test_property_random_polygons_with_holes(rings):
         lp = plan_layer(layer, job)
         # the star shapes have spikes narrower than the paths: coverage is checked elsewhere
         check_layer_paths(layer, lp, job, min_cover=None)
+
+
+def _gaps_both_ways(region: Region, mat, job: Job):
+    """The gaps material_paths measures, level by level (``geo.level_gaps``, what it does)
+    and in one Boolean of every band (``geo.level_bands``, what it did): shapely."""
+    from icefab.paths import boundary_rings, fill_levels, gap_levels, nominal_area
+    filt = job.slicing.max_filter_deviation_mm
+    levels = gap_levels(boundary_rings(region, mat, filt), fill_levels(region, mat, job),
+                        mat, filt)
+    nominal = nominal_area(region, mat, filt)
+    return (to_shapely(geo.union(geo.level_gaps(nominal, levels))),
+            to_shapely(geo.union(geo.difference_rings(nominal, geo.level_bands(levels)))))
+
+
+@settings(max_examples=30, deadline=None)
+@given(rings=polygon_with_holes(), noisy=st.integers(-1, 5), w=st.floats(0.6, 3.0),
+       F=st.floats(1.0, 5.0), smooth=st.floats(0.0, 0.6), count=st.integers(0, 3))
+def test_gaps_measured_level_by_level_are_those_of_every_band_at_once(rings, noisy, w, F,
+                                                                       smooth, count):
+    """Wherever the settings let material_paths measure the gaps level by level
+    (``_levels_nest``), they are the gaps one Boolean of every band gives, to Clipper's
+    grid: on star shapes with holes and on noisy scanned-like contours."""
+    from icefab.paths import _levels_nest
+    job = Job()
+    mat = dataclasses.replace(job.materials.part, path_width_mm=w, fill_width_mm=F,
+                              fill_smoothing_mm=smooth, boundary_count=count)
+    assume(_levels_nest(mat, job.slicing.max_filter_deviation_mm))
+    region = (geo.region_from_rings(rings) if noisy < 0
+              else _noisy_lobed_disk(0.02 * noisy, seed=noisy))
+    a, b = _gaps_both_ways(region, mat, job)
+    grid = 4.0 / geo.SCALE
+    assert a.symmetric_difference(b).area <= grid * (a.length + b.length) + 1e-6
+
+
+def test_default_settings_measure_gaps_level_by_level():
+    """Both materials' defaults take the fast way (the bunny's figures depend on it), a
+    fill smoothed by more than the boundary's width can carry does not."""
+    from icefab.paths import _levels_nest
+    job = Job()
+    filt = job.slicing.max_filter_deviation_mm
+    assert _levels_nest(job.materials.part, filt) and _levels_nest(job.materials.scaffold, filt)
+    assert not _levels_nest(dataclasses.replace(job.materials.part, fill_smoothing_mm=0.5), filt)
+    assert _levels_nest(dataclasses.replace(job.materials.part, fill_smoothing_mm=0.5,
+                                            boundary_count=0), filt)
 
 
 def test_cli_paths_from_stack_file(tmp_path, capsys):

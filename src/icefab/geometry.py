@@ -835,6 +835,16 @@ def level_bands(levels: Sequence[tuple[Sequence[np.ndarray], float]
     of ``shrink(D, h)``, whose NonZero winding is 1 exactly in the band. Use them as the
     clip side of a NonZero Boolean (bands of different levels may touch or overlap)."""
     out: Rings = []
+    for outer, inner in _level_edges(levels):
+        out.extend(outer)
+        out.extend(np.ascontiguousarray(r[::-1]) for r in inner)
+    return out
+
+
+def _level_edges(levels) -> list[tuple[list[np.ndarray], list[np.ndarray]]]:
+    """Per non-empty level of :func:`level_bands`: the rings of ``expand(D + E, h)`` and
+    of ``shrink(D, h)``, as Clipper orients them."""
+    out = []
     for level in levels:
         rings, h = level[0], level[1]
         if not len(rings):
@@ -844,11 +854,37 @@ def level_bands(levels: Sequence[tuple[Sequence[np.ndarray], float]
         o = _offsetter()
         # one offset of both sets: Clipper unites what it offsets (D and E overlap)
         o.addPaths(rings + also, pyclipr.JoinType.Miter, pyclipr.EndType.Polygon)
-        out.extend(o.execute(h))
+        grown = list(o.execute(h))
         o = _offsetter()
         o.addPaths(rings, pyclipr.JoinType.Miter, pyclipr.EndType.Polygon)
-        out.extend(np.ascontiguousarray(r[::-1]) for r in o.execute(-h))
+        out.append((grown, list(o.execute(-h))))
     return out
+
+
+def level_gaps(area: Region | Sequence[np.ndarray],
+               levels: Sequence[tuple[Sequence[np.ndarray], float]
+                                | tuple[Sequence[np.ndarray], float, Sequence[np.ndarray]]]
+               ) -> Rings:
+    """``area`` less the bands of nested ring levels (:func:`level_bands`' levels, outermost
+    first), level by level: what of ``area`` lies outside the first band's outer edge, what
+    lies between each band's inner edge and the next band's outer edge, and what lies
+    inside the last band. Flat oriented rings, as :func:`difference_rings`.
+
+    Equal to ``difference_rings(area, level_bands(levels))`` when the levels nest: every
+    level's outer edge ``expand(D + E, h)`` lies within the one before's, and so does its
+    inner edge ``shrink(D, h)`` (then no band reaches between two others). Offset rings
+    do; :func:`icefab.paths.material_paths` checks the settings under which its levels
+    do (``_levels_nest``). Why: one Boolean of every band at once keeps the edges of all
+    levels in its sweep line together (a bunny layer has 20-50 levels); level by level,
+    ``plan_layer`` took 18 % less CPU on 120 bunny layers, the same paths and unfilled
+    area to 2e-5 mm^2 a layer (BENCHMARKS.md, issue 15)."""
+    edges = _level_edges(levels)
+    if not edges:
+        return [np.asarray(r, dtype=np.float64) for r in rings_of(area)]
+    out = difference_rings(area, edges[0][0])
+    for (_outer, inner), (outer, _inner) in zip(edges[:-1], edges[1:]):
+        out += difference_rings(inner, outer)
+    return out + [np.asarray(r, dtype=np.float64) for r in edges[-1][1] if len(r) >= 3]
 
 
 def sweep(paths: Sequence[tuple[np.ndarray, bool, float]]) -> Region:

@@ -1249,16 +1249,48 @@ def material_paths(region: Region, mat: MaterialSettings, job: Job, hook_levels:
     # ring as a line); bands are grown by the point filter (whose chords move one level
     # against the next) plus SWEEP_TOL, so touching bands leave no slivers.
     tol = filt + SWEEP_TOL
-    bands = geo.level_bands([(lv, w / 2.0 + tol) for lv in bounds]
-                            + [(lv, F / 2.0 + tol, held)
-                               for lv, held in zip(fill.levels, fill.held)])
-    bands += geo.sweep_rings([(ln, False, F) for ln in fill.lines]
-                             + [(r, True, w) for r in hook], tol)
-    gaps = geo.difference_rings(nominal, bands)
+    levels = gap_levels(bounds, fill, mat, filt)
+    swept = geo.sweep_rings([(ln, False, F) for ln in fill.lines]
+                            + [(r, True, w) for r in hook], tol)
+    if _levels_nest(mat, filt):   # the same gaps, at a fraction of the cost
+        gaps = geo.difference_rings(geo.level_gaps(nominal, levels), swept)
+    else:
+        gaps = geo.difference_rings(nominal, geo.level_bands(levels) + swept)
     if mat.gap_fill and gaps:
         extra, gaps = gap_fill_paths(gaps, nominal, mat, filt, whole)
         out["fill"] += extra
     return out, hook, max(geo.area(gaps), 0.0)
+
+
+def gap_levels(bounds: list[list[np.ndarray]], fill: FillLevels, mat: MaterialSettings,
+               filt: float) -> list[tuple]:
+    """The ring levels whose bands :func:`material_paths` takes out of the nominal area
+    (:func:`icefab.geometry.level_bands`' levels): the boundaries (half-width ``w / 2``)
+    and the fill levels (``F / 2``, with the rings their widened beads hold), each grown
+    by the point filter and ``SWEEP_TOL``, outermost first."""
+    tol = filt + SWEEP_TOL
+    return ([(lv, mat.path_width_mm / 2.0 + tol) for lv in bounds]
+            + [(lv, mat.fill_width_mm / 2.0 + tol, held)
+               for lv, held in zip(fill.levels, fill.held)])
+
+
+def _levels_nest(mat: MaterialSettings, filt: float) -> bool:
+    """Whether the boundary and fill ring levels of :func:`material_paths` nest as
+    :func:`icefab.geometry.level_gaps` needs: each band's outer and inner edges within the
+    band's before. Offsets of offsets do; what moves a level outward is smoothing. The
+    first fill band reaches outward over the last boundary's band by up to twice
+    ``fill_smoothing_mm`` plus the sweeps' growth and the filter, which must stay within
+    the boundary's width; a fill ring moves by up to ``RING_SMOOTHING`` of the fill width
+    either way, which must stay within the rest of the fill's half-width; each with a
+    margin of 2."""
+    tol = filt + SWEEP_TOL
+    w, F = mat.path_width_mm, mat.fill_width_mm
+    smooth = mat.fill_smoothing_mm if mat.fill_pattern == "concentric" else 0.0
+    ring = max(RING_SMOOTHING * F, filt) if smooth > 0 else 0.0
+    fill_ok = 2.0 * (tol + ring + 2.0 * filt) < F / 2.0
+    bound_ok = 2.0 * (tol + 2.0 * filt) < w / 2.0
+    first_ok = mat.boundary_count == 0 or 2.0 * (2.0 * smooth + 2.0 * tol + filt) < w
+    return fill_ok and bound_ok and first_ok
 
 
 #: Growth of swept bands when measuring gaps, mm, on top of the point filter (closes
