@@ -84,3 +84,36 @@ def test_the_ruckig_comparison_sees_a_missing_jerk_bound():
     free = JOB.replace(**{"motion.jerk_limited": False})
     for length in (8.0, 30.0, 120.0):
         assert _line_duration(length, free) < ruckig_duration(length, JOB) - JOB.motion.dt_s
+
+
+@pytest.mark.parametrize("a_r", [0.0, 1e-300, 1e-200, 1e-12, 1e-3, 1.0, 80.0, 1e4])
+def test_the_rest_segment_reaches_its_speed_after_its_length_at_any_initial_acceleration(a_r):
+    """AREST's segment from rest solved a T^2 / 6 + v1 T / 3 = h as (-v1 / 3 +
+    sqrt(...)) / (a / 3): at a = 1e-300 the root cancelled to 0, the jerk was infinite,
+    and ``icefab demo`` with ``motion.rest_accel_mm_s2 = 1e-300`` planned a flow of 1e288
+    mm^3/s (the settings walk's end just above 0 found it). Any a: s(T) = h, v(T) = v1."""
+    from icefab._mtts import _rest_segment
+    v1, h = 100.0, 0.1
+    T, a, j = _rest_segment(v1, h, a_r)
+    assert np.isfinite([T, a, j]).all() and T > 0.0
+    assert a * T + j * T * T / 2.0 == pytest.approx(v1, rel=1e-9)
+    assert a * T * T / 2.0 + j * T ** 3 / 6.0 == pytest.approx(h, rel=1e-9)
+    if a_r < 1e-12:   # the same as from no initial acceleration
+        assert T == pytest.approx(_rest_segment(v1, h, 0.0)[0], rel=1e-9)
+
+
+@pytest.mark.parametrize("a_r", [1e-300, 1e-100, 1e-12, 1e-6])
+def test_a_line_planned_from_rest_at_a_vanishing_initial_acceleration_is_planned_as_from_none(
+        a_r):
+    """ACON's cubic from rest (j t^3 / 6 + a0 t^2 / 2 = h) was solved by Newton from
+    sqrt(2 h / a0): 4e5 s at a0 = 1e-12, left at 120 s after its 20 steps, and the
+    profile jumped to full speed in one step (0.256 s for 30 mm, 7 800 mm/s^2 where 500
+    are allowed). Any vanishing initial acceleration plans as none does."""
+    line = Toolpath(points=np.array([[100.0, 150.0], [130.0, 150.0]]), role="fill",
+                    width=1.5, frame="base")
+    tiny, zero = (plan_motion(line, JOB.replace(**{"motion.rest_accel_mm_s2": a}))
+                  for a in (a_r, 0.0))
+    assert np.isfinite(tiny.speed).all()
+    step = np.abs(np.diff(tiny.speed)).max() / JOB.motion.dt_s
+    assert step <= 1.05 * JOB.motion.accel_mm_s2
+    assert tiny.duration == pytest.approx(zero.duration, rel=1e-9)

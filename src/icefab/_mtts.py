@@ -123,6 +123,10 @@ def _cubic_root(j0, a0, v0, ds):
     t = ds / v0 if v0 > 0.0 else np.inf
     if a0 > 0.0:
         t = min(t, math.sqrt(2.0 * ds / a0))
+    # the jerk's term too: from rest with a0 = 1e-12 the bound above was 4e5 s, which
+    # Newton (a third off per step that far out) left at 120 s after 20 steps, and the
+    # curve jumped to full speed in one grid step
+    t = min(t, np.cbrt(6.0 * ds / j0))
     for _ in range(20):
         f = ((j0 * t / 6.0 + 0.5 * a0) * t + v0) * t - ds
         fp = (0.5 * j0 * t + a0) * t + v0
@@ -450,11 +454,10 @@ def _rest_segment(v1, h, a_r):
         return 0.0, 0.0, 0.0
     if a_r < 0.0:
         return 2.0 * h / v1, v1 * v1 / (2.0 * h), 0.0
-    a = min(a_r, 4.0 * v1 * v1 / (3.0 * h))
-    if a > 0.0:
-        T = (-v1 / 3.0 + math.sqrt(v1 * v1 / 9.0 + 2.0 * a * h / 3.0)) / (a / 3.0)
-    else:
-        T = 3.0 * h / v1
+    a = max(min(a_r, 4.0 * v1 * v1 / (3.0 * h)), 0.0)
+    # the root of a T^2 / 6 + v1 T / 3 = h without cancellation: written as
+    # (-v1 / 3 + sqrt(...)) / (a / 3) it gave T = 0 for a = 1e-300 (and an infinite jerk)
+    T = 2.0 * h / (v1 / 3.0 + math.sqrt(v1 * v1 / 9.0 + 2.0 * a * h / 3.0))
     return T, a, 2.0 * (v1 - a * T) / (T * T)
 
 
