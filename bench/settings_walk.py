@@ -1,6 +1,11 @@
 """Every numeric setting at both ends of its range, on the demo mug (issue 10).
 
     python3 bench/settings_walk.py [--layers 8] [--timeout 60] [--out walk.jsonl]
+                                   [--ends lo,hi,lo+]
+
+A float setting whose range starts at 0 (0 is usually "off") is also run just above it
+(end ``lo+``, 1e-300): the "on" branch with a degenerate amount (a fill smoothed within
+1e-96 mm once turned rings inside out and asked for all memory).
 
 For each numeric setting of :mod:`icefab.config` (each element of a pair or triple on its
 own, the others at their defaults) and each end of its declared range, a job file that
@@ -35,6 +40,8 @@ import typing
 from pathlib import Path
 
 LIMIT_AS = 2 << 30
+#: The value just above a range that starts at 0 (end ``lo+``).
+TINY = 1e-300
 
 
 def numeric_settings():
@@ -109,6 +116,8 @@ def main() -> None:
     ap.add_argument("--timeout", type=float, default=60.0)
     ap.add_argument("--out", default="settings_walk.jsonl")
     ap.add_argument("--only", help="a substring of the setting names to walk")
+    ap.add_argument("--ends", default="lo,hi,lo+",
+                    help="which ends to run: lo, hi, lo+ (just above a range starting at 0)")
     ap.add_argument("--first", default="layer_thickness,parts.scale,fill_width,measure_spacing,"
                     "max_piece_s,tick_s,dt_s,buffer_mm,speed_mm_s,point_spacing,grid_mm,"
                     "copies,reach_mm,debris_rate,noise_mm,layer_scale,cpus",
@@ -130,8 +139,12 @@ def main() -> None:
             if args.only and args.only not in name:
                 continue
             label = name if i is None else f"{name}[{i}]"
-            for end, bound in (("lo", lo), ("hi", hi)):
-                if (label, end) in done:
+            value_type = type(default if i is None else default[i])
+            ends = [("lo", lo), ("hi", hi)]
+            if lo == 0 and value_type is float:
+                ends.append(("lo+", TINY))
+            for end, bound in ends:
+                if (label, end) in done or end not in args.ends.split(","):
                     continue
                 if bound is None:
                     rec = {"outcome": "failed", "why": "no bound declared"}
