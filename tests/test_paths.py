@@ -15,6 +15,7 @@ from shapely.geometry import LinearRing, LineString
 from icefab import geometry as geo
 from icefab.config import Job
 from icefab.errors import StackFileError
+from icefab.resultfiles import POINT_GRID_PER_MM, _point_states, decode_counts
 from icefab.paths import (OFF, ON1, ON2, SWEEP_TOL, centre_paths, deposition_state,
                           estimate_build_time, jin_segment_time, layer_point_states,
                           load_toolpaths, order_nearest, plan_layer, plan_paths, point_states,
@@ -460,7 +461,7 @@ def test_per_point_states_in_layer_order_and_in_the_file(tmp_path):
     f = tmp_path / "tp.npz"
     save_toolpaths(tp, f)
     with np.load(f) as d:
-        assert d["state"].shape == (len(d["points"]),) and d["state"].dtype == np.int8
+        assert d["state"].shape == (d["point_counts"].shape[2],) and d["state"].dtype == np.int8
         data = {key: d[key] for key in d.files}
         first = d["path_start"][:len(lp.paths) + 1]
     for i, p in enumerate(lp.paths):
@@ -473,11 +474,23 @@ def test_per_point_states_in_layer_order_and_in_the_file(tmp_path):
     np.savez(tmp_path / "bad.npz", **bad)
     with pytest.raises(StackFileError, match="states disagree"):
         load_toolpaths(tmp_path / "bad.npz")
-    old = {key: v for key, v in data.items()
-           if key not in ("state", "variable", "point_width", "point_off")}
-    old["version"] = np.array(1)
-    np.savez(tmp_path / "v1.npz", **old)
-    assert len(load_toolpaths(tmp_path / "v1.npz")) == len(tp)
+    # versions 1 and 4 stored the points as floats (version 5: counts of Clipper's grid)
+    pts = decode_counts(data["point_counts"], 1.0) / POINT_GRID_PER_MM
+    pts[data["point_exact_index"]] = data["point_exact"]
+    floats = {key: v for key, v in data.items()
+              if key not in ("point_counts", "point_exact_index", "point_exact")}
+    np.savez(tmp_path / "v4.npz", **dict(floats, points=pts, version=np.array(4)))
+    v4, v5 = load_toolpaths(tmp_path / "v4.npz"), load_toolpaths(f)
+    assert all(a.points.tobytes() == b.points.tobytes()
+               for la, lb in zip(v4.layers, v5.layers) for a, b in zip(la.paths, lb.paths))
+    # versions 1-3: without tours, per-point widths and states (version 3 refused before)
+    for version, drop in ((3, ("point_off",)), (2, ("point_off", "variable", "point_width")),
+                          (1, ("point_off", "variable", "point_width", "state"))):
+        old = {key: v for key, v in floats.items() if key not in drop}
+        if "state" in old:   # without point_off a tour's travel deposits as its members
+            old["state"] = _point_states(dict(old, points=pts))
+        np.savez(tmp_path / f"v{version}.npz", **dict(old, points=pts, version=np.array(version)))
+        assert len(load_toolpaths(tmp_path / f"v{version}.npz")) == len(tp)
 
 
 def test_deposition_states_and_order():

@@ -22,10 +22,16 @@ Stack file (``icefab slice``; :func:`save_stack` / :func:`load_stack`):
   each layer's own thickness (the toolpath and trajectory files carry it the same way).
 
 Toolpath file (``icefab paths``; :func:`save_toolpaths` / :func:`load_toolpaths`),
-version 4:
+version 5:
 
 * ``format`` "icefab-toolpaths", ``version`` int, ``job`` str (TOML), ``warnings`` (w,) str;
-* ``points`` (N, 2) float64 mm: the points of all paths, concatenated in order;
+* the points of all paths (N, 2) mm, concatenated in order, exactly as the paths hold
+  them: ``point_counts`` (2, k, N) uint8, each coordinate in counts of Clipper's grid
+  (``POINT_GRID_PER_MM``, 1e4: the point is ``counts / 1e4``) as :func:`encode_counts`
+  stores trajectory samples (the paths stage puts almost every point on that grid: 93 %
+  of the demo mug's); ``point_exact_index`` (m,) int64, increasing, the points that are
+  not ``counts / 1e4`` exactly, and ``point_exact`` (m, 2) float64 mm, their values
+  (version 4 stored ``points`` (N, 2) float64: the bunny's file was 174 MB);
 * ``state`` (N,) int8: Ossino's deposition state of every point (0 OFF, 1 ON1 part,
   2 ON2 scaffold), the state of the segment leaving the point along its path
   (:func:`icefab.core.point_states`: a closed path's last point deposits along its
@@ -46,8 +52,9 @@ version 4:
   (L + 1,) int64 (paths of layer j are ``layer_start[j]:layer_start[j+1]``),
   ``unfilled_mm2`` (L, 2) float64.
 
-Version 1 toolpath files (without ``state``), version 2 (no per-point widths) and version 3
-(no tours) are still read; states are derived from the paths.
+Version 1 toolpath files (without ``state``), version 2 (no per-point widths), version 3
+(no tours) and version 4 (``points`` as floats) are still read; states are derived from
+the paths.
 
 Trajectory file (``icefab plan``; :func:`save_trajectories` / :func:`load_trajectories`):
 
@@ -126,7 +133,13 @@ log = logging.getLogger(__name__)
 STACK_FORMAT = "icefab-stack"
 STACK_VERSION = 1
 TOOLPATHS_FORMAT = "icefab-toolpaths"
-TOOLPATHS_VERSION = 4
+TOOLPATHS_VERSION = 5
+#: Versions load_toolpaths reads (1: without ``state``; 2: no per-point widths; 3: no
+#: tours; 4: the points as floats). Until version 5 only 1 and the newest were let in.
+TOOLPATHS_READABLE = (1, 2, 3, 4, 5)
+#: Toolpath points are stored in counts of this grid (per mm): Clipper's
+#: (``icefab.geometry.SCALE``), where the paths stage puts its points.
+POINT_GRID_PER_MM = 10_000
 TRAJECTORIES_FORMAT = "icefab-trajectories"
 TRAJECTORIES_VERSION = 5
 #: Versions load_trajectories reads (1: without per-trajectory dt and Path fields; 2: float
@@ -752,7 +765,7 @@ def save_toolpath_layers(path: str | os.PathLike, job: Job, warnings: Sequence[s
         "version": np.array(TOOLPATHS_VERSION),
         "job": np.array(to_toml(job)),
         "warnings": np.array(list(warnings), dtype=str),
-        "points": packed.pop("points"),
+        **encode_points(packed.pop("points")),
         "state": _point_states(packed),
         **packed,
         "layer_index": np.array([lp.index for lp in layers], dtype=np.int64),
@@ -765,9 +778,49 @@ def save_toolpath_layers(path: str | os.PathLike, job: Job, warnings: Sequence[s
     _write(path, data)
 
 
-_TOOLPATHS_REQUIRED = ("format", "version", "job", "warnings", "points", "path_start", "z",
+_TOOLPATHS_REQUIRED = ("format", "version", "job", "warnings", "path_start", "z",
                        "material", "role", "closed", "width", "layer", "frame", "tool",
                        "layer_index", "layer_z", "layer_start", "unfilled_mm2")
+_POINT_MEMBERS = ("point_counts", "point_exact_index", "point_exact")
+
+
+def encode_points(points: np.ndarray) -> dict[str, np.ndarray]:
+    """A toolpath file's points (N, 2) mm as its members ``point_counts``,
+    ``point_exact_index`` and ``point_exact`` (module docstring); :func:`decode_points`
+    gives back the same floats, bit for bit."""
+    pts = np.asarray(points, np.float64).reshape(-1, 2)
+    counts = np.rint(pts * POINT_GRID_PER_MM)
+    # on the grid: the count gives the float back and is a whole number a float holds
+    # (and -0.0 is not 0 / 1e4)
+    on = ((counts / POINT_GRID_PER_MM == pts) & (np.abs(counts) <= 2.0 ** 53)
+          & ~((pts == 0.0) & np.signbit(pts)))
+    exact = np.flatnonzero(~on.all(axis=1))
+    counts[exact] = 0.0   # NaN or beyond the grid's range: the exact value says it
+    return {"point_counts": encode_counts(counts, 1.0),
+            "point_exact_index": exact.astype(np.int64),
+            "point_exact": np.ascontiguousarray(pts[exact])}
+
+
+def decode_points(m: "_Members") -> np.ndarray:
+    """The points (N, 2) mm of a version 5 toolpath file, checked like the float
+    ``points`` of older versions."""
+    planes = m.array("point_counts", "u", 3)
+    if planes.dtype.itemsize != 1 or planes.shape[0] != 2 or not 1 <= planes.shape[1] <= 8:
+        raise m.bad("point_counts", f"{planes.dtype} of shape {planes.shape}, expected uint8 "
+                    "byte planes of shape (2, 1..8, n): the file is corrupt")
+    pts = decode_counts(planes, 1.0) / POINT_GRID_PER_MM
+    del planes
+    n = len(pts)
+    idx = m.values("point_exact_index", "iu", 1, lo=0, hi=max(n - 1, 0)).astype(np.int64)
+    if len(idx) and (n == 0 or np.any(np.diff(idx) <= 0)):
+        raise m.bad("point_exact_index", "not increasing indices of points: the file is "
+                    "corrupt")
+    pts[idx] = m.values("point_exact", "f", 2, 2, n=len(idx), lo=-MAX_COORD_MM,
+                        hi=MAX_COORD_MM)
+    if n and not (np.abs(pts).max() <= MAX_COORD_MM):
+        raise m.bad("point_counts", f"a coordinate beyond {MAX_COORD_MM:g} mm: the file is "
+                    "corrupt")
+    return pts
 
 
 def load_toolpaths(path: str | os.PathLike) -> Toolpaths:
@@ -781,13 +834,17 @@ def load_packed_toolpaths(path: str | os.PathLike) -> PackedToolpaths:
     """:func:`load_toolpaths` without making a Toolpath: the same checks, the build as
     :class:`PackedToolpaths`."""
     with _Members(Path(path), "toolpath") as m:
-        version = m.header(TOOLPATHS_FORMAT, (1, TOOLPATHS_VERSION))
-        m.expect(_TOOLPATHS_REQUIRED + (("state",) if version >= 2 else ()),
+        version = m.header(TOOLPATHS_FORMAT, TOOLPATHS_READABLE)
+        m.expect(_TOOLPATHS_REQUIRED + (("state",) if version >= 2 else ())
+                 + (_POINT_MEMBERS if version >= 5 else ("points",)),
                  ("layer_height",) + (("variable", "point_width") if version >= 3 else ())
                  + (("point_off",) if version >= 4 else ()))
         job = m.job()
         warnings = m.strings("warnings")
-        pts = m.values("points", "f", 2, 2, lo=-MAX_COORD_MM, hi=MAX_COORD_MM)
+        if version >= 5:
+            pts = decode_points(m)
+        else:
+            pts = m.values("points", "f", 2, 2, lo=-MAX_COORD_MM, hi=MAX_COORD_MM)
         z = m.values("z", "f", 1, lo=-MAX_COORD_MM, hi=MAX_COORD_MM)
         n_paths = len(z)
         d = {"points": pts, "z": z,
