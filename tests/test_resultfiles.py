@@ -507,7 +507,9 @@ def test_toolpath_points_come_back_bit_for_bit(points):
 def test_toolpath_points_on_the_grid_take_a_few_bytes_each(tmp_path):
     """A ring of 20 000 points on Clipper's grid (what the paths stage writes) takes under
     a fifth of the bytes its floats took (version 4), and no float is stored."""
+    from icefab import geometry
     from icefab.core import Toolpath
+    assert rf.POINT_GRID_PER_MM == geometry.SCALE   # the grid the paths stage rounds to
     t = np.linspace(0.0, 2.0 * np.pi, 20_000, endpoint=False)
     ring = np.round(np.c_[150.0 * np.cos(t), 150.0 * np.sin(t)] * 1e4) / 1e4 + 0.0  # no -0.0
     rf.save_toolpaths(Toolpaths((LayerPaths(0, 0.25, (Toolpath(
