@@ -37,8 +37,8 @@ def encode_plane_column(values: np.ndarray, resolution: float, out: np.ndarray) 
     the counts ``rint(values / resolution)`` (the first ones against zeros); returns how
     many of the planes hold a non-zero byte (at least 1): the planes above are zeros that
     the file leaves out. The numpy form it replaces computed the same integers. ``out``
-    (k, n) with k < 8 gets the low k planes only (k from :func:`plane_count`: a writer
-    that holds the whole column need not hold eight bytes per value)."""
+    (k, n) with k < 8 gets the low k planes only; with k = 0 the call only counts them (a
+    writer that holds the whole column need not hold eight bytes per value)."""
     n = len(values)
     prev_q = np.int64(0)
     prev_d1 = np.int64(0)
@@ -57,21 +57,3 @@ def encode_plane_column(values: np.ndarray, resolution: float, out: np.ndarray) 
         k += 1
     return k
 
-
-@njit(cache=True, error_model="numpy")
-def plane_count(values: np.ndarray, resolution: float) -> int:
-    """How many byte planes :func:`encode_plane_column` keeps for ``values`` (1 to 8),
-    without writing them."""
-    prev_q = np.int64(0)
-    prev_d1 = np.int64(0)
-    used = np.uint64(0)
-    for i in range(len(values)):
-        q = np.int64(np.rint(values[i] / resolution))
-        d1 = q - prev_q
-        d = d1 - prev_d1
-        prev_q, prev_d1 = q, d1
-        used |= np.uint64((d << 1) ^ (d >> 63))
-    k = 1
-    while k < 8 and (used >> np.uint64(8 * k)) != np.uint64(0):
-        k += 1
-    return k

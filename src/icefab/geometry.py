@@ -841,7 +841,7 @@ def level_bands(levels: Sequence[tuple[Sequence[np.ndarray], float]
     return out
 
 
-def _level_edges(levels) -> list[tuple[list[np.ndarray], list[np.ndarray]]]:
+def _level_edges(levels: Sequence[tuple]) -> list[tuple[list[np.ndarray], list[np.ndarray]]]:
     """Per non-empty level of :func:`level_bands`: the rings of ``expand(D + E, h)`` and
     of ``shrink(D, h)``, as Clipper orients them."""
     out = []

@@ -1108,7 +1108,7 @@ def join_tours(paths: Sequence[Toolpath], max_turn_deg: float,
 
 
 def _joins(paths: Sequence[Toolpath], max_turn_deg: float
-           ) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+           ) -> tuple[np.ndarray, tuple[np.ndarray, ...], np.ndarray]:
     """(n - 1,) bool: whether :func:`join_tours` joins path i to path i + 1 (every rule
     looks at the two alone), for all pairs at once; each pair's (n - 1, 2) arrays
     ``a, ta, b, tb`` (:func:`tour_connectors`: where and along what path i ends, path

@@ -790,7 +790,7 @@ def encode_points(points: np.ndarray) -> dict[str, np.ndarray]:
     gives back the same floats, bit for bit. A coordinate at a time and only the byte
     planes kept, so the bunny's 21 M points need a few hundred MB beside them, not four
     times their size (``icefab paths`` peaked at 1.91 GB; issue 17)."""
-    from icefab._codec import encode_plane_column, plane_count
+    from icefab._codec import encode_plane_column
 
     pts = np.asarray(points, np.float64).reshape(-1, 2)
     exact = np.zeros(len(pts), dtype=bool)
@@ -807,7 +807,10 @@ def encode_points(points: np.ndarray) -> dict[str, np.ndarray]:
         exact[off] = True
         return q
 
-    k = max(plane_count(counts(c), 1.0) for c in range(2))
+    # each column's counts are made twice, to count the planes and to fill them: both
+    # columns' counts at once would cost 16 bytes a point
+    k = max(encode_plane_column(counts(c), 1.0, np.empty((0, len(pts)), np.uint8))
+            for c in range(2))
     planes = np.empty((2, k, len(pts)), np.uint8)
     for c in range(2):
         encode_plane_column(counts(c), 1.0, planes[c])
