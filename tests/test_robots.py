@@ -134,3 +134,66 @@ def test_gantry_identity_and_travel():
     check_workspace(p, g)
     with pytest.raises(WorkspaceError, match=r"point 1 at \(10.000, 120.000\).*y = 120.000"):
         check_workspace(np.array([[1.0, 1.0], [10.0, 120.0]]), g, path=0)
+
+
+# -- the whole-box reach test (issue 17: the paths and motion stages skip the point-by-point
+# inverse kinematics of a layer whose box lies inside every limit)
+
+_scaras = st.builds(
+    lambda l1, l2, rmin, rmax, j1, j2, elbow: Scara(
+        l1=l1, l2=l2, reach=(rmin, rmax), joint_range=(np.radians(j1), np.radians(j2)),
+        elbow=elbow),
+    st.floats(150.0, 400.0), st.floats(100.0, 400.0), st.floats(0.0, 300.0),
+    st.floats(300.0, 800.0), st.floats(30.0, 179.0), st.floats(30.0, 179.0),
+    st.sampled_from(["right", "left"]))
+
+
+def _near(robot: Scara, f1: float, f2: float) -> np.ndarray:
+    """A point of the robot's: joints at fractions f1, f2 (-1..1) of their ranges."""
+    j1, j2 = robot.joint_range
+    q2 = abs(f2) * j2 * (1.0 if robot.elbow == "right" else -1.0)
+    return robot.fk(np.array([[f1 * j1, q2]]))[0]
+
+
+@given(_scaras, st.floats(-1.0, 1.0), st.floats(-1.0, 1.0), st.floats(0.0, 150.0),
+       st.floats(0.0, 150.0))
+def test_a_box_the_scara_passes_holds_no_unreachable_point_nor_chord(robot, f1, f2, w, h):
+    c = _near(robot, f1, f2)   # boxes about reachable points: a fair share passes
+    lo, hi = c - [w / 2.0, h / 2.0], c + [w / 2.0, h / 2.0]
+    if not robot.box_reachable(lo, hi):
+        return
+    # a dense grid over the box, its corners and its edges; chords between any two of
+    # them stay in the box, so the grid's points stand for them
+    gx, gy = np.meshgrid(np.linspace(lo[0], hi[0], 41), np.linspace(lo[1], hi[1], 41))
+    pts = np.c_[gx.ravel(), gy.ravel()]
+    bad, _ = robot._point_violations(pts)
+    assert not len(bad)
+
+
+def test_the_box_test_passes_what_lies_inside_and_refuses_what_does_not():
+    r = Scara()   # reach 163..600 mm, joints 1 / 2 within 105 / 150 deg
+    assert r.box_reachable([200.0, -150.0], [480.0, 150.0])   # the bunny's place, about
+    assert not r.box_reachable([-10.0, -10.0], [10.0, 10.0])          # around the base
+    assert not r.box_reachable([500.0, -10.0], [620.0, 10.0])          # beyond the reach
+    assert not r.box_reachable([np.nan, 0.0], [300.0, 10.0])
+    assert not r.box_reachable([300.0, 0.0], [200.0, 10.0])            # lo above hi
+    # joint 1 near its limit: behind the base on the side the elbow swings out to
+    q = np.radians([[104.0, 30.0], [104.9, 30.0], [105.1, 30.0]])
+    p = r.fk(q)
+    assert r.box_reachable(p[0] - 1e-3, p[0] + 1e-3)
+    assert r.box_reachable(p[1] - 1e-3, p[1] + 1e-3)   # 0.1 deg inside: not too careful
+    assert not r.box_reachable(p[2] - 1e-3, p[2] + 1e-3)
+    g = Gantry(travel=(200.0, 100.0))
+    assert g.box_reachable([0.0, 0.0], [200.0, 100.0])
+    assert not g.box_reachable([0.0, 0.0], [200.1, 100.0])
+
+
+@given(_scaras, st.floats(-1.0, 1.0), st.floats(-1.0, 1.0), st.floats(0.1, 400.0),
+       st.lists(st.tuples(st.floats(-1.0, 1.0), st.floats(-1.0, 1.0)), min_size=1,
+                max_size=30))
+def test_workspace_violations_are_those_point_by_point(robot, f1, f2, spread, pts):
+    xy = _near(robot, f1, f2) + spread * np.array(pts, dtype=np.float64)
+    bad, reasons = robot.workspace_violations(xy)
+    bad0, reasons0 = robot._point_violations(xy)
+    np.testing.assert_array_equal(bad, bad0)
+    assert reasons == reasons0

@@ -107,7 +107,7 @@ from icefab.resultfiles import (TRAJECTORIES_FORMAT as FORMAT,  # noqa: F401 (ol
                                 packed_polylines, packed_tools,
                                 pack_trajectories, save_trajectories, unpack_layer_paths,
                                 unpack_trajectories)
-from icefab.robots import Robot, get_robot
+from icefab.robots import Robot, get_robot, points_box
 from icefab.core import (DEPOSITING_CODES, ROLES, BuildMotion, LayerMotion, LayerPaths,
                          Toolpath, Toolpaths, Trajectory, arc_lengths, checked_widths, offsets,
                          off_problem, path_lengths, polyline_lengths, widths_problem)
@@ -1126,6 +1126,9 @@ def check_packed_workspace(index: int, packed: dict[str, np.ndarray], job: Job,
 def _check_reach(index: int, pts: np.ndarray, counts: np.ndarray, robot: Robot) -> None:
     """The reach checks of :func:`check_layer_workspace` on a layer's polylines in the
     robot base frame (``pts`` (N, 2) mm, ``counts`` (P,) points each)."""
+    box = getattr(robot, "box_reachable", None)
+    if len(pts) and box is not None and box(*points_box(pts)):
+        return   # the segments lie in the points' box too
     ends = np.cumsum(counts)
     bad, reasons = robot.workspace_violations(pts)
     if len(bad):

@@ -44,7 +44,7 @@ log = logging.getLogger(__name__)
 CONTROLLER_PATH_POINTS = 8192
 
 __all__ = ["Robot", "Scara", "Gantry", "get_robot", "register_robot", "check_workspace",
-           "ROBOTS"]
+           "points_box", "ROBOTS"]
 
 
 @runtime_checkable
@@ -60,7 +60,10 @@ class Robot(Protocol):
 
     Optional: ``joint_resolution`` (j,) float64, the encoder resolution per joint in joint
     units (0 or absent: not considered); AREST makes the first and last step of every
-    piece turn some joint by at least that much (thesis 4.2.6).
+    piece turn some joint by at least that much (thesis 4.2.6). ``box_reachable(lo, hi)
+    -> bool``: whether every point of an axis-aligned box (and so every chord within it)
+    is surely reachable; :meth:`workspace_violations` and the paths stage's reach check
+    skip their point-by-point work for such a box.
     """
 
     name: str
@@ -85,7 +88,20 @@ class Robot(Protocol):
         ...
 
 
+def points_box(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The box (lo, hi) ((2,) each, NaN if any coordinate is) of points ``xy (n >= 1, 2)``.
+    Column by column: numpy's ``min(axis=0)`` of an (n, 2) array walks it 20 times
+    slower (1.1 ms against 0.05 ms for 14 000 points, a bunny layer)."""
+    x, y = xy[:, 0], xy[:, 1]
+    return np.array([x.min(), y.min()]), np.array([x.max(), y.max()])
+
+
 # --------------------------------------------------------------------------- SCARA
+
+#: How far inside every limit (mm of reach, rad of joint) a box must lie for
+#: :meth:`Scara.box_reachable` to pass it: far beyond the per-point checks' tolerances
+#: (1e-9 mm, 1e-12 rad) and the rounding of the inverse kinematics (~1e-15 rad).
+BOX_MARGIN = 1e-6
 
 
 @dataclass(frozen=True, eq=False)
@@ -158,9 +174,64 @@ class Scara:
         return np.stack([self.l1 * np.cos(t1) + self.l2 * np.cos(t12),
                          self.l1 * np.sin(t1) + self.l2 * np.sin(t12)], axis=1)
 
+    def box_reachable(self, lo: np.ndarray, hi: np.ndarray) -> bool:
+        """Whether every point of the box ``[lo, hi]`` ((2,) mm each, base frame) lies
+        ``BOX_MARGIN`` inside the reach and both joint ranges: then no point in it fails
+        :meth:`workspace_violations`, nor a chord between two of them. False when unsure
+        (a box near a limit, around the base, or not finite): check point by point.
+
+        Why: the paths stage checks each layer's points as the workers send them, the
+        motion stage every input point; on the 300 mm bunny that is 17 M inverse
+        kinematics of points in the middle of the workspace (issue 17). The box's radii
+        span ``[r_near, r_far]`` and its polar angles an interval (it does not hold the
+        base). |theta2| = acos(c2(r)) falls as r grows, and theta1 is the polar angle less
+        the shoulder's angle beta(r) of the triangle (l1, l2, r) (eq. 4.9's atan2), which
+        rises up to r = sqrt(l1^2 - l2^2) and falls after it (law of cosines), so the
+        extremes of both lie at the interval's ends or at that radius."""
+        lo = np.asarray(lo, dtype=np.float64)
+        hi = np.asarray(hi, dtype=np.float64)
+        if not (np.isfinite(lo).all() and np.isfinite(hi).all() and (lo <= hi).all()):
+            return False
+        m = BOX_MARGIN
+        corners = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]])
+        r_near = float(np.hypot(*np.clip(0.0, lo, hi)))
+        r_far = float(np.hypot(corners[:, 0], corners[:, 1]).max())
+        rmin, rmax = self.reach
+        if r_near < rmin + m or r_far > rmax - m or r_near <= 0.0:
+            return False
+        l1, l2 = self.l1, self.l2
+        j1, j2 = self.joint_range
+
+        def shoulder(r: float) -> float:  # beta(r) >= 0, as ik computes it
+            c2 = min(max((r * r - l1 * l1 - l2 * l2) / (2.0 * l1 * l2), -1.0), 1.0)
+            return float(np.arctan2(l2 * np.sin(np.arccos(c2)), l1 + l2 * c2))
+
+        c2_near = (r_near * r_near - l1 * l1 - l2 * l2) / (2.0 * l1 * l2)
+        if not -1.0 < c2_near < 1.0 or float(np.arccos(c2_near)) > j2 - m:
+            return False
+        betas = [shoulder(r_near), shoulder(r_far)]
+        if l1 > l2 and r_near < np.sqrt(l1 * l1 - l2 * l2) < r_far:
+            betas.append(shoulder(float(np.sqrt(l1 * l1 - l2 * l2))))
+        b_lo, b_hi = min(betas), max(betas)
+        if self._sign < 0:
+            b_lo, b_hi = -b_hi, -b_lo
+        centre = 0.5 * (lo + hi)
+        tc = float(np.arctan2(centre[1], centre[0]))
+        rel = (np.arctan2(corners[:, 1], corners[:, 0]) - tc + np.pi) % (2.0 * np.pi) - np.pi
+        t_lo, t_hi = tc + float(rel.min()) - b_hi, tc + float(rel.max()) - b_lo
+        shift = 2.0 * np.pi * np.round(0.5 * (t_lo + t_hi) / (2.0 * np.pi))
+        return bool(t_lo - shift >= -(j1 - m) and t_hi - shift <= j1 - m)
+
     def workspace_violations(self, xy: np.ndarray, joints: np.ndarray | None = None
                              ) -> tuple[np.ndarray, list[str]]:
         xy = np.asarray(xy, dtype=np.float64)
+        if len(xy) and self.box_reachable(*points_box(xy)):
+            return np.zeros(0, dtype=np.intp), []
+        return self._point_violations(xy, joints)
+
+    def _point_violations(self, xy: np.ndarray, joints: np.ndarray | None = None
+                          ) -> tuple[np.ndarray, list[str]]:
+        """:meth:`workspace_violations` point by point."""
         r2 = xy[:, 0] * xy[:, 0] + xy[:, 1] * xy[:, 1]
         rmin, rmax = self.reach
         eps = 1e-9
@@ -218,9 +289,24 @@ class Gantry:
         """(n, 2) float64 mm."""
         return np.array(joints[:, :2], dtype=np.float64, copy=True)
 
+    def box_reachable(self, lo: np.ndarray, hi: np.ndarray) -> bool:
+        """Whether the box ``[lo, hi]`` ((2,) mm each) lies within the travel (a box is
+        convex: then so does every chord in it)."""
+        lo = np.asarray(lo, dtype=np.float64)
+        hi = np.asarray(hi, dtype=np.float64)
+        return bool(np.isfinite(lo).all() and np.isfinite(hi).all() and (lo >= 0.0).all()
+                    and (hi <= np.asarray(self.travel, dtype=np.float64)).all())
+
     def workspace_violations(self, xy: np.ndarray, joints: np.ndarray | None = None
                              ) -> tuple[np.ndarray, list[str]]:
         xy = np.asarray(xy, dtype=np.float64)
+        if len(xy) and self.box_reachable(*points_box(xy)):
+            return np.zeros(0, dtype=np.intp), []
+        return self._point_violations(xy, joints)
+
+    def _point_violations(self, xy: np.ndarray, joints: np.ndarray | None = None
+                          ) -> tuple[np.ndarray, list[str]]:
+        """:meth:`workspace_violations` point by point."""
         tr = np.asarray(self.travel)
         out = (xy < -1e-9) | (xy > tr + 1e-9) | ~np.isfinite(xy)
         bad = np.flatnonzero(out.any(axis=1))
