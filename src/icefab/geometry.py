@@ -40,7 +40,7 @@ from numba import njit
 
 from icefab import _smooth
 from icefab.core import (Region, arc_lengths, closed_polyline, offsets,  # noqa: F401
-                         signed_area)  # (signed_area re-exported)
+                         signed_area, split_rows)  # (signed_area re-exported)
 
 #: Clipper integer units per millimetre (the one scale constant: resolution 1e-4 mm).
 SCALE = 10_000.0
@@ -742,7 +742,7 @@ def variable_sweep_rings(paths: Sequence[tuple[np.ndarray, bool, np.ndarray]],
     ang = 2.0 * np.pi * np.arange(DISK_SIDES) / DISK_SIDES
     circle = np.stack([np.cos(ang), np.sin(ang)], axis=1)
     verts, vstarts = _disk_pieces(P, r, t, sin_b, use, circle)
-    pieces = np.split(verts, vstarts[1:-1])
+    pieces = split_rows(verts, vstarts[1:-1])
     # the quadrilaterals between the disks' outer common tangents
     a, b, ra, rb = P[:-1][use], P[1:][use], r[:-1][use, None], r[1:][use, None]
     t, sb = t[use], sin_b[use][:, None]

@@ -96,7 +96,7 @@ from icefab.geometry import signed_area
 from icefab.core import (MATERIALS, OFF, ON1, ON2, ROLES, Layer, LayerPaths,  # noqa: F401
                          Region, Stack, Toolpath, Toolpaths, arc_lengths, closed_polyline,
                          deposition_state, mean_width, offsets, path_lengths, point_states,
-                         polyline_lengths)
+                         polyline_lengths, split_rows)
 from icefab.workload import check_paths
 
 log = logging.getLogger(__name__)
@@ -1097,7 +1097,7 @@ def join_tours(paths: Sequence[Toolpath], max_turn_deg: float,
                 join[i - 1] = False
                 run = float(lengths[i])
     pts, counts = tour_connectors(a[join], ta[join], b[join], tb[join])
-    curves = iter(np.split(pts, np.cumsum(counts)[:-1]) if len(counts) else [])
+    curves = iter(split_rows(pts, np.cumsum(counts)[:-1]) if len(counts) else [])
     out: list[Toolpath] = []
     first = 0
     for i in range(1, len(paths) + 1):

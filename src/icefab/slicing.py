@@ -101,7 +101,7 @@ from icefab.errors import GeometryError
 from icefab.fitting import fit_rings
 from icefab.geometry import _in_ring, region_from_rings
 from icefab.mesh.topology import edge_buckets
-from icefab.core import Layer, Mesh, Region, Stack, offsets, signed_area
+from icefab.core import Layer, Mesh, Region, Stack, offsets, signed_area, split_rows
 from icefab.resultfiles import (STACK_FORMAT, STACK_VERSION, load_stack,  # noqa: F401 (old home)
                                 save_stack)
 from icefab.workload import check_layers
@@ -1183,4 +1183,4 @@ def _region_of(rings: _Rings, parent: np.ndarray, a: int, b: int) -> Region:
     s, e = rings.offsets[a], rings.offsets[b]
     pts = rings.points[s:e]
     cuts = rings.offsets[a + 1:b] - s
-    return Region(rings=tuple(np.split(pts, cuts)), parent=parent[a:b].copy())
+    return Region(rings=tuple(split_rows(pts, cuts)), parent=parent[a:b].copy())

@@ -1,0 +1,30 @@
+"""The ragged-array helpers of icefab.core, against numpy's own forms."""
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given
+from hypothesis import strategies as st
+
+from icefab.core import offsets, split_rows
+
+_counts = st.lists(st.integers(0, 10_000), max_size=300)
+
+
+@given(_counts)
+def test_offsets_are_the_cumulated_counts_from_0(counts):
+    want = np.concatenate([[0], np.cumsum(np.array(counts, dtype=np.int64))])
+    for given_as in (counts, np.array(counts, dtype=np.int64), tuple(counts)):
+        got = offsets(given_as)
+        assert got.dtype == np.int64 and got.shape == (len(counts) + 1,)
+        np.testing.assert_array_equal(got, want)
+
+
+@given(st.integers(0, 50), st.lists(st.integers(-5, 60), max_size=12))
+def test_split_rows_are_np_split_views(n, cuts):
+    a = np.arange(2 * n, dtype=np.float64).reshape(n, 2)
+    want = np.split(a, np.array(cuts, dtype=np.int64))
+    got = split_rows(a, np.array(cuts, dtype=np.int64))
+    assert len(got) == len(want)
+    for g, w in zip(got, want):
+        np.testing.assert_array_equal(g, w)
+        assert g.shape == w.shape and (g.size == 0 or np.shares_memory(g, a))
