@@ -185,7 +185,7 @@ class Scara:
         kinematics of points in the middle of the workspace (issue 17). The box's radii
         span ``[r_near, r_far]`` and its polar angles an interval (it does not hold the
         base). |theta2| = acos(c2(r)) falls as r grows, and theta1 is the polar angle less
-        the shoulder's angle beta(r) of the triangle (l1, l2, r) (eq. 4.9's atan2), which
+        the shoulder's angle beta(r) of the triangle (l1, l2, r) (:meth:`ik`'s second atan2), which
         rises up to r = sqrt(l1^2 - l2^2) and falls after it (law of cosines), so the
         extremes of both lie at the interval's ends or at that radius."""
         lo = np.asarray(lo, dtype=np.float64)
@@ -290,8 +290,8 @@ class Gantry:
         return np.array(joints[:, :2], dtype=np.float64, copy=True)
 
     def box_reachable(self, lo: np.ndarray, hi: np.ndarray) -> bool:
-        """Whether the box ``[lo, hi]`` ((2,) mm each) lies within the travel (a box is
-        convex: then so does every chord in it)."""
+        """Whether the box ``[lo, hi]`` ((2,) mm each) lies within the travel (and so does
+        every chord between its points: a box is convex)."""
         lo = np.asarray(lo, dtype=np.float64)
         hi = np.asarray(hi, dtype=np.float64)
         return bool(np.isfinite(lo).all() and np.isfinite(hi).all() and (lo >= 0.0).all()
