@@ -56,4 +56,3 @@ def encode_plane_column(values: np.ndarray, resolution: float, out: np.ndarray) 
     while k < 8 and (used >> np.uint64(8 * k)) != np.uint64(0):
         k += 1
     return k
-

@@ -1619,11 +1619,9 @@ def _edge_capped(lines: list[np.ndarray], widths: list[np.ndarray], region: Regi
 
 
 def _split(a: np.ndarray, counts) -> list[np.ndarray]:
-    """``a`` cut into consecutive pieces of ``counts`` rows each (views, as ``np.split``
-    at the cumulated counts gives them, without its per-piece cost: the centre lines of a
-    bunny layer are cut into thousands)."""
-    ends = np.cumsum(counts).tolist()
-    return [a[s:e] for s, e in zip([0] + ends[:-1], ends)]
+    """``a`` cut into consecutive pieces of ``counts`` rows each (views; rows after the
+    last piece are left out)."""
+    return split_rows(a, np.cumsum(counts, dtype=np.int64))[:-1]
 
 
 def _run_paths(chains: list[tuple[np.ndarray, np.ndarray, bool]], w_min: float,
