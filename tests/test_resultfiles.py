@@ -396,6 +396,27 @@ def test_point_states_of_packed_paths_are_each_paths(shapes):
         [(r, m, c, k) for k, r, m, c in shapes]
 
 
+@given(st.lists(st.tuples(st.integers(0, 6), st.booleans()), max_size=12),
+       st.integers(0, 2 ** 32 - 1))
+def test_packed_lengths_are_those_of_the_paths_polylines(shapes, seed):
+    """packed_lengths gives, bit for bit, the lengths of the paths' polylines (closed
+    ones back to their first point) that packed_polylines + polyline_lengths give, with
+    empty, one-point and two-point paths among them; and each path's own length."""
+    from icefab.core import Toolpath, path_lengths, polyline_lengths
+    rng = np.random.default_rng(seed)
+    paths = [Toolpath(points=rng.uniform(-300, 300, (k, 2)), role="fill", closed=c)
+             for k, c in shapes]
+    d = rf.pack_paths(paths)
+    got = rf.packed_lengths(d)
+    assert got.dtype == np.float64 and got.shape == (len(paths),)
+    assert np.array_equal(got, polyline_lengths(*rf.packed_polylines(d)))
+    # each path on its own (empty paths at either end once shortened their neighbours)
+    own = [float(np.hypot(*np.diff(p.polyline(), axis=0).T).sum()) if len(p.points) > 1
+           else 0.0 for p in paths]
+    np.testing.assert_allclose(got, own, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(path_lengths(paths), own, rtol=1e-12, atol=1e-9)
+
+
 @given(st.lists(st.lists(st.tuples(st.integers(1, 5), st.booleans(), st.booleans()),
                          max_size=6), max_size=5))
 def test_packed_layers_concatenate_to_the_packing_of_all_their_paths(layers):

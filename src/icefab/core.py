@@ -496,7 +496,10 @@ def polyline_lengths(pts: np.ndarray, counts: np.ndarray) -> np.ndarray:
         return np.zeros(len(counts))
     step = np.linalg.norm(np.diff(pts, axis=0), axis=1)
     inside = np.ones(len(step), dtype=bool)
-    inside[np.cumsum(counts)[:-1] - 1] = False        # from one path to the next
+    ends = np.cumsum(counts)[:-1]
+    # from one path to the next (empty paths before the first point or after the last
+    # have no step there)
+    inside[ends[(ends > 0) & (ends < len(pts))] - 1] = False
     owner = np.repeat(np.arange(len(counts)), counts)[1:]
     return np.bincount(owner[inside], weights=step[inside], minlength=len(counts))
 

@@ -91,12 +91,12 @@ from icefab.regions import hook_band_mm
 from icefab.robots import CONTROLLER_PATH_POINTS
 from icefab.resultfiles import (TOOLPATHS_FORMAT as FORMAT, TOOLPATHS_VERSION as VERSION,  # noqa: F401
                                 LayerHead, PackedToolpaths, load_toolpaths, pack_layer_paths,
-                                packed_polylines, save_toolpaths, unpack_layer_paths)
+                                packed_lengths, save_toolpaths, unpack_layer_paths)
 from icefab.geometry import signed_area
 from icefab.core import (MATERIALS, OFF, ON1, ON2, ROLES, Layer, LayerPaths,  # noqa: F401
                          Region, Stack, Toolpath, Toolpaths, arc_lengths, closed_polyline,
                          deposition_state, mean_width, offsets, path_lengths, point_states,
-                         polyline_lengths, split_rows)
+                         split_rows)
 from icefab.workload import check_paths
 
 log = logging.getLogger(__name__)
@@ -1908,7 +1908,7 @@ def estimate_build_time(toolpaths: Toolpaths | PackedToolpaths, job: Job | None 
     """
     job = job or toolpaths.job
     if isinstance(toolpaths, PackedToolpaths):   # as its arrays (icefab plan), the same
-        per = np.array([packed_estimate(d, job, polyline_lengths(*packed_polylines(d)))
+        per = np.array([packed_estimate(d, job, packed_lengths(d))
                         for d in toolpaths.layers], dtype=np.float64)
     else:
         per = np.array([layer_estimate(lp, job) for lp in toolpaths.layers],

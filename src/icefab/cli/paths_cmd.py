@@ -22,9 +22,9 @@ import numpy as np
 from icefab.cli.common import (ESTIMATE_WORDS, Progress, add_job_argument, hours,
                                job_from_args, output_dir, parse_layers, warning_lines,
                                write_warnings)
-from icefab.core import MATERIALS, ROLES, polyline_lengths
+from icefab.core import MATERIALS, ROLES
 from icefab.report import plot_toolpaths
-from icefab.resultfiles import LayerHead, packed_polylines
+from icefab.resultfiles import LayerHead, packed_lengths
 
 SHOW_WARNINGS = 5
 
@@ -70,7 +70,7 @@ class PathTally:
         """One layer's paths as :func:`icefab.resultfiles.pack_paths` packed them."""
         from icefab.paths import packed_estimate
 
-        lengths = polyline_lengths(*packed_polylines(packed))
+        lengths = packed_lengths(packed)
         key = _KEYS[packed["role"].astype(np.int64) * len(MATERIALS)
                     + packed["material"].astype(np.int64)]
         for k in sorted(set(key.tolist())):
