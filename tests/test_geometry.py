@@ -578,3 +578,74 @@ def test_ring_nearest_is_shapelys_projection(rings, points):
     # the foot at the arc position given is that far from the point
     assert np.allclose(np.hypot(*(foot - pts).T), dist, atol=1e-7)
     assert np.all((at >= 0.0) & (at <= line.length + 1e-9))
+
+
+def test_clipper_needles_are_dropped_from_regions_unless_they_hold_a_ring():
+    """region_from_tree leaves out rings narrower on average than one grid unit (a spike
+    Clipper2 returned as a ring of its own) unless another ring lies inside them; the
+    parents of the rest follow."""
+    class Node:
+        def __init__(self, polygon, children=()):
+            self.polygon, self.children = np.asarray(polygon, float), list(children)
+
+    needle = np.array([[1.0, 1.0], [9.0, 1.00001], [1.0, 1.00002]])[::-1]   # CW, a "hole"
+    assert 2 * abs(signed_area(needle)) * geo.SCALE < 16.0
+    island = rect(4, 4, 6, 6)
+    hole = rect(2, 2, 8, 8)[::-1]
+    tree = Node(np.zeros((0, 2)), [Node(rect(0, 0, 10, 10), [Node(needle),
+                                                              Node(hole, [Node(island)])])])
+    r = geo.region_from_tree(tree)
+    assert len(r.rings) == 3 and r.parent.tolist() == [-1, 0, 1]
+    np.testing.assert_array_equal(r.rings[1], hole)
+    check_region_structure(r)
+    # a needle holding a ring stays (its child would lose its place in the tree)
+    tree = Node(np.zeros((0, 2)), [Node(rect(0, 0, 10, 10), [Node(needle, [Node(island)])])])
+    assert len(geo.region_from_tree(tree).rings) == 3
+
+
+@settings(max_examples=60, deadline=None)
+@given(polygon_with_holes(), st.lists(st.tuples(*[st.floats(-35.0, 35.0)] * 4), min_size=1,
+                                      max_size=30),
+       st.floats(0.05, 5.0), st.sampled_from([0.25, 1.0, 3.0]), st.booleans())
+def test_segment_distances_to_rings_are_shapelys(rings, segs, upper, spacing, each):
+    """segments_to_rings_distance is GEOS' segment-to-boundary distance (0 where an edge
+    crosses the segment) wherever that is within ``upper`` (one for all, or one per
+    segment), and inf only beyond it, whatever the sampling that finds the edges."""
+    s = np.array(segs, dtype=np.float64).reshape(-1, 4)
+    a, b = s[:, :2], s[:, 2:]
+    if each:
+        upper = upper * (1.0 + np.sin(np.arange(len(a))))
+    got = geo.segments_to_rings_distance(a, b, rings, upper, spacing)
+    edge = shapely.MultiLineString([np.vstack([r, r[:1]]) for r in rings])
+    want = np.array([shapely.LineString([p, q]).distance(edge) if np.any(p != q)
+                     else shapely.Point(p).distance(edge) for p, q in zip(a, b)])
+    near = want <= upper
+    np.testing.assert_allclose(got[near], want[near], rtol=1e-9, atol=1e-9)
+    assert np.all(np.isinf(got[~near]) | (np.abs(got[~near] - want[~near]) < 1e-9))
+
+
+def test_a_segment_across_a_thin_spike_of_the_edge_is_at_distance_0():
+    """The case sampled distances miss: a short segment whose ends lie well inside the
+    area, crossing a spike of the edge whose tip and base lie far from it."""
+    spike = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 4.0], [5.2, 4.0], [5.0, 9.0],
+                      [4.99, 4.0], [0.0, 4.0]])
+    a, b = np.array([[4.9, 6.0]]), np.array([[5.3, 6.0]])
+    assert geo.segments_to_rings_distance(a, b, [spike], 1.0)[0] == 0.0
+    # parallel beside it, 0.3 mm from the spike's nearer edge
+    far = geo.segments_to_rings_distance(np.array([[5.5, 5.0]]), np.array([[5.5, 6.0]]),
+                                         [spike], 1.0)[0]
+    want = shapely.LineString([[5.5, 5.0], [5.5, 6.0]]).distance(
+        shapely.LinearRing(spike))
+    assert far == pytest.approx(want, abs=1e-12) and 0.2 < far < 0.4
+
+
+@pytest.mark.parametrize("spacing", [0.5, 3.0, 10.0])
+def test_an_edge_sampled_sparsely_is_still_found_near_a_short_segment(spacing):
+    """A short segment beside the middle of a long edge, between its samples: within
+    ``upper`` of the edge, farther than ``upper`` from every sample of it."""
+    box = rect(-30.0, -20.0, 30.0, 0.0)
+    for x in (0.25, 1.3, 4.9):
+        a, b = np.array([[x, -0.9]]), np.array([[x + 0.01, -0.9]])
+        assert geo.segments_to_rings_distance(a, b, [box], 1.0, spacing)[0] == \
+            pytest.approx(0.9, abs=1e-12)
+        assert np.isinf(geo.segments_to_rings_distance(a, b, [box], 0.8, spacing)[0])

@@ -1234,3 +1234,19 @@ def test_unmeasured_is_what_lies_beyond_the_rings_reach():
     assert len(lines) == 1
     assert np.allclose(lines[0][:, 1], 10.0, atol=0.05)
     assert lines[0][:, 0].min() < 42.0 and lines[0][:, 0].max() > 78.5   # ends: half a width in
+
+
+@pytest.mark.parametrize("case", ["spiky-part-101", "spiky-part-456"])
+def test_gap_paths_of_a_spiky_part_stay_inside_it(case):
+    """Parts found by fuzzing plan_layer (tests/data/regions: a star of random radii at
+    random angles with a hole, and a smaller copy of it beside it): centre-line gap paths
+    0.2 mm long in the notches crossed the part's edge by 1-10 micrometres, both ends
+    0.09 mm inside it, where the edge's spikes came between their points. Every layer
+    invariant holds, measured and not."""
+    from pathlib import Path
+    data = np.load(Path(__file__).parent / "data" / "regions" / f"{case}.npz")
+    part = geo.region_from_rings([data[k] for k in sorted(data.files)])
+    job = Job().replace(**{"cell.cpus": 1})
+    layer = add_scaffold(make_stack([part] * 2, job)).layers[0]
+    for measured in (True, False):
+        check_layer_paths(layer, plan_layer(layer, job, measured), job, min_cover=None)

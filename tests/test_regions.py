@@ -383,3 +383,29 @@ def test_property_invariants_scanned_parts(regions, smoothing, angle):
     job = Job().replace(**{"scaffold.smoothing_mm": smoothing, "cell.cpus": 1,
                            "scaffold.overhang_angle_deg": angle, "scaffold.min_width_mm": 0.0})
     check_invariants(add_scaffold(make_stack(regions, job)), 3.3)
+
+
+def test_a_fuzzed_scaffold_keeps_no_needle_of_clippers():
+    """A part found by fuzzing plan_layer (a star-like blob with a smaller copy beside it,
+    tests/data/regions/needle-scaffold.npz): Clipper2's difference of its wall and the
+    part returned a 3-point "hole" 8.5 mm long and 3.5e-5 mm wide inside another hole,
+    which made the scaffold polygon invalid (overlapping holes; under the nonzero rule a
+    sliver of scaffold inside the part's hole). No ring narrower on average than one grid
+    unit is left, and the scaffold's area is the area of the wall less the part."""
+    from pathlib import Path
+    data = np.load(Path(__file__).parent / "data" / "regions" / "needle-scaffold.npz")
+    part = geo.region_from_rings([data[k] for k in sorted(data.files)])
+    job = Job()
+    st_ = add_scaffold(make_stack([part] * 2, job))
+    for layer in st_.layers:
+        for reg in (layer.part, layer.scaffold):
+            check_region_structure(reg)
+            rings = list(reg.rings)
+            assert np.all(2.0 * np.abs(geo.ring_areas(rings)) * geo.SCALE
+                          >= geo.ring_perimeters(rings))
+        # apart but for Clipper's grid along the part's edge
+        grid = 2.0 / geo.SCALE * float(geo.ring_perimeters(list(layer.part.rings)).sum())
+        S, Pt = to_shapely(layer.scaffold), to_shapely(layer.part)
+        assert S.intersection(Pt).area < grid
+        assert S.union(Pt).area == pytest.approx(layer.scaffold.area + layer.part.area,
+                                                 abs=grid)

@@ -31,6 +31,7 @@ dropped.
 
 from __future__ import annotations
 
+import itertools
 import math
 from typing import Iterable, Sequence
 
@@ -94,10 +95,38 @@ def region_from_tree(tree) -> Region:
         stack.extend((child, idx, depth + 1) for child in reversed(node.children))
     if not rings:
         return Region()
+    areas = ring_areas(rings)
+    rings, parent, areas, depths = _without_needles(rings, parent, areas, depths)
+    if not rings:
+        return Region()
     holes = np.asarray(depths) % 2 == 1
-    if np.any((ring_areas(rings) < 0) != holes):
+    if np.any((areas < 0) != holes):
         return _fix_nesting(rings, parent)
     return Region(tuple(rings), np.asarray(parent, dtype=np.int64))
+
+
+def _without_needles(rings: list[np.ndarray], parent: list[int], areas: np.ndarray,
+                     depths: list[int]) -> tuple[list[np.ndarray], list[int], np.ndarray,
+                                                 list[int]]:
+    """The rings of a Clipper result less its needles: rings narrower on average than one
+    grid unit (``2 |area| / perimeter < 1 / SCALE``) that hold no other ring. Clipper2
+    may return such a spike as a ring of its own: a fuzzed scaffold had a 3-point "hole"
+    8.5 mm long and 3.5e-5 mm wide inside another hole, which under the nonzero rule
+    made a sliver of scaffold inside the part's hole and the polygon invalid. Parents
+    come before their children (tree order) and stay so."""
+    perims = ring_perimeters(rings)
+    needle = 2.0 * np.abs(areas) * SCALE < perims
+    if not needle.any():
+        return rings, parent, areas, depths
+    par = np.asarray(parent, dtype=np.int64)
+    needle[par[par >= 0]] = False          # a ring holding another is no needle
+    if not needle.any():
+        return rings, parent, areas, depths
+    keep = np.flatnonzero(~needle)
+    new = np.full(len(rings), -1, dtype=np.int64)
+    new[keep] = np.arange(len(keep))
+    return ([rings[i] for i in keep], [int(new[par[i]]) if par[i] >= 0 else -1 for i in keep],
+            areas[keep], [depths[i] for i in keep])
 
 
 def _fix_nesting(rings: list[np.ndarray], parent: list[int]) -> Region:
@@ -1236,6 +1265,67 @@ def subdivide_segments(a: np.ndarray, b: np.ndarray, step: float
     i = np.repeat(np.arange(len(seg)), n)
     t = (np.arange(len(i)) - np.repeat(np.cumsum(n) - n, n)) / n[i]
     return a[i] + t[:, None] * (b - a)[i], i, t
+
+
+@njit(cache=True)
+def _pair_distances(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray
+                    ) -> np.ndarray:  # pragma: no cover - compiled
+    """(n,) distances between the segments ``a[i]-b[i]`` and ``c[i]-d[i]`` ((n, 2) each,
+    mm): 0 where they cross or touch, else the least distance of an end of one to the
+    other (where a segment-to-segment distance lies when they do not cross)."""
+    out = np.empty(len(a))
+    for i in range(len(a)):
+        ax, ay, bx, by = a[i, 0], a[i, 1], b[i, 0], b[i, 1]
+        cx, cy, dx, dy = c[i, 0], c[i, 1], d[i, 0], d[i, 1]
+        ux, uy, vx, vy = bx - ax, by - ay, dx - cx, dy - cy
+        o1 = ux * (cy - ay) - uy * (cx - ax)
+        o2 = ux * (dy - ay) - uy * (dx - ax)
+        o3 = vx * (ay - cy) - vy * (ax - cx)
+        o4 = vx * (by - cy) - vy * (bx - cx)
+        if (o1 * o2 <= 0.0 and o3 * o4 <= 0.0 and (o1 != 0.0 or o2 != 0.0)
+                and (o3 != 0.0 or o4 != 0.0)):
+            out[i] = 0.0
+            continue
+        best = min(_seg_dist2(cx - ax, cy - ay, ux, uy), _seg_dist2(dx - ax, dy - ay, ux, uy),
+                   _seg_dist2(ax - cx, ay - cy, vx, vy), _seg_dist2(bx - cx, by - cy, vx, vy))
+        out[i] = math.sqrt(best)
+    return out
+
+
+def segments_to_rings_distance(a: np.ndarray, b: np.ndarray, rings: Sequence[np.ndarray],
+                               upper: float | np.ndarray, spacing: float = 1.0
+                               ) -> np.ndarray:
+    """(n,) float64: the exact distance (mm) of the segments ``a[i] -> b[i]`` ((n, 2) each)
+    to the edges of ``rings``, 0 where an edge crosses one; ``inf`` where no edge comes
+    within ``upper`` (mm, one for all or (n,) one per segment: the less, the cheaper).
+    The edges are sampled every ``spacing`` mm to find the ones near each segment (any
+    edge within ``upper`` of a segment has a sample within ``upper + spacing / 2`` of the
+    segment, so within that plus half its length of its middle)."""
+    from scipy.spatial import cKDTree
+
+    a = np.ascontiguousarray(a, dtype=np.float64).reshape(-1, 2)
+    b = np.ascontiguousarray(b, dtype=np.float64).reshape(-1, 2)
+    upper = np.broadcast_to(np.asarray(upper, dtype=np.float64), (len(a),))
+    out = np.full(len(a), np.inf)
+    rings = [np.asarray(r, dtype=np.float64) for r in rings if len(r) >= 2]
+    if not rings or not len(a):
+        return out
+    P, edge, ea, eb, _prv, _ring, _arc, _len = _sample_rings(rings, spacing)
+    near = cKDTree(P).query_ball_point(
+        (a + b) / 2.0, np.hypot(*(b - a).T) / 2.0 + upper + spacing / 2.0)
+    counts = np.fromiter((len(c) for c in near), np.int64, len(near))
+    if not counts.any():
+        return out
+    which = np.repeat(np.arange(len(a)), counts)
+    e = edge[np.fromiter(itertools.chain.from_iterable(near), np.int64, int(counts.sum()))]
+    # each (segment, edge) pair once (the samples of one edge come in a row)
+    pair = np.unique(which * len(ea) + e)
+    which, e = pair // len(ea), pair % len(ea)
+    dist = _pair_distances(a[which], b[which], np.ascontiguousarray(ea[e]),
+                           np.ascontiguousarray(eb[e]))
+    np.minimum.at(out, which, dist)
+    out[out > upper] = np.inf
+    return out
 
 
 def _sample_rings(rings: Sequence[np.ndarray], spacing: float):

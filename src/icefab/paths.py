@@ -1597,20 +1597,31 @@ def _simplified(lines: list[np.ndarray], widths: list[np.ndarray], masks: list[n
 def _edge_capped(lines: list[np.ndarray], widths: list[np.ndarray], region: Region,
                  w_max: float) -> list[np.ndarray]:
     """Widths no more than twice the distance of the path to ``region``'s edge: per
-    segment the least distance of its points a quarter millimetre apart, per point the
-    lesser of its two segments'."""
+    segment the least distance of its points a quarter millimetre apart, or its exact
+    distance to the edge where that is less, per point the lesser of its two segments'.
+
+    The exact distance: a segment that cuts across a concave corner of the edge, or a
+    spike of it, passes nearer to it than any of its points (fuzzing found 0.2 mm
+    centre-line paths crossing the edge of a spiky part by 1-10 micrometres with both
+    ends 0.09 mm inside it: a width of 0 there cuts them)."""
     polys = [np.asarray(ln, np.float64) for ln in lines]
     n = np.array([len(p) for p in polys])
     allp = np.concatenate(polys)
     owner = np.repeat(np.arange(len(polys)), n)
     same = owner[:-1] == owner[1:]
     seg = np.flatnonzero(same)
-    dense, i, _ = geo.subdivide_segments(allp[seg], allp[seg + 1], 0.25)
+    a, b = allp[seg], allp[seg + 1]
+    dense, i, _ = geo.subdivide_segments(a, b, 0.25)
+    rings = list(region.rings)
     # the dense points hold every segment's start; its end is added
-    d = geo.distance_to_rings(np.concatenate([dense, allp[seg + 1]]), list(region.rings),
-                              upper=w_max / 2.0)
+    d = geo.distance_to_rings(np.concatenate([dense, b]), rings, upper=w_max / 2.0)
     d_seg = d[len(dense):].copy()
     np.minimum.at(d_seg, i, d[:len(dense)])
+    # (it is less only where an edge comes nearer than the points' distance)
+    exact = geo.segments_to_rings_distance(a, b, rings, np.minimum(d_seg, w_max / 2.0))
+    # only where it is less by more than rounding (the same distances computed in
+    # another order differ in their last bits)
+    d_seg = np.where(exact < d_seg - 1e-9, exact, d_seg)
     cap = np.full(len(allp), np.inf)
     np.minimum.at(cap, seg, d_seg)
     np.minimum.at(cap, seg + 1, d_seg)
