@@ -1236,17 +1236,34 @@ def test_unmeasured_is_what_lies_beyond_the_rings_reach():
     assert lines[0][:, 0].min() < 42.0 and lines[0][:, 0].max() > 78.5   # ends: half a width in
 
 
+@pytest.mark.parametrize("variable", [True, False])
 @pytest.mark.parametrize("case", ["spiky-part-101", "spiky-part-456"])
-def test_gap_paths_of_a_spiky_part_stay_inside_it(case):
+def test_gap_paths_of_a_spiky_part_stay_inside_it(case, variable):
     """Parts found by fuzzing plan_layer (tests/data/regions: a star of random radii at
     random angles with a hole, and a smaller copy of it beside it): centre-line gap paths
     0.2 mm long in the notches crossed the part's edge by 1-10 micrometres, both ends
-    0.09 mm inside it, where the edge's spikes came between their points. Every layer
-    invariant holds, measured and not."""
+    0.09 mm inside it, where the edge's spikes came between their points; variable-width
+    paths and runs of one width alike. Every layer invariant holds, measured and not."""
     from pathlib import Path
     data = np.load(Path(__file__).parent / "data" / "regions" / f"{case}.npz")
     part = geo.region_from_rings([data[k] for k in sorted(data.files)])
-    job = Job().replace(**{"cell.cpus": 1})
+    job = Job().replace(**{"cell.cpus": 1, "materials.part.variable_width": variable,
+                           "materials.scaffold.variable_width": variable})
     layer = add_scaffold(make_stack([part] * 2, job)).layers[0]
     for measured in (True, False):
         check_layer_paths(layer, plan_layer(layer, job, measured), job, min_cover=None)
+
+
+@pytest.mark.parametrize("count", [0, 1])
+def test_the_first_smoothed_fill_ring_keeps_its_bead_inside_without_boundaries(count):
+    """With no boundary outside it (``boundary_count = 0``) the first fill band has no
+    room to reach outward over its edge, which the smoothing of its edge and of its ring
+    would make it do (fuzzing found a first ring's bead 0.5 mm past the part's edge): the
+    first level is then left unsmoothed. A wavy disk, scaffold around it."""
+    t = np.linspace(0.0, 2.0 * np.pi, 720, endpoint=False)
+    r = 25.0 + 0.4 * np.sin(23.0 * t) + 0.2 * np.sin(57.0 * t)
+    part = geo.region_from_rings([np.c_[r * np.cos(t), r * np.sin(t)]])
+    job = Job().replace(**{"cell.cpus": 1, "materials.part.boundary_count": count,
+                           "materials.scaffold.boundary_count": count})
+    layer = add_scaffold(make_stack([part] * 2, job)).layers[0]
+    check_layer_paths(layer, plan_layer(layer, job, False), job, min_cover=None)

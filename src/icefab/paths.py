@@ -203,7 +203,9 @@ def concentric_levels(region: Region, start_mm: float, step_mm: float, filt: flo
           and grown by as much as the true edge reaches outside it (at most ``smooth_mm``;
           nothing on a clean contour), so it lies outside the true edge everywhere: the
           first band overlaps what is outside it by up to ``2 smooth_mm`` and leaves no
-          sliver. The first ring is ``step_mm / 2`` inside it.
+          sliver. The first ring is ``step_mm / 2`` inside it. Where that and the first
+          ring's smoothing would reach past the region's edge (less room than that
+          outside the first band: no boundaries), the first level is not smoothed.
         * every ring, the first (the offset of the smoothed edge) too when ``width_mm``
           > 0, is smoothed within ``ring_smooth_mm`` in a window of ``ring_sigma_mm``
           (corners turning by over ``corner_deg`` kept; the edge's smoothing keeps those
@@ -230,7 +232,14 @@ def concentric_levels(region: Region, start_mm: float, step_mm: float, filt: flo
     out: list[list[np.ndarray]] = []
     widths: list[list[np.ndarray | None]] = []
     held_by: list[list[np.ndarray]] = []
-    if smooth_mm > 0:
+    # the first band may reach outward over its edge by up to twice smooth_mm and the
+    # first ring's own smoothing: with less room than that between the band's edge and
+    # the region's (no boundary outside it: boundary_count = 0), the first level is not
+    # smoothed (fuzzing found a first fill ring's bead 0.5 mm past the part's edge)
+    room = start_mm - step_mm / 2.0
+    tight = width_mm > 0 and smooth_mm > 0 and \
+        2.0 * smooth_mm + max(ring_smooth_mm, filt) > room + filt
+    if smooth_mm > 0 and not tight:
         edge = geo.offset_rings(list(region.rings), -(start_mm - step_mm / 2.0), filt)
         smooth, reach = geo.smooth_rings(edge, smooth_mm, FILL_SMOOTH_SIGMA_MM)
         rings = geo.offset_rings(smooth, -(step_mm / 2.0 - reach), filt)
@@ -239,7 +248,7 @@ def concentric_levels(region: Region, start_mm: float, step_mm: float, filt: flo
     while rings and len(out) < max_rings:
         raw = None
         first = not out
-        if smooth_mm > 0:
+        if smooth_mm > 0 and not (tight and first):
             # the first ring too when it lays a bead (widened, it leaves no sliver); a
             # measurement ring (no width) stays where the edge's smoothing put it, else
             # it could come within the laser's reach of the region's edge
@@ -1667,9 +1676,24 @@ def _run_paths(chains: list[tuple[np.ndarray, np.ndarray, bool]], w_min: float,
         # as filtered, sampled every quarter millimetre
         idx = np.flatnonzero(keep)
         dense, owner = _densify([pts[i] for i in idx], closed[idx], 0.25)
-        d = geo.distance_to_rings(dense, list(region.rings), upper=float(widths.max()) / 2.0)
+        rings = list(region.rings)
+        d = geo.distance_to_rings(dense, rings, upper=float(widths.max()) / 2.0)
         dmin = np.full(len(idx), np.inf)
         np.minimum.at(dmin, owner, d)
+        # and the segments' exact distances where less (a spike of the edge between two
+        # of those points: _edge_capped)
+        polys = [closed_polyline(pts[i], bool(closed[i])) for i in idx]
+        n = np.array([len(q) for q in polys])
+        seg_owner = np.repeat(np.arange(len(idx)), n - 1)
+        allp = np.concatenate(polys)
+        inner = np.ones(len(allp) - 1, dtype=bool)
+        inner[np.cumsum(n)[:-1] - 1] = False
+        a, b = allp[:-1][inner], allp[1:][inner]
+        exact = geo.segments_to_rings_distance(a, b, rings, np.minimum(dmin, w_max / 2.0)
+                                               [seg_owner])
+        least = np.full(len(idx), np.inf)
+        np.minimum.at(least, seg_owner, exact)
+        dmin = np.where(least < dmin - 1e-9, least, dmin)
         widths[idx] = np.minimum(widths[idx], 2.0 * dmin)
         keep = widths >= w_min
     out: list[tuple[np.ndarray, bool, float]] = []
