@@ -1334,3 +1334,20 @@ def test_property_random_parts_and_settings(seed, pattern, variable, turn, count
     layer = add_scaffold(make_stack([part] * 2, job)).layers[0]
     for measured in (True, False):
         check_layer_paths(layer, plan_layer(layer, job, measured), job, min_cover=None)
+
+
+@pytest.mark.xfail(strict=True, reason="known defect, cause not found: a ring of the ice "
+                   "hook wall (an offset of the scaffold's outline) leaves the scaffold for "
+                   "2 mm on a spiky part")
+def test_the_hook_wall_of_a_spiky_part_stays_in_the_scaffold():
+    """A spiky part found by fuzzing (tests/data/regions/hook-part-74.npz) with the ice
+    hook wall on: a hook ring runs 2 mm over what is neither scaffold nor part, inside
+    the scaffold's outline, where the scaffold has two holes that are not the part's
+    (6.2 and 3.7 mm^2; without the thin-piece removal too). Strict: when it is fixed this
+    test says so."""
+    from pathlib import Path
+    data = np.load(Path(__file__).parent / "data" / "regions" / "hook-part-74.npz")
+    part = geo.region_from_rings([data[k] for k in sorted(data.files)])
+    job = Job().replace(**{"cell.cpus": 1, "scaffold.hook_wall": True})
+    layer = add_scaffold(make_stack([part] * 2, job)).layers[0]
+    check_layer_paths(layer, plan_layer(layer, job, False), job, min_cover=None, hook=True)
