@@ -105,6 +105,11 @@ def region_from_tree(tree) -> Region:
     return Region(tuple(rings), np.asarray(parent, dtype=np.int64))
 
 
+#: Rings of a Clipper result with more area than this (mm^2) are never needles
+#: (:func:`_without_needles`): one 1 m long and one grid unit wide holds 0.05 mm^2.
+NEEDLE_MAX_AREA_MM2 = 0.05
+
+
 def _without_needles(rings: list[np.ndarray], parent: list[int], areas: np.ndarray,
                      depths: list[int]) -> tuple[list[np.ndarray], list[int], np.ndarray,
                                                  list[int]]:
@@ -114,8 +119,14 @@ def _without_needles(rings: list[np.ndarray], parent: list[int], areas: np.ndarr
     8.5 mm long and 3.5e-5 mm wide inside another hole, which under the nonzero rule
     made a sliver of scaffold inside the part's hole and the polygon invalid. Parents
     come before their children (tree order) and stay so."""
-    perims = ring_perimeters(rings)
-    needle = 2.0 * np.abs(areas) * SCALE < perims
+    # only small rings can be needles (a needle 1 m long holds 0.05 mm^2): their
+    # perimeters alone are measured
+    small = np.flatnonzero(np.abs(areas) < NEEDLE_MAX_AREA_MM2)
+    if not len(small):
+        return rings, parent, areas, depths
+    needle = np.zeros(len(rings), dtype=bool)
+    needle[small] = 2.0 * np.abs(areas[small]) * SCALE < ring_perimeters(
+        [rings[i] for i in small])
     if not needle.any():
         return rings, parent, areas, depths
     par = np.asarray(parent, dtype=np.int64)
