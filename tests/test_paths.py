@@ -1351,3 +1351,21 @@ def test_the_hook_wall_of_a_spiky_part_stays_in_the_scaffold():
     job = Job().replace(**{"cell.cpus": 1, "scaffold.hook_wall": True})
     layer = add_scaffold(make_stack([part] * 2, job)).layers[0]
     check_layer_paths(layer, plan_layer(layer, job, False), job, min_cover=None, hook=True)
+
+
+def test_zigzag_links_do_not_cut_across_a_notch_of_the_fill_area():
+    """A part found by the property test above (tests/data/regions/zigzag-part-1011.npz):
+    without boundaries, a zigzag link 17 mm long between two raster lines cut across a
+    notch of the fill area between the nine points it was checked at, 1.32 mm from the
+    part's edge where the fill's 3 mm beads need 1.5 mm."""
+    from pathlib import Path
+    data = np.load(Path(__file__).parent / "data" / "regions" / "zigzag-part-1011.npz")
+    part = geo.region_from_rings([data[k] for k in sorted(data.files)])
+    changes: dict = {"cell.cpus": 1}
+    for m in ("part", "scaffold"):
+        changes |= {f"materials.{m}.fill_pattern": "zigzag",
+                    f"materials.{m}.boundary_count": 0,
+                    f"materials.{m}.fill_angle_mode": "optimal"}
+    job = Job().replace(**changes)
+    layer = add_scaffold(make_stack([part] * 2, job)).layers[0]
+    check_layer_paths(layer, plan_layer(layer, job, False), job, min_cover=None)
