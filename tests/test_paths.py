@@ -3,8 +3,8 @@ times and frames, ordering, file round trip."""
 from __future__ import annotations
 
 import dataclasses
-import os
 import math
+import os
 
 import numpy as np
 import pytest
