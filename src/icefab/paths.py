@@ -1210,15 +1210,20 @@ def hook_wall(scaffold: Region, part: Region, count: int, mat: MaterialSettings,
     depth = part.depth()
     footprint = geo.region_from_rings([r for r, d in zip(part.rings, depth) if d == 0])
     outline = []
+    pockets = []
     for r, d in zip(scaffold.rings, scaffold.depth()):
-        if d % 2:
-            continue
         a = signed_area(r)
-        if footprint.is_empty or geo.area(geo.intersection([r], footprint)) < 0.99 * a:
-            outline.append(r)
+        outside = footprint.is_empty or \
+            geo.area(geo.intersection([r[::-1] if d % 2 else r], footprint)) < 0.99 * abs(a)
+        if outside:
+            # a hole of the scaffold outside the part's footprint is a pocket of the build's
+            # outline (regions._hook_wall_room's growth closes such pockets between two
+            # scaffolds; a fuzzed spiky part's hook ring ran 2 mm across one): the wall
+            # goes round it
+            (pockets if d % 2 else outline).append(r)
     if not outline:
         return [], scaffold
-    outer = geo.region_from_rings(outline)
+    outer = geo.region_from_rings(outline + pockets)
     rings: list[np.ndarray] = []
     for i in range(count):
         rings.extend(geo.offset_rings(list(outer.rings),
