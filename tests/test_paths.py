@@ -1357,12 +1357,13 @@ def test_the_hook_wall_of_a_spiky_part_goes_round_the_pockets_of_its_outline():
 def test_hybrid_scaffold_fill_with_the_hook_wall_keeps_off_the_edge():
     """A spiky part found by fuzzing (tests/data/regions/hook-part-550.npz), the ice hook
     wall on and hybrid scaffold fill. The scaffold in the part's hole is an annulus about
-    6.9 mm wide. Its first hybrid level (3.45 mm in) is a sliver: an outer ring of
+    7 mm wide. Its first hybrid level (3.45 mm in) is a sliver: an outer ring of
     470.2 mm^2 and a hole of 467.9 mm^2, 0.03 mm apart, which cross each other after the
     0.05 mm point filter. The next offset of the crossing pair is a ring of 267.7 mm^2 inside
     the hole, 0.42 mm from the scaffold's edge, and as the sliver's "child" it makes
-    ``_with_room`` keep the sliver too. Without the hook wall the annulus is wider and the
-    invariants hold. Strict: when it is fixed this test says so."""
+    ``_with_room`` keep the sliver too. Without the hook wall the annulus is narrower (its
+    hole 467.9 mm^2), no level of it is left, and the invariants hold. Strict: when it is
+    fixed this test says so."""
     from pathlib import Path
     data = np.load(Path(__file__).parent / "data" / "regions" / "hook-part-550.npz")
     part = geo.region_from_rings([data[k] for k in sorted(data.files)])
