@@ -26,7 +26,7 @@ from icefab.core import (Layer, LayerPaths, Toolpath, Region, Toolpaths, signed_
                          tour_members)
 from test_geometry import (check_region_structure, polygon_with_holes, rect,
                            to_shapely)
-from test_regions import make_stack, prism, table
+from test_regions import fuzzed_part, make_stack, prism, table
 
 FILT = geo.FILTER_MM + 2e-3
 
@@ -1245,9 +1245,7 @@ def test_gap_paths_of_a_spiky_part_stay_inside_it(case, variable):
     0.2 mm long in the notches crossed the part's edge by 1-10 micrometres, both ends
     0.09 mm inside it, where the edge's spikes came between their points; variable-width
     paths and runs of one width alike. Every layer invariant holds, measured and not."""
-    from pathlib import Path
-    data = np.load(Path(__file__).parent / "data" / "regions" / f"{case}.npz")
-    part = geo.region_from_rings([data[k] for k in sorted(data.files)])
+    part = fuzzed_part(case)
     job = Job().replace(**{"cell.cpus": 1, "materials.part.variable_width": variable,
                            "materials.scaffold.variable_width": variable})
     layer = add_scaffold(make_stack([part] * 2, job)).layers[0]
@@ -1341,9 +1339,7 @@ def test_the_hook_wall_of_a_spiky_part_goes_round_the_pockets_of_its_outline():
     scaffold) joined the scaffolds of the part and of its copy and closed two pockets
     between them (6.2 and 3.7 mm^2, neither scaffold nor part), and a hook ring, an offset
     of the outline alone, ran 2 mm across one. The wall now goes round such pockets."""
-    from pathlib import Path
-    data = np.load(Path(__file__).parent / "data" / "regions" / "hook-part-74.npz")
-    part = geo.region_from_rings([data[k] for k in sorted(data.files)])
+    part = fuzzed_part("hook-part-74")
     job = Job().replace(**{"cell.cpus": 1, "scaffold.hook_wall": True})
     layer = add_scaffold(make_stack([part] * 2, job)).layers[0]
     assert sum(geo.ring_areas(list(layer.scaffold.rings)) < 0) == 4   # part, copy, 2 pockets
@@ -1364,9 +1360,7 @@ def test_hybrid_scaffold_fill_with_the_hook_wall_keeps_off_the_edge():
     ``_with_room`` keep the sliver too. Without the hook wall the annulus is narrower (its
     hole 467.9 mm^2), no level of it is left, and the invariants hold. Strict: when it is
     fixed this test says so."""
-    from pathlib import Path
-    data = np.load(Path(__file__).parent / "data" / "regions" / "hook-part-550.npz")
-    part = geo.region_from_rings([data[k] for k in sorted(data.files)])
+    part = fuzzed_part("hook-part-550")
     job = Job().replace(**{"cell.cpus": 1, "scaffold.hook_wall": True,
                            "materials.scaffold.fill_pattern": "hybrid"})
     layer = add_scaffold(make_stack([part] * 2, job)).layers[0]
@@ -1378,9 +1372,7 @@ def test_zigzag_links_do_not_cut_across_a_notch_of_the_fill_area():
     without boundaries, a zigzag link 17 mm long between two raster lines cut across a
     notch of the fill area between the nine points it was checked at, 1.32 mm from the
     part's edge where the fill's 3 mm beads need 1.5 mm."""
-    from pathlib import Path
-    data = np.load(Path(__file__).parent / "data" / "regions" / "zigzag-part-1011.npz")
-    part = geo.region_from_rings([data[k] for k in sorted(data.files)])
+    part = fuzzed_part("zigzag-part-1011")
     changes: dict = {"cell.cpus": 1}
     for m in ("part", "scaffold"):
         changes |= {f"materials.{m}.fill_pattern": "zigzag",

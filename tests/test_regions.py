@@ -28,6 +28,14 @@ def make_stack(regions: list[Region], job: Job | None = None) -> Stack:
     return Stack(layers, job, T)
 
 
+def fuzzed_part(name: str) -> Region:
+    """A part region found by fuzzing (``tests/data/regions/NAME.npz``: its rings in order,
+    ``ring0``, ``ring1``, ...; the folder's README says what each found)."""
+    from pathlib import Path
+    data = np.load(Path(__file__).parent / "data" / "regions" / f"{name}.npz")
+    return geo.region_from_rings([data[f"ring{k}"] for k in range(len(data.files))])
+
+
 def table(leg_layers=20, slab_layers=6):
     """A 40 x 40 mm slab on one 10 x 10 mm leg (off centre)."""
     leg = geo.region_from_rings([rect(-15, -15, -5, -5)])
@@ -392,9 +400,7 @@ def test_a_fuzzed_scaffold_keeps_no_needle_of_clippers():
     which made the scaffold polygon invalid (overlapping holes; under the nonzero rule a
     sliver of scaffold inside the part's hole). No ring narrower on average than one grid
     unit is left, and the scaffold's area is the area of the wall less the part."""
-    from pathlib import Path
-    data = np.load(Path(__file__).parent / "data" / "regions" / "needle-scaffold.npz")
-    part = geo.region_from_rings([data[k] for k in sorted(data.files)])
+    part = fuzzed_part("needle-scaffold")
     job = Job()
     st_ = add_scaffold(make_stack([part] * 2, job))
     for layer in st_.layers:

@@ -1339,6 +1339,30 @@ def segments_to_rings_distance(a: np.ndarray, b: np.ndarray, rings: Sequence[np.
     return out
 
 
+def segment_clearances(a: np.ndarray, b: np.ndarray, rings: Sequence[np.ndarray],
+                       upper: float) -> np.ndarray:
+    """(n,) float64: how far (mm) each segment ``a[i] -> b[i]`` ((n, 2) each) keeps from
+    the edges of ``rings``: the least distance of its points a quarter millimetre apart
+    (:func:`distance_to_rings`), or its exact distance
+    (:func:`segments_to_rings_distance`, 0 where an edge crosses it) where that is less
+    by more than rounding; ``inf`` where no edge comes within ``upper``. Why both: a
+    segment that cuts across a spike or a concave corner of the edge passes nearer to it
+    than any of its points (fuzzing found 0.2 mm gap paths crossing a spiky part's edge
+    by 1-10 um with both ends 0.09 mm inside it), and the points' distance alone is what
+    the paths were planned with before."""
+    a = np.asarray(a, dtype=np.float64).reshape(-1, 2)
+    b = np.asarray(b, dtype=np.float64).reshape(-1, 2)
+    dense, i, _ = subdivide_segments(a, b, 0.25)
+    # the dense points hold every segment's start; its end is added
+    d = distance_to_rings(np.concatenate([dense, b]), rings, upper=upper)
+    out = d[len(dense):].copy()
+    np.minimum.at(out, i, d[:len(dense)])
+    # the exact distance is less only where an edge comes nearer than that
+    exact = segments_to_rings_distance(a, b, rings, np.minimum(out, upper))
+    # the same distances computed in another order differ in their last bits
+    return np.where(exact < out - 1e-9, exact, out)
+
+
 def _sample_rings(rings: Sequence[np.ndarray], spacing: float):
     """Points along flat rings at most ``spacing`` apart (every vertex among them).
 

@@ -1122,19 +1122,24 @@ def check_packed_workspace(index: int, packed: dict[str, np.ndarray], job: Job,
     # the box of the points in the base frame first: the closed polylines' points are the
     # same points, and a layer inside the reach (all of them but a bad part's) needs no
     # copy of them (issue 17: 0.8 s of the bunny's main process)
-    box = getattr(robot, "box_reachable", None)
-    if box is not None and len(packed["points"]) and box(*points_box(
-            packed["points"] + np.repeat(shift, np.diff(packed["path_start"]), axis=0))):
+    if _in_reach_box(robot, packed["points"]
+                     + np.repeat(shift, np.diff(packed["path_start"]), axis=0)):
         return
     pts, counts = packed_polylines(packed)
     _check_reach(index, pts + np.repeat(shift, counts, axis=0), counts, robot)
 
 
+def _in_reach_box(robot: Robot, pts: np.ndarray) -> bool:
+    """Whether the box of ``pts`` (N, 2) mm, base frame, is surely reachable
+    (``robot.box_reachable``, optional): then so is every chord between them."""
+    box = getattr(robot, "box_reachable", None)
+    return bool(len(pts)) and box is not None and box(*points_box(pts))
+
+
 def _check_reach(index: int, pts: np.ndarray, counts: np.ndarray, robot: Robot) -> None:
     """The reach checks of :func:`check_layer_workspace` on a layer's polylines in the
     robot base frame (``pts`` (N, 2) mm, ``counts`` (P,) points each)."""
-    box = getattr(robot, "box_reachable", None)
-    if len(pts) and box is not None and box(*points_box(pts)):
+    if _in_reach_box(robot, pts):
         return   # the segments lie in the points' box too
     ends = np.cumsum(counts)
     bad, reasons = robot.workspace_violations(pts)

@@ -240,7 +240,7 @@ def concentric_levels(region: Region, start_mm: float, step_mm: float, filt: flo
     tight = width_mm > 0 and smooth_mm > 0 and \
         2.0 * smooth_mm + max(ring_smooth_mm, filt) > room + filt
     if smooth_mm > 0 and not tight:
-        edge = geo.offset_rings(list(region.rings), -(start_mm - step_mm / 2.0), filt)
+        edge = geo.offset_rings(list(region.rings), -room, filt)
         smooth, reach = geo.smooth_rings(edge, smooth_mm, FILL_SMOOTH_SIGMA_MM)
         rings = geo.offset_rings(smooth, -(step_mm / 2.0 - reach), filt)
     else:
@@ -1622,31 +1622,15 @@ def _simplified(lines: list[np.ndarray], widths: list[np.ndarray], masks: list[n
 def _edge_capped(lines: list[np.ndarray], widths: list[np.ndarray], region: Region,
                  w_max: float) -> list[np.ndarray]:
     """Widths no more than twice the distance of the path to ``region``'s edge: per
-    segment the least distance of its points a quarter millimetre apart, or its exact
-    distance to the edge where that is less, per point the lesser of its two segments'.
-
-    The exact distance: a segment that cuts across a concave corner of the edge, or a
-    spike of it, passes nearer to it than any of its points (fuzzing found 0.2 mm
-    centre-line paths crossing the edge of a spiky part by 1-10 micrometres with both
-    ends 0.09 mm inside it: a width of 0 there cuts them)."""
+    segment its clearance (:func:`icefab.geometry.segment_clearances`; a segment crossing
+    a spike of the edge has none, and a width of 0 cuts the path there), per point the
+    lesser of its two segments'."""
     polys = [np.asarray(ln, np.float64) for ln in lines]
     n = np.array([len(p) for p in polys])
     allp = np.concatenate(polys)
     owner = np.repeat(np.arange(len(polys)), n)
-    same = owner[:-1] == owner[1:]
-    seg = np.flatnonzero(same)
-    a, b = allp[seg], allp[seg + 1]
-    dense, i, _ = geo.subdivide_segments(a, b, 0.25)
-    rings = list(region.rings)
-    # the dense points hold every segment's start; its end is added
-    d = geo.distance_to_rings(np.concatenate([dense, b]), rings, upper=w_max / 2.0)
-    d_seg = d[len(dense):].copy()
-    np.minimum.at(d_seg, i, d[:len(dense)])
-    # (it is less only where an edge comes nearer than the points' distance)
-    exact = geo.segments_to_rings_distance(a, b, rings, np.minimum(d_seg, w_max / 2.0))
-    # only where it is less by more than rounding (the same distances computed in
-    # another order differ in their last bits)
-    d_seg = np.where(exact < d_seg - 1e-9, exact, d_seg)
+    seg = np.flatnonzero(owner[:-1] == owner[1:])
+    d_seg = geo.segment_clearances(allp[seg], allp[seg + 1], list(region.rings), w_max / 2.0)
     cap = np.full(len(allp), np.inf)
     np.minimum.at(cap, seg, d_seg)
     np.minimum.at(cap, seg + 1, d_seg)
@@ -1688,28 +1672,18 @@ def _run_paths(chains: list[tuple[np.ndarray, np.ndarray, bool]], w_min: float,
         f = geo.simplify([pts[i]], float(eps[i]))
         pts[i] = f[0] if len(f) == 1 else pts[i]
     if region is not None and not region.is_empty and keep.any():
-        # never nearer the region's edge than half the width: the distance of the paths
-        # as filtered, sampled every quarter millimetre
+        # never nearer the region's edge than half the width: the least clearance of the
+        # paths' segments as filtered (geometry.segment_clearances)
         idx = np.flatnonzero(keep)
-        dense, owner = _densify([pts[i] for i in idx], closed[idx], 0.25)
-        rings = list(region.rings)
-        d = geo.distance_to_rings(dense, rings, upper=float(widths.max()) / 2.0)
-        dmin = np.full(len(idx), np.inf)
-        np.minimum.at(dmin, owner, d)
-        # and the segments' exact distances where less (a spike of the edge between two
-        # of those points: _edge_capped)
         polys = [closed_polyline(pts[i], bool(closed[i])) for i in idx]
         n = np.array([len(q) for q in polys])
-        seg_owner = np.repeat(np.arange(len(idx)), n - 1)
         allp = np.concatenate(polys)
-        inner = np.ones(len(allp) - 1, dtype=bool)
-        inner[np.cumsum(n)[:-1] - 1] = False
-        a, b = allp[:-1][inner], allp[1:][inner]
-        exact = geo.segments_to_rings_distance(a, b, rings, np.minimum(dmin, w_max / 2.0)
-                                               [seg_owner])
-        least = np.full(len(idx), np.inf)
-        np.minimum.at(least, seg_owner, exact)
-        dmin = np.where(least < dmin - 1e-9, least, dmin)
+        owner = np.repeat(np.arange(len(idx)), n)
+        seg = np.flatnonzero(owner[:-1] == owner[1:])
+        d = geo.segment_clearances(allp[seg], allp[seg + 1], list(region.rings),
+                                   float(widths.max()) / 2.0)
+        dmin = np.full(len(idx), np.inf)
+        np.minimum.at(dmin, owner[seg], d)
         widths[idx] = np.minimum(widths[idx], 2.0 * dmin)
         keep = widths >= w_min
     out: list[tuple[np.ndarray, bool, float]] = []
@@ -1726,20 +1700,6 @@ def _run_paths(chains: list[tuple[np.ndarray, np.ndarray, bool]], w_min: float,
                 >= GAP_MIN_AREA_MM2:
             out.append((p, False, float(widths[i])))
     return out
-
-
-def _densify(lines: list[np.ndarray], closed: np.ndarray, step: float
-             ) -> tuple[np.ndarray, np.ndarray]:
-    """Points along polylines (closed ones back to their first point) at most ``step``
-    apart, and the index of the polyline each belongs to."""
-    polys = [closed_polyline(p, bool(c)) for p, c in zip(lines, closed)]
-    n_pts = np.array([len(p) for p in polys])
-    allp = np.concatenate(polys)
-    owner_pt = np.repeat(np.arange(len(polys)), n_pts)
-    a, b = allp[:-1], allp[1:]
-    same = owner_pt[:-1] == owner_pt[1:]  # segments inside one polyline
-    inner, i, _ = geo.subdivide_segments(a[same], b[same], step)
-    return np.vstack([inner, allp]), np.concatenate([owner_pt[:-1][same][i], owner_pt])
 
 
 def _length_and_band(lines: Sequence[np.ndarray], widths: Sequence[np.ndarray]

@@ -125,7 +125,7 @@ from icefab.atomic import atomic_path
 from icefab.config import Job, job_from_dict, to_toml
 from icefab.core import (FRAMES, MATERIALS, OFF, ON1, ON2, ROLES, TOOLS, BuildMotion, Layer,
                          LayerMotion, LayerPaths, Region, RuledEdges, Stack, Toolpath,
-                         Toolpaths, Trajectory, offsets)
+                         Toolpaths, Trajectory, offsets, polyline_lengths)
 from icefab.errors import ConfigError, StackFileError
 
 log = logging.getLogger(__name__)
@@ -659,27 +659,16 @@ def packed_lengths(d: dict[str, np.ndarray]) -> np.ndarray:
     """(P,) float64 mm: the length of every path of :func:`pack_paths`' arrays, closed ones
     back to their first point: ``polyline_lengths(*packed_polylines(d))`` bit for bit,
     without the closed copy of the points (``icefab paths`` tallies the bunny's 17 M
-    points as they come; the copy and ``np.linalg.norm`` took 1.7 of its 4.4 s)."""
+    points as they come)."""
     pts, start = d["points"], d["path_start"]
-    n_paths = len(start) - 1
-    if len(pts) < 2:
-        return np.zeros(n_paths)
-    x, y = pts[:, 0], pts[:, 1]
-    dx, dy = x[1:] - x[:-1], y[1:] - y[:-1]
-    step = np.sqrt(dx * dx + dy * dy)        # np.linalg.norm's sum of squares, as there
-    inside = np.ones(len(step), dtype=bool)
-    heads = start[1:-1]
-    inside[heads[(heads > 0) & (heads < len(pts))] - 1] = False   # from a path to the next
-    owner = np.repeat(np.arange(n_paths), np.diff(start))[1:]
-    # a closed path's closing edge, added after its own steps (bincount adds in order)
     n = np.diff(start)
+    out = polyline_lengths(pts, n)
+    # the closing edges, each added after its path's own steps (as bincount adds them)
     close = np.flatnonzero(d["closed"].astype(bool) & (n > 1))
     first, last = start[close], start[close + 1] - 1
-    cx, cy = x[first] - x[last], y[first] - y[last]
-    out = np.bincount(np.concatenate([owner[inside], close]),
-                      weights=np.concatenate([step[inside], np.sqrt(cx * cx + cy * cy)]),
-                      minlength=n_paths)
-    return out.astype(np.float64, copy=False)   # bincount of nothing counts in integers
+    cx, cy = pts[first, 0] - pts[last, 0], pts[first, 1] - pts[last, 1]
+    out[close] += np.sqrt(cx * cx + cy * cy)
+    return out
 
 
 def packed_tools(d: dict[str, np.ndarray]) -> np.ndarray:
