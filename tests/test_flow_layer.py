@@ -29,6 +29,35 @@ def _trajectory(rng, n, dt, v_top, role, material, width, mismatch):
                       duration=(n - 1) * dt, path=path)
 
 
+def _as_tour(rng, tr):
+    """The trajectory as a continuous tour: random spans the valve is on (some shorter
+    than a sample step, some ending on a sample, now and then one out of order: refused by
+    name), 0 wide between them."""
+    d = tr.duration
+    edges = np.sort(rng.uniform(0.0, d, 2 * int(rng.integers(1, 5))))
+    if rng.random() < 0.3:
+        edges[0] = 0.0
+    if rng.random() < 0.3:
+        edges[-1] = d
+    if rng.random() < 0.3:      # a span end on a sample
+        edges[1] = np.round(edges[1] / tr.dt) * tr.dt
+        edges = np.sort(edges)
+    if rng.random() < 0.1:      # a span shorter than a step
+        edges[1] = edges[0] + 0.1 * tr.dt
+        edges = np.sort(edges)
+    spans = edges.reshape(-1, 2)
+    if rng.random() < 0.03:
+        spans = spans[::-1].copy()
+    if rng.random() < 0.03:     # no span at all: a tour that deposits nothing
+        spans = np.zeros((0, 2))
+    t = tr.t
+    on = np.zeros(len(t), dtype=bool)
+    for a, b in spans:
+        on |= (t >= a) & (t <= b)
+    w = np.where(on, tr.widths if tr.widths is not None else tr.path.width, 0.0)
+    return dataclasses.replace(tr, widths=w, on_spans=spans)
+
+
 def _programs_agree(a, b):
     pa, pb = program_pieces(a), program_pieces(b)
     assert len(pa) == len(pb)
@@ -41,9 +70,10 @@ def _programs_agree(a, b):
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(seed=st.integers(0, 2**32 - 1), count=st.integers(1, 12),
        high_rate=st.booleans(), short_pieces=st.booleans(), clamp=st.booleans(),
-       thickness=st.sampled_from([float("nan"), 0.1, 0.6]), variable=st.booleans())
+       thickness=st.sampled_from([float("nan"), 0.1, 0.6]), variable=st.booleans(),
+       tours=st.booleans())
 def test_a_layer_at_once_equals_path_by_path(seed, count, high_rate, short_pieces, clamp,
-                                             thickness, variable):
+                                             thickness, variable, tours):
     rng = np.random.default_rng(seed)
     job = Job().replace(**{"flow.out_of_range": "clamp" if clamp else "error"})
     if high_rate:  # pulses above one per tick: shared ticks
@@ -64,6 +94,8 @@ def test_a_layer_at_once_equals_path_by_path(seed, count, high_rate, short_piece
             if rng.random() < 0.05:
                 w[0] = np.nan   # refused by name, as path by path
             trajs[-1] = dataclasses.replace(trajs[-1], widths=w)
+        if tours and rng.random() < 0.5 and len(trajs[-1].xy) > 1:   # a continuous tour
+            trajs[-1] = _as_tour(rng, trajs[-1])
     layer = LayerMotion(index=2, z=0.5, trajectories=tuple(trajs), thickness=thickness)
     dh = layer_height(thickness, job)
     want, refused = [], None
@@ -145,6 +177,9 @@ def test_drop_spacing_of_a_layer_equals_path_by_path(seed, count):
     trajs = [_trajectory(rng, int(rng.choice([1, 2, 5, 300])), 0.016,
                          float(rng.choice([2.0, 60.0, 125.0])), "fill", "part",
                          float(rng.choice([0.7, 1.5])), 1.0) for _ in range(count)]
+    trajs = [_as_tour(rng, t) if len(t.xy) > 1 and rng.random() < 0.4 else t for t in trajs]
+    trajs = [t for t in trajs if t.on_spans is None or
+             np.all(np.diff(t.on_spans.ravel()) >= 0)]     # not the refused ones
     progs = [plan_valves(t, "part", job) for t in trajs]
     for limit in (1.0, 0.0):
         got = _drop_spacings(trajs, progs, limit)

@@ -131,7 +131,7 @@ def test_version_1_files_still_load_with_a_warning(tmp_path, caplog):
     with np.load(f) as z:
         data = {k: z[k] for k in z.files
                 if k not in ("traj_dt", "width", "closed", "tool", "path_z", "variable",
-                             "block_layer_start")
+                             "block_layer_start") + _V6
                 and "_counts" not in k and not k.endswith("_resolution")}
     # version 1 stored the samples as float64
     packed = pack_trajectories([t for lm in motion.layers for t in lm.trajectories], 3)
@@ -187,7 +187,7 @@ def test_version_2_files_with_float_samples_still_load_exactly(tmp_path):
     save_trajectories(motion, f)
     with np.load(f) as z:
         data = {k: z[k] for k in z.files if "_counts" not in k and k != "block_layer_start"
-                and not k.endswith("_resolution") and k != "variable"}
+                and not k.endswith("_resolution") and k != "variable" and k not in _V6}
     packed = pack_trajectories([t for lm in motion.layers for t in lm.trajectories], 3)
     data.update({k: packed[k] for k in ("xy", "joints", "speed")}, version=np.array(2))
     np.savez(tmp_path / "v2.npz", **data)
@@ -276,7 +276,7 @@ def test_version_3_files_one_block_still_load(tmp_path, four_layers):
     save_trajectories(four_layers, f)
     with np.load(f) as z:
         data = {k.replace("_counts_0", "_counts"): z[k] for k in z.files
-                if k != "block_layer_start" and k not in _V5 and not k.startswith("width_")}
+                if k != "block_layer_start" and k not in _V5 + _V6 and not k.startswith("width_")}
     data["version"] = np.array(3)
     np.savez(tmp_path / "v3.npz", **data)
     _same_samples(four_layers, load_trajectories(tmp_path / "v3.npz"))
@@ -284,13 +284,15 @@ def test_version_3_files_one_block_still_load(tmp_path, four_layers):
 
 #: What version 5 added to version 4: per-sample widths of variable-width paths.
 _V5 = ("variable", "width_resolution")
+#: What version 6 added to version 5: the spans over which continuous tours' valves are on.
+_V6 = ("span_owner", "on_spans")
 
 
 def test_version_4_files_without_widths_still_load(tmp_path, four_layers):
     f = tmp_path / "t.npz"
     save_trajectories(four_layers, f, block_samples=1)
     with np.load(f) as z:
-        data = {k: z[k] for k in z.files if k not in _V5 and not k.startswith("width_")}
+        data = {k: z[k] for k in z.files if k not in _V5 + _V6 and not k.startswith("width_")}
     data["version"] = np.array(4)
     np.savez(tmp_path / "v4.npz", **data)
     back = load_trajectories(tmp_path / "v4.npz")

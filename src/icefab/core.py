@@ -586,6 +586,13 @@ class Trajectory:
     widths: None (the path's ``width`` all along) or (n,) float64 mm, the deposition width
         at every sample of a variable-width path (:attr:`Toolpath.widths` at the sample's
         place along the path).
+    on_spans: None (the valve follows the path all along) or (m, 2) float64 s, from the
+        trajectory's start: the spans over which a continuous tour's valve is on (its
+        paths; between them it is off, over the travel), in order, each ``[start, end]``
+        with ``0 <= start <= end <= duration``. The instants are where the samples pass
+        the path's switch points (linear between samples, as the samples are followed), so
+        the valve switches exactly there rather than at the nearest sample (issue 15: the
+        ON1/ON2/OFF states stay exact). Trajectory files before version 6 have none.
     """
 
     dt: float
@@ -596,11 +603,30 @@ class Trajectory:
     path: Toolpath | None = None
     pieces: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     widths: np.ndarray | None = None
+    on_spans: np.ndarray | None = None
 
     @property
     def t(self) -> np.ndarray:
         """(n,) float64 sample times, s."""
         return np.arange(len(self.xy)) * self.dt
+
+
+def spans_problem(spans: np.ndarray | None, duration: float) -> str:
+    """What is wrong with a trajectory's ``on_spans`` ('' when nothing: None, or (m, 2)
+    finite instants, s, in ``[0, duration]``, each span's end not before its start, and
+    every span starting where the one before ended or later)."""
+    if spans is None:
+        return ""
+    s = np.asarray(spans)
+    if s.ndim != 2 or s.shape[1:] != (2,) or s.dtype.kind not in "fiu":
+        return f"on_spans has shape {s.shape}, expected (m, 2) numbers: [start, end] in s"
+    s = s.astype(np.float64)
+    tol = 1e-9 * max(1.0, abs(float(duration)))
+    if not np.isfinite(s).all() or np.any(s < -tol) or np.any(s > duration + tol):
+        return f"on_spans must be finite instants within [0, {duration:.6g}] s"
+    if np.any(s[:, 1] < s[:, 0]) or np.any(s[1:, 0] < s[:-1, 1]):
+        return "on_spans must be in order: each span's end >= its start >= the end before"
+    return ""
 
 
 @dataclass(frozen=True, eq=False)

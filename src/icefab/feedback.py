@@ -916,7 +916,8 @@ def retime_trajectory(traj: Trajectory, u: np.ndarray, *, max_change: float = 0.
     is stretched by at most dt / duration so the last sample lands exactly on (n'-1) dt
     (with a ``cap``, only lengthened).
     Joints (and a variable-width path's widths) are re-sampled the same way; piece starts
-    (``traj.pieces``) move to the sample nearest their new time.
+    (``traj.pieces``) move to the sample nearest their new time, a tour's valve switches
+    (``traj.on_spans``) to their new instants.
     """
     xy = np.asarray(traj.xy, dtype=np.float64)
     n = len(xy)
@@ -958,5 +959,10 @@ def retime_trajectory(traj: Trajectory, u: np.ndarray, *, max_change: float = 0.
                            ).astype(np.int64)
     widths = (None if traj.widths is None else
               np.interp(t_new, T, np.asarray(traj.widths, dtype=np.float64)))
+    spans = traj.on_spans
+    if spans is not None:   # a tour's valve switches where the nozzle passes the same points
+        old = np.asarray(spans, dtype=np.float64)
+        spans = np.minimum(np.interp(old / dt, np.arange(n), T), (n_new - 1) * dt)
     return Trajectory(dt=dt, xy=xy_new, joints=joints_new, speed=speed_new,
-                      duration=(n_new - 1) * dt, path=traj.path, pieces=pieces, widths=widths)
+                      duration=(n_new - 1) * dt, path=traj.path, pieces=pieces, widths=widths,
+                      on_spans=spans)

@@ -113,7 +113,8 @@ from icefab.frames import to_part_frame
 from icefab.motion import limit_ratio, speedup_cap
 from icefab.parallel import parallel_map
 from icefab.stages import layer_height
-from icefab.core import HeightMap, Trajectory, ValveProgram, checked_widths, offsets
+from icefab.core import (HeightMap, Trajectory, ValveProgram, checked_widths, offsets,
+                         spans_problem)
 
 if TYPE_CHECKING:  # pragma: no cover
     from icefab.config import Job
@@ -233,6 +234,23 @@ def calibration_for(material: str, job: "Job") -> Calibration:
 
 
 @dataclass(frozen=True, eq=False)
+class SpanSignal:
+    """The valve's signal over the spans a continuous tour's valve is on
+    (:attr:`~icefab.core.Trajectory.on_spans`): rows ``start[k]:start[k+1]`` are span k,
+    its exact start instant, the samples strictly inside it, its exact end instant.
+
+    t: (R,) float64 s from the trajectory start; q: (R,) flow, mm^3/s; nu: (R,) frequency,
+    Hz (as :class:`FrequencyPlan`'s, at the span ends from :func:`_span_ends`); start:
+    (S + 1,) int64.
+    """
+
+    t: np.ndarray
+    q: np.ndarray
+    nu: np.ndarray
+    start: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
 class FrequencyPlan:
     """The commanded valve signal along a trajectory, before pulses are placed.
 
@@ -240,6 +258,8 @@ class FrequencyPlan:
     u: (n,) control action applied. nu: (n,) frequency, Hz (eq. 6.4), limits applied.
     clamped: number of samples whose flow or frequency was clamped.
     warnings: human-readable findings (limits reached), each naming the quantity.
+    on: a continuous tour's signal over the spans its valve is on, exact at their ends
+        (None: the valve follows the samples all along); the pulses are placed in it.
     """
 
     t: np.ndarray
@@ -248,6 +268,7 @@ class FrequencyPlan:
     nu: np.ndarray
     clamped: int = 0
     warnings: tuple[str, ...] = ()
+    on: SpanSignal | None = None
 
 
 def trajectory_part_xy(trajectory: Trajectory, material: str, job: "Job") -> np.ndarray:
@@ -515,8 +536,150 @@ def valve_frequency(trajectory: Trajectory, material: str, job: "Job", *,
                             "samples)")
     for m in warnings:  # per path: callers summarise them (:func:`summarise_findings`)
         log.debug(m)
+    on = None
+    if trajectory.on_spans is not None:   # a tour: the valve on over its paths only
+        problem = spans_problem(trajectory.on_spans, float(trajectory.duration))
+        if problem:
+            raise FlowError(f"{where}: {problem}")
+        lay = span_layout(trajectory)
+        q_nom_e, q_e = _span_ends(lay, speed, u, w,
+                                  np.full(len(lay.ends),
+                                          trajectory_width(trajectory, material, job)),
+                                  dh, job)
+        sat = _saturated(q_e, q_nom_e, q_lo, q_hi)
+        q_e[sat] = np.clip(q_e[sat], q_lo, q_hi)
+        nu_e = np.where(q_e > 0, cal.frequency(q_e), 0.0)
+        if fl.mode == "fm":
+            nu_e = np.minimum(nu_e, max_valve_frequency(job))
+        on = _span_signal(lay, q, nu, q_e, nu_e)
     return FrequencyPlan(t=t, q=q, u=u, nu=nu, clamped=int(np.count_nonzero(clamped)),
-                         warnings=tuple(warnings))
+                         warnings=tuple(warnings), on=on)
+
+
+def _span_signal(lay: _SpanLayout, q: np.ndarray, nu: np.ndarray, q_ends: np.ndarray,
+                 nu_ends: np.ndarray) -> SpanSignal:
+    """The :class:`SpanSignal` of a layout: the samples' ``q``, ``nu`` inside the spans,
+    ``q_ends``, ``nu_ends`` at their ends."""
+    inside = lay.rows >= 0
+    qs, nus = np.empty(len(lay.rows)), np.empty(len(lay.rows))
+    qs[inside], nus[inside] = q[lay.rows[inside]], nu[lay.rows[inside]]
+    qs[lay.ends], nus[lay.ends] = q_ends, nu_ends
+    return SpanSignal(t=lay.t, q=qs, nu=nus, start=lay.start)
+
+
+#: A sample closer than this fraction of a time step to a span's end is that end itself.
+SPAN_SNAP = 1e-6
+
+
+@dataclass(frozen=True, eq=False)
+class _SpanLayout:
+    """Where the rows of :class:`SpanSignal` come from, for spans of trajectories whose
+    samples are rows ``first + 0 .. n - 1`` of flat arrays (:func:`_span_layout`).
+
+    rows: (R,) int64 the sample row each takes, -1 at the span ends; t: (R,) s from the
+    trajectory start; start: (S + 1,) int64; ends: (2 S,) int64 the span ends' rows in
+    R; left: (2 S,) int64 the sample row before (or at) each end and
+    frac (2 S,) its place towards the next, to interpolate; inner: (2 S,) int64 the
+    nearest sample strictly inside the span, -1 when none is.
+    """
+
+    rows: np.ndarray
+    t: np.ndarray
+    start: np.ndarray
+    ends: np.ndarray
+    left: np.ndarray
+    frac: np.ndarray
+    inner: np.ndarray
+
+    def at_ends(self, values: np.ndarray) -> np.ndarray:
+        """(2 S,) per-sample ``values`` interpolated linearly at the span ends."""
+        v0 = values[self.left]
+        return v0 + self.frac * (values[self.left + 1] - v0)
+
+
+def _span_layout(spans: np.ndarray, first: np.ndarray, n: np.ndarray, dt: np.ndarray
+                 ) -> _SpanLayout:
+    """The rows of the spans ``(S, 2)`` s of trajectories of ``n (S,) >= 2`` samples every
+    ``dt (S,)`` s starting at row ``first (S,)`` (one entry per span)."""
+    S = len(spans)
+    pos = spans / dt[:, None]                              # in samples
+    i_lo = np.floor(pos[:, 0] + SPAN_SNAP).astype(np.int64) + 1
+    i_hi = np.minimum(np.ceil(pos[:, 1] - SPAN_SNAP).astype(np.int64) - 1, n - 1)
+    count = np.maximum(i_hi - i_lo + 1, 0)
+    start = offsets(count + 2)
+    R = int(start[-1])
+    rows = np.full(R, -1, dtype=np.int64)
+    local = np.arange(R) - np.repeat(start[:-1], count + 2)
+    inside = (local > 0) & (local <= np.repeat(count, count + 2))
+    span_of = np.repeat(np.arange(S), count + 2)
+    rows[inside] = (first + i_lo - 1)[span_of[inside]] + local[inside]
+    ends = np.column_stack([start[:-1], start[1:] - 1]).reshape(-1)
+    end_pos = pos.reshape(-1)
+    owner_n = np.repeat(n, 2)
+    i0 = np.clip(np.floor(end_pos).astype(np.int64), 0, owner_n - 2)
+    frac = np.clip(end_pos - i0, 0.0, 1.0)
+    base = np.repeat(first, 2)
+    t = np.empty(R)
+    t[inside] = ((rows[inside] - first[span_of[inside]]).astype(np.float64)
+                 * dt[span_of[inside]])
+    t[ends] = spans.reshape(-1)
+    has = np.repeat(count > 0, 2)
+    near = np.column_stack([first + i_lo, first + i_lo + count - 1]).reshape(-1)
+    return _SpanLayout(rows=rows, t=t, start=start, ends=ends, left=base + i0, frac=frac,
+                       inner=np.where(has, near, -1))
+
+
+def span_layout(trajectory: Trajectory) -> _SpanLayout | None:
+    """The rows of a continuous tour's spans (:func:`_span_layout` for one trajectory of
+    two samples or more); None for any other trajectory."""
+    n = len(trajectory.xy)
+    if trajectory.on_spans is None or n < 2:
+        return None
+    spans = np.asarray(trajectory.on_spans, dtype=np.float64).reshape(-1, 2)
+    S = len(spans)
+    return _span_layout(spans, np.zeros(S, np.int64), np.full(S, n, np.int64),
+                        np.full(S, float(trajectory.dt)))
+
+
+def on_times(trajectory: Trajectory) -> list[np.ndarray]:
+    """The instants, s from the trajectory start, of each stretch over which its valve is
+    on: a continuous tour's spans (their exact ends and the samples between), or every
+    sample of any other trajectory."""
+    lay = span_layout(trajectory)
+    if lay is None:
+        return [np.arange(len(trajectory.xy)) * float(trajectory.dt)]
+    return [lay.t[a:b] for a, b in zip(lay.start[:-1].tolist(), lay.start[1:].tolist())]
+
+
+def positions_at(xy: np.ndarray, dt: float, t: np.ndarray) -> np.ndarray:
+    """(k, 2) the samples ``xy`` (every ``dt`` s) at the instants ``t``, linear between
+    them as the robot follows them (at a sample's instant, the sample itself)."""
+    if len(xy) < 2:
+        return xy[np.zeros(len(t), dtype=np.int64)]
+    pos = t / dt
+    i = np.clip(np.floor(pos + 1e-9).astype(np.int64), 0, len(xy) - 2)
+    f = np.clip(pos - i, 0.0, 1.0)[:, None]
+    out = xy[i] + f * (xy[i + 1] - xy[i])
+    exact = np.abs(pos - np.rint(pos)) <= 1e-9
+    out[exact] = xy[np.clip(np.rint(pos[exact]).astype(np.int64), 0, len(xy) - 1)]
+    return out
+
+
+def _span_ends(lay: _SpanLayout, speed: np.ndarray, u: np.ndarray | None, w: np.ndarray,
+               w_path: np.ndarray, dh: float, job: "Job") -> tuple[np.ndarray, np.ndarray]:
+    """``(q_nom, q)`` (2 S,) mm^3/s at the span ends: eq. 6.2-6.3 with the speed (and the
+    control action ``u``) interpolated there and the width of the nearest sample inside the
+    span (``w``, per sample row), or ``w_path`` (2 S,) when no sample falls inside.
+
+    The robot does not stop at a switch, so the speed there lies between two neighbouring
+    samples' and the flow between theirs: it is not checked against the calibration table
+    again; the caller holds it in the valve's range where the action saturates it and
+    clamps its frequency to the table and the valve's limit, as the samples'."""
+    w_end = np.where(lay.inner >= 0, w[np.maximum(lay.inner, 0)], w_path)
+    q_nom = (w_end * dh * job.flow.layer_scale) * lay.at_ends(speed)
+    if u is None:
+        return q_nom, q_nom
+    return q_nom, np.clip((1.0 + lay.at_ends(u)), 0.0, None) * q_nom
 
 
 def max_valve_frequency(job: "Job") -> float:
@@ -704,10 +867,17 @@ def plan_valves(trajectory: Trajectory, material: str, job: "Job", *,
                            layer_thickness=layer_thickness, calibration=cal)
     warnings = list(plan.warnings)
     if fl.mode == "fm":
-        times = pulse_instants(plan.t, plan.nu)
+        if plan.on is None:
+            times = pulse_instants(plan.t, plan.nu)
+        else:   # a tour: each of its paths' spans counts its own pulses
+            from icefab._pulses import pulse_instants_many
+            times, _ = pulse_instants_many(plan.on.t, plan.on.nu, plan.on.start)
         prog = _split(times, None, duration, float(trajectory.dt), job)
     else:
-        times, widths, found = _pwm(plan, cal, job, duration, _where(trajectory))
+        if plan.on is None:
+            times, widths, found = _pwm(plan, cal, job, duration, _where(trajectory))
+        else:
+            times, widths, found = _pwm_spans(plan.on, cal, job, _where(trajectory))
         warnings.extend(found)
         prog = _split(times, widths, duration, float(trajectory.dt), job)
     shared = sum(int(np.count_nonzero(np.diff(p.ticks.astype(np.int64)) == 0))
@@ -782,6 +952,24 @@ def _pwm(plan: FrequencyPlan, cal: Calibration, job: "Job", duration: float, whe
             f"{int(np.count_nonzero(cut))} cut to the {w_max_ms:g} ms period; "
             f"{_volume_error(delivered, float(np.sum(vol)))}")
     return times[keep], widths_us[keep].astype(np.uint16), findings
+
+
+def _pwm_spans(on: SpanSignal, cal: Calibration, job: "Job", where: str
+               ) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """:func:`_pwm` over each span a tour's valve is on, as if each were a path of its own
+    (its first period from the span's start, no pulse over the travel): the pulses of all
+    of them in order, and their findings."""
+    times, widths, found = [], [], []
+    for a, b in zip(on.start[:-1].tolist(), on.start[1:].tolist()):
+        t0 = float(on.t[a])
+        t = on.t[a:b] - t0
+        sub = FrequencyPlan(t=t, q=on.q[a:b], u=np.zeros(b - a), nu=on.nu[a:b])
+        ti, wi, fi = _pwm(sub, cal, job, float(t[-1]), where)
+        times.append(ti + t0)
+        widths.append(wi)
+        found.extend(fi)
+    return (np.concatenate(times) if times else np.zeros(0),
+            np.concatenate(widths) if widths else np.zeros(0, np.uint16), found)
 
 
 # =========================================================================== helpers
@@ -1085,6 +1273,9 @@ def _nominal_fm_programs(trajs: "Sequence[Trajectory]", materials: Sequence[str]
     if var.any():   # bad widths: plan_valves refuses the path, in its turn
         var_ok, var_w = variable_widths([t for t, v in zip(trajs, var) if v])
         ok[np.flatnonzero(var)[~var_ok]] = False
+    for i, t in enumerate(trajs):   # bad spans: the same
+        if t.on_spans is not None and spans_problem(t.on_spans, float(t.duration)):
+            ok[i] = False
     out: list[ValveProgram | None] = [None] * m
     idx = np.flatnonzero(ok)
     if not len(idx):
@@ -1098,7 +1289,8 @@ def _nominal_fm_programs(trajs: "Sequence[Trajectory]", materials: Sequence[str]
     xy = np.concatenate([np.asarray(t.xy, np.float64) for t in sel])
     bad = ~(np.isfinite(speed) & (speed >= 0))
     # the flow, frequency and time axis of every sample, as valve_frequency makes them
-    width = np.array([trajectory_width(t, materials[i], job) for t, i in zip(sel, idx)])[owner]
+    own_width = np.array([trajectory_width(t, materials[i], job) for t, i in zip(sel, idx)])
+    width = own_width[owner]
     mine = np.flatnonzero(var[idx])
     if len(mine):   # variable-width paths: eq. 6.2 with w(s), into their samples' places
         # var_w holds the widths of every variable-width trajectory with good ones; the
@@ -1142,6 +1334,10 @@ def _nominal_fm_programs(trajs: "Sequence[Trajectory]", materials: Sequence[str]
     few_min = np.minimum.reduceat(np.where(few, drops, np.inf), first)
     nu_peak = np.maximum.reduceat(nu, first)
     times, toff = pulse_instants_many(t, nu, starts)
+    tours = np.array([tr.on_spans is not None for tr in sel], dtype=bool)
+    if tours.any():
+        times, toff = _tour_pulses(sel, tours, times, toff, speed, nu, q, width, own_width,
+                                   first, n, dt, mats, tables, dh, job)
     tick = fl.tick_s
     most = piece_pulses(job)
     max_len = min(fl.max_piece_s, 65535.5 * tick)
@@ -1182,6 +1378,53 @@ def _nominal_fm_programs(trajs: "Sequence[Trajectory]", materials: Sequence[str]
             out[idx[k]] = (dataclasses.replace(prog, warnings=tuple(warnings)) if warnings
                            else prog)
     return out
+
+
+def _tour_pulses(sel: "Sequence[Trajectory]", tours: np.ndarray, times: np.ndarray,
+                 toff: np.ndarray, speed: np.ndarray, nu: np.ndarray,
+                 q: np.ndarray, width: np.ndarray, own_width: np.ndarray, first: np.ndarray,
+                 n: np.ndarray, dt: np.ndarray, mats: Sequence[str],
+                 tables: dict[str, Calibration], dh: float, job: "Job"
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """The pulse instants of :func:`_nominal_fm_programs` with the tours' (``tours`` (m,)
+    bool over ``sel``) placed over the spans their valve is on, as :func:`plan_valves`
+    places them (:func:`_span_layout`, :func:`_span_ends`, the same operations over all
+    the tours' spans at once): ``(times, offsets)`` as ``pulse_instants_many`` gives
+    them."""
+    from icefab._pulses import pulse_instants_many
+
+    which = np.flatnonzero(tours)
+    spans = [np.asarray(sel[k].on_spans, np.float64).reshape(-1, 2) for k in which]
+    count = np.array([len(x) for x in spans], dtype=np.int64)
+    owner = np.repeat(which, count)
+    lay = _span_layout(np.concatenate(spans), first[owner], n[owner], dt[owner])
+    _, q_e = _span_ends(lay, speed, None, width, np.repeat(own_width[owner], 2), dh, job)
+    nu_e = np.zeros(len(q_e))
+    end_mat = np.repeat(np.array(mats, dtype=object)[owner], 2)
+    for mt in set(end_mat.tolist()):
+        rows = end_mat == mt
+        nu_e[rows] = np.where(q_e[rows] > 0, tables[mt].frequency(q_e[rows]), 0.0)
+    nu_e = np.minimum(nu_e, max_valve_frequency(job))
+    on = _span_signal(lay, q, nu, q_e, nu_e)
+    span_times, span_off = pulse_instants_many(on.t, on.nu, on.start)
+    # every trajectory's pulses: its own, or its spans' in order
+    per = np.diff(toff)
+    span_per = np.diff(span_off)
+    tour_total = np.bincount(np.repeat(np.arange(len(count)), count), weights=span_per,
+                             minlength=len(count)).astype(np.int64)
+    per[which] = tour_total
+    new_off = offsets(per)
+    out = np.empty(int(new_off[-1]))
+    plain = np.ones(len(per), dtype=bool)
+    plain[which] = False
+    src = np.repeat(toff[:-1][plain], per[plain])
+    dst = np.repeat(new_off[:-1][plain], per[plain])
+    run = np.arange(len(src)) - np.repeat(offsets(per[plain])[:-1], per[plain])
+    out[dst + run] = times[src + run]
+    dst_t = np.repeat(new_off[:-1][which], tour_total)
+    run_t = np.arange(len(dst_t)) - np.repeat(offsets(tour_total)[:-1], tour_total)
+    out[dst_t + run_t] = span_times
+    return out, new_off
 
 
 def _layer_valves_task(item: tuple["LayerMotion", "Job"]) -> list[LayerProgram]:

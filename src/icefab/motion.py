@@ -607,8 +607,8 @@ def _plan_polylines(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
     # units: the grid's s is the resampled path's arc length); rest points exactly on the
     # corners
     xy = _mtts.follow_samples(s_loc, sstart, L, sp.fstart, sp.fu, sp.fxy, s0)
-    widths = (_sample_widths(paths, in_counts, labels, sp, s_loc, nsamp)
-              if paths and any(_own_widths(p) for p in paths) else None)
+    own = bool(paths) and any(_own_widths(p) for p in paths)
+    widths = _sample_widths(paths, in_counts, labels, sp, s_loc, nsamp) if own else None
 
     # ---- concatenate the pieces of each path: the shared corner sample appears once
     first_of_path = np.ones(Q, dtype=bool)
@@ -626,6 +626,8 @@ def _plan_polylines(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
     cum = offsets(piece_n)[:-1]
     piece_first_sample = cum - tstart[piece_path]
     piece_first_sample[~first_of_path] -= 1  # the shared corner sample
+    spans = (_switch_spans(paths, in_counts, sp, s_loc, nsamp, keep_s, tstart, dt)
+             if own and any(p is not None and p.off is not None for p in paths) else {})
 
     rests = tstart[piece_path] + piece_first_sample  # every piece's first sample
     joints = _joint_samples(xy, tstart, job, robot, rests)
@@ -645,7 +647,8 @@ def _plan_polylines(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
         out.append(Trajectory(dt=dt, xy=xy[r0:r1], joints=joints[r0:r1], speed=spd[r0:r1],
                               duration=(r1 - r0 - 1) * dt, path=pth,
                               pieces=piece_first_sample[qb[k]:qb[k + 1]],
-                              widths=widths[r0:r1] if _own_widths(pth) else None))
+                              widths=widths[r0:r1] if _own_widths(pth) else None,
+                              on_spans=spans.get(k)))
     return out
 
 
@@ -669,13 +672,7 @@ def _sample_widths(paths: Sequence[Toolpath | None], in_counts: np.ndarray,
     starts = offsets(in_counts)
     # every point at its path's width, then the variable paths' own
     W = np.repeat([0.0 if p is None else float(p.width) for p in paths], in_counts)
-    O = np.zeros(len(W), dtype=bool)
-    for k, p in enumerate(paths):
-        if p is not None and p.off is not None:
-            problem = off_problem(p)
-            if problem:
-                raise IcefabError(f"{_label(labels, k)}: {problem}")
-            O[starts[k]:starts[k] + len(p.points)] = np.asarray(p.off, dtype=bool)
+    off = _segment_off(paths, in_counts, sp, labels)
     var = [k for k, p in enumerate(paths) if p is not None and p.widths is not None]
     # all of them checked at once, path by path only to name the first bad one
     ok, _w = checked_widths([paths[k].widths for k in var],
@@ -694,13 +691,94 @@ def _sample_widths(paths: Sequence[Toolpath | None], in_counts: np.ndarray,
     q = np.repeat(np.arange(len(nsamp)), nsamp + 1)
     x = np.minimum(s_loc, sp.L[q]) + sp.s0[q]
     out = np.interp(x, sp.S, Wpv)
-    if O.any():
-        Opv = O[offsets(in_counts)[:-1][sp.pid] + sp.orig_index][pv]
+    if off.any():
+        Opv = off[pv]
         # the segment each sample lies on, named by its first vertex (a piece's last
         # sample by the segment it ends)
         j = np.searchsorted(sp.S, x, side="right") - 1
         j = np.maximum(np.minimum(j, sp.pvs[1:][q] - 2), sp.pvs[:-1][q])
         out[Opv[j]] = 0.0
+    return out
+
+
+def _segment_off(paths: Sequence[Toolpath | None], in_counts: np.ndarray, sp: _Split,
+                 labels: Sequence[tuple[int, int]] | None = None) -> np.ndarray:
+    """(K,) bool per merged vertex (``sp.V``): the segment leaving it is ``off`` (a tour's
+    travel). A vertex that stands for repeated points takes the state of the segment that
+    leaves the last of them, the one with a length. IcefabError naming the path when its
+    ``off`` is not one bool per point."""
+    starts = offsets(in_counts)
+    O = np.zeros(int(starts[-1]), dtype=bool)
+    for k, p in enumerate(paths):
+        if p is not None and p.off is not None:
+            problem = off_problem(p)
+            if problem:
+                raise IcefabError(f"{_label(labels, k)}: {problem}")
+            O[starts[k]:starts[k] + len(p.points)] = np.asarray(p.off, dtype=bool)
+    g = starts[:-1][sp.pid] + sp.orig_index          # each merged vertex's own point
+    last = g.copy()
+    same = sp.pid[1:] == sp.pid[:-1]
+    last[:-1][same] = g[1:][same] - 1                # the last of the points it merges
+    return O[last]
+
+
+def _switch_spans(paths: Sequence[Toolpath | None], in_counts: np.ndarray, sp: _Split,
+                  s_loc: np.ndarray, nsamp: np.ndarray, keep_s: np.ndarray,
+                  tstart: np.ndarray, dt: float) -> dict[int, np.ndarray]:
+    """The spans the valve is on (:attr:`~icefab.core.Trajectory.on_spans`) of every path
+    with ``off`` segments, by path index: the instants where the samples pass each point
+    at which the path's segments switch between on and off (a tour's path ends and
+    starts), linear in arc between the two samples around it -- the samples are followed
+    linearly, so the nozzle is at the switch point at that instant (the smoothed path's
+    parameter is the input path's arc, so the point is where the path has it).
+
+    s_loc, nsamp: the pieces' samples before the shared corner samples are dropped
+    (``keep_s`` False at those); tstart: first kept sample of every path."""
+    off = _segment_off(paths, in_counts, sp)
+    q_of = np.repeat(np.arange(len(nsamp)), nsamp + 1)
+    x = np.minimum(s_loc, sp.L[q_of]) + sp.s0[q_of]          # arc position, S units
+    kept = np.cumsum(keep_s) - 1          # a dropped corner sample is the one before it
+    t_all = (kept - tstart[sp.piece_path[q_of]]) * dt       # time within its trajectory
+    # every piece's segments, by their first vertex, in path order
+    plen = np.diff(sp.pvs)
+    pv = np.arange(sp.pvs[-1]) - np.repeat(sp.pvs[:-1] - sp.a, plen)   # merged vertex
+    is_seg = np.ones(len(pv), dtype=bool)
+    is_seg[sp.pvs[1:] - 1] = False
+    seg = np.flatnonzero(is_seg)
+    seg_q = np.repeat(np.arange(len(plen)), plen - 1)
+    seg_path = sp.piece_path[seg_q]
+    state_off = off[pv[seg]]
+    change = np.zeros(len(seg), dtype=bool)
+    change[1:] = (state_off[1:] != state_off[:-1]) & (seg_path[1:] == seg_path[:-1])
+    out: dict[int, np.ndarray] = {}
+    wanted = [k for k, p in enumerate(paths) if p is not None and p.off is not None]
+    if not wanted:
+        return out
+    # the time at which each switch point is passed
+    sw = np.flatnonzero(change)
+    X = sp.S[seg[sw]]
+    q = seg_q[sw]
+    sstart = offsets(nsamp + 1)
+    lo, hi = sstart[:-1][q], sstart[1:][q] - 1                # the piece's first and last
+    i = np.clip(np.searchsorted(x, X, side="right") - 1, lo, np.maximum(hi - 1, lo))
+    j = np.minimum(i + 1, hi)
+    span = x[j] - x[i]
+    frac = np.clip(np.divide(X - x[i], span, out=np.zeros(len(X)), where=span > 0), 0.0, 1.0)
+    t_sw = t_all[i] + frac * (t_all[j] - t_all[i])
+    first_seg = np.searchsorted(seg_path, np.arange(len(paths)))
+    sw_path = seg_path[sw]
+    bounds = np.searchsorted(sw_path, np.arange(len(paths) + 1))
+    for k in wanted:
+        if first_seg[k] >= len(seg) or seg_path[first_seg[k]] != k:
+            continue        # no segment (a single point): nothing to switch
+        duration = (tstart[k + 1] - tstart[k] - 1) * dt
+        edges = np.concatenate([[0.0] if not state_off[first_seg[k]] else [],
+                                t_sw[bounds[k]:bounds[k + 1]]])
+        on_at_end = len(edges) % 2 == 1
+        if on_at_end:
+            edges = np.append(edges, duration)
+        edges = np.minimum(np.maximum(edges, 0.0), duration)
+        out[k] = np.maximum.accumulate(edges).reshape(-1, 2)
     return out
 
 

@@ -58,7 +58,7 @@ the paths.
 
 Trajectory file (``icefab plan``; :func:`save_trajectories` / :func:`load_trajectories`):
 
-* ``format`` = "icefab-trajectories", ``version`` = 5, ``dt`` float s (the first
+* ``format`` = "icefab-trajectories", ``version`` = 6, ``dt`` float s (the first
   trajectory's; ``traj_dt`` has each one's), ``robot`` str, ``joint_names`` (j,) str,
   ``job`` str (TOML);
 * the samples of all trajectories, in order, as integer counts of a resolution (issue
@@ -86,6 +86,10 @@ Trajectory file (``icefab plan``; :func:`save_trajectories` / :func:`load_trajec
   ``width`` float64 mm, ``closed`` bool, ``tool`` str ("" = derived), ``path_z``
   float64 mm, ``variable`` bool (its Path has a width per point, and the trajectory a
   width per sample); a trajectory without a Path has width 0, closed False, tool "", z 0;
+* ``span_owner`` (S,) int64 ascending and ``on_spans`` (S, 2) float64 s: the spans over
+  which each continuous tour's valve is on (:attr:`icefab.core.Trajectory.on_spans`),
+  each with its trajectory's index; version 5 files have none (their tours' valves then
+  switch at the samples, as the widths do);
 * per layer (L,): ``layer_index`` int64, ``layer_z`` float64 mm, ``layer_start`` (L+1,)
   int64 (trajectories of layer k are ``layer_start[k]:layer_start[k+1]``).
 
@@ -125,7 +129,7 @@ from icefab.atomic import atomic_path
 from icefab.config import Job, job_from_dict, to_toml
 from icefab.core import (FRAMES, MATERIALS, OFF, ON1, ON2, ROLES, TOOLS, BuildMotion, Layer,
                          LayerMotion, LayerPaths, Region, RuledEdges, Stack, Toolpath,
-                         Toolpaths, Trajectory, offsets, polyline_lengths)
+                         Toolpaths, Trajectory, offsets, polyline_lengths, spans_problem)
 from icefab.errors import ConfigError, StackFileError
 
 log = logging.getLogger(__name__)
@@ -141,10 +145,10 @@ TOOLPATHS_READABLE = (1, 2, 3, 4, 5)
 #: (``icefab.geometry.SCALE``), where the paths stage puts its points.
 POINT_GRID_PER_MM = 10_000
 TRAJECTORIES_FORMAT = "icefab-trajectories"
-TRAJECTORIES_VERSION = 5
+TRAJECTORIES_VERSION = 6
 #: Versions load_trajectories reads (1: without per-trajectory dt and Path fields; 2: float
-#: samples; 3: the samples in one block; 4: no per-sample widths).
-TRAJECTORIES_READABLE = (1, 2, 3, 4, 5)
+#: samples; 3: the samples in one block; 4: no per-sample widths; 5: no tours' spans).
+TRAJECTORIES_READABLE = (1, 2, 3, 4, 5, 6)
 #: Resolutions of the samples in a trajectory file (versions 3 to 5; each file stores its
 #: own): 1 um of tool position (the Cobra 600 repeats to 17 um), 1e-5 rad (0.00057 deg,
 #: finer than its 0.001 deg encoder counts) or 1e-5 mm of a joint, 0.01 mm/s of path
@@ -1005,7 +1009,21 @@ def pack_trajectories(trajs: Sequence[Trajectory], n_joints: int = 0, *,
         "duration": np.array([t.duration for t in trajs], dtype=np.float64),
         "traj_dt": np.array([t.dt for t in trajs], dtype=np.float64),
         **_packed_widths(trajs),
+        **_packed_spans(trajs),
     }
+
+
+def _packed_spans(trajs: Sequence[Trajectory]) -> dict[str, np.ndarray]:
+    """``span_owner`` (S,) int64 and ``on_spans`` (S, 2) float64 s: the spans the valve is
+    on of the continuous tours' trajectories (:attr:`~icefab.core.Trajectory.on_spans`),
+    in order, each with its trajectory's index; nothing when there are none."""
+    spanned = [(i, np.asarray(t.on_spans, np.float64).reshape(-1, 2))
+               for i, t in enumerate(trajs) if t.on_spans is not None]
+    if not spanned:
+        return {}
+    return {"span_owner": np.repeat([i for i, _ in spanned],
+                                    [len(x) for _, x in spanned]).astype(np.int64),
+            "on_spans": np.concatenate([x for _, x in spanned])}
 
 
 def _packed_widths(trajs: Sequence[Trajectory]) -> dict[str, np.ndarray]:
@@ -1034,6 +1052,13 @@ def unpack_trajectories(d: dict[str, np.ndarray],
         wstart = offsets(np.diff(ts)[idx])
         for j, i in enumerate(idx.tolist()):
             object.__setattr__(trajs[i], "widths", d["widths"][wstart[j]:wstart[j + 1]])
+    if "span_owner" in d:
+        owner, spans = d["span_owner"], d["on_spans"]
+        cut = np.flatnonzero(np.diff(owner)) + 1
+        for rows in np.split(np.arange(len(owner)), cut):
+            if len(rows):
+                object.__setattr__(trajs[int(owner[rows[0]])], "on_spans",
+                                   spans[rows[0]:rows[-1] + 1])
     return trajs
 
 
@@ -1161,7 +1186,7 @@ class TrajectoryWriter:
         self._blocks = [0]        # layer offsets of the blocks written
         self._meta: dict[str, list] = {k: [] for k in (
             "lengths", "piece_start", "piece_count", "duration", "traj_dt", "variable",
-            *_PATH_FIELDS)}
+            "span_owner", "on_spans", *_PATH_FIELDS)}
         self._layers: list[tuple[int, float, int, float]] = []
         self._dt: float | None = None
         self._n_joints = len(self.joint_names)
@@ -1221,6 +1246,10 @@ class TrajectoryWriter:
         m["traj_dt"].extend(np.asarray(packed["traj_dt"], np.float64).tolist())
         m["variable"].extend(np.asarray(packed["variable"], bool).tolist()
                              if "variable" in packed else [False] * n_traj)
+        if "span_owner" in packed:   # the tours' spans, by trajectory of the whole file
+            m["span_owner"].append(np.asarray(packed["span_owner"], np.int64)
+                                   + (len(m["lengths"]) - n_traj))
+            m["on_spans"].append(np.asarray(packed["on_spans"], np.float64).reshape(-1, 2))
         fields = (_packed_path_fields(index, paths) if isinstance(paths, dict)
                   else _path_fields(index, z, paths))
         for k, v in fields.items():
@@ -1271,6 +1300,10 @@ class TrajectoryWriter:
             "speed_resolution": np.array(SPEED_RESOLUTION_MM_S),
             "width_resolution": np.array(WIDTH_RESOLUTION_MM),
             "variable": np.array(m["variable"], dtype=bool),
+            "span_owner": (np.concatenate(m["span_owner"]) if m["span_owner"]
+                           else np.zeros(0, np.int64)),
+            "on_spans": (np.concatenate(m["on_spans"]) if m["on_spans"]
+                         else np.zeros((0, 2))),
             "block_layer_start": np.array(self._blocks, dtype=np.int64),
             "traj_start": offsets(m["lengths"]),
             "piece_start": (np.concatenate(m["piece_start"]) if m["piece_start"]
@@ -1309,6 +1342,7 @@ _TRAJ_V2 = ("traj_dt", "width", "closed", "tool", "path_z")
 #: adds ``width_counts``.
 _TRAJ_BLOCK = ("xy_counts", "joint_counts", "speed_counts")
 _TRAJ_V5 = ("variable", "width_resolution")
+_TRAJ_V6 = ("span_owner", "on_spans")
 #: Largest time step and joint value a trajectory file may hold (s; rad or mm).
 MAX_DT_S = 60.0
 MAX_JOINT = 1e6
@@ -1393,7 +1427,8 @@ class TrajectoryFile:
             blocks = [f"{s}_{k}" for k in range(len(bls) - 1) for s in self._block]
             m.expect(_TRAJ_REQUIRED + _TRAJ_V2 + _TRAJ_COUNTS[3:]
                      + ("block_layer_start",) + tuple(blocks)
-                     + (_TRAJ_V5 if version >= 5 else ()), ("layer_height",),
+                     + (_TRAJ_V5 if version >= 5 else ())
+                     + (_TRAJ_V6 if version >= 6 else ()), ("layer_height",),
                      streamed=blocks)
         else:
             m.expect(_TRAJ_REQUIRED + (_TRAJ_V2 if version >= 2 else ())
@@ -1454,6 +1489,8 @@ class TrajectoryFile:
                                                                           tools, zs)
         self._variable = (m.values("variable", "b", 1, n=nt).astype(bool) if version >= 5
                           else np.zeros(nt, dtype=bool))
+        self._span_owner, self._spans = self._read_spans(nt) if version >= 6 else \
+            (np.zeros(0, np.int64), np.zeros((0, 2)))
         if version >= 4:
             if bls[0] != 0 or bls[-1] != len(index) or np.any(np.diff(bls) < 0):
                 raise m.bad("block_layer_start", f"offsets must run from 0 to {len(index)} "
@@ -1461,6 +1498,25 @@ class TrajectoryFile:
             self._block_layers = bls
         else:
             self._block_layers = np.array([0, len(index)], dtype=np.int64)
+
+    def _read_spans(self, nt: int) -> tuple[np.ndarray, np.ndarray]:
+        """``span_owner`` and ``on_spans`` (version 6), checked: owners ascending, every
+        trajectory's spans in order within its duration (:func:`~icefab.core.
+        spans_problem`)."""
+        m = self._m
+        owner = m.values("span_owner", "iu", 1, lo=0, hi=max(nt - 1, 0)).astype(np.int64)
+        spans = m.values("on_spans", "f", 2, 2, n=len(owner), lo=0.0, hi=1e9)
+        if len(owner) and (nt == 0 or np.any(np.diff(owner) < 0)):
+            raise m.bad("span_owner", "not in ascending trajectory order: the file is corrupt")
+        spans = spans.astype(np.float64).reshape(-1, 2)
+        cut = np.flatnonzero(np.diff(owner)) + 1
+        for rows in np.split(np.arange(len(owner)), cut):
+            if len(rows):
+                k = int(owner[rows[0]])
+                problem = spans_problem(spans[rows[0]:rows[-1] + 1], float(self.durations[k]))
+                if problem:
+                    raise m.bad("on_spans", f"trajectory {k}: {problem}: the file is corrupt")
+        return owner, spans
 
     def _whole_samples(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The samples of a version 1 to 3 file (one block)."""
@@ -1588,6 +1644,10 @@ class TrajectoryFile:
         variable = self._variable[t0:t1]
         if variable.any():
             data["variable"], data["widths"] = variable, widths
+        s0, s1 = np.searchsorted(self._span_owner, [t0, t1])
+        if s1 > s0:
+            data["span_owner"] = self._span_owner[s0:s1] - t0
+            data["on_spans"] = self._spans[s0:s1]
         # one stand-in Toolpath per trajectory (558 872 on the bunny): its fields as lists
         # first, and the closing check of closed paths (first sample == last) for all
         lo_row, hi_row = ts[t0:t1] - r0, ts[t0 + 1:t1 + 1] - r0

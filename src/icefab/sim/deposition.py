@@ -308,10 +308,12 @@ def _at(poly: np.ndarray, s: np.ndarray, t: np.ndarray) -> np.ndarray:
                      np.interp(t, s[keep], poly[keep, 1])], axis=1)
 
 
-def _pulse_segments(xy: np.ndarray, dt: float, pulse_t: np.ndarray, drop: np.ndarray,
-                    width: float | np.ndarray = 0.0) -> tuple:
+def _pulse_segments(xy: np.ndarray, dt: float | np.ndarray, pulse_t: np.ndarray,
+                    drop: np.ndarray, width: float | np.ndarray = 0.0) -> tuple:
     """Drops of one trajectory as deposition segments (see :func:`deposit_pulses`).
 
+    dt: the time step, s, or (n,) the points' instants from the first (a tour's stretch,
+    cut where its valve switches, :func:`icefab.sim.plans.on_stretches`).
     width: the path width, mm: one for the whole path or (n,) one per sample (a
     variable-width path, linear between samples).
     Returns a, b (m, 2) segment ends along the followed polyline (repeated samples
@@ -335,7 +337,8 @@ def _pulse_segments(xy: np.ndarray, dt: float, pulse_t: np.ndarray, drop: np.nda
         return (none, none, np.zeros(0), np.zeros(0),
                 (np.repeat(xy[:1], p, axis=0), drop.copy(), np.full(p, wn[0])), False)
     # where the nozzle is at each pulse instant: arc length at that time (thesis 6.2)
-    s_p = np.interp(pulse_t, np.arange(n) * dt, S)
+    times = np.arange(n) * dt if np.ndim(dt) == 0 else np.asarray(dt, dtype=np.float64)
+    s_p = np.interp(pulse_t, times, S)
     bounds = np.concatenate([[0.0], 0.5 * (s_p[:-1] + s_p[1:]), [length]])
     keep = np.concatenate([[True], seg > _TINY_MM])
     poly, s_v = xy[keep], S[keep]
@@ -363,7 +366,8 @@ def pulse_segments(xy: Sequence[np.ndarray], dt: Sequence[float],
                    width: Sequence[float | np.ndarray]) -> tuple[np.ndarray, ...]:
     """Deposition segments of many trajectories' valve pulses (see :func:`deposit_pulses`).
 
-    Per trajectory i: ``xy[i] (n_i, 2)`` mm part-frame nozzle positions every ``dt[i]`` s,
+    Per trajectory i: ``xy[i] (n_i, 2)`` mm part-frame nozzle positions every ``dt[i]`` s
+    (or at the (n_i,) instants ``dt[i]``),
     pulse instants ``pulse_times_s[i] (p_i,)`` s from its start, drop volumes
     ``drop_mm3[i] (p_i,)``, path width ``width[i]`` mm (or (n_i,) one per sample: a
     variable-width path).
@@ -375,7 +379,7 @@ def pulse_segments(xy: Sequence[np.ndarray], dt: Sequence[float],
     count = 0
     for i, (pts, step, t, drop, w) in enumerate(zip(xy, dt, pulse_times_s, drop_mm3, width)):
         a, b, vol, ws, (at, at_vol, at_w), cl = _pulse_segments(
-            pts, float(step), np.asarray(t, dtype=np.float64),
+            pts, step if np.ndim(step) else float(step), np.asarray(t, dtype=np.float64),
             np.asarray(drop, dtype=np.float64), w)
         pieces = [(a, b, vol, ws, cl)] if len(a) else []
         # lone drops: a zero-length segment each, a path of its own (w x w square)
@@ -464,7 +468,10 @@ def pulse_drops(program: "ValveProgram", frequency: "FrequencyPlan | None",
     if program.widths_us is None:
         if frequency is None:
             raise SimulationError("pulse_drops: an FM program needs its frequency plan")
-        nu = np.interp(t, frequency.t, frequency.nu)
+        # a tour's pulses at the signal over its spans (off between them, not 0 at the
+        # spans' ends)
+        sig = frequency if frequency.on is None else frequency.on
+        nu = np.interp(t, sig.t, sig.nu)
         pos = cal.frequency_hz[cal.frequency_hz > 0]
         floor = 1e-6 * float(pos[0]) if len(pos) else 1e-9
         nu = np.maximum(nu, floor)

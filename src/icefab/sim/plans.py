@@ -214,8 +214,8 @@ def plan_layer_motion(layer: "LayerMotion", job: "Job") -> LayerPlan:
             continue
         xy_all = flow.trajectory_part_xy(traj, p.material, job)
         w_all = flow.sample_widths(traj, p.material, job)
-        for a, b in on_runs(w_all):   # a tour: not over its travel (0 wide)
-            pts, width = xy_all[a:b + 1], w_all[a:b + 1]
+        for t, width in on_stretches(traj, w_all, p.material, job):   # a tour: not its travel
+            pts = flow.positions_at(xy_all, float(traj.dt), t)
             if len(pts) > 1:
                 step = np.linalg.norm(np.diff(pts, axis=0), axis=1)
                 moved = np.concatenate([[True], step > _TINY_MM])
@@ -290,21 +290,41 @@ def valve_segments(valves: LayerValves, job: "Job") -> tuple:
         t, d = pulse_drops(prog, freq, p.material, job)
         xy = flow.trajectory_part_xy(traj, p.material, job)
         w = flow.sample_widths(traj, p.material, job)
-        dt = float(traj.dt)
-        # a tour's runs apart: a drop's strip never reaches over the travel between them
-        for a, b in on_runs(w):
-            inside = (t >= a * dt - 1e-12) & (t <= b * dt + 1e-12)
-            xs.append(xy[a:b + 1])
-            dts.append(dt)
-            ts.append(t[inside] - a * dt)
+        # a tour's stretches apart: a drop's strip never reaches over the travel between
+        for times, wk in on_stretches(traj, w, p.material, job):
+            t0 = float(times[0])
+            inside = (t >= t0 - 1e-12) & (t <= float(times[-1]) + 1e-12)
+            xs.append(flow.positions_at(xy, float(traj.dt), times))
+            dts.append(times - t0)
+            ts.append(t[inside] - t0)
             drops.append(d[inside])
-            widths.append(w[a:b + 1])
+            widths.append(wk)
             mats.append(MATERIAL_ID[p.material])
             t, d = t[~inside], d[~inside]
     a, b, vol, hw, owner, n0, n1, ext = pulse_segments(xs, dts, ts, drops, widths)
     material = np.asarray(mats, dtype=np.int8)[owner] if len(owner) else \
         np.zeros(0, dtype=np.int8)
     return a, b, vol, hw, material, n0, n1, ext, int(sum(len(t) for t in ts))
+
+
+def on_stretches(traj: Trajectory, widths: np.ndarray, material: str, job: "Job"
+                 ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Where a trajectory deposits, as ``(t (k,) s from its start, widths (k,) mm)`` per
+    stretch: a continuous tour's spans (:attr:`~icefab.core.Trajectory.on_spans`) from the
+    exact instant its valve opens to the one it closes, the samples between (the ends as
+    wide as the nearest sample inside, or the path when none is); without spans the sample
+    runs of :func:`on_runs` (a whole path, or a tour from a file before version 6)."""
+    lay = flow.span_layout(traj)
+    if lay is None:
+        dt = float(traj.dt)
+        return [(np.arange(a, b + 1) * dt, widths[a:b + 1]) for a, b in on_runs(widths)]
+    w = np.empty(len(lay.rows))
+    inside = lay.rows >= 0
+    w[inside] = widths[lay.rows[inside]]
+    w[lay.ends] = np.where(lay.inner >= 0, widths[np.maximum(lay.inner, 0)],
+                           flow.trajectory_width(traj, material, job))
+    return [(lay.t[a:b], w[a:b]) for a, b in zip(lay.start[:-1].tolist(),
+                                                   lay.start[1:].tolist())]
 
 
 def on_runs(widths: np.ndarray) -> list[tuple[int, int]]:
