@@ -2,6 +2,8 @@
 per path made 56 000 files), and the drop-spacing figures of icefab valves' path table."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from hypothesis import given, seed, settings
@@ -91,3 +93,12 @@ def test_drop_spacing_of_evenly_spaced_pulses_on_a_straight_line():
     assert gap == pytest.approx(2.5)
     assert sparse == pytest.approx(39 * 2.5)          # every one of the 39 spacings
     assert _drop_spacing(traj, prog, min_drops_per_mm=0.3)[2] == 0.0   # 3.33 mm allowed
+    # the same as a continuous tour on for 0.4-0.9 s and 1.2-2 s (25 + 40 mm): its drops
+    # over those spans only, the 15 mm of travel between no spacing of them
+    tour = dataclasses.replace(traj, on_spans=np.array([[0.4, 0.9], [1.2, 2.0]]))
+    length, gap, sparse = _drop_spacing(tour, prog, min_drops_per_mm=1.0)
+    assert length == pytest.approx(65.0)
+    assert gap == pytest.approx(2.5)
+    # 0.4-0.9 s holds the pulses at 0.42 .. 0.87 s (10, 9 spacings), 1.2-2 s those at
+    # 1.22 .. 1.97 s (16, 15 spacings)
+    assert sparse == pytest.approx((9 + 15) * 2.5)

@@ -224,70 +224,98 @@ PATH_COLUMNS = ["layer", "path", "material", "role", "length_mm", "duration_s", 
 
 def _drop_spacings(trajs, progs, min_drops_per_mm: float) -> list[tuple[float, float, float]]:
     """:func:`_drop_spacing` of many paths (a layer's) in a few array operations: each
-    path's samples and pulses are shifted to lie after the previous path's, so one
-    interpolation places them all (the values agree with the per-path function to float
-    rounding). Issue 17: once per path it took 17 s of the bunny's valves."""
-    from icefab.flow import pulse_times
+    stretch's points and pulses (a path, or each path a continuous tour joins) are shifted
+    to lie after the previous stretch's, so one interpolation places them all (the values
+    agree with the per-path function to float rounding). Issue 17: once per path it took
+    17 s of the bunny's valves."""
+    from icefab.flow import on_times, positions_at, pulse_times
 
     if not trajs:
         return []
     n = np.array([len(t.xy) for t in trajs], dtype=np.int64)
     if np.any(n < 2):  # the rare bare point: path by path
         return [_drop_spacing(t, p, min_drops_per_mm) for t, p in zip(trajs, progs)]
-    xy = np.concatenate([np.asarray(t.xy, np.float64) for t in trajs])
-    first = np.concatenate([[0], np.cumsum(n)[:-1]])
+    # the stretches: whole paths, and a tour's spans apart (no drop over its travel)
+    times, pts, pulses, owner = [], [], [], []
+    for k, (tr, prog) in enumerate(zip(trajs, progs)):
+        stretch_t = on_times(tr)
+        p_t = pulse_times(prog)
+        xy = np.asarray(tr.xy, np.float64)
+        if len(stretch_t) == 1 and tr.on_spans is None:
+            times.append(stretch_t[0])
+            pts.append(xy)
+            pulses.append(p_t)
+            owner.append(k)
+            continue
+        for ts in stretch_t:
+            times.append(ts)
+            pts.append(positions_at(xy, float(tr.dt), ts))
+            pulses.append(p_t[(p_t >= ts[0] - 1e-12) & (p_t <= ts[-1] + 1e-12)])
+            owner.append(k)
+    m = np.array([len(x) for x in times], dtype=np.int64)
+    xy = np.concatenate(pts)
+    first = np.concatenate([[0], np.cumsum(m)[:-1]])
     step = np.linalg.norm(np.diff(xy, axis=0), axis=1)
-    step[first[1:] - 1] = 0.0                                  # between two paths
+    step[first[1:] - 1] = 0.0                                  # between two stretches
     s = np.concatenate([[0.0], np.cumsum(step)])
     s0 = s[first]
-    length = s[first + n - 1] - s0
-    dt = np.array([float(t.dt) for t in trajs])
-    local = (np.arange(len(xy)) - np.repeat(first, n)).astype(np.float64)
-    span = (n - 1) * dt + 1.0                                    # each path's time, and a gap
-    shift = np.concatenate([[0.0], np.cumsum(span)[:-1]])
-    t = local * np.repeat(dt, n) + np.repeat(shift, n)
-    pulses = [pulse_times(p) for p in progs]
+    length = s[first + m - 1] - s0
+    span = np.array([x[-1] - x[0] for x in times]) + 1.0     # each stretch's time, a gap
+    shift = np.concatenate([[0.0], np.cumsum(span)[:-1]]) - np.array([x[0] for x in times])
+    t = np.concatenate(times) + np.repeat(shift, m)
     n_p = np.array([len(a) for a in pulses], dtype=np.int64)
     at = np.interp(np.concatenate(pulses) + np.repeat(shift, n_p), t, s) - np.repeat(s0, n_p)
     limit = 1.0 / min_drops_per_mm if min_drops_per_mm > 0 else np.inf
     gaps = np.diff(at) if len(at) else np.zeros(0)
     inside = np.ones(len(gaps), dtype=bool)
     ends = np.cumsum(n_p)[:-1]
-    inside[ends[(ends > 0) & (ends <= len(gaps))] - 1] = False   # between two paths
-    owner = np.repeat(np.arange(len(trajs)), n_p)[1:] if len(at) else np.zeros(0, np.int64)
+    inside[ends[(ends > 0) & (ends <= len(gaps))] - 1] = False   # between two stretches
+    unit = np.repeat(np.arange(len(m)), n_p)[1:] if len(at) else np.zeros(0, np.int64)
     g = np.where(inside, gaps, 0.0)
-    widest = np.zeros(len(trajs))
-    np.maximum.at(widest, owner, g)
-    sparse = np.zeros(len(trajs))
-    np.add.at(sparse, owner, np.where(inside & (g > limit), g, 0.0))
-    out = []
-    for k in range(len(trajs)):
-        if n_p[k] < 2:  # one drop (or none) for the whole path
-            L = float(length[k])
-            out.append((L, L, L if L > limit else 0.0))
-        else:
-            out.append((float(length[k]), float(widest[k]), float(sparse[k])))
-    return out
+    widest = np.zeros(len(m))
+    np.maximum.at(widest, unit, g)
+    sparse = np.zeros(len(m))
+    np.add.at(sparse, unit, np.where(inside & (g > limit), g, 0.0))
+    few = n_p < 2                           # one drop (or none) for the whole stretch
+    widest[few] = length[few]
+    sparse[few] = np.where(length[few] > limit, length[few], 0.0)
+    owner = np.asarray(owner, dtype=np.int64)
+    tot_len = np.bincount(owner, weights=length, minlength=len(trajs))
+    tot_sparse = np.bincount(owner, weights=sparse, minlength=len(trajs))
+    tot_widest = np.zeros(len(trajs))
+    np.maximum.at(tot_widest, owner, widest)
+    return [(float(a), float(b), float(c)) for a, b, c in zip(tot_len, tot_widest,
+                                                               tot_sparse)]
 
 
 def _drop_spacing(traj, prog, min_drops_per_mm: float) -> tuple[float, float, float]:
-    """Path length, largest distance between consecutive drops, and the length over which
-    drops are farther apart than ``1 / min_drops_per_mm`` (mm), from the program's pulse
-    instants placed on the trajectory (what the valve will do, not the planned frequency)."""
-    from icefab.flow import pulse_times
+    """Deposited length, largest distance between consecutive drops, and the length over
+    which drops are farther apart than ``1 / min_drops_per_mm`` (mm), from the program's
+    pulse instants placed on the trajectory (what the valve will do, not the planned
+    frequency). A continuous tour counts each of its paths apart (:func:`icefab.flow.
+    on_times`): its travel deposits nothing, and no drop spacing spans it."""
+    from icefab.flow import on_times, positions_at, pulse_times
 
     xy = np.asarray(traj.xy, dtype=np.float64)
     if len(xy) < 2:
         return 0.0, 0.0, 0.0
-    s = arc_lengths(np.linalg.norm(np.diff(xy, axis=0), axis=1))
-    t = np.arange(len(xy)) * float(traj.dt)
-    at = np.interp(pulse_times(prog), t, s)
     limit = 1.0 / min_drops_per_mm if min_drops_per_mm > 0 else np.inf
-    if len(at) < 2:  # one drop (or none) for the whole path
+    p_t = pulse_times(prog)
+    total, widest, sparse = 0.0, 0.0, 0.0
+    for ts in on_times(traj):
+        pts = positions_at(xy, float(traj.dt), ts)
+        s = arc_lengths(np.linalg.norm(np.diff(pts, axis=0), axis=1))
+        at = np.interp(p_t[(p_t >= ts[0] - 1e-12) & (p_t <= ts[-1] + 1e-12)], ts, s)
         length = float(s[-1])
-        return length, length, length if length > limit else 0.0
-    gaps = np.diff(at)
-    return float(s[-1]), float(gaps.max()), float(gaps[gaps > limit].sum())
+        total += length
+        if len(at) < 2:  # one drop (or none) for the whole stretch
+            widest = max(widest, length)
+            sparse += length if length > limit else 0.0
+            continue
+        gaps = np.diff(at)
+        widest = max(widest, float(gaps.max()))
+        sparse += float(gaps[gaps > limit].sum())
+    return total, widest, sparse
 
 
 def _summary(out, n_layers, fmts, totals, sparse_paths, max_gap, max_gap_width, found, job
