@@ -417,3 +417,61 @@ def test_a_tour_of_two_widths_is_as_wide_as_what_it_deposits_on_average():
     # 40 mm at 1.5 and 40 mm at 3.0; the 10 mm of travel (0 wide) does not count
     assert tour.width == pytest.approx(2.25)
     assert [m.width for m in tour_members(tour)] == [1.5, 3.0]
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.tuples(st.floats(0.5, 20.0),
+                          st.lists(st.floats(-1.0, 21.0) | st.just(float("nan")),
+                                   max_size=8)),
+                min_size=1, max_size=6))
+def test_spans_are_checked_at_once_as_one_by_one(trajs):
+    """core.spans_fine (many trajectories' spans at once, as the valves and the trajectory
+    file check them) agrees with core.spans_problem trajectory by trajectory."""
+    from icefab.core import spans_fine, spans_problem
+    durations = np.array([d for d, _ in trajs])
+    spans = [np.sort(np.asarray(e[:len(e) // 2 * 2], dtype=np.float64)).reshape(-1, 2)
+             if k % 2 else np.asarray(e[:len(e) // 2 * 2], dtype=np.float64).reshape(-1, 2)
+             for k, (_, e) in enumerate(trajs)]
+    owner = np.repeat(np.arange(len(trajs)), [len(x) for x in spans])
+    got = spans_fine(owner, np.concatenate(spans), durations)
+    want = [spans_problem(x, d) == "" for x, d in zip(spans, durations)]
+    assert got.tolist() == want
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.lists(st.tuples(st.floats(2.0, 30.0), st.floats(-150.0, 150.0), st.booleans()),
+                min_size=2, max_size=9))
+def test_a_path_switched_anywhere_opens_and_closes_its_valve_where_it_switches(legs):
+    """Random open paths (legs of 2-30 mm turning up to 150 deg), each segment on or off
+    (the path may start or end off): one span per run of on segments, and at each span's
+    ends the nozzle is at the run's first and last point (within the followed path's
+    smoothing and the chord of a sample step across a bend)."""
+    job = Job()
+    heading, pts = 0.0, [np.zeros(2)]
+    for length, turn, _ in legs:
+        heading += np.radians(turn)
+        pts.append(pts[-1] + length * np.array([np.cos(heading), np.sin(heading)]))
+    off = np.array([o for _, _, o in legs] + [False])
+    if off[:-1].all():
+        off[0] = False
+    path = _fill(np.array(pts), off=off)
+    tr = plan_motion(path, job)
+    on = path.segment_on()
+    runs = [(a, b) for a, b in zip(np.flatnonzero(np.diff(np.r_[0, on.astype(np.int8)]) == 1),
+                                   np.flatnonzero(np.diff(np.r_[on.astype(np.int8), 0]) == -1))]
+    assert tr.on_spans.shape == (len(runs), 2)
+    want = _base_points_of(path, job)[np.array(runs).ravel() + np.array([0, 1] * len(runs))]
+    at = np.column_stack([np.interp(tr.on_spans.ravel(), tr.t, tr.xy[:, j]) for j in (0, 1)])
+    assert np.linalg.norm(at - want, axis=1).max() <= 0.1
+    # the valve lays no pulse outside the spans
+    t = flow.pulse_times(flow.plan_valves(tr, "part", job.replace(
+        **{"flow.out_of_range": "clamp"})))
+    inside = np.zeros(len(t), dtype=bool)
+    for a, b in tr.on_spans:
+        inside |= (t >= a) & (t <= b)
+    assert inside.all()
+
+
+def _base_points_of(path, job):
+    from icefab.motion import _base_points
+    return _base_points(path, job)

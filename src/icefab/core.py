@@ -629,6 +629,24 @@ def spans_problem(spans: np.ndarray | None, duration: float) -> str:
     return ""
 
 
+def spans_fine(owner: np.ndarray, spans: np.ndarray, durations: np.ndarray) -> np.ndarray:
+    """(T,) bool: :func:`spans_problem` finds nothing in any trajectory's spans, for many
+    at once (a bunny layer has dozens of tours, its file 50 000): ``spans (S, 2)`` float
+    s, each of trajectory ``owner (S,)`` (ascending), ``durations (T,)`` s. Shapes are
+    the caller's to check."""
+    s = np.asarray(spans, dtype=np.float64).reshape(-1, 2)
+    owner = np.asarray(owner, dtype=np.int64)
+    dur = np.asarray(durations, dtype=np.float64)[owner]
+    tol = 1e-9 * np.maximum(1.0, np.abs(dur))
+    with np.errstate(invalid="ignore"):
+        bad = (~np.isfinite(s).all(axis=1) | (s[:, 0] < -tol) | (s[:, 1] > dur + tol)
+               | (s[:, 1] < s[:, 0]))
+        bad[1:] |= (s[1:, 0] < s[:-1, 1]) & (owner[1:] == owner[:-1])
+    fine = np.ones(len(durations), dtype=bool)
+    fine[owner[bad]] = False
+    return fine
+
+
 @dataclass(frozen=True, eq=False)
 class LayerMotion:
     """The trajectories of one layer, in deposition order (travel moves included)."""

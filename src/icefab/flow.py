@@ -114,7 +114,7 @@ from icefab.motion import limit_ratio, speedup_cap
 from icefab.parallel import parallel_map
 from icefab.stages import layer_height
 from icefab.core import (HeightMap, Trajectory, ValveProgram, checked_widths, offsets,
-                         spans_problem)
+                         spans_fine, spans_problem)
 
 if TYPE_CHECKING:  # pragma: no cover
     from icefab.config import Job
@@ -556,6 +556,11 @@ def valve_frequency(trajectory: Trajectory, material: str, job: "Job", *,
                          warnings=tuple(warnings), on=on)
 
 
+def _on_ends(on: SpanSignal) -> np.ndarray:
+    """(S, 2) s: each span's start and end instant."""
+    return np.column_stack([on.t[on.start[:-1]], on.t[on.start[1:] - 1]])
+
+
 def _span_signal(lay: _SpanLayout, q: np.ndarray, nu: np.ndarray, q_ends: np.ndarray,
                  nu_ends: np.ndarray) -> SpanSignal:
     """The :class:`SpanSignal` of a layout: the samples' ``q``, ``nu`` inside the spans,
@@ -565,6 +570,23 @@ def _span_signal(lay: _SpanLayout, q: np.ndarray, nu: np.ndarray, q_ends: np.nda
     qs[inside], nus[inside] = q[lay.rows[inside]], nu[lay.rows[inside]]
     qs[lay.ends], nus[lay.ends] = q_ends, nu_ends
     return SpanSignal(t=lay.t, q=qs, nu=nus, start=lay.start)
+
+
+def _kept_in_spans(times: np.ndarray, per_span: np.ndarray, ends: np.ndarray, tick: float
+                   ) -> np.ndarray:
+    """Pulse instants ``times``, ``per_span (S,)`` of them in each span ``ends (S, 2)`` s
+    in turn, moved at most half a tick so that the controller's tick (the nearest to each,
+    :func:`_split`) stays within their span: into ``[start + tick / 2, end - tick / 2]``,
+    or the middle of a span shorter than a tick. Without it a pulse a hair before a switch
+    could be rounded onto the travel (0.13 mm at 125 mm/s and 1 ms)."""
+    if not len(times):
+        return times
+    a = np.repeat(ends[:, 0], per_span)
+    b = np.repeat(ends[:, 1], per_span)
+    long_enough = b - a >= tick
+    lo = np.where(long_enough, a + 0.5 * tick, 0.5 * (a + b))
+    hi = np.where(long_enough, b - 0.5 * tick, 0.5 * (a + b))
+    return np.minimum(np.maximum(times, lo), hi)
 
 
 #: A sample closer than this fraction of a time step to a span's end is that end itself.
@@ -847,6 +869,11 @@ def plan_valves(trajectory: Trajectory, material: str, job: "Job", *,
         nu-controller of thesis 5.4.
     layer_thickness: dh_d, mm (default ``job.slicing.layer_thickness_mm``).
 
+    A continuous tour (``trajectory.on_spans``, issue 15) is pulsed over the spans its
+    valve is on only, each as a path of its own (FM: its own pulse count from its exact
+    start to its exact end; PWM: its own periods), every pulse's tick within its span
+    (:func:`_kept_in_spans`): nothing over the travel between its paths.
+
     Returns the first piece; further pieces (split at 131.072 s / 16 384 pulses, on
     trajectory samples) are in ``.pieces``; :func:`program_pieces` lists all of them and
     :func:`pulse_times` gives the instants from the trajectory start. ``.warnings`` lists
@@ -871,7 +898,8 @@ def plan_valves(trajectory: Trajectory, material: str, job: "Job", *,
             times = pulse_instants(plan.t, plan.nu)
         else:   # a tour: each of its paths' spans counts its own pulses
             from icefab._pulses import pulse_instants_many
-            times, _ = pulse_instants_many(plan.on.t, plan.on.nu, plan.on.start)
+            times, per = pulse_instants_many(plan.on.t, plan.on.nu, plan.on.start)
+            times = _kept_in_spans(times, np.diff(per), _on_ends(plan.on), fl.tick_s)
         prog = _split(times, None, duration, float(trajectory.dt), job)
     else:
         if plan.on is None:
@@ -965,7 +993,8 @@ def _pwm_spans(on: SpanSignal, cal: Calibration, job: "Job", where: str
         t = on.t[a:b] - t0
         sub = FrequencyPlan(t=t, q=on.q[a:b], u=np.zeros(b - a), nu=on.nu[a:b])
         ti, wi, fi = _pwm(sub, cal, job, float(t[-1]), where)
-        times.append(ti + t0)
+        times.append(_kept_in_spans(ti + t0, np.array([len(ti)]),
+                                    np.array([[t0, float(on.t[b - 1])]]), job.flow.tick_s))
         widths.append(wi)
         found.extend(fi)
     return (np.concatenate(times) if times else np.zeros(0),
@@ -1273,9 +1302,19 @@ def _nominal_fm_programs(trajs: "Sequence[Trajectory]", materials: Sequence[str]
     if var.any():   # bad widths: plan_valves refuses the path, in its turn
         var_ok, var_w = variable_widths([t for t, v in zip(trajs, var) if v])
         ok[np.flatnonzero(var)[~var_ok]] = False
-    for i, t in enumerate(trajs):   # bad spans: the same
-        if t.on_spans is not None and spans_problem(t.on_spans, float(t.duration)):
-            ok[i] = False
+    spanned = [i for i, t in enumerate(trajs) if t.on_spans is not None]
+    if spanned:   # bad spans: the same
+        shaped = [i for i in spanned if np.ndim(trajs[i].on_spans) == 2
+                  and np.shape(trajs[i].on_spans)[1] == 2
+                  and np.asarray(trajs[i].on_spans).dtype.kind in "fiu"]
+        ok[sorted(set(spanned) - set(shaped))] = False
+        if shaped:
+            count = [len(trajs[i].on_spans) for i in shaped]
+            fine = spans_fine(np.repeat(np.arange(len(shaped)), count),
+                              np.concatenate([np.asarray(trajs[i].on_spans, np.float64)
+                                              for i in shaped]),
+                              dur[shaped])
+            ok[np.asarray(shaped)[~fine]] = False
     out: list[ValveProgram | None] = [None] * m
     idx = np.flatnonzero(ok)
     if not len(idx):
@@ -1407,6 +1446,7 @@ def _tour_pulses(sel: "Sequence[Trajectory]", tours: np.ndarray, times: np.ndarr
     nu_e = np.minimum(nu_e, max_valve_frequency(job))
     on = _span_signal(lay, q, nu, q_e, nu_e)
     span_times, span_off = pulse_instants_many(on.t, on.nu, on.start)
+    span_times = _kept_in_spans(span_times, np.diff(span_off), _on_ends(on), job.flow.tick_s)
     # every trajectory's pulses: its own, or its spans' in order
     per = np.diff(toff)
     span_per = np.diff(span_off)

@@ -608,7 +608,8 @@ def _plan_polylines(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
     # corners
     xy = _mtts.follow_samples(s_loc, sstart, L, sp.fstart, sp.fu, sp.fxy, s0)
     own = bool(paths) and any(_own_widths(p) for p in paths)
-    widths = _sample_widths(paths, in_counts, labels, sp, s_loc, nsamp) if own else None
+    off = _segment_off(paths, in_counts, sp, labels) if own else None
+    widths = _sample_widths(paths, in_counts, labels, sp, s_loc, nsamp, off) if own else None
 
     # ---- concatenate the pieces of each path: the shared corner sample appears once
     first_of_path = np.ones(Q, dtype=bool)
@@ -626,7 +627,7 @@ def _plan_polylines(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
     cum = offsets(piece_n)[:-1]
     piece_first_sample = cum - tstart[piece_path]
     piece_first_sample[~first_of_path] -= 1  # the shared corner sample
-    spans = (_switch_spans(paths, in_counts, sp, s_loc, nsamp, keep_s, tstart, dt)
+    spans = (_switch_spans(paths, off, sp, s_loc, nsamp, keep_s, tstart, dt)
              if own and any(p is not None and p.off is not None for p in paths) else {})
 
     rests = tstart[piece_path] + piece_first_sample  # every piece's first sample
@@ -660,7 +661,7 @@ def _own_widths(path: Toolpath | None) -> bool:
 
 def _sample_widths(paths: Sequence[Toolpath | None], in_counts: np.ndarray,
                    labels: Sequence[tuple[int, int]] | None, sp: _Split, s_loc: np.ndarray,
-                   nsamp: np.ndarray) -> np.ndarray:
+                   nsamp: np.ndarray, off: np.ndarray | None = None) -> np.ndarray:
     """(M,) float64 mm: the deposition width at every sample of every piece (before the
     shared corner samples are dropped): the paths' per-point widths
     (:meth:`~icefab.core.Toolpath.polyline_widths`), linear along each segment, at the
@@ -668,11 +669,12 @@ def _sample_widths(paths: Sequence[Toolpath | None], in_counts: np.ndarray,
     ``motion.smoothing_tolerance_mm``, at the same parameter); 0 on the segments that are
     ``off`` (a tour's travel: the valve is off there, Ossino's OFF). IcefabError naming the
     path when its widths are not one finite number >= 0 per point, or its ``off`` not one
-    bool per point."""
+    bool per point. off: :func:`_segment_off`, when the caller has it."""
     starts = offsets(in_counts)
     # every point at its path's width, then the variable paths' own
     W = np.repeat([0.0 if p is None else float(p.width) for p in paths], in_counts)
-    off = _segment_off(paths, in_counts, sp, labels)
+    if off is None:
+        off = _segment_off(paths, in_counts, sp, labels)
     var = [k for k, p in enumerate(paths) if p is not None and p.widths is not None]
     # all of them checked at once, path by path only to name the first bad one
     ok, _w = checked_widths([paths[k].widths for k in var],
@@ -722,7 +724,7 @@ def _segment_off(paths: Sequence[Toolpath | None], in_counts: np.ndarray, sp: _S
     return O[last]
 
 
-def _switch_spans(paths: Sequence[Toolpath | None], in_counts: np.ndarray, sp: _Split,
+def _switch_spans(paths: Sequence[Toolpath | None], off: np.ndarray, sp: _Split,
                   s_loc: np.ndarray, nsamp: np.ndarray, keep_s: np.ndarray,
                   tstart: np.ndarray, dt: float) -> dict[int, np.ndarray]:
     """The spans the valve is on (:attr:`~icefab.core.Trajectory.on_spans`) of every path
@@ -732,13 +734,11 @@ def _switch_spans(paths: Sequence[Toolpath | None], in_counts: np.ndarray, sp: _
     linearly, so the nozzle is at the switch point at that instant (the smoothed path's
     parameter is the input path's arc, so the point is where the path has it).
 
-    s_loc, nsamp: the pieces' samples before the shared corner samples are dropped
-    (``keep_s`` False at those); tstart: first kept sample of every path."""
-    off = _segment_off(paths, in_counts, sp)
-    q_of = np.repeat(np.arange(len(nsamp)), nsamp + 1)
-    x = np.minimum(s_loc, sp.L[q_of]) + sp.s0[q_of]          # arc position, S units
-    kept = np.cumsum(keep_s) - 1          # a dropped corner sample is the one before it
-    t_all = (kept - tstart[sp.piece_path[q_of]]) * dt       # time within its trajectory
+    off: :func:`_segment_off`; s_loc, nsamp: the pieces' samples before the shared corner
+    samples are dropped (``keep_s`` False at those); tstart: first kept sample of every
+    path."""
+    tours = np.array([k for k, p in enumerate(paths) if p is not None and p.off is not None],
+                     dtype=np.int64)
     # every piece's segments, by their first vertex, in path order
     plen = np.diff(sp.pvs)
     pv = np.arange(sp.pvs[-1]) - np.repeat(sp.pvs[:-1] - sp.a, plen)   # merged vertex
@@ -750,36 +750,49 @@ def _switch_spans(paths: Sequence[Toolpath | None], in_counts: np.ndarray, sp: _
     state_off = off[pv[seg]]
     change = np.zeros(len(seg), dtype=bool)
     change[1:] = (state_off[1:] != state_off[:-1]) & (seg_path[1:] == seg_path[:-1])
-    out: dict[int, np.ndarray] = {}
-    wanted = [k for k, p in enumerate(paths) if p is not None and p.off is not None]
-    if not wanted:
-        return out
-    # the time at which each switch point is passed
+    # the time at which each switch point is passed, linear in arc between two samples
     sw = np.flatnonzero(change)
     X = sp.S[seg[sw]]
     q = seg_q[sw]
     sstart = offsets(nsamp + 1)
     lo, hi = sstart[:-1][q], sstart[1:][q] - 1                # the piece's first and last
+    q_of = np.repeat(np.arange(len(nsamp)), nsamp + 1)
+    x = np.minimum(s_loc, sp.L[q_of]) + sp.s0[q_of]          # arc position, S units
     i = np.clip(np.searchsorted(x, X, side="right") - 1, lo, np.maximum(hi - 1, lo))
     j = np.minimum(i + 1, hi)
-    span = x[j] - x[i]
-    frac = np.clip(np.divide(X - x[i], span, out=np.zeros(len(X)), where=span > 0), 0.0, 1.0)
-    t_sw = t_all[i] + frac * (t_all[j] - t_all[i])
-    first_seg = np.searchsorted(seg_path, np.arange(len(paths)))
+    kept = np.cumsum(keep_s) - 1          # a dropped corner sample is the one before it
+    t_i = (kept[i] - tstart[sp.piece_path[q]]) * dt          # within its trajectory
+    t_j = (kept[j] - tstart[sp.piece_path[q]]) * dt
+    run = x[j] - x[i]
+    frac = np.clip(np.divide(X - x[i], run, out=np.zeros(len(X)), where=run > 0), 0.0, 1.0)
+    t_sw = t_i + frac * (t_j - t_i)
+    # each tour's edges: its start if it starts on, its switches, its end if it ends on
+    first_seg = np.searchsorted(seg_path, tours)
+    last_seg = np.searchsorted(seg_path, tours, side="right") - 1
+    has = (first_seg < len(seg)) & (last_seg >= first_seg)       # a segment at all
+    has[has] &= seg_path[first_seg[has]] == tours[has]
+    tours, first_seg, last_seg = tours[has], first_seg[has], last_seg[has]
+    duration = (tstart[tours + 1] - tstart[tours] - 1) * dt
+    opens = ~state_off[first_seg]
+    closes = ~state_off[last_seg]
     sw_path = seg_path[sw]
-    bounds = np.searchsorted(sw_path, np.arange(len(paths) + 1))
-    for k in wanted:
-        if first_seg[k] >= len(seg) or seg_path[first_seg[k]] != k:
-            continue        # no segment (a single point): nothing to switch
-        duration = (tstart[k + 1] - tstart[k] - 1) * dt
-        edges = np.concatenate([[0.0] if not state_off[first_seg[k]] else [],
-                                t_sw[bounds[k]:bounds[k + 1]]])
-        on_at_end = len(edges) % 2 == 1
-        if on_at_end:
-            edges = np.append(edges, duration)
-        edges = np.minimum(np.maximum(edges, 0.0), duration)
-        out[k] = np.maximum.accumulate(edges).reshape(-1, 2)
-    return out
+    mine = np.isin(sw_path, tours)
+    owner = np.concatenate([tours[opens], sw_path[mine], tours[closes]])
+    order = np.concatenate([np.full(int(opens.sum()), -1.0), np.arange(len(sw))[mine],
+                            np.full(int(closes.sum()), np.inf)])
+    dur_of = np.zeros(len(paths))
+    dur_of[tours] = duration
+    value = np.concatenate([np.zeros(int(opens.sum())), t_sw[mine], duration[closes]])
+    by = np.lexsort((order, owner))
+    owner, value = owner[by], np.clip(value[by], 0.0, dur_of[owner[by]])
+    # never backwards within a tour: a running maximum, tour by tour
+    base = np.zeros(len(paths))
+    base[tours] = offsets(duration + 1.0)[:-1]
+    value = np.maximum.accumulate(value + base[owner]) - base[owner]
+    bounds = np.searchsorted(owner, np.append(tours, len(paths)))
+    edges = value.reshape(-1, 2)
+    return {k: edges[a // 2:b // 2] for k, a, b in zip(tours.tolist(), bounds[:-1].tolist(),
+                                                       bounds[1:].tolist())}
 
 
 def _vertices(pts: np.ndarray, start: np.ndarray

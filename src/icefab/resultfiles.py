@@ -129,7 +129,8 @@ from icefab.atomic import atomic_path
 from icefab.config import Job, job_from_dict, to_toml
 from icefab.core import (FRAMES, MATERIALS, OFF, ON1, ON2, ROLES, TOOLS, BuildMotion, Layer,
                          LayerMotion, LayerPaths, Region, RuledEdges, Stack, Toolpath,
-                         Toolpaths, Trajectory, offsets, polyline_lengths, spans_problem)
+                         Toolpaths, Trajectory, offsets, polyline_lengths, spans_fine,
+                         spans_problem)
 from icefab.errors import ConfigError, StackFileError
 
 log = logging.getLogger(__name__)
@@ -1054,11 +1055,10 @@ def unpack_trajectories(d: dict[str, np.ndarray],
             object.__setattr__(trajs[i], "widths", d["widths"][wstart[j]:wstart[j + 1]])
     if "span_owner" in d:
         owner, spans = d["span_owner"], d["on_spans"]
-        cut = np.flatnonzero(np.diff(owner)) + 1
-        for rows in np.split(np.arange(len(owner)), cut):
-            if len(rows):
-                object.__setattr__(trajs[int(owner[rows[0]])], "on_spans",
-                                   spans[rows[0]:rows[-1] + 1])
+        tours = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]]) if len(owner) else owner
+        bounds = np.append(tours, len(owner)).tolist()
+        for j, k in enumerate(owner[tours].tolist()):
+            object.__setattr__(trajs[k], "on_spans", spans[bounds[j]:bounds[j + 1]])
     return trajs
 
 
@@ -1509,13 +1509,11 @@ class TrajectoryFile:
         if len(owner) and (nt == 0 or np.any(np.diff(owner) < 0)):
             raise m.bad("span_owner", "not in ascending trajectory order: the file is corrupt")
         spans = spans.astype(np.float64).reshape(-1, 2)
-        cut = np.flatnonzero(np.diff(owner)) + 1
-        for rows in np.split(np.arange(len(owner)), cut):
-            if len(rows):
-                k = int(owner[rows[0]])
-                problem = spans_problem(spans[rows[0]:rows[-1] + 1], float(self.durations[k]))
-                if problem:
-                    raise m.bad("on_spans", f"trajectory {k}: {problem}: the file is corrupt")
+        fine = spans_fine(owner, spans, self.durations)
+        if not fine.all():
+            k = int(np.flatnonzero(~fine)[0])
+            problem = spans_problem(spans[owner == k], float(self.durations[k]))
+            raise m.bad("on_spans", f"trajectory {k}: {problem}: the file is corrupt")
         return owner, spans
 
     def _whole_samples(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -224,66 +224,71 @@ PATH_COLUMNS = ["layer", "path", "material", "role", "length_mm", "duration_s", 
 
 def _drop_spacings(trajs, progs, min_drops_per_mm: float) -> list[tuple[float, float, float]]:
     """:func:`_drop_spacing` of many paths (a layer's) in a few array operations: each
-    stretch's points and pulses (a path, or each path a continuous tour joins) are shifted
-    to lie after the previous stretch's, so one interpolation places them all (the values
-    agree with the per-path function to float rounding). Issue 17: once per path it took
-    17 s of the bunny's valves."""
-    from icefab.flow import on_times, positions_at, pulse_times
+    path's samples and pulses are shifted to lie after the previous path's, so one
+    interpolation places them all; a continuous tour's pulses are counted by the span its
+    valve is on that holds them (the values agree with the per-path function to float
+    rounding). Issue 17: once per path it took 17 s of the bunny's valves."""
+    from icefab.flow import pulse_times
 
     if not trajs:
         return []
     n = np.array([len(t.xy) for t in trajs], dtype=np.int64)
     if np.any(n < 2):  # the rare bare point: path by path
         return [_drop_spacing(t, p, min_drops_per_mm) for t, p in zip(trajs, progs)]
-    # the stretches: whole paths, and a tour's spans apart (no drop over its travel)
-    times, pts, pulses, owner = [], [], [], []
-    for k, (tr, prog) in enumerate(zip(trajs, progs)):
-        stretch_t = on_times(tr)
-        p_t = pulse_times(prog)
-        xy = np.asarray(tr.xy, np.float64)
-        if len(stretch_t) == 1 and tr.on_spans is None:
-            times.append(stretch_t[0])
-            pts.append(xy)
-            pulses.append(p_t)
-            owner.append(k)
-            continue
-        for ts in stretch_t:
-            times.append(ts)
-            pts.append(positions_at(xy, float(tr.dt), ts))
-            pulses.append(p_t[(p_t >= ts[0] - 1e-12) & (p_t <= ts[-1] + 1e-12)])
-            owner.append(k)
-    m = np.array([len(x) for x in times], dtype=np.int64)
-    xy = np.concatenate(pts)
-    first = np.concatenate([[0], np.cumsum(m)[:-1]])
+    xy = np.concatenate([np.asarray(t.xy, np.float64) for t in trajs])
+    first = np.concatenate([[0], np.cumsum(n)[:-1]])
     step = np.linalg.norm(np.diff(xy, axis=0), axis=1)
-    step[first[1:] - 1] = 0.0                                  # between two stretches
+    step[first[1:] - 1] = 0.0                                  # between two paths
     s = np.concatenate([[0.0], np.cumsum(step)])
     s0 = s[first]
-    length = s[first + m - 1] - s0
-    span = np.array([x[-1] - x[0] for x in times]) + 1.0     # each stretch's time, a gap
-    shift = np.concatenate([[0.0], np.cumsum(span)[:-1]]) - np.array([x[0] for x in times])
-    t = np.concatenate(times) + np.repeat(shift, m)
+    length = s[first + n - 1] - s0
+    dt = np.array([float(t.dt) for t in trajs])
+    local = (np.arange(len(xy)) - np.repeat(first, n)).astype(np.float64)
+    span = (n - 1) * dt + 1.0                                    # each path's time, and a gap
+    shift = np.concatenate([[0.0], np.cumsum(span)[:-1]])
+    t = local * np.repeat(dt, n) + np.repeat(shift, n)
+    pulses = [pulse_times(p) for p in progs]
     n_p = np.array([len(a) for a in pulses], dtype=np.int64)
-    at = np.interp(np.concatenate(pulses) + np.repeat(shift, n_p), t, s) - np.repeat(s0, n_p)
+    p_owner = np.repeat(np.arange(len(trajs)), n_p)
+    p_t = np.concatenate(pulses) + shift[p_owner]
+    at = np.interp(p_t, t, s) - s0[p_owner]
+    # the stretches drops are spaced over: whole paths, and each span a tour's valve is on
+    # (by the global times of the spans' starts; a pulse outside every span belongs to none)
+    unit = p_owner.copy()
+    u_len, u_owner = length.copy(), np.arange(len(trajs))
+    tours = [k for k, tr in enumerate(trajs) if tr.on_spans is not None]
+    if tours:
+        spans = [np.asarray(trajs[k].on_spans, np.float64).reshape(-1, 2) for k in tours]
+        s_owner = np.repeat(tours, [len(x) for x in spans])
+        g = np.concatenate(spans) + shift[s_owner][:, None]        # global times
+        ends = np.interp(g.ravel(), t, s).reshape(-1, 2)
+        in_tour = np.isin(p_owner, tours)
+        j = np.searchsorted(g[:, 0], p_t[in_tour] + 1e-12, side="right") - 1
+        jc = np.maximum(j, 0)
+        held = (j >= 0) & (s_owner[jc] == p_owner[in_tour]) & (p_t[in_tour] <= g[jc, 1] + 1e-12)
+        unit[in_tour] = np.where(held, len(trajs) + jc, -1)
+        u_len[tours] = 0.0                                           # a tour is its spans
+        u_len = np.concatenate([u_len, ends[:, 1] - ends[:, 0]])
+        u_owner = np.concatenate([u_owner, s_owner])
+        keep = unit >= 0
+        unit, at = unit[keep], at[keep]
     limit = 1.0 / min_drops_per_mm if min_drops_per_mm > 0 else np.inf
     gaps = np.diff(at) if len(at) else np.zeros(0)
-    inside = np.ones(len(gaps), dtype=bool)
-    ends = np.cumsum(n_p)[:-1]
-    inside[ends[(ends > 0) & (ends <= len(gaps))] - 1] = False   # between two stretches
-    unit = np.repeat(np.arange(len(m)), n_p)[1:] if len(at) else np.zeros(0, np.int64)
-    g = np.where(inside, gaps, 0.0)
-    widest = np.zeros(len(m))
-    np.maximum.at(widest, unit, g)
-    sparse = np.zeros(len(m))
-    np.add.at(sparse, unit, np.where(inside & (g > limit), g, 0.0))
-    few = n_p < 2                           # one drop (or none) for the whole stretch
-    widest[few] = length[few]
-    sparse[few] = np.where(length[few] > limit, length[few], 0.0)
-    owner = np.asarray(owner, dtype=np.int64)
-    tot_len = np.bincount(owner, weights=length, minlength=len(trajs))
-    tot_sparse = np.bincount(owner, weights=sparse, minlength=len(trajs))
+    inside = unit[1:] == unit[:-1] if len(at) else np.zeros(0, dtype=bool)
+    g_unit = unit[1:] if len(at) else np.zeros(0, np.int64)
+    gw = np.where(inside, gaps, 0.0)
+    widest = np.zeros(len(u_len))
+    np.maximum.at(widest, g_unit, gw)
+    sparse = np.zeros(len(u_len))
+    np.add.at(sparse, g_unit, np.where(inside & (gw > limit), gw, 0.0))
+    few = np.bincount(unit, minlength=len(u_len)) < 2   # one drop (or none) for a stretch
+    few[tours] = False                                  # (a tour: its spans are the stretches)
+    widest[few] = u_len[few]
+    sparse[few] = np.where(u_len[few] > limit, u_len[few], 0.0)
+    tot_len = np.bincount(u_owner, weights=u_len, minlength=len(trajs))
+    tot_sparse = np.bincount(u_owner, weights=sparse, minlength=len(trajs))
     tot_widest = np.zeros(len(trajs))
-    np.maximum.at(tot_widest, owner, widest)
+    np.maximum.at(tot_widest, u_owner, widest)
     return [(float(a), float(b), float(c)) for a, b, c in zip(tot_len, tot_widest,
                                                                tot_sparse)]
 
