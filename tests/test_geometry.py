@@ -649,3 +649,30 @@ def test_an_edge_sampled_sparsely_is_still_found_near_a_short_segment(spacing):
         assert geo.segments_to_rings_distance(a, b, [box], 1.0, spacing)[0] == \
             pytest.approx(0.9, abs=1e-12)
         assert np.isinf(geo.segments_to_rings_distance(a, b, [box], 0.8, spacing)[0])
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.floats(5.0, 40.0), st.floats(0.002, 0.3), st.floats(0.01, 0.1),
+       st.floats(0.0, 0.99), st.floats(0.5, 3.0))
+def test_an_offset_drops_an_annulus_narrower_than_its_filter_keeps_apart(
+        radius, width, filt, off_centre, d):
+    """An annulus (a 360-gon and its hole) offset inward by ``d`` to a mean width under
+    twice the filter is dropped whole (the filter moves each ring up to its tolerance on
+    its own, so the two could cross); a wider one keeps both rings; a hole out of the ring
+    is never dropped, and a region's own rings keep such an annulus."""
+    def circle(r, c=(0.0, 0.0)):
+        a = np.linspace(0, 2 * np.pi, 360, endpoint=False)
+        return np.column_stack([c[0] + r * np.cos(a), c[1] + r * np.sin(a)])
+    shift = off_centre * width            # the hole stays inside the outer ring
+    outer, hole = circle(radius + d), circle(radius - width - d, (shift, 0.0))[::-1]
+    out = geo.offset_rings([outer, hole], -d, filt)
+    got = geo.offset_rings([outer, hole], -d, 0.0)       # unfiltered: its mean width
+    mean = 2 * geo.ring_areas(got).sum() / geo.ring_perimeters(got).sum()
+    if mean < 2 * filt * 0.99:
+        assert out == []
+    elif mean > 2 * filt * 1.01:
+        assert len(out) == 2
+    assert len(geo.simplify(got, filt)) == 2              # not by default
+    # a ring of the same area elsewhere is no sliver of the outer one
+    far = circle(radius - width, (5 * radius, 0.0))[::-1]
+    assert len(geo.simplify([circle(radius), far], filt, slivers=True)) == 2

@@ -1346,20 +1346,17 @@ def test_the_hook_wall_of_a_spiky_part_goes_round_the_pockets_of_its_outline():
     check_layer_paths(layer, plan_layer(layer, job, False), job, min_cover=None, hook=True)
 
 
-@pytest.mark.xfail(strict=True, reason="known defect: a fill level that is a sliver "
-                   "narrower than the point filter (an outer ring and its hole 0.03 mm "
-                   "apart) crosses itself once filtered, and offset again gives a ring "
-                   "inside the hole, 0.42 mm from the edge")
 def test_hybrid_scaffold_fill_with_the_hook_wall_keeps_off_the_edge():
     """A spiky part found by fuzzing (tests/data/regions/hook-part-550.npz), the ice hook
     wall on and hybrid scaffold fill. The scaffold in the part's hole is an annulus about
     7 mm wide. Its first hybrid level (3.45 mm in) is a sliver: an outer ring of
     470.2 mm^2 and a hole of 467.9 mm^2, 0.03 mm apart, which cross each other after the
     0.05 mm point filter. The next offset of the crossing pair is a ring of 267.7 mm^2 inside
-    the hole, 0.42 mm from the scaffold's edge, and as the sliver's "child" it makes
+    the hole, 0.42 mm from the scaffold's edge, and as the sliver's "child" it made
     ``_with_room`` keep the sliver too. Without the hook wall the annulus is narrower (its
-    hole 467.9 mm^2), no level of it is left, and the invariants hold. Strict: when it is
-    fixed this test says so."""
+    hole 467.9 mm^2), no level of it is left, and the invariants held. The filter now drops
+    an outer ring and its hole that together are narrower than it can keep apart
+    (``geometry._without_slivers``)."""
     part = fuzzed_part("hook-part-550")
     job = Job().replace(**{"cell.cpus": 1, "scaffold.hook_wall": True,
                            "materials.scaffold.fill_pattern": "hybrid"})

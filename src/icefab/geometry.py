@@ -469,7 +469,7 @@ def _split_touching(ring: np.ndarray) -> Rings:
     return out
 
 
-def simplify(rings: Rings, filter_mm: float = FILTER_MM) -> Rings:
+def simplify(rings: Rings, filter_mm: float = FILTER_MM, slivers: bool = False) -> Rings:
     """Drop ring vertices so that the ring moves by at most ``filter_mm`` (thesis 3.4.2:
     PATHFILTER after every buffering), never making a ring cross or touch itself.
 
@@ -478,12 +478,24 @@ def simplify(rings: Rings, filter_mm: float = FILTER_MM) -> Rings:
     cross: such rings keep all their points. Rings that touch themselves at a vertex
     (Clipper's offsets and Booleans may return those) are first cut there into separate
     rings. Rings left with fewer than 3 points or less than MIN_RING_AREA are removed.
+
+    slivers: True also drops an outer ring and its hole that together are narrower than
+    the filter keeps apart (:func:`_slivers`), as :func:`offset_rings` (the paths stage's
+    levels) does. A region keeps them: a scaffold may be an annulus 0.1 mm wide where
+    ``scaffold.min_width_mm`` allows it.
     """
     rings = [np.asarray(r, dtype=np.float64) for r in rings if len(r) >= 3]
     if filter_mm > 0 and rings:
         pts, starts = _pack(rings)
         # one compiled pass filters, tests and measures the filtered rings (three packings
         # of the same rings cost as much as the filter: some 150 offsets a layer)
+        sliver = (_slivers(rings, _packed_areas(pts, starts), float(filter_mm)) if slivers
+                  else np.zeros(len(rings), dtype=bool))
+        if sliver.any():
+            rings = [r for r, k in zip(rings, sliver) if not k]
+            if not rings:
+                return []
+            pts, starts = _pack(rings)
         kept, cut, ok, areas, _keep = _filtered_rings(pts, starts, float(filter_mm))
         if ok.all():
             big = np.abs(areas) > MIN_RING_AREA
@@ -495,6 +507,38 @@ def simplify(rings: Rings, filter_mm: float = FILTER_MM) -> Rings:
         return []
     keep = np.abs(ring_areas(rings)) > MIN_RING_AREA
     return [r for r, k in zip(rings, keep) if k]
+
+
+def _slivers(rings: list[np.ndarray], areas: np.ndarray, filter_mm: float) -> np.ndarray:
+    """(r,) bool: the outer rings and holes in them that together are a sliver, narrower
+    on average than twice the filter (``2 (A_outer - |A_hole|) / (P_outer + P_hole) <
+    2 filter_mm``): below what the chord filter, which moves each ring by up to
+    ``filter_mm`` on its own, can keep apart. A fuzzed part's fill level was such a pair,
+    0.03 mm apart on average: filtered, the two crossed, and the next offset inward of the
+    crossed pair was a ring inside the hole, 0.42 mm from the region's edge
+    (``tests/data/regions/hook-part-550.npz``). areas: the rings' signed areas, mm^2."""
+    sliver = np.zeros(len(rings), dtype=bool)
+    if len(rings) < 2:
+        return sliver
+    holes = np.flatnonzero(areas < 0)
+    outers = np.flatnonzero(areas > 0)
+    if not len(holes) or not len(outers):
+        return sliver
+    # the pairs measured: a hole of at least half its outer's area (a smaller one leaves a
+    # sliver only in an outer ring that is nearly one itself); then whether it is in it
+    gap = areas[outers][:, None] + areas[holes][None, :]
+    oi, hj = np.nonzero((gap > 0) & (gap < 0.5 * areas[outers][:, None]))
+    if not len(oi):
+        return sliver
+    o, h = outers[oi], holes[hj]
+    per = np.zeros(len(rings))
+    both = np.unique(np.concatenate([o, h]))
+    per[both] = ring_perimeters([rings[i] for i in both])
+    thin = 2.0 * gap[oi, hj] < 2.0 * filter_mm * (per[o] + per[h])
+    for i, j in zip(o[thin].tolist(), h[thin].tolist()):
+        if rings_holding([rings[i]], rings[j][:1])[0] == 0:    # the hole is in that outer
+            sliver[i] = sliver[j] = True
+    return sliver
 
 
 @njit(cache=True)
@@ -625,7 +669,8 @@ def offset_rings(rings: Rings, d: float, filter_mm: float = FILTER_MM) -> Rings:
     """Offset closed rings by ``d`` mm (positive outward), flat ring list out.
 
     The fast form for repeated offsets (fill rings): no nesting tree is built. Output
-    orientation follows the icefab convention (outer CCW, holes CW).
+    orientation follows the icefab convention (outer CCW, holes CW). Filtered within
+    ``filter_mm``, less the slivers the filter cannot keep apart (:func:`simplify`).
     """
     if not rings:
         return []
@@ -634,7 +679,7 @@ def offset_rings(rings: Rings, d: float, filter_mm: float = FILTER_MM) -> Rings:
     o = _offsetter()
     o.addPaths(without_orphan_holes(rings), pyclipr.JoinType.Miter, pyclipr.EndType.Polygon)
     out = o.execute(float(d))
-    return simplify(list(out), filter_mm)
+    return simplify(list(out), filter_mm, slivers=True)
 
 
 def without_orphan_holes(rings: Rings) -> Rings:
