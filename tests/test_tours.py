@@ -439,10 +439,11 @@ def test_spans_are_checked_at_once_as_one_by_one(trajs):
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(st.lists(st.tuples(st.floats(2.0, 30.0), st.floats(-150.0, 150.0), st.booleans()),
+@given(st.lists(st.tuples(st.floats(2.0, 15.0), st.floats(-150.0, 150.0), st.booleans()),
                 min_size=2, max_size=9))
 def test_a_path_switched_anywhere_opens_and_closes_its_valve_where_it_switches(legs):
-    """Random open paths (legs of 2-30 mm turning up to 150 deg), each segment on or off
+    """Random open paths (legs of 2-15 mm turning up to 150 deg, centred on the part's
+    origin, in the default cell's reach), each segment on or off
     (the path may start or end off): one span per run of on segments, and at each span's
     ends the nozzle is at the run's first and last point (within the followed path's
     smoothing and the chord of a sample step across a bend)."""
@@ -454,7 +455,8 @@ def test_a_path_switched_anywhere_opens_and_closes_its_valve_where_it_switches(l
     off = np.array([o for _, _, o in legs] + [False])
     if off[:-1].all():
         off[0] = False
-    path = _fill(np.array(pts), off=off)
+    pts = np.array(pts)
+    path = _fill(pts - 0.5 * (pts.min(axis=0) + pts.max(axis=0)), off=off)
     tr = plan_motion(path, job)
     on = path.segment_on()
     runs = [(a, b) for a, b in zip(np.flatnonzero(np.diff(np.r_[0, on.astype(np.int8)]) == 1),
