@@ -127,35 +127,34 @@ def test_abort_stops_the_motion_and_drops_stored_paths(robot):
 
 def test_a_wrong_check_sum_or_count_is_refused(robot):
     vr, _ = robot
-    s = socket.create_connection(("127.0.0.1", vr.port), timeout=5)
-    f = s.makefile("rb")
-    pts = [(1.0, 2.0), (3.0, 4.0)]
-    s.sendall(rp.encode("path_begin", 7, 0, 0, 1, 0, 1.0, 2, 16000, 500)
-              + rp.encode("path_points", 7, 0, 2, group=pts)
-              + rp.encode("path_end", 7, 2, rp.point_check([1, 3], [2, 4]) + 1))
-    assert rp.decode(f.readline(), "robot").values == {"code": 5}
-    s.sendall(b"PB,8,1,2\r\n")                      # too few fields
-    msg = rp.decode(f.readline(), "robot")
-    assert (msg.name, msg.seq, msg["code"]) == ("error", 8, 1)
-    s.sendall(rp.encode("go", 9))                      # nothing stored
-    assert rp.decode(f.readline(), "robot")["code"] == 6
-    s.close()
+    # the socket and its file both closed (an open file keeps the socket: ResourceWarning)
+    with socket.create_connection(("127.0.0.1", vr.port), timeout=5) as s, \
+            s.makefile("rb") as f:
+        pts = [(1.0, 2.0), (3.0, 4.0)]
+        s.sendall(rp.encode("path_begin", 7, 0, 0, 1, 0, 1.0, 2, 16000, 500)
+                  + rp.encode("path_points", 7, 0, 2, group=pts)
+                  + rp.encode("path_end", 7, 2, rp.point_check([1, 3], [2, 4]) + 1))
+        assert rp.decode(f.readline(), "robot").values == {"code": 5}
+        s.sendall(b"PB,8,1,2\r\n")                      # too few fields
+        msg = rp.decode(f.readline(), "robot")
+        assert (msg.name, msg.seq, msg["code"]) == ("error", 8, 1)
+        s.sendall(rp.encode("go", 9))                      # nothing stored
+        assert rp.decode(f.readline(), "robot")["code"] == 6
 
 
 def test_a_repeated_command_gets_the_same_reply_and_runs_once(robot):
     vr, hooks = robot
-    s = socket.create_connection(("127.0.0.1", vr.port), timeout=5)
-    f = s.makefile("rb")
-    up = (rp.encode("path_begin", 5, 0, 0, 1, 0, 1.0, 2, 16000, 500)
-          + rp.encode("path_points", 5, 0, 2, group=[(1.0, 2.0), (3.0, 4.0)])
-          + rp.encode("path_end", 5, 2, rp.point_check([1, 3], [2, 4])))
-    s.sendall(up)
-    assert rp.decode(f.readline(), "robot").name == "ok"
-    s.sendall(rp.encode("path_end", 5, 2, rp.point_check([1, 3], [2, 4])))  # repeat
-    assert rp.decode(f.readline(), "robot").name == "ok"
-    s.sendall(rp.encode("status", 6))
-    assert rp.decode(f.readline(), "robot")["stored"] == 1      # stored once
-    s.close()
+    with socket.create_connection(("127.0.0.1", vr.port), timeout=5) as s, \
+            s.makefile("rb") as f:
+        up = (rp.encode("path_begin", 5, 0, 0, 1, 0, 1.0, 2, 16000, 500)
+              + rp.encode("path_points", 5, 0, 2, group=[(1.0, 2.0), (3.0, 4.0)])
+              + rp.encode("path_end", 5, 2, rp.point_check([1, 3], [2, 4])))
+        s.sendall(up)
+        assert rp.decode(f.readline(), "robot").name == "ok"
+        s.sendall(rp.encode("path_end", 5, 2, rp.point_check([1, 3], [2, 4])))  # repeat
+        assert rp.decode(f.readline(), "robot").name == "ok"
+        s.sendall(rp.encode("status", 6))
+        assert rp.decode(f.readline(), "robot")["stored"] == 1      # stored once
 
 
 def test_unreachable_robot_is_one_clear_error():
