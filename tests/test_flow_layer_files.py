@@ -102,3 +102,26 @@ def test_drop_spacing_of_evenly_spaced_pulses_on_a_straight_line():
     # 0.4-0.9 s holds the pulses at 0.42 .. 0.87 s (10, 9 spacings), 1.2-2 s those at
     # 1.22 .. 1.97 s (16, 15 spacings)
     assert sparse == pytest.approx((9 + 15) * 2.5)
+
+
+def test_the_valves_summary_says_the_drop_spacing_once_for_all_materials():
+    """Two kinds of too-few-drops finding (part and scaffold): the drop spacing, one figure
+    over every material's paths, follows the last of them only."""
+    from icefab import Job
+    from icefab.cli.valves_cmd import _summary
+
+    found = [(0, "layer 0 part fill path: fewer than flow.min_drops_per_mm = 1 drops per mm "
+                 "(0.2) at 3 samples"),
+             (1, "layer 1 scaffold fill path: fewer than flow.min_drops_per_mm = 1 drops per "
+                 "mm (0.3) at 2 samples"),
+             (1, "layer 1 scaffold fill path: fewer than flow.min_drops_per_mm = 1 drops per "
+                 "mm (0.3) at 5 samples")]
+    totals = dict(paths=3, pulses=10, pieces=3, findings=3, length=2000.0, sparse=500.0)
+    lines = _summary("out", 2, ("bin",), totals, 2, 3.0, 1.5, found, Job())
+    assert sum("min_drops_per_mm" in line for line in lines) == 2     # two kinds
+    said = [k for k, line in enumerate(lines) if "volume cost" in line]
+    assert len(said) == 1
+    assert "min_drops_per_mm" in lines[said[0] - 1] and said[0] == len(lines) - 1
+    assert "affected, all materials: 0.50 m of 2.00 m deposited (25.0 %) on 2 paths" in \
+        lines[said[0]]
+    assert "the widest spacing, 3.00 mm, exceeds its path's width 1.50 mm" in lines[said[0]]

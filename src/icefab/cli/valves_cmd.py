@@ -342,9 +342,13 @@ def _summary(out, n_layers, fmts, totals, sparse_paths, max_gap, max_gap_width, 
     kinds = summarise_findings(found)
     lines.append(f"findings: {len(found)}, one line per kind (each path's own: "
                  f"valves-paths.csv):")
-    for line in kinds:
+    # the drop spacing is one figure over every material's paths: said once, under the
+    # last kind of finding it explains
+    last_sparse = max((k for k, line in enumerate(kinds) if "min_drops_per_mm" in line),
+                      default=-1)
+    for k, line in enumerate(kinds):
         lines.append(f"  {line}")
-        if "min_drops_per_mm" in line:
+        if k == last_sparse:
             total_m, sparse_m = totals["length"] / 1000, totals["sparse"] / 1000
             share = 100 * totals["sparse"] / totals["length"] if totals["length"] else 0.0
             verdict = ("drops never lie farther apart than the path is wide, so they still "
@@ -353,7 +357,7 @@ def _summary(out, n_layers, fmts, totals, sparse_paths, max_gap, max_gap_width, 
                        f"{max_gap_width:.2f} mm: there the bead may break into separate "
                        "drops")
             lines.append(f"    volume cost: none (every pulse is still placed; the volume "
-                         f"per mm is as commanded); affected: {sparse_m:.2f} m of "
-                         f"{total_m:.2f} m deposited ({share:.1f} %) on {sparse_paths} "
+                         f"per mm is as commanded); affected, all materials: {sparse_m:.2f} m "
+                         f"of {total_m:.2f} m deposited ({share:.1f} %) on {sparse_paths} "
                          f"paths; {verdict}")
     return lines
