@@ -150,7 +150,7 @@ TRAJECTORIES_VERSION = 6
 #: Versions load_trajectories reads (1: without per-trajectory dt and Path fields; 2: float
 #: samples; 3: the samples in one block; 4: no per-sample widths; 5: no tours' spans).
 TRAJECTORIES_READABLE = (1, 2, 3, 4, 5, 6)
-#: Resolutions of the samples in a trajectory file (versions 3 to 5; each file stores its
+#: Resolutions of the samples in a trajectory file (versions 3 to 6; each file stores its
 #: own): 1 um of tool position (the Cobra 600 repeats to 17 um), 1e-5 rad (0.00057 deg,
 #: finer than its 0.001 deg encoder counts) or 1e-5 mm of a joint, 0.01 mm/s of path
 #: speed (1/12 500 of the 125 mm/s bound: the valve frequency follows the speed far more
@@ -1380,7 +1380,7 @@ def _sample_counts(m: "_Members", n_joints: int, suffix: str = "", n: int | None
 
 
 class TrajectoryFile:
-    """A trajectory file (versions 1 to 5) open for reading: its per-layer and
+    """A trajectory file (versions 1 to 6) open for reading: its per-layer and
     per-trajectory members at once, its samples block by block (:meth:`iter_layers`), so a
     stage that works layer by layer holds one block of samples (issue 17). It stands in
     for a BuildMotion wherever the layers are walked once.
@@ -1675,10 +1675,11 @@ class TrajectoryFile:
 
 
 def load_trajectories(path: str | os.PathLike) -> BuildMotion:
-    """Read a file written by :func:`save_trajectories` (versions 1 to 5), checking every
+    """Read a file written by :func:`save_trajectories` (versions 1 to 6), checking every
     member (module docstring): finite samples within MAX_COORD_MM, joints one column per
     joint name, speeds >= 0, time steps in (0, MAX_DT_S], pieces inside their trajectory,
-    codes and tools from their tables. The whole build in memory: a stage that works layer
+    codes and tools from their tables, tours' spans in order within their trajectory's
+    duration (version 6). The whole build in memory: a stage that works layer
     by layer reads :class:`TrajectoryFile`'s layers instead.
 
     The trajectories' ``path`` is a stand-in Toolpath in the robot base frame whose
