@@ -14,7 +14,7 @@ from icefab import Job, flow
 from icefab.core import (OFF, ON1, LayerMotion, LayerPaths, Toolpath, Toolpaths,
                          point_states, tour_members)
 from icefab.errors import IcefabError, StackFileError
-from icefab.motion import plan_motion, plan_paths_durations
+from icefab.motion import _base_points, plan_motion, plan_paths_durations
 from icefab.paths import (RING_TO_RING_MAX_TURN_DEG, TOUR_MIN_MEMBER_MM, join_tours,
                           tour_turn_deg)
 from icefab.resultfiles import load_toolpaths, save_toolpaths
@@ -317,7 +317,7 @@ def test_every_path_of_the_demo_mugs_tours_is_deposited():
     own width (none falls between two samples, ``TOUR_MIN_MEMBER_MM``), and the valve's
     width x speed integrates to the paths' area within half a sample step per switch."""
     from icefab.demo import demo_mug
-    from icefab.motion import _base_points, plan_paths_motion
+    from icefab.motion import plan_paths_motion
     from icefab.paths import plan_layer
     from icefab.regions import add_scaffold
     from icefab.slicing import slice_mesh
@@ -462,7 +462,7 @@ def test_a_path_switched_anywhere_opens_and_closes_its_valve_where_it_switches(l
     runs = [(a, b) for a, b in zip(np.flatnonzero(np.diff(np.r_[0, on.astype(np.int8)]) == 1),
                                    np.flatnonzero(np.diff(np.r_[on.astype(np.int8), 0]) == -1))]
     assert tr.on_spans.shape == (len(runs), 2)
-    want = _base_points_of(path, job)[np.array(runs).ravel() + np.array([0, 1] * len(runs))]
+    want = _base_points(path, job)[np.array(runs).ravel() + np.array([0, 1] * len(runs))]
     at = np.column_stack([np.interp(tr.on_spans.ravel(), tr.t, tr.xy[:, j]) for j in (0, 1)])
     assert np.linalg.norm(at - want, axis=1).max() <= 0.1
     # the valve lays no pulse outside the spans (a tick on a span's end is inside: its
@@ -473,8 +473,3 @@ def test_a_path_switched_anywhere_opens_and_closes_its_valve_where_it_switches(l
     for a, b in tr.on_spans:
         inside |= (t >= a - 1e-12) & (t <= b + 1e-12)
     assert inside.all()
-
-
-def _base_points_of(path, job):
-    from icefab.motion import _base_points
-    return _base_points(path, job)

@@ -611,6 +611,21 @@ class Trajectory:
         return np.arange(len(self.xy)) * self.dt
 
 
+def _span_faults(spans: np.ndarray, owner: np.ndarray, durations: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Per span of ``spans (S, 2)`` float64 s, each of trajectory ``owner (S,)``
+    (ascending) lasting ``durations (T,)`` s: ``(out (S,) bool`` - not finite, or outside
+    ``[0, duration]`` by more than a rounding -, ``disorder (S,) bool`` - its end before its
+    start, or its start before the end of the span before it in its trajectory``)``."""
+    dur = np.asarray(durations, dtype=np.float64)[owner]
+    tol = 1e-9 * np.maximum(1.0, np.abs(dur))
+    with np.errstate(invalid="ignore"):
+        out = ~np.isfinite(spans).all(axis=1) | (spans[:, 0] < -tol) | (spans[:, 1] > dur + tol)
+        disorder = spans[:, 1] < spans[:, 0]
+        disorder[1:] |= (spans[1:, 0] < spans[:-1, 1]) & (owner[1:] == owner[:-1])
+    return out, disorder
+
+
 def spans_problem(spans: np.ndarray | None, duration: float) -> str:
     """What is wrong with a trajectory's ``on_spans`` ('' when nothing: None, or (m, 2)
     finite instants, s, in ``[0, duration]``, each span's end not before its start, and
@@ -620,11 +635,11 @@ def spans_problem(spans: np.ndarray | None, duration: float) -> str:
     s = np.asarray(spans)
     if s.ndim != 2 or s.shape[1:] != (2,) or s.dtype.kind not in "fiu":
         return f"on_spans has shape {s.shape}, expected (m, 2) numbers: [start, end] in s"
-    s = s.astype(np.float64)
-    tol = 1e-9 * max(1.0, abs(float(duration)))
-    if not np.isfinite(s).all() or np.any(s < -tol) or np.any(s > duration + tol):
+    out, disorder = _span_faults(s.astype(np.float64), np.zeros(len(s), dtype=np.int64),
+                                 np.array([duration], dtype=np.float64))
+    if out.any():
         return f"on_spans must be finite instants within [0, {duration:.6g}] s"
-    if np.any(s[:, 1] < s[:, 0]) or np.any(s[1:, 0] < s[:-1, 1]):
+    if disorder.any():
         return "on_spans must be in order: each span's end >= its start >= the end before"
     return ""
 
@@ -634,16 +649,11 @@ def spans_fine(owner: np.ndarray, spans: np.ndarray, durations: np.ndarray) -> n
     at once (a bunny layer has dozens of tours, its file 50 000): ``spans (S, 2)`` float
     s, each of trajectory ``owner (S,)`` (ascending), ``durations (T,)`` s. Shapes are
     the caller's to check."""
-    s = np.asarray(spans, dtype=np.float64).reshape(-1, 2)
     owner = np.asarray(owner, dtype=np.int64)
-    dur = np.asarray(durations, dtype=np.float64)[owner]
-    tol = 1e-9 * np.maximum(1.0, np.abs(dur))
-    with np.errstate(invalid="ignore"):
-        bad = (~np.isfinite(s).all(axis=1) | (s[:, 0] < -tol) | (s[:, 1] > dur + tol)
-               | (s[:, 1] < s[:, 0]))
-        bad[1:] |= (s[1:, 0] < s[:-1, 1]) & (owner[1:] == owner[:-1])
+    out, disorder = _span_faults(np.asarray(spans, dtype=np.float64).reshape(-1, 2), owner,
+                                 durations)
     fine = np.ones(len(durations), dtype=bool)
-    fine[owner[bad]] = False
+    fine[owner[out | disorder]] = False
     return fine
 
 

@@ -565,11 +565,8 @@ def _span_signal(lay: _SpanLayout, q: np.ndarray, nu: np.ndarray, q_ends: np.nda
                  nu_ends: np.ndarray) -> SpanSignal:
     """The :class:`SpanSignal` of a layout: the samples' ``q``, ``nu`` inside the spans,
     ``q_ends``, ``nu_ends`` at their ends."""
-    inside = lay.rows >= 0
-    qs, nus = np.empty(len(lay.rows)), np.empty(len(lay.rows))
-    qs[inside], nus[inside] = q[lay.rows[inside]], nu[lay.rows[inside]]
-    qs[lay.ends], nus[lay.ends] = q_ends, nu_ends
-    return SpanSignal(t=lay.t, q=qs, nu=nus, start=lay.start)
+    return SpanSignal(t=lay.t, q=lay.laid_out(q, q_ends), nu=lay.laid_out(nu, nu_ends),
+                      start=lay.start)
 
 
 def _kept_in_spans(times: np.ndarray, per_span: np.ndarray, ends: np.ndarray, tick: float
@@ -617,6 +614,21 @@ class _SpanLayout:
         """(2 S,) per-sample ``values`` interpolated linearly at the span ends."""
         v0 = values[self.left]
         return v0 + self.frac * (values[self.left + 1] - v0)
+
+    def end_widths(self, widths: np.ndarray, path_width: float | np.ndarray) -> np.ndarray:
+        """(2 S,) mm: the width at the span ends, the nearest sample's inside the span
+        (``widths`` per sample row), or ``path_width`` where no sample falls inside (a
+        switch point is where the width steps, so it is not interpolated across)."""
+        return np.where(self.inner >= 0, widths[np.maximum(self.inner, 0)], path_width)
+
+    def laid_out(self, values: np.ndarray, ends: np.ndarray) -> np.ndarray:
+        """(R,) per-sample ``values`` at the rows inside the spans, ``ends`` (2 S,) at
+        their ends."""
+        out = np.empty(len(self.rows))
+        inside = self.rows >= 0
+        out[inside] = values[self.rows[inside]]
+        out[self.ends] = ends
+        return out
 
 
 def _span_layout(spans: np.ndarray, first: np.ndarray, n: np.ndarray, dt: np.ndarray
@@ -697,8 +709,7 @@ def _span_ends(lay: _SpanLayout, speed: np.ndarray, u: np.ndarray | None, w: np.
     samples' and the flow between theirs: it is not checked against the calibration table
     again; the caller holds it in the valve's range where the action saturates it and
     clamps its frequency to the table and the valve's limit, as the samples'."""
-    w_end = np.where(lay.inner >= 0, w[np.maximum(lay.inner, 0)], w_path)
-    q_nom = (w_end * dh * job.flow.layer_scale) * lay.at_ends(speed)
+    q_nom = (lay.end_widths(w, w_path) * dh * job.flow.layer_scale) * lay.at_ends(speed)
     if u is None:
         return q_nom, q_nom
     return q_nom, np.clip((1.0 + lay.at_ends(u)), 0.0, None) * q_nom

@@ -318,11 +318,8 @@ def on_stretches(traj: Trajectory, widths: np.ndarray, material: str, job: "Job"
     if lay is None:
         dt = float(traj.dt)
         return [(np.arange(a, b + 1) * dt, widths[a:b + 1]) for a, b in on_runs(widths)]
-    w = np.empty(len(lay.rows))
-    inside = lay.rows >= 0
-    w[inside] = widths[lay.rows[inside]]
-    w[lay.ends] = np.where(lay.inner >= 0, widths[np.maximum(lay.inner, 0)],
-                           flow.trajectory_width(traj, material, job))
+    w = lay.laid_out(widths, lay.end_widths(widths, flow.trajectory_width(traj, material,
+                                                                         job)))
     return [(lay.t[a:b], w[a:b]) for a, b in zip(lay.start[:-1].tolist(),
                                                    lay.start[1:].tolist())]
 
