@@ -304,7 +304,7 @@ def test_the_build_says_it_runs_before_its_first_path(planned, tmp_path):
     job = motion.job
     build = tmp_path / "b"
     cell = _prepared(build, motion, job)
-    seen = []
+    seen, closed = [], []
 
     class Watching:
         def __getattr__(self, name):
@@ -315,11 +315,18 @@ def test_the_build_says_it_runs_before_its_first_path(planned, tmp_path):
                 seen.append(json.loads((build / bmod.STATUS).read_text()))
             return cell.run_path(seq, path, upcoming)
 
+        def close(self):
+            closed.append(True)
+
     journal = Journal.create(build / bmod.JOURNAL, {"digests": {}})
-    bmod.Runner(build, motion, job, journal, lambda: Watching()).run()
+    runner = bmod.Runner(build, motion, job, journal, lambda: Watching())
+    runner.run()
     journal.close()
     assert seen[0]["state"] == "running" and seen[0]["pid"] == os.getpid()
     assert seen[0]["paths_done"] == 0
+    # the runner closed the link it opened (left open, a real link's socket closed
+    # whenever the runner was collected)
+    assert closed == [True] and runner.cell is None
 
 
 def _executed(build: Path) -> list[int]:
@@ -693,11 +700,14 @@ def test_a_refused_command_stops_the_build_at_once(planned, tmp_path):
     build = tmp_path / "b"
     cell = _prepared(build, motion, job)
     journal = Journal.create(build / bmod.JOURNAL, {"digests": {}})
-    calls = {"connect": 0, "run": 0}
+    calls = {"connect": 0, "run": 0, "close": 0}
 
     class Refusing:
         def __getattr__(self, name):
             return getattr(cell, name)
+
+        def close(self):
+            calls["close"] += 1
 
         def run_path(self, seq, path, upcoming=None):
             calls["run"] += 1
@@ -711,7 +721,7 @@ def test_a_refused_command_stops_the_build_at_once(planned, tmp_path):
         return Refusing()
     with pytest.raises(CellRefused, match="error 8"):
         bmod.Runner(build, motion, job, journal, connect).run()
-    assert calls == {"connect": 1, "run": 3}
+    assert calls == {"connect": 1, "run": 3, "close": 1}    # closed on the way out too
     assert [e["kind"] for e in journal.events()].count("cell-refused") == 1
     journal.close()
 

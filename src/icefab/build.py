@@ -296,7 +296,9 @@ class Runner:
     build_dir: BUILD; motion: the layers to build; job; journal: the build's journal;
     connect: returns a connected :class:`~icefab.runcell.Cell` (called again after a cell
     fault: for the virtual cell it restarts the cell process); on_progress: called with a
-    :class:`Progress` after every path; should_stop: polled between paths.
+    :class:`Progress` after every path; should_stop: polled between paths. The runner owns
+    the cells ``connect`` gives it: :meth:`run` closes the one it holds when it returns or
+    raises (``cell`` is then None).
     """
 
     def __init__(self, build_dir: Path, motion: "BuildMotion", job: "Job", journal: Journal,
@@ -437,6 +439,9 @@ class Runner:
             if self._pool is not None:
                 self._pool.shutdown(wait=True, cancel_futures=True)
                 self._pool, self._ahead = None, None
+            # a link left open lives until the runner is collected: its socket then closes
+            # at some later moment (CI warned of an unclosed socket in an unrelated test)
+            self._drop_link()
 
     def _run(self) -> Progress:
         job = self.job

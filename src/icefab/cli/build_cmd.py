@@ -316,8 +316,6 @@ def _run(build: Path, args: argparse.Namespace, *, resume: bool) -> int:
         lock.close()
     if tty:
         sys.stderr.write("\n")
-    if runner.cell is not None:
-        runner.cell.close()
     if meta.get("cell") == "virtual":
         _shutdown_cell(build / bmod.CELL_DIR)   # the build is complete: the cell may go
     rms = f"{p.last_rms_mm:.3f} mm" if math.isfinite(p.last_rms_mm) else "-"
