@@ -473,3 +473,21 @@ def test_a_path_switched_anywhere_opens_and_closes_its_valve_where_it_switches(l
     for a, b in tr.on_spans:
         inside |= (t >= a - 1e-12) & (t <= b + 1e-12)
     assert inside.all()
+
+
+def test_pulses_at_the_valves_top_rate_keep_their_own_ticks_at_a_span_end():
+    """Kept half a tick inside its span, the first pulse of a span that opens on a tick
+    (at 1 / tick_s) took the tick of the next one: 'pulses share a 2 ms tick' with the
+    valve at 500 Hz, not above it (a tester's 2 mm bunny layers, clamped)."""
+    tick = 0.002
+    ends = np.array([[0.0, 0.05], [0.06, 0.0695]])
+    first = np.arange(0.0, 0.0105, tick)                 # 500 Hz from the span's start
+    second = 0.0695 - tick * np.arange(4)[::-1]          # 500 Hz up to the span's end
+    times = np.concatenate([first, second])
+    per = np.array([len(first), len(second)])
+    kept = flow._kept_in_spans(times, per, ends, tick)
+    ticks = np.floor(kept / tick + (0.5 + 1e-9))
+    for part, (a, b) in zip(np.split(ticks, [len(first)]), ends):
+        assert np.all(np.diff(part) >= 1)                       # one pulse per tick
+        assert np.all((part * tick >= a) & (part * tick <= b))  # its tick inside the span
+    assert np.abs(kept - times).max() <= tick / 2 + 1e-15

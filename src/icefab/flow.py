@@ -575,7 +575,12 @@ def _kept_in_spans(times: np.ndarray, per_span: np.ndarray, ends: np.ndarray, ti
     in turn, moved at most half a tick so that the controller's tick (the nearest to each,
     :func:`_split`) stays within their span: into ``[start + tick / 2, end - tick / 2]``,
     or the middle of a span shorter than a tick. Without it a pulse a hair before a switch
-    could be rounded onto the travel (0.13 mm at 125 mm/s and 1 ms)."""
+    could be rounded onto the travel (0.13 mm at 125 mm/s and 1 ms).
+
+    Pulses a tick apart or more stay so: the i-th of a span's n is kept within
+    ``[start + tick / 2 + i tick, end - tick / 2 - (n - 1 - i) tick]`` (a span too short
+    for its pulses at one a tick: as above). Clamped to the span's end alone, the last
+    two pulses of a span at the valve's highest frequency (1 / tick) shared a tick."""
     if not len(times):
         return times
     a = np.repeat(ends[:, 0], per_span)
@@ -583,6 +588,11 @@ def _kept_in_spans(times: np.ndarray, per_span: np.ndarray, ends: np.ndarray, ti
     long_enough = b - a >= tick
     lo = np.where(long_enough, a + 0.5 * tick, 0.5 * (a + b))
     hi = np.where(long_enough, b - 0.5 * tick, 0.5 * (a + b))
+    n = np.repeat(per_span, per_span)
+    i = np.arange(len(times)) - np.repeat(offsets(per_span)[:-1], per_span)
+    room = long_enough & ((n - 1) * tick <= hi - lo)
+    lo = np.where(room, lo + i * tick, lo)
+    hi = np.where(room, hi - (n - 1 - i) * tick, hi)
     return np.minimum(np.maximum(times, lo), hi)
 
 
