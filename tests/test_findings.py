@@ -24,6 +24,15 @@ def test_kinds_counts_and_layer_ranges():
                      "bunny: 5 holes closed"]
 
 
+def test_a_kind_keeps_the_digits_of_units_and_setting_names():
+    """'(# mm^# thinner than a path)': the power of a unit is not a number of the
+    message, nor is the digit of a setting's name."""
+    w = ("layer 40 (z = 10.125 mm): part feature narrower than the path width 1.5 mm near "
+         "x = -12.5, y = 3 mm (2.4 mm^2 thinner than a path; cell.l1_mm = 325, +1e-3)")
+    assert warning_kind(w) == ("part feature narrower than the path width # mm near x = #, "
+                               "y = # mm (# mm^2 thinner than a path; cell.l1_mm = #, #)")
+
+
 def test_slice_prints_kinds_and_writes_every_warning(tmp_path, capsys):
     """An open tube sliced with consent to the per-layer chord and no 3D closing: one
     warning per layer, all in OUT/slice-warnings.txt, one summary line for the kind."""

@@ -713,7 +713,11 @@ def test_open_and_non_manifold_edges_are_located():
     a, b, c = v[f[0]]
     mids = [tuple((p + q) / 2) for p, q in ((a, b), (b, c), (c, a))]
     assert rep.open_edge_at in [pytest.approx(m) for m in mids]
-    assert "e.g. at (" in " ".join(rep.warnings())
+    # where the file has it: parts.scale and parts.translation come later
+    assert "e.g. at (" in " ".join(rep.warnings()) and "in the file's coordinates" in \
+        " ".join(rep.warnings())
+    from icefab.mesh.repair import point_text
+    assert point_text((5.329e-16, -78.666, -1e-17)) == "(0, -78.67, 0)"
     v2 = np.vstack([v, [[100.0, 100.0, 100.0]]])
     fin = check_mesh(Mesh(v2, np.vstack([f, [[f[0, 0], f[0, 1], 8]]]), "fin"))
     assert fin.non_manifold_edge_at == pytest.approx(tuple((v[f[0, 0]] + v[f[0, 1]]) / 2))

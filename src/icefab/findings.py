@@ -24,7 +24,14 @@ from typing import Sequence
 WARNINGS_FILE = "warnings.txt"
 
 _LAYER = re.compile(r"^layer (\d+)(?: \(z = [^)]*\))?[:,]? ?")
-_NUMBER = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
+#: A number in a message; not a digit that is part of a word or a unit's power
+#: ("cell.l1_mm", "mm^2": "(# mm^# thinner than a path" read badly)
+_NUMBER = re.compile(r"(?<![A-Za-z_^])[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
+
+
+def numbers_hidden(text: str) -> str:
+    """``text`` with every number replaced by ``#`` (what a kind of message keeps)."""
+    return _NUMBER.sub("#", text)
 
 
 def warning_layer(text: str) -> int | None:
@@ -35,7 +42,7 @@ def warning_layer(text: str) -> int | None:
 
 def warning_kind(text: str) -> str:
     """The warning without its layer prefix, every number replaced by ``#``."""
-    return _NUMBER.sub("#", _LAYER.sub("", text, count=1))
+    return numbers_hidden(_LAYER.sub("", text, count=1))
 
 
 def _span(layers: list[int]) -> str:

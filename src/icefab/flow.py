@@ -97,7 +97,6 @@ import functools
 import itertools
 import logging
 import os
-import re
 import struct
 from dataclasses import dataclass
 from pathlib import Path
@@ -108,6 +107,7 @@ import numpy as np
 from icefab import feedback
 from icefab.atomic import write_atomic
 from icefab.errors import ConfigError, FlowError, StackFileError
+from icefab.findings import numbers_hidden
 from icefab.inputs import check_input, read_input_text
 from icefab.frames import to_part_frame
 from icefab.motion import limit_ratio, speedup_cap
@@ -1055,13 +1055,10 @@ def total_duration(prog: ValveProgram) -> float:
     return float(sum(p.duration for p in program_pieces(prog)))
 
 
-_NUMBER = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
-
-
 def finding_kind(text: str) -> str:
     """The kind of a valve-limit finding: its text with every number replaced by ``#``
     (layer numbers, counts and values differ from path to path; the limit does not)."""
-    return _NUMBER.sub("#", text)
+    return numbers_hidden(text)
 
 
 def summarise_findings(findings: "Sequence[tuple[int, str]]") -> list[str]:

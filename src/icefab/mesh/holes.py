@@ -48,7 +48,7 @@ import numpy as np
 from numba import njit
 
 from icefab.core import Mesh
-from icefab.mesh.repair import check_mesh
+from icefab.mesh.repair import check_mesh, point_text
 from icefab.mesh.topology import edge_buckets
 
 if TYPE_CHECKING:
@@ -92,10 +92,10 @@ class HoleReport:
             more = f" and {len(self.holes) - 8} more" if len(self.holes) > 8 else ""
             out.append(f"{name}: {len(self.holes)} holes closed in 3D before slicing "
                        f"({self.faces_added} faces added; spans {sizes}{more} mm; the "
-                       "largest centred at ({:.4g}, {:.4g}, {:.4g}) mm)".format(*big.centre_mm))
+                       f"largest centred at {point_text(big.centre_mm)} mm)")
         if self.unclosed_edges:
             where = ("" if self.unclosed_at is None else
-                     " e.g. at ({:.4g}, {:.4g}, {:.4g}) mm".format(*self.unclosed_at))
+                     f" e.g. at {point_text(self.unclosed_at)} mm")
             out.append(f"{name}: {self.unclosed_edges} open edges could not be closed in 3D "
                        f"(inconsistent orientation){where}; the slicer closes those "
                        "contours per layer within slicing.max_gap_mm")

@@ -115,7 +115,15 @@ class MeshReport:
 def _at(point: tuple[float, float, float] | None) -> str:
     if point is None:
         return ""
-    return ", e.g. at ({:.4g}, {:.4g}, {:.4g}) mm".format(*point)
+    # the file as read, before parts.scale and parts.translation place it
+    return f", e.g. at {point_text(point)} in the file's coordinates"
+
+
+def point_text(point) -> str:
+    """``(x, y, z)`` to 4 significant digits, what rounding leaves of zero as 0 (a hole's
+    centre printed as 5.329e-16)."""
+    return "({:.4g}, {:.4g}, {:.4g})".format(*(np.round(np.asarray(point, dtype=np.float64), 9)
+                                              + 0.0))
 
 
 def mesh_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
