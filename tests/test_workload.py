@@ -79,6 +79,15 @@ def test_a_gantry_part_outside_its_travel_is_refused(tmp_path):
     job = _job_for(tmp_path, _box((500, 50, 10)), **{"cell.robot": "gantry"})
     with pytest.raises(WorkspaceError, match="outside its travel cell.gantry_travel_mm"):
         prepare_parts(job)
+    # a part inside the travel whose scaffold is not: the message says the scaffold
+    # reaches out, not that a point inside the travel is outside it
+    small = _job_for(tmp_path, _box((50, 50, 10)), **{
+        "cell.robot": "gantry", "cell.gantry_travel_mm": [52.0, 52.0],
+        "cell.ee_origin_mm": [26.0, 26.0]})
+    with pytest.raises(WorkspaceError, match=r"with the scaffold around it \(scaffold.buffer_mm "
+                       r"= 3.3\): part point .* and the scaffold reaches 3.3 mm beyond it, "
+                       r"outside its travel .* \(0 to 52 x 0 to 52 mm"):
+        prepare_parts(small)
 
 
 def test_a_file_in_metres_is_refused_with_the_scale_to_set(tmp_path):
@@ -94,6 +103,22 @@ def test_the_demo_mug_and_the_thesis_defaults_pass(tmp_path):
     job = _job_for(tmp_path, icefab.demo_mug())
     placed = prepare_parts(job)
     workload.check_placed_part(placed.vertices, job)
+
+
+def test_a_part_placed_above_the_stroke_or_below_the_plate_is_refused(tmp_path):
+    """Its height fits the stroke, its place does not: at z = 180 mm a 60 mm part passed
+    slicing and paths (a tester's spot) and stopped at 'icefab build'; kept at its file's
+    coordinates it went 30 mm below the plate, into the G-code too."""
+    job = _job_for(tmp_path, _box((60, 60, 60)))
+    high = job.replace(**{"parts.translation": ["cent", "cent", 180.0]})
+    with pytest.raises(WorkspaceError, match=r"spans z 180 to 240 mm, above the vertical "
+                                             r"stroke cell.stroke_mm = 210"):
+        prepare_parts(high)
+    low = job.replace(**{"parts.translation": ["cent", "cent", -30.0]})
+    with pytest.raises(WorkspaceError, match=r"spans z -30 to 30 mm, below the build plate"):
+        prepare_parts(low)
+    assert prepare_parts(job.replace(**{"parts.translation": ["cent", "cent", 150.0]})
+                         ).bounds[1, 2] == pytest.approx(210.0)
 
 
 def test_copies_wider_than_the_workspace_are_refused_before_copying():

@@ -115,6 +115,17 @@ def check_placed_part(vertices: np.ndarray, job: Job) -> None:
             f"{list(job.parts.scale)}), slice part of it (parts.part_fraction) or rotate it "
             "(parts.rotation_deg)")
     check_layers(lo[2], hi[2], job)
+    # where it is, not only how tall: the layers keep the part frame's z, which is the
+    # robot's above the build plate (z = 0); a part placed at z = 180 mm passed the
+    # check above and stopped at 'icefab build', one placed below the plate nowhere
+    bottom, top = lo[2] + f0 * size[2], lo[2] + f1 * size[2]
+    if bottom < -1e-9 or top > stroke:
+        where = "below the build plate (z = 0)" if bottom < -1e-9 else \
+            f"above the vertical stroke cell.stroke_mm = {stroke:g} mm"
+        raise WorkspaceError(
+            f"the placed part spans z {_fmt(bottom)} to {_fmt(top)} mm, {where}: place its "
+            f"bottom on the plate (parts.translation = {list(job.parts.translation)}; a "
+            "number as the z entry is the part's lowest z, 0 by default)")
     width = job.materials.part.path_width_mm
     across = float(max(size[0], size[1]))
     if across < MIN_WIDTHS_ACROSS * width:
@@ -169,11 +180,18 @@ def check_placed_part(vertices: np.ndarray, job: Job) -> None:
             out = (base < -slack) | (base > travel + slack)
             if out.any():
                 k = int(np.flatnonzero(out.any(axis=1))[0])
+                # with the scaffold, the part's point may lie inside the travel and the
+                # scaffold around it not: say so (a tester read "(7.539, 0.0244) mm on
+                # the gantry, outside its travel [60, 60]")
+                beyond = (f" and the scaffold reaches {_fmt(grow)} mm beyond it" if grow > 0
+                          else "")
                 raise WorkspaceError(
-                    f"the placed part{what} point ({_fmt(xy[k, 0])}, {_fmt(xy[k, 1])}) mm is "
-                    f"at ({_fmt(base[k, 0])}, {_fmt(base[k, 1])}) mm on the gantry, outside "
-                    f"its travel cell.gantry_travel_mm = {list(cell.gantry_travel_mm)} (part "
-                    f"{_fmt(size[0])} x {_fmt(size[1])} mm across): " + where)
+                    f"the placed part{what}: part point ({_fmt(xy[k, 0])}, {_fmt(xy[k, 1])}) "
+                    f"mm is at ({_fmt(base[k, 0])}, {_fmt(base[k, 1])}) mm on the "
+                    f"gantry{beyond}, outside its travel cell.gantry_travel_mm = "
+                    f"{list(cell.gantry_travel_mm)} (0 to {_fmt(travel[0])} x 0 to "
+                    f"{_fmt(travel[1])} mm; part {_fmt(size[0])} x {_fmt(size[1])} mm "
+                    "across): " + where)
 
 
 def check_copies(extent_mm: np.ndarray, job: Job) -> None:
