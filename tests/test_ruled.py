@@ -3,6 +3,7 @@ contour correspondence with branching, ledges, the nearest-point search against 
 the ruled.npz file and ``icefab export ruled``."""
 from __future__ import annotations
 
+import dataclasses
 import math
 import subprocess
 import sys
@@ -240,6 +241,15 @@ def test_export_ruled_cli(tmp_path):
     edges, _ = load_ruled(tmp_path / "out" / "ruled.npz")
     assert len(edges) == sum(L.part.n_points for L in stack)
     assert "tilt from vertical" in r.stdout and "uncertain by up to 0.0 deg" in r.stdout
+    assert "over layers 0.25 mm thick at the thinnest" in r.stdout
+    # adaptive layers: the thinnest one bounds the tilts' uncertainty, not the nominal
+    thin = dataclasses.replace(stack, layers=tuple(
+        dataclasses.replace(L, thickness=0.08 if k == 3 else 0.25)
+        for k, L in enumerate(stack.layers)))
+    save_stack(thin, tmp_path / "thin.npz")
+    r = _icefab("export", "ruled", str(tmp_path / "thin.npz"), "-o", str(tmp_path / "out2"))
+    assert r.returncode == 0, r.stderr
+    assert "over layers 0.08 mm thick at the thinnest" in r.stdout
     for args, msg in ((["--max-tilt", "95"], "--max-tilt 95.0: expected"),
                       (["--max-tilt", "nan"], "--max-tilt nan: expected"),
                       (["--layers", "999"], "--layers '999': layer numbers")):
