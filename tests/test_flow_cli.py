@@ -28,6 +28,23 @@ def traj_file(tmp_path):
     return f
 
 
+def test_valves_refuses_a_job_that_contradicts_the_trajectories(tmp_path, traj_file,
+                                                                capsys):
+    """The volume per mm is width x thickness: trajectories of 0.25 mm layers given a job of
+    0.5 mm ones are refused, not given twice the water (a tester's bunny); a valve
+    setting may differ."""
+    job = tmp_path / "job.toml"
+    job.write_text("[slicing]\nlayer_thickness_mm = 0.5\n")
+    out = tmp_path / "out"
+    assert main(["valves", str(traj_file), "-c", str(job), "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "the trajectories were made with slicing.layer_thickness_mm = 0.25, the job " \
+        "has 0.5" in err
+    assert not out.exists()
+    job.write_text("[flow]\nmode = \"pwm\"\n")
+    assert main(["valves", str(traj_file), "-c", str(job), "-o", str(out)]) == 0
+
+
 def test_valves_writes_programs(tmp_path, traj_file, capsys):
     out = tmp_path / "out"
     rc = main(["valves", str(traj_file), "-o", str(out), "--format", "both"])

@@ -65,6 +65,20 @@ def _toolpath_file(tmp_path, n_layers=2):
     return src
 
 
+def test_plan_refuses_a_job_that_contradicts_the_toolpaths(tmp_path, capsys):
+    """Toolpaths sliced at 0.25 mm planned with a job of 0.5 mm layers: one error naming
+    the setting, nothing written (the valves would have laid twice the water)."""
+    src = _toolpath_file(tmp_path)
+    job = tmp_path / "job.toml"
+    job.write_text("[slicing]\nlayer_thickness_mm = 0.5\n")
+    out = tmp_path / "o"
+    assert main(["plan", str(src), "-c", str(job), "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "the toolpaths were made with slicing.layer_thickness_mm = 0.25, the job has 0.5" \
+        in err and "icefab paths" in err
+    assert not out.exists()
+
+
 def test_plan_gcode_and_constant_spacing_outputs(tmp_path, capsys):
     src = _toolpath_file(tmp_path)
     out = tmp_path / "o"

@@ -68,6 +68,28 @@ def test_simulate_errors_leave_no_output(toolpaths_file, tmp_path, capsys, args,
     assert not out.exists()
 
 
+def test_simulate_runs_toolpaths_with_their_own_job_and_refuses_a_contradicting_one(
+        tmp_path, capsys):
+    """Without -c, a toolpath file runs with the job it was made with (it ran with the
+    default job: toolpaths measured every 2nd layer were simulated as if every 4th);
+    with -c, a job that measures other layers than the file is refused (a tester's SMF
+    corrected 3.5 times less with such a job, without a word)."""
+    job = Job().replace(**{"feedback.interval_layers": 2, "cell.cpus": 1})
+    src = tmp_path / "toolpaths.npz"
+    save_toolpaths(annulus_toolpaths(job, 4), src)
+    out = tmp_path / "sim"
+    assert main(["simulate", str(src), "-o", str(out), "--layers", "4"]) == 0
+    data = json.loads((out / "simulation.json").read_text())
+    assert data["open_loop"]["layers"] == [1, 3]
+    capsys.readouterr()
+    other = tmp_path / "job.toml"
+    other.write_text("[feedback]\ninterval_layers = 1\n")
+    assert main(["simulate", str(src), "-c", str(other), "-o", str(tmp_path / "s2")]) == 2
+    assert "the toolpaths were made with feedback.interval_layers = 2, the job has 1" in \
+        capsys.readouterr().err
+    assert not (tmp_path / "s2").exists()
+
+
 def test_simulate_checks_the_surface_layer_before_simulating(toolpaths_file, tmp_path,
                                                            capsys, monkeypatch):
     import icefab.sim

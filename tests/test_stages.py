@@ -67,3 +67,29 @@ def test_placement_differences_name_the_setting():
     b = a.replace(**{"cell.ee_origin_mm": (250.0, -90.0), "motion.dt_s": 0.008})
     diff = stages.placement_differences(a, b)
     assert [d[0] for d in diff] == ["cell.ee_origin_mm"]  # dt does not move material
+
+
+@pytest.mark.parametrize("change,named", [
+    ({"slicing.layer_thickness_mm": 0.5}, "slicing.layer_thickness_mm = 0.25, the job has 0.5"),
+    ({"materials.part.fill_width_mm": 2.0}, "materials.part.fill_width_mm"),
+    ({"feedback.interval_layers": 1}, "feedback.interval_layers = 4, the job has 1"),
+    ({"feedback.enabled": False}, "feedback.enabled = True, the job has False"),
+])
+def test_a_job_that_contradicts_what_a_file_was_made_with_is_refused(change, named):
+    """Decided settings (layer thickness, widths, offsets, the measured layers) must agree
+    between an input file's job and the job a later step runs it with; others (speeds, the
+    valve's settings, the worker count) may differ."""
+    made = Job()
+    with pytest.raises(ConfigError, match="tp.npz: the toolpaths were made with") as exc:
+        stages.check_agrees(made, made.replace(**change), "tp.npz: the toolpaths",
+                            "icefab paths")
+    assert named in str(exc.value) and "'icefab paths'" in str(exc.value)
+    two = made.replace(**{"slicing.layer_thickness_mm": 0.5, "feedback.interval_layers": 2})
+    with pytest.raises(ConfigError, match=r"\(and 1 more\)"):
+        stages.check_agrees(made, two, "tp.npz: the toolpaths", "icefab paths")
+    stages.check_agrees(made, made.replace(**{"motion.speed_mm_s": 80.0, "flow.mode": "pwm",
+                                              "cell.cpus": 1}), "x", "y")
+    # two jobs that measure nothing do not disagree on how often
+    off = made.replace(**{"feedback.enabled": False})
+    stages.check_agrees(off, off.replace(**{"feedback.interval_layers": 9}), "x", "y")
+    assert set(stages.DECIDED) <= set(_settings(Job()))

@@ -90,6 +90,19 @@ PLACEMENT = ("slicing.layer_thickness_mm", "cell.ee_origin_mm", "cell.laser_offs
              "materials.scaffold.path_width_mm", "materials.scaffold.fill_width_mm")
 
 
+#: Settings an earlier step decided that a later step reads again: the layers were cut
+#: and the paths laid for them (layer thickness, bead widths, nozzle and laser offsets,
+#: which layers carry measurement paths). A later step given other values would lay or
+#: measure another build than its input file holds: the valves of 0.5 mm layers along
+#: paths sliced at 0.25 mm give twice the water (a tester's bunny), an SMF that expects a
+#: measurement every layer along paths measured every 4th corrects less.
+DECIDED = ("slicing.layer_thickness_mm", "cell.laser_offset_mm",
+           "materials.part.nozzle_offset_mm", "materials.scaffold.nozzle_offset_mm",
+           "materials.part.path_width_mm", "materials.part.fill_width_mm",
+           "materials.scaffold.path_width_mm", "materials.scaffold.fill_width_mm",
+           "feedback.enabled", "feedback.interval_layers")
+
+
 def _flat(job: "Job") -> dict[str, Any]:
     out: dict[str, Any] = {}
 
@@ -151,6 +164,25 @@ def placement_differences(a: "Job", b: "Job") -> list[tuple[str, Any, Any]]:
     """(setting, value in a, value in b) for the :data:`PLACEMENT` settings that differ."""
     fa, fb = _flat(a), _flat(b)
     return [(k, fa[k], fb[k]) for k in PLACEMENT if fa[k] != fb[k]]
+
+
+def check_agrees(made: "Job", job: "Job", source: str, remake: str,
+                 settings: Sequence[str] = DECIDED) -> None:
+    """ConfigError if ``job`` differs from the job an input file was ``made`` with in one
+    of ``settings`` (default :data:`DECIDED`), naming the first difference and counting the
+    others. ``source`` names the file's contents ("out/toolpaths.npz: the toolpaths"),
+    ``remake`` the command that makes them again with ``job``. The measurement interval of
+    two jobs that both measure nothing does not count."""
+    fa, fb = _flat(made), _flat(job)
+    quiet = {"feedback.interval_layers"} if not (fa["feedback.enabled"]
+                                                  or fb["feedback.enabled"]) else set()
+    diff = [(k, fa[k], fb[k]) for k in settings if k not in quiet and fa[k] != fb[k]]
+    if diff:
+        k, va, vb = diff[0]
+        more = f" (and {len(diff) - 1} more)" if len(diff) > 1 else ""
+        raise ConfigError(f"{source} were made with {k} = {va}, the job has {vb}{more}: use "
+                          f"the job they were made with, or make them again with this job "
+                          f"({remake!r})")
 
 
 def check_layer_thickness(stack_thickness: float, job: "Job", what: str = "the stack") -> None:

@@ -70,13 +70,17 @@ def load_input(path: str, job):
     """Toolpaths from a toolpath file, or from a mesh through slicing, scaffold and paths."""
     from icefab.paths import plan_paths
     from icefab.resultfiles import load_packed_toolpaths
+    from icefab.stages import check_agrees
     src = Path(path)
     if not src.exists():
         raise ConfigError(f"{src}: input file not found")
     if src.suffix.lower() == ".npz":
         # as its arrays: checked and sent to the workers so, no Toolpath made (issue 17)
         tp = load_packed_toolpaths(src)
-        return tp, tp.job if job is None else job
+        if job is None:
+            return tp, tp.job
+        check_agrees(tp.job, job, f"{src}: the toolpaths", "icefab paths")
+        return tp, job
     from icefab import mesh as meshmod
     from icefab.regions import add_scaffold
     from icefab.slicing import slice_mesh

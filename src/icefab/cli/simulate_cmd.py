@@ -111,6 +111,7 @@ def load_build(model: list[str], job: "Job", args: argparse.Namespace
     first ``simulation.layers`` layers (0: all) of the demo mug or mesh files (placed,
     sliced, scaffolded over the whole part, paths planned)."""
     from icefab.core import Stack
+    from icefab.stages import check_agrees
 
     first = Path(model[0])
     if len(model) == 1 and first.suffix.lower() == ".npz":
@@ -126,12 +127,19 @@ def load_build(model: list[str], job: "Job", args: argparse.Namespace
             if args.deposition is None:
                 job = job.replace(**{"simulation.deposition": "valves"})
             check_motion_job(motion.job, job, source=f"{first}: the trajectories")
+            check_agrees(motion.job, job, f"{first}: the trajectories",
+                         "icefab paths, then icefab plan")
             return motion, job
         if fmt != paths_mod.FORMAT:
             raise StackFileError(f"{first}: not an icefab toolpath or trajectory file (format "
                                  f"{fmt!r}; expected {paths_mod.FORMAT!r} from 'icefab paths' "
                                  f"or {motion_mod.FORMAT!r} from 'icefab plan')")
-        return paths_mod.load_toolpaths(first), _job_with_options(job, args)
+        toolpaths = paths_mod.load_toolpaths(first)
+        if args.job:
+            check_agrees(toolpaths.job, job, f"{first}: the toolpaths", "icefab paths")
+        else:   # the job they were made with, as for trajectories
+            job = toolpaths.job
+        return toolpaths, _job_with_options(job, args)
     from icefab.paths import plan_paths
     from icefab.regions import add_scaffold
     from icefab.slicing import slice_mesh
