@@ -134,6 +134,12 @@ def test_plan_bad_constant_spacing_and_layers_fail_before_planning(tmp_path, cap
                         lambda *a, **k: planned.append(1) or real(*a, **k))
     assert main(["plan", str(src), "-o", str(out), "--constant-spacing", "0"]) == 2
     assert "--constant-spacing" in capsys.readouterr().err
+    # positive, but billions of points held in memory (a tester's 0.0001 mm on a 60 mm
+    # part: 23 GB, then the kernel's out-of-memory killer)
+    assert main(["plan", str(src), "-o", str(out), "--constant-spacing", "1e-6"]) == 2
+    err = capsys.readouterr().err
+    assert "--constant-spacing 1e-06: the build's constant-spacing output would need" in err \
+        and "MAX_SAMPLES" in err
     assert main(["plan", str(src), "-o", str(out), "--layers", "0,9"]) == 2
     assert "--layers" in capsys.readouterr().err
     assert planned == [] and not out.exists()

@@ -1079,6 +1079,15 @@ def _plan_packed_task(args: tuple) -> tuple[dict[str, np.ndarray], float, object
     return pack_trajectories(lm.trajectories, empty_pieces=True), const_s, extra
 
 
+def total_path_length(toolpaths: Toolpaths | PackedToolpaths) -> float:
+    """Length of every path of a build, depositing or not, mm (the closing edge of closed
+    paths included)."""
+    packed = isinstance(toolpaths, PackedToolpaths)
+    lengths = (_packed_path_lengths(toolpaths.layers) if packed
+               else _path_lengths(list(toolpaths.layers)))
+    return float(np.sum(lengths))
+
+
 def _checked_items(toolpaths: Toolpaths | PackedToolpaths, job: Job,
                    role_speeds: Mapping[str, float] | None,
                    streamed: bool = False) -> list[tuple]:

@@ -106,9 +106,11 @@ def run(args: argparse.Namespace) -> int:
     from icefab.export import save_gcode
     from icefab.headroom import layer_headroom, tightest
     from icefab.motion import (TrajectoryFile, TrajectoryWriter, iter_plan_packed,
-                               save_constant_spacing, unpack_layer_motion)
+                               save_constant_spacing, total_path_length,
+                               unpack_layer_motion)
     from icefab.paths import estimate_build_time
     from icefab.robots import get_robot
+    from icefab.workload import check_samples
 
     spacing = getattr(args, "constant_spacing", None)
     if spacing is not None and not (math.isfinite(spacing) and spacing > 0.0):
@@ -117,6 +119,11 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     tp, job = load_input(args.input, job)
     ks = parse_layers(args.layers, len(tp.layers), default_count=3)  # before planning
+    if spacing is not None:
+        # the output is made in memory, from the whole build (a tester's 0.0001 mm asked
+        # for billions of points and the machine ran out of memory)
+        check_samples(total_path_length(tp), spacing, f"--constant-spacing {spacing:g}",
+                      what="the build's constant-spacing output")
     if args.no_jerk:
         job = job.replace(**{"motion.jerk_limited": False})
     robot = get_robot(job)
