@@ -102,6 +102,22 @@ def test_open_loop_error_grows_with_height_under_a_flow_error():
     assert np.allclose(res.height.z[(r > 11) & (r < 30)], 1.1 * 24 * DH, rtol=1e-3)
 
 
+@pytest.mark.parametrize("flow_error", [-0.5, -0.9])
+def test_a_valve_that_gives_a_fraction_of_its_flow_is_measured_and_corrected(flow_error):
+    """Under -90 % flow no cell reached a quarter of the layer, so no layer had a footprint:
+    the RMS was NaN and SMF had no samples on it, exactly where the error is worst. What
+    counts as covered scales with the valves' gain: the error is the missing ice, and SMF
+    raises the flow as far as its saturation lets it."""
+    job = quiet_job(**{"simulation.flow_error": flow_error})
+    tp = annulus_toolpaths(job, 8)
+    open_ = simulate_build(tp, job, closed_loop=False)
+    assert np.isfinite(open_.rms).all()
+    # the whole surface is short by the flow error (the edges lose nothing: quiet job)
+    assert np.allclose(open_.rms, -flow_error * open_.nominal_z, rtol=0.02)
+    smf = simulate_build(tp, job)
+    assert np.isfinite(smf.rms).all() and smf.rms[-1] < open_.rms[-1]
+
+
 def test_flow_gain_drifts_with_the_volume_through_each_valve():
     job = quiet_job(**{"simulation.flow_drift_per_cm3": 0.02})
     res = simulate_build(annulus_toolpaths(job, 8), job, closed_loop=False)

@@ -255,3 +255,37 @@ def test_open_loop_and_smf_side_by_side_equal_two_runs_in_a_row(toolpaths_file, 
         assert np.array_equal(res.rms, alone.rms, equal_nan=True)
         assert np.array_equal(res.height.z, alone.height.z, equal_nan=True)
     assert not np.array_equal(pair[0].rms, pair[1].rms, equal_nan=True)  # SMF acts
+
+
+def test_the_final_rms_is_the_last_layer_with_a_part_footprint():
+    """A top layer too small for the grid has no RMS: the summary printed 'nan mm'."""
+    from types import SimpleNamespace
+
+    from icefab.cli.simulate_cmd import final_rms_line
+
+    def res(rms):
+        return SimpleNamespace(layers=np.array([3, 7, 11]), rms=np.array(rms))
+    assert final_rms_line(res([0.5, 0.4, 0.3]), res([0.2, 0.1, 0.05])) == \
+        "final RMS height deviation: 0.300 mm open loop, 0.050 mm with SMF"
+    line = final_rms_line(res([0.5, 0.4, np.nan]), res([0.2, 0.1, np.nan]))
+    assert line.startswith("final RMS height deviation: 0.400 mm open loop, 0.100 mm with "
+                           "SMF (layer 7, the last measured") and "nan" not in line
+    assert "none" in final_rms_line(res([np.nan] * 3), res([np.nan] * 3))
+
+
+def test_simulate_honours_feedback_off_as_the_build_does(tmp_path, capsys):
+    """Toolpaths made with feedback.enabled = false (no measurement paths): 'icefab build'
+    measures nothing, and simulate ran SMF anyway on the laser along the deposition paths
+    (0.07 against 0.25 mm on a tester's bunny). Now both builds are the open loop."""
+    job = Job().replace(**{"feedback.enabled": False, "cell.cpus": 1,
+                           "simulation.flow_error": 0.2})
+    src = tmp_path / "toolpaths.npz"
+    save_toolpaths(annulus_toolpaths(job, 8, measure=False), src)
+    out = tmp_path / "sim"
+    assert main(["simulate", str(src), "-o", str(out), "--layers", "8"]) == 0
+    text = capsys.readouterr().out
+    assert "feedback.enabled = false: the build runs open loop" in text
+    data = json.loads((out / "simulation.json").read_text())
+    assert data["open_loop"]["rms_mm"] == data["smf"]["rms_mm"]
+    assert not data["smf"]["closed_loop"]
+    assert data["open_loop"]["rms_mm"][-1] > 0.05    # the flow error, uncorrected

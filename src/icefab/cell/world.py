@@ -287,7 +287,7 @@ class World:
         mat_of, n0, n1, ext = arr["pend_mat"], arr["pend_n0"], arr["pend_n1"], arr["pend_ext"]
         mid = arr["pend_mid"]
         z = self.z
-        _img, added, mask = sim_mod.deposit_layer(
+        _img, added, mask, _cover = sim_mod.deposit_layer(
             z, self.origin, self.spacing, (a, b, v_all, hw, mat_of, n0, n1, ext),
             self.used_cm3, mid, job, dh, self.rng_noise, self.rng_debris)
         z += added

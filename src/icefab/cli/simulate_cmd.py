@@ -180,6 +180,23 @@ def table_rows(open_loop: "SimResult", closed: "SimResult") -> list[list[float]]
 HEADER = ["layer", "height_mm", "rms_open_mm", "rms_smf_mm", "max_open_mm", "max_smf_mm"]
 
 
+def final_rms_line(open_loop: "SimResult", closed: "SimResult") -> str:
+    """The summary's last figure: both builds' RMS at the last measurement layer with a
+    part footprint in both, named when it is not the last measured (a top layer too small
+    for the grid has none: it printed 'nan mm')."""
+    import numpy as np
+
+    ok = np.flatnonzero(np.isfinite(open_loop.rms) & np.isfinite(closed.rms))
+    if not len(ok):
+        return ("final RMS height deviation: none (no measurement layer has a part "
+                "footprint on the simulator grid)")
+    j = int(ok[-1])
+    at = "" if j == len(open_loop.rms) - 1 else \
+        f" (layer {int(open_loop.layers[j])}, the last measured with a part footprint)"
+    return (f"final RMS height deviation: {open_loop.rms[j]:.3f} mm open loop, "
+            f"{closed.rms[j]:.3f} mm with SMF{at}")
+
+
 def format_table(rows: list[list[float]]) -> list[str]:
     lines = ["layer  height mm   RMS open   RMS SMF   max open   max SMF  (mm)"]
     for k, z, ro, rc, mo, mc in rows:
@@ -279,7 +296,7 @@ def write_simulation_outputs(open_loop: "SimResult", closed: "SimResult", out: P
 
 def run(args: argparse.Namespace) -> int:
     from icefab.motion import BuildMotion, plan_toolpaths
-    from icefab.sim import measured_layers, simulate_open_and_smf
+    from icefab.sim import measured_layers, simulate_build, simulate_open_and_smf
     from icefab.core import Toolpaths
 
     t0 = time.perf_counter()
@@ -317,8 +334,14 @@ def run(args: argparse.Namespace) -> int:
              for t in lm.trajectories), job), job)
     t_prep = time.perf_counter() - t0
     keep = None if args.surface_layer is None else [args.surface_layer]
-    open_loop, closed = simulate_open_and_smf(build, job, layers=n, keep_surfaces=keep,
-                                              progress=Progress("open loop and with SMF"))
+    if job.feedback.enabled:
+        open_loop, closed = simulate_open_and_smf(build, job, layers=n, keep_surfaces=keep,
+                                                  progress=Progress("open loop and with SMF"))
+    else:
+        # the job measures nothing: 'icefab build' runs it open loop, and so does this (SMF
+        # ran here on the laser along the deposition paths: the two commands disagreed)
+        open_loop = closed = simulate_build(build, job, layers=n, closed_loop=False,
+                                            keep_surfaces=keep, progress=Progress("open loop"))
     t_sim = time.perf_counter() - t0 - t_prep
     with output_dir(args.out, "simulate") as tmp:
         write_simulation_outputs(open_loop, closed, tmp, surface_layer=args.surface_layer,
@@ -356,8 +379,10 @@ def run(args: argparse.Namespace) -> int:
                 print(f"valve limits ({label}): {line}")
     for line in format_table(table_rows(open_loop, closed)):
         print(line)
-    print(f"final RMS height deviation: {open_loop.rms[-1]:.3f} mm open loop, "
-          f"{closed.rms[-1]:.3f} mm with SMF")
+    print(final_rms_line(open_loop, closed))
+    if not job.feedback.enabled:
+        print("feedback.enabled = false: the build runs open loop (no measurement, no SMF); "
+              "the SMF columns repeat it")
     print(f"time: build preparation {t_prep:.1f} s, simulation {t_sim:.1f} s")
     print(f"wrote {args.out}/ (rms_vs_height.png, surfaces.png, simulation.json, rms.csv)")
     return 0

@@ -149,7 +149,7 @@ def _edge_factor(layer_z: np.ndarray, thresh: float, width: float, spacing: floa
 def deposit_layer(z: np.ndarray, origin: np.ndarray, spacing: float, segments: tuple,
                   used_cm3: np.ndarray, midpoints: np.ndarray, job: "Job", dh: float,
                   rng_noise: np.random.Generator, rng_debris: np.random.Generator
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """One layer of the virtual cell, from its deposition segments to the height it adds:
     the step :func:`run_cell` and the virtual cell's process (``icefab.cell.world``) both
     take, so they cannot drift apart.
@@ -160,10 +160,14 @@ def deposit_layer(z: np.ndarray, origin: np.ndarray, spacing: float, segments: t
     used_cm3: (2,) volume already through each valve, cm^3, updated in place (the flow
     drift of thesis 6.4 grows with it). midpoints: (m, 2) mm where debris may land (the
     layer's segments). dh: the layer's thickness, mm (what counts as covered: a quarter of
-    it). The generators are advanced exactly as the sequential simulator does.
+    it, times the valves' lowest flow gain in the layer when that is under 1: a valve that
+    gives a tenth of its flow still covers the layer's footprint, thinly, and the laser
+    and SMF must see it there). The generators are advanced exactly as the sequential
+    simulator does.
 
     Returns ``(layer_img (2, ny, nx) per material before levelling, added (ny, nx) mm,
-    mask (ny, nx) bool cells the layer covers)``; the caller adds ``added`` to ``z``.
+    mask (ny, nx) bool cells the layer covers, cover mm: the depth that counts as
+    covered)``; the caller adds ``added`` to ``z``.
     """
     from scipy import ndimage
 
@@ -172,6 +176,7 @@ def deposit_layer(z: np.ndarray, origin: np.ndarray, spacing: float, segments: t
     g = spacing
     layer_img = np.zeros((2,) + z.shape)
     edge_width = max(job.materials.part.path_width_mm, job.materials.scaffold.path_width_mm)
+    low_gain = 1.0
     for mat in (0, 1):
         sel = mat_of == mat
         if not sel.any():
@@ -181,19 +186,23 @@ def deposit_layer(z: np.ndarray, origin: np.ndarray, spacing: float, segments: t
         before = used_cm3[mat] + (np.cumsum(v_cmd) - v_cmd) / 1000.0
         gain = (1.0 + sim.flow_error) * (1.0 + sim.flow_drift_per_cm3 * before)
         used_cm3[mat] += v_cmd.sum() / 1000.0
+        low_gain = min(low_gain, float(gain.min()))
         vol = v_cmd * gain
         _splat(layer_img[mat], origin, g, a[sel], b[sel], vol, hw[sel], n0[sel], n1[sel],
                ext[sel])
+    # under a flow error of -90 % nothing reached a quarter layer: every layer had no
+    # footprint, the error no RMS (NaN) and SMF no samples on it, where the error is worst
+    cover = 0.25 * dh * max(low_gain, 0.0)
     if sim.edge_loss > 0:
         # liquid runs off free edges: the edge of the merged footprint (outer rim and
         # holes), not the part/scaffold interface where the materials support each other
-        layer_img *= _edge_factor(layer_img[0] + layer_img[1], 0.25 * dh, edge_width, g,
+        layer_img *= _edge_factor(layer_img[0] + layer_img[1], cover, edge_width, g,
                                   sim.edge_loss)
     added = layer_img[0] + layer_img[1]
-    mask = added > 0.25 * dh
+    mask = added > cover
     if sim.spread_mm > 0:
         added = level_liquid(z, added, g, sim.spread_mm)
-        mask |= added > 0.25 * dh
+        mask |= added > cover
     if sim.noise_mm > 0 and mask.any():
         added += sim.noise_mm * mask * _noise_field(rng_noise, z.shape, sim.noise_corr_mm / g)
     if sim.debris_rate > 0 and len(midpoints):
@@ -211,7 +220,7 @@ def deposit_layer(z: np.ndarray, origin: np.ndarray, spacing: float, segments: t
             sigma = sim.debris_radius_mm / g
             bumps = ndimage.gaussian_filter(impulse, sigma, mode="constant", truncate=4.0)
             added += mask * sim.debris_height_mm * 2 * np.pi * sigma ** 2 * bumps
-    return layer_img, added, mask
+    return layer_img, added, mask, cover
 
 
 def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence[int],
@@ -288,14 +297,14 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
             v_all = plan.volume * np.clip(1.0 + u, 0.0, None)
             a, b, hw, mat_of = plan.a, plan.b, plan.half_width, plan.material
             n0, n1, ext = plan.n0, plan.n1, plan.ext
-        layer_img, added, mask = deposit_layer(
+        layer_img, added, mask, cover = deposit_layer(
             z, surface.origin, g, (a, b, v_all, hw, mat_of, n0, n1, ext), used_cm3,
             plan.midpoints, job, dh, rng_noise, rng_debris)
         vol_dep_total += float((layer_img[0] + layer_img[1]).sum() * g * g)
         # part cells wholly inside this layer's part deposit (not the partly covered rim)
-        part_mask = ndimage.binary_erosion(layer_img[0] > 0.25 * dh)
+        part_mask = ndimage.binary_erosion(layer_img[0] > cover)
         if not part_mask.any():  # a part narrower than two cells: keep its rim
-            part_mask = layer_img[0] > 0.25 * dh
+            part_mask = layer_img[0] > cover
         z += added
         ever |= mask
         if j in measure_set:
