@@ -215,7 +215,10 @@ def test_pwm_mode_constant_period_and_widths():
     prog = plan_valves(traj, "part", job)
     t = pulse_times(prog)
     gaps = np.diff(prog.ticks.astype(int))
-    assert set(np.unique(gaps)) <= {3, 4, 5}  # 8 ms period in 2 ms ticks (+ rounding)
+    # 8 ms period in 2 ms ticks (+ rounding); on the ramps, where a period asks less than a
+    # shortest pulse, some periods get none (their volume carried on): whole periods apart
+    assert np.all(np.abs(gaps - 4 * np.rint(gaps / 4)) <= 1) and gaps.min() >= 3
+    assert np.mean(gaps <= 5) > 0.9
     assert prog.widths_us is not None and len(prog.widths_us) == len(t)
     assert prog.widths_us.min() >= 500 and prog.widths_us.max() <= 8000
     # wider pulses where the speed is higher

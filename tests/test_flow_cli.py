@@ -225,3 +225,34 @@ def test_valves_on_two_workers_stop_at_the_first_bad_layer(tmp_path, capsys):
                         if not re.match(r"\S+: \d+/\d+ \(", line)]
         assert rc == 2 and not out.exists()
     assert errors[1] == errors[2] and "layer 6 part fill path: flow 300" in "\n".join(errors[1])
+
+
+def test_valves_summary_counts_the_volume_of_paths_rounded_to_no_pulse(tmp_path, capsys):
+    """Issue D5: short thin paths whose volume is under half a pulse get none (eq. 6.6);
+    the summary said "volume cost: none (... the volume per mm is as commanded)". It now
+    states the volume the pulses lay against the volume commanded and counts those paths."""
+    layers = []
+    for k in range(2):   # 0.5 mm x 0.25 mm x 0.8 mm = 0.1 mm^3, 0.4 of a 0.25 mm^3 pulse
+        trs = tuple(line_trajectory(length=0.8, vmax=5.0, width=0.5, role="fill", y=2.0 * i)
+                    for i in range(3))
+        layers.append(LayerMotion(index=k, z=0.25 * (k + 1), trajectories=trs))
+    f = tmp_path / "trajectories.npz"
+    save_trajectories(BuildMotion(layers=tuple(layers), job=Job()), f)
+    assert main(["valves", str(f), "-o", str(tmp_path / "out")]) == 0
+    text = capsys.readouterr().out
+    assert "valve programs: 6 paths in 2 layers, 0 pulses" in text
+    assert "volume cost: none" not in text
+    (volume,) = [line for line in text.splitlines() if line.startswith("volume: ")]
+    assert re.search(r"the pulses lay 0 of 0\.6\d* mm\^3 commanded \(-100\.0 %\)", volume)
+    assert "6 paths get fewer pulses than their volume needs (6 none at all" in volume
+    (cost,) = [line for line in text.splitlines() if "volume cost" in line]
+    assert "6 paths get fewer pulses than their volume needs" in cost
+
+
+def test_valves_summary_volume_of_long_paths_is_within_half_a_pulse_each(tmp_path, traj_file,
+                                                                          capsys):
+    assert main(["valves", str(traj_file), "-o", str(tmp_path / "out")]) == 0
+    (volume,) = [line for line in capsys.readouterr().out.splitlines()
+                 if line.startswith("volume: ")]
+    assert "the pulses lay 150 of 150 mm^3 commanded (-0.0 %)" in volume
+    assert "(0 none at all" in volume

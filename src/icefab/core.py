@@ -724,6 +724,10 @@ class ValveProgram:
         every pulse has the valve's fixed pulse width).
     warnings: valve limits reached while planning (clamped flow, too few drops per mm),
         each naming the setting; kept on the first piece.
+    commanded_mm3, laid_mm3: the volume the path's flow commands where its valve is on and
+        the volume its pulses lay, mm^3, over all pieces (kept on the first piece; NaN when
+        unknown, e.g. a program read from a file): they differ by the valve's limits and
+        by the rounding to whole pulses (a short FM path may get none, eq. 6.6).
     """
 
     ticks: np.ndarray
@@ -732,6 +736,8 @@ class ValveProgram:
     pieces: tuple["ValveProgram", ...] = ()
     widths_us: np.ndarray | None = None
     warnings: tuple[str, ...] = ()
+    commanded_mm3: float = float("nan")
+    laid_mm3: float = float("nan")
 
 
 # --------------------------------------------------------------------------- surfaces

@@ -97,6 +97,7 @@ import functools
 import itertools
 import logging
 import os
+import re
 import struct
 from dataclasses import dataclass
 from pathlib import Path
@@ -909,7 +910,8 @@ def plan_valves(trajectory: Trajectory, material: str, job: "Job", *,
     path = trajectory.path
     if path is not None and not path.depositing:
         return ValveProgram(ticks=np.zeros(0, np.uint16), tick_s=fl.tick_s, duration=duration,
-                            widths_us=None if fl.mode == "fm" else np.zeros(0, np.uint16))
+                            widths_us=None if fl.mode == "fm" else np.zeros(0, np.uint16),
+                            commanded_mm3=0.0, laid_mm3=0.0)
     cal = calibration or calibration_for(material, job)
     plan = valve_frequency(trajectory, material, job, action=action,
                            layer_thickness=layer_thickness, calibration=cal)
@@ -917,18 +919,25 @@ def plan_valves(trajectory: Trajectory, material: str, job: "Job", *,
     if fl.mode == "fm":
         if plan.on is None:
             times = pulse_instants(plan.t, plan.nu)
+            sig, start, per_stretch = plan, np.array([0, len(plan.t)]), np.array([len(times)])
         else:   # a tour: each of its paths' spans counts its own pulses
             from icefab._pulses import pulse_instants_many
             times, per = pulse_instants_many(plan.on.t, plan.on.nu, plan.on.start)
             times = _kept_in_spans(times, np.diff(per), _on_ends(plan.on), fl.tick_s)
+            sig, start, per_stretch = plan.on, plan.on.start, np.diff(per)
+        passed = np.where(sig.nu > 0, cal.flow(sig.nu), 0.0)
+        volumes = tuple(float(v.sum()) for v in _fm_volumes(sig.t, sig.q, sig.nu, passed,
+                                                              start, per_stretch))
         prog = _split(times, None, duration, float(trajectory.dt), job)
     else:
         if plan.on is None:
-            times, widths, found = _pwm(plan, cal, job, duration, _where(trajectory))
+            times, widths, found, volumes = _pwm(plan, cal, job, duration,
+                                                 _where(trajectory))
         else:
-            times, widths, found = _pwm_spans(plan.on, cal, job, _where(trajectory))
+            times, widths, found, volumes = _pwm_spans(plan.on, cal, job, _where(trajectory))
         warnings.extend(found)
         prog = _split(times, widths, duration, float(trajectory.dt), job)
+    prog = dataclasses.replace(prog, commanded_mm3=volumes[0], laid_mm3=volumes[1])
     shared = sum(int(np.count_nonzero(np.diff(p.ticks.astype(np.int64)) == 0))
                  for p in program_pieces(prog))
     if shared:  # thesis 2.3.1: one instant per uint16 entry, resolution one tick
@@ -940,7 +949,7 @@ def plan_valves(trajectory: Trajectory, material: str, job: "Job", *,
 
 
 def _pwm(plan: FrequencyPlan, cal: Calibration, job: "Job", duration: float, where: str
-         ) -> tuple[np.ndarray, np.ndarray, list[str]]:
+         ) -> tuple[np.ndarray, np.ndarray, list[str], tuple[float, float]]:
     """PWM (thesis 6.1): constant frequency f = ``flow.pwm_frequency_hz``, the pulse width
     carries the flow.
 
@@ -950,12 +959,14 @@ def _pwm(plan: FrequencyPlan, cal: Calibration, job: "Job", duration: float, whe
     one such pulse at f passes ``V_ref = h^-1(f) / f``; the volume of a pulse is taken
     proportional to its width, giving ``width = calibration_pulse_ms * V / V_ref``.
 
-    Limits (thesis 6.1: widths in [min_pulse_ms, period]): a width below
-    ``min_pulse_ms / 2`` is dropped (no pulse, the nearer of 0 and min_pulse_ms), one below
-    ``min_pulse_ms`` raised to it, one above the period (or 65.535 ms, uint16 us) cut to
-    it -- or FlowError under ``flow.out_of_range = "error"``, since the flow is then beyond
-    what the valve passes fully open. Every limit hit is reported with its counts and the
-    resulting volume error. Returns ``(times (p,) s, widths (p,) uint16 us, findings)``.
+    Limits (thesis 6.1: widths in [min_pulse_ms, period]): widths below ``min_pulse_ms``
+    are laid as shortest pulses in some periods and none in others, what each period misses
+    carried into the next (:func:`_pwm_widths_us`), so the path gets its volume within half
+    a shortest pulse as FM's pulse count (eq. 6.6) however slowly it runs; a width above
+    the period (or 65.535 ms, uint16 us) is cut to it -- or FlowError under
+    ``flow.out_of_range = "error"``, since the flow is then beyond what the valve passes
+    fully open. Every limit hit is reported with its counts and the resulting volume error.
+    Returns ``(times (p,) s, widths (p,) uint16 us, findings, (commanded, laid) mm^3)``.
     """
     fl = job.flow
     check_flow_settings(job, cal)
@@ -976,11 +987,7 @@ def _pwm(plan: FrequencyPlan, cal: Calibration, job: "Job", duration: float, whe
     vol_ref = float(cal.flow(np.array([f]))[0]) / f  # one calibration pulse at f, mm^3
     width_ms = fl.calibration_pulse_ms * vol / vol_ref
     w_max_ms = min(period * 1000.0, 65.535)
-    keep = width_ms >= 0.5 * fl.min_pulse_ms
-    dropped = int(np.count_nonzero(~keep & (vol > 0)))
-    raised = int(np.count_nonzero(keep & (width_ms < fl.min_pulse_ms)))
     cut = width_ms > w_max_ms * (1 + 1e-9)
-    findings: list[str] = []
     if np.any(cut) and fl.out_of_range == "error":
         q_max = vol_ref * (w_max_ms / fl.calibration_pulse_ms) * f
         raise FlowError(f"{where}: PWM at flow.pwm_frequency_hz = {f:g} Hz needs pulses up to "
@@ -988,38 +995,97 @@ def _pwm(plan: FrequencyPlan, cal: Calibration, job: "Job", duration: float, whe
                         f"period (flow above {q_max:.4g} mm^3/s, the valve fully open) at "
                         f"{int(np.count_nonzero(cut))} of {count} pulses; lower the speed or "
                         "set flow.out_of_range = 'clamp' to cut them and report")
-    lo_us = float(np.ceil(fl.min_pulse_ms * 1000.0 - 1e-6))
-    hi_us = float(np.floor(w_max_ms * 1000.0 + 1e-6))
-    widths_us = np.clip(np.floor(width_ms * 1000.0 + 0.5), lo_us, hi_us)
-    widths_us = np.where(keep, widths_us, 0.0)
+    widths_us = _pwm_widths_us(width_ms, fl.min_pulse_ms, w_max_ms)
+    keep = widths_us > 0
+    dropped = int(np.count_nonzero(~keep & (vol > 0)))
+    raised = int(np.count_nonzero(keep & (width_ms < fl.min_pulse_ms)))
+    findings: list[str] = []
+    delivered = float(np.sum(vol_ref * widths_us / 1000.0 / fl.calibration_pulse_ms))
     if dropped or raised or np.any(cut):
-        delivered = float(np.sum(vol_ref * widths_us / 1000.0 / fl.calibration_pulse_ms))
         findings.append(
             f"{where}: PWM at flow.pwm_frequency_hz = {f:g} Hz: {dropped} of {count} pulses "
-            f"dropped (width below flow.min_pulse_ms / 2 = {0.5 * fl.min_pulse_ms:g} ms), "
-            f"{raised} raised to flow.min_pulse_ms = {fl.min_pulse_ms:g} ms, "
+            f"dropped and {raised} raised to flow.min_pulse_ms = {fl.min_pulse_ms:g} ms "
+            f"(widths below it laid as shortest pulses in some periods), "
             f"{int(np.count_nonzero(cut))} cut to the {w_max_ms:g} ms period; "
             f"{_volume_error(delivered, float(np.sum(vol)))}")
-    return times[keep], widths_us[keep].astype(np.uint16), findings
+    return (times[keep], widths_us[keep].astype(np.uint16), findings,
+            (float(np.sum(vol)), delivered))
+
+
+def _pwm_widths_us(width_ms: np.ndarray, min_ms: float, max_ms: float) -> np.ndarray:
+    """(k,) float64 whole microseconds: the pulse widths ``width_ms`` (k,) ms asked period by
+    period, made within the valve's ``[min_ms, max_ms]`` (0: no pulse) with what each
+    period's width misses carried into the next, as eq. 6.6 carries the pulse count: a
+    period asking (with the carry) less than ``min_ms / 2`` gets no pulse, less than
+    ``min_ms`` the shortest pulse, more than ``max_ms`` the longest (the part of its own
+    width beyond ``max_ms`` is cut, not carried: that flow the valve cannot pass anywhere).
+    So the widths never lie more than half a shortest pulse (and half a microsecond) from
+    the sum asked up to any period, whatever the flow: a slow path's volume is laid by
+    shortest pulses in some periods, not lost by rounding every period to none (issue
+    D4: bunny boundaries at 4 mm^3/s, an eighth of a shortest pulse a period, got none)."""
+    lo_us = float(np.ceil(min_ms * 1000.0 - 1e-6))
+    hi_us = float(np.floor(max_ms * 1000.0 + 1e-6))
+    out = np.zeros(len(width_ms))
+    carry = 0.0                                     # us asked and not yet laid (+) or ahead
+    for k, w in enumerate((np.asarray(width_ms, np.float64) * 1000.0).tolist()):
+        want = w + carry
+        if want < 0.5 * lo_us:
+            got = 0.0
+        elif want < lo_us:
+            got = lo_us
+        else:
+            got = min(float(np.floor(want + 0.5)), hi_us)
+        out[k] = got
+        carry = want - got - max(w - hi_us, 0.0)    # a cut period's own excess is lost
+    return out
 
 
 def _pwm_spans(on: SpanSignal, cal: Calibration, job: "Job", where: str
-               ) -> tuple[np.ndarray, np.ndarray, list[str]]:
+               ) -> tuple[np.ndarray, np.ndarray, list[str], tuple[float, float]]:
     """:func:`_pwm` over each span a tour's valve is on, as if each were a path of its own
     (its first period from the span's start, no pulse over the travel): the pulses of all
-    of them in order, and their findings."""
+    of them in order, their findings and ``(commanded, laid)`` mm^3 over all."""
     times, widths, found = [], [], []
+    commanded = laid = 0.0
     for a, b in zip(on.start[:-1].tolist(), on.start[1:].tolist()):
         t0 = float(on.t[a])
         t = on.t[a:b] - t0
         sub = FrequencyPlan(t=t, q=on.q[a:b], u=np.zeros(b - a), nu=on.nu[a:b])
-        ti, wi, fi = _pwm(sub, cal, job, float(t[-1]), where)
+        ti, wi, fi, (c, d) = _pwm(sub, cal, job, float(t[-1]), where)
         times.append(_kept_in_spans(ti + t0, np.array([len(ti)]),
                                     np.array([[t0, float(on.t[b - 1])]]), job.flow.tick_s))
         widths.append(wi)
         found.extend(fi)
+        commanded += c
+        laid += d
     return (np.concatenate(times) if times else np.zeros(0),
-            np.concatenate(widths) if widths else np.zeros(0, np.uint16), found)
+            np.concatenate(widths) if widths else np.zeros(0, np.uint16), found,
+            (commanded, laid))
+
+
+def _stretch_integrals(t: np.ndarray, y: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """(S,) the trapezoidal integral of ``y`` over ``t`` on each stretch of rows
+    ``start[k]:start[k+1]`` (each of two rows or more)."""
+    step = np.zeros(len(t))
+    seg = np.ones(len(t), dtype=bool)
+    seg[np.asarray(start[1:]) - 1] = False           # no step from a stretch's last row
+    k = np.flatnonzero(seg)
+    step[k] = (t[k + 1] - t[k]) * (y[k + 1] + y[k]) / 2.0
+    return np.add.reduceat(step, np.asarray(start[:-1])) if len(start) > 1 else np.zeros(0)
+
+
+def _fm_volumes(t: np.ndarray, q: np.ndarray, nu: np.ndarray, passed: np.ndarray,
+                start: np.ndarray, pulses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(commanded, laid)`` (S,) mm^3 of FM pulses over each stretch ``start[k]:
+    start[k+1]`` (a whole path, or a span a tour's valve is on): the flow ``q`` commanded,
+    and of the flow the valve ``passed`` at ``nu`` (the table's), the share its
+    ``pulses[k]`` pulses make of the ``integral of nu dt`` it needs (eq. 6.5; eq. 6.6 rounds
+    that to whole pulses, so a short path may get none)."""
+    commanded = _stretch_integrals(t, q, start)
+    need = _stretch_integrals(t, nu, start)
+    flowed = _stretch_integrals(t, passed, start)
+    laid = np.divide(flowed * pulses, need, out=np.zeros(len(need)), where=need > 0)
+    return commanded, laid
 
 
 # =========================================================================== helpers
@@ -1067,7 +1133,10 @@ def summarise_findings(findings: "Sequence[tuple[int, str]]") -> list[str]:
     findings: ``(layer index, finding text)`` pairs, e.g. from the ``warnings`` of the
         :class:`ValveProgram` of every path of a build.
     Returns lines ``"N paths in L layers (a-b): <first finding of that kind>"``, the most
-    frequent kind first (ties in order of first appearance).
+    frequent kind first (ties in order of first appearance); a kind whose findings state
+    the volume a limit costs (:func:`_volume_error`) ends with its total over all of them,
+    ``"; in all, delivers D of C mm^3 commanded (x %)"`` (a kind names the material and
+    role, so this is the volume lost per material and role).
     """
     groups: dict[str, list[tuple[int, str]]] = {}
     for layer, text in findings:
@@ -1078,8 +1147,17 @@ def summarise_findings(findings: "Sequence[tuple[int, str]]") -> list[str]:
         span = f"layer {layers[0]}" if len(layers) == 1 else \
             f"{len(layers)} layers ({layers[0]}-{layers[-1]})"
         n = len(items)
-        out.append(f"{n} path{'s' if n != 1 else ''} in {span}: {items[0][1]}")
+        line = f"{n} path{'s' if n != 1 else ''} in {span}: {items[0][1]}"
+        said = [_VOLUME.search(text) for _, text in items]
+        if n > 1 and all(said):
+            delivered = sum(float(m.group(1)) for m in said)
+            line += f"; in all, {_volume_error(delivered, sum(float(m.group(2)) for m in said))}"
+        out.append(line)
     return out
+
+
+#: The volume a finding states (:func:`_volume_error`): delivered, commanded.
+_VOLUME = re.compile(r"delivers (\S+) of (\S+) mm\^3 commanded")
 
 
 # =========================================================================== files
@@ -1391,10 +1469,17 @@ def _nominal_fm_programs(trajs: "Sequence[Trajectory]", materials: Sequence[str]
     few_min = np.minimum.reduceat(np.where(few, drops, np.inf), first)
     nu_peak = np.maximum.reduceat(nu, first)
     times, toff = pulse_instants_many(t, nu, starts)
+    passed = np.zeros(len(q))
+    for mt in set(mats):
+        rows = np.array([x == mt for x in mats])[owner] & flowing
+        passed[rows] = tables[mt].flow(nu[rows])
+    commanded, laid = _fm_volumes(t, q, nu, passed, starts, np.diff(toff))
     tours = np.array([tr.on_spans is not None for tr in sel], dtype=bool)
     if tours.any():
-        times, toff = _tour_pulses(sel, tours, times, toff, speed, nu, q, width, own_width,
-                                   first, n, dt, mats, tables, dh, job)
+        times, toff, c_tour, l_tour = _tour_pulses(sel, tours, times, toff, speed, nu, q,
+                                                   width, own_width, first, n, dt, mats,
+                                                   tables, dh, job)
+        commanded[tours], laid[tours] = c_tour, l_tour
     tick = fl.tick_s
     most = piece_pulses(job)
     max_len = min(fl.max_piece_s, 65535.5 * tick)
@@ -1430,10 +1515,13 @@ def _nominal_fm_programs(trajs: "Sequence[Trajectory]", materials: Sequence[str]
             log.debug(w)
         if prog is None:   # made with its findings (a copy per program cost the bunny 1 s)
             out[idx[k]] = ValveProgram(ticks=ticks_all[a:b], tick_s=tick,
-                                       duration=float(dur[k]), warnings=tuple(warnings))
+                                       duration=float(dur[k]), warnings=tuple(warnings),
+                                       commanded_mm3=float(commanded[k]),
+                                       laid_mm3=float(laid[k]))
         else:
-            out[idx[k]] = (dataclasses.replace(prog, warnings=tuple(warnings)) if warnings
-                           else prog)
+            out[idx[k]] = dataclasses.replace(prog, warnings=tuple(warnings),
+                                              commanded_mm3=float(commanded[k]),
+                                              laid_mm3=float(laid[k]))
     return out
 
 
@@ -1442,12 +1530,13 @@ def _tour_pulses(sel: "Sequence[Trajectory]", tours: np.ndarray, times: np.ndarr
                  q: np.ndarray, width: np.ndarray, own_width: np.ndarray, first: np.ndarray,
                  n: np.ndarray, dt: np.ndarray, mats: Sequence[str],
                  tables: dict[str, Calibration], dh: float, job: "Job"
-                 ) -> tuple[np.ndarray, np.ndarray]:
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The pulse instants of :func:`_nominal_fm_programs` with the tours' (``tours`` (m,)
     bool over ``sel``) placed over the spans their valve is on, as :func:`plan_valves`
     places them (:func:`_span_layout`, :func:`_span_ends`, the same operations over all
     the tours' spans at once): ``(times, offsets)`` as ``pulse_instants_many`` gives
-    them."""
+    them, and each tour's ``(commanded, laid)`` mm^3 (:func:`_fm_volumes`, over its
+    spans)."""
     from icefab._pulses import pulse_instants_many
 
     which = np.flatnonzero(tours)
@@ -1465,6 +1554,14 @@ def _tour_pulses(sel: "Sequence[Trajectory]", tours: np.ndarray, times: np.ndarr
     on = _span_signal(lay, q, nu, q_e, nu_e)
     span_times, span_off = pulse_instants_many(on.t, on.nu, on.start)
     span_times = _kept_in_spans(span_times, np.diff(span_off), _on_ends(on), job.flow.tick_s)
+    row_mat = np.repeat(np.array(mats, dtype=object)[owner], np.diff(on.start))
+    passed = np.zeros(len(on.nu))
+    for mt in set(mats):
+        rows = (row_mat == mt) & (on.nu > 0)
+        passed[rows] = tables[mt].flow(on.nu[rows])
+    span_vol = _fm_volumes(on.t, on.q, on.nu, passed, on.start, np.diff(span_off))
+    tour_of_span = np.repeat(np.arange(len(count)), count)
+    tour_vol = [np.bincount(tour_of_span, weights=v, minlength=len(count)) for v in span_vol]
     # every trajectory's pulses: its own, or its spans' in order
     per = np.diff(toff)
     span_per = np.diff(span_off)
@@ -1482,7 +1579,7 @@ def _tour_pulses(sel: "Sequence[Trajectory]", tours: np.ndarray, times: np.ndarr
     dst_t = np.repeat(new_off[:-1][which], tour_total)
     run_t = np.arange(len(dst_t)) - np.repeat(offsets(tour_total)[:-1], tour_total)
     out[dst_t + run_t] = span_times
-    return out, new_off
+    return out, new_off, tour_vol[0], tour_vol[1]
 
 
 def _layer_valves_task(item: tuple["LayerMotion", "Job"]) -> list[LayerProgram]:
