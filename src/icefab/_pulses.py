@@ -73,3 +73,25 @@ def pulse_instants_many(t: np.ndarray, nu: np.ndarray, starts: np.ndarray
             frac = (target - c0) / (c1 - c0 if c1 > c0 else 1.0)
             out[o + j] = t[k - 1] + frac * (t[k] - t[k - 1])
     return out, offsets
+
+
+@njit(cache=True, error_model="numpy")
+def pwm_widths_us(want_us: np.ndarray, lo_us: float, hi_us: float) -> np.ndarray:
+    """PWM pulse widths, whole microseconds, period by period, with what each period misses
+    carried into the next (:func:`icefab.flow._pwm_widths_us`, which states the rule): a
+    period asking (with the carry) under ``lo_us / 2`` gets none, under ``lo_us`` the
+    shortest pulse, over ``hi_us`` the longest, its own excess over ``hi_us`` not carried."""
+    out = np.zeros(len(want_us))
+    carry = 0.0
+    for k in range(len(want_us)):
+        w = want_us[k]
+        want = w + carry
+        if want < 0.5 * lo_us:
+            got = 0.0
+        elif want < lo_us:
+            got = lo_us
+        else:
+            got = min(np.floor(want + 0.5), hi_us)
+        out[k] = got
+        carry = want - got - max(w - hi_us, 0.0)
+    return out

@@ -45,6 +45,15 @@ def _gap_fill_kernels() -> None:
         centre_paths(rings, 0.15, 3.0, 0.05, region)
 
 
+def _pwm_widths_kernel() -> None:
+    """PWM's widths (the demo's valves are FM)."""
+    import numpy as np
+
+    from icefab._pulses import pwm_widths_us
+
+    pwm_widths_us(np.array([100.0, 700.0]), 500.0, 8000.0)
+
+
 def warm_up() -> int:
     """Compile and cache the numba kernels of a first run; returns how many compiled.
 
@@ -75,6 +84,7 @@ def warm_up() -> int:
             raise RuntimeError(f"icefab demo (warm-up) exited with {code}: {out.getvalue()}")
         load_trajectories(os.path.join(folder, "trajectories.npz"))
         _gap_fill_kernels()
+        _pwm_widths_kernel()
         load_mesh(os.path.join(folder, "demo-mug.stl"))
         for name, text in _TEXT_MESHES.items():
             with open(os.path.join(tmp, name), "w", encoding="ascii") as fh:
