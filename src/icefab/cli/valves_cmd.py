@@ -334,29 +334,24 @@ def _drop_spacing(traj, prog, min_drops_per_mm: float) -> tuple[float, float, fl
 
 class _Volume:
     """The volume the paths' flow commands and the volume their pulses lay, per material,
-    and the paths that get fewer pulses than their volume needs (issue D5: 2 566 of the
-    thin rocker's 4 258 paths got none, -7 %, under "volume cost: none")."""
-
-    #: A path lays less than its volume needs when short by more than this share of it
-    #: (PWM's widths in whole microseconds miss by far less).
-    SHORT = 1e-3
+    and the paths that get no pulse at all though they have a volume to lay (issue D5:
+    2 566 of the thin rocker's 4 258 paths got none, -7 %, under "volume cost: none").
+    Every other path lays its volume within half a pulse (eq. 6.6 rounds its count)."""
 
     def __init__(self) -> None:
         self.commanded: dict[str, float] = {}
         self.laid: dict[str, float] = {}
-        self.short = self.none = 0
+        self.none = 0
 
     def add(self, material: str, commanded: float, laid: float) -> None:
         if not (np.isfinite(commanded) and np.isfinite(laid)):
             return
         self.commanded[material] = self.commanded.get(material, 0.0) + commanded
         self.laid[material] = self.laid.get(material, 0.0) + laid
-        if laid < commanded * (1.0 - self.SHORT) - 1e-12:
-            self.short += 1
-            self.none += laid <= 0.0
+        self.none += commanded > 0.0 and laid <= 0.0
 
     def text(self) -> str:
-        """'the pulses lay D of C mm^3 commanded (x %; part ..., scaffold ...); K paths ...'"""
+        """'the pulses lay D of C mm^3 commanded (x %); part ..., scaffold ...; K paths ...'"""
         from icefab.flow import _volume_error
 
         def said(d: float, c: float) -> str:
@@ -366,10 +361,9 @@ class _Volume:
         each = ", ".join(f"{m} {said(self.laid[m], self.commanded[m])}"
                          for m in sorted(self.commanded))
         total = _volume_error(sum(self.laid.values()), sum(self.commanded.values()))
-        short = (f"{self.short} paths get fewer pulses than their volume needs ({self.none} "
-                 "none at all: a path's volume is rounded to whole pulses)" if self.short else
-                 "every path gets the pulses its volume needs")
-        return f"the pulses {total.replace('delivers', 'lay', 1)}; {each}; {short}"
+        none = (f"{self.none} paths get no pulse (their volume is under half a pulse: eq. "
+                "6.6 rounds it to none)" if self.none else "every path gets a pulse")
+        return f"the pulses {total.replace('delivers', 'lay', 1)}; {each}; {none}"
 
 
 def _summary(out, n_layers, fmts, totals, sparse_paths, max_gap, max_gap_width, found, job,
@@ -409,9 +403,8 @@ def _summary(out, n_layers, fmts, totals, sparse_paths, max_gap, max_gap_width, 
                        f"{max_gap_width:.2f} mm: there the bead may break into separate "
                        "drops")
             cost = ("none (every pulse is still placed; the volume per mm is as commanded)"
-                    if not volume.short else
-                    f"{volume.short} paths get fewer pulses than their volume needs "
-                    f"({volume.none} none at all; see volume above)")
+                    if not volume.none else
+                    f"{volume.none} paths get no pulse (see volume above)")
             lines.append(f"    volume cost: {cost}; affected, all materials: {sparse_m:.2f} m "
                          f"of {total_m:.2f} m deposited ({share:.1f} %) on {sparse_paths} "
                          f"paths; {verdict}")
