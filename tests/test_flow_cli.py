@@ -228,7 +228,7 @@ def test_valves_on_two_workers_stop_at_the_first_bad_layer(tmp_path, capsys):
 
 
 def test_valves_summary_counts_the_volume_of_paths_rounded_to_no_pulse(tmp_path, capsys):
-    """Issue D5: short thin paths whose volume is under half a pulse get none (eq. 6.6);
+    """Short thin paths whose volume is under half a pulse get none (eq. 6.6);
     the summary said "volume cost: none (... the volume per mm is as commanded)". It now
     states the volume the pulses lay against the volume commanded and counts those paths."""
     layers = []

@@ -56,9 +56,10 @@ def test_boundary_speeds_follow_the_table():
 
 
 def test_pwm_below_half_the_shortest_pulse_lays_the_volume_in_every_other_period():
-    """Issue D4: every period asking a width below min_pulse_ms / 2 got no pulse, so a slow
-    path lost its whole volume (-100 %) and icefab valves exited 0 under "error"; what each
-    period misses is carried into the next, so half the periods get a shortest pulse."""
+    """A tester's bunny in PWM: every period asking a width below min_pulse_ms / 2 got no
+    pulse, so a slow path lost its whole volume (-100 %) and icefab valves exited 0 under
+    "error"; what each period misses is carried into the next, so half the periods get a
+    shortest pulse."""
     traj = constant_trajectory(C_DROP - 0.3)
     prog = plan_valves(traj, "part", Job().replace(**PWM))
     assert n_pulses(prog) == 50 and set(prog.widths_us.tolist()) == {500}
@@ -317,8 +318,8 @@ def test_pwm_pieces_fit_the_valve_controllers_store():
 
 
 def test_summarised_findings_total_the_volume_each_kind_costs():
-    """Issue D4: the summary showed one path per kind ("-100.0 %" of 34.4 mm^3) and no
-    total; a kind stating volumes now ends with the sum over all its paths."""
+    """A tester's bunny in PWM: the summary showed one path per kind ("-100.0 %" of 34.4
+    mm^3) and no total; a kind stating volumes now ends with the sum over all its paths."""
     found = [(1, "layer 1 part boundary path: PWM at flow.pwm_frequency_hz = 125 Hz: 8 of 8 "
                  "pulses dropped; delivers 1 of 2 mm^3 commanded (-50.0 %)"),
              (2, "layer 2 part boundary path: PWM at flow.pwm_frequency_hz = 125 Hz: 4 of 9 "

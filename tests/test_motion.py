@@ -117,7 +117,7 @@ def test_circles_speed_set_by_radial_acceleration(radius, job):
 
 
 @pytest.mark.xfail(strict=True, reason=(
-    "defect D3: _mtts._vertex_bounds limits the speed at every vertex of the followed "
+    "_mtts._vertex_bounds limits the speed at every vertex of the followed "
     "polyline (the 0.4 mm grid, even on a smoothed circle) by v |turning| / dt <= A, the "
     "acceleration of samples interpolated linearly across it: once v dt is below the "
     "vertex spacing the bound falls linearly with dt (r 20 circle: 1.55 s at 16 ms, "

@@ -1021,8 +1021,9 @@ def _pwm_widths_us(width_ms: np.ndarray, min_ms: float, max_ms: float) -> np.nda
     width beyond ``max_ms`` is cut, not carried: that flow the valve cannot pass anywhere).
     So the widths never lie more than half a shortest pulse (and half a microsecond) from
     the sum asked up to any period, whatever the flow: a slow path's volume is laid by
-    shortest pulses in some periods, not lost by rounding every period to none (issue
-    D4: bunny boundaries at 4 mm^3/s, an eighth of a shortest pulse a period, got none)."""
+    shortest pulses in some periods, not lost by rounding every period to none (a
+    tester's bunny boundaries at 4 mm^3/s, an eighth of a shortest pulse a period, got
+    none)."""
     from icefab._pulses import pwm_widths_us
 
     lo_us = float(np.ceil(min_ms * 1000.0 - 1e-6))

@@ -334,8 +334,8 @@ def _drop_spacing(traj, prog, min_drops_per_mm: float) -> tuple[float, float, fl
 
 class _Volume:
     """The volume the paths' flow commands and the volume their pulses lay, per material,
-    and the paths that get no pulse at all though they have a volume to lay (issue D5:
-    2 566 of the thin rocker's 4 258 paths got none, -7 %, under "volume cost: none").
+    and the paths that get no pulse at all though they have a volume to lay (2 566 of a
+    tester's thin rocker's 4 258 paths got none, -7 %, under "volume cost: none").
     Every other path lays its volume within half a pulse (eq. 6.6 rounds its count)."""
 
     def __init__(self) -> None:
