@@ -283,6 +283,8 @@ def prepare_closed(mesh: Mesh, job: "Job") -> Mesh:
     if len(kept) != len(mesh.warnings) or found:
         report = check_mesh(mesh)
         found += [w for w in report.warnings() if any(k in w for k in _LOCATED)]
-    found = [w.replace(") mm", ") mm (build coordinates)", 1) if "e.g. at (" in w else w
+    # check_mesh locates in the coordinates it is given: these are the build's
+    found = [w.replace(") in the file's coordinates", ") mm", 1)
+             .replace(") mm", ") mm (build coordinates)", 1) if "e.g. at (" in w else w
              for w in found]
     return dataclasses.replace(mesh, warnings=kept + tuple(found))

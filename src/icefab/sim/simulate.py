@@ -64,7 +64,7 @@ def check_motion_job(planned: "Job", job: "Job", source: str = "the trajectories
         k, va, vb = diff[0]
         more = f" (and {len(diff) - 1} more)" if len(diff) > 1 else ""
         raise SimulationError(f"{source} were planned with {k} = {va}, the job has {vb}{more}: "
-                              "simulate with the job they were planned with, or plan them "
+                              "use the job they were planned with, or plan them "
                               "again with this job ('icefab plan')")
 
 
