@@ -244,7 +244,8 @@ def test_valves_summary_counts_the_volume_of_paths_rounded_to_no_pulse(tmp_path,
     assert "volume cost: none" not in text
     (volume,) = [line for line in text.splitlines() if line.startswith("volume: ")]
     assert re.search(r"the pulses lay 0 of 0\.6\d* mm\^3 commanded \(-100\.0 %\)", volume)
-    assert "6 paths get no pulse (their volume is under half a pulse" in volume
+    assert "6 paths get no pulse (their volume is under half of the valve's smallest " \
+        "pulse" in volume
     (cost,) = [line for line in text.splitlines() if "volume cost" in line]
     assert "6 paths get no pulse" in cost
 

@@ -361,8 +361,9 @@ class _Volume:
         each = ", ".join(f"{m} {said(self.laid[m], self.commanded[m])}"
                          for m in sorted(self.commanded))
         total = _volume_error(sum(self.laid.values()), sum(self.commanded.values()))
-        none = (f"{self.none} paths get no pulse (their volume is under half a pulse: eq. "
-                "6.6 rounds it to none)" if self.none else "every path gets a pulse")
+        none = (f"{self.none} paths get no pulse (their volume is under half of the "
+                "valve's smallest pulse, and rounds to none)" if self.none
+                else "every path gets a pulse")
         return f"the pulses {total.replace('delivers', 'lay', 1)}; {each}; {none}"
 
 
