@@ -72,6 +72,25 @@ def test_sphere_cusp_within_bound_in_every_layer():
     assert t.max() > 0.5  # near the equator the wall is steep: thick layers there
 
 
+def test_top_layers_under_the_minimum_are_said():
+    """The last two layers share what the part's height leaves when that is under two
+    minimum layers (plan_layers keeps the cusp bound): the stack says so, with the layers
+    and the thinnest (a tester's spot ended in two 0.08 mm layers under 0.1 mm, unsaid)."""
+    job = job_from_dict({"slicing": {"cusp_height_mm": CUSP, "min_layer_thickness_mm": 0.1,
+                                     "max_layer_thickness_mm": 1.0}})
+    stack = slice_mesh(sphere_mesh(64), job)
+    t = stack.thicknesses
+    thin = np.flatnonzero(t < 0.1 - 1e-12)
+    assert thin.tolist() == [len(t) - 2, len(t) - 1]
+    (said,) = [w for w in stack.warnings if "adaptive layers thinner" in w]
+    assert said.startswith(f"2 adaptive layers thinner than slicing.min_layer_thickness_mm "
+                           f"= 0.1 (layers {len(t) - 2}, {len(t) - 1}, {t.min():.4g} mm")
+    for other in (ADAPTIVE, ADAPTIVE.replace(**{"slicing.min_layer_thickness_mm": 0.02})):
+        st = slice_mesh(sphere_mesh(64), other)         # said exactly when there are some
+        under = (st.thicknesses < other.slicing.min_layer_thickness_mm - 1e-12).any()
+        assert any("adaptive layers thinner" in w for w in st.warnings) == under
+
+
 def test_flats_end_layers_and_vertical_walls_take_the_largest_thickness():
     """A 10 mm block under a 3 mm one: vertical walls need no thin layers, and the step's
     flat at z = 10 is a layer boundary."""

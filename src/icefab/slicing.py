@@ -1155,6 +1155,19 @@ def slice_mesh(mesh: Mesh, job: Job | None = None, *, progress: Progress | None 
         if report.rings_reoriented:
             summary.append(f"{report.rings_reoriented} contours ran against the facet "
                            "orientation (inverted facets or overlapping shells)")
+        if adaptive:
+            # the part's height left less than two minimum layers at the top: the last two
+            # share it and keep the cusp bound (icefab.adaptive.plan_layers), said here
+            # (a tester's spot ended in two 0.08 mm layers under a 0.1 mm minimum, unsaid)
+            t_min = job.slicing.min_layer_thickness_mm
+            thin = np.flatnonzero(own < t_min * (1.0 - 1e-9))
+            if len(thin):
+                summary.append(
+                    f"{len(thin)} adaptive layers thinner than slicing.min_layer_thickness_mm "
+                    f"= {t_min:g} (layers {', '.join(map(str, thin[:6].tolist()))}"
+                    f"{' ...' if len(thin) > 6 else ''}, {float(own[thin].min()):.4g} mm at "
+                    "the thinnest): the part's top leaves less than two minimum layers, "
+                    "and the last two share it within the cusp bound")
         if report.union_layers:
             shown = ", ".join(map(str, report.union_layers[:10]))
             more = " ..." if len(report.union_layers) > 10 else ""
