@@ -108,7 +108,7 @@ def test_the_valves_summary_says_the_drop_spacing_once_for_all_materials():
     """Two kinds of too-few-drops finding (part and scaffold): the drop spacing, one figure
     over every material's paths, follows the last of them only."""
     from icefab import Job
-    from icefab.cli.valves_cmd import _summary
+    from icefab.cli.valves_cmd import _summary, _Volume
 
     found = [(0, "layer 0 part fill path: fewer than flow.min_drops_per_mm = 1 drops per mm "
                  "(0.2) at 3 samples"),
@@ -117,7 +117,7 @@ def test_the_valves_summary_says_the_drop_spacing_once_for_all_materials():
              (1, "layer 1 scaffold fill path: fewer than flow.min_drops_per_mm = 1 drops per "
                  "mm (0.3) at 5 samples")]
     totals = dict(paths=3, pulses=10, pieces=3, findings=3, length=2000.0, sparse=500.0)
-    lines = _summary("out", 2, ("bin",), totals, 2, 3.0, 1.5, found, Job())
+    lines = _summary("out", 2, ("bin",), totals, 2, 3.0, 1.5, found, Job(), _Volume())
     assert sum("min_drops_per_mm" in line for line in lines) == 2     # two kinds
     said = [k for k, line in enumerate(lines) if "volume cost" in line]
     assert len(said) == 1

@@ -926,8 +926,8 @@ def plan_valves(trajectory: Trajectory, material: str, job: "Job", *,
             times = _kept_in_spans(times, np.diff(per), _on_ends(plan.on), fl.tick_s)
             sig, start, per_stretch = plan.on, plan.on.start, np.diff(per)
         passed = np.where(sig.nu > 0, cal.flow(sig.nu), 0.0)
-        volumes = tuple(float(v.sum()) for v in _fm_volumes(sig.t, sig.q, sig.nu, passed,
-                                                              start, per_stretch))
+        volumes = tuple(float(v.sum()) for v in _fm_volumes(sig.t, sig.q, sig.nu, start,
+                                                              per_stretch, passed))
         prog = _split(times, None, duration, float(trajectory.dt), job)
     else:
         if plan.on is None:
@@ -1067,16 +1067,18 @@ def _stretch_integrals(t: np.ndarray, y: np.ndarray, start: np.ndarray) -> np.nd
     return np.add.reduceat(step, np.asarray(start[:-1])) if len(start) > 1 else np.zeros(0)
 
 
-def _fm_volumes(t: np.ndarray, q: np.ndarray, nu: np.ndarray, passed: np.ndarray,
-                start: np.ndarray, pulses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _fm_volumes(t: np.ndarray, q: np.ndarray, nu: np.ndarray, start: np.ndarray,
+                pulses: np.ndarray, passed: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
     """``(commanded, laid)`` (S,) mm^3 of FM pulses over each stretch ``start[k]:
     start[k+1]`` (a whole path, or a span a tour's valve is on): the flow ``q`` commanded,
-    and of the flow the valve ``passed`` at ``nu`` (the table's), the share its
-    ``pulses[k]`` pulses make of the ``integral of nu dt`` it needs (eq. 6.5; eq. 6.6 rounds
-    that to whole pulses, so a short path may get none)."""
+    and of the flow the valve ``passed`` at ``nu`` (the table's; default ``q``: a flow
+    within the table passes as commanded, since ``nu`` is its frequency there), the share
+    its ``pulses[k]`` pulses make of the ``integral of nu dt`` it needs (eq. 6.5; eq. 6.6
+    rounds that to whole pulses, so a short path may get none)."""
     commanded = _stretch_integrals(t, q, start)
     need = _stretch_integrals(t, nu, start)
-    flowed = _stretch_integrals(t, passed, start)
+    flowed = commanded if passed is None else _stretch_integrals(t, passed, start)
     laid = np.divide(flowed * pulses, need, out=np.zeros(len(need)), where=need > 0)
     return commanded, laid
 
@@ -1462,11 +1464,9 @@ def _nominal_fm_programs(trajs: "Sequence[Trajectory]", materials: Sequence[str]
     few_min = np.minimum.reduceat(np.where(few, drops, np.inf), first)
     nu_peak = np.maximum.reduceat(nu, first)
     times, toff = pulse_instants_many(t, nu, starts)
-    passed = np.zeros(len(q))
-    for mt in set(mats):
-        rows = np.array([x == mt for x in mats])[owner] & flowing
-        passed[rows] = tables[mt].flow(nu[rows])
-    commanded, laid = _fm_volumes(t, q, nu, passed, starts, np.diff(toff))
+    # every flow made here lies within its table (the rest: plan_valves), so it passes as
+    # commanded
+    commanded, laid = _fm_volumes(t, q, nu, starts, np.diff(toff))
     tours = np.array([tr.on_spans is not None for tr in sel], dtype=bool)
     if tours.any():
         times, toff, c_tour, l_tour = _tour_pulses(sel, tours, times, toff, speed, nu, q,
@@ -1547,12 +1547,8 @@ def _tour_pulses(sel: "Sequence[Trajectory]", tours: np.ndarray, times: np.ndarr
     on = _span_signal(lay, q, nu, q_e, nu_e)
     span_times, span_off = pulse_instants_many(on.t, on.nu, on.start)
     span_times = _kept_in_spans(span_times, np.diff(span_off), _on_ends(on), job.flow.tick_s)
-    row_mat = np.repeat(np.array(mats, dtype=object)[owner], np.diff(on.start))
-    passed = np.zeros(len(on.nu))
-    for mt in set(mats):
-        rows = (row_mat == mt) & (on.nu > 0)
-        passed[rows] = tables[mt].flow(on.nu[rows])
-    span_vol = _fm_volumes(on.t, on.q, on.nu, passed, on.start, np.diff(span_off))
+    # a span's ends flow between their neighbouring samples' flows: within the table
+    span_vol = _fm_volumes(on.t, on.q, on.nu, on.start, np.diff(span_off))
     tour_of_span = np.repeat(np.arange(len(count)), count)
     tour_vol = [np.bincount(tour_of_span, weights=v, minlength=len(count)) for v in span_vol]
     # every trajectory's pulses: its own, or its spans' in order

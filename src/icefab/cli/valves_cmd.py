@@ -352,27 +352,23 @@ class _Volume:
 
     def text(self) -> str:
         """'the pulses lay D of C mm^3 commanded (x %); part ..., scaffold ...; K paths ...'"""
-        from icefab.flow import _volume_error
-
-        def said(d: float, c: float) -> str:
+        def said(d: float, c: float, what: str = "") -> str:
             pct = f"{100.0 * (d / c - 1.0):+.1f} %" if c > 0 else "n/a"
-            return f"{d:.4g} of {c:.4g} mm^3 ({pct})"
+            return f"{d:.4g} of {c:.4g} mm^3{what} ({pct})"
 
         each = ", ".join(f"{m} {said(self.laid[m], self.commanded[m])}"
                          for m in sorted(self.commanded))
-        total = _volume_error(sum(self.laid.values()), sum(self.commanded.values()))
+        total = said(sum(self.laid.values()), sum(self.commanded.values()), " commanded")
         none = (f"{self.none} paths get no pulse (their volume is under half of the "
                 "valve's smallest pulse, and rounds to none)" if self.none
                 else "every path gets a pulse")
-        return f"the pulses {total.replace('delivers', 'lay', 1)}; {each}; {none}"
+        return f"the pulses lay {total}; {each}; {none}"
 
 
 def _summary(out, n_layers, fmts, totals, sparse_paths, max_gap, max_gap_width, found, job,
-             volume: "_Volume | None" = None) -> list[str]:
+             volume: _Volume) -> list[str]:
     """The one-screen summary of a valves run."""
     from icefab.flow import summarise_findings
-
-    volume = volume or _Volume()
 
     fl = job.flow
     files = " and ".join(f"{out}/valves/layer_KKKK.{f}" for f in fmts)
