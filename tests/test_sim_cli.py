@@ -169,7 +169,7 @@ def _bad_trajectories(kind: str, src: Path, tmp: Path) -> list[str]:
 
 
 @pytest.mark.parametrize("kind,message", [
-    ("mismatched job", "planned with slicing.layer_thickness_mm = 0.25, the job has 0.5"),
+    ("mismatched job", "made with slicing.layer_thickness_mm = 0.25, the job has 0.5"),
     ("no programs", "no boundary or fill trajectories in the first 8 layers"),
     ("truncated", "missing arrays speed_counts_0"),
     ("not icefab", "not an icefab toolpath or trajectory file"),

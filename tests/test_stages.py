@@ -22,7 +22,7 @@ def test_every_setting_is_read_by_exactly_one_first_step():
     for key in _settings(Job()):
         step = stages.step_of(key)
         assert step in stages.STEPS or key in stages.NEUTRAL, key
-    assert set(stages.PLACEMENT) <= set(_settings(Job()))
+    assert set(stages.PLACEMENT + stages.MEASURED) <= set(_settings(Job()))
 
 
 @pytest.mark.parametrize("change,first", [
@@ -62,11 +62,22 @@ def test_a_job_contradicting_the_stacks_thickness_is_an_error():
     assert len(add_scaffold(stack, Job())) == 3  # agreeing: fine
 
 
-def test_placement_differences_name_the_setting():
+def test_trajectories_must_agree_on_the_part_origin_toolpaths_need_not():
+    """Trajectories are in the robot's frame, toolpaths in the part's: another part origin
+    is refused for the first (SimulationError from the simulator's check) and planned for
+    the second; the time step moves no material."""
+    from icefab.errors import SimulationError
+    from icefab.sim import check_motion_job
+
     a = Job()
     b = a.replace(**{"cell.ee_origin_mm": (250.0, -90.0), "motion.dt_s": 0.008})
-    diff = stages.placement_differences(a, b)
-    assert [d[0] for d in diff] == ["cell.ee_origin_mm"]  # dt does not move material
+    with pytest.raises(SimulationError, match=r"^t.npz: the trajectories were made with "
+                                              r"cell.ee_origin_mm = "):
+        check_motion_job(a, b, "t.npz: the trajectories")
+    stages.check_agrees(a, b, "tp.npz: the toolpaths", "icefab paths")
+    check_motion_job(a, a.replace(**{"motion.dt_s": 0.008}))
+    with pytest.raises(SimulationError, match="feedback.interval_layers = 4, the job has 2"):
+        check_motion_job(a, a.replace(**{"feedback.interval_layers": 2}))
 
 
 @pytest.mark.parametrize("change,named", [

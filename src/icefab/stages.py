@@ -90,17 +90,18 @@ PLACEMENT = ("slicing.layer_thickness_mm", "cell.ee_origin_mm", "cell.laser_offs
              "materials.scaffold.path_width_mm", "materials.scaffold.fill_width_mm")
 
 
+#: Which layers carry measurement paths (paths decides; simulate and build measure there).
+MEASURED = ("feedback.enabled", "feedback.interval_layers")
+
 #: Settings an earlier step decided that a later step reads again: the layers were cut
 #: and the paths laid for them (layer thickness, bead widths, nozzle and laser offsets,
 #: which layers carry measurement paths). A later step given other values would lay or
 #: measure another build than its input file holds: the valves of 0.5 mm layers along
 #: paths sliced at 0.25 mm give twice the water (a tester's bunny), an SMF that expects a
-#: measurement every layer along paths measured every 4th corrects less.
-DECIDED = ("slicing.layer_thickness_mm", "cell.laser_offset_mm",
-           "materials.part.nozzle_offset_mm", "materials.scaffold.nozzle_offset_mm",
-           "materials.part.path_width_mm", "materials.part.fill_width_mm",
-           "materials.scaffold.path_width_mm", "materials.scaffold.fill_width_mm",
-           "feedback.enabled", "feedback.interval_layers")
+#: measurement every layer along paths measured every 4th corrects less. The part's origin
+#: is not among them: toolpaths are in the part's frame, and may be planned anywhere the
+#: robot reaches (trajectories, in the robot's, add it: ``icefab.sim.MOTION_SETTINGS``).
+DECIDED = tuple(k for k in PLACEMENT if k != "cell.ee_origin_mm") + MEASURED
 
 
 def _flat(job: "Job") -> dict[str, Any]:
@@ -160,16 +161,11 @@ def digest(job: "Job", step: str) -> str:
     return "\n".join(f"{k}={f[k]!r}" for k in settings_up_to(step, job))
 
 
-def placement_differences(a: "Job", b: "Job") -> list[tuple[str, Any, Any]]:
-    """(setting, value in a, value in b) for the :data:`PLACEMENT` settings that differ."""
-    fa, fb = _flat(a), _flat(b)
-    return [(k, fa[k], fb[k]) for k in PLACEMENT if fa[k] != fb[k]]
-
-
 def check_agrees(made: "Job", job: "Job", source: str, remake: str,
-                 settings: Sequence[str] = DECIDED) -> None:
-    """ConfigError if ``job`` differs from the job an input file was ``made`` with in one
-    of ``settings`` (default :data:`DECIDED`), naming the first difference and counting the
+                 settings: Sequence[str] = DECIDED,
+                 error: type[Exception] = ConfigError) -> None:
+    """``error`` if ``job`` differs from the job an input file was ``made`` with in one of
+    ``settings`` (default :data:`DECIDED`), naming the first difference and counting the
     others. ``source`` names the file's contents ("out/toolpaths.npz: the toolpaths"),
     ``remake`` the command that makes them again with ``job``. The measurement interval of
     two jobs that both measure nothing does not count."""
@@ -180,7 +176,7 @@ def check_agrees(made: "Job", job: "Job", source: str, remake: str,
     if diff:
         k, va, vb = diff[0]
         more = f" (and {len(diff) - 1} more)" if len(diff) > 1 else ""
-        raise ConfigError(f"{source} were made with {k} = {va}, the job has {vb}{more}: use "
+        raise error(f"{source} were made with {k} = {va}, the job has {vb}{more}: use "
                           f"the job they were made with, or make them again with this job "
                           f"({remake!r})")
 

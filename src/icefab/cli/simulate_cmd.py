@@ -127,8 +127,6 @@ def load_build(model: list[str], job: "Job", args: argparse.Namespace
             if args.deposition is None:
                 job = job.replace(**{"simulation.deposition": "valves"})
             check_motion_job(motion.job, job, source=f"{first}: the trajectories")
-            check_agrees(motion.job, job, f"{first}: the trajectories",
-                         "icefab paths, then icefab plan")
             return motion, job
         if fmt != paths_mod.FORMAT:
             raise StackFileError(f"{first}: not an icefab toolpath or trajectory file (format "
@@ -184,8 +182,6 @@ def final_rms_line(open_loop: "SimResult", closed: "SimResult") -> str:
     """The summary's last figure: both builds' RMS at the last measurement layer with a
     part footprint in both, named when it is not the last measured (a top layer too small
     for the grid has none: it printed 'nan mm')."""
-    import numpy as np
-
     ok = np.flatnonzero(np.isfinite(open_loop.rms) & np.isfinite(closed.rms))
     if not len(ok):
         return ("final RMS height deviation: none (no measurement layer has a part "

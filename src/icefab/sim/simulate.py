@@ -12,7 +12,7 @@ from typing import Callable, Sequence
 from icefab.config import Job
 from icefab.core import BuildMotion, LayerMotion, LayerPaths, Toolpaths
 from icefab.errors import SimulationError
-from icefab.stages import PLACEMENT, placement_differences
+from icefab.stages import MEASURED, PLACEMENT, check_agrees
 from icefab.motion import plan_toolpaths
 from icefab.sim.cell import Controller, SimResult, run_cell
 from icefab.sim.plans import _measured, measurement_layers, plan_layer, plan_layer_motion
@@ -50,22 +50,17 @@ def measured_layers(build: "Toolpaths | BuildMotion", job: "Job | None" = None, 
     return [chosen[j].index for j in _measured(flags, job.feedback.interval_layers)]
 
 
-#: Settings trajectories and the job simulating them must agree on (declared in
-#: :data:`icefab.stages.PLACEMENT`; this name is kept for one release).
-MOTION_SETTINGS = PLACEMENT
+#: Settings trajectories and the job simulating them must agree on: where the material
+#: goes (:data:`icefab.stages.PLACEMENT`: frames, tool offsets, widths, layer thickness)
+#: and which layers are measured (:data:`icefab.stages.MEASURED`).
+MOTION_SETTINGS = PLACEMENT + MEASURED
 
 
 def check_motion_job(planned: "Job", job: "Job", source: str = "the trajectories") -> None:
     """SimulationError if ``job`` differs from the job trajectories were ``planned`` with
-    in a setting that moves the material (:data:`icefab.stages.PLACEMENT`): frames, tool
-    offsets, widths, layer thickness. Names the first difference and counts the others."""
-    diff = placement_differences(planned, job)
-    if diff:
-        k, va, vb = diff[0]
-        more = f" (and {len(diff) - 1} more)" if len(diff) > 1 else ""
-        raise SimulationError(f"{source} were planned with {k} = {va}, the job has {vb}{more}: "
-                              "use the job they were planned with, or plan them "
-                              "again with this job ('icefab plan')")
+    in one of :data:`MOTION_SETTINGS` (:func:`icefab.stages.check_agrees`)."""
+    check_agrees(planned, job, source, "icefab paths, then icefab plan",
+                 settings=MOTION_SETTINGS, error=SimulationError)
 
 
 def simulate_build(build: "Toolpaths | BuildMotion", job: "Job | None" = None, *,
