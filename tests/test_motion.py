@@ -116,20 +116,16 @@ def test_circles_speed_set_by_radial_acceleration(radius, job):
         assert tr.speed.max() >= cmax * 0.97
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "_mtts._vertex_bounds limits the speed at every vertex of the followed "
-    "polyline (the 0.4 mm grid, even on a smoothed circle) by v |turning| / dt <= A, the "
-    "acceleration of samples interpolated linearly across it: once v dt is below the "
-    "vertex spacing the bound falls linearly with dt (r 20 circle: 1.55 s at 16 ms, "
-    "2.85 s at 1 ms). A fix must sample a smooth curve, not the polyline: flooring dt in "
-    "the bound alone leaves samples at 3 x the acceleration bound at 1 ms"))
-@pytest.mark.parametrize("dt", [0.002, 0.001])
-@pytest.mark.parametrize("radius, spacing", [(20.0, 0.4), (50.0, 2.6)],
-                         ids=["round-circle", "fill-ring-polygon"])
+@pytest.mark.parametrize("dt", [0.008, 0.002, 0.001])
+@pytest.mark.parametrize("radius, spacing", [(2.0, 0.05), (20.0, 0.4), (50.0, 2.6)],
+                         ids=["small-circle", "round-circle", "fill-ring-polygon"])
 def test_finer_output_step_is_not_slower(radius, spacing, dt):
     # the same path, jerk on, sampled at 16 ms and at a finer step: a finer output step
     # resolves the same motion, so it may only gain the rounding to whole steps (the
-    # ring: the slicer's fill rings turn ~6 deg every ~2.6 mm, motion docstring)
+    # ring: the slicer's fill rings turn ~6 deg every ~2.6 mm, motion docstring). When the
+    # samples followed the 0.4 mm grid whatever dt, each grid point bounded
+    # v |turning| / dt <= A, and the circle took 2.85 s at 1 ms against 1.55 s
+    # (motion._denser_input)
     th = np.linspace(0.0, 2 * np.pi, int(2 * np.pi * radius / spacing) + 1)
     pts = np.c_[300.0 + radius * np.cos(th), -60.0 + radius * np.sin(th)]
     coarse = plan_motion(pts, JOB)
@@ -499,6 +495,26 @@ def test_savgol_skipped_when_smoothing_takes_the_whole_budget():
     pts = thesis_test_path(WELL)
     tr = plan_motion(pts, job)
     np.testing.assert_array_equal(tr.joints, get_robot(job).ik(tr.xy))
+
+
+@pytest.mark.parametrize("dt", [0.016, 0.008, 0.002, 0.001])
+def test_followed_path_has_a_point_every_step_at_25_mm_s(dt):
+    # a polygon with vertices 2.6 mm apart and a few repeated points: with smoothing on,
+    # the followed polyline gets a point every 25 mm/s x dt (the 0.4 mm grid at 16 ms),
+    # every one within the tolerance of the input, chords included
+    th = np.linspace(0.0, 1.5 * np.pi, 31)
+    pts = np.c_[300.0 + 30.0 * np.cos(th), -60.0 + 30.0 * np.sin(th)]
+    pts = np.insert(pts, [5, 5, 17], pts[[5, 5, 17]], axis=0)
+    job = JOB.replace(**{"motion.dt_s": dt})
+    line = shapely.LineString(pts)
+    (piece,) = followed_path(pts, job)
+    gaps = np.hypot(*np.diff(piece, axis=0).T)
+    assert gaps.max() <= min(0.4, 25.0 * dt) + 1e-9
+    assert gaps.min() > 0.0
+    assert shapely.distance(shapely.points(piece), line).max() <= 0.02 + 1e-9
+    mids = 0.5 * (piece[:-1] + piece[1:])
+    assert shapely.distance(shapely.points(mids), line).max() <= 0.02 + 1e-9
+    np.testing.assert_allclose(piece[[0, -1]], pts[[0, -1]], atol=1e-9)
 
 
 def test_optional_path_smoothing_within_tolerance():
