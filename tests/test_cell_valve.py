@@ -247,6 +247,36 @@ def test_watchdog_expiry_closes_valves_and_status_says_why(valvectl, tmp_path):
         assert ctl.status().state_name == "idle"
 
 
+@pytest.mark.parametrize("speed", [1.0, 100.0])
+def test_idle_host_build_waits_instead_of_spinning(valvectl, tmp_path, speed):
+    """An idle controller on the real clock sleeps until a frame, the trigger or 20 ms:
+    it polled for every tick instead, 76 % of a core at --speed 100 (the virtual cell's
+    firmware, left running when a test run was killed) and 20 % at real time. It still
+    plays at once: a program armed and triggered (SIGUSR1) after the idle second plays."""
+    prog = ValveProgram(ticks=np.array([0, 5, 10], np.uint16), tick_s=0.002, duration=0.05)
+    with HostFirmware(valvectl, clock="real", speed=speed, pulse_log=tmp_path / "p.log") as fw, \
+            ValveController.open(fw.pty) as ctl:
+        ctl.hello()
+        stat = Path(f"/proc/{fw.pid}/stat")
+        if not stat.exists():
+            pytest.skip("no /proc here: the firmware's CPU time cannot be read")
+
+        def cpu_s() -> float:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+            return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+        before = cpu_s()
+        time.sleep(1.0)
+        assert cpu_s() - before < 0.1
+        ctl.upload(0, prog)
+        ctl.arm(0)
+        fw.trigger()
+        deadline = time.monotonic() + 10.0
+        while len(fw.pulses()) < 3 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert [p[2] for p in fw.pulses()] == [0, 5, 10]
+
+
 def test_underrun_faults_and_closes(valvectl):
     """Real clock 20x: the host never streams the rest of a 32 kB piece: UNDERRUN."""
     prog = ValveProgram(ticks=(np.arange(16384) * 2).astype(np.uint16), tick_s=0.002,

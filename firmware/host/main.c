@@ -4,7 +4,8 @@
  *            [--watchdog-ms MS]
  *
  * Prints "PTY <path>" and "PID <pid>" on stdout. Real clock: ticks of 2 ms / F from
- * CLOCK_MONOTONIC; virtual clock: while playing, ticks as fast as possible but never ahead
+ * CLOCK_MONOTONIC while a tick has work (playing, a trigger latched), else it sleeps until
+ * a frame, the trigger or 20 ms; virtual clock: while playing, ticks as fast as possible but never ahead
  * of the program bytes (deterministic pulse ticks, no underrun); otherwise time stands
  * still. Trigger: the TRIGGER command or SIGUSR1. SIGTERM / SIGINT: valves off, exit 0.
  * The watchdog is emulated: the main loop feeds it every pass; STALL stops that. */
@@ -12,11 +13,11 @@
 #define _DEFAULT_SOURCE
 #include <errno.h>
 #include <fcntl.h>
-#include <poll.h>
 #include <signal.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <sys/select.h>
 #include <termios.h>
 #include <time.h>
 #include <unistd.h>
@@ -125,6 +126,7 @@ int main(int argc, char **argv)
     int slave, i;
     struct termios tio;
     struct sigaction sa;
+    sigset_t block, wait_mask;
     uint64_t t0, last_feed, ticks_done = 0, period_us;
     uint8_t buf[4096];
 
@@ -170,6 +172,13 @@ int main(int argc, char **argv)
     sigaction(SIGTERM, &sa, 0);
     sigaction(SIGINT, &sa, 0);
     signal(SIGPIPE, SIG_IGN);
+    /* the signals are taken only inside pselect (wait_mask): a trigger or stop that comes
+     * between the loop's checks and the wait ends the wait instead of waiting 20 ms */
+    sigemptyset(&block);
+    sigaddset(&block, SIGUSR1);
+    sigaddset(&block, SIGTERM);
+    sigaddset(&block, SIGINT);
+    sigprocmask(SIG_BLOCK, &block, &wait_mask);
 
     if (pty_file) {
         char tmp[4096];
@@ -190,24 +199,42 @@ int main(int argc, char **argv)
     t0 = last_feed = mono_us();
 
     while (!got_stop) {
-        struct pollfd pfd;
+        fd_set rd, wr;
+        struct timespec wait;
         uint64_t now = mono_us();
-        int timeout = 20;
+        uint64_t wait_us = 20000;                /* at most 20 ms between passes */
+        int idle = 0, n;
         if (!virtual_clock) {
-            uint64_t due = (now - t0) / period_us;
-            if (!vc_needs_tick(&core) && !got_trigger) ticks_done = due;  /* idle ticks: no work */
-            uint64_t next_at = t0 + (ticks_done + 1) * period_us;
-            timeout = next_at <= now ? 0 : (int)((next_at - now) / 1000u);
-            if (timeout > 20) timeout = 20;
+            if (!vc_needs_tick(&core) && !got_trigger) {
+                idle = 1;                        /* no tick has work: wait for a frame,
+                                                    the trigger or 20 ms (not for a tick) */
+            } else {
+                uint64_t next_at = t0 + (ticks_done + 1) * period_us;
+                wait_us = next_at <= now ? 0 : next_at - now;
+                /* under the kernel's timer slack (~50 us) a wait wakes late: at --speed
+                 * 10 and above (ticks of 200 us and less) the ticks are met by polling */
+                if (wait_us < 200) wait_us = 0;
+                if (wait_us > 20000) wait_us = 20000;
+            }
         } else if (vc_needs_tick(&core) && vc_can_advance(&core)) {
-            timeout = 0;
+            wait_us = 0;
         }
-        pfd.fd = master;
-        pfd.events = POLLIN | (txlen ? POLLOUT : 0);
-        pfd.revents = 0;
-        if (poll(&pfd, 1, timeout) < 0 && errno != EINTR) break;
+        if (got_trigger || got_stop) wait_us = 0;
+        FD_ZERO(&rd);
+        FD_ZERO(&wr);
+        FD_SET(master, &rd);
+        if (txlen) FD_SET(master, &wr);
+        wait.tv_sec = (time_t)(wait_us / 1000000u);
+        wait.tv_nsec = (long)(wait_us % 1000000u) * 1000L;
+        n = pselect(master + 1, &rd, &wr, 0, &wait, &wait_mask);
+        if (n < 0 && errno != EINTR) break;
+        if (n < 0) { FD_ZERO(&rd); }
         now = mono_us();
-        if (pfd.revents & POLLIN) {
+        if (!virtual_clock) {
+            if (idle) ticks_done = (now - t0) / period_us;  /* the idle ticks did nothing */
+            ctrl_us = (uint64_t)((double)(now - t0) * speed);   /* for STATUS's outputs */
+        }
+        if (FD_ISSET(master, &rd)) {
             ssize_t k = read(master, buf, sizeof buf);
             if (k > 0) vc_rx(&core, buf, (unsigned)k, (uint32_t)(now / 1000u));
         }
