@@ -7,6 +7,8 @@ import pytest
 
 from icefab import Job, LayerPaths, Path, Toolpaths
 from icefab.cli import main
+from icefab.errors import ConfigError
+from icefab.export import gcode_lines
 from icefab.motion import plan_toolpaths, save_trajectories
 
 
@@ -130,12 +132,35 @@ def test_plan_gcode_option_writes_the_marlin_file(tmp_path):
 
     job = Job().replace(**{"cell.cpus": 1})
     job_file = tmp_path / "job.toml"
-    job_file.write_text("[cell]\ncpus = 1\n")
+    job_file.write_text("[cell]\ncpus = 1\nrobot = \"gantry\"\n")
     save_toolpaths(_toolpaths(job), tmp_path / "tp.npz")
     assert main(["plan", str(tmp_path / "tp.npz"), "-c", str(job_file), "-o",
                  str(tmp_path / "out"), "--gcode"]) == 0
     text = (tmp_path / "out" / "trajectories.gcode").read_text()
     assert "M3 I S0" in text and "\nT0\n" in text and text.rstrip().endswith("M5")
+
+
+def test_gcode_of_scara_trajectories_is_refused(tmp_path, capsys):
+    # a SCARA's samples are in its base frame and timed by its joints: written as gantry
+    # G-code they built the Cobra's part at Y -160..-61 mm (a tester's bunny). Refused
+    # before planning, and from a trajectories file, with nothing written
+    from icefab.paths import save_toolpaths
+
+    job_file = tmp_path / "job.toml"
+    job_file.write_text("[cell]\ncpus = 1\n")
+    save_toolpaths(_toolpaths(Job()), tmp_path / "tp.npz")
+    assert main(["plan", str(tmp_path / "tp.npz"), "-c", str(job_file), "-o",
+                 str(tmp_path / "out"), "--gcode"]) == 2
+    err = capsys.readouterr().err
+    assert "--gcode: G-code is for a gantry, and these trajectories are the scara's" in err
+    assert 'robot = "gantry"' in err
+    assert not (tmp_path / "out").exists()
+    save_trajectories(small_motion(1), tmp_path / "t.npz")
+    assert main(["export", "gcode", str(tmp_path / "t.npz"), "-o", str(tmp_path / "g")]) == 2
+    assert "t.npz: G-code is for a gantry" in capsys.readouterr().err
+    assert not (tmp_path / "g").exists()
+    with pytest.raises(ConfigError, match="trajectories are the scara's"):
+        next(gcode_lines(small_motion(1)))
 
 
 def _toolpaths(job):
@@ -146,7 +171,7 @@ def _toolpaths(job):
 
 
 def test_export_gcode_from_a_trajectories_file(tmp_path, capsys):
-    motion = small_motion(1)
+    motion = small_motion(1, Job().replace(**{"cell.cpus": 1, "cell.robot": "gantry"}))
     save_trajectories(motion, tmp_path / "t.npz")
     assert main(["export", "gcode", str(tmp_path / "t.npz"), "-o", str(tmp_path / "g")]) == 0
     text = (tmp_path / "g" / "trajectories.gcode").read_text()

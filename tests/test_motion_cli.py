@@ -82,8 +82,10 @@ def test_plan_refuses_a_job_that_contradicts_the_toolpaths(tmp_path, capsys):
 def test_plan_gcode_and_constant_spacing_outputs(tmp_path, capsys):
     src = _toolpath_file(tmp_path)
     out = tmp_path / "o"
-    assert main(["plan", str(src), "-o", str(out), "--layers", "0", "--gcode",
-                 "--constant-spacing", "0.5"]) == 0
+    gantry = tmp_path / "gantry.toml"
+    gantry.write_text('[cell]\nrobot = "gantry"\n')
+    assert main(["plan", str(src), "-c", str(gantry), "-o", str(out), "--layers", "0",
+                 "--gcode", "--constant-spacing", "0.5"]) == 0
     assert "trajectories.gcode" in capsys.readouterr().out
     motion = load_trajectories(out / "trajectories.npz")
     trajs = [t for lm in motion.layers for t in lm.trajectories]

@@ -31,7 +31,7 @@ import os
 
 import numpy as np
 
-__all__ = ["save_gcode", "step_duty", "gcode_lines"]
+__all__ = ["save_gcode", "step_duty", "gcode_lines", "check_gcode_robot"]
 
 TOOL_NUMBER = {"part": 0, "scaffold": 1}
 
@@ -53,16 +53,35 @@ def step_duty(trajectory, program) -> np.ndarray:
     return np.clip(on / trajectory.dt, 0.0, 1.0)
 
 
+def check_gcode_robot(robot: str, what: str) -> None:
+    """Refuse G-code from trajectories planned for another robot than a gantry.
+
+    The G-code's X, Y are a gantry's carriage positions and each move's F holds the
+    speed MTTS planned under that robot's limits. A SCARA's trajectories are in its base
+    frame (the Cobra's part at Y -160..-61 mm) and timed by its joint limits: on a gantry
+    they would build elsewhere, at other speeds, under a header that said "gantry".
+    what: the file or setting named in the message. Raises ConfigError.
+    """
+    from icefab.errors import ConfigError
+
+    if robot != "gantry":
+        raise ConfigError(f"{what}: G-code is for a gantry, and these trajectories are the "
+                          f"{robot}'s (its base frame, its joint limits); plan for a gantry "
+                          "with [cell] robot = \"gantry\"")
+
+
 def gcode_lines(motion, job=None):
-    """The G-code of a BuildMotion, line by line (see the module docstring)."""
+    """The G-code of a BuildMotion planned for a gantry, line by line (see the module
+    docstring; :func:`check_gcode_robot`)."""
     from icefab import flow
     from icefab.motion import gcode_moves
 
+    check_gcode_robot(motion.robot, "the trajectories")
     job = job if job is not None else motion.job
     pwm = job.replace(**{"flow.mode": "pwm"}) if job.flow.mode != "pwm" else job
     yield (f"; icefab G-code for a gantry, Marlin 2.x (cutter PWM drives the valve, inline "
            f"power 0-255, PWM at {pwm.flow.pwm_frequency_hz:g} Hz)")
-    yield (f"; {motion.robot}, dt {job.motion.dt_s:g} s, {motion.duration:.1f} s of motion; "
+    yield (f"; dt {job.motion.dt_s:g} s, {motion.duration:.1f} s of motion; "
            "X, Y: carriage (base frame), mm; F: mm/min; T0 part, T1 scaffold")
     yield "G21"
     yield "G90"

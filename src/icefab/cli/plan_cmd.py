@@ -103,7 +103,7 @@ def _hms(s: float) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from icefab.export import save_gcode
+    from icefab.export import check_gcode_robot, save_gcode
     from icefab.headroom import layer_headroom, tightest
     from icefab.motion import (TrajectoryFile, TrajectoryWriter, iter_plan_packed,
                                save_constant_spacing, total_path_length,
@@ -127,6 +127,8 @@ def run(args: argparse.Namespace) -> int:
     if args.no_jerk:
         job = job.replace(**{"motion.jerk_limited": False})
     robot = get_robot(job)
+    if getattr(args, "gcode", False):
+        check_gcode_robot(robot.name, "--gcode")
     # what valves/simulate will refuse, from each layer as it passes
     check_room = job.feedback.enabled and job.flow.mode == "fm"
     with output_dir(args.out, "plan") as tmp:
