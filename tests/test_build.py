@@ -365,6 +365,51 @@ def test_exactly_once_after_crashes_in_process(planned, tmp_path):
     assert len({(c["kind"], c["layer"], c["item"]) for c in cmds}) == len(cmds)
 
 
+def test_a_second_build_on_the_same_cell_runs_every_path(planned, tmp_path):
+    """The cell keeps its last completed number across builds and answers any number at
+    or below it "done": a second build numbered from 1 was "complete" at once with nothing
+    deposited (a tester's). It numbers after the cell's, runs every command once, and
+    says the platform holds the first build's material; a crash of the second build
+    still resumes exactly once."""
+    from icefab.motion import load_trajectories
+
+    motion = load_trajectories(planned)
+    job = motion.job
+    first = tmp_path / "first"
+    _inprocess(first, motion, job)
+    n_cmds = len(_executed(first))
+    z_first = np.load(first / "cell" / "surface.npz")["z"]
+    second = tmp_path / "second"
+    second.mkdir()
+    jpath = second / bmod.JOURNAL
+    rng = np.random.default_rng(5)
+    while True:  # the second build, on the first one's cell, crashed and resumed
+        journal = Journal.open(jpath) if jpath.exists() else Journal.create(jpath, {})
+        cell = CrashingCell(VirtualCell(first / "cell"), int(rng.integers(1, 20)), True)
+        try:
+            bmod.Runner(second, motion, job, journal, lambda: cell).run()
+            break
+        except Crash:
+            pass
+        finally:
+            journal.close()
+    ex = _executed(first)
+    assert len(ex) == 2 * n_cmds and len(set(ex)) == len(ex)
+    assert ex[n_cmds:] == list(range(n_cmds + 1, 2 * n_cmds + 1))
+    j = Journal.open(jpath)
+    assert j.first_seq() == n_cmds + 1
+    assert all(c["done"] is not None and not c["cut"] for c in j.commands())
+    assert [e["text"] for e in j.events() if e["kind"] == "cell-numbers"] == [
+        f"the cell has completed commands up to number {n_cmds} (an earlier build; its "
+        f"platform holds that build's material unless it was cleared): this build numbers "
+        f"from {n_cmds + 1}"]
+    j.close()
+    z = np.load(first / "cell" / "surface.npz")["z"]
+    assert np.nanmax(z) > np.nanmax(z_first) + 0.5   # the second mug's layers on the first's
+    with pytest.raises(JournalError, match="journaled already"):
+        Journal.open(jpath).number_from(1)
+
+
 def _icefab(*args, cwd, **kw):
     return subprocess.run([sys.executable, "-m", "icefab", *args], cwd=cwd,
                           capture_output=True, text=True, **kw)

@@ -178,3 +178,16 @@ def test_export_gcode_from_a_trajectories_file(tmp_path, capsys):
     assert text.startswith("; icefab G-code") and "M3 I S0" in text
     assert main(["export", "gcode", str(tmp_path / "nope.npz"), "-o", str(tmp_path / "h")]) == 2
     assert "nope.npz: trajectories file not found" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("cut, thickness, z, top", [(0.5, float("nan"), 0.125, 0.25),
+                                                   (0.5, 0.1004, 0.0502, 0.1004),
+                                                   (0.0, 0.2, 1.0, 1.2), (1.0, 0.2, 1.2, 1.2)])
+def test_layer_top_is_above_the_cutting_plane(cut, thickness, z, top):
+    # the G-code's Z: the cutting plane lies cut_fraction of the layer's thickness (its
+    # own, adaptive, or the job's) above its bottom
+    from icefab.core import LayerMotion
+
+    job = Job().replace(**{"slicing.cut_fraction": cut})
+    assert LayerMotion(index=0, z=z, trajectories=(), thickness=thickness).top(job) \
+        == pytest.approx(top)

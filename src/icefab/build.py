@@ -339,8 +339,32 @@ class Runner:
                 cell.close()
                 raise
             self.cell = cell
+            self._number_after_the_cell()
             self._reconcile()
         return self.cell
+
+    def _number_after_the_cell(self) -> None:
+        """A new build numbers its commands after those the cell completed: the cell keeps
+        its last completed number across builds (it must, across a crash of the PC) and
+        answers any number at or below it "done", so a second build on a cell numbered
+        from 1 was complete at once with nothing deposited (a tester's)."""
+        from icefab.cell.robot_protocol import MAX_SEQ  # the robot link's numbers
+
+        if self.journal.has_commands() or "first_seq" in self.journal.meta():
+            return
+        st = self.cell.status()
+        last = max(int(st.last_done), int(st.cut))
+        if last <= 0:
+            return
+        if last > MAX_SEQ // 2:
+            raise CellError(f"the cell has completed commands up to number {last}, past half "
+                            f"the link's {MAX_SEQ}: restart its program (it counts from 0 "
+                            "again) before a new build")
+        self.journal.number_from(last + 1)
+        self.journal.event("cell-numbers", f"the cell has completed commands up to number "
+                           f"{last} (an earlier build; its platform holds that build's "
+                           f"material unless it was cleared): this build numbers from "
+                           f"{last + 1}")
 
     def _drop_link(self) -> None:
         cell, self.cell = self.cell, None

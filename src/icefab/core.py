@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 import itertools
+import math
 import operator
 import typing
 from typing import TYPE_CHECKING, Iterator, Literal, Sequence
@@ -679,6 +680,12 @@ class LayerMotion:
     @property
     def n_points(self) -> int:
         return int(sum(len(t.xy) for t in self.trajectories))
+
+    def top(self, job) -> float:
+        """The layer's nominal top, mm above the platform: ``z`` is its cutting plane,
+        ``slicing.cut_fraction`` of its thickness above its bottom (icefab.slicing)."""
+        t = self.thickness if math.isfinite(self.thickness) else job.slicing.layer_thickness_mm
+        return float(self.z + (1.0 - job.slicing.cut_fraction) * t)
 
 
 @dataclass(frozen=True, eq=False)

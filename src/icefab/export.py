@@ -7,7 +7,8 @@ power per planner block, so the valve's duty changes exactly with the moves, the
 the C40's trigger keeps the valve controller in step with the robot (thesis 2.3.1).
 
 * ``G21``, ``G90``; ``M3 I S0``: inline power mode, valve closed.
-* Per layer: ``; layer K z Z`` and ``G0 Z..`` (the layer height, mm above the platform).
+* Per layer: ``; layer K top z Z (cut at C)`` and ``G0 Z..``: the layer's nominal top, mm
+  above the platform (``LayerMotion.top``; the nozzle's own offset is the machine's).
 * Material (nozzle) change: ``T0`` (part, water) / ``T1`` (scaffold) before a path of the
   other material. The machine routes the cutter PWM to that nozzle's valve in its tool
   change (for example Marlin's ``EVENT_GCODE_TOOLCHANGE_T0`` / ``_T1`` switching a mux pin
@@ -88,8 +89,11 @@ def gcode_lines(motion, job=None):
     yield "M3 I S0"
     tool = None
     for lm in motion.layers:
-        yield f"; layer {lm.index} z {lm.z:.4f}"
-        yield f"G0 Z{lm.z:.4f}"
+        # the nozzle at the layer's top (its cutting plane lm.z lies inside it: at mid-height
+        # by default, which put the nozzle into its own bead)
+        top = lm.top(job)
+        yield f"; layer {lm.index} top z {top:.4f} (cut at {lm.z:.4f})"
+        yield f"G0 Z{top:.4f}"
         for i, tr in enumerate(lm.trajectories):
             if len(tr.xy) == 0:
                 continue

@@ -111,6 +111,7 @@ class Journal:
         self.path = path
         self._db = conn
         self._paths_done: int | None = None
+        self._first_seq: int | None = None
 
     # ------------------------------------------------------------------ opening
 
@@ -211,12 +212,34 @@ class Journal:
                                    f"{row[0]}): the build's plan is not deterministic")
             return int(row[0]), False
         with self._tx() as db:
-            seq = int(db.execute("SELECT COALESCE(MAX(seq), 0) + 1 FROM commands"
-                                 ).fetchone()[0])
+            seq = int(db.execute("SELECT COALESCE(MAX(seq), ?) + 1 FROM commands",
+                                 (self.first_seq() - 1,)).fetchone()[0])
             db.execute("INSERT INTO commands (seq, kind, layer, item, digest, created) "
                        "VALUES (?, ?, ?, ?, ?, ?)", (seq, kind, layer, item, digest,
                                                     time.time()))
         return seq, True
+
+    def first_seq(self) -> int:
+        """The number of the build's first command: 1, or what :meth:`number_from` set."""
+        if self._first_seq is None:
+            row = self._db.execute("SELECT value FROM meta WHERE key='first_seq'").fetchone()
+            self._first_seq = 1 if row is None else int(json.loads(row[0]))
+        return self._first_seq
+
+    def number_from(self, first: int) -> None:
+        """Number the build's commands from ``first``: a new build on a cell that completed
+        another build's commands up to ``first - 1`` (the cell answers a number at or below
+        those "done" without running it). Only before the first command is journaled."""
+        with self._tx() as db:
+            if db.execute("SELECT COUNT(*) FROM commands").fetchone()[0]:
+                raise JournalError(f"{self.path}: commands are journaled already; their "
+                                   "numbers cannot change")
+            db.execute("INSERT OR REPLACE INTO meta VALUES (?, ?)",
+                       ("first_seq", json.dumps(int(first))))
+        self._first_seq = int(first)
+
+    def has_commands(self) -> bool:
+        return self._db.execute("SELECT 1 FROM commands LIMIT 1").fetchone() is not None
 
     def _stamp(self, column: str, seq: int) -> None:
         with self._tx() as db:

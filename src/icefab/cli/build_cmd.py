@@ -319,6 +319,13 @@ def _run(build: Path, args: argparse.Namespace, *, resume: bool) -> int:
     if meta.get("cell") == "virtual":
         _shutdown_cell(build / bmod.CELL_DIR)   # the build is complete: the cell may go
     rms = f"{p.last_rms_mm:.3f} mm" if math.isfinite(p.last_rms_mm) else "-"
+    done = Journal.open(build / bmod.JOURNAL)
+    try:
+        for ev in done.events():
+            if ev["kind"] == "cell-numbers":   # a cell that ran another build first
+                print(f"note: {ev['text']}")
+    finally:
+        done.close()
     print(f"build complete: {p.layers} layers, {p.paths_done} paths, last measured RMS {rms}; "
           f"{build / bmod.REPORT}")
     return 0
