@@ -527,6 +527,7 @@ def test_refusals(firmware_tools, planned, tmp_path):
     (tmp_path / "old.json").write_text(json.dumps({"host": "127.0.0.1", "port": 9}))
     r = _icefab("build", str(planned), "-o", "c", "--cell", "old.json", cwd=tmp_path)
     assert r.returncode == 2 and "old.json: not a cell's endpoints file" in r.stderr
+    assert not (tmp_path / "c").exists()   # no folder of a build that never started
     # a cell that does not answer its handshake: nothing journaled
     (tmp_path / "ep.json").write_text(json.dumps({
         "robot": {"host": "127.0.0.1", "port": 9}, "valve": {"device": "/dev/null"},
@@ -534,7 +535,11 @@ def test_refusals(firmware_tools, planned, tmp_path):
     r = _icefab("build", str(planned), "-o", "c", "--cell", "ep.json", cwd=tmp_path)
     assert r.returncode == 2 and "robot at 127.0.0.1:9: cannot connect" in r.stderr
     assert r.stderr.count("\n") == 1
-    assert not (tmp_path / "c" / bmod.JOURNAL).exists()
+    assert not (tmp_path / "c").exists()
+    # into a folder the user made: it stays, empty
+    (tmp_path / "mine").mkdir()
+    r = _icefab("build", str(planned), "-o", "mine", "--cell", "ep.json", cwd=tmp_path)
+    assert r.returncode == 2 and list((tmp_path / "mine").iterdir()) == []
 
 
 def test_cell_killed_mid_path_build_completes(firmware_tools, planned, tmp_path):

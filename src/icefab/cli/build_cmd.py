@@ -239,6 +239,7 @@ def _run(build: Path, args: argparse.Namespace, *, resume: bool) -> int:
             job, room_warnings = _plan(args, planned)
             with TrajectoryFile(planned) as f:
                 bmod.check_build(f.motion(), job, f.n_layers)
+            created = not build.exists()
             build.mkdir(parents=True, exist_ok=True)
             lock = _lock(build)
             cdir = build / bmod.CELL_DIR
@@ -266,12 +267,22 @@ def _run(build: Path, args: argparse.Namespace, *, resume: bool) -> int:
                 lo, hi = _box(motion, job)
                 cell.prepare(job_toml, tuple(lo), tuple(hi))
         except Exception:
+            # nothing of a build that never started stays behind (README: output folders
+            # only on success): a refused cell left the folder with its lock file
             if cell is not None:
                 cell.close()
             if args.virtual:
                 _shutdown_cell(build / bmod.CELL_DIR)
+                shutil.rmtree(build / bmod.CELL_DIR, ignore_errors=True)
             (build / "job.toml").unlink(missing_ok=True)
             (build / bmod.TRAJECTORIES).unlink(missing_ok=True)
+            lock.close()
+            (build / "build.lock").unlink(missing_ok=True)
+            if created:
+                try:
+                    build.rmdir()
+                except OSError:   # something else was put there meanwhile: keep it
+                    pass
             raise
         journal = Journal.create(jpath, meta)
         journal.event("start", f"build of {len(motion.layers)} layers on "
