@@ -24,6 +24,17 @@ def test_serve_bad_input_is_one_line_and_exit_2(tmp_path, monkeypatch, capsys, a
     assert not (tmp_path / "st" / "endpoints.json").exists()
 
 
+def test_serve_that_cannot_start_its_firmware_leaves_no_state(tmp_path, capsys):
+    # a "firmware" that announces no pty: one line, exit 2, and the new state folder (its
+    # surface was written before the devices started) goes
+    state = tmp_path / "st"
+    assert main(["cell", "serve", "--state", str(state), "--bounds", "0,0,10,10",
+                 "--firmware", "/bin/true"]) == 2
+    err = capsys.readouterr().err
+    assert "no pty announced" in err and len(err.strip().splitlines()) == 1
+    assert not state.exists()
+
+
 def test_serve_refuses_a_state_that_is_a_file(tmp_path, capsys):
     (tmp_path / "st").write_text("x")
     assert main(["cell", "serve", "--state", str(tmp_path / "st"), "--bounds", "0,0,1,1"]) == 2

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import shutil
 import signal
 import threading
 from pathlib import Path
@@ -123,11 +124,18 @@ def run_serve(args: argparse.Namespace) -> int:
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
+    made = not state.exists()
     try:
         cell = VirtualCell(state, job, grid=grid, time_factor=args.time_factor,
                            robot_port=args.port, firmware_exe=args.firmware)
-    except OSError as exc:
-        raise CellError(f"virtual cell: cannot start ({exc.strerror or exc})") from None
+    except BaseException as exc:
+        # a cell that never started leaves no state behind (a firmware that announced no
+        # pty left a new surface.npz)
+        if made:
+            shutil.rmtree(state, ignore_errors=True)
+        if isinstance(exc, OSError):
+            raise CellError(f"virtual cell: cannot start ({exc.strerror or exc})") from None
+        raise
     e = cell.endpoints
     print(f"robot 127.0.0.1:{e['robot']['port']}  valve {e['valve']['device']}  laser "
           f"{e['laser']['device']}  (endpoints in {state / 'endpoints.json'})", flush=True)
