@@ -95,12 +95,36 @@ def test_thesis_table_3_1(tmp_path):
     ("3 1 2	[int int int]", "3 3 2	[int int int]", "control.txt:14: rotation axis order"),
     ("4	number of CPUs", "4	number of bananas", "control.txt:5: unrecognised control entry"),
     ("1 cent orig 5 [mm]", "1 middle orig 5 [mm]", "control.txt:15: translation"),
+    # a tester's "smoothing tolerance" set the weld tolerance (substring "tolerance")
+    ("30 [deg]	[float] (> 0) maximum angle", "0.02 [mm] smoothing tolerance\n30 [deg]	"
+     "[float] (> 0) maximum angle", "control.txt:9: control entry '0.02 [mm] smoothing "
+     "tolerance' names several settings: 'tolerance', 'smooth'"),
+    # the last of two won, unsaid
+    ("3.3 [mm]	[float] Scaffolding buffer", "3.3 [mm]	[float] Scaffolding buffer\n"
+     "2 [mm]	Scaffolding buffer", "control.txt:11: 'Scaffolding buffer' is given twice "
+     "(line 10 too)"),
+    # more names than the count, or names before it
+    ("2	[int] (>0) Number", "1	[int] (>0) Number", "control.txt:3: 2 mesh file name(s) "
+     "where the number of files leaves 1"),
+    ("2	[int] (>0) Number of STL and/or PLY files to import\n", "",
+     "control.txt:2: mesh file names before the number of files"),
 ])
 def test_bad_legacy_entries_name_the_line(tmp_path, old, new, fragment):
     assert old in THESIS_TABLE_3_1
     with pytest.raises(ConfigError) as err:
         load_job(write(tmp_path, THESIS_TABLE_3_1.replace(old, new)))
     assert fragment in str(err.value)
+
+
+def test_a_byte_order_mark_is_not_part_of_the_text(tmp_path):
+    # Windows editors write one: the first entry read as "expected 1 number, got none",
+    # and a TOML job as an invalid statement
+    f = tmp_path / "control.txt"
+    f.write_bytes(b"\xef\xbb\xbf" + PAPER_TABLE_1.encode())
+    assert load_job(f).slicing.layer_thickness_mm == 0.4
+    t = tmp_path / "job.toml"
+    t.write_bytes(b"\xef\xbb\xbf[slicing]\nlayer_thickness_mm = 0.3\n")
+    assert load_job(t).slicing.layer_thickness_mm == 0.3
 
 
 def test_missing_file_names(tmp_path):

@@ -1160,6 +1160,7 @@ def load_legacy_control(path: str | Path, text: str | None = None) -> Job:
         return x == 1.0
 
     set_on: dict[str, int] = {}  # dotted setting -> line that set it, for range errors
+    given_on: dict[str, int] = {}  # control entry -> line that gave it
 
     def settings_now() -> dict[str, Any]:
         flat = _flatten({**data, "materials": materials})
@@ -1174,17 +1175,29 @@ def load_legacy_control(path: str | Path, text: str | None = None) -> Job:
         before = settings_now()
         values, desc = _legacy_split(line)
         low = desc.lower()
-        key = next((k for pat, k in _LEGACY_KEYS if pat in low), None)
-        if key is None and expect_files and values:
+        found = [(pat, k) for pat, k in _LEGACY_KEYS if pat in low]
+        if len(found) > 1:   # "smoothing tolerance" set the weld tolerance, unsaid
+            raise fail(f"control entry {line!r} names several settings: "
+                       f"{', '.join(repr(pat) for pat, _ in found)}")
+        key = found[0][1] if found else None
+        if key is None and expect_files > 0 and values:
             key = "files"
         if key is None:
             raise fail(f"unrecognised control entry {line!r}")
+        if key in given_on and key != "files":   # the last one won, unsaid
+            raise fail(f"{desc.strip() or key!r} is given twice (line {given_on[key]} too)")
+        given_on.setdefault(key, n)
         try:
             if key == "n_files":
                 expect_files = whole(values, 1, "number of files")[0]
                 if expect_files < 1:
                     raise fail(f"number of files = {expect_files}: must be >= 1")
             elif key == "files":
+                if "n_files" not in given_on:
+                    raise fail("mesh file names before the number of files")
+                if len(values) > expect_files:
+                    raise fail(f"{len(values)} mesh file name(s) where the number of files "
+                               f"leaves {expect_files}")
                 files = [str((path.parent / v).resolve()) for v in values]
                 data["parts"]["files"] = data["parts"].get("files", []) + files
                 expect_files -= len(values)

@@ -111,7 +111,9 @@ def read_input_text(path: str | os.PathLike, kind: str, error: type[IcefabError]
     """:func:`read_input` decoded as UTF-8 (``error`` naming the file when it is not)."""
     data = read_input(path, kind, error, what)
     try:
-        return data.decode("utf-8")
+        # a byte-order mark (Windows editors write one) is not part of the text: with it a
+        # control file's first entry read as no number and a TOML file as invalid
+        return data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
         raise error(f"{path}: {what or kind + ' file'} is not UTF-8 text (byte "
                     f"{exc.start})") from None
