@@ -542,6 +542,27 @@ def test_refusals(firmware_tools, planned, tmp_path):
     assert r.returncode == 2 and list((tmp_path / "mine").iterdir()) == []
 
 
+def test_a_new_build_takes_the_parts_its_job_names(tmp_path, capsys):
+    # a legacy control file (or a TOML job) names its parts: 'icefab slice' took them,
+    # 'icefab build' asked for an INPUT; now it plans them, up to the cell it is given
+    import trimesh
+
+    from icefab.cli import main
+
+    trimesh.creation.box(extents=(20.0, 15.0, 1.0)).export(tmp_path / "box.stl")
+    (tmp_path / "control.txt").write_text(
+        "1	[int] Number of STL and/or PLY files to import\n"
+        "box.stl	[char] STL and/or PLY file names\n")
+    (tmp_path / "old.json").write_text(json.dumps({"host": "127.0.0.1", "port": 9}))
+    assert main(["build", "-c", str(tmp_path / "control.txt"), "-o", str(tmp_path / "b"),
+                 "--cell", str(tmp_path / "old.json"), "--layers", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "old.json: not a cell's endpoints file" in err and "INPUT" not in err
+    assert not (tmp_path / "b").exists()
+    assert main(["build", "-o", str(tmp_path / "b"), "--virtual"]) == 2
+    assert "a new build needs an INPUT" in capsys.readouterr().err
+
+
 def test_cell_killed_mid_path_build_completes(firmware_tools, planned, tmp_path):
     r = _icefab("build", str(planned), "-o", "ref", "--virtual", cwd=tmp_path)
     assert r.returncode == 0, r.stderr

@@ -75,9 +75,15 @@ def run(args: argparse.Namespace) -> int:
     if not args.out:
         raise ConfigError("-o BUILD is required for a new build (or --resume/--status/--stop "
                           "BUILD)")
+    if not args.input and getattr(args, "job", None):
+        # the job's own parts (parts.files; a legacy control file names them), as
+        # 'icefab slice' takes them
+        from icefab.cli.common import job_from_args
+
+        args.input = list(job_from_args(args).parts.files)
     if not args.input:
         raise ConfigError("a new build needs an INPUT: mesh file(s), 'demo', toolpaths or "
-                          "trajectories")
+                          "trajectories (or parts.files in the job file)")
     if not (args.virtual or args.cell):
         raise ConfigError("choose the cell: --virtual (start one) or --cell ENDPOINTS")
     if args.layers is not None and args.layers < 1:
