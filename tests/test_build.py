@@ -561,6 +561,14 @@ def test_a_new_build_takes_the_parts_its_job_names(tmp_path, capsys):
     assert not (tmp_path / "b").exists()
     assert main(["build", "-o", str(tmp_path / "b"), "--virtual"]) == 2
     assert "a new build needs an INPUT" in capsys.readouterr().err
+    # adaptive layers: refused from the job, before slicing (it came after planning)
+    (tmp_path / "adapt.toml").write_text("[slicing]\ncusp_height_mm = 0.1\n")
+    assert main(["build", str(tmp_path / "box.stl"), "-c", str(tmp_path / "adapt.toml"), "-o",
+                 str(tmp_path / "b"), "--virtual"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("icefab build: error: slicing.cusp_height_mm = 0.1: adaptive layers")
+    assert len(err.splitlines()) == 1   # no slicing progress before it
+    assert not (tmp_path / "b").exists()
 
 
 def test_cell_killed_mid_path_build_completes(firmware_tools, planned, tmp_path):

@@ -125,7 +125,15 @@ def _plan(args: argparse.Namespace, out: Path):
 
     ns = argparse.Namespace(job=args.job, flow_error=None, seed=None, deposition="valves",
                             layers=args.layers or 0)
-    build, job = load_build(list(args.input), job_from_args(args), ns)
+    given = job_from_args(args)
+    if given.slicing.cusp_height_mm > 0 and not str(args.input[0]).lower().endswith(".npz"):
+        # a mesh sliced into adaptive layers would be refused after slicing, paths and
+        # planning (check_build): the job alone decides it
+        raise ConfigError(f"slicing.cusp_height_mm = {given.slicing.cusp_height_mm:g}: "
+                          "adaptive layers, which the build runner does not run yet; "
+                          "simulate them ('icefab simulate') or build with "
+                          "slicing.cusp_height_mm = 0")
+    build, job = load_build(list(args.input), given, ns)
     n = min(args.layers or len(build), len(build))
     if isinstance(build, BuildMotion):  # kept with the job it was planned with
         planned, robot, joints, layers = build.job, build.robot, build.joint_names, \
