@@ -857,7 +857,41 @@ def test_stop_and_resume_on_a_separately_started_cell(firmware_tools, planned, t
         # every path ran (the cell's log lists paths; layer ends freeze, they do not run)
         assert ex == [c["seq"] for c in j.commands() if c["kind"] != "layer_end"]
         assert any(e["kind"] == "stop" for e in j.events())
+        last = max(ex)   # the cell's last completed number (a layer's end is not one)
         j.close()
+        # a second build on the same cell runs its paths, numbered after the first's
+        r = _icefab("build", str(planned), "-o", "b2", "--cell", ep, "--layers", "1",
+                    cwd=tmp_path)
+        assert r.returncode == 0 and "build complete" in r.stdout, r.stderr
+        assert f"note: the cell has completed commands up to number {last}" in r.stdout
+        ex2 = [int(x) for x in (state / "executed.log").read_text().split()]
+        assert ex2[:len(ex)] == ex and len(ex2) > len(ex) and min(ex2[len(ex):]) > last
+    finally:
+        shutdown_virtual_cell(state)
+        if serve.poll() is None:
+            serve.kill()
+
+
+def test_a_cell_whose_surface_is_elsewhere_refuses_the_first_path(firmware_tools, planned,
+                                                                   tmp_path):
+    """A virtual cell started over another place than the part: its drops fell nowhere and
+    its laser read 0, and the build was 'complete'. The cell refuses the first path that
+    leaves its surface (ER 10), and the build stops there with that reason."""
+    from icefab.cell.virtual import read_endpoints
+    from icefab.linkedcell import shutdown_virtual_cell
+
+    state = tmp_path / "cell"
+    serve = subprocess.Popen([sys.executable, "-m", "icefab", "cell", "serve", "--state",
+                              str(state), "--port", "0", "--bounds=500,500,510,510"],
+                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        read_endpoints(state, timeout_s=120)
+        r = _icefab("build", str(planned), "-o", "b", "--cell", str(state / "endpoints.json"),
+                    "--layers", "1", cwd=tmp_path)
+        assert r.returncode == 2, r.stderr
+        assert "off the virtual cell's surface" in r.stderr
+        assert not (state / "executed.log").exists() or \
+            (state / "executed.log").read_text().split() == []
     finally:
         shutdown_virtual_cell(state)
         if serve.poll() is None:

@@ -271,8 +271,11 @@ def test_a_new_session_settles_what_a_dead_one_left(planned, firmware_exe, tmp_p
     job, motion = planned
     with VirtualCell(tmp_path / "cell", job, grid=grid_for(motion, job),
                      firmware_exe=firmware_exe) as c:
-        xy = np.column_stack([340 + 10 * np.cos(np.linspace(0, 3, 50)),
-                              10 * np.sin(np.linspace(0, 3, 50))])
+        from icefab.frames import to_base_frame
+
+        # the laser over the part (the cell refuses a path off its surface: ER 10)
+        xy = to_base_frame(np.column_stack([10 * np.cos(np.linspace(0, 3, 50)),
+                                            10 * np.sin(np.linspace(0, 3, 50))]), "laser", job)
         with RobotLink.connect("127.0.0.1", c.endpoints["robot"]["port"]) as dead:
             dead.hello()
             dead.upload(RobotPath(xy=xy, dt_s=0.02, z_mm=1.0, flags=0, tool="none",

@@ -127,11 +127,13 @@ ERRORS = {1: "malformed message", 2: "sequence: points or end of another path th
           "paths", 4: "too many points for one path (max_points)", 5: "point count or "
           "check sum differs from what arrived", 6: "GO names a path that is not the "
           "oldest stored one", 7: "not allowed now (moving, or no upload open)",
-          8: "a point is out of the robot's reach", 9: "unsupported protocol version"}
+          8: "a point is out of the robot's reach", 9: "unsupported protocol version",
+          10: "a point is off the virtual cell's surface (icefab cell serve --grid-for or "
+              "--bounds: start it over the part)"}
 
 #: refusals that the same command sent again would meet again (the others: a damaged
 #: line, a full store, a motion under way, may pass after a new session settles)
-PERMANENT_ERRORS = frozenset({4, 8, 9})
+PERMANENT_ERRORS = frozenset({4, 8, 9, 10})
 
 #: robot states of ``SS`` replies
 STATES = {0: "idle", 1: "moving", 2: "aborted"}

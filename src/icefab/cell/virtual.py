@@ -159,6 +159,16 @@ class _Hooks:
             self.cell.world.freeze()
             self.cell.world.save()
 
+    def refuse(self, path: RobotPath) -> int:
+        """ER 10 for a deposition or measurement path off the surface grid: its drops
+        fell nowhere and its laser read 0, and a tester's build on a cell started over
+        another place was 'complete' with nothing deposited."""
+        if path.flags & rp.FLAG_PARK or not path.flags & (rp.FLAG_VALVE | rp.FLAG_LASER) \
+                or path.tool not in ("part", "scaffold", "laser"):
+            return 0
+        with self.cell.lock:
+            return 0 if self.cell.world.covers(path.xy, path.tool) else 10
+
     def path_run(self, seq: int, path: RobotPath, stop: threading.Event,
                  time_factor: float) -> bool:
         cell = self.cell

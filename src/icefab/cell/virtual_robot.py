@@ -45,6 +45,11 @@ class RobotHooks(Protocol):
 
     def abort(self) -> None: ...
 
+    def refuse(self, path: RobotPath) -> int:
+        """An ``ER`` code for a path the cell cannot run (0: none), checked when it has
+        arrived whole."""
+        ...
+
 
 @dataclass
 class _Upload:
@@ -255,6 +260,10 @@ class VirtualRobot:
                              flags=int(h["flags"]), tool=rp.TOOLS[int(h["tool"])],
                              width_mm=float(h["width"]), layer=int(h["layer"]),
                              index=int(h["index"]))
+            code = self.hooks.refuse(path) if hasattr(self.hooks, "refuse") else 0
+            if code:
+                self._reply_error(msg.seq, code, "PE")
+                return
             self._stored.append((msg.seq, path))
         self._reply("PE", "ok", msg.seq)
 
