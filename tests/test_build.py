@@ -805,6 +805,26 @@ def test_a_refused_command_stops_the_build_at_once(planned, tmp_path):
     journal.close()
 
 
+def test_progress_names_a_layer_by_its_index_and_its_place(planned, tmp_path):
+    # "layer 9 of 12" beside "stopped at layer 8" (an index) read as two layers; and
+    # between layers the status named the finished layer beside the next one's place
+    from icefab.motion import load_trajectories
+
+    motion = load_trajectories(planned)
+    build = tmp_path / "b"
+    cell = _prepared(build, motion, motion.job)
+    journal = Journal.create(build / bmod.JOURNAL, {"digests": {}})
+    lines = []
+    bmod.Runner(build, motion, motion.job, journal, lambda: cell,
+                on_progress=lambda p: lines.append(bmod.progress_line(p))).run()
+    journal.close()
+    seen = {m.group(0) for m in map(re.compile(r"layer (\d+) \((\d+) of 5\)").match, lines)
+            if m}
+    got = [tuple(map(int, re.match(r"layer (\d+) \((\d+)", x).groups())) for x in seen]
+    assert sorted(got) == [(k, k + 1) for k in range(LAYERS)]
+    assert all(x.startswith("layer ") for x in lines)
+
+
 def test_the_journal_counts_paths_done_as_a_query_would(tmp_path):
     j = Journal.create(tmp_path / "j.sqlite", {"digests": {}})
     seqs = [j.command("path", 0, i, f"d{i}")[0] for i in range(6)]

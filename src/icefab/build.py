@@ -587,6 +587,8 @@ class Runner:
                 # the report's pictures take a while: drawn once the next layer runs
                 self._report_due = True
             p.layer_pos = j + 1
+            if j + 1 < len(self.motion.layers):   # the status names the layer that is next
+                p.layer = int(self.motion.layers[j + 1].index)
             self._report(force=True)
         p.state = "complete"
         p.layer_pos = len(self.motion.layers)
@@ -763,9 +765,15 @@ def format_eta(seconds: float) -> str:
     return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}"
 
 
+def layer_text(layer: int, layers_done: int, layers: int) -> str:
+    """"layer 8 (9 of 12)": the layer's index, as every other message names layers (the
+    stop's "stopped at layer 8"), and its place in the build, counted from 1."""
+    return f"layer {layer} ({min(layers_done + 1, layers)} of {layers})"
+
+
 def progress_line(p: Progress) -> str:
     rms = f"{p.last_rms_mm:.3f} mm" if math.isfinite(p.last_rms_mm) else "-"
-    return (f"layer {min(p.layer_pos + 1, p.layers)} of {p.layers}, paths {p.paths_done}/"
+    return (f"{layer_text(p.layer, p.layer_pos, p.layers)}, paths {p.paths_done}/"
             f"{p.paths}, ETA {format_eta(p.remaining_s)}, last RMS {rms}")
 
 
@@ -823,8 +831,8 @@ def write_report(build_dir: Path, progress: Progress, journal: Journal, job: "Jo
     e = html.escape
     status_rows = "".join(
         f"<tr><th>{e(k)}</th><td>{e(str(v))}</td></tr>" for k, v in (
-            ("state", st["state"]), ("layer", f"{min(progress.layer_pos + 1, progress.layers)}"
-                                              f" of {progress.layers}"),
+            ("state", st["state"]),
+            ("layer", layer_text(progress.layer, progress.layer_pos, progress.layers)[6:]),
             ("paths", f"{progress.paths_done} of {progress.paths}"),
             ("ETA (planned motion)", format_eta(progress.remaining_s)),
             ("last RMS (mm)", "-" if st["last_rms_mm"] is None

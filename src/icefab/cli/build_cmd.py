@@ -380,8 +380,9 @@ def _status(build: Path, as_json: bool) -> int:
         print(json.dumps(st, indent=1))
         return 0
     rms = "-" if st["last_rms_mm"] is None else f"{st['last_rms_mm']:.3f} mm"
-    print(f"{build}: {st['state']}; layer {min(st['layers_done'] + 1, st['layers'])} of "
-          f"{st['layers']}, paths {st['paths_done']}/{st['paths']}, ETA "
+    print(f"{build}: {st['state']}; "
+          f"{bmod.layer_text(st['layer'], st['layers_done'], st['layers'])}, paths "
+          f"{st['paths_done']}/{st['paths']}, ETA "
           f"{bmod.format_eta(st['eta_s'])}, last RMS {rms}")
     for line in st.get("events", [])[-5:]:
         print(f"  {line}")
