@@ -97,7 +97,7 @@ def test_output_to_a_file_is_one_line_error(tmp_path, capsys):
             pass
     assert afile.read_text() == "keep me"
     for out in (afile, afile / "sub"):
-        assert main(["tune", "--gains", "1,0.33,0", "--layers", "20", "-o", str(out)]) == 2
+        assert main(["tune", "--gains", "1,0.33,0", "--layers", "60", "-o", str(out)]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "icefab tune: error: -o" in err[0]
     assert afile.read_text() == "keep me"

@@ -102,3 +102,28 @@ def test_tune_plot_of_diverging_gains_stays_readable(tmp_path, capsys, monkeypat
     plot_error_response(evaluate_gains((1, 0.33, 0), dist), dist, Job(), tmp_path / "q.png",
                         "evaluated")
     assert seen["text"] == []
+
+
+def test_tune_refuses_what_it_used_to_tune_against_nothing(capsys, tmp_path):
+    # --layers under 60 dropped the thesis' pulse (and under 30 its step) and "optimised"
+    # against no disturbance; an explicit zero disturbance too; every gain held
+    rc, _, err = run(capsys, "--layers", "20")
+    assert rc == 2 and "--layers 20: the thesis' disturbance has its pulse at layer 60" in err
+    rc, _, err = run(capsys, "--noise", "0")
+    assert rc == 2 and "the disturbance is 0 at every layer" in err
+    rc, _, err = run(capsys, "--step", "0@10")
+    assert rc == 2 and "the disturbance is 0 at every layer" in err
+    rc, _, err = run(capsys, "--fix-kp", "0", "--fix-ki", "0", "--fix-kd", "0")
+    assert rc == 2 and "hold every gain: nothing to optimise" in err
+    # tune.json records the disturbance used, the thesis' when none is given
+    rc, _, _ = run(capsys, "-o", str(tmp_path / "t"))
+    assert rc == 0
+    data = json.loads((tmp_path / "t" / "tune.json").read_text())
+    assert (data["pulses"], data["steps"], data["noise"]) == ([[0.5, 60]], [[0.2, 30]], 0.0)
+    # a large disturbance: the same optimum (the model is linear)
+    rc, out, _ = run(capsys, "--pulse", "1e6@60", "--json")
+    big = json.loads(out)
+    rc, out, _ = run(capsys, "--pulse", "1@60", "--json")
+    unit = json.loads(out)
+    assert rc == 0 and big["kp"] == pytest.approx(unit["kp"], abs=1e-5)
+    assert big["rms"] == pytest.approx(unit["rms"] * 1e6, rel=1e-6)

@@ -96,11 +96,30 @@ profiles = st.builds(
                             {"kp": 1.0, "ki": 0.33}, {"kp": 1.0, "kd": 0.0}]),
        x0=st.sampled_from([(1.0, 1.0, 0.0), (0.5, 0.1, 0.2), (1.8, 0.1, 0.0)]))
 def test_constrained_results_are_always_strictly_stable(dist, fix, x0):
+    if not np.any(dist.sequence()):
+        with pytest.raises(ConfigError, match="the disturbance is 0 at every layer"):
+            tune_gains(dist, x0=x0, fix=fix)
+        return
     r = tune_gains(dist, x0=x0, fix=fix)
     assert r.stable and max_pole(r.kp, r.ki, r.kd) <= LIMIT
     assert r.kp >= 0 and r.ki > 0 and r.kd >= 0
     for name, value in fix.items():
         assert getattr(r, name) == value
+
+
+@pytest.mark.parametrize("size", [1e-6, 1e-3, 1e3, 1e6])
+@pytest.mark.parametrize("fix", [{}, {"kp": 1.0}])
+def test_the_optimum_does_not_depend_on_the_disturbances_size(size, fix):
+    # the model is linear in d: the same gains, the RMS scaled by the size (a noise of
+    # 1e6 returned the initial gains, a pulse of 1e6 a false "no stable gains")
+    unit = Disturbance(pulses=(), steps=(), noise=1.0, seed=2)
+    big = Disturbance(pulses=(), steps=(), noise=size, seed=2)
+    a, b = tune_gains(unit, fix=fix), tune_gains(big, fix=fix)
+    np.testing.assert_allclose([b.kp, b.ki, b.kd], [a.kp, a.ki, a.kd], atol=1e-5)
+    assert b.rms == pytest.approx(a.rms * size, rel=1e-6)
+    p = tune_gains(Disturbance(pulses=((size, 60),), steps=()))
+    q = tune_gains(Disturbance(pulses=((1.0, 60),), steps=()))
+    np.testing.assert_allclose([p.kp, p.ki, p.kd], [q.kp, q.ki, q.kd], atol=1e-5)
 
 
 # ----------------------------------------------------------------------- divergence

@@ -402,6 +402,14 @@ def tune_gains(disturbance: Disturbance | np.ndarray = Disturbance(), *,
     from scipy.optimize import minimize
 
     d = _as_d(disturbance)
+    # the model is linear in d: the optimum does not depend on its size, but the solvers'
+    # tolerances are absolute, so they run on d scaled to a largest |d_k| of 1 (a noise of
+    # 1e6 returned the initial gains, a pulse of 1e6 a false "no stable gains")
+    size = float(np.max(np.abs(d))) if len(d) else 0.0
+    if not size > 0.0:
+        raise ConfigError("the disturbance is 0 at every layer: every gain gives no error, "
+                          "so there is nothing to optimise (give a pulse, step or noise)")
+    d_unit = d / size
     fix = dict(fix or {})
     for k in fix:
         if k not in _NAMES:
@@ -420,7 +428,7 @@ def tune_gains(disturbance: Disturbance | np.ndarray = Disturbance(), *,
         return g
 
     def fun(x: np.ndarray) -> tuple[float, np.ndarray]:
-        r, g = rms_and_gradient(tuple(full(x)), d)  # type: ignore[arg-type]
+        r, g = rms_and_gradient(tuple(full(x)), d_unit)  # type: ignore[arg-type]
         return r, g[free]
 
     xs = base[free].copy()
@@ -459,8 +467,9 @@ def tune_gains(disturbance: Disturbance | np.ndarray = Disturbance(), *,
         g = full(res.x)
         worst = float(np.max(np.abs(poles(*g))))
         if not worst <= radius + 1e-6:
-            held = ", ".join(f"{k} = {v:g}" for k, v in fix.items()) or "none"
-            raise ConfigError(f"fixed gains ({held}): no {', '.join(_NAMES[i] for i in free)} "
+            held = ", ".join(f"{k} = {v:g}" for k, v in fix.items())
+            raise ConfigError(f"{f'fixed gains ({held}): ' if fix else ''}no "
+                              f"{', '.join(_NAMES[i] for i in free)} "
                               f"found keeping every pole within |z| <= {radius:g} (largest "
                               f"pole modulus {worst:.4g}; pole margin {pole_margin:g}, "
                               "eq. 5.23/5.25)")

@@ -42,7 +42,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                    help="a one-layer disturbance (eq. 5.30); repeatable")
     p.add_argument("--step", action="append", default=[], metavar="AMPLITUDE@LAYER",
                    help="a lasting disturbance from LAYER on (eq. 5.31); repeatable")
-    p.add_argument("--noise", type=str, default="0", metavar="AMPLITUDE",
+    p.add_argument("--noise", type=str, default=None, metavar="AMPLITUDE",
                    help="random disturbance d_r (RN - 0.5) at every layer (eq. 5.32)")
     p.add_argument("--seed", type=str, default="0", help="seed of the random disturbance")
     p.add_argument("--fix-kp", nargs="?", const="job", default=None, metavar="KP",
@@ -106,12 +106,14 @@ def run(args: argparse.Namespace) -> int:
     n_layers = int(_number(args.layers, "--layers", integer=True, lo=1))
     pulses = tuple(_at(t, "--pulse", n_layers) for t in args.pulse)
     steps = tuple(_at(t, "--step", n_layers) for t in args.step)
-    noise = _number(args.noise, "--noise", lo=0.0)
+    noise = 0.0 if args.noise is None else _number(args.noise, "--noise", lo=0.0)
     seed = int(_number(args.seed, "--seed", integer=True, lo=0))
-    if not pulses and not steps and noise == 0:
-        dist = Disturbance(n_layers=n_layers,
-                           pulses=((0.5, 60),) if n_layers >= 60 else (),
-                           steps=((0.2, 30),) if n_layers >= 30 else ())
+    if not pulses and not steps and args.noise is None:
+        if n_layers < 60:   # it dropped the pulse (and the step) and tuned against nothing
+            raise ConfigError(f"--layers {n_layers}: the thesis' disturbance has its pulse at "
+                              "layer 60; give --layers 60 or more, or your own --pulse, "
+                              "--step or --noise")
+        dist = Disturbance(n_layers=n_layers, pulses=((0.5, 60),), steps=((0.2, 30),))
     else:
         dist = Disturbance(n_layers=n_layers, pulses=pulses, steps=steps, noise=noise,
                            seed=seed)
@@ -121,6 +123,9 @@ def run(args: argparse.Namespace) -> int:
         if val is not None:
             fix[name] = float(getattr(fb, name)) if val == "job" else \
                 _number(val, f"--fix-{name}", lo=0.0)
+    if len(fix) == 3:
+        raise ConfigError("--fix-kp, --fix-ki and --fix-kd hold every gain: nothing to "
+                          "optimise; evaluate them with --gains KP,KI,KD")
     if args.gains is not None:
         if fix:
             raise ConfigError("--gains evaluates given gains; it cannot be combined with "
@@ -142,8 +147,8 @@ def run(args: argparse.Namespace) -> int:
                 warnings.simplefilter("ignore", RuntimeWarning)
             plot_error_response(result, dist, job, tmp / "error_response.png", mode)
             (tmp / "tune.json").write_text(json.dumps(
-                {**data, "mode": mode, "n_layers": n_layers, "pulses": pulses,
-                 "steps": steps, "noise": noise, "seed": seed}, indent=2,
+                {**data, "mode": mode, "n_layers": n_layers, "pulses": dist.pulses,
+                 "steps": dist.steps, "noise": dist.noise, "seed": dist.seed}, indent=2,
                 allow_nan=False) + "\n")
     if args.json:  # rms is null when the response diverges: strict JSON, no Infinity
         print(json.dumps(data, allow_nan=False))
