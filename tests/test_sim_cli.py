@@ -289,3 +289,17 @@ def test_simulate_honours_feedback_off_as_the_build_does(tmp_path, capsys):
     assert data["open_loop"]["rms_mm"] == data["smf"]["rms_mm"]
     assert not data["smf"]["closed_loop"]
     assert data["open_loop"]["rms_mm"][-1] > 0.05    # the flow error, uncorrected
+
+
+def test_a_layer_without_a_footprint_is_a_dash_not_nan():
+    # an adaptive sphere's top measurement layer had no part footprint on the grid: the
+    # table printed "97  16.00  nan nan nan nan" and rms.csv held "nan"
+    from icefab.cli.simulate_cmd import _csv_value, format_table
+
+    nan = float("nan")
+    lines = format_table([[93, 15.0, 0.1, 0.05, 0.3, 0.2], [97, 16.0, nan, nan, nan, nan]])
+    assert "nan" not in "\n".join(lines)
+    assert lines[2].split() == ["97", "16.00", "-", "-", "-", "-"]
+    assert lines[-1] == "  -: no part footprint on the simulator grid at that layer"
+    assert len(format_table([[93, 15.0, 0.1, 0.05, 0.3, 0.2]])) == 2
+    assert (_csv_value(nan), _csv_value(0.25)) == ("", "0.250000")

@@ -194,10 +194,22 @@ def final_rms_line(open_loop: "SimResult", closed: "SimResult") -> str:
 
 
 def format_table(rows: list[list[float]]) -> list[str]:
+    """The printed table; a layer without a part footprint on the grid shows '-' (it
+    printed 'nan'), said under the table."""
+    def f(v: float, w: int) -> str:
+        return f"{v:{w}.3f}" if math.isfinite(v) else f"{'-':>{w}}"
+
     lines = ["layer  height mm   RMS open   RMS SMF   max open   max SMF  (mm)"]
     for k, z, ro, rc, mo, mc in rows:
-        lines.append(f"{k:5d}  {z:9.2f}  {ro:9.3f}  {rc:8.3f}  {mo:9.3f}  {mc:8.3f}")
+        lines.append(f"{k:5d}  {z:9.2f}  {f(ro, 9)}  {f(rc, 8)}  {f(mo, 9)}  {f(mc, 8)}")
+    if any(not math.isfinite(v) for r in rows for v in r[2:]):
+        lines.append("  -: no part footprint on the simulator grid at that layer")
     return lines
+
+
+def _csv_value(v: float) -> str:
+    """A figure of rms.csv; empty where the layer has no part footprint (it wrote nan)."""
+    return f"{v:.6f}" if math.isfinite(v) else ""
 
 
 #: What a null in simulation.json's per-layer lists means (strict JSON has no NaN).
@@ -275,7 +287,7 @@ def write_simulation_outputs(open_loop: "SimResult", closed: "SimResult", out: P
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(HEADER)
-    w.writerows([[r[0]] + [f"{v:.6f}" for v in r[1:]] for r in rows])
+    w.writerows([[r[0]] + [_csv_value(v) for v in r[1:]] for r in rows])
     write_atomic(out / "rms.csv", buf.getvalue().encode())
     written += [out / "simulation.json", out / "rms.csv"]
     if rows:
