@@ -152,14 +152,15 @@ def test_gcode_of_scara_trajectories_is_refused(tmp_path, capsys):
     assert main(["plan", str(tmp_path / "tp.npz"), "-c", str(job_file), "-o",
                  str(tmp_path / "out"), "--gcode"]) == 2
     err = capsys.readouterr().err
-    assert "--gcode: G-code is for a gantry, and these trajectories are the scara's" in err
+    assert "note: planning for the scara" not in err   # the toolpaths' robot too
+    assert "--gcode: G-code is for a gantry, not the scara the job plans for" in err
     assert 'robot = "gantry"' in err
     assert not (tmp_path / "out").exists()
     save_trajectories(small_motion(1), tmp_path / "t.npz")
     assert main(["export", "gcode", str(tmp_path / "t.npz"), "-o", str(tmp_path / "g")]) == 2
     assert "t.npz: G-code is for a gantry" in capsys.readouterr().err
     assert not (tmp_path / "g").exists()
-    with pytest.raises(ConfigError, match="trajectories are the scara's"):
+    with pytest.raises(ConfigError, match="not the scara these trajectories were planned"):
         next(gcode_lines(small_motion(1)))
 
 
@@ -191,3 +192,17 @@ def test_layer_top_is_above_the_cutting_plane(cut, thickness, z, top):
     job = Job().replace(**{"slicing.cut_fraction": cut})
     assert LayerMotion(index=0, z=z, trajectories=(), thickness=thickness).top(job) \
         == pytest.approx(top)
+
+
+def test_planning_toolpaths_for_another_robot_says_so(tmp_path, capsys):
+    # gantry toolpaths planned with a job file that does not name the robot (the default
+    # SCARA): allowed, toolpaths are in the part's frame, but said
+    from icefab.paths import save_toolpaths
+
+    save_toolpaths(_toolpaths(Job().replace(**{"cell.robot": "gantry"})),
+                   tmp_path / "tp.npz")
+    (tmp_path / "job.toml").write_text("[cell]\ncpus = 1\n")
+    assert main(["plan", str(tmp_path / "tp.npz"), "-c", str(tmp_path / "job.toml"), "-o",
+                 str(tmp_path / "out")]) == 0
+    assert ("note: planning for the scara of the job; the toolpaths were made with a "
+            "gantry (cell.robot)") in capsys.readouterr().err

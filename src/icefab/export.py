@@ -54,21 +54,23 @@ def step_duty(trajectory, program) -> np.ndarray:
     return np.clip(on / trajectory.dt, 0.0, 1.0)
 
 
-def check_gcode_robot(robot: str, what: str) -> None:
+def check_gcode_robot(robot: str, what: str, *, planning: bool = False) -> None:
     """Refuse G-code from trajectories planned for another robot than a gantry.
 
     The G-code's X, Y are a gantry's carriage positions and each move's F holds the
     speed MTTS planned under that robot's limits. A SCARA's trajectories are in its base
     frame (the Cobra's part at Y -160..-61 mm) and timed by its joint limits: on a gantry
     they would build elsewhere, at other speeds, under a header that said "gantry".
-    what: the file or setting named in the message. Raises ConfigError.
+    what: the file or option named in the message; planning: the job is about to plan
+    them (``plan --gcode``). Raises ConfigError.
     """
     from icefab.errors import ConfigError
 
     if robot != "gantry":
-        raise ConfigError(f"{what}: G-code is for a gantry, and these trajectories are the "
-                          f"{robot}'s (its base frame, its joint limits); plan for a gantry "
-                          "with [cell] robot = \"gantry\"")
+        whose = "the job plans for" if planning else "these trajectories were planned for"
+        raise ConfigError(f"{what}: G-code is for a gantry, not the {robot} {whose} (its "
+                          "base frame, its joint limits); plan for a gantry with [cell] "
+                          "robot = \"gantry\"")
 
 
 def gcode_lines(motion, job=None):

@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
+import sys
 import time
 from pathlib import Path
 
@@ -80,6 +81,12 @@ def load_input(path: str, job):
         if job is None:
             return tp, tp.job
         check_agrees(tp.job, job, f"{src}: the toolpaths", "icefab paths")
+        if job.cell.robot != tp.job.cell.robot:
+            # allowed (toolpaths are in the part's frame), but a job file that does not
+            # name the robot is the default SCARA's: say it (a tester's gantry toolpaths
+            # moved to the SCARA's part origin without a word)
+            print(f"note: planning for the {job.cell.robot} of the job; the toolpaths were "
+                  f"made with a {tp.job.cell.robot} (cell.robot)", file=sys.stderr)
         return tp, job
     from icefab import mesh as meshmod
     from icefab.regions import add_scaffold
@@ -128,7 +135,7 @@ def run(args: argparse.Namespace) -> int:
         job = job.replace(**{"motion.jerk_limited": False})
     robot = get_robot(job)
     if getattr(args, "gcode", False):
-        check_gcode_robot(robot.name, "--gcode")
+        check_gcode_robot(robot.name, "--gcode", planning=True)
     # what valves/simulate will refuse, from each layer as it passes
     check_room = job.feedback.enabled and job.flow.mode == "fm"
     with output_dir(args.out, "plan") as tmp:
