@@ -181,7 +181,7 @@ def test_a_stop_lifts_the_tool_and_the_build_resumes_exactly_once(planned, firmw
             np.load(tmp_path / "cell" / "surface.npz") as b:
         assert np.array_equal(a["z"], b["z"])
     lm = next(lm for lm in motion.layers if lm.index == stopped_at[0])
-    assert path.z_mm == pytest.approx(lm.z + job.slicing.layer_thickness_mm + SAFE_LIFT_MM)
+    assert path.z_mm == pytest.approx(lm.top(job) + SAFE_LIFT_MM)
 
 
 def _spy(fn, out):

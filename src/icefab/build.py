@@ -120,8 +120,7 @@ def check_build(motion: "BuildMotion", job: "Job", layers: int) -> None:
             check_workspace(trajs[k].xy, robot, layer=int(lm.index), path=k,
                             what="before anything moves (cell.reach_mm, cell.joint_range_deg)")
     _check_laser_storage(motion, job, layers)
-    top = max((float(lm.z) for lm in motion.layers[:layers]), default=0.0) \
-        + job.slicing.layer_thickness_mm
+    top = max((lm.top(job) for lm in motion.layers[:layers]), default=0.0)
     stroke = job.cell.stroke_mm
     if top > stroke:
         raise WorkspaceError(f"the part is {top:.1f} mm tall over its first {layers} layers: "
@@ -506,7 +505,7 @@ class Runner:
                     if f not in self.findings:
                         self.findings.append(f)
                         self.journal.event("motion-limit", f, layer=L)
-            z_mm = float(lm.z) + dh
+            z_mm = lm.top(job)   # the layer's top (its cutting plane lm.z is inside it)
             le_digest = digest_text(f"layer_end {L}")
             for k, (i, tr, cp, dg) in enumerate(cps):
                 self._stop_point()
@@ -630,7 +629,7 @@ class Runner:
         lm = self.motion.layers[j]
         L = int(lm.index)
         dep = iter(zip(lv.trajectories, lv.programs))
-        z_mm = float(lm.z) + job.slicing.layer_thickness_mm
+        z_mm = lm.top(job)
         cps = []
         for i, tr in _items(lm)[0]:
             path = tr.path
