@@ -95,6 +95,9 @@ def test_thesis_table_3_1(tmp_path):
     ("3 1 2	[int int int]", "3 3 2	[int int int]", "control.txt:14: rotation axis order"),
     ("4	number of CPUs", "4	number of bananas", "control.txt:5: unrecognised control entry"),
     ("1 cent orig 5 [mm]", "1 middle orig 5 [mm]", "control.txt:15: translation"),
+    ("1 cent orig 5 [mm]", "1 cent xyz 5 [mm]", "control.txt:15: translation vector: "
+     "expected 4 entries (1/0, then Tx Ty Tz: each a number, cent or orig), got 1 cent "
+     "before 'xyz'"),
     # a tester's "smoothing tolerance" set the weld tolerance (substring "tolerance")
     ("30 [deg]	[float] (> 0) maximum angle", "0.02 [mm] smoothing tolerance\n30 [deg]	"
      "[float] (> 0) maximum angle", "control.txt:9: control entry '0.02 [mm] smoothing "

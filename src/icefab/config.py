@@ -1240,8 +1240,12 @@ def load_legacy_control(path: str | Path, text: str | None = None) -> Job:
                                "1 2 3")
                 data["parts"]["rotation_order"] = [int(x) for x in v]
             elif key == "translation":
-                if len(values) < 4:
-                    raise fail(f"translation vector: expected 4 entries, got {values}")
+                if len(values) < 4:   # a word other than cent/orig ends the values
+                    raise fail(f"translation vector: expected 4 entries (1/0, then Tx Ty Tz: "
+                               f"each a number, cent or orig), got {' '.join(values)} before "
+                               f"{desc.split()[0]!r}" if desc.split() else
+                               f"translation vector: expected 4 entries, got "
+                               f"{' '.join(values)}")
                 if switch(values, "translation on/off"):
                     t: list[Any] = []
                     for v in values[1:4]:
