@@ -209,7 +209,8 @@ class Journal:
             if row[1] != digest:
                 raise JournalError(f"{self.path}: {kind} {layer}/{item} was journaled with "
                                    "other content than is about to be sent again (seq "
-                                   f"{row[0]}): the build's plan is not deterministic")
+                                   f"{row[0]}): the build's plan is not deterministic, or "
+                                   "another icefab version started the build")
             return int(row[0]), False
         with self._tx() as db:
             seq = int(db.execute("SELECT COALESCE(MAX(seq), ?) + 1 FROM commands",
