@@ -432,5 +432,8 @@ def _stop(build: Path) -> int:
         cell.close()
     journal.event("stop", "stop sent to the cell (no build was running)")
     journal.close()
-    print(f"{build}: no build was running; the cell was told to stop")
+    # the cell stopped its motion (valves off, tool lifted); its processes stay for
+    # --resume: a tester read "told to stop" as the cell's programs ending
+    print(f"{build}: no build was running; the cell was told to stop its motion (valves "
+          f"off, tool lifted); it keeps running for 'icefab build --resume {build}'")
     return 0
