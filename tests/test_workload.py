@@ -90,6 +90,17 @@ def test_a_gantry_part_outside_its_travel_is_refused(tmp_path):
         prepare_parts(small)
 
 
+def test_a_part_the_laser_cannot_reach_is_refused_before_slicing(tmp_path):
+    # the nozzles reach it, the laser (offset [-30, 19] in the EE frame) does not: the
+    # paths stage refused a measurement path after every layer's scaffold, naming no laser
+    job = _job_for(tmp_path, _box((20, 20, 3)), **{"parts.translation": [300.0, "cent", 0.0]})
+    with pytest.raises(WorkspaceError, match=r"under the laser \(cell.laser_offset_mm = "
+                       r"\[-30.0, 19.0\]; feedback.enabled measures it\) reaches .* beyond "
+                       r"the reach"):
+        prepare_parts(job)
+    prepare_parts(job.replace(**{"feedback.enabled": False}))   # no laser: it fits
+
+
 def test_a_file_in_metres_is_refused_with_the_scale_to_set(tmp_path):
     job = _job_for(tmp_path, _box((0.08, 0.08, 0.1)))
     with pytest.raises(ConfigError, match=r"file in metres or inches\? set parts.scale"):

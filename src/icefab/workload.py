@@ -93,7 +93,9 @@ def check_placed_part(vertices: np.ndarray, job: Job) -> None:
     Raises WorkspaceError naming the settings to change when the part (the slice of it
     ``parts.part_fraction`` selects) is taller than ``cell.stroke_mm``, when a surface
     point lies outside the robot's reach where the water nozzle must put it (with a
-    slack of the boundary path's inset, since the paths lie inside the surface), and
+    slack of the boundary path's inset, since the paths lie inside the surface), the
+    scaffold nozzle the scaffold around it or, with ``feedback.enabled``, the laser
+    either, and
     ConfigError when it is under :data:`MIN_WIDTHS_ACROSS` path widths across.
     """
     v = np.asarray(vertices, dtype=np.float64)
@@ -149,15 +151,26 @@ def check_placed_part(vertices: np.ndarray, job: Job) -> None:
              f"(cell.ee_origin_mm = {list(cell.ee_origin_mm)})")
     # the part under the water nozzle; with a surrounding scaffold also the scaffold, which
     # reaches scaffold.buffer_mm beyond the part, under the scaffold nozzle
-    checks = [("part", 0.0, "")]
+    checks = [("part", "part", 0.0, "")]
     sc = job.scaffold
-    if sc.enabled and sc.mode == "surround" and sc.buffer_mm > 0:
-        checks.append(("scaffold", sc.buffer_mm,
+    around = sc.enabled and sc.mode == "surround" and sc.buffer_mm > 0
+    if around:
+        checks.append(("scaffold", "scaffold", sc.buffer_mm,
                        f" with the scaffold around it (scaffold.buffer_mm = {sc.buffer_mm:g})"))
-    for material, grow, what in checks:
+    if job.feedback.enabled:
+        # the laser maps the part and its scaffold from its own offset (a tester's part
+        # passed here and the paths stage refused its measurement path after the scaffold
+        # of every layer, naming no laser)
+        grow = sc.buffer_mm if around else 0.0
+        checks.append(("laser", "scaffold" if around else "part", grow,
+                       f"{' with the scaffold around it' if around else ''} under the laser "
+                       f"(cell.laser_offset_mm = {list(cell.laser_offset_mm)}; "
+                       "feedback.enabled measures it)"))
+    for tool, material, grow, what in checks:
         mat = job.materials[material]
         slack = mat.initial_offset_mm + mat.path_width_mm - grow
-        base = xy + (np.asarray(cell.ee_origin_mm) - np.asarray(mat.nozzle_offset_mm))
+        offset = cell.laser_offset_mm if tool == "laser" else mat.nozzle_offset_mm
+        base = xy + (np.asarray(cell.ee_origin_mm) - np.asarray(offset))
         if cell.robot == "scara":
             r = np.hypot(base[:, 0], base[:, 1])
             rmin, rmax = cell.reach_mm
