@@ -101,6 +101,14 @@ def test_a_part_the_laser_cannot_reach_is_refused_before_slicing(tmp_path):
     prepare_parts(job.replace(**{"feedback.enabled": False}))   # no laser: it fits
 
 
+def test_a_fraction_thinner_than_a_layer_names_the_fraction(tmp_path):
+    # a 3 mm box at part_fraction [0.99, 1]: the message blamed parts.scale
+    job = _job_for(tmp_path, _box((20, 20, 3)), **{"parts.part_fraction": [0.99, 1.0]})
+    with pytest.raises(ConfigError, match=r"parts.part_fraction = \[0.99, 1.0\]: the slice of "
+                       r"the 3 mm tall part to build is 0.03 mm tall, less than one layer"):
+        prepare_parts(job)
+
+
 def test_a_file_in_metres_is_refused_with_the_scale_to_set(tmp_path):
     job = _job_for(tmp_path, _box((0.08, 0.08, 0.1)))
     with pytest.raises(ConfigError, match=r"file in metres or inches\? set parts.scale"):

@@ -93,7 +93,8 @@ class PartSetup:
         (1, 1, 1),
         "p1 x p2 grid of copies, p3 copies in all",
         lo=1, hi=100,
-        why="more than 100 copies along an axis fit no workspace")
+        why="p1, p2: more than 100 copies along an axis fit no workspace; p3: at most 100 "
+            "copies in all")
     copy_gap_mm: float = setting(
         10.0,
         "gap between part copies in the grid",

@@ -138,6 +138,11 @@ def check_placed_part(vertices: np.ndarray, job: Job) -> None:
             "[1000, 1000, 1000] for metres, [25.4, 25.4, 25.4] for inches)")
     t = job.slicing.layer_thickness_mm
     if height < t:
+        if (f0, f1) != (0.0, 1.0):   # the fraction, not the scale (a tester's 3 mm box)
+            raise ConfigError(
+                f"parts.part_fraction = {list(job.parts.part_fraction)}: the slice of the "
+                f"{_fmt(size[2])} mm tall part to build is {_fmt(height)} mm tall, less than "
+                f"one layer (slicing.layer_thickness_mm = {t:g})")
         raise ConfigError(
             f"the placed part is {_fmt(height)} mm tall, less than one layer "
             f"(slicing.layer_thickness_mm = {t:g}): check parts.scale = "
