@@ -84,7 +84,7 @@ def test_top_layers_under_the_minimum_are_said():
     assert thin.tolist() == [len(t) - 2, len(t) - 1]
     (said,) = [w for w in stack.warnings if "adaptive layers thinner" in w]
     assert said.startswith(f"2 adaptive layers thinner than slicing.min_layer_thickness_mm "
-                           f"= 0.1 (layers {len(t) - 2}, {len(t) - 1}, {t.min():.4g} mm")
+                           f"= 0.1 (layers {len(t) - 2}-{len(t) - 1}, {t.min():.4g} mm")
     for other in (ADAPTIVE, ADAPTIVE.replace(**{"slicing.min_layer_thickness_mm": 0.02})):
         st = slice_mesh(sphere_mesh(64), other)         # said exactly when there are some
         under = (st.thicknesses < other.slicing.min_layer_thickness_mm - 1e-12).any()

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
+from hypothesis import given, strategies as st
 
 from icefab.cli import main
 from icefab.core import Mesh
@@ -96,3 +97,19 @@ def test_saturated_volume_totals_what_the_valve_gave_of_what_smf_asked():
     assert (paths, layers) == (2, 2)
     assert got / asked == pytest.approx(115.28 / (1.3 * 93.75), rel=2e-3)
     assert clamped_volume(found) == (0, 0, 0.0, 0.0)
+
+
+@given(st.lists(st.integers(0, 400), unique=True, max_size=60))
+def test_layer_runs_name_every_layer(layers):
+    # "0-9, 12, 14-20": expanded back, the runs are the sorted layers, and no two runs touch
+    from icefab.findings import layer_runs
+
+    ks = sorted(layers)
+    text = layer_runs(ks)
+    back = []
+    for part in filter(None, text.split(", ")):
+        a, _, b = part.partition("-")
+        back += list(range(int(a), int(b or a) + 1))
+    assert back == ks
+    assert len(text.split(", ")) == 1 + sum(b - a > 1 for a, b in zip(ks, ks[1:])) if ks \
+        else text == ""

@@ -81,7 +81,10 @@ def test_the_filter_count_says_it_precedes_the_unions(tmp_path, capsys):
     both.export(tmp_path / "two.stl")
     assert main(["slice", str(tmp_path / "two.stl"), "-o", str(tmp_path / "o")]) == 0
     text = capsys.readouterr().out
-    assert "layers made as the union of their contours" in text
+    # every layer, as runs: the list stopped at ten with "..." in the warnings file too
+    said = "16 layers made as the union of their contours (overlapping shells or gap " \
+        "closures): 0-15"
+    assert said in text and said in (tmp_path / "o" / "slice-warnings.txt").read_text()
     assert "points (before the unions)" in text
     a.apply_translation((0, 0, 2))
     a.export(tmp_path / "one.stl")

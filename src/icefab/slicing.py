@@ -98,6 +98,7 @@ import numpy as np
 from icefab.config import Job
 from icefab.adaptive import AdaptiveLayers, plan_layers
 from icefab.errors import GeometryError
+from icefab.findings import layer_runs
 from icefab.fitting import fit_rings
 from icefab.geometry import _in_ring, region_from_rings
 from icefab.mesh.topology import edge_buckets
@@ -1164,15 +1165,14 @@ def slice_mesh(mesh: Mesh, job: Job | None = None, *, progress: Progress | None 
             if len(thin):
                 summary.append(
                     f"{len(thin)} adaptive layers thinner than slicing.min_layer_thickness_mm "
-                    f"= {t_min:g} (layers {', '.join(map(str, thin[:6].tolist()))}"
-                    f"{' ...' if len(thin) > 6 else ''}, {float(own[thin].min()):.4g} mm at "
+                    f"= {t_min:g} (layers {layer_runs(thin.tolist())}, "
+                    f"{float(own[thin].min()):.4g} mm at "
                     "the thinnest): the part's top leaves less than two minimum layers, "
                     "and the last two share it within the cusp bound")
         if report.union_layers:
-            shown = ", ".join(map(str, report.union_layers[:10]))
-            more = " ..." if len(report.union_layers) > 10 else ""
             summary.append(f"{len(report.union_layers)} layers made as the union of their "
-                           f"contours (overlapping shells or gap closures): {shown}{more}")
+                           f"contours (overlapping shells or gap closures): "
+                           f"{layer_runs(sorted(report.union_layers))}")
         log.info("sliced %s: %d layers, %d segments, %d contours, %d open chains, %d points "
                  "(%d before filter), %d collapsed", mesh.name, n, report.segments, report.rings,
                  report.open_chains, report.points_after_filter, report.points_before_filter,
