@@ -44,6 +44,9 @@ def test_export_vplus_writes_the_server_sized_for_the_trajectories(tmp_path, cap
     (["--port", "0"], "--port 0: expected 1..65535"),
     (["--valve-output", "98"], "name the same output"),
     (["missing.npz"], "missing.npz: trajectories file not found"),
+    # 1e308 was written as a 309-digit REAL
+    (["--yaw", "1e308"], "--yaw 1e+308: expected a number of degrees within +-360"),
+    (["--zbase", "1e9"], "--zbase 1e+09: expected a number of mm within +-1000"),
 ])
 def test_export_vplus_bad_input_is_one_line_and_exit_2(tmp_path, capsys, monkeypatch,
                                                        argv, message):
@@ -51,6 +54,16 @@ def test_export_vplus_bad_input_is_one_line_and_exit_2(tmp_path, capsys, monkeyp
     assert main(["export", "vplus", "-o", "out", *argv]) == 2
     err = capsys.readouterr().err
     assert message in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "out").exists()
+
+
+def test_export_vplus_refuses_a_gantrys_trajectories(tmp_path, capsys):
+    # the C40's program moves the Cobra: a gantry's plan was "checked to fit"
+    save_trajectories(small_motion(1, Job().replace(**{"cell.cpus": 1, "cell.robot": "gantry"})),
+                      tmp_path / "g.npz")
+    assert main(["export", "vplus", str(tmp_path / "g.npz"), "-o", str(tmp_path / "out")]) == 2
+    assert "g.npz: the V+ program is for the Cobra 600 (a SCARA), and these trajectories " \
+        "were planned for a gantry" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
 
 

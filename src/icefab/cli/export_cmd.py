@@ -145,9 +145,12 @@ def run_vplus(args: argparse.Namespace) -> int:
                               "a V+ digital output number")
     if args.valve_output == args.laser_output:
         raise ConfigError("--valve-output and --laser-output name the same output")
-    for name in ("zbase", "yaw"):
-        if not math.isfinite(getattr(args, name)):
-            raise ConfigError(f"--{name} {getattr(args, name)}: expected a finite number")
+    # a height and an angle a Cobra can take (1e308 was written as a 309-digit REAL)
+    for name, lim, unit in (("zbase", 1000.0, "mm"), ("yaw", 360.0, "degrees")):
+        v = getattr(args, name)
+        if not (math.isfinite(v) and abs(v) <= lim):
+            raise ConfigError(f"--{name} {v:g}: expected a number of {unit} within "
+                              f"+-{lim:g}")
     if not 1 <= args.max_paths <= 64:
         raise ConfigError(f"--max-paths {args.max_paths}: expected 1..64")
     max_points = 8192
@@ -159,6 +162,10 @@ def run_vplus(args: argparse.Namespace) -> int:
         if not src.is_file():
             raise ConfigError(f"{src}: trajectories file not found")
         motion = load_trajectories(src)
+        if motion.robot != "scara":   # the Adept C40's program moves a SCARA
+            raise ConfigError(f"{src}: the V+ program is for the Cobra 600 (a SCARA), and "
+                              f"these trajectories were planned for a {motion.robot}: plan "
+                              "with [cell] robot = \"scara\", or use 'icefab export gcode'")
         longest = max((len(t.xy) for lm in motion.layers for t in lm.trajectories), default=0)
         max_points = max(1024, 1024 * math.ceil(longest / 1024))
         if max_points * args.max_paths > 1_000_000:
