@@ -1378,3 +1378,26 @@ def test_zigzag_links_do_not_cut_across_a_notch_of_the_fill_area():
     job = Job().replace(**changes)
     layer = add_scaffold(make_stack([part] * 2, job)).layers[0]
     check_layer_paths(layer, plan_layer(layer, job, False), job, min_cover=None)
+
+
+def test_a_part_left_without_paths_is_said(tmp_path, capsys):
+    # an initial offset of 50 mm: no part path at all, "unfilled area: part 0 mm²" and no
+    # warning (the strip the offset leaves is not unfilled area, on purpose: now said)
+    from icefab.cli import main
+    from icefab.slicing import save_stack
+
+    job = Job().replace(**{"materials.part.initial_offset_mm": 50.0})
+    stack_file = tmp_path / "stack.npz"
+    save_stack(make_stack(table(4, 2), job), stack_file)
+    (tmp_path / "job.toml").write_text("[materials.part]\ninitial_offset_mm = 50.0\n")
+    assert main(["paths", str(stack_file), "-c", str(tmp_path / "job.toml"), "-o",
+                 str(tmp_path / "out")]) == 0
+    text = capsys.readouterr().out
+    assert "no part path in any layer:" in text
+    assert "materials.part.initial_offset_mm = 50 leaves a 49.2 mm strip" in text
+    said = (tmp_path / "out" / "paths-warnings.txt").read_text()
+    assert "no part path in any layer" in said
+    save_stack(make_stack(table(4, 2), Job()), tmp_path / "default.npz")
+    assert main(["paths", str(tmp_path / "default.npz"), "-o", str(tmp_path / "ok")]) == 0
+    text = capsys.readouterr().out
+    assert "no part path" not in text and "strip inside" not in text

@@ -103,6 +103,30 @@ class PathTally:
             t[2] += float(curve[m].sum())
 
 
+def _empty_material_warnings(stack, tally: PathTally, job) -> list[str]:
+    """A material with area and not one path, and a part edge strip left without paths on
+    purpose (``initial_offset_mm`` beyond half the path width: the nominal area, against
+    which the unfilled area is measured, excludes it). A tester's part at an initial
+    offset of 50 mm got no path, with 'unfilled area: part 0 mm²' and no warning."""
+    out = []
+    for material in ("part", "scaffold"):
+        mat = job.materials[material]
+        area = sum((layer.part if material == "part" else layer.scaffold).area
+                   for layer in stack.layers)
+        paths = sum(tally.counts.get(f"{material} {role}", 0) for role in ("boundary", "fill"))
+        if area > 0 and paths == 0:
+            out.append(f"no {material} path in any layer: {area:.4g} mm^2 of {material} "
+                       f"regions, none left inside materials.{material}.initial_offset_mm = "
+                       f"{mat.initial_offset_mm:g} and the path width "
+                       f"{mat.path_width_mm:g} mm")
+    strip = job.materials.part.initial_offset_mm - job.materials.part.path_width_mm / 2.0
+    if strip > 0:
+        out.append(f"materials.part.initial_offset_mm = {job.materials.part.initial_offset_mm:g}"
+                   f" leaves a {strip:.3g} mm strip inside every part contour without paths "
+                   "(on purpose: it is not counted as unfilled area)")
+    return out
+
+
 def summary_lines(layers: Sequence[LayerHead], warnings: Sequence[str],
                   tally: PathTally) -> list[str]:
     """Counts by role and material, length, unfilled area and the time estimate."""
@@ -174,7 +198,7 @@ def run(args: argparse.Namespace) -> int:
         packed_layers.append(arrays)
         if k in ks:
             pictured[k] = unpack_layer_paths(packed)
-    warnings = paths_warnings(stack, heads)
+    warnings = list(paths_warnings(stack, heads)) + _empty_material_warnings(stack, tally, job)
     t_paths = time.perf_counter() - t0 - t_scaf
     # OUT may hold the stack.npz this command read: output_dir leaves it there
     out = Path(args.out)
