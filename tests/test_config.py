@@ -37,8 +37,8 @@ def test_toml_round_trip(tmp_path):
     ("[parts]\ncopies = [2, 1, 3]\n", "job.toml:2: parts.copies = (2, 1, 3): 3 copies do not "
      "fit a 2 x 1 grid"),
     ("slicing = { layer_thickness_mm = -1 }\n", "job.toml:1: slicing.layer_thickness_mm"),
-    ("[flow]\npwm_frequency_hz = 2000\n", "job.toml:2: flow.pwm_frequency_hz = 2000: must not "
-     "exceed 1 / flow.tick_s = 500 Hz"),
+    ("[flow]\nmode = \"pwm\"\npwm_frequency_hz = 2000\n", "job.toml:3: flow.pwm_frequency_hz = "
+     "2000: must not exceed 1 / flow.tick_s = 500 Hz"),
     ("[flow]\n\ncalibration_pulse_ms = 0.2\n", "job.toml:3: flow.calibration_pulse_ms = 0.2"),
     ("[materials]\npart = { fill_width_mm = 3.0, path_width_mm = 0 }\n",
      "job.toml:2: materials.part.path_width_mm"),
@@ -49,6 +49,15 @@ def test_bad_settings_name_setting_and_line(tmp_path, text, fragment):
     with pytest.raises(ConfigError) as err:
         load_job(f)
     assert fragment in str(err.value)
+
+
+def test_the_pwm_frequency_binds_only_pwm(tmp_path):
+    # FM at max_frequency_hz = 100 was refused for PWM's 125 Hz, a setting FM never reads;
+    # switching that job to PWM is refused with the reason
+    fm = Job().replace(**{"flow.max_frequency_hz": 100.0})
+    with pytest.raises(ConfigError, match="flow.pwm_frequency_hz = 125: must not exceed "
+                                          "flow.max_frequency_hz = 100 Hz"):
+        fm.replace(**{"flow.mode": "pwm"})
 
 
 def test_python_construction_is_validated_too():

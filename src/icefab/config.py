@@ -852,7 +852,8 @@ def _check_cross(job: Job) -> None:
     limits = {"1 / flow.tick_s": 1.0 / fl.tick_s, "flow.max_frequency_hz": fl.max_frequency_hz,
               "1 / flow.min_pulse_ms": 1000.0 / fl.min_pulse_ms}
     name, top = min(limits.items(), key=lambda kv: kv[1])
-    if fl.pwm_frequency_hz > top:
+    if fl.mode == "pwm" and fl.pwm_frequency_hz > top:
+        # only PWM uses it (FM at max_frequency_hz = 100 was refused for PWM's 125 Hz)
         raise ConfigError(f"flow.pwm_frequency_hz = {fl.pwm_frequency_hz:g}: must not exceed "
                           f"{name} = {top:g} Hz")
     if fl.calibration_pulse_ms < fl.min_pulse_ms:
