@@ -102,7 +102,7 @@ def test_saturated_volume_totals_what_the_valve_gave_of_what_smf_asked():
 @given(st.lists(st.integers(0, 400), unique=True, max_size=60))
 def test_layer_runs_name_every_layer(layers):
     # "0-9, 12, 14-20": expanded back, the runs are the sorted layers, and no two runs touch
-    from icefab.findings import layer_runs
+    from icefab.core import layer_runs
 
     ks = sorted(layers)
     text = layer_runs(ks)

@@ -45,22 +45,6 @@ def warning_kind(text: str) -> str:
     return numbers_hidden(_LAYER.sub("", text, count=1))
 
 
-def layer_runs(layers: Sequence[int]) -> str:
-    """Every layer of a sorted list, consecutive ones as runs: "0-9, 12, 14-20" (a warning
-    that listed ten and "..." left the rest out of the warnings file, which holds every
-    warning)."""
-    out: list[str] = []
-    i = 0
-    ks = [int(k) for k in layers]
-    while i < len(ks):
-        j = i
-        while j + 1 < len(ks) and ks[j + 1] == ks[j] + 1:
-            j += 1
-        out.append(str(ks[i]) if j == i else f"{ks[i]}-{ks[j]}")
-        i = j + 1
-    return ", ".join(out)
-
-
 def _span(layers: list[int]) -> str:
     if not layers:
         return ""

@@ -98,11 +98,11 @@ import numpy as np
 from icefab.config import Job
 from icefab.adaptive import AdaptiveLayers, plan_layers
 from icefab.errors import GeometryError
-from icefab.findings import layer_runs
 from icefab.fitting import fit_rings
 from icefab.geometry import _in_ring, region_from_rings
 from icefab.mesh.topology import edge_buckets
-from icefab.core import Layer, Mesh, Region, Stack, offsets, signed_area, split_rows
+from icefab.core import (Layer, Mesh, Region, Stack, layer_runs, offsets, signed_area,
+                         split_rows)
 from icefab.resultfiles import (STACK_FORMAT, STACK_VERSION, load_stack,  # noqa: F401 (old home)
                                 save_stack)
 from icefab.workload import check_layers
