@@ -764,15 +764,15 @@ def format_eta(seconds: float) -> str:
     return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}"
 
 
-def layer_text(layer: int, layers_done: int, layers: int) -> str:
-    """"layer 8 (9 of 12)": the layer's index, as every other message names layers (the
-    stop's "stopped at layer 8"), and its place in the build, counted from 1."""
-    return f"layer {layer} ({min(layers_done + 1, layers)} of {layers})"
+def layer_place(layer: int, layers_done: int, layers: int) -> str:
+    """"8 (9 of 12)": the layer's index, as every other message names layers (the stop's
+    "stopped at layer 8"), and its place in the build, counted from 1."""
+    return f"{layer} ({min(layers_done + 1, layers)} of {layers})"
 
 
 def progress_line(p: Progress) -> str:
     rms = f"{p.last_rms_mm:.3f} mm" if math.isfinite(p.last_rms_mm) else "-"
-    return (f"{layer_text(p.layer, p.layer_pos, p.layers)}, paths {p.paths_done}/"
+    return (f"layer {layer_place(p.layer, p.layer_pos, p.layers)}, paths {p.paths_done}/"
             f"{p.paths}, ETA {format_eta(p.remaining_s)}, last RMS {rms}")
 
 
@@ -831,7 +831,7 @@ def write_report(build_dir: Path, progress: Progress, journal: Journal, job: "Jo
     status_rows = "".join(
         f"<tr><th>{e(k)}</th><td>{e(str(v))}</td></tr>" for k, v in (
             ("state", st["state"]),
-            ("layer", layer_text(progress.layer, progress.layer_pos, progress.layers)[6:]),
+            ("layer", layer_place(progress.layer, progress.layer_pos, progress.layers)),
             ("paths", f"{progress.paths_done} of {progress.paths}"),
             ("ETA (planned motion)", format_eta(progress.remaining_s)),
             ("last RMS (mm)", "-" if st["last_rms_mm"] is None

@@ -381,7 +381,7 @@ def _status(build: Path, as_json: bool) -> int:
         return 0
     rms = "-" if st["last_rms_mm"] is None else f"{st['last_rms_mm']:.3f} mm"
     print(f"{build}: {st['state']}; "
-          f"{bmod.layer_text(st['layer'], st['layers_done'], st['layers'])}, paths "
+          f"layer {bmod.layer_place(st['layer'], st['layers_done'], st['layers'])}, paths "
           f"{st['paths_done']}/{st['paths']}, ETA "
           f"{bmod.format_eta(st['eta_s'])}, last RMS {rms}")
     for line in st.get("events", [])[-5:]:

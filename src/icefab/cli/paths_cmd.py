@@ -22,7 +22,7 @@ import numpy as np
 from icefab.cli.common import (ESTIMATE_WORDS, Progress, add_job_argument, hours,
                                job_from_args, output_dir, parse_layers, warning_lines,
                                write_warnings)
-from icefab.core import MATERIALS, ROLES
+from icefab.core import DEPOSITING_ROLES, MATERIALS, ROLES
 from icefab.report import plot_toolpaths
 from icefab.resultfiles import LayerHead, packed_lengths
 
@@ -113,7 +113,7 @@ def _empty_material_warnings(stack, tally: PathTally, job) -> list[str]:
         mat = job.materials[material]
         area = sum((layer.part if material == "part" else layer.scaffold).area
                    for layer in stack.layers)
-        paths = sum(tally.counts.get(f"{material} {role}", 0) for role in ("boundary", "fill"))
+        paths = sum(tally.counts.get(f"{material} {role}", 0) for role in DEPOSITING_ROLES)
         if area > 0 and paths == 0:
             out.append(f"no {material} path in any layer: {area:.4g} mm^2 of {material} "
                        f"regions, none left inside materials.{material}.initial_offset_mm = "

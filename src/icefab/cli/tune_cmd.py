@@ -113,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
             raise ConfigError(f"--layers {n_layers}: the thesis' disturbance has its pulse at "
                               "layer 60; give --layers 60 or more, or your own --pulse, "
                               "--step or --noise")
-        dist = Disturbance(n_layers=n_layers, pulses=((0.5, 60),), steps=((0.2, 30),))
+        dist = Disturbance(n_layers=n_layers)   # its defaults are the thesis' disturbance
     else:
         dist = Disturbance(n_layers=n_layers, pulses=pulses, steps=steps, noise=noise,
                            seed=seed)
