@@ -6,7 +6,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from icefab import Job
@@ -75,6 +75,10 @@ def _programs_agree(a, b):
        high_rate=st.booleans(), short_pieces=st.booleans(), clamp=st.booleans(),
        thickness=st.sampled_from([float("nan"), 0.1, 0.6]), variable=st.booleans(),
        tours=st.booleans())
+# a clamped tour: its laid volume came out 4.5 % above plan_valves' (the flow taken as
+# passing as commanded where the clamp held the valve at its table's end)
+@example(seed=12, count=5, high_rate=False, short_pieces=False, clamp=True, thickness=0.6,
+         variable=True, tours=True)
 def test_a_layer_at_once_equals_path_by_path(seed, count, high_rate, short_pieces, clamp,
                                              thickness, variable, tours):
     rng = np.random.default_rng(seed)

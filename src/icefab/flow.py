@@ -1464,14 +1464,16 @@ def _nominal_fm_programs(trajs: "Sequence[Trajectory]", materials: Sequence[str]
     few_min = np.minimum.reduceat(np.where(few, drops, np.inf), first)
     nu_peak = np.maximum.reduceat(nu, first)
     times, toff = pulse_instants_many(t, nu, starts)
-    # every flow made here lies within its table (the rest: plan_valves), so it passes as
-    # commanded
-    commanded, laid = _fm_volumes(t, q, nu, starts, np.diff(toff))
+    # what the valve passes: the commanded flow within its table, the table's end where
+    # flow.out_of_range = "clamp" clamped the frequency there (taking q everywhere, a
+    # clamped tour's laid volume came out 4.5 % above plan_valves')
+    passed = np.where(flowing, np.clip(q, lo_flow, hi_flow), 0.0)
+    commanded, laid = _fm_volumes(t, q, nu, starts, np.diff(toff), passed)
     tours = np.array([tr.on_spans is not None for tr in sel], dtype=bool)
     if tours.any():
         times, toff, c_tour, l_tour = _tour_pulses(sel, tours, times, toff, speed, nu, q,
-                                                   width, own_width, first, n, dt, mats,
-                                                   tables, dh, job)
+                                                   passed, width, own_width, first, n, dt,
+                                                   mats, tables, dh, job)
         commanded[tours], laid[tours] = c_tour, l_tour
     tick = fl.tick_s
     most = piece_pulses(job)
@@ -1520,7 +1522,8 @@ def _nominal_fm_programs(trajs: "Sequence[Trajectory]", materials: Sequence[str]
 
 def _tour_pulses(sel: "Sequence[Trajectory]", tours: np.ndarray, times: np.ndarray,
                  toff: np.ndarray, speed: np.ndarray, nu: np.ndarray,
-                 q: np.ndarray, width: np.ndarray, own_width: np.ndarray, first: np.ndarray,
+                 q: np.ndarray, passed: np.ndarray, width: np.ndarray,
+                 own_width: np.ndarray, first: np.ndarray,
                  n: np.ndarray, dt: np.ndarray, mats: Sequence[str],
                  tables: dict[str, Calibration], dh: float, job: "Job"
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -1529,7 +1532,7 @@ def _tour_pulses(sel: "Sequence[Trajectory]", tours: np.ndarray, times: np.ndarr
     places them (:func:`_span_layout`, :func:`_span_ends`, the same operations over all
     the tours' spans at once): ``(times, offsets)`` as ``pulse_instants_many`` gives
     them, and each tour's ``(commanded, laid)`` mm^3 (:func:`_fm_volumes`, over its
-    spans)."""
+    spans; ``passed`` (N,) mm^3/s: the flow the valve passes at each sample)."""
     from icefab._pulses import pulse_instants_many
 
     which = np.flatnonzero(tours)
@@ -1544,11 +1547,15 @@ def _tour_pulses(sel: "Sequence[Trajectory]", tours: np.ndarray, times: np.ndarr
         rows = end_mat == mt
         nu_e[rows] = np.where(q_e[rows] > 0, tables[mt].frequency(q_e[rows]), 0.0)
     nu_e = np.minimum(nu_e, max_valve_frequency(job))
+    passed_e = np.zeros(len(q_e))   # the ends' flows as the valve passes them
+    for mt in set(end_mat.tolist()):
+        rows = (end_mat == mt) & (nu_e > 0)
+        passed_e[rows] = tables[mt].flow(nu_e[rows])
     on = _span_signal(lay, q, nu, q_e, nu_e)
     span_times, span_off = pulse_instants_many(on.t, on.nu, on.start)
     span_times = _kept_in_spans(span_times, np.diff(span_off), _on_ends(on), job.flow.tick_s)
-    # a span's ends flow between their neighbouring samples' flows: within the table
-    span_vol = _fm_volumes(on.t, on.q, on.nu, on.start, np.diff(span_off))
+    span_vol = _fm_volumes(on.t, on.q, on.nu, on.start, np.diff(span_off),
+                           lay.laid_out(passed, passed_e))
     tour_of_span = np.repeat(np.arange(len(count)), count)
     tour_vol = [np.bincount(tour_of_span, weights=v, minlength=len(count)) for v in span_vol]
     # every trajectory's pulses: its own, or its spans' in order
