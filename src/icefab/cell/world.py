@@ -268,18 +268,15 @@ class World:
     def covers(self, xy_base: np.ndarray, tool: str) -> bool:
         """Whether every point of a path, the joint-4 axis in the base frame (mm), puts
         ``tool`` ("part", "scaffold" or "laser") over the surface grid."""
-        from icefab.frames import tool_offset
+        from icefab.frames import to_part_frame
 
         if len(xy_base) == 0:
             return True
-        xy = np.asarray(xy_base, dtype=np.float64) - (
-            np.asarray(self.job.cell.ee_origin_mm, dtype=np.float64)
-            - tool_offset(tool, self.job))
+        xy = to_part_frame(xy_base, tool, self.job)
         ny, nx = self.z.shape
         hi = self.origin + self.spacing * np.array([nx - 1, ny - 1], dtype=np.float64)
         eps = 1e-6 + 1e-9 * float(np.abs(hi).max())
-        lo_ok = (xy >= self.origin - eps).all()
-        return bool(lo_ok and (xy <= hi + eps).all())
+        return bool((xy >= self.origin - eps).all() and (xy <= hi + eps).all())
 
     def _layer(self, layer: int) -> None:
         """Paths of a new layer freeze the previous one's liquid first."""
