@@ -560,7 +560,7 @@ def test_a_new_build_takes_the_parts_its_job_names(tmp_path, capsys):
     assert "old.json: not a cell's endpoints file" in err and "INPUT" not in err
     assert not (tmp_path / "b").exists()
     assert main(["build", "-o", str(tmp_path / "b"), "--virtual"]) == 2
-    assert "a new build needs an INPUT" in capsys.readouterr().err
+    assert "no input: give mesh file(s), 'demo' or a result .npz" in capsys.readouterr().err
     # adaptive layers: refused from the job, before slicing (it came after planning)
     (tmp_path / "adapt.toml").write_text("[slicing]\ncusp_height_mm = 0.1\n")
     assert main(["build", str(tmp_path / "box.stl"), "-c", str(tmp_path / "adapt.toml"), "-o",

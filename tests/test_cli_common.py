@@ -208,3 +208,34 @@ def test_one_build_time_comparison_in_words():
     slower = compare_build_times(7200.0, 3600.0)
     assert slower.endswith("minimum-time is 100 % longer") and "-100" not in slower
     assert "no motion" in compare_build_times(0.0, 10.0)
+
+
+def test_paths_and_simulate_take_the_parts_a_job_names(tmp_path, capsys):
+    """`slice` and `build` took parts.files when no MODEL was given; `paths`, `plan` and
+    `simulate` asked for one (a tester's legacy control file). A result file among mesh files was
+    read as a mesh ('unknown mesh format'); it must be given alone."""
+    import trimesh
+
+    trimesh.creation.box(extents=(12.0, 10.0, 4.0)).export(tmp_path / "box.stl")
+    job = tmp_path / "job.toml"
+    job.write_text('[parts]\nfiles = ["box.stl"]\n[slicing]\nlayer_thickness_mm = 1.0\n'
+                   "[simulation]\nlayers = 4\n")
+    assert main(["paths", "-c", str(job), "-o", str(tmp_path / "p")]) == 0
+    assert "part boundary" in capsys.readouterr().out
+    assert (tmp_path / "p" / "toolpaths.npz").is_file()
+    assert main(["plan", "-c", str(job), "-o", str(tmp_path / "t")]) == 0
+    assert (tmp_path / "t" / "trajectories.npz").is_file()
+    assert main(["simulate", "-c", str(job), "-o", str(tmp_path / "s")]) == 0
+    assert (tmp_path / "s").is_dir()
+    capsys.readouterr()
+    for command in (["paths"], ["plan"], ["simulate"]):
+        assert main(command + ["-o", str(tmp_path / "none")]) == 2
+        assert "no input: give mesh file(s)" in capsys.readouterr().err
+    stack = tmp_path / "p" / "toolpaths.npz"
+    for command in (["paths", str(stack), str(tmp_path / "box.stl")],
+                    ["plan", str(tmp_path / "box.stl"), str(stack)],
+                    ["simulate", str(tmp_path / "box.stl"), "demo"]):
+        assert main(command + ["-o", str(tmp_path / "two")]) == 2
+        err = capsys.readouterr().err
+        assert "give it alone" in err and "unknown mesh format" not in err, err
+    assert not (tmp_path / "none").exists() and not (tmp_path / "two").exists()

@@ -31,7 +31,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from icefab.cli.common import add_job_argument
+from icefab.cli.common import add_job_argument, command_inputs, job_from_args
 from icefab.errors import ConfigError
 
 
@@ -75,15 +75,8 @@ def run(args: argparse.Namespace) -> int:
     if not args.out:
         raise ConfigError("-o BUILD is required for a new build (or --resume/--status/--stop "
                           "BUILD)")
-    if not args.input and getattr(args, "job", None):
-        # the job's own parts (parts.files; a legacy control file names them), as
-        # 'icefab slice' takes them
-        from icefab.cli.common import job_from_args
-
-        args.input = list(job_from_args(args).parts.files)
-    if not args.input:
-        raise ConfigError("a new build needs an INPUT: mesh file(s), 'demo', toolpaths or "
-                          "trajectories (or parts.files in the job file)")
+    # no INPUT: the job's own parts (parts.files; a legacy control file names them)
+    args.input = command_inputs(args.input, job_from_args(args), words=("demo",))
     if not (args.virtual or args.cell):
         raise ConfigError("choose the cell: --virtual (start one) or --cell ENDPOINTS")
     if args.layers is not None and args.layers < 1:
@@ -116,7 +109,7 @@ def _plan(args: argparse.Namespace, out: Path):
     the layers to build to ``out`` (a trajectories file), planned layer by layer as they
     stream into it: a 1 M-facet part's build never holds its samples in memory (issue
     17)."""
-    from icefab.cli.common import Progress, job_from_args
+    from icefab.cli.common import Progress
     from icefab.cli.simulate_cmd import load_build
     from icefab.core import Toolpaths
     from icefab.headroom import headroom_findings, layer_headroom, tightest

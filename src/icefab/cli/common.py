@@ -30,6 +30,25 @@ def job_from_args(args: argparse.Namespace) -> Job:
     return load_job(args.job) if getattr(args, "job", None) else Job()
 
 
+def command_inputs(given: list[str], job: Job, *, words: tuple[str, ...] = ()) -> list[str]:
+    """A command's inputs: the MODEL arguments, or the job's ``parts.files`` when none are
+    given (as ``icefab slice`` takes them; a legacy control file names its meshes). A result
+    file (``.npz``) or one of ``words`` (``demo``) stands for the whole build and must be
+    given alone: among mesh files it was read as a mesh ('unknown mesh format')."""
+    if not given:
+        if not job.parts.files:
+            raise ConfigError("no input: give mesh file(s)" + "".join(
+                f", '{w}'" for w in words) + " or a result .npz, or parts.files in the job "
+                "file")
+        return list(job.parts.files)
+    if len(given) > 1:
+        lone = [g for g in given if Path(g).suffix.lower() == ".npz" or g in words]
+        if lone:
+            raise ConfigError(f"{lone[0]}: give it alone; it holds the whole build, not one "
+                              f"of several parts (inputs: {' '.join(given)})")
+    return list(given)
+
+
 def parse_layers(text: str | None, n: int, default_count: int = 4) -> list[int]:
     """Layer indices from a ``--layers K,K,...`` option for a build of ``n`` layers.
 

@@ -1,4 +1,4 @@
-"""``icefab paths MODEL|STACK.npz [-c job.toml] -o OUT [--layers 10,50,100]``.
+"""``icefab paths MODEL...|STACK.npz [-c job.toml] -o OUT [--layers 10,50,100]``.
 
 From a mesh (loaded, placed and sliced) or a saved stack (``icefab slice``), adds the
 scaffold regions if the stack has none (``icefab.regions``), plans the paths of every
@@ -19,8 +19,8 @@ from typing import Sequence
 
 import numpy as np
 
-from icefab.cli.common import (ESTIMATE_WORDS, Progress, add_job_argument, hours,
-                               job_from_args, output_dir, parse_layers, warning_lines,
+from icefab.cli.common import (ESTIMATE_WORDS, Progress, add_job_argument, command_inputs,
+                               hours, job_from_args, output_dir, parse_layers, warning_lines,
                                write_warnings)
 from icefab.core import DEPOSITING_ROLES, MATERIALS, ROLES
 from icefab.report import plot_toolpaths
@@ -36,8 +36,9 @@ def add_parser(subparsers) -> None:
                     "and travel paths of both materials (thesis 3.4-3.7). Input: a mesh "
                     "(STL, PLY, OBJ) or a stack.npz from 'icefab slice'. Writes "
                     "OUT/toolpaths.npz and OUT/paths.png.")
-    p.add_argument("model", nargs="+", metavar="MODEL|STACK",
-                   help="mesh file(s) (replace parts.files of the job) or one stack .npz")
+    p.add_argument("model", nargs="*", metavar="MODEL|STACK",
+                   help="mesh file(s) (replace parts.files of the job) or one stack .npz "
+                        "(default: parts.files of the job)")
     add_job_argument(p)
     p.add_argument("-o", "--out", required=True, metavar="OUT", help="output folder")
     p.add_argument("--layers", metavar="K,K,...",
@@ -153,13 +154,14 @@ def _load_stack(args: argparse.Namespace, job):
     from icefab import mesh as meshmod
     from icefab.slicing import load_stack, slice_mesh
 
-    first = Path(args.model[0])
-    if len(args.model) == 1 and first.suffix.lower() == ".npz":
+    model = command_inputs(args.model, job)
+    first = Path(model[0])
+    if len(model) == 1 and first.suffix.lower() == ".npz":
         stack = load_stack(first)
         if args.job:
             stack = dataclasses.replace(stack, job=job)
         return stack, stack.job
-    files = tuple(str(Path(m).resolve()) for m in args.model)
+    files = tuple(str(Path(m).resolve()) for m in model)
     job = dataclasses.replace(job, parts=dataclasses.replace(job.parts, files=files))
     mesh = meshmod.prepare_parts(job)
     return slice_mesh(mesh, job, progress=Progress("slicing")), job

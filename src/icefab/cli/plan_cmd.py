@@ -1,4 +1,4 @@
-"""``icefab plan MODEL|TOOLPATHS [-c job.toml] -o OUT [--layers K,K] [--no-jerk] [--gcode]
+"""``icefab plan MODEL...|TOOLPATHS [-c job.toml] -o OUT [--layers K,K] [--no-jerk] [--gcode]
 [--constant-spacing MM]``.
 
 Minimum-time trajectories for every path of a build (thesis Ch. 4). The input is a mesh
@@ -33,8 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
-from icefab.cli.common import (ESTIMATE_WORDS, Progress, add_job_argument, compare_build_times,
-                               hours, job_from_args, output_dir,
+from icefab.cli.common import (ESTIMATE_WORDS, Progress, add_job_argument, command_inputs,
+                               compare_build_times, hours, job_from_args, output_dir,
                                parse_layers)
 from icefab.core import DEPOSITING_CODES
 from icefab.errors import ConfigError
@@ -49,8 +49,10 @@ def add_parser(subparsers) -> None:
                     "OUT/trajectories.npz, OUT/speed_layer_K.png and OUT/plan-summary.txt; "
                     "with --gcode also OUT/trajectories.gcode, with --constant-spacing "
                     "OUT/constant_spacing.npz (formats: 'pydoc icefab.motion').")
-    p.add_argument("input", metavar="MODEL|TOOLPATHS",
-                   help="mesh file (STL, PLY, OBJ) or toolpath file (.npz from 'icefab paths')")
+    p.add_argument("input", nargs="*", metavar="MODEL|TOOLPATHS",
+                   help="mesh file(s) (STL, PLY, OBJ; replace parts.files of the job) or one "
+                        "toolpath file (.npz from 'icefab paths'; default: parts.files of the "
+                        "job)")
     add_job_argument(p)
     p.add_argument("-o", "--out", required=True, metavar="OUT", help="output folder")
     p.add_argument("--layers", metavar="K,K,...",
@@ -67,15 +69,16 @@ def add_parser(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-def load_input(path: str, job):
-    """Toolpaths from a toolpath file, or from a mesh through slicing, scaffold and paths."""
+def load_input(inputs: list[str], job):
+    """Toolpaths from a toolpath file, or from mesh files through slicing, scaffold and
+    paths. ``job`` is None when no ``-c`` was given: a toolpath file's own job then."""
     from icefab.paths import plan_paths
     from icefab.resultfiles import load_packed_toolpaths
     from icefab.stages import check_agrees
-    src = Path(path)
-    if not src.exists():
-        raise ConfigError(f"{src}: input file not found")
-    if src.suffix.lower() == ".npz":
+    src = Path(inputs[0])
+    if len(inputs) == 1 and src.suffix.lower() == ".npz":
+        if not src.exists():
+            raise ConfigError(f"{src}: input file not found")
         # as its arrays: checked and sent to the workers so, no Toolpath made (issue 17)
         tp = load_packed_toolpaths(src)
         if job is None:
@@ -89,15 +92,13 @@ def load_input(path: str, job):
                   f"made with a {tp.job.cell.robot} (cell.robot)", file=sys.stderr)
         return tp, job
     from icefab import mesh as meshmod
+    from icefab.config import Job
     from icefab.regions import add_scaffold
     from icefab.slicing import slice_mesh
-    job = job or __import__("icefab").Job()
-    job = dataclasses.replace(job, parts=dataclasses.replace(
-        job.parts, files=(str(src.resolve()),)))
-    if hasattr(meshmod, "prepare_parts"):  # placement per the job (thesis 3.1.2)
-        mesh = meshmod.prepare_parts(job)
-    else:  # pragma: no cover - until the mesh stage provides placement
-        mesh = meshmod.load_mesh(src, inexact=job.parts.inexact)
+    job = job or Job()
+    files = tuple(str(Path(m).resolve()) for m in inputs)
+    job = dataclasses.replace(job, parts=dataclasses.replace(job.parts, files=files))
+    mesh = meshmod.prepare_parts(job)   # placement per the job (thesis 3.1.2)
     stack = slice_mesh(mesh, job, progress=Progress("slicing"))
     stack = add_scaffold(stack, job)
     return plan_paths(stack, job), job
@@ -122,9 +123,11 @@ def run(args: argparse.Namespace) -> int:
     spacing = getattr(args, "constant_spacing", None)
     if spacing is not None and not (math.isfinite(spacing) and spacing > 0.0):
         raise ConfigError(f"--constant-spacing {spacing:g}: expected a positive number of mm")
-    job = job_from_args(args) if getattr(args, "job", None) else None
+    given = job_from_args(args)
+    inputs = command_inputs(args.input, given)
+    job = given if getattr(args, "job", None) else None
     t0 = time.perf_counter()
-    tp, job = load_input(args.input, job)
+    tp, job = load_input(inputs, job)
     ks = parse_layers(args.layers, len(tp.layers), default_count=3)  # before planning
     if spacing is not None:
         # the output is made in memory, from the whole build (a tester's 0.0001 mm asked

@@ -1,4 +1,4 @@
-"""``icefab simulate MODEL|TOOLPATHS.npz|TRAJECTORIES.npz|demo [-c job.toml] [--layers N] -o OUT``.
+"""``icefab simulate MODEL...|TOOLPATHS.npz|TRAJECTORIES.npz|demo [-c job.toml] [--layers N] -o OUT``.
 
 Runs a build (or its first N layers) on the virtual cell (``icefab.sim``) twice with the
 same disturbances: open loop, and with surface mapping feedback. Prints the RMS height
@@ -39,7 +39,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from icefab.cli.common import Progress, add_job_argument, job_from_args, output_dir
+from icefab.cli.common import (Progress, add_job_argument, command_inputs, job_from_args,
+                               output_dir)
 from icefab.atomic import write_atomic
 from icefab.errors import ConfigError, SimulationError, StackFileError
 from icefab.report import plot_rms, plot_surfaces
@@ -62,9 +63,9 @@ def add_parser(subparsers) -> None:
                     "layer (thesis Fig. 5-8, 5-9). Input: mesh file(s), 'demo', a "
                     "toolpaths.npz from 'icefab paths' or a trajectories.npz from "
                     "'icefab plan'.")
-    p.add_argument("model", nargs="+", metavar="MODEL|TOOLPATHS|TRAJECTORIES",
+    p.add_argument("model", nargs="*", metavar="MODEL|TOOLPATHS|TRAJECTORIES",
                    help="mesh file(s), 'demo' (the built-in mug), one toolpaths .npz or one "
-                        "trajectories .npz")
+                        "trajectories .npz (default: parts.files of the job)")
     add_job_argument(p)
     p.add_argument("-o", "--out", required=True, metavar="OUT", help="output folder")
     p.add_argument("--layers", type=int, metavar="N",
@@ -308,7 +309,9 @@ def run(args: argparse.Namespace) -> int:
     from icefab.core import Toolpaths
 
     t0 = time.perf_counter()
-    build, job = load_build(args.model, job_from_args(args), args)
+    given = job_from_args(args)
+    args.model = command_inputs(args.model, given, words=("demo",))
+    build, job = load_build(args.model, given, args)
     n = job.simulation.layers or len(build)
     n = min(n, len(build))
     # check what can be checked before anything is planned or simulated
