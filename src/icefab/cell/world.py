@@ -222,7 +222,7 @@ class World:
         number of pulses.
         """
         from icefab import flow
-        from icefab.frames import tool_offset
+        from icefab.frames import to_part_frame
 
         sim = _simulator
         job = self.job
@@ -231,9 +231,7 @@ class World:
         self._layer(layer)
 
         def part_xy(material: str) -> np.ndarray:
-            return np.asarray(xy_base, dtype=np.float64) - (
-                np.asarray(job.cell.ee_origin_mm, dtype=np.float64)
-                - tool_offset(material, job))
+            return to_part_frame(xy_base, material, job)
 
         by_valve: dict[int, list] = {}
         for v, t, w in pulses:
@@ -317,15 +315,14 @@ class World:
         where the spot was ``simulation.laser_latency_s`` earlier, plus Gaussian noise
         (``laser_noise_mm``), relative to ``z_ref_mm`` (the laser is zeroed at the path
         height). Freezes the current layer first."""
-        from icefab.frames import tool_offset
+        from icefab.frames import to_part_frame
         from icefab.core import HeightMap
 
         sim_mod = _simulator
         self.freeze()
         job = self.job
         sim = job.simulation
-        xy = np.asarray(xy_base, dtype=np.float64) - (
-            np.asarray(job.cell.ee_origin_mm, dtype=np.float64) - tool_offset("laser", job))
+        xy = to_part_frame(xy_base, "laser", job)
         tagged, true = sim_mod.laser_in_time(xy, float(dt_s), sim.laser_rate_hz,
                                               sim.laser_latency_s)
         surf = HeightMap(origin=self.origin, spacing=self.spacing, z=self.z)
