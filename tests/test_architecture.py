@@ -17,10 +17,10 @@ SRC = Path(__file__).resolve().parents[1] / "src"
 #: The pipeline, bottom first. A module may import its own stage and earlier ones. An entry
 #: names a module or a package (then every module inside it belongs to the stage too).
 STAGES: list[tuple[str, tuple[str, ...]]] = [
-    ("foundation", ("icefab.errors", "icefab.atomic", "icefab.config", "icefab.core",
-                    "icefab.types", "icefab.stages", "icefab.parallel", "icefab.frames",
-                    "icefab.robots", "icefab._codec", "icefab.resultfiles", "icefab.inputs",
-                    "icefab.workload")),
+    ("foundation", ("icefab._kernel_cache", "icefab.errors", "icefab.atomic", "icefab.config",
+                    "icefab.core", "icefab.types", "icefab.stages", "icefab.parallel",
+                    "icefab.frames", "icefab.robots", "icefab._codec", "icefab.resultfiles",
+                    "icefab.inputs", "icefab.workload")),
     ("geometry", ("icefab._smooth", "icefab.geometry")),
     ("mesh", ("icefab.mesh", "icefab.demo")),
     ("slicing", ("icefab.adaptive", "icefab.fitting", "icefab.slicing")),

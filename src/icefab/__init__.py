@@ -11,6 +11,12 @@ import importlib
 import logging
 from typing import Any
 
+from icefab import _kernel_cache
+
+# before any kernel is loaded from numba's cache: a cached kernel may hold an edited
+# module's old code (icefab._kernel_cache)
+_kernel_cache.check()
+
 from icefab.config import Job, load_job
 from icefab.errors import IcefabError
 from icefab.core import (HeightMap, Layer, LayerPaths, Mesh, Path, Region, Stack, Toolpath,
