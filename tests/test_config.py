@@ -82,3 +82,30 @@ def test_a_section_given_keeps_the_defaults_of_its_place(tmp_path):
                          ).materials.scaffold.initial_offset_mm == 1.2
     with pytest.raises(ConfigError, match="materials.scaffold.initial_offset_mm"):
         job_from_dict({"materials": {"scaffold": {"initial_offset_mm": -1.0}}})
+
+
+def test_relative_file_names_are_beside_the_job_file(tmp_path, monkeypatch):
+    # a tester's relative calibration_file was read from the current folder, at every
+    # later step (the job travels in the result files): the same trajectories gave other
+    # valve programs depending on where 'icefab valves' ran
+    (tmp_path / "job").mkdir()
+    (tmp_path / "job" / "cal.csv").write_text("frequency_hz,flow_mm3_s\n0,0\n500,150\n")
+    (tmp_path / "job" / "job.toml").write_text(
+        '[parts]\nfiles = ["cube.obj"]\n[materials.part]\ncalibration_file = "cal.csv"\n'
+        '[materials.scaffold]\ncalibration_file = "../other.csv"\n')
+    monkeypatch.chdir(tmp_path)
+    job = load_job("job/job.toml")
+    assert job.parts.files == (str(tmp_path / "job" / "cube.obj"),)
+    assert job.materials.part.calibration_file == str(tmp_path / "job" / "cal.csv")
+    assert job.materials.scaffold.calibration_file == str(tmp_path / "other.csv")
+    # stored so: a result file's job reads the same table from anywhere
+    assert load_job_text(to_toml(job)).materials.part.calibration_file == str(
+        tmp_path / "job" / "cal.csv")
+    # the built-in table stays the built-in table
+    (tmp_path / "plain.toml").write_text("[slicing]\nlayer_thickness_mm = 0.5\n")
+    assert load_job("plain.toml").materials.part.calibration_file == ""
+
+
+def load_job_text(text):
+    import tomllib
+    return job_from_dict(tomllib.loads(text))

@@ -716,7 +716,9 @@ class SimulationSettings:
         why="about a drop")
     laser_latency_s: float = setting(
         0.002,
-        "uncompensated laser latency: samples lag behind the position they are tagged with",
+        "the simulated laser's own latency (the simulator's and the virtual cell's): a sample "
+        "reads where the spot was this long before the position it is tagged with; builds "
+        "and the simulator take cell.laser_latency_s off",
         lo=0.0, hi=1.0,
         why="sensor latency is milliseconds")
     laser_rate_hz: float = setting(
@@ -1053,10 +1055,18 @@ def load_job(path: str | Path) -> Job:
         job = job_from_dict(data)
     except ConfigError as exc:
         raise _located(exc, path, lambda name: _line_of(text, name)) from None
-    # Relative mesh paths are relative to the job file.
-    files = tuple(str((path.parent / f).resolve()) if not Path(f).is_absolute() else f
-                  for f in job.parts.files)
-    return dataclasses.replace(job, parts=dataclasses.replace(job.parts, files=files))
+    # Relative file names (meshes, valve calibration tables) are relative to the job
+    # file, stored resolved: the job travels inside every result file and each later step
+    # reads the table again, from wherever it runs (a tester's relative calibration_file
+    # was read from the current folder: other valve programs from the same trajectories)
+    def beside(f: str) -> str:
+        return str((path.parent / f).resolve()) if f and not Path(f).is_absolute() else f
+
+    files = tuple(beside(f) for f in job.parts.files)
+    job = dataclasses.replace(job, parts=dataclasses.replace(job.parts, files=files))
+    tables = {f"materials.{m}.calibration_file": beside(job.materials[m].calibration_file)
+              for m in ("part", "scaffold") if job.materials[m].calibration_file}
+    return job.replace(**tables) if tables else job
 
 
 # --------------------------------------------------------------------------- legacy file
