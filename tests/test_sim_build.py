@@ -244,3 +244,22 @@ def test_paths_the_simulator_cannot_use_are_named():
         tp = Toolpaths(layers=(LayerPaths(index=5, z=0.25, paths=(path,)),), job=job)
         with pytest.raises(SimulationError, match=f"layer 5: .*{msg}"):
             simulate_build(tp, job, closed_loop=False)
+
+
+def test_the_calibrated_latency_is_taken_off_the_lasers_own():
+    # a build takes cell.laser_latency_s off what the laser reads (icefab.build), the
+    # virtual cell's laser lags by simulation.laser_latency_s; the simulator ignored the
+    # calibrated value (a tester's 0.05 s gave the same RMS), so it measured otherwise
+    base = {"simulation.flow_error": 0.10, "simulation.edge_loss": 0.1}
+
+    def closed(**changes):
+        job = quiet_job(**base, **changes)
+        res = simulate_build(annulus_toolpaths(job, 12), job, controller=stand_in_controller())
+        return res.rms.tolist(), res.rms_measured.tolist()
+
+    none = closed()
+    assert closed(**{"simulation.laser_latency_s": 0.05, "cell.laser_latency_s": 0.05}) == none
+    lagging = closed(**{"simulation.laser_latency_s": 0.05})
+    assert lagging != none
+    # overstated by the calibration: the samples read ahead of their tags, as a build does
+    assert closed(**{"cell.laser_latency_s": 0.05}) not in (none, lagging)

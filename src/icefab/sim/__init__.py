@@ -48,8 +48,10 @@ What it models
   scaffold footprint; not the part/scaffold interface).
 * **Laser** (thesis 5.2.1): samples at ``laser_rate_hz`` along the measurement paths at the
   measurement speed (along the measurement trajectories, in time, when the build runs on
-  trajectories), with Gaussian noise and an uncompensated latency: a sample tagged with
-  the position at time ``t`` reads the surface where the laser was at ``t - latency``.
+  trajectories), with Gaussian noise and the latency a build leaves uncompensated
+  (``simulation.laser_latency_s`` less the calibrated ``cell.laser_latency_s`` the build
+  takes off, :func:`icefab.sim.laser.uncompensated_latency_s`): a sample tagged with the
+  position at time ``t`` reads the surface where the laser was at ``t - latency``.
 * **Control** (thesis 5.1.3, 5.2.2): with ``deposition = "flow"`` the nu-controller
   scales the flow of every segment by ``1 + u`` evaluated at the segment's midpoint, and
   the c-controller (speed ``1 / (1 + u)``, the same volume per millimetre) gives the same

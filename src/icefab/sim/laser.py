@@ -1,5 +1,5 @@
 """The laser of the virtual cell (thesis 5.2.1): sample positions along measurement paths or
-trajectories, noise and uncompensated latency, readings of a height map.
+trajectories, noise and the latency a build leaves uncompensated, readings of a height map.
 """
 
 from __future__ import annotations
@@ -15,6 +15,16 @@ from icefab.core import HeightMap, arc_lengths, closed_polyline
 from icefab.sim.deposition import _at
 
 log = logging.getLogger(__name__)
+
+
+def uncompensated_latency_s(job) -> float:
+    """What of the laser's latency a build leaves, s: the sensor's own
+    (``simulation.laser_latency_s``, the virtual cell's laser) less what the build takes
+    off (``cell.laser_latency_s``, the calibrated value: ``icefab.build`` reads the
+    trajectory that much earlier). The simulator reads its laser with this, so that it
+    measures as a build on the virtual cell does; negative when the calibration overstates
+    the latency (the samples then read ahead of their tags)."""
+    return float(job.simulation.laser_latency_s - job.cell.laser_latency_s)
 
 
 def sample_surface(surface: HeightMap, xy: np.ndarray) -> np.ndarray:

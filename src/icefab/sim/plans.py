@@ -21,7 +21,7 @@ from icefab.paths import laser_speed
 from icefab.stages import layer_height
 from icefab.sim.deposition import (MATERIAL_ID, _TINY_MM, ActionFn, _joints, pulse_drops,
                                    pulse_segments)
-from icefab.sim.laser import _refine, laser_positions
+from icefab.sim.laser import _refine, laser_positions, uncompensated_latency_s
 
 log = logging.getLogger(__name__)
 
@@ -97,7 +97,8 @@ def plan_layer(index: int, paths: Sequence[Toolpath], job: "Job",
         if p.role == "measure":
             speed = laser_speed(p.material, job)   # ice slowly, scaffold at full speed
             tg, tr = laser_positions(pts, p.closed, speed_mm_s=speed,
-                                     rate_hz=sim.laser_rate_hz, latency_s=sim.laser_latency_s)
+                                     rate_hz=sim.laser_rate_hz,
+                                     latency_s=uncompensated_latency_s(job))
             tag_parts.append(tg)
             true_parts.append(tr)
             continue
@@ -206,7 +207,7 @@ def plan_layer_motion(layer: "LayerMotion", job: "Job") -> LayerPlan:
         if p.role == "measure":
             part_xy = flow.trajectory_part_xy(traj, p.tool_name, job)  # under the laser
             tg, tr = laser_in_time(part_xy, float(traj.dt), sim.laser_rate_hz,
-                                    sim.laser_latency_s)
+                                    uncompensated_latency_s(job))
             tag_parts.append(tg)
             true_parts.append(tr)
             continue
