@@ -42,6 +42,40 @@ def test_latency_is_zero_when_there_is_none_and_skew_is_absorbed():
     assert abs(lat.latency_s) < 5e-4
 
 
+@pytest.mark.parametrize("seed_", range(6))
+def test_a_laser_without_latency_writes_a_latency_the_job_takes(seed_, tmp_path):
+    # a tester's laser without latency read -0.028 ms: laser.toml said
+    # laser_latency_s = -0.000028 and every command refused it
+    rng = np.random.default_rng(seed_)
+    off = (-30.0, 19.0)
+    jig = cal.default_jig()
+    js = cal.synthetic_jig_scans(jig, offset_mm=off, latency_s=0.0, rng=rng)
+    es = cal.synthetic_edge_scans(offset_mm=off, latency_s=0.0, rng=rng)
+    res = cal.calibrate_laser(js, jig, es, nominal_offset_mm=off)
+    assert res.latency.latency_s >= 0.0
+    assert res.latency.estimate_s is None or res.latency.estimate_s < 0.0
+    (tmp_path / "laser.toml").write_text(res.to_toml())
+    assert load_job(tmp_path / "laser.toml").cell.laser_latency_s == pytest.approx(
+        res.latency.latency_s, abs=1e-6)
+    # clearly below 0 (time stamps swapped): refused, whatever --force says
+    es = cal.synthetic_edge_scans(offset_mm=off, latency_s=-0.004, rng=rng)
+    with pytest.raises(ConfigError, match="cannot be negative"):
+        cal.calibrate_laser(js, jig, es, nominal_offset_mm=off)
+
+
+def test_scans_timed_in_milliseconds_are_named():
+    import dataclasses
+
+    rng = np.random.default_rng(0)
+    off = (-30.0, 19.0)
+    jig = cal.default_jig()
+    js = cal.synthetic_jig_scans(jig, offset_mm=off, latency_s=0.005, rng=rng)
+    es = cal.synthetic_edge_scans(offset_mm=off, latency_s=0.005, rng=rng)
+    es_ms = [dataclasses.replace(s, t=s.t * 1000.0) for s in es]
+    with pytest.raises(ConfigError, match=r"edge scans move at .* t_s must be in seconds"):
+        cal.calibrate_laser(js, jig, es_ms, nominal_offset_mm=off)
+
+
 def test_one_direction_only_is_refused():
     rng = np.random.default_rng(0)
     es = cal.synthetic_edge_scans(offset_mm=(0.0, 0.0), latency_s=0.01, rng=rng)
@@ -92,14 +126,73 @@ def test_valve_table_written_is_what_flow_reads(tmp_path):
 def test_valve_not_increasing_is_refused():
     f = np.array([100.0, 200.0, 300.0, 400.0])    # a valve that clogs as it speeds up
     mass = np.array([4.0, 3.0, 2.0, 1.0])
-    with pytest.raises(FlowError, match=r"runs at 100 Hz .* off the fitted table"):
+    with pytest.raises(FlowError, match=r"does not rise .* runs at 100 Hz .* 60 % off"):
         cal.fit_valve_table(f, np.ones(4), mass, 1.0)
     f = np.arange(1, 9) * 100.0
     mass = np.array([1.0, 2.0, 3.0, 4.0, 5.0, 4.0, 3.0, 2.0])
-    with pytest.raises(FlowError, match="does not increase from"):
+    with pytest.raises(FlowError, match="does not rise with the frequency"):
         cal.fit_valve_table(f, np.ones(8), mass, 1.0)
     with pytest.raises(FlowError, match="at least 3"):
         cal.fit_valve_table(f[:2], np.ones(2), mass[:2], 1.0)
+
+
+def _synthetic_part(seed=0):
+    truth = load_calibration(DATA_DIR / "calibration_part.csv")
+    freqs = truth.frequency_hz[truth.frequency_hz > 0]
+    f, d, m = cal.synthetic_masses(truth.flow, freqs, density_g_cm3=1.0,
+                                   rng=np.random.default_rng(seed))
+    return truth, f, d, m
+
+
+def test_valve_runs_at_0_hz_check_for_a_leak():
+    # a tester's leaking valve (16.7 mm^3/s at 0 Hz) was fitted through 0, residual 0 %
+    truth, f, d, m = _synthetic_part()
+    with pytest.raises(FlowError, match=r"runs at 0 Hz collected 16\.67 mm\^3/s.*leaking"):
+        cal.fit_valve_table(np.r_[0.0, 0.0, f], np.r_[60.0, 60.0, d], np.r_[1.0, 1.0, m], 1.0)
+    # a valve that passes nothing at 0 Hz: the runs there change nothing
+    fit0 = cal.fit_valve_table(f, d, m, 1.0)
+    fit = cal.fit_valve_table(np.r_[0.0, 0.0, f], np.r_[60.0, 60.0, d], np.r_[0.0, 1e-4, m],
+                              1.0)
+    np.testing.assert_allclose(fit.flow_mm3_s, fit0.flow_mm3_s, rtol=1e-12)
+    assert fit.method == "polynomial" and fit.residual[:2].tolist() == [0.0, 0.0]
+
+
+@pytest.mark.parametrize("seed_", range(4))
+def test_valve_that_barely_opens_or_saturates_gets_its_monotone_means(seed_):
+    # a tester's two runs where the valve barely opens (5 Hz) made the polynomial fall
+    # near the top ('does not increase from 900 Hz'), and a valve that saturates was refused
+    truth, f, d, m = _synthetic_part(seed_)
+    fit = cal.fit_valve_table(np.r_[5.0, 5.0, f], np.r_[60.0, 60.0, d],
+                              np.r_[0.0003, 0.0002, m], 1.0)
+    assert fit.method == "monotone means"
+    assert fit.frequency_hz.tolist() == [0.0, 5.0, *truth.frequency_hz[1:].tolist()]
+    rel = fit.flow_mm3_s[2:] / truth.flow_mm3_s[1:] - 1.0
+    assert np.abs(rel).max() < 0.03
+    # saturation: linear up to 480 Hz, flat above (1 % run-to-run scatter)
+    rng = np.random.default_rng(seed_)
+    freqs = np.arange(1, 21) * 40.0
+    flow = np.minimum(freqs, 480.0) * 0.3
+    runs = np.repeat(freqs, 2)
+    mass = np.repeat(flow, 2) * 60.0 / 1000.0 * (1.0 + 0.01 * rng.standard_normal(40))
+    fit = cal.fit_valve_table(runs, np.full(40, 60.0), mass, 1.0)
+    assert fit.method == "monotone means"
+    assert fit.frequency_hz[-1] == 480.0     # no row on the plateau beyond its start
+    assert np.all(np.diff(fit.flow_mm3_s) > 0)
+    assert np.abs(fit.flow_mm3_s[-1] / 144.0 - 1.0) < 0.03
+
+
+def test_valve_table_rows_as_written_rise_strictly(tmp_path):
+    # 100, 100.0000001 and 100.0000002 Hz were three rows, all written as '100': the
+    # table's reader refused what calibrate valve wrote
+    f = np.array([100.0, 100.0000001, 100.0000002, 200.0, 300.0])
+    mass = np.array([1.5, 1.5, 1.5, 3.0, 4.5])
+    fit = cal.fit_valve_table(f, np.full(5, 60.0), mass, 1.0)
+    assert fit.frequency_hz.tolist() == [0.0, 100.0, 200.0, 300.0]
+    cal.write_valve_table(fit, tmp_path / "t.csv", "part")
+    back = load_calibration(tmp_path / "t.csv")
+    np.testing.assert_allclose(back.flow_mm3_s, fit.flow_mm3_s, rtol=1e-9)
+    with pytest.raises(ConfigError, match="density inf"):
+        cal.fit_valve_table(f, np.full(5, 60.0), mass, float("inf"))
 
 
 @pytest.mark.parametrize("text, where", [

@@ -58,6 +58,7 @@ virtual cell and the tests can check that the calibrations recover them.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import os
@@ -69,6 +70,7 @@ import numpy as np
 
 from icefab.atomic import write_atomic
 from icefab.errors import ConfigError, FlowError
+from icefab.inputs import read_input_text
 
 log = logging.getLogger(__name__)
 
@@ -95,46 +97,77 @@ MASS_HEADER = "frequency_hz,duration_s,mass_g"
 # =========================================================================== files
 
 
-def _rows(path: Path, header: str, kinds: str) -> list[tuple[int, list]]:
+def _is_number(cell: str) -> bool:
+    try:
+        float(cell)
+    except ValueError:
+        return False
+    return True
+
+
+def _columns(path: Path, n: int, cells: list[str], names: list[str]) -> list[int] | None:
+    """Which column of the file holds each expected column, from a header row ``cells``
+    (line ``n``): the expected names in any order, or other names (units, capitals) in the
+    expected order (None: as they come). A header that names an expected column where
+    another is expected is refused: read by position, its values would go to the wrong
+    setting."""
+    lowered = [c.lower() for c in cells]
+    if sorted(lowered) == sorted(names) and len(set(lowered)) == len(names):
+        return [lowered.index(name) for name in names]
+    for k, c in enumerate(lowered):
+        if c in names and (k >= len(names) or names[k] != c):
+            raise ConfigError(f"{path}:{n}: the header names {c!r} as column {k + 1}; "
+                              f"expected the columns {','.join(names)}")
+    return None
+
+
+def _rows(path: Path, header: str, kinds: str, kind: str = "calibration"
+          ) -> list[tuple[int, list]]:
     """The data rows of a small CSV file: (line number, values) per row.
 
     ``kinds``: one letter per column, ``f`` a finite float, ``i`` an integer, ``a`` an
-    axis name (x or y). A first line equal to ``header`` (or any first line whose first
-    cell is not a number) is skipped; ``#`` starts a comment. Raises ConfigError naming
+    axis name (x or y). A first line whose first cell is not a number is a header: the
+    columns of ``header`` in any order, or other names in its order (``Frequency
+    (Hz),...``); ``#`` starts a comment; a UTF-8 byte-order mark is dropped. The file must
+    be a regular file within ``icefab.inputs.MAX_BYTES[kind]``. Raises ConfigError naming
     the file and line.
     """
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{path}: cannot read ({exc})") from None
+    text = read_input_text(path, kind, ConfigError)
     names = header.split(",")
+    order: list[int] | None = None
     out: list[tuple[int, list]] = []
+    seen_header = False
     for n, raw in enumerate(text.splitlines(), start=1):
         line = raw.split("#", 1)[0].strip()
         if not line:
             continue
         cells = [c.strip() for c in line.split(",")]
-        if not out and [c.lower() for c in cells] == names:
-            continue
+        first_is_data = (cells[0].lower() in ("x", "y") if kinds[0] == "a"
+                         else _is_number(cells[0]))
+        if not out and not seen_header and not first_is_data:
+            seen_header = True
+            if len(cells) == len(kinds):
+                order = _columns(path, n, cells, names)
+                continue
         if len(cells) != len(kinds):
             raise ConfigError(f"{path}:{n}: expected {len(kinds)} columns ({header}), got "
                               f"{len(cells)}: {raw.strip()!r}")
+        if order is not None:
+            cells = [cells[k] for k in order]
         values: list = []
-        for cell, kind, name in zip(cells, kinds, names):
-            if kind == "a":
+        for cell, kind_, name in zip(cells, kinds, names):
+            if kind_ == "a":
                 if cell.lower() not in ("x", "y"):
                     raise ConfigError(f"{path}:{n}: {name} must be 'x' or 'y', got {cell!r}")
                 values.append(cell.lower())
                 continue
             try:
-                v = int(cell) if kind == "i" else float(cell)
+                v = int(cell) if kind_ == "i" else float(cell)
             except ValueError:
                 raise ConfigError(f"{path}:{n}: {name} must be "
-                                  f"{'an integer' if kind == 'i' else 'a number'}, got "
+                                  f"{'an integer' if kind_ == 'i' else 'a number'}, got "
                                   f"{cell!r}") from None
-            if kind == "f" and not math.isfinite(v):
+            if kind_ == "f" and not math.isfinite(v):
                 raise ConfigError(f"{path}:{n}: {name} must be finite, got {cell!r}")
             values.append(v)
         out.append((n, values))
@@ -161,7 +194,7 @@ def read_scans(path: str | os.PathLike) -> list[Scan]:
     """Scans from a CSV file (module docstring); ConfigError naming the file and line for a
     malformed row, a scan with fewer than 8 samples or time not increasing."""
     path = Path(path)
-    rows = _rows(path, SCAN_HEADER, "iffff")
+    rows = _rows(path, SCAN_HEADER, "iffff", kind="scans")
     by: dict[int, list[tuple[int, list]]] = {}
     for n, v in rows:
         by.setdefault(v[0], []).append((n, v))
@@ -312,6 +345,9 @@ class LatencyFit:
     residual_mm: float
     speed_mm_s: float
     dof: int = 1
+    #: the fit's own value when it came out below 0 within its uncertainty and
+    #: ``latency_s`` was set to 0 (None otherwise)
+    estimate_s: float | None = None
 
     @property
     def expanded_s(self) -> float:
@@ -485,7 +521,9 @@ class LaserCalibration:
             f"# 95 %: +-{max(o.expanded_mm):.4f} mm, +-{lt.expanded_s:.5f} s; thesis "
             f"tolerances: offset {OFFSET_TOLERANCE_MM} mm, latency "
             f"{LATENCY_TOLERANCE_S} s: {'met' if self.within_tolerances else 'NOT met'}\n"
-            "[cell]\n"
+            + (f"# latency: the fit gave {lt.estimate_s:.6f} s, below 0 within its "
+               "uncertainty: written as 0\n" if lt.estimate_s is not None else "")
+            + "[cell]\n"
             f"laser_offset_mm = [{o.offset_mm[0]:.4f}, {o.offset_mm[1]:.4f}]\n"
             f"laser_latency_s = {lt.latency_s:.6f}\n")
 
@@ -496,10 +534,45 @@ def calibrate_laser(jig_scans: Sequence[Scan], jig: Sequence[JigEdge],
                     match_mm: float = 5.0) -> LaserCalibration:
     """Latency from the edge scans (:func:`fit_latency`), then the offset from the jig
     scans with that latency (:func:`fit_offset`)."""
+    _check_scan_speed(edge_scans, "edge scans")
+    _check_scan_speed(jig_scans, "jig scans")
     lat = fit_latency(edge_scans)
+    if lat.latency_s < 0.0:
+        if -lat.latency_s > lat.expanded_s:
+            # a sensor cannot read before it is triggered: the laser's and the encoders'
+            # time stamps are swapped or offset
+            raise ConfigError(
+                f"latency calibration: the laser reads {-1000 * lat.latency_s:.2f} ms "
+                f"before the positions it is tagged with (+-{1000 * lat.expanded_s:.2f} ms, "
+                "95 %): a latency cannot be negative; check that the scans' t_s and "
+                "positions are the same instants")
+        # within its uncertainty of none (a tester's laser without latency read -0.03 ms,
+        # and the job refused the laser.toml written with it)
+        lat = dataclasses.replace(lat, latency_s=0.0, estimate_s=lat.latency_s)
     off = fit_offset(jig_scans, jig, latency_s=lat.latency_s, latency_sigma_s=lat.sigma_s,
                      latency_dof=lat.dof, nominal_offset_mm=nominal_offset_mm, match_mm=match_mm)
     return LaserCalibration(offset=off, latency=lat)
+
+
+#: The scanning speeds a calibration takes, mm/s: a robot scanning a jig moves at a few to
+#: a few hundred mm/s (thesis 5.2.1: 50 mm/s); far outside, the time stamps are not seconds.
+SCAN_SPEED_RANGE_MM_S = (0.5, 5000.0)
+
+
+def _check_scan_speed(scans: Sequence[Scan], what: str) -> None:
+    """ConfigError when the scans' median speed is outside :data:`SCAN_SPEED_RANGE_MM_S`
+    (a tester's edge scans timed in ms read as a 5.6 s latency, or as 'no jig crossing
+    matched an edge')."""
+    speeds = [float(np.hypot(*(s.xy[-1] - s.xy[0]))) / float(s.t[-1] - s.t[0])
+              for s in scans if len(s.t) > 1 and s.t[-1] > s.t[0]]
+    if not speeds:
+        return
+    v = float(np.median(speeds))
+    lo, hi = SCAN_SPEED_RANGE_MM_S
+    if not lo <= v <= hi:
+        raise ConfigError(f"laser calibration: the {what} move at {v:.3g} mm/s (median), "
+                          f"outside the {lo:g}-{hi:g} mm/s a robot scans at: t_s must be in "
+                          "seconds (times in ms make scans 1000 times slower)")
 
 
 # =========================================================================== valves
@@ -511,7 +584,7 @@ class ValveFit:
 
     frequency_hz, flow_mm3_s: (k,) the table (0 Hz = 0 first), strictly increasing.
     measured_hz, measured_mm3_s: (n,) every measurement as a flow; residual: (n,) its
-    relative deviation from the fit, (measured - fit) / fit.
+    relative deviation from the fit, (measured - fit) / fit (0 for runs at 0 Hz).
     density_g_cm3: the density used.
     """
 
@@ -522,6 +595,8 @@ class ValveFit:
     residual: np.ndarray
     density_g_cm3: float
     fit: Callable[[np.ndarray], np.ndarray] = field(repr=False, default=None)  # type: ignore
+    #: "polynomial" (the fit at the measured frequencies) or "monotone means"
+    method: str = "polynomial"
 
     @property
     def rms_residual(self) -> float:
@@ -547,6 +622,10 @@ def read_masses(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.nda
 MAX_DEGREE = 5
 #: A frequency whose mean flow is further than this (relative) from the fit is refused.
 MAX_MISFIT = 0.10
+#: Monotone means: a row whose flow rises less than this (relative) over the row before is
+#: left out (the table is then within it of the means): the plateau of a saturated valve,
+#: whose means wander by the runs' scatter (1 % a run, thesis 6.1's balance), is one row.
+PLATEAU_RISE = 0.02
 
 
 def _flow_polynomial(f: np.ndarray, q: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
@@ -578,46 +657,102 @@ def _flow_polynomial(f: np.ndarray, q: np.ndarray) -> Callable[[np.ndarray], np.
     return flow
 
 
+def _monotone_means(freqs: np.ndarray, means: np.ndarray, counts: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """The per-frequency mean flows made to rise with the frequency (isotonic regression,
+    each frequency weighted by its runs), as a table that rises strictly: of a run of
+    frequencies that share one flow (a saturated valve's plateau, a dead band at 0) only
+    the lowest is kept, since the valve gives no more flow above it. Returns the table's
+    frequencies and flows, 0 Hz = 0 first."""
+    from scipy.optimize import isotonic_regression
+
+    y = isotonic_regression(means, weights=counts.astype(np.float64), increasing=True).x
+    x = np.concatenate([[0.0], freqs])
+    y = np.concatenate([[0.0], np.maximum(y, 0.0)])
+    keep = [0]
+    for k in range(1, len(y)):
+        # a row within PLATEAU_RISE of the last one kept is the plateau's noise (a
+        # saturated valve's means wander by the runs' scatter above its saturation)
+        if y[k] > y[keep[-1]] * (1.0 + PLATEAU_RISE):
+            keep.append(k)
+    return x[keep], y[keep]
+
+
 def fit_valve_table(frequency_hz: np.ndarray, duration_s: np.ndarray, mass_g: np.ndarray,
                     density_g_cm3: float, *, source: str = "mass measurements") -> ValveFit:
     """The frequency-flow table of a valve from mass measurements (module docstring).
 
-    frequency_hz, duration_s, mass_g: (n,) one row per measurement (repeats allowed);
-    density_g_cm3: the material's density. Raises FlowError naming ``source`` when fewer
-    than 3 distinct non-zero frequencies were measured or the fitted flow does not
-    increase strictly with the frequency (measure longer or with more repeats).
+    frequency_hz, duration_s, mass_g: (n,) one row per measurement (repeats allowed;
+    frequencies within 1e-6 Hz are one frequency); density_g_cm3: the material's density.
+    Runs at 0 Hz check that the valve passes nothing there. The table is the polynomial
+    fit at the measured frequencies; where no polynomial follows the runs within
+    ``MAX_MISFIT`` or rises throughout (a valve that barely opens at its lowest
+    frequencies, or saturates), the per-frequency means made to rise
+    (:func:`_monotone_means`; ``method`` says which). Raises FlowError naming ``source``
+    when fewer than 3 distinct non-zero frequencies were measured, the valve passes flow at
+    0 Hz, or the means do not rise with the frequency within ``MAX_MISFIT``.
     """
-    if not density_g_cm3 > 0:
-        raise ConfigError(f"density {density_g_cm3!r} g/cm^3: must be > 0")
-    f = np.asarray(frequency_hz, dtype=np.float64)
+    if not (density_g_cm3 > 0 and math.isfinite(density_g_cm3)):
+        raise ConfigError(f"density {density_g_cm3!r} g/cm^3: must be a positive number")
+    # one frequency, however it was typed (100 and 100.0000001 were written as one table
+    # row, which the table's reader refused)
+    f = np.round(np.asarray(frequency_hz, dtype=np.float64), 6)
     q = 1000.0 * np.asarray(mass_g, dtype=np.float64) / (density_g_cm3 *
                                                           np.asarray(duration_s, np.float64))
-    freqs = np.unique(f[f > 0])
+    on = f > 0
+    freqs, inverse, counts = np.unique(f[on], return_inverse=True, return_counts=True)
     if len(freqs) < 3:
         raise FlowError(f"{source}: {len(freqs)} distinct non-zero frequencies; the thesis "
                         "measures about 20 (6.1), at least 3 are needed")
-    model = _flow_polynomial(f, q)
+    means = np.bincount(inverse, weights=q[on]) / counts
+    if not on.all():
+        # the table passes nothing at 0 Hz: a tester's leaking valve (16.7 mm^3/s at 0 Hz)
+        # was fitted through 0 with a residual of 0 %
+        leak = float(q[~on].mean())
+        if leak > MAX_MISFIT * float(means[0]):
+            raise FlowError(f"{source}: the runs at 0 Hz collected {leak:.4g} mm^3/s, "
+                            f"{100 * leak / max(float(means[0]), 1e-300):.0f} % of the flow at "
+                            f"{freqs[0]:g} Hz ({means[0]:.4g} mm^3/s): the table passes none "
+                            "at 0 Hz (thesis 6.1); a leaking valve, or runs that collected "
+                            "something else")
+    model = _flow_polynomial(f[on], q[on])
     x = np.concatenate([[0.0], freqs])
     table = model(x)
     table[0] = 0.0
-    bad = np.nonzero(np.diff(table) <= 0)[0]
-    if len(bad):
-        k = int(bad[0])
-        raise FlowError(f"{source}: the fitted flow does not increase from {x[k]:g} Hz "
-                        f"({table[k]:.4g} mm^3/s) to {x[k + 1]:g} Hz ({table[k + 1]:.4g} "
-                        "mm^3/s): measure longer or repeat those frequencies")
-    fitted = model(f)
+    fitted_means = table[1:]
+    method = "polynomial"
+    if (np.diff(_as_written(table)) <= 0).any() or \
+            (np.abs(means - fitted_means) > MAX_MISFIT * np.abs(fitted_means)).any():
+        method = "monotone means"
+        x, table = _monotone_means(freqs, means, counts)
+
+        def model(v, x=x, table=table):
+            return np.interp(np.asarray(v, dtype=np.float64), x, table)
+
+        fitted_means = model(freqs)
+        off = np.abs(means - fitted_means) > MAX_MISFIT * np.abs(fitted_means)
+        if off.any():
+            k = int(np.argmax(off))
+            raise FlowError(f"{source}: the flow does not rise with the frequency: the runs "
+                            f"at {freqs[k]:g} Hz ({means[k]:.4g} mm^3/s) are "
+                            f"{100 * abs(means[k] / max(fitted_means[k], 1e-300) - 1):.0f} % "
+                            f"off the nearest rising table ({fitted_means[k]:.4g} mm^3/s; more "
+                            f"than {100 * MAX_MISFIT:.0f} %): check those runs or the valve")
+        if len(x) < 2 or (np.diff(_as_written(table)) <= 0).any():
+            raise FlowError(f"{source}: no flow rises with the frequency in these runs")
+    fitted = model(np.where(on, f, 0.0))
     resid = np.divide(q - fitted, fitted, out=np.zeros_like(q), where=np.abs(fitted) > 1e-12)
-    for v in freqs:
-        mean = float(q[f == v].mean())
-        fv = float(model(np.array([v]))[0])
-        if abs(mean - fv) > MAX_MISFIT * abs(fv):
-            raise FlowError(f"{source}: the runs at {v:g} Hz ({mean:.4g} mm^3/s) are "
-                            f"{100 * abs(mean / fv - 1):.0f} % off the fitted table "
-                            f"({fv:.4g} mm^3/s; more than {100 * MAX_MISFIT:.0f} %): check "
-                            "those runs or measure more frequencies")
     return ValveFit(frequency_hz=x, flow_mm3_s=table, measured_hz=f, measured_mm3_s=q,
-                    residual=resid, density_g_cm3=float(density_g_cm3), fit=model)
+                    residual=resid, density_g_cm3=float(density_g_cm3), fit=model,
+                    method=method)
+
+
+#: Significant digits of the table as written (:func:`format_valve_table`).
+TABLE_DIGITS = 10
+
+
+def _as_written(values: np.ndarray) -> np.ndarray:
+    return np.array([float(f"{v:.{TABLE_DIGITS}g}") for v in values])
 
 
 def format_valve_table(fit: ValveFit, material: str) -> str:
@@ -627,7 +762,8 @@ def format_valve_table(fit: ValveFit, material: str) -> str:
              f"measurements at density {fit.density_g_cm3:g} g/cm^3;",
              f"# RMS relative residual {100 * fit.rms_residual:.2f} %.",
              "frequency_hz,flow_mm3_s"]
-    lines += [f"{fv:g},{qv:.4f}" for fv, qv in zip(fit.frequency_hz, fit.flow_mm3_s)]
+    lines += [f"{fv:.{TABLE_DIGITS}g},{qv:.{TABLE_DIGITS}g}"
+              for fv, qv in zip(fit.frequency_hz, fit.flow_mm3_s)]
     return "\n".join(lines) + "\n"
 
 

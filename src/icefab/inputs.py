@@ -24,11 +24,13 @@ from icefab.errors import IcefabError
 
 #: Largest file, bytes, each kind of input may be. A binary STL of 1 GiB holds 21 million
 #: facets (20 times the largest test mesh); a job or control file is a page of text; a
-#: valve calibration table a few hundred rows.
+#: valve calibration table or a jig a few hundred rows; the laser's calibration scans
+#: (``icefab calibrate laser``: a row per sample, ~40 bytes) a few hundred thousand.
 MAX_BYTES: dict[str, int] = {
     "mesh": 1 << 30,
     "job": 1 << 20,
     "calibration": 1 << 20,
+    "scans": 64 << 20,
 }
 
 

@@ -12,8 +12,10 @@
   (``frequency_hz,duration_s,mass_g``), thesis 6.1. Writes ``OUT/calibration_MATERIAL.csv``
   (what ``materials.MATERIAL.calibration_file`` reads), ``OUT/valve_MATERIAL.png`` (fit and
   residuals) and ``OUT/valve_MATERIAL.toml`` (the job fragment naming the table).
-* ``icefab calibrate synthetic -o OUT [--seed N]``: scan and mass data of a virtual cell
-  with known true values (``OUT/truth.json``), to try the two commands above.
+* ``icefab calibrate synthetic -o OUT [--seed N]``: scan and mass data of a simulated cell
+  with known true values drawn at random (``OUT/truth.json``), to try the two commands
+  above; not the virtual cell of ``icefab cell serve`` (the job's laser offset,
+  ``simulation.laser_latency_s``).
 
 File layouts: :mod:`icefab.calibration`.
 """
@@ -66,10 +68,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     vp.add_argument("-o", "--out", required=True, metavar="OUT", help="output folder")
     vp.set_defaults(func=run_valve)
 
-    sp = sub.add_parser("synthetic", help="calibration data of a virtual cell with known "
+    sp = sub.add_parser("synthetic", help="calibration data of a simulated cell with known "
                                           "true values",
-                        description="Write jig, scan and mass files with known true laser "
-                                    "offset, latency and valve table (truth.json).")
+                        description="Write jig, scan and mass files of a simulated cell whose "
+                                    "true laser offset (the job's within 0.5 mm) and latency "
+                                    "(5-20 ms) are drawn at random, and the job's valve tables "
+                                    "(truth.json), to try 'calibrate laser' and 'calibrate "
+                                    "valve'. Not the virtual cell of 'icefab cell serve', whose "
+                                    "laser has the job's offset and simulation.laser_latency_s.")
     sp.add_argument("--seed", type=int, default=0)
     add_job_argument(sp)
     sp.add_argument("-o", "--out", required=True, metavar="OUT", help="output folder")
@@ -94,6 +100,9 @@ def run_laser(args: argparse.Namespace) -> int:
           f"{o.crossings[0]} + {o.crossings[1]} jig crossings)")
     print(f"laser latency: {lt.latency_s * 1000:.2f} ms +- {lt.expanded_s * 1000:.2f} ms "
           f"(95 %; {lt.crossings} edge crossings at {lt.speed_mm_s:.0f} mm/s)")
+    if lt.estimate_s is not None:
+        print(f"note: the fit gave {lt.estimate_s * 1000:.3f} ms, below 0 within its "
+              "uncertainty: taken as 0 (a latency cannot be negative)")
     findings = result.findings()
     if findings and not args.force:
         raise ConfigError(findings[0] + (f" (and {len(findings) - 1} more)"
@@ -115,10 +124,16 @@ def run_valve(args: argparse.Namespace) -> int:
     from icefab import calibration as cal
 
     job = job_from_args(args)
-    density = args.density if args.density is not None else \
-        job.materials[args.material].density_g_cm3
-    if not density > 0:
-        raise ConfigError(f"--density {density}: must be > 0 g/cm^3")
+    density = job.materials[args.material].density_g_cm3
+    if args.density is not None:
+        # the job setting's range (a tester's --density 1000, water in kg/m^3, wrote a
+        # table 1000 times too small, and inf a traceback)
+        try:
+            job.replace(**{f"materials.{args.material}.density_g_cm3": args.density})
+        except ConfigError as exc:
+            reason = str(exc).split(": ", 1)[-1]
+            raise ConfigError(f"--density {args.density:g} g/cm^3: {reason}") from None
+        density = args.density
     f, d, m = cal.read_masses(args.masses)
     fit = cal.fit_valve_table(f, d, m, density, source=str(args.masses))
     name = f"calibration_{args.material}.csv"
@@ -135,6 +150,15 @@ def run_valve(args: argparse.Namespace) -> int:
           f"measurements, up to {fit.flow_mm3_s[-1]:.4g} mm^3/s at "
           f"{fit.frequency_hz[-1]:g} Hz; RMS residual {100 * fit.rms_residual:.2f} %, largest "
           f"{100 * abs(fit.residual).max():.2f} %")
+    if fit.method != "polynomial":
+        print("note: no polynomial follows these runs (a valve that barely opens or "
+              "saturates): the table is the runs' mean flows, made to rise with the "
+              "frequency")
+    top = float(fit.measured_hz.max())
+    if fit.frequency_hz[-1] < top:
+        print(f"note: the flow rises by less than {100 * cal.PLATEAU_RISE:g} % above "
+              f"{fit.frequency_hz[-1]:g} Hz (measured up to {top:g} Hz): the valve saturates "
+              "there and the table ends there")
     print(f"wrote {Path(args.out) / name} (materials.{args.material}.calibration_file)")
     return 0
 
