@@ -571,6 +571,20 @@ def test_a_new_build_takes_the_parts_its_job_names(tmp_path, capsys):
     assert not (tmp_path / "b").exists()
 
 
+def test_an_endpoints_file_that_is_no_file_is_refused_before_planning(tmp_path, capsys):
+    # a tester's --cell /dev/zero ran out of memory, a FIFO hung with a build folder made
+    import os
+
+    from icefab.cli import main
+
+    os.mkfifo(tmp_path / "cell.json")
+    for cell, kind in ((tmp_path / "cell.json", "a FIFO"), ("/dev/zero", "a character device")):
+        assert main(["build", "demo", "-o", str(tmp_path / "b"), "--cell", str(cell)]) == 2
+        err = capsys.readouterr().err
+        assert f"the cell endpoints file is {kind}" in err and "slicing" not in err, err
+        assert not (tmp_path / "b").exists()
+
+
 def test_cell_killed_mid_path_build_completes(firmware_tools, planned, tmp_path):
     r = _icefab("build", str(planned), "-o", "ref", "--virtual", cwd=tmp_path)
     assert r.returncode == 0, r.stderr

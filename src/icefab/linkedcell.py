@@ -69,17 +69,20 @@ def load_endpoints(path: str | os.PathLike) -> dict:
 
     CellError naming the file when it is missing or malformed."""
     from icefab.cell.virtual import read_endpoints
+    from icefab.inputs import read_input_text
 
     p = Path(path)
     if p.is_dir():
         return read_endpoints(p)
+    if not p.exists():
+        raise CellError(f"{p}: no cell endpoints file")
+    # a regular file of a page at most: /dev/zero ran out of memory, a FIFO hung
+    text = read_input_text(p, "job", CellError, what="the cell endpoints file")
     try:
-        data = json.loads(p.read_text(encoding="utf-8"))
+        data = json.loads(text)
         data["robot"]["host"] = str(data["robot"]["host"])
         data["robot"]["port"] = int(data["robot"]["port"])
         str(data["valve"]["device"]), str(data["laser"]["device"])
-    except FileNotFoundError:
-        raise CellError(f"{p}: no cell endpoints file") from None
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise CellError(f"{p}: not a cell's endpoints file: expected robot host and port, "
                         f"valve and laser devices ({type(exc).__name__}: {exc})") from None

@@ -79,6 +79,10 @@ def run(args: argparse.Namespace) -> int:
     args.input = command_inputs(args.input, job_from_args(args), words=("demo",))
     if not (args.virtual or args.cell):
         raise ConfigError("choose the cell: --virtual (start one) or --cell ENDPOINTS")
+    if args.cell:
+        from icefab.linkedcell import load_endpoints
+
+        load_endpoints(args.cell)   # a bad endpoints file is said before any planning
     if args.layers is not None and args.layers < 1:
         raise ConfigError(f"--layers {args.layers}: expected a number >= 1")
     return _run(Path(args.out), args, resume=False)
