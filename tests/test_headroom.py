@@ -212,3 +212,20 @@ def test_a_flow_at_the_valves_top_is_no_limit_reached():
         plan = valve_frequency(traj(hi / (4.0 * dh), 4.0), "part", job,
                                action=np.r_[np.zeros(49), tiny])
         assert plan.nu.max() <= job.flow.max_frequency_hz and not plan.warnings
+
+
+def test_the_message_names_where_the_valves_range_ends(tmp_path):
+    # a tester's table ended at 3 Hz and the message said the valve gives its flow 'at its
+    # highest frequency (500 Hz, flow.max_frequency_hz)'
+    (tmp_path / "short.csv").write_text("frequency_hz,flow_mm3_s\n0,0\n100,40\n300,90\n")
+    job = Job().replace(**{"materials.part.calibration_file": str(tmp_path / "short.csv")})
+    (room,) = feedback_headroom([(3, traj(100.0, 3.0))], job)   # 75 mm^3/s, +30 %: 97.5
+    assert room.limit_mm3_s == pytest.approx(90.0)
+    (msg,) = headroom_findings([room], job)
+    assert "(300 Hz, the last row of materials.part.calibration_file's table; the cell goes " \
+           "to 500 Hz)" in msg, msg
+    (room,) = feedback_headroom([(3, traj(100.0, 3.0))], Job())
+    v = 0.9 * room.limit_mm3_s / (3.0 * 0.25)
+    (room,) = feedback_headroom([(3, traj(v, 3.0))], Job())
+    (msg,) = headroom_findings([room], Job())
+    assert "(500 Hz, flow.max_frequency_hz, in the calibration table)" in msg

@@ -72,8 +72,7 @@ class Headroom:
                 f"{where} ({self.nominal_mm3_s:.4g} mm^3/s nominal = {self.width_mm:g} mm x "
                 f"{self.thickness_mm:g} mm x {self.speed_mm_s:.4g} mm/s), above "
                 f"the {self.limit_mm3_s:.4g} mm^3/s the valve gives at its highest frequency "
-                f"({max_valve_frequency(job):g} Hz, flow.max_frequency_hz) in the calibration "
-                f"table: " + (
+                f"({_top_frequency(self.material, job)}): " + (
                     f"there the valve saturates SMF's correction at +"
                     f"{self.limit_mm3_s / self.nominal_mm3_s - 1.0:.0%} (thesis 5.2.2)"
                     if self.nominal_mm3_s <= self.limit_mm3_s else
@@ -84,6 +83,20 @@ class Headroom:
 
 def _limit_flow(material: str, job: "Job") -> float:
     return valve_flow_range(calibration_for(material, job), job)[1]
+
+
+def _top_frequency(material: str, job: "Job") -> str:
+    """Where the valve's flow range ends (FM): the cell's highest frequency or, below it,
+    the calibration table's last row (a tester's table ending at 3 Hz was said to be read
+    at 500 Hz)."""
+    top = float(calibration_for(material, job).frequency_hz[-1])
+    cell = max_valve_frequency(job)
+    if job.flow.mode != "fm":
+        return f"{job.flow.pwm_frequency_hz:g} Hz PWM, open for the whole period"
+    if top < cell:
+        return (f"{top:g} Hz, the last row of materials.{material}.calibration_file's table; "
+                f"the cell goes to {cell:g} Hz")
+    return f"{cell:g} Hz, flow.max_frequency_hz, in the calibration table"
 
 
 def feedback_headroom(trajectories: Iterable[tuple[int, "Trajectory"]], job: "Job"
@@ -230,6 +243,6 @@ def check_slowest_flow(job: "Job") -> None:
                 f"the {m} boundary needs {q:.4g} mm^3/s (materials.{m}.path_width_mm = "
                 f"{w:g} mm x slicing.layer_thickness_mm = {dh / job.flow.layer_scale:g} mm x "
                 f"motion.boundary_speed_mm_s = {v:g} mm/s, thesis eq. 6.2), more than the "
-                f"valve's {limit:.4g} mm^3/s at its highest frequency in the calibration "
-                "table: thinner layers, narrower paths or slower boundaries (or "
+                f"valve's {limit:.4g} mm^3/s at its highest frequency "
+                f"({_top_frequency(m, job)}): thinner layers, narrower paths or slower boundaries (or "
                 "flow.out_of_range = 'clamp')")
