@@ -668,6 +668,45 @@ def test_error_ply_ascii_garbage_names_line(tmp_path):
         load_mesh(_write(tmp_path, "g.ply", "\n".join(lines).encode()))
 
 
+def _ascii_box(edit):
+    v, quads = _box_quads()
+    lines = _ply_bytes(v, None, fmt="ascii", polygons=quads).decode().splitlines()
+    head = lines.index("end_header")
+    return "\n".join(edit(lines, head)).encode() + b"\n"
+
+
+def test_error_ascii_ply_counts_that_do_not_match_its_lines(tmp_path):
+    # the numbers are read as one stream: a vertex count one too high took the first
+    # face's numbers and read the faces shifted (a tester's box: 3 faces, volume -266.7,
+    # the error came from slicing naming no file); a face count one too low dropped a face
+    def more_vertices(lines, head):
+        return [ln.replace("element vertex 8", "element vertex 9") for ln in lines]
+
+    def fewer_faces(lines, head):
+        return [ln.replace("element face 6", "element face 5") for ln in lines]
+
+    def a_missing_number(lines, head):
+        lines[head + 2] = " ".join(lines[head + 2].split()[:2])
+        return lines
+
+    for edit, records in ((fewer_faces, r"13 records \(8 vertex, 5 face"),
+                          (a_missing_number, r"14 records \(8 vertex, 6 face")):
+        with pytest.raises(MeshError, match=rf"c\.ply: ASCII PLY header declares {records}"
+                                            r"\): 5 numbers are left after them; the body "
+                                            r"has 14 lines, one record a line"):
+            load_mesh(_write(tmp_path, "c.ply", _ascii_box(edit)))
+    with pytest.raises(MeshError, match=r"c\.ply: (ASCII PLY header declares 15 records|"
+                                        r"truncated or corrupt ASCII PLY)"):
+        load_mesh(_write(tmp_path, "c.ply", _ascii_box(more_vertices)))
+
+    # the declared numbers over other lines (every vertex on one line) are taken as they are
+    def one_line(lines, head):
+        return lines[:head + 1] + [" ".join(lines[head + 1:head + 9])] + lines[head + 9:]
+
+    mesh = load_mesh(_write(tmp_path, "one.ply", _ascii_box(one_line)))
+    assert len(mesh.faces) == 12
+
+
 def test_error_ply_point_cloud(tmp_path):
     data = (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n"
             b"property float z\nend_header\n1 2 3\n")
