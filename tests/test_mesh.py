@@ -226,6 +226,26 @@ def test_obj_quads(tmp_path, style):
     assert trimesh.Trimesh(mesh.vertices, mesh.faces).area == pytest.approx(ref.area)
 
 
+@pytest.mark.parametrize("form", ["continued", "cr"])
+def test_obj_continued_lines_and_cr_line_ends(tmp_path, form):
+    # the OBJ specification continues a line after a backslash at its end (a tester's
+    # 'f 1 4 \\' was 'cannot read a number'); classic Mac OS ends lines with CR alone
+    # (read as 'the mesh has no faces')
+    v, quads = _box_quads()
+    text = _obj_bytes(v, quads, style="plain").decode()
+    if form == "continued":
+        text = "\n".join(ln.replace(" ", " \\\n  ", 2) if ln.startswith("f ") else ln
+                          for ln in text.splitlines()) + "\n"
+        assert "\\\n" in text
+    else:
+        text = text.replace("\n", "\r")
+    p = tmp_path / "box.obj"
+    p.write_bytes(text.encode())
+    mesh = load_mesh(p)
+    assert mesh.n_faces == 12 and check_mesh(mesh).watertight
+    assert check_mesh(mesh).volume == pytest.approx(6000.0, rel=1e-12)
+
+
 @pytest.mark.parametrize("kind", KINDS)
 def test_obj_matches_trimesh(tmp_path, kind):
     ref = _tm(kind)

@@ -5,6 +5,7 @@ fan-triangulated, scanned in one compiled pass like ASCII STL; other lines ignor
 from __future__ import annotations
 
 import logging
+import re
 from pathlib import Path
 
 import numpy as np
@@ -139,7 +140,16 @@ def _scan_obj(b):  # pragma: no cover
 
 
 def read(data: bytes, path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices (n, 3) float64 and triangles (m, 3) int64 of an OBJ file."""
+    """Vertices (n, 3) float64 and triangles (m, 3) int64 of an OBJ file.
+
+    Lines end in LF, CRLF or CR alone (classic Mac OS: read as 'no faces'); a backslash at
+    a line's end continues it on the next (the OBJ specification's continuation: a
+    tester's 'f 1 4 \\' was 'cannot read a number'; after one, error messages count
+    the joined lines)."""
+    if b"\r" in data and b"\n" not in data:
+        data = data.replace(b"\r", b"\n")
+    if b"\\" in data:
+        data = re.sub(rb"\\[ \t]*\r?\n", b" ", data)
     b = np.frombuffer(data, np.uint8)
     buf, values, slow, vlines, fidx, fcount, flines, n_short, err, line = _scan_obj(b)
     if err:
