@@ -655,6 +655,7 @@ def test_report_of_a_running_build_in_chromium(firmware_tools, tmp_path):
         assert proc.poll() is None          # the build is still running
         snap = tmp_path / "snapshot.html"
         shutil.copy(report, snap)
+        assert 'http-equiv="refresh"' in snap.read_text()   # a running build's reloads
         r = subprocess.run([browser, "--headless", "--no-sandbox", "--disable-gpu",
                             "--disable-background-networking", "--no-first-run",
                             f"--user-data-dir={tmp_path / 'profile'}", "--enable-logging=stderr",
@@ -837,6 +838,9 @@ def test_progress_names_a_layer_by_its_index_and_its_place(planned, tmp_path):
     got = [tuple(map(int, re.match(r"layer (\d+) \((\d+)", x).groups())) for x in seen]
     assert sorted(got) == [(k, k + 1) for k in range(LAYERS)]
     assert all(x.startswith("layer ") for x in lines)
+    # a finished build's report stays put (a tester's kept reloading every 30 s)
+    page = (build / bmod.REPORT).read_text()
+    assert "complete" in page and 'http-equiv="refresh"' not in page
 
 
 def test_the_journal_counts_paths_done_as_a_query_would(tmp_path):

@@ -56,6 +56,7 @@ def test_parse_layers():
 
     assert parse_layers(None, 101) == [0, 33, 67, 100]
     assert parse_layers("5, 7", 10) == [5, 7]
+    assert parse_layers("7,1,7,1,1", 10) == [7, 1]   # drawn once each (a tester's 1,1,1)
     assert parse_layers(None, 0) == []
     for bad in ("a,b", "10", "-1", ","):
         with _pytest.raises(ConfigError, match="--layers"):

@@ -779,7 +779,7 @@ def progress_line(p: Progress) -> str:
 def write_report(build_dir: Path, progress: Progress, journal: Journal, job: "Job") -> None:
     """``BUILD/report.html``: RMS vs height (inline SVG), the latest measured error
     surface (PNG), status and ETA, findings and events; self-contained, refreshes itself
-    every 30 s, no scripts."""
+    every 30 s while the build runs (a finished build's page stays put), no scripts."""
     import base64
     import html
     import io
@@ -841,7 +841,7 @@ def write_report(build_dir: Path, progress: Progress, journal: Journal, job: "Jo
                      f"[{e(ev['kind'])}] {e(ev['text'])}</li>" for ev in journal.events()[-30:])
     page = f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8">
-<meta http-equiv="refresh" content="30">
+{'<meta http-equiv="refresh" content="30">' if st["state"] == "running" else ""}
 <title>icefab build: {e(st['state'])}</title>
 <style>body{{font-family:sans-serif;margin:1.5em;max-width:60em}}
 th{{text-align:left;padding-right:1em}} img,svg{{max-width:100%;height:auto}}</style>

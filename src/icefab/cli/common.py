@@ -68,7 +68,7 @@ def parse_layers(text: str | None, n: int, default_count: int = 4) -> list[int]:
     bad = [k for k in ks if not 0 <= k < n]
     if bad or not ks:
         raise ConfigError(f"--layers {text!r}: layer numbers must be between 0 and {n - 1}")
-    return ks
+    return list(dict.fromkeys(ks))   # a layer named twice is drawn once, in the given order
 
 
 class Progress:
