@@ -196,3 +196,33 @@ def test_point_check_matches_a_hand_computed_value():
 def test_a_width_travels_exactly(width):
     line = rp.encode("path_begin", 3, 0, 0, rp.FLAG_VALVE, 0, width, 10, 16000, 250)
     assert rp.decode(line, "host")["width"] == width
+
+
+def test_a_number_runs_once_and_the_last_done_never_goes_back(robot):
+    # a tester's client ran paths 5, 5 and 3: each got OK and DN, and SS then said the last
+    # done was 3, so a resume would have run 4 and 5 again
+    vr, hooks = robot
+
+    def upload(s, f, seq):
+        s.sendall(rp.encode("path_begin", seq, 0, 0, 1, 0, 1.0, 2, 16000, 500)
+                  + rp.encode("path_points", seq, 0, 2, group=[(1.0, 2.0), (3.0, 4.0)])
+                  + rp.encode("path_end", seq, 2, rp.point_check([1, 3], [2, 4])))
+        return rp.decode(f.readline(), "robot")
+
+    with socket.create_connection(("127.0.0.1", vr.port), timeout=5) as s, \
+            s.makefile("rb") as f:
+        assert upload(s, f, 5).name == "ok"
+        s.sendall(rp.encode("go", 6))
+        assert rp.decode(f.readline(), "robot")["code"] == 6     # not the stored path
+        s.sendall(rp.encode("go", 5))
+        assert rp.decode(f.readline(), "robot").name == "ok"
+        assert rp.decode(f.readline(), "robot").name == "done"
+        for seq in (5, 3):
+            s.sendall(rp.encode("path_begin", seq, 0, 0, 1, 0, 1.0, 2, 16000, 500))
+            msg = rp.decode(f.readline(), "robot")
+            assert (msg.name, msg.seq, msg["code"]) == ("error", seq, 11)
+        assert 11 in rp.PERMANENT_ERRORS
+        s.sendall(rp.encode("status", 9))
+        msg = rp.decode(f.readline(), "robot")
+        assert msg["last_done"] == 5 and msg["stored"] == 0
+    assert [seq for seq, _ in hooks.paths] == [5]

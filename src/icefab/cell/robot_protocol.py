@@ -129,11 +129,12 @@ ERRORS = {1: "malformed message", 2: "sequence: points or end of another path th
           "oldest stored one", 7: "not allowed now (moving, or no upload open)",
           8: "a point is out of the robot's reach", 9: "unsupported protocol version",
           10: "a point is off the virtual cell's surface (icefab cell serve --grid-for or "
-              "--bounds: start it over the part)"}
+              "--bounds: start it over the part)",
+          11: "the path's number is at or below the last path done: a number runs once"}
 
 #: refusals that the same command sent again would meet again (the others: a damaged
 #: line, a full store, a motion under way, may pass after a new session settles)
-PERMANENT_ERRORS = frozenset({4, 8, 9, 10})
+PERMANENT_ERRORS = frozenset({4, 8, 9, 10, 11})
 
 #: robot states of ``SS`` replies
 STATES = {0: "idle", 1: "moving", 2: "aborted"}

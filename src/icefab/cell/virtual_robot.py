@@ -220,6 +220,11 @@ class VirtualRobot:
             if msg["tool"] >= len(rp.TOOLS) or msg["dt_us"] == 0:
                 self._reply_error(msg.seq, 1, "PB")
                 return
+            if not msg["flags"] & rp.FLAG_PARK and msg.seq <= self._last_done:
+                # a number runs once: a tester's client ran 5, 5 and 3, and the last done
+                # went back to 3, so a resume would have run 4 and 5 again
+                self._reply_error(msg.seq, 11, "PB")
+                return
             self._upload = _Upload(msg.seq, dict(msg.values))
 
     def _on_path_points(self, msg: rp.Decoded) -> None:
@@ -327,7 +332,7 @@ class VirtualRobot:
                         if finished and not self._stop_motion.is_set():
                             self._stored.pop(0)
                             if not path.flags & rp.FLAG_PARK:
-                                self._last_done = seq
+                                self._last_done = max(self._last_done, seq)
                             self._state = 0
                             done = True
                         else:

@@ -255,7 +255,9 @@ _FIXED = r"""
                 ice.dnseq = ice.pseq[slot]
                 ice.dnpts = i
                 IF NOT (ice.pflags[slot] BAND {PARK}) THEN
-                    ice.lastdone = ice.pseq[slot]
+                    IF ice.pseq[slot] > ice.lastdone THEN
+                        ice.lastdone = ice.pseq[slot]
+                    END
                 END
                 ice.dnpend = TRUE
                 ice.state = 0
@@ -356,6 +358,10 @@ _FIXED = r"""
     END
     IF (f.npts < 1) OR (f.npts > ice.maxpts) THEN
         CALL ice.r.er(seq, 4)
+        RETURN
+    END
+    IF (NOT (f.flags BAND {PARK})) AND (seq <= ice.lastdone) THEN
+        CALL ice.r.er(seq, 11)
         RETURN
     END
     ice.uslot = ice.nup MOD ice.maxpaths
