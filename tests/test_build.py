@@ -365,6 +365,99 @@ def test_exactly_once_after_crashes_in_process(planned, tmp_path):
     assert len({(c["kind"], c["layer"], c["item"]) for c in cmds}) == len(cmds)
 
 
+def test_a_cell_that_lost_its_record_is_named_on_resume(planned, tmp_path):
+    # a tester resumed on a fresh cell (its state folder moved away): a path the old cell
+    # had run was run again and the build was 'complete' over a part missing its first
+    # layers. Now refused; with --cell-lost-record the journal's record stands and the
+    # path in flight counts as cut
+    from icefab.motion import load_trajectories
+
+    motion = load_trajectories(planned)
+    job = motion.job
+    build = tmp_path / "b"
+    with pytest.raises(Crash):
+        _inprocess(build, motion, job, crash_at=40, after=True)   # ran, reply lost
+    journal = Journal.open(build / bmod.JOURNAL)
+    in_flight = [c["seq"] for c in journal.commands() if c["sent"] and c["done"] is None]
+    assert in_flight
+    journal.close()
+    shutil.move(build / "cell", tmp_path / "old-cell")
+    fresh = _prepared(build, motion, job)       # a new state: its record starts at 0
+    journal = Journal.open(build / bmod.JOURNAL)
+    try:
+        with pytest.raises(JournalError, match=r"record of completed paths ends at number "
+                                               r"0, but this build's journal has path \d+ "
+                                               r"done: the cell lost its record"):
+            bmod.Runner(build, motion, job, journal, lambda: fresh).run()
+        p = bmod.Runner(build, motion, job, journal, lambda: fresh,
+                        accept_cell_reset=True).run()
+        assert p.state == "complete"
+        for seq in in_flight:
+            assert journal.is_cut(seq)
+        assert any(e["kind"] == "cell-reset" for e in journal.events())
+    finally:
+        journal.close()
+    old = {int(x) for x in (tmp_path / "old-cell" / "executed.log").read_text().split()}
+    assert old and not old & set(_executed(build))     # no path ran on both cells
+
+
+class OutageCell:
+    """A cell whose link is down (every call a CellError) for ``length`` calls at a time
+    before paths ``at``."""
+
+    def __init__(self, cell: VirtualCell, at: set, length: int) -> None:
+        self.cell, self.at, self.length, self.down, self.n = cell, set(at), length, 0, 0
+
+    def __getattr__(self, name):
+        fn = getattr(self.cell, name)
+        if name not in ("run_path", "status"):
+            return fn
+
+        def call(*a, **k):
+            if name == "run_path":
+                self.n += 1
+                if self.n in self.at:
+                    self.at.discard(self.n)
+                    self.down = self.length
+            if self.down:
+                self.down -= 1
+                raise CellError("no reply within 10 s")
+            return fn(*a, **k)
+        return call
+
+
+def test_link_faults_count_in_a_row_and_the_status_says_the_build_waits(planned, tmp_path,
+                                                                         monkeypatch):
+    # a tester's three outages of a valve controller each came back, but the limit counted
+    # every fault of the run (20) and the third ended the build; a stalled cell left the
+    # console and the status silent
+    from icefab.motion import load_trajectories
+
+    monkeypatch.setattr(bmod.Runner, "FAULT_BACKOFF_S", (0.0, 0.0))
+    motion = load_trajectories(planned)
+    build = tmp_path / "b"
+    cell = OutageCell(_prepared(build, motion, motion.job), at={5, 30, 60}, length=8)
+    journal = Journal.create(build / bmod.JOURNAL, {"digests": {}})
+    lines = []
+    try:
+        p = bmod.Runner(build, motion, motion.job, journal, lambda: cell, max_faults=10,
+                        on_progress=lambda p: lines.append(bmod.progress_line(p))).run()
+        assert p.state == "complete"    # 24 faults, never more than 10 in a row
+        assert sum("waiting for the cell (link fault 1: no reply within 10 s)" in x
+                   for x in lines) == 3
+        assert not lines[-1].count("waiting")
+        # one outage longer than the limit ends it, saying so
+        build2 = tmp_path / "c"
+        cell2 = OutageCell(_prepared(build2, motion, motion.job), at={5}, length=11)
+        j2 = Journal.create(build2 / bmod.JOURNAL, {"digests": {}})
+        with pytest.raises(CellError, match=r"gave up after 11 link faults in a row"):
+            bmod.Runner(build2, motion, motion.job, j2, lambda: cell2, max_faults=10).run()
+        j2.close()
+    finally:
+        journal.close()
+    assert Counter(_executed(build)).most_common(1)[0][1] == 1
+
+
 def test_a_second_build_on_the_same_cell_runs_every_path(planned, tmp_path):
     """The cell keeps its last completed number across builds and answers any number at
     or below it "done": a second build numbered from 1 was "complete" at once with nothing
@@ -621,6 +714,57 @@ def test_cell_killed_mid_path_build_completes(firmware_tools, planned, tmp_path)
     got = j.measurements()[-1]["rms_measured"]
     assert got <= 2 * ref
     assert Counter(_executed(tmp_path / "f")).most_common(1)[0][1] == 1
+
+
+def _children(pid: int) -> list[int]:
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            out.append(int(stat.parent.name))
+    return out
+
+
+def test_a_valve_controller_killed_mid_play_cuts_its_path(firmware_tools, planned,
+                                                          tmp_path):
+    # a tester killed the virtual cell's valvectl while it played: the path (9 of its 617
+    # pulses) was journaled done and never run again, the cell kept the dead firmware's pty
+    # and every resume failed on it. Now the path is cut, the cell stops, and the build
+    # starts it again and completes, every path once
+    proc = subprocess.Popen([sys.executable, "-m", "icefab", "build", str(planned), "-o",
+                             "f", "--virtual", "--cell-time-factor", "20"], cwd=tmp_path,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    killed = None
+    try:
+        assert _wait_progress(tmp_path / "f", proc) is not None
+        log = tmp_path / "f" / "cell" / "valve-pulses.log"
+        deadline = time.monotonic() + 120
+        while killed is None and time.monotonic() < deadline and proc.poll() is None:
+            lines = log.read_text().splitlines() if log.exists() else []
+            last = [ln for ln in lines if not ln.startswith("pulse")][-1:]
+            if last and last[0].startswith("start") and lines[-1].startswith("pulse"):
+                cell_pid = json.loads((tmp_path / "f" / "cell" / "endpoints.json")
+                                      .read_text())["pid"]
+                (killed,) = _children(cell_pid)
+                os.kill(killed, signal.SIGKILL)
+            time.sleep(0.005)
+        out, err = proc.communicate(timeout=600)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        _kill_cell(tmp_path / "f")
+    assert killed is not None, "no play was seen under way"
+    assert proc.returncode == 0, err
+    j = Journal.open(tmp_path / "f" / bmod.JOURNAL)
+    cut = [c for c in j.commands() if c["cut"]]
+    assert len(cut) == 1 and cut[0]["kind"] == "path"
+    texts = " ".join(e["text"] for e in j.events())
+    assert "was cut short by a cell fault" in texts
+    assert Counter(_executed(tmp_path / "f")).most_common(1)[0][1] == 1
+    assert cut[0]["seq"] not in _executed(tmp_path / "f")
 
 
 def _chromium() -> str | None:

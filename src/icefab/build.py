@@ -65,7 +65,7 @@ import numpy as np
 
 from icefab.errors import CellRefused, ConfigError, IcefabError, WorkspaceError
 from icefab.robots import check_workspace, get_robot
-from icefab.journal import Journal, digest_text, pack_arrays, unpack_arrays
+from icefab.journal import Journal, JournalError, digest_text, pack_arrays, unpack_arrays
 from icefab.runcell import Cell, CellError, CellPath
 from icefab.core import HeightMap
 
@@ -261,6 +261,7 @@ class Progress:
     last_rms_mm: float = float("nan")
     state: str = "running"
     rms: list = field(default_factory=list)   # (layer, nominal z, measured RMS)
+    waiting: str = ""           # the link fault the build is waiting out ("" when none)
 
 
 def _items(lm: "LayerMotion") -> tuple[list[tuple[int, object]], list[tuple[int, object]]]:
@@ -300,11 +301,15 @@ class Runner:
     raises (``cell`` is then None).
     """
 
+    #: the wait after the first link fault in a row and the longest (doubling between), s:
+    #: with ``max_faults`` 20 a cell is waited for about 75 s
+    FAULT_BACKOFF_S = (0.1, 5.0)
+
     def __init__(self, build_dir: Path, motion: "BuildMotion", job: "Job", journal: Journal,
                  connect: Callable[[], Cell], *,
                  on_progress: Callable[[Progress], None] | None = None,
                  should_stop: Callable[[], bool] = lambda: False,
-                 max_faults: int = 20) -> None:
+                 max_faults: int = 20, accept_cell_reset: bool = False) -> None:
         self.dir = Path(build_dir)
         self.motion = motion
         self.job = job
@@ -313,8 +318,10 @@ class Runner:
         self.on_progress = on_progress
         self.should_stop = should_stop
         self.max_faults = max_faults
+        self.accept_cell_reset = accept_cell_reset
         self.cell: Cell | None = None
-        self.faults = 0
+        self.faults = 0            # link faults in a row (a call that works resets it)
+        self._fault_since = 0.0
         # what the journal already says (a resumed build re-plans the layer it stopped in
         # and would say it again)
         self.findings: list[str] = [e["text"] for e in journal.events()
@@ -374,12 +381,40 @@ class Runner:
                 pass
 
     def _reconcile(self) -> None:
-        """Bring the journal up to what the cell completed (after a crash or fault)."""
+        """Bring the journal up to what the cell completed (after a crash or fault).
+
+        A cell whose record of completed commands ends below a path the journal has done
+        lost its record (a new state folder, a controller restarted) or is another cell:
+        a command sent but not confirmed may or may not have run there, and its platform
+        may not hold this build's part. JournalError, unless ``accept_cell_reset`` (the
+        user's ``--cell-lost-record``): then the journal's record stands and such a
+        command counts as cut, never run twice (a tester's fresh cell ran a path the old
+        one had run, and the build was 'complete' over a part missing its first layers)."""
         st = self.cell.status()
+        highest = self.journal.highest_done()
+        reset = highest > st.last_done
+        if reset and not self.accept_cell_reset:
+            raise JournalError(
+                f"the cell's record of completed paths ends at number {st.last_done}, but "
+                f"this build's journal has path {highest} done: the cell lost its record "
+                "(a new state folder, its controller restarted) or is another cell, and "
+                "its platform may not hold this build's part. Resume on the cell that ran "
+                "it, or, if its platform holds the part, resume with --cell-lost-record "
+                "(the journal's record then stands; a path sent but not confirmed counts "
+                "as cut)")
+        if reset:
+            self.journal.event("cell-reset", f"the cell's record ends at {st.last_done}, "
+                               f"the journal's at {highest}: the journal's record stands "
+                               "(--cell-lost-record)", layer=self.progress.layer)
         for c in self.journal.commands():
             if c["done"] is not None:
                 continue
-            if c["seq"] == st.cut:
+            if reset and c["sent"] is not None and c["seq"] > st.last_done:
+                self.journal.done(c["seq"], cut=True)
+                self.journal.event("cell-fault", f"{c['kind']} {c['layer']}/{c['item']} "
+                                   f"(seq {c['seq']}) was sent before the cell lost its "
+                                   "record: counted cut, not run again", layer=c["layer"])
+            elif c["seq"] == st.cut:
                 self.journal.done(c["seq"], cut=True)
                 self.journal.event("cell-fault", f"{c['kind']} {c['layer']}/{c['item']} "
                                    f"(seq {c['seq']}) was cut short by a cell fault and is not "
@@ -393,7 +428,7 @@ class Runner:
         """A cell call, reconnecting (and reconciling) after a broken link."""
         while True:
             try:
-                return fn(self._link())
+                result = fn(self._link())
             except CellRefused as exc:    # the same again would be refused again
                 self.journal.event("cell-refused", f"the cell refused a command: {exc}",
                                    layer=self.progress.layer)
@@ -405,8 +440,26 @@ class Runner:
                                    layer=self.progress.layer)
                 self._drop_link()
                 if self.faults > self.max_faults:
-                    raise
-                time.sleep(0.1)
+                    raise CellError(f"{exc} (gave up after {self.faults} link faults in a "
+                                    f"row over {time.monotonic() - self._fault_since:.0f} s; "
+                                    "resume when the cell answers again)") from None
+                if self.faults == 1:
+                    self._fault_since = time.monotonic()
+                # the console and the status say it waits on the cell (a tester's stalled
+                # cell left both silent for a minute)
+                self.progress.waiting = f"link fault {self.faults}: {exc}"
+                self._report(force=True)
+                # faults in a row, backing off: a controller that takes a minute to come
+                # back is waited for (a tester's three outages of 25 s ended a build: the
+                # limit counted every fault of the run, 0.1 s apart)
+                first, most = self.FAULT_BACKOFF_S
+                time.sleep(min(first * 2.0 ** (self.faults - 1), most))
+                continue
+            if self.faults:
+                self.faults = 0
+                self.progress.waiting = ""
+                self._report(force=True)
+            return result
 
     def _send(self, kind: str, layer: int, item: int, digest: str,
               fn: Callable[..., bool], upcoming: tuple | None = None) -> None:
@@ -749,6 +802,7 @@ def status_dict(progress: Progress, journal: Journal) -> dict:
             "rms": [{"layer": int(a), "nominal_z_mm": float(b),
                      "rms_measured_mm": None if not math.isfinite(c) else float(c)}
                     for a, b, c in progress.rms],
+            "waiting": progress.waiting or None,
             "events": [e["text"] for e in journal.events()[-20:]]}
 
 
@@ -772,8 +826,9 @@ def layer_place(layer: int, layers_done: int, layers: int) -> str:
 
 def progress_line(p: Progress) -> str:
     rms = f"{p.last_rms_mm:.3f} mm" if math.isfinite(p.last_rms_mm) else "-"
+    wait = f"; waiting for the cell ({p.waiting})" if p.waiting else ""
     return (f"layer {layer_place(p.layer, p.layer_pos, p.layers)}, paths {p.paths_done}/"
-            f"{p.paths}, ETA {format_eta(p.remaining_s)}, last RMS {rms}")
+            f"{p.paths}, ETA {format_eta(p.remaining_s)}, last RMS {rms}{wait}")
 
 
 def write_report(build_dir: Path, progress: Progress, journal: Journal, job: "Job") -> None:

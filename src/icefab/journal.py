@@ -267,6 +267,13 @@ class Journal:
         row = self._db.execute("SELECT done FROM commands WHERE seq=?", (seq,)).fetchone()
         return row is not None and row[0] is not None
 
+    def highest_done(self) -> int:
+        """The highest number of a path the cell completed to its end (not cut; layer ends
+        are not paths: a robot's last done counts paths only), 0 before any."""
+        row = self._db.execute("SELECT MAX(seq) FROM commands WHERE done IS NOT NULL AND "
+                               "NOT cut AND kind != 'layer_end'").fetchone()
+        return int(row[0] or 0)
+
     def is_cut(self, seq: int) -> bool:
         """Whether a cell fault cut command ``seq`` short."""
         row = self._db.execute("SELECT cut FROM commands WHERE seq=?", (seq,)).fetchone()

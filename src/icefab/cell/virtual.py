@@ -60,10 +60,14 @@ class ValveHookup:
     def trigger(self) -> None:  # pragma: no cover - interface
         raise NotImplementedError
 
-    def play_pulses(self, timeout_s: float) -> list[tuple[int, float, float]]:
+    def play_pulses(self, timeout_s: float) -> tuple[list[tuple[int, float, float]], bool]:
         """After :meth:`trigger`: (valve, t s from the trigger, width us) of the play it
-        started, once the play ended; [] if it started none (nothing armed)."""
+        started, and whether the play ran to its end; ([], False) if it started none."""
         raise NotImplementedError  # pragma: no cover - interface
+
+    def failure(self) -> str | None:
+        """Why the valve controller can no longer play (None while it can)."""
+        return None
 
     def close(self) -> None:  # pragma: no cover - interface
         pass
@@ -109,7 +113,15 @@ class FirmwareValves(ValveHookup):
         self._buf = lines.pop()
         return lines
 
-    def play_pulses(self, timeout_s: float) -> list[tuple[int, float, float]]:
+    def failure(self) -> str | None:
+        if not self.host.alive():
+            return (f"the valve controller's firmware (pid {self.host.pid}) ended with "
+                    f"status {self.host.proc.returncode}")
+        if not self.log_path.exists():   # the firmware writes to the file it opened
+            return f"the valve pulse log {self.log_path} was removed (the state folder?)"
+        return None
+
+    def play_pulses(self, timeout_s: float) -> tuple[list[tuple[int, float, float]], bool]:
         pulses: list[tuple[int, float, float]] = []
         play = None
         deadline = time.monotonic() + timeout_s
@@ -124,19 +136,23 @@ class FirmwareValves(ValveHookup):
                 elif f[0] == "pulse" and play is not None and int(f[1]) == play:
                     pulses.append((int(f[2]), int(f[3]) * self.tick_s, float(f[4])))
                 elif f[0] in ("done", "abort") and play is not None and int(f[1]) == play:
-                    return pulses
+                    return pulses, f[0] == "done"
                 elif f[0] == "fault" and play is not None:
                     log.warning("virtual cell: valve controller fault %s during play %d",
                                 f[1], play)
-                    return pulses
+                    return pulses, False
             now = time.monotonic()
+            why = self.failure()
+            if why is not None:
+                log.error("virtual cell: %s during valve play %s", why, play)
+                return pulses, False
             if play is None and now > start_deadline:
                 log.warning("virtual cell: the valve trigger started no play (nothing armed)")
-                return []
+                return [], False
             if now > deadline:
                 log.warning("virtual cell: valve play %s did not end in %.0f s", play,
                             timeout_s)
-                return pulses
+                return pulses, False
             time.sleep(0.002)
 
     def close(self) -> None:
@@ -188,13 +204,17 @@ class _Hooks:
                 cell.world.cut = seq
                 cell.world.save()
             return False
+        played = True
         if path.flags & rp.FLAG_VALVE:
-            pulses = [] if cell.valves is None else \
+            pulses, played = ([], True) if cell.valves is None else \
                 cell.valves.play_pulses(30.0 + 2.0 * path.duration_s)
             with cell.lock:
                 cell.world.deposit_path(path.layer, path.xy, path.dt_s, path.width_mm,
                                         path.tool, pulses)
-        finished = not stop.is_set()
+        # a valve program that did not play to its end (its controller died, stalled or
+        # faulted) cut the path short: reported cut, never done (a tester's killed valvectl
+        # left a path of 9 of its 617 pulses journaled done)
+        finished = played and not stop.is_set()
         with cell.lock:
             # the deposit and the number that says it is done, in one atomic save
             if finished:
@@ -282,6 +302,14 @@ class VirtualCell:
                         seq)
             self.world.cut = seq
             self.world.save()
+
+    def failure(self) -> str | None:
+        """Why this cell can no longer run a build (its valve controller's firmware ended,
+        its pulse log was removed), None while it can: ``icefab cell serve`` then stops
+        (its surface and record saved), so that a build names it and a ``--virtual`` build
+        starts the cell again (a tester's cell kept a dead firmware's pty in its endpoints:
+        every resume failed on it, and the pty was later another cell's laser)."""
+        return self.valves.failure() if self.valves is not None else None
 
     def executed(self, seq: int) -> None:
         """Append ``seq`` to ``DIR/executed.log``: the paths the cell ran to their end, one

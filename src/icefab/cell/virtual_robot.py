@@ -338,6 +338,12 @@ class VirtualRobot:
                         else:
                             self._cut = seq
                             done = False
+                            if not self._stop_motion.is_set():
+                                # the cell cut it short (its valve program did not play
+                                # to its end): the robot stops there, as after an abort,
+                                # and a new session settles it
+                                self._stored.clear()
+                                self._state = 2
                     if done:
                         self._reply("GO", "done", seq, len(path.xy))
             except Exception:  # a bug in the cell model must not kill the robot silently

@@ -58,6 +58,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     mode.add_argument("--stop", metavar="BUILD", help="stop the build: valves off first, "
                                                      "robot to its safe point")
     p.add_argument("--json", action="store_true", help="--status as JSON")
+    p.add_argument("--cell-lost-record", action="store_true",
+                   help="with --resume: the cell lost its record of completed paths (a new "
+                        "state folder, its controller restarted) but its platform holds the "
+                        "part: the journal's record stands, a path sent but not confirmed "
+                        "counts as cut (not run again)")
     # the virtual cell's speed (icefab cell serve --time-factor): tests that kill it mid-path
     p.add_argument("--cell-time-factor", type=float, default=0.0, help=argparse.SUPPRESS)
     p.set_defaults(func=run)
@@ -68,6 +73,8 @@ def run(args: argparse.Namespace) -> int:
         return _status(Path(args.status), args.json)
     if args.stop:
         return _stop(Path(args.stop))
+    if args.cell_lost_record and not args.resume:
+        raise ConfigError("--cell-lost-record goes with --resume BUILD")
     if args.resume:
         if args.out:
             raise ConfigError("--resume BUILD and -o BUILD: give one of them")
@@ -323,7 +330,8 @@ def _run(build: Path, args: argparse.Namespace, *, resume: bool) -> int:
 
     runner = bmod.Runner(build, motion, job, journal, connect, on_progress=on_progress,
                          should_stop=lambda: stop_flag["signal"] is not None
-                         or (build / bmod.STOP_REQUEST).exists())
+                         or (build / bmod.STOP_REQUEST).exists(),
+                         accept_cell_reset=bool(getattr(args, "cell_lost_record", False)))
     try:
         p = runner.run()
     except bmod.BuildStopped as exc:
@@ -381,6 +389,8 @@ def _status(build: Path, as_json: bool) -> int:
           f"layer {bmod.layer_place(st['layer'], st['layers_done'], st['layers'])}, paths "
           f"{st['paths_done']}/{st['paths']}, ETA "
           f"{bmod.format_eta(st['eta_s'])}, last RMS {rms}")
+    if st.get("waiting") and alive:
+        print(f"  waiting for the cell: {st['waiting']}")
     for line in st.get("events", [])[-5:]:
         print(f"  {line}")
     return 0

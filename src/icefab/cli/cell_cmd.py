@@ -139,11 +139,18 @@ def run_serve(args: argparse.Namespace) -> int:
     e = cell.endpoints
     print(f"robot 127.0.0.1:{e['robot']['port']}  valve {e['valve']['device']}  laser "
           f"{e['laser']['device']}  (endpoints in {state / 'endpoints.json'})", flush=True)
+    why = None
     try:
         while not stop.wait(0.5):
-            pass
+            why = cell.failure()
+            if why is not None:
+                break
     finally:
         cell.close()
+    if why is not None:
+        raise CellError(f"virtual cell: {why}; stopped after {cell.paths_run} paths, its "
+                        f"surface and record kept in {state / 'surface.npz'} (start it "
+                        "again; a --virtual build does)")
     print(f"stopped after {cell.paths_run} paths; surface in {state / 'surface.npz'}")
     return 0
 
