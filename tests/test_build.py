@@ -616,6 +616,8 @@ def test_refusals(firmware_tools, planned, tmp_path):
         f.write("\n# edited\n")
     r = _icefab("build", "--resume", "b", cwd=tmp_path)
     assert r.returncode == 2 and "job changed" in r.stderr
+    r = _icefab("build", "--resume", "b", "--layers", "3", cwd=tmp_path)
+    assert r.returncode == 2 and "a resumed build keeps its layers" in r.stderr
     # not an endpoints file
     (tmp_path / "old.json").write_text(json.dumps({"host": "127.0.0.1", "port": 9}))
     r = _icefab("build", str(planned), "-o", "c", "--cell", "old.json", cwd=tmp_path)

@@ -419,7 +419,8 @@ class Runner:
                 self.journal.event("cell-fault", f"{c['kind']} {c['layer']}/{c['item']} "
                                    f"(seq {c['seq']}) was cut short by a cell fault and is not "
                                    "run again: a deposition path's rest is missing (SMF "
-                                   "absorbs it), a measurement path's samples are",
+                                   "absorbs it), a measurement path's samples are "
+                                   "lost with it",
                                    layer=c["layer"])
             elif c["seq"] <= st.last_done:
                 self.journal.done(c["seq"])

@@ -149,7 +149,10 @@ class Journal:
             j = cls(path, cls._connect(path))
             schema = j.meta().get("schema")
         except sqlite3.DatabaseError as exc:
-            raise JournalError(f"{path}: not a build journal ({exc})") from None
+            # a damaged journal (cut short, overwritten) is not a foreign file
+            raise JournalError(f"{path}: not a build journal, or a damaged one ({exc}); "
+                               "SQLite keeps a build's journal whole across crashes: a "
+                               "damaged one was changed by something else") from None
         if schema != SCHEMA_VERSION:
             raise JournalError(f"{path}: journal schema {schema}, this icefab reads "
                                f"{SCHEMA_VERSION}")

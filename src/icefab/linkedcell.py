@@ -75,7 +75,9 @@ def load_endpoints(path: str | os.PathLike) -> dict:
     if p.is_dir():
         return read_endpoints(p)
     if not p.exists():
-        raise CellError(f"{p}: no cell endpoints file")
+        # 'icefab cell serve' removes its endpoints file when it stops
+        raise CellError(f"{p}: no cell endpoints file (a cell started with 'icefab cell "
+                        "serve' removes it when it stops: start it again)")
     # a regular file of a page at most: /dev/zero ran out of memory, a FIFO hung
     text = read_input_text(p, "job", CellError, what="the cell endpoints file")
     try:

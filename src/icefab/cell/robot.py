@@ -230,7 +230,15 @@ class RobotLink:
 
     def hello(self) -> RobotInfo:
         """Open the session; the controller's limits (:class:`RobotInfo`)."""
-        msg = self._command("hello", rp.VERSION, reply=("hello_reply",))
+        try:
+            msg = self._command("hello", rp.VERSION, reply=("hello_reply",))
+        except CellError as exc:
+            if "no reply within" not in str(exc):
+                raise
+            # the controller serves one client at a time: a second build (or 'icefab cell
+            # check') on a busy cell waits unanswered
+            raise CellError(f"{exc} to its handshake: is another build or session "
+                            "connected to it? (the controller serves one at a time)") from None
         self.info = RobotInfo(int(msg["version"]), int(msg["max_points"]),
                               int(msg["max_paths"]))
         return self.info

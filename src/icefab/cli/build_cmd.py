@@ -78,6 +78,11 @@ def run(args: argparse.Namespace) -> int:
     if args.resume:
         if args.out:
             raise ConfigError("--resume BUILD and -o BUILD: give one of them")
+        if args.layers is not None:
+            # a resumed build is the build that was started (a tester's --layers 3 was
+            # ignored and all 12 layers built)
+            raise ConfigError(f"--resume {args.resume} --layers {args.layers}: --layers "
+                              "starts a new build; a resumed build keeps its layers")
         return _run(Path(args.resume), args, resume=True)
     if not args.out:
         raise ConfigError("-o BUILD is required for a new build (or --resume/--status/--stop "
