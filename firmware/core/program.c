@@ -172,6 +172,10 @@ int vc_store_append(vc_store *s, const uint8_t *data, uint32_t n, uint32_t *bad)
         *bad = p->total;                                    /* announced bytes missing */
         return -1;
     }
+    if (d.phase == VC_DEC_DONE && p->received + n < p->total) {
+        *bad = d.pos;                  /* the layout ends before the announced total: a */
+        return -1;                     /* streamed program would play as if complete   */
+    }
     for (k = 0; k < n; k++) {
         s->buf[s->w] = data[k];
         s->w = (s->w + 1u == VC_STORE_BYTES) ? 0u : s->w + 1u;

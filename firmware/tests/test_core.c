@@ -344,8 +344,9 @@ static void test_program_violations(void)
     len = make_program(prog, 0, 1, n, dur, ticks, 0);
     prog[20] = 0x01; prog[21] = 0x00; prog[22] = 0xD0; prog[23] = 0x07;  /* 131.072001 s */
     CHECK_EQ(upload(0, prog, len, len), 0xFF);
-    len = make_program(prog, 0, 1, n, dur, ticks, 0);  /* announced one byte more than sent */
-    CHECK_EQ(upload(0, prog, len + 1, len), 0x91);
+    len = make_program(prog, 0, 1, n, dur, ticks, 0);  /* announced one byte more than */
+    CHECK_EQ(upload(0, prog, len + 1, len), 0xFF);     /* its layout: refused at its end */
+    CHECK_EQ(upload(0, prog, len + 1, len - 1), 0x91); /* short of its total, so far fine */
     {
         uint8_t p[6] = {0, 0, 0, 0, 0, 0};
         frame_t g;
