@@ -240,3 +240,16 @@ def test_paths_and_simulate_take_the_parts_a_job_names(tmp_path, capsys):
         err = capsys.readouterr().err
         assert "give it alone" in err and "unknown mesh format" not in err, err
     assert not (tmp_path / "none").exists() and not (tmp_path / "two").exists()
+
+
+def test_negative_values_of_options_are_values():
+    # a tester's '--zbase -1e9' and '--bounds -50,-50,50,50' were 'expected one argument'
+    from icefab.cli import build_parser
+
+    parser = build_parser()
+    args = parser.parse_args(["export", "vplus", "--zbase", "-1e9", "--yaw", "-.5", "-o", "x"])
+    assert (args.zbase, args.yaw, args.out) == (-1e9, -0.5, "x")
+    args = parser.parse_args(["cell", "serve", "--state", "s", "--bounds", "-50,-50,50,50"])
+    assert args.bounds == "-50,-50,50,50"
+    args = parser.parse_args(["slice", "m.stl", "-c", "j.toml", "-o", "o"])   # options stay
+    assert (args.job, args.out) == ("j.toml", "o")

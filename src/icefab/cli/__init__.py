@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import re
 import sys
 
 from icefab.cli.common import check_output_dir
@@ -35,7 +36,26 @@ def build_parser() -> argparse.ArgumentParser:
     sub.required = True
     for name in SUBCOMMANDS:
         importlib.import_module(f"icefab.cli.{name}_cmd").add_parser(sub)
+    _negative_numbers_are_values(parser)
     return parser
+
+
+#: A word that starts like a negative number, "-1e9" or "-50,-50,50,50" included.
+_NEGATIVE_VALUE = re.compile(r"^-\.?\d")
+
+
+def _negative_numbers_are_values(parser: argparse.ArgumentParser) -> None:
+    """Let ``--zbase -1e9`` and ``--bounds -50,-50,50,50`` be values: argparse takes a word
+    for an option unless it looks like a plain negative number ("-5", "-0.5"), and said
+    "expected one argument" to a tester's two (no icefab option starts with a digit).
+    Uses argparse's matcher for that, on every parser and subparser."""
+    stack = [parser]
+    while stack:
+        p = stack.pop()
+        p._negative_number_matcher = _NEGATIVE_VALUE
+        for action in p._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                stack.extend(action.choices.values())
 
 
 def _version() -> str:

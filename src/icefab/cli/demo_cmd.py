@@ -23,13 +23,14 @@ def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
         "demo", help="run every stage on the built-in demo part (a beer mug)",
         description="Generate a beer mug with a handle (about 125 mm tall) and run every "
-                    "stage on it with the default Cobra 600 cell, writing results and "
-                    "pictures to OUT.")
+                    "stage on it with the default Cobra 600 cell (or -c JOB's settings; "
+                    "the part is always the mug, whatever parts.files says), writing "
+                    "results and pictures to OUT.")
     add_job_argument(p)
     p.add_argument("-o", "--out", default="icefab-demo", metavar="OUT",
                    help="output folder (default: icefab-demo)")
     p.add_argument("--layers", type=int, default=0, metavar="N",
-                   help="build only the first N layers (default: all)")
+                   help="build only the first N layers (default, or 0: all)")
     p.add_argument("--sim-layers", type=int, default=60, metavar="N",
                    help="layers run on the build simulator, open loop and with SMF "
                         "(default: 60; 0 skips the simulator)")
