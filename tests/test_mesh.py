@@ -226,6 +226,31 @@ def test_obj_quads(tmp_path, style):
     assert trimesh.Trimesh(mesh.vertices, mesh.faces).area == pytest.approx(ref.area)
 
 
+@pytest.mark.parametrize("fmt", ["obj", "ply"])
+@pytest.mark.parametrize("start", range(6))
+def test_concave_polygons_are_triangulated_inside_themselves(tmp_path, fmt, start):
+    # an L-shaped prism with its top and bottom as hexagons: a fan from a corner next to
+    # the reflex one lays a triangle outside the L (a tester's concave n-gons sliced as
+    # overlapping shells, 'made as the union of their contours' on every layer)
+    L = np.array([[0, 0], [20, 0], [20, 10], [10, 10], [10, 20], [0, 20]], float)
+    L = np.roll(L, start, axis=0)                     # the fan starts at every corner
+    v = np.vstack([np.c_[L, np.zeros(6)], np.c_[L, np.full(6, 5.0)]])
+    faces = [list(range(5, -1, -1)), list(range(6, 12))]
+    faces += [[k, (k + 1) % 6, (k + 1) % 6 + 6, k + 6] for k in range(6)]
+    if fmt == "obj":
+        text = "".join(f"v {x:g} {y:g} {z:g}\n" for x, y, z in v)
+        text += "".join("f " + " ".join(str(i + 1) for i in f) + "\n" for f in faces)
+        data = text.encode()
+    else:
+        data = _ply_bytes(v, None, fmt="ascii", polygons=faces)
+    mesh = load_mesh(_write(tmp_path, f"l.{fmt}", data))
+    assert mesh.n_faces == 2 * 4 + 6 * 2
+    tm = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
+    assert tm.area == pytest.approx(2 * 300.0 + 80.0 * 5.0)    # no triangle outside the L
+    report = check_mesh(mesh)
+    assert report.watertight and report.volume == pytest.approx(1500.0, rel=1e-12)
+
+
 @pytest.mark.parametrize("form", ["continued", "cr"])
 def test_obj_continued_lines_and_cr_line_ends(tmp_path, form):
     # the OBJ specification continues a line after a backslash at its end (a tester's

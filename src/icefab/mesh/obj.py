@@ -14,7 +14,7 @@ from numba import njit
 from icefab.errors import MeshError
 from icefab.mesh._text import (_E_FEW, _E_INDEX, _E_NUMBER, _check_finite_lines, _finish_numbers,
                                _is_number, _is_ws, _line_text, _store_number)
-from icefab.mesh.topology import _fan
+from icefab.mesh.topology import polygon_triangles
 
 log = logging.getLogger(__name__)
 
@@ -169,4 +169,4 @@ def read(data: bytes, path: Path) -> tuple[np.ndarray, np.ndarray]:
                         f"file has {len(vertices)} vertices")
     if n_short:
         log.warning("%s: skipped %d OBJ faces with fewer than 3 corners", path, n_short)
-    return vertices, _fan(fidx, fcount)
+    return vertices, polygon_triangles(vertices, fidx, fcount)

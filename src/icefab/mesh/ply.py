@@ -14,7 +14,7 @@ from numba import njit
 
 from icefab.errors import MeshError
 from icefab.mesh._text import _finish_numbers, _line_text, _scan_numbers
-from icefab.mesh.topology import _fan
+from icefab.mesh.topology import polygon_triangles
 
 log = logging.getLogger(__name__)
 
@@ -420,7 +420,7 @@ def read(data: bytes, path: Path) -> tuple[np.ndarray, np.ndarray]:
                             int(short.sum()))
                 keep = np.repeat(~short, counts)
                 flat, counts = flat[keep], counts[~short]
-            tris.append(_fan(flat, counts))
+            tris.append(polygon_triangles(vertices, flat, counts))
         else:
             # every record is a strip set of its own: join them with -1 restarts
             joined = np.full(len(flat) + len(counts), -1, np.int64)

@@ -336,3 +336,56 @@ def _fan(flat: np.ndarray, counts: np.ndarray) -> np.ndarray:
     j = np.arange(int(ntri.sum())) - np.repeat(np.cumsum(ntri) - ntri, ntri)
     base = starts[poly]
     return np.stack([flat[base], flat[base + j + 1], flat[base + j + 2]], axis=1)
+
+
+def polygon_triangles(vertices: np.ndarray, flat: np.ndarray, counts: np.ndarray
+                      ) -> np.ndarray:
+    """Triangles of polygon faces (OBJ, PLY), concatenated corner indices ``flat`` with
+    ``counts`` corners each (>= 3): a fan (:func:`_fan`) for every convex polygon, ear
+    clipping (``manifold3d.triangulate``, in the polygon's plane) for a concave one, whose
+    fan lays triangles outside it (a tester's concave n-gons came out as overlapping
+    shells, and every layer was 'made as the union of their contours'). Polygon order
+    kept; indices out of range, or polygons without an area, are left to the fan (the
+    loaders' checks name them).
+
+    vertices: (n, 3) float64 mm. Returns (sum(counts - 2), 3) int64.
+    """
+    tris = _fan(flat, counts)
+    big = np.flatnonzero(counts > 3)
+    if not len(big) or len(flat) == 0 or flat.min() < 0 or flat.max() >= len(vertices):
+        return tris
+    starts = np.cumsum(counts) - counts
+    # the corners of the polygons with more than 3, each with its neighbours in its ring
+    c = counts[big]
+    owner = np.repeat(np.arange(len(big)), c)
+    k = np.arange(int(c.sum())) - np.repeat(np.cumsum(c) - c, c)
+    base = np.repeat(starts[big], c)
+    at = vertices[flat[base + k]]
+    nxt = vertices[flat[base + (k + 1) % np.repeat(c, c)]]
+    prv = vertices[flat[base + (k - 1) % np.repeat(c, c)]]
+    # Newell's normal of each polygon, then the turn at each corner against it
+    normal = np.zeros((len(big), 3))
+    np.add.at(normal, owner, np.cross(at, nxt))
+    turn = np.einsum("ij,ij->i", np.cross(at - prv, nxt - at), normal[owner])
+    size = np.linalg.norm(normal, axis=1)
+    scale = np.maximum.reduceat(np.abs(turn), np.cumsum(c) - c)
+    concave = np.zeros(len(big), bool)
+    np.logical_or.at(concave, owner, turn < -1e-9 * scale[owner])
+    concave &= size > 0
+    if not concave.any():
+        return tris
+    import manifold3d
+
+    tstart = np.cumsum(counts - 2) - (counts - 2)
+    for j in np.flatnonzero(concave):
+        p = big[j]
+        idx = flat[starts[p]:starts[p] + counts[p]]
+        pts = vertices[idx]
+        n = normal[j] / size[j]
+        u = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+        u /= np.linalg.norm(u)
+        v = np.cross(n, u)
+        local = np.asarray(manifold3d.triangulate([np.column_stack([pts @ u, pts @ v])]))
+        if local.shape == (counts[p] - 2, 3):   # a simple polygon: its ears
+            tris[tstart[p]:tstart[p] + counts[p] - 2] = idx[local]
+    return tris
