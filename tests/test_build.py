@@ -549,6 +549,36 @@ def _wait_progress(build: Path, proc, timeout_s: float = 300.0) -> int | None:
     raise AssertionError(f"{build}: no progress within {timeout_s:g} s")
 
 
+def test_a_resume_refused_for_a_lost_record_leaves_no_cell_behind(firmware_tools, planned,
+                                                                   tmp_path):
+    # the refusal left the new virtual cell running on a new, empty BUILD/cell, in the way
+    # of moving the old cell back (a tester's)
+    proc = subprocess.Popen([sys.executable, "-m", "icefab", "build", str(planned), "-o", "b",
+                             "--virtual", "--cell-time-factor", "20"], cwd=tmp_path,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 300
+        while done_commands(tmp_path / "b") < 10 and time.monotonic() < deadline:
+            assert proc.poll() is None, proc.stderr.read().decode()
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        _kill_cell(tmp_path / "b")
+    time.sleep(0.5)
+    shutil.move(tmp_path / "b" / "cell", tmp_path / "old-cell")
+    r = _icefab("build", "--resume", "b", cwd=tmp_path)
+    assert r.returncode == 2 and "the cell lost its record" in r.stderr, r.stderr
+    assert not (tmp_path / "b" / "cell").exists()
+    shutil.move(tmp_path / "old-cell", tmp_path / "b" / "cell")
+    r = _icefab("build", "--resume", "b", cwd=tmp_path)
+    _kill_cell(tmp_path / "b")
+    assert r.returncode == 0, r.stderr
+    assert Counter(_executed(tmp_path / "b")).most_common(1)[0][1] == 1
+
+
 def test_sigkill_the_build_and_resume(firmware_tools, planned, tmp_path):
     r = _icefab("build", str(planned), "-o", "ref", "--virtual", cwd=tmp_path)
     assert r.returncode == 0, r.stderr

@@ -283,3 +283,20 @@ def test_cli_refuses_a_calibration_outside_the_tolerances(tmp_path):
     assert not (tmp_path / "out").exists()
     r = _icefab(*args, "--force", cwd=tmp_path)
     assert r.returncode == 0 and "NOT met" in (tmp_path / "out" / "laser.toml").read_text()
+
+
+@pytest.mark.parametrize("density, says", [
+    ("1000", "must be >= 0.1 and <= 25"), ("inf", "must be a finite number within 0.1-25"),
+    ("1e-9", "must be >= 0.1 and <= 25")])
+def test_calibrate_valve_density_is_the_settings_range(tmp_path, capsys, density, says):
+    # a tester's --density 1000 (water in kg/m^3) wrote a table 1000 times too small,
+    # 1e-9 one off by 1e9, and inf a traceback
+    from icefab.cli import main
+
+    (tmp_path / "m.csv").write_text("frequency_hz,duration_s,mass_g\n100,60,1.5\n200,60,3\n"
+                                    "300,60,4.5\n400,60,6\n")
+    assert main(["calibrate", "valve", str(tmp_path / "m.csv"), f"--density={density}",
+                 "-o", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert f"--density {float(density):g} g/cm^3: {says}" in err
+    assert not (tmp_path / "o").exists()

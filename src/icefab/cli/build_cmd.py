@@ -231,7 +231,7 @@ def _connector(build: Path, args: argparse.Namespace, meta: dict, job):
 def _run(build: Path, args: argparse.Namespace, *, resume: bool) -> int:
     from icefab import build as bmod
     from icefab.config import load_job, to_toml
-    from icefab.journal import Journal, digest_file, digest_text
+    from icefab.journal import Journal, JournalError, digest_file, digest_text
     from icefab.motion import TrajectoryFile, open_trajectories
 
     jpath = build / bmod.JOURNAL
@@ -337,8 +337,18 @@ def _run(build: Path, args: argparse.Namespace, *, resume: bool) -> int:
                          should_stop=lambda: stop_flag["signal"] is not None
                          or (build / bmod.STOP_REQUEST).exists(),
                          accept_cell_reset=bool(getattr(args, "cell_lost_record", False)))
+    cdir = build / bmod.CELL_DIR
+    # a resume whose virtual cell has no surface starts a new one: if the runner then
+    # refuses it (the cell lost its record), that cell goes with the refusal (a tester's
+    # stayed running on an empty folder, in the way of moving the old cell back)
+    fresh_cell = meta.get("cell") == "virtual" and not (cdir / "surface.npz").exists()
     try:
         p = runner.run()
+    except JournalError:
+        if fresh_cell and not getattr(args, "cell_lost_record", False):
+            _shutdown_cell(cdir)
+            shutil.rmtree(cdir, ignore_errors=True)
+        raise
     except bmod.BuildStopped as exc:
         if tty:
             sys.stderr.write("\n")
