@@ -346,8 +346,40 @@ def _check_ascii_records(data: bytes, body: int, elements: list[_PlyElement],
         return
     declared = ", ".join(f"{e.n} {e.name}" for e in elements)
     extra = f"{left} numbers are left after them; " if left else ""
+    if lines == records:
+        short = _short_record(data, body, elements)
+        if short:
+            raise MeshError(f"{path}: ASCII PLY line {short}")
     raise MeshError(f"{path}: ASCII PLY header declares {records} records ({declared}): "
                     f"{extra}the body has {lines} lines, one record a line")
+
+
+def _short_record(data: bytes, body: int, elements: list[_PlyElement]) -> str | None:
+    """The first body line whose count of numbers is not its record's (records of scalar
+    properties, or of one list: its count plus one), as 'N has k numbers; ...'; None when
+    every line that can be checked holds its record (a tester's vertex line missing z was
+    named only as '11 numbers are left')."""
+    header_lines = data[:body].count(b"\n")      # the body starts after a newline
+    rows = [(k, ln.split()) for k, ln in enumerate(data[body:].split(b"\n"),
+                                                 start=header_lines + 1) if ln.strip()]
+    at = 0
+    for e in elements:
+        lists = [q for q in e.props if q.count is not None]
+        for k, words in rows[at:at + e.n]:
+            if not lists:
+                need = len(e.props)
+            elif len(e.props) == 1:
+                try:
+                    need = 1 + int(float(words[0]))
+                except ValueError:
+                    return None
+            else:
+                break                       # mixed records: not checked line by line
+            if len(words) != need:
+                return (f"{k} has {len(words)} numbers; a {e.name} record there needs "
+                        f"{need} (header: {', '.join(q.name for q in e.props)})")
+        at += e.n
+    return None
 
 
 def read(data: bytes, path: Path) -> tuple[np.ndarray, np.ndarray]:
