@@ -350,3 +350,31 @@ def test_smf_step_end_to_end():
     np.testing.assert_allclose(act.u.z[left], (1 + 0.33) * 0.2 / dh_m, atol=1e-9)
     np.testing.assert_allclose(act.u.z[right], -(1 + 0.33) * 0.1 / dh_m, atol=1e-9)
     assert st.k == 1
+
+
+def test_smf_update_checks_its_overrides_and_keeps_its_own_state():
+    # a tester's reversed limits or negative integral limit flipped the action's sign, a
+    # NaN gain made it NaN, and a refilled error buffer zeroed the derivative term (the
+    # state kept the caller's array)
+    from icefab.errors import ConfigError, GeometryError
+
+    E = HeightMap(np.zeros(2), 1.0, np.full((5, 6), 0.1))
+    for kw in ({"limits": (0.3, -0.3)}, {"integral_limit": -1.0},
+               {"gains": (float("nan"), 0.33, 0.03)}, {"gains": (1.0, 0.0)},
+               {"limits": (float("nan"), 0.3)}):
+        with pytest.raises(ConfigError):
+            smf_update(SmfState(), E, Job(), **kw)
+    smf_update(SmfState(), E, Job(), integral_limit=np.inf, limits=(-np.inf, np.inf))
+    for bad in (HeightMap(np.zeros(2), 0.0, np.zeros((3, 3))),
+                HeightMap(np.zeros(2), 1.0, np.zeros(3)), None):
+        with pytest.raises(GeometryError, match="error surface"):
+            smf_update(SmfState(), bad, Job())
+    buf, fresh = np.empty((5, 6)), []
+    s1 = s2 = SmfState()
+    for e in (0.0, 0.1, 0.3):
+        buf[:] = e
+        u1, s1 = smf_update(s1, HeightMap(np.zeros(2), 1.0, buf), Job())
+        u2, s2 = smf_update(s2, HeightMap(np.zeros(2), 1.0, np.full((5, 6), e)), Job())
+        fresh.append(float(np.nanmax(u2.d)))
+        assert float(np.nanmax(u1.d)) == fresh[-1]
+    assert fresh[-1] > 0

@@ -508,3 +508,33 @@ def test_part_thinner_than_a_layer_gives_one_full_layer(cut):
     assert len(stack) == 1
     assert 0.0 <= stack[0].z <= 0.1
     assert stack[0].part.area == pytest.approx(20.0, rel=1e-9)
+
+
+def test_a_mesh_built_by_a_program_is_checked_before_slicing():
+    # a tester's Mesh from trimesh with a face index past its vertices segfaulted the cut
+    # kernel (or gave layers of 1e8 mm^2); a NaN x gave empty layers without a word
+    import trimesh
+
+    from icefab.core import Mesh
+
+    job = Job().replace(**{"slicing.layer_thickness_mm": 1.0})
+    b = trimesh.creation.box((40, 30, 5))
+    b.apply_translation((0, 0, 2.5))
+    V, F = np.asarray(b.vertices, float), np.asarray(b.faces, np.int64)
+    for index in (100_000_000, 8, -1):
+        bad = F.copy()
+        bad[3, 1] = index
+        with pytest.raises(GeometryError, match=rf"box: face 3 has vertex index .*{index}.* "
+                                                r"out of range: the mesh has 8 vertices"):
+            slice_mesh(Mesh(V, bad, name="box"), job)
+    nan = V.copy()
+    nan[2, 0] = np.nan
+    with pytest.raises(GeometryError, match=r"vertex 2 is \[nan"):
+        slice_mesh(Mesh(nan, F), job)
+    with pytest.raises(GeometryError, match=r"vertices \(8, 2\)"):
+        slice_mesh(Mesh(V[:, :2], F), job)
+    with pytest.raises(GeometryError, match="integer vertex indices"):
+        slice_mesh(Mesh(V, F + 0.5), job)
+    # lists are arrays of numbers too
+    a, b2 = slice_mesh(Mesh(V.tolist(), F.tolist()), job), slice_mesh(Mesh(V, F), job)
+    assert [lay.part.area for lay in a] == [lay.part.area for lay in b2]

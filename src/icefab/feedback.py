@@ -802,6 +802,45 @@ def saturation_limits(job: "Job") -> tuple[float, float]:
     return -s, s
 
 
+def _check_limits(limits, integral_limit) -> None:
+    """smf_update's overrides of the planes of U and the integral's bound (a tester's
+    reversed limits, or a negative integral limit, flipped the action's sign)."""
+    if limits is not None:
+        try:
+            lo, hi = (float(x) for x in limits)
+        except (TypeError, ValueError):
+            lo, hi = np.nan, np.nan
+        if not lo <= 0.0 <= hi:          # False for NaN too; infinite: no plane
+            raise ConfigError(f"limits {limits!r}: expected (lower, upper) planes of U with "
+                              "lower <= 0 <= upper")
+    if integral_limit is not None:
+        try:
+            bound = float(integral_limit)
+        except (TypeError, ValueError):
+            bound = np.nan
+        if not bound >= 0.0:             # False for NaN; inf: no anti-windup
+            raise ConfigError(f"integral_limit {integral_limit!r}: expected a number >= 0 "
+                              "(inf: no bound)")
+
+
+def _error_grid(error: HeightMap) -> np.ndarray:
+    """The error surface's z as a 2-D float64 grid on a positive, finite spacing and a
+    finite origin; GeometryError otherwise (a tester's spacing 0 failed in scipy)."""
+    try:
+        z = np.asarray(error.z, dtype=np.float64)
+        spacing = float(error.spacing)
+        origin = np.asarray(error.origin, dtype=np.float64)
+    except (AttributeError, TypeError, ValueError):
+        raise GeometryError(f"error surface {type(error).__name__}: expected a HeightMap "
+                            "(origin (2,), spacing mm, z (ny, nx))") from None
+    if z.ndim != 2 or origin.shape != (2,) or not (np.isfinite(spacing) and spacing > 0) \
+            or not np.isfinite(origin).all():
+        raise GeometryError(f"error surface: z {z.shape}, spacing {spacing!r}, origin "
+                            f"{origin.tolist()}: expected a 2-D grid, a positive spacing and "
+                            "a finite origin")
+    return z
+
+
 def smf_update(state: SmfState, error: HeightMap, job: "Job | None" = None, *,
                gains: Gains | None = None, limits: tuple[float, float] | None = None,
                integral_limit: float | None = None) -> tuple[ControlAction, SmfState]:
@@ -824,10 +863,13 @@ def smf_update(state: SmfState, error: HeightMap, job: "Job | None" = None, *,
     if job is None:
         job = Job()
     fb = job.feedback
-    kp, ki, kd = gains if gains is not None else (fb.kp, fb.ki, fb.kd)
+    if gains is not None:
+        _check_gains(gains)      # a tester's NaN gain made the action NaN
+    kp, ki, kd = (float(g) for g in gains) if gains is not None else (fb.kp, fb.ki, fb.kd)
+    _check_limits(limits, integral_limit)
     lo, hi = limits if limits is not None else saturation_limits(job)
     isat = float(fb.integral_saturation if integral_limit is None else integral_limit)
-    E = np.asarray(error.z, dtype=np.float64)
+    E = _error_grid(error)
     valid = np.isfinite(E)
     Ez = np.where(valid, E, 0.0)
     if state.integral is not None:
@@ -853,8 +895,12 @@ def smf_update(state: SmfState, error: HeightMap, job: "Job | None" = None, *,
         p=np.where(valid, P, nan), i=np.where(valid, I, nan), d=np.where(valid, D, nan),
         saturated=sat, controller=fb.controller,
         _filled=_nearest_fill(Us, valid) if n_valid else np.zeros_like(Us))
+    # the state keeps its own copy: a caller that refills one buffer each layer made the
+    # previous error the current one, and the derivative term 0 (a tester's)
     new_state = SmfState(integral=HeightMap(origin, error.spacing, np.where(valid, I, nan)),
-                         previous_error=error, k=state.k + 1)
+                         previous_error=HeightMap(origin.copy(), float(error.spacing),
+                                                  E.copy()),
+                         k=state.k + 1)
     if sat > 0:
         log.info("SMF layer %d: output saturated on %.1f %% of the footprint", state.k + 1,
                  100 * sat)

@@ -88,6 +88,7 @@ The stack file (``save_stack`` / ``load_stack``) is documented in :mod:`icefab.r
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass, field
 from typing import Callable
@@ -1079,6 +1080,41 @@ def _union_layer(rings: _Rings, a: int, b: int) -> Region:
     return region_from_rings(ring_list, fill="nonzero")
 
 
+def _checked_mesh(mesh: Mesh) -> Mesh:
+    """The mesh with float64 (n, 3) vertices and int64 (m, 3) faces, every coordinate
+    finite and every index a vertex's; GeometryError naming what is not. The loaders check
+    their files; a Mesh built by a program (from trimesh, say) was sliced as it came: an
+    index past the vertices read memory outside them (a tester's segfault, or areas of
+    1e8 mm^2), a NaN x or y gave empty layers without a word."""
+    name = mesh.name or "mesh"
+    try:
+        v = np.asarray(mesh.vertices, dtype=np.float64)
+        f = np.asarray(mesh.faces)
+    except (TypeError, ValueError) as exc:
+        raise GeometryError(f"{name}: vertices and faces must be arrays of numbers "
+                            f"({exc})") from None
+    if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3:
+        raise GeometryError(f"{name}: vertices {v.shape} and faces {f.shape}: expected "
+                            "(n, 3) coordinates and (m, 3) vertex indices")
+    if len(f) and f.dtype.kind not in "iu":
+        raise GeometryError(f"{name}: faces of dtype {f.dtype}: expected integer vertex "
+                            "indices")
+    bad = ~np.isfinite(v).all(axis=1)
+    if bad.any():
+        k = int(np.argmax(bad))
+        raise GeometryError(f"{name}: vertex {k} is {v[k].tolist()}: coordinates must be "
+                            "finite")
+    if len(f):
+        out = (f < 0) | (f >= len(v))
+        if out.any():
+            k = int(np.argmax(out.any(axis=1)))
+            raise GeometryError(f"{name}: face {k} has vertex index {f[k].tolist()} out of "
+                                f"range: the mesh has {len(v)} vertices")
+    if v is mesh.vertices and f.dtype == np.int64:
+        return mesh
+    return dataclasses.replace(mesh, vertices=v, faces=f.astype(np.int64))
+
+
 def slice_mesh(mesh: Mesh, job: Job | None = None, *, progress: Progress | None = None) -> Stack:
     """Slice a mesh into a :class:`Stack` of layers of nested, oriented contours.
 
@@ -1095,6 +1131,7 @@ def slice_mesh(mesh: Mesh, job: Job | None = None, *, progress: Progress | None 
     job = Job() if job is None else job
     report = SliceReport()
     warn = _Warnings()
+    mesh = _checked_mesh(mesh)
     if len(mesh.faces) == 0 or len(mesh.vertices) == 0:
         raise GeometryError(f"{mesh.name or 'mesh'}: no facets to slice")
     bounds = mesh.bounds
