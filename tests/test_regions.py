@@ -415,3 +415,33 @@ def test_a_fuzzed_scaffold_keeps_no_needle_of_clippers():
         assert S.intersection(Pt).area < grid
         assert S.union(Pt).area == pytest.approx(layer.scaffold.area + layer.part.area,
                                                  abs=grid)
+
+
+def test_a_stack_a_program_built_is_checked_before_scaffold_and_paths():
+    # a tester's outer rings wound clockwise got no part path and a scaffold around
+    # nothing; a negative layer thickness commanded a negative volume; a NaN stack
+    # thickness passed the thickness check
+    from icefab import Layer, Region, Stack, add_scaffold, plan_paths
+    from icefab.errors import ConfigError, GeometryError
+
+    job = Job().replace(**{"slicing.layer_thickness_mm": 1.0})
+    sq = np.array([[-20, -15], [20, -15], [20, 15], [-20, 15]], float)
+    hole = np.array([[-5, -5], [-5, 5], [5, 5], [5, -5]], float)     # clockwise: a hole
+
+    def stack(rings, parent, thickness=float("nan"), of=1.0):
+        return Stack(tuple(Layer(i, i + 0.5, Region(tuple(rings), np.array(parent)),
+                                 thickness=thickness) for i in range(2)), job, of)
+
+    for f in (add_scaffold, plan_paths):
+        with pytest.raises(GeometryError, match="layer 0: part ring 0 is an outer ring wound "
+                                                "clockwise"):
+            f(stack([sq[::-1]], [-1]), job)
+        with pytest.raises(GeometryError, match="part ring 1 is a hole wound "
+                                                "counter-clockwise"):
+            f(stack([sq, hole[::-1]], [-1, 0]), job)
+        with pytest.raises(GeometryError, match=r"layer 0: thickness -1\.0 mm"):
+            f(stack([sq], [-1], thickness=-1.0), job)
+        with pytest.raises(ConfigError, match="sliced at nan mm"):
+            f(stack([sq], [-1], of=float("nan")), job)
+    good = plan_paths(add_scaffold(stack([sq, hole], [-1, 0]), job), job)
+    assert any(p.material == "part" and p.depositing for p in good.layers[0].paths)

@@ -263,3 +263,15 @@ def test_the_calibrated_latency_is_taken_off_the_lasers_own():
     assert lagging != none
     # overstated by the calibration: the samples read ahead of their tags, as a build does
     assert closed(**{"cell.laser_latency_s": 0.05}) not in (none, lagging)
+
+
+def test_toolpaths_simulated_with_a_job_that_contradicts_them_are_refused():
+    # a tester's toolpaths of 1 mm layers simulated with a 0.5 mm job: half the volume
+    # commanded and the heights measured wrong, without a word (trajectories were checked)
+    job = quiet_job(**{"slicing.layer_thickness_mm": DH})
+    tp = annulus_toolpaths(job, 4)
+    other = job.replace(**{"slicing.layer_thickness_mm": 2 * DH})
+    with pytest.raises(SimulationError, match="slicing.layer_thickness_mm"):
+        simulate_build(tp, other, closed_loop=False)
+    # settings the paths stage did not decide may differ
+    simulate_build(tp, job.replace(**{"simulation.flow_error": 0.05}), closed_loop=False)

@@ -86,8 +86,8 @@ from icefab import geometry as geo
 from icefab.config import Job, MaterialSettings
 from icefab.frames import FRAME_TOOLS as TOOLS, tool_offset, to_base_frame  # noqa: F401 (old home)
 from icefab.parallel import parallel_imap
-from icefab.stages import check_layer_thickness, measured_layers
-from icefab.regions import hook_band_mm
+from icefab.stages import measured_layers
+from icefab.regions import check_stack, hook_band_mm
 from icefab.robots import CONTROLLER_PATH_POINTS
 from icefab.resultfiles import (TOOLPATHS_FORMAT as FORMAT, TOOLPATHS_VERSION as VERSION,  # noqa: F401
                                 LayerHead, PackedToolpaths, load_toolpaths, pack_layer_paths,
@@ -1845,7 +1845,7 @@ def iter_plan_paths_packed(stack: Stack, job: Job | None = None, *,
     the next, without making their Toolpaths (issue 17). The settings are checked before
     any layer is planned."""
     job = job or stack.job
-    check_layer_thickness(stack.layer_thickness, job)
+    check_stack(stack, job)
     check_paths((sum(layer.part.area for layer in stack.layers),
                  sum(layer.scaffold.area for layer in stack.layers)), job)
     if np.isfinite([L.thickness for L in stack.layers]).any():  # adaptive: by height

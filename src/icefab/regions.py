@@ -66,6 +66,7 @@ import numpy as np
 
 from icefab import geometry as geo
 from icefab.config import Job, MaterialSettings
+from icefab.errors import GeometryError
 from icefab.core import Region, Stack
 from icefab.geometry import signed_area
 from icefab.stages import check_layer_thickness
@@ -213,6 +214,47 @@ def _thin_part_task(args: tuple[Region, float, float]) -> list[tuple[np.ndarray,
     return out
 
 
+def check_stack(stack: Stack, job: Job) -> None:
+    """What a stage taking a Stack checks first: the job's layer thickness is the stack's
+    (:func:`icefab.stages.check_layer_thickness`), each layer's own thickness (NaN: the
+    stack's) lies in (0, the thickest the job allows], and every region's rings run as
+    icefab orients them: outer rings (even depth) counter-clockwise, holes clockwise. A
+    Stack a program built with the thesis' orientation (outer rings clockwise) got no
+    part path and a scaffold around nothing; a negative thickness commanded a negative
+    volume (a tester's)."""
+    check_layer_thickness(stack.layer_thickness, job)
+    sl = job.slicing
+    thickest = max(sl.layer_thickness_mm, sl.max_layer_thickness_mm)
+    for k, layer in enumerate(stack.layers):
+        t = float(layer.thickness)
+        if not math.isnan(t) and not 0.0 < t <= thickest * (1 + 1e-9):
+            raise GeometryError(f"layer {k}: thickness {t!r} mm: expected NaN (the stack's) "
+                                f"or a thickness in (0, {thickest:g}] mm "
+                                "(slicing.max_layer_thickness_mm)")
+        for what, region in (("part", layer.part), ("scaffold", layer.scaffold)):
+            if not len(region.rings):
+                continue
+            parent = np.asarray(region.parent, dtype=np.int64)
+            depth = np.zeros(len(parent), dtype=np.int64)
+            up = parent.copy()
+            for _ in range(len(parent)):
+                inside = up >= 0
+                if not inside.any():
+                    break
+                depth[inside] += 1
+                up[inside] = parent[up[inside]]
+            areas = geo.ring_areas(list(region.rings))
+            wrong = np.flatnonzero(np.where(depth % 2 == 0, areas < 0, areas > 0))
+            if len(wrong):
+                i = int(wrong[0])
+                kind = "an outer ring" if depth[i] % 2 == 0 else "a hole"
+                raise GeometryError(
+                    f"layer {k}: {what} ring {i} is {kind} wound "
+                    f"{'clockwise' if areas[i] < 0 else 'counter-clockwise'}: icefab's outer "
+                    "rings run counter-clockwise and holes clockwise: reverse the rings "
+                    "wound the other way")
+
+
 def add_scaffold(stack: Stack, job: Job | None = None, *,
                  progress: Callable[[int, int], None] | None = None) -> Stack:
     """The stack with every layer's ``scaffold`` region filled in (thesis 3.3).
@@ -226,7 +268,7 @@ def add_scaffold(stack: Stack, job: Job | None = None, *,
     contradicts the stack's (the thickness the stack was sliced at travels with it).
     """
     job = job or stack.job
-    check_layer_thickness(stack.layer_thickness, job)
+    check_stack(stack, job)
     s = job.scaffold
     layers = list(stack.layers)
     n = len(layers)

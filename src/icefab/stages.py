@@ -185,7 +185,9 @@ def check_layer_thickness(stack_thickness: float, job: "Job", what: str = "the s
     """ConfigError if ``job.slicing.layer_thickness_mm`` contradicts the thickness a stack
     was sliced at (it travels with the stack: ``Stack.layer_thickness``)."""
     t = float(job.slicing.layer_thickness_mm)
-    if abs(t - float(stack_thickness)) > 1e-12 * max(1.0, abs(t)):
+    # a NaN passed the comparison below (a tester's Stack built by a program)
+    if not (math.isfinite(float(stack_thickness)) and float(stack_thickness) > 0) or \
+            abs(t - float(stack_thickness)) > 1e-12 * max(1.0, abs(t)):
         raise ConfigError(f"slicing.layer_thickness_mm = {t:g}, but {what} was sliced at "
                           f"{float(stack_thickness):g} mm: use the stack's thickness or slice "
                           "again with this job")

@@ -96,11 +96,17 @@ def simulate_build(build: "Toolpaths | BuildMotion", job: "Job | None" = None, *
         if job is not build.job:
             check_motion_job(build.job, job)
         plans = [plan_layer_motion(lm, job) for lm in chosen]
-    elif job.simulation.deposition == "valves":
-        motion = plan_toolpaths(Toolpaths(layers=chosen, job=build.job), job)
-        plans = [plan_layer_motion(lm, job) for lm in motion.layers]
     else:
-        plans = [plan_layer(lp.index, lp.paths, job, lp.thickness) for lp in chosen]
+        if job is not build.job and build.job is not None:
+            # what the paths stage decided (a tester's toolpaths of 1 mm layers simulated
+            # with a 0.5 mm job: half the volume commanded, measured at the wrong heights)
+            check_agrees(build.job, job, "the toolpaths", "icefab paths",
+                         error=SimulationError)
+        if job.simulation.deposition == "valves":
+            motion = plan_toolpaths(Toolpaths(layers=chosen, job=build.job), job)
+            plans = [plan_layer_motion(lm, job) for lm in motion.layers]
+        else:
+            plans = [plan_layer(lp.index, lp.paths, job, lp.thickness) for lp in chosen]
     measure = measurement_layers(plans, job.feedback.interval_layers)
     if keep_surfaces is None:
         keep_surfaces = [plans[measure[-1]].index] if measure else []
