@@ -109,3 +109,16 @@ def test_relative_file_names_are_beside_the_job_file(tmp_path, monkeypatch):
 def load_job_text(text):
     import tomllib
     return job_from_dict(tomllib.loads(text))
+
+
+def test_numpy_scalars_are_numbers():
+    # a program's np.float32(0.5) was 'expected a number', np.int64(2) 'expected an integer'
+    import numpy as np
+
+    job = Job().replace(**{"slicing.layer_thickness_mm": np.float32(0.5),
+                           "cell.cpus": np.int64(2)})
+    assert job.slicing.layer_thickness_mm == 0.5 and type(job.cell.cpus) is int
+    with pytest.raises(ConfigError, match="expected an integer"):
+        Job().replace(**{"cell.cpus": np.float64(2.5)})
+    with pytest.raises(ConfigError, match="must be >= 0.01"):
+        Job().replace(**{"slicing.layer_thickness_mm": np.float64(-1.0)})

@@ -30,6 +30,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
+import numpy as np
+
 from icefab.errors import ConfigError
 from icefab.inputs import read_input_text
 
@@ -898,12 +900,14 @@ def _coerce(path: str, value: Any, hint: Any) -> Any:
         if isinstance(value, bool):
             return value
         raise ConfigError(f"{path} = {value!r}: expected true or false")
+    # numpy's scalars are numbers too (a program's np.float32(0.5) was 'expected a number')
     if hint is int:
-        if isinstance(value, int) and not isinstance(value, bool):
-            return value
+        if isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_)):
+            return int(value)
         raise ConfigError(f"{path} = {value!r}: expected an integer")
     if hint is float:
-        if isinstance(value, (int, float)) and not isinstance(value, bool):
+        if isinstance(value, (int, float, np.integer, np.floating)) \
+                and not isinstance(value, (bool, np.bool_)):
             return float(value)
         raise ConfigError(f"{path} = {value!r}: expected a number")
     if hint is str:
