@@ -1,7 +1,8 @@
-"""The ragged-array helpers of icefab.core, against numpy's own forms."""
+"""The core types: a Toolpath's own checks, and the ragged-array helpers against numpy's own forms."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -28,3 +29,17 @@ def test_split_rows_are_np_split_views(n, cuts):
     for g, w in zip(got, want):
         np.testing.assert_array_equal(g, w)
         assert g.shape == w.shape and (g.size == 0 or np.shares_memory(g, a))
+
+
+@pytest.mark.parametrize("kw", [{"role": "fil"}, {"frame": "world"}, {"material": "oil"},
+                                {"tool": "nozzle"}, {"width": -1.5}, {"width": float("nan")},
+                                {"width": float("inf")}])
+def test_a_toolpath_refuses_names_and_widths_it_does_not_know(kw):
+    # a tester's role "fil" was planned and got no pulse, frame "world" was taken as the
+    # part frame, a width of -1.5 or NaN as the job's fill width
+    from icefab.core import Toolpath
+    from icefab.errors import GeometryError
+
+    with pytest.raises(GeometryError, match="Toolpath: "):
+        Toolpath(points=np.zeros((3, 2)), **kw)
+    Toolpath(points=np.zeros((3, 2)), role="measure", tool="laser", frame="base", width=0.0)

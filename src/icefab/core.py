@@ -22,6 +22,8 @@ from typing import TYPE_CHECKING, Iterator, Literal, Sequence
 
 import numpy as np
 
+from icefab.errors import GeometryError
+
 if TYPE_CHECKING:  # pragma: no cover
     from icefab.config import Job
 
@@ -327,6 +329,19 @@ class Toolpath:
     tool: Tool = ""
     widths: np.ndarray | None = None
     off: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        # the names a program can mistype (a tester's role "fil" planned and got no pulse,
+        # frame "world" was taken as the part frame, a width of -1.5 as the fill width)
+        if self.material not in MATERIALS or self.role not in ROLES \
+                or self.frame not in FRAMES or self.tool not in TOOLS:
+            raise GeometryError(f"Toolpath: material {self.material!r}, role {self.role!r}, "
+                             f"frame {self.frame!r}, tool {self.tool!r}: expected material "
+                             f"in {MATERIALS}, role in {ROLES}, frame in {FRAMES}, tool in "
+                             f"{TOOLS}")
+        if not self.width >= 0.0 or self.width == float("inf"):
+            raise GeometryError(f"Toolpath: width {self.width!r}: expected a finite width >= 0 "
+                                "mm")
 
     @property
     def tool_name(self) -> str:
