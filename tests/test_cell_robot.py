@@ -226,3 +226,17 @@ def test_a_number_runs_once_and_the_last_done_never_goes_back(robot):
         msg = rp.decode(f.readline(), "robot")
         assert msg["last_done"] == 5 and msg["stored"] == 0
     assert [seq for seq, _ in hooks.paths] == [5]
+    # the link's own numbers (not a build's) start at random each session: not refused
+    with RobotLink.connect("127.0.0.1", vr.port, timeout_s=5) as link:
+        link.hello()
+        link._seq = rp.FIRST_LINK_SEQ + 10
+        a = link.upload(_path(n=4))
+        link.go(a)
+        link.wait_done(a)
+    with RobotLink.connect("127.0.0.1", vr.port, timeout_s=5) as link:
+        link.hello()
+        link._seq = rp.FIRST_LINK_SEQ + 2       # a later session that drew a lower start
+        b = link.upload(_path(n=4))
+        link.go(b)
+        link.wait_done(b)
+        assert b < a and link.status()["last_done"] == a      # the highest run

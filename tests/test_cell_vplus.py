@@ -149,7 +149,8 @@ def test_a_park_motion_is_not_recorded_as_the_last_path_done_and_an_abort_report
     # the last done never goes back, and a number at or below it is refused (error 11)
     assert "IF ice.pseq[slot] > ice.lastdone THEN" in server
     pb = "\n".join(PROGRAMS["ice.h.pb"][1])
-    assert f"IF (NOT (f.flags BAND {rp.FLAG_PARK})) AND (seq <= ice.lastdone) THEN" in pb
+    assert (f"IF (NOT (f.flags BAND {rp.FLAG_PARK})) AND (seq < {rp.FIRST_LINK_SEQ}) AND "
+            "(seq <= ice.lastdone) THEN") in pb
     assert "CALL ice.r.er(seq, 11)" in pb
     ab = "\n".join(PROGRAMS["ice.h.ab"][1])
     assert "ice.cut = ice.goseq" in ab

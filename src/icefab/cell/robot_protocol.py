@@ -130,7 +130,8 @@ ERRORS = {1: "malformed message", 2: "sequence: points or end of another path th
           8: "a point is out of the robot's reach", 9: "unsupported protocol version",
           10: "a point is off the virtual cell's surface (icefab cell serve --grid-for or "
               "--bounds: start it over the part)",
-          11: "the path's number is at or below the last path done: a number runs once"}
+          11: "the path's number, a build's (below FIRST_LINK_SEQ), is at or below the "
+              "last path done: a number runs once"}
 
 #: refusals that the same command sent again would meet again (the others: a damaged
 #: line, a full store, a motion under way, may pass after a new session settles)

@@ -220,9 +220,11 @@ class VirtualRobot:
             if msg["tool"] >= len(rp.TOOLS) or msg["dt_us"] == 0:
                 self._reply_error(msg.seq, 1, "PB")
                 return
-            if not msg["flags"] & rp.FLAG_PARK and msg.seq <= self._last_done:
-                # a number runs once: a tester's client ran 5, 5 and 3, and the last done
-                # went back to 3, so a resume would have run 4 and 5 again
+            if not msg["flags"] & rp.FLAG_PARK and msg.seq < rp.FIRST_LINK_SEQ \
+                    and msg.seq <= self._last_done:
+                # a build's number runs once: a tester's client ran 5, 5 and 3, and the
+                # last done went back to 3, so a resume would have run 4 and 5 again (the
+                # link's own numbers start at random each session: not checked)
                 self._reply_error(msg.seq, 11, "PB")
                 return
             self._upload = _Upload(msg.seq, dict(msg.values))
