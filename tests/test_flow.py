@@ -409,3 +409,13 @@ def test_valve_limit_findings_travel_with_the_program():
     prog = plan_valves(traj, "part", job)
     assert any("flow.min_drops_per_mm" in w for w in prog.warnings)
     assert plan_valves(traj, "part", Job()).warnings == ()
+
+
+def test_plan_valves_takes_the_default_job_and_names_a_material_it_does_not_know():
+    # a program's plan_valves(tr, "part", None) was an AttributeError (every other stage
+    # takes job=None as Job())
+    tr = line_trajectory()
+    a, b = plan_valves(tr, "part"), plan_valves(tr, "part", Job())
+    assert np.array_equal(a.ticks, b.ticks) and len(a.ticks) > 0
+    with pytest.raises(FlowError, match="material 'oil'"):
+        plan_valves(tr, "oil", Job())

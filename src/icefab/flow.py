@@ -878,7 +878,7 @@ def _split(times: np.ndarray, widths: np.ndarray | None, duration: float, dt: fl
     return dataclasses.replace(first, pieces=tuple(pieces[1:]))
 
 
-def plan_valves(trajectory: Trajectory, material: str, job: "Job", *,
+def plan_valves(trajectory: Trajectory, material: str, job: "Job | None" = None, *,
                 action: ActionLike = None, layer_thickness: float | None = None,
                 calibration: Calibration | None = None) -> ValveProgram:
     """The valve program of one trajectory (thesis 6.2, 2.3.1).
@@ -887,6 +887,7 @@ def plan_valves(trajectory: Trajectory, material: str, job: "Job", *,
         (FlowError otherwise); a trajectory whose path does not deposit (travel,
         measure) gets an empty program of the same duration.
     material: "part" or "scaffold".
+    job: the settings; ``Job()`` when None, as every other stage takes it.
     action: control action u (see :func:`valve_frequency`): flow x (1 + u), the
         nu-controller of thesis 5.4.
     layer_thickness: dh_d, mm (default ``job.slicing.layer_thickness_mm``).
@@ -903,6 +904,12 @@ def plan_valves(trajectory: Trajectory, material: str, job: "Job", *,
     dropped / raised / cut and the volume error, too few drops per mm, pulses sharing a
     tick); :func:`summarise_findings` condenses them over many paths.
     """
+    if job is None:
+        from icefab.config import Job
+
+        job = Job()
+    if material not in ("part", "scaffold"):
+        raise FlowError(f"material {material!r}: expected 'part' or 'scaffold'")
     fl = job.flow
     check_trajectory(trajectory)
     check_flow_settings(job)
