@@ -43,3 +43,14 @@ def test_a_toolpath_refuses_names_and_widths_it_does_not_know(kw):
     with pytest.raises(GeometryError, match="Toolpath: "):
         Toolpath(points=np.zeros((3, 2)), **kw)
     Toolpath(points=np.zeros((3, 2)), role="measure", tool="laser", frame="base", width=0.0)
+
+
+def test_region_depth_climbs_every_ring_and_names_a_circle():
+    # a Region a program built with parents in a circle made depth() loop for ever
+    from icefab.core import Region
+    from icefab.errors import GeometryError
+
+    sq = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    assert Region((sq,) * 4, np.array([-1, 0, 1, -1])).depth().tolist() == [0, 1, 2, 0]
+    with pytest.raises(GeometryError, match="runs in a circle"):
+        Region((sq, sq), np.array([1, 0])).depth()

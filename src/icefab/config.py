@@ -785,15 +785,17 @@ def _hints(cls: type) -> dict[str, Any]:
 def _check_value(path: str, value: Any, meta: dict[str, Any]) -> None:
     items = value if isinstance(value, tuple) else (value,)
     lo, hi = meta.get("lo"), meta.get("hi")
+    rng = [f"{'>' if meta.get('lo_open') else '>='} {lo:g}"] if lo is not None else []
+    rng += [f"<= {hi:g}"] if hi is not None else []
     for v in items:
         if isinstance(v, bool) or not isinstance(v, (int, float)):
             continue
         if v != v or v in (float("inf"), float("-inf")):
-            raise ConfigError(f"{path} = {value!r}: must be a finite number")
+            # the range too (a tester's --density inf was told only 'finite')
+            raise ConfigError(f"{path} = {value!r}: must be a finite number"
+                              + (f" {' and '.join(rng)}" if rng else ""))
         below = lo is not None and (v <= lo if meta.get("lo_open") else v < lo)
         if below or (hi is not None and v > hi):
-            rng = [f"{'>' if meta.get('lo_open') else '>='} {lo:g}"] if lo is not None else []
-            rng += [f"<= {hi:g}"] if hi is not None else []
             why = f" ({meta['why']})" if meta.get("why") else ""
             raise ConfigError(f"{path} = {value!r}: must be {' and '.join(rng)}{why}")
     choices = meta.get("choices")

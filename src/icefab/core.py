@@ -165,14 +165,18 @@ class Region:
         return np.array([signed_area(r) for r in self.rings], dtype=np.float64)
 
     def depth(self) -> np.ndarray:
-        """(r,) int64 nesting depth of every ring (0 = top-level outer ring)."""
-        d = np.zeros(len(self.rings), dtype=np.int64)
-        for i in range(len(self.rings)):
-            p = int(self.parent[i])
-            while p >= 0:
-                d[i] += 1
-                p = int(self.parent[p])
-        return d
+        """(r,) int64 nesting depth of every ring (0 = top-level outer ring); GeometryError
+        when ``parent`` runs in a circle (a Region a program built: it looped for ever)."""
+        parent = np.asarray(self.parent, dtype=np.int64)
+        d = np.zeros(len(parent), dtype=np.int64)
+        up = parent.copy()
+        for _ in range(len(parent) + 1):      # every step climbs one level for all rings
+            inside = up >= 0
+            if not inside.any():
+                return d
+            d[inside] += 1
+            up[inside] = parent[up[inside]]
+        raise GeometryError(f"Region: parent {parent.tolist()} runs in a circle")
 
     def polygons(self) -> list[list[np.ndarray]]:
         """The region as polygons ``[outer, hole, hole, ...]`` (the thesis' contour groups A)."""
@@ -336,9 +340,9 @@ class Toolpath:
         if self.material not in MATERIALS or self.role not in ROLES \
                 or self.frame not in FRAMES or self.tool not in TOOLS:
             raise GeometryError(f"Toolpath: material {self.material!r}, role {self.role!r}, "
-                             f"frame {self.frame!r}, tool {self.tool!r}: expected material "
-                             f"in {MATERIALS}, role in {ROLES}, frame in {FRAMES}, tool in "
-                             f"{TOOLS}")
+                                f"frame {self.frame!r}, tool {self.tool!r}: expected material "
+                                f"in {MATERIALS}, role in {ROLES}, frame in {FRAMES}, tool in "
+                                f"{TOOLS}")
         if not self.width >= 0.0 or self.width == float("inf"):
             raise GeometryError(f"Toolpath: width {self.width!r}: expected a finite width >= 0 "
                                 "mm")

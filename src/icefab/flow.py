@@ -114,8 +114,8 @@ from icefab.frames import to_part_frame
 from icefab.motion import limit_ratio, speedup_cap
 from icefab.parallel import parallel_map
 from icefab.stages import layer_height
-from icefab.core import (HeightMap, Trajectory, ValveProgram, checked_widths, offsets,
-                         spans_fine, spans_problem)
+from icefab.core import (MATERIALS, HeightMap, Trajectory, ValveProgram, checked_widths,
+                         offsets, spans_fine, spans_problem)
 
 if TYPE_CHECKING:  # pragma: no cover
     from icefab.config import Job
@@ -908,8 +908,8 @@ def plan_valves(trajectory: Trajectory, material: str, job: "Job | None" = None,
         from icefab.config import Job
 
         job = Job()
-    if material not in ("part", "scaffold"):
-        raise FlowError(f"material {material!r}: expected 'part' or 'scaffold'")
+    if material not in MATERIALS:
+        raise FlowError(f"material {material!r}: expected one of {', '.join(MATERIALS)}")
     fl = job.flow
     check_trajectory(trajectory)
     check_flow_settings(job)

@@ -219,9 +219,8 @@ def check_stack(stack: Stack, job: Job) -> None:
     (:func:`icefab.stages.check_layer_thickness`), each layer's own thickness (NaN: the
     stack's) lies in (0, the thickest the job allows], and every region's rings run as
     icefab orients them: outer rings (even depth) counter-clockwise, holes clockwise. A
-    Stack a program built with the thesis' orientation (outer rings clockwise) got no
-    part path and a scaffold around nothing; a negative thickness commanded a negative
-    volume (a tester's)."""
+    Stack a program built with its outer rings clockwise got no part path and a scaffold
+    around nothing; a negative thickness commanded a negative volume (a tester's)."""
     check_layer_thickness(stack.layer_thickness, job)
     sl = job.slicing
     thickest = max(sl.layer_thickness_mm, sl.max_layer_thickness_mm)
@@ -234,15 +233,7 @@ def check_stack(stack: Stack, job: Job) -> None:
         for what, region in (("part", layer.part), ("scaffold", layer.scaffold)):
             if not len(region.rings):
                 continue
-            parent = np.asarray(region.parent, dtype=np.int64)
-            depth = np.zeros(len(parent), dtype=np.int64)
-            up = parent.copy()
-            for _ in range(len(parent)):
-                inside = up >= 0
-                if not inside.any():
-                    break
-                depth[inside] += 1
-                up[inside] = parent[up[inside]]
+            depth = region.depth()
             areas = geo.ring_areas(list(region.rings))
             wrong = np.flatnonzero(np.where(depth % 2 == 0, areas < 0, areas > 0))
             if len(wrong):

@@ -26,6 +26,7 @@ import numpy as np
 
 from icefab.config import Job
 from icefab.errors import ConfigError, SimulationError, WorkspaceError
+from icefab.frames import to_base_frame
 
 #: Most layers a build may have: the tallest stroke a job may describe (5 m,
 #: ``cell.stroke_mm``'s upper bound) in the thinnest layers (0.01 mm) would be 500 000;
@@ -174,8 +175,7 @@ def check_placed_part(vertices: np.ndarray, job: Job) -> None:
     for tool, material, grow, what in checks:
         mat = job.materials[material]
         slack = mat.initial_offset_mm + mat.path_width_mm - grow
-        offset = cell.laser_offset_mm if tool == "laser" else mat.nozzle_offset_mm
-        base = xy + (np.asarray(cell.ee_origin_mm) - np.asarray(offset))
+        base = to_base_frame(xy, tool, job)
         if cell.robot == "scara":
             r = np.hypot(base[:, 0], base[:, 1])
             rmin, rmax = cell.reach_mm

@@ -336,7 +336,7 @@ def _run(build: Path, args: argparse.Namespace, *, resume: bool) -> int:
     runner = bmod.Runner(build, motion, job, journal, connect, on_progress=on_progress,
                          should_stop=lambda: stop_flag["signal"] is not None
                          or (build / bmod.STOP_REQUEST).exists(),
-                         accept_cell_reset=bool(getattr(args, "cell_lost_record", False)))
+                         accept_cell_reset=args.cell_lost_record)
     cdir = build / bmod.CELL_DIR
     # a resume whose virtual cell has no surface starts a new one: if the runner then
     # refuses it (the cell lost its record), that cell goes with the refusal (a tester's
@@ -345,7 +345,7 @@ def _run(build: Path, args: argparse.Namespace, *, resume: bool) -> int:
     try:
         p = runner.run()
     except JournalError:
-        if fresh_cell and not getattr(args, "cell_lost_record", False):
+        if fresh_cell and not args.cell_lost_record:
             _shutdown_cell(cdir)
             shutil.rmtree(cdir, ignore_errors=True)
         raise

@@ -23,9 +23,7 @@ File layouts: :mod:`icefab.calibration`.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
-import math
 from pathlib import Path
 
 from icefab.cli.common import add_job_argument, job_from_args, output_dir
@@ -134,12 +132,6 @@ def run_valve(args: argparse.Namespace) -> int:
             job.replace(**{f"materials.{args.material}.density_g_cm3": args.density})
         except ConfigError as exc:
             reason = str(exc).split(": ", 1)[-1]
-            if not math.isfinite(args.density):   # the range too (a tester's inf)
-                from icefab.config import MaterialSettings
-
-                f = next(f for f in dataclasses.fields(MaterialSettings)
-                         if f.name == "density_g_cm3")
-                reason += f" within {f.metadata['lo']:g}-{f.metadata['hi']:g}"
             raise ConfigError(f"--density {args.density:g} g/cm^3: {reason}") from None
         density = args.density
     f, d, m = cal.read_masses(args.masses)
