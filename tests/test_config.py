@@ -122,3 +122,24 @@ def test_numpy_scalars_are_numbers():
         Job().replace(**{"cell.cpus": np.float64(2.5)})
     with pytest.raises(ConfigError, match="must be >= 0.01"):
         Job().replace(**{"slicing.layer_thickness_mm": np.float64(-1.0)})
+
+
+def test_a_job_built_directly_is_checked_as_a_file_is():
+    # Job(motion=replace(..., speed_mm_s=np.float32(1e9))) skipped the range check (the
+    # check let any non-Python number through); a string or a list went in as it was
+    import dataclasses
+
+    import numpy as np
+
+    motion = Job().motion
+    with pytest.raises(ConfigError, match=r"motion.speed_mm_s = 1000000000.0: must be"):
+        Job(motion=dataclasses.replace(motion, speed_mm_s=np.float32(1e9)))
+    with pytest.raises(ConfigError, match="motion.speed_mm_s = '100': expected a number"):
+        Job(motion=dataclasses.replace(motion, speed_mm_s="100"))
+    with pytest.raises(ConfigError, match="motion = .*expected a MotionSettings section"):
+        Job(motion={"speed_mm_s": 100.0})
+    job = Job(motion=dataclasses.replace(motion, speed_mm_s=np.float32(100)),
+              cell=dataclasses.replace(Job().cell, ee_origin_mm=[300, np.int64(10)]))
+    assert type(job.motion.speed_mm_s) is float and job.motion.speed_mm_s == 100.0
+    assert job.cell.ee_origin_mm == (300.0, 10.0) and type(job.cell.ee_origin_mm) is tuple
+    assert job == Job().replace(**{"motion.speed_mm_s": 100.0, "cell.ee_origin_mm": [300, 10]})

@@ -21,6 +21,7 @@ naming the file, line, setting, value and what was expected.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import re
 import tomllib
@@ -778,6 +779,7 @@ class Job:
 # --------------------------------------------------------------------------- validation
 
 
+@functools.lru_cache(maxsize=None)
 def _hints(cls: type) -> dict[str, Any]:
     return typing.get_type_hints(cls)
 
@@ -804,13 +806,28 @@ def _check_value(path: str, value: Any, meta: dict[str, Any]) -> None:
 
 
 def _validate(obj: Any, prefix: str) -> None:
+    """Check every setting of ``obj`` (a Job or a section) and give it its field's type.
+
+    A Job built directly (``Job(motion=MotionSettings(speed_mm_s=...))``, not by
+    ``replace`` or a file) gets the same checks as one read from TOML: a numpy scalar
+    becomes a Python number and is range-checked, a string where a number belongs or a
+    list where a tuple belongs is refused or converted, as ``_coerce`` does for TOML
+    values. The sections are frozen, so the converted values are set here, once."""
+    hints = _hints(type(obj))
     for f in dataclasses.fields(obj):
         value = getattr(obj, f.name)
         path = f"{prefix}{f.name}"
-        if dataclasses.is_dataclass(value):
+        hint = hints[f.name]
+        if dataclasses.is_dataclass(hint):
+            if type(value) is not hint:
+                raise ConfigError(f"{path} = {value!r}: expected a {hint.__name__} section")
             _validate(value, path + ".")
-        elif f.metadata:
-            _check_value(path, value, dict(f.metadata))
+            continue
+        typed = _coerce(path, value, hint)
+        if typed is not value:
+            object.__setattr__(obj, f.name, typed)
+        if f.metadata:
+            _check_value(path, typed, dict(f.metadata))
 
 
 def _check_cross(job: Job) -> None:
