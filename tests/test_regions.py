@@ -445,3 +445,30 @@ def test_a_stack_a_program_built_is_checked_before_scaffold_and_paths():
             f(stack([sq], [-1], of=float("nan")), job)
     good = plan_paths(add_scaffold(stack([sq, hole], [-1, 0]), job), job)
     assert any(p.material == "part" and p.depositing for p in good.layers[0].paths)
+
+
+def test_a_stack_goes_up_and_fits_the_paths_budget():
+    # a tester's stack with its layers top first, or a NaN z, went through add_scaffold and
+    # plan_paths; a 4 km square took add_scaffold 52 s and 3.5 GB before plan_paths
+    # refused it for its fill
+    from icefab import Layer, Region, Stack, add_scaffold, plan_paths
+    from icefab.errors import ConfigError, GeometryError
+
+    job = Job().replace(**{"slicing.layer_thickness_mm": 1.0})
+    sq = np.array([[-20, -15], [20, -15], [20, 15], [-20, 15]], float)
+
+    def stack(zs, ring=sq):
+        return Stack(tuple(Layer(i, z, Region((ring,), np.array([-1])))
+                           for i, z in enumerate(zs)), job, 1.0)
+
+    for f in (add_scaffold, plan_paths):
+        with pytest.raises(GeometryError, match=r"layer 1: z = 0.5 mm: layers must be given "
+                                                r"bottom first.*above the one below \(1.5"):
+            f(stack([1.5, 0.5]), job)
+        with pytest.raises(GeometryError, match="layer 0: z = nan mm"):
+            f(stack([float("nan"), 1.5]), job)
+        with pytest.raises(GeometryError, match="layer 1: z = 0.5"):
+            f(stack([0.5, 0.5]), job)
+    with pytest.raises(ConfigError, match="fill_width_mm.*m of fill paths"):
+        add_scaffold(stack([0.5], sq * 1e5), job)
+    assert len(add_scaffold(stack([0.5, 1.5]), job).layers) == 2
