@@ -8,8 +8,8 @@ from scipy.spatial.transform import Rotation
 
 from icefab.config import Job, PartSetup
 from icefab.errors import ConfigError, MeshError
-from icefab.mesh import (check_mesh, part_fraction_range, prepare_parts, transform,
-                         write_stl)
+from icefab.mesh import (check_mesh, load_mesh, part_fraction_range, place_mesh,
+                         prepare_parts, transform, write_stl)
 from icefab.core import Mesh
 
 
@@ -124,6 +124,24 @@ def test_prepare_parts(tmp_path):
     width = 2 * 25.0 + 10.0  # two builds of 25 mm with the default 10 mm gap
     np.testing.assert_allclose([lo[0], hi[0], lo[2], hi[2]], [-width / 2, width / 2, 0, 30])
     assert check_mesh(mesh).volume == pytest.approx(2 * (6000.0 + 125.0))
+
+
+def test_place_mesh_places_and_checks_a_loaded_mesh_as_prepare_parts_does(tmp_path):
+    # the README's API path (load_mesh, then slice_mesh) skipped the placement and its
+    # checks: a part in metres or beyond the reach went on to slicing
+    from icefab.errors import WorkspaceError
+
+    write_stl(_box(lo=(5.0, -3.0, 7.0)), tmp_path / "a.stl")
+    job = Job(parts=PartSetup(files=("a.stl",)))
+    placed = place_mesh(load_mesh(tmp_path / "a.stl"), job)
+    np.testing.assert_array_equal(placed.vertices, prepare_parts(job, tmp_path).vertices)
+    lo, hi = placed.bounds
+    np.testing.assert_allclose([lo[0] + hi[0], lo[1] + hi[1], lo[2]], [0, 0, 0], atol=1e-9)
+    metres = Mesh(_box().vertices / 1000.0, _box().faces, "m")
+    with pytest.raises(ConfigError, match="metres or inches"):
+        place_mesh(metres, Job())
+    with pytest.raises(WorkspaceError, match="beyond the reach"):
+        place_mesh(_box(size=(900.0, 20.0, 30.0)), Job())
 
 
 def test_prepare_parts_without_files():

@@ -1,6 +1,6 @@
 """icefab: CAD mesh to robotic rapid-freeze-prototyping builds.
 
-Public API (see README): ``load_mesh``, ``Job``, ``load_job``, ``slice_mesh``,
+Public API (see README): ``load_mesh``, ``place_mesh``, ``Job``, ``load_job``, ``slice_mesh``,
 ``add_scaffold``, ``plan_paths``, ``plan_motion``, ``plan_valves``, and the feedback and
 simulation entry points. Names are imported lazily so ``import icefab`` stays cheap.
 """
@@ -31,6 +31,7 @@ _LAZY = {
     "load_mesh": "icefab.mesh",
     "load_meshes": "icefab.mesh",
     "prepare_parts": "icefab.mesh",
+    "place_mesh": "icefab.mesh",
     "slice_mesh": "icefab.slicing",
     "save_stack": "icefab.slicing",
     "load_stack": "icefab.slicing",

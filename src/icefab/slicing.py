@@ -1119,7 +1119,8 @@ def slice_mesh(mesh: Mesh, job: Job | None = None, *, progress: Progress | None 
     """Slice a mesh into a :class:`Stack` of layers of nested, oriented contours.
 
     mesh: vertices (n, 3) float64 mm, faces (m, 3) int -- already placed by
-        ``icefab.mesh.prepare_parts`` (the build's z axis is the mesh's z axis).
+        ``icefab.mesh.place_mesh`` or ``prepare_parts`` (the build's z axis is the mesh's
+        z axis; they check it against the cell, which slicing does not).
     job: the settings (``job.slicing``, ``job.parts.part_fraction`` and
         ``weld_tolerance_mm``); ``Job()`` when omitted.
     progress: optional ``callable(done, total)`` called as layers are cut.

@@ -15,7 +15,8 @@ One module per concern (trimesh's ``exchange/`` is the model):
 * :mod:`icefab.mesh.repair` — :class:`MeshReport`, :func:`check_mesh`, :func:`clean_mesh`;
 * :mod:`icefab.mesh.holes` — closing the holes of open surfaces in 3D before slicing:
   :func:`~icefab.mesh.holes.close_holes`;
-* :mod:`icefab.mesh.setup` — part placement: :func:`transform`, :func:`prepare_parts`.
+* :mod:`icefab.mesh.setup` — part placement: :func:`transform`, :func:`place_mesh`,
+  :func:`prepare_parts`.
 
 Everything public is importable from ``icefab.mesh`` as before the split.
 """
@@ -24,11 +25,12 @@ from __future__ import annotations
 
 from icefab.mesh.load import LOADERS, load_mesh, load_meshes, merge_meshes, read_mesh
 from icefab.mesh.repair import MeshReport, check_mesh, clean_mesh, mesh_volume
-from icefab.mesh.setup import part_fraction_range, prepare_parts, rotation_matrix, transform
+from icefab.mesh.setup import (part_fraction_range, place_mesh, prepare_parts,
+                                rotation_matrix, transform)
 from icefab.mesh.stl import write_stl
 from icefab.mesh.topology import edge_buckets, weld_vertices
 
 __all__ = ["MeshReport", "load_mesh", "read_mesh", "load_meshes", "check_mesh",
-           "weld_vertices", "clean_mesh", "transform", "prepare_parts",
+           "weld_vertices", "clean_mesh", "transform", "place_mesh", "prepare_parts",
            "part_fraction_range", "merge_meshes", "mesh_volume", "write_stl",
            "rotation_matrix", "edge_buckets", "LOADERS"]

@@ -143,6 +143,18 @@ def prepare_parts(job: "Job", base_dir: str | os.PathLike[str] | None = None) ->
     paths = [Path(f) if base is None or Path(f).is_absolute() else base / f
              for f in parts.files]
     mesh = load_meshes(paths, inexact=parts.inexact, tolerance=parts.weld_tolerance_mm)
-    placed = transform(mesh, parts, job)
+    return place_mesh(mesh, job)
+
+
+def place_mesh(mesh: Mesh, job: "Job") -> Mesh:
+    """A loaded mesh placed for the build, as :func:`prepare_parts` places the job's files:
+    ``job.parts``' scale, rotation, copies and translation (:func:`transform`), checked
+    against the cell (:func:`icefab.workload.check_placed_part`: units, the stroke, the
+    robot's or gantry's reach, the laser's) and its holes closed in 3D
+    (``job.parts.close_holes``). What :func:`icefab.slicing.slice_mesh` expects: a program
+    that loads a mesh with :func:`load_mesh` gets the checks ``icefab slice`` makes (they
+    were skipped on that path: a part in metres or out of reach went on to slicing).
+    Raises WorkspaceError or ConfigError naming the setting to change."""
+    placed = transform(mesh, job.parts, job)
     check_placed_part(placed.vertices, job)  # units, stroke, reach: before slicing
     return prepare_closed(placed, job)
