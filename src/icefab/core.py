@@ -144,6 +144,26 @@ class Region:
     rings: tuple[np.ndarray, ...] = ()
     parent: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
+    def __post_init__(self) -> None:
+        # a Region a program built with a parent index past its rings was an IndexError in
+        # depth(), (k, 3) rings numpy's broadcast error in the first area
+        parent = self.parent
+        if not (type(parent) is np.ndarray and parent.dtype == np.int64):
+            try:
+                parent = np.asarray(parent, dtype=np.int64)
+            except (TypeError, ValueError):
+                parent = np.zeros(0, dtype=np.int64) - 2
+            object.__setattr__(self, "parent", parent)
+        n = len(self.rings)
+        if parent.shape != (n,) or (n and (parent.min() < -1 or parent.max() >= n)):
+            raise GeometryError(f"Region: parent {np.asarray(self.parent).tolist()!r} for {n} "
+                                f"rings: expected one index per ring, each -1 (top level) or "
+                                f"another ring's index below {n}")
+        for i, r in enumerate(self.rings):
+            if not (type(r) is np.ndarray and r.ndim == 2 and r.shape[1] == 2):
+                raise GeometryError(f"Region: ring {i} of shape {np.shape(r)}: expected a "
+                                    "(k, 2) array of x, y in mm")
+
     @staticmethod
     def empty() -> "Region":
         return Region()
@@ -346,6 +366,28 @@ class Toolpath:
         if not self.width >= 0.0 or self.width == float("inf"):
             raise GeometryError(f"Toolpath: width {self.width!r}: expected a finite width >= 0 "
                                 "mm")
+        try:
+            z_ok = math.isfinite(self.z)
+        except TypeError:
+            z_ok = False
+        if not z_ok:
+            # a NaN z planned a trajectory and sent it (the robot's z is the layer's)
+            raise GeometryError(f"Toolpath: z {self.z!r}: expected a finite height, mm")
+        pts = self.points
+        if not (type(pts) is np.ndarray and pts.dtype == np.float64 and pts.ndim == 2
+                and pts.shape[1] == 2):
+            # (k, 3) points were numpy's broadcast error deep in the motion stage; a list
+            # is taken as the array it spells (the stages' own checks name NaN points)
+            try:
+                arr = np.asarray(pts, dtype=np.float64)
+            except (TypeError, ValueError):
+                arr = None
+            if arr is None or arr.ndim != 2 or arr.shape[1] != 2:
+                what = (f"of shape {arr.shape}" if arr is not None
+                        else f"{type(pts).__name__} {pts!r:.40}")
+                raise GeometryError(f"Toolpath: points {what}: expected a (k, 2) array of "
+                                    "x, y in mm")
+            object.__setattr__(self, "points", arr)
 
     @property
     def tool_name(self) -> str:

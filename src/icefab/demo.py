@@ -47,8 +47,13 @@ def demo_mug(segments: int = DEMO_SEGMENTS) -> Mesh:
         z = 0, its axis is the z axis, the handle points to +x. Returns a Mesh (vertices
         float64 mm, faces int64), < 50k faces for segments <= 128.
     """
+    if isinstance(segments, bool) or not isinstance(segments, (int, np.integer)) \
+            or not 3 <= segments <= 4096:
+        # demo_mug("96") was manifold3d's TypeError, 10**9 asked for all memory
+        raise ConfigError(f"demo_mug: segments = {segments!r}: expected a whole number "
+                          "from 3 to 4096")
     if segments != DEMO_SEGMENTS:
-        return build_demo_mug(segments)
+        return build_demo_mug(int(segments))
     with np.load(_DATA, allow_pickle=False) as data:
         vertices = np.ascontiguousarray(data["vertices"], dtype=np.float64)
         faces = np.ascontiguousarray(data["faces"], dtype=np.int64)

@@ -8,6 +8,7 @@ import dataclasses
 import logging
 from typing import Callable, Sequence
 
+import numpy as np
 
 from icefab.config import Job
 from icefab.core import BuildMotion, LayerMotion, LayerPaths, Toolpaths
@@ -22,6 +23,16 @@ log = logging.getLogger(__name__)
 
 
 def _chosen(build: "Toolpaths | BuildMotion", job: "Job", layers: int | None) -> tuple:
+    # a program's wrong argument was an AttributeError or TypeError from deep inside
+    if not isinstance(build, (Toolpaths, BuildMotion)):
+        raise SimulationError(f"build: a {type(build).__name__}: expected the Toolpaths of "
+                              "plan_paths or the BuildMotion of plan_toolpaths")
+    if job is None or isinstance(job, (str, bytes, dict)):
+        raise SimulationError(f"job = {job!r:.40}: expected an icefab.Job (None: the "
+                              "build's own)")
+    if layers is not None and (isinstance(layers, bool)
+                               or not isinstance(layers, (int, np.integer))):
+        raise SimulationError(f"layers = {layers!r}: expected a whole number (0: all)")
     n = layers if layers is not None else job.simulation.layers
     if n is not None and n < 0:
         raise SimulationError(f"layers = {n}: expected >= 0 (0: all)")
@@ -44,7 +55,7 @@ def measured_layers(build: "Toolpaths | BuildMotion", job: "Job | None" = None, 
                     layers: int | None = None) -> list[int]:
     """Layer indices :func:`simulate_build` measures for these arguments, found without
     simulating (so that options such as a surface layer are checked up front)."""
-    job = job if job is not None else build.job
+    job = job if job is not None else getattr(build, "job", None)
     chosen = _chosen(build, job, layers)
     flags = [_has_laser(lay) for lay in chosen]
     return [chosen[j].index for j in _measured(flags, job.feedback.interval_layers)]
@@ -90,8 +101,12 @@ def simulate_build(build: "Toolpaths | BuildMotion", job: "Job | None" = None, *
     progress: called as ``progress(done, total)`` after every layer.
     """
 
-    job = job if job is not None else build.job
+    job = job if job is not None else getattr(build, "job", None)
     chosen = _chosen(build, job, layers)
+    if keep_surfaces is not None and (isinstance(keep_surfaces, (str, bytes)) or not all(
+            isinstance(k, (int, np.integer)) and not isinstance(k, bool)
+            for k in keep_surfaces)):
+        raise SimulationError(f"keep_surfaces = {keep_surfaces!r}: expected layer indices")
     if isinstance(build, BuildMotion):
         if job is not build.job:
             check_motion_job(build.job, job)
