@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 import shapely
-from hypothesis import given, settings, strategies as st
+from hypothesis import example, given, settings, strategies as st
 from shapely.geometry import Polygon
 from shapely.validation import explain_validity
 
@@ -607,6 +607,14 @@ def test_clipper_needles_are_dropped_from_regions_unless_they_hold_a_ring():
 @given(polygon_with_holes(), st.lists(st.tuples(*[st.floats(-35.0, 35.0)] * 4), min_size=1,
                                       max_size=30),
        st.floats(0.05, 5.0), st.sampled_from([0.25, 1.0, 3.0]), st.booleans())
+# crosses the closing edge 0.2 mm from its end vertex, which is sampled as the next edge's
+# start: was 0.0276 mm (the closing edge's own last sample 2.9 mm away was not near)
+@example(rings=[np.array([[8.75, 0.0], [6.73002826, 4.32512654], [3.3233201, 7.27705596],
+                          [-1.13851871, 7.91857154], [-5.23888587, 6.04599659],
+                          [-7.67594379, 2.25386045], [-7.67594379, -2.25386045],
+                          [-5.23888587, -6.04599659], [-1.13851871, -7.91857154],
+                          [3.3233201, -7.27705596], [15.14256359, -9.73153471]])],
+         segs=[(0.0, -1.0, 9.0, 0.0)], upper=0.125, spacing=3.0, each=False)
 def test_segment_distances_to_rings_are_shapelys(rings, segs, upper, spacing, each):
     """segments_to_rings_distance is GEOS' segment-to-boundary distance (0 where an edge
     crosses the segment) wherever that is within ``upper`` (one for all, or one per

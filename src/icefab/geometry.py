@@ -1366,14 +1366,21 @@ def segments_to_rings_distance(a: np.ndarray, b: np.ndarray, rings: Sequence[np.
     rings = [np.asarray(r, dtype=np.float64) for r in rings if len(r) >= 2]
     if not rings or not len(a):
         return out
-    P, edge, ea, eb, _prv, _ring, _arc, _len = _sample_rings(rings, spacing)
+    P, edge, ea, eb, prv, _ring, _arc, _len = _sample_rings(rings, spacing)
     near = cKDTree(P).query_ball_point(
         (a + b) / 2.0, np.hypot(*(b - a).T) / 2.0 + upper + spacing / 2.0)
     counts = np.fromiter((len(c) for c in near), np.int64, len(near))
     if not counts.any():
         return out
     which = np.repeat(np.arange(len(a)), counts)
-    e = edge[np.fromiter(itertools.chain.from_iterable(near), np.int64, int(counts.sum()))]
+    ids = np.fromiter(itertools.chain.from_iterable(near), np.int64, int(counts.sum()))
+    e = edge[ids]
+    # a vertex is a sample of the edge it starts and the end of the one before: that
+    # edge's last stretch lies nearer it than to its own last sample (a hypothesis case:
+    # a segment crossing a ring's closing edge 0.2 mm from its end, found 0.03 mm away)
+    at_vertex = np.flatnonzero((P[ids] == ea[e]).all(axis=1))
+    which = np.concatenate([which, which[at_vertex]])
+    e = np.concatenate([e, prv[e[at_vertex]]])
     # each (segment, edge) pair once (the samples of one edge come in a row)
     pair = np.unique(which * len(ea) + e)
     which, e = pair // len(ea), pair % len(ea)
