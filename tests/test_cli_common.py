@@ -242,6 +242,35 @@ def test_paths_and_simulate_take_the_parts_a_job_names(tmp_path, capsys):
     assert not (tmp_path / "none").exists() and not (tmp_path / "two").exists()
 
 
+def test_slice_paths_and_plan_take_demo(tmp_path, capsys):
+    # the README: "slice, paths, plan, simulate and build take ... demo alone"; slice,
+    # paths and plan read it as a file name ('demo: mesh file not found')
+    from icefab.cli.common import placed_model
+    from icefab.config import Job
+    from icefab.demo import demo_mug
+    from icefab.mesh import place_mesh
+    from icefab.slicing import load_stack
+
+    job = tmp_path / "job.toml"
+    job.write_text("[slicing]\nlayer_thickness_mm = 2.0\n")
+    assert main(["slice", "demo", "-c", str(job), "-o", str(tmp_path / "s")]) == 0
+    assert "demo-mug: 4388 facets" in capsys.readouterr().out
+    assert len(load_stack(tmp_path / "s" / "stack.npz")) == 62   # 125 mm in 2 mm layers
+    for command in ("paths", "plan"):
+        assert main([command, "demo", "-c", str(job), "-o", str(tmp_path / command)]) == 0
+    assert (tmp_path / "plan" / "trajectories.npz").is_file()
+    mesh, same = placed_model(["demo"], Job())
+    assert same == Job() and mesh.vertices.tolist() == \
+        place_mesh(demo_mug(), Job()).vertices.tolist()
+    capsys.readouterr()
+    # placed and checked by the job, as a file is
+    far = tmp_path / "far.toml"
+    far.write_text("[cell]\nee_origin_mm = [560.0, 0.0]\n")
+    assert main(["slice", "demo", "-c", str(far), "-o", str(tmp_path / "far")]) == 2
+    assert "beyond the reach" in capsys.readouterr().err
+    assert not (tmp_path / "far").exists()
+
+
 def test_negative_values_of_options_are_values():
     # a tester's '--zbase -1e9' and '--bounds -50,-50,50,50' were 'expected one argument'
     from icefab.cli import build_parser

@@ -78,6 +78,9 @@ NEUTRAL = ("cell.cpus",)
 #: could not do (icefab.workload's estimates): they never change the step's output.
 CHECKED_EARLY: dict[str, tuple[str, ...]] = {
     "paths": ("motion.point_spacing_mm",),  # fill samples budget (workload.check_paths)
+    # the same budget before the scaffold's walls (a 4 km square took them 52 s, 3.5 GB)
+    "scaffold": ("materials.part.fill_width_mm", "materials.scaffold.fill_width_mm",
+                 "motion.point_spacing_mm"),
 }
 
 #: Settings that decide where a build's material goes once its paths exist: frames, tool

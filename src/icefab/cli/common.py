@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import fcntl
 import os
 import re
@@ -11,13 +12,16 @@ import sys
 import time
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
+from typing import TYPE_CHECKING, Iterator
 
 import numpy as np
 
 from icefab.config import Job, load_job
 from icefab.atomic import fsync_path, fsync_tree, make_temp_dir, replace_durably
 from icefab.errors import ConfigError, OutputError
+
+if TYPE_CHECKING:
+    from icefab.core import Mesh
 
 
 def add_job_argument(parser: argparse.ArgumentParser) -> None:
@@ -47,6 +51,22 @@ def command_inputs(given: list[str], job: Job, *, words: tuple[str, ...] = ()) -
             raise ConfigError(f"{lone[0]}: give it alone; it holds the whole build, not one "
                               f"of several parts (inputs: {' '.join(given)})")
     return list(given)
+
+
+def placed_model(model: list[str], job: Job) -> tuple["Mesh", Job]:
+    """The mesh a command slices and its job: ``["demo"]`` is the built-in demo mug, other
+    names are mesh files (they become the job's ``parts.files``); either is placed by the
+    job and checked against the cell (:func:`icefab.mesh.place_mesh`). The README promised
+    ``demo`` to slice, paths and plan, which read it as a file name."""
+    from icefab import mesh as meshmod
+
+    if model == ["demo"]:
+        from icefab.demo import demo_mug
+
+        return meshmod.place_mesh(demo_mug(), job), job
+    files = tuple(str(Path(m).resolve()) for m in model)
+    job = dataclasses.replace(job, parts=dataclasses.replace(job.parts, files=files))
+    return meshmod.prepare_parts(job), job
 
 
 def parse_layers(text: str | None, n: int, default_count: int = 4) -> list[int]:

@@ -20,8 +20,8 @@ from typing import Sequence
 import numpy as np
 
 from icefab.cli.common import (ESTIMATE_WORDS, Progress, add_job_argument, command_inputs,
-                               hours, job_from_args, output_dir, parse_layers, warning_lines,
-                               write_warnings)
+                               hours, job_from_args, output_dir, parse_layers, placed_model,
+                               warning_lines, write_warnings)
 from icefab.core import DEPOSITING_ROLES, MATERIALS, ROLES
 from icefab.report import plot_toolpaths
 from icefab.resultfiles import LayerHead, packed_lengths
@@ -37,8 +37,8 @@ def add_parser(subparsers) -> None:
                     "(STL, PLY, OBJ) or a stack.npz from 'icefab slice'. Writes "
                     "OUT/toolpaths.npz and OUT/paths.png.")
     p.add_argument("model", nargs="*", metavar="MODEL|STACK",
-                   help="mesh file(s) (replace parts.files of the job) or one stack .npz "
-                        "(default: parts.files of the job)")
+                   help="mesh file(s) (replace parts.files of the job), 'demo' (the built-in mug) "
+                        "or one stack .npz (default: parts.files of the job)")
     add_job_argument(p)
     p.add_argument("-o", "--out", required=True, metavar="OUT", help="output folder")
     p.add_argument("--layers", metavar="K,K,...",
@@ -151,19 +151,16 @@ def summary_lines(layers: Sequence[LayerHead], warnings: Sequence[str],
 
 
 def _load_stack(args: argparse.Namespace, job):
-    from icefab import mesh as meshmod
     from icefab.slicing import load_stack, slice_mesh
 
-    model = command_inputs(args.model, job)
+    model = command_inputs(args.model, job, words=("demo",))
     first = Path(model[0])
     if len(model) == 1 and first.suffix.lower() == ".npz":
         stack = load_stack(first)
         if args.job:
             stack = dataclasses.replace(stack, job=job)
         return stack, stack.job
-    files = tuple(str(Path(m).resolve()) for m in model)
-    job = dataclasses.replace(job, parts=dataclasses.replace(job.parts, files=files))
-    mesh = meshmod.prepare_parts(job)
+    mesh, job = placed_model(model, job)
     return slice_mesh(mesh, job, progress=Progress("slicing")), job
 
 

@@ -25,7 +25,6 @@ everything worked; every file is written in a temporary folder first):
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import math
 import sys
 import time
@@ -35,7 +34,7 @@ import numpy as np
 
 from icefab.cli.common import (ESTIMATE_WORDS, Progress, add_job_argument, command_inputs,
                                compare_build_times, hours, job_from_args, output_dir,
-                               parse_layers)
+                               parse_layers, placed_model)
 from icefab.core import DEPOSITING_CODES
 from icefab.errors import ConfigError
 from icefab.report import plot_speed
@@ -50,8 +49,8 @@ def add_parser(subparsers) -> None:
                     "with --gcode also OUT/trajectories.gcode, with --constant-spacing "
                     "OUT/constant_spacing.npz (formats: 'pydoc icefab.motion').")
     p.add_argument("input", nargs="*", metavar="MODEL|TOOLPATHS",
-                   help="mesh file(s) (STL, PLY, OBJ; replace parts.files of the job) or one "
-                        "toolpath file (.npz from 'icefab paths'; default: parts.files of the "
+                   help="mesh file(s) (STL, PLY, OBJ; replace parts.files of the job), 'demo' (the "
+                        "built-in mug) or one toolpath file (.npz from 'icefab paths'; default: parts.files of the "
                         "job)")
     add_job_argument(p)
     p.add_argument("-o", "--out", required=True, metavar="OUT", help="output folder")
@@ -91,14 +90,11 @@ def load_input(inputs: list[str], job):
             print(f"note: planning for the {job.cell.robot} of the job; the toolpaths were "
                   f"made with a {tp.job.cell.robot} (cell.robot)", file=sys.stderr)
         return tp, job
-    from icefab import mesh as meshmod
     from icefab.config import Job
     from icefab.regions import add_scaffold
     from icefab.slicing import slice_mesh
     job = job or Job()
-    files = tuple(str(Path(m).resolve()) for m in inputs)
-    job = dataclasses.replace(job, parts=dataclasses.replace(job.parts, files=files))
-    mesh = meshmod.prepare_parts(job)   # placement per the job (thesis 3.1.2)
+    mesh, job = placed_model(inputs, job)   # placement per the job (thesis 3.1.2)
     stack = slice_mesh(mesh, job, progress=Progress("slicing"))
     stack = add_scaffold(stack, job)
     return plan_paths(stack, job), job
@@ -124,7 +120,7 @@ def run(args: argparse.Namespace) -> int:
     if spacing is not None and not (math.isfinite(spacing) and spacing > 0.0):
         raise ConfigError(f"--constant-spacing {spacing:g}: expected a positive number of mm")
     given = job_from_args(args)
-    inputs = command_inputs(args.input, given)
+    inputs = command_inputs(args.input, given, words=("demo",))
     job = given if getattr(args, "job", None) else None
     t0 = time.perf_counter()
     tp, job = load_input(inputs, job)

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import dataclasses
 import io
 import json
 import math
@@ -40,7 +39,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from icefab.cli.common import (Progress, add_job_argument, command_inputs, job_from_args,
-                               output_dir)
+                               output_dir, placed_model)
 from icefab.atomic import write_atomic
 from icefab.errors import ConfigError, SimulationError, StackFileError
 from icefab.report import plot_rms, plot_surfaces
@@ -145,17 +144,7 @@ def load_build(model: list[str], job: "Job", args: argparse.Namespace
 
     job = _job_with_options(job, args)
     n_layers = job.simulation.layers
-    if model == ["demo"]:
-        from icefab.demo import demo_mug
-        from icefab.mesh import transform
-
-        mesh = transform(demo_mug(), job.parts)
-    else:
-        from icefab.mesh import prepare_parts
-
-        files = tuple(str(Path(m).resolve()) for m in model)
-        job = dataclasses.replace(job, parts=dataclasses.replace(job.parts, files=files))
-        mesh = prepare_parts(job)
+    mesh, job = placed_model(model, job)
     stack = slice_mesh(mesh, job, progress=Progress("slicing"))
     # the scaffold depends on every layer above, so it is made for the whole part first
     stack = add_scaffold(stack, job, progress=Progress("scaffold"))

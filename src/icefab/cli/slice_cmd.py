@@ -9,15 +9,14 @@ Models given on the command line replace ``parts.files`` of the job.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import time
 from pathlib import Path
 
 import numpy as np
 
-from icefab.cli.common import (Progress, add_job_argument, job_from_args, output_dir,
-                               parse_layers, warning_lines, write_warnings)
-from icefab.errors import ConfigError
+from icefab.cli.common import (Progress, add_job_argument, command_inputs, job_from_args,
+                               output_dir, parse_layers, placed_model, warning_lines,
+                               write_warnings)
 from icefab.report import plot_layers
 from icefab.core import Stack
 
@@ -29,7 +28,8 @@ def add_parser(subparsers) -> None:
         description="Slice a mesh (STL, PLY, OBJ) into layers of nested, oriented contours "
                     "(thesis 3.2). Writes OUT/stack.npz and OUT/layers.png.")
     p.add_argument("model", nargs="*", metavar="MODEL",
-                   help="mesh file(s); replaces parts.files of the job")
+                   help="mesh file(s) (replace parts.files of the job) or 'demo' (the built-in mug; "
+                        "default: parts.files of the job)")
     add_job_argument(p)
     p.add_argument("-o", "--out", required=True, metavar="OUT", help="output folder")
     p.add_argument("--layers", metavar="K,K,...",
@@ -62,18 +62,13 @@ def summary_lines(stack: Stack, elapsed_s: float | None = None) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from icefab import mesh as meshmod
     from icefab.slicing import save_stack, slice_mesh, slice_report
 
     job = job_from_args(args)
-    if args.model:
-        files = tuple(str(Path(m).resolve()) for m in args.model)
-        job = dataclasses.replace(job, parts=dataclasses.replace(job.parts, files=files))
-    if not job.parts.files:
-        raise ConfigError("no model to slice: give MODEL or parts.files in the job file")
+    model = command_inputs(args.model, job, words=("demo",))
     out = Path(args.out)
     t0 = time.perf_counter()
-    mesh = meshmod.prepare_parts(job)
+    mesh, job = placed_model(model, job)
     t_load = time.perf_counter() - t0
     stack = slice_mesh(mesh, job, progress=Progress("slicing"))
     elapsed = time.perf_counter() - t0
