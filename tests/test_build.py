@@ -549,6 +549,34 @@ def _wait_progress(build: Path, proc, timeout_s: float = 300.0) -> int | None:
     raise AssertionError(f"{build}: no progress within {timeout_s:g} s")
 
 
+def test_stop_reaches_a_build_that_is_still_planning(tmp_path):
+    # 'icefab build --stop B' while B was planning said "no build journal here" and the
+    # build went on to deposit (a tester's, 12 s after the start)
+    proc = subprocess.Popen([sys.executable, "-m", "icefab", "build", "demo", "-o", "b",
+                             "--virtual"], cwd=tmp_path,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    marker = tmp_path / ".b.icefab-preparing"
+    try:
+        deadline = time.monotonic() + 60
+        while not marker.exists() and time.monotonic() < deadline:
+            assert proc.poll() is None, proc.stderr.read()
+            time.sleep(0.05)
+        assert int(marker.read_text()) == proc.pid
+        r = _icefab("build", "--stop", "b", cwd=tmp_path)
+        assert r.returncode == 0, r.stderr
+        assert "stopped while it was being prepared" in r.stdout
+        assert proc.wait(timeout=60) == 130 and "interrupted" in proc.stderr.read()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert sorted(p.name for p in tmp_path.iterdir()) == []     # no folder, no marker
+    # a marker left by a killed build (its process gone) is not a build
+    marker.write_text("999999999\n")
+    r = _icefab("build", "--stop", "b", cwd=tmp_path)
+    assert r.returncode == 2 and "no build journal here" in r.stderr
+    assert not marker.exists()
+
+
 def test_a_resume_refused_for_a_lost_record_leaves_no_cell_behind(firmware_tools, planned,
                                                                    tmp_path):
     # the refusal left the new virtual cell running on a new, empty BUILD/cell, in the way

@@ -21,6 +21,7 @@ answer its handshake. Files: :mod:`icefab.build`.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -190,6 +191,63 @@ def _shutdown_cell(cdir: Path) -> None:
     shutdown_virtual_cell(cdir)
 
 
+def _preparing_marker(build: Path) -> Path:
+    return build.parent / f".{build.name}.icefab-preparing"
+
+
+@contextlib.contextmanager
+def _preparing(build: Path):
+    """While a new build plans (minutes for a large part), before its folder and journal
+    exist: a marker beside the folder holding this process' id, so that ``--stop BUILD``
+    finds it (it said "no build journal here" and the build went on to deposit)."""
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    # --stop sends SIGTERM, handled here as Ctrl-C (the temporary plan removed, a started
+    # virtual cell shut down): SIGINT is ignored in a build started in the background
+    # of a non-interactive shell ('icefab build ... &'). The handler first, then the
+    # marker that --stop finds
+    old = signal.signal(signal.SIGTERM, interrupt)
+    marker = _preparing_marker(build)
+    try:
+        marker.write_text(f"{os.getpid()}\n", encoding="utf-8")
+    except OSError:        # no parent folder yet: nothing to find it by, as before
+        marker = None
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+        if marker is not None:
+            marker.unlink(missing_ok=True)
+
+
+def _stop_preparing(build: Path) -> bool:
+    """Interrupt a build of ``build`` that is still planning (as Ctrl-C does: nothing was
+    sent to a cell); True when there was one."""
+    marker = _preparing_marker(build)
+    try:
+        pid = int(marker.read_text(encoding="utf-8").strip())
+        cmdline = Path(f"/proc/{pid}/cmdline")
+        if cmdline.exists() and b"build" not in cmdline.read_bytes():
+            raise ProcessLookupError(pid)    # a killed build's id, now another program's
+        os.kill(pid, signal.SIGTERM)
+    except (OSError, ValueError):
+        marker.unlink(missing_ok=True)       # stale: its process is gone
+        return False
+    deadline = time.monotonic() + 60.0
+    while time.monotonic() < deadline:
+        time.sleep(0.2)
+        if not marker.exists():       # it removes its marker as it leaves
+            return True
+        try:
+            os.kill(pid, 0)
+        except OSError:
+            marker.unlink(missing_ok=True)
+            return True
+    raise ConfigError(f"{build}: the build being prepared (process {pid}) did not stop "
+                      "within 60 s")
+
+
 def _lock(build: Path):
     import fcntl
 
@@ -256,64 +314,65 @@ def _run(build: Path, args: argparse.Namespace, *, resume: bool) -> int:
         if jpath.exists():
             raise ConfigError(f"{build}: holds a build journal already: resume it with "
                               f"'icefab build --resume {build}' or choose another -o")
-        in_digest = _input_digest(list(args.input))
-        with tempfile.TemporaryDirectory(prefix="icefab-build-plan-") as tmp:
-            planned = Path(tmp) / bmod.TRAJECTORIES
-            job, room_warnings = _plan(args, planned)
-            with TrajectoryFile(planned) as f:
-                bmod.check_build(f.motion(), job, f.n_layers)
-            created = not build.exists()
-            build.mkdir(parents=True, exist_ok=True)
-            lock = _lock(build)
-            cdir = build / bmod.CELL_DIR
-            if cdir.is_dir():
-                # a start killed before its journal existed: nothing was sent; start afresh
-                _shutdown_cell(cdir)
-                shutil.rmtree(cdir)
-            job_toml = to_toml(job)
-            (build / "job.toml").write_text(job_toml, encoding="utf-8")
-            shutil.move(planned, build / bmod.TRAJECTORIES)
-        motion = open_trajectories(build / bmod.TRAJECTORIES)
-        meta = {"cell": "virtual" if args.virtual else str(Path(args.cell).resolve()),
-                "cell_time_factor": args.cell_time_factor, "layers": len(motion.layers),
-                "inputs": list(args.input),
-                "digests": {"input": in_digest, "job": digest_file(build / "job.toml"),
-                            "trajectories": digest_file(build / bmod.TRAJECTORIES)}}
-        connect = _connector(build, args, meta, job)
-        cell = None
-        try:
-            cell = connect()
-            cell.hello()                      # the handshake, before anything is journaled
-            cell.check_paths(motion)
-            st = cell.status()
-            if not st.prepared:
-                lo, hi = _box(motion, job)
-                cell.prepare(job_toml, tuple(lo), tuple(hi))
-        except Exception:
-            # nothing of a build that never started stays behind (README: output folders
-            # only on success): a refused cell left the folder with its lock file
-            if cell is not None:
-                cell.close()
-            if args.virtual:
-                _shutdown_cell(build / bmod.CELL_DIR)
-                shutil.rmtree(build / bmod.CELL_DIR, ignore_errors=True)
-            (build / "job.toml").unlink(missing_ok=True)
-            (build / bmod.TRAJECTORIES).unlink(missing_ok=True)
-            lock.close()
-            (build / "build.lock").unlink(missing_ok=True)
-            if created:
-                try:
-                    build.rmdir()
-                except OSError:   # something else was put there meanwhile: keep it
-                    pass
-            raise
-        journal = Journal.create(jpath, meta)
-        journal.event("start", f"build of {len(motion.layers)} layers on "
-                      f"{'a virtual cell' if args.virtual else meta['cell']}")
-        for line in room_warnings:   # once the build starts (a refusal is one line)
-            journal.event("headroom", line)
-            print(line, file=sys.stderr)
-        cell.close()
+        with _preparing(build):
+            in_digest = _input_digest(list(args.input))
+            with tempfile.TemporaryDirectory(prefix="icefab-build-plan-") as tmp:
+                planned = Path(tmp) / bmod.TRAJECTORIES
+                job, room_warnings = _plan(args, planned)
+                with TrajectoryFile(planned) as f:
+                    bmod.check_build(f.motion(), job, f.n_layers)
+                created = not build.exists()
+                build.mkdir(parents=True, exist_ok=True)
+                lock = _lock(build)
+                cdir = build / bmod.CELL_DIR
+                if cdir.is_dir():
+                    # a start killed before its journal existed: nothing was sent; start afresh
+                    _shutdown_cell(cdir)
+                    shutil.rmtree(cdir)
+                job_toml = to_toml(job)
+                (build / "job.toml").write_text(job_toml, encoding="utf-8")
+                shutil.move(planned, build / bmod.TRAJECTORIES)
+            motion = open_trajectories(build / bmod.TRAJECTORIES)
+            meta = {"cell": "virtual" if args.virtual else str(Path(args.cell).resolve()),
+                    "cell_time_factor": args.cell_time_factor, "layers": len(motion.layers),
+                    "inputs": list(args.input),
+                    "digests": {"input": in_digest, "job": digest_file(build / "job.toml"),
+                                "trajectories": digest_file(build / bmod.TRAJECTORIES)}}
+            connect = _connector(build, args, meta, job)
+            cell = None
+            try:
+                cell = connect()
+                cell.hello()                      # the handshake, before anything is journaled
+                cell.check_paths(motion)
+                st = cell.status()
+                if not st.prepared:
+                    lo, hi = _box(motion, job)
+                    cell.prepare(job_toml, tuple(lo), tuple(hi))
+            except BaseException:   # Ctrl-C or --stop too
+                # nothing of a build that never started stays behind (README: output folders
+                # only on success): a refused cell left the folder with its lock file
+                if cell is not None:
+                    cell.close()
+                if args.virtual:
+                    _shutdown_cell(build / bmod.CELL_DIR)
+                    shutil.rmtree(build / bmod.CELL_DIR, ignore_errors=True)
+                (build / "job.toml").unlink(missing_ok=True)
+                (build / bmod.TRAJECTORIES).unlink(missing_ok=True)
+                lock.close()
+                (build / "build.lock").unlink(missing_ok=True)
+                if created:
+                    try:
+                        build.rmdir()
+                    except OSError:   # something else was put there meanwhile: keep it
+                        pass
+                raise
+            journal = Journal.create(jpath, meta)
+            journal.event("start", f"build of {len(motion.layers)} layers on "
+                          f"{'a virtual cell' if args.virtual else meta['cell']}")
+            for line in room_warnings:   # once the build starts (a refusal is one line)
+                journal.event("headroom", line)
+                print(line, file=sys.stderr)
+            cell.close()
     connect = _connector(build, args, meta, job)
     stop_flag = {"signal": None}
 
@@ -415,6 +474,10 @@ def _stop(build: Path) -> int:
     from icefab import build as bmod
     from icefab.journal import Journal
 
+    if not (build / bmod.JOURNAL).exists() and _stop_preparing(build):
+        print(f"{build}: stopped while it was being prepared (planning); nothing was sent to "
+              "the cell")
+        return 0
     journal = Journal.open(build / bmod.JOURNAL)
     meta = journal.meta()
     (build / bmod.STOP_REQUEST).write_text("stop\n", encoding="utf-8")
