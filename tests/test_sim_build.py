@@ -126,6 +126,32 @@ def test_flow_gain_drifts_with_the_volume_through_each_valve():
     assert res.volume_deposited > res.volume_commanded
 
 
+def test_a_valve_drifting_down_stops_and_takes_nothing_away():
+    # a drift of -0.1 per cm^3 made the flow gain negative: the valve took ice away and the
+    # surface went 12 mm below the platform (a tester's)
+    job = quiet_job(**{"simulation.flow_drift_per_cm3": -0.1})
+    res = simulate_build(annulus_toolpaths(job, 30), job, closed_loop=False)
+    part_cm3 = np.pi * (25.0 ** 2 - 10.0 ** 2) / 1000 * DH    # a layer's part: 10 cm^3 in 25
+    assert 30 * part_cm3 > 10.0 and res.flow_gain[0] == 0.0
+    assert np.nanmin(res.height.z) >= 0.0 and res.volume_deposited > 0.0
+    assert res.volume_deposited < res.volume_commanded
+
+
+def test_height_noise_keeps_its_size_whatever_its_correlation_length():
+    # the smoothed field was divided by its spread with its mean left on: at a correlation
+    # length near the grid's size, 0.02 mm of noise became metres (noise_corr_mm = 100)
+    from icefab.sim.cell import _noise_field
+
+    rng = np.random.default_rng(0)
+    for sigma in (0.0, 3.0, 50.0, 200.0):
+        f = _noise_field(rng, (150, 150), sigma)
+        assert abs(f.mean()) < (0.1 if sigma == 0.0 else 1e-9) and f.std() == \
+            pytest.approx(1.0, rel=0.05)
+    job = quiet_job(**{"simulation.noise_mm": 0.02, "simulation.noise_corr_mm": 100.0})
+    res = simulate_build(annulus_toolpaths(job, 8), job, closed_loop=False)
+    assert np.nanmax(np.abs(res.rms)) < 0.2
+
+
 def test_edge_loss_lowers_the_region_edges_only():
     job = quiet_job(**{"simulation.edge_loss": 0.2})
     res = simulate_build(annulus_toolpaths(job, 8), job, closed_loop=False)

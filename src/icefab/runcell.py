@@ -334,7 +334,7 @@ class VirtualCell:
             return
         mat = 0 if path.tool == "part" else 1
         before = st["used_cm3"][mat] + (np.cumsum(vol) - vol) / 1000.0
-        gain = (1.0 + s.flow_error) * (1.0 + s.flow_drift_per_cm3 * before)
+        gain = simmod.cell.flow_gain(s, before)
         st["used_cm3"][mat] += vol.sum() / 1000.0
         simmod._splat(st["layer_img"][mat], st["origin"], float(st["spacing"]), a, b,
                       vol * gain, hw, n0, n1, ext)

@@ -32,6 +32,7 @@ import csv
 import io
 import json
 import math
+import sys
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -352,6 +353,11 @@ def run(args: argparse.Namespace) -> int:
           f"{sim.edge_loss:.0%}, seed {sim.seed}; gains Kp {job.feedback.kp:g}, "
           f"Ki* {job.feedback.ki:g}, Kd* {job.feedback.kd:g}, every "
           f"{job.feedback.interval_layers} layers")
+    stopped = [m for m, g in zip(("part", "scaffold"), open_loop.flow_gain) if g <= 0.0]
+    if stopped:
+        print(f"warning: the {' and '.join(stopped)} valve's flow drifted to nothing "
+              f"(simulation.flow_drift_per_cm3 = {sim.flow_drift_per_cm3:g}): it deposited "
+              "nothing from then on", file=sys.stderr)
     if valves:
         print(f"deposition: valve pulses along the minimum-time trajectories "
               f"({open_loop.pulses} pulses open loop, {closed.pulses} with SMF)")

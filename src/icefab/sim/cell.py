@@ -14,7 +14,7 @@ from typing import Callable, Iterable, Sequence
 import numpy as np
 from scipy import ndimage
 
-from icefab.config import Job
+from icefab.config import Job, SimulationSettings
 from icefab.core import HeightMap
 from icefab.errors import SimulationError
 from icefab.stages import layer_height
@@ -127,14 +127,27 @@ def grid_for(plans: Iterable[LayerPlan], job: "Job") -> HeightMap:
 
 def _noise_field(rng: np.random.Generator, shape: tuple[int, int], sigma_cells: float
                  ) -> np.ndarray:
-    """Unit-std Gaussian random field with correlation length ``sigma_cells``."""
+    """Zero-mean, unit-std Gaussian random field with correlation length ``sigma_cells``."""
     f = rng.standard_normal(shape)
     if sigma_cells > 0.5:
         f = ndimage.gaussian_filter(f, sigma_cells, mode="wrap")
+        # the filter keeps the draw's mean and shrinks its spread: with a correlation
+        # length near the grid's size, dividing the spread out without taking the mean
+        # off made a 0.02 mm noise a 1.2 m offset (a tester's noise_corr_mm = 100)
+        f -= f.mean()
         sd = f.std()
         if sd > 0:
             f /= sd
     return f
+
+
+def flow_gain(sim: SimulationSettings, used_cm3: np.ndarray | float) -> np.ndarray:
+    """The valve's actual flow over the commanded (thesis 5.6, eq. 5.29): ``(1 +
+    flow_error) (1 + flow_drift_per_cm3 V)`` after ``used_cm3`` V through it, never below
+    0: a valve whose flow drifts down stops (a drift of -0.1 took ice away and dug below
+    the platform)."""
+    return (1.0 + sim.flow_error) * np.maximum(
+        1.0 + sim.flow_drift_per_cm3 * np.asarray(used_cm3, dtype=np.float64), 0.0)
 
 
 def _edge_factor(layer_z: np.ndarray, thresh: float, width: float, spacing: float,
@@ -184,7 +197,7 @@ def deposit_layer(z: np.ndarray, origin: np.ndarray, spacing: float, segments: t
         v_cmd = v_all[sel]
         # flow gain with drift by valve use (thesis 6.4): volume already through the valve
         before = used_cm3[mat] + (np.cumsum(v_cmd) - v_cmd) / 1000.0
-        gain = (1.0 + sim.flow_error) * (1.0 + sim.flow_drift_per_cm3 * before)
+        gain = flow_gain(sim, before)
         used_cm3[mat] += v_cmd.sum() / 1000.0
         low_gain = min(low_gain, float(gain.min()))
         vol = v_cmd * gain
@@ -344,8 +357,7 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
             progress(j + 1, len(plans))
     arr = np.array(rows, dtype=np.float64).reshape(-1, 5)
     final = HeightMap(origin=surface.origin.copy(), spacing=g, z=np.where(ever, z, np.nan))
-    gains = tuple(float((1 + sim.flow_error) * (1 + sim.flow_drift_per_cm3 * c))
-                  for c in used_cm3)
+    gains = tuple(float(flow_gain(sim, c)) for c in used_cm3)
     return SimResult(layers=arr[:, 0].astype(np.int64), nominal_z=arr[:, 1], rms=arr[:, 2],
                      max_abs=arr[:, 3], rms_measured=arr[:, 4], height=final,
                      surfaces=surfaces, closed_loop=controller is not None,
