@@ -1053,6 +1053,23 @@ def test_a_wall_narrower_than_the_measurement_spacing_is_measured_along_its_midd
     assert len(got) == len(measure_rings(disk, spacing, FILT)) and all(c for _p, c in got)
 
 
+@pytest.mark.parametrize("spacing", [61.0, 100.0])
+def test_a_region_that_holds_no_measurement_ring_is_measured_along_its_centre_line(spacing):
+    """At a spacing wider than the region it holds no ring, and the piece left (the whole
+    region, under spacing^2) was dropped as too small for a path of its own: the 60 mm
+    square got no measurement path (a tester's), and SMF corrected the layer from the
+    laser along its deposition paths, unsaid. With no ring beside it, it is measured along
+    its centre line: the four half-diagonals, none of them a point."""
+    from icefab.paths import measure_paths
+
+    square = geo.region_from_rings([np.array([[0.0, 0], [60, 0], [60, 60], [0, 60]])])
+    got = measure_paths(square, spacing, FILT)
+    lengths = sorted(float(np.hypot(*np.diff(p, axis=0).T).sum()) for p, _c in got)
+    assert len(got) == 4 and lengths[0] > 40.0
+    ends = np.array([p[[0, -1]] for p, _c in got]).reshape(-1, 2)
+    assert np.allclose(np.sort(np.hypot(*(ends - 30.0).T))[:4], 0.0, atol=0.5)
+
+
 @settings(max_examples=30, deadline=None)
 @given(polygon_with_holes(), st.floats(2.0, 8.0), st.one_of(st.none(), st.floats(0.3, 1.5)))
 def test_every_piece_of_a_region_the_rings_leave_unmeasured_gets_a_measurement_path(

@@ -681,7 +681,8 @@ def measure_paths(region: Region, spacing: float, filt: float, lane_mm: float = 
                   max_length_mm: float = math.inf) -> list[tuple[np.ndarray, bool]]:
     """Measurement paths over a region, ``(points (k, 2) mm, closed)``: the concentric
     rings of :func:`measure_rings`, then a path along the centre line of every piece of
-    the region they leave unmeasured (:func:`unmeasured`) of at least ``spacing^2``, kept
+    the region they leave unmeasured (:func:`unmeasured`) of at least ``spacing^2`` (any
+    size when the region holds no ring), kept
     ``MEASURE_EDGE_MM`` from the piece's edge (a piece thinner than twice that gets none): a
     wall or a strip narrower than ``spacing`` holds no ring (the offset by ``spacing / 2``
     is empty), and the feedback would correct it with the heights of whatever was measured
@@ -695,9 +696,13 @@ def measure_paths(region: Region, spacing: float, filt: float, lane_mm: float = 
     out: list[tuple[np.ndarray, bool]] = (
         join_measure_rings(levels, region, spacing, lane_mm, max_length_mm) if lane_mm > 0
         else [(r, True) for lv in levels for r in lv])
+    # a piece under spacing^2 is left to the measurements beside it; with no ring at all
+    # nothing is beside it (at a 61 mm spacing a 60 mm square got no measurement path,
+    # and SMF corrected the layer from the laser along its deposition paths, unsaid)
+    least = spacing * spacing if out else 0.0
     left = [p for p in unmeasured(region, levels[0] if levels else [], spacing,
                                   filt).polygons()
-            if geo.area(p) >= spacing * spacing]
+            if geo.area(p) >= least]
     if not left:
         return out
     rings_left = [r for p in left for r in p]
@@ -717,8 +722,13 @@ def measure_paths(region: Region, spacing: float, filt: float, lane_mm: float = 
     leaf = (count[inv.reshape(-1)] == 1).reshape(-1, 2).any(axis=1) & \
         ~np.array([closed for _p, _c, closed in chains])
     chains = _smoothed_axis([(p, 2.0 * c, closed) for p, c, closed in chains])
-    for (pts, _w, closed), is_leaf in zip(chains, leaf):
-        if is_leaf and np.hypot(*np.diff(pts, axis=0).T).sum() < spacing / 2.0:
+    lengths = np.array([np.hypot(*np.diff(pts, axis=0).T).sum() for pts, _w, _c in chains])
+    tiny = lengths < filt
+    short = (leaf & (lengths < spacing / 2.0)) | tiny
+    if short.all() and not out:
+        short = tiny                  # nothing else measures the region: keep them all
+    for (pts, _w, closed), skip in zip(chains, short):
+        if skip:
             continue
         keep = geo.simplify_masks([pts], np.array([float(filt)]), closed=closed)[0]
         if closed and keep.sum() >= 3:
