@@ -16,8 +16,9 @@ from hypothesis import strategies as st
 
 from icefab.cli import main
 from icefab.errors import ConfigError
-from icefab.feedback import (POLE_MARGIN, Disturbance, evaluate_gains, pole_margin_constraints,
-                             rms_and_gradient, simulate_1d, tune_gains)
+from icefab.feedback import (POLE_MARGIN, UNIT_CIRCLE_TOL, Disturbance, error_response,
+                             evaluate_gains, pole_margin_constraints, rms_and_gradient,
+                             simulate_1d, stability, tune_gains)
 
 
 def max_pole(kp, ki, kd):
@@ -100,6 +101,11 @@ def test_constrained_results_are_always_strictly_stable(dist, fix, x0):
         with pytest.raises(ConfigError, match="the disturbance is 0 at every layer"):
             tune_gains(dist, x0=x0, fix=fix)
         return
+    if not np.any(error_response((1.0, 1.0, 0.0), dist)):
+        # a step at the last layer shows one layer later (eq. 5.19): nothing to optimise
+        with pytest.raises(ConfigError, match="shows no error within its layers"):
+            tune_gains(dist, x0=x0, fix=fix)
+        return
     r = tune_gains(dist, x0=x0, fix=fix)
     assert r.stable and max_pole(r.kp, r.ki, r.kd) <= LIMIT
     assert r.kp >= 0 and r.ki > 0 and r.kd >= 0
@@ -173,7 +179,8 @@ def test_tune_json_rms_is_null_for_unstable_gains_that_have_not_overflowed_yet(c
 def test_a_finite_rms_is_only_reported_for_a_bounded_response(gains):
     r = evaluate_gains(gains, Disturbance(n_layers=100))
     if r.as_dict()["rms"] is not None:
-        assert r.max_pole <= 1.0 and np.isfinite(r.rms)
+        # a pole on the circle (within rounding) keeps the response bounded: an RMS
+        assert r.max_pole <= 1.0 + UNIT_CIRCLE_TOL and np.isfinite(r.rms)
     else:
         assert r.diverges
 
@@ -206,3 +213,41 @@ def test_analysis_inputs_are_checked(make, match):
     with pytest.raises(ConfigError, match=match):
         make()
     assert Disturbance(pulses=((0.5, 60.0),), steps=()).sequence()[59] == 0.5  # layer 60
+
+
+@pytest.mark.parametrize("gains", [(0.5, 1.0, 0.5), (1.0, 2.0, 0.0), (0.2, 1.6, 0.5)])
+def test_a_pole_on_the_unit_circle_is_not_stable_whatever_the_rounding(gains):
+    # Kp/2 + Ki*/4 + Kd* = 1 puts a pole on z = -1: its modulus came out 0.9999999999999998
+    # ("stable") or 1.0000000000000007 ("UNSTABLE") as rounding fell (a tester's)
+    stable, m = stability(*gains)
+    assert abs(m - 1.0) < 1e-9 and not stable
+    r = evaluate_gains(gains, Disturbance())
+    assert not r.stable and not r.diverges and np.isfinite(r.rms)   # bounded, not decaying
+
+
+def test_tune_refuses_what_it_cannot_compute_or_optimise(capsys):
+    # a tester's: 1e308 gains were numpy's LinAlgError; a pulse at the last layer came back
+    # as "optimised" start gains; a fixed Kp of 0 was "optimised" outside eq. 5.25's volume
+    for argv, said in ((["--gains", "1e308,1e308,0"], "too large for the model's polynomial"),
+                       (["--layers", "5", "--pulse", "1@5"], "shows no error within its "
+                                                             "layers"),
+                       (["--fix-kp", "0"], "outside the gain-stable volume")):
+        assert main(["tune", *argv]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and said in err[0], err
+
+
+def test_a_huge_disturbance_gives_the_rms_of_its_size(capsys):
+    # e^2 overflowed: stable gains were said to diverge, "a pole at |z| = 0.67 > 1"
+    unit = evaluate_gains((1.0, 0.33, 0.0), Disturbance(pulses=((1.0, 5),), steps=()))
+    big = evaluate_gains((1.0, 0.33, 0.0), Disturbance(pulses=((1e200, 5),), steps=()))
+    assert not big.diverges and big.rms == pytest.approx(1e200 * unit.rms, rel=1e-12)
+    assert main(["tune", "--gains", "1,0.33,0", "--pulse", "1e200@5"]) == 0
+    out = capsys.readouterr().out
+    assert "diverges" not in out and "stable: largest pole modulus 0.6700" in out
+
+
+def test_the_optimum_keeps_within_the_pole_margin_as_printed(capsys):
+    # the active constraint was met to 1e-15 outside: "max_pole": 0.5000000000000011
+    assert main(["tune", "--pole-margin", "0.5", "--json"]) == 0
+    assert strict_json(capsys.readouterr().out)["max_pole"] <= 0.5

@@ -63,7 +63,13 @@ def characteristic_polynomial(kp: float, ki: float, kd: float) -> np.ndarray:
     not a finite number.
     """
     _check_gains((kp, ki, kd))
-    return np.array([1.0, kp + ki + kd - 2.0, 1.0 - kp - 2.0 * kd, kd], dtype=np.float64)
+    with np.errstate(over="ignore", invalid="ignore"):
+        a = np.array([1.0, kp + ki + kd - 2.0, 1.0 - kp - 2.0 * kd, kd], dtype=np.float64)
+    if not np.all(np.isfinite(a)):
+        # 1e308 + 1e308: numpy's LinAlgError from the roots (a tester's --gains)
+        raise ConfigError(f"gains ({kp:.4g}, {ki:.4g}, {kd:.4g}): too large for the model's "
+                          "polynomial (eq. 5.22) to be computed")
+    return a
 
 
 def _check_gains(gains: Sequence[float], what: str = "gain") -> None:
@@ -95,11 +101,18 @@ def poles(kp: float, ki: float, kd: float) -> np.ndarray:
 def stability(kp: float, ki: float, kd: float) -> tuple[bool, float]:
     """Jury criterion (eq. 5.23): ``(stable, max_pole_modulus)``.
 
-    stable is True when every pole lies strictly inside the unit circle; the largest pole
-    modulus tells how far from instability the gains are (thesis Fig. 5-12).
+    stable is True when every pole lies strictly inside the unit circle, by more than
+    :data:`UNIT_CIRCLE_TOL` (a pole on the circle, e.g. at z = -1 for Kp/2 + Ki*/4 + Kd* =
+    1, came out at 0.9999999999999998 or 1.0000000000000007 by rounding, "stable" or not
+    as it fell); the largest pole modulus tells how far from instability the gains are
+    (thesis Fig. 5-12).
     """
     m = float(np.max(np.abs(poles(kp, ki, kd))))
-    return bool(m < 1.0), m
+    return bool(m < 1.0 - UNIT_CIRCLE_TOL), m
+
+
+#: A pole within this of the unit circle is on it (neither decays): not stable.
+UNIT_CIRCLE_TOL = 1e-9
 
 
 def in_stable_volume(kp: float, ki: float, kd: float) -> bool:
@@ -355,7 +368,7 @@ class TuneResult:
         circle (``max_pole > 1``; the error then grows like ``max_pole ** k``, so an RMS
         over any finite number of layers only says how long the run was) or an RMS that
         overflowed."""
-        return not np.isfinite(self.rms) or self.max_pole > 1.0
+        return not np.isfinite(self.rms) or self.max_pole > 1.0 + UNIT_CIRCLE_TOL
 
     def as_dict(self) -> dict[str, float | bool | None]:
         """Plain values for JSON: ``rms`` is None when the response diverges
@@ -370,9 +383,16 @@ def evaluate_gains(gains: Gains, disturbance: Disturbance | np.ndarray) -> TuneR
     """RMS error, stability and the error response of given gains (no optimisation)."""
     _check_gains(gains)
     kp, ki, kd = (float(g) for g in gains)
-    e = error_response((kp, ki, kd), disturbance)
     stable, m = stability(kp, ki, kd)
-    return TuneResult(kp, ki, kd, _rms(e), m, stable, e=e)
+    d = _as_d(disturbance)
+    # linear in d: the response to d scaled to a largest |d_k| of 1, scaled back (a pulse
+    # of 1e200 overflowed in e^2 and stable gains were said to diverge)
+    size = float(np.max(np.abs(d))) if len(d) else 0.0
+    e = error_response((kp, ki, kd), d / size if size > 0 else d)
+    with np.errstate(over="ignore", invalid="ignore"):
+        rms = _rms(e) * size if size > 0 else 0.0
+        e = e * size if size > 0 else e
+    return TuneResult(kp, ki, kd, rms if np.isfinite(rms) else float("inf"), m, stable, e=e)
 
 
 _NAMES = ("kp", "ki", "kd")
@@ -410,10 +430,22 @@ def tune_gains(disturbance: Disturbance | np.ndarray = Disturbance(), *,
         raise ConfigError("the disturbance is 0 at every layer: every gain gives no error, "
                           "so there is nothing to optimise (give a pulse, step or noise)")
     d_unit = d / size
+    if not np.any(error_response((1.0, 1.0, 0.0), d_unit)) and \
+            not np.any(error_response((0.5, 0.2, 0.1), d_unit)):
+        # the error follows d a layer late (eq. 5.19): a pulse at the last layer shows
+        # after the horizon, and the start gains came back "optimised" (a tester's)
+        raise ConfigError("the disturbance shows no error within its layers (a pulse at the "
+                          "last layer shows one layer later, eq. 5.19): every gain gives no "
+                          "error, so there is nothing to optimise; give more layers")
     fix = dict(fix or {})
     for k in fix:
         if k not in _NAMES:
             raise ConfigError(f"fix: unknown gain {k!r}: expected one of kp, ki, kd")
+    if constrained and (fix.get("kp", 1.0) <= 0.0 or fix.get("ki", 1.0) <= 0.0
+                        or fix.get("kd", 0.0) < 0.0):
+        # eq. 5.25's volume: Kp > 0, Ki* > 0, Kd* >= 0 (Kp = 0 was "optimised" outside it)
+        raise ConfigError(f"fixed gains {fix}: outside the gain-stable volume (eq. 5.25: "
+                          "Kp > 0, Ki* > 0, Kd* >= 0)")
     _check_gains(x0, "initial gain")
     base = np.array([fix.get(n, x0[i]) for i, n in enumerate(_NAMES)], dtype=np.float64)
     if not np.all(np.isfinite(base)):
@@ -448,11 +480,15 @@ def tune_gains(disturbance: Disturbance | np.ndarray = Disturbance(), *,
             raise ConfigError(f"fixed gains {fix}: outside the gain-stable volume (eq. 5.25: "
                               "Kp/2 + Ki*/4 + Kd* < 1)")
 
+        # SLSQP meets an active constraint to about 1e-15: kept a hair inside, so that the
+        # result's poles are within the margin as printed (0.5000000000000011 at 0.5)
+        inside = radius * (1.0 - 1e-12)
+
         def margin(x: np.ndarray) -> np.ndarray:
-            return pole_margin_constraints(*full(x), radius)[0]
+            return pole_margin_constraints(*full(x), inside)[0]
 
         def margin_jac(x: np.ndarray) -> np.ndarray:
-            return pole_margin_constraints(*full(x), radius)[1][:, free]
+            return pole_margin_constraints(*full(x), inside)[1][:, free]
 
         cons = [{"type": "ineq", "fun": lambda x: 1.0 - 1e-9 - fixed - a_free @ x,
                  "jac": lambda x: -a_free},

@@ -91,6 +91,12 @@ def _at(text: str, option: str, n_layers: int) -> tuple[float, int]:
     return a, k
 
 
+def _gain(v: float) -> str:
+    """Four decimals, or four digits for a value too large or small for them (1e200 was
+    printed with 200 digits)."""
+    return f"{v:.4f}" if 1e-4 <= abs(v) < 1e6 or v == 0.0 else f"{v:.4g}"
+
+
 def _triple(text: str, option: str) -> tuple[float, float, float]:
     parts = text.split(",")
     if len(parts) != 3:
@@ -100,7 +106,7 @@ def _triple(text: str, option: str) -> tuple[float, float, float]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from icefab.feedback import Disturbance, evaluate_gains, tune_gains
+    from icefab.feedback import UNIT_CIRCLE_TOL, Disturbance, evaluate_gains, tune_gains
 
     job = job_from_args(args)
     n_layers = int(_number(args.layers, "--layers", integer=True, lo=1))
@@ -153,16 +159,20 @@ def run(args: argparse.Namespace) -> int:
     if args.json:  # rms is null when the response diverges: strict JSON, no Infinity
         print(json.dumps(data, allow_nan=False))
         return 0
-    print(f"gains ({mode}): Kp = {result.kp:.4f}, Ki* = {result.ki:.4f}, "
-          f"Kd* = {result.kd:.4f}")
-    if result.diverges:
+    print(f"gains ({mode}): Kp = {_gain(result.kp)}, Ki* = {_gain(result.ki)}, "
+          f"Kd* = {_gain(result.kd)}")
+    if result.diverges and result.max_pole > 1.0:
         print(f"RMS error sigma_p*: none, the error response diverges (a pole at "
-              f"|z| = {result.max_pole:.4g} > 1 grows without bound)")
+              f"|z| = {result.max_pole:.10g} > 1 grows without bound)")
+    elif result.diverges:
+        print("RMS error sigma_p*: none, too large to compute (the disturbance's size)")
     else:
         print(f"RMS error sigma_p* = {result.rms:.4g} measurement intervals over {n_layers} "
               "layers")
-    verdict = "stable" if result.stable else "UNSTABLE"
-    print(f"{verdict}: largest pole modulus {result.max_pole:.4f}")
+    on_circle = not result.stable and abs(result.max_pole - 1.0) <= UNIT_CIRCLE_TOL
+    verdict = ("UNSTABLE (marginal: a pole on the unit circle, its error never decays)"
+               if on_circle else "stable" if result.stable else "UNSTABLE")
+    print(f"{verdict}: largest pole modulus {_gain(result.max_pole)}")
     if args.out:
         print(f"wrote {args.out}/error_response.png, {args.out}/tune.json", file=sys.stderr)
     return 0
