@@ -85,6 +85,37 @@ def check_trajectory(tr, pts, job, robot=None, *, vcap=None, follow_mm=FOLLOW_MM
 # --------------------------------------------------------------------------- shapes
 
 
+@pytest.mark.parametrize("settings, pts", [
+    ({"motion.accel_mm_s2": 1.0}, [[300.0, -60.0], [300.0, 40.0]]),
+    ({"motion.accel_mm_s2": 50.0}, [[300.0, -60.0], [300.0, 40.0]]),
+    ({"motion.rest_accel_mm_s2": 1e6}, [[300.0, -60.0], [320.0, -60.0], [300.0, -59.8]])])
+def test_the_rest_curves_keep_the_acceleration_bound(settings, pts):
+    # the rest curves started at rest_accel_mm_s2 whatever accel_mm_s2 (a tester's: 2.6
+    # times the bound at accel 1 mm/s^2, 2.1 times with rest_accel 1e6); both in range
+    job = Job().replace(**settings)
+    check_trajectory(plan_motion(np.array(pts), job), np.array(pts), job)
+
+
+@pytest.mark.parametrize("settings", [{"motion.point_spacing_mm": 1.0},
+                                      {"motion.dt_s": 0.1}])
+def test_the_ends_of_the_grid_and_step_ranges_keep_the_bounds(settings):
+    # a tester's: a 10 mm grid planned 1.8 times the acceleration bound on a straight line,
+    # a 1 s step planned a 31 mm ring as one point; the ranges end where the bounds hold
+    from icefab.errors import ConfigError
+
+    job = Job().replace(**settings)
+    t = np.linspace(0.0, 2.0 * np.pi, 100, endpoint=False)
+    for pts in (np.array([[300.0, -60.0], [400.0, -60.0]]),
+                np.c_[300.0 + 5.0 * np.cos(t), -60.0 + 5.0 * np.sin(t)]):
+        tr = plan_motion(pts, job)
+        check_trajectory(tr, pts, job)
+        chords = np.hypot(*np.diff(tr.xy, axis=0).T).sum()
+        assert chords > 0.9 * np.hypot(*np.diff(pts, axis=0).T).sum()
+    (name, value), = settings.items()
+    with pytest.raises(ConfigError, match=f"{name} = {2 * value!r}: must be"):
+        Job().replace(**{name: 2 * value})
+
+
 def test_straight_line_trapezoid_duration():
     # far from singularities the joint bounds do not bind: T = L/V + V/A (jerk off)
     pts = np.array([[250.0, -150.0], [250.0, 50.0]])

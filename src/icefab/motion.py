@@ -537,11 +537,14 @@ def _piece_profiles(gstart: np.ndarray, hk: np.ndarray, gxy: np.ndarray, vertice
 
     # ---- VCON, ACON, JCON, AREST (compiled)
     jerk_on = bool(m.jerk_limited)
+    # the rest curves' initial acceleration within the total bound (a rest_accel_mm_s2
+    # above accel_mm_s2 planned 2.6 times the bound; both settings in their ranges)
+    a_rest = min(float(m.rest_accel_mm_s2), float(m.accel_mm_s2))
     vstart, vs_loc, vtau = vertices
     v, env, T = _mtts.speed_profiles(
         _mtts.PieceGrid(gstart, hk, gxy, vstart, vs_loc, vtau),
         _mtts.CartesianLimits(vcap_piece, float(m.accel_mm_s2), float(m.jerk_mm_s3),
-                              bool(jerk_on), float(m.rest_accel_mm_s2)),
+                              bool(jerk_on), a_rest),
         _mtts.JointLimits(qgrid, qv, qa, qj),
         _mtts.Sampling(float(m.dt_s), JERK_WINDOW_MM, JCON_TOLERANCE))
 
@@ -549,7 +552,7 @@ def _piece_profiles(gstart: np.ndarray, hk: np.ndarray, gxy: np.ndarray, vertice
     dt = float(m.dt_s)
     dmin0, dmin1, cap0, cap1 = rest
     a0, a1, T = _mtts.rest_accelerations(gstart, hk, v, T, dt,
-                                         float(m.rest_accel_mm_s2) if jerk_on else -1.0,
+                                         a_rest if jerk_on else -1.0,
                                          dmin0, dmin1, cap0, cap1)
     return v, T, a0, a1
 
