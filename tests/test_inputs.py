@@ -74,3 +74,14 @@ def test_mesh_loader_refuses_dev_zero_fifo_and_oversize(tmp_path, monkeypatch):
     monkeypatch.setitem(inputs.MAX_BYTES, "mesh", 100)
     with pytest.raises(MeshError, match="larger than the 100 bytes limit for mesh files"):
         load_mesh(big)
+
+
+def test_a_file_just_over_the_limit_is_told_in_bytes(tmp_path):
+    # "job file is 1 MiB, larger than the 1 MiB limit" (a tester's)
+    from icefab.config import load_job
+
+    big = tmp_path / "big.toml"
+    big.write_text("[slicing]\nlayer_thickness_mm = 0.25\n" + "#" * (1 << 20))
+    with pytest.raises(ConfigError, match=r"big.toml: job file is 1048612 bytes, larger than "
+                                          r"the 1 MiB \(1048576 bytes\) limit"):
+        load_job(big)

@@ -114,7 +114,7 @@ def test_cli_bad_input_exits_2(tube_files, tmp_path, capsys, argv, match):
 
 def test_cli_no_model_exits_2(tmp_path, capsys):
     assert main(["slice", "-o", str(tmp_path / "o")]) == 2
-    assert "no model" in capsys.readouterr().err
+    assert "no input: give mesh file(s)" in capsys.readouterr().err
 
 
 def test_cli_missing_file_exits_2(tmp_path, capsys):

@@ -792,8 +792,11 @@ def _hints(cls: type) -> dict[str, Any]:
 def _check_value(path: str, value: Any, meta: dict[str, Any]) -> None:
     items = value if isinstance(value, tuple) else (value,)
     lo, hi = meta.get("lo"), meta.get("hi")
-    rng = [f"{'>' if meta.get('lo_open') else '>='} {lo:g}"] if lo is not None else []
-    rng += [f"<= {hi:g}"] if hi is not None else []
+    def num(v: float) -> str:   # an integer bound in full ("<= 4.29497e+09" for a seed)
+        return f"{v}" if isinstance(v, int) else f"{v:g}"
+
+    rng = [f"{'>' if meta.get('lo_open') else '>='} {num(lo)}"] if lo is not None else []
+    rng += [f"<= {num(hi)}"] if hi is not None else []
     for v in items:
         if isinstance(v, bool) or not isinstance(v, (int, float)):
             continue

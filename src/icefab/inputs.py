@@ -76,8 +76,12 @@ def _check_stat(st: os.stat_result, p: Path, kind: str, error: type[IcefabError]
         raise error(f"{p}: {what} is {_describe(st.st_mode)}, not a regular file")
     limit = MAX_BYTES[kind]
     if st.st_size > limit:
-        raise error(f"{p}: {what} is {_mib(st.st_size)}, larger than the {_mib(limit)} "
-                    f"limit for {kind} files (icefab.inputs.MAX_BYTES)")
+        # in bytes when that is what tells them apart ("1 MiB, larger than the 1 MiB")
+        size = (_mib(st.st_size) if _mib(st.st_size) != _mib(limit)
+                else f"{st.st_size} bytes")
+        exact = f" ({limit} bytes)" if limit >= 1 << 20 else ""
+        raise error(f"{p}: {what} is {size}, larger than the {_mib(limit)}{exact} limit for "
+                    f"{kind} files (icefab.inputs.MAX_BYTES)")
     return int(st.st_size)
 
 

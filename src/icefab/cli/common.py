@@ -150,6 +150,12 @@ def check_output_dir(path: str | os.PathLike) -> None:
     starts its work (``icefab.cli.main``) and again when the folder is made."""
     if Path(path).exists() and not Path(path).is_dir():
         raise OutputError(f"-o {path}: exists and is not a folder")
+    # a file further up: 'afile/sub' was found only when the results were written
+    for up in Path(path).parents:
+        if up.exists():
+            if not up.is_dir():
+                raise OutputError(f"-o {path}: {up} is a file, not a folder")
+            break
 
 
 #: Hidden folders beside OUT (``.OUT.icefab-PID.RANDOM``) hold a running command's results

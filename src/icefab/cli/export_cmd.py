@@ -28,10 +28,12 @@ from icefab.errors import ConfigError
 
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
-        "export", help="programs for the cell's controllers (V+ for the C40, G-code)",
+        "export", help="programs for the cell's controllers (V+ for the C40, G-code, "
+                  "ruled edges)",
         description="Write controller programs: 'vplus' the Adept C40's V+ server of the "
                     "robot link (untested on a controller), 'gcode' G-code for a gantry "
-                    "running Marlin.")
+                    "running Marlin, 'ruled' the ruled layer edges for cells that tilt the "
+                    "nozzle or trim the edge.")
     sub = p.add_subparsers(dest="what", metavar="WHAT")
     sub.required = True
     v = sub.add_parser("vplus", help="the V+ server program for the Adept C40",
