@@ -534,6 +534,15 @@ def done_commands(build: Path) -> int:
         return -1
 
 
+def _paths_done(build: Path) -> int:
+    db = sqlite3.connect(f"{(build / bmod.JOURNAL).as_uri()}?mode=ro", uri=True, timeout=5)
+    try:
+        return int(db.execute("SELECT COUNT(*) FROM commands WHERE kind='path' AND done IS "
+                              "NOT NULL").fetchone()[0])
+    finally:
+        db.close()
+
+
 def _wait_progress(build: Path, proc, timeout_s: float = 300.0) -> int | None:
     """Wait until the journal shows one more command done than when called; None when
     the process ended first."""
@@ -629,6 +638,14 @@ def test_sigkill_the_build_and_resume(firmware_tools, planned, tmp_path):
             proc.send_signal(signal.SIGKILL)
             proc.wait()
             kills += 1
+            if kills == 1:
+                # the status of a killed build counts from the journal (status.json, written
+                # at most once a second, said 38 paths where 66 were done: a tester's)
+                st = _icefab("build", "--status", "k", "--json", cwd=tmp_path)
+                if st.returncode == 0:    # no status before the first layer's start
+                    st = json.loads(st.stdout)
+                    assert st["state"].startswith("interrupted")
+                    assert st["paths_done"] == _paths_done(tmp_path / "k")
             proc = subprocess.Popen([sys.executable, "-m", "icefab", "build", "--resume", "k"],
                                     cwd=tmp_path, stdout=subprocess.DEVNULL,
                                     stderr=subprocess.PIPE)
@@ -648,6 +665,60 @@ def test_sigkill_the_build_and_resume(firmware_tools, planned, tmp_path):
     assert ex == _executed(tmp_path / "ref")
     st = _icefab("build", "--status", "k", "--json", cwd=tmp_path)
     assert json.loads(st.stdout)["state"] == "complete"
+
+
+def test_what_the_valve_cannot_give_is_refused_before_anything_moves(firmware_tools,
+                                                                     planned, tmp_path):
+    # a tester's: the build stopped at a layer whose nominal flow is beyond the valve after
+    # depositing the layers before it, status.json said "running", and every resume
+    # stopped there again
+    (tmp_path / "thick.toml").write_text("[slicing]\nlayer_thickness_mm = 1.0\n")
+    r = _icefab("build", "demo", "-c", "thick.toml", "-o", "b", "--virtual", "--layers", "2",
+                cwd=tmp_path)
+    assert r.returncode == 2, r.stderr
+    err = r.stderr.strip().splitlines()[-1]
+    assert "layer 0 part fill path: its nominal flow" in err and "out_of_range" in err
+    assert not (tmp_path / "b").exists()
+    # clamped instead: journaled, said at the end and in the status (it was unsaid)
+    (tmp_path / "clamp.toml").write_text("[slicing]\nlayer_thickness_mm = 1.0\n"
+                                         "[flow]\nout_of_range = \"clamp\"\n")
+    r = _icefab("build", "demo", "-c", "clamp.toml", "-o", "c", "--virtual", "--layers", "1",
+                "--cell-time-factor", "50", cwd=tmp_path)
+    _kill_cell(tmp_path / "c")
+    assert r.returncode == 0, r.stderr
+    assert "warning: layer 0: the flow of" in r.stderr and "was clamped" in r.stderr
+    j = Journal.open(tmp_path / "c" / bmod.JOURNAL)
+    assert "clamp" in [e["kind"] for e in j.events()]
+    j.close()
+    # trajectories keep the motion they were planned with: a -c job's other speed was
+    # recorded in the build's job.toml and had no effect
+    (tmp_path / "slow.toml").write_text("[motion]\nspeed_mm_s = 30.0\n")
+    r = _icefab("build", str(planned), "-c", "slow.toml", "-o", "d", "--virtual",
+                cwd=tmp_path)
+    assert r.returncode == 2 and "were made with motion.speed_mm_s = 125.0, the job has " \
+        "30.0" in r.stderr, r.stderr
+    assert not (tmp_path / "d").exists()
+
+
+def test_a_changed_calibration_table_is_named_on_resume(firmware_tools, tmp_path):
+    # a table changed between a crash and the resume was refused as "the build's plan is
+    # not deterministic, or another icefab version started the build"
+    r = _icefab("calibrate", "synthetic", "-o", "syn", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    r = _icefab("calibrate", "valve", "syn/masses_part.csv", "-o", "cal", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    (tmp_path / "cal.toml").write_text('[materials.part]\ncalibration_file = '
+                                       '"cal/calibration_part.csv"\n')
+    r = _icefab("build", "demo", "-c", "cal.toml", "-o", "b", "--virtual", "--layers", "1",
+                "--cell-time-factor", "50", cwd=tmp_path)
+    _kill_cell(tmp_path / "b")
+    assert r.returncode == 0, r.stderr
+    table = tmp_path / "cal" / "calibration_part.csv"
+    table.write_text(table.read_text() + "\n")
+    r = _icefab("build", "--resume", "b", cwd=tmp_path)
+    _kill_cell(tmp_path / "b")
+    assert r.returncode == 2 and "the calibration tables (materials.*.calibration_file) " \
+        "changed since the build started" in r.stderr, r.stderr
 
 
 def test_refusals(firmware_tools, planned, tmp_path):

@@ -166,7 +166,7 @@ def check_speeds(trajectories, job: "Job", layer: int) -> list[str]:
 
 
 #: Journal events that say something about the build's programs, once per build.
-FINDING_EVENTS = ("saturation", "motion-limit")
+FINDING_EVENTS = ("saturation", "clamp", "motion-limit")
 
 
 def saturation_finding(programs, layer: int) -> str | None:
@@ -181,6 +181,21 @@ def saturation_finding(programs, layer: int) -> str | None:
         return None
     return (f"layer {layer}: the valve saturated SMF's correction on {paths} of "
             f"{len(programs)} paths (thesis 5.2.2): {got:.4g} of the {asked:.4g} mm^3 "
+            f"asked ({100.0 * (got / asked - 1.0):+.1f} %)")
+
+
+def clamp_finding(programs, layer: int) -> str | None:
+    """One line for a layer whose nominal flow ``flow.out_of_range = "clamp"`` clamped to
+    the valve's range, None if none was: how many paths, and the volume given of the
+    volume asked (the build clamped unsaid; ``icefab valves`` reports the same)."""
+    from icefab.findings import clamped_volume
+
+    paths, _, got, asked = clamped_volume([(layer, text) for prog in programs
+                                           for text in prog.warnings])
+    if not paths:
+        return None
+    return (f"layer {layer}: the flow of {paths} of {len(programs)} paths was clamped to the "
+            f"valve's range (flow.out_of_range = 'clamp'): {got:.4g} of the {asked:.4g} mm^3 "
             f"asked ({100.0 * (got / asked - 1.0):+.1f} %)")
 
 
@@ -546,10 +561,11 @@ class Runner:
             if L in done_layers and (not (meas_items or cut_here) or L in smf_layers):
                 continue
             lv, cps = self._layer_valves(j, action)
-            said = saturation_finding(lv.programs, L)
-            if said is not None and said not in self.findings:
-                self.findings.append(said)
-                self.journal.event("saturation", said, layer=L)
+            for kind, said in (("saturation", saturation_finding(lv.programs, L)),
+                               ("clamp", clamp_finding(lv.programs, L))):
+                if said is not None and said not in self.findings:
+                    self.findings.append(said)
+                    self.journal.event(kind, said, layer=L)
             # the action stays until this layer's end unless it measures: plan the next
             # layer's programs while this one runs (from its first path on: the planning
             # thread holds the GIL in stretches, which must not delay the first GO)
@@ -779,6 +795,16 @@ class Runner:
         raise BuildStopped(f"stopped at layer {self.progress.layer}: {why}; resume with "
                            f"'icefab build --resume {self.dir}'")
 
+    def fail(self, message: str) -> None:
+        """Record that the build ended on an error (journal event, status and report say
+        so): a valve program refused mid-build left status.json and report.html saying
+        "running" (a tester's)."""
+        self.journal.event("failed", f"the build stopped on an error: {message}")
+        self.progress.state = "failed"
+        self.progress.waiting = ""
+        write_status(self.dir, self.progress, self.journal)
+        write_report(self.dir, self.progress, self.journal, self.job)
+
     def _report(self, *, force: bool = False, measured: bool = False) -> None:
         if self.on_progress is not None:
             self.on_progress(self.progress)
@@ -895,6 +921,9 @@ def write_report(build_dir: Path, progress: Progress, journal: Journal, job: "Jo
             ("updated", time.strftime("%Y-%m-%d %H:%M:%S", time.localtime()))))
     events = "".join(f"<li>{e(time.strftime('%H:%M:%S', time.localtime(ev['time'])))} "
                      f"[{e(ev['kind'])}] {e(ev['text'])}</li>" for ev in journal.events()[-30:])
+    # an open-loop build never measures: "no measurement yet" promised one (a tester's)
+    no_surface = ("no measurement yet" if job.feedback.enabled else
+                  "none: this build measures nothing (feedback.enabled = false)")
     page = f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8">
 {'<meta http-equiv="refresh" content="30">' if st["state"] == "running" else ""}
@@ -907,7 +936,7 @@ th{{text-align:left;padding-right:1em}} img,svg{{max-width:100%;height:auto}}</s
 <h2>RMS height error vs height</h2>
 {svg}
 <h2>Latest error surface</h2>
-{surface_img or '<p>no measurement yet</p>'}
+{surface_img or (f'<p>{no_surface}</p>')}
 <h2>Findings and events</h2>
 <ul id="events">{events or '<li>none</li>'}</ul>
 </body></html>

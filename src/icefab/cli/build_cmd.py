@@ -104,6 +104,24 @@ def run(args: argparse.Namespace) -> int:
 # --------------------------------------------------------------------------- helpers
 
 
+#: The journal's name for the digest of the valves' calibration tables: the job names
+#: their files, and a table changed between a crash and the resume re-planned every
+#: program and was refused as "not deterministic" (a tester's).
+CALIBRATION_DIGEST = "the calibration tables (materials.*.calibration_file)"
+
+
+def _calibration_digest(job) -> str:
+    from icefab.journal import digest_file, digest_text
+
+    parts = []
+    for m in ("part", "scaffold"):
+        name = job.materials[m].calibration_file
+        if name:
+            f = Path(name)
+            parts.append(f"{m}:{digest_file(f) if f.is_file() else 'missing ' + name}")
+    return digest_text("|".join(parts))
+
+
 def _input_digest(inputs: list[str]) -> str:
     from icefab.journal import digest_file, digest_text
 
@@ -132,6 +150,7 @@ def _plan(args: argparse.Namespace, out: Path):
     from icefab.headroom import headroom_findings, layer_headroom, tightest
     from icefab.motion import BuildMotion, TrajectoryFile, TrajectoryWriter, iter_plan_toolpaths
     from icefab.robots import get_robot
+    from icefab.stages import check_agrees, settings_up_to
 
     ns = argparse.Namespace(job=args.job, flow_error=None, seed=None, deposition="valves",
                             layers=args.layers or 0)
@@ -145,6 +164,12 @@ def _plan(args: argparse.Namespace, out: Path):
                           "slicing.cusp_height_mm = 0")
     build, job = load_build(list(args.input), given, ns)
     n = min(args.layers or len(build), len(build))
+    if isinstance(build, BuildMotion) and args.job:
+        # what the trajectories were planned with holds: a -c job's other speed was
+        # recorded in BUILD/job.toml, named by the warnings, and had no effect (a tester's)
+        check_agrees(build.job, job, f"{args.input[0]}: the trajectories",
+                     "icefab plan, or build from the toolpaths or the mesh",
+                     settings=settings_up_to("motion", job))
     if isinstance(build, BuildMotion):  # kept with the job it was planned with
         planned, robot, joints, layers = build.job, build.robot, build.joint_names, \
             build.layers[:n]
@@ -161,6 +186,18 @@ def _plan(args: argparse.Namespace, out: Path):
     with TrajectoryFile(out) as f:
         if not f.depositing().any():
             raise ConfigError(f"{args.input[0]}: nothing to deposit in the first {n} layers")
+    beyond = [r for r in room if r.nominal_mm3_s > r.limit_mm3_s * (1.0 + 1e-9)]
+    if beyond and job.flow.out_of_range == "error":
+        # before anything moves: a build stopped at this layer's valve programs with half
+        # the part deposited, and every resume stopped there again (a tester's)
+        r = beyond[0]
+        raise ConfigError(
+            f"layer {r.layer} {r.material} {r.role} path: its nominal flow {r.nominal_mm3_s:.4g} "
+            f"mm^3/s ({r.width_mm:g} mm x {r.thickness_mm:g} mm x {r.speed_mm_s:.4g} mm/s) is "
+            f"above the {r.limit_mm3_s:.4g} mm^3/s the valve gives at its highest frequency: "
+            f"keep the speed below {r.max_speed_mm_s * (1 + job.feedback.saturation):.4g} "
+            "mm/s (motion.speed_mm_s), or set flow.out_of_range = 'clamp' to clamp and "
+            "report instead")
     return job, [f"warning: {line}" for line in headroom_findings(room, job)]
 
 
@@ -302,8 +339,10 @@ def _run(build: Path, args: argparse.Namespace, *, resume: bool) -> int:
             digests["job"] = digest_text(to_toml(load_job(args.job)))
         if args.input:
             digests["input"] = _input_digest(list(args.input))
-        journal.check_digests(digests)
         job = load_job(build / "job.toml")
+        if CALIBRATION_DIGEST in meta.get("digests", {}):   # builds started since it is kept
+            digests[CALIBRATION_DIGEST] = _calibration_digest(job)
+        journal.check_digests(digests)
         motion = open_trajectories(build / bmod.TRAJECTORIES)  # a block at a time
         if args.cell:
             meta["cell"] = str(Path(args.cell).resolve())
@@ -337,7 +376,8 @@ def _run(build: Path, args: argparse.Namespace, *, resume: bool) -> int:
                     "cell_time_factor": args.cell_time_factor, "layers": len(motion.layers),
                     "inputs": list(args.input),
                     "digests": {"input": in_digest, "job": digest_file(build / "job.toml"),
-                                "trajectories": digest_file(build / bmod.TRAJECTORIES)}}
+                                "trajectories": digest_file(build / bmod.TRAJECTORIES),
+                                CALIBRATION_DIGEST: _calibration_digest(job)}}
             connect = _connector(build, args, meta, job)
             cell = None
             try:
@@ -413,6 +453,12 @@ def _run(build: Path, args: argparse.Namespace, *, resume: bool) -> int:
             sys.stderr.write("\n")
         print(f"icefab build: {exc}", file=sys.stderr)
         return 130 if stop_flag["signal"] == signal.SIGINT else 0
+    except Exception as exc:
+        try:
+            runner.fail(str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
+        except Exception:     # the journal or folder itself may be what failed
+            pass
+        raise
     finally:
         for s, h in old.items():
             signal.signal(s, h)
@@ -428,6 +474,8 @@ def _run(build: Path, args: argparse.Namespace, *, resume: bool) -> int:
         for ev in done.events():
             if ev["kind"] == "cell-numbers":   # a cell that ran another build first
                 print(f"note: {ev['text']}")
+            elif ev["kind"] == "clamp":           # volume the valve did not give
+                print(f"warning: {ev['text']}", file=sys.stderr)
     finally:
         done.close()
     print(f"build complete: {p.layers} layers, {p.paths_done} paths, last measured RMS {rms}; "
@@ -455,6 +503,14 @@ def _status(build: Path, as_json: bool) -> int:
         pass
     if st["state"] == "running" and not alive:
         st["state"] = "interrupted (resume with --resume)"
+        # status.json is written at most once a second: the journal is the record of what
+        # was done (a killed build's status said 38 paths where 66 were done)
+        journal = Journal.open(build / bmod.JOURNAL)
+        try:
+            st["paths_done"] = journal.paths_done()
+            st["layers_done"] = len(journal.layers_done())
+        finally:
+            journal.close()
     if as_json:
         print(json.dumps(st, indent=1))
         return 0
