@@ -369,3 +369,34 @@ def test_paths_longer_than_the_controller_stores_are_refused_before_anything_mov
     with pytest.raises(CellError, match=rf"{longest} points, the robot controller stores "
                                         rf"{longest - 1} per path"):
         cell.check_paths(motion)
+
+
+def test_a_cell_interrupted_while_it_starts_does_not_run_on(tmp_path, monkeypatch):
+    # a build stopped (--stop, Ctrl-C) while its virtual cell started: the clean-up found no
+    # endpoints (no pid), removed the folder, and the cell wrote its files again and ran on,
+    # out of reach of --stop and --status (a tester's)
+    from icefab import linkedcell
+
+    started = []
+    real_popen = subprocess.Popen
+
+    def popen(args, **kw):
+        # a stand-in that never writes its endpoints, in its own session as the cell is
+        p = real_popen([sys.executable, "-c", "import time; time.sleep(60)"], **kw)
+        started.append(p)
+        return p
+
+    sleeps = []
+
+    def sleep(s):
+        sleeps.append(s)
+        if len(sleeps) == 3:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(linkedcell.subprocess, "Popen", popen)
+    monkeypatch.setattr(linkedcell.time, "sleep", sleep)
+    with pytest.raises(KeyboardInterrupt):
+        linkedcell.start_virtual_cell(tmp_path / "cell", tmp_path / "job.toml",
+                                      tmp_path / "t.npz")
+    (proc,) = started
+    assert proc.poll() is not None      # killed and reaped, not left running

@@ -358,17 +358,28 @@ def start_virtual_cell(state_dir: str | os.PathLike, job_file: str | os.PathLike
         proc = subprocess.Popen(args, stdin=subprocess.DEVNULL, stdout=log_f, stderr=log_f,
                                 start_new_session=True)
     deadline = time.monotonic() + timeout_s
-    while not (d / "endpoints.json").is_file():
-        if proc.poll() is not None:
-            tail = (d / "cell.log").read_text(errors="replace").strip().splitlines()[-1:]
-            raise CellError(f"the virtual cell exited at start (status {proc.returncode}"
-                            f"{': ' + tail[0] if tail else ''}); see {d / 'cell.log'}")
-        if time.monotonic() > deadline:
-            proc.kill()
-            raise CellError(f"the virtual cell did not start within {timeout_s:g} s; see "
-                            f"{d / 'cell.log'}")
-        time.sleep(0.05)
-    read_endpoints(d)
+    try:
+        while not (d / "endpoints.json").is_file():
+            if proc.poll() is not None:
+                tail = (d / "cell.log").read_text(errors="replace").strip().splitlines()[-1:]
+                raise CellError(f"the virtual cell exited at start (status {proc.returncode}"
+                                f"{': ' + tail[0] if tail else ''}); see {d / 'cell.log'}")
+            if time.monotonic() > deadline:
+                raise CellError(f"the virtual cell did not start within {timeout_s:g} s; "
+                                f"see {d / 'cell.log'}")
+            time.sleep(0.05)
+        read_endpoints(d)
+    except BaseException:
+        # a cell that did not start, or a build stopped (--stop, Ctrl-C) while it started:
+        # it goes, with its firmware (its own session), before its folder is removed (one
+        # stopped then wrote its files into a removed folder and ran on, out of reach)
+        if proc.poll() is None:
+            try:
+                os.killpg(proc.pid, signal.SIGKILL)
+            except OSError:
+                pass
+            proc.wait()
+        raise
     return proc.pid
 
 
