@@ -667,6 +667,17 @@ def test_sigkill_the_build_and_resume(firmware_tools, planned, tmp_path):
     assert json.loads(st.stdout)["state"] == "complete"
 
 
+def _one_demo_layer(cwd: Path, job_text: str, out: str):
+    """``icefab build demo`` of one layer with the job ``job_text`` on a fast virtual cell,
+    which is then stopped; the finished run (exit 0 asserted)."""
+    (cwd / f"{out}.toml").write_text(job_text)
+    r = _icefab("build", "demo", "-c", f"{out}.toml", "-o", out, "--virtual", "--layers", "1",
+                "--cell-time-factor", "50", cwd=cwd)
+    _kill_cell(cwd / out)
+    assert r.returncode == 0, r.stderr
+    return r
+
+
 def test_what_the_valve_cannot_give_is_refused_before_anything_moves(firmware_tools,
                                                                      planned, tmp_path):
     # a tester's: the build stopped at a layer whose nominal flow is beyond the valve after
@@ -680,12 +691,8 @@ def test_what_the_valve_cannot_give_is_refused_before_anything_moves(firmware_to
     assert "layer 0 part fill path: its nominal flow" in err and "out_of_range" in err
     assert not (tmp_path / "b").exists()
     # clamped instead: journaled, said at the end and in the status (it was unsaid)
-    (tmp_path / "clamp.toml").write_text("[slicing]\nlayer_thickness_mm = 1.0\n"
-                                         "[flow]\nout_of_range = \"clamp\"\n")
-    r = _icefab("build", "demo", "-c", "clamp.toml", "-o", "c", "--virtual", "--layers", "1",
-                "--cell-time-factor", "50", cwd=tmp_path)
-    _kill_cell(tmp_path / "c")
-    assert r.returncode == 0, r.stderr
+    r = _one_demo_layer(tmp_path, "[slicing]\nlayer_thickness_mm = 1.0\n"
+                                  "[flow]\nout_of_range = \"clamp\"\n", "c")
     assert "warning: layer 0: the flow of" in r.stderr and "was clamped" in r.stderr
     j = Journal.open(tmp_path / "c" / bmod.JOURNAL)
     assert "clamp" in [e["kind"] for e in j.events()]
@@ -707,12 +714,8 @@ def test_a_changed_calibration_table_is_named_on_resume(firmware_tools, tmp_path
     assert r.returncode == 0, r.stderr
     r = _icefab("calibrate", "valve", "syn/masses_part.csv", "-o", "cal", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
-    (tmp_path / "cal.toml").write_text('[materials.part]\ncalibration_file = '
-                                       '"cal/calibration_part.csv"\n')
-    r = _icefab("build", "demo", "-c", "cal.toml", "-o", "b", "--virtual", "--layers", "1",
-                "--cell-time-factor", "50", cwd=tmp_path)
-    _kill_cell(tmp_path / "b")
-    assert r.returncode == 0, r.stderr
+    _one_demo_layer(tmp_path, '[materials.part]\ncalibration_file = '
+                              '"cal/calibration_part.csv"\n', "b")
     table = tmp_path / "cal" / "calibration_part.csv"
     table.write_text(table.read_text() + "\n")
     r = _icefab("build", "--resume", "b", cwd=tmp_path)

@@ -169,34 +169,36 @@ def check_speeds(trajectories, job: "Job", layer: int) -> list[str]:
 FINDING_EVENTS = ("saturation", "clamp", "motion-limit")
 
 
-def saturation_finding(programs, layer: int) -> str | None:
-    """One line for a layer whose valve programs saturate SMF's correction at the valve's
-    range (thesis 5.2.2, :func:`icefab.flow.valve_frequency`), None if none do: how many
-    paths, and the volume given of the volume asked."""
-    from icefab.findings import saturated_volume
-
-    paths, _, got, asked = saturated_volume([(layer, text) for prog in programs
-                                             for text in prog.warnings])
+def _volume_finding(programs, layer: int, volumes, what) -> str | None:
+    """One line for a layer whose valve programs' findings ``volumes`` counts (paths,
+    layers, mm^3 given, mm^3 asked), None without any: ``what(paths, of)``, then the volume
+    given of the volume asked."""
+    paths, _, got, asked = volumes([(layer, text) for prog in programs
+                                    for text in prog.warnings])
     if not paths:
         return None
-    return (f"layer {layer}: the valve saturated SMF's correction on {paths} of "
-            f"{len(programs)} paths (thesis 5.2.2): {got:.4g} of the {asked:.4g} mm^3 "
+    return (f"layer {layer}: {what(paths, len(programs))}: {got:.4g} of the {asked:.4g} mm^3 "
             f"asked ({100.0 * (got / asked - 1.0):+.1f} %)")
+
+
+def saturation_finding(programs, layer: int) -> str | None:
+    """Where the valve saturated SMF's correction at its range (thesis 5.2.2,
+    :func:`icefab.flow.valve_frequency`): how many paths, the volume given of the volume
+    asked; None if nowhere."""
+    from icefab.findings import saturated_volume
+
+    return _volume_finding(programs, layer, saturated_volume, lambda p, n: (
+        f"the valve saturated SMF's correction on {p} of {n} paths (thesis 5.2.2)"))
 
 
 def clamp_finding(programs, layer: int) -> str | None:
-    """One line for a layer whose nominal flow ``flow.out_of_range = "clamp"`` clamped to
-    the valve's range, None if none was: how many paths, and the volume given of the
-    volume asked (the build clamped unsaid; ``icefab valves`` reports the same)."""
+    """Where ``flow.out_of_range = "clamp"`` clamped the nominal flow to the valve's range
+    (the build clamped unsaid; ``icefab valves`` reports the same); None if nowhere."""
     from icefab.findings import clamped_volume
 
-    paths, _, got, asked = clamped_volume([(layer, text) for prog in programs
-                                           for text in prog.warnings])
-    if not paths:
-        return None
-    return (f"layer {layer}: the flow of {paths} of {len(programs)} paths was clamped to the "
-            f"valve's range (flow.out_of_range = 'clamp'): {got:.4g} of the {asked:.4g} mm^3 "
-            f"asked ({100.0 * (got / asked - 1.0):+.1f} %)")
+    return _volume_finding(programs, layer, clamped_volume, lambda p, n: (
+        f"the flow of {p} of {n} paths was clamped to the valve's range "
+        "(flow.out_of_range = 'clamp')"))
 
 
 # =========================================================================== SMF state
