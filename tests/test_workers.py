@@ -104,3 +104,32 @@ def test_parallel_imap_holds_a_bounded_window_and_stops_when_the_consumer_does()
     assert next(stream) == 0
     stream.close()            # the pool ends; the chunks not yet started are dropped
     assert calls[-1] <= 5 * (2 * 2 + 1)
+
+
+def _slow(x: int) -> int:
+    time.sleep(0.25)
+    return x
+
+
+@pytest.mark.parametrize("streamed", [False, True])
+def test_an_interrupted_map_does_not_run_the_rest_first(streamed):
+    # leaving a 'with ProcessPoolExecutor' waits for every submitted item: a build stopped
+    # while it planned its paths ran the rest of the stage first (over 60 s in CI)
+    from icefab.parallel import parallel_imap, parallel_map
+
+    job = Job().replace(**{"cell.cpus": 2})
+    if machine_cores() < 2:
+        pytest.skip("needs 2 cores for a pool")
+
+    def stop(done, total):
+        raise KeyboardInterrupt
+
+    items = list(range(200))       # 25 s of work on 2 workers
+    t0 = time.monotonic()
+    with pytest.raises(KeyboardInterrupt):
+        if streamed:
+            for _ in parallel_imap(_slow, items, job, chunk_items=2, progress=stop):
+                pass
+        else:
+            parallel_map(_slow, items, job, progress=stop)
+    assert time.monotonic() - t0 < 8.0

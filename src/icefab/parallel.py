@@ -12,6 +12,7 @@ May import: ``icefab.config`` (the Job) only.
 from __future__ import annotations
 
 import collections
+import contextlib
 import itertools
 import math
 import os
@@ -73,6 +74,24 @@ def process_pool(workers: int) -> ProcessPoolExecutor:
                                initargs=(os.getpid(),))
 
 
+@contextlib.contextmanager
+def _pool(workers: int) -> Iterator[ProcessPoolExecutor]:
+    """:func:`process_pool` for one map: waited for when the map ends, its items not yet
+    started dropped when it fails or is interrupted. Leaving a ``with ProcessPoolExecutor`` waits for every
+    submitted item: a build stopped (SIGTERM, Ctrl-C) while it planned its paths ran the
+    rest of the stage first, over a minute on a busy machine (CI)."""
+    pool = process_pool(workers)
+    try:
+        yield pool
+    except BaseException:
+        # the items not started are dropped; the workers finish the chunk each is on (a
+        # few layers; terminating them makes the pool's own thread fail on the cancelled
+        # items) and die with this process
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown(wait=True)
+
+
 def parallel_map(fn: Callable[[T], R], items: Sequence[T], job: "Job",
                  min_items: int = 40,
                  progress: Callable[[int, int], None] | None = None) -> list[R]:
@@ -98,7 +117,7 @@ def parallel_map(fn: Callable[[T], R], items: Sequence[T], job: "Job",
     size = max(1, math.ceil(total / n_chunks))
     chunks = [list(items[i:i + size]) for i in range(0, total, size)]
     out = []
-    with process_pool(min(workers, len(chunks))) as pool:
+    with _pool(min(workers, len(chunks))) as pool:
         for chunk in pool.map(_apply_chunk, [fn] * len(chunks), chunks):
             out.extend(chunk)
             if progress is not None:
@@ -134,7 +153,7 @@ def parallel_imap(fn: Callable[[T], R], items: Sequence[T], job: "Job", *,
     starts = range(0, total, size)
     workers = min(workers, len(starts))
     done = 0
-    with process_pool(workers) as pool:
+    with _pool(workers) as pool:
         pending: collections.deque = collections.deque()
         nxt = iter(starts)
 
