@@ -1,4 +1,5 @@
-"""The core types: a Toolpath's own checks, and the ragged-array helpers against numpy's own forms."""
+"""The core types: a Toolpath's own checks, and the ragged-array helpers against numpy's
+own forms."""
 from __future__ import annotations
 
 import numpy as np

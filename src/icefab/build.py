@@ -938,7 +938,7 @@ th{{text-align:left;padding-right:1em}} img,svg{{max-width:100%;height:auto}}</s
 <h2>RMS height error vs height</h2>
 {svg}
 <h2>Latest error surface</h2>
-{surface_img or (f'<p>{no_surface}</p>')}
+{surface_img or f'<p>{no_surface}</p>'}
 <h2>Findings and events</h2>
 <ul id="events">{events or '<li>none</li>'}</ul>
 </body></html>

@@ -77,9 +77,10 @@ def process_pool(workers: int) -> ProcessPoolExecutor:
 @contextlib.contextmanager
 def _pool(workers: int) -> Iterator[ProcessPoolExecutor]:
     """:func:`process_pool` for one map: waited for when the map ends, its items not yet
-    started dropped when it fails or is interrupted. Leaving a ``with ProcessPoolExecutor`` waits for every
-    submitted item: a build stopped (SIGTERM, Ctrl-C) while it planned its paths ran the
-    rest of the stage first, over a minute on a busy machine (CI)."""
+    started dropped when it fails or is interrupted. Leaving a ``with
+    ProcessPoolExecutor`` waits for every submitted item: a build stopped (SIGTERM,
+    Ctrl-C) while it planned its paths ran the rest of the stage first, over a minute on a
+    busy machine (CI)."""
     pool = process_pool(workers)
     try:
         yield pool

@@ -531,8 +531,8 @@ def _stop(build: Path) -> int:
     from icefab.journal import Journal
 
     if not (build / bmod.JOURNAL).exists() and _stop_preparing(build):
-        print(f"{build}: stopped while it was being prepared (planning); nothing was sent to "
-              "the cell")
+        print(f"{build}: stopped while it was being prepared (planning or starting its cell); "
+              "no path was sent to the cell")
         return 0
     journal = Journal.open(build / bmod.JOURNAL)
     meta = journal.meta()

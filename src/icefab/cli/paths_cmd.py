@@ -37,8 +37,8 @@ def add_parser(subparsers) -> None:
                     "(STL, PLY, OBJ) or a stack.npz from 'icefab slice'. Writes "
                     "OUT/toolpaths.npz and OUT/paths.png.")
     p.add_argument("model", nargs="*", metavar="MODEL|STACK",
-                   help="mesh file(s) (replace parts.files of the job), 'demo' (the built-in mug) "
-                        "or one stack .npz (default: parts.files of the job)")
+                   help="mesh file(s) (replace parts.files of the job), 'demo' (the "
+                        "built-in mug) or one stack .npz (default: parts.files of the job)")
     add_job_argument(p)
     p.add_argument("-o", "--out", required=True, metavar="OUT", help="output folder")
     p.add_argument("--layers", metavar="K,K,...",

@@ -49,9 +49,9 @@ def add_parser(subparsers) -> None:
                     "with --gcode also OUT/trajectories.gcode, with --constant-spacing "
                     "OUT/constant_spacing.npz (formats: 'pydoc icefab.motion').")
     p.add_argument("input", nargs="*", metavar="MODEL|TOOLPATHS",
-                   help="mesh file(s) (STL, PLY, OBJ; replace parts.files of the job), 'demo' (the "
-                        "built-in mug) or one toolpath file (.npz from 'icefab paths'; default: parts.files of the "
-                        "job)")
+                   help="mesh file(s) (STL, PLY, OBJ; replace parts.files of the job), "
+                        "'demo' (the built-in mug) or one toolpath file (.npz from 'icefab "
+                        "paths'; default: parts.files of the job)")
     add_job_argument(p)
     p.add_argument("-o", "--out", required=True, metavar="OUT", help="output folder")
     p.add_argument("--layers", metavar="K,K,...",

@@ -28,8 +28,8 @@ def add_parser(subparsers) -> None:
         description="Slice a mesh (STL, PLY, OBJ) into layers of nested, oriented contours "
                     "(thesis 3.2). Writes OUT/stack.npz and OUT/layers.png.")
     p.add_argument("model", nargs="*", metavar="MODEL",
-                   help="mesh file(s) (replace parts.files of the job) or 'demo' (the built-in mug; "
-                        "default: parts.files of the job)")
+                   help="mesh file(s) (replace parts.files of the job) or 'demo' (the "
+                        "built-in mug; default: parts.files of the job)")
     add_job_argument(p)
     p.add_argument("-o", "--out", required=True, metavar="OUT", help="output folder")
     p.add_argument("--layers", metavar="K,K,...",

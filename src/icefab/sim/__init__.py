@@ -40,12 +40,13 @@ What it models
 * **Disturbances** (thesis 5.6, eq. 5.29), drawn from ``job.simulation.seed`` so an
   open-loop and a closed-loop run see the same ones: the actual flow is the commanded flow
   times ``(1 + flow_error) * (1 + flow_drift_per_cm3 * V)`` (the drift's factor never below
-  0: a failing valve stops), ``V`` the volume in cm^3 that valve has already deposited (the thesis saw up to +20 %, Ch. 6.4; the setting's name is
-  kept for compatibility, its unit is per cm^3; with valve pulses it multiplies every
-  drop); correlated random height noise per layer; debris pulses (Gaussian bumps, Poisson
-  number per layer); weaker deposition within one path width of the free edges of each
-  layer's deposit (``edge_loss``: the outer rim and the holes of the merged part +
-  scaffold footprint; not the part/scaffold interface).
+  0: a failing valve stops), ``V`` the volume in cm^3 that valve has already deposited
+  (the thesis saw up to +20 %, Ch. 6.4; the setting's name is kept for compatibility, its
+  unit is per cm^3; with valve pulses it multiplies every drop); correlated random height
+  noise per layer; debris pulses (Gaussian bumps, Poisson number per layer); weaker
+  deposition within one path width of the free edges of each layer's deposit
+  (``edge_loss``: the outer rim and the holes of the merged part + scaffold footprint;
+  not the part/scaffold interface).
 * **Laser** (thesis 5.2.1): samples at ``laser_rate_hz`` along the measurement paths at the
   measurement speed (along the measurement trajectories, in time, when the build runs on
   trajectories), with Gaussian noise and the latency a build leaves uncompensated
