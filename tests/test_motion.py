@@ -294,6 +294,29 @@ def test_joint_jerk_limits_bind_near_reach():
     assert np.percentile(on, 95, axis=0)[1] < 0.7 * np.percentile(off, 95, axis=0)[1]
 
 
+@pytest.mark.parametrize("jerk", [True, False], ids=["jerk", "no-jerk"])
+@pytest.mark.parametrize("reach_mm", [599.0, 599.9, 599.99])
+def test_stops_at_full_reach_keep_the_joint_accelerations(reach_mm, jerk):
+    # Towards the SCARA's full extension (l1 + l2 = 600 mm) the elbow's rate along the path
+    # grows like 1 / sqrt(distance): a stop there took its rest acceleration (80 mm/s^2)
+    # over the mean rate of the last grid segment and turned joint 2 at 1.27 / 3.2 / 4.1
+    # times its acceleration bound at 599 / 599.9 / 599.99 mm (2.5x with jerk off). The
+    # rest points' own rates now bound it: measured 0.98 / 0.96 / 0.90 (jerk on).
+    job = JOB.replace(**{"motion.jerk_limited": jerk})
+    robot = get_robot(job)
+    u = np.array([np.cos(0.3), np.sin(0.3)])
+    across = np.array([-u[1], u[0]])
+    radial = np.linspace(300.0 * u, reach_mm * u, 200)
+    hairpin = np.array([400.0 * u, reach_mm * u, 400.0 * u + 5.0 * across])
+    for pts in (radial, hairpin):
+        tr = plan_motion(pts, job)
+        np.testing.assert_allclose(np.hypot(*tr.xy[-1 if pts is radial else 0:].T).max(),
+                                   reach_mm, atol=1e-6)
+        q2 = np.abs(np.diff(tr.joints[:, :2], 2, axis=0)) / tr.dt ** 2
+        assert (q2.max(axis=0) <= 1.02 * robot.joint_accel_max[:2]).all(), \
+            q2.max(axis=0) / robot.joint_accel_max[:2]
+
+
 PIECE_PATHS = {
     "line": np.array([[250.0, -150.0], [250.0, 50.0]]),
     "thesis-well": thesis_test_path(WELL),

@@ -138,11 +138,14 @@ def _cubic_root(j0, a0, v0, ds):
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
-def _pass(v, env, i0, i1, step, h, kap, kv, qd1, qd2, A, qa, jeff, jerk_on, a_start):
+def _pass(v, env, i0, i1, step, h, kap, kv, qd1, qd2, A, qa, jeff, jerk_on, a_start,
+          a_rest_cap):
     """ACON (thesis 4.1.3, Fig. 4-5): an acceleration-limited (and, with jerk on,
     jerk-limited) curve from rest at the first point, and from every point where the
     profile leaves the envelope ``env``. step = +1 forward, -1 backward (deceleration
-    curves are acceleration curves run backward). Writes into v."""
+    curves are acceleration curves run backward). ``a_rest_cap`` bounds the acceleration
+    of the step from rest: the joints' bounds with their rates at the rest point itself,
+    which the grid's differences underestimate near a singularity. Writes into v."""
     if step > 0:
         a, b = i0, i1 - 1
     else:
@@ -162,6 +165,8 @@ def _pass(v, env, i0, i1, step, h, kap, kv, qd1, qd2, A, qa, jeff, jerk_on, a_st
             i = nxt
             continue
         lo, hi = _accel_interval(i, vi * vi, sign, kap, kv, qd1, qd2, A, qa)
+        if i == a and hi > a_rest_cap:
+            hi = a_rest_cap
         if hi < 0.0:
             hi = 0.0
         if jerk_on and math.isfinite(jeff[i]):
@@ -485,12 +490,16 @@ def rest_accelerations(gstart, h, v, T, dt, a_r, dmin0, dmin1, cap0, cap1):
     in the rest segment (>= h after it). Where that falls short, a0 is raised (up to
     cap0[p], the total and joint acceleration bounds at rest, and to what the rest segment
     allows, _rest_segment), which shortens the piece and so changes c: a few rounds.
-    a_r: the configured initial acceleration (< 0: constant acceleration, jerk off).
+    a_r: the configured initial acceleration (< 0: constant acceleration, jerk off),
+    lowered to cap0[p] / cap1[p] where these are smaller (as speed_profiles planned).
     Returns a0 (P,), a1 (P,), T (P,) (durations updated).
     """
     P = gstart.shape[0] - 1
     a0 = np.full(P, a_r)
     a1 = np.full(P, a_r)
+    if a_r >= 0.0:
+        a0 = np.minimum(a0, cap0)
+        a1 = np.minimum(a1, cap1)
     Tn = T.copy()
     for p in range(P):
         if dmin0[p] <= 0.0 and dmin1[p] <= 0.0:
@@ -502,8 +511,8 @@ def rest_accelerations(gstart, h, v, T, dt, a_r, dmin0, dmin1, cap0, cap1):
         ve = v[i0 + n - 2]
         if vs <= 0.0 or ve <= 0.0 or T[p] <= 0.0:
             continue
-        r0 = _rest_segment(vs, hp, a_r)
-        r1 = _rest_segment(ve, hp, a_r)
+        r0 = _rest_segment(vs, hp, a0[p])
+        r1 = _rest_segment(ve, hp, a1[p])
         tint = T[p] - r0[0] - r1[0]
         for _ in range(12):
             Tp = tint + r0[0] + r1[0]
@@ -550,14 +559,18 @@ class PieceGrid(NamedTuple):
 
 class CartesianLimits(NamedTuple):
     """The tool point's constraint (thesis 4.1.2-4.1.5): speed vcap (P,) mm/s per piece,
-    acceleration accel mm/s^2, jerk mm/s^3 (applied when jerk_on), and rest_accel mm/s^2,
-    the initial/final acceleration of the from/to-rest curves (thesis 4.2.6)."""
+    acceleration accel mm/s^2, jerk mm/s^3 (applied when jerk_on), rest_accel mm/s^2, the
+    initial/final acceleration of the from/to-rest curves (thesis 4.2.6), and rest_cap0,
+    rest_cap1 (P,) mm/s^2, the largest acceleration at each piece's start / end at rest
+    (the joints' bounds over their rates there; rest_accel is lowered to them)."""
 
     vcap: np.ndarray
     accel: float
     jerk: float
     jerk_on: bool
     rest_accel: float
+    rest_cap0: np.ndarray
+    rest_cap1: np.ndarray
 
 
 class JointLimits(NamedTuple):
@@ -594,6 +607,7 @@ def speed_profiles(grid, cart, joints, sampling):
     vstart, vs_loc, vtau = grid.vstart, grid.vs_loc, grid.vtau
     vcap, A, J = cart.vcap, cart.accel, cart.jerk
     jerk_on, a_rest = cart.jerk_on, cart.rest_accel
+    cap0, cap1 = cart.rest_cap0, cart.rest_cap1
     q, qv, qa, qj = joints.q, joints.vel, joints.acc, joints.jerk
     dt, jerk_window, jcon_tol = sampling.dt, sampling.jerk_window, sampling.jcon_tol
     N = xy.shape[0]
@@ -683,20 +697,21 @@ def speed_profiles(grid, cart, joints, sampling):
         ep[0] = 0.0
         ep[n - 1] = 0.0
         # ---- ACON forward and backward, with AREST start/end conditions (4.1.3, 4.1.5)
-        _pass(vp, ep, 0, n, 1, hp, kap, kv, qd1, qd2, A, qa, jeff, jerk_on, a_rest)
+        ar0 = min(a_rest, cap0[p])
+        ar1 = min(a_rest, cap1[p])
+        _pass(vp, ep, 0, n, 1, hp, kap, kv, qd1, qd2, A, qa, jeff, jerk_on, ar0, cap0[p])
         for i in range(n):
             fwd[i] = vp[i]
-        _pass(vp, fwd, 0, n, -1, hp, kap, kv, qd1, qd2, A, qa, jeff, jerk_on, a_rest)
+        _pass(vp, fwd, 0, n, -1, hp, kap, kv, qd1, qd2, A, qa, jeff, jerk_on, ar1, cap1[p])
         # ---- JCON (4.1.4)
         if jerk_on:
             for _ in range(3):
                 if _jcon(vp, 0, n, hp, jeff, jcon_tol) == 0:
                     break
         # ---- duration (AREST: the first and last segments from and to rest)
-        a_r = a_rest if jerk_on else -1.0
         tt = 0.0
         for i in range(n - 1):
-            tt += _seg_dt(vp, i, n, hp, a_r, a_r)
+            tt += _seg_dt(vp, i, n, hp, ar0 if jerk_on else -1.0, ar1 if jerk_on else -1.0)
         T[p] = tt
     return v, env, T
 

@@ -39,7 +39,9 @@ Steps (thesis 4.1, compiled kernels in :mod:`icefab._mtts`):
 4. JCON (4.1.4, Fig. 4-6, eq. 4.12): speed-decrease jerk spikes are spread by cubic
    velocity polynomials (speeds only lowered).
 5. AREST (4.1.5, 4.2.6): every piece starts and ends at rest; with jerk on the from/to
-   rest curves start with ``motion.rest_accel_mm_s2`` (80 mm/s^2). The first and the
+   rest curves start with ``motion.rest_accel_mm_s2`` (80 mm/s^2), or less where the
+   joints' acceleration bounds at the rest point allow less (their rates taken at the
+   point itself: near the SCARA's full reach they grow like 1 / sqrt(distance)). The first and the
    last output step of every piece must turn some joint by at least its encoder
    resolution (``cell.encoder_resolution_deg``, ``Robot.joint_resolution``): where they
    would not (tangential motion near the reach, short pieces, the last step shortened by
@@ -505,7 +507,7 @@ def _prepare(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray], job: J
     # the polyline each piece follows (its vertices, turning vectors, arc length)
     vertices = _vertices(sp.fxy, sp.fstart)
     rest = _rest_step_bounds(gstart, hk, qgrid, robot, used, qa[used],
-                             float(job.motion.accel_mm_s2))
+                             float(job.motion.accel_mm_s2), gxy)
     return _Prepared(sp=sp, P=P, qgrid=qgrid, used=used, vertices=vertices, rest=rest)
 
 
@@ -541,16 +543,16 @@ def _piece_profiles(gstart: np.ndarray, hk: np.ndarray, gxy: np.ndarray, vertice
     # above accel_mm_s2 planned 2.6 times the bound; both settings in their ranges)
     a_rest = min(float(m.rest_accel_mm_s2), float(m.accel_mm_s2))
     vstart, vs_loc, vtau = vertices
+    dmin0, dmin1, cap0, cap1 = rest
     v, env, T = _mtts.speed_profiles(
         _mtts.PieceGrid(gstart, hk, gxy, vstart, vs_loc, vtau),
         _mtts.CartesianLimits(vcap_piece, float(m.accel_mm_s2), float(m.jerk_mm_s3),
-                              bool(jerk_on), a_rest),
+                              bool(jerk_on), a_rest, cap0, cap1),
         _mtts.JointLimits(qgrid, qv, qa, qj),
         _mtts.Sampling(float(m.dt_s), JERK_WINDOW_MM, JCON_TOLERANCE))
 
     # ---- AREST with the encoder resolution: first and last steps of every piece
     dt = float(m.dt_s)
-    dmin0, dmin1, cap0, cap1 = rest
     a0, a1, T = _mtts.rest_accelerations(gstart, hk, v, T, dt,
                                          a_rest if jerk_on else -1.0,
                                          dmin0, dmin1, cap0, cap1)
@@ -871,8 +873,15 @@ def _savgol_coeffs(window: int) -> np.ndarray:
     return coeffs
 
 
+#: The step, mm, over which a joint's rate along the path is taken at a rest point
+#: (:func:`_rest_step_bounds`): short enough to see the rate blow up near a singularity
+#: (0.01 mm from the SCARA's full reach, within 3 % of the exact rate), long enough that
+#: the inverse kinematics' rounding stays far below it.
+REST_RATE_STEP_MM = 1e-3
+
+
 def _rest_step_bounds(gstart: np.ndarray, hk: np.ndarray, qgrid: np.ndarray, robot: Robot,
-                      used: np.ndarray, qa: np.ndarray, accel: float
+                      used: np.ndarray, qa: np.ndarray, accel: float, gxy: np.ndarray
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """What AREST needs at both ends of every piece (thesis 4.2.6).
 
@@ -881,7 +890,11 @@ def _rest_step_bounds(gstart: np.ndarray, hk: np.ndarray, qgrid: np.ndarray, rob
     2 % margin for the joints' curvature over the step), from the joints' rate along s
     over the end grid segment; 0 where no joint with a resolution moves. cap0, cap1 (Q,)
     mm/s^2: the largest initial acceleration at rest (total acceleration bound and every
-    joint's acceleration bound: |q'_j| a <= qa_j at zero speed).
+    joint's acceleration bound: |q'_j| a <= qa_j at zero speed), with the rate the larger
+    of the end segment's and the rest point's own (over ``REST_RATE_STEP_MM`` towards the
+    next grid point): towards the SCARA's full reach the elbow's rate grows like
+    1 / sqrt(distance), so a stop 1 mm from it met the segment's mean rate with 80 mm/s^2
+    and turned joint 2 at 1.27 times its bound.
     """
     Q = len(gstart) - 1
     res = getattr(robot, "joint_resolution", None)
@@ -890,11 +903,16 @@ def _rest_step_bounds(gstart: np.ndarray, hk: np.ndarray, qgrid: np.ndarray, rob
     g0 = gstart[:-1]
     g1 = gstart[1:] - 1
     out = []
-    for a, b in ((g0, g0 + 1), (g1 - 1, g1)):
+    for a, b, end in ((g0, g0 + 1, g0), (g1 - 1, g1, g1)):
         rate = np.abs(qgrid[b] - qgrid[a]) / hk[:, None]  # joint units per mm
+        other = a + b - end
+        step = gxy[other] - gxy[end]
+        step *= (REST_RATE_STEP_MM / np.maximum(hk, REST_RATE_STEP_MM))[:, None]
+        near = robot.ik(gxy[end] + step)[:, used]
+        at_rest = np.maximum(rate, np.abs(near - qgrid[end]) / REST_RATE_STEP_MM)
         with np.errstate(divide="ignore", invalid="ignore"):
             need = np.where((res > 0.0) & (rate > 1e-12), res / rate, np.inf)
-            cap = np.where(np.isfinite(qa) & (rate > 1e-12), qa / rate, np.inf)
+            cap = np.where(np.isfinite(qa) & (at_rest > 1e-12), qa / at_rest, np.inf)
         dmin = need.min(axis=1) if need.shape[1] else np.full(Q, np.inf)
         out.append(np.where(np.isfinite(dmin), 1.02 * dmin, 0.0))
         out.append(np.minimum(cap.min(axis=1) if cap.shape[1] else np.inf, accel)
