@@ -371,6 +371,51 @@ def test_lost_reply_resend_is_not_executed_twice(firmware):
     ctl.close()
 
 
+def test_a_command_whose_replies_are_lost_does_not_swallow_the_next(firmware):
+    """Every reply to TRIGGER is lost (the controller ran it): the driver gives up, and the
+    ABORT after it must abort. It reused TRIGGER's SEQ, so the controller took it for a
+    repeat, sent TRIGGER's kept reply and went on playing (a hunt's find)."""
+    import serial
+
+    class Deaf:
+        def __init__(self, port):
+            self.port, self.deaf = port, False
+
+        def write(self, data):
+            return self.port.write(data)
+
+        def read(self, n):
+            data = self.port.read(n)
+            return b"" if self.deaf else data
+
+        def close(self):
+            self.port.close()
+
+    port = Deaf(serial.serial_for_url(firmware.pty, baudrate=115200, timeout=0.005))
+    ctl = ValveController(port, timeout_s=0.2, retries=1)
+    ctl.hello()
+    ctl.upload(0, demo_program())
+    ctl.arm(0)
+    port.deaf = True
+    with pytest.raises(ValveLinkError, match="no answer"):
+        ctl.trigger()
+    port.deaf = False
+    ctl.abort()
+    assert ctl.status().state_name == "idle"
+    ctl.close()
+
+
+def test_a_stray_trigger_edge_is_not_the_reply_to_sequence_255(ctl, firmware):
+    """A trigger edge with nothing armed is answered with a TRIGGER error of SEQ 0xFF; the
+    command that then goes out with SEQ 255 took it for its own refusal, though the
+    controller ran it."""
+    ctl._hello_seq(254)                     # the next command goes out with SEQ 255
+    firmware.trigger()                      # SIGUSR1 with nothing armed
+    time.sleep(0.3)
+    ctl.configure(0, 700)
+    assert ctl.status().valves[0].pulse_us == 700
+
+
 def raw(fw_pty):
     import serial
     return serial.serial_for_url(fw_pty, baudrate=115200, timeout=0.005)

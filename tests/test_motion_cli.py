@@ -43,6 +43,25 @@ def test_plan_mesh_no_jerk(tmp_path, capsys):
     assert np.isfinite([lm.duration for lm in motion.layers]).all()
 
 
+def test_plan_a_build_with_empty_layers(tmp_path, capsys):
+    # two boxes one above the other, no scaffold: the layers between them have no path,
+    # and the trajectory file's writer joined their (0, 0) joints with (k, 3) ones (a
+    # hunt's traceback)
+    import trimesh
+    boxes = trimesh.util.concatenate([
+        trimesh.creation.box(bounds=[[0, 0, 0], [20, 20, 1.5]]),
+        trimesh.creation.box(bounds=[[0, 0, 2.5], [20, 20, 4.0]])])
+    src = tmp_path / "boxes.stl"
+    boxes.export(src)
+    job = tmp_path / "job.toml"
+    job.write_text("[scaffold]\nenabled = false\n[feedback]\nenabled = false\n")
+    out = tmp_path / "o"
+    assert main(["plan", str(src), "-c", str(job), "-o", str(out)]) == 0
+    motion = load_trajectories(out / "trajectories.npz")
+    counts = [len(lm.trajectories) for lm in motion.layers]
+    assert 0 in counts and counts[0] > 0 and counts[-1] > 0
+
+
 def test_plan_errors_leave_nothing(tmp_path, capsys):
     out = tmp_path / "o"
     assert main(["plan", str(tmp_path / "nope.stl"), "-o", str(out)]) == 2

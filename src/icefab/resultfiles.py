@@ -1269,6 +1269,8 @@ class TrajectoryWriter:
         def columns(name: str, cols: int) -> Iterator[np.ndarray]:
             """Column by column, every buffered layer's ``name`` samples."""
             arrays = [np.asarray(d[name], np.float64) for d in self._buffer]
+            if cols > 1:   # a layer without paths packs its joints as (0, 0)
+                arrays = [a if len(a) else a.reshape(0, cols) for a in arrays]
             whole = np.concatenate(arrays) if arrays else np.zeros((0, cols))
             for c in range(cols):
                 yield np.ascontiguousarray(whole[:, c] if whole.ndim == 2 else whole)

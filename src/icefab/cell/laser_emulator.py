@@ -132,7 +132,11 @@ class PtyLaser:
             buf += chunk
             while lkg.CR in buf:
                 line, buf = buf.split(lkg.CR, 1)
-                text = line.decode("ascii", errors="replace").lstrip("\n")
+                # a byte beyond ASCII becomes "?": echoed in the error reply, it had
+                # killed this thread (the reply's ASCII encoding raised) and every later
+                # measurement timed out
+                text = line.decode("ascii", errors="replace").replace("\ufffd", "?")
+                text = text.lstrip("\n")
                 if not text:
                     continue
                 self._write(self.controller.handle(text).encode("ascii") + lkg.CR)

@@ -190,7 +190,9 @@ class ValveController:
                         if err.code in vf.LINK_ERRORS:
                             resend = True         # our frame may be the damaged one
                             continue
-                        if f.seq != seq:
+                        # ours only if it names our SEQ and TYPE: a trigger edge with
+                        # nothing armed is answered with SEQ 0xFF, a valid command number
+                        if f.seq != seq or err.type != type_:
                             continue
                         if err.code == vf.E_SEQUENCE:  # controller restarted: new session
                             self._hello_seq(seq)
@@ -207,6 +209,11 @@ class ValveController:
                         self._seq += 1
                         return f
             self.resent_frames += 1
+        # the controller may have run it and its replies been lost: the next command takes
+        # the next SEQ, or the controller would take it for a repeat and send this one's
+        # cached reply without running it (an ABORT after a lost TRIGGER reply did not
+        # abort); if it never saw this one, the next gets SEQUENCE and a new session
+        self._seq += 1
         raise ValveLinkError(f"{self.name}: no answer to command 0x{type_:02x} after "
                              f"{self.retries + 1} tries of {self.timeout_s:g} s")
 
