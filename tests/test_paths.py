@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 from shapely.geometry import LinearRing, LineString
 
 from icefab import geometry as geo
+from icefab import paths as paths_mod
 from icefab.config import Job
 from icefab.errors import StackFileError
 from icefab.resultfiles import POINT_GRID_PER_MM, _point_states, decode_counts
@@ -196,6 +197,57 @@ def test_strip_between_the_scaffold_boundaries_is_filled_along_its_centre():
     for p in gap:
         assert shapely.distance(mid, shapely.points(p.points)).max() < 0.05
     assert sum(p.length for p in gap) == pytest.approx(mid.length, rel=0.02)
+
+
+@pytest.mark.parametrize("buffer, strip", [(4.2, 0.3), (5.0, 1.1)])
+def test_no_gap_bead_narrower_than_the_valve_lays(buffer, strip):
+    # materials.*.min_bead_width_mm (issue 15: no path narrower than the nozzle can lay):
+    # the scaffold's 1.25 mm (one 0.31 mm^3 pulse per mm at 0.25 mm layers). A 0.3 mm
+    # strip between the scaffold boundaries gets no path and is reported unfilled; a
+    # 1.1 mm one (at least 1.25 / 1.3) gets a bead 1.25 mm wide along its centre line.
+    job = Job().replace(**{"scaffold.buffer_mm": buffer, "feedback.enabled": False,
+                           "materials.scaffold.min_bead_width_mm": 1.25})
+    st_ = add_scaffold(make_stack([geo.region_from_rings([rect(0, 0, 20, 20)])] * 2, job))
+    lp = plan_layer(st_.layers[0], job)
+    gap = [p for p in _members(lp) if p.material == "scaffold" and p.role == "fill"]
+    b = buffer / 2.0    # the strip's centre line: a square buffer / 2 outside the part
+    mid = shapely.box(-b, -b, 20.0 + b, 20.0 + b).exterior
+    if strip < 1.25 / 1.3:
+        assert not gap
+        # less the bands' growth by the point filter and SWEEP_TOL on either side
+        grown = 2.0 * (job.slicing.max_filter_deviation_mm + SWEEP_TOL)
+        assert lp.unfilled_mm2[1] == pytest.approx((strip - grown) * mid.length, rel=0.1)
+    else:
+        assert gap and all(p.width >= 1.25 - 1e-9 for p in gap)
+        for p in gap:
+            w = p.widths if p.widths is not None else np.full(len(p.points), p.width)
+            assert w.min() >= 1.25 - 1e-9
+            # (the ends of the side's centre lines cut the corners by up to 0.1 mm)
+            assert shapely.distance(mid, shapely.points(p.points)).max() < 0.15
+        assert sum(p.length for p in gap) == pytest.approx(mid.length, rel=0.02)
+        assert lp.unfilled_mm2[1] < 1.0
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.floats(0.1, 1.2), st.floats(0.0, 0.4), st.floats(0.1, 0.6), st.floats(0, 6.3),
+       st.booleans())
+def test_centre_lines_keep_the_narrowest_bead(mean, amp, freq, phase, variable):
+    # a strip whose half width wanders across the narrowest bead's (w_lay = 1 mm): every
+    # path at least w_lay wide everywhere, every open one at least as long as it is wide
+    # (a stub shorter than its width would be mostly round ends the valve does not lay),
+    # and nothing where the strip is under w_lay / 1.3 all along
+    x = np.linspace(0.0, 30.0, 301)
+    h = np.maximum(mean + amp * np.sin(freq * x + phase), 0.05)
+    w_lay = 1.0
+    w_min = w_lay / paths_mod.GAP_RUN_RATIO
+    got = centre_paths([_strip(h, x)], w_min, 3.0, 0.05, variable=variable, w_lay=w_lay)
+    for pts, closed, w in got:
+        w = np.broadcast_to(np.asarray(w, dtype=np.float64), (len(pts),))
+        assert w.min() >= w_lay * (1.0 - 1e-9)
+        length = float(np.linalg.norm(np.diff(pts, axis=0), axis=1).sum())
+        assert closed or length >= w.max() * paths_mod.GAP_MIN_LENGTH
+    if (2.0 * h).max() < w_min:
+        assert not got
 
 
 def _strip(h: np.ndarray, x: np.ndarray) -> np.ndarray:

@@ -294,6 +294,18 @@ class MaterialSettings:
         "origin of this material's building frame in the end-effector frame",
         lo=-200.0, hi=200.0,
         why="the nozzles sit on the end effector, within centimetres of joint 4")
+    min_bead_width_mm: float = setting(
+        0.0,
+        "narrowest bead the gap fill lays: a strip down to 1/1.3 of it gets a bead this "
+        "wide (at most 30 % more than it holds), a narrower one is left unfilled, and so "
+        "is a gap path shorter than its width. The valve lays a line with at least "
+        "flow.min_drops_per_mm drops per mm (thesis 6.1), each as large as its largest "
+        "pulse: a bead w wide takes w dh c per mm, so w >= drops x pulse / dh: 1.0 mm for "
+        "water (0.25 mm^3 pulses in the built-in table) and 1.25 mm for the scaffold "
+        "(0.31 mm^3) at 0.25 mm layers. 0 (default for now): down to a tenth of the path "
+        "width, beads the valve lays as separate drops or not at all",
+        lo=0.0, hi=50.0,
+        why="as the fill width")
     gap_fill: bool = setting(True, "fill the gaps the fill paths leave (e.g. between "
                                    "concentric rings) with extra rings of the boundary width")
     variable_width: bool = setting(

@@ -1253,7 +1253,8 @@ def nominal_area(region: Region, mat: MaterialSettings, filt: float) -> Region:
 
 
 def material_paths(region: Region, mat: MaterialSettings, job: Job, hook_levels: int = 0,
-                   part: Region | None = None) -> tuple[dict[str, list[tuple[np.ndarray, bool, float]]],
+                   part: Region | None = None
+                   ) -> tuple[dict[str, list[tuple[np.ndarray, bool, float]]],
                               list[np.ndarray], float]:
     """Boundary and fill paths of one material's region.
 
@@ -1263,7 +1264,8 @@ def material_paths(region: Region, mat: MaterialSettings, job: Job, hook_levels:
     ``part``) taken out of the scaffold (thesis 3.7); ``unfilled_mm2`` the nominal area
     (:func:`nominal_area`) that no path sweeps. With ``mat.gap_fill`` the gaps get extra
     fill paths (:func:`gap_fill_paths`: rings with room, pocket rings with constant
-    widths, centre lines of the strips left) before the remainder is measured.
+    widths, centre lines of the strips left; none narrower than
+    ``mat.min_bead_width_mm``) before the remainder is measured.
     """
     filt = job.slicing.max_filter_deviation_mm
     w = mat.path_width_mm
@@ -1345,6 +1347,12 @@ GAP_RUN_RATIO = 1.3
 GAP_MIN_RUN_MM = 1.0
 #: Open gap paths sweeping less than this area (mm^2) are left out.
 GAP_MIN_AREA_MM2 = 0.05
+#: ... and, with ``materials.*.min_bead_width_mm`` set, so are open gap paths shorter
+#: than this many times their (widest) width: the sweep credits a path with round ends,
+#: but the valve lays ``w dh`` per mm of path only (eq. 6.2), so a path shorter than its
+#: width is mostly ends it does not lay; on the demo mug 465 such paths got no pulse at
+#: all (their volume under half a pulse).
+GAP_MIN_LENGTH = 1.0
 #: Gap pieces at least this round (isoperimetric ratio ``4 pi A / P^2``: 1 for a disk,
 #: 0.6 for an equilateral triangle, 0.35 for a 6:1 rectangle) are pockets, filled with one
 #: ring rather than along their centre line when the gap fill lays constant-width runs.
@@ -1379,8 +1387,13 @@ def gap_fill_paths(gaps: list[np.ndarray], nominal: Region, mat: MaterialSetting
        ``region`` than half its width (less the point filter). No ring doubles back on
        itself: the strips that offset rings would cover twice get one centre line.
 
-    Gaps (or parts of gaps) narrower than ``THIN_GAP_MIN * w`` get no path and are
-    returned, with every other bit no path sweeps, as the unfilled remainder.
+    No gap path is narrower than ``mat.min_bead_width_mm`` (``w_lay``), the narrowest bead
+    the valve lays as a line (one drop per mm, thesis 6.1: see the setting): a strip
+    down to ``w_lay / GAP_RUN_RATIO`` wide gets a bead ``w_lay`` wide (at most 30 % more
+    than it holds, as a run of constant width does), unless the bead would then reach
+    beyond ``region``. Gaps (or parts of gaps) narrower than that, or than
+    ``THIN_GAP_MIN * w``, get no path and are returned, with every other bit no path
+    sweeps, as the unfilled remainder.
 
     gaps: flat oriented rings (mm), the nominal area minus the bands already swept grown
         by ``filt + SWEEP_TOL`` (so touching bands leave no slivers).
@@ -1390,8 +1403,9 @@ def gap_fill_paths(gaps: list[np.ndarray], nominal: Region, mat: MaterialSetting
     """
     w = mat.path_width_mm
     tol = filt + SWEEP_TOL
-    w_min = THIN_GAP_MIN * w
     w_max = max(w, mat.fill_width_mm)
+    w_lay = min(mat.min_bead_width_mm, w_max)
+    w_min = max(THIN_GAP_MIN * w, w_lay / GAP_RUN_RATIO)
     paths: list[tuple[np.ndarray, bool, float]] = []
 
     def take(new: list[tuple[np.ndarray, bool, float]]) -> None:
@@ -1403,16 +1417,17 @@ def gap_fill_paths(gaps: list[np.ndarray], nominal: Region, mat: MaterialSetting
     rings = geo.offset_rings(gaps, -w / 2.0, filt)
     take([(r, True, w) for r in _with_room(rings, [], w, filt)] if rings else [])
     if gaps and not mat.variable_width:
-        take(_pocket_rings(gaps, w_min, w, filt))
+        take(_pocket_rings(gaps, w_min, w, filt, w_lay))
     if gaps and geo.area(gaps) >= w_min * w_min:
         # the gap before the bands' growth by tol: where the paths may go
         room = geo.intersection(geo.offset_rings(gaps, tol, 0.0), nominal)
-        take(centre_paths(list(room.rings), w_min, w_max, filt, region, mat.variable_width))
+        take(centre_paths(list(room.rings), w_min, w_max, filt, region, mat.variable_width,
+                          w_lay))
     return paths, gaps
 
 
-def _pocket_rings(gaps: list[np.ndarray], w_min: float, w_max: float, filt: float
-                  ) -> list[tuple[np.ndarray, bool, float]]:
+def _pocket_rings(gaps: list[np.ndarray], w_min: float, w_max: float, filt: float,
+                  w_lay: float = 0.0) -> list[tuple[np.ndarray, bool, float]]:
     """One ring in every round gap piece (see :func:`gap_fill_paths`, step 2); slivers
     narrower than ``w_min`` (no path goes there) do not join pockets into one piece."""
     pieces = geo.region_from_rings(gaps)
@@ -1439,7 +1454,8 @@ def _pocket_rings(gaps: list[np.ndarray], w_min: float, w_max: float, filt: floa
         wb = min(0.8 * 2.0 * A[i] / P[i], w_max)
         if wb < w_min:
             continue
-        wq = max(math.floor(wb / POCKET_WIDTH_STEP_MM + 1e-9) * POCKET_WIDTH_STEP_MM, w_min)
+        wq = max(math.floor(wb / POCKET_WIDTH_STEP_MM + 1e-9) * POCKET_WIDTH_STEP_MM, w_min,
+                 w_lay)
         by_width.setdefault(wq, []).extend(
             [rings[i]] + [rings[j] for j in np.flatnonzero((owner == i) & (depth % 2 == 1))])
     out: list[tuple[np.ndarray, bool, float]] = []
@@ -1451,7 +1467,7 @@ def _pocket_rings(gaps: list[np.ndarray], w_min: float, w_max: float, filt: floa
 
 
 def centre_paths(rings: list[np.ndarray], w_min: float, w_max: float, filt: float,
-                 region: Region | None = None, variable: bool = True
+                 region: Region | None = None, variable: bool = True, w_lay: float = 0.0
                  ) -> list[tuple[np.ndarray, bool, float | np.ndarray]]:
     """Paths along the centre line of a thin area, about as wide as the area (see
     :func:`gap_fill_paths`, step 3): ``(points (k, 2) mm, closed, width)``.
@@ -1461,7 +1477,9 @@ def centre_paths(rings: list[np.ndarray], w_min: float, w_max: float, filt: floa
     ``region`` (the paths' region; less the filter's deviation) when given.
     variable: one path per centre-line chain with a width per point (``width`` (k,) mm,
     twice the clearance: :func:`_chain_paths`); else runs of one width each
-    (:func:`_run_paths`).
+    (:func:`_run_paths`). w_lay: no path is narrower (mm): where the area is narrower (but
+    at least ``w_min``) the bead is widened to it, and where the edge of ``region`` leaves
+    it less room the path is cut.
     """
     if not rings:
         return []
@@ -1469,19 +1487,29 @@ def centre_paths(rings: list[np.ndarray], w_min: float, w_max: float, filt: floa
     typical = 2.0 * max(geo.area(rings), 0.0) / max(perim, 1e-12)  # a strip's width
     spacing = float(np.clip(typical / 3.0, w_min / 3.0, w_max / 4.0))
     chains = geo.medial_axis(rings, spacing, w_min / 2.0)
+    w_lay = min(w_lay, w_max)
+    if w_lay > 0.0:   # clearances (half-widths) from w_min / 2 up are raised to w_lay / 2
+        chains = [(p, np.where(r >= 0.5 * w_min, np.maximum(r, 0.5 * w_lay), r), c)
+                  for p, r, c in chains]
+    # cut where narrower than the valve lays (the edge cap can make it so), a hair below
+    # it for the rounding of the widths' interpolation
+    w_cut = max(w_min, w_lay * (1.0 - 1e-9))
+    # with a narrowest bead, no stubs shorter than their width either (GAP_MIN_LENGTH)
+    min_length = GAP_MIN_LENGTH if w_lay > 0.0 else 0.0
     if variable:
-        return _chain_paths(chains, w_min, w_max, filt, region)
-    return _run_paths(chains, w_min, w_max, filt, region)
+        return _chain_paths(chains, w_cut, w_max, filt, region, min_length)
+    return _run_paths(chains, w_cut, w_max, filt, region, min_length)
 
 
 def _chain_paths(chains: list[tuple[np.ndarray, np.ndarray, bool]], w_min: float,
-                 w_max: float, filt: float, region: Region | None
+                 w_max: float, filt: float, region: Region | None, min_length: float = 0.0
                  ) -> list[tuple[np.ndarray, bool, np.ndarray]]:
     """Variable-width centre-line paths (issue 15): each medial-axis chain is one path
     whose width at every point is twice its clearance, smoothed (:func:`_smoothed_axis`),
     simplified within the point filter ``filt``, the width profile too
     (:func:`_simplified`), at most ``w_max``, capped at twice the distance to ``region``'s
-    edge, and cut where it is narrower than ``w_min``."""
+    edge, and cut where it is narrower than ``w_min``; open pieces shorter than
+    ``min_length`` times their widest width are left out (``GAP_MIN_LENGTH``)."""
     chains = [(np.asarray(p, np.float64), np.minimum(2.0 * np.asarray(r, np.float64), w_max),
                bool(c)) for p, r, c in chains if len(p) >= 2]
     if not chains:
@@ -1521,7 +1549,8 @@ def _chain_paths(chains: list[tuple[np.ndarray, np.ndarray, bool]], w_min: float
     out: list[tuple[np.ndarray, bool, np.ndarray]] = []
     for k, ((_p, _w, closed), ln, w) in enumerate(zip(chains, lines, widths)):
         if wide[k] and not closed:
-            if length[k] > 1e-3 and swept[k] >= GAP_MIN_AREA_MM2:
+            if length[k] >= min_length * float(w.max()) and length[k] > 1e-3 \
+                    and swept[k] >= GAP_MIN_AREA_MM2:
                 out.append((ln, False, w))
             continue
         ok = w >= w_min
@@ -1543,8 +1572,8 @@ def _chain_paths(chains: list[tuple[np.ndarray, np.ndarray, bool]], w_min: float
                 continue
             pts, wr = ln[a:b], w[a:b]
             (piece,), (area,) = _length_and_band([pts], [wr])
-            if piece > 1e-3 and area + math.pi / 8.0 * (wr[0] ** 2 + wr[-1] ** 2) \
-                    >= GAP_MIN_AREA_MM2:
+            if piece > 1e-3 and piece >= min_length * float(wr.max()) \
+                    and area + math.pi / 8.0 * (wr[0] ** 2 + wr[-1] ** 2) >= GAP_MIN_AREA_MM2:
                 out.append((pts, False, wr))
     return out
 
@@ -1656,11 +1685,12 @@ def _split(a: np.ndarray, counts) -> list[np.ndarray]:
 
 
 def _run_paths(chains: list[tuple[np.ndarray, np.ndarray, bool]], w_min: float,
-               w_max: float, filt: float, region: Region | None
+               w_max: float, filt: float, region: Region | None, min_length: float = 0.0
                ) -> list[tuple[np.ndarray, bool, float]]:
     """Constant-width centre-line paths: each chain cut into runs of similar width
     (``GAP_RUN_RATIO``, ``GAP_MIN_RUN_MM``), each run as wide as its widest point (at most
-    ``GAP_RUN_RATIO`` times its mean)."""
+    ``GAP_RUN_RATIO`` times its mean); open runs shorter than ``min_length`` times their
+    width are left out."""
     runs = geo.width_runs([(p, np.minimum(2.0 * r, w_max), c) for p, r, c in chains],
                           GAP_RUN_RATIO, GAP_MIN_RUN_MM)
     if not runs:
@@ -1707,8 +1737,8 @@ def _run_paths(chains: list[tuple[np.ndarray, np.ndarray, bool]], w_min: float,
             out.append((p, True, float(widths[i])))
             continue
         length = float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
-        if length > 1e-3 and length * widths[i] + math.pi / 4.0 * widths[i] ** 2 \
-                >= GAP_MIN_AREA_MM2:
+        if length >= widths[i] * min_length and length > 1e-3 \
+                and length * widths[i] + math.pi / 4.0 * widths[i] ** 2 >= GAP_MIN_AREA_MM2:
             out.append((p, False, float(widths[i])))
     return out
 

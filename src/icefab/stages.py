@@ -44,6 +44,7 @@ READS: dict[str, tuple[str, ...]] = {
               "materials.part.fill_angle_mode", "materials.scaffold.fill_angle_mode",
               "materials.part.hybrid_rings", "materials.part.hybrid_angle_step_deg",
               "materials.part.nozzle_offset_mm", "materials.part.gap_fill",
+              "materials.part.min_bead_width_mm", "materials.scaffold.min_bead_width_mm",
               "materials.part.variable_width", "materials.scaffold.variable_width",
               "materials.part.tour_max_turn_deg", "materials.scaffold.tour_max_turn_deg",
               "materials.scaffold.path_width_mm", "materials.scaffold.fill_width_mm",
