@@ -33,6 +33,13 @@ def test_serve_that_cannot_start_its_firmware_leaves_no_state(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "no pty announced" in err and len(err.strip().splitlines()) == 1
     assert not state.exists()
+    # a firmware that is not there: the message names it
+    missing = tmp_path / "no-such-valvectl"
+    assert main(["cell", "serve", "--state", str(state), "--bounds", "0,0,10,10",
+                 "--firmware", str(missing)]) == 2
+    err = capsys.readouterr().err
+    assert f"{missing}: No such file" in err and len(err.strip().splitlines()) == 1
+    assert not state.exists()
 
 
 def test_serve_refuses_a_state_that_is_a_file(tmp_path, capsys):
@@ -75,6 +82,25 @@ def test_check_names_the_device_that_does_not_answer(tmp_path, capsys):
     assert "cannot open the serial port" in capsys.readouterr().err
     assert main(["cell", "check", "--robot", "nohostport"]) == 2
     assert "expected HOST:PORT" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("timeout", [0.6, 2.4])
+def test_check_waits_for_a_silent_valve_controller_as_long_as_timeout(timeout, capsys):
+    # a serial port nobody answers on: the valve link waited 3 s whatever --timeout said
+    import os
+    import time
+
+    master, slave = os.openpty()
+    try:
+        t0 = time.monotonic()
+        assert main(["cell", "check", "--valve", os.ttyname(slave),
+                     "--timeout", str(timeout)]) == 2
+        took = time.monotonic() - t0
+    finally:
+        os.close(master)
+        os.close(slave)
+    assert "no answer" in capsys.readouterr().err
+    assert timeout * 0.9 <= took <= timeout + 1.0, took
 
 
 def test_check_a_virtual_robot_and_laser(capsys):

@@ -405,6 +405,24 @@ def test_a_command_whose_replies_are_lost_does_not_swallow_the_next(firmware):
     ctl.close()
 
 
+def test_a_cut_off_frame_does_not_swallow_the_replies_after_it():
+    """A reply cut off after its length byte (a controller reset mid-frame): the reader
+    waited for the 240 bytes it named and took the next replies for them. Stopped for 50
+    ms, it is dropped, as the controller drops a frame (PROTOCOL.md 2)."""
+    good = vf.encode(7, vf.STATUS | 0x80, bytes(range(20)))
+    r = vf.FrameReader()
+    assert r.feed(vf.MARK + bytes([0xF0]), now=0.0) == []
+    got = r.feed(good, now=0.2)
+    assert [(f.seq, f.type, f.payload) for f in got] == [(7, vf.STATUS | 0x80, bytes(range(20)))]
+    # ... and at once, when a whole frame with a good CRC follows the cut one's marker
+    r = vf.FrameReader()
+    got = r.feed(vf.MARK + bytes([0xF0, 3]) + good, now=0.0)
+    assert [(f.seq, f.payload) for f in got] == [(7, bytes(range(20)))]
+    # bytes of one frame a few ms apart are one frame
+    r = vf.FrameReader()
+    assert r.feed(good[:9], now=1.0) == [] and len(r.feed(good[9:], now=1.01)) == 1
+
+
 def test_a_stray_trigger_edge_is_not_the_reply_to_sequence_255(ctl, firmware):
     """A trigger edge with nothing armed is answered with a TRIGGER error of SEQ 0xFF; the
     command that then goes out with SEQ 255 took it for its own refusal, though the

@@ -92,16 +92,36 @@ void timer0_isr(void)
     uint32_t ir = T0IR;
     if (ir & 1u) {                                              /* MR0: the valve tick */
         uint32_t due = T0MR0, pin;
-        T0MR0 = due + VC_TICK_US;
-        T0IR = 1u;
-        now_ms += VC_TICK_US / 1000u;
+        unsigned n = 0;
         pin = IO0PIN & TRIGGER_PIN;
         if (pin && !trig_prev) vc_trigger_edge(&core);           /* rising edge */
         trig_prev = pin;
-        vc_tick(&core, (T0TC - due) > VC_TICK_US);
+        for (;;) {
+            T0IR = 1u;
+            T0MR0 = due + VC_TICK_US;
+            now_ms += VC_TICK_US / 1000u;
+            vc_tick(&core, (T0TC - due) > VC_TICK_US);
+            /* a tick that ran long (thousands of pulses on one tick) can end after the
+             * next one was due: its match would then come only when the counter wraps,
+             * 71.6 minutes on. Run the ticks already due now, late, as the host build
+             * catches up; past 64 of them, start the ticks again from now. */
+            if ((int32_t)(T0TC - T0MR0) < 0) break;
+            due = T0MR0;
+            if (++n >= 64u) { T0IR = 1u; T0MR0 = T0TC + VC_TICK_US; break; }
+        }
     }
-    if (ir & 2u) { IO0CLR = VALVE0; T0MCR &= ~(1u << 3); T0IR = 2u; }
-    if (ir & 4u) { IO0CLR = VALVE1; T0MCR &= ~(1u << 6); T0IR = 4u; }
+    /* a pulse's end: close the valve only if its match is due. The flag may be one left
+     * from before a new pulse moved the match later (a pulse starting as the one before
+     * ends: PWM at full duty), which closed the new pulse at once. Flag cleared first, so
+     * a match reached during the test sets it again. */
+    if (ir & 2u) {
+        T0IR = 2u;
+        if ((int32_t)(T0TC - T0MR1) >= 0) { IO0CLR = VALVE0; T0MCR &= ~(1u << 3); }
+    }
+    if (ir & 4u) {
+        T0IR = 4u;
+        if ((int32_t)(T0TC - T0MR2) >= 0) { IO0CLR = VALVE1; T0MCR &= ~(1u << 6); }
+    }
     VICVectAddr = 0;
 }
 

@@ -163,7 +163,7 @@ class ValveController:
         except OSError as exc:
             raise ValveLinkError(f"{self.name}: the serial link failed while reading "
                                  f"({exc})") from None
-        frames = self._reader.feed(data) if data else []
+        frames = self._reader.feed(data, time.monotonic()) if data else []
         for f in frames:
             if f.is_event:
                 self.events.append(f)

@@ -14,6 +14,7 @@ by :func:`binascii.crc_hqx`. The constants below mirror ``firmware/core/protocol
 from __future__ import annotations
 
 import binascii
+import math
 import struct
 from dataclasses import dataclass
 
@@ -80,18 +81,48 @@ class Frame:
         return self.type == ERROR
 
 
+#: A frame not completed within this long after its last byte is dropped and the hunt
+#: for the marker starts again (PROTOCOL.md 2: the controller's TRUNCATED), s.
+FRAME_TIMEOUT_S = 0.05
+
+
+def _whole_frame_after(buf: bytearray) -> int:
+    """Where in ``buf`` (a frame's start, incomplete) a later marker begins a whole frame
+    with a good CRC; -1 if none does."""
+    j = buf.find(MARK, 1)
+    while j >= 0:
+        if len(buf) >= j + 3:
+            n = buf[j + 2]
+            if n <= MAX_PAYLOAD and len(buf) >= j + n + OVERHEAD and \
+                    crc16(bytes(buf[j + 2:j + 5 + n])) == \
+                    struct.unpack_from("<H", buf, j + 5 + n)[0]:
+                return j
+        j = buf.find(MARK, j + 1)
+    return -1
+
+
 class FrameReader:
     """Splits a byte stream into frames, hunting for the marker as the controller does.
 
     Bytes with a bad CRC or outside frames are skipped and counted in ``bad_bytes``; the
-    controller's replies never have them on a good line.
+    controller's replies never have them on a good line. Given the time of each feed
+    (``now``, s, monotonic), a frame whose bytes stop for ``FRAME_TIMEOUT_S`` is dropped
+    as the controller drops one: a cut-off reply (a controller reset or unplugged
+    mid-frame) had waited for the bytes its length named, swallowing the replies after it.
     """
 
     def __init__(self) -> None:
         self._buf = bytearray()
+        self._last = -math.inf
         self.bad_bytes = 0
 
-    def feed(self, data: bytes) -> list[Frame]:
+    def feed(self, data: bytes, now: float | None = None) -> list[Frame]:
+        if now is not None:
+            if self._buf and data and now - self._last > FRAME_TIMEOUT_S:
+                self.bad_bytes += len(self._buf)
+                del self._buf[:]
+            if data:
+                self._last = now
         self._buf += data
         out: list[Frame] = []
         buf = self._buf
@@ -113,7 +144,14 @@ class FrameReader:
                 del buf[:2]
                 continue
             if len(buf) < n + OVERHEAD:
-                break
+                # incomplete: unless a whole frame with a good CRC starts after its marker
+                # (a cut-off frame, then a reply: the reply is not the cut frame's rest)
+                j = _whole_frame_after(buf)
+                if j < 0:
+                    break
+                self.bad_bytes += j
+                del buf[:j]
+                continue
             body = bytes(buf[2:5 + n])
             if crc16(body) != struct.unpack_from("<H", buf, 5 + n)[0]:
                 self.bad_bytes += 2

@@ -134,7 +134,9 @@ def run_serve(args: argparse.Namespace) -> int:
         if made:
             shutil.rmtree(state, ignore_errors=True)
         if isinstance(exc, OSError):
-            raise CellError(f"virtual cell: cannot start ({exc.strerror or exc})") from None
+            where = f"{exc.filename}: " if exc.filename else ""
+            raise CellError(f"virtual cell: cannot start ({where}{exc.strerror or exc})") \
+                from None
         raise
     e = cell.endpoints
     print(f"robot 127.0.0.1:{e['robot']['port']}  valve {e['valve']['device']}  laser "
@@ -200,9 +202,12 @@ def run_check(args: argparse.Namespace) -> int:
     if ends.get("valve"):
         from icefab.cell.valve import ValveController
 
-        with ValveController.open(ends["valve"]) as ctl:
+        # the valve controller re-sends a frame it got no answer to (5 times): the whole
+        # wait is --timeout, as for the other links (it was 3 s whatever --timeout said)
+        with ValveController.open(ends["valve"], timeout_s=args.timeout / 6.0,
+                                  retries=5) as ctl:
             st = ctl.status()
-        print(f"valve {ends['valve']}: state {st.state}, plays {st.plays}")
+        print(f"valve {ends['valve']}: {st.state_name}, plays {st.plays}")
     if ends.get("laser"):
         with LaserLink.open(ends["laser"], timeout_s=args.timeout) as laser:
             storing, count = laser.status()
