@@ -87,6 +87,32 @@ def _parse(lines):
     return out
 
 
+@pytest.mark.parametrize("dt", [0.016, 0.004])
+def test_step_duty_is_the_pwm_duty_even_in_steps_shorter_than_its_period(dt):
+    # 125 Hz PWM (8 ms) under 4 ms steps: a whole pulse counted in the step it started
+    # in gave every other step S0 and the rest twice the duty (Marlin sets the duty per
+    # move); spread over its period, a steady bead is one duty, and the on-time holds
+    import icefab
+    from icefab import flow
+    from icefab.core import Toolpath
+    from icefab.export import step_duty
+
+    job = Job().replace(**{"cell.robot": "gantry", "flow.mode": "pwm", "motion.dt_s": dt})
+    p = Toolpath(np.array([[-70.0, 0.0], [70.0, 0.0]]), z=0.125, material="part",
+                 role="boundary", width=1.5, layer=0)
+    tr = icefab.plan_motion(p, job)
+    prog = icefab.plan_valves(tr, "part", job)
+    period = 1.0 / job.flow.pwm_frequency_hz
+    d = step_duty(tr, prog, period)
+    on = sum(float(q.widths_us.astype(np.float64).sum()) * 1e-6
+             for q in flow.program_pieces(prog))
+    assert (d * dt).sum() == pytest.approx(on, rel=1e-6)
+    steady = np.flatnonzero(tr.speed[1:] >= 0.999 * tr.speed.max())
+    steady = steady[2:-2]            # away from the ends of the cruise
+    assert len(steady) > 10
+    assert d[steady].min() > 0.9 * d[steady].max() > 0.0
+
+
 def test_gcode_is_marlin_with_valve_duty_per_step_and_tool_changes():
     from icefab import flow
     from icefab.export import gcode_lines
@@ -100,7 +126,10 @@ def test_gcode_is_marlin_with_valve_duty_per_step_and_tool_changes():
     assert [c for c in names if c.startswith("T")] == ["T0", "T1", "T0", "T1"]
     g1 = [w for c, w in cmds if c == "G1"]
     assert g1 and all(set(w) == {"X", "Y", "F", "S"} and 0 <= w["S"] <= 255 for w in g1)
-    assert all(w.get("S", 0) == 0 for c, w in cmds if c == "G0")
+    # every G0 closes the valve itself (S0): Marlin's G0 keeps the power of the move
+    # before unless built with LASER_MOVE_G0_OFF (a layer's Z move and each path's first
+    # G0 had no S, after a depositing move)
+    assert all(w.get("S") == 0 for c, w in cmds if c == "G0")
     # each deposition move lasts one time step, dwells fill rests: the G-code's time is
     # the deposition trajectories' duration
     dt = job.motion.dt_s

@@ -37,21 +37,38 @@ __all__ = ["save_gcode", "step_duty", "gcode_lines", "check_gcode_robot"]
 TOOL_NUMBER = {"part": 0, "scaffold": 1}
 
 
-def step_duty(trajectory, program) -> np.ndarray:
+def step_duty(trajectory, program, period_s: float | None = None) -> np.ndarray:
     """(n - 1,) float64 in [0, 1]: the valve's duty over each time step of ``trajectory``
-    (samples every ``dt``): the pulse widths of the PWM ``program`` whose pulses fall in
-    the step (pulse instants from :func:`icefab.flow.pulse_times`), over ``dt``."""
+    (samples every ``dt``) under the PWM ``program`` (pulse instants from
+    :func:`icefab.flow.pulse_times`, with their widths).
+
+    period_s: the PWM period. Each pulse's width is then spread over its period, so a step
+    shorter than the period gets the duty of the period it lies in: the duty Marlin's
+    cutter PWM takes per move (a whole pulse counted in the step it started in left the
+    steps between pulses at S0 and the others at twice the duty). None: the time the
+    pulses hold the valve open within each step. Either way the steps' on-time sums to
+    the pulses' (up to the last step's clip at duty 1)."""
     from icefab import flow
 
     n = len(trajectory.xy)
     if n < 2:
         return np.zeros(0)
+    dt = float(trajectory.dt)
     t = flow.pulse_times(program)
     widths = np.concatenate([p.widths_us for p in flow.program_pieces(program)]
                             ).astype(np.float64) * 1e-6 if len(t) else np.zeros(0)
-    step = np.clip(np.floor(t / trajectory.dt + 1e-9).astype(np.int64), 0, n - 2)
-    on = np.bincount(step, weights=widths, minlength=n - 1)
-    return np.clip(on / trajectory.dt, 0.0, 1.0)
+    on = np.zeros(n - 1)
+    if len(t):
+        span = widths if period_s is None else np.full(len(t), float(period_s))
+        rate = np.where(span > 0, widths / np.where(span > 0, span, 1.0), 0.0)
+        first = np.floor(t / dt + 1e-9).astype(np.int64)
+        end = t + span
+        for j in range(int(np.ceil(span.max() / dt)) + 2):
+            k = first + j
+            part = (np.minimum(end, (k + 1) * dt) - np.maximum(t, k * dt)) * rate
+            ok = part > 0.0
+            on += np.bincount(np.clip(k[ok], 0, n - 2), weights=part[ok], minlength=n - 1)
+    return np.clip(on / dt, 0.0, 1.0)
 
 
 def check_gcode_robot(robot: str, what: str, *, planning: bool = False) -> None:
@@ -95,7 +112,9 @@ def gcode_lines(motion, job=None):
         # by default, which put the nozzle into its own bead)
         top = lm.top(job)
         yield f"; layer {lm.index} top z {top:.4f} (cut at {lm.z:.4f})"
-        yield f"G0 Z{top:.4f}"
+        # every G0 with S0: Marlin's G0 keeps the inline power of the move before unless
+        # built with LASER_MOVE_G0_OFF, and a layer's last move may be depositing
+        yield f"G0 Z{top:.4f} S0"
         for i, tr in enumerate(lm.trajectories):
             if len(tr.xy) == 0:
                 continue
@@ -107,15 +126,18 @@ def gcode_lines(motion, job=None):
             if not depositing:
                 # travel or measurement: positioning only, valve closed
                 for line in gcode_moves(tr, dwell=True):
-                    yield line.replace("G1 ", "G0 ", 1) + " S0" if line.startswith("G1") \
-                        else line
+                    yield line.replace("G1 ", "G0 ", 1) + " S0" if line.startswith("G") \
+                        and not line.startswith("G4") else line
                 continue
             if tool != p.material:
                 tool = p.material
                 yield f"T{TOOL_NUMBER[tool]}"
             prog = flow.plan_valves(tr, p.material, pwm)
-            s = np.rint(255.0 * step_duty(tr, prog)).astype(np.int64)
-            yield from gcode_moves(tr, power=s, dwell=True)
+            s = np.rint(255.0 * step_duty(tr, prog, 1.0 / pwm.flow.pwm_frequency_hz)
+                        ).astype(np.int64)
+            moves = gcode_moves(tr, power=s, dwell=True)
+            yield moves[0] + " S0"   # the G0 to the path's start, valve closed
+            yield from moves[1:]
     yield "M5"
 
 
