@@ -622,6 +622,30 @@ def test_a_resume_refused_for_a_lost_record_leaves_no_cell_behind(firmware_tools
     assert Counter(_executed(tmp_path / "b")).most_common(1)[0][1] == 1
 
 
+def test_stop_ends_the_cell_of_a_build_killed_while_starting(firmware_tools, planned,
+                                                              tmp_path):
+    # killed (-9) after it started its virtual cell, before its journal existed: --stop
+    # said "no build journal here" and the cell with its firmware ran on (hunt I)
+    from icefab.linkedcell import cell_alive, start_virtual_cell
+
+    build = tmp_path / "b"
+    build.mkdir()
+    (build / "job.toml").write_text(to_toml(Job()), encoding="utf-8")
+    shutil.copy(planned, build / bmod.TRAJECTORIES)
+    try:
+        start_virtual_cell(build / bmod.CELL_DIR, build / "job.toml",
+                           build / bmod.TRAJECTORIES)
+        assert cell_alive(build / bmod.CELL_DIR)
+        r = _icefab("build", "--stop", "b", cwd=tmp_path)
+        assert r.returncode == 0, r.stderr
+        assert "left its virtual cell running: stopped it" in r.stdout
+        assert not cell_alive(build / bmod.CELL_DIR)
+        # and a new build with the same -o starts afresh
+        assert _icefab("build", "--stop", "b", cwd=tmp_path).returncode == 2
+    finally:
+        _kill_cell(build)
+
+
 def test_sigkill_the_build_and_resume(firmware_tools, planned, tmp_path):
     r = _icefab("build", str(planned), "-o", "ref", "--virtual", cwd=tmp_path)
     assert r.returncode == 0, r.stderr

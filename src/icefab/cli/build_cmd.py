@@ -285,6 +285,23 @@ def _stop_preparing(build: Path) -> bool:
                       "within 60 s")
 
 
+def _stop_orphan_cell(build: Path) -> bool:
+    """A build killed (-9) while it started its virtual cell, before its journal existed,
+    left the cell running and no journal to find it by (``--stop`` said "no build journal
+    here", and the cell and its firmware ran on). End that cell; True when there was one.
+    Nothing was sent to it: a new ``icefab build`` with the same -o starts afresh."""
+    from icefab import build as bmod
+    from icefab.linkedcell import cell_alive
+
+    cdir = build / bmod.CELL_DIR
+    if not cdir.is_dir() or not cell_alive(cdir):
+        return False
+    _shutdown_cell(cdir)
+    print(f"{build}: a build killed while it was starting left its virtual cell running: "
+          "stopped it; no path had been sent to it (start the build again)")
+    return True
+
+
 def _lock(build: Path):
     import fcntl
 
@@ -533,6 +550,8 @@ def _stop(build: Path) -> int:
     if not (build / bmod.JOURNAL).exists() and _stop_preparing(build):
         print(f"{build}: stopped while it was being prepared (planning or starting its cell); "
               "no path was sent to the cell")
+        return 0
+    if not (build / bmod.JOURNAL).exists() and _stop_orphan_cell(build):
         return 0
     journal = Journal.open(build / bmod.JOURNAL)
     meta = journal.meta()
