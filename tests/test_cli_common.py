@@ -118,6 +118,31 @@ def test_os_errors_become_one_line(monkeypatch, capsys):
         "icefab tune: error: /root/out/x.png: Permission denied"
 
 
+def test_a_reader_that_leaves_is_no_error_but_a_broken_link_is(monkeypatch, capsys):
+    # 'icefab build --status B | head -1' said "error: Broken pipe" and exit 2; a pipe
+    # broken elsewhere (a cell's socket) is still an error
+    import os
+    import subprocess
+    import sys
+
+    r, w = os.pipe()
+    os.close(r)
+    try:
+        p = subprocess.run([sys.executable, "-m", "icefab", "tune", "--json"], stdout=w,
+                           stderr=subprocess.PIPE, text=True)
+    finally:
+        os.close(w)
+    assert p.returncode == 141 and p.stderr == ""
+    import icefab.cli.tune_cmd as tune_cmd
+
+    def boom(args):
+        raise BrokenPipeError(32, "Broken pipe")
+
+    monkeypatch.setattr(tune_cmd, "run", boom)
+    assert main(["tune", "--gains", "1,0.33,0"]) == 2
+    assert "error: Broken pipe" in capsys.readouterr().err
+
+
 def test_slice_then_paths_into_the_same_folder(tmp_path, capsys):
     """`icefab slice m.stl -o out; icefab paths out/stack.npz -o out`: both results end up
     in out; a failing rerun (bad --layers) changes nothing there."""

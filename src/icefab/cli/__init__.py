@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import re
 import sys
 
@@ -63,6 +64,24 @@ def _version() -> str:
     return __version__
 
 
+def _stdout_gone() -> bool:
+    """Whether standard output's reader went away (a pipe with no reader polls as an
+    error); if so, standard output is pointed at /dev/null, so that the interpreter's own
+    flush at exit stays quiet. (A broken pipe may also be a cell's link.)"""
+    import select
+
+    try:
+        fd = sys.stdout.fileno()
+        poll = select.poll()
+        poll.register(fd, select.POLLOUT)
+        gone = any(ev & select.POLLERR for _fd, ev in poll.poll(0))
+        if gone:
+            os.dup2(os.open(os.devnull, os.O_WRONLY), fd)
+        return gone
+    except (OSError, ValueError, AttributeError):   # not a real file (a test's stand-in)
+        return False
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -72,9 +91,18 @@ def main(argv: list[str] | None = None) -> int:
         if getattr(args, "out", None):  # before any work, not after a long job
             check_output_dir(args.out)
         with compile_notice():  # the first run's silent numba compiling, said plainly
-            return int(args.func(args) or 0)
+            rc = int(args.func(args) or 0)
+        sys.stdout.flush()    # a reader that left shows here, not in the exit's own flush
+        return rc
     except IcefabError as exc:
         print(f"icefab {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except BrokenPipeError as exc:
+        if _stdout_gone():
+            # the reader of the output left ('icefab build --status B | head -1'): nothing
+            # to say, and nobody to say it to ("error: Broken pipe", exit 2, before)
+            return 141
+        print(f"icefab {args.command}: error: {exc.strerror or exc}", file=sys.stderr)
         return 2
     except OSError as exc:  # disk full, permissions, a folder where a file should be
         where = f"{exc.filename}: " if exc.filename else ""
