@@ -764,6 +764,13 @@ def test_error_ply_point_cloud(tmp_path):
 def test_error_unknown_format(tmp_path):
     with pytest.raises(MeshError, match=r"thing\.step: unknown mesh format"):
         load_mesh(_write(tmp_path, "thing.step", b"ISO-10303-21;\nHEADER;\n"))
+    # an icefab result file renamed (a hunt's stack.dat): said what it looks like
+    import io
+    buf = io.BytesIO()
+    np.savez_compressed(buf, format=np.array("icefab-stack"))
+    with pytest.raises(MeshError, match=r"stack\.dat: not a mesh but a zip archive, like "
+                                        r"icefab's result files"):
+        load_mesh(_write(tmp_path, "stack.dat", buf.getvalue()))
 
 
 def test_error_only_degenerate_faces(tmp_path):

@@ -74,6 +74,10 @@ def _sniff(data: bytes, path: Path) -> str:
         return "obj"
     if head == b"ply":
         return "ply"
+    if data[:4] == b"PK\x03\x04":   # a zip: icefab's result files are .npz archives
+        raise MeshError(f"{path}: not a mesh but a zip archive, like icefab's result files "
+                        "(stack, toolpaths, trajectories): give such a file its .npz "
+                        "extension, or a mesh (STL, PLY, OBJ)")
     raise MeshError(f"{path}: unknown mesh format (not binary/ASCII STL, PLY or OBJ by its "
                     f"content; extension {ext or 'none'!r})")
 
