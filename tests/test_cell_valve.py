@@ -542,7 +542,8 @@ def test_next_path_uploads_and_arms_while_one_plays(valvectl, tmp_path):
 def test_pwm_piece_larger_than_the_store_is_refused_by_name(ctl):
     prog = ValveProgram(ticks=np.arange(4000, dtype=np.uint16), tick_s=0.002, duration=8.0,
                         widths_us=np.full(4000, 600, np.uint16))
-    with pytest.raises(ValveLinkError, match="PWM piece of more than 3070 pulses"):
+    with pytest.raises(ValveLinkError, match=r"its piece at byte 16 \(4000 pulses\); a PWM "
+                                             r"piece of more than 3070 pulses"):
         ctl.upload(0, prog)
     st = ctl.status()
     assert (st.state_name, st.valves[0].queued, st.outputs) == ("idle", 0, 0)

@@ -78,6 +78,24 @@ def program_bytes(program: Any) -> bytes:
     return encode_valve_program(program)
 
 
+def _oversized_piece(data: bytes, limit: int) -> tuple[int, int] | None:
+    """(byte offset, pulses) of the first PWM piece of a program in flow's binary layout
+    with more than ``limit`` pulses; None if there is none (or it does not parse)."""
+    try:
+        if data[6] != 1:
+            return None
+        (pieces,) = struct.unpack_from("<I", data, 12)
+        pos = 16
+        for _ in range(pieces):
+            n, _dur = struct.unpack_from("<II", data, pos)
+            if n > limit:
+                return pos, n
+            pos += 8 + 4 * n
+    except (struct.error, IndexError):
+        pass
+    return None
+
+
 def count_pulses(data: bytes) -> int | None:
     """Pulses in a complete program in flow's binary layout (None if it does not parse:
     the controller will say what is wrong)."""
@@ -292,11 +310,15 @@ class ValveController:
                              vf.data_payload(up.valve, up.sent, up.data[up.sent:up.sent + n]),
                              allow=frozenset({vf.E_NO_ROOM}))
             if r.is_error:                # NO_ROOM although it fitted: a PWM piece
-                raise ValveLinkError(      # too large to play from the store (discarded)
-                    f"{self.name}: valve {up.valve} program refused at byte {up.sent}: a PWM "
-                    f"piece of more than {(vf.STORE_BYTES - 8) // 4} pulses does not fit the "
-                    f"controller's {vf.STORE_BYTES}-byte store (its widths follow all its "
-                    "ticks); lower flow.max_pulses")
+                limit = (vf.STORE_BYTES - 8) // 4   # too large to play from the store
+                bad = _oversized_piece(up.data, limit)
+                where = (f"its piece at byte {bad[0]} ({bad[1]} pulses)" if bad
+                         else "a piece")
+                raise ValveLinkError(
+                    f"{self.name}: valve {up.valve} program refused: {where}; a PWM piece "
+                    f"of more than {limit} pulses does not fit the controller's "
+                    f"{vf.STORE_BYTES}-byte store (its widths follow all its ticks); lower "
+                    "flow.max_pulses")
             up.sent += n
             free = struct.unpack_from("<I", r.payload, 5)[0]
         return free
