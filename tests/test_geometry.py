@@ -280,6 +280,35 @@ def test_medial_axis_of_strip_and_annulus():
     assert np.abs(d - chains[0][1]).max() < 1e-6
 
 
+def _disks(chains) -> shapely.Geometry:
+    """The union of the disks of every chain point's clearance."""
+    pts = np.concatenate([c[0] for c in chains])
+    r = np.concatenate([c[1] for c in chains])
+    return shapely.union_all(shapely.buffer(shapely.points(pts), r, quad_segs=16))
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.floats(0.8, 3.0), st.floats(6.0, 30.0), st.floats(0.0, 1.5))
+def test_short_fork_arms_are_pruned_into_a_wider_junction(width, length, angle):
+    # a strip's square ends fork the medial axis into a Y (arms to the two corners, about
+    # width / sqrt(2) long): each arm was a gap path of its own (BENCHMARKS.md, issue 15).
+    # Given max_radius, an arm shorter than its junction's width is pruned (every junction
+    # keeps two branches) and the junction's clearance grows to hold the arm's disks: the
+    # disks cover what they covered, with fewer chains
+    c, s = math.cos(angle), math.sin(angle)
+    ring = rect(0, 0, length, width) @ np.array([[c, s], [-s, c]])
+    spacing = width / 6.0
+    plain = geo.medial_axis([ring], spacing, 0.05)
+    pruned = geo.medial_axis([ring], spacing, 0.05, 2.0 * width)
+    assert len(plain) >= 3 and len(pruned) < len(plain)
+    lost = _disks(plain).difference(_disks(pruned)).area
+    assert lost <= 1e-3 * width * length, lost
+    # the widened junctions stay within max_radius; without room to grow, no arm goes
+    assert max(float(c_[1].max()) for c_ in pruned) <= 2.0 * width + 1e-9
+    tight = geo.medial_axis([ring], spacing, 0.05, 0.5 * width)
+    assert len(tight) == len(plain)
+
+
 def test_width_runs_split_where_the_width_changes():
     x = np.linspace(0, 10, 101)
     w = np.where(x < 5, 1.0, 0.5)

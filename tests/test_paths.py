@@ -222,8 +222,8 @@ def test_no_gap_bead_narrower_than_the_valve_lays(buffer, strip):
         for p in gap:
             w = p.widths if p.widths is not None else np.full(len(p.points), p.width)
             assert w.min() >= 1.25 - 1e-9
-            # (the ends of the side's centre lines cut the corners by up to 0.1 mm)
-            assert shapely.distance(mid, shapely.points(p.points)).max() < 0.15
+            # (the centre line cuts the square's corners by up to 0.17 mm)
+            assert shapely.distance(mid, shapely.points(p.points)).max() < 0.2
         assert sum(p.length for p in gap) == pytest.approx(mid.length, rel=0.02)
         assert lp.unfilled_mm2[1] < 1.0
 
@@ -335,7 +335,14 @@ def test_gap_paths_never_reach_past_the_region():
         in_fin = [p for p in _members(lp) if p.role == "fill" and p.points[:, 0].mean() > 20]
         assert len(in_fin) >= 1
         main = max(in_fin, key=lambda p: p.length)
-        assert main.width == pytest.approx(width, rel=0.05) and main.length > 8
+        # as wide as the fin in its middle (its ends may turn into a corner of each end's
+        # fork, where a pruned fork's junction is widened)
+        w = main.widths if main.widths is not None else np.full(len(main.points), main.width)
+        x = main.points[:, 0]
+        assert main.length > 8 and x.min() < 25.0 < x.max()
+        k = int(np.flatnonzero((x[:-1] <= 25.0) & (x[1:] > 25.0))[0])
+        f = (25.0 - x[k]) / (x[k + 1] - x[k])
+        assert w[k] + f * (w[k + 1] - w[k]) == pytest.approx(width, rel=0.05)
         for p in _members(lp):
             if p.role == "fill" and p.widths is not None:   # half its width there
                 assert not _too_close(p, R.boundary, 1e-6)

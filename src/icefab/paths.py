@@ -1345,6 +1345,9 @@ GAP_RUN_RATIO = 1.3
 #: Runs are not cut shorter than this (mm): a strip whose width wobbles would give many
 #: tiny paths, each a stop of the robot.
 GAP_MIN_RUN_MM = 1.0
+#: With ``materials.*.min_bead_width_mm`` (w_lay) set, a strip down to w_lay / this wide
+#: gets a bead w_lay wide (:func:`gap_fill_paths`); a narrower one is left unfilled.
+GAP_WIDEN_RATIO = 1.3
 #: Open gap paths sweeping less than this area (mm^2) are left out.
 GAP_MIN_AREA_MM2 = 0.05
 #: ... and, with ``materials.*.min_bead_width_mm`` set, so are open gap paths shorter
@@ -1405,7 +1408,7 @@ def gap_fill_paths(gaps: list[np.ndarray], nominal: Region, mat: MaterialSetting
     tol = filt + SWEEP_TOL
     w_max = max(w, mat.fill_width_mm)
     w_lay = min(mat.min_bead_width_mm, w_max)
-    w_min = max(THIN_GAP_MIN * w, w_lay / GAP_RUN_RATIO)
+    w_min = max(THIN_GAP_MIN * w, w_lay / GAP_WIDEN_RATIO)
     paths: list[tuple[np.ndarray, bool, float]] = []
 
     def take(new: list[tuple[np.ndarray, bool, float]]) -> None:
@@ -1486,7 +1489,17 @@ def centre_paths(rings: list[np.ndarray], w_min: float, w_max: float, filt: floa
     perim = float(geo.ring_perimeters(rings).sum())
     typical = 2.0 * max(geo.area(rings), 0.0) / max(perim, 1e-12)  # a strip's width
     spacing = float(np.clip(typical / 3.0, w_min / 3.0, w_max / 4.0))
-    chains = geo.medial_axis(rings, spacing, w_min / 2.0)
+    room = None
+    if region is not None and not region.is_empty:
+        edge = list(region.rings)
+
+        def room(pts: np.ndarray) -> np.ndarray:
+            """How far a bead may reach from each point: to ``region``'s edge (as
+            :func:`_edge_capped` will cap it), less a step of the axis, whose segments
+            reach nearer the edge than their points."""
+            return geo.segment_clearances(pts, pts, edge, w_max / 2.0) - spacing
+    # (slack: _simplified keeps the widths within the point filter of their profile)
+    chains = geo.medial_axis(rings, spacing, w_min / 2.0, w_max / 2.0, room, filt / 2.0)
     w_lay = min(w_lay, w_max)
     if w_lay > 0.0:   # clearances (half-widths) from w_min / 2 up are raised to w_lay / 2
         chains = [(p, np.where(r >= 0.5 * w_min, np.maximum(r, 0.5 * w_lay), r), c)
