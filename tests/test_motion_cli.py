@@ -116,7 +116,7 @@ def test_plan_gcode_and_constant_spacing_outputs(tmp_path, capsys):
     # the nozzle goes to each layer's top, not its cutting plane at mid-height (a tester's
     # box had its nozzle ordered into its own bead)
     dh = motion.job.slicing.layer_thickness_mm
-    zs = [float(ln[4:]) for ln in text.splitlines() if ln.startswith("G0 Z")]
+    zs = [float(ln[4:].split()[0]) for ln in text.splitlines() if ln.startswith("G0 Z")]
     np.testing.assert_allclose(zs, [lm.z + 0.5 * dh for lm in motion.layers], atol=1e-4)
     g1 = [ln for ln in text.splitlines() if ln.startswith(("G1 ", "G0 ")) and " F" in ln]
     assert len(g1) == sum(len(t.xy) - 1 for t in trajs)

@@ -1392,7 +1392,7 @@ def gap_fill_paths(gaps: list[np.ndarray], nominal: Region, mat: MaterialSetting
 
     No gap path is narrower than ``mat.min_bead_width_mm`` (``w_lay``), the narrowest bead
     the valve lays as a line (one drop per mm, thesis 6.1: see the setting): a strip
-    down to ``w_lay / GAP_RUN_RATIO`` wide gets a bead ``w_lay`` wide (at most 30 % more
+    down to ``w_lay / GAP_WIDEN_RATIO`` wide gets a bead ``w_lay`` wide (at most 30 % more
     than it holds, as a run of constant width does), unless the bead would then reach
     beyond ``region``. Gaps (or parts of gaps) narrower than that, or than
     ``THIN_GAP_MIN * w``, get no path and are returned, with every other bit no path
