@@ -1731,9 +1731,10 @@ def medial_axis(rings: Sequence[np.ndarray], spacing: float, min_radius: float =
     short = branch & ~inside & (length < BRANCH_PRUNE_WIDTHS * 2.0 * clear[hub]) \
         if max_radius is not None else np.zeros(len(length), dtype=bool)
     reach = np.zeros(len(length))
-    for i in np.flatnonzero(short):
-        ch = verts[cstarts[i]:cstarts[i + 1]]
-        reach[i] = float((np.linalg.norm(C[ch] - C[hub[i]], axis=1) + clear[ch]).max())
+    if short.any():   # every chain's farthest disk from its hub, all at once
+        far = np.linalg.norm(C[verts] - C[np.repeat(hub, np.diff(cstarts))], axis=1) \
+            + clear[verts]
+        reach = np.where(short, np.maximum.reduceat(far, cstarts[:-1]), 0.0)
     limit = np.full(len(length), max_radius if max_radius is not None else 0.0)
     if room is not None and short.any():
         limit[short] = np.minimum(limit[short], room(C[hub[short]]))
@@ -1746,7 +1747,8 @@ def medial_axis(rings: Sequence[np.ndarray], spacing: float, min_radius: float =
             inner = ch[ch != junction]
             drop |= np.isin(tt, inner) | np.isin(uu, inner)
             pruned = True
-            grown += slack if grown > 0.0 else 0.0
+            if grown > 0.0:   # a branch the junction's disk grows to hold
+                grown += slack
             if grown > clear[junction]:
                 # and its twins: co-circular samples give several triangles one centre,
                 # and the chain may keep a twin of the junction (_no_backtrack_mask drops

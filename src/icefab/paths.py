@@ -1489,15 +1489,8 @@ def centre_paths(rings: list[np.ndarray], w_min: float, w_max: float, filt: floa
     perim = float(geo.ring_perimeters(rings).sum())
     typical = 2.0 * max(geo.area(rings), 0.0) / max(perim, 1e-12)  # a strip's width
     spacing = float(np.clip(typical / 3.0, w_min / 3.0, w_max / 4.0))
-    room = None
-    if region is not None and not region.is_empty:
-        edge = list(region.rings)
-
-        def room(pts: np.ndarray) -> np.ndarray:
-            """How far a bead may reach from each point: to ``region``'s edge (as
-            :func:`_edge_capped` will cap it), less a step of the axis, whose segments
-            reach nearer the edge than their points."""
-            return geo.segment_clearances(pts, pts, edge, w_max / 2.0) - spacing
+    room = (_room_to_edge(region, w_max / 2.0, spacing)
+            if region is not None and not region.is_empty else None)
     # (slack: _simplified keeps the widths within the point filter of their profile)
     chains = geo.medial_axis(rings, spacing, w_min / 2.0, w_max / 2.0, room, filt / 2.0)
     w_lay = min(w_lay, w_max)
@@ -1512,6 +1505,15 @@ def centre_paths(rings: list[np.ndarray], w_min: float, w_max: float, filt: floa
     if variable:
         return _chain_paths(chains, w_cut, w_max, filt, region, min_length)
     return _run_paths(chains, w_cut, w_max, filt, region, min_length)
+
+
+def _room_to_edge(region: Region, upper: float, step: float
+                  ) -> Callable[[np.ndarray], np.ndarray]:
+    """How far a bead may reach from each of some points (k, 2) mm: to ``region``'s edge
+    (as :func:`_edge_capped` will cap it; at most ``upper``), less ``step``, a step of the
+    centre line, whose segments reach nearer the edge than their points."""
+    edge = list(region.rings)
+    return lambda pts: geo.segment_clearances(pts, pts, edge, upper) - step
 
 
 def _chain_paths(chains: list[tuple[np.ndarray, np.ndarray, bool]], w_min: float,

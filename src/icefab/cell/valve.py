@@ -78,38 +78,27 @@ def program_bytes(program: Any) -> bytes:
     return encode_valve_program(program)
 
 
-def _oversized_piece(data: bytes, limit: int) -> tuple[int, int] | None:
-    """(byte offset, pulses) of the first PWM piece of a program in flow's binary layout
-    with more than ``limit`` pulses; None if there is none (or it does not parse)."""
+def _piece_headers(data: bytes) -> list[tuple[int, int]] | None:
+    """(byte offset, pulses) of every piece of a complete program in flow's binary layout
+    (None if it does not parse: the controller will say what is wrong)."""
     try:
-        if data[6] != 1:
-            return None
+        mode = data[6]
         (pieces,) = struct.unpack_from("<I", data, 12)
-        pos = 16
+        pos, out = 16, []
         for _ in range(pieces):
             n, _dur = struct.unpack_from("<II", data, pos)
-            if n > limit:
-                return pos, n
-            pos += 8 + 4 * n
+            out.append((pos, n))
+            pos += 8 + 2 * n * (2 if mode == 1 else 1)
+        return out
     except (struct.error, IndexError):
-        pass
-    return None
+        return None
 
 
 def count_pulses(data: bytes) -> int | None:
     """Pulses in a complete program in flow's binary layout (None if it does not parse:
     the controller will say what is wrong)."""
-    try:
-        mode = data[6]
-        (pieces,) = struct.unpack_from("<I", data, 12)
-        pos, total = 16, 0
-        for _ in range(pieces):
-            n, _dur = struct.unpack_from("<II", data, pos)
-            total += n
-            pos += 8 + 2 * n * (2 if mode == 1 else 1)
-        return total
-    except (struct.error, IndexError):
-        return None
+    pieces = _piece_headers(data)
+    return None if pieces is None else sum(n for _pos, n in pieces)
 
 
 class ValveController:
@@ -311,8 +300,10 @@ class ValveController:
                              allow=frozenset({vf.E_NO_ROOM}))
             if r.is_error:                # NO_ROOM although it fitted: a PWM piece
                 limit = (vf.STORE_BYTES - 8) // 4   # too large to play from the store
-                bad = _oversized_piece(up.data, limit)
-                where = (f"its piece at byte {bad[0]} ({bad[1]} pulses)" if bad
+                pwm = up.data[6:7] == b"\x01"
+                bad = [(pos, n) for pos, n in (_piece_headers(up.data) or []) if n > limit
+                       and pwm]
+                where = (f"its piece at byte {bad[0][0]} ({bad[0][1]} pulses)" if bad
                          else "a piece")
                 raise ValveLinkError(
                     f"{self.name}: valve {up.valve} program refused: {where}; a PWM piece "

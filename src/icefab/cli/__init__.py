@@ -76,7 +76,9 @@ def _stdout_gone() -> bool:
         poll.register(fd, select.POLLOUT)
         gone = any(ev & select.POLLERR for _fd, ev in poll.poll(0))
         if gone:
-            os.dup2(os.open(os.devnull, os.O_WRONLY), fd)
+            null = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(null, fd)
+            os.close(null)
         return gone
     except (OSError, ValueError, AttributeError):   # not a real file (a test's stand-in)
         return False

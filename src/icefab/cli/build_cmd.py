@@ -547,12 +547,13 @@ def _stop(build: Path) -> int:
     from icefab import build as bmod
     from icefab.journal import Journal
 
-    if not (build / bmod.JOURNAL).exists() and _stop_preparing(build):
-        print(f"{build}: stopped while it was being prepared (planning or starting its cell); "
-              "no path was sent to the cell")
-        return 0
-    if not (build / bmod.JOURNAL).exists() and _stop_orphan_cell(build):
-        return 0
+    if not (build / bmod.JOURNAL).exists():
+        if _stop_preparing(build):
+            print(f"{build}: stopped while it was being prepared (planning or starting its "
+                  "cell); no path was sent to the cell")
+            return 0
+        if _stop_orphan_cell(build):
+            return 0
     journal = Journal.open(build / bmod.JOURNAL)
     meta = journal.meta()
     (build / bmod.STOP_REQUEST).write_text("stop\n", encoding="utf-8")
