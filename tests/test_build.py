@@ -6,7 +6,9 @@ at a random command, before or after the cell ran it) and, end to end, by SIGKIL
 ``icefab build`` process; the virtual cell keeps its state in its folder."""
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import io
 import json
 import os
 import re
@@ -1149,6 +1151,57 @@ def test_progress_names_a_layer_by_its_index_and_its_place(planned, tmp_path):
     # a finished build's report stays put (a tester's kept reloading every 30 s)
     page = (build / bmod.REPORT).read_text()
     assert "complete" in page and 'http-equiv="refresh"' not in page
+
+
+def test_a_resumed_build_names_the_layer_it_goes_on_with_before_its_first_path(planned,
+                                                                             tmp_path):
+    """A build's PC dies in layer 2 (its third); resumed, the status written before the
+    first path names layer 2, third of five, with the time left of it and the layers after
+    (a hunt's kill at that moment left "layer 0 (3 of 3), ETA 0:00:00"). And a status that
+    still names a layer the journal says is done (written up to a second before a kill)
+    is read as the next one by 'icefab build --status'."""
+    from icefab.cli.build_cmd import _status
+    from icefab.motion import load_trajectories
+
+    motion = load_trajectories(planned)
+    job = motion.job
+    build = tmp_path / "b"
+    cell = CrashInLayer(_prepared(build, motion, job), layer=2)
+    journal = Journal.create(build / bmod.JOURNAL, {
+        "digests": {}, "layer_indices": [int(lm.index) for lm in motion.layers]})
+    with pytest.raises(Crash):
+        bmod.Runner(build, motion, job, journal, lambda: cell).run()
+    seen = []
+
+    class Watching:
+        def __getattr__(self, name):
+            return getattr(cell.cell, name)
+
+        def run_path(self, seq, path, upcoming=None):
+            if not seen:
+                seen.append(json.loads((build / bmod.STATUS).read_text()))
+            return cell.cell.run_path(seq, path, upcoming)
+
+    bmod.Runner(build, motion, job, journal, lambda: Watching()).run()
+    journal.close()
+    st = seen[0]
+    assert (st["layer"], st["layers_done"], st["layers"]) == (2, 2, LAYERS)
+    assert st["eta_s"] == pytest.approx(sum(lm.duration for lm in motion.layers[2:]))
+    # a status of a killed build that names the layer it had just finished
+    stale = dict(st, state="running", pid=2 ** 22 + 1, layer=1, layers_done=1)
+    (build / bmod.STATUS).write_text(json.dumps(stale))
+    j = Journal.open(build / bmod.JOURNAL)
+    try:
+        with j._tx() as db:   # layers 2-4 not done: the build was killed after layer 1
+            db.execute("UPDATE commands SET done=NULL WHERE layer >= 2")
+    finally:
+        j.close()
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        assert _status(build, as_json=True) == 0
+    got = json.loads(out.getvalue())
+    assert got["state"].startswith("interrupted")
+    assert (got["layer"], got["layers_done"]) == (2, 2)
 
 
 def test_the_journal_counts_paths_done_as_a_query_would(tmp_path):

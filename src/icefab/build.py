@@ -549,6 +549,23 @@ class Runner:
         if p.rms:
             p.last_rms_mm = p.rms[-1][2]
         p.paths_done = self.journal.paths_done()
+
+        def finished(j: int) -> bool:
+            """Whether the layer at position ``j`` is done: ended, and measured if it
+            measures or a fault cut a path of it short."""
+            lm = self.motion.layers[j]
+            L = int(lm.index)
+            return L in done_layers and (not (_items(lm)[1] or L in self.journal.cut_layers())
+                                         or L in smf_layers)
+
+        # the status names the layer the build goes on with (a build killed before its
+        # first status after a resume read "layer 0 (3 of 3), ETA 0:00:00")
+        j0 = next((j for j in range(len(self.motion.layers)) if not finished(j)),
+                  len(self.motion.layers))
+        if self.motion.layers:
+            p.layer = int(self.motion.layers[min(j0, len(self.motion.layers) - 1)].index)
+            p.layer_pos = j0
+            p.remaining_s = float(sum(self._durations[j0:]))
         self._call(lambda cell: None)
         # running from here on for 'icefab build --stop': without it a stop asked during
         # the first path found no status, told the cell directly, and the build ran on
@@ -560,7 +577,7 @@ class Runner:
             p.layer_pos = j
             p.remaining_s = float(sum(self._durations[j:]))
             cut_here = L in self.journal.cut_layers()
-            if L in done_layers and (not (meas_items or cut_here) or L in smf_layers):
+            if finished(j):
                 continue
             lv, cps = self._layer_valves(j, action)
             for kind, said in (("saturation", saturation_finding(lv.programs, L)),

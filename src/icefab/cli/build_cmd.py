@@ -391,6 +391,7 @@ def _run(build: Path, args: argparse.Namespace, *, resume: bool) -> int:
             motion = open_trajectories(build / bmod.TRAJECTORIES)
             meta = {"cell": "virtual" if args.virtual else str(Path(args.cell).resolve()),
                     "cell_time_factor": args.cell_time_factor, "layers": len(motion.layers),
+                    "layer_indices": [int(lm.index) for lm in motion.layers],
                     "inputs": list(args.input),
                     "digests": {"input": in_digest, "job": digest_file(build / "job.toml"),
                                 "trajectories": digest_file(build / bmod.TRAJECTORIES),
@@ -525,7 +526,12 @@ def _status(build: Path, as_json: bool) -> int:
         journal = Journal.open(build / bmod.JOURNAL)
         try:
             st["paths_done"] = journal.paths_done()
-            st["layers_done"] = len(journal.layers_done())
+            done = set(journal.layers_done())
+            st["layers_done"] = len(done)
+            # and the layer it goes on with (the status may still name one it finished)
+            order = journal.meta().get("layer_indices")
+            if order and st["layer"] in done:
+                st["layer"] = next((L for L in order if L not in done), order[-1])
         finally:
             journal.close()
     if as_json:
