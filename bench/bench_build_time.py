@@ -16,7 +16,9 @@ jerk on, default limits) summed without keeping the samples. Per variant:
 * rest stops per layer by cause: travel moves, path starts, PATHSPLIT corners inside
   paths (every trajectory and every split piece starts and ends at rest, thesis 4.1.1),
   and the joins of continuous tours (``paths.join_tours``: stops not made); tours are
-  timed as "boundary tour" / "fill tour";
+  timed as "boundary tour" / "fill tour"; the corner stops by material and kind of path
+  (why they remain: a fill ring's corners over ``motion.smooth_angle_deg`` that its
+  smoothing keeps, the tips of the rings of a wedge-shaped pocket);
 * unfilled area (the paths stage's own measure, ``LayerPaths.unfilled_mm2``) and the
   lowest coverage of any layer's material region of at least 100 mm^2;
 * paths and the ``plan_paths`` wall time;
@@ -130,6 +132,7 @@ def measure(stack, job, toppra_layers: int = 0) -> dict:
     fill_width = {"part": job.materials.part.fill_width_mm,
                   "scaffold": job.materials.scaffold.fill_width_mm}
     joins = 0
+    corners: Counter = Counter()   # why the robot stops: PATHSPLIT corners by kind of path
     for lm in iter_plan_toolpaths(tp, job):
         stops.update(rest_stops(lm.trajectories))
         for t in lm.trajectories:
@@ -143,6 +146,8 @@ def measure(stack, job, toppra_layers: int = 0) -> dict:
             by_role[role] = by_role.get(role, 0.0) + float(t.duration)
             if p is not None:
                 floor += p.length / path_limits(p, job)
+                if p.role != "travel":
+                    corners[f"{p.material} {role}"] += max(len(t.pieces) - 1, 0)
     n = len(tp.layers)
     unfilled = np.array([lp.unfilled_mm2 for lp in tp.layers]).sum(axis=0)
     picks = evenly_spread(n, toppra_layers) if toppra_layers else []
@@ -150,6 +155,7 @@ def measure(stack, job, toppra_layers: int = 0) -> dict:
     return {"mtts_h": sum(by_role.values()) / 3600.0, "floor_h": floor / 3600.0,
             "by_role_h": {k: v / 3600.0 for k, v in sorted(by_role.items())},
             "stops_per_layer": {k: v / n for k, v in stops.items()},
+            "corners_per_layer": {k: v / n for k, v in corners.most_common()},
             "joins_per_layer": joins / n,
             "unfilled_mm2": [float(unfilled[0]), float(unfilled[1])],
             "min_coverage": _coverage(stack, tp), "paths": stops["path starts"], "layers": n,
@@ -165,6 +171,9 @@ def _rows(a: dict, b: dict) -> list[tuple[str, float, float]]:
     for k in a["stops_per_layer"]:
         rows.append((f"rest stops per layer: {k}", a["stops_per_layer"][k],
                      b["stops_per_layer"][k]))
+    ca, cb = a["corners_per_layer"], b["corners_per_layer"]
+    for k in sorted(set(ca) | set(cb), key=lambda k: -max(ca.get(k, 0.0), cb.get(k, 0.0))):
+        rows.append((f"  corner stops per layer in {k} paths", ca.get(k, 0.0), cb.get(k, 0.0)))
     rows.append(("paths joined into tours per layer (stops saved)", a["joins_per_layer"],
                  b["joins_per_layer"]))
     rows += [("unfilled part / scaffold (mm^2)", a["unfilled_mm2"][0], b["unfilled_mm2"][0]),
