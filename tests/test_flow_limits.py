@@ -330,3 +330,34 @@ def test_summarised_findings_total_the_volume_each_kind_costs():
     assert lines[0].startswith("2 paths in 2 layers (1-2): layer 1 part boundary path")
     assert lines[0].endswith("; in all, delivers 4 of 6 mm^3 commanded (-33.3 %)")
     assert "in all" not in lines[1]
+
+
+def test_a_piece_lasts_no_longer_than_the_binary_layout_stores(tmp_path):
+    """A piece's duration is a uint32 count of microseconds: a 1 mm/s path of 4 500 s at a
+    0.1 s tick and flow.max_piece_s = 1e4 (legal, and 65 535 ticks allow 6 553 s) made
+    one 4 500 s piece, and writing it ended in struct.error (a hunt's). Pieces now end
+    within 4 294.97 s, and the file reads back as planned."""
+    from icefab.flow import read_valve_program, write_valve_program
+
+    job = Job().replace(**{"flow.tick_s": 0.1, "flow.max_frequency_hz": 10.0,
+                           "flow.max_piece_s": 1e4})
+    traj = constant_trajectory(1.0, duration=4500.0, dt=0.1)
+    prog = plan_valves(traj, "part", job)
+    pieces = program_pieces(prog)
+    assert len(pieces) == 2 and max(p.duration for p in pieces) <= (2 ** 32 - 2) / 1e6
+    assert sum(p.duration for p in pieces) == pytest.approx(4500.0)
+    write_valve_program(prog, tmp_path / "long.bin")
+    back = read_valve_program(tmp_path / "long.bin")
+    np.testing.assert_allclose(pulse_times(back), pulse_times(prog), atol=1e-6)
+
+
+@pytest.mark.parametrize("settings, name", [
+    ({"flow.tick_s": 1.55e-5}, "flow.tick_s"),
+    ({"feedback.controller": "speed", "feedback.saturation": 1.0}, "feedback.saturation")])
+def test_settings_the_valve_programs_cannot_keep_are_refused(settings, name):
+    """A tick that is no whole number of microseconds was stored rounded in the binary
+    programs (1.55e-5 s read back as 1.6e-5 s: pulses up to 32 ms off); the speed
+    controller at saturation 1 would stop a path (it failed mid-simulation naming an
+    internal argument, 'max_change'). Both are refused up front, naming the setting."""
+    with pytest.raises(ConfigError, match=re.escape(name)):
+        Job().replace(**settings)

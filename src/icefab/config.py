@@ -887,6 +887,16 @@ def _check_cross(job: Job) -> None:
         raise ConfigError(f"parts.copies = {tuple(job.parts.copies)!r}: {p3} copies do not "
                           f"fit a {p1} x {p2} grid")
     fl = job.flow
+    if abs(fl.tick_s * 1e6 - round(fl.tick_s * 1e6)) > 1e-6:
+        raise ConfigError(f"flow.tick_s = {fl.tick_s!r}: must be a whole number of "
+                          "microseconds (valve programs store the tick in microseconds: "
+                          f"{fl.tick_s:g} s was read back as {round(fl.tick_s * 1e6) / 1e6:g} s, "
+                          "every pulse late or early)")
+    if job.feedback.controller == "speed" and job.feedback.saturation >= 1.0:
+        raise ConfigError(f"feedback.saturation = {job.feedback.saturation:g} with "
+                          "feedback.controller = 'speed': must be below 1 (the speed "
+                          "controller slows a path by up to this fraction of its speed; at 1 "
+                          "it would stop)")
     if fl.max_frequency_hz * fl.tick_s > 1.0 + 1e-9:
         raise ConfigError(f"flow.max_frequency_hz = {fl.max_frequency_hz:g}: above "
                           f"1 / flow.tick_s = {1.0 / fl.tick_s:g} Hz, one pulse per "

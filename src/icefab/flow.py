@@ -835,6 +835,20 @@ def piece_pulses(job: "Job") -> int:
     return fl.max_pulses if fl.mode == "fm" else min(fl.max_pulses, PWM_PIECE_PULSES)
 
 
+#: A piece's duration is stored as a uint32 count of microseconds (the binary layout,
+#: :func:`encode_valve_program`).
+PIECE_MAX_US = 2 ** 32 - 1
+
+
+def piece_max_s(job: "Job") -> float:
+    """The longest valve program piece, s: ``flow.max_piece_s``, with every pulse instant
+    within uint16 ticks of the piece's start (less than 65 535.5 ticks) and the duration
+    within the layout's uint32 microseconds (4 294.97 s: a 1 mm/s path at a 0.1 s tick
+    crashed the binary writer)."""
+    tick = job.flow.tick_s
+    return min(job.flow.max_piece_s, 65535.5 * tick, (PIECE_MAX_US - 1) / 1e6)
+
+
 def _split(times: np.ndarray, widths: np.ndarray | None, duration: float, dt: float,
            job: "Job") -> ValveProgram:
     """Pieces of at most max_piece_s and :func:`piece_pulses` pulses, boundaries on
@@ -842,8 +856,7 @@ def _split(times: np.ndarray, widths: np.ndarray | None, duration: float, dt: fl
     fl = job.flow
     most = piece_pulses(job)
     tick = fl.tick_s
-    # ticks must fit uint16: an instant less than 65535.5 ticks from the piece start
-    max_len = min(fl.max_piece_s, 65535.5 * tick)
+    max_len = piece_max_s(job)
     pieces: list[ValveProgram] = []
     t0 = 0.0
     i0 = 0
@@ -897,8 +910,8 @@ def plan_valves(trajectory: Trajectory, material: str, job: "Job | None" = None,
     start to its exact end; PWM: its own periods), every pulse's tick within its span
     (:func:`_kept_in_spans`): nothing over the travel between its paths.
 
-    Returns the first piece; further pieces (split at 131.072 s / 16 384 pulses, on
-    trajectory samples) are in ``.pieces``; :func:`program_pieces` lists all of them and
+    Returns the first piece; further pieces (split at :func:`piece_max_s` and
+    :func:`piece_pulses`: 131.072 s / 16 384 pulses by default, on trajectory samples) are in ``.pieces``; :func:`program_pieces` lists all of them and
     :func:`pulse_times` gives the instants from the trajectory start. ``.warnings`` lists
     every valve limit reached on this path (clamped flow and the volume it costs, PWM pulses
     dropped / raised / cut and the volume error, too few drops per mm, pulses sharing a
@@ -1484,7 +1497,7 @@ def _nominal_fm_programs(trajs: "Sequence[Trajectory]", materials: Sequence[str]
         commanded[tours], laid[tours] = c_tour, l_tour
     tick = fl.tick_s
     most = piece_pulses(job)
-    max_len = min(fl.max_piece_s, 65535.5 * tick)
+    max_len = piece_max_s(job)
     ticks_all = np.clip(np.floor(times / tick + (0.5 + 1e-9)), 0, 65535).astype(np.uint16)
     # pulses sharing a tick with the one before, within each path's one-piece program
     same = np.zeros(len(ticks_all), dtype=np.int64)

@@ -368,14 +368,14 @@ class _Volume:
 def _summary(out, n_layers, fmts, totals, sparse_paths, max_gap, max_gap_width, found, job,
              volume: _Volume) -> list[str]:
     """The one-screen summary of a valves run."""
-    from icefab.flow import summarise_findings
+    from icefab.flow import piece_max_s, piece_pulses, summarise_findings
 
     fl = job.flow
     files = " and ".join(f"{out}/valves/layer_KKKK.{f}" for f in fmts)
     lines = [f"valve programs: {totals['paths']} paths in {n_layers} layers, "
              f"{totals['pulses']} pulses in {totals['pieces']} pieces "
-             f"(mode {fl.mode}, tick {fl.tick_s * 1e3:g} ms, split at {fl.max_piece_s:g} s / "
-             f"{fl.max_pulses} pulses, flow.out_of_range = {fl.out_of_range!r})",
+             f"(mode {fl.mode}, tick {fl.tick_s * 1e3:g} ms, split at {piece_max_s(job):.6g} s / "
+             f"{piece_pulses(job)} pulses, flow.out_of_range = {fl.out_of_range!r})",
              f"written: {files} (one file per layer, its programs in build order), "
              f"{out}/valves-paths.csv (one row per path), {out}/valves-summary.txt",
              f"volume: {volume.text()}"]
