@@ -205,6 +205,30 @@ def test_hole_nodes_do_not_leak_into_new_grid():
     assert np.all(vals[known] == 0.2)
 
 
+def test_nodes_the_laser_missed_keep_their_integral_and_previous_error():
+    """A laser drop-out (NaN nodes inside the footprint) or a layer it saw nothing of
+    (all NaN) is not an error of 0: those nodes keep their integral and previous error for
+    the next layer (a hunt's all-NaN update restarted the integral from 0: 0.066 where
+    0.198 was due)."""
+    job = Job()
+    ki = job.feedback.ki
+    E = HeightMap(np.zeros(2), 1.0, np.full((10, 12), 0.2))
+    _, s = smf_update(SmfState(), E, job)
+    _, s = smf_update(s, E, job)
+    np.testing.assert_allclose(s.integral.z, 2 * ki * 0.2)
+    _, blind = smf_update(s, HeightMap(np.zeros(2), 1.0, np.full((10, 12), np.nan)), job)
+    np.testing.assert_allclose(blind.integral.z, 2 * ki * 0.2)
+    np.testing.assert_allclose(blind.previous_error.z, 0.2)
+    act, _ = smf_update(blind, E, job)
+    np.testing.assert_allclose(act.i, 3 * ki * 0.2)
+    holed = E.z.copy()
+    holed[3:5, 4:8] = np.nan
+    _, s_h = smf_update(s, HeightMap(np.zeros(2), 1.0, holed), job)
+    act, _ = smf_update(s_h, E, job)
+    assert act.i[4, 5] == pytest.approx(3 * ki * 0.2)     # missed one layer's increment
+    assert act.i[0, 0] == pytest.approx(4 * ki * 0.2)
+
+
 def test_action_along():
     z = np.array([[0.0, 0.1, 0.2], [0.0, 0.1, np.nan]])
     hm = HeightMap(np.array([10.0, 20.0]), 2.0, z)

@@ -221,6 +221,25 @@ def test_the_real_smf_controller_closes_the_loop_on_the_annulus():
     assert smf.rms_measured[-1] < 0.1
 
 
+def test_a_job_that_measures_nothing_runs_open_loop_through_the_api_too():
+    """feedback.enabled = false: 'icefab build' and 'icefab simulate' run open loop, and so
+    do simulate_build and simulate_open_and_smf (they ran SMF on the laser along the
+    deposition paths: a hunt's 0.059 mm against 0.191 mm open loop). layers=0 is every
+    layer in both (simulate_open_and_smf said the build had no layers)."""
+    from icefab.sim import simulate_open_and_smf
+
+    job = quiet_job(**{"simulation.flow_error": 0.1, "feedback.enabled": False})
+    tp = annulus_toolpaths(job, 8, measure=False)
+    open_ = simulate_build(tp, job, closed_loop=False)
+    smf = simulate_build(tp, job)
+    assert smf.closed_loop is False and smf.rms[-1] == open_.rms[-1] > 0.15
+    a, b = simulate_open_and_smf(tp, job, layers=0)
+    assert a.n_layers == b.n_layers == 8 and b.rms[-1] == open_.rms[-1]
+    on = job.replace(**{"feedback.enabled": True})
+    a, b = simulate_open_and_smf(annulus_toolpaths(on, 8), on, layers=0)
+    assert a.n_layers == 8 and b.rms[-1] < a.rms[-1] / 2
+
+
 def test_a_debris_pulse_is_a_bump_of_the_configured_height_and_radius():
     job = quiet_job(**{"simulation.debris_rate": 0.3, "simulation.debris_height_mm": 0.5,
                        "simulation.debris_radius_mm": 2.0})

@@ -894,7 +894,9 @@ def smf_update(state: SmfState, error: HeightMap, job: "Job | None" = None, *,
     (eq. 5.1 with eq. 5.2; clamping the integral term is the anti-windup of thesis 5.2.2),
     U'_k = clip(U_k, limits). I_{k-1} and E_{k-1} are re-evaluated on the new grid
     (:func:`regrid`); nodes new to the footprint start with zero integral and zero
-    derivative contribution, and the derivative is left out at k = 1.
+    derivative contribution, and the derivative is left out at k = 1. A node NaN in E_k
+    that the state knows (a laser drop-out, a layer the laser saw nothing of) keeps its
+    integral and previous error for the next layer: not measured is not "error 0".
     """
     if job is None:
         job = Job()
@@ -909,15 +911,17 @@ def smf_update(state: SmfState, error: HeightMap, job: "Job | None" = None, *,
     valid = np.isfinite(E)
     Ez = np.where(valid, E, 0.0)
     if state.integral is not None:
-        i_prev, _ = regrid(state.integral, error)
+        i_prev, i_known = regrid(state.integral, error)
     else:
-        i_prev = np.zeros_like(Ez)
+        i_prev, i_known = np.zeros_like(Ez), np.zeros(Ez.shape, dtype=bool)
+    e_prev, e_known = (regrid(state.previous_error, error)
+                       if state.previous_error is not None
+                       else (np.zeros_like(Ez), np.zeros(Ez.shape, dtype=bool)))
     I = np.clip(i_prev + ki * Ez, -isat, isat)
     P = kp * Ez
     D = np.zeros_like(Ez)
     if state.previous_error is not None and state.k >= 1 and kd != 0.0:
-        e_prev, known = regrid(state.previous_error, error)
-        D = np.where(known, kd * (Ez - e_prev), 0.0)
+        D = np.where(e_known, kd * (Ez - e_prev), 0.0)
     U = P + I + D
     Us = np.clip(U, lo, hi)
     n_valid = int(np.count_nonzero(valid))
@@ -933,9 +937,11 @@ def smf_update(state: SmfState, error: HeightMap, job: "Job | None" = None, *,
         _filled=_nearest_fill(Us, valid) if n_valid else np.zeros_like(Us))
     # the state keeps its own copy: a caller that refills one buffer each layer made the
     # previous error the current one, and the derivative term 0 (a tester's)
-    new_state = SmfState(integral=HeightMap(origin, error.spacing, np.where(valid, I, nan)),
-                         previous_error=HeightMap(origin.copy(), float(error.spacing),
-                                                  E.copy()),
+    # (what a node not measured now knew it keeps)
+    kept_i = np.where(valid, I, np.where(i_known, i_prev, nan))
+    kept_e = np.where(valid, E, np.where(e_known, e_prev, nan))
+    new_state = SmfState(integral=HeightMap(origin, error.spacing, kept_i),
+                         previous_error=HeightMap(origin.copy(), float(error.spacing), kept_e),
                          k=state.k + 1)
     if sat > 0:
         log.info("SMF layer %d: output saturated on %.1f %% of the footprint", state.k + 1,

@@ -94,7 +94,9 @@ def simulate_build(build: "Toolpaths | BuildMotion", job: "Job | None" = None, *
     same build twice, plan once and pass the ``BuildMotion``.
     layers: simulate only the first N layers (default ``job.simulation.layers``, 0 = all).
     closed_loop: run the SMF controller (``controller``, default :func:`smf_controller`)
-        after every measurement layer; False runs open loop (no control action).
+        after every measurement layer; False runs open loop (no control action), and so
+        does a job with ``feedback.enabled = false`` (it measures nothing: ``icefab
+        build`` and ``icefab simulate`` run it open loop).
     keep_surfaces: toolpaths layer indices of measurement layers whose error surfaces
         are kept in the result (for plots like thesis Fig. 5-8); default: the last
         measurement layer.
@@ -125,6 +127,7 @@ def simulate_build(build: "Toolpaths | BuildMotion", job: "Job | None" = None, *
     measure = measurement_layers(plans, job.feedback.interval_layers)
     if keep_surfaces is None:
         keep_surfaces = [plans[measure[-1]].index] if measure else []
+    closed_loop = closed_loop and job.feedback.enabled
     if closed_loop and controller is None:
         controller = smf_controller(job)
     return run_cell(plans, job, measure_layers=measure,
@@ -144,12 +147,19 @@ def simulate_open_and_smf(build: "Toolpaths | BuildMotion", job: "Job | None" = 
                           ) -> tuple[SimResult, SimResult]:
     """:func:`simulate_build` open loop and with SMF, the two builds side by side on two
     worker processes (``cell.cpus`` permitting): they are independent runs of the same
-    seeded cell, so the results are those of two calls in a row. progress: in builds
+    seeded cell, so the results are those of two calls in a row. With
+    ``feedback.enabled = false`` both are the one open-loop run. progress: in builds
     (2)."""
     from icefab.parallel import parallel_map
 
-    if layers is not None:  # only the layers simulated travel to the workers
-        build = dataclasses.replace(build, layers=tuple(build.layers[:max(int(layers), 0)]))
+    job = job if job is not None else getattr(build, "job", None)
+    _chosen(build, job, layers)   # the arguments checked before any worker starts
+    if layers:  # only the layers simulated travel to the workers (0: all)
+        build = dataclasses.replace(build, layers=tuple(build.layers[:int(layers)]))
+    if not job.feedback.enabled:
+        run = simulate_build(build, job, layers=layers, closed_loop=False,
+                             keep_surfaces=keep_surfaces, progress=progress)
+        return run, run
     items = [(build, job, layers, closed, keep_surfaces) for closed in (False, True)]
     open_loop, closed = parallel_map(_simulate_task, items, job or build.job, min_items=2,
                                      progress=progress)
