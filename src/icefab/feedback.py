@@ -162,6 +162,15 @@ def pole_margin_constraints(kp: float, ki: float, kd: float, radius: float
     return c, jac
 
 
+#: Least Kp and Ki* of a constrained search (eq. 5.25: Kp > 0, Ki* > 0; with Ki* fixed at
+#: 3.9 the search returned Kp = 0, outside the volume it promised to keep to).
+MIN_GAIN = 1e-6
+#: Most measurement layers the 1D model is simulated or tuned over: 100 000 (a 25 m part
+#: of 0.25 mm layers measured at every layer) take ~3 s to tune; a billion asked for
+#: 7.5 GiB and ended in numpy's MemoryError (a hunt's).
+MAX_LAYERS = 100_000
+
+
 @dataclass(frozen=True)
 class Disturbance:
     """A disturbance profile d_k for the 1D model (eqs. 5.29-5.32), normalised by dh_m.
@@ -186,9 +195,10 @@ class Disturbance:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        if not isinstance(self.n_layers, (int, np.integer)) or self.n_layers < 1:
+        if not isinstance(self.n_layers, (int, np.integer)) or not (
+                1 <= self.n_layers <= MAX_LAYERS):
             raise ConfigError(f"disturbance n_layers = {self.n_layers!r}: must be an "
-                              "integer >= 1")
+                              f"integer in 1..{MAX_LAYERS} (measurement layers)")
         for name in ("pulses", "steps"):
             for amp, layer in getattr(self, name):
                 if not np.isfinite(amp):
@@ -225,8 +235,9 @@ def _as_d(disturbance: Disturbance | np.ndarray | Sequence[float]) -> np.ndarray
     if isinstance(disturbance, Disturbance):
         return disturbance.sequence()
     d = np.asarray(disturbance, dtype=np.float64)
-    if d.ndim != 1 or len(d) < 1 or not np.all(np.isfinite(d)):
-        raise ConfigError("disturbance: expected a finite (n_layers,) sequence")
+    if d.ndim != 1 or not 1 <= len(d) <= MAX_LAYERS or not np.all(np.isfinite(d)):
+        raise ConfigError(f"disturbance: expected a finite (n_layers,) sequence, n_layers in "
+                          f"1..{MAX_LAYERS}")
     return d
 
 
@@ -412,7 +423,9 @@ def tune_gains(disturbance: Disturbance | np.ndarray = Disturbance(), *,
     constrained: search inside the gain-stable volume (eq. 5.25, 5.38) with SLSQP, kept
         ``pole_margin`` inside the unit circle: every pole of the result has modulus
         <= 1 - pole_margin (Jury's criterion on the scaled polynomial,
-        :func:`pole_margin_constraints`), so the result is strictly stable; otherwise
+        :func:`pole_margin_constraints`; to 1e-6, as a double pole's modulus is computed to
+        about the square root of the rounding), so the result is strictly stable, with
+        Kp and Ki* at least ``MIN_GAIN`` (eq. 5.25's volume is open there); otherwise
         unconstrained BFGS (the thesis' FMINCON / FMINUNC), which may return unstable
         gains (``stable`` False). Both use the analytic gradient (eq. 5.34-5.35).
     pole_margin: in (0, 1), default :data:`POLE_MARGIN` (0.01).
@@ -430,13 +443,15 @@ def tune_gains(disturbance: Disturbance | np.ndarray = Disturbance(), *,
         raise ConfigError("the disturbance is 0 at every layer: every gain gives no error, "
                           "so there is nothing to optimise (give a pulse, step or noise)")
     d_unit = d / size
-    if not np.any(d_unit[:-1]):
-        # the error follows d a layer late (eq. 5.19, H(z) of relative degree 1), whatever
-        # the gains: a pulse at the last layer shows after the horizon, and the start
-        # gains came back "optimised" (a tester's)
-        raise ConfigError("the disturbance shows no error within its layers (a pulse at the "
-                          "last layer shows one layer later, eq. 5.19): every gain gives no "
-                          "error, so there is nothing to optimise; give more layers")
+    if not np.any(d_unit[:-2]):
+        # the error follows d a layer late (eq. 5.19, H(z) of relative degree 1) and the
+        # gains act on it one layer later still: a disturbance only at the last two layers
+        # (or a run of two layers) gives the same error whatever the gains, and the start
+        # gains came back "optimised" (a tester's, a hunt's)
+        raise ConfigError("the disturbance has nothing before its last two layers: its error "
+                          "shows a layer late and the gains act on it a layer later still "
+                          "(eq. 5.19), so every gain gives the same error and there is "
+                          "nothing to optimise; give more layers or an earlier disturbance")
     fix = dict(fix or {})
     for k in fix:
         if k not in _NAMES:
@@ -493,12 +508,13 @@ def tune_gains(disturbance: Disturbance | np.ndarray = Disturbance(), *,
         cons = [{"type": "ineq", "fun": lambda x: 1.0 - 1e-9 - fixed - a_free @ x,
                  "jac": lambda x: -a_free},
                 {"type": "ineq", "fun": margin, "jac": margin_jac}]
-        xs = np.clip(xs, 0.0, None)
+        lower = np.array([0.0 if _NAMES[i] == "kd" else MIN_GAIN for i in free])
+        xs = np.maximum(xs, lower)
         if fixed + a_free @ xs >= 1.0:
             xs = xs * (1.0 - fixed) / (2 * max(a_free @ xs, 1e-12))
         with np.errstate(over="ignore", invalid="ignore"):  # trial steps may diverge
             res = minimize(fun, xs, jac=True, method="SLSQP", constraints=cons,
-                           bounds=[(0.0, None)] * len(free),
+                           bounds=[(lo, None) for lo in lower],
                            options={"ftol": tol, "maxiter": 500})
         g = full(res.x)
         worst = float(np.max(np.abs(poles(*g))))

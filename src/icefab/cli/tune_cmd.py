@@ -58,8 +58,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--unconstrained", action="store_true",
                    help="search outside the gain-stable volume too (BFGS instead of SLSQP)")
     p.add_argument("--pole-margin", default="0.01", metavar="EPS",
-                   help="constrained search: every pole within |z| <= 1 - EPS, so the "
-                        "result is strictly stable (default 0.01)")
+                   help="constrained search: every pole within |z| <= 1 - EPS (to 1e-6), "
+                        "so the result is strictly stable (default 0.01)")
     p.add_argument("--json", action="store_true",
                    help="print one JSON object with kp, ki, kd, rms, max_pole, stable")
     p.add_argument("-o", "--out", metavar="DIR",
@@ -67,7 +67,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _number(text: str, what: str, *, integer: bool = False, lo: float | None = None) -> float:
+def _number(text: str, what: str, *, integer: bool = False, lo: float | None = None,
+            hi: float | None = None) -> float:
     try:
         v = int(text) if integer else float(text)
     except ValueError:
@@ -77,6 +78,8 @@ def _number(text: str, what: str, *, integer: bool = False, lo: float | None = N
         raise ConfigError(f"{what} = {text!r}: must be finite")
     if lo is not None and v < lo:
         raise ConfigError(f"{what} = {text!r}: must be >= {lo:g}")
+    if hi is not None and v > hi:
+        raise ConfigError(f"{what} = {text!r}: must be <= {hi:g}")
     return v
 
 
@@ -106,10 +109,11 @@ def _triple(text: str, option: str) -> tuple[float, float, float]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from icefab.feedback import UNIT_CIRCLE_TOL, Disturbance, evaluate_gains, tune_gains
+    from icefab.feedback import (MAX_LAYERS, UNIT_CIRCLE_TOL, Disturbance, evaluate_gains,
+                                 tune_gains)
 
     job = job_from_args(args)
-    n_layers = int(_number(args.layers, "--layers", integer=True, lo=1))
+    n_layers = int(_number(args.layers, "--layers", integer=True, lo=1, hi=MAX_LAYERS))
     pulses = tuple(_at(t, "--pulse", n_layers) for t in args.pulse)
     steps = tuple(_at(t, "--step", n_layers) for t in args.step)
     noise = 0.0 if args.noise is None else _number(args.noise, "--noise", lo=0.0)
