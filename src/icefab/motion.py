@@ -92,7 +92,7 @@ from __future__ import annotations
 import logging
 import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace as _replace
 from functools import lru_cache
 from typing import Callable, Iterator, Mapping, NamedTuple, Sequence
 
@@ -115,7 +115,7 @@ from icefab.resultfiles import (TRAJECTORIES_FORMAT as FORMAT,  # noqa: F401 (ol
 from icefab.robots import Robot, get_robot, points_box
 from icefab.core import (DEPOSITING_CODES, ROLES, BuildMotion, LayerMotion, LayerPaths,
                          Toolpath, Toolpaths, Trajectory, arc_lengths, checked_widths, offsets,
-                         off_problem, path_lengths, widths_problem)
+                         off_problem, path_lengths, split_rows, widths_problem)
 from icefab.workload import check_motion
 
 log = logging.getLogger(__name__)
@@ -632,7 +632,69 @@ def _plan_polylines(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
     labels: (layer, path index) per polyline, for error messages.
     profiles: ``_speed_profiles(polys, vcaps, job, robot, labels)`` when the caller has
     them already.
+
+    A trajectory whose joints' sampled acceleration (second differences at ``dt``)
+    exceeds a joint's bound is planned again under bounds lowered by that factor (up to
+    ``JOINT_REPLANS`` times): near the SCARA's full reach the joints' rates change within
+    a grid step faster than the bounds at its points say (a hunt's circles 3-15 mm inside
+    the reach reached 1.04-1.26 times joint 2's bound in their slow-down to rest).
+    :func:`plan_paths_durations` times the first plan.
     """
+    out = _plan_polylines_once(polys, vcaps, job, robot, labels, paths, profiles)
+    qa = np.asarray(robot.joint_accel_max, dtype=np.float64)
+    if not (np.isfinite(qa).any() and out):
+        return out
+    pts = (list(split_rows(polys[0], np.cumsum(polys[1])[:-1])) if isinstance(polys, tuple)
+           else list(polys))
+    scale = np.ones(len(out))
+    for _ in range(JOINT_REPLANS):
+        over = _joint_accel_over(out, qa)
+        if not over:
+            break
+        ks = sorted(over)
+        for k in ks:
+            scale[k] *= (JOINT_REPLAN_MARGIN / over[k]) ** 0.5
+        # one plan per distinct factor (every path of a call is planned alike)
+        for f in sorted({float(scale[k]) for k in ks}):
+            sub = [k for k in ks if float(scale[k]) == f]
+            slow = _replace(robot, joint_accel_max=qa * f)
+            again = _plan_polylines_once(
+                [pts[k] for k in sub], np.asarray(vcaps, dtype=np.float64)[sub], job, slow,
+                [labels[k] for k in sub] if labels else None,
+                [paths[k] for k in sub] if paths else None)
+            for k, tr in zip(sub, again):
+                out[k] = tr
+    return out
+
+
+#: Re-plans of a trajectory whose sampled joint acceleration exceeds its bound
+#: (:func:`_plan_polylines`), each under the bounds lowered by the excess and this margin.
+JOINT_REPLANS = 4
+JOINT_REPLAN_MARGIN = 0.98
+
+
+def _joint_accel_over(trajs: Sequence[Trajectory], qa: np.ndarray) -> dict[int, float]:
+    """{index: ratio > 1} of the trajectories whose joints' second differences exceed the
+    joint acceleration bounds ``qa`` (rad/s^2, inf where none) by more than 1e-6."""
+    out = {}
+    lim = np.where(np.isfinite(qa), qa, np.inf)
+    for k, tr in enumerate(trajs):
+        q = tr.joints
+        if q.ndim != 2 or len(q) < 3 or q.shape[1] != len(lim):
+            continue
+        a = np.abs(q[2:] - 2.0 * q[1:-1] + q[:-2]).max(axis=0) / (tr.dt * tr.dt)
+        r = float((a / lim).max())
+        if r > 1.0 + 1e-6:
+            out[k] = r
+    return out
+
+
+def _plan_polylines_once(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
+                         vcaps: np.ndarray, job: Job, robot: Robot,
+                         labels: Sequence[tuple[int, int]] | None = None,
+                         paths: Sequence[Toolpath | None] | None = None,
+                         profiles: _Profiles | None = None) -> list[Trajectory]:
+    """:func:`_plan_polylines` without the joint acceleration's re-plans."""
     pr = profiles if profiles is not None else _speed_profiles(polys, vcaps, job, robot,
                                                                labels)
     in_counts = (polys[1] if isinstance(polys, tuple) else
@@ -1018,7 +1080,8 @@ def plan_paths_durations(paths: Sequence[Toolpath], job: Job | None = None, *,
                          role_speeds: Mapping[str, float] | None = None) -> np.ndarray:
     """(P,) float64 s: the duration of each path's trajectory, exactly as
     :func:`plan_paths_motion` plans it, without sampling it (the speed profiles alone:
-    what a comparison of build times needs)."""
+    what a comparison of build times needs); a path that :func:`plan_paths_motion` plans
+    again for its joints' sampled acceleration (near the SCARA's reach) takes longer."""
     job = job or Job()
     _check_role_speeds(role_speeds)
     robot = robot or get_robot(job)
