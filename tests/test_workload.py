@@ -75,6 +75,33 @@ def test_a_part_over_the_robot_base_is_inside_the_minimum_reach(tmp_path):
         prepare_parts(job)
 
 
+def test_a_part_behind_the_robot_is_refused_before_slicing(tmp_path):
+    """Every point within the reach, but joint 1 would need 129 degrees (range +-105): the
+    part passed 'icefab slice' and only 'icefab paths' refused it (a hunt's)."""
+    job = _job_for(tmp_path, _box((12, 12, 1)), **{
+        "cell.ee_origin_mm": [-300.0, 0.0], "slicing.layer_thickness_mm": 0.5})
+    with pytest.raises(WorkspaceError, match=r"joint 1 at 1[23]\d\.\d+ deg .* beyond its "
+                                             r"range \+/-105 deg"):
+        prepare_parts(job)
+
+
+def test_an_edge_through_the_minimum_reach_is_refused_before_slicing(tmp_path):
+    """A triangle whose three corners lie outside the 163 mm minimum reach while an edge
+    passes 127 mm from the base (a hunt's); the same triangle moved out is accepted."""
+    from shapely.geometry import Polygon
+
+    tri = trimesh.creation.extrude_polygon(Polygon([(200, -20), (300, 300), (-20, 200)]), 1.0)
+    mesh = Mesh(np.asarray(tri.vertices), np.asarray(tri.faces, np.int64), "triangle")
+    at = {"parts.translation": ["orig", "orig", 0.0], "cell.ee_origin_mm": [0.0, 0.0],
+          "feedback.enabled": False, "scaffold.enabled": False,
+          "slicing.layer_thickness_mm": 0.5}
+    assert min(np.hypot(*mesh.vertices[:, :2].T)) > 163.0
+    with pytest.raises(WorkspaceError, match=r"within 127\.\d mm of the robot base along an "
+                                             r"edge.*minimum reach"):
+        prepare_parts(_job_for(tmp_path, mesh, **at))
+    prepare_parts(_job_for(tmp_path, mesh, **{**at, "cell.ee_origin_mm": [60.0, 60.0]}))
+
+
 def test_a_gantry_part_outside_its_travel_is_refused(tmp_path):
     job = _job_for(tmp_path, _box((500, 50, 10)), **{"cell.robot": "gantry"})
     with pytest.raises(WorkspaceError, match="outside its travel cell.gantry_travel_mm"):

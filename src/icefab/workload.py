@@ -86,11 +86,15 @@ def check_layers(z_min: float, z_max: float, job: Job) -> int:
     return max(1, int(round(n)))
 
 
-def check_placed_part(vertices: np.ndarray, job: Job) -> None:
+def check_placed_part(vertices: np.ndarray, job: Job, faces: np.ndarray | None = None
+                      ) -> None:
     """Refuse a placed part that cannot be built by this cell, before slicing.
 
     vertices: (n, 3) float64, mm, the placed part (after ``parts`` scale, rotation,
-    copies and translation), in the part frame.
+    copies and translation), in the part frame; faces: its (m, 3) vertex indices, when
+    given the edges are checked against the SCARA's minimum reach too (an edge passes
+    nearer the base than its ends: a hunt's triangle with every vertex outside the 163
+    mm passed an edge 127 mm from the base, and only 'icefab paths' refused it).
     Raises WorkspaceError naming the settings to change when the part (the slice of it
     ``parts.part_fraction`` selects) is taller than ``cell.stroke_mm``, when a surface
     point lies outside the robot's reach where the water nozzle must put it (with a
@@ -172,6 +176,12 @@ def check_placed_part(vertices: np.ndarray, job: Job) -> None:
                        f"{' with the scaffold around it' if around else ''} under the laser "
                        f"(cell.laser_offset_mm = {list(cell.laser_offset_mm)}; "
                        "feedback.enabled measures it)"))
+    edges = None
+    if faces is not None and len(faces) and cell.robot == "scara":
+        f = np.asarray(faces, dtype=np.int64)
+        keep = ((v[f, 2] >= z0) & (v[f, 2] <= z1)).any(axis=1)
+        e = np.concatenate([f[keep][:, [0, 1]], f[keep][:, [1, 2]], f[keep][:, [2, 0]]])
+        edges = (v[e[:, 0], :2], v[e[:, 1], :2])
     for tool, material, grow, what in checks:
         mat = job.materials[material]
         slack = mat.initial_offset_mm + mat.path_width_mm - grow
@@ -193,6 +203,9 @@ def check_placed_part(vertices: np.ndarray, job: Job) -> None:
                     f"the robot base at part point ({_fmt(xy[k, 0])}, {_fmt(xy[k, 1])}) mm, "
                     f"inside the minimum reach cell.reach_mm = {list(cell.reach_mm)}: "
                     + where)
+            _check_joint1(xy, base, r, slack, what, where, job)
+            if edges is not None:
+                _check_edges_reach(edges, tool, slack, grow, what, where, job)
         else:
             travel = np.asarray(cell.gantry_travel_mm, dtype=np.float64)
             out = (base < -slack) | (base > travel + slack)
@@ -210,6 +223,50 @@ def check_placed_part(vertices: np.ndarray, job: Job) -> None:
                     f"{list(cell.gantry_travel_mm)} (0 to {_fmt(travel[0])} x 0 to "
                     f"{_fmt(travel[1])} mm; part {_fmt(size[0])} x {_fmt(size[1])} mm "
                     "across): " + where)
+
+
+def _check_joint1(xy: np.ndarray, base: np.ndarray, r: np.ndarray, slack: float, what: str,
+                  where: str, job: Job) -> None:
+    """WorkspaceError when a point of the placed part needs joint 1 beyond its range by
+    more than the slack (as an angle at the point's radius): a part behind the robot passed
+    the reach checks and only 'icefab paths' refused it (a hunt's)."""
+    from icefab.robots import get_robot
+
+    robot = get_robot(job)
+    ok = (r >= job.cell.reach_mm[0]) & (r <= job.cell.reach_mm[1])
+    if not ok.any():
+        return
+    q1 = robot.ik(base[ok])[:, 0]
+    lim = float(robot.joint_range[0])
+    over = np.abs(q1) - lim - slack / np.maximum(r[ok], 1.0)
+    k = int(np.argmax(over))
+    if over[k] > 0:
+        i = int(np.flatnonzero(ok)[k])
+        raise WorkspaceError(
+            f"the placed part{what} needs joint 1 at {math.degrees(q1[k]):.2f} deg at part "
+            f"point ({_fmt(xy[i, 0])}, {_fmt(xy[i, 1])}) mm, beyond its range +/-"
+            f"{math.degrees(lim):g} deg (cell.joint_range_deg): " + where)
+
+
+def _check_edges_reach(edges: tuple[np.ndarray, np.ndarray], tool: str, slack: float,
+                       grow: float, what: str, where: str, job: Job) -> None:
+    """WorkspaceError when an edge of the placed part passes inside the SCARA's minimum
+    reach (less the slack) between ends that lie outside it."""
+    a = to_base_frame(edges[0], tool, job)
+    b = to_base_frame(edges[1], tool, job)
+    d = b - a
+    dd = np.einsum("ij,ij->i", d, d)
+    t = np.clip(-np.einsum("ij,ij->i", a, d) / np.where(dd > 0, dd, 1.0), 0.0, 1.0)
+    near = a + t[:, None] * d
+    r = np.hypot(near[:, 0], near[:, 1])
+    k = int(np.argmin(r))
+    rmin = job.cell.reach_mm[0]
+    if r[k] < rmin - slack:
+        p = edges[0][k] + t[k] * (edges[1][k] - edges[0][k])
+        raise WorkspaceError(
+            f"the placed part{what} comes within {_fmt(max(r[k] - grow, 0.0))} mm of the "
+            f"robot base along an edge through part point ({_fmt(p[0])}, {_fmt(p[1])}) mm, "
+            f"inside the minimum reach cell.reach_mm = {list(job.cell.reach_mm)}: " + where)
 
 
 def check_copies(extent_mm: np.ndarray, job: Job) -> None:

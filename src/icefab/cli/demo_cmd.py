@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         # Placed like any part (thesis 3.1.2): by default centred on the building origin.
         mesh = transform(demo_mug(), job.parts, job)
-        check_placed_part(mesh.vertices, job)  # units, stroke, reach: before slicing
+        check_placed_part(mesh.vertices, job, mesh.faces)  # units, stroke, reach: before slicing
         check_slowest_flow(job)  # a flow no valve program can make: before slicing
         report = check_mesh(mesh)
         write_stl(mesh, out / "demo-mug.stl")

@@ -156,5 +156,5 @@ def place_mesh(mesh: Mesh, job: "Job") -> Mesh:
     were skipped on that path: a part in metres or out of reach went on to slicing).
     Raises WorkspaceError or ConfigError naming the setting to change."""
     placed = transform(mesh, job.parts, job)
-    check_placed_part(placed.vertices, job)  # units, stroke, reach: before slicing
+    check_placed_part(placed.vertices, job, placed.faces)  # units, stroke, reach: before slicing
     return prepare_closed(placed, job)
