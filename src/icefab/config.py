@@ -524,7 +524,8 @@ class MotionSettings:
         why="below the path width")
     measure_speed_mm_s: float = setting(
         50.0,
-        "speed along measurement paths",
+        "speed bound along the part's (ice's) measurement paths (thesis 4.2.1: the laser "
+        "reads ice best slowly); the scaffold's are measured at up to motion.speed_mm_s",
         lo=1.0, hi=10000.0,
         why="as speed_mm_s")
     travel_speed_mm_s: float = setting(
