@@ -779,6 +779,17 @@ def test_error_only_degenerate_faces(tmp_path):
         load_mesh(_write(tmp_path, "flat.obj", data))
 
 
+def test_error_only_faces_of_zero_area(tmp_path):
+    """Faces whose corners lie on one line (no repeated index) hold no surface: named as
+    such, not blamed on the units ("set parts.scale", a hunt's). One real face among them
+    is enough."""
+    data = b"v 0 0 0\nv 0 0 5\nv 0 0 10\nv 30 0 0\nv 30 0 10\nf 1 2 3\nf 4 5 4\n"
+    with pytest.raises(MeshError, match=r"line\.obj: every face has zero area"):
+        load_mesh(_write(tmp_path, "line.obj", data))
+    ok = data + b"v 0 30 0\nf 1 4 6\n"
+    assert load_mesh(_write(tmp_path, "one.obj", ok)).n_faces >= 1
+
+
 def test_text_files_with_bom_and_utf8_names(tmp_path):
     ref = _tm("box")
     text = trimesh.exchange.stl.export_stl_ascii(ref).replace("solid", "solid Würfel", 1)

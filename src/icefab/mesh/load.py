@@ -166,10 +166,27 @@ def read_mesh(path: str | os.PathLike[str], *, inexact: bool = False,
     report = dataclasses.replace(report, merged_vertices=int(n_in - len(vertices)))
     if len(mesh.faces) == 0:
         raise MeshError(f"{p}: every face is degenerate; nothing left to slice")
+    if not _any_area(mesh):
+        # corners on one line: no surface to slice (it was blamed on the units, "set
+        # parts.scale", a hunt's)
+        raise MeshError(f"{p}: every face has zero area (its corners lie on one line); "
+                        "nothing to slice")
     found = tuple(report.warnings())
     for w in found:
         log.warning("%s", w)
     return dataclasses.replace(mesh, warnings=found), report
+
+
+def _any_area(mesh: Mesh) -> bool:
+    """Whether any face has an area above 1e-12 of the squared bounding-box diagonal."""
+    v = mesh.vertices
+    diag2 = float(np.sum((v.max(axis=0) - v.min(axis=0)) ** 2))
+    for faces in (mesh.faces[:1024], mesh.faces):   # a real mesh answers in its first faces
+        a, b, c = (v[faces[:, i]] for i in range(3))
+        area2 = np.sum(np.cross(b - a, c - a) ** 2, axis=1)   # (2 x area)^2
+        if (area2 > (2e-12 * diag2) ** 2).any():
+            return True
+    return False
 
 
 def load_mesh(path: str | os.PathLike[str], *, inexact: bool = False,
