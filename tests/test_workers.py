@@ -131,3 +131,26 @@ def test_an_interrupted_map_does_not_run_the_rest_first(streamed):
         else:
             parallel_map(_slow, items, job, progress=stop)
     assert time.monotonic() - t0 < 8.0
+
+
+def _fails_first(x):
+    if x == 0:
+        raise ValueError("item 0")
+    time.sleep(0.5)
+    return x
+
+
+def test_a_failed_map_leaves_nothing_for_the_exit_hook_to_wake():
+    """A map that fails shuts its pool down without waiting and takes it off
+    concurrent.futures' exit hook, which on CPython 3.11 could write to the manager
+    thread's closed pipe and print "Exception ignored ... Bad file descriptor" after the
+    command's one-line error (a hunt's simulate, 2 runs in 3)."""
+    import concurrent.futures.process as cfp
+
+    from icefab.parallel import parallel_map
+
+    job = Job().replace(**{"cell.cpus": 2})
+    before = set(cfp._threads_wakeups)
+    with pytest.raises(ValueError, match="item 0"):
+        parallel_map(_fails_first, [0, 1], job, min_items=2)
+    assert set(cfp._threads_wakeups) <= before

@@ -88,9 +88,26 @@ def _pool(workers: int) -> Iterator[ProcessPoolExecutor]:
         # the items not started are dropped; the workers finish the chunk each is on (a
         # few layers; terminating them makes the pool's own thread fail on the cancelled
         # items) and die with this process
+        manager = getattr(pool, "_executor_manager_thread", None)   # shutdown drops it
         pool.shutdown(wait=False, cancel_futures=True)
+        _forget_wakeup(manager)
         raise
     pool.shutdown(wait=True)
+
+
+def _forget_wakeup(manager: object) -> None:
+    """Take the manager thread of a pool shut down without waiting off concurrent.futures'
+    exit hook: the hook
+    wakes the pool's manager thread through a pipe the thread may be closing as it ends,
+    and CPython 3.11 then prints "Exception ignored ... OSError: [Errno 9] Bad file
+    descriptor" after the one-line error of a failed command (a hunt's, 2 runs in 3; fixed
+    in CPython 3.12's _ThreadWakeup). The shutdown has woken the thread already, and the
+    interpreter joins it at exit as any thread."""
+    import concurrent.futures.process as cfp
+
+    wakeups = getattr(cfp, "_threads_wakeups", None)
+    if manager is not None and wakeups is not None:
+        wakeups.pop(manager, None)
 
 
 def parallel_map(fn: Callable[[T], R], items: Sequence[T], job: "Job",
