@@ -283,12 +283,19 @@ def test_paths_the_simulator_cannot_use_are_named():
     job = quiet_job()
     bad = [Toolpath(points=_circle(20.0), z=0.25, role="fill", closed=True, width=3.0,
                 frame="base"),
-           Toolpath(points=np.array([[0.0, 0.0], [np.nan, 1.0]]), z=0.25, role="fill", width=3.0),
-           Toolpath(points=_circle(20.0), z=0.25, role="fill", closed=True, width=0.0)]
-    for path, msg in zip(bad, ["'base' frame", "NaN", "width 0.0"]):
+           Toolpath(points=np.array([[0.0, 0.0], [np.nan, 1.0]]), z=0.25, role="fill", width=3.0)]
+    for path, msg in zip(bad, ["'base' frame", "NaN"]):
         tp = Toolpaths(layers=(LayerPaths(index=5, z=0.25, paths=(path,)),), job=job)
         with pytest.raises(SimulationError, match=f"layer 5: .*{msg}"):
             simulate_build(tp, job, closed_loop=False)
+    # width 0 (Toolpath's default): its material's, as the valve programs take it (the
+    # simulator refused it while plan_valves laid it at the fill width, a hunt's)
+    runs = []
+    for w in (0.0, job.materials.part.fill_width_mm):
+        path = Toolpath(points=_circle(20.0), z=0.25, role="fill", closed=True, width=w)
+        tp = Toolpaths(layers=(LayerPaths(index=0, z=0.25, paths=(path,)),), job=job)
+        runs.append(simulate_build(tp, job, closed_loop=False))
+    assert runs[0].volume_commanded == runs[1].volume_commanded > 0
 
 
 def test_the_calibrated_latency_is_taken_off_the_lasers_own():

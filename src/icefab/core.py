@@ -324,8 +324,10 @@ class Toolpath:
         carry the material whose surface they measure).
     role: "boundary", "fill", "measure" or "travel".
     closed: a closed path returns to its first point (the point is not repeated).
-    width: deposition width, mm (0 for travel and measure); for a variable-width path its
-        nominal width: the mean of ``widths`` over the length.
+    width: deposition width, mm (0 for travel and measure; a deposition path given 0 is
+        laid at its material's width, the fill width for fill and the path width
+        otherwise, by the valve programs and the simulator alike); for a variable-width
+        path its nominal width: the mean of ``widths`` over the length.
     layer: index of the layer it belongs to (-1 when not part of a stack).
     frame: "part" (building frame) or "base" (robot base frame).
     tool: whose frame the points are given for: "part" (water nozzle), "scaffold"

@@ -5,6 +5,7 @@ runs for it (:func:`layer_valves`) and which layers are measured.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from dataclasses import dataclass, field
@@ -104,11 +105,14 @@ def plan_layer(index: int, paths: Sequence[Toolpath], job: "Job",
             continue
         if not p.depositing:
             continue
-        if not p.width > 0:
-            raise SimulationError(f"layer {index}: {p.material} {p.role} path has width "
-                                  f"{p.width}; expected > 0 mm")
         if p.material not in MATERIAL_ID:
             raise SimulationError(f"layer {index}: unknown material {p.material!r}")
+        if p.width == 0 and p.widths is None:
+            # no width given: its material's, as the valve programs take it
+            # (flow.trajectory_width; the two disagreed on the same path, a hunt's)
+            mat = job.materials[p.material]
+            p = dataclasses.replace(p, width=float(
+                mat.fill_width_mm if p.role == "fill" else mat.path_width_mm))
         speed = m.boundary_speed_mm_s if p.role == "boundary" else m.fill_speed_mm_s
         # a tour deposits its paths, not its travel (Toolpath.off)
         for q in tour_members(p):
