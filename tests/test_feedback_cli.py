@@ -119,6 +119,7 @@ def test_tune_refuses_what_it_used_to_tune_against_nothing(capsys, tmp_path):
     rc, _, _ = run(capsys, "-o", str(tmp_path / "t"))
     assert rc == 0
     data = json.loads((tmp_path / "t" / "tune.json").read_text())
+    assert (data["format"], data["version"]) == ("icefab-tune", 1)
     assert (data["pulses"], data["steps"], data["noise"]) == ([[0.5, 60]], [[0.2, 30]], 0.0)
     # a large disturbance: the same optimum (the model is linear)
     rc, out, _ = run(capsys, "--pulse", "1e6@60", "--json")

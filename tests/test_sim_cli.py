@@ -44,6 +44,8 @@ def test_simulate_prints_both_errors_and_writes_the_figures(toolpaths_file, tmp_
     for name in ("rms_vs_height.png", "surfaces.png", "simulation.json", "rms.csv"):
         assert (out / name).stat().st_size > 0
     data = json.loads((out / "simulation.json").read_text())
+    # every result file says what it is (README, "Files"; this one did not, a hunt's)
+    assert (data["format"], data["version"]) == ("icefab-simulation", 1)
     assert data["open_loop"]["layers"] == [3, 7] and data["smf"]["closed_loop"]
     assert data["settings"]["simulation"]["flow_error"] == 0.2
     assert data["settings"]["simulation"]["seed"] == 3

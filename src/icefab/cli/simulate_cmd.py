@@ -264,7 +264,8 @@ def write_simulation_outputs(open_loop: "SimResult", closed: "SimResult", out: P
     if surface_layer is not None and surface_layer not in common:
         raise ConfigError(f"--surface-layer {surface_layer}: not a measurement layer of the "
                           f"simulation (measured: {', '.join(map(str, open_loop.layers))})")
-    data = {"open_loop": _strict_json_figures(open_loop, "open-loop", job),
+    data = {"format": "icefab-simulation", "version": 1,
+            "open_loop": _strict_json_figures(open_loop, "open-loop", job),
             "smf": _strict_json_figures(closed, "SMF", job),
             "surface_layer": surface_layer, "null_means": NULL_MEANS}
     if job is not None:
