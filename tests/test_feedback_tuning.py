@@ -235,6 +235,9 @@ def test_tune_refuses_what_it_cannot_compute_or_optimise(capsys):
                        # start gains came back "optimised")
                        (["--pulse", "1@99"], "nothing before its last two layers"),
                        (["--noise", "1", "--layers", "2"], "nothing before its last two"),
+                       # numpy's overflow warnings, then an error naming no option
+                       (["--pulse", "1e308@60", "--step", "1e308@30"], "add up to more "
+                                                                       "than a float holds"),
                        # a billion layers ended in numpy's MemoryError
                        (["--layers", "1000000000"], "--layers = '1000000000': must be <= "
                                                     "100000"),

@@ -220,14 +220,21 @@ class Disturbance:
         """(n_layers,) float64: d_1 .. d_n (eq. 5.29)."""
         k = np.arange(1, self.n_layers + 1)
         d = np.zeros(self.n_layers)
-        for amp, layer in self.pulses:
-            d[k == int(layer)] += amp
-        for amp, layer in self.steps:
-            d[k >= int(layer)] += amp
-        if self.noise:
-            rng = np.random.default_rng(self.seed)
-            rn = rng.random(self.n_layers)
-            d += np.where(k >= self.noise_from, self.noise * (rn - 0.5), 0.0)
+        with np.errstate(over="ignore"):   # checked below, in one line
+            for amp, layer in self.pulses:
+                d[k == int(layer)] += amp
+            for amp, layer in self.steps:
+                d[k >= int(layer)] += amp
+            if self.noise:
+                rng = np.random.default_rng(self.seed)
+                rn = rng.random(self.n_layers)
+                d += np.where(k >= self.noise_from, self.noise * (rn - 0.5), 0.0)
+        if not np.all(np.isfinite(d)):
+            # 1e308 pulse and step at once: numpy's overflow warnings, then an error
+            # naming no option (a hunt's)
+            raise ConfigError(f"disturbance: the pulses, steps and noise add up to more "
+                              f"than a float holds at layer {int(k[~np.isfinite(d)][0])}: "
+                              "give smaller amplitudes")
         return d
 
 
