@@ -830,6 +830,34 @@ def test_a_new_build_takes_the_parts_its_job_names(tmp_path, capsys):
     assert not (tmp_path / "b").exists()
 
 
+def test_a_build_started_here_while_this_one_planned_is_left_alone(planned, tmp_path,
+                                                                    capsys, monkeypatch):
+    """Two builds into one folder: the second finished its planning after the first had
+    started (and completed), deleted the first one's cell, wrote over its job and
+    trajectories and only then failed at the journal (a hunt's: the first build could not
+    be resumed, a cell ran on). It now looks again once it holds the folder's lock."""
+    from icefab.cli import build_cmd, main
+
+    b = tmp_path / "b"
+    real = build_cmd._plan
+
+    def plan_while_another_starts(args, out):
+        got = real(args, out)
+        (b / "cell").mkdir(parents=True)
+        (b / "cell" / "surface.npz").write_bytes(b"the first build's")
+        (b / "job.toml").write_text("# the first build's\n")
+        Journal.create(b / bmod.JOURNAL, {"digests": {}}).close()
+        return got
+
+    monkeypatch.setattr(build_cmd, "_plan", plan_while_another_starts)
+    assert main(["build", str(planned), "-o", str(b), "--virtual"]) == 2
+    err = capsys.readouterr().err
+    assert "another build started in this folder while this one was planning" in err
+    assert (b / "cell" / "surface.npz").read_bytes() == b"the first build's"
+    assert (b / "job.toml").read_text() == "# the first build's\n"
+    assert not (b / bmod.TRAJECTORIES).exists()
+
+
 def test_an_endpoints_file_that_is_no_file_is_refused_before_planning(tmp_path, capsys):
     # a tester's --cell /dev/zero ran out of memory, a FIFO hung with a build folder made
     import os

@@ -380,6 +380,14 @@ def _run(build: Path, args: argparse.Namespace, *, resume: bool) -> int:
                 created = not build.exists()
                 build.mkdir(parents=True, exist_ok=True)
                 lock = _lock(build)
+                if jpath.exists():
+                    # another build started here while this one planned (a hunt's second
+                    # build deleted the first one's cell and wrote over its job and
+                    # trajectories, then failed at the journal)
+                    lock.close()
+                    raise ConfigError(f"{build}: another build started in this folder while "
+                                      f"this one was planning: resume it with 'icefab build "
+                                      f"--resume {build}' or choose another -o")
                 cdir = build / bmod.CELL_DIR
                 if cdir.is_dir():
                     # a start killed before its journal existed: nothing was sent; start afresh
