@@ -240,3 +240,36 @@ def test_a_number_runs_once_and_the_last_done_never_goes_back(robot):
         link.go(b)
         link.wait_done(b)
         assert b < a and link.status()["last_done"] == a      # the highest run
+
+
+class FailsAfterRunning(Recorder):
+    """A cell model whose path runs (deposits) and then fails: the virtual cell's surface
+    save on a full disk."""
+
+    def path_run(self, seq, path, stop, time_factor):
+        super().path_run(seq, path, stop, time_factor)
+        raise OSError(28, "No space left on device")
+
+
+def test_a_cell_that_fails_after_a_path_ran_cuts_it_and_runs_no_more():
+    """A hunt's virtual cell on a full disk: the path ran, the save failed, the robot sent
+    no reply and kept no cut, and the build sent the same path again, 21 times. The path is
+    now cut (never run again), the GO refused at once with error 12, and every later path
+    refused with it too (a permanent refusal: the build stops, naming it)."""
+    from icefab.errors import CellRefused
+
+    hooks = FailsAfterRunning()
+    vr = VirtualRobot(hooks, max_points=64, max_paths=2).start()
+    try:
+        with RobotLink.connect("127.0.0.1", vr.port, timeout_s=5) as link:
+            link.hello()
+            a = link.upload(_path())
+            link.go(a)
+            with pytest.raises(CellRefused, match="error 12 .*runs no more paths"):
+                link.wait_done(a, timeout_s=5)
+            assert link.status()["cut"] == a
+            with pytest.raises(CellRefused, match="error 12"):
+                link.upload(_path(index=1))
+        assert [p[0] for p in hooks.paths] == [a]
+    finally:
+        vr.stop()

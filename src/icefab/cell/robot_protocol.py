@@ -131,11 +131,13 @@ ERRORS = {1: "malformed message", 2: "sequence: points or end of another path th
           10: "a point is off the virtual cell's surface (icefab cell serve --grid-for or "
               "--bounds: start it over the part)",
           11: "the path's number, a build's (below FIRST_LINK_SEQ), is at or below the "
-              "last path done: a number runs once"}
+              "last path done: a number runs once",
+          12: "the cell failed and runs no more paths (a virtual cell: its state folder's "
+              "cell.log says why, e.g. a full disk)"}
 
 #: refusals that the same command sent again would meet again (the others: a damaged
 #: line, a full store, a motion under way, may pass after a new session settles)
-PERMANENT_ERRORS = frozenset({4, 8, 9, 10, 11})
+PERMANENT_ERRORS = frozenset({4, 8, 9, 10, 11, 12})
 
 #: robot states of ``SS`` replies
 STATES = {0: "idle", 1: "moving", 2: "aborted"}

@@ -83,6 +83,7 @@ class VirtualRobot:
         self._state = 0
         self._last_done = int(last_done)   # kept by the cell across restarts (its hooks)
         self._cut = int(cut)
+        self._failed = False   # the cell model failed: no more paths (ERRORS[12])
         self._last: tuple[str, int, bytes] | None = None
         self._conn: socket.socket | None = None
         self._motion = threading.Thread(target=self._motion_loop, daemon=True)
@@ -268,6 +269,8 @@ class VirtualRobot:
                              width_mm=float(h["width"]), layer=int(h["layer"]),
                              index=int(h["index"]))
             code = self.hooks.refuse(path) if hasattr(self.hooks, "refuse") else 0
+            if self._failed:
+                code = 12
             if code:
                 self._reply_error(msg.seq, code, "PE")
                 return
@@ -276,6 +279,9 @@ class VirtualRobot:
 
     def _on_go(self, msg: rp.Decoded) -> None:
         with self._go:
+            if self._failed:
+                self._reply_error(msg.seq, 12, "GO")
+                return
             if self._moving or any(q[0] == "go" for q in self._queue):
                 self._reply_error(msg.seq, 7, "GO")
                 return
@@ -353,3 +359,12 @@ class VirtualRobot:
                 with self._go:
                     self._moving = 0
                     self._state = 2
+                    if kind == "go":
+                        # it may have run (deposited) before the failure: cut, never run
+                        # again; and no path after it (a full disk failed the surface's
+                        # save after each deposit: one path was laid 21 times, a hunt's)
+                        self._cut = seq
+                        self._stored.clear()
+                    self._failed = True
+                if kind == "go":   # at once, not the link's timeout for a "done"
+                    self._reply_error(seq, 12, "GO")
