@@ -281,6 +281,12 @@ class Progress:
     waiting: str = ""           # the link fault the build is waiting out ("" when none)
 
 
+def measures(lm: "LayerMotion") -> bool:
+    """Whether a layer has measurement trajectories (the runner measures it after its
+    deposition, before the layer counts as done)."""
+    return bool(_items(lm)[1])
+
+
 def _items(lm: "LayerMotion") -> tuple[list[tuple[int, object]], list[tuple[int, object]]]:
     """(deposition and travel, measurement) trajectories of a layer as (index, traj)."""
     run, measure = [], []
@@ -542,7 +548,7 @@ class Runner:
         state, action = self._restore()
         done_layers = set(self.journal.layers_done())
         measured = {m["layer"]: m for m in self.journal.measurements()}
-        smf_layers = {m["layer"] for m in self.journal.measurements()}
+        smf_layers = self.journal.measured_layers()
         dh = job.slicing.layer_thickness_mm
         p = self.progress
         p.rms = [(m["layer"], m["nominal_z"], m["rms_measured"]) for m in measured.values()]
@@ -666,8 +672,8 @@ class Runner:
                 if L not in smf_layers:
                     state, u, filled, rms = smf_from_samples(samples, nominal, state, job)
                     k = len(smf_layers) + 1
-                    self.journal.measurement(k, L, nominal, samples, rms)
-                    self.journal.smf_state(k, L, pack_smf(state, u, filled))
+                    self.journal.measurement(k, L, nominal, samples, rms,
+                                             smf_state=pack_smf(state, u, filled))
                     smf_layers.add(L)
                     p.rms.append((L, nominal, rms))
                     p.last_rms_mm = rms

@@ -320,11 +320,21 @@ class Journal:
         return None if row is None else _samples(row[0])
 
     def measurement(self, k: int, layer: int, nominal_z: float, samples: np.ndarray,
-                    rms_measured: float) -> None:
+                    rms_measured: float, smf_state: bytes | None = None) -> None:
+        """The k-th measurement (layer ``layer``) and, given, the SMF state it led to, in
+        one transaction: written apart, a build killed between them resumed with that
+        layer measured and its update lost (a hunt's: 0.108 mm final RMS against 0.043)."""
         with self._tx() as db:
             db.execute("INSERT OR IGNORE INTO measurements VALUES (?, ?, ?, ?, ?, ?)",
                        (k, layer, nominal_z, _samples_blob(samples), rms_measured,
                         time.time()))
+            if smf_state is not None:
+                db.execute("INSERT OR IGNORE INTO smf VALUES (?, ?, ?, ?)",
+                           (k, layer, smf_state, time.time()))
+
+    def measured_layers(self) -> set[int]:
+        """The layers with a measurement (their samples not read)."""
+        return {int(r[0]) for r in self._db.execute("SELECT layer FROM measurements")}
 
     def measurements(self) -> list[dict[str, Any]]:
         out = []
@@ -334,11 +344,6 @@ class Journal:
             out.append({"k": k, "layer": layer, "nominal_z": nz, "rms_measured": rms,
                         "time": t, "samples": _samples(blob)})
         return out
-
-    def smf_state(self, k: int, layer: int, state: bytes) -> None:
-        with self._tx() as db:
-            db.execute("INSERT OR IGNORE INTO smf VALUES (?, ?, ?, ?)",
-                       (k, layer, state, time.time()))
 
     def last_smf(self) -> tuple[int, int, bytes] | None:
         row = self._db.execute("SELECT k, layer, state FROM smf ORDER BY k DESC LIMIT 1"

@@ -400,6 +400,8 @@ def _run(build: Path, args: argparse.Namespace, *, resume: bool) -> int:
             meta = {"cell": "virtual" if args.virtual else str(Path(args.cell).resolve()),
                     "cell_time_factor": args.cell_time_factor, "layers": len(motion.layers),
                     "layer_indices": [int(lm.index) for lm in motion.layers],
+                    "measured_layers": [int(lm.index) for lm in motion.layers
+                                        if bmod.measures(lm)],
                     "inputs": list(args.input),
                     "digests": {"input": in_digest, "job": digest_file(build / "job.toml"),
                                 "trajectories": digest_file(build / bmod.TRAJECTORIES),
@@ -534,10 +536,15 @@ def _status(build: Path, as_json: bool) -> int:
         journal = Journal.open(build / bmod.JOURNAL)
         try:
             st["paths_done"] = journal.paths_done()
-            done = set(journal.layers_done())
+            meta = journal.meta()
+            # a layer is done when it ended and, if it measures, its measurement is in
+            # (the runner's rule: a build killed in its measurement goes on with it)
+            measured = journal.measured_layers()
+            done = {L for L in journal.layers_done()
+                    if L not in set(meta.get("measured_layers", ())) or L in measured}
             st["layers_done"] = len(done)
             # and the layer it goes on with (the status may still name one it finished)
-            order = journal.meta().get("layer_indices")
+            order = meta.get("layer_indices")
             if order and st["layer"] in done:
                 st["layer"] = next((L for L in order if L not in done), order[-1])
         finally:
