@@ -102,6 +102,26 @@ def test_value_format_round_trips_to_a_tenth_of_a_micrometre(v):
         assert abs(back - v) <= 0.5e-4 + 1e-12
 
 
+@pytest.mark.parametrize("text", ["+1.0E300", "+1e+0999", "+nan    ", "+inf    ",
+                                  "+1_2.345", "+0001234", "+12.34.5", "+123.456", " 01.2345"])
+def test_a_value_outside_the_lk_g_format_is_a_link_fault(text):
+    """A sign and seven characters, digits around one point, within +-99.9999 mm (manual
+    p. 5-6): float() alone took "+1.0E300", and a corrupted readout at 1e300 mm drove SMF to
+    its limit while the build said it completed (a hunt's)."""
+    with pytest.raises(CellError, match="malformed measurement value"):
+        lkg.parse_value(text)
+
+
+@settings(max_examples=300, deadline=None, derandomize=True)
+@given(st.text(alphabet="+-.0123456789eEnaifFX_ ", min_size=8, max_size=8))
+def test_every_value_field_is_a_height_within_range_or_refused(text):
+    try:
+        v = lkg.parse_value(text)
+    except CellError:
+        return
+    assert math.isnan(v) or abs(v) <= lkg.RANGE_MM
+
+
 @settings(max_examples=300, deadline=None, derandomize=True)
 @given(st.text(max_size=40))
 def test_the_emulator_answers_every_line(line):

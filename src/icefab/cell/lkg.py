@@ -25,6 +25,7 @@ the path ``AP`` (stop) and ``AO,1`` read the values out. ``M0`` reads the curren
 from __future__ import annotations
 
 import math
+import re
 
 from icefab.errors import CellError
 
@@ -66,9 +67,12 @@ def parse_value(text: str) -> float:
     CellError if it is none of these."""
     if text in (OVER, UNDER, INVALID):
         return math.nan
-    if len(text) != 8 or text[0] not in "+-":
+    # a sign and seven characters, digits around one decimal point (manual p. 5-6:
+    # "+01.2345"); float() alone took "+1.0E300", "+nan    " and "+1_2.345", and one
+    # corrupted readout drove SMF to its limit (a hunt's)
+    if not _VALUE.fullmatch(text) or abs(float(text)) > RANGE_MM:
         raise CellError(f"laser: malformed measurement value {text[:16]!r}")
-    try:
-        return float(text)
-    except ValueError:
-        raise CellError(f"laser: malformed measurement value {text[:16]!r}") from None
+    return float(text)
+
+
+_VALUE = re.compile(r"[+-](?=[0-9.]{7}$)[0-9]+\.[0-9]+")
