@@ -494,8 +494,23 @@ def test_every_bad_frame_class_gets_its_error_frame(firmware, case, code):
 
 
 def test_open_missing_port_names_it():
-    with pytest.raises(ValveLinkError, match="/dev/does-not-exist"):
+    with pytest.raises(ValveLinkError, match="^valve controller at /dev/does-not-exist: "):
         ValveController.open("/dev/does-not-exist")
+
+
+def test_a_silent_port_is_named_as_the_valve_controllers():
+    """A pty that never answers: 'robot at ...' and 'laser at ...' say which device failed,
+    the valve's message gave the pty path alone (a hunt's)."""
+    import pty
+
+    master, slave = pty.openpty()
+    try:
+        with pytest.raises(ValveLinkError, match=r"^valve controller at /dev/pts/\d+: no "
+                                                 r"answer to HELLO"):
+            ValveController.open(os.ttyname(slave), timeout_s=0.05, retries=1)
+    finally:
+        os.close(master)
+        os.close(slave)
 
 
 def test_firmware_dir_is_the_clones():

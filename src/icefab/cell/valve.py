@@ -136,9 +136,11 @@ class ValveController:
             port = serial.serial_for_url(url, baudrate=baudrate, bytesize=8, parity="N",
                                          stopbits=1, timeout=0.005)
         except (serial.SerialException, OSError, ValueError) as exc:
-            raise ValveLinkError(f"{url}: cannot open the valve controller's port ({exc})") \
+            raise ValveLinkError(f"valve controller at {url}: cannot open its port ({exc})") \
                 from None
-        ctl = cls(port, name=url, **kwargs)
+        # named as the robot's and laser's links are ("robot at ...", "laser at ..."): a
+        # pty path alone did not say which device failed (a hunt's)
+        ctl = cls(port, name=f"valve controller at {url}", **kwargs)
         try:
             ctl.hello()
         except ValveLinkError:
