@@ -1259,9 +1259,26 @@ def test_a_measurement_and_the_smf_state_it_led_to_are_one_transaction(tmp_path)
         assert [m["layer"] for m in j.measurements()] == [3]
         assert j.last_smf() == (1, 3, b"state 1")
         j._db.execute("DROP TABLE smf")    # the second insert fails
-        with pytest.raises(sqlite3.OperationalError):
+        with pytest.raises(JournalError, match="j.sqlite: the journal cannot be written"):
             j.measurement(2, 7, 2.0, np.zeros((2, 3)), 0.04, smf_state=b"state 2")
         assert [m["layer"] for m in j.measurements()] == [3]
+    finally:
+        j.close()
+
+
+def test_a_journal_that_cannot_be_written_is_named_in_one_line(tmp_path):
+    """A full disk under the journal ended the build, and every resume, with sqlite3's
+    traceback (a hunt's); any write the journal cannot make is one JournalError naming it
+    (here a read-only connection: root writes through file modes)."""
+    j = Journal.create(tmp_path / "j.sqlite", {"digests": {}})
+    try:
+        j._db.execute("PRAGMA query_only = 1")
+        with pytest.raises(JournalError, match=r"j\.sqlite: the journal cannot be written "
+                                               r"\(attempt to write a readonly database\)"):
+            j.event("start", "a build")
+        j._db.execute("PRAGMA query_only = 0")
+        j.event("start", "a build")       # nothing was left half-done
+        assert [e["text"] for e in j.events()] == ["a build"]
     finally:
         j.close()
 

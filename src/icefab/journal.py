@@ -162,19 +162,43 @@ class Journal:
         self._db.close()
 
     class _Tx:
-        def __init__(self, db: sqlite3.Connection) -> None:
+        def __init__(self, db: sqlite3.Connection, path: Path) -> None:
             self.db = db
+            self.path = path
 
         def __enter__(self) -> sqlite3.Connection:
-            self.db.execute("BEGIN IMMEDIATE")
+            try:
+                self.db.execute("BEGIN IMMEDIATE")
+            except sqlite3.OperationalError as exc:
+                raise self._said(exc) from None
             return self.db
 
         def __exit__(self, exc_type, exc, tb) -> None:
-            self.db.execute("ROLLBACK" if exc_type else "COMMIT")
+            if exc_type is not None:
+                try:
+                    self.db.execute("ROLLBACK")
+                except sqlite3.Error:   # the failed statement may have ended it already
+                    pass
+                if isinstance(exc, sqlite3.OperationalError):
+                    raise self._said(exc) from None
+                return
+            try:
+                self.db.execute("COMMIT")
+            except sqlite3.OperationalError as exc:
+                raise self._said(exc) from None
+
+        def _said(self, exc: sqlite3.OperationalError) -> "JournalError":
+            """One line naming the journal (a full disk ended a build, and every resume,
+            with sqlite3's traceback: a hunt's); what was committed before stays."""
+            return JournalError(f"{self.path}: the journal cannot be written ({exc}); free "
+                                "space on its device (or fix what the message names) and "
+                                "resume the build")
 
     def _tx(self) -> "Journal._Tx":
-        """One transaction: committed (to disk, synchronous=FULL) when the block ends."""
-        return Journal._Tx(self._db)
+        """One transaction: committed (to disk, synchronous=FULL) when the block ends.
+        sqlite3's operational errors (a full disk, a locked file) become a JournalError
+        naming the journal."""
+        return Journal._Tx(self._db, self.path)
 
     # ------------------------------------------------------------------ meta
 
