@@ -957,6 +957,8 @@ def test_a_valve_controller_killed_mid_play_cuts_its_path(firmware_tools, planne
     assert len(cut) == 1 and cut[0]["kind"] == "path"
     texts = " ".join(e["text"] for e in j.events())
     assert "was cut short by a cell fault" in texts
+    # and the build's last lines say so (they said "N paths", the cut one among them)
+    assert "warning: " in err and "was cut short by a cell fault" in err
     assert Counter(_executed(tmp_path / "f")).most_common(1)[0][1] == 1
     assert cut[0]["seq"] not in _executed(tmp_path / "f")
 
@@ -1281,6 +1283,29 @@ def test_a_journal_that_cannot_be_written_is_named_in_one_line(tmp_path):
         assert [e["text"] for e in j.events()] == ["a build"]
     finally:
         j.close()
+
+
+def test_a_completed_build_ends_with_what_the_cell_did_not_do(tmp_path):
+    """A laser that read nothing (the build ran open loop there and said 'build complete'
+    with nothing else, a hunt's) and a path a cell fault cut short are warned of at the
+    end."""
+    from icefab.cli.build_cmd import _completion_notes
+
+    j = Journal.create(tmp_path / "j.sqlite", {"digests": {}})
+    try:
+        j.measurement(1, 3, 1.0, np.zeros((0, 3)), float("nan"))
+        j.event("measurement", "layer 3: measurement path 40 gave no laser samples", layer=3)
+        j.event("measurement", "layer 3: measurement path 41 gave no laser samples", layer=3)
+        j.event("cell-fault", "path 1/12 (seq 50) was cut short by a cell fault and is not "
+                "run again", layer=1)
+        j.event("clamp", "layer 2: 1 path clamped", layer=2)
+        notes, warns = _completion_notes(j)
+    finally:
+        j.close()
+    assert notes == []
+    assert warns[0].startswith("path 1/12 (seq 50) was cut short") and "clamped" in warns[1]
+    assert warns[2].startswith("1 of 1 measured layers had a measurement path the laser gave "
+                               "no samples for (layers 3)")
 
 
 def test_the_journal_counts_paths_done_as_a_query_would(tmp_path):

@@ -499,16 +499,39 @@ def _run(build: Path, args: argparse.Namespace, *, resume: bool) -> int:
     rms = f"{p.last_rms_mm:.3f} mm" if math.isfinite(p.last_rms_mm) else "-"
     done = Journal.open(build / bmod.JOURNAL)
     try:
-        for ev in done.events():
-            if ev["kind"] == "cell-numbers":   # a cell that ran another build first
-                print(f"note: {ev['text']}")
-            elif ev["kind"] == "clamp":           # volume the valve did not give
-                print(f"warning: {ev['text']}", file=sys.stderr)
+        notes, warns = _completion_notes(done)
     finally:
         done.close()
+    for line in notes:
+        print(f"note: {line}")
+    for line in warns:
+        print(f"warning: {line}", file=sys.stderr)
     print(f"build complete: {p.layers} layers, {p.paths_done} paths, last measured RMS {rms}; "
           f"{build / bmod.REPORT}")
     return 0
+
+
+def _completion_notes(journal) -> tuple[list[str], list[str]]:
+    """The notes and warnings a completed build ends with, from its journal: a cell that
+    ran another build first; volume the valve did not give; paths a cell fault cut short
+    (the last line said '199 paths' with one of them cut, a hunt's); measurement paths the
+    laser gave nothing for (the build ran open loop there and said nothing, a hunt's)."""
+    notes, warns = [], []
+    events = journal.events()
+    for ev in events:
+        if ev["kind"] == "cell-numbers":
+            notes.append(ev["text"])
+        elif ev["kind"] in ("clamp", "cell-fault"):
+            warns.append(ev["text"])
+    blind = sorted({ev["layer"] for ev in events if ev["kind"] == "measurement"
+                    and "gave no laser samples" in ev["text"]})
+    if blind:
+        more = ", ..." if len(blind) > 10 else ""
+        warns.append(f"{len(blind)} of {len(journal.measured_layers())} measured layers had "
+                     f"a measurement path the laser gave no samples for (layers "
+                     f"{', '.join(map(str, blind[:10]))}{more}): SMF did not correct from "
+                     "what it missed; check the laser")
+    return notes, warns
 
 
 # --------------------------------------------------------------------------- status, stop
