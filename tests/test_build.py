@@ -460,6 +460,38 @@ def test_link_faults_count_in_a_row_and_the_status_says_the_build_waits(planned,
     assert Counter(_executed(build)).most_common(1)[0][1] == 1
 
 
+def test_a_stop_asked_while_the_build_waits_for_the_cell_ends_the_wait(planned, tmp_path):
+    """'icefab build --stop' and Ctrl-C were polled between paths only: while the build
+    waited out a silent valve link they went unheard for the 137 s of its faults (a
+    hunt's). The wait now ends at the stop, journaled as one."""
+    from icefab.motion import load_trajectories
+
+    motion = load_trajectories(planned)
+    build = tmp_path / "b"
+    cell = OutageCell(_prepared(build, motion, motion.job), at={5}, length=100)
+    journal = Journal.create(build / bmod.JOURNAL, {"digests": {}})
+    asked = []
+    runner = bmod.Runner(build, motion, motion.job, journal, lambda: cell, max_faults=20,
+                         should_stop=lambda: bool(asked))
+    real_report = runner._report
+
+    def report(*a, **k):      # the stop is asked once the build says it waits
+        if runner.progress.waiting:
+            asked.append(True)
+        return real_report(*a, **k)
+
+    runner._report = report
+    t0 = time.monotonic()
+    try:
+        with pytest.raises(bmod.BuildStopped, match="stopped at layer"):
+            runner.run()
+        assert time.monotonic() - t0 < 30.0
+        texts = [e["text"] for e in journal.events() if e["kind"] == "stop"]
+        assert any("while the build waited for the cell's link" in t for t in texts)
+    finally:
+        journal.close()
+
+
 def test_a_second_build_on_the_same_cell_runs_every_path(planned, tmp_path):
     """The cell keeps its last completed number across builds and answers any number at
     or below it "done": a second build numbered from 1 was "complete" at once with nothing

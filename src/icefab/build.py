@@ -325,7 +325,9 @@ class Runner:
     """
 
     #: the wait after the first link fault in a row and the longest (doubling between), s:
-    #: with ``max_faults`` 20 a cell is waited for about 75 s
+    #: with ``max_faults`` 20 the back-off sleeps add up to about 75 s, and each try waits
+    #: its own timeout on top (a silent valve link: 137 s in all; a robot that does not
+    #: reply: 325 s)
     FAULT_BACKOFF_S = (0.1, 5.0)
 
     def __init__(self, build_dir: Path, motion: "BuildMotion", job: "Job", journal: Journal,
@@ -475,9 +477,19 @@ class Runner:
                 self._report(force=True)
                 # faults in a row, backing off: a controller that takes a minute to come
                 # back is waited for (a tester's three outages of 25 s ended a build: the
-                # limit counted every fault of the run, 0.1 s apart)
+                # limit counted every fault of the run, 0.1 s apart); a stop asked
+                # meanwhile ends the wait ('icefab build --stop' and Ctrl-C went unheard
+                # for the 137 s a silent valve link took, a hunt's)
                 first, most = self.FAULT_BACKOFF_S
-                time.sleep(min(first * 2.0 ** (self.faults - 1), most))
+                until = time.monotonic() + min(first * 2.0 ** (self.faults - 1), most)
+                while True:
+                    if self.should_stop():
+                        self.stop("a stop was asked for while the build waited for the "
+                                  "cell's link (the cell was not told: check it)")
+                    left = until - time.monotonic()
+                    if left <= 0:
+                        break
+                    time.sleep(min(left, 0.1))
                 continue
             if self.faults:
                 self.faults = 0
