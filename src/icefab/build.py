@@ -431,10 +431,18 @@ class Runner:
             self.journal.event("cell-reset", f"the cell's record ends at {st.last_done}, "
                                f"the journal's at {highest}: the journal's record stands "
                                "(--cell-lost-record)", layer=self.progress.layer)
+        ran_maybe = None   # the first command sent and not confirmed: it may have run
         for c in self.journal.commands():
             if c["done"] is not None:
                 continue
             if reset and c["sent"] is not None and c["seq"] > st.last_done:
+                if ran_maybe is None:
+                    ran_maybe = c["seq"]
+                elif c["kind"] == "path":
+                    # a path after it was only uploaded ahead: its GO waits for the one
+                    # before to be journaled done, so it never ran and is sent again (it
+                    # was counted cut too, and the part missed it, a hunt's)
+                    continue
                 self.journal.done(c["seq"], cut=True)
                 self.journal.event("cell-fault", f"{c['kind']} {c['layer']}/{c['item']} "
                                    f"(seq {c['seq']}) was sent before the cell lost its "
