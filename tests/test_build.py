@@ -1392,7 +1392,8 @@ def test_stop_and_resume_on_a_separately_started_cell(firmware_tools, planned, t
         assert st["state"] == "stopped" and st["paths_done"] < st["paths"]
         # a second stop, with no build running, goes to the cell, which keeps running
         r = _icefab("build", "--stop", "b", cwd=tmp_path)
-        assert r.returncode == 0 and "the cell was told to stop its motion" in r.stdout
+        assert r.returncode == 0 and "the cell was told to stop at once" in r.stdout
+        assert "the tool was not lifted" in r.stdout
         assert "it keeps running for 'icefab build --resume b'" in r.stdout
         assert serve.poll() is None
         r = _icefab("build", "--resume", "b", cwd=tmp_path)

@@ -301,6 +301,35 @@ def test_a_new_session_settles_what_a_dead_one_left(planned, firmware_exe, tmp_p
     assert _executed(tmp_path / "cell") == [5]
 
 
+def test_stop_now_stops_a_motion_under_way_at_once(planned, firmware_exe, tmp_path):
+    """'icefab build --stop' with no build running opened the cell with hello(), which lets
+    a motion under way run to its end (a hunt's stop waited 7.4 s for a measurement path,
+    a deposition path's valve dispensing meanwhile). stop_now() stops it at once: the
+    path is cut."""
+    job, motion = planned
+    with VirtualCell(tmp_path / "cell", job, grid=grid_for(motion, job),
+                     firmware_exe=firmware_exe, time_factor=1.0) as c:
+        from icefab.frames import to_base_frame
+
+        t = np.linspace(0, 3, 300)       # 6 s at 0.02 s a point, in real time
+        xy = to_base_frame(np.column_stack([10 * np.cos(t), 10 * np.sin(t)]), "laser", job)
+        with RobotLink.connect("127.0.0.1", c.endpoints["robot"]["port"]) as first:
+            first.hello()
+            seq = first.upload(RobotPath(xy=xy, dt_s=0.02, z_mm=1.0, flags=0, tool="none",
+                                         width_mm=0.0, layer=0, index=0), 7)
+            first.go(seq)
+            time.sleep(0.3)
+        t0 = time.monotonic()
+        cell = LinkedCell(c.endpoints, job)
+        try:
+            cell.stop_now()
+            assert time.monotonic() - t0 < 3.0
+            st = cell.links.robot.status()
+        finally:
+            cell.close()
+        assert st["state"] == "aborted" and st["cut"] == seq
+
+
 def test_a_cell_killed_mid_path_reports_it_cut_after_its_restart(planned, firmware_tools,
                                                                  tmp_path):
     job, motion = planned

@@ -140,6 +140,21 @@ class LinkedCell:
                 "protocol": None if info is None else info.version,
                 "valve": self.links.valves.name, "laser": self.links.laser.where}
 
+    def stop_now(self) -> None:
+        """Valves off, then the robot stops at once (``AB``), on freshly opened links and
+        without settling first: what ``icefab build --stop`` tells a cell no build runs
+        on. :meth:`hello` would let a motion under way run to its end, its valve
+        dispensing (a hunt's stop waited 7.4 s for a measurement path). The tool is not
+        lifted: where it stopped is the build's to know."""
+        from icefab.cell.links import CellLinks
+
+        if self.links is None:
+            self.links = CellLinks.open(self.endpoints, timeout_s=self.timeout_s)
+        try:
+            self.links.valves.abort()
+        finally:
+            self.links.robot.abort()
+
     def check_paths(self, motion) -> None:
         """Refuse, before anything moves, trajectories the controller cannot store: more
         points in one path than its ``max_points`` (``HI``). CellError naming the first

@@ -631,14 +631,16 @@ def _stop(build: Path) -> int:
                          load_job(build / "job.toml"))
     cell = connect()
     try:
-        cell.hello()
-        cell.stop()
+        cell.stop_now()
     finally:
         cell.close()
-    journal.event("stop", "stop sent to the cell (no build was running)")
+    journal.event("stop", "stop sent to the cell (no build was running): valves off, robot "
+                  "stopped at once, tool not lifted")
     journal.close()
-    # the cell stopped its motion (valves off, tool lifted); its processes stay for
-    # --resume: a tester read "told to stop" as the cell's programs ending
-    print(f"{build}: no build was running; the cell was told to stop its motion (valves "
-          f"off, tool lifted); it keeps running for 'icefab build --resume {build}'")
+    # the cell stopped its motion at once (it let a path under way run to its end first,
+    # and said the tool was lifted: a hunt's); its processes stay for --resume: a tester
+    # read "told to stop" as the cell's programs ending
+    print(f"{build}: no build was running; the cell was told to stop at once (valves off, "
+          f"the robot stopped where it was; the tool was not lifted: no build knows where it "
+          f"is); it keeps running for 'icefab build --resume {build}'")
     return 0
