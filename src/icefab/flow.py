@@ -911,8 +911,9 @@ def plan_valves(trajectory: Trajectory, material: str, job: "Job | None" = None,
     (:func:`_kept_in_spans`): nothing over the travel between its paths.
 
     Returns the first piece; further pieces (split at :func:`piece_max_s` and
-    :func:`piece_pulses`: 131.072 s / 16 384 pulses by default, on trajectory samples) are in ``.pieces``; :func:`program_pieces` lists all of them and
-    :func:`pulse_times` gives the instants from the trajectory start. ``.warnings`` lists
+    :func:`piece_pulses`: 131.072 s / 16 384 pulses by default, on trajectory samples)
+    are in ``.pieces``; :func:`program_pieces` lists all of them and :func:`pulse_times`
+    gives the instants from the trajectory start. ``.warnings`` lists
     every valve limit reached on this path (clamped flow and the volume it costs, PWM pulses
     dropped / raised / cut and the volume error, too few drops per mm, pulses sharing a
     tick); :func:`summarise_findings` condenses them over many paths.

@@ -157,7 +157,8 @@ def run(args: argparse.Namespace) -> int:
                 warnings.simplefilter("ignore", RuntimeWarning)
             plot_error_response(result, dist, job, tmp / "error_response.png", mode)
             (tmp / "tune.json").write_text(json.dumps(
-                {"format": "icefab-tune", "version": 1, **data, "mode": mode, "n_layers": n_layers, "pulses": dist.pulses,
+                {"format": "icefab-tune", "version": 1, **data, "mode": mode,
+                 "n_layers": n_layers, "pulses": dist.pulses,
                  "steps": dist.steps, "noise": dist.noise, "seed": dist.seed}, indent=2,
                 allow_nan=False) + "\n")
     if args.json:  # rms is null when the response diverges: strict JSON, no Infinity
