@@ -256,6 +256,13 @@ def test_a_gain_held_large_leaves_the_others_inside_the_stable_volume():
     assert r.kp >= MIN_GAIN and in_stable_volume(r.kp, r.ki, r.kd) and r.stable
 
 
+@pytest.mark.parametrize("value", [float("nan"), float("inf"), "1"])
+def test_a_fixed_gain_that_is_no_finite_number_is_named(value):
+    # it was named as an initial gain: "initial gains (1.0, 1.0, nan): must be finite"
+    with pytest.raises(ConfigError, match=r"fix: kd = .*: a fixed gain must be a finite"):
+        tune_gains(Disturbance(), fix={"kd": value})
+
+
 def test_a_huge_disturbance_gives_the_rms_of_its_size(capsys):
     # e^2 overflowed: stable gains were said to diverge, "a pole at |z| = 0.67 > 1"
     unit = evaluate_gains((1.0, 0.33, 0.0), Disturbance(pulses=((1.0, 5),), steps=()))

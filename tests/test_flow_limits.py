@@ -284,7 +284,7 @@ def test_findings_are_grouped_by_kind_with_counts():
     c = "layer 9 scaffold fill path: fewer than flow.min_drops_per_mm = 1 drops per mm (0.4)"
     assert finding_kind(a) == finding_kind(b) != finding_kind(c)
     lines = summarise_findings([(3, a), (9, b), (9, c)])
-    assert lines == [f"2 paths in 2 layers (3-9): {a}", f"1 path in layer 9: {c}"]
+    assert lines == [f"2 paths in 2 layers (3, 9): {a}", f"1 path in layer 9: {c}"]
     assert summarise_findings([]) == []
 
 

@@ -460,9 +460,12 @@ def tune_gains(disturbance: Disturbance | np.ndarray = Disturbance(), *,
                           "(eq. 5.19), so every gain gives the same error and there is "
                           "nothing to optimise; give more layers or an earlier disturbance")
     fix = dict(fix or {})
-    for k in fix:
+    for k, v in fix.items():
         if k not in _NAMES:
             raise ConfigError(f"fix: unknown gain {k!r}: expected one of kp, ki, kd")
+        if not (isinstance(v, (int, float, np.number)) and np.isfinite(v)):
+            # it was named as an initial gain ("initial gains (1.0, ...): must be finite")
+            raise ConfigError(f"fix: {k} = {v!r}: a fixed gain must be a finite number")
     if constrained and (fix.get("kp", 1.0) <= 0.0 or fix.get("ki", 1.0) <= 0.0
                         or fix.get("kd", 0.0) < 0.0):
         # eq. 5.25's volume: Kp > 0, Ki* > 0, Kd* >= 0 (Kp = 0 was "optimised" outside it)

@@ -1148,7 +1148,8 @@ def summarise_findings(findings: "Sequence[tuple[int, str]]") -> list[str]:
 
     findings: ``(layer index, finding text)`` pairs, e.g. from the ``warnings`` of the
         :class:`ValveProgram` of every path of a build.
-    Returns lines ``"N paths in L layers (a-b): <first finding of that kind>"``, the most
+    Returns lines ``"N paths in L layers (a-b): <first finding of that kind>"`` (up to 5
+    layers that are not a run named one by one: ``(0, 5, 23)``), the most
     frequent kind first (ties in order of first appearance); a kind whose findings state
     the volume a limit costs (:func:`_volume_error`) ends with its total over all of them,
     ``"; in all, delivers D of C mm^3 commanded (x %)"`` (a kind names the material and
@@ -1160,8 +1161,12 @@ def summarise_findings(findings: "Sequence[tuple[int, str]]") -> list[str]:
     out = []
     for items in sorted(groups.values(), key=lambda g: -len(g)):  # stable: first seen first
         layers = sorted({k for k, _ in items})
-        span = f"layer {layers[0]}" if len(layers) == 1 else \
-            f"{len(layers)} layers ({layers[0]}-{layers[-1]})"
+        if len(layers) == 1:
+            span = f"layer {layers[0]}"
+        elif layers[-1] - layers[0] + 1 == len(layers) or len(layers) > 5:
+            span = f"{len(layers)} layers ({layers[0]}-{layers[-1]})"
+        else:   # a few apart: named ("3 layers (0-23)" read as a range, a hunt's)
+            span = f"{len(layers)} layers ({', '.join(map(str, layers))})"
         n = len(items)
         line = f"{n} path{'s' if n != 1 else ''} in {span}: {items[0][1]}"
         said = [_VOLUME.search(text) for _, text in items]
