@@ -102,6 +102,24 @@ def test_an_edge_through_the_minimum_reach_is_refused_before_slicing(tmp_path):
     prepare_parts(_job_for(tmp_path, mesh, **{**at, "cell.ee_origin_mm": [60.0, 60.0]}))
 
 
+def test_a_part_over_the_robot_base_is_refused_with_every_edge_outside_the_reach(tmp_path):
+    """An equilateral plate around the base axis: corners at 340 mm, edges 170 mm from it
+    (outside the 163 mm minimum reach), a joint 1 that turns all the way round: the
+    vertex, edge and joint checks pass it, its section holds the base axis."""
+    from shapely.geometry import Polygon
+
+    r = 340.0
+    tri = Polygon([(r * np.cos(a), r * np.sin(a)) for a in np.radians([90, 210, 330])])
+    plate = trimesh.creation.extrude_polygon(tri, 1.0)
+    mesh = Mesh(np.asarray(plate.vertices), np.asarray(plate.faces, np.int64), "plate")
+    job = _job_for(tmp_path, mesh, **{
+        "parts.translation": ["orig", "orig", 0.0], "cell.ee_origin_mm": [0.0, 0.0],
+        "cell.joint_range_deg": [180.0, 150.0], "feedback.enabled": False,
+        "scaffold.enabled": False, "slicing.layer_thickness_mm": 0.5})
+    with pytest.raises(WorkspaceError, match="lies over the robot base"):
+        prepare_parts(job)
+
+
 def test_a_gantry_part_outside_its_travel_is_refused(tmp_path):
     job = _job_for(tmp_path, _box((500, 50, 10)), **{"cell.robot": "gantry"})
     with pytest.raises(WorkspaceError, match="outside its travel cell.gantry_travel_mm"):

@@ -26,7 +26,7 @@ import numpy as np
 
 from icefab.config import Job
 from icefab.errors import ConfigError, SimulationError, WorkspaceError
-from icefab.frames import to_base_frame
+from icefab.frames import to_base_frame, to_part_frame
 
 #: Most layers a build may have: the tallest stroke a job may describe (5 m,
 #: ``cell.stroke_mm``'s upper bound) in the thinnest layers (0.01 mm) would be 500 000;
@@ -176,12 +176,11 @@ def check_placed_part(vertices: np.ndarray, job: Job, faces: np.ndarray | None =
                        f"{' with the scaffold around it' if around else ''} under the laser "
                        f"(cell.laser_offset_mm = {list(cell.laser_offset_mm)}; "
                        "feedback.enabled measures it)"))
-    edges = None
+    tris = None
     if faces is not None and len(faces) and cell.robot == "scara":
-        f = np.asarray(faces, dtype=np.int64)
+        tris = np.asarray(faces, dtype=np.int64)
         if (f0, f1) != (0.0, 1.0):
-            f = f[((v[f, 2] >= z0) & (v[f, 2] <= z1)).any(axis=1)]
-        edges = np.concatenate([f[:, :2], f[:, 1:], f[:, ::2]])
+            tris = tris[((v[tris, 2] >= z0) & (v[tris, 2] <= z1)).any(axis=1)]
     for tool, material, grow, what in checks:
         mat = job.materials[material]
         slack = mat.initial_offset_mm + mat.path_width_mm - grow
@@ -204,8 +203,9 @@ def check_placed_part(vertices: np.ndarray, job: Job, faces: np.ndarray | None =
                     f"inside the minimum reach cell.reach_mm = {list(cell.reach_mm)}: "
                     + where)
             _check_joint1(xy, base, r, slack, what, where, job)
-            if edges is not None:
-                _check_edges_reach(v[:, :2], edges, tool, slack, grow, what, where, job)
+            if tris is not None:
+                _check_edges_reach(v[:, :2], tris, tool, slack, grow, what, where, job)
+                _check_over_base(v[:, :2], tris, tool, what, where, job)
         else:
             travel = np.asarray(cell.gantry_travel_mm, dtype=np.float64)
             out = (base < -slack) | (base > travel + slack)
@@ -248,17 +248,20 @@ def _check_joint1(xy: np.ndarray, base: np.ndarray, r: np.ndarray, slack: float,
             f"{math.degrees(lim):g} deg (cell.joint_range_deg): " + where)
 
 
-def _check_edges_reach(xy: np.ndarray, edges: np.ndarray, tool: str, slack: float,
+def _check_edges_reach(xy: np.ndarray, tris: np.ndarray, tool: str, slack: float,
                        grow: float, what: str, where: str, job: Job) -> None:
-    """WorkspaceError when an edge (``edges (m, 2)`` indices into the part points ``xy``)
-    of the placed part passes inside the SCARA's minimum reach (less the slack) between
-    ends that lie outside it."""
+    """WorkspaceError when an edge of a face (``tris (m, 3)`` indices into the part points
+    ``xy``) of the placed part passes inside the SCARA's minimum reach (less the slack)
+    between ends that lie outside it."""
     rmin = job.cell.reach_mm[0]
     vb = to_base_frame(xy, tool, job)
     x, y = vb[:, 0], vb[:, 1]
-    ea, eb = edges[:, 0], edges[:, 1]
     # only the edges whose box meets the minimum reach's (1.1 M facets: 2.4 -> 0.3 s)
     reach = rmin - slack
+    if x.min() > reach or x.max() < -reach or y.min() > reach or y.max() < -reach:
+        return   # the part's box stays clear of the minimum reach's (the usual case)
+    edges = np.concatenate([tris[:, :2], tris[:, 1:], tris[:, ::2]])
+    ea, eb = edges[:, 0], edges[:, 1]
     xa, xb, ya, yb = x[ea], x[eb], y[ea], y[eb]
     near = ((np.minimum(xa, xb) <= reach) & (np.maximum(xa, xb) >= -reach)
             & (np.minimum(ya, yb) <= reach) & (np.maximum(ya, yb) >= -reach))
@@ -278,6 +281,36 @@ def _check_edges_reach(xy: np.ndarray, edges: np.ndarray, tool: str, slack: floa
             f"the placed part{what} comes within {_fmt(max(r[k] - grow, 0.0))} mm of the "
             f"robot base along an edge through part point ({_fmt(p[0])}, {_fmt(p[1])}) mm, "
             f"inside the minimum reach cell.reach_mm = {list(job.cell.reach_mm)}: " + where)
+
+
+def _check_over_base(xy: np.ndarray, tris: np.ndarray, tool: str, what: str, where: str,
+                     job: Job) -> None:
+    """WorkspaceError when a face of the placed part lies over the SCARA's base axis: its
+    section there holds points at radius 0, though every vertex and edge may lie beyond
+    the minimum reach (a disk over the base; only 'icefab paths' refused it)."""
+    vb = to_base_frame(xy, tool, job)
+    x, y = vb[:, 0], vb[:, 1]
+    if x.min() > 0 or x.max() < 0 or y.min() > 0 or y.max() < 0:
+        return   # the part's box does not hold the base axis (the usual case: at once)
+    xs, ys = x[tris], y[tris]                       # (m, 3) corners
+    over = ((xs.min(axis=1) <= 0) & (xs.max(axis=1) >= 0)
+            & (ys.min(axis=1) <= 0) & (ys.max(axis=1) >= 0))
+    if not over.any():
+        return
+    xs, ys = xs[over], ys[over]
+    # the origin's side of each edge: inside a triangle when all three agree
+    c = [xs[:, i] * ys[:, (i + 1) % 3] - ys[:, i] * xs[:, (i + 1) % 3] for i in range(3)]
+    inside = ((c[0] >= 0) & (c[1] >= 0) & (c[2] >= 0)) | ((c[0] <= 0) & (c[1] <= 0)
+                                                          & (c[2] <= 0))
+    # a face seen edge-on (zero area in plan) holds no section
+    area = np.abs((xs[:, 1] - xs[:, 0]) * (ys[:, 2] - ys[:, 0])
+                  - (xs[:, 2] - xs[:, 0]) * (ys[:, 1] - ys[:, 0]))
+    if (inside & (area > 1e-12)).any():
+        base = to_part_frame(np.zeros((1, 2)), tool, job)[0]
+        raise WorkspaceError(
+            f"the placed part{what} lies over the robot base (the base axis at part point "
+            f"({_fmt(base[0])}, {_fmt(base[1])}) mm is under it), inside the minimum reach "
+            f"cell.reach_mm = {list(job.cell.reach_mm)}: " + where)
 
 
 def check_copies(extent_mm: np.ndarray, job: Job) -> None:
