@@ -1288,6 +1288,21 @@ def test_a_resumed_build_names_the_layer_it_goes_on_with_before_its_first_path(p
         assert _status(build, as_json=True) == 0
     got = json.loads(out.getvalue())
     assert (got["layer"], got["layers_done"]) == (3, 3)
+    # a layer a fault cut a path of short is done once its fault measurement is in, for
+    # the status as for the runner (bmod.layer_finished, one rule)
+    j = Journal.open(build / bmod.JOURNAL)
+    try:
+        with j._tx() as db:
+            db.execute("UPDATE commands SET cut=1 WHERE seq = (SELECT MIN(seq) FROM commands "
+                       "WHERE layer = 2 AND kind = 'path')")
+    finally:
+        j.close()
+    (build / bmod.STATUS).write_text(json.dumps(dict(stale, layer=2)))
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        assert _status(build, as_json=True) == 0
+    got = json.loads(out.getvalue())
+    assert (got["layer"], got["layers_done"]) == (2, 2)
 
 
 def test_a_measurement_and_the_smf_state_it_led_to_are_one_transaction(tmp_path):

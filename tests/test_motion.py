@@ -313,11 +313,19 @@ def test_paths_near_the_reach_keep_the_joints_accelerations(cx, radius, jerk):
     robot = get_robot(job)
     th = np.linspace(0.0, 2.0 * np.pi, 120, endpoint=False)
     pts = np.c_[cx + radius * np.cos(th), radius * np.sin(th)]
-    tr = plan_motion(Toolpath(pts, role="boundary", width=1.5, closed=True, frame="base"),
-                     job)
+    path = Toolpath(pts, role="boundary", width=1.5, closed=True, frame="base")
+    tr = plan_motion(path, job)
     q2 = np.abs(np.diff(tr.joints[:, :2], 2, axis=0)) / tr.dt ** 2
     assert (q2.max(axis=0) <= robot.joint_accel_max[:2] * (1.0 + 1e-6)).all()
     check_trajectory(tr, np.vstack([pts, pts[:1]]), job)
+    # planned among other paths (one compiled call; the re-plan takes its polyline out of
+    # the call's concatenated points): as long, and within the bound too
+    far = Toolpath(pts - [cx - 400.0, 0.0], role="boundary", width=1.5, closed=True,
+                   frame="base")
+    together = plan_paths_motion([far, path, far], job)[1]
+    assert together.duration == tr.duration
+    q2 = np.abs(np.diff(together.joints[:, :2], 2, axis=0)) / together.dt ** 2
+    assert (q2.max(axis=0) <= robot.joint_accel_max[:2] * (1.0 + 1e-6)).all()
 
 
 @pytest.mark.parametrize("jerk", [True, False], ids=["jerk", "no-jerk"])

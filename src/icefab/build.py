@@ -287,6 +287,14 @@ def measures(lm: "LayerMotion") -> bool:
     return bool(_items(lm)[1])
 
 
+def layer_finished(layer: int, ended: set, measured: set, measures: bool, cut: set) -> bool:
+    """Whether a layer is done, from the journal: it ended (``ended``: its layer end is
+    done) and, if it measures or a fault cut a path of it short (``cut``), its
+    measurement is in (``measured``). The runner skips such a layer on a resume and
+    ``icefab build --status`` counts it, by this one rule."""
+    return layer in ended and (not (measures or layer in cut) or layer in measured)
+
+
 def _items(lm: "LayerMotion") -> tuple[list[tuple[int, object]], list[tuple[int, object]]]:
     """(deposition and travel, measurement) trajectories of a layer as (index, traj)."""
     run, measure = [], []
@@ -431,13 +439,13 @@ class Runner:
             self.journal.event("cell-reset", f"the cell's record ends at {st.last_done}, "
                                f"the journal's at {highest}: the journal's record stands "
                                "(--cell-lost-record)", layer=self.progress.layer)
-        ran_maybe = None   # the first command sent and not confirmed: it may have run
+        first_open = True   # the first command sent and not confirmed: it may have run
         for c in self.journal.commands():
             if c["done"] is not None:
                 continue
             if reset and c["sent"] is not None and c["seq"] > st.last_done:
-                if ran_maybe is None:
-                    ran_maybe = c["seq"]
+                if first_open:
+                    first_open = False
                 elif c["kind"] == "path":
                     # a path after it was only uploaded ahead: its GO waits for the one
                     # before to be journaled done, so it never ran and is sent again (it
@@ -577,12 +585,9 @@ class Runner:
         p.paths_done = self.journal.paths_done()
 
         def finished(j: int) -> bool:
-            """Whether the layer at position ``j`` is done: ended, and measured if it
-            measures or a fault cut a path of it short."""
             lm = self.motion.layers[j]
-            L = int(lm.index)
-            return L in done_layers and (not (_items(lm)[1] or L in self.journal.cut_layers())
-                                         or L in smf_layers)
+            return layer_finished(int(lm.index), done_layers, smf_layers, measures(lm),
+                                  self.journal.cut_layers())
 
         # the status names the layer the build goes on with (a build killed before its
         # first status after a resume read "layer 0 (3 of 3), ETA 0:00:00")

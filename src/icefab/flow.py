@@ -326,10 +326,15 @@ def trajectory_width(trajectory: Trajectory, material: str, job: "Job") -> float
     path = trajectory.path
     if path is not None and path.width > 0:
         return float(path.width)
+    return material_width(material, path.role if path is not None else "", job)
+
+
+def material_width(material: str, role: str, job: "Job") -> float:
+    """The width a deposition path of ``role`` given none (0) is laid at, mm: the
+    material's fill width for fill, its path width otherwise (the valve programs and the
+    simulator alike)."""
     settings = job.materials[material]
-    if path is not None and path.role == "fill":
-        return float(settings.fill_width_mm)
-    return float(settings.path_width_mm)
+    return float(settings.fill_width_mm if role == "fill" else settings.path_width_mm)
 
 
 def sample_widths(trajectory: Trajectory, material: str, job: "Job") -> np.ndarray:

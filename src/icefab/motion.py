@@ -646,13 +646,15 @@ def _plan_polylines(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray],
     qa = np.asarray(robot.joint_accel_max, dtype=np.float64)
     if not (np.isfinite(qa).any() and out):
         return out
-    pts = (list(split_rows(polys[0], np.cumsum(polys[1])[:-1])) if isinstance(polys, tuple)
-           else list(polys))
+    pts = None   # the polylines one by one, split only when a path is planned again
     scale = np.ones(len(out))
     for _ in range(JOINT_REPLANS):
         over = _joint_accel_over(out, qa)
         if not over:
             break
+        if pts is None:
+            pts = (split_rows(polys[0], np.cumsum(polys[1])[:-1])
+                   if isinstance(polys, tuple) else list(polys))
         ks = sorted(over)
         for k in ks:
             scale[k] *= (JOINT_REPLAN_MARGIN / over[k]) ** 0.5
@@ -679,9 +681,8 @@ JOINT_REPLAN_MARGIN = 0.98
 def _joint_accel_over(trajs: Sequence[Trajectory], qa: np.ndarray) -> dict[int, float]:
     """{index: ratio > 1} of the trajectories whose joints' second differences exceed the
     joint acceleration bounds ``qa`` (rad/s^2, inf where none) by more than 1e-6."""
-    lim = np.where(np.isfinite(qa), qa, np.inf)
     ks = [k for k, tr in enumerate(trajs)
-          if tr.joints.ndim == 2 and len(tr.joints) >= 3 and tr.joints.shape[1] == len(lim)]
+          if tr.joints.ndim == 2 and len(tr.joints) >= 3 and tr.joints.shape[1] == len(qa)]
     if not ks:
         return {}
     # all at once (one numpy pass; a loop over a bunny layer's paths cost 35 us each)
@@ -692,7 +693,7 @@ def _joint_accel_over(trajs: Sequence[Trajectory], qa: np.ndarray) -> dict[int, 
     start = offsets(n)[:-1]
     inside = np.ones(len(a), dtype=bool)   # the windows within one trajectory
     inside[np.concatenate([start[1:] - 2, start[1:] - 1])] = False
-    r = (a[inside] / lim).max(axis=1) / (dt * dt)
+    r = (a[inside] / qa).max(axis=1) / (dt * dt)
     worst = np.maximum.reduceat(r, offsets(n - 2)[:-1])
     return {ks[i]: float(w) for i, w in enumerate(worst) if w > 1.0 + 1e-6}
 

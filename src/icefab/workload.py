@@ -204,8 +204,11 @@ def check_placed_part(vertices: np.ndarray, job: Job, faces: np.ndarray | None =
                     + where)
             _check_joint1(xy, base, r, slack, what, where, job)
             if tris is not None:
-                _check_edges_reach(v[:, :2], tris, tool, slack, grow, what, where, job)
-                _check_over_base(v[:, :2], tris, tool, what, where, job)
+                # every corner of the faces (xy holds the slab's vertices, all of them
+                # unless parts.part_fraction cuts the part)
+                corners = base if len(xy) == len(v) else to_base_frame(v[:, :2], tool, job)
+                _check_edges_reach(v[:, :2], corners, tris, slack, grow, what, where, job)
+                _check_over_base(corners, tris, tool, what, where, job)
         else:
             travel = np.asarray(cell.gantry_travel_mm, dtype=np.float64)
             out = (base < -slack) | (base > travel + slack)
@@ -248,13 +251,12 @@ def _check_joint1(xy: np.ndarray, base: np.ndarray, r: np.ndarray, slack: float,
             f"{math.degrees(lim):g} deg (cell.joint_range_deg): " + where)
 
 
-def _check_edges_reach(xy: np.ndarray, tris: np.ndarray, tool: str, slack: float,
+def _check_edges_reach(xy: np.ndarray, vb: np.ndarray, tris: np.ndarray, slack: float,
                        grow: float, what: str, where: str, job: Job) -> None:
     """WorkspaceError when an edge of a face (``tris (m, 3)`` indices into the part points
-    ``xy``) of the placed part passes inside the SCARA's minimum reach (less the slack)
-    between ends that lie outside it."""
+    ``xy``, ``vb`` the same in the robot base frame) of the placed part passes inside the
+    SCARA's minimum reach (less the slack) between ends that lie outside it."""
     rmin = job.cell.reach_mm[0]
-    vb = to_base_frame(xy, tool, job)
     x, y = vb[:, 0], vb[:, 1]
     # only the edges whose box meets the minimum reach's (1.1 M facets: 2.4 -> 0.3 s)
     reach = rmin - slack
@@ -283,12 +285,12 @@ def _check_edges_reach(xy: np.ndarray, tris: np.ndarray, tool: str, slack: float
             f"inside the minimum reach cell.reach_mm = {list(job.cell.reach_mm)}: " + where)
 
 
-def _check_over_base(xy: np.ndarray, tris: np.ndarray, tool: str, what: str, where: str,
+def _check_over_base(vb: np.ndarray, tris: np.ndarray, tool: str, what: str, where: str,
                      job: Job) -> None:
-    """WorkspaceError when a face of the placed part lies over the SCARA's base axis: its
+    """WorkspaceError when a face (``tris (m, 3)`` indices into the part points in the
+    robot base frame ``vb``) of the placed part lies over the SCARA's base axis: its
     section there holds points at radius 0, though every vertex and edge may lie beyond
-    the minimum reach (a disk over the base; only 'icefab paths' refused it)."""
-    vb = to_base_frame(xy, tool, job)
+    the minimum reach (a plate around the base; only 'icefab paths' refused it)."""
     x, y = vb[:, 0], vb[:, 1]
     if x.min() > 0 or x.max() < 0 or y.min() > 0 or y.max() < 0:
         return   # the part's box does not hold the base axis (the usual case: at once)

@@ -560,11 +560,12 @@ def _status(build: Path, as_json: bool) -> int:
         try:
             st["paths_done"] = journal.paths_done()
             meta = journal.meta()
-            # a layer is done when it ended and, if it measures, its measurement is in
-            # (the runner's rule: a build killed in its measurement goes on with it)
-            measured = journal.measured_layers()
-            done = {L for L in journal.layers_done()
-                    if L not in set(meta.get("measured_layers", ())) or L in measured}
+            # the runner's rule: a build killed in its measurement goes on with that layer
+            measures = set(meta.get("measured_layers", ()))
+            measured, cut = journal.measured_layers(), journal.cut_layers()
+            ended = set(journal.layers_done())
+            done = {L for L in ended
+                    if bmod.layer_finished(L, ended, measured, L in measures, cut)}
             st["layers_done"] = len(done)
             # and the layer it goes on with (the status may still name one it finished)
             order = meta.get("layer_indices")

@@ -108,11 +108,9 @@ def plan_layer(index: int, paths: Sequence[Toolpath], job: "Job",
         if p.material not in MATERIAL_ID:
             raise SimulationError(f"layer {index}: unknown material {p.material!r}")
         if p.width == 0 and p.widths is None:
-            # no width given: its material's, as the valve programs take it
-            # (flow.trajectory_width; the two disagreed on the same path, a hunt's)
-            mat = job.materials[p.material]
-            p = dataclasses.replace(p, width=float(
-                mat.fill_width_mm if p.role == "fill" else mat.path_width_mm))
+            # no width given: its material's, as the valve programs take it (the two
+            # disagreed on the same path, a hunt's)
+            p = dataclasses.replace(p, width=flow.material_width(p.material, p.role, job))
         speed = m.boundary_speed_mm_s if p.role == "boundary" else m.fill_speed_mm_s
         # a tour deposits its paths, not its travel (Toolpath.off)
         for q in tour_members(p):

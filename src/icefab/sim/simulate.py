@@ -161,6 +161,6 @@ def simulate_open_and_smf(build: "Toolpaths | BuildMotion", job: "Job | None" = 
                              keep_surfaces=keep_surfaces, progress=progress)
         return run, run
     items = [(build, job, layers, closed, keep_surfaces) for closed in (False, True)]
-    open_loop, closed = parallel_map(_simulate_task, items, job or build.job, min_items=2,
+    open_loop, closed = parallel_map(_simulate_task, items, job, min_items=2,
                                      progress=progress)
     return open_loop, closed
