@@ -1259,49 +1259,39 @@ def test_a_resumed_build_names_the_layer_it_goes_on_with_before_its_first_path(p
     assert st["eta_s"] == pytest.approx(sum(lm.duration for lm in motion.layers[2:]))
     # a status of a killed build that names the layer it had just finished
     stale = dict(st, state="running", pid=2 ** 22 + 1, layer=1, layers_done=1)
-    (build / bmod.STATUS).write_text(json.dumps(stale))
-    j = Journal.open(build / bmod.JOURNAL)
-    try:
-        with j._tx() as db:   # layers 2-4 not done: the build was killed after layer 1
-            db.execute("UPDATE commands SET done=NULL WHERE layer >= 2")
-    finally:
-        j.close()
-    out = io.StringIO()
-    with contextlib.redirect_stdout(out):
-        assert _status(build, as_json=True) == 0
-    got = json.loads(out.getvalue())
+
+    def status_after(edits: list[str], layer: int) -> dict:
+        """'icefab build --status --json' after the journal ``edits`` (SQL) with a
+        status.json of the killed build naming ``layer``."""
+        j = Journal.open(build / bmod.JOURNAL)
+        try:
+            with j._tx() as db:
+                for sql in edits:
+                    db.execute(sql)
+        finally:
+            j.close()
+        (build / bmod.STATUS).write_text(json.dumps(dict(stale, layer=layer)))
+        out = io.StringIO()
+        with contextlib.redirect_stdout(out):
+            assert _status(build, as_json=True) == 0
+        return json.loads(out.getvalue())
+
+    # layers 2-4 not done: the build was killed after layer 1
+    got = status_after(["UPDATE commands SET done=NULL WHERE layer >= 2"], 1)
     assert got["state"].startswith("interrupted")
     assert (got["layer"], got["layers_done"]) == (2, 2)
     # killed in layer 3's measurement (its end journaled, its measurement not): the build
     # goes on with layer 3, and so does the status (it named layer 4, a hunt's)
     j = Journal.open(build / bmod.JOURNAL)
-    try:
-        assert 3 in j.meta()["measured_layers"]
-        with j._tx() as db:
-            db.execute("UPDATE commands SET done=1 WHERE layer <= 3 AND kind='layer_end'")
-            db.execute("DELETE FROM measurements WHERE layer = 3")
-    finally:
-        j.close()
-    (build / bmod.STATUS).write_text(json.dumps(dict(stale, layer=3)))
-    out = io.StringIO()
-    with contextlib.redirect_stdout(out):
-        assert _status(build, as_json=True) == 0
-    got = json.loads(out.getvalue())
+    assert 3 in j.meta()["measured_layers"]
+    j.close()
+    got = status_after(["UPDATE commands SET done=1 WHERE layer <= 3 AND kind='layer_end'",
+                        "DELETE FROM measurements WHERE layer = 3"], 3)
     assert (got["layer"], got["layers_done"]) == (3, 3)
     # a layer a fault cut a path of short is done once its fault measurement is in, for
     # the status as for the runner (bmod.layer_finished, one rule)
-    j = Journal.open(build / bmod.JOURNAL)
-    try:
-        with j._tx() as db:
-            db.execute("UPDATE commands SET cut=1 WHERE seq = (SELECT MIN(seq) FROM commands "
-                       "WHERE layer = 2 AND kind = 'path')")
-    finally:
-        j.close()
-    (build / bmod.STATUS).write_text(json.dumps(dict(stale, layer=2)))
-    out = io.StringIO()
-    with contextlib.redirect_stdout(out):
-        assert _status(build, as_json=True) == 0
-    got = json.loads(out.getvalue())
+    got = status_after(["UPDATE commands SET cut=1 WHERE seq = (SELECT MIN(seq) FROM "
+                        "commands WHERE layer = 2 AND kind = 'path')"], 2)
     assert (got["layer"], got["layers_done"]) == (2, 2)
 
 
