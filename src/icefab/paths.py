@@ -1489,8 +1489,10 @@ def centre_paths(rings: list[np.ndarray], w_min: float, w_max: float, filt: floa
     perim = float(geo.ring_perimeters(rings).sum())
     typical = 2.0 * max(geo.area(rings), 0.0) / max(perim, 1e-12)  # a strip's width
     spacing = float(np.clip(typical / 3.0, w_min / 3.0, w_max / 4.0))
-    room = (_room_to_edge(region, w_max / 2.0, spacing)
-            if region is not None and not region.is_empty else None)
+    # the region's edges, sampled once for the branches' room and the beads' cap
+    edges = (geo.RingEdges(region.rings)
+             if region is not None and not region.is_empty else None)
+    room = _room_to_edge(edges, w_max / 2.0, spacing) if edges is not None else None
     # (slack: _simplified keeps the widths within the point filter of their profile)
     chains = geo.medial_axis(rings, spacing, w_min / 2.0, w_max / 2.0, room, filt / 2.0)
     w_lay = min(w_lay, w_max)
@@ -1503,28 +1505,28 @@ def centre_paths(rings: list[np.ndarray], w_min: float, w_max: float, filt: floa
     # with a narrowest bead, no stubs shorter than their width either (GAP_MIN_LENGTH)
     min_length = GAP_MIN_LENGTH if w_lay > 0.0 else 0.0
     if variable:
-        return _chain_paths(chains, w_cut, w_max, filt, region, min_length)
-    return _run_paths(chains, w_cut, w_max, filt, region, min_length)
+        return _chain_paths(chains, w_cut, w_max, filt, edges, min_length)
+    return _run_paths(chains, w_cut, w_max, filt, edges, min_length)
 
 
-def _room_to_edge(region: Region, upper: float, step: float
+def _room_to_edge(edges: geo.RingEdges, upper: float, step: float
                   ) -> Callable[[np.ndarray], np.ndarray]:
-    """How far a bead may reach from each of some points (k, 2) mm: to ``region``'s edge
-    (as :func:`_edge_capped` will cap it; at most ``upper``), less ``step``, a step of the
-    centre line, whose segments reach nearer the edge than their points."""
-    edge = list(region.rings)
-    return lambda pts: geo.segment_clearances(pts, pts, edge, upper) - step
+    """How far a bead may reach from each of some points (k, 2) mm: to the region's edge
+    ``edges`` (as :func:`_edge_capped` will cap it; at most ``upper``), less ``step``, a
+    step of the centre line, whose segments reach nearer the edge than their points."""
+    return lambda pts: geo.segment_clearances(pts, pts, edges, upper) - step
 
 
 def _chain_paths(chains: list[tuple[np.ndarray, np.ndarray, bool]], w_min: float,
-                 w_max: float, filt: float, region: Region | None, min_length: float = 0.0
-                 ) -> list[tuple[np.ndarray, bool, np.ndarray]]:
+                 w_max: float, filt: float, edges: geo.RingEdges | None,
+                 min_length: float = 0.0) -> list[tuple[np.ndarray, bool, np.ndarray]]:
     """Variable-width centre-line paths (issue 15): each medial-axis chain is one path
     whose width at every point is twice its clearance, smoothed (:func:`_smoothed_axis`),
     simplified within the point filter ``filt``, the width profile too
-    (:func:`_simplified`), at most ``w_max``, capped at twice the distance to ``region``'s
-    edge, and cut where it is narrower than ``w_min``; open pieces shorter than
-    ``min_length`` times their widest width are left out (``GAP_MIN_LENGTH``)."""
+    (:func:`_simplified`), at most ``w_max``, capped at twice the distance to the paths'
+    region's edge ``edges`` (when given), and cut where it is narrower than ``w_min``; open
+    pieces shorter than ``min_length`` times their widest width are left out
+    (``GAP_MIN_LENGTH``)."""
     chains = [(np.asarray(p, np.float64), np.minimum(2.0 * np.asarray(r, np.float64), w_max),
                bool(c)) for p, r, c in chains if len(p) >= 2]
     if not chains:
@@ -1551,8 +1553,8 @@ def _chain_paths(chains: list[tuple[np.ndarray, np.ndarray, bool]], w_min: float
                 masks[i] = np.append(m, True) if flag else m
     lines, widths = _simplified(lines, widths, masks, eps)
     widths = [np.minimum(w, w_max) for w in widths]
-    if region is not None and not region.is_empty:
-        widths = _edge_capped(lines, widths, region, w_max)
+    if edges is not None:
+        widths = _edge_capped(lines, widths, edges, w_max)
     # length and swept area of every whole line at once (most are open and wide enough)
     length, band = _length_and_band(lines, widths)
     W = np.concatenate(widths)
@@ -1674,9 +1676,9 @@ def _simplified(lines: list[np.ndarray], widths: list[np.ndarray], masks: list[n
             [w[k] for w, k in zip(_split(W, n), keep)])
 
 
-def _edge_capped(lines: list[np.ndarray], widths: list[np.ndarray], region: Region,
+def _edge_capped(lines: list[np.ndarray], widths: list[np.ndarray], edges: geo.RingEdges,
                  w_max: float) -> list[np.ndarray]:
-    """Widths no more than twice the distance of the path to ``region``'s edge: per
+    """Widths no more than twice the distance of the path to the region's edge: per
     segment its clearance (:func:`icefab.geometry.segment_clearances`; a segment crossing
     a spike of the edge has none, and a width of 0 cuts the path there), per point the
     lesser of its two segments'."""
@@ -1685,7 +1687,7 @@ def _edge_capped(lines: list[np.ndarray], widths: list[np.ndarray], region: Regi
     allp = np.concatenate(polys)
     owner = np.repeat(np.arange(len(polys)), n)
     seg = np.flatnonzero(owner[:-1] == owner[1:])
-    d_seg = geo.segment_clearances(allp[seg], allp[seg + 1], list(region.rings), w_max / 2.0)
+    d_seg = geo.segment_clearances(allp[seg], allp[seg + 1], edges, w_max / 2.0)
     cap = np.full(len(allp), np.inf)
     np.minimum.at(cap, seg, d_seg)
     np.minimum.at(cap, seg + 1, d_seg)
@@ -1700,12 +1702,13 @@ def _split(a: np.ndarray, counts) -> list[np.ndarray]:
 
 
 def _run_paths(chains: list[tuple[np.ndarray, np.ndarray, bool]], w_min: float,
-               w_max: float, filt: float, region: Region | None, min_length: float = 0.0
-               ) -> list[tuple[np.ndarray, bool, float]]:
+               w_max: float, filt: float, edges: geo.RingEdges | None,
+               min_length: float = 0.0) -> list[tuple[np.ndarray, bool, float]]:
     """Constant-width centre-line paths: each chain cut into runs of similar width
     (``GAP_RUN_RATIO``, ``GAP_MIN_RUN_MM``), each run as wide as its widest point (at most
-    ``GAP_RUN_RATIO`` times its mean); open runs shorter than ``min_length`` times their
-    width are left out."""
+    ``GAP_RUN_RATIO`` times its mean), at most twice its distance to the region's edge
+    ``edges`` (when given); open runs shorter than ``min_length`` times their width are
+    left out."""
     runs = geo.width_runs([(p, np.minimum(2.0 * r, w_max), c) for p, r, c in chains],
                           GAP_RUN_RATIO, GAP_MIN_RUN_MM)
     if not runs:
@@ -1727,7 +1730,7 @@ def _run_paths(chains: list[tuple[np.ndarray, np.ndarray, bool]], w_min: float,
     for i in np.flatnonzero(keep & closed):
         f = geo.simplify([pts[i]], float(eps[i]))
         pts[i] = f[0] if len(f) == 1 else pts[i]
-    if region is not None and not region.is_empty and keep.any():
+    if edges is not None and keep.any():
         # never nearer the region's edge than half the width: the least clearance of the
         # paths' segments as filtered (geometry.segment_clearances)
         idx = np.flatnonzero(keep)
@@ -1736,8 +1739,7 @@ def _run_paths(chains: list[tuple[np.ndarray, np.ndarray, bool]], w_min: float,
         allp = np.concatenate(polys)
         owner = np.repeat(np.arange(len(idx)), n)
         seg = np.flatnonzero(owner[:-1] == owner[1:])
-        d = geo.segment_clearances(allp[seg], allp[seg + 1], list(region.rings),
-                                   float(widths.max()) / 2.0)
+        d = geo.segment_clearances(allp[seg], allp[seg + 1], edges, float(widths.max()) / 2.0)
         dmin = np.full(len(idx), np.inf)
         np.minimum.at(dmin, owner[seg], d)
         widths[idx] = np.minimum(widths[idx], 2.0 * dmin)
