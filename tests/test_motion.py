@@ -405,6 +405,25 @@ def test_gantry_per_axis_limits():
     assert lines[0].startswith("G0 X10.000 Y10.000") and "F" in lines[-1]
     check_gcode_feedrates(lines, tr)
 
+@pytest.mark.parametrize("axis_cap", [True, False], ids=["axis-speed-binds", "cartesian-binds"])
+def test_gantry_line_jerk_where_an_axis_speed_binds(axis_cap):
+    """A straight line whose speed an axis bound caps eases into cruise as one the
+    Cartesian bound caps does (JCON's search for a change of acceleration sign took the
+    envelope's rounding, 1e-8 mm/s^2 of either sign, for one: the axis' jerk 2.7 times its
+    bound, hunt Q)."""
+    caps = ({"motion.speed_mm_s": 200.0, "motion.gantry_speed_mm_s": [100.0, 100.0]}
+            if axis_cap else
+            {"motion.speed_mm_s": 100.0, "motion.gantry_speed_mm_s": [1000.0, 1000.0]})
+    job = JOB.replace(**{"cell.robot": "gantry", "motion.accel_mm_s2": 600.0,
+                         "motion.jerk_mm_s3": 5000.0, "motion.gantry_accel_mm_s2": [600.0, 600.0],
+                         "motion.gantry_jerk_mm_s3": [5000.0, 5000.0], **caps})
+    tr = plan_motion(np.array([[100.0, 100.0], [100.0, 200.0]]), job)
+    jerk = np.diff(tr.xy[:, 1], 3) / tr.dt ** 3
+    # the tolerance the other jerk checks allow for a sampled ramp (check_trajectory)
+    assert np.abs(jerk).max() <= 1.15 * 5000.0, np.abs(jerk).max()
+    assert tr.duration == pytest.approx(1.264, abs=0.02)
+
+
 
 def check_gcode_feedrates(lines, tr):
     """Every G1 move ends on a sample and its F (mm/min) is the trajectory's speed over

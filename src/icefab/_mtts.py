@@ -202,6 +202,19 @@ def _pass(v, env, i0, i1, step, h, kap, kv, qd1, qd2, A, qa, jeff, jerk_on, a_st
         i = nxt
 
 
+#: Accelerations (mm/s^2) JCON takes as none when it looks for a change of sign: an
+#: envelope flat but for rounding (a gantry's axis speed over the axis' rate along the
+#: path, 1 +- 1e-16) gives accelerations of ~1e-8 mm/s^2 of either sign.
+ACC_ZERO_MM_S2 = 1e-6
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def _opposite(a, b):
+    """Whether accelerations a and b (mm/s^2) have opposite signs, both beyond
+    ``ACC_ZERO_MM_S2``."""
+    return a * b < 0.0 and abs(a) > ACC_ZERO_MM_S2 and abs(b) > ACC_ZERO_MM_S2
+
+
 @njit(cache=True, fastmath=_FM, error_model="numpy")
 def _jcon(v, i0, i1, h, jeff, tol):
     """JCON (thesis 4.1.4, Fig. 4-6, eq. 4.12): where the speed-decrease jerk exceeds
@@ -240,12 +253,12 @@ def _jcon(v, i0, i1, h, jeff, tol):
             if jt < jk or not (fl or fr):
                 break
             if fl:
-                if lft <= 1 or (acc[lft - 1] * acc[lft] < 0.0):
+                if lft <= 1 or _opposite(acc[lft - 1], acc[lft]):
                     fl = False
                 else:
                     lft -= 1
             if fr:
-                if rgt >= n - 2 or (acc[rgt + 1] * acc[rgt] < 0.0):
+                if rgt >= n - 2 or _opposite(acc[rgt + 1], acc[rgt]):
                     fr = False
                 else:
                     rgt += 1
