@@ -3,6 +3,7 @@ joint limits near the reach boundary (Fig. 4-9), analytic durations."""
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,6 +17,8 @@ from icefab.robots import Scara, get_robot
 
 log = logging.getLogger(__name__)
 
+#: Inputs kept with the tests (tests/data).
+DATA = Path(__file__).parent / "data"
 JOB = Job()
 JOB_NOJERK = JOB.replace(**{"motion.jerk_limited": False})
 JOB_RAW = JOB.replace(**{"motion.smoothing_tolerance_mm": 0.0})  # path smoothing off
@@ -802,3 +805,21 @@ def test_trajectories_do_not_depend_on_whether_numbas_cache_existed(tmp_path):
                            text=True, check=True).stdout for _ in range(2)]
     assert (tmp_path / "numba").is_dir()        # the first run compiled, the second loaded
     assert runs[0] == runs[1] and len(runs[0].strip()) == 64
+
+
+@pytest.mark.parametrize("jerk", [True, False], ids=["jerk", "no-jerk"])
+def test_tour_corners_near_the_reach_keep_the_joint_accelerations(jerk):
+    """A tour's travel curves near the SCARA's full reach turn 32-43 degrees between two
+    samples: the vertex bounds took only the Cartesian acceleration, so joint 2 turned at
+    1.29 / 1.31 times its bound (jerk on / off), and no re-plan under lower joint bounds
+    changed the corners' speed (hunt Q). The vertices' bounds now take the joints'
+    through their Jacobian (_mtts._vertex_bounds)."""
+    pts = np.loadtxt(DATA / "tour-near-reach.csv", delimiter=",")
+    job = JOB.replace(**{"cell.ee_origin_mm": (260.0, -100.0), "motion.jerk_limited": jerk})
+    robot = get_robot(job)
+    tr = plan_motion(Toolpath(pts, role="fill", width=3.0), job)
+    q2 = np.abs(np.diff(tr.joints[:, :2], 2, axis=0)) / tr.dt ** 2
+    assert (q2.max(axis=0) <= robot.joint_accel_max[:2] * (1.0 + 1e-6)).all(), \
+        q2.max(axis=0) / robot.joint_accel_max[:2]
+    # in the base frame: the cell frame's origin and the part nozzle's offset
+    check_trajectory(tr, pts + (tr.xy[0] - pts[0]), job)

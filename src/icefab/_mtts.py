@@ -77,10 +77,12 @@ def _derivs(y, i0, i1, h, w, d1, d2, d3):
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
-def _accel_interval(i, x, sign, kap, kv, qd1, qd2, A, qa):
+def _accel_interval(i, x, sign, kap, kv, kvq, qd1, qd2, A, qa):
     """[lo, hi] of the tangential acceleration at grid point i and x = v^2.
 
-    sign = +1 going forward along s, -1 going backward (joint rates change sign).
+    sign = +1 going forward along s, -1 going backward (joint rates change sign). kv,
+    kvq (., m): the share of the total and of each joint's acceleration a polyline
+    vertex's own turn takes near it, per mm/s of speed (_vertex_bounds).
     """
     cen = kap[i] * x
     if kv[i] > 0.0:  # a polyline vertex: its acceleration grows like v (_vertex_bounds)
@@ -96,8 +98,11 @@ def _accel_interval(i, x, sign, kap, kv, qd1, qd2, A, qa):
         if abs(d1) < 1e-9:
             continue
         d2x = qd2[i, j] * x
-        a = (-qa[j] - d2x) / d1
-        b = (qa[j] - d2x) / d1
+        qaj = qa[j] - kvq[i, j] * math.sqrt(x)
+        if qaj < 0.0:
+            qaj = 0.0
+        a = (-qaj - d2x) / d1
+        b = (qaj - d2x) / d1
         if a > b:
             a, b = b, a
         if a > lo:
@@ -138,7 +143,7 @@ def _cubic_root(j0, a0, v0, ds):
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
-def _pass(v, env, i0, i1, step, h, kap, kv, qd1, qd2, A, qa, jeff, jerk_on, a_start,
+def _pass(v, env, i0, i1, step, h, kap, kv, kvq, qd1, qd2, A, qa, jeff, jerk_on, a_start,
           a_rest_cap):
     """ACON (thesis 4.1.3, Fig. 4-5): an acceleration-limited (and, with jerk on,
     jerk-limited) curve from rest at the first point, and from every point where the
@@ -164,7 +169,7 @@ def _pass(v, env, i0, i1, step, h, kap, kv, qd1, qd2, A, qa, jeff, jerk_on, a_st
             acur = (env[nxt] * env[nxt] - vi * vi) / (2.0 * h)
             i = nxt
             continue
-        lo, hi = _accel_interval(i, vi * vi, sign, kap, kv, qd1, qd2, A, qa)
+        lo, hi = _accel_interval(i, vi * vi, sign, kap, kv, kvq, qd1, qd2, A, qa)
         if i == a and hi > a_rest_cap:
             hi = a_rest_cap
         if hi < 0.0:
@@ -345,7 +350,7 @@ def _step_curvature(n, h, vcap, dt, A, qa, p2, qd2, c2, cq):
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
-def _vertex_bounds(sv, tau, n, h, vcap, dt, A, xk, kv, ctau):
+def _vertex_bounds(sv, tau, jac, n, h, vcap, dt, A, qa, xk, kv, kvq, ctau):
     """Speed bounds from the vertices of the polyline actually followed (v^2 into xk[0:n]).
 
     The robot gets one sample every dt, a step of L = v dt along the path. The second
@@ -359,10 +364,19 @@ def _vertex_bounds(sv, tau, n, h, vcap, dt, A, xk, kv, ctau):
     each vertex. On a finely sampled curve of curvature kappa this gives v^2 kappa <= A; at
     a polyline vertex turning by alpha it gives v alpha / dt <= A, which the grid
     curvature misses when the samples are denser than the 0.4 mm grid.
+
+    The joints see the same turn through their Jacobian at the vertex (jac (K, m, 2)):
+    |J_j (a v - c / dt)| / dt <= qa_j bounds v too (linear in v), and kvq (n, m) reserves
+    each joint's share as kv does the total's. Without it a tour's travel curve near the
+    SCARA's full reach turned 32-43 degrees between two samples at 1.4 times joint 2's
+    bound, which no re-plan under lower joint bounds changed (hunt Q).
     """
+    m = qa.shape[0]
     for i in range(n):
         xk[i] = np.inf
         kv[i] = 0.0
+        for j in range(m):
+            kvq[i, j] = 0.0
     K = sv.shape[0]
     # prefix sums of |tau| and |tau| s (ctau (K+1, 2) work array): the acceleration at
     # speed v is at most sum |tau_w| (v - |d_w| / dt) / dt over the vertices within v dt,
@@ -393,8 +407,14 @@ def _vertex_bounds(sv, tau, n, h, vcap, dt, A, xk, kv, ctau):
         sr = ctau[wr + 1, 0] - ctau[v, 0]
         dsum = (sv[v] * sl - (ctau[v, 1] - ctau[wl, 1])
                 + (ctau[wr + 1, 1] - ctau[v, 1]) - sv[v] * sr)
-        if vcap * (sl + sr) - dsum / dt <= A * dt * (1.0 - 1e-9):
-            if L0 > 0.0:  # u = vcap: only the share reserved in kv (below)
+        turn = vcap * (sl + sr) - dsum / dt   # the window's turning at vcap, times dt
+        smooth = turn <= A * dt * (1.0 - 1e-9)
+        for j in range(m):   # and each joint's, through its Jacobian at the vertex
+            if smooth and math.isfinite(qa[j]):
+                nj = math.sqrt(jac[v, j, 0] ** 2 + jac[v, j, 1] ** 2)
+                smooth = nj * turn <= qa[j] * dt * (1.0 - 1e-9)
+        if smooth:
+            if L0 > 0.0:  # u = vcap: only the share reserved in kv, kvq (below)
                 kvu = (ctau[v + 1, 0] - ctau[v, 0]) / dt
                 c = kvu / L0
                 g0 = max(0, int((sv[v] - L0) / h))
@@ -403,6 +423,7 @@ def _vertex_bounds(sv, tau, n, h, vcap, dt, A, xk, kv, ctau):
                     val = kvu - c * abs(gi * h - sv[v])
                     if val > kv[gi]:
                         kv[gi] = val
+                _joint_share(v, sv, tau, jac, qa, L0, n, h, dt, kvq)
             continue
         cx = 0.0
         cy = 0.0
@@ -419,6 +440,15 @@ def _vertex_bounds(sv, tau, n, h, vcap, dt, A, xk, kv, ctau):
                 u = np.inf
             else:
                 u = 0.0
+            for j in range(m):   # |alpha u - gamma| <= qa_j dt, alpha = J_j a
+                if not math.isfinite(qa[j]):
+                    continue
+                aj = jac[v, j, 0] * ax + jac[v, j, 1] * ay
+                if abs(aj) <= 1e-15:
+                    continue
+                gj = (jac[v, j, 0] * cx + jac[v, j, 1] * cy) / dt
+                uj = ((gj if aj > 0.0 else -gj) + qa[j] * dt) / abs(aj)
+                u = min(u, max(uj, 0.0))
             dl = sv[v] - sv[lft] if lft >= 0 else np.inf
             dr = sv[rgt] - sv[v] if rgt < K else np.inf
             dn = min(dl, dr)
@@ -454,6 +484,25 @@ def _vertex_bounds(sv, tau, n, h, vcap, dt, A, xk, kv, ctau):
                 w = 1.0 - abs(gi * h - sv[v]) / L
                 if w > 0.0 and kvu * w > kv[gi]:
                     kv[gi] = kvu * w
+            _joint_share(v, sv, tau, jac, qa, L, n, h, dt, kvq)
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def _joint_share(v, sv, tau, jac, qa, L, n, h, dt, kvq):
+    """Reserve in kvq (n, m) each joint's share of vertex v's own turn, |J_j tau_v| / dt
+    per mm/s, weighted by 1 - d / L within one step L of it (as _vertex_bounds does kv)."""
+    g0 = max(0, int((sv[v] - L) / h))
+    g1 = min(n - 1, int((sv[v] + L) / h) + 1)
+    for j in range(qa.shape[0]):
+        if not math.isfinite(qa[j]):
+            continue
+        kj = abs(jac[v, j, 0] * tau[v, 0] + jac[v, j, 1] * tau[v, 1]) / dt
+        if kj <= 0.0:
+            continue
+        for gi in range(g0, g1 + 1):
+            w = 1.0 - abs(gi * h - sv[v]) / L
+            if w > 0.0 and kj * w > kvq[gi, j]:
+                kvq[gi, j] = kj * w
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
@@ -558,8 +607,9 @@ class PieceGrid(NamedTuple):
 
     gstart (P+1,) int64: grid points of piece p are ``gstart[p]:gstart[p+1]``; h (P,) mm,
     each piece's grid step; xy (N, 2) mm, the grid points; vstart (P+1,) int64, vs_loc
-    (K,) mm, vtau (K, 2): the vertices of the polyline each piece follows, their arc length
-    from the piece start and turning vectors (see _vertex_bounds).
+    (K,) mm, vtau (K, 2), vjac (K, m, 2): the vertices of the polyline each piece follows,
+    their arc length from the piece start, turning vectors and the joints' Jacobian there
+    (joint units per mm; see _vertex_bounds).
     """
 
     gstart: np.ndarray
@@ -568,6 +618,7 @@ class PieceGrid(NamedTuple):
     vstart: np.ndarray
     vs_loc: np.ndarray
     vtau: np.ndarray
+    vjac: np.ndarray
 
 
 class CartesianLimits(NamedTuple):
@@ -617,7 +668,7 @@ def speed_profiles(grid, cart, joints, sampling):
     durations T (P,) s.
     """
     gstart, h, xy = grid.gstart, grid.h, grid.xy
-    vstart, vs_loc, vtau = grid.vstart, grid.vs_loc, grid.vtau
+    vstart, vs_loc, vtau, vjac = grid.vstart, grid.vs_loc, grid.vtau, grid.vjac
     vcap, A, J = cart.vcap, cart.accel, cart.jerk
     jerk_on, a_rest = cart.jerk_on, cart.rest_accel
     cap0, cap1 = cart.rest_cap0, cart.rest_cap1
@@ -645,6 +696,7 @@ def speed_profiles(grid, cart, joints, sampling):
     c2 = np.zeros((nmax + 1, 2))
     xk = np.zeros(nmax)
     kv = np.zeros(nmax)
+    kvq = np.zeros((nmax, m))
     cq = np.zeros((nmax + 1, m))
     kmax = 0
     for p in range(P):
@@ -661,8 +713,9 @@ def speed_profiles(grid, cart, joints, sampling):
         ep = env[g0:g0 + n]
         vc2 = vcap[p] * vcap[p]
         _step_curvature(n, hp, vcap[p], dt, A, qa, p2, qd2, c2, cq)
-        _vertex_bounds(vs_loc[vstart[p]:vstart[p + 1]], vtau[vstart[p]:vstart[p + 1]], n, hp,
-                       vcap[p], dt, A, xk, kv, ctau)
+        _vertex_bounds(vs_loc[vstart[p]:vstart[p + 1]], vtau[vstart[p]:vstart[p + 1]],
+                       vjac[vstart[p]:vstart[p + 1]], n, hp, vcap[p], dt, A, qa, xk, kv, kvq,
+                       ctau)
         for i in range(n):
             kap[i] = math.sqrt(p2[i, 0] ** 2 + p2[i, 1] ** 2)
             # ---- VCON: the maximum-speed envelope (thesis 4.1.2, eqs. 4.4, 4.5)
@@ -694,13 +747,13 @@ def speed_profiles(grid, cart, joints, sampling):
                     x = c * c
             jeff[i] = je
             # the acceleration interval must be non-empty at the envelope: bisect if not
-            lo, hi = _accel_interval(i, x, 1.0, kap, kv, qd1, qd2, A, qa)
+            lo, hi = _accel_interval(i, x, 1.0, kap, kv, kvq, qd1, qd2, A, qa)
             if lo > hi:
                 xl = 0.0
                 xh = x
                 for _ in range(50):
                     xm = 0.5 * (xl + xh)
-                    lo, hi = _accel_interval(i, xm, 1.0, kap, kv, qd1, qd2, A, qa)
+                    lo, hi = _accel_interval(i, xm, 1.0, kap, kv, kvq, qd1, qd2, A, qa)
                     if lo <= hi:
                         xl = xm
                     else:
@@ -712,10 +765,11 @@ def speed_profiles(grid, cart, joints, sampling):
         # ---- ACON forward and backward, with AREST start/end conditions (4.1.3, 4.1.5)
         ar0 = min(a_rest, cap0[p])
         ar1 = min(a_rest, cap1[p])
-        _pass(vp, ep, 0, n, 1, hp, kap, kv, qd1, qd2, A, qa, jeff, jerk_on, ar0, cap0[p])
+        _pass(vp, ep, 0, n, 1, hp, kap, kv, kvq, qd1, qd2, A, qa, jeff, jerk_on, ar0, cap0[p])
         for i in range(n):
             fwd[i] = vp[i]
-        _pass(vp, fwd, 0, n, -1, hp, kap, kv, qd1, qd2, A, qa, jeff, jerk_on, ar1, cap1[p])
+        _pass(vp, fwd, 0, n, -1, hp, kap, kv, kvq, qd1, qd2, A, qa, jeff, jerk_on, ar1,
+              cap1[p])
         # ---- JCON (4.1.4)
         if jerk_on:
             for _ in range(3):

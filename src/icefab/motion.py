@@ -505,7 +505,7 @@ def _prepare(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray], job: J
     used = np.isfinite(qv) | np.isfinite(qa) | np.isfinite(qj)
     qgrid = np.ascontiguousarray(qgrid[:, used])
     # the polyline each piece follows (its vertices, turning vectors, arc length)
-    vertices = _vertices(sp.fxy, sp.fstart)
+    vertices = _vertices(sp.fxy, sp.fstart, robot, used)
     rest = _rest_step_bounds(gstart, hk, qgrid, robot, used, qa[used],
                              float(job.motion.accel_mm_s2), gxy)
     return _Prepared(sp=sp, P=P, qgrid=qgrid, used=used, vertices=vertices, rest=rest)
@@ -542,10 +542,10 @@ def _piece_profiles(gstart: np.ndarray, hk: np.ndarray, gxy: np.ndarray, vertice
     # the rest curves' initial acceleration within the total bound (a rest_accel_mm_s2
     # above accel_mm_s2 planned 2.6 times the bound; both settings in their ranges)
     a_rest = min(float(m.rest_accel_mm_s2), float(m.accel_mm_s2))
-    vstart, vs_loc, vtau = vertices
+    vstart, vs_loc, vtau, vjac = vertices
     dmin0, dmin1, cap0, cap1 = rest
     v, env, T = _mtts.speed_profiles(
-        _mtts.PieceGrid(gstart, hk, gxy, vstart, vs_loc, vtau),
+        _mtts.PieceGrid(gstart, hk, gxy, vstart, vs_loc, vtau, vjac),
         _mtts.CartesianLimits(vcap_piece, float(m.accel_mm_s2), float(m.jerk_mm_s3),
                               bool(jerk_on), a_rest, cap0, cap1),
         _mtts.JointLimits(qgrid, qv, qa, qj),
@@ -575,13 +575,14 @@ def _piece_times(prep: _Prepared, vcaps: np.ndarray, job: Job, robot: Robot,
     if not len(sel):
         return np.zeros(0)
     rows, gstart = _ragged_rows(sp.gstart, sel)
-    vstart, vs_loc, vtau = prep.vertices
+    vstart, vs_loc, vtau, vjac = prep.vertices
     vrows, vnew = _ragged_rows(vstart, sel)
     rest = tuple(np.ascontiguousarray(r[sel]) for r in prep.rest)
     return _piece_profiles(gstart, np.ascontiguousarray(sp.hk[sel]),
                            np.ascontiguousarray(sp.gxy[rows]),
                            (vnew, np.ascontiguousarray(vs_loc[vrows]),
-                            np.ascontiguousarray(vtau[vrows])),
+                            np.ascontiguousarray(vtau[vrows]),
+                            np.ascontiguousarray(vjac[vrows])),
                            np.ascontiguousarray(prep.qgrid[rows]), rest,
                            np.asarray(vcaps, dtype=np.float64)[sp.piece_path[sel]],
                            prep.used, job, robot)[1]
@@ -915,14 +916,50 @@ def _switch_spans(paths: Sequence[Toolpath | None], off: np.ndarray, sp: _Split,
                                                        bounds[1:].tolist())}
 
 
-def _vertices(pts: np.ndarray, start: np.ndarray
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _vertices(pts: np.ndarray, start: np.ndarray, robot: Robot, used: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Vertices of concatenated polylines (piece k is ``pts[start[k]:start[k+1]]``):
     (start, arc length from the piece start (K,) mm, turning vectors (K, 2) = change of
-    the unit tangent, zero at the piece ends)."""
+    the unit tangent, zero at the piece ends, and the joints' (``used``) Jacobian at each
+    vertex that turns (K, m, 2) joint units per mm, zero elsewhere: what a turn costs the
+    joints, :func:`icefab._mtts._vertex_bounds`)."""
     start = start.astype(np.int64)
-    s_loc, tau = _mtts.polyline_vertices(np.ascontiguousarray(pts, dtype=np.float64), start)
-    return start, s_loc, tau
+    pts = np.ascontiguousarray(pts, dtype=np.float64)
+    s_loc, tau = _mtts.polyline_vertices(pts, start)
+    jac = np.zeros((len(pts), int(used.sum()), 2))
+    turns = np.flatnonzero((tau != 0.0).any(axis=1))
+    if len(turns) and jac.shape[1]:
+        jac[turns] = _ik_jacobian(robot, pts[turns])[:, used]
+    return start, s_loc, tau, jac
+
+
+def _wrapped(dq: np.ndarray) -> np.ndarray:
+    """Joint differences over a step of a fraction of a millimetre, into [-pi, pi): a
+    rotary joint's angle wraps at +-pi (a prismatic one moves far less than pi mm)."""
+    return (dq + np.pi) % (2.0 * np.pi) - np.pi
+
+
+#: Step of the central differences of :func:`_ik_jacobian`, mm.
+JACOBIAN_STEP_MM = 1e-4
+
+
+def _ik_jacobian(robot: Robot, xy: np.ndarray) -> np.ndarray:
+    """(k, joints, 2): d joints / d (x, y) at points xy (k, 2) mm, by central differences
+    of ``robot.ik`` (any robot: the protocol has no Jacobian); one-sided where a step
+    leaves the reach (NaN), zero where both do (at the singular full extension: no bound
+    from it, as before)."""
+    e = JACOBIAN_STEP_MM
+    q0 = robot.ik(xy)
+    out = np.zeros(q0.shape + (2,))
+    for c in range(2):
+        d = np.zeros(2)
+        d[c] = e
+        qp, qm = robot.ik(xy + d), robot.ik(xy - d)
+        col = _wrapped(qp - qm) / (2.0 * e)
+        col = np.where(np.isnan(col), _wrapped(qp - q0) / e, col)
+        col = np.where(np.isnan(col), _wrapped(q0 - qm) / e, col)
+        out[:, :, c] = np.nan_to_num(col, nan=0.0, posinf=0.0, neginf=0.0)
+    return out
 
 
 def _single_point(p: np.ndarray, job: Job, robot: Robot, path: Toolpath | None) -> Trajectory:
