@@ -14,7 +14,9 @@ import importlib
 import logging
 import os
 import re
+import signal
 import sys
+import threading
 
 from icefab.cli.common import check_output_dir
 from icefab.cli.compiling import compile_notice
@@ -84,11 +86,38 @@ def _stdout_gone() -> bool:
         return False
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main process as Ctrl-C is, so that a command's clean-up (its
+    temporary result folder, the cell it started) runs as on Ctrl-C: a killed command had
+    left its temporary folder of results behind (hunt P). Exit status 143."""
+
+
+def _on_sigterm(signum, frame) -> None:
+    if os.getpid() != _on_sigterm.pid:   # a forked worker: end as SIGTERM ends it
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        os.kill(os.getpid(), signal.SIGTERM)
+        return
+    raise Terminated()
+
+
 def main(argv: list[str] | None = None) -> int:
+    if threading.current_thread() is not threading.main_thread():
+        return _main(argv)
+    _on_sigterm.pid = os.getpid()
+    old = signal.signal(signal.SIGTERM, _on_sigterm)
+    try:
+        return _main(argv)
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
+def _main(argv: list[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
                         format="%(levelname)s: %(message)s")
+    # -v is icefab's: matplotlib's font search alone printed 292 debug lines (hunt P)
+    logging.getLogger("matplotlib").setLevel(logging.WARNING)
     try:
         if getattr(args, "out", None):  # before any work, not after a long job
             check_output_dir(args.out)
@@ -110,9 +139,11 @@ def main(argv: list[str] | None = None) -> int:
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"icefab {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"icefab {args.command}: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        print(f"icefab {args.command}: "
+              f"{'terminated' if isinstance(exc, Terminated) else 'interrupted'}",
+              file=sys.stderr)
+        return 143 if isinstance(exc, Terminated) else 130
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -8,7 +8,9 @@ import fcntl
 import os
 import re
 import shutil
+import signal
 import sys
+import threading
 import time
 from contextlib import contextmanager
 from pathlib import Path
@@ -340,21 +342,29 @@ def _publish(tmp: Path, final: Path, command: str) -> None:
     placed: list[str] = []        # new entries now in final/
     current = ""
     try:
-        for name in written + [manifest]:   # the record last
+        # the new results on disk before any old one is moved aside (fsyncing the 1 200
+        # valve files between the moves had kept the folder half-replaced for as long)
+        for name in written + [manifest]:
             current = name
-            target = final / name
-            if target.exists():
-                os.rename(target, backup / name)
-                moved_aside.append(name)
             fsync_tree(tmp / name) if (tmp / name).is_dir() else fsync_path(tmp / name)
-            os.rename(tmp / name, target)
-            placed.append(name)
-        for name in stale:
-            current = name
-            os.rename(final / name, backup / name)
-            moved_aside.append(name)
-        fsync_path(final)
-    except OSError as exc:
+        # Ctrl-C or SIGTERM while the entries move waits until they have (a hunt's
+        # interrupt there left the old valve programs only in the backup, which the next
+        # command removed); any other failure puts everything back
+        with _signals_held():
+            for name in written + [manifest]:   # the record last
+                current = name
+                target = final / name
+                if target.exists():
+                    os.rename(target, backup / name)
+                    moved_aside.append(name)
+                os.rename(tmp / name, target)
+                placed.append(name)
+            for name in stale:
+                current = name
+                os.rename(final / name, backup / name)
+                moved_aside.append(name)
+            fsync_path(final)
+    except BaseException as exc:
         for name in reversed(placed):
             try:
                 os.rename(final / name, tmp / name)
@@ -366,9 +376,27 @@ def _publish(tmp: Path, final: Path, command: str) -> None:
             except OSError:
                 pass
         shutil.rmtree(backup, ignore_errors=True)
+        if not isinstance(exc, OSError):
+            raise
         raise OutputError(f"{final / current}: cannot put the result in place "
                           f"({exc.strerror or exc}); {final} is as it was") from None
     shutil.rmtree(backup, ignore_errors=True)
+
+
+@contextmanager
+def _signals_held() -> Iterator[None]:
+    """SIGINT and SIGTERM held back (blocked in this thread) for the block; one that came
+    meanwhile is handled when it ends. Only in the main thread, where Python handles
+    signals; elsewhere a no-op."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held = {signal.SIGINT, signal.SIGTERM}
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 def warnings_file(command: str) -> str:
