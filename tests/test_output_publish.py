@@ -111,6 +111,59 @@ def test_a_failing_rename_rolls_everything_back(tmp_path, monkeypatch, fail_at):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
 
 
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_a_signal_while_the_results_move_leaves_out_old_or_new_never_half(
+        tmp_path, monkeypatch, signum):
+    """Ctrl-C or SIGTERM right after the first old entry is moved aside (a hunt's strace
+    injection): the signal waits until the moves are done, then the run is interrupted
+    and OUT is as before; nothing temporary is left (the old programs had stayed only in
+    a backup, which the next command removed)."""
+    from icefab import cli
+
+    out = tmp_path / "out"
+    _first_run(out)
+    before = _tree(out)
+    real = os.rename
+    sent = []
+
+    def rename(src, dst):
+        got = real(src, dst)
+        if Path(dst).parent.name.startswith(".icefab-backup-") and not sent:
+            sent.append(Path(src).name)
+            os.kill(os.getpid(), signum)
+        return got
+
+    monkeypatch.setattr(os, "rename", rename)
+    cli._on_sigterm.pid = os.getpid()
+    old = signal.signal(signal.SIGTERM, cli._on_sigterm)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            _second_run(out)
+    finally:
+        signal.signal(signal.SIGTERM, old)
+    assert sent and _tree(out) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+def test_sigterm_ends_a_command_as_ctrl_c_does(tmp_path, monkeypatch, capsys):
+    """SIGTERM to a command: its temporary result folder goes, one line, exit 143."""
+    from icefab import cli
+    from icefab.cli import slice_cmd
+
+    def run(args):
+        with output_dir(args.out, "slice") as d:
+            (d / "stack.npz").write_text("half")
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(5)
+
+    monkeypatch.setattr(slice_cmd, "run", run)
+    before = signal.getsignal(signal.SIGTERM)
+    assert cli.main(["slice", "demo", "-o", str(tmp_path / "out")]) == 143
+    assert capsys.readouterr().err == "icefab slice: terminated\n"
+    assert list(tmp_path.iterdir()) == []
+    assert signal.getsignal(signal.SIGTERM) is before
+
+
 def test_the_record_is_swapped_in_last(tmp_path, monkeypatch):
     out = tmp_path / "out"
     _first_run(out)

@@ -385,18 +385,24 @@ def _publish(tmp: Path, final: Path, command: str) -> None:
 
 @contextmanager
 def _signals_held() -> Iterator[None]:
-    """SIGINT and SIGTERM held back (blocked in this thread) for the block; one that came
-    meanwhile is handled when it ends. Only in the main thread, where Python handles
-    signals; elsewhere a no-op."""
+    """SIGINT and SIGTERM held back for the block: one that comes meanwhile is raised
+    again when it ends. The Python handlers are swapped, not the signal mask: the kernel
+    gives a signal to any thread that does not block it (a thread writing a result file)
+    and Python runs the handler in the main thread at once. Only in the main thread
+    (where handlers are set); elsewhere a no-op."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    held = {signal.SIGINT, signal.SIGTERM}
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    got: list[int] = []
+    old = {s: signal.signal(s, lambda signum, _frame: got.append(signum))
+           for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+        for s, handler in old.items():
+            signal.signal(s, handler)
+        if got:
+            signal.raise_signal(got[0])
 
 
 def warnings_file(command: str) -> str:
