@@ -42,6 +42,13 @@ def test_toml_round_trip(tmp_path):
     ("[flow]\n\ncalibration_pulse_ms = 0.2\n", "job.toml:3: flow.calibration_pulse_ms = 0.2"),
     ("[materials]\npart = { fill_width_mm = 3.0, path_width_mm = 0 }\n",
      "job.toml:2: materials.part.path_width_mm"),
+    # hunt P: these three ended in Python's tracebacks (OverflowError, ValueError,
+    # RecursionError)
+    ("[slicing]\nlayer_thickness_mm = 1" + "0" * 400 + "\n",
+     "job.toml:2: slicing.layer_thickness_mm: an integer of 401 digits"),
+    ("[cell]\ncpus = 1" + "0" * 5000 + "\n", "job.toml: not valid TOML: Exceeds the limit"),
+    ("x = " + "[" * 50000 + "]" * 50000 + "\n", "job.toml: not valid TOML: arrays or tables "
+     "nested too deeply"),
 ])
 def test_bad_settings_name_setting_and_line(tmp_path, text, fragment):
     f = tmp_path / "job.toml"

@@ -962,7 +962,11 @@ def _coerce(path: str, value: Any, hint: Any) -> Any:
     if hint is float:
         if isinstance(value, (int, float, np.integer, np.floating)) \
                 and not isinstance(value, (bool, np.bool_)):
-            return float(value)
+            try:
+                return float(value)
+            except OverflowError:   # an integer of hundreds of digits (hunt P)
+                raise ConfigError(f"{path}: an integer of {len(str(abs(value)))} digits, "
+                                  f"beyond any number a setting takes") from None
         raise ConfigError(f"{path} = {value!r}: expected a number")
     if hint is str:
         if isinstance(value, str):
@@ -1109,6 +1113,11 @@ def load_job(path: str | Path) -> Job:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    except RecursionError:   # arrays nested 50 000 deep (hunt P)
+        raise ConfigError(f"{path}: not valid TOML: arrays or tables nested too deeply") \
+            from None
+    except ValueError as exc:   # an integer over Python's 4 300 digits (hunt P)
+        raise ConfigError(f"{path}: not valid TOML: {exc}".split("; use sys.")[0]) from None
     try:
         job = job_from_dict(data)
     except ConfigError as exc:
