@@ -49,6 +49,10 @@ def test_toml_round_trip(tmp_path):
     ("[cell]\ncpus = 1" + "0" * 5000 + "\n", "job.toml: not valid TOML: Exceeds the limit"),
     ("x = " + "[" * 50000 + "]" * 50000 + "\n", "job.toml: not valid TOML: arrays or tables "
      "nested too deeply"),
+    # a group left out was never laid, and its area was called filled (hunt P)
+    ("[materials]\norder = [\"scaffold:fill\", \"part:boundary\"]\n",
+     "job.toml:2: materials.order = ('scaffold:fill', 'part:boundary'): must list each of"),
+    ("[materials]\norder = []\n", "job.toml:2: materials.order = (): must list each of"),
 ])
 def test_bad_settings_name_setting_and_line(tmp_path, text, fragment):
     f = tmp_path / "job.toml"

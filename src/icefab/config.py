@@ -351,7 +351,8 @@ class Materials:
     scaffold: MaterialSettings = field(default_factory=_scaffold_material)
     order: tuple[str, ...] = setting(("part:boundary", "part:fill", "scaffold:boundary",
                                       "scaffold:fill"),
-                                     "deposition order within a layer")
+                                     "deposition order within a layer: each of the four "
+                                     "groups once")
 
     def __getitem__(self, material: str) -> MaterialSettings:
         if material not in ("part", "scaffold"):
@@ -919,10 +920,13 @@ def _check_cross(job: Job) -> None:
                           f"least flow.min_pulse_ms = {fl.min_pulse_ms:g}")
     order = job.materials.order
     allowed = {f"{m}:{r}" for m in ("part", "scaffold") for r in ("boundary", "fill")}
-    bad = [o for o in order if o not in allowed]
-    if bad or len(set(order)) != len(order):
-        raise ConfigError(f"materials.order = {order!r}: entries must be distinct and among "
-                          f"{', '.join(sorted(allowed))}")
+    # every group once: one left out was silently never laid, and the summary called its
+    # area filled (hunt P); a group is left out by its own settings
+    if sorted(order) != sorted(allowed):
+        raise ConfigError(f"materials.order = {order!r}: must list each of "
+                          f"{', '.join(sorted(allowed))} once (to lay no boundaries or no "
+                          f"fill, set materials.*.boundary_count = 0 or fill_pattern = "
+                          f"\"none\")")
 
 
 def _coerce(path: str, value: Any, hint: Any) -> Any:
