@@ -19,7 +19,8 @@ def test_tune_json_thesis_disturbance(capsys):
                      "--json")
     assert rc == 0
     data = json.loads(out)
-    assert set(data) == {"kp", "ki", "kd", "rms", "max_pole", "stable"}
+    assert set(data) == {"kp", "ki", "kd", "rms", "max_pole", "stable", "converged"}
+    assert data["converged"] is True
     assert data["kp"] == pytest.approx(1.0, abs=2e-3) and abs(data["kd"]) < 2e-3
     assert data["ki"] == pytest.approx(0.33, abs=5e-3)
     assert data["rms"] == pytest.approx(0.061, abs=5e-4) and data["stable"] is True
@@ -31,6 +32,17 @@ def test_tune_evaluate_unstable(capsys):
     assert rc == 0 and data["stable"] is False and data["max_pole"] == pytest.approx(1.05, abs=0.005)
     rc, out, _ = run(capsys, "--gains", "1,0.33,0.45")
     assert "UNSTABLE" in out and "1.048" in out
+
+
+def test_tune_says_when_the_optimiser_failed(capsys):
+    """From a divergent start the unconstrained optimiser stops at once (scipy: "NaN
+    result encountered"): the gains were printed as "optimised" (hunt P)."""
+    rc, out, _ = run(capsys, "--unconstrained", "--start", "100,100,100")
+    assert rc == 0
+    assert out.startswith("gains (not optimised: the optimiser stopped after 0 iterations, ")
+    assert "try another --start" in out.splitlines()[0]
+    rc, out, _ = run(capsys, "--unconstrained", "--start", "100,100,100", "--json")
+    assert json.loads(out)["converged"] is False
 
 
 def test_tune_fix_kp_ki_optimises_kd(capsys):

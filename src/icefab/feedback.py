@@ -391,10 +391,12 @@ class TuneResult:
     def as_dict(self) -> dict[str, float | bool | None]:
         """Plain values for JSON: ``rms`` is None when the response diverges
         (:attr:`diverges`), so ``json.dumps(..., allow_nan=False)`` gives valid JSON and a
-        diverging response never shows a finite-looking RMS."""
+        diverging response never shows a finite-looking RMS; ``converged``: whether the
+        optimiser succeeded (true for evaluated gains)."""
         return {"kp": self.kp, "ki": self.ki, "kd": self.kd,
                 "rms": None if self.diverges else float(self.rms),
-                "max_pole": self.max_pole, "stable": self.stable}
+                "max_pole": self.max_pole, "stable": self.stable,
+                "converged": bool(self.converged)}
 
 
 def evaluate_gains(gains: Gains, disturbance: Disturbance | np.ndarray) -> TuneResult:

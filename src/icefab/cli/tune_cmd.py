@@ -150,6 +150,9 @@ def run(args: argparse.Namespace) -> int:
         result = tune_gains(dist, x0=start, fix=fix, constrained=not args.unconstrained,
                             pole_margin=margin)
         mode = "optimised" + (f" (fixed: {', '.join(fix)})" if fix else "")
+        if not result.converged:   # they were called "optimised" (hunt P)
+            mode = (f"not optimised: the optimiser stopped after {result.iterations} "
+                    f"iterations, {result.message.rstrip('.')}; try another --start")
     data = result.as_dict()
     if args.out:
         with output_dir(args.out, "tune") as tmp, warnings.catch_warnings():
