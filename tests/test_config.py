@@ -53,6 +53,8 @@ def test_toml_round_trip(tmp_path):
     ("[materials]\norder = [\"scaffold:fill\", \"part:boundary\"]\n",
      "job.toml:2: materials.order = ('scaffold:fill', 'part:boundary'): must list each of"),
     ("[materials]\norder = []\n", "job.toml:2: materials.order = (): must list each of"),
+    ("[parts]\nfiles = [\"a.stl\", \"\"]\n", "job.toml:2: parts.files[1] = '': an empty file "
+     "name"),
 ])
 def test_bad_settings_name_setting_and_line(tmp_path, text, fragment):
     f = tmp_path / "job.toml"

@@ -374,3 +374,21 @@ def test_paths_writes_its_file_beside_the_picture_and_nothing_when_the_picture_f
 def paths_cmd_args(model: Path, job: Path, out: Path):
     from icefab.cli import build_parser
     return build_parser().parse_args(["paths", str(model), "-c", str(job), "-o", str(out)])
+
+
+def test_an_empty_or_symlinked_output_folder_is_refused_before_any_work(tmp_path, monkeypatch,
+                                                                         capsys):
+    """-o '' wrote into the current folder, and a symbolic link to a folder was refused
+    only when the results were put in place, as "not a folder" (hunt P)."""
+    from icefab import cli
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "real").mkdir()
+    (tmp_path / "link").symlink_to(tmp_path / "real")
+    assert cli.main(["slice", "demo", "-o", ""]) == 2
+    assert capsys.readouterr().err == "icefab slice: error: -o '': an empty folder name\n"
+    assert cli.main(["slice", "demo", "-o", "link"]) == 2
+    assert capsys.readouterr().err == (f"icefab slice: error: -o link: is a symbolic link; "
+                                       f"give the folder it points to ({tmp_path / 'real'})\n")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["link", "real"]
+    assert list((tmp_path / "real").iterdir()) == []

@@ -858,6 +858,9 @@ def _validate(obj: Any, prefix: str) -> None:
 
 def _check_cross(job: Job) -> None:
     """Checks that involve more than one setting."""
+    for i, f in enumerate(job.parts.files):   # '' was read as the current folder (hunt P)
+        if not f.strip():
+            raise ConfigError(f"parts.files[{i}] = {f!r}: an empty file name")
     lo, hi = job.parts.part_fraction
     if lo >= hi:
         raise ConfigError(f"parts.part_fraction = {job.parts.part_fraction!r}: min must be "

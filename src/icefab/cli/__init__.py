@@ -119,7 +119,7 @@ def _main(argv: list[str] | None) -> int:
     # -v is icefab's: matplotlib's font search alone printed 292 debug lines (hunt P)
     logging.getLogger("matplotlib").setLevel(logging.WARNING)
     try:
-        if getattr(args, "out", None):  # before any work, not after a long job
+        if getattr(args, "out", None) is not None:  # before any work, not after a long job
             check_output_dir(args.out)
         with compile_notice():  # the first run's silent numba compiling, said plainly
             rc = int(args.func(args) or 0)

@@ -150,6 +150,12 @@ def compare_build_times(mtts_s: float, constant_s: float) -> str:
 def check_output_dir(path: str | os.PathLike) -> None:
     """OutputError when ``-o path`` names an existing file: checked before a command
     starts its work (``icefab.cli.main``) and again when the folder is made."""
+    if not str(path):   # '' wrote into the current folder (hunt P)
+        raise OutputError(f"-o {str(path)!r}: an empty folder name")
+    if Path(path).is_symlink():   # refused when the results were put in place, as "not a
+        # folder": the results move in by renames from beside it, the same file system
+        raise OutputError(f"-o {path}: is a symbolic link; give the folder it points to "
+                          f"({os.path.realpath(path)})")
     if Path(path).exists() and not Path(path).is_dir():
         raise OutputError(f"-o {path}: exists and is not a folder")
     # a file further up: 'afile/sub' was found only when the results were written
