@@ -309,3 +309,34 @@ def test_negative_values_of_options_are_values():
     assert args.bounds == "-50,-50,50,50"
     args = parser.parse_args(["slice", "m.stl", "-c", "j.toml", "-o", "o"])   # options stay
     assert (args.job, args.out) == ("j.toml", "o")
+
+
+@pytest.mark.parametrize("closed", [1, 2], ids=["stdout", "stderr"])
+def test_a_command_started_with_a_standard_stream_closed_still_works(tmp_path, closed):
+    """'>&-' gave Python no sys.stdout: the results were written, then an AttributeError
+    ended the command with exit 1; '2>&-' failed at once with no message (hunt P)."""
+    import os
+    import subprocess
+    import sys
+
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, "-m", "icefab", "slice", "demo", "-o", str(out)],
+                          preexec_fn=lambda: os.close(closed), stdin=subprocess.DEVNULL,
+                          timeout=300)
+    assert proc.returncode == 0
+    assert (out / "stack.npz").is_file()
+
+
+def test_progress_on_a_full_stderr_lets_the_job_go_on():
+    """'2>/dev/full': the first progress line's OSError ended the whole job (hunt P)."""
+    import io
+
+    from icefab.cli.common import Progress
+
+    class Full(io.StringIO):
+        def write(self, s):
+            raise OSError(28, "No space left on device")
+
+    progress = Progress("paths", stream=Full())
+    for k in range(1, 4):
+        progress(k, 3)   # raises nothing

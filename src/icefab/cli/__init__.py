@@ -101,6 +101,12 @@ def _on_sigterm(signum, frame) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    for name in ("stdout", "stderr"):
+        if getattr(sys, name) is None:
+            # started with the stream closed ('>&-'): Python gives None, and the command
+            # ended in an AttributeError after its work (hunt P); /dev/null takes the free
+            # descriptor, so no result file opened later gets it
+            setattr(sys, name, os.fdopen(os.open(os.devnull, os.O_WRONLY), "w"))
     if threading.current_thread() is not threading.main_thread():
         return _main(argv)
     _on_sigterm.pid = os.getpid()

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import fcntl
+import math
 import os
 import re
 import shutil
@@ -116,11 +117,14 @@ class Progress:
         self._last = now
         pct = 100.0 * done / total if total else 100.0
         text = f"{self.label}: {done}/{total} ({pct:.0f} %, {now - self._start:.1f} s)"
-        if self.tty:
-            self.stream.write("\r" + text + ("\n" if final else ""))
-        else:
-            self.stream.write(text + "\n")
-        self.stream.flush()
+        try:
+            if self.tty:
+                self.stream.write("\r" + text + ("\n" if final else ""))
+            else:
+                self.stream.write(text + "\n")
+            self.stream.flush()
+        except OSError:   # stderr on a full disk ('2>/dev/full'): the job goes on (hunt P)
+            self._last = math.inf
 
 
 def hours(seconds: float) -> str:
