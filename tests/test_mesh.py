@@ -771,6 +771,10 @@ def test_error_unknown_format(tmp_path):
     with pytest.raises(MeshError, match=r"stack\.dat: not a mesh but a zip archive, like "
                                         r"icefab's result files"):
         load_mesh(_write(tmp_path, "stack.dat", buf.getvalue()))
+    # with its .npz extension it was told to give it its .npz extension (hunt P)
+    with pytest.raises(MeshError, match=r"stack\.npz: one of icefab's result files, not a "
+                                        r"mesh: this needs a mesh \(STL, PLY, OBJ\)"):
+        load_mesh(_write(tmp_path, "stack.npz", buf.getvalue()))
 
 
 def test_error_only_degenerate_faces(tmp_path):

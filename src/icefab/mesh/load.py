@@ -75,6 +75,9 @@ def _sniff(data: bytes, path: Path) -> str:
     if head == b"ply":
         return "ply"
     if data[:4] == b"PK\x03\x04":   # a zip: icefab's result files are .npz archives
+        if ext == ".npz":   # it said to give the file the extension it had (hunt P)
+            raise MeshError(f"{path}: one of icefab's result files, not a mesh: this needs a "
+                            "mesh (STL, PLY, OBJ), or the command that reads this file")
         raise MeshError(f"{path}: not a mesh but a zip archive, like icefab's result files "
                         "(stack, toolpaths, trajectories): give such a file its .npz "
                         "extension, or a mesh (STL, PLY, OBJ)")
