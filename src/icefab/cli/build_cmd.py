@@ -238,7 +238,8 @@ def _preparing(build: Path):
     exist: a marker beside the folder holding this process' id, so that ``--stop BUILD``
     finds it (it said "no build journal here" and the build went on to deposit)."""
     def interrupt(signum, frame):
-        raise KeyboardInterrupt
+        from icefab.cli import Terminated
+        raise Terminated()
 
     # --stop sends SIGTERM, handled here as Ctrl-C (the temporary plan removed, a started
     # virtual cell shut down): SIGINT is ignored in a build started in the background
@@ -480,7 +481,9 @@ def _run(build: Path, args: argparse.Namespace, *, resume: bool) -> int:
         if tty:
             sys.stderr.write("\n")
         print(f"icefab build: {exc}", file=sys.stderr)
-        return 130 if stop_flag["signal"] == signal.SIGINT else 0
+        # not 0: a supervisor told a stopped build from a complete one by its words only
+        # (hunt P); 130 as Ctrl-C, 143 as SIGTERM (what --stop sends)
+        return 130 if stop_flag["signal"] == signal.SIGINT else 143
     except Exception as exc:
         try:
             runner.fail(str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
