@@ -17,6 +17,26 @@ def test_reach_errors_name_the_settings_that_move_the_part():
     assert "parts.translation" in str(e)
     other = WorkspaceError("path points must be an (n, 2) array in mm, got shape (3,)")
     assert "cell.ee_origin_mm" not in str(other)
+    # the placement checks name the settings themselves: not twice (hunt Q)
+    placed = WorkspaceError("the placed part needs joint 1 at -170.16 deg at part point (-450, "
+                            "-198) mm, beyond its range +/-105 deg (cell.joint_range_deg): "
+                            "move or scale it (...) or the part origin (cell.ee_origin_mm = "
+                            "[260.0, -100.0])")
+    assert MOVE_PART not in str(placed)
+
+
+def test_a_scaffold_path_out_of_reach_names_the_scaffold_buffer(tmp_path, capsys):
+    """A scaffold 100 mm around a small box leaves joint 1's range: the message named only
+    the part's placement (hunt Q)."""
+    tm = trimesh.creation.box(extents=(20.0, 20.0, 3.0))
+    write_stl(Mesh(tm.vertices, tm.faces, "box"), tmp_path / "box.stl")
+    (tmp_path / "job.toml").write_text("[scaffold]\nbuffer_mm = 100.0\n")
+    code = main(["paths", str(tmp_path / "box.stl"), "-c", str(tmp_path / "job.toml"),
+                 "-o", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert code == 2 and "beyond its range" in err
+    assert "(a scaffold path: the scaffold reaches scaffold.buffer_mm = 100 mm beyond the " \
+           "part); move the part" in err
 
 
 def test_paths_refuses_an_unreachable_placement_before_its_estimate(tmp_path, capsys):

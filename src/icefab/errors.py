@@ -32,8 +32,9 @@ class WorkspaceError(IcefabError):
 
     def __init__(self, message: str) -> None:
         reach = "workspace" in message or "beyond its range" in message
-        super().__init__(message + MOVE_PART if reach and MOVE_PART not in message
-                         else message)
+        # not twice: the placement checks name the settings that move the part already
+        said = MOVE_PART in message or "cell.ee_origin_mm" in message
+        super().__init__(message + MOVE_PART if reach and not said else message)
 
 
 #: What moves the part relative to the robot (issue 11): appended to reach errors.

@@ -113,7 +113,7 @@ from icefab.resultfiles import (TRAJECTORIES_FORMAT as FORMAT,  # noqa: F401 (ol
                                 pack_trajectories, save_trajectories, unpack_layer_paths,
                                 unpack_trajectories)
 from icefab.robots import Robot, get_robot, points_box
-from icefab.core import (DEPOSITING_CODES, ROLES, BuildMotion, LayerMotion, LayerPaths,
+from icefab.core import (DEPOSITING_CODES, MATERIALS, ROLES, BuildMotion, LayerMotion, LayerPaths,
                          Toolpath, Toolpaths, Trajectory, arc_lengths, checked_widths, offsets,
                          off_problem, path_lengths, split_rows, widths_problem)
 from icefab.workload import check_motion
@@ -1380,7 +1380,8 @@ def check_layer_workspace(lp: LayerPaths, job: Job, robot: Robot | None = None) 
     if not lp.paths:
         return
     pts, counts = _to_base(lp.paths, [p.polyline() for p in lp.paths], job)
-    _check_reach(lp.index, pts, counts, robot or get_robot(job))
+    scaffold = np.array([p.material == "scaffold" for p in lp.paths])
+    _check_reach(lp.index, pts, counts, robot or get_robot(job), _scaffold_note(scaffold, job))
 
 
 def check_packed_workspace(index: int, packed: dict[str, np.ndarray], job: Job,
@@ -1400,7 +1401,18 @@ def check_packed_workspace(index: int, packed: dict[str, np.ndarray], job: Job,
                      + np.repeat(shift, np.diff(packed["path_start"]), axis=0)):
         return
     pts, counts = packed_polylines(packed)
-    _check_reach(index, pts + np.repeat(shift, counts, axis=0), counts, robot)
+    scaffold = np.asarray(packed["material"]) == MATERIALS.index("scaffold")
+    _check_reach(index, pts + np.repeat(shift, counts, axis=0), counts, robot,
+                 _scaffold_note(scaffold, job))
+
+
+def _scaffold_note(scaffold: np.ndarray, job: Job) -> Callable[[int], str]:
+    """What a reach error of path k adds when it is a scaffold path (``scaffold`` (P,)
+    bool): the setting that puts the scaffold there (a hunt's scaffold 100 mm around a
+    part left joint 1's range and the message named only the part's placement)."""
+    b = job.scaffold.buffer_mm
+    return lambda k: (f" (a scaffold path: the scaffold reaches scaffold.buffer_mm = {b:g} mm "
+                      "beyond the part)" if scaffold[k] else "")
 
 
 def _in_reach_box(robot: Robot, pts: np.ndarray) -> bool:
@@ -1410,9 +1422,11 @@ def _in_reach_box(robot: Robot, pts: np.ndarray) -> bool:
     return bool(len(pts)) and box is not None and box(*points_box(pts))
 
 
-def _check_reach(index: int, pts: np.ndarray, counts: np.ndarray, robot: Robot) -> None:
+def _check_reach(index: int, pts: np.ndarray, counts: np.ndarray, robot: Robot,
+                 note: Callable[[int], str] = lambda k: "") -> None:
     """The reach checks of :func:`check_layer_workspace` on a layer's polylines in the
-    robot base frame (``pts`` (N, 2) mm, ``counts`` (P,) points each)."""
+    robot base frame (``pts`` (N, 2) mm, ``counts`` (P,) points each); ``note(k)``: what
+    the message of path k adds."""
     if _in_reach_box(robot, pts):
         return   # the segments lie in the points' box too
     ends = np.cumsum(counts)
@@ -1422,7 +1436,7 @@ def _check_reach(index: int, pts: np.ndarray, counts: np.ndarray, robot: Robot) 
         k, j = _locate(ends, i)
         raise WorkspaceError(f"layer {index}, path {k}: point {j} at ({pts[i, 0]:.3f}, "
                              f"{pts[i, 1]:.3f}) mm (robot base frame) is out of the "
-                             f"{robot.name} workspace: {reasons[0]}")
+                             f"{robot.name} workspace: {reasons[0]}{note(k)}")
     # segments (within a path): the point nearest the base origin
     a, b = pts[:-1], pts[1:]
     within = np.ones(len(a), dtype=bool)
@@ -1442,7 +1456,8 @@ def _check_reach(index: int, pts: np.ndarray, counts: np.ndarray, robot: Robot) 
         x, y = near[sbad[0]]
         raise WorkspaceError(f"layer {index}, path {k}: the segment from point {j} to "
                              f"point {j + 1} passes ({x:.3f}, {y:.3f}) mm (robot base "
-                             f"frame), out of the {robot.name} workspace: {sreasons[0]}")
+                             f"frame), out of the {robot.name} workspace: {sreasons[0]}"
+                             f"{note(k)}")
 
 
 def plan_toolpaths(toolpaths: Toolpaths, job: Job | None = None,
