@@ -392,3 +392,30 @@ def test_an_empty_or_symlinked_output_folder_is_refused_before_any_work(tmp_path
                                        f"give the folder it points to ({tmp_path / 'real'})\n")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["link", "real"]
     assert list((tmp_path / "real").iterdir()) == []
+
+
+def test_an_output_folder_with_a_long_name_gets_its_results(tmp_path):
+    """A valid 240-character folder name was refused: its temporary sibling's name (the
+    name, '.icefab-', the process and 8 characters) was too long (hunt P)."""
+    out = tmp_path / ("a" * 240)
+    out.mkdir()
+    _first_run(out)
+    assert (out / "stack.npz").read_text() == "stack 1"
+    assert sorted(p.name for p in tmp_path.iterdir()) == [out.name]
+
+
+def test_a_folder_it_cannot_write_into_is_refused_before_any_work(tmp_path, monkeypatch,
+                                                                  capsys):
+    """A read-only output folder was found only after the whole job (hunt P)."""
+    from icefab import cli
+    from icefab.cli import slice_cmd
+
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    real = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode, **kw: Path(p) != ro and real(p, mode))
+    monkeypatch.setattr(slice_cmd, "run", lambda args: pytest.fail("worked"))
+    assert cli.main(["slice", "demo", "-o", str(ro / "out")]) == 2
+    assert capsys.readouterr().err == (f"icefab slice: error: -o {ro / 'out'}: cannot write "
+                                       f"into {ro} (permission denied)\n")
+    assert cli.main(["slice", "demo", "-o", str(ro)]) == 2

@@ -168,6 +168,13 @@ def check_output_dir(path: str | os.PathLike) -> None:
             if not up.is_dir():
                 raise OutputError(f"-o {path}: {up} is a file, not a folder")
             break
+    # where the results are written (OUT, and beside it, where they wait until done):
+    # a read-only folder was found only after all the work (hunt P)
+    for folder in ([Path(path)] if Path(path).is_dir() else []) + [Path(path).parent]:
+        while not folder.exists() and folder != folder.parent:
+            folder = folder.parent
+        if folder.is_dir() and not os.access(folder, os.W_OK | os.X_OK):
+            raise OutputError(f"-o {path}: cannot write into {folder} (permission denied)")
 
 
 #: Hidden folders beside OUT (``.OUT.icefab-PID.RANDOM``) hold a running command's results
@@ -175,6 +182,16 @@ def check_output_dir(path: str | os.PathLike) -> None:
 #: publish replaces until it has finished (for the roll-back).
 _TEMP = ".icefab-"
 _BACKUP = ".icefab-backup-"
+#: At most this many characters of OUT's name go into its temporary folder's name: a
+#: folder of a valid 240-character name was refused, its temporary one's name too long
+#: for the file system (255 bytes; hunt P).
+TEMP_STEM_CHARS = 100
+
+
+def _stem(final: Path) -> str:
+    return final.name[:TEMP_STEM_CHARS]
+
+
 #: Temporary folders of icefab before it named them with their process (``.OUT.XXXXXXXX``
 #: from ``tempfile.mkdtemp``) are removed once they are this old, seconds.
 LEGACY_TEMP_AGE_S = 3600.0
@@ -198,7 +215,7 @@ def remove_stale_temporaries(final: Path) -> list[Path]:
     (``OUT/.icefab-backup-PID.RANDOM``) whose process no longer runs, and the older
     ``.OUT.XXXXXXXX`` folders (no process recorded) once older than an hour.
     Returns the removed paths."""
-    own = re.compile(rf"^\.{re.escape(final.name)}\.icefab-(\d+)\.[0-9a-f]{{8}}$")
+    own = re.compile(rf"^\.{re.escape(_stem(final))}\.icefab-(\d+)\.[0-9a-f]{{8}}$")
     legacy = re.compile(rf"^\.{re.escape(final.name)}\.[a-z0-9_]{{8}}$")
     backup = re.compile(rf"^{re.escape(_BACKUP)}(\d+)\.[0-9a-f]{{8}}$")
     removed = []
@@ -274,7 +291,7 @@ def output_dir(path: str | os.PathLike, command: str) -> Iterator[Path]:
     try:
         final.parent.mkdir(parents=True, exist_ok=True)
         remove_stale_temporaries(final)
-        tmp = make_temp_dir(final.parent, f".{final.name}{_TEMP}{os.getpid()}.")
+        tmp = make_temp_dir(final.parent, f".{_stem(final)}{_TEMP}{os.getpid()}.")
     except OSError as exc:
         raise OutputError(f"-o {final}: cannot create the output folder "
                           f"({exc.strerror or exc})") from None
