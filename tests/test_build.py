@@ -620,7 +620,8 @@ def test_stop_reaches_a_build_that_is_still_planning(tmp_path, when):
         r = _icefab("build", "--stop", "b", cwd=tmp_path)
         assert r.returncode == 0, r.stderr
         assert "stopped while it was being prepared" in r.stdout
-        assert proc.wait(timeout=60) == 143 and "terminated" in log.read_text()
+        assert proc.wait(timeout=60) == 143 and "terminated" in log.read_text(), \
+            log.read_text()
         assert time.monotonic() - t0 < 30.0
     finally:
         if proc.poll() is None:

@@ -18,7 +18,7 @@ import signal
 import sys
 import threading
 
-from icefab.cli.common import check_output_dir
+from icefab.cli.common import Terminated, check_output_dir
 from icefab.cli.compiling import compile_notice
 from icefab.errors import IcefabError
 
@@ -84,12 +84,6 @@ def _stdout_gone() -> bool:
         return gone
     except (OSError, ValueError, AttributeError):   # not a real file (a test's stand-in)
         return False
-
-
-class Terminated(KeyboardInterrupt):
-    """SIGTERM, raised in the main process as Ctrl-C is, so that a command's clean-up (its
-    temporary result folder, the cell it started) runs as on Ctrl-C: a killed command had
-    left its temporary folder of results behind (hunt P). Exit status 143."""
 
 
 def _on_sigterm(signum, frame) -> None:

@@ -32,7 +32,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from icefab.cli.common import add_job_argument, command_inputs, job_from_args
+from icefab.cli.common import (Terminated, add_job_argument, command_inputs,
+                               job_from_args)
 from icefab.errors import ConfigError
 
 
@@ -238,7 +239,6 @@ def _preparing(build: Path):
     exist: a marker beside the folder holding this process' id, so that ``--stop BUILD``
     finds it (it said "no build journal here" and the build went on to deposit)."""
     def interrupt(signum, frame):
-        from icefab.cli import Terminated
         raise Terminated()
 
     # --stop sends SIGTERM, handled here as Ctrl-C (the temporary plan removed, a started

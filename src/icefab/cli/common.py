@@ -94,6 +94,13 @@ def parse_layers(text: str | None, n: int, default_count: int = 4) -> list[int]:
     return list(dict.fromkeys(ks))   # a layer named twice is drawn once, in the given order
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main process as Ctrl-C is (``icefab.cli.main``, a build
+    while it plans), so that a command's clean-up (its temporary result folder, the cell
+    it started) runs as on Ctrl-C: a killed command had left its temporary folder of
+    results behind (hunt P). Exit status 143."""
+
+
 class Progress:
     """Progress of a long stage on stderr: ``label: done/total``.
 
