@@ -154,3 +154,43 @@ def test_a_failed_map_leaves_nothing_for_the_exit_hook_to_wake():
     with pytest.raises(ValueError, match="item 0"):
         parallel_map(_fails_first, [0, 1], job, min_items=2)
     assert set(cfp._threads_wakeups) <= before
+
+
+@pytest.mark.parametrize("stage", ["paths", "plan"])
+def test_sigterm_to_the_process_group_ends_a_command_at_once(tmp_path, stage):
+    """'timeout' and service managers send SIGTERM to the whole process group: the pool's
+    workers end first, and the pool's own thread then failed on the items the command had
+    cancelled (CPython 3.11's InvalidStateError) before closing its queue, so the command
+    said "terminated" and waited at exit for ever (a hunt's, 4 runs in 10). It ends with
+    its one line, exit 143, and leaves no temporary folder or worker behind."""
+    inputs = {"paths": ["demo", "--layers", "0"], "plan": []}
+    if stage == "plan":   # a toolpath file to plan from
+        from icefab.cli import main
+        assert main(["paths", "demo", "-o", str(tmp_path / "p")]) == 0
+        inputs["plan"] = [str(tmp_path / "p" / "toolpaths.npz")]
+    proc = subprocess.Popen([sys.executable, "-m", "icefab", stage, *inputs[stage], "-o",
+                             str(tmp_path / "out")], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True, cwd=tmp_path,
+                            start_new_session=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    label = {"paths": "paths: ", "plan": "planning: "}[stage]   # its progress lines
+    try:
+        seen = ""
+        while label not in seen:    # its workers are at work
+            line = proc.stderr.readline()
+            assert line, seen
+            seen += line
+        workers = set(_children(proc.pid))
+        assert workers
+        os.killpg(proc.pid, signal.SIGTERM)
+        err = proc.communicate(timeout=60)[1]
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 143, err
+    said = [ln for ln in err.splitlines() if not ln.startswith(label)]
+    assert said == [f"icefab {stage}: terminated"], err
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out.")]
+    deadline = time.monotonic() + 10
+    while any(_alive(w) for w in workers) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not [w for w in workers if _alive(w)]
