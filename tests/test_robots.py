@@ -210,3 +210,29 @@ def test_workspace_violations_are_those_point_by_point(robot, f1, f2, spread, pt
     bad0, reasons0 = robot._point_violations(xy)
     np.testing.assert_array_equal(bad, bad0)
     assert reasons == reasons0
+
+
+def test_the_scara_jacobian_is_the_derivative_of_its_ik():
+    """The analytic Jacobian the planner's vertex bounds take (``Scara.jacobian``) against
+    central differences of ``ik`` (what a robot without one gets, motion._ik_jacobian), over
+    the reach and behind the base where joint 1's angle wraps."""
+    from icefab.motion import _ik_jacobian
+
+    class OnlyIk:
+        def __init__(self, robot):
+            self.robot = robot
+
+        def ik(self, xy):
+            return self.robot.ik(xy)
+
+    robot = Scara()
+    rng = np.random.default_rng(3)
+    th = rng.uniform(-np.pi, np.pi, 3000)
+    r = rng.uniform(170.0, 598.0, 3000)
+    xy = np.c_[r * np.cos(th), r * np.sin(th)]
+    own, fd = robot.jacobian(xy), _ik_jacobian(OnlyIk(robot), xy)
+    scale = np.abs(own).max(axis=(1, 2))[:, None, None]
+    assert np.abs(own - fd).max(axis=(1, 2)).max() <= 1e-6 * scale.max()
+    assert (np.abs(own - fd) <= 1e-6 * scale).all()
+    g = get_robot(Job().replace(**{"cell.robot": "gantry"}))
+    np.testing.assert_array_equal(g.jacobian(xy[:4]), np.broadcast_to(np.eye(2), (4, 2, 2)))

@@ -936,7 +936,7 @@ def _vertices(pts: np.ndarray, start: np.ndarray, robot: Robot, used: np.ndarray
 def _wrapped(dq: np.ndarray) -> np.ndarray:
     """Joint differences over a step of a fraction of a millimetre, into [-pi, pi): a
     rotary joint's angle wraps at +-pi (a prismatic one moves far less than pi mm)."""
-    return (dq + np.pi) % (2.0 * np.pi) - np.pi
+    return dq - (2.0 * np.pi) * np.round(dq / (2.0 * np.pi))
 
 
 #: Step of the central differences of :func:`_ik_jacobian`, mm.
@@ -944,10 +944,13 @@ JACOBIAN_STEP_MM = 1e-4
 
 
 def _ik_jacobian(robot: Robot, xy: np.ndarray) -> np.ndarray:
-    """(k, joints, 2): d joints / d (x, y) at points xy (k, 2) mm, by central differences
-    of ``robot.ik`` (any robot: the protocol has no Jacobian); one-sided where a step
-    leaves the reach (NaN), zero where both do (at the singular full extension: no bound
-    from it, as before)."""
+    """(k, joints, 2): d joints / d (x, y) at points xy (k, 2) mm: the robot's own
+    (``robot.jacobian``, the SCARA's and the gantry's analytic) or central differences of
+    ``robot.ik`` (a registered robot without one); one-sided where a step leaves the
+    reach (NaN), zero where both do."""
+    own = getattr(robot, "jacobian", None)
+    if own is not None:   # 4 ik calls and the wrapping were 44 % of the bunny's planning
+        return np.asarray(own(xy), dtype=np.float64)
     e = JACOBIAN_STEP_MM
     q0 = robot.ik(xy)
     out = np.zeros(q0.shape + (2,))

@@ -63,7 +63,9 @@ class Robot(Protocol):
     piece turn some joint by at least that much (thesis 4.2.6). ``box_reachable(lo, hi)
     -> bool``: whether every point of an axis-aligned box (and so every chord within it)
     is surely reachable; :meth:`workspace_violations` and the paths stage's reach check
-    skip their point-by-point work for such a box.
+    skip their point-by-point work for such a box. ``jacobian(xy) -> (n, j, 2)``: d joints
+    / d (x, y) at the points (joint units per mm); the planner's vertex bounds take it
+    (else central differences of :meth:`ik`).
     """
 
     name: str
@@ -166,6 +168,28 @@ class Scara:
         t1 = (t1 + np.pi) % (2.0 * np.pi) - np.pi
         t4 = self.phi - t1 - t2  # thesis eq. 4.11
         return np.stack([t1, t2, t4], axis=1)
+
+    #: |sin theta2| below which :meth:`jacobian` takes this value (the arm stretched out or
+    #: folded: no inverse there; 1e-6 gives ~11 rad/mm, a joint that cannot turn a path).
+    SINGULAR_SIN = 1e-6
+
+    def jacobian(self, xy: np.ndarray) -> np.ndarray:
+        """(n, 3, 2) rad/mm: d (theta1, theta2, theta4) / d (x, y) at points ``xy (n, 2)``
+        mm, the inverse of the arm's Jacobian (x = l1 cos t1 + l2 cos(t1 + t2), y likewise;
+        determinant l1 l2 sin t2); joint 4 keeps phi, so its row is minus the sum."""
+        q = self.ik(xy)
+        t1, t12 = q[:, 0], q[:, 0] + q[:, 1]
+        s2 = np.sin(q[:, 1])
+        s2 = np.where(np.abs(s2) < self.SINGULAR_SIN,
+                      np.where(s2 < 0.0, -self.SINGULAR_SIN, self.SINGULAR_SIN), s2)
+        det = self.l1 * self.l2 * s2
+        out = np.empty((len(q), 3, 2))
+        out[:, 0, 0] = self.l2 * np.cos(t12) / det
+        out[:, 0, 1] = self.l2 * np.sin(t12) / det
+        out[:, 1, 0] = -(self.l1 * np.cos(t1) + self.l2 * np.cos(t12)) / det
+        out[:, 1, 1] = -(self.l1 * np.sin(t1) + self.l2 * np.sin(t12)) / det
+        out[:, 2] = -(out[:, 0] + out[:, 1])
+        return out
 
     def fk(self, joints: np.ndarray) -> np.ndarray:
         """(n, 2) float64 mm: the tool points of joint positions ``(n, >=2)`` rad."""
@@ -288,6 +312,10 @@ class Gantry:
     def fk(self, joints: np.ndarray) -> np.ndarray:
         """(n, 2) float64 mm."""
         return np.array(joints[:, :2], dtype=np.float64, copy=True)
+
+    def jacobian(self, xy: np.ndarray) -> np.ndarray:
+        """(n, 2, 2): the identity (each axis follows its coordinate)."""
+        return np.broadcast_to(np.eye(2), (len(xy), 2, 2)).copy()
 
     def box_reachable(self, lo: np.ndarray, hi: np.ndarray) -> bool:
         """Whether the box ``[lo, hi]`` ((2,) mm each) lies within the travel (and so does
