@@ -440,6 +440,7 @@ class _Prepared(NamedTuple):
     qgrid: np.ndarray      # (G, j) joint angles at the grid points (joints with a bound)
     used: np.ndarray       # (J,) bool: the robot's joints with a finite bound
     vertices: tuple        # the followed polyline of every piece (:func:`_vertices`)
+    gjac: np.ndarray       # (G, m, 2) the joints' Jacobian at the grid points
     rest: tuple            # the first and last steps' bounds (:func:`_rest_step_bounds`)
 
 
@@ -468,7 +469,7 @@ def _prepare(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray], job: J
                                  f"{sreasons[0]}")
     if len(sp.a) == 0:
         return _Prepared(sp=sp, P=P, qgrid=np.zeros((0, 0)), used=np.zeros(0, bool),
-                         vertices=(), rest=())
+                         vertices=(), rest=(), gjac=np.zeros((0, 0, 2)))
     V, pid, orig_index = sp.V, sp.pid, sp.orig_index
     a, piece_path, pvs, S = sp.a, sp.piece_path, sp.pvs, sp.S
     hk, gstart, gxy, gs = sp.hk, sp.gstart, sp.gxy, sp.gs
@@ -503,12 +504,17 @@ def _prepare(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray], job: J
     qa = np.asarray(robot.joint_accel_max, dtype=np.float64)
     qj = np.asarray(robot.joint_jerk_max, dtype=np.float64)
     used = np.isfinite(qv) | np.isfinite(qa) | np.isfinite(qj)
+    qfull = qgrid
     qgrid = np.ascontiguousarray(qgrid[:, used])
     # the polyline each piece follows (its vertices, turning vectors, arc length)
-    vertices = _vertices(sp.fxy, sp.fstart, robot, used)
+    vertices = _vertices(sp.fxy, sp.fstart)
+    # the joints' Jacobian at the grid points, for the vertex bounds (at a vertex, the
+    # nearest grid point's: 0.4 mm away at most); per vertex it cost 16 ms a bunny layer
+    gjac = np.ascontiguousarray(_ik_jacobian(robot, gxy, qfull)[:, used])
     rest = _rest_step_bounds(gstart, hk, qgrid, robot, used, qa[used],
                              float(job.motion.accel_mm_s2), gxy)
-    return _Prepared(sp=sp, P=P, qgrid=qgrid, used=used, vertices=vertices, rest=rest)
+    return _Prepared(sp=sp, P=P, qgrid=qgrid, used=used, vertices=vertices, rest=rest,
+                     gjac=gjac)
 
 
 def _profiles(prep: _Prepared, vcaps: np.ndarray, job: Job, robot: Robot) -> _Profiles:
@@ -521,13 +527,14 @@ def _profiles(prep: _Prepared, vcaps: np.ndarray, job: Job, robot: Robot) -> _Pr
         return _Profiles(sp=sp, P=prep.P, v=z, T=z, a0=z, a1=z)
     vcap_piece = np.asarray(vcaps, dtype=np.float64)[sp.piece_path]
     v, T, a0, a1 = _piece_profiles(sp.gstart, sp.hk, sp.gxy, prep.vertices, prep.qgrid,
+                                   prep.gjac,
                                    prep.rest, vcap_piece, prep.used, job, robot)
     return _Profiles(sp=sp, P=prep.P, v=v, T=T, a0=a0, a1=a1)
 
 
 def _piece_profiles(gstart: np.ndarray, hk: np.ndarray, gxy: np.ndarray, vertices: tuple,
-                    qgrid: np.ndarray, rest: tuple, vcap_piece: np.ndarray, used: np.ndarray,
-                    job: Job, robot: Robot
+                    qgrid: np.ndarray, gjac: np.ndarray, rest: tuple, vcap_piece: np.ndarray,
+                    used: np.ndarray, job: Job, robot: Robot
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The compiled speed profiles of pieces on their grids (:class:`_Prepared`'s arrays,
     ``vcap_piece`` (Q,) mm/s one per piece): v (G,), T, a0, a1 (Q,). Each piece is
@@ -542,10 +549,10 @@ def _piece_profiles(gstart: np.ndarray, hk: np.ndarray, gxy: np.ndarray, vertice
     # the rest curves' initial acceleration within the total bound (a rest_accel_mm_s2
     # above accel_mm_s2 planned 2.6 times the bound; both settings in their ranges)
     a_rest = min(float(m.rest_accel_mm_s2), float(m.accel_mm_s2))
-    vstart, vs_loc, vtau, vjac = vertices
+    vstart, vs_loc, vtau = vertices
     dmin0, dmin1, cap0, cap1 = rest
     v, env, T = _mtts.speed_profiles(
-        _mtts.PieceGrid(gstart, hk, gxy, vstart, vs_loc, vtau, vjac),
+        _mtts.PieceGrid(gstart, hk, gxy, vstart, vs_loc, vtau, gjac),
         _mtts.CartesianLimits(vcap_piece, float(m.accel_mm_s2), float(m.jerk_mm_s3),
                               bool(jerk_on), a_rest, cap0, cap1),
         _mtts.JointLimits(qgrid, qv, qa, qj),
@@ -575,15 +582,15 @@ def _piece_times(prep: _Prepared, vcaps: np.ndarray, job: Job, robot: Robot,
     if not len(sel):
         return np.zeros(0)
     rows, gstart = _ragged_rows(sp.gstart, sel)
-    vstart, vs_loc, vtau, vjac = prep.vertices
+    vstart, vs_loc, vtau = prep.vertices
     vrows, vnew = _ragged_rows(vstart, sel)
     rest = tuple(np.ascontiguousarray(r[sel]) for r in prep.rest)
     return _piece_profiles(gstart, np.ascontiguousarray(sp.hk[sel]),
                            np.ascontiguousarray(sp.gxy[rows]),
                            (vnew, np.ascontiguousarray(vs_loc[vrows]),
-                            np.ascontiguousarray(vtau[vrows]),
-                            np.ascontiguousarray(vjac[vrows])),
-                           np.ascontiguousarray(prep.qgrid[rows]), rest,
+                            np.ascontiguousarray(vtau[vrows])),
+                           np.ascontiguousarray(prep.qgrid[rows]),
+                           np.ascontiguousarray(prep.gjac[rows]), rest,
                            np.asarray(vcaps, dtype=np.float64)[sp.piece_path[sel]],
                            prep.used, job, robot)[1]
 
@@ -916,21 +923,14 @@ def _switch_spans(paths: Sequence[Toolpath | None], off: np.ndarray, sp: _Split,
                                                        bounds[1:].tolist())}
 
 
-def _vertices(pts: np.ndarray, start: np.ndarray, robot: Robot, used: np.ndarray
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _vertices(pts: np.ndarray, start: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Vertices of concatenated polylines (piece k is ``pts[start[k]:start[k+1]]``):
     (start, arc length from the piece start (K,) mm, turning vectors (K, 2) = change of
-    the unit tangent, zero at the piece ends, and the joints' (``used``) Jacobian at each
-    vertex that turns (K, m, 2) joint units per mm, zero elsewhere: what a turn costs the
-    joints, :func:`icefab._mtts._vertex_bounds`)."""
+    the unit tangent, zero at the piece ends)."""
     start = start.astype(np.int64)
-    pts = np.ascontiguousarray(pts, dtype=np.float64)
-    s_loc, tau = _mtts.polyline_vertices(pts, start)
-    jac = np.zeros((len(pts), int(used.sum()), 2))
-    turns = np.flatnonzero((tau != 0.0).any(axis=1))
-    if len(turns) and jac.shape[1]:
-        jac[turns] = _ik_jacobian(robot, pts[turns])[:, used]
-    return start, s_loc, tau, jac
+    s_loc, tau = _mtts.polyline_vertices(np.ascontiguousarray(pts, dtype=np.float64), start)
+    return start, s_loc, tau
 
 
 def _wrapped(dq: np.ndarray) -> np.ndarray:
@@ -943,16 +943,17 @@ def _wrapped(dq: np.ndarray) -> np.ndarray:
 JACOBIAN_STEP_MM = 1e-4
 
 
-def _ik_jacobian(robot: Robot, xy: np.ndarray) -> np.ndarray:
+def _ik_jacobian(robot: Robot, xy: np.ndarray, joints: np.ndarray | None = None
+                 ) -> np.ndarray:
     """(k, joints, 2): d joints / d (x, y) at points xy (k, 2) mm: the robot's own
     (``robot.jacobian``, the SCARA's and the gantry's analytic) or central differences of
     ``robot.ik`` (a registered robot without one); one-sided where a step leaves the
-    reach (NaN), zero where both do."""
+    reach (NaN), zero where both do. ``joints``: ``robot.ik(xy)`` when at hand."""
     own = getattr(robot, "jacobian", None)
     if own is not None:   # 4 ik calls and the wrapping were 44 % of the bunny's planning
-        return np.asarray(own(xy), dtype=np.float64)
+        return np.asarray(own(xy, joints), dtype=np.float64)
     e = JACOBIAN_STEP_MM
-    q0 = robot.ik(xy)
+    q0 = robot.ik(xy) if joints is None else joints
     out = np.zeros(q0.shape + (2,))
     for c in range(2):
         d = np.zeros(2)

@@ -63,9 +63,10 @@ class Robot(Protocol):
     piece turn some joint by at least that much (thesis 4.2.6). ``box_reachable(lo, hi)
     -> bool``: whether every point of an axis-aligned box (and so every chord within it)
     is surely reachable; :meth:`workspace_violations` and the paths stage's reach check
-    skip their point-by-point work for such a box. ``jacobian(xy) -> (n, j, 2)``: d joints
-    / d (x, y) at the points (joint units per mm); the planner's vertex bounds take it
-    (else central differences of :meth:`ik`).
+    skip their point-by-point work for such a box. ``jacobian(xy, joints=None) -> (n, j,
+    2)``: d joints / d (x, y) at the points (joint units per mm; ``joints``: their ``ik``
+    when at hand); the planner's vertex bounds take it (else central differences of
+    :meth:`ik`).
     """
 
     name: str
@@ -173,11 +174,12 @@ class Scara:
     #: folded: no inverse there; 1e-6 gives ~11 rad/mm, a joint that cannot turn a path).
     SINGULAR_SIN = 1e-6
 
-    def jacobian(self, xy: np.ndarray) -> np.ndarray:
+    def jacobian(self, xy: np.ndarray, joints: np.ndarray | None = None) -> np.ndarray:
         """(n, 3, 2) rad/mm: d (theta1, theta2, theta4) / d (x, y) at points ``xy (n, 2)``
-        mm, the inverse of the arm's Jacobian (x = l1 cos t1 + l2 cos(t1 + t2), y likewise;
-        determinant l1 l2 sin t2); joint 4 keeps phi, so its row is minus the sum."""
-        q = self.ik(xy)
+        mm (``joints``: their ``ik`` when at hand), the inverse of the arm's Jacobian
+        (x = l1 cos t1 + l2 cos(t1 + t2), y likewise; determinant l1 l2 sin t2); joint 4
+        keeps phi, so its row is minus the sum."""
+        q = self.ik(xy) if joints is None else joints
         t1, t12 = q[:, 0], q[:, 0] + q[:, 1]
         s2 = np.sin(q[:, 1])
         s2 = np.where(np.abs(s2) < self.SINGULAR_SIN,
@@ -313,7 +315,7 @@ class Gantry:
         """(n, 2) float64 mm."""
         return np.array(joints[:, :2], dtype=np.float64, copy=True)
 
-    def jacobian(self, xy: np.ndarray) -> np.ndarray:
+    def jacobian(self, xy: np.ndarray, joints: np.ndarray | None = None) -> np.ndarray:
         """(n, 2, 2): the identity (each axis follows its coordinate)."""
         return np.broadcast_to(np.eye(2), (len(xy), 2, 2)).copy()
 
