@@ -950,7 +950,7 @@ def _ik_jacobian(robot: Robot, xy: np.ndarray, joints: np.ndarray | None = None
     ``robot.ik`` (a registered robot without one); one-sided where a step leaves the
     reach (NaN), zero where both do. ``joints``: ``robot.ik(xy)`` when at hand."""
     own = getattr(robot, "jacobian", None)
-    if own is not None:   # 4 ik calls and the wrapping were 44 % of the bunny's planning
+    if own is not None:   # the differences cost 4 ik calls and the wrapping per point
         return np.asarray(own(xy, joints), dtype=np.float64)
     e = JACOBIAN_STEP_MM
     q0 = robot.ik(xy) if joints is None else joints
