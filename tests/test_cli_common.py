@@ -334,9 +334,13 @@ def test_progress_on_a_full_stderr_lets_the_job_go_on():
     from icefab.cli.common import Progress
 
     class Full(io.StringIO):
+        tries = 0
+
         def write(self, s):
+            Full.tries += 1
             raise OSError(28, "No space left on device")
 
-    progress = Progress("paths", stream=Full())
-    for k in range(1, 4):
-        progress(k, 3)   # raises nothing
+    progress = Progress("paths", stream=Full(), interval_s=0.0)
+    for k in range(1, 6):
+        progress(k, 5)   # raises nothing
+    assert Full.tries == 2   # the first line, then only the final one is tried again
