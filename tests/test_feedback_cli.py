@@ -37,12 +37,23 @@ def test_tune_evaluate_unstable(capsys):
 def test_tune_says_when_the_optimiser_failed(capsys):
     """From a divergent start the unconstrained optimiser stops at once (scipy: "NaN
     result encountered"): the gains were printed as "optimised" (hunt P)."""
-    rc, out, _ = run(capsys, "--unconstrained", "--start", "100,100,100")
-    assert rc == 0
+    rc, out, err = run(capsys, "--unconstrained", "--start", "100,100,100")
+    assert rc == 1 and "did not converge" in err
     assert out.startswith("gains (not optimised: the optimiser stopped after 0 iterations, ")
     assert "try another --start" in out.splitlines()[0]
     rc, out, _ = run(capsys, "--unconstrained", "--start", "100,100,100", "--json")
-    assert json.loads(out)["converged"] is False
+    assert rc == 1 and json.loads(out)["converged"] is False
+
+
+def test_tune_writes_nothing_when_the_optimiser_failed(tmp_path, capsys):
+    """Gains the optimiser did not reach are no result: exit status 1 and no folder, as
+    for any command that fails, so that a script does not take them for the optimum."""
+    out_dir = tmp_path / "t"
+    rc, _, err = run(capsys, "--unconstrained", "--start", "100,100,100", "-o", str(out_dir))
+    assert rc == 1 and f"nothing written to {out_dir}" in err
+    assert not out_dir.exists() and list(tmp_path.iterdir()) == []
+    rc, _, _ = run(capsys, "--gains", "100,100,100", "-o", str(out_dir))
+    assert rc == 0 and (out_dir / "tune.json").is_file()   # evaluated gains are a result
 
 
 def test_tune_fix_kp_ki_optimises_kd(capsys):

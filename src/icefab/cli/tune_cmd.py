@@ -154,7 +154,10 @@ def run(args: argparse.Namespace) -> int:
             mode = (f"not optimised: the optimiser stopped after {result.iterations} "
                     f"iterations, {result.message.rstrip('.')}; try another --start")
     data = result.as_dict()
-    if args.out:
+    # gains the optimiser did not reach are no result: a script must not take them for
+    # the optimum (hunt P), so nothing is written and the exit status says so
+    failed = args.gains is None and not result.converged
+    if args.out and not failed:
         with output_dir(args.out, "tune") as tmp, warnings.catch_warnings():
             if result.diverges:  # huge values expected: matplotlib's overflow notes are noise
                 warnings.simplefilter("ignore", RuntimeWarning)
@@ -166,7 +169,7 @@ def run(args: argparse.Namespace) -> int:
                 allow_nan=False) + "\n")
     if args.json:  # rms is null when the response diverges: strict JSON, no Infinity
         print(json.dumps(data, allow_nan=False))
-        return 0
+        return _not_converged(args) if failed else 0
     print(f"gains ({mode}): Kp = {_gain(result.kp)}, Ki* = {_gain(result.ki)}, "
           f"Kd* = {_gain(result.kd)}")
     if result.diverges and result.max_pole > 1.0:
@@ -181,8 +184,18 @@ def run(args: argparse.Namespace) -> int:
     verdict = ("UNSTABLE (marginal: a pole on the unit circle, its error never decays)"
                if on_circle else "stable" if result.stable else "UNSTABLE")
     print(f"{verdict}: largest pole modulus {_gain(result.max_pole)}")
+    if failed:
+        return _not_converged(args)
     if args.out:
         print(f"wrote {args.out}/error_response.png, {args.out}/tune.json", file=sys.stderr)
     return 0
+
+
+def _not_converged(args: argparse.Namespace) -> int:
+    """Exit status 1 for an optimisation that did not converge, with a line on stderr."""
+    kept = f"; nothing written to {args.out}" if args.out else ""
+    print(f"icefab tune: the optimiser did not converge{kept} (exit status 1)",
+          file=sys.stderr)
+    return 1
 
 
