@@ -27,12 +27,26 @@ def test_reach_errors_name_the_settings_that_move_the_part():
 
 def test_a_scaffold_path_out_of_reach_names_the_scaffold_buffer(tmp_path, capsys):
     """A scaffold 100 mm around a small box leaves joint 1's range: the message named only
-    the part's placement (hunt Q)."""
+    the part's placement (hunt Q). The slicer's check of the placed part took the
+    scaffold's angle as buffer / radius at the box's corners and passed it; it now takes
+    the circles around the part and the mitred corners of its hull (the paths stage's
+    check is met from a stack sliced without the buffer)."""
     tm = trimesh.creation.box(extents=(20.0, 20.0, 3.0))
     write_stl(Mesh(tm.vertices, tm.faces, "box"), tmp_path / "box.stl")
     (tmp_path / "job.toml").write_text("[scaffold]\nbuffer_mm = 100.0\n")
-    code = main(["paths", str(tmp_path / "box.stl"), "-c", str(tmp_path / "job.toml"),
-                 "-o", str(tmp_path / "out")])
+    code = main(["slice", str(tmp_path / "box.stl"), "-c", str(tmp_path / "job.toml"),
+                 "-o", str(tmp_path / "s")])
+    err = capsys.readouterr().err
+    assert code == 2 and not (tmp_path / "s").exists()
+    assert "with the scaffold around it (scaffold.buffer_mm = 100) needs joint 1 at -109.2" \
+        in err and "beyond its range +/-105 deg" in err
+    (tmp_path / "job.toml").write_text("[scaffold]\nbuffer_mm = 60.0\n")
+    assert main(["slice", str(tmp_path / "box.stl"), "-c", str(tmp_path / "job.toml"),
+                 "-o", str(tmp_path / "s")]) == 0   # within range: the check passes it
+    (tmp_path / "job.toml").write_text("[scaffold]\nbuffer_mm = 100.0\n")
+    capsys.readouterr()
+    code = main(["paths", str(tmp_path / "s" / "stack.npz"), "-c",
+                 str(tmp_path / "job.toml"), "-o", str(tmp_path / "out")])
     err = capsys.readouterr().err
     assert code == 2 and "beyond its range" in err
     assert "(a scaffold path: the scaffold reaches scaffold.buffer_mm = 100 mm beyond the " \

@@ -6,6 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
+from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import strategies as st
 
 from icefab import Job
 from icefab.errors import ConfigError, SimulationError, WorkspaceError
@@ -292,3 +294,65 @@ def test_streamed_budget_is_per_layer_and_larger_for_the_build():
     many = Toolpaths(layers=tp.layers * 10, job=job)
     with pytest.raises(ConfigError, match=r"MAX_STREAMED_SAMPLES"):
         _checked_items(many, job, None, streamed=True)
+
+
+def _scaffold_joint1_reference(poly: np.ndarray, rho: float, job: Job) -> float:
+    """Largest |joint 1| (rad) along the scaffold's outline: the part's outline ``poly``
+    (part frame, CCW) offset by ``rho`` mm as the scaffold's wall is (Clipper's mitred
+    offset, geometry.expand), densely sampled, under the scaffold nozzle."""
+    from icefab import geometry as geo
+    from icefab.frames import to_base_frame
+    from icefab.robots import get_robot
+
+    wall = geo.expand(geo.region_from_rings([poly]), rho, 0.0)
+    ring = np.vstack([wall.rings[0], wall.rings[0][:1]])
+    seg = np.diff(ring, axis=0)
+    n = np.maximum(np.ceil(np.hypot(seg[:, 0], seg[:, 1]) / 0.05), 1).astype(int)
+    pts = np.concatenate([ring[i] + np.linspace(0, 1, k, endpoint=False)[:, None] * seg[i]
+                          for i, k in enumerate(n)])
+    base = to_base_frame(pts, "scaffold", job)
+    return float(np.abs(get_robot(job).ik(base)[:, 0]).max())
+
+
+@settings(max_examples=60, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.floats(340.0, 420.0), st.floats(-0.5, 0.5), st.sampled_from([-1.0, 1.0]),
+       st.floats(5.0, 30.0), st.floats(2.0, 30.0), st.floats(0.0, np.pi),
+       st.floats(3.0, 60.0), st.booleans())
+def test_the_scaffold_joint_1_check_agrees_with_its_mitred_wall(r0, dphi, side, w, d, rot,
+                                                                 buffer, triangle):
+    """The slicer's joint-1 check of the scaffold against the mitred outline the paths
+    stage lays (hunt Q: a box's scaffold 100 mm out passed the slicer's check and only
+    'icefab paths' refused it). It must never refuse a scaffold within joint 1's range
+    (the paths stage would lay it), and must refuse one more than 1 degree beyond it."""
+    from icefab.robots import get_robot
+
+    job = Job().replace(**{"scaffold.buffer_mm": buffer, "feedback.enabled": False,
+                           "cell.ee_origin_mm": (0.0, 0.0)})
+    robot = get_robot(job)
+    lim = float(robot.joint_range[0])
+    f0 = float(robot.ik(np.array([[r0, 0.0]]))[0, 0])
+    phi = side * lim - f0 + dphi          # joint 1 near its limit at radius r0
+    if triangle:
+        poly = np.array([[0.0, 0.0], [w, 0.0], [0.3 * w, d]])
+    else:
+        poly = np.array([[0.0, 0.0], [w, 0.0], [w, d], [0.0, d]])
+    c, s = np.cos(rot), np.sin(rot)
+    poly = (poly - poly.mean(axis=0)) @ np.array([[c, s], [-s, c]])
+    poly = poly + r0 * np.array([np.cos(phi), np.sin(phi)])
+    verts = np.vstack([np.c_[poly, np.zeros(len(poly))], np.c_[poly, np.full(len(poly), 2.0)]])
+    tm = trimesh.convex.convex_hull(verts)
+    mat = job.materials.scaffold
+    rho = buffer - mat.initial_offset_mm - mat.path_width_mm
+    try:
+        workload.check_placed_part(np.asarray(tm.vertices), job, np.asarray(tm.faces))
+        refused = None
+    except WorkspaceError as e:
+        refused = str(e)
+    part_max = float(np.abs(robot.ik(poly)[:, 0]).max())   # the water nozzle's own
+    assume(part_max < lim - 0.05 and (refused is None or "scaffold" in refused))
+    worst = _scaffold_joint1_reference(poly, rho, job) if rho > 0 else part_max
+    if refused is not None:
+        assert "joint 1" in refused and worst > lim, refused
+    else:
+        assert worst <= lim + np.radians(1.0), (np.degrees(worst), np.degrees(lim))
