@@ -37,6 +37,7 @@ from typing import Any, Iterator, Mapping
 
 import numpy as np
 
+from icefab.atomic import replace_durably
 from icefab.errors import IcefabError
 
 SCHEMA_VERSION = 2   # 2: the laser table (version 1 journals ran on the stand-in cell)
@@ -129,15 +130,27 @@ class Journal:
         if path.exists():
             raise JournalError(f"{path}: a journal exists already (resume it with "
                                "'icefab build --resume')")
-        j = cls(path, cls._connect(path))
-        with j._tx() as db:
-            for stmt in _SCHEMA.strip().split(";"):
-                if stmt.strip():
-                    db.execute(stmt)
-            rows = {"schema": SCHEMA_VERSION, "created": time.time(), **meta}
-            db.executemany("INSERT INTO meta VALUES (?, ?)",
-                           [(k, json.dumps(v)) for k, v in rows.items()])
-        return j
+        # made whole under another name, then renamed into place: a build killed while
+        # the file was opened left a journal with no tables, which every later command
+        # took for a damaged one (a hunt's: SIGTERM or -9 at that instant)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.new")
+        try:
+            j = cls(tmp, cls._connect(tmp))
+            with j._tx() as db:
+                for stmt in _SCHEMA.strip().split(";"):
+                    if stmt.strip():
+                        db.execute(stmt)
+                rows = {"schema": SCHEMA_VERSION, "created": time.time(), **meta}
+                db.executemany("INSERT INTO meta VALUES (?, ?)",
+                               [(k, json.dumps(v)) for k, v in rows.items()])
+            j.close()   # the last connection: SQLite folds its WAL into the file
+            replace_durably(tmp, path)
+        except (sqlite3.Error, OSError) as exc:
+            raise JournalError(f"{path}: the journal could not be created ({exc})") from None
+        finally:
+            for leftover in (tmp, Path(f"{tmp}-wal"), Path(f"{tmp}-shm")):
+                leftover.unlink(missing_ok=True)
+        return cls(path, cls._connect(path))
 
     @classmethod
     def open(cls, path: str | os.PathLike) -> "Journal":

@@ -85,21 +85,23 @@ def run(args: argparse.Namespace) -> int:
             # ignored and all 12 layers built)
             raise ConfigError(f"--resume {args.resume} --layers {args.layers}: --layers "
                               "starts a new build; a resumed build keeps its layers")
-        return _run(Path(args.resume), args, resume=True)
+        with _build_process(Path(args.resume), new=False) as ctl:
+            return _run(Path(args.resume), args, ctl, resume=True)
     if not args.out:
         raise ConfigError("-o BUILD is required for a new build (or --resume/--status/--stop "
                           "BUILD)")
-    # no INPUT: the job's own parts (parts.files; a legacy control file names them)
-    args.input = command_inputs(args.input, job_from_args(args), words=("demo",))
-    if not (args.virtual or args.cell):
-        raise ConfigError("choose the cell: --virtual (start one) or --cell ENDPOINTS")
-    if args.cell:
-        from icefab.linkedcell import load_endpoints
-
-        load_endpoints(args.cell)   # a bad endpoints file is said before any planning
     if args.layers is not None and args.layers < 1:
         raise ConfigError(f"--layers {args.layers}: expected a number >= 1")
-    return _run(Path(args.out), args, resume=False)
+    with _build_process(Path(args.out), new=True) as ctl:
+        # no INPUT: the job's own parts (parts.files; a legacy control file names them)
+        args.input = command_inputs(args.input, job_from_args(args), words=("demo",))
+        if not (args.virtual or args.cell):
+            raise ConfigError("choose the cell: --virtual (start one) or --cell ENDPOINTS")
+        if args.cell:
+            from icefab.linkedcell import load_endpoints
+
+            load_endpoints(args.cell)   # a bad endpoints file is said before any planning
+        return _run(Path(args.out), args, ctl, resume=False)
 
 
 # --------------------------------------------------------------------------- helpers
@@ -229,61 +231,91 @@ def _shutdown_cell(cdir: Path) -> None:
     shutdown_virtual_cell(cdir)
 
 
-def _preparing_marker(build: Path) -> Path:
-    return build.parent / f".{build.name}.icefab-preparing"
+def _process_marker(build: Path) -> Path:
+    return build.parent / f".{build.name}.icefab-build"
 
 
 @contextlib.contextmanager
-def _preparing(build: Path):
-    """While a new build plans (minutes for a large part), before its folder and journal
-    exist: a marker beside the folder holding this process' id, so that ``--stop BUILD``
-    finds it (it said "no build journal here" and the build went on to deposit)."""
-    def interrupt(signum, frame):
-        raise Terminated()
+def _build_process(build: Path, *, new: bool):
+    """For the whole life of a build or resume of ``build``: a marker beside the folder
+    holding this process' id, so that ``--stop`` and ``--status`` find the process from
+    its first instant (a --stop in the first second of a build, before any marker or
+    journal, said "no build journal here" and the build ran to its end; one sent while a
+    resume started read the stopped run's status, said no build ran, and the resume
+    deleted its request: a hunt's). A new build into a folder whose parent is missing
+    makes the parent first (it had no marker at all; an empty one goes again).
 
-    # --stop sends SIGTERM, handled here as Ctrl-C (the temporary plan removed, a started
-    # virtual cell shut down): SIGINT is ignored in a build started in the background
-    # of a non-interactive shell ('icefab build ... &'). The handler first, then the
-    # marker that --stop finds
-    old = signal.signal(signal.SIGTERM, interrupt)
-    marker = _preparing_marker(build)
+    SIGTERM (what --stop sends) raises :class:`Terminated` while the build is prepared
+    (the temporary plan removed, a started virtual cell shut down, as Ctrl-C does: SIGINT
+    is ignored in a build started in the background of a non-interactive shell); once
+    the runner is in charge (``ctl["runner"]``) it only sets ``ctl["signal"]``, which the
+    runner's stop check reads, so the tool is lifted and the build stops between
+    commands. Yields ``ctl``."""
+    ctl = {"runner": False, "signal": None}
+
+    def on_term(signum, frame):
+        if ctl["runner"]:
+            ctl["signal"] = signum
+        else:
+            raise Terminated()
+
+    old = signal.signal(signal.SIGTERM, on_term)   # the handler first, then the marker
+    made: list[Path] = []
+    if new:
+        p = build.absolute().parent
+        while not p.exists():
+            made.append(p)
+            p = p.parent
+        try:
+            for d in reversed(made):
+                d.mkdir()
+        except OSError:    # the build's own mkdir says why, as before
+            pass
+    marker = _process_marker(build)
     try:
         marker.write_text(f"{os.getpid()}\n", encoding="utf-8")
-    except OSError:        # no parent folder yet: nothing to find it by, as before
+    except OSError:        # an unwritable or missing parent: nothing to find it by
         marker = None
     try:
-        yield
+        yield ctl
     finally:
         signal.signal(signal.SIGTERM, old)
         if marker is not None:
             marker.unlink(missing_ok=True)
+        for d in made:     # deepest first; a folder that holds the build stays
+            try:
+                d.rmdir()
+            except OSError:
+                break
 
 
-def _stop_preparing(build: Path) -> bool:
-    """Interrupt a build of ``build`` that is still planning (as Ctrl-C does: nothing was
-    sent to a cell); True when there was one."""
-    marker = _preparing_marker(build)
+def _build_pid(build: Path) -> int | None:
+    """The id of the build or resume process running for ``build`` (its marker), or None;
+    a marker whose process is gone (killed) is removed."""
+    marker = _process_marker(build)
     try:
         pid = int(marker.read_text(encoding="utf-8").strip())
+        os.kill(pid, 0)
         cmdline = Path(f"/proc/{pid}/cmdline")
         if cmdline.exists() and b"build" not in cmdline.read_bytes():
             raise ProcessLookupError(pid)    # a killed build's id, now another program's
-        os.kill(pid, signal.SIGTERM)
     except (OSError, ValueError):
-        marker.unlink(missing_ok=True)       # stale: its process is gone
+        if marker.is_file():
+            marker.unlink(missing_ok=True)   # stale: its process is gone
+        return None
+    return pid
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except OSError:
         return False
-    deadline = time.monotonic() + 60.0
-    while time.monotonic() < deadline:
-        time.sleep(0.2)
-        if not marker.exists():       # it removes its marker as it leaves
-            return True
-        try:
-            os.kill(pid, 0)
-        except OSError:
-            marker.unlink(missing_ok=True)
-            return True
-    raise ConfigError(f"{build}: the build being prepared (process {pid}) did not stop "
-                      "within 60 s")
+    cmdline = Path(f"/proc/{pid}/cmdline")
+    try:   # a zombie (the parent has not reaped it yet) has an empty command line
+        return not cmdline.exists() or bool(cmdline.read_bytes())
+    except OSError:
+        return False
 
 
 def _stop_orphan_cell(build: Path) -> bool:
@@ -341,7 +373,7 @@ def _connector(build: Path, args: argparse.Namespace, meta: dict, job):
 # --------------------------------------------------------------------------- run
 
 
-def _run(build: Path, args: argparse.Namespace, *, resume: bool) -> int:
+def _run(build: Path, args: argparse.Namespace, ctl: dict, *, resume: bool) -> int:
     from icefab import build as bmod
     from icefab.config import load_job, to_toml
     from icefab.journal import Journal, JournalError, digest_file, digest_text
@@ -365,90 +397,93 @@ def _run(build: Path, args: argparse.Namespace, *, resume: bool) -> int:
         if args.cell:
             meta["cell"] = str(Path(args.cell).resolve())
         lock = _lock(build)
+        # a request left by the stop that ended the last run; this process' marker was
+        # written first, so a --stop from now on signals it (ctl) and is not lost
         (build / bmod.STOP_REQUEST).unlink(missing_ok=True)
         journal.event("resume", "resumed")
+        ctl["runner"] = True
     else:
         if jpath.exists():
             raise ConfigError(f"{build}: holds a build journal already: resume it with "
                               f"'icefab build --resume {build}' or choose another -o")
-        with _preparing(build):
-            in_digest = _input_digest(list(args.input))
-            with tempfile.TemporaryDirectory(prefix="icefab-build-plan-") as tmp:
-                planned = Path(tmp) / bmod.TRAJECTORIES
-                job, room_warnings = _plan(args, planned)
-                with TrajectoryFile(planned) as f:
-                    bmod.check_build(f.motion(), job, f.n_layers)
-                created = not build.exists()
-                build.mkdir(parents=True, exist_ok=True)
-                lock = _lock(build)
-                if jpath.exists():
-                    # another build started here while this one planned (a hunt's second
-                    # build deleted the first one's cell and wrote over its job and
-                    # trajectories, then failed at the journal)
-                    lock.close()
-                    raise ConfigError(f"{build}: another build started in this folder while "
-                                      f"this one was planning: resume it with 'icefab build "
-                                      f"--resume {build}' or choose another -o")
-                cdir = build / bmod.CELL_DIR
-                if cdir.is_dir():
-                    # a start killed before its journal existed: nothing was sent; start afresh
-                    _shutdown_cell(cdir)
-                    shutil.rmtree(cdir)
-                job_toml = to_toml(job)
-                (build / "job.toml").write_text(job_toml, encoding="utf-8")
-                shutil.move(planned, build / bmod.TRAJECTORIES)
-            motion = open_trajectories(build / bmod.TRAJECTORIES)
-            meta = {"cell": "virtual" if args.virtual else str(Path(args.cell).resolve()),
-                    "cell_time_factor": args.cell_time_factor, "layers": len(motion.layers),
-                    "layer_indices": [int(lm.index) for lm in motion.layers],
-                    "measured_layers": [int(lm.index) for lm in motion.layers
-                                        if bmod.measures(lm)],
-                    "inputs": list(args.input),
-                    "digests": {"input": in_digest, "job": digest_file(build / "job.toml"),
-                                "trajectories": digest_file(build / bmod.TRAJECTORIES),
-                                CALIBRATION_DIGEST: _calibration_digest(job)}}
-            connect = _connector(build, args, meta, job)
-            cell = None
-            try:
-                cell = connect()
-                cell.hello()                      # the handshake, before anything is journaled
-                cell.check_paths(motion)
-                st = cell.status()
-                if not st.prepared:
-                    lo, hi = _box(motion, job)
-                    cell.prepare(job_toml, tuple(lo), tuple(hi))
-            except BaseException:   # Ctrl-C or --stop too
-                # nothing of a build that never started stays behind (README: output folders
-                # only on success): a refused cell left the folder with its lock file
-                if cell is not None:
-                    cell.close()
-                if args.virtual:
-                    _shutdown_cell(build / bmod.CELL_DIR)
-                    shutil.rmtree(build / bmod.CELL_DIR, ignore_errors=True)
-                (build / "job.toml").unlink(missing_ok=True)
-                (build / bmod.TRAJECTORIES).unlink(missing_ok=True)
+        in_digest = _input_digest(list(args.input))
+        with tempfile.TemporaryDirectory(prefix="icefab-build-plan-") as tmp:
+            planned = Path(tmp) / bmod.TRAJECTORIES
+            job, room_warnings = _plan(args, planned)
+            with TrajectoryFile(planned) as f:
+                bmod.check_build(f.motion(), job, f.n_layers)
+            created = not build.exists()
+            build.mkdir(parents=True, exist_ok=True)
+            lock = _lock(build)
+            if jpath.exists():
+                # another build started here while this one planned (a hunt's second
+                # build deleted the first one's cell and wrote over its job and
+                # trajectories, then failed at the journal)
                 lock.close()
-                (build / "build.lock").unlink(missing_ok=True)
-                if created:
-                    try:
-                        build.rmdir()
-                    except OSError:   # something else was put there meanwhile: keep it
-                        pass
-                raise
+                raise ConfigError(f"{build}: another build started in this folder while "
+                                  f"this one was planning: resume it with 'icefab build "
+                                  f"--resume {build}' or choose another -o")
+            cdir = build / bmod.CELL_DIR
+            if cdir.is_dir():
+                # a start killed before its journal existed: nothing was sent; start afresh
+                _shutdown_cell(cdir)
+                shutil.rmtree(cdir)
+            job_toml = to_toml(job)
+            (build / "job.toml").write_text(job_toml, encoding="utf-8")
+            shutil.move(planned, build / bmod.TRAJECTORIES)
+        motion = open_trajectories(build / bmod.TRAJECTORIES)
+        meta = {"cell": "virtual" if args.virtual else str(Path(args.cell).resolve()),
+                "cell_time_factor": args.cell_time_factor, "layers": len(motion.layers),
+                "layer_indices": [int(lm.index) for lm in motion.layers],
+                "measured_layers": [int(lm.index) for lm in motion.layers
+                                    if bmod.measures(lm)],
+                "inputs": list(args.input),
+                "digests": {"input": in_digest, "job": digest_file(build / "job.toml"),
+                            "trajectories": digest_file(build / bmod.TRAJECTORIES),
+                            CALIBRATION_DIGEST: _calibration_digest(job)}}
+        connect = _connector(build, args, meta, job)
+        cell = None
+        try:
+            cell = connect()
+            cell.hello()                      # the handshake, before anything is journaled
+            cell.check_paths(motion)
+            st = cell.status()
+            if not st.prepared:
+                lo, hi = _box(motion, job)
+                cell.prepare(job_toml, tuple(lo), tuple(hi))
+            # whole or absent (Journal.create); a stop until it exists undoes all this
             journal = Journal.create(jpath, meta)
-            journal.event("start", f"build of {len(motion.layers)} layers on "
-                          f"{'a virtual cell' if args.virtual else meta['cell']}")
-            for line in room_warnings:   # once the build starts (a refusal is one line)
-                journal.event("headroom", line)
-                print(line, file=sys.stderr)
-            cell.close()
+        except BaseException:   # Ctrl-C or --stop too
+            # nothing of a build that never started stays behind (README: output folders
+            # only on success): a refused cell left the folder with its lock file
+            if cell is not None:
+                cell.close()
+            if args.virtual:
+                _shutdown_cell(build / bmod.CELL_DIR)
+                shutil.rmtree(build / bmod.CELL_DIR, ignore_errors=True)
+            (build / "job.toml").unlink(missing_ok=True)
+            (build / bmod.TRAJECTORIES).unlink(missing_ok=True)
+            lock.close()
+            (build / "build.lock").unlink(missing_ok=True)
+            if created:
+                try:
+                    build.rmdir()
+                except OSError:   # something else was put there meanwhile: keep it
+                    pass
+            raise
+        ctl["runner"] = True    # from here a stop is the runner's (the tool lifted)
+        journal.event("start", f"build of {len(motion.layers)} layers on "
+                      f"{'a virtual cell' if args.virtual else meta['cell']}")
+        for line in room_warnings:   # once the build starts (a refusal is one line)
+            journal.event("headroom", line)
+            print(line, file=sys.stderr)
+        cell.close()
     connect = _connector(build, args, meta, job)
-    stop_flag = {"signal": None}
 
     def on_signal(signum, frame):
-        stop_flag["signal"] = signum
+        ctl["signal"] = signum
 
-    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    old = {signal.SIGINT: signal.signal(signal.SIGINT, on_signal)}   # SIGTERM: ctl's
     last = [0.0]
     tty = sys.stderr.isatty()
 
@@ -462,7 +497,7 @@ def _run(build: Path, args: argparse.Namespace, *, resume: bool) -> int:
         sys.stderr.flush()
 
     runner = bmod.Runner(build, motion, job, journal, connect, on_progress=on_progress,
-                         should_stop=lambda: stop_flag["signal"] is not None
+                         should_stop=lambda: ctl["signal"] is not None
                          or (build / bmod.STOP_REQUEST).exists(),
                          accept_cell_reset=args.cell_lost_record)
     cdir = build / bmod.CELL_DIR
@@ -483,7 +518,7 @@ def _run(build: Path, args: argparse.Namespace, *, resume: bool) -> int:
         print(f"icefab build: {exc}", file=sys.stderr)
         # not 0: a supervisor told a stopped build from a complete one by its words only
         # (hunt P); 130 as Ctrl-C, 143 as SIGTERM (what --stop sends)
-        return 130 if stop_flag["signal"] == signal.SIGINT else 143
+        return 130 if ctl["signal"] == signal.SIGINT else 143
     except Exception as exc:
         try:
             runner.fail(str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
@@ -545,6 +580,17 @@ def _status(build: Path, as_json: bool) -> int:
     from icefab.journal import Journal
 
     f = build / bmod.STATUS
+    pid = _build_pid(build)
+    if pid is not None and _read_status(build).get("pid") != pid:
+        # planning, starting its cell, or a resume reconnecting: its runner has not
+        # written a status yet (it said "no build journal here", or the last run's
+        # "stopped", a hunt's)
+        if as_json:
+            print(json.dumps({"state": "preparing", "pid": pid}, indent=1))
+        else:
+            print(f"{build}: being prepared (process {pid}): planning, starting its cell or "
+                  "reconnecting to it")
+        return 0
     if not f.is_file():
         Journal.open(build / bmod.JOURNAL).close()   # names the folder when it is no build
         raise ConfigError(f"{build}: no status yet (the build has not started a layer)")
@@ -591,41 +637,49 @@ def _status(build: Path, as_json: bool) -> int:
     return 0
 
 
+def _read_status(build: Path) -> dict:
+    from icefab import build as bmod
+
+    try:
+        return json.loads((build / bmod.STATUS).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+
+
+#: How long ``--stop`` waits for a build process to end: a build stops between commands
+#: (the path under way ends, valves off, the tool lifted), a preparing one at once.
+STOP_WAIT_S = 60.0
+
+
 def _stop(build: Path) -> int:
     from icefab import build as bmod
     from icefab.journal import Journal
-
-    if not (build / bmod.JOURNAL).exists():
-        if _stop_preparing(build):
-            print(f"{build}: stopped while it was being prepared (planning or starting its "
-                  "cell); no path was sent to the cell")
-            return 0
-        if _stop_orphan_cell(build):
-            return 0
-    journal = Journal.open(build / bmod.JOURNAL)
-    meta = journal.meta()
-    (build / bmod.STOP_REQUEST).write_text("stop\n", encoding="utf-8")
-    st = {}
-    try:
-        st = json.loads((build / bmod.STATUS).read_text(encoding="utf-8"))
-        os.kill(int(st.get("pid", -1)), 0)
-        running = st.get("state") == "running"
-    except (OSError, ValueError):
-        running = False
-    if running:
-        deadline = time.monotonic() + 60.0
-        while time.monotonic() < deadline:
-            time.sleep(0.2)
-            st = json.loads((build / bmod.STATUS).read_text(encoding="utf-8"))
-            if st.get("state") != "running":
-                print(f"{build}: stopped ({st.get('events', ['-'])[-1]})")
-                return 0
-        raise ConfigError(f"{build}: the build did not stop within 60 s")
-    # no build process: tell the cell directly
     from icefab.linkedcell import cell_alive
+
+    pid = _build_pid(build)
+    if pid is not None:
+        return _stop_process(build, pid)
+    if not (build / bmod.JOURNAL).exists() and _stop_orphan_cell(build):
+        return 0
+    journal = Journal.open(build / bmod.JOURNAL)   # names the folder when it is no build
+    meta = journal.meta()
+    cdir = build / bmod.CELL_DIR
+    if _read_status(build).get("state") == "complete":
+        # nothing to stop (it wrote a request into the finished folder and journaled "no
+        # build was running"); a virtual cell still up means the build was killed as it
+        # ended, and no resume will end it (a hunt's)
+        journal.close()
+        if meta.get("cell") == "virtual" and cell_alive(cdir):
+            _shutdown_cell(cdir)
+            print(f"{build}: the build is complete; its virtual cell was still running (the "
+                  "build was killed as it ended): stopped it")
+        else:
+            print(f"{build}: the build is complete: nothing to stop")
+        return 0
+    # no build process: tell the cell directly
     from icefab.config import load_job
 
-    if meta.get("cell") == "virtual" and not cell_alive(build / bmod.CELL_DIR):
+    if meta.get("cell") == "virtual" and not cell_alive(cdir):
         journal.event("stop", "stop asked: no build and no virtual cell were running")
         journal.close()
         print(f"{build}: no build and no virtual cell were running")
@@ -647,4 +701,36 @@ def _stop(build: Path) -> int:
     print(f"{build}: no build was running; the cell was told to stop at once (valves off, "
           f"the robot stopped where it was; the tool was not lifted: no build knows where it "
           f"is); it keeps running for 'icefab build --resume {build}'")
+    return 0
+
+
+def _stop_process(build: Path, pid: int) -> int:
+    """Stop the build or resume process ``pid`` of ``build`` and wait for it to end: a
+    request the runner reads between commands and SIGTERM (which also ends one that is
+    still being prepared); then say how it ended."""
+    from icefab import build as bmod
+
+    request = build / bmod.STOP_REQUEST
+    if (build / bmod.JOURNAL).exists():
+        request.write_text("stop\n", encoding="utf-8")
+    try:
+        os.kill(pid, signal.SIGTERM)
+    except OSError:
+        pass
+    deadline = time.monotonic() + STOP_WAIT_S
+    while _alive(pid):
+        if time.monotonic() > deadline:
+            raise ConfigError(f"{build}: the build (process {pid}) did not stop within "
+                              f"{STOP_WAIT_S:g} s")
+        time.sleep(0.1)
+    st = _read_status(build)
+    if st.get("pid") != pid:    # its runner never started: nothing was sent
+        request.unlink(missing_ok=True)
+        print(f"{build}: stopped while it was being prepared (planning or starting its "
+              "cell); no path was sent to the cell")
+    elif st.get("state") == "complete":
+        request.unlink(missing_ok=True)
+        print(f"{build}: the build completed before the stop reached it")
+    else:
+        print(f"{build}: stopped ({(st.get('events') or ['-'])[-1]})")
     return 0
