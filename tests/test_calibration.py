@@ -2,7 +2,9 @@
 synthetic data with realistic noise; their files are checked line by line."""
 from __future__ import annotations
 
+import dataclasses
 import json
+import re
 import subprocess
 import sys
 
@@ -181,6 +183,50 @@ def test_valve_that_barely_opens_or_saturates_gets_its_monotone_means(seed_):
     assert np.abs(fit.flow_mm3_s[-1] / 144.0 - 1.0) < 0.03
 
 
+def test_valve_with_a_dead_band_gets_a_table_that_gives_nothing_in_it(tmp_path):
+    """No flow up to 25 Hz, rising from 50 Hz: the monotone means kept 0 Hz alone, drew
+    the table straight across the band, and refused the runs at 10 Hz as "100 % off the
+    nearest rising table" (hunt W). The band's top is the table's second row at a flow
+    too small to give."""
+    f = np.repeat([10.0, 25.0, 50.0, 75.0, 100.0, 150.0, 200.0, 300.0, 400.0, 500.0], 2)
+    mass = np.array([0, 0, 0, 0, 0.1514, 0.1507, 0.5222, 0.5250, 0.9, 0.905, 1.65, 1.64,
+                     2.4, 2.39, 3.9, 3.89, 5.4, 5.41, 6.9, 6.91])
+    fit = cal.fit_valve_table(f, np.full(20, 60.0), mass, 1.0)
+    assert fit.method == "monotone means"
+    assert fit.frequency_hz[:3].tolist() == [0.0, 25.0, 50.0]
+    assert 0 < fit.flow_mm3_s[1] < 1e-5 and np.all(np.diff(fit.flow_mm3_s) > 0)
+    assert np.abs(fit.residual).max() < 0.01       # the band's runs fit its ~0
+    cal.write_valve_table(fit, tmp_path / "t.csv", "part")
+    back = load_calibration(tmp_path / "t.csv")
+    assert back.frequency(np.array([1.0]))[0] > 25.0   # any flow needs the band's top
+
+
+def test_valve_runs_with_no_flow_or_in_other_units_are_named():
+    f = np.array([100.0, 200.0, 300.0, 400.0])
+    # a valve that never opened: an SVD that did not converge (hunt W)
+    with pytest.raises(FlowError, match="no flow at any frequency"):
+        cal.fit_valve_table(f, np.full(4, 60.0), np.zeros(4), 1.0)
+    # masses in mg: tables 1000 times the flow, written with exit 0
+    with pytest.raises(FlowError, match="masses in mg, or durations in ms"):
+        cal.fit_valve_table(f, np.full(4, 60.0), np.array([1.0, 2.0, 3.0, 4.0]) * 1000, 1.0)
+
+
+@pytest.mark.parametrize("row, says", [
+    ("1e12,60,2", ":5: frequency_hz must be within 0-100000 Hz"),
+    ("400,1e-300,2", ":5: duration_s must be within 0.1-86400 s"),
+    ("400,60000000,2", ":5: duration_s must be within 0.1-86400 s"),
+])
+def test_mass_runs_outside_what_a_valve_and_a_balance_do_are_refused(tmp_path, row, says):
+    from icefab.config import FlowSettings
+
+    fields = {fld.name: fld for fld in dataclasses.fields(FlowSettings)}
+    assert fields["max_frequency_hz"].metadata["hi"] == cal.MAX_VALVE_HZ
+    p = tmp_path / "m.csv"
+    p.write_text(f"frequency_hz,duration_s,mass_g\n100,60,0.5\n200,60,1\n300,60,1.5\n{row}\n")
+    with pytest.raises(ConfigError, match=re.escape(says)):
+        cal.read_masses(p)
+
+
 def test_valve_table_rows_as_written_rise_strictly(tmp_path):
     # 100, 100.0000001 and 100.0000002 Hz were three rows, all written as '100': the
     # table's reader refused what calibrate valve wrote
@@ -198,7 +244,7 @@ def test_valve_table_rows_as_written_rise_strictly(tmp_path):
 @pytest.mark.parametrize("text, where", [
     ("frequency_hz,duration_s,mass_g\n100,10,1\n200,ten,2\n", ":3: duration_s must be a number"),
     ("100,10,1\n200,10\n", ":2: expected 3 columns"),
-    ("100,10,1\n200,0,1\n", ":2: duration_s must be > 0"),
+    ("100,10,1\n200,0,1\n", ":2: duration_s must be within 0.1-86400 s"),
     ("100,10,nan\n", ":1: mass_g must be finite"),
     ("# nothing\n", "no data rows"),
 ])

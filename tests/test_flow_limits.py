@@ -361,3 +361,24 @@ def test_settings_the_valve_programs_cannot_keep_are_refused(settings, name):
     internal argument, 'max_change'). Both are refused up front, naming the setting."""
     with pytest.raises(ConfigError, match=re.escape(name)):
         Job().replace(**settings)
+
+
+def test_a_table_reaching_absurd_frequencies_is_refused_before_its_pulses(tmp_path):
+    """A calibration table with a row at 1e12 Hz: the layer's pass made pulses for every
+    sample (~1e11 a step) before refusing them, and 'icefab valves' ran for minutes,
+    deaf to SIGTERM (hunt W). The pass now makes pulses only for the paths it programs;
+    the path is refused at once, or clamped, as any path beyond the valve."""
+    from icefab.flow import _nominal_fm_programs, calibration_for
+
+    cal = tmp_path / "c.csv"
+    cal.write_text("frequency_hz,flow_mm3_s\n0,0\n100,8.3\n200,16.7\n1e12,33.3\n")
+    traj = constant_trajectory(60.0, duration=8.0)
+    for mode in ("error", "clamp"):
+        job = Job().replace(**{"materials.part.calibration_file": str(cal),
+                               "flow.out_of_range": mode})
+        tables = {"part": calibration_for("part", job)}
+        assert _nominal_fm_programs([traj], ["part"], 0.25, tables, job) == [None]
+    with pytest.raises(FlowError, match="above the limit 500 Hz"):
+        plan_valves(traj, "part", job.replace(**{"flow.out_of_range": "error"}))
+    prog = plan_valves(traj, "part", job)   # clamped: at most one pulse a tick
+    assert n_pulses(prog) <= 8.0 * 500 + 1

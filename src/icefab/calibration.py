@@ -603,16 +603,31 @@ class ValveFit:
         return float(np.sqrt(np.mean(self.residual ** 2))) if len(self.residual) else 0.0
 
 
+#: The highest frequency a mass run may have: ``flow.max_frequency_hz``'s upper bound.
+MAX_VALVE_HZ = 1e5
+#: A mass run's duration, s: long enough for the balance to read it (thesis 6.1 collects
+#: for minutes), at most a day.
+MIN_RUN_S, MAX_RUN_S = 0.1, 86400.0
+#: The most flow a deposition valve's table may give, mm^3/s (10 cm^3/s: the thesis'
+#: valves give under 0.3 cm^3/s, Fig. 6-1); more is masses in mg or durations in ms.
+MAX_VALVE_FLOW_MM3_S = 1e4
+
+
 def read_masses(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(frequency_hz, duration_s, mass_g) arrays from a mass-measurement CSV; ConfigError
     naming the file and line for a bad row, a frequency or mass < 0 or a duration <= 0."""
     path = Path(path)
     rows = _rows(path, MASS_HEADER, "fff")
     for n, (f, d, m) in rows:
-        if f < 0:
-            raise ConfigError(f"{path}:{n}: frequency_hz must be >= 0, got {f:g}")
-        if d <= 0:
-            raise ConfigError(f"{path}:{n}: duration_s must be > 0, got {d:g}")
+        # a row at 1e12 Hz was written into the table, and 'icefab valves' then made
+        # pulses for it for minutes (a hunt's): no cell makes more than the job allows
+        if not 0 <= f <= MAX_VALVE_HZ:
+            raise ConfigError(f"{path}:{n}: frequency_hz must be within 0-{MAX_VALVE_HZ:g} "
+                              f"Hz (the highest flow.max_frequency_hz), got {f:g}")
+        if not MIN_RUN_S <= d <= MAX_RUN_S:
+            raise ConfigError(f"{path}:{n}: duration_s must be within {MIN_RUN_S:g}-"
+                              f"{MAX_RUN_S:g} s (a run collects for seconds to minutes; "
+                              f"durations in ms?), got {d:g}")
         if m < 0:
             raise ConfigError(f"{path}:{n}: mass_g must be >= 0, got {m:g}")
     a = np.array([v for _, v in rows], dtype=np.float64)
@@ -657,6 +672,10 @@ def _flow_polynomial(f: np.ndarray, q: np.ndarray) -> Callable[[np.ndarray], np.
     return flow
 
 
+#: The flow of a dead band's last row, relative to the next row's (:func:`_monotone_means`).
+DEAD_BAND_FLOW = 1e-6
+
+
 def _monotone_means(freqs: np.ndarray, means: np.ndarray, counts: np.ndarray
                     ) -> tuple[np.ndarray, np.ndarray]:
     """The per-frequency mean flows made to rise with the frequency (isotonic regression,
@@ -669,6 +688,14 @@ def _monotone_means(freqs: np.ndarray, means: np.ndarray, counts: np.ndarray
     y = isotonic_regression(means, weights=counts.astype(np.float64), increasing=True).x
     x = np.concatenate([[0.0], freqs])
     y = np.concatenate([[0.0], np.maximum(y, 0.0)])
+    # a dead band (no flow up to some frequency): its highest frequency is the table's
+    # second row, at a flow too small to give (DEAD_BAND_FLOW of the next one), so the
+    # table rises strictly and passes nothing below it; keeping 0 Hz alone drew the table
+    # straight across the band and refused its runs as "not rising" (a hunt's)
+    dead = int(np.searchsorted(y > 0, True)) - 1   # the last row with no flow
+    if 0 < dead < len(y) - 1:
+        x = np.concatenate([[0.0], x[dead:]])
+        y = np.concatenate([[0.0], [DEAD_BAND_FLOW * y[dead + 1]], y[dead + 1:]])
     keep = [0]
     for k in range(1, len(y)):
         # a row within PLATEAU_RISE of the last one kept is the plateau's noise (a
@@ -705,6 +732,14 @@ def fit_valve_table(frequency_hz: np.ndarray, duration_s: np.ndarray, mass_g: np
         raise FlowError(f"{source}: {len(freqs)} distinct non-zero frequencies; the thesis "
                         "measures about 20 (6.1), at least 3 are needed")
     means = np.bincount(inverse, weights=q[on]) / counts
+    if not (means > 0).any():   # an SVD that did not converge (a hunt's)
+        raise FlowError(f"{source}: no flow at any frequency (every run collected 0 g): "
+                        "the valve did not open, or the runs were not weighed")
+    if means.max() > MAX_VALVE_FLOW_MM3_S:
+        k = int(np.argmax(means))
+        raise FlowError(f"{source}: {means[k]:.4g} mm^3/s at {freqs[k]:g} Hz, more than a "
+                        f"deposition valve gives ({MAX_VALVE_FLOW_MM3_S:g} mm^3/s): masses "
+                        "in mg, or durations in ms? (mass_g in g, duration_s in s)")
     if not on.all():
         # the table passes nothing at 0 Hz: a tester's leaking valve (16.7 mm^3/s at 0 Hz)
         # was fitted through 0 with a residual of 0 %
@@ -730,7 +765,10 @@ def fit_valve_table(frequency_hz: np.ndarray, duration_s: np.ndarray, mass_g: np
             return np.interp(np.asarray(v, dtype=np.float64), x, table)
 
         fitted_means = model(freqs)
-        off = np.abs(means - fitted_means) > MAX_MISFIT * np.abs(fitted_means)
+        # runs with no flow in a dead band against the table's ~0 there: within a
+        # MAX_MISFIT of the largest flow's thousandth, not of ~0
+        off = np.abs(means - fitted_means) > MAX_MISFIT * np.maximum(
+            np.abs(fitted_means), 1e-3 * float(np.abs(means).max()))
         if off.any():
             k = int(np.argmax(off))
             raise FlowError(f"{source}: the flow does not rise with the frequency: the runs "
@@ -741,7 +779,11 @@ def fit_valve_table(frequency_hz: np.ndarray, duration_s: np.ndarray, mass_g: np
         if len(x) < 2 or (np.diff(_as_written(table)) <= 0).any():
             raise FlowError(f"{source}: no flow rises with the frequency in these runs")
     fitted = model(np.where(on, f, 0.0))
-    resid = np.divide(q - fitted, fitted, out=np.zeros_like(q), where=np.abs(fitted) > 1e-12)
+    # relative to the fit, or to a thousandth of the largest flow where the fit is less
+    # (a dead band's runs read -100 % against its ~0)
+    floor = 1e-3 * float(np.abs(means).max())
+    resid = np.divide(q - fitted, np.maximum(np.abs(fitted), floor), out=np.zeros_like(q),
+                      where=on)
     return ValveFit(frequency_hz=x, flow_mm3_s=table, measured_hz=f, measured_mm3_s=q,
                     residual=resid, density_g_cm3=float(density_g_cm3), fit=model,
                     method=method)

@@ -1494,15 +1494,19 @@ def _nominal_fm_programs(trajs: "Sequence[Trajectory]", materials: Sequence[str]
     n_few = np.add.reduceat(few.astype(np.int64), first)
     few_min = np.minimum.reduceat(np.where(few, drops, np.inf), first)
     nu_peak = np.maximum.reduceat(nu, first)
-    times, toff = pulse_instants_many(t, nu, starts)
+    # pulses only for the paths this pass programs: the others go their own way below
+    # (refused, or clamped one by one), and a table reaching 1e12 Hz made ~1e11 pulses a
+    # step here before they were refused (a hunt's: 'icefab valves' ran for minutes)
+    nu_fast = np.where(fast[owner], nu, 0.0)
+    times, toff = pulse_instants_many(t, nu_fast, starts)
     # what the valve passes: the commanded flow within its table, the table's end where
     # flow.out_of_range = "clamp" clamped the frequency there (taking q everywhere, a
     # clamped tour's laid volume came out 4.5 % above plan_valves')
     passed = np.where(flowing, np.clip(q, lo_flow, hi_flow), 0.0)
-    commanded, laid = _fm_volumes(t, q, nu, starts, np.diff(toff), passed)
-    tours = np.array([tr.on_spans is not None for tr in sel], dtype=bool)
+    commanded, laid = _fm_volumes(t, q, nu_fast, starts, np.diff(toff), passed)
+    tours = np.array([tr.on_spans is not None for tr in sel], dtype=bool) & fast
     if tours.any():
-        times, toff, c_tour, l_tour = _tour_pulses(sel, tours, times, toff, speed, nu, q,
+        times, toff, c_tour, l_tour = _tour_pulses(sel, tours, times, toff, speed, nu_fast, q,
                                                    passed, width, own_width, first, n, dt,
                                                    mats, tables, dh, job)
         commanded[tours], laid[tours] = c_tour, l_tour
