@@ -38,8 +38,33 @@ def test_serve_that_cannot_start_its_firmware_leaves_no_state(tmp_path, capsys):
     assert main(["cell", "serve", "--state", str(state), "--bounds", "0,0,10,10",
                  "--firmware", str(missing)]) == 2
     err = capsys.readouterr().err
-    assert f"{missing}: No such file" in err and len(err.strip().splitlines()) == 1
+    assert f"--firmware {missing}: no such file" in err and len(err.strip().splitlines()) == 1
     assert not state.exists()
+
+
+def test_serve_takes_a_relative_firmware_and_names_why_one_cannot_run(tmp_path, capsys,
+                                                                       monkeypatch):
+    """'--firmware ./valvectl' was looked up on PATH as 'valvectl'; a folder and a file
+    without execute permission were "No such file or directory"; a program that never
+    announces its pty hung the start for ever, deaf to Ctrl-C (hunt W)."""
+    from icefab.cell import valve_host
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(valve_host, "ANNOUNCE_TIMEOUT_S", 0.5)
+    silent = tmp_path / "silent"
+    silent.write_text("#!/bin/sh\nexec sleep 30\n")
+    silent.chmod(0o755)
+    (tmp_path / "adir").mkdir()
+    (tmp_path / "noexec").write_text("#!/bin/sh\n")
+    for fw, says in (("./silent", f"{silent}: no pty announced within 0.5 s"),
+                     ("./adir", "--firmware ./adir: is a folder"),
+                     ("./noexec", "--firmware ./noexec: not executable"),
+                     ("nosuch-valvectl", "no such program on PATH")):
+        assert main(["cell", "serve", "--state", "st", "--bounds", "0,0,10,10",
+                     "--firmware", fw]) == 2
+        err = capsys.readouterr().err
+        assert says in err and len(err.strip().splitlines()) == 1, err
+        assert not (tmp_path / "st").exists()
 
 
 def test_serve_refuses_a_state_that_is_a_file(tmp_path, capsys):
@@ -82,6 +107,39 @@ def test_check_names_the_device_that_does_not_answer(tmp_path, capsys):
     assert "cannot open the serial port" in capsys.readouterr().err
     assert main(["cell", "check", "--robot", "nohostport"]) == 2
     assert "expected HOST:PORT" in capsys.readouterr().err
+    # port 99999 reached whatever listened on 34463; a timeout of 1e300 s was a traceback
+    # (hunt W)
+    assert main(["cell", "check", "--robot", "127.0.0.1:99999"]) == 2
+    assert "the port 1..65535" in capsys.readouterr().err
+    assert main(["cell", "check", "--robot", f"127.0.0.1:{port}", "--timeout", "1e300"]) == 2
+    assert "at most 3600" in capsys.readouterr().err
+
+
+def test_check_names_the_robot_whose_replies_are_malformed(capsys):
+    """An echo service on the robot's port: "malformed robot message HI: ..." named no
+    device, where every other failure does (hunt W)."""
+    import socket
+    import threading
+
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    srv.listen(1)
+    port = srv.getsockname()[1]
+
+    def echo():
+        c, _ = srv.accept()
+        with c:
+            c.sendall(c.recv(1024))
+            c.recv(1024)
+
+    t = threading.Thread(target=echo, daemon=True)
+    t.start()
+    try:
+        assert main(["cell", "check", "--robot", f"127.0.0.1:{port}", "--timeout", "2"]) == 2
+        err = capsys.readouterr().err
+        assert f"robot at 127.0.0.1:{port}: malformed robot message" in err
+    finally:
+        srv.close()
 
 
 @pytest.mark.parametrize("timeout", [0.6, 2.4])

@@ -201,7 +201,12 @@ class RobotLink:
         """The reply to ``seq`` (one of ``names``); DN of other paths are kept."""
         deadline = time.monotonic() + (self.timeout_s if timeout_s is None else timeout_s)
         while True:
-            msg = rp.decode(self._read_line(deadline), "robot")
+            try:
+                msg = rp.decode(self._read_line(deadline), "robot")
+            except CellError as exc:   # the decoder's own words name no device (hunt W)
+                if str(exc).startswith(self.where):
+                    raise
+                raise CellError(f"{self.where}: {exc}") from None
             if msg.name == "done":
                 self._done[msg.seq] = DoneReport(msg.seq, int(msg["points"]))
                 if "done" in names and msg.seq == seq:

@@ -12,6 +12,7 @@ The firmware sources live beside the package in a clone (``<repo>/firmware``); s
 from __future__ import annotations
 
 import os
+import select
 import shutil
 import signal
 import subprocess
@@ -62,6 +63,10 @@ def _end_with_parent() -> None:
         pass
 
 
+#: How long the host build may take to announce its pty, s (it does so at once).
+ANNOUNCE_TIMEOUT_S = 10.0
+
+
 class HostFirmware:
     """A running host build. ``pty``: the serial device to open; ``pid``: for SIGUSR1 (the
     trigger input). Use as a context manager, or call :meth:`stop`.
@@ -82,6 +87,14 @@ class HostFirmware:
         self.pid = self.proc.pid
         self.pulse_log = None if pulse_log is None else Path(pulse_log)
         assert self.proc.stdout is not None
+        # a program that never announces (the ARM image, any other program) hung the
+        # cell's start for ever, Ctrl-C included (hunt W)
+        ready, _, _ = select.select([self.proc.stdout], [], [], ANNOUNCE_TIMEOUT_S)
+        if not ready:
+            self.stop(timeout_s=1.0)
+            raise ValveLinkError(f"valve firmware host build {exe}: no pty announced within "
+                                 f"{ANNOUNCE_TIMEOUT_S:g} s (is it the host build, 'make -C "
+                                 "firmware host'?)")
         line = self.proc.stdout.readline().split()
         if len(line) != 2 or line[0] != "PTY":
             self.stop()

@@ -98,6 +98,27 @@ def _grid(args, job):
     return None
 
 
+def _firmware(given: str) -> str:
+    """The valve firmware's host build as an absolute path (a name alone is looked up on
+    PATH); ConfigError saying why it cannot run. './valvectl' was looked up on PATH as
+    'valvectl', and a folder or a file without execute permission was "No such file or
+    directory" (hunt W)."""
+    import os
+
+    found = shutil.which(given)
+    if found is not None:
+        return str(Path(found).absolute())
+    p = Path(given)
+    if os.sep not in given and not p.exists():
+        raise ConfigError(f"--firmware {given}: no such program on PATH (give its path)")
+    if not p.exists():
+        raise ConfigError(f"--firmware {given}: no such file")
+    if p.is_dir():
+        raise ConfigError(f"--firmware {given}: is a folder, not the firmware's host build")
+    raise ConfigError(f"--firmware {given}: not executable (chmod +x, or build it: "
+                      "'make -C firmware host')")
+
+
 def run_serve(args: argparse.Namespace) -> int:
     from icefab.cell.virtual import VirtualCell
 
@@ -124,10 +145,11 @@ def run_serve(args: argparse.Namespace) -> int:
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
+    firmware = _firmware(args.firmware) if args.firmware else None
     made = not state.exists()
     try:
         cell = VirtualCell(state, job, grid=grid, time_factor=args.time_factor,
-                           robot_port=args.port, firmware_exe=args.firmware)
+                           robot_port=args.port, firmware_exe=firmware)
     except BaseException as exc:
         # a cell that never started leaves no state behind (a firmware that announced no
         # pty left a new surface.npz)
@@ -172,12 +194,18 @@ def _stored_job(state: Path):
                         ) from None
 
 
+#: The longest wait ``cell check --timeout`` takes, s.
+MAX_TIMEOUT_S = 3600.0
+
+
 def run_check(args: argparse.Namespace) -> int:
     from icefab.cell.laser import LaserLink
     from icefab.cell.robot import RobotLink
 
-    if not (math.isfinite(args.timeout) and args.timeout > 0):
-        raise ConfigError(f"--timeout {args.timeout}: expected a positive number of seconds")
+    if not (math.isfinite(args.timeout) and 0 < args.timeout <= MAX_TIMEOUT_S):
+        # 1e300 s overflowed the socket's timeout in a traceback (hunt W)
+        raise ConfigError(f"--timeout {args.timeout}: expected a number of seconds above 0, "
+                          f"at most {MAX_TIMEOUT_S:g}")
     ends = {}
     if args.state:
         from icefab.cell.virtual import read_endpoints
@@ -192,8 +220,10 @@ def run_check(args: argparse.Namespace) -> int:
         raise ConfigError("give --state DIR or at least one of --robot, --valve, --laser")
     if "robot" in ends:
         host, _, port = ends["robot"].rpartition(":")
-        if not host or not port.isdigit():
-            raise ConfigError(f"--robot {ends['robot']!r}: expected HOST:PORT")
+        if not host or not port.isdigit() or not 1 <= int(port) <= 65535:
+            # port 99999 reached whatever listened on 34463 (hunt W)
+            raise ConfigError(f"--robot {ends['robot']!r}: expected HOST:PORT, the port "
+                              "1..65535")
         with RobotLink.connect(host, int(port), timeout_s=args.timeout) as link:
             info = link.hello()
             st = link.status()
