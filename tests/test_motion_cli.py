@@ -171,6 +171,34 @@ def test_plan_bad_constant_spacing_and_layers_fail_before_planning(tmp_path, cap
     assert planned == [] and not out.exists()
 
 
+def test_gcode_whose_pwm_the_job_cannot_hold_is_refused_before_planning(tmp_path, capsys,
+                                                                         monkeypatch):
+    """An FM job whose valve tops out at 100 Hz is a valid job, but G-code drives the
+    valve by PWM at 125 Hz: 'plan --gcode' planned every layer, then failed naming a
+    setting the user never set, and 'export gcode' failed the same way (hunt W)."""
+    import icefab.motion
+    src = _toolpath_file(tmp_path)
+    cfg = tmp_path / "g.toml"
+    cfg.write_text('[cell]\nrobot = "gantry"\n[flow]\nmax_frequency_hz = 100.0\n')
+    planned = []
+    real = icefab.motion.plan_toolpaths
+    monkeypatch.setattr(icefab.motion, "plan_toolpaths",
+                        lambda *a, **k: planned.append(1) or real(*a, **k))
+    out = tmp_path / "o"
+    assert main(["plan", str(src), "-c", str(cfg), "-o", str(out), "--layers", "0",
+                 "--gcode"]) == 2
+    err = capsys.readouterr().err
+    assert "--gcode: G-code drives the valve by PWM" in err
+    assert "flow.pwm_frequency_hz = 125: must not exceed flow.max_frequency_hz = 100" in err
+    assert planned == [] and not out.exists()
+    assert main(["plan", str(src), "-c", str(cfg), "-o", str(out), "--layers", "0"]) == 0
+    capsys.readouterr()
+    assert main(["export", "gcode", str(out / "trajectories.npz"), "-o",
+                 str(tmp_path / "g")]) == 2
+    assert "G-code drives the valve by PWM" in capsys.readouterr().err
+    assert not (tmp_path / "g").exists()
+
+
 def test_plan_gantry_with_the_default_cell(tmp_path, capsys):
     # [cell] robot = "gantry" alone: the default part origin (260, -100) is a SCARA
     # position; the gantry builds at the centre of its travel

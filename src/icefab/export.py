@@ -90,6 +90,22 @@ def check_gcode_robot(robot: str, what: str, *, planning: bool = False) -> None:
                           "robot = \"gantry\"")
 
 
+def gcode_job(job, what: str):
+    """The job G-code's valve follows: ``flow.mode = "pwm"`` (Marlin's cutter PWM drives
+    it, at ``flow.pwm_frequency_hz``). ConfigError naming ``what`` and why when that job
+    is not valid: an FM job whose valve tops out below the PWM frequency was refused
+    only after planning, naming a setting the user never set (hunt W)."""
+    from icefab.errors import ConfigError
+
+    if job.flow.mode == "pwm":
+        return job
+    try:
+        return job.replace(**{"flow.mode": "pwm"})
+    except ConfigError as exc:
+        raise ConfigError(f"{what}: G-code drives the valve by PWM (Marlin's cutter output), "
+                          f"and this job's PWM settings do not hold: {exc}") from None
+
+
 def gcode_lines(motion, job=None):
     """The G-code of a BuildMotion planned for a gantry, line by line (see the module
     docstring; :func:`check_gcode_robot`)."""
@@ -98,7 +114,7 @@ def gcode_lines(motion, job=None):
 
     check_gcode_robot(motion.robot, "the trajectories")
     job = job if job is not None else motion.job
-    pwm = job.replace(**{"flow.mode": "pwm"}) if job.flow.mode != "pwm" else job
+    pwm = gcode_job(job, "the trajectories")
     yield (f"; icefab G-code for a gantry, Marlin 2.x (cutter PWM drives the valve, inline "
            f"power 0-255, PWM at {pwm.flow.pwm_frequency_hz:g} Hz)")
     yield (f"; dt {job.motion.dt_s:g} s, {motion.duration:.1f} s of motion; "

@@ -123,7 +123,7 @@ def run_ruled(args: argparse.Namespace) -> int:
 
 
 def run_gcode(args: argparse.Namespace) -> int:
-    from icefab.export import check_gcode_robot, save_gcode
+    from icefab.export import check_gcode_robot, gcode_job, save_gcode
     from icefab.motion import load_trajectories
 
     src = Path(args.input)
@@ -131,6 +131,7 @@ def run_gcode(args: argparse.Namespace) -> int:
         raise ConfigError(f"{src}: trajectories file not found")
     motion = load_trajectories(src)
     check_gcode_robot(motion.robot, str(src))
+    gcode_job(motion.job, str(src))
     with output_dir(args.out, "export-gcode") as tmp:
         save_gcode(motion, tmp / "trajectories.gcode")
     print(f"wrote {args.out}/trajectories.gcode (Marlin, {len(motion.layers)} layers, "

@@ -107,7 +107,7 @@ def _hms(s: float) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from icefab.export import check_gcode_robot, save_gcode
+    from icefab.export import check_gcode_robot, gcode_job, save_gcode
     from icefab.headroom import layer_headroom, tightest
     from icefab.motion import (TrajectoryFile, TrajectoryWriter, iter_plan_packed,
                                save_constant_spacing, total_path_length,
@@ -120,6 +120,8 @@ def run(args: argparse.Namespace) -> int:
     if spacing is not None and not (math.isfinite(spacing) and spacing > 0.0):
         raise ConfigError(f"--constant-spacing {spacing:g}: expected a positive number of mm")
     given = job_from_args(args)
+    if getattr(args, "gcode", False) and getattr(args, "job", None):
+        gcode_job(given, "--gcode")   # before slicing a mesh (and again for its own job)
     inputs = command_inputs(args.input, given, words=("demo",))
     job = given if getattr(args, "job", None) else None
     t0 = time.perf_counter()
@@ -135,6 +137,7 @@ def run(args: argparse.Namespace) -> int:
     robot = get_robot(job)
     if getattr(args, "gcode", False):
         check_gcode_robot(robot.name, "--gcode", planning=True)
+        gcode_job(job, "--gcode")   # before planning, not after it
     # what valves/simulate will refuse, from each layer as it passes
     check_room = job.feedback.enabled and job.flow.mode == "fm"
     with output_dir(args.out, "plan") as tmp:
