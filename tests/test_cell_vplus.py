@@ -156,3 +156,40 @@ def test_a_park_motion_is_not_recorded_as_the_last_path_done_and_an_abort_report
     assert "ice.cut = ice.goseq" in ab
     st = "\n".join(PROGRAMS["ice.h.st"][1])
     assert "ice.lastdone, ice.cut)" in st
+
+
+def _reach(root, stop=()):
+    """The programs ``root`` runs (CALL), not following into ``stop``."""
+    seen, todo = set(), [root]
+    while todo:
+        p = todo.pop()
+        if p in seen or p in stop:
+            continue
+        seen.add(p)
+        for line in PROGRAMS[p][1]:
+            todo += re.findall(r"(?:CALL|EXECUTE \d+) ([a-z0-9.]+)\(", line)
+    return seen
+
+
+def test_each_counter_of_the_path_ring_has_one_writer_task():
+    """The upload task (ice.comm, task 1) counts ice.nup, the motion task (ice.server,
+    task 0) ice.ndone. AB, handled on task 1, also wrote ice.ndone: one that came as a
+    path ended left it past ice.nup, a stored count of -1 that broke the link until the
+    server restarted (hunt W). AB now asks the motion task to drop the paths."""
+    comm = _reach("ice.comm")
+    server = _reach("ice.server", stop=("ice.comm", "ice.reset"))
+    assert "ice.h.ab" in comm and "ice.h.pe" in comm
+
+    def writers(var, progs):
+        return {p for p in progs
+                if any(re.match(rf"{re.escape(var)} = ", ln) for ln in PROGRAMS[p][1])}
+
+    assert writers("ice.ndone", comm) == set()
+    assert writers("ice.nup", server) == set()
+    assert writers("ice.ndone", server) == {"ice.server"}
+    ab = PROGRAMS["ice.h.ab"][1]
+    assert "ice.dropreq = TRUE" in ab and "WAIT (NOT ice.dropreq) OR ice.quit" in ab
+    body = PROGRAMS["ice.server"][1]
+    assert "WAIT ice.gopend OR ice.quit OR ice.dropreq" in body
+    k = body.index("IF ice.dropreq THEN")
+    assert body[k + 2:k + 4] == ["ice.ndone = ice.nup", "ice.dropreq = FALSE"]

@@ -15,7 +15,8 @@ What it does (the thesis' cycle, Fig. 2-5): ``ice.server`` (task 0, robot attach
 ``ice.comm`` on task 1, which serves one client on a TCP port and stores uploaded paths in
 a ring of ``max_paths`` slots (``ice.px``/``ice.py``; the upload task only counts
 ``ice.nup`` up and the motion task only ``ice.ndone``, so the two tasks never write the
-same counter). On ``GO`` the motion task moves to
+same counter: ``AB`` asks the motion task to drop the stored paths, ``ice.dropreq``, and
+waits until it has). On ``GO`` the motion task moves to
 the path's first point (``ice.approach`` mm/s, then ``BREAK``: at rest), raises the valve
 trigger (deposition) or the laser trigger (measurement) on its digital output, moves
 through every point with ``DURATION dt ALWAYS`` and ``MOVES`` (constant point-to-point
@@ -155,7 +156,8 @@ def _parse_program() -> list[str]:
 _GLOBALS = {
     "REAL": ["ice.port", "ice.vsig", "ice.lsig", "ice.zbase", "ice.yaw", "ice.appspd",
              "ice.maxpts", "ice.maxpaths", "ice.lun", "ice.handle", "ice.quit", "ice.abort",
-             "ice.state", "ice.nup", "ice.ndone", "ice.uopen", "ice.uslot", "ice.useq",
+             "ice.state", "ice.nup", "ice.ndone", "ice.dropreq", "ice.uopen", "ice.uslot",
+             "ice.useq",
              "ice.urecv", "ice.ucheck", "ice.gopend", "ice.goseq", "ice.dnpend", "ice.dnseq",
              "ice.dnpts", "ice.lastseq", "ice.lastdone", "ice.cut", "ice.layer",
              "ice.px[]", "ice.py[]", "ice.pn[]", "ice.pdt[]", "ice.pz[]", "ice.pflags[]",
@@ -201,6 +203,7 @@ _FIXED = r"""
     ice.state = 0
     ice.nup = 0
     ice.ndone = 0
+    ice.dropreq = FALSE
     ice.uopen = FALSE
     ice.uslot = 0
     ice.useq = 0
@@ -220,7 +223,12 @@ _FIXED = r"""
     CALL ice.globals()
     EXECUTE 1 ice.comm()
     WHILE NOT ice.quit DO
-        WAIT ice.gopend OR ice.quit
+        WAIT ice.gopend OR ice.quit OR ice.dropreq
+        IF ice.dropreq THEN
+            ; AB (task 1) drops the stored paths: only this task writes ice.ndone
+            ice.ndone = ice.nup
+            ice.dropreq = FALSE
+        END
         IF ice.gopend AND NOT ice.quit THEN
             slot = ice.ndone MOD ice.maxpaths
             n = ice.pn[slot]
@@ -460,7 +468,11 @@ _FIXED = r"""
     ice.abort = TRUE
     BRAKE
     SIGNAL -ice.vsig, -ice.lsig
-    ice.ndone = ice.nup
+    ; the motion task drops the stored paths (ice.ndone is its counter: written here as
+    ; well, an AB that came as a path ended left ice.ndone past ice.nup, a stored count
+    ; of -1 and every later GO refused); a DN it set meanwhile goes too
+    ice.dropreq = TRUE
+    WAIT (NOT ice.dropreq) OR ice.quit
     ice.uopen = FALSE
     ice.dnpend = FALSE
     ice.state = 2
