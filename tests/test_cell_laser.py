@@ -56,6 +56,26 @@ def test_error_responses_carry_the_manuals_codes(laser):
     link.read_stored()
 
 
+def test_bytes_already_on_the_line_do_not_fail_the_first_command():
+    """Two stray bytes sent to the laser's controller (line noise, a probe on the wrong
+    port) came in front of the link's first command: "AN refused: error 00", once, on a
+    healthy laser (hunt W). The link ends the partial line and sends it again."""
+    import serial
+
+    pty = PtyLaser().start()
+    try:
+        stray = serial.Serial(pty.path, lkg.BAUD)
+        stray.write(b"\x00\x17")
+        stray.flush()
+        stray.close()
+        with LaserLink.open(pty.path, timeout_s=2) as link:
+            assert link.status() == (False, 0)
+            with pytest.raises(CellError, match="ZZ refused: error 00"):
+                link.command("ZZ")          # a command error later is the command's own
+    finally:
+        pty.stop()
+
+
 def test_storage_stops_when_full():
     dev = LaserController(capacity=4)
     dev.handle("AS")

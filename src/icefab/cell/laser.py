@@ -31,6 +31,10 @@ log = logging.getLogger(__name__)
 __all__ = ["LaserLink", "path_samples", "sample_times", "stored_times"]
 
 
+#: How long a link waits for the answer to the lone CR that ends a partial line, s.
+FLUSH_S = 0.2
+
+
 class LaserLink:
     """A serial connection to an LK-G controller (or its emulator)."""
 
@@ -39,6 +43,7 @@ class LaserLink:
         self.timeout_s = float(timeout_s)
         self.where = where
         self._buf = b""
+        self._fresh = True   # no command answered yet on this link
 
     @classmethod
     def open(cls, device: str, *, timeout_s: float = 5.0) -> "LaserLink":
@@ -76,6 +81,20 @@ class LaserLink:
             raise CellError(f"{self.where}: cannot send {cmd} ({exc})") from None
         line = self._read_line(self.timeout_s if timeout_s is None else timeout_s, cmd)
         fields = line.split(",")
+        if self._fresh and fields[0] == "ER" and fields[2:3] == ["00"]:
+            # a command error for the link's first command: bytes already on the line
+            # (noise, a probe on the wrong port) were read in front of it, and a healthy
+            # laser failed its check once (hunt W). A lone CR ends that partial line;
+            # its answer is drained, and the command is sent once more
+            self._fresh = False
+            try:
+                self._port.write(lkg.CR)
+                time.sleep(FLUSH_S)
+                self._port.reset_input_buffer()
+            except Exception as exc:
+                raise CellError(f"{self.where}: cannot send {cmd} ({exc})") from None
+            return self.command(text, timeout_s)
+        self._fresh = False
         if fields[0] == "ER":
             code = fields[2] if len(fields) > 2 else "??"
             raise CellError(f"{self.where}: {cmd} refused: error {code} "
