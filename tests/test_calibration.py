@@ -76,6 +76,11 @@ def test_scans_timed_in_milliseconds_are_named():
     es_ms = [dataclasses.replace(s, t=s.t * 1000.0) for s in es]
     with pytest.raises(ConfigError, match=r"edge scans move at .* t_s must be in seconds"):
         cal.calibrate_laser(js, jig, es_ms, nominal_offset_mm=off)
+    # positions in metres were blamed on the times alone (hunt W)
+    es_m = [dataclasses.replace(s, xy=s.xy / 1000.0) for s in es]
+    with pytest.raises(ConfigError, match=r"positions in mm \(times in ms or positions in "
+                                          r"metres"):
+        cal.calibrate_laser(js, jig, es_m, nominal_offset_mm=off)
 
 
 def test_one_direction_only_is_refused():
@@ -246,6 +251,9 @@ def test_valve_table_rows_as_written_rise_strictly(tmp_path):
     ("100,10,1\n200,10\n", ":2: expected 3 columns"),
     ("100,10,1\n200,0,1\n", ":2: duration_s must be within 0.1-86400 s"),
     ("100,10,nan\n", ":1: mass_g must be finite"),
+    # Python's float() reads 1_00 as 100 (hunt W)
+    ("frequency_hz,duration_s,mass_g\n1_00,60,0.5\n", ":2: frequency_hz must be a number, got "
+     "'1_00'"),
     ("# nothing\n", "no data rows"),
 ])
 def test_bad_mass_files_name_file_and_line(tmp_path, text, where):
@@ -346,3 +354,22 @@ def test_calibrate_valve_density_is_the_settings_range(tmp_path, capsys, density
     err = capsys.readouterr().err
     assert f"--density {float(density):g} g/cm^3: {says}" in err
     assert not (tmp_path / "o").exists()
+
+
+def test_the_valve_plot_names_the_table_it_drew(tmp_path, monkeypatch):
+    """A table of monotone means was drawn under the legend "polynomial fit" (hunt W)."""
+    import icefab.report
+
+    labels = []
+
+    def keep(fig, path, *a, **k):
+        labels.append([t.get_text() for t in fig.axes[0].get_legend().get_texts()])
+
+    monkeypatch.setattr(icefab.report, "save_figure", keep)
+    f = np.array([100.0, 200.0, 300.0, 500.0, 600.0])          # saturates from 500 Hz
+    fit = cal.fit_valve_table(f, np.full(5, 60.0), np.array([0.5, 1, 1.5, 1.6, 1.6]), 1.0)
+    assert fit.method == "monotone means"
+    cal.plot_valve_fit(fit, tmp_path / "v.png")
+    truth, f, d, m = _synthetic_part()
+    cal.plot_valve_fit(cal.fit_valve_table(f, d, m, 1.0), tmp_path / "p.png")
+    assert labels[0][1] == "monotone means (the table)" and labels[1][1] == "polynomial fit"

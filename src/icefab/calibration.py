@@ -162,6 +162,8 @@ def _rows(path: Path, header: str, kinds: str, kind: str = "calibration"
                 values.append(cell.lower())
                 continue
             try:
+                if "_" in cell:   # Python reads 1_00 as 100; no instrument writes it
+                    raise ValueError(cell)
                 v = int(cell) if kind_ == "i" else float(cell)
             except ValueError:
                 raise ConfigError(f"{path}:{n}: {name} must be "
@@ -572,7 +574,8 @@ def _check_scan_speed(scans: Sequence[Scan], what: str) -> None:
     if not lo <= v <= hi:
         raise ConfigError(f"laser calibration: the {what} move at {v:.3g} mm/s (median), "
                           f"outside the {lo:g}-{hi:g} mm/s a robot scans at: t_s must be in "
-                          "seconds (times in ms make scans 1000 times slower)")
+                          "seconds and positions in mm (times in ms or positions in metres "
+                          "make scans 1000 times slower)")
 
 
 # =========================================================================== valves
@@ -822,7 +825,8 @@ def plot_valve_fit(fit: ValveFit, path: str | os.PathLike, title: str = "") -> N
                                gridspec_kw={"height_ratios": [3, 1.4]})
     xs = np.linspace(0.0, float(fit.frequency_hz[-1]), 400)
     a.plot(fit.measured_hz, fit.measured_mm3_s, "o", ms=4, label="measured")
-    a.plot(xs, fit.fit(xs), "-", label="polynomial fit")
+    a.plot(xs, fit.fit(xs), "-", label="polynomial fit" if fit.method == "polynomial"
+           else "monotone means (the table)")
     a.plot(fit.frequency_hz, fit.flow_mm3_s, "s", mfc="none", label="table written")
     a.set_ylabel("flow Q (mm$^3$/s)")
     a.set_title(title or "valve frequency-flow calibration (thesis 6.1)")
