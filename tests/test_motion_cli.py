@@ -199,6 +199,28 @@ def test_gcode_whose_pwm_the_job_cannot_hold_is_refused_before_planning(tmp_path
     assert not (tmp_path / "g").exists()
 
 
+def test_gcode_of_no_layers_is_refused_and_one_layer_is_one(tmp_path, capsys):
+    """A trajectories file of no layers gave a G-code file of no moves, exit 0; one layer
+    was "1 layers" (hunt W)."""
+    import dataclasses
+
+    from icefab.resultfiles import save_trajectories
+    src = _toolpath_file(tmp_path)
+    cfg = tmp_path / "g.toml"
+    cfg.write_text('[cell]\nrobot = "gantry"\n')
+    out = tmp_path / "o"
+    assert main(["plan", str(src), "-c", str(cfg), "-o", str(out), "--layers", "0"]) == 0
+    motion = load_trajectories(out / "trajectories.npz")
+    save_trajectories(dataclasses.replace(motion, layers=()), tmp_path / "zero.npz")
+    capsys.readouterr()
+    assert main(["export", "gcode", str(tmp_path / "zero.npz"), "-o", str(tmp_path / "z")]) == 2
+    assert "holds no layers" in capsys.readouterr().err and not (tmp_path / "z").exists()
+    save_trajectories(dataclasses.replace(motion, layers=motion.layers[:1]),
+                      tmp_path / "one.npz")
+    assert main(["export", "gcode", str(tmp_path / "one.npz"), "-o", str(tmp_path / "g")]) == 0
+    assert "(Marlin, 1 layer, " in capsys.readouterr().out
+
+
 def test_plan_gantry_with_the_default_cell(tmp_path, capsys):
     # [cell] robot = "gantry" alone: the default part origin (260, -100) is a SCARA
     # position; the gantry builds at the centre of its travel

@@ -132,9 +132,12 @@ def run_gcode(args: argparse.Namespace) -> int:
     motion = load_trajectories(src)
     check_gcode_robot(motion.robot, str(src))
     gcode_job(motion.job, str(src))
+    if not motion.layers:   # a file of no moves, exit 0 (hunt W); 'export ruled' refuses too
+        raise ConfigError(f"{src}: holds no layers: no G-code to write")
     with output_dir(args.out, "export-gcode") as tmp:
         save_gcode(motion, tmp / "trajectories.gcode")
-    print(f"wrote {args.out}/trajectories.gcode (Marlin, {len(motion.layers)} layers, "
+    n = len(motion.layers)
+    print(f"wrote {args.out}/trajectories.gcode (Marlin, {n} layer{'s' if n != 1 else ''}, "
           f"{motion.duration:.1f} s of motion)")
     return 0
 
