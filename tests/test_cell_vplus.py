@@ -193,3 +193,12 @@ def test_each_counter_of_the_path_ring_has_one_writer_task():
     assert "WAIT ice.gopend OR ice.quit OR ice.dropreq" in body
     k = body.index("IF ice.dropreq THEN")
     assert body[k + 2:k + 4] == ["ice.ndone = ice.nup", "ice.dropreq = FALSE"]
+
+
+def test_a_field_that_is_not_a_number_is_refused_not_read_as_zero():
+    """ice.field said it refuses a token that is no number, but V+'s VAL reads "abc" as 0
+    and only an empty token was refused (hunt W): every character is checked first."""
+    body = PROGRAMS["ice.field"][1]
+    check = body.index('IF POS("0123456789+-.Ee", $MID($tok, i, 1), 1) == 0 THEN')
+    assert body[check - 1] == "FOR i = 1 TO LEN($tok)"
+    assert body[check + 1] == "ok = FALSE" and check < body.index("value = VAL($tok)")

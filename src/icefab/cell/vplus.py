@@ -311,8 +311,10 @@ _FIXED = r"""
 .END
 
 .PROGRAM ice.field($line, value, ok)
-    ; next comma-separated number of $line into value (ok = FALSE if it is not one)
+    ; next comma-separated number of $line into value (ok = FALSE if it is not one: VAL
+    ; alone reads "abc" as 0, so every character must be one a number is written with)
     AUTO $tok, $sep
+    AUTO REAL i
     IF NOT ok THEN
         RETURN
     END
@@ -321,6 +323,12 @@ _FIXED = r"""
     IF LEN($tok) == 0 THEN
         ok = FALSE
         RETURN
+    END
+    FOR i = 1 TO LEN($tok)
+        IF POS("0123456789+-.Ee", $MID($tok, i, 1), 1) == 0 THEN
+            ok = FALSE
+            RETURN
+        END
     END
     value = VAL($tok)
 .END
@@ -512,7 +520,7 @@ V_KEYWORDS = frozenset("""
 PROGRAM END AUTO GLOBAL REAL LOC STRING IF THEN ELSE WHILE DO FOR TO STEP CALL RETURN
 AND OR NOT BAND MOD TRUE FALSE SIGNAL WAIT DURATION ALWAYS SPEED MMPS SET TRANS MOVES
 BREAK BRAKE EXECUTE ATTACH DETACH FCMND READ WRITE IOSTAT TYPE ERROR INTB DECODE
-ENCODE LEN VAL INT SIGN I0 TCP
+ENCODE LEN VAL INT SIGN I0 TCP POS MID
 """.split())
 
 
