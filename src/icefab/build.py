@@ -295,6 +295,14 @@ def layer_finished(layer: int, ended: set, measured: set, measures: bool, cut: s
     return layer in ended and (not (measures or layer in cut) or layer in measured)
 
 
+def _ran_s(journal, lm: "LayerMotion") -> float:
+    """Motion time, s, of the trajectories of layer ``lm`` the journal shows done."""
+    L = int(lm.index)
+    return float(sum(lm.trajectories[c["item"]].duration for c in journal.commands()
+                     if c["layer"] == L and c["done"] is not None
+                     and 0 <= c["item"] < len(lm.trajectories)))
+
+
 def _items(lm: "LayerMotion") -> tuple[list[tuple[int, object]], list[tuple[int, object]]]:
     """(deposition and travel, measurement) trajectories of a layer as (index, traj)."""
     run, measure = [], []
@@ -598,6 +606,10 @@ class Runner:
             p.layer_pos = j0
             p.remaining_s = float(sum(self._durations[j0:]))
         self._call(lambda cell: None)
+        if j0 < len(self.motion.layers):
+            # less what a partly built layer ran before, as the journal says once the
+            # cell's record is in (it said "paths 30/164, ETA" of the whole layer: a hunt's)
+            p.remaining_s -= _ran_s(self.journal, self.motion.layers[j0])
         # running from here on for 'icefab build --stop': without it a stop asked during
         # the first path found no status, told the cell directly, and the build ran on
         self._report(force=True)
