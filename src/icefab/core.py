@@ -30,6 +30,11 @@ if TYPE_CHECKING:  # pragma: no cover
 Material = Literal["part", "scaffold"]
 Role = Literal["boundary", "fill", "measure", "travel"]
 Frame = Literal["part", "base"]
+#: Miter limit of every offset (multiples of the offset distance) before a corner is
+#: squared off (:mod:`icefab.geometry`'s offsets; the placement checks of
+#: :mod:`icefab.workload` follow the scaffold's mitred wall with it).
+MITER_LIMIT = 2.0
+
 #: The tool a path is given for; "" means derived from role and material (Toolpath.tool_name).
 Tool = Literal["", "part", "scaffold", "laser"]
 

@@ -40,15 +40,13 @@ import pyclipr
 from numba import njit
 
 from icefab import _smooth
-from icefab.core import (Region, arc_lengths, closed_polyline, offsets,  # noqa: F401
-                         signed_area, split_rows)  # (signed_area re-exported)
+from icefab.core import (MITER_LIMIT, Region, arc_lengths, closed_polyline,  # noqa: F401
+                         offsets, signed_area, split_rows)  # (re-exported)
 
 #: Clipper integer units per millimetre (the one scale constant: resolution 1e-4 mm).
 SCALE = 10_000.0
 #: Default point filter after offsets, mm (``job.slicing.max_filter_deviation_mm``).
 FILTER_MM = 0.05
-#: Miter limit (multiples of the offset distance) before a corner is squared off.
-MITER_LIMIT = 2.0
 #: Rings with less area than this (mm^2) are dropped after offsets.
 MIN_RING_AREA = 1e-6
 

@@ -25,6 +25,7 @@ import math
 import numpy as np
 
 from icefab.config import Job
+from icefab.core import MITER_LIMIT
 from icefab.errors import ConfigError, SimulationError, WorkspaceError
 from icefab.frames import to_base_frame, to_part_frame
 
@@ -278,12 +279,10 @@ def _check_joint1_around(xy: np.ndarray, base: np.ndarray, rho: float,
     (at most rho / 2 apart), and the mitred corners of the part's hull.
 
     First the superset: the hull grown by twice rho (a mitre reaches at most
-    ``geometry.MITER_LIMIT`` times the offset), sampled with a margin of joint 1's rate;
+    ``core.MITER_LIMIT`` times the offset), sampled with a margin of joint 1's rate;
     when it stays within range (the usual case: 1.1 M facets in ~0.1 s) nothing else is
     needed."""
     from scipy.ndimage import maximum_filter1d
-
-    from icefab.geometry import MITER_LIMIT
 
     rmin, rmax = job.cell.reach_mm
     # joint 1's rate of change (rad/mm) within rho of each radius, to bound its angle
@@ -375,13 +374,11 @@ def _mitred_corners(pts: np.ndarray, hv: np.ndarray, rho: float
                     ) -> tuple[np.ndarray, np.ndarray]:
     """The corners of the convex hull (vertices ``hv``, counter-clockwise, indices into
     ``pts`` (n, 2) mm) offset outward by ``rho`` mm as Clipper2 joins them under
-    ``geometry.MITER_LIMIT``: a mitre point, or where the mitre would reach further, the
+    ``core.MITER_LIMIT``: a mitre point, or where the mitre would reach further, the
     two ends of the square cut across the bisector rho out; and the index of each
     one's vertex. On a convex outline these are its wall's own corners; a sharper corner
     of another outline at a hull vertex is joined its own way, within about rho of them
     (the check is early, the paths stage's is exact)."""
-    from icefab.geometry import MITER_LIMIT
-
     if len(hv) < 3:
         return np.zeros((0, 2)), np.zeros(0, dtype=np.int64)
     v = pts[hv]
