@@ -717,6 +717,55 @@ def test_a_stop_sent_as_a_resume_starts_is_not_lost(firmware_tools, planned, tmp
         _kill_cell(tmp_path / "b")
 
 
+def test_a_second_build_command_leaves_the_running_builds_marker(firmware_tools, planned,
+                                                                    tmp_path):
+    """A second 'icefab build -o B' or '--resume B' while B built wrote its own id into
+    B's marker, was refused, and removed the marker as it left: --stop then said no build
+    was running and told the cell to stop with the tool down (hunt Y). Both are refused
+    at once now, and the marker stays the running build's."""
+    proc = subprocess.Popen([sys.executable, "-m", "icefab", "build", str(planned), "-o", "b",
+                             "--virtual", "--cell-time-factor", "20"], cwd=tmp_path,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    marker = tmp_path / ".b.icefab-build"
+    try:
+        assert _wait_progress(tmp_path / "b", proc) is not None
+        for argv in ((str(planned), "-o", "b", "--virtual"), ("--resume", "b")):
+            r = _icefab("build", *argv, cwd=tmp_path)
+            assert r.returncode == 2, r.stderr
+            assert f"a build is running for this folder already (process {proc.pid}" \
+                in r.stderr
+            assert int(marker.read_text()) == proc.pid
+        r = _icefab("build", "--stop", "b", cwd=tmp_path)
+        assert r.returncode == 0 and "stopped (" in r.stdout, r.stdout + r.stderr
+        assert proc.wait(timeout=60) == 143
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        _kill_cell(tmp_path / "b")
+
+
+def test_a_stop_as_the_journal_is_made_leaves_nothing(firmware_tools, planned, tmp_path,
+                                                     monkeypatch, capsys):
+    """SIGTERM just after the new journal was renamed into place, before the build left
+    its preparation: the clean-up took everything but the journal, which then refused
+    every command (--resume: no job.toml; a new build: "holds a build journal", hunt Y).
+    The journal goes with the rest."""
+    from icefab.cli import main
+    from icefab.cli.common import Terminated
+
+    real = Journal.create
+
+    def create_then_stopped(path, meta):
+        real(path, meta).close()
+        raise Terminated()
+
+    monkeypatch.setattr(Journal, "create", staticmethod(create_then_stopped))
+    monkeypatch.chdir(tmp_path)
+    assert main(["build", str(planned), "-o", "b", "--virtual"]) == 143
+    assert "terminated" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
 def test_a_journal_is_whole_or_absent(tmp_path, monkeypatch):
     """A build killed while its journal was created left a file with no tables, which
     every later command called damaged (hunt X): the journal is made under another name

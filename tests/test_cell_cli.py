@@ -59,7 +59,9 @@ def test_serve_takes_a_relative_firmware_and_names_why_one_cannot_run(tmp_path, 
     for fw, says in (("./silent", f"{silent}: no pty announced within 0.5 s"),
                      ("./adir", "--firmware ./adir: is a folder"),
                      ("./noexec", "--firmware ./noexec: not executable"),
-                     ("nosuch-valvectl", "no such program on PATH")):
+                     ("nosuch-valvectl", "no such program on PATH"),
+                     ("silent", "no such program on PATH (give its path; this folder's is "
+                                "--firmware ./silent)")):
         assert main(["cell", "serve", "--state", "st", "--bounds", "0,0,10,10",
                      "--firmware", fw]) == 2
         err = capsys.readouterr().err

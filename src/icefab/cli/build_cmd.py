@@ -271,11 +271,11 @@ def _build_process(build: Path, *, new: bool):
                 d.mkdir()
         except OSError:    # the build's own mkdir says why, as before
             pass
-    marker = _process_marker(build)
     try:
-        marker.write_text(f"{os.getpid()}\n", encoding="utf-8")
-    except OSError:        # an unwritable or missing parent: nothing to find it by
-        marker = None
+        marker = _claim_marker(build)
+    except BaseException:
+        signal.signal(signal.SIGTERM, old)
+        raise
     try:
         yield ctl
     finally:
@@ -287,6 +287,31 @@ def _build_process(build: Path, *, new: bool):
                 d.rmdir()
             except OSError:
                 break
+
+
+def _claim_marker(build: Path) -> Path | None:
+    """Write this process' id into the marker of ``build``, created anew (None when its
+    folder cannot hold it). ConfigError when another build process of ``build`` holds it:
+    a second 'icefab build -o B' or '--resume B' wrote its own id over the running one's,
+    was refused, and removed the marker as it left, and --stop then found no build
+    (hunt Y). A marker whose process is gone is taken over."""
+    marker = _process_marker(build)
+    for _ in range(2):
+        try:
+            fd = os.open(marker, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        except FileExistsError:
+            pid = _build_pid(build)   # removes a stale one
+            if pid is not None:
+                raise ConfigError(f"{build}: a build is running for this folder already "
+                                  f"(process {pid}; 'icefab build --status {build}')"
+                                  ) from None
+            continue
+        except OSError:    # an unwritable or missing parent: nothing to find it by
+            return None
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(f"{os.getpid()}\n")
+        return marker
+    return None
 
 
 def _build_pid(build: Path) -> int | None:
@@ -442,7 +467,7 @@ def _run(build: Path, args: argparse.Namespace, ctl: dict, *, resume: bool) -> i
                             "trajectories": digest_file(build / bmod.TRAJECTORIES),
                             CALIBRATION_DIGEST: _calibration_digest(job)}}
         connect = _connector(build, args, meta, job)
-        cell = None
+        cell = journal = None
         try:
             cell = connect()
             cell.hello()                      # the handshake, before anything is journaled
@@ -455,9 +480,14 @@ def _run(build: Path, args: argparse.Namespace, ctl: dict, *, resume: bool) -> i
             journal = Journal.create(jpath, meta)
         except BaseException:   # Ctrl-C or --stop too
             # nothing of a build that never started stays behind (README: output folders
-            # only on success): a refused cell left the folder with its lock file
+            # only on success): a refused cell left the folder with its lock file, and a
+            # stop as the journal was renamed into place left it alone there (hunt Y)
             if cell is not None:
                 cell.close()
+            if journal is not None:
+                journal.close()
+            for f in (jpath, Path(f"{jpath}-wal"), Path(f"{jpath}-shm")):
+                f.unlink(missing_ok=True)
             if args.virtual:
                 _shutdown_cell(build / bmod.CELL_DIR)
                 shutil.rmtree(build / bmod.CELL_DIR, ignore_errors=True)

@@ -109,8 +109,11 @@ def _firmware(given: str) -> str:
     if found is not None:
         return str(Path(found).absolute())
     p = Path(given)
-    if os.sep not in given and not p.exists():
-        raise ConfigError(f"--firmware {given}: no such program on PATH (give its path)")
+    if os.sep not in given:   # a name alone is a program on PATH, as for a shell
+        here = (f"; this folder's is --firmware ./{given}" if p.is_file()
+                and os.access(p, os.X_OK) else "")
+        raise ConfigError(f"--firmware {given}: no such program on PATH (give its path"
+                          f"{here})")
     if not p.exists():
         raise ConfigError(f"--firmware {given}: no such file")
     if p.is_dir():
