@@ -780,6 +780,9 @@ def test_a_journal_is_whole_or_absent(tmp_path, monkeypatch):
         Journal.create(tmp_path / bmod.JOURNAL, {"layers": 1})
     assert list(tmp_path.iterdir()) == []
     monkeypatch.undo()
+    # what a build killed (-9) as it made its journal leaves goes with the next one
+    (tmp_path / f".{bmod.JOURNAL}.999999.new").write_bytes(b"x")
+    (tmp_path / f".{bmod.JOURNAL}.999999.new-journal").write_bytes(b"x")
     j = Journal.create(tmp_path / bmod.JOURNAL, {"layers": 1})
     assert j.meta()["layers"] == 1
     j.close()

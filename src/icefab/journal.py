@@ -134,6 +134,10 @@ class Journal:
         # the file was opened left a journal with no tables, which every later command
         # took for a damaged one (a hunt's: SIGTERM or -9 at that instant)
         tmp = path.with_name(f".{path.name}.{os.getpid()}.new")
+        # what a build killed (-9) as it made its journal left (the folder's lock is held:
+        # no other build makes one here now)
+        for stale in path.parent.glob(f".{path.name}.*.new*"):
+            stale.unlink(missing_ok=True)
         try:
             j = cls(tmp, cls._connect(tmp))
             with j._tx() as db:
@@ -148,7 +152,8 @@ class Journal:
         except (sqlite3.Error, OSError) as exc:
             raise JournalError(f"{path}: the journal could not be created ({exc})") from None
         finally:
-            for leftover in (tmp, Path(f"{tmp}-wal"), Path(f"{tmp}-shm")):
+            for leftover in (tmp, Path(f"{tmp}-wal"), Path(f"{tmp}-shm"),
+                             Path(f"{tmp}-journal")):
                 leftover.unlink(missing_ok=True)
         return cls(path, cls._connect(path))
 

@@ -261,27 +261,24 @@ def _build_process(build: Path, *, new: bool):
 
     old = signal.signal(signal.SIGTERM, on_term)   # the handler first, then the marker
     made: list[Path] = []
-    if new:
-        p = build.absolute().parent
-        while not p.exists():
-            made.append(p)
-            p = p.parent
-        try:
-            for d in reversed(made):
-                d.mkdir()
-        except OSError:    # the build's own mkdir says why, as before
-            pass
     try:
-        marker = _claim_marker(build)
-    except BaseException:
-        signal.signal(signal.SIGTERM, old)
-        raise
-    try:
+        if new:
+            p = build.absolute().parent
+            while not p.exists():
+                made.append(p)
+                p = p.parent
+            try:
+                for d in reversed(made):
+                    d.mkdir()
+            except OSError:    # the build's own mkdir says why, as before
+                pass
+        _claim_marker(build)
         yield ctl
     finally:
+        # a stop at any instant, the marker's claim included (a hunt's SIGTERM then left
+        # it and the parents behind): the marker goes if it is this process'
         signal.signal(signal.SIGTERM, old)
-        if marker is not None:
-            marker.unlink(missing_ok=True)
+        _release_marker(build)
         for d in made:     # deepest first; a folder that holds the build stays
             try:
                 d.rmdir()
@@ -289,29 +286,46 @@ def _build_process(build: Path, *, new: bool):
                 break
 
 
-def _claim_marker(build: Path) -> Path | None:
-    """Write this process' id into the marker of ``build``, created anew (None when its
-    folder cannot hold it). ConfigError when another build process of ``build`` holds it:
-    a second 'icefab build -o B' or '--resume B' wrote its own id over the running one's,
-    was refused, and removed the marker as it left, and --stop then found no build
-    (hunt Y). A marker whose process is gone is taken over."""
+def _claim_marker(build: Path) -> None:
+    """Put this process' id into the marker of ``build``: written under another name and
+    linked into place, so that it never exists without its id (read empty, it would be
+    taken for stale and removed). Nothing when the folder cannot hold it. ConfigError when
+    another build process of ``build`` holds it: a second 'icefab build -o B' or
+    '--resume B' wrote its own id over the running one's, was refused, and removed the
+    marker as it left, and --stop then found no build (hunt Y). A marker whose process
+    is gone is taken over."""
     marker = _process_marker(build)
-    for _ in range(2):
-        try:
-            fd = os.open(marker, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
-        except FileExistsError:
-            pid = _build_pid(build)   # removes a stale one
-            if pid is not None:
-                raise ConfigError(f"{build}: a build is running for this folder already "
-                                  f"(process {pid}; 'icefab build --status {build}')"
-                                  ) from None
-            continue
-        except OSError:    # an unwritable or missing parent: nothing to find it by
-            return None
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(f"{os.getpid()}\n")
-        return marker
-    return None
+    tmp = marker.with_name(f"{marker.name}.{os.getpid()}")
+    try:
+        tmp.write_text(f"{os.getpid()}\n", encoding="utf-8")
+    except OSError:        # an unwritable or missing parent: nothing to find it by
+        return
+    try:
+        for _ in range(2):
+            try:
+                os.link(tmp, marker)
+                return
+            except FileExistsError:
+                pid = _build_pid(build)   # removes a stale one
+                if pid is not None:
+                    raise ConfigError(f"{build}: a build is running for this folder already "
+                                      f"(process {pid}; 'icefab build --status {build}')"
+                                      ) from None
+            except OSError:   # a file system without hard links: written in place
+                marker.write_text(f"{os.getpid()}\n", encoding="utf-8")
+                return
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def _release_marker(build: Path) -> None:
+    """Remove the marker of ``build`` if it holds this process' id."""
+    marker = _process_marker(build)
+    try:
+        if int(marker.read_text(encoding="utf-8").strip()) == os.getpid():
+            marker.unlink(missing_ok=True)
+    except (OSError, ValueError):
+        pass
 
 
 def _build_pid(build: Path) -> int | None:
@@ -756,8 +770,8 @@ def _stop_process(build: Path, pid: int) -> int:
     st = _read_status(build)
     if st.get("pid") != pid:    # its runner never started: nothing was sent
         request.unlink(missing_ok=True)
-        print(f"{build}: stopped while it was being prepared (planning or starting its "
-              "cell); no path was sent to the cell")
+        print(f"{build}: stopped while it was being prepared (planning, starting its cell "
+              "or reconnecting to it); no path was sent to the cell")
     elif st.get("state") == "complete":
         request.unlink(missing_ok=True)
         print(f"{build}: the build completed before the stop reached it")
