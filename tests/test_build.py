@@ -218,8 +218,13 @@ def test_a_cell_fault_is_measured_before_the_next_layer(planned, tmp_path):
     cell = _prepared(build, motion, job)
     journal = Journal.create(build / bmod.JOURNAL, {"digests": {}})
     faulty = FaultingCell(cell, layer=1)
-    runner = bmod.Runner(build, motion, job, journal, lambda: faulty)
+    etas = []
+    runner = bmod.Runner(build, motion, job, journal, lambda: faulty,
+                         on_progress=lambda p: etas.append(p.remaining_s))
     runner.run()
+    # the fault's measurement was never in the planned time: taken off, the ETA fell
+    # below the truth and jumped back at the next layer (hunt Z)
+    assert all(b <= a + 1e-9 for a, b in zip(etas, etas[1:]))
     cut = [c for c in journal.commands() if c["cut"]]
     assert len(cut) == 1 and cut[0]["seq"] == faulty.cut and cut[0]["layer"] == 1
     assert faulty.cut not in _executed(build)  # never run again
@@ -619,6 +624,11 @@ def test_stop_reaches_a_build_that_is_still_planning(tmp_path, when):
         if when != "at once":   # --status said "no build journal here" (hunt X)
             r = _icefab("build", "--status", "b", cwd=tmp_path)
             assert r.returncode == 0 and f"being prepared (process {proc.pid})" in r.stdout
+            # the keys of every other state (hunt Z: a program's d["paths_done"] failed)
+            r = _icefab("build", "--status", "b", "--json", cwd=tmp_path)
+            st = json.loads(r.stdout)
+            assert tuple(st) == bmod.STATUS_KEYS and st["state"] == "preparing"
+            assert st["pid"] == proc.pid and st["paths_done"] is None
         t0 = time.monotonic()
         r = _icefab("build", "--stop", "b", cwd=tmp_path)
         assert r.returncode == 0, r.stderr
@@ -871,7 +881,7 @@ def test_sigkill_the_build_and_resume(firmware_tools, planned, tmp_path):
                 st = _icefab("build", "--status", "k", "--json", cwd=tmp_path)
                 if st.returncode == 0:    # no status before the first layer's start
                     st = json.loads(st.stdout)
-                    assert st["state"].startswith("interrupted")
+                    assert st["state"] == "interrupted"   # a token (hunt Z)
                     assert st["paths_done"] == _paths_done(tmp_path / "k")
             proc = subprocess.Popen([sys.executable, "-m", "icefab", "build", "--resume", "k"],
                                     cwd=tmp_path, stdout=subprocess.DEVNULL,
@@ -1609,3 +1619,74 @@ def test_a_cell_whose_surface_is_elsewhere_refuses_the_first_path(firmware_tools
         shutdown_virtual_cell(state)
         if serve.poll() is None:
             serve.kill()
+
+
+def test_the_report_follows_the_status_and_a_measurement_is_not_silent(planned, tmp_path,
+                                                                      monkeypatch):
+    """report.html was written only at a measurement, a stop or the end: missing for the
+    first layers, frozen between measurements; measurement paths wrote no status at all,
+    so a long measurement looked like a hung build; a finished build that measured no
+    layer said "no measurement yet"; the RMS plot's axis label was cut off (hunt Z)."""
+    import re as re_
+
+    from icefab.motion import load_trajectories
+
+    monkeypatch.setattr(time, "monotonic", lambda c=iter(range(0, 10 ** 9, 2)): next(c))
+    motion = load_trajectories(planned)
+    job = motion.job
+    build = tmp_path / "b"
+    cell = _prepared(build, motion, job)
+    seen = []   # (layer, role, report's paths row, status' paths_done) before each path
+
+    class Watching:
+        def __getattr__(self, name):
+            return getattr(cell, name)
+
+        def run_path(self, seq, path, upcoming=None):
+            rep = build / bmod.REPORT
+            row = (re_.search(r"<th>paths</th><td>(\d+) of", rep.read_text()).group(1)
+                   if rep.exists() else None)
+            st = json.loads((build / bmod.STATUS).read_text())
+            seen.append((path.layer, path.role, row, st["paths_done"]))
+            return cell.run_path(seq, path, upcoming)
+
+    journal = Journal.create(build / bmod.JOURNAL, {"digests": {}})
+    bmod.Runner(build, motion, job, journal, lambda: Watching()).run()
+    journal.close()
+    first = motion.layers[0].index
+    assert seen[0][2] is None                  # not drawn before the first GO
+    assert all(r is not None for L, _, r, _ in seen[2:])
+    done_before = [int(r) for _, _, r, _ in seen[2:]]
+    assert done_before == sorted(done_before) and len(set(done_before)) > 10
+    assert seen[1][0] == first and seen[-1][2] is not None
+    measuring = [(r, d) for _, role, r, d in seen if role == "measure"]
+    assert len(measuring) >= 2
+    # each measurement path's status counts the one before it
+    assert all(b[1] == a[1] + 1 for a, b in zip(measuring, measuring[1:]))
+    assert tuple(json.loads((build / bmod.STATUS).read_text())) == bmod.STATUS_KEYS
+    page = (build / bmod.REPORT).read_text()
+    assert "<title>icefab build: complete</title>" in page and "refresh" not in page
+    svg = page[page.index('<svg id="rms-plot"'):page.index("</svg>")]
+    height = float(re_.search(r'height="([\d.]+)pt"', svg).group(1))
+    # the x axis' label, baseline and descenders, inside the picture (246.5 of 244.8)
+    base = float(re_.search(r"<!-- nominal height \(mm\) -->\s*<g transform=\"translate\("
+                            r"[\d.]+ ([\d.]+)\)", svg).group(1))
+    assert base + 3.0 <= height
+    # a finished build that measured no layer does not promise a measurement
+    one = tmp_path / "one"
+    m1 = dataclasses.replace(motion, layers=motion.layers[:1])
+    cell1 = _prepared(one, m1, job)
+    j1 = Journal.create(one / bmod.JOURNAL, {"digests": {}})
+    bmod.Runner(one, m1, job, j1, lambda: cell1).run()
+    j1.close()
+    page = (one / bmod.REPORT).read_text()
+    assert "none: no layer of this build was measured" in page
+    assert "no measurement yet" not in page
+
+
+def test_a_progress_line_on_a_terminal_erases_the_rest_of_its_row():
+    from icefab.cli.build_cmd import _console_line
+
+    long = "layer 3 (4 of 6), paths 12/99; waiting for the cell (link fault 3: " + "x" * 200
+    assert _console_line(long, 80) == "\r" + long[:79] + "\x1b[K"
+    assert _console_line("short", 80) == "\rshort\x1b[K"

@@ -374,6 +374,7 @@ class Runner:
         self._pool = None       # one thread that plans the next layer ahead (_prefetch)
         self._ahead = None      # (layer position, future of (plan, valves, action))
         self._report_due = False   # a measurement's report, drawn once the next layer runs
+        self._pictures: tuple[str, str] | None = None   # the report's, till the next one
 
     # ------------------------------------------------------------------ cell link
 
@@ -703,7 +704,11 @@ class Runner:
                                            "gave no laser samples", layer=L)
                     raws.append(laser_to_part(np.asarray(raw), tr, job))
                     p.paths_done = self.journal.paths_done()
-                    p.remaining_s -= float(tr.duration)
+                    if kind == "path":   # a fault's measurement was never in the plan's time
+                        p.remaining_s -= float(tr.duration)
+                    # a minutes-long measurement left the status and the console silent,
+                    # as a hung build would (a hunt's)
+                    self._report()
                 samples = np.concatenate(raws) if raws else np.zeros((0, 3))
                 nominal = (j + 1) * dh
                 if L not in smf_layers:
@@ -874,11 +879,25 @@ class Runner:
         if force or now - self._last_status > 1.0:
             self._last_status = now
             write_status(self.dir, self.progress, self.journal)
-        if measured:
-            write_report(self.dir, self.progress, self.journal, self.job)
+            # the page with every status (it was written at measurements only: missing
+            # for the first layers, frozen between, "stopped" through a resume: a hunt's);
+            # its pictures drawn again only after a measurement
+            if measured:
+                self._pictures = report_pictures(self.progress, self.journal, self.job)
+            elif self._pictures is None:
+                self._report_due = True   # drawn once a path runs, not before the first GO
+            if self._pictures is not None:
+                write_report(self.dir, self.progress, self.journal, self.job, self._pictures)
 
 
 # =========================================================================== status, report
+
+
+#: The keys of ``status.json`` and of ``icefab build --status --json``, in every state
+#: (preparing: null where not known yet; state one of preparing, running, stopped,
+#: interrupted, failed, complete).
+STATUS_KEYS = ("state", "pid", "time", "layer", "layers_done", "layers", "paths_done",
+               "paths", "eta_s", "last_rms_mm", "rms", "waiting", "events")
 
 
 def status_dict(progress: Progress, journal: Journal) -> dict:
@@ -920,15 +939,12 @@ def progress_line(p: Progress) -> str:
             f"{p.paths}, ETA {format_eta(p.remaining_s)}, last RMS {rms}{wait}")
 
 
-def write_report(build_dir: Path, progress: Progress, journal: Journal, job: "Job") -> None:
-    """``BUILD/report.html``: RMS vs height (inline SVG), the latest measured error
-    surface (PNG), status and ETA, findings and events; self-contained, refreshes itself
-    every 30 s while the build runs (a finished build's page stays put), no scripts."""
+def report_pictures(progress: Progress, journal: Journal, job: "Job") -> tuple[str, str]:
+    """The report's pictures as HTML: RMS vs height (inline SVG) and the latest measured
+    error surface (a PNG, or a line saying why there is none)."""
     import base64
-    import html
     import io
 
-    from icefab.atomic import write_atomic
     from icefab.report import pyplot
 
     plt = pyplot()
@@ -937,10 +953,14 @@ def write_report(build_dir: Path, progress: Progress, journal: Journal, job: "Jo
     if rows:
         zs = [r[1] for r in rows]
         ax.plot(zs, [r[2] for r in rows], "o-", label="measured RMS")
+    else:
+        ax.text(0.5, 0.5, "no layer measured", ha="center", va="center",
+                transform=ax.transAxes, color="0.4")
     ax.set_xlabel("nominal height (mm)")
     ax.set_ylabel("RMS height error (mm)")
     ax.set_title("RMS error vs height (laser samples)")
     ax.grid(alpha=0.3)
+    fig.tight_layout()   # the x axis' label was cut off below the picture (a hunt's)
     buf = io.StringIO()
     fig.savefig(buf, format="svg")
     plt.close(fig)
@@ -962,7 +982,10 @@ def write_report(build_dir: Path, progress: Progress, journal: Journal, job: "Jo
             im = ax.pcolormesh(x, y, err, cmap="RdBu_r", vmin=-lim, vmax=lim, shading="nearest")
             fig.colorbar(im, ax=ax, label="measured - nominal (mm)")
             ax.set_aspect("equal")
+            ax.set_xlabel("x, part frame (mm)")
+            ax.set_ylabel("y, part frame (mm)")
             ax.set_title(f"error surface, layer {m['layer']} (z = {m['nominal_z']:.2f} mm)")
+            fig.tight_layout()
             b = io.BytesIO()
             fig.savefig(b, format="png", dpi=80)
             plt.close(fig)
@@ -970,6 +993,21 @@ def write_report(build_dir: Path, progress: Progress, journal: Journal, job: "Jo
                            f'png;base64,{base64.b64encode(b.getvalue()).decode()}">')
         except GeometryError:
             surface_img = "<p>too few laser samples for a surface</p>"
+    return svg, surface_img
+
+
+def write_report(build_dir: Path, progress: Progress, journal: Journal, job: "Job",
+                 pictures: tuple[str, str] | None = None) -> None:
+    """``BUILD/report.html``: RMS vs height (inline SVG), the latest measured error
+    surface (PNG), status and ETA, findings and events; self-contained, refreshes itself
+    every 30 s while the build runs (a finished build's page stays put), no scripts.
+    ``pictures``: :func:`report_pictures`' (drawn here when not given)."""
+    import html
+
+    from icefab.atomic import write_atomic
+
+    svg, surface_img = pictures if pictures is not None else report_pictures(
+        progress, journal, job)
     st = status_dict(progress, journal)
     e = html.escape
     status_rows = "".join(
@@ -984,8 +1022,11 @@ def write_report(build_dir: Path, progress: Progress, journal: Journal, job: "Jo
     events = "".join(f"<li>{e(time.strftime('%H:%M:%S', time.localtime(ev['time'])))} "
                      f"[{e(ev['kind'])}] {e(ev['text'])}</li>" for ev in journal.events()[-30:])
     # an open-loop build never measures: "no measurement yet" promised one (a tester's)
-    no_surface = ("no measurement yet" if job.feedback.enabled else
-                  "none: this build measures nothing (feedback.enabled = false)")
+    # and a finished build that measured no layer (a short one) will not measure one
+    no_surface = ("none: this build measures nothing (feedback.enabled = false)"
+                  if not job.feedback.enabled else "no measurement yet"
+                  if st["state"] in ("running", "preparing")
+                  else "none: no layer of this build was measured")
     page = f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8">
 {'<meta http-equiv="refresh" content="30">' if st["state"] == "running" else ""}

@@ -516,7 +516,8 @@ def _run(build: Path, args: argparse.Namespace, ctl: dict, *, resume: bool) -> i
                     pass
             raise
         ctl["runner"] = True    # from here a stop is the runner's (the tool lifted)
-        journal.event("start", f"build of {len(motion.layers)} layers on "
+        n = len(motion.layers)
+        journal.event("start", f"build of {n} layer{'s' if n != 1 else ''} on "
                       f"{'a virtual cell' if args.virtual else meta['cell']}")
         for line in room_warnings:   # once the build starts (a refusal is one line)
             journal.event("headroom", line)
@@ -537,7 +538,10 @@ def _run(build: Path, args: argparse.Namespace, ctl: dict, *, resume: bool) -> i
             return
         last[0] = now
         line = bmod.progress_line(p)
-        sys.stderr.write(("\r" + line) if tty else (line + "\n"))
+        if tty:
+            sys.stderr.write(_console_line(line, shutil.get_terminal_size((80, 24)).columns))
+        else:
+            sys.stderr.write(line + "\n")
         sys.stderr.flush()
 
     runner = bmod.Runner(build, motion, job, journal, connect, on_progress=on_progress,
@@ -588,9 +592,18 @@ def _run(build: Path, args: argparse.Namespace, ctl: dict, *, resume: bool) -> i
         print(f"note: {line}")
     for line in warns:
         print(f"warning: {line}", file=sys.stderr)
-    print(f"build complete: {p.layers} layers, {p.paths_done} paths, last measured RMS {rms}; "
+    print(f"build complete: {p.layers} layer{'s' if p.layers != 1 else ''}, {p.paths_done} "
+          f"paths, last measured RMS {rms}; "
           f"{build / bmod.REPORT}")
     return 0
+
+
+def _console_line(line: str, width: int) -> str:
+    """A progress line drawn over the last one on a terminal ``width`` columns wide: cut
+    to the width and the rest of the row erased (a shorter line left a link fault's words
+    behind it on the screen, a longer one wrapped over rows ``\\r`` does not go back
+    to: a hunt's)."""
+    return "\r" + line[:max(width - 1, 20)] + "\x1b[K"
 
 
 def _completion_notes(journal) -> tuple[list[str], list[str]]:
@@ -629,8 +642,9 @@ def _status(build: Path, as_json: bool) -> int:
         # planning, starting its cell, or a resume reconnecting: its runner has not
         # written a status yet (it said "no build journal here", or the last run's
         # "stopped", a hunt's)
-        if as_json:
-            print(json.dumps({"state": "preparing", "pid": pid}, indent=1))
+        if as_json:   # the keys of every state (a program's d["paths_done"] failed)
+            print(json.dumps({**{k: None for k in bmod.STATUS_KEYS}, "state": "preparing",
+                              "pid": pid, "rms": [], "events": []}, indent=1))
         else:
             print(f"{build}: being prepared (process {pid}): planning, starting its cell or "
                   "reconnecting to it")
@@ -646,7 +660,7 @@ def _status(build: Path, as_json: bool) -> int:
     except (OSError, ValueError):
         pass
     if st["state"] == "running" and not alive:
-        st["state"] = "interrupted (resume with --resume)"
+        st["state"] = "interrupted"   # a token for programs; the line says what to do
         # status.json is written at most once a second: the journal is the record of what
         # was done (a killed build's status said 38 paths where 66 were done)
         journal = Journal.open(build / bmod.JOURNAL)
@@ -670,7 +684,8 @@ def _status(build: Path, as_json: bool) -> int:
         print(json.dumps(st, indent=1))
         return 0
     rms = "-" if st["last_rms_mm"] is None else f"{st['last_rms_mm']:.3f} mm"
-    print(f"{build}: {st['state']}; "
+    state = st["state"] + (" (resume with --resume)" if st["state"] == "interrupted" else "")
+    print(f"{build}: {state}; "
           f"layer {bmod.layer_place(st['layer'], st['layers_done'], st['layers'])}, paths "
           f"{st['paths_done']}/{st['paths']}, ETA "
           f"{bmod.format_eta(st['eta_s'])}, last RMS {rms}")
