@@ -653,10 +653,10 @@ class Runner:
                         self.journal.command("layer_end", L, -1, le_digest)
                 self._send("path", L, i, dg, lambda c, s, u=None, cp=cp: c.run_path(s, cp, u),
                            upcoming=upcoming)
-                if k == 0:
-                    self._layer_started(j, action, ahead)
                 p.paths_done = self.journal.paths_done()
                 p.remaining_s -= float(tr.duration)
+                if k == 0:   # after the counts: its report names the path done
+                    self._layer_started(j, action, ahead)
                 self._report()
             if not cps:
                 self._layer_started(j, action, ahead)
