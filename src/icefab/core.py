@@ -72,6 +72,19 @@ def split_rows(a: np.ndarray, cuts) -> list[np.ndarray]:
     return [a[s:e] for s, e in zip([0, *c], [*c, len(a)])]
 
 
+def subdivide_segments(a: np.ndarray, b: np.ndarray, step: float
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points along the segments ``a[i] -> b[i]`` ((n, 2) each, mm) at most ``step`` apart:
+    each segment's start and ``ceil(length / step) - 1`` evenly spaced inner points (its
+    end is the next segment's start, or not included). Returns (points (s, 2), segment of
+    each point (s,), fraction along it (s,))."""
+    seg = np.linalg.norm(b - a, axis=1)
+    n = np.maximum(1, np.ceil(seg / step).astype(np.int64))
+    i = np.repeat(np.arange(len(seg)), n)
+    t = (np.arange(len(i)) - np.repeat(np.cumsum(n) - n, n)) / n[i]
+    return a[i] + t[:, None] * (b - a)[i], i, t
+
+
 def arc_lengths(seg: np.ndarray) -> np.ndarray:
     """(k + 1,) float64 distance along a polyline at each of its points, from its
     segments' lengths ``seg`` (k,) mm: ``[0, cumsum(seg)]``."""

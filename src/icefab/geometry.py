@@ -41,7 +41,8 @@ from numba import njit
 
 from icefab import _smooth
 from icefab.core import (MITER_LIMIT, Region, arc_lengths, closed_polyline,  # noqa: F401
-                         offsets, signed_area, split_rows)  # (re-exported)
+                         offsets, signed_area, split_rows,
+                         subdivide_segments)  # (re-exported)
 
 #: Clipper integer units per millimetre (the one scale constant: resolution 1e-4 mm).
 SCALE = 10_000.0
@@ -1333,19 +1334,6 @@ def segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     t = np.clip(t, 0.0, 1.0)
     e = p - (a + t[:, None] * d)
     return np.sqrt(np.einsum("ij,ij->i", e, e))
-
-
-def subdivide_segments(a: np.ndarray, b: np.ndarray, step: float
-                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Points along the segments ``a[i] -> b[i]`` ((n, 2) each, mm) at most ``step`` apart:
-    each segment's start and ``ceil(length / step) - 1`` evenly spaced inner points (its
-    end is the next segment's start, or not included). Returns (points (s, 2), segment of
-    each point (s,), fraction along it (s,))."""
-    seg = np.linalg.norm(b - a, axis=1)
-    n = np.maximum(1, np.ceil(seg / step).astype(np.int64))
-    i = np.repeat(np.arange(len(seg)), n)
-    t = (np.arange(len(i)) - np.repeat(np.cumsum(n) - n, n)) / n[i]
-    return a[i] + t[:, None] * (b - a)[i], i, t
 
 
 @njit(cache=True)

@@ -25,7 +25,7 @@ import math
 import numpy as np
 
 from icefab.config import Job
-from icefab.core import MITER_LIMIT
+from icefab.core import MITER_LIMIT, subdivide_segments
 from icefab.errors import ConfigError, SimulationError, WorkspaceError
 from icefab.frames import to_base_frame, to_part_frame
 
@@ -232,7 +232,7 @@ def check_placed_part(vertices: np.ndarray, job: Job, faces: np.ndarray | None =
 
 #: Directions sampled on the circle a scaffold reaches around each part point
 #: (:func:`_check_joint1`): a point of the circle between two of them lies at most
-#: radius (1 - cos(pi / 16)), 2 %, inside the sampled polygon, so the check can only
+#: radius (1 - cos(pi / 16)), 2 %, outside the sampled polygon, so the circles can only
 #: pass too much, never refuse a scaffold the paths stage takes.
 CIRCLE_DIRECTIONS = 16
 
@@ -310,10 +310,7 @@ def _check_joint1_around(xy: np.ndarray, base: np.ndarray, rho: float,
         grow = MITER_LIMIT * rho
         v = base[hv]
         step = max(0.25 * grow, 1.0)
-        e = np.roll(v, -1, axis=0) - v
-        n = np.maximum(np.ceil(np.hypot(e[:, 0], e[:, 1]) / step), 1).astype(np.int64)
-        t = (np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)) / np.repeat(n, n)
-        along = np.repeat(v, n, axis=0) + t[:, None] * np.repeat(e, n, axis=0)
+        along = subdivide_segments(v, np.roll(v, -1, axis=0), step)[0]
         # every point of the grown hull lies within grow (1 - cos(pi / 16)) + step of
         # a sample of a circle around a vertex or an edge point
         sample = (along[:, None, :] + grow * ring[None]).reshape(-1, 2)
@@ -324,14 +321,13 @@ def _check_joint1_around(xy: np.ndarray, base: np.ndarray, rho: float,
     if tris is not None and len(tris):
         edges = np.concatenate([tris[:, :2], tris[:, 1:], tris[:, ::2]])
         a, b = base[edges[:, 0]], base[edges[:, 1]]
-        n = np.ceil(np.hypot(*(b - a).T) / max(0.5 * rho, 1.0)).astype(np.int64)
-        long = np.flatnonzero(n > 1)
-        if len(long):   # the edges' inner points, n - 1 on an edge cut into n
-            reps = n[long] - 1
-            e = np.repeat(long, reps)
-            k = np.arange(len(e)) - np.repeat(np.cumsum(reps) - reps, reps) + 1
-            t = (k / n[e])[:, None]
-            pts = np.concatenate([base, a[e] + t * (b - a)[e]])
+        step = max(0.5 * rho, 1.0)
+        long = np.flatnonzero(np.hypot(*(b - a).T) > step)
+        if len(long):   # the inner points of the edges longer than a step
+            inner, i, t = subdivide_segments(a[long], b[long], step)
+            keep = t > 0   # the edges' starts are the part's points already
+            e, t = long[i[keep]], t[keep][:, None]
+            pts = np.concatenate([base, inner[keep]])
             pa, pb = xy[edges[e, 0]], xy[edges[e, 1]]
             part = np.concatenate([xy, pa + t * (pb - pa)])
     # only the points whose circle may need joint 1 beyond its range
