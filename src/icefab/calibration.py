@@ -618,7 +618,8 @@ MAX_VALVE_FLOW_MM3_S = 1e4
 
 def read_masses(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(frequency_hz, duration_s, mass_g) arrays from a mass-measurement CSV; ConfigError
-    naming the file and line for a bad row, a frequency or mass < 0 or a duration <= 0."""
+    naming the file and line for a bad row, a frequency outside 0-``MAX_VALVE_HZ``, a
+    duration outside ``MIN_RUN_S``-``MAX_RUN_S`` or a mass < 0."""
     path = Path(path)
     rows = _rows(path, MASS_HEADER, "fff")
     for n, (f, d, m) in rows:
@@ -677,6 +678,9 @@ def _flow_polynomial(f: np.ndarray, q: np.ndarray) -> Callable[[np.ndarray], np.
 
 #: The flow of a dead band's last row, relative to the next row's (:func:`_monotone_means`).
 DEAD_BAND_FLOW = 1e-6
+#: Flows below this fraction of the largest mean flow count as none when runs are held to
+#: the table (:func:`fit_valve_table`'s misfit and residuals).
+NO_FLOW = 1e-3
 
 
 def _monotone_means(freqs: np.ndarray, means: np.ndarray, counts: np.ndarray
@@ -738,6 +742,9 @@ def fit_valve_table(frequency_hz: np.ndarray, duration_s: np.ndarray, mass_g: np
     if not (means > 0).any():   # an SVD that did not converge (a hunt's)
         raise FlowError(f"{source}: no flow at any frequency (every run collected 0 g): "
                         "the valve did not open, or the runs were not weighed")
+    # a flow this small counts as none against the table (a dead band's runs read -100 %
+    # off its ~0, and were refused as "not rising")
+    floor = NO_FLOW * float(means.max())
     if means.max() > MAX_VALVE_FLOW_MM3_S:
         k = int(np.argmax(means))
         raise FlowError(f"{source}: {means[k]:.4g} mm^3/s at {freqs[k]:g} Hz, more than a "
@@ -768,10 +775,8 @@ def fit_valve_table(frequency_hz: np.ndarray, duration_s: np.ndarray, mass_g: np
             return np.interp(np.asarray(v, dtype=np.float64), x, table)
 
         fitted_means = model(freqs)
-        # runs with no flow in a dead band against the table's ~0 there: within a
-        # MAX_MISFIT of the largest flow's thousandth, not of ~0
-        off = np.abs(means - fitted_means) > MAX_MISFIT * np.maximum(
-            np.abs(fitted_means), 1e-3 * float(np.abs(means).max()))
+        off = np.abs(means - fitted_means) > MAX_MISFIT * np.maximum(np.abs(fitted_means),
+                                                                    floor)
         if off.any():
             k = int(np.argmax(off))
             raise FlowError(f"{source}: the flow does not rise with the frequency: the runs "
@@ -782,9 +787,6 @@ def fit_valve_table(frequency_hz: np.ndarray, duration_s: np.ndarray, mass_g: np
         if len(x) < 2 or (np.diff(_as_written(table)) <= 0).any():
             raise FlowError(f"{source}: no flow rises with the frequency in these runs")
     fitted = model(np.where(on, f, 0.0))
-    # relative to the fit, or to a thousandth of the largest flow where the fit is less
-    # (a dead band's runs read -100 % against its ~0)
-    floor = 1e-3 * float(np.abs(means).max())
     resid = np.divide(q - fitted, np.maximum(np.abs(fitted), floor), out=np.zeros_like(q),
                       where=on)
     return ValveFit(frequency_hz=x, flow_mm3_s=table, measured_hz=f, measured_mm3_s=q,
