@@ -40,6 +40,14 @@ import numpy as np
 from icefab.atomic import replace_durably
 from icefab.errors import IcefabError
 
+
+def remove_files(path: str | os.PathLike) -> None:
+    """Remove the journal at ``path`` with the files SQLite keeps beside it (its WAL, the
+    WAL's index, a rollback journal); close its connections first."""
+    for f in (Path(path), *(Path(f"{path}-{x}") for x in ("wal", "shm", "journal"))):
+        f.unlink(missing_ok=True)
+
+
 SCHEMA_VERSION = 2   # 2: the laser table (version 1 journals ran on the stand-in cell)
 
 _SCHEMA = """
@@ -152,9 +160,7 @@ class Journal:
         except (sqlite3.Error, OSError) as exc:
             raise JournalError(f"{path}: the journal could not be created ({exc})") from None
         finally:
-            for leftover in (tmp, Path(f"{tmp}-wal"), Path(f"{tmp}-shm"),
-                             Path(f"{tmp}-journal")):
-                leftover.unlink(missing_ok=True)
+            remove_files(tmp)
         return cls(path, cls._connect(path))
 
     @classmethod

@@ -415,7 +415,8 @@ def _connector(build: Path, args: argparse.Namespace, meta: dict, job):
 def _run(build: Path, args: argparse.Namespace, ctl: dict, *, resume: bool) -> int:
     from icefab import build as bmod
     from icefab.config import load_job, to_toml
-    from icefab.journal import Journal, JournalError, digest_file, digest_text
+    from icefab.journal import (Journal, JournalError, digest_file, digest_text,
+                                remove_files)
     from icefab.motion import TrajectoryFile, open_trajectories
 
     jpath = build / bmod.JOURNAL
@@ -500,8 +501,7 @@ def _run(build: Path, args: argparse.Namespace, ctl: dict, *, resume: bool) -> i
                 cell.close()
             if journal is not None:
                 journal.close()
-            for f in (jpath, Path(f"{jpath}-wal"), Path(f"{jpath}-shm")):
-                f.unlink(missing_ok=True)
+            remove_files(jpath)
             if args.virtual:
                 _shutdown_cell(build / bmod.CELL_DIR)
                 shutil.rmtree(build / bmod.CELL_DIR, ignore_errors=True)
