@@ -334,25 +334,27 @@ def _build_pid(build: Path) -> int | None:
     marker = _process_marker(build)
     try:
         pid = int(marker.read_text(encoding="utf-8").strip())
-        os.kill(pid, 0)
-        cmdline = Path(f"/proc/{pid}/cmdline")
-        if cmdline.exists() and b"build" not in cmdline.read_bytes():
-            raise ProcessLookupError(pid)    # a killed build's id, now another program's
     except (OSError, ValueError):
-        if marker.is_file():
-            marker.unlink(missing_ok=True)   # stale: its process is gone
-        return None
-    return pid
+        pid = None
+    if pid is not None and _build_running(pid):
+        return pid
+    if marker.is_file():
+        marker.unlink(missing_ok=True)   # stale: its process is gone
+    return None
 
 
-def _alive(pid: int) -> bool:
+def _build_running(pid: int) -> bool:
+    """Whether process ``pid`` runs as an icefab build: not gone, not a zombie its parent
+    has not reaped yet (an empty command line), not a killed build's id now another
+    program's (no /proc: taken as running)."""
     try:
         os.kill(pid, 0)
     except OSError:
         return False
-    cmdline = Path(f"/proc/{pid}/cmdline")
-    try:   # a zombie (the parent has not reaped it yet) has an empty command line
-        return not cmdline.exists() or bool(cmdline.read_bytes())
+    try:
+        return b"build" in Path(f"/proc/{pid}/cmdline").read_bytes()
+    except FileNotFoundError:
+        return not Path("/proc/self").exists()
     except OSError:
         return False
 
@@ -777,7 +779,7 @@ def _stop_process(build: Path, pid: int) -> int:
     except OSError:
         pass
     deadline = time.monotonic() + STOP_WAIT_S
-    while _alive(pid):
+    while _build_running(pid):
         if time.monotonic() > deadline:
             raise ConfigError(f"{build}: the build (process {pid}) did not stop within "
                               f"{STOP_WAIT_S:g} s")
