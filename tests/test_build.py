@@ -745,8 +745,10 @@ def test_a_second_build_command_leaves_the_running_builds_marker(firmware_tools,
     B's marker, was refused, and removed the marker as it left: --stop then said no build
     was running and told the cell to stop with the tool down (hunt Y). Both are refused
     at once now, and the marker stays the running build's."""
+    # 5 times real time (48 s of paths): three commands of a loaded machine, each a new
+    # Python process, come before the build ends
     proc = subprocess.Popen([sys.executable, "-m", "icefab", "build", str(planned), "-o", "b",
-                             "--virtual", "--cell-time-factor", "20"], cwd=tmp_path,
+                             "--virtual", "--cell-time-factor", "5"], cwd=tmp_path,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     marker = tmp_path / ".b.icefab-build"
     try:
