@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import signal
+import subprocess
+import sys
+import time
+
 import pytest
 
 from icefab.cli import main
@@ -67,6 +72,38 @@ def test_serve_takes_a_relative_firmware_and_names_why_one_cannot_run(tmp_path, 
         err = capsys.readouterr().err
         assert says in err and len(err.strip().splitlines()) == 1, err
         assert not (tmp_path / "st").exists()
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_serve_waiting_on_a_silent_firmware_hears_a_stop(tmp_path, sig):
+    """While the cell waited (10 s) for a firmware that never announces its pty, SIGTERM
+    and Ctrl-C only set the serving loop's flag, which nothing read yet: the start went
+    on to its timeout (hunt W's leftover). Either ends the start at once, as Ctrl-C ends
+    any command, and the new state folder goes."""
+    silent = tmp_path / "silent"
+    silent.write_text("#!/bin/sh\nexec sleep 30\n")
+    silent.chmod(0o755)
+    proc = subprocess.Popen([sys.executable, "-m", "icefab", "cell", "serve", "--state", "st",
+                             "--bounds", "0,0,10,10", "--firmware", "./silent"],
+                            cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    try:
+        deadline = time.monotonic() + 30    # the folder is made before the firmware starts
+        while not (tmp_path / "st").exists():
+            assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()
+            time.sleep(0.02)
+        time.sleep(0.5)
+        t0 = time.monotonic()
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=30)
+        took = time.monotonic() - t0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == (143 if sig == signal.SIGTERM else 130), err
+    assert took < 5.0, f"the start heard the signal after {took:.1f} s"
+    assert "no pty announced" not in err
+    assert not (tmp_path / "st").exists()
 
 
 def test_serve_refuses_a_state_that_is_a_file(tmp_path, capsys):

@@ -145,9 +145,6 @@ def run_serve(args: argparse.Namespace) -> int:
     if grid is None and not exists:
         raise ConfigError(f"--state {state}: no surface yet; give --grid-for TRAJECTORIES "
                           "or --bounds X0,Y0,X1,Y1")
-    stop = threading.Event()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, lambda *_: stop.set())
     firmware = _firmware(args.firmware) if args.firmware else None
     made = not state.exists()
     try:
@@ -163,17 +160,27 @@ def run_serve(args: argparse.Namespace) -> int:
             raise CellError(f"virtual cell: cannot start ({where}{exc.strerror or exc})") \
                 from None
         raise
-    e = cell.endpoints
-    print(f"robot 127.0.0.1:{e['robot']['port']}  valve {e['valve']['device']}  laser "
-          f"{e['laser']['device']}  (endpoints in {state / 'endpoints.json'})", flush=True)
+    # a signal from here on ends the serving loop; while the cell started, it ended the
+    # start as Ctrl-C does (the handlers set before it made a start that waits on a silent
+    # firmware deaf to both for its 10 s: a hunt's)
+    stop = threading.Event()
     why = None
+    old = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
+        for sig in old:
+            signal.signal(sig, lambda *_: stop.set())
+        e = cell.endpoints
+        print(f"robot 127.0.0.1:{e['robot']['port']}  valve {e['valve']['device']}  laser "
+              f"{e['laser']['device']}  (endpoints in {state / 'endpoints.json'})",
+              flush=True)
         while not stop.wait(0.5):
             why = cell.failure()
             if why is not None:
                 break
     finally:
         cell.close()
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
     if why is not None:
         raise CellError(f"virtual cell: {why}; stopped after {cell.paths_run} paths, its "
                         f"surface and record kept in {state / 'surface.npz'} (start it "
