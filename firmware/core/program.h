@@ -52,7 +52,9 @@ typedef struct {
     uint32_t consumed;     /* bytes of the program consumed (read and freed) */
     uint32_t pieces_left;
     uint32_t n, i;         /* pulses of the current piece, pulses read */
-    uint32_t widths_ahead; /* PWM: bytes from the next tick to its width */
+    uint32_t due_tick;     /* VC_STEP_NEED: the earliest play tick the missing bytes'
+                              pulse can be due (an underrun only from then on) */
+    uint16_t last_rel;     /* tick of the last pulse read, from its piece's start */
     uint64_t start_us;     /* start of the current piece, us from the play start */
     uint64_t total_us;     /* start of the next piece */
     uint32_t piece_tick;   /* S_j, ticks */

@@ -224,6 +224,7 @@ static int play_step(vc_core *c)
         for (;;) {
             int rc = vc_reader_step(s);
             if (rc == VC_STEP_NEED) {                 /* the next pulse's bytes are missing */
+                if (s->rd.due_tick > t) break;        /* not due yet: they may still come */
                 if (c->wait_for_data) return 0;
                 vc_fault(c, VC_FAULT_UNDERRUN);
                 return 1;
@@ -258,7 +259,8 @@ int vc_can_advance(vc_core *c)
     if (c->state != VC_PLAYING) return 1;
     for (v = 0; v < VC_N_VALVES; v++) {
         if (!((c->armed_mask >> v) & 1u) || ((c->done_mask >> v) & 1u)) continue;
-        if (vc_reader_step(&c->store[v]) == VC_STEP_NEED) return 0;
+        if (vc_reader_step(&c->store[v]) == VC_STEP_NEED &&
+            c->store[v].rd.due_tick <= c->play_tick) return 0;
     }
     return 1;
 }

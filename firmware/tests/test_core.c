@@ -432,6 +432,79 @@ static void test_streaming(void)
     CHECK_EQ(u32(f.p + 16), 65536);
 }
 
+/* Stream the rest of prog[off..len) while the store has room for a whole chunk. */
+static unsigned top_up(unsigned off, unsigned len)
+{
+    uint8_t p[240];
+    while (off < len && vc_store_free(&C.store[0]) > 0) {
+        unsigned k = len - off > 235 ? 235 : len - off;
+        if (k > vc_store_free(&C.store[0])) k = vc_store_free(&C.store[0]);
+        p[0] = 0; p[1] = (uint8_t)off; p[2] = (uint8_t)(off >> 8); p[3] = (uint8_t)(off >> 16);
+        p[4] = 0;
+        memcpy(p + 5, prog + off, k);
+        CHECK_EQ(cmd(VC_PROG_DATA, p, k + 5).type, 0x91);
+        off += k;
+    }
+    return off;
+}
+
+/* Three PWM pieces of 3070 pulses (the most icefab.flow puts in one; each 12 288-byte
+ * store holds one whole), a pulse every 2 ticks, streamed by a PC that tops the store up
+ * before every tick. The reader wanted a piece whole at its start, beside the last
+ * piece's widths (freed only then): this underran at the first piece's end (a review
+ * found it at 2 048 pulses a piece); tick i and width i are all a pulse needs. Then the
+ * same program with the PC gone silent: the underrun comes when a missing pulse is due
+ * (its tick, or the piece's start when even that is missing), not before. */
+static void test_streaming_pwm_pieces(void)
+{
+    static unsigned ticks[3 * 3070], widths[3 * 3070];
+    unsigned n[3] = {3070, 3070, 3070}, dur[3], i, len, off, t, k, stop_at;
+    uint8_t arm = 1;
+    frame_t f;
+    for (i = 0; i < 3; i++) dur[i] = 3070u * 2u * 2000u;
+    for (i = 0; i < 3 * 3070; i++) { ticks[i] = (i % 3070) * 2u; widths[i] = 500u + i % 7u; }
+    len = make_program(prog, 1, 3, n, dur, ticks, widths);
+    reset();
+    CHECK_EQ(cmd(VC_PROG_BEGIN, (uint8_t[]){0, 0, (uint8_t)len, (uint8_t)(len >> 8),
+                 (uint8_t)(len >> 16), 0}, 6).type, 0x90);
+    off = top_up(0, len);
+    CHECK_EQ(cmd(VC_ARM, &arm, 1).type, 0xA0);
+    vc_trigger_edge(&C);
+    for (t = 0; t < 3u * 6140u + 10u && C.state != VC_IDLE; t++) {
+        off = top_up(off, len);
+        vc_tick(&C, 0);
+        now += 2;
+    }
+    f = status();
+    CHECK_EQ(f.p[0], VC_IDLE); CHECK_EQ(f.p[1], 0);
+    CHECK_EQ(off, len);
+    CHECK_EQ(npulses, 3 * 3070);
+    for (k = 0; k < 3 * 3070; k += 1021) {
+        CHECK_EQ(pulses[k].tick, (k / 3070u) * 6140u + (k % 3070u) * 2u);
+        CHECK_EQ(pulses[k].width, widths[k]);
+    }
+    /* the PC stops sending within the second piece's header, or after its ticks and
+     * 1 000 of its widths */
+    for (stop_at = 0; stop_at < 2; stop_at++) {
+        unsigned upto = 16u + (8u + 4u * 3070u) + (stop_at ? 8u + 2u * 3070u + 2000u : 4u);
+        unsigned due = stop_at ? 6140u + 1000u * 2u : 6140u;
+        reset();
+        CHECK_EQ(cmd(VC_PROG_BEGIN, (uint8_t[]){0, 0, (uint8_t)len, (uint8_t)(len >> 8),
+                     (uint8_t)(len >> 16), 0}, 6).type, 0x90);
+        off = top_up(0, upto);
+        CHECK_EQ(cmd(VC_ARM, &arm, 1).type, 0xA0);
+        vc_trigger_edge(&C);
+        for (t = 0; t < 20000u && (t == 0 || C.state == VC_PLAYING); t++) {
+            off = top_up(off, upto);
+            vc_tick(&C, 0);
+            now += 2;
+        }
+        f = status();
+        CHECK_EQ(f.p[0], VC_FAULT); CHECK_EQ(f.p[1], VC_FAULT_UNDERRUN);
+        CHECK_EQ(t, due + 1u);     /* the fault at play tick `due`, not sooner */
+    }
+}
+
 static void test_underrun_fault(void)
 {
     static unsigned ticks[16384];
@@ -540,6 +613,7 @@ static const struct { const char *name; test_fn fn; } TESTS[] = {
     {"program_violations", test_program_violations},
     {"no_room_and_queue", test_no_room_and_queue},
     {"streaming", test_streaming},
+    {"streaming_pwm_pieces", test_streaming_pwm_pieces},
     {"underrun_fault", test_underrun_fault},
     {"abort_while_playing", test_abort_while_playing},
     {"watchdog_reset", test_watchdog_reset},
