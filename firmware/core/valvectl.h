@@ -16,6 +16,8 @@ typedef struct {
     /* link */
     uint8_t fb[VC_MAX_FRAME];
     uint16_t flen;
+    uint16_t crc_n;          /* fb[2 .. 2 + crc_n) is in crc_run (0: nothing yet) */
+    uint16_t crc_run;
     uint32_t last_rx_ms;
     uint32_t noise;
     uint8_t expected;
