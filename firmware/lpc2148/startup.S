@@ -40,4 +40,11 @@ reset_handler:
         strlo   r3, [r1], #4
         blo     2b
         bl      main
-hang:   b       hang                    /* no valve is driven here: the watchdog resets us */
+        /* an undefined instruction, an abort, SWI or FIQ (or main's return): both valves
+         * closed (IO0CLR, P0.12 and P0.13 as board.c's VALVE0 / VALVE1), then wait for
+         * the watchdog's reset. It only looped: with interrupts off no pulse's end could
+         * close an open valve for the watchdog's 10 s (a review's finding). */
+hang:   ldr     r0, =0xE002800C
+        mov     r1, #0x3000
+        str     r1, [r0]
+3:      b       3b
