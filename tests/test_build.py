@@ -1402,6 +1402,65 @@ def test_progress_names_a_layer_by_its_index_and_its_place(planned, tmp_path):
     assert "complete" in page and 'http-equiv="refresh"' not in page
 
 
+def test_a_build_killed_with_its_pc_is_not_running_whatever_has_its_id_now(planned,
+                                                                            tmp_path):
+    """After a restart of the PC, the id in a crashed build's status.json and marker was
+    another program's: --status said "running" (any live process), --status and --stop
+    took a program with "build" in its command line for the build, and --stop sent it
+    SIGTERM. A build holds its marker and its folder's lock (flock) while it runs; the
+    kernel lets go of both when it ends, however it ends; a forked child keeps neither."""
+    from icefab.cli import build_cmd
+    from icefab.cli.build_cmd import (_build_pid, _build_process, _folder_locked, _lock,
+                                      _process_marker, _status)
+    from icefab.motion import load_trajectories
+
+    motion = load_trajectories(planned)
+    build = tmp_path / "b"
+    cell = _prepared(build, motion, motion.job)
+    journal = Journal.create(build / bmod.JOURNAL, {"digests": {}})
+    bmod.Runner(build, motion, motion.job, journal, lambda: cell).run()
+    journal.close()
+    # a program of the restarted PC, with the crashed build's id and "build" in its argv
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)", "build"])
+    try:
+        st = json.loads((build / bmod.STATUS).read_text())
+        (build / bmod.STATUS).write_text(json.dumps(dict(st, state="running", pid=other.pid)))
+        _process_marker(build).write_text(f"{other.pid}\n")
+        assert _build_pid(build) is None and not _process_marker(build).exists()
+        out = io.StringIO()
+        with contextlib.redirect_stdout(out):
+            assert _status(build, as_json=True) == 0
+        assert json.loads(out.getvalue())["state"] == "interrupted"
+        assert other.poll() is None
+    finally:
+        other.kill()
+        other.wait()
+    # while a build runs: both held; when it ends (the kernel closes its files), a worker
+    # it forked holds neither
+    with _build_process(build, new=False):
+        lock = _lock(build)
+        assert _build_pid(build) == os.getpid() and _folder_locked(build) is True
+        lock.close()
+        assert _folder_locked(build) is False
+        r, w = os.pipe()
+        child = os.fork()
+        if child == 0:    # a planning pool's worker, say: it runs on
+            os.write(w, b"x")
+            time.sleep(5)
+            os._exit(0)
+        try:
+            assert os.read(r, 1) == b"x"
+            os.close(build_cmd._MARKER_FD)
+            build_cmd._MARKER_FD = None
+            assert _build_pid(build) is None
+        finally:
+            os.kill(child, signal.SIGKILL)
+            os.waitpid(child, 0)
+            os.close(r)
+            os.close(w)
+    assert not _process_marker(build).exists()
+
+
 def test_a_resumed_build_names_the_layer_it_goes_on_with_before_its_first_path(planned,
                                                                              tmp_path):
     """A build's PC dies in layer 2 (its third); resumed, the status written before the

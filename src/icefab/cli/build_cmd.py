@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import fcntl
 import json
 import math
 import os
@@ -287,24 +288,35 @@ def _build_process(build: Path, *, new: bool):
 
 
 def _claim_marker(build: Path) -> None:
-    """Put this process' id into the marker of ``build``: written under another name and
-    linked into place, so that it never exists without its id (read empty, it would be
-    taken for stale and removed). Nothing when the folder cannot hold it. ConfigError when
-    another build process of ``build`` holds it: a second 'icefab build -o B' or
-    '--resume B' wrote its own id over the running one's, was refused, and removed the
-    marker as it left, and --stop then found no build (hunt Y). A marker whose process
-    is gone is taken over."""
+    """Put this process' id into the marker of ``build`` and hold the marker locked
+    (flock) until :func:`_release_marker`: the kernel drops the lock when the process
+    ends, however it ends (killed, the PC restarted), so a locked marker is a running
+    build and an unlocked one a killed build's, whatever process has that id since
+    (after a restart of the PC, --status called a crashed build "running" because its
+    id was another program's, and --stop sent SIGTERM to any program with "build" in its
+    command line). Written and locked under another name, then linked into place, so
+    that it never exists without its id and its lock. Nothing when the folder cannot
+    hold it. ConfigError when another build process of ``build`` holds it: a second
+    'icefab build -o B' or '--resume B' wrote its own id over the running one's, was
+    refused, and removed the marker as it left, and --stop then found no build (hunt
+    Y). A marker whose process is gone is taken over."""
+    global _MARKER_FD
     marker = _process_marker(build)
     tmp = marker.with_name(f"{marker.name}.{os.getpid()}")
     try:
-        tmp.write_text(f"{os.getpid()}\n", encoding="utf-8")
+        fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC, 0o644)
     except OSError:        # an unwritable or missing parent: nothing to find it by
         return
     try:
+        os.write(fd, f"{os.getpid()}\n".encode("ascii"))
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)   # a new file: never refused
+        except OSError:    # a file system without locks: the id alone tells (_alive)
+            pass
         for _ in range(2):
             try:
                 os.link(tmp, marker)
-                return
+                break
             except FileExistsError:
                 pid = _build_pid(build)   # removes a stale one
                 if pid is not None:
@@ -313,40 +325,96 @@ def _claim_marker(build: Path) -> None:
                                       ) from None
             except OSError:   # a file system without hard links: written in place
                 marker.write_text(f"{os.getpid()}\n", encoding="utf-8")
-                return
+                break
+        else:
+            raise ConfigError(f"{build}: {marker} keeps coming back; another build of this "
+                              f"folder is starting ('icefab build --status {build}')")
+        _MARKER_FD, fd = fd, -1
     finally:
+        if fd >= 0:
+            os.close(fd)
         tmp.unlink(missing_ok=True)
 
 
+#: The open, locked marker of this process' build (:func:`_claim_marker`), or None.
+_MARKER_FD: int | None = None
+
+
+def _forget_marker_in_child() -> None:
+    """A forked child (a planning pool's worker) closes its copy of the marker: the lock
+    is the open file's, and a worker left behind by a killed build would keep it, and
+    the build "running". Closing a copy does not unlock the parent's."""
+    global _MARKER_FD
+    if _MARKER_FD is not None:
+        try:
+            os.close(_MARKER_FD)
+        except OSError:
+            pass
+        _MARKER_FD = None
+
+
+os.register_at_fork(after_in_child=_forget_marker_in_child)
+
+
 def _release_marker(build: Path) -> None:
-    """Remove the marker of ``build`` if it holds this process' id."""
+    """Remove the marker of ``build`` if it holds this process' id, then let go of its
+    lock."""
+    global _MARKER_FD
     marker = _process_marker(build)
     try:
         if int(marker.read_text(encoding="utf-8").strip()) == os.getpid():
             marker.unlink(missing_ok=True)
     except (OSError, ValueError):
         pass
+    if _MARKER_FD is not None:
+        os.close(_MARKER_FD)
+        _MARKER_FD = None
 
 
 def _build_pid(build: Path) -> int | None:
-    """The id of the build or resume process running for ``build`` (its marker), or None;
-    a marker whose process is gone (killed) is removed."""
+    """The id of the build or resume process running for ``build`` (its marker, locked
+    by that process), or None; a marker whose process is gone (killed, or the PC
+    restarted since) is removed."""
     marker = _process_marker(build)
     try:
-        pid = int(marker.read_text(encoding="utf-8").strip())
-    except (OSError, ValueError):
-        pid = None
-    if pid is not None and _build_running(pid):
-        return pid
-    if marker.is_file():
-        marker.unlink(missing_ok=True)   # stale: its process is gone
-    return None
+        fd = os.open(marker, os.O_RDONLY | os.O_CLOEXEC)
+    except OSError:
+        return None
+    try:
+        try:
+            pid = int(os.read(fd, 64).decode("ascii").strip())
+        except (OSError, ValueError):
+            pid = None
+        if pid is not None and _alive(fd, pid):
+            return pid
+        try:    # stale; the same file still (a new build may have just taken its place)
+            if os.stat(marker).st_ino == os.fstat(fd).st_ino:
+                marker.unlink(missing_ok=True)
+        except OSError:
+            pass
+        return None
+    finally:
+        os.close(fd)
+
+
+def _alive(fd: int, pid: int) -> bool:
+    """Whether the marker open as ``fd`` (holding ``pid``) is held by its build: locked.
+    A file system without locks: whether ``pid`` runs as an icefab build."""
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    except OSError:
+        return _build_running(pid)
+    fcntl.flock(fd, fcntl.LOCK_UN)
+    return False
 
 
 def _build_running(pid: int) -> bool:
     """Whether process ``pid`` runs as an icefab build: not gone, not a zombie its parent
     has not reaped yet (an empty command line), not a killed build's id now another
-    program's (no /proc: taken as running)."""
+    program's (no /proc: taken as running). A guess: the marker's lock is the answer
+    (:func:`_alive`) where the file system has locks."""
     try:
         os.kill(pid, 0)
     except OSError:
@@ -377,16 +445,46 @@ def _stop_orphan_cell(build: Path) -> bool:
 
 
 def _lock(build: Path):
-    import fcntl
-
+    """``BUILD/build.lock``, locked (flock) by the build's runner for its whole run: the
+    kernel drops the lock with the process, however it ends, so --status tells a running
+    build from a killed one by it (:func:`_folder_locked`). A --status looking (it holds
+    the lock shared for an instant) is waited out for a second."""
     f = open(build / "build.lock", "a+")
-    try:
-        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
+    deadline = time.monotonic() + 1.0
+    while True:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return f
+        except BlockingIOError:
+            if time.monotonic() < deadline:
+                time.sleep(0.02)
+                continue
+        except OSError:   # a file system without locks: the marker and the journal guard
+            return f
         f.close()
         raise ConfigError(f"{build}: a build is running in this folder already "
                           f"('icefab build --status {build}')") from None
-    return f
+
+
+def _folder_locked(build: Path) -> bool | None:
+    """Whether a build's runner holds ``BUILD/build.lock`` (:func:`_lock`): True while
+    it runs, False once it ended, however (killed, the PC restarted: its process id may
+    be another program's by then), None where the file system has no locks."""
+    try:
+        fd = os.open(build / "build.lock", os.O_RDONLY | os.O_CLOEXEC)
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    except OSError:
+        return None
+    else:
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return False
+    finally:
+        os.close(fd)
 
 
 def _connector(build: Path, args: argparse.Namespace, meta: dict, job):
@@ -655,12 +753,14 @@ def _status(build: Path, as_json: bool) -> int:
         Journal.open(build / bmod.JOURNAL).close()   # names the folder when it is no build
         raise ConfigError(f"{build}: no status yet (the build has not started a layer)")
     st = json.loads(f.read_text(encoding="utf-8"))
-    alive = False
-    try:
-        os.kill(int(st.get("pid", -1)), 0)
-        alive = True
-    except (OSError, ValueError):
-        pass
+    # its runner's lock, not its process id: after a restart of the PC the id of a build
+    # that died with it was another program's, and the build read "running"
+    alive = _folder_locked(build)
+    if alive is None:
+        try:
+            alive = _build_running(int(st.get("pid", -1)))
+        except (TypeError, ValueError):
+            alive = False
     if st["state"] == "running" and not alive:
         st["state"] = "interrupted"   # a token for programs; the line says what to do
         # status.json is written at most once a second: the journal is the record of what
@@ -779,7 +879,7 @@ def _stop_process(build: Path, pid: int) -> int:
     except OSError:
         pass
     deadline = time.monotonic() + STOP_WAIT_S
-    while _build_running(pid):
+    while _build_pid(build) == pid:
         if time.monotonic() > deadline:
             raise ConfigError(f"{build}: the build (process {pid}) did not stop within "
                               f"{STOP_WAIT_S:g} s")
