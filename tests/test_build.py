@@ -1430,7 +1430,8 @@ def test_a_build_killed_with_its_pc_is_not_running_whatever_has_its_id_now(plann
         out = io.StringIO()
         with contextlib.redirect_stdout(out):
             assert _status(build, as_json=True) == 0
-        assert json.loads(out.getvalue())["state"] == "interrupted"
+        got = json.loads(out.getvalue())
+        assert got["state"] == "interrupted" and got["update_by"] is None
         assert other.poll() is None
     finally:
         other.kill()
@@ -1710,6 +1711,7 @@ def test_the_report_follows_the_status_and_a_measurement_is_not_silent(planned, 
     build = tmp_path / "b"
     cell = _prepared(build, motion, job)
     seen = []   # (layer, role, report's paths row, status' paths_done) before each path
+    gaps = []   # (status' update_by - time, expected)
 
     class Watching:
         def __getattr__(self, name):
@@ -1721,6 +1723,13 @@ def test_the_report_follows_the_status_and_a_measurement_is_not_silent(planned, 
                    if rep.exists() else None)
             st = json.loads((build / bmod.STATUS).read_text())
             seen.append((path.layer, path.role, row, st["paths_done"]))
+            # when a reader may call a "running" status stale: within twice the layer's
+            # longest path and the margin (a killed build's page said "running" for ever)
+            longest = max(lm.durations.max() for lm in motion.layers
+                          if lm.index == st["layer"])
+            gaps.append((st["update_by"] - st["time"], 2 * longest + bmod.UPDATE_MARGIN_S))
+            if row is not None:
+                assert "<th>next update by</th>" in rep.read_text()
             return cell.run_path(seq, path, upcoming)
 
     journal = Journal.create(build / bmod.JOURNAL, {"digests": {}})
@@ -1739,6 +1748,10 @@ def test_the_report_follows_the_status_and_a_measurement_is_not_silent(planned, 
     assert tuple(json.loads((build / bmod.STATUS).read_text())) == bmod.STATUS_KEYS
     page = (build / bmod.REPORT).read_text()
     assert "<title>icefab build: complete</title>" in page and "refresh" not in page
+    assert "next update by" not in page
+    assert json.loads((build / bmod.STATUS).read_text())["update_by"] is None
+    assert len({round(g, 6) for g, _ in gaps}) > 1     # the layers' longest paths differ
+    assert all(g == pytest.approx(want) for g, want in gaps), [x for x in gaps if x[0] != pytest.approx(x[1])]
     svg = page[page.index('<svg id="rms-plot"'):page.index("</svg>")]
     height = float(re_.search(r'height="([\d.]+)pt"', svg).group(1))
     # the x axis' label, baseline and descenders, inside the picture (246.5 of 244.8)

@@ -127,6 +127,22 @@ def test_c_unit_tests_pass(tmp_path):
     assert m and int(m.group(1)) >= 10 and m.group(2) == "0", proc.stdout
 
 
+def test_a_frames_parse_work_with_interrupts_off_is_bounded(tmp_path):
+    """The board parses each byte with interrupts off: the last byte of a 247-byte frame
+    with a bad CRC moved 30 135 bytes and summed 256 (~6 ms at 48 MHz: a valve pulse's end
+    waited behind it), a good one summed 256 (~1 ms). Now at most one frame's length is
+    moved and only the reply is summed (``make rx-work`` fails past its bounds)."""
+    need(["make", "cc"], "the firmware's parse-work count")
+    ld = subprocess.run(["cc", "-Wl,--version"], capture_output=True, text=True)
+    if "GNU" not in ld.stdout + ld.stderr:
+        pytest.skip("the parse-work count wraps functions with GNU ld's --wrap, which this "
+                    "machine's linker does not have")
+    proc = subprocess.run(["make", "-s", "-C", str(FIRMWARE), "rx-work", f"BUILD={tmp_path}"],
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "bad CRC      last byte:    245 bytes moved,   13 bytes summed" in proc.stdout
+
+
 def test_lpc2148_image_fits_flash_and_ram(tmp_path):
     need(["make", "arm-none-eabi-gcc"], "the LPC2148 cross build (apt-get install "
          "gcc-arm-none-eabi)")

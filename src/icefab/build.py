@@ -279,6 +279,7 @@ class Progress:
     state: str = "running"
     rms: list = field(default_factory=list)   # (layer, nominal z, measured RMS)
     waiting: str = ""           # the link fault the build is waiting out ("" when none)
+    longest_s: float = 0.0      # the current layer's longest path, s (see UPDATE_MARGIN_S)
 
 
 def measures(lm: "LayerMotion") -> bool:
@@ -603,7 +604,7 @@ class Runner:
         j0 = next((j for j in range(len(self.motion.layers)) if not finished(j)),
                   len(self.motion.layers))
         if self.motion.layers:
-            p.layer = int(self.motion.layers[min(j0, len(self.motion.layers) - 1)].index)
+            self._name_layer(min(j0, len(self.motion.layers) - 1))
             p.layer_pos = j0
             p.remaining_s = float(sum(self._durations[j0:]))
         self._call(lambda cell: None)
@@ -617,7 +618,7 @@ class Runner:
         for j, lm in enumerate(self.motion.layers):
             L = int(lm.index)
             meas_items = _items(lm)[1]
-            p.layer = L
+            self._name_layer(j)
             p.layer_pos = j
             p.remaining_s = float(sum(self._durations[j:]))
             cut_here = L in self.journal.cut_layers()
@@ -724,7 +725,7 @@ class Runner:
                 self._report_due = True
             p.layer_pos = j + 1
             if j + 1 < len(self.motion.layers):   # the status names the layer that is next
-                p.layer = int(self.motion.layers[j + 1].index)
+                self._name_layer(j + 1)
             self._report(force=True)
         p.state = "complete"
         p.layer_pos = len(self.motion.layers)
@@ -842,6 +843,13 @@ class Runner:
                 return meas
         return []
 
+    def _name_layer(self, j: int) -> None:
+        """The progress names the layer at position ``j``: its index, and its longest path
+        (how soon the status is written again: :data:`UPDATE_MARGIN_S`)."""
+        lm = self.motion.layers[j]
+        self.progress.layer = int(lm.index)
+        self.progress.longest_s = float(lm.durations.max(initial=0.0))
+
     def _stop_point(self) -> None:
         if self.should_stop():
             self.stop("a stop was asked for")
@@ -896,12 +904,23 @@ class Runner:
 #: The keys of ``status.json`` and of ``icefab build --status --json``, in every state
 #: (preparing: null where not known yet; state one of preparing, running, stopped,
 #: interrupted, failed, complete).
-STATUS_KEYS = ("state", "pid", "time", "layer", "layers_done", "layers", "paths_done",
-               "paths", "eta_s", "last_rms_mm", "rms", "waiting", "events")
+STATUS_KEYS = ("state", "pid", "time", "update_by", "layer", "layers_done", "layers",
+               "paths_done", "paths", "eta_s", "last_rms_mm", "rms", "waiting", "events")
+
+#: A running build writes its status again within twice the current layer's longest path
+#: (a path's wait on the cell times out at 1.5 times its length plus 10 s, and the fault
+#: is reported) plus this, s: the measurement's SMF update, the next layer's valve
+#: programs. ``update_by`` in the status: a status older than that, still "running", is a
+#: build whose process ended without a word (killed, its PC stopped); the page said
+#: "running" and reloaded for ever (a hunt's).
+UPDATE_MARGIN_S = 120.0
 
 
 def status_dict(progress: Progress, journal: Journal) -> dict:
-    return {"state": progress.state, "pid": os.getpid(), "time": time.time(),
+    now = time.time()
+    return {"state": progress.state, "pid": os.getpid(), "time": now,
+            "update_by": now + 2.0 * progress.longest_s + UPDATE_MARGIN_S
+            if progress.state == "running" else None,
             "layer": progress.layer, "layers_done": progress.layer_pos,
             "layers": progress.layers, "paths_done": progress.paths_done,
             "paths": progress.paths, "eta_s": progress.remaining_s,
@@ -1018,7 +1037,12 @@ def write_report(build_dir: Path, progress: Progress, journal: Journal, job: "Jo
             ("ETA (planned motion)", format_eta(progress.remaining_s)),
             ("last RMS (mm)", "-" if st["last_rms_mm"] is None
              else f"{st['last_rms_mm']:.4f}"),
-            ("updated", time.strftime("%Y-%m-%d %H:%M:%S", time.localtime()))))
+            ("updated", time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(st["time"]))),
+            *([("next update by", time.strftime("%Y-%m-%d %H:%M:%S",
+                                                time.localtime(st["update_by"]))
+                + " (if this page is older then, the build's process has ended: "
+                f"'icefab build --status {Path(build_dir).name}')")]
+              if st["update_by"] is not None else [])))
     events = "".join(f"<li>{e(time.strftime('%H:%M:%S', time.localtime(ev['time'])))} "
                      f"[{e(ev['kind'])}] {e(ev['text'])}</li>" for ev in journal.events()[-30:])
     # an open-loop build never measures: "no measurement yet" promised one (a tester's)

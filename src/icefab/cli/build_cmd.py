@@ -763,6 +763,7 @@ def _status(build: Path, as_json: bool) -> int:
             alive = False
     if st["state"] == "running" and not alive:
         st["state"] = "interrupted"   # a token for programs; the line says what to do
+        st["update_by"] = None        # no update comes
         # status.json is written at most once a second: the journal is the record of what
         # was done (a killed build's status said 38 paths where 66 were done)
         journal = Journal.open(build / bmod.JOURNAL)
