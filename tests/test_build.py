@@ -1460,6 +1460,20 @@ def test_a_build_killed_with_its_pc_is_not_running_whatever_has_its_id_now(plann
             os.close(r)
             os.close(w)
     assert not _process_marker(build).exists()
+    # a file system without hard links: the marker written in place is locked too (it was
+    # not, and the first look called it stale and removed it)
+    real_link = os.link
+
+    def no_links(*a, **k):
+        raise PermissionError(1, "Operation not permitted")
+
+    os.link = no_links
+    try:
+        with _build_process(build, new=False):
+            assert _build_pid(build) == os.getpid() and _build_pid(build) == os.getpid()
+    finally:
+        os.link = real_link
+    assert not _process_marker(build).exists()
 
 
 def test_a_resumed_build_names_the_layer_it_goes_on_with_before_its_first_path(planned,

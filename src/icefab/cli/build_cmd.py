@@ -324,7 +324,14 @@ def _claim_marker(build: Path) -> None:
                                       f"(process {pid}; 'icefab build --status {build}')"
                                       ) from None
             except OSError:   # a file system without hard links: written in place
-                marker.write_text(f"{os.getpid()}\n", encoding="utf-8")
+                os.close(fd)
+                fd = os.open(marker, os.O_RDWR | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC,
+                             0o644)
+                os.write(fd, f"{os.getpid()}\n".encode("ascii"))
+                try:
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                except OSError:
+                    pass
                 break
         else:
             raise ConfigError(f"{build}: {marker} keeps coming back; another build of this "
