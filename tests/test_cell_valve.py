@@ -11,6 +11,7 @@ is missing the test says so and is skipped, except when ICEFAB_REQUIRE_FIRMWARE_
 """
 from __future__ import annotations
 
+import dataclasses
 import os
 import re
 import shutil
@@ -106,6 +107,16 @@ def test_python_constants_match_the_c_header():
         assert int(enums[f"VC_E_{name}"], 0) == code, name
     for state, name in vf.STATES.items():
         assert int(enums[f"VC_{name.upper()}"], 0) == state
+
+
+def test_flow_makes_pwm_pieces_the_controller_streams_with_room_to_spare():
+    """The controller takes PWM pieces of up to (12 288 - 10) / 4 = 3 069 pulses
+    (PROTOCOL.md 5); flow's leave the store 2 043 pulses of the next piece when one ends,
+    seconds for the PC's next bytes."""
+    from icefab.flow import PWM_PIECE_PULSES
+
+    assert (vf.STORE_BYTES - 10) // 4 == 3069
+    assert (vf.STORE_BYTES - 4 * PWM_PIECE_PULSES - 10) // 2 >= 2000
 
 
 def test_frame_reader_finds_frames_in_noise():
@@ -205,6 +216,28 @@ def test_program_longer_than_the_store_streams_while_playing(ctl, firmware):
     got = firmware.pulses()
     np.testing.assert_array_equal([p[2] for p in got], expected_ticks(prog))
     assert {p[3] for p in got} == {2000}
+
+
+def test_pwm_pieces_stream_back_to_back_on_the_real_clock(valvectl, tmp_path):
+    """Three PWM pieces of flow's largest size (2 048 pulses, a pulse every tick) through
+    the real driver, the controller's clock at 4x real time: the reader wanted each piece
+    whole at its start, beside the last piece's widths (freed only then), and such a
+    program underran at the first piece's end however fast the PC sent (a review's)."""
+    from icefab.flow import PWM_PIECE_PULSES
+
+    n = PWM_PIECE_PULSES
+    pieces = [ValveProgram(ticks=np.arange(n, dtype=np.uint16), tick_s=0.002,
+                           duration=n * 0.002, widths_us=np.full(n, 700 + k, np.uint16))
+              for k in range(3)]
+    prog = dataclasses.replace(pieces[0], pieces=tuple(pieces[1:]))
+    assert 2 * n * 2 + 8 + 4 * n * 2 > vf.STORE_BYTES     # no two whole pieces fit
+    with HostFirmware(valvectl, clock="real", speed=4.0, pulse_log=tmp_path / "p.log") as fw, \
+            ValveController.open(fw.pty) as ctl:
+        rep = ctl.play({0: prog}, trigger="command")
+        got = fw.pulses()
+    assert rep.emitted == (3 * n, 0) and rep.streamed_bytes > 0
+    np.testing.assert_array_equal([p[2] for p in got], expected_ticks(prog))
+    assert [p[3] for p in got] == [700] * n + [701] * n + [702] * n
 
 
 def test_both_valves_one_trigger_and_sigusr1(ctl, firmware):
@@ -574,7 +607,7 @@ def test_pwm_piece_larger_than_the_store_is_refused_by_name(ctl):
     prog = ValveProgram(ticks=np.arange(4000, dtype=np.uint16), tick_s=0.002, duration=8.0,
                         widths_us=np.full(4000, 600, np.uint16))
     with pytest.raises(ValveLinkError, match=r"its piece at byte 16 \(4000 pulses\); a PWM "
-                                             r"piece of more than 3070 pulses"):
+                                             r"piece of more than 3069 pulses"):
         ctl.upload(0, prog)
     st = ctl.status()
     assert (st.state_name, st.valves[0].queued, st.outputs) == ("idle", 0, 0)

@@ -307,14 +307,14 @@ def test_speed_that_disagrees_with_the_samples_is_reported(factor, expect):
 def test_pwm_pieces_fit_the_valve_controllers_store():
     """A 40 s PWM path at 125 Hz has 5 000 pulses: the valve controller must hold a PWM
     piece whole (4 n + 8 bytes in its 12 288-byte store, firmware/PROTOCOL.md), so the
-    program comes in pieces of at most 3 070 pulses; FM keeps flow.max_pulses (16 384)."""
+    program comes in pieces of at most 2 048 pulses; FM keeps flow.max_pulses (16 384)."""
     traj = constant_trajectory(100.0, duration=40.0)
     pwm = program_pieces(plan_valves(traj, "part", Job().replace(**PWM)))
     assert sum(len(p.ticks) for p in pwm) >= 4900 and len(pwm) >= 2
-    assert max(len(p.ticks) for p in pwm) <= 3070
+    assert max(len(p.ticks) for p in pwm) <= 2048
     assert all(4 * len(p.ticks) + 8 <= 12288 for p in pwm)
     fm = program_pieces(plan_valves(traj, "part", Job()))
-    assert len(fm) == 1 and len(fm[0].ticks) > 3070
+    assert len(fm) == 1 and len(fm[0].ticks) > 2048
 
 
 def test_summarised_findings_total_the_volume_each_kind_costs():

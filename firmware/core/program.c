@@ -59,7 +59,10 @@ int vc_dec_byte(vc_dec *d, uint8_t b)
         if (d->nacc == 4) {
             d->n = le32(d->acc);
             if (d->n > VC_MAX_PULSES) return -1;            /* thesis 2.3.1: 16 384 */
-            if (d->mode == 1 && 8u + 4u * d->n > VC_STORE_BYTES) return -2;
+            /* PWM: a pulse needs its tick and width (2 n + 2 bytes on from its tick),
+             * and a piece's widths go only at its end: piece after piece without a
+             * gap, 2 n_j + 8 + 2 n_j+1 + 2 <= the store, which 4 n + 10 keeps */
+            if (d->mode == 1 && 4u * d->n + 10u > VC_STORE_BYTES) return -2;
         } else if (d->nacc == 8) {
             d->dur_us = le32(d->acc + 4);
             if (d->dur_us > VC_MAX_PIECE_US) return -1;     /* thesis 2.3.1: 131.072 s */

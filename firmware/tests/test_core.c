@@ -448,21 +448,23 @@ static unsigned top_up(unsigned off, unsigned len)
     return off;
 }
 
-/* Three PWM pieces of 3070 pulses (the most icefab.flow puts in one; each 12 288-byte
- * store holds one whole), a pulse every 2 ticks, streamed by a PC that tops the store up
- * before every tick. The reader wanted a piece whole at its start, beside the last
- * piece's widths (freed only then): this underran at the first piece's end (a review
- * found it at 2 048 pulses a piece); tick i and width i are all a pulse needs. Then the
- * same program with the PC gone silent: the underrun comes when a missing pulse is due
- * (its tick, or the piece's start when even that is missing), not before. */
+/* Three PWM pieces of 3069 pulses (the most a PWM piece may hold: 4 n + 10 <= 12 288), a
+ * pulse every 2 ticks and none missing between pieces, streamed by a PC that tops the
+ * store up every third tick (a driver polling every 5 ms). The reader wanted a piece
+ * whole at its start, beside the last piece's widths (freed only then): this underran at
+ * the first piece's end (a review found it at 2 048 pulses a piece); tick i and width i
+ * are all a pulse needs, and with 3069 they fit beside the last piece's widths before it
+ * ends. Then the same program with the PC gone silent: the underrun comes when a missing
+ * pulse is due (its tick, or the piece's start when even that is missing), not before;
+ * and a piece of 3070 pulses is refused (NO_ROOM). */
 static void test_streaming_pwm_pieces(void)
 {
-    static unsigned ticks[3 * 3070], widths[3 * 3070];
-    unsigned n[3] = {3070, 3070, 3070}, dur[3], i, len, off, t, k, stop_at;
+    static unsigned ticks[3 * 3069], widths[3 * 3069];
+    unsigned n[3] = {3069, 3069, 3069}, dur[3], i, len, off, t, k, stop_at;
     uint8_t arm = 1;
     frame_t f;
-    for (i = 0; i < 3; i++) dur[i] = 3070u * 2u * 2000u;
-    for (i = 0; i < 3 * 3070; i++) { ticks[i] = (i % 3070) * 2u; widths[i] = 500u + i % 7u; }
+    for (i = 0; i < 3; i++) dur[i] = 3069u * 2u * 2000u;
+    for (i = 0; i < 3 * 3069; i++) { ticks[i] = (i % 3069) * 2u; widths[i] = 500u + i % 7u; }
     len = make_program(prog, 1, 3, n, dur, ticks, widths);
     reset();
     CHECK_EQ(cmd(VC_PROG_BEGIN, (uint8_t[]){0, 0, (uint8_t)len, (uint8_t)(len >> 8),
@@ -470,24 +472,24 @@ static void test_streaming_pwm_pieces(void)
     off = top_up(0, len);
     CHECK_EQ(cmd(VC_ARM, &arm, 1).type, 0xA0);
     vc_trigger_edge(&C);
-    for (t = 0; t < 3u * 6140u + 10u && C.state != VC_IDLE; t++) {
-        off = top_up(off, len);
+    for (t = 0; t < 3u * 6138u + 10u && C.state != VC_IDLE; t++) {
+        if (t % 3u == 0) off = top_up(off, len);
         vc_tick(&C, 0);
         now += 2;
     }
     f = status();
     CHECK_EQ(f.p[0], VC_IDLE); CHECK_EQ(f.p[1], 0);
     CHECK_EQ(off, len);
-    CHECK_EQ(npulses, 3 * 3070);
-    for (k = 0; k < 3 * 3070; k += 1021) {
-        CHECK_EQ(pulses[k].tick, (k / 3070u) * 6140u + (k % 3070u) * 2u);
+    CHECK_EQ(npulses, 3 * 3069);
+    for (k = 0; k < 3 * 3069; k += 1021) {
+        CHECK_EQ(pulses[k].tick, (k / 3069u) * 6138u + (k % 3069u) * 2u);
         CHECK_EQ(pulses[k].width, widths[k]);
     }
     /* the PC stops sending within the second piece's header, or after its ticks and
      * 1 000 of its widths */
     for (stop_at = 0; stop_at < 2; stop_at++) {
-        unsigned upto = 16u + (8u + 4u * 3070u) + (stop_at ? 8u + 2u * 3070u + 2000u : 4u);
-        unsigned due = stop_at ? 6140u + 1000u * 2u : 6140u;
+        unsigned upto = 16u + (8u + 4u * 3069u) + (stop_at ? 8u + 2u * 3069u + 2000u : 4u);
+        unsigned due = stop_at ? 6138u + 1000u * 2u : 6138u;
         reset();
         CHECK_EQ(cmd(VC_PROG_BEGIN, (uint8_t[]){0, 0, (uint8_t)len, (uint8_t)(len >> 8),
                      (uint8_t)(len >> 16), 0}, 6).type, 0x90);
@@ -503,6 +505,12 @@ static void test_streaming_pwm_pieces(void)
         CHECK_EQ(f.p[0], VC_FAULT); CHECK_EQ(f.p[1], VC_FAULT_UNDERRUN);
         CHECK_EQ(t, due + 1u);     /* the fault at play tick `due`, not sooner */
     }
+    /* one pulse more: refused whole */
+    n[0] = 3070; dur[0] = 3070u * 2u * 2000u;
+    for (i = 0; i < 3070; i++) { ticks[i] = i * 2u; widths[i] = 500u; }
+    len = make_program(prog, 1, 1, n, dur, ticks, widths);
+    reset();
+    CHECK_EQ(upload(0, prog, len, len), 0xFF);
 }
 
 static void test_underrun_fault(void)

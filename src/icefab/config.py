@@ -579,7 +579,7 @@ class FlowSettings:
         why="a piece spans at least a few ticks")
     max_pulses: int = setting(
         16384,
-        "most pulses in one program piece (PWM pieces also at most 3 070: the valve "
+        "most pulses in one program piece (PWM pieces also at most 2 048: the valve "
         "controller must hold a PWM piece whole, icefab.flow.PWM_PIECE_PULSES)",
         lo=1, hi=16384,
         why="the valve controller's protocol takes at most 16 384 pulses a piece "

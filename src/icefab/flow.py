@@ -827,10 +827,16 @@ def pulse_instants(t: np.ndarray, nu: np.ndarray) -> np.ndarray:
     return t[idx - 1] + frac * (t[idx] - t[idx - 1])
 
 
-#: Most pulses of a PWM piece the valve controller can take: its widths follow all its
-#: ticks, so the piece must fit the 12 288-byte program store whole (4 n + 8 bytes,
-#: firmware/PROTOCOL.md); FM pieces stream through the store and keep flow.max_pulses.
-PWM_PIECE_PULSES = 3070
+#: Most pulses of a PWM piece icefab makes. A piece's widths follow all its ticks and
+#: leave the controller's 12 288-byte store only at its end; the next piece's header,
+#: ticks and first widths must be there by then (firmware/PROTOCOL.md 5: at most 3 069
+#: pulses, 4 n + 10 bytes). At that limit the next piece's third pulse needs bytes the PC
+#: can send only once the widths went (2 pulses, 4 ms at 500 Hz, where one PROG_DATA frame
+#: takes 21 ms at 115 200 baud); at 2 048 the store holds (12 288 - 4 n - 10) / 2 = 2 043
+#: of its pulses (4 s at 500 Hz). Pieces cost nothing else: their starts are exact (from
+#: the cumulative microseconds). FM pieces stream through the store and keep
+#: flow.max_pulses.
+PWM_PIECE_PULSES = 2048
 
 
 def piece_pulses(job: "Job") -> int:

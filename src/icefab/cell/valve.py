@@ -301,7 +301,7 @@ class ValveController:
                              vf.data_payload(up.valve, up.sent, up.data[up.sent:up.sent + n]),
                              allow=frozenset({vf.E_NO_ROOM}))
             if r.is_error:                # NO_ROOM although it fitted: a PWM piece
-                limit = (vf.STORE_BYTES - 8) // 4   # too large to play from the store
+                limit = (vf.STORE_BYTES - 10) // 4   # too large to stream from the store
                 pwm = up.data[6:7] == b"\x01"
                 bad = [(pos, n) for pos, n in (_piece_headers(up.data) or []) if n > limit
                        and pwm]
@@ -310,7 +310,8 @@ class ValveController:
                 raise ValveLinkError(
                     f"{self.name}: valve {up.valve} program refused: {where}; a PWM piece "
                     f"of more than {limit} pulses does not fit the controller's "
-                    f"{vf.STORE_BYTES}-byte store (its widths follow all its ticks); lower "
+                    f"{vf.STORE_BYTES}-byte store (its widths follow all its ticks and go at "
+                    "its end, and the next piece streams in beside them); lower "
                     "flow.max_pulses")
             up.sent += n
             free = struct.unpack_from("<I", r.payload, 5)[0]
