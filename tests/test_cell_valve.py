@@ -256,6 +256,23 @@ def test_pwm_program_uses_its_widths(ctl, firmware):
     assert [(p[2], p[3]) for p in firmware.pulses()] == [(0, 600), (4, 1500), (8, 7000)]
 
 
+def test_a_play_that_vanished_is_reported_at_once(ctl):
+    """A controller that restarts (a power dip: it comes up idle, its play count at 0) or
+    is aborted while a play is armed: the driver waited for the play's end until its
+    timeout (1.5 times the program plus 10 s), the robot moving meanwhile."""
+    prog = ValveProgram(ticks=np.arange(0, 5000, 10, dtype=np.uint16), tick_s=0.002,
+                        duration=10.0)
+    play = (ctl.status().plays + 1) & 0xFFFF
+    up = ctl.upload(0, prog)
+    ctl.arm(0)
+    ctl.abort()                      # the same state as after a restart: idle, not armed
+    t0 = time.monotonic()
+    with pytest.raises(ValveLinkError, match=f"play {play} is no longer armed or playing "
+                                             r"\(the controller is idle after 0 plays"):
+        ctl.wait_done(play, [up], timeout_s=60.0)
+    assert time.monotonic() - t0 < 5.0
+
+
 def test_abort_closes_every_valve_mid_play(valvectl, tmp_path):
     prog = ValveProgram(ticks=np.arange(0, 5000, 10, dtype=np.uint16), tick_s=0.002,
                         duration=10.0)

@@ -45,6 +45,6 @@ enum {
     VC_E_TRIGGER = 13
 };
 
-enum { VC_RESET_POWER = 0, VC_RESET_WATCHDOG = 1 };
+enum { VC_RESET_POWER = 0, VC_RESET_WATCHDOG = 1, VC_RESET_BROWNOUT = 2 };
 
 #endif

@@ -176,7 +176,11 @@ static void clocks(void)
 
 int main(void)
 {
-    uint8_t cause = (RSIR & (1u << 2)) ? VC_RESET_WATCHDOG : VC_RESET_POWER;
+    /* RSIR: POR bit 0, WDTR 2, BODR 3; a power-on sets BODR too, so a brown-out is BODR
+     * without POR (it read "power-on": a supply dip mid-build looked like a fresh start) */
+    uint32_t rsir = RSIR;
+    uint8_t cause = (rsir & (1u << 2)) ? VC_RESET_WATCHDOG
+        : ((rsir & (1u << 3)) && !(rsir & 1u)) ? VC_RESET_BROWNOUT : VC_RESET_POWER;
     uint32_t fed_ms;
     RSIR = 0x0F;
     clocks();

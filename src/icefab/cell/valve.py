@@ -399,6 +399,15 @@ class ValveController:
             if 0 < (st.plays - play) & 0xFFFF < 0x8000:
                 raise ValveLinkError(f"{self.name}: play {play} ended but its DONE report was "
                                      f"lost (play {st.plays} runs now)")
+            if st.plays != play and st.state not in (vf.PLAYING, vf.ARMED):
+                # neither armed nor playing any more: the controller restarted (power, a
+                # brown-out: it comes up idle, its count at 0) or someone aborted it. It
+                # was noticed only at the timeout, 1.5 times the path plus 10 s later,
+                # with the robot moving and nothing laid meanwhile (a review's)
+                raise ValveLinkError(
+                    f"{self.name}: play {play} is no longer armed or playing (the controller "
+                    f"is {st.state_name} after {st.plays} plays: it restarted, or it was "
+                    "aborted); every valve is off")
             if time.monotonic() > deadline:
                 self.abort()
                 raise ValveLinkError(f"{self.name}: play {play} did not end within "
