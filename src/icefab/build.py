@@ -298,10 +298,8 @@ def layer_finished(layer: int, ended: set, measured: set, measures: bool, cut: s
 
 def _ran_s(journal, lm: "LayerMotion") -> float:
     """Motion time, s, of the trajectories of layer ``lm`` the journal shows done."""
-    L = int(lm.index)
-    return float(sum(lm.trajectories[c["item"]].duration for c in journal.commands()
-                     if c["layer"] == L and c["done"] is not None
-                     and 0 <= c["item"] < len(lm.trajectories)))
+    return float(sum(lm.trajectories[i].duration for i in journal.done_items(int(lm.index))
+                     if 0 <= i < len(lm.trajectories)))
 
 
 def _items(lm: "LayerMotion") -> tuple[list[tuple[int, object]], list[tuple[int, object]]]:
@@ -368,9 +366,14 @@ class Runner:
         # and would say it again)
         self.findings: list[str] = [e["text"] for e in journal.events()
                                     if e["kind"] in FINDING_EVENTS]
-        n_paths = [len(_items(lm)[0]) + len(_items(lm)[1]) for lm in motion.layers]
+        summary = getattr(motion.layers, "summary", None)   # a file's: no layer decoded
+        if summary is not None:
+            durations, n_paths = summary()
+        else:
+            n_paths = [len(_items(lm)[0]) + len(_items(lm)[1]) for lm in motion.layers]
+            durations = [lm.duration for lm in motion.layers]
         self.progress = Progress(layers=len(motion.layers), paths=int(sum(n_paths)))
-        self._durations = [lm.duration for lm in motion.layers]
+        self._durations = [float(d) for d in durations]
         self._last_status = 0.0
         self._pool = None       # one thread that plans the next layer ahead (_prefetch)
         self._ahead = None      # (layer position, future of (plan, valves, action))
@@ -450,9 +453,7 @@ class Runner:
                                f"the journal's at {highest}: the journal's record stands "
                                "(--cell-lost-record)", layer=self.progress.layer)
         first_open = True   # the first command sent and not confirmed: it may have run
-        for c in self.journal.commands():
-            if c["done"] is not None:
-                continue
+        for c in self.journal.commands(open_only=True):
             if reset and c["sent"] is not None and c["seq"] > st.last_done:
                 if first_open:
                     first_open = False
@@ -585,7 +586,7 @@ class Runner:
         job = self.job
         state, action = self._restore()
         done_layers = set(self.journal.layers_done())
-        measured = {m["layer"]: m for m in self.journal.measurements()}
+        measured = {m["layer"]: m for m in self.journal.measurements(samples=False)}
         smf_layers = self.journal.measured_layers()
         dh = job.slicing.layer_thickness_mm
         p = self.progress
@@ -830,7 +831,7 @@ class Runner:
         """Whether a command of a later layer was numbered after layer ``layer``'s end
         (its own fault measurement, numbered on an earlier run, does not count)."""
         seq, _ = self.journal.command("layer_end", layer, -1, le_digest)
-        return any(c["seq"] > seq and c["layer"] != layer for c in self.journal.commands())
+        return self.journal.numbered_after(seq, layer)
 
     def _fault_measure_items(self, j: int) -> list:
         """The measurement trajectories nearest layer position ``j`` (the last measurement
@@ -986,7 +987,7 @@ def report_pictures(progress: Progress, journal: Journal, job: "Job") -> tuple[s
     svg = buf.getvalue()
     svg = svg[svg.index("<svg"):].replace("<svg", '<svg id="rms-plot" role="img"', 1)
     surface_img = ""
-    meas = journal.measurements()
+    meas = journal.measurements(last=True)
     if meas:
         from icefab import feedback
         from icefab.errors import GeometryError

@@ -1716,6 +1716,18 @@ class LayerSequence(collections.abc.Sequence):
         for pos in self._positions:
             yield self._source.layer_at(pos)
 
+    def summary(self) -> tuple[np.ndarray, np.ndarray]:
+        """(L,) motion time of each layer, s, and (L,) its trajectories with samples (the
+        build runner's paths), from the file's per-trajectory arrays without decoding a
+        layer: the runner walked every block for them at each start and resume (a hunt
+        measured 0.9 s for 11 000 trajectories, ~45 s for the bunny's 555 000)."""
+        src = self._source
+        pos = np.asarray(self._positions, dtype=np.int64)
+        lo, hi = src.layer_start[pos], src.layer_start[pos + 1]
+        time_cum = np.concatenate([[0.0], np.cumsum(src.durations, dtype=np.float64)])
+        paths_cum = np.concatenate([[0], np.cumsum(np.diff(src._ts) > 0)])
+        return time_cum[hi] - time_cum[lo], paths_cum[hi] - paths_cum[lo]
+
 
 def open_trajectories(path: str | os.PathLike) -> BuildMotion:
     """A trajectory file as a BuildMotion whose layers are read a block at a time as they
