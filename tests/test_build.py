@@ -63,6 +63,68 @@ def planned(tmp_path_factory):
     return _plan_mug(LAYERS, tmp_path_factory.mktemp("plan"))
 
 
+def test_journal_answers_a_bunny_sized_build_by_index_and_keeps_two_smf_states(tmp_path):
+    """A 1 200-layer build's journal (555 000 commands): what the runner asks per layer or
+    per reconnection scanned every command (a resume near the end waited 5 minutes before
+    its first path, deaf to --stop; a reconnection read 3 s and 360 MB), the report read
+    every measurement's samples for the last one, and every SMF state was kept (0.7 of a
+    1 GB journal; only the last is read). A hunt's measurements."""
+    j = Journal.create(tmp_path / "j.sqlite", {"digests": {}})
+    n = 460 * 1200
+    with j._tx() as db:
+        db.executemany("INSERT INTO commands (seq, kind, layer, item, digest, created, done) "
+                       "VALUES (?, 'path', ?, ?, 'd', 0, 1)",
+                       [(i + 1, i // 460, i % 460) for i in range(n)])
+        db.execute("UPDATE commands SET done = NULL WHERE seq > ?", (n - 3,))
+    for q, a, index in (
+            ("SELECT seq FROM commands WHERE done IS NULL ORDER BY seq", (), "commands_open"),
+            ("SELECT item FROM commands WHERE layer=? AND done IS NOT NULL", (5,),
+             "commands_by_layer"),
+            ("SELECT DISTINCT layer FROM commands WHERE cut", (), "commands_cut")):
+        plan = " ".join(r[3] for r in j._db.execute("EXPLAIN QUERY PLAN " + q, a))
+        assert f"USING INDEX {index}" in plan, (q, plan)   # its rows only, not every one
+    assert [c["seq"] for c in j.commands(open_only=True)] == [n - 2, n - 1, n]
+    assert j.done_items(1199)[-3:] == [454, 455, 456]
+    assert j.numbered_after(n - 1, 1199) is False and j.numbered_after(5, 0) is True
+    # the cut layers: read once, then kept by done()
+    assert j.cut_layers() == set()
+    j.done(n - 1, cut=True)
+    assert j.cut_layers() == {1199}
+    j.done(n - 1)                     # reported whole after all
+    assert j.cut_layers() == set()
+    # measurements without their samples, the last with them; two SMF states kept
+    for k in range(1, 6):
+        j.measurement(k, 4 * k, 0.25 * k, np.full((3, 3), float(k)), 0.1 * k,
+                      smf_state=bytes([k]) * 10)
+    assert [m["layer"] for m in j.measurements(samples=False)] == [4, 8, 12, 16, 20]
+    assert "samples" not in j.measurements(samples=False)[0]
+    (last,) = j.measurements(last=True)
+    assert last["k"] == 5 and last["samples"][0, 0] == 5.0
+    assert [r[0] for r in j._db.execute("SELECT k FROM smf ORDER BY k")] == [4, 5]
+    assert j.last_smf() == (5, 20, bytes([5]) * 10)
+    # a journal made before the indexes gets them when a resume opens it
+    for index in ("commands_by_layer", "commands_open", "commands_cut"):
+        j._db.execute(f"DROP INDEX {index}")
+    j.add_indexes()
+    assert {r[0] for r in j._db.execute("SELECT name FROM sqlite_master WHERE type='index'")
+            } >= {"commands_by_layer", "commands_open", "commands_cut"}
+    j.close()
+
+
+def test_the_runner_counts_a_files_layers_without_decoding_them(planned):
+    """A trajectory file's per-layer motion time and path count, from its per-trajectory
+    arrays: the runner decoded every layer for them at each start and resume."""
+    from icefab.motion import open_trajectories
+
+    motion = open_trajectories(planned)
+    want = [(lm.duration, len(bmod._items(lm)[0]) + len(bmod._items(lm)[1]))
+            for lm in motion.layers]
+    for layers, rows in ((motion.layers, want), (motion.layers[1:4], want[1:4])):
+        durations, paths = layers.summary()
+        np.testing.assert_allclose(durations, [d for d, _ in rows], rtol=1e-12)
+        assert list(paths) == [n for _, n in rows]
+
+
 def test_journal_is_wal_full_and_keeps_sequence_numbers(tmp_path):
     j = Journal.create(tmp_path / "j.sqlite", {"digests": {"job": "a"}})
     assert j._db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
@@ -1441,8 +1503,6 @@ def test_a_build_killed_with_its_pc_is_not_running_whatever_has_its_id_now(plann
     with _build_process(build, new=False):
         lock = _lock(build)
         assert _build_pid(build) == os.getpid() and _folder_locked(build) is True
-        lock.close()
-        assert _folder_locked(build) is False
         r, w = os.pipe()
         child = os.fork()
         if child == 0:    # a planning pool's worker, say: it runs on
@@ -1451,9 +1511,10 @@ def test_a_build_killed_with_its_pc_is_not_running_whatever_has_its_id_now(plann
             os._exit(0)
         try:
             assert os.read(r, 1) == b"x"
+            build_cmd._unlock(lock)
             os.close(build_cmd._MARKER_FD)
             build_cmd._MARKER_FD = None
-            assert _build_pid(build) is None
+            assert _build_pid(build) is None and _folder_locked(build) is False
         finally:
             os.kill(child, signal.SIGKILL)
             os.waitpid(child, 0)
@@ -1468,9 +1529,21 @@ def test_a_build_killed_with_its_pc_is_not_running_whatever_has_its_id_now(plann
         raise PermissionError(1, "Operation not permitted")
 
     os.link = no_links
+    second = ("import os, sys\nfrom pathlib import Path\nfrom icefab.cli import build_cmd as bc\n"
+              "def no(*a, **k):\n    raise PermissionError(1, 'Operation not permitted')\n"
+              "os.link = no\ntry:\n    with bc._build_process(Path(sys.argv[1]), new=False):\n"
+              "        print('claimed')\nexcept Exception as exc:\n    print(exc)\n")
     try:
         with _build_process(build, new=False):
             assert _build_pid(build) == os.getpid() and _build_pid(build) == os.getpid()
+            # a second build of the folder is refused and leaves the marker as it was (it
+            # wrote its own id, took the lock's refusal for a file system without locks,
+            # and removed the marker as it left: a hunt's)
+            r = subprocess.run([sys.executable, "-c", second, str(build)],
+                               capture_output=True, text=True)
+            assert f"a build is running for this folder already (process {os.getpid()}" \
+                in r.stdout, r.stdout + r.stderr
+            assert _build_pid(build) == os.getpid()
     finally:
         os.link = real_link
     assert not _process_marker(build).exists()

@@ -344,3 +344,20 @@ def test_progress_on_a_full_stderr_lets_the_job_go_on():
     for k in range(1, 6):
         progress(k, 5)   # raises nothing
     assert Full.tries == 2   # the first line, then only the final one is tried again
+
+
+@pytest.mark.parametrize("exc, code, said", [("Terminated", 143, "icefab: terminated"),
+                                             ("KeyboardInterrupt", 130, "icefab: interrupted")])
+def test_a_signal_while_the_options_are_read_is_one_line(monkeypatch, capsys, exc, code, said):
+    """SIGTERM in a command's first second (its options read, its modules imported) ended
+    in a Terminated traceback and exit 1 (a hunt's); Ctrl-C there likewise."""
+    import icefab.cli as cli
+    from icefab.cli.common import Terminated
+
+    def stopped():
+        raise Terminated() if exc == "Terminated" else KeyboardInterrupt()
+
+    monkeypatch.setattr(cli, "build_parser", stopped)
+    assert cli.main(["demo"]) == code
+    err = capsys.readouterr().err
+    assert err.strip() == said

@@ -144,13 +144,25 @@ def _quiet_broken_pool(hook):
     return quiet
 
 
+def _stopped(who: str, exc: KeyboardInterrupt) -> int:
+    """Say that Ctrl-C or SIGTERM ended the command; its exit status (130, 143)."""
+    term = isinstance(exc, Terminated)
+    print(f"{who}: {'terminated' if term else 'interrupted'}", file=sys.stderr)
+    return 143 if term else 130
+
+
 def _main(argv: list[str] | None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
-                        format="%(levelname)s: %(message)s")
-    # -v is icefab's: matplotlib's font search alone printed 292 debug lines (hunt P)
-    logging.getLogger("matplotlib").setLevel(logging.WARNING)
+    try:
+        # SIGTERM while the options were read and the command's modules imported (the
+        # first second) ended in a Terminated traceback and exit 1 (a hunt's)
+        parser = build_parser()
+        args = parser.parse_args(argv)
+        logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
+                            format="%(levelname)s: %(message)s")
+        # -v is icefab's: matplotlib's font search alone printed 292 debug lines (hunt P)
+        logging.getLogger("matplotlib").setLevel(logging.WARNING)
+    except KeyboardInterrupt as exc:
+        return _stopped("icefab", exc)
     try:
         if getattr(args, "out", None) is not None:  # before any work, not after a long job
             check_output_dir(args.out)
@@ -173,10 +185,7 @@ def _main(argv: list[str] | None) -> int:
         print(f"icefab {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:
-        print(f"icefab {args.command}: "
-              f"{'terminated' if isinstance(exc, Terminated) else 'interrupted'}",
-              file=sys.stderr)
-        return 143 if isinstance(exc, Terminated) else 130
+        return _stopped(f"icefab {args.command}", exc)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -325,13 +325,8 @@ def _claim_marker(build: Path) -> None:
                                       ) from None
             except OSError:   # a file system without hard links: written in place
                 os.close(fd)
-                fd = os.open(marker, os.O_RDWR | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC,
-                             0o644)
-                os.write(fd, f"{os.getpid()}\n".encode("ascii"))
-                try:
-                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                except OSError:
-                    pass
+                fd = -1
+                fd = _claim_in_place(build, marker)
                 break
         else:
             raise ConfigError(f"{build}: {marker} keeps coming back; another build of this "
@@ -343,33 +338,61 @@ def _claim_marker(build: Path) -> None:
         tmp.unlink(missing_ok=True)
 
 
+def _claim_in_place(build: Path, marker: Path) -> int:
+    """The marker opened and locked in place (no hard links): locked first, then its id
+    written. Locked by another process: ConfigError (it was truncated and written first,
+    and a second build took a running one's marker and removed it as it left: a hunt's).
+    Returns the open file."""
+    fd = os.open(marker, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            pid = os.read(fd, 64).decode("ascii", "replace").strip()
+            raise ConfigError(f"{build}: a build is running for this folder already (process "
+                              f"{pid}; 'icefab build --status {build}')") from None
+        except OSError:   # no locks either: the id alone tells (_alive)
+            pass
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode("ascii"))
+        return fd
+    except BaseException:
+        os.close(fd)
+        raise
+
+
 #: The open, locked marker of this process' build (:func:`_claim_marker`), or None.
 _MARKER_FD: int | None = None
+#: The open, locked ``BUILD/build.lock`` of this process' runner (:func:`_lock`), or None.
+_LOCK_FD: int | None = None
 
 
-def _forget_marker_in_child() -> None:
-    """A forked child (a planning pool's worker) closes its copy of the marker: the lock
-    is the open file's, and a worker left behind by a killed build would keep it, and
-    the build "running". Closing a copy does not unlock the parent's."""
-    global _MARKER_FD
-    if _MARKER_FD is not None:
-        try:
-            os.close(_MARKER_FD)
-        except OSError:
-            pass
-        _MARKER_FD = None
+def _forget_locks_in_child() -> None:
+    """A forked child (a planning pool's worker) closes its copies of the marker and the
+    folder's lock: a lock is the open file's, and a worker left behind by a killed build
+    would keep both, the build "running" and a resume refused. Closing a copy does not
+    unlock the parent's."""
+    global _MARKER_FD, _LOCK_FD
+    for fd in (_MARKER_FD, _LOCK_FD):
+        if fd is not None:
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+    _MARKER_FD = _LOCK_FD = None
 
 
-os.register_at_fork(after_in_child=_forget_marker_in_child)
+os.register_at_fork(after_in_child=_forget_locks_in_child)
 
 
 def _release_marker(build: Path) -> None:
-    """Remove the marker of ``build`` if it holds this process' id, then let go of its
-    lock."""
+    """Remove the marker of ``build`` if this process claimed it (it holds it open and its
+    id is in it), then let go of its lock."""
     global _MARKER_FD
     marker = _process_marker(build)
     try:
-        if int(marker.read_text(encoding="utf-8").strip()) == os.getpid():
+        if _MARKER_FD is not None \
+                and int(marker.read_text(encoding="utf-8").strip()) == os.getpid():
             marker.unlink(missing_ok=True)
     except (OSError, ValueError):
         pass
@@ -456,11 +479,13 @@ def _lock(build: Path):
     kernel drops the lock with the process, however it ends, so --status tells a running
     build from a killed one by it (:func:`_folder_locked`). A --status looking (it holds
     the lock shared for an instant) is waited out for a second."""
+    global _LOCK_FD
     f = open(build / "build.lock", "a+")
     deadline = time.monotonic() + 1.0
     while True:
         try:
             fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            _LOCK_FD = f.fileno()    # closed in forked children (_forget_locks_in_child)
             return f
         except BlockingIOError:
             if time.monotonic() < deadline:
@@ -471,6 +496,15 @@ def _lock(build: Path):
         f.close()
         raise ConfigError(f"{build}: a build is running in this folder already "
                           f"('icefab build --status {build}')") from None
+
+
+def _unlock(f) -> None:
+    """Close the folder's lock of :func:`_lock` (its descriptor's number is free again:
+    no forked child closes it any more)."""
+    global _LOCK_FD
+    if _LOCK_FD == f.fileno():
+        _LOCK_FD = None
+    f.close()
 
 
 def _folder_locked(build: Path) -> bool | None:
@@ -544,6 +578,7 @@ def _run(build: Path, args: argparse.Namespace, ctl: dict, *, resume: bool) -> i
         if args.cell:
             meta["cell"] = str(Path(args.cell).resolve())
         lock = _lock(build)
+        journal.add_indexes()     # a journal of an earlier icefab (the lock is ours)
         # a request left by the stop that ended the last run; this process' marker was
         # written first, so a --stop from now on signals it (ctl) and is not lost
         (build / bmod.STOP_REQUEST).unlink(missing_ok=True)
@@ -566,7 +601,7 @@ def _run(build: Path, args: argparse.Namespace, ctl: dict, *, resume: bool) -> i
                 # another build started here while this one planned (a hunt's second
                 # build deleted the first one's cell and wrote over its job and
                 # trajectories, then failed at the journal)
-                lock.close()
+                _unlock(lock)
                 raise ConfigError(f"{build}: another build started in this folder while "
                                   f"this one was planning: resume it with 'icefab build "
                                   f"--resume {build}' or choose another -o")
@@ -614,7 +649,7 @@ def _run(build: Path, args: argparse.Namespace, ctl: dict, *, resume: bool) -> i
                 shutil.rmtree(build / bmod.CELL_DIR, ignore_errors=True)
             (build / "job.toml").unlink(missing_ok=True)
             (build / bmod.TRAJECTORIES).unlink(missing_ok=True)
-            lock.close()
+            _unlock(lock)
             (build / "build.lock").unlink(missing_ok=True)
             if created:
                 try:
@@ -684,7 +719,7 @@ def _run(build: Path, args: argparse.Namespace, ctl: dict, *, resume: bool) -> i
         for s, h in old.items():
             signal.signal(s, h)
         journal.close()
-        lock.close()
+        _unlock(lock)
     if tty:
         sys.stderr.write("\n")
     if meta.get("cell") == "virtual":
