@@ -448,6 +448,21 @@ static unsigned top_up(unsigned off, unsigned len)
     return off;
 }
 
+/* After a reset: valve 0's program of len bytes begun, sent up to upto (as far as the
+ * store takes it), armed and triggered; returns the bytes sent. */
+static unsigned start_streaming(unsigned len, unsigned upto)
+{
+    uint8_t arm = 1;
+    unsigned off;
+    reset();
+    CHECK_EQ(cmd(VC_PROG_BEGIN, (uint8_t[]){0, 0, (uint8_t)len, (uint8_t)(len >> 8),
+                 (uint8_t)(len >> 16), 0}, 6).type, 0x90);
+    off = top_up(0, upto);
+    CHECK_EQ(cmd(VC_ARM, &arm, 1).type, 0xA0);
+    vc_trigger_edge(&C);
+    return off;
+}
+
 /* Three PWM pieces of 3069 pulses (the most a PWM piece may hold: 4 n + 10 <= 12 288), a
  * pulse every 2 ticks and none missing between pieces, streamed by a PC that tops the
  * store up every third tick (a driver polling every 5 ms). The reader wanted a piece
@@ -461,17 +476,11 @@ static void test_streaming_pwm_pieces(void)
 {
     static unsigned ticks[3 * 3069], widths[3 * 3069];
     unsigned n[3] = {3069, 3069, 3069}, dur[3], i, len, off, t, k, stop_at;
-    uint8_t arm = 1;
     frame_t f;
     for (i = 0; i < 3; i++) dur[i] = 3069u * 2u * 2000u;
     for (i = 0; i < 3 * 3069; i++) { ticks[i] = (i % 3069) * 2u; widths[i] = 500u + i % 7u; }
     len = make_program(prog, 1, 3, n, dur, ticks, widths);
-    reset();
-    CHECK_EQ(cmd(VC_PROG_BEGIN, (uint8_t[]){0, 0, (uint8_t)len, (uint8_t)(len >> 8),
-                 (uint8_t)(len >> 16), 0}, 6).type, 0x90);
-    off = top_up(0, len);
-    CHECK_EQ(cmd(VC_ARM, &arm, 1).type, 0xA0);
-    vc_trigger_edge(&C);
+    off = start_streaming(len, len);
     for (t = 0; t < 3u * 6138u + 10u && C.state != VC_IDLE; t++) {
         if (t % 3u == 0) off = top_up(off, len);
         vc_tick(&C, 0);
@@ -490,12 +499,7 @@ static void test_streaming_pwm_pieces(void)
     for (stop_at = 0; stop_at < 2; stop_at++) {
         unsigned upto = 16u + (8u + 4u * 3069u) + (stop_at ? 8u + 2u * 3069u + 2000u : 4u);
         unsigned due = stop_at ? 6138u + 1000u * 2u : 6138u;
-        reset();
-        CHECK_EQ(cmd(VC_PROG_BEGIN, (uint8_t[]){0, 0, (uint8_t)len, (uint8_t)(len >> 8),
-                     (uint8_t)(len >> 16), 0}, 6).type, 0x90);
-        off = top_up(0, upto);
-        CHECK_EQ(cmd(VC_ARM, &arm, 1).type, 0xA0);
-        vc_trigger_edge(&C);
+        off = start_streaming(len, upto);
         for (t = 0; t < 20000u && (t == 0 || C.state == VC_PLAYING); t++) {
             off = top_up(off, upto);
             vc_tick(&C, 0);
