@@ -1498,6 +1498,19 @@ def test_a_build_killed_with_its_pc_is_not_running_whatever_has_its_id_now(plann
     finally:
         other.kill()
         other.wait()
+    # a build whose process lives (its lock held) but wrote no status when it was due
+    lock = _lock(build)
+    try:
+        st = json.loads((build / bmod.STATUS).read_text())
+        (build / bmod.STATUS).write_text(json.dumps(dict(
+            st, state="running", pid=os.getpid(), time=time.time() - 600,
+            update_by=time.time() - 60)))
+        out = io.StringIO()
+        with contextlib.redirect_stdout(out):
+            assert _status(build, as_json=False) == 0
+        assert "running;" in out.getvalue() and "runs but does not report" in out.getvalue()
+    finally:
+        build_cmd._unlock(lock)
     # while a build runs: both held; when it ends (the kernel closes its files), a worker
     # it forked holds neither
     with _build_process(build, new=False):

@@ -836,6 +836,12 @@ def _status(build: Path, as_json: bool) -> int:
           f"{bmod.format_eta(st['eta_s'])}, last RMS {rms}")
     if st.get("waiting") and alive:
         print(f"  waiting for the cell: {st['waiting']}")
+    if alive and st.get("update_by") is not None and time.time() > st["update_by"]:
+        # the process holds its lock but wrote no status when it was due: it hangs (a
+        # cell that answers nothing within its timeouts is reported as a link fault)
+        print(f"  no status since {time.strftime('%H:%M:%S', time.localtime(st['time']))}"
+              f", due by {time.strftime('%H:%M:%S', time.localtime(st['update_by']))}: "
+              f"the build process (pid {st['pid']}) runs but does not report; it may hang")
     for line in st.get("events", [])[-5:]:
         print(f"  {line}")
     return 0
