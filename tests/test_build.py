@@ -1851,7 +1851,8 @@ def test_the_report_follows_the_status_and_a_measurement_is_not_silent(planned, 
     assert "next update by" not in page
     assert json.loads((build / bmod.STATUS).read_text())["update_by"] is None
     assert len({round(g, 6) for g, _ in gaps}) > 1     # the layers' longest paths differ
-    assert all(g == pytest.approx(want) for g, want in gaps), [x for x in gaps if x[0] != pytest.approx(x[1])]
+    assert all(g == pytest.approx(want) for g, want in gaps), \
+        [x for x in gaps if x[0] != pytest.approx(x[1])]
     svg = page[page.index('<svg id="rms-plot"'):page.index("</svg>")]
     height = float(re_.search(r'height="([\d.]+)pt"', svg).group(1))
     # the x axis' label, baseline and descenders, inside the picture (246.5 of 244.8)
