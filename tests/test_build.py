@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import fcntl
 import io
 import json
 import os
@@ -78,8 +79,8 @@ def test_journal_answers_a_bunny_sized_build_by_index_and_keeps_two_smf_states(t
         db.execute("UPDATE commands SET done = NULL WHERE seq > ?", (n - 3,))
     for q, a, index in (
             ("SELECT seq FROM commands WHERE done IS NULL ORDER BY seq", (), "commands_open"),
-            ("SELECT item FROM commands WHERE layer=? AND done IS NOT NULL", (5,),
-             "commands_by_layer"),
+            ("SELECT item FROM commands WHERE layer=? AND kind='path' AND done IS NOT NULL",
+             (5,), "sqlite_autoindex_commands_1"),   # UNIQUE (kind, layer, item)
             ("SELECT DISTINCT layer FROM commands WHERE cut", (), "commands_cut")):
         plan = " ".join(r[3] for r in j._db.execute("EXPLAIN QUERY PLAN " + q, a))
         assert f"USING INDEX {index}" in plan, (q, plan)   # its rows only, not every one
@@ -103,11 +104,11 @@ def test_journal_answers_a_bunny_sized_build_by_index_and_keeps_two_smf_states(t
     assert [r[0] for r in j._db.execute("SELECT k FROM smf ORDER BY k")] == [4, 5]
     assert j.last_smf() == (5, 20, bytes([5]) * 10)
     # a journal made before the indexes gets them when a resume opens it
-    for index in ("commands_by_layer", "commands_open", "commands_cut"):
+    for index in ("commands_open", "commands_cut"):
         j._db.execute(f"DROP INDEX {index}")
     j.add_indexes()
     assert {r[0] for r in j._db.execute("SELECT name FROM sqlite_master WHERE type='index'")
-            } >= {"commands_by_layer", "commands_open", "commands_cut"}
+            } >= {"commands_open", "commands_cut"}
     j.close()
 
 
@@ -1498,6 +1499,15 @@ def test_a_build_killed_with_its_pc_is_not_running_whatever_has_its_id_now(plann
     finally:
         other.kill()
         other.wait()
+    # a marker being claimed in place (locked, its id not written yet) is no stale one:
+    # a look then removed a live build's marker (a hunt's)
+    claim = os.open(_process_marker(build), os.O_RDWR | os.O_CREAT)
+    try:
+        fcntl.flock(claim, fcntl.LOCK_EX)
+        assert _build_pid(build) is None and _process_marker(build).exists()
+    finally:
+        os.close(claim)
+    assert _build_pid(build) is None and not _process_marker(build).exists()
     # a build whose process lives (its lock held) but wrote no status when it was due
     lock = _lock(build)
     try:
@@ -1581,6 +1591,14 @@ def test_a_resumed_build_names_the_layer_it_goes_on_with_before_its_first_path(p
         "measured_layers": [int(lm.index) for lm in motion.layers if bmod.measures(lm)]})
     with pytest.raises(Crash):
         bmod.Runner(build, motion, job, journal, lambda: cell).run()
+    first = motion.layers[2].trajectories[bmod._items(motion.layers[2])[0][0][0]]
+    left = sum(lm.duration for lm in motion.layers[2:]) - first.duration
+    # stopped before the resume's first path: the layer's loop set the whole layer's ETA
+    # again (a hunt's: 0:03:04 before the resume, 0:03:22 after the stop)
+    with pytest.raises(bmod.BuildStopped):
+        bmod.Runner(build, motion, job, journal, lambda: cell.cell,
+                    should_stop=lambda: True).run()
+    assert json.loads((build / bmod.STATUS).read_text())["eta_s"] == pytest.approx(left)
     seen = []
 
     class Watching:
@@ -1598,9 +1616,7 @@ def test_a_resumed_build_names_the_layer_it_goes_on_with_before_its_first_path(p
     assert (st["layer"], st["layers_done"], st["layers"]) == (2, 2, LAYERS)
     # less layer 2's first path, which ran before the crash (the ETA counted the whole
     # layer, hunt X)
-    first = motion.layers[2].trajectories[bmod._items(motion.layers[2])[0][0][0]]
-    assert st["eta_s"] == pytest.approx(sum(lm.duration for lm in motion.layers[2:])
-                                        - first.duration)
+    assert st["eta_s"] == pytest.approx(left)
     # a status of a killed build that names the layer it had just finished
     stale = dict(st, state="running", pid=2 ** 22 + 1, layer=1, layers_done=1)
 

@@ -525,17 +525,18 @@ class Runner:
             return result
 
     def _send(self, kind: str, layer: int, item: int, digest: str,
-              fn: Callable[..., bool], upcoming: tuple | None = None) -> None:
+              fn: Callable[..., bool], upcoming: tuple | None = None) -> bool:
         """Journal, send and complete one command. ``upcoming``: (kind, layer, item,
         digest, CellPath) of the path after this one, which the cell may upload while this
         one runs (journaled as sent first); ``fn(cell, seq)``, or ``fn(cell, seq, (seq,
-        CellPath) or None)`` when ``upcoming`` is given."""
+        CellPath) or None)`` when ``upcoming`` is given. False when the journal had it
+        done before this call (a resumed layer's first paths: their time is not left)."""
         seq, _ = self.journal.command(kind, layer, item, digest)
         if self.journal.is_done(seq):
-            return
+            return False
         self._call(lambda cell: None)  # connected and reconciled before sending
         if self.journal.is_done(seq):  # the reconciliation found it done or cut
-            return
+            return False
         self.journal.sent(seq)
         if upcoming is not None:
             up_seq, _ = self.journal.command(*upcoming[:4])
@@ -552,12 +553,13 @@ class Runner:
         executed = self._call(lambda cell: None if self.journal.is_done(seq)
                               else fn(cell, seq))
         if self.journal.is_done(seq):  # a fault during the call, reconciled
-            return
+            return True
         self.journal.acked(seq)
         self.journal.done(seq)
         if executed is False:
             log.info("%s %d/%d (seq %d): the cell had done it already", kind, layer, item,
                      seq)
+        return True
 
     # ------------------------------------------------------------------ the build
 
@@ -609,10 +611,12 @@ class Runner:
             p.layer_pos = j0
             p.remaining_s = float(sum(self._durations[j0:]))
         self._call(lambda cell: None)
+        ran0 = 0.0
         if j0 < len(self.motion.layers):
             # less what a partly built layer ran before, as the journal says once the
             # cell's record is in (it said "paths 30/164, ETA" of the whole layer: a hunt's)
-            p.remaining_s -= _ran_s(self.journal, self.motion.layers[j0])
+            ran0 = _ran_s(self.journal, self.motion.layers[j0])
+            p.remaining_s -= ran0
         # running from here on for 'icefab build --stop': without it a stop asked during
         # the first path found no status, told the cell directly, and the build ran on
         self._report(force=True)
@@ -621,7 +625,9 @@ class Runner:
             meas_items = _items(lm)[1]
             self._name_layer(j)
             p.layer_pos = j
-            p.remaining_s = float(sum(self._durations[j:]))
+            # the partly built layer less what it ran (a stop before its first path said
+            # the whole layer's ETA again: a hunt's)
+            p.remaining_s = float(sum(self._durations[j:])) - (ran0 if j == j0 else 0.0)
             cut_here = L in self.journal.cut_layers()
             if finished(j):
                 continue
@@ -653,10 +659,12 @@ class Runner:
                     if upcoming is not None:
                         # numbered in the order the cell runs them: this layer's end first
                         self.journal.command("layer_end", L, -1, le_digest)
-                self._send("path", L, i, dg, lambda c, s, u=None, cp=cp: c.run_path(s, cp, u),
-                           upcoming=upcoming)
+                ran = self._send("path", L, i, dg,
+                                 lambda c, s, u=None, cp=cp: c.run_path(s, cp, u),
+                                 upcoming=upcoming)
                 p.paths_done = self.journal.paths_done()
-                p.remaining_s -= float(tr.duration)
+                if ran:   # one done before this run is not in the time left (ran0)
+                    p.remaining_s -= float(tr.duration)
                 if k == 0:   # after the counts: its report names the path done
                     self._layer_started(j, action, ahead)
                 self._report()
@@ -671,6 +679,8 @@ class Runner:
                 # the missing material now, not n_d layers later
                 meas_items = self._fault_measure_items(j)
                 kind = "fault_measure"
+                # another layer's scans: the next status may come after the longest of them
+                p.longest_s = max([p.longest_s, *(float(tr.duration) for _, tr in meas_items)])
                 if meas_items and self._numbered_beyond(L, le_digest):
                     # the fault cut the layer's last path while the next layer's first
                     # path had been sent ahead: numbered before any measurement now, it
@@ -692,7 +702,8 @@ class Runner:
                     cp = CellPath(layer=L, item=i, role="measure", tool="laser",
                                   xy=np.asarray(tr.xy, np.float64), dt_s=float(tr.dt),
                                   z_mm=z_mm, width_mm=0.0)
-                    self._send(kind, L, i, cp.digest(), lambda c, s, cp=cp: c.run_path(s, cp))
+                    ran = self._send(kind, L, i, cp.digest(),
+                                     lambda c, s, cp=cp: c.run_path(s, cp))
                     seq, _ = self.journal.command(kind, L, i, cp.digest())
                     raw = self.journal.laser_of(seq)
                     if raw is None and self.journal.is_cut(seq):   # a fault stopped it
@@ -706,7 +717,9 @@ class Runner:
                                            "gave no laser samples", layer=L)
                     raws.append(laser_to_part(np.asarray(raw), tr, job))
                     p.paths_done = self.journal.paths_done()
-                    if kind == "path":   # a fault's measurement was never in the plan's time
+                    # a fault's measurement was never in the plan's time, one done before
+                    # this run is not in the time left
+                    if kind == "path" and ran:
                         p.remaining_s -= float(tr.duration)
                     # a minutes-long measurement left the status and the console silent,
                     # as a hung build would (a hunt's)

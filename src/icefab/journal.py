@@ -68,7 +68,6 @@ CREATE TABLE IF NOT EXISTS measurements (
     samples BLOB NOT NULL, rms_measured REAL, time REAL NOT NULL);
 CREATE TABLE IF NOT EXISTS smf (
     k INTEGER PRIMARY KEY, layer INTEGER NOT NULL, state BLOB NOT NULL, time REAL NOT NULL);
-CREATE INDEX IF NOT EXISTS commands_by_layer ON commands (layer);
 CREATE INDEX IF NOT EXISTS commands_open ON commands (seq) WHERE done IS NULL;
 CREATE INDEX IF NOT EXISTS commands_cut ON commands (layer) WHERE cut;
 CREATE TABLE IF NOT EXISTS events (
@@ -364,9 +363,11 @@ class Journal:
         return [dict(zip(names, r)) for r in cur]
 
     def done_items(self, layer: int) -> list[int]:
-        """The items of layer ``layer``'s commands that are done (layer ends: -1)."""
+        """The trajectories of layer ``layer`` whose paths are done (deposition, travel
+        and measurement; not a fault's measurement, whose items are another layer's)."""
         return [int(r[0]) for r in self._db.execute(
-            "SELECT item FROM commands WHERE layer=? AND done IS NOT NULL", (layer,))]
+            "SELECT item FROM commands WHERE layer=? AND kind='path' AND done IS NOT NULL",
+            (layer,))]
 
     def numbered_after(self, seq: int, layer: int) -> bool:
         """Whether a command of another layer than ``layer`` has a number above ``seq``."""

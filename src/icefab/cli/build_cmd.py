@@ -417,6 +417,8 @@ def _build_pid(build: Path) -> int | None:
             pid = None
         if pid is not None and _alive(fd, pid):
             return pid
+        if pid is None and _held(fd):   # being claimed in place: locked, its id not yet in
+            return None                  # (a look then removed a live build's marker)
         try:    # stale; the same file still (a new build may have just taken its place)
             if os.stat(marker).st_ino == os.fstat(fd).st_ino:
                 marker.unlink(missing_ok=True)
@@ -427,17 +429,24 @@ def _build_pid(build: Path) -> int | None:
         os.close(fd)
 
 
-def _alive(fd: int, pid: int) -> bool:
-    """Whether the marker open as ``fd`` (holding ``pid``) is held by its build: locked.
-    A file system without locks: whether ``pid`` runs as an icefab build."""
+def _held(fd: int) -> bool | None:
+    """Whether another open file holds a lock on the file open as ``fd``; None where the
+    file system has no locks."""
     try:
         fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
     except BlockingIOError:
         return True
     except OSError:
-        return _build_running(pid)
+        return None
     fcntl.flock(fd, fcntl.LOCK_UN)
     return False
+
+
+def _alive(fd: int, pid: int) -> bool:
+    """Whether the marker open as ``fd`` (holding ``pid``) is held by its build: locked.
+    A file system without locks: whether ``pid`` runs as an icefab build."""
+    held = _held(fd)
+    return _build_running(pid) if held is None else held
 
 
 def _build_running(pid: int) -> bool:
@@ -516,14 +525,7 @@ def _folder_locked(build: Path) -> bool | None:
     except OSError:
         return False
     try:
-        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-    except BlockingIOError:
-        return True
-    except OSError:
-        return None
-    else:
-        fcntl.flock(fd, fcntl.LOCK_UN)
-        return False
+        return _held(fd)
     finally:
         os.close(fd)
 
