@@ -115,7 +115,7 @@ def test_flow_makes_pwm_pieces_the_controller_streams_with_room_to_spare():
     seconds for the PC's next bytes."""
     from icefab.flow import PWM_PIECE_PULSES
 
-    assert (vf.STORE_BYTES - 10) // 4 == 3069
+    assert vf.PWM_PIECE_MAX == 3069
     assert (vf.STORE_BYTES - 4 * PWM_PIECE_PULSES - 10) // 2 >= 2000
 
 

@@ -301,7 +301,7 @@ class ValveController:
                              vf.data_payload(up.valve, up.sent, up.data[up.sent:up.sent + n]),
                              allow=frozenset({vf.E_NO_ROOM}))
             if r.is_error:                # NO_ROOM although it fitted: a PWM piece
-                limit = (vf.STORE_BYTES - 10) // 4   # too large to stream from the store
+                limit = vf.PWM_PIECE_MAX   # too large to stream from the store
                 pwm = up.data[6:7] == b"\x01"
                 bad = [(pos, n) for pos, n in (_piece_headers(up.data) or []) if n > limit
                        and pwm]

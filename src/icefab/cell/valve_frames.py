@@ -25,6 +25,9 @@ BYTE_TIMEOUT_S = 0.050
 TICK_US = 2000
 N_VALVES = 2
 STORE_BYTES = 12288
+#: Most pulses of a PWM piece the controller takes: 4 n + 10 bytes of the store, so the
+#: next piece's first pulse fits beside the last piece's widths (PROTOCOL.md 5).
+PWM_PIECE_MAX = (STORE_BYTES - 10) // 4
 QUEUE = 4
 MAX_DATA = MAX_PAYLOAD - 5  # program bytes per PROG_DATA frame
 PROTOCOL_VERSION = 1

@@ -320,9 +320,7 @@ def _claim_marker(build: Path) -> None:
             except FileExistsError:
                 pid = _build_pid(build)   # removes a stale one
                 if pid is not None:
-                    raise ConfigError(f"{build}: a build is running for this folder already "
-                                      f"(process {pid}; 'icefab build --status {build}')"
-                                      ) from None
+                    raise _running_already(build, pid) from None
             except OSError:   # a file system without hard links: written in place
                 os.close(fd)
                 fd = -1
@@ -348,9 +346,8 @@ def _claim_in_place(build: Path, marker: Path) -> int:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            pid = os.read(fd, 64).decode("ascii", "replace").strip()
-            raise ConfigError(f"{build}: a build is running for this folder already (process "
-                              f"{pid}; 'icefab build --status {build}')") from None
+            raise _running_already(build, os.read(fd, 64).decode("ascii", "replace").strip()
+                                   ) from None
         except OSError:   # no locks either: the id alone tells (_alive)
             pass
         os.ftruncate(fd, 0)
@@ -359,6 +356,13 @@ def _claim_in_place(build: Path, marker: Path) -> int:
     except BaseException:
         os.close(fd)
         raise
+
+
+def _running_already(build: Path, pid: int | str | None = None) -> ConfigError:
+    """The refusal of a second build or resume of ``build`` (``pid``: the running one's)."""
+    process = f"process {pid}; " if pid is not None else ""
+    return ConfigError(f"{build}: a build is running for this folder already ({process}"
+                       f"'icefab build --status {build}')")
 
 
 #: The open, locked marker of this process' build (:func:`_claim_marker`), or None.
@@ -503,8 +507,7 @@ def _lock(build: Path):
         except OSError:   # a file system without locks: the marker and the journal guard
             return f
         f.close()
-        raise ConfigError(f"{build}: a build is running in this folder already "
-                          f"('icefab build --status {build}')") from None
+        raise _running_already(build) from None
 
 
 def _unlock(f) -> None:
