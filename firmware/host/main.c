@@ -149,7 +149,12 @@ int main(int argc, char **argv)
             return usage();
         }
     }
-    if (log_file && !(plog = fopen(log_file, "w"))) { perror(log_file); return 1; }
+    if (log_file) {
+        /* appended to: a reader may truncate the log between plays, and the next line
+           goes to its new end (the virtual cell's log grew 1.5 GB over a 300 mm part) */
+        int fd = open(log_file, O_WRONLY | O_CREAT | O_TRUNC | O_APPEND, 0666);
+        if (fd < 0 || !(plog = fdopen(fd, "a"))) { perror(log_file); return 1; }
+    }
 
     master = posix_openpt(O_RDWR | O_NOCTTY);
     if (master < 0 || grantpt(master) || unlockpt(master) || !(slave_name = ptsname(master))) {

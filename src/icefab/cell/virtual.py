@@ -98,6 +98,13 @@ class FirmwareValves(ValveHookup):
         import signal
 
         self._lines()   # what came before this trigger (an aborted play's tail) is not ours
+        # ... so the log starts again here: it grew with the build (2-3 KB a path, 1.5 GB
+        # over a 300 mm part). The firmware appends (O_APPEND): its next line lands at 0.
+        try:
+            os.truncate(self.log_path, 0)
+        except FileNotFoundError:
+            pass   # removed with the state folder: play_pulses says so (failure())
+        self._offset, self._buf = 0, ""
         os.kill(self.host.pid, signal.SIGUSR1)
 
     def _lines(self) -> list[str]:
@@ -129,8 +136,8 @@ class FirmwareValves(ValveHookup):
         while True:
             for line in self._lines():
                 f = line.split()
-                if not f:
-                    continue
+                if len(f) < 2 or not f[1].isdigit():
+                    continue   # a line cut by the truncation at the trigger, before our play
                 if f[0] == "start" and play is None:   # the first play after the trigger
                     play = int(f[1])
                 elif f[0] == "pulse" and play is not None and int(f[1]) == play:

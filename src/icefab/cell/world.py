@@ -37,7 +37,19 @@ width.
 * the current layer's liquid not frozen yet: ``pend_*`` arrays (segments of its drops:
   ``pend_a``, ``pend_b`` (m, 2), ``pend_vol``, ``pend_hw``, ``pend_ext`` (m,),
   ``pend_mat`` (m,) int8, ``pend_n0``, ``pend_n1`` (m, 2); ``pend_mid`` (k, 2) the
-  midpoints of the layer's commanded path chords, where debris falls), ``pend_layer``.
+  midpoints of the layer's commanded path chords, where debris falls), ``pend_layer``;
+* ``generation`` int64 (absent in older files: 0), see below.
+
+A path that leaves the frozen surface as it was (a deposition path adds liquid, a laser
+path over an already frozen layer draws laser noise) is saved as a *liquid piece*,
+``liquid-<generation>-<k>.npz`` beside ``surface.npz``: the ``pend_*`` rows added since the
+last save, ``pend_layer``, ``last_done``, ``cut`` and ``rng_laser``. A state is
+``surface.npz`` and its generation's pieces in ``k`` order. Only a save after the surface
+changed (a freeze) writes ``surface.npz`` whole, with the next generation, and then
+deletes the older pieces (a crash in between leaves pieces of an older generation, which
+a read ignores and removes). Rewriting the whole surface and the layer's liquid after
+every path wrote ~5 MB a path on a 300 mm part and grew with the paths of the layer
+(BENCHMARKS.md, "The virtual cell's surface saved by pieces").
 """
 
 from __future__ import annotations
@@ -79,15 +91,39 @@ class Pending:
     def empty(self) -> bool:
         return not self.mid and not self.a
 
-    def arrays(self) -> dict:
+    def marks(self) -> tuple[int, int]:
+        """How many drop-segment blocks and chord-midpoint blocks the liquid holds (where
+        :meth:`arrays` starts the rows added after this moment)."""
+        return len(self.a), len(self.mid)
+
+    def arrays(self, since: tuple[int, int] = (0, 0)) -> dict:
+        """The ``pend_*`` arrays of surface.npz; ``since`` (from :meth:`marks`): only the
+        rows added after that moment."""
+        s, m = since
+
         def cat(parts, shape, dtype=np.float64):
             return np.concatenate(parts).astype(dtype) if parts else np.zeros(shape, dtype)
         return {"pend_layer": np.int64(self.layer),
-                "pend_a": cat(self.a, (0, 2)), "pend_b": cat(self.b, (0, 2)),
-                "pend_vol": cat(self.vol, (0,)), "pend_hw": cat(self.hw, (0,)),
-                "pend_mat": cat(self.mat, (0,), np.int8), "pend_n0": cat(self.n0, (0, 2)),
-                "pend_n1": cat(self.n1, (0, 2)), "pend_ext": cat(self.ext, (0,)),
-                "pend_mid": cat(self.mid, (0, 2))}
+                "pend_a": cat(self.a[s:], (0, 2)), "pend_b": cat(self.b[s:], (0, 2)),
+                "pend_vol": cat(self.vol[s:], (0,)), "pend_hw": cat(self.hw[s:], (0,)),
+                "pend_mat": cat(self.mat[s:], (0,), np.int8),
+                "pend_n0": cat(self.n0[s:], (0, 2)), "pend_n1": cat(self.n1[s:], (0, 2)),
+                "pend_ext": cat(self.ext[s:], (0,)), "pend_mid": cat(self.mid[m:], (0, 2))}
+
+    def extend(self, d) -> None:
+        """Append the ``pend_*`` rows of a saved state (an npz) to the liquid."""
+        self.layer = int(d["pend_layer"])
+        if len(d["pend_a"]):
+            self.a.append(d["pend_a"].copy())
+            self.b.append(d["pend_b"].copy())
+            self.vol.append(d["pend_vol"].copy())
+            self.hw.append(d["pend_hw"].copy())
+            self.mat.append(d["pend_mat"].copy())
+            self.n0.append(d["pend_n0"].copy())
+            self.n1.append(d["pend_n1"].copy())
+            self.ext.append(d["pend_ext"].copy())
+        if len(d["pend_mid"]):
+            self.mid.append(d["pend_mid"].copy())
 
 
 def pulse_rate_drops(t: np.ndarray, material: str, job) -> np.ndarray:
@@ -124,6 +160,10 @@ class World:
         self.job = job
         self.file = self.dir / "surface.npz"
         self.pending = Pending()
+        self.generation = 0
+        self._pieces = 0            # liquid pieces of this generation on disk
+        self._saved = (0, 0)        # the liquid's marks at the last save
+        self._surface_changed = True
         if self.file.exists():
             self._load()
         else:
@@ -147,12 +187,24 @@ class World:
     # ------------------------------------------------------------------ state on disk
 
     def save(self) -> None:
-        """Write ``surface.npz`` atomically (a crash leaves the previous state)."""
+        """Save the state atomically (a crash leaves the previous one): ``surface.npz``
+        whole after the surface changed, else a liquid piece (module docstring)."""
         from icefab.atomic import atomic_path
         from icefab.config import to_toml
 
         self.dir.mkdir(parents=True, exist_ok=True)
+        if not self._surface_changed:
+            data = {"last_done": np.int64(self.last_done), "cut": np.int64(self.cut),
+                    "rng_laser": np.array(json.dumps(self.rng_laser.bit_generator.state)),
+                    **self.pending.arrays(self._saved)}
+            with atomic_path(self._piece_file(self.generation, self._pieces),
+                             suffix=".npz") as tmp, open(tmp, "wb") as fh:
+                np.savez(fh, **data)
+            self._pieces += 1
+            self._saved = self.pending.marks()
+            return
         data = {"format": np.array(FORMAT), "version": np.array(VERSION),
+                "generation": np.int64(self.generation + 1),
                 "origin": self.origin, "spacing": np.float64(self.spacing), "z": self.z,
                 "ever": self.ever, "layers_frozen": np.int64(self.layers_frozen),
                 "last_done": np.int64(self.last_done), "cut": np.int64(self.cut),
@@ -163,6 +215,30 @@ class World:
                 "job": np.array(to_toml(self.job)), **self.pending.arrays()}
         with atomic_path(self.file, suffix=".npz") as tmp, open(tmp, "wb") as fh:
             np.savez(fh, **data)
+        self.generation += 1
+        self._pieces = 0
+        self._saved = self.pending.marks()
+        self._surface_changed = False
+        self._remove_pieces(keep=self.generation)
+
+    def _piece_file(self, generation: int, k: int) -> Path:
+        return self.dir / f"liquid-{generation}-{k}.npz"
+
+    def _piece_files(self) -> list[tuple[int, int, Path]]:
+        """(generation, k, file) of the liquid pieces in the state folder, in order."""
+        found = []
+        for f in self.dir.glob("liquid-*-*.npz"):
+            _, gen, k = f.stem.split("-", 2)
+            if gen.isdigit() and k.isdigit():
+                found.append((int(gen), int(k), f))
+        return sorted(found)
+
+    def _remove_pieces(self, keep: int) -> None:
+        """Delete the liquid pieces of other generations than ``keep`` (the surface file
+        of a later generation holds their liquid, or they are a crash's leftovers)."""
+        for gen, _, f in self._piece_files():
+            if gen != keep:
+                f.unlink(missing_ok=True)
 
     def _load(self) -> None:
         try:
@@ -184,18 +260,29 @@ class World:
                     g.bit_generator.state = json.loads(str(d[key]))
                     gens.append(g)
                 self.rng_noise, self.rng_debris, self.rng_laser = gens
-                p = Pending(layer=int(d["pend_layer"]))
-                if len(d["pend_a"]) or len(d["pend_mid"]):
-                    p.a, p.b = [d["pend_a"].copy()], [d["pend_b"].copy()]
-                    p.vol, p.hw = [d["pend_vol"].copy()], [d["pend_hw"].copy()]
-                    p.mat = [d["pend_mat"].copy()]
-                    p.n0, p.n1 = [d["pend_n0"].copy()], [d["pend_n1"].copy()]
-                    p.ext, p.mid = [d["pend_ext"].copy()], [d["pend_mid"].copy()]
-                self.pending = p
+                self.generation = int(d["generation"]) if "generation" in d.files else 0
+                self.pending = Pending()
+                self.pending.extend(d)
         except CellError:
             raise
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise CellError(f"{self.file}: cannot read the cell surface ({exc})") from None
+        self._remove_pieces(keep=self.generation)
+        for _, k, f in self._piece_files():
+            if k != self._pieces:
+                raise CellError(f"{f}: liquid piece {k} of the cell surface where piece "
+                                f"{self._pieces} should be (a piece is missing)")
+            try:
+                with np.load(f, allow_pickle=False) as d:
+                    self.pending.extend(d)
+                    self.last_done, self.cut = int(d["last_done"]), int(d["cut"])
+                    self.rng_laser.bit_generator.state = json.loads(str(d["rng_laser"]))
+            except (OSError, ValueError, KeyError, TypeError) as exc:
+                raise CellError(f"{f}: cannot read a liquid piece of the cell surface "
+                                f"({exc})") from None
+            self._pieces += 1
+        self._saved = self.pending.marks()
+        self._surface_changed = False
         if self.z.ndim != 2 or self.ever.shape != self.z.shape or not self.spacing > 0 \
                 or not np.isfinite(self.z).all() or not np.isfinite(self.origin).all():
             raise CellError(f"{self.file}: inconsistent surface arrays (z {self.z.shape}, "
@@ -305,6 +392,7 @@ class World:
         self.ever |= mask
         self.layers_frozen += 1
         self.pending = Pending(layer=p.layer)
+        self._surface_changed = True
         return True
 
     # ------------------------------------------------------------------ laser
