@@ -612,6 +612,38 @@ def _nearest_fill(z: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return z[tuple(idx)]
 
 
+#: Samples in the median that tells a spike in the laser samples before they are averaged
+#: and gridded: a spike of one or two samples along a path is outvoted, a feature three
+#: samples long (1.5 mm at the ice's 50 mm/s and 100 Hz) stays.
+DESPIKE_NEIGHBOURS = 5
+#: A sample farther from that median than this many robust standard deviations of its
+#: neighbours (1.4826 x their median absolute deviation) is a spike (Hampel's filter).
+DESPIKE_SIGMAS = 3.0
+
+
+def _despike(xyz: np.ndarray, k: int = DESPIKE_NEIGHBOURS) -> np.ndarray:
+    """Hampel's filter over each sample's ``k`` nearest samples (itself included; by x,
+    y): a sample that lies more than :data:`DESPIKE_SIGMAS` robust standard deviations
+    from their median takes the median; the others stay as measured, for the cell mean
+    to average their noise (replacing every sample by its median cost 1.4 % of the demo
+    mug's SMF accuracy). A grid's median alone did not remove a spike: averaged into its
+    cell and spread by the triangulation across to the next measurement ring (3 mm), a
+    +2 mm spike left 2-3 nodes 0.1-0.27 mm off, wider than a 3 x 3 window removes."""
+    from scipy.spatial import cKDTree
+
+    k = min(int(k), len(xyz))
+    if k < 3:
+        return xyz
+    _, idx = cKDTree(xyz[:, :2]).query(xyz[:, :2], k=k)
+    near = xyz[idx, 2]
+    med = np.median(near, axis=1)
+    mad = np.median(np.abs(near - med[:, None]), axis=1)
+    spike = np.abs(xyz[:, 2] - med) > DESPIKE_SIGMAS * 1.4826 * mad
+    out = xyz.copy()
+    out[spike, 2] = med[spike]
+    return out
+
+
 def _bin_samples(xyz: np.ndarray, bin_mm: float) -> np.ndarray:
     """Mean of the samples in each ``bin_mm`` square cell: (m, 3), m <= n."""
     cell = np.floor(xyz[:, :2] / bin_mm).astype(np.int64)
@@ -684,10 +716,14 @@ def surface_from_samples(xyz: np.ndarray, footprint: Region | Sequence[Region] |
         Fig. 5-3), or several regions whose union it is (e.g. ``(layer.part,
         layer.scaffold)``); nodes outside it are NaN. None: the samples' convex hull.
     spacing: grid pitch, mm (``job.feedback.grid_mm``); nodes on multiples of it.
-    smoothing: robust smoothing by a ``smooth_size`` x ``smooth_size`` median filter
-        (``scipy.ndimage.median_filter``), which removes isolated spikes (laser drop-outs,
-        specular reflections) without flattening steps the way a mean would. The thesis
-        smoothed with Garcia's robust N-D smoother; a median is the robust core of it.
+    smoothing: robust smoothing, which removes isolated spikes (laser drop-outs,
+        specular reflections) without flattening steps the way a mean would: a sample far
+        from the median of its :data:`DESPIKE_NEIGHBOURS` nearest samples takes it
+        (Hampel's filter, :func:`_despike`), and the grid then a ``smooth_size`` x
+        ``smooth_size`` median filter
+        (``scipy.ndimage.median_filter``). The thesis smoothed with Garcia's robust N-D
+        smoother (penalised least squares with robust weights): medians are what makes
+        it robust, not its smoothing parameter, which is not reproduced here.
     bin_mm: the samples are first averaged per square cell of this size (default: the
         grid pitch, the finest detail the grid can show), which lowers the laser noise and
         the triangulation cost (the laser gives several samples per mm); 0 keeps every
@@ -710,6 +746,8 @@ def surface_from_samples(xyz: np.ndarray, footprint: Region | Sequence[Region] |
         xyz = xyz[ok]
     if not (np.isfinite(spacing) and spacing > 0):
         raise ConfigError(f"grid spacing = {spacing!r} mm: must be > 0")
+    if smoothing:
+        xyz = _despike(xyz)
     b = spacing if bin_mm is None else float(bin_mm)
     if b > 0:
         xyz = _bin_samples(xyz, b)
