@@ -195,6 +195,28 @@ def test_a_measurement_path_the_laser_cannot_store_is_refused_before_anything_mo
                          len(m.layers))
 
 
+def test_gains_that_make_smf_unstable_are_refused_before_anything_moves(planned, tmp_path):
+    """The thesis' own unstable example (Kp 1, Ki* 0.33, Kd* 0.45: pole 1.048, Fig.
+    5-12) ran a build without a word: refused now, naming the gains and the pole, with
+    nothing left behind; gains with a pole on the unit circle only warn; feedback off
+    checks nothing."""
+    from icefab.motion import load_trajectories
+
+    m = load_trajectories(planned)
+    bad = m.job.replace(**{"feedback.kp": 1.0, "feedback.ki": 0.33, "feedback.kd": 0.45})
+    with pytest.raises(ConfigError, match=r"feedback.kp, ki, kd = 1, 0.33, 0.45 make the "
+                                          r"SMF loop unstable \(largest pole modulus 1.048"):
+        bmod.check_build(m, bad, len(m.layers))
+    bmod.check_build(m, bad.replace(**{"feedback.enabled": False}), len(m.layers))
+    bmod.check_build(m, m.job.replace(**{"feedback.ki": 0.0, "feedback.kd": 0.0}),
+                     len(m.layers))   # Kp alone: a pole at 1, the error stays
+    (tmp_path / "wild.toml").write_text("[feedback]\nkp = 1.0\nki = 0.33\nkd = 0.45\n")
+    r = _icefab("build", str(planned), "-o", "u", "--virtual", "-c", "wild.toml",
+                cwd=tmp_path)
+    assert r.returncode == 2 and "make the SMF loop unstable" in r.stderr, r.stderr
+    assert r.stderr.count("\n") == 1 and not (tmp_path / "u").exists()
+
+
 class Crash(BaseException):
     """The control PC dies (not an error the runner handles)."""
 

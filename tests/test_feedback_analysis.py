@@ -201,3 +201,17 @@ def test_stable_volume_edges():
     assert in_stable_volume(1.0, 0.33, 0.0)
     assert not in_stable_volume(1.0, 0.0, 0.1) and not in_stable_volume(0.0, 0.3, 0.0)
     assert stability(1.0, 0.0, 0.1)[1] == pytest.approx(1.0)  # pole on z = 1
+
+
+@pytest.mark.parametrize("gains,kind", [((1.0, 0.33, 0.03), None),      # the defaults
+                                        ((1.0, 0.33, 0.45), "grows"),   # Fig. 5-12
+                                        ((1.0, 0.0, 0.0), "stays"),     # no integral
+                                        ((0.0, 0.0, 0.0), "stays")])    # no control
+def test_a_jobs_gains_verdict(gains, kind):
+    from icefab import Job
+    from icefab.feedback import gains_verdict
+
+    job = Job().replace(**dict(zip(("feedback.kp", "feedback.ki", "feedback.kd"), gains)))
+    got = gains_verdict(job)
+    assert (got[0] if got else None) == kind
+    assert gains_verdict(job.replace(**{"feedback.enabled": False})) is None

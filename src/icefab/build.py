@@ -100,13 +100,21 @@ def check_build(motion: "BuildMotion", job: "Job", layers: int) -> None:
     planned with; the cell the build runs on may differ), a part taller than the vertical
     stroke (WorkspaceError naming layer, path and point, or the stroke), a measurement
     path with more laser values than the controller stores (ConfigError naming the layer,
-    path and ``simulation.laser_rate_hz``).
+    path and ``simulation.laser_rate_hz``), SMF gains that make the loop unstable
+    (ConfigError; gains with a pole on the unit circle only warn).
     Adaptive layers (own thicknesses) are refused: the runner's SMF interval and the
     virtual cell still count in layers of ``slicing.layer_thickness_mm``."""
     if any(np.isfinite(lm.thickness) for lm in motion.layers):
         raise ConfigError("these trajectories have adaptive layers (slicing.cusp_height_mm > "
                           "0): the build runner does not run them yet; simulate them "
                           "('icefab simulate') or plan with slicing.cusp_height_mm = 0")
+    from icefab.feedback import gains_verdict
+
+    verdict = gains_verdict(job)
+    if verdict is not None and verdict[0] == "grows":
+        raise ConfigError(f"{verdict[1]}; refused before anything moves")
+    if verdict is not None:
+        log.warning("%s", verdict[1])
     robot = get_robot(job)
     for lm in motion.layers[:layers]:  # the cell's own reach and joint ranges (this job's)
         trajs = [t for t in lm.trajectories if len(t.xy)]

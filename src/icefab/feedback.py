@@ -115,6 +115,29 @@ def stability(kp: float, ki: float, kd: float) -> tuple[bool, float]:
 UNIT_CIRCLE_TOL = 1e-9
 
 
+def gains_verdict(job: "Job") -> tuple[str, str] | None:
+    """What the job's SMF gains (``feedback.kp``, ``ki``, ``kd``) do to the loop, when
+    they do not make it stable (thesis 5.5, eq. 5.22): ("grows", text) for a pole outside
+    the unit circle, the error growing from one measurement to the next; ("stays", text)
+    for a pole on it, the error never decaying; None for stable gains or feedback off.
+    Only ``icefab tune`` checked gains: a job's unstable ones ran a build and a
+    simulation without a word (a control review: the thesis' own unstable example,
+    1 / 0.33 / 0.45, oscillated +-0.1 mm on the simulated cell)."""
+    fb = job.feedback
+    if not fb.enabled:
+        return None
+    stable, m = stability(fb.kp, fb.ki, fb.kd)
+    if stable:
+        return None
+    gains = f"feedback.kp, ki, kd = {fb.kp:g}, {fb.ki:g}, {fb.kd:g}"
+    if m > 1.0 + UNIT_CIRCLE_TOL:
+        return "grows", (f"{gains} make the SMF loop unstable (largest pole modulus {m:.4f} "
+                         "> 1, thesis 5.5): the height error grows from one measurement to "
+                         "the next; 'icefab tune' gives stable gains")
+    return "stays", (f"{gains} put a pole of the SMF loop on the unit circle (thesis 5.5): "
+                     "the height error never decays; 'icefab tune' gives stable gains")
+
+
 def in_stable_volume(kp: float, ki: float, kd: float) -> bool:
     """The gain-stable volume of eq. 5.25: Kp > 0, Ki* > 0, Kd* >= 0, Kp/2 + Ki*/4 + Kd* < 1.
 

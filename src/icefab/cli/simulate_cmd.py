@@ -296,6 +296,7 @@ def write_simulation_outputs(open_loop: "SimResult", closed: "SimResult", out: P
 
 def run(args: argparse.Namespace) -> int:
     from icefab.motion import BuildMotion, plan_toolpaths
+    from icefab.feedback import gains_verdict
     from icefab.sim import measured_layers, simulate_build, simulate_open_and_smf
     from icefab.core import Toolpaths
 
@@ -367,6 +368,9 @@ def run(args: argparse.Namespace) -> int:
               + (" along the trajectories" if isinstance(build, BuildMotion) else ""))
     for line in headroom:
         print(f"warning: {line}")
+    verdict = gains_verdict(job)
+    if verdict is not None:   # simulated all the same: showing what such gains do is a use
+        print(f"warning: {verdict[1]} ('icefab build' refuses gains that make it unstable)")
     if valves:  # what the valve limits did, once per kind, and the volume clamping cost
         from icefab.findings import clamped_volume, saturated_volume
         from icefab.flow import summarise_findings
