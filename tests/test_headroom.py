@@ -42,6 +42,8 @@ def test_issue_case_nominal_fits_but_not_with_the_saturation():
         assert "saturates SMF's correction at +4%" in msg
     off = job.replace(**{"feedback.enabled": False})
     assert headroom_findings([room], off) == []
+    # the speed controller slows the robot and keeps the valve at the nominal flow
+    assert headroom_findings([room], job.replace(**{"feedback.controller": "speed"})) == []
 
 
 def test_the_valve_saturates_the_correction_where_the_nominal_flow_fits():

@@ -213,10 +213,14 @@ def headroom_findings(rooms: Iterable[Headroom], job: "Job") -> list[str]:
     """One line for each path among ``rooms`` whose nominal flow fits the valve but whose
     flow with SMF's full correction does not: there the valve programs hold the flow at
     the valve's capacity (:func:`icefab.flow.valve_frequency`), so the correction has less
-    room than ``feedback.saturation``. FM only, and only when ``feedback.enabled``; a
-    warning, not a refusal: the build runs. A nominal flow beyond the valve is not a
-    headroom matter: the valve programs' own error names that path (:mod:`icefab.flow`)."""
-    if not job.feedback.enabled or job.flow.mode != "fm":
+    room than ``feedback.saturation``. FM only, and only when ``feedback.enabled`` with
+    the flow controller: the speed controller (``feedback.controller = "speed"``, thesis
+    5.1.3) slows the robot instead and keeps the valve at the nominal flow, so it asks the
+    valve for no more (it was warned all the same: a false alarm). A warning, not a
+    refusal: the build runs. A nominal flow beyond the valve is not a headroom matter: the
+    valve programs' own error names that path (:mod:`icefab.flow`)."""
+    fb = job.feedback
+    if not fb.enabled or fb.controller != "flow" or job.flow.mode != "fm":
         return []
     return [r.message(job) for r in rooms if not r.fits and r.nominal_mm3_s <= r.limit_mm3_s]
 
