@@ -455,6 +455,63 @@ def test_inexact_option_closes_a_jittered_stl(tmp_path):
     assert rep.watertight and len(mesh.vertices) == len(ref.vertices)
 
 
+def _noisy_soup(kind: str, ulps: int, share: float, seed: int, dtype) -> np.ndarray:
+    """The triangle corners of a reference mesh, each corner in ``share`` of them moved
+    by up to ``ulps`` steps of ``dtype`` per coordinate (one vertex written twice with
+    rounding noise, as CAD exporters do)."""
+    ref = _tm(kind)
+    tri = np.asarray(ref.vertices, dtype=dtype)[ref.faces].reshape(-1, 3)
+    rng = np.random.default_rng(seed)
+    pick = rng.random(len(tri)) < share
+    step = np.spacing(np.abs(tri[pick]).astype(dtype)).astype(dtype)
+    tri[pick] += step * rng.integers(-ulps, ulps + 1, (int(pick.sum()), 3)).astype(dtype)
+    return tri
+
+
+@settings(max_examples=25, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(kind=st.sampled_from(KINDS), ulps=st.integers(1, 4), share=st.floats(0.01, 0.5),
+       seed=st.integers(0, 2 ** 16), binary=st.booleans())
+def test_a_vertex_written_twice_with_rounding_noise_is_one(tmp_path, kind, ulps, share,
+                                                           seed, binary):
+    """A CAD export wrote one vertex as (2.46875, 1.135, 5.1e-16) and (2.46875, 1.135, 0):
+    the exact weld left 44 open edges, and the holes closed in 3D spanned 55 mm across
+    surface that was there (a tester's idler_riser.STL, two layers of twice the area).
+    Corners moved by a few float32 (binary STL) or float64 (ASCII) steps weld back into
+    the closed reference, its volume as trimesh gives it."""
+    ref = _tm(kind)
+    tri = _noisy_soup(kind, ulps, share, seed, np.float32 if binary else np.float64)
+    soup = trimesh.Trimesh(tri.astype(np.float64), np.arange(len(tri)).reshape(-1, 3),
+                           process=False)
+    p = tmp_path / "noisy.stl"
+    if binary:
+        p.write_bytes(trimesh.exchange.stl.export_stl(soup))
+    else:
+        lines = ["solid noisy"]
+        for corners in tri.reshape(-1, 3, 3).tolist():
+            lines += ["facet normal 0 0 0", "outer loop",
+                      *(f"vertex {x!r} {y!r} {z!r}" for x, y, z in corners),
+                      "endloop", "endfacet"]
+        p.write_text("\n".join(lines + ["endsolid noisy", ""]))
+    mesh, rep = read_mesh(p)
+    assert rep.watertight and rep.open_edges == 0
+    assert len(mesh.vertices) == len(ref.vertices) and len(mesh.faces) == len(ref.faces)
+    assert rep.volume == pytest.approx(ref.volume, rel=1e-6)
+
+
+def test_a_real_gap_is_not_welded_as_noise(tmp_path):
+    """Corners 1 um apart on a 20 mm box are a gap, not rounding noise: they stay open
+    edges (the thesis' inexact weld, ``parts.inexact``, is the user's to choose)."""
+    ref = _tm("box")
+    tri = np.asarray(ref.vertices)[ref.faces].reshape(-1, 3)
+    tri[0] += 1e-3
+    p = tmp_path / "gap.stl"
+    p.write_bytes(trimesh.exchange.stl.export_stl(
+        trimesh.Trimesh(tri, np.arange(len(tri)).reshape(-1, 3), process=False)))
+    rep = read_mesh(p)[1]
+    assert rep.open_edges > 0 and rep.welded_noise == 0
+
+
 # --------------------------------------------------------------------------- diagnostics
 
 

@@ -4,9 +4,11 @@ Clean-up after welding (each reported as a warning with its count): faces with a
 vertex index (degenerate) are removed; faces with the same three vertices as an earlier
 face (duplicates, in either orientation) are removed (searched for only when a
 non-manifold or misoriented edge shows one may exist); vertices no face uses are dropped;
-a closed mesh with negative signed volume (inside out) has all faces flipped. Open and
-non-manifold edges are reported with their count and the location of one of them, never
-"repaired" here (the slicer closes gaps per layer and reports them). Faces with distinct
+a closed mesh with negative signed volume (inside out) has all faces flipped. Vertices of
+open edges within rounding noise of each other are welded (one vertex written twice,
+:func:`weld_noise_at_open_edges`). Other open and non-manifold edges are reported with
+their count and the location of one of them, never "repaired" here
+(:mod:`icefab.mesh.holes` closes holes in 3D, the slicer gaps per layer). Faces with distinct
 but collinear corners (zero area) are counted, not removed: removing them would open the
 surface.
 
@@ -45,7 +47,9 @@ class MeshReport:
     nonfinite_vertices: vertices with a NaN or infinite coordinate.
     volume: signed enclosed volume, mm^3 (meaningful for closed meshes).
     inverted: closed mesh with negative volume (faces point inwards).
-    removed_degenerate, removed_duplicate, merged_vertices, flipped: what loading fixed.
+    removed_degenerate, removed_duplicate, merged_vertices, flipped: what loading fixed;
+    welded_noise: vertices of open edges welded to a neighbour within rounding noise
+        (:func:`weld_noise_at_open_edges`).
     open_edge_at, non_manifold_edge_at: midpoint (mm) of one such edge, to find it.
     """
 
@@ -65,6 +69,7 @@ class MeshReport:
     removed_duplicate: int = 0
     merged_vertices: int = 0
     flipped: bool = False
+    welded_noise: int = 0
     open_edge_at: tuple[float, float, float] | None = None
     non_manifold_edge_at: tuple[float, float, float] | None = None
 
@@ -88,6 +93,9 @@ class MeshReport:
                      "(repeated vertex)")
         if self.removed_duplicate:
             w.append(f"{n}: removed {self.removed_duplicate} duplicate faces")
+        if self.welded_noise:
+            w.append(f"{n}: {self.welded_noise} vertices of open edges welded to a "
+                     "neighbour within rounding noise (one vertex written twice)")
         if self.flipped:
             w.append(f"{n}: the closed mesh was inside out (volume < 0); all faces flipped")
         if self.nonfinite_vertices:
@@ -144,8 +152,69 @@ def _edge_stats(faces: np.ndarray, n_vertices: int) -> tuple[int, int, int, np.n
     if len(faces) == 0:
         none = np.full(2, -1, np.int64)
         return 0, 0, 0, none, none
-    o, n, m, ex_o, ex_n = _edge_topology(faces, int(n_vertices))
+    o, n, m, ex_o, ex_n, _ = _edge_topology(faces, int(n_vertices))
     return int(o), int(n), int(m), ex_o, ex_n
+
+
+#: Two vertices of open edges closer than this, relative to their largest coordinate's
+#: size, are one vertex written twice with rounding noise: a few float32 steps (a binary
+#: STL's), 0.3 um at 300 mm ...
+NOISE_WELD_REL = 1e-6
+#: ... and never farther apart than this share of the mesh's median edge (a stray
+#: vertex at 1e20 mm, or a part far from the origin, does not widen it).
+NOISE_WELD_OF_EDGE = 1e-3
+
+
+def noise_weld_tolerance(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """The farthest (mm) :func:`weld_noise_at_open_edges` welds: NOISE_WELD_OF_EDGE of the
+    median edge length (over up to 100 000 faces spread over the mesh)."""
+    if len(faces) == 0:
+        return 0.0
+    f = faces[::max(1, len(faces) // 100_000)]
+    edge = vertices[f] - vertices[np.roll(f, 1, axis=1)]
+    return NOISE_WELD_OF_EDGE * float(np.median(np.sqrt(np.sum(edge ** 2, axis=2))))
+
+
+def weld_noise_at_open_edges(vertices: np.ndarray, faces: np.ndarray
+                             ) -> tuple[np.ndarray, int]:
+    """Faces with the vertices of open edges that lie within rounding noise of each other
+    welded (each to the lowest-numbered of its group), and how many were: closer than
+    :data:`NOISE_WELD_REL` of their largest coordinate's size and than
+    :func:`noise_weld_tolerance`.
+
+    A CAD export wrote one vertex as (2.46875, 1.135, 5.1e-16) and as (2.46875, 1.135, 0):
+    the exact weld kept both, the seam between their faces was 44 open edges, and the
+    holes closed in 3D spanned 55 mm across surface that was there, doubling two layers'
+    area (a tester's idler_riser.STL). Only open edges' vertices are looked at: a closed
+    mesh costs nothing, and no vertex of a closed part of the surface moves.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    nv = len(vertices)
+    *_, open_v = _edge_topology(faces, nv)
+    ids = np.flatnonzero(open_v)
+    tol = noise_weld_tolerance(vertices, faces)
+    if len(ids) < 2 or not tol > 0:
+        return faces, 0
+    at = vertices[ids]
+    pairs = cKDTree(at).query_pairs(tol, output_type="ndarray")
+    if len(pairs):   # ... and within rounding noise of their own size
+        a, b = at[pairs[:, 0]], at[pairs[:, 1]]
+        size = np.maximum(np.abs(a).max(axis=1), np.abs(b).max(axis=1))
+        pairs = pairs[np.sqrt(np.sum((a - b) ** 2, axis=1)) <= NOISE_WELD_REL * size]
+    if not len(pairs):
+        return faces, 0
+    k = len(ids)
+    graph = coo_matrix((np.ones(len(pairs), np.int8), (pairs[:, 0], pairs[:, 1])),
+                       shape=(k, k))
+    n_groups, label = connected_components(graph, directed=False)
+    lowest = np.full(n_groups, nv, np.int64)
+    np.minimum.at(lowest, label, ids)        # ids ascend: the group's lowest vertex
+    to = np.arange(nv, dtype=np.int64)
+    to[ids] = lowest[label]
+    return to[faces], int(k - n_groups)
 
 
 def _degenerate_mask(faces: np.ndarray) -> np.ndarray:
@@ -224,6 +293,14 @@ def clean_mesh(mesh: Mesh) -> tuple[Mesh, MeshReport]:
     if degen.any():
         f = f[~degen]
     edges = _edge_stats(f, nv)
+    n_noise = 0
+    if edges[0]:
+        f, n_noise = weld_noise_at_open_edges(mesh.vertices, f)
+        if n_noise:
+            more = _degenerate_mask(f)
+            f = f[~more]
+            degen = np.concatenate([degen, more])
+            edges = _edge_stats(f, nv)
     n_dup = 0
     # A duplicate face always leaves a non-manifold or misoriented edge (except a lone
     # two-sided pair, which encloses nothing), so clean meshes skip the search.
@@ -252,5 +329,6 @@ def clean_mesh(mesh: Mesh) -> tuple[Mesh, MeshReport]:
         report = dataclasses.replace(report, volume=-report.volume, inverted=False)
         flipped = True
     report = dataclasses.replace(report, removed_degenerate=int(degen.sum()),
-                                 removed_duplicate=n_dup, flipped=flipped)
+                                 removed_duplicate=n_dup, flipped=flipped,
+                                 welded_noise=n_noise)
     return cleaned, report

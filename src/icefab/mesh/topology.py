@@ -133,7 +133,8 @@ def edge_buckets(faces: np.ndarray, nv: int):  # pragma: no cover
 @njit(cache=True)
 def _edge_topology(faces: np.ndarray, nv: int):  # pragma: no cover
     """(open, non-manifold, misoriented) undirected edge counts, O(m) with vertex buckets,
-    and the two vertices of one open and one non-manifold edge (-1 when there is none).
+    the two vertices of one open and one non-manifold edge (-1 when there is none), and
+    (nv,) bool: the vertices of the open edges.
 
     Each bucket of :func:`edge_buckets` is sorted by the upper vertex and runs of equal
     edges are counted: 1 use = open edge, > 2 = non-manifold, 2 uses in the same
@@ -150,6 +151,7 @@ def _edge_topology(faces: np.ndarray, nv: int):  # pragma: no cover
     n_misor = 0
     ex_open = np.full(2, -1, np.int64)
     ex_nonman = np.full(2, -1, np.int64)
+    open_v = np.zeros(nv, np.bool_)
     for v in range(nv):
         s = start[v]
         e = start[v + 1]
@@ -181,6 +183,8 @@ def _edge_topology(faces: np.ndarray, nv: int):  # pragma: no cover
                 if n_open == 0:
                     ex_open[0], ex_open[1] = v, hi[i]
                 n_open += 1
+                open_v[v] = True
+                open_v[hi[i]] = True
             elif c > 2:
                 if n_nonman == 0:
                     ex_nonman[0], ex_nonman[1] = v, hi[i]
@@ -188,7 +192,7 @@ def _edge_topology(faces: np.ndarray, nv: int):  # pragma: no cover
             elif dsum != 0:
                 n_misor += 1
             i = j
-    return n_open, n_nonman, n_misor, ex_open, ex_nonman
+    return n_open, n_nonman, n_misor, ex_open, ex_nonman, open_v
 
 
 @njit(cache=True)
