@@ -271,6 +271,31 @@ def test_a_play_that_vanished_is_reported_at_once(ctl):
                                              r"\(the controller is idle after 0 plays"):
         ctl.wait_done(play, [up], timeout_s=60.0)
     assert time.monotonic() - t0 < 5.0
+    # a restart the controller announced (BOOT, PROTOCOL.md 5) is named with its cause
+    play = (ctl.status().plays + 1) & 0xFFFF
+    up = ctl.upload(0, prog)
+    ctl.arm(0)
+    ctl.abort()
+    port = ctl._port
+
+    class Announcing:   # the controller's BOOT event arrives with the next bytes
+        boot = vf.encode(0, vf.EV_BOOT, bytes((2, vf.PROTOCOL_VERSION)))
+
+        def read(self, n):
+            data, self.boot = self.boot + port.read(n), b""
+            return data
+
+        def write(self, data):
+            return port.write(data)
+
+    ctl._port = Announcing()
+    try:
+        with pytest.raises(ValveLinkError, match=f"play {play} is no longer armed or playing "
+                                                 r"\(it restarted: brown-out: the supply"):
+            ctl.wait_done(play, [up], timeout_s=60.0)
+    finally:
+        ctl._port = port
+    assert ctl.boots[-1] == "brown-out: the supply dipped"
 
 
 def test_abort_closes_every_valve_mid_play(valvectl, tmp_path):
@@ -297,12 +322,17 @@ def test_watchdog_expiry_closes_valves_and_status_says_why(valvectl, tmp_path):
                         duration=10.0)
     with HostFirmware(valvectl, clock="real", watchdog_ms=300) as fw, \
             ValveController.open(fw.pty) as ctl:
+        play = (ctl.status().plays + 1) & 0xFFFF
         ctl.upload(0, prog)
         ctl.arm(0)
         ctl.trigger()
         time.sleep(0.05)
         ctl.stall(500)                          # the main loop stops feeding the watchdog
         time.sleep(0.6)
+        # the driver names the restart and its cause (its BOOT event was ignored)
+        with pytest.raises(ValveLinkError, match=f"controller fault 'watchdog' during play "
+                                                 rf"{play} \(it restarted: watchdog\)"):
+            ctl.wait_done(play, timeout_s=10.0)
         ctl.hello()                             # the reset controller starts a new session
         st = ctl.status()
         assert (st.state_name, st.fault_name, st.outputs) == ("fault", "watchdog", 0)

@@ -120,6 +120,8 @@ class ValveController:
         self._reader = vf.FrameReader()
         self._seq = 0
         self.events: deque[vf.Frame] = deque(maxlen=1000)
+        self.boots: list[str] = []      # the cause of every restart seen, in order
+        self._boots_at_arm = 0
         self.resent_frames = 0
         self.resent_programs = 0
         self.info: vf.Hello | None = None
@@ -179,6 +181,10 @@ class ValveController:
                 if f.type == vf.EV_FAULT:
                     ev = vf.parse_fault(f.payload)
                     log.warning("%s: fault %s", self.name, vf.FAULTS.get(ev.fault, ev.fault))
+                elif f.type == vf.EV_BOOT:
+                    self.boots.append(vf.boot_cause(f.payload))
+                    log.warning("%s: the controller restarted (%s)", self.name,
+                                self.boots[-1])
         return [f for f in frames if not f.is_event]
 
     def request(self, type_: int, payload: bytes = b"", *,
@@ -277,7 +283,13 @@ class ValveController:
         for v in idx:
             mask |= 1 << int(v)
         length = struct.unpack_from("<I", self.request(vf.ARM, bytes((mask,))).payload, 2)[0]
+        self._boots_at_arm = len(self.boots)
         return None if length == 0xFFFFFFFF else length
+
+    def _restarted(self) -> str:
+        """' (it restarted: CAUSE)' when a BOOT event came since the last ARM, else ''."""
+        new = self.boots[self._boots_at_arm:]
+        return f" (it restarted: {new[-1]})" if new else ""
 
     def trigger(self) -> None:
         """Software trigger (host builds only; the LPC2148 takes the robot's signal)."""
@@ -384,7 +396,7 @@ class ValveController:
             st = self.status()
             if st.state == vf.FAULT:
                 raise ValveLinkError(f"{self.name}: controller fault '{st.fault_name}' during "
-                                     f"play {play}; every valve is off")
+                                     f"play {play}{self._restarted()}; every valve is off")
             done = self._done_event(play)
             if done is not None:
                 return PlayReport(done.play, done.play_len, done.late_ticks, done.emitted, streamed)
@@ -404,10 +416,11 @@ class ValveController:
                 # brown-out: it comes up idle, its count at 0) or someone aborted it. It
                 # was noticed only at the timeout, 1.5 times the path plus 10 s later,
                 # with the robot moving and nothing laid meanwhile (a review's)
-                raise ValveLinkError(
-                    f"{self.name}: play {play} is no longer armed or playing (the controller "
-                    f"is {st.state_name} after {st.plays} plays: it restarted, or it was "
-                    "aborted); every valve is off")
+                why = self._restarted() or (f" (the controller is {st.state_name} after "
+                                            f"{st.plays} plays: it restarted, or it was "
+                                            "aborted)")
+                raise ValveLinkError(f"{self.name}: play {play} is no longer armed or "
+                                     f"playing{why}; every valve is off")
             if time.monotonic() > deadline:
                 self.abort()
                 raise ValveLinkError(f"{self.name}: play {play} did not end within "

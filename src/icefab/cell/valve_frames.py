@@ -298,6 +298,17 @@ def parse_fault(p: bytes) -> FaultEvent:
     return FaultEvent(*struct.unpack("<BBI", p[:6]))
 
 
+#: BOOT's reset causes (PROTOCOL.md 5, 0xE3).
+RESET_CAUSES = {0: "power-on or external reset", 1: "watchdog",
+                2: "brown-out: the supply dipped"}
+
+
+def boot_cause(p: bytes) -> str:
+    """What a BOOT event's payload says restarted the controller."""
+    cause = p[0] if p else -1
+    return RESET_CAUSES.get(cause, f"reset cause {cause}")
+
+
 # payload builders (commands)
 
 
