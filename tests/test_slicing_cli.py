@@ -1,6 +1,8 @@
 """The slice command end to end, file formats, and the real meshes."""
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 import trimesh
@@ -90,6 +92,52 @@ def test_the_filter_count_says_it_precedes_the_unions(tmp_path, capsys):
     a.export(tmp_path / "one.stl")
     assert main(["slice", str(tmp_path / "one.stl"), "-o", str(tmp_path / "q")]) == 0
     assert "before the unions" not in capsys.readouterr().out
+
+
+def _boxes(inner_flipped: bool):
+    """A 30 mm box with a 10 mm box inside it: a cavity when the inner box faces in."""
+    outer = trimesh.creation.box(extents=(30, 30, 30))
+    inner = trimesh.creation.box(extents=(10, 10, 10))
+    if inner_flipped:
+        inner.invert()
+    both = trimesh.util.concatenate([outer, inner])
+    both.apply_translation((0, 0, 15))
+    return both
+
+
+@pytest.mark.parametrize("cavity", [True, False])
+def test_a_cavity_wound_inside_out_is_named_as_built_solid(tmp_path, capsys, cavity):
+    """A hollow part whose cavity's facets face out slices solid (the union of the
+    shells): said only as contours running against the facet orientation (a tester's).
+    Now the shell is named, with where it is; a cavity facing in slices hollow."""
+    _boxes(inner_flipped=cavity).export(tmp_path / "hollow.stl")
+    assert main(["slice", str(tmp_path / "hollow.stl"), "-o", str(tmp_path / "o")]) == 0
+    text = capsys.readouterr().out
+    said = re.search(r"a shell of 12 facets at \(-?5, -?5, (10|20)\) mm lies inside another "
+                     r"and faces the same way", text)
+    st = load_stack(tmp_path / "o" / "stack.npz")
+    middle = st.layers[len(st) // 2].part.area
+    if cavity:
+        assert not said and middle == pytest.approx(900 - 100)
+    else:
+        assert said and middle == pytest.approx(900)
+
+
+def test_winding_number_against_a_convex_hull():
+    """Inside a convex polyhedron (an icosphere) exactly where scipy's Delaunay of its
+    vertices finds a simplex."""
+    from scipy.spatial import Delaunay
+
+    from icefab.mesh.topology import winding_number
+
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=5.0)
+    pts = np.random.default_rng(4).uniform(-7, 7, (300, 3))
+    inside = Delaunay(sphere.vertices).find_simplex(pts) >= 0
+    assert 0 < inside.sum() < len(pts)
+    w = np.array([winding_number(p, sphere.vertices, sphere.faces) for p in pts])
+    np.testing.assert_allclose(w, inside.astype(float), atol=1e-9)
+    sphere.invert()
+    assert winding_number(np.zeros(3), sphere.vertices, sphere.faces) == pytest.approx(-1)
 
 
 def test_cli_slice_with_job_file(tube_files, tmp_path, capsys):
@@ -207,3 +255,19 @@ def test_mesh_warnings_reach_the_stack_and_the_summary(tmp_path, capsys):
     saved = load_stack(out / "stack.npz").warnings
     assert any("duplicate faces" in w for w in saved)
     assert any("flipped" in w for w in saved)
+
+
+def test_overlapping_or_apart_shells_are_not_nested():
+    from icefab.mesh.topology import nested_same_way
+
+    a = trimesh.creation.box(extents=(20, 20, 4))
+    b = trimesh.creation.box(extents=(20, 20, 4))
+    b.apply_translation((10, 0, 0))              # overlapping: a corner of b inside a
+    c = trimesh.creation.box(extents=(20, 20, 4))
+    c.apply_translation((50, 0, 0))              # apart
+    for other in (b, c):
+        both = trimesh.util.concatenate([a, other])
+        assert nested_same_way(both.vertices, both.faces) == []
+    nested = _boxes(inner_flipped=False)
+    ((n_faces, at),) = nested_same_way(nested.vertices, nested.faces)
+    assert n_faces == 12 and np.all(np.abs(at[:2]) == 5)

@@ -101,7 +101,7 @@ from icefab.adaptive import AdaptiveLayers, plan_layers
 from icefab.errors import GeometryError
 from icefab.fitting import fit_rings
 from icefab.geometry import _in_ring, region_from_rings
-from icefab.mesh.topology import edge_buckets
+from icefab.mesh.topology import edge_buckets, nested_same_way
 from icefab.core import (Layer, Mesh, Region, Stack, layer_runs, offsets, signed_area,
                          split_rows)
 from icefab.resultfiles import (STACK_FORMAT, STACK_VERSION, load_stack,  # noqa: F401 (old home)
@@ -1194,6 +1194,15 @@ def slice_mesh(mesh: Mesh, job: Job | None = None, *, progress: Progress | None 
         if report.rings_reoriented:
             summary.append(f"{report.rings_reoriented} contours ran against the facet "
                            "orientation (inverted facets or overlapping shells)")
+            # say which shell, when one lies inside another facing the same way: a cavity
+            # wound inside out came out solid with only the line above to tell
+            from icefab.mesh.repair import point_text
+
+            for n_faces, at in nested_same_way(mesh.vertices, mesh.faces)[:3]:
+                summary.append(f"a shell of {n_faces} facets at {point_text(at)} mm lies "
+                               "inside another and faces the same way: built solid (a "
+                               "cavity whose facets are wound inside out is filled: flip "
+                               "them to keep it hollow)")
         if adaptive:
             # the part's height left less than two minimum layers at the top: the last two
             # share it and keep the cusp bound (icefab.adaptive.plan_layers), said here

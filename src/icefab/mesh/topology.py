@@ -393,3 +393,71 @@ def polygon_triangles(vertices: np.ndarray, flat: np.ndarray, counts: np.ndarray
         if local.shape == (counts[p] - 2, 3):   # a simple polygon: its ears
             tris[tstart[p]:tstart[p] + counts[p] - 2] = idx[local]
     return tris
+
+
+# --------------------------------------------------------------------------- shells
+
+#: Shells (connected sets of faces) looked at by :func:`nested_same_way`, the largest
+#: first: a mesh of thousands of loose parts is not searched pair by pair.
+NESTED_SHELLS_LOOKED_AT = 64
+
+
+def winding_number(point: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> float:
+    """How many times the faces wind around ``point`` (mm): their solid angles summed over
+    4 pi (Van Oosterom and Strackee's formula), +1 inside a closed outward surface, -1
+    inside an inward one, 0 outside."""
+    a, b, c = (vertices[faces[:, i]] - point for i in range(3))
+    la, lb, lc = (np.sqrt(np.sum(x * x, axis=1)) for x in (a, b, c))
+    det = np.einsum("ij,ij->i", a, np.cross(b, c))
+    div = (la * lb * lc + np.einsum("ij,ij->i", a, b) * lc
+           + np.einsum("ij,ij->i", b, c) * la + np.einsum("ij,ij->i", c, a) * lb)
+    return float(2.0 * np.arctan2(det, div).sum() / (4.0 * np.pi))
+
+
+def nested_same_way(vertices: np.ndarray, faces: np.ndarray) -> list[tuple[int, np.ndarray]]:
+    """Shells that lie inside another shell and face the same way: (its face count, one of
+    its vertices) for each. Either a cavity whose facets are wound inside out or a solid
+    inside a solid; both slice as solid (the union of the shells), which hollows nothing:
+    a tester's hollow part with its cavity inside out came out solid, said only as
+    "contours ran against the facet orientation". A shell's way is the sign of its
+    volume; inside, a box within the other's and 8 of its corners at a winding number of
+    one half or more."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    nv = len(vertices)
+    if len(faces) < 8:
+        return []
+    graph = coo_matrix((np.ones(2 * len(faces), np.int8),
+                        (np.concatenate([faces[:, 0], faces[:, 1]]),
+                         np.concatenate([faces[:, 1], faces[:, 2]]))), shape=(nv, nv))
+    n, label = connected_components(graph, directed=False)
+    if n < 2:
+        return []
+    shell = label[faces[:, 0]]
+    size = np.bincount(shell, minlength=n)
+    a, b, c = (vertices[faces[:, i]] for i in range(3))
+    volume = np.bincount(shell, weights=np.einsum("ij,ij->i", a, np.cross(b, c)),
+                         minlength=n) / 6.0
+    looked = [int(s) for s in np.argsort(-size, kind="stable")[:NESTED_SHELLS_LOOKED_AT]
+              if size[s] >= 4 and volume[s] != 0.0]
+    lo = np.full((n, 3), np.inf)
+    hi = np.full((n, 3), -np.inf)
+    for k in range(3):
+        np.minimum.at(lo[:, k], shell, np.minimum(np.minimum(a[:, k], b[:, k]), c[:, k]))
+        np.maximum.at(hi[:, k], shell, np.maximum(np.maximum(a[:, k], b[:, k]), c[:, k]))
+    found = []
+    for i in looked:
+        mine = faces[shell == i]
+        # its box within the other's, and 8 of its corners inside it: overlapping shells
+        # (a handle pushed into a body) are not "inside"
+        points = vertices[mine[np.linspace(0, len(mine) - 1, 8).astype(np.int64), 0]]
+        for j in looked:
+            if j == i or np.sign(volume[j]) != np.sign(volume[i]) \
+                    or (lo[i] < lo[j]).any() or (hi[i] > hi[j]).any():
+                continue
+            theirs = faces[shell == j]
+            if all(abs(winding_number(p, vertices, theirs)) >= 0.5 for p in points):
+                found.append((int(size[i]), points[0].copy()))
+                break
+    return found
