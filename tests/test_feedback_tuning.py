@@ -277,3 +277,35 @@ def test_the_optimum_keeps_within_the_pole_margin_as_printed(capsys):
     # the active constraint was met to 1e-15 outside: "max_pole": 0.5000000000000011
     assert main(["tune", "--pole-margin", "0.5", "--json"]) == 0
     assert strict_json(capsys.readouterr().out)["max_pole"] <= 0.5
+
+
+@pytest.mark.parametrize("gains,z0", [((0.0, 0.0, 0.0), 1.0), ((0.0, 0.0, 0.5), 1.0),
+                                      ((0.0, 4.0, 0.0), -1.0), ((-4.0, 8.0, 1.0), -1.0),
+                                      ((1e-9, 0.0, 0.0), 1.0)])
+def test_a_repeated_pole_on_the_unit_circle_diverges(gains, z0):
+    """The open loop z (z - 1)^2 (gains 0, 0, 0) was "marginal" with an RMS of 7.13 over 100
+    layers, 110 over 1000: a double pole on the circle makes a step's error grow like k.
+    Expected poles from eq. 5.22's denominator: (0, 0, Kd*) has (z - 1)^2 (z + Kd*),
+    (0, 4, 0) z (z + 1)^2, (-4, 8, 1) (z + 1)^3; (1e-9, 0, 0) poles 1 and 1 - 1e-9."""
+    r = evaluate_gains(gains, Disturbance())
+    assert r.diverges and not r.stable and r.repeated_pole == z0
+    assert r.as_dict()["rms"] is None
+
+
+@pytest.mark.parametrize("gains", [(0.4, 0.0, 0.0), (0.5, 1.0, 0.5), (1e-4, 0.0, 0.0)])
+def test_a_single_pole_on_the_unit_circle_only_never_decays(gains):
+    r = evaluate_gains(gains, Disturbance())
+    assert r.repeated_pole is None and not r.diverges and np.isfinite(r.as_dict()["rms"])
+
+
+def test_tune_says_a_repeated_pole_on_the_circle_diverges(capsys):
+    for argv in ([], ["--layers", "1000", "--step", "0.2@30"]):
+        assert main(["tune", "--gains", "0,0,0", "--json", *argv]) == 0
+        assert strict_json(capsys.readouterr().out)["rms"] is None
+    assert main(["tune", "--gains", "0,0,0"]) == 0
+    out = capsys.readouterr().out
+    assert "diverges (a repeated pole at z = 1" in out and "never decays" not in out
+    assert "UNSTABLE (a repeated pole on the unit circle: its error diverges)" in out
+    assert main(["tune", "--gains", "0.4,0,0"]) == 0
+    assert "marginal: a pole on the unit circle, its error never decays" in \
+        capsys.readouterr().out

@@ -23,10 +23,10 @@ Public functions: :func:`surface_from_samples`, :func:`error_surface`, :func:`sm
 (state :class:`SmfState`, result :class:`ControlAction`), :func:`smf_step` (the three in
 one), :func:`action_along` / :func:`action_sampler`, :func:`retime_trajectory`,
 :func:`regrid`, :func:`region_mask`; analysis: :func:`poles`, :func:`stability`,
-:func:`in_stable_volume`, :func:`transfer_function`, :func:`error_response`,
-:func:`simulate_1d`, :func:`rms_and_gradient`, :func:`tune_gains`, :func:`evaluate_gains`
-with :class:`Disturbance` and :class:`TuneResult`. Applying an action to the next layers'
-valve programs: :func:`icefab.flow.replan_valves`.
+:func:`in_stable_volume`, :func:`repeated_unit_pole`, :func:`transfer_function`,
+:func:`error_response`, :func:`simulate_1d`, :func:`rms_and_gradient`, :func:`tune_gains`,
+:func:`evaluate_gains` with :class:`Disturbance` and :class:`TuneResult`. Applying an
+action to the next layers' valve programs: :func:`icefab.flow.replan_valves`.
 
 Sign convention (thesis 5.4): the error is ``e = nominal - measured`` normalised by the
 measurement interval dh_m, so a positive error means the part is too LOW and a positive
@@ -113,6 +113,35 @@ def stability(kp: float, ki: float, kd: float) -> tuple[bool, float]:
 
 #: A pole within this of the unit circle is on it (neither decays): not stable.
 UNIT_CIRCLE_TOL = 1e-9
+#: Poles closer than this to each other at z = 1 or z = -1 are one repeated pole: the
+#: response of such a pair grows like k for ~1 / 1e-5 layers, through any run the model
+#: allows (:data:`MAX_LAYERS`); gains (1e-9, 0, 0), poles 1 and 1 - 1e-9, gave the open
+#: loop's RMS 7.13 over 100 layers as (0, 0, 0) did.
+REPEATED_POLE_TOL = 1e-5
+
+
+def repeated_unit_pole(kp: float, ki: float, kd: float) -> float | None:
+    """The repeated pole of H(z) on the unit circle, 1.0 or -1.0, or None when there is none.
+
+    A repeated pole on the circle makes the error grow without bound (like k for a double
+    pole: a step under the open loop, gains (0, 0, 0), has E(z) ~ 1 / (z - 1)^2), where a
+    single one only never decays. A real cubic cannot have a repeated complex pair, so only
+    z = 1 and z = -1 can carry one. The test is on the gains, not on ``numpy.roots``: a
+    double root is computed only to ~sqrt(eps) = 1.5e-8 (gains (0, 0, 0.5) gave poles
+    0.99999999 and 1.00000001), a triple one to ~eps^(1/3) = 6e-6. Near z0 = +-1 the
+    denominator P (eq. 5.22) is P(z0) + P'(z0) (z - z0) + ..., so two of its roots lie
+    within tol = :data:`REPEATED_POLE_TOL` of z0 when |P'(z0)| <= tol and |P(z0)| <= tol^2
+    (times 1 + |Kp| + |Ki*| + |Kd*|): P(1) = Ki*, P'(1) = Kp + 2 Ki*,
+    P(-1) = 2 Kp + Ki* + 4 Kd* - 4, P'(-1) = 8 - 3 Kp - 2 Ki* - 4 Kd*.
+    """
+    _check_gains((kp, ki, kd))
+    tol = REPEATED_POLE_TOL * (1.0 + abs(kp) + abs(ki) + abs(kd))
+    at_plus = (ki, kp + 2.0 * ki)
+    at_minus = (2.0 * kp + ki + 4.0 * kd - 4.0, 8.0 - 3.0 * kp - 2.0 * ki - 4.0 * kd)
+    for z0, (value, slope) in ((1.0, at_plus), (-1.0, at_minus)):
+        if abs(value) <= tol * REPEATED_POLE_TOL and abs(slope) <= tol:
+            return z0
+    return None
 
 
 def gains_verdict(job: "Job") -> tuple[str, str] | None:
@@ -407,9 +436,16 @@ class TuneResult:
     def diverges(self) -> bool:
         """True when the error response grows without bound: a pole outside the unit
         circle (``max_pole > 1``; the error then grows like ``max_pole ** k``, so an RMS
-        over any finite number of layers only says how long the run was) or an RMS that
-        overflowed."""
-        return not np.isfinite(self.rms) or self.max_pole > 1.0 + UNIT_CIRCLE_TOL
+        over any finite number of layers only says how long the run was), a repeated pole
+        on it (:func:`repeated_unit_pole`: the error grows like k; the open loop's RMS was
+        7.1 over 100 layers, 110 over 1000) or an RMS that overflowed."""
+        return (not np.isfinite(self.rms) or self.max_pole > 1.0 + UNIT_CIRCLE_TOL
+                or self.repeated_pole is not None)
+
+    @property
+    def repeated_pole(self) -> float | None:
+        """The repeated pole on the unit circle (1.0 or -1.0), None when there is none."""
+        return repeated_unit_pole(self.kp, self.ki, self.kd)
 
     def as_dict(self) -> dict[str, float | bool | None]:
         """Plain values for JSON: ``rms`` is None when the response diverges

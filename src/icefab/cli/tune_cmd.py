@@ -172,7 +172,11 @@ def run(args: argparse.Namespace) -> int:
         return _not_converged(args) if failed else 0
     print(f"gains ({mode}): Kp = {_gain(result.kp)}, Ki* = {_gain(result.ki)}, "
           f"Kd* = {_gain(result.kd)}")
-    if result.diverges and result.max_pole > 1.0:
+    repeated = result.repeated_pole
+    if repeated is not None:   # its computed modulus may be 1 + 1e-8: the rounding's
+        print(f"RMS error sigma_p*: none, the error response diverges (a repeated pole at "
+              f"z = {repeated:g} on the unit circle grows without bound)")
+    elif result.diverges and result.max_pole > 1.0:
         print(f"RMS error sigma_p*: none, the error response diverges (a pole at "
               f"|z| = {result.max_pole:.10g} > 1 grows without bound)")
     elif result.diverges:
@@ -181,7 +185,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"RMS error sigma_p* = {result.rms:.4g} measurement intervals over {n_layers} "
               "layers")
     on_circle = not result.stable and abs(result.max_pole - 1.0) <= UNIT_CIRCLE_TOL
-    verdict = ("UNSTABLE (marginal: a pole on the unit circle, its error never decays)"
+    verdict = ("UNSTABLE (a repeated pole on the unit circle: its error diverges)"
+               if repeated is not None else
+               "UNSTABLE (marginal: a pole on the unit circle, its error never decays)"
                if on_circle else "stable" if result.stable else "UNSTABLE")
     print(f"{verdict}: largest pole modulus {_gain(result.max_pole)}")
     if failed:
