@@ -309,3 +309,16 @@ def test_tune_says_a_repeated_pole_on_the_circle_diverges(capsys):
     assert main(["tune", "--gains", "0.4,0,0"]) == 0
     assert "marginal: a pole on the unit circle, its error never decays" in \
         capsys.readouterr().out
+
+
+def test_a_pole_margin_is_refused_with_the_unconstrained_search(capsys):
+    """``--unconstrained --pole-margin 0.5`` gave a largest pole of 0.672: the margin was
+    silently ignored, BFGS has no constraints to keep it."""
+    assert main(["tune", "--unconstrained", "--pole-margin", "0.5", "--json"]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and len(err.strip().splitlines()) == 1
+    assert "--pole-margin" in err and "--unconstrained" in err
+    with pytest.raises(ConfigError, match="pole_margin = 0.5: only the constrained search"):
+        tune_gains(constrained=False, pole_margin=0.5)
+    assert main(["tune", "--unconstrained", "--json"]) == 0     # without a margin: as before
+    assert strict_json(capsys.readouterr().out)["converged"] is True

@@ -480,7 +480,7 @@ _NAMES = ("kp", "ki", "kd")
 def tune_gains(disturbance: Disturbance | np.ndarray = Disturbance(), *,
                x0: Gains = (1.0, 1.0, 0.0), fix: dict[str, float] | None = None,
                constrained: bool = True, tol: float = 1e-12,
-               pole_margin: float = POLE_MARGIN) -> TuneResult:
+               pole_margin: float | None = None) -> TuneResult:
     """Gains minimising sigma_p* (eq. 5.27) for a disturbance (thesis 5.6).
 
     disturbance: Disturbance or (n,) d_k (normalised); the default is the thesis'
@@ -496,12 +496,20 @@ def tune_gains(disturbance: Disturbance | np.ndarray = Disturbance(), *,
         Kp and Ki* at least ``MIN_GAIN`` (eq. 5.25's volume is open there); otherwise
         unconstrained BFGS (the thesis' FMINCON / FMINUNC), which may return unstable
         gains (``stable`` False). Both use the analytic gradient (eq. 5.34-5.35).
-    pole_margin: in (0, 1), default :data:`POLE_MARGIN` (0.01).
+    pole_margin: in (0, 1), default :data:`POLE_MARGIN` (0.01); only for the constrained
+        search: BFGS has no constraints to hold it, so giving one with
+        ``constrained=False`` is a ConfigError (it was ignored: a margin of 0.5 returned a
+        largest pole of 0.672).
 
     Raises ConfigError when the fixed gains leave no stable choice of the others.
     """
     from scipy.optimize import minimize
 
+    if pole_margin is not None and not constrained:
+        raise ConfigError(f"pole_margin = {pole_margin!r}: only the constrained search keeps "
+                          "the poles within a margin; the unconstrained one has no constraints")
+    if pole_margin is None:
+        pole_margin = POLE_MARGIN
     d = _as_d(disturbance)
     # the model is linear in d: the optimum does not depend on its size, but the solvers'
     # tolerances are absolute, so they run on d scaled to a largest |d_k| of 1 (a noise of

@@ -57,9 +57,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                    help="initial gains of the optimisation (default 1,1,0 as thesis Table 5-2)")
     p.add_argument("--unconstrained", action="store_true",
                    help="search outside the gain-stable volume too (BFGS instead of SLSQP)")
-    p.add_argument("--pole-margin", default="0.01", metavar="EPS",
+    p.add_argument("--pole-margin", default=None, metavar="EPS",
                    help="constrained search: every pole within |z| <= 1 - EPS (to 1e-6), "
-                        "so the result is strictly stable (default 0.01)")
+                        "so the result is strictly stable (default 0.01); not with "
+                        "--unconstrained")
     p.add_argument("--json", action="store_true",
                    help="print one JSON object with kp, ki, kd, rms, max_pole, stable")
     p.add_argument("-o", "--out", metavar="DIR",
@@ -108,6 +109,22 @@ def _triple(text: str, option: str) -> tuple[float, float, float]:
     return kp, ki, kd
 
 
+def _pole_margin(args: argparse.Namespace) -> float | None:
+    """--pole-margin as a number in (0, 1), None when not given; refused with
+    --unconstrained, whose BFGS search has no constraints to keep it (it was ignored: a
+    margin of 0.5 returned a largest pole of 0.672)."""
+    if args.pole_margin is None:
+        return None
+    if args.unconstrained:
+        raise ConfigError("--pole-margin keeps the constrained search's poles within "
+                          "|z| <= 1 - EPS; --unconstrained has no constraints: give one or "
+                          "the other")
+    margin = _number(args.pole_margin, "--pole-margin", lo=0.0)
+    if not 0.0 < margin < 1.0:
+        raise ConfigError(f"--pole-margin = {args.pole_margin!r}: must be in (0, 1)")
+    return margin
+
+
 def run(args: argparse.Namespace) -> int:
     from icefab.feedback import (MAX_LAYERS, UNIT_CIRCLE_TOL, Disturbance, evaluate_gains,
                                  tune_gains)
@@ -144,11 +161,8 @@ def run(args: argparse.Namespace) -> int:
         mode = "evaluated"
     else:
         start = _triple(args.start, "--start")
-        margin = _number(args.pole_margin, "--pole-margin", lo=0.0)
-        if not 0.0 < margin < 1.0:
-            raise ConfigError(f"--pole-margin = {args.pole_margin!r}: must be in (0, 1)")
         result = tune_gains(dist, x0=start, fix=fix, constrained=not args.unconstrained,
-                            pole_margin=margin)
+                            pole_margin=_pole_margin(args))
         mode = "optimised" + (f" (fixed: {', '.join(fix)})" if fix else "")
         if not result.converged:   # they were called "optimised" (hunt P)
             mode = (f"not optimised: the optimiser stopped after {result.iterations} "
