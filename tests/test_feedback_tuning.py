@@ -101,10 +101,11 @@ def test_constrained_results_are_always_strictly_stable(dist, fix, x0):
         with pytest.raises(ConfigError, match="the disturbance is 0 at every layer"):
             tune_gains(dist, x0=x0, fix=fix)
         return
-    if not np.any(dist.sequence()[:-2]):
-        # a disturbance at the last two layers only: its error shows a layer late and the
-        # gains act on it a layer later still (eq. 5.19): nothing to optimise
-        with pytest.raises(ConfigError, match="nothing before its last two layers"):
+    needed = 4 - len(fix)   # layers after the disturbance's start: one per free gain + 1
+    if not np.any(dist.sequence()[:-needed]):
+        # too near the end: its first error is its own whatever the gains and each later
+        # one brings in one more coefficient (eq. 5.19): the optimum is not one point
+        with pytest.raises(ConfigError, match=f"needs {needed} layers after"):
             tune_gains(dist, x0=x0, fix=fix)
         return
     r = tune_gains(dist, x0=x0, fix=fix)
@@ -230,11 +231,11 @@ def test_tune_refuses_what_it_cannot_compute_or_optimise(capsys):
     # a tester's: 1e308 gains were numpy's LinAlgError; a pulse at the last layer came back
     # as "optimised" start gains; a fixed Kp of 0 was "optimised" outside eq. 5.25's volume
     for argv, said in ((["--gains", "1e308,1e308,0"], "too large for the model's polynomial"),
-                       (["--layers", "5", "--pulse", "1@5"], "nothing before its last two"),
+                       (["--layers", "5", "--pulse", "1@5"], "layer 5 of 5, 0 layers after"),
                        # the same a layer earlier, and a run of two layers (a hunt's: the
                        # start gains came back "optimised")
-                       (["--pulse", "1@99"], "nothing before its last two layers"),
-                       (["--noise", "1", "--layers", "2"], "nothing before its last two"),
+                       (["--pulse", "1@99"], "1 layer after it: optimising 3 gains needs 4"),
+                       (["--noise", "1", "--layers", "2"], "needs 4 layers after the"),
                        # numpy's overflow warnings, then an error naming no option
                        (["--pulse", "1e308@60", "--step", "1e308@30"], "add up to more "
                                                                        "than a float holds"),
@@ -322,3 +323,33 @@ def test_a_pole_margin_is_refused_with_the_unconstrained_search(capsys):
         tune_gains(constrained=False, pole_margin=0.5)
     assert main(["tune", "--unconstrained", "--json"]) == 0     # without a margin: as before
     assert strict_json(capsys.readouterr().out)["converged"] is True
+
+
+@pytest.mark.parametrize("argv,after,free", [
+    (["--pulse", "0.5@98"], 2, 3), (["--pulse", "0.5@97"], 3, 3),
+    (["--layers", "3", "--pulse", "1@1"], 2, 3), (["--step", "0.2@97"], 3, 3),
+    (["--pulse", "0.5@98", "--fix-kd", "0.1"], 2, 2),
+    (["--pulse", "0.5@99", "--fix-kp", "1", "--fix-ki", "0.3"], 1, 1)])
+def test_a_disturbance_too_near_the_end_to_fix_the_gains_is_refused(capsys, argv, after,
+                                                                    free):
+    """A pulse at layer 98 of 100 was "optimised": only two errors depend on the gains (the
+    first after it is the pulse's own, eq. 5.19), every Kp + Ki* + Kd* = 1 is optimal, and
+    the start's triple came back; at layer 97 a line of optima. Each free gain needs one
+    layer after the disturbance's start beyond its first."""
+    assert main(["tune", *argv]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{after} layer{'s' * (after != 1)} after it: optimising " \
+        f"{free} gain{'s' * (free != 1)} needs {free + 1} layers after" in err[0], err
+
+
+@pytest.mark.parametrize("dist,fix", [
+    (Disturbance(pulses=((0.5, 96),), steps=()), {}),
+    (Disturbance(pulses=((0.5, 97),), steps=()), {"kd": 0.1}),
+    (Disturbance(pulses=((0.5, 98),), steps=()), {"kp": 1.0, "ki": 0.3}),
+    (Disturbance(n_layers=5, pulses=(), steps=((1.0, 1),)), {})])
+def test_from_one_layer_per_free_gain_after_its_first_error_the_optimum_is_one(dist, fix):
+    found = set()
+    for x0 in ((1.0, 1.0, 0.0), (0.3, 0.6, 0.1), (0.3, 2.0, 0.1), (1.5, 0.2, 0.05)):
+        r = tune_gains(dist, x0=x0, fix=fix)
+        found.add(tuple(np.round([r.kp, r.ki, r.kd], 3)))
+    assert len(found) == 1, found

@@ -477,6 +477,30 @@ def evaluate_gains(gains: Gains, disturbance: Disturbance | np.ndarray) -> TuneR
 _NAMES = ("kp", "ki", "kd")
 
 
+def _check_horizon(d: np.ndarray, n_free: int) -> None:
+    """ConfigError unless the disturbance starts at least ``n_free + 1`` layers before the
+    end, so that the error fixes the free gains.
+
+    By eq. 5.19 the first error after the disturbance starts at layer k0 is the
+    disturbance's own whatever the gains (H(z) has relative degree 1), and each later
+    layer's brings in one more coefficient of the denominator: e_(k0+2) depends on a1 only,
+    e_(k0+3) on a1 and a2, e_(k0+4) on all three. With fewer layers than the free gains
+    plus one, a line or plane of gains is equally optimal (a pulse at layer 98 of 100:
+    every Kp + Ki* + Kd* = 1; at 97: a line) and the start gains came back "optimised";
+    from n_free + 1 layers on, multi-start searches agree on one optimum (a control review).
+    """
+    started = np.flatnonzero(d)
+    k0 = int(started[0]) + 1 if len(started) else len(d) + 1
+    after = len(d) - k0
+    if after < n_free + 1:
+        raise ConfigError(f"the disturbance starts at layer {k0} of {len(d)}, {after} "
+                          f"layer{'s' * (after != 1)} after it: optimising {n_free} "
+                          f"gain{'s' * (n_free != 1)} needs {n_free + 1} layers after the "
+                          "disturbance's start (eq. 5.19: the first error is the "
+                          "disturbance's whatever the gains, each later one brings in one "
+                          "more); give more layers or an earlier disturbance")
+
+
 def tune_gains(disturbance: Disturbance | np.ndarray = Disturbance(), *,
                x0: Gains = (1.0, 1.0, 0.0), fix: dict[str, float] | None = None,
                constrained: bool = True, tol: float = 1e-12,
@@ -519,15 +543,6 @@ def tune_gains(disturbance: Disturbance | np.ndarray = Disturbance(), *,
         raise ConfigError("the disturbance is 0 at every layer: every gain gives no error, "
                           "so there is nothing to optimise (give a pulse, step or noise)")
     d_unit = d / size
-    if not np.any(d_unit[:-2]):
-        # the error follows d a layer late (eq. 5.19, H(z) of relative degree 1) and the
-        # gains act on it one layer later still: a disturbance only at the last two layers
-        # (or a run of two layers) gives the same error whatever the gains, and the start
-        # gains came back "optimised" (a tester's, a hunt's)
-        raise ConfigError("the disturbance has nothing before its last two layers: its error "
-                          "shows a layer late and the gains act on it a layer later still "
-                          "(eq. 5.19), so every gain gives the same error and there is "
-                          "nothing to optimise; give more layers or an earlier disturbance")
     fix = dict(fix or {})
     for k, v in fix.items():
         if k not in _NAMES:
@@ -547,6 +562,7 @@ def tune_gains(disturbance: Disturbance | np.ndarray = Disturbance(), *,
     free = [i for i, n in enumerate(_NAMES) if n not in fix]
     if not free:
         return evaluate_gains(tuple(base), d)  # type: ignore[arg-type]
+    _check_horizon(d_unit, len(free))
 
     def full(x: np.ndarray) -> np.ndarray:
         g = base.copy()
