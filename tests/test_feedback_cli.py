@@ -19,8 +19,9 @@ def test_tune_json_thesis_disturbance(capsys):
                      "--json")
     assert rc == 0
     data = json.loads(out)
-    assert set(data) == {"kp", "ki", "kd", "rms", "max_pole", "stable", "converged"}
-    assert data["converged"] is True
+    assert set(data) == {"kp", "ki", "kd", "rms", "max_pole", "stable", "converged",
+                         "converged_by_check"}
+    assert data["converged"] is True and data["converged_by_check"] is False
     assert data["kp"] == pytest.approx(1.0, abs=2e-3) and abs(data["kd"]) < 2e-3
     assert data["ki"] == pytest.approx(0.33, abs=5e-3)
     assert data["rms"] == pytest.approx(0.061, abs=5e-4) and data["stable"] is True

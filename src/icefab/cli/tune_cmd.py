@@ -62,7 +62,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         "so the result is strictly stable (default 0.01); not with "
                         "--unconstrained")
     p.add_argument("--json", action="store_true",
-                   help="print one JSON object with kp, ki, kd, rms, max_pole, stable")
+                   help="print one JSON object with kp, ki, kd, rms, max_pole, stable, "
+                        "converged, converged_by_check")
     p.add_argument("-o", "--out", metavar="DIR",
                    help="write DIR/error_response.png and DIR/tune.json")
     p.set_defaults(func=run)
@@ -164,6 +165,9 @@ def run(args: argparse.Namespace) -> int:
         result = tune_gains(dist, x0=start, fix=fix, constrained=not args.unconstrained,
                             pole_margin=_pole_margin(args))
         mode = "optimised" + (f" (fixed: {', '.join(fix)})" if fix else "")
+        if result.converged_by_check:   # SLSQP's own flag said no: say why it is taken
+            mode += (f"; the optimiser stopped ({result.message.split(';')[0]}) at a point "
+                     "that a restart and probes around it could not better")
         if not result.converged:   # they were called "optimised" (hunt P)
             mode = (f"not optimised: the optimiser stopped after {result.iterations} "
                     f"iterations, {result.message.rstrip('.')}; try another --start")
