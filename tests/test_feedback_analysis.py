@@ -206,7 +206,7 @@ def test_stable_volume_edges():
 @pytest.mark.parametrize("gains,kind", [((1.0, 0.33, 0.03), None),      # the defaults
                                         ((1.0, 0.33, 0.45), "grows"),   # Fig. 5-12
                                         ((1.0, 0.0, 0.0), "stays"),     # no integral
-                                        ((0.0, 0.0, 0.0), "stays")])    # no control
+                                        ((0.0, 0.0, 0.0), "grows")])    # no control
 def test_a_jobs_gains_verdict(gains, kind):
     from icefab import Job
     from icefab.feedback import gains_verdict

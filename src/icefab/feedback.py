@@ -147,8 +147,9 @@ def repeated_unit_pole(kp: float, ki: float, kd: float) -> float | None:
 def gains_verdict(job: "Job") -> tuple[str, str] | None:
     """What the job's SMF gains (``feedback.kp``, ``ki``, ``kd``) do to the loop, when
     they do not make it stable (thesis 5.5, eq. 5.22): ("grows", text) for a pole outside
-    the unit circle, the error growing from one measurement to the next; ("stays", text)
-    for a pole on it, the error never decaying; None for stable gains or feedback off.
+    the unit circle or a repeated one on it (:func:`repeated_unit_pole`), the error
+    growing from one measurement to the next; ("stays", text) for a single pole on it,
+    the error never decaying; None for stable gains or feedback off.
     Only ``icefab tune`` checked gains: a job's unstable ones ran a build and a
     simulation without a word (a control review: the thesis' own unstable example,
     1 / 0.33 / 0.45, oscillated +-0.1 mm on the simulated cell)."""
@@ -163,6 +164,12 @@ def gains_verdict(job: "Job") -> tuple[str, str] | None:
         return "grows", (f"{gains} make the SMF loop unstable (largest pole modulus {m:.4f} "
                          "> 1, thesis 5.5): the height error grows from one measurement to "
                          "the next; 'icefab tune' gives stable gains")
+    z0 = repeated_unit_pole(fb.kp, fb.ki, fb.kd)
+    if z0 is not None:
+        return "grows", (f"{gains} put a repeated pole of the SMF loop at z = {z0:g} "
+                         "(thesis 5.5): the height error grows from one measurement to the "
+                         "next, as with no control at all (feedback.enabled = false builds "
+                         "open loop); 'icefab tune' gives stable gains")
     return "stays", (f"{gains} put a pole of the SMF loop on the unit circle (thesis 5.5): "
                      "the height error never decays; 'icefab tune' gives stable gains")
 
