@@ -174,6 +174,37 @@ def test_ascii_stl_uppercase_multisolid_and_crlf(tmp_path):
     _same_geometry(load_mesh(p), ref)
 
 
+@pytest.mark.parametrize("edit", ["no solid line", "comment first"])
+def test_ascii_stl_without_its_solid_line_first(tmp_path, caplog, edit):
+    """Exporters that leave out 'solid', or write a comment before it: read from the first
+    'solid'/'facet' line (both were 'truncated binary STL ... declares 775041312 facets',
+    the first bytes read as a facet count)."""
+    ref = _tm("box")
+    lines = trimesh.exchange.stl.export_stl_ascii(ref).splitlines()
+    lines = lines[1:] if edit == "no solid line" else ["# exported by foo", *lines]
+    p = tmp_path / "box.stl"
+    p.write_text("\n".join(lines) + "\n")
+    with caplog.at_level(logging.WARNING):
+        _same_geometry(load_mesh(p), ref)
+    assert ("skipped 1 lines" in caplog.text) == (edit == "comment first")
+
+
+def test_error_text_stl_without_facets_is_not_called_binary(tmp_path):
+    p = tmp_path / "notes.stl"
+    p.write_text("these are not the facets you are looking for\n" * 3)
+    with pytest.raises(MeshError, match=r"notes\.stl: ASCII text that does not start with "
+                                        r"'solid'") as info:
+        load_mesh(p)
+    assert "\n" not in str(info.value)
+    # a real ASCII STL's bad line after a comment is still named by its own line number
+    text = trimesh.exchange.stl.export_stl_ascii(_tm("box")).splitlines()
+    text[4] = "vertx 1 2 3"
+    q = tmp_path / "bad.stl"
+    q.write_text("\n".join(["# a comment", *text]))
+    with pytest.raises(MeshError, match=r"bad\.stl: ASCII STL line 6: unexpected token"):
+        load_mesh(q)
+
+
 @pytest.mark.parametrize("kind", KINDS)
 @pytest.mark.parametrize("fmt", ["binary_little_endian", "binary_big_endian", "ascii"])
 def test_ply(tmp_path, kind, fmt):

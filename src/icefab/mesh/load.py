@@ -46,6 +46,14 @@ def _is_text(data: bytes | memoryview) -> bool:
     return bool(_TEXT_BYTES[np.frombuffer(data, np.uint8)].all())
 
 
+def _is_stl_text(head: bytes) -> bool:
+    """Whether the text ``head`` holds the lines of ASCII STL facets ('facet normal' and
+    'vertex' lines): an ASCII STL some exporters write without its 'solid' line, or with
+    a comment before it (read from its first 'solid' or 'facet' keyword)."""
+    return bool(re.search(rb"(?im)^[ \t]*facet[ \t]+normal[ \t]", head)
+                and re.search(rb"(?im)^[ \t]*vertex[ \t]", head))
+
+
 def _sniff(data: bytes, path: Path) -> str:
     """The format of ``data``: 'stl', 'stl-ascii', 'ply' or 'obj' (content first)."""
     ext = path.suffix.lower()
@@ -68,7 +76,15 @@ def _sniff(data: bytes, path: Path) -> str:
     if _is_text(data[:4096]) and re.search(rb"(?m)^[ \t]*(v|f|vn|vt|o|g|mtllib|usemtl)[ \t]",
                                            data[:65536]):
         return "obj"
+    if _is_text(data[:4096]) and _is_stl_text(data[:65536]):
+        return "stl-ascii"  # without its 'solid' line, or after a comment (stl.read_ascii)
     if ext == ".stl" and len(data) >= 84:
+        if _is_text(data[:4096]):
+            # its first bytes read as a facet count of hundreds of millions: "truncated
+            # binary STL ... declares 775041312 facets" (a tester's)
+            raise MeshError(f"{path}: ASCII text that does not start with 'solid' and holds "
+                            "no 'facet normal'/'vertex' lines: neither an ASCII nor a binary "
+                            "STL")
         return "stl"
     if ext == ".obj" and _is_text(data[:4096]):
         return "obj"

@@ -7,12 +7,15 @@
 * ASCII STL — one compiled pass (numba) over the bytes checks the grammar (errors give
   the line) and converts the coordinates (an exact fast path; ``strtod`` via
   ``np.fromstring`` in one call for the long mantissas it leaves), no per-line Python.
+  Lines before the first 'solid' or 'facet' line (a comment, or a file without its
+  'solid' line) are skipped with a warning.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -168,8 +171,33 @@ def _scan_stl_ascii(b):  # pragma: no cover
 
 
 
+_FIRST_KEYWORD = re.compile(rb"(?im)^[ \t]*(solid|facet)\b")
+_NOT_NEWLINE = bytes(10 if c == 10 else 32 for c in range(256))  # bytes.translate table
+
+
+def _skip_preamble(data: bytes, path: Path) -> bytes:
+    """``data`` with the lines before its first 'solid' or 'facet' line blanked (their
+    newlines kept, so error messages count lines as an editor does).
+
+    Some exporters write a comment line before 'solid', or no 'solid' line at all; the
+    grammar has no comments, and the first word of a line that is none of its keywords
+    was 'unexpected token'. The skipped lines are logged as a warning."""
+    head = data[:64].lstrip()[:5].lower()
+    if head in (b"solid", b"facet"):
+        return data
+    m = _FIRST_KEYWORD.search(data)
+    if m is None:
+        return data  # the scanner names the first line
+    skipped = data[:m.start()]
+    first = skipped.strip().split(b"\n", 1)[0][:60].decode("ascii", "replace").strip()
+    log.warning("%s: ASCII STL: skipped %d lines before its first 'solid'/'facet' line "
+                "(the first reads %r)", path, skipped.count(b"\n"), first)
+    return skipped.translate(_NOT_NEWLINE) + data[m.start():]
+
+
 def read_ascii(data: bytes, path: Path) -> np.ndarray:
     """Corner coordinates (3 m, 3) float64 of an ASCII STL (one scan, one conversion)."""
+    data = _skip_preamble(data, path)
     b = np.frombuffer(data, np.uint8)
     buf, values, slow, vlines, err, line = _scan_stl_ascii(b)
     if err:
