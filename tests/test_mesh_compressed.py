@@ -1,7 +1,12 @@
-"""Gzip-compressed meshes read through the normal loader, and the bounds on decompression."""
+"""Compressed meshes (gzip, xz, bzip2) read through the normal loader, and the bounds on
+decompression."""
 from __future__ import annotations
 
+import bz2
 import gzip
+import io
+import lzma
+import zipfile
 
 import numpy as np
 import pytest
@@ -90,3 +95,72 @@ def test_fuzzed_gzip_gives_a_mesh_or_mesh_error(tmp_path_factory, body, at, xor)
 def test_zlib_errors_never_escape():
     with pytest.raises(MeshError):
         compressed.gunzip(b"\x1f\x8b" + b"\0" * 30, compressed.Path("x.gz"))
+
+
+COMPRESSORS = {"xz": lzma.compress, "bzip2": bz2.compress}
+
+
+@pytest.mark.parametrize("kind", COMPRESSORS)
+@pytest.mark.parametrize("name,data", [("t.obj", OBJ), ("t.ply", PLY)])
+def test_xz_and_bzip2_read_like_the_plain_file(tmp_path, kind, name, data):
+    """xz and bzip2 from the standard library, by their magic bytes (both were 'unknown
+    mesh format'); concatenated streams are one file, as for gzip."""
+    plain = tmp_path / name
+    plain.write_bytes(data)
+    packed = tmp_path / (name + ".x")   # the extension is not needed
+    packed.write_bytes(COMPRESSORS[kind](data[:50]) + COMPRESSORS[kind](data[50:]))
+    _same(read_mesh(plain)[0], read_mesh(packed)[0])
+
+
+@pytest.mark.parametrize("kind", COMPRESSORS)
+def test_xz_and_bzip2_bombs_refused_before_they_are_held(tmp_path, monkeypatch, kind):
+    p = tmp_path / "bomb.stl.z"
+    p.write_bytes(COMPRESSORS[kind](b"\0" * (3 << 20)))
+    monkeypatch.setattr(compressed, "MAX_DECOMPRESSED_BYTES", 1 << 20)
+    with pytest.raises(MeshError, match=rf"bomb\.stl\.z: {kind}-compressed mesh expands to "
+                                        r"more than 1 MiB"):
+        read_mesh(p)
+
+
+@pytest.mark.parametrize("kind", COMPRESSORS)
+@pytest.mark.parametrize("damage,message", [
+    (lambda d: d[:-9], "truncated {} data"),
+    (lambda d: d + b"junk", "trailing garbage after the {} data"),
+    (lambda d: d[:60] + bytes([d[60] ^ 0xFF]) + d[61:], "corrupt {} data"),
+])
+def test_damaged_xz_and_bzip2_are_one_line_naming_the_file(tmp_path, kind, damage, message):
+    p = tmp_path / "t.obj.z"
+    p.write_bytes(damage(COMPRESSORS[kind](OBJ * 50)))
+    with pytest.raises(MeshError, match=rf"t\.obj\.z: .*{message.format(kind)}") as info:
+        read_mesh(p)
+    assert "\n" not in str(info.value)
+
+
+def test_zip_holding_a_mesh_is_told_to_extract_it(tmp_path):
+    """A zip archive (meshes come so from download sites) was told to take the .npz
+    extension of icefab's result files; it is named with what it holds."""
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as z:
+        z.writestr("tetra.obj", OBJ)
+    p = tmp_path / "tetra.zip"
+    p.write_bytes(buf.getvalue())
+    with pytest.raises(MeshError, match=r"tetra\.zip: a zip archive holding tetra\.obj, not "
+                                        r"a mesh: extract the mesh") as info:
+        read_mesh(p)
+    assert ".npz" not in str(info.value)
+
+
+@seed(1011)
+@settings(max_examples=40, deadline=None)
+@given(st.sampled_from(sorted(COMPRESSORS)), st.binary(max_size=200), st.integers(0, 300),
+       st.integers(1, 255))
+def test_fuzzed_xz_and_bzip2_give_a_mesh_or_mesh_error(tmp_path_factory, kind, body, at, xor):
+    packed = bytearray(COMPRESSORS[kind](OBJ + body))
+    if at < len(packed):
+        packed[at] ^= xor
+    p = tmp_path_factory.mktemp("z") / "f.obj.z"
+    p.write_bytes(bytes(packed))
+    try:
+        read_mesh(p)
+    except MeshError as exc:
+        assert str(exc).startswith(str(p)) and "\n" not in str(exc)

@@ -6,21 +6,24 @@ corner soup for STL), which are checked for NaN/Inf, welded
 (:func:`icefab.mesh.topology.weld_vertices`) and cleaned
 (:func:`icefab.mesh.repair.clean_mesh`).
 
-A gzip-compressed file of any of these formats is read too (recognised by content,
-:mod:`icefab.mesh.compressed`, with a bound on the decompressed size).
+A gzip-, xz- or bzip2-compressed file of any of these formats is read too (recognised by
+content, :mod:`icefab.mesh.compressed`, with a bound on the decompressed size).
 
 Errors (:class:`~icefab.errors.MeshError`, the message names the file): missing or empty
-file, corrupt or oversized gzip data, unknown format, truncated binary STL or PLY, NaN/Inf coordinates, text that cannot
-be read (with its line number), face index out of range, nothing but degenerate faces.
+file, corrupt or oversized compressed data, a zip archive, unknown format, truncated binary
+STL or PLY, NaN/Inf coordinates, text that cannot be read (with its line number), face
+index out of range, nothing but degenerate faces.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import io
 import logging
 import math
 import os
 import re
+import zipfile
 from pathlib import Path
 from typing import Callable, Iterable, NamedTuple, Sequence
 
@@ -57,7 +60,7 @@ def _is_stl_text(head: bytes) -> bool:
 def _sniff(data: bytes, path: Path) -> str:
     """The format of ``data``: 'stl', 'stl-ascii', 'ply' or 'obj' (content first)."""
     ext = path.suffix.lower()
-    if ext == ".gz":  # part.obj.gz: the hint is the extension under the compression's
+    if ext in compressed.SUFFIXES:  # part.obj.gz: the hint is the extension under it
         ext = Path(path.stem).suffix.lower()
     head = data[:5].lower()
     if data[:3] == b"ply" and data[3:4] in (b"\n", b"\r", b" "):
@@ -91,14 +94,36 @@ def _sniff(data: bytes, path: Path) -> str:
     if head == b"ply":
         return "ply"
     if data[:4] == b"PK\x03\x04":   # a zip: icefab's result files are .npz archives
-        if ext == ".npz":   # it said to give the file the extension it had (hunt P)
-            raise MeshError(f"{path}: one of icefab's result files, not a mesh: this needs a "
-                            "mesh (STL, PLY, OBJ), or the command that reads this file")
-        raise MeshError(f"{path}: not a mesh but a zip archive, like icefab's result files "
-                        "(stack, toolpaths, trajectories): give such a file its .npz "
-                        "extension, or a mesh (STL, PLY, OBJ)")
+        raise MeshError(_zip_message(data, path, ext))
     raise MeshError(f"{path}: unknown mesh format (not binary/ASCII STL, PLY or OBJ by its "
                     f"content; extension {ext or 'none'!r})")
+
+
+def _zip_members(data: bytes) -> list[str]:
+    """The names of the files in the zip archive ``data`` (none when it cannot be read)."""
+    try:
+        with zipfile.ZipFile(io.BytesIO(data)) as z:
+            return z.namelist()
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError):
+        return []
+
+
+def _zip_message(data: bytes, path: Path, ext: str) -> str:
+    """Why a zip archive is refused, and what to do: icefab's result files are numpy .npz
+    archives (every member a .npy); any other zip (a mesh packed by a web site) was told
+    to take the .npz extension, wrong advice: it must be extracted."""
+    names = _zip_members(data)
+    if names and all(n.endswith(".npy") for n in names):
+        if ext == ".npz":   # it said to give the file the extension it had (hunt P)
+            return (f"{path}: one of icefab's result files, not a mesh: this needs a mesh "
+                    "(STL, PLY, OBJ), or the command that reads this file")
+        return (f"{path}: not a mesh but a zip archive, like icefab's result files (stack, "
+                "toolpaths, trajectories): give such a file its .npz extension, or a mesh "
+                "(STL, PLY, OBJ)")
+    shown = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+    held = f" holding {shown}" if names else ""
+    return (f"{path}: a zip archive{held}, not a mesh: extract the mesh (STL, PLY, OBJ) "
+            "from it and give that file")
 
 
 def _check_finite(points: np.ndarray, path: Path, corners: bool = False) -> None:
@@ -147,8 +172,7 @@ def read_mesh(path: str | os.PathLike[str], *, inexact: bool = False,
     if tolerance <= 0 or not math.isfinite(tolerance):
         raise MeshError(f"{p}: weld tolerance {tolerance!r} must be a positive number (mm)")
     data = read_input(p, "mesh", MeshError, "mesh file")  # regular, <= 1 GiB; no FIFO wait
-    if compressed.is_gzip(data):
-        data = compressed.gunzip(data, p)
+    data = compressed.unpack(data, p)  # gzip, xz or bzip2 by its magic; else unchanged
     if not data[:4096].strip() and not data.strip():
         raise MeshError(f"{p}: empty file, expected a mesh (STL, PLY or OBJ)")
     if data[:3] == b"\xef\xbb\xbf" and _is_text(data[3:4099]):
