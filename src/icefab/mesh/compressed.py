@@ -50,8 +50,9 @@ def gunzip(data: bytes, path: Path, limit: int | None = None) -> bytes:
     """The decompressed bytes of the gzip file ``data`` (read from ``path``).
 
     limit: largest decompressed size, bytes (default :data:`MAX_DECOMPRESSED_BYTES`).
-    Raises :class:`MeshError` naming ``path`` for a corrupt or truncated gzip stream and for output larger than ``limit`` (checked while
-    decompressing, in 1 MiB steps, so a bomb never reaches memory).
+    Raises :class:`MeshError` naming ``path`` for a corrupt or truncated gzip stream and
+    for output larger than ``limit`` (checked while decompressing, in 1 MiB steps, so a
+    bomb never reaches memory).
     """
     limit = MAX_DECOMPRESSED_BYTES if limit is None else limit
     out: list[bytes] = []
