@@ -9,6 +9,7 @@ from __future__ import annotations
 import gzip
 import io
 import logging
+import re
 import struct
 
 import numpy as np
@@ -187,6 +188,35 @@ def test_ascii_stl_without_its_solid_line_first(tmp_path, caplog, edit):
     with caplog.at_level(logging.WARNING):
         _same_geometry(load_mesh(p), ref)
     assert ("skipped 1 lines" in caplog.text) == (edit == "comment first")
+
+
+@pytest.mark.parametrize("edit", [
+    lambda t: t.replace(b"\n", b"\r"),              # classic Mac OS line ends
+    lambda t: t.replace(b"\n", b"\r", 1),           # a CR alone after the 'solid' line
+    lambda t: t + b"\x1a",                          # DOS end-of-file mark
+    lambda t: t + b"\0" * (-len(t) % 512),          # padded to a block, a small file
+    lambda t: t + b"\r\n\x1a" + b"\0" * 5000,       # padding past the sniffed 4 kB
+    lambda t: t.replace(b"normal 0", b"normal -nan(ind)"),   # MSVC's NaN normals
+    lambda t: re.sub(rb"normal \S+ \S+ \S+", b"normal 1.#QNAN0 1.#QNAN0 1.#QNAN0", t),
+], ids=["cr-only", "solid-cr", "ctrl-z", "nul-block", "nul-long", "nan-ind", "qnan"])
+def test_ascii_stl_line_ends_padding_and_unreadable_normals(tmp_path, edit):
+    """Were 'without facets' (CR-only), 'unexpected token' (after endsolid, a line ended by
+    CR alone after 'solid') and 'expected three numbers' (normals, never used)."""
+    ref = _tm("box")
+    text = trimesh.exchange.stl.export_stl_ascii(ref).encode()
+    assert b"normal 0" in text
+    p = tmp_path / "box.stl"
+    p.write_bytes(edit(text))
+    _same_geometry(load_mesh(p), ref)
+
+
+def test_error_ascii_stl_normal_short_names_the_facet_line(tmp_path):
+    text = trimesh.exchange.stl.export_stl_ascii(_tm("box")).splitlines()
+    k = 1 + 7 * 2   # third facet's line
+    assert text[k].strip().startswith("facet normal")
+    text[k] = "facet normal 0 0"
+    with pytest.raises(MeshError, match=rf"n\.stl: ASCII STL line {k + 1}: expected three"):
+        load_mesh(_write(tmp_path, "n.stl", "\n".join(text).encode()))
 
 
 def test_error_text_stl_without_facets_is_not_called_binary(tmp_path):

@@ -176,14 +176,6 @@ def _next_token(b, i, line):  # pragma: no cover
 
 
 @njit(cache=True)
-def _skip_line(b, i):  # pragma: no cover
-    n = b.size
-    while i < n and b[i] != 10:
-        i += 1
-    return i
-
-
-@njit(cache=True)
 def _store_number(b, s, e, values, slot, slow, ns, out, o):  # pragma: no cover
     """Put the number token b[s:e] into ``values[slot]``.
 

@@ -63,6 +63,8 @@ def _sniff(data: bytes, path: Path) -> str:
     if ext in compressed.SUFFIXES:  # part.obj.gz: the hint is the extension under it
         ext = Path(path.stem).suffix.lower()
     head = data[:5].lower()
+    # NUL or Ctrl-Z padding at the end of a small text file is not binary (stl.read_ascii)
+    text = _is_text(data[:4096].rstrip(b"\0\x1a"))
     if data[:3] == b"ply" and data[3:4] in (b"\n", b"\r", b" "):
         return "ply"
     if len(data) >= 84:
@@ -73,23 +75,23 @@ def _sniff(data: bytes, path: Path) -> str:
             if not (data[:256].lstrip()[:5].lower() == b"solid" and _is_text(data[84:4180])):
                 return "stl"
     if data[:256].lstrip()[:5].lower() == b"solid":
-        if _is_text(data[:4096]):
+        if text:
             return "stl-ascii"
         return "stl"  # a binary STL with a "solid" header (size checked by the reader)
-    if _is_text(data[:4096]) and re.search(rb"(?m)^[ \t]*(v|f|vn|vt|o|g|mtllib|usemtl)[ \t]",
+    if text and re.search(rb"(?m)^[ \t]*(v|f|vn|vt|o|g|mtllib|usemtl)[ \t]",
                                            data[:65536]):
         return "obj"
-    if _is_text(data[:4096]) and _is_stl_text(data[:65536]):
+    if text and _is_stl_text(data[:65536]):
         return "stl-ascii"  # without its 'solid' line, or after a comment (stl.read_ascii)
     if ext == ".stl" and len(data) >= 84:
-        if _is_text(data[:4096]):
+        if text:
             # its first bytes read as a facet count of hundreds of millions: "truncated
             # binary STL ... declares 775041312 facets" (a tester's)
             raise MeshError(f"{path}: ASCII text that does not start with 'solid' and holds "
                             "no 'facet normal'/'vertex' lines: neither an ASCII nor a binary "
                             "STL")
         return "stl"
-    if ext == ".obj" and _is_text(data[:4096]):
+    if ext == ".obj" and text:
         return "obj"
     if head == b"ply":
         return "ply"

@@ -25,7 +25,7 @@ from icefab.atomic import write_atomic
 from icefab.core import Mesh
 from icefab.errors import MeshError
 from icefab.mesh._text import (_E_EOF, _E_NUMBER, _E_TOKEN, _E_VCOUNT, _check_finite_lines,
-                               _finish_numbers, _is_number, _line_text, _next_token, _skip_line,
+                               _finish_numbers, _is_number, _line_text, _next_token,
                                _store_number, _tok_eq)
 
 log = logging.getLogger(__name__)
@@ -72,6 +72,16 @@ _KW_ENDFACET = np.frombuffer(b"endfacet", np.uint8)
 
 
 @njit(cache=True)
+def _skip_name(b, i):  # pragma: no cover
+    """Index of the end of the 'solid'/'endsolid' line from i: its LF or CR (a name line
+    ended by a CR alone swallowed the first facet's line)."""
+    n = b.size
+    while i < n and b[i] != 10 and b[i] != 13:
+        i += 1
+    return i
+
+
+@njit(cache=True)
 def _scan_stl_ascii(b):  # pragma: no cover
     """Check the ASCII STL grammar and collect the vertex coordinate tokens.
 
@@ -103,7 +113,7 @@ def _scan_stl_ascii(b):  # pragma: no cover
             if in_facet:
                 err = _E_TOKEN
                 break
-            i = _skip_line(b, e)
+            i = _skip_name(b, e)
         elif _tok_eq(b, s, e, _KW_FACET):
             if in_facet:
                 err = _E_TOKEN
@@ -112,10 +122,14 @@ def _scan_stl_ascii(b):  # pragma: no cover
             if not _tok_eq(b, s, e, _KW_NORMAL):
                 err = _E_TOKEN
                 break
+            fline = line
             for _ in range(3):
+                # any three tokens on the facet's line: the normal is never used, and
+                # MSVC-built exporters write a NaN one as -nan(ind) or 1.#QNAN0
                 s, e, line = _next_token(b, e, line)
-                if not _is_number(b, s, e):
+                if s >= n or line != fline:
                     err = _E_NUMBER
+                    line = fline  # the facet's line, not the next one's
                     break
             if err:
                 break
@@ -195,10 +209,27 @@ def _skip_preamble(data: bytes, path: Path) -> bytes:
     return skipped.translate(_NOT_NEWLINE) + data[m.start():]
 
 
+def _content_end(data: bytes) -> int:
+    """Length of ``data`` without its padding: NUL or Ctrl-Z bytes (among whitespace) at
+    its end, which some DOS-era and fixed-block writers append after 'endsolid' (they
+    were 'unexpected token')."""
+    tail = data[-65536:]
+    kept = tail.rstrip(b" \t\r\n\0\x1a")
+    cut = tail[len(kept):]
+    if b"\0" in cut or b"\x1a" in cut:
+        return len(data) - len(cut)
+    return len(data)
+
+
 def read_ascii(data: bytes, path: Path) -> np.ndarray:
-    """Corner coordinates (3 m, 3) float64 of an ASCII STL (one scan, one conversion)."""
+    """Corner coordinates (3 m, 3) float64 of an ASCII STL (one scan, one conversion).
+
+    Lines end in LF, CRLF or CR alone (classic Mac OS: a CR-only file was 'without
+    facets', its lines counted as one)."""
+    if b"\n" not in data and b"\r" in data:
+        data = data.replace(b"\r", b"\n")
     data = _skip_preamble(data, path)
-    b = np.frombuffer(data, np.uint8)
+    b = np.frombuffer(data, np.uint8)[:_content_end(data)]
     buf, values, slow, vlines, err, line = _scan_stl_ascii(b)
     if err:
         what = {_E_TOKEN: "unexpected token", _E_NUMBER: "expected three numbers",
