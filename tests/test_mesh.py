@@ -872,6 +872,59 @@ def test_error_ascii_ply_counts_that_do_not_match_its_lines(tmp_path):
     assert len(mesh.faces) == 12
 
 
+def _ascii_tetra_ply(face_lines, head_faces="property list uchar int vertex_indices\n",
+                     n_faces=None, before="") -> bytes:
+    """A unit tetrahedron as ASCII PLY text, its face lines given."""
+    n = len(face_lines) if n_faces is None else n_faces
+    return (f"ply\nformat ascii 1.0\n{before}element vertex 4\nproperty float x\n"
+            f"property float y\nproperty float z\nelement face {n}\n{head_faces}"
+            "end_header\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n"
+            + "".join(f"{ln}\n" for ln in face_lines)).encode()
+
+
+TETRA = ["3 0 2 1", "3 0 1 3", "3 0 3 2", "3 1 2 3"]
+
+
+def test_ascii_ply_without_faces_says_so_as_binary_does(tmp_path):
+    """An ASCII PLY declaring 0 faces was 'element face has no vertex index list'."""
+    for fmt in ("ascii", "binary_little_endian"):
+        data = _ply_bytes(np.eye(3), np.zeros((0, 3), int), fmt=fmt)
+        with pytest.raises(MeshError, match=r"e\.ply: the mesh has no faces"):
+            load_mesh(_write(tmp_path, "e.ply", data))
+
+
+@pytest.mark.parametrize("faces", [1, 6])
+def test_error_ascii_ply_face_lines_longer_than_their_header_name_the_line(tmp_path, faces):
+    """Face lines holding a list the header does not declare (trimesh's fuze_ascii.ply):
+    'truncated or corrupt' or 'numbers are left' named no line."""
+    head = ("property list uchar int vertex_indices\nproperty list uchar float texcoord\n"
+            "property uchar red\nproperty uchar green\nproperty uchar blue\n")
+    lines = [f"{f} 6 .1 .2 .3 .4 .5 .6 9 1 1 1 1 1 1 1 1 1" for f in TETRA * faces]
+    data = _ascii_tetra_ply(lines, head)
+    with pytest.raises(MeshError, match=r"f\.ply: ASCII PLY line 18 has 21 numbers; a face "
+                                        r"record there needs 14 \(header: vertex_indices, "
+                                        r"texcoord, red, green, blue\)"):
+        load_mesh(_write(tmp_path, "f.ply", data))
+
+
+def test_ascii_ply_with_cr_only_line_ends(tmp_path):
+    """A classic Mac OS file (CR alone) was 'unknown header keyword plyformat'; a bad
+    body line is still named by its line."""
+    data = _ascii_tetra_ply(TETRA)
+    assert load_mesh(_write(tmp_path, "cr.ply", data.replace(b"\n", b"\r"))).n_faces == 4
+    bad = data.replace(b"\n0 0 1\n", b"\n0 0 x\n").replace(b"\n", b"\r")
+    with pytest.raises(MeshError, match=r"bad\.ply: ASCII PLY line 13: cannot read"):
+        load_mesh(_write(tmp_path, "bad.ply", bad))
+
+
+def test_binary_ply_with_cr_only_header(tmp_path):
+    v, quads = _box_quads()
+    data = _ply_bytes(v, None, polygons=quads)
+    end = data.index(b"end_header\n") + 11
+    cr = data[:end].replace(b"\n", b"\r") + data[end:]
+    assert load_mesh(_write(tmp_path, "box.ply", cr)).n_faces == 12
+
+
 def test_error_ply_point_cloud(tmp_path):
     data = (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n"
             b"property float z\nend_header\n1 2 3\n")

@@ -1,6 +1,9 @@
 """PLY, binary (little/big endian) and ASCII: every element is read with one structured
 dtype; extra properties are skipped; faces with any list count type; polygons are
 fan-triangulated; a ``tristrips`` element (``-1`` restarts) is decoded vectorised.
+
+Header lines end in LF, CRLF or CR alone. An ASCII body that does not hold what its header
+declares is refused naming its first line that does not.
 """
 
 from __future__ import annotations
@@ -45,15 +48,18 @@ def _ply_header(data: bytes, path: Path) -> tuple[str, list[_PlyElement], int, i
     end = data.find(b"end_header")
     if end < 0:
         raise MeshError(f"{path}: PLY header without 'end_header'")
-    body = data.find(b"\n", end)
-    body = len(data) if body < 0 else body + 1
     try:
         text = data[:end].decode("ascii")
     except UnicodeDecodeError:
         raise MeshError(f"{path}: PLY header is not ASCII text") from None
+    # lines end in LF, CRLF or CR alone (classic Mac OS: a CR-only header was one line,
+    # 'unknown header keyword plyformat'); the body starts after end_header's line end
+    cr_only = "\r" in text and "\n" not in text
+    body = data.find(b"\r" if cr_only else b"\n", end)
+    body = len(data) if body < 0 else body + 1
     fmt = ""
     elements: list[_PlyElement] = []
-    lines = text.replace("\r", "").split("\n")
+    lines = text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
     for ln, raw in enumerate(lines, start=1):
         words = raw.split()
         if not words or words[0] in ("ply", "comment", "obj_info"):
@@ -245,8 +251,11 @@ def _ply_element_ascii(t: np.ndarray, pos: int, el: _PlyElement,
     """Read one element from the token array ``t`` (ASCII PLY) starting at token ``pos``."""
     remaining = len(t) - pos
     kinds = [q.count is not None for q in el.props]
-    if el.n == 0:
-        return _PlyData({}, {}), pos
+    if el.n == 0:  # its properties, empty, as the binary reader gives them: a face element
+        # of 0 records was 'has no vertex index list', for 'the mesh has no faces'
+        return _PlyData({q.name: np.zeros(0) for q in el.props if q.count is None},
+                        {q.name: (np.zeros(0), np.zeros(0, np.int64))
+                         for q in el.props if q.count is not None}), pos
     if el.n * max(len(kinds), 1) > remaining:
         raise MeshError(f"{path}: truncated ASCII PLY: element {el.name!r} declares {el.n} "
                         f"records but only {remaining} numbers remain")
@@ -331,16 +340,7 @@ def _check_ascii_records(data: bytes, body: int, elements: list[_PlyElement],
     several on one) is taken as it is."""
     if left == 0:
         return
-    b = np.frombuffer(data, np.uint8)[body:]
-    if not len(b):
-        lines = 0
-    else:
-        ends = np.flatnonzero(b == 10)
-        if b[-1] != 10:
-            ends = np.append(ends, len(b))
-        seen = np.concatenate([[0], np.cumsum(b > 32)])   # non-blank bytes before each
-        starts = np.concatenate([[0], ends[:-1] + 1])
-        lines = int(np.count_nonzero(seen[ends] > seen[starts]))
+    lines = _body_lines(data, body)
     records = sum(e.n for e in elements)
     if left is None and lines == records:
         return
@@ -354,27 +354,50 @@ def _check_ascii_records(data: bytes, body: int, elements: list[_PlyElement],
                     f"{extra}the body has {lines} lines, one record a line")
 
 
+def _body_lines(data: bytes, body: int) -> int:
+    """The number of non-blank lines of the body ``data[body:]``."""
+    b = np.frombuffer(data, np.uint8)[body:]
+    if not len(b):
+        return 0
+    ends = np.flatnonzero(b == 10)
+    if b[-1] != 10:
+        ends = np.append(ends, len(b))
+    seen = np.concatenate([[0], np.cumsum(b > 32)])   # non-blank bytes before each
+    starts = np.concatenate([[0], ends[:-1] + 1])
+    return int(np.count_nonzero(seen[ends] > seen[starts]))
+
+
+def _record_width(words: list[bytes], props: list[_PlyProp]) -> int | None:
+    """How many numbers a record of ``props`` starting with ``words`` holds, its list
+    counts read from ``words``; None when a count is missing or not a whole number."""
+    at = 0
+    for q in props:
+        if q.count is not None:
+            try:
+                c = float(words[at])
+            except (IndexError, ValueError):
+                return None
+            if not (0 <= c < 2**31 and c.is_integer()):
+                return None
+            at += int(c)
+        at += 1
+    return at
+
+
 def _short_record(data: bytes, body: int, elements: list[_PlyElement]) -> str | None:
-    """The first body line whose count of numbers is not its record's (records of scalar
-    properties, or of one list: its count plus one), as 'N has k numbers; ...'; None when
-    every line that can be checked holds its record (a tester's vertex line missing z was
-    named only as '11 numbers are left')."""
+    """The first body line whose count of numbers is not its record's (list counts read
+    from the line), as 'N has k numbers; ...'; None when every line that can be checked
+    holds its record (a tester's vertex line missing z was named only as '11 numbers are
+    left', face lines holding more numbers than their header only as 'corrupt')."""
     header_lines = data[:body].count(b"\n")      # the body starts after a newline
     rows = [(k, ln.split()) for k, ln in enumerate(data[body:].split(b"\n"),
                                                  start=header_lines + 1) if ln.strip()]
     at = 0
     for e in elements:
-        lists = [q for q in e.props if q.count is not None]
         for k, words in rows[at:at + e.n]:
-            if not lists:
-                need = len(e.props)
-            elif len(e.props) == 1:
-                try:
-                    need = 1 + int(float(words[0]))
-                except ValueError:
-                    return None
-            else:
-                break                       # mixed records: not checked line by line
+            need = _record_width(words, e.props)
+            if need is None:
+                return None
             if len(words) != need:
                 return (f"{k} has {len(words)} numbers; a {e.name} record there needs "
                         f"{need} (header: {', '.join(q.name for q in e.props)})")
@@ -402,6 +425,8 @@ def read(data: bytes, path: Path) -> tuple[np.ndarray, np.ndarray]:
     last = max(i for i, e in enumerate(elements) if e.name in wanted)
     got: dict[str, _PlyData] = {}
     if fmt == "ascii":
+        if b"\n" not in data:   # CR-only lines: counted as lines (same byte offsets)
+            data = data.replace(b"\r", b"\n")
         header_lines = data[:body].count(b"\n") + 1
         buf, t, slow, err, line = _scan_numbers(np.frombuffer(data, np.uint8), body,
                                                 header_lines)
@@ -411,7 +436,14 @@ def read(data: bytes, path: Path) -> tuple[np.ndarray, np.ndarray]:
         t = _finish_numbers(buf, t, slow, np.zeros(0, np.int64), 1, path, "ASCII PLY")
         pos = 0
         for el in elements[:last + 1]:
-            d, pos = _ply_element_ascii(t, pos, el, path)
+            try:
+                d, pos = _ply_element_ascii(t, pos, el, path)
+            except MeshError:
+                short = _short_record(data, body, elements) \
+                    if _body_lines(data, body) == sum(e.n for e in elements) else None
+                if short is None:
+                    raise
+                raise MeshError(f"{path}: ASCII PLY line {short}") from None
             got[el.name] = d
         _check_ascii_records(data, body, elements, path,
                              left=len(t) - pos if last == len(elements) - 1 else None)
