@@ -925,6 +925,23 @@ def test_binary_ply_with_cr_only_header(tmp_path):
     assert load_mesh(_write(tmp_path, "box.ply", cr)).n_faces == 12
 
 
+def test_ply_free_header_line_before_the_elements_skipped_with_warning(tmp_path, caplog):
+    """Old Blender wrote 'Created by Blender3D 247 ...' (assimp's Wuson.ply): skipped, named,
+    before the first element; after it, a free line could be a misspelt declaration."""
+    blender = "Created by Blender3D 247 - www.blender.org, source file: ''\n"
+    with caplog.at_level(logging.WARNING):
+        mesh = load_mesh(_write(tmp_path, "w.ply", _ascii_tetra_ply(TETRA, before=blender)))
+    assert mesh.n_faces == 4
+    assert "w.ply: PLY header line 3: skipped \"Created by Blender3D" in caplog.text
+    late = _ascii_tetra_ply(TETRA, head_faces="proprety list uchar int vertex_indices\n")
+    with pytest.raises(MeshError, match=r"l\.ply: PLY header line 8: unknown header keyword "
+                                        r"'proprety'"):
+        load_mesh(_write(tmp_path, "l.ply", late))
+    typo = _ascii_tetra_ply(TETRA).replace(b"format ascii", b"fromat ascii")
+    with pytest.raises(MeshError, match=r"t\.ply: PLY header without a 'format' line"):
+        load_mesh(_write(tmp_path, "t.ply", typo))
+
+
 def test_error_ply_point_cloud(tmp_path):
     data = (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n"
             b"property float z\nend_header\n1 2 3\n")

@@ -2,8 +2,9 @@
 dtype; extra properties are skipped; faces with any list count type; polygons are
 fan-triangulated; a ``tristrips`` element (``-1`` restarts) is decoded vectorised.
 
-Header lines end in LF, CRLF or CR alone. An ASCII body that does not hold what its header
-declares is refused naming its first line that does not.
+Header lines end in LF, CRLF or CR alone; a free line before the first element (old
+Blender's "Created by ...") is skipped with a warning. An ASCII body that does not hold
+what its header declares is refused naming its first line that does not.
 """
 
 from __future__ import annotations
@@ -65,6 +66,12 @@ def _ply_header(data: bytes, path: Path) -> tuple[str, list[_PlyElement], int, i
         if not words or words[0] in ("ply", "comment", "obj_info"):
             continue
         where = f"{path}: PLY header line {ln}"
+        if words[0] not in ("format", "element", "property") and not elements:
+            # old exporters write a free line ("Created by Blender3D 247 ...", assimp's
+            # Wuson.ply); before the first element it cannot hide a declaration: a
+            # misspelt format or element line leaves an error of its own
+            log.warning("%s: skipped %r: not a PLY header keyword", where, raw.strip()[:60])
+            continue
         if words[0] == "format":
             if len(words) < 2 or words[1] not in ("ascii", "binary_little_endian",
                                                   "binary_big_endian"):
