@@ -992,6 +992,23 @@ def test_text_files_with_bom_and_utf8_names(tmp_path):
     assert load_mesh(q).n_faces == 12
 
 
+@pytest.mark.parametrize("codec,bom", [("utf-16-le", b"\xff\xfe"), ("utf-16-be", b"\xfe\xff")])
+def test_utf16_text_meshes_with_byte_order_mark(tmp_path, codec, bom):
+    """UTF-16 text (Windows' "Unicode" save) was 'unknown mesh format' (OBJ, PLY) or
+    'truncated binary STL'; with its byte order mark it is decoded."""
+    ref = _tm("box")
+    stl_text = trimesh.exchange.stl.export_stl_ascii(ref).replace("solid", "solid Würfel", 1)
+    _same_geometry(load_mesh(_write(tmp_path, "b.stl", bom + stl_text.encode(codec))), ref)
+    obj_text = _obj_bytes(*_box_quads()).decode()
+    assert load_mesh(_write(tmp_path, "b.obj", bom + obj_text.encode(codec))).n_faces == 12
+    ply_text = _ascii_tetra_ply(TETRA).decode()
+    assert load_mesh(_write(tmp_path, "t.ply", bom + ply_text.encode(codec))).n_faces == 4
+    cut = bom + obj_text.encode(codec)[:-1]   # an odd number of bytes
+    with pytest.raises(MeshError, match=r"c\.obj: UTF-16 text that cannot be decoded .*; "
+                                        r"save it as ASCII or UTF-8"):
+        load_mesh(_write(tmp_path, "c.obj", cut))
+
+
 def test_binary_stl_without_facet_count(tmp_path, caplog):
     ref = _tm("box")
     data = bytearray(trimesh.exchange.stl.export_stl(ref))

@@ -7,7 +7,8 @@ corner soup for STL), which are checked for NaN/Inf, welded
 (:func:`icefab.mesh.repair.clean_mesh`).
 
 A gzip-, xz- or bzip2-compressed file of any of these formats is read too (recognised by
-content, :mod:`icefab.mesh.compressed`, with a bound on the decompressed size).
+content, :mod:`icefab.mesh.compressed`, with a bound on the decompressed size), and text in
+UTF-16 with its byte order mark is read as the UTF-8 text it holds.
 
 Errors (:class:`~icefab.errors.MeshError`, the message names the file): missing or empty
 file, corrupt or oversized compressed data, a zip archive, unknown format, truncated binary
@@ -128,6 +129,26 @@ def _zip_message(data: bytes, path: Path, ext: str) -> str:
             "from it and give that file")
 
 
+_UTF16_BOMS = {b"\xff\xfe": "utf-16-le", b"\xfe\xff": "utf-16-be"}
+
+
+def _from_utf16(data: bytes, path: Path) -> bytes:
+    """``data`` as UTF-8 when it is UTF-16 text with its byte order mark (Windows' "Unicode"
+    text: every other byte NUL, it was 'unknown mesh format' or 'truncated binary STL');
+    else ``data`` itself. UTF-16 text that does not decode is refused."""
+    codec = _UTF16_BOMS.get(data[:2])
+    if codec is None:
+        return data
+    high = data[3:258:2] if codec == "utf-16-le" else data[2:258:2]  # 0 for ASCII text
+    if not high or high.count(0) < 0.9 * len(high):
+        return data  # not text: a binary STL's free header may start with these bytes
+    try:
+        return data[2:].decode(codec).encode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise MeshError(f"{path}: UTF-16 text that cannot be decoded ({exc.reason} at byte "
+                        f"{exc.start + 2}); save it as ASCII or UTF-8") from None
+
+
 def _check_finite(points: np.ndarray, path: Path, corners: bool = False) -> None:
     """MeshError naming the first non-finite vertex; ``corners``: the points are the
     facet corners of an STL (3 per facet), so name the facet (0-based) instead."""
@@ -175,6 +196,7 @@ def read_mesh(path: str | os.PathLike[str], *, inexact: bool = False,
         raise MeshError(f"{p}: weld tolerance {tolerance!r} must be a positive number (mm)")
     data = read_input(p, "mesh", MeshError, "mesh file")  # regular, <= 1 GiB; no FIFO wait
     data = compressed.unpack(data, p)  # gzip, xz or bzip2 by its magic; else unchanged
+    data = _from_utf16(data, p)
     if not data[:4096].strip() and not data.strip():
         raise MeshError(f"{p}: empty file, expected a mesh (STL, PLY or OBJ)")
     if data[:3] == b"\xef\xbb\xbf" and _is_text(data[3:4099]):
