@@ -210,6 +210,14 @@ def test_ascii_stl_line_ends_padding_and_unreadable_normals(tmp_path, edit):
     _same_geometry(load_mesh(p), ref)
 
 
+@pytest.mark.parametrize("header", [b"Exported from Blender-2.91.0", b"solid part"])
+def test_error_binary_stl_of_no_facets_is_not_taken_for_padded_text(tmp_path, header):
+    """A text header and a facet count of 0 end in NULs, as padded ASCII does: no line end
+    before them tells it from text (Blender's empty export)."""
+    with pytest.raises(MeshError, match=r"e\.stl: binary STL with 0 facets"):
+        load_mesh(_write(tmp_path, "e.stl", header.ljust(80, b"\0") + b"\0" * 4))
+
+
 def test_error_ascii_stl_normal_short_names_the_facet_line(tmp_path):
     text = trimesh.exchange.stl.export_stl_ascii(_tm("box")).splitlines()
     k = 1 + 7 * 2   # third facet's line

@@ -50,6 +50,16 @@ def _is_text(data: bytes | memoryview) -> bool:
     return bool(_TEXT_BYTES[np.frombuffer(data, np.uint8)].all())
 
 
+def _is_text_head(head: bytes) -> bool:
+    """Whether the first bytes of a file, ``head``, are text: :func:`_is_text`, or NUL or
+    Ctrl-Z padding after its last line end (DOS-era and fixed-block writers pad ASCII STLs
+    so, stl.read_ascii; a binary STL's text header is followed by NULs with no line end)."""
+    if _is_text(head):
+        return True
+    kept = head.rstrip(b"\0\x1a")
+    return len(kept) < len(head) and kept[-1:] in (b"\n", b"\r") and _is_text(kept)
+
+
 def _is_stl_text(head: bytes) -> bool:
     """Whether the text ``head`` holds the lines of ASCII STL facets ('facet normal' and
     'vertex' lines): an ASCII STL some exporters write without its 'solid' line, or with
@@ -64,8 +74,7 @@ def _sniff(data: bytes, path: Path) -> str:
     if ext in compressed.SUFFIXES:  # part.obj.gz: the hint is the extension under it
         ext = Path(path.stem).suffix.lower()
     head = data[:5].lower()
-    # NUL or Ctrl-Z padding at the end of a small text file is not binary (stl.read_ascii)
-    text = _is_text(data[:4096].rstrip(b"\0\x1a"))
+    text = _is_text_head(data[:4096])
     if data[:3] == b"ply" and data[3:4] in (b"\n", b"\r", b" "):
         return "ply"
     if len(data) >= 84:
