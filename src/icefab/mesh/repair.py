@@ -149,11 +149,16 @@ def _edge_stats(faces: np.ndarray, n_vertices: int) -> tuple[int, int, int, np.n
                                                              np.ndarray]:
     """(open, non-manifold, misoriented) undirected edge counts of non-degenerate faces,
     and the vertex pair of one open and one non-manifold edge ((-1, -1) when none)."""
+    return _edge_stats_and_open(faces, n_vertices)[0]
+
+
+def _edge_stats_and_open(faces: np.ndarray, n_vertices: int) -> tuple[tuple, np.ndarray]:
+    """:func:`_edge_stats` and (n_vertices,) bool: the vertices of the open edges."""
     if len(faces) == 0:
         none = np.full(2, -1, np.int64)
-        return 0, 0, 0, none, none
-    o, n, m, ex_o, ex_n, _ = _edge_topology(faces, int(n_vertices))
-    return int(o), int(n), int(m), ex_o, ex_n
+        return (0, 0, 0, none, none), np.zeros(int(n_vertices), bool)
+    o, n, m, ex_o, ex_n, open_v = _edge_topology(faces, int(n_vertices))
+    return (int(o), int(n), int(m), ex_o, ex_n), open_v
 
 
 #: Two vertices of open edges closer than this, relative to their largest coordinate's
@@ -167,16 +172,16 @@ NOISE_WELD_OF_EDGE = 1e-3
 
 def noise_weld_tolerance(vertices: np.ndarray, faces: np.ndarray) -> float:
     """The farthest (mm) :func:`weld_noise_at_open_edges` welds: NOISE_WELD_OF_EDGE of the
-    median edge length (over up to 100 000 faces spread over the mesh)."""
+    median edge length (over up to 10 000 faces spread over the mesh: 60 ms for 100 000)."""
     if len(faces) == 0:
         return 0.0
-    f = faces[::max(1, len(faces) // 100_000)]
+    f = faces[::max(1, len(faces) // 10_000)]
     edge = vertices[f] - vertices[np.roll(f, 1, axis=1)]
     return NOISE_WELD_OF_EDGE * float(np.median(np.sqrt(np.sum(edge ** 2, axis=2))))
 
 
-def weld_noise_at_open_edges(vertices: np.ndarray, faces: np.ndarray
-                             ) -> tuple[np.ndarray, int]:
+def weld_noise_at_open_edges(vertices: np.ndarray, faces: np.ndarray,
+                             open_v: np.ndarray | None = None) -> tuple[np.ndarray, int]:
     """Faces with the vertices of open edges that lie within rounding noise of each other
     welded (each to the lowest-numbered of its group), and how many were: closer than
     :data:`NOISE_WELD_REL` of their largest coordinate's size and than
@@ -193,7 +198,8 @@ def weld_noise_at_open_edges(vertices: np.ndarray, faces: np.ndarray
     from scipy.spatial import cKDTree
 
     nv = len(vertices)
-    *_, open_v = _edge_topology(faces, nv)
+    if open_v is None:
+        open_v = _edge_stats_and_open(faces, nv)[1]
     ids = np.flatnonzero(open_v)
     tol = noise_weld_tolerance(vertices, faces)
     if len(ids) < 2 or not tol > 0:
@@ -292,10 +298,10 @@ def clean_mesh(mesh: Mesh) -> tuple[Mesh, MeshReport]:
     degen = _degenerate_mask(f)
     if degen.any():
         f = f[~degen]
-    edges = _edge_stats(f, nv)
+    edges, open_v = _edge_stats_and_open(f, nv)
     n_noise = 0
     if edges[0]:
-        f, n_noise = weld_noise_at_open_edges(mesh.vertices, f)
+        f, n_noise = weld_noise_at_open_edges(mesh.vertices, f, open_v)
         if n_noise:
             more = _degenerate_mask(f)
             f = f[~more]
