@@ -112,6 +112,24 @@ def test_xz_and_bzip2_read_like_the_plain_file(tmp_path, kind, name, data):
     _same(read_mesh(plain)[0], read_mesh(packed)[0])
 
 
+@pytest.mark.parametrize("kind,module,command", [("xz", "lzma", "xz -d"),
+                                                 ("bzip2", "bz2", "bunzip2")])
+def test_a_python_without_lzma_or_bz2_refuses_only_those_files(tmp_path, monkeypatch, kind,
+                                                                module, command):
+    """pyenv builds Python without lzma or bz2 when their headers are missing: every
+    mesh still loads (the modules were imported with the package, and failed it), and
+    only such a compressed file is refused, saying how to unpack it."""
+    monkeypatch.setattr(compressed, module, None)
+    p = tmp_path / "t.obj.z"
+    p.write_bytes(COMPRESSORS[kind](OBJ))
+    with pytest.raises(MeshError, match=rf"t\.obj\.z: {kind}-compressed, and this Python was "
+                                        rf"built without its {module} module: decompress the "
+                                        rf"file first \({command}\)"):
+        read_mesh(p)
+    (tmp_path / "t.obj").write_bytes(OBJ)
+    assert read_mesh(tmp_path / "t.obj")[0].n_faces == 4
+
+
 @pytest.mark.parametrize("kind", COMPRESSORS)
 def test_xz_and_bzip2_bombs_refused_before_they_are_held(tmp_path, monkeypatch, kind):
     p = tmp_path / "bomb.stl.z"

@@ -14,12 +14,21 @@ what it is.
 
 from __future__ import annotations
 
-import bz2
-import lzma
 import zlib
 from pathlib import Path
 
 from icefab.errors import MeshError
+
+# A Python built without liblzma or libbz2 (pyenv on a machine without their headers) has
+# no lzma or bz2 module: every mesh still loads, and only an xz or bzip2 file is refused.
+try:
+    import lzma
+except ImportError:   # pragma: no cover - depends on how Python was built
+    lzma = None       # type: ignore[assignment]
+try:
+    import bz2
+except ImportError:   # pragma: no cover
+    bz2 = None        # type: ignore[assignment]
 
 #: Largest decompressed mesh, bytes: the same bound as an uncompressed mesh file (a binary
 #: STL of 1 GiB holds 21 million facets, 20 times the largest test mesh).
@@ -101,17 +110,31 @@ def _new_xz():
     return lzma.LZMADecompressor(lzma.FORMAT_XZ, memlimit=XZ_MEMLIMIT)
 
 
-#: kind -> (magic test, new decompressor) of the compressors sharing the
-#: ``decompress(data, max_length)`` / ``needs_input`` / ``eof`` interface
-_STREAMS = {"xz": (lambda d: d[:6] == XZ_MAGIC, _new_xz),
-            "bzip2": (is_bzip2, bz2.BZ2Decompressor)}
+def _new_bzip2():
+    return bz2.BZ2Decompressor()
+
+
+#: kind -> (magic test, new decompressor, standard-library module, command that unpacks)
+#: of the compressors sharing the ``decompress(data, max_length)`` / ``needs_input`` /
+#: ``eof`` interface
+_STREAMS = {"xz": (lambda d: d[:6] == XZ_MAGIC, _new_xz, "lzma", "xz -d"),
+            "bzip2": (is_bzip2, _new_bzip2, "bz2", "bunzip2")}
+
+
+def _decompressor(kind: str, path: Path):
+    """A new decompressor for ``kind``; MeshError when this Python lacks its module."""
+    _, new, module, command = _STREAMS[kind]
+    if globals()[module] is None:
+        raise MeshError(f"{path}: {kind}-compressed, and this Python was built without its "
+                        f"{module} module: decompress the file first ({command})")
+    return new()
 
 
 def kind(data: bytes) -> str | None:
     """The compression of ``data`` by its magic bytes: 'gzip', 'xz', 'bzip2' or None."""
     if is_gzip(data):
         return "gzip"
-    return next((k for k, (magic, _) in _STREAMS.items() if magic(data)), None)
+    return next((k for k, (magic, *_) in _STREAMS.items() if magic(data)), None)
 
 
 def unpack(data: bytes, path: Path, limit: int | None = None) -> bytes:
@@ -128,12 +151,13 @@ def unpack(data: bytes, path: Path, limit: int | None = None) -> bytes:
 def _inflate(data: bytes, path: Path, kind: str, limit: int) -> bytes:
     """The decompressed bytes of the xz or bzip2 file ``data``, streams concatenated (what
     :func:`gunzip` does for gzip, through the interface lzma and bz2 share)."""
-    magic, new = _STREAMS[kind]
+    magic = _STREAMS[kind][0]
+    broken = (OSError, EOFError, ValueError) + ((lzma.LZMAError,) if lzma else ())
     out: list[bytes] = []
     size = 0
     rest = data
     while rest:
-        d = new()
+        d = _decompressor(kind, path)
         buf = rest
         try:
             while not d.eof:
@@ -145,7 +169,7 @@ def _inflate(data: bytes, path: Path, kind: str, limit: int) -> bytes:
                 out.append(chunk)
                 if d.needs_input and not d.eof:
                     break  # all input read, no end of stream
-        except (lzma.LZMAError, OSError, EOFError, ValueError) as exc:
+        except broken as exc:
             raise MeshError(f"{path}: corrupt {kind} data ({exc}); expected a "
                             f"{kind}-compressed STL, PLY or OBJ file") from None
         if not d.eof:
