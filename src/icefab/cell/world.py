@@ -57,6 +57,8 @@ from __future__ import annotations
 import json
 import logging
 import os
+import time
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -69,6 +71,10 @@ log = logging.getLogger(__name__)
 
 FORMAT = "icefab-cell-surface"
 VERSION = 1
+#: What reading a damaged npz raises: a truncated or corrupt zip (BadZipFile, a bad CRC),
+#: an empty file (EOFError), a missing key, a wrong type (a tester's truncated piece ended
+#: the cell in a BadZipFile traceback).
+_UNREADABLE = (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile)
 _TINY_MM = 1e-9
 MATERIAL_OF_VALVE = ("part", "scaffold")
 
@@ -170,6 +176,10 @@ class World:
             if origin is None or shape is None:
                 raise CellError(f"{self.file}: no surface yet; give the grid (--grid-for "
                                 "TRAJECTORIES or --bounds) to start a new one")
+            # a new part: no piece left in the folder is its liquid (every new surface
+            # starts again at generation 1, and took over an old part's pieces: a tester's
+            # fresh cell reported 3 paths done and 388 segments it never deposited)
+            self._remove_pieces(keep=None)
             sim = job.simulation
             self.origin = np.asarray(origin, dtype=np.float64)
             self.spacing = float(spacing if spacing is not None else sim.grid_mm)
@@ -233,12 +243,21 @@ class World:
                 found.append((int(gen), int(k), f))
         return sorted(found)
 
-    def _remove_pieces(self, keep: int) -> None:
-        """Delete the liquid pieces of other generations than ``keep`` (the surface file
-        of a later generation holds their liquid, or they are a crash's leftovers)."""
+    def _remove_pieces(self, keep: int | None) -> None:
+        """Delete the liquid pieces of other generations than ``keep`` (None: every one;
+        the surface file of a later generation holds their liquid, or they are a crash's
+        leftovers), and the temporary files of pieces and surfaces a killed cell left
+        (hidden, older than a minute: a save in flight takes milliseconds)."""
         for gen, _, f in self._piece_files():
             if gen != keep:
                 f.unlink(missing_ok=True)
+        stale = time.time() - 60.0
+        for f in (*self.dir.glob(".liquid-*.npz"), *self.dir.glob(".surface.npz.*")):
+            try:
+                if f.stat().st_mtime < stale:
+                    f.unlink()
+            except OSError:
+                pass
 
     def _load(self) -> None:
         try:
@@ -265,7 +284,7 @@ class World:
                 self.pending.extend(d)
         except CellError:
             raise
-        except (OSError, ValueError, KeyError, TypeError) as exc:
+        except _UNREADABLE as exc:
             raise CellError(f"{self.file}: cannot read the cell surface ({exc})") from None
         self._remove_pieces(keep=self.generation)
         for _, k, f in self._piece_files():
@@ -277,7 +296,7 @@ class World:
                     self.pending.extend(d)
                     self.last_done, self.cut = int(d["last_done"]), int(d["cut"])
                     self.rng_laser.bit_generator.state = json.loads(str(d["rng_laser"]))
-            except (OSError, ValueError, KeyError, TypeError) as exc:
+            except _UNREADABLE as exc:
                 raise CellError(f"{f}: cannot read a liquid piece of the cell surface "
                                 f"({exc})") from None
             self._pieces += 1
