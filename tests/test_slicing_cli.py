@@ -271,3 +271,19 @@ def test_overlapping_or_apart_shells_are_not_nested():
     nested = _boxes(inner_flipped=False)
     ((n_faces, at),) = nested_same_way(nested.vertices, nested.faces)
     assert n_faces == 12 and np.all(np.abs(at[:2]) == 5)
+
+
+def test_a_box_bridging_a_u_is_not_called_nested():
+    """Its corners inside the U's arms and its box within the U's, its middle outside:
+    only face centres tell (a tester's, who was told to flip the bridge)."""
+    from shapely.geometry import Polygon
+
+    from icefab.mesh.topology import nested_same_way
+
+    outline = Polygon([(-20, -25), (20, -25), (20, 15), (10, 15), (10, -15), (-10, -15),
+                       (-10, 15), (-20, 15)])
+    u = trimesh.creation.extrude_polygon(outline, 10.0)
+    bridge = trimesh.creation.box(extents=(26, 4, 4))
+    bridge.apply_translation((0, 10, 5))           # from arm to arm, across the gap
+    both = trimesh.util.concatenate([u, bridge])
+    assert nested_same_way(both.vertices, both.faces) == []
