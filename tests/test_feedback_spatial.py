@@ -4,14 +4,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import shapely
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from icefab import Job
 from icefab.errors import GeometryError
-from icefab.feedback import (ControlAction, SmfState, _despike, action_along, error_surface,
-                             grid_over, region_mask, regrid, retime_trajectory,
-                             saturation_limits, smf_update, surface_from_samples)
+from icefab.feedback import (ControlAction, SmfState, _despike, _one_per_place, action_along,
+                             error_surface, grid_over, region_mask, regrid,
+                             retime_trajectory, saturation_limits, smf_update,
+                             surface_from_samples)
 from icefab.core import HeightMap, Toolpath, Region, Trajectory
 
 
@@ -107,6 +108,22 @@ def test_spikes_on_measurement_rings_leave_no_node_off(along_mm, pair):
     assert off.max() < 0.05
     raw = surface_from_samples(np.column_stack([xy, z]), None, 1.0)
     assert np.nanmax(np.abs(raw.z)) > 1.0      # the spikes are there without smoothing
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 5), st.integers(0, 5), st.floats(-5, 5)),
+                min_size=1, max_size=60))
+def test_samples_at_one_place_become_one_at_their_median(rows):
+    """The laser reading on while the robot stands (a dwell): one sample a place, its
+    height the median of theirs (100 000 at one place slowed the k-d tree to 30 s)."""
+    xyz = np.array(rows, dtype=np.float64)
+    got = _one_per_place(xyz)
+    places = {}
+    for x, y, z in rows:
+        places.setdefault((float(x), float(y)), []).append(z)
+    assert len(got) == len(places)
+    for x, y, z in got:
+        assert z == pytest.approx(float(np.median(places[(x, y)])))
 
 
 def test_despiking_keeps_a_feature_three_samples_long():

@@ -568,6 +568,23 @@ def test_a_vertex_written_twice_with_rounding_noise_is_one(tmp_path, kind, ulps,
     assert rep.volume == pytest.approx(ref.volume, rel=1e-6)
 
 
+def test_rounding_noise_at_the_origin_is_welded(tmp_path):
+    """A corner at the origin written as (1e-16, 0, -2e-16) and as (0, 0, 0): noise of a
+    sum of millimetres, welded though it is 1e6 times its own coordinates (a tester's)."""
+    ref = _tm("box")
+    ref.apply_translation(-ref.bounds[0])          # a corner at the origin
+    tri = np.asarray(ref.vertices)[ref.faces].reshape(-1, 3)
+    at = np.flatnonzero((tri == 0).all(axis=1))
+    tri[at[0]] = (1e-16, 0.0, -2e-16)
+    p = tmp_path / "origin.stl"
+    p.write_text("\n".join(["solid o"] + [
+        f"facet normal 0 0 0\nouter loop\n" + "\n".join(
+            f"vertex {x!r} {y!r} {z!r}" for x, y, z in corners) + "\nendloop\nendfacet"
+        for corners in tri.reshape(-1, 3, 3).tolist()] + ["endsolid o", ""]))
+    mesh, rep = read_mesh(p)
+    assert rep.open_edges == 0 and rep.welded_noise == 1 and len(mesh.vertices) == 8
+
+
 def test_a_real_gap_is_not_welded_as_noise(tmp_path):
     """Corners 1 um apart on a 20 mm box are a gap, not rounding noise: they stay open
     edges (the thesis' inexact weld, ``parts.inexact``, is the user's to choose)."""

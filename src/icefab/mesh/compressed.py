@@ -169,6 +169,8 @@ def _inflate(data: bytes, path: Path, kind: str, limit: int) -> bytes:
                 out.append(chunk)
                 if d.needs_input and not d.eof:
                     break  # all input read, no end of stream
+        except MeshError:
+            raise     # too large: a ValueError too, and it was called corrupt (a tester's)
         except broken as exc:
             raise MeshError(f"{path}: corrupt {kind} data ({exc}); expected a "
                             f"{kind}-compressed STL, PLY or OBJ file") from None

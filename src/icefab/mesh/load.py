@@ -93,6 +93,9 @@ def _sniff(data: bytes, path: Path) -> str:
         return "obj"
     if text and _is_stl_text(data[:65536]):
         return "stl-ascii"  # without its 'solid' line, or after a comment (stl.read_ascii)
+    if data[:4] == b"PK\x03\x04":   # a zip: icefab's result files are .npz archives
+        # (before the .stl fallback: a zip named .stl was a 'truncated binary STL')
+        raise MeshError(_zip_message(data, path, ext))
     if ext == ".stl" and len(data) >= 84:
         if text:
             # its first bytes read as a facet count of hundreds of millions: "truncated
@@ -105,8 +108,6 @@ def _sniff(data: bytes, path: Path) -> str:
         return "obj"
     if head == b"ply":
         return "ply"
-    if data[:4] == b"PK\x03\x04":   # a zip: icefab's result files are .npz archives
-        raise MeshError(_zip_message(data, path, ext))
     raise MeshError(f"{path}: unknown mesh format (not binary/ASCII STL, PLY or OBJ by its "
                     f"content; extension {ext or 'none'!r})")
 

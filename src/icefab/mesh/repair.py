@@ -162,8 +162,8 @@ def _edge_stats_and_open(faces: np.ndarray, n_vertices: int) -> tuple[tuple, np.
 
 
 #: Two vertices of open edges closer than this, relative to their largest coordinate's
-#: size, are one vertex written twice with rounding noise: a few float32 steps (a binary
-#: STL's), 0.3 um at 300 mm ...
+#: size (at least the median edge's), are one vertex written twice with rounding noise: a
+#: few float32 steps (a binary STL's), 0.3 um at 300 mm ...
 NOISE_WELD_REL = 1e-6
 #: ... and never farther apart than this share of the mesh's median edge (a stray
 #: vertex at 1e20 mm, or a part far from the origin, does not widen it).
@@ -206,9 +206,11 @@ def weld_noise_at_open_edges(vertices: np.ndarray, faces: np.ndarray,
         return faces, 0
     at = vertices[ids]
     pairs = cKDTree(at).query_pairs(tol, output_type="ndarray")
-    if len(pairs):   # ... and within rounding noise of their own size
+    if len(pairs):   # ... and within rounding noise of their own size, or of an edge's
+        # (1e-16 next to 0 is the noise of a sum of millimetres: a corner at the origin)
         a, b = at[pairs[:, 0]], at[pairs[:, 1]]
-        size = np.maximum(np.abs(a).max(axis=1), np.abs(b).max(axis=1))
+        size = np.maximum(np.maximum(np.abs(a).max(axis=1), np.abs(b).max(axis=1)),
+                          tol / NOISE_WELD_OF_EDGE)
         pairs = pairs[np.sqrt(np.sum((a - b) ** 2, axis=1)) <= NOISE_WELD_REL * size]
     if not len(pairs):
         return faces, 0
