@@ -130,6 +130,13 @@ def test_gcode_is_marlin_with_valve_duty_per_step_and_tool_changes():
     # before unless built with LASER_MOVE_G0_OFF (a layer's Z move and each path's first
     # G0 had no S, after a depositing move)
     assert all(w.get("S") == 0 for c, w in cmds if c == "G0")
+    # ... and its F: F is modal, and a layer's move up and over to its first path ran at
+    # the last path's slowing step, ~50 mm/min (a tester's: 20 312 s beside 18 738 s)
+    rapid = 60.0 * job.motion.travel_speed_mm_s
+    assert all("F" in w for c, w in cmds if c == "G0")
+    assert all(w["F"] == pytest.approx(rapid) for c, w in cmds if c == "G0" and "Z" in w)
+    assert sum(w["F"] == pytest.approx(rapid) for c, w in cmds if c == "G0") \
+        >= sum(len(t.xy) > 0 for lm in motion.layers for t in lm.trajectories)
     # each deposition move lasts one time step, dwells fill rests: the G-code's time is
     # the deposition trajectories' duration
     dt = job.motion.dt_s

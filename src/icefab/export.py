@@ -9,6 +9,10 @@ the C40's trigger keeps the valve controller in step with the robot (thesis 2.3.
 * ``G21``, ``G90``; ``M3 I S0``: inline power mode, valve closed.
 * Per layer: ``; layer K top z Z (cut at C)`` and ``G0 Z..``: the layer's nominal top, mm
   above the platform (``LayerMotion.top``; the nozzle's own offset is the machine's).
+* Every ``G0`` carries its ``F``: ``motion.travel_speed_mm_s`` (Marlin caps it at each
+  axis' own maximum). F is modal: without it a layer's move up and over to its first
+  path ran at the last path's slowing step, ~50 mm/min (a tester's gantry mug: 20 312 s of
+  such moves beside 18 738 s of planned motion).
 * Material (nozzle) change: ``T0`` (part, water) / ``T1`` (scaffold) before a path of the
   other material. The machine routes the cutter PWM to that nozzle's valve in its tool
   change (for example Marlin's ``EVENT_GCODE_TOOLCHANGE_T0`` / ``_T1`` switching a mux pin
@@ -24,6 +28,15 @@ the C40's trigger keeps the valve controller in step with the robot (thesis 2.3.
   machine's cutter PWM frequency (``SPINDLE_LASER_FREQUENCY``) to
   ``flow.pwm_frequency_hz``. A step at rest is a dwell ``G4 P<ms>`` (valve closed).
 * End: ``M5`` (valve off).
+
+**What the machine's Marlin must be built with** for every move to last its one step
+(``dt`` = ``motion.dt_s``, 16 ms by default): ``DEFAULT_MINSEGMENTTIME`` at most ``dt``
+in microseconds (stock 20 000: Marlin stretches shorter moves when its buffer runs low,
+and the valve's duty with them), ``MIN_STEPS_PER_SEGMENT`` 1 (stock 6: a move of fewer
+steps, 0.075 mm at 80 steps/mm, is folded into the next at that move's F, and a path's
+slowing steps lose their time), ``SLOWDOWN`` off, and a planner buffer
+(``BLOCK_BUFFER_SIZE``) and serial link that stream 1 / dt moves a second. The file's
+header says so too.
 """
 
 from __future__ import annotations
@@ -119,6 +132,9 @@ def gcode_lines(motion, job=None):
            f"power 0-255, PWM at {pwm.flow.pwm_frequency_hz:g} Hz)")
     yield (f"; dt {job.motion.dt_s:g} s, {motion.duration:.1f} s of motion; "
            "X, Y: carriage (base frame), mm; F: mm/min; T0 part, T1 scaffold")
+    yield (f"; every move lasts dt: needs DEFAULT_MINSEGMENTTIME <= "
+           f"{job.motion.dt_s * 1e6:.0f} us, MIN_STEPS_PER_SEGMENT 1, SLOWDOWN off")
+    rapid = 60.0 * job.motion.travel_speed_mm_s
     yield "G21"
     yield "G90"
     yield "M3 I S0"
@@ -130,7 +146,7 @@ def gcode_lines(motion, job=None):
         yield f"; layer {lm.index} top z {top:.4f} (cut at {lm.z:.4f})"
         # every G0 with S0: Marlin's G0 keeps the inline power of the move before unless
         # built with LASER_MOVE_G0_OFF, and a layer's last move may be depositing
-        yield f"G0 Z{top:.4f} S0"
+        yield f"G0 Z{top:.4f} F{rapid:.1f} S0"
         for i, tr in enumerate(lm.trajectories):
             if len(tr.xy) == 0:
                 continue
@@ -141,7 +157,7 @@ def gcode_lines(motion, job=None):
             yield f"; path {i}: {what}, {tr.duration:.3f} s"
             if not depositing:
                 # travel or measurement: positioning only, valve closed
-                for line in gcode_moves(tr, dwell=True):
+                for line in gcode_moves(tr, dwell=True, rapid_mm_min=rapid):
                     yield line.replace("G1 ", "G0 ", 1) + " S0" if line.startswith("G") \
                         and not line.startswith("G4") else line
                 continue
@@ -151,7 +167,7 @@ def gcode_lines(motion, job=None):
             prog = flow.plan_valves(tr, p.material, pwm)
             s = np.rint(255.0 * step_duty(tr, prog, 1.0 / pwm.flow.pwm_frequency_hz)
                         ).astype(np.int64)
-            moves = gcode_moves(tr, power=s, dwell=True)
+            moves = gcode_moves(tr, power=s, dwell=True, rapid_mm_min=rapid)
             yield moves[0] + " S0"   # the G0 to the path's start, valve closed
             yield from moves[1:]
     yield "M5"

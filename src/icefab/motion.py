@@ -1708,7 +1708,7 @@ def constant_spacing(traj: Trajectory, spacing_mm: float | None = None,
 
 
 def gcode_moves(traj: Trajectory, *, decimals: int = 3, power: np.ndarray | None = None,
-                dwell: bool = False) -> list[str]:
+                dwell: bool = False, rapid_mm_min: float | None = None) -> list[str]:
     """G-code-style moves for gantry machines: ``G0`` to the first sample, then ``G1 X.. Y..
     F..`` per sample, the feedrate (mm/min) being the average speed over the step to that
     sample (each move lasts one time step, thesis 4.3).
@@ -1716,12 +1716,14 @@ def gcode_moves(traj: Trajectory, *, decimals: int = 3, power: np.ndarray | None
     power: (n - 1,) int, 0..255, per step: appended as ``S..`` to each step's move (Marlin's
     inline cutter power, :mod:`icefab.export`). dwell: a step that does not move becomes
     ``G4 P<ms>`` (consecutive ones merged) so the timing holds; without it such steps are
-    left out.
+    left out. rapid_mm_min: the ``G0``'s own ``F``, mm/min (F is modal in G-code: without
+    one the G0 ran at the feedrate of the move before it, a path's last slowing step).
     """
     xy = traj.xy
     if len(xy) == 0:
         return []
-    lines = [f"G0 X{xy[0, 0]:.{decimals}f} Y{xy[0, 1]:.{decimals}f}"]
+    feed0 = "" if rapid_mm_min is None else f" F{rapid_mm_min:.1f}"
+    lines = [f"G0 X{xy[0, 0]:.{decimals}f} Y{xy[0, 1]:.{decimals}f}{feed0}"]
     d = np.hypot(*np.diff(xy, axis=0).T)
     feed = d / traj.dt * 60.0
     rest = 0
