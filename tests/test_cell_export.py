@@ -43,7 +43,10 @@ def test_export_vplus_writes_the_server_sized_for_the_trajectories(tmp_path, cap
 @pytest.mark.parametrize("argv, message", [
     (["--port", "0"], "--port 0: expected 1..65535"),
     (["--valve-output", "98"], "name the same output"),
-    (["missing.npz"], "missing.npz: trajectories file not found"),
+    (["missing.npz"], "missing.npz: trajectory file not found"),
+    (["/dev/zero"], "/dev/zero: not a regular file"),      # it was 'not found'
+    # 1001-1512 are V+ inputs, 2001-2512 software signals (1001 was written)
+    (["--valve-output", "1001"], "--valve-output 1001: expected a V+ digital output number"),
     # 1e308 was written as a 309-digit REAL
     (["--yaw", "1e308"], "--yaw 1e+308: expected a number of degrees within +-360"),
     (["--zbase", "1e9"], "--zbase 1e+09: expected a number of mm within +-1000"),
@@ -227,7 +230,7 @@ def test_export_gcode_from_a_trajectories_file(tmp_path, capsys):
     text = (tmp_path / "g" / "trajectories.gcode").read_text()
     assert text.startswith("; icefab G-code") and "M3 I S0" in text
     assert main(["export", "gcode", str(tmp_path / "nope.npz"), "-o", str(tmp_path / "h")]) == 2
-    assert "nope.npz: trajectories file not found" in capsys.readouterr().err
+    assert "nope.npz: trajectory file not found" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("cut, thickness, z, top", [(0.5, float("nan"), 0.125, 0.25),

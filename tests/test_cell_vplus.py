@@ -202,3 +202,24 @@ def test_a_field_that_is_not_a_number_is_refused_not_read_as_zero():
     check = body.index('IF POS("0123456789+-.Ee", $MID($tok, i, 1), 1) == 0 THEN')
     assert body[check - 1] == "FOR i = 1 TO LEN($tok)"
     assert body[check + 1] == "ok = FALSE" and check < body.index("value = VAL($tok)")
+
+
+def test_the_path_arrays_are_allocated_whole_before_the_upload_task_starts():
+    """V+ extends a global array as its elements are set, and one task extending it while
+    another reads it can crash the controller to DDT (V+ Language User's Guide, "Global
+    Array Access Restriction"): the upload task grew the path ring point by point while
+    the motion task read it. Every array is now set to its full size in ice.globals, which
+    the server calls before it starts the upload task."""
+    body = PROGRAMS["ice.globals"][1]
+    arrays = {n.strip().rstrip("[]") for s in body if s.startswith("GLOBAL")
+              for n in s.split(None, 2)[2].split(",") if n.strip().endswith("[]")}
+    assert arrays == {"ice.px", "ice.py", "ice.pn", "ice.pdt", "ice.pz", "ice.pflags",
+                      "ice.pseq"}
+    outer = body.index("FOR i = 0 TO ice.maxpaths-1")
+    inner = body.index("FOR j = 0 TO ice.maxpts-1")
+    assert outer < inner
+    set_in_loop = {s.split("[")[0] for s in body[outer:] if "[" in s and "=" in s}
+    assert set_in_loop == arrays
+    assert {s for s in body[inner:] if "[" in s} == {"ice.px[i,j] = 0", "ice.py[i,j] = 0"}
+    server = PROGRAMS["ice.server"][1]
+    assert server.index("CALL ice.globals()") < server.index("EXECUTE 1 ice.comm()")

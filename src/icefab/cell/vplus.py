@@ -171,6 +171,7 @@ def _globals_program(s: VplusSettings) -> list[str]:
     for kind, names in _GLOBALS.items():
         for i in range(0, len(names), 6):
             out.append(f"    GLOBAL {kind} {', '.join(names[i:i + 6])}")
+    out.append("    AUTO REAL i, j")
     out += [f"    ice.port = {int(s.port)}",
             f"    ice.vsig = {int(s.valve_output)}",
             f"    ice.lsig = {int(s.laser_output)}",
@@ -179,6 +180,23 @@ def _globals_program(s: VplusSettings) -> list[str]:
             f"    ice.appspd = {s.approach_mm_s:.3f}",
             f"    ice.maxpts = {int(s.max_points)}",
             f"    ice.maxpaths = {int(s.max_paths)}",
+            # every slot at its full size before the upload task starts: V+ extends a
+            # global array as elements are set, and one task extending it while another
+            # reads it can crash the controller to DDT (V+ Language User's Guide, "Global
+            # Array Access Restriction"; a review's: the ring grew point by point)
+            "    ; every path slot at full size now: V+ may crash to DDT when one task",
+            "    ; extends a global array while another reads it",
+            "    FOR i = 0 TO ice.maxpaths-1",
+            "        ice.pn[i] = 0",
+            "        ice.pdt[i] = 0",
+            "        ice.pz[i] = 0",
+            "        ice.pflags[i] = 0",
+            "        ice.pseq[i] = -1",
+            "        FOR j = 0 TO ice.maxpts-1",
+            "            ice.px[i,j] = 0",
+            "            ice.py[i,j] = 0",
+            "        END",
+            "    END",
             "    ice.lun = 0",
             "    ice.handle = 0",
             "    ice.quit = FALSE",

@@ -127,9 +127,7 @@ def run_gcode(args: argparse.Namespace) -> int:
     from icefab.motion import load_trajectories
 
     src = Path(args.input)
-    if not src.is_file():
-        raise ConfigError(f"{src}: trajectories file not found")
-    motion = load_trajectories(src)
+    motion = load_trajectories(src)   # names a missing file, a folder, /dev/zero
     check_gcode_robot(motion.robot, str(src))
     gcode_job(motion.job, str(src))
     if not motion.layers:   # a file of no moves, exit 0 (hunt W); 'export ruled' refuses too
@@ -148,9 +146,13 @@ def run_vplus(args: argparse.Namespace) -> int:
     if not 1 <= args.port <= 65535:
         raise ConfigError(f"--port {args.port}: expected 1..65535")
     for name in ("valve_output", "laser_output"):
-        if not 1 <= getattr(args, name) <= 4096:
+        # V+ numbers outputs 1-512; 1001-1512 are inputs and 2001-2512 software signals,
+        # which SIGNAL refuses at run time or which drive no wire (1001 was written)
+        if not 1 <= getattr(args, name) <= 512:
             raise ConfigError(f"--{name.replace('_', '-')} {getattr(args, name)}: expected "
-                              "a V+ digital output number")
+                              "a V+ digital output number, 1..512 (1001-1512 are inputs, "
+                              "2001-2512 software signals; the C40's XDIO outputs are "
+                              "97-104)")
     if args.valve_output == args.laser_output:
         raise ConfigError("--valve-output and --laser-output name the same output")
     # a height and an angle a Cobra can take (1e308 was written as a 309-digit REAL)
@@ -167,9 +169,7 @@ def run_vplus(args: argparse.Namespace) -> int:
         from icefab.motion import load_trajectories
 
         src = Path(args.input)
-        if not src.is_file():
-            raise ConfigError(f"{src}: trajectories file not found")
-        motion = load_trajectories(src)
+        motion = load_trajectories(src)   # names a missing file, a folder, /dev/zero
         if motion.robot != "scara":   # the Adept C40's program moves a SCARA
             raise ConfigError(f"{src}: the V+ program is for the Cobra 600 (a SCARA), and "
                               f"these trajectories were planned for a {motion.robot}: plan "
