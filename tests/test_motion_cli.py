@@ -118,7 +118,16 @@ def test_plan_gcode_and_constant_spacing_outputs(tmp_path, capsys):
     dh = motion.job.slicing.layer_thickness_mm
     zs = [float(ln[4:].split()[0]) for ln in text.splitlines() if ln.startswith("G0 Z")]
     np.testing.assert_allclose(zs, [lm.z + 0.5 * dh for lm in motion.layers], atol=1e-4)
-    g1 = [ln for ln in text.splitlines() if ln.startswith(("G1 ", "G0 ")) and " F" in ln]
+    # the steps' moves: not a layer's Z move nor a path's G0 to its start (its first move
+    # after its comment), which carry the travel speed as their F
+    g1, first = [], False
+    for ln in text.splitlines():
+        if ln.startswith("; path"):
+            first = True
+        elif ln.startswith(("G1 ", "G0 ")) and not ln.startswith("G0 Z"):
+            if not first:
+                g1.append(ln)
+            first = False
     assert len(g1) == sum(len(t.xy) - 1 for t in trajs)
     feeds = np.array([float(ln.split("F")[1].split()[0]) for ln in g1])
     speeds = np.concatenate([0.5 * (t.speed[1:] + t.speed[:-1]) for t in trajs])
