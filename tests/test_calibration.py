@@ -206,6 +206,42 @@ def test_valve_with_a_dead_band_gets_a_table_that_gives_nothing_in_it(tmp_path):
     assert back.frequency(np.array([1.0]))[0] > 25.0   # any flow needs the band's top
 
 
+def test_a_dead_bands_valve_is_checked_for_a_leak_against_its_lowest_flow(tmp_path):
+    """A balance's 0.2 mg at 0 Hz beside a dead band (0 g up to 25 Hz) was refused as a
+    leak of "3333...(300 digits) % of the flow at 10 Hz (0 mm^3/s)" (a tester's): the
+    leak is set against the lowest frequency that flows. A real leak still is refused,
+    named against that frequency."""
+    f = np.repeat([10.0, 25.0, 50.0, 75.0, 100.0, 150.0, 200.0, 300.0, 400.0, 500.0], 2)
+    mass = np.array([0, 0, 0, 0, 0.1514, 0.1507, 0.5222, 0.5250, 0.9, 0.905, 1.65, 1.64,
+                     2.4, 2.39, 3.9, 3.89, 5.4, 5.41, 6.9, 6.91])
+    fit = cal.fit_valve_table(np.r_[0.0, f], np.full(21, 60.0), np.r_[0.0002, mass], 1.0)
+    assert fit.frequency_hz[:3].tolist() == [0.0, 25.0, 50.0]
+    with pytest.raises(FlowError, match=r"0\.5 mm\^3/s, 20 % of the flow at 50 Hz "
+                                        r"\(2\.518 mm\^3/s\), the lowest that flows"):
+        cal.fit_valve_table(np.r_[0.0, f], np.full(21, 60.0), np.r_[0.03, mass], 1.0)
+
+
+def test_the_run_furthest_from_a_rising_table_is_named():
+    """One run at 500 Hz collected nothing: the message named 400 Hz, 14 % off, the first
+    frequency off, where 500 Hz was 25 % off (a tester's)."""
+    truth, f, d, m = _synthetic_part(1)
+    m = m.copy()
+    at = np.flatnonzero(f == 500.0)
+    m[at[0]] = 0.0
+    with pytest.raises(FlowError, match=r"the runs at 500 Hz .* off the nearest rising"):
+        cal.fit_valve_table(f, d, m, 1.0)
+
+
+def test_a_balances_drift_below_0_counts_as_0(tmp_path):
+    p = tmp_path / "m.csv"
+    p.write_text("frequency_hz,duration_s,mass_g\n0,60,-0.0003\n100,60,1.5\n")
+    f, d, m = cal.read_masses(p)
+    assert m.tolist() == [0.0, 1.5]
+    p.write_text("frequency_hz,duration_s,mass_g\n0,60,-0.01\n100,60,1.5\n")
+    with pytest.raises(ConfigError, match=r"m\.csv:2: mass_g must be >= 0 \(down to -0\.001 g"):
+        cal.read_masses(p)
+
+
 def test_valve_runs_with_no_flow_or_in_other_units_are_named():
     f = np.array([100.0, 200.0, 300.0, 400.0])
     # a valve that never opened: an SVD that did not converge (hunt W)

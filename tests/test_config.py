@@ -1,5 +1,7 @@
 """Job configuration: defaults, TOML and validation."""
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from icefab import Job
 from icefab.config import job_from_dict, load_job, to_toml
@@ -156,3 +158,17 @@ def test_a_job_built_directly_is_checked_as_a_file_is():
     assert type(job.motion.speed_mm_s) is float and job.motion.speed_mm_s == 100.0
     assert job.cell.ee_origin_mm == (300.0, 10.0) and type(job.cell.ee_origin_mm) is tuple
     assert job == Job().replace(**{"motion.speed_mm_s": 100.0, "cell.ee_origin_mm": [300, 10]})
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.text())
+def test_toml_string_reads_back_whatever_the_text(text):
+    """Any text (control characters, quotes, backslashes, characters beyond U+FFFF) as a
+    TOML string reads back as itself: JSON's escapes of an emoji are surrogate pairs,
+    which TOML refuses (a calibration's fragment for a folder named with one did not
+    load)."""
+    import tomllib
+
+    from icefab.config import toml_string
+
+    assert tomllib.loads(f"k = {toml_string(text)}")["k"] == text

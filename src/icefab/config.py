@@ -1037,6 +1037,16 @@ def to_dict(obj: Any) -> dict[str, Any]:
     return out
 
 
+def toml_string(text: str) -> str:
+    """``text`` as a TOML basic string: backslash, quote and the control characters TOML
+    forbids raw (U+0000-U+001F, U+007F) escaped, every other character as it is (JSON's
+    escapes of characters beyond U+FFFF, surrogate pairs, are not TOML: a calibration's
+    fragment for an output folder named with an emoji did not load)."""
+    out = text.replace("\\", "\\\\").replace('"', '\\"')
+    out = re.sub(r"[\x00-\x1f\x7f]", lambda m: f"\\u{ord(m.group()):04x}", out)
+    return f'"{out}"'
+
+
 def to_toml(job: Job) -> str:
     """The job as TOML text that :func:`load_job` reads back to an equal job."""
     lines: list[str] = []
@@ -1045,7 +1055,7 @@ def to_toml(job: Job) -> str:
         if isinstance(v, bool):
             return "true" if v else "false"
         if isinstance(v, str):
-            return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+            return toml_string(v)
         if isinstance(v, list):
             return "[" + ", ".join(fmt(x) for x in v) + "]"
         return repr(v)

@@ -27,6 +27,7 @@ import json
 from pathlib import Path
 
 from icefab.cli.common import add_job_argument, job_from_args, output_dir
+from icefab.config import toml_string
 from icefab.errors import ConfigError
 
 
@@ -145,7 +146,7 @@ def run_valve(args: argparse.Namespace) -> int:
         (tmp / f"valve_{args.material}.toml").write_text(
             f"# icefab calibrate valve: {len(f)} mass measurements, RMS residual "
             f"{100 * fit.rms_residual:.2f} %\n[materials.{args.material}]\n"
-            f"calibration_file = {json.dumps(str(table))}\n", encoding="utf-8")
+            f"calibration_file = {toml_string(str(table))}\n", encoding="utf-8")
     print(f"{args.material} valve: {len(fit.frequency_hz)} table rows from {len(f)} "
           f"measurements, up to {fit.flow_mm3_s[-1]:.4g} mm^3/s at "
           f"{fit.frequency_hz[-1]:g} Hz; RMS residual {100 * fit.rms_residual:.2f} %, largest "
