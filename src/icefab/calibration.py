@@ -413,24 +413,64 @@ class OffsetFit:
     expanded_mm: tuple[float, float] = (0.0, 0.0)
 
 
+#: Crossings whose offsets agree within this, mm, support the same offset (the crossings
+#: scatter by micrometres; the jig's same-sign edges are millimetres apart).
+OFFSET_SUPPORT_MM = 0.5
+
+
+def _supported_offset(cands: np.ndarray, who: np.ndarray, nominal: float) -> float:
+    """The offset that the most crossings support: the candidate offsets (each crossing
+    against each jig edge it could be) with the most distinct crossings within
+    :data:`OFFSET_SUPPORT_MM`, the one nearest ``nominal`` among equals; their median.
+
+    Matching each crossing to the edge its nominal offset puts nearest locked onto the
+    neighbouring edges when the nominal was 8 mm off (the jig's edges 10 mm apart): a
+    tester's calibration came out 10.000 mm wrong, "within the thesis' tolerances", with
+    half the crossings unmatched. At the true offset every crossing finds its edge; a
+    shift by the edges' spacing leaves those at the jig's ends without one.
+    """
+    order = np.argsort(cands, kind="stable")
+    c, w = cands[order], who[order]
+    lo = np.searchsorted(c, c - OFFSET_SUPPORT_MM, side="left")
+    hi = np.searchsorted(c, c + OFFSET_SUPPORT_MM, side="right")
+    support = np.array([len(np.unique(w[a:b])) for a, b in zip(lo, hi)])
+    best = np.flatnonzero(support == support.max())
+    k = best[np.argmin(np.abs(c[best] - nominal))]
+    return float(np.median(c[lo[k]:hi[k]]))
+
+
 def fit_offset(scans: Sequence[Scan], jig: Sequence[JigEdge], *, latency_s: float,
                latency_sigma_s: float = 0.0, latency_dof: int = 1000,
                nominal_offset_mm: Sequence[float] = (0.0, 0.0), match_mm: float = 5.0
                ) -> OffsetFit:
     """Laser offset from scans over a jig with known edges (module docstring, eq. 1).
 
-    Each crossing is matched to the jig edge on its axis with the same step sign whose
-    expected tagged position ``X - nominal_offset + v * latency`` is nearest, within
-    ``match_mm``. Needs at least two matched crossings on each axis (ConfigError
-    otherwise, naming the axis).
+    On each axis the offset the most crossings support is found first
+    (:func:`_supported_offset`; the nominal offset only breaks ties), then each crossing
+    is matched to the jig edge on its axis with the same step sign whose expected tagged
+    position ``X - offset + v * latency`` is nearest, within ``match_mm``. The estimate
+    is the mean of the scans' means, its uncertainty their scatter with (scans - 1)
+    degrees of freedom: the crossings of one scan share its latency jitter and sampling
+    phase (their errors correlated at 0.64), and counting them as independent gave 95 %
+    intervals that held the true offset 70 % of the time (a tester's coverage study;
+    per scan, 93 %). With one scan on an axis, its crossings' scatter is used. Needs at
+    least two matched crossings on each axis (ConfigError otherwise, naming the axis).
     """
     if not jig:
         raise ConfigError("offset calibration: the jig has no edges")
     steps = min(abs(e.step_mm) for e in jig)
     cr = [c for s in scans for c in find_crossings(s, 0.5 * steps)]
-    nominal = np.asarray(nominal_offset_mm, dtype=np.float64)
+    nominal = np.asarray(nominal_offset_mm, dtype=np.float64).copy()
+    for ai, a in enumerate("xy"):
+        cands = [(e.position_mm - c.tagged_mm + c.speed_mm_s * latency_s, k)
+                 for k, c in enumerate(cr) if c.axis == a
+                 for e in jig if e.axis == a and np.sign(e.step_mm) == np.sign(c.step_mm)]
+        if cands:
+            arr = np.array(cands)
+            nominal[ai] = _supported_offset(arr[:, 0], arr[:, 1], float(nominal[ai]))
     est: dict[str, list[float]] = {"x": [], "y": []}
     speeds: dict[str, list[float]] = {"x": [], "y": []}
+    scan_of: dict[str, list[int]] = {"x": [], "y": []}
     unmatched = 0
     for c in cr:
         ai = "xy".index(c.axis)
@@ -446,22 +486,34 @@ def fit_offset(scans: Sequence[Scan], jig: Sequence[JigEdge], *, latency_s: floa
             continue
         est[c.axis].append(best.position_mm - c.tagged_mm + c.speed_mm_s * latency_s)
         speeds[c.axis].append(c.speed_mm_s)
+        scan_of[c.axis].append(c.scan)
     off, sig, count, exp = [], [], [], []
     for a in "xy":
         e = np.asarray(est[a])
         if len(e) < 2:
             raise ConfigError(f"offset calibration: {len(e)} jig crossings along {a} matched "
                               f"an edge (within {match_mm:g} mm of where the nominal offset "
-                              f"{tuple(nominal.tolist())} puts it); need at least 2")
+                              f"{tuple(nominal_offset_mm)} puts it); need at least 2")
         v_mean = float(np.mean(speeds[a]))
-        spread = float(np.std(e, ddof=1)) / math.sqrt(len(e))
-        off.append(float(e.mean()))
+        ids = np.asarray(scan_of[a])
+        groups = np.unique(ids)
+        if len(groups) >= 2:
+            means = np.array([e[ids == g].mean() for g in groups])
+            centre = float(means.mean())
+            spread = float(np.std(means, ddof=1)) / math.sqrt(len(means))
+            dof = len(means) - 1
+        else:
+            centre = float(e.mean())
+            spread = float(np.std(e, ddof=1)) / math.sqrt(len(e))
+            dof = len(e) - 1
+        off.append(centre)
         sig.append(math.hypot(spread, abs(v_mean) * latency_sigma_s))
-        exp.append(math.hypot(expanded(spread, len(e) - 1),
+        exp.append(math.hypot(expanded(spread, dof),
                               abs(v_mean) * expanded(latency_sigma_s, latency_dof)))
         count.append(len(e))
     if unmatched:
-        log.info("offset calibration: %d crossings matched no jig edge", unmatched)
+        log.warning("offset calibration: %d of %d jig crossings matched no jig edge",
+                    unmatched, len(cr))
     return OffsetFit(offset_mm=(off[0], off[1]), sigma_mm=(sig[0], sig[1]),
                      crossings=(count[0], count[1]), unmatched=unmatched,
                      expanded_mm=(exp[0], exp[1]))
