@@ -341,8 +341,9 @@ def test_valve_runs_with_no_flow_or_in_other_units_are_named():
 
 @pytest.mark.parametrize("row, says", [
     ("1e12,60,2", ":5: frequency_hz must be within 0-100000 Hz"),
-    ("400,1e-300,2", ":5: duration_s must be within 0.1-86400 s"),
-    ("400,60000000,2", ":5: duration_s must be within 0.1-86400 s"),
+    ("400,1e-300,2", ":5: duration_s must be within 0.1-3600 s"),
+    ("400,60000000,2", ":5: duration_s must be within 0.1-3600 s"),
+    ("400,60000,2", ":5: duration_s must be within 0.1-3600 s"),   # 60 s in ms
 ])
 def test_mass_runs_outside_what_a_valve_and_a_balance_do_are_refused(tmp_path, row, says):
     from icefab.config import FlowSettings
@@ -372,7 +373,7 @@ def test_valve_table_rows_as_written_rise_strictly(tmp_path):
 @pytest.mark.parametrize("text, where", [
     ("frequency_hz,duration_s,mass_g\n100,10,1\n200,ten,2\n", ":3: duration_s must be a number"),
     ("100,10,1\n200,10\n", ":2: expected 3 columns"),
-    ("100,10,1\n200,0,1\n", ":2: duration_s must be within 0.1-86400 s"),
+    ("100,10,1\n200,0,1\n", ":2: duration_s must be within 0.1-3600 s"),
     ("100,10,nan\n", ":1: mass_g must be finite"),
     # Python's float() reads 1_00 as 100 (hunt W)
     ("frequency_hz,duration_s,mass_g\n1_00,60,0.5\n", ":2: frequency_hz must be a number, got "

@@ -698,8 +698,9 @@ class ValveFit:
 #: The highest frequency a mass run may have: ``flow.max_frequency_hz``'s upper bound.
 MAX_VALVE_HZ = 1e5
 #: A mass run's duration, s: long enough for the balance to read it (thesis 6.1 collects
-#: for minutes), at most a day.
-MIN_RUN_S, MAX_RUN_S = 0.1, 86400.0
+#: for minutes), at most an hour: 60 s runs written in ms (60000, 17 h) made a table a
+#: thousand times too small, with exit 0 (a tester's).
+MIN_RUN_S, MAX_RUN_S = 0.1, 3600.0
 #: The most flow a deposition valve's table may give, mm^3/s (10 cm^3/s: the thesis'
 #: valves give under 0.3 cm^3/s, Fig. 6-1); more is masses in mg or durations in ms.
 MAX_VALVE_FLOW_MM3_S = 1e4
