@@ -374,6 +374,8 @@ def test_valve_table_rows_as_written_rise_strictly(tmp_path):
     ("frequency_hz,duration_s,mass_g\n100,10,1\n200,ten,2\n", ":3: duration_s must be a number"),
     ("100,10,1\n200,10\n", ":2: expected 3 columns"),
     ("100,10,1\n200,0,1\n", ":2: duration_s must be within 0.1-3600 s"),
+    # a first row with a typo is data with a bad cell, not a header dropped unsaid
+    ("l00,60,1.4\n200,60,1\n", ":1: frequency_hz must be a number, got 'l00'"),
     ("100,10,nan\n", ":1: mass_g must be finite"),
     # Python's float() reads 1_00 as 100 (hunt W)
     ("frequency_hz,duration_s,mass_g\n1_00,60,0.5\n", ":2: frequency_hz must be a number, got "

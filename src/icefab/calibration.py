@@ -144,7 +144,11 @@ def _rows(path: Path, header: str, kinds: str, kind: str = "calibration"
         cells = [c.strip() for c in line.split(",")]
         first_is_data = (cells[0].lower() in ("x", "y") if kinds[0] == "a"
                          else _is_number(cells[0]))
-        if not out and not seen_header and not first_is_data:
+        # a header names its columns: a first row with numbers in it is data, however
+        # its first cell reads ("l00,60,1.4" or "z,230,2" were taken for a header and
+        # dropped without a word, a tester's)
+        if not out and not seen_header and not first_is_data \
+                and not any(_is_number(c) for c in cells):
             seen_header = True
             if len(cells) == len(kinds):
                 order = _columns(path, n, cells, names)
