@@ -138,11 +138,17 @@ def run_valve(args: argparse.Namespace) -> int:
     f, d, m = cal.read_masses(args.masses)
     fit = cal.fit_valve_table(f, d, m, density, source=str(args.masses))
     name = f"calibration_{args.material}.csv"
+    table = (Path(args.out) / name).resolve()
+    try:   # the fragment names the table in TOML, which holds UTF-8 text only
+        str(table).encode("utf-8")
+    except UnicodeEncodeError:
+        raise ConfigError(f"-o {args.out!r}: the job fragment names the table by its path, "
+                          "and this folder's name is not UTF-8 text, which TOML cannot hold; "
+                          "choose another folder") from None
     with output_dir(args.out, f"calibrate-valve-{args.material}") as tmp:
         cal.write_valve_table(fit, tmp / name, args.material)
         cal.plot_valve_fit(fit, tmp / f"valve_{args.material}.png",
                            f"{args.material} valve: {len(f)} runs, density {density:g} g/cm^3")
-        table = (Path(args.out) / name).resolve()
         (tmp / f"valve_{args.material}.toml").write_text(
             f"# icefab calibrate valve: {len(f)} mass measurements, RMS residual "
             f"{100 * fit.rms_residual:.2f} %\n[materials.{args.material}]\n"
