@@ -173,6 +173,23 @@ def test_a_laser_without_latency_writes_a_latency_the_job_takes(seed_, tmp_path)
         cal.calibrate_laser(js, jig, es, nominal_offset_mm=off)
 
 
+@pytest.mark.parametrize("seed_", [11, 137, 144, 189])
+def test_a_laser_without_latency_is_not_refused_for_its_noise(seed_):
+    """At one 95 % uncertainty a laser without latency was refused in 4 of 200 correct
+    calibrations (these seeds, 1.04-1.45 times it), blamed on its time stamps (a
+    tester's). It is written as 0; only a clearly negative latency is refused."""
+    off = (-30.0, 19.0)
+    es = cal.synthetic_edge_scans(offset_mm=off, latency_s=0.0,
+                                  rng=np.random.default_rng(seed_), latency_jitter_s=0.0)
+    lat = cal.fit_latency(es)
+    assert -lat.latency_s > lat.expanded_s           # the old test refused it
+    jig = cal.default_jig()
+    js = cal.synthetic_jig_scans(jig, offset_mm=off, latency_s=0.0,
+                                 rng=np.random.default_rng(seed_ + 1))
+    res = cal.calibrate_laser(js, jig, es, nominal_offset_mm=off)
+    assert res.latency.latency_s == 0.0 and res.latency.estimate_s == lat.latency_s
+
+
 def test_scans_timed_in_milliseconds_are_named():
     import dataclasses
 
