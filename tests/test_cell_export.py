@@ -127,6 +127,8 @@ def test_gcode_is_marlin_with_valve_duty_per_step_and_tool_changes():
     assert names[:3] == ["G21", "G90", "M3"] and names[-1] == "M5"
     # a tool change before each material's first path of a layer, T0 part, T1 scaffold
     assert [c for c in names if c.startswith("T")] == ["T0", "T1", "T0", "T1"]
+    # S1: Marlin moves no tool in XY for the change (the next line moves it)
+    assert all(w == {"S": 1} for c, w in cmds if c.startswith("T"))
     g1 = [w for c, w in cmds if c == "G1"]
     assert g1 and all(set(w) == {"X", "Y", "F", "S"} and 0 <= w["S"] <= 255 for w in g1)
     # every G0 closes the valve itself (S0): Marlin's G0 keeps the power of the move
@@ -189,7 +191,7 @@ def test_plan_gcode_option_writes_the_marlin_file(tmp_path):
     assert main(["plan", str(tmp_path / "tp.npz"), "-c", str(job_file), "-o",
                  str(tmp_path / "out"), "--gcode"]) == 0
     text = (tmp_path / "out" / "trajectories.gcode").read_text()
-    assert "M3 I S0" in text and "\nT0\n" in text and text.rstrip().endswith("M5")
+    assert "M3 I S0" in text and "\nT0 S1\n" in text and text.rstrip().endswith("M5")
 
 
 def test_gcode_of_scara_trajectories_is_refused(tmp_path, capsys):

@@ -13,8 +13,9 @@ the C40's trigger keeps the valve controller in step with the robot (thesis 2.3.
   axis' own maximum). F is modal: without it a layer's move up and over to its first
   path ran at the last path's slowing step, ~50 mm/min (a tester's gantry mug: 20 312 s of
   such moves beside 18 738 s of planned motion).
-* Material (nozzle) change: ``T0`` (part, water) / ``T1`` (scaffold) before a path of the
-  other material. The machine routes the cutter PWM to that nozzle's valve in its tool
+* Material (nozzle) change: ``T0 S1`` (part, water) / ``T1 S1`` (scaffold) before a path of
+  the other material (``S1``: Marlin does not move the tool in XY for the change; the next
+  line moves it). The machine routes the cutter PWM to that nozzle's valve in its tool
   change (for example Marlin's ``EVENT_GCODE_TOOLCHANGE_T0`` / ``_T1`` switching a mux pin
   with ``M42``). X, Y are already the carriage positions that put the chosen nozzle on the
   part (the trajectories' base-frame samples), so the tool change applies no offset.
@@ -163,7 +164,7 @@ def gcode_lines(motion, job=None):
                 continue
             if tool != p.material:
                 tool = p.material
-                yield f"T{TOOL_NUMBER[tool]}"
+                yield f"T{TOOL_NUMBER[tool]} S1"
             prog = flow.plan_valves(tr, p.material, pwm)
             s = np.rint(255.0 * step_duty(tr, prog, 1.0 / pwm.flow.pwm_frequency_hz)
                         ).astype(np.int64)
