@@ -224,8 +224,8 @@ MAX_TOTAL_BYTES = 3 << 29
 MAX_FILE_BYTES = 1 << 31
 #: Coordinates, heights and widths beyond this are not a build of any cell, mm.
 MAX_COORD_MM = 1e5
-#: Errors the zip and npy readers raise on damaged data.
-_DAMAGE = (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError, KeyError,
+#: Errors the zip and npy readers raise on damaged data (any npz icefab reads back).
+NPZ_DAMAGE = (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError, KeyError,
            NotImplementedError, RuntimeError, SyntaxError, TypeError, struct.error,
            UnicodeDecodeError)
 _KIND_NAMES = {"f": "floating point", "iu": "integers", "b": "booleans", "U": "text",
@@ -257,7 +257,7 @@ class _Members:
         try:
             self.zip = zipfile.ZipFile(path)
             infos = self.zip.infolist()
-        except _DAMAGE as exc:
+        except NPZ_DAMAGE as exc:
             self.close()
             raise StackFileError(f"{path}: not a readable {what} file (not a numpy .npz "
                                  f"archive: {exc})") from None
@@ -351,7 +351,7 @@ class _Members:
                     raise self.bad(name, "truncated")
         except StackFileError:
             raise
-        except _DAMAGE as exc:
+        except NPZ_DAMAGE as exc:
             raise self.bad(name, f"unreadable ({type(exc).__name__}: {exc})") from None
         arr = np.frombuffer(buf, dtype=dtype, count=count)
         if not dtype.isnative:

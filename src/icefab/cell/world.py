@@ -58,7 +58,6 @@ import json
 import logging
 import os
 import time
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -66,15 +65,12 @@ import numpy as np
 
 from icefab import sim as _simulator  # the layer step and blocks shared with run_cell
 from icefab.errors import CellError
+from icefab.resultfiles import NPZ_DAMAGE
 
 log = logging.getLogger(__name__)
 
 FORMAT = "icefab-cell-surface"
 VERSION = 1
-#: What reading a damaged npz raises: a truncated or corrupt zip (BadZipFile, a bad CRC),
-#: an empty file (EOFError), a missing key, a wrong type (a tester's truncated piece ended
-#: the cell in a BadZipFile traceback).
-_UNREADABLE = (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile)
 _TINY_MM = 1e-9
 MATERIAL_OF_VALVE = ("part", "scaffold")
 
@@ -284,7 +280,7 @@ class World:
                 self.pending.extend(d)
         except CellError:
             raise
-        except _UNREADABLE as exc:
+        except NPZ_DAMAGE as exc:   # a truncated piece ended the cell in a traceback
             raise CellError(f"{self.file}: cannot read the cell surface ({exc})") from None
         self._remove_pieces(keep=self.generation)
         for _, k, f in self._piece_files():
@@ -296,7 +292,7 @@ class World:
                     self.pending.extend(d)
                     self.last_done, self.cut = int(d["last_done"]), int(d["cut"])
                     self.rng_laser.bit_generator.state = json.loads(str(d["rng_laser"]))
-            except _UNREADABLE as exc:
+            except NPZ_DAMAGE as exc:
                 raise CellError(f"{f}: cannot read a liquid piece of the cell surface "
                                 f"({exc})") from None
             self._pieces += 1

@@ -222,6 +222,15 @@ def _scan_numbers(b, start, line):  # pragma: no cover
     return out[:o], values[:nvals], slow[:ns], 0, 0
 
 
+def lf_line_ends(data: bytes) -> bytes:
+    """``data`` with CR-only line ends (classic Mac OS) as LF, byte offsets kept; text
+    with any LF (LF or CRLF lines) as it is. The scanners count lines by LF: a CR-only
+    file was one line ('without facets', 'no faces', 'unknown header keyword')."""
+    if b"\r" in data and b"\n" not in data:
+        return data.replace(b"\r", b"\n")
+    return data
+
+
 def _line_text(data: bytes, line: int) -> str:
     """The text of 1-based line ``line`` (shortened), for error messages."""
     lines = data.split(b"\n", line)

@@ -13,7 +13,8 @@ from numba import njit
 
 from icefab.errors import MeshError
 from icefab.mesh._text import (_E_FEW, _E_INDEX, _E_NUMBER, _check_finite_lines, _finish_numbers,
-                               _is_number, _is_ws, _line_text, _store_number)
+                               _is_number, _is_ws, _line_text, _store_number,
+                               lf_line_ends)
 from icefab.mesh.topology import polygon_triangles
 
 log = logging.getLogger(__name__)
@@ -146,8 +147,7 @@ def read(data: bytes, path: Path) -> tuple[np.ndarray, np.ndarray]:
     a line's end continues it on the next (the OBJ specification's continuation: a
     tester's 'f 1 4 \\' was 'cannot read a number'; after one, error messages count
     the joined lines)."""
-    if b"\r" in data and b"\n" not in data:
-        data = data.replace(b"\r", b"\n")
+    data = lf_line_ends(data)
     if b"\\" in data:
         data = re.sub(rb"\\[ \t]*\r?\n", b" ", data)
     b = np.frombuffer(data, np.uint8)

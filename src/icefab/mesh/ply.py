@@ -17,7 +17,7 @@ import numpy as np
 from numba import njit
 
 from icefab.errors import MeshError
-from icefab.mesh._text import _finish_numbers, _line_text, _scan_numbers
+from icefab.mesh._text import _finish_numbers, _line_text, _scan_numbers, lf_line_ends
 from icefab.mesh.topology import polygon_triangles
 
 log = logging.getLogger(__name__)
@@ -432,8 +432,7 @@ def read(data: bytes, path: Path) -> tuple[np.ndarray, np.ndarray]:
     last = max(i for i, e in enumerate(elements) if e.name in wanted)
     got: dict[str, _PlyData] = {}
     if fmt == "ascii":
-        if b"\n" not in data:   # CR-only lines: counted as lines (same byte offsets)
-            data = data.replace(b"\r", b"\n")
+        data = lf_line_ends(data)   # CR-only lines counted as lines (same byte offsets)
         header_lines = data[:body].count(b"\n") + 1
         buf, t, slow, err, line = _scan_numbers(np.frombuffer(data, np.uint8), body,
                                                 header_lines)

@@ -26,7 +26,7 @@ from icefab.core import Mesh
 from icefab.errors import MeshError
 from icefab.mesh._text import (_E_EOF, _E_NUMBER, _E_TOKEN, _E_VCOUNT, _check_finite_lines,
                                _finish_numbers, _is_number, _line_text, _next_token,
-                               _store_number, _tok_eq)
+                               _store_number, _tok_eq, lf_line_ends)
 
 log = logging.getLogger(__name__)
 
@@ -226,9 +226,7 @@ def read_ascii(data: bytes, path: Path) -> np.ndarray:
 
     Lines end in LF, CRLF or CR alone (classic Mac OS: a CR-only file was 'without
     facets', its lines counted as one)."""
-    if b"\n" not in data and b"\r" in data:
-        data = data.replace(b"\r", b"\n")
-    data = _skip_preamble(data, path)
+    data = _skip_preamble(lf_line_ends(data), path)
     b = np.frombuffer(data, np.uint8)[:_content_end(data)]
     buf, values, slow, vlines, err, line = _scan_stl_ascii(b)
     if err:
