@@ -716,7 +716,7 @@ def test_stop_reaches_a_build_that_is_still_planning(tmp_path, when):
             assert st["pid"] == proc.pid and st["paths_done"] is None
         t0 = time.monotonic()
         r = _icefab("build", "--stop", "b", cwd=tmp_path)
-        assert r.returncode == 0, r.stderr
+        assert r.returncode == 0, r.stderr + log.read_text()   # where the build was
         assert "stopped while it was being prepared" in r.stdout
         assert proc.wait(timeout=60) == 143 and "terminated" in log.read_text(), \
             log.read_text()

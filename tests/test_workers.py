@@ -194,3 +194,39 @@ def test_sigterm_to_the_process_group_ends_a_command_at_once(tmp_path, stage):
     while any(_alive(w) for w in workers) and time.monotonic() < deadline:
         time.sleep(0.1)
     assert not [w for w in workers if _alive(w)]
+
+
+@pytest.mark.skipif(machine_cores() < 2, reason="a pool needs 2 cores (serial on 1)")
+@pytest.mark.parametrize("where", ["between two workers' starts", "before its thread runs"])
+def test_a_map_interrupted_as_its_pool_starts_lets_the_process_end(tmp_path, where):
+    # a build stopped at once hung at its exit in CI (stop 48): the stop came as the pool
+    # forked its workers, before the pool's thread that ends them ran, and multiprocessing
+    # joins its children at exit. The interruption is put into those instants (CPython's
+    # own steps of ProcessPoolExecutor).
+    import concurrent.futures.process as cfp
+    step = {"between two workers' starts": "_spawn_process",
+            "before its thread runs": "_start_executor_manager_thread"}[where]
+    if not hasattr(cfp.ProcessPoolExecutor, step):
+        pytest.skip(f"this Python's ProcessPoolExecutor has no {step} to interrupt")
+    script = textwrap.dedent(f"""
+        import concurrent.futures.process as cfp
+        from icefab import Job
+        from icefab.parallel import parallel_map
+        P = cfp.ProcessPoolExecutor
+        step = P.{step}
+        def interrupted(self):
+            if "{step}" == "_spawn_process":
+                step(self)     # one worker started, the next not
+            else:              # every worker started, the thread not
+                self._launch_processes()
+            raise KeyboardInterrupt
+        P.{step} = interrupted
+        try:
+            parallel_map(abs, list(range(100)), Job().replace(**{{"cell.cpus": 2}}))
+        except KeyboardInterrupt:
+            print("interrupted", flush=True)
+    """)
+    (tmp_path / "pool.py").write_text(script)
+    proc = subprocess.run([sys.executable, str(tmp_path / "pool.py")], capture_output=True,
+                          text=True, cwd=tmp_path, timeout=60)
+    assert proc.returncode == 0 and proc.stdout == "interrupted\n", proc.stderr

@@ -15,6 +15,7 @@ import collections
 import contextlib
 import itertools
 import math
+import multiprocessing
 import os
 import signal
 import threading
@@ -81,6 +82,7 @@ def _pool(workers: int) -> Iterator[ProcessPoolExecutor]:
     ProcessPoolExecutor`` waits for every submitted item: a build stopped (SIGTERM,
     Ctrl-C) while it planned its paths ran the rest of the stage first, over a minute on a
     busy machine (CI)."""
+    before = set(multiprocessing.active_children())
     pool = process_pool(workers)
     try:
         yield pool
@@ -90,6 +92,13 @@ def _pool(workers: int) -> Iterator[ProcessPoolExecutor]:
         # items) and die with this process
         manager = getattr(pool, "_executor_manager_thread", None)   # shutdown drops it
         pool.shutdown(wait=False, cancel_futures=True)
+        if manager is None or not manager.is_alive():
+            # interrupted as the pool started its workers, before its manager thread ran:
+            # nothing tells them to end, and multiprocessing joins its children at exit,
+            # so the process never ended (a build stopped at once hung in CI, stop 48).
+            # They hold no item yet (only that thread hands them out).
+            for p in set(multiprocessing.active_children()) - before:
+                p.terminate()
         _forget_wakeup(manager)
         raise
     pool.shutdown(wait=True)
