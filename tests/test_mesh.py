@@ -210,10 +210,12 @@ def test_ascii_stl_line_ends_padding_and_unreadable_normals(tmp_path, edit):
     _same_geometry(load_mesh(p), ref)
 
 
-@pytest.mark.parametrize("header", [b"Exported from Blender-2.91.0", b"solid part"])
+@pytest.mark.parametrize("header", [b"Exported from Blender-2.91.0", b"solid part",
+                                    b"solid part\n"])
 def test_error_binary_stl_of_no_facets_is_not_taken_for_padded_text(tmp_path, header):
     """A text header and a facet count of 0 end in NULs, as padded ASCII does: no line end
-    before them tells it from text (Blender's empty export)."""
+    before them tells it from text (Blender's empty export). A header ending in a line end
+    was 'ASCII STL without facets'."""
     with pytest.raises(MeshError, match=r"e\.stl: binary STL with 0 facets"):
         load_mesh(_write(tmp_path, "e.stl", header.ljust(80, b"\0") + b"\0" * 4))
 
