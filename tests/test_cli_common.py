@@ -361,3 +361,35 @@ def test_a_signal_while_the_options_are_read_is_one_line(monkeypatch, capsys, ex
     assert cli.main(["demo"]) == code
     err = capsys.readouterr().err
     assert err.strip() == said
+
+
+@pytest.mark.parametrize("exc, code, said", [("Terminated", 143, "icefab slice: terminated"),
+                                             ("KeyboardInterrupt", 130,
+                                              "icefab slice: interrupted")])
+def test_a_signal_as_numba_loads_a_kernel_is_one_line(monkeypatch, capsys, tmp_path, exc,
+                                                      code, said):
+    """A signal while numba's dispatcher ran Python code (loading a cached kernel) came out
+    as "SystemError: CPUDispatcher(...) returned a result with an exception set", with a
+    traceback and exit 1 (a hunt's); CPython chains the signal's exception as its cause.
+    Another SystemError stays an error."""
+    import icefab.cli as cli
+    import icefab.cli.slice_cmd as slice_cmd
+    from icefab.cli.common import Terminated
+
+    def interrupted(args):
+        try:
+            raise Terminated() if exc == "Terminated" else KeyboardInterrupt()
+        except KeyboardInterrupt as e:
+            raise SystemError("CPUDispatcher(<function _filter_compact>) returned a result "
+                              "with an exception set") from e
+
+    monkeypatch.setattr(slice_cmd, "run", interrupted)
+    assert cli.main(["slice", "demo", "-o", str(tmp_path / "s")]) == code
+    assert capsys.readouterr().err.strip() == said
+
+    def broken(args):
+        raise SystemError("something else")
+
+    monkeypatch.setattr(slice_cmd, "run", broken)
+    with pytest.raises(SystemError, match="something else"):
+        cli.main(["slice", "demo", "-o", str(tmp_path / "s")])

@@ -186,6 +186,27 @@ def _main(argv: list[str] | None) -> int:
         return 2
     except KeyboardInterrupt as exc:
         return _stopped(f"icefab {args.command}", exc)
+    except SystemError as exc:
+        # Ctrl-C or SIGTERM while numba loaded a cached kernel (Python code run from its
+        # dispatcher, which wraps what it raises): "SystemError: CPUDispatcher(...)
+        # returned a result with an exception set", a traceback and exit 1 (a hunt's)
+        stop = _interruption(exc)
+        if stop is None:
+            raise
+        return _stopped(f"icefab {args.command}", stop)
+
+
+def _interruption(exc: BaseException) -> KeyboardInterrupt | None:
+    """The Ctrl-C or SIGTERM (:class:`Terminated`) that ``exc`` was raised from, if any:
+    its cause or context, or theirs."""
+    seen: set[int] = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return e
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return None
 
 
 if __name__ == "__main__":  # pragma: no cover
