@@ -178,3 +178,30 @@ def test_the_paths_summary_tally_of_packed_layers_is_the_paths_one():
             want_length[key] = want_length.get(key, 0.0) + mm
         assert tally.per_layer[-1] == layer_estimate(_layer_of(paths), job)
     assert tally.counts == want_counts and tally.length == want_length
+
+
+def test_a_path_where_joint_1_turns_through_180_degrees_is_refused():
+    """With cell.joint_range_deg at 180 or more, a path could cross the line where the
+    SCARA's joint 1 turns through +/-180 deg: the inverse kinematics gives joint 1 within
+    one turn, so its rates read as a full turn in one step, and a 25 degree arc planned
+    as 11.7 days of 63 M samples (a hunt's; 'icefab plan' ran out of memory). Refused by
+    name; the same arc elsewhere plans in two seconds."""
+    import numpy as np
+    import pytest
+
+    from icefab import Job
+    from icefab.motion import plan_motion
+    from icefab.robots import get_robot
+
+    a = np.radians(np.linspace(-150.0, -125.0, 200))
+    arc = 400.0 * np.c_[np.cos(a), np.sin(a)]
+    for wide in (180.0, 200.0):
+        job = Job().replace(**{"cell.joint_range_deg": [wide, 150.0]})
+        t1 = np.degrees(get_robot(job).ik(arc)[[0, -1], 0])
+        assert t1[0] > 160 and t1[1] < -160          # it does cross +/-180
+        with pytest.raises(WorkspaceError, match=r"path: passes \(-2\d\d\.\d+, -2\d\d\.\d+\) "
+                           r"mm .*joint 1 would turn through \+/-180 deg"):
+            plan_motion(arc, job)
+        front = plan_motion(-arc, job)
+        assert front.duration < 5.0
+        assert np.abs(np.diff(front.joints[:, 0])).max() < np.radians(1.0)

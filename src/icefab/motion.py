@@ -112,7 +112,7 @@ from icefab.resultfiles import (TRAJECTORIES_FORMAT as FORMAT,  # noqa: F401 (ol
                                 packed_lengths, packed_polylines, packed_tools,
                                 pack_trajectories, save_trajectories, unpack_layer_paths,
                                 unpack_trajectories)
-from icefab.robots import Robot, get_robot, points_box
+from icefab.robots import Robot, Scara, get_robot, points_box
 from icefab.core import (DEPOSITING_CODES, MATERIALS, ROLES, BuildMotion, LayerMotion, LayerPaths,
                          Toolpath, Toolpaths, Trajectory, arc_lengths, checked_widths, offsets,
                          off_problem, path_lengths, split_rows, widths_problem)
@@ -499,6 +499,7 @@ def _prepare(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray], job: J
         raise WorkspaceError(f"{_label(labels, k)}: the segment from point {i0} to point {i1} "
                              f"passes ({gxy[g, 0]:.3f}, {gxy[g, 1]:.3f}) mm (robot base "
                              f"frame), out of the {robot.name} workspace: {greasons[0]}")
+    _check_no_joint_wrap(qgrid, gstart, gxy, piece_path, labels, robot)
     # only joints with a finite bound take part in the planning
     qv = np.asarray(robot.joint_speed_max, dtype=np.float64)
     qa = np.asarray(robot.joint_accel_max, dtype=np.float64)
@@ -515,6 +516,31 @@ def _prepare(polys: Sequence[np.ndarray] | tuple[np.ndarray, np.ndarray], job: J
                              float(job.motion.accel_mm_s2), gxy)
     return _Prepared(sp=sp, P=P, qgrid=qgrid, used=used, vertices=vertices, rest=rest,
                      gjac=gjac)
+
+
+def _check_no_joint_wrap(qgrid: np.ndarray, gstart: np.ndarray, gxy: np.ndarray,
+                         piece_path: np.ndarray, labels, robot: Robot) -> None:
+    """WorkspaceError when a path's grid crosses the half-line from a SCARA's base where
+    its joint 1 turns through +/-180 degrees: the inverse kinematics gives joint 1 within
+    one turn, so there it jumps by a full turn between neighbouring points. A joint range
+    of 180 degrees or more (cell.joint_range_deg) lets such a path through the range
+    checks, and its rates read as a full turn in one step: a hunt's 25 degree arc planned
+    as 11.7 days of 63 M samples (6 GB), and 'icefab plan' ran out of memory."""
+    if not isinstance(robot, Scara) or len(qgrid) < 2:
+        return
+    jump = np.abs(np.diff(qgrid[:, 0])) > np.pi
+    jump[gstart[1:-1] - 1] = False      # from one piece's last point to the next's first
+    if not jump.any():
+        return
+    g = int(np.flatnonzero(jump)[0])
+    q = int(np.searchsorted(gstart, g, side="right") - 1)
+    x, y = gxy[g]
+    raise WorkspaceError(
+        f"{_label(labels, int(piece_path[q]))}: passes ({x:.3f}, {y:.3f}) mm (robot base "
+        "frame), where the SCARA's joint 1 would turn through +/-180 deg: icefab plans "
+        "joint 1 within one turn (-180 to 180 deg), whatever cell.joint_range_deg allows; "
+        "move or turn the part so that no path crosses that line (cell.ee_origin_mm, "
+        "parts.rotation_deg)")
 
 
 def _profiles(prep: _Prepared, vcaps: np.ndarray, job: Job, robot: Robot) -> _Profiles:
