@@ -393,3 +393,47 @@ def test_a_signal_as_numba_loads_a_kernel_is_one_line(monkeypatch, capsys, tmp_p
     monkeypatch.setattr(slice_cmd, "run", broken)
     with pytest.raises(SystemError, match="something else"):
         cli.main(["slice", "demo", "-o", str(tmp_path / "s")])
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
+def test_a_sigterm_lost_in_a_weakref_callback_stops_the_command_at_its_next_progress(
+        monkeypatch, capsys, tmp_path):
+    """A SIGTERM handler's exception raised inside a weakref callback (Python's import
+    locks have one) is printed as "Exception ignored" and lost: a build stopped at once
+    planned on, and 'icefab build --stop' gave up after 60 s (CI stop 48). The command's
+    next progress report raises it again."""
+    import gc
+    import os
+    import signal
+    import weakref
+
+    import icefab.cli as cli
+    import icefab.cli.common as common
+    import icefab.cli.slice_cmd as slice_cmd
+
+    monkeypatch.setattr(common, "_TERMINATED", [False])
+    reported = []
+
+    def run(args):
+        class Lock:
+            pass
+
+        def callback(ref):
+            os.kill(os.getpid(), signal.SIGTERM)   # its handler runs in here
+            sum(range(1000))
+
+        lock = Lock()
+        ref = weakref.ref(lock, callback)
+        del lock
+        gc.collect()
+        assert ref() is None
+        reported.append("went on")       # the Terminated was lost
+        common.Progress("slicing", interval_s=0.0)(1, 2)
+        reported.append("not stopped")
+        return 0
+
+    monkeypatch.setattr(slice_cmd, "run", run)
+    assert cli.main(["slice", "demo", "-o", str(tmp_path / "s")]) == 143
+    err = capsys.readouterr().err
+    assert reported == ["went on"]
+    assert err.strip().endswith("icefab slice: terminated")

@@ -18,7 +18,8 @@ import signal
 import sys
 import threading
 
-from icefab.cli.common import Terminated, check_output_dir
+from icefab.cli.common import (Terminated, check_output_dir, forget_terminated,
+                               terminate)
 from icefab.cli.compiling import compile_notice
 from icefab.errors import IcefabError
 
@@ -91,7 +92,7 @@ def _on_sigterm(signum, frame) -> None:
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
         os.kill(os.getpid(), signal.SIGTERM)
         return
-    raise Terminated()
+    terminate()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -104,6 +105,7 @@ def main(argv: list[str] | None = None) -> int:
     if threading.current_thread() is not threading.main_thread():
         return _main(argv)
     _on_sigterm.pid = os.getpid()
+    forget_terminated()
     old = signal.signal(signal.SIGTERM, _on_sigterm)
     hook = threading.excepthook
     threading.excepthook = _quiet_broken_pool(hook)

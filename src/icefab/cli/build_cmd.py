@@ -33,8 +33,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from icefab.cli.common import (Terminated, add_job_argument, command_inputs,
-                               job_from_args)
+from icefab.cli.common import (add_job_argument, check_terminated, command_inputs,
+                               job_from_args, terminate)
 from icefab.errors import ConfigError
 
 
@@ -258,7 +258,7 @@ def _build_process(build: Path, *, new: bool):
         if ctl["runner"]:
             ctl["signal"] = signum
         else:
-            raise Terminated()
+            terminate()
 
     old = signal.signal(signal.SIGTERM, on_term)   # the handler first, then the marker
     made: list[Path] = []
@@ -588,6 +588,7 @@ def _run(build: Path, args: argparse.Namespace, ctl: dict, *, resume: bool) -> i
         # written first, so a --stop from now on signals it (ctl) and is not lost
         (build / bmod.STOP_REQUEST).unlink(missing_ok=True)
         journal.event("resume", "resumed")
+        check_terminated()        # a SIGTERM whose Terminated was lost (terminate)
         ctl["runner"] = True
     else:
         if jpath.exists():
@@ -638,6 +639,7 @@ def _run(build: Path, args: argparse.Namespace, ctl: dict, *, resume: bool) -> i
             if not st.prepared:
                 lo, hi = _box(motion, job)
                 cell.prepare(job_toml, tuple(lo), tuple(hi))
+            check_terminated()    # a SIGTERM whose Terminated was lost (terminate)
             # whole or absent (Journal.create); a stop until it exists undoes all this
             journal = Journal.create(jpath, meta)
         except BaseException:   # Ctrl-C or --stop too

@@ -15,7 +15,7 @@ import threading
 import time
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Iterator
+from typing import TYPE_CHECKING, Iterator, NoReturn
 
 import numpy as np
 
@@ -101,6 +101,33 @@ class Terminated(KeyboardInterrupt):
     results behind (hunt P). Exit status 143."""
 
 
+#: Whether this process was sent SIGTERM (:func:`terminate`).
+_TERMINATED = [False]
+
+
+def terminate() -> NoReturn:
+    """Raise :class:`Terminated` from a SIGTERM handler, and remember it: a handler that
+    runs inside a weakref callback or a ``__del__`` has its exception printed as
+    "Exception ignored" and lost (Python's own import locks have such a callback), and
+    the command went on: a build stopped at once planned on and '--stop' gave up after 60
+    s (CI stop 48). :func:`check_terminated`, called by every :class:`Progress` and at
+    a build's hand-over to its runner, raises it again."""
+    _TERMINATED[0] = True
+    raise Terminated()
+
+
+def forget_terminated() -> None:
+    """A new command in this process (:func:`icefab.cli.main`): no SIGTERM yet."""
+    _TERMINATED[0] = False
+
+
+def check_terminated() -> None:
+    """Raise :class:`Terminated` again when this process was sent SIGTERM
+    (:func:`terminate`) and goes on working (its first one lost)."""
+    if _TERMINATED[0]:
+        raise Terminated()
+
+
 class Progress:
     """Progress of a long stage on stderr: ``label: done/total``.
 
@@ -117,6 +144,7 @@ class Progress:
         self._start = time.perf_counter()
 
     def __call__(self, done: int, total: int) -> None:
+        check_terminated()
         now = time.perf_counter()
         final = done >= total
         if not final and now - self._last < (0.1 if self.tty else self.interval_s):
