@@ -1477,3 +1477,24 @@ def test_a_part_left_without_paths_is_said(tmp_path, capsys):
     assert main(["paths", str(tmp_path / "default.npz"), "-o", str(tmp_path / "ok")]) == 0
     text = capsys.readouterr().out
     assert "no part path" not in text and "strip inside" not in text
+
+
+@pytest.mark.parametrize("wall", [1.49, 1.5, 1.51])
+def test_a_strip_exactly_one_path_width_wide_gets_one_centre_path(wall):
+    """The gap fill's rings half a path width inside a gap (room for two beads) left, on
+    a tube wall exactly one path width wide, the slivers of the offset: 134 rings of 1e-5
+    mm^2, the 51 oriented as holes kept as closed paths, 94 paths where one was due (a
+    hunt's). Boundaries off, so the whole wall is the gap fill's."""
+    from shapely.geometry import Point
+
+    ring = Point(0, 0).buffer(15, 128).difference(Point(0, 0).buffer(15 - wall, 128))
+    outer = np.asarray(ring.exterior.coords)[:-1]
+    inner = np.asarray(ring.interiors[0].coords)[:-1]
+    rings = [outer if signed_area(outer) > 0 else outer[::-1],
+             inner if signed_area(inner) < 0 else inner[::-1]]
+    job = Job().replace(**{"feedback.enabled": False, "scaffold.enabled": False,
+                           "materials.part.boundary_count": 0})
+    lp = plan_layer(Layer(0, 0.125, geo.region_from_rings(rings)), job)
+    deposits = [p for p in _members(lp) if p.role in ("fill", "boundary")]
+    assert len(deposits) == 1 and deposits[0].closed
+    assert deposits[0].length == pytest.approx(2 * math.pi * (15 - wall / 2), rel=0.02)
