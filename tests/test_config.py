@@ -172,3 +172,18 @@ def test_toml_string_reads_back_whatever_the_text(text):
     from icefab.config import toml_string
 
     assert tomllib.loads(f"k = {toml_string(text)}")["k"] == text
+
+
+def test_an_acceleration_whose_steps_cut_curves_past_the_bead_is_refused():
+    """A trajectory sample every dt cuts a curve taken at the acceleration bound A by up
+    to A dt^2 / 8: at 1e6 mm/s^2 and 16 ms, 32 mm (a hunt's 3 mm ring was two samples at
+    one point, a 200 mm circle an octagon 17 mm off). Over half the narrowest path width
+    it is refused, naming both settings; a finer step takes it."""
+    with pytest.raises(ConfigError, match=r"motion.accel_mm_s2 = 1e\+06 with motion.dt_s = "
+                       r"0.016: .* up to accel x dt\^2 / 8 = 32 mm .* \(1.5 mm\)"):
+        Job().replace(**{"motion.accel_mm_s2": 1e6})
+    assert Job().replace(**{"motion.accel_mm_s2": 1e6, "motion.dt_s": 0.002})
+    assert Job().replace(**{"motion.accel_mm_s2": 5000.0})        # 0.16 mm
+    with pytest.raises(ConfigError, match=r"\(0.25 mm\)"):
+        Job().replace(**{"motion.accel_mm_s2": 5000.0, "materials.scaffold.path_width_mm": 0.25,
+                         "materials.scaffold.fill_width_mm": 0.5})

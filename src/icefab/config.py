@@ -461,7 +461,8 @@ class MotionSettings:
         why="the Cobra 600 exceeds 1 m/s; below 1 mm/s water freezes in the nozzle")
     accel_mm_s2: float = setting(
         500.0,
-        "total Cartesian acceleration bound",
+        "total Cartesian acceleration bound; with motion.dt_s, accel x dt^2 / 8 (how far "
+        "a step cuts a curve taken at it) must stay within half the narrowest path width",
         lo=1.0, hi=1e6,
         why="up to 100 g")
     jerk_mm_s3: float = setting(
@@ -891,6 +892,17 @@ def _check_cross(job: Job) -> None:
     if sorted(job.parts.rotation_order) != [1, 2, 3]:
         raise ConfigError(f"parts.rotation_order = {tuple(job.parts.rotation_order)!r}: must "
                           "be a permutation of 1, 2, 3")
+    mo = job.motion
+    narrow = min(job.materials.part.path_width_mm, job.materials.scaffold.path_width_mm)
+    chord = mo.accel_mm_s2 * mo.dt_s ** 2 / 8.0
+    if chord > narrow / 2.0:
+        # a hunt's 1e6 mm/s^2: a 3 mm ring became two samples at one point, a 200 mm
+        # circle an octagon 17 mm off; at the defaults 0.016 mm
+        raise ConfigError(f"motion.accel_mm_s2 = {mo.accel_mm_s2:g} with motion.dt_s = "
+                          f"{mo.dt_s:g}: a curve taken at that acceleration is cut by up to "
+                          f"accel x dt^2 / 8 = {chord:.3g} mm between two samples, over half "
+                          f"the narrowest path width ({narrow:g} mm): the bead would leave "
+                          "its path; lower either")
     p1, p2, p3 = job.parts.copies
     if p3 > p1 * p2:
         raise ConfigError(f"parts.copies = {tuple(job.parts.copies)!r}: {p3} copies do not "
