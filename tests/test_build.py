@@ -1915,3 +1915,35 @@ def test_a_progress_line_on_a_terminal_erases_the_rest_of_its_row():
     long = "layer 3 (4 of 6), paths 12/99; waiting for the cell (link fault 3: " + "x" * 200
     assert _console_line(long, 80) == "\r" + long[:79] + "\x1b[K"
     assert _console_line("short", 80) == "\rshort\x1b[K"
+
+
+def test_a_sigterm_lost_as_the_journal_is_made_stops_the_runner(tmp_path):
+    """A SIGTERM whose Terminated is raised inside a weakref callback is printed as
+    "Exception ignored" and lost; lost as the build made its journal (after the last
+    progress report), the build ran all its paths and exited 0 (a check's). The runner
+    takes it over: it stops at once, lifting the tool, and says so (143)."""
+    (tmp_path / "job.toml").write_text("[parts]\nscale = [0.4, 0.4, 0.4]\n[slicing]\n"
+                                       "layer_thickness_mm = 1.0\n[motion]\nspeed_mm_s = 25.0\n")
+    (tmp_path / "lost.py").write_text(
+        "import gc, os, signal, sys, weakref\n"
+        "import icefab.journal as J\n"
+        "made = J.Journal.create.__func__\n"
+        "def create(cls, *a, **k):\n"
+        "    j = made(cls, *a, **k)\n"
+        "    class Lock: pass\n"
+        "    def callback(ref):\n"
+        "        os.kill(os.getpid(), signal.SIGTERM)   # its handler runs in here\n"
+        "        sum(range(1000))\n"
+        "    lock = Lock(); ref = weakref.ref(lock, callback); del lock; gc.collect()\n"
+        "    return j\n"
+        "J.Journal.create = classmethod(create)\n"
+        "from icefab.cli import main\n"
+        "sys.exit(main(['build', 'demo', '-c', 'job.toml', '--layers', '2', '--virtual',\n"
+        "               '-o', 'b']))\n")
+    r = subprocess.run([sys.executable, "lost.py"], cwd=tmp_path, capture_output=True,
+                       text=True, timeout=300)
+    assert r.returncode == 143, r.stderr
+    assert "Exception ignored" in r.stderr and "a stop was asked for" in r.stderr
+    st = json.loads(_icefab("build", "--status", "b", "--json", cwd=tmp_path).stdout)
+    assert st["paths_done"] == 0 and st["state"] != "complete"
+    _icefab("build", "--stop", "b", cwd=tmp_path)     # its virtual cell

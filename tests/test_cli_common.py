@@ -363,11 +363,12 @@ def test_a_signal_while_the_options_are_read_is_one_line(monkeypatch, capsys, ex
     assert err.strip() == said
 
 
+@pytest.mark.parametrize("wrapper", [SystemError, RuntimeError, ImportError])
 @pytest.mark.parametrize("exc, code, said", [("Terminated", 143, "icefab slice: terminated"),
                                              ("KeyboardInterrupt", 130,
                                               "icefab slice: interrupted")])
 def test_a_signal_as_numba_loads_a_kernel_is_one_line(monkeypatch, capsys, tmp_path, exc,
-                                                      code, said):
+                                                      code, said, wrapper):
     """A signal while numba's dispatcher ran Python code (loading a cached kernel) came out
     as "SystemError: CPUDispatcher(...) returned a result with an exception set", with a
     traceback and exit 1 (a hunt's); CPython chains the signal's exception as its cause.
@@ -380,18 +381,20 @@ def test_a_signal_as_numba_loads_a_kernel_is_one_line(monkeypatch, capsys, tmp_p
         try:
             raise Terminated() if exc == "Terminated" else KeyboardInterrupt()
         except KeyboardInterrupt as e:
-            raise SystemError("CPUDispatcher(<function _filter_compact>) returned a result "
-                              "with an exception set") from e
+            # numba's dispatcher (SystemError), a class's __set_name__ (RuntimeError),
+            # matplotlib's first import (ImportError)
+            raise wrapper("CPUDispatcher(<function _filter_compact>) returned a result "
+                          "with an exception set") from e
 
     monkeypatch.setattr(slice_cmd, "run", interrupted)
     assert cli.main(["slice", "demo", "-o", str(tmp_path / "s")]) == code
     assert capsys.readouterr().err.strip() == said
 
     def broken(args):
-        raise SystemError("something else")
+        raise wrapper("something else")
 
     monkeypatch.setattr(slice_cmd, "run", broken)
-    with pytest.raises(SystemError, match="something else"):
+    with pytest.raises(wrapper, match="something else"):
         cli.main(["slice", "demo", "-o", str(tmp_path / "s")])
 
 
@@ -437,3 +440,18 @@ def test_a_sigterm_lost_in_a_weakref_callback_stops_the_command_at_its_next_prog
     err = capsys.readouterr().err
     assert reported == ["went on"]
     assert err.strip().endswith("icefab slice: terminated")
+    # the next command, here on another thread, starts without it (a check's: it stopped)
+    import threading
+
+    def run_again(args):
+        common.Progress("slicing", interval_s=0.0)(1, 2)
+        reported.append("ran")
+        return 0
+
+    monkeypatch.setattr(slice_cmd, "run", run_again)
+    got = []
+    worker = threading.Thread(target=lambda: got.append(
+        cli.main(["slice", "demo", "-o", str(tmp_path / "t")])))
+    worker.start()
+    worker.join()
+    assert got == [0] and reported[-1] == "ran"

@@ -218,6 +218,9 @@ def test_error_binary_stl_of_no_facets_is_not_taken_for_padded_text(tmp_path, he
     was 'ASCII STL without facets'."""
     with pytest.raises(MeshError, match=r"e\.stl: binary STL with 0 facets"):
         load_mesh(_write(tmp_path, "e.stl", header.ljust(80, b"\0") + b"\0" * 4))
+    # an OBJ padded with NULs to the same 84 bytes stays an OBJ (a check's)
+    tet = b"v 0 0 0\nv 9 0 0\nv 0 9 0\nv 0 0 9\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n"
+    assert load_mesh(_write(tmp_path, "t.obj", tet.ljust(84, b"\0"))).faces.shape == (4, 3)
 
 
 def test_error_ascii_stl_normal_short_names_the_facet_line(tmp_path):

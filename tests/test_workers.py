@@ -230,3 +230,24 @@ def test_a_map_interrupted_as_its_pool_starts_lets_the_process_end(tmp_path, whe
     proc = subprocess.run([sys.executable, str(tmp_path / "pool.py")], capture_output=True,
                           text=True, cwd=tmp_path, timeout=60)
     assert proc.returncode == 0 and proc.stdout == "interrupted\n", proc.stderr
+
+
+def _worker_signals(_: int) -> tuple[bool, bool]:
+    return (signal.getsignal(signal.SIGINT) is signal.SIG_IGN,
+            signal.getsignal(signal.SIGTERM) is signal.SIG_DFL)
+
+
+@pytest.mark.skipif(machine_cores() < 2, reason="a pool needs 2 cores (serial on 1)")
+def test_pool_workers_leave_signals_to_their_parent():
+    # a terminal's Ctrl-C reaches the whole process group: a worker waiting for its next
+    # item printed a KeyboardInterrupt traceback; SIGTERM to a build's workers raised the
+    # command's Terminated in each, each printing a traceback (a check's)
+    from icefab.parallel import parallel_map
+
+    old = signal.signal(signal.SIGTERM, lambda *a: None)   # what a command installs
+    try:
+        got = parallel_map(_worker_signals, list(range(40)), Job().replace(
+            **{"cell.cpus": 2}), min_items=1)
+    finally:
+        signal.signal(signal.SIGTERM, old)
+    assert set(got) == {(True, True)}

@@ -52,7 +52,15 @@ _PR_SET_PDEATHSIG = 1  # linux/prctl.h
 def _die_with_parent(parent: int) -> None:
     """Pool worker initializer: end this worker when the process that started it ends,
     even by ``kill -9`` (which runs no clean-up in the parent). On Linux the kernel sends
-    SIGKILL (``prctl(PR_SET_PDEATHSIG)``); elsewhere a daemon thread watches the parent."""
+    SIGKILL (``prctl(PR_SET_PDEATHSIG)``); elsewhere a daemon thread watches the parent.
+
+    Signals are the parent's to handle: SIGTERM ends a worker as it ends any process
+    (the handler it inherited raised the command's Terminated in it, and every worker
+    printed a traceback when a stopped build ended its pool), and Ctrl-C, which a
+    terminal sends to the whole process group, is ignored (a worker waiting for its
+    next item printed a KeyboardInterrupt traceback); the parent ends its pool."""
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         import ctypes
         libc = ctypes.CDLL(None, use_errno=True)

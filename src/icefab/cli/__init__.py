@@ -18,7 +18,7 @@ import signal
 import sys
 import threading
 
-from icefab.cli.common import (Terminated, check_output_dir, forget_terminated,
+from icefab.cli.common import (Terminated, check_output_dir, forget_terminated, forked_end,
                                terminate)
 from icefab.cli.compiling import compile_notice
 from icefab.errors import IcefabError
@@ -88,11 +88,8 @@ def _stdout_gone() -> bool:
 
 
 def _on_sigterm(signum, frame) -> None:
-    if os.getpid() != _on_sigterm.pid:   # a forked worker: end as SIGTERM ends it
-        signal.signal(signal.SIGTERM, signal.SIG_DFL)
-        os.kill(os.getpid(), signal.SIGTERM)
-        return
-    terminate()
+    if not forked_end(_on_sigterm.pid):
+        terminate()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -102,10 +99,10 @@ def main(argv: list[str] | None = None) -> int:
             # ended in an AttributeError after its work (hunt P); /dev/null takes the free
             # descriptor, so no result file opened later gets it
             setattr(sys, name, os.fdopen(os.open(os.devnull, os.O_WRONLY), "w"))
+    forget_terminated()
     if threading.current_thread() is not threading.main_thread():
         return _main(argv)
     _on_sigterm.pid = os.getpid()
-    forget_terminated()
     old = signal.signal(signal.SIGTERM, _on_sigterm)
     hook = threading.excepthook
     threading.excepthook = _quiet_broken_pool(hook)
@@ -188,10 +185,11 @@ def _main(argv: list[str] | None) -> int:
         return 2
     except KeyboardInterrupt as exc:
         return _stopped(f"icefab {args.command}", exc)
-    except SystemError as exc:
-        # Ctrl-C or SIGTERM while numba loaded a cached kernel (Python code run from its
-        # dispatcher, which wraps what it raises): "SystemError: CPUDispatcher(...)
-        # returned a result with an exception set", a traceback and exit 1 (a hunt's)
+    except Exception as exc:
+        # Ctrl-C or SIGTERM that C code or the interpreter wrapped in another error: while
+        # numba loaded a cached kernel "SystemError: CPUDispatcher(...) returned a result
+        # with an exception set", in a class's __set_name__ a RuntimeError, in
+        # matplotlib's first import an ImportError; each a traceback and exit 1 (hunts')
         stop = _interruption(exc)
         if stop is None:
             raise

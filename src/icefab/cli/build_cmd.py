@@ -34,7 +34,7 @@ import time
 from pathlib import Path
 
 from icefab.cli.common import (add_job_argument, check_terminated, command_inputs,
-                               job_from_args, terminate)
+                               forked_end, job_from_args, terminated, terminate)
 from icefab.errors import ConfigError
 
 
@@ -253,8 +253,11 @@ def _build_process(build: Path, *, new: bool):
     runner's stop check reads, so the tool is lifted and the build stops between
     commands. Yields ``ctl``."""
     ctl = {"runner": False, "signal": None}
+    pid = os.getpid()
 
     def on_term(signum, frame):
+        if forked_end(pid):
+            return
         if ctl["runner"]:
             ctl["signal"] = signum
         else:
@@ -590,6 +593,8 @@ def _run(build: Path, args: argparse.Namespace, ctl: dict, *, resume: bool) -> i
         journal.event("resume", "resumed")
         check_terminated()        # a SIGTERM whose Terminated was lost (terminate)
         ctl["runner"] = True
+        if terminated():          # ... or lost since: the runner's to stop
+            ctl["signal"] = signal.SIGTERM
     else:
         if jpath.exists():
             raise ConfigError(f"{build}: holds a build journal already: resume it with "
@@ -665,6 +670,8 @@ def _run(build: Path, args: argparse.Namespace, ctl: dict, *, resume: bool) -> i
                     pass
             raise
         ctl["runner"] = True    # from here a stop is the runner's (the tool lifted)
+        if terminated():        # a SIGTERM whose Terminated was lost as the journal was made
+            ctl["signal"] = signal.SIGTERM
         n = len(motion.layers)
         journal.event("start", f"build of {n} layer{'s' if n != 1 else ''} on "
                       f"{'a virtual cell' if args.virtual else meta['cell']}")

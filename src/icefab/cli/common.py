@@ -105,6 +105,18 @@ class Terminated(KeyboardInterrupt):
 _TERMINATED = [False]
 
 
+def forked_end(pid: int) -> bool:
+    """In a SIGTERM handler installed by process ``pid``: when this is a process forked
+    from it (a pool worker before its initializer reset the handler), end it as SIGTERM
+    ends a process and return True (the handler raised the command's Terminated in each
+    worker, each printing a traceback); False in ``pid`` itself."""
+    if os.getpid() == pid:
+        return False
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    os.kill(os.getpid(), signal.SIGTERM)
+    return True
+
+
 def terminate() -> NoReturn:
     """Raise :class:`Terminated` from a SIGTERM handler, and remember it: a handler that
     runs inside a weakref callback or a ``__del__`` has its exception printed as
@@ -119,6 +131,11 @@ def terminate() -> NoReturn:
 def forget_terminated() -> None:
     """A new command in this process (:func:`icefab.cli.main`): no SIGTERM yet."""
     _TERMINATED[0] = False
+
+
+def terminated() -> bool:
+    """Whether this command's process was sent SIGTERM (:func:`terminate`)."""
+    return _TERMINATED[0]
 
 
 def check_terminated() -> None:

@@ -84,8 +84,11 @@ def _sniff(data: bytes, path: Path) -> str:
             # need its header bytes to encode its own length and is not text after byte 84
             if not (data[:256].lstrip()[:5].lower() == b"solid" and _is_text(data[84:4180])):
                 return "stl"
-    if len(data) == 84 and data[80:84] == bytes(4):
-        return "stl"  # a binary STL of 0 facets, whatever its header says (not 'ASCII')
+    if len(data) == 84 and data[80:84] == bytes(4) and (
+            ext == ".stl" or data[:256].lstrip()[:5].lower() == b"solid"):
+        # a binary STL of 0 facets, its header text ending in a line end ('ASCII STL
+        # without facets'); an OBJ padded to 84 bytes is read as before
+        return "stl"
     if data[:256].lstrip()[:5].lower() == b"solid":
         if text:
             return "stl-ascii"
