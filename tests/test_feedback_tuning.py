@@ -101,10 +101,13 @@ def test_constrained_results_are_always_strictly_stable(dist, fix, x0):
         with pytest.raises(ConfigError, match="the disturbance is 0 at every layer"):
             tune_gains(dist, x0=x0, fix=fix)
         return
-    needed = 4 - len(fix)   # layers after the disturbance's start: one per free gain + 1
-    if not np.any(dist.sequence()[:-needed]):
+    needed = 4 - len(fix)   # layers after each disturbance's start: one per free gain + 1
+    starts = [k for a, k in dist.pulses + dist.steps if a != 0.0]
+    starts += [dist.noise_from] if dist.noise else []
+    if max(starts) > dist.n_layers - needed:
         # too near the end: its first error is its own whatever the gains and each later
-        # one brings in one more coefficient (eq. 5.19): the optimum is not one point
+        # one brings in one more coefficient (eq. 5.19): the optimum is not one point, or
+        # that disturbance does not count in it
         with pytest.raises(ConfigError, match=f"needs {needed} layers after"):
             tune_gains(dist, x0=x0, fix=fix)
         return
@@ -340,6 +343,37 @@ def test_a_disturbance_too_near_the_end_to_fix_the_gains_is_refused(capsys, argv
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"{after} layer{'s' * (after != 1)} after it: optimising " \
         f"{free} gain{'s' * (free != 1)} needs {free + 1} layers after" in err[0], err
+
+
+@pytest.mark.parametrize("argv,what,at,free", [
+    # a docs hunt's: the thesis' pulse on the last layer, after a step, changed nothing
+    # (the step's optimum, Kp = Ki* = 1, came back), and a pulse at 38 of 40 passed with a
+    # step at 10 though alone it was refused: every disturbance is checked
+    (["--pulse", "0.5@60", "--step", "0.2@30", "--layers", "60"], "pulse 0.5@60", 60, 3),
+    (["--pulse", "0.5@38", "--step", "0.2@10", "--layers", "40"], "pulse 0.5@38", 38, 3),
+    (["--step", "0.2@10", "--pulse", "0.5@38", "--layers", "40"], "pulse 0.5@38", 38, 3),
+    (["--pulse", "0.5@10", "--step", "0.2@99", "--fix-kp", "1"], "step 0.2@99", 99, 2),
+    (["--pulse", "0.5@99", "--noise", "0.1"], "pulse 0.5@99", 99, 3)])
+def test_every_disturbance_must_start_early_enough_to_count(capsys, argv, what, at, free):
+    assert main(["tune", *argv]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"the {what} starts at layer {at} of " in err[0], err
+    assert f"needs {free + 1} layers after the start of every disturbance" in err[0], err
+    assert tune_gains(Disturbance(pulses=((0.5, 10),), steps=((0.0, 100),))).converged
+
+
+@pytest.mark.parametrize("argv,needed", [
+    ([], 64), (["--fix-kd", "0"], 63), (["--fix-kd", "0", "--fix-ki", "0.3"], 62),
+    (["--gains", "1,0.33,0"], 60)])
+def test_the_thesis_disturbance_needs_the_layers_the_horizon_rule_asks(capsys, argv, needed):
+    """Without --pulse/--step/--noise the thesis' pulse is at layer 60: evaluating gains
+    takes 60 layers, optimising one more per free gain plus one (it said 60 or more, and 60
+    to 63 layers then failed on the horizon rule, naming a pulse the user never gave)."""
+    assert main(["tune", "--layers", str(needed - 1), *argv]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"give --layers {needed} or more" in err[0], err
+    assert main(["tune", "--layers", str(needed), "--json", *argv]) == 0
+    assert strict_json(capsys.readouterr().out)["stable"] is True
 
 
 @pytest.mark.parametrize("dist,fix", [

@@ -490,26 +490,47 @@ def evaluate_gains(gains: Gains, disturbance: Disturbance | np.ndarray) -> TuneR
 _NAMES = ("kp", "ki", "kd")
 
 
-def _check_horizon(d: np.ndarray, n_free: int) -> None:
-    """ConfigError unless the disturbance starts at least ``n_free + 1`` layers before the
-    end, so that the error fixes the free gains.
-
-    By eq. 5.19 the first error after the disturbance starts at layer k0 is the
-    disturbance's own whatever the gains (H(z) has relative degree 1), and each later
-    layer's brings in one more coefficient of the denominator: e_(k0+2) depends on a1 only,
-    e_(k0+3) on a1 and a2, e_(k0+4) on all three. With fewer layers than the free gains
-    plus one, a line or plane of gains is equally optimal (a pulse at layer 98 of 100:
-    every Kp + Ki* + Kd* = 1; at 97: a line) and the start gains came back "optimised";
-    from n_free + 1 layers on, multi-start searches agree on one optimum (a control review).
-    """
+def _starts(disturbance: Disturbance | np.ndarray | Sequence[float],
+            d: np.ndarray) -> list[tuple[str, int]]:
+    """The disturbance's parts as ``(what, first layer)``: each pulse and step of a
+    :class:`Disturbance` with an amplitude, and its noise from ``noise_from``; for a
+    sequence d_k, which has no parts, the first layer where it is not 0."""
+    if isinstance(disturbance, Disturbance):
+        parts = [(f"{name} {amp:g}@{int(layer)}", int(layer))
+                 for name, given in (("pulse", disturbance.pulses),
+                                     ("step", disturbance.steps))
+                 for amp, layer in given if amp != 0.0]
+        if disturbance.noise:
+            parts.append(("noise", int(disturbance.noise_from)))
+        if parts:
+            return parts
     started = np.flatnonzero(d)
-    k0 = int(started[0]) + 1 if len(started) else len(d) + 1
-    after = len(d) - k0
+    return [("disturbance", int(started[0]) + 1 if len(started) else len(d) + 1)]
+
+
+def _check_horizon(starts: list[tuple[str, int]], n_layers: int, n_free: int) -> None:
+    """ConfigError unless every part of the disturbance starts at least ``n_free + 1``
+    layers before the end, so that the error fixes the free gains and every part counts.
+
+    starts: ``(what, first layer)`` of each part (:func:`_starts`), layers 1..n_layers.
+
+    By eq. 5.19 the first error after a part starts at layer k0 is the part's own whatever
+    the gains (H(z) has relative degree 1), and each later layer's brings in one more
+    coefficient of the denominator: e_(k0+2) depends on a1 only, e_(k0+3) on a1 and a2,
+    e_(k0+4) on all three. With fewer layers than the free gains plus one, a line or plane
+    of gains is equally optimal (a pulse at layer 98 of 100: every Kp + Ki* + Kd* = 1; at
+    97: a line) and the start gains came back "optimised"; from n_free + 1 layers on,
+    multi-start searches agree on one optimum (a control review). Every part is checked,
+    not only the first: a pulse on the last layer, after a step, changed nothing in the
+    optimum (a docs hunt's: the thesis' pulse 0.5@60 with 60 layers).
+    """
+    what, k0 = max(starts, key=lambda s: s[1])
+    after = n_layers - k0
     if after < n_free + 1:
-        raise ConfigError(f"the disturbance starts at layer {k0} of {len(d)}, {after} "
+        raise ConfigError(f"the {what} starts at layer {k0} of {n_layers}, {after} "
                           f"layer{'s' * (after != 1)} after it: optimising {n_free} "
                           f"gain{'s' * (n_free != 1)} needs {n_free + 1} layers after the "
-                          "disturbance's start (eq. 5.19: the first error is the "
+                          "start of every disturbance (eq. 5.19: the first error is the "
                           "disturbance's whatever the gains, each later one brings in one "
                           "more); give more layers or an earlier disturbance")
 
@@ -580,7 +601,7 @@ def tune_gains(disturbance: Disturbance | np.ndarray = Disturbance(), *,
     free = [i for i, n in enumerate(_NAMES) if n not in fix]
     if not free:
         return evaluate_gains(tuple(base), d)  # type: ignore[arg-type]
-    _check_horizon(d_unit, len(free))
+    _check_horizon(_starts(disturbance, d), len(d), len(free))
 
     def full(x: np.ndarray) -> np.ndarray:
         g = base.copy()

@@ -34,7 +34,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                     "error (eq. 5.27), or evaluate given gains; report stability and the "
                     "largest pole modulus (eq. 5.22). Amplitudes are in measurement "
                     "intervals, layers are measurement layers. Without --pulse/--step/--noise "
-                    "the thesis' disturbance is used (pulse 0.5@60, step 0.2@30).")
+                    "the thesis' disturbance is used (pulse 0.5@60, step 0.2@30: 64 layers or "
+                    "more, one fewer per fixed gain, 60 to evaluate --gains). Every "
+                    "disturbance must start at least one layer per optimised gain, plus "
+                    "one, before the end.")
     add_job_argument(p)
     p.add_argument("--layers", type=str, default="100", metavar="N",
                    help="number of measurement layers simulated (default 100)")
@@ -126,6 +129,25 @@ def _pole_margin(args: argparse.Namespace) -> float | None:
     return margin
 
 
+def _thesis_last_layer() -> int:
+    """The layer of the thesis' disturbance's last part: its pulse 0.5@60 (the step 0.2@30
+    comes first)."""
+    from icefab.feedback import Disturbance
+
+    thesis = Disturbance()
+    return max(layer for _amp, layer in thesis.pulses + thesis.steps)
+
+
+def _layers_for_thesis_disturbance(args: argparse.Namespace) -> int:
+    """The fewest --layers that take the thesis' disturbance whole: its pulse's layer to
+    evaluate --gains; to optimise, one more per free gain plus one (feedback's horizon
+    rule: 64 for all three gains)."""
+    if args.gains is not None:
+        return _thesis_last_layer()
+    fixed = sum(v is not None for v in (args.fix_kp, args.fix_ki, args.fix_kd))
+    return _thesis_last_layer() + max(3 - fixed, 1) + 1
+
+
 def run(args: argparse.Namespace) -> int:
     from icefab.feedback import (MAX_LAYERS, UNIT_CIRCLE_TOL, Disturbance, evaluate_gains,
                                  tune_gains)
@@ -137,10 +159,11 @@ def run(args: argparse.Namespace) -> int:
     noise = 0.0 if args.noise is None else _number(args.noise, "--noise", lo=0.0)
     seed = int(_number(args.seed, "--seed", integer=True, lo=0))
     if not pulses and not steps and args.noise is None:
-        if n_layers < 60:   # it dropped the pulse (and the step) and tuned against nothing
+        needed = _layers_for_thesis_disturbance(args)
+        if n_layers < needed:   # it dropped the pulse (and the step) and tuned against nothing
             raise ConfigError(f"--layers {n_layers}: the thesis' disturbance has its pulse at "
-                              "layer 60; give --layers 60 or more, or your own --pulse, "
-                              "--step or --noise")
+                              f"layer {_thesis_last_layer()}; give --layers {needed} or more, "
+                              "or your own --pulse, --step or --noise")
         dist = Disturbance(n_layers=n_layers)   # its defaults are the thesis' disturbance
     else:
         dist = Disturbance(n_layers=n_layers, pulses=pulses, steps=steps, noise=noise,
