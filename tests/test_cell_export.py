@@ -40,6 +40,28 @@ def test_export_vplus_writes_the_server_sized_for_the_trajectories(tmp_path, cap
     assert "untested on a controller" in capsys.readouterr().out
 
 
+@pytest.mark.parametrize("argv, warned", [
+    ([], "--zbase and --yaw not given: the program sets ice.zbase = 0 mm (platform height) "
+         "and ice.yaw = 0 deg"),
+    (["--yaw", "15"], "--zbase not given: the program sets ice.zbase = 0 mm"),
+    (["--zbase", "-2.5"], "--yaw not given: the program sets ice.yaw = 0 deg"),
+    (["--zbase", "-2.5", "--yaw", "15"], None)])
+def test_export_vplus_warns_of_a_platform_height_or_yaw_not_given(tmp_path, capsys, argv,
+                                                                  warned):
+    # a docs hunt's: 0 was written silently for both, in a program for a real robot; the
+    # program is still written, with a line on stderr
+    assert main(["export", "vplus", "-o", str(tmp_path / "out"), *argv]) == 0
+    text = (tmp_path / "out" / "icefab_server.v2").read_text()
+    zbase = float(argv[argv.index("--zbase") + 1]) if "--zbase" in argv else 0.0
+    yaw = float(argv[argv.index("--yaw") + 1]) if "--yaw" in argv else 0.0
+    assert f"ice.zbase = {zbase:.3f}" in text and f"ice.yaw = {yaw:.3f}" in text
+    err = capsys.readouterr().err.strip().splitlines()
+    if warned is None:
+        assert err == []
+    else:
+        assert len(err) == 1 and err[0].startswith("warning: ") and warned in err[0], err
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--port", "0"], "--port 0: expected 1..65535"),
     (["--valve-output", "98"], "name the same output"),

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 
 import numpy as np
 from pathlib import Path
@@ -48,10 +49,13 @@ def add_parser(subparsers) -> None:
                    help="digital output wired to the valve controller's trigger (97)")
     v.add_argument("--laser-output", type=int, default=98,
                    help="digital output wired to the laser controller's timing input (98)")
-    v.add_argument("--zbase", type=float, default=0.0, metavar="MM",
-                   help="build platform height in the robot base frame, mm (teach it)")
-    v.add_argument("--yaw", type=float, default=0.0, metavar="DEG",
-                   help="fixed end-effector orientation, degrees (teach it)")
+    # None: not given, written as 0 with a warning (the program drives a real robot)
+    v.add_argument("--zbase", type=float, default=None, metavar="MM",
+                   help="build platform height in the robot base frame, mm (teach it; "
+                        "default 0, with a warning)")
+    v.add_argument("--yaw", type=float, default=None, metavar="DEG",
+                   help="fixed end-effector orientation, degrees (teach it; default 0, "
+                        "with a warning)")
     v.add_argument("--max-paths", type=int, default=4,
                    help="paths the controller stores at once (default 4)")
     v.set_defaults(func=run_vplus)
@@ -156,8 +160,10 @@ def run_vplus(args: argparse.Namespace) -> int:
     if args.valve_output == args.laser_output:
         raise ConfigError("--valve-output and --laser-output name the same output")
     # a height and an angle a Cobra can take (1e308 was written as a 309-digit REAL)
+    untaught = [f"--{name}" for name in ("zbase", "yaw") if getattr(args, name) is None]
     for name, lim, unit in (("zbase", 1000.0, "mm"), ("yaw", 360.0, "degrees")):
-        v = getattr(args, name)
+        v = 0.0 if getattr(args, name) is None else getattr(args, name)
+        setattr(args, name, v)
         if not (math.isfinite(v) and abs(v) <= lim):
             raise ConfigError(f"--{name} {v:g}: expected a number of {unit} within "
                               f"+-{lim:g}")
@@ -190,4 +196,11 @@ def run_vplus(args: argparse.Namespace) -> int:
     with output_dir(args.out, "export-vplus") as tmp:
         (tmp / "icefab_server.v2").write_text(text, encoding="ascii", newline="\r\n")
     print(f"wrote {args.out}/icefab_server.v2 (V+, untested on a controller){summary}")
+    if untaught:   # a docs hunt's: 0 was written silently for a program meant for a robot
+        units = {"--zbase": "ice.zbase = 0 mm (platform height)",
+                 "--yaw": "ice.yaw = 0 deg (end-effector orientation)"}
+        print(f"warning: {' and '.join(untaught)} not given: the program sets "
+              f"{' and '.join(units[n] for n in untaught)}; teach "
+              f"{'them' if len(untaught) > 1 else 'it'} on the cell and export again",
+              file=sys.stderr)
     return 0
