@@ -118,9 +118,27 @@ def test_valves_out_of_range_error_names_path_flow_and_setting(tmp_path, fast_fi
     rc = main(["valves", str(fast_file), "-o", str(tmp_path / "o"), "--out-of-range", "error"])
     out, err = capsys.readouterr()
     assert rc == 2 and not (tmp_path / "o").exists()
-    assert re.search(r"layer \d+ part fill path: flow 300 mm\^3/s outside the calibration "
-                     r"table \[0, 195\] mm\^3/s", err)
+    assert re.search(r"layer \d+, path 0 \(part fill\): flow 300 mm\^3/s outside the "
+                     r"calibration table \[0, 195\] mm\^3/s", err)
     assert "flow.out_of_range = 'clamp'" in err and err.count("\n") == 1
+
+
+def test_valves_error_names_the_path_by_its_index_in_the_layer(tmp_path, capsys):
+    # a docs hunt's: "layer 3 part fill path: valve frequency 400.1 Hz above the limit"
+    # left a layer's fill paths to guess from; motion names "layer 0, path 1"
+    layers = tuple(LayerMotion(index=k, z=0.25 * (k + 1), trajectories=(
+        line_trajectory(y=5.0 + k),
+        line_trajectory(length=300, vmax=100.0, accel=4000.0, width=3.0, role="fill", y=k)))
+        for k in range(2))
+    f = tmp_path / "t.npz"
+    save_trajectories(BuildMotion(layers=layers, job=Job()), f)
+    job = tmp_path / "j.toml"
+    job.write_text("[flow]\nmax_frequency_hz = 200\n")
+    assert main(["valves", str(f), "-o", str(tmp_path / "o"), "-c", str(job)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and not (tmp_path / "o").exists()
+    assert re.match(r"icefab valves: error: layer 0, path 1 \(part fill\): valve frequency "
+                    r"\S+ Hz above the limit 200 Hz \(flow.max_frequency_hz", err[0]), err
 
 
 @pytest.mark.parametrize("cpus", [1, 2])
@@ -224,7 +242,8 @@ def test_valves_on_two_workers_stop_at_the_first_bad_layer(tmp_path, capsys):
         errors[cpus] = [line for line in capsys.readouterr().err.splitlines()
                         if not re.match(r"\S+: \d+/\d+ \(", line)]
         assert rc == 2 and not out.exists()
-    assert errors[1] == errors[2] and "layer 6 part fill path: flow 300" in "\n".join(errors[1])
+    assert errors[1] == errors[2] and "layer 6, path 0 (part fill): flow 300" in \
+        "\n".join(errors[1])
 
 
 def test_valves_summary_counts_the_volume_of_paths_rounded_to_no_pulse(tmp_path, capsys):

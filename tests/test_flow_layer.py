@@ -114,7 +114,12 @@ def test_a_layer_at_once_equals_path_by_path(seed, count, high_rate, short_piece
                 tr, tr.path.material, job, layer_thickness=dh,
                 calibration=calibration_for(tr.path.material, job))))
         except FlowError as exc:
-            refused = str(exc)
+            # the layer's names the path by its index, as motion's: "layer 2, path 3
+            # (part fill)", not "layer 2 part fill path"
+            p = tr.path
+            old = f"layer {p.layer} {p.material} {p.role} path: "
+            refused = (f"layer 2, path {i} ({p.material} {p.role}): "
+                       f"{str(exc).removeprefix(old)}")
             break
     if refused is not None:
         with pytest.raises(FlowError) as e:
@@ -242,6 +247,8 @@ def test_a_path_with_bad_widths_is_refused_in_its_turn():
     assert "outside the calibration table" in str(first.value)
     with pytest.raises(FlowError) as e:
         plan_layer_valves(LayerMotion(index=2, z=0.5, trajectories=(fast, fill)), job)
-    assert str(e.value) == str(first.value)
-    with pytest.raises(FlowError, match="widths"):
+    # named by its index in the layer, as motion names paths
+    assert str(e.value) == str(first.value).replace("layer 2 part boundary path: ",
+                                                    "layer 2, path 0 (part boundary): ")
+    with pytest.raises(FlowError, match=r"^layer 2, path 0 \(part fill\): .*widths"):
         plan_layer_valves(LayerMotion(index=2, z=0.5, trajectories=(fill, fast)), job)

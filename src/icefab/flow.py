@@ -1391,9 +1391,26 @@ def plan_layer_valves(layer: "LayerMotion", job: "Job") -> list[LayerProgram]:
     progs = (_nominal_fm_programs([x[2] for x in picked], [x[1] for x in picked], dh,
                                   tables, job)
              if job.flow.mode == "fm" else [None] * len(picked))
-    return [LayerProgram(i, material, prog if prog is not None else plan_valves(
-                traj, material, job, layer_thickness=dh, calibration=tables[material]))
+    return [LayerProgram(i, material, prog if prog is not None else _plan_path_valves(
+                layer.index, i, traj, material, job, dh, tables[material]))
             for (i, material, traj), prog in zip(picked, progs)]
+
+
+def _plan_path_valves(layer: int, index: int, trajectory: Trajectory, material: str,
+                      job: "Job", dh: float, calibration: Calibration) -> ValveProgram:
+    """:func:`plan_valves` of trajectory ``index`` of a layer, whose errors name that index
+    as motion's do, "layer 3, path 5 (part fill): ..." (the trajectory does not know it:
+    "layer 3 part fill path" left a docs hunt to guess which of the layer's fill paths).
+    dh: the layer's thickness, mm."""
+    try:
+        return plan_valves(trajectory, material, job, layer_thickness=dh,
+                           calibration=calibration)
+    except FlowError as e:
+        text, where, p = str(e), _where(trajectory), trajectory.path
+        if text.startswith(f"{where}: "):
+            text = text[len(where) + 2:]
+        label = f"layer {layer}, path {index}" + (f" ({p.material} {p.role})" if p else "")
+        raise type(e)(f"{label}: {text}") from None
 
 
 def _nominal_fm_programs(trajs: "Sequence[Trajectory]", materials: Sequence[str], dh: float,
