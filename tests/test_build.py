@@ -1176,6 +1176,21 @@ def test_an_endpoints_file_that_is_no_file_is_refused_before_planning(tmp_path, 
         assert not (tmp_path / "b").exists()
 
 
+@pytest.mark.parametrize("argv", [["demo", "-o", "b", "--virtual"], ["--stop", "b"],
+                                  ["--resume", "b"]])
+def test_json_without_status_is_refused_before_anything_starts(tmp_path, capsys, monkeypatch,
+                                                               argv):
+    # a docs hunt's: --json without --status was ignored, as --cell-lost-record without
+    # --resume is not
+    from icefab.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["build", *argv, "--json"]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err == "icefab build: error: --json goes with --status BUILD\n"
+    assert not (tmp_path / "b").exists()
+
+
 def test_cell_killed_mid_path_build_completes(firmware_tools, planned, tmp_path):
     r = _icefab("build", str(planned), "-o", "ref", "--virtual", cwd=tmp_path)
     assert r.returncode == 0, r.stderr

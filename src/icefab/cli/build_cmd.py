@@ -72,6 +72,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.json and not args.status:   # it was ignored (a docs hunt's)
+        raise ConfigError("--json goes with --status BUILD")
     if args.status:
         return _status(Path(args.status), args.json)
     if args.stop:
