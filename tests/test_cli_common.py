@@ -209,6 +209,18 @@ def test_output_dir_removes_only_its_commands_stale_results(tmp_path):
     assert (target / ".icefab-other").exists() and (target / "stack.npz").exists()
 
 
+@pytest.mark.parametrize("argv,verbose", [
+    (["slice", "m.stl", "-o", "o", "-v"], True), (["-v", "slice", "m.stl", "-o", "o"], True),
+    (["slice", "m.stl", "-o", "o"], False), (["export", "vplus", "-o", "o", "--verbose"], True),
+    (["-v", "export", "vplus", "-o", "o"], True), (["cell", "check", "-v"], True),
+    (["calibrate", "synthetic", "-o", "o", "-v"], True), (["tune", "-v", "--json"], True)])
+def test_verbose_is_taken_before_and_after_the_command(argv, verbose):
+    # a docs hunt's: 'icefab slice x -o y -v' was "unrecognized arguments: -v"
+    from icefab.cli import build_parser
+
+    assert build_parser().parse_args(argv).verbose is verbose
+
+
 def test_every_listed_command_exists_and_none_is_skipped():
     """The command table names modules that exist; each registers its command (a missing
     or misspelled module used to be skipped silently)."""

@@ -41,7 +41,22 @@ def build_parser() -> argparse.ArgumentParser:
     for name in SUBCOMMANDS:
         importlib.import_module(f"icefab.cli.{name}_cmd").add_parser(sub)
     _negative_numbers_are_values(parser)
+    _verbose_after_the_command(parser)
     return parser
+
+
+def _verbose_after_the_command(parser: argparse.ArgumentParser) -> None:
+    """Let ``-v`` follow the command too (``icefab slice m.stl -o out -v``: "unrecognized
+    arguments: -v", a docs hunt's): every subparser takes it, with no default of its own,
+    so ``icefab -v slice ...`` still sets it."""
+    stack = [action.choices.values() for action in parser._actions
+             if isinstance(action, argparse._SubParsersAction)]
+    while stack:
+        for p in stack.pop():
+            p.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS,
+                           help="log debug details (also taken before the command)")
+            stack.extend(action.choices.values() for action in p._actions
+                         if isinstance(action, argparse._SubParsersAction))
 
 
 #: A word that starts like a negative number, "-1e9" or "-50,-50,50,50" included.
