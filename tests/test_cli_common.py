@@ -209,6 +209,23 @@ def test_output_dir_removes_only_its_commands_stale_results(tmp_path):
     assert (target / ".icefab-other").exists() and (target / "stack.npz").exists()
 
 
+@pytest.mark.parametrize("command", [
+    ["slice", "MISSING.stl"], ["paths", "MISSING.stl"], ["plan", "MISSING.npz"],
+    ["valves", "MISSING.npz"], ["export", "ruled", "MISSING.npz"]])
+@pytest.mark.parametrize("layers", ["a,b", ",", "1,x", "2.5"])
+def test_a_layer_list_that_is_no_list_of_numbers_is_refused_before_any_work(
+        tmp_path, capsys, command, layers):
+    # a docs hunt's 'icefab slice box.stl --layers a,b' was refused after slicing; the
+    # input does not even exist: the option is read first (its range needs the layers)
+    with pytest.raises(SystemExit) as exc:
+        main(command + ["-o", str(tmp_path / "out"), "--layers", layers])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].endswith(f"error: argument --layers: {layers!r}: expected "
+                            "comma-separated layer numbers, e.g. 10,50,100"), err
+    assert "MISSING" not in "\n".join(err[1:]) and not (tmp_path / "out").exists()
+
+
 @pytest.mark.parametrize("argv,verbose", [
     (["slice", "m.stl", "-o", "o", "-v"], True), (["-v", "slice", "m.stl", "-o", "o"], True),
     (["slice", "m.stl", "-o", "o"], False), (["export", "vplus", "-o", "o", "--verbose"], True),

@@ -72,6 +72,21 @@ def placed_model(model: list[str], job: Job) -> tuple["Mesh", Job]:
     return meshmod.prepare_parts(job), job
 
 
+def layer_list(text: str) -> str:
+    """argparse ``type=`` of a ``--layers K,K,...`` option: the text, its syntax checked as
+    the options are read (a docs hunt's 'icefab slice --layers a,b' was refused only after
+    slicing); whether the numbers are layers needs the layer count (:func:`parse_layers`)."""
+    entries = [t for t in text.replace(" ", "").split(",") if t]
+    try:
+        [int(t) for t in entries]
+    except ValueError:
+        entries = []
+    if not entries:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected comma-separated layer numbers, "
+                                         "e.g. 10,50,100")
+    return text
+
+
 def parse_layers(text: str | None, n: int, default_count: int = 4) -> list[int]:
     """Layer indices from a ``--layers K,K,...`` option for a build of ``n`` layers.
 

@@ -23,7 +23,7 @@ import sys
 import numpy as np
 from pathlib import Path
 
-from icefab.cli.common import output_dir
+from icefab.cli.common import layer_list, output_dir
 from icefab.errors import ConfigError
 
 
@@ -83,7 +83,7 @@ def add_parser(subparsers) -> None:
     r.add_argument("--max-tilt", type=float, default=80.0, metavar="DEG",
                    help="edges flatter than this from vertical are ledges, not edges "
                         "(default 80)")
-    r.add_argument("--layers", metavar="K,K,...",
+    r.add_argument("--layers", metavar="K,K,...", type=layer_list,
                    help="layers drawn in ruled.png (default: three evenly spread)")
     r.set_defaults(func=run_ruled)
 

@@ -20,8 +20,8 @@ from typing import Sequence
 import numpy as np
 
 from icefab.cli.common import (ESTIMATE_WORDS, Progress, add_job_argument, command_inputs,
-                               hours, job_from_args, output_dir, parse_layers, placed_model,
-                               warning_lines, write_warnings)
+                               hours, job_from_args, layer_list, output_dir, parse_layers,
+                               placed_model, warning_lines, write_warnings)
 from icefab.core import DEPOSITING_ROLES, MATERIALS, ROLES
 from icefab.report import plot_toolpaths
 from icefab.resultfiles import LayerHead, packed_lengths
@@ -41,7 +41,7 @@ def add_parser(subparsers) -> None:
                         "built-in mug) or one stack .npz (default: parts.files of the job)")
     add_job_argument(p)
     p.add_argument("-o", "--out", required=True, metavar="OUT", help="output folder")
-    p.add_argument("--layers", metavar="K,K,...",
+    p.add_argument("--layers", metavar="K,K,...", type=layer_list,
                    help="layer indices to draw in paths.png (default: four evenly spread)")
     p.set_defaults(func=run)
 

@@ -34,7 +34,7 @@ import numpy as np
 
 from icefab.cli.common import (ESTIMATE_WORDS, Progress, add_job_argument, command_inputs,
                                compare_build_times, hours, job_from_args, output_dir,
-                               parse_layers, placed_model)
+                               layer_list, parse_layers, placed_model)
 from icefab.core import DEPOSITING_CODES
 from icefab.errors import ConfigError
 from icefab.report import plot_speed
@@ -54,7 +54,7 @@ def add_parser(subparsers) -> None:
                         "paths'; default: parts.files of the job)")
     add_job_argument(p)
     p.add_argument("-o", "--out", required=True, metavar="OUT", help="output folder")
-    p.add_argument("--layers", metavar="K,K,...",
+    p.add_argument("--layers", metavar="K,K,...", type=layer_list,
                    help="layers to draw speed pictures of (default: three evenly spread)")
     p.add_argument("--no-jerk", action="store_true",
                    help="switch the jerk bounds off (motion.jerk_limited = false)")

@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from icefab.cli.common import (Progress, add_job_argument, command_inputs, job_from_args,
-                               output_dir, parse_layers, placed_model, warning_lines,
-                               write_warnings)
+                               layer_list, output_dir, parse_layers, placed_model,
+                               warning_lines, write_warnings)
 from icefab.report import plot_layers
 from icefab.core import Stack
 
@@ -32,7 +32,7 @@ def add_parser(subparsers) -> None:
                         "built-in mug; default: parts.files of the job)")
     add_job_argument(p)
     p.add_argument("-o", "--out", required=True, metavar="OUT", help="output folder")
-    p.add_argument("--layers", metavar="K,K,...",
+    p.add_argument("--layers", metavar="K,K,...", type=layer_list,
                    help="layer indices to draw in layers.png (default: six evenly spread)")
     p.set_defaults(func=run)
 

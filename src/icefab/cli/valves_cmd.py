@@ -33,7 +33,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from icefab.cli.common import Progress, add_job_argument, output_dir
+from icefab.cli.common import Progress, add_job_argument, layer_list, output_dir
 from icefab.core import arc_lengths
 from icefab.errors import ConfigError
 
@@ -53,7 +53,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--format", choices=("bin", "txt", "both"), default="bin",
                    help="file form of the layer files (default bin; both: one of each per "
                         "layer)")
-    p.add_argument("--layers", metavar="K,K,...", help="only these layers (default all)")
+    p.add_argument("--layers", metavar="K,K,...", type=layer_list,
+                   help="only these layers (default all)")
     p.add_argument("--out-of-range", choices=("error", "clamp"), default=None,
                    help="a flow beyond the calibration table: stop with an error, or clamp "
                         "it and report the volume lost (default: the job's "
