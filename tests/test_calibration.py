@@ -410,11 +410,21 @@ def test_valve_table_rows_as_written_rise_strictly(tmp_path):
 
 @pytest.mark.parametrize("text, where", [
     ("frequency_hz,duration_s,mass_g\n100,10,1\n200,ten,2\n", ":3: duration_s must be a number"),
-    ("100,10,1\n200,10\n", ":2: expected 3 columns"),
-    ("100,10,1\n200,0,1\n", ":2: duration_s must be within 0.1-3600 s"),
+    ("frequency_hz,duration_s,mass_g\n100,10,1\n200,10\n", ":3: expected 3 columns"),
+    ("frequency_hz,duration_s,mass_g\n100,10,1\n200,0,1\n",
+     ":3: duration_s must be within 0.1-3600 s"),
     # a first row with a typo is data with a bad cell, not a header dropped unsaid
-    ("l00,60,1.4\n200,60,1\n", ":1: frequency_hz must be a number, got 'l00'"),
-    ("100,10,nan\n", ":1: mass_g must be finite"),
+    ("frequency_hz,duration_s,mass_g\nl00,60,1.4\n200,60,1\n",
+     ":2: frequency_hz must be a number, got 'l00'"),
+    ("l00,60,1.4\n200,60,1\n", ":1: no header line"),
+    ("mass_g,duration_s,frequency_hz\n100,10,nan\n", ":2: frequency_hz must be finite"),
+    # a docs hunt's: other names, or none, were read by position without a word
+    ("frequency,seconds,grams\n100,60,1.5\n", ":1: unknown column 'frequency' in the header; "
+     "expected the columns frequency_hz,duration_s,mass_g (in any order)"),
+    ("Frequency_Hz,duration (s),mass_g\n100,60,1.5\n", ":1: unknown column 'duration (s)'"),
+    ("frequency_hz,mass_g,mass_g\n100,60,1.5\n", ":1: the header names 'mass_g' twice"),
+    ("# runs of 2024-05-01\n100,60,1.5\n200,60,3\n", ":2: no header line: expected the first "
+     "line 'frequency_hz,duration_s,mass_g' (its columns in any order), got '100,60,1.5'"),
     # Python's float() reads 1_00 as 100 (hunt W)
     ("frequency_hz,duration_s,mass_g\n1_00,60,0.5\n", ":2: frequency_hz must be a number, got "
      "'1_00'"),
@@ -479,9 +489,9 @@ def test_cli_end_to_end(tmp_path):
     np.testing.assert_allclose(table.flow_mm3_s[1:], np.array(t["flow_mm3_s"])[1:], rtol=0.02)
     assert (tmp_path / "valve" / "valve_part.png").stat().st_size > 1000
     # a bad file: one line naming it and the line, exit 2, nothing written
-    (tmp_path / "bad.csv").write_text("100,10,1\n100,x,1\n")
+    (tmp_path / "bad.csv").write_text("frequency_hz,duration_s,mass_g\n100,10,1\n100,x,1\n")
     r = _icefab("calibrate", "valve", "bad.csv", "-o", "v2", cwd=tmp_path)
-    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "bad.csv:2:" in r.stderr
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "bad.csv:3:" in r.stderr
     assert not (tmp_path / "v2").exists()
 
 

@@ -39,7 +39,8 @@ the elevation change when the coordinate increases across it).
 
 Valves (thesis 6.1): "approximately 20 values in the frequency range to be used are
 selected; for each value, the mass of liquid deposited during a certain amount of time is
-found". Mass files: ``frequency_hz,duration_s,mass_g`` (repeats allowed); with the
+found". Mass files: the header line ``frequency_hz,duration_s,mass_g`` (the columns in any
+order), then one run a row (repeats allowed); with the
 material's density (``materials.*.density_g_cm3``) each row is a flow
 ``Q = 1000 * mass / (density * duration)`` mm^3/s. :func:`fit_valve_table` fits them with
 a polynomial through 0 Hz = no flow (weighted least squares on relative deviations, the
@@ -105,32 +106,32 @@ def _is_number(cell: str) -> bool:
     return True
 
 
-def _columns(path: Path, n: int, cells: list[str], names: list[str]) -> list[int] | None:
+def _columns(path: Path, n: int, cells: list[str], names: list[str]) -> list[int]:
     """Which column of the file holds each expected column, from a header row ``cells``
-    (line ``n``): the expected names in any order, or other names (units, capitals) in the
-    expected order (None: as they come). A header that names an expected column where
-    another is expected is refused: read by position, its values would go to the wrong
-    setting."""
+    (line ``n``): the expected names in any order, in any case. Other names are refused,
+    naming the first: read by position, 'frequency,seconds,grams' or a header in other
+    units put its values in columns it never named (a docs hunt's)."""
     lowered = [c.lower() for c in cells]
-    if sorted(lowered) == sorted(names) and len(set(lowered)) == len(names):
-        return [lowered.index(name) for name in names]
-    for k, c in enumerate(lowered):
-        if c in names and (k >= len(names) or names[k] != c):
-            raise ConfigError(f"{path}:{n}: the header names {c!r} as column {k + 1}; "
-                              f"expected the columns {','.join(names)}")
-    return None
+    expected = f"expected the columns {','.join(names)} (in any order)"
+    for c in cells:
+        if c.lower() not in names:
+            raise ConfigError(f"{path}:{n}: unknown column {c!r} in the header; {expected}")
+    for c in lowered:
+        if lowered.count(c) > 1:
+            raise ConfigError(f"{path}:{n}: the header names {c!r} twice; {expected}")
+    return [lowered.index(name) for name in names]
 
 
-def _rows(path: Path, header: str, kinds: str, kind: str = "calibration"
-          ) -> list[tuple[int, list]]:
+def _rows(path: Path, header: str, kinds: str, kind: str = "calibration", *,
+          need_header: bool = False) -> list[tuple[int, list]]:
     """The data rows of a small CSV file: (line number, values) per row.
 
     ``kinds``: one letter per column, ``f`` a finite float, ``i`` an integer, ``a`` an
     axis name (x or y). A first line whose first cell is not a number is a header: the
-    columns of ``header`` in any order, or other names in its order (``Frequency
-    (Hz),...``); ``#`` starts a comment; a UTF-8 byte-order mark is dropped. The file must
-    be a regular file within ``icefab.inputs.MAX_BYTES[kind]``. Raises ConfigError naming
-    the file and line.
+    columns of ``header`` in any order (other names are refused); ``need_header``: a file
+    without one is refused (else its columns are ``header``'s); ``#`` starts a comment; a
+    UTF-8 byte-order mark is dropped. The file must be a regular file within
+    ``icefab.inputs.MAX_BYTES[kind]``. Raises ConfigError naming the file and line.
     """
     text = read_input_text(path, kind, ConfigError)
     names = header.split(",")
@@ -153,6 +154,9 @@ def _rows(path: Path, header: str, kinds: str, kind: str = "calibration"
             if len(cells) == len(kinds):
                 order = _columns(path, n, cells, names)
                 continue
+        if need_header and not seen_header:
+            raise ConfigError(f"{path}:{n}: no header line: expected the first line "
+                              f"'{header}' (its columns in any order), got {raw.strip()!r}")
         if len(cells) != len(kinds):
             raise ConfigError(f"{path}:{n}: expected {len(kinds)} columns ({header}), got "
                               f"{len(cells)}: {raw.strip()!r}")
@@ -730,11 +734,13 @@ MAX_VALVE_FLOW_MM3_S = 1e4
 
 
 def read_masses(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(frequency_hz, duration_s, mass_g) arrays from a mass-measurement CSV; ConfigError
-    naming the file and line for a bad row, a frequency outside 0-``MAX_VALVE_HZ``, a
-    duration outside ``MIN_RUN_S``-``MAX_RUN_S`` or a mass < 0."""
+    """(frequency_hz, duration_s, mass_g) arrays from a mass-measurement CSV with the header
+    line ``frequency_hz,duration_s,mass_g`` (its columns in any order); ConfigError naming
+    the file and line for a missing header or one with other names, a bad row, a
+    frequency outside 0-``MAX_VALVE_HZ``, a duration outside ``MIN_RUN_S``-``MAX_RUN_S`` or
+    a mass < 0."""
     path = Path(path)
-    rows = _rows(path, MASS_HEADER, "fff")
+    rows = _rows(path, MASS_HEADER, "fff", need_header=True)
     for n, (f, d, m) in rows:
         # a row at 1e12 Hz was written into the table, and 'icefab valves' then made
         # pulses for it for minutes (a hunt's): no cell makes more than the job allows

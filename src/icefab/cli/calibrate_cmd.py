@@ -60,7 +60,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         description="Fit the frequency-flow table nu = h(Q) of a valve "
                                     "from mass measurements (thesis 6.1).")
     vp.add_argument("masses", metavar="MASSES.csv",
-                    help="frequency_hz,duration_s,mass_g per measurement")
+                    help="a header line frequency_hz,duration_s,mass_g (the columns in "
+                         "any order), then one row per measurement")
     vp.add_argument("--material", choices=("part", "scaffold"), default="part")
     vp.add_argument("--density", type=float, metavar="G_CM3",
                     help="density, g/cm^3 (default: the job's materials.MATERIAL."
