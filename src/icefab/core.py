@@ -807,7 +807,8 @@ class ValveProgram:
     ticks: (p,) uint16, pulse instants in ticks of ``tick_s`` from the piece start.
     tick_s: tick length, s (0.002 on the Cobra 600 microcontroller).
     duration: s, length of the trajectory piece the pulses belong to.
-    pieces: further pieces when the program was split (131.072 s / 16384 pulses).
+    pieces: further pieces when the program was split (131.071 s / 16384 pulses at a 2 ms
+        tick: :func:`icefab.flow.piece_max_s`).
     widths_us: (p,) uint16 pulse widths in microseconds (PWM mode; None in FM mode, where
         every pulse has the valve's fixed pulse width).
     warnings: valve limits reached while planning (clamped flow, too few drops per mm),

@@ -13,9 +13,11 @@ the surface-mapping control action ``u``:
   (eq. 6.6: each pulse sits in the middle of its unit of volume, so the pulse count differs
   from the integral of the frequency by at most half a pulse);
 * instants as ``uint16`` ticks of ``job.flow.tick_s`` (2 ms) from the start of the piece
-  (thesis 2.3.1); a program whose piece would last longer than ``max_piece_s`` (131.072 s)
-  or hold more than ``max_pulses`` (16 384) pulses is split automatically into pieces that
-  start on trajectory samples (the trajectory is split there too).
+  (thesis 2.3.1); a program whose piece would last longer than :func:`piece_max_s`
+  (131.071 s: ``max_piece_s``, the firmware's 131.072 s, within 65 535.5 ticks of 2 ms, so
+  that every pulse's tick, rounded, fits a uint16) or hold more than ``max_pulses``
+  (16 384) pulses is split automatically into pieces that start on trajectory samples (the
+  trajectory is split there too).
 
 Limits (thesis 6.1), all recorded in :attr:`ValveProgram.warnings` (one text per limit and
 path, naming the setting; :func:`summarise_findings` condenses them per kind):
@@ -922,7 +924,7 @@ def plan_valves(trajectory: Trajectory, material: str, job: "Job | None" = None,
     (:func:`_kept_in_spans`): nothing over the travel between its paths.
 
     Returns the first piece; further pieces (split at :func:`piece_max_s` and
-    :func:`piece_pulses`: 131.072 s / 16 384 pulses by default, on trajectory samples)
+    :func:`piece_pulses`: 131.071 s / 16 384 pulses by default, on trajectory samples)
     are in ``.pieces``; :func:`program_pieces` lists all of them and :func:`pulse_times`
     gives the instants from the trajectory start. ``.warnings`` lists
     every valve limit reached on this path (clamped flow and the volume it costs, PWM pulses

@@ -8,7 +8,8 @@ appears only when everything worked):
 * ``valves/layer_KKKK.bin`` (and/or ``.txt``): one file per layer holding every program of
   the layer in build order, the form a controller link streams (:mod:`icefab.flow`, "Layer
   files"; each program keeps the per-program binary layout, pulse instants as uint16
-  ticks of 2 ms, split into pieces at 131.072 s / 16 384 pulses);
+  ticks of 2 ms, split into pieces at 131.071 s / 16 384 pulses: the last tick a uint16
+  holds, 65 535, within the firmware's 131.072 s);
 * ``valves-paths.csv``: one row per path (length, duration, pulses, pieces, drop
   spacing, the length deposited with fewer drops than ``flow.min_drops_per_mm``, findings);
 * ``valves-summary.txt``: the summary printed (one screen: totals, every kind of finding
