@@ -47,7 +47,9 @@ def add_parser(subparsers) -> None:
                     "JCON, AREST) for every path of a model or toolpath file. Writes "
                     "OUT/trajectories.npz, OUT/speed_layer_K.png and OUT/plan-summary.txt; "
                     "with --gcode also OUT/trajectories.gcode, with --constant-spacing "
-                    "OUT/constant_spacing.npz (formats: 'pydoc icefab.motion').")
+                    "OUT/constant_spacing.npz (formats: 'pydoc icefab.export' for the "
+                    "G-code, its G1 moves in icefab.motion.gcode_moves; "
+                    "icefab.motion.save_constant_spacing for the .npz).")
     p.add_argument("input", nargs="*", metavar="MODEL|TOOLPATHS",
                    help="mesh file(s) (STL, PLY, OBJ; replace parts.files of the job), "
                         "'demo' (the built-in mug) or one toolpath file (.npz from 'icefab "
