@@ -65,7 +65,8 @@ def setting(default: Any, help: str, *, lo: float | None = None, hi: float | Non
 class PartSetup:
     """Mesh files and their placement (thesis 3.1.2, Table 3-1)."""
 
-    files: tuple[str, ...] = setting((), "mesh files (STL, PLY, OBJ) merged into one build")
+    files: tuple[str, ...] = setting((), "mesh files (STL, PLY, OBJ) merged into one build; "
+                                         "a relative name is relative to the job file")
     inexact: bool = setting(False, "weld vertices within weld_tolerance_mm instead of exactly "
                                    "(thesis 'inexact' option)")
     weld_tolerance_mm: float = setting(
@@ -323,7 +324,8 @@ class MaterialSettings:
         lo=0.0, hi=360.0,
         why="degrees of heading change, 360 a U-turn; on 5 bunny layers 240 saves 3.8 % of "
             "the MTTS time, 120 2.8 %, 360 3.3 % (BENCHMARKS.md, issue 15)")
-    calibration_file: str = setting("", "CSV of valve frequency (Hz) vs flow (mm^3/s); empty: "
+    calibration_file: str = setting("", "CSV of valve frequency (Hz) vs flow (mm^3/s), a "
+                                        "relative name relative to the job file; empty: "
                                         "built-in table")
     density_g_cm3: float = setting(
         1.0,
