@@ -62,7 +62,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     vp.add_argument("masses", metavar="MASSES.csv",
                     help="a header line frequency_hz,duration_s,mass_g (the columns in "
                          "any order), then one row per measurement")
-    vp.add_argument("--material", choices=("part", "scaffold"), default="part")
+    vp.add_argument("--material", choices=("part", "scaffold"), default="part",
+                    help="the valve measured (default part): the masses become flows with "
+                         "the job's materials.MATERIAL.density_g_cm3 unless --density, and "
+                         "OUT/valve_MATERIAL.toml sets materials.MATERIAL.calibration_file to "
+                         "OUT/calibration_MATERIAL.csv")
     vp.add_argument("--density", type=float, metavar="G_CM3",
                     help="density, g/cm^3 (default: the job's materials.MATERIAL."
                          "density_g_cm3)")
@@ -78,7 +82,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                                     "(truth.json), to try 'calibrate laser' and 'calibrate "
                                     "valve'. Not the virtual cell of 'icefab cell serve', whose "
                                     "laser has the job's offset and simulation.laser_latency_s.")
-    sp.add_argument("--seed", type=int, default=0)
+    sp.add_argument("--seed", type=int, default=0,
+                    help="seed (>= 0) of the random true values and measurement noise: the "
+                         "same seed writes the same files (default 0)")
     add_job_argument(sp)
     sp.add_argument("-o", "--out", required=True, metavar="OUT", help="output folder")
     sp.set_defaults(func=run_synthetic)
