@@ -687,3 +687,50 @@ def test_the_file_icefab_valves_writes_is_what_the_controller_stores(ctl, tmp_pa
     v = ctl.verify(0)
     assert (v.complete, v.received, v.crc, v.pulses) == (True, len(data), vf.crc16(data),
                                                           n_pulses(prog))
+
+
+def _processes_naming(text: str) -> list[int]:
+    found = []
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                cmd = Path(f"/proc/{d}/cmdline").read_bytes().replace(b"\0", b" ").decode()
+            except OSError:
+                continue
+            if text in cmd and int(d) != os.getpid():
+                found.append(int(d))
+    return found
+
+
+@pytest.mark.skipif(not Path("/proc/self/cmdline").exists(), reason="needs Linux /proc")
+def test_an_interrupted_host_build_leaves_no_compiler_running(tmp_path):
+    # subprocess.run ended only make: the compilers it ran went on after 'icefab cell
+    # serve' had stopped (a check's, 4 runs in 4)
+    import signal
+    import sys
+
+    need(["make", "cc"], "the firmware's host build")
+    out = tmp_path / "fw-interrupted"
+    (tmp_path / "build.py").write_text(
+        "import sys\nfrom icefab.cell.valve_host import build_host\n"
+        "try:\n    build_host(sys.argv[1])\nexcept KeyboardInterrupt:\n    sys.exit(130)\n")
+    # a compiler that takes its time (the real one is done before the test can look)
+    slow = tmp_path / "slowcc"
+    slow.write_text(f"#!/bin/sh\n# {out}\nsleep 30\n")
+    slow.chmod(0o755)
+    proc = subprocess.Popen([sys.executable, str(tmp_path / "build.py"), str(out)],
+                            env={**os.environ, "CC": str(slow)})
+    try:
+        deadline = time.monotonic() + 60
+        while not [p for p in _processes_naming(str(out)) if p != proc.pid]:
+            assert proc.poll() is None and time.monotonic() < deadline, "no compiler seen"
+            time.sleep(0.01)
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=20) == 130
+        deadline = time.monotonic() + 5       # the ended ones gone
+        while _processes_naming(str(out)) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert _processes_naming(str(out)) == []
+    finally:
+        if proc.poll() is None:
+            proc.kill()

@@ -45,10 +45,24 @@ def build_host(build_dir: str | os.PathLike) -> Path:
                              "not found (install a C compiler and make, e.g. apt-get install "
                              "build-essential)")
     build_dir = Path(build_dir).resolve()
-    proc = subprocess.run(["make", "-s", "-C", str(firmware_dir()), "host", f"BUILD={build_dir}"],
-                          capture_output=True, text=True)
+    # its own process group, ended whole when this process is interrupted: subprocess.run
+    # ended only make, and the compilers it ran went on after 'icefab cell serve' had
+    # stopped (a check's, 4 runs in 4); SIGTERM, on which gcc removes its half-written
+    # output (make would take a truncated object for up to date)
+    proc = subprocess.Popen(["make", "-s", "-C", str(firmware_dir()), "host",
+                             f"BUILD={build_dir}"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        _out, err = proc.communicate()
+    except BaseException:
+        try:
+            os.killpg(proc.pid, signal.SIGTERM)
+        except ProcessLookupError:
+            pass
+        proc.wait()
+        raise
     if proc.returncode != 0:
-        raise ValveLinkError(f"valve firmware host build failed: {proc.stderr.strip()[-500:]}")
+        raise ValveLinkError(f"valve firmware host build failed: {err.strip()[-500:]}")
     return build_dir / "valvectl"
 
 
