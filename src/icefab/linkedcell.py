@@ -47,6 +47,7 @@ from pathlib import Path
 import numpy as np
 
 from icefab.cell import robot_protocol as rp
+from icefab.cell.valve_host import end_group
 from icefab.errors import CellError, CellRefused
 
 log = logging.getLogger(__name__)
@@ -388,12 +389,7 @@ def start_virtual_cell(state_dir: str | os.PathLike, job_file: str | os.PathLike
         # a cell that did not start, or a build stopped (--stop, Ctrl-C) while it started:
         # it goes, with its firmware (its own session), before its folder is removed (one
         # stopped then wrote its files into a removed folder and ran on, out of reach)
-        if proc.poll() is None:
-            try:
-                os.killpg(proc.pid, signal.SIGKILL)
-            except OSError:
-                pass
-            proc.wait()
+        end_group(proc, signal.SIGKILL)
         raise
     return proc.pid
 

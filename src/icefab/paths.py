@@ -679,6 +679,11 @@ def measure_rings(region: Region, spacing: float, filt: float) -> list[np.ndarra
 #: demo mug at 4.5 mm spacing the laser, at rest at such an end, read 3-5 mm below the
 #: surface on every measured layer, and the feedback raised the flow around it.
 MEASURE_EDGE_MM = 0.5
+#: ... within this (mm): a measurement centre line's smoothing moves no point farther; in a
+#: spike's tip the smoothing cut a bend by 0.28 mm towards the edge (hypothesis' wall of
+#: 2.3 mm round a spike: 0.22 mm off the edge), where the laser reads the surface falling
+#: away.
+MEASURE_AXIS_MOVE_MM = 0.1
 
 
 def measure_paths(region: Region, spacing: float, filt: float, lane_mm: float = 0.0,
@@ -725,7 +730,8 @@ def measure_paths(region: Region, spacing: float, filt: float, lane_mm: float = 
                                return_counts=True)
     leaf = (count[inv.reshape(-1)] == 1).reshape(-1, 2).any(axis=1) & \
         ~np.array([closed for _p, _c, closed in chains])
-    chains = _smoothed_axis([(p, 2.0 * c, closed) for p, c, closed in chains])
+    chains = _smoothed_axis([(p, 2.0 * c, closed) for p, c, closed in chains],
+                            MEASURE_AXIS_MOVE_MM)
     lengths = np.array([np.hypot(*np.diff(pts, axis=0).T).sum() for pts, _w, _c in chains])
     tiny = lengths < filt
     short = (leaf & (lengths < spacing / 2.0)) | tiny
@@ -1606,13 +1612,13 @@ def _chain_paths(chains: list[tuple[np.ndarray, np.ndarray, bool]], w_min: float
 AXIS_SMOOTHING_PASSES = 2
 
 
-def _smoothed_axis(chains: list[tuple[np.ndarray, np.ndarray, bool]]
-                   ) -> list[tuple[np.ndarray, np.ndarray, bool]]:
+def _smoothed_axis(chains: list[tuple[np.ndarray, np.ndarray, bool]],
+                   max_move: float = math.inf) -> list[tuple[np.ndarray, np.ndarray, bool]]:
     """Medial-axis chains ``(points, widths, closed)`` with their points smoothed by
     ``AXIS_SMOOTHING_PASSES`` passes of the (1, 2, 1) / 4 filter along each chain (an open
     chain's ends stay: they meet other chains at branch points), every width widened by
     twice its point's distance to the smoothed line, so that the bead still covers the disk
-    it stood for."""
+    it stood for. ``max_move``: no point moves farther (mm; its move is shortened)."""
     n = np.array([len(p) for p, _w, _c in chains])
     P = np.concatenate([p for p, _w, _c in chains])
     W = np.concatenate([w for _p, w, _c in chains])
@@ -1626,6 +1632,9 @@ def _smoothed_axis(chains: list[tuple[np.ndarray, np.ndarray, bool]]
     Q = P
     for _ in range(AXIS_SMOOTHING_PASSES):
         Q = np.where(fixed[:, None], Q, 0.25 * Q[prev] + 0.5 * Q + 0.25 * Q[nxt])
+    if math.isfinite(max_move):
+        move = np.hypot(*(Q - P).T)
+        Q = P + (Q - P) * np.minimum(1.0, max_move / np.maximum(move, 1e-300))[:, None]
     # how far each point is from the smoothed line (its segments on either side; a move
     # along the line needs no widening)
     before = np.where(~closed & (i == first), i, prev)

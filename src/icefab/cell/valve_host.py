@@ -55,15 +55,22 @@ def build_host(build_dir: str | os.PathLike) -> Path:
     try:
         _out, err = proc.communicate()
     except BaseException:
-        try:
-            os.killpg(proc.pid, signal.SIGTERM)
-        except ProcessLookupError:
-            pass
-        proc.wait()
+        end_group(proc, signal.SIGTERM)
         raise
     if proc.returncode != 0:
         raise ValveLinkError(f"valve firmware host build failed: {err.strip()[-500:]}")
     return build_dir / "valvectl"
+
+
+def end_group(proc: subprocess.Popen, sig: int) -> None:
+    """Send ``sig`` to the process group that ``proc`` leads (a child started with
+    ``start_new_session``: it and what it ran) unless it has ended, and wait for it."""
+    if proc.poll() is None:
+        try:
+            os.killpg(proc.pid, sig)
+        except OSError:     # gone meanwhile
+            pass
+        proc.wait()
 
 
 def _end_with_parent() -> None:
