@@ -103,8 +103,9 @@ def _pool(workers: int) -> Iterator[ProcessPoolExecutor]:
         if manager is None or not manager.is_alive():
             # interrupted as the pool started its workers, before its manager thread ran:
             # nothing tells them to end, and multiprocessing joins its children at exit,
-            # so the process never ended (a build stopped at once hung in CI, stop 48).
-            # They hold no item yet (only that thread hands them out).
+            # so a program that caught the interruption never ended (found chasing CI
+            # stop 48; the CLI leaves by os._exit). They hold no item yet (only that
+            # thread hands them out).
             for p in set(multiprocessing.active_children()) - before:
                 p.terminate()
         _forget_wakeup(manager)
