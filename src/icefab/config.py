@@ -577,7 +577,8 @@ class FlowSettings:
         why="microcontroller timers tick in 10 us-100 ms (thesis 2.3.1: 2 ms)")
     max_piece_s: float = setting(
         131.072,
-        "longest program piece (uint16 ticks)",
+        "longest program piece; a piece also ends before its ticks overflow uint16 "
+        "(65 535.5 ticks: 131.071 s at the 2 ms tick, icefab.flow.piece_max_s)",
         lo=0.01, hi=1e4,
         why="a piece spans at least a few ticks")
     max_pulses: int = setting(

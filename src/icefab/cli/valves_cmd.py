@@ -89,12 +89,8 @@ def _run(args: argparse.Namespace, motion) -> int:
         job = job.replace(**{"flow.out_of_range": args.out_of_range})
     known = {int(k) for k in motion.layer_index}
     wanted = None
-    if args.layers:
-        try:
-            wanted = {int(t) for t in args.layers.replace(" ", "").split(",") if t}
-        except ValueError:
-            raise ConfigError(f"--layers {args.layers!r}: expected comma-separated layer "
-                              "numbers") from None
+    if args.layers:   # its syntax checked as the options were read (layer_list)
+        wanted = {int(t) for t in args.layers.replace(" ", "").split(",") if t}
         if not wanted or not wanted <= known:
             raise ConfigError(f"--layers {args.layers!r}: layers must be among "
                               f"{min(known)}..{max(known)}" if known else
