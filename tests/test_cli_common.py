@@ -484,3 +484,47 @@ def test_a_sigterm_lost_in_a_weakref_callback_stops_the_command_at_its_next_prog
     worker.start()
     worker.join()
     assert got == [0] and reported[-1] == "ran"
+
+
+@pytest.mark.parametrize("wrapped", [False, True])
+def test_ctrl_c_while_the_command_loads_is_one_line(monkeypatch, capsys, wrapped):
+    """Ctrl-C in the command's first half second (numpy, scipy, numba loading) was a
+    KeyboardInterrupt traceback out of an import (hunts'): the 'icefab' entry point
+    (icefab.__main__.run) loads the command's modules itself and says it in one line."""
+    import importlib.abc
+    import sys
+
+    from icefab.__main__ import run
+
+    class Interrupted(importlib.abc.MetaPathFinder):
+        def find_spec(self, name, path, target=None):
+            if name == "icefab.cli":
+                if wrapped:     # as a class's __set_name__ wraps it
+                    try:
+                        raise KeyboardInterrupt
+                    except KeyboardInterrupt as e:
+                        raise RuntimeError("Error calling __set_name__") from e
+                raise KeyboardInterrupt
+            return None
+
+    monkeypatch.delitem(sys.modules, "icefab.cli")
+    monkeypatch.setattr(sys, "meta_path", [Interrupted(), *sys.meta_path])
+    with pytest.raises(SystemExit) as stop:
+        run()
+    assert stop.value.code == 130
+    assert capsys.readouterr().err == "icefab: interrupted\n"
+
+
+def test_importing_icefab_loads_no_numpy():
+    # what the entry point's own guard needs: the package itself loads in milliseconds
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-c", "import icefab, sys; "
+                        "print(sorted(m for m in ('numpy', 'scipy', 'numba') "
+                        "if m in sys.modules))"], capture_output=True, text=True, check=True)
+    assert r.stdout.strip() == "[]"
+    r = subprocess.run([sys.executable, "-c", "from icefab import Job, Region, load_mesh; "
+                        "print(Job().motion.dt_s)"], capture_output=True, text=True,
+                       check=True)
+    assert r.stdout.strip() == "0.016"

@@ -17,17 +17,20 @@ from icefab import _kernel_cache
 # module's old code (icefab._kernel_cache)
 _kernel_cache.check()
 
-from icefab.config import Job, load_job
-from icefab.errors import IcefabError
-from icefab.core import (HeightMap, Layer, LayerPaths, Mesh, Path, Region, Stack, Toolpath,
-                         Toolpaths, Trajectory, ValveProgram)
-
 __version__ = "0.1.0"
 
 logging.getLogger(__name__).addHandler(logging.NullHandler())
 
 # public name -> module that defines it
 _LAZY = {
+    # (numpy and the settings load when first used: 'import icefab' is cheap, so the
+    # 'icefab' command can catch a Ctrl-C while its modules load, icefab.__main__.run)
+    "Job": "icefab.config",
+    "load_job": "icefab.config",
+    "IcefabError": "icefab.errors",
+    **{name: "icefab.core" for name in ("HeightMap", "Layer", "LayerPaths", "Mesh", "Path",
+                                        "Region", "Stack", "Toolpath", "Toolpaths",
+                                        "Trajectory", "ValveProgram")},
     "load_mesh": "icefab.mesh",
     "load_meshes": "icefab.mesh",
     "prepare_parts": "icefab.mesh",
@@ -53,6 +56,4 @@ def __getattr__(name: str) -> Any:
     return getattr(importlib.import_module(module), name)
 
 
-__all__ = ["Job", "load_job", "IcefabError", "Mesh", "Region", "Layer", "Stack", "Toolpath",
-           "Path", "LayerPaths", "Toolpaths", "Trajectory", "ValveProgram", "HeightMap",
-           *_LAZY]
+__all__ = list(_LAZY)

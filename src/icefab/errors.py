@@ -67,3 +67,19 @@ class CellRefused(CellError):
     """A device refused a command for a reason that sending it again cannot change (a
     path with more points than the controller stores, a point out of its reach, another
     protocol version): the build stops at once instead of reconnecting."""
+
+
+def interruption(exc: BaseException) -> KeyboardInterrupt | None:
+    """The Ctrl-C or SIGTERM (a KeyboardInterrupt: ``icefab.cli.common.Terminated``) that
+    ``exc`` was raised from, if any: ``exc`` itself, its cause or context, or theirs. C code
+    and the interpreter wrap what a signal handler raises in their own errors (numba's
+    dispatcher a SystemError, a class's ``__set_name__`` a RuntimeError, matplotlib's first
+    import an ImportError)."""
+    seen: set[int] = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return e
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return None

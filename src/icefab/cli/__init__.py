@@ -21,7 +21,7 @@ import threading
 from icefab.cli.common import (Terminated, check_output_dir, forget_terminated, forked_end,
                                terminate)
 from icefab.cli.compiling import compile_notice
-from icefab.errors import IcefabError
+from icefab.errors import IcefabError, interruption
 
 # Subcommand modules ``icefab.cli.<name>_cmd``, in the order shown by --help. Add a command
 # here when its module lands: a listed module that cannot be imported is an error (it was
@@ -205,23 +205,10 @@ def _main(argv: list[str] | None) -> int:
         # numba loaded a cached kernel "SystemError: CPUDispatcher(...) returned a result
         # with an exception set", in a class's __set_name__ a RuntimeError, in
         # matplotlib's first import an ImportError; each a traceback and exit 1 (hunts')
-        stop = _interruption(exc)
+        stop = interruption(exc)
         if stop is None:
             raise
         return _stopped(f"icefab {args.command}", stop)
-
-
-def _interruption(exc: BaseException) -> KeyboardInterrupt | None:
-    """The Ctrl-C or SIGTERM (:class:`Terminated`) that ``exc`` was raised from, if any:
-    its cause or context, or theirs."""
-    seen: set[int] = set()
-    e: BaseException | None = exc
-    while e is not None and id(e) not in seen:
-        if isinstance(e, KeyboardInterrupt):
-            return e
-        seen.add(id(e))
-        e = e.__cause__ or e.__context__
-    return None
 
 
 if __name__ == "__main__":  # pragma: no cover
