@@ -634,6 +634,44 @@ def test_a_second_build_on_the_same_cell_runs_every_path(planned, tmp_path):
         Journal.open(jpath).number_from(1)
 
 
+def test_a_journal_that_lost_its_records_is_refused_before_anything_is_sent(planned,
+                                                                          tmp_path):
+    """A crash, then the journal's -wal file deleted (or the folder copied without it):
+    the journal held only what it was created with, and the resume took the cell's done
+    commands for another build's, numbered after them and built the whole part again on
+    top of the first, 'complete' (a hunt's). The cell's count at the start, kept in the
+    journal's first write, tells the loss: refused, nothing sent."""
+    from icefab.motion import load_trajectories
+
+    motion = load_trajectories(planned)
+    job = motion.job
+    build = tmp_path / "b"
+    jpath = build / bmod.JOURNAL
+    cell = _prepared(build, motion, job)
+    journal = Journal.create(jpath, {"digests": {}, bmod.CELL_DONE_AT_START: 0})
+    with pytest.raises(Crash):
+        bmod.Runner(build, motion, job, journal, lambda: CrashingCell(cell, 6, True)).run()
+    journal.close()
+    done = _executed(build)
+    assert done
+    for f in build.glob(bmod.JOURNAL + "*"):      # the -wal lost: what create wrote stays
+        f.unlink()
+    journal = Journal.create(jpath, {"digests": {}, bmod.CELL_DONE_AT_START: 0})
+    with pytest.raises(JournalError, match=r"holds no command of this build, but the cell "
+                       rf"has completed commands up to number {max(done)} since it started "
+                       r"\(up to 0 before\): the journal lost its records"):
+        bmod.Runner(build, motion, job, journal, lambda: VirtualCell(build / "cell")).run()
+    journal.close()
+    assert _executed(build) == done
+    # a journal of an earlier icefab (no such record) numbers after the cell as before
+    second = tmp_path / "second"
+    second.mkdir()
+    j2 = Journal.create(second / bmod.JOURNAL, {"digests": {}})
+    bmod.Runner(second, motion, job, j2, lambda: VirtualCell(build / "cell")).run()
+    assert j2.first_seq() == max(done) + 1
+    j2.close()
+
+
 def _icefab(*args, cwd, **kw):
     return subprocess.run([sys.executable, "-m", "icefab", *args], cwd=cwd,
                           capture_output=True, text=True, **kw)

@@ -429,3 +429,27 @@ def test_a_cell_interrupted_while_it_starts_does_not_run_on(tmp_path, monkeypatc
                                       tmp_path / "t.npz")
     (proc,) = started
     assert proc.poll() is not None      # killed and reaped, not left running
+
+
+@pytest.mark.parametrize("damage", ["half", "empty"])
+def test_a_cell_that_refuses_to_start_is_not_started_again(tmp_path, damage):
+    """A damaged surface.npz: 'icefab cell serve' printed a BadZipFile / EOFError traceback
+    (status 1), and the build started the cell 21 times over 100 s, then advised resuming
+    when it answered (a hunt's). The cell now names the file (status 2, icefab's refusal),
+    and its start is a refusal the build does not repeat (CellRefused)."""
+    import numpy as np
+
+    from icefab import linkedcell
+    from icefab.config import Job, to_toml
+    from icefab.errors import CellRefused
+
+    state = tmp_path / "cell"
+    state.mkdir()
+    surface = state / "surface.npz"
+    np.savez(surface, job=np.array(to_toml(Job())), z=np.zeros((4, 4)))
+    size = surface.stat().st_size
+    os.truncate(surface, size // 2 if damage == "half" else 0)
+    with pytest.raises(CellRefused, match=r"exited at start \(status 2: icefab cell: error: "
+                       r".*surface.npz: cannot read the cell's job .*the file is damaged"):
+        linkedcell.start_virtual_cell(state, tmp_path / "job.toml", tmp_path / "t.npz",
+                                      timeout_s=60)

@@ -81,6 +81,9 @@ STATUS = "status.json"
 REPORT = "report.html"
 STOP_REQUEST = "stop.request"
 CELL_DIR = "cell"
+#: The journal's meta key of the number up to which the cell had completed commands when
+#: the build started (in the journal's first write, with the meta; builds since 2026-11-29).
+CELL_DONE_AT_START = "cell_done_at_start"
 
 #: Cobra 600 vertical (joint 3) stroke, mm (thesis Table 2-1); the build checks the job's
 #: cell.stroke_mm (this default).
@@ -410,10 +413,23 @@ class Runner:
         from 1 was complete at once with nothing deposited (a tester's)."""
         from icefab.cell.robot_protocol import MAX_SEQ  # the robot link's numbers
 
-        if self.journal.has_commands() or "first_seq" in self.journal.meta():
+        meta = self.journal.meta()
+        if self.journal.has_commands() or "first_seq" in meta:
             return
         st = self.cell.status()
         last = max(int(st.last_done), int(st.cut))
+        start = meta.get(CELL_DONE_AT_START)
+        if start is not None and last > int(start):
+            # the cell completed commands since this journal was made, and the journal
+            # holds none: it lost its records (its -wal file deleted or left behind when
+            # the folder was copied); numbering after the cell's, a hunt's resume built the
+            # whole part again over the first, and said it was complete
+            raise JournalError(
+                f"{self.journal.path}: holds no command of this build, but the cell has "
+                f"completed commands up to number {last} since it started (up to {start} "
+                "before): the journal lost its records (was its -wal file deleted, or the "
+                "folder copied without it?); nothing was sent. Restore the journal's files, "
+                "or clear the platform and start a new build")
         if last <= 0:
             return
         if last > MAX_SEQ // 2:

@@ -378,8 +378,12 @@ def start_virtual_cell(state_dir: str | os.PathLike, job_file: str | os.PathLike
         while not (d / "endpoints.json").is_file():
             if proc.poll() is not None:
                 tail = (d / "cell.log").read_text(errors="replace").strip().splitlines()[-1:]
-                raise CellError(f"the virtual cell exited at start (status {proc.returncode}"
-                                f"{': ' + tail[0] if tail else ''}); see {d / 'cell.log'}")
+                # status 2 is icefab's refusal (a damaged state file, a setting): starting
+                # it again gives the same, and the build tried 21 times over 100 s with
+                # advice to resume when the cell answered (a hunt's)
+                error = CellRefused if proc.returncode == 2 else CellError
+                raise error(f"the virtual cell exited at start (status {proc.returncode}"
+                            f"{': ' + tail[0] if tail else ''}); see {d / 'cell.log'}")
             if time.monotonic() > deadline:
                 raise CellError(f"the virtual cell did not start within {timeout_s:g} s; "
                                 f"see {d / 'cell.log'}")

@@ -647,6 +647,9 @@ def _run(build: Path, args: argparse.Namespace, ctl: dict, *, resume: bool) -> i
                 lo, hi = _box(motion, job)
                 cell.prepare(job_toml, tuple(lo), tuple(hi))
             check_terminated()    # a SIGTERM whose Terminated was lost (terminate)
+            # what the cell had completed before this build: in the journal's first write,
+            # so a journal that later lost its records is told (bmod.CELL_DONE_AT_START)
+            meta[bmod.CELL_DONE_AT_START] = max(int(st.last_done), int(st.cut))
             # whole or absent (Journal.create); a stop until it exists undoes all this
             journal = Journal.create(jpath, meta)
         except BaseException:   # Ctrl-C or --stop too

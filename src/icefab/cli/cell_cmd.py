@@ -195,13 +195,16 @@ def _stored_job(state: Path):
     import numpy as np
 
     from icefab.config import job_from_dict
+    from icefab.resultfiles import NPZ_DAMAGE
 
     try:
         with np.load(state / "surface.npz", allow_pickle=False) as d:
             return job_from_dict(tomllib.loads(str(d["job"])))
-    except (OSError, ValueError, KeyError) as exc:
-        raise CellError(f"{state / 'surface.npz'}: cannot read the cell's job ({exc})"
-                        ) from None
+    except NPZ_DAMAGE as exc:
+        # a truncated file was a BadZipFile / EOFError traceback, and 'icefab build'
+        # restarted the cell 21 times over it (a hunt's)
+        raise CellError(f"{state / 'surface.npz'}: cannot read the cell's job "
+                        f"({type(exc).__name__}: {exc}); the file is damaged") from None
 
 
 #: The longest wait ``cell check --timeout`` takes, s.
