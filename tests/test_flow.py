@@ -419,3 +419,36 @@ def test_plan_valves_takes_the_default_job_and_names_a_material_it_does_not_know
     assert np.array_equal(a.ticks, b.ticks) and len(a.ticks) > 0
     with pytest.raises(FlowError, match="material 'oil'"):
         plan_valves(tr, "oil", Job())
+
+
+@given(st.integers(0, 2**31), st.sampled_from([0.001, 0.003, 0.005, 0.016]),
+       st.floats(0.017, 0.05))
+def test_every_pulse_plays_on_the_tick_nearest_its_instant_across_pieces(seed, dt, piece_s):
+    """The controller starts piece j at S_j = floor(sum of the earlier pieces' whole
+    microseconds / tick + 1/2) (PROTOCOL.md 7) and plays a pulse of tick k at S_j + k. The
+    ticks were counted from the unrounded start: a boundary at half a tick put the next
+    piece's first pulse a tick late, on the tick of the one before (a firmware review's:
+    one drop lost). Read back from the binary layout, every pulse plays on the tick
+    nearest its instant (half up), and pulse_times says so."""
+    import struct
+
+    from icefab.flow import _split, encode_valve_program, pulse_times
+
+    rng = np.random.default_rng(seed)
+    duration = 0.6
+    times = np.sort(rng.uniform(0.0, duration, 120))
+    job = Job().replace(**{"flow.max_piece_s": piece_s})
+    prog = _split(times, None, duration, dt, job)
+    data = encode_valve_program(prog)
+    tick_us, n_pieces = struct.unpack_from("<II", data, 8)
+    at, start_us, played = 16, 0, []
+    for _ in range(n_pieces):
+        n, dur = struct.unpack_from("<II", data, at)
+        ticks = np.frombuffer(data, "<u2", n, at + 8).astype(np.int64)
+        played.append((2 * start_us + tick_us) // (2 * tick_us) + ticks)
+        start_us += dur
+        at += 8 + 2 * n
+    assert n_pieces > 1
+    nearest = np.floor(times / (tick_us * 1e-6) + 0.5 + 1e-9).astype(np.int64)
+    np.testing.assert_array_equal(np.concatenate(played), nearest)
+    np.testing.assert_allclose(pulse_times(prog), nearest * tick_us * 1e-6, atol=1e-12)

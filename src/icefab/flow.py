@@ -874,6 +874,8 @@ def _split(times: np.ndarray, widths: np.ndarray | None, duration: float, dt: fl
     t0 = 0.0
     i0 = 0
     p = len(times)
+    tick_us = int(round(tick * 1e6))
+    start_us = 0    # the pieces before this one, in the whole microseconds the file holds
     while True:
         limit = t0 + max_len
         if p - i0 > most:
@@ -889,16 +891,22 @@ def _split(times: np.ndarray, widths: np.ndarray | None, duration: float, dt: fl
             if t_end <= t0 + 1e-12:  # a time step longer than the piece: cut between samples
                 t_end = limit
             i1 = min(int(np.searchsorted(times, t_end, side="left")), i0 + most)
-        rel = (times[i0:i1] - t0) / tick
-        # round half up (with a hair of tolerance): instants exactly one tick apart at a
-        # half-tick phase (PWM at 1 / tick_s) keep distinct ticks; rint's half-to-even
-        # would put two of them on one tick
-        ticks = np.clip(np.floor(rel + (0.5 + 1e-9)), 0, 65535).astype(np.uint16)
+        # each pulse on the tick nearest its instant, counted from the piece's start as
+        # the controller rounds it (PROTOCOL.md 7: S = floor(sum of durations / tick +
+        # 1/2)): from the unrounded start, a boundary at half a tick or more put the next
+        # piece's first pulse a tick late, on the tick of the one before (one drop lost,
+        # a firmware review's). Half up (with a hair of tolerance): instants exactly one
+        # tick apart at a half-tick phase (PWM at 1 / tick_s) keep distinct ticks; rint's
+        # half-to-even would put two of them on one tick
+        start = (2 * start_us + tick_us) // (2 * tick_us)
+        ticks = np.clip(np.floor(times[i0:i1] / tick + (0.5 + 1e-9)) - start, 0,
+                        65535).astype(np.uint16)
         w = None if widths is None else widths[i0:i1]
         pieces.append(ValveProgram(ticks=ticks, tick_s=tick, duration=float(t_end - t0),
                                    widths_us=w))
         if last:
             break
+        start_us += int(round((t_end - t0) * 1e6))   # as the binary layout stores it
         t0, i0 = t_end, i1
     first = pieces[0]
     return dataclasses.replace(first, pieces=tuple(pieces[1:]))
@@ -1129,14 +1137,19 @@ def program_pieces(prog: ValveProgram) -> tuple[ValveProgram, ...]:
 
 
 def pulse_times(prog: ValveProgram) -> np.ndarray:
-    """(p,) float64 pulse instants, s, from the start of the trajectory (all pieces)."""
+    """(p,) float64 pulse instants, s, from the start of the trajectory (all pieces): as
+    the valve controller plays them, each piece from its start rounded to a tick
+    (PROTOCOL.md 7: the sum of the pieces' whole microseconds before it, over the tick,
+    rounded half up)."""
     if not prog.pieces:  # one piece (most programs): its ticks, without joining pieces
         return prog.ticks.astype(np.float64) * prog.tick_s
     out = []
-    t0 = 0.0
+    start_us = 0
     for piece in program_pieces(prog):
-        out.append(t0 + piece.ticks.astype(np.float64) * piece.tick_s)
-        t0 += piece.duration
+        tick_us = int(round(piece.tick_s * 1e6))
+        start = (2 * start_us + tick_us) // (2 * tick_us)
+        out.append((start + piece.ticks.astype(np.float64)) * piece.tick_s)
+        start_us += int(round(piece.duration * 1e6))
     return np.concatenate(out) if out else np.zeros(0)
 
 
