@@ -203,8 +203,9 @@ def _stored_job(state: Path):
     except NPZ_DAMAGE as exc:
         # a truncated file was a BadZipFile / EOFError traceback, and 'icefab build'
         # restarted the cell 21 times over it (a hunt's)
+        damaged = "" if isinstance(exc, OSError) else "; the file is damaged"
         raise CellError(f"{state / 'surface.npz'}: cannot read the cell's job "
-                        f"({type(exc).__name__}: {exc}); the file is damaged") from None
+                        f"({type(exc).__name__}: {exc}){damaged}") from None
 
 
 #: The longest wait ``cell check --timeout`` takes, s.
