@@ -73,3 +73,19 @@ def test_speed_picture_draws_each_nozzle_in_the_part_frame(tmp_path, monkeypatch
     segs = np.concatenate([np.asarray(s) for s in seen["segments"]]).reshape(-1, 2)
     assert segs.min() == 0.0 and segs.max() == 10.0  # both on the same square
     assert "part frame" in seen["xlabel"]
+
+
+def test_remove_temps_takes_only_what_make_temp_file_leaves(tmp_path):
+    # a killed build's half-written report stayed beside its files (a crash hunt's
+    # .report.html.<hex>.tmp); a resume holding the build's lock removes such files
+    from icefab.atomic import make_temp_file, remove_temps
+
+    left = [make_temp_file(tmp_path / "report.html"), make_temp_file(tmp_path / "status.json")]
+    keep = ["report.html", ".hidden", ".report.html.tmp", ".x.0123456g.tmp", "a.1234abcd.tmp",
+            ".report.html.1234abcd.npz"]
+    for name in keep:
+        (tmp_path / name).write_text("x")
+    (tmp_path / ".dir.1234abcd.tmp").mkdir()
+    assert remove_temps(tmp_path) == 2
+    assert not any(f.exists() for f in left)
+    assert sorted(f.name for f in tmp_path.iterdir()) == sorted(keep + [".dir.1234abcd.tmp"])

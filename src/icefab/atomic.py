@@ -17,6 +17,7 @@ it, which races with other threads creating files).
 from __future__ import annotations
 
 import os
+import re
 import secrets
 from contextlib import contextmanager
 from pathlib import Path
@@ -27,6 +28,19 @@ _ATTEMPTS = 100
 
 def _temp_name(target: Path, suffix: str) -> Path:
     return target.parent / f".{target.name}.{secrets.token_hex(4)}{suffix}"
+
+
+def remove_temps(folder: str | os.PathLike, suffix: str = ".tmp") -> int:
+    """Remove the temporary files :func:`make_temp_file` left in ``folder`` (a process
+    killed between writing one and renaming it into place); only for a folder whose
+    writers are known to be gone (a build's, its lock held). Returns how many."""
+    pattern = re.compile(rf"\..+\.[0-9a-f]{{8}}{re.escape(suffix)}")
+    gone = 0
+    for f in Path(folder).iterdir():
+        if pattern.fullmatch(f.name) and f.is_file():
+            f.unlink(missing_ok=True)
+            gone += 1
+    return gone
 
 
 def make_temp_file(target: Path, suffix: str = ".tmp") -> Path:

@@ -33,6 +33,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from icefab.atomic import remove_temps
 from icefab.cli.common import (add_job_argument, check_terminated, command_inputs,
                                forked_end, job_from_args, terminated, terminate)
 from icefab.errors import ConfigError
@@ -588,6 +589,9 @@ def _run(build: Path, args: argparse.Namespace, ctl: dict, *, resume: bool) -> i
         if args.cell:
             meta["cell"] = str(Path(args.cell).resolve())
         lock = _lock(build)
+        # a killed run's half-written report or status, never renamed into place (a
+        # crash hunt's .report.html.<hex>.tmp): no other writer holds the lock
+        remove_temps(build)
         journal.add_indexes()     # a journal of an earlier icefab (the lock is ours)
         # a request left by the stop that ended the last run; this process' marker was
         # written first, so a --stop from now on signals it (ctl) and is not lost
