@@ -1993,10 +1993,14 @@ def test_a_sigterm_lost_as_the_journal_is_made_stops_the_runner(tmp_path):
         "from icefab.cli import main\n"
         "sys.exit(main(['build', 'demo', '-c', 'job.toml', '--layers', '2', '--virtual',\n"
         "               '-o', 'b']))\n")
-    r = subprocess.run([sys.executable, "lost.py"], cwd=tmp_path, capture_output=True,
-                       text=True, timeout=300)
-    assert r.returncode == 143, r.stderr
-    assert "Exception ignored" in r.stderr and "a stop was asked for" in r.stderr
-    st = json.loads(_icefab("build", "--status", "b", "--json", cwd=tmp_path).stdout)
-    assert st["paths_done"] == 0 and st["state"] != "complete"
-    _icefab("build", "--stop", "b", cwd=tmp_path)     # its virtual cell
+    from icefab.linkedcell import shutdown_virtual_cell
+
+    try:
+        r = subprocess.run([sys.executable, "lost.py"], cwd=tmp_path, capture_output=True,
+                           text=True, timeout=300)
+        assert r.returncode == 143, r.stderr
+        assert "Exception ignored" in r.stderr and "a stop was asked for" in r.stderr
+        st = json.loads(_icefab("build", "--status", "b", "--json", cwd=tmp_path).stdout)
+        assert st["paths_done"] == 0 and st["state"] != "complete"
+    finally:   # the stopped build's virtual cell runs on for a resume
+        shutdown_virtual_cell(tmp_path / "b" / bmod.CELL_DIR)
