@@ -898,7 +898,7 @@ def _split(times: np.ndarray, widths: np.ndarray | None, duration: float, dt: fl
         # a firmware review's). Half up (with a hair of tolerance): instants exactly one
         # tick apart at a half-tick phase (PWM at 1 / tick_s) keep distinct ticks; rint's
         # half-to-even would put two of them on one tick
-        start = (2 * start_us + tick_us) // (2 * tick_us)
+        start = piece_start_tick(start_us, tick_us)
         ticks = np.clip(np.floor(times[i0:i1] / tick + (0.5 + 1e-9)) - start, 0,
                         65535).astype(np.uint16)
         w = None if widths is None else widths[i0:i1]
@@ -1136,6 +1136,13 @@ def program_pieces(prog: ValveProgram) -> tuple[ValveProgram, ...]:
     return (first, *prog.pieces)
 
 
+def piece_start_tick(start_us: int, tick_us: int) -> int:
+    """The tick at which the valve controller starts a piece whose earlier pieces last
+    ``start_us`` whole microseconds (their durations as the binary layout stores them):
+    ``floor(start_us / tick_us + 1/2)`` (PROTOCOL.md 7), in integers."""
+    return (2 * start_us + tick_us) // (2 * tick_us)
+
+
 def pulse_times(prog: ValveProgram) -> np.ndarray:
     """(p,) float64 pulse instants, s, from the start of the trajectory (all pieces): as
     the valve controller plays them, each piece from its start rounded to a tick
@@ -1146,8 +1153,7 @@ def pulse_times(prog: ValveProgram) -> np.ndarray:
     out = []
     start_us = 0
     for piece in program_pieces(prog):
-        tick_us = int(round(piece.tick_s * 1e6))
-        start = (2 * start_us + tick_us) // (2 * tick_us)
+        start = piece_start_tick(start_us, int(round(piece.tick_s * 1e6)))
         out.append((start + piece.ticks.astype(np.float64)) * piece.tick_s)
         start_us += int(round(piece.duration * 1e6))
     return np.concatenate(out) if out else np.zeros(0)

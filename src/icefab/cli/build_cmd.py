@@ -293,6 +293,16 @@ def _build_process(build: Path, *, new: bool):
                 break
 
 
+def _hand_over(ctl: dict) -> None:
+    """From here a stop is the runner's (the tool lifted, between commands): SIGTERM only
+    sets ``ctl["signal"]``. One sent before whose Terminated was lost (see
+    :func:`icefab.cli.common.terminate`: as the journal was made, a build ran all its
+    paths and exited 0) is the runner's too: it stops at its first check."""
+    ctl["runner"] = True
+    if terminated():
+        ctl["signal"] = signal.SIGTERM
+
+
 def _claim_marker(build: Path) -> None:
     """Put this process' id into the marker of ``build`` and hold the marker locked
     (flock) until :func:`_release_marker`: the kernel drops the lock when the process
@@ -597,10 +607,7 @@ def _run(build: Path, args: argparse.Namespace, ctl: dict, *, resume: bool) -> i
         # written first, so a --stop from now on signals it (ctl) and is not lost
         (build / bmod.STOP_REQUEST).unlink(missing_ok=True)
         journal.event("resume", "resumed")
-        check_terminated()        # a SIGTERM whose Terminated was lost (terminate)
-        ctl["runner"] = True
-        if terminated():          # ... or lost since: the runner's to stop
-            ctl["signal"] = signal.SIGTERM
+        _hand_over(ctl)
     else:
         if jpath.exists():
             raise ConfigError(f"{build}: holds a build journal already: resume it with "
@@ -678,9 +685,7 @@ def _run(build: Path, args: argparse.Namespace, ctl: dict, *, resume: bool) -> i
                 except OSError:   # something else was put there meanwhile: keep it
                     pass
             raise
-        ctl["runner"] = True    # from here a stop is the runner's (the tool lifted)
-        if terminated():        # a SIGTERM whose Terminated was lost as the journal was made
-            ctl["signal"] = signal.SIGTERM
+        _hand_over(ctl)
         n = len(motion.layers)
         journal.event("start", f"build of {n} layer{'s' if n != 1 else ''} on "
                       f"{'a virtual cell' if args.virtual else meta['cell']}")

@@ -72,16 +72,21 @@ def placed_model(model: list[str], job: Job) -> tuple["Mesh", Job]:
     return meshmod.prepare_parts(job), job
 
 
+def layer_numbers(text: str) -> list[int]:
+    """The numbers of a ``--layers K,K,...`` option, in order (ValueError when an entry is
+    not an integer)."""
+    return [int(t) for t in text.replace(" ", "").split(",") if t]
+
+
 def layer_list(text: str) -> str:
     """argparse ``type=`` of a ``--layers K,K,...`` option: the text, its syntax checked as
     the options are read (a docs hunt's 'icefab slice --layers a,b' was refused only after
     slicing); whether the numbers are layers needs the layer count (:func:`parse_layers`)."""
-    entries = [t for t in text.replace(" ", "").split(",") if t]
     try:
-        [int(t) for t in entries]
+        ks = layer_numbers(text)
     except ValueError:
-        entries = []
-    if not entries:
+        ks = []
+    if not ks:
         raise argparse.ArgumentTypeError(f"{text!r}: expected comma-separated layer numbers, "
                                          "e.g. 10,50,100")
     return text
@@ -99,7 +104,7 @@ def parse_layers(text: str | None, n: int, default_count: int = 4) -> list[int]:
         count = min(default_count, n)
         return sorted(set(np.linspace(0, n - 1, count).round().astype(int).tolist()))
     try:
-        ks = [int(t) for t in text.replace(" ", "").split(",") if t]
+        ks = layer_numbers(text)
     except ValueError:
         raise ConfigError(f"--layers {text!r}: expected comma-separated layer numbers, e.g. "
                           "10,50,100") from None
@@ -137,8 +142,9 @@ def terminate() -> NoReturn:
     runs inside a weakref callback or a ``__del__`` has its exception printed as
     "Exception ignored" and lost (Python's own import locks have such a callback), and
     the command went on: a build stopped at once planned on and '--stop' gave up after 60
-    s (CI stop 48). :func:`check_terminated`, called by every :class:`Progress` and at
-    a build's hand-over to its runner, raises it again."""
+    s (CI stop 48). :func:`check_terminated`, called by every :class:`Progress` and
+    before a build makes its journal, raises it again; a build's runner takes it over as
+    a stop (:func:`terminated`)."""
     _TERMINATED[0] = True
     raise Terminated()
 

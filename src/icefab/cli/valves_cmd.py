@@ -34,7 +34,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from icefab.cli.common import Progress, add_job_argument, layer_list, output_dir
+from icefab.cli.common import (Progress, add_job_argument, layer_list, layer_numbers,
+                               output_dir)
 from icefab.core import arc_lengths
 from icefab.errors import ConfigError
 
@@ -90,7 +91,7 @@ def _run(args: argparse.Namespace, motion) -> int:
     known = {int(k) for k in motion.layer_index}
     wanted = None
     if args.layers:   # its syntax checked as the options were read (layer_list)
-        wanted = {int(t) for t in args.layers.replace(" ", "").split(",") if t}
+        wanted = set(layer_numbers(args.layers))
         if not wanted or not wanted <= known:
             raise ConfigError(f"--layers {args.layers!r}: layers must be among "
                               f"{min(known)}..{max(known)}" if known else
