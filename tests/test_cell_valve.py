@@ -154,6 +154,22 @@ def test_a_frames_parse_work_with_interrupts_off_is_bounded(tmp_path):
     assert "bad CRC      last byte:    245 bytes moved,   13 bytes summed" in proc.stdout
 
 
+def test_the_boards_valves_close_on_time_on_a_model_of_its_timer(tmp_path):
+    """The LPC2148 closes a valve by Timer1's match output in hardware (lpc2148/valves.h),
+    not in an interrupt that waited behind a frame handled with interrupts off (a 500 us
+    pulse open up to ~1.2 ms). ``make board-valves`` runs that code on a model of the
+    timer: over 2 M random pulses no valve stays open past its end and every pulse gets its
+    end; the same harness fails the plain read-modify-write of EMR (so it can fail)."""
+    need(["make", "cc"], "the board's valve outputs on a model of its timer")
+    proc = subprocess.run(["make", "-s", "-C", str(FIRMWARE), "board-valves",
+                           f"BUILD={tmp_path}"], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    m = re.search(r"valves\.h (\d+) failed checks \((\d+) EMR writes.*the plain "
+                  r"read-modify-write (\d+) failed checks", proc.stdout)
+    assert m, proc.stdout
+    assert int(m.group(1)) == 0 and int(m.group(2)) > 0 and int(m.group(3)) > 0
+
+
 def test_lpc2148_image_fits_flash_and_ram(tmp_path):
     need(["make", "arm-none-eabi-gcc"], "the LPC2148 cross build (apt-get install "
          "gcc-arm-none-eabi)")

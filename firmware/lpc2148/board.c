@@ -1,15 +1,17 @@
 /* LPC2148 board layer (PROTOCOL.md 9; thesis 2.3.1): 12 MHz crystal, PLL to 48 MHz,
  * PCLK 48 MHz; UART0 115 200 8N1 (divisor 26: 115 385 baud, +0.16 %); Timer0 counting
- * microseconds: MR0 the 2 ms valve tick, MR1 / MR2 the end of valve 0 / 1's pulse; valve
- * outputs P0.12 (part) and P0.13 (scaffold); trigger input P0.16 from the Adept C40,
- * sampled every tick; 10 s watchdog fed by the main loop while the tick runs. */
+ * microseconds, MR0 the 2 ms valve tick; valve outputs P0.12 (part) and P0.13 (scaffold)
+ * as Timer1's match outputs MAT1.0 / MAT1.1, closed by the timer in hardware (valves.h);
+ * trigger input P0.16 from the Adept C40, sampled every tick; 10 s watchdog fed by the main
+ * loop while the tick runs. */
 #include <stdint.h>
 #include "lpc2148.h"
 #include "../core/board.h"
 #include "../core/valvectl.h"
+#include "valves.h"
 
-#define VALVE0 (1u << 12)
-#define VALVE1 (1u << 13)
+#define VALVE0 (1u << 12)                                    /* MAT1.0 */
+#define VALVE1 (1u << 13)                                    /* MAT1.1 */
 #define TRIGGER_PIN (1u << 16)
 #define PCLK_HZ 48000000u
 #define WDT_TICKS (PCLK_HZ / 4u * (VC_WATCHDOG_MS / 1000u))   /* WDT clock = PCLK / 4 */
@@ -21,7 +23,6 @@ static volatile uint8_t tx_ring[1024];   /* written in interrupts, read by main 
 static volatile uint16_t tx_head, tx_tail;
 static volatile uint32_t now_ms;
 static uint32_t trig_prev;
-static const uint32_t valve_pin[VC_N_VALVES] = { VALVE0, VALVE1 };
 
 static inline uint32_t irq_save(void)
 {
@@ -51,35 +52,18 @@ void board_tx(const uint8_t *data, unsigned n)
 
 void board_valve_pulse(unsigned valve, uint16_t width_us, uint32_t play_tick)
 {
-    uint32_t end = T0TC + width_us;
     (void)play_tick;
-    if (valve >= VC_N_VALVES) return;
-    IO0SET = valve_pin[valve];
-    if (valve == 0) {
-        if (!(T0MCR & (1u << 3)) || (int32_t)(end - T0MR1) > 0) T0MR1 = end;
-        T0MCR |= 1u << 3;                                       /* MR1 interrupt */
-    } else {
-        if (!(T0MCR & (1u << 6)) || (int32_t)(end - T0MR2) > 0) T0MR2 = end;
-        T0MCR |= 1u << 6;                                       /* MR2 interrupt */
-    }
-    /* a match already passed while it was being set (a very short pulse) would fire only
-     * when the counter wraps, 71 minutes later: close the valve now instead */
-    if ((int32_t)(T0TC - (valve == 0 ? T0MR1 : T0MR2)) >= 0) {
-        IO0CLR = valve_pin[valve];
-        T0MCR &= ~(valve == 0 ? (1u << 3) : (1u << 6));
-    }
+    valves_pulse(valve, width_us);
 }
 
 void board_valves_off(void)
 {
-    IO0CLR = VALVE0 | VALVE1;
-    T0MCR &= ~((1u << 3) | (1u << 6));
+    valves_off();
 }
 
 uint8_t board_outputs(void)
 {
-    uint32_t pins = IO0PIN;
-    return (uint8_t)(((pins & VALVE0) ? 1u : 0u) | ((pins & VALVE1) ? 2u : 0u));
+    return valves_open();
 }
 
 void board_note(int what, uint32_t a, uint32_t b) { (void)what; (void)a; (void)b; }
@@ -90,19 +74,6 @@ void timer0_isr(void) __attribute__((interrupt("IRQ")));
 void timer0_isr(void)
 {
     uint32_t ir = T0IR;
-    /* a pulse's end: close the valve only if its match is due. The flag may be one left
-     * from before a new pulse moved the match later (a pulse starting as the one before
-     * ends: PWM at full duty), which closed the new pulse at once. Flag cleared first, so
-     * a match reached during the test sets it again. Before the tick: a long tick (many
-     * pulses) held a due close back for its length (a review's finding). */
-    if (ir & 2u) {
-        T0IR = 2u;
-        if ((int32_t)(T0TC - T0MR1) >= 0) { IO0CLR = VALVE0; T0MCR &= ~(1u << 3); }
-    }
-    if (ir & 4u) {
-        T0IR = 4u;
-        if ((int32_t)(T0TC - T0MR2) >= 0) { IO0CLR = VALVE1; T0MCR &= ~(1u << 6); }
-    }
     if (ir & 1u) {                                              /* MR0: the valve tick */
         uint32_t due = T0MR0, pin;
         unsigned n = 0;
@@ -185,10 +156,15 @@ int main(void)
     RSIR = 0x0F;
     clocks();
     PINSEL0 = (PINSEL0 & ~0x0Fu) | 0x05u;                        /* P0.0 TXD0, P0.1 RXD0 */
-    PINSEL0 &= ~(0x0Fu << 24);                                   /* P0.12, P0.13 GPIO */
     PINSEL1 &= ~0x03u;                                           /* P0.16 GPIO */
-    IO0CLR = VALVE0 | VALVE1;
+    IO0CLR = VALVE0 | VALVE1;                  /* low as GPIO too (startup.S's hang) */
     IO0DIR = (IO0DIR | VALVE0 | VALVE1) & ~TRIGGER_PIN;
+    T1TCR = 2;                                                   /* reset */
+    T1PR = PCLK_HZ / 1000000u - 1u;                              /* 1 us per count */
+    T1MCR = 0;                                                   /* matches only drive pins */
+    valves_off();                                                /* outputs low, clear on match */
+    T1TCR = 1;
+    PINSEL0 = (PINSEL0 & ~(0x0Fu << 24)) | (0x0Au << 24);        /* P0.12 MAT1.0, P0.13 MAT1.1 */
 
     U0LCR = 0x83;                                                /* 8N1, divisor latch */
     U0DLL = PCLK_HZ / 16u / 115200u;                             /* 26 */

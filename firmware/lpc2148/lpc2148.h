@@ -1,5 +1,5 @@
 /* The few LPC2148 registers this firmware uses (addresses from NXP UM10139, "LPC214x
- * User manual": system control, pin connect block, GPIO, UART0, Timer0, watchdog, VIC). */
+ * User manual": system control, pin connect block, GPIO, UART0, Timer0, Timer1, watchdog, VIC). */
 #ifndef LPC2148_H
 #define LPC2148_H
 #include <stdint.h>
@@ -48,6 +48,15 @@
 #define T0MR0     REG(0xE0004018)
 #define T0MR1     REG(0xE000401C)
 #define T0MR2     REG(0xE0004020)
+
+/* Timer1: the valves' match outputs (valves.h) */
+#define T1TCR     REG(0xE0008004)
+#define T1TC      REG(0xE0008008)
+#define T1PR      REG(0xE000800C)
+#define T1MCR     REG(0xE0008014)
+#define T1MR0     REG(0xE0008018)
+#define T1MR1     REG(0xE000801C)
+#define T1EMR     REG(0xE000803C)   /* EM0/EM1 the outputs, EMC0/EMC1 their match action */
 
 /* watchdog */
 #define WDMOD     REG(0xE0000000)

@@ -41,10 +41,18 @@ reset_handler:
         blo     2b
         bl      main
         /* an undefined instruction, an abort, SWI or FIQ (or main's return): both valves
-         * closed (IO0CLR, P0.12 and P0.13 as board.c's VALVE0 / VALVE1), then wait for
-         * the watchdog's reset. It only looped: with interrupts off no pulse's end could
-         * close an open valve for the watchdog's 10 s (a review's finding). */
-hang:   ldr     r0, =0xE002800C
+         * closed, then wait for the watchdog's reset (a loop alone left an open valve open
+         * for the watchdog's 10 s: a review's finding). The valves are Timer1's match
+         * outputs (board.c, valves.h): their bits cleared in T1EMR, then P0.12 / P0.13 made
+         * GPIO again, driven low by IO0CLR (board.c set them as low outputs). */
+hang:   ldr     r0, =0xE000803C         /* T1EMR: EM0 = EM1 = 0 */
+        mov     r1, #0
+        str     r1, [r0]
+        ldr     r0, =0xE002800C         /* IO0CLR: P0.12, P0.13 */
         mov     r1, #0x3000
+        str     r1, [r0]
+        ldr     r0, =0xE002C000         /* PINSEL0: P0.12, P0.13 GPIO */
+        ldr     r1, [r0]
+        bic     r1, r1, #0x0F000000
         str     r1, [r0]
 3:      b       3b
