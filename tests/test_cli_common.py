@@ -486,6 +486,41 @@ def test_a_sigterm_lost_in_a_weakref_callback_stops_the_command_at_its_next_prog
     assert got == [0] and reported[-1] == "ran"
 
 
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
+def test_a_sigterm_lost_after_the_last_progress_ends_the_command_as_terminated(
+        monkeypatch, capsys, tmp_path):
+    """A SIGTERM lost (in a weakref callback) after a command's last progress report, or
+    in a command that reports none, let it end with 0 as if no stop had been asked for:
+    it ends as terminated (143), its work done."""
+    import gc
+    import os
+    import signal
+    import weakref
+
+    import icefab.cli as cli
+    import icefab.cli.common as common
+    import icefab.cli.slice_cmd as slice_cmd
+
+    monkeypatch.setattr(common, "_TERMINATED", [False])
+
+    def run(args):
+        class Lock:
+            pass
+
+        lock = Lock()
+        ref = weakref.ref(lock, lambda r: os.kill(os.getpid(), signal.SIGTERM))
+        del lock
+        gc.collect()
+        assert ref() is None
+        return 0
+
+    monkeypatch.setattr(slice_cmd, "run", run)
+    assert cli.main(["slice", "demo", "-o", str(tmp_path / "s")]) == 143
+    assert capsys.readouterr().err.strip().endswith("icefab slice: terminated")
+    monkeypatch.setattr(slice_cmd, "run", lambda args: 0)   # and without one: 0
+    assert cli.main(["slice", "demo", "-o", str(tmp_path / "t")]) == 0
+
+
 @pytest.mark.parametrize("wrapped", [False, True])
 def test_ctrl_c_while_the_command_loads_is_one_line(monkeypatch, capsys, wrapped):
     """Ctrl-C in the command's first half second (numpy, scipy, numba loading) was a

@@ -18,8 +18,8 @@ import signal
 import sys
 import threading
 
-from icefab.cli.common import (Terminated, check_output_dir, forget_terminated, forked_end,
-                               terminate)
+from icefab.cli.common import (Terminated, check_output_dir, check_terminated,
+                               forget_terminated, forked_end, terminate)
 from icefab.cli.compiling import compile_notice
 from icefab.errors import IcefabError, interruption
 
@@ -183,6 +183,12 @@ def _main(argv: list[str] | None) -> int:
         with compile_notice():  # the first run's silent numba compiling, said plainly
             rc = int(args.func(args) or 0)
         sys.stdout.flush()    # a reader that left shows here, not in the exit's own flush
+        # a SIGTERM lost after the last progress report (plan's pictures) or in a command
+        # that reports none (tune, calibrate, export) let the command end with 0, as if no
+        # stop had been asked for (session 42's hunt): it ends as terminated, its files
+        # written whole (a build's runner, which took such a stop over, said so itself)
+        if rc not in (130, 143):
+            check_terminated()
         return rc
     except IcefabError as exc:
         print(f"icefab {args.command}: error: {exc}", file=sys.stderr)
