@@ -489,6 +489,54 @@ def _vertex_bounds(sv, tau, jac, n, h, vcap, dt, A, qa, xk, kv, kvq, ctau):
             _joint_share(v, sv, tau, jac, gv, qa, L, n, h, dt, kvq)
 
 
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def _followed_curvature(sv, tau, n, h, reach, kc, ctau):
+    """The followed polyline's own curvature, 1/mm, at the grid points (kc[0:n], in place).
+
+    The polyline the samples follow (arc length sv (K,) mm, turning vectors tau (K, 2))
+    turns its tangent by |sum tau_w| over the points within ``reach`` / 2 mm either side
+    of a point w; over that length it is the curvature a step of ``reach`` mm (one output
+    step at the speed bound) sees there (thesis eq. 4.8: the radial v^2 kappa). The
+    vector sum lets the smoothed curve's roughness below the grid's scale cancel. The
+    tangential acceleration of a grid segment is planned at its ends (_pass: forward at
+    the first, backward at the second), from the 0.4 mm grid's curvature there, which
+    misses an arc shorter than the grid between them: each point's curvature goes to the
+    grid points within ``reach`` of it and to the two around it. Used where the followed
+    polyline is finer than the grid (an output step under the grid's, see
+    ``motion._round_corners``). ctau (K+1, 2): work array.
+    """
+    for i in range(n):
+        kc[i] = 0.0
+    K = sv.shape[0]
+    if K < 3 or reach <= 0.0:
+        return
+    ctau[0, 0] = 0.0
+    ctau[0, 1] = 0.0
+    for w in range(K):
+        ctau[w + 1, 0] = ctau[w, 0] + tau[w, 0]
+        ctau[w + 1, 1] = ctau[w, 1] + tau[w, 1]
+    half = 0.5 * reach
+    lo = 0
+    hi = 0
+    for w in range(1, K - 1):
+        if tau[w, 0] == 0.0 and tau[w, 1] == 0.0:
+            continue
+        while sv[w] - sv[lo] > half:
+            lo += 1
+        if hi < w:
+            hi = w
+        while hi + 1 < K and sv[hi + 1] - sv[w] <= half:
+            hi += 1
+        tx = ctau[hi + 1, 0] - ctau[lo, 0]
+        ty = ctau[hi + 1, 1] - ctau[lo, 1]
+        c = math.sqrt(tx * tx + ty * ty) / reach
+        g0 = min(max(int((sv[w] - reach) / h), 0), n - 1)
+        g1 = min(max(int((sv[w] + reach) / h) + 1, 0), n - 1)
+        for gi in range(g0, g1 + 1):
+            if c > kc[gi]:
+                kc[gi] = c
+
+
 #: A vertex's share of a joint's acceleration below this fraction of the bound is not
 #: reserved (:func:`_joint_share`).
 JOINT_SHARE_MIN = 1e-3
@@ -660,11 +708,14 @@ class JointLimits(NamedTuple):
 class Sampling(NamedTuple):
     """How the profiles are evaluated: dt s, the output time step (see _step_curvature);
     jerk_window mm, the length over which curvature is averaged before taking its slope
-    for the jerk bounds; jcon_tol, the JCON iteration's relative tolerance."""
+    for the jerk bounds; jcon_tol, the JCON iteration's relative tolerance; fine_follow,
+    whether the followed polyline is finer than the grid (an output step under the
+    grid's: its own curvature bounds the speed too, _followed_curvature)."""
 
     dt: float
     jerk_window: float
     jcon_tol: float
+    fine_follow: bool
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
@@ -684,6 +735,7 @@ def speed_profiles(grid, cart, joints, sampling):
     cap0, cap1 = cart.rest_cap0, cart.rest_cap1
     q, qv, qa, qj = joints.q, joints.vel, joints.acc, joints.jerk
     dt, jerk_window, jcon_tol = sampling.dt, sampling.jerk_window, sampling.jcon_tol
+    fine_follow = sampling.fine_follow
     N = xy.shape[0]
     m = q.shape[1]
     P = gstart.shape[0] - 1
@@ -705,6 +757,7 @@ def speed_profiles(grid, cart, joints, sampling):
     fwd = np.zeros(nmax)
     c2 = np.zeros((nmax + 1, 2))
     xk = np.zeros(nmax)
+    kc = np.zeros(nmax)
     kv = np.zeros(nmax)
     kvq = np.zeros((nmax, m))
     cq = np.zeros((nmax + 1, m))
@@ -726,8 +779,14 @@ def speed_profiles(grid, cart, joints, sampling):
         _vertex_bounds(vs_loc[vstart[p]:vstart[p + 1]], vtau[vstart[p]:vstart[p + 1]],
                        gjac[g0:g0 + n], n, hp, vcap[p], dt, A, qa, xk, kv, kvq,
                        ctau)
+        if fine_follow:
+            _followed_curvature(vs_loc[vstart[p]:vstart[p + 1]],
+                                vtau[vstart[p]:vstart[p + 1]], n, hp, vcap[p] * dt, kc,
+                                ctau)
         for i in range(n):
             kap[i] = math.sqrt(p2[i, 0] ** 2 + p2[i, 1] ** 2)
+            if fine_follow and kc[i] > kap[i]:
+                kap[i] = kc[i]
             # ---- VCON: the maximum-speed envelope (thesis 4.1.2, eqs. 4.4, 4.5)
             x = min(vc2, xk[i])
             if kap[i] > _EPS:

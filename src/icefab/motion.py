@@ -151,6 +151,10 @@ SMOOTH_MAX_TURN_DEG = 60.0
 #: With path smoothing on, the followed polyline has a point at least every output step
 #: at this speed, mm/s (:func:`_denser_input`; the 0.4 mm grid at 16 ms already does).
 FOLLOW_STEP_SPEED_MM_S = 25.0
+#: With path smoothing on and an output step under the grid's (``_round_corners``), the
+#: share of ``motion.smoothing_tolerance_mm`` that rounds the input's corners into arcs;
+#: the regression smoothing gets the rest.
+CORNER_SHARE = 0.5
 #: Points closer than this are merged before planning (zero-length segments), mm.
 MERGE_MM = 1e-9
 #: Gap inserted between pieces in the concatenated arc length (keeps it increasing), mm.
@@ -335,10 +339,19 @@ def _pathsplit(V: np.ndarray, counts: np.ndarray, job: Job) -> _Split:
     gxy = _mtts.follow_samples(gl, gstart, L, pvs.astype(np.int64), S, PV, s0)
     fxy, fu, fstart = PV, S, pvs.astype(np.int64)
     if m.smoothing_tolerance_mm > 0.0:
-        DV, DS, dvs = _denser_input(PV, S, pvs, s0, hk, nseg, FOLLOW_STEP_SPEED_MM_S * m.dt_s)
-        gxy, fxy, fu, fstart = _smooth(gxy, gs, gstart, DV, DS, dvs, s0, hk, nseg,
-                                       float(m.smoothing_tolerance_mm),
+        step = FOLLOW_STEP_SPEED_MM_S * m.dt_s
+        tol = float(m.smoothing_tolerance_mm)
+        DV, DS, dvs = _denser_input(PV, S, pvs, s0, hk, nseg, step)
+        if _rounds_corners(m):
+            # an output step under the grid's (16 ms): corners become arcs (see there)
+            e = CORNER_SHARE * tol
+            DV, DS, dvs, gxy = _round_corners(PV, S, pvs, DV, DS, dvs, gxy, gs, e,
+                                              float(m.accel_mm_s2), float(m.dt_s), step)
+            tol -= e
+        gxy, fxy, fu, fstart = _smooth(gxy, gs, gstart, DV, DS, dvs, s0, hk, nseg, tol,
                                        SMOOTH_SIGMA_MM / m.point_spacing_mm)
+        if _rounds_corners(m):
+            fu = _chord_parameter(fxy, fstart, s0, L)
 
     return _Split(V=V, pid=pid, counts=counts, pstart=pstart, orig_index=orig_index, a=a,
                   piece_path=piece_path, PV=PV, pvs=pvs, S=S, s0=s0, L=L, nseg=nseg, hk=hk,
@@ -380,6 +393,150 @@ def _denser_input(PV: np.ndarray, S: np.ndarray, pvs: np.ndarray, s0: np.ndarray
     added = offsets(np.bincount(piece, minlength=Q))
     return (np.concatenate([PV, xy])[order], np.concatenate([S, q])[order],
             pvs + added)
+
+
+def _rounds_corners(m) -> bool:
+    """Whether the motion settings ``m`` (:class:`icefab.config.MotionSettings`) make the
+    followed polyline finer than the grid, with the input's corners as arcs
+    (:func:`_round_corners`): path smoothing on and an output step under the grid's,
+    ``FOLLOW_STEP_SPEED_MM_S`` x dt < ``point_spacing_mm`` (not at the defaults)."""
+    return bool(m.smoothing_tolerance_mm > 0.0
+                and FOLLOW_STEP_SPEED_MM_S * m.dt_s < m.point_spacing_mm * (1.0 - 1e-9))
+
+
+def _chord_parameter(fxy: np.ndarray, fstart: np.ndarray, s0: np.ndarray, L: np.ndarray
+                     ) -> np.ndarray:
+    """(F,) the followed polyline's parameter (S units) by its own chord length, each piece
+    (``fxy[fstart[p]:fstart[p+1]]`` mm) scaled onto [s0[p], s0[p] + L[p]].
+
+    The samples are placed along it by this parameter (``_mtts.follow_samples``). By the
+    input's arc length instead, the smoothing's displacements, which vary from point to
+    point below the grid's scale, stretch its chords unevenly (by ~1e-3), and at a fine
+    step that is tangential acceleration: a wavy path sampled at 1 ms reached 1.5 times
+    the bound. The vertex bounds already measure the polyline by its chords
+    (``_mtts.polyline_vertices``).
+    """
+    d = np.hypot(*np.diff(fxy, axis=0).T)
+    d[fstart[1:-1] - 1] = 0.0   # no chord between pieces
+    c = np.concatenate([[0.0], np.cumsum(d)])
+    piece = np.repeat(np.arange(len(L)), np.diff(fstart))
+    c0 = c[fstart[:-1]][piece]
+    tot = (c[fstart[1:] - 1] - c[fstart[:-1]])[piece]
+    u = s0[piece] + (c - c0) / np.maximum(tot, 1e-300) * L[piece]
+    u[fstart[1:] - 1] = s0 + L
+    return u
+
+
+def _round_corners(PV: np.ndarray, S: np.ndarray, pvs: np.ndarray, DV: np.ndarray,
+                   DS: np.ndarray, dvs: np.ndarray, gxy: np.ndarray, gs: np.ndarray,
+                   e: float, accel: float, dt: float, step: float
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every interior vertex of the pieces' input (PV (K, 2) mm, arc length S (K,), piece
+    offsets pvs) replaced by a circular arc tangent to its two segments, at most ``e`` mm
+    inside the vertex, in the followed points (DV, DS, dvs: the input with
+    :func:`_denser_input`'s points) and in the grid (gxy (G, 2) mm at arc length gs).
+
+    Why (thesis 4.1.1-4.1.2): the samples follow the followed polyline linearly, and a
+    point of it turning by beta costs v beta / dt of acceleration at speed v
+    (``_mtts._vertex_bounds``). The path smoothing moves every point by at most its
+    tolerance, by scaling a regression's displacement; at a polygon's vertex that keeps
+    most of the turn at one point (a 25 deg zigzag with 3 mm sides: 20 deg), whose bound
+    A dt / beta shrinks with dt: 21 mm/s at 16 ms, 1.4 mm/s at 1 ms (the zigzag 3.6 times
+    slower at 1 ms than at 16 ms, 2.7 times TOPP-RA's time). An arc of radius r allows
+    sqrt(A r) at every dt (the vertex bound of its points, sampled every
+    ``0.5 dt sqrt(A r)`` mm and at most ``step`` mm apart, is twice that). Applied only at
+    an output step under the grid's (16 ms at the defaults), where a vertex passed at
+    speed is crossed in under one grid step; at 16 ms the step itself spreads the turn.
+
+    The arc takes the parameter range S_v -+ t (t its tangent length, at most half of
+    each segment, which bounds r), mapped linearly onto its angle; input points inside it
+    are dropped. Its points are within e of the input, its chords within e too (the
+    sagitta is kept under 1 % of e). Returns (DV, DS, dvs, gxy) with the arcs.
+    """
+    Q = len(pvs) - 1
+    # interior vertices of every piece
+    j = np.arange(len(PV))
+    first = np.zeros(len(PV), dtype=bool)
+    first[pvs[:-1]] = True
+    last = np.zeros(len(PV), dtype=bool)
+    last[pvs[1:] - 1] = True
+    j = j[~first & ~last]
+    if not len(j) or e <= 0.0:
+        return DV, DS, dvs, gxy
+    din = PV[j] - PV[j - 1]
+    dout = PV[j + 1] - PV[j]
+    lin = np.hypot(din[:, 0], din[:, 1])
+    lout = np.hypot(dout[:, 0], dout[:, 1])
+    uin = din / lin[:, None]
+    uout = dout / lout[:, None]
+    cross = uin[:, 0] * uout[:, 1] - uin[:, 1] * uout[:, 0]
+    dot = uin[:, 0] * uout[:, 0] + uin[:, 1] * uout[:, 1]
+    alpha = np.abs(np.arctan2(cross, dot))   # the turn, rad (< smooth_angle_deg)
+    keep = alpha > 1e-9
+    j, uin, uout, cross, alpha = j[keep], uin[keep], uout[keep], cross[keep], alpha[keep]
+    lin, lout = lin[keep], lout[keep]
+    if not len(j):
+        return DV, DS, dvs, gxy
+    half = 0.5 * alpha
+    ee = 0.99 * e   # the rest (1 %) for the chords' sagitta
+    # e = r (1 / cos(alpha / 2) - 1) at the vertex; t = r tan(alpha / 2)
+    r = ee / (1.0 / np.cos(half) - 1.0)
+    t = np.minimum(r * np.tan(half), 0.5 * np.minimum(lin, lout))
+    r = t / np.tan(half)
+    sgn = np.where(cross > 0.0, 1.0, -1.0)   # left turn: the centre on the left
+    T1 = PV[j] - t[:, None] * uin
+    C = T1 + (r * sgn)[:, None] * np.column_stack([-uin[:, 1], uin[:, 0]])
+    a0 = np.arctan2(T1[:, 1] - C[:, 1], T1[:, 0] - C[:, 0])
+    q0 = S[j] - t
+    q1 = S[j] + t
+    # arc points: every 0.5 dt sqrt(A r) mm, at most step, sagitta d^2 / (8 r) <= 0.01 e
+    d = np.minimum(np.minimum(0.5 * dt * np.sqrt(accel * r), step), np.sqrt(0.08 * e * r))
+    cnt = np.maximum(2, np.ceil(2.0 * t / d - 1e-9).astype(np.int64) + 1)
+    k = np.arange(int(cnt.sum())) - np.repeat(offsets(cnt)[:-1], cnt)
+    span = np.repeat(np.arange(len(j)), cnt)
+    frac = k / (cnt[span] - 1)
+    aq = q0[span] + frac * (2.0 * t[span])
+
+    def on_arc(sp: np.ndarray, fr: np.ndarray) -> np.ndarray:
+        th = a0[sp] + sgn[sp] * alpha[sp] * fr
+        return np.column_stack([C[sp, 0] + r[sp] * np.cos(th), C[sp, 1] + r[sp] * np.sin(th)])
+
+    axy = on_arc(span, frac)
+    # the spans are apart (t <= half of each segment) and increasing with S
+    def inside(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        w = np.searchsorted(q0, q, side="right") - 1
+        ok = (w >= 0) & (q > q0[np.maximum(w, 0)]) & (q < q1[np.maximum(w, 0)])
+        return ok, np.maximum(w, 0)
+
+    def inside_ends(q: np.ndarray) -> np.ndarray:   # on an arc's end (MERGE_MM)
+        w = np.clip(np.searchsorted(q0, q), 0, len(q0) - 1)
+        v = np.clip(np.searchsorted(q1, q), 0, len(q1) - 1)
+        return ((np.abs(q - q0[w]) <= MERGE_MM) | (np.abs(q - q0[np.maximum(w - 1, 0)])
+                <= MERGE_MM) | (np.abs(q - q1[v]) <= MERGE_MM)
+                | (np.abs(q - q1[np.maximum(v - 1, 0)]) <= MERGE_MM))
+
+    ok, w = inside(DS)
+    piece = np.repeat(np.arange(Q), np.diff(dvs))
+    apiece = np.repeat(np.searchsorted(pvs, j, side="right") - 1, cnt)
+    # the arc's end points lie on the input segments: drop input points there too
+    drop = ok | np.isin(DS, aq) | inside_ends(DS)
+    allS = np.concatenate([DS[~drop], aq])
+    order = np.argsort(allS, kind="stable")
+    # two arcs whose tangent lengths both take half of their shared segment meet at its
+    # middle: one point there (a repeated point is a zero-length segment)
+    twice = np.zeros(len(order), dtype=bool)
+    twice[1:] = np.diff(allS[order]) <= MERGE_MM
+    order = order[~twice]
+    nDV = np.concatenate([DV[~drop], axy])[order]
+    npiece = np.concatenate([piece[~drop], apiece])[order]
+    ndvs = offsets(np.bincount(npiece, minlength=Q))
+    gxy = gxy.copy()
+    gok, gw = inside(gs)
+    if gok.any():
+        g = np.flatnonzero(gok)
+        sp = gw[g]
+        gxy[g] = on_arc(sp, (gs[g] - q0[sp]) / (2.0 * t[sp]))
+    return nDV, allS[order], ndvs, gxy
 
 
 def _smooth(gxy: np.ndarray, gs: np.ndarray, gstart: np.ndarray, PV: np.ndarray,
@@ -582,7 +739,7 @@ def _piece_profiles(gstart: np.ndarray, hk: np.ndarray, gxy: np.ndarray, vertice
         _mtts.CartesianLimits(vcap_piece, float(m.accel_mm_s2), float(m.jerk_mm_s3),
                               bool(jerk_on), a_rest, cap0, cap1),
         _mtts.JointLimits(qgrid, qv, qa, qj),
-        _mtts.Sampling(float(m.dt_s), JERK_WINDOW_MM, JCON_TOLERANCE))
+        _mtts.Sampling(float(m.dt_s), JERK_WINDOW_MM, JCON_TOLERANCE, _rounds_corners(m)))
 
     # ---- AREST with the encoder resolution: first and last steps of every piece
     dt = float(m.dt_s)
