@@ -501,8 +501,9 @@ def _followed_curvature(sv, tau, n, h, reach, kc, ctau):
     tangential acceleration of a grid segment is planned at its ends (_pass: forward at
     the first, backward at the second), from the 0.4 mm grid's curvature there, which
     misses an arc shorter than the grid between them: each point's curvature goes to the
-    grid points within ``reach`` of it and to the two around it. Used where the followed
-    polyline is finer than the grid (an output step under the grid's, see
+    two grid points around it (spread to every grid point within ``reach``, a smooth
+    wavy path's peaks widened: 4.6 % over TOPP-RA's time at 4 ms). Used where the
+    followed polyline is finer than the grid (an output step under the grid's, see
     ``motion._round_corners``). ctau (K+1, 2): work array.
     """
     for i in range(n):
@@ -530,8 +531,8 @@ def _followed_curvature(sv, tau, n, h, reach, kc, ctau):
         tx = ctau[hi + 1, 0] - ctau[lo, 0]
         ty = ctau[hi + 1, 1] - ctau[lo, 1]
         c = math.sqrt(tx * tx + ty * ty) / reach
-        g0 = min(max(int((sv[w] - reach) / h), 0), n - 1)
-        g1 = min(max(int((sv[w] + reach) / h) + 1, 0), n - 1)
+        g0 = min(max(int(sv[w] / h), 0), n - 1)
+        g1 = min(g0 + 1, n - 1)
         for gi in range(g0, g1 + 1):
             if c > kc[gi]:
                 kc[gi] = c
