@@ -15,6 +15,8 @@ from icefab.motion import (constant_spacing, followed_path, gcode_moves, pathspl
                            plan_motion, plan_paths_motion, thesis_test_path)
 from icefab.robots import Scara, get_robot
 
+from _polylines import zigzag
+
 log = logging.getLogger(__name__)
 
 #: Inputs kept with the tests (tests/data).
@@ -825,14 +827,6 @@ def test_tour_corners_near_the_reach_keep_the_joint_accelerations(jerk):
     check_trajectory(tr, pts + (tr.xy[0] - pts[0]), job)
 
 
-def _zigzag(turn_deg: float, side_mm: float, n: int = 10) -> np.ndarray:
-    """A polyline turning by ``turn_deg`` left and right at every vertex, sides in mm."""
-    a = np.radians(turn_deg) / 2.0
-    ang = np.where(np.arange(n) % 2 == 0, a, -a)
-    steps = side_mm * np.c_[np.cos(ang), np.sin(ang)]
-    return np.vstack([[300.0, -60.0], [300.0, -60.0] + np.cumsum(steps, axis=0)])
-
-
 @pytest.mark.parametrize("dt", [0.001, 0.002, 0.004, 0.016])
 @pytest.mark.parametrize("side", [1.0, 5.0])
 @pytest.mark.parametrize("job", [JOB, JOB_NOJERK], ids=["jerk-on", "jerk-off"])
@@ -843,7 +837,7 @@ def test_polyline_vertices_keep_the_bounds_at_every_step(job, side, dt):
     # acceleration bound (jerk off); corners are now arcs and the followed polyline's own
     # curvature bounds the speed (motion._round_corners, _mtts._followed_curvature)
     job = job.replace(**{"motion.dt_s": dt})
-    pts = _zigzag(25.0, side)
+    pts = zigzag(25.0, side)
     tr = plan_motion(pts, job)
     check_trajectory(tr, pts, job)
     coarse = plan_motion(pts, job.replace(**{"motion.dt_s": 0.016}))

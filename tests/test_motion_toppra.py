@@ -18,6 +18,8 @@ from icefab import Job
 from icefab.motion import pathsplit, plan_motion, thesis_test_path
 from icefab.robots import get_robot
 
+from _polylines import zigzag
+
 log = logging.getLogger(__name__)
 logging.getLogger("toppra").setLevel(logging.ERROR)
 
@@ -131,14 +133,6 @@ def test_gantry_against_toppra():
     assert 0.97 * fast <= tr.duration <= 1.03 * slow
 
 
-def _zigzag(turn_deg: float, side_mm: float, n: int = 10) -> np.ndarray:
-    """A polyline turning by ``turn_deg`` left and right at every vertex, sides in mm."""
-    a = np.radians(turn_deg) / 2.0
-    ang = np.where(np.arange(n) % 2 == 0, a, -a)
-    steps = side_mm * np.c_[np.cos(ang), np.sin(ang)]
-    return np.vstack([[300.0, -60.0], [300.0, -60.0] + np.cumsum(steps, axis=0)])
-
-
 @pytest.mark.parametrize("dt", [0.001, 0.002, 0.004])
 def test_fine_step_zigzag_within_1_5_times_toppra(dt):
     # a 25 deg zigzag with 3 mm sides: the path smoothing left 20 of each vertex's 25 deg
@@ -148,7 +142,7 @@ def test_fine_step_zigzag_within_1_5_times_toppra(dt):
     # followed (smoothed) polyline.
     from icefab.motion import followed_path
     job = JOB.replace(**{"motion.dt_s": dt})
-    pts = _zigzag(25.0, 3.0)
+    pts = zigzag(25.0, 3.0)
     robot = get_robot(job)
     tr = plan_motion(pts, job)
     top = sum(toppra_duration(p, job, robot) for p in followed_path(pts, job))
