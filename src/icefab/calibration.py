@@ -49,6 +49,12 @@ averages the scatter of single runs over neighbouring frequencies (with ~20 freq
 and 2 runs each, a 1 % run-to-run scatter leaves about 0.5 % in the table instead of the
 0.7 % of plain per-frequency means) and must increase strictly; it is written by
 :func:`write_valve_table` in the layout :func:`icefab.flow.load_calibration` reads.
+Before the fit each run is held to the other runs at its frequency (more than 10 % from
+their median, or two runs more than 20 % apart, is refused naming its line: a run weighed
+twice, cut short or spilt), and the top frequency, which has nothing above it to hold it,
+to the trend of the few below it (a valve saturates, flattening at its top; a jump above
+that trend is refused where the table would be the runs' means, and a single run there
+that a polynomial follows is written with a warning).
 
 The synthetic generators (:func:`scan_line`, :func:`synthetic_jig_scans`,
 :func:`synthetic_edge_scans`, :func:`synthetic_masses`) produce such data with known true
@@ -716,6 +722,9 @@ class ValveFit:
     fit: Callable[[np.ndarray], np.ndarray] = field(repr=False, default=None)  # type: ignore
     #: "polynomial" (the fit at the measured frequencies) or "monotone means"
     method: str = "polynomial"
+    #: what the table was written with but could not be checked (a single run at the top
+    #: frequency above the trend below it, :func:`fit_valve_table`), one line each
+    warnings: tuple[str, ...] = ()
 
     @property
     def rms_residual(self) -> float:
@@ -739,6 +748,13 @@ def read_masses(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.nda
     the file and line for a missing header or one with other names, a bad row, a
     frequency outside 0-``MAX_VALVE_HZ``, a duration outside ``MIN_RUN_S``-``MAX_RUN_S`` or
     a mass < 0."""
+    return read_mass_runs(path)[:3]
+
+
+def read_mass_runs(path: str | os.PathLike
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`read_masses` and (n,) int64 the file's line of each run, so that
+    :func:`fit_valve_table` can name the line of a run it refuses."""
     path = Path(path)
     rows = _rows(path, MASS_HEADER, "fff", need_header=True)
     for n, (f, d, m) in rows:
@@ -756,7 +772,8 @@ def read_masses(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.nda
                               f"-{BALANCE_DRIFT_G:g} g, a balance's drift, counts as 0), "
                               f"got {m:g}")
     a = np.array([v for _, v in rows], dtype=np.float64)
-    return a[:, 0], a[:, 1], np.maximum(a[:, 2], 0.0)
+    lines = np.array([n for n, _ in rows], dtype=np.int64)
+    return a[:, 0], a[:, 1], np.maximum(a[:, 2], 0.0), lines
 
 
 MAX_DEGREE = 5
@@ -833,19 +850,93 @@ def _monotone_means(freqs: np.ndarray, means: np.ndarray, counts: np.ndarray
     return x[keep], y[keep]
 
 
+#: A run further than this (relative) from the median flow of its frequency's runs is
+#: refused when its frequency has 2 or more runs (two runs: more than twice this apart).
+#: The runs of one frequency scatter by about 1 % (temperature, drops left on the nozzle,
+#: the balance: :func:`synthetic_masses`' defaults), so 10 % is some 7 of their standard
+#: deviations from the median of three: not scatter but a run weighed twice, cut short
+#: or spilt. It is ``MAX_MISFIT``, the most a frequency's mean may be off the table: such
+#: a run moves its frequency's mean by a third of it (one of three runs) and the table
+#: with it, and the monotone means follow it unseen (a review's: one of three runs at
+#: 1000 Hz weighed double gave a table 33 % high at 1000 Hz, with exit 0).
+REPLICATE_SPREAD = MAX_MISFIT
+#: ... give or take this mass, g (5 times the 1 mg a lab balance reads to): the runs of a
+#: valve that barely opens collect milligrams, and their scatter is the balance's.
+REPLICATE_BALANCE_G = 0.005
+#: The top frequency's mean flow is held to the straight line through the mean flows of
+#: the (up to) this many frequencies below it (:func:`_top_trend`): the top has no
+#: frequency above it, so the rising table of monotone means can follow any value there.
+TREND_POINTS = 3
+
+
+def _replicate_outlier(inverse: np.ndarray, q: np.ndarray, allowance: np.ndarray,
+                       floor: float) -> tuple[int, float] | None:
+    """The run furthest (relative) from the median flow of its frequency's runs, as (its
+    index, that median mm^3/s), when it is further than ``REPLICATE_SPREAD`` of the median
+    (at least ``floor`` mm^3/s, so a dead band's near-zero runs are not compared by their
+    ratio) plus its ``allowance`` (n,) mm^3/s (the balance); None when no run is.
+
+    inverse: (n,) the frequency of each run (an index); q: (n,) the runs' flows, mm^3/s. A
+    median is robust to one bad run of three or more; a frequency with a single run is
+    not screened (nothing to hold it to: :func:`fit_valve_table` checks its mean).
+    """
+    counts = np.bincount(inverse)
+    med = np.array([np.median(q[inverse == k]) for k in range(len(counts))])[inverse]
+    ref = np.maximum(med, floor)
+    far = (np.abs(q - med) > REPLICATE_SPREAD * ref + allowance) & (counts[inverse] >= 2)
+    if not far.any():
+        return None
+    i = int(np.argmax(np.where(far, np.abs(q - med) / ref, -1.0)))
+    return i, float(med[i])
+
+
+def _top_trend(freqs: np.ndarray, means: np.ndarray, floor: float) -> float | None:
+    """The flow at the top frequency, mm^3/s, on the least-squares line through the mean
+    flows of the ``TREND_POINTS`` frequencies below it (freqs, means: (k,) increasing
+    frequencies, Hz, and their mean flows, mm^3/s). None when fewer than 2 of those flow
+    (more than ``floor``: a dead band's top has no trend to be held to) or the line gives
+    no flow at the top.
+
+    A valve's flow grows less than in proportion to its frequency (thesis Fig. 6-1) and
+    flattens where it saturates, so its top lies on or below this line: on the built-in
+    table (20 frequencies) 1.6 % above it, from the curvature the line leaves out.
+    """
+    x, y = freqs[-1 - TREND_POINTS:-1], means[-1 - TREND_POINTS:-1]
+    x, y = x[y > floor], y[y > floor]
+    if len(x) < 2:
+        return None
+    slope, intercept = np.polyfit(x, y, 1)
+    at = float(slope * freqs[-1] + intercept)
+    return at if at > floor else None
+
+
+def _at(source: str, lines: np.ndarray | None, i: int) -> str:
+    """Where run ``i`` is: ``source:line`` when the file's lines are known, else
+    ``source`` and its number among the runs (from 1)."""
+    return f"{source}:{int(lines[i])}" if lines is not None else f"{source}: run {i + 1}"
+
+
 def fit_valve_table(frequency_hz: np.ndarray, duration_s: np.ndarray, mass_g: np.ndarray,
-                    density_g_cm3: float, *, source: str = "mass measurements") -> ValveFit:
+                    density_g_cm3: float, *, source: str = "mass measurements",
+                    lines: Sequence[int] | np.ndarray | None = None) -> ValveFit:
     """The frequency-flow table of a valve from mass measurements (module docstring).
 
     frequency_hz, duration_s, mass_g: (n,) one row per measurement (repeats allowed;
-    frequencies within 1e-6 Hz are one frequency); density_g_cm3: the material's density.
+    frequencies within 1e-6 Hz are one frequency); density_g_cm3: the material's density;
+    lines: (n,) the file's line of each run (:func:`read_mass_runs`), to name a run.
     Runs at 0 Hz check that the valve passes nothing there. The table is the polynomial
     fit at the measured frequencies; where no polynomial follows the runs within
     ``MAX_MISFIT`` or rises throughout (a valve that barely opens at its lowest
     frequencies, or saturates), the per-frequency means made to rise
     (:func:`_monotone_means`; ``method`` says which). Raises FlowError naming ``source``
-    when fewer than 3 distinct non-zero frequencies were measured, the valve passes flow at
-    0 Hz, or the means do not rise with the frequency within ``MAX_MISFIT``.
+    (and the run's line) when fewer than 3 distinct non-zero frequencies were measured, a
+    run is further than ``REPLICATE_SPREAD`` from the other runs at its frequency, the
+    valve passes flow at 0 Hz, the means do not rise with the frequency within
+    ``MAX_MISFIT``, or the monotone means would end on a top frequency more than
+    ``MAX_MISFIT`` above the trend of the frequencies below it (:func:`_top_trend`: a
+    saturating valve flattens, it does not jump). A single run at the top frequency that
+    far above that trend, which a polynomial follows, cannot be told from the valve by
+    replicates: it is written, with a line in ``warnings``.
     """
     if not (density_g_cm3 > 0 and math.isfinite(density_g_cm3)):
         raise ConfigError(f"density {density_g_cm3!r} g/cm^3: must be a positive number")
@@ -871,6 +962,14 @@ def fit_valve_table(frequency_hz: np.ndarray, duration_s: np.ndarray, mass_g: np
         raise FlowError(f"{source}: {means[k]:.4g} mm^3/s at {freqs[k]:g} Hz, more than a "
                         f"deposition valve gives ({MAX_VALVE_FLOW_MM3_S:g} mm^3/s): masses "
                         "in mg, or durations in ms? (mass_g in g, duration_s in s)")
+    lines = None if lines is None else np.asarray(lines)
+    # each run against its replicates, before their mean is fitted: one of three runs
+    # weighed double moved its frequency's mean 33 %, which the monotone means followed
+    allowance = 1000.0 * REPLICATE_BALANCE_G / (density_g_cm3 *
+                                                np.asarray(duration_s, np.float64)[on])
+    bad = _replicate_outlier(inverse, q[on], allowance, floor)
+    if bad is not None:
+        _refuse_replicate(source, lines, np.flatnonzero(on), freqs, inverse, q[on], bad)
     if not on.all():
         # the table passes nothing at 0 Hz: a tester's leaking valve (16.7 mm^3/s at 0 Hz)
         # was fitted through 0 with a residual of 0 %. Against the lowest frequency that
@@ -912,12 +1011,64 @@ def fit_valve_table(frequency_hz: np.ndarray, duration_s: np.ndarray, mass_g: np
                             f"than {100 * MAX_MISFIT:.0f} %): check those runs or the valve")
         if len(x) < 2 or (np.diff(_as_written(table)) <= 0).any():
             raise FlowError(f"{source}: no flow rises with the frequency in these runs")
+    warnings: list[str] = []
+    trend = _top_trend(freqs, means, floor)
+    if trend is not None and means[-1] > (1.0 + MAX_MISFIT) * trend:
+        # the top has no frequency above it: the monotone means' rising table follows
+        # any value there (a single run 50 % high was written with a residual of 0 %)
+        top = np.flatnonzero(on)[inverse == len(freqs) - 1]
+        what = _top_above_trend(source, lines, top, freqs, means[-1], trend)
+        if method != "polynomial":
+            raise FlowError(f"{what}, and no polynomial follows the runs: a valve that "
+                            "saturates flattens at its top, it does not jump; check those "
+                            "runs or the valve")
+        if len(top) == 1:
+            # replicates that agree are the valve's; one run cannot be told from a bad one
+            warnings.append(f"{what}; a single run, which the table follows: repeat it")
     fitted = model(np.where(on, f, 0.0))
     resid = np.divide(q - fitted, np.maximum(np.abs(fitted), floor), out=np.zeros_like(q),
                       where=on)
     return ValveFit(frequency_hz=x, flow_mm3_s=table, measured_hz=f, measured_mm3_s=q,
                     residual=resid, density_g_cm3=float(density_g_cm3), fit=model,
-                    method=method)
+                    method=method, warnings=tuple(warnings))
+
+
+def _top_above_trend(source: str, lines: np.ndarray | None, top: np.ndarray,
+                     freqs: np.ndarray, mean: float, trend: float) -> str:
+    """The words for a top frequency whose ``mean`` flow is above the ``trend`` of the
+    frequencies below it (mm^3/s, :func:`_top_trend`); top: the indices of its runs."""
+    where = _at(source, lines, int(top[0])) if len(top) == 1 else source
+    runs = "the run" if len(top) == 1 else f"the {len(top)} runs"
+    below = freqs[-1 - TREND_POINTS:-1]
+    return (f"{where}: {runs} at the top frequency, {freqs[-1]:g} Hz, gave {mean:.4g} mm^3/s, "
+            f"{100 * (mean / trend - 1):.0f} % above the trend of {below[0]:g}-{below[-1]:g} "
+            f"Hz ({trend:.4g} mm^3/s there; more than {100 * MAX_MISFIT:.0f} %)")
+
+
+def _refuse_replicate(source: str, lines: np.ndarray | None, runs: np.ndarray,
+                      freqs: np.ndarray, inverse: np.ndarray, q: np.ndarray,
+                      bad: tuple[int, float]) -> None:
+    """Raise the FlowError for :func:`_replicate_outlier`'s run ``bad`` (an index into
+    the non-zero runs ``runs``, (m,) indices into the file's runs; inverse, q: (m,) their
+    frequencies (indices into ``freqs``, Hz) and flows, mm^3/s), naming the file, the line
+    and the frequency. Of two runs neither can be told for the bad one: both are named."""
+    i, med = bad
+    same = np.flatnonzero(inverse == inverse[i])
+    hz = f"{freqs[inverse[i]]:g} Hz"
+    if len(same) == 2:
+        j = int(same[same != i][0])
+        a, b = sorted((i, j))
+        other = (f"line {int(lines[runs[b]])}" if lines is not None else f"run {runs[b] + 1}")
+        raise FlowError(f"{_at(source, lines, int(runs[a]))}: the 2 runs at {hz} ({q[a]:.4g} "
+                        f"and {q[b]:.4g} mm^3/s, this one and {other}) differ by "
+                        f"{100 * abs(q[a] - q[b]) / med:.0f} % of their mean (more than "
+                        f"{200 * REPLICATE_SPREAD:.0f} %, where runs scatter by about 1 %): "
+                        "one was weighed twice, cut short or spilt; repeat them")
+    raise FlowError(f"{_at(source, lines, int(runs[i]))}: the run at {hz} ({q[i]:.4g} mm^3/s) "
+                    f"is {100 * abs(q[i] / med - 1):.0f} % off the median of the "
+                    f"{len(same)} runs there ({med:.4g} mm^3/s; more than "
+                    f"{100 * REPLICATE_SPREAD:.0f} %, where runs scatter by about 1 %): "
+                    "weighed twice, cut short or spilt? repeat or drop it")
 
 
 #: A reading this far below 0, g, is a balance's drift on an empty run (a leak check at

@@ -142,8 +142,8 @@ def run_valve(args: argparse.Namespace) -> int:
             reason = str(exc).split(": ", 1)[-1]
             raise ConfigError(f"--density {args.density:g} g/cm^3: {reason}") from None
         density = args.density
-    f, d, m = cal.read_masses(args.masses)
-    fit = cal.fit_valve_table(f, d, m, density, source=str(args.masses))
+    f, d, m, lines = cal.read_mass_runs(args.masses)
+    fit = cal.fit_valve_table(f, d, m, density, source=str(args.masses), lines=lines)
     name = f"calibration_{args.material}.csv"
     table = (Path(args.out) / name).resolve()
     try:   # the fragment names the table in TOML, which holds UTF-8 text only
@@ -168,6 +168,8 @@ def run_valve(args: argparse.Namespace) -> int:
         print("note: no polynomial follows these runs (a valve that barely opens or "
               "saturates): the table is the runs' mean flows, made to rise with the "
               "frequency")
+    for line in fit.warnings:
+        print(f"warning: {line}")
     top = float(fit.measured_hz.max())
     if fit.frequency_hz[-1] < top:
         print(f"note: the flow rises by less than {100 * cal.PLATEAU_RISE:g} % above "
