@@ -15,7 +15,7 @@ from hypothesis import given, settings, strategies as st
 from icefab.config import Job, job_from_dict
 from icefab.core import Mesh, signed_area
 from icefab.errors import ConfigError
-from icefab.fitting import fit_ring
+from icefab.fitting import fit_ring, fit_rings
 from icefab.slicing import slice_mesh
 
 FIT = job_from_dict({"slicing": {"fit_contours": True}})
@@ -124,3 +124,61 @@ def test_fit_settings_are_checked():
             job_from_dict({"slicing": {key: value}})
     with pytest.raises(ValueError, match="tolerance"):
         fit_ring(star([1.0, 2.0, 3.0]), 0.0)
+
+
+def sliver(amp, k, gap, n1, n2, phase) -> np.ndarray:
+    """A ring between two sinusoids ``gap`` mm apart over x = 0..20 mm, their points
+    ``n1`` and ``n2`` (every other one of the upper side shifted by ``phase`` of a step),
+    counter-clockwise (a review's generator)."""
+    x1, x2 = np.linspace(0.0, 20.0, n1), np.linspace(0.0, 20.0, n2)
+    x2 = np.unique(np.clip(x2 + phase * (x2[1] - x2[0]) * (np.arange(n2) % 2), 0.0, 20.0))
+    ring = np.r_[np.c_[x1, amp * np.sin(k * x1)], np.c_[x2, amp * np.sin(k * x2) + gap][::-1]]
+    return ring if signed_area(ring) > 0 else ring[::-1]
+
+
+#: the review's sliver 153 (0.046 mm wide), whose fit at 0.02 mm crossed itself
+SLIVER_153 = (2.5360357699991627, 0.27175457777310924, 0.04580220355777543, 15, 32,
+              0.19686311476052654)
+
+
+def _simple_within(ring, fit, tol):
+    """The fit is simple (shapely), a valid polygon, within ``tol`` of the ring both ways,
+    through the ring's points and turning its way."""
+    assert shapely.LinearRing(fit).is_simple and shapely.Polygon(fit).is_valid
+    h = shapely.hausdorff_distance(shapely.LinearRing(fit), shapely.LinearRing(ring),
+                                   densify=0.01)
+    assert h <= tol * (1 + 1e-9)
+    near = np.min(np.hypot(*(ring[:, None, :] - fit[None, :, :]).transpose(2, 0, 1)), axis=1)
+    assert near.max() < 1e-9
+    assert np.sign(signed_area(fit)) == np.sign(signed_area(ring))
+
+
+def test_a_simple_sliver_stays_simple(monkeypatch):
+    """A sinusoidal sliver 0.046 mm wide fitted at 0.02 mm: the curves of its two sides
+    crossed (a review's; the slicer then unites its layer). The fit at half the tolerance
+    is simple; where none is, the ring itself is kept."""
+    import icefab.fitting as fitting
+
+    ring = sliver(*SLIVER_153)
+    assert shapely.LinearRing(ring).is_simple
+    fit = fit_ring(ring, 0.02)
+    _simple_within(ring, fit, 0.02)
+    assert len(fit) > 3 * len(ring)                    # a fit, not the ring
+    pts, off = fit_rings(np.r_[ring, star([5.0] * 16)], np.array([0, len(ring), len(ring) + 16]),
+                         0.02)                         # the slicer's: the same per ring
+    np.testing.assert_array_equal(pts[:off[1]], fit)
+    np.testing.assert_array_equal(pts[off[1]:], fit_ring(star([5.0] * 16), 0.02))
+    monkeypatch.setattr(fitting, "SIMPLE_RETRIES", 0)
+    np.testing.assert_array_equal(fit_ring(ring, 0.02), ring)
+
+
+@settings(max_examples=300, deadline=None, derandomize=True)
+@given(amp=st.floats(0.5, 3.0), k=st.floats(0.2, 1.0), gap=st.floats(0.002, 0.05),
+       n1=st.integers(8, 40), n2=st.integers(8, 40), phase=st.floats(0.0, 1.0),
+       tol=st.sampled_from([0.01, 0.02, 0.05]))
+def test_simple_slivers_give_simple_fits(amp, k, gap, n1, n2, phase, tol):
+    from hypothesis import assume
+
+    ring = sliver(amp, k, gap, n1, n2, phase)
+    assume(shapely.LinearRing(ring).is_simple)
+    _simple_within(ring, fit_ring(ring, tol), tol)
