@@ -11,6 +11,8 @@ import sys
 import manifold3d as m3
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from icefab.adaptive import plan_layers
 from icefab.config import Job, job_from_dict
@@ -101,6 +103,112 @@ def test_flats_end_layers_and_vertical_walls_take_the_largest_thickness():
     assert a.cusp.max() == 0.0
     with pytest.raises(ValueError, match="t_min"):
         plan_layers(mesh, 0.0, 13.0, 0.05, 2.0, 1.0)
+
+
+def _steps(widths, heights) -> tuple[Mesh, list[float]]:
+    """Square boxes centred on the z axis stacked bottom up (each narrower than the one
+    below; touching, as the reviewer's STL), and the heights of their tops under the last
+    (the flats), mm. Built in float64 so the flats lie at exactly those heights (a
+    manifold's float32 vertices put them 1e-7 mm off)."""
+    cube = np.array([[x, y, z] for z in (0, 1) for y in (-1, 1) for x in (-1, 1)], float)
+    quads = [(0, 2, 3, 1), (4, 5, 7, 6), (0, 1, 5, 4), (2, 6, 7, 3), (0, 4, 6, 2),
+             (1, 3, 7, 5)]
+    tris = np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))], np.int64)
+    vertices, faces, z, flats = [], [], 0.0, []
+    for w, h in zip(widths, heights):
+        v = cube * [w / 2, w / 2, 1.0]
+        v[:, 2] = np.where(cube[:, 2] > 0, z + h, z)
+        faces.append(tris + 8 * len(vertices))
+        vertices.append(v)
+        z = z + h
+        flats.append(z)
+    return Mesh(np.concatenate(vertices), np.concatenate(faces), name="steps"), flats[:-1]
+
+
+def _flat_layers(edges, flats):
+    """(k, thickness) of every layer with a flat strictly inside it."""
+    return [(k, b1 - b0) for k, (b0, b1) in enumerate(zip(edges[:-1], edges[1:]))
+            if any(b0 + 1e-9 < f < b1 - 1e-9 for f in flats)]
+
+
+def test_a_flat_within_the_minimum_of_a_layers_bottom_caps_the_layer():
+    """The reviewer's part: a 20 mm square 1 mm tall, a 14 mm step from 1.00 to 1.15 mm, an
+    8 mm column to 5 mm; cusp 0.1, minimum 0.2, maximum 2 mm. The layer from 1 mm held the
+    step's flat 0.15 mm above its bottom, took 2 mm and was cut at 2 mm: the step was lost
+    (areas 400, 64, 64 mm^2) with a 2 mm cusp, unsaid. The flat counts like any facet: its
+    layer is at most max(0.2, 0.1) mm, cut through the step, and the cusp the minimum
+    leaves there (0.2 mm against 0.1 mm) is warned naming both settings."""
+    mesh, flats = _steps([20.0, 14.0, 8.0], [1.0, 0.15, 3.85])
+    a = plan_layers(mesh, 0.0, 5.0, 0.1, 0.2, 2.0)
+    assert a.edges[:3] == pytest.approx([0.0, 1.0, 1.2])
+    assert _flat_layers(a.edges, flats) == [(1, pytest.approx(0.2))]
+    assert a.cusp.max() == pytest.approx(0.2)
+    job = job_from_dict({"slicing": {"cusp_height_mm": 0.1, "min_layer_thickness_mm": 0.2,
+                                     "max_layer_thickness_mm": 2.0}})
+    stack = slice_mesh(mesh, job)
+    assert [round(L.part.area) for L in stack][:3] == [400, 196, 64]
+    (said,) = [w for w in stack.warnings if "cusp height above" in w]
+    assert said.startswith("1 adaptive layers keep a cusp height above "
+                           "slicing.cusp_height_mm = 0.1 (layers 1, 0.2 mm at the most): "
+                           "slicing.min_layer_thickness_mm = 0.2 allows no thinner layer")
+    # a minimum within the bound keeps it: no warning
+    ok = slice_mesh(mesh, job.replace(**{"slicing.min_layer_thickness_mm": 0.05}))
+    assert not any("cusp height above" in w for w in ok.warnings)
+    assert slice_report(ok).max_cusp_mm <= 0.1
+
+
+def test_a_layer_ends_the_minimum_below_a_flat_just_above_it():
+    """A 2.1 mm block under a 1 mm one, layers up to 2 mm: the first layer took 2 mm and
+    the next held the flat 0.1 mm above its bottom (a 1.1 mm cusp); ending the first
+    0.2 mm below the flat lets the next, 0.2 mm, end on it: no cusp anywhere."""
+    mesh, _ = _steps([10.0, 5.0], [2.1, 1.0])
+    a = plan_layers(mesh, 0.0, 3.1, 0.1, 0.2, 2.0)
+    np.testing.assert_allclose(a.edges, [0.0, 1.9, 2.1, 3.1], atol=1e-9)
+    assert a.cusp.max() == 0.0
+
+
+def test_a_cusp_bound_the_minimum_prevents_on_a_wall_is_warned():
+    """A cone with cusp 0.05 and minimum 0.1 mm: its wall's layers keep 0.0857 mm; the
+    summary said so with no warning."""
+    cone = mesh_of(m3.Manifold.cylinder(6.0, 10.0, 0.0, 64))
+    job = job_from_dict({"slicing": {"cusp_height_mm": 0.05, "min_layer_thickness_mm": 0.1,
+                                     "max_layer_thickness_mm": 0.5}})
+    stack = slice_mesh(cone, job)
+    worst = slice_report(stack).max_cusp_mm
+    assert worst > 0.05
+    (said,) = [w for w in stack.warnings if "cusp height above" in w]
+    assert f"{worst:.4g} mm at the most" in said and \
+        "slicing.min_layer_thickness_mm = 0.1" in said and "slicing.cusp_height_mm = 0.05" in said
+    fine = slice_mesh(cone, job.replace(**{"slicing.min_layer_thickness_mm": 0.05}))
+    assert not any("cusp height above" in w for w in fine.warnings)
+
+
+@settings(max_examples=60, deadline=None)
+@given(steps=st.lists(st.tuples(st.integers(1, 300), st.integers(1, 5)), min_size=2,
+                      max_size=5),
+       cusp=st.integers(1, 50), t_min=st.integers(1, 50), spread=st.integers(0, 300))
+def test_every_flat_inside_a_layer_caps_it_or_is_warned(steps, cusp, t_min, spread):
+    """Random stepped parts (heights and settings in hundredths of a mm): every flat
+    strictly between two layer edges leaves that layer no thicker than max(minimum, cusp)
+    and counted in its cusp; a cusp above the bound comes only from a minimum above it,
+    and is warned naming both settings."""
+    from icefab.slicing import cusp_warnings
+
+    heights = [k / 100 for k, _ in steps]
+    widths = [40.0 - 6.0 * i - w for i, (_, w) in enumerate(steps)]
+    mesh, flats = _steps(widths, heights)
+    c, lo = cusp / 100, t_min / 100
+    a = plan_layers(mesh, 0.0, float(sum(heights)), c, lo, lo + spread / 100)
+    assert np.all(np.diff(a.edges) > 0) and a.edges[-1] == pytest.approx(sum(heights))
+    for k, t in _flat_layers(a.edges, flats):
+        assert t <= max(lo, c) + 1e-9, (k, t)
+        assert a.cusp[k] == pytest.approx(t)
+    job = job_from_dict({"slicing": {"cusp_height_mm": c, "min_layer_thickness_mm": lo,
+                                     "max_layer_thickness_mm": lo + spread / 100}})
+    said = cusp_warnings(a.cusp, job)
+    assert bool(said) == bool(a.cusp.max() > c * (1 + 1e-9))
+    if said:
+        assert lo > c and f"slicing.min_layer_thickness_mm = {lo:g}" in said[0]
 
 
 def test_default_is_uniform_and_settings_are_checked():

@@ -7,7 +7,12 @@ theta with the build direction. Given a bound C_max, each layer is as thick as t
 steepest-flat facet it holds allows: t_k = C_max / max |n_z| over the facets that reach
 into the layer, within [min, max] thickness. Horizontal facets (|n_z| = 1) inside a layer
 make it end at their height when that leaves at least the minimum thickness (the flat is
-then a layer boundary and costs no staircase), else they count like any facet.
+then a layer boundary and costs no staircase), else they count like any facet: that layer
+is at most max(min, C_max) thick. A flat less than the minimum above a layer's top makes
+that layer end the minimum below the flat when it keeps the minimum itself, so the next
+layer ends on the flat. Where the minimum is above C_max, a flat it keeps inside a layer
+(or a wall too flat for a minimum layer) leaves a cusp above the bound: ``cusp`` says so
+per layer, and the slicer warns (``icefab.slicing.slice_mesh``).
 
 The thesis (4.1) argues the water cell keeps one thickness: a layer above 0.25 mm spreads,
 and the valve and SMF tune for it. So the bound is off by default
@@ -86,6 +91,40 @@ class _RangeMax:
         return float(max(a[i], a[j - (1 << lev)]))
 
 
+def _flats_inside(flats: np.ndarray, z0: float, t: float, t_min: float, cap: float,
+                  eps: float) -> float:
+    """The thickness (mm) of the layer from ``z0`` (mm) that its slanted facets allow to
+    be ``t``, once the flats (sorted heights, mm) inside it count. The first flat at least
+    ``t_min`` above ``z0`` ends the layer (a boundary costs no staircase). One nearer
+    ``z0`` cannot end it and counts like any facet (|n_z| = 1): the layer is at most
+    ``cap`` = max(t_min, cusp) thick, and a flat from ``t_min`` up ends that one again.
+    Without the cap such a layer took the slanted facets' thickness (a 0.15 mm step
+    under a 2 mm layer was cut through its middle and lost)."""
+    i = int(np.searchsorted(flats, z0 + eps, side="right"))   # the first flat above z0
+    if i == len(flats) or flats[i] >= z0 + t - eps:
+        return t
+    if flats[i] >= z0 + t_min - eps:
+        return float(flats[i] - z0)
+    t = min(t, cap)
+    k = int(np.searchsorted(flats, z0 + t_min - eps))
+    return float(flats[k] - z0) if k < len(flats) and flats[k] < z0 + t - eps else t
+
+
+def _before_flat(flats: np.ndarray, z0: float, t: float, t_min: float, eps: float
+                 ) -> float:
+    """The thickness (mm) of the layer ``[z0, z0 + t]`` (mm) shortened so the next layer
+    ends on a flat (sorted heights, mm) that lies less than ``t_min`` above its top: the
+    next layer could not end on that flat and would hold it (a cusp of its whole
+    thickness); ended ``t_min`` below the flat it gets a layer of ``t_min`` that ends
+    there. Only when this layer keeps ``t_min`` and no flat comes to lie in the next."""
+    k = int(np.searchsorted(flats, z0 + t + eps, side="right"))  # the first flat above
+    if k == len(flats) or flats[k] >= z0 + t + t_min - eps:
+        return t
+    shorter = float(flats[k] - t_min - z0)
+    passed = k > 0 and flats[k - 1] > z0 + shorter - eps   # a flat it would move above
+    return shorter if shorter >= t_min - eps and not passed else t
+
+
 def plan_layers(mesh: Mesh, z_lo: float, z_hi: float, cusp_mm: float, t_min: float,
                 t_max: float) -> AdaptiveLayers:
     """Layer edges from ``z_lo`` to ``z_hi`` (mm) keeping every layer's cusp height under
@@ -134,10 +173,8 @@ def plan_layers(mesh: Mesh, z_lo: float, z_hi: float, cusp_mm: float, t_min: flo
             if t_new >= t:
                 break
             t = t_new
-        # a flat inside the layer: end the layer on it when that leaves t_min
-        k = np.searchsorted(flats, z0 + t_min - eps)
-        if k < len(flats) and flats[k] < z0 + t - eps:
-            t = float(flats[k] - z0)
+        t = _flats_inside(flats, z0, t, t_min, max(t_min, cusp_mm), eps)
+        t = _before_flat(flats, z0, t, t_min, eps)
         rest = z_hi - z0
         if rest <= t + eps:
             t = rest                      # the last layer

@@ -202,6 +202,23 @@ def adaptive_layers(mesh: Mesh, z_lo: float, z_hi: float, job: Job) -> AdaptiveL
                        sl.max_layer_thickness_mm or sl.layer_thickness_mm)
 
 
+def cusp_warnings(cusp: np.ndarray, job: Job) -> list[str]:
+    """The warning (none or one) for adaptive layers whose cusp height (``cusp``, (n,) mm
+    per layer, :attr:`icefab.adaptive.AdaptiveLayers.cusp`) is above the job's bound: only
+    the minimum thickness keeps a layer thicker than the bound allows (a wall too flat, or
+    a flat less than the minimum above a layer's bottom), so the warning names both
+    settings (a cone's layers kept 0.0857 mm against a 0.05 mm bound with none)."""
+    sl = job.slicing
+    over = np.flatnonzero(np.asarray(cusp) > sl.cusp_height_mm * (1.0 + 1e-9))
+    if not len(over):
+        return []
+    return [f"{len(over)} adaptive layers keep a cusp height above slicing.cusp_height_mm = "
+            f"{sl.cusp_height_mm:g} (layers {layer_runs(over.tolist())}, "
+            f"{float(np.max(cusp)):.4g} mm at the most): slicing.min_layer_thickness_mm = "
+            f"{sl.min_layer_thickness_mm:g} allows no thinner layer on their flat walls or "
+            "flats; lower it to keep the bound"]
+
+
 # --------------------------------------------------------------------------- adjacency
 
 
@@ -1216,6 +1233,7 @@ def slice_mesh(mesh: Mesh, job: Job | None = None, *, progress: Progress | None 
                     f"{float(own[thin].min()):.4g} mm at "
                     "the thinnest): the part's top leaves less than two minimum layers, "
                     "and the last two share it within the cusp bound")
+            summary += cusp_warnings(planned.cusp, job)
         if report.union_layers:
             summary.append(f"{len(report.union_layers)} layers made as the union of their "
                            f"contours (overlapping shells or gap closures): "
