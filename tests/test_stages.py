@@ -104,3 +104,76 @@ def test_a_job_that_contradicts_what_a_file_was_made_with_is_refused(change, nam
     off = made.replace(**{"feedback.enabled": False})
     stages.check_agrees(off, off.replace(**{"feedback.interval_layers": 9}), "x", "y")
     assert set(stages.DECIDED) <= set(_settings(Job()))
+
+
+ADAPTIVE = {"slicing.cusp_height_mm": 0.1, "slicing.min_layer_thickness_mm": 0.1,
+            "slicing.max_layer_thickness_mm": 0.5}
+
+
+def _adaptive_stack() -> Stack:
+    """Three 0.5 mm layers cut with adaptive layers (thicker than the default job's
+    0.25 mm: a job that knows nothing of them refused them)."""
+    sq = np.array([[0, 0], [20, 0], [20, 20], [0, 20]], float)
+    layers = tuple(Layer(k, (k + 0.5) * 0.5, Region((sq,), np.array([-1])),
+                         top_z=(k + 1) * 0.5, thickness=0.5) for k in range(3))
+    return Stack(layers, Job().replace(**ADAPTIVE), 0.25)
+
+
+def test_a_job_with_adaptive_layers_off_takes_the_stacks():
+    """A speed-only job on an adaptive stack: the stack decided its adaptive layers, the
+    later step takes them (it said 'layer 0: thickness 0.5 mm: expected ... (0, 0.25] mm',
+    blaming the stack); a job that turns them on otherwise is refused naming the stack
+    and the setting, as the other decided settings are."""
+    stack = _adaptive_stack()
+    speed = Job().replace(**{"motion.speed_mm_s": 100.0})
+    tp = plan_paths(stack, speed)
+    assert len(tp.layers) == 3 and [lp.thickness for lp in tp.layers] == [0.5] * 3
+    adopted = stages.adopt_layers(stack.job, speed)
+    assert adopted.slicing == stack.job.slicing and adopted.motion.speed_mm_s == 100.0
+    assert stages.adopt_layers(Job(), speed) is speed   # a uniform file: nothing to take
+    other = stack.job.replace(**{"slicing.max_layer_thickness_mm": 1.0})
+    assert stages.adopt_layers(stack.job, other) is other   # on: the job's own, checked
+    with pytest.raises(ConfigError, match=r"^the stack's layers were made with "
+                                          r"slicing.max_layer_thickness_mm = 0.5, the job "
+                                          r"has 1.0: .*'icefab slice'"):
+        plan_paths(stack, other)
+    with pytest.raises(ConfigError, match=r"slicing.cusp_height_mm = 0.1, the job has 0.2"):
+        add_scaffold(stack, speed.replace(**{"slicing.cusp_height_mm": 0.2}))
+
+
+def test_adaptive_settings_are_decided_unless_the_job_has_them_off():
+    made = Job().replace(**ADAPTIVE)
+    assert set(stages.ADAPTIVE) <= set(stages.DECIDED) and \
+        set(stages.ADAPTIVE) <= set(stages.PLACEMENT)
+    stages.check_agrees(made, Job().replace(**{"motion.speed_mm_s": 80.0}), "x", "y")
+    with pytest.raises(ConfigError, match=r"^tp.npz: the toolpaths were made with "
+                                          r"slicing.cusp_height_mm = 0.0, the job has 0.1"):
+        # uniform toolpaths, a job that says they are adaptive
+        stages.check_agrees(Job(), made, "tp.npz: the toolpaths", "icefab paths")
+    with pytest.raises(ConfigError, match=r"slicing.min_layer_thickness_mm = 0.1, the job "
+                                          r"has 0.2"):
+        stages.check_agrees(made, made.replace(**{"slicing.min_layer_thickness_mm": 0.2}),
+                            "tp.npz: the toolpaths", "icefab paths")
+
+
+def test_paths_cli_takes_an_adaptive_stacks_layers_with_a_speed_only_job(tmp_path, capsys):
+    """The reviewer's case through the command: 'icefab paths stack.npz -c JOB' with a job
+    that changes a speed plans the stack's layers and records the stack's adaptive
+    settings; a job contradicting them exits 2 naming the stack file and the setting."""
+    from icefab.cli import main
+    from icefab.resultfiles import load_toolpaths, save_stack
+
+    save_stack(_adaptive_stack(), tmp_path / "stack.npz")
+    (tmp_path / "speed.toml").write_text("[motion]\nspeed_mm_s = 100.0\n")
+    (tmp_path / "other.toml").write_text("[slicing]\ncusp_height_mm = 0.2\n")
+    assert main(["paths", str(tmp_path / "stack.npz"), "-c", str(tmp_path / "speed.toml"),
+                 "-o", str(tmp_path / "out")]) == 0
+    tp = load_toolpaths(tmp_path / "out" / "toolpaths.npz")
+    assert tp.job.slicing.cusp_height_mm == 0.1 and tp.job.motion.speed_mm_s == 100.0
+    capsys.readouterr()
+    assert main(["paths", str(tmp_path / "stack.npz"), "-c", str(tmp_path / "other.toml"),
+                 "-o", str(tmp_path / "bad")]) == 2
+    err = capsys.readouterr().err
+    assert f"{tmp_path / 'stack.npz'}: the stack's layers were made with " \
+           "slicing.cusp_height_mm = 0.1, the job has 0.2" in err
+    assert not (tmp_path / "bad").exists()

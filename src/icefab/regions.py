@@ -69,7 +69,7 @@ from icefab.config import Job, MaterialSettings
 from icefab.errors import GeometryError
 from icefab.core import Region, Stack
 from icefab.geometry import signed_area
-from icefab.stages import check_layer_thickness
+from icefab.stages import ADAPTIVE, adopt_layers, check_agrees, check_layer_thickness
 from icefab.workload import check_paths
 from icefab.parallel import n_workers, parallel_map  # noqa: F401  (n_workers: old home)
 
@@ -222,9 +222,13 @@ def check_stack(stack: Stack, job: Job) -> None:
     icefab orients them: outer rings (even depth) counter-clockwise, holes clockwise. A
     Stack a program built with its outer rings clockwise got no part path and a scaffold
     around nothing; a negative thickness commanded a negative volume (a tester's). Layers
-    run bottom first: each ``z`` finite and above the one before."""
+    run bottom first: each ``z`` finite and above the one before. The thickest layer is
+    the stack's adaptive settings' (:func:`icefab.stages.adopt_layers`: a job with adaptive
+    layers off takes them, one that contradicts them is refused)."""
     check_layer_thickness(stack.layer_thickness, job)
-    sl = job.slicing
+    if stack.job is not None and stack.job is not job:
+        check_agrees(stack.job, job, "the stack's layers", "icefab slice", settings=ADAPTIVE)
+    sl = adopt_layers(stack.job, job).slicing
     thickest = max(sl.layer_thickness_mm, sl.max_layer_thickness_mm)
     below = -math.inf
     for k, layer in enumerate(stack.layers):

@@ -84,27 +84,35 @@ CHECKED_EARLY: dict[str, tuple[str, ...]] = {
                  "motion.point_spacing_mm"),
 }
 
+#: Adaptive layers' settings (the switch, the bound and the thickness range): the layers'
+#: own thicknesses were cut with them. A job with them off (``slicing.cusp_height_mm = 0``,
+#: the default) says nothing of them and takes the file's (:func:`adopt_layers`).
+ADAPTIVE = ("slicing.cusp_height_mm", "slicing.min_layer_thickness_mm",
+            "slicing.max_layer_thickness_mm")
+
 #: Settings that decide where a build's material goes once its paths exist: frames, tool
 #: offsets, widths, layer thickness. Trajectories simulated with another job than the one
 #: they were planned with must agree on these (the simulator re-plans valve programs and
 #: deposits with the job's other settings).
-PLACEMENT = ("slicing.layer_thickness_mm", "cell.ee_origin_mm", "cell.laser_offset_mm",
-             "materials.part.nozzle_offset_mm", "materials.scaffold.nozzle_offset_mm",
-             "materials.part.path_width_mm", "materials.part.fill_width_mm",
-             "materials.scaffold.path_width_mm", "materials.scaffold.fill_width_mm")
+PLACEMENT = ("slicing.layer_thickness_mm", *ADAPTIVE, "cell.ee_origin_mm",
+             "cell.laser_offset_mm", "materials.part.nozzle_offset_mm",
+             "materials.scaffold.nozzle_offset_mm", "materials.part.path_width_mm",
+             "materials.part.fill_width_mm", "materials.scaffold.path_width_mm",
+             "materials.scaffold.fill_width_mm")
 
 
 #: Which layers carry measurement paths (paths decides; simulate and build measure there).
 MEASURED = ("feedback.enabled", "feedback.interval_layers")
 
 #: Settings an earlier step decided that a later step reads again: the layers were cut
-#: and the paths laid for them (layer thickness, bead widths, nozzle and laser offsets,
-#: which layers carry measurement paths). A later step given other values would lay or
-#: measure another build than its input file holds: the valves of 0.5 mm layers along
-#: paths sliced at 0.25 mm give twice the water (a tester's bunny), an SMF that expects a
-#: measurement every layer along paths measured every 4th corrects less. The part's origin
-#: is not among them: toolpaths are in the part's frame, and may be planned anywhere the
-#: robot reaches (trajectories, in the robot's, add it: ``icefab.sim.MOTION_SETTINGS``).
+#: and the paths laid for them (layer thickness, the adaptive layers' settings, bead
+#: widths, nozzle and laser offsets, which layers carry measurement paths). A later step
+#: given other values would lay or measure another build than its input file holds: the
+#: valves of 0.5 mm layers along paths sliced at 0.25 mm give twice the water (a tester's
+#: bunny), an SMF that expects a measurement every layer along paths measured every 4th
+#: corrects less. The part's origin is not among them: toolpaths are in the part's frame,
+#: and may be planned anywhere the robot reaches (trajectories, in the robot's, add it:
+#: ``icefab.sim.MOTION_SETTINGS``).
 DECIDED = tuple(k for k in PLACEMENT if k != "cell.ee_origin_mm") + MEASURED
 
 
@@ -172,10 +180,15 @@ def check_agrees(made: "Job", job: "Job", source: str, remake: str,
     ``settings`` (default :data:`DECIDED`), naming the first difference and counting the
     others. ``source`` names the file's contents ("out/toolpaths.npz: the toolpaths"),
     ``remake`` the command that makes them again with ``job``. The measurement interval of
-    two jobs that both measure nothing does not count."""
+    two jobs that both measure nothing does not count, nor do the :data:`ADAPTIVE`
+    settings of a job with adaptive layers off: it takes the file's (:func:`adopt_layers`;
+    a speed-only job was refused for an adaptive stack's layers, thicker than its own
+    default maximum)."""
     fa, fb = _flat(made), _flat(job)
     quiet = {"feedback.interval_layers"} if not (fa["feedback.enabled"]
                                                   or fb["feedback.enabled"]) else set()
+    if not fb["slicing.cusp_height_mm"] > 0:
+        quiet |= set(ADAPTIVE)
     diff = [(k, fa[k], fb[k]) for k in settings if k not in quiet and fa[k] != fb[k]]
     if diff:
         k, va, vb = diff[0]
@@ -183,6 +196,21 @@ def check_agrees(made: "Job", job: "Job", source: str, remake: str,
         raise error(f"{source} were made with {k} = {va}, the job has {vb}{more}: use "
                           f"the job they were made with, or make them again with this job "
                           f"({remake!r})")
+
+
+def adopt_layers(made: "Job | None", job: "Job") -> "Job":
+    """``job`` with the :data:`ADAPTIVE` settings of the job a file was ``made`` with when
+    ``job`` has adaptive layers off (``slicing.cusp_height_mm = 0``): the file's layers
+    were cut with them, and a later step checks them (the thickest layer a stack may hold,
+    :func:`icefab.regions.check_stack`) and writes them into its own file. A job with
+    adaptive layers on is returned as it is (:func:`check_agrees` refuses it when it
+    contradicts the file)."""
+    if made is None or made is job or job.slicing.cusp_height_mm > 0:
+        return job
+    fa = _flat(made)
+    if not fa["slicing.cusp_height_mm"] > 0:
+        return job
+    return job.replace(**{k: fa[k] for k in ADAPTIVE})
 
 
 def check_layer_thickness(stack_thickness: float, job: "Job", what: str = "the stack") -> None:

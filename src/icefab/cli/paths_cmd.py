@@ -152,13 +152,18 @@ def summary_lines(layers: Sequence[LayerHead], warnings: Sequence[str],
 
 def _load_stack(args: argparse.Namespace, job):
     from icefab.slicing import load_stack, slice_mesh
+    from icefab.stages import ADAPTIVE, adopt_layers, check_agrees
 
     model = command_inputs(args.model, job, words=("demo",))
     first = Path(model[0])
     if len(model) == 1 and first.suffix.lower() == ".npz":
         stack = load_stack(first)
         if args.job:
-            stack = dataclasses.replace(stack, job=job)
+            # the stack decided its adaptive layers: a job that turns them on otherwise is
+            # refused, one with them off takes the stack's (a speed-only job was refused)
+            check_agrees(stack.job, job, f"{first}: the stack's layers", "icefab slice",
+                         settings=ADAPTIVE)
+            stack = dataclasses.replace(stack, job=adopt_layers(stack.job, job))
         return stack, stack.job
     mesh, job = placed_model(model, job)
     return slice_mesh(mesh, job, progress=Progress("slicing")), job

@@ -75,7 +75,7 @@ def load_input(inputs: list[str], job):
     paths. ``job`` is None when no ``-c`` was given: a toolpath file's own job then."""
     from icefab.paths import plan_paths
     from icefab.resultfiles import load_packed_toolpaths
-    from icefab.stages import check_agrees
+    from icefab.stages import adopt_layers, check_agrees
     src = Path(inputs[0])
     if len(inputs) == 1 and src.suffix.lower() == ".npz":
         if not src.exists():
@@ -91,7 +91,7 @@ def load_input(inputs: list[str], job):
             # moved to the SCARA's part origin without a word)
             print(f"note: planning for the {job.cell.robot} of the job; the toolpaths were "
                   f"made with a {tp.job.cell.robot} (cell.robot)", file=sys.stderr)
-        return tp, job
+        return tp, adopt_layers(tp.job, job)   # the toolpaths' adaptive layers hold
     from icefab.config import Job
     from icefab.regions import add_scaffold
     from icefab.slicing import slice_mesh
