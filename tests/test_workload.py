@@ -232,6 +232,24 @@ def test_a_part_thinner_than_one_layer_is_refused(tmp_path):
         prepare_parts(job)
 
 
+def test_an_adaptive_part_thinner_than_one_layer_but_not_the_minimum_is_sliced(tmp_path):
+    """With adaptive layers the thinnest layer is slicing.min_layer_thickness_mm: a 0.2 mm
+    plate (minimum 0.1 mm) was refused as under one slicing.layer_thickness_mm = 0.25 mm
+    layer; under the minimum it is refused naming the minimum."""
+    adaptive = {"slicing.cusp_height_mm": 0.1, "slicing.min_layer_thickness_mm": 0.1,
+                "slicing.max_layer_thickness_mm": 0.5}
+    job = _job_for(tmp_path, _box((20, 20, 0.2)), **adaptive)
+    stack = slice_mesh(prepare_parts(job), job)
+    assert len(stack) == 1 and stack.thicknesses[0] == pytest.approx(0.2)
+    thin = _job_for(tmp_path, _box((20, 20, 0.08)), **adaptive)
+    with pytest.raises(ConfigError, match=r"0.08 mm tall, less than one layer "
+                                          r"\(slicing.min_layer_thickness_mm = 0.1\)"):
+        prepare_parts(thin)
+    with pytest.raises(ConfigError, match=r"less than one layer "
+                                          r"\(slicing.layer_thickness_mm = 0.25\)"):
+        prepare_parts(_job_for(tmp_path, _box((20, 20, 0.2))))   # uniform: one 0.25 mm
+
+
 def test_the_scaffold_buffer_counts_in_the_reach(tmp_path):
     """A 40 mm box at the default origin fits; surrounded by a 100 mm scaffold it reaches
     inside the minimum reach (the scaffold nozzle lays it there): refused before slicing,

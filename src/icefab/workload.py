@@ -66,20 +66,28 @@ def _fmt(v: float) -> str:
     return f"{v:.4g}"
 
 
+def thinnest_layer(job: Job) -> tuple[str, float]:
+    """(setting name in ``slicing``, mm) of the thinnest layer the job slices: the adaptive
+    minimum with adaptive layers on (``slicing.cusp_height_mm`` > 0), else the one layer
+    thickness (an adaptive job's 0.2 mm plate was refused as under one 0.25 mm layer)."""
+    sl = job.slicing
+    if sl.cusp_height_mm > 0:
+        return "min_layer_thickness_mm", sl.min_layer_thickness_mm
+    return "layer_thickness_mm", sl.layer_thickness_mm
+
+
 def check_layers(z_min: float, z_max: float, job: Job) -> int:
     """The number of layers of a part spanning ``z_min``-``z_max`` mm (after
     ``parts.part_fraction``); ConfigError when it exceeds :data:`MAX_LAYERS` or the
     height is not finite."""
     f0, f1 = job.parts.part_fraction
     height = (float(z_max) - float(z_min)) * (f1 - f0)
-    sl = job.slicing
-    t = sl.min_layer_thickness_mm if sl.cusp_height_mm > 0 else sl.layer_thickness_mm
+    name, t = thinnest_layer(job)
     if not math.isfinite(height):
         raise ConfigError(f"part height {height} mm is not finite: check the mesh "
                           "coordinates and parts.scale")
     n = height / t
     if n > MAX_LAYERS:
-        name = "min_layer_thickness_mm" if sl.cusp_height_mm > 0 else "layer_thickness_mm"
         raise ConfigError(f"slicing.{name} = {t:g}: a part {_fmt(height)} mm tall "
                           f"would make {n:.3g} layers, more than {MAX_LAYERS} "
                           "(icefab.workload.MAX_LAYERS); check the part's size (parts.scale, "
@@ -142,16 +150,16 @@ def check_placed_part(vertices: np.ndarray, job: Job, faces: np.ndarray | None =
             f"under {MIN_WIDTHS_ACROSS:g} path widths (materials.part.path_width_mm = "
             f"{width:g}) across: is the file in metres or inches? set parts.scale (e.g. "
             "[1000, 1000, 1000] for metres, [25.4, 25.4, 25.4] for inches)")
-    t = job.slicing.layer_thickness_mm
+    name, t = thinnest_layer(job)
     if height < t:
         if (f0, f1) != (0.0, 1.0):   # the fraction, not the scale (a tester's 3 mm box)
             raise ConfigError(
                 f"parts.part_fraction = {list(job.parts.part_fraction)}: the slice of the "
                 f"{_fmt(size[2])} mm tall part to build is {_fmt(height)} mm tall, less than "
-                f"one layer (slicing.layer_thickness_mm = {t:g})")
+                f"one layer (slicing.{name} = {t:g})")
         raise ConfigError(
             f"the placed part is {_fmt(height)} mm tall, less than one layer "
-            f"(slicing.layer_thickness_mm = {t:g}): check parts.scale = "
+            f"(slicing.{name} = {t:g}): check parts.scale = "
             f"{list(job.parts.scale)} (a file in metres needs [1000, 1000, 1000])")
     z0, z1 = lo[2] + f0 * size[2], lo[2] + f1 * size[2]
     xy = v[(v[:, 2] >= z0) & (v[:, 2] <= z1), :2]
