@@ -69,7 +69,7 @@ from icefab.config import Job, MaterialSettings
 from icefab.errors import GeometryError
 from icefab.core import Region, Stack
 from icefab.geometry import signed_area
-from icefab.stages import ADAPTIVE, adopt_layers, check_agrees, check_layer_thickness
+from icefab.stages import adopt_layers, check_layer_thickness, check_layers_agree
 from icefab.workload import check_paths
 from icefab.parallel import n_workers, parallel_map  # noqa: F401  (n_workers: old home)
 
@@ -227,7 +227,7 @@ def check_stack(stack: Stack, job: Job) -> None:
     layers off takes them, one that contradicts them is refused)."""
     check_layer_thickness(stack.layer_thickness, job)
     if stack.job is not None and stack.job is not job:
-        check_agrees(stack.job, job, "the stack's layers", "icefab slice", settings=ADAPTIVE)
+        check_layers_agree(stack.job, job, "the stack's layers", "icefab slice")
     sl = adopt_layers(stack.job, job).slicing
     thickest = max(sl.layer_thickness_mm, sl.max_layer_thickness_mm)
     below = -math.inf

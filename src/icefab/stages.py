@@ -190,6 +190,13 @@ def check_agrees(made: "Job", job: "Job", source: str, remake: str,
     if not fb["slicing.cusp_height_mm"] > 0:
         quiet |= set(ADAPTIVE)
     diff = [(k, fa[k], fb[k]) for k in settings if k not in quiet and fa[k] != fb[k]]
+    _refuse(diff, source, remake, error)
+
+
+def _refuse(diff: Sequence[tuple[str, Any, Any]], source: str, remake: str,
+            error: type[Exception]) -> None:
+    """``error`` naming the first of ``diff`` (setting, file's value, job's value) and
+    counting the others (:func:`check_agrees`); nothing when ``diff`` is empty."""
     if diff:
         k, va, vb = diff[0]
         more = f" (and {len(diff) - 1} more)" if len(diff) > 1 else ""
@@ -198,19 +205,33 @@ def check_agrees(made: "Job", job: "Job", source: str, remake: str,
                           f"({remake!r})")
 
 
+def _adaptive(job: "Job") -> dict[str, Any]:
+    """The :data:`ADAPTIVE` settings of ``job`` by dotted name, read as attributes (a
+    stage's job may be a view that records what it reads: tests/test_stage_reads.py)."""
+    return {k: getattr(job.slicing, k.rpartition(".")[2]) for k in ADAPTIVE}
+
+
+def check_layers_agree(made: "Job", job: "Job", source: str, remake: str,
+                       error: type[Exception] = ConfigError) -> None:
+    """:func:`check_agrees` on the :data:`ADAPTIVE` settings alone (a stage given a stack:
+    :func:`icefab.regions.check_stack`); a job with adaptive layers off agrees."""
+    if not job.slicing.cusp_height_mm > 0:
+        return
+    fa, fb = _adaptive(made), _adaptive(job)
+    _refuse([(k, fa[k], fb[k]) for k in ADAPTIVE if fa[k] != fb[k]], source, remake, error)
+
+
 def adopt_layers(made: "Job | None", job: "Job") -> "Job":
     """``job`` with the :data:`ADAPTIVE` settings of the job a file was ``made`` with when
-    ``job`` has adaptive layers off (``slicing.cusp_height_mm = 0``): the file's layers
-    were cut with them, and a later step checks them (the thickest layer a stack may hold,
-    :func:`icefab.regions.check_stack`) and writes them into its own file. A job with
-    adaptive layers on is returned as it is (:func:`check_agrees` refuses it when it
-    contradicts the file)."""
-    if made is None or made is job or job.slicing.cusp_height_mm > 0:
+    ``job`` has adaptive layers off (``slicing.cusp_height_mm = 0``) and the file's are on:
+    the file's layers were cut with them, and a later step checks them (the thickest layer
+    a stack may hold, :func:`icefab.regions.check_stack`) and writes them into its own
+    file. Otherwise ``job`` as it is (:func:`check_agrees` refuses it when it contradicts
+    the file)."""
+    if made is None or made is job or job.slicing.cusp_height_mm > 0 or \
+            not made.slicing.cusp_height_mm > 0:
         return job
-    fa = _flat(made)
-    if not fa["slicing.cusp_height_mm"] > 0:
-        return job
-    return job.replace(**{k: fa[k] for k in ADAPTIVE})
+    return job.replace(**_adaptive(made))
 
 
 def check_layer_thickness(stack_thickness: float, job: "Job", what: str = "the stack") -> None:

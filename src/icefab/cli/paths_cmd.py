@@ -152,7 +152,7 @@ def summary_lines(layers: Sequence[LayerHead], warnings: Sequence[str],
 
 def _load_stack(args: argparse.Namespace, job):
     from icefab.slicing import load_stack, slice_mesh
-    from icefab.stages import ADAPTIVE, adopt_layers, check_agrees
+    from icefab.stages import adopt_layers, check_layers_agree
 
     model = command_inputs(args.model, job, words=("demo",))
     first = Path(model[0])
@@ -161,8 +161,7 @@ def _load_stack(args: argparse.Namespace, job):
         if args.job:
             # the stack decided its adaptive layers: a job that turns them on otherwise is
             # refused, one with them off takes the stack's (a speed-only job was refused)
-            check_agrees(stack.job, job, f"{first}: the stack's layers", "icefab slice",
-                         settings=ADAPTIVE)
+            check_layers_agree(stack.job, job, f"{first}: the stack's layers", "icefab slice")
             stack = dataclasses.replace(stack, job=adopt_layers(stack.job, job))
         return stack, stack.job
     mesh, job = placed_model(model, job)
