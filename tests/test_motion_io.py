@@ -464,7 +464,7 @@ def test_packed_planning_gives_the_same_layers_and_the_workers_results(cpus, tmp
                     w.add(lm)
                 else:
                     w.add_packed(pl.paths.index, pl.paths.z, pl.paths.thickness,
-                                 pl.paths.paths, pl.packed)
+                                 pl.paths.paths, pl.packed, top_z=pl.paths.top_z)
         with zipfile.ZipFile(path) as z:
             files[how] = {n: z.read(n) for n in z.namelist()}
     assert files["add"] == files["add_packed"] and len(files["add"]) > 20
@@ -499,7 +499,7 @@ def test_a_build_loaded_as_arrays_plans_and_writes_as_its_toolpaths(cpus, tmp_pa
             for pl in planned:
                 w.add_packed(pl.paths.index, pl.paths.z, pl.paths.thickness,
                              pl.path_arrays if kind == "arrays" else pl.paths.paths,
-                             pl.packed)
+                             pl.packed, top_z=pl.paths.top_z)
         with zipfile.ZipFile(path) as z:
             files.append({n: z.read(n) for n in z.namelist()})
     assert files[0] == files[1]

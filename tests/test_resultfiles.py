@@ -446,10 +446,11 @@ def test_toolpath_file_from_packed_layers_is_the_same_file(tmp_path):
     layers = tuple(LayerPaths(k, 0.5 * k, tuple(
         Toolpath(points=_square(3.0 * i, 1.0 + i), z=0.5 * k, role="boundary", closed=True,
                  width=1.5, layer=k, widths=np.full(4, 1.2) if i == 1 else None)
-        for i in range(k)), (0.1 * k, 0.0)) for k in range(4))
+        for i in range(k)), (0.1 * k, 0.0), top_z=0.5 * k + 0.25) for k in range(4))
     tp = Toolpaths(layers, Job())
     rf.save_toolpaths(tp, tmp_path / "a.npz")
-    heads = [rf.LayerHead(lp.index, lp.z, lp.unfilled_mm2, lp.thickness) for lp in layers]
+    heads = [rf.LayerHead(lp.index, lp.z, lp.unfilled_mm2, lp.thickness, lp.top_z)
+             for lp in layers]
     rf.save_toolpath_layers(tmp_path / "b.npz", tp.job, tp.warnings, heads,
                             [rf.pack_paths(lp.paths) for lp in layers])
     assert (tmp_path / "a.npz").read_bytes() == (tmp_path / "b.npz").read_bytes()

@@ -632,6 +632,9 @@ class LayerPaths:
     unfilled_mm2: tuple[float, float] = (0.0, 0.0)
     #: The layer's own thickness, mm (adaptive slicing); NaN: the job's layer thickness.
     thickness: float = float("nan")
+    #: The layer's top surface, mm (the stack's ``Layer.top_z``); NaN: not known (a
+    #: toolpath file written before it was stored; :meth:`LayerMotion.top` then derives it).
+    top_z: float = float("nan")
 
 
 @dataclass(frozen=True, eq=False)
@@ -748,6 +751,9 @@ class LayerMotion:
     trajectories: tuple[Trajectory, ...]
     #: The layer's own thickness, mm (adaptive slicing); NaN: the job's layer thickness.
     thickness: float = float("nan")
+    #: The layer's top surface, mm (the stack's ``Layer.top_z``, carried by the toolpath and
+    #: trajectory files); NaN: not known (files written before they stored it).
+    top_z: float = float("nan")
 
     @property
     def durations(self) -> np.ndarray:
@@ -763,8 +769,16 @@ class LayerMotion:
         return int(sum(len(t.xy) for t in self.trajectories))
 
     def top(self, job) -> float:
-        """The layer's nominal top, mm above the platform: ``z`` is its cutting plane,
-        ``slicing.cut_fraction`` of its thickness above its bottom (icefab.slicing)."""
+        """The layer's nominal top, mm above the platform: where the valves' full layer
+        thickness (``flow``'s dh) ends, the stack's ``top_z``.
+
+        Without ``top_z`` (older files) it is derived from the cutting plane ``z``,
+        ``slicing.cut_fraction`` of the thickness above the bottom: exact but for a top
+        layer the part does not fill (its plane is cut inside the part's share,
+        :func:`icefab.slicing.layer_planes`), which it puts too low by ``cut_fraction``
+        times the unfilled height."""
+        if math.isfinite(self.top_z):
+            return float(self.top_z)
         t = self.thickness if math.isfinite(self.thickness) else job.slicing.layer_thickness_mm
         return float(self.z + (1.0 - job.slicing.cut_fraction) * t)
 

@@ -1353,7 +1353,7 @@ def _plan_layer(lp: LayerPaths, job: Job,
     trajs = (plan_paths_motion(lp.paths, job, layer=lp.index, role_speeds=role_speeds)
              if lp.paths else [])
     return LayerMotion(index=lp.index, z=lp.z, trajectories=tuple(trajs),
-                       thickness=lp.thickness)
+                       thickness=lp.thickness, top_z=lp.top_z)
 
 
 class _ShippedLayer:
@@ -1418,7 +1418,7 @@ def _plan_layer_and_time(lp: LayerPaths, job: Job, role_speeds: Mapping[str, flo
     trajs = _plan_polylines((V, counts), caps, job, robot, labels=labels,
                             paths=list(lp.paths), profiles=pr)
     lm = LayerMotion(index=lp.index, z=lp.z, trajectories=tuple(trajs),
-                     thickness=lp.thickness)
+                     thickness=lp.thickness, top_z=lp.top_z)
     # a piece under the same bound in both cases has the same profile (the fill, travel
     # and measurement paths at the default speeds): only the others are planned again
     if len(pr.T):
@@ -1484,7 +1484,7 @@ def unpack_layer_motion(lp: LayerPaths, packed: dict[str, np.ndarray]) -> LayerM
     """The LayerMotion of a layer's packed trajectories (a worker's, :class:`PlannedLayer`)."""
     return LayerMotion(index=lp.index, z=lp.z,
                        trajectories=tuple(unpack_trajectories(packed, lp.paths)),
-                       thickness=lp.thickness)
+                       thickness=lp.thickness, top_z=lp.top_z)
 
 
 def _to_base(paths: Sequence[Toolpath], polys: Sequence[np.ndarray], job: Job

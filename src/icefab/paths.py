@@ -1883,7 +1883,7 @@ def plan_layer(layer: Layer, job: Job, measured: bool | None = None) -> LayerPat
             cur = pts[0] if p.closed else pts[-1]
             cur_tool = tool
     return LayerPaths(layer.index, z, tuple(paths), (float(unfilled[0]), float(unfilled[1])),
-                      layer.thickness)
+                      layer.thickness, layer.top_z)
 
 
 def plan_paths(stack: Stack, job: Job | None = None, *,

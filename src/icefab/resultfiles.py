@@ -21,6 +21,11 @@ Stack file (``icefab slice``; :func:`save_stack` / :func:`load_stack`):
 * ``layer_height`` (L,) float64 mm, only for adaptive layers (``slicing.cusp_height_mm``):
   each layer's own thickness (the toolpath and trajectory files carry it the same way).
 
+The toolpath and trajectory files carry each layer's top as the optional ``layer_top_z``
+(L,) float64 mm, the stack's: where the nozzle goes (:meth:`icefab.core.LayerMotion.top`).
+Files written before it have none (NaN: the top is derived from ``layer_z``, too low on a
+top layer the part does not fill); NaN entries mean the same.
+
 Toolpath file (``icefab paths``; :func:`save_toolpaths` / :func:`load_toolpaths`),
 version 5:
 
@@ -478,6 +483,27 @@ def _heights(values: Sequence[float]) -> dict[str, np.ndarray]:
     return {"layer_height": h} if h.size and np.isfinite(h).any() else {}
 
 
+def _tops(values: Sequence[float]) -> dict[str, np.ndarray]:
+    """The optional ``layer_top_z`` member (L,) float64 mm: every layer's top surface (the
+    stack's), written when some layer knows it (layers made by hand may not)."""
+    h = np.asarray(list(values), dtype=np.float64)
+    return {"layer_top_z": h} if h.size and np.isfinite(h).any() else {}
+
+
+def _read_tops(m: "_Members", z: np.ndarray) -> np.ndarray:
+    """(n,) float64: the ``layer_top_z`` member, or NaN (derived from ``z``, the layers'
+    cutting planes) without; a top below its layer's cutting plane is corruption."""
+    if "layer_top_z" not in m.names:
+        return np.full(len(z), np.nan)
+    top = m.values("layer_top_z", "f", 1, n=len(z), lo=-MAX_COORD_MM, hi=MAX_COORD_MM,
+                   nan_ok=True).astype(np.float64)
+    # a micrometre of slack for the rounding of a plane cut at the top (cut_fraction 1)
+    if np.any(top < np.asarray(z, dtype=np.float64) - 1e-3):   # NaN compares False
+        raise m.bad("layer_top_z", "a layer's top below its cutting plane layer_z: the file "
+                    "is corrupt")
+    return top
+
+
 def _read_heights(m: "_Members", n: int) -> np.ndarray:
     """(n,) float64: the ``layer_height`` member, or NaN (the job's thickness) without."""
     if "layer_height" not in m.names:
@@ -714,12 +740,12 @@ def unpack_paths(d: dict[str, np.ndarray], copy: bool = False) -> list[Toolpath]
 def pack_layer_paths(lp: LayerPaths) -> tuple:
     """One layer's paths for the trip back from a worker process (one pickled object per
     path would cost more than planning a small layer)."""
-    return lp.index, lp.z, lp.unfilled_mm2, pack_paths(lp.paths), lp.thickness
+    return lp.index, lp.z, lp.unfilled_mm2, pack_paths(lp.paths), lp.thickness, lp.top_z
 
 
 def unpack_layer_paths(packed: tuple) -> LayerPaths:
-    index, z, unfilled, arrays, thickness = packed
-    return LayerPaths(index, z, tuple(unpack_paths(arrays)), unfilled, thickness)
+    index, z, unfilled, arrays, thickness, top_z = packed
+    return LayerPaths(index, z, tuple(unpack_paths(arrays)), unfilled, thickness, top_z)
 
 
 def concat_packed(parts: Sequence[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
@@ -763,6 +789,8 @@ class LayerHead(NamedTuple):
     unfilled_mm2: tuple[float, float]
     #: The layer's own thickness, mm; NaN: the job's.
     thickness: float = math.nan
+    #: The layer's top surface, mm (the stack's); NaN: not known.
+    top_z: float = math.nan
 
 
 def save_toolpaths(tp: Toolpaths, path: str | os.PathLike) -> None:
@@ -775,7 +803,7 @@ def save_toolpath_layers(path: str | os.PathLike, job: Job, warnings: Sequence[s
                          layers: Sequence[LayerHead | LayerPaths],
                          packed_layers: Sequence[dict[str, np.ndarray]]) -> None:
     """:func:`save_toolpaths` of layers given as their heads (index, z, unfilled area,
-    thickness: :class:`LayerHead` or LayerPaths) and their paths as :func:`pack_paths`
+    thickness, top: :class:`LayerHead` or LayerPaths) and their paths as :func:`pack_paths`
     packed them, one dict per layer (``icefab paths``: as its workers send them)."""
     if len(packed_layers) != len(layers):
         raise ValueError(f"save_toolpath_layers: {len(packed_layers)} packed layers for "
@@ -795,6 +823,7 @@ def save_toolpath_layers(path: str | os.PathLike, job: Job, warnings: Sequence[s
         "unfilled_mm2": np.array([lp.unfilled_mm2 for lp in layers],
                                  dtype=np.float64).reshape(-1, 2),
         **_heights([lp.thickness for lp in layers]),
+        **_tops([lp.top_z for lp in layers]),
     }
     _write(path, data)
 
@@ -876,7 +905,8 @@ def load_packed_toolpaths(path: str | os.PathLike) -> PackedToolpaths:
         version = m.header(TOOLPATHS_FORMAT, TOOLPATHS_READABLE)
         m.expect(_TOOLPATHS_REQUIRED + (("state",) if version >= 2 else ())
                  + (_POINT_MEMBERS if version >= 5 else ("points",)),
-                 ("layer_height",) + (("variable", "point_width") if version >= 3 else ())
+                 ("layer_height", "layer_top_z")
+                 + (("variable", "point_width") if version >= 3 else ())
                  + (("point_off",) if version >= 4 else ()))
         job = m.job()
         warnings = m.strings("warnings")
@@ -916,13 +946,15 @@ def load_packed_toolpaths(path: str | os.PathLike) -> PackedToolpaths:
         unfilled = m.values("unfilled_mm2", "f", 2, 2, n=n_layers, lo=0.0,
                             hi=MAX_COORD_MM ** 2)
         heights = _read_heights(m, n_layers)
+        tops = _read_tops(m, layer_z)
         if version >= 2:
             state = m.values("state", "iu", 1, n=len(pts), lo=OFF, hi=ON2)
             if n_paths and not np.array_equal(state, _point_states(d)):
                 raise m.bad("state", "per-point states disagree with the paths' materials and "
                             "roles: the file is corrupt")
     heads = tuple(LayerHead(int(index[j]), float(layer_z[j]),
-                            (float(unfilled[j, 0]), float(unfilled[j, 1])), float(heights[j]))
+                            (float(unfilled[j, 0]), float(unfilled[j, 1])), float(heights[j]),
+                            float(tops[j]))
                   for j in range(n_layers))
     return PackedToolpaths(job, tuple(warnings), heads, tuple(_split_packed(d, ls)))
 
@@ -972,13 +1004,13 @@ class PackedToolpaths:
     def packed_layer(self, k: int) -> tuple:
         """Layer k as :func:`pack_layer_paths` gives it (what the workers take)."""
         h = self.heads[k]
-        return h.index, h.z, h.unfilled_mm2, self.layers[k], h.thickness
+        return h.index, h.z, h.unfilled_mm2, self.layers[k], h.thickness, h.top_z
 
     def layer_paths(self, k: int) -> LayerPaths:
         """Layer k with its Toolpaths (their points copied out of the file's arrays)."""
         h = self.heads[k]
         return LayerPaths(h.index, h.z, tuple(unpack_paths(self.layers[k], copy=True)),
-                          h.unfilled_mm2, h.thickness)
+                          h.unfilled_mm2, h.thickness, h.top_z)
 
     def toolpaths(self) -> Toolpaths:
         """The build with every layer's Toolpaths."""
@@ -1187,7 +1219,7 @@ class TrajectoryWriter:
         self._meta: dict[str, list] = {k: [] for k in (
             "lengths", "piece_start", "piece_count", "duration", "traj_dt", "variable",
             "span_owner", "on_spans", *_PATH_FIELDS)}
-        self._layers: list[tuple[int, float, int, float]] = []
+        self._layers: list[tuple[int, float, int, float, float]] = []
         self._dt: float | None = None
         self._n_joints = len(self.joint_names)
         self._zip: zipfile.ZipFile | None = None
@@ -1215,15 +1247,18 @@ class TrajectoryWriter:
         """Append one layer (after the previous one)."""
         trajs = layer.trajectories
         self.add_packed(layer.index, layer.z, layer.thickness, [t.path for t in trajs],
-                        pack_trajectories(trajs, self._n_joints, empty_pieces=True))
+                        pack_trajectories(trajs, self._n_joints, empty_pieces=True),
+                        top_z=layer.top_z)
 
     def add_packed(self, index: int, z: float, thickness: float,
                    paths: Sequence[Toolpath | None] | dict[str, np.ndarray],
-                   packed: dict[str, np.ndarray]) -> None:
+                   packed: dict[str, np.ndarray], *, top_z: float) -> None:
         """Append one layer given as :func:`pack_trajectories` packs it (``empty_pieces``
         either way), trajectory i following ``paths[i]`` (None: no path), or path i of
         ``paths`` given as :func:`pack_paths` packs them: what the planning's workers
-        send, written without making Trajectory (or Toolpath) objects of it."""
+        send, written without making Trajectory (or Toolpath) objects of it. ``top_z``:
+        the layer's top, mm (the stack's; NaN: not known); asked for by name, as a
+        forgotten one would send the nozzle of a part's top layer too low."""
         ts = np.asarray(packed["traj_start"], np.int64)
         n_traj = len(ts) - 1
         if n_traj and self._dt is None:
@@ -1254,7 +1289,7 @@ class TrajectoryWriter:
                   else _path_fields(index, z, paths))
         for k, v in fields.items():
             m[k].extend(v)
-        self._layers.append((int(index), float(z), n_traj, float(thickness)))
+        self._layers.append((int(index), float(z), n_traj, float(thickness), float(top_z)))
         self._buffer.append(packed)
         self._buffered += int(ts[-1])
         if self._buffered >= self.block_samples:
@@ -1318,6 +1353,7 @@ class TrajectoryWriter:
             "layer_z": np.array([x[1] for x in L], dtype=np.float64),
             "layer_start": offsets([x[2] for x in L]),
             **_heights([x[3] for x in L]),
+            **_tops([x[4] for x in L]),
         }
         for name, value in data.items():
             with self._zip.open(name + ".npy", "w", force_zip64=True) as fh:
@@ -1390,7 +1426,8 @@ class TrajectoryFile:
     Every member is checked as :func:`load_trajectories` says. Attributes: ``path``,
     ``version``, ``job``, ``robot``, ``joint_names``, ``dt``, ``duration``, ``n_points``;
     per layer (L,)
-    ``layer_index``, ``layer_z``, ``heights`` (NaN: the job's thickness),
+    ``layer_index``, ``layer_z``, ``heights`` (NaN: the job's thickness), ``tops`` (NaN:
+    not known, :meth:`~icefab.core.LayerMotion.top` derives it),
     ``layer_start`` (L + 1,); per trajectory (T,) ``durations`` s, ``material`` and
     ``role`` codes (the file's tables).
     """
@@ -1430,11 +1467,12 @@ class TrajectoryFile:
             m.expect(_TRAJ_REQUIRED + _TRAJ_V2 + _TRAJ_COUNTS[3:]
                      + ("block_layer_start",) + tuple(blocks)
                      + (_TRAJ_V5 if version >= 5 else ())
-                     + (_TRAJ_V6 if version >= 6 else ()), ("layer_height",),
+                     + (_TRAJ_V6 if version >= 6 else ()), ("layer_height", "layer_top_z"),
                      streamed=blocks)
         else:
             m.expect(_TRAJ_REQUIRED + (_TRAJ_V2 if version >= 2 else ())
-                     + (_TRAJ_COUNTS if version >= 3 else _TRAJ_FLOATS), ("layer_height",))
+                     + (_TRAJ_COUNTS if version >= 3 else _TRAJ_FLOATS),
+                     ("layer_height", "layer_top_z"))
         self.job = m.job()
         self.robot = m.text("robot")
         self.joint_names = m.strings("joint_names")
@@ -1455,6 +1493,7 @@ class TrajectoryFile:
         self.layer_z = m.values("layer_z", "f", 1, n=len(index), lo=-MAX_COORD_MM,
                                 hi=MAX_COORD_MM)
         self.heights = _read_heights(m, len(index))
+        self.tops = _read_tops(m, self.layer_z)
         self.layer_start = ls = m.offsets("layer_start", len(index), nt)
         owner = m.values("piece_owner", "iu", 1, lo=0, hi=max(nt - 1, 0)).astype(np.int64)
         pstart = m.values("piece_start", "iu", 1, n=len(owner), lo=0).astype(np.int64)
@@ -1673,7 +1712,8 @@ class TrajectoryFile:
                 continue
             yield LayerMotion(index=int(self.layer_index[k]), z=float(self.layer_z[k]),
                               trajectories=tuple(trajs[int(ls[k]) - t0:int(ls[k + 1]) - t0]),
-                              thickness=float(self.heights[k]))
+                              thickness=float(self.heights[k]),
+                              top_z=float(self.tops[k]))
 
 
 def load_trajectories(path: str | os.PathLike) -> BuildMotion:

@@ -194,10 +194,10 @@ def run(args: argparse.Namespace) -> int:
     pictured = {}
     for k, packed in enumerate(iter_plan_paths_packed(stack, job,
                                                       progress=Progress("paths"))):
-        index, z, unfilled, arrays, thickness = packed
+        index, z, unfilled, arrays, thickness, top_z = packed
         check_packed_workspace(index, arrays, job, robot)
         tally.add_packed(arrays)
-        heads.append(LayerHead(index, z, unfilled, thickness))
+        heads.append(LayerHead(index, z, unfilled, thickness, top_z))
         packed_layers.append(arrays)
         if k in ks:
             pictured[k] = unpack_layer_paths(packed)

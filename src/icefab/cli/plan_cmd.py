@@ -158,7 +158,8 @@ def run(args: argparse.Namespace) -> int:
                     per_layer=layer_headroom if check_room else None)):
                 lp, packed, arrays = pl.paths, pl.packed, pl.path_arrays
                 out.add_packed(lp.index, lp.z, lp.thickness,
-                               lp.paths if arrays is None else arrays, packed)
+                               lp.paths if arrays is None else arrays, packed,
+                               top_z=lp.top_z)
                 const_acc += pl.const_s
                 durations = packed["duration"]
                 n_traj += len(durations)
