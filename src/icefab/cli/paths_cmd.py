@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -128,6 +129,16 @@ def _empty_material_warnings(stack, tally: PathTally, job) -> list[str]:
     return out
 
 
+def area_text(mm2: float) -> str:
+    """An area in mm^2 to three significant digits without an exponent ("0.244", "12.5",
+    "1234"): the summary printed ".0f", so 0.244 mm^2 read "0" beside the warning's 0.244
+    (a review's); exactly 0 stays "0"."""
+    a = float(mm2)
+    if a == 0.0 or not math.isfinite(a):
+        return f"{a:g}"
+    return f"{a:.{max(0, 2 - math.floor(math.log10(abs(a))))}f}"
+
+
 def summary_lines(layers: Sequence[LayerHead], warnings: Sequence[str],
                   tally: PathTally) -> list[str]:
     """Counts by role and material, length, unfilled area and the time estimate."""
@@ -141,7 +152,8 @@ def summary_lines(layers: Sequence[LayerHead], warnings: Sequence[str],
                      f"{curve / 1000:.2f} m of travel curves, valve off)")
         lines.append(line)
     unf = np.array([lp.unfilled_mm2 for lp in layers]).reshape(-1, 2).sum(axis=0)
-    lines.append(f"unfilled area: part {unf[0]:.0f} mm², scaffold {unf[1]:.0f} mm²")
+    lines.append(f"unfilled area: part {area_text(unf[0])} mm², scaffold "
+                 f"{area_text(unf[1])} mm²")
     if len(per_layer_s):
         lines.append(f"constant-speed estimate: {hours(float(per_layer_s.sum()))} (layers "
                      f"{per_layer_s.min():.1f} .. {per_layer_s.max():.1f} s; "
