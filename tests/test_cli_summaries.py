@@ -26,3 +26,54 @@ def test_the_paths_summary_prints_a_small_unfilled_area_as_its_warning_does():
     assert "unfilled area: part 0.244 mm², scaffold 0.178 mm²" in lines
     none = summary_lines([LayerHead(0, 0.125, (0.0, 0.0))], [], PathTally(Job()))
     assert "unfilled area: part 0 mm², scaffold 0 mm²" in none
+
+
+def _stack(thicknesses):
+    """A stack of empty layers of the given own thicknesses, mm (NaN: the job's)."""
+    from icefab.core import Layer, Region, Stack
+
+    layers = tuple(Layer(index=k, z=0.1 * k, part=Region(), thickness=t)
+                   for k, t in enumerate(thicknesses))
+    return Stack(layers=layers, job=Job(), layer_thickness=0.25)
+
+
+def test_layer_thickness_text_gives_adaptive_layers_their_range():
+    from icefab.cli.common import layer_thickness_text
+
+    nan = float("nan")
+    assert layer_thickness_text(_stack([nan, nan])) == "0.25 mm"
+    assert layer_thickness_text(_stack([0.5, 0.1, 0.3])) == "0.1 .. 0.5 mm (adaptive)"
+    assert layer_thickness_text(_stack([0.5, 0.5])) == "0.5 mm (adaptive)"
+
+
+def test_the_flow_hint_names_the_layer_cap_of_a_thick_adaptive_layer():
+    from icefab.flow import out_of_range_hint
+
+    words = "clamp and report instead"
+    uniform = "lower the speed or set flow.out_of_range = 'clamp' to clamp and report instead"
+    assert out_of_range_hint(0.25, Job(), words) == uniform
+    adaptive = Job().replace(**{"slicing.cusp_height_mm": 0.1,
+                                "slicing.max_layer_thickness_mm": 0.5})
+    assert out_of_range_hint(0.5, adaptive, words) == (
+        "this adaptive layer is 0.5 mm thick: lower the speed or "
+        "slicing.max_layer_thickness_mm (now 0.5 mm), or set flow.out_of_range = 'clamp' "
+        "to clamp and report instead")
+    assert out_of_range_hint(0.1, adaptive, words, above=False) == uniform  # too little
+
+
+def test_the_demo_on_adaptive_layers_says_so_and_blames_their_thickness(tmp_path, capsys):
+    # a review's: "12 layers of 0.25 mm" for 0.5 mm adaptive layers, then a valve frequency
+    # error whose hint named the speed only
+    from icefab.cli import main
+
+    job = tmp_path / "adaptive.toml"
+    job.write_text("[slicing]\ncusp_height_mm = 0.1\nmin_layer_thickness_mm = 0.1\n"
+                   "max_layer_thickness_mm = 0.5\n[cell]\ncpus = 1\n")
+    rc = main(["demo", "-c", str(job), "--layers", "3", "--sim-layers", "0",
+               "-o", str(tmp_path / "d")])
+    out, err = capsys.readouterr()
+    assert "sliced and scaffolded: 3 layers of 0.5 mm (adaptive), " in out
+    assert rc == 2 and "valve frequency" in err
+    assert ("this adaptive layer is 0.5 mm thick: lower the speed or "
+            "slicing.max_layer_thickness_mm (now 0.5 mm), or set flow.out_of_range") in err
+

@@ -425,6 +425,24 @@ def check_trajectory(trajectory: Trajectory) -> None:
                         "a constant-dt trajectory lasts (n - 1) dt")
 
 
+def out_of_range_hint(dh: float, job: "Job", clamp_words: str, above: bool = True) -> str:
+    """What to change when a path's flow is beyond its valve, ending in the ``flow.
+    out_of_range = 'clamp'`` alternative (``clamp_words``: what clamping does).
+
+    The speed sets the flow (q = w dh c, eq. 6.2), and with adaptive layers
+    (``slicing.cusp_height_mm`` > 0) so does the layer's own thickness ``dh`` mm: a flow
+    ``above`` the valve's then also names the thickest layers' cap,
+    ``slicing.max_layer_thickness_mm`` (the demo's 0.5 mm adaptive layers asked 955 Hz of
+    a 500 Hz valve, and the hint named only the speed)."""
+    clamp = f"set flow.out_of_range = 'clamp' to {clamp_words}"
+    sl = job.slicing
+    if above and sl.cusp_height_mm > 0:
+        cap = sl.max_layer_thickness_mm or sl.layer_thickness_mm
+        return (f"this adaptive layer is {dh:.3g} mm thick: lower the speed or "
+                f"slicing.max_layer_thickness_mm (now {cap:g} mm), or {clamp}")
+    return f"lower the speed or {clamp}"
+
+
 def valve_frequency(trajectory: Trajectory, material: str, job: "Job", *,
                     action: ActionLike = None, layer_thickness: float | None = None,
                     calibration: Calibration | None = None) -> FrequencyPlan:
@@ -493,11 +511,12 @@ def valve_frequency(trajectory: Trajectory, material: str, job: "Job", *,
     flowing = q > 0  # zero flow is 0 Hz whatever the table's first row
     limits: list[str] = []
 
-    def out_of_range(mask: np.ndarray, msg: str) -> None:
-        """Raise under flow.out_of_range = "error", else note the samples as clamped."""
+    def out_of_range(mask: np.ndarray, msg: str, above: bool = True) -> None:
+        """Raise under flow.out_of_range = "error", else note the samples as clamped;
+        ``above``: some flow is above the valve's (not only below)."""
         if fl.out_of_range == "error":
-            raise FlowError(f"{where}: {msg}; lower the speed or set flow.out_of_range = "
-                            "'clamp' to clamp and report instead")
+            raise FlowError(f"{where}: {msg}; "
+                            f"{out_of_range_hint(dh, job, 'clamp and report instead', above)}")
         limits.append(msg)
         np.logical_or(clamped, mask, out=clamped)
 
@@ -508,7 +527,7 @@ def valve_frequency(trajectory: Trajectory, material: str, job: "Job", *,
             worst = float(q[hi].max()) if np.any(hi) else float(q[lo].min())
             out_of_range(hi | lo, f"flow {worst:.4g} mm^3/s outside the calibration table "
                          f"[{cal.min_flow:g}, {cal.max_flow:g}] mm^3/s ({cal.source}) at "
-                         f"{int(np.count_nonzero(hi | lo))} of {n} samples")
+                         f"{int(np.count_nonzero(hi | lo))} of {n} samples", bool(np.any(hi)))
     nu = np.where(flowing, cal.frequency(q), 0.0)  # eq. 6.4 (clamped to the table's ends)
     if fl.mode == "fm":
         nu_max = max_valve_frequency(job)
@@ -957,6 +976,7 @@ def plan_valves(trajectory: Trajectory, material: str, job: "Job | None" = None,
     cal = calibration or calibration_for(material, job)
     plan = valve_frequency(trajectory, material, job, action=action,
                            layer_thickness=layer_thickness, calibration=cal)
+    dh = float(job.slicing.layer_thickness_mm if layer_thickness is None else layer_thickness)
     warnings = list(plan.warnings)
     if fl.mode == "fm":
         if plan.on is None:
@@ -974,9 +994,10 @@ def plan_valves(trajectory: Trajectory, material: str, job: "Job | None" = None,
     else:
         if plan.on is None:
             times, widths, found, volumes = _pwm(plan, cal, job, duration,
-                                                 _where(trajectory))
+                                                 _where(trajectory), dh)
         else:
-            times, widths, found, volumes = _pwm_spans(plan.on, cal, job, _where(trajectory))
+            times, widths, found, volumes = _pwm_spans(plan.on, cal, job, _where(trajectory),
+                                                       dh)
         warnings.extend(found)
         prog = _split(times, widths, duration, float(trajectory.dt), job)
     prog = dataclasses.replace(prog, commanded_mm3=volumes[0], laid_mm3=volumes[1])
@@ -990,8 +1011,8 @@ def plan_valves(trajectory: Trajectory, material: str, job: "Job | None" = None,
     return dataclasses.replace(prog, warnings=tuple(warnings)) if warnings else prog
 
 
-def _pwm(plan: FrequencyPlan, cal: Calibration, job: "Job", duration: float, where: str
-         ) -> tuple[np.ndarray, np.ndarray, list[str], tuple[float, float]]:
+def _pwm(plan: FrequencyPlan, cal: Calibration, job: "Job", duration: float, where: str,
+         dh: float) -> tuple[np.ndarray, np.ndarray, list[str], tuple[float, float]]:
     """PWM (thesis 6.1): constant frequency f = ``flow.pwm_frequency_hz``, the pulse width
     carries the flow.
 
@@ -1008,6 +1029,7 @@ def _pwm(plan: FrequencyPlan, cal: Calibration, job: "Job", duration: float, whe
     the period (or 65.535 ms, uint16 us) is cut to it -- or FlowError under
     ``flow.out_of_range = "error"``, since the flow is then beyond what the valve passes
     fully open. Every limit hit is reported with its counts and the resulting volume error.
+    ``dh``: the layer's thickness, mm (the error's hint, :func:`out_of_range_hint`).
     Returns ``(times (p,) s, widths (p,) uint16 us, findings, (commanded, laid) mm^3)``.
     """
     fl = job.flow
@@ -1035,8 +1057,8 @@ def _pwm(plan: FrequencyPlan, cal: Calibration, job: "Job", duration: float, whe
         raise FlowError(f"{where}: PWM at flow.pwm_frequency_hz = {f:g} Hz needs pulses up to "
                         f"{float(width_ms.max()):.4g} ms, longer than the {w_max_ms:g} ms "
                         f"period (flow above {q_max:.4g} mm^3/s, the valve fully open) at "
-                        f"{int(np.count_nonzero(cut))} of {count} pulses; lower the speed or "
-                        "set flow.out_of_range = 'clamp' to cut them and report")
+                        f"{int(np.count_nonzero(cut))} of {count} pulses; "
+                        f"{out_of_range_hint(dh, job, 'cut them and report')}")
     widths_us = _pwm_widths_us(width_ms, fl.min_pulse_ms, w_max_ms)
     keep = widths_us > 0
     dropped = int(np.count_nonzero(~keep & (vol > 0)))
@@ -1075,7 +1097,7 @@ def _pwm_widths_us(width_ms: np.ndarray, min_ms: float, max_ms: float) -> np.nda
                          lo_us, hi_us)
 
 
-def _pwm_spans(on: SpanSignal, cal: Calibration, job: "Job", where: str
+def _pwm_spans(on: SpanSignal, cal: Calibration, job: "Job", where: str, dh: float
                ) -> tuple[np.ndarray, np.ndarray, list[str], tuple[float, float]]:
     """:func:`_pwm` over each span a tour's valve is on, as if each were a path of its own
     (its first period from the span's start, no pulse over the travel): the pulses of all
@@ -1086,7 +1108,7 @@ def _pwm_spans(on: SpanSignal, cal: Calibration, job: "Job", where: str
         t0 = float(on.t[a])
         t = on.t[a:b] - t0
         sub = FrequencyPlan(t=t, q=on.q[a:b], u=np.zeros(b - a), nu=on.nu[a:b])
-        ti, wi, fi, (c, d) = _pwm(sub, cal, job, float(t[-1]), where)
+        ti, wi, fi, (c, d) = _pwm(sub, cal, job, float(t[-1]), where, dh)
         times.append(_kept_in_spans(ti + t0, np.array([len(ti)]),
                                     np.array([[t0, float(on.t[b - 1])]]), job.flow.tick_s))
         widths.append(wi)

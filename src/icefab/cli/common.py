@@ -24,7 +24,7 @@ from icefab.atomic import fsync_path, fsync_tree, make_temp_dir, replace_durably
 from icefab.errors import ConfigError, OutputError
 
 if TYPE_CHECKING:
-    from icefab.core import Mesh
+    from icefab.core import Mesh, Stack
 
 
 def add_job_argument(parser: argparse.ArgumentParser) -> None:
@@ -203,6 +203,17 @@ class Progress:
 def hours(seconds: float) -> str:
     """``5.81 h`` (or ``42.0 min`` under an hour): build times as people read them."""
     return f"{seconds / 3600:.2f} h" if seconds >= 3600 else f"{seconds / 60:.1f} min"
+
+
+def layer_thickness_text(stack: "Stack") -> str:
+    """The stack's layer thickness, ``0.25 mm``, or with adaptive layers (their own
+    thicknesses, ``slicing.cusp_height_mm``) their range, ``0.1 .. 0.5 mm (adaptive)``:
+    the demo named the job's ``slicing.layer_thickness_mm`` for adaptive layers."""
+    t = stack.thicknesses
+    if len(t) and np.isfinite([L.thickness for L in stack]).any():
+        lo, hi = f"{t.min():.3g}", f"{t.max():.3g}"
+        return f"{lo} .. {hi} mm (adaptive)" if lo != hi else f"{lo} mm (adaptive)"
+    return f"{stack.layer_thickness:g} mm"
 
 
 #: How every command names the length / speed figure (paths, plan, demo): it is not a build

@@ -15,7 +15,7 @@ import time
 import numpy as np
 
 from icefab.cli.common import (ESTIMATE_WORDS, Progress, add_job_argument, hours,
-                               job_from_args, output_dir)
+                               job_from_args, layer_thickness_text, output_dir)
 from icefab.report import html_report, plot_speed, plot_toolpaths
 
 
@@ -88,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
         ks = sorted({0, n // 8, n // 2, (3 * n) // 4, n - 1})
         summary["slice"] = {"layers": n, "warnings": len(stack.warnings),
                             "seconds": round(time.perf_counter() - t0, 3)}
-        _say(f"sliced and scaffolded: {n} layers of {stack.layer_thickness:g} mm, "
+        _say(f"sliced and scaffolded: {n} layers of {layer_thickness_text(stack)}, "
              f"{len(stack.warnings)} warnings")
 
         t0 = time.perf_counter()

@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from icefab.cli.common import (Progress, add_job_argument, command_inputs, job_from_args,
-                               layer_list, output_dir, parse_layers, placed_model,
-                               warning_lines, write_warnings)
+                               layer_list, layer_thickness_text, output_dir, parse_layers,
+                               placed_model, warning_lines, write_warnings)
 from icefab.report import plot_layers
 from icefab.core import Stack
 
@@ -43,10 +43,7 @@ def summary_lines(stack: Stack, elapsed_s: float | None = None) -> list[str]:
     n_rings = sum(len(L.part) for L in stack)
     n_pts = sum(L.part.n_points for L in stack)
     nonempty = areas[areas > 0]
-    t = stack.thicknesses
-    each = (f"{t.min():.3g} .. {t.max():.3g} mm (adaptive)" if len(t) and
-            np.isfinite([L.thickness for L in stack]).any() else f"{stack.layer_thickness:g} mm")
-    lines = [f"layers: {len(stack)} of {each}, z = "
+    lines = [f"layers: {len(stack)} of {layer_thickness_text(stack)}, z = "
              f"{stack[0].z:.3f} .. {stack[len(stack) - 1].z:.3f} mm"
              if len(stack) else "layers: 0",
              f"contours: {n_rings} ({n_pts} points)"]
