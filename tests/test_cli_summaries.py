@@ -7,6 +7,7 @@ flow above the valve (a review's findings)."""
 from __future__ import annotations
 
 import pytest
+import trimesh
 
 from icefab import Job
 from icefab.cli.paths_cmd import PathTally, area_text, summary_lines
@@ -77,3 +78,45 @@ def test_the_demo_on_adaptive_layers_says_so_and_blames_their_thickness(tmp_path
     assert ("this adaptive layer is 0.5 mm thick: lower the speed or "
             "slicing.max_layer_thickness_mm (now 0.5 mm), or set flow.out_of_range") in err
 
+
+def test_the_measurement_interval_of_adaptive_layers_is_a_height():
+    from icefab.cli.simulate_cmd import measurement_interval_text
+
+    nan = float("nan")
+    assert measurement_interval_text(Job(), [nan, nan]) == "every 4 layers"
+    assert measurement_interval_text(Job(), [0.5, 0.1]) == (
+        "every 1 mm of height (adaptive layers: feedback.interval_layers = 4 x "
+        "slicing.layer_thickness_mm = 0.25 mm)")
+
+
+def test_a_trajectory_files_layer_thicknesses_are_read_without_decoding(tmp_path):
+    from icefab.cli.simulate_cmd import own_thicknesses
+    from icefab.core import BuildMotion, LayerMotion
+    from icefab.resultfiles import open_trajectories, save_trajectories
+
+    layers = tuple(LayerMotion(index=k, z=0.25 * k, trajectories=(), thickness=t)
+                   for k, t in enumerate([0.5, 0.3, 0.1]))
+    save_trajectories(BuildMotion(layers=layers, job=Job()), tmp_path / "t.npz")
+    motion = open_trajectories(tmp_path / "t.npz")
+    assert own_thicknesses(motion.layers[1:]).tolist() == [0.3, 0.1]
+    assert own_thicknesses(layers[:2]).tolist() == [0.5, 0.3]
+
+
+def test_simulate_on_adaptive_layers_says_it_measures_by_height(tmp_path, capsys):
+    # a review's: "every 4 layers" printed above measurements at 1.00 and 2.00 mm of 0.5 mm
+    # layers
+    from icefab.cli import main
+
+    box = trimesh.creation.box(extents=(20.0, 20.0, 2.5))
+    box.apply_translation((0.0, 0.0, 1.25))
+    box.export(tmp_path / "box.stl")
+    job = tmp_path / "adaptive.toml"
+    job.write_text("[slicing]\ncusp_height_mm = 0.1\nmin_layer_thickness_mm = 0.1\n"
+                   "max_layer_thickness_mm = 0.5\n[cell]\ncpus = 1\n")
+    assert main(["simulate", str(tmp_path / "box.stl"), "-c", str(job),
+                 "-o", str(tmp_path / "s")]) == 0
+    out = capsys.readouterr().out
+    assert "every 1 mm of height (adaptive layers" in out and "every 4 layers" not in out
+    heights = [line.split()[1] for line in out.splitlines()
+               if line.strip() and line.split()[0] in ("1", "3")]
+    assert heights == ["1.00", "2.00"]

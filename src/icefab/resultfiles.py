@@ -1768,6 +1768,11 @@ class LayerSequence(collections.abc.Sequence):
         paths_cum = np.concatenate([[0], np.cumsum(np.diff(src._ts) > 0)])
         return time_cum[hi] - time_cum[lo], paths_cum[hi] - paths_cum[lo]
 
+    def thicknesses(self) -> np.ndarray:
+        """(L,) float64 mm: each layer's own thickness (NaN: the job's), from the file's
+        per-layer member without decoding a layer."""
+        return self._source.heights[np.asarray(self._positions, dtype=np.int64)]
+
 
 def open_trajectories(path: str | os.PathLike) -> BuildMotion:
     """A trajectory file as a BuildMotion whose layers are read a block at a time as they

@@ -294,6 +294,29 @@ def write_simulation_outputs(open_loop: "SimResult", closed: "SimResult", out: P
 # --------------------------------------------------------------------------- command
 
 
+def own_thicknesses(layers) -> np.ndarray:
+    """(L,) float64 mm: the own thickness of each of ``layers`` (NaN: the job's), a
+    trajectory file's without decoding its layers
+    (:meth:`icefab.resultfiles.LayerSequence.thicknesses`)."""
+    if hasattr(layers, "thicknesses"):
+        return np.asarray(layers.thicknesses(), dtype=np.float64)
+    return np.array([lay.thickness for lay in layers], dtype=np.float64)
+
+
+def measurement_interval_text(job: "Job", thicknesses) -> str:
+    """How often the simulation measures: every ``feedback.interval_layers`` layers, or
+    with adaptive layers (some own ``thicknesses``, mm) every ``interval_layers x
+    slicing.layer_thickness_mm`` of height (:func:`icefab.stages.measured_layers`): it
+    said "every 4 layers" of layers measured every 1 mm (a review's)."""
+    fb = job.feedback
+    if not np.isfinite(np.asarray(thicknesses, dtype=np.float64)).any():
+        return f"every {fb.interval_layers} layers"
+    step = fb.interval_layers * job.slicing.layer_thickness_mm
+    return (f"every {step:g} mm of height (adaptive layers: feedback.interval_layers = "
+            f"{fb.interval_layers} x slicing.layer_thickness_mm = "
+            f"{job.slicing.layer_thickness_mm:g} mm)")
+
+
 def run(args: argparse.Namespace) -> int:
     from icefab.motion import BuildMotion, plan_toolpaths
     from icefab.feedback import gains_verdict
@@ -353,8 +376,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"{n} layers, flow error {sim.flow_error:+.0%}, drift {sim.flow_drift_per_cm3:g}/cm³, "
           f"noise {sim.noise_mm:g} mm, debris {sim.debris_rate:g}/layer, edge loss "
           f"{sim.edge_loss:.0%}, seed {sim.seed}; gains Kp {job.feedback.kp:g}, "
-          f"Ki* {job.feedback.ki:g}, Kd* {job.feedback.kd:g}, every "
-          f"{job.feedback.interval_layers} layers")
+          f"Ki* {job.feedback.ki:g}, Kd* {job.feedback.kd:g}, "
+          f"{measurement_interval_text(job, own_thicknesses(build.layers[:n]))}")
     stopped = [m for m, g in zip(("part", "scaffold"), open_loop.flow_gain) if g <= 0.0]
     if stopped:
         print(f"warning: the {' and '.join(stopped)} valve's flow drifted to nothing "
