@@ -240,3 +240,15 @@ def test_a_killed_cells_temporary_files_go_when_old(build, tmp_path):
     os.utime(old, (time.time() - 120, time.time() - 120))
     World(d, job)
     assert not old.exists() and new.exists()   # a save in flight is left alone
+
+
+def test_robot_paths_run_at_the_top_of_the_layer_being_deposited():
+    """The robot paths of a layer (what ``cell.links.run_layer`` sends) were at its
+    cutting plane ``layer.z``, inside the layer, while the build runner sends the layer's
+    top: now both send the top."""
+    job = _job("fm")
+    motion = as_received(plan_toolpaths(annulus_toolpaths(job, 2), job))
+    for lm in motion.layers:
+        zs = [p.z_mm for p in robot_paths(lm, job)]
+        assert zs and zs == pytest.approx([lm.top(job)] * len(zs))
+        assert lm.top(job) > lm.z + 1e-6

@@ -98,13 +98,14 @@ def path_flags(role: str) -> int:
 
 def robot_paths(layer, job) -> list[RobotPath]:
     """The robot paths of one ``icefab.motion.LayerMotion``: every trajectory with at least
-    one sample, in order (travel included, without triggers), at the layer's height
-    ``layer.z`` + (layer thickness) (the top of the layer being deposited; measurement
-    paths read that top)."""
+    one sample, in order (travel included, without triggers), at the top of the layer
+    being deposited (``layer.top(job)``; measurement paths read that top). It sent the
+    layer's cutting plane ``layer.z``, inside the layer, where the build runner sends the
+    top (a review's)."""
     from icefab import flow
 
     out = []
-    z = float(layer.z)
+    z = float(layer.top(job))
     for k, tr in enumerate(layer.trajectories):
         if len(tr.xy) == 0:
             continue
