@@ -10,7 +10,8 @@ import pytest
 import trimesh
 
 from icefab import Job
-from icefab.cli.paths_cmd import PathTally, area_text, summary_lines
+from icefab.cli.paths_cmd import PathTally, summary_lines
+from icefab.paths import area_text
 from icefab.resultfiles import LayerHead
 
 
@@ -120,3 +121,17 @@ def test_simulate_on_adaptive_layers_says_it_measures_by_height(tmp_path, capsys
     heights = [line.split()[1] for line in out.splitlines()
                if line.strip() and line.split()[0] in ("1", "3")]
     assert heights == ["1.00", "2.00"]
+
+
+def test_the_unfilled_area_warning_has_no_exponent():
+    """The paths stage's warning printed ".3g": 1 020 mm^2 read "1.02e+03" (a review's)."""
+    from types import SimpleNamespace
+
+    from icefab.paths import paths_warnings
+
+    stack = SimpleNamespace(warnings=())
+    layers = [SimpleNamespace(unfilled_mm2=(600.0, 420.4)),
+              SimpleNamespace(unfilled_mm2=(0.2, 0.1))]
+    (said,) = paths_warnings(stack, layers)
+    assert "part 600 mm^2, scaffold 420 mm^2 over 2 layers" in said
+    assert "e+" not in said

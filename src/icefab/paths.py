@@ -1926,14 +1926,25 @@ def iter_plan_paths_packed(stack: Stack, job: Job | None = None, *,
                          job, min_items=8, progress=progress)
 
 
+def area_text(mm2: float) -> str:
+    """An area in mm^2 to three significant digits without an exponent ("0.244", "12.5",
+    "1234"): the paths summary printed ".0f", so 0.244 mm^2 read "0" beside the warning's
+    0.244, and the warning's ".3g" read "1.02e+03" (reviews'); exactly 0 stays "0"."""
+    a = float(mm2)
+    if a == 0.0 or not math.isfinite(a):
+        return f"{a:g}"
+    return f"{a:.{max(0, 2 - math.floor(math.log10(abs(a))))}f}"
+
+
 def paths_warnings(stack: Stack, layers: Sequence[LayerPaths | LayerHead]) -> tuple[str, ...]:
     """The warnings of a stack's planned layers (LayerPaths, or the heads ``icefab paths``
     keeps): the stack's, and a summary of the area no path sweeps."""
     warnings = list(stack.warnings)
     total = np.array([lp.unfilled_mm2 for lp in layers]).reshape(-1, 2).sum(axis=0)
     if total.sum() >= GAP_MIN_AREA_MM2:    # less than the smallest gap path is no finding
-        warnings.append(f"unfilled area (gaps the paths cannot fill): part {total[0]:.3g} "
-                        f"mm^2, scaffold {total[1]:.3g} mm^2 over {len(layers)} layers")
+        warnings.append(f"unfilled area (gaps the paths cannot fill): part "
+                        f"{area_text(total[0])} mm^2, scaffold {area_text(total[1])} mm^2 "
+                        f"over {len(layers)} layers")
     return tuple(warnings)
 
 

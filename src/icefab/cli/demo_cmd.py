@@ -88,7 +88,8 @@ def run(args: argparse.Namespace) -> int:
         ks = sorted({0, n // 8, n // 2, (3 * n) // 4, n - 1})
         summary["slice"] = {"layers": n, "warnings": len(stack.warnings),
                             "seconds": round(time.perf_counter() - t0, 3)}
-        _say(f"sliced and scaffolded: {n} layers of {layer_thickness_text(stack)}, "
+        _say(f"sliced and scaffolded: {n} layer{'s' * (n != 1)} of "
+             f"{layer_thickness_text(stack)}, "
              f"{len(stack.warnings)} warnings")
 
         t0 = time.perf_counter()

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import math
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -129,19 +128,11 @@ def _empty_material_warnings(stack, tally: PathTally, job) -> list[str]:
     return out
 
 
-def area_text(mm2: float) -> str:
-    """An area in mm^2 to three significant digits without an exponent ("0.244", "12.5",
-    "1234"): the summary printed ".0f", so 0.244 mm^2 read "0" beside the warning's 0.244
-    (a review's); exactly 0 stays "0"."""
-    a = float(mm2)
-    if a == 0.0 or not math.isfinite(a):
-        return f"{a:g}"
-    return f"{a:.{max(0, 2 - math.floor(math.log10(abs(a))))}f}"
-
-
 def summary_lines(layers: Sequence[LayerHead], warnings: Sequence[str],
                   tally: PathTally) -> list[str]:
     """Counts by role and material, length, unfilled area and the time estimate."""
+    from icefab.paths import area_text
+
     per_layer_s = np.array(tally.per_layer, dtype=np.float64)
     lines = [f"layers: {len(layers)}"]
     for key in sorted(tally.counts):
