@@ -295,7 +295,11 @@ def test_action_along():
     z = np.array([[0.0, 0.1, 0.2], [0.0, 0.1, np.nan]])
     hm = HeightMap(np.array([10.0, 20.0]), 2.0, z)
     u = action_along(hm, np.array([[11.0, 20.0], [12.0, 21.0], [100.0, 0.0], [14.0, 22.0]]))
-    np.testing.assert_allclose(u, [0.05, 0.1, 0.0, 0.1])  # NaN node: nearest footprint value
+    np.testing.assert_allclose(u, [0.05, 0.1, 0.2, 0.1])  # NaN node: nearest footprint value
+    # outside the grid: the value at the nearest point of its edge (thesis 5.1.2: the grid
+    # spans the footprint, which reaches past the laser's samples; it was 0, no correction)
+    out = np.array([[5.0, 20.0], [11.0, 10.0], [11.0, 30.0], [20.0, 19.0], [5.0, 40.0]])
+    np.testing.assert_allclose(action_along(hm, out), [0.0, 0.05, 0.05, 0.2, 0.0])
     act, _ = smf_update(SmfState(), HeightMap(np.zeros(2), 1.0, np.full((3, 3), 0.1)), Job())
     assert isinstance(act, ControlAction)
     np.testing.assert_allclose(act.sample(np.array([[1.0, 1.0]])), act.u.z[1, 1])

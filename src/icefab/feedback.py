@@ -1332,8 +1332,14 @@ def action_along(action: HeightMap | ControlAction, xy: np.ndarray) -> np.ndarra
 
     Bilinear interpolation (``scipy.interpolate.RegularGridInterpolator``) in the action
     grid; nodes outside the footprint take their nearest footprint value first, so a path
-    along the region edge sees the edge's action; points outside the grid get 0 (no
-    correction). For many paths, build the sampler once with :func:`action_sampler`.
+    along the region edge sees the edge's action, and points outside the grid take the
+    value at the nearest point of its edge. The grid spans the laser's samples, and the
+    footprint a layer deposits reaches past them (the demo mug's scaffold boundary 2.8 mm
+    past its last measurement ring): thesis 5.1.2 spans the grid over the footprint of part
+    and scaffold. Points outside the grid got 0 (no correction): 3.6 % of the mug's
+    scaffold ran open loop, its rim 0.10 mm high after 80 layers under a +10 % flow error,
+    0.72 mm with no spreading (a control review's). For many paths, build the sampler once
+    with :func:`action_sampler`.
     """
     return action_sampler(action)(xy)
 
@@ -1353,8 +1359,14 @@ def action_sampler(action: HeightMap | ControlAction) -> Callable[[np.ndarray], 
     x, y = hm.grid()
     if len(x) < 2 or len(y) < 2:
         return lambda xy: np.zeros(len(np.asarray(xy).reshape(-1, 2)))
-    rgi = RegularGridInterpolator((y, x), filled, bounds_error=False, fill_value=0.0)
-    return lambda xy: rgi(np.asarray(xy, dtype=np.float64).reshape(-1, 2)[:, ::-1])
+    rgi = RegularGridInterpolator((y, x), filled)
+    lo = np.array([y[0], x[0]])
+    hi = np.array([y[-1], x[-1]])
+
+    def sample(xy: np.ndarray) -> np.ndarray:
+        # outside the grid: its edge's value (clipped onto it; NaN stays NaN)
+        return rgi(np.clip(np.asarray(xy, dtype=np.float64).reshape(-1, 2)[:, ::-1], lo, hi))
+    return sample
 
 
 def retime_trajectory(traj: Trajectory, u: np.ndarray, *, max_change: float = 0.3,
