@@ -212,6 +212,18 @@ def test_saturation_of_output_and_integral():
     np.testing.assert_allclose(act.u.z, 0.3 - 0.03 * 2.0, atol=1e-12)  # I + Kd*(0 - 2)
     lo, hi = saturation_limits(Job().replace(**{"feedback.controller": "speed"}))
     assert 1 / (1 + hi) == pytest.approx(0.7) and 1 / (1 + lo) == pytest.approx(1.3)
+    # the c-controller's planes are uneven: its integral stays within them (it reached
+    # -0.3 below the lower plane -0.23 and wound up there: a control review's)
+    speed = Job().replace(**{"feedback.controller": "speed"})
+    high = HeightMap(np.zeros(2), 1.0, np.full((3, 4), -2.0))   # 2 intervals too high
+    st = SmfState()
+    for _ in range(5):
+        act, st = smf_update(st, high, speed)
+    assert np.allclose(st.integral.z, lo) and np.allclose(act.u.z, lo)
+    st = SmfState()
+    for _ in range(5):
+        act, st = smf_update(st, err, speed)
+    assert np.allclose(st.integral.z, 0.3)       # the job's bound, inside the upper plane
 
 
 def test_anti_windup_reduces_overshoot():

@@ -1251,7 +1251,9 @@ def smf_update(state: SmfState, error: HeightMap, job: "Job | None" = None, *,
         and the +- bound of the integral term.
 
     U_k = Kp E_k + I_k + Kd* (E_k - E_{k-1}), I_k = clip(I_{k-1} + Ki* E_k, +-integral_limit)
-    (eq. 5.1 with eq. 5.2; clamping the integral term is the anti-windup of thesis 5.2.2),
+    and, with the job's bound, within the planes of U as well (eq. 5.1 with eq. 5.2; clamping the integral term is the
+    anti-windup of thesis 5.2.2: an integral past what U can give winds up; the
+    c-controller's planes are uneven, [-0.23, +0.43] at 30 %, and its integral reached -0.3),
     U'_k = clip(U_k, limits). I_{k-1} and E_{k-1} are re-evaluated on the new grid
     (:func:`regrid`); nodes new to the footprint start with zero integral and zero
     derivative contribution, and the derivative is left out at k = 1. A node NaN in E_k
@@ -1277,7 +1279,10 @@ def smf_update(state: SmfState, error: HeightMap, job: "Job | None" = None, *,
     e_prev, e_known = (regrid(state.previous_error, error)
                        if state.previous_error is not None
                        else (np.zeros_like(Ez), np.zeros(Ez.shape, dtype=bool)))
-    I = np.clip(i_prev + ki * Ez, -isat, isat)
+    # the job's integral bound within the planes of U too (an explicit integral_limit is
+    # taken as it is: np.inf turns the anti-windup off)
+    ilo, ihi = (max(-isat, lo), min(isat, hi)) if integral_limit is None else (-isat, isat)
+    I = np.clip(i_prev + ki * Ez, ilo, ihi)
     P = kp * Ez
     D = np.zeros_like(Ez)
     if state.previous_error is not None and state.k >= 1 and kd != 0.0:
