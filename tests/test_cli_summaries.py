@@ -11,7 +11,7 @@ import trimesh
 
 from icefab import Job
 from icefab.cli.paths_cmd import PathTally, summary_lines
-from icefab.paths import area_text
+from icefab.core import area_text
 from icefab.resultfiles import LayerHead
 
 

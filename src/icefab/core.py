@@ -886,3 +886,13 @@ def layer_runs(layers: Sequence[int]) -> str:
         out.append(str(ks[i]) if j == i else f"{ks[i]}-{ks[j]}")
         i = j + 1
     return ", ".join(out)
+
+
+def area_text(mm2: float) -> str:
+    """An area in mm^2 to three significant digits without an exponent ("0.244", "12.5",
+    "1234"): the paths summary printed ".0f", so 0.244 mm^2 read "0" beside the warning's
+    0.244, and the warning's ".3g" read "1.02e+03" (reviews'); exactly 0 stays "0"."""
+    a = float(mm2)
+    if a == 0.0 or not math.isfinite(a):
+        return f"{a:g}"
+    return f"{a:.{max(0, 2 - math.floor(math.log10(abs(a))))}f}"

@@ -94,9 +94,9 @@ from icefab.resultfiles import (TOOLPATHS_FORMAT as FORMAT, TOOLPATHS_VERSION as
                                 packed_lengths, save_toolpaths, unpack_layer_paths)
 from icefab.geometry import signed_area
 from icefab.core import (MATERIALS, OFF, ON1, ON2, ROLES, Layer, LayerPaths,  # noqa: F401
-                         Region, Stack, Toolpath, Toolpaths, arc_lengths, closed_polyline,
-                         deposition_state, mean_width, offsets, path_lengths, point_states,
-                         split_rows)
+                         Region, Stack, Toolpath, Toolpaths, arc_lengths, area_text,
+                         closed_polyline, deposition_state, mean_width, offsets, path_lengths,
+                         point_states, split_rows)
 from icefab.workload import check_paths
 
 log = logging.getLogger(__name__)
@@ -1924,16 +1924,6 @@ def iter_plan_paths_packed(stack: Stack, job: Job | None = None, *,
         flags = [None] * len(stack.layers)
     return parallel_imap(_plan_task, [(layer, job, m) for layer, m in zip(stack.layers, flags)],
                          job, min_items=8, progress=progress)
-
-
-def area_text(mm2: float) -> str:
-    """An area in mm^2 to three significant digits without an exponent ("0.244", "12.5",
-    "1234"): the paths summary printed ".0f", so 0.244 mm^2 read "0" beside the warning's
-    0.244, and the warning's ".3g" read "1.02e+03" (reviews'); exactly 0 stays "0"."""
-    a = float(mm2)
-    if a == 0.0 or not math.isfinite(a):
-        return f"{a:g}"
-    return f"{a:.{max(0, 2 - math.floor(math.log10(abs(a))))}f}"
 
 
 def paths_warnings(stack: Stack, layers: Sequence[LayerPaths | LayerHead]) -> tuple[str, ...]:

@@ -24,7 +24,8 @@ import numpy as np
 
 from icefab.atomic import atomic_path
 from icefab.feedback import simulate_1d
-from icefab.core import LayerPaths, RuledEdges, Stack, Toolpaths, closed_polyline, true_runs
+from icefab.core import (LayerPaths, RuledEdges, Stack, Toolpaths, area_text, closed_polyline,
+                         true_runs)
 
 if TYPE_CHECKING:  # pragma: no cover
     from icefab.config import Job
@@ -303,7 +304,8 @@ def plot_toolpaths(stack: Stack, toolpaths: Toolpaths | Mapping[int, LayerPaths]
             label = f"{material} {role}" if material else role
             ax.add_collection(LineCollection(kinds[(role, material)], label=label, **style))
         ax.set_title(f"layer {k}: z = {layer.z:.2f} mm, {len(lp.paths)} paths, unfilled "
-                     f"{lp.unfilled_mm2[0]:.0f}/{lp.unfilled_mm2[1]:.0f} mm²", fontsize=9)
+                     f"{area_text(lp.unfilled_mm2[0])}/{area_text(lp.unfilled_mm2[1])} mm²",
+                     fontsize=9)
         ax.set_aspect("equal")
         ax.autoscale_view()
         ax.set_xlabel("x (mm)", fontsize=8)

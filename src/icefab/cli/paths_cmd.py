@@ -22,7 +22,7 @@ import numpy as np
 from icefab.cli.common import (ESTIMATE_WORDS, Progress, add_job_argument, command_inputs,
                                hours, job_from_args, layer_list, output_dir, parse_layers,
                                placed_model, warning_lines, write_warnings)
-from icefab.core import DEPOSITING_ROLES, MATERIALS, ROLES
+from icefab.core import DEPOSITING_ROLES, MATERIALS, ROLES, area_text
 from icefab.report import plot_toolpaths
 from icefab.resultfiles import LayerHead, packed_lengths
 
@@ -131,8 +131,6 @@ def _empty_material_warnings(stack, tally: PathTally, job) -> list[str]:
 def summary_lines(layers: Sequence[LayerHead], warnings: Sequence[str],
                   tally: PathTally) -> list[str]:
     """Counts by role and material, length, unfilled area and the time estimate."""
-    from icefab.paths import area_text
-
     per_layer_s = np.array(tally.per_layer, dtype=np.float64)
     lines = [f"layers: {len(layers)}"]
     for key in sorted(tally.counts):
