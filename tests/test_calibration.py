@@ -493,6 +493,10 @@ def test_cli_end_to_end(tmp_path):
     t = truth["part_table"]
     np.testing.assert_allclose(table.flow_mm3_s[1:], np.array(t["flow_mm3_s"])[1:], rtol=0.02)
     assert (tmp_path / "valve" / "valve_part.png").stat().st_size > 1000
+    # every file it wrote is named (it said only the table's)
+    wrote = r.stdout.splitlines()[-1]
+    for name in ("calibration_part.csv", "valve_part.toml", "valve_part.png"):
+        assert name in wrote and (tmp_path / "valve" / name).exists()
     # a bad file: one line naming it and the line, exit 2, nothing written
     (tmp_path / "bad.csv").write_text("frequency_hz,duration_s,mass_g\n100,10,1\n100,x,1\n")
     r = _icefab("calibrate", "valve", "bad.csv", "-o", "v2", cwd=tmp_path)

@@ -175,7 +175,10 @@ def run_valve(args: argparse.Namespace) -> int:
         print(f"note: the flow rises by less than {100 * cal.PLATEAU_RISE:g} % above "
               f"{fit.frequency_hz[-1]:g} Hz (measured up to {top:g} Hz): the valve saturates "
               "there and the table ends there")
-    print(f"wrote {Path(args.out) / name} (materials.{args.material}.calibration_file)")
+    out = Path(args.out)
+    print(f"wrote {out / name} (materials.{args.material}.calibration_file), "
+          f"{out / f'valve_{args.material}.toml'} (the job fragment naming it) and "
+          f"{out / f'valve_{args.material}.png'} (the fit)")
     return 0
 
 
