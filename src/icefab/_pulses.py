@@ -95,3 +95,31 @@ def pwm_widths_us(want_us: np.ndarray, lo_us: float, hi_us: float) -> np.ndarray
         out[k] = got
         carry = want - got - max(w - hi_us, 0.0)
     return out
+
+
+@njit(cache=True, error_model="numpy")
+def sigma_delta_power(want_s: np.ndarray, playable: np.ndarray, shortest_s: float,
+                      s_min: int, s_max: int) -> np.ndarray:
+    """(n,) int64 cutter power S per G-code move, from the power ``want_s`` (n,) float64 in
+    S units (255 x duty) asked per move, with what each move misses carried into the next
+    (:func:`icefab.export.step_power`, which states the rule): a move that may not open
+    (``playable`` False) or asks for nothing gets S0 and passes on what it asked; otherwise
+    a move asking (with the carry) under ``shortest_s / 2`` gets S0, under ``s_min``
+    S``s_min``, else the nearest integer up to ``s_max``."""
+    out = np.zeros(len(want_s), np.int64)
+    carry = 0.0
+    for k in range(len(want_s)):
+        x = want_s[k]
+        if not playable[k] or x <= 1e-6:   # float dust from spreading a pulse opens nothing
+            carry += x
+            continue
+        want = x + carry
+        if want < 0.5 * shortest_s - 1e-6:   # 1e-6: one shortest pulse asked is not under
+            got = 0
+        elif want < s_min:
+            got = s_min
+        else:
+            got = int(min(np.floor(want + 0.5), s_max))
+        out[k] = got
+        carry = want - got
+    return out

@@ -22,12 +22,24 @@ the C40's trigger keeps the valve controller in step with the robot (thesis 2.3.
 * Travel and measurement paths: ``G0`` moves, valve closed (``S0``).
 * Deposition paths: ``G0`` to the first sample, then one ``G1 X Y F S`` per time step
   (:func:`icefab.motion.gcode_moves`): ``F`` the step's length over ``dt`` (mm/min), so
-  each move lasts one time step (thesis 4.3), and ``S`` the valve's duty over that step,
-  0..255: the pulse widths of the path's PWM valve program (:func:`icefab.flow.plan_valves`
-  with ``flow.mode = "pwm"``, thesis 6.1: flow by pulse width at
-  ``flow.pwm_frequency_hz``) falling in the step, over the step's length. Set the
-  machine's cutter PWM frequency (``SPINDLE_LASER_FREQUENCY``) to
-  ``flow.pwm_frequency_hz``. A step at rest is a dwell ``G4 P<ms>`` (valve closed).
+  each move lasts one time step (thesis 4.3), and ``S`` the valve's power over that step,
+  0..255 (:func:`path_power`): the path's PWM valve program (:func:`icefab.flow.plan_valves`
+  with ``flow.mode = "pwm"``, thesis 6.1: flow by pulse width at ``flow.pwm_frequency_hz``)
+  per step, made playable. Set the machine's cutter PWM frequency
+  (``SPINDLE_LASER_FREQUENCY``) to ``flow.pwm_frequency_hz``. A step at rest is a dwell
+  ``G4 P<ms>`` (valve closed).
+* What Marlin does with ``S``: it opens the valve for ``S / 255`` of *every* PWM period
+  the move lasts (``dt / period`` of them: 2 at 16 ms and 125 Hz), not for the valve
+  program's pulses. So ``S`` is 0 or at least ``S_min = ceil(255 x flow.min_pulse_ms /
+  period)`` (16 at 0.5 ms and 8 ms: 0.502 ms a period), never 1..S_min - 1, which would ask
+  the valve for openings shorter than it makes (S8 is 0.25 ms). Where a path's flow asks
+  for less than ``S_min`` per move (slow boundaries), its moves alternate S0 and
+  ``S >= S_min`` with the difference carried along the path (:func:`step_power`), so the
+  volume laid up to any move follows the program's within about half a shortest move
+  (``(S_min + 1) / 2 / 255 x dt`` of opening at most; 0.50 ms, one shortest pulse, at the
+  defaults). What is lost there: the flow's placement finer than one move -- each open
+  move lays at least ``dt / period`` shortest pulses; the findings (:func:`save_gcode`)
+  say on which paths, how far apart their open moves lie and the volume laid.
 * End: ``M5`` (valve off).
 
 **What the machine's Marlin must be built with** for every move to last its one step
@@ -46,7 +58,11 @@ import os
 
 import numpy as np
 
-__all__ = ["save_gcode", "step_duty", "gcode_lines", "check_gcode_robot"]
+__all__ = ["save_gcode", "step_duty", "shortest_power", "min_power", "step_power",
+           "path_power", "power_finding", "gcode_lines", "check_gcode_robot"]
+
+#: Marlin's PWM255 power scale: S0 closed .. S255 open all period
+S_MAX = 255
 
 TOOL_NUMBER = {"part": 0, "scaffold": 1}
 
@@ -85,6 +101,135 @@ def step_duty(trajectory, program, period_s: float | None = None) -> np.ndarray:
     return np.clip(on / dt, 0.0, 1.0)
 
 
+def shortest_power(period_s: float, min_pulse_ms: float) -> float:
+    """S units (of 255, not rounded) of the valve's shortest opening ``min_pulse_ms`` (ms) in
+    a PWM period of ``period_s`` (s): ``255 x min_pulse / period`` (15.94 for 0.5 ms at
+    125 Hz). At most 255: the PWM frequency is at most ``1 / min_pulse_ms``
+    (:func:`icefab.flow.check_flow_settings`)."""
+    return min(S_MAX * min_pulse_ms * 1e-3 / period_s, float(S_MAX))
+
+
+def min_power(period_s: float, min_pulse_ms: float) -> int:
+    """The smallest S (of 255) that opens the valve for at least ``min_pulse_ms`` (ms) in a
+    PWM period of ``period_s`` (s): Marlin opens it ``S / 255 x period_s`` a period, so
+    ``ceil(255 x min_pulse / period)`` (16 for 0.5 ms at 125 Hz: 0.502 ms; 15 gives
+    0.471 ms, under the valve's shortest opening)."""
+    # 1e-9: a ratio whole in exact arithmetic may come out a hair above it in floats
+    return int(np.ceil(shortest_power(period_s, min_pulse_ms) - 1e-9))
+
+
+def step_power(want_s: np.ndarray, moving: np.ndarray, shortest_s: float) -> np.ndarray:
+    """(n,) int64 Marlin power S per move, each 0 or in ``[ceil(shortest_s), 255]``, from
+    the power ``want_s`` (n,) float64 asked per move in S units (255 x the step's duty,
+    :func:`step_duty`; ``shortest_s``: the valve's shortest opening in S units,
+    :func:`shortest_power`), by first-order error diffusion (sigma-delta) along the path,
+    as :func:`icefab.flow._pwm_widths_us` lays widths under the shortest pulse and
+    eq. 6.6 counts FM pulses: what a move is asked plus what the moves before missed (the
+    carry, S units) gives S0 under half the shortest opening, ``S_min = ceil(shortest_s)``
+    under ``S_min``, else its nearest integer, at most 255. A move that does not move
+    (``moving`` False: Marlin dwells there with the valve closed,
+    :func:`icefab.motion.gcode_moves`) or asks for nothing gets S0 and passes its ask on:
+    the valve never opens where the program has no flow (a tour's travel), and the flow
+    asked over a dwell is laid by the moves after it.
+
+    The threshold is half the exact shortest opening, not ``S_min / 2``: at 16 ms moves
+    and 8 ms periods a path the program gives one shortest pulse asks 7.97, and ``S_min``'s
+    ceiling made ``S_min / 2`` 8.0, which dropped every such path. So at every move the
+    power laid so far is within ``[-(S_min - shortest_s / 2), shortest_s / 2]`` of the power
+    asked, inside ``+-(S_min + 1) / 2`` (S units, the integer S steps' rounding included;
+    times ``dt / 255`` s of opening: -0.504..+0.500 ms at 16 ms, 125 Hz and 0.5 ms, one
+    shortest pulse), plus what dwells asked and the moves after them have not laid yet
+    (they fall behind only above duty 1). Sequential (the carry), so compiled."""
+    from icefab._pulses import sigma_delta_power
+
+    want = np.ascontiguousarray(want_s, dtype=np.float64)
+    ok = np.ascontiguousarray(moving, dtype=np.bool_)
+    s_min = int(np.ceil(shortest_s - 1e-9))
+    return sigma_delta_power(want, ok, float(shortest_s), s_min, S_MAX)
+
+
+def _open_gap_mm(trajectory, power: np.ndarray) -> float:
+    """The longest stretch of path, mm, with the valve closed between two moves that open it
+    (0 for fewer than two), within one span of a tour's valve (over its travel the valve is
+    off anyway)."""
+    moved = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(trajectory.xy, axis=0).T))])
+    k = np.flatnonzero(power > 0)
+    if len(k) < 2:
+        return 0.0
+    gaps = moved[k[1:]] - moved[k[:-1] + 1]
+    spans = trajectory.on_spans
+    if spans is not None and len(spans):
+        mid = (k + 0.5) * float(trajectory.dt)
+        span = np.searchsorted(np.asarray(spans)[:, 0], mid, side="right")
+        gaps = gaps[span[1:] == span[:-1]]
+    return float(gaps.max()) if len(gaps) else 0.0
+
+
+def path_power(trajectory, program, material: str, job) -> tuple[np.ndarray, list[str]]:
+    """Marlin's power per time step of a deposition ``trajectory`` under its PWM valve
+    ``program`` (``job`` in PWM mode, :func:`gcode_job`) and the findings where the G-code
+    cannot play the program's flow move by move.
+
+    Returns ``(S (n - 1,) int64, findings)``: S from :func:`step_duty` over the PWM period,
+    made 0 or at least :func:`min_power` by :func:`step_power`; findings, the program's own
+    (``program.warnings``, the valve's limits as ``icefab valves`` reports them) and
+    :func:`power_finding`'s."""
+    fl = job.flow
+    period = 1.0 / fl.pwm_frequency_hz
+    want = S_MAX * step_duty(trajectory, program, period)
+    moving = np.hypot(*np.diff(trajectory.xy, axis=0).T) > 0.0
+    power = step_power(want, moving, shortest_power(period, fl.min_pulse_ms))
+    found = power_finding(trajectory, program, want, moving, power, material, job)
+    return power, list(program.warnings) + ([found] if found else [])
+
+
+def power_finding(trajectory, program, want_s: np.ndarray, moving: np.ndarray,
+                  power: np.ndarray, material: str, job) -> str:
+    """The finding ('' for none) where the G-code's ``power`` (n - 1,) S per step cannot play
+    the PWM valve ``program``'s flow move by move (:func:`path_power`): the moves that ask
+    (``want_s``, S units) for less than the shortest opening and how far apart the open
+    moves then lie, steps at rest (``moving`` False) that asked for flow, and the volume the
+    G-code lays against the program's, mm^3 (on-time x the calibration's flow fully open at
+    the PWM frequency, as :func:`icefab.flow._pwm` scales pulse widths) -- also alone when
+    it lies beyond :func:`step_power`'s bound."""
+    from icefab import flow
+
+    fl = job.flow
+    period = 1.0 / fl.pwm_frequency_hz
+    dt = float(trajectory.dt)
+    s_min = min_power(period, fl.min_pulse_ms)
+    asks = want_s > 1e-6
+    low = int(np.count_nonzero(asks & moving
+                               & (want_s < shortest_power(period, fl.min_pulse_ms) - 1e-6)))
+    resting = int(np.count_nonzero(asks & ~moving))
+    # S units x dt / 255 is seconds open; the program's pulses (whole us) are its on-time
+    asked_s = sum(float(p.widths_us.astype(np.float64).sum()) * 1e-6
+                  for p in flow.program_pieces(program) if p.widths_us is not None)
+    laid_s = float(power.sum()) * dt / S_MAX
+    off = abs(laid_s - asked_s) > (0.5 * (s_min + 1) + 1e-6) * dt / S_MAX
+    if not (low or resting or off):
+        return ""
+    cal = flow.calibration_for(material, job)
+    open_mm3_s = float(cal.flow(np.array([fl.pwm_frequency_hz]))[0]) / fl.pwm_frequency_hz \
+        / (fl.calibration_pulse_ms * 1e-3)
+    p = trajectory.path
+    where = f"layer {p.layer} {p.material} {p.role} path" if p is not None else "trajectory"
+    parts = []
+    if low:
+        parts.append(f"{low} of {int(np.count_nonzero(asks & moving))} moves ask the valve "
+                     f"for less than flow.min_pulse_ms = {fl.min_pulse_ms:g} ms a "
+                     f"{period * 1e3:g} ms PWM period (under S{s_min}): laid as S0 and "
+                     f"S{s_min}+ moves, open moves up to {_open_gap_mm(trajectory, power):.2f}"
+                     f" mm apart (path width {getattr(p, 'width', float('nan')):.3g} mm)")
+    if resting:
+        parts.append(f"{resting} step{'s' if resting != 1 else ''} at rest ask"
+                     f"{'' if resting != 1 else 's'} for flow (G4, valve closed): laid by the "
+                     "moves after")
+    return (f"{where}: G-code at {dt * 1e3:g} ms a move: " + "; ".join(parts)
+            + ("; " if parts else "") + "against the valve program, "
+            + flow._volume_error(laid_s * open_mm3_s, asked_s * open_mm3_s))
+
+
 def check_gcode_robot(robot: str, what: str, *, planning: bool = False) -> None:
     """Refuse G-code from trajectories planned for another robot than a gantry.
 
@@ -120,9 +265,11 @@ def gcode_job(job, what: str):
                           f"and this job's PWM settings do not hold: {exc}") from None
 
 
-def gcode_lines(motion, job=None):
+def gcode_lines(motion, job=None, findings: list | None = None):
     """The G-code of a BuildMotion planned for a gantry, line by line (see the module
-    docstring; :func:`check_gcode_robot`)."""
+    docstring; :func:`check_gcode_robot`). findings: a list to which each deposition path's
+    findings (:func:`path_power`) are appended as ``(layer index, text)`` pairs, for
+    :func:`icefab.flow.summarise_findings`."""
     from icefab import flow
     from icefab.motion import gcode_moves
 
@@ -135,6 +282,10 @@ def gcode_lines(motion, job=None):
            "X, Y: carriage (base frame), mm; F: mm/min; T0 part, T1 scaffold")
     yield (f"; every move lasts dt: needs DEFAULT_MINSEGMENTTIME <= "
            f"{job.motion.dt_s * 1e6:.0f} us, MIN_STEPS_PER_SEGMENT 1, SLOWDOWN off")
+    period = 1.0 / pwm.flow.pwm_frequency_hz
+    yield (f"; S: 0 (closed) or S{min_power(period, pwm.flow.min_pulse_ms)}..255, the valve "
+           f"open S/255 of each {period * 1e3:g} ms period, at least its "
+           f"{pwm.flow.min_pulse_ms:g} ms shortest opening")
     rapid = 60.0 * job.motion.travel_speed_mm_s
     yield "G21"
     yield "G90"
@@ -166,18 +317,25 @@ def gcode_lines(motion, job=None):
                 tool = p.material
                 yield f"T{TOOL_NUMBER[tool]} S1"
             prog = flow.plan_valves(tr, p.material, pwm)
-            s = np.rint(255.0 * step_duty(tr, prog, 1.0 / pwm.flow.pwm_frequency_hz)
-                        ).astype(np.int64)
+            s, found = path_power(tr, prog, p.material, pwm)
+            if findings is not None:
+                findings.extend((lm.index, text) for text in found)
             moves = gcode_moves(tr, power=s, dwell=True, rapid_mm_min=rapid)
             yield moves[0] + " S0"   # the G0 to the path's start, valve closed
             yield from moves[1:]
     yield "M5"
 
 
-def save_gcode(motion, path: str | os.PathLike, job=None) -> None:
-    """Write :func:`gcode_lines` to ``path`` atomically (``icefab plan --gcode``)."""
+def save_gcode(motion, path: str | os.PathLike, job=None) -> list[str]:
+    """Write :func:`gcode_lines` to ``path`` atomically (``icefab plan --gcode``, ``icefab
+    export gcode``). Returns the paths' findings condensed one line per kind
+    (:func:`icefab.flow.summarise_findings`; empty when the G-code plays every path's valve
+    program move by move)."""
     from icefab.atomic import atomic_path
+    from icefab.flow import summarise_findings
 
+    found: list[tuple[int, str]] = []
     with atomic_path(path, suffix=".gcode") as tmp, open(tmp, "w", encoding="utf-8") as fh:
-        for line in gcode_lines(motion, job):
+        for line in gcode_lines(motion, job, found):
             fh.write(line + "\n")
+    return summarise_findings(found)

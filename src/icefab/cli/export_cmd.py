@@ -137,10 +137,12 @@ def run_gcode(args: argparse.Namespace) -> int:
     if not motion.layers:   # a file of no moves, exit 0 (hunt W); 'export ruled' refuses too
         raise ConfigError(f"{src}: holds no layers: no G-code to write")
     with output_dir(args.out, "export-gcode") as tmp:
-        save_gcode(motion, tmp / "trajectories.gcode")
+        found = save_gcode(motion, tmp / "trajectories.gcode")
     n = len(motion.layers)
     print(f"wrote {args.out}/trajectories.gcode (Marlin, {n} layer{'s' if n != 1 else ''}, "
           f"{motion.duration:.1f} s of motion)")
+    for line in found:   # one per kind of valve limit, as 'export vplus' warns: on stderr
+        print(f"warning: {line}", file=sys.stderr)
     return 0
 
 

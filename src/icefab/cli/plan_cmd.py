@@ -16,8 +16,11 @@ everything worked; every file is written in a temporary folder first):
   boundaries 25 mm/s, fill 125 mm/s) planned with the robot's accelerations
   (``icefab.motion.constant_speed_time``) and the idealised length / speed estimate
   (``icefab.paths.estimate_build_time``), points, paths and computing time; also printed;
-* with ``--gcode``: ``trajectories.gcode`` — G-code for gantry-style machines
-  (``icefab.export.save_gcode``: Marlin, valve duty inline, format in its docstring);
+* with ``--gcode``: ``trajectories.gcode`` — the whole Marlin program for a gantry, the
+  same file as ``icefab export gcode`` writes (``icefab.export.save_gcode``, format in its
+  docstring: ``G1 X Y F S`` per time step with the valve's PWM duty inline, ``T0``/``T1``
+  material changes, ``G0`` travel with the valve closed); where it cannot play a path's
+  valve program move by move, the summary's warnings say so;
 * with ``--constant-spacing MM``: ``constant_spacing.npz`` — constant point spacing and
   variable duration (``icefab.motion.save_constant_spacing``, format in its docstring).
 """
@@ -61,9 +64,12 @@ def add_parser(subparsers) -> None:
     p.add_argument("--no-jerk", action="store_true",
                    help="switch the jerk bounds off (motion.jerk_limited = false)")
     p.add_argument("--gcode", action="store_true",
-                   help="also write OUT/trajectories.gcode: G1 X Y F moves per sample with "
-                        "feedrates in mm/min (each move lasts one time step), for "
-                        "gantry-style machines")
+                   help="also write OUT/trajectories.gcode, the same file as 'icefab "
+                        "export gcode': a whole Marlin program for a gantry (job "
+                        "[cell] robot = \"gantry\"), G1 X Y F S per time step (F mm/min, "
+                        "each move lasting one step; S the valve's PWM duty, 0 or at least "
+                        "flow.min_pulse_ms a period), T0/T1 material changes, G0 travel with "
+                        "the valve closed; the Marlin build it needs is in its header")
     p.add_argument("--constant-spacing", type=float, metavar="MM", default=None,
                    help="also write OUT/constant_spacing.npz: points every MM mm along each "
                         "trajectory with the duration from each point to the next")
@@ -197,16 +203,19 @@ def run(args: argparse.Namespace) -> int:
         vmax = job.motion.speed_mm_s
         for k in ks:
             plot_speed(pictured[k], tmp / f"speed_layer_{pictured[k].index}.png", vmax, job)
-        (tmp / "plan-summary.txt").write_text("\n".join(lines) + "\n", encoding="utf-8")
         extra = []
         if getattr(args, "gcode", False) or spacing is not None:
             with TrajectoryFile(tmp / "trajectories.npz") as motion:  # read back a block at a time
                 if getattr(args, "gcode", False):
-                    save_gcode(motion, tmp / "trajectories.gcode")
+                    # before the summary is written: it says where the G-code cannot play
+                    # a path's valve program move by move
+                    found = save_gcode(motion, tmp / "trajectories.gcode")
+                    lines += [f"warning: G-code: {line}" for line in found]
                     extra.append("trajectories.gcode")
                 if spacing is not None:
                     save_constant_spacing(motion, spacing, tmp / "constant_spacing.npz")
                     extra.append("constant_spacing.npz")
+        (tmp / "plan-summary.txt").write_text("\n".join(lines) + "\n", encoding="utf-8")
     for line in lines:
         print(line)
     print(f"wrote {args.out}/trajectories.npz, plan-summary.txt"
