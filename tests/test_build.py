@@ -2009,3 +2009,119 @@ def test_a_sigterm_lost_as_the_journal_is_made_stops_the_runner(tmp_path):
         assert st["paths_done"] == 0 and st["state"] != "complete"
     finally:   # the stopped build's virtual cell runs on for a resume
         shutdown_virtual_cell(tmp_path / "b" / bmod.CELL_DIR)
+
+
+def _completed_folder(planned, build: Path, cell: str, n_layers: int = 1) -> None:
+    """A build folder as ``icefab build`` leaves it, built to its end on the model cell in
+    ``build/cell``: job.toml, trajectories.npz (the first ``n_layers``), a journal whose
+    meta names ``cell`` ("virtual" or an endpoints file) and the files' digests."""
+    from icefab.journal import digest_file
+    from icefab.motion import load_trajectories, open_trajectories, save_trajectories
+
+    whole = load_trajectories(planned)
+    build.mkdir()
+    (build / "job.toml").write_text(to_toml(whole.job))
+    save_trajectories(dataclasses.replace(whole, layers=whole.layers[:n_layers]),
+                      build / bmod.TRAJECTORIES)
+    motion = open_trajectories(build / bmod.TRAJECTORIES)
+    model = _prepared(build, motion, whole.job)
+    journal = Journal.create(build / bmod.JOURNAL, {
+        "cell": cell, "layers": n_layers,
+        "layer_indices": [int(lm.index) for lm in motion.layers],
+        "measured_layers": [int(lm.index) for lm in motion.layers if bmod.measures(lm)],
+        "digests": {"job": digest_file(build / "job.toml"),
+                    "trajectories": digest_file(build / bmod.TRAJECTORIES)}})
+    try:
+        assert bmod.Runner(build, motion, whole.job, journal, lambda: model).run().state \
+            == "complete"
+    finally:
+        journal.close()
+
+
+def _no_cell(calls: list):
+    """A connector for ``icefab build``'s _connector: every call is recorded, and the cell
+    is gone (as after its process was stopped)."""
+    def connector(*a, **k):
+        def connect():
+            calls.append(True)
+            raise CellError("no cell endpoints file (the cell is gone)")
+        return connect
+    return connector
+
+
+def test_a_resume_of_a_complete_build_has_nothing_to_do(planned, tmp_path, capsys,
+                                                        monkeypatch):
+    """A resume of a completed build, its cell gone: it waited out 20 link faults for that
+    cell and, stopped, turned the status from "complete" into "stopped" (a reviewer's).
+    It says the build is complete and leaves journal, status and report as they were,
+    without a link to any cell."""
+    from icefab.cli import build_cmd, main
+
+    build = tmp_path / "b"
+    _completed_folder(planned, build, str(tmp_path / "gone" / "endpoints.json"))
+    before = {f: (build / f).read_bytes() for f in (bmod.STATUS, bmod.REPORT)}
+    j = Journal.open(build / bmod.JOURNAL)
+    events = j.events()
+    j.close()
+    calls: list = []
+    monkeypatch.setattr(build_cmd, "_connector", _no_cell(calls))
+    monkeypatch.setattr(bmod.Runner, "FAULT_BACKOFF_S", (0.0, 0.0))
+    assert main(["build", "--resume", str(build)]) == 0
+    out, err = capsys.readouterr()
+    assert out == f"{build}: build complete, nothing to resume ('icefab build --status " \
+        f"{build}')\n" and err == "", err
+    assert calls == []
+    assert {f: (build / f).read_bytes() for f in before} == before
+    j = Journal.open(build / bmod.JOURNAL)
+    assert j.events() == events
+    j.close()
+
+
+def test_a_runner_whose_journal_has_every_layer_finished_needs_no_cell(planned, tmp_path):
+    """A build killed after its last layer, before it journaled "complete": the runner has
+    nothing to send and completes without a link (it waited for a cell that may be gone)."""
+    from icefab.motion import open_trajectories
+
+    build = tmp_path / "b"
+    _completed_folder(planned, build, "virtual")
+    motion = open_trajectories(build / bmod.TRAJECTORIES)
+    calls: list = []
+    journal = Journal.open(build / bmod.JOURNAL)
+    try:
+        p = bmod.Runner(build, motion, motion.job, journal, _no_cell(calls)(),
+                        max_faults=0).run()
+    finally:
+        journal.close()
+    assert p.state == "complete" and calls == []
+
+
+@pytest.mark.parametrize("argv, said", [
+    (["--resume", "b", "--virtual"], "b was built on the cell of "),
+    (["--status", "b", "--virtual"], "--status BUILD takes none of --virtual: "),
+    (["--status", "b", "in.npz", "--layers", "2"], "--status BUILD takes none of INPUT, "
+                                                    "--layers: "),
+    (["--stop", "b", "--cell", "ep.json", "-o", "c"], "--stop BUILD takes none of -o, "
+                                                      "--cell: "),
+    (["--stop", "b", "-c", "job.toml"], "--stop BUILD takes none of -c: "),
+])
+def test_options_a_resume_status_or_stop_would_ignore_are_refused(planned, tmp_path, capsys,
+                                                                  monkeypatch, argv, said):
+    """--virtual on the resume of a build on another cell, and a new build's options with
+    --status and --stop, did nothing without a word (a reviewer's --resume --virtual went
+    to the build's own cell): one line, exit 2, nothing sent, nothing written."""
+    from icefab.cli import build_cmd, main
+
+    _completed_folder(planned, tmp_path / "b", str(tmp_path / "gone" / "endpoints.json"))
+    (tmp_path / "b" / bmod.STATUS).write_text(json.dumps(dict(json.loads(
+        (tmp_path / "b" / bmod.STATUS).read_text()), state="stopped")))  # it would resume
+    before = sorted(p.name for p in (tmp_path / "b").iterdir())
+    calls: list = []
+    monkeypatch.setattr(build_cmd, "_connector", _no_cell(calls))
+    monkeypatch.setattr(bmod.Runner, "FAULT_BACKOFF_S", (0.0, 0.0))
+    monkeypatch.chdir(tmp_path)
+    assert main(["build", *argv]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err.startswith(f"icefab build: error: {said}"), err
+    assert err.count("\n") == 1 and calls == []
+    assert sorted(p.name for p in (tmp_path / "b").iterdir()) == before
+

@@ -8,11 +8,15 @@
   ``--cell ENDPOINTS`` uses a cell already running (its ``endpoints.json``).
 * ``icefab build --resume BUILD``: after a crash, power cut, ``--stop`` or Ctrl-C:
   reconnect, ask the cell what it completed, carry on so that every path is deposited
-  exactly once.
+  exactly once. A complete build: nothing to resume (exit 0, nothing contacted or
+  written). INPUT and ``-c JOB`` are checked against the journal's digests; ``--cell``
+  names the build's cell's endpoints anew; ``--virtual`` only on a virtual build (whose
+  resume restarts its virtual cell); ``--layers`` is refused.
 * ``icefab build --status BUILD [--json]``; ``icefab build --stop BUILD`` (valves off
   first, robot to its safe point, journaled); Ctrl-C does the same.
 
-Refused before anything moves (exit 2, one line): a BUILD that holds a journal already
+Refused before anything moves (exit 2, one line): options of a new build or a resume
+with ``--status`` or ``--stop``, a BUILD that holds a journal already
 (resume it), inputs or job changed since the journal (digests), a part taller than the
 vertical stroke (210 mm) or out of reach (checked when planning), a cell that does not
 answer its handshake. Files: :mod:`icefab.build`.
@@ -75,6 +79,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.json and not args.status:   # it was ignored (a docs hunt's)
         raise ConfigError("--json goes with --status BUILD")
+    if args.status or args.stop:
+        mode = "--status" if args.status else "--stop"
+        extra = _new_build_options(args)
+        if extra:   # they were ignored without a word (a reviewer's)
+            raise ConfigError(f"{mode} BUILD takes none of {', '.join(extra)}: they "
+                              "start a build or resume one")
     if args.status:
         return _status(Path(args.status), args.json)
     if args.stop:
@@ -109,6 +119,35 @@ def run(args: argparse.Namespace) -> int:
 
 
 # --------------------------------------------------------------------------- helpers
+
+
+def _new_build_options(args: argparse.Namespace) -> list[str]:
+    """The options given that start or resume a build, as the user typed them (for a
+    refusal where they would do nothing: with --status and --stop)."""
+    given = [("INPUT", bool(args.input)), ("-o", bool(args.out)), ("-c", bool(args.job)),
+             ("--virtual", args.virtual), ("--cell", bool(args.cell)),
+             ("--layers", args.layers is not None),
+             ("--cell-lost-record", args.cell_lost_record)]
+    return [name for name, on in given if on]
+
+
+def resume_cell_refusal(build: Path, journal_cell: str, virtual: bool) -> str | None:
+    """Why ``--resume BUILD --virtual`` cannot be done, or None: a resume goes on on the
+    cell whose platform holds the part. ``journal_cell``: the journal's ``cell`` ("virtual"
+    or the endpoints file the build started with). A virtual build's resume restarts its
+    own virtual cell, so --virtual there says what happens; on any other build it was
+    ignored without a word and the resume went to the build's cell (a reviewer's)."""
+    if not virtual or journal_cell == "virtual":
+        return None
+    return (f"{build} was built on the cell of {journal_cell}: a resume goes on on that "
+            "cell (its platform holds the part), not on a new virtual one; drop --virtual "
+            "(--cell ENDPOINTS if that cell's endpoints file moved)")
+
+
+def journal_complete(journal) -> bool:
+    """Whether the build's journal says it completed (the runner's "complete" event,
+    journaled after its last layer)."""
+    return any(e["kind"] == "complete" for e in journal.events())
 
 
 #: The journal's name for the digest of the valves' calibration tables: the job names
@@ -595,6 +634,17 @@ def _run(build: Path, args: argparse.Namespace, ctl: dict, *, resume: bool) -> i
         if CALIBRATION_DIGEST in meta.get("digests", {}):   # builds started since it is kept
             digests[CALIBRATION_DIGEST] = _calibration_digest(job)
         journal.check_digests(digests)
+        refusal = resume_cell_refusal(build, str(meta.get("cell")), args.virtual)
+        if refusal is not None:
+            journal.close()
+            raise ConfigError(refusal)
+        if journal_complete(journal):
+            # nothing to send: a resume of a complete build waited for its cell (gone
+            # with it) and, stopped, turned "complete" into "stopped" (a reviewer's)
+            journal.close()
+            print(f"{build}: build complete, nothing to resume ('icefab build --status "
+                  f"{build}')")
+            return 0
         motion = open_trajectories(build / bmod.TRAJECTORIES)  # a block at a time
         if args.cell:
             meta["cell"] = str(Path(args.cell).resolve())
