@@ -1979,7 +1979,7 @@ def test_a_sigterm_lost_as_the_journal_is_made_stops_the_runner(tmp_path):
     """A SIGTERM whose Terminated is raised inside a weakref callback is printed as
     "Exception ignored" and lost; lost as the build made its journal (after the last
     progress report), the build ran all its paths and exited 0 (a check's). The runner
-    takes it over: it stops at once, lifting the tool, and says so (143)."""
+    takes it over: it stops at once and says so (143)."""
     (tmp_path / "job.toml").write_text("[parts]\nscale = [0.4, 0.4, 0.4]\n[slicing]\n"
                                        "layer_thickness_mm = 1.0\n[motion]\nspeed_mm_s = 25.0\n")
     (tmp_path / "lost.py").write_text(
@@ -2004,7 +2004,9 @@ def test_a_sigterm_lost_as_the_journal_is_made_stops_the_runner(tmp_path):
         r = subprocess.run([sys.executable, "lost.py"], cwd=tmp_path, capture_output=True,
                            text=True, timeout=300)
         assert r.returncode == 143, r.stderr
-        assert "Exception ignored" in r.stderr and "a stop was asked for" in r.stderr
+        # no path ran on this link, so the cell had nowhere known to lift the tool from
+        assert "Exception ignored" in r.stderr and "SIGTERM received; valves closed, robot " \
+            "stopped where it was (the tool was not lifted)" in r.stderr, r.stderr
         st = json.loads(_icefab("build", "--status", "b", "--json", cwd=tmp_path).stdout)
         assert st["paths_done"] == 0 and st["state"] != "complete"
     finally:   # the stopped build's virtual cell runs on for a resume
@@ -2124,4 +2126,72 @@ def test_options_a_resume_status_or_stop_would_ignore_are_refused(planned, tmp_p
     assert out == "" and err.startswith(f"icefab build: error: {said}"), err
     assert err.count("\n") == 1 and calls == []
     assert sorted(p.name for p in (tmp_path / "b").iterdir()) == before
+
+
+def test_a_stop_says_who_asked_for_it():
+    """Ctrl-C, SIGTERM and 'icefab build --stop' (a request and SIGTERM) all read "a stop
+    was asked for" (a reviewer's)."""
+    from icefab.cli.build_cmd import stop_cause
+
+    assert stop_cause(signal.SIGINT, False) == "Ctrl-C"
+    assert stop_cause(signal.SIGTERM, False) == "SIGTERM received"
+    assert stop_cause(signal.SIGTERM, True) == stop_cause(None, True) \
+        == "'icefab build --stop' asked for it"
+    assert stop_cause(None, False) is None
+
+
+@pytest.mark.parametrize("answer, said", [
+    (20.0, "valves closed, robot stopped, tool lifted 20 mm; resume with"),
+    (0.0, "valves closed, robot stopped where it was (the tool was not lifted); resume"),
+    (CellError("no reply"), "the cell did not answer the stop (no reply): check it; "),
+])
+def test_a_stop_says_what_the_cell_did(planned, tmp_path, answer, said):
+    """The stop's message and journal said "a stop was asked for" and never whether the
+    valves were closed or the tool lifted (a reviewer's): they say who asked and what the
+    cell's stop did, no more."""
+    from icefab.motion import load_trajectories
+
+    motion = load_trajectories(planned)
+    build = tmp_path / "b"
+    model = _prepared(build, motion, motion.job)
+
+    class Stopping:
+        def __getattr__(self, name):
+            return getattr(model, name)
+
+        def stop(self):
+            if isinstance(answer, Exception):
+                raise answer
+            return answer
+
+    journal = Journal.create(build / bmod.JOURNAL, {"digests": {}})
+    polls = iter(range(10 ** 6))
+    runner = bmod.Runner(build, motion, motion.job, journal, lambda: Stopping(),
+                         should_stop=lambda: next(polls) == 3 and "Ctrl-C")
+    try:
+        with pytest.raises(bmod.BuildStopped) as err:
+            runner.run()
+        texts = [e["text"] for e in journal.events() if e["kind"] == "stop"]
+    finally:
+        journal.close()
+    assert re.fullmatch(rf"stopped at layer \d+: Ctrl-C; {re.escape(said)}.*", str(err.value))
+    assert f"Ctrl-C; {said.split('; ')[0]}" in texts[-1]
+
+
+def test_a_stop_while_the_link_is_down_says_the_cell_was_not_told(planned, tmp_path):
+    from icefab.motion import load_trajectories
+
+    motion = load_trajectories(planned)
+    build = tmp_path / "b"
+    cell = OutageCell(_prepared(build, motion, motion.job), at={5}, length=100)
+    journal = Journal.create(build / bmod.JOURNAL, {"digests": {}})
+    runner = bmod.Runner(build, motion, motion.job, journal, lambda: cell, max_faults=20,
+                         should_stop=lambda: bool(runner.progress.waiting) and "Ctrl-C")
+    try:
+        with pytest.raises(bmod.BuildStopped) as err:
+            runner.run()
+    finally:
+        journal.close()
+    assert "Ctrl-C while the build waited for the cell's link; the cell was not told (no " \
+           "link to it then): check it; resume with" in str(err.value)
 

@@ -167,8 +167,9 @@ def test_a_stop_lifts_the_tool_and_the_build_resumes_exactly_once(planned, firmw
         journal = Journal.create(tmp_path / bmod.JOURNAL, {"digests": {}})
         calls = iter(range(10 ** 6))
         runner = bmod.Runner(tmp_path, motion, job, journal, lambda: Watching(c.endpoints, job),
-                             should_stop=lambda: next(calls) == 40)
-        with pytest.raises(bmod.BuildStopped):
+                             should_stop=lambda: next(calls) == 40 and "Ctrl-C")
+        with pytest.raises(bmod.BuildStopped, match=f"Ctrl-C; valves closed, robot stopped, "
+                           f"tool lifted {SAFE_LIFT_MM:g} mm; resume with"):
             runner.run()
         assert runner.cell is None
         (path, seq), = lifts

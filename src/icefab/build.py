@@ -534,9 +534,10 @@ class Runner:
                 first, most = self.FAULT_BACKOFF_S
                 until = time.monotonic() + min(first * 2.0 ** (self.faults - 1), most)
                 while True:
-                    if self.should_stop():
-                        self.stop("a stop was asked for while the build waited for the "
-                                  "cell's link (the cell was not told: check it)")
+                    asked = self.should_stop()
+                    if asked:
+                        self.stop(f"{stop_cause(asked)} while the build waited for the "
+                                  "cell's link")
                     left = until - time.monotonic()
                     if left <= 0:
                         break
@@ -892,24 +893,30 @@ class Runner:
         self.progress.longest_s = float(lm.durations.max(initial=0.0))
 
     def _stop_point(self) -> None:
-        if self.should_stop():
-            self.stop("a stop was asked for")
+        asked = self.should_stop()
+        if asked:
+            self.stop(stop_cause(asked))
 
     def stop(self, why: str) -> None:
         """Valves off first, robot to its safe point (the cell's ``stop``), journaled;
-        then BuildStopped."""
-        try:
-            if self.cell is not None:
-                self.cell.stop()
-        except CellError as exc:
-            self.journal.event("stop", f"the cell did not answer the stop ({exc})",
-                               layer=self.progress.layer)
+        then BuildStopped, saying why (``why``) and what the cell did
+        (:func:`stop_outcome`)."""
+        if self.cell is None:    # between link faults: there is no link to tell it by
+            done = stop_outcome(told=False)
+        else:
+            try:
+                done = stop_outcome(told=True, lifted_mm=self.cell.stop())
+            except CellError as exc:
+                self.journal.event("stop", f"the cell did not answer the stop ({exc})",
+                                   layer=self.progress.layer)
+                done = stop_outcome(told=True, error=str(exc))
         self.journal.event("stop", f"stopped at layer {self.progress.layer} after "
-                           f"{self.progress.paths_done} paths: {why}", layer=self.progress.layer)
+                           f"{self.progress.paths_done} paths: {why}; {done}",
+                           layer=self.progress.layer)
         self.progress.state = "stopped"
         self._report(force=True, measured=True)
-        raise BuildStopped(f"stopped at layer {self.progress.layer}: {why}; resume with "
-                           f"'icefab build --resume {self.dir}'")
+        raise BuildStopped(f"stopped at layer {self.progress.layer}: {why}; {done}; resume "
+                           f"with 'icefab build --resume {self.dir}'")
 
     def fail(self, message: str) -> None:
         """Record that the build ended on an error (journal event, status and report say
@@ -937,6 +944,30 @@ class Runner:
                 self._report_due = True   # drawn once a path runs, not before the first GO
             if self._pictures is not None:
                 write_report(self.dir, self.progress, self.journal, self.job, self._pictures)
+
+
+def stop_cause(asked) -> str:
+    """Why the build stops, from what ``should_stop`` returned: its words when it says
+    who asked (``icefab build``: Ctrl-C, SIGTERM, ``--stop``), else a stop was asked."""
+    return asked if isinstance(asked, str) else "a stop was asked for"
+
+
+def stop_outcome(*, told: bool, lifted_mm: float | None = None,
+                 error: str | None = None) -> str:
+    """What a stop did at the cell, for the stop's message: ``told``, whether there was
+    a link to tell the cell by; ``error``, the cell's failure to answer; ``lifted_mm``,
+    how far the cell's ``stop`` lifted the tool, mm (0: not lifted; None: the cell does
+    not say). Only what was done: the message said "a stop was asked for" and never
+    whether the valves were closed or the tool lifted (a reviewer's)."""
+    if not told:
+        return "the cell was not told (no link to it then): check it"
+    if error is not None:
+        return f"the cell did not answer the stop ({error}): check it"
+    if lifted_mm is None:
+        return "the cell was told to stop (valves off first, then the robot)"
+    if lifted_mm > 0:
+        return f"valves closed, robot stopped, tool lifted {lifted_mm:g} mm"
+    return "valves closed, robot stopped where it was (the tool was not lifted)"
 
 
 # =========================================================================== status, report

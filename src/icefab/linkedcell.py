@@ -325,13 +325,15 @@ class LinkedCell:
                         "since)", seq)
         return np.zeros((0, 4))
 
-    def stop(self) -> None:
+    def stop(self) -> float:
         """Valves off first (every program discarded), then the robot stops at once with
         both triggers off (``AB``: V+ ``BRAKE``) and lifts the tool :data:`SAFE_LIFT_MM`
         straight up from where the last path of this session ended (within
         ``cell.stroke_mm``): a one-point park path (``FLAG_PARK``: the controller does not
         count it as the last path done, so the journal's numbering stays whole), which it
-        reaches at its approach speed (thesis 4.3), clear of the part's top."""
+        reaches at its approach speed (thesis 4.3), clear of the part's top. Returns how
+        far it lifted the tool, mm: 0 with no path of this session to lift from (where
+        the tool is was not known here)."""
         from icefab.cell.robot import RobotPath
 
         links = self._need()
@@ -340,13 +342,14 @@ class LinkedCell:
         finally:
             links.robot.abort()
         if self._last_path is None:
-            return
+            return 0.0
         last = self._last_path
         z = min(float(last.z_mm) + SAFE_LIFT_MM, float(self.job.cell.stroke_mm))
         lift = RobotPath(xy=np.asarray(last.xy[-1:], dtype=np.float64), dt_s=0.01, z_mm=z,
                          flags=rp.FLAG_PARK, tool="none", width_mm=0.0,
                          layer=int(last.layer), index=0)
         links.robot.run(lift, self.timeout_s + 30.0)
+        return z - float(last.z_mm)
 
 
 # =========================================================================== the process

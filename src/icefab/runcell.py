@@ -118,9 +118,10 @@ class Cell(Protocol):
 
     def laser_samples(self, seq: int, path: CellPath) -> np.ndarray: ...
 
-    def stop(self) -> None:
+    def stop(self) -> float | None:
         """Valves off first, then the robot stops and retracts to a safe point above the
-        part (a motion that does not count as a path done)."""
+        part (a motion that does not count as a path done). Returns how far it lifted the
+        tool, mm (0: not lifted), or None when the cell does not say."""
         ...
 
     def close(self) -> None:

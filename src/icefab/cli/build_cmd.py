@@ -144,6 +144,20 @@ def resume_cell_refusal(build: Path, journal_cell: str, virtual: bool) -> str | 
             "(--cell ENDPOINTS if that cell's endpoints file moved)")
 
 
+def stop_cause(signum: int | None, requested: bool) -> str | None:
+    """Who asked the build to stop, in its stop's words, or None when no one did:
+    ``requested`` (``BUILD/stop.request``) is ``icefab build --stop``'s, which sends
+    SIGTERM too; ``signum`` the signal the build caught (SIGINT: Ctrl-C). The stop said
+    "a stop was asked for" to all three alike (a reviewer's)."""
+    if requested:
+        return "'icefab build --stop' asked for it"
+    if signum == signal.SIGINT:
+        return "Ctrl-C"
+    if signum is not None:
+        return f"{signal.Signals(signum).name} received"
+    return None
+
+
 def journal_complete(journal) -> bool:
     """Whether the build's journal says it completed (the runner's "complete" event,
     journaled after its last layer)."""
@@ -765,8 +779,8 @@ def _run(build: Path, args: argparse.Namespace, ctl: dict, *, resume: bool) -> i
         sys.stderr.flush()
 
     runner = bmod.Runner(build, motion, job, journal, connect, on_progress=on_progress,
-                         should_stop=lambda: ctl["signal"] is not None
-                         or (build / bmod.STOP_REQUEST).exists(),
+                         should_stop=lambda: stop_cause(
+                             ctl["signal"], (build / bmod.STOP_REQUEST).exists()),
                          accept_cell_reset=args.cell_lost_record)
     cdir = build / bmod.CELL_DIR
     # a resume whose virtual cell has no surface starts a new one: if the runner then
