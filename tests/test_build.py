@@ -2195,3 +2195,50 @@ def test_a_stop_while_the_link_is_down_says_the_cell_was_not_told(planned, tmp_p
     assert "Ctrl-C while the build waited for the cell's link; the cell was not told (no " \
            "link to it then): check it; resume with" in str(err.value)
 
+
+def test_the_eta_is_labelled_and_follows_the_pace_so_far():
+    """The ETA was the planned motion time left read as wall time: 0:40:00 for a
+    virtual-cell build that took 92 s (a reviewer's). Labelled so until this run's pace
+    (wall s per planned s) is known, then at that pace with the planned motion beside."""
+    assert bmod.pace_eta_s(2400.0, 60.0, 3.0) == pytest.approx(120.0)
+    assert bmod.pace_eta_s(2400.0, bmod.PACE_MIN_RAN_S / 2, 3.0) is None   # too early
+    assert bmod.pace_eta_s(2400.0, float("nan"), float("nan")) is None     # not begun
+    assert bmod.eta_text(2400.0, None) == "ETA 0:40:00 (planned motion)"
+    assert bmod.eta_text(2400.0, 92.0) == "ETA 0:01:32 (pace so far; planned motion 0:40:00)"
+    p = bmod.Progress(remaining_s=2400.0, pace_since=100.0, pace_left0_s=2460.0)
+    assert p.eta_wall_s(now=103.0) == pytest.approx(120.0)
+    p.state = "stopped"
+    assert p.eta_wall_s(now=103.0) is None
+
+
+def test_a_build_on_a_fast_cell_says_its_eta_at_its_pace(planned, tmp_path, capsys):
+    """The model cell runs faster than real time: once 10 s of planned motion ran, the
+    console line and status.json give the ETA at that pace, below the planned motion
+    left; --status of the build, ended, labels the planned motion as such."""
+    from icefab.cli.build_cmd import _status
+    from icefab.motion import load_trajectories
+
+    motion = load_trajectories(planned)
+    build = tmp_path / "b"
+    cell = _prepared(build, motion, motion.job)
+    journal = Journal.create(build / bmod.JOURNAL, {"digests": {}})
+    lines, statuses = [], []
+
+    def seen(p):
+        lines.append(bmod.progress_line(p))
+        if (build / bmod.STATUS).exists():
+            statuses.append(json.loads((build / bmod.STATUS).read_text()))
+
+    try:
+        bmod.Runner(build, motion, motion.job, journal, lambda: cell, on_progress=seen).run()
+    finally:
+        journal.close()
+    assert lines[0].endswith("(planned motion), last RMS -")
+    paced = [s for s in statuses if s["state"] == "running" and s["eta_wall_s"] is not None]
+    assert paced and all(s["eta_wall_s"] <= max(s["eta_s"], 0.0) for s in paced), [
+        (s["eta_wall_s"], s["eta_s"]) for s in paced]
+    assert any(s["eta_wall_s"] < 0.5 * s["eta_s"] for s in paced), paced
+    assert tuple(statuses[-1]) == bmod.STATUS_KEYS
+    assert any("(pace so far; planned motion " in line for line in lines)
+    assert _status(build, as_json=False) == 0
+    assert "ETA 0:00:00 (planned motion)" in capsys.readouterr().out

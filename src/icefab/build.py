@@ -291,6 +291,35 @@ class Progress:
     rms: list = field(default_factory=list)   # (layer, nominal z, measured RMS)
     waiting: str = ""           # the link fault the build is waiting out ("" when none)
     longest_s: float = 0.0      # the current layer's longest path, s (see UPDATE_MARGIN_S)
+    # this run's pace (eta_wall_s): when it began (time.monotonic(), s) and the planned
+    # motion left then, s; NaN until the runner has its link
+    pace_since: float = float("nan")
+    pace_left0_s: float = float("nan")
+
+    def eta_wall_s(self, now: float | None = None) -> float | None:
+        """Wall time left, s, at the pace this run has kept (:func:`pace_eta_s`); None
+        when not running or too early to tell. ``now``: time.monotonic()."""
+        if self.state != "running":
+            return None
+        now = time.monotonic() if now is None else now
+        return pace_eta_s(self.remaining_s, self.pace_left0_s - self.remaining_s,
+                          now - self.pace_since)
+
+
+#: Planned motion, s, a run must have done before its pace gives an ETA: one path's pace
+#: (its upload, a layer's end between) says little of the next hour's.
+PACE_MIN_RAN_S = 10.0
+
+
+def pace_eta_s(left_s: float, ran_s: float, wall_s: float,
+               min_ran_s: float = PACE_MIN_RAN_S) -> float | None:
+    """Wall time left, s: ``left_s`` s of planned motion at the ``wall_s`` wall seconds
+    that ``ran_s`` s of planned motion took so far. The planned motion time read as wall
+    time said 0:40:00 for a virtual-cell build that took 92 s (a reviewer's); a real cell
+    adds its uploads, layer ends and SMF updates. None before ``min_ran_s`` s ran."""
+    if not ran_s >= min_ran_s or not wall_s > 0.0:   # NaN too: no pace yet
+        return None
+    return max(left_s, 0.0) * wall_s / ran_s   # float sums leave -1e-13 s at the end
 
 
 def measures(lm: "LayerMotion") -> bool:
@@ -645,6 +674,8 @@ class Runner:
             # cell's record is in (it said "paths 30/164, ETA" of the whole layer: a hunt's)
             ran0 = _ran_s(self.journal, self.motion.layers[j0])
             p.remaining_s -= ran0
+        # this run's pace from here: linked, what ran before it not counted
+        p.pace_since, p.pace_left0_s = time.monotonic(), p.remaining_s
         # running from here on for 'icefab build --stop': without it a stop asked during
         # the first path found no status, told the cell directly, and the build ran on
         self._report(force=True)
@@ -975,9 +1006,14 @@ def stop_outcome(*, told: bool, lifted_mm: float | None = None,
 
 #: The keys of ``status.json`` and of ``icefab build --status --json``, in every state
 #: (preparing: null where not known yet; state one of preparing, running, stopped,
-#: interrupted, failed, complete).
+#: interrupted, failed, complete). ``eta_s``: the planned motion time left, s (not wall
+#: time: a virtual cell runs faster, a real one adds uploads, layer ends and SMF
+#: updates); ``eta_wall_s``: the wall time left at this run's pace so far, s
+#: (:func:`pace_eta_s`; null until it ran PACE_MIN_RAN_S of planned motion, and when not
+#: running).
 STATUS_KEYS = ("state", "pid", "time", "update_by", "layer", "layers_done", "layers",
-               "paths_done", "paths", "eta_s", "last_rms_mm", "rms", "waiting", "events")
+               "paths_done", "paths", "eta_s", "eta_wall_s", "last_rms_mm", "rms", "waiting",
+               "events")
 
 #: A running build writes its status again within twice the current layer's longest path
 #: (a path's wait on the cell times out at 1.5 times its length plus 10 s, and the fault
@@ -996,6 +1032,7 @@ def status_dict(progress: Progress, journal: Journal) -> dict:
             "layer": progress.layer, "layers_done": progress.layer_pos,
             "layers": progress.layers, "paths_done": progress.paths_done,
             "paths": progress.paths, "eta_s": progress.remaining_s,
+            "eta_wall_s": progress.eta_wall_s(),
             "last_rms_mm": None if not math.isfinite(progress.last_rms_mm)
             else progress.last_rms_mm,
             "rms": [{"layer": int(a), "nominal_z_mm": float(b),
@@ -1017,6 +1054,15 @@ def format_eta(seconds: float) -> str:
     return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}"
 
 
+def eta_text(planned_s: float, wall_s: float | None) -> str:
+    """The ETA as the console, ``--status`` and the report say it: at this run's pace
+    (``wall_s``, s) with the planned motion left (``planned_s``, s) beside it, or the
+    planned motion alone, labelled so (it read as wall time: a reviewer's)."""
+    if wall_s is None:
+        return f"ETA {format_eta(planned_s)} (planned motion)"
+    return f"ETA {format_eta(wall_s)} (pace so far; planned motion {format_eta(planned_s)})"
+
+
 def layer_place(layer: int, layers_done: int, layers: int) -> str:
     """"8 (9 of 12)": the layer's index, as every other message names layers (the stop's
     "stopped at layer 8"), and its place in the build, counted from 1."""
@@ -1027,7 +1073,7 @@ def progress_line(p: Progress) -> str:
     rms = f"{p.last_rms_mm:.3f} mm" if math.isfinite(p.last_rms_mm) else "-"
     wait = f"; waiting for the cell ({p.waiting})" if p.waiting else ""
     return (f"layer {layer_place(p.layer, p.layer_pos, p.layers)}, paths {p.paths_done}/"
-            f"{p.paths}, ETA {format_eta(p.remaining_s)}, last RMS {rms}{wait}")
+            f"{p.paths}, {eta_text(p.remaining_s, p.eta_wall_s())}, last RMS {rms}{wait}")
 
 
 def report_pictures(progress: Progress, journal: Journal, job: "Job") -> tuple[str, str]:
@@ -1107,6 +1153,8 @@ def write_report(build_dir: Path, progress: Progress, journal: Journal, job: "Jo
             ("layer", layer_place(progress.layer, progress.layer_pos, progress.layers)),
             ("paths", f"{progress.paths_done} of {progress.paths}"),
             ("ETA (planned motion)", format_eta(progress.remaining_s)),
+            *([("ETA (pace so far)", format_eta(st["eta_wall_s"]))]
+              if st["eta_wall_s"] is not None else []),
             ("last RMS (mm)", "-" if st["last_rms_mm"] is None
              else f"{st['last_rms_mm']:.4f}"),
             ("updated", time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(st["time"]))),

@@ -898,6 +898,7 @@ def _status(build: Path, as_json: bool) -> int:
     if st["state"] == "running" and not alive:
         st["state"] = "interrupted"   # a token for programs; the line says what to do
         st["update_by"] = None        # no update comes
+        st["eta_wall_s"] = None       # no pace: nothing runs
         # status.json is written at most once a second: the journal is the record of what
         # was done (a killed build's status said 38 paths where 66 were done)
         journal = Journal.open(build / bmod.JOURNAL)
@@ -924,8 +925,8 @@ def _status(build: Path, as_json: bool) -> int:
     state = st["state"] + (" (resume with --resume)" if st["state"] == "interrupted" else "")
     print(f"{build}: {state}; "
           f"layer {bmod.layer_place(st['layer'], st['layers_done'], st['layers'])}, paths "
-          f"{st['paths_done']}/{st['paths']}, ETA "
-          f"{bmod.format_eta(st['eta_s'])}, last RMS {rms}")
+          f"{st['paths_done']}/{st['paths']}, "
+          f"{bmod.eta_text(st['eta_s'], st.get('eta_wall_s'))}, last RMS {rms}")
     if st.get("waiting") and alive:
         print(f"  waiting for the cell: {st['waiting']}")
     if alive and st.get("update_by") is not None and time.time() > st["update_by"]:
