@@ -217,6 +217,24 @@ def test_gains_that_make_smf_unstable_are_refused_before_anything_moves(planned,
     assert r.stderr.count("\n") == 1 and not (tmp_path / "u").exists()
 
 
+def test_unstable_gains_are_refused_before_the_part_is_sliced(tmp_path, monkeypatch, capsys):
+    """'icefab build MESH -c unstable.toml' sliced, scaffolded and planned the part before
+    check_build refused the gains (the demo mug: 500 layers; a reviewer's)."""
+    import icefab.cli as cli
+    import icefab.cli.simulate_cmd as simulate_cmd
+
+    def sliced(*args, **kwargs):
+        raise AssertionError("the part was loaded and sliced before the gains were checked")
+
+    monkeypatch.setattr(simulate_cmd, "load_build", sliced)
+    (tmp_path / "wild.toml").write_text("[feedback]\nkp = 1.0\nki = 0.33\nkd = 0.45\n")
+    assert cli.main(["build", "demo", "-o", str(tmp_path / "u"), "--virtual", "-c",
+                     str(tmp_path / "wild.toml")]) == 2
+    err = capsys.readouterr().err
+    assert "make the SMF loop unstable" in err and err.count("\n") == 1
+    assert not (tmp_path / "u").exists()
+
+
 class Crash(BaseException):
     """The control PC dies (not an error the runner handles)."""
 

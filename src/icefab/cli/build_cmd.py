@@ -222,6 +222,13 @@ def _plan(args: argparse.Namespace, out: Path):
                           "adaptive layers, which the build runner does not run yet; "
                           "simulate them ('icefab simulate') or build with "
                           "slicing.cusp_height_mm = 0")
+    from icefab.feedback import gains_verdict
+
+    verdict = gains_verdict(given)
+    if verdict is not None and verdict[0] == "grows":
+        # check_build refuses them too, after slicing, paths and planning (a mug's 500
+        # layers: a user's minute lost); the job's gains are the build's whatever its input
+        raise ConfigError(f"{verdict[1]}; refused before anything moves")
     build, job = load_build(list(args.input), given, ns)
     n = min(args.layers or len(build), len(build))
     if isinstance(build, BuildMotion) and args.job:
