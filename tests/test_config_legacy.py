@@ -188,3 +188,13 @@ def test_switches_accept_only_one_and_zero(tmp_path):
     with pytest.raises(ConfigError, match=r"control.txt:3: inexact option = 2: must be 1 "):
         load_job(write(tmp_path, PAPER_TABLE_1.replace(
             "0	[1/0 (on/off)] inexact option", "2	[1/0 (on/off)] inexact option")))
+
+
+def test_a_toml_job_under_another_name_says_so(tmp_path):
+    """A TOML job named 'fl.json' was read as a legacy control file and refused as
+    "unrecognised control entry '[flow]'" (a reviewer's)."""
+    f = tmp_path / "fl.json"
+    f.write_text('[flow]\nout_of_range = "clamp"\n')
+    with pytest.raises(ConfigError, match=r"fl.json:1: '\[flow\]' is a TOML table: a job "
+                                          r"in TOML must be named '.toml'"):
+        load_job(f)

@@ -1294,6 +1294,11 @@ def load_legacy_control(path: str | Path, text: str | None = None) -> Job:
         if key is None and expect_files > 0 and values:
             key = "files"
         if key is None:
+            if re.fullmatch(r"\s*\[[A-Za-z_][\w.]*\]\s*", line):
+                # a TOML job under another name ('job.txt', 'fl.json') was read as a legacy
+                # control file: "unrecognised control entry '[flow]'" (a reviewer's)
+                raise fail(f"{line.strip()!r} is a TOML table: a job in TOML must be "
+                           "named '.toml' (any other name is read as a legacy control file)")
             raise fail(f"unrecognised control entry {line!r}")
         if key in given_on and key != "files":   # the last one won, unsaid
             raise fail(f"{desc.strip() or key!r} is given twice (line {given_on[key]} too)")
