@@ -1137,10 +1137,19 @@ def load_job(path: str | Path) -> Job:
 
     Raises ConfigError naming the file and line on any problem.
     """
+    return load_named_job(path)[0]
+
+
+def load_named_job(path: str | Path) -> tuple[Job, frozenset[str]]:
+    """:func:`load_job`, and the dotted settings the file names explicitly: a TOML file's
+    keys (a material's ``fill_angle_deg`` names its ``fill_angle_mode`` too: it asks for
+    'fixed'), a legacy control file's entries. The job fills the others with defaults; a
+    command reading a result file lays only the named ones over the job stored in it
+    (:func:`icefab.stages.overlay_job`), so that a job file "names only what differs"."""
     path = Path(path)
     text = read_input_text(path, "job", ConfigError)
     if path.suffix.lower() != ".toml":
-        return load_legacy_control(path, text)
+        return _read_legacy(path, text)
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
@@ -1165,7 +1174,7 @@ def load_job(path: str | Path) -> Job:
     job = dataclasses.replace(job, parts=dataclasses.replace(job.parts, files=files))
     tables = {f"materials.{m}.calibration_file": beside(job.materials[m].calibration_file)
               for m in ("part", "scaffold") if job.materials[m].calibration_file}
-    return job.replace(**tables) if tables else job
+    return (job.replace(**tables) if tables else job), frozenset(_flatten(_angles_given(data)))
 
 
 # --------------------------------------------------------------------------- legacy file
@@ -1231,7 +1240,12 @@ def load_legacy_control(path: str | Path, text: str | None = None) -> Job:
     description is not recognised, and section headings in capitals, are errors and
     skipped respectively. Switch entries ``1/0 a b c`` turn a vector on or off.
     """
-    path = Path(path)
+    return _read_legacy(Path(path), text)[0]
+
+
+def _read_legacy(path: Path, text: str | None) -> tuple[Job, frozenset[str]]:
+    """:func:`load_legacy_control`, and the dotted settings the file's entries set (a
+    vector switched off sets nothing: :func:`load_named_job`)."""
     if text is None:
         text = read_input_text(path, "job", ConfigError, "control file")
     data: dict[str, dict[str, Any]] = {k: {} for k in
@@ -1402,7 +1416,7 @@ def load_legacy_control(path: str | Path, text: str | None = None) -> Job:
     data["materials"] = {k: v for k, v in materials.items() if v}
     data = {k: v for k, v in data.items() if v}
     try:
-        return job_from_dict(data)
+        return job_from_dict(data), frozenset(_flatten(data))
     except ConfigError as exc:
         raise _located(exc, path, lambda name: set_on.get(re.sub(r"\[\d+\]", "", name))
                        ) from None
