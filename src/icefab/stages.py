@@ -17,6 +17,7 @@ May import: ``icefab.config``, ``icefab.errors``.
 from __future__ import annotations
 
 import math
+import re
 from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
@@ -193,6 +194,13 @@ def check_agrees(made: "Job", job: "Job", source: str, remake: str,
     _refuse(diff, source, remake, error)
 
 
+def _quoted(remake: str) -> str:
+    """``remake`` with each command in quotes: "'icefab paths', then 'icefab plan'" (the
+    whole phrase in one pair read as one command); one naming no command, whole."""
+    out = re.sub(r"\bicefab [a-z]+", lambda m: f"'{m.group()}'", remake)
+    return out if out != remake else f"'{remake}'"
+
+
 def _refuse(diff: Sequence[tuple[str, Any, Any]], source: str, remake: str,
             error: type[Exception]) -> None:
     """``error`` naming the first of ``diff`` (setting, file's value, job's value) and
@@ -201,8 +209,8 @@ def _refuse(diff: Sequence[tuple[str, Any, Any]], source: str, remake: str,
         k, va, vb = diff[0]
         more = f" (and {len(diff) - 1} more)" if len(diff) > 1 else ""
         raise error(f"{source} were made with {k} = {va}, the job has {vb}{more}: use "
-                          f"the job they were made with, or make them again with this job "
-                          f"({remake!r})")
+                    f"the job they were made with, or make them again with this job "
+                    f"({_quoted(remake)})")
 
 
 def _adaptive(job: "Job") -> dict[str, Any]:
