@@ -387,8 +387,9 @@ def test_layer_top_is_above_the_cutting_plane(cut, thickness, z, top):
 
 
 def test_planning_toolpaths_for_another_robot_says_so(tmp_path, capsys):
-    # gantry toolpaths planned with a job file that does not name the robot (the default
-    # SCARA): allowed, toolpaths are in the part's frame, but said
+    # gantry toolpaths planned with a job file that names the SCARA: allowed, toolpaths
+    # are in the part's frame, but said. One that does not name the robot keeps the
+    # toolpaths' (it names only what differs; it was planned for the default SCARA)
     from icefab.paths import save_toolpaths
 
     save_toolpaths(_toolpaths(Job().replace(**{"cell.robot": "gantry"})),
@@ -396,5 +397,10 @@ def test_planning_toolpaths_for_another_robot_says_so(tmp_path, capsys):
     (tmp_path / "job.toml").write_text("[cell]\ncpus = 1\n")
     assert main(["plan", str(tmp_path / "tp.npz"), "-c", str(tmp_path / "job.toml"), "-o",
                  str(tmp_path / "out")]) == 0
+    said = capsys.readouterr()
+    assert "(gantry, jerk on)" in said.out and "note:" not in said.err
+    (tmp_path / "scara.toml").write_text('[cell]\ncpus = 1\nrobot = "scara"\n')
+    assert main(["plan", str(tmp_path / "tp.npz"), "-c", str(tmp_path / "scara.toml"), "-o",
+                 str(tmp_path / "out2")]) == 0
     assert ("note: planning for the scara of the job; the toolpaths were made with a "
             "gantry (cell.robot)") in capsys.readouterr().err

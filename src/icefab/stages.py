@@ -9,7 +9,10 @@ benchmarks' caches of stacks and toolpaths. A setting no step's output depends o
 
 What an earlier step decided travels with its output (``Stack.layer_thickness``, the job
 stored in every result file); :func:`check_agrees` turns a contradiction between that and
-the job a later step is given into one error naming the setting and both values.
+the job a later step is given into one error naming the setting and both values. A
+command reading a result file with ``-c JOB`` runs with the file's job overlaid with the
+settings the job file names (:func:`overlay_job`): a named decided setting that differs
+is refused the same way, anything else named applies, nothing unnamed changes.
 
 May import: ``icefab.config``, ``icefab.errors``.
 """
@@ -18,7 +21,7 @@ from __future__ import annotations
 
 import math
 import re
-from typing import TYPE_CHECKING, Any, Sequence
+from typing import TYPE_CHECKING, AbstractSet, Any, Sequence
 
 import numpy as np
 
@@ -184,7 +187,8 @@ def check_agrees(made: "Job", job: "Job", source: str, remake: str,
     two jobs that both measure nothing does not count, nor do the :data:`ADAPTIVE`
     settings of a job with adaptive layers off: it takes the file's (:func:`adopt_layers`;
     a speed-only job was refused for an adaptive stack's layers, thicker than its own
-    default maximum)."""
+    default maximum). For whole jobs (API callers); a command given a job file lays what
+    it names over the file's job instead (:func:`overlay_job`)."""
     fa, fb = _flat(made), _flat(job)
     quiet = {"feedback.interval_layers"} if not (fa["feedback.enabled"]
                                                   or fb["feedback.enabled"]) else set()
@@ -192,6 +196,44 @@ def check_agrees(made: "Job", job: "Job", source: str, remake: str,
         quiet |= set(ADAPTIVE)
     diff = [(k, fa[k], fb[k]) for k in settings if k not in quiet and fa[k] != fb[k]]
     _refuse(diff, source, remake, error)
+
+
+def _moot(fa: dict[str, Any], fb: dict[str, Any]) -> set[str]:
+    """Settings of two flat jobs that decide nothing in either: the measurement interval
+    when neither measures, the adaptive layers' bounds when neither has adaptive layers."""
+    quiet = {"feedback.interval_layers"} if not (fa["feedback.enabled"]
+                                                  or fb["feedback.enabled"]) else set()
+    if not (fa["slicing.cusp_height_mm"] > 0 or fb["slicing.cusp_height_mm"] > 0):
+        quiet |= set(ADAPTIVE[1:])
+    return quiet
+
+
+def overlay_job(made: "Job", given: "Job", named: AbstractSet[str], source: str,
+                remake: str, settings: Sequence[str] = DECIDED,
+                error: type[Exception] = ConfigError) -> "Job":
+    """The job a command that reads a result file runs with when given ``-c JOB``: the job
+    the file was ``made`` with, with ``given``'s values of the settings the job file
+    ``named`` (dotted: :func:`icefab.config.load_named_job`); the others are the file's,
+    not ``given``'s defaults (a flow-only job on 1.0 mm layers was refused for the
+    default 0.25 mm it never named). ``error`` (``source``, ``remake`` as in
+    :func:`check_agrees`) when a named setting among ``settings`` (default
+    :data:`DECIDED`) differs from the file's, unless it decides nothing in either job (the
+    measurement interval when neither measures, the adaptive bounds when neither has
+    adaptive layers). API callers pass whole jobs and keep :func:`check_agrees`."""
+    fa, fg = _flat(made), _flat(given)
+    unknown = sorted(set(named) - set(fg))
+    if unknown:   # a caller's slip: load_named_job names only settings of a Job
+        raise KeyError(f"not settings of a Job: {', '.join(unknown)}")
+    changes = {k: fg[k] for k in fa if k in named}   # in job order: the first is named
+    merged = {**fa, **changes}
+    quiet = _moot(fa, merged)
+    _refuse([(k, fa[k], merged[k]) for k in settings
+             if k in changes and k not in quiet and fa[k] != merged[k]], source, remake, error)
+    try:
+        return made.replace(**changes) if changes else made
+    except ConfigError as exc:   # the two jobs' settings together break a joint rule
+        raise error(f"{source} were made with a job that, with the job file's "
+                    f"settings, is invalid: {exc}") from None
 
 
 def _quoted(remake: str) -> str:

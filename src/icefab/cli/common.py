@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Iterator, NoReturn
 
 import numpy as np
 
-from icefab.config import Job, load_job
+from icefab.config import Job, load_job, load_named_job
 from icefab.atomic import fsync_path, fsync_tree, make_temp_dir, replace_durably
 from icefab.errors import ConfigError, OutputError
 
@@ -34,7 +34,26 @@ def add_job_argument(parser: argparse.ArgumentParser) -> None:
 
 
 def job_from_args(args: argparse.Namespace) -> Job:
+    """The ``-c`` job, its unnamed settings the defaults (``Job()`` without ``-c``): for a
+    command that starts from meshes. One that reads a result file: :func:`file_job`."""
     return load_job(args.job) if getattr(args, "job", None) else Job()
+
+
+def file_job(made: Job, args: argparse.Namespace, source: str, remake: str,
+             settings: tuple[str, ...] | None = None,
+             error: type[Exception] = ConfigError) -> Job:
+    """The job a command that reads a result file runs with: without ``-c``, the job the
+    file was ``made`` with; with ``-c JOB``, that job overlaid with the settings the job
+    file names (:func:`icefab.stages.overlay_job`: one among ``settings``, default
+    ``icefab.stages.DECIDED``, that differs from the file's is ``error`` naming
+    ``source``, the setting and ``remake``, the command that makes the file again)."""
+    from icefab.stages import DECIDED, overlay_job
+
+    if not getattr(args, "job", None):
+        return made
+    given, named = load_named_job(args.job)
+    return overlay_job(made, given, named, source, remake,
+                       DECIDED if settings is None else settings, error)
 
 
 def command_inputs(given: list[str], job: Job, *, words: tuple[str, ...] = ()) -> list[str]:

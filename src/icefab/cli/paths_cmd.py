@@ -20,8 +20,8 @@ from typing import Sequence
 import numpy as np
 
 from icefab.cli.common import (ESTIMATE_WORDS, Progress, add_job_argument, command_inputs,
-                               hours, job_from_args, layer_list, output_dir, parse_layers,
-                               placed_model, warning_lines, write_warnings)
+                               file_job, hours, job_from_args, layer_list, output_dir,
+                               parse_layers, placed_model, warning_lines, write_warnings)
 from icefab.core import DEPOSITING_ROLES, MATERIALS, ROLES, area_text
 from icefab.report import plot_toolpaths
 from icefab.resultfiles import LayerHead, packed_lengths
@@ -153,17 +153,16 @@ def summary_lines(layers: Sequence[LayerHead], warnings: Sequence[str],
 
 def _load_stack(args: argparse.Namespace, job):
     from icefab.slicing import load_stack, slice_mesh
-    from icefab.stages import adopt_layers, check_layers_agree
 
     model = command_inputs(args.model, job, words=("demo",))
     first = Path(model[0])
     if len(model) == 1 and first.suffix.lower() == ".npz":
         stack = load_stack(first)
-        if args.job:
-            # the stack decided its adaptive layers: a job that turns them on otherwise is
-            # refused, one with them off takes the stack's (a speed-only job was refused)
-            check_layers_agree(stack.job, job, f"{first}: the stack's layers", "icefab slice")
-            stack = dataclasses.replace(stack, job=adopt_layers(stack.job, job))
+        # the stack decided its layers and parts: what the job file names of them must
+        # agree (another part's job recorded its files beside this geometry), the rest of
+        # what it names applies, and what it does not name stays the stack's
+        stack = dataclasses.replace(stack, job=file_job(
+            stack.job, args, f"{first}: the stack's layers", "icefab slice"))
         return stack, stack.job
     mesh, job = placed_model(model, job)
     return slice_mesh(mesh, job, progress=Progress("slicing")), job

@@ -36,8 +36,8 @@ from pathlib import Path
 import numpy as np
 
 from icefab.cli.common import (ESTIMATE_WORDS, Progress, add_job_argument, command_inputs,
-                               compare_build_times, hours, job_from_args, output_dir,
-                               layer_list, parse_layers, placed_model)
+                               compare_build_times, file_job, hours, job_from_args,
+                               output_dir, layer_list, parse_layers, placed_model)
 from icefab.core import DEPOSITING_CODES
 from icefab.errors import ConfigError
 from icefab.report import plot_speed
@@ -76,32 +76,27 @@ def add_parser(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-def load_input(inputs: list[str], job):
-    """Toolpaths from a toolpath file, or from mesh files through slicing, scaffold and
-    paths. ``job`` is None when no ``-c`` was given: a toolpath file's own job then."""
+def load_input(inputs: list[str], job, args: argparse.Namespace):
+    """Toolpaths and the job to plan them with. From a toolpath file: the job it was made
+    with, the settings a ``-c`` job file names laid over it (:func:`file_job`). From mesh
+    files: sliced, scaffolded and laid with ``job`` (the ``-c`` job, or the default)."""
     from icefab.paths import plan_paths
     from icefab.resultfiles import load_packed_toolpaths
-    from icefab.stages import adopt_layers, check_agrees
     src = Path(inputs[0])
     if len(inputs) == 1 and src.suffix.lower() == ".npz":
         if not src.exists():
             raise ConfigError(f"{src}: input file not found")
         # as its arrays: checked and sent to the workers so, no Toolpath made (issue 17)
         tp = load_packed_toolpaths(src)
-        if job is None:
-            return tp, tp.job
-        check_agrees(tp.job, job, f"{src}: the toolpaths", "icefab paths")
+        job = file_job(tp.job, args, f"{src}: the toolpaths", "icefab paths")
         if job.cell.robot != tp.job.cell.robot:
-            # allowed (toolpaths are in the part's frame), but a job file that does not
-            # name the robot is the default SCARA's: say it (a tester's gantry toolpaths
-            # moved to the SCARA's part origin without a word)
+            # allowed (toolpaths are in the part's frame), but said: the job file names
+            # another robot than the toolpaths were made for
             print(f"note: planning for the {job.cell.robot} of the job; the toolpaths were "
                   f"made with a {tp.job.cell.robot} (cell.robot)", file=sys.stderr)
-        return tp, adopt_layers(tp.job, job)   # the toolpaths' adaptive layers hold
-    from icefab.config import Job
+        return tp, job
     from icefab.regions import add_scaffold
     from icefab.slicing import slice_mesh
-    job = job or Job()
     mesh, job = placed_model(inputs, job)   # placement per the job (thesis 3.1.2)
     stack = slice_mesh(mesh, job, progress=Progress("slicing"))
     stack = add_scaffold(stack, job)
@@ -131,9 +126,8 @@ def run(args: argparse.Namespace) -> int:
     if getattr(args, "gcode", False) and getattr(args, "job", None):
         gcode_job(given, "--gcode")   # before slicing a mesh (and again for its own job)
     inputs = command_inputs(args.input, given, words=("demo",))
-    job = given if getattr(args, "job", None) else None
     t0 = time.perf_counter()
-    tp, job = load_input(inputs, job)
+    tp, job = load_input(inputs, given, args)
     ks = parse_layers(args.layers, len(tp.layers), default_count=3)  # before planning
     if spacing is not None:
         # the output is made in memory, from the whole build (a tester's 0.0001 mm asked

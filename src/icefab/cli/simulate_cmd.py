@@ -39,8 +39,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from icefab.cli.common import (Progress, add_job_argument, command_inputs, job_from_args,
-                               output_dir, placed_model)
+from icefab.cli.common import (Progress, add_job_argument, command_inputs, file_job,
+                               job_from_args, output_dir, placed_model)
 from icefab.atomic import write_atomic
 from icefab.errors import ConfigError, SimulationError, StackFileError
 from icefab.report import plot_rms, plot_surfaces
@@ -107,12 +107,12 @@ def load_build(model: list[str], job: "Job", args: argparse.Namespace
                ) -> "tuple[Toolpaths | BuildMotion, Job]":
     """The build to simulate and the job to simulate it with (the command's options
     applied). From a trajectories file: its trajectories, with the job they were planned
-    with unless ``-c`` was given (checked against it), deposition ``valves`` unless
-    ``--deposition`` says otherwise. Otherwise toolpaths: from a toolpaths file, or the
+    with and what a ``-c`` job file names laid over it (:func:`file_job`; it must agree on
+    ``icefab.sim.MOTION_SETTINGS``), deposition ``valves`` unless ``--deposition`` says
+    otherwise. Otherwise toolpaths: from a toolpaths file (its job, the same way), or the
     first ``simulation.layers`` layers (0: all) of the demo mug or mesh files (placed,
-    sliced, scaffolded over the whole part, paths planned)."""
+    sliced, scaffolded over the whole part, paths planned) with ``job``."""
     from icefab.core import Stack
-    from icefab.stages import check_agrees
 
     first = Path(model[0])
     if len(model) == 1 and first.suffix.lower() == ".npz":
@@ -121,23 +121,23 @@ def load_build(model: list[str], job: "Job", args: argparse.Namespace
 
         fmt = file_format(first)
         if fmt == motion_mod.FORMAT:
-            from icefab.sim import check_motion_job
+            from icefab.sim import MOTION_SETTINGS, check_motion_job
 
             motion = motion_mod.open_trajectories(first)  # its layers read as asked for
-            job = _job_with_options(job if args.job else motion.job, args)
+            source = f"{first}: the trajectories"
+            job = _job_with_options(file_job(motion.job, args, source,
+                                             "icefab paths, then icefab plan",
+                                             MOTION_SETTINGS, SimulationError), args)
             if args.deposition is None:
                 job = job.replace(**{"simulation.deposition": "valves"})
-            check_motion_job(motion.job, job, source=f"{first}: the trajectories")
+            check_motion_job(motion.job, job, source=source)
             return motion, job
         if fmt != paths_mod.FORMAT:
             raise StackFileError(f"{first}: not an icefab toolpath or trajectory file (format "
                                  f"{fmt!r}; expected {paths_mod.FORMAT!r} from 'icefab paths' "
                                  f"or {motion_mod.FORMAT!r} from 'icefab plan')")
         toolpaths = paths_mod.load_toolpaths(first)
-        if args.job:
-            check_agrees(toolpaths.job, job, f"{first}: the toolpaths", "icefab paths")
-        else:   # the job they were made with, as for trajectories
-            job = toolpaths.job
+        job = file_job(toolpaths.job, args, f"{first}: the toolpaths", "icefab paths")
         return toolpaths, _job_with_options(job, args)
     from icefab.paths import plan_paths
     from icefab.regions import add_scaffold

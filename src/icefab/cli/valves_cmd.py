@@ -75,17 +75,16 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace, motion) -> int:
-    from icefab.config import load_job
+    from icefab.cli.common import file_job
     from icefab.headroom import headroom_findings, tightest
     from icefab.parallel import parallel_imap
-    from icefab.stages import check_agrees
     from icefab.workload import check_pulse_durations
 
-    job = load_job(args.job) if args.job else motion.job
-    # the volume per mm is width x layer thickness: a job that contradicts the file's lays
-    # another build along these paths (a tester's bunny: 0.5 mm layers, twice the water)
-    check_agrees(motion.job, job, f"{motion.path}: the trajectories",
-                 "icefab paths, then icefab plan")
+    # the volume per mm is width x layer thickness: a job file naming others than the
+    # file's lays another build along these paths (a tester's bunny: 0.5 mm layers, twice
+    # the water); what it does not name stays the file's (a flow-only job was refused)
+    job = file_job(motion.job, args, f"{motion.path}: the trajectories",
+                   "icefab paths, then icefab plan")
     if args.out_of_range:
         job = job.replace(**{"flow.out_of_range": args.out_of_range})
     known = {int(k) for k in motion.layer_index}
