@@ -19,13 +19,14 @@ May import: ``icefab.config``, ``icefab.errors``.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 from typing import TYPE_CHECKING, AbstractSet, Any, Sequence
 
 import numpy as np
 
-from icefab.config import to_dict
+from icefab.config import PartSetup, to_dict
 from icefab.errors import ConfigError
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -108,6 +109,11 @@ PLACEMENT = ("slicing.layer_thickness_mm", *ADAPTIVE, "cell.ee_origin_mm",
 #: Which layers carry measurement paths (paths decides; simulate and build measure there).
 MEASURED = ("feedback.enabled", "feedback.interval_layers")
 
+#: The part's description (its files, their placement, the sliced fraction): a result
+#: file's geometry was made from them. A job naming other parts describes another build
+#: (a tester's spot stack given fandisk's job recorded fandisk's files and scale).
+PARTS = tuple(f"parts.{f.name}" for f in dataclasses.fields(PartSetup))
+
 #: Settings an earlier step decided that a later step reads again: the layers were cut
 #: and the paths laid for them (layer thickness, the adaptive layers' settings, bead
 #: widths, nozzle and laser offsets, which layers carry measurement paths). A later step
@@ -116,8 +122,9 @@ MEASURED = ("feedback.enabled", "feedback.interval_layers")
 #: bunny), an SMF that expects a measurement every layer along paths measured every 4th
 #: corrects less. The part's origin is not among them: toolpaths are in the part's frame,
 #: and may be planned anywhere the robot reaches (trajectories, in the robot's, add it:
-#: ``icefab.sim.MOTION_SETTINGS``).
-DECIDED = tuple(k for k in PLACEMENT if k != "cell.ee_origin_mm") + MEASURED
+#: ``icefab.sim.MOTION_SETTINGS``). The parts (:data:`PARTS`) are: the geometry was made
+#: from them.
+DECIDED = tuple(k for k in PLACEMENT if k != "cell.ee_origin_mm") + MEASURED + PARTS
 
 
 def _flat(job: "Job") -> dict[str, Any]:

@@ -13,7 +13,7 @@ import numpy as np
 from icefab.config import Job
 from icefab.core import BuildMotion, LayerMotion, LayerPaths, Toolpaths
 from icefab.errors import SimulationError
-from icefab.stages import MEASURED, PLACEMENT, check_agrees
+from icefab.stages import MEASURED, PARTS, PLACEMENT, check_agrees
 from icefab.motion import plan_toolpaths
 from icefab.sim.cell import Controller, SimResult, run_cell
 from icefab.sim.plans import _measured, measurement_layers, plan_layer, plan_layer_motion
@@ -62,9 +62,10 @@ def measured_layers(build: "Toolpaths | BuildMotion", job: "Job | None" = None, 
 
 
 #: Settings trajectories and the job simulating them must agree on: where the material
-#: goes (:data:`icefab.stages.PLACEMENT`: frames, tool offsets, widths, layer thickness)
-#: and which layers are measured (:data:`icefab.stages.MEASURED`).
-MOTION_SETTINGS = PLACEMENT + MEASURED
+#: goes (:data:`icefab.stages.PLACEMENT`: frames, tool offsets, widths, layer thickness),
+#: which layers are measured (:data:`icefab.stages.MEASURED`) and the parts they were made
+#: from (:data:`icefab.stages.PARTS`): :data:`icefab.stages.DECIDED` and the part origin.
+MOTION_SETTINGS = PLACEMENT + MEASURED + PARTS
 
 
 def check_motion_job(planned: "Job", job: "Job", source: str = "the trajectories") -> None:
