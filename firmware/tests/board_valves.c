@@ -161,10 +161,13 @@ int main(int argc, char **argv)
     fixed_late = hw.late_sets;
     plain_fails = run(pulse_plain, steps, 1);
     printf("board valves: %lu steps; valves.h %lu failed checks (%lu EMR writes set an output "
-           "whose end had come; each closed before its call returned); the plain read-modify-write %lu failed checks\n",
-           steps, fixed_fails, fixed_late, plain_fails);
+           "whose end had come; each closed before its call returned); the plain "
+           "read-modify-write %lu failed checks\n", steps, fixed_fails, fixed_late, plain_fails);
     if (fixed_fails) return 1;
     if (!fixed_late) { fprintf(stderr, "the races were not reached: no check\n"); return 1; }
-    if (!plain_fails) { fprintf(stderr, "the model let the plain write pass: no check\n"); return 1; }
+    if (!plain_fails) {
+        fprintf(stderr, "the model let the plain write pass: no check\n");
+        return 1;
+    }
     return 0;
 }

@@ -1,9 +1,10 @@
 /* Work of the one vc_rx() call that completes a 247-byte frame: bytes moved (memmove) and
  * bytes summed into CRCs. The board runs the parser with interrupts off, so this is how
  * long a tick, and the pulses it starts, can wait behind a frame (about 9 cycles per byte
- * moved and 97 per byte summed at 48 MHz; a pulse's end is the timer's, lpc2148/valves.h). `make rx-work` prints the figures and fails
- * past the bounds below (the parse had moved 30 135 bytes and summed 256 for a frame with
- * a bad CRC: ~6 ms; BENCHMARKS.md, "Valve firmware: work with interrupts off"). */
+ * moved and 97 per byte summed at 48 MHz; a pulse's end is the timer's, lpc2148/valves.h).
+ * `make rx-work` prints the figures and fails past the bounds below (the parse had moved
+ * 30 135 bytes and summed 256 for a frame with a bad CRC: ~6 ms; BENCHMARKS.md, "Valve
+ * firmware: work with interrupts off"). */
 #include <stdio.h>
 #include <string.h>
 #include "../core/board.h"

@@ -1251,14 +1251,15 @@ def smf_update(state: SmfState, error: HeightMap, job: "Job | None" = None, *,
         and the +- bound of the integral term.
 
     U_k = Kp E_k + I_k + Kd* (E_k - E_{k-1}), I_k = clip(I_{k-1} + Ki* E_k, +-integral_limit)
-    and, with the job's bound, within the planes of U as well (eq. 5.1 with eq. 5.2; clamping the integral term is the
-    anti-windup of thesis 5.2.2: an integral past what U can give winds up; the
-    c-controller's planes are uneven, [-0.23, +0.43] at 30 %, and its integral reached -0.3),
-    U'_k = clip(U_k, limits). I_{k-1} and E_{k-1} are re-evaluated on the new grid
-    (:func:`regrid`); nodes new to the footprint start with zero integral and zero
-    derivative contribution, and the derivative is left out at k = 1. A node NaN in E_k
-    that the state knows (a laser drop-out, a layer the laser saw nothing of) keeps its
-    integral and previous error for the next layer: not measured is not "error 0".
+    and, with the job's bound, within the planes of U as well (eq. 5.1 with eq. 5.2;
+    clamping the integral term is the anti-windup of thesis 5.2.2: an integral past what U
+    can give winds up; the c-controller's planes are uneven, [-0.23, +0.43] at 30 %, and
+    its integral reached -0.3), U'_k = clip(U_k, limits). I_{k-1} and E_{k-1} are
+    re-evaluated on the new grid (:func:`regrid`); nodes new to the footprint start with
+    zero integral and zero derivative contribution, and the derivative is left out at
+    k = 1. A node NaN in E_k that the state knows (a laser drop-out, a layer the laser saw
+    nothing of) keeps its integral and previous error for the next layer: not measured is
+    not "error 0".
     """
     if job is None:
         job = Job()
