@@ -20,9 +20,10 @@ def test_kinds_counts_and_layer_ranges():
     assert warning_layer(ws[0]) == 3 and warning_layer(ws[-1]) is None
     assert warning_kind(ws[0]) == "open contour closed across a # mm gap at (#, #)"
     lines = summarise_warnings(ws)
-    assert lines == ["697 x open contour closed across a # mm gap at (#, #) (697 layers, "
-                     "3-699)", "layer 153 (z = 38.375 mm): empty cross-section",
-                     "bunny: 5 holes closed"]
+    # each number of the kind as the range it takes ('#' read like an unfilled template)
+    assert lines == ["697 x open contour closed across a 1.03..7.99 mm gap at (3.00..699.00, "
+                     "-3.50) (697 layers, 3-699)",
+                     "layer 153 (z = 38.375 mm): empty cross-section", "bunny: 5 holes closed"]
 
 
 def test_a_kind_keeps_the_digits_of_units_and_setting_names():

@@ -54,7 +54,8 @@ def _span(layers: list[int]) -> str:
 
 
 def summarise_warnings(warnings: Sequence[str]) -> list[str]:
-    """One line per kind: ``"N x <kind> (L layers, a-b)"``, in order of first appearance.
+    """One line per kind: ``"N x <kind> (L layers, a-b)"``, in order of first appearance,
+    each number of the kind given as the range it takes (:func:`_ranges`).
 
     A kind that occurs once is shown as it is (its numbers kept), so a single finding such
     as "layer 153 (z = ...): empty cross-section" keeps its layer in the summary.
@@ -68,8 +69,28 @@ def summarise_warnings(warnings: Sequence[str]) -> list[str]:
             out.append(items[0])
             continue
         layers = sorted({k for k in map(warning_layer, items) if k is not None})
-        out.append(f"{len(items)} x {kind}{_span(layers)}")
+        out.append(f"{len(items)} x {_ranges(kind, items)}{_span(layers)}")
     return out
+
+
+def _ranges(kind: str, items: Sequence[str]) -> str:
+    """``kind`` with each ``#`` the range its number takes over ``items`` (warnings of
+    that kind): "a" when all give a, else "lo..hi" as the warnings wrote them. A summary
+    of ``#`` alone ("part feature narrower than the path width # mm near x = #, y = # mm")
+    read like a template left unfilled (a reviewer's)."""
+    slots = [[m.group(0) for m in _NUMBER.finditer(_LAYER.sub("", w, count=1))]
+             for w in items]
+    n = kind.count("#")
+    if n == 0 or any(len(v) != n for v in slots):
+        return kind
+    parts = kind.split("#")
+    text = parts[0]
+    for k in range(n):
+        vals = [v[k] for v in slots]
+        lo = min(vals, key=float)
+        hi = max(vals, key=float)
+        text += (lo if float(lo) == float(hi) else f"{lo}..{hi}") + parts[k + 1]
+    return text
 
 
 _CLAMPED = re.compile(r"clamped \(flow\.out_of_range = 'clamp'\), delivers "
