@@ -2149,13 +2149,13 @@ def test_options_a_resume_status_or_stop_would_ignore_are_refused(planned, tmp_p
 def test_a_stop_says_who_asked_for_it():
     """Ctrl-C, SIGTERM and 'icefab build --stop' (a request and SIGTERM) all read "a stop
     was asked for" (a reviewer's)."""
-    from icefab.cli.build_cmd import stop_cause
+    from icefab.cli.build_cmd import stop_asked_by
 
-    assert stop_cause(signal.SIGINT, False) == "Ctrl-C"
-    assert stop_cause(signal.SIGTERM, False) == "SIGTERM received"
-    assert stop_cause(signal.SIGTERM, True) == stop_cause(None, True) \
+    assert stop_asked_by(signal.SIGINT, False) == "Ctrl-C"
+    assert stop_asked_by(signal.SIGTERM, False) == "SIGTERM received"
+    assert stop_asked_by(signal.SIGTERM, True) == stop_asked_by(None, True) \
         == "'icefab build --stop' asked for it"
-    assert stop_cause(None, False) is None
+    assert stop_asked_by(None, False) is None
 
 
 @pytest.mark.parametrize("answer, said", [

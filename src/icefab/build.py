@@ -664,12 +664,11 @@ class Runner:
             self._name_layer(min(j0, len(self.motion.layers) - 1))
             p.layer_pos = j0
             p.remaining_s = float(sum(self._durations[j0:]))
-        if j0 < len(self.motion.layers):
-            # a journal with every layer finished (killed before it journaled "complete")
-            # has nothing to send: its cell may be gone, and waiting for it stopped there
-            self._call(lambda cell: None)
         ran0 = 0.0
+        # a journal with every layer finished (killed before it journaled "complete") has
+        # nothing to send: its cell may be gone, and waiting for it stopped there
         if j0 < len(self.motion.layers):
+            self._call(lambda cell: None)
             # less what a partly built layer ran before, as the journal says once the
             # cell's record is in (it said "paths 30/164, ETA" of the whole layer: a hunt's)
             ran0 = _ran_s(self.journal, self.motion.layers[j0])

@@ -197,8 +197,7 @@ def check_agrees(made: "Job", job: "Job", source: str, remake: str,
     default maximum). For whole jobs (API callers); a command given a job file lays what
     it names over the file's job instead (:func:`overlay_job`)."""
     fa, fb = _flat(made), _flat(job)
-    quiet = {"feedback.interval_layers"} if not (fa["feedback.enabled"]
-                                                  or fb["feedback.enabled"]) else set()
+    quiet = _moot(fa, fb)
     if not fb["slicing.cusp_height_mm"] > 0:
         quiet |= set(ADAPTIVE)
     diff = [(k, fa[k], fb[k]) for k in settings if k not in quiet and fa[k] != fb[k]]

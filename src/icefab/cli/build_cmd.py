@@ -144,7 +144,7 @@ def resume_cell_refusal(build: Path, journal_cell: str, virtual: bool) -> str | 
             "(--cell ENDPOINTS if that cell's endpoints file moved)")
 
 
-def stop_cause(signum: int | None, requested: bool) -> str | None:
+def stop_asked_by(signum: int | None, requested: bool) -> str | None:
     """Who asked the build to stop, in its stop's words, or None when no one did:
     ``requested`` (``BUILD/stop.request``) is ``icefab build --stop``'s, which sends
     SIGTERM too; ``signum`` the signal the build caught (SIGINT: Ctrl-C). The stop said
@@ -786,7 +786,7 @@ def _run(build: Path, args: argparse.Namespace, ctl: dict, *, resume: bool) -> i
         sys.stderr.flush()
 
     runner = bmod.Runner(build, motion, job, journal, connect, on_progress=on_progress,
-                         should_stop=lambda: stop_cause(
+                         should_stop=lambda: stop_asked_by(
                              ctl["signal"], (build / bmod.STOP_REQUEST).exists()),
                          accept_cell_reset=args.cell_lost_record)
     cdir = build / bmod.CELL_DIR
