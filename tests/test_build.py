@@ -611,8 +611,9 @@ def test_a_second_build_on_the_same_cell_runs_every_path(planned, tmp_path):
     """The cell keeps its last completed number across builds and answers any number at
     or below it "done": a second build numbered from 1 was "complete" at once with nothing
     deposited (a tester's). It numbers after the cell's, runs every command once, and
-    says the platform holds the first build's material; a crash of the second build
-    still resumes exactly once."""
+    journals the earlier build; a crash of the second build still resumes exactly once.
+    (Its platform is said cleared, though the virtual cell keeps the first part: else it
+    is refused, below.)"""
     from icefab.motion import load_trajectories
 
     motion = load_trajectories(planned)
@@ -629,7 +630,8 @@ def test_a_second_build_on_the_same_cell_runs_every_path(planned, tmp_path):
         journal = Journal.open(jpath) if jpath.exists() else Journal.create(jpath, {})
         cell = CrashingCell(VirtualCell(first / "cell"), int(rng.integers(1, 20)), True)
         try:
-            bmod.Runner(second, motion, job, journal, lambda: cell).run()
+            bmod.Runner(second, motion, job, journal, lambda: cell,
+                        platform_cleared=True).run()
             break
         except Crash:
             pass
@@ -643,13 +645,40 @@ def test_a_second_build_on_the_same_cell_runs_every_path(planned, tmp_path):
     assert all(c["done"] is not None and not c["cut"] for c in j.commands())
     assert [e["text"] for e in j.events() if e["kind"] == "cell-numbers"] == [
         f"the cell has completed commands up to number {n_cmds} (an earlier build; its "
-        f"platform holds that build's material unless it was cleared): this build numbers "
-        f"from {n_cmds + 1}"]
+        f"platform was said cleared): this build numbers from {n_cmds + 1}"]
     j.close()
     z = np.load(first / "cell" / "surface.npz")["z"]
     assert np.nanmax(z) > np.nanmax(z_first) + 0.5   # the second mug's layers on the first's
     with pytest.raises(JournalError, match="journaled already"):
         Journal.open(jpath).number_from(1)
+
+
+def test_a_second_build_on_a_cell_whose_platform_may_hold_ice_is_refused(planned,
+                                                                        tmp_path):
+    """A cell that completed commands since its program started ran an earlier build,
+    whose ice its platform may hold: a new build there put its first layers' nozzle into
+    that part with a note only (a review's). It is refused before anything is sent, the
+    refusal says how to go on, and the cell is as it was."""
+    from icefab.motion import load_trajectories
+
+    motion = load_trajectories(planned)
+    first = tmp_path / "first"
+    _inprocess(first, motion, motion.job)
+    done = _executed(first)
+    z_first = np.load(first / "cell" / "surface.npz")["z"]
+    second = tmp_path / "second"
+    second.mkdir()
+    journal = Journal.create(second / bmod.JOURNAL, {})
+    try:
+        with pytest.raises(CellError, match=r"(?s)completed commands up to number "
+                           rf"{done[-1]}.*nothing was sent.*--platform-cleared"):
+            bmod.Runner(second, motion, motion.job, journal,
+                        lambda: VirtualCell(first / "cell")).run()
+        assert not journal.commands()
+    finally:
+        journal.close()
+    assert _executed(first) == done
+    np.testing.assert_array_equal(np.load(first / "cell" / "surface.npz")["z"], z_first)
 
 
 def test_a_journal_that_lost_its_records_is_refused_before_anything_is_sent(planned,
@@ -685,7 +714,8 @@ def test_a_journal_that_lost_its_records_is_refused_before_anything_is_sent(plan
     second = tmp_path / "second"
     second.mkdir()
     j2 = Journal.create(second / bmod.JOURNAL, {"digests": {}})
-    bmod.Runner(second, motion, job, j2, lambda: VirtualCell(build / "cell")).run()
+    bmod.Runner(second, motion, job, j2, lambda: VirtualCell(build / "cell"),
+                platform_cleared=True).run()
     assert j2.first_seq() == max(done) + 1
     j2.close()
 
@@ -1870,9 +1900,18 @@ def test_stop_and_resume_on_a_separately_started_cell(firmware_tools, planned, t
         assert any(e["kind"] == "stop" for e in j.events())
         last = max(ex)   # the cell's last completed number (a layer's end is not one)
         j.close()
-        # a second build on the same cell runs its paths, numbered after the first's
+        # a second build on the same cell, whose platform holds the first's ice, is
+        # refused before anything is sent or written; said cleared, it runs its paths,
+        # numbered after the first's
         r = _icefab("build", str(planned), "-o", "b2", "--cell", ep, "--layers", "1",
                     cwd=tmp_path)
+        assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
+        assert f"completed commands up to number {last} since its program started" \
+            in r.stderr and "--platform-cleared" in r.stderr
+        assert not (tmp_path / "b2").exists()
+        assert [int(x) for x in (state / "executed.log").read_text().split()] == ex
+        r = _icefab("build", str(planned), "-o", "b2", "--cell", ep, "--layers", "1",
+                    "--platform-cleared", cwd=tmp_path)
         assert r.returncode == 0 and "build complete" in r.stdout, r.stderr
         assert f"note: the cell has completed commands up to number {last}" in r.stdout
         ex2 = [int(x) for x in (state / "executed.log").read_text().split()]
@@ -2069,6 +2108,63 @@ def _no_cell(calls: list):
     return connector
 
 
+@pytest.mark.parametrize("last_done, cut, refused", [(0, 0, False), (0, 3, True),
+                                                     (41, 0, True), (None, 0, False)])
+def test_a_used_cell_is_refused_before_the_part_is_planned(tmp_path, capsys, monkeypatch,
+                                                           last_done, cut, refused):
+    """A cell that ran an earlier build is asked before the part is planned (minutes for a
+    large part), by its robot link alone: refused at once, nothing written; a cell that
+    ran nothing, or one that does not answer, is left to the build's own link."""
+    from icefab.cell import robot
+    from icefab.cli import build_cmd, main
+
+    asked = []
+
+    class Robot:
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            asked.append("closed")
+
+        def hello(self):
+            asked.append("hello")
+
+        def status(self):
+            return {"state": "idle", "stored": 0, "last_done": last_done, "cut": cut}
+
+    def connect(cls, *a, **k):
+        if last_done is None:
+            asked.extend(["hello", "closed"])   # as if it timed out after connecting
+            raise CellError("robot at 127.0.0.1:7100: no answer")
+        return Robot()
+
+    planned = []
+    monkeypatch.setattr(robot.RobotLink, "connect", classmethod(connect))
+    monkeypatch.setattr(build_cmd, "_plan", lambda *a: planned.append(1) or 1 / 0)
+    ep = tmp_path / "ep.json"
+    ep.write_text(json.dumps({"robot": {"host": "127.0.0.1", "port": 7100},
+                              "valve": {"device": "v"}, "laser": {"device": "l"}}))
+    monkeypatch.chdir(tmp_path)
+    argv = ["build", "demo", "-o", "b", "--cell", str(ep)]
+    if refused:
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and f"up to number {max(last_done, cut)} since its " \
+            "program started" in err and "--platform-cleared" in err, err
+        assert planned == [] and asked == ["hello", "closed"]
+        assert not (tmp_path / "b").exists()
+        # said cleared, the robot is not even asked (the build's link checks it again)
+        asked.clear()
+        with pytest.raises(ZeroDivisionError):
+            main(argv + ["--platform-cleared"])
+        assert asked == [] and planned == [1]
+    else:
+        with pytest.raises(ZeroDivisionError):   # asked, then on to the planning
+            main(argv)
+        assert asked == ["hello", "closed"] and planned == [1]
+
+
 def test_a_resume_of_a_complete_build_has_nothing_to_do(planned, tmp_path, capsys,
                                                         monkeypatch):
     """A resume of a completed build, its cell gone: it waited out 20 link faults for that
@@ -2123,6 +2219,11 @@ def test_a_runner_whose_journal_has_every_layer_finished_needs_no_cell(planned, 
     (["--stop", "b", "--cell", "ep.json", "-o", "c"], "--stop BUILD takes none of -o, "
                                                       "--cell: "),
     (["--stop", "b", "-c", "job.toml"], "--stop BUILD takes none of -c: "),
+    (["--status", "b", "--platform-cleared"], "--status BUILD takes none of "
+                                              "--platform-cleared: "),
+    (["in.npz", "-o", "c", "--virtual", "--platform-cleared"],
+     "--platform-cleared goes with --cell ENDPOINTS: a new virtual cell's platform is "
+     "empty"),
 ])
 def test_options_a_resume_status_or_stop_would_ignore_are_refused(planned, tmp_path, capsys,
                                                                   monkeypatch, argv, said):

@@ -84,6 +84,9 @@ CELL_DIR = "cell"
 #: The journal's meta key of the number up to which the cell had completed commands when
 #: the build started (in the journal's first write, with the meta; builds since 2026-11-29).
 CELL_DONE_AT_START = "cell_done_at_start"
+#: The journal's meta key saying the user started the build with ``--platform-cleared``
+#: (true or absent).
+PLATFORM_CLEARED = "platform_cleared"
 
 #: Cobra 600 vertical (joint 3) stroke, mm (thesis Table 2-1); the build checks the job's
 #: cell.stroke_mm (this default).
@@ -368,6 +371,30 @@ def laser_to_part(raw: np.ndarray, traj, job: "Job") -> np.ndarray:
     return np.column_stack([part, raw[:, 3]])
 
 
+def check_cell_numbers(last: int, platform_cleared: bool = False) -> None:
+    """Whether a new build may start on a cell that has completed commands up to number
+    ``last`` since its program started (0: none). CellRefused (sending again cannot change
+    it) when ``last`` is past half the link's numbers, or when it is above 0 and the user
+    did not say the platform was cleared (``--platform-cleared``): the cell ran an earlier
+    build, whose ice its platform may hold, and this build's first layers would put the
+    nozzle into it (a review's: it was a note)."""
+    from icefab.cell.robot_protocol import MAX_SEQ  # the robot link's numbers
+
+    if last <= 0:
+        return
+    if last > MAX_SEQ // 2:
+        raise CellRefused(f"the cell has completed commands up to number {last}, past half "
+                          f"the link's {MAX_SEQ}: restart its program (it counts from 0 "
+                          "again) before a new build")
+    if not platform_cleared:
+        raise CellRefused(
+            f"the cell has completed commands up to number {last} since its program "
+            "started: an earlier build ran on it, and its platform may hold that build's "
+            "ice, which this build's nozzle would run into; nothing was sent. Clear the "
+            "platform, then start the build again with --platform-cleared (or restart the "
+            "cell's program)")
+
+
 class Runner:
     """Runs (or resumes) a build on a cell; see the module docstring.
 
@@ -389,7 +416,8 @@ class Runner:
                  connect: Callable[[], Cell], *,
                  on_progress: Callable[[Progress], None] | None = None,
                  should_stop: Callable[[], bool] = lambda: False,
-                 max_faults: int = 20, accept_cell_reset: bool = False) -> None:
+                 max_faults: int = 20, accept_cell_reset: bool = False,
+                 platform_cleared: bool = False) -> None:
         self.dir = Path(build_dir)
         self.motion = motion
         self.job = job
@@ -399,6 +427,7 @@ class Runner:
         self.should_stop = should_stop
         self.max_faults = max_faults
         self.accept_cell_reset = accept_cell_reset
+        self.platform_cleared = platform_cleared
         self.cell: Cell | None = None
         self.faults = 0            # link faults in a row (a call that works resets it)
         self._fault_since = 0.0
@@ -439,9 +468,12 @@ class Runner:
         """A new build numbers its commands after those the cell completed: the cell keeps
         its last completed number across builds (it must, across a crash of the PC) and
         answers any number at or below it "done", so a second build on a cell numbered
-        from 1 was complete at once with nothing deposited (a tester's)."""
-        from icefab.cell.robot_protocol import MAX_SEQ  # the robot link's numbers
-
+        from 1 was complete at once with nothing deposited (a tester's). A cell that
+        completed commands since its program started ran an earlier build, whose ice its
+        platform may hold: refused before anything is sent (:func:`check_cell_numbers`),
+        unless ``platform_cleared`` (the user's ``--platform-cleared``) or the journal says
+        it was when the build started (its meta ``PLATFORM_CLEARED``: a resume needs no
+        flag the start had)."""
         meta = self.journal.meta()
         if self.journal.has_commands() or "first_seq" in meta:
             return
@@ -461,15 +493,11 @@ class Runner:
                 "or clear the platform and start a new build")
         if last <= 0:
             return
-        if last > MAX_SEQ // 2:
-            raise CellError(f"the cell has completed commands up to number {last}, past half "
-                            f"the link's {MAX_SEQ}: restart its program (it counts from 0 "
-                            "again) before a new build")
+        check_cell_numbers(last, self.platform_cleared or bool(meta.get(PLATFORM_CLEARED)))
         self.journal.number_from(last + 1)
         self.journal.event("cell-numbers", f"the cell has completed commands up to number "
-                           f"{last} (an earlier build; its platform holds that build's "
-                           f"material unless it was cleared): this build numbers from "
-                           f"{last + 1}")
+                           f"{last} (an earlier build; its platform was said cleared): "
+                           f"this build numbers from {last + 1}")
 
     def _drop_link(self) -> None:
         cell, self.cell = self.cell, None
@@ -536,7 +564,7 @@ class Runner:
             try:
                 result = fn(self._link())
             except CellRefused as exc:    # the same again would be refused again
-                self.journal.event("cell-refused", f"the cell refused a command: {exc}",
+                self.journal.event("cell-refused", f"refused: {exc}",
                                    layer=self.progress.layer)
                 self._drop_link()
                 raise

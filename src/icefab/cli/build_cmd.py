@@ -40,7 +40,7 @@ from pathlib import Path
 from icefab.atomic import remove_temps
 from icefab.cli.common import (add_job_argument, check_terminated, command_inputs,
                                forked_end, job_from_args, terminated, terminate)
-from icefab.errors import ConfigError
+from icefab.errors import CellError, ConfigError
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -71,6 +71,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         "state folder, its controller restarted) but its platform holds the "
                         "part: the journal's record stands, a path sent but not confirmed "
                         "counts as cut (not run again)")
+    p.add_argument("--platform-cleared", action="store_true",
+                   help="the cell ran an earlier build and its platform has been cleared "
+                        "since: build on it (refused without this: the nozzle would run "
+                        "into the earlier build's ice)")
     # the virtual cell's speed (icefab cell serve --time-factor): tests that kill it mid-path
     p.add_argument("--cell-time-factor", type=float, default=0.0, help=argparse.SUPPRESS)
     p.set_defaults(func=run)
@@ -91,6 +95,9 @@ def run(args: argparse.Namespace) -> int:
         return _stop(Path(args.stop))
     if args.cell_lost_record and not args.resume:
         raise ConfigError("--cell-lost-record goes with --resume BUILD")
+    if args.platform_cleared and args.virtual:
+        raise ConfigError("--platform-cleared goes with --cell ENDPOINTS: a new virtual "
+                          "cell's platform is empty")
     if args.resume:
         if args.out:
             raise ConfigError("--resume BUILD and -o BUILD: give one of them")
@@ -114,11 +121,32 @@ def run(args: argparse.Namespace) -> int:
         if args.cell:
             from icefab.linkedcell import load_endpoints
 
-            load_endpoints(args.cell)   # a bad endpoints file is said before any planning
+            ends = load_endpoints(args.cell)   # a bad file is said before any planning
+            if not args.platform_cleared:
+                _refuse_a_used_cell(ends)
         return _run(Path(args.out), args, ctl, resume=False)
 
 
 # --------------------------------------------------------------------------- helpers
+
+
+def _refuse_a_used_cell(ends: dict) -> None:
+    """Refuse, before the part is planned (minutes for a large one), a cell that ran an
+    earlier build (:func:`icefab.build.check_cell_numbers`), asking its robot alone. A
+    robot that does not answer within a few seconds is left to the build's own link
+    (its faults and waits): this only saves the planning, the build checks again."""
+    from icefab import build as bmod
+    from icefab.cell.robot import RobotLink
+
+    try:
+        with RobotLink.connect(ends["robot"]["host"], ends["robot"]["port"],
+                               timeout_s=5.0) as link:
+            link.hello()
+            st = link.status()
+    except CellError:
+        return
+    bmod.check_cell_numbers(max(st["last_done"], st["cut"]))
+
 
 
 def _new_build_options(args: argparse.Namespace) -> list[str]:
@@ -127,7 +155,8 @@ def _new_build_options(args: argparse.Namespace) -> list[str]:
     given = [("INPUT", bool(args.input)), ("-o", bool(args.out)), ("-c", bool(args.job)),
              ("--virtual", args.virtual), ("--cell", bool(args.cell)),
              ("--layers", args.layers is not None),
-             ("--cell-lost-record", args.cell_lost_record)]
+             ("--cell-lost-record", args.cell_lost_record),
+             ("--platform-cleared", args.platform_cleared)]
     return [name for name, on in given if on]
 
 
@@ -732,6 +761,10 @@ def _run(build: Path, args: argparse.Namespace, ctl: dict, *, resume: bool) -> i
             # what the cell had completed before this build: in the journal's first write,
             # so a journal that later lost its records is told (bmod.CELL_DONE_AT_START)
             meta[bmod.CELL_DONE_AT_START] = max(int(st.last_done), int(st.cut))
+            # a cell that ran an earlier build: refused here, before anything is written
+            bmod.check_cell_numbers(meta[bmod.CELL_DONE_AT_START], args.platform_cleared)
+            if args.platform_cleared:
+                meta[bmod.PLATFORM_CLEARED] = True
             # whole or absent (Journal.create); a stop until it exists undoes all this
             journal = Journal.create(jpath, meta)
         except BaseException:   # Ctrl-C or --stop too
@@ -788,7 +821,8 @@ def _run(build: Path, args: argparse.Namespace, ctl: dict, *, resume: bool) -> i
     runner = bmod.Runner(build, motion, job, journal, connect, on_progress=on_progress,
                          should_stop=lambda: stop_asked_by(
                              ctl["signal"], (build / bmod.STOP_REQUEST).exists()),
-                         accept_cell_reset=args.cell_lost_record)
+                         accept_cell_reset=args.cell_lost_record,
+                         platform_cleared=args.platform_cleared)
     cdir = build / bmod.CELL_DIR
     # a resume whose virtual cell has no surface starts a new one: if the runner then
     # refuses it (the cell lost its record), that cell goes with the refusal (a tester's
