@@ -112,11 +112,14 @@ void vc_store_init(vc_store *s)
     s->pulse_us = VC_DEFAULT_PULSE_US;
 }
 
+/* Indices only: a program slot is cleared when it is begun, the reader when a play starts,
+ * and ring bytes are read only below a program's received count. Zeroing the whole store
+ * (12 kB a valve) held interrupts off ~2 ms on the board at ABORT, and a FAULT did it in
+ * the tick interrupt. */
 void vc_store_clear(vc_store *s)
 {
-    uint16_t pulse = s->pulse_us;
-    vc_store_init(s);
-    s->pulse_us = pulse;
+    s->r = s->w = s->used = 0;
+    s->head = s->count = 0;
 }
 
 uint32_t vc_store_free(const vc_store *s)
@@ -143,7 +146,7 @@ int vc_store_begin(vc_store *s, uint32_t total)
     memset(p, 0, sizeof *p);
     p->total = total;
     p->crc = VC_CRC_INIT;
-    vc_dec_init(&p->dec);
+    p->dec.phase = VC_DEC_HEADER;                           /* vc_dec_init, but zeroed */
     s->count++;
     return 0;
 }
@@ -158,37 +161,46 @@ void vc_store_drop_tail(vc_store *s)
     s->count--;
 }
 
-int vc_store_append(vc_store *s, const uint8_t *data, uint32_t n, uint32_t *bad)
+int vc_store_check(const vc_prog *p, const uint8_t *data, uint32_t n, vc_dec *d,
+                   uint32_t *bad)
 {
-    vc_prog *p = vc_store_tail(s);
-    vc_dec d;
     uint32_t k;
     int rc;
-    if (!p) { *bad = 0; return -1; }
     if (n > p->total - p->received) { *bad = p->total; return -1; }
-    d = p->dec;
     for (k = 0; k < n; k++) {
-        rc = vc_dec_byte(&d, data[k]);
-        if (rc) { *bad = d.pos; return rc; }
+        rc = vc_dec_byte(d, data[k]);
+        if (rc) { *bad = d->pos; return rc; }
     }
-    if (p->received + n == p->total && d.phase != VC_DEC_DONE) {
+    if (p->received + n == p->total && d->phase != VC_DEC_DONE) {
         *bad = p->total;                                    /* announced bytes missing */
         return -1;
     }
-    if (d.phase == VC_DEC_DONE && p->received + n < p->total) {
-        *bad = d.pos;                  /* the layout ends before the announced total: a */
+    if (d->phase == VC_DEC_DONE && p->received + n < p->total) {
+        *bad = d->pos;                 /* the layout ends before the announced total: a */
         return -1;                     /* streamed program would play as if complete   */
     }
-    for (k = 0; k < n; k++) {
-        s->buf[s->w] = data[k];
-        s->w = (s->w + 1u == VC_STORE_BYTES) ? 0u : s->w + 1u;
-    }
+    return 0;
+}
+
+void vc_store_put(vc_store *s, uint32_t w, const uint8_t *data, uint32_t n)
+{
+    uint32_t first = VC_STORE_BYTES - w;
+    if (w >= VC_STORE_BYTES || n > VC_STORE_BYTES) return;
+    if (first > n) first = n;
+    memcpy(s->buf + w, data, first);
+    memcpy(s->buf, data + first, n - first);
+}
+
+void vc_store_commit(vc_store *s, const vc_dec *d, uint16_t crc, uint32_t n)
+{
+    vc_prog *p = vc_store_tail(s);
+    if (!p) return;
+    s->w = (s->w + n) % VC_STORE_BYTES;
     s->used += n;
-    p->dec = d;
-    p->crc = vc_crc16_update(p->crc, data, n);
+    p->dec = *d;
+    p->crc = crc;
     p->received += n;
     p->complete = (p->received == p->total);
-    return 0;
 }
 
 void vc_store_pop(vc_store *s)

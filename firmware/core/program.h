@@ -80,9 +80,16 @@ vc_prog *vc_store_at(vc_store *s, unsigned k);  /* k-th queued program or 0 */
 void vc_store_clear(vc_store *s);               /* drop every program and byte */
 int vc_store_begin(vc_store *s, uint32_t total); /* 0, or -1 queue full */
 void vc_store_drop_tail(vc_store *s);           /* remove the last program and its bytes */
-/* Append n bytes to the tail program after validating all of them. Returns 0, or -1 with
- * *bad = program byte offset of the violation (nothing appended). Room checked by caller. */
-int vc_store_append(vc_store *s, const uint8_t *data, uint32_t n, uint32_t *bad);
+/* Appending n bytes to the tail program p, in three steps so that the long ones can run
+ * while the tick may interrupt (valvectl.c, cmd_data). vc_store_check: validate them on d,
+ * a copy of p->dec; 0, or -1 (-2: NO_ROOM) with *bad = the program byte offset of the
+ * violation; writes nothing but *d, *bad. vc_store_put: copy them into the free ring space
+ * from w (the store's w when checked; room checked by the caller); no index moves.
+ * vc_store_commit: make them the tail's (w, used, decoder d, CRC crc, received). */
+int vc_store_check(const vc_prog *p, const uint8_t *data, uint32_t n, vc_dec *d,
+                   uint32_t *bad);
+void vc_store_put(vc_store *s, uint32_t w, const uint8_t *data, uint32_t n);
+void vc_store_commit(vc_store *s, const vc_dec *d, uint16_t crc, uint32_t n);
 void vc_store_pop(vc_store *s);                 /* remove the head program (played) */
 
 /* Play reader: start on the head program; step to the next pulse. */

@@ -3,8 +3,16 @@
  * bytes (vc_rx), the time for the byte timeout (vc_poll), one call per valve tick
  * (vc_tick) and trigger edges (vc_trigger_edge), and implements board.h.
  *
- * Concurrency: the core is not reentrant. On the LPC2148 the tick runs in the timer
- * interrupt and vc_rx / vc_poll in the main loop with interrupts disabled around them. */
+ * Concurrency: vc_tick and vc_trigger_edge may interrupt vc_rx and vc_poll (on the LPC2148
+ * the tick runs in the timer interrupt, vc_rx / vc_poll in the main loop with interrupts
+ * on). The link fields below (fb .. cache, reply_due) are the main loop's alone: framing,
+ * CRCs, a PROG_DATA's validation, its copy into free ring space and a reply's CRC run
+ * unlocked. Everything the tick reads or writes (state, stores, counters, ev_seq, the
+ * board's transmit queue) is touched by the main loop only between board_lock() and
+ * board_unlock() (board.h), in sections of bounded, input-independent work: before, the
+ * board ran all of vc_rx with interrupts off, up to ~0.7 ms for a PROG_DATA frame and ~8
+ * ms for start markers (BENCHMARKS.md, "Valve firmware: work with interrupts off"). The
+ * rest is not reentrant: one main loop, one tick. */
 #ifndef VC_VALVECTL_H
 #define VC_VALVECTL_H
 
@@ -24,6 +32,7 @@ typedef struct {
     uint8_t have_cache;
     uint8_t cache_len;
     uint8_t cache[VC_FRAME_OVERHEAD + 64];
+    uint8_t reply_due;       /* cache holds a reply whose CRC and sending are still due */
     uint8_t ev_seq;
     uint32_t errors_sent;
     /* state */

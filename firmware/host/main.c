@@ -85,6 +85,9 @@ void board_note(int what, uint32_t a, uint32_t b)
 }
 
 void board_stall(uint32_t ms) { stall_ms = ms; }
+/* one thread: the tick never interrupts the core */
+uint32_t board_lock(void) { return 0; }
+void board_unlock(uint32_t saved) { (void)saved; }
 
 /* ------------------------------------------------------------------ process */
 

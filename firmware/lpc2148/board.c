@@ -37,16 +37,27 @@ static inline void irq_restore(uint32_t cpsr)
     __asm volatile("msr cpsr_c, %0" : : "r"(cpsr) : "memory");
 }
 
-/* ------------------------------------------------------------------ board.h
- * Called by the core with interrupts disabled (from an ISR, or main's critical section). */
+/* ------------------------------------------------------------------ board.h */
 
+uint32_t board_lock(void) { return irq_save(); }
+void board_unlock(uint32_t saved) { irq_restore(saved); }
+
+/* From the tick interrupt and from the main loop with interrupts on: the room is taken
+ * with them off, the bytes copied after (an interrupt's frame goes whole after ours; only
+ * the main loop reads the queue, never while it is in here). */
 void board_tx(const uint8_t *data, unsigned n)
 {
-    unsigned i, used = (uint16_t)(tx_head - tx_tail) % sizeof tx_ring;
-    if (n > sizeof tx_ring - 1u - used) return;                 /* full: dropped */
+    unsigned i, used;
+    uint16_t at;
+    uint32_t s = irq_save();
+    used = (uint16_t)(tx_head - tx_tail) % sizeof tx_ring;
+    if (n > sizeof tx_ring - 1u - used) { irq_restore(s); return; }   /* full: dropped */
+    at = tx_head;
+    tx_head = (uint16_t)((tx_head + n) % sizeof tx_ring);
+    irq_restore(s);
     for (i = 0; i < n; i++) {
-        tx_ring[tx_head] = data[i];
-        tx_head = (uint16_t)((tx_head + 1u) % sizeof tx_ring);
+        tx_ring[at] = data[i];
+        at = (uint16_t)((at + 1u) % sizeof tx_ring);
     }
 }
 
@@ -196,23 +207,21 @@ int main(void)
     irq_restore(irq_save() & ~0x80u);                            /* IRQs on */
 
     for (;;) {
-        uint32_t s;
         /* fed only while the tick runs: a loop fed regardless kept a board whose tick (and
          * with it the valves' closes) had stopped from the watchdog's reset */
         if (now_ms != fed_ms) {
             fed_ms = now_ms;
             feed_watchdog();
         }
+        /* interrupts on: the core locks what the tick shares (core/valvectl.h); with all of
+         * vc_rx locked a PROG_DATA frame held them off ~0.7 ms and start markers ~8 ms,
+         * delaying the tick and overrunning the UART's 16-byte FIFO */
         while (rx_tail != rx_head) {
             uint8_t b = rx_ring[rx_tail];
             rx_tail = (uint16_t)((rx_tail + 1u) % sizeof rx_ring);
-            s = irq_save();
             vc_rx(&core, &b, 1, now_ms);
-            irq_restore(s);
         }
-        s = irq_save();
         vc_poll(&core, now_ms);
-        irq_restore(s);
         while (tx_tail != tx_head && (U0LSR & LSR_THRE)) {
             unsigned k;
             for (k = 0; k < 16u && tx_tail != tx_head; k++) {    /* one FIFO's worth */

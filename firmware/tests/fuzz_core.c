@@ -40,6 +40,27 @@ uint8_t board_outputs(void)
 void board_note(int w, uint32_t a, uint32_t b) { (void)w; (void)a; (void)b; }
 void board_stall(uint32_t ms) { (void)ms; }
 
+static uint32_t rn(uint32_t n);
+static int lock_depth, in_tick;
+static unsigned long isr_ticks;
+static void tick(int late)
+{
+    in_tick = 1;
+    now_us += 2000;
+    vc_tick(&C, late);
+    in_tick = 0;
+}
+/* The core runs vc_rx / vc_poll unlocked and locks what the tick shares (board.h): the
+ * tick interrupt, which may come anywhere outside a lock, comes here at random just before
+ * a lock is taken (all that runs unlocked since the last one touches only the link's own
+ * fields, so this is every interleaving that matters). */
+uint32_t board_lock(void)
+{
+    if (lock_depth++ == 0 && !in_tick && rn(6) == 0) { tick(0); isr_ticks++; }
+    return 0;
+}
+void board_unlock(uint32_t saved) { (void)saved; lock_depth--; }
+
 static uint64_t rng_state;
 static uint32_t rnd(void)
 {
@@ -163,7 +184,7 @@ int main(int argc, char **argv)
             what = "ticks";
             must_answer = 0;
             if (rn(4) == 0) vc_trigger_edge(&C);
-            for (k = rn(200); k; k--) { now_us += 2000; vc_tick(&C, (int)rn(2)); }
+            for (k = rn(200); k; k--) tick((int)rn(2));
             break;
         }
         errors_before = C.errors_sent;
@@ -186,8 +207,10 @@ int main(int argc, char **argv)
             if (board_outputs() || C.state != VC_IDLE) { failed++; fprintf(stderr, "case %lu: ABORT left a valve open\n", i); }
         }
     }
-    printf("fuzz_core: %lu cases, %lu frames sent back (%lu bytes), %lu pulses, %lu unanswered\n",
-           n, tx_frames, tx_bytes, pulses, unanswered);
+    printf("fuzz_core: %lu cases, %lu frames sent back (%lu bytes), %lu pulses, %lu ticks "
+           "interrupting the link, %lu unanswered\n", n, tx_frames, tx_bytes, pulses, isr_ticks,
+           unanswered);
+    if (lock_depth) { failed++; fprintf(stderr, "a lock left taken\n"); }
     printf("%lu passed, %lu failed\n", n - failed - unanswered, failed + unanswered);
     return failed + unanswered ? 1 : 0;
 }

@@ -33,6 +33,8 @@ void board_valves_off(void) {}
 uint8_t board_outputs(void) { return 0; }
 void board_note(int w, uint32_t a, uint32_t b) { (void)w; (void)a; (void)b; }
 void board_stall(uint32_t ms) { (void)ms; }
+uint32_t board_lock(void) { return 0; }
+void board_unlock(uint32_t saved) { (void)saved; }
 
 static vc_core core;
 

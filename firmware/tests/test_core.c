@@ -40,6 +40,19 @@ void board_valves_off(void) { offs++; open_mask = 0; }
 uint8_t board_outputs(void) { return open_mask; }
 void board_note(int w, uint32_t a, uint32_t b) { (void)w; (void)a; (void)b; }
 void board_stall(uint32_t ms) { (void)ms; stalls++; }
+/* The tick interrupt, where a test wants one: isr(k) runs as the k-th lock a frame takes
+ * is being taken (the core runs vc_rx unlocked and locks what the tick shares). */
+static void (*isr)(unsigned k);
+static unsigned locks_taken, lock_depth;
+uint32_t board_lock(void)
+{
+    if (lock_depth++ == 0) {
+        locks_taken++;
+        if (isr) isr(locks_taken);
+    }
+    return 0;
+}
+void board_unlock(uint32_t saved) { (void)saved; lock_depth--; }
 
 /* ------------------------------------------------------------------ link helpers */
 typedef struct { uint8_t seq, type, len; uint8_t p[256]; } frame_t;
@@ -606,6 +619,73 @@ static void test_queued_arm_no_gap(void)
     CHECK_EQ(status().p[0], VC_IDLE);
 }
 
+/* PROG_DATA is validated, summed and copied into the store with the tick free to run (the
+ * board's interrupts on), between its two locks. A tick there: (1) consuming the bytes of
+ * the program that streams while it plays: every pulse still comes on its tick; (2)
+ * faulting UNDERRUN: the frame's bytes are not taken (STATE error), the store stays
+ * empty, every valve closed. */
+static unsigned isr_ticks;
+static void tick_at_second_lock(unsigned k)
+{
+    if (k != 2) return;
+    isr_ticks++;
+    isr = 0;                                           /* one interrupt per frame */
+    vc_tick(&C, 0);
+    now += 2;
+    isr = tick_at_second_lock;
+}
+
+static void tick_until_fault(unsigned k)
+{
+    if (k != 2) return;
+    isr = 0;
+    while (C.state == VC_PLAYING) { vc_tick(&C, 0); now += 2; }
+}
+
+static void test_tick_inside_prog_data(void)
+{
+    static unsigned ticks[16384];
+    unsigned n[1] = {16384}, dur[1] = {131072000}, i, len, off, t;
+    uint8_t p[240];
+    frame_t f;
+    for (i = 0; i < 16384; i++) ticks[i] = i * 4u;
+    len = make_program(prog, 0, 1, n, dur, ticks, 0);
+    off = start_streaming(len, len);
+    isr_ticks = 0;
+    for (t = 0; (t == 0 || C.state == VC_PLAYING) && t < 70000u; t++) {
+        locks_taken = 0;
+        isr = tick_at_second_lock;
+        off = top_up(off, len);                        /* one tick inside each PROG_DATA */
+        isr = 0;
+        vc_tick(&C, 0);
+        now += 2;
+    }
+    f = status();
+    CHECK_EQ(f.p[0], VC_IDLE); CHECK_EQ(f.p[1], 0);
+    CHECK_EQ(off, len);
+    CHECK_EQ(npulses, 16384);
+    CHECK(isr_ticks > 80);                             /* a tick inside every PROG_DATA */
+    for (i = 0; i < 16384; i += 1000) CHECK_EQ(pulses[i].tick, i * 4u);
+    /* the PC falls behind: the underrun comes inside the frame that was to fill the gap */
+    off = start_streaming(len, VC_STORE_BYTES - 200);
+    while (C.store[0].used > 8u) { vc_tick(&C, 0); now += 2; }
+    CHECK_EQ(C.state, VC_PLAYING);
+    p[0] = 0; p[1] = (uint8_t)off; p[2] = (uint8_t)(off >> 8); p[3] = 0; p[4] = 0;
+    memcpy(p + 5, prog + off, 200);
+    locks_taken = 0;
+    isr = tick_until_fault;
+    f = cmd(VC_PROG_DATA, p, 205);
+    isr = 0;
+    CHECK_EQ(f.type, 0xFF); CHECK_EQ(f.p[0], VC_E_STATE);
+    CHECK_EQ(f.p[4], VC_FAULT); CHECK_EQ(f.p[5], VC_FAULT_UNDERRUN);
+    CHECK_EQ(C.store[0].count, 0); CHECK_EQ(C.store[0].used, 0);
+    CHECK_EQ(open_mask, 0);
+    f = cmd(VC_ABORT, 0, 0);
+    CHECK_EQ(f.type, 0xA1);
+    CHECK_EQ(upload(0, prog, len, 2000), 0x91);        /* the store takes programs again */
+    CHECK_EQ(cmd(VC_PROG_VERIFY, "\x00", 1).p[4], 0xD0);
+}
+
 static void test_stall_command(void)
 {
     frame_t f;
@@ -631,6 +711,7 @@ static const struct { const char *name; test_fn fn; } TESTS[] = {
     {"watchdog_reset", test_watchdog_reset},
     {"queued_arm_no_gap", test_queued_arm_no_gap},
     {"stall_command", test_stall_command},
+    {"tick_inside_prog_data", test_tick_inside_prog_data},
 };
 
 int main(void)
