@@ -173,9 +173,29 @@ static void run_ticks(unsigned n) { unsigned i; for (i = 0; i < n; i++) { vc_tic
 
 /* ------------------------------------------------------------------ tests */
 
+/* The polynomial's definition bit by bit, against crc16.c's table. */
+static uint16_t crc_bits(uint16_t crc, uint8_t b)
+{
+    int i;
+    crc ^= (uint16_t)(b << 8);
+    for (i = 0; i < 8; i++)
+        crc = (uint16_t)(crc & 0x8000u ? ((unsigned)crc << 1) ^ 0x1021u : (unsigned)crc << 1);
+    return crc;
+}
+
 static void test_crc_catalogue(void)
 {
+    unsigned b, c;
     CHECK_EQ(vc_crc16_update(0xFFFF, (const uint8_t *)"123456789", 9), 0x29B1);
+    for (c = 0; c < 0x10000u; c += 0x101u)
+        for (b = 0; b < 256; b++) {
+            uint8_t byte = (uint8_t)b;
+            if (vc_crc16_update((uint16_t)c, &byte, 1) != crc_bits((uint16_t)c, byte) ||
+                vc_crc16_byte((uint16_t)c, byte) != crc_bits((uint16_t)c, byte)) {
+                CHECK_EQ(vc_crc16_byte((uint16_t)c, byte), crc_bits((uint16_t)c, byte));
+                return;
+            }
+        }
 }
 
 static uint8_t prog[80000];
