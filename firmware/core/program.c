@@ -9,17 +9,26 @@ static uint32_t le32(const uint8_t *p)
            ((uint32_t)p[3] << 24);
 }
 
+/* Below 2^32 us (71.6 minutes) in 32 bits: a multiply. The 64-bit division is libgcc's
+ * loop on the LPC2148, ~500 cycles, and ARM (two of them) runs with the tick locked out. */
 uint32_t vc_ticks_round(uint64_t us)
 {
+    if (us < 0xFFFFFFFFu - VC_TICK_US) return ((uint32_t)us + VC_TICK_US / 2u) / VC_TICK_US;
     return (uint32_t)((us + VC_TICK_US / 2u) / VC_TICK_US);
 }
 
 /* ------------------------------------------------------------------ upload validator */
 
+/* Field by field, acc aside (each byte of it is written before it is read): PROG_BEGIN
+ * runs with the tick locked out, and zeroing the 72-byte program slot there was most of
+ * its work (make rx-work). */
 void vc_dec_init(vc_dec *d)
 {
-    memset(d, 0, sizeof *d);
     d->phase = VC_DEC_HEADER;
+    d->mode = d->nacc = 0;
+    d->pos = d->pieces_left = d->n = d->i = d->dur_us = d->pulses = 0;
+    d->last_tick = 0;
+    d->total_us = 0;
 }
 
 static void piece_done(vc_dec *d)
@@ -143,10 +152,12 @@ int vc_store_begin(vc_store *s, uint32_t total)
     vc_prog *p;
     if (s->count >= VC_QUEUE) return -1;
     p = &s->progs[(s->head + s->count) % VC_QUEUE];
-    memset(p, 0, sizeof *p);
     p->total = total;
+    p->received = 0;
     p->crc = VC_CRC_INIT;
-    p->dec.phase = VC_DEC_HEADER;                           /* vc_dec_init, but zeroed */
+    p->complete = p->locked = 0;
+    p->ticks = 0;
+    vc_dec_init(&p->dec);
     s->count++;
     return 0;
 }

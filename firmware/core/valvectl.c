@@ -30,7 +30,7 @@ static unsigned frame_head(uint8_t *out, uint8_t seq, uint8_t type, const uint8_
     out[2] = (uint8_t)len;
     out[3] = seq;
     out[4] = type;
-    if (len) memcpy(out + 5, pl, len);
+    if (len && pl != out + 5) memcpy(out + 5, pl, len);
     return len + VC_FRAME_OVERHEAD;
 }
 
@@ -165,7 +165,7 @@ static uint32_t play_length(vc_core *c, uint8_t mask, int next)
         if (!((mask >> v) & 1u)) continue;
         p = next ? next_to_arm(c, v) : vc_store_at(&c->store[v], 0);
         if (!p || !p->complete) return 0xFFFFFFFFu;        /* streaming: not known yet */
-        e = vc_ticks_round(p->dec.total_us);
+        e = p->ticks;
         if (e > len) len = e;
     }
     return len;
@@ -335,9 +335,11 @@ static void cmd_hello(vc_core *c, uint8_t seq, const uint8_t *pl, unsigned len)
     reply(c, seq, VC_HELLO | 0x80, p, sizeof p);
 }
 
+/* Written straight into the reply's place (copying it there was half the work with the
+ * tick locked out). */
 static void cmd_status(vc_core *c, uint8_t seq, unsigned len)
 {
-    uint8_t p[24 + 16 * VC_N_VALVES];
+    uint8_t *p = c->cache + 5;
     unsigned v;
     if (len != 0) { error(c, VC_E_BAD_LENGTH, seq, VC_STATUS, len, 1); return; }
     p[0] = c->state;
@@ -363,7 +365,7 @@ static void cmd_status(vc_core *c, uint8_t seq, unsigned len)
         put32(q + 12, (c->state == VC_PLAYING && ((c->armed_mask >> v) & 1u)) ?
               s->rd.emitted : c->last_emitted[v]);
     }
-    reply(c, seq, VC_STATUS | 0x80, p, sizeof p);
+    reply(c, seq, VC_STATUS | 0x80, p, 24u + 16u * VC_N_VALVES);
 }
 
 static void cmd_config(vc_core *c, uint8_t seq, const uint8_t *pl, unsigned len)
@@ -420,7 +422,7 @@ static void cmd_begin(vc_core *c, uint8_t seq, const uint8_t *pl, unsigned len)
 static void cmd_data(vc_core *c, uint32_t *lk, uint8_t seq, const uint8_t *pl, unsigned len)
 {
     uint8_t p[9], v;
-    uint32_t off, n, bad = 0, w;
+    uint32_t off, n, bad = 0, w, ticks = 0;
     uint16_t crc;
     vc_store *s;
     vc_prog *t;
@@ -445,6 +447,7 @@ static void cmd_data(vc_core *c, uint32_t *lk, uint8_t seq, const uint8_t *pl, u
     if (!rc) {
         vc_store_put(s, w, pl + 5, n);
         crc = vc_crc16_update(crc, pl + 5, n);
+        if (d.phase == VC_DEC_DONE) ticks = vc_ticks_round(d.total_us);
     }
     *lk = board_lock();
     if (c->state == VC_FAULT || vc_store_tail(s) != t) {
@@ -453,6 +456,7 @@ static void cmd_data(vc_core *c, uint32_t *lk, uint8_t seq, const uint8_t *pl, u
     }
     if (!rc) {
         vc_store_commit(s, &d, crc, n);
+        t->ticks = ticks;
     } else {
         if (t->locked) {
             vc_fault(c, VC_FAULT_BAD_STREAM);        /* an armed or playing program is bad */
