@@ -418,7 +418,7 @@ static void cmd_begin(vc_core *c, uint8_t seq, const uint8_t *pl, unsigned len)
  * space unlocked: the tick reads no byte past the tail's received count and no decoder,
  * and nothing but the main loop appends. Locked again, they become the program's, unless
  * the tick faulted meanwhile (programs gone: a STATE error, as if the frame came after).
- * All of it locked held interrupts off ~0.7 ms on the board per 235 bytes. */
+ * All of it locked held interrupts off ~0.9 ms on the board per 235 bytes. */
 static void cmd_data(vc_core *c, uint32_t *lk, uint8_t seq, const uint8_t *pl, unsigned len)
 {
     uint8_t p[9], v;

@@ -9,10 +9,10 @@
  * CRCs, a PROG_DATA's validation, its copy into free ring space and a reply's CRC run
  * unlocked. Everything the tick reads or writes (state, stores, counters, ev_seq, the
  * board's transmit queue) is touched by the main loop only between board_lock() and
- * board_unlock() (board.h), in sections of bounded, input-independent work: before, the
- * board ran all of vc_rx with interrupts off, up to ~0.7 ms for a PROG_DATA frame and ~8
- * ms for start markers (BENCHMARKS.md, "Valve firmware: work with interrupts off"). The
- * rest is not reentrant: one main loop, one tick. */
+ * board_unlock() (board.h), in sections of bounded, input-independent work (~10-15 us on
+ * the LPC2148): before, the board ran all of vc_rx with interrupts off, ~0.9 ms for a
+ * PROG_DATA frame, 28 ms for crafted start markers (BENCHMARKS.md, "Valve firmware: work
+ * with interrupts off"). The rest is not reentrant: one main loop, one tick. */
 #ifndef VC_VALVECTL_H
 #define VC_VALVECTL_H
 

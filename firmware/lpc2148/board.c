@@ -214,7 +214,7 @@ int main(void)
             feed_watchdog();
         }
         /* interrupts on: the core locks what the tick shares (core/valvectl.h); with all of
-         * vc_rx locked a PROG_DATA frame held them off ~0.7 ms and start markers ~8 ms,
+         * vc_rx locked a PROG_DATA frame held them off ~0.9 ms and start markers up to 28 ms,
          * delaying the tick and overrunning the UART's 16-byte FIFO */
         while (rx_tail != rx_head) {
             uint8_t b = rx_ring[rx_tail];

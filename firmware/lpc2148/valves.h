@@ -5,7 +5,7 @@
  * Before, a Timer0 match interrupt closed it, and it waited while the main loop handled a
  * frame with interrupts off: up to ~0.67 ms for a PROG_DATA frame, a 500 us pulse open
  * more than twice as long for ~3 % of the pulses while a program streams (a review). The
- * main loop now keeps interrupts off ~21 us at most (core/valvectl.h, make rx-work).
+ * main loop now keeps interrupts off ~10-15 us at most (core/valvectl.h, make rx-work).
  *
  * Included by board.c over the LPC2148's registers, and by tests/board_valves.c over a
  * simulated Timer1 behind the same names (T1TC, T1EMR, T1MR0, T1MR1). Call with
