@@ -203,6 +203,20 @@ def test_lpc2148_image_fits_flash_and_ram(tmp_path):
     # the vector table is at 0 and the IRQ vector reads the VIC's address register
     image = (tmp_path / "valvectl-lpc2148.bin").read_bytes()
     assert struct.unpack_from("<I", image, 0x18)[0] == 0xE51FFFF0
+    # the boot loader starts the code only if the 8 vector words add up to 0 (UM10139):
+    # written into the .bin at 0x14 (it was 0, left to the flash tool)
+    assert sum(struct.unpack_from("<8I", image, 0)) % 2**32 == 0
+    assert struct.unpack_from("<I", image, 0x14)[0] != 0
+    # the .hex holds the same bytes (Intel HEX data records, from address 0)
+    data = bytearray()
+    for line in (tmp_path / "valvectl-lpc2148.hex").read_text().split():
+        rec = bytes.fromhex(line[1:])
+        assert sum(rec) % 256 == 0                      # each record's own checksum
+        if rec[3] == 0:
+            # in address order from 0 (the image is under 64 kB: no extended records)
+            assert int.from_bytes(rec[1:3], "big") == len(data)
+            data += rec[4:4 + rec[0]]
+    assert bytes(data) == image
 
 
 # --------------------------------------------------------------------------- host build

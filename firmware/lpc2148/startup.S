@@ -9,7 +9,7 @@ _start:
         ldr     pc, swi_addr
         ldr     pc, pabt_addr
         ldr     pc, dabt_addr
-        .word   0                       /* checksum of the vectors: set by the flash tool */
+        .word   0                       /* vector checksum: make arm writes it in the .bin */
         ldr     pc, [pc, #-0xFF0]       /* IRQ: jump to VICVectAddr */
         ldr     pc, fiq_addr
 reset_addr:     .word reset_handler
