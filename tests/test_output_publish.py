@@ -419,3 +419,57 @@ def test_a_folder_it_cannot_write_into_is_refused_before_any_work(tmp_path, monk
     assert capsys.readouterr().err == (f"icefab slice: error: -o {ro / 'out'}: cannot write "
                                        f"into {ro} (permission denied)\n")
     assert cli.main(["slice", "demo", "-o", str(ro)]) == 2
+
+
+_COMMANDS = {"slice": ["demo"], "paths": ["demo"], "plan": ["demo"], "valves": ["t.npz"],
+             "simulate": ["demo"], "export": ["gcode", "t.npz"], "tune": [], "demo": []}
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux's /proc")
+@pytest.mark.parametrize("command", sorted(_COMMANDS))
+def test_an_output_folder_where_nothing_can_be_made_is_refused_before_any_work(
+        command, monkeypatch, capsys):
+    """'-o /proc/x' passed the permission check (root may write anywhere, as os.access
+    sees it) and 'icefab slice' refused it only after slicing the whole mesh (a review's):
+    one line, exit 2, before the command's own work."""
+    from icefab import cli
+
+    module = importlib.import_module(f"icefab.cli.{command}_cmd")
+    for name in ("run", "run_gcode"):
+        if hasattr(module, name):
+            monkeypatch.setattr(module, name, lambda args: pytest.fail("worked"))
+    argv = [command, *_COMMANDS[command], "-o", "/proc/x/out"]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"icefab {command}: error: -o /proc/x/out: cannot write into /proc (")
+    assert err.count("\n") == 1
+
+
+def test_a_read_only_file_system_is_refused_before_any_work_even_for_root(tmp_path,
+                                                                          monkeypatch, capsys):
+    """A read-only mount passes os.access for root in some set-ups (and /proc always):
+    the folder is tried by making one there, and the system's reason is given."""
+    import errno
+
+    from icefab import cli
+    from icefab.cli import slice_cmd
+
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    real = os.mkdir
+
+    def mkdir(p, *a, **kw):
+        if Path(p).parent == ro:
+            raise OSError(errno.EROFS, os.strerror(errno.EROFS), str(p))
+        return real(p, *a, **kw)
+
+    monkeypatch.setattr(os, "mkdir", mkdir)
+    monkeypatch.setattr(slice_cmd, "run", lambda args: pytest.fail("worked"))
+    assert cli.main(["slice", "demo", "-o", str(ro / "out")]) == 2
+    assert capsys.readouterr().err == (f"icefab slice: error: -o {ro / 'out'}: cannot write "
+                                       f"into {ro} (Read-only file system)\n")
+    assert list(ro.iterdir()) == []
+    monkeypatch.setattr(os, "mkdir", real)
+    with output_dir(ro / "out", "slice") as d:   # a folder that takes one is left as it was
+        (d / "stack.npz").write_text("stack")
+    assert sorted(p.name for p in ro.iterdir()) == ["out"]

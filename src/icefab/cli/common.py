@@ -278,6 +278,25 @@ def check_output_dir(path: str | os.PathLike) -> None:
             folder = folder.parent
         if folder.is_dir() and not os.access(folder, os.W_OK | os.X_OK):
             raise OutputError(f"-o {path}: cannot write into {folder} (permission denied)")
+        refused = _cannot_create_in(folder) if folder.is_dir() else None
+        if refused:
+            raise OutputError(f"-o {path}: cannot write into {folder} ({refused})")
+
+
+def _cannot_create_in(folder: Path) -> str | None:
+    """Why no folder can be made in ``folder`` (the reason, as the system gives it), or
+    None: found by making one and removing it. ``os.access`` asks for permissions only,
+    and root has them everywhere: '-o /proc/x' (a folder where nothing can be made), a
+    read-only mount for root, were found only after all the work (a review's)."""
+    try:
+        probe = make_temp_dir(folder, f".icefab-probe-{os.getpid()}.")
+    except OSError as exc:
+        return exc.strerror or str(exc)
+    try:
+        probe.rmdir()
+    except OSError:
+        pass
+    return None
 
 
 #: Hidden folders beside OUT (``.OUT.icefab-PID.RANDOM``) hold a running command's results
