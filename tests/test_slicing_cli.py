@@ -6,6 +6,8 @@ import re
 import numpy as np
 import pytest
 import trimesh
+from hypothesis import given, settings
+from hypothesis import strategies as hs
 
 import icefab
 from icefab.cli import main
@@ -170,6 +172,46 @@ def test_cli_a_layer_list_of_no_numbers_is_refused_before_slicing(tube_files, tm
     err = capsys.readouterr().err
     assert "argument --layers: 'a,b': expected comma-separated layer numbers" in err
     assert "slicing" not in err and not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("command", ["slice", "paths", "plan"])
+def test_cli_a_layer_past_the_stack_is_refused_before_slicing(tube_files, tmp_path,
+                                                              monkeypatch, capsys, command):
+    """'icefab slice MESH --layers 3,99' was refused only after slicing the whole mesh (a
+    review's): the count of uniform layers is the mesh's height over the thickness."""
+    import icefab.slicing
+
+    monkeypatch.setattr(icefab.slicing, "slice_mesh", lambda *a, **k: pytest.fail("sliced"))
+    rc = main([command, str(tube_files["bin.stl"]), "-o", str(tmp_path / "o"),
+               "--layers", "3,99"])
+    assert rc == 2
+    assert capsys.readouterr().err == (f"icefab {command}: error: --layers '3,99': layer "
+                                       "numbers must be between 0 and 23\n")
+    assert not (tmp_path / "o").exists()
+
+
+def test_cli_adaptive_layers_are_counted_by_slicing_and_refused_before_writing(
+        tube_files, tmp_path, capsys):
+    job = tmp_path / "job.toml"
+    job.write_text("[slicing]\ncusp_height_mm = 0.1\n")
+    rc = main(["slice", str(tube_files["bin.stl"]), "-c", str(job), "-o",
+               str(tmp_path / "o"), "--layers", "3,999"])
+    assert rc == 2
+    assert "--layers '3,999': layer numbers must be between 0 and" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+@settings(max_examples=25, deadline=None)
+@given(t=hs.floats(0.05, 2.0), f0=hs.floats(0.0, 0.45), f1=hs.floats(0.55, 1.0),
+       z0=hs.floats(-50.0, 50.0))
+def test_layer_count_is_the_number_of_layers_slicing_makes(t, f0, f1, z0):
+    from icefab.slicing import layer_count
+
+    v = np.array([[0, 0, 0], [10, 0, 0], [0, 10, 0], [0, 0, 6.0]]) + [0, 0, z0]
+    mesh = icefab.Mesh(v, np.array([[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]]), "tet")
+    job = Job().replace(**{"slicing.layer_thickness_mm": t, "parts.part_fraction": (f0, f1)})
+    assert layer_count(mesh, job) == len(slice_mesh(mesh, job))
+    assert layer_count(mesh, job.replace(**{"slicing.cusp_height_mm": 0.1})) is None
 
 
 def test_cli_no_model_exits_2(tmp_path, capsys):

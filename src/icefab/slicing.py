@@ -180,7 +180,7 @@ def layer_planes(z_min: float, z_max: float, job: Job, mesh: Mesh | None = None,
         bottom, top = edges[:-1].copy(), edges[1:].copy()
         n = len(bottom)
     else:
-        n = max(1, int(round((z_hi - z_lo) / t)))
+        n = _uniform_count(z_lo, z_hi, t)
         k = np.arange(n, dtype=np.float64)
         bottom = z_lo + k * t
         top = z_lo + (k + 1.0) * t
@@ -192,6 +192,33 @@ def layer_planes(z_min: float, z_max: float, job: Job, mesh: Mesh | None = None,
     above[z >= z_hi] = False
     q = np.where(above, np.nextafter(z, np.inf), z)
     return bottom, top, z, q
+
+
+def _uniform_count(z_lo: float, z_hi: float, t: float) -> int:
+    """The number of layers ``t`` mm thick between ``z_lo`` and ``z_hi`` mm (at least one:
+    the top layer may reach past the part)."""
+    return max(1, int(round((z_hi - z_lo) / t)))
+
+
+def layer_count(mesh: Mesh, job: Job) -> int | None:
+    """The number of layers :func:`slice_mesh` makes of the placed ``mesh`` (vertices
+    mm) with ``job``, from its z extent, ``parts.part_fraction`` and
+    ``slicing.layer_thickness_mm``, without slicing it: what a command's ``--layers`` is
+    checked against before the slow work. None when only slicing tells: adaptive layers
+    (``slicing.cusp_height_mm`` > 0, planned from the facets), or a mesh
+    :func:`slice_mesh` refuses (no finite, positive height). ConfigError as slicing's
+    for a part of too many layers (:func:`icefab.workload.check_layers`)."""
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    if job.slicing.cusp_height_mm > 0 or v.ndim != 2 or v.shape[1:] != (3,) or not len(v):
+        return None
+    z_min, z_max = float(v[:, 2].min()), float(v[:, 2].max())
+    if not (np.isfinite([z_min, z_max]).all() and z_max > z_min):
+        return None
+    check_layers(z_min, z_max, job)
+    f0, f1 = job.parts.part_fraction
+    height = z_max - z_min
+    return _uniform_count(z_min + f0 * height, z_min + f1 * height,
+                          job.slicing.layer_thickness_mm)
 
 
 def adaptive_layers(mesh: Mesh, z_lo: float, z_hi: float, job: Job) -> AdaptiveLayers:

@@ -133,6 +133,19 @@ def parse_layers(text: str | None, n: int, default_count: int = 4) -> list[int]:
     return list(dict.fromkeys(ks))   # a layer named twice is drawn once, in the given order
 
 
+def check_layers_before_slicing(text: str | None, mesh: "Mesh", job: Job) -> None:
+    """A ``--layers K,K,...`` option checked (:func:`parse_layers`) against the number of
+    layers slicing the placed ``mesh`` with ``job`` will make, before it is sliced: 'icefab
+    slice --layers 3,99' of a part of 40 layers was refused only after slicing it (a
+    review's). Adaptive layers are counted by slicing alone: the option waits for it
+    (:func:`icefab.slicing.layer_count`)."""
+    from icefab.slicing import layer_count
+
+    n = layer_count(mesh, job) if text else None
+    if n is not None:
+        parse_layers(text, n)
+
+
 class Terminated(KeyboardInterrupt):
     """SIGTERM, raised in the main process as Ctrl-C is (``icefab.cli.main``, a build
     while it plans), so that a command's clean-up (its temporary result folder, the cell

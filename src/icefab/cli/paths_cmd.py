@@ -19,9 +19,10 @@ from typing import Sequence
 
 import numpy as np
 
-from icefab.cli.common import (ESTIMATE_WORDS, Progress, add_job_argument, command_inputs,
-                               file_job, hours, job_from_args, layer_list, output_dir,
-                               parse_layers, placed_model, warning_lines, write_warnings)
+from icefab.cli.common import (ESTIMATE_WORDS, Progress, add_job_argument,
+                               check_layers_before_slicing, command_inputs, file_job, hours,
+                               job_from_args, layer_list, output_dir, parse_layers,
+                               placed_model, warning_lines, write_warnings)
 from icefab.core import DEPOSITING_ROLES, MATERIALS, ROLES, area_text
 from icefab.report import plot_toolpaths
 from icefab.resultfiles import LayerHead, packed_lengths
@@ -165,6 +166,7 @@ def _load_stack(args: argparse.Namespace, job):
             stack.job, args, f"{first}: the stack's layers", "icefab slice"))
         return stack, stack.job
     mesh, job = placed_model(model, job)
+    check_layers_before_slicing(args.layers, mesh, job)
     return slice_mesh(mesh, job, progress=Progress("slicing")), job
 
 

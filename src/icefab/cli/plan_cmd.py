@@ -35,7 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
-from icefab.cli.common import (ESTIMATE_WORDS, Progress, add_job_argument, command_inputs,
+from icefab.cli.common import (ESTIMATE_WORDS, Progress, add_job_argument,
+                               check_layers_before_slicing, command_inputs,
                                compare_build_times, file_job, hours, job_from_args,
                                output_dir, layer_list, parse_layers, placed_model)
 from icefab.core import DEPOSITING_CODES
@@ -98,6 +99,7 @@ def load_input(inputs: list[str], job, args: argparse.Namespace):
     from icefab.regions import add_scaffold
     from icefab.slicing import slice_mesh
     mesh, job = placed_model(inputs, job)   # placement per the job (thesis 3.1.2)
+    check_layers_before_slicing(args.layers, mesh, job)
     stack = slice_mesh(mesh, job, progress=Progress("slicing"))
     stack = add_scaffold(stack, job)
     return plan_paths(stack, job), job

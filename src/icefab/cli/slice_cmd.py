@@ -14,9 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
-from icefab.cli.common import (Progress, add_job_argument, command_inputs, job_from_args,
-                               layer_list, layer_thickness_text, output_dir, parse_layers,
-                               placed_model, warning_lines, write_warnings)
+from icefab.cli.common import (Progress, add_job_argument, check_layers_before_slicing,
+                               command_inputs, job_from_args, layer_list, layer_thickness_text,
+                               output_dir, parse_layers, placed_model, warning_lines,
+                               write_warnings)
 from icefab.report import plot_layers
 from icefab.core import Stack
 
@@ -66,6 +67,7 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     t0 = time.perf_counter()
     mesh, job = placed_model(model, job)
+    check_layers_before_slicing(args.layers, mesh, job)
     t_load = time.perf_counter() - t0
     stack = slice_mesh(mesh, job, progress=Progress("slicing"))
     elapsed = time.perf_counter() - t0
