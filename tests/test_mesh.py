@@ -757,6 +757,72 @@ def test_error_ascii_stl_truncated(tmp_path):
         load_mesh(p)
 
 
+def _obj_cut(upto: str, keep: str) -> tuple[bytes, int]:
+    """The box OBJ cut after ``keep`` on its first line starting ``upto``: the bytes and
+    that line's number."""
+    v, quads = _box_quads()
+    lines = _obj_bytes(v, quads).decode().splitlines()
+    k = next(i for i, ln in enumerate(lines) if ln.startswith(upto))
+    return ("\n".join(lines[:k] + [keep]).encode(), k + 1)
+
+
+@pytest.mark.parametrize("upto,keep,what", [
+    ("v ", "v 0.0 0", "OBJ line {k}: a vertex needs 3 coordinates, and the file ends inside "
+                      "this line (truncated?) (line reads 'v 0.0 0')"),
+    ("v 10.0 20.0 0.0", "v 10.0 20.0 0", "OBJ without faces ('f' lines), and the file ends "
+                                         "inside line {k} (truncated?) (line reads 'v 10.0 "
+                                         "20.0 0')"),
+    ("f ", "f 1 3", "OBJ line {k}: a face needs 3 corners, and the file ends inside this "
+                    "line (truncated?) (line reads 'f 1 3')"),
+    ("f 5 6 8 7", "f 5 6", "OBJ line {k}: a face needs 3 corners, and the file ends inside "
+                           "this line (truncated?) (line reads 'f 5 6')"),
+    ("f 5 6 8 7", "f 5 6 8 -", "OBJ line {k}: cannot read a number, and the file ends inside "
+                               "this line (truncated?) (line reads 'f 5 6 8 -')"),
+])
+def test_error_obj_truncated_names_its_last_line(tmp_path, upto, keep, what):
+    """A truncated OBJ said 'the mesh has no faces', or lost its last face without a
+    word (a review's): the line the file ends inside is named, as ASCII STL and PLY say
+    'truncated'."""
+    data, k = _obj_cut(upto, keep)
+    with pytest.raises(MeshError) as ei:
+        load_mesh(_write(tmp_path, "cut.obj", data))
+    assert str(ei.value) == f"{tmp_path / 'cut.obj'}: " + what.format(k=k)
+
+
+def test_error_obj_without_faces_counts_its_vertices(tmp_path):
+    data, _ = _obj_cut("vt ", "")
+    with pytest.raises(MeshError, match=r"cut\.obj: OBJ without faces \('f' lines\) after its "
+                                        r"8 vertices$"):
+        load_mesh(_write(tmp_path, "cut.obj", data))
+    # a last line of a whole face needs no line end (and says nothing)
+    v, quads = _box_quads()
+    assert load_mesh(_write(tmp_path, "whole.obj", _obj_bytes(v, quads).rstrip())).n_faces \
+        == 12
+
+
+@settings(max_examples=150, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(at=st.integers(0, 10_000), style=st.sampled_from(["plain", "slashes", "negative"]))
+def test_obj_cut_anywhere_is_a_mesh_or_one_line_naming_the_file(tmp_path, at, style):
+    """Cut at any byte, an OBJ loads, or is one MeshError naming the file; one that ends
+    inside a vertex or face line too short, or before any face, says 'truncated?'."""
+    v, quads = _box_quads()
+    whole = _obj_bytes(v, quads, style=style)
+    data = whole[:at % (len(whole) + 1)]
+    p = _write(tmp_path, "cut.obj", data)
+    last = data.rsplit(b"\n", 1)[-1].split()
+    try:
+        mesh = load_mesh(p)
+    except MeshError as exc:
+        text = str(exc)
+        assert text.startswith(f"{p}: ") and "\n" not in text
+        ends_inside = bool(last) and last[0] in (b"v", b"f")
+        if ends_inside and (len(last) < 4 or b"\nf " not in data):
+            assert "(truncated?)" in text
+        return
+    assert 0 < mesh.n_faces <= 12 and b"\nf " in data
+
+
 def test_error_obj_bad_number_names_line(tmp_path):
     v, quads = _box_quads()
     lines = _obj_bytes(v, quads).decode().splitlines()

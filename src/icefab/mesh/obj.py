@@ -140,6 +140,28 @@ def _scan_obj(b):  # pragma: no cover
             flines[:nf], n_short, err, line if err else 0)
 
 
+#: What an error on the line a file ends inside adds: the file looks cut short (as an
+#: ASCII STL that ends inside a facet, a PLY short of its elements).
+_CUT = ", and the file ends inside this line (truncated?)"
+
+
+def _cut_line(data: bytes) -> int:
+    """The 1-based number of the last line when the file ends inside it, an element's
+    line (not blank, not a comment) without its line end; 0 otherwise. A file need not
+    end in a line end: an error there, or a face too short, says it may be truncated."""
+    tail = data[data.rfind(b"\n") + 1:]
+    if not tail.strip() or tail.lstrip().startswith(b"#"):
+        return 0
+    return data.count(b"\n") + 1
+
+
+def _is_short_face(data: bytes, line: int) -> bool:
+    """Whether 1-based ``line`` of ``data`` is an 'f' line of fewer than 3 corners (the
+    scan skips such faces)."""
+    words = data.split(b"\n")[line - 1].split(b"#", 1)[0].split()
+    return bool(words) and words[0] == b"f" and len(words) < 4
+
+
 def read(data: bytes, path: Path) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (n, 3) float64 and triangles (m, 3) int64 of an OBJ file.
 
@@ -152,13 +174,26 @@ def read(data: bytes, path: Path) -> tuple[np.ndarray, np.ndarray]:
         data = re.sub(rb"\\[ \t]*\r?\n", b" ", data)
     b = np.frombuffer(data, np.uint8)
     buf, values, slow, vlines, fidx, fcount, flines, n_short, err, line = _scan_obj(b)
+    cut = _cut_line(data)
     if err:
         what = {_E_NUMBER: "cannot read a number", _E_FEW: "a vertex needs 3 coordinates",
                 _E_INDEX: "face index 0 or before the first vertex"}[err]
-        raise MeshError(f"{path}: OBJ line {line}: {what} "
+        raise MeshError(f"{path}: OBJ line {line}: {what}{_CUT if line == cut else ''} "
                         f"(line reads {_line_text(data, line)!r})")
+    if cut and _is_short_face(data, cut):
+        # skipped as a face of fewer than 3 corners: a truncated file lost its last face
+        # without a word, or was 'no faces' when it had been its first (a review's)
+        raise MeshError(f"{path}: OBJ line {cut}: a face needs 3 corners{_CUT} (line reads "
+                        f"{_line_text(data, cut)!r})")
     if len(vlines) == 0:
         raise MeshError(f"{path}: OBJ without vertices ('v' lines)")
+    if len(fcount) == 0:
+        if cut:
+            raise MeshError(f"{path}: OBJ without faces ('f' lines), and the file ends inside "
+                            f"line {cut} (truncated?) (line reads {_line_text(data, cut)!r})")
+        raise MeshError(f"{path}: OBJ without faces ('f' lines) after its {len(vlines)} "
+                        "vertices" + (f" (its {n_short} 'f' lines have fewer than 3 corners)"
+                                      if n_short else ""))
     values = _finish_numbers(buf, values, slow, vlines, 3, path, "OBJ")
     vertices = values.reshape(-1, 3)
     _check_finite_lines(vertices, vlines, path, "OBJ")
