@@ -19,8 +19,9 @@ def test_tune_json_thesis_disturbance(capsys):
                      "--json")
     assert rc == 0
     data = json.loads(out)
-    assert set(data) == {"kp", "ki", "kd", "rms", "max_pole", "stable", "converged",
-                         "converged_by_check"}
+    assert set(data) == {"kp", "ki", "kd", "rms", "max_pole", "stable", "optimised",
+                         "converged", "converged_by_check"}
+    assert data["optimised"] is True
     assert data["converged"] is True and data["converged_by_check"] is False
     assert data["kp"] == pytest.approx(1.0, abs=2e-3) and abs(data["kd"]) < 2e-3
     assert data["ki"] == pytest.approx(0.33, abs=5e-3)
@@ -33,6 +34,22 @@ def test_tune_evaluate_unstable(capsys):
     assert rc == 0 and data["stable"] is False and data["max_pole"] == pytest.approx(1.05, abs=0.005)
     rc, out, _ = run(capsys, "--gains", "1,0.33,0.45")
     assert "UNSTABLE" in out and "1.048" in out
+
+
+def test_given_gains_are_not_said_to_have_converged(capsys, tmp_path):
+    """'--gains ... --json' said "converged": true, though no optimiser ran (a review's):
+    the same keys, optimised false and converged null, in tune.json too, and the text
+    says the gains were given."""
+    rc, out, _ = run(capsys, "--gains", "0.5,0.3,0.1", "--json", "-o", str(tmp_path / "t"))
+    data = json.loads(out)
+    assert rc == 0 and data["optimised"] is False
+    assert data["converged"] is None and data["converged_by_check"] is None
+    saved = json.loads((tmp_path / "t" / "tune.json").read_text())
+    assert saved["mode"] == "given, not optimised" and saved["optimised"] is False
+    assert saved["converged"] is None
+    rc, out, _ = run(capsys, "--gains", "0.5,0.3,0.1")
+    assert rc == 0 and out.startswith("gains (given, not optimised): Kp = 0.5000")
+    assert "converged" not in out
 
 
 def test_tune_says_when_the_optimiser_failed(capsys):

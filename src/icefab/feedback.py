@@ -428,7 +428,8 @@ class TuneResult:
     accepted after a check (converged_by_check True: SLSQP found no descent at a feasible
     point that neither a restart nor probes around it could better, :func:`tune_gains`);
     message: the optimiser's message (and the check's); e: (n,) error response at the
-    optimum.
+    optimum. optimised: False for given gains (:func:`evaluate_gains`), which no
+    optimiser ran for: their ``converged`` means nothing (None in :meth:`as_dict`).
     """
 
     kp: float
@@ -442,6 +443,7 @@ class TuneResult:
     message: str = ""
     converged_by_check: bool = False
     e: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    optimised: bool = True
 
     @property
     def diverges(self) -> bool:
@@ -461,18 +463,22 @@ class TuneResult:
     def as_dict(self) -> dict[str, float | bool | None]:
         """Plain values for JSON: ``rms`` is None when the response diverges
         (:attr:`diverges`), so ``json.dumps(..., allow_nan=False)`` gives valid JSON and a
-        diverging response never shows a finite-looking RMS; ``converged``: whether the
-        optimiser succeeded (true for evaluated gains), ``converged_by_check``: whether only
-        icefab's check of where it stopped says so."""
+        diverging response never shows a finite-looking RMS; ``optimised``: whether an
+        optimiser found the gains (false for given gains); ``converged``: whether it
+        succeeded, ``converged_by_check``: whether only icefab's check of where it stopped
+        says so, both None for given gains (they were ``true``/``false``, as if an
+        optimiser had run: a review's)."""
+        ran = self.optimised
         return {"kp": self.kp, "ki": self.ki, "kd": self.kd,
                 "rms": None if self.diverges else float(self.rms),
-                "max_pole": self.max_pole, "stable": self.stable,
-                "converged": bool(self.converged),
-                "converged_by_check": bool(self.converged_by_check)}
+                "max_pole": self.max_pole, "stable": self.stable, "optimised": ran,
+                "converged": bool(self.converged) if ran else None,
+                "converged_by_check": bool(self.converged_by_check) if ran else None}
 
 
 def evaluate_gains(gains: Gains, disturbance: Disturbance | np.ndarray) -> TuneResult:
-    """RMS error, stability and the error response of given gains (no optimisation)."""
+    """RMS error, stability and the error response of given gains (no optimisation:
+    ``optimised`` False)."""
     _check_gains(gains)
     kp, ki, kd = (float(g) for g in gains)
     stable, m = stability(kp, ki, kd)
@@ -484,7 +490,8 @@ def evaluate_gains(gains: Gains, disturbance: Disturbance | np.ndarray) -> TuneR
     with np.errstate(over="ignore", invalid="ignore"):
         rms = _rms(e) * size if size > 0 else 0.0
         e = e * size if size > 0 else e
-    return TuneResult(kp, ki, kd, rms if np.isfinite(rms) else float("inf"), m, stable, e=e)
+    return TuneResult(kp, ki, kd, rms if np.isfinite(rms) else float("inf"), m, stable, e=e,
+                      optimised=False)
 
 
 _NAMES = ("kp", "ki", "kd")
@@ -632,7 +639,7 @@ def tune_gains(disturbance: Disturbance | np.ndarray = Disturbance(), *,
                                                                       "maxiter": 500})
         g, note = full(res.x), ""
     out = evaluate_gains(tuple(g), d)  # type: ignore[arg-type]
-    return dataclasses.replace(out, iterations=int(res.nit),
+    return dataclasses.replace(out, iterations=int(res.nit), optimised=True,
                                converged=bool(res.success) or bool(note),
                                converged_by_check=bool(note),
                                message=f"{res.message}; {note}" if note else str(res.message))

@@ -10,7 +10,8 @@ Examples::
 
 Optimised gains stay strictly inside the gain-stable volume: every pole within
 |z| <= 1 - 0.01 (``--pole-margin``). ``--json`` prints strict JSON: ``rms`` is null when
-the error response of the given gains diverges.
+the error response of the given gains diverges; for ``--gains`` ``optimised`` is false and
+``converged`` null (no optimiser ran).
 """
 
 from __future__ import annotations
@@ -66,7 +67,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         "--unconstrained")
     p.add_argument("--json", action="store_true",
                    help="print one JSON object with kp, ki, kd, rms, max_pole, stable, "
-                        "converged, converged_by_check")
+                        "optimised, converged, converged_by_check (the last two null for "
+                        "--gains: no optimiser ran)")
     p.add_argument("-o", "--out", metavar="DIR",
                    help="write DIR/error_response.png and DIR/tune.json")
     p.set_defaults(func=run)
@@ -182,7 +184,7 @@ def run(args: argparse.Namespace) -> int:
             raise ConfigError("--gains evaluates given gains; it cannot be combined with "
                               "--fix-kp/--fix-ki/--fix-kd")
         result = evaluate_gains(_triple(args.gains, "--gains"), dist)
-        mode = "evaluated"
+        mode = "given, not optimised"
     else:
         start = _triple(args.start, "--start")
         result = tune_gains(dist, x0=start, fix=fix, constrained=not args.unconstrained,
