@@ -11,7 +11,7 @@ from icefab import Job, LayerPaths, Path, Toolpaths
 from icefab.cli import main
 from icefab.errors import ConfigError
 from icefab.export import gcode_lines
-from icefab.motion import plan_toolpaths, save_trajectories
+from icefab.motion import TrajectoryFile, plan_toolpaths, save_trajectories
 
 
 def small_motion(n_layers=2, job=None):
@@ -402,5 +402,9 @@ def test_planning_toolpaths_for_another_robot_says_so(tmp_path, capsys):
     (tmp_path / "scara.toml").write_text('[cell]\ncpus = 1\nrobot = "scara"\n')
     assert main(["plan", str(tmp_path / "tp.npz"), "-c", str(tmp_path / "scara.toml"), "-o",
                  str(tmp_path / "out2")]) == 0
-    assert ("note: planning for the scara of the job; the toolpaths were made with a "
-            "gantry (cell.robot)") in capsys.readouterr().err
+    # at the SCARA's own part origin: the gantry's (150, 150) was kept (a review's)
+    assert ("note: planning for the scara of the job, its part origin cell.ee_origin_mm = "
+            "[260, -100]; the toolpaths were made with a gantry (cell.robot)"
+            ) in capsys.readouterr().err
+    with TrajectoryFile(tmp_path / "out2" / "trajectories.npz") as motion:
+        assert tuple(motion.job.cell.ee_origin_mm) == (260.0, -100.0)

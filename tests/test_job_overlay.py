@@ -176,6 +176,47 @@ def test_a_named_setting_that_decides_nothing_in_either_job_is_applied():
                            {"slicing.cusp_height_mm"}, "x", "y")
 
 
+def test_a_job_naming_another_robot_gives_it_that_robots_part_origin():
+    """A gantry's result file given a job naming robot = "scara" kept the gantry's part
+    origin (150, 150), a point of the gantry's base frame, for the SCARA (a review's):
+    the new robot takes its default origin unless the job file names one."""
+    from icefab.config import SCARA_EE_ORIGIN_MM
+
+    gantry = Job().replace(**{"cell.robot": "gantry"})
+    assert tuple(gantry.cell.ee_origin_mm) == (150.0, 150.0)   # the centre of its travel
+    out = stages.overlay_job(gantry, Job(), {"cell.robot"}, "t.npz: the toolpaths", "x")
+    assert out.cell.robot == "scara"
+    assert tuple(out.cell.ee_origin_mm) == SCARA_EE_ORIGIN_MM
+    wide = gantry.replace(**{"cell.gantry_travel_mm": (400.0, 200.0)})
+    back = stages.overlay_job(out, wide, {"cell.robot", "cell.gantry_travel_mm"}, "t", "x")
+    assert back.cell.robot == "gantry" and tuple(back.cell.ee_origin_mm) == (200.0, 100.0)
+    moved = Job().replace(**{"cell.ee_origin_mm": (300.0, 0.0)})
+    named = stages.overlay_job(gantry, moved, {"cell.robot", "cell.ee_origin_mm"}, "t", "x")
+    assert tuple(named.cell.ee_origin_mm) == (300.0, 0.0)
+    own = gantry.replace(**{"cell.ee_origin_mm": (100.0, 120.0)})   # the same robot named
+    assert tuple(stages.overlay_job(own, gantry, {"cell.robot"}, "t", "x").cell.ee_origin_mm) \
+        == (100.0, 120.0)
+
+
+def test_simulating_trajectories_with_another_robot_is_refused_naming_the_robot(
+        built, tmp_path, capsys):
+    """Trajectories are samples in their robot's base frame: a job naming another robot
+    is refused naming cell.robot (it ran a gantry's samples with a SCARA job; with the
+    new robot's own origin it would have named the origin, which the job did not name)."""
+    (tmp_path / "g.toml").write_text('[cell]\ncpus = 1\nrobot = "gantry"\n'
+                                     "[slicing]\nlayer_thickness_mm = 1.0\n")
+    assert main(["plan", str(built / "box.stl"), "-c", str(tmp_path / "g.toml"), "-o",
+                 str(tmp_path / "t")]) == 0
+    (tmp_path / "scara.toml").write_text('[cell]\nrobot = "scara"\n' + CLAMP)
+    traj = tmp_path / "t" / "trajectories.npz"
+    capsys.readouterr()
+    assert main(["simulate", str(traj), "-c", str(tmp_path / "scara.toml"), "-o",
+                 str(tmp_path / "s")]) == 2
+    assert f"{traj}: the trajectories were made with cell.robot = gantry, the job has " \
+           "scara" in capsys.readouterr().err
+    assert not (tmp_path / "s").exists()
+
+
 def test_api_callers_whole_jobs_keep_their_check():
     """check_agrees compares whole jobs (API callers): a job of defaults contradicts a file
     of 1.0 mm layers, and the parts are decided now."""

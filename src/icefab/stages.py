@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING, AbstractSet, Any, Sequence
 
 import numpy as np
 
-from icefab.config import PartSetup, to_dict
+from icefab.config import SCARA_EE_ORIGIN_MM, PartSetup, to_dict
 from icefab.errors import ConfigError
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -225,7 +225,9 @@ def overlay_job(made: "Job", given: "Job", named: AbstractSet[str], source: str,
     :func:`check_agrees`) when a named setting among ``settings`` (default
     :data:`DECIDED`) differs from the file's, unless it decides nothing in either job (the
     measurement interval when neither measures, the adaptive bounds when neither has
-    adaptive layers). API callers pass whole jobs and keep :func:`check_agrees`."""
+    adaptive layers). A job file naming another robot and no ``cell.ee_origin_mm`` gives
+    the new robot its default part origin (:func:`_origin_of_new_robot`). API callers pass
+    whole jobs and keep :func:`check_agrees`."""
     fa, fg = _flat(made), _flat(given)
     unknown = sorted(set(named) - set(fg))
     if unknown:   # a caller's slip: load_named_job names only settings of a Job
@@ -235,11 +237,25 @@ def overlay_job(made: "Job", given: "Job", named: AbstractSet[str], source: str,
     quiet = _moot(fa, merged)
     _refuse([(k, fa[k], merged[k]) for k in settings
              if k in changes and k not in quiet and fa[k] != merged[k]], source, remake, error)
+    changes.update(_origin_of_new_robot(fa, changes))
     try:
         return made.replace(**changes) if changes else made
     except ConfigError as exc:   # the two jobs' settings together break a joint rule
         raise error(f"{source} were made with a job that, with the job file's "
                     f"settings, is invalid: {exc}") from None
+
+
+def _origin_of_new_robot(made: dict[str, Any], changes: dict[str, Any]) -> dict[str, Any]:
+    """``cell.ee_origin_mm`` for an overlay whose job file names another robot than
+    ``made``'s (dotted settings) and no origin: the new robot's default (the setting's
+    default, which a gantry takes as the centre of its travel: ``config._placed``). The
+    origin is a point of the robot's base frame; the file's, another robot's, meant
+    nothing there: a gantry's (150, 150) was kept for a SCARA, whose part then lay
+    inside its minimum reach (a review's). Nothing when the origin is named."""
+    robot = changes.get("cell.robot", made["cell.robot"])
+    if robot == made["cell.robot"] or "cell.ee_origin_mm" in changes:
+        return {}
+    return {"cell.ee_origin_mm": SCARA_EE_ORIGIN_MM}
 
 
 def _quoted(remake: str) -> str:

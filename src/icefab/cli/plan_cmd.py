@@ -93,8 +93,9 @@ def load_input(inputs: list[str], job, args: argparse.Namespace):
         if job.cell.robot != tp.job.cell.robot:
             # allowed (toolpaths are in the part's frame), but said: the job file names
             # another robot than the toolpaths were made for
-            print(f"note: planning for the {job.cell.robot} of the job; the toolpaths were "
-                  f"made with a {tp.job.cell.robot} (cell.robot)", file=sys.stderr)
+            print(f"note: planning for the {job.cell.robot} of the job, its part origin "
+                  f"cell.ee_origin_mm = {_mm(job.cell.ee_origin_mm)}; the toolpaths were made "
+                  f"with a {tp.job.cell.robot} (cell.robot)", file=sys.stderr)
         return tp, job
     from icefab.regions import add_scaffold
     from icefab.slicing import slice_mesh
@@ -103,6 +104,11 @@ def load_input(inputs: list[str], job, args: argparse.Namespace):
     stack = slice_mesh(mesh, job, progress=Progress("slicing"))
     stack = add_scaffold(stack, job)
     return plan_paths(stack, job), job
+
+
+def _mm(v) -> str:
+    """A point, mm, as a job file writes it: ``[260, -100]``."""
+    return "[" + ", ".join(f"{float(x):g}" for x in v) + "]"
 
 
 def _hms(s: float) -> str:

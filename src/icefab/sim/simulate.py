@@ -63,9 +63,12 @@ def measured_layers(build: "Toolpaths | BuildMotion", job: "Job | None" = None, 
 
 #: Settings trajectories and the job simulating them must agree on: where the material
 #: goes (:data:`icefab.stages.PLACEMENT`: frames, tool offsets, widths, layer thickness),
-#: which layers are measured (:data:`icefab.stages.MEASURED`) and the parts they were made
-#: from (:data:`icefab.stages.PARTS`): :data:`icefab.stages.DECIDED` and the part origin.
-MOTION_SETTINGS = PLACEMENT + MEASURED + PARTS
+#: the robot whose base frame the samples are in, which layers are measured
+#: (:data:`icefab.stages.MEASURED`) and the parts they were made from
+#: (:data:`icefab.stages.PARTS`): :data:`icefab.stages.DECIDED`, the part origin and the
+#: robot (a job naming another robot gives it its own origin,
+#: :func:`icefab.stages.overlay_job`: the refusal named the origin, not the robot).
+MOTION_SETTINGS = PLACEMENT + ("cell.robot",) + MEASURED + PARTS
 
 
 def check_motion_job(planned: "Job", job: "Job", source: str = "the trajectories") -> None:
