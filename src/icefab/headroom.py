@@ -15,7 +15,8 @@ anything runs.
 FM only: in PWM the frequency is fixed and the flow per pulse is bounded by the period; the
 PWM limits are applied per pulse by ``icefab.flow.plan_valves``.
 
-May import: ``icefab.flow``, ``icefab.core``, ``icefab.errors``, numpy.
+May import: ``icefab.flow``, ``icefab.core``, ``icefab.errors``,
+``icefab.resultfiles`` (the trajectories as their file stores them), numpy.
 """
 
 from __future__ import annotations
@@ -173,6 +174,18 @@ def layer_headroom(layer: "LayerMotion", job: "Job") -> list[Headroom]:
 
     h = layer_height(layer.thickness, job)
     return feedback_headroom(((layer.index, t, h) for t in layer.trajectories), job)
+
+
+def stored_layer_headroom(layer: "LayerMotion", job: "Job") -> list[Headroom]:
+    """:func:`layer_headroom` of the layer as its trajectory file will give it back
+    (:func:`icefab.resultfiles.as_stored`: speeds at 0.01 mm/s, variable widths at 0.1
+    um), from which the valve programs are made: a command that plans trajectories and
+    writes them (plan, build) says what ``icefab valves`` will say of the file (a
+    review's +18 % and +17 %: the headroom is a ratio of flows, and its last digit
+    turned on the file's rounding)."""
+    from icefab.resultfiles import as_stored
+
+    return layer_headroom(as_stored(layer), job)
 
 
 def tightest(rooms: Iterable[Headroom]) -> list[Headroom]:

@@ -236,7 +236,7 @@ def _plan(args: argparse.Namespace, out: Path):
     from icefab.cli.common import Progress
     from icefab.cli.simulate_cmd import load_build
     from icefab.core import Toolpaths
-    from icefab.headroom import headroom_findings, layer_headroom, tightest
+    from icefab.headroom import headroom_findings, stored_layer_headroom, tightest
     from icefab.motion import BuildMotion, TrajectoryFile, TrajectoryWriter, iter_plan_toolpaths
     from icefab.robots import get_robot
     from icefab.stages import check_agrees, settings_up_to
@@ -278,7 +278,7 @@ def _plan(args: argparse.Namespace, out: Path):
     with TrajectoryWriter(out, planned, robot, joints) as w:
         for lm in layers:
             w.add(lm)
-            room = tightest(room + layer_headroom(lm, job))
+            room = tightest(room + stored_layer_headroom(lm, job))
     with TrajectoryFile(out) as f:
         if not f.depositing().any():
             raise ConfigError(f"{args.input[0]}: nothing to deposit in the first {n} layers")

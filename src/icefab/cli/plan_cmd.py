@@ -119,7 +119,7 @@ def _hms(s: float) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from icefab.export import check_gcode_robot, gcode_job, save_gcode
-    from icefab.headroom import layer_headroom, tightest
+    from icefab.headroom import stored_layer_headroom, tightest
     from icefab.motion import (TrajectoryFile, TrajectoryWriter, iter_plan_packed,
                                save_constant_spacing, total_path_length,
                                unpack_layer_motion)
@@ -163,7 +163,7 @@ def run(args: argparse.Namespace) -> int:
             # headroom too (issue 17)
             for k, pl in enumerate(iter_plan_packed(
                     tp, job, progress=Progress("planning"),
-                    per_layer=layer_headroom if check_room else None)):
+                    per_layer=stored_layer_headroom if check_room else None)):
                 lp, packed, arrays = pl.paths, pl.packed, pl.path_arrays
                 out.add_packed(lp.index, lp.z, lp.thickness,
                                lp.paths if arrays is None else arrays, packed,
