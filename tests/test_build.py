@@ -162,6 +162,57 @@ def test_stroke_is_checked_before_anything_moves(planned):
         bmod.check_build(tall, m.job.replace(**{"cell.stroke_mm": 200.0}), 1)
 
 
+def _layer(index: int, xy, role: str = "fill", dt: float = 0.016, top_z: float = float("nan")):
+    """A layer of one trajectory through the points ``xy`` (mm, base frame), ``dt`` s
+    apart."""
+    from icefab.core import LayerMotion, Toolpath, Trajectory
+
+    xy = np.asarray(xy, np.float64)
+    path = Toolpath(points=xy, z=0.25 * index, material="part", role=role, closed=False)
+    t = Trajectory(dt=dt, xy=xy, joints=np.zeros((len(xy), 2)), speed=np.ones(len(xy)),
+                   duration=(len(xy) - 1) * dt, path=path)
+    return LayerMotion(index=index, z=0.25 * index, trajectories=(t,), top_z=top_z)
+
+
+def test_a_refused_build_names_its_first_offending_layer_and_counts_them():
+    """A build refused for its reach, stroke or laser storage names the first layer in
+    build order, as a user fixing the file needs it, and how many offend (a review's: the
+    headroom refusal named the tightest; the others named no count, the stroke no layer,
+    and the laser's rate fitted only the first path)."""
+    from icefab.cell.lkg import STORAGE_CAPACITY
+    from icefab.motion import BuildMotion
+
+    job = Job()
+    ok = [[300.0, -100.0], [301.0, -100.0]]
+    far = BuildMotion(layers=(_layer(0, ok), _layer(1, ok + [[700.0, 0.0]]), _layer(2, ok),
+                              _layer(3, ok + [[900.0, 0.0]])), job=job)
+    with pytest.raises(WorkspaceError) as ei:
+        bmod.check_build(far, job, 4)
+    text = str(ei.value)
+    assert text.startswith("layer 1, path 0, before anything moves")
+    assert "point 2 at (700.000, 0.000) mm" in text
+    assert "(the first of 2 layers with points out of reach); move the part" in text
+    assert "layer 3" not in text
+    tall = BuildMotion(layers=tuple(_layer(k, ok, top_z=z) for k, z in
+                                    enumerate((100.0, 215.0, 209.0, 230.0, 240.0))), job=job)
+    with pytest.raises(WorkspaceError, match=r"beyond the robot's vertical stroke "
+                                             r"cell.stroke_mm = 210 mm \(Cobra 600: 210 mm, "
+                                             r"thesis Table 2-1\) from layer 1 on, its top at "
+                                             r"215.0 mm \(the first of 3 layers above it\)$"):
+        bmod.check_build(tall, job, 5)
+    rate = job.simulation.laser_rate_hz
+    long_s = [1.5 * STORAGE_CAPACITY / rate, 3.0 * STORAGE_CAPACITY / rate]
+    rings = BuildMotion(layers=tuple(
+        _layer(k, np.c_[np.linspace(300, 301, 11), np.full(11, -100.0)], role="measure",
+               dt=d / 10) for k, d in ((2, long_s[0]), (5, long_s[1]))), job=job)
+    with pytest.raises(ConfigError) as ei:
+        bmod.check_build(rings, job, 2)
+    text = str(ei.value)
+    assert text.startswith("layer 2, measurement path 0: ")
+    assert "(the first of 2 such measurement paths); lower simulation.laser_rate_hz to " \
+           f"at most {(STORAGE_CAPACITY - 1) / long_s[1]:.0f} Hz" in text
+
+
 def test_reach_of_the_builds_cell_is_checked_before_anything_moves(planned):
     """Trajectories planned for one cell, built with a job whose reach is shorter: refused
     before anything moves, naming the layer, path, point and the reach."""

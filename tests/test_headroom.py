@@ -270,3 +270,23 @@ def test_plan_and_valves_say_the_same_headroom(tmp_path, capsys):
     valves = [ln for ln in capsys.readouterr().out.splitlines()
               if ln.startswith("feedback headroom")]
     assert len(planned) == 1 and planned == valves
+
+
+def test_a_build_beyond_the_valve_is_refused_at_its_first_layer():
+    """The build's refusal of a nominal flow beyond the valve named the tightest layer's
+    path and the speed that fits it (a review's): the first layer in build order, how
+    many layers, and a speed every path fits under (here the later, wider path's)."""
+    from icefab.headroom import beyond_valve, beyond_valve_refusal
+
+    job = Job().replace(**{"slicing.layer_thickness_mm": 0.5, "flow.tick_s": 0.001,
+                           "flow.max_frequency_hz": 1000.0})   # 195 mm^3/s at most
+    layers = [(2, traj(100.0, 3.0)), (4, traj(140.0, 3.0)), (9, traj(160.0, 4.0)),
+              (11, traj(150.0, 3.0))]
+    over = [r for k, t in layers for r in beyond_valve(feedback_headroom([(k, t)], job))]
+    assert [r.layer for r in over] == [4, 9, 11]
+    assert beyond_valve_refusal(over, job) == (
+        "layer 4 part fill path: its nominal flow 210 mm^3/s (3 mm x 0.5 mm x 140 mm/s) is "
+        "above the 195 mm^3/s the valve gives at its highest frequency (the first of 3 "
+        "layers with such a path): keep the speed below 97.5 mm/s (motion.speed_mm_s), or "
+        "set flow.out_of_range = 'clamp' to clamp and report instead")
+    assert "(the first of" not in beyond_valve_refusal(over[:1], job)

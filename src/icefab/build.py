@@ -63,7 +63,7 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
-from icefab.errors import CellRefused, ConfigError, IcefabError, WorkspaceError
+from icefab.errors import MOVE_PART, CellRefused, ConfigError, IcefabError, WorkspaceError
 from icefab.robots import check_workspace, get_robot
 from icefab.journal import Journal, JournalError, digest_text, pack_arrays, unpack_arrays
 from icefab.runcell import Cell, CellError, CellPath
@@ -104,10 +104,11 @@ def check_build(motion: "BuildMotion", job: "Job", layers: int) -> None:
     """Refuse, before anything moves, a build the cell cannot make: a trajectory point
     beyond the reach or a joint's range of this job's cell (the planner checked the job it
     planned with; the cell the build runs on may differ), a part taller than the vertical
-    stroke (WorkspaceError naming layer, path and point, or the stroke), a measurement
-    path with more laser values than the controller stores (ConfigError naming the layer,
-    path and ``simulation.laser_rate_hz``), SMF gains that make the loop unstable
-    (ConfigError; gains with a pole on the unit circle only warn).
+    stroke (WorkspaceError naming layer, path and point, or the stroke and the layer), a
+    measurement path with more laser values than the controller stores (ConfigError
+    naming the layer, path and ``simulation.laser_rate_hz``), SMF gains that make the loop
+    unstable (ConfigError; gains with a pole on the unit circle only warn). Each names
+    the first offending layer in build order and how many layers (paths) offend.
     Adaptive layers (own thicknesses) are refused: the runner's SMF interval and the
     virtual cell still count in layers of ``slicing.layer_thickness_mm``."""
     if any(np.isfinite(lm.thickness) for lm in motion.layers):
@@ -121,25 +122,56 @@ def check_build(motion: "BuildMotion", job: "Job", layers: int) -> None:
         raise ConfigError(f"{verdict[1]}; refused before anything moves")
     if verdict is not None:
         log.warning("%s", verdict[1])
+    _check_reach(motion, job, layers)
+    _check_laser_storage(motion, job, layers)
+    tops = np.array([lm.top(job) for lm in motion.layers[:layers]])
+    stroke = job.cell.stroke_mm
+    above = np.flatnonzero(tops > stroke)
+    if len(above):   # the first layer above it (it named none: a review's)
+        k = int(above[0])
+        raise WorkspaceError(f"the part is {tops.max():.1f} mm tall over its first {layers} "
+                             f"layers: beyond the robot's vertical stroke cell.stroke_mm = "
+                             f"{stroke:g} mm (Cobra 600: 210 mm, thesis Table 2-1) from layer "
+                             f"{motion.layers[k].index} on, its top at {tops[k]:.1f} mm"
+                             f"{_first_of(len(above), 'layers above it')}")
+
+
+def _first_of(n: int, what: str) -> str:
+    """`` (the first of N WHAT)`` for a refusal naming the first of ``n`` offenders (the
+    one a user fixing the file starts at; they named the tightest: a review's); nothing
+    for one."""
+    return f" (the first of {n} {what})" if n > 1 else ""
+
+
+def _check_reach(motion: "BuildMotion", job: "Job", layers: int) -> None:
+    """WorkspaceError naming the first layer (in build order), path and point of the first
+    ``layers`` beyond this job's cell (its reach and joint ranges, whatever the planner's
+    job was), and how many layers have such points."""
     robot = get_robot(job)
-    for lm in motion.layers[:layers]:  # the cell's own reach and joint ranges (this job's)
+    first, n_bad = None, 0
+    for lm in motion.layers[:layers]:
         trajs = [t for t in lm.trajectories if len(t.xy)]
         if not trajs:
             continue
         pts = np.concatenate([np.asarray(t.xy, dtype=np.float64) for t in trajs])
         bad, _reasons = robot.workspace_violations(pts)
         if len(bad):
-            first = np.cumsum([len(t.xy) for t in trajs])
-            k = int(np.searchsorted(first, int(bad[0]), side="right"))
-            check_workspace(trajs[k].xy, robot, layer=int(lm.index), path=k,
-                            what="before anything moves (cell.reach_mm, cell.joint_range_deg)")
-    _check_laser_storage(motion, job, layers)
-    top = max((lm.top(job) for lm in motion.layers[:layers]), default=0.0)
-    stroke = job.cell.stroke_mm
-    if top > stroke:
-        raise WorkspaceError(f"the part is {top:.1f} mm tall over its first {layers} layers: "
-                             f"beyond the robot's vertical stroke cell.stroke_mm = {stroke:g} "
-                             "mm (Cobra 600: 210 mm, thesis Table 2-1)")
+            n_bad += 1
+            if first is None:
+                ends = np.cumsum([len(t.xy) for t in trajs])
+                first = (lm, trajs, int(np.searchsorted(ends, int(bad[0]), side="right")))
+    if first is None:
+        return
+    lm, trajs, k = first
+    where = "before anything moves (cell.reach_mm, cell.joint_range_deg)"
+    try:
+        check_workspace(trajs[k].xy, robot, layer=int(lm.index), path=k, what=where)
+    except WorkspaceError as exc:
+        text = str(exc)
+        if n_bad > 1:   # the count beside the layer, before the settings that move the part
+            head, sep, tail = text.partition(MOVE_PART)
+            text = head + _first_of(n_bad, "layers with points out of reach") + sep + tail
+        raise WorkspaceError(text) from None
 
 
 def _check_laser_storage(motion: "BuildMotion", job: "Job", layers: int) -> None:
@@ -152,16 +184,19 @@ def _check_laser_storage(motion: "BuildMotion", job: "Job", layers: int) -> None
     from icefab.cell.lkg import STORAGE_CAPACITY
 
     rate = float(job.simulation.laser_rate_hz)
-    for lm in motion.layers[:layers]:
-        for i, tr in _items(lm)[1]:
-            n = int(math.floor(tr.duration * rate + 1e-9)) + 1
-            if n > STORAGE_CAPACITY:
-                raise ConfigError(
-                    f"layer {lm.index}, measurement path {i}: {tr.duration:.1f} s at "
-                    f"simulation.laser_rate_hz = {rate:g} Hz is {n} laser values, more than "
-                    f"the laser controller stores ({STORAGE_CAPACITY}, LK-G3001P); lower "
-                    f"simulation.laser_rate_hz to at most "
-                    f"{(STORAGE_CAPACITY - 1) / tr.duration:.0f} Hz")
+    over = [(lm.index, i, tr.duration) for lm in motion.layers[:layers]
+            for i, tr in _items(lm)[1]
+            if int(math.floor(tr.duration * rate + 1e-9)) + 1 > STORAGE_CAPACITY]
+    if over:   # the first path, and a rate every one of them fits in (the longest's)
+        layer, i, duration = over[0]
+        n = int(math.floor(duration * rate + 1e-9)) + 1
+        longest = max(d for *_, d in over)
+        raise ConfigError(
+            f"layer {layer}, measurement path {i}: {duration:.1f} s at "
+            f"simulation.laser_rate_hz = {rate:g} Hz is {n} laser values, more than "
+            f"the laser controller stores ({STORAGE_CAPACITY}, LK-G3001P)"
+            f"{_first_of(len(over), 'such measurement paths')}; lower "
+            f"simulation.laser_rate_hz to at most {(STORAGE_CAPACITY - 1) / longest:.0f} Hz")
 
 
 def check_speeds(trajectories, job: "Job", layer: int) -> list[str]:

@@ -22,7 +22,7 @@ May import: ``icefab.flow``, ``icefab.core``, ``icefab.errors``,
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Iterable
+from typing import TYPE_CHECKING, Iterable, Sequence
 
 import numpy as np
 
@@ -220,6 +220,30 @@ def _headroom(material: str, q: float, layer: int, role: str, w: float, v: float
                     nominal_mm3_s=q, needed_mm3_s=q * (1 + s), limit_mm3_s=limit,
                     max_speed_mm_s=limit / ((1 + s) * w * dh),
                     thickness_mm=dh / job.flow.layer_scale)
+
+
+def beyond_valve(rooms: Iterable[Headroom]) -> list[Headroom]:
+    """Those of ``rooms`` whose nominal flow the valve cannot give even without SMF's
+    correction (beyond its flow at its highest frequency)."""
+    return [r for r in rooms if r.nominal_mm3_s > r.limit_mm3_s * (1.0 + 1e-9)]
+
+
+def beyond_valve_refusal(over: Sequence[Headroom], job: "Job") -> str:
+    """One line refusing a build whose paths ``over`` (:func:`beyond_valve` of each
+    layer's :func:`layer_headroom`, in build order) ask the valve for more than it gives:
+    the first layer's path, how many layers have one, and the speed under which every one
+    fits (the build named the tightest layer's path and its speed; a user fixing the file
+    starts at the first: a review's)."""
+    r = over[0]
+    layers = len({o.layer for o in over})
+    speed = min(o.max_speed_mm_s for o in over) * (1.0 + job.feedback.saturation)
+    more = f" (the first of {layers} layers with such a path)" if layers > 1 else ""
+    return (f"layer {r.layer} {r.material} {r.role} path: its nominal flow "
+            f"{r.nominal_mm3_s:.4g} mm^3/s ({r.width_mm:g} mm x {r.thickness_mm:g} mm x "
+            f"{r.speed_mm_s:.4g} mm/s) is above the {r.limit_mm3_s:.4g} mm^3/s the valve gives "
+            f"at its highest frequency{more}: keep the speed below {speed:.4g} mm/s "
+            "(motion.speed_mm_s), or set flow.out_of_range = 'clamp' to clamp and report "
+            "instead")
 
 
 def headroom_findings(rooms: Iterable[Headroom], job: "Job") -> list[str]:

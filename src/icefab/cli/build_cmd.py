@@ -236,7 +236,8 @@ def _plan(args: argparse.Namespace, out: Path):
     from icefab.cli.common import Progress
     from icefab.cli.simulate_cmd import load_build
     from icefab.core import Toolpaths
-    from icefab.headroom import headroom_findings, stored_layer_headroom, tightest
+    from icefab.headroom import (beyond_valve, beyond_valve_refusal, headroom_findings,
+                                 stored_layer_headroom, tightest)
     from icefab.motion import BuildMotion, TrajectoryFile, TrajectoryWriter, iter_plan_toolpaths
     from icefab.robots import get_robot
     from icefab.stages import check_agrees, settings_up_to
@@ -275,25 +276,20 @@ def _plan(args: argparse.Namespace, out: Path):
         layers = iter_plan_toolpaths(Toolpaths(layers=tuple(build.layers[:n]), job=build.job),
                                      job, progress=Progress("trajectories"))
     room: list = []
+    over: list = []   # each layer's paths beyond the valve, in build order
     with TrajectoryWriter(out, planned, robot, joints) as w:
         for lm in layers:
             w.add(lm)
-            room = tightest(room + stored_layer_headroom(lm, job))
+            mine = stored_layer_headroom(lm, job)
+            room = tightest(room + mine)
+            over += beyond_valve(mine)
     with TrajectoryFile(out) as f:
         if not f.depositing().any():
             raise ConfigError(f"{args.input[0]}: nothing to deposit in the first {n} layers")
-    beyond = [r for r in room if r.nominal_mm3_s > r.limit_mm3_s * (1.0 + 1e-9)]
-    if beyond and job.flow.out_of_range == "error":
+    if over and job.flow.out_of_range == "error":
         # before anything moves: a build stopped at this layer's valve programs with half
         # the part deposited, and every resume stopped there again (a tester's)
-        r = beyond[0]
-        raise ConfigError(
-            f"layer {r.layer} {r.material} {r.role} path: its nominal flow {r.nominal_mm3_s:.4g} "
-            f"mm^3/s ({r.width_mm:g} mm x {r.thickness_mm:g} mm x {r.speed_mm_s:.4g} mm/s) is "
-            f"above the {r.limit_mm3_s:.4g} mm^3/s the valve gives at its highest frequency: "
-            f"keep the speed below {r.max_speed_mm_s * (1 + job.feedback.saturation):.4g} "
-            "mm/s (motion.speed_mm_s), or set flow.out_of_range = 'clamp' to clamp and "
-            "report instead")
+        raise ConfigError(beyond_valve_refusal(over, job))
     return job, [f"warning: {line}" for line in headroom_findings(room, job)]
 
 
