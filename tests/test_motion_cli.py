@@ -112,12 +112,12 @@ def test_plan_gcode_and_constant_spacing_outputs(tmp_path, capsys):
     # then a move per time step (G1 ... S duty depositing, G0 ... S0 travel) whose
     # feedrates are the trajectory's speeds x 60 (mm/min)
     text = (out / "trajectories.gcode").read_text()
-    assert text.count("G0 Z") == len(motion.layers)
+    assert text.count("G0 Z") == len(motion.layers) + 1   # and the lift at the end
     # the nozzle goes to each layer's top, not its cutting plane at mid-height (a tester's
     # box had its nozzle ordered into its own bead)
     dh = motion.job.slicing.layer_thickness_mm
     zs = [float(ln[4:].split()[0]) for ln in text.splitlines() if ln.startswith("G0 Z")]
-    np.testing.assert_allclose(zs, [lm.z + 0.5 * dh for lm in motion.layers], atol=1e-4)
+    np.testing.assert_allclose(zs[:-1], [lm.z + 0.5 * dh for lm in motion.layers], atol=1e-4)
     # the steps' moves: not a layer's Z move nor a path's G0 to its start (its first move
     # after its comment), which carry the travel speed as their F
     g1, first = [], False
@@ -206,6 +206,33 @@ def test_gcode_whose_pwm_the_job_cannot_hold_is_refused_before_planning(tmp_path
                  str(tmp_path / "g")]) == 2
     assert "G-code drives the valve by PWM" in capsys.readouterr().err
     assert not (tmp_path / "g").exists()
+
+
+def test_gcode_ends_with_the_nozzle_lifted_clear_of_the_part(tmp_path):
+    """The program ended at the last path's end: the nozzle stood on the last bead (in the
+    ice) when the machine stopped. Its last move lifts it 20 mm above the last layer's top,
+    valve closed, at most to the vertical stroke, before the valve is switched off."""
+    from icefab.export import END_LIFT_MM, gcode_lines
+
+    src = _toolpath_file(tmp_path)
+    cfg = tmp_path / "g.toml"
+    cfg.write_text('[cell]\nrobot = "gantry"\n')
+    out = tmp_path / "o"
+    assert main(["plan", str(src), "-c", str(cfg), "-o", str(out), "--layers", "0",
+                 "--gcode"]) == 0
+    motion = load_trajectories(out / "trajectories.npz")
+    top = motion.layers[-1].top(motion.job)
+    lines = (out / "trajectories.gcode").read_text().splitlines()
+    assert END_LIFT_MM == 20.0
+    assert lines[-1] == "M5" and lines[-2].startswith(f"G0 Z{top + 20.0:.4f} F") \
+        and lines[-2].endswith(" S0")
+    # the last XY move before the lift is the last path's end, at the layer's top
+    last = [ln for ln in lines if ln.startswith(("G0 X", "G1 X"))][-1]
+    assert lines.index(last) < len(lines) - 2
+    # a stroke that leaves less than 20 mm above the part: lifted to the stroke's end
+    short = motion.job.replace(**{"cell.stroke_mm": top + 5.0})
+    lines = list(gcode_lines(motion, short))
+    assert lines[-1] == "M5" and lines[-2].startswith(f"G0 Z{top + 5.0:.4f} F")
 
 
 def test_gcode_of_no_layers_is_refused_and_one_layer_is_one(tmp_path, capsys):

@@ -40,7 +40,10 @@ the C40's trigger keeps the valve controller in step with the robot (thesis 2.3.
   defaults). What is lost there: the flow's placement finer than one move -- each open
   move lays at least ``dt / period`` shortest pulses; the findings (:func:`save_gcode`)
   say on which paths, how far apart their open moves lie and the volume laid.
-* End: ``M5`` (valve off).
+* End: ``G0 Z`` :data:`END_LIFT_MM` above the last layer's top (at most ``cell.stroke_mm``),
+  valve closed, then ``M5`` (valve off). The file ended at the last path's end with the
+  nozzle on the last bead, where the machine left it until someone moved it (``icefab
+  build``'s stop lifts the tool as far, ``icefab.linkedcell.SAFE_LIFT_MM``).
 
 **What the machine's Marlin must be built with** for every move to last its one step
 (``dt`` = ``motion.dt_s``, 16 ms by default): ``DEFAULT_MINSEGMENTTIME`` at most ``dt``
@@ -65,6 +68,10 @@ __all__ = ["save_gcode", "step_duty", "shortest_power", "min_power", "step_power
 S_MAX = 255
 
 TOOL_NUMBER = {"part": 0, "scaffold": 1}
+
+#: How far the program's last move lifts the nozzle above the last layer's top, mm (capped
+#: at ``cell.stroke_mm``): as far as a stopped build lifts it (``linkedcell.SAFE_LIFT_MM``).
+END_LIFT_MM = 20.0
 
 
 def step_duty(trajectory, program, period_s: float | None = None) -> np.ndarray:
@@ -291,6 +298,7 @@ def gcode_lines(motion, job=None, findings: list | None = None):
     yield "G90"
     yield "M3 I S0"
     tool = None
+    top = None
     for lm in motion.layers:
         # the nozzle at the layer's top (its cutting plane lm.z lies inside it: at mid-height
         # by default, which put the nozzle into its own bead)
@@ -323,6 +331,10 @@ def gcode_lines(motion, job=None, findings: list | None = None):
             moves = gcode_moves(tr, power=s, dwell=True, rapid_mm_min=rapid)
             yield moves[0] + " S0"   # the G0 to the path's start, valve closed
             yield from moves[1:]
+    if top is not None:
+        # clear of the part: the nozzle stood on the last bead when the program ended
+        lift = max(min(top + END_LIFT_MM, float(job.cell.stroke_mm)), top)
+        yield f"G0 Z{lift:.4f} F{rapid:.1f} S0"
     yield "M5"
 
 
