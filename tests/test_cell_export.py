@@ -373,6 +373,34 @@ def test_export_gcode_from_a_trajectories_file(tmp_path, capsys):
     assert "nope.npz: trajectory file not found" in capsys.readouterr().err
 
 
+def test_export_gcode_says_its_measurement_paths_measure_nothing(tmp_path, capsys):
+    """A gantry job at the default feedback.enabled: the G-code ran the laser's measurement
+    paths (here 2 of the motion's seconds; a real layer's minutes) as G0 moves with nothing
+    to trigger or read the laser, unsaid. A warning names them, their time and the setting;
+    without them, none."""
+    job = Job().replace(**{"cell.cpus": 1, "cell.robot": "gantry"})
+    th = np.linspace(0, 2 * np.pi, 120, endpoint=False)
+    ring = Path(points=np.c_[20 * np.cos(th), 20 * np.sin(th)], z=0.5, material="part",
+                role="boundary", closed=True, width=1.5, layer=0)
+    meas = Path(points=np.c_[15 * np.cos(th), 15 * np.sin(th)], z=0.5, material="part",
+                role="measure", closed=True, layer=0)
+    tp = Toolpaths(layers=(LayerPaths(index=0, z=0.5, paths=(ring, meas)),), job=job)
+    motion = plan_toolpaths(tp, job)
+    spent = sum(t.duration for t in motion.layers[0].trajectories if t.path.role == "measure")
+    assert spent > 1.0
+    save_trajectories(motion, tmp_path / "t.npz")
+    capsys.readouterr()
+    assert main(["export", "gcode", str(tmp_path / "t.npz"), "-o", str(tmp_path / "g")]) == 0
+    err = capsys.readouterr().err
+    assert (f"warning: 1 measurement path in 1 layer ({spent:.1f} s of the "
+            f"{motion.duration:.1f} s of motion)") in err
+    assert "neither triggers nor reads it" in err and "feedback.enabled = false" in err
+    tp = Toolpaths(layers=(LayerPaths(index=0, z=0.5, paths=(ring,)),), job=job)
+    save_trajectories(plan_toolpaths(tp, job), tmp_path / "u.npz")
+    assert main(["export", "gcode", str(tmp_path / "u.npz"), "-o", str(tmp_path / "h")]) == 0
+    assert "measurement" not in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("cut, thickness, z, top", [(0.5, float("nan"), 0.125, 0.25),
                                                    (0.5, 0.1004, 0.0502, 0.1004),
                                                    (0.0, 0.2, 1.0, 1.2), (1.0, 0.2, 1.2, 1.2)])

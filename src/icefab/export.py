@@ -19,7 +19,9 @@ the C40's trigger keeps the valve controller in step with the robot (thesis 2.3.
   change (for example Marlin's ``EVENT_GCODE_TOOLCHANGE_T0`` / ``_T1`` switching a mux pin
   with ``M42``). X, Y are already the carriage positions that put the chosen nozzle on the
   part (the trajectories' base-frame samples), so the tool change applies no offset.
-* Travel and measurement paths: ``G0`` moves, valve closed (``S0``).
+* Travel and measurement paths: ``G0`` moves, valve closed (``S0``). Nothing triggers the
+  laser on a measurement path: :func:`save_gcode`'s findings say what they cost
+  (:func:`measure_finding`; ``feedback.enabled = false`` plans none).
 * Deposition paths: ``G0`` to the first sample, then one ``G1 X Y F S`` per time step
   (:func:`icefab.motion.gcode_moves`): ``F`` the step's length over ``dt`` (mm/min), so
   each move lasts one time step (thesis 4.3), and ``S`` the valve's power over that step,
@@ -61,7 +63,7 @@ import os
 
 import numpy as np
 
-__all__ = ["save_gcode", "step_duty", "shortest_power", "min_power", "step_power",
+__all__ = ["save_gcode", "measure_finding", "step_duty", "shortest_power", "min_power", "step_power",
            "path_power", "power_finding", "gcode_lines", "check_gcode_robot"]
 
 #: Marlin's PWM255 power scale: S0 closed .. S255 open all period
@@ -350,4 +352,24 @@ def save_gcode(motion, path: str | os.PathLike, job=None) -> list[str]:
     with atomic_path(path, suffix=".gcode") as tmp, open(tmp, "w", encoding="utf-8") as fh:
         for line in gcode_lines(motion, job, found):
             fh.write(line + "\n")
-    return summarise_findings(found)
+    return summarise_findings(found) + ([m] if (m := measure_finding(motion)) else [])
+
+
+def measure_finding(motion) -> str:
+    """The finding ('' for none) that the G-code runs the laser's measurement paths
+    (``feedback.enabled``): it moves the carriage along them, valve closed, but triggers and
+    reads no laser and runs no SMF, so their time is spent for nothing. A gantry job left at
+    the default (feedback on) got minutes of such moves unsaid."""
+    layers = [lm for lm in motion.layers
+              if any(t.path is not None and t.path.role == "measure" and len(t.xy)
+                     for t in lm.trajectories)]
+    if not layers:
+        return ""
+    trs = [t for lm in layers for t in lm.trajectories
+           if t.path is not None and t.path.role == "measure" and len(t.xy)]
+    spent = sum(float(t.duration) for t in trs)
+    n, k = len(trs), len(layers)
+    return (f"{n} measurement path{'s' if n != 1 else ''} in {k} layer{'s' if k != 1 else ''}"
+            f" ({spent:.1f} s of the {float(motion.duration):.1f} s of motion): the G-code "
+            "moves the laser over them but neither triggers nor reads it (no SMF); plan with "
+            "feedback.enabled = false to leave them out")
