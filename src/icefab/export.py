@@ -18,7 +18,10 @@ the C40's trigger keeps the valve controller in step with the robot (thesis 2.3.
   line moves it). The machine routes the cutter PWM to that nozzle's valve in its tool
   change (for example Marlin's ``EVENT_GCODE_TOOLCHANGE_T0`` / ``_T1`` switching a mux pin
   with ``M42``). X, Y are already the carriage positions that put the chosen nozzle on the
-  part (the trajectories' base-frame samples), so the tool change applies no offset.
+  part (the trajectories' base-frame samples), so the tool change applies no offset: the
+  machine's tool offsets (``HOTEND_OFFSET``) must be 0, or Marlin shifts every move after a
+  ``T1`` by the scaffold nozzle's offset once more. The header says so, and that the
+  program does not home (``G28`` first: X, Y, Z are machine positions).
 * Travel and measurement paths: ``G0`` moves, valve closed (``S0``). Nothing triggers the
   laser on a measurement path: :func:`save_gcode`'s findings say what they cost
   (:func:`measure_finding`; ``feedback.enabled = false`` plans none).
@@ -291,6 +294,11 @@ def gcode_lines(motion, job=None, findings: list | None = None):
            "X, Y: carriage (base frame), mm; F: mm/min; T0 part, T1 scaffold")
     yield (f"; every move lasts dt: needs DEFAULT_MINSEGMENTTIME <= "
            f"{job.motion.dt_s * 1e6:.0f} us, MIN_STEPS_PER_SEGMENT 1, SLOWDOWN off")
+    # what the program assumes of the machine and does not do itself (a gantry hunt's)
+    yield ("; home the machine first (G28): X, Y, Z are machine positions, Z0 the nozzle on "
+           "the platform; the program does not home")
+    yield ("; T0/T1 route the cutter PWM to that nozzle's valve with no tool offset "
+           "(HOTEND_OFFSET 0): X, Y already put that nozzle on the part")
     period = 1.0 / pwm.flow.pwm_frequency_hz
     yield (f"; S: 0 (closed) or S{min_power(period, pwm.flow.min_pulse_ms)}..255, the valve "
            f"open S/255 of each {period * 1e3:g} ms period, at least its "
