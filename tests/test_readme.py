@@ -12,6 +12,21 @@ def test_python_snippets_run():
         exec(compile(block, "README.md", "exec"), {})
 
 
+def test_toml_jobs_load(tmp_path):
+    """Every job the README shows is one icefab reads; the gantry's is a gantry's (its
+    settings were nowhere but config.py)."""
+    import icefab
+
+    blocks = re.findall(r"```toml\n(.*?)```", README.read_text(), re.S)
+    jobs = []
+    for i, block in enumerate(blocks):
+        (tmp_path / f"{i}.toml").write_text(block, encoding="utf-8")
+        jobs.append(icefab.load_job(tmp_path / f"{i}.toml"))
+    gantry = [j for j in jobs if j.cell.robot == "gantry"]
+    assert len(gantry) == 1 and not gantry[0].feedback.enabled
+    assert gantry[0].flow.mode == "pwm" and gantry[0].cell.ee_origin_mm == (150.0, 150.0)
+
+
 def test_ci_runs_the_readme_test_command():
     text = README.read_text()
     setup = text.split("## Set up", 1)[1].split("##", 1)[0]
