@@ -2,8 +2,9 @@
 machines use positioning data coupled with feedrates", and MTTS output converts to it).
 
 Convention: **Marlin 2.x with its cutter (laser/spindle) output driving the valve**
-(``LASER_FEATURE``, ``LASER_POWER_INLINE``, power unit PWM255). Marlin applies inline
-power per planner block, so the valve's duty changes exactly with the moves, the way
+(``LASER_FEATURE``, ``CUTTER_POWER_UNIT`` PWM255; ``LASER_POWER_INLINE`` too before
+Marlin 2.0.9.5, which removed it -- a build that defines it stops with an ``#error``, as
+``M3 I`` turns inline mode on). Marlin applies inline power per planner block, so the valve's duty changes exactly with the moves, the way
 the C40's trigger keeps the valve controller in step with the robot (thesis 2.3.1).
 
 * ``G21``, ``G90``; ``M3 I S0``: inline power mode, valve closed.
