@@ -4,8 +4,9 @@ machines use positioning data coupled with feedrates", and MTTS output converts 
 Convention: **Marlin 2.x with its cutter (laser/spindle) output driving the valve**
 (``LASER_FEATURE``, ``CUTTER_POWER_UNIT`` PWM255; ``LASER_POWER_INLINE`` too before
 Marlin 2.0.9.5, which removed it -- a build that defines it stops with an ``#error``, as
-``M3 I`` turns inline mode on). Marlin applies inline power per planner block, so the valve's duty changes exactly with the moves, the way
-the C40's trigger keeps the valve controller in step with the robot (thesis 2.3.1).
+``M3 I`` turns inline mode on). Marlin applies inline power per planner block, so the
+valve's duty changes exactly with the moves, the way the C40's trigger keeps the valve
+controller in step with the robot (thesis 2.3.1).
 
 * ``G21``, ``G90``; ``M3 I S0``: inline power mode, valve closed.
 * Per layer: ``; layer K top z Z (cut at C)`` and ``G0 Z..``: the layer's nominal top, mm
@@ -67,8 +68,8 @@ import os
 
 import numpy as np
 
-__all__ = ["save_gcode", "measure_finding", "step_duty", "shortest_power", "min_power", "step_power",
-           "path_power", "power_finding", "gcode_lines", "check_gcode_robot"]
+__all__ = ["save_gcode", "measure_finding", "step_duty", "shortest_power", "min_power",
+           "step_power", "path_power", "power_finding", "gcode_lines", "check_gcode_robot"]
 
 #: Marlin's PWM255 power scale: S0 closed .. S255 open all period
 S_MAX = 255
