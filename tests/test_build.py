@@ -1269,6 +1269,25 @@ def test_a_new_build_takes_the_parts_its_job_names(tmp_path, capsys):
     assert err.startswith("icefab build: error: slicing.cusp_height_mm = 0.1: adaptive layers")
     assert len(err.splitlines()) == 1   # no slicing progress before it
     assert not (tmp_path / "b").exists()
+    # a gantry: the runner drives the Cobra's C40 link, and a gantry job went down it as
+    # if its carriage positions were the SCARA's (a gantry hunt's); refused from the job
+    # before slicing, and from a result file's job before planning
+    (tmp_path / "gantry.toml").write_text('[cell]\nrobot = "gantry"\n')
+    said = "icefab build: error: cell.robot = 'gantry': the build runner drives the Cobra 600"
+    assert main(["build", str(tmp_path / "box.stl"), "-c", str(tmp_path / "gantry.toml"),
+                 "-o", str(tmp_path / "b"), "--virtual"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(said) and "'icefab plan --gcode'" in err and \
+        len(err.splitlines()) == 1
+    assert main(["slice", str(tmp_path / "box.stl"), "-c", str(tmp_path / "gantry.toml"),
+                 "-o", str(tmp_path / "s")]) == 0
+    assert main(["paths", str(tmp_path / "s" / "stack.npz"), "-o", str(tmp_path / "p")]) == 0
+    capsys.readouterr()
+    assert main(["build", str(tmp_path / "p" / "toolpaths.npz"), "-o", str(tmp_path / "b"),
+                 "--virtual"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(said) and "planning" not in err, err
+    assert not (tmp_path / "b").exists()
 
 
 def test_a_build_started_here_while_this_one_planned_is_left_alone(planned, tmp_path,

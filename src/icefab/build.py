@@ -100,6 +100,19 @@ class BuildStopped(IcefabError):
 # =========================================================================== checks
 
 
+def check_build_robot(job: "Job") -> None:
+    """ConfigError unless ``job``'s robot is one the build runner drives: the Cobra 600
+    SCARA, through the Adept C40's V+ server (:mod:`icefab.cell.vplus`) and its virtual
+    cell. A gantry job went down that link as if its carriage positions were the SCARA's
+    tool positions, and the virtual cell built it (a gantry hunt's); a gantry takes the
+    G-code of ``icefab plan --gcode`` / ``icefab export gcode``."""
+    if job.cell.robot != "scara":
+        raise ConfigError(f"cell.robot = {job.cell.robot!r}: the build runner drives the "
+                          "Cobra 600 SCARA through its C40 controller's V+ server (or a "
+                          "virtual cell of it); for a gantry, write its G-code ('icefab plan "
+                          "--gcode' or 'icefab export gcode') and run that on its controller")
+
+
 def check_build(motion: "BuildMotion", job: "Job", layers: int) -> None:
     """Refuse, before anything moves, a build the cell cannot make: a trajectory point
     beyond the reach or a joint's range of this job's cell (the planner checked the job it
@@ -107,10 +120,12 @@ def check_build(motion: "BuildMotion", job: "Job", layers: int) -> None:
     stroke (WorkspaceError naming layer, path and point, or the stroke and the layer), a
     measurement path with more laser values than the controller stores (ConfigError
     naming the layer, path and ``simulation.laser_rate_hz``), SMF gains that make the loop
-    unstable (ConfigError; gains with a pole on the unit circle only warn). Each names
-    the first offending layer in build order and how many layers (paths) offend.
+    unstable (ConfigError; gains with a pole on the unit circle only warn), a robot the
+    runner does not drive (:func:`check_build_robot`). Each names the first offending
+    layer in build order and how many layers (paths) offend.
     Adaptive layers (own thicknesses) are refused: the runner's SMF interval and the
     virtual cell still count in layers of ``slicing.layer_thickness_mm``."""
+    check_build_robot(job)
     if any(np.isfinite(lm.thickness) for lm in motion.layers):
         raise ConfigError("these trajectories have adaptive layers (slicing.cusp_height_mm > "
                           "0): the build runner does not run them yet; simulate them "

@@ -252,14 +252,18 @@ def _plan(args: argparse.Namespace, out: Path):
                           "adaptive layers, which the build runner does not run yet; "
                           "simulate them ('icefab simulate') or build with "
                           "slicing.cusp_height_mm = 0")
+    from icefab import build as bmod
     from icefab.feedback import gains_verdict
 
+    if not str(args.input[0]).lower().endswith(".npz"):
+        bmod.check_build_robot(given)   # a mesh's job decides it: before slicing it
     verdict = gains_verdict(given)
     if verdict is not None and verdict[0] == "grows":
         # check_build refuses them too, after slicing, paths and planning (a mug's 500
         # layers: a user's minute lost); the job's gains are the build's whatever its input
         raise ConfigError(f"{verdict[1]}; refused before anything moves")
     build, job = load_build(list(args.input), given, ns)
+    bmod.check_build_robot(job)   # a result file's job: before its paths are planned
     n = min(args.layers or len(build), len(build))
     if isinstance(build, BuildMotion) and args.job:
         # what the trajectories were planned with holds: a -c job's other speed was
