@@ -300,7 +300,7 @@ def test_simulated_surface_follows_the_thin_layers(adaptive_build):
     job, stack, _, motion = adaptive_build
     quiet = job_from_dict({**_as_dict(job), "simulation": {
         "noise_mm": 0.0, "debris_rate": 0.0, "flow_error": 0.0, "flow_drift_per_cm3": 0.0,
-        "edge_loss": 0.0, "spread_mm": 0.0, "laser_noise_mm": 0.0}})
+        "edge_loss": 0.0, "spread_mm": 0.5, "laser_noise_mm": 0.0}})
     n = 70
     res = simulate_build(motion, quiet, layers=n, closed_loop=False)
     heights = np.cumsum(stack.thicknesses[:n])

@@ -78,3 +78,19 @@ def test_reach_cannot_exceed_the_arm():
     with pytest.raises(ConfigError, match=r"cell.reach_mm .* cell.l1_mm \+ cell.l2_mm = 600"):
         job_from_dict({"cell": {"reach_mm": [163, 700]}})
     assert job_from_dict({"cell": {"reach_mm": [163, 700], "l1_mm": 500}}).cell.reach_mm[1] == 700
+
+
+def test_a_simulated_liquid_that_flows_less_than_a_grid_cell_is_refused():
+    """simulation.spread_mm = 0 ('off') let every layer's bead overlaps and gaps stack up:
+    ridges of +16.5 mm and holes of -9.7 mm on the demo mug's first 60 layers (15 mm),
+    and 0.25 at a 0.5 mm grid still left -5.7 mm holes; a control review's. The setting's
+    range says why, and the grid it must cover."""
+    with pytest.raises(ConfigError, match=r"^simulation.spread_mm = 0.0: must be >= 0.1 and "
+                                          r"<= 50 \(water and SME spread"):
+        job_from_dict({"simulation": {"spread_mm": 0.0}})
+    with pytest.raises(ConfigError, match=r"^simulation.spread_mm = 0.25: must be >= "
+                                          r"simulation.grid_mm = 0.5 .*lower "
+                                          r"simulation.grid_mm"):
+        job_from_dict({"simulation": {"spread_mm": 0.25}})
+    assert job_from_dict({"simulation": {"spread_mm": 0.25, "grid_mm": 0.25}}
+                         ).simulation.spread_mm == 0.25

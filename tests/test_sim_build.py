@@ -51,7 +51,7 @@ def quiet_job(**changes) -> Job:
     base = {"simulation.flow_error": 0.0, "simulation.noise_mm": 0.0,
             "simulation.laser_noise_mm": 0.0, "simulation.edge_loss": 0.0,
             "simulation.debris_rate": 0.0, "simulation.laser_latency_s": 0.0,
-            "simulation.spread_mm": 0.0}
+            "simulation.spread_mm": 0.5}
     base.update(changes)
     return Job().replace(**base)
 
@@ -82,9 +82,10 @@ def test_without_disturbances_the_surface_sits_at_the_nominal_height():
     res = simulate_build(annulus_toolpaths(job, 12), job, closed_loop=False)
     assert res.layers.tolist() == [3, 7, 11]
     assert np.allclose(res.nominal_z, [1.0, 2.0, 3.0])
-    # only cells partly covered at the part's edges deviate (0.1 % of the height)
+    # only cells near the part's edges deviate (the liquid runs towards the partly
+    # covered rim: 0.3 % of the height)
     assert np.all(res.rms < 0.005 * res.nominal_z)
-    assert np.all(res.rms_measured < 0.002)
+    assert np.all(res.rms_measured < 0.005 * res.nominal_z)
     assert res.volume_deposited == pytest.approx(res.volume_commanded, rel=1e-9)
     # commanded volume is the annulus area times the layer thickness (paths tile it)
     area = np.pi * (31.0 ** 2 - 10.0 ** 2)
@@ -99,7 +100,8 @@ def test_open_loop_error_grows_with_height_under_a_flow_error():
     assert np.allclose(res.rms, 0.1 * res.nominal_z, rtol=0.02)
     xs, ys = res.height.grid()
     r = np.hypot(*np.meshgrid(xs, ys))
-    assert np.allclose(res.height.z[(r > 11) & (r < 30)], 1.1 * 24 * DH, rtol=1e-3)
+    # away from the rims, where the liquid runs towards the partly covered outermost cells
+    assert np.allclose(res.height.z[(r > 12.5) & (r < 28.5)], 1.1 * 24 * DH, rtol=5e-3)
 
 
 @pytest.mark.parametrize("flow_error", [-0.5, -0.9])
@@ -161,7 +163,8 @@ def test_edge_loss_lowers_the_region_edges_only():
     z = res.height.z
     assert np.allclose(z[(r > 16) & (r < 20)], 8 * DH, rtol=5e-3)  # interior untouched
     edge = (r > 10.0) & (r < 10.3)  # within a fifth of a path width of the hole's edge
-    assert np.all(z[edge] < 8 * DH * (1 - 0.2 * 0.6))
+    # (the liquid levels part of the loss: it runs from the interior towards the edge)
+    assert np.all(z[edge] < 8 * DH * (1 - 0.2 * 0.3))
     assert res.volume_deposited < res.volume_commanded
 
 
