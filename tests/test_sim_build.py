@@ -6,6 +6,8 @@ simulator's loop, not the feedback module.
 """
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy.interpolate import RegularGridInterpolator
@@ -330,3 +332,37 @@ def test_toolpaths_simulated_with_a_job_that_contradicts_them_are_refused():
         simulate_build(tp, other, closed_loop=False)
     # settings the paths stage did not decide may differ
     simulate_build(tp, job.replace(**{"simulation.flow_error": 0.05}), closed_loop=False)
+
+
+def test_the_error_over_the_whole_footprint_shows_what_the_part_rms_leaves_out():
+    """A control review's: ridges where beads overlap, in the scaffold or where the two
+    materials meet, stayed out of the part's RMS (the part inside its rim). The result
+    and the command's table and rms.csv give the RMS and the largest error over the whole
+    footprint, part and scaffold, beside it: the error surface SMF regulates."""
+    from icefab.cli.simulate_cmd import (HEADER, final_footprint_line, format_table,
+                                         table_rows)
+
+    job = quiet_job()
+    tp = annulus_toolpaths(job, 24, measure=False)
+    # the scaffold's outer boundary 0.5 mm into its fill: a third of a bead too much there
+    layers = tuple(dataclasses.replace(lay, paths=tuple(
+        dataclasses.replace(p, points=_circle(29.75)) if p.material == "scaffold"
+        and p.role == "boundary" and np.hypot(*p.points[0]) > 30 else p
+        for p in lay.paths)) for lay in tp.layers)
+    res = simulate_build(dataclasses.replace(tp, layers=layers), job, closed_loop=False,
+                         keep_surfaces=[23])
+    assert res.layers.tolist() == [3, 7, 11, 15, 19, 23]
+    assert res.rms[-1] < 0.005 * res.nominal_z[-1]          # the part: at its height
+    assert res.rms_footprint[-1] > 10 * res.rms[-1]          # the scaffold: not
+    assert res.max_abs_footprint[-1] > 0.1 * res.nominal_z[-1]
+    assert np.all(np.diff(res.rms_footprint) > 0)            # and it grows
+    e = res.surfaces[23].z
+    assert res.rms_footprint[-1] == pytest.approx(np.sqrt(np.nanmean(e ** 2)), rel=1e-12)
+    assert res.max_abs_footprint[-1] == pytest.approx(np.nanmax(np.abs(e)), rel=1e-12)
+    rows = table_rows(res, res)
+    assert dict(zip(HEADER, rows[-1]))["rms_footprint_smf_mm"] == res.rms_footprint[-1]
+    lines = format_table(rows)
+    assert "all open" in lines[0] and len(lines[-2].split()) == 8
+    assert final_footprint_line(res, res).startswith(
+        f"over the whole footprint (part and scaffold), layer 23: RMS "
+        f"{res.rms_footprint[-1]:.3f} mm open loop")

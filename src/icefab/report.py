@@ -83,6 +83,10 @@ LABELS = {
     "findings": "valve-limit findings", "warnings": "warnings", "layers": "layers",
     "final_rms_open_loop_mm": "final RMS height error, open loop, mm",
     "final_rms_smf_mm": "final RMS height error, with SMF, mm",
+    "final_rms_footprint_open_loop_mm": "final RMS height error over the whole footprint "
+                                        "(part and scaffold), open loop, mm",
+    "final_rms_footprint_smf_mm": "final RMS height error over the whole footprint (part "
+                                  "and scaffold), with SMF, mm",
 }
 _UNITS = {"mm": "mm", "s": "s", "mm2": "mm²", "mm3": "mm³", "h": "h", "hz": "Hz"}
 

@@ -186,7 +186,11 @@ def _run_simulator(toolpaths, job, n_layers: int, out, summary: dict) -> None:
     summary["simulation"] = {"layers": n_layers,
                              "final_rms_open_loop_mm": float(open_loop.rms[-1]),
                              "final_rms_smf_mm": float(closed.rms[-1]),
+                             "final_rms_footprint_open_loop_mm":
+                                 float(open_loop.rms_footprint[-1]),
+                             "final_rms_footprint_smf_mm": float(closed.rms_footprint[-1]),
                              "seconds": round(time.perf_counter() - t0, 3)}
     _say(f"simulator ({n_layers} layers, flow error {job.simulation.flow_error:+.0%}): final "
          f"RMS height error {open_loop.rms[-1]:.3f} mm open loop, {closed.rms[-1]:.3f} mm "
-         "with SMF")
+         f"with SMF (over the whole footprint, part and scaffold: "
+         f"{open_loop.rms_footprint[-1]:.3f} / {closed.rms_footprint[-1]:.3f} mm)")

@@ -159,14 +159,17 @@ def load_build(model: list[str], job: "Job", args: argparse.Namespace
 
 
 def table_rows(open_loop: "SimResult", closed: "SimResult") -> list[list[float]]:
-    """Per measurement layer: layer, nominal height, RMS and max |error| open and SMF."""
-    return [[int(k), float(z), float(ro), float(rc), float(mo), float(mc)]
-            for k, z, ro, rc, mo, mc in zip(open_loop.layers, open_loop.nominal_z,
-                                             open_loop.rms, closed.rms, open_loop.max_abs,
-                                             closed.max_abs)]
+    """Per measurement layer: layer, nominal height, RMS and max |error| open and SMF over
+    the part, then the same over the whole footprint, part and scaffold (mm)."""
+    cols = [open_loop.layers, open_loop.nominal_z, open_loop.rms, closed.rms,
+            open_loop.max_abs, closed.max_abs, open_loop.rms_footprint,
+            closed.rms_footprint, open_loop.max_abs_footprint, closed.max_abs_footprint]
+    return [[int(r[0])] + [float(v) for v in r[1:]] for r in zip(*cols)]
 
 
-HEADER = ["layer", "height_mm", "rms_open_mm", "rms_smf_mm", "max_open_mm", "max_smf_mm"]
+HEADER = ["layer", "height_mm", "rms_open_mm", "rms_smf_mm", "max_open_mm", "max_smf_mm",
+          "rms_footprint_open_mm", "rms_footprint_smf_mm", "max_footprint_open_mm",
+          "max_footprint_smf_mm"]
 
 
 def final_rms_line(open_loop: "SimResult", closed: "SimResult") -> str:
@@ -184,17 +187,33 @@ def final_rms_line(open_loop: "SimResult", closed: "SimResult") -> str:
             f"{closed.rms[j]:.3f} mm with SMF{at}")
 
 
+def final_footprint_line(open_loop: "SimResult", closed: "SimResult") -> str:
+    """The last measurement layer's error over its whole footprint, part and scaffold: RMS
+    and largest, open loop and with SMF. The part's RMS alone hid millimetre ridges in
+    the scaffold and where the materials' beads meet (a control review's)."""
+    o, c = open_loop, closed
+    return (f"over the whole footprint (part and scaffold), layer {int(o.layers[-1])}: RMS "
+            f"{o.rms_footprint[-1]:.3f} mm open loop, {c.rms_footprint[-1]:.3f} mm with "
+            f"SMF; largest {o.max_abs_footprint[-1]:.3f} / {c.max_abs_footprint[-1]:.3f} mm")
+
+
 def format_table(rows: list[list[float]]) -> list[str]:
     """The printed table; a layer without a part footprint on the grid shows '-' (it
     printed 'nan'), said under the table."""
     def f(v: float, w: int) -> str:
         return f"{v:{w}.3f}" if math.isfinite(v) else f"{'-':>{w}}"
 
-    lines = ["layer  height mm   RMS open   RMS SMF   max open   max SMF  (mm)"]
-    for k, z, ro, rc, mo, mc in rows:
-        lines.append(f"{k:5d}  {z:9.2f}  {f(ro, 9)}  {f(rc, 8)}  {f(mo, 9)}  {f(mc, 8)}")
-    if any(not math.isfinite(v) for r in rows for v in r[2:]):
+    wide = any(len(r) > 6 for r in rows)
+    lines = ["layer  height mm   RMS open   RMS SMF   max open   max SMF"
+             + ("   all open   all SMF" if wide else "") + "  (mm)"]
+    for k, z, ro, rc, mo, mc, *foot in rows:
+        lines.append(f"{k:5d}  {z:9.2f}  {f(ro, 9)}  {f(rc, 8)}  {f(mo, 9)}  {f(mc, 8)}"
+                     + (f"  {f(foot[0], 9)}  {f(foot[1], 8)}" if foot else ""))
+    if any(not math.isfinite(v) for r in rows for v in r[2:6]):
         lines.append("  -: no part footprint on the simulator grid at that layer")
+    if wide:
+        lines.append("  RMS, max: the part, inside its rim; all: RMS over the whole "
+                     "footprint, part and scaffold")
     return lines
 
 
@@ -205,8 +224,10 @@ def _csv_value(v: float) -> str:
 
 #: What a null in simulation.json's per-layer lists means (strict JSON has no NaN).
 NULL_MEANS = ("rms_mm and max_abs_mm are null at a measurement layer whose part footprint "
-              "is empty; rms_measured_mm where the laser took no samples")
-_PER_LAYER = ("rms_mm", "max_abs_mm", "rms_measured_mm")
+              "is empty; rms_measured_mm where the laser took no samples; "
+              "rms_footprint_mm and max_abs_footprint_mm where the layer covers no cell")
+_PER_LAYER = ("rms_mm", "max_abs_mm", "rms_measured_mm", "rms_footprint_mm",
+              "max_abs_footprint_mm")
 
 
 def _strict_json_figures(result: "SimResult", name: str, job: "Job | None") -> dict:
@@ -414,6 +435,7 @@ def run(args: argparse.Namespace) -> int:
     for line in format_table(table_rows(open_loop, closed)):
         print(line)
     print(final_rms_line(open_loop, closed))
+    print(final_footprint_line(open_loop, closed))
     if not job.feedback.enabled:
         print("feedback.enabled = false: the build runs open loop (no measurement, no SMF); "
               "the SMF columns repeat it")

@@ -62,6 +62,12 @@ class SimResult:
         holds no part.
     max_abs: (m,) float64, mm, largest absolute deviation over the part footprint.
     rms_measured: (m,) float64, mm, RMS of the laser samples' deviation from nominal.
+    rms_footprint, max_abs_footprint: (m,) float64, mm, the RMS and largest absolute
+        deviation over the layer's whole deposited footprint, part and scaffold (less its
+        partly covered outermost cells): the surface SMF regulates (thesis 5.1.2). ``rms``
+        leaves out the scaffold and the part's rim, where the beads of the two materials
+        meet: ridges there (a bead overlap stacked layer after layer) showed in neither
+        ``rms`` nor ``max_abs``.
     height: final surface; NaN where nothing was ever deposited.
     surfaces: error surfaces (true height - nominal, NaN outside the merged footprint and
         on its partly covered outermost cells) at the layers asked for, by toolpaths
@@ -82,6 +88,8 @@ class SimResult:
     rms: np.ndarray
     max_abs: np.ndarray
     rms_measured: np.ndarray
+    rms_footprint: np.ndarray
+    max_abs_footprint: np.ndarray
     height: HeightMap
     surfaces: dict[int, HeightMap]
     closed_loop: bool
@@ -98,6 +106,8 @@ class SimResult:
                 "layers": self.layers.tolist(), "nominal_z_mm": self.nominal_z.tolist(),
                 "rms_mm": self.rms.tolist(), "max_abs_mm": self.max_abs.tolist(),
                 "rms_measured_mm": self.rms_measured.tolist(),
+                "rms_footprint_mm": self.rms_footprint.tolist(),
+                "max_abs_footprint_mm": self.max_abs_footprint.tolist(),
                 "volume_commanded_mm3": self.volume_commanded,
                 "volume_deposited_mm3": self.volume_deposited,
                 "flow_gain": list(self.flow_gain), "pulses": self.pulses}
@@ -280,7 +290,7 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
     measure_set = set(int(i) for i in measure_layers)
     keep = set(int(i) for i in keep_surfaces)
     action: ActionFn | None = None
-    rows: list[tuple[int, float, float, float, float]] = []
+    rows: list[tuple[float, ...]] = []
     surfaces: dict[int, HeightMap] = {}
     vol_cmd_total = 0.0
     vol_dep_total = 0.0
@@ -329,6 +339,12 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
                 mx = float(np.abs(e).max())
             else:
                 rms = mx = float("nan")
+            # the whole footprint, part and scaffold, less its partly covered rim
+            inner = ndimage.binary_erosion(mask)
+            foot = inner if inner.any() else mask
+            ef = err[foot]
+            rms_all = float(np.sqrt(np.mean(ef ** 2))) if len(ef) else float("nan")
+            mx_all = float(np.abs(ef).max()) if len(ef) else float("nan")
             tagged, true = plan.laser_tagged, plan.laser_true
             if len(tagged) == 0:
                 # no measurement paths in this layer: read along the deposition segments
@@ -337,14 +353,14 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
                                     rng=rng_laser)
             rms_meas = float(np.sqrt(np.mean((samples[:, 2] - nominal) ** 2))) \
                 if len(samples) else float("nan")
-            rows.append((plan.index, nominal, rms, mx, rms_meas))
-            log.debug("layer %d (%.2f mm): RMS %.4f mm, max %.4f mm, measured RMS %.4f mm",
-                      plan.index, nominal, rms, mx, rms_meas)
+            rows.append((plan.index, nominal, rms, mx, rms_meas, rms_all, mx_all))
+            log.debug("layer %d (%.2f mm): RMS %.4f mm, max %.4f mm, measured RMS %.4f mm, "
+                      "footprint RMS %.4f mm, max %.4f mm", plan.index, nominal, rms, mx,
+                      rms_meas, rms_all, mx_all)
             if plan.index in keep:
                 # without the partly covered outermost cells of the footprint
                 surfaces[plan.index] = HeightMap(origin=surface.origin.copy(), spacing=g,
-                                                 z=np.where(ndimage.binary_erosion(mask),
-                                                            err, np.nan))
+                                                 z=np.where(inner, err, np.nan))
             if controller is not None:
                 plane = np.where(mask, nominal, np.nan)
                 action = controller(Measurement(
@@ -355,11 +371,12 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
             last_measured = nominal
         if progress is not None:
             progress(j + 1, len(plans))
-    arr = np.array(rows, dtype=np.float64).reshape(-1, 5)
+    arr = np.array(rows, dtype=np.float64).reshape(-1, 7)
     final = HeightMap(origin=surface.origin.copy(), spacing=g, z=np.where(ever, z, np.nan))
     gains = tuple(float(flow_gain(sim, c)) for c in used_cm3)
     return SimResult(layers=arr[:, 0].astype(np.int64), nominal_z=arr[:, 1], rms=arr[:, 2],
-                     max_abs=arr[:, 3], rms_measured=arr[:, 4], height=final,
+                     max_abs=arr[:, 3], rms_measured=arr[:, 4], rms_footprint=arr[:, 5],
+                     max_abs_footprint=arr[:, 6], height=final,
                      surfaces=surfaces, closed_loop=controller is not None,
                      volume_commanded=vol_cmd_total, volume_deposited=vol_dep_total,
                      flow_gain=gains, n_layers=len(plans),  # type: ignore[arg-type]
