@@ -366,3 +366,37 @@ def test_the_error_over_the_whole_footprint_shows_what_the_part_rms_leaves_out()
     assert final_footprint_line(res, res).startswith(
         f"over the whole footprint (part and scaffold), layer 23: RMS "
         f"{res.rms_footprint[-1]:.3f} mm open loop")
+
+
+def test_adaptive_layers_normalise_the_error_by_the_interval_the_action_acts_over():
+    """Thesis 5.1.3 and eq. 5.11c: U_k is applied to the layers up to the next measurement,
+    which lay (1 + u) dh_m, so E_k is normalised by that interval. The simulator took the
+    height built before the measurement: a layer laid twice (0.1 mm too high) under
+    0.1 mm layers, then 0.4 mm ones, asked 0.1 / 0.4 of the flow off a 1.6 mm interval
+    and left the part 0.3 mm low instead of at its height (Kp = 1: one step)."""
+    from icefab.sim import smf_controller
+
+    job = quiet_job(**{"feedback.kp": 1.0, "feedback.ki": 0.0, "feedback.kd": 0.0})
+    tp = annulus_toolpaths(job, 12, measure=False)
+    thick = [0.1] * 4 + [0.4] * 4 + [0.25] * 4
+    layers = []
+    for lay, t in zip(tp.layers, thick):
+        paths = lay.paths * 2 if lay.index == 0 else lay.paths    # laid twice: +0.1 mm
+        layers.append(dataclasses.replace(lay, paths=paths, thickness=t))
+    tp = dataclasses.replace(tp, layers=tuple(layers))
+    seen = []
+    smf = smf_controller(job)
+
+    def control(m: Measurement):
+        seen.append((m.layer, m.nominal_z, m.interval_mm))
+        return smf(m)
+
+    res = simulate_build(tp, job, controller=control)
+    assert [(k, round(z, 9)) for k, z, _ in seen] == [(3, 0.4), (7, 2.0), (11, 3.0)]
+    # the interval each action is applied over: to the next measurement, then the step
+    # the measurements follow (4 x 0.25 mm)
+    assert [d for _, _, d in seen] == pytest.approx([1.6, 1.0, 1.0])
+    # the open loop keeps the extra 0.1 mm; SMF takes it off in one interval
+    open_loop = simulate_build(tp, job, closed_loop=False)
+    assert open_loop.rms[1] == pytest.approx(0.1, abs=0.01)
+    assert res.rms[0] == pytest.approx(0.1, abs=0.01) and res.rms[1] < 0.02

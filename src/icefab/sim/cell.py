@@ -32,7 +32,13 @@ class Measurement:
 
     layer: toolpaths layer index just deposited; k: measurement count, 1 for the first.
     nominal_z: nominal height of the surface, mm (from the platform).
-    interval_mm: measurement interval dh_m = n_d * dh, mm.
+    interval_mm: measurement interval dh_m, mm, the height the action is applied over:
+        n_d * dh; with adaptive layers the nominal height from this measurement layer to
+        the next one (after the last: ``interval_layers * layer_thickness_mm``, the step
+        the measurement layers follow). Thesis 5.1.3 and eq. 5.11c: U_k acts on the layers
+        up to the next measurement, which lay (1 + u) dh_m; E_k normalised by the height
+        built before the measurement asked 1.6 / 0.4 = 4 times the correction over an
+        interval four times as tall.
     samples: (m, 3) float64, mm, laser samples (x, y, z).
     footprint: (ny, nx) bool on the simulator grid ``grid``: the merged (part + scaffold)
         footprint of the layer.
@@ -266,11 +272,14 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
     dh = job.slicing.layer_thickness_mm
     n_d = job.feedback.interval_layers
     # adaptive layers (own thicknesses): heights add up layer by layer, and a measurement's
-    # interval is the height built since the previous one (uniform: (j + 1) dh, n_d dh)
+    # interval is the height its action is applied over, up to the next measurement
+    # (uniform: (j + 1) dh, n_d dh)
     own = [layer_height(p.thickness, job) for p in plans]
     adaptive = any(math.isfinite(p.thickness) for p in plans)
     heights = np.cumsum(own) if adaptive else None
-    last_measured = 0.0
+    order = sorted(int(i) for i in measure_layers)
+    next_measured = dict(zip(order, order[1:]))
+    step_mm = n_d * job.slicing.layer_thickness_mm
     valves = sim.deposition == "valves"
     if valves:
         for plan in plans:
@@ -363,12 +372,16 @@ def run_cell(plans: Sequence[LayerPlan], job: "Job", *, measure_layers: Sequence
                                                  z=np.where(inner, err, np.nan))
             if controller is not None:
                 plane = np.where(mask, nominal, np.nan)
+                if not adaptive:
+                    interval = n_d * dh
+                elif j in next_measured:
+                    interval = float(heights[next_measured[j]]) - nominal
+                else:
+                    interval = step_mm
                 action = controller(Measurement(
-                    layer=plan.index, k=k, nominal_z=nominal,
-                    interval_mm=(nominal - last_measured) if adaptive else n_d * dh,
+                    layer=plan.index, k=k, nominal_z=nominal, interval_mm=interval,
                     samples=samples, footprint=mask,
                     grid=HeightMap(origin=surface.origin.copy(), spacing=g, z=plane)))
-            last_measured = nominal
         if progress is not None:
             progress(j + 1, len(plans))
     arr = np.array(rows, dtype=np.float64).reshape(-1, 7)
