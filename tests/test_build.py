@@ -2431,3 +2431,30 @@ def test_a_build_on_a_fast_cell_says_its_eta_at_its_pace(planned, tmp_path, caps
     assert any("(pace so far; planned motion " in line for line in lines)
     assert _status(build, as_json=False) == 0
     assert "ETA 0:00:00 (planned motion)" in capsys.readouterr().out
+
+
+def test_a_measurement_without_a_surface_keeps_the_integral_term_acting():
+    """A control review's: collinear laser samples (no surface) gave the runner no action
+    (nominal flow for an interval) and the integral's bias of a lasting flow error was
+    lost. The state is kept, the integral term alone acts, and the journal is told."""
+    from icefab import feedback
+
+    job = Job().replace(**{"feedback.kp": 0.0, "feedback.kd": 0.0})
+    g = np.linspace(-10.0, 10.0, 21)
+    X, Y = np.meshgrid(g, g)
+    high = np.column_stack([X.ravel(), Y.ravel(), np.full(X.size, 1.1)])  # 0.1 mm high
+    state, u, filled, rms, note = bmod.smf_from_samples(high, 1.0, feedback.SmfState(), job)
+    assert note is None and rms == pytest.approx(0.1) and state.k == 1
+    line = np.column_stack([g, np.zeros_like(g), np.full(g.size, 2.3)])   # collinear
+    kept, held_u, held_filled, _, note = bmod.smf_from_samples(line, 2.0, state, job)
+    assert kept is state
+    assert held_u is not None and np.allclose(held_u.z[np.isfinite(u.z)],
+                                              u.z[np.isfinite(u.z)], rtol=1e-12)
+    assert np.nanmax(held_u.z) < -0.02      # less flow: the part stood high
+    assert "integral term alone" in note
+    # what the journal keeps restores the same action (a resumed build)
+    _, sampler = bmod.unpack_smf(bmod.pack_smf(kept, held_u, held_filled))
+    assert np.allclose(sampler(np.array([[0.0, 0.0], [5.0, -5.0]])), u.z[10, 10])
+    # before any update there is nothing to hold: nominal flow
+    _, none_u, _, _, note = bmod.smf_from_samples(line, 2.0, feedback.SmfState(), job)
+    assert none_u is None and "none yet" in note

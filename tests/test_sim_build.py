@@ -400,3 +400,39 @@ def test_adaptive_layers_normalise_the_error_by_the_interval_the_action_acts_ove
     open_loop = simulate_build(tp, job, closed_loop=False)
     assert open_loop.rms[1] == pytest.approx(0.1, abs=0.01)
     assert res.rms[0] == pytest.approx(0.1, abs=0.01) and res.rms[1] < 0.02
+
+
+def test_a_layer_without_a_surface_keeps_the_integral_term_acting(caplog):
+    """A control review's: a measurement whose samples form no surface (collinear here)
+    applied u = 0 for the next interval, and the integral's bias of the +10 % flow
+    error was lost. Now the state is kept and the integral term alone acts (thesis
+    5.1.2: not measured is not error 0), with a warning."""
+    import logging
+
+    from icefab.sim import smf_controller
+
+    # P and D off: the action of a measurement is its integral term
+    job = quiet_job(**{"simulation.flow_error": 0.10, "feedback.kp": 0.0,
+                       "feedback.kd": 0.0})
+    tp = annulus_toolpaths(job, 12)
+    line = Toolpath(points=np.array([[-20.0, 0.5], [20.0, 0.5]]), z=8 * DH, material="part",
+                    role="measure", closed=False, layer=7)
+    layers = list(tp.layers)
+    layers[7] = dataclasses.replace(layers[7], paths=tuple(
+        p for p in layers[7].paths if p.role != "measure") + (line,))
+    tp = dataclasses.replace(tp, layers=tuple(layers))
+    smf = smf_controller(job)
+    actions = []
+
+    def control(m: Measurement):
+        actions.append(smf(m))
+        return actions[-1]
+
+    with caplog.at_level(logging.WARNING, logger="icefab.sim.smf"):
+        simulate_build(tp, job, controller=control)
+    assert len(actions) == 3
+    pts = np.array([[17.5, 0.0], [0.0, -17.5], [-28.0, 0.0], [0.0, 28.0]])
+    first, held = actions[0](pts), actions[1](pts)
+    assert np.all(first < -0.02)          # the part stood 10 % high: less flow
+    np.testing.assert_allclose(held, first, rtol=1e-12)    # held, not 0
+    assert "layer 7: no surface from" in caplog.text and "integral term alone" in caplog.text

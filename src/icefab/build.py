@@ -306,8 +306,11 @@ def unpack_smf(data: bytes):
 
 def smf_from_samples(samples: np.ndarray, nominal_z: float, state, job: "Job"):
     """One SMF update from part-frame laser samples (m, 3): (new state, action u
-    HeightMap, filled u, measured RMS). Too few samples: the state is kept and the
-    action is None (nominal flow until the next measurement)."""
+    HeightMap, filled u, measured RMS mm, finding). Too few or collinear samples: the
+    state is kept and the action is the integral term alone
+    (:func:`icefab.feedback.held_action`; None before the first update: nominal flow),
+    and the finding (else None) says so; an action of 0 lost the integral's bias of a
+    lasting flow error for an interval."""
     from icefab import feedback
     from icefab.errors import GeometryError
 
@@ -317,13 +320,18 @@ def smf_from_samples(samples: np.ndarray, nominal_z: float, state, job: "Job"):
     try:
         surf = feedback.surface_from_samples(samples, None, fb.grid_mm, smoothing=fb.smoothing)
     except GeometryError as exc:
-        log.warning("no surface from %d laser samples (%s); no control action",
-                    len(samples), exc)
-        return state, None, None, rms
+        held = feedback.held_action(state, job)
+        note = (f"no surface from {len(samples)} laser samples ({exc}): SMF keeps its state "
+                "and applies the integral term alone until the next measurement"
+                + ("" if held is not None else " (none yet: nominal flow)"))
+        log.warning("%s", note)
+        if held is None:
+            return state, None, None, rms, note
+        return state, held.u, held._filled, rms, note
     err = feedback.error_surface(surf, nominal_z, fb.interval_layers *
                                  job.slicing.layer_thickness_mm)
     action, new = feedback.smf_update(state, err, job)
-    return new, action.u, action._filled, rms
+    return new, action.u, action._filled, rms, None
 
 
 # =========================================================================== the run
@@ -863,7 +871,10 @@ class Runner:
                 samples = np.concatenate(raws) if raws else np.zeros((0, 3))
                 nominal = (j + 1) * dh
                 if L not in smf_layers:
-                    state, u, filled, rms = smf_from_samples(samples, nominal, state, job)
+                    state, u, filled, rms, note = smf_from_samples(samples, nominal, state,
+                                                                   job)
+                    if note is not None:
+                        self.journal.event("measurement", f"layer {L}: {note}", layer=L)
                     k = len(smf_layers) + 1
                     self.journal.measurement(k, L, nominal, samples, rms,
                                              smf_state=pack_smf(state, u, filled))

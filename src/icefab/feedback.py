@@ -21,7 +21,8 @@ Thesis Ch. 5. Two halves:
 
 Public functions: :func:`surface_from_samples`, :func:`error_surface`, :func:`smf_update`
 (state :class:`SmfState`, result :class:`ControlAction`), :func:`smf_step` (the three in
-one), :func:`action_along` / :func:`action_sampler`, :func:`retime_trajectory`,
+one), :func:`held_action` (a layer whose surface cannot be formed),
+:func:`action_along` / :func:`action_sampler`, :func:`retime_trajectory`,
 :func:`regrid`, :func:`region_mask`; analysis: :func:`poles`, :func:`stability`,
 :func:`in_stable_volume`, :func:`repeated_unit_pole`, :func:`transfer_function`,
 :func:`error_response`, :func:`simulate_1d`, :func:`rms_and_gradient`, :func:`tune_gains`,
@@ -1320,6 +1321,35 @@ def smf_update(state: SmfState, error: HeightMap, job: "Job | None" = None, *,
         log.info("SMF layer %d: output saturated on %.1f %% of the footprint", state.k + 1,
                  100 * sat)
     return action, new_state
+
+
+def held_action(state: SmfState, job: "Job | None" = None) -> ControlAction | None:
+    """The action of a measurement layer whose error surface cannot be formed (too few or
+    collinear laser samples, or none on the footprint): the integral term I_{k-1} alone,
+    within the planes of U, on the grid of the last update; the caller keeps ``state``.
+
+    Not measured is not "error 0" (as for :func:`smf_update`'s NaN nodes): the P and D
+    terms act on this layer's error, which is unknown, and the integral holds the bias of
+    a lasting disturbance (a flow error; thesis 5.1.2, 5.2.2), which an action of 0 threw
+    away for a whole interval. Dimensionless u, NaN outside the last footprint. None
+    before the first update (nominal flow).
+    """
+    if job is None:
+        job = Job()
+    if state.integral is None:
+        return None
+    z = np.asarray(state.integral.z, dtype=np.float64)
+    valid = np.isfinite(z)
+    if not valid.any():
+        return None
+    lo, hi = saturation_limits(job)
+    us = np.where(valid, np.clip(z, lo, hi), np.nan)
+    origin = np.asarray(state.integral.origin, dtype=np.float64)
+    u = HeightMap(origin, float(state.integral.spacing), us)
+    zero = np.where(valid, 0.0, np.nan)
+    return ControlAction(u=u, unsaturated=u, p=zero, i=np.where(valid, z, np.nan), d=zero,
+                         saturated=0.0, controller=job.feedback.controller,
+                         _filled=_nearest_fill(np.where(valid, us, 0.0), valid))
 
 
 def smf_step(samples: np.ndarray, footprint: Region | Sequence[Region] | None,

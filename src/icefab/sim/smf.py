@@ -27,12 +27,23 @@ def smf_controller(job: "Job") -> Controller:
     the layer's merged footprint (footprint nodes outside the samples' hull take the
     nearest sample); the normalised error drives one step of the spatial PID (eq. 5.1,
     saturation and anti-windup); the returned u(xy) samples the saturated action
-    (thesis 5.1-5.2).
+    (thesis 5.1-5.2). A layer whose surface cannot be formed (too few or collinear
+    samples, or none on the footprint) keeps the state and applies the integral term
+    alone (:func:`icefab.feedback.held_action`), with a warning; it applied 0, and the
+    integral's bias of a lasting flow error was lost for an interval.
     """
-
 
     fb = job.feedback
     state = feedback.SmfState()
+
+    def held(m: Measurement, why: str) -> ActionFn:
+        action = feedback.held_action(state, job)
+        log.warning("layer %d: %s; SMF keeps its state and applies the integral term "
+                    "alone until the next measurement%s", m.layer, why,
+                    "" if action is not None else " (none yet: nominal flow)")
+        if action is None:
+            return lambda xy: np.zeros(len(xy))
+        return feedback.action_sampler(action)
 
     def control(m: Measurement) -> ActionFn:
         nonlocal state
@@ -40,11 +51,8 @@ def smf_controller(job: "Job") -> Controller:
             surf = feedback.surface_from_samples(m.samples, None, fb.grid_mm,
                                                  smoothing=fb.smoothing)
         except GeometryError as exc:
-            # e.g. a tiny top layer with too few or collinear samples: the cell carries on
-            # at nominal flow until the next measurement
-            log.warning("layer %d: no surface from %d laser samples (%s); no control action",
-                        m.layer, len(m.samples), exc)
-            return lambda xy: np.zeros(len(xy))
+            # e.g. a tiny top layer with too few or collinear samples
+            return held(m, f"no surface from {len(m.samples)} laser samples ({exc})")
         x, y = surf.grid()
         g = m.grid.spacing
         ix = np.rint((x - m.grid.origin[0]) / g).astype(np.int64)
@@ -61,9 +69,7 @@ def smf_controller(job: "Job") -> Controller:
             _, nearest = cKDTree(m.samples[:, :2]).query(np.column_stack([x[hx], y[hy]]))
             z[hy, hx] = m.samples[nearest, 2]
         if not np.isfinite(z).any():
-            log.warning("layer %d: the laser samples miss the footprint; no control action",
-                        m.layer)
-            return lambda xy: np.zeros(len(xy))
+            return held(m, "the laser samples miss the footprint")
         error = feedback.error_surface(HeightMap(origin=surf.origin, spacing=surf.spacing,
                                                  z=z), m.nominal_z, m.interval_mm)
         action, state = feedback.smf_update(state, error, job)
