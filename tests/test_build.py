@@ -2458,3 +2458,74 @@ def test_a_measurement_without_a_surface_keeps_the_integral_term_acting():
     # before any update there is nothing to hold: nominal flow
     _, none_u, _, _, note = bmod.smf_from_samples(line, 2.0, feedback.SmfState(), job)
     assert none_u is None and "none yet" in note
+
+
+def test_the_runner_gives_smf_the_measured_layers_footprint(planned, tmp_path, monkeypatch):
+    """The runner's SMF update gets the footprint of the layer just deposited (its plan,
+    as the valve programs were made from), and the laser's samples lie on it."""
+    from icefab.motion import load_trajectories
+    from icefab.sim import plan_layer_motion
+
+    motion = load_trajectories(planned)
+    job = motion.job
+    build = tmp_path / "b"
+    cell = _prepared(build, motion, job)
+    journal = Journal.create(build / bmod.JOURNAL, {"digests": {}})
+    seen = []
+    real = bmod.smf_from_samples
+
+    def spy(samples, nominal, state, job, footprint=None):
+        seen.append((samples, footprint))
+        return real(samples, nominal, state, job, footprint)
+
+    monkeypatch.setattr(bmod, "smf_from_samples", spy)
+    bmod.Runner(build, motion, job, journal, lambda: cell).run()
+    journal.close()
+    assert len(seen) == 1                                  # layer 3 (n_d = 4)
+    samples, (mask, grid) = seen[0]
+    want, want_grid = bmod.layer_footprint(plan_layer_motion(motion.layers[3], job), job)
+    assert np.array_equal(mask, want) and np.array_equal(grid.origin, want_grid.origin)
+    ix = np.rint((samples[:, 0] - grid.origin[0]) / grid.spacing).astype(int)
+    iy = np.rint((samples[:, 1] - grid.origin[1]) / grid.spacing).astype(int)
+    assert mask[iy, ix].mean() > 0.99
+
+
+def test_the_runner_measures_a_two_island_layer_on_its_footprint_only():
+    """A control review's: the runner formed the measured surface over the laser samples'
+    convex hull, so the empty platform between two islands (or a part's arms) took heights
+    interpolated across the gap, and they fed SMF (its integral there, and the action at
+    the islands' facing edges). The surface is now restricted to the layer's footprint, as
+    the simulator's is."""
+    from icefab import feedback
+    from icefab.core import Toolpath
+    from icefab.sim import plan_layer
+
+    job = Job()
+
+    def square(cx, h):
+        return np.array([[cx - h, -h], [cx + h, -h], [cx + h, h], [cx - h, h]])
+
+    # two 20 mm squares, 10 mm apart (x in [-25, -5] and [5, 25]), filled by 1.5 mm rings
+    paths = [Toolpath(points=square(cx, h), z=0.25, material="part", role="boundary",
+                      closed=True, width=1.5, layer=0)
+             for cx in (-15.0, 15.0) for h in np.arange(9.25, 0.0, -1.5)]
+    mask, grid = bmod.layer_footprint(plan_layer(0, paths, job), job)
+    gx, gy = grid.grid()
+    assert mask[np.searchsorted(gy, 0.0), np.searchsorted(gx, -15.0)]
+    assert not mask[np.searchsorted(gy, 0.0), np.searchsorted(gx, 0.0)]     # the gap
+    # the laser over both: the left island 0.2 mm high, the right one at its height
+    s = np.arange(-9.5, 9.6, 1.0)
+    X, Y = np.meshgrid(s, s)
+    samples = np.concatenate([np.column_stack([X.ravel() + cx, Y.ravel(),
+                                               np.full(X.size, z)])
+                              for cx, z in ((-15.0, 1.2), (15.0, 1.0))])
+    _, u_hull, *_ = bmod.smf_from_samples(samples, 1.0, feedback.SmfState(), job)
+    state, u, *_ = bmod.smf_from_samples(samples, 1.0, feedback.SmfState(), job,
+                                         (mask, grid))
+    x, y = u.grid()
+    rows = np.abs(y) < 9.0
+    gap = np.ix_(rows, np.abs(x) < 4.5)
+    assert np.isfinite(u_hull.z[gap]).all()         # the hull: the gap was controlled
+    assert np.isnan(u.z[gap]).all() and np.isnan(state.integral.z[gap]).all()
+    assert np.allclose(u.z[np.ix_(rows, x > 5.5)], 0.0)
+    assert np.all(u.z[np.ix_(rows, x < -5.5)] < -0.1)

@@ -304,30 +304,71 @@ def unpack_smf(data: bytes):
     return state, feedback.action_sampler(action)
 
 
-def smf_from_samples(samples: np.ndarray, nominal_z: float, state, job: "Job"):
+def layer_footprint(plan, job: "Job", thickness: float = float("nan")
+                    ) -> tuple[np.ndarray, HeightMap]:
+    """The cells a layer's beads cover, part and scaffold: (mask (ny, nx) bool, its grid,
+    a HeightMap whose origin and spacing, mm, place it; its z is 0).
+
+    plan: the layer's :class:`icefab.sim.LayerPlan` (its deposition segments, part
+    frame); thickness: the layer's own, mm (NaN: the job's). The commanded beads are laid
+    on a grid of half the error surface's pitch (``feedback.grid_mm / 2``), and a cell is
+    covered where they lay a quarter of the layer's thickness or more: the simulator's
+    footprint (``icefab.sim.deposit_layer``) without its disturbances.
+    """
+    from icefab import sim as simmod
+    from icefab.stages import layer_height
+
+    spacing = 0.5 * job.feedback.grid_mm
+    if not len(plan.a):
+        return np.zeros((1, 1), dtype=bool), HeightMap(np.zeros(2), spacing, np.zeros((1, 1)))
+    pts = np.concatenate([plan.a, plan.b])
+    grid = simmod.empty_surface(pts.min(axis=0), pts.max(axis=0), spacing,
+                                float(plan.half_width.max()) + spacing)
+    z = np.zeros_like(grid.z)
+    simmod._splat(z, grid.origin, spacing, plan.a, plan.b, plan.volume, plan.half_width,
+                  plan.n0, plan.n1, plan.ext)
+    dh = layer_height(thickness, job) * job.flow.layer_scale
+    return z > 0.25 * dh, grid
+
+
+def smf_from_samples(samples: np.ndarray, nominal_z: float, state, job: "Job",
+                     footprint: tuple[np.ndarray, HeightMap] | None = None):
     """One SMF update from part-frame laser samples (m, 3): (new state, action u
-    HeightMap, filled u, measured RMS mm, finding). Too few or collinear samples: the
-    state is kept and the action is the integral term alone
-    (:func:`icefab.feedback.held_action`; None before the first update: nominal flow),
-    and the finding (else None) says so; an action of 0 lost the integral's bias of a
-    lasting flow error for an interval."""
+    HeightMap, filled u, measured RMS mm, finding).
+
+    footprint: the layer's (mask, grid) (:func:`layer_footprint`); the measured surface
+    is restricted to it as the simulator's is (:func:`icefab.feedback.restrict_to_footprint`:
+    the samples' convex hull spanned the platform between a part's arms, and heights
+    interpolated there fed SMF). None: the samples' convex hull.
+    Too few or collinear samples, or none on the footprint: the state is kept and the
+    action is the integral term alone (:func:`icefab.feedback.held_action`; None before
+    the first update: nominal flow), and the finding (else None) says so; an action of 0
+    lost the integral's bias of a lasting flow error for an interval."""
     from icefab import feedback
     from icefab.errors import GeometryError
 
     fb = job.feedback
     rms = float(np.sqrt(np.mean((samples[:, 2] - nominal_z) ** 2))) if len(samples) \
         else float("nan")
+
+    def held(why: str):
+        action = feedback.held_action(state, job)
+        note = (f"{why}: SMF keeps its state and applies the integral term alone until the "
+                "next measurement" + ("" if action is not None else " (none yet: nominal "
+                                                                      "flow)"))
+        log.warning("%s", note)
+        if action is None:
+            return state, None, None, rms, note
+        return state, action.u, action._filled, rms, note
+
     try:
         surf = feedback.surface_from_samples(samples, None, fb.grid_mm, smoothing=fb.smoothing)
     except GeometryError as exc:
-        held = feedback.held_action(state, job)
-        note = (f"no surface from {len(samples)} laser samples ({exc}): SMF keeps its state "
-                "and applies the integral term alone until the next measurement"
-                + ("" if held is not None else " (none yet: nominal flow)"))
-        log.warning("%s", note)
-        if held is None:
-            return state, None, None, rms, note
-        return state, held.u, held._filled, rms, note
+        return held(f"no surface from {len(samples)} laser samples ({exc})")
+    if footprint is not None:
+        surf = feedback.restrict_to_footprint(surf, samples, *footprint)
+        if not np.isfinite(surf.z).any():
+            return held("the laser samples miss the layer's footprint")
     err = feedback.error_surface(surf, nominal_z, fb.interval_layers *
                                  job.slicing.layer_thickness_mm)
     action, new = feedback.smf_update(state, err, job)
@@ -504,6 +545,7 @@ class Runner:
         self._last_status = 0.0
         self._pool = None       # one thread that plans the next layer ahead (_prefetch)
         self._ahead = None      # (layer position, future of (plan, valves, action))
+        self._plan = None       # (layer position, its LayerPlan): a measurement's footprint
         self._report_due = False   # a measurement's report, drawn once the next layer runs
         self._pictures: tuple[str, str] | None = None   # the report's, till the next one
 
@@ -871,8 +913,10 @@ class Runner:
                 samples = np.concatenate(raws) if raws else np.zeros((0, 3))
                 nominal = (j + 1) * dh
                 if L not in smf_layers:
-                    state, u, filled, rms, note = smf_from_samples(samples, nominal, state,
-                                                                   job)
+                    plan = self._plan[1] if self._plan is not None and \
+                        self._plan[0] == j else self._layer_plan(j)
+                    state, u, filled, rms, note = smf_from_samples(
+                        samples, nominal, state, job, layer_footprint(plan, job, lm.thickness))
                     if note is not None:
                         self.journal.event("measurement", f"layer {L}: {note}", layer=L)
                     k = len(smf_layers) + 1
@@ -914,12 +958,20 @@ class Runner:
         fut, self._ahead = self._ahead, None
         if fut is not None and fut[0] == j:
             plan, lv, cps, with_action = fut[1].result()
+            self._plan = (j, plan)
             if lv is not None and with_action is action:
                 return lv, cps
         else:
             plan = simmod.plan_layer_motion(self.motion.layers[j], self.job)
+            self._plan = (j, plan)
         lv = simmod.layer_valves(plan, self.job, action)
         return lv, self._cell_paths(j, lv)
+
+    def _layer_plan(self, j: int):
+        """The LayerPlan of layer position ``j`` (:func:`icefab.sim.plan_layer_motion`)."""
+        from icefab import sim as simmod
+
+        return simmod.plan_layer_motion(self.motion.layers[j], self.job)
 
     def _cell_paths(self, j: int, lv) -> list:
         from icefab import flow

@@ -21,7 +21,7 @@ Thesis Ch. 5. Two halves:
 
 Public functions: :func:`surface_from_samples`, :func:`error_surface`, :func:`smf_update`
 (state :class:`SmfState`, result :class:`ControlAction`), :func:`smf_step` (the three in
-one), :func:`held_action` (a layer whose surface cannot be formed),
+one), :func:`held_action` (a layer whose surface cannot be formed), :func:`restrict_to_footprint`,
 :func:`action_along` / :func:`action_sampler`, :func:`retime_trajectory`,
 :func:`regrid`, :func:`region_mask`; analysis: :func:`poles`, :func:`stability`,
 :func:`in_stable_volume`, :func:`repeated_unit_pole`, :func:`transfer_function`,
@@ -1095,6 +1095,42 @@ def surface_from_samples(xyz: np.ndarray, footprint: Region | Sequence[Region] |
         z = np.where(mask, ndimage.median_filter(filled, size=smooth_size, mode="nearest"),
                      np.nan)
     return HeightMap(origin=origin, spacing=float(spacing), z=z)
+
+
+def restrict_to_footprint(surface: HeightMap, samples: np.ndarray, footprint: np.ndarray,
+                          grid: HeightMap) -> HeightMap:
+    """``surface`` (from :func:`surface_from_samples` without a footprint: the samples'
+    convex hull) restricted to the layer's deposited footprint, part and scaffold (thesis
+    5.1.2, Fig. 5-3: the grid spans the merged regions).
+
+    footprint: (ny, nx) bool on ``grid`` (its origin and spacing, mm; its z unused), e.g.
+    the cells a layer's beads cover. A node of ``surface`` whose nearest ``grid`` cell is
+    outside becomes NaN: the hull spans the empty platform between a part's arms or
+    islands, and the heights interpolated there fed the controller. A node inside but
+    outside the hull takes the height of the nearest sample (``samples`` (m, 3), mm).
+    Returns a new HeightMap on ``surface``'s grid, mm; all NaN when the samples' grid
+    misses the footprint.
+    """
+    from scipy.spatial import cKDTree
+
+    x, y = surface.grid()
+    g = float(grid.spacing)
+    ix = np.rint((x - grid.origin[0]) / g).astype(np.int64)
+    iy = np.rint((y - grid.origin[1]) / g).astype(np.int64)
+    ny, nx = footprint.shape
+    okx = (ix >= 0) & (ix < nx)
+    oky = (iy >= 0) & (iy < ny)
+    inside = footprint[np.clip(iy, 0, ny - 1)][:, np.clip(ix, 0, nx - 1)]
+    inside &= oky[:, None] & okx[None, :]
+    z = np.where(inside, surface.z, np.nan)
+    hole = inside & ~np.isfinite(surface.z)
+    if hole.any():
+        samples = np.asarray(samples, dtype=np.float64)
+        hy, hx = np.nonzero(hole)
+        _, nearest = cKDTree(samples[:, :2]).query(np.column_stack([x[hx], y[hy]]))
+        z[hy, hx] = samples[nearest, 2]
+    return HeightMap(origin=np.asarray(surface.origin, dtype=np.float64),
+                     spacing=float(surface.spacing), z=z)
 
 
 def error_surface(measured: HeightMap, nominal_z: float, interval_mm: float) -> HeightMap:

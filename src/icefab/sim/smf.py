@@ -7,11 +7,9 @@ from __future__ import annotations
 import logging
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from icefab import feedback
 from icefab.config import Job
-from icefab.core import HeightMap
 from icefab.errors import GeometryError
 from icefab.sim.cell import Controller, Measurement
 from icefab.sim.deposition import ActionFn
@@ -53,25 +51,10 @@ def smf_controller(job: "Job") -> Controller:
         except GeometryError as exc:
             # e.g. a tiny top layer with too few or collinear samples
             return held(m, f"no surface from {len(m.samples)} laser samples ({exc})")
-        x, y = surf.grid()
-        g = m.grid.spacing
-        ix = np.rint((x - m.grid.origin[0]) / g).astype(np.int64)
-        iy = np.rint((y - m.grid.origin[1]) / g).astype(np.int64)
-        ny, nx = m.footprint.shape
-        okx = (ix >= 0) & (ix < nx)
-        oky = (iy >= 0) & (iy < ny)
-        inside = m.footprint[np.clip(iy, 0, ny - 1)][:, np.clip(ix, 0, nx - 1)]
-        inside &= oky[:, None] & okx[None, :]
-        z = np.where(inside, surf.z, np.nan)
-        hole = inside & ~np.isfinite(surf.z)
-        if hole.any():
-            hy, hx = np.nonzero(hole)
-            _, nearest = cKDTree(m.samples[:, :2]).query(np.column_stack([x[hx], y[hy]]))
-            z[hy, hx] = m.samples[nearest, 2]
-        if not np.isfinite(z).any():
+        measured = feedback.restrict_to_footprint(surf, m.samples, m.footprint, m.grid)
+        if not np.isfinite(measured.z).any():
             return held(m, "the laser samples miss the footprint")
-        error = feedback.error_surface(HeightMap(origin=surf.origin, spacing=surf.spacing,
-                                                 z=z), m.nominal_z, m.interval_mm)
+        error = feedback.error_surface(measured, m.nominal_z, m.interval_mm)
         action, state = feedback.smf_update(state, error, job)
         return feedback.action_sampler(action)
 
