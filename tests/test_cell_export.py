@@ -442,3 +442,41 @@ def test_planning_toolpaths_for_another_robot_says_so(tmp_path, capsys):
             ) in capsys.readouterr().err
     with TrajectoryFile(tmp_path / "out2" / "trajectories.npz") as motion:
         assert tuple(motion.job.cell.ee_origin_mm) == (260.0, -100.0)
+
+
+def test_gcode_holds_the_valves_pwm_limit_refused_or_clamped(tmp_path, capsys):
+    # a gantry hunt's 1 mm layers: the G-code was written for paths asking 378 mm^3/s,
+    # while the PWM model counted the valve open at 125 Hz as 495 mm^3/s, 2.5 x the
+    # calibration table's highest flow (195 mm^3/s); 2 mm layers here: the ring asks 296
+    job = Job().replace(**{"cell.cpus": 1, "cell.robot": "gantry",
+                           "slicing.layer_thickness_mm": 2.0})
+    motion = small_motion(1, job)
+    from icefab.errors import FlowError
+    with pytest.raises(FlowError, match=r"^layer 0, path 0 \(part boundary\): flow 295.7 "
+                                        r"mm\^3/s above the 195 mm\^3/s .* fits at speeds "
+                                        r"up to 65 mm/s.*flow.out_of_range = 'clamp'"):
+        list(gcode_lines(motion, job))
+    save_trajectories(motion, tmp_path / "t.npz")
+    assert main(["export", "gcode", str(tmp_path / "t.npz"), "-o", str(tmp_path / "g")]) == 2
+    assert "above the 195 mm^3/s" in capsys.readouterr().err
+    assert not (tmp_path / "g").exists()
+    found = []
+    clamp = job.replace(**{"flow.out_of_range": "clamp"})
+    s = _g1_powers(list(gcode_lines(motion, clamp, found)))
+    # 3.15 ms of the 8 ms period: S100 at most, never the valve open all period (S255)
+    assert s.max() <= np.ceil(255 * 3.1502 / 8.0)
+    assert any("cut to 3.15 ms" in text and "-29.9 %" in text for _, text in found)
+
+
+def test_gcode_valve_follows_the_layers_own_thickness():
+    # adaptive layers: the G-code planned every layer's flow at slicing.layer_thickness_mm
+    # (a layer twice as thick got half its volume); icefab valves used the layer's own
+    import dataclasses
+
+    job = Job().replace(**{"cell.cpus": 1, "cell.robot": "gantry"})
+    motion = small_motion(1, job)
+    thick = dataclasses.replace(motion, layers=tuple(
+        dataclasses.replace(lm, thickness=0.5) for lm in motion.layers))
+    s_own = _g1_powers(list(gcode_lines(motion, job))).sum()
+    s_thick = _g1_powers(list(gcode_lines(thick, job))).sum()
+    assert s_thick / s_own == pytest.approx(2.0, rel=0.02)

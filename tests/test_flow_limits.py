@@ -7,6 +7,7 @@ thesis' PWM rule: at a fixed frequency the pulse width carries the flow, widths 
 """
 from __future__ import annotations
 
+import dataclasses
 import re
 
 import numpy as np
@@ -110,22 +111,46 @@ def test_pwm_just_below_and_above_the_shortest_pulse():
     np.testing.assert_allclose(width_ms, 0.5 * 0.375 * (C_RAISE + 0.3) / 125 / V_REF, atol=1e-3)
 
 
-def test_pwm_above_the_period_is_cut_and_reported_or_an_error():
-    # layer 2 mm: q = 3 c, width 0.5 * 3c / 125 / V_ref reaches the 8 ms period at 165 mm/s
-    c_cut = 8.0 / 0.5 * V_REF * 125.0 / 3.0
-    job = Job().replace(**PWM, **{"flow.min_drops_per_mm": 0.5,  # 125 Hz at 167 mm/s
-                                  "flow.out_of_range": "clamp"})
+def test_pwm_above_the_tables_highest_flow_is_cut_and_reported_or_an_error():
+    """The PWM model scales a pulse's volume with its width from the table's 0.5 ms pulses;
+    fully open at 125 Hz that counted 16 x 30.95 = 495 mm^3/s, 2.5 x the table's highest
+    flow (195 mm^3/s at 1000 Hz), and a gantry hunt's G-code was written for 378 mm^3/s.
+    The longest pulse now gives the table's highest flow: 0.5 ms x 195 / 30.95 = 3.15 ms."""
+    # layer 2 mm, width 1.5 mm: q = 3 c, the table's 195 mm^3/s at 65 mm/s
+    c_cut = 195.0 / 3.0
+    w_max = 0.5 * 195.0 / 30.95
+    job = Job().replace(**PWM, **{"flow.out_of_range": "clamp"})
     ok = plan_valves(constant_trajectory(c_cut - 2), "part", job, layer_thickness=2.0)
-    assert ok.warnings == () and ok.widths_us.max() <= 8000
+    assert ok.warnings == () and ok.widths_us.max() <= w_max * 1000
     cut = plan_valves(constant_trajectory(c_cut + 2), "part", job, layer_thickness=2.0)
     (w,) = cut.warnings
-    assert "100 cut to the 8 ms period" in w and set(cut.widths_us.tolist()) == {8000}
+    assert "100 cut to 3.15 ms" in w and "calibration table's highest flow" in w
+    assert set(cut.widths_us.tolist()) == {int(w_max * 1000)}
     delivered, commanded = volumes(w)
     assert delivered / commanded == pytest.approx(c_cut / (c_cut + 2), rel=2e-3)
-    with pytest.raises(FlowError, match=r"layer 7 .*longer than the 8 ms period.*"
+    with pytest.raises(FlowError, match=r"layer 7 .*flow 201 mm\^3/s above the 195 mm\^3/s "
+                                        r".*fits at speeds up to 65 mm/s.*"
                                         r"flow.out_of_range = 'clamp'"):
         plan_valves(constant_trajectory(c_cut + 2), "part",
                     job.replace(**{"flow.out_of_range": "error"}), layer_thickness=2.0)
+
+
+def test_pwm_flow_range_ends_at_the_tables_highest_flow():
+    from icefab.flow import calibration_for, pwm_max_width_ms, valve_flow_range
+
+    job = Job().replace(**PWM)
+    cal = calibration_for("part", job)
+    assert valve_flow_range(cal, job) == pytest.approx((0.0, 195.0))
+    assert pwm_max_width_ms(cal, job) == pytest.approx(0.5 * 195.0 / 30.95)
+    # 10 Hz: 39 ms of the 100 ms period; 400 Hz: 1.03 ms of 2.5 ms (fully open 472 mm^3/s)
+    slow = job.replace(**{"flow.pwm_frequency_hz": 10.0})
+    assert pwm_max_width_ms(cal, slow) == pytest.approx(0.5 * 195.0 / 2.5)
+    fast = job.replace(**{"flow.pwm_frequency_hz": 400.0})
+    assert pwm_max_width_ms(cal, fast) == pytest.approx(0.5 * 195.0 / 94.43)
+    # a table whose highest flow is more than the valve passes open all period: the period
+    cal2 = dataclasses.replace(cal, flow_mm3_s=cal.flow_mm3_s * np.where(
+        cal.frequency_hz >= 1000, 10.0, 1.0))
+    assert pwm_max_width_ms(cal2, job) == pytest.approx(8.0)
 
 
 def test_pwm_volume_is_the_commanded_volume_inside_the_limits():

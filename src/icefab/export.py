@@ -286,6 +286,7 @@ def gcode_lines(motion, job=None, findings: list | None = None):
     :func:`icefab.flow.summarise_findings`."""
     from icefab import flow
     from icefab.motion import gcode_moves
+    from icefab.stages import layer_height
 
     check_gcode_robot(motion.robot, "the trajectories")
     job = job if job is not None else motion.job
@@ -336,7 +337,11 @@ def gcode_lines(motion, job=None, findings: list | None = None):
             if tool != p.material:
                 tool = p.material
                 yield f"T{TOOL_NUMBER[tool]} S1"
-            prog = flow.plan_valves(tr, p.material, pwm)
+            # the layer's own thickness (adaptive layers) and the path's number in errors,
+            # as icefab valves plans it (the default thickness laid a thick layer short)
+            prog = flow._plan_path_valves(lm.index, i, tr, p.material, pwm,
+                                          layer_height(lm.thickness, job),
+                                          flow.calibration_for(p.material, pwm))
             s, found = path_power(tr, prog, p.material, pwm)
             if findings is not None:
                 findings.extend((lm.index, text) for text in found)

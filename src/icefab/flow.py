@@ -33,8 +33,10 @@ path, naming the setting; :func:`summarise_findings` condenses them per kind):
   1 / tick_s, 1 / min_pulse_ms)`` and inside the table: ConfigError otherwise) and varies
   the pulse width (volume per pulse proportional to the width, calibrated by the table at
   ``calibration_pulse_ms``); widths below ``min_pulse_ms / 2`` are dropped, below
-  ``min_pulse_ms`` raised to it, above the period cut to it (or FlowError under
-  ``"error"``); the counts and the resulting volume error are reported.
+  ``min_pulse_ms`` raised to it, above the period -- or above the width giving the
+  table's highest flow, the most the table supports (:func:`pwm_max_width_ms`) -- cut to
+  it (or FlowError under ``"error"``); the counts and the resulting volume error are
+  reported.
 * Both: where the nominal flow fits the valve (:func:`valve_flow_range`) but SMF's control
   action asks for more (or less) than it gives, the flow is held at the range's end
   whatever ``out_of_range`` says -- the actuator's saturation (thesis 5.2.2) -- and the
@@ -763,9 +765,9 @@ def valve_flow_range(calibration: Calibration, job: "Job") -> tuple[float, float
     """The flows the valve gives, ``(lowest, highest)`` mm^3/s.
 
     FM: the calibration table's range, up to its flow at the highest frequency the cell
-    makes (:func:`max_valve_frequency`). PWM: from no pulse to the valve open for the whole
-    period (``min(1 / flow.pwm_frequency_hz, 65.535 ms)``; pulse widths scale the table's
-    volume at ``flow.calibration_pulse_ms``, see :func:`_pwm`).
+    makes (:func:`max_valve_frequency`). PWM: from no pulse to the longest pulse
+    :func:`pwm_max_width_ms` allows (pulse widths scale the table's volume at
+    ``flow.calibration_pulse_ms``, see :func:`_pwm`): at most the table's highest flow.
     """
     fl = job.flow
     cal = calibration
@@ -773,8 +775,32 @@ def valve_flow_range(calibration: Calibration, job: "Job") -> tuple[float, float
         top = float(cal.flow(np.array([max_valve_frequency(job)]))[0])
         return cal.min_flow, min(cal.max_flow, top)
     f = fl.pwm_frequency_hz
-    open_ms = min(1000.0 / f, 65.535)
-    return 0.0, float(cal.flow(np.array([f]))[0]) * open_ms / fl.calibration_pulse_ms
+    return 0.0, float(cal.flow(np.array([f]))[0]) * pwm_max_width_ms(cal, job) \
+        / fl.calibration_pulse_ms
+
+
+def pwm_max_width_ms(calibration: Calibration, job: "Job") -> float:
+    """The longest PWM pulse, ms: the period ``1 / flow.pwm_frequency_hz`` (65.535 ms at
+    most, uint16 microseconds), and no longer than gives the calibration table's highest
+    flow, ``calibration.max_flow`` mm^3/s.
+
+    Why the flow cap: the PWM model scales the volume of a pulse linearly with its width
+    from the table's at ``flow.calibration_pulse_ms`` (:func:`_pwm`). That is an
+    extrapolation the table does not measure: its flows grow less than proportionally with
+    the valve's duty (thesis Fig. 6-1), and its highest row (195 mm^3/s at 1000 Hz x 0.5 ms
+    by default) is the most the valve was seen to pass. A valve fully open at 125 Hz
+    counted as 16 x the 0.5 ms pulse's volume, 495 mm^3/s, and G-code was written for
+    paths asking 378 mm^3/s, which thesis 6.1 contradicts as well (FM gives the larger
+    flow range, not PWM). So the PWM flow stops at the table's highest flow, as FM's
+    does: a nominal flow beyond it is ``flow.out_of_range``'s (refused or clamped), an
+    SMF correction beyond it is saturated."""
+    fl = job.flow
+    f = fl.pwm_frequency_hz
+    period_ms = min(1000.0 / f, 65.535)
+    per_pulse = float(calibration.flow(np.array([f]))[0])   # mm^3/s at calibration pulses
+    if per_pulse <= 0:
+        return period_ms
+    return min(period_ms, fl.calibration_pulse_ms * calibration.max_flow / per_pulse)
 
 
 def _saturated(q: np.ndarray, q_nom: np.ndarray, lo: float, hi: float) -> np.ndarray:
@@ -992,12 +1018,15 @@ def plan_valves(trajectory: Trajectory, material: str, job: "Job | None" = None,
                                                               per_stretch, passed))
         prog = _split(times, None, duration, float(trajectory.dt), job)
     else:
+        speed = np.asarray(trajectory.speed, dtype=np.float64)
+        moving = speed > 1e-9
+        per_mm = float(np.max(plan.q[moving] / speed[moving])) if np.any(moving) else 0.0
         if plan.on is None:
             times, widths, found, volumes = _pwm(plan, cal, job, duration,
-                                                 _where(trajectory), dh)
+                                                 _where(trajectory), dh, per_mm)
         else:
             times, widths, found, volumes = _pwm_spans(plan.on, cal, job, _where(trajectory),
-                                                       dh)
+                                                       dh, per_mm)
         warnings.extend(found)
         prog = _split(times, widths, duration, float(trajectory.dt), job)
     prog = dataclasses.replace(prog, commanded_mm3=volumes[0], laid_mm3=volumes[1])
@@ -1012,7 +1041,7 @@ def plan_valves(trajectory: Trajectory, material: str, job: "Job | None" = None,
 
 
 def _pwm(plan: FrequencyPlan, cal: Calibration, job: "Job", duration: float, where: str,
-         dh: float) -> tuple[np.ndarray, np.ndarray, list[str], tuple[float, float]]:
+         dh: float, per_mm: float = 0.0) -> tuple[np.ndarray, np.ndarray, list[str], tuple[float, float]]:
     """PWM (thesis 6.1): constant frequency f = ``flow.pwm_frequency_hz``, the pulse width
     carries the flow.
 
@@ -1026,10 +1055,14 @@ def _pwm(plan: FrequencyPlan, cal: Calibration, job: "Job", duration: float, whe
     are laid as shortest pulses in some periods and none in others, what each period misses
     carried into the next (:func:`_pwm_widths_us`), so the path gets its volume within half
     a shortest pulse as FM's pulse count (eq. 6.6) however slowly it runs; a width above
-    the period (or 65.535 ms, uint16 us) is cut to it -- or FlowError under
-    ``flow.out_of_range = "error"``, since the flow is then beyond what the valve passes
-    fully open. Every limit hit is reported with its counts and the resulting volume error.
-    ``dh``: the layer's thickness, mm (the error's hint, :func:`out_of_range_hint`).
+    :func:`pwm_max_width_ms` (the period, 65.535 ms -- uint16 us --, and the width that
+    gives the calibration table's highest flow: the table supports no more) is cut to it
+    -- or FlowError under ``flow.out_of_range = "error"`` naming the flow asked, the
+    valve's highest and the speed at which the path fits. Every limit hit is reported with
+    its counts and the resulting volume error. ``dh``: the layer's thickness, mm (the
+    error's hint, :func:`out_of_range_hint`); ``per_mm``: the path's largest volume per mm
+    of travel, mm^3/mm (the flow over the speed: the speed that fits is the highest flow
+    over it; 0 when unknown).
     Returns ``(times (p,) s, widths (p,) uint16 us, findings, (commanded, laid) mm^3)``.
     """
     fl = job.flow
@@ -1050,14 +1083,16 @@ def _pwm(plan: FrequencyPlan, cal: Calibration, job: "Job", duration: float, whe
     vol = np.maximum(vol, 0.0)
     vol_ref = float(cal.flow(np.array([f]))[0]) / f  # one calibration pulse at f, mm^3
     width_ms = fl.calibration_pulse_ms * vol / vol_ref
-    w_max_ms = min(period * 1000.0, 65.535)
+    w_max_ms = pwm_max_width_ms(cal, job)
+    longest = _pwm_longest(w_max_ms, period * 1000.0)
     cut = width_ms > w_max_ms * (1 + 1e-9)
     if np.any(cut) and fl.out_of_range == "error":
         q_max = vol_ref * (w_max_ms / fl.calibration_pulse_ms) * f
-        raise FlowError(f"{where}: PWM at flow.pwm_frequency_hz = {f:g} Hz needs pulses up to "
-                        f"{float(width_ms.max()):.4g} ms, longer than the {w_max_ms:g} ms "
-                        f"period (flow above {q_max:.4g} mm^3/s, the valve fully open) at "
-                        f"{int(np.count_nonzero(cut))} of {count} pulses; "
+        fits = (f"; it fits at speeds up to {q_max / per_mm:.4g} mm/s" if per_mm > 0 else "")
+        raise FlowError(f"{where}: flow {float(vol.max()) * f:.4g} mm^3/s above the "
+                        f"{q_max:.4g} mm^3/s the valve gives by PWM at "
+                        f"flow.pwm_frequency_hz = {f:g} Hz ({longest}) at "
+                        f"{int(np.count_nonzero(cut))} of {count} pulses{fits}; "
                         f"{out_of_range_hint(dh, job, 'cut them and report')}")
     widths_us = _pwm_widths_us(width_ms, fl.min_pulse_ms, w_max_ms)
     keep = widths_us > 0
@@ -1070,10 +1105,18 @@ def _pwm(plan: FrequencyPlan, cal: Calibration, job: "Job", duration: float, whe
             f"{where}: PWM at flow.pwm_frequency_hz = {f:g} Hz: {dropped} of {count} pulses "
             f"dropped and {raised} raised to flow.min_pulse_ms = {fl.min_pulse_ms:g} ms "
             f"(widths below it laid as shortest pulses in some periods), "
-            f"{int(np.count_nonzero(cut))} cut to the {w_max_ms:g} ms period; "
+            f"{int(np.count_nonzero(cut))} cut to {w_max_ms:.4g} ms ({longest}); "
             f"{_volume_error(delivered, float(np.sum(vol)))}")
     return (times[keep], widths_us[keep].astype(np.uint16), findings,
             (float(np.sum(vol)), delivered))
+
+
+def _pwm_longest(w_max_ms: float, period_ms: float) -> str:
+    """What bounds the longest PWM pulse ``w_max_ms`` (:func:`pwm_max_width_ms`), words."""
+    if w_max_ms < min(period_ms, 65.535) * (1 - 1e-9):
+        return (f"pulses of at most {w_max_ms:.4g} ms of the {period_ms:g} ms period: the "
+                "calibration table's highest flow")
+    return f"pulses of at most {w_max_ms:.4g} ms, the valve open the whole period"
 
 
 def _pwm_widths_us(width_ms: np.ndarray, min_ms: float, max_ms: float) -> np.ndarray:
@@ -1097,8 +1140,8 @@ def _pwm_widths_us(width_ms: np.ndarray, min_ms: float, max_ms: float) -> np.nda
                          lo_us, hi_us)
 
 
-def _pwm_spans(on: SpanSignal, cal: Calibration, job: "Job", where: str, dh: float
-               ) -> tuple[np.ndarray, np.ndarray, list[str], tuple[float, float]]:
+def _pwm_spans(on: SpanSignal, cal: Calibration, job: "Job", where: str, dh: float,
+               per_mm: float = 0.0) -> tuple[np.ndarray, np.ndarray, list[str], tuple[float, float]]:
     """:func:`_pwm` over each span a tour's valve is on, as if each were a path of its own
     (its first period from the span's start, no pulse over the travel): the pulses of all
     of them in order, their findings and ``(commanded, laid)`` mm^3 over all."""
@@ -1108,7 +1151,7 @@ def _pwm_spans(on: SpanSignal, cal: Calibration, job: "Job", where: str, dh: flo
         t0 = float(on.t[a])
         t = on.t[a:b] - t0
         sub = FrequencyPlan(t=t, q=on.q[a:b], u=np.zeros(b - a), nu=on.nu[a:b])
-        ti, wi, fi, (c, d) = _pwm(sub, cal, job, float(t[-1]), where, dh)
+        ti, wi, fi, (c, d) = _pwm(sub, cal, job, float(t[-1]), where, dh, per_mm)
         times.append(_kept_in_spans(ti + t0, np.array([len(ti)]),
                                     np.array([[t0, float(on.t[b - 1])]]), job.flow.tick_s))
         widths.append(wi)
