@@ -174,6 +174,27 @@ def _layer(index: int, xy, role: str = "fill", dt: float = 0.016, top_z: float =
     return LayerMotion(index=index, z=0.25 * index, trajectories=(t,), top_z=top_z)
 
 
+def test_a_gantrys_stroke_and_travel_refusals_name_the_gantrys_settings():
+    # a gantry hunt's: the stroke refusal quoted "(Cobra 600: 210 mm, ...)" and the reach
+    # refusal named cell.reach_mm and cell.joint_range_deg, SCARA settings; the gantry's
+    # travel is cell.gantry_travel_mm (check_build refuses a gantry job first, so its
+    # checks are called here as a G-code job would need them)
+    from icefab.motion import BuildMotion
+
+    job = Job().replace(**{"cell.robot": "gantry", "cell.stroke_mm": 100.0})
+    ok = [[150.0, 150.0], [151.0, 150.0]]
+    tall = BuildMotion(layers=(_layer(0, ok, top_z=50.0), _layer(1, ok, top_z=120.0)),
+                       job=job)
+    with pytest.raises(WorkspaceError, match=r"cell.stroke_mm = 100 mm from layer 1") as ei:
+        bmod._check_stroke(tall, job, 2)
+    assert "Cobra" not in str(ei.value)
+    far = BuildMotion(layers=(_layer(0, ok + [[350.0, 150.0]]),), job=job)
+    with pytest.raises(WorkspaceError, match=r"x = 350.000 mm outside the travel \[0, 300\] "
+                                             r"mm \(cell.gantry_travel_mm\)") as ei:
+        bmod._check_reach(far, job, 1)
+    assert "reach_mm" not in str(ei.value) and "joint_range" not in str(ei.value)
+
+
 def test_a_refused_build_names_its_first_offending_layer_and_counts_them():
     """A build refused for its reach, stroke or laser storage names the first layer in
     build order, as a user fixing the file needs it, and how many offend (a review's: the

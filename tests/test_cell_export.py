@@ -480,3 +480,32 @@ def test_gcode_valve_follows_the_layers_own_thickness():
     s_own = _g1_powers(list(gcode_lines(motion, job))).sum()
     s_thick = _g1_powers(list(gcode_lines(thick, job))).sum()
     assert s_thick / s_own == pytest.approx(2.0, rel=0.02)
+
+
+def test_a_gantrys_path_beyond_its_travel_names_the_travel_setting():
+    # the planner's refusal said "outside the travel [0, 300] mm" and no setting
+    from icefab.errors import WorkspaceError
+
+    job = Job().replace(**{"cell.cpus": 1, "cell.robot": "gantry",
+                           "cell.ee_origin_mm": [10.0, 150.0]})
+    with pytest.raises(WorkspaceError, match=r"x = -0.793 mm outside the travel \[0, 300\] mm "
+                                             r"\(cell.gantry_travel_mm\); move the part"):
+        small_motion(1, job)
+
+
+def test_plan_gcode_says_whose_the_fm_headroom_warnings_are(tmp_path, capsys):
+    # the feedback-headroom warnings quote the FM valve's frequency (here 150 Hz) for the
+    # valve stages; the G-code drives the valve by PWM and runs no SMF: they say so
+    from icefab.paths import save_toolpaths
+
+    job_file = tmp_path / "job.toml"
+    job_file.write_text("[cell]\ncpus = 1\nrobot = \"gantry\"\n[flow]\n"
+                        "max_frequency_hz = 150\n")
+    save_toolpaths(_toolpaths(Job().replace(**{"cell.cpus": 1})), tmp_path / "tp.npz")
+    assert main(["plan", str(tmp_path / "tp.npz"), "-c", str(job_file), "-o",
+                 str(tmp_path / "out"), "--gcode"]) == 0
+    room = [ln for ln in capsys.readouterr().out.splitlines()
+            if ln.startswith("warning: feedback headroom")]
+    assert room and all("150 Hz" in ln and "(icefab valves, simulate and build: flow.mode = "
+                        "'fm'; the G-code runs no SMF and drives the valve by PWM" in ln
+                        for ln in room)

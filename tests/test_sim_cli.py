@@ -305,3 +305,17 @@ def test_a_layer_without_a_footprint_is_a_dash_not_nan():
     assert lines[-1] == "  -: no part footprint on the simulator grid at that layer"
     assert len(format_table([[93, 15.0, 0.1, 0.05, 0.3, 0.2]])) == 2
     assert (_csv_value(nan), _csv_value(0.25)) == ("", "0.250000")
+
+
+def test_simulate_without_feedback_says_its_valve_findings_are_open_loop(tmp_path, capsys):
+    # feedback.enabled = false runs the build open loop once; its valve findings were
+    # printed twice, the second time labelled "(with SMF)", and "N pulses with SMF"
+    job = Job().replace(**{"feedback.enabled": False, "cell.cpus": 1,
+                           "flow.max_frequency_hz": 300.0, "flow.out_of_range": "clamp"})
+    src = tmp_path / "t.npz"
+    save_trajectories(plan_toolpaths(annulus_toolpaths(job, 4, measure=False), job), src)
+    assert main(["simulate", str(src), "-o", str(tmp_path / "sim")]) == 0
+    text = capsys.readouterr().out
+    assert "clamped (open loop, flow.out_of_range = 'clamp')" in text
+    assert "with SMF)" not in text and "pulses with SMF" not in text
+    assert "pulses, open loop)" in text

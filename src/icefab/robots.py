@@ -344,7 +344,7 @@ class Gantry:
         for i in bad[:10]:
             ax = int(np.flatnonzero(out[i])[0])
             reasons.append(f"{'xy'[ax]} = {xy[i, ax]:.3f} mm outside the travel "
-                           f"[0, {tr[ax]:g}] mm")
+                           f"[0, {tr[ax]:g}] mm (cell.gantry_travel_mm)")
         return bad, reasons
 
 

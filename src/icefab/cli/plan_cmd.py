@@ -201,7 +201,12 @@ def run(args: argparse.Namespace) -> int:
             f"({n_points / max(t_plan, 1e-9) / 1e6:.2f} M samples/s), total "
             f"{time.perf_counter() - t0:.2f} s",
         ]
-        lines += [f"warning: {r.message(job)}" for r in room if not r.fits]
+        # FM's limits are the valve stages' (valves, simulate, build); the G-code runs no
+        # SMF and its PWM valve has limits of its own (its own findings), so say whose
+        gc = (" (icefab valves, simulate and build: flow.mode = 'fm'; the G-code runs no "
+              "SMF and drives the valve by PWM, whose limits its warnings give)"
+              if getattr(args, "gcode", False) and job.flow.mode == "fm" else "")
+        lines += [f"warning: {r.message(job)}{gc}" for r in room if not r.fits]
         vmax = job.motion.speed_mm_s
         for k in ks:
             plot_speed(pictured[k], tmp / f"speed_layer_{pictured[k].index}.png", vmax, job)

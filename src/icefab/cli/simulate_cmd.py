@@ -406,7 +406,8 @@ def run(args: argparse.Namespace) -> int:
               "nothing from then on", file=sys.stderr)
     if valves:
         print(f"deposition: valve pulses along the minimum-time trajectories "
-              f"({open_loop.pulses} pulses open loop, {closed.pulses} with SMF)")
+              + (f"({open_loop.pulses} pulses open loop, {closed.pulses} with SMF)"
+                 if job.feedback.enabled else f"({open_loop.pulses} pulses, open loop)"))
     else:
         print("deposition: commanded flow (ideal valve)"
               + (" along the trajectories" if isinstance(build, BuildMotion) else ""))
@@ -419,7 +420,10 @@ def run(args: argparse.Namespace) -> int:
         from icefab.findings import clamped_volume, saturated_volume
         from icefab.flow import summarise_findings
 
-        for label, res in (("open loop", open_loop), ("with SMF", closed)):
+        # feedback.enabled = false: one open-loop run (closed is it), said once as such
+        runs = (("open loop", open_loop), ("with SMF", closed)) if job.feedback.enabled \
+            else (("open loop", open_loop),)
+        for label, res in runs:
             n_paths, n_layers, got, asked = clamped_volume(res.findings)
             if n_paths:
                 print(f"clamped ({label}, flow.out_of_range = 'clamp'): {n_paths} paths in "
