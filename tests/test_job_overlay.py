@@ -226,3 +226,22 @@ def test_api_callers_whole_jobs_keep_their_check():
     with pytest.raises(ConfigError, match=r"parts.files = \[\], the job has \['a.stl'\]"):
         stages.check_agrees(Job(), Job().replace(**{"parts.files": ("a.stl",)}), "x", "y")
     assert set(stages.PARTS) <= set(stages.DECIDED)
+
+
+def test_a_gantry_given_another_travel_keeps_its_part_at_the_travels_centre():
+    """A gantry's result file given a job with cell.gantry_travel_mm = [160, 160] kept the
+    old travel's centre (150, 150) as the part origin, and the part was refused naming
+    cell.ee_origin_mm, which the user never set (a gantry hunt's): the origin the old
+    travel's default placed moves to the new travel's centre; one set elsewhere stays."""
+    gantry = Job().replace(**{"cell.robot": "gantry"})
+    small = gantry.replace(**{"cell.gantry_travel_mm": (160.0, 120.0)})
+    out = stages.overlay_job(gantry, small, {"cell.gantry_travel_mm"}, "t", "x")
+    assert tuple(out.cell.ee_origin_mm) == (80.0, 60.0)
+    own = gantry.replace(**{"cell.ee_origin_mm": (100.0, 90.0)})
+    kept = stages.overlay_job(own, small, {"cell.gantry_travel_mm"}, "t", "x")
+    assert tuple(kept.cell.ee_origin_mm) == (100.0, 90.0)
+    named = stages.overlay_job(gantry, small.replace(**{"cell.ee_origin_mm": (70.0, 50.0)}),
+                               {"cell.gantry_travel_mm", "cell.ee_origin_mm"}, "t", "x")
+    assert tuple(named.cell.ee_origin_mm) == (70.0, 50.0)
+    same = stages.overlay_job(gantry, gantry, {"cell.gantry_travel_mm"}, "t", "x")
+    assert tuple(same.cell.ee_origin_mm) == (150.0, 150.0)

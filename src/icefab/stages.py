@@ -251,11 +251,25 @@ def _origin_of_new_robot(made: dict[str, Any], changes: dict[str, Any]) -> dict[
     default, which a gantry takes as the centre of its travel: ``config._placed``). The
     origin is a point of the robot's base frame; the file's, another robot's, meant
     nothing there: a gantry's (150, 150) was kept for a SCARA, whose part then lay
-    inside its minimum reach (a review's). Nothing when the origin is named."""
+    inside its minimum reach (a review's). Nothing when the origin is named.
+
+    Likewise a gantry whose job file gives it another travel (``cell.gantry_travel_mm``)
+    and no origin, when the file's origin is the centre of the file's travel (the default
+    ``_placed`` put there, or the same point set by hand): the default again, the new
+    travel's centre. The old centre (150, 150) was kept for a 160 mm travel, and the part
+    was refused naming ``cell.ee_origin_mm``, a setting the user never set (a gantry
+    hunt's). An origin elsewhere in the old travel was set on purpose and is kept."""
     robot = changes.get("cell.robot", made["cell.robot"])
-    if robot == made["cell.robot"] or "cell.ee_origin_mm" in changes:
+    if "cell.ee_origin_mm" in changes:
         return {}
-    return {"cell.ee_origin_mm": SCARA_EE_ORIGIN_MM}
+    if robot != made["cell.robot"]:
+        return {"cell.ee_origin_mm": SCARA_EE_ORIGIN_MM}
+    old = tuple(map(float, made["cell.gantry_travel_mm"]))
+    new = tuple(map(float, changes.get("cell.gantry_travel_mm", old)))
+    centred = tuple(map(float, made["cell.ee_origin_mm"])) == tuple(0.5 * v for v in old)
+    if robot == "gantry" and new != old and centred:
+        return {"cell.ee_origin_mm": SCARA_EE_ORIGIN_MM}   # config._placed: the centre
+    return {}
 
 
 def _quoted(remake: str) -> str:
