@@ -1041,7 +1041,8 @@ def plan_valves(trajectory: Trajectory, material: str, job: "Job | None" = None,
 
 
 def _pwm(plan: FrequencyPlan, cal: Calibration, job: "Job", duration: float, where: str,
-         dh: float, per_mm: float = 0.0) -> tuple[np.ndarray, np.ndarray, list[str], tuple[float, float]]:
+         dh: float, per_mm: float = 0.0
+         ) -> tuple[np.ndarray, np.ndarray, list[str], tuple[float, float]]:
     """PWM (thesis 6.1): constant frequency f = ``flow.pwm_frequency_hz``, the pulse width
     carries the flow.
 
@@ -1141,7 +1142,8 @@ def _pwm_widths_us(width_ms: np.ndarray, min_ms: float, max_ms: float) -> np.nda
 
 
 def _pwm_spans(on: SpanSignal, cal: Calibration, job: "Job", where: str, dh: float,
-               per_mm: float = 0.0) -> tuple[np.ndarray, np.ndarray, list[str], tuple[float, float]]:
+               per_mm: float = 0.0
+               ) -> tuple[np.ndarray, np.ndarray, list[str], tuple[float, float]]:
     """:func:`_pwm` over each span a tour's valve is on, as if each were a path of its own
     (its first period from the span's start, no pulse over the travel): the pulses of all
     of them in order, their findings and ``(commanded, laid)`` mm^3 over all."""
