@@ -152,9 +152,11 @@ def test_gcode_is_marlin_with_valve_duty_per_step_and_tool_changes():
     # the header says what the program assumes and does not do: a homed machine, and no
     # tool offsets (X, Y are already the carriage positions that put each nozzle on the
     # part: Marlin's HOTEND_OFFSET would shift every move after T1 once more)
-    header = [ln for ln in gcode_lines(motion, job) if ln.startswith(";")][:8]
+    header = [ln for ln in gcode_lines(motion, job) if ln.startswith(";")][:9]
     assert any("home the machine first (G28)" in ln for ln in header)
     assert any("no tool offset (HOTEND_OFFSET 0)" in ln for ln in header)
+    # and Marlin must not scale S by the block's speed a second time (LASER_POWER_TRAP)
+    assert any("LASER_POWER_TRAP off" in ln for ln in header)
     # a tool change before each material's first path of a layer, T0 part, T1 scaffold
     assert [c for c in names if c.startswith("T")] == ["T0", "T1", "T0", "T1"]
     # S1: Marlin moves no tool in XY for the change (the next line moves it)

@@ -57,7 +57,10 @@ controller in step with the robot (thesis 2.3.1).
 in microseconds (stock 20 000: Marlin stretches shorter moves when its buffer runs low,
 and the valve's duty with them), ``MIN_STEPS_PER_SEGMENT`` 1 (stock 6: a move of fewer
 steps, 0.075 mm at 80 steps/mm, is folded into the next at that move's F, and a path's
-slowing steps lose their time), ``SLOWDOWN`` off, and a planner buffer
+slowing steps lose their time), ``SLOWDOWN`` off, ``LASER_POWER_TRAP`` off (the stock
+setting: on, Marlin scales each block's power by its speed over the block's acceleration
+and deceleration, while ``S`` already holds the step's duty at its own speed, so the
+valve would lay less on every accelerating or slowing step), and a planner buffer
 (``BLOCK_BUFFER_SIZE``) and serial link that stream 1 / dt moves a second. The file's
 header says so too.
 """
@@ -297,6 +300,8 @@ def gcode_lines(motion, job=None, findings: list | None = None):
            "X, Y: carriage (base frame), mm; F: mm/min; T0 part, T1 scaffold")
     yield (f"; every move lasts dt: needs DEFAULT_MINSEGMENTTIME <= "
            f"{job.motion.dt_s * 1e6:.0f} us, MIN_STEPS_PER_SEGMENT 1, SLOWDOWN off")
+    yield ("; S is each step's valve duty at its own speed: LASER_POWER_TRAP off (it scales "
+           "power by speed again)")
     # what the program assumes of the machine and does not do itself (a gantry hunt's)
     yield ("; home the machine first (G28): X, Y, Z are machine positions, Z0 the nozzle on "
            "the platform; the program does not home")
