@@ -1991,6 +1991,10 @@ def test_stop_and_resume_on_a_separately_started_cell(firmware_tools, planned, t
         assert any(e["kind"] == "stop" for e in j.events())
         last = max(ex)   # the cell's last completed number (a layer's end is not one)
         j.close()
+        # 'icefab cell check' tells it ran a build
+        r = _icefab("cell", "check", "--state", str(state), cwd=tmp_path)
+        assert r.returncode == 0 and f"commands completed up to number {last} (an earlier " \
+            "build" in r.stdout, r.stdout + r.stderr
         # a second build on the same cell, whose platform holds the first's ice, is
         # refused before anything is sent or written; said cleared, it runs its paths,
         # numbered after the first's

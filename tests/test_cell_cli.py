@@ -220,3 +220,5 @@ def test_check_a_virtual_robot_and_laser(capsys):
         pty.stop()
     out = capsys.readouterr().out
     assert "protocol 2, 8192 points x 4 paths, idle" in out and "storage stopped" in out
+    # and whether a build may start there without --platform-cleared
+    assert "0 stored, no command completed since its program started" in out

@@ -212,6 +212,15 @@ def _stored_job(state: Path):
 MAX_TIMEOUT_S = 3600.0
 
 
+def _ran(last: int) -> str:
+    """What the robot's count of completed commands ``last`` says to a user about to build
+    (``icefab build`` refuses a cell that ran one without --platform-cleared)."""
+    if last <= 0:
+        return "no command completed since its program started"
+    return (f"commands completed up to number {last} (an earlier build: its platform may "
+            "hold ice; 'icefab build' needs --platform-cleared once it is cleared)")
+
+
 def run_check(args: argparse.Namespace) -> int:
     from icefab.cell.laser import LaserLink
     from icefab.cell.robot import RobotLink
@@ -242,7 +251,8 @@ def run_check(args: argparse.Namespace) -> int:
             info = link.hello()
             st = link.status()
         print(f"robot {ends['robot']}: protocol {info.version}, {info.max_points} points x "
-              f"{info.max_paths} paths, {st['state']}, {st['stored']} stored")
+              f"{info.max_paths} paths, {st['state']}, {st['stored']} stored, "
+              f"{_ran(max(st['last_done'], st['cut']))}")
     if ends.get("valve"):
         from icefab.cell.valve import ValveController
 
