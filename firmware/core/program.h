@@ -38,8 +38,8 @@ typedef struct {
     uint16_t crc;          /* CRC-16/CCITT-FALSE of the bytes received */
     uint8_t complete;
     uint8_t locked;        /* armed or playing: cannot be replaced */
-    uint32_t ticks;        /* complete: its length, vc_ticks_round(dec.total_us) (set by
-                              cmd_data unlocked: ARM, locked, only reads it) */
+    uint32_t ticks;        /* complete: its length, vc_ticks_round(dec.total_us) (computed
+                              by cmd_data unlocked, stored with the commit, locked) */
     vc_dec dec;
 } vc_prog;
 

@@ -5,9 +5,11 @@
  *
  * Concurrency: vc_tick and vc_trigger_edge may interrupt vc_rx and vc_poll (on the LPC2148
  * the tick runs in the timer interrupt, vc_rx / vc_poll in the main loop with interrupts
- * on). The link fields below (fb .. cache, reply_due) are the main loop's alone: framing,
- * CRCs, a PROG_DATA's validation, its copy into free ring space and a reply's CRC run
- * unlocked. Everything the tick reads or writes (state, stores, counters, ev_seq, the
+ * on). The link fields below (fb .. cache, reply_due) are the main loop's alone (the
+ * tick's TRIGGER error only reads the byte `expected`): framing, CRCs, a PROG_DATA's
+ * validation, its copy into free ring space and a reply's CRC run unlocked, so an event
+ * the tick sends between a command's lock and its reply's sending goes out before that
+ * reply (events are unsolicited, PROTOCOL.md 3). Everything the tick reads or writes (state, stores, counters, ev_seq, the
  * board's transmit queue) is touched by the main loop only between board_lock() and
  * board_unlock() (board.h), in sections of bounded, input-independent work (~10-15 us on
  * the LPC2148): before, the board ran all of vc_rx with interrupts off, ~0.9 ms for a
