@@ -289,6 +289,9 @@ int vc_tick(vc_core *c, int late)
         if (c->state == VC_PLAYING && !play_step(c)) { c->resume = 1; return 0; }
         return 1;
     }
+    /* an early trigger waits from the tick after the one that took its edge: had the
+     * play been armed, that tick would have been its tick 0 (no delay) */
+    if (c->early_trigger) c->early_ticks++;
     if (c->trig_latched) {                    /* sampled at the tick (PROTOCOL.md 7) */
         c->trig_latched = 0;
         if (c->state == VC_ARMED) {
@@ -302,7 +305,6 @@ int vc_tick(vc_core *c, int late)
     }
     if (c->state != VC_PLAYING) return 1;
     if (late) c->late_ticks++;
-    if (c->early_trigger) c->early_ticks++;
     if (!play_step(c)) { c->resume = 1; return 0; }
     return 1;
 }

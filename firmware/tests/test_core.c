@@ -639,6 +639,49 @@ static void test_queued_arm_no_gap(void)
     CHECK_EQ(status().p[0], VC_IDLE);
 }
 
+/* An early trigger's delay (PROTOCOL.md 7: "its delay counts as late ticks") is the ticks
+ * between the tick that would have started the play had it been armed (the first tick
+ * after the edge: play tick 0, section 7) and the tick that did start it. Play 1 lasts 10
+ * ticks: its end is handled at the tick of its play tick 10. An edge before play 1's tick
+ * 3 waits for ticks 3..10: 7 ticks; an edge before its tick 10: none. */
+static void test_early_trigger_delay(void)
+{
+    unsigned n[1] = {2}, dur[1] = {20000}, ticks[2] = {0, 9}, len;
+    unsigned n2[1] = {2}, t2[2] = {0, 3}, edge_before, expect, seen;
+    static uint8_t prog2[100];
+    unsigned len2;
+    uint8_t arm0 = 1, arm1 = 2;
+    frame_t f, e;
+    len = make_program(prog, 0, 1, n, dur, ticks, 0);
+    len2 = make_program(prog2, 0, 1, n2, dur, t2, 0);
+    for (edge_before = 3; edge_before <= 10; edge_before += 7) {
+        expect = 10u - edge_before;
+        reset();
+        CHECK_EQ(upload(0, prog, len, len), 0x91);
+        CHECK_EQ(cmd(VC_ARM, &arm0, 1).type, 0xA0);
+        vc_trigger_edge(&C);
+        run_ticks(edge_before);                        /* play ticks 0 .. edge_before-1 */
+        CHECK_EQ(upload(1, prog2, len2, len2), 0x91);
+        CHECK_EQ(cmd(VC_ARM, &arm1, 1).p[0], VC_PLAYING);
+        vc_trigger_edge(&C);                           /* the robot's edge, early */
+        run_ticks(10u - edge_before + 1u);             /* through play 1's tick 10 */
+        CHECK_EQ(C.plays, 2);
+        CHECK_EQ(npulses, 3);                          /* play 2's tick 0 pulse: this tick */
+        f = status();
+        CHECK_EQ(f.p[0], VC_PLAYING);
+        CHECK_EQ(u32(f.p + 12), expect);
+        run_ticks(20);
+        txrd = 0;
+        seen = 0;
+        while (next_frame(&e))
+            if (e.type == VC_EV_DONE && (e.p[0] | (e.p[1] << 8)) == 2) {
+                seen++;
+                CHECK_EQ(u32(e.p + 6), expect);            /* DONE's late ticks */
+            }
+        CHECK_EQ(seen, 1);
+    }
+}
+
 /* PROG_DATA is validated, summed and copied into the store with the tick free to run (the
  * board's interrupts on), between its two locks. A tick there: (1) consuming the bytes of
  * the program that streams while it plays: every pulse still comes on its tick; (2)
@@ -730,6 +773,7 @@ static const struct { const char *name; test_fn fn; } TESTS[] = {
     {"abort_while_playing", test_abort_while_playing},
     {"watchdog_reset", test_watchdog_reset},
     {"queued_arm_no_gap", test_queued_arm_no_gap},
+    {"early_trigger_delay", test_early_trigger_delay},
     {"stall_command", test_stall_command},
     {"tick_inside_prog_data", test_tick_inside_prog_data},
 };
