@@ -531,7 +531,7 @@ static void cmd_abort(vc_core *c, uint8_t seq, unsigned len)
     if (len != 0) { error(c, VC_E_BAD_LENGTH, seq, VC_ABORT, len, 1); return; }
     board_valves_off();                       /* first: every valve closed at once */
     p[0] = c->state;
-    p[1] = shown_fault(c);
+    p[1] = c->fault;                          /* the fault it clears (0 if none) */
     for (v = 0; v < VC_N_VALVES; v++) {
         uint32_t e = (c->state == VC_PLAYING && ((c->armed_mask >> v) & 1u)) ?
                      c->store[v].rd.emitted : 0u;

@@ -682,6 +682,26 @@ static void test_early_trigger_delay(void)
     }
 }
 
+/* ABORT's "fault before" is the fault this ABORT clears (state before FAULT), not the
+ * last fault STATUS shows: a second ABORT cleared none. */
+static void test_abort_fault_before(void)
+{
+    frame_t f;
+    txn = txrd = 0;
+    vc_init(&C, VC_RESET_WATCHDOG);
+    seq = 0;
+    f = cmd(VC_ABORT, 0, 0);
+    CHECK_EQ(f.p[0], VC_FAULT); CHECK_EQ(f.p[1], VC_FAULT_WATCHDOG);
+    f = cmd(VC_ABORT, 0, 0);                           /* nothing between */
+    CHECK_EQ(f.p[0], VC_IDLE); CHECK_EQ(f.p[1], VC_FAULT_NONE);
+    CHECK_EQ(status().p[1], VC_FAULT_WATCHDOG);        /* STATUS: the last fault */
+    vc_fault(&C, VC_FAULT_INTERNAL);                   /* a fault between */
+    f = cmd(VC_ABORT, 0, 0);
+    CHECK_EQ(f.p[0], VC_FAULT); CHECK_EQ(f.p[1], VC_FAULT_INTERNAL);
+    f = cmd(VC_ABORT, 0, 0);
+    CHECK_EQ(f.p[0], VC_IDLE); CHECK_EQ(f.p[1], VC_FAULT_NONE);
+}
+
 /* PROG_DATA is validated, summed and copied into the store with the tick free to run (the
  * board's interrupts on), between its two locks. A tick there: (1) consuming the bytes of
  * the program that streams while it plays: every pulse still comes on its tick; (2)
@@ -774,6 +794,7 @@ static const struct { const char *name; test_fn fn; } TESTS[] = {
     {"watchdog_reset", test_watchdog_reset},
     {"queued_arm_no_gap", test_queued_arm_no_gap},
     {"early_trigger_delay", test_early_trigger_delay},
+    {"abort_fault_before", test_abort_fault_before},
     {"stall_command", test_stall_command},
     {"tick_inside_prog_data", test_tick_inside_prog_data},
 };
