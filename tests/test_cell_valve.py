@@ -392,6 +392,27 @@ def test_watchdog_expiry_closes_valves_and_status_says_why(valvectl, tmp_path):
         assert ctl.status().state_name == "idle"
 
 
+def test_trigger_edge_while_the_main_loop_hangs_is_sampled_by_the_ticks(valvectl):
+    """The board samples the trigger input at every tick, in its interrupt, also while its
+    main loop is busy (PROTOCOL.md 7): an edge that comes before an ARM the main loop has
+    not handled yet, more than a tick before it, is a TRIGGER error and starts nothing. The
+    host build's ticks go on during STALL as the board's do, but the edge (SIGUSR1) waited
+    for the main loop: it was taken after the ARM sent during the stall and started the
+    play the board would not have started."""
+    prog = ValveProgram(ticks=np.array([0, 3, 7], np.uint16), tick_s=0.002, duration=0.02)
+    with HostFirmware(valvectl, clock="real") as fw, ValveController.open(fw.pty) as ctl:
+        ctl.upload(0, prog)
+        ctl.stall(300)                          # the main loop hangs; the ticks go on
+        time.sleep(0.05)
+        fw.trigger()                            # the robot's edge, nothing armed yet
+        time.sleep(0.05)
+        assert ctl.arm(0) == 10                 # answered once the main loop runs again
+        time.sleep(0.1)
+        st = ctl.status()
+        assert (st.state_name, st.plays) == ("armed", 0)
+        assert st.errors_sent >= 1              # the edge's TRIGGER error
+
+
 @pytest.mark.parametrize("speed", [1.0, 100.0])
 def test_idle_host_build_waits_instead_of_spinning(valvectl, tmp_path, speed):
     """An idle controller on the real clock sleeps until a frame, the trigger or 20 ms:

@@ -114,6 +114,18 @@ static void flush_tx(void)
     }
 }
 
+/* 1 if a SIGUSR1 is pending (blocked: it comes outside pselect), taken without its
+ * handler. */
+static int take_pending_trigger(void)
+{
+    sigset_t pend, usr1;
+    struct timespec zero = {0, 0};
+    if (sigpending(&pend) || !sigismember(&pend, SIGUSR1)) return 0;
+    sigemptyset(&usr1);
+    sigaddset(&usr1, SIGUSR1);
+    return sigtimedwait(&usr1, 0, &zero) == SIGUSR1;
+}
+
 static int usage(void)
 {
     fprintf(stderr, "usage: valvectl [--clock real|virtual] [--speed F] [--pty-file PATH] "
@@ -293,6 +305,10 @@ int main(int argc, char **argv)
                         break;
                     }
                     if (n2 >= until) break;
+                    /* the board's tick samples the trigger pin while its main loop hangs:
+                     * take the edge here (SIGUSR1 waits, blocked, for the main loop's
+                     * pselect), not after frames sent meanwhile (an ARM would take it) */
+                    if (ticks_done < due && take_pending_trigger()) vc_trigger_edge(&core);
                     while (ticks_done < due) {
                         ctrl_us = (uint64_t)((double)(n2 - t0) * speed);
                         vc_tick(&core, 0);
