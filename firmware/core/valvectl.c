@@ -284,6 +284,7 @@ int vc_can_advance(vc_core *c)
 
 int vc_tick(vc_core *c, int late)
 {
+    uint16_t plays;
     if (c->resume) {                          /* finish the tick that waited for bytes */
         c->resume = 0;
         if (c->state == VC_PLAYING && !play_step(c)) { c->resume = 1; return 0; }
@@ -305,7 +306,9 @@ int vc_tick(vc_core *c, int late)
     }
     if (c->state != VC_PLAYING) return 1;
     if (late) c->late_ticks++;
+    plays = c->plays;
     if (!play_step(c)) { c->resume = 1; return 0; }
+    if (late && c->plays != plays) c->late_ticks++;   /* the next play's tick 0: this one */
     return 1;
 }
 

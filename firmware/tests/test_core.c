@@ -682,6 +682,39 @@ static void test_early_trigger_delay(void)
     }
 }
 
+/* A tick handled late counts for every play it is a tick of (PROTOCOL.md 7): a play that
+ * an early trigger starts on the tick the last one ends has that tick as its tick 0, as a
+ * play started from ARMED does (its tick 0 late: 1 late tick). */
+static void test_late_tick_zero_of_queued_play(void)
+{
+    unsigned n[1] = {2}, dur[1] = {20000}, ticks[2] = {0, 9}, len;
+    unsigned n2[1] = {2}, t2[2] = {0, 3}, len2, i;
+    static uint8_t prog2[100];
+    uint8_t arm0 = 1, arm1 = 2;
+    frame_t e;
+    unsigned late[3] = {0, 0, 0};
+    len = make_program(prog, 0, 1, n, dur, ticks, 0);
+    len2 = make_program(prog2, 0, 1, n2, dur, t2, 0);
+    reset();
+    CHECK_EQ(upload(0, prog, len, len), 0x91);
+    CHECK_EQ(cmd(VC_ARM, &arm0, 1).type, 0xA0);
+    vc_trigger_edge(&C);
+    vc_tick(&C, 1);                                    /* play 1's tick 0, late */
+    run_ticks(9);                                      /* its ticks 1..9 */
+    CHECK_EQ(upload(1, prog2, len2, len2), 0x91);
+    CHECK_EQ(cmd(VC_ARM, &arm1, 1).p[0], VC_PLAYING);
+    vc_trigger_edge(&C);                               /* taken at play 1's last tick */
+    vc_tick(&C, 1);                                    /* play 1's tick 10 = play 2's tick 0 */
+    CHECK_EQ(C.plays, 2);
+    for (i = 0; i < 20; i++) vc_tick(&C, 0);
+    txrd = 0;
+    while (next_frame(&e))
+        if (e.type == VC_EV_DONE && (e.p[0] | (e.p[1] << 8)) <= 2)
+            late[e.p[0] | (e.p[1] << 8)] = u32(e.p + 6) + 100u;
+    CHECK_EQ(late[1], 102);                            /* its ticks 0 and 10 */
+    CHECK_EQ(late[2], 101);                            /* its tick 0, no wait */
+}
+
 /* ABORT's "fault before" is the fault this ABORT clears (state before FAULT), not the
  * last fault STATUS shows: a second ABORT cleared none. */
 static void test_abort_fault_before(void)
@@ -795,6 +828,7 @@ static const struct { const char *name; test_fn fn; } TESTS[] = {
     {"queued_arm_no_gap", test_queued_arm_no_gap},
     {"early_trigger_delay", test_early_trigger_delay},
     {"abort_fault_before", test_abort_fault_before},
+    {"late_tick_zero_of_queued_play", test_late_tick_zero_of_queued_play},
     {"stall_command", test_stall_command},
     {"tick_inside_prog_data", test_tick_inside_prog_data},
 };
