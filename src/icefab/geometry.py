@@ -1417,7 +1417,7 @@ def segment_clearances(a: np.ndarray, b: np.ndarray, rings: Sequence[np.ndarray]
     a = np.asarray(a, dtype=np.float64).reshape(-1, 2)
     b = np.asarray(b, dtype=np.float64).reshape(-1, 2)
     rings = ring_edges(rings)
-    dense, i, _ = subdivide_segments(a, b, 0.25)
+    dense, i, _ = _subdivided(a, b, 0.25)
     # the dense points hold every segment's start; its end is added
     d = distance_to_rings(np.concatenate([dense, b]), rings, upper=upper)
     out = d[len(dense):].copy()
@@ -1426,6 +1426,48 @@ def segment_clearances(a: np.ndarray, b: np.ndarray, rings: Sequence[np.ndarray]
     exact = segments_to_rings_distance(a, b, rings, np.minimum(out, upper))
     # the same distances computed in another order differ in their last bits
     return np.where(exact < out - 1e-9, exact, out)
+
+
+def _subdivided(a: np.ndarray, b: np.ndarray, step: float
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`icefab.core.subdivide_segments` (points along the segments ``a[i] -> b[i]``,
+    (n, 2) mm each, at most ``step`` mm apart), compiled: the same values to the last bit,
+    in a tenth of the time (its dozen numpy calls, some 10 a bunny layer, cost 0.7 ms
+    there; BENCHMARKS.md, issue 15)."""
+    return _subdivide(np.ascontiguousarray(a, dtype=np.float64),
+                      np.ascontiguousarray(b, dtype=np.float64), float(step))
+
+
+@njit(cache=True)
+def _subdivide(a: np.ndarray, b: np.ndarray, step: float
+               ) -> tuple:  # pragma: no cover - compiled
+    """:func:`_subdivided`'s kernel, in numpy's order of operations: each segment's length
+    ``sqrt(dx^2 + dy^2)``, ``max(1, ceil(length / step))`` points at fractions ``q / n``,
+    each ``a + f (b - a)``."""
+    m = len(a)
+    n = np.empty(m, np.int64)
+    total = 0
+    for s in range(m):
+        dx = b[s, 0] - a[s, 0]
+        dy = b[s, 1] - a[s, 1]
+        k = int(math.ceil(math.sqrt(dx * dx + dy * dy) / step))
+        n[s] = k if k > 1 else 1
+        total += n[s]
+    pts = np.empty((total, 2))
+    seg = np.empty(total, np.int64)
+    frac = np.empty(total)
+    j = 0
+    for s in range(m):
+        dx = b[s, 0] - a[s, 0]
+        dy = b[s, 1] - a[s, 1]
+        for q in range(n[s]):
+            f = q / n[s]
+            pts[j, 0] = a[s, 0] + f * dx
+            pts[j, 1] = a[s, 1] + f * dy
+            seg[j] = s
+            frac[j] = f
+            j += 1
+    return pts, seg, frac
 
 
 def _sample_rings(rings: Sequence[np.ndarray], spacing: float):
@@ -1441,12 +1483,37 @@ def _sample_rings(rings: Sequence[np.ndarray], spacing: float):
     prv[nxt] = np.arange(len(nxt))
     b = a[nxt]
     seg = np.linalg.norm(b - a, axis=1)
-    P, edge, t = subdivide_segments(a, b, spacing)
-    ring_of_edge = np.repeat(np.arange(len(rings)), [len(r) for r in rings])
-    cum = arc_lengths(seg)
-    arc = cum[edge] - cum[first][ring_of_edge[edge]] + t * seg[edge]
+    P, edge, t = _subdivided(a, b, spacing)
+    ring, arc = _sample_arcs(edge, t, seg, np.ascontiguousarray(first, dtype=np.int64))
     ring_len = np.add.reduceat(seg, first)
-    return P, edge, a, b, prv, ring_of_edge[edge], arc, ring_len
+    return P, edge, a, b, prv, ring, arc, ring_len
+
+
+@njit(cache=True)
+def _sample_arcs(edge: np.ndarray, t: np.ndarray, seg: np.ndarray, first: np.ndarray
+                 ) -> tuple:  # pragma: no cover - compiled
+    """:func:`_sample_rings`' ring (s,) int64 and arc position (s,) mm of each sample, from
+    its edge and fraction along it, the edges' lengths ``seg`` (v,) mm and each ring's
+    first edge ``first`` (r,): ``cum[e] - cum[first] + t seg[e]`` with ``cum`` the running
+    sum of ``seg`` (numpy's order of operations, so the same values to the last bit)."""
+    nv = len(seg)
+    cum = np.empty(nv + 1)
+    cum[0] = 0.0
+    for i in range(nv):
+        cum[i + 1] = cum[i] + seg[i]
+    ring_of_edge = np.empty(nv, np.int64)
+    for r in range(len(first)):
+        end = first[r + 1] if r + 1 < len(first) else nv
+        for i in range(first[r], end):
+            ring_of_edge[i] = r
+    ring = np.empty(len(edge), np.int64)
+    arc = np.empty(len(edge))
+    for j in range(len(edge)):
+        e = edge[j]
+        r = ring_of_edge[e]
+        ring[j] = r
+        arc[j] = cum[e] - cum[first[r]] + t[j] * seg[e]
+    return ring, arc
 
 
 def _nearest_edge_distance(q: np.ndarray, P: np.ndarray, edge: np.ndarray, a: np.ndarray,
