@@ -9,8 +9,8 @@
  * tick's TRIGGER error only reads the byte `expected`): framing, CRCs, a PROG_DATA's
  * validation, its copy into free ring space and a reply's CRC run unlocked, so an event
  * the tick sends between a command's lock and its reply's sending goes out before that
- * reply (events are unsolicited, PROTOCOL.md 3). Everything the tick reads or writes (state, stores, counters, ev_seq, the
- * board's transmit queue) is touched by the main loop only between board_lock() and
+ * reply (events are unsolicited, PROTOCOL.md 3). Everything the tick reads or writes
+ * (state, stores, counters, ev_seq, the board's transmit queue) is touched by the main loop only between board_lock() and
  * board_unlock() (board.h), in sections of bounded, input-independent work (~10-15 us on
  * the LPC2148): before, the board ran all of vc_rx with interrupts off, ~0.9 ms for a
  * PROG_DATA frame, 28 ms for crafted start markers (BENCHMARKS.md, "Valve firmware: work
