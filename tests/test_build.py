@@ -1311,6 +1311,23 @@ def test_a_new_build_takes_the_parts_its_job_names(tmp_path, capsys):
     assert not (tmp_path / "b").exists()
 
 
+def test_a_resumed_gantry_build_is_refused_before_its_cell_is_asked(tmp_path, capsys):
+    """A gantry build started before 'icefab build' refused one (check_build_robot) has a
+    journal: its resume went on driving the Cobra's C40 link with the gantry's carriage
+    positions. The resume is refused from the build's job, before its cell is asked."""
+    from icefab.cli import main
+
+    b = tmp_path / "b"
+    b.mkdir()
+    (b / "job.toml").write_text(to_toml(Job().replace(**{"cell.robot": "gantry"})))
+    (b / bmod.TRAJECTORIES).write_bytes(b"not read")
+    Journal.create(b / bmod.JOURNAL, {"cell": "virtual", "digests": {}}).close()
+    assert main(["build", "--resume", str(b)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("icefab build: error: cell.robot = 'gantry': the build runner "
+                          "drives the Cobra 600") and len(err.splitlines()) == 1, err
+
+
 def test_a_build_started_here_while_this_one_planned_is_left_alone(planned, tmp_path,
                                                                     capsys, monkeypatch):
     """Two builds into one folder: the second finished its planning after the first had

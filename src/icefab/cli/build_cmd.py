@@ -681,6 +681,11 @@ def _run(build: Path, args: argparse.Namespace, ctl: dict, *, resume: bool) -> i
         if args.input:
             digests["input"] = _input_digest(list(args.input))
         job = load_job(build / "job.toml")
+        try:   # a gantry build started before icefab refused one (check_build_robot)
+            bmod.check_build_robot(job)
+        except ConfigError:
+            journal.close()
+            raise
         if CALIBRATION_DIGEST in meta.get("digests", {}):   # builds started since it is kept
             digests[CALIBRATION_DIGEST] = _calibration_digest(job)
         journal.check_digests(digests)
