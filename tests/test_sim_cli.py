@@ -275,6 +275,22 @@ def test_the_final_rms_is_the_last_layer_with_a_part_footprint():
     assert "none" in final_rms_line(res([np.nan] * 3), res([np.nan] * 3))
 
 
+def test_the_final_footprint_figures_are_the_last_layer_that_covers_a_cell():
+    """A last measurement layer that covers no cell (its flow drifted to nothing) has no
+    footprint RMS: the summary printed 'RMS nan mm' under final_rms_line's layer 7."""
+    from types import SimpleNamespace
+
+    from icefab.cli.simulate_cmd import final_footprint_line
+
+    def res(rms):
+        return SimpleNamespace(layers=np.array([3, 7, 11]), rms_footprint=np.array(rms),
+                               max_abs_footprint=2 * np.array(rms))
+    line = final_footprint_line(res([0.5, 0.4, np.nan]), res([0.2, 0.1, np.nan]))
+    assert line == ("over the whole footprint (part and scaffold), layer 7: RMS 0.400 mm "
+                    "open loop, 0.100 mm with SMF; largest 0.800 / 0.200 mm"), line
+    assert "none" in final_footprint_line(res([np.nan] * 3), res([np.nan] * 3))
+
+
 def test_simulate_honours_feedback_off_as_the_build_does(tmp_path, capsys):
     """Toolpaths made with feedback.enabled = false (no measurement paths): 'icefab build'
     measures nothing, and simulate ran SMF anyway on the laser along the deposition paths

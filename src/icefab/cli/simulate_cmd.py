@@ -190,11 +190,18 @@ def final_rms_line(open_loop: "SimResult", closed: "SimResult") -> str:
 def final_footprint_line(open_loop: "SimResult", closed: "SimResult") -> str:
     """The last measurement layer's error over its whole footprint, part and scaffold: RMS
     and largest, open loop and with SMF. The part's RMS alone hid millimetre ridges in
-    the scaffold and where the materials' beads meet (a control review's)."""
+    the scaffold and where the materials' beads meet (a control review's). The last layer
+    that covers a cell in both, as :func:`final_rms_line` (a layer that covers none, e.g.
+    after the flow drifted to nothing, printed 'nan mm')."""
     o, c = open_loop, closed
-    return (f"over the whole footprint (part and scaffold), layer {int(o.layers[-1])}: RMS "
-            f"{o.rms_footprint[-1]:.3f} mm open loop, {c.rms_footprint[-1]:.3f} mm with "
-            f"SMF; largest {o.max_abs_footprint[-1]:.3f} / {c.max_abs_footprint[-1]:.3f} mm")
+    ok = np.flatnonzero(np.isfinite(o.rms_footprint) & np.isfinite(c.rms_footprint))
+    if not len(ok):
+        return ("over the whole footprint (part and scaffold): none (no measurement layer "
+                "covers a cell of the simulator grid)")
+    j = int(ok[-1])
+    return (f"over the whole footprint (part and scaffold), layer {int(o.layers[j])}: RMS "
+            f"{o.rms_footprint[j]:.3f} mm open loop, {c.rms_footprint[j]:.3f} mm with "
+            f"SMF; largest {o.max_abs_footprint[j]:.3f} / {c.max_abs_footprint[j]:.3f} mm")
 
 
 def format_table(rows: list[list[float]]) -> list[str]:
