@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import signal
 import subprocess
 import sys
@@ -128,6 +129,13 @@ def test_endpoints_of_a_cell_that_is_not_running_are_named(tmp_path):
         read_endpoints(tmp_path)
     (tmp_path / "endpoints.json").write_text("{")
     with pytest.raises(CellError, match="malformed endpoints file"):
+        read_endpoints(tmp_path)
+    # a host that is no string: 'icefab build --cell DIR' asked the robot before planning
+    # and ended in getaddrinfo's TypeError traceback
+    (tmp_path / "endpoints.json").write_text(json.dumps(
+        {"robot": {"host": 5, "port": 7100}, "valve": {"device": "v"},
+         "laser": {"device": "l"}}))
+    with pytest.raises(CellError, match="malformed endpoints file.*robot host 5"):
         read_endpoints(tmp_path)
 
 

@@ -354,6 +354,8 @@ def read_endpoints(state_dir: str | os.PathLike, timeout_s: float = 0.0) -> dict
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
         data["robot"]["port"] = int(data["robot"]["port"])
+        if not isinstance(data["robot"]["host"], str):   # 5 was a TypeError's traceback
+            raise TypeError(f"robot host {data['robot']['host']!r}: expected a string")
         str(data["valve"]["device"]), str(data["laser"]["device"])
     except FileNotFoundError:
         raise CellError(f"{path}: no endpoints (is 'icefab cell serve --state "
