@@ -94,3 +94,32 @@ def test_a_simulated_liquid_that_flows_less_than_a_grid_cell_is_refused():
         job_from_dict({"simulation": {"spread_mm": 0.25}})
     assert job_from_dict({"simulation": {"spread_mm": 0.25, "grid_mm": 0.25}}
                          ).simulation.spread_mm == 0.25
+
+
+def test_a_stored_job_from_before_the_spread_bound_still_loads(tmp_path):
+    """Result files, build folders and cells store their job; 0 ('no spreading') and
+    spreads under a grid cell were valid when they were written, and after the bound every
+    later command refused a stack or paths file made with one, though none but the
+    simulator reads it (a review's). Read back as stored, such a spread is raised to its
+    least valid value; a job file given by the user is still refused; what was never
+    valid (negative, NaN, not a number) stays refused."""
+    from icefab.config import load_job, stored_job_from_dict
+    from icefab.resultfiles import _job_from_toml
+
+    assert stored_job_from_dict({"simulation": {"spread_mm": 0.0}}).simulation.spread_mm \
+        == 0.5 == Job().simulation.grid_mm
+    assert stored_job_from_dict({"simulation": {"spread_mm": 0.0, "grid_mm": 0.1}}
+                                ).simulation.spread_mm == 0.1
+    assert stored_job_from_dict({"simulation": {"spread_mm": 0.3, "grid_mm": 1.0}}
+                                ).simulation.spread_mm == 1.0
+    assert stored_job_from_dict({"simulation": {"spread_mm": 2.0}}).simulation.spread_mm \
+        == 2.0
+    for bad in (-1.0, float("nan"), "0", True):
+        with pytest.raises(ConfigError, match="simulation.spread_mm"):
+            stored_job_from_dict({"simulation": {"spread_mm": bad}})
+    assert _job_from_toml("[simulation]\nspread_mm = 0.0\n").simulation.spread_mm == 0.5
+    f = tmp_path / "job.toml"
+    f.write_text("[simulation]\nspread_mm = 0.0\n")
+    assert load_job(f, stored=True).simulation.spread_mm == 0.5
+    with pytest.raises(ConfigError, match=r"job.toml:2: simulation.spread_mm = 0.0"):
+        load_job(f)

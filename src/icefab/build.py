@@ -499,8 +499,8 @@ def check_cell_numbers(last: int, platform_cleared: bool = False) -> None:
             f"the cell has completed commands up to number {last} since its program "
             "started: an earlier build ran on it, and its platform may hold that build's "
             "ice, which this build's nozzle would run into; nothing was sent. Clear the "
-            "platform, then start the build again with --platform-cleared (or restart the "
-            "cell's program)")
+            "platform, then run the build (or its --resume) again with --platform-cleared "
+            "(or restart the cell's program)")
 
 
 class Runner:

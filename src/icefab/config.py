@@ -1040,6 +1040,34 @@ def job_from_dict(data: dict[str, Any]) -> Job:
     return _build(Job, _angles_given(data), "")
 
 
+def stored_job_from_dict(data: dict[str, Any]) -> Job:
+    """:func:`job_from_dict` of a job an earlier icefab stored (a result file's, a build
+    folder's or a cell's ``job.toml``), after raising a setting whose range has since
+    narrowed to its new least value, so that the files still load (a job file given with
+    ``-c`` is refused instead: :func:`job_from_dict`).
+
+    ``simulation.spread_mm``: 0 ("no spreading") and values under one cell of
+    ``simulation.grid_mm`` were valid before 2026-11-29; the simulator's liquid must now
+    flow at least max(0.1 mm, one cell). Only the simulator reads it: a stacked stack or
+    paths file made with 0 was refused by every later command, though none used it (a
+    review's)."""
+    sim = data.get("simulation")
+    if isinstance(sim, dict) and "spread_mm" in sim:
+        least = max(SimulationSettings.__dataclass_fields__["spread_mm"].metadata["lo"],
+                    _number(sim.get("grid_mm", SimulationSettings().grid_mm)))
+        spread = _number(sim["spread_mm"])
+        if 0.0 <= spread < least:   # NaN, negative and non-numbers stay refused
+            data = {**data, "simulation": {**sim, "spread_mm": least}}
+    return job_from_dict(data)
+
+
+def _number(value: Any) -> float:
+    """``value`` as a float, NaN when it is not a plain number."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return math.nan
+    return float(value)
+
+
 def _angles_given(data: dict[str, Any]) -> dict[str, Any]:
     """A material section that gives ``fill_angle_deg`` and no ``fill_angle_mode`` asks for
     that angle: its mode is 'fixed' (the default, 'optimal', would ignore the angle)."""
@@ -1145,15 +1173,18 @@ def _located(exc: ConfigError, path: Path, line_of: Callable[[str], int | None]
     return ConfigError(f"{path}:{line}: {msg}" if line else f"{path}: {msg}")
 
 
-def load_job(path: str | Path) -> Job:
+def load_job(path: str | Path, *, stored: bool = False) -> Job:
     """Read a job from a TOML file (``.toml``) or a legacy control text file (other).
+    ``stored``: a job icefab wrote (a build folder's or a cell's ``job.toml``), read as
+    :func:`stored_job_from_dict` does.
 
     Raises ConfigError naming the file and line on any problem.
     """
-    return load_named_job(path)[0]
+    return load_named_job(path, stored=stored)[0]
 
 
-def load_named_job(path: str | Path) -> tuple[Job, frozenset[str]]:
+def load_named_job(path: str | Path, *, stored: bool = False
+                   ) -> tuple[Job, frozenset[str]]:
     """:func:`load_job`, and the dotted settings the file names explicitly: a TOML file's
     keys (a material's ``fill_angle_deg`` names its ``fill_angle_mode`` too: it asks for
     'fixed'), a legacy control file's entries. The job fills the others with defaults; a
@@ -1173,7 +1204,7 @@ def load_named_job(path: str | Path) -> tuple[Job, frozenset[str]]:
     except ValueError as exc:   # an integer over Python's 4 300 digits (hunt P)
         raise ConfigError(f"{path}: not valid TOML: {exc}".split("; use sys.")[0]) from None
     try:
-        job = job_from_dict(data)
+        job = (stored_job_from_dict if stored else job_from_dict)(data)
     except ConfigError as exc:
         raise _located(exc, path, lambda name: _line_of(text, name)) from None
     # Relative file names (meshes, valve calibration tables) are relative to the job

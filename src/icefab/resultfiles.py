@@ -131,7 +131,7 @@ from typing import Iterable, Iterator, NamedTuple, Sequence
 import numpy as np
 
 from icefab.atomic import atomic_path
-from icefab.config import Job, job_from_dict, to_toml
+from icefab.config import Job, stored_job_from_dict, to_toml
 from icefab.core import (FRAMES, MATERIALS, OFF, ON1, ON2, ROLES, TOOLS, BuildMotion, Layer,
                          LayerMotion, LayerPaths, Region, RuledEdges, Stack, Toolpath,
                          Toolpaths, Trajectory, offsets, polyline_lengths, spans_fine,
@@ -442,7 +442,7 @@ class _Members:
 def _job_from_toml(text: str):
     """The Job a result file stores (cached: the files of one build share it, and a Job is
     frozen)."""
-    return job_from_dict(tomllib.loads(text))
+    return stored_job_from_dict(tomllib.loads(text))
 
 
 def _check_tree(m: _Members, name: str, parent: np.ndarray, first: np.ndarray) -> None:

@@ -169,7 +169,7 @@ class VirtualCell:
         if self._job is None:
             from icefab.config import load_job
 
-            self._job = load_job(self.dir / JOB_FILE)
+            self._job = load_job(self.dir / JOB_FILE, stored=True)
         return self._job
 
     def _save(self) -> None:

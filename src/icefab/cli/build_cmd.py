@@ -680,7 +680,7 @@ def _run(build: Path, args: argparse.Namespace, ctl: dict, *, resume: bool) -> i
             digests["job"] = digest_text(to_toml(load_job(args.job)))
         if args.input:
             digests["input"] = _input_digest(list(args.input))
-        job = load_job(build / "job.toml")
+        job = load_job(build / "job.toml", stored=True)
         try:   # a gantry build started before icefab refused one (check_build_robot)
             bmod.check_build_robot(job)
         except ConfigError:
@@ -1035,7 +1035,7 @@ def _stop(build: Path) -> int:
         return 0
 
     connect = _connector(build, argparse.Namespace(cell=None), meta,
-                         load_job(build / "job.toml"))
+                         load_job(build / "job.toml", stored=True))
     cell = connect()
     try:
         cell.stop_now()

@@ -194,12 +194,12 @@ def _stored_job(state: Path):
 
     import numpy as np
 
-    from icefab.config import job_from_dict
+    from icefab.config import stored_job_from_dict
     from icefab.resultfiles import NPZ_DAMAGE
 
     try:
         with np.load(state / "surface.npz", allow_pickle=False) as d:
-            return job_from_dict(tomllib.loads(str(d["job"])))
+            return stored_job_from_dict(tomllib.loads(str(d["job"])))
     except NPZ_DAMAGE as exc:
         # a truncated file was a BadZipFile / EOFError traceback, and 'icefab build'
         # restarted the cell 21 times over it (a hunt's)
