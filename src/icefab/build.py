@@ -354,34 +354,17 @@ def smf_from_samples(samples: np.ndarray, nominal_z: float, state, job: "Job",
     the first update: nominal flow), and the finding (else None) says so; an action of 0
     lost the integral's bias of a lasting flow error for an interval."""
     from icefab import feedback
-    from icefab.errors import GeometryError
 
-    fb = job.feedback
     rms = float(np.sqrt(np.mean((samples[:, 2] - nominal_z) ** 2))) if len(samples) \
         else float("nan")
-
-    def held(why: str):
-        action = feedback.held_action(state, job)
-        note = (f"{why}: SMF keeps its state and applies the integral term alone until the "
-                "next measurement" + ("" if action is not None else " (none yet: nominal "
-                                                                      "flow)"))
-        log.warning("%s", note)
-        if action is None:
-            return state, None, None, rms, note
-        return state, action.u, action._filled, rms, note
-
-    try:
-        surf = feedback.surface_from_samples(samples, None, fb.grid_mm, smoothing=fb.smoothing)
-    except GeometryError as exc:
-        return held(f"no surface from {len(samples)} laser samples ({exc})")
-    if footprint is not None:
-        surf = feedback.restrict_to_footprint(surf, samples, *footprint)
-        if not np.isfinite(surf.z).any():
-            return held("the laser samples miss the layer's footprint")
-    err = feedback.error_surface(surf, nominal_z, fb.interval_layers *
-                                 job.slicing.layer_thickness_mm)
-    action, new = feedback.smf_update(state, err, job)
-    return new, action.u, action._filled, rms, None
+    new, action, held = feedback.measured_update(
+        state, samples, nominal_z, job.feedback.interval_layers *
+        job.slicing.layer_thickness_mm, job, footprint)
+    if held is not None:
+        log.warning("%s", held)
+    if action is None:
+        return new, None, None, rms, held
+    return new, action.u, action._filled, rms, held
 
 
 # =========================================================================== the run

@@ -1359,6 +1359,41 @@ def smf_update(state: SmfState, error: HeightMap, job: "Job | None" = None, *,
     return action, new_state
 
 
+def measured_update(state: SmfState, samples: np.ndarray, nominal_z: float,
+                    interval_mm: float, job: "Job",
+                    footprint: tuple[np.ndarray, HeightMap] | None = None
+                    ) -> tuple[SmfState, ControlAction | None, str | None]:
+    """One SMF step from a measurement layer's laser samples ((m, 3) mm, part frame):
+    the surface (:func:`surface_from_samples` on ``feedback.grid_mm``), restricted to the
+    layer's ``footprint`` ((mask, grid): :func:`restrict_to_footprint`; None: the samples'
+    convex hull), its error against ``nominal_z`` mm normalised by ``interval_mm``
+    (:func:`error_surface`), and :func:`smf_update`. Returns (new state, action, None).
+
+    A surface that cannot be formed (too few or collinear samples, none on the footprint):
+    (``state`` kept, :func:`held_action`, the reason), the action None before the first
+    update (nominal flow). The simulator and the build runner both step so (one sequence:
+    it was written in each)."""
+    fb = job.feedback
+
+    def held(why: str):
+        note = (f"{why}: SMF keeps its state and applies the integral term alone until the "
+                "next measurement")
+        action = held_action(state, job)
+        return state, action, note + ("" if action is not None else
+                                      " (none yet: nominal flow)")
+
+    try:
+        surf = surface_from_samples(samples, None, fb.grid_mm, smoothing=fb.smoothing)
+    except GeometryError as exc:   # e.g. a tiny top layer's few or collinear samples
+        return held(f"no surface from {len(samples)} laser samples ({exc})")
+    if footprint is not None:
+        surf = restrict_to_footprint(surf, samples, *footprint)
+        if not np.isfinite(surf.z).any():
+            return held("the laser samples miss the layer's footprint")
+    action, new = smf_update(state, error_surface(surf, nominal_z, interval_mm), job)
+    return new, action, None
+
+
 def held_action(state: SmfState, job: "Job | None" = None) -> ControlAction | None:
     """The action of a measurement layer whose error surface cannot be formed (too few or
     collinear laser samples, or none on the footprint): the integral term I_{k-1} alone,

@@ -10,7 +10,6 @@ import numpy as np
 
 from icefab import feedback
 from icefab.config import Job
-from icefab.errors import GeometryError
 from icefab.sim.cell import Controller, Measurement
 from icefab.sim.deposition import ActionFn
 
@@ -31,31 +30,16 @@ def smf_controller(job: "Job") -> Controller:
     integral's bias of a lasting flow error was lost for an interval.
     """
 
-    fb = job.feedback
     state = feedback.SmfState()
-
-    def held(m: Measurement, why: str) -> ActionFn:
-        action = feedback.held_action(state, job)
-        log.warning("layer %d: %s; SMF keeps its state and applies the integral term "
-                    "alone until the next measurement%s", m.layer, why,
-                    "" if action is not None else " (none yet: nominal flow)")
-        if action is None:
-            return lambda xy: np.zeros(len(xy))
-        return feedback.action_sampler(action)
 
     def control(m: Measurement) -> ActionFn:
         nonlocal state
-        try:
-            surf = feedback.surface_from_samples(m.samples, None, fb.grid_mm,
-                                                 smoothing=fb.smoothing)
-        except GeometryError as exc:
-            # e.g. a tiny top layer with too few or collinear samples
-            return held(m, f"no surface from {len(m.samples)} laser samples ({exc})")
-        measured = feedback.restrict_to_footprint(surf, m.samples, m.footprint, m.grid)
-        if not np.isfinite(measured.z).any():
-            return held(m, "the laser samples miss the footprint")
-        error = feedback.error_surface(measured, m.nominal_z, m.interval_mm)
-        action, state = feedback.smf_update(state, error, job)
+        state, action, held = feedback.measured_update(
+            state, m.samples, m.nominal_z, m.interval_mm, job, (m.footprint, m.grid))
+        if held is not None:
+            log.warning("layer %d: %s", m.layer, held)
+        if action is None:
+            return lambda xy: np.zeros(len(xy))
         return feedback.action_sampler(action)
 
     return control
