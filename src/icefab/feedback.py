@@ -21,8 +21,9 @@ Thesis Ch. 5. Two halves:
 
 Public functions: :func:`surface_from_samples`, :func:`error_surface`, :func:`smf_update`
 (state :class:`SmfState`, result :class:`ControlAction`), :func:`smf_step` (the three in
-one), :func:`held_action` (a layer whose surface cannot be formed), :func:`restrict_to_footprint`,
-:func:`action_along` / :func:`action_sampler`, :func:`retime_trajectory`,
+one), :func:`measured_update` (from laser samples, with :func:`restrict_to_footprint`, or
+:func:`held_action` where no surface forms), :func:`action_along` / :func:`action_sampler`,
+:func:`retime_trajectory`,
 :func:`regrid`, :func:`region_mask`; analysis: :func:`poles`, :func:`stability`,
 :func:`in_stable_volume`, :func:`repeated_unit_pole`, :func:`transfer_function`,
 :func:`error_response`, :func:`simulate_1d`, :func:`rms_and_gradient`, :func:`tune_gains`,
