@@ -321,6 +321,12 @@ def test_a_layer_without_a_footprint_is_a_dash_not_nan():
     assert lines[-1] == "  -: no part footprint on the simulator grid at that layer"
     assert len(format_table([[93, 15.0, 0.1, 0.05, 0.3, 0.2]])) == 2
     assert (_csv_value(nan), _csv_value(0.25)) == ("", "0.250000")
+    # the whole footprint's columns: a layer covering no cell is a dash, said (a review's)
+    lines = format_table([[93, 15.0, 0.1, 0.05, 0.3, 0.2, 0.2, 0.5],
+                          [97, 16.0, 0.1, 0.05, 0.3, 0.2, nan, nan]])
+    assert lines[2].split()[-2:] == ["-", "-"]
+    assert "  - under all: the layer covers no cell of the simulator grid" in lines
+    assert "no part footprint" not in "\n".join(lines)
 
 
 def test_simulate_without_feedback_says_its_valve_findings_are_open_loop(tmp_path, capsys):

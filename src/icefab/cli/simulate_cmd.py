@@ -218,6 +218,8 @@ def format_table(rows: list[list[float]]) -> list[str]:
                      + (f"  {f(foot[0], 9)}  {f(foot[1], 8)}" if foot else ""))
     if any(not math.isfinite(v) for r in rows for v in r[2:6]):
         lines.append("  -: no part footprint on the simulator grid at that layer")
+    if any(not math.isfinite(v) for r in rows for v in r[6:]):
+        lines.append("  - under all: the layer covers no cell of the simulator grid")
     if wide:
         lines.append("  RMS, max: the part, inside its rim; all: RMS over the whole "
                      "footprint, part and scaffold")
