@@ -2506,7 +2506,7 @@ def test_the_runner_gives_smf_the_measured_layers_footprint(planned, tmp_path, m
     """The runner's SMF update gets the footprint of the layer just deposited (its plan,
     as the valve programs were made from), and the laser's samples lie on it."""
     from icefab.motion import load_trajectories
-    from icefab.sim import plan_layer_motion
+    from icefab.sim import commanded_footprint, plan_layer_motion
 
     motion = load_trajectories(planned)
     job = motion.job
@@ -2525,7 +2525,7 @@ def test_the_runner_gives_smf_the_measured_layers_footprint(planned, tmp_path, m
     journal.close()
     assert len(seen) == 1                                  # layer 3 (n_d = 4)
     samples, (mask, grid) = seen[0]
-    want, want_grid = bmod.layer_footprint(plan_layer_motion(motion.layers[3], job), job)
+    want, want_grid = commanded_footprint(plan_layer_motion(motion.layers[3], job), job)
     assert np.array_equal(mask, want) and np.array_equal(grid.origin, want_grid.origin)
     ix = np.rint((samples[:, 0] - grid.origin[0]) / grid.spacing).astype(int)
     iy = np.rint((samples[:, 1] - grid.origin[1]) / grid.spacing).astype(int)
@@ -2540,7 +2540,7 @@ def test_the_runner_measures_a_two_island_layer_on_its_footprint_only():
     the simulator's is."""
     from icefab import feedback
     from icefab.core import Toolpath
-    from icefab.sim import plan_layer
+    from icefab.sim import commanded_footprint, plan_layer
 
     job = Job()
 
@@ -2551,7 +2551,7 @@ def test_the_runner_measures_a_two_island_layer_on_its_footprint_only():
     paths = [Toolpath(points=square(cx, h), z=0.25, material="part", role="boundary",
                       closed=True, width=1.5, layer=0)
              for cx in (-15.0, 15.0) for h in np.arange(9.25, 0.0, -1.5)]
-    mask, grid = bmod.layer_footprint(plan_layer(0, paths, job), job)
+    mask, grid = commanded_footprint(plan_layer(0, paths, job), job)
     gx, gy = grid.grid()
     assert mask[np.searchsorted(gy, 0.0), np.searchsorted(gx, -15.0)]
     assert not mask[np.searchsorted(gy, 0.0), np.searchsorted(gx, 0.0)]     # the gap

@@ -313,42 +313,16 @@ def unpack_smf(data: bytes):
     return state, feedback.action_sampler(action)
 
 
-def layer_footprint(plan, job: "Job", thickness: float = float("nan")
-                    ) -> tuple[np.ndarray, HeightMap]:
-    """The cells a layer's beads cover, part and scaffold: (mask (ny, nx) bool, its grid,
-    a HeightMap whose origin and spacing, mm, place it; its z is 0).
-
-    plan: the layer's :class:`icefab.sim.LayerPlan` (its deposition segments, part
-    frame); thickness: the layer's own, mm (NaN: the job's). The commanded beads are laid
-    on a grid of half the error surface's pitch (``feedback.grid_mm / 2``), and a cell is
-    covered where they lay a quarter of the layer's thickness or more: the simulator's
-    footprint (``icefab.sim.deposit_layer``) without its disturbances.
-    """
-    from icefab import sim as simmod
-    from icefab.stages import layer_height
-
-    spacing = 0.5 * job.feedback.grid_mm
-    if not len(plan.a):
-        return np.zeros((1, 1), dtype=bool), HeightMap(np.zeros(2), spacing, np.zeros((1, 1)))
-    pts = np.concatenate([plan.a, plan.b])
-    grid = simmod.empty_surface(pts.min(axis=0), pts.max(axis=0), spacing,
-                                float(plan.half_width.max()) + spacing)
-    z = np.zeros_like(grid.z)
-    simmod._splat(z, grid.origin, spacing, plan.a, plan.b, plan.volume, plan.half_width,
-                  plan.n0, plan.n1, plan.ext)
-    dh = layer_height(thickness, job) * job.flow.layer_scale
-    return z > 0.25 * dh, grid
-
-
 def smf_from_samples(samples: np.ndarray, nominal_z: float, state, job: "Job",
                      footprint: tuple[np.ndarray, HeightMap] | None = None):
     """One SMF update from part-frame laser samples (m, 3): (new state, action u
     HeightMap, filled u, measured RMS mm, finding).
 
-    footprint: the layer's (mask, grid) (:func:`layer_footprint`); the measured surface
-    is restricted to it as the simulator's is (:func:`icefab.feedback.restrict_to_footprint`:
-    the samples' convex hull spanned the platform between a part's arms, and heights
-    interpolated there fed SMF). None: the samples' convex hull.
+    footprint: the layer's (mask, grid) (:func:`icefab.sim.commanded_footprint`); the
+    measured surface is restricted to it as the simulator's is
+    (:func:`icefab.feedback.restrict_to_footprint`: the samples' convex hull spanned the
+    platform between a part's arms, and heights interpolated there fed SMF). None: the
+    samples' convex hull.
     Too few or collinear samples, or none on the footprint: the state is kept and the
     action is the integral term alone (:func:`icefab.feedback.held_action`; None before
     the first update: nominal flow), and the finding (else None) says so; an action of 0
@@ -905,10 +879,8 @@ class Runner:
                 samples = np.concatenate(raws) if raws else np.zeros((0, 3))
                 nominal = (j + 1) * dh
                 if L not in smf_layers:
-                    plan = self._plan[1] if self._plan is not None and \
-                        self._plan[0] == j else self._layer_plan(j)
                     state, u, filled, rms, note = smf_from_samples(
-                        samples, nominal, state, job, layer_footprint(plan, job, lm.thickness))
+                        samples, nominal, state, job, self._footprint(j))
                     if note is not None:
                         self.journal.event("measurement", f"layer {L}: {note}", layer=L)
                     k = len(smf_layers) + 1
@@ -954,16 +926,28 @@ class Runner:
             if lv is not None and with_action is action:
                 return lv, cps
         else:
-            plan = simmod.plan_layer_motion(self.motion.layers[j], self.job)
-            self._plan = (j, plan)
+            plan = self._layer_plan(j)
         lv = simmod.layer_valves(plan, self.job, action)
         return lv, self._cell_paths(j, lv)
 
     def _layer_plan(self, j: int):
-        """The LayerPlan of layer position ``j`` (:func:`icefab.sim.plan_layer_motion`)."""
+        """The LayerPlan of layer position ``j`` (:func:`icefab.sim.plan_layer_motion`):
+        the one its valve programs were made from when that was this layer (a measurement
+        takes its footprint from it), else planned and kept."""
         from icefab import sim as simmod
 
-        return simmod.plan_layer_motion(self.motion.layers[j], self.job)
+        if self._plan is None or self._plan[0] != j:
+            self._plan = (j, simmod.plan_layer_motion(self.motion.layers[j], self.job))
+        return self._plan[1]
+
+    def _footprint(self, j: int) -> tuple[np.ndarray, HeightMap]:
+        """The cells layer position ``j``'s beads cover, and their grid
+        (:func:`icefab.sim.commanded_footprint`): SMF's measured surface is restricted to
+        them, as the simulator's is."""
+        from icefab import sim as simmod
+
+        return simmod.commanded_footprint(self._layer_plan(j), self.job,
+                                          self.motion.layers[j].thickness)
 
     def _cell_paths(self, j: int, lv) -> list:
         from icefab import flow

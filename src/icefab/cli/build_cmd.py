@@ -148,7 +148,6 @@ def _refuse_a_used_cell(ends: dict) -> None:
     bmod.check_cell_numbers(max(st["last_done"], st["cut"]))
 
 
-
 def _new_build_options(args: argparse.Namespace) -> list[str]:
     """The options given that start or resume a build, as the user typed them (for a
     refusal where they would do nothing: with --status and --stop)."""
@@ -672,6 +671,9 @@ def _run(build: Path, args: argparse.Namespace, ctl: dict, *, resume: bool) -> i
 
     jpath = build / bmod.JOURNAL
     if resume:
+        job = load_job(build / "job.toml", stored=True)
+        # a gantry build started before icefab refused one: before the journal is opened
+        bmod.check_build_robot(job)
         journal = Journal.open(jpath)
         meta = journal.meta()
         digests = {"job": digest_file(build / "job.toml"),
@@ -680,12 +682,6 @@ def _run(build: Path, args: argparse.Namespace, ctl: dict, *, resume: bool) -> i
             digests["job"] = digest_text(to_toml(load_job(args.job)))
         if args.input:
             digests["input"] = _input_digest(list(args.input))
-        job = load_job(build / "job.toml", stored=True)
-        try:   # a gantry build started before icefab refused one (check_build_robot)
-            bmod.check_build_robot(job)
-        except ConfigError:
-            journal.close()
-            raise
         if CALIBRATION_DIGEST in meta.get("digests", {}):   # builds started since it is kept
             digests[CALIBRATION_DIGEST] = _calibration_digest(job)
         journal.check_digests(digests)

@@ -89,7 +89,8 @@ from icefab.errors import SimulationError
 # the layer step and grid the virtual cell's process shares (icefab.cell.world), and
 # private blocks the build runner's in-process model cell reuses (icefab.runcell)
 from icefab.sim.cell import (Controller, Measurement, SimResult, _edge_factor,  # noqa: F401
-                             _noise_field, deposit_layer, grid_for, run_cell)
+                             _noise_field, commanded_footprint, deposit_layer, grid_for,
+                             run_cell)
 from icefab.sim.deposition import (MATERIAL_ID, ActionFn, _splat, deposit,  # noqa: F401
                                    deposit_pulses, empty_surface, level_liquid, pulse_drops,
                                    pulse_segments)
@@ -102,7 +103,7 @@ from icefab.sim.simulate import (MOTION_SETTINGS, check_motion_job, measured_lay
 from icefab.sim.smf import smf_controller
 
 __all__ = ["SimulationError", "Controller", "Measurement", "SimResult", "run_cell",
-           "deposit_layer", "grid_for", "laser_in_time",
+           "commanded_footprint", "deposit_layer", "grid_for", "laser_in_time",
            "MATERIAL_ID", "ActionFn", "deposit", "deposit_pulses", "empty_surface",
            "level_liquid", "pulse_drops", "pulse_segments", "laser_measure", "laser_positions",
            "sample_surface", "LayerPlan", "LayerValves", "layer_valves", "measurement_layers",

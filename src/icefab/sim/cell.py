@@ -175,6 +175,31 @@ def _edge_factor(layer_z: np.ndarray, thresh: float, width: float, spacing: floa
     return 1.0 - loss * ramp
 
 
+def commanded_footprint(plan: LayerPlan, job: Job, thickness: float = float("nan")
+                        ) -> tuple[np.ndarray, HeightMap]:
+    """The cells a layer's commanded beads cover, part and scaffold: (mask (ny, nx) bool,
+    its grid: a HeightMap whose origin and spacing, mm, place it; its z is 0).
+
+    plan: the layer's :class:`~icefab.sim.LayerPlan` (its deposition segments, part
+    frame); thickness: the layer's own, mm (NaN: the job's). The beads are laid on a grid
+    of half the error surface's pitch (``feedback.grid_mm / 2``), and a cell is covered
+    where they lay a quarter of the layer's thickness or more: :func:`deposit_layer`'s
+    footprint without its disturbances. The build runner restricts its measured surface
+    to it, as the simulator does to its own (``icefab.feedback.restrict_to_footprint``).
+    """
+    spacing = 0.5 * job.feedback.grid_mm
+    if not len(plan.a):
+        return np.zeros((1, 1), dtype=bool), HeightMap(np.zeros(2), spacing, np.zeros((1, 1)))
+    pts = np.concatenate([plan.a, plan.b])
+    grid = empty_surface(pts.min(axis=0), pts.max(axis=0), spacing,
+                         float(plan.half_width.max()) + spacing)
+    z = np.zeros_like(grid.z)
+    _splat(z, grid.origin, spacing, plan.a, plan.b, plan.volume, plan.half_width, plan.n0,
+           plan.n1, plan.ext)
+    dh = layer_height(thickness, job) * job.flow.layer_scale
+    return z > 0.25 * dh, grid
+
+
 def deposit_layer(z: np.ndarray, origin: np.ndarray, spacing: float, segments: tuple,
                   used_cm3: np.ndarray, midpoints: np.ndarray, job: "Job", dh: float,
                   rng_noise: np.random.Generator, rng_debris: np.random.Generator
