@@ -244,7 +244,7 @@ def power_finding(trajectory, program, want_s: np.ndarray, moving: np.ndarray,
                      "moves after")
     return (f"{where}: G-code at {dt * 1e3:g} ms a move: " + "; ".join(parts)
             + ("; " if parts else "") + "against the valve program, "
-            + flow._volume_error(laid_s * open_mm3_s, asked_s * open_mm3_s))
+            + flow.volume_error(laid_s * open_mm3_s, asked_s * open_mm3_s))
 
 
 def check_gcode_robot(robot: str, what: str, *, planning: bool = False) -> None:
@@ -344,9 +344,9 @@ def gcode_lines(motion, job=None, findings: list | None = None):
                 yield f"T{TOOL_NUMBER[tool]} S1"
             # the layer's own thickness (adaptive layers) and the path's number in errors,
             # as icefab valves plans it (the default thickness laid a thick layer short)
-            prog = flow._plan_path_valves(lm.index, i, tr, p.material, pwm,
-                                          layer_height(lm.thickness, job),
-                                          flow.calibration_for(p.material, pwm))
+            prog = flow.plan_path_valves(lm.index, i, tr, p.material, pwm,
+                                         layer_height(lm.thickness, job),
+                                         flow.calibration_for(p.material, pwm))
             s, found = path_power(tr, prog, p.material, pwm)
             if findings is not None:
                 findings.extend((lm.index, text) for text in found)
@@ -380,15 +380,12 @@ def measure_finding(motion) -> str:
     (``feedback.enabled``): it moves the carriage along them, valve closed, but triggers and
     reads no laser and runs no SMF, so their time is spent for nothing. A gantry job left at
     the default (feedback on) got minutes of such moves unsaid."""
-    layers = [lm for lm in motion.layers
-              if any(t.path is not None and t.path.role == "measure" and len(t.xy)
-                     for t in lm.trajectories)]
-    if not layers:
-        return ""
-    trs = [t for lm in layers for t in lm.trajectories
+    trs = [(lm.index, t) for lm in motion.layers for t in lm.trajectories
            if t.path is not None and t.path.role == "measure" and len(t.xy)]
-    spent = sum(float(t.duration) for t in trs)
-    n, k = len(trs), len(layers)
+    if not trs:
+        return ""
+    spent = sum(float(t.duration) for _, t in trs)
+    n, k = len(trs), len({layer for layer, _ in trs})
     return (f"{n} measurement path{'s' if n != 1 else ''} in {k} layer{'s' if k != 1 else ''}"
             f" ({spent:.1f} s of the {float(motion.duration):.1f} s of motion): the G-code "
             "moves the laser over them but neither triggers nor reads it (no SMF); plan with "

@@ -499,7 +499,7 @@ def valve_frequency(trajectory: Trajectory, material: str, job: "Job", *,
         warnings.append(f"{where}: SMF's correction saturated at the valve's "
                         f"[{q_lo:.4g}, {q_hi:.4g}] mm^3/s (thesis 5.2.2; asked {worst:.4g} "
                         f"mm^3/s) at {int(np.count_nonzero(saturated))} of {n} samples, "
-                        f"{_volume_error(_integral(q, t), _integral(asked, t))}")
+                        f"{volume_error(_integral(q, t), _integral(asked, t))}")
     # the flow follows the speed array (eq. 6.2), the nozzle the samples: they must agree
     travelled = float(np.linalg.norm(np.diff(np.asarray(trajectory.xy, np.float64), axis=0),
                                      axis=1).sum()) if n > 1 else 0.0
@@ -547,7 +547,7 @@ def valve_frequency(trajectory: Trajectory, material: str, job: "Job", *,
             commanded = _integral(q, t)
             delivered = _integral(np.where(nu > 0, cal.flow(nu), 0.0), t)
             warnings.append(f"{where}: {'; '.join(limits)}: clamped (flow.out_of_range = "
-                            f"'clamp'), {_volume_error(delivered, commanded)}")
+                            f"'clamp'), {volume_error(delivered, commanded)}")
         moving = speed > 1e-9
         drops = np.divide(nu, speed, out=np.full(n, np.inf), where=moving)
         few = moving & (drops < fl.min_drops_per_mm) & (q > 0)
@@ -833,7 +833,7 @@ def _integral(y: np.ndarray, t: np.ndarray) -> float:
     return float(trapezoid(y, t)) if len(t) > 1 else 0.0
 
 
-def _volume_error(delivered: float, commanded: float) -> str:
+def volume_error(delivered: float, commanded: float) -> str:
     """'delivers D of C mm^3 commanded (+x %)': the volume a limit costs (or adds)."""
     pct = f"{100.0 * (delivered / commanded - 1.0):+.1f} %" if commanded > 0 else "n/a"
     return f"delivers {delivered:.4g} of {commanded:.4g} mm^3 commanded ({pct})"
@@ -1085,7 +1085,7 @@ def _pwm(plan: FrequencyPlan, cal: Calibration, job: "Job", duration: float, whe
     vol_ref = float(cal.flow(np.array([f]))[0]) / f  # one calibration pulse at f, mm^3
     width_ms = fl.calibration_pulse_ms * vol / vol_ref
     w_max_ms = pwm_max_width_ms(cal, job)
-    longest = _pwm_longest(w_max_ms, period * 1000.0)
+    longest = pwm_longest_text(w_max_ms, period * 1000.0)
     cut = width_ms > w_max_ms * (1 + 1e-9)
     if np.any(cut) and fl.out_of_range == "error":
         q_max = vol_ref * (w_max_ms / fl.calibration_pulse_ms) * f
@@ -1107,12 +1107,12 @@ def _pwm(plan: FrequencyPlan, cal: Calibration, job: "Job", duration: float, whe
             f"dropped and {raised} raised to flow.min_pulse_ms = {fl.min_pulse_ms:g} ms "
             f"(widths below it laid as shortest pulses in some periods), "
             f"{int(np.count_nonzero(cut))} cut to {w_max_ms:.4g} ms ({longest}); "
-            f"{_volume_error(delivered, float(np.sum(vol)))}")
+            f"{volume_error(delivered, float(np.sum(vol)))}")
     return (times[keep], widths_us[keep].astype(np.uint16), findings,
             (float(np.sum(vol)), delivered))
 
 
-def _pwm_longest(w_max_ms: float, period_ms: float) -> str:
+def pwm_longest_text(w_max_ms: float, period_ms: float) -> str:
     """What bounds the longest PWM pulse ``w_max_ms`` (:func:`pwm_max_width_ms`), words."""
     if w_max_ms < min(period_ms, 65.535) * (1 - 1e-9):
         return (f"pulses of at most {w_max_ms:.4g} ms of the {period_ms:g} ms period: the "
@@ -1250,7 +1250,7 @@ def summarise_findings(findings: "Sequence[tuple[int, str]]") -> list[str]:
     Returns lines ``"N paths in L layers (a-b): <first finding of that kind>"`` (up to 5
     layers that are not a run named one by one: ``(0, 5, 23)``), the most
     frequent kind first (ties in order of first appearance); a kind whose findings state
-    the volume a limit costs (:func:`_volume_error`) ends with its total over all of them,
+    the volume a limit costs (:func:`volume_error`) ends with its total over all of them,
     ``"; in all, delivers D of C mm^3 commanded (x %)"`` (a kind names the material and
     role, so this is the volume lost per material and role).
     """
@@ -1271,12 +1271,12 @@ def summarise_findings(findings: "Sequence[tuple[int, str]]") -> list[str]:
         said = [_VOLUME.search(text) for _, text in items]
         if n > 1 and all(said):
             delivered = sum(float(m.group(1)) for m in said)
-            line += f"; in all, {_volume_error(delivered, sum(float(m.group(2)) for m in said))}"
+            line += f"; in all, {volume_error(delivered, sum(float(m.group(2)) for m in said))}"
         out.append(line)
     return out
 
 
-#: The volume a finding states (:func:`_volume_error`): delivered, commanded.
+#: The volume a finding states (:func:`volume_error`): delivered, commanded.
 _VOLUME = re.compile(r"delivers (\S+) of (\S+) mm\^3 commanded")
 
 
@@ -1479,13 +1479,13 @@ def plan_layer_valves(layer: "LayerMotion", job: "Job") -> list[LayerProgram]:
     progs = (_nominal_fm_programs([x[2] for x in picked], [x[1] for x in picked], dh,
                                   tables, job)
              if job.flow.mode == "fm" else [None] * len(picked))
-    return [LayerProgram(i, material, prog if prog is not None else _plan_path_valves(
+    return [LayerProgram(i, material, prog if prog is not None else plan_path_valves(
                 layer.index, i, traj, material, job, dh, tables[material]))
             for (i, material, traj), prog in zip(picked, progs)]
 
 
-def _plan_path_valves(layer: int, index: int, trajectory: Trajectory, material: str,
-                      job: "Job", dh: float, calibration: Calibration) -> ValveProgram:
+def plan_path_valves(layer: int, index: int, trajectory: Trajectory, material: str,
+                     job: "Job", dh: float, calibration: Calibration) -> ValveProgram:
     """:func:`plan_valves` of trajectory ``index`` of a layer, whose errors name that index
     as motion's do, "layer 3, path 5 (part fill): ..." (the trajectory does not know it:
     "layer 3 part fill path" left a docs hunt to guess which of the layer's fill paths).

@@ -93,10 +93,10 @@ def _top_frequency(material: str, job: "Job") -> str:
     top = float(calibration_for(material, job).frequency_hz[-1])
     cell = max_valve_frequency(job)
     if job.flow.mode != "fm":
-        from icefab.flow import _pwm_longest, pwm_max_width_ms
+        from icefab.flow import pwm_longest_text, pwm_max_width_ms
         longest = pwm_max_width_ms(calibration_for(material, job), job)
         return (f"{job.flow.pwm_frequency_hz:g} Hz PWM, "
-                f"{_pwm_longest(longest, 1000.0 / job.flow.pwm_frequency_hz)}")
+                f"{pwm_longest_text(longest, 1000.0 / job.flow.pwm_frequency_hz)}")
     if top < cell:
         return (f"{top:g} Hz, the last row of materials.{material}.calibration_file's table; "
                 f"the cell goes to {cell:g} Hz")
