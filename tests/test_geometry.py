@@ -715,3 +715,36 @@ def test_an_offset_drops_an_annulus_narrower_than_its_filter_keeps_apart(
     # a ring of the same area elsewhere is no sliver of the outer one
     far = circle(radius - width, (5 * radius, 0.0))[::-1]
     assert len(geo.simplify([circle(radius), far], filt, slivers=True)) == 2
+
+
+_COORD = st.floats(-300.0, 300.0, allow_nan=False, allow_infinity=False)
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.lists(st.tuples(_COORD, _COORD, _COORD, _COORD), min_size=0, max_size=30),
+       st.sampled_from([0.25, 0.4, 3.0]), st.booleans())
+def test_compiled_subdivision_is_core_subdivide_segments_to_the_last_bit(segs, step, zero):
+    """geometry's compiled subdivision (the paths stage's hot loop) and its ring sampling
+    are core.subdivide_segments and the numpy arc formula they replaced, bit for bit:
+    the toolpaths were checked unchanged by it, and this keeps the two forms one."""
+    from icefab.core import arc_lengths, subdivide_segments
+
+    a = np.array([s[:2] for s in segs], dtype=np.float64).reshape(-1, 2)
+    b = np.array([s[2:] for s in segs], dtype=np.float64).reshape(-1, 2)
+    if zero and len(a):
+        b[::3] = a[::3]                       # zero-length segments among them
+    got = geo._subdivided(a, b, step)
+    want = subdivide_segments(a, b, step)
+    for g, w in zip(got, want):
+        assert g.shape == w.shape and np.array_equal(g, w)
+    # the rings' samples: ring of each sample and its arc position from the ring's start
+    if len(a) >= 3:
+        rings = [a[: len(a) // 2 + 1], a[len(a) // 2 + 1:]] if len(a) >= 6 else [a]
+        P, edge, ea, eb, _prv, ring, arc, _ring_len = geo._sample_rings(rings, step * 10)
+        seg = np.linalg.norm(eb - ea, axis=1)
+        first = np.cumsum([0] + [len(r) for r in rings[:-1]])
+        ring_of_edge = np.repeat(np.arange(len(rings)), [len(r) for r in rings])
+        _, _, t = subdivide_segments(ea, eb, step * 10)
+        cum = arc_lengths(seg)
+        assert np.array_equal(ring, ring_of_edge[edge])
+        assert np.array_equal(arc, cum[edge] - cum[first][ring_of_edge[edge]] + t * seg[edge])

@@ -180,7 +180,7 @@ def layer_planes(z_min: float, z_max: float, job: Job, mesh: Mesh | None = None,
         bottom, top = edges[:-1].copy(), edges[1:].copy()
         n = len(bottom)
     else:
-        n = _uniform_count(z_lo, z_hi, t)
+        n = max(1, int(round((z_hi - z_lo) / t)))   # the top layer may reach past the part
         k = np.arange(n, dtype=np.float64)
         bottom = z_lo + k * t
         top = z_lo + (k + 1.0) * t
@@ -192,12 +192,6 @@ def layer_planes(z_min: float, z_max: float, job: Job, mesh: Mesh | None = None,
     above[z >= z_hi] = False
     q = np.where(above, np.nextafter(z, np.inf), z)
     return bottom, top, z, q
-
-
-def _uniform_count(z_lo: float, z_hi: float, t: float) -> int:
-    """The number of layers ``t`` mm thick between ``z_lo`` and ``z_hi`` mm (at least one:
-    the top layer may reach past the part)."""
-    return max(1, int(round((z_hi - z_lo) / t)))
 
 
 def layer_count(mesh: Mesh, job: Job) -> int | None:
@@ -215,10 +209,7 @@ def layer_count(mesh: Mesh, job: Job) -> int | None:
     if not (np.isfinite([z_min, z_max]).all() and z_max > z_min):
         return None
     check_layers(z_min, z_max, job)
-    f0, f1 = job.parts.part_fraction
-    height = z_max - z_min
-    return _uniform_count(z_min + f0 * height, z_min + f1 * height,
-                          job.slicing.layer_thickness_mm)
+    return len(layer_planes(z_min, z_max, job)[0])   # uniform: cheap, no mesh needed
 
 
 def adaptive_layers(mesh: Mesh, z_lo: float, z_hi: float, job: Job) -> AdaptiveLayers:
